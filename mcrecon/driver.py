@@ -1,0 +1,328 @@
+"""The adaptive driver: rounds of plan -> request -> render -> validate -> commit.
+
+:func:`adapt` runs an adaptive (or uniform) sampling run against any
+renderer (:class:`~mcrecon.protocol.Renderer`): an in-process callable,
+a built-in scene, an out-of-process command or Mitsuba.  Each round is
+validated and committed to the sample log *before* the statistics and
+the method see it, so a run killed at any point resumes from its log
+(:func:`resume`) without losing a committed sample.
+
+Randomness is derived from ``(seed, round index)``: the method's
+decisions use ``default_rng([seed, round, 1])`` and the renderer gets
+the seed ``SeedSequence([seed, round, 2])``.  A resumed run therefore
+takes exactly the decisions the uninterrupted run would have taken.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import numpy as np
+
+from .errors import InputError, RendererError
+from .io.samplelog import append_log, cast_positions, read_log, set_run_settings, write_log
+from .methods import Method, get_method
+from .methods.base import AdaptiveState
+from .protocol import SampleBatch, validate_reply
+from .stats import NONFINITE_POLICIES, PixelStats
+
+__all__ = ["adapt", "resume", "AdaptiveResult", "round_seeds"]
+
+
+@dataclasses.dataclass(eq=False)
+class AdaptiveResult:
+    """Outcome of an adaptive run.
+
+    Attributes
+    ----------
+    image : ndarray (H, W, C) float64
+    stats : PixelStats
+        Statistics of every committed sample.
+    rounds : list of dict
+        Per round: ``round``, ``samples`` (this round), ``samples_total``,
+        ``renderer_seconds``, ``toolkit_seconds``, ``wall_seconds``
+        (cumulative, renderer + toolkit), ``error`` (relative MSE of the
+        image after the round, when a reference is given) and
+        ``eval_seconds`` (time to compute that error, not counted in the
+        toolkit time).
+    stopped : str
+        Why the run ended: ``budget``, ``converged`` (the method's target),
+        ``time_limit`` or ``max_rounds``.
+    log : Path or None
+    method : Method
+    """
+
+    image: np.ndarray
+    stats: PixelStats
+    rounds: list
+    stopped: str
+    log: Path | None
+    method: Method
+
+    @property
+    def counts(self) -> np.ndarray:
+        """Samples per pixel (H, W)."""
+        return self.stats.count
+
+    @property
+    def renderer_seconds(self) -> float:
+        return float(sum(r["renderer_seconds"] for r in self.rounds))
+
+    @property
+    def toolkit_seconds(self) -> float:
+        return float(sum(r["toolkit_seconds"] for r in self.rounds))
+
+
+def round_seeds(seed: int, round_index: int) -> tuple[np.random.Generator, int]:
+    """(decision RNG, renderer seed) of a round, derived from the run seed."""
+    rng = np.random.default_rng([int(seed), int(round_index), 1])
+    renderer_seed = int(np.random.SeedSequence([int(seed), int(round_index), 2]).generate_state(1)[0])
+    return rng, renderer_seed
+
+
+class _Progress:
+    def __init__(self, enabled: bool | None, budget: int):
+        self.enabled = sys.stderr.isatty() if enabled is None else bool(enabled)
+        self.budget = max(budget, 1)
+
+    def update(self, n: int, rnd: int, wall: float):
+        if not self.enabled:
+            return
+        frac = min(n / self.budget, 1.0)
+        bar = "#" * int(30 * frac)
+        sys.stderr.write(f"\r[{bar:<30}] {100 * frac:5.1f}%  round {rnd}  {n} samples  {wall:6.1f} s")
+        sys.stderr.flush()
+
+    def close(self):
+        if self.enabled:
+            sys.stderr.write("\n")
+            sys.stderr.flush()
+
+
+def _renderer_name(renderer) -> str:
+    return str(getattr(renderer, "name", type(renderer).__name__))
+
+
+def _check_renderer(renderer):
+    for attr in ("width", "height", "channels", "render"):
+        if not hasattr(renderer, attr):
+            raise InputError("renderer", attr, "missing: a renderer needs width, height, channels and "
+                             "render(request) (see mcrecon.protocol.Renderer)")
+    w, h = int(renderer.width), int(renderer.height)
+    if w < 1 or h < 1:
+        raise InputError("renderer", "width/height", f"{w}x{h}, expected at least 1x1")
+    return w, h, tuple(str(c) for c in renderer.channels)
+
+
+def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=None,
+          time_limit: float | None = None, progress: bool | None = None, nonfinite: str = "drop",
+          max_rounds: int = 10_000, track_error: bool = True, eps: float = 0.01,
+          metadata: Mapping | None = None, renderer_spec: Mapping | None = None,
+          overwrite: bool = False, storage_dtype: str = "float32",
+          on_round: Callable[[dict], Any] | None = None) -> AdaptiveResult:
+    """Run adaptive rounds until the budget, the method's target or a time limit.
+
+    Parameters
+    ----------
+    renderer : Renderer
+        Answers :class:`~mcrecon.protocol.SampleRequest` s.
+    method : str or Method
+        A registered method name or an instance.
+    spp : float
+        Sample budget as average samples per pixel (total = round(spp * W * H)).
+    seed : int
+        Run seed: the whole run is reproducible from it.
+    log : path-like, optional
+        Sample log to create; every round is committed to it before the
+        next request.  Refused if it exists, unless ``overwrite``.
+    reference : ndarray (H, W, C), optional
+        Ground truth for the per-round error (and oracle modes).
+    time_limit : float, optional
+        Wall seconds; no new round starts after it.
+    progress : bool, optional
+        Progress bar on stderr; default: only on a terminal.
+    nonfinite : {'drop', 'zero', 'raise'}
+        Policy for NaN/Inf sample values (see :mod:`mcrecon.stats`); with
+        ``raise`` a reply holding one is refused before it is committed.
+    track_error : bool
+        Reconstruct after every round to record its error (needs a
+        reference; excluded from the toolkit time).
+    renderer_spec : mapping, optional
+        How to recreate the renderer (stored with the run for ``--resume``).
+    storage_dtype : {'float32', 'float64'}
+        Precision of the stored positions and values.  The statistics
+        ingest exactly the stored numbers (with or without a log), so a
+        resumed run sees what the uninterrupted one saw.
+
+    Returns
+    -------
+    AdaptiveResult
+    """
+    if not isinstance(method, Method):
+        method = get_method(str(method))
+    w, h, channels = _check_renderer(renderer)
+    if not (isinstance(spp, (int, float, np.number)) and math.isfinite(spp) and spp > 0):
+        raise InputError("adapt", "spp", f"got {spp!r}, expected a positive number of samples per pixel")
+    if nonfinite not in NONFINITE_POLICIES:
+        raise InputError("adapt", "nonfinite", f"got {nonfinite!r}; valid: {', '.join(NONFINITE_POLICIES)}")
+    if time_limit is not None and not time_limit > 0:
+        raise InputError("adapt", "time_limit", f"got {time_limit!r}, expected seconds > 0")
+    ref = _check_reference(reference, (h, w, len(channels)))
+    if storage_dtype not in ("float32", "float64"):
+        raise InputError("adapt", "storage_dtype", f"got {storage_dtype!r}; valid: float32, float64")
+    budget = int(round(float(spp) * w * h))
+    settings = {
+        "method": method.name, "method_options": method.params, "spp": float(spp), "seed": int(seed),
+        "nonfinite": nonfinite, "time_limit": time_limit, "width": w, "height": h,
+        "channels": list(channels), "renderer": _renderer_name(renderer),
+        "renderer_spec": dict(renderer_spec or {}), "storage_dtype": storage_dtype,
+    }
+    log_path = None
+    if log is not None:
+        log_path = Path(log)
+        if log_path.exists() and not overwrite:
+            raise InputError(str(log_path), "file", "exists; resume it with --resume / mcrecon.driver.resume, "
+                             "or choose another path")
+        meta = {"renderer": _renderer_name(renderer), "seed": int(seed), **dict(metadata or {}),
+                "settings": settings}
+        write_log(log_path, np.zeros((0, 2), storage_dtype), np.zeros((0, len(channels)), storage_dtype),
+                  width=w, height=h, channels=channels, reference=ref, metadata=meta)
+        set_run_settings(log_path, settings)
+    stats = PixelStats(w, h, channels, subpixels=method.subpixels)
+    return _run(renderer, method, stats=stats, rounds=[], round_index=0, budget=budget, seed=int(seed),
+                log_path=log_path, ref=ref, time_limit=time_limit, progress=progress, nonfinite=nonfinite,
+                max_rounds=max_rounds, track_error=track_error, eps=eps, elapsed=0.0, on_round=on_round,
+                storage_dtype=storage_dtype)
+
+
+def _check_reference(reference, shape):
+    if reference is None:
+        return None
+    ref = np.asarray(reference, dtype=np.float64)
+    if ref.ndim == 2 and shape[2] == 1:
+        ref = ref[..., None]
+    if ref.shape != shape:
+        raise InputError("reference", "shape", f"{ref.shape}, expected (height, width, channels) = {shape}")
+    if not np.isfinite(ref).all():
+        raise InputError("reference", "values", "contains NaN or Inf")
+    return ref
+
+
+def resume(log, renderer, *, progress: bool | None = None, time_limit: float | None = None,
+           track_error: bool = True, on_round=None) -> AdaptiveResult:
+    """Continue a killed or stopped run from its log with its recorded settings.
+
+    Rebuilds the statistics from the committed samples, replays
+    ``method.observe`` for every committed round, and goes on with the
+    next round index, so the run takes the same decisions as one that was
+    never interrupted.  Rows of an interrupted append are discarded.
+    """
+    log_path = Path(log)
+    sl = read_log(log_path)
+    s = sl.run_settings
+    if not s:
+        raise InputError(str(log_path), "run settings", "none recorded: this log was not written by an "
+                         "adaptive run (use `mcrecon denoise` for offline logs)")
+    w, h, channels = _check_renderer(renderer)
+    if (w, h, list(channels)) != (s["width"], s["height"], list(s["channels"])):
+        raise InputError(str(log_path), "renderer", f"renderer is {w}x{h} {channels}, the run was "
+                         f"{s['width']}x{s['height']} {s['channels']}")
+    method = get_method(s["method"], **s["method_options"])
+    stats = PixelStats.from_log(sl, subpixels=method.subpixels, nonfinite=s["nonfinite"])
+    for r in range(sl.n_rounds):
+        chunk = sl.read_all(rounds=[r])
+        method.observe(SampleBatch(chunk.positions, chunk.values), r)
+    records = list(sl.round_records)
+    elapsed = float(records[-1]["wall_seconds"]) if records else 0.0
+    ref = sl.reference()
+    budget = int(round(float(s["spp"]) * w * h))
+    tl = time_limit if time_limit is not None else s.get("time_limit")
+    return _run(renderer, method, stats=stats, rounds=records, round_index=sl.n_rounds, budget=budget,
+                seed=int(s["seed"]), log_path=log_path, ref=ref, time_limit=tl, progress=progress,
+                nonfinite=s["nonfinite"], max_rounds=10_000, track_error=track_error, eps=0.01,
+                elapsed=elapsed, on_round=on_round, storage_dtype=s.get("storage_dtype", "float32"))
+
+
+def _run(renderer, method, *, stats, rounds, round_index, budget, seed, log_path, ref, time_limit,
+         progress, nonfinite, max_rounds, track_error, eps, elapsed, on_round,
+         storage_dtype) -> AdaptiveResult:
+    from .metrics import relative_mse
+
+    name = _renderer_name(renderer)
+    c = len(stats.channels)
+    bar = _Progress(progress, budget)
+    stopped = "budget"
+    wall_start = time.perf_counter() - elapsed
+    state = None
+    try:
+        while True:
+            if stats.n_samples >= budget:
+                stopped = "budget"
+                break
+            if round_index >= max_rounds:
+                stopped = "max_rounds"
+                break
+            if time_limit is not None and time.perf_counter() - wall_start >= time_limit:
+                stopped = "time_limit"
+                break
+            t0 = time.perf_counter()
+            rng, rseed = round_seeds(seed, round_index)
+            state = AdaptiveState(stats, round_index, budget, stats.n_samples, rng, ref)
+            req = method.plan(state)
+            if req is None or req.total == 0:
+                stopped = "converged" if req is None or stats.n_samples < budget else "budget"
+                break
+            if req.total > state.remaining:
+                raise RuntimeError(f"method {method.name} planned {req.total} samples with only "
+                                   f"{state.remaining} left in the budget (a bug in the method)")
+            req = dataclasses.replace(req, round_index=round_index, seed=rseed)
+            t1 = time.perf_counter()
+            reply = renderer.render(req)
+            t2 = time.perf_counter()
+            render_s = getattr(renderer, "last_render_seconds", None)
+            render_s = float(render_s) if render_s is not None else t2 - t1
+            batch = validate_reply(req, reply, n_channels=c, renderer=name)
+            batch = SampleBatch(cast_positions(batch.positions, storage_dtype),
+                                np.asarray(batch.values).astype(storage_dtype, copy=False), batch.features)
+            if nonfinite == "raise":
+                bad = ~np.isfinite(np.asarray(batch.values)).all(axis=1)
+                if bad.any():
+                    raise RendererError(name, "values", f"{int(bad.sum())} sample(s) with NaN or Inf in round "
+                                        f"{round_index} (policy nonfinite='raise'); nothing of this round was stored")
+            toolkit_s = (t1 - t0) + (time.perf_counter() - t2) + ((t2 - t1) - render_s)
+            record = {"round": round_index, "samples": len(batch),
+                      "samples_total": stats.n_samples + len(batch), "renderer_seconds": render_s}
+            t3 = time.perf_counter()
+            if log_path is not None:
+                append_log(log_path, batch.positions, batch.values, round_index=round_index,
+                           features=batch.features if batch.features else None,
+                           round_record={**record, "toolkit_seconds": toolkit_s,
+                                         "wall_seconds": time.perf_counter() - wall_start})
+            stats.add(batch.positions, batch.values, nonfinite=nonfinite, source=name)
+            method.observe(batch, round_index)
+            toolkit_s += time.perf_counter() - t3
+            record["toolkit_seconds"] = toolkit_s
+            record["wall_seconds"] = time.perf_counter() - wall_start
+            if ref is not None and track_error:
+                te = time.perf_counter()
+                st = AdaptiveState(stats, round_index, budget, stats.n_samples, rng, ref)
+                record["error"] = relative_mse(method.finish(st), ref, eps=eps)
+                record["eval_seconds"] = time.perf_counter() - te
+                wall_start += record["eval_seconds"]  # evaluation is not part of the run's time
+            rounds.append(record)
+            if on_round is not None:
+                on_round(record)
+            bar.update(stats.n_samples, round_index, record["wall_seconds"])
+            round_index += 1
+    finally:
+        bar.close()
+    rng, _ = round_seeds(seed, round_index)
+    final = AdaptiveState(stats, round_index, budget, stats.n_samples, rng, ref)
+    image = method.finish(final)
+    return AdaptiveResult(image=np.asarray(image, dtype=np.float64), stats=stats, rounds=rounds,
+                          stopped=stopped, log=log_path, method=method)

@@ -1,0 +1,163 @@
+"""Out-of-process renderers: exchange HDF5 files with a command.
+
+Protocol version 1 (specified in ``docs/renderer-protocol.md``): for each
+round mcrecon writes a *request* file, starts the renderer command (an
+argument list, never through a shell) with the ``{request}`` and
+``{reply}`` placeholders replaced by the two paths, waits for it to exit
+(with a time-out), and reads the *reply*, a file in the sample-log
+format.  Every failure (cannot start, time-out, non-zero exit, missing,
+malformed or short reply) raises :class:`~mcrecon.errors.RendererError`;
+the driver has committed every earlier round, so the run stays resumable.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+from typing import Sequence
+
+import h5py
+import numpy as np
+
+from .errors import InputError, RendererError
+from .protocol import SampleBatch, SampleRequest
+
+__all__ = ["CommandRenderer", "write_request", "read_request", "REQUEST_FORMAT"]
+
+REQUEST_FORMAT = "mcrecon-request"
+REQUEST_VERSION = 1
+
+
+def write_request(path, request: SampleRequest, *, channels: Sequence[str]) -> Path:
+    """Write a request file atomically (temporary file, then rename)."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["format"] = REQUEST_FORMAT
+            f.attrs["format_version"] = REQUEST_VERSION
+            f.attrs["width"] = request.width
+            f.attrs["height"] = request.height
+            f.attrs["channels"] = np.array(list(channels), dtype=h5py.string_dtype())
+            f.attrs["round"] = request.round_index
+            f.attrs["seed"] = np.uint64(request.seed)
+            f.attrs["n_total"] = request.total
+            if request.counts is not None:
+                f.create_dataset("counts", data=request.counts.astype(np.int64))
+            if request.positions is not None:
+                f.create_dataset("positions", data=request.positions.astype(np.float64))
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def read_request(path) -> SampleRequest:
+    """Read a request file (what a Python renderer does first)."""
+    path = Path(path)
+    try:
+        f = h5py.File(path, "r")
+    except OSError as exc:
+        raise InputError(str(path), "file", f"not a readable request file: {exc}") from None
+    with f:
+        if f.attrs.get("format") != REQUEST_FORMAT:
+            raise InputError(str(path), "attribute format", f"expected {REQUEST_FORMAT!r}")
+        counts = f["counts"][...] if "counts" in f else None
+        positions = f["positions"][...] if "positions" in f else None
+        return SampleRequest(int(f.attrs["width"]), int(f.attrs["height"]), counts=counts, positions=positions,
+                             round_index=int(f.attrs["round"]), seed=int(f.attrs["seed"]))
+
+
+class CommandRenderer:
+    """A renderer that is an external command speaking the file protocol.
+
+    Parameters
+    ----------
+    argv : sequence of str
+        The command; the items ``{request}`` and ``{reply}`` (also inside
+        an item, e.g. ``--out={reply}``) are replaced by the file paths.
+        It is run directly (no shell).
+    width, height : int
+    channels : sequence of str
+    timeout : float, optional
+        Seconds per round; the command is killed after it.
+    workdir : path-like, optional
+        Where request/reply files go (default: a private temporary
+        directory).  They are removed after each successful round.
+    """
+
+    def __init__(self, argv: Sequence[str], *, width: int, height: int,
+                 channels: Sequence[str] = ("R", "G", "B"), timeout: float | None = 600.0, workdir=None):
+        argv = [str(a) for a in argv]
+        if not argv:
+            raise InputError("renderer command", "argv", "empty")
+        joined = " ".join(argv)
+        if "{request}" not in joined or "{reply}" not in joined:
+            raise InputError("renderer command", "argv",
+                             f"{joined!r} lacks the {{request}} and {{reply}} placeholders")
+        if timeout is not None and not timeout > 0:
+            raise InputError("renderer command", "timeout", f"got {timeout}, expected seconds > 0")
+        self.argv = argv
+        self.width, self.height = int(width), int(height)
+        self.channels = tuple(channels)
+        self.timeout = timeout
+        self._own_workdir = workdir is None
+        self.workdir = Path(workdir) if workdir is not None else Path(tempfile.mkdtemp(prefix="mcrecon-renderer-"))
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        self.name = f"renderer command {Path(argv[0]).name}"
+        self.last_render_seconds = None
+
+    def __del__(self):
+        if getattr(self, "_own_workdir", False):
+            shutil.rmtree(getattr(self, "workdir", ""), ignore_errors=True)
+
+    def render(self, request: SampleRequest) -> SampleBatch:
+        from .io.samplelog import read_log
+
+        stem = f"round-{request.round_index:05d}"
+        req_path = self.workdir / f"{stem}.request.h5"
+        reply_path = self.workdir / f"{stem}.reply.h5"
+        for p in (req_path, reply_path):
+            if p.exists():
+                p.unlink()
+        write_request(req_path, request, channels=self.channels)
+        argv = [a.replace("{request}", str(req_path)).replace("{reply}", str(reply_path)) for a in self.argv]
+        t0 = time.perf_counter()
+        try:
+            proc = subprocess.run(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                  timeout=self.timeout, shell=False, check=False)
+        except FileNotFoundError:
+            raise RendererError(self.name, "command", f"{argv[0]!r} not found") from None
+        except PermissionError:
+            raise RendererError(self.name, "command", f"{argv[0]!r} is not executable") from None
+        except subprocess.TimeoutExpired:
+            raise RendererError(self.name, "time-out", f"round {request.round_index} took longer than "
+                                f"{self.timeout} s; the command was killed (raise --timeout, or resume)") from None
+        self.last_render_seconds = time.perf_counter() - t0
+        if proc.returncode != 0:
+            tail = proc.stderr.decode(errors="replace").strip().splitlines()
+            tail = tail[-1] if tail else "(no stderr)"
+            raise RendererError(self.name, "exit status", f"{proc.returncode} in round {request.round_index}: {tail}")
+        if not reply_path.exists():
+            raise RendererError(self.name, "reply", f"{reply_path} was not written")
+        try:
+            reply = read_log(reply_path)
+            data = reply.read_all()
+        except InputError as exc:
+            raise RendererError(self.name, "reply", f"malformed: {exc}") from None
+        if (reply.width, reply.height) != (self.width, self.height):
+            raise RendererError(self.name, "reply width/height", f"{reply.width}x{reply.height}, "
+                                f"expected {self.width}x{self.height}")
+        if tuple(reply.channels) != self.channels:
+            raise RendererError(self.name, "reply channels", f"{','.join(reply.channels)}, "
+                                f"expected {','.join(self.channels)}")
+        for p in (req_path, reply_path):
+            p.unlink(missing_ok=True)
+        return SampleBatch(np.asarray(data.positions, np.float64), data.values)

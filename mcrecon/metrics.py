@@ -1,0 +1,110 @@
+"""Image error metrics against a reference.
+
+Relative MSE follows the adaptive-rendering literature (Rousselle et al.
+2011): ``(img - ref)^2 / (ref^2 + eps)`` per pixel and channel, averaged
+over both, ``eps = 0.01`` by default.  PSNR needs an explicit data range:
+HDR images have none that a dtype could tell.  SSIM is computed by
+scikit-image on tone-mapped (sRGB, clipped) images, as a display metric.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = ["relative_mse", "relative_mse_map", "mse", "rmse", "psnr", "ssim", "error_map", "compare"]
+
+
+def _pair(img, ref, where="compare"):
+    a = np.asarray(img, dtype=np.float64)
+    b = np.asarray(ref, dtype=np.float64)
+    if a.ndim == 2:
+        a = a[..., None]
+    if b.ndim == 2:
+        b = b[..., None]
+    if a.shape != b.shape:
+        raise InputError(where, "shape", f"image {a.shape} and reference {b.shape} differ; "
+                         "compare images of the same size and channel count")
+    if not np.isfinite(b).all():
+        raise InputError(where, "reference", f"{int((~np.isfinite(b)).sum())} non-finite value(s)")
+    return a, b
+
+
+def relative_mse_map(img, ref, *, eps: float = 0.01) -> np.ndarray:
+    """Per-pixel relative squared error ``(img - ref)^2 / (ref^2 + eps)``, mean over channels (H, W)."""
+    if not eps > 0:
+        raise InputError("relative_mse", "eps", f"got {eps}, expected > 0")
+    a, b = _pair(img, ref)
+    return np.mean((a - b) ** 2 / (b * b + eps), axis=2)
+
+
+def relative_mse(img, ref, *, eps: float = 0.01) -> float:
+    """Relative MSE averaged over pixels and channels.
+
+    References
+    ----------
+    .. [1] F. Rousselle, C. Knaus, M. Zwicker, "Adaptive Sampling and
+       Reconstruction using Greedy Error Minimization", SIGGRAPH Asia 2011.
+    """
+    return float(np.mean(relative_mse_map(img, ref, eps=eps)))
+
+
+def error_map(img, ref) -> np.ndarray:
+    """Per-pixel squared error averaged over channels (H, W)."""
+    a, b = _pair(img, ref)
+    return np.mean((a - b) ** 2, axis=2)
+
+
+def mse(img, ref) -> float:
+    return float(np.mean(error_map(img, ref)))
+
+
+def rmse(img, ref) -> float:
+    return float(np.sqrt(mse(img, ref)))
+
+
+def psnr(img, ref, *, data_range: float) -> float:
+    """Peak signal-to-noise ratio in dB, with an explicit ``data_range``."""
+    if not (np.isfinite(data_range) and data_range > 0):
+        raise InputError("psnr", "data_range", f"got {data_range}, expected a positive number "
+                         "(HDR images have no implicit range)")
+    m = mse(img, ref)
+    if m == 0:
+        return float("inf")
+    return float(10.0 * np.log10(data_range ** 2 / m))
+
+
+def ssim(img, ref, *, exposure: float = 0.0) -> float:
+    """SSIM (scikit-image) of the sRGB tone-mapped images, data range 1."""
+    from skimage.metrics import structural_similarity
+
+    from .io.images import tonemap_srgb
+
+    a, b = _pair(img, ref)
+    a = tonemap_srgb(a, exposure=exposure)
+    b = tonemap_srgb(b, exposure=exposure)
+    h, w = a.shape[:2]
+    win = min(7, h, w)
+    if win < 3:
+        # SSIM needs a window of at least 3 pixels; tiny images compare by exact match.
+        return 1.0 if np.array_equal(a, b) else float(1.0 - np.mean((a - b) ** 2))
+    if win % 2 == 0:
+        win -= 1
+    return float(structural_similarity(a, b, data_range=1.0, channel_axis=2, win_size=win))
+
+
+def compare(img, ref, *, eps: float = 0.01, data_range: float | None = None) -> dict:
+    """All metrics as a dict (PSNR with ``data_range``, default the reference's max)."""
+    a, b = _pair(img, ref)
+    if data_range is None:
+        data_range = float(np.max(b)) if np.max(b) > 0 else 1.0
+    return {
+        "relative_mse": relative_mse(a, b, eps=eps),
+        "mse": mse(a, b),
+        "rmse": rmse(a, b),
+        "psnr": psnr(a, b, data_range=data_range),
+        "psnr_data_range": data_range,
+        "ssim": ssim(a, b),
+        "eps": eps,
+    }

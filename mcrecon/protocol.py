@@ -1,0 +1,254 @@
+"""The renderer protocol: what mcrecon asks for and what a renderer answers.
+
+A *renderer* is anything with ``width``, ``height``, ``channels`` and a
+``render(request) -> SampleBatch`` method (see :class:`Renderer`).  A
+request asks for samples in two ways that may be combined:
+
+* ``counts`` (H, W): the renderer places ``counts[j, i]`` samples inside
+  pixel (i, j) = [i, i+1) x [j, j+1), choosing the positions itself
+  (e.g. with its own low-discrepancy sampler);
+* ``positions`` (M, 2): the renderer evaluates exactly these film
+  positions (x is the column, y the row).
+
+The reply is a :class:`SampleBatch`: positions (N, 2) and values (N, C).
+:func:`validate_reply` checks it against the request before anything is
+stored: never trust a renderer's reply.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, Mapping, Protocol, Sequence, runtime_checkable
+
+import numpy as np
+
+from .errors import RendererError
+
+__all__ = [
+    "SampleRequest",
+    "SampleBatch",
+    "Renderer",
+    "CallableRenderer",
+    "validate_reply",
+    "jittered_positions",
+    "pixel_index",
+]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SampleRequest:
+    """A request for more samples.
+
+    Attributes
+    ----------
+    width, height : int
+        Film size in pixels.
+    counts : ndarray of int64, shape (H, W), or None
+        Number of samples the renderer places inside each pixel.
+    positions : ndarray of float64, shape (M, 2), or None
+        Film positions to evaluate exactly (x = column, y = row).
+    round_index : int
+        The adaptive round this request belongs to (0 = initial pass).
+    seed : int
+        Seed for the renderer's random numbers in this round; the same
+        request with the same seed must give the same samples.
+    """
+
+    width: int
+    height: int
+    counts: np.ndarray | None = None
+    positions: np.ndarray | None = None
+    round_index: int = 0
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.counts is None and self.positions is None:
+            raise ValueError("SampleRequest needs counts, positions or both")
+        if self.counts is not None:
+            counts = np.asarray(self.counts)
+            if counts.shape != (self.height, self.width):
+                raise ValueError(
+                    f"SampleRequest.counts has shape {counts.shape}, "
+                    f"expected (height, width) = {(self.height, self.width)}")
+            if counts.size and (not np.issubdtype(counts.dtype, np.integer) or counts.min() < 0):
+                raise ValueError("SampleRequest.counts must be non-negative integers")
+            object.__setattr__(self, "counts", counts.astype(np.int64, copy=False))
+        if self.positions is not None:
+            pos = np.asarray(self.positions, dtype=np.float64)
+            if pos.ndim != 2 or pos.shape[1] != 2:
+                raise ValueError(f"SampleRequest.positions has shape {pos.shape}, expected (M, 2)")
+            if pos.size and (not np.isfinite(pos).all() or pos[:, 0].min() < 0
+                             or pos[:, 1].min() < 0 or pos[:, 0].max() >= self.width
+                             or pos[:, 1].max() >= self.height):
+                raise ValueError("SampleRequest.positions must lie on the film "
+                                 f"[0, {self.width}) x [0, {self.height})")
+            object.__setattr__(self, "positions", pos)
+
+    @property
+    def n_from_counts(self) -> int:
+        return 0 if self.counts is None else int(self.counts.sum())
+
+    @property
+    def n_from_positions(self) -> int:
+        return 0 if self.positions is None else int(self.positions.shape[0])
+
+    @property
+    def total(self) -> int:
+        """Number of samples the reply must contain."""
+        return self.n_from_counts + self.n_from_positions
+
+
+@dataclasses.dataclass(eq=False)
+class SampleBatch:
+    """Samples: film positions (N, 2) and values (N, C), plus named features.
+
+    A renderer's reply lists the samples for ``request.counts`` first (in
+    any order) and then one sample per requested position, in request
+    order.
+    """
+
+    positions: np.ndarray
+    values: np.ndarray
+    features: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(np.shape(self.positions)[0])
+
+
+@runtime_checkable
+class Renderer(Protocol):
+    """Anything that answers sample requests."""
+
+    width: int
+    height: int
+    channels: Sequence[str]
+
+    def render(self, request: SampleRequest) -> SampleBatch:  # pragma: no cover - protocol
+        ...
+
+
+def pixel_index(positions: np.ndarray, width: int) -> np.ndarray:
+    """Flat pixel index ``row * width + col`` of film positions."""
+    pos = np.asarray(positions)
+    return np.floor(pos[:, 1]).astype(np.int64) * width + np.floor(pos[:, 0]).astype(np.int64)
+
+
+def jittered_positions(counts: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Uniform random positions, ``counts[j, i]`` of them inside pixel (i, j).
+
+    Pixels are visited in row-major order, so the result is sorted by pixel
+    (which keeps later scatter loops cache friendly).
+    """
+    counts = np.asarray(counts, dtype=np.int64)
+    h, w = counts.shape
+    flat = np.repeat(np.arange(h * w, dtype=np.int64), counts.ravel())
+    pos = rng.random((flat.size, 2))
+    pos[:, 0] += flat % w
+    pos[:, 1] += flat // w
+    # x + u can round up to x + 1 in float64 only for huge films; keep it inside.
+    np.minimum(pos[:, 0], np.nextafter(flat % w + 1.0, 0), out=pos[:, 0])
+    np.minimum(pos[:, 1], np.nextafter(flat // w + 1.0, 0), out=pos[:, 1])
+    return pos
+
+
+def validate_reply(request: SampleRequest, batch, *, n_channels: int,
+                   renderer: str = "renderer", position_tolerance: float = 1e-4) -> SampleBatch:
+    """Check a renderer's reply against its request.
+
+    Raises :class:`~mcrecon.errors.RendererError` naming the renderer,
+    the field and what was expected when the reply has the wrong type,
+    length, shape or dtype, non-finite positions, samples outside the
+    requested pixels, or positions that differ from the requested ones.
+    Non-finite *values* are allowed here; the sample log's ingestion
+    policy (``nonfinite=``) decides what happens to them.
+    """
+    if isinstance(batch, tuple) and len(batch) in (2, 3):
+        batch = SampleBatch(*batch)
+    if not isinstance(batch, SampleBatch):
+        raise RendererError(renderer, "reply",
+                            f"expected a SampleBatch or a (positions, values) tuple, got {type(batch).__name__}")
+    try:
+        pos = np.asarray(batch.positions)
+        val = np.asarray(batch.values)
+    except Exception as exc:  # ragged lists and the like
+        raise RendererError(renderer, "reply", f"cannot convert to arrays: {exc}") from None
+    n = request.total
+    if pos.ndim != 2 or pos.shape[1] != 2:
+        raise RendererError(renderer, "positions", f"shape {pos.shape}, expected ({n}, 2)")
+    if val.ndim == 1 and n_channels == 1:
+        val = val[:, None]
+    if val.ndim != 2 or val.shape[1] != n_channels:
+        raise RendererError(renderer, "values",
+                            f"shape {val.shape}, expected ({n}, {n_channels}) for {n_channels} channel(s)")
+    if pos.shape[0] != n or val.shape[0] != n:
+        raise RendererError(renderer, "reply length",
+                            f"{pos.shape[0]} positions and {val.shape[0]} values, requested {n} samples")
+    for name, arr in (("positions", pos), ("values", val)):
+        if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+            raise RendererError(renderer, name, f"dtype {arr.dtype}, expected a real floating dtype")
+    if not np.isfinite(pos).all():
+        raise RendererError(renderer, "positions", f"{int((~np.isfinite(pos)).any(axis=1).sum())} non-finite positions")
+    pos = pos.astype(np.float64, copy=False)
+    w, h = request.width, request.height
+    nc = request.n_from_counts
+    if nc:
+        pc = pos[:nc]
+        off = (pc[:, 0] < 0) | (pc[:, 0] >= w) | (pc[:, 1] < 0) | (pc[:, 1] >= h)
+        if off.any():
+            raise RendererError(renderer, "positions",
+                                f"{int(off.sum())} of the counted samples lie off the film [0, {w}) x [0, {h})")
+        got = np.bincount(pixel_index(pc, w), minlength=w * h)
+        if not np.array_equal(got, request.counts.ravel()):
+            bad = int(np.count_nonzero(got != request.counts.ravel()))
+            raise RendererError(renderer, "positions",
+                                f"per-pixel sample counts differ from the request in {bad} pixel(s): "
+                                "samples must lie inside the requested pixels")
+    if request.n_from_positions:
+        pp = pos[nc:]
+        dev = np.abs(pp - request.positions).max()
+        if not dev <= position_tolerance:
+            raise RendererError(renderer, "positions",
+                                f"differ from the requested positions by up to {dev:.3g} "
+                                f"(tolerance {position_tolerance}); answer them in request order")
+        pos = pos.copy()
+        pos[nc:] = request.positions  # keep the exact requested positions
+    feats = {}
+    for name, arr in dict(batch.features or {}).items():
+        arr = np.asarray(arr)
+        if arr.shape[:1] != (n,):
+            raise RendererError(renderer, f"features/{name}", f"shape {arr.shape}, expected ({n}, ...)")
+        feats[str(name)] = arr
+    return SampleBatch(pos, val, feats)
+
+
+class CallableRenderer:
+    """Wrap a Python callable ``fn(request) -> SampleBatch | (positions, values)``.
+
+    Parameters
+    ----------
+    fn : callable
+        Called once per round with a :class:`SampleRequest`.
+    width, height : int
+        Film size.
+    channels : sequence of str
+        Channel names of the values it returns.
+    name : str, optional
+        Used in error messages.
+    """
+
+    def __init__(self, fn: Callable[[SampleRequest], object], *, width: int, height: int,
+                 channels: Sequence[str] = ("R", "G", "B"), name: str | None = None):
+        if not callable(fn):
+            raise TypeError("fn must be callable")
+        self.fn = fn
+        self.width = int(width)
+        self.height = int(height)
+        self.channels = tuple(channels)
+        self.name = name or getattr(fn, "__name__", "callable renderer")
+
+    def render(self, request: SampleRequest) -> SampleBatch:
+        try:
+            reply = self.fn(request)
+        except Exception as exc:
+            raise RendererError(self.name, "render", f"raised {type(exc).__name__}: {exc}") from exc
+        return reply

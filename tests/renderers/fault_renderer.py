@@ -1,0 +1,55 @@
+"""A protocol renderer with switchable faults, for tests.
+
+usage: fault_renderer.py MODE FAULT_ROUND REQUEST REPLY
+MODE: ok, slow, exit, hang, nan, short, channels, offpixel, noreply, garbage
+"""
+
+import sys
+import time
+
+import h5py
+import numpy as np
+
+
+def main(mode, fault_round, req_path, reply_path):
+    with h5py.File(req_path, "r") as f:
+        w, h, seed, rnd = (int(f.attrs[k]) for k in ("width", "height", "seed", "round"))
+        channels = list(f.attrs["channels"])
+        counts = f["counts"][...] if "counts" in f else np.zeros((h, w), np.int64)
+        extra = f["positions"][...] if "positions" in f else np.zeros((0, 2))
+    rng = np.random.default_rng(seed)
+    pix = np.repeat(np.arange(w * h), counts.ravel())
+    pos = np.concatenate([np.stack([pix % w, pix // w], 1) + rng.random((pix.size, 2)), extra])
+    val = (0.5 + (pos[:, :1] > w / 2)) * rng.uniform(0.5, 1.5, (len(pos), len(channels)))
+    faulty = rnd == int(fault_round)
+    if mode == "slow":
+        time.sleep(0.4)
+    if faulty:
+        if mode == "exit":
+            sys.stderr.write("renderer crashed: out of memory\n")
+            sys.exit(3)
+        if mode == "hang":
+            time.sleep(60)
+        if mode == "nan":
+            val[0, 0] = np.nan
+            val[1, 1] = np.inf
+        if mode == "short":
+            pos, val = pos[:-1], val[:-1]
+        if mode == "channels":
+            val = val[:, :2]
+            channels = channels[:2]
+        if mode == "offpixel":
+            pos[0, 0] = (pos[0, 0] + 1) % w
+        if mode == "noreply":
+            return
+        if mode == "garbage":
+            open(reply_path, "w").write("not hdf5")
+            return
+    with h5py.File(reply_path, "w") as f:
+        f.attrs.update(format="mcrecon-sample-log", format_version=1, width=w, height=h, channels=channels)
+        f["positions"] = pos
+        f["values"] = val
+
+
+if __name__ == "__main__":
+    main(*sys.argv[1:])

@@ -1,0 +1,159 @@
+"""Adaptive driver: rounds, budget, validation of replies, durability, resume."""
+
+import numpy as np
+import pytest
+
+from mcrecon import InputError, RendererError
+from mcrecon.driver import adapt, resume, round_seeds
+from mcrecon.io import read_log
+from mcrecon.methods import Method
+from mcrecon.protocol import CallableRenderer, SampleBatch, SampleRequest, jittered_positions, validate_reply
+
+
+def _shade(pos, seed):
+    rng = np.random.default_rng(seed)
+    base = 0.2 + 0.6 * (pos[:, :1] > 8)
+    return np.repeat(base, 3, axis=1) * rng.uniform(0.5, 1.5, (len(pos), 1))
+
+
+def _renderer(w=16, h=8, fault=None):
+    def fn(req):
+        rng = np.random.default_rng(req.seed)
+        pos = jittered_positions(req.counts, rng) if req.counts is not None else np.zeros((0, 2))
+        if req.positions is not None:
+            pos = np.concatenate([pos, req.positions])
+        val = _shade(pos, req.seed)
+        if fault and req.round_index == fault[0]:
+            return fault[1](pos, val)
+        return SampleBatch(pos, val)
+    return CallableRenderer(fn, width=w, height=h, name="test renderer")
+
+
+def test_uniform_rounds_fill_budget_exactly():
+    res = adapt(_renderer(), "box", spp=10, seed=3)
+    assert res.stats.n_samples == 16 * 8 * 10 and res.stopped == "budget"
+    assert [r["samples"] for r in res.rounds] == [128, 128, 256, 512, 256]
+    assert res.counts.min() >= 9 and res.counts.max() <= 11
+    assert all(r["renderer_seconds"] >= 0 and r["toolkit_seconds"] >= 0 for r in res.rounds)
+
+
+def test_fractional_spp_and_reference_error_falls():
+    ref = np.repeat((0.2 + 0.6 * (np.arange(16) >= 8) + 0 * np.arange(8)[:, None])[..., None], 3, axis=2)
+    res = adapt(_renderer(), "box", spp=64.5, seed=1, reference=ref)
+    assert res.stats.n_samples == round(64.5 * 128)
+    errs = [r["error"] for r in res.rounds]
+    assert errs[-1] < errs[0] / 8  # 1 -> 64 spp: the error of a mean falls ~64x; allow noise
+
+
+def test_reproducible_from_seed():
+    a = adapt(_renderer(), "box", spp=4, seed=7).image
+    b = adapt(_renderer(), "box", spp=4, seed=7).image
+    c = adapt(_renderer(), "box", spp=4, seed=8).image
+    assert np.array_equal(a, b) and not np.array_equal(a, c)
+    r1, s1 = round_seeds(7, 2)
+    r2, s2 = round_seeds(7, 2)
+    assert s1 == s2 and r1.random() == r2.random()
+
+
+class _Stopper(Method):
+    """Stops after two rounds: its own target is met."""
+
+    name = "box"
+
+    def plan(self, state):
+        if state.round_index >= 2:
+            return None
+        return super().plan(state)
+
+    def reconstruct(self, stats):
+        return stats.mean
+
+
+def test_method_target_and_time_limit_stop_the_run():
+    res = adapt(_renderer(), _Stopper(), spp=100, seed=0)
+    assert res.stopped == "converged" and len(res.rounds) == 2
+    with pytest.warns(Warning, match="no samples"):
+        res = adapt(_renderer(), "box", spp=1e6, seed=0, time_limit=1e-9)
+    assert res.stopped == "time_limit" and res.stats.n_samples == 0 and np.isfinite(res.image).all()
+
+
+@pytest.mark.parametrize("fault, match", [
+    (lambda p, v: SampleBatch(p[:-1], v[:-1]), "reply length"),
+    (lambda p, v: SampleBatch(p, v[:, :2]), "values"),
+    (lambda p, v: SampleBatch(np.where(np.arange(len(p))[:, None] == 0, p + [1, 0], p), v), "inside the requested"),
+    (lambda p, v: SampleBatch(p + 100, v), "off the film"),
+    (lambda p, v: "garbage", "expected a SampleBatch"),
+    (lambda p, v: SampleBatch(p, np.full(v.shape, "x")), "dtype"),
+])
+def test_faulty_replies_leave_a_resumable_log(tmp_path, fault, match):
+    log = tmp_path / "run.h5"
+    with pytest.raises(RendererError, match=match):
+        adapt(_renderer(fault=(2, fault)), "box", spp=8, seed=0, log=log)
+    sl = read_log(log)
+    assert sl.n_rounds == 2 and sl.n_samples == 256  # the two good rounds are committed
+    res = resume(log, _renderer())
+    full = adapt(_renderer(), "box", spp=8, seed=0)
+    assert res.stats.n_samples == full.stats.n_samples
+    np.testing.assert_array_equal(res.image, full.image)
+
+
+def test_renderer_that_raises():
+    def boom(req):
+        raise ValueError("GPU on fire")
+    with pytest.raises(RendererError, match="raised ValueError: GPU on fire"):
+        adapt(CallableRenderer(boom, width=2, height=2), "box", spp=1)
+
+
+def test_nonfinite_reply_policies(tmp_path):
+    def nan_in_round_1(p, v):
+        v = v.copy()
+        v[0, 0] = np.nan
+        return SampleBatch(p, v)
+    log = tmp_path / "r.h5"
+    with pytest.raises(RendererError, match="NaN or Inf"):
+        adapt(_renderer(fault=(1, nan_in_round_1)), "box", spp=4, log=log, nonfinite="raise")
+    assert read_log(log).n_rounds == 1
+    with pytest.warns(Warning, match="dropped"):
+        res = adapt(_renderer(fault=(1, nan_in_round_1)), "box", spp=4)
+    assert res.stats.n_dropped == 1 and np.isfinite(res.image).all()
+
+
+def test_resume_after_stop_matches_uninterrupted(tmp_path):
+    log = tmp_path / "run.h5"
+    part = adapt(_renderer(), "box", spp=16, seed=5, log=log, max_rounds=3)
+    assert part.stopped == "max_rounds"
+    res = resume(log, _renderer())
+    full = adapt(_renderer(), "box", spp=16, seed=5)
+    np.testing.assert_array_equal(res.image, full.image)
+    sl = read_log(log)
+    assert len(sl.round_records) == sl.n_rounds == len(full.rounds)
+
+
+def test_bad_arguments(tmp_path):
+    with pytest.raises(InputError, match="spp"):
+        adapt(_renderer(), "box", spp=0)
+    with pytest.raises(InputError, match="unknown method"):
+        adapt(_renderer(), "nope", spp=1)
+    with pytest.raises(InputError, match="reference"):
+        adapt(_renderer(), "box", spp=1, reference=np.zeros((2, 2, 3)))
+    (tmp_path / "x.h5").write_text("x")
+    with pytest.raises(InputError, match="exists"):
+        adapt(_renderer(), "box", spp=1, log=tmp_path / "x.h5")
+    with pytest.raises(InputError, match="not written by an adaptive run"):
+        from mcrecon.io import write_log
+        write_log(tmp_path / "plain.h5", np.zeros((1, 2)), np.zeros((1, 3)), width=1, height=1)
+        resume(tmp_path / "plain.h5", _renderer(1, 1))
+
+
+def test_request_and_reply_validation():
+    req = SampleRequest(4, 2, counts=np.array([[1, 0, 2, 0], [0, 0, 0, 1]]), positions=np.array([[0.5, 1.5]]))
+    assert req.total == 5
+    pos = np.array([[0.1, 0.1], [2.5, 0.5], [2.9, 0.2], [3.5, 1.5], [0.5, 1.5]])
+    out = validate_reply(req, (pos, np.ones((5, 1))), n_channels=1)
+    assert out.values.shape == (5, 1)
+    with pytest.raises(RendererError, match="requested positions"):
+        validate_reply(req, (pos + np.array([[0, 0]] * 4 + [[0.5, 0]]), np.ones((5, 1))), n_channels=1)
+    with pytest.raises(ValueError):
+        SampleRequest(4, 2, counts=np.zeros((3, 3), int))
+    with pytest.raises(ValueError):
+        SampleRequest(4, 2, positions=np.array([[4.0, 0.0]]))

@@ -1,0 +1,167 @@
+"""PixelStats: Welford/Chan numerics, the merge property, subpixels, policies."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+from mcrecon import InputError, McreconWarning, PixelStats
+
+
+def _samples(rng, n, w, h, c=3, dtype=np.float64):
+    pos = rng.random((n, 2)) * [w, h]
+    val = rng.normal(2.0, 0.5, (n, c)).astype(dtype)
+    return pos, val
+
+
+def _brute(pos, val, w, h):
+    """Per-pixel count, mean, unbiased variance, min, max by grouping (two-pass, float64)."""
+    pix = np.floor(pos[:, 1]).astype(int) * w + np.floor(pos[:, 0]).astype(int)
+    c = val.shape[1]
+    cnt = np.bincount(pix, minlength=w * h)
+    mean = np.zeros((w * h, c))
+    var = np.full((w * h, c), np.nan)
+    mn = np.full((w * h, c), np.inf)
+    mx = np.full((w * h, c), -np.inf)
+    for p in np.unique(pix):
+        v = val[pix == p].astype(np.float64)
+        mean[p] = v.mean(0)
+        if len(v) > 1:
+            var[p] = v.var(0, ddof=1)
+        mn[p], mx[p] = v.min(0), v.max(0)
+    return cnt.reshape(h, w), mean.reshape(h, w, c), var.reshape(h, w, c), mn.reshape(h, w, c), mx.reshape(h, w, c)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_matches_brute_force(rng, dtype):
+    w, h = 7, 5
+    pos, val = _samples(rng, 900, w, h, dtype=dtype)
+    s = PixelStats.from_samples(pos, val, width=w, height=h)
+    cnt, mean, var, mn, mx = _brute(pos, val, w, h)
+    np.testing.assert_array_equal(s.count, cnt)
+    np.testing.assert_allclose(s.mean, mean, rtol=1e-12)
+    np.testing.assert_allclose(s.sample_variance(), var, rtol=1e-10)
+    np.testing.assert_array_equal(s.min, mn)
+    np.testing.assert_array_equal(s.max, mx)
+    np.testing.assert_allclose(s.mean_variance(), var / cnt[..., None], rtol=1e-10)
+
+
+def test_merge_equals_all_at_once(rng):
+    w, h = 11, 6
+    pos, val = _samples(rng, 5000, w, h)
+    whole = PixelStats.from_samples(pos, val, width=w, height=h, subpixels=4)
+    parts = [PixelStats.from_samples(pos[a:b], val[a:b], width=w, height=h, subpixels=4)
+             for a, b in [(0, 7), (7, 1000), (1000, 1001), (1001, 5000)]]
+    merged = parts[0]
+    for p in parts[1:]:
+        merged.merge(p)
+    np.testing.assert_array_equal(merged.count, whole.count)
+    np.testing.assert_allclose(merged.mean, whole.mean, rtol=1e-12)
+    np.testing.assert_allclose(merged.m2, whole.m2, rtol=1e-9)
+    np.testing.assert_array_equal(merged.min, whole.min)
+    np.testing.assert_array_equal(merged.max, whole.max)
+    np.testing.assert_array_equal(merged.sub_count, whole.sub_count)
+    np.testing.assert_allclose(merged.sub_sum, whole.sub_sum, rtol=1e-12)
+
+
+def test_merge_with_empty_pixels(rng):
+    a = PixelStats.from_samples(np.array([[0.5, 0.5]]), np.array([[1.0]]), width=2, height=1, channels="Y")
+    b = PixelStats(2, 1, "Y")
+    a.merge(b)
+    assert a.count.tolist() == [[1, 0]] and a.mean[0, 0, 0] == 1.0 and a.mean[0, 1, 0] == 0.0
+
+
+def test_welford_stable_at_large_offset(rng):
+    # 1e6 + spread 1e-3: a naive sum of squares in float64 loses all digits
+    # (1e12 * eps ~ 1e-4 > the 1e-6 variance), Welford keeps them.
+    n = 4000
+    x = 1e6 + rng.uniform(-1e-3, 1e-3, n)
+    pos = np.column_stack([rng.random(n), rng.random(n)])
+    s = PixelStats.from_samples(pos, x[:, None], width=1, height=1, channels="Y")
+    exact = np.var(x - 1e6, ddof=1)
+    assert s.sample_variance()[0, 0, 0] == pytest.approx(exact, rel=1e-6)
+    naive = (np.sum(x * x) - n * np.mean(x) ** 2) / (n - 1)
+    assert abs(naive - exact) / exact > 1e-3  # the alternative really fails here
+    # merging rounds at the same offset stays stable too
+    a = PixelStats.from_samples(pos[:1500], x[:1500, None], width=1, height=1, channels="Y")
+    a.merge(PixelStats.from_samples(pos[1500:], x[1500:, None], width=1, height=1, channels="Y"))
+    assert a.sample_variance()[0, 0, 0] == pytest.approx(exact, rel=1e-6)
+
+
+def test_variance_policy_for_n_le_1():
+    s = PixelStats.from_samples(np.array([[0.5, 0.5], [1.5, 0.5], [1.5, 0.7]]),
+                                np.array([[1.0], [2.0], [4.0]]), width=3, height=1, channels="Y")
+    v = s.sample_variance()
+    assert np.isnan(v[0, 0, 0]) and np.isnan(v[0, 2, 0]) and v[0, 1, 0] == pytest.approx(2.0)
+    assert s.sample_variance(undefined=0.0)[0, 0, 0] == 0.0
+
+
+def test_subpixels(rng):
+    w, h, s_ = 3, 2, 4
+    pos, val = _samples(rng, 3000, w, h)
+    s = PixelStats.from_samples(pos, val, width=w, height=h, subpixels=s_)
+    sx = np.floor(pos[:, 0] * s_).astype(int)
+    sy = np.floor(pos[:, 1] * s_).astype(int)
+    cnt = np.zeros((h * s_, w * s_), int)
+    np.add.at(cnt, (sy, sx), 1)
+    np.testing.assert_array_equal(s.sub_count, cnt)
+    # subpixel sums add up to the pixel sums
+    pix_sum = s.sub_sum.reshape(h, s_, w, s_, 3).sum(axis=(1, 3))
+    np.testing.assert_allclose(pix_sum, s.mean * s.count[..., None], rtol=1e-12)
+    # empty subpixels take their pixel's mean
+    s2 = PixelStats.from_samples(np.array([[0.1, 0.1]]), np.array([[3.0, 2.0, 1.0]]), width=1, height=1, subpixels=4)
+    m = s2.subpixel_means()
+    assert m.shape == (4, 4, 3) and np.all(m == np.array([3.0, 2.0, 1.0]))
+
+
+def test_position_at_pixel_edge_in_float32_stays_inside():
+    x = np.nextafter(np.float32(3.0), np.float32(0))
+    s = PixelStats.from_samples(np.array([[x, 0.0]], np.float32), np.array([[1.0]]), width=3, height=1,
+                                channels="Y", subpixels=4)
+    assert s.count[0, 2] == 1 and s.sub_count[0, 11] == 1
+
+
+@pytest.mark.parametrize("policy", ["drop", "zero", "raise"])
+def test_nonfinite_policies(policy):
+    pos = np.array([[0.5, 0.5], [0.5, 0.5], [0.5, 0.5]])
+    val = np.array([[1.0], [np.nan], [np.inf]])
+    s = PixelStats(1, 1, "Y")
+    if policy == "raise":
+        with pytest.raises(InputError, match="NaN or Inf"):
+            s.add(pos, val, nonfinite="raise")
+        assert s.n_samples == 0  # unchanged
+        return
+    with pytest.warns(McreconWarning, match="2 sample"):
+        s.add(pos, val, nonfinite=policy)
+    if policy == "drop":
+        assert s.count[0, 0] == 1 and s.mean[0, 0, 0] == 1.0 and s.n_dropped == 2
+    else:
+        assert s.count[0, 0] == 3 and s.mean[0, 0, 0] == pytest.approx(1 / 3) and s.n_zeroed == 2
+    assert np.isfinite(s.mean).all() and np.isfinite(s.m2).all()
+
+
+def test_bad_inputs():
+    s = PixelStats(4, 3)
+    with pytest.raises(InputError, match="off the film"):
+        s.add(np.array([[4.0, 0.0]]), np.ones((1, 3)))
+    with pytest.raises(InputError, match="off the film"):
+        s.add(np.array([[np.nan, 0.0]]), np.ones((1, 3)))
+    with pytest.raises(InputError, match="expected \\(N, 3\\)"):
+        s.add(np.zeros((2, 2)), np.ones((2, 4)))
+    with pytest.raises(InputError, match="expected \\(N, 2\\)"):
+        s.add(np.zeros((2, 3)), np.ones((2, 3)))
+    with pytest.raises(InputError, match="unknown policy"):
+        s.add(np.zeros((1, 2)), np.ones((1, 3)), nonfinite="keep")
+    with pytest.raises(InputError, match="dtype"):
+        s.add(np.zeros((1, 2)), np.array([["a", "b", "c"]]))
+    with pytest.raises(InputError):
+        PixelStats(0, 3)
+    with pytest.raises(InputError, match="subpixels"):
+        s.subpixel_means()
+    assert s.n_samples == 0
+
+
+def test_one_by_one_and_negative_values():
+    s = PixelStats.from_samples(np.array([[0.2, 0.9], [0.7, 0.1]]), np.array([[-1.0], [1.0]]),
+                                width=1, height=1, channels="Y")
+    assert s.mean[0, 0, 0] == 0.0 and s.sample_variance()[0, 0, 0] == pytest.approx(2.0)
