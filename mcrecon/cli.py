@@ -38,6 +38,12 @@ def _method_option_specs():
     return specs
 
 
+def _flag(p, name):
+    """The CLI flag of a method option: --NAME, or --method-NAME where the command has its own --NAME."""
+    flag = "--" + name.replace("_", "-")
+    return flag if flag not in p._option_string_actions else "--method-" + name.replace("_", "-")
+
+
 def _add_method_args(p):
     p.add_argument("--method", default="box", help="reconstruction method (see `mcrecon methods`)")
     g = p.add_argument_group("method options (each applies to the methods named in its help)")
@@ -45,8 +51,7 @@ def _add_method_args(p):
         opt = owners[0][1]
         choices = f" {{{','.join(map(str, opt.choices))}}}" if opt.choices else ""
         helps = "; ".join(f"{m}: {o.help} (default {o.default})" for m, o in owners)
-        g.add_argument("--" + oname.replace("_", "-"), dest="mopt_" + oname, default=None, metavar="V",
-                       help=f"{helps}{choices}")
+        g.add_argument(_flag(p, oname), dest="mopt_" + oname, default=None, metavar="V", help=f"{helps}{choices}")
 
 
 def _convert(opt, text, method):

@@ -40,6 +40,34 @@ NONFINITE_POLICIES = ("drop", "zero", "raise")
 
 
 @numba.njit(cache=True, nogil=True)
+def _quick_check(pos, val, width, height):
+    """Branch-free test: (all positions on the film, all values finite).
+
+    ``v * 0`` is 0 for finite v and NaN for NaN/Inf, so one sum flags any
+    non-finite value; the detailed :func:`_scan` runs only when needed.
+    """
+    lo_x = np.inf
+    hi_x = -np.inf
+    lo_y = np.inf
+    hi_y = -np.inf
+    z = 0.0
+    for k in range(pos.shape[0]):
+        x = float(pos[k, 0])
+        y = float(pos[k, 1])
+        lo_x = min(lo_x, x)
+        hi_x = max(hi_x, x)
+        lo_y = min(lo_y, y)
+        hi_y = max(hi_y, y)
+        z += x * 0.0 + y * 0.0
+    zv = 0.0
+    for k in range(val.shape[0]):
+        for c in range(val.shape[1]):
+            zv += float(val[k, c]) * 0.0
+    pos_ok = z == 0.0 and lo_x >= 0.0 and hi_x < width and lo_y >= 0.0 and hi_y < height
+    return pos_ok, zv == 0.0
+
+
+@numba.njit(cache=True, nogil=True)
 def _scan(pos, val, width, height):
     """Count bad positions (non-finite or off the film) and non-finite value rows."""
     n_bad_pos = 0
@@ -60,51 +88,61 @@ def _scan(pos, val, width, height):
 
 
 @numba.njit(cache=True, nogil=True)
-def _accumulate(pos, val, zero_nonfinite, s, count, mean, m2, vmin, vmax, sub_sum, sub_count):
-    """Welford update of every sample into the per-pixel arrays (in place).
+def _accumulate(pos, val, s, count, mean, m2, vmin, vmax, sub_sum, sub_count):
+    """Add every sample into the per-pixel arrays (in place).
 
-    Samples with a non-finite value are skipped unless ``zero_nonfinite``,
-    which replaces those channel values by 0.  Positions must be valid.
+    Renderers usually emit the samples of a pixel one after another, so
+    the loop takes *runs* of consecutive samples in the same pixel: a
+    two-pass mean and sum of squared deviations over the run (exact and
+    stable, in cache), then one Chan et al. merge into the pixel.  A run
+    of one sample is exactly Welford's update.  Values must be finite and
+    positions valid (the caller applies the policies first, see ``_scan``).
     """
     nch = val.shape[1]
-    for k in range(pos.shape[0]):
-        skip = False
-        if not zero_nonfinite:
-            for c in range(nch):
-                if not math.isfinite(val[k, c]):
-                    skip = True
-                    break
-        if skip:
-            continue
-        x = pos[k, 0]
-        y = pos[k, 1]
-        ix = int(x)
-        iy = int(y)
-        n = count[iy, ix] + 1
+    n_total = pos.shape[0]
+    k = 0
+    while k < n_total:
+        ix = int(pos[k, 0])
+        iy = int(pos[k, 1])
+        end = k + 1
+        while end < n_total and int(pos[end, 0]) == ix and int(pos[end, 1]) == iy:
+            end += 1
+        m = end - k
+        na = count[iy, ix]
+        n = na + m
         count[iy, ix] = n
-        inv = 1.0 / n
-        if s > 0:
-            sx = int(x * s)
-            sy = int(y * s)
-            # x * s can round up past the pixel's last subpixel; keep it inside.
-            if sx > ix * s + s - 1:
-                sx = ix * s + s - 1
-            if sy > iy * s + s - 1:
-                sy = iy * s + s - 1
-            sub_count[sy, sx] += 1
+        wb = m / n
         for c in range(nch):
-            v = float(val[k, c])
-            if not math.isfinite(v):
-                v = 0.0
-            d = v - mean[iy, ix, c]
-            mean[iy, ix, c] += d * inv
-            m2[iy, ix, c] += d * (v - mean[iy, ix, c])
-            if v < vmin[iy, ix, c]:
-                vmin[iy, ix, c] = v
-            if v > vmax[iy, ix, c]:
-                vmax[iy, ix, c] = v
-            if s > 0:
-                sub_sum[sy, sx, c] += v
+            acc = 0.0
+            lo = np.inf
+            hi = -np.inf
+            for j in range(k, end):
+                v = float(val[j, c])
+                acc += v
+                lo = min(lo, v)
+                hi = max(hi, v)
+            mu = acc / m
+            q = 0.0
+            for j in range(k, end):
+                d = float(val[j, c]) - mu
+                q += d * d
+            delta = mu - mean[iy, ix, c]
+            mean[iy, ix, c] += delta * wb
+            m2[iy, ix, c] += q + delta * delta * na * wb
+            vmin[iy, ix, c] = min(vmin[iy, ix, c], lo)
+            vmax[iy, ix, c] = max(vmax[iy, ix, c], hi)
+        if s > 0:
+            last = s - 1
+            for j in range(k, end):
+                sx = int(pos[j, 0] * s)
+                sy = int(pos[j, 1] * s)
+                # x * s can round up past the pixel's last subpixel; keep it inside.
+                sx = min(sx, ix * s + last)
+                sy = min(sy, iy * s + last)
+                sub_count[sy, sx] += 1
+                for c in range(nch):
+                    sub_sum[sy, sx, c] += float(val[j, c])
+        k = end
 
 
 class PixelStats:
@@ -178,7 +216,7 @@ class PixelStats:
         return int(self.count.sum())
 
     def add(self, positions, values, *, nonfinite: str = "drop", source: str = "samples") -> "PixelStats":
-        """Add a batch of samples (Welford updates, in place).
+        """Add a batch of samples (Welford/Chan updates, in place).
 
         Parameters
         ----------
@@ -222,7 +260,9 @@ class PixelStats:
             return self
         pos = np.ascontiguousarray(pos)
         val = np.ascontiguousarray(val)
-        n_bad_pos, first_bad, n_nonfinite = _scan(pos, val, self.width, self.height)
+        pos_ok, val_ok = _quick_check(pos, val, self.width, self.height)
+        n_bad_pos, first_bad, n_nonfinite = (0, -1, 0) if pos_ok and val_ok else \
+            _scan(pos, val, self.width, self.height)
         if n_bad_pos:
             raise InputError(source, "positions",
                              f"{n_bad_pos} sample(s) off the film [0, {self.width}) x [0, {self.height}) "
@@ -230,11 +270,18 @@ class PixelStats:
         if n_nonfinite and nonfinite == "raise":
             raise InputError(source, "values", f"{n_nonfinite} sample(s) with NaN or Inf values; "
                              "drop them with nonfinite='drop' or fix the renderer")
+        if n_nonfinite:
+            # Rare: apply the policy in numpy so the kernel stays branch-free.
+            finite = np.isfinite(val)
+            if nonfinite == "drop":
+                keep = finite.all(axis=1)
+                pos, val = pos[keep], val[keep]
+            else:
+                val = np.where(finite, val, val.dtype.type(0))
         s = self.subpixels
         sub_sum = self.sub_sum if s else np.zeros((1, 1, 1))
         sub_count = self.sub_count if s else np.zeros((1, 1), np.int64)
-        _accumulate(pos, val, nonfinite == "zero", s, self.count, self.mean, self.m2,
-                    self.min, self.max, sub_sum, sub_count)
+        _accumulate(pos, val, s, self.count, self.mean, self.m2, self.min, self.max, sub_sum, sub_count)
         if n_nonfinite:
             if nonfinite == "drop":
                 self.n_dropped += int(n_nonfinite)
@@ -318,7 +365,7 @@ class PixelStats:
         if not isinstance(log, SampleLog):
             log = read_log(log)
         kw = {} if chunk_size is None else {"chunk_size": chunk_size}
-        batches = ((b.positions, b.values) for b in log.iter_chunks(rounds=rounds, **kw))
+        batches = ((b.positions, b.values) for b in log.iter_chunks(rounds=rounds, with_round=False, **kw))
         return cls.from_batches(batches, width=log.width, height=log.height, channels=log.channels,
                                 subpixels=subpixels, nonfinite=nonfinite, source=str(log.path))
 

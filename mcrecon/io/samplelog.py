@@ -236,7 +236,7 @@ class SampleLog:
         return [(int(a), int(b)) for a, b in zip(starts, self.round_ends)]
 
     def iter_chunks(self, *, chunk_size: int = DEFAULT_READ_ROWS, rounds=None,
-                    start: int = 0, stop: int | None = None) -> Iterator[LogChunk]:
+                    start: int = 0, stop: int | None = None, with_round: bool = True) -> Iterator[LogChunk]:
         """Stream committed samples in chunks of at most ``chunk_size`` rows.
 
         Parameters
@@ -245,6 +245,8 @@ class SampleLog:
             Only these rounds (indices into :meth:`round_slices`).
         start, stop : int
             Sample range when ``rounds`` is None.
+        with_round : bool
+            Read the per-sample round index (``chunk.round``; else None).
         """
         chunk_size = max(int(chunk_size), 1)
         if rounds is None:
@@ -261,7 +263,9 @@ class SampleLog:
                     e = min(b, s + chunk_size)
                     pos = pos_d[s:e]
                     val = val_d[s:e]
-                    if rd is not None:
+                    if not with_round:
+                        rnd = None
+                    elif rd is not None:
                         rnd = rd[s:e].astype(np.int64, copy=False)
                     else:
                         rnd = (np.searchsorted(self.round_ends, np.arange(s, e), side="right")).astype(np.int64)

@@ -1,0 +1,73 @@
+"""Ingest a 1024x1024, 32-spp log (33.5 M samples) into PixelStats.
+
+Prints samples/s and the ratio to a raw h5py read of the same datasets in
+the same run (read first once so both come from the page cache), and the
+peak memory growth of the ingestion (tracemalloc: numpy allocations).
+Targets (issue 2): >= 20 M samples/s, >= 0.5 of the raw read rate, memory
+bounded by the image plus one chunk.
+
+usage: python benchmarks/bench_ingest.py [LOG] [--size 1024x1024 --spp 32]
+"""
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+import tracemalloc
+
+import h5py
+import numpy as np
+
+from mcrecon.io import read_log
+from mcrecon.io.samplelog import DEFAULT_READ_ROWS
+from mcrecon.stats import PixelStats
+
+
+def raw_read(path, n):
+    with h5py.File(path, "r") as f:
+        for s in range(0, n, DEFAULT_READ_ROWS):
+            f["positions"][s:s + DEFAULT_READ_ROWS]
+            f["values"][s:s + DEFAULT_READ_ROWS]
+
+
+def main():
+    p = argparse.ArgumentParser()
+    p.add_argument("log", nargs="?")
+    p.add_argument("--size", default="1024x1024")
+    p.add_argument("--spp", type=int, default=32)
+    a = p.parse_args()
+    path = a.log
+    if path is None:
+        path = os.path.join(tempfile.gettempdir(), f"mcrecon_bench_{a.size}_{a.spp}.h5")
+        if not os.path.exists(path):
+            subprocess.run([sys.executable, os.path.join(os.path.dirname(__file__), "..", "data_tools",
+                                                         "make_benchmark_log.py"), path, "--size", a.size,
+                            "--spp", str(a.spp)], check=True)
+    log = read_log(path)
+    n = log.n_samples
+    PixelStats.from_samples(np.zeros((1, 2)), np.zeros((1, 3), np.float32), width=1, height=1)  # JIT warm-up
+    raw_read(path, n)  # page cache
+    t = time.perf_counter(); raw_read(path, n); t_raw = time.perf_counter() - t
+    results = {}
+    for sub in (0, 4):
+        tracemalloc.start()
+        t = time.perf_counter()
+        st = PixelStats.from_log(log, subpixels=sub)
+        dt = time.perf_counter() - t
+        _, peak = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+        image_bytes = sum(v.nbytes for v in vars(st).values() if isinstance(v, np.ndarray))
+        results[sub] = (dt, peak, image_bytes)
+        assert st.n_samples == n
+    print(f"log: {path}  {log.width}x{log.height}, {n / 1e6:.1f} M samples")
+    print(f"raw h5py read: {t_raw:.3f} s = {n / t_raw / 1e6:.1f} M samples/s")
+    for sub, (dt, peak, image_bytes) in results.items():
+        print(f"ingest subpixels={sub}: {dt:.3f} s = {n / dt / 1e6:.1f} M samples/s, ratio to raw read "
+              f"{t_raw / dt:.2f}; peak memory {peak / 2**20:.0f} MiB (statistics arrays "
+              f"{image_bytes / 2**20:.0f} MiB, one read chunk {DEFAULT_READ_ROWS * 20 / 2**20:.0f} MiB)")
+
+
+if __name__ == "__main__":
+    main()
