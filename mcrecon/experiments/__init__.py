@@ -1,0 +1,1 @@
+"""Experiments that produce figures and tables: convergence, error rates, stability, statistics."""

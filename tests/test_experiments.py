@@ -1,0 +1,67 @@
+"""Experiment reports in their reduced CI form: files exist, numbers are finite, errors fall."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from mcrecon.cli import main
+from mcrecon.experiments.convergence import run_convergence
+from mcrecon.experiments.stability import CASES, run_stability, write_stability_table
+
+CONSISTENT = ["box", "gem", "awr", "splat", "ci"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scene", ["soft_shadow", "caustic"])
+def test_convergence_report_reduced(tmp_path, scene, full_run):
+    size = (128, 128) if full_run else (32, 32)
+    spp = (4, 16, 64) if full_run else (4, 64)
+    res = run_convergence(scene, methods=CONSISTENT, spp=spp, size=size, out=tmp_path, oidn=False)
+    for name in ("convergence.csv", "convergence.json", "convergence_spp.png", "convergence_time.png", "report.md"):
+        assert (tmp_path / name).stat().st_size > 0
+    rows = json.loads((tmp_path / "convergence.json").read_text())
+    assert len(rows) == len(res.rows) > 0
+    for r in rows:
+        assert all(math.isfinite(r[k]) for k in ("relative_mse", "rmse", "ssim", "renderer_seconds", "toolkit_seconds"))
+    # every consistent method's error falls as spp grows (4 -> 64 spp: 16x the samples)
+    for method in CONSISTENT:
+        for mode in ("uniform", "adaptive"):
+            pts = sorted((r["spp"], r["relative_mse"]) for r in rows if r["method"] == method and r["mode"] == mode)
+            if len(pts) < 2:
+                continue
+            errs = [e for _, e in pts]
+            assert all(b < a for a, b in zip(errs, errs[1:])), (method, mode, pts)
+    report = (tmp_path / "report.md").read_text()
+    assert "reference" in report and "images/box_uniform.png" in report
+
+
+def test_stability_every_method_every_case(tmp_path):
+    rows = run_stability()
+    write_stability_table(rows, tmp_path / "stability.md")
+    assert (tmp_path / "stability.md").exists() and (tmp_path / "stability.json").exists()
+    fails = [(r["case"], r["method"], r["mode"], r["error"], r["warnings"]) for r in rows if not r["passed"]]
+    assert not fails, fails
+    methods = {r["method"] for r in rows}
+    assert len(rows) == len(CASES) * len(methods) * 2
+    by = {(r["case"], r["method"], r["mode"]): r for r in rows}
+    for case in CASES:
+        r = by[(case.name, "box", "offline")]
+        if r["mean_ratio"] is not None:  # uniform spp: the mean of pixel means is the sample mean
+            assert r["mean_ratio"] == pytest.approx(1.0, rel=1e-5), case.name
+        if "splat" in methods:  # energy preserving by construction (Suykens & Willems)
+            r = by[(case.name, "splat", "offline")]
+            if r["mean_ratio"] is not None:
+                assert r["mean_ratio"] == pytest.approx(1.0, rel=1e-5), case.name
+
+
+def test_experiment_cli(tmp_path, capsys):
+    code = main(["experiment", "convergence", "--scene", "flat", "--spp", "2,8", "--size", "16x16",
+                 "--methods", "box", "--modes", "uniform", "--oidn", "no", "--out", str(tmp_path / "c")])
+    assert code == 0 and (tmp_path / "c" / "report.md").exists()
+    code = main(["experiment", "stability", "--methods", "box", "--cases", "constant,size_1x1",
+                 "--out", str(tmp_path / "s")])
+    assert code == 0 and "ok 1" in (tmp_path / "s" / "stability.md").read_text()
+    code = main(["experiment", "convergence", "--scene", "flat", "--spp", "a,b", "--out", str(tmp_path)])
+    assert code == 2 and "comma-separated" in capsys.readouterr().err
