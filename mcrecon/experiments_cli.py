@@ -55,6 +55,16 @@ def cmd_stability(args):
     return 1 if fails else 0
 
 
+def cmd_gallery(args):
+    from .experiments.gallery import write_gallery
+
+    path = write_gallery(args.out, scenes=_csv_list(args.scenes) if args.scenes else None,
+                         methods=_csv_list(args.methods) if args.methods else None, size=_size(args.size),
+                         spp=args.spp, seed=args.seed)
+    print(f"wrote {path}")
+    return 0
+
+
 def register(sub) -> None:
     """Add the experiment sub-commands to the ``mcrecon`` parser."""
     from .cli import _OneLineParser
@@ -79,6 +89,15 @@ def register(sub) -> None:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", required=True)
     s.set_defaults(func=cmd_stability)
+
+    s = es.add_parser("gallery", help="the documentation gallery: every scene and method (writes OUT/gallery.md)")
+    s.add_argument("--scenes", default=None)
+    s.add_argument("--methods", default=None)
+    s.add_argument("--size", default="96x96")
+    s.add_argument("--spp", type=int, default=16)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--out", required=True)
+    s.set_defaults(func=cmd_gallery)
 
     try:
         from . import experiments_stats_cli
