@@ -259,11 +259,16 @@ def cmd_adapt(args):
             spec = {"kind": "mitsuba", "scene": None if args.mitsuba == "cornell-box" else args.mitsuba,
                     "width": w, "height": h}
         renderer, ref = _renderer_from_spec(spec)
+        if args.reference is not None:
+            from .io import read_exr
+
+            ref = read_exr(args.reference)[0].astype(np.float64)
         method = _make_method(args)
         t0 = time.perf_counter()
         res = driver.adapt(renderer, method, spp=args.spp, seed=args.seed, log=args.log, reference=ref,
                            time_limit=args.time_limit, progress=None if not args.quiet else False,
-                           nonfinite=args.nonfinite, renderer_spec=spec, track_error=False,
+                           nonfinite=args.nonfinite, renderer_spec=spec,
+                           track_error=args.rounds_json is not None and ref is not None,
                            metadata={"scene": spec.get("scene")})
     t_total = time.perf_counter() - t0
     if args.output is None:
@@ -272,6 +277,9 @@ def cmd_adapt(args):
                              exposure=args.exposure, diagnostics=res.method.diagnostics(),
                              diag_dir=args.diagnostics, counts=res.stats.count)
     _report_run(res, ref, t_total, args)
+    if args.rounds_json is not None:
+        Path(args.rounds_json).write_text(json.dumps(res.rounds, indent=1))
+        written.append(Path(args.rounds_json))
     for p in written:
         print(f"wrote {p}")
     return 0
@@ -392,6 +400,10 @@ def build_parser():
     s.add_argument("--log", default=None, help="sample log to write (commits every round)")
     s.add_argument("--resume", default=None, metavar="LOG", help="continue a killed run from its log")
     s.add_argument("--time-limit", type=float, default=None, help="wall seconds")
+    s.add_argument("--reference", default=None, metavar="EXR",
+                   help="reference image for the error (built-in scenes have their own)")
+    s.add_argument("--rounds-json", default=None, metavar="FILE",
+                   help="write per-round samples, renderer/toolkit seconds and (with a reference) the error")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     outputs(s)
     _add_method_args(s)

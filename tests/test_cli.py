@@ -72,6 +72,11 @@ def test_adapt_on_a_scene_and_compare(tmp_path, capsys):
     assert code == 0, err
     assert "stopped: budget" in out and "renderer" in out and "toolkit" in out and "relative MSE" in out
     assert read_log(tmp_path / "a.h5").n_samples == 16 * 16 * 4
+    code, out, err = run(["adapt", "--scene", "flat", "--size", "16x16", "--spp", "8", "--method", "box",
+                          "-o", tmp_path / "b.exr", "--rounds-json", tmp_path / "r.json", "--quiet"], capsys)
+    rounds = json.loads((tmp_path / "r.json").read_text())
+    assert code == 0 and [r["samples_total"] for r in rounds] == [256, 512, 1024, 2048]
+    assert rounds[-1]["error"] < rounds[0]["error"] and all(r["toolkit_seconds"] >= 0 for r in rounds)
     img, _ = read_exr(tmp_path / "a.exr")
     write_exr(tmp_path / "ref.exr", np.full_like(img, 0.5))
     code, out, err = run(["compare", tmp_path / "a.exr", tmp_path / "ref.exr", "--json"], capsys)
