@@ -361,6 +361,28 @@ def cmd_demo(args):
     return 0
 
 
+def cmd_mitsuba(args):
+    from . import mitsuba_bridge as mb
+    from .io import write_exr, write_png_preview
+
+    w, h = _parse_size(args.size)
+    scene = None if args.scene in (None, "cornell-box") else args.scene
+    t0 = time.perf_counter()
+    if args.mitsuba_command == "reference":
+        ref = mb.render_reference(scene, width=w, height=h, spp=args.spp, seed=args.seed)
+        out = Path(args.output)
+        write_exr(out, ref)
+        write_png_preview(out.with_suffix(".png"), ref)
+        print(f"rendered a {w}x{h}, {args.spp}-spp reference in {time.perf_counter() - t0:.1f} s")
+        print(f"wrote {out}\nwrote {out.with_suffix('.png')}")
+    else:
+        path = mb.dump_uniform_log(args.output, scene, width=w, height=h, spp=args.spp, seed=args.seed,
+                                   reference_spp=args.reference_spp)
+        print(f"rendered a {w}x{h}, {args.spp}-spp uniform log in {time.perf_counter() - t0:.1f} s")
+        print(f"wrote {path}")
+    return 0
+
+
 def build_parser():
     p = _OneLineParser(prog="mcrecon", description="Adaptive sampling and reconstruction for Monte Carlo renderers.")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_OneLineParser)
@@ -430,6 +452,20 @@ def build_parser():
     s.add_argument("-o", "--output", required=True)
     s.set_defaults(func=cmd_render_log)
 
+    s = sub.add_parser("mitsuba", help="Mitsuba 3 bridge (optional extra): reference images and uniform logs")
+    ms = s.add_subparsers(dest="mitsuba_command", required=True, parser_class=_OneLineParser)
+    for name, hlp in (("reference", "render a high-spp reference EXR (pixel means of jittered samples)"),
+                      ("log", "dump a uniform sample log (optionally with a reference) for offline denoising")):
+        m = ms.add_parser(name, help=hlp)
+        m.add_argument("--scene", default=None, help="scene XML (default: the built-in Cornell box)")
+        m.add_argument("--size", default="128x128")
+        m.add_argument("--spp", type=int, default=1024 if name == "reference" else 16)
+        m.add_argument("--seed", type=int, default=0)
+        if name == "log":
+            m.add_argument("--reference-spp", type=int, default=None, help="also store a reference of this spp")
+        m.add_argument("-o", "--output", required=True)
+        m.set_defaults(func=cmd_mitsuba)
+
     s = sub.add_parser("demo", help="the main job on a built-in scene: log, reconstruct, EXR + PNG, error")
     s.add_argument("--scene", default="soft_shadow")
     s.add_argument("--spp", type=int, default=16)
@@ -467,6 +503,8 @@ def main(argv=None) -> int:
         except KeyboardInterrupt:
             sys.stderr.write("mcrecon: interrupted\n")
             return 130
+        except BrokenPipeError:  # e.g. `mcrecon info LOG | head`
+            return 0
         finally:
             warnings.showwarning = showwarning
 

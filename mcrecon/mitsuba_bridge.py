@@ -1,0 +1,632 @@
+"""Mitsuba 3 bridge: answer mcrecon sample requests with a real path tracer.
+
+:class:`MitsubaRenderer` implements the :class:`~mcrecon.protocol.Renderer`
+protocol on top of Mitsuba 3's vectorised ``llvm_ad_rgb`` variant.  Every
+sample is one path traced through one chosen film position, so the
+adaptive methods can place samples anywhere on the film, and the log holds
+the renderer's true per-sample radiance (no pixel filter, no clamping).
+
+How one sample is computed (the recipe measured in ``shared/NOTES.md``)::
+
+    s = independent_sampler.clone(); s.seed(dr.opaque(mi.UInt32, seed), N)
+    ray, w = sensor.sample_ray_differential(time, 0, Point2f(x / W, y / H), aperture)
+    L, _, _ = integrator.sample(scene, s, ray, None, True)
+    dr.eval(L * w)  # once per batch
+
+Film coordinates are mcrecon's: ``x`` the column, ``y`` the row counted
+from the *top*; Mitsuba's normalised film position ``(x / W, y / H)`` uses
+the same orientation as the rows of ``mi.render``'s output (checked by
+``tests/test_mitsuba.py`` against ``mi.render`` on an asymmetric scene).
+
+Mitsuba is optional (``pip install "mcrecon[mitsuba]"`` or
+``bash data_tools/install_mitsuba.sh``); this module imports it lazily.
+Loading the LLVM backend can *abort the process* (libLLVM 15/16), so
+:func:`mitsuba_available` probes in a subprocess and
+:class:`MitsubaRenderer` runs that probe before its first import.
+
+References
+----------
+.. [1] W. Jakob, S. Speierer, N. Roussel, M. Nimier-David, D. Vicini,
+   T. Zeltner, B. Nicolet, M. Crespo, V. Leroy, Z. Zhang, "Mitsuba 3
+   renderer", 2022, https://mitsuba-renderer.org.
+.. [2] W. Jakob, S. Speierer, N. Roussel, D. Vicini, "Dr.Jit: A
+   Just-In-Time Compiler for Differentiable Rendering", ACM Trans. Graph.
+   41(4), 2022.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from .errors import InputError, RendererError
+from .protocol import SampleBatch, SampleRequest, jittered_positions, pixel_index
+
+__all__ = ["MitsubaRenderer", "mitsuba_available", "render_reference", "dump_uniform_log",
+           "SUPPORTED_VARIANTS", "drjit_cache_dir"]
+
+#: Variants whose ``integrator.sample`` is vectorised and returns RGB
+#: (a ``Color3f``).  ``scalar_rgb`` would need one Python call per sample
+#: (~0.1 M samples/s); spectral/mono variants return other quantities.
+SUPPORTED_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
+
+#: Seconds the availability probe may take (import + one kernel compile,
+#: normally 1-3 s; generous because CI machines are shared).
+PROBE_TIMEOUT = 180.0
+
+_WHERE = "MitsubaRenderer"
+_INSTALL_HINT = ("install it with `bash data_tools/install_mitsuba.sh` (Debian: apt-get install libllvm19; "
+                 "pip install mitsuba)")
+_PROBE_CACHE: dict[str, tuple[bool, str]] = {}
+_PROBE_MARK = "MCRECON_MITSUBA_PROBE_OK"
+
+
+# ---------------------------------------------------------------- import
+
+def drjit_cache_dir() -> str:
+    """The directory Dr.Jit caches compiled kernels in, creating it.
+
+    ``DRJIT_CACHE_DIR`` when already set; otherwise
+    ``$XDG_CACHE_HOME/mcrecon/drjit`` (``~/.cache/...``), or a per-user
+    directory under the system temp dir when the home is not writable.
+    Dr.Jit's default (``~/.drjit``) lies outside any run or cache tree.
+    """
+    env = os.environ.get("DRJIT_CACHE_DIR")
+    if env:
+        return env
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    candidates = [os.path.join(base, "mcrecon", "drjit"),
+                  os.path.join(tempfile.gettempdir(), f"mcrecon-drjit-{os.getuid() if hasattr(os, 'getuid') else 0}")]
+    for cand in candidates:
+        try:
+            os.makedirs(cand, exist_ok=True)
+            if os.access(cand, os.W_OK):
+                return cand
+        except OSError:
+            continue
+    return candidates[-1]
+
+
+def _import_mitsuba(variant: str):
+    """Import mitsuba + drjit with the kernel cache set, select ``variant``."""
+    # Dr.Jit reads DRJIT_CACHE_DIR when its JIT initialises: set it first.
+    os.environ["DRJIT_CACHE_DIR"] = drjit_cache_dir()
+    try:
+        import drjit as dr
+        import mitsuba as mi
+    except ImportError as exc:
+        raise RendererError(_WHERE, "mitsuba", f"cannot import mitsuba ({exc}); {_INSTALL_HINT}") from None
+    if variant not in mi.variants():
+        raise InputError(_WHERE, "variant", f"{variant!r} is not built into this mitsuba "
+                         f"{mi.__version__}; available: {', '.join(mi.variants())}")
+    mi.set_variant(variant)
+    return mi, dr
+
+
+# ------------------------------------------------------- availability probe
+
+def _llvm_version(dr) -> str:
+    try:
+        return ".".join(str(v) for v in dr.detail.llvm_version())
+    except Exception:  # not an LLVM variant, or an older Dr.Jit
+        return "?"
+
+
+def _probe_main(variant: str) -> None:  # runs in the probe subprocess
+    t0 = time.perf_counter()
+    _mi, dr = _import_mitsuba(variant)
+    # Printed before rendering: with libLLVM 15/16 the render aborts the
+    # process, and the parent still learns which LLVM was loaded.
+    print(f"MCRECON_MITSUBA_LLVM {_llvm_version(dr)}", flush=True)
+    r = MitsubaRenderer(None, width=4, height=4, variant=variant, probe=False)
+    req = SampleRequest(4, 4, counts=np.full((4, 4), 2, np.int64), seed=1)
+    batch = r.render(req)
+    v = np.asarray(batch.values)
+    if v.shape != (32, 3) or not np.isfinite(v).all() or not (v > 0).any():
+        print(f"probe rendered bad values: shape {v.shape}, finite {np.isfinite(v).all()}", flush=True)
+        sys.exit(3)
+    print(f"{_PROBE_MARK} {_mi.__version__} {time.perf_counter() - t0:.2f}", flush=True)
+
+
+def mitsuba_available(variant: str = "llvm_ad_rgb", *, timeout: float = PROBE_TIMEOUT,
+                      refresh: bool = False) -> tuple[bool, str]:
+    """Whether the Mitsuba bridge can render here, without risking this process.
+
+    Mitsuba's LLVM backend aborts the whole process (SIGABRT) on the first
+    render when it finds libLLVM 15 or 16, so the check imports Mitsuba and
+    renders a 4x4 Cornell box through :class:`MitsubaRenderer` in a
+    *subprocess* with a time-out.  The answer is cached per variant for the
+    life of this process.
+
+    Parameters
+    ----------
+    variant : str
+        Mitsuba variant to check (``"llvm_ad_rgb"``).
+    timeout : float
+        Seconds the probe may take.
+    refresh : bool
+        Probe again even if an answer is cached.
+
+    Returns
+    -------
+    (bool, str)
+        Whether it works, and why (the Mitsuba version, or the failure with
+        the last lines of the probe's error output and how to fix it).
+    """
+    if not refresh and variant in _PROBE_CACHE:
+        return _PROBE_CACHE[variant]
+    if importlib.util.find_spec("mitsuba") is None or importlib.util.find_spec("drjit") is None:
+        ans = (False, f"the Python package mitsuba is not installed; {_INSTALL_HINT}")
+        _PROBE_CACHE[variant] = ans
+        return ans
+    root = str(Path(__file__).resolve().parent.parent)
+    code = (f"import sys; sys.path.insert(0, {root!r}); "
+            f"from mcrecon.mitsuba_bridge import _probe_main; _probe_main({variant!r})")
+    env = dict(os.environ)
+    env["DRJIT_CACHE_DIR"] = drjit_cache_dir()
+    try:
+        proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                              timeout=timeout, env=env, stdin=subprocess.DEVNULL)
+    except subprocess.TimeoutExpired:
+        ans = (False, f"the Mitsuba probe ({variant}) did not finish within {timeout:g} s")
+        _PROBE_CACHE[variant] = ans
+        return ans
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith(_PROBE_MARK)]
+    llvm = [ln.split()[-1] for ln in proc.stdout.splitlines() if ln.startswith("MCRECON_MITSUBA_LLVM ")]
+    llvm_s = f", libLLVM {llvm[-1]}" if llvm and llvm[-1] != "?" else ""
+    if proc.returncode == 0 and lines:
+        _, version, secs = lines[-1].split()
+        ans = (True, f"mitsuba {version}, variant {variant}{llvm_s} (probe rendered in {secs} s)")
+    else:
+        # The last line holds the exception (or LLVM's last words before an abort).
+        out = (proc.stderr.strip() or proc.stdout.strip()).splitlines()
+        tail = out[-1].strip()[:400] if out else ""
+        if proc.returncode < 0:
+            try:
+                sig = signal.Signals(-proc.returncode).name
+            except ValueError:
+                sig = str(-proc.returncode)
+            what = f"the Mitsuba probe ({variant}{llvm_s}) was killed by {sig}"
+            if sig == "SIGABRT":
+                what += " (typical of libLLVM 15/16: Dr.Jit needs libllvm19)"
+        else:
+            what = f"the Mitsuba probe ({variant}{llvm_s}) exited with status {proc.returncode}"
+        ans = (False, f"{what}: {tail or '(no output)'}; {_INSTALL_HINT}")
+    _PROBE_CACHE[variant] = ans
+    return ans
+
+
+# ------------------------------------------------------------- the renderer
+
+def _check_int(field, value, *, minimum, allow_none=False, extra=()):
+    if value is None and allow_none:
+        return None
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) \
+            or (value < minimum and value not in extra):
+        valid = f"an integer >= {minimum}" + ("".join(f" or {e}" for e in extra))
+        raise InputError(_WHERE, field, f"got {value!r}, expected {valid}" + (" or None" if allow_none else ""))
+    return int(value)
+
+
+def _resize_scene_dict(d: Mapping, width: int | None, height: int | None) -> dict:
+    """Copy of a Mitsuba scene dict with every sensor's film resized."""
+    def copy_dicts(x):
+        # Nested dicts are copied; leaves (Mitsuba transforms, which cannot
+        # be deep-copied, arrays, numbers) are shared.
+        return {k: copy_dicts(v) for k, v in x.items()} if isinstance(x, Mapping) else x
+
+    d = copy_dicts(d)
+    for value in d.values():
+        if isinstance(value, dict) and isinstance(value.get("film"), dict):
+            if width is not None:
+                value["film"]["width"] = int(width)
+            if height is not None:
+                value["film"]["height"] = int(height)
+    return d
+
+
+class MitsubaRenderer:
+    """A Mitsuba 3 scene as an mcrecon renderer (one path sample per film position).
+
+    Parameters
+    ----------
+    scene : None, str, path-like or dict
+        ``None``: Mitsuba's built-in Cornell box (``mi.cornell_box()``,
+        path tracer with 8 bounces), its film resized to ``width`` x
+        ``height`` (default 128 x 128).  A path: a Mitsuba scene XML file,
+        loaded with ``params`` (use them to set the film size when the file
+        declares parameters such as ``resx``/``resy``).  A dict: a Mitsuba
+        scene dict (``mi.load_dict``); every sensor film in it is resized
+        to ``width``/``height`` when given.
+    width, height : int, optional
+        Film size in pixels.  For a scene file they must equal the file's
+        film (crop) size; omitted, the file's size is used.
+    variant : str
+        A vectorised RGB Mitsuba variant, one of :data:`SUPPORTED_VARIANTS`.
+    spp_per_pass : int
+        Memory bound: one kernel launch evaluates at most
+        ``spp_per_pass * width * height`` samples; larger requests are split
+        into passes.  The default 16 keeps a 512 x 512 pass at 4 M samples.
+    max_depth : int, optional
+        Path length of the tracer.  ``None`` keeps the scene's integrator;
+        otherwise a ``path`` integrator with this ``max_depth`` (-1 =
+        unbounded) replaces it.
+    params : mapping, optional
+        Scene parameters passed to ``mi.load_file`` (scene files only).
+    probe : bool
+        Run :func:`mitsuba_available` (a subprocess, cached per process)
+        before importing Mitsuba here, so a broken LLVM raises a clear
+        :class:`~mcrecon.errors.RendererError` instead of aborting this
+        process.
+
+    Attributes
+    ----------
+    width, height : int
+    channels : tuple of str
+        ``("R", "G", "B")``: linear radiance in the variant's RGB space.
+    name : str
+    last_render_seconds : float
+        Time the last :meth:`render` spent inside Mitsuba/Dr.Jit (tracing,
+        kernel compilation, launches, copying results out).  The adaptive
+        driver counts it as renderer time and the rest of the call (our
+        jittered positions, batching, concatenation) as toolkit time.
+    last_call_seconds : float
+        Wall time of the whole last :meth:`render` call.
+    total_render_seconds : float
+        Sum of ``last_render_seconds`` over all calls.
+    n_rendered : int
+        Samples rendered so far.
+
+    Notes
+    -----
+    * The random numbers of a request are fixed by ``request.seed``,
+      ``request.round_index`` and ``spp_per_pass``: the jittered positions
+      come from ``numpy.random.default_rng([seed, round_index])``, each
+      pass gets its own 32-bit Mitsuba seed from
+      ``numpy.random.SeedSequence([seed, round_index, pass])``.  The seed
+      is handed to Dr.Jit as an opaque variable, so a new seed or a new
+      batch size reuses the compiled kernel.
+    * Paths use an ``independent`` sampler whatever the scene's sampler:
+      stratified/low-discrepancy samplers assume every pixel gets the same
+      sample count in one wavefront, which adaptive requests break.
+    * Ray differentials are switched off, so a sample is the radiance
+      through its point (the limit ``mi.render`` converges to as spp grows,
+      where it scales differentials by 1/sqrt(spp)); with differentials a
+      sample's texture filtering would depend on a nominal pixel footprint.
+    * The reply lists the samples for ``request.counts`` first (sorted by
+      pixel, row-major), then one sample per ``request.positions`` row, in
+      request order, with the requested positions returned exactly.
+
+    References
+    ----------
+    .. [1] W. Jakob et al., "Mitsuba 3 renderer", 2022,
+       https://mitsuba-renderer.org.
+    """
+
+    channels = ("R", "G", "B")
+
+    def __init__(self, scene=None, *, width: int | None = None, height: int | None = None,
+                 variant: str = "llvm_ad_rgb", spp_per_pass: int = 16, max_depth: int | None = None,
+                 params: Mapping | None = None, probe: bool = True):
+        # --- validate every option before touching Mitsuba
+        width = _check_int("width", width, minimum=1, allow_none=True)
+        height = _check_int("height", height, minimum=1, allow_none=True)
+        if not isinstance(variant, str) or variant not in SUPPORTED_VARIANTS:
+            raise InputError(_WHERE, "variant", f"got {variant!r}, expected one of {', '.join(SUPPORTED_VARIANTS)} "
+                             "(vectorised RGB variants)")
+        self.spp_per_pass = _check_int("spp_per_pass", spp_per_pass, minimum=1)
+        self.max_depth = _check_int("max_depth", max_depth, minimum=1, allow_none=True, extra=(-1,))
+        if params is not None and not isinstance(params, Mapping):
+            raise InputError(_WHERE, "params", f"got {type(params).__name__}, expected a mapping of scene parameters")
+        if scene is None:
+            kind = "cornell"
+            width = 128 if width is None else width
+            height = 128 if height is None else height
+        elif isinstance(scene, Mapping):
+            kind = "dict"
+        elif isinstance(scene, (str, os.PathLike)):
+            kind = "file"
+            scene = Path(scene)
+            if not scene.is_file():
+                raise InputError(str(scene), "scene", "no such file; expected a Mitsuba scene XML file, "
+                                 "a scene dict, or None for the built-in Cornell box")
+        else:
+            raise InputError(_WHERE, "scene", f"got {type(scene).__name__}, expected None (Cornell box), "
+                             "a path to a Mitsuba scene XML file, or a Mitsuba scene dict")
+        if params and kind != "file":
+            raise InputError(_WHERE, "params", "only used with a scene file")
+        self.variant = variant
+        if probe:
+            ok, reason = mitsuba_available(variant)
+            if not ok:
+                raise RendererError(_WHERE, "mitsuba", reason)
+        mi, dr = _import_mitsuba(variant)
+        self._mi, self._dr = mi, dr
+
+        # --- load the scene
+        try:
+            if kind == "cornell":
+                self._scene = mi.load_dict(_resize_scene_dict(mi.cornell_box(), width, height))
+                self.scene_name = "cornell_box"
+            elif kind == "dict":
+                self._scene = mi.load_dict(_resize_scene_dict(scene, width, height))
+                self.scene_name = str(scene.get("id", "scene_dict")) if hasattr(scene, "get") else "scene_dict"
+            else:
+                self._scene = mi.load_file(str(scene), **dict(params or {}))
+                self.scene_name = str(scene)
+        except Exception as exc:
+            where = str(scene) if kind == "file" else _WHERE
+            raise InputError(where, "scene", f"Mitsuba could not load it: {type(exc).__name__}: "
+                             f"{str(exc).strip().splitlines()[-1] if str(exc).strip() else ''}") from None
+        sensors = self._scene.sensors()
+        if not sensors:
+            raise InputError(self.scene_name, "sensor", "the scene has no sensor (camera)")
+        self._sensor = sensors[0]
+        film = self._sensor.film()
+        fw, fh = (int(v) for v in film.crop_size())
+        if (width is not None and width != fw) or (height is not None and height != fh):
+            raise InputError(self.scene_name, "width/height",
+                             f"requested {width}x{height} but the scene's film is {fw}x{fh}; set the film size "
+                             "in the scene (e.g. params={'resx': W, 'resy': H} if it declares them) or omit "
+                             "width/height")
+        self.width, self.height = fw, fh
+        if self.max_depth is None:
+            self._integrator = self._scene.integrator()
+            if self._integrator is None:
+                self._integrator = mi.load_dict({"type": "path"})
+        else:
+            self._integrator = mi.load_dict({"type": "path", "max_depth": self.max_depth})
+        # See the class notes: an independent sampler for ragged wavefronts.
+        self._sampler = mi.load_dict({"type": "independent"})
+        self._shutter_open = float(self._sensor.shutter_open())
+        self._shutter_time = float(self._sensor.shutter_open_time())
+        self._needs_aperture = bool(self._sensor.needs_aperture_sample())
+        self.name = f"mitsuba:{Path(self.scene_name).name}"
+        self.last_render_seconds = 0.0
+        self.last_call_seconds = 0.0
+        self.total_render_seconds = 0.0
+        self.n_rendered = 0
+
+    def __repr__(self) -> str:
+        return (f"MitsubaRenderer({self.scene_name!r}, {self.width}x{self.height}, variant={self.variant!r}, "
+                f"spp_per_pass={self.spp_per_pass})")
+
+    @property
+    def pass_size(self) -> int:
+        """Samples per kernel launch."""
+        return self.spp_per_pass * self.width * self.height
+
+    # ------------------------------------------------------------ tracing
+    def _trace(self, pos: np.ndarray, seed32: int) -> np.ndarray:
+        """Radiance (n, 3) float32 of one path through each film position."""
+        mi, dr = self._mi, self._dr
+        mi.set_variant(self.variant)  # process-global: another renderer may have switched it
+        n = int(pos.shape[0])
+        s = self._sampler.clone()
+        # An opaque seed is a kernel parameter; a Python int would be baked
+        # into the kernel as a literal and force a recompilation per call.
+        s.seed(dr.opaque(mi.UInt32, seed32), n)
+        p = mi.Point2f(mi.Float((pos[:, 0] / self.width).astype(np.float32)),
+                       mi.Float((pos[:, 1] / self.height).astype(np.float32)))
+        # Same sampler dimensions as Mitsuba's own render loop, minus the
+        # pixel jitter (we give the film positions).
+        aperture = s.next_2d() if self._needs_aperture else mi.Point2f(0.5, 0.5)
+        t = mi.Float(self._shutter_open)
+        if self._shutter_time > 0:
+            t = t + s.next_1d() * self._shutter_time
+        ray, weight = self._sensor.sample_ray_differential(t, 0.0, p, aperture)
+        ray.has_differentials = False
+        L, _valid, _aux = self._integrator.sample(self._scene, s, ray, None, True)
+        L = L * weight
+        dr.eval(L)
+        # One channel at a time: converting the Color3f as a whole launches
+        # an extra interleaving kernel whose size is compiled in.
+        out = np.empty((n, 3), np.float32)
+        for c in range(3):
+            out[:, c] = np.asarray(L[c], dtype=np.float32)
+        return out
+
+    def render(self, request: SampleRequest) -> SampleBatch:
+        """Answer a request: jittered samples for ``counts``, then ``positions`` in order.
+
+        Parameters
+        ----------
+        request : SampleRequest
+            Its ``width``/``height`` must be this renderer's.
+
+        Returns
+        -------
+        SampleBatch
+            positions (N, 2) float64 and values (N, 3) float32.
+        """
+        t_call = time.perf_counter()
+        if not isinstance(request, SampleRequest):
+            raise InputError(self.name, "request", f"got {type(request).__name__}, expected a SampleRequest")
+        if (request.width, request.height) != (self.width, self.height):
+            raise InputError(self.name, "request width/height",
+                             f"{request.width}x{request.height}, this scene's film is {self.width}x{self.height}")
+        seed, rnd = int(request.seed), int(request.round_index)
+        parts = []
+        if request.counts is not None and request.n_from_counts:
+            rng = np.random.default_rng([seed & 0xFFFFFFFFFFFFFFFF, rnd & 0xFFFFFFFFFFFFFFFF])
+            parts.append(jittered_positions(request.counts, rng))
+        if request.positions is not None and request.n_from_positions:
+            parts.append(np.asarray(request.positions, np.float64))
+        pos = np.concatenate(parts) if parts else np.zeros((0, 2))
+        n = pos.shape[0]
+        values = np.empty((n, 3), np.float32)
+        render_s = 0.0
+        step = self.pass_size
+        n_pass = -(-n // step)
+        if n_pass:
+            seeds = np.random.SeedSequence([seed & 0xFFFFFFFFFFFFFFFF, rnd & 0xFFFFFFFFFFFFFFFF, 0x6D697473]) \
+                .generate_state(n_pass, np.uint32)
+        for k in range(n_pass):
+            a, b = k * step, min(n, (k + 1) * step)
+            t0 = time.perf_counter()
+            try:
+                values[a:b] = self._trace(pos[a:b], int(seeds[k]))
+            except Exception as exc:
+                raise RendererError(self.name, "render", f"Mitsuba failed on pass {k} of round {rnd}: "
+                                    f"{type(exc).__name__}: {exc}") from exc
+            render_s += time.perf_counter() - t0
+        self.last_render_seconds = render_s
+        self.total_render_seconds += render_s
+        self.n_rendered += n
+        self.last_call_seconds = time.perf_counter() - t_call
+        return SampleBatch(pos, values)
+
+
+# ---------------------------------------------------- reference and logs
+
+def _make_renderer(scene, width, height, variant, max_depth, spp_per_pass):
+    if isinstance(scene, MitsubaRenderer):
+        if (width or scene.width, height or scene.height) != (scene.width, scene.height):
+            raise InputError(scene.name, "width/height", f"requested {width}x{height}, the renderer's film is "
+                             f"{scene.width}x{scene.height}")
+        return scene
+    return MitsubaRenderer(scene, width=width, height=height, variant=variant, max_depth=max_depth,
+                           spp_per_pass=spp_per_pass)
+
+
+def _uniform_passes(renderer: MitsubaRenderer, spp: int, seed: int):
+    """Yield uniform batches (positions, values), one per pass of <= spp_per_pass spp."""
+    done, k = 0, 0
+    while done < spp:
+        m = min(renderer.spp_per_pass, spp - done)
+        counts = np.full((renderer.height, renderer.width), m, np.int64)
+        yield renderer.render(SampleRequest(renderer.width, renderer.height, counts=counts,
+                                            round_index=k, seed=seed))
+        done += m
+        k += 1
+
+
+def render_reference(scene=None, *, width: int | None = None, height: int | None = None, spp: int = 1024,
+                     seed: int = 0, variant: str = "llvm_ad_rgb", max_depth: int | None = None,
+                     spp_per_pass: int = 16) -> np.ndarray:
+    """A high-spp reference image: the per-pixel mean of ``spp`` jittered samples.
+
+    It goes through the bridge (not ``mi.render``) so that it estimates
+    exactly what mcrecon reconstructs from the bridge's samples: the box
+    integral of the radiance over each pixel, without Mitsuba's film
+    reconstruction filter (Gaussian in the Cornell box) and with the same
+    integrator settings.
+
+    Parameters
+    ----------
+    scene : None, path, dict or MitsubaRenderer
+        As :class:`MitsubaRenderer` (an existing renderer is reused).
+    width, height : int, optional
+        Film size (default 128 x 128 for the Cornell box).
+    spp : int
+        Samples per pixel.
+    seed : int
+        Seeds the passes (use a seed different from the one of the samples
+        being evaluated: the reference must be independent of them).
+    variant, max_depth, spp_per_pass
+        As :class:`MitsubaRenderer`.
+
+    Returns
+    -------
+    ndarray of float64, shape (H, W, 3)
+        Accumulated in float64; never clipped.
+
+    References
+    ----------
+    .. [1] W. Jakob et al., "Mitsuba 3 renderer", 2022.
+    """
+    spp = _check_int("spp", spp, minimum=1)
+    seed = _check_int("seed", seed, minimum=0)
+    r = _make_renderer(scene, width, height, variant, max_depth, spp_per_pass)
+    acc = np.zeros((r.height * r.width, 3), np.float64)
+    for batch in _uniform_passes(r, spp, seed):
+        idx = pixel_index(batch.positions, r.width)
+        for c in range(3):
+            acc[:, c] += np.bincount(idx, weights=batch.values[:, c].astype(np.float64), minlength=acc.shape[0])
+    return (acc / spp).reshape(r.height, r.width, 3)
+
+
+def _to_float32_positions(pos: np.ndarray) -> np.ndarray:
+    """float32 copies of film positions that stay inside their pixels.
+
+    Rounding i + u (u just below 1) to float32 can give i + 1, moving the
+    sample to the next pixel (or off the film); clamp to the largest float32
+    below i + 1.
+    """
+    cell = np.floor(pos)
+    p32 = pos.astype(np.float32)
+    return np.minimum(p32, np.nextafter((cell + 1).astype(np.float32), np.float32(0)))
+
+
+def dump_uniform_log(path, scene=None, *, width: int | None = None, height: int | None = None, spp: int = 16,
+                     seed: int = 0, reference_spp: int | None = None, variant: str = "llvm_ad_rgb",
+                     max_depth: int | None = None, spp_per_pass: int = 16):
+    """Render ``spp`` uniform jittered samples per pixel into an mcrecon sample log.
+
+    The log (``mcrecon.io.write_log`` format) holds one round per pass of at
+    most ``spp_per_pass`` samples per pixel, float32 positions and values,
+    metadata naming the renderer, scene, variant, integrator depth, spp,
+    seed and the Mitsuba version, and, with ``reference_spp``, a reference
+    from :func:`render_reference` rendered with an independent seed.  The
+    file is written under a temporary name and renamed when complete, so a
+    crash never leaves a partial log at ``path``.
+
+    Parameters
+    ----------
+    path : path-like
+        The ``.h5`` log to write.
+    scene, width, height, variant, max_depth, spp_per_pass
+        As :class:`MitsubaRenderer`.
+    spp : int
+        Samples per pixel in the log.
+    seed : int
+        Seed of the samples.
+    reference_spp : int, optional
+        Samples per pixel of the stored reference (none when omitted).
+
+    Returns
+    -------
+    pathlib.Path
+    """
+    from .io import append_log, write_log
+
+    spp = _check_int("spp", spp, minimum=1)
+    seed = _check_int("seed", seed, minimum=0)
+    reference_spp = _check_int("reference_spp", reference_spp, minimum=1, allow_none=True)
+    path = Path(path)
+    r = _make_renderer(scene, width, height, variant, max_depth, spp_per_pass)
+    reference = None
+    if reference_spp is not None:
+        # An independent stream: the reference must not share noise with the samples.
+        ref_seed = int(np.random.SeedSequence([seed, 0x726566]).generate_state(1, np.uint32)[0])
+        reference = render_reference(r, width=r.width, height=r.height, spp=reference_spp, seed=ref_seed)
+    metadata = {"renderer": "mitsuba", "mitsuba_version": r._mi.__version__, "variant": r.variant,
+                "scene": r.scene_name, "max_depth": r.max_depth, "integrator": str(r._integrator).split("[")[0].strip(),
+                "sampling": "uniform jittered", "spp": spp, "seed": seed, "spp_per_pass": r.spp_per_pass,
+                "reference_spp": reference_spp, "positions": "x = column, y = row from the top"}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".partial")
+    try:
+        first = True
+        for k, batch in enumerate(_uniform_passes(r, spp, seed)):
+            pos = _to_float32_positions(batch.positions)
+            if first:
+                write_log(tmp, pos, batch.values, width=r.width, height=r.height, channels=r.channels,
+                          rounds=np.zeros(len(batch), np.int32), reference=reference, metadata=metadata)
+                first = False
+            else:
+                append_log(tmp, pos, batch.values, round_index=k)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
