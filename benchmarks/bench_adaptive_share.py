@@ -7,7 +7,11 @@ round into renderer and toolkit time; the share printed is toolkit /
 (renderer + toolkit) over the whole run, with the per-round maximum.
 Targets: GEM <= 5% (paper 4.36%), AWR <= 15% (paper 34.5 s of 211 s).
 
-usage: python benchmarks/bench_adaptive_share.py [--size 512x512] [--spp 32] [--rate 2e6] [--methods gem,awr,ci,splat]
+With ``--renderer mitsuba`` the renderer is the Mitsuba 3 bridge on its
+Cornell box (issue 7's benchmark): no throttling, its own render time.
+
+usage: python benchmarks/bench_adaptive_share.py [--size 512x512] [--spp 32] [--rate 2e6]
+       [--methods gem,awr,ci,splat] [--renderer scene|mitsuba]
 """
 
 import argparse
@@ -36,6 +40,14 @@ class ThrottledRenderer:
         return batch
 
 
+def r_warm(w, h):
+    import numpy as np
+
+    from mcrecon.protocol import SampleRequest
+
+    return SampleRequest(w, h, counts=np.ones((h, w), np.int64), seed=1)
+
+
 def main():
     p = argparse.ArgumentParser()
     p.add_argument("--size", default="128x128,512x512")
@@ -43,12 +55,19 @@ def main():
     p.add_argument("--rate", type=float, default=2e6)
     p.add_argument("--scene", default="soft_shadow")
     p.add_argument("--methods", default=None)
+    p.add_argument("--renderer", default="scene", choices=("scene", "mitsuba"))
     a = p.parse_args()
     methods = a.methods.split(",") if a.methods else [m for m in available_methods() if get_method(m).adaptive]
     for size in a.size.split(","):
         w, h = (int(x) for x in size.split("x"))
         for name in methods:
-            r = ThrottledRenderer(SceneRenderer(a.scene, width=w, height=h, seed=0), a.rate)
+            if a.renderer == "mitsuba":
+                from mcrecon.mitsuba_bridge import MitsubaRenderer
+
+                r = MitsubaRenderer(None, width=w, height=h)
+                r.render(r_warm(w, h))  # compile the kernels once, outside the measurement
+            else:
+                r = ThrottledRenderer(SceneRenderer(a.scene, width=w, height=h, seed=0), a.rate)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 res = adapt(r, get_method(name), spp=a.spp, seed=0, progress=False, track_error=False)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Callable, Mapping, Protocol, Sequence, runtime_checkable
 
+import numba
 import numpy as np
 
 from .errors import RendererError
@@ -133,22 +134,47 @@ def pixel_index(positions: np.ndarray, width: int) -> np.ndarray:
     return np.floor(pos[:, 1]).astype(np.int64) * width + np.floor(pos[:, 0]).astype(np.int64)
 
 
+@numba.njit(cache=True, nogil=True)
+def _pixel_counts(pos, width, height):
+    """Samples per pixel (H*W,) and the number of positions off the film, in one pass."""
+    counts = np.zeros(width * height, np.int64)
+    off = 0
+    for k in range(pos.shape[0]):
+        x = pos[k, 0]
+        y = pos[k, 1]
+        if x >= 0.0 and x < width and y >= 0.0 and y < height:
+            counts[int(y) * width + int(x)] += 1
+        else:
+            off += 1
+    return counts, off
+
+
+@numba.njit(cache=True, nogil=True)
+def _place_in_pixels(u, counts, width):
+    """Shift uniform [0, 1)^2 numbers into their pixels, in row-major pixel order (in place)."""
+    k = 0
+    for p in range(counts.shape[0]):
+        x0 = float(p % width)
+        y0 = float(p // width)
+        for _ in range(counts[p]):
+            x = x0 + u[k, 0]
+            y = y0 + u[k, 1]
+            # x0 + u can round up to x0 + 1 for large films; keep it inside the pixel.
+            u[k, 0] = x if x < x0 + 1.0 else np.nextafter(x0 + 1.0, 0.0)
+            u[k, 1] = y if y < y0 + 1.0 else np.nextafter(y0 + 1.0, 0.0)
+            k += 1
+    return u
+
+
 def jittered_positions(counts: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Uniform random positions, ``counts[j, i]`` of them inside pixel (i, j).
 
     Pixels are visited in row-major order, so the result is sorted by pixel
     (which keeps later scatter loops cache friendly).
     """
-    counts = np.asarray(counts, dtype=np.int64)
-    h, w = counts.shape
-    flat = np.repeat(np.arange(h * w, dtype=np.int64), counts.ravel())
-    pos = rng.random((flat.size, 2))
-    pos[:, 0] += flat % w
-    pos[:, 1] += flat // w
-    # x + u can round up to x + 1 in float64 only for huge films; keep it inside.
-    np.minimum(pos[:, 0], np.nextafter(flat % w + 1.0, 0), out=pos[:, 0])
-    np.minimum(pos[:, 1], np.nextafter(flat // w + 1.0, 0), out=pos[:, 1])
-    return pos
+    counts = np.ascontiguousarray(counts, dtype=np.int64)
+    u = rng.random((int(counts.sum()), 2))
+    return _place_in_pixels(u, counts.ravel(), counts.shape[1])
 
 
 def validate_reply(request: SampleRequest, batch, *, n_channels: int,
@@ -192,12 +218,10 @@ def validate_reply(request: SampleRequest, batch, *, n_channels: int,
     w, h = request.width, request.height
     nc = request.n_from_counts
     if nc:
-        pc = pos[:nc]
-        off = (pc[:, 0] < 0) | (pc[:, 0] >= w) | (pc[:, 1] < 0) | (pc[:, 1] >= h)
-        if off.any():
+        got, off = _pixel_counts(pos[:nc], w, h)
+        if off:
             raise RendererError(renderer, "positions",
-                                f"{int(off.sum())} of the counted samples lie off the film [0, {w}) x [0, {h})")
-        got = np.bincount(pixel_index(pc, w), minlength=w * h)
+                                f"{off} of the counted samples lie off the film [0, {w}) x [0, {h})")
         if not np.array_equal(got, request.counts.ravel()):
             bad = int(np.count_nonzero(got != request.counts.ravel()))
             raise RendererError(renderer, "positions",

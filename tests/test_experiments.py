@@ -47,6 +47,8 @@ def test_stability_every_method_every_case(tmp_path):
     assert len(rows) == len(CASES) * len(methods) * 2
     by = {(r["case"], r["method"], r["mode"]): r for r in rows}
     for case in CASES:
+        if case.name == "nan_inf_drop":
+            continue  # dropped samples make per-pixel counts unequal: the mean of pixel means is not the sample mean
         r = by[(case.name, "box", "offline")]
         if r["mean_ratio"] is not None:  # uniform spp: the mean of pixel means is the sample mean
             assert r["mean_ratio"] == pytest.approx(1.0, rel=1e-5), case.name
