@@ -166,6 +166,17 @@ def _place_in_pixels(u, counts, width):
     return u
 
 
+@numba.njit(cache=True, nogil=True)
+def _max_abs_diff(a, b):
+    m = 0.0
+    for k in range(a.shape[0]):
+        for j in range(a.shape[1]):
+            d = abs(a[k, j] - b[k, j])
+            if d > m:  # positions were checked finite before
+                m = d
+    return m
+
+
 def jittered_positions(counts: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Uniform random positions, ``counts[j, i]`` of them inside pixel (i, j).
 
@@ -229,7 +240,8 @@ def validate_reply(request: SampleRequest, batch, *, n_channels: int,
                                 "samples must lie inside the requested pixels")
     if request.n_from_positions:
         pp = pos[nc:]
-        dev = np.abs(pp - request.positions).max()
+        dev = 0.0 if pp is request.positions else _max_abs_diff(np.ascontiguousarray(pp, np.float64),
+                                                                  request.positions)
         if not dev <= position_tolerance:
             raise RendererError(renderer, "positions",
                                 f"differ from the requested positions by up to {dev:.3g} "

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Iterator, Mapping, Sequence
 
 import h5py
+import numba
 import numpy as np
 
 from ..errors import InputError
@@ -51,6 +52,19 @@ class LogChunk:
         return (self.positions, self.values)[i]
 
 
+@numba.njit(cache=True, nogil=True)
+def _cast_positions_f32(pos, out):
+    for k in range(pos.shape[0]):
+        for a in range(2):
+            x = pos[k, a]
+            y = np.float32(x)
+            # float32 rounding can carry x = 127.99999999 up to 128.0: keep the pixel.
+            if np.floor(y) != np.floor(x):
+                y = np.nextafter(np.float32(np.floor(x) + 1.0), np.float32(0.0))
+            out[k, a] = y
+    return out
+
+
 def cast_positions(positions, dtype) -> np.ndarray:
     """Cast film positions to ``dtype`` without moving any into the next pixel.
 
@@ -61,6 +75,8 @@ def cast_positions(positions, dtype) -> np.ndarray:
     dtype = np.dtype(dtype)
     if pos.dtype == dtype:
         return pos
+    if dtype == np.float32 and pos.dtype == np.float64 and pos.ndim == 2 and pos.shape[1] == 2:
+        return _cast_positions_f32(np.ascontiguousarray(pos), np.empty(pos.shape, np.float32))
     out = pos.astype(dtype)
     moved = np.floor(out) != np.floor(pos)
     if moved.any():
