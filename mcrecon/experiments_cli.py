@@ -65,6 +65,64 @@ def cmd_gallery(args):
     return 0
 
 
+def _ci_rule(args):
+    from .cli import _convert
+    from .methods.tamstorf import CIMethod
+
+    opts = {}
+    for o in CIMethod.options:
+        v = getattr(args, "ci_" + o.name, None)
+        if v is not None:
+            opts[o.name] = _convert(o, v, "ci")
+    return CIMethod(**opts).rule
+
+
+def _add_ci_rule_args(p):
+    from .methods.tamstorf import CIMethod
+
+    g = p.add_argument_group("stopping rule (the options of method ci)")
+    for o in CIMethod.options:
+        flag = "--" + o.name.replace("_", "-")
+        if flag in p._option_string_actions:
+            flag = "--rule-" + o.name.replace("_", "-")
+        g.add_argument(flag, dest="ci_" + o.name, default=None, metavar="V", help=f"{o.help} (default {o.default})")
+
+
+def cmd_normality(args):
+    from .experiments.statistics import run_normality
+    from .scenes import SceneRenderer
+
+    w, h = _size(args.size)
+    renderer = SceneRenderer(args.scene, width=w, height=h, seed=args.seed)
+    rep = run_normality(renderer, n_values=_csv_list(args.n, int, "--n"), m=args.m, seed=args.seed,
+                        classes=args.classes, alpha=args.alpha, out=args.out)
+    for r in rep["results"]:
+        print(f"n = {r['n']:4d}: {100 * r['rejection_rate']:5.1f}% of {r['tests']} pixel-channel tests rejected "
+              f"(chi2({r['df']}) critical {r['critical']:.2f})")
+    print(f"wrote {Path(args.out) / 'normality.json'}")
+    return 0
+
+
+def cmd_bias(args):
+    from .experiments.statistics import run_bias
+
+    if (args.log is None) == (args.scene is None):
+        raise InputError("bias", "input", "give a LOG or --scene NAME (with --spp)")
+    if args.log is not None:
+        source = args.log
+    else:
+        from .scenes import get_scene, render_uniform
+
+        w, h = _size(args.size)
+        batch = render_uniform(get_scene(args.scene), width=w, height=h, spp=args.spp, seed=args.seed)
+        source = {"positions": batch.positions, "values": batch.values, "width": w, "height": h}
+    summary = run_bias(source, B=args.B, seed=args.seed, rule=_ci_rule(args), level=args.level,
+                       threshold=args.threshold, out=args.out)
+    print(json.dumps(summary, indent=1, default=float))
+    print(f"wrote {Path(args.out) / 'bias.json'}")
+    return 0
+
+
 def register(sub) -> None:
     """Add the experiment sub-commands to the ``mcrecon`` parser."""
     from .cli import _OneLineParser
@@ -99,8 +157,26 @@ def register(sub) -> None:
     s.add_argument("--out", required=True)
     s.set_defaults(func=cmd_gallery)
 
-    try:
-        from . import experiments_stats_cli
-    except ImportError:
-        return
-    experiments_stats_cli.register(sub, es)
+    s = es.add_parser("normality", help="chi-square normality test of pixel estimates (Tamstorf & Jensen)")
+    s.add_argument("--scene", default="depth_of_field")
+    s.add_argument("--size", default="32x32")
+    s.add_argument("--n", default="10,20,50", help="samples per estimate, comma-separated")
+    s.add_argument("--m", type=int, default=100, help="independent estimates per pixel")
+    s.add_argument("--classes", type=int, default=8)
+    s.add_argument("--alpha", type=float, default=0.05)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--out", required=True)
+    s.set_defaults(func=cmd_normality)
+
+    s = sub.add_parser("bias", help="bootstrap bias of the adaptive stopping rule on a log or a scene")
+    s.add_argument("log", nargs="?", default=None)
+    s.add_argument("--scene", default=None)
+    s.add_argument("--spp", type=int, default=32)
+    s.add_argument("--size", default="64x64")
+    s.add_argument("--B", type=int, default=1000, help="bootstrap resamples (default 1000)")
+    s.add_argument("--level", type=float, default=0.95, help="level of the reported bias interval")
+    s.add_argument("--threshold", type=float, default=1 / 256, help="|bias| threshold reported (default 1/256)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--out", required=True)
+    _add_ci_rule_args(s)
+    s.set_defaults(func=cmd_bias)

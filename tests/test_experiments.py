@@ -67,3 +67,23 @@ def test_experiment_cli(tmp_path, capsys):
     assert code == 0 and "ok 1" in (tmp_path / "s" / "stability.md").read_text()
     code = main(["experiment", "convergence", "--scene", "flat", "--spp", "a,b", "--out", str(tmp_path)])
     assert code == 2 and "comma-separated" in capsys.readouterr().err
+
+
+def test_normality_and_bias_cli(tmp_path, capsys):
+    code = main(["experiment", "normality", "--scene", "depth_of_field", "--size", "12x12", "--n", "10,50",
+                 "--m", "60", "--out", str(tmp_path / "n")])
+    assert code == 0
+    rep = json.loads((tmp_path / "n" / "normality.json").read_text())
+    rates = [r["rejection_rate"] for r in rep["results"]]
+    assert [r["n"] for r in rep["results"]] == [10, 50] and all(0 <= x <= 1 for x in rates)
+    assert rep["results"][0]["critical"] == pytest.approx(11.0705, abs=1e-3)
+    assert (tmp_path / "n" / "normality_z_n10.png").exists() and (tmp_path / "n" / "normality_rate.png").exists()
+    code = main(["bias", "--scene", "hdr", "--spp", "16", "--size", "12x12", "--B", "100", "--alpha", "0.3",
+                 "--out", str(tmp_path / "b")])
+    assert code == 0
+    summary = json.loads((tmp_path / "b" / "bias.json").read_text())
+    assert summary["B"] == 100 and summary["rule"]["alpha"] == 0.3 and summary["pixels"] == 144
+    assert (tmp_path / "b" / "bias_radiance_abs_bias.png").exists()
+    capsys.readouterr()
+    assert main(["bias", "--out", str(tmp_path / "c")]) == 2
+    assert "give a LOG or --scene" in capsys.readouterr().err
