@@ -40,31 +40,45 @@ NONFINITE_POLICIES = ("drop", "zero", "raise")
 
 
 @numba.njit(cache=True, nogil=True)
-def _quick_check(pos, val, width, height):
-    """Branch-free test: (all positions on the film, all values finite).
+def _quick_check_bits(pos_bits, val_bits, width_bits, height_bits, val_exp_mask):
+    """Branch-free screening on the floats' bit patterns (integer reductions vectorise).
 
-    ``v * 0`` is 0 for finite v and NaN for NaN/Inf, so one sum flags any
-    non-finite value; the detailed :func:`_scan` runs only when needed.
+    For non-negative IEEE floats the integer view is ordered like the value,
+    so ``0 <= x < width`` is ``0 <= bits(x) < bits(width)``; NaN and
+    negative numbers fail it.  A value is non-finite iff its exponent bits
+    are all ones.  False alarms (e.g. -0.0) only send the batch through the
+    exact :func:`_scan`.
     """
-    lo_x = np.inf
-    hi_x = -np.inf
-    lo_y = np.inf
-    hi_y = -np.inf
-    z = 0.0
-    for k in range(pos.shape[0]):
-        x = float(pos[k, 0])
-        y = float(pos[k, 1])
-        lo_x = min(lo_x, x)
-        hi_x = max(hi_x, x)
-        lo_y = min(lo_y, y)
-        hi_y = max(hi_y, y)
-        z += x * 0.0 + y * 0.0
-    zv = 0.0
-    for k in range(val.shape[0]):
-        for c in range(val.shape[1]):
-            zv += float(val[k, c]) * 0.0
-    pos_ok = z == 0.0 and lo_x >= 0.0 and hi_x < width and lo_y >= 0.0 and hi_y < height
-    return pos_ok, zv == 0.0
+    lo = pos_bits[0, 0] if pos_bits.shape[0] else 0
+    hi_x = lo
+    hi_y = lo
+    for k in range(pos_bits.shape[0]):
+        a = pos_bits[k, 0]
+        b = pos_bits[k, 1]
+        lo = min(lo, min(a, b))
+        hi_x = max(hi_x, a)
+        hi_y = max(hi_y, b)
+    e = val_exp_mask & 0
+    for k in range(val_bits.shape[0]):
+        for c in range(val_bits.shape[1]):
+            e = max(e, val_bits[k, c] & val_exp_mask)
+    pos_ok = lo >= 0 and hi_x < width_bits and hi_y < height_bits
+    return pos_ok, e != val_exp_mask
+
+
+_INT_VIEW = {np.dtype(np.float32): (np.int32, np.int32(0x7F800000)),
+             np.dtype(np.float64): (np.int64, np.int64(0x7FF0000000000000))}
+
+
+def _quick_check(pos, val, width, height):
+    """(all positions on the film, all values finite), screened on bit patterns."""
+    if pos.dtype not in _INT_VIEW or val.dtype not in _INT_VIEW or pos.shape[0] == 0:
+        return False, False  # let the exact scan decide
+    pint, _ = _INT_VIEW[pos.dtype]
+    vint, vmask = _INT_VIEW[val.dtype]
+    wb = np.array(width, pos.dtype).view(pint)[()]
+    hb = np.array(height, pos.dtype).view(pint)[()]
+    return _quick_check_bits(pos.view(pint), val.view(vint), wb, hb, vmask)
 
 
 @numba.njit(cache=True, nogil=True)
