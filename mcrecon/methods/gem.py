@@ -1,0 +1,1141 @@
+"""``gem``: adaptive sampling and reconstruction by greedy error minimization.
+
+Rousselle, Knaus and Zwicker (2011) pick, at every pixel, one filter out
+of a fixed bank (the renderer's pixel filter and Gaussians at growing
+scales) so that the pixel's MSE is minimal, and send new samples where
+the *relative* MSE of the selected filters falls fastest.  This module
+implements every element of the paper; ``docs/methods/gem.md`` maps each
+equation and section to the function implementing it.
+
+Pipeline (one call of :func:`gem_select`):
+
+1. **Finest scale** (the pixel filter, unbiased): the pixel mean, with the
+   variance of Sec. 6 (:func:`mean_variance_policy`, explicit policy for
+   n < 2).
+2. **Filter bank** (Sec. 6): Gaussian scales, each the pixel-level
+   equivalent of "Gaussian on the 4 x 4 subpixel grid, then box-reduce"
+   (:func:`pixel_kernel`, exact when subpixels are constant per pixel);
+   scales below ``subpixel_exact_below`` px are filtered on the hole-filled
+   subpixel grid itself (:func:`filled_subpixels`: empty subpixels take
+   the pixel mean, the paper's "two-step pull-push";
+   :func:`subpixel_gaussian_exact`).  Variances from the per-pixel mean
+   variances filtered with the *squared* kernel (Eq. 2, Sec. 6),
+   :func:`filter_bank`.
+3. **Scale selector** S (Eq. 1) per pair of consecutive scales with the
+   bias term weighted by rho = 1 - 1/|P| and z(gamma) (Sec. 4.3),
+   :func:`scale_selector_terms`; binary stopping maps ``S > 0``.
+4. **Outlier removal** (Sec. 4.4, Sec. 6) on each stopping map,
+   :func:`remove_outliers`; the selected scale is the finest with stop = 1
+   (:func:`select_from_stops`).
+5. **Sample distribution** (Sec. 5): accumulated MSE estimates, relative
+   MSE with eps = 0.001, priority relMSE * n / (n + n_s); the m best pixels
+   each get n samples importance-sampled over their filter,
+   :func:`estimate_mse`, :func:`sample_priority`, :func:`distribute_samples`.
+
+References
+----------
+.. [1] F. Rousselle, C. Knaus, M. Zwicker, "Adaptive Sampling and
+   Reconstruction using Greedy Error Minimization", ACM Trans. Graph.
+   30(6) (SIGGRAPH Asia), 2011.
+.. [2] B. W. Silverman, "Density Estimation for Statistics and Data
+   Analysis", Chapman & Hall, 1986 (bias of kernel estimators ~ r^2).
+.. [3] D. P. Mitchell, "Generating antialiased images at low sampling
+   densities", SIGGRAPH 1987 (subpixel grid for non-uniform densities).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+from scipy import ndimage
+
+from ..errors import InputError
+from ..stats import PixelStats
+from .base import AdaptiveState, Method, Option, uniform_counts
+
+__all__ = [
+    "GEMMethod",
+    "GAMMA_MAX",
+    "SAMPLING_EPS",
+    "z_of_gamma",
+    "check_gamma",
+    "adaptive_sigmas",
+    "final_sigmas",
+    "gaussian_kernel",
+    "pixel_kernel",
+    "filled_subpixels",
+    "subpixel_gaussian_exact",
+    "mean_variance_policy",
+    "FilterBank",
+    "filter_bank",
+    "bias_coefficient",
+    "scale_selector_terms",
+    "stopping_maps",
+    "remove_outliers",
+    "select_from_stops",
+    "GEMSelection",
+    "gem_select",
+    "oracle_select",
+    "estimate_mse",
+    "sample_priority",
+    "distribute_samples",
+    "error_rate_experiment",
+]
+
+#: gamma must lie in (0, GAMMA_MAX): the paper's z(gamma) is "valid in the
+#: range 0 < gamma < 0.4" (and undefined from 1.9 gamma >= 1, gamma ~ 0.526).
+GAMMA_MAX = 0.4
+#: Sec. 5: relative MSE for sampling divides by value^2 + 0.001.
+SAMPLING_EPS = 1e-3
+#: Relative MSE of the user's target (option ``target_rel_mse``): the same
+#: eps as :func:`mcrecon.metrics.relative_mse`, so the target means what the
+#: reported error means.
+TARGET_EPS = 1e-2
+#: Gaussian kernels are truncated at this many standard deviations (the
+#: tails hold 0.27 % of the weight) and renormalised.
+TRUNCATE = 3.0
+#: Outlier-removal rules of the final reconstruction (see :func:`gem_select`).
+OUTLIER_RULES = ("paper", "adaptive")
+
+_WHERE = "method gem"
+
+
+# ----------------------------------------------------------------------------
+# Parameters
+# ----------------------------------------------------------------------------
+
+def check_gamma(gamma, where: str = _WHERE) -> float:
+    """Validate the error-rate parameter: a real number with 0 < gamma < 0.4.
+
+    Raises
+    ------
+    InputError
+        Naming ``gamma`` and the valid range.
+    """
+    try:
+        g = float(gamma)
+    except (TypeError, ValueError):
+        raise InputError(where, "gamma", f"{gamma!r} is not a number; expected 0 < gamma < {GAMMA_MAX} "
+                         "(the target error rate of the scale selector, default 0.2)") from None
+    if not (0.0 < g < GAMMA_MAX):
+        raise InputError(where, "gamma", f"{gamma!r} is outside 0 < gamma < {GAMMA_MAX}: the paper's "
+                         "z(gamma) = -log(1 - (1.9 gamma)^(1/sqrt 2)) is only calibrated there "
+                         "(and undefined from gamma ~ 0.526); use e.g. 0.1 to 0.3, default 0.2")
+    return g
+
+
+def z_of_gamma(gamma) -> float:
+    """Bias-term weight controlling the error rate (Sec. 4.3).
+
+    ``z(gamma) = -log(1 - (1.9 gamma)^(1/sqrt(2)))``, valid for
+    ``0 < gamma < 0.4``.
+
+    References
+    ----------
+    .. [1] Rousselle et al. 2011, Sec. 4.3 "Intuitive Parameterization".
+    """
+    g = check_gamma(gamma)
+    return -math.log(1.0 - (1.9 * g) ** (1.0 / math.sqrt(2.0)))
+
+
+def adaptive_sigmas(n: int = 4) -> np.ndarray:
+    """Gaussian scales of the adaptive phase: ``n`` dyadic scales from 1 px (Sec. 6)."""
+    return 2.0 ** np.arange(int(n), dtype=np.float64)
+
+
+def final_sigmas(n: int = 8) -> np.ndarray:
+    """Gaussian scales of the final reconstruction: ``n`` scales sqrt(2) apart from sqrt(2) px (Sec. 6)."""
+    return math.sqrt(2.0) ** np.arange(1, int(n) + 1, dtype=np.float64)
+
+
+# ----------------------------------------------------------------------------
+# Kernels
+# ----------------------------------------------------------------------------
+
+def gaussian_kernel(sigma: float, *, truncate: float = TRUNCATE) -> np.ndarray:
+    """Sampled, normalised 1-D Gaussian on the integer lattice, radius ceil(truncate * sigma)."""
+    sigma = float(sigma)
+    r = max(1, int(math.ceil(truncate * sigma)))
+    d = np.arange(-r, r + 1, dtype=np.float64)
+    k = np.exp(-0.5 * (d / sigma) ** 2)
+    return k / k.sum()
+
+
+def pixel_kernel(sigma: float, subpixels: int = 4, *, truncate: float = TRUNCATE) -> np.ndarray:
+    """Pixel-level 1-D kernel equivalent to subpixel Gaussian filtering + box reduction.
+
+    Filtering an ``s x s`` subpixel grid with a sampled Gaussian of
+    ``sigma * s`` subpixels and then averaging each pixel's subpixels
+    equals, whenever the subpixel values are constant within each pixel,
+    a pixel-level separable filter with the 1-D kernel
+
+    ``k(d) = (1/s) * sum_{a,b=0}^{s-1} g_sub(s d + b - a)``
+
+    (box (x) Gaussian (x) box, discretised exactly).  This is the kernel
+    applied to the box-reduced finest scale (:func:`filter_bank`); the
+    residual difference to filtering the raw subpixel grid is measured in
+    ``tests/test_gem.py`` and documented in ``docs/methods/gem.md``.
+
+    Parameters
+    ----------
+    sigma : float
+        Standard deviation in pixels.
+    subpixels : int
+        Subpixels per pixel axis (1: a plain sampled Gaussian).
+    """
+    s = max(1, int(subpixels))
+    g = gaussian_kernel(sigma * s, truncate=truncate)
+    rs = (g.size - 1) // 2
+    # offsets j = s d + b - a for a, b in [0, s) reach |j| <= rs from pixel
+    # offsets |d| <= floor((rs + s - 1) / s).
+    rd = (rs + s - 1) // s
+    k = np.zeros(2 * rd + 1)
+    for a in range(s):
+        for b in range(s):
+            for di, d in enumerate(range(-rd, rd + 1)):
+                j = s * d + b - a
+                if -rs <= j <= rs:
+                    k[di] += g[j + rs]
+    k /= s
+    return k / k.sum()
+
+
+def _phase_kernels(sigma: float, s: int, truncate: float = TRUNCATE):
+    """Polyphase pieces h_beta(d) = (1/s) sum_a g_sub(s d + beta - a), beta in [0, s)."""
+    g = gaussian_kernel(sigma * s, truncate=truncate)
+    rs = (g.size - 1) // 2
+    rd = (rs + s - 1) // s
+    h = np.zeros((s, 2 * rd + 1))
+    for beta in range(s):
+        for a in range(s):
+            for di, d in enumerate(range(-rd, rd + 1)):
+                j = s * d + beta - a
+                if -rs <= j <= rs:
+                    h[beta, di] += g[j + rs]
+    return h / s
+
+
+# ----------------------------------------------------------------------------
+# Separable normalised filtering
+# ----------------------------------------------------------------------------
+
+def _corr2(x: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """Separable correlation over axes 0 and 1 with zeros outside the image."""
+    y = ndimage.correlate1d(x, k, axis=0, mode="constant", cval=0.0)
+    return ndimage.correlate1d(y, k, axis=1, mode="constant", cval=0.0)
+
+
+def _weights(mask: np.ndarray, k: np.ndarray, full: bool) -> np.ndarray:
+    """Sum of the kernel weights over valid pixels, W(p) = sum_q m_q K(p - q)."""
+    h, w = mask.shape
+    if full:
+        # mask all ones: the 2-D sum is the product of the 1-D border sums
+        wy = ndimage.correlate1d(np.ones(h), k, mode="constant", cval=0.0)
+        wx = ndimage.correlate1d(np.ones(w), k, mode="constant", cval=0.0)
+        return np.multiply.outer(wy, wx)
+    return _corr2(mask.astype(np.float64), k)
+
+
+def _safe_div(num: np.ndarray, den: np.ndarray) -> np.ndarray:
+    out = np.zeros(np.broadcast_shapes(num.shape, den.shape))
+    np.divide(num, den, out=out, where=den > 0)
+    return out
+
+
+# ----------------------------------------------------------------------------
+# Finest scale and variances
+# ----------------------------------------------------------------------------
+
+def mean_variance_policy(stats: PixelStats) -> np.ndarray:
+    """Variance of each pixel's mean, ``s^2 / n`` (Sec. 6), with a policy for n < 2.
+
+    Policy (documented in ``docs/methods/gem.md``): a pixel with a single
+    sample has no sample variance of its own; it borrows the average sample
+    variance of the pixels with n >= 2 in its 3 x 3 neighbourhood, else the
+    image-wide average over pixels with n >= 2, else (no pixel has two
+    samples, e.g. a 1-spp log) the variance of the pixel values in its 3 x 3
+    neighbourhood (signal plus noise: conservative, it errs towards
+    keeping detail).  Empty pixels get 0 (they are masked out).
+
+    Returns
+    -------
+    ndarray (H, W, C) float64
+    """
+    n = stats.count
+    var = stats.sample_variance(undefined=0.0)
+    need = n == 1
+    if need.any():
+        ok = ((n >= 2) & ~need).astype(np.float64)
+        if ok.any():
+            num = ndimage.uniform_filter(var * ok[..., None], size=(3, 3, 1), mode="constant")
+            den = ndimage.uniform_filter(ok, size=3, mode="constant")[..., None]
+            local = _safe_div(num, den)
+            glob = var[ok > 0].mean(axis=0)
+            sub = np.where(den > 1e-12, local, glob)
+        else:
+            has = (n >= 1).astype(np.float64)
+            m = stats.mean * has[..., None]
+            den = ndimage.uniform_filter(has, size=3, mode="constant")[..., None]
+            m1 = _safe_div(ndimage.uniform_filter(m, size=(3, 3, 1), mode="constant"), den)
+            m2 = _safe_div(ndimage.uniform_filter(m * m, size=(3, 3, 1), mode="constant"), den)
+            sub = np.maximum(m2 - m1 * m1, 0.0)
+        var = np.where(need[..., None], sub, var)
+    return var / np.maximum(n, 1)[..., None]
+
+
+def filled_subpixels(stats: PixelStats) -> np.ndarray:
+    """The hole-filled subpixel grid (sH, sW, C): subpixel means, empty ones the pixel mean,
+    subpixels of empty pixels 0."""
+    s = stats.subpixels
+    if not s:
+        raise InputError("filled_subpixels", "stats", "needs subpixel statistics (subpixels=4)")
+    sub = stats.subpixel_means(fill="pixel")
+    empty = stats.count == 0
+    if empty.any():
+        sub[np.repeat(np.repeat(empty, s, axis=0), s, axis=1)] = 0.0
+    return sub
+
+
+def subpixel_gaussian_exact(sub: np.ndarray, count: np.ndarray, sigma: float, *,
+                            truncate: float = TRUNCATE) -> np.ndarray:
+    """Gaussian on the filled subpixel grid, then box reduction (the paper's Sec. 6 filtering).
+
+    The sampled Gaussian (``sigma * s`` subpixels) is applied to the
+    ``sH x sW`` grid of subpixel means (:func:`filled_subpixels`;
+    subpixels of empty pixels are excluded by normalisation) and each
+    pixel takes the average of its subpixels.  Done in polyphase form
+    (filter and decimate in one step): 10-20x the cost of the pixel-level
+    path of :func:`filter_bank`.
+
+    Parameters
+    ----------
+    sub : ndarray (sH, sW, C)
+    count : ndarray (H, W)
+    sigma : float
+
+    Returns
+    -------
+    ndarray (H, W, C)
+    """
+    h, w = count.shape
+    s = sub.shape[0] // h
+    mask = count > 0
+    ph = _phase_kernels(sigma, s, truncate)
+    # x: (sH, sW, C) -> (sH, W, C)
+    tx = ndimage.correlate1d(sub[:, 0::s], ph[0], axis=1, mode="constant", cval=0.0)
+    for b in range(1, s):
+        tx += ndimage.correlate1d(sub[:, b::s], ph[b], axis=1, mode="constant", cval=0.0)
+    # y: (sH, W, C) -> (H, W, C)
+    t = ndimage.correlate1d(tx[0::s], ph[0], axis=0, mode="constant", cval=0.0)
+    for b in range(1, s):
+        t += ndimage.correlate1d(tx[b::s], ph[b], axis=0, mode="constant", cval=0.0)
+    k = pixel_kernel(sigma, s, truncate=truncate)
+    wsum = _weights(mask, k, bool(mask.all()))
+    return _safe_div(t, wsum[..., None])
+
+
+# ----------------------------------------------------------------------------
+# Filter bank
+# ----------------------------------------------------------------------------
+
+@dataclasses.dataclass(eq=False)
+class FilterBank:
+    """Filtered images of every scale (index 0: the pixel filter).
+
+    Attributes
+    ----------
+    sigmas : ndarray (K,)
+        Gaussian standard deviations (pixels) of scales 1..K.
+    values : list of ndarray (H, W, C)
+        Filtered values per scale.
+    var : list of ndarray (H, W, C) or (H, W)
+        Estimated variance of each filtered value (per channel, or summed
+        over channels when built with ``per_channel=False``).
+    weight : list of ndarray (H, W)
+        Sum of kernel weights over pixels with samples (0: no data in the
+        support).
+    n_eff : list of ndarray (H, W) or None
+        Effective sample count of each filter (see :func:`filter_bank`).
+    """
+
+    sigmas: np.ndarray
+    values: list
+    var: list
+    weight: list
+    n_eff: list | None
+
+    @property
+    def n_scales(self) -> int:
+        return len(self.values)
+
+
+def filter_bank(base: np.ndarray, mean_var: np.ndarray, count: np.ndarray, sigmas, *,
+                subpixels: int = 4, per_channel: bool = True, with_n_eff: bool = False,
+                sub: np.ndarray | None = None, exact_below: float = 0.0,
+                truncate: float = TRUNCATE) -> FilterBank:
+    """Filter the finest scale and its variances at every Gaussian scale (Sec. 6, Eq. 2).
+
+    Values: ``c_k(p) = sum_q m_q K_k(p - q) base_q / W_k(p)`` with ``K_k``
+    the separable :func:`pixel_kernel` of scale k, ``m`` the mask of pixels
+    with samples and ``W_k(p) = sum_q m_q K_k(p - q)`` (weights renormalised
+    at the border and around empty pixels, so no mirrored -- correlated --
+    samples enter).  Variances with the squared weights (Eq. 2, valid
+    because the per-pixel estimates share no samples):
+    ``Var[c_k](p) = sum_q m_q K_k(p - q)^2 Var[p_q] / W_k(p)^2``.
+
+    ``with_n_eff`` adds the effective sample count of each filter,
+    ``n_s = 1 / sum_q w_q^2 / n_q`` (w the normalised weights): with a
+    common per-sample variance the filter's variance is ``sigma^2 / n_s``,
+    so adding n samples spread in proportion to w multiplies it by
+    ``n_s / (n + n_s)`` (Sec. 5); for the pixel filter n_s = n.
+
+    Parameters
+    ----------
+    base : ndarray (H, W, C)
+        Finest scale: the pixel means (0 where empty).
+    mean_var : ndarray (H, W, C)
+        Variance of each pixel's value (:func:`mean_variance_policy`).
+    count : ndarray (H, W)
+        Samples per pixel (0 = masked out).
+    sigmas : sequence of float
+        Gaussian scales in pixels, fine to coarse.
+    per_channel : bool
+        Keep variances per channel (needed for relative MSE) or summed over
+        channels (enough for the selection, one plane per scale).
+    sub : ndarray (sH, sW, C), optional
+        The filled subpixel grid (:func:`filled_subpixels`); with
+        ``exact_below`` > 0 the values of scales with sigma < exact_below
+        are computed on it exactly (:func:`subpixel_gaussian_exact`)
+        instead of on the box-reduced finest scale.
+    """
+    sig = np.asarray(sigmas, dtype=np.float64)
+    mask = count > 0
+    full = bool(mask.all())
+    mf = mask.astype(np.float64)
+    mb = base * mf[..., None]
+    v = mean_var if per_channel else mean_var.sum(axis=2)
+    mv = v * (mf[..., None] if per_channel else mf)
+    values = [base]
+    var = [v]
+    weight = [mf]
+    n_eff = None
+    if with_n_eff:
+        n_eff = [count.astype(np.float64)]
+        inv_n = _safe_div(mf, count.astype(np.float64))
+    # Variances and sample counts only weigh decisions: float32 halves their
+    # filtering cost at 1e-7 relative precision (values stay float64).
+    mv = mv.astype(np.float32)
+    if with_n_eff:
+        inv_n = inv_n.astype(np.float32)
+    for s_ in sig:
+        k = pixel_kernel(s_, subpixels, truncate=truncate)
+        k2 = (k * k).astype(np.float32)
+        w = _weights(mask, k, full)
+        w2 = w * w
+        if sub is not None and s_ < exact_below:
+            values.append(subpixel_gaussian_exact(sub, count, s_, truncate=truncate))
+        else:
+            values.append(_safe_div(_corr2(mb, k), w[..., None]))
+        var.append(_safe_div(_corr2(mv, k2).astype(np.float64), w2[..., None] if per_channel else w2))
+        weight.append(w)
+        if with_n_eff:
+            n_eff.append(_safe_div(w2, _corr2(inv_n, k2).astype(np.float64)))
+    return FilterBank(sig, values, var, weight, n_eff)
+
+
+# ----------------------------------------------------------------------------
+# Scale selector (Eq. 1)
+# ----------------------------------------------------------------------------
+
+def bias_coefficient(r_f: float, r_c: float) -> float:
+    """Factor of (c - f)^2 in the approximate bias term (Sec. 4.2).
+
+    With ``Bias[c] = (r_c^2 / r_f^2) Bias[f]`` (quadratic image, kernels
+    with vanishing first moments) and ``c - f = Bias[c] - Bias[f]``:
+    ``Bias[c]^2 - Bias[f]^2 = (r_c^2 + r_f^2) / (r_c^2 - r_f^2) (c - f)^2``.
+    The paper prints the denominator as ``r_f^2 - r_c^2``, which would make
+    the bias term of a coarser scale negative; the derivation gives the
+    positive form used here (5/3 for dyadic scales, 3 for sqrt(2) steps).
+    ``r_f = 0`` (the pixel filter, unbiased) gives 1: the exact squared
+    difference of Sec. 6.
+    """
+    r_f, r_c = float(r_f), float(r_c)
+    if not r_c > r_f >= 0:
+        raise InputError("bias_coefficient", "r_f, r_c", f"got {r_f}, {r_c}; expected 0 <= r_f < r_c")
+    return (r_c * r_c + r_f * r_f) / (r_c * r_c - r_f * r_f)
+
+
+def scale_selector_terms(f, c, var_f, var_c, *, r_f: float, r_c: float, n, gamma: float | None):
+    """The scale selector S of Eq. 1 and its two terms.
+
+    ``bias = rho * z(gamma) * coef(r_f, r_c) * (c - f)^2`` with
+    ``rho = 1 - 1/|P|`` (Sec. 4.3), ``variance = Var[c] - Var[f]`` and
+    ``S = bias + variance``.  ``S > 0`` means "stop at the fine scale".
+    ``gamma=None`` leaves the bias unweighted (the plain MSE difference of
+    Eq. 1, used for MSE accumulation and ground-truth experiments).
+    ``r_f = 0`` denotes the pixel filter (exact squared difference).
+
+    Parameters
+    ----------
+    f, c : array_like
+        Fine and coarse filtered values (same shape).
+    var_f, var_c : array_like
+        Their variances.
+    n : array_like or float
+        Samples in the pixel, |P| (rho = 1 - 1/max(n, 1)).
+
+    Returns
+    -------
+    bias, variance, S : ndarray
+    """
+    f = np.asarray(f, dtype=np.float64)
+    c = np.asarray(c, dtype=np.float64)
+    d = c - f
+    bias = bias_coefficient(r_f, r_c) * d * d
+    if gamma is not None:
+        rho = 1.0 - 1.0 / np.maximum(np.asarray(n, dtype=np.float64), 1.0)
+        bias = bias * (rho * z_of_gamma(gamma))
+    variance = np.asarray(var_c, dtype=np.float64) - np.asarray(var_f, dtype=np.float64)
+    return bias, variance, bias + variance
+
+
+def _pair_radii(sigmas, k):
+    """(r_f, r_c) of the pair (k, k+1); scale 0 is the pixel filter (r = 0)."""
+    return (0.0 if k == 0 else float(sigmas[k - 1])), float(sigmas[k])
+
+
+def stopping_maps(bank: FilterBank, count: np.ndarray, gamma: float | None):
+    """Binary stopping maps ``S_k > 0`` for every pair (k, k+1), and the unweighted S_k.
+
+    Channels are combined by summing S over channels (the total squared
+    error of the pixel).  Returns ``stops`` (K, H, W) bool and ``delta``
+    (K, H, W), the unweighted estimate of MSE[k+1] - MSE[k] summed over
+    channels.
+    """
+    nk = bank.n_scales - 1
+    h, w = count.shape
+    stops = np.zeros((nk, h, w), bool)
+    delta = np.zeros((nk, h, w))
+    rho_z = None
+    if gamma is not None:
+        rho_z = (1.0 - 1.0 / np.maximum(count, 1)) * z_of_gamma(gamma)
+    for k in range(nk):
+        r_f, r_c = _pair_radii(bank.sigmas, k)
+        dv = bank.values[k + 1] - bank.values[k]
+        b = bias_coefficient(r_f, r_c) * np.einsum("ijc,ijc->ij", dv, dv)
+        vf, vc = bank.var[k], bank.var[k + 1]
+        vterm = (vc.sum(axis=2) - vf.sum(axis=2)) if vc.ndim == 3 else (vc - vf)
+        delta[k] = b + vterm
+        stops[k] = ((b * rho_z + vterm) if rho_z is not None else delta[k]) > 0
+    return stops, delta
+
+
+# ----------------------------------------------------------------------------
+# Outlier removal (Sec. 4.4, Sec. 6)
+# ----------------------------------------------------------------------------
+
+def remove_outliers(stops: np.ndarray, sigmas, *, final: bool = False, size_factor: float | None = None,
+                    voters: np.ndarray | None = None, truncate: float = TRUNCATE) -> np.ndarray:
+    """Filter each binary stopping map and round it back to binary (Sec. 4.4, Sec. 6).
+
+    Map k (pair k -> k+1) is filtered with a sampled Gaussian of the
+    coarse scale's sigma (``final``: twice that, Sec. 6) with the centre
+    pixel's weight set to 0 ("we ignore the center pixel", Sec. 4.4),
+    renormalised over the pixels that vote; the result is rounded
+    (>= 0.5 -> 1).  With ``final`` only changes towards the coarser scale
+    (1 -> 0) are accepted.  A pixel without voting neighbours in the
+    support keeps its value.
+
+    Parameters
+    ----------
+    stops : ndarray (K, H, W) bool
+    sigmas : sequence of float (K,)
+        Gaussian scales; the coarse scale of pair k is ``sigmas[k]``.
+    final : bool
+        The final-reconstruction rule of Sec. 6 (twice the size, coarser-only).
+    size_factor : float, optional
+        Override the size factor (default 1, or 2 with ``final``).
+    voters : ndarray (H, W) bool, optional
+        Pixels whose decisions count in the neighbourhood vote (default
+        all).  :func:`gem_select` excludes pixels that skip the search
+        (zero estimated variance, no samples): they did not decide anything.
+    """
+    factor = size_factor if size_factor is not None else (2.0 if final else 1.0)
+    out = np.empty_like(stops)
+    h, w = stops.shape[1:]
+    vf = np.ones((h, w)) if voters is None else voters.astype(np.float64)
+    full = voters is None or bool(voters.all())
+    for k in range(stops.shape[0]):
+        g = gaussian_kernel(factor * float(sigmas[k]), truncate=truncate)
+        g0 = g[(g.size - 1) // 2] ** 2             # centre weight of the 2-D kernel
+        m = stops[k] * vf
+        num = _corr2(m, g) - g0 * m
+        den = _weights(vf > 0, g, full) - g0 * vf
+        keep = den <= 1e-9
+        filt = _safe_div(num, np.where(keep, 0.0, den)) >= 0.5
+        filt = np.where(keep, stops[k], filt)
+        out[k] = (stops[k] & filt) if final else filt
+    return out
+
+
+def select_from_stops(stops: np.ndarray) -> np.ndarray:
+    """Selected scale: the finest k with stop_k = 1, else the coarsest (K)."""
+    nk = stops.shape[0]
+    any_stop = stops.any(axis=0)
+    first = np.argmax(stops, axis=0)
+    return np.where(any_stop, first, nk).astype(np.int64)
+
+
+# ----------------------------------------------------------------------------
+# Whole selection
+# ----------------------------------------------------------------------------
+
+@dataclasses.dataclass(eq=False)
+class GEMSelection:
+    """Result of :func:`gem_select` / :func:`oracle_select`.
+
+    Attributes
+    ----------
+    bank : FilterBank
+    selected : ndarray (H, W) int
+        Selected scale (0 = pixel filter).
+    stops_raw, stops : ndarray (K, H, W) bool or None
+        Stopping maps before and after outlier removal (None for the oracle).
+    mse : ndarray (H, W, C)
+        Estimated MSE of every pixel's selected filter, per channel.
+    image : ndarray (H, W, C)
+        Values of the selected scales.
+    """
+
+    bank: FilterBank
+    selected: np.ndarray
+    stops_raw: np.ndarray | None
+    stops: np.ndarray | None
+    mse: np.ndarray | None
+    image: np.ndarray
+
+
+def _pick(stack_list, selected):
+    out = np.empty_like(stack_list[0])
+    for k, arr in enumerate(stack_list):
+        m = selected == k
+        out[m] = arr[m]
+    return out
+
+
+def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subpixels: int = 4,
+               want_mse: bool = False, sub: np.ndarray | None = None, exact_below: float = 0.0,
+               outlier_rule: str = "paper", zero_variance_votes: bool = False) -> GEMSelection:
+    """Filter selection of Secs. 4 and 6 on pixel arrays (works for 1-D signals as 1 x N images).
+
+    Stopping maps from Eq. 1 weighted by rho z(gamma); pixels without samples
+    never stop at the pixel filter nor at a scale with no data in its
+    support; outlier removal (adaptive or final rule); pixels with zero
+    estimated variance in every channel take the pixel filter without a
+    search (no filter can have a lower estimated MSE than 0).
+
+    Parameters
+    ----------
+    base, mean_var : ndarray (H, W, C)
+    count : ndarray (H, W)
+    sigmas : sequence of float
+    gamma : float
+        0 < gamma < 0.4.
+    final : bool
+        Final reconstruction: use the final outlier rule.
+    want_mse : bool
+        Also estimate the selected filters' MSE per channel (for sampling).
+    sub, exact_below : see :func:`filter_bank`.
+    outlier_rule : {'paper', 'adaptive'}
+        Rule of the final reconstruction: 'paper' (Sec. 6: outlier filter
+        twice the coarse scale, only switches towards the coarser scale
+        accepted) or 'adaptive' (the adaptive phase's rule: the coarse
+        scale's size, both directions).  Ignored when not ``final``.
+    zero_variance_votes : bool
+        Whether pixels with zero estimated variance (which skip the search)
+        vote in the outlier removal of their neighbours.  Their "stop" only
+        reflects their own zero variance, not the local bias; see
+        ``docs/methods/gem.md`` for the measured effect (off while sampling,
+        on in the final reconstruction by default in :class:`GEMMethod`).
+
+    Notes
+    -----
+    Channels are combined by summing S over channels (the pixel's total
+    squared error), one scale per pixel.  z(gamma) was calibrated by the
+    paper on one channel; with independent noise in three channels the
+    realised error rate departs from gamma (measured in the tests).
+    """
+    count = np.asarray(count)
+    if outlier_rule not in OUTLIER_RULES:
+        raise InputError("gem_select", "outlier_rule", f"{outlier_rule!r}; valid: {', '.join(OUTLIER_RULES)}")
+    bank = filter_bank(base, mean_var, count, sigmas, subpixels=subpixels, per_channel=want_mse,
+                       with_n_eff=want_mse, sub=sub, exact_below=exact_below)
+    stops_raw, _ = stopping_maps(bank, count, gamma)
+    empty = count == 0
+    for k in range(stops_raw.shape[0]):
+        # no data of its own / in the fine scale's support: go coarser
+        stops_raw[k] &= bank.weight[k] > 0
+    zero_var = (~empty) & np.all(mean_var <= 0.0, axis=2)
+    stops = remove_outliers(stops_raw, bank.sigmas, final=final and outlier_rule == "paper",
+                            voters=~empty if zero_variance_votes else ~(empty | zero_var))
+    for k in range(stops.shape[0]):
+        stops[k] &= bank.weight[k] > 0
+    stops[0] |= zero_var
+    selected = select_from_stops(stops)
+    image = _pick(bank.values, selected)
+    mse = estimate_mse(bank, selected, count) if want_mse else None
+    return GEMSelection(bank, selected, stops_raw, stops, mse, image)
+
+
+def oracle_select(base, mean_var, count, sigmas, reference, *, subpixels: int = 4,
+                  sub: np.ndarray | None = None, exact_below: float = 0.0) -> GEMSelection:
+    """The paper's OUR-GRD selection: exhaustive argmin of bias^2 + Var with the true bias.
+
+    The bias of scale k is ``K_k * reference - reference`` (the reference
+    filtered exactly like the data, with the same mask); the pixel filter
+    is unbiased.  The per-sample variance is a property of the renderer
+    that a reference image does not carry, so the variances are the
+    sample estimates (Eq. 2) -- the same ones GEM uses.  The MSE is summed
+    over channels for the choice and kept per channel for sampling.
+    """
+    ref = np.asarray(reference, dtype=np.float64)
+    count = np.asarray(count)
+    bank = filter_bank(base, mean_var, count, sigmas, subpixels=subpixels, per_channel=True, with_n_eff=True,
+                       sub=sub, exact_below=exact_below)
+    rbank = filter_bank(ref, np.zeros_like(ref), count, sigmas, subpixels=subpixels, per_channel=False)
+    mses = []
+    for k in range(bank.n_scales):
+        b = rbank.values[k] - ref
+        m = b * b + bank.var[k]
+        m = np.where((bank.weight[k] > 0)[..., None], m, np.inf)  # no data in the support
+        mses.append(m)
+    tot = np.stack([m.sum(axis=2) for m in mses])
+    selected = np.argmin(tot, axis=0).astype(np.int64)
+    image = _pick(bank.values, selected)
+    mse = _pick(mses, selected)
+    return GEMSelection(bank, selected, None, None, mse, image)
+
+
+# ----------------------------------------------------------------------------
+# Sample distribution (Sec. 5)
+# ----------------------------------------------------------------------------
+
+def estimate_mse(bank: FilterBank, selected: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """MSE of the selected filter per channel by accumulating Delta-MSE estimates (Sec. 5).
+
+    ``MSE_0 = Var_0`` (the pixel filter is unbiased); ``MSE_{k+1} = MSE_k +
+    bias_k + Var_{k+1} - Var_k`` with the unweighted approximate bias term
+    of Eq. 1 (gamma only calibrates the decision).  An estimate below the
+    selected filter's own variance is raised to it (MSE = bias^2 + Var >=
+    Var).  Pixels without samples get +inf.
+    """
+    mse = bank.var[0].copy()
+    out = mse.copy()                      # scale 0 selected: its variance
+    for k in range(bank.n_scales - 1):
+        r_f, r_c = _pair_radii(bank.sigmas, k)
+        dv = bank.values[k + 1] - bank.values[k]
+        dv *= dv
+        dv *= bias_coefficient(r_f, r_c)
+        mse += dv
+        mse += bank.var[k + 1]
+        mse -= bank.var[k]
+        sel = selected == k + 1
+        out[sel] = np.maximum(mse[sel], bank.var[k + 1][sel])
+    return np.where((count == 0)[..., None], np.inf, out)
+
+
+def sample_priority(mse: np.ndarray, value: np.ndarray, n_eff: np.ndarray, n_new: int, *,
+                    eps: float = SAMPLING_EPS) -> tuple[np.ndarray, np.ndarray]:
+    """Relative MSE and the expected reduction from n new samples (Sec. 5).
+
+    ``relMSE = mean_c MSE_c / (value_c^2 + eps)``; adding n samples over a
+    filter that saw n_s samples multiplies its MSE by n_s / (n + n_s), so
+    the reduction (the priority) is ``relMSE * n / (n + n_s)``.  Pixels
+    without samples (MSE inf) get priority +inf.
+
+    Returns
+    -------
+    rel_mse, priority : ndarray (H, W)
+    """
+    inf = ~np.isfinite(mse).all(axis=2)
+    m = np.where(inf[..., None], 0.0, mse)
+    rel = np.mean(m / (value * value + eps), axis=2)
+    pri = rel * (n_new / (n_new + n_eff))
+    rel = np.where(inf, np.inf, rel)
+    pri = np.where(inf, np.inf, pri)
+    return rel, pri
+
+
+def distribute_samples(priority: np.ndarray, selected: np.ndarray, sigmas, n_total: int,
+                       n_per_pick: int, rng: np.random.Generator, *, subpixels: int = 4) -> np.ndarray:
+    """Positions of ``n_total`` new samples (Sec. 5).
+
+    The ``m = n_total // n_per_pick`` pixels of highest priority each get
+    ``n_per_pick`` samples (the next one the remainder), placed in pixels
+    drawn by importance sampling of their selected filter: the pixel
+    filter keeps them in the pixel, a Gaussian scale draws the pixel
+    offset from the separable pixel kernel (x and y independently), draws
+    off the film are redrawn (the filter is renormalised there too).  Each
+    sample lies uniformly at random inside its pixel.
+
+    Returns
+    -------
+    ndarray (n_total, 2) float64
+        Film positions (x = column, y = row).
+    """
+    h, w = selected.shape
+    n_total = int(n_total)
+    n_per_pick = max(1, int(n_per_pick))
+    if n_total <= 0:
+        return np.zeros((0, 2))
+    m = n_total // n_per_pick
+    rem = n_total - m * n_per_pick
+    n_pick = min(m + (1 if rem else 0), h * w)
+    flat = priority.ravel()
+    if n_pick < flat.size:
+        idx = np.argpartition(-flat, n_pick - 1)[:n_pick]
+    else:
+        idx = np.arange(flat.size)
+    idx = idx[np.argsort(-flat[idx], kind="stable")]
+    per = np.full(idx.size, n_per_pick, np.int64)
+    if idx.size * n_per_pick >= n_total:
+        # the last pick gets the remainder (or everything fits on fewer picks)
+        per[-1] = n_total - n_per_pick * (idx.size - 1)
+    else:
+        # fewer pixels than picks: spread the rest evenly over them
+        per += (n_total - per.sum()) // idx.size
+        per[: n_total - per.sum()] += 1
+    # group the picks by selected scale so each scale's samples are one slice
+    scale_pick = selected.ravel()[idx]
+    order = np.argsort(scale_pick, kind="stable")
+    idx, per, scale_pick = idx[order], per[order], scale_pick[order]
+    owner = np.repeat(idx, per)
+    py, px = np.divmod(owner, w)
+    ends = np.cumsum(per)
+    starts = ends - per
+    ox = np.zeros(owner.size, np.int64)
+    oy = np.zeros(owner.size, np.int64)
+    sig = np.asarray(sigmas, dtype=np.float64)
+    for k in np.unique(scale_pick):
+        if k == 0:
+            continue                      # the pixel filter: samples stay in the pixel
+        picks = np.flatnonzero(scale_pick == k)
+        lo, hi = int(starts[picks[0]]), int(ends[picks[-1]])
+        ker = pixel_kernel(sig[k - 1], subpixels)
+        r = (ker.size - 1) // 2
+        cdf = np.cumsum(ker)
+        cdf /= cdf[-1]
+        todo = np.arange(lo, hi)
+        for _ in range(64):
+            if todo.size == 0:
+                break
+            # inverse-CDF draws from the separable pixel kernel (x and y independent)
+            dx = np.minimum(np.searchsorted(cdf, rng.random(todo.size), side="right"), ker.size - 1) - r
+            dy = np.minimum(np.searchsorted(cdf, rng.random(todo.size), side="right"), ker.size - 1) - r
+            ox[todo], oy[todo] = dx, dy
+            x, y = px[todo] + dx, py[todo] + dy
+            todo = todo[(x < 0) | (x >= w) | (y < 0) | (y >= h)]
+        ox[todo] = 0  # (practically never) still off the film: keep them in their own pixel
+        oy[todo] = 0
+    px += ox
+    py += oy
+    pos = rng.random((owner.size, 2))
+    pos[:, 0] += px
+    pos[:, 1] += py
+    np.minimum(pos[:, 0], np.nextafter(px + 1.0, 0), out=pos[:, 0])
+    np.minimum(pos[:, 1], np.nextafter(py + 1.0, 0), out=pos[:, 1])
+    return pos
+
+
+# ----------------------------------------------------------------------------
+# Sec. 4.3 experiment (Figs. 4 and 5)
+# ----------------------------------------------------------------------------
+
+def error_rate_experiment(gamma: float | None, noise_var: float = 10.0, *, n_pixels: int = 1_000_000,
+                          spp: int = 32, radius: float = 1.0, ratio: float = 2.0, seed: int = 0,
+                          distribution: str = "normal") -> dict:
+    """The paper's empirical analysis of S on a constant signal (Sec. 4.3).
+
+    A 1-D signal of ``n_pixels`` pixels with value 0, ``spp`` samples per
+    pixel of i.i.d. noise of variance ``noise_var``; fine and coarse
+    Gaussians of sigma ``radius`` and ``ratio * radius`` applied to the
+    pixel means (the samples carry no positions here, as in the paper);
+    variances from the per-pixel sample variances (Eq. 3) through the
+    squared kernels (Eq. 2).  The ideal decision is always "go coarser"
+    (all biases are 0), so the error rate is the fraction of pixels with
+    S > 0; the paper calibrates z(gamma) so that it is about gamma.
+
+    Parameters
+    ----------
+    gamma : float or None
+        None: unweighted S (Fig. 4).
+    noise_var : float
+        Variance of one sample.
+    distribution : {'normal', 'uniform'}
+
+    Returns
+    -------
+    dict
+        ``bias``, ``variance``, ``S`` (arrays over the pixels, borders of
+        4 * ratio * radius pixels dropped), ``error_rate`` (float),
+        ``z``, ``rho`` and the parameters.
+    """
+    if gamma is not None:
+        check_gamma(gamma, "error_rate_experiment")
+    if not noise_var > 0:
+        raise InputError("error_rate_experiment", "noise_var", f"got {noise_var!r}, expected > 0")
+    if int(spp) < 2:
+        raise InputError("error_rate_experiment", "spp", f"got {spp!r}, expected >= 2 (Eq. 3 needs two samples)")
+    rng = np.random.default_rng(seed)
+    n = int(n_pixels)
+    if distribution == "normal":
+        s = rng.normal(0.0, math.sqrt(noise_var), size=(n, int(spp)))
+    elif distribution == "uniform":
+        a = math.sqrt(3.0 * noise_var)
+        s = rng.uniform(-a, a, size=(n, int(spp)))
+    else:
+        raise InputError("error_rate_experiment", "distribution", f"got {distribution!r}; valid: normal, uniform")
+    mean = s.mean(axis=1)
+    v = s.var(axis=1, ddof=1) / spp
+    r_f, r_c = float(radius), float(ratio) * float(radius)
+    kf, kc = gaussian_kernel(r_f), gaussian_kernel(r_c)
+    f = ndimage.correlate1d(mean, kf, mode="wrap")
+    c = ndimage.correlate1d(mean, kc, mode="wrap")
+    vf = ndimage.correlate1d(v, kf * kf, mode="wrap")
+    vc = ndimage.correlate1d(v, kc * kc, mode="wrap")
+    cut = int(math.ceil(4 * r_c))
+    sl = slice(cut, n - cut) if n > 2 * cut else slice(None)
+    bias, variance, S = scale_selector_terms(f[sl], c[sl], vf[sl], vc[sl], r_f=r_f, r_c=r_c, n=spp, gamma=gamma)
+    return {"bias": bias, "variance": variance, "S": S, "error_rate": float(np.mean(S > 0)),
+            "z": None if gamma is None else z_of_gamma(gamma), "rho": 1.0 - 1.0 / spp,
+            "gamma": gamma, "noise_var": float(noise_var), "spp": int(spp), "radius": r_f,
+            "ratio": float(ratio), "n_pixels": n}
+
+
+# ----------------------------------------------------------------------------
+# The method
+# ----------------------------------------------------------------------------
+
+def _opt_int(name, value, minimum):
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer, str, float)):
+        raise InputError(_WHERE, name, f"{value!r}, expected an integer >= {minimum}")
+    try:
+        f = float(value)
+    except ValueError:
+        raise InputError(_WHERE, name, f"{value!r}, expected an integer >= {minimum}") from None
+    if not (math.isfinite(f) and f == int(f) and f >= minimum):
+        raise InputError(_WHERE, name, f"{value!r}, expected an integer >= {minimum}")
+    return int(f)
+
+
+class GEMMethod(Method):
+    """Greedy error minimization (Rousselle, Knaus, Zwicker 2011).
+
+    Offline (``reconstruct``): the final-reconstruction filter selection
+    (8 Gaussian scales sqrt(2) apart from sqrt(2) px, Sec. 6).  Adaptive
+    (``plan``): ``initial_spp`` uniform, then ``iterations`` rounds that
+    each select filters with 4 dyadic scales from 1 px and send
+    ``(budget - initial) / iterations`` samples to the pixels whose
+    relative MSE falls fastest (Sec. 5); ``finish`` is the final
+    reconstruction.
+
+    Parameters
+    ----------
+    gamma : float
+        Target error rate of the scale selector, 0 < gamma < 0.4 (0.2).
+    oracle : {0, 1}
+        1: the paper's OUR-GRD -- selection and sampling from the true bias
+        of the reference (needs one: ``adapt(..., reference=)`` or
+        ``reconstruct(stats, reference=)``).
+    target_rel_mse : float or None
+        Stop sampling early once the estimated relative MSE (eps 0.01)
+        averaged over the image is at most this.
+    initial_spp, iterations : int
+        Uniform initial pass (4) and adaptive iterations (8).
+    samples_per_pick : int
+        Samples each selected pixel distributes over its filter; 0 = the
+        average spp of the budget (the paper's n).
+    adaptive_scales, final_scales : int
+        Gaussian scales of the adaptive phase (4 dyadic from 1 px) and of
+        the final reconstruction (8, sqrt(2) apart from sqrt(2) px).
+    final_outliers : {'paper', 'adaptive'}
+        Outlier-removal rule of the final reconstruction (see
+        :func:`gem_select`).
+    subpixel_exact_below : float
+        Gaussian scales with sigma below this (pixels) are computed on the
+        4 x 4 subpixel grid itself (:func:`subpixel_gaussian_exact`); the
+        others, and all by default (0), with the equivalent pixel kernel.
+
+    References
+    ----------
+    .. [1] F. Rousselle, C. Knaus, M. Zwicker, "Adaptive Sampling and
+       Reconstruction using Greedy Error Minimization", SIGGRAPH Asia 2011.
+    """
+
+    name = "gem"
+    #: The paper's 4 x 4 subpixel grid.  The default filters emulate it exactly
+    #: per pixel (:func:`pixel_kernel`), so the statistics keep the grid itself
+    #: only when ``subpixel_exact_below > 0`` asks to filter on it (see __init__).
+    grid = 4
+    subpixels = 4
+    adaptive = True
+    initial_spp = 4
+    options = (
+        Option("gamma", float, 0.2, "target error rate of the scale selector, 0 < gamma < 0.4"),
+        Option("oracle", int, 0, "1: select and sample with the true bias from the reference (OUR-GRD)",
+               choices=(0, 1)),
+        Option("target_rel_mse", float, None, "stop early when the estimated relative MSE (eps 0.01) "
+               "reaches this"),
+        Option("initial_spp", int, 4, "samples per pixel of the uniform initial pass"),
+        Option("iterations", int, 8, "adaptive iterations after the initial pass"),
+        Option("samples_per_pick", int, 0, "samples each selected pixel spreads over its filter "
+               "(0: the average spp of the budget, as in the paper)"),
+        Option("adaptive_scales", int, 4, "dyadic Gaussian scales from 1 px used while sampling"),
+        Option("final_scales", int, 8, "Gaussian scales sqrt(2) apart from sqrt(2) px in the final image"),
+        Option("final_outliers", str, "adaptive", "final outlier removal: paper (2x size, coarser only) or "
+               "adaptive (1x size, both ways)", choices=OUTLIER_RULES),
+        Option("zero_variance_votes", int, 2, "stopping-map votes of pixels with zero variance: "
+               "0 none, 1 adaptive phase, 2 final reconstruction, 3 both", choices=(0, 1, 2, 3)),
+        Option("subpixel_exact_below", float, 0.0, "filter scales with sigma below this (px) on the 4x4 "
+               "subpixel grid itself (slower; 0: pixel-level equivalent kernel)"),
+    )
+
+    def __init__(self, **options):
+        super().__init__(**options)
+        p = self.params
+        p["gamma"] = check_gamma(p["gamma"])
+        o = p["oracle"]
+        if isinstance(o, str) and o.strip() in ("0", "1"):
+            o = int(o)
+        if isinstance(o, bool) or o not in (0, 1):
+            raise InputError(_WHERE, "oracle", f"{p['oracle']!r}; valid: 0, 1")
+        p["oracle"] = int(o)
+        t = p["target_rel_mse"]
+        if t is not None:
+            try:
+                t = float(t)
+            except (TypeError, ValueError):
+                t = float("nan")
+            if not (math.isfinite(t) and t > 0):
+                raise InputError(_WHERE, "target_rel_mse", f"{p['target_rel_mse']!r}, expected a positive "
+                                 "number (relative MSE, eps 0.01) or None")
+            p["target_rel_mse"] = t
+        p["initial_spp"] = _opt_int("initial_spp", p["initial_spp"], 1)
+        p["iterations"] = _opt_int("iterations", p["iterations"], 1)
+        p["samples_per_pick"] = _opt_int("samples_per_pick", p["samples_per_pick"], 0)
+        p["adaptive_scales"] = _opt_int("adaptive_scales", p["adaptive_scales"], 1)
+        p["final_scales"] = _opt_int("final_scales", p["final_scales"], 1)
+        try:
+            e = float(p["subpixel_exact_below"])
+        except (TypeError, ValueError):
+            e = float("nan")
+        if not (math.isfinite(e) and e >= 0):
+            raise InputError(_WHERE, "subpixel_exact_below", f"{p['subpixel_exact_below']!r}, expected a "
+                             "sigma in pixels >= 0 (0: never filter on the subpixel grid)")
+        p["subpixel_exact_below"] = e
+        # Work a run does not need is left out: 616 MB of subpixel sums at 1024^2
+        # and the slowest ingestion path, unused by the pixel-level kernels.
+        self.subpixels = self.grid if e > 0 else 0
+        self.initial_spp = p["initial_spp"]
+
+    # ---------------------------------------------------------------- core
+    def _select(self, stats: PixelStats, *, final: bool, reference=None, want_mse: bool = False) -> GEMSelection:
+        p = self.params
+        sig = final_sigmas(p["final_scales"]) if final else adaptive_sigmas(p["adaptive_scales"])
+        base = stats.mean
+        mv = mean_variance_policy(stats)
+        count = stats.count
+        s = self.grid
+        eb = p["subpixel_exact_below"]
+        sub = filled_subpixels(stats) if (eb > 0 and stats.subpixels and np.any(sig < eb)) else None
+        if p["oracle"]:
+            if reference is None:
+                raise InputError(_WHERE, "oracle", "oracle=1 needs a reference image (the run's "
+                                 "reference, e.g. adapt(..., reference=...)); use oracle=0 without one")
+            ref = np.asarray(reference, dtype=np.float64)
+            if ref.ndim == 2:
+                ref = ref[..., None]
+            if ref.shape != base.shape:
+                raise InputError(_WHERE, "reference", f"shape {ref.shape}, expected {base.shape}")
+            sel = oracle_select(base, mv, count, sig, ref, subpixels=s, sub=sub, exact_below=eb)
+        else:
+            sel = gem_select(base, mv, count, sig, gamma=p["gamma"], final=final, subpixels=s,
+                             want_mse=want_mse, sub=sub, exact_below=eb, outlier_rule=p["final_outliers"],
+                             zero_variance_votes=bool(p["zero_variance_votes"] & (2 if final else 1)))
+        self._record(sel, stats)
+        return sel
+
+    def _record(self, sel: GEMSelection, stats: PixelStats):
+        d = {"selected_scale": sel.selected.astype(np.float64),
+             "sample_density": stats.count.astype(np.float64)}
+        if sel.stops is not None:
+            for k in range(sel.stops.shape[0]):
+                d[f"stop_{k}"] = sel.stops[k].astype(np.float64)
+                d[f"stop_raw_{k}"] = sel.stops_raw[k].astype(np.float64)
+        if sel.mse is not None:
+            rel, _ = sample_priority(sel.mse, sel.image, np.ones(sel.selected.shape), 1)
+            d["est_rel_mse"] = np.where(np.isfinite(rel), rel, np.nan)
+        self._diagnostics = d
+
+    # ------------------------------------------------------------- offline
+    def reconstruct(self, stats: PixelStats, *, reference=None) -> np.ndarray:
+        """Final reconstruction (Sec. 6): (H, W, C) float64.
+
+        Statistics without a subpixel grid work too (the default filters
+        need only pixel means).  Pixels without a sample anywhere in the
+        coarsest filter's support take their nearest sampled neighbour's
+        value (:func:`mcrecon.methods.box.fill_empty_pixels`, with a warning).
+        """
+        sel = self._select(stats, final=True, reference=reference)
+        img = sel.image
+        no_data = sel.bank.weight[-1] <= 0
+        if no_data.any():
+            from .box import fill_empty_pixels
+            img = fill_empty_pixels(img, (~no_data).astype(np.int64), source=_WHERE)
+        return np.asarray(img, dtype=np.float64)
+
+    def reconstruct_log(self, log, *, nonfinite: str = "drop") -> np.ndarray:
+        """Reconstruct from a sample log; with ``oracle=1`` the log's stored reference is used."""
+        if not self.params["oracle"]:
+            return super().reconstruct_log(log, nonfinite=nonfinite)
+        from ..io.samplelog import SampleLog, read_log
+        sl = log if isinstance(log, SampleLog) else read_log(log)
+        stats = PixelStats.from_log(sl, subpixels=self.subpixels, nonfinite=nonfinite)
+        return self.reconstruct(stats, reference=sl.reference())
+
+    def finish(self, state: AdaptiveState) -> np.ndarray:
+        return self.reconstruct(state.stats, reference=state.reference)
+
+    # ------------------------------------------------------------ adaptive
+    def plan(self, state: AdaptiveState):
+        """Round 0: uniform ``initial_spp``; then one adaptive iteration per round (Secs. 5, 6).
+
+        Iteration i (= round index) sends ``remaining // (iterations - i + 1)``
+        samples, the last one everything left; beyond ``iterations`` rounds
+        (a resumed or interrupted run) the rest goes in one round.  Returns
+        None once the estimated relative MSE meets ``target_rel_mse``.
+        """
+        p = self.params
+        remaining = state.remaining
+        if remaining <= 0:
+            return None
+        npix = state.width * state.height
+        if state.n_samples == 0:
+            n = min(remaining, p["initial_spp"] * npix)
+            return state.request(counts=uniform_counts(state.width, state.height, n, state.rng))
+        left = p["iterations"] - state.round_index + 1
+        n_round = remaining if left <= 1 else max(1, remaining // left)
+        n_pick = p["samples_per_pick"] or max(1, int(round(state.budget / npix)))
+        sel = self._select(state.stats, final=False, reference=state.reference, want_mse=True)
+        value = state.reference if p["oracle"] else sel.image
+        if p["target_rel_mse"] is not None and np.isfinite(sel.mse).all():
+            est = float(np.mean(sel.mse / (value * value + TARGET_EPS)))
+            if est <= p["target_rel_mse"]:
+                return None
+        n_eff = _pick(sel.bank.n_eff, sel.selected)
+        _, pri = sample_priority(sel.mse, value, n_eff, n_pick)
+        pos = distribute_samples(pri, sel.selected, sel.bank.sigmas, n_round, n_pick, state.rng,
+                                 subpixels=self.grid)
+        return state.request(positions=pos)
