@@ -123,6 +123,19 @@ def cmd_bias(args):
     return 0
 
 
+def cmd_error_rate(args):
+    from .experiments.error_rate import run_error_rate
+
+    rep = run_error_rate(args.out, gammas=_csv_list(args.gammas, float, "--gammas"),
+                         noise_vars=_csv_list(args.noise_vars, float, "--noise-vars"),
+                         n_pixels=args.pixels, spp=args.spp, seed=args.seed)
+    for r in rep["error_rate_vs_gamma"]:
+        print(f"gamma {r['gamma']:.3f}  z {r['z']:.4f}  measured error rate {r['error_rate']:.4f}")
+    print(f"unweighted S: error rate {rep['unweighted_error_rate']:.4f}")
+    print(f"wrote {Path(args.out) / 'error_rate.json'}")
+    return 0
+
+
 def register(sub) -> None:
     """Add the experiment sub-commands to the ``mcrecon`` parser."""
     from .cli import _OneLineParser
@@ -156,6 +169,15 @@ def register(sub) -> None:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", required=True)
     s.set_defaults(func=cmd_gallery)
+
+    s = es.add_parser("error-rate", help="GEM's scale-selector error rate on a constant signal (Sec. 4.3)")
+    s.add_argument("--gammas", default="0.05,0.1,0.15,0.2,0.25,0.3,0.35")
+    s.add_argument("--noise-vars", default="0.1,1,10,100,1000")
+    s.add_argument("--pixels", type=int, default=200_000, help="pixels of the constant signal")
+    s.add_argument("--spp", type=int, default=32)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--out", required=True)
+    s.set_defaults(func=cmd_error_rate)
 
     s = es.add_parser("normality", help="chi-square normality test of pixel estimates (Tamstorf & Jensen)")
     s.add_argument("--scene", default="depth_of_field")

@@ -87,3 +87,17 @@ def test_normality_and_bias_cli(tmp_path, capsys):
     capsys.readouterr()
     assert main(["bias", "--out", str(tmp_path / "c")]) == 2
     assert "give a LOG or --scene" in capsys.readouterr().err
+
+
+def test_error_rate_cli(tmp_path, capsys):
+    code = main(["experiment", "error-rate", "--gammas", "0.1,0.3", "--noise-vars", "0.1,1000", "--pixels", "20000",
+                 "--out", str(tmp_path)])
+    assert code == 0
+    rep = json.loads((tmp_path / "error_rate.json").read_text())
+    rates = {r["gamma"]: r["error_rate"] for r in rep["error_rate_vs_gamma"]}
+    # 20000 pixels: binomial sd <= 0.0035; z(gamma) is the paper's hand fit (|rate - gamma| <= 0.05 in test_gem)
+    assert rates[0.1] < rates[0.3] and abs(rates[0.1] - 0.1) < 0.06 and abs(rates[0.3] - 0.3) < 0.06
+    by_noise = [r["error_rate"] for r in rep["error_rate_vs_noise"] if r["gamma"] == 0.2]
+    assert max(by_noise) - min(by_noise) < 0.02  # flat in the noise variance (same seed: scale invariant)
+    for name in ("fig4_terms.png", "fig5_variance_term.png", "error_rate_vs_gamma.png", "error_rate_vs_noise.png"):
+        assert (tmp_path / name).stat().st_size > 0
