@@ -361,13 +361,15 @@ class PixelStats:
         it = iter(batches)
         with ThreadPoolExecutor(max_workers=1) as pool:
             pending = None
-            for batch in it:
-                pos, val = batch[0], batch[1]
+            while True:
+                # Fetch the next batch while the previous one is accumulated;
+                # wait for it before fetching again (rotating buffers get reused).
+                batch = next(it, None)
                 if pending is not None:
                     pending.result()
-                pending = pool.submit(stats.add, pos, val, nonfinite=nonfinite, source=source)
-            if pending is not None:
-                pending.result()
+                if batch is None:
+                    break
+                pending = pool.submit(stats.add, batch[0], batch[1], nonfinite=nonfinite, source=source)
         return stats
 
     @classmethod
@@ -378,8 +380,17 @@ class PixelStats:
 
         if not isinstance(log, SampleLog):
             log = read_log(log)
-        kw = {} if chunk_size is None else {"chunk_size": chunk_size}
-        batches = ((b.positions, b.values) for b in log.iter_chunks(rounds=rounds, with_round=False, **kw))
+        if rounds is None:
+            # Two rotating buffers: one is filled while the other is accumulated.
+            from .io.samplelog import DEFAULT_READ_ROWS
+
+            rows = min(int(chunk_size or DEFAULT_READ_ROWS), max(log.n_samples, 1))
+            bufs = [(np.empty((rows, 2), log.position_dtype), np.empty((rows, len(log.channels)), log.value_dtype))
+                    for _ in range(2)]
+            batches = log.iter_into(bufs)
+        else:
+            kw = {} if chunk_size is None else {"chunk_size": chunk_size}
+            batches = ((b.positions, b.values) for b in log.iter_chunks(rounds=rounds, with_round=False, **kw))
         return cls.from_batches(batches, width=log.width, height=log.height, channels=log.channels,
                                 subpixels=subpixels, nonfinite=nonfinite, source=str(log.path))
 

@@ -287,6 +287,28 @@ class SampleLog:
                         rnd = (np.searchsorted(self.round_ends, np.arange(s, e), side="right")).astype(np.int64)
                     yield LogChunk(pos, val, rnd, s)
 
+    def iter_into(self, buffers, *, start: int = 0, stop: int | None = None):
+        """Stream committed samples into caller-owned buffers, rotating through them.
+
+        ``buffers`` is a sequence of ``(positions, values)`` array pairs of
+        equal row count (the chunk size) and the log's dtypes.  Yields
+        ``(positions_view, values_view)`` of the filled rows; a buffer is
+        reused ``len(buffers)`` chunks later, so a consumer that overlaps
+        work with reading must be done with a chunk by then.  Avoids
+        allocating a fresh array per chunk (the hot path of
+        :meth:`mcrecon.stats.PixelStats.from_log`).
+        """
+        rows = buffers[0][0].shape[0]
+        stop = self.n_samples if stop is None else min(int(stop), self.n_samples)
+        with _open(self.path) as f:
+            pos_d, val_d = f["positions"], f["values"]
+            for i, s in enumerate(range(int(start), stop, rows)):
+                e = min(stop, s + rows)
+                pb, vb = buffers[i % len(buffers)]
+                pos_d.read_direct(pb, np.s_[s:e], np.s_[0:e - s])
+                val_d.read_direct(vb, np.s_[s:e], np.s_[0:e - s])
+                yield pb[:e - s], vb[:e - s]
+
     def read_all(self, *, rounds=None) -> LogChunk:
         """All committed samples (or those of some rounds) in memory."""
         chunks = list(self.iter_chunks(rounds=rounds))
