@@ -975,7 +975,14 @@ class AWRMethod(Method):
         return state.request(positions=pos)
 
     def finish(self, state: AdaptiveState) -> np.ndarray:
-        """AWR (or, with ``reconstruction='box'``, box) image of the adaptive samples."""
+        """AWR (or, with ``reconstruction='box'``, box) image of the adaptive samples.
+
+        Also fills the diagnostic map ``samples`` (samples per pixel): the
+        sampler's density, the paper's Fig. 1 insets, and the first thing to
+        compare against an error map when the sampler loses (see
+        ``docs/methods/awr.md``, "Why adaptive AWR can lose").
+        """
+        self._diagnostics["samples"] = state.stats.count.astype(np.float64)
         if self.params["reconstruction"] == "box":
             return fill_empty_pixels(state.stats.mean.copy(), state.stats.count, source="awr")
         return self.reconstruct(state.stats)
