@@ -250,6 +250,18 @@ class PixelStats:
             non-finite value under ``nonfinite='raise'``.  The statistics
             are unchanged when it raises.
         """
+        prepared = self._prepare(positions, values, nonfinite=nonfinite, source=source)
+        if prepared is not None:
+            self._ingest(*prepared, nonfinite=nonfinite, source=source)
+        return self
+
+    def _prepare(self, positions, values, *, nonfinite: str, source: str):
+        """Validate a batch and apply the non-finite policy; touches no statistics.
+
+        Returns ``(positions, values, n_nonfinite)`` ready for :meth:`_ingest`,
+        or None for an empty batch.  Split from the accumulation so a reader
+        can validate the next batch while the previous one is accumulated.
+        """
         if nonfinite not in NONFINITE_POLICIES:
             raise InputError(source, "nonfinite", f"unknown policy {nonfinite!r}; valid: {', '.join(NONFINITE_POLICIES)}")
         pos = np.asarray(positions)
@@ -271,7 +283,7 @@ class PixelStats:
         if val.dtype.kind != "f":
             val = val.astype(np.float64)
         if pos.shape[0] == 0:
-            return self
+            return None
         pos = np.ascontiguousarray(pos)
         val = np.ascontiguousarray(val)
         pos_ok, val_ok = _quick_check(pos, val, self.width, self.height)
@@ -292,6 +304,10 @@ class PixelStats:
                 pos, val = pos[keep], val[keep]
             else:
                 val = np.where(finite, val, val.dtype.type(0))
+        return pos, val, int(n_nonfinite)
+
+    def _ingest(self, pos, val, n_nonfinite, *, nonfinite: str, source: str) -> None:
+        """Accumulate a batch prepared by :meth:`_prepare` (releases the GIL)."""
         s = self.subpixels
         sub_sum = self.sub_sum if s else np.zeros((1, 1, 1))
         sub_count = self.sub_count if s else np.zeros((1, 1), np.int64)
@@ -304,8 +320,7 @@ class PixelStats:
                 self.n_zeroed += int(n_nonfinite)
                 verb = "set to 0"
             warnings.warn(f"{source}: values: {n_nonfinite} sample(s) with NaN or Inf {verb} "
-                          f"(policy nonfinite={nonfinite!r})", McreconWarning, stacklevel=2)
-        return self
+                          f"(policy nonfinite={nonfinite!r})", McreconWarning, stacklevel=3)
 
     def merge(self, other: "PixelStats") -> "PixelStats":
         """Merge another set of statistics into this one (Chan et al., in place)."""
@@ -362,14 +377,19 @@ class PixelStats:
         with ThreadPoolExecutor(max_workers=1) as pool:
             pending = None
             while True:
-                # Fetch the next batch while the previous one is accumulated;
-                # wait for it before fetching again (rotating buffers get reused).
+                # Read and validate the next batch here while the worker accumulates
+                # the previous one; wait for it before reading again (rotating
+                # buffers get reused).  Validation errors surface before any
+                # statistics change for that batch.
                 batch = next(it, None)
+                prepared = None if batch is None else \
+                    stats._prepare(batch[0], batch[1], nonfinite=nonfinite, source=source)
                 if pending is not None:
                     pending.result()
                 if batch is None:
                     break
-                pending = pool.submit(stats.add, batch[0], batch[1], nonfinite=nonfinite, source=source)
+                if prepared is not None:
+                    pending = pool.submit(stats._ingest, *prepared, nonfinite=nonfinite, source=source)
         return stats
 
     @classmethod
