@@ -99,6 +99,8 @@ def test_normality_and_bias_cli(tmp_path, capsys):
     summary = json.loads((tmp_path / "b" / "bias.json").read_text())
     assert summary["B"] == 100 and summary["rule"]["alpha"] == 0.3 and summary["pixels"] == 144
     assert (tmp_path / "b" / "bias_radiance_abs_bias.png").exists()
+    for d in ("n", "b"):
+        assert "| " in (tmp_path / d / "report.md").read_text()
     capsys.readouterr()
     assert main(["bias", "--out", str(tmp_path / "c")]) == 2
     assert "give a LOG or --scene" in capsys.readouterr().err
