@@ -9,7 +9,12 @@ shared and noisy):
    pixel means, if installed).  Target: gem <= 3 x OIDN.  With ``--log``
    the 32-spp input is also written as a sample log and
    ``reconstruct_log`` (HDF5 read + statistics + reconstruction) is timed.
-2. Adaptive loop through :func:`mcrecon.driver.adapt` with a renderer
+2. Filter bank of a planning step (4 dyadic scales, per-channel
+   variances, effective counts) on the same input: the compiled, threaded
+   :func:`mcrecon.methods.gem.filter_bank` against itself on one thread and
+   against the plain ``scipy.ndimage.correlate1d`` formulation it replaced
+   (bit-identical results, checked here too).
+3. Adaptive loop through :func:`mcrecon.driver.adapt` with a renderer
    built-in scene; the toolkit time (driver wall time minus the render
    calls) is compared with the time a ~2 M samples/s renderer (``--rate``)
    would need for the same samples: toolkit share of the total (target
@@ -105,6 +110,51 @@ def bench_final(size, repeat, scene, use_log):
             t_log, _ = _time(lambda: gem.reconstruct_log(path), 1)
             t_blog, _ = _time(lambda: box.reconstruct_log(path), 1)
             print(f"reconstruct_log (read + stats + reconstruct): gem {t_log:.2f} s, box {t_blog:.2f} s")
+    return stats
+
+
+def _ndimage_filter_bank(base, mean_var, count, sigmas):
+    """The filter bank written with scipy.ndimage, as before the compiled kernel (the baseline)."""
+    from scipy import ndimage
+
+    from mcrecon.methods import gem as G
+
+    def corr2(x, k):
+        y = ndimage.correlate1d(x, k, axis=0, mode="constant", cval=0.0)
+        return ndimage.correlate1d(y, k, axis=1, mode="constant", cval=0.0)
+
+    mask = count > 0
+    mf = mask.astype(np.float64)
+    mb = base * mf[..., None]
+    mv = (mean_var * mf[..., None]).astype(np.float32)
+    inv_n = G._safe_div(mf, count.astype(np.float64)).astype(np.float32)
+    values, var, n_eff = [base], [mean_var], [count.astype(np.float64)]
+    for s in sigmas:
+        k = G.pixel_kernel(s)
+        k2 = (k * k).astype(np.float32)
+        w = G._weights(mask, k, bool(mask.all()))
+        w2 = w * w
+        values.append(G._safe_div(corr2(mb, k), w[..., None]))
+        var.append(G._safe_div(corr2(mv, k2).astype(np.float64), w2[..., None]))
+        n_eff.append(G._safe_div(w2, corr2(inv_n, k2).astype(np.float64)))
+    return values, var, n_eff
+
+
+def bench_filter_bank(stats, repeat):
+    from mcrecon.methods import gem as G
+    mv = G.mean_variance_policy(stats)
+    sig = G.adaptive_sigmas(4)
+    args = (stats.mean, mv, stats.count, sig)
+    kw = dict(per_channel=True, with_n_eff=True)
+    fast = G.filter_bank(*args, **kw)
+    ref = _ndimage_filter_bank(*args)
+    same = all(np.array_equal(a, b) for a, b in zip(fast.values + fast.var + fast.n_eff, ref[0] + ref[1] + ref[2]))
+    t_fast, _ = _time(lambda: G.filter_bank(*args, **kw), repeat)
+    t_one, _ = _time(lambda: G.filter_bank(*args, threads=1, **kw), repeat)
+    t_nd, _ = _time(lambda: _ndimage_filter_bank(*args), repeat)
+    print(f"filter bank of a planning step ({G._n_threads()} threads): {t_fast:.3f} s; one thread {t_one:.3f} s; "
+          f"ndimage formulation {t_nd:.3f} s; speed-up {t_nd / t_fast:.1f}x (threads {t_one / t_fast:.2f}x); "
+          f"bit-identical: {same}")
 
 
 def bench_adaptive(size, scene, rate):
@@ -141,7 +191,8 @@ def main(argv=None):
     ap.add_argument("--log", action="store_true", help="also time reconstruct_log from an HDF5 log")
     ap.add_argument("--skip-adaptive", action="store_true")
     a = ap.parse_args(argv)
-    bench_final(a.size, a.repeat, a.scene, a.log)
+    stats = bench_final(a.size, a.repeat, a.scene, a.log)
+    bench_filter_bank(stats, a.repeat)
     if not a.skip_adaptive:
         bench_adaptive(a.size, a.scene, a.rate)
 

@@ -805,3 +805,167 @@ def test_oracle_offline_uses_the_log_reference(tmp_path):
     stats = PixelStats.from_log(path, subpixels=4)
     b = get_method("gem", oracle=1).reconstruct(stats, reference=reference_image("soft_shadow", 24, 24))
     np.testing.assert_array_equal(a, b)
+
+
+# ----------------------------------------------------------------------------
+# compiled / threaded implementation: bit-identical to the numpy/ndimage formulas
+# ----------------------------------------------------------------------------
+# The fast paths (benchmarks/bench_gem.py) must not change a single decision:
+# each is compared, with array_equal, against the plain formulation it replaces
+# (scipy.ndimage.correlate1d and numpy expressions, written out here), on HDR
+# data with empty pixels, at odd/prime sizes and kernels wider than the image.
+
+def _hdr_field(rng, shape, zero_frac=0.2):
+    x = rng.random(shape) * np.where(rng.random(shape) < 0.3, 500.0, 1e-3)
+    x[rng.random(shape) < zero_frac] = 0.0
+    return x
+
+
+def _ref_corr2(x, k):
+    y = ndimage.correlate1d(x, np.asarray(k, np.float64), axis=0, mode="constant", cval=0.0)
+    return ndimage.correlate1d(y, np.asarray(k, np.float64), axis=1, mode="constant", cval=0.0)
+
+
+def _ref_safe_div(num, den):
+    out = np.zeros(np.broadcast_shapes(num.shape, den.shape))
+    np.divide(num, den, out=out, where=den > 0)
+    return out
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 1), (1, 1, 3), (2, 3, 3), (7, 5, 1), (13, 17, 3), (1, 61, 1), (97, 89, 3)])
+def test_separable_correlation_is_bit_identical_to_ndimage(shape):
+    rng = np.random.default_rng(sum(shape))
+    kernels = [G.pixel_kernel(s) for s in (1.0, math.sqrt(2), 4.0, 8.0)]
+    kernels += [G.gaussian_kernel(16.0), (G.pixel_kernel(2.0) ** 2).astype(np.float32)]
+    for dtype in (np.float64, np.float32):
+        x = _hdr_field(rng, shape).astype(dtype)
+        if shape[2] == 1:
+            x = x[..., 0]
+        den = rng.random(shape[:2]) * (rng.random(shape[:2]) > 0.2)
+        for k in kernels:
+            ref = _ref_corr2(x, k)
+            for threads in (1, 2, 3):
+                out, o1 = G._correlate_jobs([(x, k, None, 0), (x, k, den, 1)], threads)
+                assert out.dtype == ref.dtype and np.array_equal(out, ref), (dtype, k.size, threads)
+                d = den if ref.ndim == 2 else den[..., None]
+                assert np.array_equal(o1, _ref_safe_div(ref.astype(np.float64), d))
+                if x.ndim == 2:
+                    o2, = G._correlate_jobs([(x, k, den, 2)], threads)
+                    assert np.array_equal(o2, _ref_safe_div(den, ref.astype(np.float64)))
+
+
+@pytest.mark.parametrize("holes", [False, True])
+def test_filter_bank_threads_and_reference_formulas_agree_exactly(holes):
+    """The threaded filter bank equals the serial one and the ndimage formulation of Eq. 2, bit for bit."""
+    rng = np.random.default_rng(3 + holes)
+    h, w = 67, 71                                      # primes; 67 * 71 * 3 > the pool threshold
+    count = rng.integers(1, 40, (h, w))
+    if holes:
+        count[rng.random((h, w)) < 0.1] = 0
+    base = _hdr_field(rng, (h, w, 3)) * (count > 0)[..., None]
+    mv = _hdr_field(rng, (h, w, 3)) / np.maximum(count, 1)[..., None]
+    sig = G.adaptive_sigmas(4)
+    serial = G.filter_bank(base, mv, count, sig, per_channel=True, with_n_eff=True, threads=1)
+    threaded = G.filter_bank(base, mv, count, sig, per_channel=True, with_n_eff=True, threads=2)
+    mf = (count > 0).astype(np.float64)
+    inv_n = _ref_safe_div(mf, count.astype(np.float64)).astype(np.float32)
+    for k, s in enumerate(sig, start=1):
+        kk = G.pixel_kernel(s)
+        k2 = (kk * kk).astype(np.float32)
+        wsum = _ref_corr2(mf, kk)
+        if not holes:
+            wsum = np.multiply.outer(ndimage.correlate1d(np.ones(h), kk, mode="constant"),
+                                     ndimage.correlate1d(np.ones(w), kk, mode="constant"))
+        w2 = wsum * wsum
+        ref_val = _ref_safe_div(_ref_corr2(base * mf[..., None], kk), wsum[..., None])
+        ref_var = _ref_safe_div(_ref_corr2((mv * mf[..., None]).astype(np.float32), k2).astype(np.float64),
+                                w2[..., None])
+        ref_n = _ref_safe_div(w2, _ref_corr2(inv_n, k2).astype(np.float64))
+        for bank in (serial, threaded):
+            assert np.array_equal(bank.values[k], ref_val)
+            assert np.array_equal(bank.var[k], ref_var)
+            assert np.array_equal(bank.n_eff[k], ref_n)
+            assert np.array_equal(bank.weight[k], wsum)
+    # summed-channel variances (final reconstruction)
+    a = G.filter_bank(base, mv, count, G.final_sigmas(8), per_channel=False, threads=1)
+    b = G.filter_bank(base, mv, count, G.final_sigmas(8), per_channel=False, threads=2)
+    for k in range(a.n_scales):
+        assert np.array_equal(a.values[k], b.values[k]) and np.array_equal(a.var[k], b.var[k])
+    np.testing.assert_array_equal(a.var[0], mv.sum(axis=2))
+
+
+def test_outlier_removal_threads_and_reference_agree_exactly():
+    rng = np.random.default_rng(12)
+    h, w = 61, 59
+    stops = rng.random((4, h, w)) < 0.4
+    voters = rng.random((h, w)) > 0.15
+    sig = G.adaptive_sigmas(4)
+    for final in (False, True):
+        for vt in (None, voters):
+            a = G.remove_outliers(stops, sig, final=final, voters=vt, threads=1)
+            b = G.remove_outliers(stops, sig, final=final, voters=vt, threads=3)
+            assert np.array_equal(a, b)
+            # the plain formulation of Sec. 4.4 (centre ignored, renormalised, rounded)
+            vf = np.ones((h, w)) if vt is None else vt.astype(np.float64)
+            for k in range(4):
+                g = G.gaussian_kernel((2.0 if final else 1.0) * sig[k])
+                g0 = g[g.size // 2] ** 2
+                m = stops[k] * vf
+                num = _ref_corr2(m, g) - g0 * m
+                den = _ref_corr2(vf, g) - g0 * vf
+                if vt is None:
+                    den = np.multiply.outer(ndimage.correlate1d(np.ones(h), g, mode="constant"),
+                                            ndimage.correlate1d(np.ones(w), g, mode="constant")) - g0 * vf
+                keep = den <= 1e-9
+                filt = np.where(keep, stops[k], _ref_safe_div(num, np.where(keep, 0.0, den)) >= 0.5)
+                assert np.array_equal(a[k], (stops[k] & filt) if final else filt), (final, k)
+
+
+def test_fast_elementwise_paths_equal_the_numpy_formulas():
+    rng = np.random.default_rng(21)
+    h, w = 37, 41
+    v = _hdr_field(rng, (h, w, 3))
+    np.testing.assert_array_equal(G._chan_sum(v), v.sum(axis=2))
+    # estimate_mse: compiled accumulation against the numpy reference path
+    count = rng.integers(0, 9, (h, w))
+    bank = G.filter_bank(_hdr_field(rng, (h, w, 3)), _hdr_field(rng, (h, w, 3)) * 1e-2, count,
+                         G.adaptive_sigmas(4), per_channel=True, with_n_eff=True)
+    selected = rng.integers(0, bank.n_scales, (h, w))
+    mse = G.estimate_mse(bank, selected, count)
+    np.testing.assert_array_equal(mse, G._estimate_mse_numpy(bank, selected, count))
+    # sample_priority: compiled kernel against the numpy expressions
+    n_eff = G._pick(bank.n_eff, selected)
+    value = G._pick(bank.values, selected)
+    rel, pri = G.sample_priority(mse, value, n_eff, 32)
+    inf = ~np.isfinite(mse).all(axis=2)
+    m = np.where(inf[..., None], 0.0, mse)
+    r = np.mean(m / (value * value + G.SAMPLING_EPS), axis=2)
+    np.testing.assert_array_equal(rel, np.where(inf, np.inf, r))
+    np.testing.assert_array_equal(pri, np.where(inf, np.inf, r * (32 / (32 + n_eff))))
+    # _pick: per-pixel choice
+    stack = np.stack(bank.values)
+    np.testing.assert_array_equal(value, np.take_along_axis(stack, selected[None, ..., None], 0)[0])
+
+
+def test_kernel_offset_draws_equal_searchsorted():
+    """The compiled inverse-CDF lookup returns np.searchsorted(cdf, u, 'right'), also at u = a CDF entry."""
+    rng = np.random.default_rng(4)
+    for s in (1.0, 2.0, 8.0):
+        ker = G.pixel_kernel(s)
+        r = ker.size // 2
+        cdf = np.cumsum(ker)
+        cdf /= cdf[-1]
+        u = np.concatenate([rng.random(20000), cdf, np.nextafter(cdf, 0), [0.0]])
+        u = u[u < 1.0]
+        n = u.size
+        todo = np.arange(n)
+        ox, oy = np.zeros(n, np.int64), np.zeros(n, np.int64)
+        px = rng.integers(0, 5, n)
+        py = rng.integers(0, 5, n)
+        off = G._kernel_offsets(cdf, r, u, u[::-1].copy(), todo, px, py, 5, 5, ox, oy)
+        ref_x = np.minimum(np.searchsorted(cdf, u, side="right"), ker.size - 1) - r
+        ref_y = np.minimum(np.searchsorted(cdf, u[::-1], side="right"), ker.size - 1) - r
+        np.testing.assert_array_equal(ox, ref_x)
+        np.testing.assert_array_equal(oy, ref_y)
+        x, y = px + ref_x, py + ref_y
+        np.testing.assert_array_equal(off, todo[(x < 0) | (x >= 5) | (y < 0) | (y >= 5)])
