@@ -426,7 +426,7 @@ def _noisy_stats(h, w, spp, seed, scale=1.0):
     rng = np.random.default_rng(seed)
     pos = jittered_positions(np.full((h, w), spp), rng)
     n = len(pos)
-    yy, xx = pos[:, 1], pos[:, 0]
+    xx = pos[:, 0]
     base = np.where(xx > w / 2, 1.0, 0.2)[:, None] * scale
     val = base * (0.5 + rng.random((n, 3)))
     return PixelStats.from_samples(pos, val, width=w, height=h)

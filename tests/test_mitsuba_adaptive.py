@@ -10,7 +10,6 @@ so it does not decide the comparisons.
 import os
 import warnings
 
-import numpy as np
 import pytest
 
 from mcrecon.driver import adapt

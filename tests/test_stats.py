@@ -1,6 +1,5 @@
 """PixelStats: Welford/Chan numerics, the merge property, subpixels, policies."""
 
-import warnings
 
 import numpy as np
 import pytest

@@ -14,7 +14,6 @@ import time
 from pathlib import Path
 from typing import Sequence
 
-import numpy as np
 
 from ..io import write_false_colour
 

@@ -70,7 +70,7 @@ from scipy import ndimage
 from ..errors import InputError
 from ..protocol import SampleRequest
 from ..stats import PixelStats
-from .base import AdaptiveState, Method, Option, uniform_counts
+from .base import AdaptiveState, Method, Option
 from .box import fill_empty_pixels
 
 __all__ = [
@@ -962,8 +962,7 @@ class AWRMethod(Method):
             return None
         npix = state.width * state.height
         if state.n_samples == 0:
-            n = min(remaining, p["initial_spp"] * npix)
-            return state.request(counts=uniform_counts(state.width, state.height, n, state.rng))
+            return state.uniform_request(p["initial_spp"])
         quota = min(remaining, max(1, int(round(p["round_spp"] * npix))))
         pos, info = plan_awr_positions(
             state.stats, quota, state.rng, wavelet=p["wavelet"], levels=p["sampling_levels"], mode=p["boundary"],

@@ -99,6 +99,11 @@ class AdaptiveState:
         return SampleRequest(self.width, self.height, counts=counts, positions=positions,
                              round_index=self.round_index)
 
+    def uniform_request(self, spp: float) -> SampleRequest:
+        """``spp`` samples per pixel spread uniformly (at most what the budget has left)."""
+        n = min(self.remaining, int(spp * self.width * self.height))
+        return self.request(counts=uniform_counts(self.width, self.height, n, self.rng))
+
 
 def uniform_counts(width: int, height: int, n: int, rng: np.random.Generator) -> np.ndarray:
     """Spread ``n`` samples as evenly as possible: every pixel gets ``n // P``,
@@ -169,11 +174,9 @@ class Method:
         remaining = state.remaining
         if remaining <= 0:
             return None
-        p = state.width * state.height
         if state.n_samples == 0:
-            n = min(remaining, max(1, int(self.initial_spp)) * p)
-        else:
-            n = min(remaining, state.n_samples)
+            return state.uniform_request(max(1, int(self.initial_spp)))
+        n = min(remaining, state.n_samples)
         return state.request(counts=uniform_counts(state.width, state.height, n, state.rng))
 
     def observe(self, batch: SampleBatch, round_index: int) -> None:

@@ -58,7 +58,7 @@ from scipy import ndimage
 
 from ..errors import InputError
 from ..stats import PixelStats
-from .base import AdaptiveState, Method, Option, uniform_counts
+from .base import AdaptiveState, Method, Option
 
 __all__ = [
     "GEMMethod",
@@ -1556,8 +1556,7 @@ class GEMMethod(Method):
             return None
         npix = state.width * state.height
         if state.n_samples == 0:
-            n = min(remaining, p["initial_spp"] * npix)
-            return state.request(counts=uniform_counts(state.width, state.height, n, state.rng))
+            return state.uniform_request(p["initial_spp"])
         left = p["iterations"] - state.round_index + 1
         n_round = remaining if left <= 1 else max(1, remaining // left)
         n_pick = p["samples_per_pick"] or max(1, int(round(state.budget / npix)))
