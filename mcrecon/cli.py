@@ -269,7 +269,7 @@ def cmd_adapt(args):
                            time_limit=args.time_limit, progress=None if not args.quiet else False,
                            nonfinite=args.nonfinite, renderer_spec=spec,
                            track_error=args.rounds_json is not None and ref is not None,
-                           metadata={"scene": spec.get("scene")})
+                           storage_dtype=args.storage_dtype, metadata={"scene": spec.get("scene")})
     t_total = time.perf_counter() - t0
     if args.output is None:
         raise InputError("adapt", "-o/--output", "missing: give the output EXR path")
@@ -424,6 +424,9 @@ def build_parser():
     s.add_argument("--time-limit", type=float, default=None, help="wall seconds")
     s.add_argument("--reference", default=None, metavar="EXR",
                    help="reference image for the error (built-in scenes have their own)")
+    s.add_argument("--storage-dtype", default="float32", choices=("float32", "float64"),
+                   help="precision of stored positions/values; the statistics see exactly what is stored "
+                        "(float64 for values like 1e6 +- 1e-3 whose spread float32 cannot hold)")
     s.add_argument("--rounds-json", default=None, metavar="FILE",
                    help="write per-round samples, renderer/toolkit seconds and (with a reference) the error")
     s.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -77,6 +77,10 @@ def test_adapt_on_a_scene_and_compare(tmp_path, capsys):
     rounds = json.loads((tmp_path / "r.json").read_text())
     assert code == 0 and [r["samples_total"] for r in rounds] == [256, 512, 1024, 2048]
     assert rounds[-1]["error"] < rounds[0]["error"] and all(r["toolkit_seconds"] >= 0 for r in rounds)
+    code, out, err = run(["adapt", "--scene", "flat", "--size", "8x8", "--spp", "2", "--method", "box",
+                          "-o", tmp_path / "c.exr", "--log", tmp_path / "c.h5", "--storage-dtype", "float64",
+                          "--quiet"], capsys)
+    assert code == 0 and read_log(tmp_path / "c.h5").value_dtype == np.float64
     img, _ = read_exr(tmp_path / "a.exr")
     write_exr(tmp_path / "ref.exr", np.full_like(img, 0.5))
     code, out, err = run(["compare", tmp_path / "a.exr", tmp_path / "ref.exr", "--json"], capsys)
