@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shlex
 import sys
 import time
@@ -87,12 +88,26 @@ def _make_method(args):
     return get_method(args.method, **opts)
 
 
+def _check_output(out, png=None):
+    """Refuse an output the run could not write, before any work is done."""
+    if out is None:
+        raise InputError("mcrecon", "-o/--output", "missing: give the output EXR path")
+    for p, suffix in ((Path(out), ".exr"), (None if png is None else Path(png), ".png")):
+        if p is None:
+            continue
+        if p.suffix.lower() != suffix:
+            raise InputError(str(p), "output", f"expected a path ending in {suffix}")
+        parent = p.parent
+        while not parent.exists() and parent != parent.parent:
+            parent = parent.parent
+        if not parent.is_dir() or not os.access(parent, os.W_OK):
+            raise InputError(str(p), "output", f"cannot be written: {parent} is not a writable directory")
+
+
 def _write_outputs(image, out, *, channels, png, exposure, diagnostics=None, diag_dir=None, counts=None):
     from .io import write_exr, write_false_colour, write_png_preview
 
     out = Path(out)
-    if out.suffix.lower() != ".exr":
-        raise InputError(str(out), "output", "expected a path ending in .exr")
     write_exr(out, image, channels=channels)
     written = [out]
     png = out.with_suffix(".png") if png is None else Path(png)
@@ -158,6 +173,7 @@ def cmd_denoise(args):
     from .io import read_log
     from .metrics import relative_mse
 
+    _check_output(args.output, args.png)
     method = _make_method(args)
     log = read_log(args.log)
     t0 = time.perf_counter()
@@ -227,16 +243,29 @@ def _report_run(res, ref, t_total, args):
 def cmd_adapt(args):
     from . import driver
 
+    _check_output(args.output, args.png)
     if args.resume:
         from .io import read_log
 
+        ignored = [flag for flag, v in (("--scene", args.scene), ("--renderer-cmd", args.renderer_cmd),
+                                        ("--mitsuba", args.mitsuba), ("--spp", args.spp), ("--log", args.log),
+                                        ("--reference", args.reference))
+                   if v is not None]
+        ignored += ["--" + k[5:].replace("_", "-") for k, v in vars(args).items() if k.startswith("mopt_") and v is not None]
+        if args.method != "box" or args.seed != 0 or args.nonfinite != "drop" or args.storage_dtype != "float32":
+            ignored.append("--method/--seed/--nonfinite/--storage-dtype")
+        if ignored:
+            raise InputError(str(args.resume), "resume", f"{', '.join(ignored)} cannot change a recorded run; "
+                             "a resumed run keeps its settings (only --time-limit, -o, --png, --diagnostics, "
+                             "--quiet apply)")
         log = read_log(args.resume)
         spec = (log.run_settings or {}).get("renderer_spec") or {}
         if not spec:
             raise InputError(str(args.resume), "run settings", "no renderer recorded; cannot resume")
         renderer, ref = _renderer_from_spec(spec)
         t0 = time.perf_counter()
-        res = driver.resume(args.resume, renderer, progress=None if not args.quiet else False)
+        res = driver.resume(args.resume, renderer, progress=None if not args.quiet else False,
+                            time_limit=args.time_limit)
         if ref is None:
             ref = log.reference()
     else:
@@ -271,8 +300,6 @@ def cmd_adapt(args):
                            track_error=args.rounds_json is not None and ref is not None,
                            storage_dtype=args.storage_dtype, metadata={"scene": spec.get("scene")})
     t_total = time.perf_counter() - t0
-    if args.output is None:
-        raise InputError("adapt", "-o/--output", "missing: give the output EXR path")
     written = _write_outputs(res.image, args.output, channels=res.stats.channels, png=args.png,
                              exposure=args.exposure, diagnostics=res.method.diagnostics(),
                              diag_dir=args.diagnostics, counts=res.stats.count)
@@ -502,6 +529,10 @@ def main(argv=None) -> int:
             return int(args.func(args) or 0)
         except (InputError, RendererError) as exc:
             sys.stderr.write(f"mcrecon: error: {exc}\n")
+            return 2
+        except OSError as exc:  # an output path that cannot be written, a full disk...
+            where = exc.filename or "file system"
+            sys.stderr.write(f"mcrecon: error: {where}: {exc.strerror or exc}\n")
             return 2
         except KeyboardInterrupt:
             sys.stderr.write("mcrecon: interrupted\n")

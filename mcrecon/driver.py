@@ -25,7 +25,8 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from .errors import InputError, RendererError
-from .io.samplelog import append_log, cast_positions, read_log, set_run_settings, write_log
+from .io.samplelog import (append_log, cast_positions, read_log, set_run_settings, update_round_record,
+                           write_log)
 from .methods import Method, get_method
 from .methods.base import AdaptiveState
 from .protocol import SampleBatch, validate_reply
@@ -175,6 +176,9 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
     ref = _check_reference(reference, (h, w, len(channels)))
     if storage_dtype not in ("float32", "float64"):
         raise InputError("adapt", "storage_dtype", f"got {storage_dtype!r}; valid: float32, float64")
+    if float(spp) * w * h >= 2.0 ** 62:
+        raise InputError("adapt", "spp", f"{spp} samples per pixel on {w}x{h} is beyond any budget "
+                         "(at most 2^62 samples)")
     budget = int(round(float(spp) * w * h))
     settings = {
         "method": method.name, "method_options": method.params, "spp": float(spp), "seed": int(seed),
@@ -259,9 +263,14 @@ def _run(renderer, method, *, stats, rounds, round_index, budget, seed, log_path
     stopped = "budget"
     wall_start = time.perf_counter() - elapsed
     state = None
+    def committed() -> int:
+        # Samples dropped by the non-finite policy were rendered and committed: they
+        # count against the budget, or a renderer that keeps returning NaN never ends.
+        return stats.n_samples + stats.n_dropped
+
     try:
         while True:
-            if stats.n_samples >= budget:
+            if committed() >= budget:
                 stopped = "budget"
                 break
             if round_index >= max_rounds:
@@ -272,10 +281,10 @@ def _run(renderer, method, *, stats, rounds, round_index, budget, seed, log_path
                 break
             t0 = time.perf_counter()
             rng, rseed = round_seeds(seed, round_index)
-            state = AdaptiveState(stats, round_index, budget, stats.n_samples, rng, ref)
+            state = AdaptiveState(stats, round_index, budget, committed(), rng, ref)
             req = method.plan(state)
             if req is None or req.total == 0:
-                stopped = "converged" if req is None or stats.n_samples < budget else "budget"
+                stopped = "converged" if req is None or committed() < budget else "budget"
                 break
             if req.total > state.remaining:
                 raise RuntimeError(f"method {method.name} planned {req.total} samples with only "
@@ -298,7 +307,7 @@ def _run(renderer, method, *, stats, rounds, round_index, budget, seed, log_path
             # (file exchange, conversions) belongs to the toolkit side of the run.
             toolkit_s = (t1 - t0) + (time.perf_counter() - t2) + max((t2 - t1) - render_s, 0.0)
             record = {"round": round_index, "samples": len(batch),
-                      "samples_total": stats.n_samples + len(batch), "renderer_seconds": render_s}
+                      "samples_total": committed() + len(batch), "renderer_seconds": render_s}
             t3 = time.perf_counter()
             if log_path is not None:
                 append_log(log_path, batch.positions, batch.values, round_index=round_index,
@@ -312,10 +321,14 @@ def _run(renderer, method, *, stats, rounds, round_index, budget, seed, log_path
             record["wall_seconds"] = time.perf_counter() - wall_start
             if ref is not None and track_error:
                 te = time.perf_counter()
-                st = AdaptiveState(stats, round_index, budget, stats.n_samples, rng, ref)
+                st = AdaptiveState(stats, round_index, budget, committed(), rng, ref)
                 record["error"] = relative_mse(method.finish(st), ref, eps=eps)
                 record["eval_seconds"] = time.perf_counter() - te
                 wall_start += record["eval_seconds"]  # evaluation is not part of the run's time
+            if log_path is not None:
+                # The commit above stored the times known then; now the full round
+                # (statistics, observe, error) is known: a resume reports these.
+                update_round_record(log_path, record)
             rounds.append(record)
             if on_round is not None:
                 on_round(record)
@@ -324,7 +337,7 @@ def _run(renderer, method, *, stats, rounds, round_index, budget, seed, log_path
     finally:
         bar.close()
     rng, _ = round_seeds(seed, round_index)
-    final = AdaptiveState(stats, round_index, budget, stats.n_samples, rng, ref)
+    final = AdaptiveState(stats, round_index, budget, committed(), rng, ref)
     image = method.finish(final)
     return AdaptiveResult(image=np.asarray(image, dtype=np.float64), stats=stats, rounds=rounds,
                           stopped=stopped, log=log_path, method=method)

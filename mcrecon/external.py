@@ -24,6 +24,7 @@ import h5py
 import numpy as np
 
 from .errors import InputError, RendererError
+from .io._atomic import publish
 from .protocol import SampleBatch, SampleRequest
 
 __all__ = ["CommandRenderer", "write_request", "read_request", "REQUEST_FORMAT"]
@@ -51,7 +52,7 @@ def write_request(path, request: SampleRequest, *, channels: Sequence[str]) -> P
                 f.create_dataset("counts", data=request.counts.astype(np.int64))
             if request.positions is not None:
                 f.create_dataset("positions", data=request.positions.astype(np.float64))
-        os.replace(tmp, path)
+        publish(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)

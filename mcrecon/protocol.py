@@ -225,7 +225,6 @@ def validate_reply(request: SampleRequest, batch, *, n_channels: int,
             raise RendererError(renderer, name, f"dtype {arr.dtype}, expected a real floating dtype")
     if not np.isfinite(pos).all():
         raise RendererError(renderer, "positions", f"{int((~np.isfinite(pos)).any(axis=1).sum())} non-finite positions")
-    pos = pos.astype(np.float64, copy=False)
     w, h = request.width, request.height
     nc = request.n_from_counts
     if nc:
@@ -239,15 +238,20 @@ def validate_reply(request: SampleRequest, batch, *, n_channels: int,
                                 f"per-pixel sample counts differ from the request in {bad} pixel(s): "
                                 "samples must lie inside the requested pixels")
     if request.n_from_positions:
-        pp = pos[nc:]
-        dev = 0.0 if pp is request.positions else _max_abs_diff(np.ascontiguousarray(pp, np.float64),
-                                                                  request.positions)
-        if not dev <= position_tolerance:
+        tol = position_tolerance
+        if pos.dtype == np.float32:
+            # float32 cannot hold the requested float64 positions exactly: allow its rounding.
+            tol = max(tol, 2.0 * float(np.spacing(np.float32(max(w, h)))))
+        pp = np.ascontiguousarray(pos[nc:], np.float64)
+        dev = _max_abs_diff(pp, request.positions)
+        if not dev <= tol:
             raise RendererError(renderer, "positions",
                                 f"differ from the requested positions by up to {dev:.3g} "
-                                f"(tolerance {position_tolerance}); answer them in request order")
-        pos = pos.copy()
+                                f"(tolerance {tol:.3g}); answer them in request order")
+        pos = pos.astype(np.float64)  # a copy
         pos[nc:] = request.positions  # keep the exact requested positions
+    else:
+        pos = pos.astype(np.float64, copy=False)
     feats = {}
     for name, arr in dict(batch.features or {}).items():
         arr = np.asarray(arr)

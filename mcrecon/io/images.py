@@ -15,6 +15,7 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import InputError
+from ._atomic import publish
 
 __all__ = ["write_exr", "read_exr", "tonemap_srgb", "write_png_preview", "write_false_colour"]
 
@@ -65,7 +66,7 @@ def write_exr(path, image, *, channels: Sequence[str] | None = None) -> Path:
     try:
         with OpenEXR.File(header, data) as f:
             f.write(tmp)
-        os.replace(tmp, path)
+        publish(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -118,7 +119,7 @@ def _save_png(path: Path, rgb8: np.ndarray):
     tmp = _atomic_target(path)
     try:
         Image.fromarray(rgb8).save(tmp, format="PNG")
-        os.replace(tmp, path)
+        publish(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)

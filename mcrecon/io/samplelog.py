@@ -23,6 +23,7 @@ import numba
 import numpy as np
 
 from ..errors import InputError
+from ._atomic import publish
 
 __all__ = ["cast_positions", "FORMAT_NAME", "FORMAT_VERSION", "SampleLog", "LogChunk", "read_log", "write_log",
            "append_log", "set_run_settings", "DEFAULT_CHUNK_ROWS"]
@@ -33,7 +34,7 @@ FORMAT_VERSION = 1
 DEFAULT_CHUNK_ROWS = 1 << 16
 #: Rows per read when streaming (a multiple of the chunk rows).
 DEFAULT_READ_ROWS = 1 << 20
-_VALID_FLOATS = (np.float16, np.float32, np.float64)
+_VALID_FLOATS = (np.float32, np.float64)
 
 
 @dataclasses.dataclass(eq=False)
@@ -93,11 +94,21 @@ def _open(path, mode="r"):
     path = Path(path)
     if not path.exists():
         raise _err(path, "file", "does not exist")
+    if path.is_dir():
+        raise _err(path, "file", "is a directory; expected an HDF5 sample log")
     try:
         return h5py.File(path, mode)
     except OSError as exc:
-        raise _err(path, "file", f"not a readable HDF5 file (truncated or another format: {exc}); "
+        detail = " ".join(str(exc).split())  # one line: h5py's messages carry newlines
+        raise _err(path, "file", f"not a readable HDF5 file (truncated or another format: {detail}); "
                    "regenerate it, or check the path") from None
+
+
+def _json_attr(path, field, raw):
+    try:
+        return json.loads(raw.decode() if isinstance(raw, bytes) else str(raw))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise _err(path, field, f"not valid JSON ({exc})") from None
 
 
 def _str_list(v) -> tuple[str, ...]:
@@ -143,8 +154,12 @@ class SampleLog:
         if ver is None:
             raise _err(path, "attribute format_version", f"missing; expected {FORMAT_VERSION} "
                        "(is this an mcrecon sample log? see docs/sample-log-format.md)")
-        if int(ver) != FORMAT_VERSION:
-            raise _err(path, "attribute format_version", f"is {int(ver)}, this mcrecon reads version {FORMAT_VERSION}")
+        try:
+            ver = int(ver)
+        except (TypeError, ValueError):
+            raise _err(path, "attribute format_version", f"is {ver!r}, expected the integer {FORMAT_VERSION}") from None
+        if ver != FORMAT_VERSION:
+            raise _err(path, "attribute format_version", f"is {ver}, this mcrecon reads version {FORMAT_VERSION}")
         for key in ("width", "height", "channels"):
             if key not in a:
                 raise _err(path, f"attribute {key}", "missing (see docs/sample-log-format.md)")
@@ -171,7 +186,10 @@ class SampleLog:
         if val.dtype not in _VALID_FLOATS:
             raise _err(path, "dataset /values", f"dtype {val.dtype}, expected float32 or float64")
         rows = min(pos.shape[0], val.shape[0])
-        n = int(a.get("n_committed", rows))
+        try:
+            n = int(a.get("n_committed", rows))
+        except (TypeError, ValueError):
+            raise _err(path, "attribute n_committed", f"is {a.get('n_committed')!r}, expected an integer") from None
         if pos.shape[0] != val.shape[0] and "n_committed" not in a:
             raise _err(path, "dataset /values", f"{val.shape[0]} rows but /positions has {pos.shape[0]}")
         if n < 0 or n > rows:
@@ -211,20 +229,20 @@ class SampleLog:
             if ref.shape != expect:
                 raise _err(path, "dataset /reference", f"shape {ref.shape}, expected (height, width, channels) = {expect}")
         meta = a.get("metadata_json", "{}")
-        try:
-            self.metadata = json.loads(meta.decode() if isinstance(meta, bytes) else str(meta))
-        except json.JSONDecodeError as exc:
-            raise _err(path, "attribute metadata_json", f"not valid JSON: {exc}") from None
+        self.metadata = _json_attr(path, "attribute metadata_json", meta)
+        if not isinstance(self.metadata, dict):
+            raise _err(path, "attribute metadata_json", "expected a JSON object")
         run = f.get("run")
         self.run_settings = None
         self.round_records = []
         if run is not None:
             s = run.attrs.get("settings_json")
             if s is not None:
-                self.run_settings = json.loads(s.decode() if isinstance(s, bytes) else str(s))
+                self.run_settings = _json_attr(path, "attribute run/settings_json", s)
             if "records" in run:
                 recs = [x.decode() if isinstance(x, bytes) else str(x) for x in run["records"][...].tolist()]
-                self.round_records = [json.loads(x) for x in recs[: len(self.round_ends)]]
+                self.round_records = [_json_attr(path, "dataset run/records", x)
+                                      for x in recs[: len(self.round_ends)]]
 
     @staticmethod
     def _scan_round_ends(rds, n):
@@ -473,7 +491,7 @@ def write_log(path, positions, values, *, width: int, height: int,
             if reference is not None:
                 f.create_dataset("reference", data=reference.astype(np.float32 if reference.dtype != np.float64 else np.float64))
             f.attrs["n_committed"] = n
-        os.replace(tmp, path)
+        publish(tmp, path)
     except BaseException:
         try:
             os.unlink(tmp)
@@ -514,6 +532,14 @@ def append_log(path, positions, values, *, round_index: int | None = None,
     pos, val = _check_arrays(path, positions, values, log.width, log.height, len(log.channels))
     m = pos.shape[0]
     feats = dict(features or {})
+    if feats and log.n_samples == 0 and not log.feature_names:
+        # A log created before the renderer's first reply learns its features then.
+        with _open(path, "r+") as f:
+            for name, arr in feats.items():
+                arr = np.asarray(arr)
+                f.create_dataset(f"features/{name}", shape=(0,) + arr.shape[1:], dtype=arr.dtype,
+                                 maxshape=(None,) + arr.shape[1:], chunks=(DEFAULT_CHUNK_ROWS,) + arr.shape[1:])
+        log = read_log(path)
     if set(feats) != set(log.feature_names):
         raise _err(path, "features", f"append gives {sorted(feats)}, the log has {list(log.feature_names)}: "
                    "every round must carry the same features")
@@ -558,6 +584,19 @@ def append_log(path, positions, values, *, round_index: int | None = None,
         f.attrs["n_committed"] = n + m
         f.flush()
     return n + m
+
+
+def update_round_record(path, record: Mapping) -> None:
+    """Replace the record of the last committed round (its times once fully known)."""
+    with _open(path, "r+") as f:
+        run = f.get("run")
+        if run is None or "records" not in run or run["records"].shape[0] == 0:
+            return
+        recs = [x.decode() if isinstance(x, bytes) else str(x) for x in run["records"][...].tolist()]
+        recs[-1] = json.dumps(dict(record), default=_json_default, sort_keys=True)
+        del run["records"]
+        run.create_dataset("records", data=np.array(recs, dtype=h5py.string_dtype()))
+        f.flush()
 
 
 def set_run_settings(path, settings: Mapping) -> None:
