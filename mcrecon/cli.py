@@ -134,14 +134,15 @@ def cmd_info(args):
     log = read_log(args.log)
     n_nonfinite = 0
     n_negative = 0
-    for chunk in log.iter_chunks():
-        v = np.asarray(chunk.values)
-        fin = np.isfinite(v)
-        n_nonfinite += int((~fin.all(axis=1)).sum())
-        n_negative += int((np.where(fin, v, 0) < 0).any(axis=1).sum())
+    stats = PixelStats(log.width, log.height, log.channels)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", McreconWarning)
-        stats = PixelStats.from_log(log)
+        warnings.simplefilter("ignore", McreconWarning)  # counted and reported below instead
+        for chunk in log.iter_chunks(with_round=False):  # one pass: counts and statistics
+            v = np.asarray(chunk.values)
+            fin = np.isfinite(v)
+            n_nonfinite += int((~fin.all(axis=1)).sum())
+            n_negative += int((np.where(fin, v, 0) < 0).any(axis=1).sum())
+            stats.add(chunk.positions, v, source=str(log.path))
     cnt = stats.count
     info = {
         "file": str(log.path), "format_version": 1, "width": log.width, "height": log.height,
