@@ -164,3 +164,13 @@ def test_one_by_one_and_negative_values():
     s = PixelStats.from_samples(np.array([[0.2, 0.9], [0.7, 0.1]]), np.array([[-1.0], [1.0]]),
                                 width=1, height=1, channels="Y")
     assert s.mean[0, 0, 0] == 0.0 and s.sample_variance()[0, 0, 0] == pytest.approx(2.0)
+
+
+def test_quick_screen_is_exact_on_non_square_films():
+    from mcrecon.stats import _quick_check
+
+    ok = np.ones((1, 3), np.float32)
+    assert _quick_check(np.array([[3.9, 0.5]], np.float32), ok, 4, 2) == (True, True)   # x above the short side
+    assert _quick_check(np.array([[0.5, 3.9]], np.float32), ok, 2, 4) == (True, True)
+    assert _quick_check(np.array([[1.0, 2.5]], np.float32), ok, 4, 2)[0] is False        # y off the film
+    assert _quick_check(np.array([[1.0, 1.5]]), np.array([[1.0, np.inf, 1.0]]), 4, 2)[1] is False
