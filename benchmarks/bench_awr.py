@@ -80,19 +80,18 @@ def bench_reconstruction(size, skip_oidn):
 
 def bench_adaptive(size, spp, rate, round_spp):
     print(f"== adaptive loop {size}x{size}, {spp} spp, round_spp {round_spp}, renderer paced to {rate / 1e6:.1f} M samples/s ==")
-    method = AWRMethod(round_spp=round_spp)
     infos, plan_times = [], []
-    orig_plan = method.plan
 
-    def plan(state):
-        t = time.perf_counter()
-        req = orig_plan(state)
-        plan_times.append(time.perf_counter() - t)
-        if state.n_samples:
-            infos.append(dict(method.last_plan_info))
-        return req
+    class TimedAWR(AWRMethod):
+        def plan(self, run, state):
+            t = time.perf_counter()
+            req = super().plan(run, state)
+            plan_times.append(time.perf_counter() - t)
+            if state.n_samples:
+                infos.append(dict(run.last_plan_info))
+            return req
 
-    method.plan = plan
+    method = TimedAWR(round_spp=round_spp)
     renderer = PacedRenderer("depth_of_field", size, rate, seed=3)
     t = time.perf_counter()
     res = adapt(renderer, method, spp=spp, seed=3, progress=False, track_error=False)

@@ -35,6 +35,8 @@ from pathlib import Path
 import numpy as np
 
 from mcrecon.methods import get_method
+from mcrecon.methods.gem import GEMMethod
+from mcrecon.reconstruction import reconstruct
 from mcrecon.scenes import SceneRenderer, render_uniform
 from mcrecon.stats import PixelStats
 
@@ -63,19 +65,15 @@ class CountingRenderer:
         return batch
 
 
-class TimedGEM:
-    """Wraps GEM's plan to time the method's own share of the toolkit time."""
+class TimedGEM(GEMMethod):
+    """GEM whose planning time is added up in the run state (the method's own share of the toolkit time)."""
 
-    def __init__(self, method):
-        self.orig = method.plan          # the bound method, before it is replaced
-        self.plan_seconds = 0.0
-
-    def plan(self, state):
+    def plan(self, run, state):
         t = time.perf_counter()
         try:
-            return self.orig(state)
+            return super().plan(run, state)
         finally:
-            self.plan_seconds += time.perf_counter() - t
+            run.plan_seconds = getattr(run, "plan_seconds", 0.0) + time.perf_counter() - t
 
 
 def bench_final(size, repeat, scene, use_log):
@@ -107,9 +105,9 @@ def bench_final(size, repeat, scene, use_log):
             path = Path(d) / "gem_bench.h5"
             write_log(path, batch.positions.astype(np.float32), batch.values.astype(np.float32),
                       width=size, height=size, channels=("R", "G", "B"))
-            t_log, _ = _time(lambda: gem.reconstruct_log(path), 1)
-            t_blog, _ = _time(lambda: box.reconstruct_log(path), 1)
-            print(f"reconstruct_log (read + stats + reconstruct): gem {t_log:.2f} s, box {t_blog:.2f} s")
+            t_log, _ = _time(lambda: reconstruct(path, method=gem), 1)
+            t_blog, _ = _time(lambda: reconstruct(path, method=box), 1)
+            print(f"reconstruct(log) (read + stats + reconstruct): gem {t_log:.2f} s, box {t_blog:.2f} s")
     return stats
 
 
@@ -162,20 +160,18 @@ def bench_adaptive(size, scene, rate):
     share is computed against the time a renderer of ``rate`` samples/s takes."""
     from mcrecon.driver import adapt
     r = CountingRenderer(scene, size)
-    m = get_method("gem")
-    timed = TimedGEM(m)
-    m.plan = timed.plan          # instance attribute: the driver calls it like the method
+    m = TimedGEM()
     t = time.perf_counter()
     res = adapt(r, m, spp=32, seed=0, track_error=False)
     wall = time.perf_counter() - t
     tk = res.toolkit_seconds
     modelled = r.samples / rate
     t = time.perf_counter()
-    m.finish(type("S", (), {"stats": res.stats, "reference": None})())
+    m.reconstruct(res.stats)
     final = time.perf_counter() - t
     print(f"adaptive {scene} {size}x{size}, 32 spp ({r.samples / 1e6:.1f} M samples, {len(res.rounds)} rounds):")
-    print(f"  toolkit in the loop {tk:.2f} s (GEM planning {timed.plan_seconds:.2f} s, statistics/"
-          f"validation {tk - timed.plan_seconds:.2f} s); actual scene rendering {res.renderer_seconds:.2f} s")
+    print(f"  toolkit in the loop {tk:.2f} s (GEM planning {res.run.plan_seconds:.2f} s, statistics/"
+          f"validation {tk - res.run.plan_seconds:.2f} s); actual scene rendering {res.renderer_seconds:.2f} s")
     print(f"  against a {rate / 1e6:g} M samples/s renderer ({modelled:.2f} s): toolkit share "
           f"{100 * tk / (tk + modelled):.1f} % (target <= 5 %, paper 4.36 %); "
           f"with the final reconstruction ({final:.2f} s): {100 * (tk + final) / (tk + final + modelled):.1f} %")

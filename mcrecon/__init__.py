@@ -15,33 +15,15 @@ from .errors import InputError, McreconWarning, RendererError
 from .io import append_log, read_exr, read_log, write_exr, write_log, write_png_preview
 from .methods import available_methods, get_method
 from .protocol import CallableRenderer, SampleBatch, SampleRequest
+from .reconstruction import Reconstruction, reconstruct
+from .samples import SampleSet
 from .stats import PixelStats
 
 __version__ = "0.1.0"
 
 __all__ = ["InputError", "RendererError", "McreconWarning", "write_log", "read_log", "append_log",
-           "read_exr", "write_exr", "write_png_preview", "PixelStats", "SampleRequest", "SampleBatch",
+           "read_exr", "write_exr", "write_png_preview", "PixelStats", "SampleSet", "Reconstruction", "SampleRequest", "SampleBatch",
            "CallableRenderer", "reconstruct", "adapt", "available_methods", "get_method", "__version__"]
-
-
-def reconstruct(source, *, method: str = "box", nonfinite: str = "drop", **options):
-    """Reconstruct an (H, W, C) float64 image.
-
-    Parameters
-    ----------
-    source : path-like, SampleLog or PixelStats
-        A sample log (streamed) or statistics already built.
-    method : str
-        A registered method name (``mcrecon.available_methods()``).
-    nonfinite : {'drop', 'zero', 'raise'}
-        Policy for NaN/Inf sample values when reading a log.
-    **options
-        The method's keyword options.
-    """
-    m = get_method(method, **options)
-    if isinstance(source, PixelStats):
-        return m.reconstruct(source)
-    return m.reconstruct_log(source, nonfinite=nonfinite)
 
 
 def adapt(renderer, method, *, spp, **kwargs):

@@ -173,19 +173,22 @@ def cmd_info(args):
 def cmd_denoise(args):
     from .io import read_log
     from .metrics import relative_mse
+    from .reconstruction import reconstruct
+    from .stats import PixelStats
 
     _check_output(args.output, args.png)
     method = _make_method(args)
     log = read_log(args.log)
     t0 = time.perf_counter()
-    image = method.reconstruct_log(log, nonfinite=args.nonfinite)
+    rec = reconstruct(log, method=method, nonfinite=args.nonfinite, full=True)
+    image = rec.image
     dt = time.perf_counter() - t0
     counts = None
     if args.diagnostics:
-        from .stats import PixelStats
-        counts = PixelStats.from_log(log, nonfinite=args.nonfinite).count
+        counts = rec.inputs.stats.count if rec.inputs.stats is not None else \
+            PixelStats.from_log(log, nonfinite=args.nonfinite).count
     written = _write_outputs(image, args.output, channels=log.channels, png=args.png, exposure=args.exposure,
-                             diagnostics=method.diagnostics(), diag_dir=args.diagnostics, counts=counts)
+                             diagnostics=rec.diagnostics(), diag_dir=args.diagnostics, counts=counts)
     msg = f"{method.name}: {log.width}x{log.height}, {log.n_samples} samples, reconstructed in {dt:.3f} s"
     ref = log.reference()
     if ref is not None:
@@ -302,7 +305,7 @@ def cmd_adapt(args):
                            storage_dtype=args.storage_dtype, metadata={"scene": spec.get("scene")})
     t_total = time.perf_counter() - t0
     written = _write_outputs(res.image, args.output, channels=res.stats.channels, png=args.png,
-                             exposure=args.exposure, diagnostics=res.method.diagnostics(),
+                             exposure=args.exposure, diagnostics=res.diagnostics(),
                              diag_dir=args.diagnostics, counts=res.stats.count)
     _report_run(res, ref, t_total, args)
     if args.rounds_json is not None:
@@ -361,6 +364,7 @@ def cmd_demo(args):
     from .io import read_log
     from .methods import available_methods, get_method
     from .metrics import relative_mse
+    from .reconstruction import reconstruct
     from .scenes import get_scene, write_scene_log
 
     out = Path(args.out)
@@ -377,7 +381,7 @@ def cmd_demo(args):
     for name in methods:
         method = get_method(name)
         t1 = time.perf_counter()
-        img = method.reconstruct_log(log)
+        img = reconstruct(log, method=method)
         dt = time.perf_counter() - t1
         paths = _write_outputs(img, out / f"{scene.name}_{name}.exr", channels=log.channels, png=None,
                                exposure=args.exposure)

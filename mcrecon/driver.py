@@ -28,9 +28,10 @@ from .errors import InputError, RendererError
 from .io.samplelog import (append_log, cast_positions, read_log, set_run_settings, update_round_record,
                            write_log)
 from .methods import Method, get_method
-from .methods.base import AdaptiveState
+from .methods.base import AdaptiveState, RunState
 from .protocol import SampleBatch, validate_reply
-from .stats import NONFINITE_POLICIES, PixelStats
+from .samples import NONFINITE_POLICIES
+from .stats import PixelStats
 
 __all__ = ["adapt", "resume", "AdaptiveResult", "round_seeds"]
 
@@ -56,6 +57,8 @@ class AdaptiveResult:
         ``time_limit`` or ``max_rounds``.
     log : Path or None
     method : Method
+    run : RunState
+        The method's state of this run (``method.diagnostics(result.run)``).
     """
 
     image: np.ndarray
@@ -64,6 +67,11 @@ class AdaptiveResult:
     stopped: str
     log: Path | None
     method: Method
+    run: RunState
+
+    def diagnostics(self) -> dict:
+        """The method's diagnostic maps of this run."""
+        return dict(self.method.diagnostics(self.run))
 
     @property
     def counts(self) -> np.ndarray:
@@ -181,7 +189,7 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
                          "(at most 2^62 samples)")
     budget = int(round(float(spp) * w * h))
     settings = {
-        "method": method.name, "method_options": method.params, "spp": float(spp), "seed": int(seed),
+        "method": method.name, "method_options": dict(method.params), "spp": float(spp), "seed": int(seed),
         "nonfinite": nonfinite, "time_limit": time_limit, "width": w, "height": h,
         "channels": list(channels), "renderer": _renderer_name(renderer),
         "renderer_spec": dict(renderer_spec or {}), "storage_dtype": storage_dtype,
@@ -197,8 +205,9 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
         write_log(log_path, np.zeros((0, 2), storage_dtype), np.zeros((0, len(channels)), storage_dtype),
                   width=w, height=h, channels=channels, reference=ref, metadata=meta)
         set_run_settings(log_path, settings)
-    stats = PixelStats(w, h, channels, subpixels=method.subpixels)
-    return _run(renderer, method, stats=stats, rounds=[], round_index=0, budget=budget, seed=int(seed),
+    stats = PixelStats(w, h, channels, subpixels=method.requires.subpixels)
+    run = method.start(w, h, channels, reference=ref)
+    return _run(renderer, method, run, stats=stats, rounds=[], round_index=0, budget=budget, seed=int(seed),
                 log_path=log_path, ref=ref, time_limit=time_limit, progress=progress, nonfinite=nonfinite,
                 max_rounds=max_rounds, track_error=track_error, eps=eps, elapsed=0.0, on_round=on_round,
                 storage_dtype=storage_dtype)
@@ -237,22 +246,26 @@ def resume(log, renderer, *, progress: bool | None = None, time_limit: float | N
         raise InputError(str(log_path), "renderer", f"renderer is {w}x{h} {channels}, the run was "
                          f"{s['width']}x{s['height']} {s['channels']}")
     method = get_method(s["method"], **s["method_options"])
-    stats = PixelStats.from_log(sl, subpixels=method.subpixels, nonfinite=s["nonfinite"])
-    for r in range(sl.n_rounds):
-        chunk = sl.read_all(rounds=[r])
-        method.observe(SampleBatch(chunk.positions, chunk.values), r)
+    stats = PixelStats.from_log(sl, subpixels=method.requires.subpixels, nonfinite=s["nonfinite"])
+    ref = sl.reference()
+    run = method.start(w, h, channels, reference=ref)
+    if method.requires.samples:
+        # Only methods that keep per-sample state see the rounds again, one
+        # round in memory at a time.
+        for r in range(sl.n_rounds):
+            chunk = sl.read_all(rounds=[r])
+            method.observe(run, SampleBatch(chunk.positions, chunk.values), r)
     records = list(sl.round_records)
     elapsed = float(records[-1]["wall_seconds"]) if records else 0.0
-    ref = sl.reference()
     budget = int(round(float(s["spp"]) * w * h))
     tl = time_limit if time_limit is not None else s.get("time_limit")
-    return _run(renderer, method, stats=stats, rounds=records, round_index=sl.n_rounds, budget=budget,
+    return _run(renderer, method, run, stats=stats, rounds=records, round_index=sl.n_rounds, budget=budget,
                 seed=int(s["seed"]), log_path=log_path, ref=ref, time_limit=tl, progress=progress,
                 nonfinite=s["nonfinite"], max_rounds=10_000, track_error=track_error, eps=0.01,
                 elapsed=elapsed, on_round=on_round, storage_dtype=s.get("storage_dtype", "float32"))
 
 
-def _run(renderer, method, *, stats, rounds, round_index, budget, seed, log_path, ref, time_limit,
+def _run(renderer, method, run, *, stats, rounds, round_index, budget, seed, log_path, ref, time_limit,
          progress, nonfinite, max_rounds, track_error, eps, elapsed, on_round,
          storage_dtype) -> AdaptiveResult:
     from .metrics import relative_mse
@@ -263,6 +276,8 @@ def _run(renderer, method, *, stats, rounds, round_index, budget, seed, log_path
     stopped = "budget"
     wall_start = time.perf_counter() - elapsed
     state = None
+    observes = method.requires.samples
+
     def committed() -> int:
         # Samples dropped by the non-finite policy were rendered and committed: they
         # count against the budget, or a renderer that keeps returning NaN never ends.
@@ -282,7 +297,7 @@ def _run(renderer, method, *, stats, rounds, round_index, budget, seed, log_path
             t0 = time.perf_counter()
             rng, rseed = round_seeds(seed, round_index)
             state = AdaptiveState(stats, round_index, budget, committed(), rng, ref)
-            req = method.plan(state)
+            req = method.plan(run, state)
             if req is None or req.total == 0:
                 stopped = "converged" if req is None or committed() < budget else "budget"
                 break
@@ -315,14 +330,15 @@ def _run(renderer, method, *, stats, rounds, round_index, budget, seed, log_path
                            round_record={**record, "toolkit_seconds": toolkit_s,
                                          "wall_seconds": time.perf_counter() - wall_start})
             stats.add(batch.positions, batch.values, nonfinite=nonfinite, source=name)
-            method.observe(batch, round_index)
+            if observes:
+                method.observe(run, batch, round_index)
             toolkit_s += time.perf_counter() - t3
             record["toolkit_seconds"] = toolkit_s
             record["wall_seconds"] = time.perf_counter() - wall_start
             if ref is not None and track_error:
                 te = time.perf_counter()
                 st = AdaptiveState(stats, round_index, budget, committed(), rng, ref)
-                record["error"] = relative_mse(method.finish(st), ref, eps=eps)
+                record["error"] = relative_mse(method.finish(run, st), ref, eps=eps)
                 record["eval_seconds"] = time.perf_counter() - te
                 wall_start += record["eval_seconds"]  # evaluation is not part of the run's time
             if log_path is not None:
@@ -338,6 +354,6 @@ def _run(renderer, method, *, stats, rounds, round_index, budget, seed, log_path
         bar.close()
     rng, _ = round_seeds(seed, round_index)
     final = AdaptiveState(stats, round_index, budget, committed(), rng, ref)
-    image = method.finish(final)
+    image = method.finish(run, final)
     return AdaptiveResult(image=np.asarray(image, dtype=np.float64), stats=stats, rounds=rounds,
-                          stopped=stopped, log=log_path, method=method)
+                          stopped=stopped, log=log_path, method=method, run=run)

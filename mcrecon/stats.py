@@ -20,7 +20,6 @@ References
 
 from __future__ import annotations
 
-import math
 import warnings
 from typing import Iterable, Sequence
 
@@ -28,102 +27,9 @@ import numba
 import numpy as np
 
 from .errors import InputError, McreconWarning
+from .samples import NONFINITE_POLICIES, apply_nonfinite, check_policy, check_samples
 
 __all__ = ["PixelStats", "NONFINITE_POLICIES"]
-
-#: What happens to samples whose value is NaN or +-Inf:
-#: ``drop`` skips the whole sample and counts it (default, with a warning),
-#: ``zero`` replaces the non-finite channel values by 0 and keeps the sample
-#: (biased low, but keeps the sample count a renderer promised),
-#: ``raise`` refuses the batch.
-NONFINITE_POLICIES = ("drop", "zero", "raise")
-
-
-@numba.njit(cache=True, nogil=True)
-def _quick_check_bits(pos_bits, val_bits, width_bits, height_bits, val_exp_mask):
-    """Branch-free screening on the floats' bit patterns (integer reductions vectorise).
-
-    For non-negative IEEE floats the integer view is ordered like the value,
-    so ``0 <= x < width`` is ``0 <= bits(x) < bits(width)``; NaN and
-    negative numbers fail it.  A value is non-finite iff its exponent bits
-    are all ones.  False alarms (e.g. -0.0) only send the batch through the
-    exact :func:`_scan`.
-    """
-    if pos_bits.shape[0] == 0:
-        return True, True
-    hi_x = pos_bits[0, 0]
-    hi_y = pos_bits[0, 1]
-    lo = min(hi_x, hi_y)
-    for k in range(pos_bits.shape[0]):
-        a = pos_bits[k, 0]
-        b = pos_bits[k, 1]
-        lo = min(lo, min(a, b))
-        hi_x = max(hi_x, a)
-        hi_y = max(hi_y, b)
-    e = val_exp_mask & 0
-    for k in range(val_bits.shape[0]):
-        for c in range(val_bits.shape[1]):
-            e = max(e, val_bits[k, c] & val_exp_mask)
-    pos_ok = lo >= 0 and hi_x < width_bits and hi_y < height_bits
-    return pos_ok, e != val_exp_mask
-
-
-@numba.njit(cache=True, nogil=True)
-def _flat_bits_range(bits, exp_mask):
-    """(min, max, max of bits & exp_mask) of a flat integer view: contiguous
-    reductions that vectorise (3x faster than the two-column loop)."""
-    lo = bits[0]
-    hi = bits[0]
-    e = exp_mask & 0
-    for i in range(bits.shape[0]):
-        a = bits[i]
-        lo = min(lo, a)
-        hi = max(hi, a)
-        e = max(e, a & exp_mask)
-    return lo, hi, e
-
-
-_INT_VIEW = {np.dtype(np.float32): (np.int32, np.int32(0x7F800000)),
-             np.dtype(np.float64): (np.int64, np.int64(0x7FF0000000000000))}
-
-
-def _quick_check(pos, val, width, height):
-    """(all positions on the film, all values finite), screened on bit patterns."""
-    if pos.dtype not in _INT_VIEW or val.dtype not in _INT_VIEW or pos.shape[0] == 0:
-        return False, False  # let the exact scan decide
-    pint, _ = _INT_VIEW[pos.dtype]
-    vint, vmask = _INT_VIEW[val.dtype]
-    wb = np.array(width, pos.dtype).view(pint)[()]
-    hb = np.array(height, pos.dtype).view(pint)[()]
-    plo, phi, _ = _flat_bits_range(pos.view(pint).reshape(-1), pint(0))
-    _, _, ve = _flat_bits_range(val.view(vint).reshape(-1), vmask)
-    val_ok = bool(ve != vmask)
-    if plo >= 0 and phi < min(wb, hb):
-        return True, val_ok  # every coordinate below both sides: on the film
-    # inconclusive on non-square films (or truly bad): the exact per-axis screen
-    pos_ok, val_ok = _quick_check_bits(pos.view(pint), val.view(vint), wb, hb, vmask)
-    return bool(pos_ok), bool(val_ok)
-
-
-@numba.njit(cache=True, nogil=True)
-def _scan(pos, val, width, height):
-    """Count bad positions (non-finite or off the film) and non-finite value rows."""
-    n_bad_pos = 0
-    n_nonfinite = 0
-    first_bad_pos = -1
-    for k in range(pos.shape[0]):
-        x = pos[k, 0]
-        y = pos[k, 1]
-        if not (x >= 0.0 and x < width and y >= 0.0 and y < height):
-            n_bad_pos += 1
-            if first_bad_pos < 0:
-                first_bad_pos = k
-        for c in range(val.shape[1]):
-            if not math.isfinite(val[k, c]):
-                n_nonfinite += 1
-                break
-    return n_bad_pos, first_bad_pos, n_nonfinite
-
 
 @numba.njit(cache=True, nogil=True)
 def _accumulate(pos, val, s, count, mean, m2, vmin, vmax, sub_sum, sub_count):
@@ -286,49 +192,13 @@ class PixelStats:
         or None for an empty batch.  Split from the accumulation so a reader
         can validate the next batch while the previous one is accumulated.
         """
-        if nonfinite not in NONFINITE_POLICIES:
-            raise InputError(source, "nonfinite", f"unknown policy {nonfinite!r}; valid: {', '.join(NONFINITE_POLICIES)}")
-        pos = np.asarray(positions)
-        val = np.asarray(values)
-        if val.ndim == 1 and len(self.channels) == 1:
-            val = val[:, None]
-        if pos.ndim != 2 or pos.shape[1] != 2:
-            raise InputError(source, "positions", f"shape {pos.shape}, expected (N, 2)")
-        if val.ndim != 2 or val.shape[1] != len(self.channels):
-            raise InputError(source, "values", f"shape {val.shape}, expected (N, {len(self.channels)}) "
-                             f"for channels {','.join(self.channels)}")
-        if pos.shape[0] != val.shape[0]:
-            raise InputError(source, "values", f"{val.shape[0]} rows but {pos.shape[0]} positions")
-        for name, arr in (("positions", pos), ("values", val)):
-            if arr.dtype.kind not in "fiu":
-                raise InputError(source, name, f"dtype {arr.dtype}, expected float32 or float64")
-        if pos.dtype.kind != "f":
-            pos = pos.astype(np.float64)
-        if val.dtype.kind != "f":
-            val = val.astype(np.float64)
+        check_policy(nonfinite, source)
+        pos, val, n_nonfinite = check_samples(positions, values, width=self.width, height=self.height,
+                                              n_channels=len(self.channels), where=source, channels=self.channels)
         if pos.shape[0] == 0:
             return None
-        pos = np.ascontiguousarray(pos)
-        val = np.ascontiguousarray(val)
-        pos_ok, val_ok = _quick_check(pos, val, self.width, self.height)
-        n_bad_pos, first_bad, n_nonfinite = (0, -1, 0) if pos_ok and val_ok else \
-            _scan(pos, val, self.width, self.height)
-        if n_bad_pos:
-            raise InputError(source, "positions",
-                             f"{n_bad_pos} sample(s) off the film [0, {self.width}) x [0, {self.height}) "
-                             f"or non-finite, first at row {first_bad}: {pos[first_bad].tolist()}")
-        if n_nonfinite and nonfinite == "raise":
-            raise InputError(source, "values", f"{n_nonfinite} sample(s) with NaN or Inf values; "
-                             "drop them with nonfinite='drop' or fix the renderer")
-        if n_nonfinite:
-            # Rare: apply the policy in numpy so the kernel stays branch-free.
-            finite = np.isfinite(val)
-            if nonfinite == "drop":
-                keep = finite.all(axis=1)
-                pos, val = pos[keep], val[keep]
-            else:
-                val = np.where(finite, val, val.dtype.type(0))
-        return pos, val, int(n_nonfinite)
+        pos, val = apply_nonfinite(pos, val, n_nonfinite, nonfinite, where=source)
+        return pos, val, n_nonfinite
 
     def _ingest(self, pos, val, n_nonfinite, *, nonfinite: str, source: str) -> None:
         """Accumulate a batch prepared by :meth:`_prepare` (releases the GIL)."""

@@ -452,17 +452,18 @@ def test_method_plan_respects_remaining_and_returns_none():
     m = AWRMethod(round_spp=1.0)
     st = PixelStats(30, 20)
     state = AdaptiveState(st, 0, budget=30 * 20 * 6 + 17, n_samples=0, rng=np.random.default_rng(0))
-    req = m.plan(state)
+    run = m.start(30, 20)
+    req = m.plan(run, state)
     assert req.counts is not None and req.total == 4 * 600            # initial 4 spp (paper)
     st2 = _noisy_stats(20, 30, 4, 2)
     state = AdaptiveState(st2, 1, budget=st2.n_samples + 17, n_samples=st2.n_samples, rng=np.random.default_rng(1))
-    req = m.plan(state)
+    req = m.plan(run, state)
     assert req.positions is not None and req.total == 17              # never more than remaining
     state = AdaptiveState(st2, 2, budget=st2.n_samples, n_samples=st2.n_samples, rng=np.random.default_rng(1))
-    assert m.plan(state) is None
+    assert m.plan(run, state) is None
     m2 = AWRMethod(priority_threshold=1e6)
     state = AdaptiveState(st2, 1, budget=10 ** 6, n_samples=st2.n_samples, rng=np.random.default_rng(1))
-    assert m2.plan(state) is None
+    assert m2.plan(m2.start(30, 20), state) is None
 
 
 def test_sampler_prefers_coarse_levels_in_smooth_noise_and_fine_levels_at_edges():
@@ -635,7 +636,7 @@ def test_adaptive_run_reports_the_sample_density_map():
         m = get_method("awr", reconstruction=recon)
         res = adapt(SceneRenderer("soft_shadow", width=40, height=36, seed=3), m, spp=10, seed=3, progress=False,
                     track_error=False)
-        d = m.diagnostics()
+        d = res.diagnostics()
         np.testing.assert_array_equal(d["samples"], res.counts)
         assert d["samples"].shape == (36, 40) and d["samples"].sum() == 10 * 36 * 40
 
@@ -681,8 +682,9 @@ def test_depth_of_field_loss_is_the_sample_allocation():
 def test_diagnostics_maps():
     st = _noisy_stats(20, 30, 4, 5)
     m = AWRMethod()
-    img = m.reconstruct(st)
-    d = m.diagnostics()
+    run = m.start(30, 20)
+    img = m.reconstruct(st, run=run)
+    d = m.diagnostics(run)
     assert set(d) == {"pixel_std", "smoothing"}
     assert d["pixel_std"].shape == (20, 30) and d["smoothing"].shape == (20, 30)
     np.testing.assert_allclose(d["smoothing"], np.abs(img - st.mean).mean(axis=2))

@@ -60,13 +60,13 @@ class _Stopper(Method):
 
     name = "box"
 
-    def plan(self, state):
+    def plan(self, run, state):
         if state.round_index >= 2:
             return None
-        return super().plan(state)
+        return super().plan(run, state)
 
-    def reconstruct(self, stats):
-        return stats.mean
+    def reconstruct_run(self, run, inputs):
+        return inputs.stats.mean
 
 
 def test_method_target_and_time_limit_stop_the_run():

@@ -11,6 +11,8 @@ import math
 import warnings
 
 import numpy as np
+
+import mcrecon
 import pytest
 import pywt
 from scipy import ndimage
@@ -90,8 +92,9 @@ def test_defaults_and_cli_strings():
     m = get_method("gem")
     assert m.params["gamma"] == 0.2 and m.params["initial_spp"] == 4 and m.params["iterations"] == 8
     # the 4x4 grid is emulated per pixel; the statistics keep it only when asked to filter on it
-    assert m.grid == 4 and m.subpixels == 0 and m.adaptive
-    assert get_method("gem", subpixel_exact_below=1.5).subpixels == 4
+    assert m.grid == 4 and m.requires.subpixels == 0 and m.adaptive
+    assert get_method("gem", subpixel_exact_below=1.5).requires.subpixels == 4
+    assert m.requires.reference == "none" and get_method("gem", oracle=1).requires.reference == "required"
     assert get_method("gem", oracle=1).params["oracle"] == 1
 
 
@@ -592,8 +595,9 @@ def test_flat_noise_goes_coarse_and_edges_stay_sharp():
     pos, val = _uniform_samples(rng, w, h, 32, fn)
     st = _stats(pos, val, w, h)
     m = get_method("gem")
-    img = m.reconstruct(st)
-    sel = m.diagnostics()["selected_scale"]
+    run = m.start(w, h)
+    img = m.reconstruct(st, run=run)
+    sel = m.diagnostics(run)["selected_scale"]
     assert np.median(sel[:, 5:25]) >= 4       # flat regions: coarse scales
     assert (sel[:, 31:33] == 0).all()          # the step: the pixel filter
     assert np.abs(img[:, 31:33] - st.mean[:, 31:33]).max() == 0
@@ -660,8 +664,9 @@ def test_plan_rounds_and_budget():
     budget = 12 * w * h
     sizes = []
     rnd = 0
+    run = m.start(w, h)
     while True:
-        req = m.plan(_state(st, rnd, budget))
+        req = m.plan(run, _state(st, rnd, budget))
         if req is None:
             break
         if rnd == 0:
@@ -674,7 +679,7 @@ def test_plan_rounds_and_budget():
         rnd += 1
     assert st.n_samples == budget and len(sizes) == 9
     assert max(sizes[1:]) - min(sizes[1:]) <= 1
-    diag = m.diagnostics()
+    diag = m.diagnostics(run)
     assert {"selected_scale", "sample_density", "stop_0", "est_rel_mse"} <= set(diag)
     assert all(v.shape == (h, w) for v in diag.values())
 
@@ -683,8 +688,9 @@ def test_plan_is_deterministic_given_the_state():
     rng = np.random.default_rng(0)
     pos, val = _uniform_samples(rng, 12, 10, 4, lambda x, y, r: r.random((x.size, 3)) * (x[:, None] > 6))
     st = _stats(pos, val, 12, 10)
-    a = get_method("gem").plan(_state(st, 3, 32 * 120, seed=9))
-    b = get_method("gem").plan(_state(st, 3, 32 * 120, seed=9))
+    m = get_method("gem")
+    a = m.plan(m.start(12, 10), _state(st, 3, 32 * 120, seed=9))
+    b = m.plan(m.start(12, 10), _state(st, 3, 32 * 120, seed=9))
     np.testing.assert_array_equal(a.positions, b.positions)
 
 
@@ -692,11 +698,13 @@ def test_target_rel_mse_stops_early_and_oracle_needs_reference():
     rng = np.random.default_rng(0)
     pos, val = _uniform_samples(rng, 8, 8, 64, lambda x, y, r: np.full((x.size, 3), 0.5) + 1e-4 * r.random((x.size, 3)))
     st = _stats(pos, val, 8, 8)
-    assert get_method("gem", target_rel_mse=1e-3).plan(_state(st, 1, 10**6)) is None
-    assert get_method("gem").plan(_state(st, 1, 10**6)) is not None
+    m = get_method("gem", target_rel_mse=1e-3)
+    assert m.plan(m.start(8, 8), _state(st, 1, 10**6)) is None
+    m = get_method("gem")
+    assert m.plan(m.start(8, 8), _state(st, 1, 10**6)) is not None
     with pytest.raises(InputError) as exc:
-        get_method("gem", oracle=1).plan(_state(st, 1, 10**6))
-    assert exc.value.field == "oracle"
+        get_method("gem", oracle=1).start(8, 8)
+    assert exc.value.field == "reference"
     with pytest.raises(InputError):
         get_method("gem", oracle=1).reconstruct(st)
 
@@ -824,7 +832,7 @@ def test_oracle_offline_uses_the_log_reference(tmp_path):
     from mcrecon.scenes import reference_image, write_scene_log
     path = write_scene_log("soft_shadow", tmp_path / "s.h5", width=24, height=24, spp=8)
     m = get_method("gem", oracle=1)
-    a = m.reconstruct_log(path)
+    a = mcrecon.reconstruct(path, method=m)
     stats = PixelStats.from_log(path, subpixels=4)
     b = get_method("gem", oracle=1).reconstruct(stats, reference=reference_image("soft_shadow", 24, 24))
     np.testing.assert_array_equal(a, b)

@@ -12,6 +12,8 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+
+import mcrecon
 import pytest
 
 from mcrecon import scenes
@@ -206,7 +208,7 @@ def test_method_energy_equals_sample_energy_on_scene(tmp_path):
     """Total splatted energy = total sample energy: sum(image) = sum of pixel means (uniform spp)."""
     path = scenes.write_scene_log("caustic", tmp_path / "c.h5", width=31, height=29, spp=16, seed=2,
                                   reference=False)
-    img = SplatMethod().reconstruct_log(path)
+    img = mcrecon.reconstruct(path, method=SplatMethod())
     stats = PixelStats.from_log(path)
     np.testing.assert_allclose(img.sum((0, 1)), stats.mean.sum((0, 1)), rtol=1e-9)
     assert np.isfinite(img).all()
@@ -401,14 +403,14 @@ def test_resume_rebuilds_progressive_state_exactly(tmp_path):
     resumed = resume(tmp_path / "b.h5", r, track_error=False)
     np.testing.assert_array_equal(resumed.image, full.image)
     # offline replay of the adaptive log's rounds gives the same image
-    np.testing.assert_array_equal(SplatMethod().reconstruct_log(tmp_path / "a.h5"), full.image)
+    np.testing.assert_array_equal(mcrecon.reconstruct(tmp_path / "a.h5", method="splat"), full.image)
 
 
 def test_single_round_log_split_into_pixel_rank_pseudo_rounds(tmp_path):
     w = 10
     b = scenes.render_uniform("depth_of_field", width=w, height=w, spp=7, seed=1)
     path = write_log(tmp_path / "l.h5", b.positions, b.values, width=w, height=w)
-    img = get_method("splat").reconstruct_log(path)
+    img = mcrecon.reconstruct(path, method="splat")
     pos = np.asarray(read_log(path).read_all().positions)
     sp = ProgressiveSplatter(w, w, 3)
     for p, v in rank_split(pos, b.values, w, doubling_schedule(7)):
@@ -425,8 +427,9 @@ def test_single_round_log_with_unequal_counts_covers_every_pixel(tmp_path, rng):
     m = SplatMethod()
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no "pixels without samples" warning
-        img = m.reconstruct_log(path)
-    assert np.isfinite(img).all() and len(m._splatter.rounds) == len(doubling_schedule(3))
+        rec = mcrecon.reconstruct(path, method=m, full=True)
+    img = rec.image
+    assert np.isfinite(img).all() and len(rec.run.splatter.rounds) == len(doubling_schedule(3))
     # each pseudo-round's image is the splat of its pixel means: energy sum_j N_j/N sum_p mean_pj
     assert img.sum() == pytest.approx(val.sum() / counts.sum() * w * h, rel=0.2)
 
@@ -438,15 +441,17 @@ def test_nonfinite_policies_in_logs(tmp_path, rng):
     val[3] = np.nan
     path = write_log(tmp_path / "n.h5", b.positions, val, width=w, height=w)
     with pytest.warns(McreconWarning, match="NaN"):
-        img = SplatMethod().reconstruct_log(path)
+        img = mcrecon.reconstruct(path, method="splat")
     assert np.isfinite(img).all()
     with pytest.raises(InputError, match="NaN"):
-        SplatMethod().reconstruct_log(path, nonfinite="raise")
+        mcrecon.reconstruct(path, method="splat", nonfinite="raise")
 
 
 def test_reconstruct_from_stats_is_refused():
-    with pytest.raises(InputError, match="reconstruct_log"):
+    with pytest.raises(InputError, match="individual samples"):
         SplatMethod().reconstruct(PixelStats(4, 4))
+    with pytest.raises(InputError, match="individual samples"):
+        mcrecon.reconstruct(PixelStats(4, 4), method="splat")
 
 
 # ----------------------------------------------------------------------------

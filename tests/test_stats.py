@@ -167,7 +167,7 @@ def test_one_by_one_and_negative_values():
 
 
 def test_quick_screen_is_exact_on_non_square_films():
-    from mcrecon.stats import _quick_check
+    from mcrecon.samples import _quick_check
 
     ok = np.ones((1, 3), np.float32)
     assert _quick_check(np.array([[3.9, 0.5]], np.float32), ok, 4, 2) == (True, True)   # x above the short side

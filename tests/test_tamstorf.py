@@ -184,7 +184,8 @@ def test_method_options_validated():
 def test_plan_rounds_only_unconverged_pixels():
     m = CIMethod(min_spp=4, step_spp=3)
     st = PixelStats(3, 2)
-    req = m.plan(_state(st, budget=10_000, round_index=0))
+    run = m.start(3, 2)
+    req = m.plan(run, _state(st, budget=10_000, round_index=0))
     np.testing.assert_array_equal(req.counts, np.full((2, 3), 4))
     # pixel (0,0) constant (zero variance -> converged), others noisy
     rng = np.random.default_rng(0)
@@ -194,35 +195,36 @@ def test_plan_rounds_only_unconverged_pixels():
     vals[:4] = 0.3
     st.add(pos, vals)
     assert st.count[0, 0] == 4
-    req = m.plan(_state(st, budget=10_000))
+    req = m.plan(run, _state(st, budget=10_000))
     expect = np.full((2, 3), 3)
     expect[0, 0] = 0
     np.testing.assert_array_equal(req.counts, expect)
-    d = m.diagnostics()
+    d = m.diagnostics(run)
     assert d["converged"][0, 0] == 1 and d["converged"].sum() == 1 and np.isfinite(d["width_ratio"]).all()
     # budget left for 7 samples only: the widest pixels are served first,
     # the total is exactly the remainder
-    req = m.plan(_state(st, budget=st.n_samples + 7))
+    req = m.plan(run, _state(st, budget=st.n_samples + 7))
     assert req.counts.sum() == 7
     ratio = d["width_ratio"].ravel()
     served = req.counts.ravel() > 0
     assert ratio[served].min() >= ratio[~served & (np.arange(6) != 0)].max()
     # no budget -> None; all converged -> None
-    assert m.plan(_state(st, budget=st.n_samples)) is None
+    assert m.plan(run, _state(st, budget=st.n_samples)) is None
     st2 = PixelStats.from_samples(pos, np.full((24, 3), 0.2), width=3, height=2)
-    assert m.plan(_state(st2, budget=10_000)) is None
+    assert m.plan(run, _state(st2, budget=10_000)) is None
 
 
 def test_plan_budget_below_initial_pass_and_cap():
     m = CIMethod(min_spp=8, max_spp=8)
     st = PixelStats(5, 5)
-    req = m.plan(_state(st, budget=30, round_index=0))
+    run = m.start(5, 5)
+    req = m.plan(run, _state(st, budget=30, round_index=0))
     assert req.counts.sum() == 30 and req.counts.max() - req.counts.min() <= 1
     # max_spp = min_spp: after the initial pass every pixel is done
     rng = np.random.default_rng(1)
     pos = np.column_stack([np.tile(np.arange(5) + 0.5, 40), np.repeat(np.arange(5) + 0.5, 40)])
     st.add(pos, rng.uniform(0, 1, (200, 3)))
-    assert m.plan(_state(st, budget=10_000)) is None
+    assert m.plan(run, _state(st, budget=10_000)) is None
 
 
 @pytest.mark.parametrize("tone", ["gamma", "linear", "reinhard"])
@@ -232,21 +234,22 @@ def test_plan_on_extreme_inputs_is_finite_and_silent(tone):
     for w, h in ((1, 1), (7, 5)):
         m = CIMethod(tone=tone)
         st = PixelStats(w, h)
+        run = m.start(w, h)
         with warnings.catch_warnings():
             warnings.simplefilter("error")
-            req = m.plan(_state(st, budget=10 * w * h, round_index=0))
+            req = m.plan(run, _state(st, budget=10 * w * h, round_index=0))
             n = w * h
             pos = np.column_stack([np.arange(n) % w + 0.5, np.arange(n) // w + 0.5])
             st.add(pos, np.full((n, 3), 1e-3))                       # 1 spp: no variance yet
-            req = m.plan(_state(st, budget=10 ** 6))
+            req = m.plan(run, _state(st, budget=10 ** 6))
             assert req is not None and req.counts.min() == m.rule.min_spp - 1
             k = 40
             vals = np.where(rng.random((k * n, 1)) < 0.03, 1e6, 0.0) * np.ones(3)  # 97% zeros, fireflies
             vals[::7] = 500.0
             st.add(np.repeat(pos, k, axis=0), vals)
-            req = m.plan(_state(st, budget=10 ** 6))
-            img = m.finish(_state(st, budget=10 ** 6))
-        assert np.isfinite(img).all() and all(np.isfinite(v).all() for v in m.diagnostics().values())
+            req = m.plan(run, _state(st, budget=10 ** 6))
+            img = m.finish(run, _state(st, budget=10 ** 6))
+        assert np.isfinite(img).all() and all(np.isfinite(v).all() for v in m.diagnostics(run).values())
         assert req is None or req.counts.sum() > 0
 
 
@@ -535,7 +538,7 @@ def test_bootstrap_log_equals_arrays(tmp_path):
     write_log(tmp_path / "s.h5", pos, vals, width=5, height=3)
     from mcrecon.io import read_log
     chunk = read_log(tmp_path / "s.h5").read_all()
-    r1 = bootstrap_bias_log(tmp_path / "s.h5", B=64, seed=2, rule=RULE)
+    r1 = bootstrap_bias_log(read_log(tmp_path / "s.h5"), B=64, seed=2, rule=RULE)
     r2 = bootstrap_bias(chunk.positions, chunk.values, width=5, height=3, B=64, seed=2, rule=RULE)
     np.testing.assert_array_equal(r1.radiance.bias, r2.radiance.bias)
     assert r1.summary() == r2.summary()

@@ -26,6 +26,7 @@ from ..errors import InputError, McreconWarning
 from ..io import write_exr, write_false_colour, write_log, write_png_preview
 from ..methods import available_methods, get_method, method_class
 from ..metrics import relative_mse, relative_mse_map, rmse, ssim
+from ..reconstruction import reconstruct
 
 __all__ = ["run_convergence", "ConvergenceResult", "oidn_available", "oidn_denoise"]
 
@@ -117,7 +118,7 @@ def run_convergence(scene: str = "soft_shadow", *, methods: Sequence[str] | None
                 t1 = time.perf_counter()
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", McreconWarning)
-                    img = m.reconstruct_log(log)
+                    img = reconstruct(log, method=m)
                 dt = time.perf_counter() - t1
                 if name == "box":
                     box_img = img
@@ -128,7 +129,7 @@ def run_convergence(scene: str = "soft_shadow", *, methods: Sequence[str] | None
                     images[(name, "uniform")] = img
             if oidn:
                 if box_img is None:
-                    box_img = get_method("box").reconstruct_log(log)
+                    box_img = reconstruct(log, method="box")
                 t1 = time.perf_counter()
                 img = oidn_denoise(box_img)
                 dt = time.perf_counter() - t1
@@ -138,7 +139,7 @@ def run_convergence(scene: str = "soft_shadow", *, methods: Sequence[str] | None
                 if s == report_spp:
                     images[("oidn", "uniform")] = img
             if s == report_spp:
-                images[("input", "uniform")] = box_img if box_img is not None else get_method("box").reconstruct_log(log)
+                images[("input", "uniform")] = box_img if box_img is not None else reconstruct(log, method="box")
             log.unlink()
         if "adaptive" in modes:
             for name in methods:

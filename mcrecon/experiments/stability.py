@@ -26,6 +26,7 @@ import numpy as np
 from ..io import write_log
 from ..methods import available_methods, get_method
 from ..protocol import CallableRenderer, SampleBatch, jittered_positions
+from ..reconstruction import reconstruct
 
 __all__ = ["CASES", "StabilityCase", "run_stability", "write_stability_table"]
 
@@ -142,7 +143,7 @@ def run_stability(*, methods: Sequence[str] | None = None, cases: Sequence[str] 
                 method = get_method(name)
                 t0 = time.perf_counter()
                 if mode == "offline":
-                    img, warns, err = _run_one(lambda: method.reconstruct_log(log, nonfinite=case.nonfinite))
+                    img, warns, err = _run_one(lambda: reconstruct(log, method=method, nonfinite=case.nonfinite))
                 else:
                     def fn(req, case=case):
                         rng = np.random.default_rng(req.seed)

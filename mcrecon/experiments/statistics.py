@@ -86,7 +86,8 @@ def run_bias(source, *, B: int = 1000, seed: int = 0, rule=None, level: float = 
                              height=source["height"], B=B, seed=seed, rule=rule, level=level,
                              threshold=threshold, nonfinite=nonfinite)
     else:
-        res = bootstrap_bias_log(source, B=B, seed=seed, rule=rule, level=level, threshold=threshold,
+        from ..io import read_log
+        res = bootstrap_bias_log(read_log(source) if not hasattr(source, "iter_chunks") else source, B=B, seed=seed, rule=rule, level=level, threshold=threshold,
                                  nonfinite=nonfinite)
     summary = {"seconds": time.perf_counter() - t0, **res.summary()}
     if out is not None:

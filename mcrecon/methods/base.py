@@ -1,32 +1,58 @@
 """The contract every reconstruction / adaptive-sampling method implements.
 
-A method is a class registered in :mod:`mcrecon.methods` under a short
-name.  It is built with keyword-only options (validated in ``__init__``
-with messages that list the valid values) and then used in two ways:
+A method is two things (``docs/methods/writing-a-method.md``):
 
-Offline
-    ``reconstruct_log(log)`` (default: stream the log into
-    :class:`~mcrecon.stats.PixelStats` with the subpixel grid the method
-    asks for, then ``reconstruct(stats)``).
+*Configuration*
+    The method object.  It is built with keyword-only options, each
+    described by an :class:`Option` (type, bounds, nullability, choices)
+    and validated once, here in the base class; the CLI uses the same
+    descriptions unchanged.  After ``__init__`` the object is immutable:
+    one method object serves any number of runs, in any order.
 
-Adaptive (driven by :func:`mcrecon.driver.adapt`)
-    Round 0: ``plan(state)`` with empty statistics returns the initial
-    request.  After every round the driver validates the renderer's reply,
-    commits it to the log, merges it into ``state.stats`` and calls
-    ``observe(batch, round_index)``; then ``plan(state)`` again, until it
-    returns ``None`` (the method's own target is met), the budget or the
-    time limit is reached.  Finally ``finish(state)`` returns the image.
+*Per-run state*
+    ``start(width, height, channels, reference=...)`` returns a
+    :class:`RunState` (or a subclass) that holds everything a run
+    accumulates: a progressive image, the last selection, diagnostics.
+    The driver (or :func:`mcrecon.reconstruct`) keeps it and passes it
+    back to every call of that run.
 
-Resume contract: ``plan`` may depend only on the options, ``state``
-(statistics of every committed sample, round index, budget, the round's
-RNG) and on what ``observe`` saw.  A resumed run rebuilds the statistics
-from the log and replays ``observe`` for each committed round in order,
-so it continues exactly where the killed run stopped.
+Declared inputs
+    :attr:`Method.requires` says what a method consumes
+    (:class:`Requirements`): pixel statistics with or without a subpixel
+    grid, the individual samples, the reference image.  The reader or the
+    driver supplies them as :class:`MethodInputs`; a method never opens a
+    file (no module in ``mcrecon.methods`` imports the I/O layer).
+
+The hooks a method implements:
+
+``reconstruct_run(run, inputs) -> image``
+    Offline reconstruction of an (H, W, C) float64 image.
+``plan(run, state) -> SampleRequest | None``
+    Next round's request (default: uniform rounds that double the total),
+    or None when the method's own target is met.
+``observe(run, batch, round_index)``
+    Only for methods that declare ``requires.samples``: a committed
+    round's samples.  A resumed run replays it round by round.
+``finish(run, state) -> image``
+    Final image of an adaptive run (default: ``reconstruct_run`` on the
+    run's statistics).
+``diagnostics(run) -> dict``
+    Scalar (H, W) maps of the last reconstruction or planning step.
+
+Resume contract: ``plan`` may depend only on the options, the run state
+and ``state`` (statistics of every committed sample, round index,
+budget, the round's RNG).  A resumed run rebuilds the statistics from the
+log and, for methods that observe samples, replays ``observe`` for each
+committed round in order, so it continues exactly where the killed run
+stopped.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
+import numbers
+import types
 from typing import Any, ClassVar, Mapping, Sequence
 
 import numpy as np
@@ -35,15 +61,32 @@ from ..errors import InputError
 from ..protocol import SampleBatch, SampleRequest
 from ..stats import PixelStats
 
-__all__ = ["Method", "AdaptiveState", "Option", "uniform_counts"]
+__all__ = ["Method", "AdaptiveState", "Option", "Requirements", "MethodInputs", "RunState", "uniform_counts"]
+
+_MISSING = object()
 
 
 @dataclasses.dataclass(frozen=True)
 class Option:
-    """A method option exposed on the CLI as ``--NAME`` (``_`` shown as ``-``).
+    """One keyword option of a method, and its CLI flag ``--NAME`` (``_`` shown as ``-``).
 
-    ``type`` is a callable converting the command-line string
-    (``float``, ``int``, ``str``); ``choices`` lists valid values.
+    Parameters
+    ----------
+    name : str
+    type : {float, int, str, bool}
+        Values are converted to this type (command-line strings too);
+        ``int`` accepts integral numbers only.
+    default : object
+        Used when the option is not given.
+    help : str
+    choices : sequence, optional
+        The valid values (after conversion).
+    min, max : number, optional
+        Bounds; ``min_open`` / ``max_open`` make them strict (``>`` / ``<``).
+    nullable : bool
+        Whether None is a valid value (defaults to True when the default is None).
+    note : str, optional
+        Why the bounds are what they are; appended to the error message.
     """
 
     name: str
@@ -51,6 +94,166 @@ class Option:
     default: Any
     help: str
     choices: Sequence[Any] | None = None
+    min: float | None = None
+    max: float | None = None
+    min_open: bool = False
+    max_open: bool = False
+    nullable: bool | None = None
+    note: str | None = None
+
+    @property
+    def allows_none(self) -> bool:
+        return self.default is None if self.nullable is None else bool(self.nullable)
+
+    @property
+    def flag(self) -> str:
+        return "--" + self.name.replace("_", "-")
+
+    def expectation(self) -> str:
+        """What a valid value looks like, for error messages and ``--help``."""
+        if self.choices is not None:
+            text = "one of " + ", ".join(map(str, self.choices))
+        else:
+            kind = {int: "an integer", float: "a finite number", bool: "true or false",
+                    str: "a string"}.get(self.type, getattr(self.type, "__name__", str(self.type)))
+            lo = None if self.min is None else f"{'>' if self.min_open else '>='} {self.min:g}"
+            hi = None if self.max is None else f"{'<' if self.max_open else '<='} {self.max:g}"
+            if lo and hi:
+                text = (f"{kind} with {self.min:g} {'<' if self.min_open else '<='} {self.name} "
+                        f"{'<' if self.max_open else '<='} {self.max:g}")
+            else:
+                text = f"{kind} {lo or hi}" if (lo or hi) else kind
+        text += " or None" if self.allows_none else ""
+        return f"{text} ({self.note})" if self.note else text
+
+    def convert(self, value, where: str):
+        """The validated value, or an :class:`InputError` naming ``where``, the option and the valid values."""
+        if value is None or (isinstance(value, str) and value.strip().lower() == "none" and self.allows_none):
+            if self.allows_none:
+                return None
+            raise InputError(where, self.name, f"None, expected {self.expectation()}")
+        bad = InputError(where, self.name, f"{value!r}, expected {self.expectation()}")
+        t = self.type
+        if t is bool:
+            if isinstance(value, (bool, np.bool_)):
+                v = bool(value)
+            elif isinstance(value, numbers.Integral) and value in (0, 1):
+                v = bool(value)
+            elif isinstance(value, str) and value.strip().lower() in ("1", "true", "yes", "on", "0", "false",
+                                                                       "no", "off"):
+                v = value.strip().lower() in ("1", "true", "yes", "on")
+            else:
+                raise bad
+        elif t in (int, float):
+            if isinstance(value, (bool, np.bool_)):
+                raise bad
+            try:
+                f = float(value.strip()) if isinstance(value, str) else float(value)
+            except (TypeError, ValueError, AttributeError):
+                raise bad from None
+            if not math.isfinite(f):
+                raise bad
+            if t is int:
+                if f != int(f):
+                    raise bad
+                v = int(f)
+            else:
+                v = f
+            if self.min is not None and (v <= self.min if self.min_open else v < self.min):
+                raise bad
+            if self.max is not None and (v >= self.max if self.max_open else v > self.max):
+                raise bad
+        elif t is str:
+            if not isinstance(value, str):
+                raise bad
+            v = value
+        else:
+            try:
+                v = t(value)
+            except (TypeError, ValueError):
+                raise bad from None
+        if self.choices is not None and v not in self.choices:
+            raise InputError(where, self.name, f"{value!r} is not valid; valid: {', '.join(map(str, self.choices))}")
+        return v
+
+
+@dataclasses.dataclass(frozen=True)
+class Requirements:
+    """What a method consumes; the reader or the driver supplies it.
+
+    Attributes
+    ----------
+    subpixels : int
+        Subpixel grid per pixel axis the pixel statistics must keep (0: none).
+    samples : bool
+        The individual samples: offline a :class:`~mcrecon.samples.SampleSource`
+        in ``inputs.samples``; in adaptive runs every committed round
+        through ``observe`` (and replayed on resume).
+    reference : {'none', 'optional', 'required'}
+        Whether the method reads the reference image (oracle modes).
+    statistics : bool
+        Whether the method reads pixel statistics (a method that only
+        filters samples sets False, and none are built for it offline).
+    """
+
+    subpixels: int = 0
+    samples: bool = False
+    reference: str = "none"
+    statistics: bool = True
+
+    def __post_init__(self):
+        if self.reference not in ("none", "optional", "required"):
+            raise ValueError(f"Requirements.reference: {self.reference!r}; valid: none, optional, required")
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class MethodInputs:
+    """What a reconstruction gets: the inputs its method declared.
+
+    Attributes
+    ----------
+    stats : PixelStats or None
+        Per-pixel statistics (with the subpixel grid the method asked
+        for); None only for methods with ``requires.statistics`` False.
+    samples : sample source or None
+        The individual samples (:mod:`mcrecon.samples`), for methods with
+        ``requires.samples``.
+    reference : ndarray (H, W, C) float64 or None
+        The reference image, for methods that read one.
+    nonfinite : {'drop', 'zero', 'raise'}
+        The policy for NaN/Inf values a method reading ``samples`` applies
+        (the statistics have applied it already).
+    """
+
+    stats: PixelStats | None
+    samples: Any = None
+    reference: np.ndarray | None = None
+    nonfinite: str = "drop"
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        if self.stats is not None:
+            return self.stats.shape
+        return int(self.samples.height), int(self.samples.width), len(self.samples.channels)
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        return tuple(self.stats.channels if self.stats is not None else self.samples.channels)
+
+
+@dataclasses.dataclass(eq=False)
+class RunState:
+    """What one run of a method accumulates (created by :meth:`Method.start`).
+
+    Subclasses add fields (a progressive image, the last selection).
+    ``diagnostics`` holds the maps :meth:`Method.diagnostics` returns.
+    """
+
+    width: int
+    height: int
+    channels: tuple[str, ...]
+    reference: np.ndarray | None = None
+    diagnostics: dict = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass(eq=False)
@@ -94,6 +297,10 @@ class AdaptiveState:
     def height(self) -> int:
         return self.stats.height
 
+    def inputs(self) -> MethodInputs:
+        """The run's statistics and reference as reconstruction inputs."""
+        return MethodInputs(self.stats, None, self.reference)
+
     def request(self, *, counts=None, positions=None) -> SampleRequest:
         """A request for this round (the driver sets the renderer seed)."""
         return SampleRequest(self.width, self.height, counts=counts, positions=positions,
@@ -117,55 +324,126 @@ def uniform_counts(width: int, height: int, n: int, rng: np.random.Generator) ->
 
 
 class Method:
-    """Base class: uniform sampling in doubling rounds, subclasses reconstruct.
+    """Base class: validated immutable options, uniform sampling in doubling rounds.
 
     Class attributes
     ----------------
     name : str
         Registry name.
     options : tuple of Option
-        Keyword options (and CLI flags).
-    subpixels : int
-        Subpixel grid the method needs in its statistics (0 = none).
+        Keyword options (and CLI flags), validated by ``__init__``.
     adaptive : bool
         Whether ``plan`` distributes samples by itself (else uniform).
+    initial_spp : int
+        Uniform sampling: spp of the first round; later rounds double the
+        total.  An ``initial_spp`` option overrides it.
+    subpixels, needs_samples, reference : int, bool, str
+        The default :attr:`requires` (override the property when it
+        depends on the options).
+
+    Subclasses never override ``__init__``: cross-option checks and
+    derived configuration go into :meth:`_configure`.
     """
 
     name: ClassVar[str] = "?"
     options: ClassVar[tuple[Option, ...]] = ()
-    subpixels: ClassVar[int] = 0
     adaptive: ClassVar[bool] = False
-
-    #: Uniform sampling: spp of the first round, later rounds double the total.
     initial_spp: ClassVar[int] = 1
+    subpixels: ClassVar[int] = 0
+    needs_samples: ClassVar[bool] = False
+    reference: ClassVar[str] = "none"
 
     def __init__(self, **options):
+        where = self.where
         known = {o.name: o for o in self.options}
         unknown = sorted(set(options) - set(known))
         if unknown:
-            raise InputError(f"method {self.name}", unknown[0],
-                             f"unknown option; valid: {', '.join(known) or '(none)'}")
-        self.params = {}
+            raise InputError(where, unknown[0], f"unknown option; valid: {', '.join(known) or '(none)'}")
+        params = {}
         for name, opt in known.items():
-            value = options.get(name, opt.default)
-            if value is not None and opt.choices is not None and value not in opt.choices:
-                raise InputError(f"method {self.name}", name,
-                                 f"{value!r} is not valid; valid: {', '.join(map(str, opt.choices))}")
-            self.params[name] = value
-        self._diagnostics: dict[str, np.ndarray] = {}
+            value = options.get(name, _MISSING)
+            params[name] = opt.default if value is _MISSING else opt.convert(value, where)
+        object.__setattr__(self, "_params", params)
+        self._configure(params)
+        object.__setattr__(self, "params", types.MappingProxyType(params))
+        object.__setattr__(self, "_frozen", True)
+
+    def _configure(self, params: dict) -> None:
+        """Cross-option checks and derived configuration (may adjust ``params``; raise InputError)."""
+
+    def __setattr__(self, key, value):
+        if getattr(self, "_frozen", False):
+            raise AttributeError(f"method {self.name}: options are fixed once built; create a new method "
+                                 f"with get_method({self.name!r}, {key}=...) instead")
+        object.__setattr__(self, key, value)
+
+    def __repr__(self) -> str:
+        opts = ", ".join(f"{k}={v!r}" for k, v in self.params.items())
+        return f"{type(self).__name__}({opts})"
+
+    @property
+    def where(self) -> str:
+        """How error messages name this method."""
+        return f"method {self.name}"
+
+    @property
+    def requires(self) -> Requirements:
+        """The inputs this method consumes (see :class:`Requirements`)."""
+        return Requirements(subpixels=int(self.subpixels), samples=bool(self.needs_samples),
+                            reference=self.reference)
+
+    # ------------------------------------------------------------- per run
+    def start(self, width: int, height: int, channels: Sequence[str] = ("R", "G", "B"), *,
+              reference: np.ndarray | None = None) -> RunState:
+        """A fresh per-run state for a ``width`` x ``height`` film."""
+        if self.requires.reference == "required" and reference is None:
+            raise InputError(self.where, "reference", "this configuration needs a reference image "
+                             "(the run's reference, or one stored in the log)")
+        return RunState(int(width), int(height), tuple(str(c) for c in channels), reference)
 
     # -------------------------------------------------------------- offline
-    def reconstruct(self, stats: PixelStats) -> np.ndarray:
-        """Reconstruct an (H, W, C) float64 image from pixel statistics."""
+    def reconstruct(self, inputs, *, reference: np.ndarray | None = None,
+                    run: RunState | None = None) -> np.ndarray:
+        """Reconstruct an (H, W, C) float64 image.
+
+        Parameters
+        ----------
+        inputs : PixelStats or MethodInputs
+            Pixel statistics, or every input the method declared.
+        reference : ndarray, optional
+            The reference image (for methods that read one), when
+            ``inputs`` is plain statistics.
+        run : RunState, optional
+            A state from :meth:`start` that receives the diagnostics; a
+            fresh one by default.
+        """
+        if isinstance(inputs, PixelStats):
+            inputs = MethodInputs(inputs, None, reference)
+        if not isinstance(inputs, MethodInputs):
+            raise InputError(self.where, "inputs", f"got {type(inputs).__name__}, expected PixelStats or "
+                             "MethodInputs (for files and samples use mcrecon.reconstruct)")
+        req = self.requires
+        if req.statistics and inputs.stats is None:
+            raise InputError(self.where, "input", "needs pixel statistics (MethodInputs.stats)")
+        if req.samples and inputs.samples is None:
+            raise InputError(self.where, "input", f"{self.name} filters individual samples, which pixel "
+                             "statistics no longer hold; give it samples (mcrecon.reconstruct(log_or_samples, "
+                             f"method={self.name!r}) or `mcrecon denoise LOG --method {self.name}`)")
+        if req.subpixels and inputs.stats is not None and inputs.stats.subpixels != req.subpixels:
+            raise InputError(self.where, "statistics", f"need a {req.subpixels}x{req.subpixels} subpixel grid, "
+                             f"got subpixels={inputs.stats.subpixels}; build them with "
+                             f"subpixels={req.subpixels} (method.requires.subpixels)")
+        if run is None:
+            h, w, _ = inputs.shape
+            run = self.start(w, h, inputs.channels, reference=inputs.reference)
+        return self.reconstruct_run(run, inputs)
+
+    def reconstruct_run(self, run: RunState, inputs: MethodInputs) -> np.ndarray:
+        """The method's reconstruction (the hook subclasses implement)."""
         raise NotImplementedError
 
-    def reconstruct_log(self, log, *, nonfinite: str = "drop") -> np.ndarray:
-        """Reconstruct from a sample log (path or SampleLog)."""
-        stats = PixelStats.from_log(log, subpixels=self.subpixels, nonfinite=nonfinite)
-        return self.reconstruct(stats)
-
     # ------------------------------------------------------------- adaptive
-    def plan(self, state: AdaptiveState) -> SampleRequest | None:
+    def plan(self, run: RunState, state: AdaptiveState) -> SampleRequest | None:
         """Next round's request, or None when the method's target is met.
 
         Default: uniform rounds, ``initial_spp`` first, then each round
@@ -175,20 +453,20 @@ class Method:
         if remaining <= 0:
             return None
         if state.n_samples == 0:
-            return state.uniform_request(max(1, int(self.initial_spp)))
+            return state.uniform_request(max(1, int(self.params.get("initial_spp", self.initial_spp))))
         n = min(remaining, state.n_samples)
         return state.request(counts=uniform_counts(state.width, state.height, n, state.rng))
 
-    def observe(self, batch: SampleBatch, round_index: int) -> None:
-        """See a committed round's samples (for methods that keep their own state)."""
+    def observe(self, run: RunState, batch: SampleBatch, round_index: int) -> None:
+        """See a committed round's samples (only called when ``requires.samples``)."""
 
-    def finish(self, state: AdaptiveState) -> np.ndarray:
-        """Final image of an adaptive run (default: ``reconstruct(state.stats)``)."""
-        return self.reconstruct(state.stats)
+    def finish(self, run: RunState, state: AdaptiveState) -> np.ndarray:
+        """Final image of an adaptive run (default: :meth:`reconstruct_run` of the run's statistics)."""
+        return self.reconstruct_run(run, state.inputs())
 
-    def diagnostics(self) -> Mapping[str, np.ndarray]:
-        """Scalar (H, W) maps from the last reconstruct/plan (selected scale, ...)."""
-        return dict(self._diagnostics)
+    def diagnostics(self, run: RunState) -> Mapping[str, np.ndarray]:
+        """Scalar (H, W) maps from the run's last reconstruction or planning step."""
+        return dict(run.diagnostics)
 
     def describe(self) -> dict:
-        return {"method": self.name, **self.params}
+        return {"method": self.name, **dict(self.params)}

@@ -8,8 +8,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..errors import McreconWarning
-from ..stats import PixelStats
-from .base import Method
+from .base import Method, MethodInputs, RunState
 
 __all__ = ["BoxMethod", "fill_empty_pixels"]
 
@@ -38,5 +37,6 @@ class BoxMethod(Method):
 
     name = "box"
 
-    def reconstruct(self, stats: PixelStats) -> np.ndarray:
+    def reconstruct_run(self, run: RunState, inputs: MethodInputs) -> np.ndarray:
+        stats = inputs.stats
         return fill_empty_pixels(stats.mean.copy(), stats.count)

@@ -58,7 +58,7 @@ from scipy import ndimage
 
 from ..errors import InputError
 from ..stats import PixelStats
-from .base import AdaptiveState, Method, Option
+from .base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState
 
 __all__ = [
     "GEMMethod",
@@ -1361,18 +1361,6 @@ def error_rate_experiment(gamma: float | None, noise_var: float = 10.0, *, n_pix
 # The method
 # ----------------------------------------------------------------------------
 
-def _opt_int(name, value, minimum):
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer, str, float)):
-        raise InputError(_WHERE, name, f"{value!r}, expected an integer >= {minimum}")
-    try:
-        f = float(value)
-    except ValueError:
-        raise InputError(_WHERE, name, f"{value!r}, expected an integer >= {minimum}") from None
-    if not (math.isfinite(f) and f == int(f) and f >= minimum):
-        raise InputError(_WHERE, name, f"{value!r}, expected an integer >= {minimum}")
-    return int(f)
-
-
 class GEMMethod(Method):
     """Greedy error minimization (Rousselle, Knaus, Zwicker 2011).
 
@@ -1422,69 +1410,52 @@ class GEMMethod(Method):
     #: per pixel (:func:`pixel_kernel`), so the statistics keep the grid itself
     #: only when ``subpixel_exact_below > 0`` asks to filter on it (see __init__).
     grid = 4
-    subpixels = 4
     adaptive = True
     initial_spp = 4
     options = (
-        Option("gamma", float, 0.2, "target error rate of the scale selector, 0 < gamma < 0.4"),
+        Option("gamma", float, 0.2, "target error rate of the scale selector", min=0.0, max=GAMMA_MAX,
+               min_open=True, max_open=True,
+               note="the paper's z(gamma) = -log(1 - (1.9 gamma)^(1/sqrt 2)) is only calibrated there; "
+                    "use e.g. 0.1 to 0.3, default 0.2"),
         Option("oracle", int, 0, "1: select and sample with the true bias from the reference (OUR-GRD)",
                choices=(0, 1)),
         Option("target_rel_mse", float, None, "stop early when the estimated relative MSE (eps 0.01) "
-               "reaches this"),
-        Option("initial_spp", int, 4, "samples per pixel of the uniform initial pass"),
-        Option("iterations", int, 8, "adaptive iterations after the initial pass"),
+               "reaches this", min=0.0, min_open=True),
+        Option("initial_spp", int, 4, "samples per pixel of the uniform initial pass", min=1),
+        Option("iterations", int, 8, "adaptive iterations after the initial pass", min=1),
         Option("samples_per_pick", int, 0, "samples each selected pixel spreads over its filter "
-               "(0: the average spp of the budget, as in the paper)"),
-        Option("adaptive_scales", int, 4, "dyadic Gaussian scales from 1 px used while sampling"),
-        Option("final_scales", int, 8, "Gaussian scales sqrt(2) apart from sqrt(2) px in the final image"),
+               "(0: the average spp of the budget, as in the paper)", min=0),
+        Option("adaptive_scales", int, 4, "dyadic Gaussian scales from 1 px used while sampling", min=1),
+        Option("final_scales", int, 8, "Gaussian scales sqrt(2) apart from sqrt(2) px in the final image", min=1),
         Option("final_outliers", str, "adaptive", "final outlier removal: paper (2x size, coarser only) or "
                "adaptive (1x size, both ways)", choices=OUTLIER_RULES),
         Option("zero_variance_votes", int, 2, "stopping-map votes of pixels with zero variance: "
                "0 none, 1 adaptive phase, 2 final reconstruction, 3 both", choices=(0, 1, 2, 3)),
         Option("subpixel_exact_below", float, 0.0, "filter scales with sigma below this (px) on the 4x4 "
-               "subpixel grid itself (slower; 0: pixel-level equivalent kernel)"),
+               "subpixel grid itself (slower; 0: pixel-level equivalent kernel)", min=0.0),
     )
 
-    def __init__(self, **options):
-        super().__init__(**options)
-        p = self.params
-        p["gamma"] = check_gamma(p["gamma"])
-        o = p["oracle"]
-        if isinstance(o, str) and o.strip() in ("0", "1"):
-            o = int(o)
-        if isinstance(o, bool) or o not in (0, 1):
-            raise InputError(_WHERE, "oracle", f"{p['oracle']!r}; valid: 0, 1")
-        p["oracle"] = int(o)
-        t = p["target_rel_mse"]
-        if t is not None:
-            try:
-                t = float(t)
-            except (TypeError, ValueError):
-                t = float("nan")
-            if not (math.isfinite(t) and t > 0):
-                raise InputError(_WHERE, "target_rel_mse", f"{p['target_rel_mse']!r}, expected a positive "
-                                 "number (relative MSE, eps 0.01) or None")
-            p["target_rel_mse"] = t
-        p["initial_spp"] = _opt_int("initial_spp", p["initial_spp"], 1)
-        p["iterations"] = _opt_int("iterations", p["iterations"], 1)
-        p["samples_per_pick"] = _opt_int("samples_per_pick", p["samples_per_pick"], 0)
-        p["adaptive_scales"] = _opt_int("adaptive_scales", p["adaptive_scales"], 1)
-        p["final_scales"] = _opt_int("final_scales", p["final_scales"], 1)
-        try:
-            e = float(p["subpixel_exact_below"])
-        except (TypeError, ValueError):
-            e = float("nan")
-        if not (math.isfinite(e) and e >= 0):
-            raise InputError(_WHERE, "subpixel_exact_below", f"{p['subpixel_exact_below']!r}, expected a "
-                             "sigma in pixels >= 0 (0: never filter on the subpixel grid)")
-        p["subpixel_exact_below"] = e
+    @property
+    def requires(self) -> Requirements:
         # Work a run does not need is left out: 616 MB of subpixel sums at 1024^2
         # and the slowest ingestion path, unused by the pixel-level kernels.
-        self.subpixels = self.grid if e > 0 else 0
-        self.initial_spp = p["initial_spp"]
+        return Requirements(subpixels=self.grid if self.params["subpixel_exact_below"] > 0 else 0,
+                            reference="required" if self.params["oracle"] else "none")
 
     # ---------------------------------------------------------------- core
-    def _select(self, stats: PixelStats, *, final: bool, reference=None, want_mse: bool = False) -> GEMSelection:
+    def start(self, width, height, channels=("R", "G", "B"), *, reference=None) -> "GEMRun":
+        base = super().start(width, height, channels, reference=reference)
+        if reference is not None:
+            ref = np.asarray(reference, dtype=np.float64)
+            if ref.ndim == 2:
+                ref = ref[..., None]
+            expect = (int(height), int(width), len(base.channels))
+            if ref.shape != expect:
+                raise InputError(_WHERE, "reference", f"shape {ref.shape}, expected {expect}")
+            base.reference = ref
+        return GEMRun(**dataclasses.asdict(base))
+
+    def _select(self, run: "GEMRun", stats: PixelStats, *, final: bool, want_mse: bool = False) -> GEMSelection:
         p = self.params
         sig = final_sigmas(p["final_scales"]) if final else adaptive_sigmas(p["adaptive_scales"])
         base = stats.mean
@@ -1494,12 +1465,10 @@ class GEMMethod(Method):
         eb = p["subpixel_exact_below"]
         sub = filled_subpixels(stats) if (eb > 0 and stats.subpixels and np.any(sig < eb)) else None
         if p["oracle"]:
-            if reference is None:
+            ref = run.reference
+            if ref is None:
                 raise InputError(_WHERE, "oracle", "oracle=1 needs a reference image (the run's "
                                  "reference, e.g. adapt(..., reference=...)); use oracle=0 without one")
-            ref = np.asarray(reference, dtype=np.float64)
-            if ref.ndim == 2:
-                ref = ref[..., None]
             if ref.shape != base.shape:
                 raise InputError(_WHERE, "reference", f"shape {ref.shape}, expected {base.shape}")
             sel = oracle_select(base, mv, count, sig, ref, subpixels=s, sub=sub, exact_below=eb)
@@ -1507,22 +1476,18 @@ class GEMMethod(Method):
             sel = gem_select(base, mv, count, sig, gamma=p["gamma"], final=final, subpixels=s,
                              want_mse=want_mse, sub=sub, exact_below=eb, outlier_rule=p["final_outliers"],
                              zero_variance_votes=bool(p["zero_variance_votes"] & (2 if final else 1)))
-        self._record(sel, stats)
-        return sel
-
-    def _record(self, sel: GEMSelection, stats: PixelStats):
         # The maps are built when asked for (diagnostics()): a planning round
         # would otherwise spend ~5 % of its time on images nobody reads.
-        self._diagnostics = {}
-        self._pending = (sel.selected, sel.stops_raw, sel.stops, sel.mse, sel.image, stats.count.copy())
+        run.diagnostics = {}
+        run.pending = (sel.selected, sel.stops_raw, sel.stops, sel.mse, sel.image, stats.count.copy())
+        return sel
 
-    def diagnostics(self):
-        """Maps of the last reconstruction or planning step: ``selected_scale``,
+    def diagnostics(self, run: "GEMRun"):
+        """Maps of the run's last reconstruction or planning step: ``selected_scale``,
         ``sample_density``, ``stop_k`` / ``stop_raw_k`` (after / before outlier
         removal) and, when sampling, ``est_rel_mse``."""
-        pending = getattr(self, "_pending", None)
-        if pending is not None:
-            selected, stops_raw, stops, mse, image, count = pending
+        if run.pending is not None:
+            selected, stops_raw, stops, mse, image, count = run.pending
             d = {"selected_scale": selected.astype(np.float64),
                  "sample_density": count.astype(np.float64)}
             if stops is not None:
@@ -1532,20 +1497,24 @@ class GEMMethod(Method):
             if mse is not None:
                 rel, _ = sample_priority(mse, image, np.ones(selected.shape), 1)
                 d["est_rel_mse"] = np.where(np.isfinite(rel), rel, np.nan)
-            self._diagnostics = d
-            self._pending = None
-        return super().diagnostics()
+            run.diagnostics = d
+            run.pending = None
+        return super().diagnostics(run)
 
     # ------------------------------------------------------------- offline
-    def reconstruct(self, stats: PixelStats, *, reference=None) -> np.ndarray:
+    def reconstruct_run(self, run: "GEMRun", inputs: MethodInputs) -> np.ndarray:
         """Final reconstruction (Sec. 6): (H, W, C) float64.
 
         Statistics without a subpixel grid work too (the default filters
         need only pixel means).  Pixels without a sample anywhere in the
         coarsest filter's support take their nearest sampled neighbour's
         value (:func:`mcrecon.methods.box.fill_empty_pixels`, with a warning).
+        With ``oracle=1`` the run's reference (``inputs.reference`` or the
+        one given to :meth:`start`) gives the true bias.
         """
-        sel = self._select(stats, final=True, reference=reference)
+        if run.reference is None and inputs.reference is not None:
+            run.reference = self.start(run.width, run.height, run.channels, reference=inputs.reference).reference
+        sel = self._select(run, inputs.stats, final=True)
         img = sel.image
         no_data = sel.bank.weight[-1] <= 0
         if no_data.any():
@@ -1553,20 +1522,8 @@ class GEMMethod(Method):
             img = fill_empty_pixels(img, (~no_data).astype(np.int64), source=_WHERE)
         return np.asarray(img, dtype=np.float64)
 
-    def reconstruct_log(self, log, *, nonfinite: str = "drop") -> np.ndarray:
-        """Reconstruct from a sample log; with ``oracle=1`` the log's stored reference is used."""
-        if not self.params["oracle"]:
-            return super().reconstruct_log(log, nonfinite=nonfinite)
-        from ..io.samplelog import SampleLog, read_log
-        sl = log if isinstance(log, SampleLog) else read_log(log)
-        stats = PixelStats.from_log(sl, subpixels=self.subpixels, nonfinite=nonfinite)
-        return self.reconstruct(stats, reference=sl.reference())
-
-    def finish(self, state: AdaptiveState) -> np.ndarray:
-        return self.reconstruct(state.stats, reference=state.reference)
-
     # ------------------------------------------------------------ adaptive
-    def plan(self, state: AdaptiveState):
+    def plan(self, run: "GEMRun", state: AdaptiveState):
         """Round 0: uniform ``initial_spp``; then one adaptive iteration per round (Secs. 5, 6).
 
         Iteration i (= round index) sends ``remaining // (iterations - i + 1)``
@@ -1584,8 +1541,8 @@ class GEMMethod(Method):
         left = p["iterations"] - state.round_index + 1
         n_round = remaining if left <= 1 else max(1, remaining // left)
         n_pick = p["samples_per_pick"] or max(1, int(round(state.budget / npix)))
-        sel = self._select(state.stats, final=False, reference=state.reference, want_mse=True)
-        value = state.reference if p["oracle"] else sel.image
+        sel = self._select(run, state.stats, final=False, want_mse=True)
+        value = run.reference if p["oracle"] else sel.image
         if p["target_rel_mse"] is not None and np.isfinite(sel.mse).all():
             est = float(np.mean(sel.mse / (value * value + TARGET_EPS)))
             if est <= p["target_rel_mse"]:
@@ -1595,3 +1552,10 @@ class GEMMethod(Method):
         pos = distribute_samples(pri, sel.selected, sel.bank.sigmas, n_round, n_pick, state.rng,
                                  subpixels=self.grid)
         return state.request(positions=pos)
+
+
+@dataclasses.dataclass(eq=False)
+class GEMRun(RunState):
+    """Per-run state of :class:`GEMMethod`: the last selection, kept until its diagnostics are asked for."""
+
+    pending: tuple | None = None

@@ -38,6 +38,7 @@ References
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from typing import Callable, Iterable
@@ -47,8 +48,9 @@ import numpy as np
 
 from ..errors import InputError, McreconWarning
 from ..protocol import SampleBatch, SampleRequest
-from ..stats import NONFINITE_POLICIES, PixelStats
-from .base import AdaptiveState, Method, Option
+from ..samples import check_policy, source_name
+from ..samples import NONFINITE_POLICIES
+from .base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState
 
 __all__ = ["SplatMethod", "ProgressiveSplatter", "epanechnikov", "kernel_width", "pilot_width",
            "sample_norm", "splat", "BOUNDARY_MODES", "NORMS", "LUMINANCE_WEIGHTS"]
@@ -686,20 +688,6 @@ def _select_by_rank(pix, rank, lo, hi, mask):
 # The method
 # ----------------------------------------------------------------------------
 
-def _positive(name, value, *, integer=False, minimum=None, strict=True):
-    try:
-        v = int(value) if integer else float(value)
-    except (TypeError, ValueError):
-        raise InputError("method splat", name, f"{value!r} is not a number") from None
-    if integer and v != value and not isinstance(value, str):
-        raise InputError("method splat", name, f"{value!r}, expected an integer")
-    if not math.isfinite(v):
-        raise InputError("method splat", name, f"{value!r}, expected a finite number")
-    if minimum is not None and (v < minimum or (strict and v == minimum)):
-        raise InputError("method splat", name, f"{value!r}, expected {'>' if strict else '>='} {minimum}")
-    return v
-
-
 class SplatMethod(Method):
     """Progressive variable-width Epanechnikov splatting (Suykens and Willems 2000).
 
@@ -723,15 +711,15 @@ class SplatMethod(Method):
 
     Notes
     -----
-    Adaptive runs: ``plan`` asks every pixel for the same count each
-    round, N_j = 2 N_{j-1} from ``initial_spp``, the last round absorbing
-    the remainder; budgets below one sample per pixel are refused and a
-    remainder of fewer samples than pixels is left unspent (Eq. 3 assumes
-    an even sample density).  ``observe`` splats each committed round.
-    Offline: :meth:`reconstruct_log` replays the log's rounds in order;
-    a single-round log is split into doubling pseudo-rounds by each
-    pixel's sample order.  :meth:`reconstruct` from pixel statistics is
-    refused: splatting needs the individual samples.
+    The method declares ``requires.samples``: it filters individual
+    samples.  Adaptive runs: ``plan`` asks every pixel for the same count
+    each round, N_j = 2 N_{j-1} from ``initial_spp``, the last round
+    absorbing the remainder; budgets below one sample per pixel are
+    refused and a remainder of fewer samples than pixels is left unspent
+    (Eq. 3 assumes an even sample density).  ``observe`` splats each
+    committed round.  Offline (``inputs.samples``, a sample source such as
+    a log): its rounds are replayed in order; a single-round source is
+    split into doubling pseudo-rounds by each pixel's sample order.
 
     References
     ----------
@@ -741,37 +729,26 @@ class SplatMethod(Method):
 
     name = "splat"
     adaptive = False
-    subpixels = 0
+    requires = Requirements(samples=True, statistics=False)
     options = (
-        Option("alpha", float, 0.3, "exponent of N in the kernel width (Eq. 8), 0 < alpha <= 1"),
-        Option("c", float, 4.0, "kernel diameter constant C in pixels (Eq. 8)"),
-        Option("c_prime", float, 8.0, "pilot kernel diameter constant C' in pixels (C' N0^-1/2)"),
-        Option("initial_spp", int, 1, "samples per pixel of the first round N0"),
-        Option("min_width", float, 1.0, "smallest kernel diameter in pixels (>= 1)"),
-        Option("max_width", float, 32.0, "largest kernel diameter in pixels (cap for huge G/f)"),
+        Option("alpha", float, 0.3, "exponent of N in the kernel width (Eq. 8), 0 < alpha <= 1",
+               min=0.0, max=1.0, min_open=True,
+               note="the paper uses 1.5/5; 1/5 and 1/2 are the classical extremes"),
+        Option("c", float, 4.0, "kernel diameter constant C in pixels (Eq. 8)", min=0.0, min_open=True),
+        Option("c_prime", float, 8.0, "pilot kernel diameter constant C' in pixels (C' N0^-1/2)",
+               min=0.0, min_open=True),
+        Option("initial_spp", int, 1, "samples per pixel of the first round N0", min=1),
+        Option("min_width", float, 1.0, "smallest kernel diameter in pixels (>= 1)", min=1.0),
+        Option("max_width", float, 32.0, "largest kernel diameter in pixels (cap for huge G/f; >= min_width)",
+               min=1.0),
         Option("boundary", str, "mirror", "boundary-bias remedy", BOUNDARY_MODES),
         Option("norm", str, "luminance", "scalar value of a colour sample in Eq. 8", NORMS),
     )
 
-    def __init__(self, **options):
-        super().__init__(**options)
-        p = self.params
-        p["alpha"] = _positive("alpha", p["alpha"], minimum=0.0)
-        if p["alpha"] > 1.0:
-            raise InputError("method splat", "alpha", f"{p['alpha']!r}, expected 0 < alpha <= 1 "
-                             "(the paper uses 1.5/5; 1/5 and 1/2 are the classical extremes)")
-        p["c"] = _positive("c", p["c"], minimum=0.0)
-        p["c_prime"] = _positive("c_prime", p["c_prime"], minimum=0.0)
-        p["initial_spp"] = int(_positive("initial_spp", p["initial_spp"], integer=True, minimum=1, strict=False))
-        p["min_width"] = _positive("min_width", p["min_width"], minimum=1.0, strict=False)
-        p["max_width"] = _positive("max_width", p["max_width"], minimum=p["min_width"], strict=False)
-        self._splatter: ProgressiveSplatter | None = None
-        self._pending: list[tuple[np.ndarray, np.ndarray]] = []
-        self._pending_sizes: list[int] = []
-        self._film_pixels = 0
-        self._prev_spp = None
-        self._spp_done = 0.0
-        self._n_rounds_seen = 0
+    def _configure(self, params: dict) -> None:
+        if params["max_width"] < params["min_width"]:
+            raise InputError(self.where, "max_width", f"{params['max_width']!r}, expected >= min_width "
+                             f"({params['min_width']!r})")
 
     def _new_splatter(self, width, height, n_channels) -> ProgressiveSplatter:
         p = self.params
@@ -779,40 +756,32 @@ class SplatMethod(Method):
                                    min_width=p["min_width"], max_width=p["max_width"],
                                    boundary=p["boundary"], norm=p["norm"])
 
+    def start(self, width, height, channels=("R", "G", "B"), *, reference=None) -> "SplatRun":
+        base = super().start(width, height, channels, reference=reference)
+        return SplatRun(**dataclasses.asdict(base),
+                        splatter=self._new_splatter(base.width, base.height, len(base.channels)))
+
     # ------------------------------------------------------------ offline
-    def reconstruct(self, stats: PixelStats) -> np.ndarray:
-        """Refused: splatting filters individual samples, which pixel statistics no longer hold."""
-        raise InputError("method splat", "input", "pixel statistics cannot be splatted: the method filters "
-                         "individual samples; use reconstruct_log(log) (`mcrecon denoise LOG --method splat`) "
-                         "or an adaptive run (`mcrecon adapt --method splat`)")
+    def reconstruct_run(self, run: "SplatRun", inputs: MethodInputs) -> np.ndarray:
+        """Replay the sample source's rounds in order through the progressive algorithm.
 
-    def reconstruct_log(self, log, *, nonfinite: str = "drop") -> np.ndarray:
-        """Replay a sample log's rounds in log order through the progressive algorithm.
-
-        A log with a single round (an offline render) is split into
+        A source with a single round (an offline render) is split into
         pseudo-rounds N_0 = initial_spp, N_j = 2 N_{j-1}: within each pixel,
-        its samples are taken in log order and the k-th of the pixel's
+        its samples are taken in source order and the k-th of the pixel's
         ``n_p`` samples goes to the round whose share of ``n_p`` contains k
         (the schedule is built for ``m = min_p n_p`` samples per pixel and
         scaled by ``n_p / m``, so every pseudo-round samples every pixel).
-        A plain log-order split would put image rows, not samples per
-        pixel, into rounds for logs sorted by pixel.
-
-        Parameters
-        ----------
-        log : path-like or SampleLog
-        nonfinite : {'drop', 'zero', 'raise'}
-            Policy for NaN/Inf sample values (as :mod:`mcrecon.stats`).
+        A plain order split would put image rows, not samples per pixel,
+        into rounds for logs sorted by pixel.  ``inputs.nonfinite`` applies
+        to NaN/Inf values.
         """
-        from ..io.samplelog import SampleLog, read_log
-
-        if not isinstance(log, SampleLog):
-            log = read_log(log)
-        if nonfinite not in NONFINITE_POLICIES:
-            raise InputError(str(log.path), "nonfinite", f"{nonfinite!r}; valid: {', '.join(NONFINITE_POLICIES)}")
-        where = str(log.path)
-        sp = self._new_splatter(log.width, log.height, len(log.channels))
-        rounds = [r for r, (a, b) in enumerate(log.round_slices()) if b > a]
+        src = inputs.samples
+        where = source_name(src)
+        nonfinite = check_policy(inputs.nonfinite, where)
+        if run.splatter.rounds:  # a reused run state starts over
+            run.splatter = self._new_splatter(run.width, run.height, len(run.channels))
+        sp = run.splatter
+        rounds = [r for r, (a, b) in enumerate(src.round_slices()) if b > a]
         n_bad = [0]
 
         def counted(it):
@@ -824,17 +793,16 @@ class SplatMethod(Method):
 
         if len(rounds) >= 2:
             for r in rounds:
-                sp.add_round_stream(lambda r=r: counted(log.iter_chunks(rounds=[r])), nonfinite=nonfinite,
-                                    where=where)
+                sp.add_round_stream(lambda r=r: counted(src.iter_chunks(rounds=[r], with_round=False)),
+                                    nonfinite=nonfinite, where=where)
         elif rounds:
-            self._replay_single_round(log, sp, counted, nonfinite, where)
+            self._replay_single_round(src, sp, counted, nonfinite, where)
         if n_bad[0] and nonfinite != "raise":
             # (samples are read in several passes, so no count is given)
             warnings.warn(f"{where}: values: sample(s) with NaN or Inf "
                           f"{'dropped' if nonfinite == 'drop' else 'set to 0'} (policy nonfinite={nonfinite!r})",
                           McreconWarning, stacklevel=2)
-        self._splatter = sp
-        self._set_diagnostics(sp)
+        self._set_diagnostics(run)
         if not rounds:
             warnings.warn(f"{where}: no samples at all; the image is 0", McreconWarning, stacklevel=2)
         return sp.image.copy()
@@ -845,10 +813,10 @@ class SplatMethod(Method):
         iy = np.clip(np.floor(pos[:, 1]).astype(np.int64), 0, height - 1)
         return iy * width + ix
 
-    def _replay_single_round(self, log, sp, counted, nonfinite, where):
-        w, h = log.width, log.height
+    def _replay_single_round(self, src, sp, counted, nonfinite, where):
+        w, h = src.width, src.height
         n_p = np.zeros(w * h, np.int64)
-        for ch in log.iter_chunks():
+        for ch in src.iter_chunks(with_round=False):
             n_p += np.bincount(self._pixel_index(np.asarray(ch.positions), w, h), minlength=w * h)
         m = int(n_p.min())
         if m == 0:
@@ -862,7 +830,7 @@ class SplatMethod(Method):
         def pseudo_round(j):
             rank = np.zeros(w * h, np.int64)
             lo, hi = bounds[j], bounds[j + 1]
-            for pos, val in counted(log.iter_chunks()):
+            for pos, val in counted(src.iter_chunks(with_round=False)):
                 pos = np.asarray(pos)
                 mask = np.empty(pos.shape[0], np.bool_)
                 _select_by_rank(self._pixel_index(pos, w, h), rank, lo, hi, mask)
@@ -873,22 +841,21 @@ class SplatMethod(Method):
             sp.add_round_stream(lambda j=j: pseudo_round(j), nonfinite=nonfinite, where=where)
 
     # ----------------------------------------------------------- adaptive
-    def plan(self, state: AdaptiveState) -> SampleRequest | None:
+    def plan(self, run: "SplatRun", state: AdaptiveState) -> SampleRequest | None:
         """Every pixel gets N_j samples: N_0 = initial_spp, N_j = 2 N_{j-1}, the last round absorbing the rest."""
-        self._catch_up(state)
         p_film = state.width * state.height
         total_spp = state.budget // p_film
-        if total_spp < 1 and self._n_rounds_seen == 0:
-            raise InputError("method splat", "spp", f"budget of {state.budget} samples is below one sample per "
+        if total_spp < 1 and run.n_rounds_seen == 0:
+            raise InputError(self.where, "spp", f"budget of {state.budget} samples is below one sample per "
                              f"pixel ({p_film} pixels): splatting rounds sample every pixel")
-        rem = min(total_spp - int(round(self._spp_done)), state.remaining // p_film)
+        rem = min(total_spp - int(round(run.spp_done)), state.remaining // p_film)
         if rem < 1:
             return None
-        n = _next_round(rem, self._prev_spp, self.params["initial_spp"])
+        n = _next_round(rem, run.prev_spp, self.params["initial_spp"])
         return state.request(counts=np.full((state.height, state.width), n, np.int64))
 
-    def observe(self, batch: SampleBatch, round_index: int) -> None:
-        """Splat a committed round (deferred until the film size is known on a resumed run).
+    def observe(self, run: "SplatRun", batch: SampleBatch, round_index: int) -> None:
+        """Splat a committed round.
 
         Non-finite values are dropped (the driver's statistics have already
         applied and reported its policy).
@@ -897,41 +864,30 @@ class SplatMethod(Method):
         val = np.asarray(batch.values)
         if val.ndim == 1:
             val = val[:, None]
-        self._n_rounds_seen += 1
-        if self._splatter is None:
-            # observe() does not tell the film size; a resumed run replays
-            # observe() before the first plan(): keep the rounds until then.
-            self._pending.append((pos, val))
-            self._pending_sizes.append(pos.shape[0])
-            return
-        self._add(pos, val)
-        self._prev_spp = pos.shape[0] / self._film_pixels
-        self._spp_done += self._prev_spp
-
-    def _add(self, pos, val):
+        run.n_rounds_seen += 1
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", McreconWarning)
-            self._splatter.add_round(pos, val, nonfinite="drop", where=f"method {self.name}")
+            run.splatter.add_round(pos, val, nonfinite="drop", where=self.where)
+        run.prev_spp = pos.shape[0] / (run.width * run.height)
+        run.spp_done += run.prev_spp
 
-    def _catch_up(self, state: AdaptiveState) -> None:
-        if self._splatter is None:
-            self._splatter = self._new_splatter(state.width, state.height, len(state.stats.channels))
-            self._film_pixels = state.width * state.height
-            for (pos, val), n in zip(self._pending, self._pending_sizes):
-                self._add(pos, val)
-                self._prev_spp = n / self._film_pixels
-                self._spp_done += self._prev_spp
-            self._pending = []
-            self._pending_sizes = []
-
-    def finish(self, state: AdaptiveState) -> np.ndarray:
+    def finish(self, run: "SplatRun", state: AdaptiveState) -> np.ndarray:
         """The running image f_J (a copy)."""
-        self._catch_up(state)
-        sp = self._splatter
-        self._set_diagnostics(sp)
-        if not sp.rounds:
+        self._set_diagnostics(run)
+        if not run.splatter.rounds:
             warnings.warn("method splat: no round observed; the image is 0", McreconWarning, stacklevel=2)
-        return sp.image.copy()
+        return run.splatter.image.copy()
 
-    def _set_diagnostics(self, sp: ProgressiveSplatter) -> None:
-        self._diagnostics["kernel_width"] = sp.last_widths.copy()
+    @staticmethod
+    def _set_diagnostics(run: "SplatRun") -> None:
+        run.diagnostics["kernel_width"] = run.splatter.last_widths.copy()
+
+
+@dataclasses.dataclass(eq=False)
+class SplatRun(RunState):
+    """Per-run state of :class:`SplatMethod`: the progressive splatter and the round schedule so far."""
+
+    splatter: ProgressiveSplatter | None = None
+    prev_spp: float | None = None
+    spp_done: float = 0.0
+    n_rounds_seen: int = 0

@@ -58,8 +58,9 @@ from scipy import stats as sps
 
 from ..errors import InputError, McreconWarning
 from ..protocol import SampleRequest, validate_reply
+from ..samples import source_name
 from ..stats import PixelStats
-from .base import AdaptiveState, Method, Option, uniform_counts
+from .base import AdaptiveState, Method, MethodInputs, Option, RunState, uniform_counts
 from .box import fill_empty_pixels
 
 __all__ = [
@@ -402,37 +403,38 @@ class CIMethod(Method):
         Option("max_spp", int, 1024, "per-pixel cap: a pixel with this many samples stops"),
     )
 
-    def __init__(self, **options):
-        super().__init__(**options)
-        p = self.params
+    def _configure(self, params: dict) -> None:
         try:
-            self.rule = StoppingRule(tolerance=p["tolerance"], alpha=p["alpha"], tone=p["tone"],
-                                     gamma=p["gamma"], exposure=p["exposure"], min_spp=p["min_spp"],
-                                     step_spp=p["step_spp"], max_spp=p["max_spp"])
+            rule = StoppingRule(tolerance=params["tolerance"], alpha=params["alpha"], tone=params["tone"],
+                                gamma=params["gamma"], exposure=params["exposure"], min_spp=params["min_spp"],
+                                step_spp=params["step_spp"], max_spp=params["max_spp"])
         except InputError as exc:  # name the method, not the helper, in the message
-            raise InputError(f"method {self.name}", exc.field, exc.problem) from None
+            raise InputError(self.where, exc.field, exc.problem) from None
+        self.rule = rule
 
-    def reconstruct(self, stats: PixelStats) -> np.ndarray:
+    def reconstruct_run(self, run: RunState, inputs: MethodInputs) -> np.ndarray:
+        stats = inputs.stats
         return fill_empty_pixels(stats.mean.copy(), stats.count)
 
-    def _update_diagnostics(self, stats: PixelStats, widths: np.ndarray, done: np.ndarray) -> np.ndarray:
+    def _update_diagnostics(self, run: RunState, stats: PixelStats, widths: np.ndarray,
+                            done: np.ndarray) -> np.ndarray:
         ratio = np.max(widths, axis=-1) / (2.0 * self.rule.tolerance)
         finite = np.isfinite(ratio)
         fill = float(ratio[finite].max()) if finite.any() else 0.0
         ratio = np.where(finite, ratio, fill)
-        self._diagnostics["spp"] = stats.count.astype(np.float64)
-        self._diagnostics["converged"] = done.astype(np.float64)
-        self._diagnostics["width_ratio"] = ratio
+        run.diagnostics["spp"] = stats.count.astype(np.float64)
+        run.diagnostics["converged"] = done.astype(np.float64)
+        run.diagnostics["width_ratio"] = ratio
         return ratio
 
-    def plan(self, state: AdaptiveState) -> SampleRequest | None:
+    def plan(self, run: RunState, state: AdaptiveState) -> SampleRequest | None:
         remaining = state.remaining
         st = state.stats
         rule = self.rule
         n = st.count
         widths = rule.widths(st.mean, st.sample_variance(undefined=np.nan), n)
         done = (np.all(widths <= 2.0 * rule.tolerance, axis=-1) & (n >= rule.min_spp)) | (n >= rule.max_spp)
-        ratio = self._update_diagnostics(st, widths, done)
+        ratio = self._update_diagnostics(run, st, widths, done)
         if remaining <= 0 or done.all():
             return None
         # Pixels below the initial count (round 0, or a budget-cut round 0)
@@ -578,14 +580,17 @@ def group_samples(positions, values, *, width: int, height: int, channels: Seque
 
 
 def group_log(log, *, nonfinite: str = "drop") -> PixelSamples:
-    """Group a sample log's samples by pixel (reads the whole log)."""
-    from ..io.samplelog import SampleLog, read_log
-
-    if not isinstance(log, SampleLog):
-        log = read_log(log)
-    chunk = log.read_all()
-    return group_samples(chunk.positions, chunk.values, width=log.width, height=log.height,
-                         channels=log.channels, nonfinite=nonfinite, source=str(log.path))
+    """Group the samples of a sample source (a :class:`~mcrecon.io.SampleLog` or a
+    :class:`~mcrecon.samples.SampleSet`) by pixel; holds every sample in memory."""
+    if not (hasattr(log, "iter_chunks") and hasattr(log, "width")):
+        raise InputError("group_log", "log", f"got {type(log).__name__}; expected a sample source "
+                         "(mcrecon.read_log(path) or a SampleSet)")
+    chunks = list(log.iter_chunks(with_round=False))
+    c = len(log.channels)
+    pos = np.concatenate([np.asarray(ch.positions) for ch in chunks]) if chunks else np.zeros((0, 2))
+    val = np.concatenate([np.asarray(ch.values) for ch in chunks]) if chunks else np.zeros((0, c))
+    return group_samples(pos, val, width=log.width, height=log.height,
+                         channels=log.channels, nonfinite=nonfinite, source=source_name(log))
 
 
 # --------------------------------------------------------------------------
@@ -1159,7 +1164,7 @@ def bootstrap_bias(positions, values, *, width: int, height: int, B: int = 1000,
 def bootstrap_bias_log(log, *, B: int = 1000, seed: int = 0, rule: StoppingRule | None = None,
                        level: float = 0.95, threshold: float = 1.0 / 256.0,
                        nonfinite: str = "drop") -> BootstrapBiasResult:
-    """Bootstrap bias of the adaptive rule on a sample log (path or SampleLog).
+    """Bootstrap bias of the adaptive rule on a sample source (a SampleLog or SampleSet).
 
     Each pixel's samples (every round, in log order) form its F-hat.  For
     the log of a ``ci`` run, pass the run's rule

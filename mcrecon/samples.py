@@ -1,0 +1,297 @@
+"""Samples: the one validation path and NaN/Inf policy, and sample sources.
+
+Every boundary that takes samples (the sample-log writer and reader, the
+pixel statistics, the adaptive driver, the methods) checks them here, with
+the same rules and the same messages:
+
+* positions (N, 2) of a real dtype, every one finite and on the film
+  ``[0, W) x [0, H)`` (x the column, y the row);
+* values (N, C) of a real dtype, C the number of channels;
+* non-finite values follow one policy, :data:`NONFINITE_POLICIES`.
+
+A *sample source* is what a method that filters individual samples
+(``requires.samples``) reads offline: anything with ``width``, ``height``,
+``channels``, ``round_slices()`` and ``iter_chunks(rounds=..., with_round=...)``
+yielding chunks with ``positions`` and ``values``.  A sample log
+(:class:`mcrecon.io.SampleLog`) is one; :class:`SampleSet` holds samples
+in memory.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Iterator, Sequence
+
+import numba
+import numpy as np
+
+from .errors import InputError
+
+__all__ = ["NONFINITE_POLICIES", "check_policy", "check_samples", "apply_nonfinite", "SampleSet",
+           "SampleChunk", "source_name"]
+
+#: What happens to samples whose value is NaN or +-Inf:
+#: ``drop`` skips the whole sample and counts it (default, with a warning),
+#: ``zero`` replaces the non-finite channel values by 0 and keeps the sample
+#: (biased low, but keeps the sample count a renderer promised),
+#: ``raise`` refuses the batch.
+NONFINITE_POLICIES = ("drop", "zero", "raise")
+
+
+def check_policy(policy: str, where: str = "samples") -> str:
+    """The non-finite policy, or an :class:`InputError` listing the valid ones."""
+    if policy not in NONFINITE_POLICIES:
+        raise InputError(where, "nonfinite", f"unknown policy {policy!r}; valid: {', '.join(NONFINITE_POLICIES)}")
+    return policy
+
+
+def source_name(src) -> str:
+    """How messages name a sample source (its file, else its repr)."""
+    path = getattr(src, "path", None)
+    return str(path) if path is not None else str(getattr(src, "name", "samples"))
+
+
+# ---------------------------------------------------------------- screening
+@numba.njit(cache=True, nogil=True)
+def _quick_check_bits(pos_bits, val_bits, width_bits, height_bits, val_exp_mask):
+    """Branch-free screening on the floats' bit patterns (integer reductions vectorise).
+
+    For non-negative IEEE floats the integer view is ordered like the value,
+    so ``0 <= x < width`` is ``0 <= bits(x) < bits(width)``; NaN and
+    negative numbers fail it.  A value is non-finite iff its exponent bits
+    are all ones.  False alarms (e.g. -0.0) only send the batch through the
+    exact :func:`_scan`.
+    """
+    if pos_bits.shape[0] == 0:
+        return True, True
+    hi_x = pos_bits[0, 0]
+    hi_y = pos_bits[0, 1]
+    lo = min(hi_x, hi_y)
+    for k in range(pos_bits.shape[0]):
+        a = pos_bits[k, 0]
+        b = pos_bits[k, 1]
+        lo = min(lo, min(a, b))
+        hi_x = max(hi_x, a)
+        hi_y = max(hi_y, b)
+    e = val_exp_mask & 0
+    for k in range(val_bits.shape[0]):
+        for c in range(val_bits.shape[1]):
+            e = max(e, val_bits[k, c] & val_exp_mask)
+    pos_ok = lo >= 0 and hi_x < width_bits and hi_y < height_bits
+    return pos_ok, e != val_exp_mask
+
+
+@numba.njit(cache=True, nogil=True)
+def _flat_bits_range(bits, exp_mask):
+    """(min, max, max of bits & exp_mask) of a flat integer view: contiguous
+    reductions that vectorise (3x faster than the two-column loop)."""
+    lo = bits[0]
+    hi = bits[0]
+    e = exp_mask & 0
+    for i in range(bits.shape[0]):
+        a = bits[i]
+        lo = min(lo, a)
+        hi = max(hi, a)
+        e = max(e, a & exp_mask)
+    return lo, hi, e
+
+
+_INT_VIEW = {np.dtype(np.float32): (np.int32, np.int32(0x7F800000)),
+             np.dtype(np.float64): (np.int64, np.int64(0x7FF0000000000000))}
+
+
+def _quick_check(pos, val, width, height):
+    """(all positions on the film, all values finite), screened on bit patterns."""
+    if pos.dtype not in _INT_VIEW or val.dtype not in _INT_VIEW or pos.shape[0] == 0:
+        return False, False  # let the exact scan decide
+    pint, _ = _INT_VIEW[pos.dtype]
+    vint, vmask = _INT_VIEW[val.dtype]
+    wb = np.array(width, pos.dtype).view(pint)[()]
+    hb = np.array(height, pos.dtype).view(pint)[()]
+    plo, phi, _ = _flat_bits_range(pos.view(pint).reshape(-1), pint(0))
+    _, _, ve = _flat_bits_range(val.view(vint).reshape(-1), vmask)
+    val_ok = bool(ve != vmask)
+    if plo >= 0 and phi < min(wb, hb):
+        return True, val_ok  # every coordinate below both sides: on the film
+    # inconclusive on non-square films (or truly bad): the exact per-axis screen
+    pos_ok, val_ok = _quick_check_bits(pos.view(pint), val.view(vint), wb, hb, vmask)
+    return bool(pos_ok), bool(val_ok)
+
+
+@numba.njit(cache=True, nogil=True)
+def _scan(pos, val, width, height):
+    """Count bad positions (non-finite or off the film) and non-finite value rows."""
+    n_bad_pos = 0
+    n_nonfinite = 0
+    first_bad_pos = -1
+    for k in range(pos.shape[0]):
+        x = pos[k, 0]
+        y = pos[k, 1]
+        if not (x >= 0.0 and x < width and y >= 0.0 and y < height):
+            n_bad_pos += 1
+            if first_bad_pos < 0:
+                first_bad_pos = k
+        for c in range(val.shape[1]):
+            if not math.isfinite(val[k, c]):
+                n_nonfinite += 1
+                break
+    return n_bad_pos, first_bad_pos, n_nonfinite
+
+
+# ---------------------------------------------------------------- validation
+def check_samples(positions, values, *, width: int, height: int, n_channels: int, where: str = "samples",
+                  channels: Sequence[str] | None = None, error=InputError):
+    """Validate a batch of samples; returns ``(positions, values, n_nonfinite)``.
+
+    Positions and values come back C-contiguous in a floating dtype (the
+    one given, float16 widened to float32, integers to float64): the
+    precision a caller sent is kept.  Raises ``error(where, field,
+    problem)`` (an :class:`InputError` by default) for mis-shaped arrays,
+    non-real dtypes, and positions that are non-finite or off the film.
+    Non-finite *values* are counted, not refused: the caller applies its
+    policy with :func:`apply_nonfinite`.
+    """
+    pos = np.asarray(positions)
+    val = np.asarray(values)
+    if val.ndim == 1 and n_channels == 1:
+        val = val[:, None]
+    if pos.ndim != 2 or pos.shape[1] != 2:
+        raise error(where, "positions", f"shape {pos.shape}, expected (N, 2)")
+    if val.ndim != 2 or val.shape[1] != n_channels:
+        named = f" for channels {','.join(channels)}" if channels else " to match the channels"
+        raise error(where, "values", f"shape {val.shape}, expected (N, {n_channels}){named}")
+    if pos.shape[0] != val.shape[0]:
+        raise error(where, "values", f"{val.shape[0]} rows but {pos.shape[0]} positions")
+    for name, arr in (("positions", pos), ("values", val)):
+        if arr.dtype.kind not in "fiu":
+            raise error(where, name, f"dtype {arr.dtype}, expected float32 or float64")
+    pos = _widen(pos)
+    val = _widen(val)
+    if pos.shape[0] == 0:
+        return pos, val, 0
+    pos = np.ascontiguousarray(pos)
+    val = np.ascontiguousarray(val)
+    pos_ok, val_ok = _quick_check(pos, val, width, height)
+    n_bad_pos, first_bad, n_nonfinite = (0, -1, 0) if pos_ok and val_ok else _scan(pos, val, width, height)
+    if n_bad_pos:
+        raise error(where, "positions", f"{n_bad_pos} sample(s) off the film [0, {width}) x [0, {height}) "
+                    f"or non-finite, first at row {first_bad}: {pos[first_bad].tolist()}")
+    return pos, val, int(n_nonfinite)
+
+
+def _widen(arr: np.ndarray) -> np.ndarray:
+    if arr.dtype.kind != "f":
+        return arr.astype(np.float64)
+    if arr.dtype == np.float16:
+        return arr.astype(np.float32)
+    return arr
+
+
+def apply_nonfinite(positions, values, n_nonfinite: int, policy: str, *, where: str = "samples", error=InputError):
+    """Apply the non-finite policy to a checked batch; returns ``(positions, values)``.
+
+    ``drop`` removes samples with any NaN/Inf channel, ``zero`` sets those
+    channels to 0, ``raise`` refuses the batch naming ``where``.
+    """
+    if not n_nonfinite:
+        return positions, values
+    if policy == "raise":
+        raise error(where, "values", f"{n_nonfinite} sample(s) with NaN or Inf values; "
+                    "drop them with nonfinite='drop' or fix the renderer")
+    finite = np.isfinite(values)
+    if policy == "drop":
+        keep = finite.all(axis=1)
+        return positions[keep], values[keep]
+    return positions, np.where(finite, values, values.dtype.type(0))
+
+
+# ---------------------------------------------------------------- sources
+@dataclasses.dataclass(eq=False)
+class SampleChunk:
+    """A contiguous run of samples of a source."""
+
+    positions: np.ndarray
+    values: np.ndarray
+    round: np.ndarray | None
+    start: int
+
+    def __len__(self) -> int:
+        return int(self.positions.shape[0])
+
+
+class SampleSet:
+    """Samples held in memory, as a sample source (the in-memory twin of a sample log).
+
+    Parameters
+    ----------
+    positions : array_like (N, 2)
+        Film positions, x the column and y the row.
+    values : array_like (N, C)
+    width, height : int
+    channels : sequence of str, optional
+        Default R, G, B for 3 columns, else C0, C1, ...
+    rounds : array_like of int (N,), optional
+        Round index per sample, non-decreasing (default: one round).
+        NaN/Inf values are kept; readers apply their policy.
+
+    Raises
+    ------
+    InputError
+        Mis-shaped arrays, positions off the film or non-finite, rounds
+        not non-decreasing.
+    """
+
+    def __init__(self, positions, values, *, width: int, height: int, channels: Sequence[str] | None = None,
+                 rounds=None, name: str = "samples"):
+        self.name = str(name)
+        self.width, self.height = int(width), int(height)
+        if self.width < 1 or self.height < 1:
+            raise InputError(self.name, "width/height", f"{self.width}x{self.height}, expected at least 1x1")
+        val = np.asarray(values)
+        n_ch = (val.shape[1] if val.ndim == 2 else 1) if channels is None else len(channels)
+        if channels is None:
+            channels = ("R", "G", "B") if n_ch == 3 else tuple(f"C{i}" for i in range(n_ch))
+        self.channels = tuple(str(c) for c in channels)
+        self.positions, self.values, self.n_nonfinite = check_samples(
+            positions, values, width=self.width, height=self.height, n_channels=len(self.channels),
+            where=self.name, channels=self.channels)
+        n = self.positions.shape[0]
+        if rounds is None:
+            self.round_ends = np.array([n] if n else [], np.int64)
+        else:
+            r = np.asarray(rounds)
+            if r.shape != (n,) or r.dtype.kind not in "iu":
+                raise InputError(self.name, "rounds", f"shape {r.shape} dtype {r.dtype}, expected ({n},) integers")
+            if n and np.any(np.diff(r) < 0):
+                raise InputError(self.name, "rounds", "must be non-decreasing (samples grouped by round in order)")
+            self.round_ends = np.asarray((np.flatnonzero(np.diff(r)) + 1).tolist() + [n] if n else [], np.int64)
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.positions.shape[0])
+
+    @property
+    def n_rounds(self) -> int:
+        return int(self.round_ends.size)
+
+    def round_slices(self) -> list[tuple[int, int]]:
+        """(start, stop) sample ranges of each round."""
+        starts = np.concatenate([[0], self.round_ends[:-1]])
+        return [(int(a), int(b)) for a, b in zip(starts, self.round_ends)]
+
+    def iter_chunks(self, *, chunk_size: int = 1 << 20, rounds=None, with_round: bool = True) -> Iterator[SampleChunk]:
+        """Chunks of at most ``chunk_size`` samples (of some rounds), as views."""
+        sl = self.round_slices()
+        ranges = [(0, self.n_samples)] if rounds is None else [sl[int(r)] for r in rounds]
+        for a, b in ranges:
+            for s in range(a, b, max(int(chunk_size), 1)):
+                e = min(b, s + max(int(chunk_size), 1))
+                rnd = None
+                if with_round:
+                    rnd = np.searchsorted(self.round_ends, np.arange(s, e), side="right").astype(np.int64)
+                yield SampleChunk(self.positions[s:e], self.values[s:e], rnd, s)
+
+    def __repr__(self) -> str:
+        return (f"SampleSet({self.width}x{self.height}, channels={','.join(self.channels)}, "
+                f"samples={self.n_samples}, rounds={self.n_rounds})")

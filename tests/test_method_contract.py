@@ -1,0 +1,168 @@
+"""The method contract: immutable configuration, per-run state, declared inputs, one validation path."""
+
+from __future__ import annotations
+
+import ast
+import importlib.util
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import mcrecon
+from mcrecon.driver import adapt, resume
+from mcrecon.errors import InputError, McreconWarning
+from mcrecon.methods import METHODS, Option, get_method
+from mcrecon.metrics import relative_mse
+from mcrecon.scenes import SceneRenderer, reference_image, write_scene_log
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _example_module():
+    spec = importlib.util.spec_from_file_location("example_method", ROOT / "docs/methods/example_method.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+# ------------------------------------------------------------------ reuse
+def _quiet(fn):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", McreconWarning)
+        return fn()
+
+
+@pytest.mark.parametrize("name", sorted(METHODS))
+def test_one_method_object_serves_any_number_of_runs(name, tmp_path):
+    """Reusing a method object, in any order, gives what fresh objects give (the bug: splat
+    rendered 0 samples on its second run and returned the first run's image)."""
+    ra = SceneRenderer("soft_shadow", width=12, height=10, seed=1)
+    rb = SceneRenderer("caustic", width=9, height=11, seed=2)
+    fresh_a = _quiet(lambda: adapt(ra, get_method(name), spp=8, seed=3, progress=False))
+    fresh_b = _quiet(lambda: adapt(rb, get_method(name), spp=8, seed=4, progress=False))
+    m = get_method(name)
+    runs = [(rb, 4, fresh_b), (ra, 3, fresh_a), (rb, 4, fresh_b), (ra, 3, fresh_a)]
+    for renderer, seed, fresh in runs:
+        res = _quiet(lambda: adapt(renderer, m, spp=8, seed=seed, progress=False))
+        np.testing.assert_array_equal(res.image, fresh.image)
+        np.testing.assert_array_equal(res.counts, fresh.counts)
+        assert res.stopped == fresh.stopped
+    # offline too: two logs of different sizes, alternately
+    la = write_scene_log("soft_shadow", tmp_path / "a.h5", width=12, height=10, spp=6, seed=1)
+    lb = write_scene_log("flat", tmp_path / "b.h5", width=7, height=5, spp=6, seed=2)
+    want_a = _quiet(lambda: mcrecon.reconstruct(la, method=name))
+    want_b = _quiet(lambda: mcrecon.reconstruct(lb, method=name))
+    for path, want in ((lb, want_b), (la, want_a), (lb, want_b)):
+        np.testing.assert_array_equal(_quiet(lambda: mcrecon.reconstruct(path, method=m)), want)
+
+
+@pytest.mark.parametrize("name", sorted(METHODS))
+def test_methods_are_immutable_and_validate_options_once(name):
+    m = get_method(name)
+    with pytest.raises(AttributeError, match="fixed once built"):
+        m.params_copy = 1
+    with pytest.raises(TypeError):
+        m.params["x"] = 1
+    with pytest.raises(InputError, match="unknown option; valid"):
+        get_method(name, no_such_option=1)
+    for opt in m.options:  # every option's own default passes its own validation
+        assert get_method(name, **{opt.name: opt.default}).params[opt.name] == opt.default
+
+
+def test_option_conversion_bounds_and_messages():
+    o = Option("k", int, 2, "a count", min=1)
+    assert o.convert("4", "m") == 4 and o.convert(4.0, "m") == 4
+    for bad in ("4.5", 0, True, float("nan"), "x", None):
+        with pytest.raises(InputError, match=r"expected an integer >= 1"):
+            o.convert(bad, "m")
+    f = Option("g", float, 0.2, "rate", min=0.0, max=0.4, min_open=True, max_open=True, note="calibrated there")
+    assert f.convert("0.3", "m") == 0.3
+    with pytest.raises(InputError, match=r"0 < g < 0.4 \(calibrated there\)"):
+        f.convert(0.4, "m")
+    n = Option("t", float, None, "target", min=0.0, min_open=True)
+    assert n.convert(None, "m") is None and n.convert("none", "m") is None
+    c = Option("mode", str, "a", "mode", choices=("a", "b"))
+    with pytest.raises(InputError, match="valid: a, b"):
+        c.convert("z", "m")
+    b = Option("flag", bool, False, "switch")
+    assert b.convert("yes", "m") is True and b.convert(0, "m") is False
+
+
+# ------------------------------------------------------------------ layering
+def _imports(path: Path) -> set[str]:
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            names.add("." * node.level + (node.module or ""))
+    return names
+
+
+def test_no_method_module_imports_h5py_or_the_io_layer():
+    for path in sorted((ROOT / "mcrecon/methods").rglob("*.py")):
+        bad = {n for n in _imports(path) if n == "h5py" or n.startswith("h5py.") or n.lstrip(".").split(".")[0] in
+               ("io", "driver", "cli", "external", "mitsuba_bridge")
+               and n.startswith("..")}
+        assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}"
+
+
+# ------------------------------------------------------------------ declared inputs
+def test_declared_inputs_are_what_the_reader_supplies(tmp_path):
+    assert get_method("splat").requires.samples and not get_method("splat").requires.statistics
+    assert get_method("gem").requires.subpixels == 0
+    assert get_method("gem", subpixel_exact_below=1.0).requires.subpixels == 4
+    assert get_method("gem", oracle=1).requires.reference == "required"
+    path = write_scene_log("soft_shadow", tmp_path / "s.h5", width=10, height=8, spp=4)
+    rec = mcrecon.reconstruct(path, method="gem", subpixel_exact_below=1.0, full=True)
+    assert rec.inputs.stats.subpixels == 4 and rec.inputs.samples is None and rec.inputs.reference is None
+    rec = mcrecon.reconstruct(path, method="gem", oracle=1, full=True)
+    np.testing.assert_array_equal(rec.inputs.reference, reference_image("soft_shadow", 10, 8))
+    rec = mcrecon.reconstruct(path, method="splat", full=True)
+    assert rec.inputs.stats is None and rec.inputs.samples is not None
+
+
+def test_resume_replays_rounds_only_into_methods_that_observe_samples(tmp_path, monkeypatch):
+    calls = []
+    from mcrecon.methods.splat import SplatMethod
+    from mcrecon.methods.base import Method
+    orig = SplatMethod.observe
+    monkeypatch.setattr(Method, "observe", lambda self, run, batch, r: calls.append(("base", r)))
+    monkeypatch.setattr(SplatMethod, "observe", lambda self, run, batch, r: (calls.append(("splat", r)),
+                                                                            orig(self, run, batch, r)))
+    r = SceneRenderer("flat", width=6, height=6, seed=0)
+    for name in ("box", "gem", "splat"):
+        calls.clear()
+        adapt(r, name, spp=9, seed=1, log=tmp_path / f"{name}.h5", max_rounds=2, progress=False)
+        calls.clear()
+        _quiet(lambda: resume(tmp_path / f"{name}.h5", r, progress=False))
+        assert (name == "splat") == bool(calls), (name, calls)
+
+
+# ------------------------------------------------------------------ the documented example
+def test_the_contract_documents_example_method_runs(tmp_path):
+    mod = _example_module()
+    m = mod.BlurMethod(size=3)
+    with pytest.raises(InputError, match="odd"):
+        mod.BlurMethod(size=4)
+    r = SceneRenderer("soft_shadow", width=24, height=20, seed=0)
+    ref = reference_image("soft_shadow", 24, 20)
+    res = adapt(r, m, spp=8, seed=5, reference=ref, log=tmp_path / "run.h5", progress=False)
+    assert res.stats.n_samples == 8 * 24 * 20 and res.run.planned_rounds >= 2
+    assert res.counts.std() > 0  # adaptive: not uniform
+    assert set(res.diagnostics()) == {"spp"}
+    again = adapt(r, m, spp=8, seed=5, reference=ref, progress=False)  # reused object, same result
+    np.testing.assert_array_equal(again.image, res.image)
+    offline = mcrecon.reconstruct(tmp_path / "run.h5", method=m)
+    np.testing.assert_array_equal(offline, res.image)
+    from scipy import ndimage
+    np.testing.assert_array_equal(offline, ndimage.uniform_filter(res.stats.mean, size=(3, 3, 1), mode="nearest"))
+    # on a flat noisy scene the 3x3 mean beats the pixel mean
+    flat = write_scene_log("flat", tmp_path / "flat.h5", width=16, height=16, spp=4, seed=2)
+    fref = reference_image("flat", 16, 16)
+    assert relative_mse(mcrecon.reconstruct(flat, method=m), fref) < \
+        relative_mse(mcrecon.reconstruct(flat, method="box"), fref)
