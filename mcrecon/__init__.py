@@ -15,6 +15,7 @@ from .errors import InputError, McreconWarning, RendererError
 from .io import append_log, read_exr, read_log, write_exr, write_log, write_png_preview
 from .methods import available_methods, get_method
 from .protocol import CallableRenderer, SampleBatch, SampleRequest
+from . import restoration
 from .reconstruction import Reconstruction, reconstruct
 from .samples import SampleSet
 from .stats import PixelStats
@@ -23,7 +24,7 @@ __version__ = "0.1.0"
 
 __all__ = ["InputError", "RendererError", "McreconWarning", "write_log", "read_log", "append_log",
            "read_exr", "write_exr", "write_png_preview", "PixelStats", "SampleSet", "Reconstruction", "SampleRequest", "SampleBatch",
-           "CallableRenderer", "reconstruct", "adapt", "available_methods", "get_method", "__version__"]
+           "CallableRenderer", "reconstruct", "restoration", "adapt", "available_methods", "get_method", "__version__"]
 
 
 def adapt(renderer, method, *, spp, **kwargs):

@@ -118,6 +118,13 @@ class PixelStats:
         Samples skipped by the ``drop`` non-finite policy.
     n_zeroed : int
         Samples whose non-finite values the ``zero`` policy replaced.
+    has_range : bool
+        Whether ``min`` and ``max`` are known (False for :meth:`from_moments`).
+    dtype : numpy dtype
+        The floating dtype of the values these statistics were built from
+        (float32 if every batch was float32; float64 otherwise or when
+        empty).  The statistics themselves are float64; array-level
+        functions return images in this dtype.
     """
 
     def __init__(self, width: int, height: int, channels: Sequence[str] = ("R", "G", "B"), *,
@@ -148,12 +155,24 @@ class PixelStats:
             self.sub_count = None
         self.n_dropped = 0
         self.n_zeroed = 0
+        #: False for statistics built from moments (:meth:`from_moments`):
+        #: ``min`` / ``max`` are then unknown (NaN).
+        self.has_range = True
+        self._value_dtype = None
 
     # ------------------------------------------------------------------ build
     @property
     def shape(self) -> tuple[int, int, int]:
         """(H, W, C) of the images these statistics describe."""
         return self.height, self.width, len(self.channels)
+
+    @property
+    def dtype(self) -> np.dtype:
+        return np.dtype(np.float64) if self._value_dtype is None else self._value_dtype
+
+    def _note_dtype(self, dtype) -> None:
+        dtype = np.dtype(dtype)
+        self._value_dtype = dtype if self._value_dtype is None else np.promote_types(self._value_dtype, dtype)
 
     @property
     def n_samples(self) -> int:
@@ -206,6 +225,7 @@ class PixelStats:
         sub_sum = self.sub_sum if s else np.zeros((1, 1, 1))
         sub_count = self.sub_count if s else np.zeros((1, 1), np.int64)
         _accumulate(pos, val, s, self.count, self.mean, self.m2, self.min, self.max, sub_sum, sub_count)
+        self._note_dtype(val.dtype)
         if n_nonfinite:
             if nonfinite == "drop":
                 self.n_dropped += int(n_nonfinite)
@@ -235,6 +255,9 @@ class PixelStats:
         self.count += other.count
         np.minimum(self.min, other.min, out=self.min)
         np.maximum(self.max, other.max, out=self.max)
+        self.has_range = self.has_range and other.has_range
+        if other._value_dtype is not None:
+            self._note_dtype(other._value_dtype)
         if self.subpixels:
             self.sub_sum += other.sub_sum
             self.sub_count += other.sub_count
@@ -246,6 +269,109 @@ class PixelStats:
         out = PixelStats.__new__(PixelStats)
         out.__dict__.update({k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items()})
         return out
+
+    @classmethod
+    def from_moments(cls, mean, variance, count, *, channels: Sequence[str] | None = None,
+                     variance_of: str = "samples", where: str = "from_moments") -> "PixelStats":
+        """Statistics from per-pixel images: mean, variance and sample count.
+
+        Most renderers can write these even when they cannot dump samples.
+
+        Parameters
+        ----------
+        mean : array_like (H, W, C) or (H, W)
+            Per-pixel sample mean.
+        variance : array_like, same shape as ``mean``
+            Per-pixel variance: of the samples (``variance_of='samples'``,
+            the unbiased ``m2 / (n - 1)``; pbrt-v4's ``Variance`` channels)
+            or of the pixel mean (``variance_of='mean'``, i.e. divided by n).
+        count : array_like (H, W) of integers, or an int
+            Samples per pixel (0 for an empty pixel: its mean and variance
+            are ignored).
+        channels : sequence of str, optional
+            Default R, G, B for three channels, else C0, C1, ...
+        variance_of : {'samples', 'mean'}
+
+        Returns
+        -------
+        PixelStats
+            With ``has_range`` False: the per-pixel minimum and maximum
+            are unknown (NaN), so estimators that need the sample range
+            refuse these statistics.
+
+        Raises
+        ------
+        InputError
+            Mismatched shapes, NaN/Inf or negative variances in sampled
+            pixels, non-integer or negative counts, a variance in a pixel
+            with fewer than two samples that is not 0.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from mcrecon import PixelStats
+        >>> mean = np.full((4, 5, 3), 0.5)
+        >>> st = PixelStats.from_moments(mean, np.full((4, 5, 3), 0.04), 16)
+        >>> st.shape, int(st.count.sum())
+        ((4, 5, 3), 320)
+        >>> float(st.mean_variance()[0, 0, 0])
+        0.0025
+        """
+        if variance_of not in ("samples", "mean"):
+            raise InputError(where, "variance_of", f"{variance_of!r}; valid: samples, mean")
+        m = np.asarray(mean, dtype=np.float64)
+        v = np.asarray(variance, dtype=np.float64)
+        if m.ndim == 2:
+            m = m[..., None]
+        if v.ndim == 2:
+            v = v[..., None]
+        if m.ndim != 3 or m.shape[0] < 1 or m.shape[1] < 1 or m.shape[2] < 1:
+            raise InputError(where, "mean", f"shape {np.shape(mean)}, expected (height, width, channels)")
+        if v.shape != m.shape:
+            raise InputError(where, "variance", f"shape {np.shape(variance)}, expected {m.shape} like the mean")
+        h, w, c = m.shape
+        n = np.asarray(count)
+        if n.ndim == 0:
+            n = np.full((h, w), n)
+        if n.shape != (h, w):
+            raise InputError(where, "count", f"shape {n.shape}, expected (height, width) = {(h, w)} or one number")
+        if n.dtype.kind == "f":
+            if not np.isfinite(n).all() or np.any(n != np.round(n)):
+                raise InputError(where, "count", "expected whole numbers of samples per pixel")
+        elif n.dtype.kind not in "iu":
+            raise InputError(where, "count", f"dtype {n.dtype}, expected integers")
+        n = n.astype(np.int64)
+        if (n < 0).any():
+            raise InputError(where, "count", f"{int((n < 0).sum())} negative count(s)")
+        sampled = np.broadcast_to((n > 0)[..., None], m.shape)
+        for name, a in (("mean", m), ("variance", v)):
+            bad = sampled & ~np.isfinite(a)
+            if bad.any():
+                raise InputError(where, name, f"{int(bad.any(axis=2).sum())} sampled pixel(s) with NaN or Inf; "
+                                 "fix the renderer output or set their count to 0")
+        if (sampled & (v < 0)).any():
+            raise InputError(where, "variance", f"{int((sampled & (v < 0)).any(axis=2).sum())} pixel(s) with a "
+                             "negative variance")
+        if variance_of == "mean":
+            v = v * n[..., None]
+        few = np.broadcast_to((n == 1)[..., None], m.shape)
+        if (few & (v > 0)).any():
+            raise InputError(where, "variance", f"{int((few & (v > 0)).any(axis=2).sum())} pixel(s) with one "
+                             "sample but a non-zero variance: a variance needs two samples (check count)")
+        names = tuple(channels) if channels is not None else (
+            ("R", "G", "B") if c == 3 else tuple(f"C{i}" for i in range(c)))
+        if len(names) != c:
+            raise InputError(where, "channels", f"{len(names)} names for {c} channels")
+        st = cls(w, h, names)
+        st.count[...] = n
+        st.mean[...] = np.where(sampled, m, 0.0)
+        st.m2[...] = np.where(sampled, v * np.maximum(n - 1, 0)[..., None], 0.0)
+        st.min[...] = np.where(sampled, np.nan, np.inf)
+        st.max[...] = np.where(sampled, np.nan, -np.inf)
+        st.has_range = False
+        st._note_dtype(np.result_type(np.asarray(mean).dtype, np.float32) if np.asarray(mean).dtype.kind == "f"
+                       else np.float64)
+        return st
 
     @classmethod
     def from_samples(cls, positions, values, *, width: int, height: int,

@@ -1,0 +1,165 @@
+"""Array-level reconstruction, one function per method (in the style of ``skimage.restoration``).
+
+Each function takes pixel statistics (:class:`~mcrecon.stats.PixelStats`,
+e.g. from :meth:`~mcrecon.stats.PixelStats.from_moments` on a renderer's
+mean / variance / count images, or from samples in memory with
+:meth:`~mcrecon.stats.PixelStats.from_samples`) or, for methods that
+filter individual samples, a :class:`~mcrecon.samples.SampleSet`; its
+keyword-only options are the method's options, validated by the one
+option path of :mod:`mcrecon.methods`.  The image comes back in the
+precision of the input values: float32 in, float32 out.
+
+Functions: :func:`box`, :func:`gem`, :func:`awr`, :func:`splat`.
+"""
+
+from __future__ import annotations
+
+import inspect
+
+import numpy as np
+
+from .errors import InputError
+from .methods import get_method, method_class
+from .methods.base import MethodInputs
+from .samples import SampleSet, check_policy
+from .stats import PixelStats
+
+__all__ = ["box", "gem", "awr", "splat"]
+
+
+def _check_stats(stats: PixelStats, where: str) -> None:
+    sampled = stats.count > 0
+    if not sampled.any():
+        raise InputError(where, "stats", "no pixel has a sample: there is nothing to reconstruct")
+    for name, arr in (("mean", stats.mean), ("m2", stats.m2)):
+        bad = sampled & ~np.isfinite(arr).all(axis=2)
+        if bad.any():
+            raise InputError(where, f"stats.{name}", f"{int(bad.sum())} sampled pixel(s) hold NaN or Inf "
+                             "(statistics built outside PixelStats.add/from_moments?); fix the input")
+
+
+def _run(name: str, source, reference, nonfinite: str, options: dict) -> np.ndarray:
+    where = f"mcrecon.restoration.{name}"
+    method = get_method(name, **options)
+    req = method.requires
+    check_policy(nonfinite, where)
+    if isinstance(source, SampleSet):
+        stats = None
+        if req.statistics:
+            stats = PixelStats.from_batches(((c.positions, c.values) for c in source.iter_chunks(with_round=False)),
+                                            width=source.width, height=source.height, channels=source.channels,
+                                            subpixels=req.subpixels, nonfinite=nonfinite, source=source.name)
+            _check_stats(stats, where)
+        elif source.n_samples == 0:
+            raise InputError(where, "samples", "no samples: there is nothing to reconstruct")
+        dtype = source.values.dtype
+        inputs = MethodInputs(stats, source if req.samples else None, None, nonfinite)
+    elif isinstance(source, PixelStats):
+        if req.samples:
+            raise InputError(where, "input", f"{name} filters individual samples, which pixel statistics no "
+                             "longer hold; pass a mcrecon.SampleSet")
+        _check_stats(source, where)
+        dtype = source.dtype
+        inputs = MethodInputs(source, None, None, nonfinite)
+    else:
+        raise InputError(where, "input", f"got {type(source).__name__}; expected PixelStats "
+                         "(PixelStats.from_moments / from_samples) or a mcrecon.SampleSet")
+    if reference is not None:
+        h, w, c = inputs.shape
+        ref = np.asarray(reference, dtype=np.float64)
+        if ref.ndim == 2 and c == 1:
+            ref = ref[..., None]
+        if ref.shape != (h, w, c) or not np.isfinite(ref).all():
+            raise InputError(where, "reference", f"shape {ref.shape}, expected finite (height, width, channels) "
+                             f"= {(h, w, c)}")
+        inputs = MethodInputs(inputs.stats, inputs.samples, ref, nonfinite)
+    image = method.reconstruct(inputs)
+    return np.asarray(image).astype(np.float32 if dtype == np.float32 else np.float64, copy=False)
+
+
+def _make(name: str, summary: str, input_doc: str, notes: str, references: str, examples: str):
+    cls = method_class(name)
+    params = [inspect.Parameter("source", inspect.Parameter.POSITIONAL_ONLY)]
+    opt_docs = []
+    for o in cls.options:
+        params.append(inspect.Parameter(o.name, inspect.Parameter.KEYWORD_ONLY, default=o.default))
+        opt_docs.append(f"{o.name} : {getattr(o.type, '__name__', o.type)}, optional\n"
+                        f"    {o.help}; {o.expectation()} (default {o.default!r}).")
+    uses_ref = any(o.name == "oracle" for o in cls.options)
+    if uses_ref:
+        params.append(inspect.Parameter("reference", inspect.Parameter.KEYWORD_ONLY, default=None))
+        opt_docs.append("reference : ndarray (H, W, C), optional\n    The reference image (for ``oracle=1``).")
+    params.append(inspect.Parameter("nonfinite", inspect.Parameter.KEYWORD_ONLY, default="drop"))
+    opt_docs.append("nonfinite : {'drop', 'zero', 'raise'}, optional\n"
+                    "    Policy for NaN/Inf sample values of a SampleSet (default 'drop').")
+    valid = {o.name for o in cls.options}
+
+    def fn(source, /, *, reference=None, nonfinite="drop", **options):
+        unknown = sorted(set(options) - valid)
+        if unknown:
+            raise InputError(f"mcrecon.restoration.{name}", unknown[0],
+                             f"unknown option; valid: {', '.join(sorted(valid)) or '(none)'}")
+        return _run(name, source, reference, nonfinite, options)
+
+    fn.__name__ = fn.__qualname__ = name
+    fn.__module__ = __name__
+    fn.__signature__ = inspect.Signature(params, return_annotation=np.ndarray)
+    body = "\n".join(opt_docs)
+    fn.__doc__ = (f"{summary}\n\nParameters\n----------\n{input_doc}\n{body}\n\nReturns\n-------\n"
+                  "image : ndarray (H, W, C)\n    float32 when the input values were float32, else float64.\n\n"
+                  "Raises\n------\nInputError\n    Invalid options (the message lists the valid values), NaN/Inf "
+                  "in the statistics, an input without any sample, the wrong kind of input.\n\n"
+                  f"Notes\n-----\n{notes}\n\nReferences\n----------\n{references}\n\nExamples\n--------\n{examples}")
+    return fn
+
+
+_STATS = ("source : PixelStats\n    Pixel statistics, e.g. ``PixelStats.from_moments(mean, variance, count)`` "
+          "or ``PixelStats.from_samples(...)``; a SampleSet is accepted too.")
+
+box = _make(
+    "box", "The pixel mean, empty pixels filled from their nearest sampled neighbour (the baseline).", _STATS,
+    "Every other method is measured against this one.",
+    ".. [1] (none: the estimator every Monte Carlo renderer starts from)",
+    ">>> import numpy as np\n>>> from mcrecon import PixelStats\n>>> from mcrecon.restoration import box\n"
+    ">>> st = PixelStats.from_moments(np.ones((2, 3, 3), np.float32), np.zeros((2, 3, 3)), 4)\n"
+    ">>> box(st).dtype, box(st).shape\n(dtype('float32'), (2, 3, 3))")
+
+gem = _make(
+    "gem", "Greedy error minimization: per-pixel Gaussian scale selection (final reconstruction).", _STATS,
+    "Selects, per pixel, among Gaussian filters sqrt(2) apart the largest scale whose bias is not yet\n"
+    "significant (an ICI-style selector with error rate ``gamma``), with outlier removal on the stopping maps.",
+    ".. [1] F. Rousselle, C. Knaus, M. Zwicker, \"Adaptive Sampling and Reconstruction using Greedy Error\n"
+    "   Minimization\", ACM Transactions on Graphics 30(6) (SIGGRAPH Asia), 2011.",
+    ">>> import numpy as np\n>>> from mcrecon import PixelStats\n>>> from mcrecon.restoration import gem\n"
+    ">>> rng = np.random.default_rng(0)\n"
+    ">>> mean = (1.0 + rng.normal(0, 0.1, (16, 16, 3))).astype(np.float32)\n"
+    ">>> st = PixelStats.from_moments(mean, np.full((16, 16, 3), 0.16), 16)\n"
+    ">>> out = gem(st, gamma=0.2)\n>>> out.dtype, bool(np.abs(out - 1).std() < np.abs(mean - 1).std())\n"
+    "(dtype('float32'), True)")
+
+awr = _make(
+    "awr", "Adaptive wavelet rendering: soft thresholding of wavelet coefficients by their propagated variance.",
+    _STATS,
+    "CDF 9/7 (also LeGall 5/3 and Haar) coefficients are soft-thresholded by the variance of the pixel means\n"
+    "propagated through the transform.  The default variance estimator ``range`` needs each pixel's sample\n"
+    "range: statistics from moments carry none, so use ``variance='sample'`` with them.",
+    ".. [1] R. S. Overbeck, C. Donner, R. Ramamoorthi, \"Adaptive Wavelet Rendering\", ACM Transactions on\n"
+    "   Graphics 28(5) (SIGGRAPH Asia), 2009.",
+    ">>> import numpy as np\n>>> from mcrecon import PixelStats\n>>> from mcrecon.restoration import awr\n"
+    ">>> rng = np.random.default_rng(1)\n>>> mean = 1.0 + rng.normal(0, 0.1, (32, 32, 3))\n"
+    ">>> st = PixelStats.from_moments(mean, np.full((32, 32, 3), 0.16), 16)\n"
+    ">>> out = awr(st, variance='sample')\n>>> out.shape, bool(np.abs(out - 1).std() < np.abs(mean - 1).std())\n"
+    "((32, 32, 3), True)")
+
+splat = _make(
+    "splat", "Progressive, energy-preserving, variable-width Epanechnikov splatting of individual samples.",
+    "source : SampleSet\n    The samples (rounds are replayed in order; a single round is split into\n"
+    "    doubling pseudo-rounds per pixel).",
+    "Needs the individual samples: pixel statistics are refused.",
+    ".. [1] F. Suykens, Y. D. Willems, \"Adaptive Filtering for Progressive Monte Carlo Image Rendering\",\n"
+    "   WSCG 2000.",
+    ">>> import numpy as np, mcrecon\n>>> from mcrecon.restoration import splat\n"
+    ">>> rng = np.random.default_rng(2)\n>>> pos = (rng.random((3200, 2)) * 20).astype(np.float32)\n"
+    ">>> samples = mcrecon.SampleSet(pos, np.ones((3200, 3), np.float32), width=20, height=20)\n"
+    ">>> out = splat(samples)\n>>> out.dtype, bool(np.isclose(out.sum(), 3 * 400 * 1.0, rtol=1e-5))\n"
+    "(dtype('float32'), True)")
