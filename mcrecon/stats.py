@@ -29,7 +29,56 @@ import numpy as np
 from .errors import InputError, McreconWarning
 from .samples import NONFINITE_POLICIES, apply_nonfinite, check_policy, check_samples
 
-__all__ = ["PixelStats", "NONFINITE_POLICIES"]
+__all__ = ["PixelStats", "NONFINITE_POLICIES", "fill_from_neighbours"]
+
+def fill_from_neighbours(values: np.ndarray, defined: np.ndarray, fill: np.ndarray | None = None, *,
+                         fallback=0.0) -> np.ndarray:
+    """The one fill-in policy for per-pixel estimates a pixel cannot make itself.
+
+    A pixel with fewer than two samples has no sample variance (nor a
+    sample range) of its own.  Policy (used by every method): such a pixel
+    takes the average of the estimate over the *defined* pixels of its 3x3
+    neighbourhood inside the image; if none is defined there, the
+    channel's average over all defined pixels of the image; if no pixel of
+    the image is defined (a 1-spp input), ``fallback`` (a number or an
+    (H, W, C) array the caller derives otherwise).
+
+    Parameters
+    ----------
+    values : ndarray (H, W, C)
+        The estimate, meaningful where ``defined``.
+    defined : ndarray of bool (H, W)
+        Pixels whose estimate is their own.
+    fill : ndarray of bool (H, W), optional
+        Pixels to fill (default: every pixel not ``defined``); others keep
+        ``values``.
+    fallback : float, ndarray (H, W, C) or callable
+        A callable is called (without arguments) only when needed.
+
+    Returns
+    -------
+    ndarray (H, W, C) float64
+    """
+    from scipy import ndimage
+
+    values = np.asarray(values, dtype=np.float64)
+    defined = np.asarray(defined, dtype=bool)
+    fill = ~defined if fill is None else np.asarray(fill, dtype=bool)
+    if not fill.any():
+        return values
+    if not defined.any():
+        fb = fallback() if callable(fallback) else fallback
+        sub = np.broadcast_to(np.asarray(fb, dtype=np.float64), values.shape)
+    else:
+        ok = defined.astype(np.float64)
+        num = ndimage.uniform_filter(values * ok[..., None], size=(3, 3, 1), mode="constant")
+        den = ndimage.uniform_filter(ok, size=3, mode="constant")[..., None]
+        local = np.zeros(np.broadcast_shapes(num.shape, den.shape))
+        np.divide(num, den, out=local, where=den > 0)
+        glob = values[defined].mean(axis=0)
+        sub = np.where(den > 1e-12, local, glob)
+    return np.where(fill[..., None], sub, values)
+
 
 @numba.njit(cache=True, nogil=True)
 def _accumulate(pos, val, s, count, mean, m2, vmin, vmax, sub_sum, sub_count):
