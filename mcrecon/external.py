@@ -12,7 +12,6 @@ the driver has committed every earlier round, so the run stays resumable.
 
 from __future__ import annotations
 
-import os
 import shutil
 import subprocess
 import tempfile
@@ -24,7 +23,7 @@ import h5py
 import numpy as np
 
 from .errors import InputError, RendererError
-from .io._atomic import publish
+from .io._atomic import atomic_path
 from .protocol import SampleBatch, SampleRequest
 
 __all__ = ["CommandRenderer", "write_request", "read_request", "REQUEST_FORMAT"]
@@ -36,9 +35,7 @@ REQUEST_VERSION = 1
 def write_request(path, request: SampleRequest, *, channels: Sequence[str]) -> Path:
     """Write a request file atomically (temporary file, then rename)."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
             f.attrs["format"] = REQUEST_FORMAT
             f.attrs["format_version"] = REQUEST_VERSION
@@ -52,11 +49,6 @@ def write_request(path, request: SampleRequest, *, channels: Sequence[str]) -> P
                 f.create_dataset("counts", data=request.counts.astype(np.int64))
             if request.positions is not None:
                 f.create_dataset("positions", data=request.positions.astype(np.float64))
-        publish(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return path
 
 

@@ -598,6 +598,7 @@ def dump_uniform_log(path, scene=None, *, width: int | None = None, height: int 
     pathlib.Path
     """
     from .io import append_log, write_log
+    from .io._atomic import atomic_path
 
     spp = _check_int("spp", spp, minimum=1)
     seed = _check_int("seed", seed, minimum=0)
@@ -613,9 +614,7 @@ def dump_uniform_log(path, scene=None, *, width: int | None = None, height: int 
                 "scene": r.scene_name, "max_depth": r.max_depth, "integrator": str(r._integrator).split("[")[0].strip(),
                 "sampling": "uniform jittered", "spp": spp, "seed": seed, "spp_per_pass": r.spp_per_pass,
                 "reference_spp": reference_spp, "positions": "x = column, y = row from the top"}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial")
-    try:
+    with atomic_path(path) as tmp:
         first = True
         for k, batch in enumerate(_uniform_passes(r, spp, seed)):
             pos = _to_float32_positions(batch.positions)
@@ -625,8 +624,4 @@ def dump_uniform_log(path, scene=None, *, width: int | None = None, height: int 
                 first = False
             else:
                 append_log(tmp, pos, batch.values, round_index=k)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
     return path

@@ -7,24 +7,15 @@ sRGB curve, then clipped to [0, 1] for display).
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
 from ..errors import InputError
-from ._atomic import publish
+from ._atomic import atomic_path
 
 __all__ = ["write_exr", "read_exr", "tonemap_srgb", "write_png_preview", "write_false_colour"]
-
-
-def _atomic_target(path: Path):
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp" + path.suffix, dir=path.parent)
-    os.close(fd)
-    return tmp
 
 
 def _as_hwc(img, where) -> np.ndarray:
@@ -62,15 +53,8 @@ def write_exr(path, image, *, channels: Sequence[str] | None = None) -> Path:
     data = {name: np.ascontiguousarray(img[..., i], dtype=np.float32) for i, name in enumerate(channels)}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
               "mcrecon_channels": ",".join(channels)}
-    tmp = _atomic_target(path)
-    try:
-        with OpenEXR.File(header, data) as f:
-            f.write(tmp)
-        publish(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path, suffix=path.suffix) as tmp, OpenEXR.File(header, data) as f:
+        f.write(tmp)
     return path
 
 
@@ -116,14 +100,8 @@ def tonemap_srgb(image, *, exposure: float = 0.0) -> np.ndarray:
 def _save_png(path: Path, rgb8: np.ndarray):
     from PIL import Image
 
-    tmp = _atomic_target(path)
-    try:
+    with atomic_path(path, suffix=path.suffix) as tmp:
         Image.fromarray(rgb8).save(tmp, format="PNG")
-        publish(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return path
 
 
