@@ -8,10 +8,12 @@ shared and noisy):
    Denoise (``pyoidn.denoise(color, hdr=True, quality="high")`` on the box
    pixel means, if installed).  Target: gem <= 3 x OIDN.  With ``--log``
    the 32-spp input is also written as a sample log and
-   ``reconstruct_log`` (HDF5 read + statistics + reconstruction) is timed.
+   ``mcrecon.reconstruct(log, method=...)`` (HDF5 read + statistics +
+   reconstruction) is timed.
 2. Filter bank of a planning step (4 dyadic scales, per-channel
    variances, effective counts) on the same input: the compiled, threaded
-   :func:`mcrecon.methods.gem.filter_bank` against itself on one thread and
+   :func:`mcrecon.methods.gem.filter_bank` (on :mod:`mcrecon._filtering`,
+   ``MCRECON_THREADS`` worker threads) against itself on one thread and
    against the plain ``scipy.ndimage.correlate1d`` formulation it replaced
    (bit-identical results, checked here too).
 3. Adaptive loop through :func:`mcrecon.driver.adapt` with a renderer
@@ -35,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from mcrecon.methods import get_method
-from mcrecon.methods.gem import GEMMethod
+from mcrecon.methods.gem import GEMMethod, pixel_kernel
 from mcrecon.reconstruction import reconstruct
 from mcrecon.scenes import SceneRenderer, render_uniform
 from mcrecon.stats import PixelStats
@@ -103,8 +105,9 @@ def bench_final(size, repeat, scene, use_log):
         from mcrecon.io import write_log
         with tempfile.TemporaryDirectory() as d:
             path = Path(d) / "gem_bench.h5"
-            write_log(path, batch.positions.astype(np.float32), batch.values.astype(np.float32),
-                      width=size, height=size, channels=("R", "G", "B"))
+            # float32 rounds positions just below the far edge up onto it (off the film): keep them inside
+            pos = np.minimum(batch.positions.astype(np.float32), np.nextafter(np.float32(size), np.float32(0)))
+            write_log(path, pos, batch.values.astype(np.float32), width=size, height=size, channels=("R", "G", "B"))
             t_log, _ = _time(lambda: reconstruct(path, method=gem), 1)
             t_blog, _ = _time(lambda: reconstruct(path, method=box), 1)
             print(f"reconstruct(log) (read + stats + reconstruct): gem {t_log:.2f} s, box {t_blog:.2f} s")
@@ -115,7 +118,7 @@ def _ndimage_filter_bank(base, mean_var, count, sigmas):
     """The filter bank written with scipy.ndimage, as before the compiled kernel (the baseline)."""
     from scipy import ndimage
 
-    from mcrecon.methods import gem as G
+    from mcrecon._filtering import mask_weights, safe_div
 
     def corr2(x, k):
         y = ndimage.correlate1d(x, k, axis=0, mode="constant", cval=0.0)
@@ -125,20 +128,21 @@ def _ndimage_filter_bank(base, mean_var, count, sigmas):
     mf = mask.astype(np.float64)
     mb = base * mf[..., None]
     mv = (mean_var * mf[..., None]).astype(np.float32)
-    inv_n = G._safe_div(mf, count.astype(np.float64)).astype(np.float32)
+    inv_n = safe_div(mf, count.astype(np.float64)).astype(np.float32)
     values, var, n_eff = [base], [mean_var], [count.astype(np.float64)]
     for s in sigmas:
-        k = G.pixel_kernel(s)
+        k = pixel_kernel(s)
         k2 = (k * k).astype(np.float32)
-        w = G._weights(mask, k, bool(mask.all()))
+        w = mask_weights(mask, k, bool(mask.all()))
         w2 = w * w
-        values.append(G._safe_div(corr2(mb, k), w[..., None]))
-        var.append(G._safe_div(corr2(mv, k2).astype(np.float64), w2[..., None]))
-        n_eff.append(G._safe_div(w2, corr2(inv_n, k2).astype(np.float64)))
+        values.append(safe_div(corr2(mb, k), w[..., None]))
+        var.append(safe_div(corr2(mv, k2).astype(np.float64), w2[..., None]))
+        n_eff.append(safe_div(w2, corr2(inv_n, k2).astype(np.float64)))
     return values, var, n_eff
 
 
 def bench_filter_bank(stats, repeat):
+    from mcrecon._filtering import n_threads
     from mcrecon.methods import gem as G
     mv = G.mean_variance_policy(stats)
     sig = G.adaptive_sigmas(4)
@@ -150,7 +154,7 @@ def bench_filter_bank(stats, repeat):
     t_fast, _ = _time(lambda: G.filter_bank(*args, **kw), repeat)
     t_one, _ = _time(lambda: G.filter_bank(*args, threads=1, **kw), repeat)
     t_nd, _ = _time(lambda: _ndimage_filter_bank(*args), repeat)
-    print(f"filter bank of a planning step ({G._n_threads()} threads): {t_fast:.3f} s; one thread {t_one:.3f} s; "
+    print(f"filter bank of a planning step ({n_threads()} threads): {t_fast:.3f} s; one thread {t_one:.3f} s; "
           f"ndimage formulation {t_nd:.3f} s; speed-up {t_nd / t_fast:.1f}x (threads {t_one / t_fast:.2f}x); "
           f"bit-identical: {same}")
 
@@ -184,7 +188,7 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--scene", default="soft_shadow")
     ap.add_argument("--rate", type=float, default=2e6, help="modelled renderer speed, samples/s")
-    ap.add_argument("--log", action="store_true", help="also time reconstruct_log from an HDF5 log")
+    ap.add_argument("--log", action="store_true", help="also time mcrecon.reconstruct from an HDF5 log")
     ap.add_argument("--skip-adaptive", action="store_true")
     a = ap.parse_args(argv)
     stats = bench_final(a.size, a.repeat, a.scene, a.log)

@@ -18,9 +18,16 @@ import pywt
 from scipy import ndimage
 
 import mcrecon.methods.gem as G
+from mcrecon import _filtering
+from mcrecon._filtering import correlate_jobs
 from mcrecon.errors import InputError, McreconWarning
 from mcrecon.methods import get_method
 from mcrecon.methods.base import AdaptiveState
+from mcrecon.methods.gem import kernels as gem_kernels
+from mcrecon.methods.gem import selection as gem_selection
+from mcrecon.methods.gem.kernels import _chan_sum
+from mcrecon.methods.gem.sampling import _kernel_offsets
+from mcrecon.methods.gem.selection import _estimate_mse_numpy, _pick
 from mcrecon.stats import PixelStats
 
 
@@ -588,6 +595,76 @@ def test_zero_variance_pixels_take_the_pixel_filter_and_empty_ones_never_do():
     assert np.isfinite(sel.image).all()
 
 
+
+def test_non_finite_inputs_are_refused_naming_the_argument_and_the_bad_pixels(monkeypatch):
+    """gem_select, oracle_select and filter_bank refuse NaN / Inf values and negative counts.
+
+    Unchecked, one NaN spreads over the support of every filter: on a flat
+    40 x 40 image every pixel goes coarse and all 1600 come out NaN.  On
+    finite input the check is a pure guard: the results equal, bit for bit,
+    those of the same calls with the check switched off.
+    """
+    rng = np.random.default_rng(8)
+    h, w = 40, 40
+    cnt = rng.integers(0, 9, (h, w))
+    cnt[cnt == 1] = 0                                  # holes
+    base = _hdr_field(rng, (h, w, 3)) * (cnt > 0)[..., None]
+    mv = _hdr_field(rng, (h, w, 3)) * 1e-2 / np.maximum(cnt, 1)[..., None]
+    ref = _hdr_field(rng, (h, w, 3))
+    sig = G.final_sigmas(8)
+
+    def run():
+        sel = G.gem_select(base, mv, cnt, sig, gamma=0.2, final=False, want_mse=True)
+        orc = G.oracle_select(base, mv, cnt, sig, ref)
+        bank = G.filter_bank(base.astype(np.float32), mv, cnt, sig, with_n_eff=True)
+        return [sel.selected, sel.stops, sel.mse, sel.image, orc.selected, orc.mse, orc.image,
+                *bank.values, *bank.var, *bank.n_eff]
+
+    checked = run()
+    flat_nan = np.full((h, w, 3), 0.5)
+    flat_nan[20, 20, 1] = np.nan
+    flat_args = (flat_nan, np.full((h, w, 3), 0.01), np.full((h, w), 8), sig)
+    with monkeypatch.context() as m:
+        for mod in (gem_kernels, gem_selection):
+            m.setattr(mod, "_check_inputs", lambda *a, **k: None)
+        unchecked = run()
+        spread = G.gem_select(*flat_args, gamma=0.2, final=True).image
+    assert len(checked) == len(unchecked)
+    for a, b in zip(checked, unchecked):
+        assert a.dtype == b.dtype and np.array_equal(a, b)
+    assert (~np.isfinite(spread)).any(axis=2).sum() == h * w
+
+    bad_base = base.copy()
+    bad_base[3, 4, 0] = np.nan
+    bad_base[3, 4, 2] = np.inf                        # one pixel, two channels
+    bad_base[30, 1, 1] = -np.inf
+    bad_mv = mv.copy()
+    bad_mv[7, 8, 2] = np.inf
+    bad_cnt = cnt.copy()
+    bad_cnt[0, 5] = -1
+    bad_ref = ref.copy()
+    bad_ref[9, 9] = np.nan
+    cases = [
+        (lambda: G.gem_select(*flat_args, gamma=0.2, final=True), "gem_select", "base", "1 pixel (row 20, column 20)"),
+        (lambda: G.gem_select(bad_base, mv, cnt, sig, gamma=0.2, final=True), "gem_select", "base", "2 pixels"),
+        (lambda: G.gem_select(base, bad_mv, cnt, sig, gamma=0.2, final=False), "gem_select", "mean_var", "1 pixel"),
+        (lambda: G.gem_select(base, mv, bad_cnt, sig, gamma=0.2, final=True), "gem_select", "count", "1 pixel"),
+        (lambda: G.gem_select(base, mv, cnt.astype(float) * np.nan, sig, gamma=0.2, final=True), "gem_select",
+         "count", f"{h * w} pixels"),
+        (lambda: G.oracle_select(base, mv, cnt, sig, bad_ref), "oracle_select", "reference", "1 pixel (row 9, column 9)"),
+        (lambda: G.oracle_select(bad_base, mv, cnt, sig, ref), "oracle_select", "base", "2 pixels"),
+        (lambda: G.oracle_select(base, mv, cnt, sig, ref[:, :, :1]), "oracle_select", "reference", "expected (40, 40, 3)"),
+        (lambda: G.filter_bank(bad_base, mv, cnt, sig), "filter_bank", "base", "2 pixels"),
+        (lambda: G.filter_bank(base, mv, bad_cnt, sig), "filter_bank", "count", "negative"),
+        (lambda: G.filter_bank(base, mv[:-1], cnt, sig), "filter_bank", "mean_var", "expected (40, 40, C)"),
+    ]
+    for call, where, field, text in cases:
+        with pytest.raises(InputError) as exc:
+            call()
+        assert (exc.value.where, exc.value.field) == (where, field), exc.value
+        assert text in exc.value.problem, exc.value
+
+
 def test_flat_noise_goes_coarse_and_edges_stay_sharp():
     rng = np.random.default_rng(5)
     h, w = 64, 64
@@ -876,12 +953,12 @@ def test_separable_correlation_is_bit_identical_to_ndimage(shape):
         for k in kernels:
             ref = _ref_corr2(x, k)
             for threads in (1, 2, 3):
-                out, o1 = G._correlate_jobs([(x, k, None, 0), (x, k, den, 1)], threads)
+                out, o1 = correlate_jobs([(x, k, None, 0), (x, k, den, 1)], threads)
                 assert out.dtype == ref.dtype and np.array_equal(out, ref), (dtype, k.size, threads)
                 d = den if ref.ndim == 2 else den[..., None]
                 assert np.array_equal(o1, _ref_safe_div(ref.astype(np.float64), d))
                 if x.ndim == 2:
-                    o2, = G._correlate_jobs([(x, k, den, 2)], threads)
+                    o2, = correlate_jobs([(x, k, den, 2)], threads)
                     assert np.array_equal(o2, _ref_safe_div(den, ref.astype(np.float64)))
 
 
@@ -956,17 +1033,17 @@ def test_fast_elementwise_paths_equal_the_numpy_formulas():
     rng = np.random.default_rng(21)
     h, w = 37, 41
     v = _hdr_field(rng, (h, w, 3))
-    np.testing.assert_array_equal(G._chan_sum(v), v.sum(axis=2))
+    np.testing.assert_array_equal(_chan_sum(v), v.sum(axis=2))
     # estimate_mse: compiled accumulation against the numpy reference path
     count = rng.integers(0, 9, (h, w))
     bank = G.filter_bank(_hdr_field(rng, (h, w, 3)), _hdr_field(rng, (h, w, 3)) * 1e-2, count,
                          G.adaptive_sigmas(4), per_channel=True, with_n_eff=True)
     selected = rng.integers(0, bank.n_scales, (h, w))
     mse = G.estimate_mse(bank, selected, count)
-    np.testing.assert_array_equal(mse, G._estimate_mse_numpy(bank, selected, count))
+    np.testing.assert_array_equal(mse, _estimate_mse_numpy(bank, selected, count))
     # sample_priority: compiled kernel against the numpy expressions
-    n_eff = G._pick(bank.n_eff, selected)
-    value = G._pick(bank.values, selected)
+    n_eff = _pick(bank.n_eff, selected)
+    value = _pick(bank.values, selected)
     rel, pri = G.sample_priority(mse, value, n_eff, 32)
     inf = ~np.isfinite(mse).all(axis=2)
     m = np.where(inf[..., None], 0.0, mse)
@@ -993,10 +1070,40 @@ def test_kernel_offset_draws_equal_searchsorted():
         ox, oy = np.zeros(n, np.int64), np.zeros(n, np.int64)
         px = rng.integers(0, 5, n)
         py = rng.integers(0, 5, n)
-        off = G._kernel_offsets(cdf, r, u, u[::-1].copy(), todo, px, py, 5, 5, ox, oy)
+        off = _kernel_offsets(cdf, r, u, u[::-1].copy(), todo, px, py, 5, 5, ox, oy)
         ref_x = np.minimum(np.searchsorted(cdf, u, side="right"), ker.size - 1) - r
         ref_y = np.minimum(np.searchsorted(cdf, u[::-1], side="right"), ker.size - 1) - r
         np.testing.assert_array_equal(ox, ref_x)
         np.testing.assert_array_equal(oy, ref_y)
         x, y = px + ref_x, py + ref_y
         np.testing.assert_array_equal(off, todo[(x < 0) | (x >= 5) | (y < 0) | (y >= 5)])
+
+
+def test_worker_threads_come_from_the_argument_then_mcrecon_threads_then_the_cores(monkeypatch):
+    monkeypatch.delenv("MCRECON_THREADS", raising=False)
+    default = _filtering.n_threads()
+    assert 1 <= default <= 8
+    monkeypatch.setenv("MCRECON_THREADS", " 3 ")
+    assert _filtering.n_threads() == 3 and _filtering.n_threads(2) == 2
+    monkeypatch.setenv("MCRECON_THREADS", "")
+    assert _filtering.n_threads() == default
+    for bad in ("0", "-2", "two", "1.5"):
+        monkeypatch.setenv("MCRECON_THREADS", bad)
+        with pytest.raises(InputError, match="MCRECON_THREADS.*not a positive integer.*MCRECON_THREADS=4"):
+            _filtering.n_threads()
+        assert _filtering.n_threads(1) == 1           # the argument comes first
+    monkeypatch.delenv("MCRECON_THREADS")
+    for bad in (0, -1, 1.5, True, "2"):
+        with pytest.raises(InputError, match="threads"):
+            _filtering.n_threads(bad)
+    # the setting reaches the filters; the result is the same for any value
+    rng = np.random.default_rng(2)
+    count = rng.integers(1, 9, (131, 97))
+    base = _hdr_field(rng, (131, 97, 3))
+    mv = _hdr_field(rng, (131, 97, 3)) * 1e-2
+    banks = []
+    for t in ("1", "3"):
+        monkeypatch.setenv("MCRECON_THREADS", t)
+        banks.append(G.filter_bank(base, mv, count, G.adaptive_sigmas(4), with_n_eff=True))
+    for a, b in zip(banks[0].values + banks[0].var + banks[0].n_eff, banks[1].values + banks[1].var + banks[1].n_eff):
+        assert np.array_equal(a, b)

@@ -1,0 +1,228 @@
+"""The ``gem`` method: greedy error minimization as an adaptive sampler and reconstruction (Rousselle et al. 2011).
+
+:class:`GEMMethod` wires the selection (:mod:`.selection`) and the sample
+distribution (:mod:`.sampling`) into the method contract
+(:mod:`mcrecon.methods.base`); :class:`GEMRun` is its per-run state.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ...errors import InputError
+from ...stats import PixelStats
+from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState
+from .kernels import adaptive_sigmas, filled_subpixels, final_sigmas
+from .sampling import distribute_samples, sample_priority
+from .selection import GAMMA_MAX, OUTLIER_RULES, GEMSelection, _pick, gem_select, mean_variance_policy, oracle_select
+
+__all__ = ["GEMMethod", "GEMRun", "TARGET_EPS"]
+
+#: Relative MSE of the user's target (option ``target_rel_mse``): the same
+#: eps as :func:`mcrecon.metrics.relative_mse`, so the target means what the
+#: reported error means.
+TARGET_EPS = 1e-2
+
+_WHERE = "method gem"
+
+
+class GEMMethod(Method):
+    """Greedy error minimization (Rousselle, Knaus, Zwicker 2011).
+
+    Offline (``reconstruct``): the final-reconstruction filter selection
+    (8 Gaussian scales sqrt(2) apart from sqrt(2) px, Sec. 6).  Adaptive
+    (``plan``): ``initial_spp`` uniform, then ``iterations`` rounds that
+    each select filters with 4 dyadic scales from 1 px and send
+    ``(budget - initial) / iterations`` samples to the pixels whose
+    relative MSE falls fastest (Sec. 5); ``finish`` is the final
+    reconstruction.
+
+    Parameters
+    ----------
+    gamma : float
+        Target error rate of the scale selector, 0 < gamma < 0.4 (0.2).
+    oracle : {0, 1}
+        1: the paper's OUR-GRD -- selection and sampling from the true bias
+        of the reference (needs one: ``adapt(..., reference=)`` or
+        ``reconstruct(stats, reference=)``).
+    target_rel_mse : float or None
+        Stop sampling early once the estimated relative MSE (eps 0.01)
+        averaged over the image is at most this.
+    initial_spp, iterations : int
+        Uniform initial pass (4) and adaptive iterations (8).
+    samples_per_pick : int
+        Samples each selected pixel distributes over its filter; 0 = the
+        average spp of the budget (the paper's n).
+    adaptive_scales, final_scales : int
+        Gaussian scales of the adaptive phase (4 dyadic from 1 px) and of
+        the final reconstruction (8, sqrt(2) apart from sqrt(2) px).
+    final_outliers : {'paper', 'adaptive'}
+        Outlier-removal rule of the final reconstruction (see
+        :func:`gem_select`).
+    subpixel_exact_below : float
+        Gaussian scales with sigma below this (pixels) are computed on the
+        4 x 4 subpixel grid itself (:func:`subpixel_gaussian_exact`); the
+        others, and all by default (0), with the equivalent pixel kernel.
+
+    References
+    ----------
+    .. [1] F. Rousselle, C. Knaus, M. Zwicker, "Adaptive Sampling and
+       Reconstruction using Greedy Error Minimization", SIGGRAPH Asia 2011.
+    """
+
+    name = "gem"
+    #: The paper's 4 x 4 subpixel grid.  The default filters emulate it exactly
+    #: per pixel (:func:`pixel_kernel`), so the statistics keep the grid itself
+    #: only when ``subpixel_exact_below > 0`` asks to filter on it (see __init__).
+    grid = 4
+    adaptive = True
+    initial_spp = 4
+    options = (
+        Option("gamma", float, 0.2, "target error rate of the scale selector", min=0.0, max=GAMMA_MAX,
+               min_open=True, max_open=True,
+               note="the paper's z(gamma) = -log(1 - (1.9 gamma)^(1/sqrt 2)) is only calibrated there; "
+                    "use e.g. 0.1 to 0.3, default 0.2"),
+        Option("oracle", int, 0, "1: select and sample with the true bias from the reference (OUR-GRD)",
+               choices=(0, 1)),
+        Option("target_rel_mse", float, None, "stop early when the estimated relative MSE (eps 0.01) "
+               "reaches this", min=0.0, min_open=True),
+        Option("initial_spp", int, 4, "samples per pixel of the uniform initial pass", min=1),
+        Option("iterations", int, 8, "adaptive iterations after the initial pass", min=1),
+        Option("samples_per_pick", int, 0, "samples each selected pixel spreads over its filter "
+               "(0: the average spp of the budget, as in the paper)", min=0),
+        Option("adaptive_scales", int, 4, "dyadic Gaussian scales from 1 px used while sampling", min=1),
+        Option("final_scales", int, 8, "Gaussian scales sqrt(2) apart from sqrt(2) px in the final image", min=1),
+        Option("final_outliers", str, "adaptive", "final outlier removal: paper (2x size, coarser only) or "
+               "adaptive (1x size, both ways)", choices=OUTLIER_RULES),
+        Option("zero_variance_votes", int, 2, "stopping-map votes of pixels with zero variance: "
+               "0 none, 1 adaptive phase, 2 final reconstruction, 3 both", choices=(0, 1, 2, 3)),
+        Option("subpixel_exact_below", float, 0.0, "filter scales with sigma below this (px) on the 4x4 "
+               "subpixel grid itself (slower; 0: pixel-level equivalent kernel)", min=0.0),
+    )
+
+    @property
+    def requires(self) -> Requirements:
+        # Work a run does not need is left out: 616 MB of subpixel sums at 1024^2
+        # and the slowest ingestion path, unused by the pixel-level kernels.
+        return Requirements(subpixels=self.grid if self.params["subpixel_exact_below"] > 0 else 0,
+                            reference="required" if self.params["oracle"] else "none")
+
+    # ---------------------------------------------------------------- core
+    def start(self, width, height, channels=("R", "G", "B"), *, reference=None) -> "GEMRun":
+        base = super().start(width, height, channels, reference=reference)
+        if reference is not None:
+            ref = np.asarray(reference, dtype=np.float64)
+            if ref.ndim == 2:
+                ref = ref[..., None]
+            expect = (int(height), int(width), len(base.channels))
+            if ref.shape != expect:
+                raise InputError(_WHERE, "reference", f"shape {ref.shape}, expected {expect}")
+            base.reference = ref
+        return GEMRun(**dataclasses.asdict(base))
+
+    def _select(self, run: "GEMRun", stats: PixelStats, *, final: bool, want_mse: bool = False) -> GEMSelection:
+        p = self.params
+        sig = final_sigmas(p["final_scales"]) if final else adaptive_sigmas(p["adaptive_scales"])
+        base = stats.mean
+        mv = mean_variance_policy(stats)
+        count = stats.count
+        s = self.grid
+        eb = p["subpixel_exact_below"]
+        sub = filled_subpixels(stats) if (eb > 0 and stats.subpixels and np.any(sig < eb)) else None
+        if p["oracle"]:
+            ref = run.reference
+            if ref is None:
+                raise InputError(_WHERE, "oracle", "oracle=1 needs a reference image (the run's "
+                                 "reference, e.g. adapt(..., reference=...)); use oracle=0 without one")
+            if ref.shape != base.shape:
+                raise InputError(_WHERE, "reference", f"shape {ref.shape}, expected {base.shape}")
+            sel = oracle_select(base, mv, count, sig, ref, subpixels=s, sub=sub, exact_below=eb)
+        else:
+            sel = gem_select(base, mv, count, sig, gamma=p["gamma"], final=final, subpixels=s,
+                             want_mse=want_mse, sub=sub, exact_below=eb, outlier_rule=p["final_outliers"],
+                             zero_variance_votes=bool(p["zero_variance_votes"] & (2 if final else 1)))
+        # The maps are built when asked for (diagnostics()): a planning round
+        # would otherwise spend ~5 % of its time on images nobody reads.
+        run.diagnostics = {}
+        run.pending = (sel.selected, sel.stops_raw, sel.stops, sel.mse, sel.image, stats.count.copy())
+        return sel
+
+    def diagnostics(self, run: "GEMRun"):
+        """Maps of the run's last reconstruction or planning step: ``selected_scale``,
+        ``sample_density``, ``stop_k`` / ``stop_raw_k`` (after / before outlier
+        removal) and, when sampling, ``est_rel_mse``."""
+        if run.pending is not None:
+            selected, stops_raw, stops, mse, image, count = run.pending
+            d = {"selected_scale": selected.astype(np.float64),
+                 "sample_density": count.astype(np.float64)}
+            if stops is not None:
+                for k in range(stops.shape[0]):
+                    d[f"stop_{k}"] = stops[k].astype(np.float64)
+                    d[f"stop_raw_{k}"] = stops_raw[k].astype(np.float64)
+            if mse is not None:
+                rel, _ = sample_priority(mse, image, np.ones(selected.shape), 1)
+                d["est_rel_mse"] = np.where(np.isfinite(rel), rel, np.nan)
+            run.diagnostics = d
+            run.pending = None
+        return super().diagnostics(run)
+
+    # ------------------------------------------------------------- offline
+    def reconstruct_run(self, run: "GEMRun", inputs: MethodInputs) -> np.ndarray:
+        """Final reconstruction (Sec. 6): (H, W, C) float64.
+
+        Statistics without a subpixel grid work too (the default filters
+        need only pixel means).  Pixels without a sample anywhere in the
+        coarsest filter's support take their nearest sampled neighbour's
+        value (:func:`mcrecon.methods.box.fill_empty_pixels`, with a warning).
+        With ``oracle=1`` the run's reference (``inputs.reference`` or the
+        one given to :meth:`start`) gives the true bias.
+        """
+        if run.reference is None and inputs.reference is not None:
+            run.reference = self.start(run.width, run.height, run.channels, reference=inputs.reference).reference
+        sel = self._select(run, inputs.stats, final=True)
+        img = sel.image
+        no_data = sel.bank.weight[-1] <= 0
+        if no_data.any():
+            from ..box import fill_empty_pixels
+            img = fill_empty_pixels(img, (~no_data).astype(np.int64), source=_WHERE)
+        return np.asarray(img, dtype=np.float64)
+
+    # ------------------------------------------------------------ adaptive
+    def plan(self, run: "GEMRun", state: AdaptiveState):
+        """Round 0: uniform ``initial_spp``; then one adaptive iteration per round (Secs. 5, 6).
+
+        Iteration i (= round index) sends ``remaining // (iterations - i + 1)``
+        samples, the last one everything left; beyond ``iterations`` rounds
+        (a resumed or interrupted run) the rest goes in one round.  Returns
+        None once the estimated relative MSE meets ``target_rel_mse``.
+        """
+        p = self.params
+        remaining = state.remaining
+        if remaining <= 0:
+            return None
+        npix = state.width * state.height
+        if state.n_samples == 0:
+            return state.uniform_request(p["initial_spp"])
+        left = p["iterations"] - state.round_index + 1
+        n_round = remaining if left <= 1 else max(1, remaining // left)
+        n_pick = p["samples_per_pick"] or max(1, int(round(state.budget / npix)))
+        sel = self._select(run, state.stats, final=False, want_mse=True)
+        value = run.reference if p["oracle"] else sel.image
+        if p["target_rel_mse"] is not None and np.isfinite(sel.mse).all():
+            est = float(np.mean(sel.mse / (value * value + TARGET_EPS)))
+            if est <= p["target_rel_mse"]:
+                return None
+        n_eff = _pick(sel.bank.n_eff, sel.selected)
+        _, pri = sample_priority(sel.mse, value, n_eff, n_pick)
+        pos = distribute_samples(pri, sel.selected, sel.bank.sigmas, n_round, n_pick, state.rng,
+                                 subpixels=self.grid)
+        return state.request(positions=pos)
+
+
+@dataclasses.dataclass(eq=False)
+class GEMRun(RunState):
+    """Per-run state of :class:`GEMMethod`: the last selection, kept until its diagnostics are asked for."""
+
+    pending: tuple | None = None

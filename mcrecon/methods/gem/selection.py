@@ -1,0 +1,522 @@
+"""Filter selection of ``gem`` (Rousselle et al. 2011, Secs. 4 and 6).
+
+The error-rate parameter (:func:`check_gamma`, :func:`z_of_gamma`), the
+finest scale's variance with its fill-in policy for n < 2
+(:func:`mean_variance_policy`), the scale selector S of Eq. 1
+(:func:`bias_coefficient`, :func:`scale_selector_terms`), the binary
+stopping maps and their outlier removal (:func:`stopping_maps`,
+:func:`remove_outliers`, :func:`select_from_stops`), the whole selection
+(:func:`gem_select`, and the ground-truth :func:`oracle_select`) and the
+MSE of the selected filters (:func:`estimate_mse`, Sec. 5).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numba
+import numpy as np
+from scipy import ndimage
+
+from ..._filtering import correlate_jobs, safe_div, separable_weights
+from ...errors import InputError
+from ...stats import PixelStats
+from .kernels import TRUNCATE, FilterBank, _chan_sum, _check_inputs, _filter_bank, _uses_sub, gaussian_kernel
+
+__all__ = ["GAMMA_MAX", "OUTLIER_RULES", "check_gamma", "z_of_gamma", "mean_variance_policy", "bias_coefficient",
+           "scale_selector_terms", "stopping_maps", "remove_outliers", "select_from_stops", "GEMSelection",
+           "gem_select", "oracle_select", "estimate_mse"]
+
+#: gamma must lie in (0, GAMMA_MAX): the paper's z(gamma) is "valid in the
+#: range 0 < gamma < 0.4" (and undefined from 1.9 gamma >= 1, gamma ~ 0.526).
+GAMMA_MAX = 0.4
+#: Outlier-removal rules of the final reconstruction (see :func:`gem_select`).
+OUTLIER_RULES = ("paper", "adaptive")
+
+
+# ----------------------------------------------------------------------------
+# Parameters
+# ----------------------------------------------------------------------------
+
+def check_gamma(gamma, where: str = "method gem") -> float:
+    """Validate the error-rate parameter: a real number with 0 < gamma < 0.4.
+
+    Raises
+    ------
+    InputError
+        Naming ``gamma`` and the valid range.
+    """
+    try:
+        g = float(gamma)
+    except (TypeError, ValueError):
+        raise InputError(where, "gamma", f"{gamma!r} is not a number; expected 0 < gamma < {GAMMA_MAX} "
+                         "(the target error rate of the scale selector, default 0.2)") from None
+    if not (0.0 < g < GAMMA_MAX):
+        raise InputError(where, "gamma", f"{gamma!r} is outside 0 < gamma < {GAMMA_MAX}: the paper's "
+                         "z(gamma) = -log(1 - (1.9 gamma)^(1/sqrt 2)) is only calibrated there "
+                         "(and undefined from gamma ~ 0.526); use e.g. 0.1 to 0.3, default 0.2")
+    return g
+
+
+def z_of_gamma(gamma) -> float:
+    """Bias-term weight controlling the error rate (Sec. 4.3).
+
+    ``z(gamma) = -log(1 - (1.9 gamma)^(1/sqrt(2)))``, valid for
+    ``0 < gamma < 0.4``.
+
+    References
+    ----------
+    .. [1] Rousselle et al. 2011, Sec. 4.3 "Intuitive Parameterization".
+    """
+    g = check_gamma(gamma)
+    return -math.log(1.0 - (1.9 * g) ** (1.0 / math.sqrt(2.0)))
+
+
+# ----------------------------------------------------------------------------
+# Finest scale: variance of the pixel means
+# ----------------------------------------------------------------------------
+
+def mean_variance_policy(stats: PixelStats) -> np.ndarray:
+    """Variance of each pixel's mean, ``s^2 / n`` (Sec. 6), with a policy for n < 2.
+
+    Policy (documented in ``docs/methods/gem.md``): a pixel with a single
+    sample has no sample variance of its own; it borrows the average sample
+    variance of the pixels with n >= 2 in its 3 x 3 neighbourhood, else the
+    image-wide average over pixels with n >= 2, else (no pixel has two
+    samples, e.g. a 1-spp log) the variance of the pixel values in its 3 x 3
+    neighbourhood (signal plus noise: conservative, it errs towards
+    keeping detail).  Empty pixels get 0 (they are masked out).
+
+    Returns
+    -------
+    ndarray (H, W, C) float64
+    """
+    n = stats.count
+    var = stats.sample_variance(undefined=0.0)
+    need = n == 1
+    if need.any():
+        ok = ((n >= 2) & ~need).astype(np.float64)
+        if ok.any():
+            num = ndimage.uniform_filter(var * ok[..., None], size=(3, 3, 1), mode="constant")
+            den = ndimage.uniform_filter(ok, size=3, mode="constant")[..., None]
+            local = safe_div(num, den)
+            glob = var[ok > 0].mean(axis=0)
+            sub = np.where(den > 1e-12, local, glob)
+        else:
+            has = (n >= 1).astype(np.float64)
+            m = stats.mean * has[..., None]
+            den = ndimage.uniform_filter(has, size=3, mode="constant")[..., None]
+            m1 = safe_div(ndimage.uniform_filter(m, size=(3, 3, 1), mode="constant"), den)
+            m2 = safe_div(ndimage.uniform_filter(m * m, size=(3, 3, 1), mode="constant"), den)
+            sub = np.maximum(m2 - m1 * m1, 0.0)
+        var = np.where(need[..., None], sub, var)
+    return var / np.maximum(n, 1)[..., None]
+
+
+# ----------------------------------------------------------------------------
+# Scale selector (Eq. 1)
+# ----------------------------------------------------------------------------
+
+def bias_coefficient(r_f: float, r_c: float) -> float:
+    """Factor of (c - f)^2 in the approximate bias term (Sec. 4.2).
+
+    With ``Bias[c] = (r_c^2 / r_f^2) Bias[f]`` (quadratic image, kernels
+    with vanishing first moments) and ``c - f = Bias[c] - Bias[f]``:
+    ``Bias[c]^2 - Bias[f]^2 = (r_c^2 + r_f^2) / (r_c^2 - r_f^2) (c - f)^2``.
+    The paper prints the denominator as ``r_f^2 - r_c^2``, which would make
+    the bias term of a coarser scale negative; the derivation gives the
+    positive form used here (5/3 for dyadic scales, 3 for sqrt(2) steps).
+    ``r_f = 0`` (the pixel filter, unbiased) gives 1: the exact squared
+    difference of Sec. 6.
+    """
+    r_f, r_c = float(r_f), float(r_c)
+    if not r_c > r_f >= 0:
+        raise InputError("bias_coefficient", "r_f, r_c", f"got {r_f}, {r_c}; expected 0 <= r_f < r_c")
+    return (r_c * r_c + r_f * r_f) / (r_c * r_c - r_f * r_f)
+
+
+def scale_selector_terms(f, c, var_f, var_c, *, r_f: float, r_c: float, n, gamma: float | None):
+    """The scale selector S of Eq. 1 and its two terms.
+
+    ``bias = rho * z(gamma) * coef(r_f, r_c) * (c - f)^2`` with
+    ``rho = 1 - 1/|P|`` (Sec. 4.3), ``variance = Var[c] - Var[f]`` and
+    ``S = bias + variance``.  ``S > 0`` means "stop at the fine scale".
+    ``gamma=None`` leaves the bias unweighted (the plain MSE difference of
+    Eq. 1, used for MSE accumulation and ground-truth experiments).
+    ``r_f = 0`` denotes the pixel filter (exact squared difference).
+
+    Parameters
+    ----------
+    f, c : array_like
+        Fine and coarse filtered values (same shape).
+    var_f, var_c : array_like
+        Their variances.
+    n : array_like or float
+        Samples in the pixel, |P| (rho = 1 - 1/max(n, 1)).
+
+    Returns
+    -------
+    bias, variance, S : ndarray
+    """
+    f = np.asarray(f, dtype=np.float64)
+    c = np.asarray(c, dtype=np.float64)
+    d = c - f
+    bias = bias_coefficient(r_f, r_c) * d * d
+    if gamma is not None:
+        rho = 1.0 - 1.0 / np.maximum(np.asarray(n, dtype=np.float64), 1.0)
+        bias = bias * (rho * z_of_gamma(gamma))
+    variance = np.asarray(var_c, dtype=np.float64) - np.asarray(var_f, dtype=np.float64)
+    return bias, variance, bias + variance
+
+
+def _pair_radii(bank, k):
+    """(r_f, r_c) of the pair (k, k+1); scale 0 is the pixel filter (r = 0)."""
+    r = bank.sigmas if bank.radii is None else bank.radii
+    return (0.0 if k == 0 else float(r[k - 1])), float(r[k])
+
+
+@numba.njit(cache=True, nogil=True)
+def _stop_pair(e, coef, vsc, vsf, rho_z, weighted, delta, stop):
+    # b = coef |c - f|^2, vterm = Var[c] - Var[f]; delta = b + vterm;
+    # stop = (rho z b + vterm > 0), the arithmetic of the numpy expressions
+    h, w = e.shape
+    for i in range(h):
+        for j in range(w):
+            b = coef * e[i, j]
+            vt = vsc[i, j] - vsf[i, j]
+            d = b + vt
+            delta[i, j] = d
+            stop[i, j] = ((b * rho_z[i, j] + vt) if weighted else d) > 0
+
+
+def stopping_maps(bank: FilterBank, count: np.ndarray, gamma: float | None):
+    """Binary stopping maps ``S_k > 0`` for every pair (k, k+1), and the unweighted S_k.
+
+    Channels are combined by summing S over channels (the total squared
+    error of the pixel).  Returns ``stops`` (K, H, W) bool and ``delta``
+    (K, H, W), the unweighted estimate of MSE[k+1] - MSE[k] summed over
+    channels.
+    """
+    nk = bank.n_scales - 1
+    h, w = count.shape
+    stops = np.zeros((nk, h, w), bool)
+    delta = np.zeros((nk, h, w))
+    rho_z = np.zeros((1, 1))
+    if gamma is not None:
+        rho_z = (1.0 - 1.0 / np.maximum(count, 1)) * z_of_gamma(gamma)
+    # channel sums of each scale's variance, once (each serves two pairs)
+    vsum = [_chan_sum(v) for v in bank.var]
+    dv = None
+    for k in range(nk):
+        r_f, r_c = _pair_radii(bank, k)
+        dv = np.subtract(bank.values[k + 1], bank.values[k], out=dv)
+        e = np.einsum("ijc,ijc->ij", dv, dv)
+        _stop_pair(e, bias_coefficient(r_f, r_c), vsum[k + 1], vsum[k], rho_z, gamma is not None,
+                   delta[k], stops[k])
+    return stops, delta
+
+
+# ----------------------------------------------------------------------------
+# Outlier removal (Sec. 4.4, Sec. 6)
+# ----------------------------------------------------------------------------
+
+def remove_outliers(stops: np.ndarray, sigmas, *, final: bool = False, size_factor: float | None = None,
+                    voters: np.ndarray | None = None, truncate: float = TRUNCATE,
+                    threads: int | None = None) -> np.ndarray:
+    """Filter each binary stopping map and round it back to binary (Sec. 4.4, Sec. 6).
+
+    Map k (pair k -> k+1) is filtered with a sampled Gaussian of the
+    coarse scale's sigma (``final``: twice that, Sec. 6) with the centre
+    pixel's weight set to 0 ("we ignore the center pixel", Sec. 4.4),
+    renormalised over the pixels that vote; the result is rounded
+    (>= 0.5 -> 1).  With ``final`` only changes towards the coarser scale
+    (1 -> 0) are accepted.  A pixel without voting neighbours in the
+    support keeps its value.
+
+    Parameters
+    ----------
+    stops : ndarray (K, H, W) bool
+    sigmas : sequence of float (K,)
+        Gaussian scales; the coarse scale of pair k is ``sigmas[k]``.
+    final : bool
+        The final-reconstruction rule of Sec. 6 (twice the size, coarser-only).
+    size_factor : float, optional
+        Override the size factor (default 1, or 2 with ``final``).
+    voters : ndarray (H, W) bool, optional
+        Pixels whose decisions count in the neighbourhood vote (default
+        all).  :func:`gem_select` excludes pixels that skip the search
+        (zero estimated variance, no samples): they did not decide anything.
+    threads : int, optional
+        Worker threads for the map filtering (bit-identical for any value).
+    """
+    factor = size_factor if size_factor is not None else (2.0 if final else 1.0)
+    out = np.empty_like(stops)
+    h, w = stops.shape[1:]
+    vf = np.ones((h, w)) if voters is None else voters.astype(np.float64)
+    full = voters is None or bool(voters.all())
+    ks = [gaussian_kernel(factor * float(sigmas[k]), truncate=truncate) for k in range(stops.shape[0])]
+    ms = [stops[k] * vf for k in range(stops.shape[0])]
+    # every map's vote (and, with non-voters, every weight sum) is an
+    # independent convolution: one batch on the thread pool
+    jobs = [(m, g, None, 0) for m, g in zip(ms, ks)]
+    if not full:
+        jobs += [(vf, g, None, 0) for g in ks]
+    conv = correlate_jobs(jobs, threads)
+    for k in range(stops.shape[0]):
+        g = ks[k]
+        g0 = g[(g.size - 1) // 2] ** 2             # centre weight of the 2-D kernel
+        wsum = separable_weights(h, w, g) if full else conv[stops.shape[0] + k]
+        _vote(conv[k], ms[k], wsum, vf, g0, np.ascontiguousarray(stops[k]), bool(final), out[k])
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _vote(conv, m, wsum, vf, g0, stop, final, out):
+    # num = conv - g0 m and den = W - g0 v (the centre left out); the rounded
+    # vote num / den >= 0.5, or the own decision where nobody else votes;
+    # the final rule only accepts switches towards the coarser scale
+    h, w = conv.shape
+    for i in range(h):
+        for j in range(w):
+            num = conv[i, j] - g0 * m[i, j]
+            den = wsum[i, j] - g0 * vf[i, j]
+            f = stop[i, j] if den <= 1e-9 else (num / den) >= 0.5
+            out[i, j] = (stop[i, j] and f) if final else f
+
+
+def select_from_stops(stops: np.ndarray) -> np.ndarray:
+    """Selected scale: the finest k with stop_k = 1, else the coarsest (K)."""
+    nk = stops.shape[0]
+    any_stop = stops.any(axis=0)
+    first = np.argmax(stops, axis=0)
+    return np.where(any_stop, first, nk).astype(np.int64)
+
+
+# ----------------------------------------------------------------------------
+# Whole selection
+# ----------------------------------------------------------------------------
+
+@dataclasses.dataclass(eq=False)
+class GEMSelection:
+    """Result of :func:`gem_select` / :func:`oracle_select`.
+
+    Attributes
+    ----------
+    bank : FilterBank
+    selected : ndarray (H, W) int
+        Selected scale (0 = pixel filter).
+    stops_raw, stops : ndarray (K, H, W) bool or None
+        Stopping maps before and after outlier removal (None for the oracle).
+    mse : ndarray (H, W, C)
+        Estimated MSE of every pixel's selected filter, per channel.
+    image : ndarray (H, W, C)
+        Values of the selected scales.
+    """
+
+    bank: FilterBank
+    selected: np.ndarray
+    stops_raw: np.ndarray | None
+    stops: np.ndarray | None
+    mse: np.ndarray | None
+    image: np.ndarray
+
+
+def _pick(stack_list, selected):
+    """Per pixel, the entry of the selected scale's array."""
+    arrs = tuple(np.ascontiguousarray(a) for a in stack_list)
+    if len({(a.dtype, a.shape) for a in arrs}) != 1:
+        arrs = tuple(np.ascontiguousarray(a, dtype=np.result_type(*arrs)) for a in arrs)
+    out = np.empty_like(arrs[0])
+    sel = np.ascontiguousarray(selected, dtype=np.int64)
+    h, w = sel.shape
+    c = out.size // max(h * w, 1)
+    _pick_kernel(tuple(a.reshape(h * w, c) for a in arrs), sel.reshape(-1), out.reshape(h * w, c))
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _pick_kernel(arrs, sel, out):
+    for p in range(sel.size):
+        a = arrs[sel[p]]
+        for c in range(out.shape[1]):
+            out[p, c] = a[p, c]
+
+
+def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subpixels: int = 4,
+               want_mse: bool = False, sub: np.ndarray | None = None, exact_below: float = 0.0,
+               outlier_rule: str = "adaptive", zero_variance_votes: bool = False) -> GEMSelection:
+    """Filter selection of Secs. 4 and 6 on pixel arrays (works for 1-D signals as 1 x N images).
+
+    Stopping maps from Eq. 1 weighted by rho z(gamma); pixels without samples
+    never stop at the pixel filter nor at a scale with no data in its
+    support; outlier removal (adaptive or final rule); pixels with zero
+    estimated variance in every channel take the pixel filter without a
+    search (no filter can have a lower estimated MSE than 0).
+
+    Parameters
+    ----------
+    base, mean_var : ndarray (H, W, C)
+    count : ndarray (H, W)
+    sigmas : sequence of float
+    gamma : float
+        0 < gamma < 0.4.
+    final : bool
+        Final reconstruction: use the final outlier rule.
+    want_mse : bool
+        Also estimate the selected filters' MSE per channel (for sampling).
+    sub, exact_below : see :func:`filter_bank`.
+    outlier_rule : {'paper', 'adaptive'}
+        Rule of the final reconstruction: 'paper' (Sec. 6: outlier filter
+        twice the coarse scale, only switches towards the coarser scale
+        accepted) or 'adaptive' (the adaptive phase's rule: the coarse
+        scale's size, both directions).  Ignored when not ``final``.
+    zero_variance_votes : bool
+        Whether pixels with zero estimated variance (which skip the search)
+        vote in the outlier removal of their neighbours.  Their "stop" only
+        reflects their own zero variance, not the local bias; see
+        ``docs/methods/gem.md`` for the measured effect (off while sampling,
+        on in the final reconstruction by default in :class:`GEMMethod`).
+
+    Raises
+    ------
+    InputError
+        NaN or Inf in ``base``, ``mean_var`` or the used ``sub``, a negative
+        ``count`` (naming the argument and the number of bad pixels), or an
+        unknown ``outlier_rule``.
+
+    Notes
+    -----
+    Channels are combined by summing S over channels (the pixel's total
+    squared error), one scale per pixel.  z(gamma) was calibrated by the
+    paper on one channel; with independent noise in three channels the
+    realised error rate departs from gamma (measured in the tests).
+    """
+    count = np.asarray(count)
+    if outlier_rule not in OUTLIER_RULES:
+        raise InputError("gem_select", "outlier_rule", f"{outlier_rule!r}; valid: {', '.join(OUTLIER_RULES)}")
+    _check_inputs("gem_select", base, mean_var, count, sub=sub if _uses_sub(sub, sigmas, exact_below) else None)
+    bank = _filter_bank(base, mean_var, count, sigmas, subpixels=subpixels, per_channel=want_mse,
+                        with_n_eff=want_mse, sub=sub, exact_below=exact_below, truncate=TRUNCATE)
+    stops_raw, _ = stopping_maps(bank, count, gamma)
+    empty = count == 0
+    for k in range(stops_raw.shape[0]):
+        # no data of its own / in the fine scale's support: go coarser
+        stops_raw[k] &= bank.weight[k] > 0
+    zero_var = ~empty
+    for c in range(mean_var.shape[2]):        # np.all(mean_var <= 0, axis=2), without the slow short axis
+        zero_var &= mean_var[..., c] <= 0.0
+    stops = remove_outliers(stops_raw, bank.sigmas, final=final and outlier_rule == "paper",
+                            voters=~empty if zero_variance_votes else ~(empty | zero_var))
+    for k in range(stops.shape[0]):
+        stops[k] &= bank.weight[k] > 0
+    stops[0] |= zero_var
+    selected = select_from_stops(stops)
+    image = _pick(bank.values, selected)
+    mse = estimate_mse(bank, selected, count) if want_mse else None
+    return GEMSelection(bank, selected, stops_raw, stops, mse, image)
+
+
+def oracle_select(base, mean_var, count, sigmas, reference, *, subpixels: int = 4,
+                  sub: np.ndarray | None = None, exact_below: float = 0.0) -> GEMSelection:
+    """The paper's OUR-GRD selection: exhaustive argmin of bias^2 + Var with the true bias.
+
+    The bias of scale k is ``K_k * reference - reference`` (the reference
+    filtered exactly like the data, with the same mask); the pixel filter
+    is unbiased.  The per-sample variance is a property of the renderer
+    that a reference image does not carry, so the variances are the
+    sample estimates (Eq. 2) -- the same ones GEM uses.  The MSE is summed
+    over channels for the choice and kept per channel for sampling.
+
+    Raises
+    ------
+    InputError
+        NaN or Inf in ``base``, ``mean_var``, ``reference`` or the used
+        ``sub``, a negative ``count`` (naming the argument and the number of
+        bad pixels), or a ``reference`` of another shape than ``base``.
+    """
+    ref = np.asarray(reference, dtype=np.float64)
+    count = np.asarray(count)
+    _check_inputs("oracle_select", base, mean_var, count, reference=ref,
+                  sub=sub if _uses_sub(sub, sigmas, exact_below) else None)
+    bank = _filter_bank(base, mean_var, count, sigmas, subpixels=subpixels, per_channel=True, with_n_eff=True,
+                        sub=sub, exact_below=exact_below, truncate=TRUNCATE)
+    rbank = _filter_bank(ref, np.zeros_like(ref), count, sigmas, subpixels=subpixels, per_channel=False,
+                         with_n_eff=False, sub=None, exact_below=0.0, truncate=TRUNCATE)
+    mses = []
+    for k in range(bank.n_scales):
+        b = rbank.values[k] - ref
+        m = b * b + bank.var[k]
+        m = np.where((bank.weight[k] > 0)[..., None], m, np.inf)  # no data in the support
+        mses.append(m)
+    tot = np.stack([m.sum(axis=2) for m in mses])
+    selected = np.argmin(tot, axis=0).astype(np.int64)
+    image = _pick(bank.values, selected)
+    mse = _pick(mses, selected)
+    return GEMSelection(bank, selected, None, None, mse, image)
+
+
+# ----------------------------------------------------------------------------
+# MSE of the selected filters (Sec. 5)
+# ----------------------------------------------------------------------------
+
+def estimate_mse(bank: FilterBank, selected: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """MSE of the selected filter per channel by accumulating Delta-MSE estimates (Sec. 5).
+
+    ``MSE_0 = Var_0`` (the pixel filter is unbiased); ``MSE_{k+1} = MSE_k +
+    bias_k + Var_{k+1} - Var_k`` with the unweighted approximate bias term
+    of Eq. 1 (gamma only calibrates the decision).  An estimate below the
+    selected filter's own variance is raised to it (MSE = bias^2 + Var >=
+    Var).  Pixels without samples get +inf.
+    """
+    v0 = bank.values[0]
+    if not (v0.ndim == 3 and all(v.shape == v0.shape for v in bank.var)):
+        return _estimate_mse_numpy(bank, selected, count)
+    h, w, c = v0.shape
+
+    def flat(a):
+        return np.ascontiguousarray(a, dtype=np.float64).reshape(h * w, c)
+
+    sel = np.ascontiguousarray(selected, dtype=np.int64).reshape(-1)
+    coefs = np.array([bias_coefficient(*_pair_radii(bank, k)) for k in range(bank.n_scales - 1)])
+    out = np.empty((h * w, c))
+    _mse_kernel(tuple(flat(v) for v in bank.values), tuple(flat(v) for v in bank.var), coefs, sel, out)
+    out[np.asarray(count).reshape(-1) == 0] = np.inf
+    return out.reshape(h, w, c)
+
+
+@numba.njit(cache=True, nogil=True)
+def _mse_kernel(values, var, coefs, sel, out):
+    # MSE_0 = Var_0; MSE_{k+1} = MSE_k + coef_k (v_{k+1} - v_k)^2 + Var_{k+1} - Var_k,
+    # accumulated only up to the pixel's selected scale s (the rest is never
+    # read), in the order of the numpy in-place updates; out = max(MSE_s, Var_s)
+    n, c = out.shape
+    for p in range(n):
+        s = sel[p]
+        for ch in range(c):
+            m = var[0][p, ch]
+            for k in range(s):
+                d = values[k + 1][p, ch] - values[k][p, ch]
+                d = d * d
+                d = d * coefs[k]
+                m = m + d
+                m = m + var[k + 1][p, ch]
+                m = m - var[k][p, ch]
+            out[p, ch] = m if s == 0 else max(m, var[s][p, ch])
+
+
+def _estimate_mse_numpy(bank: FilterBank, selected: np.ndarray, count: np.ndarray) -> np.ndarray:
+    # the reference formulation (any shapes numpy broadcasts)
+    mse = bank.var[0].copy()
+    out = mse.copy()
+    for k in range(bank.n_scales - 1):
+        r_f, r_c = _pair_radii(bank, k)
+        dv = bank.values[k + 1] - bank.values[k]
+        dv *= dv
+        dv *= bias_coefficient(r_f, r_c)
+        mse += dv
+        mse += bank.var[k + 1]
+        mse -= bank.var[k]
+        sel = selected == k + 1
+        out[sel] = np.maximum(mse[sel], bank.var[k + 1][sel])
+    return np.where((count == 0)[..., None], np.inf, out)
