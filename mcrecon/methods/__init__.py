@@ -18,8 +18,8 @@ __all__ = ["METHODS", "get_method", "method_class", "available_methods", "Method
 METHODS = {
     "box": "mcrecon.methods.box:BoxMethod",
     "gem": "mcrecon.methods.gem:GEMMethod",
-    "awr": "mcrecon.methods.awr:AWRMethod",
-    "splat": "mcrecon.methods.splat:SplatMethod",
+    "awr": "mcrecon.methods.awr.method:AWRMethod",
+    "splat": "mcrecon.methods.splat.method:SplatMethod",
     "ci": "mcrecon.methods.tamstorf:CIMethod",
 }
 

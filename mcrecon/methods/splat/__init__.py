@@ -1,0 +1,34 @@
+"""``splat``: progressive variable-width Epanechnikov splatting of individual samples (Suykens and Willems 2000).
+
+The method filters *samples*, not pixels: every sample is spread over the
+image with an Epanechnikov kernel whose width grows with how "bad" the
+sample is compared with the current estimate of the image (Eq. 8), and
+shrinks as the number of samples grows; the image is built progressively
+in doubling rounds (Fig. 3).
+
+:mod:`.kernels`
+    The footprint of one sample: Eq. 4, the numba scatter loops, :func:`splat`.
+:mod:`.progressive`
+    Eq. 8 widths, the running image of Fig. 3 (:class:`ProgressiveSplatter`),
+    round schedules.
+:mod:`.method`
+    :class:`SplatMethod` behind the method contract.
+
+See ``docs/methods/splat.md`` for the paper-to-code map.
+
+References
+----------
+.. [1] F. Suykens and Y. D. Willems, "Adaptive Filtering for Progressive
+   Monte Carlo Image Rendering", WSCG 2000.
+.. [2] I. S. Abramson, "On bandwidth variation in kernel estimates - a
+   square root law", Annals of Statistics 10(4), 1982.
+"""
+
+from .kernels import BOUNDARY_MODES, epanechnikov, splat
+from .method import SplatMethod
+from .progressive import LUMINANCE_WEIGHTS, NORMS, ProgressiveSplatter, kernel_width, pilot_width, sample_norm
+# Importable from here as before, though not in __all__:
+from .progressive import doubling_schedule  # noqa: F401
+
+__all__ = ["SplatMethod", "ProgressiveSplatter", "epanechnikov", "kernel_width", "pilot_width",
+           "sample_norm", "splat", "BOUNDARY_MODES", "NORMS", "LUMINANCE_WEIGHTS"]

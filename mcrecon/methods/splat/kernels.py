@@ -1,0 +1,260 @@
+"""The footprint of one sample (Suykens and Willems 2000, Eq. 3, 4): the Epanechnikov kernel and the scatter loops.
+
+Discretisation (see ``docs/methods/splat.md``)
+    The paper's *width* ``h`` is read as the kernel **diameter** in
+    pixels (its numbers only agree that way: C' = 8 "gives a diameter of
+    8-10 pixels", the minimum width is "one pixel wide"); the support
+    radius is ``h / 2``.  The kernel is evaluated at the pixel centres
+    ``(i + 1/2, j + 1/2)`` inside the support and the weights of one
+    sample are divided by their sum, so each sample deposits exactly its
+    energy (the constant ``2 / (pi r^2)`` of Eq. 4 cancels).  When no
+    centre lies inside the support (possible only for ``r < 1/sqrt(2)``)
+    the sample goes wholly to its own pixel, whose centre is always the
+    nearest one; at the minimum width of one pixel every sample therefore
+    lands in its own pixel, i.e. the method becomes the pixel mean.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from ...errors import InputError
+from ...samples import check_samples
+
+__all__ = ["BOUNDARY_MODES", "epanechnikov", "splat"]
+
+#: Boundary remedies (paper Sec. 5): ``mirror`` reflects the kernel weights
+#: that fall outside the film back across the border (kernel mirroring),
+#: ``renormalize`` normalises each footprint over the in-film centres only,
+#: ``none`` normalises over the unbounded grid and drops what falls outside
+#: (the paper's implementation: the border darkens).
+BOUNDARY_MODES = ("mirror", "renormalize", "none")
+_BOUNDARY_CODE = {"mirror": 0, "renormalize": 1, "none": 2}
+
+
+def epanechnikov(x) -> np.ndarray:
+    """Eq. 4: ``K(x) = (2/pi)(1 - |x|^2)`` for ``|x| < 1``, else 0 (2-D, integrates to 1).
+
+    Parameters
+    ----------
+    x : array_like, shape (..., 2)
+        Points in the plane (kernel coordinates).
+
+    Returns
+    -------
+    ndarray, shape (...)
+    """
+    x = np.asarray(x, dtype=np.float64)
+    q = np.sum(x * x, axis=-1)
+    return np.where(q < 1.0, (2.0 / np.pi) * (1.0 - q), 0.0)
+
+
+# ----------------------------------------------------------------------------
+# numba scatter loops
+# ----------------------------------------------------------------------------
+
+@numba.njit(cache=True, nogil=True)
+def _reflect(i, n):
+    """Mirror index i into [0, n) about the film borders (repeatedly, for kernels wider than the film)."""
+    period = 2 * n
+    m = i % period
+    if m < 0:
+        m += period
+    if m >= n:
+        m = period - 1 - m
+    return m
+
+
+@numba.njit(cache=True, nogil=True)
+def _splat_loop(pos, val, scale, radius, mode, out):
+    """Deposit each sample's ``val * scale`` with a normalised Epanechnikov footprint.
+
+    ``radius[k] <= 0`` skips sample k (G = 0).  mode: 0 mirror,
+    1 renormalise, 2 none (drop off-film weight).  Returns the number of
+    samples that fell back to their own pixel (no centre covered).
+    One pass computes the weights of the covered centres into a scratch
+    buffer (with their film indices after mirroring), the second deposits
+    them divided by their sum.
+    """
+    h = out.shape[0]
+    w = out.shape[1]
+    nc = out.shape[2]
+    n = pos.shape[0]
+    rmax = 0.0
+    for k in range(n):
+        if radius[k] > rmax:
+            rmax = radius[k]
+    side = 2 * int(math.ceil(rmax)) + 2
+    cap = side * side
+    wbuf = np.empty(cap)
+    ibuf = np.empty(cap, np.int64)
+    jbuf = np.empty(cap, np.int64)
+    vv = np.empty(nc)
+    n_fallback = 0
+    for k in range(n):
+        r = radius[k]
+        if not r > 0.0:
+            continue
+        x = np.float64(pos[k, 0])
+        y = np.float64(pos[k, 1])
+        for c in range(nc):
+            vv[c] = val[k, c]
+        r2 = r * r
+        inv_r2 = 1.0 / r2
+        # centres c = j + 1/2 with |c - y| < r  <=>  y - 1/2 - r < j < y - 1/2 + r
+        jlo = int(math.floor(y - 0.5 - r)) + 1
+        jhi = int(math.ceil(y - 0.5 + r)) - 1
+        if mode == 1:
+            jlo = max(jlo, 0)
+            jhi = min(jhi, h - 1)
+        s = 0.0
+        m = 0
+        for j in range(jlo, jhi + 1):
+            dy = j + 0.5 - y
+            rem = r2 - dy * dy
+            if rem <= 0.0:
+                continue
+            jj = j
+            if j < 0 or j >= h:
+                jj = -1 if mode == 2 else _reflect(j, h)
+            half = math.sqrt(rem)
+            ilo = int(math.floor(x - 0.5 - half)) + 1
+            ihi = int(math.ceil(x - 0.5 + half)) - 1
+            if mode == 1:
+                ilo = max(ilo, 0)
+                ihi = min(ihi, w - 1)
+            dy2 = dy * dy * inv_r2
+            for i in range(ilo, ihi + 1):
+                dx = i + 0.5 - x
+                q = dx * dx * inv_r2 + dy2
+                if q < 1.0:
+                    wt = 1.0 - q
+                    s += wt
+                    ii = i
+                    if i < 0 or i >= w:
+                        ii = -1 if mode == 2 else _reflect(i, w)
+                    wbuf[m] = wt
+                    ibuf[m] = ii
+                    jbuf[m] = jj
+                    m += 1
+        if not s > 0.0:
+            # No pixel centre inside the support: the whole sample goes to its
+            # own pixel (whose centre is the nearest one).
+            n_fallback += 1
+            px = min(max(int(math.floor(x)), 0), w - 1)
+            py = min(max(int(math.floor(y)), 0), h - 1)
+            e = scale[k]
+            for c in range(nc):
+                out[py, px, c] += vv[c] * e
+            continue
+        e = scale[k] / s
+        if nc == 3:
+            # the common RGB case, unrolled (about 1.3x faster)
+            v0 = vv[0] * e
+            v1 = vv[1] * e
+            v2 = vv[2] * e
+            for t in range(m):
+                ii = ibuf[t]
+                jj = jbuf[t]
+                if ii < 0 or jj < 0:
+                    continue  # mode none: weight outside the film is lost
+                wt = wbuf[t]
+                out[jj, ii, 0] += v0 * wt
+                out[jj, ii, 1] += v1 * wt
+                out[jj, ii, 2] += v2 * wt
+            continue
+        for t in range(m):
+            ii = ibuf[t]
+            jj = jbuf[t]
+            if ii < 0 or jj < 0:
+                continue  # mode none: weight outside the film is lost
+            wt = wbuf[t] * e
+            for c in range(nc):
+                out[jj, ii, c] += vv[c] * wt
+    return n_fallback
+
+
+#: Samples per call above which the scatter runs on _N_BLOCKS fixed blocks
+#: in parallel, each into its own buffer, summed in block order: the result
+#: depends on the inputs only (not on the thread count), as resuming needs.
+_PARALLEL_MIN = 1 << 17
+_N_BLOCKS = 2
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _splat_blocks(pos, val, scale, radius, mode, out, n_blocks):
+    n = pos.shape[0]
+    h, w, nc = out.shape
+    bufs = np.zeros((n_blocks, h, w, nc))
+    fb = np.zeros(n_blocks, np.int64)
+    for b in numba.prange(n_blocks):
+        a = n * b // n_blocks
+        e = n * (b + 1) // n_blocks
+        fb[b] = _splat_loop(pos[a:e], val[a:e], scale[a:e], radius[a:e], mode, bufs[b])
+    for b in range(n_blocks):
+        out += bufs[b]
+    return fb.sum()
+
+
+def _scatter(pos, val, scale, radius, mode, out) -> int:
+    """The scatter loop, on two cores for large batches (deterministic block split)."""
+    if pos.shape[0] >= _PARALLEL_MIN:
+        return int(_splat_blocks(pos, val, scale, radius, mode, out, _N_BLOCKS))
+    return int(_splat_loop(pos, val, scale, radius, mode, out))
+
+
+def splat(positions, values, widths, *, width: int, height: int, scale=1.0, boundary: str = "mirror",
+          out: np.ndarray | None = None) -> np.ndarray:
+    """Splat samples with normalised Epanechnikov footprints of the given diameters.
+
+    Parameters
+    ----------
+    positions : array_like (N, 2)
+        Film positions (x column, y row), inside [0, width) x [0, height).
+    values : array_like (N, C)
+    widths : array_like (N,) or scalar
+        Kernel diameters in pixels (the paper's h); ``<= 0`` skips a sample.
+    scale : array_like (N,) or scalar
+        Energy multiplier per sample: sample k deposits ``values[k] * scale[k]`` in total.
+    boundary : {'mirror', 'renormalize', 'none'}
+        See :data:`BOUNDARY_MODES`.
+    out : ndarray (H, W, C) float64, optional
+        Accumulate into it (in place).
+
+    Returns
+    -------
+    ndarray (H, W, C) float64
+        With ``mirror`` or ``renormalize``, ``out.sum(axis=(0, 1))`` grows by
+        exactly ``(values * scale).sum(axis=0)`` (up to rounding).
+
+    Raises
+    ------
+    InputError
+        Mis-shaped arrays, positions non-finite or off the film (the
+        checks of :func:`mcrecon.samples.check_samples`), an unknown
+        ``boundary``, an ``out`` of the wrong shape or dtype.  NaN or Inf
+        *values* are splatted as given: apply a policy first
+        (:func:`mcrecon.samples.apply_nonfinite`).
+    """
+    if boundary not in _BOUNDARY_CODE:
+        raise InputError("splat", "boundary", f"{boundary!r}; valid: {', '.join(BOUNDARY_MODES)}")
+    val = np.asarray(values)
+    if val.ndim == 1:
+        val = val[:, None]
+    pos, val, _ = check_samples(positions, val, width=width, height=height,
+                                n_channels=val.shape[1] if val.ndim == 2 else 1, where="splat")
+    pos = np.ascontiguousarray(pos, dtype=np.float64)
+    val = np.ascontiguousarray(val, dtype=np.float64)
+    n = pos.shape[0]
+    radius = np.ascontiguousarray(np.broadcast_to(np.asarray(widths, dtype=np.float64), (n,))) * 0.5
+    sc = np.ascontiguousarray(np.broadcast_to(np.asarray(scale, dtype=np.float64), (n,)))
+    if out is None:
+        out = np.zeros((height, width, val.shape[1]))
+    elif out.shape != (height, width, val.shape[1]) or out.dtype != np.float64:
+        raise InputError("splat", "out", f"shape {out.shape} dtype {out.dtype}, expected "
+                         f"{(height, width, val.shape[1])} float64")
+    _scatter(pos, val, sc, radius, _BOUNDARY_CODE[boundary], out)
+    return out

@@ -1,0 +1,218 @@
+"""The ``splat`` method: progressive splatting behind the method contract (Suykens and Willems 2000)."""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import numpy as np
+
+from ...errors import InputError, McreconWarning
+from ...protocol import SampleBatch, SampleRequest
+from ...samples import check_policy, source_name
+from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState
+from .kernels import BOUNDARY_MODES
+from .progressive import NORMS, ProgressiveSplatter, _next_round, _select_by_rank, doubling_schedule
+
+__all__ = ["SplatMethod", "SplatRun"]
+
+
+class SplatMethod(Method):
+    """Progressive variable-width Epanechnikov splatting (Suykens and Willems 2000).
+
+    Options
+    -------
+    alpha : float
+        Exponent of N in Eq. 8 (default 1.5/5 = 0.3, the paper's Sec. 5); 0 < alpha <= 1.
+    c : float
+        C of Eq. 8, the reference diameter in pixels at N = 1, G/f = 1 (default 4).
+    c_prime : float
+        C' of the pilot estimate, diameter C' N0^-1/2 (default 8: 8 px at N0 = 1).
+    initial_spp : int
+        N_0, samples per pixel of the first (stored) round (default 1).
+    min_width, max_width : float
+        Clamp of the kernel diameter in pixels (default 1 = "one pixel" of
+        the paper, and 32: the cap for huge G/f and f = 0).
+    boundary : {'mirror', 'renormalize', 'none'}
+        Boundary-bias remedy (Sec. 5); default mirror.
+    norm : {'luminance', 'mean', 'max'}
+        Scalar G of a colour sample (and f of a pixel) in Eq. 8.
+
+    Notes
+    -----
+    The method declares ``requires.samples``: it filters individual
+    samples.  Adaptive runs: ``plan`` asks every pixel for the same count
+    each round, N_j = 2 N_{j-1} from ``initial_spp``, the last round
+    absorbing the remainder; budgets below one sample per pixel are
+    refused and a remainder of fewer samples than pixels is left unspent
+    (Eq. 3 assumes an even sample density).  ``observe`` splats each
+    committed round.  Offline (``inputs.samples``, a sample source such as
+    a log): its rounds are replayed in order; a single-round source is
+    split into doubling pseudo-rounds by each pixel's sample order.
+
+    References
+    ----------
+    .. [1] F. Suykens and Y. D. Willems, "Adaptive Filtering for Progressive
+       Monte Carlo Image Rendering", WSCG 2000 (Eqs. 3, 4, 8; Fig. 3; Sec. 5).
+    """
+
+    name = "splat"
+    adaptive = False
+    requires = Requirements(samples=True, statistics=False)
+    options = (
+        Option("alpha", float, 0.3, "exponent of N in the kernel width (Eq. 8), 0 < alpha <= 1",
+               min=0.0, max=1.0, min_open=True,
+               note="the paper uses 1.5/5; 1/5 and 1/2 are the classical extremes"),
+        Option("c", float, 4.0, "kernel diameter constant C in pixels (Eq. 8)", min=0.0, min_open=True),
+        Option("c_prime", float, 8.0, "pilot kernel diameter constant C' in pixels (C' N0^-1/2)",
+               min=0.0, min_open=True),
+        Option("initial_spp", int, 1, "samples per pixel of the first round N0", min=1),
+        Option("min_width", float, 1.0, "smallest kernel diameter in pixels (>= 1)", min=1.0),
+        Option("max_width", float, 32.0, "largest kernel diameter in pixels (cap for huge G/f; >= min_width)",
+               min=1.0),
+        Option("boundary", str, "mirror", "boundary-bias remedy", BOUNDARY_MODES),
+        Option("norm", str, "luminance", "scalar value of a colour sample in Eq. 8", NORMS),
+    )
+
+    def _configure(self, params: dict) -> None:
+        if params["max_width"] < params["min_width"]:
+            raise InputError(self.where, "max_width", f"{params['max_width']!r}, expected >= min_width "
+                             f"({params['min_width']!r})")
+
+    def _new_splatter(self, width, height, n_channels) -> ProgressiveSplatter:
+        p = self.params
+        return ProgressiveSplatter(width, height, n_channels, c=p["c"], alpha=p["alpha"], c_prime=p["c_prime"],
+                                   min_width=p["min_width"], max_width=p["max_width"],
+                                   boundary=p["boundary"], norm=p["norm"])
+
+    def start(self, width, height, channels=("R", "G", "B"), *, reference=None) -> "SplatRun":
+        base = super().start(width, height, channels, reference=reference)
+        return SplatRun(**dataclasses.asdict(base),
+                        splatter=self._new_splatter(base.width, base.height, len(base.channels)))
+
+    # ------------------------------------------------------------ offline
+    def reconstruct_run(self, run: "SplatRun", inputs: MethodInputs) -> np.ndarray:
+        """Replay the sample source's rounds in order through the progressive algorithm.
+
+        A source with a single round (an offline render) is split into
+        pseudo-rounds N_0 = initial_spp, N_j = 2 N_{j-1}: within each pixel,
+        its samples are taken in source order and the k-th of the pixel's
+        ``n_p`` samples goes to the round whose share of ``n_p`` contains k
+        (the schedule is built for ``m = min_p n_p`` samples per pixel and
+        scaled by ``n_p / m``, so every pseudo-round samples every pixel).
+        A plain order split would put image rows, not samples per pixel,
+        into rounds for logs sorted by pixel.  ``inputs.nonfinite`` applies
+        to NaN/Inf values (one warning with their number).
+        """
+        src = inputs.samples
+        where = source_name(src)
+        nonfinite = check_policy(inputs.nonfinite, where)
+        if run.splatter.rounds or run.splatter.n_nonfinite:  # a reused run state starts over
+            run.splatter = self._new_splatter(run.width, run.height, len(run.channels))
+        sp = run.splatter
+        rounds = [r for r, (a, b) in enumerate(src.round_slices()) if b > a]
+        if len(rounds) >= 2:
+            for r in rounds:
+                sp.add_round_stream(lambda r=r: _arrays(src.iter_chunks(rounds=[r], with_round=False)),
+                                    nonfinite=nonfinite, where=where)
+        elif rounds:
+            self._replay_single_round(src, sp, nonfinite, where)
+        if sp.n_nonfinite:
+            warnings.warn(f"{where}: values: {sp.n_nonfinite} sample(s) with NaN or Inf "
+                          f"{'dropped' if nonfinite == 'drop' else 'set to 0'} (policy nonfinite={nonfinite!r})",
+                          McreconWarning, stacklevel=2)
+        self._set_diagnostics(run)
+        if not rounds:
+            warnings.warn(f"{where}: no samples at all; the image is 0", McreconWarning, stacklevel=2)
+        return sp.image.copy()
+
+    @staticmethod
+    def _pixel_index(pos, width, height):
+        ix = np.clip(np.floor(pos[:, 0]).astype(np.int64), 0, width - 1)
+        iy = np.clip(np.floor(pos[:, 1]).astype(np.int64), 0, height - 1)
+        return iy * width + ix
+
+    def _replay_single_round(self, src, sp, nonfinite, where):
+        w, h = src.width, src.height
+        n_p = np.zeros(w * h, np.int64)
+        for ch in src.iter_chunks(with_round=False):
+            n_p += np.bincount(self._pixel_index(np.asarray(ch.positions), w, h), minlength=w * h)
+        m = int(n_p.min())
+        if m == 0:
+            # Some pixel has no sample at all: schedule for the mean count.
+            m = max(1, int(n_p.sum() // (w * h)))
+        sched = doubling_schedule(m, min(self.params["initial_spp"], m))
+        ends = np.cumsum(sched)
+        bounds = [np.zeros(w * h, np.int64)] + [(int(t) * n_p) // m for t in ends]
+        bounds[-1] = n_p  # the last round takes every remaining sample of every pixel
+
+        def pseudo_round(j):
+            rank = np.zeros(w * h, np.int64)
+            lo, hi = bounds[j], bounds[j + 1]
+            for pos, val in _arrays(src.iter_chunks(with_round=False)):
+                pos = np.asarray(pos)
+                mask = np.empty(pos.shape[0], np.bool_)
+                _select_by_rank(self._pixel_index(pos, w, h), rank, lo, hi, mask)
+                if mask.any():
+                    yield pos[mask], np.asarray(val)[mask]
+
+        for j in range(len(sched)):
+            sp.add_round_stream(lambda j=j: pseudo_round(j), nonfinite=nonfinite, where=where)
+
+    # ----------------------------------------------------------- adaptive
+    def plan(self, run: "SplatRun", state: AdaptiveState) -> SampleRequest | None:
+        """Every pixel gets N_j samples: N_0 = initial_spp, N_j = 2 N_{j-1}, the last round absorbing the rest."""
+        p_film = state.width * state.height
+        total_spp = state.budget // p_film
+        if total_spp < 1 and run.n_rounds_seen == 0:
+            raise InputError(self.where, "spp", f"budget of {state.budget} samples is below one sample per "
+                             f"pixel ({p_film} pixels): splatting rounds sample every pixel")
+        rem = min(total_spp - int(round(run.spp_done)), state.remaining // p_film)
+        if rem < 1:
+            return None
+        n = _next_round(rem, run.prev_spp, self.params["initial_spp"])
+        return state.request(counts=np.full((state.height, state.width), n, np.int64))
+
+    def observe(self, run: "SplatRun", batch: SampleBatch, round_index: int) -> None:
+        """Splat a committed round.
+
+        Non-finite values are dropped (the driver's statistics have already
+        applied and reported its policy).
+        """
+        pos = np.asarray(batch.positions)
+        val = np.asarray(batch.values)
+        if val.ndim == 1:
+            val = val[:, None]
+        run.n_rounds_seen += 1
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", McreconWarning)
+            run.splatter.add_round(pos, val, nonfinite="drop", where=self.where)
+        run.prev_spp = pos.shape[0] / (run.width * run.height)
+        run.spp_done += run.prev_spp
+
+    def finish(self, run: "SplatRun", state: AdaptiveState) -> np.ndarray:
+        """The running image f_J (a copy)."""
+        self._set_diagnostics(run)
+        if not run.splatter.rounds:
+            warnings.warn("method splat: no round observed; the image is 0", McreconWarning, stacklevel=2)
+        return run.splatter.image.copy()
+
+    @staticmethod
+    def _set_diagnostics(run: "SplatRun") -> None:
+        run.diagnostics["kernel_width"] = run.splatter.last_widths.copy()
+
+
+def _arrays(chunks):
+    """(positions, values) of each chunk of a sample source."""
+    for ch in chunks:
+        yield ch.positions, ch.values
+
+
+@dataclasses.dataclass(eq=False)
+class SplatRun(RunState):
+    """Per-run state of :class:`SplatMethod`: the progressive splatter and the round schedule so far."""
+
+    splatter: ProgressiveSplatter | None = None
+    prev_spp: float | None = None
+    spp_done: float = 0.0
+    n_rounds_seen: int = 0

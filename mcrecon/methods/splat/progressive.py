@@ -1,0 +1,425 @@
+"""Progressive rendering (Suykens and Willems 2000, Eq. 8, Fig. 3): kernel widths, the running image, round schedules.
+
+Every sample is spread with an Epanechnikov footprint (:mod:`.kernels`)
+whose width grows with how "bad" the sample is compared with the current
+estimate of the image (Eq. 8: :func:`kernel_width`, and its numba twin
+used by the splatter) and shrinks as the number of samples grows.  The
+images are built progressively (Fig. 3, :class:`ProgressiveSplatter`):
+only the first batch is needed twice (for the pilot estimate,
+:func:`pilot_width`, and the first variable-width estimate); every later
+round scales the running image down and splats its samples with the
+previous image as the width reference.  Rounds double
+(:func:`doubling_schedule`).
+
+Energy per sample
+    A sample of round j in pixel p carries ``F / n_pj`` (F its value,
+    ``n_pj`` the samples of p in that round), which is Eq. 3's
+    ``G / N`` for stratified sampling with N_j samples per pixel; rounds
+    are combined with the weights ``N_j / N_total`` of Fig. 3's scale-down.
+
+Samples are validated, and NaN/Inf values handled, by the one path of
+:mod:`mcrecon.samples` (:func:`~mcrecon.samples.check_samples`,
+:func:`~mcrecon.samples.apply_nonfinite`).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Callable, Iterable
+
+import numba
+import numpy as np
+
+from ...errors import InputError, McreconWarning
+from ...samples import apply_nonfinite, check_policy, check_samples
+from .kernels import BOUNDARY_MODES, _BOUNDARY_CODE, _scatter
+
+__all__ = ["NORMS", "LUMINANCE_WEIGHTS", "kernel_width", "pilot_width", "sample_norm", "ProgressiveSplatter",
+           "doubling_schedule"]
+
+#: Scalar "value" G of a sample (and f of a pixel) used by Eq. 8 for
+#: colour: ``luminance`` = Rec. 709 luminance of the absolute channel values
+#: (1 channel: its absolute value), ``mean`` = mean absolute channel value,
+#: ``max`` = largest absolute channel value.  Absolute values: a negative
+#: sample is as "bad" as a positive one of the same magnitude, and G = 0
+#: only for an all-zero sample.
+NORMS = ("luminance", "mean", "max")
+LUMINANCE_WEIGHTS = np.array([0.2126, 0.7152, 0.0722])
+
+
+# ----------------------------------------------------------------------------
+# Eq. 8 (vectorised reference forms; the numba loops below are the fast path)
+# ----------------------------------------------------------------------------
+
+def kernel_width(g, f, n, *, c: float = 4.0, alpha: float = 0.3, min_width: float = 1.0,
+                 max_width: float = 32.0) -> np.ndarray:
+    """Eq. 8: kernel diameter ``h = C N^-alpha (G / f)^(1/2)``, clamped to [min_width, max_width].
+
+    Parameters
+    ----------
+    g : array_like
+        Sample values G (any sign: the magnitude is used).
+    f : array_like
+        Reference estimate f at the samples' positions (magnitude used).
+        ``f = 0`` (or non-finite) gives the maximum width: nothing is known
+        there, so the sample is spread as far as allowed.
+    n : array_like
+        Samples per pixel N (>= 1).
+
+    Returns
+    -------
+    ndarray of float64
+        Diameters in pixels.  ``G = 0`` gives ``min_width`` (such samples
+        carry no energy; :func:`splat` skips them).
+
+    References
+    ----------
+    .. [1] Suykens and Willems 2000, Eq. 8 (after Abramson's square-root law, Eq. 5).
+    """
+    g = np.abs(np.asarray(g, dtype=np.float64))
+    f = np.abs(np.asarray(f, dtype=np.float64))
+    n = np.asarray(n, dtype=np.float64)
+    ok = np.isfinite(f) & (f > 0)
+    fs = np.where(ok, f, 1.0)
+    # sqrt(g)/sqrt(f) rather than sqrt(g/f): no overflow for f ~ 1e-300.
+    h = np.where(ok, c * n ** (-alpha) * np.sqrt(g) / np.sqrt(fs), np.inf)
+    return np.clip(h, min_width, max_width)
+
+
+def pilot_width(n, *, c_prime: float = 8.0, min_width: float = 1.0, max_width: float = 32.0) -> np.ndarray:
+    """Fig. 3's pilot: fixed diameter ``h' = C' N0^(-1/2)``, clamped to [min_width, max_width]."""
+    n = np.asarray(n, dtype=np.float64)
+    return np.clip(c_prime * n ** -0.5, min_width, max_width)
+
+
+def sample_norm(values, norm: str = "luminance") -> np.ndarray:
+    """The scalar G of samples (N, C) or pixels (H, W, C) under ``norm`` (see :data:`NORMS`)."""
+    v = np.abs(np.asarray(values, dtype=np.float64))
+    c = v.shape[-1]
+    if norm == "luminance":
+        if c == 1:
+            return v[..., 0]
+        if c != 3:
+            raise InputError("method splat", "norm", f"'luminance' needs 1 or 3 (R, G, B) channels, "
+                             f"got {c}; use norm='mean' or 'max'")
+        return v @ LUMINANCE_WEIGHTS
+    if norm == "mean":
+        return v.mean(axis=-1)
+    if norm == "max":
+        return v.max(axis=-1)
+    raise InputError("method splat", "norm", f"{norm!r}; valid: {', '.join(NORMS)}")
+
+
+@numba.njit(cache=True, nogil=True)
+def _norm_of(val, k, norm_code, weights):
+    nc = val.shape[1]
+    g = 0.0
+    if norm_code == 0:  # weighted sum of |v| (luminance or mean)
+        for c in range(nc):
+            g += weights[c] * abs(np.float64(val[k, c]))
+    else:  # max |v|
+        for c in range(nc):
+            a = abs(np.float64(val[k, c]))
+            if a > g:
+                g = a
+    return g
+
+
+@numba.njit(cache=True, nogil=True)
+def _radii(pos, val, norm_code, weights, ref, nmap, pilot, c, alpha, c_prime, min_w, max_w, out):
+    """Support radius (= diameter / 2) of every sample; -1 for G = 0 samples.
+
+    pilot: fixed diameter C' N^-1/2; else Eq. 8 with ``ref`` (|f| of the
+    sample's pixel under the same norm) and ``nmap`` (N of the sample's pixel).
+    Returns the number of samples whose width hit ``max_w`` (capped).
+    """
+    h = nmap.shape[0]
+    w = nmap.shape[1]
+    n_capped = 0
+    for k in range(pos.shape[0]):
+        g = _norm_of(val, k, norm_code, weights)
+        if g == 0.0:
+            out[k] = -1.0
+            continue
+        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
+        py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+        n = nmap[py, px]
+        if pilot:
+            d = c_prime / math.sqrt(n)
+        else:
+            f = ref[py, px]
+            if f > 0.0 and f < np.inf:
+                d = c * n ** (-alpha) * (math.sqrt(g) / math.sqrt(f))
+            else:
+                d = np.inf  # nothing known here: spread as far as allowed
+        if d >= max_w:
+            if d > max_w:
+                n_capped += 1
+            d = max_w
+        if d < min_w:
+            d = min_w
+        out[k] = 0.5 * d
+    return n_capped
+
+
+# ----------------------------------------------------------------------------
+# The progressive algorithm (Fig. 3)
+# ----------------------------------------------------------------------------
+
+class ProgressiveSplatter:
+    """Fig. 3 of Suykens and Willems (2000): the running image and its update rounds.
+
+    Parameters
+    ----------
+    width, height, n_channels : int
+        Film size and channels.
+    c, alpha, c_prime, min_width, max_width, boundary, norm
+        See :class:`SplatMethod`.
+
+    Attributes
+    ----------
+    image : ndarray (H, W, C) float64
+        The current estimate f_j (after the last round).
+    pilot : ndarray or None
+        f'_0, the fixed-width pilot estimate of the first round.
+    spp_total : float
+        N_total in samples per pixel (mean over the film).
+    cum_counts : ndarray (H, W) int64
+        Samples per pixel over all rounds (the N of Eq. 8 per pixel).
+    rounds : list of dict
+        Per round: spp, samples, capped (width hit max_width), fallback
+        (no centre covered), empty_pixels.
+    n_nonfinite : int
+        Samples with a NaN or Inf value met so far (dropped or set to 0
+        under the ``nonfinite`` policy), each counted once.
+
+    Notes
+    -----
+    Rounds are added with :meth:`add_round` (samples in memory) or
+    :meth:`add_round_stream` (two passes over re-iterable chunks: counts,
+    then splats).  Adding the same rounds in the same order gives the
+    same image bit for bit (the scatter is sequential, or two fixed
+    blocks summed in order: independent of the thread count).  Every
+    chunk is checked by :func:`mcrecon.samples.check_samples` and its
+    NaN/Inf values handled by :func:`mcrecon.samples.apply_nonfinite`
+    under ``nonfinite``, without a warning here: callers report
+    :attr:`n_nonfinite` (:meth:`SplatMethod.reconstruct_run` warns).
+    """
+
+    def __init__(self, width: int, height: int, n_channels: int, *, c: float = 4.0, alpha: float = 0.3,
+                 c_prime: float = 8.0, min_width: float = 1.0, max_width: float = 32.0,
+                 boundary: str = "mirror", norm: str = "luminance"):
+        self.width, self.height, self.n_channels = int(width), int(height), int(n_channels)
+        self.c, self.alpha, self.c_prime = float(c), float(alpha), float(c_prime)
+        self.min_width, self.max_width = float(min_width), float(max_width)
+        if boundary not in _BOUNDARY_CODE:
+            raise InputError("method splat", "boundary", f"{boundary!r}; valid: {', '.join(BOUNDARY_MODES)}")
+        self.boundary = boundary
+        self.norm = norm
+        if norm == "luminance":
+            if self.n_channels == 1:
+                weights = np.ones(1)
+            elif self.n_channels == 3:
+                weights = LUMINANCE_WEIGHTS.copy()
+            else:
+                raise InputError("method splat", "norm", f"'luminance' needs 1 or 3 (R, G, B) channels, got "
+                                 f"{self.n_channels}; use norm='mean' or 'max'")
+            self._norm_code = 0
+        elif norm == "mean":
+            weights = np.full(self.n_channels, 1.0 / self.n_channels)
+            self._norm_code = 0
+        elif norm == "max":
+            weights = np.ones(self.n_channels)
+            self._norm_code = 1
+        else:
+            raise InputError("method splat", "norm", f"{norm!r}; valid: {', '.join(NORMS)}")
+        self._weights = weights
+        self.image = np.zeros((self.height, self.width, self.n_channels))
+        self.pilot = None
+        self.spp_total = 0.0
+        self.cum_counts = np.zeros((self.height, self.width), np.int64)
+        self.rounds: list[dict] = []
+        self.n_nonfinite = 0
+        self.last_widths = np.zeros((self.height, self.width))
+
+    # ------------------------------------------------------------ helpers
+    def _pixel_counts(self, pos) -> np.ndarray:
+        w, h = self.width, self.height
+        ix = np.clip(np.floor(pos[:, 0]).astype(np.int64), 0, w - 1)
+        iy = np.clip(np.floor(pos[:, 1]).astype(np.int64), 0, h - 1)
+        return np.bincount(iy * w + ix, minlength=w * h).reshape(h, w)
+
+    def _validated(self, positions, values, nonfinite, where):
+        """A chunk checked (shapes, positions on the film) and its NaN/Inf values handled under ``nonfinite``.
+
+        Returns ``(positions, values, n_nonfinite)``, contiguous, in the
+        precision given (see :func:`~mcrecon.samples.check_samples`).
+        """
+        pos, val, n_bad = check_samples(positions, values, width=self.width, height=self.height,
+                                        n_channels=self.n_channels, where=where)
+        pos, val = apply_nonfinite(pos, val, n_bad, nonfinite, where=where)
+        return pos, val, n_bad
+
+    def _ref_norm(self, img) -> np.ndarray:
+        """|f| of every pixel under the norm (the reference of Eq. 8)."""
+        return np.ascontiguousarray(sample_norm(img, self.norm))
+
+    def _radii(self, pos, val, ref, pilot) -> tuple[np.ndarray, int]:
+        out = np.empty(pos.shape[0])
+        nmap = np.maximum(self.cum_counts, 1).astype(np.float64)
+        capped = _radii(pos, val, self._norm_code, self._weights, ref, nmap, pilot, self.c, self.alpha,
+                        self.c_prime, self.min_width, self.max_width, out)
+        return out, int(capped)
+
+    def _deposit(self, pos, val, scale, radius, out) -> int:
+        return _scatter(pos, val, scale, radius, _BOUNDARY_CODE[self.boundary], out)
+
+    def _record_widths(self, pos, radius):
+        """Mean kernel diameter of the samples of each pixel (diagnostic), 0 where none splatted."""
+        keep = radius > 0
+        w, h = self.width, self.height
+        ix = np.clip(np.floor(pos[keep, 0]).astype(np.int64), 0, w - 1)
+        iy = np.clip(np.floor(pos[keep, 1]).astype(np.int64), 0, h - 1)
+        idx = iy * w + ix
+        s = np.bincount(idx, weights=2.0 * radius[keep], minlength=w * h)
+        n = np.bincount(idx, minlength=w * h)
+        self._width_sum += s
+        self._width_n += n
+
+    # ------------------------------------------------------------- rounds
+    def add_round(self, positions, values, *, nonfinite: str = "drop", where: str = "samples") -> None:
+        """Add one round held in memory (Fig. 3: the first round, or one loop iteration)."""
+        self.add_round_stream(lambda: iter([(positions, values)]), nonfinite=nonfinite, where=where)
+
+    def add_round_stream(self, chunks: Callable[[], Iterable], *, nonfinite: str = "drop",
+                         where: str = "samples") -> None:
+        """Add one round given as re-iterable chunks: ``chunks()`` yields (positions, values).
+
+        The first round is materialised (Fig. 3 stores the first batch: it
+        is splatted twice); later rounds are streamed twice (counts per
+        pixel, then the splat), so memory stays bounded by the image.
+        """
+        check_policy(nonfinite, where)
+        first = self.spp_total == 0.0
+        if first:
+            parts = []
+            for p, v in chunks():
+                p, v, n_bad = self._validated(p, v, nonfinite, where)
+                self.n_nonfinite += n_bad
+                parts.append((p, np.asarray(v, dtype=np.float64)))
+            if parts:
+                pos = np.ascontiguousarray(np.concatenate([p for p, _ in parts]))
+                val = np.ascontiguousarray(np.concatenate([v for _, v in parts]))
+            else:
+                pos, val = np.zeros((0, 2)), np.zeros((0, self.n_channels))
+            counts = self._pixel_counts(pos)
+        else:
+            counts = np.zeros((self.height, self.width), np.int64)
+            for p, v in chunks():  # first pass: counts per pixel (and the one count of NaN/Inf samples)
+                p, _, n_bad = self._validated(p, v, nonfinite, where)
+                self.n_nonfinite += n_bad
+                counts += self._pixel_counts(p)
+        n_round = int(counts.sum())
+        if n_round == 0:
+            return
+        p_film = self.width * self.height
+        n_j = n_round / p_film  # N_j: mean samples per pixel of this round
+        self.cum_counts += counts
+        # Energy per sample: F / n_pj, so that the round's image is the splat
+        # of its pixel means (Eq. 3 with G / N for stratified sampling).
+        inv_counts = np.where(counts > 0, 1.0 / np.maximum(counts, 1), 0.0)
+        empty = counts == 0
+        self._width_sum = np.zeros(p_film)
+        self._width_n = np.zeros(p_film, np.int64)
+        capped = fallback = 0
+        if first:
+            # f'_0: fixed-width density estimate of the stored first batch (C' N0^-1/2) ...
+            scale = inv_counts[np.clip(np.floor(pos[:, 1]).astype(np.int64), 0, self.height - 1),
+                               np.clip(np.floor(pos[:, 0]).astype(np.int64), 0, self.width - 1)]
+            rad, _ = self._radii(pos, val, np.zeros((self.height, self.width)), True)
+            pilot = np.zeros_like(self.image)
+            self._deposit(pos, val, scale, rad, pilot)
+            self.pilot = pilot
+            # ... then f_0: Eq. 8 widths with f'_0 as the reference, same samples.
+            rad, capped = self._radii(pos, val, self._ref_norm(pilot), False)
+            img = np.zeros_like(self.image)
+            fallback = self._deposit(pos, val, scale, rad, img)
+            self._record_widths(pos, rad)
+            self.image = img
+            self.spp_total = n_j
+        else:
+            ref_img = self.image  # f_{j-1}: the reference for this round's widths
+            ref = self._ref_norm(ref_img)
+            total = self.spp_total + n_j
+            # Scale down: f_j = (N_total - N_j) / N_total * f_{j-1}
+            img = ref_img * (self.spp_total / total)
+            w_round = n_j / total
+            for p, v in chunks():  # second pass: the splat
+                p, v, _ = self._validated(p, v, nonfinite, where)
+                v = np.ascontiguousarray(v, dtype=np.float64)
+                ix = np.clip(np.floor(p[:, 0]).astype(np.int64), 0, self.width - 1)
+                iy = np.clip(np.floor(p[:, 1]).astype(np.int64), 0, self.height - 1)
+                scale = w_round * inv_counts[iy, ix]
+                rad, cap = self._radii(p, v, ref, False)
+                capped += cap
+                fallback += self._deposit(p, v, scale, rad, img)
+                self._record_widths(p, rad)
+            if empty.any():
+                # A pixel this round did not sample keeps its previous estimate
+                # for the round's share (not energy from samples: documented).
+                img[empty] += w_round * ref_img[empty]
+            self.image = img
+            self.spp_total = total
+        with np.errstate(invalid="ignore", divide="ignore"):
+            self.last_widths = np.where(self._width_n > 0, self._width_sum / np.maximum(self._width_n, 1),
+                                        0.0).reshape(self.height, self.width)
+        n_empty = int(empty.sum())
+        self.rounds.append({"spp": n_j, "samples": n_round, "capped": capped, "fallback": fallback,
+                            "empty_pixels": n_empty})
+        if n_empty:
+            warnings.warn(f"{where}: splat round {len(self.rounds) - 1}: {n_empty} pixel(s) without samples in "
+                          "this round" + (" keep their previous estimate for its share (Eq. 3 assumes every "
+                                          "round samples every pixel)" if not first else
+                                          " get only their neighbours' splats in the first round"),
+                          McreconWarning, stacklevel=3)
+
+
+# ----------------------------------------------------------------------------
+# Round schedules
+# ----------------------------------------------------------------------------
+
+def doubling_schedule(total_spp: int, initial_spp: int = 1) -> list[int]:
+    """Round sizes N_0 = initial_spp, N_j = 2 N_{j-1} (Fig. 3) summing to ``total_spp``.
+
+    The last round absorbs the remainder when it is smaller than the next
+    doubling (no round is smaller than its predecessor): 4 spp -> [1, 3],
+    64 spp -> [1, 2, 4, 8, 16, 33].
+    """
+    total_spp = int(total_spp)
+    out = []
+    done = 0
+    while done < total_spp:
+        out.append(_next_round(total_spp - done, out[-1] if out else None, initial_spp))
+        done += out[-1]
+    return out
+
+
+def _next_round(rem: int, prev, initial_spp: int) -> int:
+    if prev is None:
+        return min(int(initial_spp), rem)
+    n = max(1, int(round(2 * prev)))
+    if n >= rem or rem - n < 2 * n:
+        return rem
+    return n
+
+
+@numba.njit(cache=True, nogil=True)
+def _select_by_rank(pix, rank, lo, hi, mask):
+    """Mark samples whose running per-pixel rank lies in [lo[p], hi[p]); advances rank."""
+    for k in range(pix.shape[0]):
+        p = pix[k]
+        r = rank[p]
+        mask[k] = r >= lo[p] and r < hi[p]
+        rank[p] = r + 1
+
