@@ -19,21 +19,25 @@ import dataclasses
 import math
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from .errors import InputError, RendererError
+from .errors import InputError, McreconWarning, RendererError
 from .io.samplelog import (append_log, cast_positions, read_log, set_run_settings, update_round_record,
                            write_log)
 from .methods import Method, get_method
 from .methods.base import AdaptiveState, RunState
 from .protocol import SampleBatch, validate_reply
-from .samples import NONFINITE_POLICIES
+from .samples import FLOAT32_MAX, NONFINITE_POLICIES, float32_loses_spread
 from .stats import PixelStats
 
-__all__ = ["adapt", "resume", "AdaptiveResult", "round_seeds"]
+__all__ = ["adapt", "resume", "AdaptiveResult", "round_seeds", "STORAGE_DTYPES"]
+
+#: Precisions a run's log can store samples in (see :func:`adapt`).
+STORAGE_DTYPES = ("auto", "float32", "float64")
 
 
 @dataclasses.dataclass(eq=False)
@@ -132,7 +136,7 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
           time_limit: float | None = None, progress: bool | None = None, nonfinite: str = "drop",
           max_rounds: int = 10_000, track_error: bool = True, eps: float = 0.01,
           metadata: Mapping | None = None, renderer_spec: Mapping | None = None,
-          overwrite: bool = False, storage_dtype: str = "float32",
+          overwrite: bool = False, storage_dtype: str = "auto",
           on_round: Callable[[dict], Any] | None = None) -> AdaptiveResult:
     """Run adaptive rounds until the budget, the method's target or a time limit.
 
@@ -163,10 +167,16 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
         reference; excluded from the toolkit time).
     renderer_spec : mapping, optional
         How to recreate the renderer (stored with the run for ``--resume``).
-    storage_dtype : {'float32', 'float64'}
-        Precision of the stored positions and values.  The statistics
-        ingest exactly the stored numbers (with or without a log), so a
-        resumed run sees what the uninterrupted one saw.
+    storage_dtype : {'auto', 'float32', 'float64'}
+        Precision of the stored positions and values.  ``auto`` (default)
+        stores what the renderer sends: float32 replies as float32,
+        float64 (and integer) replies as float64, decided on the first
+        reply.  The statistics ingest exactly the stored numbers, so a
+        resumed run sees what the uninterrupted one saw; without a log
+        they ingest the replies in their own precision.  With ``float32``
+        and float64 replies, a round whose values exceed float32's range is
+        refused before it is stored, and a warning (once per run) counts
+        pixels whose spread float32 cannot hold (1e6 +- 1e-3).
 
     Returns
     -------
@@ -182,8 +192,8 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
     if time_limit is not None and not time_limit > 0:
         raise InputError("adapt", "time_limit", f"got {time_limit!r}, expected seconds > 0")
     ref = _check_reference(reference, (h, w, len(channels)))
-    if storage_dtype not in ("float32", "float64"):
-        raise InputError("adapt", "storage_dtype", f"got {storage_dtype!r}; valid: float32, float64")
+    if storage_dtype not in STORAGE_DTYPES:
+        raise InputError("adapt", "storage_dtype", f"got {storage_dtype!r}; valid: {', '.join(STORAGE_DTYPES)}")
     if float(spp) * w * h >= 2.0 ** 62:
         raise InputError("adapt", "spp", f"{spp} samples per pixel on {w}x{h} is beyond any budget "
                          "(at most 2^62 samples)")
@@ -202,7 +212,10 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
                              "or choose another path")
         meta = {"renderer": _renderer_name(renderer), "seed": int(seed), **dict(metadata or {}),
                 "settings": settings}
-        write_log(log_path, np.zeros((0, 2), storage_dtype), np.zeros((0, len(channels)), storage_dtype),
+        # ``auto`` creates float32 datasets; the first reply may turn them into float64
+        # (the log is still empty then, see _resolve_storage).
+        placeholder = "float32" if storage_dtype == "auto" else storage_dtype
+        write_log(log_path, np.zeros((0, 2), placeholder), np.zeros((0, len(channels)), placeholder),
                   width=w, height=h, channels=channels, reference=ref, metadata=meta)
         set_run_settings(log_path, settings)
     stats = PixelStats(w, h, channels, subpixels=method.requires.subpixels)
@@ -262,7 +275,50 @@ def resume(log, renderer, *, progress: bool | None = None, time_limit: float | N
     return _run(renderer, method, run, stats=stats, rounds=records, round_index=sl.n_rounds, budget=budget,
                 seed=int(s["seed"]), log_path=log_path, ref=ref, time_limit=tl, progress=progress,
                 nonfinite=s["nonfinite"], max_rounds=10_000, track_error=track_error, eps=0.01,
-                elapsed=elapsed, on_round=on_round, storage_dtype=s.get("storage_dtype", "float32"))
+                elapsed=elapsed, on_round=on_round,
+                storage_dtype=s.get("storage_dtype", "float32") if sl.n_samples == 0 else str(sl.value_dtype))
+
+
+def _resolve_storage(log_path, reply_dtype) -> str:
+    """``auto`` storage: float32 replies stay float32, anything else is stored as float64.
+
+    Called on the first reply, while the log holds no sample: a float64
+    log replaces the float32 placeholder (same metadata, reference and
+    run settings), atomically.
+    """
+    dtype = "float32" if np.dtype(reply_dtype) in (np.float32, np.float16) else "float64"
+    if log_path is not None and dtype == "float64":
+        sl = read_log(log_path)
+        if sl.value_dtype != np.float64:
+            if sl.n_samples:  # a resumed auto run keeps the log's dtype
+                return str(sl.value_dtype)
+            c = len(sl.channels)
+            write_log(log_path, np.zeros((0, 2), dtype), np.zeros((0, c), dtype), width=sl.width,
+                      height=sl.height, channels=sl.channels, reference=sl.reference(), metadata=sl.metadata)
+            set_run_settings(log_path, {**(sl.run_settings or {}), "storage_dtype": "auto"})
+    return dtype
+
+
+def _to_storage(batch, storage_dtype, stats, name, round_index, warned) -> SampleBatch:
+    """Cast a validated reply to the log's dtype, refusing what float32 cannot hold."""
+    val = np.asarray(batch.values)
+    if storage_dtype == "float32" and val.dtype != np.float32:
+        big = np.isfinite(val) & (np.abs(val) > FLOAT32_MAX)
+        if big.any():
+            raise InputError("adapt", "storage_dtype", f"round {round_index} from {name} holds "
+                             f"{int(big.any(axis=1).sum())} sample(s) beyond float32's range (up to "
+                             f"{float(np.abs(val[big]).max()):.3g}); nothing of this round was stored: run with "
+                             "storage_dtype='auto' or 'float64' (--storage-dtype auto), or --resume with it")
+        if "spread" not in warned:
+            lost = float32_loses_spread(batch.positions, val, width=stats.width, height=stats.height)
+            if lost:
+                warned.add("spread")
+                warnings.warn(f"{name}: round {round_index}: float32 storage loses the spread of the samples in "
+                              f"{lost} pixel(s) (e.g. 1e6 +- 1e-3 rounds to one value, variance 0); keep it with "
+                              "storage_dtype='auto' or 'float64' (--storage-dtype auto)", McreconWarning,
+                              stacklevel=4)
+    return SampleBatch(cast_positions(batch.positions, storage_dtype), val.astype(storage_dtype, copy=False),
+                       batch.features)
 
 
 def _run(renderer, method, run, *, stats, rounds, round_index, budget, seed, log_path, ref, time_limit,
@@ -276,6 +332,7 @@ def _run(renderer, method, run, *, stats, rounds, round_index, budget, seed, log
     stopped = "budget"
     wall_start = time.perf_counter() - elapsed
     state = None
+    warned = set()
     observes = method.requires.samples
 
     def committed() -> int:
@@ -311,8 +368,10 @@ def _run(renderer, method, run, *, stats, rounds, round_index, budget, seed, log
             render_s = getattr(renderer, "last_render_seconds", None)
             render_s = float(render_s) if render_s is not None else t2 - t1
             batch = validate_reply(req, reply, n_channels=c, renderer=name)
-            batch = SampleBatch(cast_positions(batch.positions, storage_dtype),
-                                np.asarray(batch.values).astype(storage_dtype, copy=False), batch.features)
+            if storage_dtype == "auto":
+                storage_dtype = _resolve_storage(log_path, np.asarray(batch.values).dtype)
+            if log_path is not None:
+                batch = _to_storage(batch, storage_dtype, stats, name, round_index, warned)
             if nonfinite == "raise":
                 bad = ~np.isfinite(np.asarray(batch.values)).all(axis=1)
                 if bad.any():

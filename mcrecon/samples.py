@@ -29,7 +29,7 @@ import numpy as np
 from .errors import InputError
 
 __all__ = ["NONFINITE_POLICIES", "check_policy", "check_samples", "apply_nonfinite", "SampleSet",
-           "SampleChunk", "source_name"]
+           "SampleChunk", "source_name", "float32_loses_spread", "FLOAT32_MAX"]
 
 #: What happens to samples whose value is NaN or +-Inf:
 #: ``drop`` skips the whole sample and counts it (default, with a warning),
@@ -295,3 +295,56 @@ class SampleSet:
     def __repr__(self) -> str:
         return (f"SampleSet({self.width}x{self.height}, channels={','.join(self.channels)}, "
                 f"samples={self.n_samples}, rounds={self.n_rounds})")
+
+
+# ---------------------------------------------------------------- precision
+@numba.njit(cache=True, nogil=True)
+def _spread_lost(pos, val, width, height, lo64, hi64, lo32, hi32):
+    n_pix = width * height
+    for p in range(n_pix):
+        for c in range(val.shape[1]):
+            lo64[p, c] = np.inf
+            hi64[p, c] = -np.inf
+            lo32[p, c] = np.inf
+            hi32[p, c] = -np.inf
+    for k in range(pos.shape[0]):
+        p = int(pos[k, 1]) * width + int(pos[k, 0])
+        for c in range(val.shape[1]):
+            v = val[k, c]
+            if not math.isfinite(v):
+                continue
+            r = float(np.float32(v))
+            lo64[p, c] = min(lo64[p, c], v)
+            hi64[p, c] = max(hi64[p, c], v)
+            lo32[p, c] = min(lo32[p, c], r)
+            hi32[p, c] = max(hi32[p, c], r)
+    lost = 0
+    for p in range(n_pix):
+        for c in range(val.shape[1]):
+            s64 = hi64[p, c] - lo64[p, c]
+            if s64 > 0.0 and abs((hi32[p, c] - lo32[p, c]) - s64) > 0.5 * s64:
+                lost += 1
+                break
+    return lost
+
+
+def float32_loses_spread(positions, values, *, width: int, height: int) -> int:
+    """Pixels whose spread of values within this batch float32 storage would not keep.
+
+    A pixel counts when, in some channel, the range of its float64 values
+    differs from the range of the same values rounded to float32 by more
+    than half (e.g. 1e6 +- 1e-3: float32's spacing at 1e6 is 0.0625, so
+    every sample rounds to the same number and the variance becomes 0).
+    Positions must have been checked (:func:`check_samples`).
+    """
+    pos = np.ascontiguousarray(positions, dtype=np.float64)
+    val = np.ascontiguousarray(values, dtype=np.float64)
+    if pos.shape[0] == 0:
+        return 0
+    shape = (int(width) * int(height), val.shape[1])
+    bufs = [np.empty(shape) for _ in range(4)]
+    return int(_spread_lost(pos, val, int(width), int(height), *bufs))
+
+
+#: The largest finite float32.
+FLOAT32_MAX = float(np.finfo(np.float32).max)

@@ -157,3 +157,65 @@ def test_request_and_reply_validation():
         SampleRequest(4, 2, counts=np.zeros((3, 3), int))
     with pytest.raises(ValueError):
         SampleRequest(4, 2, positions=np.array([[4.0, 0.0]]))
+
+
+# ------------------------------------------------------------------ precision
+def _offset_renderer(base, spread, dtype, w=6, h=4):
+    """Values base + spread * u, u uniform in [-1, 1], in the given dtype."""
+    def fn(req):
+        rng = np.random.default_rng(req.seed)
+        pos = jittered_positions(req.counts, rng) if req.counts is not None else np.zeros((0, 2))
+        if req.positions is not None:
+            pos = np.concatenate([pos, req.positions])
+        val = base + spread * rng.uniform(-1, 1, (len(pos), 1)) * np.ones(3)
+        return SampleBatch(pos, val.astype(dtype))
+    return CallableRenderer(fn, width=w, height=h, name="offset renderer")
+
+
+def test_float64_replies_keep_their_precision_end_to_end(tmp_path):
+    """1e6 +- 1e-3: float32 storage made every sample variance exactly 0 (ci stopped, gem skipped)."""
+    r = _offset_renderer(1e6, 1e-3, np.float64)
+    want = 1e-6 / 3  # variance of spread * U(-1, 1)
+    for log in (None, tmp_path / "auto.h5"):
+        res = adapt(r, "box", spp=64, seed=1, log=log)
+        var = res.stats.sample_variance()
+        assert np.all(var > 0.5 * want) and np.all(var < 2 * want)  # 64 samples: within a factor 2
+    assert read_log(tmp_path / "auto.h5").value_dtype == np.float64
+    # resumed: the same statistics as uninterrupted, bit for bit
+    adapt(r, "ci", spp=64, seed=2, log=tmp_path / "k.h5", max_rounds=1)
+    full = adapt(r, "ci", spp=64, seed=2, log=tmp_path / "f.h5")
+    res = resume(tmp_path / "k.h5", r)
+    np.testing.assert_array_equal(res.stats.m2, full.stats.m2)
+    np.testing.assert_array_equal(res.image, full.image)
+    assert read_log(tmp_path / "k.h5").value_dtype == np.float64
+
+
+def test_float32_replies_are_stored_as_float32(tmp_path):
+    adapt(_offset_renderer(0.5, 0.1, np.float32), "box", spp=4, seed=1, log=tmp_path / "a.h5")
+    assert read_log(tmp_path / "a.h5").value_dtype == np.float32
+
+
+def test_explicit_float32_storage_warns_once_when_it_loses_the_spread(tmp_path):
+    r = _offset_renderer(1e6, 1e-3, np.float64)
+    import warnings as w
+    with w.catch_warnings(record=True) as caught:
+        w.simplefilter("always")
+        adapt(r, "box", spp=16, seed=1, log=tmp_path / "a.h5", storage_dtype="float32")
+    lost = [c for c in caught if "loses the spread" in str(c.message)]
+    assert len(lost) == 1 and "24 pixel(s)" in str(lost[0].message) and "float64" in str(lost[0].message)
+    with w.catch_warnings():
+        w.simplefilter("error")  # a spread float32 holds: no warning
+        adapt(_offset_renderer(1.0, 0.1, np.float64), "box", spp=16, seed=1, log=tmp_path / "b.h5",
+              storage_dtype="float32")
+
+
+def test_values_beyond_float32_are_never_turned_into_inf(tmp_path):
+    r = _offset_renderer(1e39, 1e37, np.float64)
+    res = adapt(r, "box", spp=4, seed=1, log=tmp_path / "auto.h5")
+    assert np.isfinite(res.image).all() and res.image.min() > 9e38
+    assert np.isfinite(read_log(tmp_path / "auto.h5").read_all().values).all()
+    with pytest.raises(InputError, match="beyond float32's range.*storage_dtype='auto'"):
+        adapt(r, "box", spp=4, seed=1, log=tmp_path / "f32.h5", storage_dtype="float32")
+    assert read_log(tmp_path / "f32.h5").n_samples == 0  # nothing stored, the log still opens
+    with pytest.raises(InputError, match="storage_dtype"):
+        adapt(r, "box", spp=4, storage_dtype="float16")
