@@ -31,6 +31,7 @@ from .io.samplelog import (append_log, cast_positions, read_log, set_run_setting
 from .methods import Method, get_method
 from .methods.base import AdaptiveState, RunState
 from .protocol import SampleBatch, validate_reply
+from .renderers.spec import renderer_from_spec
 from .samples import FLOAT32_MAX, NONFINITE_POLICIES, float32_loses_spread
 from .stats import PixelStats
 
@@ -239,7 +240,7 @@ def _check_reference(reference, shape):
     return ref
 
 
-def resume(log, renderer, *, progress: bool | None = None, time_limit: float | None = None,
+def resume(log, renderer=None, *, progress: bool | None = None, time_limit: float | None = None,
            track_error: bool = True, on_round=None) -> AdaptiveResult:
     """Continue a killed or stopped run from its log with its recorded settings.
 
@@ -247,6 +248,17 @@ def resume(log, renderer, *, progress: bool | None = None, time_limit: float | N
     ``method.observe`` for every committed round, and goes on with the
     next round index, so the run takes the same decisions as one that was
     never interrupted.  Rows of an interrupted append are discarded.
+
+    Parameters
+    ----------
+    log : path-like
+        The run's sample log.
+    renderer : Renderer, optional
+        The run's renderer; by default it is rebuilt from the spec the run
+        recorded (``adapt(..., renderer_spec=...)``, see
+        :mod:`mcrecon.renderers.spec`).
+    progress, time_limit, track_error, on_round
+        As for :func:`adapt`; ``time_limit`` defaults to the recorded one.
     """
     log_path = Path(log)
     sl = read_log(log_path)
@@ -254,6 +266,12 @@ def resume(log, renderer, *, progress: bool | None = None, time_limit: float | N
     if not s:
         raise InputError(str(log_path), "run settings", "none recorded: this log was not written by an "
                          "adaptive run (use `mcrecon denoise` for offline logs)")
+    if renderer is None:
+        spec = s.get("renderer_spec")
+        if not spec:
+            raise InputError(str(log_path), "run settings renderer_spec", "none recorded: the run did not say "
+                             "how to build its renderer; give it: resume(log, renderer)")
+        renderer = renderer_from_spec(spec, where=str(log_path), field="run settings renderer_spec")
     w, h, channels = _check_renderer(renderer)
     if (w, h, list(channels)) != (s["width"], s["height"], list(s["channels"])):
         raise InputError(str(log_path), "renderer", f"renderer is {w}x{h} {channels}, the run was "

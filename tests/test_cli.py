@@ -1,15 +1,24 @@
 """The mcrecon command line, end to end, as a user would run it."""
 
+import ast
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
 
+from mcrecon import InputError
 from mcrecon.cli import main
-from mcrecon.io import read_exr, read_log, write_exr, write_log
+from mcrecon.driver import adapt, resume
+from mcrecon.io import read_exr, read_log, set_run_settings, summarize_log, write_exr, write_log
+from mcrecon.methods import available_methods, method_class
+from mcrecon.renderers import command_spec, renderer_from_spec, scene_spec
+
+ROOT = Path(__file__).parents[1]
+EXAMPLE = str(ROOT / "data_tools" / "example_renderer.py")
 
 
 def run(args, capsys):
@@ -145,3 +154,210 @@ def test_module_entry_point_runs_in_a_subprocess(tmp_path):
     r = subprocess.run([sys.executable, "-m", "mcrecon", "info", str(tmp_path / "none.h5")],
                        capture_output=True, text=True)
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "does not exist" in r.stderr
+
+
+# ------------------------------------------------------------------ info
+def test_info_prints_summarize_log(scene_log, capsys):
+    code, out, _ = run(["info", scene_log, "--json"], capsys)
+    assert code == 0 and json.loads(out) == json.loads(json.dumps(summarize_log(scene_log)))
+
+
+@pytest.mark.parametrize("breakage, match", [
+    (lambda f: f.attrs.__setitem__("format_version", "one"), "expected the integer 1"),
+    (lambda f: f.require_group("run").attrs.__setitem__("settings_json", "{bad"), "not valid JSON"),
+])
+def test_info_on_a_malformed_log_is_one_line(tmp_path, capsys, breakage, match):
+    path = write_log(tmp_path / "m.h5", np.full((4, 2), 0.5), np.ones((4, 3)), width=2, height=2)
+    with h5py.File(path, "r+") as f:
+        breakage(f)
+    code, out, err = run(["info", path], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and match in err
+
+
+def test_info_into_a_closed_pipe_exits_0(scene_log):
+    # `mcrecon info LOG | head -1`: the reader is gone before mcrecon writes.
+    proc = subprocess.Popen([sys.executable, "-m", "mcrecon", "info", str(scene_log)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    proc.stderr.close()
+    assert proc.wait() == 0 and err == ""
+    r = subprocess.run(["bash", "-c", f"set -o pipefail; {sys.executable} -m mcrecon info {scene_log} | head -1"],
+                       capture_output=True, text=True)
+    assert r.returncode == 0 and r.stdout.startswith("file") and r.stderr == ""
+
+
+# ------------------------------------------------------------------ method options
+@pytest.mark.parametrize("command", ["denoise", "adapt"])
+def test_help_groups_the_options_per_method(command, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main([command, "--help"])
+    assert exc.value.code == 0
+    text = capsys.readouterr().out
+    sections, title = {}, None
+    for line in text.splitlines():
+        if line and not line[0].isspace() and line.endswith(":"):  # a group's title
+            title = line[:-1]
+            sections[title] = ""
+        elif title is not None:
+            sections[title] += line + "\n"
+    flags = {o.name: ("--method-" if o.name == "exposure" else "--") + o.name.replace("_", "-")
+             for name in available_methods() for o in method_class(name).options}
+    for name in available_methods():
+        cls = method_class(name)
+        titles = [t for t in sections if t.startswith(f"{name} options (")]
+        if not cls.options:
+            assert not titles
+            continue
+        assert len(titles) == 1, (name, list(sections))
+        body = sections[titles[0]]
+        for o in cls.options:
+            assert flags[o.name] in body, (name, o.name)
+            # the flag's help comes from the Option: its default and valid values
+            assert f"default: {o.default}" in " ".join(body.split()), (name, o.name)
+    # an option of several methods is registered once and named in the other groups
+    gem = sections[next(t for t in sections if t.startswith("gem options"))]
+    awr = sections[next(t for t in sections if t.startswith("awr options"))]
+    assert "--initial-spp N " in gem and "--initial-spp N: the flag listed under gem options; for awr:" in awr
+
+
+def test_methods_describes_one_method(capsys):
+    code, out, err = run(["methods", "gem"], capsys)
+    assert code == 0, err
+    for o in method_class("gem").options:
+        line = next(ln for ln in out.splitlines() if ln.split()[:1] == [o.flag])
+        assert f"{o.type.__name__}, default {o.default}" in line
+        assert o.expectation().split("(")[0].strip() in " ".join(out.split())
+    assert "inputs (method.requires" in out and "pixel statistics" in out and "reference image" in out
+    code, out, err = run(["methods", "ci"], capsys)
+    assert code == 0 and "--method-exposure" in out  # ci's exposure on denoise/adapt (which have --exposure)
+    code, out, err = run(["methods", "nope"], capsys)
+    assert code == 2 and "unknown method 'nope'" in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("args, match", [
+    (["--method", "gem", "--tolerance", "0.1"], "method gem: --tolerance: does not apply to this method "
+                                                 "(an option of ci)"),
+    (["--method", "splat", "--wavelet", "haar"], "--wavelet: does not apply"),
+    (["--method", "gem", "--gamma", "0.5"], "method gem: --gamma: '0.5', expected a finite number with 0 < gamma"),
+    (["--method", "gem", "--iterations", "2.5"], "method gem: --iterations: '2.5', expected an integer"),
+    (["--method", "awr", "--wavelet", "db4"], "method awr: --wavelet: 'db4' is not valid; valid: cdf97"),
+    (["--method", "ci", "--method-exposure", "x"], "method ci: --method-exposure: 'x', expected a finite number"),
+])
+def test_method_flags_are_checked_against_the_chosen_method(scene_log, tmp_path, capsys, args, match):
+    code, out, err = run(["denoise", scene_log, "-o", tmp_path / "o.exr", *args], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and match in err, err
+    assert not (tmp_path / "o.exr").exists()
+
+
+def test_shared_flag_goes_to_the_chosen_method(scene_log, tmp_path, capsys):
+    code, out, err = run(["denoise", scene_log, "-o", tmp_path / "o.exr", "--method", "ci", "--gamma", "1.8",
+                          "--alpha", "0.1"], capsys)
+    assert code == 0, err
+
+
+def test_bias_takes_the_stopping_rule_of_method_ci(tmp_path, capsys):
+    code, out, err = run(["bias", "--scene", "flat", "--size", "4x4", "--spp", "8", "--B", "5", "--tolerance", "wide",
+                          "--out", tmp_path], capsys)
+    assert code == 2 and "method ci: --tolerance: 'wide'" in err and len(err.strip().splitlines()) == 1
+
+
+# ------------------------------------------------------------------ resume
+def test_python_resume_rebuilds_a_scene_renderer_from_the_log(tmp_path):
+    spec = scene_spec("soft_shadow", width=16, height=12, seed=3)
+    kw = dict(spp=8, seed=5, renderer_spec=spec, progress=False)
+    full = adapt(renderer_from_spec(spec), "gem", log=tmp_path / "full.h5", **kw)
+    part = adapt(renderer_from_spec(spec), "gem", log=tmp_path / "part.h5", max_rounds=2, **kw)
+    assert part.stopped == "max_rounds" and len(full.rounds) > 2
+    res = resume(tmp_path / "part.h5", progress=False)
+    np.testing.assert_array_equal(res.image, full.image)
+    assert res.stats.n_samples == full.stats.n_samples == read_log(tmp_path / "part.h5").n_samples
+
+
+def test_python_resume_rebuilds_a_command_renderer_from_the_log(tmp_path):
+    spec = command_spec([sys.executable, EXAMPLE, "{request}", "{reply}"], width=12, height=8)
+    kw = dict(spp=8, seed=2, renderer_spec=spec, progress=False)
+    full = adapt(renderer_from_spec(spec), "box", log=tmp_path / "full.h5", **kw)
+    part = adapt(renderer_from_spec(spec), "box", log=tmp_path / "part.h5", max_rounds=1, **kw)
+    assert part.stopped == "max_rounds" and len(full.rounds) > 1
+    res = resume(tmp_path / "part.h5", progress=False)
+    np.testing.assert_array_equal(res.image, full.image)
+    np.testing.assert_array_equal(read_log(tmp_path / "part.h5").read_all().values,
+                                  read_log(tmp_path / "full.h5").read_all().values)
+
+
+@pytest.mark.parametrize("change, field", [
+    ({"scene": "nope"}, "run settings renderer_spec.scene"),
+    ({"width": "16"}, "run settings renderer_spec.width"),
+    ({"kind": "povray"}, "run settings renderer_spec.kind"),
+    ({"colour": 1}, "run settings renderer_spec.colour"),
+    (None, "run settings renderer_spec"),
+])
+def test_a_bad_recorded_renderer_spec_names_the_field(tmp_path, capsys, change, field):
+    log = tmp_path / "r.h5"
+    spec = scene_spec("flat", width=16, height=12)
+    adapt(renderer_from_spec(spec), "box", spp=4, log=log, renderer_spec=spec, max_rounds=1, progress=False)
+    settings = read_log(log).run_settings
+    settings["renderer_spec"] = None if change is None else {**spec, **change}
+    set_run_settings(log, settings)
+    with pytest.raises(InputError) as exc:
+        resume(log)
+    assert (exc.value.where, exc.value.field) == (str(log), field)
+    code, out, err = run(["adapt", "--resume", log, "-o", tmp_path / "o.exr", "--quiet"], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and f"r.h5: {field}" in err
+
+
+# ------------------------------------------------------------------ moved from test_review_fixes.py
+def test_cli_output_problems_are_one_line_errors_before_any_work(tmp_path, capsys):
+    log = write_log(tmp_path / "a.h5", np.full((4, 2), 0.5), np.ones((4, 3)), width=2, height=2)
+    (tmp_path / "afile").write_text("x")
+    cases = [
+        ["denoise", str(log)],
+        ["denoise", str(log), "-o", str(tmp_path / "afile" / "x.exr")],
+        ["adapt", "--scene", "flat", "--size", "8x8", "--spp", "1e308", "-o", str(tmp_path / "o.exr")],
+        ["adapt", "--scene", "flat", "--size", "8x8", "--spp", "4", "--log", str(tmp_path / "l.h5")],
+        ["adapt", "--scene", "flat", "--size", "8x8", "--spp", "4", "-o", str(tmp_path / "o.png")],
+        ["info", str(tmp_path)],
+    ]
+    for args in cases:
+        assert main(args) == 2, args
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, (args, err)
+    assert not (tmp_path / "l.h5").exists()  # refused before rendering anything
+
+
+def test_resume_honours_time_limit_and_refuses_run_flags(tmp_path, capsys):
+    log = tmp_path / "r.h5"
+    args = ["adapt", "--scene", "flat", "--size", "8x8", "--spp", "64", "--quiet"]
+    assert main(args + ["--log", str(log), "--time-limit", "1e-9", "-o", str(tmp_path / "a.exr")]) == 0
+    assert "stopped: time_limit" in capsys.readouterr().out
+    assert main(["adapt", "--resume", str(log), "--spp", "8", "-o", str(tmp_path / "b.exr")]) == 2
+    assert "--spp" in capsys.readouterr().err
+    assert main(["adapt", "--resume", str(log), "--time-limit", "600", "-o", str(tmp_path / "b.exr"), "--quiet"]) == 0
+    assert "stopped: budget" in capsys.readouterr().out
+    assert read_log(log).n_samples == 8 * 8 * 64
+
+
+# ------------------------------------------------------------------ structure
+def test_cli_modules_import_only_downward():
+    """__init__ -> commands, experiments -> _common; never back up (no import cycles)."""
+    cli = ROOT / "mcrecon" / "cli"
+    allowed = {"__init__": {"commands", "experiments", "_common"}, "commands": {"_common"},
+               "experiments": {"_common"}, "_common": set()}
+    for path in sorted(cli.glob("*.py")):
+        seen = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.level == 1:
+                seen.update([node.module] if node.module else [a.name for a in node.names])
+            elif isinstance(node, ast.ImportFrom) and node.level >= 2 and (node.module or "").startswith("cli"):
+                seen.add(node.module)
+        assert seen <= allowed[path.stem], (path.name, seen - allowed[path.stem])
+
+
+def test_storage_dtype_flag_offers_what_the_driver_accepts():
+    from mcrecon.cli import build_parser
+    from mcrecon.driver import STORAGE_DTYPES
+    p = build_parser()
+    adapt = p._subparsers._group_actions[0].choices["adapt"]
+    action = next(a for a in adapt._actions if "--storage-dtype" in a.option_strings)
+    assert tuple(action.choices) == STORAGE_DTYPES and action.default == "auto"

@@ -1,7 +1,7 @@
-"""CLI registration of the experiment commands (``mcrecon experiment ...``, ``mcrecon bias``).
+"""The experiment commands: ``mcrecon experiment ...`` and ``mcrecon bias``.
 
-Each command only composes the public functions of :mod:`mcrecon.experiments`
-and the method modules, and writes JSON/CSV numbers and PNG figures.
+Each only composes the public functions of :mod:`mcrecon.experiments`
+and writes JSON/CSV numbers and PNG figures.
 """
 
 from __future__ import annotations
@@ -9,7 +9,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from .errors import InputError
+from ..errors import InputError
+from ._common import HelpFormatter, OneLineParser, add_method_options, make_method, method_flags, parse_size
+
+__all__ = ["register"]
 
 
 def _csv_list(text, conv=str, what="list"):
@@ -20,17 +23,11 @@ def _csv_list(text, conv=str, what="list"):
         raise InputError("experiment", what, f"{text!r}: expected a comma-separated list") from None
 
 
-def _size(text):
-    from .cli import _parse_size
-
-    return _parse_size(text)
-
-
 def cmd_convergence(args):
-    from .experiments.convergence import run_convergence
+    from ..experiments.convergence import run_convergence
 
     res = run_convergence(args.scene, methods=_csv_list(args.methods) if args.methods else None,
-                          spp=_csv_list(args.spp, int, "--spp"), size=_size(args.size), seed=args.seed,
+                          spp=_csv_list(args.spp, int, "--spp"), size=parse_size(args.size), seed=args.seed,
                           modes=_csv_list(args.modes, str, "--modes"),
                           oidn=None if args.oidn == "auto" else args.oidn == "yes", out=args.out)
     for r in res.rows:
@@ -42,7 +39,7 @@ def cmd_convergence(args):
 
 
 def cmd_stability(args):
-    from .experiments.stability import run_stability, write_stability_table
+    from ..experiments.stability import run_stability, write_stability_table
 
     rows = run_stability(methods=_csv_list(args.methods) if args.methods else None,
                          cases=_csv_list(args.cases) if args.cases else None, seed=args.seed)
@@ -56,75 +53,17 @@ def cmd_stability(args):
 
 
 def cmd_gallery(args):
-    from .experiments.gallery import write_gallery
+    from ..experiments.gallery import write_gallery
 
     path = write_gallery(args.out, scenes=_csv_list(args.scenes) if args.scenes else None,
-                         methods=_csv_list(args.methods) if args.methods else None, size=_size(args.size),
+                         methods=_csv_list(args.methods) if args.methods else None, size=parse_size(args.size),
                          spp=args.spp, seed=args.seed)
     print(f"wrote {path}")
     return 0
 
 
-def _ci_rule(args):
-    from .cli import _convert
-    from .methods.tamstorf import CIMethod
-
-    opts = {}
-    for o in CIMethod.options:
-        v = getattr(args, "ci_" + o.name, None)
-        if v is not None:
-            opts[o.name] = _convert(o, v, "ci")
-    return CIMethod(**opts).rule
-
-
-def _add_ci_rule_args(p):
-    from .methods.tamstorf import CIMethod
-
-    g = p.add_argument_group("stopping rule (the options of method ci)")
-    for o in CIMethod.options:
-        flag = "--" + o.name.replace("_", "-")
-        if flag in p._option_string_actions:
-            flag = "--rule-" + o.name.replace("_", "-")
-        g.add_argument(flag, dest="ci_" + o.name, default=None, metavar="V", help=f"{o.help} (default {o.default})")
-
-
-def cmd_normality(args):
-    from .experiments.statistics import run_normality
-    from .scenes import SceneRenderer
-
-    w, h = _size(args.size)
-    renderer = SceneRenderer(args.scene, width=w, height=h, seed=args.seed)
-    rep = run_normality(renderer, n_values=_csv_list(args.n, int, "--n"), m=args.m, seed=args.seed,
-                        classes=args.classes, alpha=args.alpha, out=args.out)
-    for r in rep["results"]:
-        print(f"n = {r['n']:4d}: {100 * r['rejection_rate']:5.1f}% of {r['tests']} pixel-channel tests rejected "
-              f"(chi2({r['df']}) critical {r['critical']:.2f})")
-    print(f"wrote {Path(args.out) / 'normality.json'}")
-    return 0
-
-
-def cmd_bias(args):
-    from .experiments.statistics import run_bias
-
-    if (args.log is None) == (args.scene is None):
-        raise InputError("bias", "input", "give a LOG or --scene NAME (with --spp)")
-    if args.log is not None:
-        source = args.log
-    else:
-        from .scenes import get_scene, render_uniform
-
-        w, h = _size(args.size)
-        batch = render_uniform(get_scene(args.scene), width=w, height=h, spp=args.spp, seed=args.seed)
-        source = {"positions": batch.positions, "values": batch.values, "width": w, "height": h}
-    summary = run_bias(source, B=args.B, seed=args.seed, rule=_ci_rule(args), level=args.level,
-                       threshold=args.threshold, out=args.out)
-    print(json.dumps(summary, indent=1, default=float))
-    print(f"wrote {Path(args.out) / 'bias.json'}")
-    return 0
-
-
 def cmd_error_rate(args):
-    from .experiments.error_rate import run_error_rate
+    from ..experiments.error_rate import run_error_rate
 
     rep = run_error_rate(args.out, gammas=_csv_list(args.gammas, float, "--gammas"),
                          noise_vars=_csv_list(args.noise_vars, float, "--noise-vars"),
@@ -136,12 +75,46 @@ def cmd_error_rate(args):
     return 0
 
 
-def register(sub) -> None:
-    """Add the experiment sub-commands to the ``mcrecon`` parser."""
-    from .cli import _OneLineParser
+def cmd_normality(args):
+    from ..experiments.statistics import run_normality
+    from ..scenes import SceneRenderer
 
+    w, h = parse_size(args.size)
+    renderer = SceneRenderer(args.scene, width=w, height=h, seed=args.seed)
+    rep = run_normality(renderer, n_values=_csv_list(args.n, int, "--n"), m=args.m, seed=args.seed,
+                        classes=args.classes, alpha=args.alpha, out=args.out)
+    for r in rep["results"]:
+        print(f"n = {r['n']:4d}: {100 * r['rejection_rate']:5.1f}% of {r['tests']} pixel-channel tests rejected "
+              f"(chi2({r['df']}) critical {r['critical']:.2f})")
+    print(f"wrote {Path(args.out) / 'normality.json'}")
+    return 0
+
+
+def cmd_bias(args):
+    from ..experiments.statistics import run_bias
+
+    if (args.log is None) == (args.scene is None):
+        raise InputError("bias", "input", "give a LOG or --scene NAME (with --spp)")
+    rule = make_method("ci", args, args.method_flags).rule  # the stopping rule of method ci
+    if args.log is not None:
+        source = args.log
+    else:
+        from ..scenes import get_scene, render_uniform
+
+        w, h = parse_size(args.size)
+        batch = render_uniform(get_scene(args.scene), width=w, height=h, spp=args.spp, seed=args.seed)
+        source = {"positions": batch.positions, "values": batch.values, "width": w, "height": h}
+    summary = run_bias(source, B=args.B, seed=args.seed, rule=rule, level=args.level,
+                       threshold=args.threshold, out=args.out)
+    print(json.dumps(summary, indent=1, default=float))
+    print(f"wrote {Path(args.out) / 'bias.json'}")
+    return 0
+
+
+def register(sub) -> None:
+    """Add the experiment commands to the ``mcrecon`` sub-command parser."""
     ex = sub.add_parser("experiment", help="figures and tables: convergence, error-rate, stability, normality")
-    es = ex.add_subparsers(dest="experiment", required=True, parser_class=_OneLineParser)
+    es = ex.add_subparsers(dest="experiment", required=True, parser_class=OneLineParser)
 
     s = es.add_parser("convergence", help="relative MSE/RMSE/SSIM against spp and wall time, per method")
     s.add_argument("--scene", default="soft_shadow")
@@ -190,7 +163,10 @@ def register(sub) -> None:
     s.add_argument("--out", required=True)
     s.set_defaults(func=cmd_normality)
 
-    s = sub.add_parser("bias", help="bootstrap bias of the adaptive stopping rule on a log or a scene")
+    s = sub.add_parser("bias", help="bootstrap bias of the adaptive stopping rule on a log or a scene",
+                       description="Bootstrap bias of the adaptive stopping rule (Tamstorf & Jensen 1997); "
+                                   "the rule is method ci's, set by its options below.",
+                       formatter_class=HelpFormatter)
     s.add_argument("log", nargs="?", default=None)
     s.add_argument("--scene", default=None)
     s.add_argument("--spp", type=int, default=32)
@@ -200,5 +176,6 @@ def register(sub) -> None:
     s.add_argument("--threshold", type=float, default=1 / 256, help="|bias| threshold reported (default 1/256)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", required=True)
-    _add_ci_rule_args(s)
-    s.set_defaults(func=cmd_bias)
+    flags = method_flags(set(s._option_string_actions), prefix="--rule-", methods=["ci"])
+    add_method_options(s, flags, methods=["ci"])
+    s.set_defaults(func=cmd_bias, method_flags=flags)

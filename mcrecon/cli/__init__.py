@@ -1,0 +1,73 @@
+"""The ``mcrecon`` command line: it only composes public calls.
+
+Exit status 0 on success; on bad input, 2 with one line on stderr naming
+the file, the field and what was expected (no traceback).
+
+The commands live in :mod:`.commands` and :mod:`.experiments`, what they
+share in :mod:`._common`; this module builds the parser and runs one.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import warnings
+
+from ..errors import InputError, McreconWarning, RendererError
+from . import commands, experiments
+from ._common import OneLineParser
+
+__all__ = ["main", "build_parser"]
+
+
+def build_parser() -> OneLineParser:
+    p = OneLineParser(prog="mcrecon", description="Adaptive sampling and reconstruction for Monte Carlo renderers.")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
+    commands.register(sub)
+    experiments.register(sub)
+    return p
+
+
+def _stdout_to_devnull() -> None:
+    """After a closed pipe: send what is left to devnull, so the flush at exit cannot fail again
+    (as the Python docs on SIGPIPE recommend)."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # stdout is no file (captured): nothing to flush
+        pass
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", McreconWarning)
+        showwarning = warnings.showwarning
+
+        def _one_line(message, category, filename, lineno, file=None, line=None):
+            if issubclass(category, McreconWarning):
+                sys.stderr.write(f"mcrecon: warning: {message}\n")
+            else:
+                showwarning(message, category, filename, lineno, file, line)
+
+        warnings.showwarning = _one_line
+        try:
+            code = int(args.func(args) or 0)
+            sys.stdout.flush()  # a reader that went away shows here, not at exit
+            return code
+        except BrokenPipeError:  # `mcrecon info LOG | head`: the reader has what it wanted
+            _stdout_to_devnull()
+            return 0
+        except (InputError, RendererError) as exc:
+            sys.stderr.write(f"mcrecon: error: {exc}\n")
+            return 2
+        except OSError as exc:  # an output path that cannot be written, a full disk...
+            where = exc.filename or "file system"
+            sys.stderr.write(f"mcrecon: error: {where}: {exc.strerror or exc}\n")
+            return 2
+        except KeyboardInterrupt:
+            sys.stderr.write("mcrecon: interrupted\n")
+            return 130
+        finally:
+            warnings.showwarning = showwarning

@@ -1,0 +1,176 @@
+"""What every command shares: the one-line parser, method flags, output checks and writing.
+
+Method flags come from the methods' own :class:`~mcrecon.methods.Option`
+descriptions: one ``--help`` group per method, and the strings a user
+types go to the method unchanged, so :meth:`Option.convert` is the one
+place they are validated.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+
+__all__ = ["OneLineParser", "HelpFormatter", "parse_size", "method_flags", "add_method_options",
+           "given_method_options", "make_method", "check_output", "write_outputs"]
+
+_DEST = "mopt_"  # argparse dest of a method option: mopt_NAME
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """A parser whose errors are one line on stderr and exit status 2."""
+
+    def error(self, message):
+        sys.stderr.write(f"{self.prog}: error: {message}\n")
+        raise SystemExit(2)
+
+
+class HelpFormatter(argparse.HelpFormatter):
+    """Keeps the line breaks of descriptions (each line wrapped on its own)."""
+
+    def _fill_text(self, text, width, indent):
+        return "\n".join(textwrap.fill(line, width, initial_indent=indent, subsequent_indent=indent + "    ")
+                         if line.strip() else "" for line in text.splitlines())
+
+
+def parse_size(text: str, where: str = "--size") -> tuple[int, int]:
+    """``WIDTHxHEIGHT`` as ``(width, height)``."""
+    try:
+        w, h = (int(x) for x in str(text).lower().split("x"))
+    except ValueError:
+        raise InputError(where, "size", f"{text!r}: expected WIDTHxHEIGHT, e.g. 128x128") from None
+    if w < 1 or h < 1:
+        raise InputError(where, "size", f"{text!r}: expected at least 1x1")
+    return w, h
+
+
+# ----------------------------------------------------------------- method options
+def _methods(names=None) -> list[tuple[str, type]]:
+    from ..methods import available_methods, method_class
+
+    return [(name, method_class(name)) for name in (available_methods() if names is None else names)]
+
+
+def _summary(cls) -> str:
+    """The first line of a method's docstring, without its full stop."""
+    lines = (cls.__doc__ or "").strip().splitlines()
+    return lines[0].strip().rstrip(".") if lines else ""
+
+
+def method_flags(taken, *, prefix: str = "--method-", methods=None) -> dict[str, str]:
+    """``{option name: flag}`` of the methods' options.
+
+    The flag is ``--NAME`` (``_`` shown as ``-``), or ``PREFIX + NAME``
+    where the command has a flag ``--NAME`` of its own (``taken``).
+    """
+    flags = {}
+    for _, cls in _methods(methods):
+        for opt in cls.options:
+            flag = opt.flag
+            flags[opt.name] = flag if flag not in taken else prefix + opt.name.replace("_", "-")
+    return flags
+
+
+def _metavar(opt) -> str:
+    return {int: "N", float: "X", bool: "BOOL"}.get(opt.type, "TEXT")
+
+
+def _describe(opt) -> str:
+    return f"{opt.help} (default: {opt.default}; valid: {opt.expectation()})"
+
+
+def add_method_options(parser, flags: dict, methods=None) -> None:
+    """One ``--help`` group per method, holding its options.
+
+    argparse registers a flag once: an option several methods share is
+    registered in the group of the first of them, and every later group
+    lists it (with that method's meaning) in its description.
+    """
+    registered = {}
+    for name, cls in _methods(methods):
+        if not cls.options:
+            continue
+        shared = [o for o in cls.options if o.name in registered]
+        text = "".join(f"{flags[o.name]} {_metavar(o)}: the flag listed under {registered[o.name]} options; "
+                       f"for {name}: {_describe(o)}\n" for o in shared)
+        group = parser.add_argument_group(f"{name} options ({_summary(cls)})", text or None)
+        for opt in cls.options:
+            if opt.name in registered:
+                continue
+            registered[opt.name] = name
+            group.add_argument(flags[opt.name], dest=_DEST + opt.name, default=None, metavar=_metavar(opt),
+                               help=_describe(opt).replace("%", "%%"))
+
+
+def given_method_options(args) -> dict:
+    """``{option name: string}`` of the method flags given on the command line."""
+    return {k[len(_DEST):]: v for k, v in vars(args).items() if k.startswith(_DEST) and v is not None}
+
+
+def make_method(name: str, args, flags: dict):
+    """The method ``name`` built from the method flags given (errors name the flag)."""
+    from ..methods import get_method, method_class
+
+    cls = method_class(name)
+    own = [o.name for o in cls.options]
+    given = given_method_options(args)
+    for oname in given:
+        if oname not in own:
+            owners = [m for m, c in _methods() if any(o.name == oname for o in c.options)]
+            raise InputError(f"method {name}", flags[oname],
+                             f"does not apply to this method (an option of {', '.join(owners)}); "
+                             f"{name}'s options: {', '.join(flags[o] for o in own) or '(none)'}")
+    try:
+        return get_method(name, **given)  # Option.convert validates the strings
+    except InputError as exc:
+        if exc.field in flags:
+            raise InputError(exc.where, flags[exc.field], exc.problem) from None
+        raise
+
+
+# ----------------------------------------------------------------- outputs
+def check_output(out, png=None) -> None:
+    """Refuse an output the run could not write, before any work is done."""
+    if out is None:
+        raise InputError("mcrecon", "-o/--output", "missing: give the output EXR path")
+    for p, suffix in ((Path(out), ".exr"), (None if png is None else Path(png), ".png")):
+        if p is None:
+            continue
+        if p.suffix.lower() != suffix:
+            raise InputError(str(p), "output", f"expected a path ending in {suffix}")
+        parent = p.parent
+        while not parent.exists() and parent != parent.parent:
+            parent = parent.parent
+        if not parent.is_dir() or not os.access(parent, os.W_OK):
+            raise InputError(str(p), "output", f"cannot be written: {parent} is not a writable directory")
+
+
+def write_outputs(image, out, *, channels, png, exposure, diagnostics=None, diag_dir=None,
+                  counts=None) -> list[Path]:
+    """Write the EXR, its PNG preview and the diagnostic maps; returns the paths written."""
+    from ..io import write_exr, write_false_colour, write_png_preview
+
+    out = Path(out)
+    write_exr(out, image, channels=channels)
+    written = [out]
+    png = out.with_suffix(".png") if png is None else Path(png)
+    write_png_preview(png, image, exposure=exposure)
+    written.append(png)
+    if diag_dir is not None:
+        d = Path(diag_dir)
+        maps = dict(diagnostics or {})
+        if counts is not None:
+            maps.setdefault("sample_density", counts)
+        for name, m in maps.items():
+            m = np.asarray(m)
+            if m.ndim == 3 and m.shape[2] > 1:
+                m = m.mean(axis=2)
+            written.append(write_false_colour(d / f"{name}.png", m))
+    return written

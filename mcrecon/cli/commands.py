@@ -1,0 +1,400 @@
+"""The main commands: info, denoise, adapt, compare, scenes, methods, render-log, demo, mitsuba.
+
+Each only composes public calls of the package; imports are made where a
+command needs them, so ``--help`` stays quick.
+"""
+
+from __future__ import annotations
+
+import json
+import shlex
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ._common import (HelpFormatter, OneLineParser, add_method_options, check_output, given_method_options,
+                      make_method, method_flags, parse_size, write_outputs)
+
+__all__ = ["register"]
+
+
+# ----------------------------------------------------------------- info
+_INFO_LINES = ("file", "width", "height", "channels", "samples", "rounds", "spp_min", "spp_mean", "spp_max",
+               "empty_pixels", "pixels_with_one_sample", "nonfinite_samples", "negative_samples", "value_dtype",
+               "features", "reference")
+
+
+def cmd_info(args):
+    from ..io import summarize_log
+
+    info = summarize_log(args.log)
+    if args.json:
+        print(json.dumps(info, indent=2, sort_keys=True))
+        return 0
+    for k in _INFO_LINES:
+        v = info[k]
+        if isinstance(v, list):
+            v = ",".join(map(str, v)) or "-"
+        if isinstance(v, float):
+            v = f"{v:.3f}"
+        print(f"{k:24s} {v}")
+    if info["metadata"]:
+        print(f"{'metadata':24s} {json.dumps(info['metadata'], sort_keys=True)}")
+    return 0
+
+
+# ----------------------------------------------------------------- denoise
+def cmd_denoise(args):
+    from ..io import read_log
+    from ..metrics import relative_mse
+    from ..reconstruction import reconstruct
+    from ..stats import PixelStats
+
+    check_output(args.output, args.png)
+    method = make_method(args.method, args, args.method_flags)
+    log = read_log(args.log)
+    t0 = time.perf_counter()
+    rec = reconstruct(log, method=method, nonfinite=args.nonfinite, full=True)
+    dt = time.perf_counter() - t0
+    counts = None
+    if args.diagnostics:
+        counts = rec.inputs.stats.count if rec.inputs.stats is not None else \
+            PixelStats.from_log(log, nonfinite=args.nonfinite).count
+    written = write_outputs(rec.image, args.output, channels=log.channels, png=args.png, exposure=args.exposure,
+                            diagnostics=rec.diagnostics(), diag_dir=args.diagnostics, counts=counts)
+    msg = f"{method.name}: {log.width}x{log.height}, {log.n_samples} samples, reconstructed in {dt:.3f} s"
+    ref = log.reference()
+    if ref is not None:
+        msg += f", relative MSE {relative_mse(rec.image, ref):.6g} against the log's reference"
+    print(msg)
+    for p in written:
+        print(f"wrote {p}")
+    return 0
+
+
+# ----------------------------------------------------------------- adapt
+def _renderer_spec(args) -> dict:
+    """The spec of the renderer the flags name (recorded in the log for --resume)."""
+    from ..renderers import command_spec, mitsuba_spec, scene_spec
+
+    sources = [x for x in (args.scene, args.renderer_cmd, args.mitsuba) if x is not None]
+    if len(sources) != 1:
+        raise InputError("adapt", "renderer", "give exactly one of --scene NAME, --renderer-cmd CMD, "
+                         "--mitsuba [SCENE.xml|cornell-box], or --resume LOG")
+    w, h = parse_size(args.size)
+    if args.scene is not None:
+        from ..scenes import get_scene
+
+        return scene_spec(get_scene(args.scene).name, width=w, height=h, seed=args.seed)
+    if args.renderer_cmd is not None:
+        argv = shlex.split(args.renderer_cmd)
+        if not argv:
+            raise InputError("--renderer-cmd", "command", "empty")
+        return command_spec(argv, width=w, height=h, channels=args.channels.split(","), timeout=args.timeout)
+    return mitsuba_spec(None if args.mitsuba == "cornell-box" else args.mitsuba, width=w, height=h)
+
+
+def _refuse_run_flags(args) -> None:
+    """A resumed run keeps its recorded settings: refuse flags that would change them."""
+    ignored = [flag for flag, v in (("--scene", args.scene), ("--renderer-cmd", args.renderer_cmd),
+                                    ("--mitsuba", args.mitsuba), ("--spp", args.spp), ("--log", args.log),
+                                    ("--reference", args.reference)) if v is not None]
+    ignored += [args.method_flags[k] for k in given_method_options(args)]
+    if args.method != "box" or args.seed != 0 or args.nonfinite != "drop" or args.storage_dtype != "auto":
+        ignored.append("--method/--seed/--nonfinite/--storage-dtype")
+    if ignored:
+        raise InputError(str(args.resume), "resume", f"{', '.join(ignored)} cannot change a recorded run; "
+                         "a resumed run keeps its settings (only --time-limit, -o, --png, --diagnostics, "
+                         "--quiet apply)")
+
+
+def _report_run(res, ref, t_total) -> None:
+    from ..metrics import relative_mse
+
+    n = res.stats.n_samples
+    w, h = res.stats.width, res.stats.height
+    msg = (f"{res.method.name}: {len(res.rounds)} round(s), {n} samples ({n / (w * h):.2f} spp), "
+           f"stopped: {res.stopped}; time {t_total:.2f} s (renderer {res.renderer_seconds:.2f} s, "
+           f"toolkit {res.toolkit_seconds:.2f} s)")
+    if ref is not None:
+        msg += f"; relative MSE {relative_mse(res.image, ref):.6g}"
+    print(msg)
+
+
+def cmd_adapt(args):
+    from .. import driver
+    from ..io import read_log
+
+    check_output(args.output, args.png)
+    progress = None if not args.quiet else False
+    if args.resume:
+        _refuse_run_flags(args)
+        t0 = time.perf_counter()
+        res = driver.resume(args.resume, progress=progress, time_limit=args.time_limit)
+        ref = read_log(args.resume).reference()
+    else:
+        from ..renderers import reference_from_spec, renderer_from_spec
+
+        spec = _renderer_spec(args)
+        if args.spp is None:
+            raise InputError("adapt", "--spp", "missing: give the sample budget in samples per pixel")
+        renderer = renderer_from_spec(spec)
+        if args.reference is not None:
+            from ..io import read_exr
+
+            ref = read_exr(args.reference)[0].astype(np.float64)
+        else:
+            ref = reference_from_spec(spec)
+        method = make_method(args.method, args, args.method_flags)
+        t0 = time.perf_counter()
+        res = driver.adapt(renderer, method, spp=args.spp, seed=args.seed, log=args.log, reference=ref,
+                           time_limit=args.time_limit, progress=progress, nonfinite=args.nonfinite,
+                           renderer_spec=spec, track_error=args.rounds_json is not None and ref is not None,
+                           storage_dtype=args.storage_dtype, metadata={"scene": spec.get("scene")})
+    t_total = time.perf_counter() - t0
+    written = write_outputs(res.image, args.output, channels=res.stats.channels, png=args.png,
+                            exposure=args.exposure, diagnostics=res.diagnostics(), diag_dir=args.diagnostics,
+                            counts=res.stats.count)
+    _report_run(res, ref, t_total)
+    if args.rounds_json is not None:
+        Path(args.rounds_json).write_text(json.dumps(res.rounds, indent=1))
+        written.append(Path(args.rounds_json))
+    for p in written:
+        print(f"wrote {p}")
+    return 0
+
+
+# ----------------------------------------------------------------- small commands
+def cmd_compare(args):
+    from ..io import read_exr
+    from ..metrics import compare
+
+    img, _ = read_exr(args.image)
+    ref, _ = read_exr(args.reference)
+    out = compare(img, ref, eps=args.eps, data_range=args.data_range)
+    if args.json:
+        print(json.dumps(out, indent=2, sort_keys=True))
+    else:
+        for k, v in out.items():
+            print(f"{k:16s} {v:.6g}")
+    return 0
+
+
+def cmd_scenes(args):
+    from ..scenes import get_scene, scene_names
+
+    for name in scene_names():
+        print(f"{name:16s} {get_scene(name).description}")
+    return 0
+
+
+def cmd_methods(args):
+    from ..methods import available_methods, get_method, method_class
+
+    if args.name is None:
+        for name in available_methods():
+            cls = method_class(name)
+            doc = (cls.__doc__ or "").strip().splitlines()[0] if cls.__doc__ else ""
+            opts = " ".join(args.method_flags[o.name] for o in cls.options)
+            print(f"{name:8s} {doc}" + (f"  [{opts}]" if opts else ""))
+        print("\n`mcrecon methods NAME` describes one method's options and inputs.")
+        return 0
+    cls = method_class(args.name)
+    doc = (cls.__doc__ or "").strip().splitlines()
+    print(f"{args.name}: {doc[0].strip() if doc else ''}")
+    print(f"adaptive sampling: {'yes, it places samples itself' if cls.adaptive else 'no, uniform rounds'}")
+    print(f"\noptions (flags of `mcrecon denoise/adapt --method {args.name}`):")
+    if not cls.options:
+        print("  (none)")
+    indent = " " * 27
+    for o in cls.options:
+        print(f"  {args.method_flags[o.name]:24s} {getattr(o.type, '__name__', o.type)}, default {o.default}")
+        for text in (f"valid: {o.expectation()}", o.help):
+            print(textwrap.fill(text, 100, initial_indent=indent, subsequent_indent=indent + "  "))
+    req = get_method(args.name).requires
+    grid = f"{req.subpixels}x{req.subpixels} subpixel grid" if req.subpixels else "no subpixel grid"
+    print("\ninputs (method.requires, default options):")
+    print(f"  {'pixel statistics':24s} {'yes, ' + grid if req.statistics else 'no'}")
+    print(f"  {'individual samples':24s} {'yes' if req.samples else 'no'}")
+    print(f"  {'reference image':24s} {req.reference}")
+    return 0
+
+
+def cmd_render_log(args):
+    from ..scenes import get_scene, write_scene_log
+
+    w, h = parse_size(args.size)
+    path = write_scene_log(get_scene(args.scene), args.output, width=w, height=h, spp=args.spp, seed=args.seed)
+    print(f"wrote {path}")
+    return 0
+
+
+def cmd_demo(args):
+    """The README's main job: render a log of a built-in scene, reconstruct, write EXR + PNG, print error."""
+    from ..io import read_log, write_exr, write_png_preview
+    from ..methods import available_methods, get_method
+    from ..metrics import relative_mse
+    from ..reconstruction import reconstruct
+    from ..scenes import get_scene, write_scene_log
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    w, h = parse_size(args.size)
+    scene = get_scene(args.scene)
+    t0 = time.perf_counter()
+    log_path = write_scene_log(scene, out / f"{scene.name}.h5", width=w, height=h, spp=args.spp, seed=args.seed)
+    t_render = time.perf_counter() - t0
+    log = read_log(log_path)
+    ref = log.reference()
+    print(f"rendered {scene.name} {w}x{h} at {args.spp} spp: {log.n_samples} samples in {t_render:.2f} s -> {log_path}")
+    methods = [m for m in args.methods.split(",") if m] if args.methods else available_methods()
+    for name in methods:
+        method = get_method(name)
+        t1 = time.perf_counter()
+        img = reconstruct(log, method=method)
+        dt = time.perf_counter() - t1
+        paths = write_outputs(img, out / f"{scene.name}_{name}.exr", channels=log.channels, png=None,
+                              exposure=args.exposure)
+        print(f"{name:6s} relative MSE {relative_mse(img, ref):.6g}  time {dt:.3f} s  -> "
+              + ", ".join(str(p) for p in paths))
+    write_exr(out / f"{scene.name}_reference.exr", ref, channels=log.channels)
+    write_png_preview(out / f"{scene.name}_reference.png", ref, exposure=args.exposure)
+    return 0
+
+
+def cmd_mitsuba(args):
+    from .. import mitsuba_bridge as mb
+    from ..io import write_exr, write_png_preview
+
+    w, h = parse_size(args.size)
+    scene = None if args.scene in (None, "cornell-box") else args.scene
+    t0 = time.perf_counter()
+    if args.mitsuba_command == "reference":
+        ref = mb.render_reference(scene, width=w, height=h, spp=args.spp, seed=args.seed)
+        out = Path(args.output)
+        write_exr(out, ref)
+        write_png_preview(out.with_suffix(".png"), ref)
+        print(f"rendered a {w}x{h}, {args.spp}-spp reference in {time.perf_counter() - t0:.1f} s")
+        print(f"wrote {out}\nwrote {out.with_suffix('.png')}")
+    else:
+        path = mb.dump_uniform_log(args.output, scene, width=w, height=h, spp=args.spp, seed=args.seed,
+                                   reference_spp=args.reference_spp)
+        print(f"rendered a {w}x{h}, {args.spp}-spp uniform log in {time.perf_counter() - t0:.1f} s")
+        print(f"wrote {path}")
+    return 0
+
+
+# ----------------------------------------------------------------- parsers
+def _outputs(sp) -> None:
+    sp.add_argument("-o", "--output", help="output EXR path")
+    sp.add_argument("--png", default=None, help="preview PNG path (default: next to the EXR)")
+    sp.add_argument("--exposure", type=float, default=0.0, help="preview exposure in stops")
+    sp.add_argument("--diagnostics", default=None, metavar="DIR",
+                    help="write the method's diagnostic maps (and sample density) as PNGs into DIR")
+    sp.add_argument("--nonfinite", default="drop", choices=("drop", "zero", "raise"),
+                    help="policy for NaN/Inf sample values (default drop, with a warning)")
+
+
+
+
+def register(sub) -> None:
+    """Add the main commands to the ``mcrecon`` sub-command parser."""
+    s = sub.add_parser("info", help="describe a sample log")
+    s.add_argument("log")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_info)
+
+    denoise = sub.add_parser("denoise", help="reconstruct an image from a sample log", formatter_class=HelpFormatter)
+    denoise.add_argument("log")
+    _outputs(denoise)
+    denoise.set_defaults(func=cmd_denoise)
+
+    s = adapt = sub.add_parser("adapt", help="run adaptive rounds against a renderer", formatter_class=HelpFormatter)
+    s.add_argument("--scene", default=None, help="built-in scene (see `mcrecon scenes`)")
+    s.add_argument("--renderer-cmd", default=None, metavar="CMD",
+                   help="external renderer command line with {request} and {reply} placeholders "
+                        "(split like a shell would, never run through one)")
+    s.add_argument("--mitsuba", default=None, nargs="?", const="cornell-box", metavar="SCENE.xml",
+                   help="Mitsuba 3 bridge (optional extra): a scene file, default the Cornell box")
+    s.add_argument("--channels", default="R,G,B", help="channel names of an external renderer")
+    s.add_argument("--timeout", type=float, default=600.0, help="seconds per round for an external renderer")
+    s.add_argument("--size", default="128x128", help="film size WIDTHxHEIGHT (default 128x128)")
+    s.add_argument("--spp", type=float, default=None, help="sample budget, average samples per pixel")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--log", default=None, help="sample log to write (commits every round)")
+    s.add_argument("--resume", default=None, metavar="LOG", help="continue a killed run from its log")
+    s.add_argument("--time-limit", type=float, default=None, help="wall seconds")
+    s.add_argument("--reference", default=None, metavar="EXR",
+                   help="reference image for the error (built-in scenes have their own)")
+    s.add_argument("--storage-dtype", default="auto", choices=("auto", "float32", "float64"),  # driver.STORAGE_DTYPES
+                   help="precision of the stored positions/values (default auto: what the renderer sends, "
+                        "float32 replies as float32, float64 replies as float64); the statistics see exactly "
+                        "what is stored, so float32 storage of values like 1e6 +- 1e-3 loses their spread "
+                        "(warned) and refuses values beyond float32's range")
+    s.add_argument("--rounds-json", default=None, metavar="FILE",
+                   help="write per-round samples, renderer/toolkit seconds and (with a reference) the error")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    _outputs(s)
+    s.set_defaults(func=cmd_adapt)
+
+    # One flag per method option for both commands: --NAME, or --method-NAME where
+    # a command has its own --NAME (ci's exposure: --method-exposure).
+    taken = set(denoise._option_string_actions) | set(adapt._option_string_actions)
+    flags = method_flags(taken)
+    from ..methods import available_methods
+
+    for p in (denoise, adapt):
+        p.add_argument("--method", default="box", metavar="NAME",
+                       help=f"reconstruction method: {', '.join(available_methods())} (default box); its options "
+                            "are in the groups below; `mcrecon methods NAME` describes one")
+        add_method_options(p, flags)
+        p.set_defaults(method_flags=flags)
+
+    s = sub.add_parser("compare", help="error metrics of an EXR against a reference EXR")
+    s.add_argument("image")
+    s.add_argument("reference")
+    s.add_argument("--eps", type=float, default=0.01, help="relative MSE epsilon (default 0.01)")
+    s.add_argument("--data-range", type=float, default=None, help="PSNR data range (default: reference max)")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_compare)
+
+    s = sub.add_parser("scenes", help="list the built-in scenes")
+    s.set_defaults(func=cmd_scenes)
+    s = sub.add_parser("methods", help="list the reconstruction methods, or describe one (options, inputs)")
+    s.add_argument("name", nargs="?", default=None, metavar="NAME", help="a method to describe")
+    s.set_defaults(func=cmd_methods, method_flags=flags)
+
+    s = sub.add_parser("render-log", help="dump a uniform sample log of a built-in scene (with its reference)")
+    s.add_argument("--scene", required=True)
+    s.add_argument("--spp", type=int, required=True)
+    s.add_argument("--size", default="128x128")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("-o", "--output", required=True)
+    s.set_defaults(func=cmd_render_log)
+
+    s = sub.add_parser("mitsuba", help="Mitsuba 3 bridge (optional extra): reference images and uniform logs")
+    ms = s.add_subparsers(dest="mitsuba_command", required=True, parser_class=OneLineParser)
+    for name, hlp in (("reference", "render a high-spp reference EXR (pixel means of jittered samples)"),
+                      ("log", "dump a uniform sample log (optionally with a reference) for offline denoising")):
+        m = ms.add_parser(name, help=hlp)
+        m.add_argument("--scene", default=None, help="scene XML (default: the built-in Cornell box)")
+        m.add_argument("--size", default="128x128")
+        m.add_argument("--spp", type=int, default=1024 if name == "reference" else 16)
+        m.add_argument("--seed", type=int, default=0)
+        if name == "log":
+            m.add_argument("--reference-spp", type=int, default=None, help="also store a reference of this spp")
+        m.add_argument("-o", "--output", required=True)
+        m.set_defaults(func=cmd_mitsuba)
+
+    s = sub.add_parser("demo", help="the main job on a built-in scene: log, reconstruct, EXR + PNG, error")
+    s.add_argument("--scene", default="soft_shadow")
+    s.add_argument("--spp", type=int, default=16)
+    s.add_argument("--size", default="128x128")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--methods", default=None, help="comma-separated (default: every available method)")
+    s.add_argument("--exposure", type=float, default=0.0)
+    s.add_argument("--out", default="mcrecon_demo")
+    s.set_defaults(func=cmd_demo)

@@ -1,0 +1,67 @@
+"""What a sample log holds, in one streaming pass: :func:`summarize_log`."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..protocol import pixel_index
+from ..samples import check_samples
+from .samplelog import FORMAT_VERSION, SampleLog, read_log
+
+__all__ = ["summarize_log"]
+
+
+def summarize_log(log) -> dict:
+    """Size, channels, sample counts and value problems of a sample log.
+
+    The samples are streamed once, in chunks (memory bounded by the
+    image); positions are validated as every reader validates them.
+
+    Parameters
+    ----------
+    log : path-like or SampleLog
+
+    Returns
+    -------
+    dict
+        ``file``, ``format_version``, ``width``, ``height``, ``channels``,
+        ``samples`` (committed), ``rounds``; per-pixel counts of the
+        samples a reconstruction uses (NaN/Inf samples dropped):
+        ``spp_min``, ``spp_mean``, ``spp_max``, ``empty_pixels``,
+        ``pixels_with_one_sample``; ``nonfinite_samples`` (a NaN or Inf
+        in any channel), ``negative_samples`` (a finite channel below 0),
+        ``value_dtype``, ``features``, ``reference`` (whether the log
+        stores one) and ``metadata``.
+
+    Raises
+    ------
+    InputError
+        A malformed log, or positions off the film.
+    """
+    if not isinstance(log, SampleLog):
+        log = read_log(log)
+    w, h, nch = log.width, log.height, len(log.channels)
+    counts = np.zeros(w * h, np.int64)
+    n_nonfinite = 0
+    n_negative = 0
+    for chunk in log.iter_chunks(with_round=False):
+        pos, val, nonfinite = check_samples(chunk.positions, chunk.values, width=w, height=h, n_channels=nch,
+                                            where=str(log.path), channels=log.channels)
+        if nonfinite:
+            finite = np.isfinite(val)
+            keep = finite.all(axis=1)
+            n_nonfinite += int(nonfinite)
+            n_negative += int((np.where(finite, val, 0) < 0).any(axis=1).sum())
+            pos, val = pos[keep], val[keep]
+        else:
+            n_negative += int((val < 0).any(axis=1).sum())
+        counts += np.bincount(pixel_index(pos, w), minlength=w * h)
+    return {
+        "file": str(log.path), "format_version": FORMAT_VERSION, "width": w, "height": h,
+        "channels": list(log.channels), "samples": log.n_samples, "rounds": log.n_rounds,
+        "spp_min": int(counts.min()), "spp_mean": float(counts.mean()), "spp_max": int(counts.max()),
+        "empty_pixels": int((counts == 0).sum()), "pixels_with_one_sample": int((counts == 1).sum()),
+        "nonfinite_samples": n_nonfinite, "negative_samples": n_negative,
+        "value_dtype": str(log.value_dtype), "features": list(log.feature_names),
+        "reference": log.has_reference, "metadata": log.metadata,
+    }
