@@ -31,9 +31,10 @@ import time
 import numba
 import numpy as np
 
-from mcrecon.methods.tamstorf import (PixelSamples, StoppingRule, TONE_OPERATORS, bootstrap_bias_samples,
-                                      group_samples, register_tone_operator)
+from mcrecon.analysis import PixelSamples, bootstrap_bias_samples, group_samples
+from mcrecon.methods.ci import StoppingRule
 from mcrecon.scenes import render_uniform
+from mcrecon.tone import TONE_OPERATORS, register_tone_operator
 
 
 def _subset(s: PixelSamples, pixels: np.ndarray) -> PixelSamples:

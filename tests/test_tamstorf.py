@@ -19,12 +19,12 @@ from scipy import stats as sps
 from mcrecon.errors import InputError, McreconWarning
 from mcrecon.methods import get_method
 from mcrecon.methods.base import AdaptiveState
-from mcrecon.methods.tamstorf import (
-    TONE_OPERATORS, CIMethod, StoppingRule, bootstrap_bias, bootstrap_bias_log,
-    bootstrap_bias_samples, chi2_normality, confidence_interval, display_width, exact_two_point_bias,
-    get_tone_operator, group_samples, normality_experiment, register_tone_operator, repeated_estimates,
-    stopping_rule, t_quantile, tone_map)
+from mcrecon.analysis import (
+    bootstrap_bias, bootstrap_bias_log, bootstrap_bias_samples, chi2_normality, exact_two_point_bias,
+    group_samples, normality_experiment, repeated_estimates)
+from mcrecon.methods.ci import CIMethod, StoppingRule, confidence_interval, display_width, stopping_rule, t_quantile
 from mcrecon.stats import PixelStats
+from mcrecon.tone import TONE_OPERATORS, get_tone_operator, register_tone_operator, tone_map
 
 
 # ---------------------------------------------------------------- helpers
@@ -327,7 +327,7 @@ def test_exact_two_point_bias_matches_simulation_of_the_rule():
 
 def _replica(values, B, seed, rule):
     """Pure-Python replica of the bootstrap (SplitMix64 streams, Eq. 13-15)."""
-    from mcrecon.methods.tamstorf import _seed_base
+    from mcrecon.analysis.bootstrap import _seed_base
 
     M = (1 << 64) - 1
 

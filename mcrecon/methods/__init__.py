@@ -20,7 +20,7 @@ METHODS = {
     "gem": "mcrecon.methods.gem:GEMMethod",
     "awr": "mcrecon.methods.awr.method:AWRMethod",
     "splat": "mcrecon.methods.splat.method:SplatMethod",
-    "ci": "mcrecon.methods.tamstorf:CIMethod",
+    "ci": "mcrecon.methods.ci:CIMethod",
 }
 
 
