@@ -87,26 +87,56 @@ def _run_cli(args, **kw):
     return subprocess.run([sys.executable, "-m", "mcrecon", *args], capture_output=True, text=True, **kw)
 
 
+def _wait_for_round(marker: Path, k: int, proc, timeout: float = 120.0) -> list[int]:
+    """Wait until the fault renderer reports a call for round >= k; return the renderer PIDs seen.
+
+    A safety deadline only: the marker is written by the renderer process itself,
+    so this waits on an event, not on the state of a file another process is writing.
+    """
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if marker.exists():
+            lines = [ln.split() for ln in marker.read_text().splitlines(keepends=True) if ln.endswith("\n")]
+            if any(int(r) >= k for r, _ in lines):
+                return [int(pid) for _, pid in lines]
+        if proc.poll() is not None:
+            pytest.fail(f"the run ended (status {proc.returncode}) before round {k}: {proc.stderr.read()!r}")
+        time.sleep(0.02)
+    pytest.fail(f"the renderer was not asked for round {k} within {timeout} s")
+
+
+def _kill(pid: int) -> None:
+    try:
+        os.kill(pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+
+
 def test_sigkill_mid_run_then_resume_matches_uninterrupted(tmp_path):
     cmd = f"{sys.executable} {FAULT} slow -1 {{request}} {{reply}}"
     common = ["adapt", "--renderer-cmd", cmd, "--size", "12x8", "--spp", "32", "--method", "box", "--seed", "9",
               "--quiet"]
     log = tmp_path / "killed.h5"
+    marker = tmp_path / "rounds.txt"
+    # The renderer reports every call and holds round 3 until killed: the driver commits
+    # round k before it requests round k + 1, so rounds 0-2 are in the log by then and the
+    # driver is blocked in the renderer call (6 rounds in all for this run).
+    env = {**os.environ, "FAULT_RENDERER_MARKER": str(marker), "FAULT_RENDERER_HOLD": "3"}
     proc = subprocess.Popen([sys.executable, "-m", "mcrecon", *common, "--log", str(log), "-o",
-                             str(tmp_path / "killed.exr")], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    deadline = time.time() + 60
-    rounds = 0
-    while time.time() < deadline and rounds < 3:
-        time.sleep(0.05)
-        try:
-            rounds = read_log(log).n_rounds
-        except InputError:
-            continue  # the file is being created or appended to
-    assert rounds >= 3, "the run did not get going"
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
-    committed = read_log(log).n_samples
-    assert 0 < committed < 12 * 8 * 32
+                             str(tmp_path / "killed.exr")], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            env=env)
+    pids = []
+    try:
+        pids = _wait_for_round(marker, 3, proc)
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        proc.stderr.close()
+        for pid in pids:  # the held renderer (the others have exited)
+            _kill(pid)
+    killed = read_log(log)  # only now: the writer is dead
+    assert killed.n_rounds == 3 and len(killed.round_records) == 3
+    assert 0 < killed.n_samples < 12 * 8 * 32
     out = _run_cli(["adapt", "--resume", str(log), "-o", str(tmp_path / "resumed.exr"), "--quiet"])
     assert out.returncode == 0, out.stderr
     ref = _run_cli([*common, "--log", str(tmp_path / "full.h5"), "-o", str(tmp_path / "full.exr")])

@@ -7,6 +7,11 @@ file.  :func:`write_log` writes a whole log atomically (temporary file,
 then rename); :func:`append_log` appends one round and commits it by
 updating ``n_committed`` last, so a crash during an append leaves the
 committed rounds readable and the partial round ignored.
+
+Appending costs time and space proportional to the round, not to the
+file: the per-round datasets (``/rounds/end``, ``/run/records``) are
+chunked and resizable and grow by one row per round, and an append opens
+the file once and reads only the attributes, shapes and last rows it needs.
 """
 
 from __future__ import annotations
@@ -25,13 +30,27 @@ import numpy as np
 from ..errors import InputError
 from ._atomic import publish
 
-__all__ = ["cast_positions", "FORMAT_NAME", "FORMAT_VERSION", "SampleLog", "LogChunk", "read_log", "write_log",
-           "append_log", "set_run_settings", "DEFAULT_CHUNK_ROWS"]
+__all__ = ["cast_positions", "FORMAT_NAME", "FORMAT_VERSION", "FORMAT_MINOR", "SampleLog", "LogChunk", "read_log",
+           "write_log", "append_log", "update_round_record", "set_run_settings", "DEFAULT_CHUNK_ROWS"]
 
 FORMAT_NAME = "mcrecon-sample-log"
 FORMAT_VERSION = 1
-#: Rows per HDF5 chunk: 65536 samples = 512 KiB of float32 positions.
+#: Compatible revision of version 1 written by this module (attribute ``format_minor``;
+#: absent means 0).  1: ``/rounds/end`` and ``/run/records`` are resizable and grow by
+#: one row per round; row i of ``/run/records`` is round i's record (``null``: none).
+FORMAT_MINOR = 1
+#: Rows per HDF5 chunk of a log written whole: 65536 samples = 512 KiB of float32 positions.
 DEFAULT_CHUNK_ROWS = 1 << 16
+#: Rows per chunk of a log that starts small and grows by appended rounds (the adaptive
+#: driver's): HDF5 allocates whole chunks, so this bounds the slack of a small log
+#: (24 B/sample with float32 RGB: 96 KiB) while keeping large logs fast to stream.
+APPEND_CHUNK_ROWS = 1 << 12
+#: Rows per chunk of the per-round datasets /rounds/end (8 B/row) and /run/records (16 B/row).
+RECORD_CHUNK_ROWS = 1 << 8
+#: Stand-in record of a round that has none (keeps /run/records aligned with the rounds).
+_NO_RECORD = "null"
+#: Group holding a dataset being converted to a resizable one (see _ensure_resizable).
+_CONVERT = "_convert"
 #: Rows per read when streaming (a multiple of the chunk rows).
 DEFAULT_READ_ROWS = 1 << 20
 _VALID_FLOATS = (np.float32, np.float64)
@@ -116,6 +135,90 @@ def _str_list(v) -> tuple[str, ...]:
     return tuple(x.decode() if isinstance(x, bytes) else str(x) for x in arr.tolist())
 
 
+@dataclasses.dataclass(frozen=True)
+class _Header:
+    width: int
+    height: int
+    channels: tuple
+    n: int  # committed samples
+    rows: int  # rows of /positions and /values (>= n)
+    position_dtype: np.dtype
+    value_dtype: np.dtype
+    format_minor: int
+    positions: h5py.Dataset
+    values: h5py.Dataset
+
+
+def _read_header(path, f) -> _Header:
+    """Validate the root attributes and the shapes of /positions and /values.
+
+    Reads attributes and dataset metadata only (no samples, no per-round
+    datasets): what an append needs, in time independent of the log's size.
+    """
+    attrs = f.attrs
+    have = set(attrs.keys())  # one listing; then read only what is there
+    a = {k: attrs[k] for k in ("format", "format_version", "format_minor", "width", "height", "channels",
+                               "n_committed") if k in have}
+    fmt = a.get("format")
+    if fmt is not None and (fmt.decode() if isinstance(fmt, bytes) else str(fmt)) != FORMAT_NAME:
+        raise _err(path, "attribute format", f"is {fmt!r}, expected {FORMAT_NAME!r}")
+    ver = a.get("format_version")
+    if ver is None:
+        raise _err(path, "attribute format_version", f"missing; expected {FORMAT_VERSION} "
+                   "(is this an mcrecon sample log? see docs/sample-log-format.md)")
+    try:
+        ver = int(ver)
+    except (TypeError, ValueError):
+        raise _err(path, "attribute format_version", f"is {ver!r}, expected the integer {FORMAT_VERSION}") from None
+    if ver != FORMAT_VERSION:
+        raise _err(path, "attribute format_version", f"is {ver}, this mcrecon reads version {FORMAT_VERSION}")
+    try:
+        minor = int(a.get("format_minor", 0))  # any compatible revision is readable
+    except (TypeError, ValueError):
+        raise _err(path, "attribute format_minor", f"is {a.get('format_minor')!r}, expected an integer") from None
+    for key in ("width", "height", "channels"):
+        if key not in a:
+            raise _err(path, f"attribute {key}", "missing (see docs/sample-log-format.md)")
+    try:
+        width, height = int(a["width"]), int(a["height"])
+    except (TypeError, ValueError):
+        raise _err(path, "attribute width/height", "expected integers") from None
+    if width < 1 or height < 1:
+        raise _err(path, "attribute width/height", f"{width}x{height}, expected at least 1x1")
+    channels = _str_list(a["channels"])
+    if not channels or len(set(channels)) != len(channels):
+        raise _err(path, "attribute channels", f"{channels}: expected distinct non-empty names")
+    pos, val = f.get("positions"), f.get("values")
+    for name, d in (("positions", pos), ("values", val)):
+        if not isinstance(d, h5py.Dataset):
+            raise _err(path, f"dataset /{name}", "missing (see docs/sample-log-format.md)")
+    if pos.ndim != 2 or pos.shape[1] != 2:
+        raise _err(path, "dataset /positions", f"shape {pos.shape}, expected (N, 2)")
+    if val.ndim != 2 or val.shape[1] != len(channels):
+        raise _err(path, "dataset /values", f"shape {val.shape}, expected (N, {len(channels)}) "
+                   f"for channels {','.join(channels)}")
+    if pos.dtype not in _VALID_FLOATS:
+        raise _err(path, "dataset /positions", f"dtype {pos.dtype}, expected float32 or float64")
+    if val.dtype not in _VALID_FLOATS:
+        raise _err(path, "dataset /values", f"dtype {val.dtype}, expected float32 or float64")
+    rows = min(pos.shape[0], val.shape[0])
+    try:
+        n = int(a.get("n_committed", rows))
+    except (TypeError, ValueError):
+        raise _err(path, "attribute n_committed", f"is {a.get('n_committed')!r}, expected an integer") from None
+    if pos.shape[0] != val.shape[0] and "n_committed" not in a:
+        raise _err(path, "dataset /values", f"{val.shape[0]} rows but /positions has {pos.shape[0]}")
+    if n < 0 or n > rows:
+        raise _err(path, "attribute n_committed", f"is {n} but the datasets hold {rows} rows: "
+                   "the file is truncated")
+    return _Header(width, height, channels, n, rows, pos.dtype, val.dtype, minor, pos, val)
+
+
+def _strings(arr) -> list[str]:
+    """Decode the elements of a string dataset slice (bytes or str) to str."""
+    return [x.decode() if isinstance(x, bytes) else str(x) for x in np.asarray(arr, dtype=object).ravel().tolist()]
+
+
 class SampleLog:
     """A validated, lazily read sample log.  Obtain one with :func:`read_log`.
 
@@ -136,7 +239,10 @@ class SampleLog:
     run_settings : dict or None
         Driver settings of an adaptive run (for ``--resume``).
     round_records : list of dict
-        Per-round records of an adaptive run (times, errors).
+        Per-round records of an adaptive run (times, errors): those of the
+        committed rounds that have one, in round order.
+    format_minor : int
+        Compatible revision of format version 1 (0 when not recorded).
     """
 
     def __init__(self, path):
@@ -146,58 +252,14 @@ class SampleLog:
 
     def _validate(self, f):
         path = self.path
-        a = f.attrs
-        fmt = a.get("format")
-        if fmt is not None and (fmt.decode() if isinstance(fmt, bytes) else str(fmt)) != FORMAT_NAME:
-            raise _err(path, "attribute format", f"is {fmt!r}, expected {FORMAT_NAME!r}")
-        ver = a.get("format_version")
-        if ver is None:
-            raise _err(path, "attribute format_version", f"missing; expected {FORMAT_VERSION} "
-                       "(is this an mcrecon sample log? see docs/sample-log-format.md)")
-        try:
-            ver = int(ver)
-        except (TypeError, ValueError):
-            raise _err(path, "attribute format_version", f"is {ver!r}, expected the integer {FORMAT_VERSION}") from None
-        if ver != FORMAT_VERSION:
-            raise _err(path, "attribute format_version", f"is {ver}, this mcrecon reads version {FORMAT_VERSION}")
-        for key in ("width", "height", "channels"):
-            if key not in a:
-                raise _err(path, f"attribute {key}", "missing (see docs/sample-log-format.md)")
-        try:
-            self.width, self.height = int(a["width"]), int(a["height"])
-        except (TypeError, ValueError):
-            raise _err(path, "attribute width/height", "expected integers") from None
-        if self.width < 1 or self.height < 1:
-            raise _err(path, "attribute width/height", f"{self.width}x{self.height}, expected at least 1x1")
-        self.channels = _str_list(a["channels"])
-        if not self.channels or len(set(self.channels)) != len(self.channels):
-            raise _err(path, "attribute channels", f"{self.channels}: expected distinct non-empty names")
-        for name in ("positions", "values"):
-            if name not in f or not isinstance(f[name], h5py.Dataset):
-                raise _err(path, f"dataset /{name}", "missing (see docs/sample-log-format.md)")
-        pos, val = f["positions"], f["values"]
-        if pos.ndim != 2 or pos.shape[1] != 2:
-            raise _err(path, "dataset /positions", f"shape {pos.shape}, expected (N, 2)")
-        if val.ndim != 2 or val.shape[1] != len(self.channels):
-            raise _err(path, "dataset /values", f"shape {val.shape}, expected (N, {len(self.channels)}) "
-                       f"for channels {','.join(self.channels)}")
-        if pos.dtype not in _VALID_FLOATS:
-            raise _err(path, "dataset /positions", f"dtype {pos.dtype}, expected float32 or float64")
-        if val.dtype not in _VALID_FLOATS:
-            raise _err(path, "dataset /values", f"dtype {val.dtype}, expected float32 or float64")
-        rows = min(pos.shape[0], val.shape[0])
-        try:
-            n = int(a.get("n_committed", rows))
-        except (TypeError, ValueError):
-            raise _err(path, "attribute n_committed", f"is {a.get('n_committed')!r}, expected an integer") from None
-        if pos.shape[0] != val.shape[0] and "n_committed" not in a:
-            raise _err(path, "dataset /values", f"{val.shape[0]} rows but /positions has {pos.shape[0]}")
-        if n < 0 or n > rows:
-            raise _err(path, "attribute n_committed", f"is {n} but the datasets hold {rows} rows: "
-                       "the file is truncated")
+        h = _read_header(path, f)
+        self.width, self.height, self.channels = h.width, h.height, h.channels
+        self.format_minor = h.format_minor
+        n = h.n
         self.n_samples = n
-        self.value_dtype = val.dtype
-        self.position_dtype = pos.dtype
+        self.value_dtype = h.value_dtype
+        self.position_dtype = h.position_dtype
+        a = f.attrs
         self._has_round = "round" in f
         if self._has_round:
             r = f["round"]
@@ -240,9 +302,12 @@ class SampleLog:
             if s is not None:
                 self.run_settings = _json_attr(path, "attribute run/settings_json", s)
             if "records" in run:
-                recs = [x.decode() if isinstance(x, bytes) else str(x) for x in run["records"][...].tolist()]
-                self.round_records = [_json_attr(path, "dataset run/records", x)
-                                      for x in recs[: len(self.round_ends)]]
+                d = run["records"]
+                if not isinstance(d, h5py.Dataset) or d.ndim != 1:
+                    raise _err(path, "dataset /run/records", f"shape {getattr(d, 'shape', None)}, expected (R,) strings")
+                recs = (_json_attr(path, "dataset run/records", x) for x in _strings(d[: len(self.round_ends)]))
+                # Row i is round i's record; a round without one holds null (format_minor 1).
+                self.round_records = [r for r in recs if r is not None]
 
     @staticmethod
     def _scan_round_ends(rds, n):
@@ -403,8 +468,19 @@ def _check_arrays(where, positions, values, width, height, n_channels):
     return pos, val
 
 
+def _chunk_rows(n: int) -> int:
+    """Chunk rows for sample datasets starting with ``n`` rows.
+
+    A log written whole gets large chunks (fast streaming); one that starts
+    small, like the adaptive driver's empty log, grows by appended rounds
+    and gets small chunks, since HDF5 allocates every chunk in full.
+    """
+    return DEFAULT_CHUNK_ROWS if n >= DEFAULT_CHUNK_ROWS else APPEND_CHUNK_ROWS
+
+
 def _chunks_for(rows, cols):
-    return (DEFAULT_CHUNK_ROWS,) if cols is None else (DEFAULT_CHUNK_ROWS, cols)
+    c = _chunk_rows(rows)
+    return (c,) if cols is None else (c, cols)
 
 
 def write_log(path, positions, values, *, width: int, height: int,
@@ -473,6 +549,7 @@ def write_log(path, positions, values, *, width: int, height: int,
         with h5py.File(tmp, "w") as f:
             f.attrs["format"] = FORMAT_NAME
             f.attrs["format_version"] = FORMAT_VERSION
+            f.attrs["format_minor"] = FORMAT_MINOR
             f.attrs["width"] = width
             f.attrs["height"] = height
             f.attrs["channels"] = np.array(channels, dtype=h5py.string_dtype())
@@ -481,16 +558,17 @@ def write_log(path, positions, values, *, width: int, height: int,
             f.create_dataset("values", data=val, maxshape=(None, val.shape[1]), chunks=_chunks_for(n, val.shape[1]))
             f.create_dataset("round", data=rnd, maxshape=(None,), chunks=_chunks_for(n, None))
             ends = (np.flatnonzero(np.diff(rnd)) + 1).tolist() + [n] if n else []
-            f.create_dataset("rounds/end", data=np.asarray(ends, np.int64), maxshape=(None,), chunks=(256,))
+            f.create_dataset("rounds/end", data=np.asarray(ends, np.int64), maxshape=(None,),
+                             chunks=(RECORD_CHUNK_ROWS,))
             for name, arr in dict(features or {}).items():
                 arr = np.asarray(arr)
                 if arr.shape[:1] != (n,):
                     raise _err(path, f"features/{name}", f"shape {arr.shape}, expected ({n}, ...)")
                 f.create_dataset(f"features/{name}", data=arr, maxshape=(None,) + arr.shape[1:],
-                                 chunks=(DEFAULT_CHUNK_ROWS,) + arr.shape[1:])
+                                 chunks=(_chunk_rows(n),) + arr.shape[1:])
             if reference is not None:
                 f.create_dataset("reference", data=reference.astype(np.float32 if reference.dtype != np.float64 else np.float64))
-            f.attrs["n_committed"] = n
+            f.attrs["n_committed"] = np.int64(n)
         publish(tmp, path)
     except BaseException:
         try:
@@ -511,16 +589,110 @@ def _json_default(o):
     raise TypeError(f"{type(o).__name__} is not JSON serialisable")
 
 
+def _committed_rounds(path, f, n: int) -> tuple[int, list[int]]:
+    """Committed rounds of /rounds/end as a reader counts them, reading only its tail.
+
+    Returns ``(keep, extra)``: the first ``keep`` rows of /rounds/end are
+    committed rounds, and ``extra`` ([] or [n]) is a last round the reader
+    infers because those rows do not end at ``n``.  The reader's round count
+    is ``keep + len(extra)``.  Without /rounds/end the rounds come from
+    /round (a one-time scan, for logs from other writers).
+    """
+    if n == 0:
+        return 0, []
+    if "rounds/end" not in f:
+        if "round" in f:
+            return 0, SampleLog._scan_round_ends(f["round"], n).tolist()
+        return 0, [n]
+    d = f["rounds/end"]
+    if not isinstance(d, h5py.Dataset) or d.ndim != 1 or d.dtype.kind not in "iu":
+        raise _err(path, "dataset /rounds/end", f"shape {getattr(d, 'shape', None)}, expected (R,) integers")
+    # Rows are non-decreasing; uncommitted rows (an interrupted append) lie past n at the end.
+    hi = d.shape[0]
+    keep = 0
+    block = 64
+    while hi > 0:
+        lo = max(0, hi - block)
+        tail = np.asarray(d[lo:hi], np.int64)
+        if tail[0] <= n:
+            keep = lo + int(np.searchsorted(tail, n, side="right"))
+            break
+        hi, block = lo, block * 4
+    last = int(d[keep - 1]) if keep else None
+    return keep, ([] if last == n else [n])
+
+
+def _ensure_resizable(f, name: str, keep: int, chunk_rows: int, *, dtype=None, head=None):
+    """Return ``f[name]`` resizable along axis 0, copying it into one if it is not.
+
+    Logs from other writers, and /run/records of logs written before
+    format_minor 1, hold fixed-size datasets.  Such a dataset is copied once
+    (its first ``keep`` rows, after the rows ``head``) into a chunked,
+    unlimited one built under ``/_convert``, flushed, and only then swapped
+    in under the original name, so a crash during the copy leaves the
+    original intact (the leftover is discarded by the next append).
+    """
+    d = f[name]
+    if d.chunks is not None and d.maxshape[0] is None and head is None:
+        return d
+    tmp = f"{_CONVERT}/{name}"
+    if tmp in f:
+        del f[tmp]
+    head = [] if head is None else list(head)
+    shape = (len(head) + keep,) + d.shape[1:]
+    new = f.create_dataset(tmp, shape=shape, dtype=dtype or d.dtype, maxshape=(None,) + d.shape[1:],
+                           chunks=(chunk_rows,) + d.shape[1:])
+    if head:
+        new[:len(head)] = np.array(head, dtype=object if new.dtype.kind == "O" else new.dtype)
+    for s in range(0, keep, DEFAULT_READ_ROWS):
+        e = min(keep, s + DEFAULT_READ_ROWS)
+        block = d[s:e]
+        if new.dtype.kind == "O":
+            block = np.array(_strings(block), dtype=object)
+        new[len(head) + s:len(head) + e] = block
+    for k, v in d.attrs.items():
+        new.attrs[k] = v
+    f.flush()
+    del f[name]
+    f.move(tmp, name)
+    del f[_CONVERT]
+    return f[name]
+
+
+def _recover_conversions(f) -> None:
+    """Finish or discard a conversion a crash interrupted (see _ensure_resizable)."""
+    if _CONVERT not in f:
+        return
+    left = []
+    f[_CONVERT].visititems(lambda k, v: left.append(k) if isinstance(v, h5py.Dataset) else None)
+    for k in left:
+        if k not in f:  # the original was already unlinked: the copy is complete
+            f.move(f"{_CONVERT}/{k}", k)
+    del f[_CONVERT]
+
+
+def _record_json(path, record) -> str:
+    try:  # compact separators: a record is stored once per round, as large as a small round's samples
+        return json.dumps(dict(record), default=_json_default, sort_keys=True, separators=(",", ":"))
+    except (TypeError, ValueError) as exc:
+        raise _err(path, "round_record", f"not JSON-serialisable: {exc}") from None
+
+
 def append_log(path, positions, values, *, round_index: int | None = None,
                features: Mapping[str, np.ndarray] | None = None,
                round_record: Mapping | None = None) -> int:
     """Append one round of samples to an existing log and commit it.
 
     Rows beyond the committed count (left by an interrupted append) are
-    discarded first.  The new rows, their round index and the optional
-    ``round_record`` (JSON, e.g. times of an adaptive round) are written
-    and flushed before ``n_committed`` is updated, so a crash loses at
-    most this round.
+    discarded first, in every dataset.  The new rows, their round index,
+    the round's end in ``/rounds/end`` and the optional ``round_record``
+    (JSON, e.g. times of an adaptive round) are written and flushed before
+    ``n_committed`` is updated, so a crash loses at most this round.
+
+    The file is opened once and only its attributes, dataset shapes and
+    last rows are read: the cost is proportional to the round, not to the
+    log.  A fixed-size dataset (other writers, or ``/run/records`` of logs
+    written before format_minor 1) is converted to a resizable one once.
 
     Returns
     -------
@@ -528,74 +700,124 @@ def append_log(path, positions, values, *, round_index: int | None = None,
         The committed sample count after the append.
     """
     path = Path(path)
-    log = read_log(path)
-    pos, val = _check_arrays(path, positions, values, log.width, log.height, len(log.channels))
-    m = pos.shape[0]
-    feats = dict(features or {})
-    if feats and log.n_samples == 0 and not log.feature_names:
-        # A log created before the renderer's first reply learns its features then.
-        with _open(path, "r+") as f:
-            for name, arr in feats.items():
-                arr = np.asarray(arr)
-                f.create_dataset(f"features/{name}", shape=(0,) + arr.shape[1:], dtype=arr.dtype,
-                                 maxshape=(None,) + arr.shape[1:], chunks=(DEFAULT_CHUNK_ROWS,) + arr.shape[1:])
-        log = read_log(path)
-    if set(feats) != set(log.feature_names):
-        raise _err(path, "features", f"append gives {sorted(feats)}, the log has {list(log.feature_names)}: "
-                   "every round must carry the same features")
-    n = log.n_samples
-    if round_index is None:
-        round_index = log.n_rounds
+    feats = {str(k): np.asarray(v) for k, v in dict(features or {}).items()}
+    rec = None if round_record is None else _record_json(path, round_record)
     with _open(path, "r+") as f:
-        for name in ("positions", "values", "round"):
-            if name in f and f[name].shape[0] != n:
-                f[name].resize(n, axis=0)
-        if "round" not in f:
-            f.create_dataset("round", data=np.zeros(n, np.int32), maxshape=(None,), chunks=(DEFAULT_CHUNK_ROWS,))
-        pos = cast_positions(pos, f["positions"].dtype)
-        for name, data in (("positions", pos), ("values", val),
-                           ("round", np.full(m, round_index, np.int32))):
-            d = f[name]
-            d.resize(n + m, axis=0)
-            d[n:n + m] = data.astype(d.dtype, copy=False)
+        _recover_conversions(f)
+        h = _read_header(path, f)
+        pos, val = _check_arrays(path, positions, values, h.width, h.height, len(h.channels))
+        m, n = pos.shape[0], h.n
+        # ---- validate everything before the first write: a refused append leaves the file as it was
+        fgroup = f.get("features")
+        have = sorted(fgroup.keys()) if fgroup is not None else []
+        new_features = bool(feats) and n == 0 and not have  # learnt from the renderer's first reply
+        if not new_features and set(feats) != set(have):
+            raise _err(path, "features", f"append gives {sorted(feats)}, the log has {have}: "
+                       "every round must carry the same features")
         for name, arr in feats.items():
-            arr = np.asarray(arr)
-            d = f["features"][name]
-            if arr.shape[:1] != (m,) or arr.shape[1:] != d.shape[1:]:
-                raise _err(path, f"features/{name}", f"shape {arr.shape}, expected ({m},) + {d.shape[1:]}")
-            d.resize(n, axis=0)
-            d.resize(n + m, axis=0)
-            d[n:n + m] = arr
-        ends = log.round_ends.tolist()
-        if "rounds/end" in f:
-            del f["rounds/end"]
-        ends.append(n + m)
-        f.create_dataset("rounds/end", data=np.asarray(ends, np.int64), maxshape=(None,), chunks=(256,))
-        if round_record is not None:
-            run = f.require_group("run")
-            recs = [x.decode() if isinstance(x, bytes) else str(x) for x in run["records"][...].tolist()] \
-                if "records" in run else []
-            recs = recs[: len(ends) - 1]
-            recs.append(json.dumps(dict(round_record), default=_json_default, sort_keys=True))
-            if "records" in run:
-                del run["records"]
-            run.create_dataset("records", data=np.array(recs, dtype=h5py.string_dtype()))
+            d = None if new_features else fgroup[name]
+            if d is not None and (not isinstance(d, h5py.Dataset) or d.shape[0] < n):
+                raise _err(path, f"dataset /features/{name}",
+                           f"shape {getattr(d, 'shape', None)}, expected ({n}, ...)")
+            if arr.shape[:1] != (m,) or (d is not None and arr.shape[1:] != d.shape[1:]):
+                expect = "(...)" if d is None else str(d.shape[1:])
+                raise _err(path, f"features/{name}", f"shape {arr.shape}, expected ({m},) + {expect}")
+        if "round" in f:
+            r = f["round"]
+            if not isinstance(r, h5py.Dataset) or r.ndim != 1 or r.shape[0] < n or r.dtype.kind not in "iu":
+                raise _err(path, "dataset /round", f"shape {getattr(r, 'shape', None)}, expected ({n},) integers")
+        keep, extra = _committed_rounds(path, f, n)
+        n_rounds = keep + len(extra)
+        if round_index is None:
+            round_index = n_rounds
+        run = f.get("run")
+        recs = run.get("records") if run is not None else None
+        if recs is not None and (not isinstance(recs, h5py.Dataset) or recs.ndim != 1):
+            raise _err(path, "dataset /run/records", f"shape {getattr(recs, 'shape', None)}, expected (R,) strings")
+
+        # ---- samples: truncate to n, extend by m
+        chunk = h.positions.chunks[0] if h.positions.chunks else _chunk_rows(n)
+        pos = cast_positions(pos, h.position_dtype)
+        if "round" not in f:  # reads as round 0 for the committed samples (fill value, no data written)
+            f.create_dataset("round", shape=(n,), dtype=np.int32, maxshape=(None,), chunks=(chunk,), fillvalue=0)
+        columns = [("positions", pos), ("values", val), ("round", np.full(m, round_index, np.int32))]
+        if new_features:
+            for name, arr in feats.items():
+                f.create_dataset(f"features/{name}", shape=(0,) + arr.shape[1:], dtype=arr.dtype,
+                                 maxshape=(None,) + arr.shape[1:], chunks=(chunk,) + arr.shape[1:])
+        columns += [(f"features/{name}", arr) for name, arr in feats.items()]
+        for name, data in columns:
+            d = _ensure_resizable(f, name, n, chunk)
+            if d.shape[0] != n + m:
+                d.resize(n + m, axis=0)
+            if m:
+                d[n:n + m] = data.astype(d.dtype, copy=False)
+
+        # ---- per-round rows: /rounds/end and /run/records grow by one row (plus a round the reader inferred)
+        new_ends = extra + [n + m]
+        if "rounds/end" not in f:
+            f.create_dataset("rounds/end", shape=(0,), dtype=np.int64, maxshape=(None,), chunks=(RECORD_CHUNK_ROWS,))
+        d = _ensure_resizable(f, "rounds/end", keep, RECORD_CHUNK_ROWS, dtype=np.int64)
+        d.resize(keep + len(new_ends), axis=0)
+        d[keep:] = new_ends
+        if recs is not None or rec is not None:
+            # Row i holds round i's record: pad rounds without one (a log's first, written
+            # whole, or records of old logs that skipped rounds) with null at the front.
+            have_rows = 0 if recs is None else min(recs.shape[0], n_rounds)
+            head = [_NO_RECORD] * (n_rounds - have_rows)
+            if recs is None:
+                recs = f.require_group("run").create_dataset(
+                    "records", shape=(0,), dtype=h5py.string_dtype("utf-8"), maxshape=(None,),
+                    chunks=(RECORD_CHUNK_ROWS,))
+            elif have_rows:
+                # Load the heap collection of the last record, so the new record joins it
+                # instead of opening a fresh 4 KiB global-heap collection per append.
+                recs[have_rows - 1]
+            recs = _ensure_resizable(f, "run/records", have_rows, RECORD_CHUNK_ROWS,
+                                     dtype=h5py.string_dtype("utf-8"), head=head or None)
+            recs.resize(n_rounds + 1, axis=0)
+            recs[n_rounds] = _NO_RECORD if rec is None else rec
+        if h.format_minor < FORMAT_MINOR:
+            f.attrs["format_minor"] = FORMAT_MINOR  # the layout now follows it
         f.flush()
-        f.attrs["n_committed"] = n + m
-        f.flush()
+        _commit(f, n + m)
     return n + m
 
 
+def _commit(f, n: int) -> None:
+    """Set ``n_committed`` (one in-place attribute write when it is a scalar int64) and flush."""
+    a = f.attrs
+    if "n_committed" in a:
+        cur = a.get_id("n_committed")
+        if cur.dtype == np.int64 and cur.shape in ((), (1,)):
+            a.modify("n_committed", n)
+            f.flush()
+            return
+    a["n_committed"] = np.int64(n)  # absent, or another type (other writers): written once as int64
+    f.flush()
+
+
 def update_round_record(path, record: Mapping) -> None:
-    """Replace the record of the last committed round (its times once fully known)."""
+    """Replace the record of the last committed round (its times once fully known).
+
+    Overwrites that one row of ``/run/records`` in place.  Does nothing if
+    the log holds no records.
+    """
+    path = Path(path)
+    rec = _record_json(path, record)
     with _open(path, "r+") as f:
         run = f.get("run")
-        if run is None or "records" not in run or run["records"].shape[0] == 0:
+        d = run.get("records") if run is not None else None
+        if not isinstance(d, h5py.Dataset) or d.ndim != 1 or d.shape[0] == 0:
             return
-        recs = [x.decode() if isinstance(x, bytes) else str(x) for x in run["records"][...].tolist()]
-        recs[-1] = json.dumps(dict(record), default=_json_default, sort_keys=True)
-        del run["records"]
-        run.create_dataset("records", data=np.array(recs, dtype=h5py.string_dtype()))
+        h = _read_header(path, f)
+        keep, extra = _committed_rounds(path, f, h.n)
+        # Row i is round i's record; logs written before format_minor 1 may hold fewer rows
+        # than rounds (the last row is then the last round's).
+        i = min(d.shape[0], keep + len(extra)) - 1
+        if i < 0:
+            return
+        d[i] = rec
         f.flush()
 
 

@@ -2,8 +2,15 @@
 
 usage: fault_renderer.py MODE FAULT_ROUND REQUEST REPLY
 MODE: ok, slow, exit, hang, nan, short, channels, offpixel, noreply, garbage
+
+Environment (for tests that kill the driver at a known point):
+FAULT_RENDERER_MARKER=PATH  append a line "ROUND PID" to PATH when called for a round
+FAULT_RENDERER_HOLD=K       for rounds >= K, write the marker and then wait to be killed
+                            (at most 120 s) instead of rendering: the driver has then
+                            committed rounds 0..K-1 and is blocked on this call
 """
 
+import os
 import sys
 import time
 
@@ -17,6 +24,14 @@ def main(mode, fault_round, req_path, reply_path):
         channels = list(f.attrs["channels"])
         counts = f["counts"][...] if "counts" in f else np.zeros((h, w), np.int64)
         extra = f["positions"][...] if "positions" in f else np.zeros((0, 2))
+    marker = os.environ.get("FAULT_RENDERER_MARKER")
+    if marker:
+        with open(marker, "a") as m:  # one short line per call; the reader uses complete lines only
+            m.write(f"{rnd} {os.getpid()}\n")
+    hold = os.environ.get("FAULT_RENDERER_HOLD")
+    if hold is not None and rnd >= int(hold):
+        time.sleep(120)  # the test SIGKILLs the driver, then this process
+        sys.exit(4)
     rng = np.random.default_rng(seed)
     pix = np.repeat(np.arange(w * h), counts.ravel())
     pos = np.concatenate([np.stack([pix % w, pix // w], 1) + rng.random((pix.size, 2)), extra])
