@@ -20,7 +20,7 @@ import warnings
 
 from mcrecon.driver import adapt
 from mcrecon.methods import available_methods, get_method
-from mcrecon.scenes import SceneRenderer
+from mcrecon.renderers.scenes import SceneRenderer
 
 
 class ThrottledRenderer:
@@ -43,7 +43,7 @@ class ThrottledRenderer:
 def r_warm(w, h):
     import numpy as np
 
-    from mcrecon.protocol import SampleRequest
+    from mcrecon.renderers.protocol import SampleRequest
 
     return SampleRequest(w, h, counts=np.ones((h, w), np.int64), seed=1)
 
@@ -62,7 +62,7 @@ def main():
         w, h = (int(x) for x in size.split("x"))
         for name in methods:
             if a.renderer == "mitsuba":
-                from mcrecon.mitsuba_bridge import MitsubaRenderer
+                from mcrecon.renderers.mitsuba import MitsubaRenderer
 
                 r = MitsubaRenderer(None, width=w, height=h)
                 r.render(r_warm(w, h))  # compile the kernels once, outside the measurement

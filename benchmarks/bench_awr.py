@@ -31,7 +31,7 @@ from mcrecon.driver import adapt
 from mcrecon.methods import get_method
 from mcrecon.methods.awr import AWRMethod, plan_awr_positions
 from mcrecon.metrics import relative_mse
-from mcrecon.scenes import SceneRenderer, reference_image, render_uniform
+from mcrecon.renderers.scenes import SceneRenderer, reference_image, render_uniform
 from mcrecon.stats import PixelStats
 
 

@@ -33,7 +33,7 @@ import numpy as np
 
 from mcrecon.analysis import PixelSamples, bootstrap_bias_samples, group_samples
 from mcrecon.methods.ci import StoppingRule
-from mcrecon.scenes import render_uniform
+from mcrecon.renderers.scenes import render_uniform
 from mcrecon.tone import TONE_OPERATORS, register_tone_operator
 
 

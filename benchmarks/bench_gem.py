@@ -39,7 +39,7 @@ import numpy as np
 from mcrecon.methods import get_method
 from mcrecon.methods.gem import GEMMethod, pixel_kernel
 from mcrecon.reconstruction import reconstruct
-from mcrecon.scenes import SceneRenderer, render_uniform
+from mcrecon.renderers.scenes import SceneRenderer, render_uniform
 from mcrecon.stats import PixelStats
 
 

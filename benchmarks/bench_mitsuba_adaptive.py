@@ -18,7 +18,7 @@ import numpy as np
 from mcrecon.driver import adapt
 from mcrecon.methods import available_methods, get_method
 from mcrecon.metrics import relative_mse
-from mcrecon.mitsuba_bridge import MitsubaRenderer, mitsuba_available, render_reference
+from mcrecon.renderers.mitsuba import MitsubaRenderer, mitsuba_available, render_reference
 
 
 def main(argv=None):

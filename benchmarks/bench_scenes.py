@@ -1,4 +1,4 @@
-"""Throughput of the built-in scenes (mcrecon.scenes).
+"""Throughput of the built-in scenes (mcrecon.renderers.scenes).
 
 Run:  python benchmarks/bench_scenes.py [--samples N] [--size S]
 
@@ -20,8 +20,8 @@ import time
 
 import numpy as np
 
-from mcrecon import scenes as S
-from mcrecon.protocol import SampleRequest
+from mcrecon.renderers import scenes as S
+from mcrecon.renderers.protocol import SampleRequest
 
 
 def best_of(fn, repeat=3):

@@ -24,12 +24,12 @@ import time
 
 import numpy as np
 
-from mcrecon import scenes
 from mcrecon.driver import adapt
 from mcrecon.methods.splat import ProgressiveSplatter, SplatMethod, doubling_schedule, splat
 from mcrecon.methods.splat.kernels import _BOUNDARY_CODE, _splat_loop
 from mcrecon.metrics import relative_mse
-from mcrecon.protocol import SampleRequest, jittered_positions
+from mcrecon.renderers import scenes
+from mcrecon.renderers.protocol import SampleRequest, jittered_positions
 from mcrecon.stats import PixelStats
 
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Install what mcrecon's Mitsuba 3 bridge (mcrecon/mitsuba_bridge.py) needs on a
+# Install what mcrecon's Mitsuba 3 bridge (mcrecon/renderers/mitsuba.py) needs on a
 # Debian machine with Python 3.11:
 #   * the Debian package libllvm19: Dr.Jit's LLVM backend (the llvm_ad_rgb
 #     variant) loads libLLVM at run time; with LLVM 15/16 the first render
@@ -9,7 +9,7 @@
 # Idempotent: each step is skipped when already done.  It never fails the
 # caller: when a step is impossible (no apt, not root, no network, no
 # package), it prints the reason and exits 0, and the Mitsuba tests then skip
-# with a visible reason (mcrecon.mitsuba_bridge.mitsuba_available()).
+# with a visible reason (mcrecon.renderers.mitsuba.mitsuba_available()).
 #
 # Usage: bash data_tools/install_mitsuba.sh   (PYTHON=... to choose the interpreter)
 set -u
@@ -67,9 +67,9 @@ fi
 # ------------------------------------------------------------------- probe
 # Report (never fail) whether the bridge can actually render, using the same
 # subprocess probe the tests use, when mcrecon is importable.
-if "$PYTHON" -c "import mcrecon.mitsuba_bridge" >/dev/null 2>&1; then
+if "$PYTHON" -c "import mcrecon.renderers.mitsuba" >/dev/null 2>&1; then
     "$PYTHON" - <<'PY' || true
-from mcrecon.mitsuba_bridge import mitsuba_available
+from mcrecon.renderers.mitsuba import mitsuba_available
 ok, reason = mitsuba_available(refresh=True)
 print("install_mitsuba: bridge", "available" if ok else "NOT available", "-", reason)
 PY

@@ -14,7 +14,7 @@ from __future__ import annotations
 from .errors import InputError, McreconWarning, RendererError
 from .io import append_log, read_exr, read_log, write_exr, write_log, write_png_preview
 from .methods import available_methods, get_method
-from .protocol import CallableRenderer, SampleBatch, SampleRequest
+from .renderers import CallableRenderer, SampleBatch, SampleRequest
 from . import restoration
 from .reconstruction import Reconstruction, reconstruct
 from .samples import SampleSet

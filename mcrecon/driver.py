@@ -1,7 +1,7 @@
 """The adaptive driver: rounds of plan -> request -> render -> validate -> commit.
 
 :func:`adapt` runs an adaptive (or uniform) sampling run against any
-renderer (:class:`~mcrecon.protocol.Renderer`): an in-process callable,
+renderer (:class:`~mcrecon.renderers.protocol.Renderer`): an in-process callable,
 a built-in scene, an out-of-process command or Mitsuba.  Each round is
 validated and committed to the sample log *before* the statistics and
 the method see it, so a run killed at any point resumes from its log
@@ -30,7 +30,7 @@ from .io.samplelog import (append_log, cast_positions, read_log, set_run_setting
                            write_log)
 from .methods import Method, get_method
 from .methods.base import AdaptiveState, RunState
-from .protocol import SampleBatch, validate_reply
+from .renderers.protocol import SampleBatch, validate_reply
 from .renderers.spec import renderer_from_spec
 from .samples import FLOAT32_MAX, NONFINITE_POLICIES, float32_loses_spread
 from .stats import PixelStats
@@ -126,7 +126,7 @@ def _check_renderer(renderer):
     for attr in ("width", "height", "channels", "render"):
         if not hasattr(renderer, attr):
             raise InputError("renderer", attr, "missing: a renderer needs width, height, channels and "
-                             "render(request) (see mcrecon.protocol.Renderer)")
+                             "render(request) (see mcrecon.renderers.protocol.Renderer)")
     w, h = int(renderer.width), int(renderer.height)
     if w < 1 or h < 1:
         raise InputError("renderer", "width/height", f"{w}x{h}, expected at least 1x1")
@@ -144,7 +144,7 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
     Parameters
     ----------
     renderer : Renderer
-        Answers :class:`~mcrecon.protocol.SampleRequest` s.
+        Answers :class:`~mcrecon.renderers.protocol.SampleRequest` s.
     method : str or Method
         A registered method name or an instance.
     spp : float

@@ -29,7 +29,7 @@ import numpy as np
 from .errors import InputError
 
 __all__ = ["NONFINITE_POLICIES", "check_policy", "check_samples", "apply_nonfinite", "SampleSet",
-           "SampleChunk", "source_name", "float32_loses_spread", "FLOAT32_MAX"]
+           "SampleChunk", "source_name", "float32_loses_spread", "FLOAT32_MAX", "pixel_index"]
 
 #: What happens to samples whose value is NaN or +-Inf:
 #: ``drop`` skips the whole sample and counts it (default, with a warning),
@@ -348,3 +348,9 @@ def float32_loses_spread(positions, values, *, width: int, height: int) -> int:
 
 #: The largest finite float32.
 FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def pixel_index(positions: np.ndarray, width: int) -> np.ndarray:
+    """Flat pixel index ``row * width + col`` of film positions."""
+    pos = np.asarray(positions)
+    return np.floor(pos[:, 1]).astype(np.int64) * width + np.floor(pos[:, 0]).astype(np.int64)

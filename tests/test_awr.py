@@ -459,7 +459,7 @@ def test_importance_sampling_follows_abs_scale_function(wavelet):
 
 
 def _noisy_stats(h, w, spp, seed, scale=1.0):
-    from mcrecon.protocol import jittered_positions
+    from mcrecon.renderers.protocol import jittered_positions
     rng = np.random.default_rng(seed)
     pos = jittered_positions(np.full((h, w), spp), rng)
     n = len(pos)
@@ -569,7 +569,7 @@ def test_default_levels_rule():
 # ---------------------------------------------------------------- scenes
 
 def _scene_stats(scene, size, spp, seed):
-    from mcrecon.scenes import render_uniform
+    from mcrecon.renderers.scenes import render_uniform
     b = render_uniform(scene, width=size, height=size, spp=spp, seed=seed)
     return PixelStats.from_samples(b.positions, b.values, width=size, height=size)
 
@@ -591,7 +591,7 @@ def test_awr_vs_box_on_scenes(scene, variance):
     Margins: >= 4 % (depth_of_field, range), run-to-run sd < 0.5 %.
     """
     from mcrecon.metrics import relative_mse
-    from mcrecon.scenes import reference_image
+    from mcrecon.renderers.scenes import reference_image
     size = 128
     ref = reference_image(scene, size, size)
     st = _scene_stats(scene, size, 32, seed=1)
@@ -610,7 +610,7 @@ def test_adaptive_awr_vs_box_on_scenes(scene):
     limits (``python benchmarks/bench_awr.py --limits``, docs/methods/awr.md)."""
     from mcrecon.driver import adapt
     from mcrecon.metrics import relative_mse
-    from mcrecon.scenes import SceneRenderer, reference_image
+    from mcrecon.renderers.scenes import SceneRenderer, reference_image
     size = 128
     ref = reference_image(scene, size, size)
     box = relative_mse(get_method("box").reconstruct(_scene_stats(scene, size, 32, seed=1)), ref)
@@ -630,7 +630,7 @@ def test_adaptive_awr_vs_offline_awr(scene):
     measured limit (``python benchmarks/bench_awr.py --limits``), not asserted."""
     from mcrecon.driver import adapt
     from mcrecon.metrics import relative_mse
-    from mcrecon.scenes import SceneRenderer, reference_image
+    from mcrecon.renderers.scenes import SceneRenderer, reference_image
     size = 128
     res = adapt(SceneRenderer(scene, width=size, height=size, seed=1), get_method("awr"), spp=32, seed=1,
                 progress=False, track_error=False)
@@ -647,7 +647,7 @@ def test_awr_sampling_with_box_reconstruction():
     """Paper Fig. 10: the sampler alone, another reconstruction (option
     ``reconstruction='box'``) returns the pixel means of the adaptive samples."""
     from mcrecon.driver import adapt
-    from mcrecon.scenes import SceneRenderer
+    from mcrecon.renderers.scenes import SceneRenderer
     res = adapt(SceneRenderer("soft_shadow", width=48, height=40, seed=2), get_method("awr", reconstruction="box"),
                 spp=12, seed=2, progress=False, track_error=False)
     np.testing.assert_array_equal(res.image, res.stats.mean)
@@ -657,7 +657,7 @@ def test_awr_sampling_with_box_reconstruction():
 def test_adaptive_run_reports_the_sample_density_map():
     """``finish`` publishes the per-pixel sample counts as diagnostic ``samples``."""
     from mcrecon.driver import adapt
-    from mcrecon.scenes import SceneRenderer
+    from mcrecon.renderers.scenes import SceneRenderer
     for recon in ("awr", "box"):
         m = get_method("awr", reconstruction=recon)
         res = adapt(SceneRenderer("soft_shadow", width=40, height=36, seed=3), m, spp=10, seed=3, progress=False,
@@ -689,7 +689,7 @@ def test_depth_of_field_loss_is_the_sample_allocation():
     """
     from mcrecon.driver import adapt
     from mcrecon.metrics import relative_mse
-    from mcrecon.scenes import SceneRenderer, reference_image
+    from mcrecon.renderers.scenes import SceneRenderer, reference_image
     size, scene = 128, "depth_of_field"
     ref = reference_image(scene, size, size)
     uni = _scene_stats(scene, size, 32, seed=1)

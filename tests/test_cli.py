@@ -361,3 +361,22 @@ def test_storage_dtype_flag_offers_what_the_driver_accepts():
     adapt = p._subparsers._group_actions[0].choices["adapt"]
     action = next(a for a in adapt._actions if "--storage-dtype" in a.option_strings)
     assert tuple(action.choices) == STORAGE_DTYPES and action.default == "auto"
+
+
+def test_demo_writes_every_method_and_reports_its_error(tmp_path, capsys):
+    """The README's first command, small: a log, one EXR + PNG per method, each method's relative MSE."""
+    import re
+    import mcrecon
+    out = tmp_path / "demo"
+    code, text, err = run(["demo", "--size", "24x20", "--spp", "4", "--out", str(out)], capsys)
+    assert code == 0, err
+    methods = mcrecon.available_methods()
+    errors = dict(re.findall(r"^(\w+)\s+relative MSE ([0-9.eE+-]+)", text, re.M))
+    assert set(errors) == set(methods)
+    ref, _ = mcrecon.read_exr(out / "soft_shadow_reference.exr")
+    for name in methods:
+        img, _ = mcrecon.read_exr(out / f"soft_shadow_{name}.exr")
+        assert img.shape == (20, 24, 3) and (out / f"soft_shadow_{name}.png").exists()
+        from mcrecon.metrics import relative_mse
+        assert float(errors[name]) == pytest.approx(relative_mse(img.astype(np.float64), ref), rel=1e-4)
+    assert mcrecon.read_log(out / "soft_shadow.h5").n_samples == 24 * 20 * 4

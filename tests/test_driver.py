@@ -7,7 +7,8 @@ from mcrecon import InputError, RendererError
 from mcrecon.driver import adapt, resume, round_seeds
 from mcrecon.io import read_log
 from mcrecon.methods import Method
-from mcrecon.protocol import CallableRenderer, SampleBatch, SampleRequest, jittered_positions, validate_reply
+from mcrecon.renderers import CallableRenderer
+from mcrecon.renderers.protocol import SampleBatch, SampleRequest, jittered_positions, validate_reply
 
 
 def _shade(pos, seed):
@@ -219,3 +220,65 @@ def test_values_beyond_float32_are_never_turned_into_inf(tmp_path):
     assert read_log(tmp_path / "f32.h5").n_samples == 0  # nothing stored, the log still opens
     with pytest.raises(InputError, match="storage_dtype"):
         adapt(r, "box", spp=4, storage_dtype="float16")
+
+
+def test_on_round_sees_every_committed_round_as_recorded(tmp_path):
+    seen = []
+    res = adapt(_renderer(), "gem", spp=8, seed=2, log=tmp_path / "r.h5", reference=np.full((8, 16, 3), 0.5),
+                on_round=lambda rec: seen.append((dict(rec), read_log(tmp_path / "r.h5").n_samples)))
+    assert [r for r, _ in seen] == res.rounds == read_log(tmp_path / "r.h5").round_records
+    # called after the round is committed: the log already holds its samples
+    assert [n for _, n in seen] == [r["samples_total"] for r in res.rounds]
+    assert all("error" in r for r, _ in seen)
+    # and on a resumed run, for the new rounds only
+    adapt(_renderer(), "box", spp=8, seed=2, log=tmp_path / "k.h5", max_rounds=2)
+    more = []
+    resume(tmp_path / "k.h5", _renderer(), on_round=more.append)
+    assert [r["round"] for r in more] == list(range(2, 2 + len(more))) and more
+
+
+# ------------------------------------------------------------------ found in review (each failed before its fix)
+def _review_renderer(w=8, h=6, nan_pixel=False, features=False):
+    def fn(req):
+        rng = np.random.default_rng(req.seed)
+        pos = jittered_positions(req.counts, rng) if req.counts is not None else np.zeros((0, 2))
+        if req.positions is not None:
+            pos = np.concatenate([pos, req.positions])
+        val = rng.random((len(pos), 3))
+        if nan_pixel:
+            val[(pos[:, 0] < 1) & (pos[:, 1] < 1), 0] = np.nan  # pixel (0, 0) is always NaN
+        feats = {"depth": rng.random(len(pos)).astype(np.float32)} if features else {}
+        return SampleBatch(pos, val, feats)
+    return CallableRenderer(fn, width=w, height=h)
+
+
+@pytest.mark.parametrize("method", ["box", "ci", "gem"])
+def test_dropped_samples_count_against_the_budget(tmp_path, method):
+    with pytest.warns(Warning):
+        res = adapt(_review_renderer(nan_pixel=True), method, spp=8, seed=0, log=tmp_path / "r.h5")
+    assert res.stopped in ("budget", "converged") and len(res.rounds) < 50
+    committed = read_log(tmp_path / "r.h5").n_samples
+    assert committed <= 8 * 6 * 8 and committed == res.stats.n_samples + res.stats.n_dropped
+
+
+def test_renderer_features_are_logged(tmp_path):
+    res = adapt(_review_renderer(features=True), "box", spp=4, seed=0, log=tmp_path / "f.h5")
+    log = read_log(tmp_path / "f.h5")
+    assert log.feature_names == ("depth",) and log.read_feature("depth").shape == (res.stats.n_samples,)
+
+
+def test_logged_round_records_are_the_full_ones(tmp_path):
+    ref = np.full((6, 8, 3), 0.5)
+    res = adapt(_review_renderer(), "gem", spp=8, seed=0, log=tmp_path / "g.h5", reference=ref)
+    logged = read_log(tmp_path / "g.h5").round_records
+    assert [r["toolkit_seconds"] for r in logged] == [r["toolkit_seconds"] for r in res.rounds]
+    assert all("error" in r for r in logged)
+
+
+def test_float32_reply_positions_beyond_2048_are_accepted():
+    req = SampleRequest(4096, 2, positions=np.array([[3000.123456789, 1.5], [2048.000061, 0.25]]))
+    reply = (req.positions.astype(np.float32), np.ones((2, 3)))
+    out = validate_reply(req, reply, n_channels=3)
+    np.testing.assert_array_equal(out.positions, req.positions)
+    with pytest.raises(Exception, match="differ from the requested"):
+        validate_reply(req, (req.positions + [[0.01, 0]], np.ones((2, 3))), n_channels=3)

@@ -1,6 +1,7 @@
 """Out-of-process renderer protocol: faults, time-outs, SIGKILL and resume."""
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -12,11 +13,12 @@ import pytest
 
 from mcrecon import InputError, RendererError
 from mcrecon.driver import adapt, resume
-from mcrecon.external import CommandRenderer, read_request, write_request
 from mcrecon.io import read_exr, read_log
-from mcrecon.protocol import SampleRequest
+from mcrecon.renderers.command import CommandRenderer, read_request, write_request
+from mcrecon.renderers.protocol import SampleRequest
 
 FAULT = str(Path(__file__).parent / "renderers" / "fault_renderer.py")
+FEATURES = str(Path(__file__).parent / "renderers" / "feature_renderer.py")
 EXAMPLE = str(Path(__file__).parents[1] / "data_tools" / "example_renderer.py")
 
 
@@ -40,6 +42,38 @@ def test_example_renderer_runs_a_whole_adaptive_run(tmp_path):
     res = adapt(r, "box", spp=4, seed=1, log=tmp_path / "run.h5")
     assert res.stats.n_samples == 16 * 16 * 4 and np.isfinite(res.image).all()
     assert all(rec["renderer_seconds"] > 0 for rec in res.rounds)
+
+
+def test_reply_features_reach_the_log_of_an_adaptive_run(tmp_path):
+    r = CommandRenderer([sys.executable, FEATURES, "ok", "{request}", "{reply}"], width=12, height=8)
+    log = tmp_path / "run.h5"
+    res = adapt(r, "box", spp=8, seed=3, log=log)
+    got = read_log(log)
+    assert got.n_samples == res.stats.n_samples == 12 * 8 * 8 and got.n_rounds > 1
+    assert got.feature_names == ("depth", "normal")
+    pos = np.asarray(got.read_all().positions, np.float64)
+    depth, normal = got.read_feature("depth"), got.read_feature("normal")
+    assert depth.dtype == np.float32 and depth.shape == (got.n_samples,)
+    assert normal.dtype == np.float64 and normal.shape == (got.n_samples, 3)
+    # every row belongs to its own sample, across all rounds
+    np.testing.assert_allclose(depth, pos[:, 0] + 1000 * pos[:, 1], rtol=1e-6)
+    np.testing.assert_allclose(normal[:, 1:], pos, rtol=1e-6)
+
+
+@pytest.mark.parametrize("mode, match", [
+    ("short", r"shape \(95,\), expected \(96, \.\.\.\)"),
+    ("long", r"shape \(97,\), expected \(96, \.\.\.\)"),
+    ("text", "dtype object, expected a numeric dtype"),
+])
+def test_bad_reply_features_name_the_reply_file_and_dataset(tmp_path, mode, match):
+    r = CommandRenderer([sys.executable, FEATURES, mode, "{request}", "{reply}"], width=12, height=8,
+                        workdir=tmp_path / "exchange")
+    with pytest.raises(RendererError) as exc:
+        adapt(r, "box", spp=8, seed=3, log=tmp_path / "run.h5")
+    msg = str(exc.value)
+    assert "\n" not in msg
+    assert f"reply {tmp_path / 'exchange' / 'round-00000.reply.h5'} dataset /features/depth" in msg
+    assert re.search(match, msg), msg
 
 
 @pytest.mark.parametrize("mode, match", [

@@ -202,7 +202,7 @@ def test_pixel_path_approximation_costs_no_accuracy():
     grid (measured ratios in docs/methods/gem.md: 0.98-1.02, flat 0.15-0.3).
     """
     from mcrecon.metrics import relative_mse
-    from mcrecon.scenes import reference_image, render_uniform, scene_names
+    from mcrecon.renderers.scenes import reference_image, render_uniform, scene_names
     for scene in scene_names():
         ref = reference_image(scene, 48, 48)
         b = render_uniform(scene, width=48, height=48, spp=32, seed=5)
@@ -733,7 +733,7 @@ def _state(stats, rnd, budget, seed=0, ref=None):
 
 
 def test_plan_rounds_and_budget():
-    from mcrecon.scenes import SceneRenderer
+    from mcrecon.renderers.scenes import SceneRenderer
     w = h = 16
     r = SceneRenderer("soft_shadow", width=w, height=h, seed=0)
     m = get_method("gem")
@@ -799,7 +799,7 @@ def table1_agreement(scene, size=64, spp=32, var_spp=512, seed=7):
     through Eq. 2 for ``spp`` samples.  A choice whose true MSE equals the
     minimum (ties, e.g. exactly black regions) counts as agreeing.
     """
-    from mcrecon.scenes import reference_image, render_uniform
+    from mcrecon.renderers.scenes import reference_image, render_uniform
     ref = reference_image(scene, size, size)
     b = render_uniform(scene, width=size, height=size, spp=var_spp, seed=seed)
     st = PixelStats.from_samples(b.positions, b.values, width=size, height=size)
@@ -829,7 +829,7 @@ def test_table1_agreement_per_scene(full_run):
     98.8/97.8, motion_blur 99.5/98.4, caustic 98.3/95.6, hdr 98.8/97.9,
     flat 100/100.
     """
-    from mcrecon.scenes import scene_names
+    from mcrecon.renderers.scenes import scene_names
     size = 96 if full_run else 48
     for scene in scene_names():
         inc, our = table1_agreement(scene, size=size, var_spp=1024 if full_run else 256)
@@ -848,7 +848,7 @@ def test_gem_beats_box_on_every_scene(full_run):
     must be positive by 2 standard errors of the paired differences.
     """
     from mcrecon.metrics import relative_mse
-    from mcrecon.scenes import reference_image, render_uniform, scene_names
+    from mcrecon.renderers.scenes import reference_image, render_uniform, scene_names
     size, seeds = (128, 6) if full_run else (128, 3)   # features shrink below filterable at 64 px
     for scene in scene_names():
         ref = reference_image(scene, size, size)
@@ -878,7 +878,7 @@ def test_adaptive_beats_offline_and_oracle_is_not_worse(full_run):
     than GEM's at 128 px (docs/methods/gem.md, "Known deviations").
     """
     from mcrecon.metrics import relative_mse
-    from mcrecon.scenes import SceneRenderer, reference_image, render_uniform
+    from mcrecon.renderers.scenes import SceneRenderer, reference_image, render_uniform
     size, seeds = (128, 4) if full_run else (64, 2)
     for scene in ("soft_shadow", "motion_blur", "caustic"):
         ref = reference_image(scene, size, size)
@@ -906,7 +906,7 @@ def test_adaptive_beats_offline_and_oracle_is_not_worse(full_run):
 def test_oracle_offline_uses_the_log_reference(tmp_path):
     """`mcrecon denoise LOG --method gem --oracle 1`: the reference stored in the log drives the oracle,
     which then matches reconstruct(stats, reference=...) exactly."""
-    from mcrecon.scenes import reference_image, write_scene_log
+    from mcrecon.renderers.scenes import reference_image, write_scene_log
     path = write_scene_log("soft_shadow", tmp_path / "s.h5", width=24, height=24, spp=8)
     m = get_method("gem", oracle=1)
     a = mcrecon.reconstruct(path, method=m)

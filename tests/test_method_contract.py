@@ -16,7 +16,7 @@ from mcrecon.driver import adapt, resume
 from mcrecon.errors import InputError, McreconWarning
 from mcrecon.methods import METHODS, Option, get_method
 from mcrecon.metrics import relative_mse
-from mcrecon.scenes import SceneRenderer, reference_image, write_scene_log
+from mcrecon.renderers.scenes import SceneRenderer, reference_image, write_scene_log
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -103,11 +103,32 @@ def _imports(path: Path) -> set[str]:
     return names
 
 
-def test_no_method_module_imports_h5py_or_the_io_layer():
+def _outside_methods(name: str, path: Path) -> str | None:
+    """``name`` (as :func:`_imports` gives it) of ``path`` as a module path under mcrecon, if it leaves mcrecon/methods."""
+    if not name.startswith("."):
+        return name[len("mcrecon."):] if name.startswith("mcrecon.") else None
+    level = len(name) - len(name.lstrip("."))
+    package = path.relative_to(ROOT).parent.parts  # ("mcrecon", "methods", ...)
+    base = package[:len(package) - level + 1]
+    if base[:2] == ("mcrecon", "methods"):
+        return None
+    return ".".join(base[1:] + tuple(p for p in name.lstrip(".").split(".") if p))
+
+
+def test_no_method_module_imports_h5py_the_io_layer_or_a_renderer():
+    # Methods see renderers only through the request/batch types of renderers.protocol.
     for path in sorted((ROOT / "mcrecon/methods").rglob("*.py")):
-        bad = {n for n in _imports(path) if n == "h5py" or n.startswith("h5py.") or n.lstrip(".").split(".")[0] in
-               ("io", "driver", "cli", "external", "mitsuba_bridge")
-               and n.startswith("..")}
+        bad = set()
+        for n in _imports(path):
+            if n == "h5py" or n.startswith("h5py."):
+                bad.add(n)
+                continue
+            mod = _outside_methods(n, path)
+            if mod is None:
+                continue
+            top = mod.split(".")[0]
+            if top in ("io", "driver", "cli") or (top == "renderers" and mod != "renderers.protocol"):
+                bad.add(n)
         assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}"
 
 

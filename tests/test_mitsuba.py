@@ -1,4 +1,4 @@
-"""Tests of the Mitsuba 3 bridge (mcrecon.mitsuba_bridge).
+"""Tests of the Mitsuba 3 bridge (mcrecon.renderers.mitsuba).
 
 Everything that renders is marked ``mitsuba`` and skipped, with the reason
 from :func:`mitsuba_available` (a subprocess probe), when Mitsuba's llvm
@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from mcrecon.errors import InputError, RendererError
-from mcrecon.mitsuba_bridge import (MitsubaRenderer, _to_float32_positions, dump_uniform_log,
+from mcrecon.renderers.mitsuba import (MitsubaRenderer, _to_float32_positions, dump_uniform_log,
                                     mitsuba_available, render_reference)
-from mcrecon.protocol import SampleRequest, pixel_index, validate_reply
+from mcrecon.renderers.protocol import SampleRequest, pixel_index, validate_reply
 
 _OK, _REASON = mitsuba_available()
 needs_mitsuba = pytest.mark.skipif(not _OK, reason=f"Mitsuba bridge unavailable: {_REASON}")
@@ -330,7 +330,7 @@ def test_probe_failure_is_reported_not_fatal(monkeypatch):
     # A libLLVM that cannot be found: the probe subprocess fails, this
     # process gets (False, reason) naming the cause.  The per-process cache
     # is swapped for a fresh dict so later tests see the real answer.
-    import mcrecon.mitsuba_bridge as mb
+    import mcrecon.renderers.mitsuba as mb
 
     if not _OK:
         pytest.skip(f"Mitsuba bridge unavailable: {_REASON}")
@@ -348,7 +348,7 @@ def test_probe_survives_an_aborting_llvm(monkeypatch):
     # probe must turn that into (False, reason) and leave us running.
     import glob
 
-    import mcrecon.mitsuba_bridge as mb
+    import mcrecon.renderers.mitsuba as mb
 
     old = sorted(glob.glob("/usr/lib/*/libLLVM-15.so*") + glob.glob("/usr/lib/*/libLLVM-16.so*"))
     if not _OK or not old:

@@ -16,7 +16,7 @@ import pytest
 from mcrecon.driver import adapt
 from mcrecon.methods import available_methods, get_method
 from mcrecon.metrics import relative_mse
-from mcrecon.mitsuba_bridge import MitsubaRenderer, mitsuba_available, render_reference
+from mcrecon.renderers.mitsuba import MitsubaRenderer, mitsuba_available, render_reference
 
 _OK, _REASON = mitsuba_available()
 pytestmark = [pytest.mark.mitsuba, pytest.mark.slow,

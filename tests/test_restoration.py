@@ -10,7 +10,7 @@ import pytest
 import mcrecon
 from mcrecon import PixelStats, SampleSet, restoration
 from mcrecon.errors import InputError
-from mcrecon.scenes import render_uniform, write_scene_log
+from mcrecon.renderers.scenes import render_uniform, write_scene_log
 
 
 @pytest.mark.parametrize("module", ["mcrecon.restoration", "mcrecon.reconstruction", "mcrecon.stats",

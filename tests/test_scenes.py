@@ -1,4 +1,4 @@
-"""Tests of the built-in scenes (mcrecon.scenes).
+"""Tests of the built-in scenes (mcrecon.renderers.scenes).
 
 The central property: each scene's closed-form ``expected`` is the mean
 of its ``radiance`` over the random dimensions, and ``reference_image`` is
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from mcrecon.errors import InputError
-from mcrecon.protocol import SampleRequest, pixel_index, validate_reply
-from mcrecon import scenes as S
+from mcrecon.renderers import scenes as S
+from mcrecon.renderers.protocol import SampleRequest, pixel_index, validate_reply
 
 pytestmark = pytest.mark.filterwarnings("error")
 

@@ -16,7 +16,6 @@ import numpy as np
 import mcrecon
 import pytest
 
-from mcrecon import scenes
 from mcrecon.driver import adapt, resume
 from mcrecon.errors import InputError, McreconWarning
 from mcrecon.io import read_log, write_log
@@ -25,7 +24,8 @@ from mcrecon.methods.splat import (ProgressiveSplatter, SplatMethod, doubling_sc
                                    pilot_width, sample_norm, splat)
 from mcrecon.methods.splat.progressive import _radii
 from mcrecon.metrics import mse, relative_mse
-from mcrecon.protocol import SampleRequest, jittered_positions
+from mcrecon.renderers import scenes
+from mcrecon.renderers.protocol import SampleRequest, jittered_positions
 from mcrecon.stats import PixelStats
 
 

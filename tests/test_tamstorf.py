@@ -255,7 +255,7 @@ def test_plan_on_extreme_inputs_is_finite_and_silent(tone):
 
 def test_adaptive_run_through_driver_stops_when_converged():
     from mcrecon.driver import adapt
-    from mcrecon.scenes import SceneRenderer
+    from mcrecon.renderers.scenes import SceneRenderer
 
     m = get_method("ci", alpha=0.5, tolerance=0.02, max_spp=512)
     res = adapt(SceneRenderer("hdr", width=24, height=24, seed=3), m, spp=10_000, seed=1, progress=False,
@@ -636,7 +636,7 @@ def test_chi2_input_errors():
 
 
 def test_repeated_estimates_are_independent_requests():
-    from mcrecon.scenes import SceneRenderer
+    from mcrecon.renderers.scenes import SceneRenderer
 
     r = SceneRenderer("flat", width=4, height=3, seed=0)
     est = repeated_estimates(r, n=5, m=20, seed=1)
@@ -662,7 +662,7 @@ def test_normality_rejection_falls_toward_5_percent_on_a_scene(full_run):
     scenes (soft_shadow, motion_blur) stay far from normal at these n
     (reported, not asserted).
     """
-    from mcrecon.scenes import SceneRenderer
+    from mcrecon.renderers.scenes import SceneRenderer
 
     size = 48 if full_run else 32
     r10 = normality_experiment(SceneRenderer("depth_of_field", width=size, height=size, seed=1), n=10, m=100,
@@ -682,7 +682,7 @@ def test_normality_rejection_falls_toward_5_percent_on_a_scene(full_run):
 # ---------------------------------------------- the bright-emitter experiment
 
 def _hdr_regions(W, H):
-    from mcrecon.scenes import HDRScene
+    from mcrecon.renderers.scenes import HDRScene
 
     cx, cy, r = HDRScene.emitter
     yy, xx = np.mgrid[0:H, 0:W]
@@ -720,7 +720,7 @@ def test_tone_operator_beats_fixed_and_linear_wastes_samples_on_the_emitter(full
     leaving display errors up to 1 that dominate the image RMS.
     """
     from mcrecon.driver import adapt
-    from mcrecon.scenes import SceneRenderer, reference_image
+    from mcrecon.renderers.scenes import SceneRenderer, reference_image
 
     W = H = 128 if full_run else 64
     seeds = range(3) if full_run else range(2)

@@ -25,7 +25,7 @@ import numpy as np
 from scipy import stats as sps
 
 from ..errors import InputError
-from ..protocol import SampleRequest, validate_reply
+from ..renderers.protocol import SampleRequest, validate_reply
 from ..stats import PixelStats
 
 __all__ = ["ChiSquareResult", "chi2_normality", "repeated_estimates", "normality_experiment"]
@@ -174,7 +174,7 @@ def repeated_estimates(renderer, *, n: int, m: int, seed: int = 0) -> np.ndarray
             raise InputError(where, name, f"got {v!r}, expected an integer >= {lo}")
     for attr in ("width", "height", "channels", "render"):
         if not hasattr(renderer, attr):
-            raise InputError(where, "renderer", f"missing {attr}: expected a mcrecon.protocol.Renderer")
+            raise InputError(where, "renderer", f"missing {attr}: expected a mcrecon.renderers.protocol.Renderer")
     w, h = int(renderer.width), int(renderer.height)
     chans = tuple(renderer.channels)
     seeds = np.random.SeedSequence(int(seed)).generate_state(int(m), np.uint32)

@@ -27,7 +27,7 @@ _INFO_LINES = ("file", "width", "height", "channels", "samples", "rounds", "spp_
                "features", "reference")
 
 
-def cmd_info(args):
+def _cmd_info(args):
     from ..io import summarize_log
 
     info = summarize_log(args.log)
@@ -47,7 +47,7 @@ def cmd_info(args):
 
 
 # ----------------------------------------------------------------- denoise
-def cmd_denoise(args):
+def _cmd_denoise(args):
     from ..io import read_log
     from ..metrics import relative_mse
     from ..reconstruction import reconstruct
@@ -86,7 +86,7 @@ def _renderer_spec(args) -> dict:
                          "--mitsuba [SCENE.xml|cornell-box], or --resume LOG")
     w, h = parse_size(args.size)
     if args.scene is not None:
-        from ..scenes import get_scene
+        from ..renderers.scenes import get_scene
 
         return scene_spec(get_scene(args.scene).name, width=w, height=h, seed=args.seed)
     if args.renderer_cmd is not None:
@@ -124,7 +124,7 @@ def _report_run(res, ref, t_total) -> None:
     print(msg)
 
 
-def cmd_adapt(args):
+def _cmd_adapt(args):
     from .. import driver
     from ..io import read_log
 
@@ -168,7 +168,7 @@ def cmd_adapt(args):
 
 
 # ----------------------------------------------------------------- small commands
-def cmd_compare(args):
+def _cmd_compare(args):
     from ..io import read_exr
     from ..metrics import compare
 
@@ -183,15 +183,15 @@ def cmd_compare(args):
     return 0
 
 
-def cmd_scenes(args):
-    from ..scenes import get_scene, scene_names
+def _cmd_scenes(args):
+    from ..renderers.scenes import get_scene, scene_names
 
     for name in scene_names():
         print(f"{name:16s} {get_scene(name).description}")
     return 0
 
 
-def cmd_methods(args):
+def _cmd_methods(args):
     from ..methods import available_methods, get_method, method_class
 
     if args.name is None:
@@ -223,8 +223,8 @@ def cmd_methods(args):
     return 0
 
 
-def cmd_render_log(args):
-    from ..scenes import get_scene, write_scene_log
+def _cmd_render_log(args):
+    from ..renderers.scenes import get_scene, write_scene_log
 
     w, h = parse_size(args.size)
     path = write_scene_log(get_scene(args.scene), args.output, width=w, height=h, spp=args.spp, seed=args.seed)
@@ -232,13 +232,13 @@ def cmd_render_log(args):
     return 0
 
 
-def cmd_demo(args):
+def _cmd_demo(args):
     """The README's main job: render a log of a built-in scene, reconstruct, write EXR + PNG, print error."""
     from ..io import read_log, write_exr, write_png_preview
     from ..methods import available_methods, get_method
     from ..metrics import relative_mse
     from ..reconstruction import reconstruct
-    from ..scenes import get_scene, write_scene_log
+    from ..renderers.scenes import get_scene, write_scene_log
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -265,8 +265,8 @@ def cmd_demo(args):
     return 0
 
 
-def cmd_mitsuba(args):
-    from .. import mitsuba_bridge as mb
+def _cmd_mitsuba(args):
+    from ..renderers import mitsuba as mb
     from ..io import write_exr, write_png_preview
 
     w, h = parse_size(args.size)
@@ -305,12 +305,12 @@ def register(sub) -> None:
     s = sub.add_parser("info", help="describe a sample log")
     s.add_argument("log")
     s.add_argument("--json", action="store_true")
-    s.set_defaults(func=cmd_info)
+    s.set_defaults(func=_cmd_info)
 
     denoise = sub.add_parser("denoise", help="reconstruct an image from a sample log", formatter_class=HelpFormatter)
     denoise.add_argument("log")
     _outputs(denoise)
-    denoise.set_defaults(func=cmd_denoise)
+    denoise.set_defaults(func=_cmd_denoise)
 
     s = adapt = sub.add_parser("adapt", help="run adaptive rounds against a renderer", formatter_class=HelpFormatter)
     s.add_argument("--scene", default=None, help="built-in scene (see `mcrecon scenes`)")
@@ -338,7 +338,7 @@ def register(sub) -> None:
                    help="write per-round samples, renderer/toolkit seconds and (with a reference) the error")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     _outputs(s)
-    s.set_defaults(func=cmd_adapt)
+    s.set_defaults(func=_cmd_adapt)
 
     # One flag per method option for both commands: --NAME, or --method-NAME where
     # a command has its own --NAME (ci's exposure: --method-exposure).
@@ -359,13 +359,13 @@ def register(sub) -> None:
     s.add_argument("--eps", type=float, default=0.01, help="relative MSE epsilon (default 0.01)")
     s.add_argument("--data-range", type=float, default=None, help="PSNR data range (default: reference max)")
     s.add_argument("--json", action="store_true")
-    s.set_defaults(func=cmd_compare)
+    s.set_defaults(func=_cmd_compare)
 
     s = sub.add_parser("scenes", help="list the built-in scenes")
-    s.set_defaults(func=cmd_scenes)
+    s.set_defaults(func=_cmd_scenes)
     s = sub.add_parser("methods", help="list the reconstruction methods, or describe one (options, inputs)")
     s.add_argument("name", nargs="?", default=None, metavar="NAME", help="a method to describe")
-    s.set_defaults(func=cmd_methods, method_flags=flags)
+    s.set_defaults(func=_cmd_methods, method_flags=flags)
 
     s = sub.add_parser("render-log", help="dump a uniform sample log of a built-in scene (with its reference)")
     s.add_argument("--scene", required=True)
@@ -373,7 +373,7 @@ def register(sub) -> None:
     s.add_argument("--size", default="128x128")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("-o", "--output", required=True)
-    s.set_defaults(func=cmd_render_log)
+    s.set_defaults(func=_cmd_render_log)
 
     s = sub.add_parser("mitsuba", help="Mitsuba 3 bridge (optional extra): reference images and uniform logs")
     ms = s.add_subparsers(dest="mitsuba_command", required=True, parser_class=OneLineParser)
@@ -387,7 +387,7 @@ def register(sub) -> None:
         if name == "log":
             m.add_argument("--reference-spp", type=int, default=None, help="also store a reference of this spp")
         m.add_argument("-o", "--output", required=True)
-        m.set_defaults(func=cmd_mitsuba)
+        m.set_defaults(func=_cmd_mitsuba)
 
     s = sub.add_parser("demo", help="the main job on a built-in scene: log, reconstruct, EXR + PNG, error")
     s.add_argument("--scene", default="soft_shadow")
@@ -397,4 +397,4 @@ def register(sub) -> None:
     s.add_argument("--methods", default=None, help="comma-separated (default: every available method)")
     s.add_argument("--exposure", type=float, default=0.0)
     s.add_argument("--out", default="mcrecon_demo")
-    s.set_defaults(func=cmd_demo)
+    s.set_defaults(func=_cmd_demo)

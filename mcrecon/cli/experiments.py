@@ -23,7 +23,7 @@ def _csv_list(text, conv=str, what="list"):
         raise InputError("experiment", what, f"{text!r}: expected a comma-separated list") from None
 
 
-def cmd_convergence(args):
+def _cmd_convergence(args):
     from ..experiments.convergence import run_convergence
 
     res = run_convergence(args.scene, methods=_csv_list(args.methods) if args.methods else None,
@@ -38,7 +38,7 @@ def cmd_convergence(args):
     return 0
 
 
-def cmd_stability(args):
+def _cmd_stability(args):
     from ..experiments.stability import run_stability, write_stability_table
 
     rows = run_stability(methods=_csv_list(args.methods) if args.methods else None,
@@ -52,7 +52,7 @@ def cmd_stability(args):
     return 1 if fails else 0
 
 
-def cmd_gallery(args):
+def _cmd_gallery(args):
     from ..experiments.gallery import write_gallery
 
     path = write_gallery(args.out, scenes=_csv_list(args.scenes) if args.scenes else None,
@@ -62,7 +62,7 @@ def cmd_gallery(args):
     return 0
 
 
-def cmd_error_rate(args):
+def _cmd_error_rate(args):
     from ..experiments.error_rate import run_error_rate
 
     rep = run_error_rate(args.out, gammas=_csv_list(args.gammas, float, "--gammas"),
@@ -75,9 +75,9 @@ def cmd_error_rate(args):
     return 0
 
 
-def cmd_normality(args):
+def _cmd_normality(args):
     from ..experiments.statistics import run_normality
-    from ..scenes import SceneRenderer
+    from ..renderers.scenes import SceneRenderer
 
     w, h = parse_size(args.size)
     renderer = SceneRenderer(args.scene, width=w, height=h, seed=args.seed)
@@ -90,7 +90,7 @@ def cmd_normality(args):
     return 0
 
 
-def cmd_bias(args):
+def _cmd_bias(args):
     from ..experiments.statistics import run_bias
 
     if (args.log is None) == (args.scene is None):
@@ -99,7 +99,7 @@ def cmd_bias(args):
     if args.log is not None:
         source = args.log
     else:
-        from ..scenes import get_scene, render_uniform
+        from ..renderers.scenes import get_scene, render_uniform
 
         w, h = parse_size(args.size)
         batch = render_uniform(get_scene(args.scene), width=w, height=h, spp=args.spp, seed=args.seed)
@@ -125,14 +125,14 @@ def register(sub) -> None:
     s.add_argument("--oidn", default="auto", choices=("auto", "yes", "no"))
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", required=True)
-    s.set_defaults(func=cmd_convergence)
+    s.set_defaults(func=_cmd_convergence)
 
     s = es.add_parser("stability", help="every method on stiff and extreme inputs; outcome table")
     s.add_argument("--methods", default=None)
     s.add_argument("--cases", default=None, help="comma-separated case names (default: all)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", required=True)
-    s.set_defaults(func=cmd_stability)
+    s.set_defaults(func=_cmd_stability)
 
     s = es.add_parser("gallery", help="the documentation gallery: every scene and method (writes OUT/gallery.md)")
     s.add_argument("--scenes", default=None)
@@ -141,7 +141,7 @@ def register(sub) -> None:
     s.add_argument("--spp", type=int, default=16)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", required=True)
-    s.set_defaults(func=cmd_gallery)
+    s.set_defaults(func=_cmd_gallery)
 
     s = es.add_parser("error-rate", help="GEM's scale-selector error rate on a constant signal (Sec. 4.3)")
     s.add_argument("--gammas", default="0.05,0.1,0.15,0.2,0.25,0.3,0.35")
@@ -150,7 +150,7 @@ def register(sub) -> None:
     s.add_argument("--spp", type=int, default=32)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", required=True)
-    s.set_defaults(func=cmd_error_rate)
+    s.set_defaults(func=_cmd_error_rate)
 
     s = es.add_parser("normality", help="chi-square normality test of pixel estimates (Tamstorf & Jensen)")
     s.add_argument("--scene", default="depth_of_field")
@@ -161,7 +161,7 @@ def register(sub) -> None:
     s.add_argument("--alpha", type=float, default=0.05)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", required=True)
-    s.set_defaults(func=cmd_normality)
+    s.set_defaults(func=_cmd_normality)
 
     s = sub.add_parser("bias", help="bootstrap bias of the adaptive stopping rule on a log or a scene",
                        description="Bootstrap bias of the adaptive stopping rule (Tamstorf & Jensen 1997); "
@@ -178,4 +178,4 @@ def register(sub) -> None:
     s.add_argument("--out", required=True)
     flags = method_flags(set(s._option_string_actions), prefix="--rule-", methods=["ci"])
     add_method_options(s, flags, methods=["ci"])
-    s.set_defaults(func=cmd_bias, method_flags=flags)
+    s.set_defaults(func=_cmd_bias, method_flags=flags)

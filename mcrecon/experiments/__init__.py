@@ -1,1 +1,10 @@
-"""Experiments that produce figures and tables: convergence, error rates, stability, statistics."""
+"""Experiments that reproduce the papers' measurements and write reports.
+
+Modules: ``convergence`` (error against spp and wall time), ``stability``
+(extreme inputs), ``gallery``, ``error_rate`` (GEM Sec. 4.3),
+``statistics`` (Tamstorf & Jensen's normality test and bootstrap bias).
+They are imported on use (``from mcrecon.experiments.convergence import
+run_convergence``): each pulls in plotting and scene code.
+"""
+
+__all__: list[str] = []

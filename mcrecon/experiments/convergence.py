@@ -85,7 +85,7 @@ def run_convergence(scene: str = "soft_shadow", *, methods: Sequence[str] | None
         Budget whose images go into the report (default: 32 if present, else the largest).
     """
     from ..driver import adapt
-    from ..scenes import SceneRenderer, get_scene, reference_image, render_uniform
+    from ..renderers.scenes import SceneRenderer, get_scene, reference_image, render_uniform
 
     sc = get_scene(scene)
     methods = list(methods) if methods else available_methods()
@@ -165,11 +165,11 @@ def run_convergence(scene: str = "soft_shadow", *, methods: Sequence[str] | None
         pass
     result = ConvergenceResult(rows, images, maps, ref, report_spp, [])
     if out is not None:
-        result.files = write_convergence(result, out, scene=scene)
+        result.files = _write_convergence(result, out, scene=scene)
     return result
 
 
-def write_convergence(result: ConvergenceResult, out, *, scene: str) -> list:
+def _write_convergence(result: ConvergenceResult, out, *, scene: str) -> list:
     """CSV, JSON, two log-log plots, images and a Markdown report."""
     import matplotlib
 

@@ -17,7 +17,7 @@ __all__ = ["write_gallery"]
 
 def write_gallery(out, *, scenes: Sequence[str] | None = None, methods: Sequence[str] | None = None,
                   size=(96, 96), spp: int = 16, seed: int = 0) -> Path:
-    from ..scenes import scene_names
+    from ..renderers.scenes import scene_names
     from .convergence import run_convergence
 
     out = Path(out)

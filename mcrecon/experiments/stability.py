@@ -25,7 +25,8 @@ import numpy as np
 
 from ..io import write_log
 from ..methods import available_methods, get_method
-from ..protocol import CallableRenderer, SampleBatch, jittered_positions
+from ..renderers.callable import CallableRenderer
+from ..renderers.protocol import SampleBatch, jittered_positions
 from ..reconstruction import reconstruct
 
 __all__ = ["CASES", "StabilityCase", "run_stability", "write_stability_table"]

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..protocol import pixel_index
-from ..samples import check_samples
+from ..samples import check_samples, pixel_index
 from .samplelog import FORMAT_VERSION, SampleLog, read_log
 
 __all__ = ["summarize_log"]

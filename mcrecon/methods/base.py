@@ -58,7 +58,7 @@ from typing import Any, ClassVar, Mapping, Sequence
 import numpy as np
 
 from ..errors import InputError
-from ..protocol import SampleBatch, SampleRequest
+from ..renderers.protocol import SampleBatch, SampleRequest
 from ..stats import PixelStats
 
 __all__ = ["Method", "AdaptiveState", "Option", "Requirements", "MethodInputs", "RunState", "uniform_counts"]

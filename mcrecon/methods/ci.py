@@ -29,7 +29,7 @@ import numpy as np
 from scipy import stats as sps
 
 from ..errors import InputError
-from ..protocol import SampleRequest
+from ..renderers.protocol import SampleRequest
 from ..stats import PixelStats
 from ..tone import TONE_OPERATORS, get_tone_operator, tone_map
 from .base import AdaptiveState, Method, MethodInputs, Option, RunState, uniform_counts

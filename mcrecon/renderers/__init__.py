@@ -1,7 +1,22 @@
-"""Renderers: how to describe one so that a run can build it again (:mod:`.spec`)."""
+"""Renderers: the protocol mcrecon speaks with them, and the renderers it ships.
 
+* :mod:`.protocol`: :class:`SampleRequest`, :class:`SampleBatch`, the
+  :class:`Renderer` protocol, :func:`validate_reply`;
+* :mod:`.callable`: :class:`CallableRenderer`, a Python function as a renderer;
+* :mod:`.command`: ``CommandRenderer``, an external command exchanging HDF5 files;
+* :mod:`.scenes`: the built-in procedural scenes with exact references;
+* :mod:`.mitsuba`: the optional Mitsuba 3 bridge;
+* :mod:`.spec`: how to describe a renderer so that a run can build it again.
+
+Only the light parts are imported here; import :mod:`.command`,
+:mod:`.scenes` and :mod:`.mitsuba` by their own names.
+"""
+
+from .callable import CallableRenderer
+from .protocol import Renderer, SampleBatch, SampleRequest, validate_reply
 from .spec import (KINDS, check_spec, command_spec, mitsuba_spec, reference_from_spec, renderer_from_spec,
                    scene_spec)
 
-__all__ = ["KINDS", "scene_spec", "command_spec", "mitsuba_spec", "check_spec", "renderer_from_spec",
+__all__ = ["SampleRequest", "SampleBatch", "Renderer", "validate_reply", "CallableRenderer",
+           "KINDS", "scene_spec", "command_spec", "mitsuba_spec", "check_spec", "renderer_from_spec",
            "reference_from_spec"]

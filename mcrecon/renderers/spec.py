@@ -44,13 +44,13 @@ KINDS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
 
 # ---------------------------------------------------------------- writing
 def scene_spec(scene: str, *, width: int, height: int, seed: int = 0) -> dict:
-    """The spec of a built-in scene (:class:`mcrecon.scenes.SceneRenderer`)."""
+    """The spec of a built-in scene (:class:`mcrecon.renderers.scenes.SceneRenderer`)."""
     return check_spec({"kind": "scene", "scene": scene, "width": width, "height": height, "seed": seed})
 
 
 def command_spec(argv: Sequence[str], *, width: int, height: int, channels: Sequence[str] = ("R", "G", "B"),
                  timeout: float | None = 600.0, workdir=None) -> dict:
-    """The spec of an external renderer command (:class:`mcrecon.external.CommandRenderer`)."""
+    """The spec of an external renderer command (:class:`mcrecon.renderers.command.CommandRenderer`)."""
     return check_spec({"kind": "command", "argv": list(argv), "width": width, "height": height,
                        "channels": list(channels), "timeout": timeout,
                        "workdir": None if workdir is None else str(workdir)})
@@ -117,7 +117,7 @@ def check_spec(spec: Any, *, where: str = "renderer spec", field: str = "rendere
 
     out = {"kind": kind, "width": integer("width", 1), "height": integer("height", 1)}
     if kind == "scene":
-        from ..scenes import scene_names
+        from .scenes import scene_names
 
         if spec["scene"] not in scene_names():
             raise bad("scene", f"a built-in scene: {', '.join(scene_names())}")
@@ -147,15 +147,15 @@ def renderer_from_spec(spec, *, where: str = "renderer spec", field: str = "rend
     spec = check_spec(spec, where=where, field=field)
     kind, w, h = spec["kind"], spec["width"], spec["height"]
     if kind == "scene":
-        from ..scenes import SceneRenderer
+        from .scenes import SceneRenderer
 
         return SceneRenderer(spec["scene"], width=w, height=h, seed=spec["seed"])
     if kind == "command":
-        from ..external import CommandRenderer
+        from .command import CommandRenderer
 
         return CommandRenderer(spec["argv"], width=w, height=h, channels=tuple(spec["channels"]),
                                timeout=spec["timeout"], workdir=spec["workdir"])
-    from ..mitsuba_bridge import MitsubaRenderer
+    from .mitsuba import MitsubaRenderer
 
     return MitsubaRenderer(spec["scene"], width=w, height=h)
 
@@ -163,12 +163,12 @@ def renderer_from_spec(spec, *, where: str = "renderer spec", field: str = "rend
 def reference_from_spec(spec, *, where: str = "renderer spec", field: str = "renderer_spec"):
     """The exact reference image (H, W, C) float64 of a spec's renderer, or None where it has none.
 
-    Built-in scenes have one (:func:`mcrecon.scenes.reference_image`);
+    Built-in scenes have one (:func:`mcrecon.renderers.scenes.reference_image`);
     commands and Mitsuba scenes do not.
     """
     spec = check_spec(spec, where=where, field=field)
     if spec["kind"] != "scene":
         return None
-    from ..scenes import reference_image
+    from .scenes import reference_image
 
     return reference_image(spec["scene"], spec["width"], spec["height"])

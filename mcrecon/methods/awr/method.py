@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 
-from ...protocol import SampleRequest
+from ...renderers.protocol import SampleRequest
 from ..base import AdaptiveState, Method, MethodInputs, Option, RunState
 from ..box import fill_empty_pixels
 from .reconstruction import VARIANCE_ESTIMATORS, awr_reconstruct, pixel_variance

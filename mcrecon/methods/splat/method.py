@@ -8,7 +8,7 @@ import warnings
 import numpy as np
 
 from ...errors import InputError, McreconWarning
-from ...protocol import SampleBatch, SampleRequest
+from ...renderers.protocol import SampleBatch, SampleRequest
 from ...samples import check_policy, source_name
 from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState
 from .kernels import BOUNDARY_MODES

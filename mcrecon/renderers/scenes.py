@@ -50,7 +50,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from .errors import InputError
+from ..errors import InputError
 from .protocol import SampleBatch, SampleRequest, jittered_positions
 
 __all__ = [
@@ -879,7 +879,7 @@ def reference_image(scene, width: int, height: int, *, quadrature: int = 32) -> 
 # ----------------------------------------------------------------------------
 
 class SceneRenderer:
-    """A built-in scene as a renderer (:class:`mcrecon.protocol.Renderer`).
+    """A built-in scene as a renderer (:class:`mcrecon.renderers.protocol.Renderer`).
 
     Parameters
     ----------
@@ -896,7 +896,7 @@ class SceneRenderer:
     -----
     The reply lists the samples for ``request.counts`` first (uniformly
     jittered inside each pixel, sorted by pixel, see
-    :func:`mcrecon.protocol.jittered_positions`), then one sample per
+    :func:`mcrecon.renderers.protocol.jittered_positions`), then one sample per
     requested position, in request order.  Values are float64 (N, 3).
     """
 
@@ -957,7 +957,7 @@ def write_scene_log(scene, path, *, width: int = 128, height: int = 128, spp: in
     Path
         The log written.
     """
-    from .io import write_log
+    from ..io import write_log
 
     sc = get_scene(scene)
     batch = render_uniform(sc, width=width, height=height, spp=spp, seed=seed)

@@ -18,18 +18,18 @@ stored: never trust a renderer's reply.
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable, Mapping, Protocol, Sequence, runtime_checkable
+from typing import Mapping, Protocol, Sequence, runtime_checkable
 
 import numba
 import numpy as np
 
-from .errors import RendererError
+from ..errors import RendererError
+from ..samples import pixel_index  # the film's pixel numbering, shared with the readers
 
 __all__ = [
     "SampleRequest",
     "SampleBatch",
     "Renderer",
-    "CallableRenderer",
     "validate_reply",
     "jittered_positions",
     "pixel_index",
@@ -126,12 +126,6 @@ class Renderer(Protocol):
 
     def render(self, request: SampleRequest) -> SampleBatch:  # pragma: no cover - protocol
         ...
-
-
-def pixel_index(positions: np.ndarray, width: int) -> np.ndarray:
-    """Flat pixel index ``row * width + col`` of film positions."""
-    pos = np.asarray(positions)
-    return np.floor(pos[:, 1]).astype(np.int64) * width + np.floor(pos[:, 0]).astype(np.int64)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -259,36 +253,3 @@ def validate_reply(request: SampleRequest, batch, *, n_channels: int,
             raise RendererError(renderer, f"features/{name}", f"shape {arr.shape}, expected ({n}, ...)")
         feats[str(name)] = arr
     return SampleBatch(pos, val, feats)
-
-
-class CallableRenderer:
-    """Wrap a Python callable ``fn(request) -> SampleBatch | (positions, values)``.
-
-    Parameters
-    ----------
-    fn : callable
-        Called once per round with a :class:`SampleRequest`.
-    width, height : int
-        Film size.
-    channels : sequence of str
-        Channel names of the values it returns.
-    name : str, optional
-        Used in error messages.
-    """
-
-    def __init__(self, fn: Callable[[SampleRequest], object], *, width: int, height: int,
-                 channels: Sequence[str] = ("R", "G", "B"), name: str | None = None):
-        if not callable(fn):
-            raise TypeError("fn must be callable")
-        self.fn = fn
-        self.width = int(width)
-        self.height = int(height)
-        self.channels = tuple(channels)
-        self.name = name or getattr(fn, "__name__", "callable renderer")
-
-    def render(self, request: SampleRequest) -> SampleBatch:
-        try:
-            reply = self.fn(request)
-        except Exception as exc:
-            raise RendererError(self.name, "render", f"raised {type(exc).__name__}: {exc}") from exc
-        return reply

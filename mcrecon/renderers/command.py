@@ -5,9 +5,11 @@ round mcrecon writes a *request* file, starts the renderer command (an
 argument list, never through a shell) with the ``{request}`` and
 ``{reply}`` placeholders replaced by the two paths, waits for it to exit
 (with a time-out), and reads the *reply*, a file in the sample-log
-format.  Every failure (cannot start, time-out, non-zero exit, missing,
-malformed or short reply) raises :class:`~mcrecon.errors.RendererError`;
-the driver has committed every earlier round, so the run stays resumable.
+format: positions, values and any per-sample features (``/features/NAME``,
+shape ``(N, ...)``, numeric), which reach the run's log.  Every failure
+(cannot start, time-out, non-zero exit, missing, malformed or short reply,
+a bad feature) raises :class:`~mcrecon.errors.RendererError`; the driver
+has committed every earlier round, so the run stays resumable.
 """
 
 from __future__ import annotations
@@ -22,8 +24,8 @@ from typing import Sequence
 import h5py
 import numpy as np
 
-from .errors import InputError, RendererError
-from .io._atomic import atomic_path
+from ..errors import InputError, RendererError
+from ..io._atomic import atomic_path
 from .protocol import SampleBatch, SampleRequest
 
 __all__ = ["CommandRenderer", "write_request", "read_request", "REQUEST_FORMAT"]
@@ -112,7 +114,7 @@ class CommandRenderer:
             shutil.rmtree(getattr(self, "workdir", ""), ignore_errors=True)
 
     def render(self, request: SampleRequest) -> SampleBatch:
-        from .io.samplelog import read_log
+        from ..io.samplelog import read_log
 
         stem = f"round-{request.round_index:05d}"
         req_path = self.workdir / f"{stem}.request.h5"
@@ -144,6 +146,8 @@ class CommandRenderer:
             reply = read_log(reply_path)
             data = reply.read_all()
         except InputError as exc:
+            if exc.field.startswith("dataset /features/"):
+                raise RendererError(self.name, f"reply {reply_path} {exc.field}", exc.problem) from None
             raise RendererError(self.name, "reply", f"malformed: {exc}") from None
         if (reply.width, reply.height) != (self.width, self.height):
             raise RendererError(self.name, "reply width/height", f"{reply.width}x{reply.height}, "
@@ -151,6 +155,31 @@ class CommandRenderer:
         if tuple(reply.channels) != self.channels:
             raise RendererError(self.name, "reply channels", f"{','.join(reply.channels)}, "
                                 f"expected {','.join(self.channels)}")
+        features = self._read_features(reply, reply_path)
         for p in (req_path, reply_path):
             p.unlink(missing_ok=True)
-        return SampleBatch(np.asarray(data.positions, np.float64), data.values)
+        return SampleBatch(np.asarray(data.positions, np.float64), data.values, features)
+
+    def _read_features(self, reply, reply_path: Path) -> dict[str, np.ndarray]:
+        """The reply's per-sample features ``/features/NAME``: shape (N, ...), a numeric dtype.
+
+        ``read_log`` has checked that each is a dataset of at least N rows;
+        rows past N are allowed only in a reply that records ``n_committed``
+        (an appended log), as for its positions and values.
+        """
+        if not reply.feature_names:
+            return {}
+        n = reply.n_samples
+        features = {}
+        with h5py.File(reply_path, "r") as f:
+            appended = "n_committed" in f.attrs
+            for name in reply.feature_names:
+                d = f["features"][name]
+                field = f"reply {reply_path} dataset /features/{name}"
+                if d.ndim == 0 or d.shape[0] < n or (d.shape[0] != n and not appended):
+                    raise RendererError(self.name, field, f"shape {d.shape}, expected ({n}, ...): one row per sample")
+                if d.dtype.kind not in "biuf":
+                    raise RendererError(self.name, field, f"dtype {d.dtype}, expected a numeric dtype "
+                                        "(integer, float or bool)")
+                features[name] = d[:n]
+        return features

@@ -1,6 +1,6 @@
 """Mitsuba 3 bridge: answer mcrecon sample requests with a real path tracer.
 
-:class:`MitsubaRenderer` implements the :class:`~mcrecon.protocol.Renderer`
+:class:`MitsubaRenderer` implements the :class:`~mcrecon.renderers.protocol.Renderer`
 protocol on top of Mitsuba 3's vectorised ``llvm_ad_rgb`` variant.  Every
 sample is one path traced through one chosen film position, so the
 adaptive methods can place samples anywhere on the film, and the log holds
@@ -48,7 +48,7 @@ from typing import Mapping
 
 import numpy as np
 
-from .errors import InputError, RendererError
+from ..errors import InputError, RendererError
 from .protocol import SampleBatch, SampleRequest, jittered_positions, pixel_index
 
 __all__ = ["MitsubaRenderer", "mitsuba_available", "render_reference", "dump_uniform_log",
@@ -168,9 +168,9 @@ def mitsuba_available(variant: str = "llvm_ad_rgb", *, timeout: float = PROBE_TI
         ans = (False, f"the Python package mitsuba is not installed; {_INSTALL_HINT}")
         _PROBE_CACHE[variant] = ans
         return ans
-    root = str(Path(__file__).resolve().parent.parent)
+    root = str(Path(__file__).resolve().parents[2])
     code = (f"import sys; sys.path.insert(0, {root!r}); "
-            f"from mcrecon.mitsuba_bridge import _probe_main; _probe_main({variant!r})")
+            f"from mcrecon.renderers.mitsuba import _probe_main; _probe_main({variant!r})")
     env = dict(os.environ)
     env["DRJIT_CACHE_DIR"] = drjit_cache_dir()
     try:
@@ -597,8 +597,8 @@ def dump_uniform_log(path, scene=None, *, width: int | None = None, height: int 
     -------
     pathlib.Path
     """
-    from .io import append_log, write_log
-    from .io._atomic import atomic_path
+    from ..io import append_log, write_log
+    from ..io._atomic import atomic_path
 
     spp = _check_int("spp", spp, minimum=1)
     seed = _check_int("seed", seed, minimum=0)
