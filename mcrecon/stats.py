@@ -4,8 +4,13 @@
 mean and the sum of squared deviations ``m2`` (Welford updates within a
 batch, Chan et al. merges between batches), the minimum and maximum, and
 optionally per-subpixel sums and counts on an ``s x s`` grid per pixel
-(GEM's 4 x 4 grid).  Memory is bounded by the image, never by the sample
-count.
+(kept only for a method that declares ``requires.subpixels``: GEM asks
+for its 4 x 4 grid only with ``subpixel_exact_below > 0``; the grid costs
+s^2 times the image).  Memory is bounded by the image (times s^2 with a
+grid), never by the sample count.  Statistics can also be built from a
+renderer's per-pixel mean / variance / count images
+(:meth:`PixelStats.from_moments`), and :func:`fill_from_neighbours` is
+the one policy for pixels with fewer than two samples.
 
 Welford's update keeps the variance accurate for values near 1e6 with a
 spread of 1e-3, where a sum of squares loses every significant digit.

@@ -174,3 +174,58 @@ def test_quick_screen_is_exact_on_non_square_films():
     assert _quick_check(np.array([[0.5, 3.9]], np.float32), ok, 2, 4) == (True, True)
     assert _quick_check(np.array([[1.0, 2.5]], np.float32), ok, 4, 2)[0] is False        # y off the film
     assert _quick_check(np.array([[1.0, 1.5]]), np.array([[1.0, np.inf, 1.0]]), 4, 2)[1] is False
+
+
+# ------------------------------------------------------------------ the one fill-in policy
+def test_fill_from_neighbours_policy():
+    from mcrecon.stats import fill_from_neighbours
+    v = np.zeros((4, 5, 2))
+    defined = np.zeros((4, 5), bool)
+    v[0, 0], defined[0, 0] = (4.0, 40.0), True
+    v[1, 1], defined[1, 1] = (2.0, 20.0), True
+    v[3, 4], defined[3, 4] = (9.0, 90.0), True
+    out = fill_from_neighbours(v, defined)
+    np.testing.assert_array_equal(out[defined], v[defined])            # defined pixels keep their value
+    # mean of the defined pixels of the 3x3 neighbourhood inside the image: on the top edge
+    # (0,1) sees (0,0) and (1,1) once each -> 3 (edge replication would count (0,0) twice: 3.33)
+    np.testing.assert_allclose(out[0, 1], [3.0, 30.0])
+    np.testing.assert_allclose(out[1, 0], [3.0, 30.0])
+    np.testing.assert_allclose(out[2, 2], [2.0, 20.0])   # only (1,1) is defined around (2,2)
+    # no defined neighbour: the channel's image-wide mean of defined pixels
+    np.testing.assert_allclose(out[3, 0], v[defined].mean(axis=0))
+    # fill only where asked
+    only = np.zeros((4, 5), bool)
+    only[3, 0] = True
+    kept = fill_from_neighbours(v, defined, only)
+    assert kept[0, 1, 0] == 0.0 and kept[3, 0, 0] == pytest.approx(5.0)
+    # nothing defined: the fallback, a callable evaluated only then
+    calls = []
+    fb = fill_from_neighbours(v, np.zeros((4, 5), bool), fallback=lambda: calls.append(1) or 7.0)
+    assert (fb == 7.0).all() and calls == [1]
+    fill_from_neighbours(v, defined, fallback=lambda: calls.append(2))
+    assert calls == [1]
+
+
+def test_gem_and_awr_use_the_same_fill_in():
+    """Pixels with one sample get the same neighbourhood estimate in both methods (sample variance)."""
+    from mcrecon.methods.awr.reconstruction import functional_variance
+    from mcrecon.methods.gem.selection import mean_variance_policy
+    rng = np.random.default_rng(3)
+    counts = rng.integers(1, 4, (9, 11))
+    from mcrecon.renderers.protocol import jittered_positions
+    pos = jittered_positions(counts, rng)
+    st = PixelStats.from_samples(pos, rng.random((len(pos), 3)), width=11, height=9)
+    gem_var = mean_variance_policy(st) * st.count[..., None]
+    awr_var = functional_variance(st, "sample")
+    one = st.count == 1
+    np.testing.assert_allclose(gem_var[one], awr_var[one], rtol=1e-12)
+
+
+def test_range_estimators_refuse_statistics_without_a_range():
+    from mcrecon.errors import InputError
+    from mcrecon.methods.awr.reconstruction import functional_variance
+    st = PixelStats.from_moments(np.ones((4, 4, 3)), np.full((4, 4, 3), 0.1), 8)
+    for est in ("range", "contrast"):
+        with pytest.raises(InputError, match="variance='sample'"):
+            functional_variance(st, est)
+    assert np.isfinite(functional_variance(st, "sample")).all()

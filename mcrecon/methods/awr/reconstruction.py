@@ -16,10 +16,9 @@ from typing import Sequence
 
 import numba
 import numpy as np
-from scipy import ndimage
 
 from ...errors import InputError
-from ...stats import PixelStats
+from ...stats import PixelStats, fill_from_neighbours
 from .wavelets import (RECONSTRUCTION_RENORM, _check_mode, analyze, coefficient_variances, default_levels,
                        get_wavelet, synthesize)
 
@@ -52,10 +51,17 @@ def functional_variance(stats: PixelStats, estimator: str = "range") -> np.ndarr
     -------
     ndarray (H, W, C)
         Finite and >= 0.  Policy for pixels with ``n <= 1`` (no spread
-        measurable): they take the average of ``sigma^2(F)`` over the
-        pixels with ``n >= 2`` in their 3x3 neighbourhood, else the
+        measurable; the shared :func:`mcrecon.stats.fill_from_neighbours`):
+        they take the average of ``sigma^2(F)`` over the pixels with
+        ``n >= 2`` in their 3x3 neighbourhood inside the image, else the
         channel's average over all pixels with ``n >= 2``, else 0 (then the
         reconstruction does not smooth).
+
+    Raises
+    ------
+    InputError
+        ``range`` or ``contrast`` on statistics without the per-pixel sample
+        range (built from moments: ``stats.has_range`` is False).
 
     References
     ----------
@@ -63,6 +69,10 @@ def functional_variance(stats: PixelStats, estimator: str = "range") -> np.ndarr
     """
     if estimator not in VARIANCE_ESTIMATORS:
         raise InputError("awr", "variance", f"unknown estimator {estimator!r}; valid: {', '.join(VARIANCE_ESTIMATORS)}")
+    if estimator != "sample" and not stats.has_range:
+        raise InputError("awr", "variance", f"the {estimator!r} estimator needs each pixel's sample minimum and "
+                         "maximum, which statistics built from moments (mean, variance, count) do not carry; "
+                         "use variance='sample' (--variance sample)")
     n = stats.count
     ok = n >= 2
     okc = np.broadcast_to(ok[..., None], stats.mean.shape)
@@ -71,9 +81,7 @@ def functional_variance(stats: PixelStats, estimator: str = "range") -> np.ndarr
         np.divide(np.maximum(stats.m2, 0.0), np.maximum(n - 1, 1)[..., None], out=out, where=okc)
     else:
         _range_kernel(n, stats.min, stats.max, estimator == "contrast", out)
-    if not ok.all():
-        out = _fill_undefined(out, ok)
-    return out
+    return fill_from_neighbours(out, ok, fallback=0.0)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -94,20 +102,6 @@ def _range_kernel(count, vmin, vmax, contrast, out):
                 else:
                     out[j, i, k] = d2
 
-
-def _fill_undefined(var: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    """Fill pixels without a variance estimate (see :func:`functional_variance`)."""
-    if not ok.any():
-        return np.zeros_like(var)
-    w = ok.astype(np.float64)
-    wsum = ndimage.uniform_filter(w, size=3, mode="nearest")
-    out = var.copy()
-    glob = var[ok].mean(axis=0)
-    for c in range(var.shape[2]):
-        vsum = ndimage.uniform_filter(var[..., c] * w, size=3, mode="nearest")
-        local = np.divide(vsum, wsum, out=np.full_like(vsum, glob[c]), where=wsum > 1e-12)
-        out[..., c] = np.where(ok, var[..., c], np.maximum(local, 0.0))
-    return out
 
 
 def pixel_variance(stats: PixelStats, estimator: str = "range") -> np.ndarray:

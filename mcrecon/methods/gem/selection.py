@@ -21,7 +21,7 @@ from scipy import ndimage
 
 from ..._filtering import correlate_jobs, safe_div, separable_weights
 from ...errors import InputError
-from ...stats import PixelStats
+from ...stats import PixelStats, fill_from_neighbours
 from .kernels import TRUNCATE, FilterBank, _chan_sum, _check_inputs, _filter_bank, _uses_sub, gaussian_kernel
 
 __all__ = ["GAMMA_MAX", "OUTLIER_RULES", "check_gamma", "z_of_gamma", "mean_variance_policy", "bias_coefficient",
@@ -80,13 +80,14 @@ def z_of_gamma(gamma) -> float:
 def mean_variance_policy(stats: PixelStats) -> np.ndarray:
     """Variance of each pixel's mean, ``s^2 / n`` (Sec. 6), with a policy for n < 2.
 
-    Policy (documented in ``docs/methods/gem.md``): a pixel with a single
-    sample has no sample variance of its own; it borrows the average sample
-    variance of the pixels with n >= 2 in its 3 x 3 neighbourhood, else the
-    image-wide average over pixels with n >= 2, else (no pixel has two
-    samples, e.g. a 1-spp log) the variance of the pixel values in its 3 x 3
-    neighbourhood (signal plus noise: conservative, it errs towards
-    keeping detail).  Empty pixels get 0 (they are masked out).
+    Policy (the shared :func:`mcrecon.stats.fill_from_neighbours`,
+    documented in ``docs/methods/gem.md``): a pixel with a single sample has
+    no sample variance of its own; it borrows the average sample variance of
+    the pixels with n >= 2 in its 3 x 3 neighbourhood, else the image-wide
+    average over pixels with n >= 2, else (no pixel has two samples, e.g. a
+    1-spp log) the variance of the pixel values in its 3 x 3 neighbourhood
+    (signal plus noise: conservative, it errs towards keeping detail).
+    Empty pixels get 0 (they are masked out).
 
     Returns
     -------
@@ -94,23 +95,16 @@ def mean_variance_policy(stats: PixelStats) -> np.ndarray:
     """
     n = stats.count
     var = stats.sample_variance(undefined=0.0)
-    need = n == 1
-    if need.any():
-        ok = ((n >= 2) & ~need).astype(np.float64)
-        if ok.any():
-            num = ndimage.uniform_filter(var * ok[..., None], size=(3, 3, 1), mode="constant")
-            den = ndimage.uniform_filter(ok, size=3, mode="constant")[..., None]
-            local = safe_div(num, den)
-            glob = var[ok > 0].mean(axis=0)
-            sub = np.where(den > 1e-12, local, glob)
-        else:
-            has = (n >= 1).astype(np.float64)
-            m = stats.mean * has[..., None]
-            den = ndimage.uniform_filter(has, size=3, mode="constant")[..., None]
-            m1 = safe_div(ndimage.uniform_filter(m, size=(3, 3, 1), mode="constant"), den)
-            m2 = safe_div(ndimage.uniform_filter(m * m, size=(3, 3, 1), mode="constant"), den)
-            sub = np.maximum(m2 - m1 * m1, 0.0)
-        var = np.where(need[..., None], sub, var)
+
+    def spread_of_pixel_values():
+        has = (n >= 1).astype(np.float64)
+        m = stats.mean * has[..., None]
+        den = ndimage.uniform_filter(has, size=3, mode="constant")[..., None]
+        m1 = safe_div(ndimage.uniform_filter(m, size=(3, 3, 1), mode="constant"), den)
+        m2 = safe_div(ndimage.uniform_filter(m * m, size=(3, 3, 1), mode="constant"), den)
+        return np.maximum(m2 - m1 * m1, 0.0)
+
+    var = fill_from_neighbours(var, n >= 2, n == 1, fallback=spread_of_pixel_values)
     return var / np.maximum(n, 1)[..., None]
 
 
