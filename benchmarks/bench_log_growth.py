@@ -6,20 +6,25 @@ record then rewritten with ``update_round_record``, exactly as
 float32 RGB log plus run settings).  Prints, all measured in this run:
 
 * the log size against the bytes of the samples (positions + values + round
-  indices, 24 B per float32 RGB sample) and against samples + stored JSON
-  records, with a breakdown of where the bytes are (sample chunks, per-round
+  indices, 24 B per float32 RGB sample) and against samples + stored
+  records (the JSON strings of ``/run/records``, or the rows of
+  ``/run/round_records`` plus the JSON of ``/run/round_records_extra``),
+  with a breakdown of where the bytes are (sample chunks, per-round
   datasets, global heap of the record strings, HDF5 object headers and
   B-tree nodes);
 * the median append time (wall and CPU) of rounds 0-49 and of rounds
   350-399 and their ratio (flat = ~1; CPU time is the steadier number on a
   shared machine);
+* all of this for the driver's records and for the larger records of a run
+  that has a reference (error, eval_seconds);
 * the same for the previous implementation, loaded from git
   (``--old-ref``, default HEAD) into a temporary module, if it differs from
   the installed one;
-* with ``--variants``: the size with no records, with the larger records of
-  a run that has a reference (error, eval_seconds), with 1024-row chunks for
-  the per-round datasets, and with HDF5 ``libver=('v110', 'latest')`` (files
-  then need HDF5 >= 1.10 to read).
+* with ``--variants``: the size with no records, with records that have a
+  key outside the fixed columns, of a log that keeps JSON records
+  (``/run/records``, written before format_minor 2) continued by this code,
+  with 1024-row chunks for the per-round datasets, and with HDF5
+  ``libver=('v110', 'latest')`` (files then need HDF5 >= 1.10 to read).
 
 Targets (issue): size <= 2x the sample bytes if the HDF5 overhead allows it;
 append time flat in the round index.  Numbers only, no assertions.
@@ -45,10 +50,16 @@ from mcrecon.io import samplelog
 
 W, H = 64, 64
 SAMPLE_BYTES = 2 * 4 + 3 * 4 + 4  # float32 positions, float32 RGB values, int32 round index
+PER_ROUND = ("rounds/end", "run/records", "run/round_records", "run/round_records_extra")
 
 
-def run(mod, path, rounds, m, *, records=True, reference=False, seed=0):
-    """Log ``rounds`` rounds of ``m`` samples like mcrecon.driver._run; return per-round seconds."""
+def run(mod, path, rounds, m, *, records=True, reference=False, extra_key=False, json_layout=False, seed=0):
+    """Log ``rounds`` rounds of ``m`` samples like mcrecon.driver._run; return per-round seconds.
+
+    ``extra_key``: every record also has a key outside the fixed columns.
+    ``json_layout``: the log starts with an empty JSON ``/run/records``, as
+    a log written before format_minor 2 (which is continued in that layout).
+    """
     rng = np.random.default_rng(seed)
     settings = {"method": "box", "method_options": {}, "spp": rounds * m / (W * H), "seed": 0,
                 "nonfinite": "drop", "time_limit": None, "width": W, "height": H, "channels": ["R", "G", "B"],
@@ -56,6 +67,11 @@ def run(mod, path, rounds, m, *, records=True, reference=False, seed=0):
     mod.write_log(path, np.zeros((0, 2), np.float32), np.zeros((0, 3), np.float32), width=W, height=H,
                   channels=("R", "G", "B"), metadata={"renderer": "bench", "seed": 0, "settings": settings})
     mod.set_run_settings(path, settings)
+    if json_layout:
+        with h5py.File(path, "r+") as f:
+            f.create_dataset("run/records", shape=(0,), dtype=h5py.string_dtype("utf-8"), maxshape=(None,),
+                             chunks=(256,))
+            f.attrs["format_minor"] = 1
     t_append, t_update = np.zeros((rounds, 2)), np.zeros((rounds, 2))  # wall, CPU seconds
     wall0 = time.perf_counter()
     for r in range(rounds):
@@ -63,6 +79,8 @@ def run(mod, path, rounds, m, *, records=True, reference=False, seed=0):
         val = rng.random((m, 3)).astype(np.float32)
         record = {"round": r, "samples": m, "samples_total": (r + 1) * m,
                   "renderer_seconds": float(rng.uniform(1e-4, 1e-3))}
+        if extra_key:
+            record["renderer_note"] = f"tile {r % 16}"
         t0, c0 = time.perf_counter(), time.process_time()
         if records:
             mod.append_log(path, pos, val, round_index=r, features=None,
@@ -97,11 +115,16 @@ def breakdown(path):
                 out["raw"][name] = obj.id.get_storage_size()
         visit("/", f)
         f.visititems(visit)
-        if "run" in f and "records" in f["run"]:
-            lens = [len(x) for x in f["run/records"][...]]
-            out["record_payload"] = sum(lens)
-            # a global-heap object: 16-byte header + payload padded to 8 bytes
-            out["record_heap_objects"] = sum(16 + (n + 7) // 8 * 8 for n in lens)
+        lens = []
+        for name in ("run/records", "run/round_records_extra"):
+            if name in f:
+                lens += [len(x) for x in f[name][...]]
+        if "run/round_records" in f:
+            d = f["run/round_records"]
+            out["record_payload"] += d.shape[0] * d.dtype.itemsize
+        out["record_payload"] += sum(lens)
+        # a global-heap object: 16-byte header + payload padded to 8 bytes (empty strings: none)
+        out["record_heap_objects"] = sum(16 + (n + 7) // 8 * 8 for n in lens if n)
     out["rest"] = (out["file"] - sum(out["raw"].values()) - out["headers"] - out["btrees"] - out["local_heaps"])
     return out
 
@@ -111,16 +134,16 @@ def report(label, path, rounds, m, t_append, t_update):
     samples = rounds * m * SAMPLE_BYTES
     size = b["file"]
     print(f"[{label}]")
-    print(f"  log size {size:,} B for {samples:,} B of samples: {size / samples:.2f}x the samples; "
-          f"stored JSON records {b['record_payload']:,} B; size / (samples + records) = "
-          f"{size / (samples + b['record_payload']):.2f}x")
+    print(f"  log size {size:,} B for {samples:,} B of samples: {size / samples:.2f}x the samples "
+          f"(target <= 2x: {'met' if size <= 2 * samples else 'NOT met'}); stored records "
+          f"{b['record_payload']:,} B; size / (samples + records) = {size / (samples + b['record_payload']):.2f}x")
     raw = b["raw"]
     sample_raw = sum(v for k, v in raw.items() if k in ("positions", "values", "round") or k.startswith("features"))
-    per_round = sum(v for k, v in raw.items() if k in ("rounds/end", "run/records"))
+    per_round = sum(v for k, v in raw.items() if k in PER_ROUND)
     print(f"  breakdown: sample chunks {sample_raw:,} (" + ", ".join(
         f"{k} {v:,}" for k, v in raw.items() if k in ("positions", "values", "round")) + ")"
           f"; per-round datasets {per_round:,} (" + ", ".join(
-        f"{k} {v:,}" for k, v in raw.items() if k in ("rounds/end", "run/records")) + ")"
+        f"{k} {v:,}" for k, v in raw.items() if k in PER_ROUND) + ")"
           f"; object headers {b['headers']:,}; B-tree nodes {b['btrees']:,}; local heaps {b['local_heaps']:,}"
           f"; global heap + superblock + free {b['rest']:,} (record heap objects {b['record_heap_objects']:,})")
     if t_append is not None:
@@ -144,8 +167,9 @@ def load_old(ref):
         print(f"[old code] not available from git {ref}: {exc}")
         return None
     if src == Path(samplelog.__file__).read_text():
-        print(f"[old code] git {ref} holds the current samplelog.py; pass --old-ref REV of a commit before "
-              "the resizable per-round datasets (e.g. 89ecc3e) to compare")
+        print(f"[old code] git {ref} holds the current samplelog.py; pass --old-ref REV to compare, e.g. "
+              "5ba6377 (JSON records in a resizable /run/records) or 89ecc3e (before the resizable "
+              "per-round datasets)")
         return None
     tmpdir = tempfile.mkdtemp(prefix="mcrecon_old_samplelog_")
     file = Path(tmpdir) / "samplelog_old.py"
@@ -204,20 +228,31 @@ def main():
           f"h5py {h5py.__version__}, HDF5 {h5py.version.hdf5_version}")
     ta, tu = run(samplelog, tmp / "new.h5", rounds, m)
     new_size = report("current samplelog", tmp / "new.h5", rounds, m, ta, tu)
+    ta, tu = run(samplelog, tmp / "ref.h5", rounds, m, reference=True)
+    new_ref = report("current samplelog, records of a run with a reference (+error, eval_seconds)",
+                     tmp / "ref.h5", rounds, m, ta, tu)
     old = load_old(a.old_ref)
     if old is not None:
         ta, tu = run(old, tmp / "old.h5", rounds, m)
         old_size = report(f"previous samplelog (git {a.old_ref})", tmp / "old.h5", rounds, m, ta, tu)
-        print(f"  old / new size: {old_size / new_size:.1f}x")
+        print(f"  old / new size: {old_size / new_size:.2f}x")
+        ta, tu = run(old, tmp / "old_ref.h5", rounds, m, reference=True)
+        old_size = report(f"previous samplelog (git {a.old_ref}), records of a run with a reference",
+                          tmp / "old_ref.h5", rounds, m, ta, tu)
+        print(f"  old / new size: {old_size / new_ref:.2f}x")
     if a.variants:
         ta, tu = run(samplelog, tmp / "norec.h5", rounds, m, records=False)
         report("variant: no round records", tmp / "norec.h5", rounds, m, ta, tu)
-        ta, tu = run(samplelog, tmp / "ref.h5", rounds, m, reference=True)
-        report("variant: records of a run with a reference (+error, eval_seconds)", tmp / "ref.h5", rounds, m,
-               ta, tu)
-        with patched(samplelog, RECORD_CHUNK_ROWS=1024):
+        ta, tu = run(samplelog, tmp / "extra.h5", rounds, m, extra_key=True)
+        report("variant: every record with a key outside the columns (/run/round_records_extra)",
+               tmp / "extra.h5", rounds, m, ta, tu)
+        ta, tu = run(samplelog, tmp / "json.h5", rounds, m, json_layout=True)
+        report("variant: a log with JSON /run/records (format_minor 1) continued by this code",
+               tmp / "json.h5", rounds, m, ta, tu)
+        consts = {k: 1024 for k in ("RECORD_CHUNK_ROWS", "ROUND_RECORD_CHUNK_ROWS") if hasattr(samplelog, k)}
+        with patched(samplelog, **consts):
             ta, tu = run(samplelog, tmp / "rc1024.h5", rounds, m)
-        report("variant: 1024-row chunks for /rounds/end and /run/records", tmp / "rc1024.h5", rounds, m, ta, tu)
+        report("variant: 1024-row chunks for the per-round datasets", tmp / "rc1024.h5", rounds, m, ta, tu)
         with libver("v110"):
             ta, tu = run(samplelog, tmp / "v110.h5", rounds, m)
         report("variant: libver=('v110', 'latest') (needs HDF5 >= 1.10 to read)", tmp / "v110.h5", rounds, m,

@@ -110,40 +110,37 @@ def _round(rng, m=10):
     return (rng.random((m, 2)) * [W, H]).astype(np.float32), rng.random((m, 3)).astype(np.float32)
 
 
-def _driver_round(path, rng, r, total, m=10):
-    """One round as mcrecon.driver._run logs it: append with a record, then the full record."""
+def _driver_round(path, rng, r, total, m=10, *, reference=False):
+    """One round as mcrecon.driver._run logs it: append with a record, then the full record
+    (with ``reference``, also the error and the time to evaluate it)."""
     pos, val = _round(rng, m)
     rec = {"round": r, "samples": m, "samples_total": total + m, "renderer_seconds": float(rng.random()) * 1e-3}
     append_log(path, pos, val, round_index=r, round_record={**rec, "toolkit_seconds": 1e-4, "wall_seconds": 0.1 * r})
     rec.update(toolkit_seconds=float(rng.random()) * 1e-3, wall_seconds=0.1 * r + 0.05)
+    if reference:
+        rec.update(error=float(rng.random()), eval_seconds=float(rng.random()) * 1e-3)
     update_round_record(path, rec)
     return rec
 
 
-def _stored_record_bytes(path):
-    with h5py.File(path, "r") as f:
-        return sum(len(x) for x in f["run/records"][...])
-
-
-def test_log_size_grows_with_the_data_not_with_the_rounds(tmp_path, rng):
-    # 200 rounds of 10 float32 RGB samples, logged as the driver does.  The previous
-    # layout recreated /rounds/end and /run/records every round (HDF5 never reclaims
-    # that space): ~100 KB per round here.
+def test_log_of_400_driver_rounds_is_at_most_twice_the_samples(tmp_path, rng):
+    # The issue's case: 400 rounds of 10 float32 RGB samples logged as the driver does,
+    # with the larger records of a run that has a reference.  JSON records (format_minor 1)
+    # made it 2.5x the sample bytes, 73 KB of it in HDF5's global heap.
     path = _empty_log(tmp_path / "grow.h5")
     per_sample = 2 * 4 + 3 * 4 + 4  # positions, values, round index
-    sizes, rec_bytes = {}, {}
-    for r in range(200):
-        _driver_round(path, rng, r, 10 * r)
-        if r + 1 in (100, 200):
-            sizes[r + 1], rec_bytes[r + 1] = os.path.getsize(path), _stored_record_bytes(path)
-    data = {k: 10 * k * per_sample + rec_bytes[k] for k in sizes}
-    # Appending rounds 100..199 costs at most twice their bytes (samples + JSON records).
-    assert sizes[200] - sizes[100] <= 2 * (data[200] - data[100])
-    # The whole log: twice the data, plus one partly filled chunk per sample dataset
-    # (HDF5 allocates chunks whole) and a fixed allowance for the HDF5 metadata.
-    assert sizes[200] <= 2 * data[200] + APPEND_CHUNK_ROWS * per_sample + 64 * 1024
+    sizes, expect = {}, []
+    for r in range(400):
+        expect.append(_driver_round(path, rng, r, 10 * r, reference=True))
+        if r + 1 in (200, 400):
+            sizes[r + 1] = os.path.getsize(path)
+    # The whole log, and the growth over rounds 200..399 (no records rewritten into new space).
+    assert sizes[400] <= 2 * 400 * 10 * per_sample
+    assert sizes[400] - sizes[200] <= 2 * 200 * 10 * per_sample
     log = read_log(path)
-    assert log.n_rounds == 200 and log.n_samples == 2000 and len(log.round_records) == 200
+    assert log.n_rounds == 400 and log.n_samples == 4000 and log.round_records == expect
+    with h5py.File(path, "r") as f:  # no JSON for records that have only the driver's keys
+        assert "records" not in f["run"] and "round_records_extra" not in f["run"]
 
 
 def test_records_and_round_ends_after_many_appends_and_updates(tmp_path, rng):
@@ -160,9 +157,10 @@ def test_records_and_round_ends_after_many_appends_and_updates(tmp_path, rng):
     assert log.format_minor == samplelog.FORMAT_MINOR
     np.testing.assert_array_equal(log.read_all(rounds=[299]).round, 299)
     with h5py.File(path, "r") as f:  # grown in place: resizable, chunked, one row per round
-        for name in ("rounds/end", "run/records"):
+        for name in ("rounds/end", "run/round_records"):
             assert f[name].maxshape == (None,) and f[name].chunks is not None and f[name].shape == (300,)
-        assert h5py.check_string_dtype(f["run/records"].dtype).encoding == "utf-8"
+        assert f["run/round_records"].dtype == samplelog.ROUND_RECORD_DTYPE
+        assert "records" not in f["run"] and "round_records_extra" not in f["run"]
 
 
 def test_append_reads_attributes_and_shapes_not_the_log(tmp_path, rng, monkeypatch):
@@ -194,6 +192,14 @@ def _crash_mid_append(path, k=7):
             d = f["run/records"]
             d.resize(d.shape[0] + 1, axis=0)
             d[-1] = '{"bogus": true}'
+        if "run" in f and "round_records" in f["run"]:
+            d = f["run/round_records"]
+            d.resize(d.shape[0] + 1, axis=0)
+            d[-1] = np.array([(0b111, 99, 7, n + k) + (0.5,) * 5], d.dtype)[0]  # a record with 3 keys
+            x = f["run"].require_dataset("round_records_extra", shape=(0,), dtype=h5py.string_dtype(),
+                                         maxshape=(None,), chunks=(256,), exact=False)
+            x.resize(d.shape[0], axis=0)
+            x[-1] = '{"bogus":true}'
 
 
 def test_interrupted_append_is_discarded_in_every_dataset(tmp_path, rng):
@@ -218,7 +224,8 @@ def test_interrupted_append_is_discarded_in_every_dataset(tmp_path, rng):
     np.testing.assert_array_equal(log.read_all(rounds=[5]).values, val)
     with h5py.File(path, "r") as f:  # nothing of the partial round is left
         assert {f[x].shape[0] for x in ("positions", "values", "round", "features/depth")} == {53}
-        assert f["rounds/end"].shape == f["run/records"].shape == (6,)
+        assert f["rounds/end"].shape == f["run/round_records"].shape == (6,)
+        assert f["run/round_records_extra"].shape[0] <= 6  # no extra keys past round 4
 
 
 def test_refused_record_leaves_the_log_unchanged(tmp_path, rng):
@@ -268,7 +275,7 @@ def test_old_style_log_reads_and_appends(tmp_path, rng, fixed_ends):
     log = read_log(path)
     assert log.round_slices() == [(0, 100), (100, 120), (120, 150), (150, 155), (155, 159)]
     assert log.round_records == [{"round": 1}, {"round": 2}, {"round": 3, "full": True}, {"round": 4}]
-    assert log.run_settings == {"method": "box"} and log.format_minor == samplelog.FORMAT_MINOR
+    assert log.run_settings == {"method": "box"} and log.format_minor == 1  # continued in the JSON layout
     data = log.read_all()
     np.testing.assert_array_equal(data.positions[:150], pos)
     np.testing.assert_array_equal(data.values[150:155], v2)
@@ -276,6 +283,7 @@ def test_old_style_log_reads_and_appends(tmp_path, rng, fixed_ends):
         for name in ("rounds/end", "run/records"):
             assert f[name].maxshape == (None,) and f[name].shape == (5,)
         assert f["run/records"][0] in (b"null", "null") and "_convert" not in f
+        assert "round_records" not in f["run"]
 
 
 def test_foreign_fixed_size_log_appends(tmp_path, rng):
@@ -298,6 +306,188 @@ def test_foreign_fixed_size_log_appends(tmp_path, rng):
     np.testing.assert_array_equal(data.positions[:n], pos)
     np.testing.assert_array_equal(data.round, [0] * 40 + [1] * 6 + [2] * 2)
     np.testing.assert_array_equal(log.read_feature("depth"), np.concatenate([depth, np.ones(6), np.zeros(2)]))
+
+
+# ---------------------------------------------------------------- round records (format_minor 2)
+def _same(a, b):
+    """Equal as JSON values and of the same types, floats bit for bit (repr: -0.0, nan, inf)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return list(a) == list(b) and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    return type(a) is type(b) and repr(a) == repr(b)
+
+
+def _json_round_trip(rec):
+    """What the JSON layout returned for ``rec``: keys sorted, numpy scalars as Python numbers."""
+    return json.loads(json.dumps(rec, sort_keys=True, default=lambda o: o.item()))
+
+
+DRIVER = {"round": 0, "samples": 10, "samples_total": 10, "renderer_seconds": 1e-3, "toolkit_seconds": 0.1 + 0.2,
+          "wall_seconds": 1 / 3}
+ODD_RECORDS = [
+    {**DRIVER, "round": 1, "error": 0.12345678901234568, "eval_seconds": 5e-324},  # with the optional keys
+    {"round": 2},  # most keys absent
+    {**DRIVER, "round": 3, "note": "resumed", "error": float("nan"), "eval_seconds": -0.0},  # an extra key
+    {"round": 4, "samples": np.int64(2**62), "samples_total": 2**64, "error": float("inf"),
+     "wall_seconds": np.float32(0.1), "toolkit_seconds": 7, "renderer_seconds": True},  # types off the columns
+    {},  # an empty record is still a record
+    {"round": 6.0, "samples": None, "nested": {"a": [1, 2.5]}, "1": 1},
+]
+
+
+def test_round_records_round_trip_exactly(tmp_path, rng):
+    path = _empty_log(tmp_path / "rec.h5")
+    append_log(path, *_round(rng), round_record=DRIVER)
+    written = [DRIVER]
+    for r, rec in enumerate(ODD_RECORDS, start=1):
+        append_log(path, *_round(rng), round_record=rec)
+        written.append(rec)
+        if r == 3:
+            append_log(path, *_round(rng))  # a round without record
+    log = read_log(path)
+    assert log.n_rounds == len(written) + 1 and log.format_minor == 2
+    expect = [_json_round_trip(r) for r in written]
+    assert all(_same(a, b) for a, b in zip(log.round_records, expect)) and len(log.round_records) == len(expect)
+    got = log.round_records[4]  # ints stay ints (2**64 beyond int64), a bool stays a bool, an int in a float column
+    assert got["samples_total"] == 2**64 and got["renderer_seconds"] is True and type(got["toolkit_seconds"]) is int
+    assert got["wall_seconds"] == float(np.float32(0.1))
+    with h5py.File(path, "r") as f:
+        rows = f["run/round_records"][...]
+        extra = [x.decode() if isinstance(x, bytes) else x for x in f["run/round_records_extra"][...]]
+    assert rows.shape == (len(written) + 1,) and rows["present"][4] == 0 and rows["round"][4] == -1  # no record
+    assert rows["round"][:4].tolist() == [0, 1, 2, 3] and np.isnan(rows["error"][2])
+    assert rows["present"][3] & 1 << 8 and np.isnan(rows["error"][3])  # NaN present, not absent
+    # Only records with keys outside the columns have JSON; no empty strings written for the others.
+    assert [bool(x) for x in extra] == [False] * 3 + [True, False, True, False, True]
+    assert json.loads(extra[3]) == {"note": "resumed"}
+
+
+def test_update_rewrites_only_the_last_record(tmp_path, rng):
+    path = _empty_log(tmp_path / "upd.h5")
+    for r in range(70):  # rows in two chunks
+        _driver_round(path, rng, r, 10 * r)
+    with h5py.File(path, "r") as f:
+        before = f["run/round_records"][...]
+    full = {**DRIVER, "round": 69, "error": 0.5, "eval_seconds": 0.25}
+    for rec in (full, {**full, "note": "x"}, {"round": 69}, full):  # add and drop optional and extra keys
+        update_round_record(path, rec)
+        assert _same(read_log(path).round_records[-1], _json_round_trip(rec))
+    with h5py.File(path, "r") as f:
+        after = f["run/round_records"][...]
+        extra = f["run/round_records_extra"]
+        assert extra.shape[0] <= 70 and not any(extra[...][:69])
+    assert after.shape == (70,) and after[:69].tobytes() == before[:69].tobytes()
+
+
+def test_interrupted_append_in_the_record_rows_is_discarded(tmp_path, rng):
+    path = _empty_log(tmp_path / "crash2.h5")
+    recs = [_driver_round(path, rng, r, 10 * r) for r in range(3)]
+    _crash_mid_append(path)  # a row with a record (and extra keys) past the committed rounds
+    assert read_log(path).round_records == recs
+    update_round_record(path, {**recs[-1], "wall_seconds": 9.0})
+    recs[-1] = {**recs[-1], "wall_seconds": 9.0}
+    assert read_log(path).round_records == recs
+    append_log(path, *_round(rng), round_index=3)  # no record: the crashed row must not show through
+    log = read_log(path)
+    assert log.n_rounds == 4 and log.round_records == recs
+    with h5py.File(path, "r") as f:
+        assert f["run/round_records"].shape == (4,) and f["run/round_records"]["present"][3] == 0
+        assert f["run/round_records_extra"].shape[0] <= 3
+    append_log(path, *_round(rng), round_index=4, round_record={"round": 4, "k": 1})
+    assert read_log(path).round_records == recs + [{"k": 1, "round": 4}]
+
+
+def _minor1_log(path, rng, records):
+    """A log as format_minor 1 wrote it: resizable /run/records of JSON strings, null for no record."""
+    n = 10 * len(records)
+    with h5py.File(path, "w") as f:
+        f.attrs.update(format="mcrecon-sample-log", format_version=1, format_minor=1, width=W, height=H,
+                       metadata_json="{}")
+        f.attrs["channels"] = np.array(["R", "G", "B"], dtype=h5py.string_dtype())
+        f.create_dataset("positions", data=(rng.random((n, 2)) * [W, H]).astype(np.float32), maxshape=(None, 2),
+                         chunks=(4096, 2))
+        f.create_dataset("values", data=rng.random((n, 3)).astype(np.float32), maxshape=(None, 3), chunks=(4096, 3))
+        f.create_dataset("round", data=np.repeat(np.arange(len(records)), 10).astype(np.int32), maxshape=(None,),
+                         chunks=(4096,))
+        f.create_dataset("rounds/end", data=np.arange(10, n + 1, 10, dtype=np.int64), maxshape=(None,),
+                         chunks=(256,))
+        rows = [json.dumps(r, sort_keys=True, separators=(",", ":")) for r in records]
+        d = f.create_dataset("run/records", shape=(len(rows),), dtype=h5py.string_dtype("utf-8"), maxshape=(None,),
+                             chunks=(256,))
+        d[...] = rows
+        f["run"].attrs["settings_json"] = json.dumps({"method": "box"})
+        f.attrs["n_committed"] = np.int64(n)
+
+
+def test_minor1_json_records_read_and_are_continued_in_their_layout(tmp_path, rng):
+    path = tmp_path / "m1.h5"
+    old = [{**DRIVER, "round": 0}, None, {**DRIVER, "round": 2, "error": 0.25, "note": "x"}]
+    _minor1_log(path, rng, old)
+    log = read_log(path)
+    assert log.format_minor == 1 and log.n_rounds == 3 and log.round_records == [old[0], old[2]]
+    append_log(path, *_round(rng), round_record={**DRIVER, "round": 3})
+    update_round_record(path, {**DRIVER, "round": 3, "wall_seconds": 2.0})
+    append_log(path, *_round(rng, 4))  # a round without record
+    append_log(path, *_round(rng, 2), round_record={"round": 5})
+    log = read_log(path)
+    assert log.n_rounds == 6 and log.round_slices()[-3:] == [(30, 40), (40, 44), (44, 46)]
+    assert log.round_records == [old[0], old[2], {**DRIVER, "round": 3, "wall_seconds": 2.0}, {"round": 5}]
+    assert log.format_minor == 1
+    with h5py.File(path, "r") as f:  # still the JSON layout, one row per round: older mcrecon reads it
+        assert "round_records" not in f["run"] and f["run/records"].shape == (6,)
+        assert f["run/records"][4] in (b"null", "null")
+
+
+def test_rounds_an_older_mcrecon_appended_to_a_minor2_log(tmp_path, rng):
+    # An mcrecon before format_minor 2 resuming a newer log adds /run/records beside
+    # /run/round_records, aligned with the rounds (null for none): both are read.
+    path = _empty_log(tmp_path / "mixed.h5")
+    for r in range(2):
+        append_log(path, *_round(rng), round_record={"round": r})
+    append_log(path, *_round(rng))  # round 2: its row in /run/round_records has no record
+    with h5py.File(path, "r+") as f:
+        f["run"].create_dataset("records", data=np.array(["null", "null", '{"old":true,"round":2}'],
+                                                         dtype=h5py.string_dtype("utf-8")), maxshape=(None,))
+    assert read_log(path).round_records == [{"round": 0}, {"round": 1}, {"old": True, "round": 2}]
+    append_log(path, *_round(rng), round_record={"round": 3})
+    update_round_record(path, {"round": 3, "t": 1.5})
+    log = read_log(path)
+    assert log.round_records == [{"round": 0}, {"round": 1}, {"old": True, "round": 2}, {"round": 3, "t": 1.5}]
+    with h5py.File(path, "r") as f:
+        assert f["run/round_records"].shape == (4,) and f["run/records"].shape == (3,)
+
+
+def test_other_writers_compound_records(tmp_path, rng):
+    # Another writer's fixed-size compound rows: own column order and types, an unknown column.
+    path = _empty_log(tmp_path / "foreign_rec.h5")
+    for r in range(2):
+        append_log(path, *_round(rng), round_index=r)
+    dt = np.dtype([("wall_seconds", "<f4"), ("present", "u1"), ("round", "<i4"), ("gpu_seconds", "<f8")])
+    with h5py.File(path, "r+") as f:
+        f.require_group("run")["round_records"] = np.array([(0.5, 0b11, 0, 0.0), (0.25, 0b1111, 1, 3.0)], dt)
+    log = read_log(path)
+    assert log.round_records == [{"wall_seconds": 0.5}, {"wall_seconds": 0.25, "round": 1, "gpu_seconds": 3.0}]
+    append_log(path, *_round(rng), round_index=2, round_record={"round": 2, "wall_seconds": 0.1, "gpu_seconds": 1.5})
+    rec = read_log(path).round_records[-1]  # 0.1 is not a float32: kept exactly in the JSON of the extra keys
+    assert _same(rec, {"gpu_seconds": 1.5, "round": 2, "wall_seconds": 0.1})
+    with h5py.File(path, "r") as f:
+        d = f["run/round_records"]
+        assert d.dtype == dt and d.maxshape == (None,) and d.shape == (3,) and d["present"][2] == 0b1101  # record, round, gpu_seconds
+
+
+def test_malformed_round_records_are_refused(tmp_path, rng):
+    path = _empty_log(tmp_path / "badrec.h5")
+    append_log(path, *_round(rng), round_record={"round": 0})
+    with h5py.File(path, "r+") as f:
+        del f["run/round_records"]
+        f["run/round_records"] = np.zeros(1, [("round", "<i8")])  # no 'present'
+    with pytest.raises(InputError, match="/run/round_records"):
+        read_log(path)
+    before = _digest(path)
+    with pytest.raises(InputError, match="/run/round_records"):
+        append_log(path, *_round(rng), round_record={"round": 1})
+    assert _digest(path) == before
 
 
 def test_conversion_interrupted_by_a_crash_is_recovered(tmp_path, rng):

@@ -9,9 +9,16 @@ updating ``n_committed`` last, so a crash during an append leaves the
 committed rounds readable and the partial round ignored.
 
 Appending costs time and space proportional to the round, not to the
-file: the per-round datasets (``/rounds/end``, ``/run/records``) are
+file: the per-round datasets (``/rounds/end``, ``/run/round_records``) are
 chunked and resizable and grow by one row per round, and an append opens
 the file once and reads only the attributes, shapes and last rows it needs.
+
+Round records (the adaptive driver's times and errors) are stored as rows
+of a compound dataset, one column per known key, with a bit mask of the
+keys present (format_minor 2); keys outside the columns go to a JSON
+dataset beside it, written only for the rounds that have such keys.  Logs
+written before keep their JSON ``/run/records`` and are appended to in
+that layout.
 """
 
 from __future__ import annotations
@@ -38,7 +45,10 @@ FORMAT_VERSION = 1
 #: Compatible revision of version 1 written by this module (attribute ``format_minor``;
 #: absent means 0).  1: ``/rounds/end`` and ``/run/records`` are resizable and grow by
 #: one row per round; row i of ``/run/records`` is round i's record (``null``: none).
-FORMAT_MINOR = 1
+#: 2: round records are rows of the compound dataset /run/round_records (one column per
+#: known key, a bit mask of the keys present), keys outside the columns in JSON in
+#: /run/round_records_extra; /run/records (JSON) is kept for logs that already have it.
+FORMAT_MINOR = 2
 #: Rows per HDF5 chunk of a log written whole: 65536 samples = 512 KiB of float32 positions.
 DEFAULT_CHUNK_ROWS = 1 << 16
 #: Rows per chunk of a log that starts small and grows by appended rounds (the adaptive
@@ -49,6 +59,16 @@ APPEND_CHUNK_ROWS = 1 << 12
 RECORD_CHUNK_ROWS = 1 << 8
 #: Stand-in record of a round that has none (keeps /run/records aligned with the rounds).
 _NO_RECORD = "null"
+#: Columns of /run/round_records written by this module: the keys of the adaptive driver's
+#: round records.  ``present`` is a bit mask: bit 0 set = the round has a record, bit k
+#: (k >= 1) set = the k-th column after ``present`` holds that key's value.  An absent key
+#: reads -1 (integer columns) or NaN (float columns), but only ``present`` says it is absent.
+ROUND_RECORD_DTYPE = np.dtype([("present", "<u2"), ("round", "<i8"), ("samples", "<i8"), ("samples_total", "<i8"),
+                               ("renderer_seconds", "<f8"), ("toolkit_seconds", "<f8"), ("wall_seconds", "<f8"),
+                               ("error", "<f8"), ("eval_seconds", "<f8")])
+#: Rows per chunk of /run/round_records: 64 rows of 66 B, about 4 KiB.
+ROUND_RECORD_CHUNK_ROWS = 1 << 6
+_HAS_RECORD = 1
 #: Group holding a dataset being converted to a resizable one (see _ensure_resizable).
 _CONVERT = "_convert"
 #: Rows per read when streaming (a multiple of the chunk rows).
@@ -219,6 +239,77 @@ def _strings(arr) -> list[str]:
     return [x.decode() if isinstance(x, bytes) else str(x) for x in np.asarray(arr, dtype=object).ravel().tolist()]
 
 
+_ROW_TYPE = []  # the HDF5 type of ROUND_RECORD_DTYPE, made once
+
+
+def _row_type():
+    if not _ROW_TYPE:
+        _ROW_TYPE.append(h5py.h5t.py_create(ROUND_RECORD_DTYPE))
+    return _ROW_TYPE[0]
+
+
+def _record_columns(path, d) -> tuple[np.dtype, tuple[str, ...]]:
+    """Validate a /run/round_records dataset; return its dtype and value columns in bit order."""
+    if not isinstance(d, h5py.Dataset) or d.ndim != 1:
+        raise _err(path, "dataset /run/round_records", f"shape {getattr(d, 'shape', None)}, expected (R,) "
+                   "compound rows (see docs/sample-log-format.md)")
+    if d.id.get_type() == _row_type():
+        # This module's layout.  (Converting an HDF5 compound type to a numpy dtype, as
+        # Dataset.dtype does, costs more than the rest of an append's record.)
+        return ROUND_RECORD_DTYPE, ROUND_RECORD_DTYPE.names[1:]
+    dt = d.dtype
+    names = dt.names
+    if not names or "present" not in names:
+        raise _err(path, "dataset /run/round_records", f"dtype {dt}, expected a compound with an integer "
+                   "field 'present' (see docs/sample-log-format.md)")
+    cols = tuple(n for n in names if n != "present")
+    bad = [n for n in names if dt[n].shape != () or dt[n].kind not in ("iu" if n == "present" else "iuf")]
+    if bad or len(cols) >= 8 * dt["present"].itemsize:
+        raise _err(path, "dataset /run/round_records", f"dtype {dt}: fields must be scalar integers or floats, "
+                   "one bit of 'present' per field")
+    return dt, cols
+
+
+def _read_round_records(path, run, n_rounds: int) -> list[dict]:
+    """The records of the first ``n_rounds`` rounds that have one, in round order."""
+    old = None
+    if "records" in run:  # format_minor 0 and 1: one JSON string per record
+        d = run["records"]
+        if not isinstance(d, h5py.Dataset) or d.ndim != 1:
+            raise _err(path, "dataset /run/records", f"shape {getattr(d, 'shape', None)}, expected (R,) strings")
+        # Row i is round i's record; a round without one holds null (format_minor 1).
+        old = [_json_attr(path, "dataset run/records", x) for x in _strings(d[:n_rounds])]
+    if "round_records" not in run:
+        return [r for r in old or () if r is not None]
+    # format_minor 2: compound rows + JSON of the keys outside the columns
+    d = run["round_records"]
+    _, cols = _record_columns(path, d)
+    rows = d[:n_rounds]
+    present = rows["present"].astype(np.int64).tolist()
+    values = [rows[c].tolist() for c in cols]  # Python ints and floats, exactly as stored
+    extra = run.get("round_records_extra")
+    if extra is not None and (not isinstance(extra, h5py.Dataset) or extra.ndim != 1):
+        raise _err(path, "dataset /run/round_records_extra",
+                   f"shape {getattr(extra, 'shape', None)}, expected (R,) strings")
+    extra = _strings(extra[:n_rounds]) if extra is not None else []
+    out = []
+    for i in range(n_rounds):
+        p = present[i] if i < len(present) else 0
+        if not p & _HAS_RECORD:
+            # A round an mcrecon before format_minor 2 appended to this log keeps its JSON record.
+            if old is not None and i < len(old) and old[i] is not None:
+                out.append(old[i])
+            continue
+        rec = {c: values[k][i] for k, c in enumerate(cols) if p >> (k + 1) & 1}
+        if i < len(extra) and extra[i]:
+            more = _json_attr(path, "dataset run/round_records_extra", extra[i])
+            if not isinstance(more, dict):
+                raise _err(path, "dataset /run/round_records_extra", f"row {i}: expected a JSON object")
+            rec.update(more)
+        out.append(dict(sorted(rec.items())))  # key order of the JSON records (sorted)
+    return out
+
+
 class SampleLog:
     """A validated, lazily read sample log.  Obtain one with :func:`read_log`.
 
@@ -240,7 +331,8 @@ class SampleLog:
         Driver settings of an adaptive run (for ``--resume``).
     round_records : list of dict
         Per-round records of an adaptive run (times, errors): those of the
-        committed rounds that have one, in round order.
+        committed rounds that have one, in round order, as they were written
+        (JSON types: ints stay ints, floats are exact float64).
     format_minor : int
         Compatible revision of format version 1 (0 when not recorded).
     """
@@ -301,13 +393,7 @@ class SampleLog:
             s = run.attrs.get("settings_json")
             if s is not None:
                 self.run_settings = _json_attr(path, "attribute run/settings_json", s)
-            if "records" in run:
-                d = run["records"]
-                if not isinstance(d, h5py.Dataset) or d.ndim != 1:
-                    raise _err(path, "dataset /run/records", f"shape {getattr(d, 'shape', None)}, expected (R,) strings")
-                recs = (_json_attr(path, "dataset run/records", x) for x in _strings(d[: len(self.round_ends)]))
-                # Row i is round i's record; a round without one holds null (format_minor 1).
-                self.round_records = [r for r in recs if r is not None]
+            self.round_records = _read_round_records(path, run, len(self.round_ends))
 
     @staticmethod
     def _scan_round_ends(rds, n):
@@ -622,7 +708,7 @@ def _committed_rounds(path, f, n: int) -> tuple[int, list[int]]:
     return keep, ([] if last == n else [n])
 
 
-def _ensure_resizable(f, name: str, keep: int, chunk_rows: int, *, dtype=None, head=None):
+def _ensure_resizable(f, name: str, keep: int, chunk_rows: int, *, dtype=None, head=None, fillvalue=None):
     """Return ``f[name]`` resizable along axis 0, copying it into one if it is not.
 
     Logs from other writers, and /run/records of logs written before
@@ -641,7 +727,7 @@ def _ensure_resizable(f, name: str, keep: int, chunk_rows: int, *, dtype=None, h
     head = [] if head is None else list(head)
     shape = (len(head) + keep,) + d.shape[1:]
     new = f.create_dataset(tmp, shape=shape, dtype=dtype or d.dtype, maxshape=(None,) + d.shape[1:],
-                           chunks=(chunk_rows,) + d.shape[1:])
+                           chunks=(chunk_rows,) + d.shape[1:], fillvalue=fillvalue)
     if head:
         new[:len(head)] = np.array(head, dtype=object if new.dtype.kind == "O" else new.dtype)
     for s in range(0, keep, DEFAULT_READ_ROWS):
@@ -678,6 +764,106 @@ def _record_json(path, record) -> str:
         raise _err(path, "round_record", f"not JSON-serialisable: {exc}") from None
 
 
+def _blank_row(dtype) -> np.ndarray:
+    """A /run/round_records row (shape (1,)) of a round without record: present 0, -1 / NaN elsewhere."""
+    row = np.zeros(1, dtype)
+    for name in dtype.names:
+        if name != "present":
+            kind = dtype[name].kind
+            row[name] = np.nan if kind == "f" else (-1 if kind == "i" else 0)
+    return row
+
+
+def _fits(value, dt: np.dtype) -> bool:
+    """Whether ``value`` is stored exactly in a column of type ``dt`` and reads back as the same JSON value."""
+    if dt.kind in "iu":
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+            return False  # a bool or a float in an integer column would come back as an int
+        info = np.iinfo(dt)
+        return info.min <= int(value) <= info.max
+    if isinstance(value, (float, np.float32, np.float16)):  # float64 is a float; not longdouble
+        x = dt.type(value)
+        return float(x) == float(value) or (x != x and value != value)
+    return False
+
+
+def _split_record(record, dtype) -> tuple[np.ndarray, str | None]:
+    """A record as a row of a /run/round_records dataset of ``dtype`` and the JSON of the other keys.
+
+    A key goes to its column when there is one and the value is stored
+    exactly with its JSON type (an int in an integer column, a float in a
+    float column); every other key goes to the JSON (None when none do).
+    """
+    row = _blank_row(dtype)
+    cols = [n for n in dtype.names if n != "present"]
+    present, extra = _HAS_RECORD, {}
+    for key, value in dict(record).items():
+        k = cols.index(key) if isinstance(key, str) and key in cols else -1
+        if k >= 0 and _fits(value, dtype[key]):
+            row[key] = value
+            present |= 1 << (k + 1)
+        else:
+            extra[key] = value
+    row["present"] = present
+    if not extra:
+        return row, None
+    return row, json.dumps(extra, default=_json_default, sort_keys=True, separators=(",", ":"))
+
+
+def _write_round_record(f, run, d, i: int, rec, *, n_rows: int) -> None:
+    """Write round ``i``'s record (or, for ``rec`` None, its no-record row) in the format_minor 2 layout.
+
+    ``d`` is ``/run/round_records`` (validated) or None to create it.  It
+    gets ``n_rows`` rows: in an append ``n_rows == i + 1``, so rows an
+    interrupted append left past row ``i`` are dropped; an update passes
+    at least the rows it has and rewrites row ``i`` only.
+    ``/run/round_records_extra`` gets row ``i`` only if the record has
+    keys outside the columns (rows past its end read as none), is cut to
+    ``n_rows`` rows, and loses row ``i``'s old extra keys if the record
+    has none.
+    """
+    if d is None:
+        dt = ROUND_RECORD_DTYPE
+        d = run.create_dataset("round_records", shape=(0,), dtype=dt, maxshape=(None,),
+                               chunks=(ROUND_RECORD_CHUNK_ROWS,), fillvalue=_blank_row(dt)[0])
+    else:
+        dt, _ = _record_columns(None, d)
+        if d.chunks is None or d.maxshape[0] is not None:  # other writers' fixed-size datasets: converted once
+            d = _ensure_resizable(f, "run/round_records", min(d.shape[0], n_rows), ROUND_RECORD_CHUNK_ROWS,
+                                  fillvalue=_blank_row(dt)[0])
+    if d.shape[0] != n_rows:
+        d.resize(n_rows, axis=0)  # grown rows read as the fill value: no record
+    row, extra = (_blank_row(dt), None) if rec is None else _split_record(rec, dt)
+    ex = run.get("round_records_extra")
+    if ex is not None:
+        ex = _ensure_resizable(f, "run/round_records_extra", min(ex.shape[0], n_rows), RECORD_CHUNK_ROWS,
+                               dtype=h5py.string_dtype("utf-8"))
+        if ex.shape[0] > n_rows:
+            ex.resize(n_rows, axis=0)  # rows of an interrupted append
+        top = min(ex.shape[0], i + 1)
+        # Whether row i has extra keys.  Reading the last rows before writing a string also
+        # loads their global-heap collection, so the string joins it instead of opening a
+        # fresh 4 KiB collection per append.
+        low = max(0, top - (64 if extra is not None else 1))
+        had = top == i + 1 and bool(_strings(ex[low:top])[-1])
+    if extra is not None:
+        if ex is None:
+            ex = run.create_dataset("round_records_extra", shape=(0,), dtype=h5py.string_dtype("utf-8"),
+                                    maxshape=(None,), chunks=(RECORD_CHUNK_ROWS,))
+        if ex.shape[0] <= i:
+            ex.resize(i + 1, axis=0)
+        ex[i] = extra
+    elif ex is not None and had:
+        if ex.shape[0] == i + 1:
+            ex.resize(i, axis=0)  # drop the old extra keys (no empty string written: it costs a heap object)
+        else:
+            ex[i] = ""
+    fspace = d.id.get_space()
+    fspace.select_hyperslab((i,), (1,))
+    mtype = _row_type() if dt == ROUND_RECORD_DTYPE else h5py.h5t.py_create(dt)
+    d.id.write(h5py.h5s.create_simple((1,)), fspace, row, mtype=mtype)
+
+
 def append_log(path, positions, values, *, round_index: int | None = None,
                features: Mapping[str, np.ndarray] | None = None,
                round_record: Mapping | None = None) -> int:
@@ -686,8 +872,14 @@ def append_log(path, positions, values, *, round_index: int | None = None,
     Rows beyond the committed count (left by an interrupted append) are
     discarded first, in every dataset.  The new rows, their round index,
     the round's end in ``/rounds/end`` and the optional ``round_record``
-    (JSON, e.g. times of an adaptive round) are written and flushed before
-    ``n_committed`` is updated, so a crash loses at most this round.
+    (a JSON-serialisable mapping, e.g. times of an adaptive round) are
+    written and flushed before ``n_committed`` is updated, so a crash loses
+    at most this round.
+
+    Records go to a row of ``/run/round_records`` (format_minor 2), with
+    keys outside its columns in ``/run/round_records_extra``; a log that
+    already keeps JSON records in ``/run/records`` (written before
+    format_minor 2) continues in that layout.
 
     The file is opened once and only its attributes, dataset shapes and
     last rows are read: the cost is proportional to the round, not to the
@@ -731,7 +923,14 @@ def append_log(path, positions, values, *, round_index: int | None = None,
         if round_index is None:
             round_index = n_rounds
         run = f.get("run")
-        recs = run.get("records") if run is not None else None
+        rows = run.get("round_records") if run is not None else None
+        recs = run.get("records") if run is not None and rows is None else None  # the JSON layout (minor < 2)
+        if rows is not None:
+            _record_columns(path, rows)  # refuses a malformed dataset before the first write
+            ex = run.get("round_records_extra")
+            if ex is not None and (not isinstance(ex, h5py.Dataset) or ex.ndim != 1 or ex.dtype.kind not in "OSU"):
+                raise _err(path, "dataset /run/round_records_extra",
+                           f"shape {getattr(ex, 'shape', None)}, expected (R,) strings")
         if recs is not None and (not isinstance(recs, h5py.Dataset) or recs.ndim != 1):
             raise _err(path, "dataset /run/records", f"shape {getattr(recs, 'shape', None)}, expected (R,) strings")
 
@@ -753,23 +952,23 @@ def append_log(path, positions, values, *, round_index: int | None = None,
             if m:
                 d[n:n + m] = data.astype(d.dtype, copy=False)
 
-        # ---- per-round rows: /rounds/end and /run/records grow by one row (plus a round the reader inferred)
+        # ---- per-round rows: /rounds/end and the records grow by one row (plus a round the reader inferred)
         new_ends = extra + [n + m]
         if "rounds/end" not in f:
             f.create_dataset("rounds/end", shape=(0,), dtype=np.int64, maxshape=(None,), chunks=(RECORD_CHUNK_ROWS,))
         d = _ensure_resizable(f, "rounds/end", keep, RECORD_CHUNK_ROWS, dtype=np.int64)
         d.resize(keep + len(new_ends), axis=0)
         d[keep:] = new_ends
-        if recs is not None or rec is not None:
+        minor = FORMAT_MINOR
+        if recs is not None:
+            # A log of format_minor 0 or 1 that keeps JSON records continues in that layout
+            # (older mcrecon versions keep reading its records).
             # Row i holds round i's record: pad rounds without one (a log's first, written
             # whole, or records of old logs that skipped rounds) with null at the front.
-            have_rows = 0 if recs is None else min(recs.shape[0], n_rounds)
+            minor = 1
+            have_rows = min(recs.shape[0], n_rounds)
             head = [_NO_RECORD] * (n_rounds - have_rows)
-            if recs is None:
-                recs = f.require_group("run").create_dataset(
-                    "records", shape=(0,), dtype=h5py.string_dtype("utf-8"), maxshape=(None,),
-                    chunks=(RECORD_CHUNK_ROWS,))
-            elif have_rows:
+            if have_rows:
                 # Load the heap collection of the last record, so the new record joins it
                 # instead of opening a fresh 4 KiB global-heap collection per append.
                 recs[have_rows - 1]
@@ -777,8 +976,12 @@ def append_log(path, positions, values, *, round_index: int | None = None,
                                      dtype=h5py.string_dtype("utf-8"), head=head or None)
             recs.resize(n_rounds + 1, axis=0)
             recs[n_rounds] = _NO_RECORD if rec is None else rec
-        if h.format_minor < FORMAT_MINOR:
-            f.attrs["format_minor"] = FORMAT_MINOR  # the layout now follows it
+        elif rows is not None or rec is not None:
+            # Row i of /run/round_records is round i's record; rows of earlier rounds
+            # (none before the first record) read as the fill value: no record.
+            _write_round_record(f, f.require_group("run"), rows, n_rounds, round_record, n_rows=n_rounds + 1)
+        if h.format_minor < minor:
+            f.attrs["format_minor"] = minor  # the layout now follows it
         f.flush()
         _commit(f, n + m)
     return n + m
@@ -800,21 +1003,36 @@ def _commit(f, n: int) -> None:
 def update_round_record(path, record: Mapping) -> None:
     """Replace the record of the last committed round (its times once fully known).
 
-    Overwrites that one row of ``/run/records`` in place.  Does nothing if
-    the log holds no records.
+    Overwrites that one row of ``/run/round_records`` in place (and its row
+    of ``/run/round_records_extra`` if either record has keys outside the
+    columns), or of ``/run/records`` in a log that keeps JSON records.
+    Does nothing if the log holds no records.
     """
     path = Path(path)
-    rec = _record_json(path, record)
+    rec = _record_json(path, record)  # refuses what is not JSON-serialisable, in either layout
     with _open(path, "r+") as f:
         run = f.get("run")
-        d = run.get("records") if run is not None else None
-        if not isinstance(d, h5py.Dataset) or d.ndim != 1 or d.shape[0] == 0:
+        rows = run.get("round_records") if run is not None else None
+        d = run.get("records") if run is not None and rows is None else None
+        if rows is not None:
+            _record_columns(path, rows)
+            if rows.shape[0] == 0:
+                return
+        elif not isinstance(d, h5py.Dataset) or d.ndim != 1 or d.shape[0] == 0:
             return
         h = _read_header(path, f)
         keep, extra = _committed_rounds(path, f, h.n)
+        n_rounds = keep + len(extra)
+        if rows is not None:
+            # Row i is round i's record; rows past the committed rounds (an interrupted
+            # append) are left for the next append to drop.
+            if n_rounds:
+                _write_round_record(f, run, rows, n_rounds - 1, record, n_rows=max(rows.shape[0], n_rounds))
+                f.flush()
+            return
         # Row i is round i's record; logs written before format_minor 1 may hold fewer rows
         # than rounds (the last row is then the last round's).
-        i = min(d.shape[0], keep + len(extra)) - 1
+        i = min(d.shape[0], n_rounds) - 1
         if i < 0:
             return
         d[i] = rec
