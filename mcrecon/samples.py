@@ -29,7 +29,7 @@ import numpy as np
 from .errors import InputError
 
 __all__ = ["NONFINITE_POLICIES", "check_policy", "check_samples", "apply_nonfinite", "SampleSet",
-           "SampleChunk", "source_name", "float32_loses_spread", "FLOAT32_MAX", "pixel_index"]
+           "SampleChunk", "source_name", "round_ends_of", "round_slices", "float32_loses_spread", "FLOAT32_MAX", "pixel_index"]
 
 #: What happens to samples whose value is NaN or +-Inf:
 #: ``drop`` skips the whole sample and counts it (default, with a warning),
@@ -207,6 +207,20 @@ def apply_nonfinite(positions, values, n_nonfinite: int, policy: str, *, where: 
 
 
 # ---------------------------------------------------------------- sources
+def round_ends_of(rounds) -> np.ndarray:
+    """Cumulative sample count at the end of each round, from a non-decreasing per-sample round index."""
+    r = np.asarray(rounds)
+    n = r.shape[0]
+    return np.asarray((np.flatnonzero(np.diff(r)) + 1).tolist() + [n] if n else [], np.int64)
+
+
+def round_slices(round_ends) -> list[tuple[int, int]]:
+    """(start, stop) sample ranges of each round, from the rounds' cumulative ends."""
+    ends = np.asarray(round_ends, np.int64)
+    starts = np.concatenate([[0], ends[:-1]])
+    return [(int(a), int(b)) for a, b in zip(starts, ends)]
+
+
 @dataclasses.dataclass(eq=False)
 class SampleChunk:
     """A contiguous run of samples of a source."""
@@ -265,7 +279,7 @@ class SampleSet:
                 raise InputError(self.name, "rounds", f"shape {r.shape} dtype {r.dtype}, expected ({n},) integers")
             if n and np.any(np.diff(r) < 0):
                 raise InputError(self.name, "rounds", "must be non-decreasing (samples grouped by round in order)")
-            self.round_ends = np.asarray((np.flatnonzero(np.diff(r)) + 1).tolist() + [n] if n else [], np.int64)
+            self.round_ends = round_ends_of(r)
 
     @property
     def n_samples(self) -> int:
@@ -277,8 +291,7 @@ class SampleSet:
 
     def round_slices(self) -> list[tuple[int, int]]:
         """(start, stop) sample ranges of each round."""
-        starts = np.concatenate([[0], self.round_ends[:-1]])
-        return [(int(a), int(b)) for a, b in zip(starts, self.round_ends)]
+        return round_slices(self.round_ends)
 
     def iter_chunks(self, *, chunk_size: int = 1 << 20, rounds=None, with_round: bool = True) -> Iterator[SampleChunk]:
         """Chunks of at most ``chunk_size`` samples (of some rounds), as views."""

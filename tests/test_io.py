@@ -3,6 +3,7 @@
 import hashlib
 import json
 import os
+import stat
 
 import h5py
 import numpy as np
@@ -610,3 +611,30 @@ def test_png_preview_and_false_colour(tmp_path, rng):
     assert b.shape == (3, 4, 3) and (b[0, 0] == 0).all() and not (b[2, 3] == b[0, 1]).all()
     with pytest.raises(InputError, match="not a readable EXR"):
         read_exr(tmp_path / "p.png")
+
+
+# ------------------------------------------------------------------ found in review (each failed before its fix)
+@pytest.mark.parametrize("breakage, match", [
+    (lambda f: (f.__delitem__("positions"), f.create_dataset("positions", data=np.zeros((4, 2), np.float16))),
+     "dtype float16"),
+    (lambda f: f.attrs.__setitem__("format_version", "one"), "expected the integer 1"),
+    (lambda f: f.attrs.__setitem__("n_committed", "x"), "expected an integer"),
+    (lambda f: f.require_group("run").attrs.__setitem__("settings_json", "{bad"), "not valid JSON"),
+    (lambda f: f.attrs.__setitem__("metadata_json", "[1, 2]"), "expected a JSON object"),
+])
+def test_malformed_attributes_give_one_line_errors(tmp_path, breakage, match):
+    path = write_log(tmp_path / "m.h5", np.full((4, 2), 0.5), np.ones((4, 3)), width=2, height=2)
+    with h5py.File(path, "r+") as f:
+        breakage(f)
+    with pytest.raises(InputError, match=match):
+        read_log(path)
+
+
+def test_written_files_get_the_umask_permissions(tmp_path):
+    umask = os.umask(0)
+    os.umask(umask)
+    expect = 0o666 & ~umask
+    log = write_log(tmp_path / "p.h5", np.full((1, 2), 0.5), np.ones((1, 3)), width=1, height=1)
+    exr = write_exr(tmp_path / "p.exr", np.ones((2, 2, 3)))
+    for p in (log, exr):
+        assert stat.S_IMODE(os.stat(p).st_mode) == expect

@@ -25,8 +25,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import Iterator, Mapping, Sequence
 
@@ -35,7 +33,8 @@ import numba
 import numpy as np
 
 from ..errors import InputError
-from ._atomic import publish
+from ..samples import check_samples, round_ends_of, round_slices
+from ._atomic import atomic_path
 
 __all__ = ["cast_positions", "FORMAT_NAME", "FORMAT_VERSION", "FORMAT_MINOR", "SampleLog", "LogChunk", "read_log",
            "write_log", "append_log", "update_round_record", "set_run_settings", "DEFAULT_CHUNK_ROWS"]
@@ -417,8 +416,7 @@ class SampleLog:
 
     def round_slices(self) -> list[tuple[int, int]]:
         """(start, stop) sample ranges of each committed round."""
-        starts = np.concatenate([[0], self.round_ends[:-1]])
-        return [(int(a), int(b)) for a, b in zip(starts, self.round_ends)]
+        return round_slices(self.round_ends)
 
     def iter_chunks(self, *, chunk_size: int = DEFAULT_READ_ROWS, rounds=None,
                     start: int = 0, stop: int | None = None, with_round: bool = True) -> Iterator[LogChunk]:
@@ -524,33 +522,9 @@ def read_log(path) -> SampleLog:
 
 
 def _check_arrays(where, positions, values, width, height, n_channels):
-    pos = np.asarray(positions)
-    val = np.asarray(values)
-    if val.ndim == 1 and n_channels == 1:
-        val = val[:, None]
-    if pos.ndim != 2 or pos.shape[1] != 2:
-        raise _err(where, "positions", f"shape {pos.shape}, expected (N, 2)")
-    if val.ndim != 2 or val.shape[1] != n_channels:
-        raise _err(where, "values", f"shape {val.shape}, expected (N, {n_channels}) to match the channels")
-    if pos.shape[0] != val.shape[0]:
-        raise _err(where, "values", f"{val.shape[0]} rows but {pos.shape[0]} positions")
-    if pos.dtype.kind != "f":
-        raise _err(where, "positions", f"dtype {pos.dtype}, expected float32 or float64")
-    if val.dtype.kind not in "fiu":
-        raise _err(where, "values", f"dtype {val.dtype}, expected float32 or float64")
-    if val.dtype.kind != "f":
-        val = val.astype(np.float64)
-    if pos.dtype == np.float16:
-        pos = pos.astype(np.float32)
-    if val.dtype == np.float16:
-        val = val.astype(np.float32)
-    if pos.size:
-        bad = ~(np.isfinite(pos).all(axis=1) & (pos[:, 0] >= 0) & (pos[:, 0] < width)
-                & (pos[:, 1] >= 0) & (pos[:, 1] < height))
-        if bad.any():
-            k = int(np.flatnonzero(bad)[0])
-            raise _err(where, "positions", f"{int(bad.sum())} sample(s) off the film [0, {width}) x [0, {height}) "
-                       f"or non-finite, first at row {k}: {pos[k].tolist()}")
+    """Samples as the log stores them: the shared validation (NaN/Inf values are stored, readers apply their policy)."""
+    pos, val, _ = check_samples(positions, values, width=width, height=height, n_channels=n_channels,
+                                where=str(where))
     return pos, val
 
 
@@ -628,10 +602,7 @@ def write_log(path, positions, values, *, width: int, height: int,
         meta_json = json.dumps(dict(metadata or {}), sort_keys=True, default=_json_default)
     except TypeError as exc:
         raise _err(path, "metadata", f"not JSON-serialisable: {exc}") from None
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
             f.attrs["format"] = FORMAT_NAME
             f.attrs["format_version"] = FORMAT_VERSION
@@ -643,7 +614,7 @@ def write_log(path, positions, values, *, width: int, height: int,
             f.create_dataset("positions", data=pos, maxshape=(None, 2), chunks=_chunks_for(n, 2))
             f.create_dataset("values", data=val, maxshape=(None, val.shape[1]), chunks=_chunks_for(n, val.shape[1]))
             f.create_dataset("round", data=rnd, maxshape=(None,), chunks=_chunks_for(n, None))
-            ends = (np.flatnonzero(np.diff(rnd)) + 1).tolist() + [n] if n else []
+            ends = round_ends_of(rnd)
             f.create_dataset("rounds/end", data=np.asarray(ends, np.int64), maxshape=(None,),
                              chunks=(RECORD_CHUNK_ROWS,))
             for name, arr in dict(features or {}).items():
@@ -655,13 +626,6 @@ def write_log(path, positions, values, *, width: int, height: int,
             if reference is not None:
                 f.create_dataset("reference", data=reference.astype(np.float32 if reference.dtype != np.float64 else np.float64))
             f.attrs["n_committed"] = np.int64(n)
-        publish(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
     return path
 
 
