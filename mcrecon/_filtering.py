@@ -42,7 +42,7 @@ from scipy import ndimage
 
 from .errors import InputError
 
-__all__ = ["ENV_THREADS", "n_threads", "correlate_jobs", "corr2", "safe_div", "separable_weights",
+__all__ = ["ENV_THREADS", "n_threads", "numba_threads", "correlate_jobs", "corr2", "safe_div", "separable_weights",
            "mask_weights"]
 
 #: Environment variable that sets the number of worker threads.
@@ -92,6 +92,28 @@ def n_threads(threads: int | None = None) -> int:
     except (AttributeError, OSError):
         t = os.cpu_count() or 1
     return max(1, min(t, _MAX_DEFAULT_THREADS))
+
+
+class numba_threads:
+    """Context manager: numba's parallel loops use :func:`n_threads` threads inside it.
+
+    The same one setting (``threads=``, ``$MCRECON_THREADS``) then governs
+    the thread pool of the filters and numba's ``prange`` loops (capped at
+    the threads numba started with, ``NUMBA_NUM_THREADS``).  numba's
+    setting is per calling thread; the previous value is restored.
+    """
+
+    def __init__(self, threads: int | None = None):
+        self.n = min(n_threads(threads), numba.config.NUMBA_NUM_THREADS)
+
+    def __enter__(self):
+        self._old = numba.get_num_threads()
+        numba.set_num_threads(self.n)
+        return self.n
+
+    def __exit__(self, *exc):
+        numba.set_num_threads(self._old)
+        return False
 
 
 def _pool(n: int) -> ThreadPoolExecutor:

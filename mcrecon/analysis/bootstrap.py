@@ -35,6 +35,7 @@ import numpy as np
 from numba import prange
 from scipy import stats as sps
 
+from .._filtering import numba_threads
 from ..errors import InputError
 from ..methods.ci import StoppingRule
 from ..tone import get_tone_operator, tone_map
@@ -575,12 +576,13 @@ def bootstrap_bias_samples(samples: PixelSamples, *, B: int = 1000, seed: int = 
     tq[2:] = sps.t.ppf(1.0 - rule.alpha / 2.0, np.arange(1, rule.max_spp))
     out = (np.zeros((P, C)), np.zeros((P, C)), np.zeros((P, C)), np.zeros((P, C)), np.zeros(P), np.zeros(P))
     base = _seed_base(seed)
-    if op.code >= 0:
-        _bootstrap_kernel(vals, samples.offsets, theta, base, B, int(rule.min_spp), int(rule.step),
-                          int(rule.max_spp), tq, 2.0 * rule.tolerance, op.code, 1.0 / rule.gamma,
-                          float(rule.exposure), _slope_table(1.0 / rule.gamma), *out)
-    else:
-        _bootstrap_generic(vals, samples.offsets, theta, base, B, rule, tq, op, out)
+    with numba_threads():
+        if op.code >= 0:
+            _bootstrap_kernel(vals, samples.offsets, theta, base, B, int(rule.min_spp), int(rule.step),
+                              int(rule.max_spp), tq, 2.0 * rule.tolerance, op.code, 1.0 / rule.gamma,
+                              float(rule.exposure), _slope_table(1.0 / rule.gamma), *out)
+        else:
+            _bootstrap_generic(vals, samples.offsets, theta, base, B, rule, tq, op, out)
     dev_mean, dev_m2, disp_mean, disp_m2, spp_mean, capped = out
     z = float(sps.norm.ppf(0.5 + level / 2.0))
     shape = (H, W, C)

@@ -22,6 +22,7 @@ import numba
 import numpy as np
 
 from ...errors import InputError
+from ..._filtering import numba_threads
 from ...samples import check_samples
 
 __all__ = ["BOUNDARY_MODES", "epanechnikov", "splat"]
@@ -202,7 +203,8 @@ def _splat_blocks(pos, val, scale, radius, mode, out, n_blocks):
 def _scatter(pos, val, scale, radius, mode, out) -> int:
     """The scatter loop, on two cores for large batches (deterministic block split)."""
     if pos.shape[0] >= _PARALLEL_MIN:
-        return int(_splat_blocks(pos, val, scale, radius, mode, out, _N_BLOCKS))
+        with numba_threads():
+            return int(_splat_blocks(pos, val, scale, radius, mode, out, _N_BLOCKS))
     return int(_splat_loop(pos, val, scale, radius, mode, out))
 
 
