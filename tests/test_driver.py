@@ -282,3 +282,21 @@ def test_float32_reply_positions_beyond_2048_are_accepted():
     np.testing.assert_array_equal(out.positions, req.positions)
     with pytest.raises(Exception, match="differ from the requested"):
         validate_reply(req, (req.positions + [[0.01, 0]], np.ones((2, 3))), n_channels=3)
+
+
+def test_reply_checks_are_the_shared_sample_checks():
+    req = SampleRequest(4, 3, counts=np.ones((3, 4), np.int64))
+    pos = jittered_positions(req.counts, np.random.default_rng(0))
+    with pytest.raises(RendererError, match=r"r: values: dtype <U1, expected float32 or float64"):
+        validate_reply(req, (pos, np.full((12, 3), "x")), n_channels=3, renderer="r")
+    bad = pos.copy()
+    bad[5] = [4.0, 0.5]  # x == width: off the film
+    with pytest.raises(RendererError, match=r"positions: 1 sample\(s\) off the film \[0, 4\) x \[0, 3\) or non-finite, first at row 5"):
+        validate_reply(req, (bad, np.ones((12, 3))), n_channels=3, renderer="r")
+    with pytest.raises(RendererError, match="reply length: 11 samples, requested 12"):
+        validate_reply(req, (pos[:11], np.ones((11, 3))), n_channels=3, renderer="r")
+    with pytest.raises(RendererError, match="features/label: dtype <U1, expected a numeric dtype"):
+        validate_reply(req, SampleBatch(pos, np.ones((12, 3)), {"label": np.full(12, "a")}), n_channels=3,
+                       renderer="r")
+    out = validate_reply(req, (pos.astype(np.float32), np.ones((12, 3), np.float32)), n_channels=3)
+    assert out.values.dtype == np.float32  # the renderer's precision is kept

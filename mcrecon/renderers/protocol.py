@@ -24,7 +24,7 @@ import numba
 import numpy as np
 
 from ..errors import RendererError
-from ..samples import pixel_index  # the film's pixel numbering, shared with the readers
+from ..samples import check_samples, pixel_index  # pixel_index: the film's pixel numbering, shared with the readers
 
 __all__ = [
     "SampleRequest",
@@ -204,22 +204,13 @@ def validate_reply(request: SampleRequest, batch, *, n_channels: int,
     except Exception as exc:  # ragged lists and the like
         raise RendererError(renderer, "reply", f"cannot convert to arrays: {exc}") from None
     n = request.total
-    if pos.ndim != 2 or pos.shape[1] != 2:
-        raise RendererError(renderer, "positions", f"shape {pos.shape}, expected ({n}, 2)")
-    if val.ndim == 1 and n_channels == 1:
-        val = val[:, None]
-    if val.ndim != 2 or val.shape[1] != n_channels:
-        raise RendererError(renderer, "values",
-                            f"shape {val.shape}, expected ({n}, {n_channels}) for {n_channels} channel(s)")
-    if pos.shape[0] != n or val.shape[0] != n:
-        raise RendererError(renderer, "reply length",
-                            f"{pos.shape[0]} positions and {val.shape[0]} values, requested {n} samples")
-    for name, arr in (("positions", pos), ("values", val)):
-        if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
-            raise RendererError(renderer, name, f"dtype {arr.dtype}, expected a real floating dtype")
-    if not np.isfinite(pos).all():
-        raise RendererError(renderer, "positions", f"{int((~np.isfinite(pos)).any(axis=1).sum())} non-finite positions")
     w, h = request.width, request.height
+    # The shared sample checks (shapes, real dtypes, positions finite and on the film) ...
+    pos, val, _ = check_samples(pos, val, width=w, height=h, n_channels=n_channels, where=renderer,
+                                error=RendererError)
+    # ... then what only a reply must satisfy: its request.
+    if pos.shape[0] != n:
+        raise RendererError(renderer, "reply length", f"{pos.shape[0]} samples, requested {n}")
     nc = request.n_from_counts
     if nc:
         got, off = _pixel_counts(pos[:nc], w, h)
@@ -251,5 +242,8 @@ def validate_reply(request: SampleRequest, batch, *, n_channels: int,
         arr = np.asarray(arr)
         if arr.shape[:1] != (n,):
             raise RendererError(renderer, f"features/{name}", f"shape {arr.shape}, expected ({n}, ...)")
+        if arr.dtype.kind not in "fiub":
+            raise RendererError(renderer, f"features/{name}", f"dtype {arr.dtype}, expected a numeric dtype "
+                                "(integer, float or bool)")
         feats[str(name)] = arr
     return SampleBatch(pos, val, feats)
