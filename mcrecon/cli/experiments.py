@@ -38,6 +38,24 @@ def _cmd_convergence(args):
     return 0
 
 
+def _cmd_oracle(args):
+    from ..experiments.oracle import run_oracle
+
+    res = run_oracle(args.scene, spp=args.spp, size=parse_size(args.size), seed=args.seed,
+                     variance_spp=args.variance_spp,
+                     methods=_csv_list(args.methods) if args.methods else None)
+    if args.json:
+        print(json.dumps(res, indent=2, sort_keys=True))
+        return 0
+    print(f"{res['scene']} {res['size'][0]}x{res['size'][1]}, {res['spp']} spp: oracle per-pixel "
+          f"{res['oracle_per_pixel']:.4g}, best single scale {res['oracle_best_global']:.4g} "
+          f"(sigma {res['oracle_best_global_sigma']:.3g} px), ceiling {res['ceiling']:.4g}")
+    print(f"{'method':8s} {'relMSE':>10s} {'/ box':>8s} {'/ ceiling':>10s}")
+    for name, r in res["methods"].items():
+        print(f"{name:8s} {r['relative_mse']:10.4g} {r['to_box']:8.3g} {r['to_ceiling']:10.3g}")
+    return 0
+
+
 def _cmd_stability(args):
     from ..experiments.stability import run_stability, write_stability_table
 
@@ -126,6 +144,17 @@ def register(sub) -> None:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", required=True)
     s.set_defaults(func=_cmd_convergence)
+
+    s = es.add_parser("oracle", help="the ceiling of Gaussian-scale selection on a scene, each method beside it")
+    s.add_argument("--scene", default="soft_shadow")
+    s.add_argument("--spp", type=int, default=32)
+    s.add_argument("--size", default="128x128")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--variance-spp", type=int, default=256,
+                   help="spp of the independent render that measures each pixel's variance")
+    s.add_argument("--methods", default=None, help="comma-separated (default: every available method)")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=_cmd_oracle)
 
     s = es.add_parser("stability", help="every method on stiff and extreme inputs; outcome table")
     s.add_argument("--methods", default=None)
