@@ -9,7 +9,7 @@ keyword-only options are the method's options, validated by the one
 option path of :mod:`mcrecon.methods`.  The image comes back in the
 precision of the input values: float32 in, float32 out.
 
-Functions: :func:`box`, :func:`gem`, :func:`awr`, :func:`splat`.
+Functions: :func:`box`, :func:`gem`, :func:`awr`, :func:`splat`, :func:`ci`.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from .methods.base import MethodInputs
 from .samples import SampleSet, check_policy
 from .stats import PixelStats
 
-__all__ = ["box", "gem", "awr", "splat"]
+__all__ = ["box", "gem", "awr", "splat", "ci"]
 
 
 def _check_stats(stats: PixelStats, where: str) -> None:
@@ -163,3 +163,14 @@ splat = _make(
     ">>> samples = mcrecon.SampleSet(pos, np.ones((3200, 3), np.float32), width=20, height=20)\n"
     ">>> out = splat(samples)\n>>> out.dtype, bool(np.isclose(out.sum(), 3 * 400 * 1.0, rtol=1e-5))\n"
     "(dtype('float32'), True)")
+
+ci = _make(
+    "ci", "Tamstorf & Jensen's estimate: the per-pixel sample mean (Eq. 2, box filter).", _STATS,
+    "The method's contribution is adaptive (where to stop sampling, by tone-mapped confidence intervals);\n"
+    "offline its image is the pixel mean of the samples, exactly as :func:`box`.  Its options (the stopping\n"
+    "rule) are validated here too, so a rule can be checked before an adaptive run.",
+    ".. [1] R. Tamstorf, H. W. Jensen, \"Adaptive Sampling and Bias Estimation in Path Tracing\",\n"
+    "   Rendering Techniques '97 (Eurographics Workshop on Rendering), 1997.",
+    ">>> import numpy as np\n>>> from mcrecon import PixelStats\n>>> from mcrecon.restoration import box, ci\n"
+    ">>> st = PixelStats.from_moments(np.random.default_rng(3).random((4, 5, 3)), np.zeros((4, 5, 3)), 2)\n"
+    ">>> bool((ci(st, tolerance=0.01) == box(st)).all())\nTrue")

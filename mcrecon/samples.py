@@ -28,8 +28,9 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["NONFINITE_POLICIES", "check_policy", "check_samples", "apply_nonfinite", "SampleSet",
-           "SampleChunk", "source_name", "round_ends_of", "round_slices", "float32_loses_spread", "FLOAT32_MAX", "pixel_index"]
+#: The public surface; the other names here (round helpers, the float32 spread
+#: check, pixel_index, source_name) serve the readers, the driver and the renderers.
+__all__ = ["NONFINITE_POLICIES", "check_policy", "check_samples", "apply_nonfinite", "SampleSet", "SampleChunk"]
 
 #: What happens to samples whose value is NaN or +-Inf:
 #: ``drop`` skips the whole sample and counts it (default, with a warning),
@@ -254,6 +255,19 @@ class SampleSet:
     InputError
         Mis-shaped arrays, positions off the film or non-finite, rounds
         not non-decreasing.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from mcrecon import SampleSet
+    >>> pos = np.array([[0.5, 0.5], [1.2, 0.7], [1.9, 0.1], [0.1, 0.9]])
+    >>> s = SampleSet(pos, np.ones((4, 3)), width=2, height=1, rounds=[0, 0, 1, 1])
+    >>> s.channels, s.n_rounds, s.round_slices()
+    (('R', 'G', 'B'), 2, [(0, 2), (2, 4)])
+    >>> SampleSet(pos + 1, np.ones((4, 3)), width=2, height=1)
+    Traceback (most recent call last):
+    ...
+    mcrecon.errors.InputError: samples: positions: 4 sample(s) off the film [0, 2) x [0, 1) or non-finite, first at row 0: [1.5, 1.5]
     """
 
     def __init__(self, positions, values, *, width: int, height: int, channels: Sequence[str] | None = None,

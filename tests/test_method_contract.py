@@ -173,9 +173,9 @@ def test_the_contract_documents_example_method_runs(tmp_path):
     r = SceneRenderer("soft_shadow", width=24, height=20, seed=0)
     ref = reference_image("soft_shadow", 24, 20)
     res = adapt(r, m, spp=8, seed=5, reference=ref, log=tmp_path / "run.h5", progress=False)
-    assert res.stats.n_samples == 8 * 24 * 20 and res.run.planned_rounds >= 2
+    assert res.stats.n_samples == 8 * 24 * 20 and res.run.priority.shape == (20, 24)
     assert res.counts.std() > 0  # adaptive: not uniform
-    assert set(res.diagnostics()) == {"spp"}
+    assert set(res.diagnostics()) == {"spp", "priority"}
     again = adapt(r, m, spp=8, seed=5, reference=ref, progress=False)  # reused object, same result
     np.testing.assert_array_equal(again.image, res.image)
     offline = mcrecon.reconstruct(tmp_path / "run.h5", method=m)

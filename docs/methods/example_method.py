@@ -18,9 +18,13 @@ from mcrecon.methods import Method, MethodInputs, Option, RunState
 
 @dataclasses.dataclass(eq=False)
 class BlurRun(RunState):
-    """What one run accumulates: here only how many rounds it planned."""
+    """What one run keeps: the priority map of its last planning step.
 
-    planned_rounds: int = 0
+    ``plan`` recomputes it from ``state`` every round, so a resumed run
+    (whose state is fresh: only ``observe`` is replayed) loses nothing.
+    """
+
+    priority: np.ndarray | None = None
 
 
 class BlurMethod(Method):
@@ -60,5 +64,6 @@ class BlurMethod(Method):
         total = weights.sum()
         p = weights / total if total > 0 else np.full(weights.size, 1.0 / weights.size)
         counts = state.rng.multinomial(n, p).reshape(state.height, state.width)
-        run.planned_rounds += 1
+        run.priority = p.reshape(state.height, state.width)
+        run.diagnostics["priority"] = run.priority
         return state.request(counts=counts)
