@@ -14,7 +14,7 @@ import sys
 import warnings
 
 from ..errors import InputError, McreconWarning, RendererError
-from . import commands, experiments
+from . import batch, commands, experiments
 from ._common import OneLineParser
 
 __all__ = ["main", "build_parser"]
@@ -25,6 +25,7 @@ def build_parser() -> OneLineParser:
     sub = p.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
     commands.register(sub)
     experiments.register(sub)
+    batch.register(sub)
     return p
 
 

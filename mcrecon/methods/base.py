@@ -392,6 +392,20 @@ class Method:
         return Requirements(subpixels=int(self.subpixels), samples=bool(self.needs_samples),
                             reference=self.reference)
 
+    def halo(self, width: int, height: int) -> int | None:
+        """Pixels of context the offline result at a pixel needs: an int, or None for the whole image.
+
+        A reconstruction of a tile extended by ``halo`` pixels on every
+        side (clipped at the film's edges) gives the untiled result inside
+        the tile (:func:`mcrecon.distributed.reconstruct_tiled`), provided
+        every pixel has at least two samples: the fill-in policies for
+        pixels with fewer (:func:`mcrecon.stats.fill_from_neighbours`,
+        :func:`mcrecon.methods.box.fill_empty_pixels`) may borrow from the
+        whole image.  Default None: a method that declares nothing is
+        whole-image.
+        """
+        return None
+
     # ------------------------------------------------------------- per run
     def start(self, width: int, height: int, channels: Sequence[str] = ("R", "G", "B"), *,
               reference: np.ndarray | None = None) -> RunState:

@@ -37,6 +37,9 @@ class BoxMethod(Method):
 
     name = "box"
 
+    def halo(self, width, height):
+        return 0  # the pixel's own mean (empty pixels aside: see Method.halo)
+
     def reconstruct_run(self, run: RunState, inputs: MethodInputs) -> np.ndarray:
         stats = inputs.stats
         return fill_empty_pixels(stats.mean.copy(), stats.count)

@@ -266,6 +266,9 @@ class CIMethod(Method):
             raise InputError(self.where, exc.field, exc.problem) from None
         self.rule = rule
 
+    def halo(self, width, height):
+        return 0  # the pixel's own mean, like box
+
     def reconstruct_run(self, run: RunState, inputs: MethodInputs) -> np.ndarray:
         stats = inputs.stats
         return fill_empty_pixels(stats.mean.copy(), stats.count)

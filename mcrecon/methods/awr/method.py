@@ -62,6 +62,9 @@ class AWRMethod(Method):
     )
 
     # -------------------------------------------------------------- offline
+    def halo(self, width, height):
+        return None  # periodized wavelet levels and image-wide thresholds: whole-image
+
     def _levels(self, h: int, w: int) -> int:
         return default_levels((h, w)) if self.params["levels"] is None else self.params["levels"]
 

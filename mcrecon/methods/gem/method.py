@@ -109,6 +109,17 @@ class GEMMethod(Method):
         return Requirements(subpixels=self.grid if self.params["subpixel_exact_below"] > 0 else 0,
                             reference="required" if self.params["oracle"] else "none")
 
+    def halo(self, width, height):
+        # largest final filter's pixel-kernel radius + the largest outlier-removal
+        # kernel's radius (twice the scale under the paper's rule) + 1 for the 3x3
+        # variance fill-in: 49 + 49 + 1 = 99 px by default, 147 px with 'paper'
+        from .kernels import TRUNCATE, gaussian_kernel, pixel_kernel
+        sig = final_sigmas(self.params["final_scales"])
+        factor = 2.0 if self.params["final_outliers"] == "paper" else 1.0
+        r_filter = max((pixel_kernel(s_, self.grid).size - 1) // 2 for s_ in sig)
+        r_vote = max((gaussian_kernel(factor * s_, truncate=TRUNCATE).size - 1) // 2 for s_ in sig)
+        return int(r_filter + r_vote + 1)
+
     # ---------------------------------------------------------------- core
     def start(self, width, height, channels=("R", "G", "B"), *, reference=None) -> "GEMRun":
         base = super().start(width, height, channels, reference=reference)

@@ -91,6 +91,10 @@ class SplatMethod(Method):
                         splatter=self._new_splatter(base.width, base.height, len(base.channels)))
 
     # ------------------------------------------------------------ offline
+    def halo(self, width, height):
+        # largest splat radius plus the pilot estimate's radius that sets it, +1 for the pixel cell
+        return int(np.ceil(self.params["max_width"] / 2 + self.params["c_prime"] / 2)) + 1
+
     def reconstruct_run(self, run: "SplatRun", inputs: MethodInputs) -> np.ndarray:
         """Replay the sample source's rounds in order through the progressive algorithm.
 
