@@ -76,6 +76,7 @@ def test_methods_are_immutable_and_validate_options_once(name):
 def test_option_conversion_bounds_and_messages():
     o = Option("k", int, 2, "a count", min=1)
     assert o.convert("4", "m") == 4 and o.convert(4.0, "m") == 4
+    assert o.convert(2**53 + 1, "m") == 2**53 + 1 and o.convert(str(2**60 + 1), "m") == 2**60 + 1
     for bad in ("4.5", 0, True, float("nan"), "x", None):
         with pytest.raises(InputError, match=r"expected an integer >= 1"):
             o.convert(bad, "m")

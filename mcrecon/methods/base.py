@@ -147,18 +147,23 @@ class Option:
         elif t in (int, float):
             if isinstance(value, (bool, np.bool_)):
                 raise bad
-            try:
-                f = float(value.strip()) if isinstance(value, str) else float(value)
-            except (TypeError, ValueError, AttributeError):
-                raise bad from None
-            if not math.isfinite(f):
-                raise bad
-            if t is int:
-                if f != int(f):
-                    raise bad
-                v = int(f)
+            if t is int and isinstance(value, numbers.Integral):
+                v = int(value)  # exactly: a float() detour would round beyond 2^53
+            elif t is int and isinstance(value, str) and value.strip().lstrip("+-").isdigit():
+                v = int(value.strip())
             else:
-                v = f
+                try:
+                    f = float(value.strip()) if isinstance(value, str) else float(value)
+                except (TypeError, ValueError, AttributeError):
+                    raise bad from None
+                if not math.isfinite(f):
+                    raise bad
+                if t is int:
+                    if f != int(f):
+                        raise bad
+                    v = int(f)
+                else:
+                    v = f
             if self.min is not None and (v <= self.min if self.min_open else v < self.min):
                 raise bad
             if self.max is not None and (v >= self.max if self.max_open else v > self.max):

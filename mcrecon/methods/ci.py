@@ -246,15 +246,19 @@ class CIMethod(Method):
     name = "ci"
     adaptive = True
     options = (
-        Option("alpha", float, 0.05, "1 - alpha is the confidence level of Eq. (6)"),
-        Option("tolerance", float, 1.0 / 256.0, "d of Eq. (10): half the allowed display width"),
+        Option("alpha", float, 0.05, "1 - alpha is the confidence level of Eq. (6)", min=0.0, max=1.0,
+               min_open=True, max_open=True),
+        Option("tolerance", float, 1.0 / 256.0, "d of Eq. (10): half the allowed display width", min=0.0,
+               min_open=True),
         Option("tone", str, "gamma", "tone operator T: " + ", ".join(
             f"{k} ({v.help})" for k, v in TONE_OPERATORS.items())),
-        Option("gamma", float, 2.2, "display gamma of the gamma/reinhard operators"),
-        Option("exposure", float, 1.0, "radiance scale applied before the tone operator"),
-        Option("min_spp", int, DEFAULT_MIN_SPP, "initial samples per pixel (>= 2)"),
-        Option("step_spp", int, 0, "samples added per round to unconverged pixels (0: min_spp)"),
-        Option("max_spp", int, 1024, "per-pixel cap: a pixel with this many samples stops"),
+        Option("gamma", float, 2.2, "display gamma of the gamma/reinhard operators", min=0.0, min_open=True),
+        Option("exposure", float, 1.0, "radiance scale applied before the tone operator", min=0.0, min_open=True),
+        Option("min_spp", int, DEFAULT_MIN_SPP, "initial samples per pixel", min=2,
+               note="Eq. 6 needs a sample variance"),
+        Option("step_spp", int, 0, "samples added per round to unconverged pixels (0: min_spp)", min=0),
+        Option("max_spp", int, 1024, "per-pixel cap (>= min_spp): a pixel with this many samples stops", min=2,
+               max=2**31, max_open=True),
     )
 
     def _configure(self, params: dict) -> None:
