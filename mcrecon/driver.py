@@ -15,6 +15,7 @@ takes exactly the decisions the uninterrupted run would have taken.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import sys
@@ -26,8 +27,8 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from .errors import InputError, McreconWarning, RendererError
-from .io.samplelog import (append_log, cast_positions, read_log, set_run_settings, update_round_record,
-                           write_log)
+from .io.samplelog import (MAX_PIXELS, append_log, cast_positions, log_lock, read_log, set_run_settings,
+                           update_round_record, write_log)
 from .methods import Method, get_method
 from .methods.base import AdaptiveState, RunState
 from .renderers.protocol import SampleBatch, validate_reply
@@ -64,6 +65,12 @@ class AdaptiveResult:
     method : Method
     run : RunState
         The method's state of this run (``method.diagnostics(result.run)``).
+
+    Samples are counted one way everywhere (the printed summary, ``mcrecon
+    info``, the round records, the budget): :attr:`samples` is what the
+    renderer delivered and the log committed, of which :attr:`samples_dropped`
+    (NaN/Inf under the ``drop`` policy) the statistics do not hold;
+    :attr:`samples_used` = samples - samples_dropped.
     """
 
     image: np.ndarray
@@ -82,6 +89,27 @@ class AdaptiveResult:
     def counts(self) -> np.ndarray:
         """Samples per pixel (H, W)."""
         return self.stats.count
+
+    @property
+    def samples(self) -> int:
+        """Samples the renderer delivered and the run committed (what the budget counts)."""
+        return int(self.stats.n_samples + self.stats.n_dropped)
+
+    @property
+    def samples_dropped(self) -> int:
+        """Committed samples with a NaN or Inf value the ``drop`` policy left out of the statistics."""
+        return int(self.stats.n_dropped)
+
+    @property
+    def samples_used(self) -> int:
+        """Committed samples in the statistics (``zero``-policy samples included, set to 0)."""
+        return int(self.stats.n_samples)
+
+    def sanity(self) -> dict:
+        """Output sanity of the image (see :func:`mcrecon.metrics.output_sanity`)."""
+        from .metrics import output_sanity
+
+        return output_sanity(self.image, self.stats)
 
     @property
     def renderer_seconds(self) -> float:
@@ -130,6 +158,9 @@ def _check_renderer(renderer):
     w, h = int(renderer.width), int(renderer.height)
     if w < 1 or h < 1:
         raise InputError("renderer", "width/height", f"{w}x{h}, expected at least 1x1")
+    if w * h > MAX_PIXELS:
+        raise InputError("renderer", "width/height", f"{w}x{h} = {w * h} pixels, beyond the {MAX_PIXELS} pixels "
+                         "mcrecon can hold images of")
     return w, h, tuple(str(c) for c in renderer.channels)
 
 
@@ -206,8 +237,22 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
         "renderer_spec": dict(renderer_spec or {}), "storage_dtype": storage_dtype,
     }
     log_path = None
+    held = contextlib.ExitStack()
     if log is not None:
         log_path = Path(log)
+        # The run holds its log's writer lock from creation to the end: a second run or
+        # a resume on the same log is refused (naming this process), see log_lock.
+        held.enter_context(log_lock(log_path))
+    with held:
+        return _start(renderer, method, w=w, h=h, channels=channels, ref=ref, budget=budget, settings=settings,
+                      seed=seed, log_path=log_path, overwrite=overwrite, metadata=metadata, storage_dtype=storage_dtype,
+                      time_limit=time_limit, progress=progress, nonfinite=nonfinite, max_rounds=max_rounds,
+                      track_error=track_error, eps=eps, on_round=on_round)
+
+
+def _start(renderer, method, *, w, h, channels, ref, budget, settings, seed, log_path, overwrite, metadata,
+           storage_dtype, time_limit, progress, nonfinite, max_rounds, track_error, eps, on_round):
+    if log_path is not None:
         if log_path.exists() and not overwrite:
             raise InputError(str(log_path), "file", "exists; resume it with --resume / mcrecon.driver.resume, "
                              "or choose another path")
@@ -261,6 +306,12 @@ def resume(log, renderer=None, *, progress: bool | None = None, time_limit: floa
         As for :func:`adapt`; ``time_limit`` defaults to the recorded one.
     """
     log_path = Path(log)
+    with log_lock(log_path):  # refused while another run or resume writes this log
+        return _resume(log_path, renderer, progress=progress, time_limit=time_limit, track_error=track_error,
+                       on_round=on_round)
+
+
+def _resume(log_path, renderer, *, progress, time_limit, track_error, on_round) -> AdaptiveResult:
     sl = read_log(log_path)
     s = sl.run_settings
     if not s:
@@ -425,7 +476,7 @@ def _run(renderer, method, run, *, stats, rounds, round_index, budget, seed, log
             rounds.append(record)
             if on_round is not None:
                 on_round(record)
-            bar.update(stats.n_samples, round_index, record["wall_seconds"])
+            bar.update(committed(), round_index, record["wall_seconds"])
             round_index += 1
     finally:
         bar.close()

@@ -13,7 +13,8 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["relative_mse", "relative_mse_map", "mse", "rmse", "psnr", "ssim", "error_map", "compare"]
+__all__ = ["relative_mse", "relative_mse_map", "mse", "rmse", "psnr", "ssim", "error_map", "compare",
+           "output_sanity"]
 
 
 def _pair(img, ref, where="compare"):
@@ -107,4 +108,67 @@ def compare(img, ref, *, eps: float = 0.01, data_range: float | None = None) -> 
         "psnr_data_range": data_range,
         "ssim": ssim(a, b),
         "eps": eps,
+    }
+
+
+def output_sanity(image, stats, *, radius: int = 1) -> dict | None:
+    """How far a reconstruction leaves the range of the samples it was built from.
+
+    For every pixel and channel the samples of the pixel's (2 radius + 1)^2
+    neighbourhood (3x3 by default) span ``[lo, hi]`` (``stats.min`` /
+    ``stats.max``).  A reconstruction that filters, thresholds or splats
+    can leave that range (ringing, negative lobes); this counts it.
+
+    Parameters
+    ----------
+    image : ndarray (H, W, C)
+    stats : PixelStats
+        The statistics of the samples (with their per-pixel range).
+    radius : int
+        Neighbourhood half-width in pixels.
+
+    Returns
+    -------
+    dict or None
+        ``negative_pixels``: pixels with a channel below 0 although every
+        sample of their neighbourhood is >= 0 in that channel (a
+        neighbourhood without samples counts as non-negative when no sample
+        of the image is negative); ``overshoot_pixels``: pixels with a
+        channel outside ``[lo, hi]`` by more than 1e-6 of the range's
+        magnitude; ``max_overshoot``: the largest distance outside
+        ``[lo, hi]`` (0 when none); ``max_overshoot_relative``: that
+        distance over ``max(|lo|, |hi|, 1e-12)`` at the worst pixel;
+        ``nonfinite_pixels``: pixels with a NaN or Inf.  None when the
+        statistics hold no range (built from moments).
+    """
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    if not getattr(stats, "has_range", False):
+        return None
+    img = np.asarray(image, dtype=np.float64)
+    if img.ndim == 2:
+        img = img[..., None]
+    if img.shape != stats.shape:
+        raise InputError("output_sanity", "image", f"shape {img.shape}, expected the statistics' {stats.shape}")
+    size = (2 * int(radius) + 1, 2 * int(radius) + 1, 1)
+    lo = minimum_filter(stats.min, size=size, mode="nearest")  # +inf where no sample around
+    hi = maximum_filter(stats.max, size=size, mode="nearest")  # -inf where no sample around
+    finite = np.isfinite(img)
+    defined = np.isfinite(lo) & np.isfinite(hi) & finite
+    any_sample = bool(np.isfinite(stats.min).any())
+    global_nonneg = not any_sample or float(np.min(np.where(np.isfinite(stats.min), stats.min, 0.0))) >= 0
+    nonneg = np.where(np.isfinite(lo), lo >= 0, global_nonneg)
+    negative = (img < 0) & finite & nonneg
+    with np.errstate(invalid="ignore"):
+        over = np.where(defined, np.maximum(np.maximum(img - hi, lo - img), 0.0), 0.0)
+        scale = np.maximum(np.maximum(np.abs(np.where(defined, lo, 0.0)), np.abs(np.where(defined, hi, 0.0))),
+                           1e-12)
+    rel = over / scale
+    worst = int(np.argmax(over)) if over.size else 0
+    return {
+        "negative_pixels": int(negative.any(axis=2).sum()),
+        "overshoot_pixels": int((rel > 1e-6).any(axis=2).sum()),
+        "max_overshoot": float(over.flat[worst]) if over.size else 0.0,
+        "max_overshoot_relative": float(rel.flat[worst]) if over.size else 0.0,
+        "nonfinite_pixels": int((~finite).any(axis=2).sum()),
     }

@@ -37,10 +37,38 @@ class Reconstruction:
     method: Method
     run: RunState
     inputs: MethodInputs
+    _sanity: list | None = dataclasses.field(default=None, repr=False)
 
     def diagnostics(self) -> dict:
         """The method's diagnostic maps of this reconstruction."""
         return dict(self.method.diagnostics(self.run))
+
+    def sanity(self) -> dict | None:
+        """Negative pixels from non-negative samples and overshoot beyond the samples' 3x3 range.
+
+        See :func:`mcrecon.metrics.output_sanity`; computed on first use
+        (methods that read no statistics get them from their samples, one
+        more streaming pass).  None for pixel statistics without a range.
+        """
+        if self._sanity is None:
+            import warnings
+
+            from .metrics import output_sanity
+
+            stats = self.inputs.stats
+            if (stats is None or not stats.has_range) and self.inputs.samples is not None:
+                src = self.inputs.samples
+                with warnings.catch_warnings():  # the reconstruction already reported dropped samples
+                    warnings.simplefilter("ignore")
+                    if hasattr(src, "round_slices"):  # a sample log
+                        stats = PixelStats.from_log(src, nonfinite=self.inputs.nonfinite)
+                    else:
+                        stats = PixelStats.from_batches(((c.positions, c.values) for c in
+                                                         src.iter_chunks(with_round=False)),
+                                                        width=src.width, height=src.height, channels=src.channels,
+                                                        nonfinite=self.inputs.nonfinite)
+            self._sanity = [output_sanity(self.image, stats) if stats is not None else None]
+        return self._sanity[0]
 
 
 def _check_reference(reference, shape, where="reference"):

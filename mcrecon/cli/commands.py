@@ -6,6 +6,7 @@ command needs them, so ``--help`` stays quick.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shlex
 import textwrap
@@ -22,7 +23,8 @@ __all__ = ["register"]
 
 
 # ----------------------------------------------------------------- info
-_INFO_LINES = ("file", "width", "height", "channels", "samples", "rounds", "spp_min", "spp_mean", "spp_max",
+_INFO_LINES = ("file", "width", "height", "channels", "samples", "finite_samples", "rounds", "spp_min", "spp_mean",
+               "spp_max",
                "empty_pixels", "pixels_with_one_sample", "nonfinite_samples", "negative_samples", "value_dtype",
                "features", "reference")
 
@@ -43,10 +45,61 @@ def _cmd_info(args):
         print(f"{k:24s} {v}")
     if info["metadata"]:
         print(f"{'metadata':24s} {json.dumps(info['metadata'], sort_keys=True)}")
+    if info["writer_pid"] is not None:
+        print(f"{'writer':24s} process {info['writer_pid']} is appending rounds (counts above: committed rounds)")
     return 0
 
 
 # ----------------------------------------------------------------- denoise
+_PIXEL_STATS_FLAGS = (("layout", "--layout"), ("mean", "--mean"), ("variance_channels", "--variance-channels"),
+                      ("second_moment", "--second-moment"), ("count", "--count"), ("spp", "--spp"))
+
+
+def _refuse_pixel_stats_flags(args) -> None:
+    given = [flag for dest, flag in _PIXEL_STATS_FLAGS if getattr(args, dest, None) is not None]
+    if given or args.variance_of != "samples":
+        raise InputError(str(args.log), ", ".join(given) or "--variance-of",
+                         "applies to a pixel-statistics EXR input (a path ending in .exr), not to a sample log")
+
+
+class _PixelStatsInput:
+    """What the denoise report reads from a sample log, for statistics read from an EXR."""
+
+    def __init__(self, pix):
+        self.pix = pix
+        self.width, self.height = pix.stats.width, pix.stats.height
+        self.n_samples = int(pix.stats.count.sum())
+        self.channels = pix.output_channels
+        self.output_image = pix.output_image
+
+    def reference(self):
+        return None
+
+
+def _read_pixel_stats_input(args):
+    """(method, log-like description, PixelStats) of a pixel-statistics EXR input; notes go to stderr."""
+    import sys
+
+    from ..io.pixel_exr import check_method, pixel_stats_options, read_pixel_stats_exr
+    from ..methods import get_method
+
+    method = make_method(args.method, args, args.method_flags)  # validates the flags given
+    check_method(method, str(args.log))
+    opts, note = pixel_stats_options(method.name, given_method_options(args))
+    if note is not None:
+        method = get_method(method.name, **opts)
+        sys.stderr.write(f"mcrecon: note: {note}\n")
+    pix = read_pixel_stats_exr(args.log, layout=args.layout, mean=args.mean, variance=args.variance_channels,
+                               second_moment=args.second_moment, variance_of=args.variance_of,
+                               count=args.count, spp=args.spp)
+    what = ", ".join(f"{k} {','.join(v)}" for k, v in pix.sources.items())
+    space = f"; reconstructed in {','.join(pix.stats.channels)}, written as {','.join(pix.output_channels)}" \
+        if pix.output_matrix is not None else ""
+    sys.stderr.write(f"mcrecon: note: {args.log}: layout {pix.layout}: {what}; count from {pix.count_source}"
+                     f"{space}\n")
+    return method, _PixelStatsInput(pix), pix.stats
+
+
 def _cmd_denoise(args):
     from ..io import read_log
     from ..metrics import relative_mse
@@ -54,10 +107,16 @@ def _cmd_denoise(args):
     from ..stats import PixelStats
 
     check_output(args.output, args.png)
-    method = make_method(args.method, args, args.method_flags)
-    log = read_log(args.log)
+    if str(args.log).lower().endswith(".exr"):  # per-pixel statistics a renderer wrote (pbrt-v4, Mitsuba...)
+        method, log, source = _read_pixel_stats_input(args)
+    else:
+        _refuse_pixel_stats_flags(args)
+        method = make_method(args.method, args, args.method_flags)
+        log = source = read_log(args.log)
     t0 = time.perf_counter()
-    rec = reconstruct(log, method=method, nonfinite=args.nonfinite, full=True)
+    rec = reconstruct(source, method=method, nonfinite=args.nonfinite, full=True)
+    if source is not log:  # statistics in the file's working space (XYZ for the presets): to its RGB
+        rec = dataclasses.replace(rec, image=log.output_image(rec.image))
     dt = time.perf_counter() - t0
     counts = None
     if args.diagnostics:
@@ -66,10 +125,14 @@ def _cmd_denoise(args):
     written = write_outputs(rec.image, args.output, channels=log.channels, png=args.png, exposure=args.exposure,
                             diagnostics=rec.diagnostics(), diag_dir=args.diagnostics, counts=counts)
     msg = f"{method.name}: {log.width}x{log.height}, {log.n_samples} samples, reconstructed in {dt:.3f} s"
+    dropped = rec.inputs.stats.n_dropped if rec.inputs.stats is not None else 0
+    if dropped:
+        msg += f" ({dropped} non-finite dropped)"
     ref = log.reference()
     if ref is not None:
         msg += f", relative MSE {relative_mse(rec.image, ref):.6g} against the log's reference"
     print(msg)
+    _print_sanity(rec.sanity())
     for p in written:
         print(f"wrote {p}")
     return 0
@@ -111,17 +174,29 @@ def _refuse_run_flags(args) -> None:
                          "--quiet apply)")
 
 
+def _print_sanity(s) -> None:
+    """One line: what the image does outside the range of its samples (metrics.output_sanity)."""
+    if s is None:
+        return
+    print(f"output: {s['negative_pixels']} negative pixel(s) from non-negative samples, "
+          f"{s['overshoot_pixels']} pixel(s) outside their 3x3 sample range (max {s['max_overshoot']:.4g})"
+          + (f", {s['nonfinite_pixels']} non-finite" if s["nonfinite_pixels"] else ""))
+
+
 def _report_run(res, ref, t_total) -> None:
     from ..metrics import relative_mse
 
-    n = res.stats.n_samples
+    # One count of samples (as `mcrecon info` and the round records): what the renderer delivered.
+    n = res.samples
     w, h = res.stats.width, res.stats.height
-    msg = (f"{res.method.name}: {len(res.rounds)} round(s), {n} samples ({n / (w * h):.2f} spp), "
-           f"stopped: {res.stopped}; time {t_total:.2f} s (renderer {res.renderer_seconds:.2f} s, "
+    msg = (f"{res.method.name}: {len(res.rounds)} round(s), {n} samples ({n / (w * h):.2f} spp"
+           + (f", {res.samples_dropped} non-finite dropped" if res.samples_dropped else "")
+           + f"), stopped: {res.stopped}; time {t_total:.2f} s (renderer {res.renderer_seconds:.2f} s, "
            f"toolkit {res.toolkit_seconds:.2f} s)")
     if ref is not None:
         msg += f"; relative MSE {relative_mse(res.image, ref):.6g}"
     print(msg)
+    _print_sanity(res.sanity())
 
 
 def _cmd_adapt(args):
@@ -308,8 +383,27 @@ def register(sub) -> None:
     s.set_defaults(func=_cmd_info)
 
     denoise = sub.add_parser("denoise", help="reconstruct an image from a sample log", formatter_class=HelpFormatter)
-    denoise.add_argument("log")
+    denoise.add_argument("log", help="a sample log (.h5), or an EXR of per-pixel statistics (.exr: mean, "
+                         "variance, count; see docs/pixel-statistics-inputs.md)")
     _outputs(denoise)
+    px = denoise.add_argument_group(
+        "pixel-statistics EXR input (a LOG ending in .exr)",
+        "Layout presets, or an explicit mapping; the count from --spp, --count or the file's samplesPerPixel/spp "
+        "attribute. Methods that need individual samples (splat, gem with --subpixel-exact-below > 0) refuse it.")
+    px.add_argument("--layout", default=None, choices=("pbrt-v4", "mitsuba-moment"),  # pixel_exr.LAYOUTS
+                    help="pbrt-v4 GBufferFilm (R,G,B + Variance.R/G/B) or Mitsuba 3's moment integrator "
+                         "(P.X/Y/Z + m2_P.X/Y/Z); default: detected from the channel names, or the explicit mapping")
+    px.add_argument("--mean", default=None, metavar="CHANNELS", help="mean channels, comma-separated (e.g. R,G,B)")
+    px.add_argument("--variance-channels", default=None, metavar="CHANNELS",
+                    help="variance channels, comma-separated (e.g. Variance.R,Variance.G,Variance.B); "
+                         "(--variance is AWR's estimator option)")
+    px.add_argument("--variance-of", default="samples", choices=("samples", "mean"),
+                    help="what --variance-channels hold: the variance of the samples (default) or of the pixel mean")
+    px.add_argument("--second-moment", default=None, metavar="CHANNELS",
+                    help="second-moment (E[x^2]) channels instead of variances; variance = n/(n-1) (m2 - mean^2)")
+    px.add_argument("--count", default=None, metavar="N|CHANNEL|ATTRIBUTE",
+                    help="samples per pixel: a number, a channel of per-pixel counts, or a header attribute")
+    px.add_argument("--spp", default=None, metavar="N", help="samples per pixel (a number; same as --count N)")
     denoise.set_defaults(func=_cmd_denoise)
 
     s = adapt = sub.add_parser("adapt", help="run adaptive rounds against a renderer", formatter_class=HelpFormatter)

@@ -4,7 +4,8 @@ from .samplelog import (FORMAT_VERSION, LogChunk, SampleLog, append_log, read_lo
                         write_log)
 from .images import read_exr, write_exr, write_png_preview, write_false_colour, tonemap_srgb
 from .summary import summarize_log
+from .pixel_exr import PixelStatsEXR, read_pixel_stats_exr
 
 __all__ = ["FORMAT_VERSION", "LogChunk", "SampleLog", "append_log", "read_log", "write_log",
            "set_run_settings", "read_exr", "write_exr", "write_png_preview", "write_false_colour",
-           "tonemap_srgb", "summarize_log"]
+           "tonemap_srgb", "summarize_log", "PixelStatsEXR", "read_pixel_stats_exr"]

@@ -23,8 +23,13 @@ that layout.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import fcntl
 import json
+import os
+import threading
+import time
 from pathlib import Path
 from typing import Iterator, Mapping, Sequence
 
@@ -37,7 +42,8 @@ from ..samples import check_samples, round_ends_of, round_slices
 from ._atomic import atomic_path
 
 __all__ = ["cast_positions", "FORMAT_NAME", "FORMAT_VERSION", "FORMAT_MINOR", "SampleLog", "LogChunk", "read_log",
-           "write_log", "append_log", "update_round_record", "set_run_settings", "DEFAULT_CHUNK_ROWS"]
+           "write_log", "append_log", "update_round_record", "set_run_settings", "DEFAULT_CHUNK_ROWS",
+           "MAX_PIXELS", "log_lock", "lock_path", "live_writer"]
 
 FORMAT_NAME = "mcrecon-sample-log"
 FORMAT_VERSION = 1
@@ -73,6 +79,127 @@ _CONVERT = "_convert"
 #: Rows per read when streaming (a multiple of the chunk rows).
 DEFAULT_READ_ROWS = 1 << 20
 _VALID_FLOATS = (np.float32, np.float64)
+#: Largest film a log may describe (width * height): refused before anything is allocated.
+MAX_PIXELS = 1 << 31
+#: Fletcher-32 checksum on every chunked dataset this module creates (variable-length string
+#: datasets excepted: HDF5 filters only fixed-size types).  A damaged chunk fails to read.
+_CHECKSUM = {"fletcher32": True}
+#: Re-reads of a log a live run is appending to, when a read meets a half-written state.
+_LIVE_RETRIES = 20
+_LIVE_RETRY_SECONDS = 0.05
+
+
+def _checksum_for(dtype) -> dict:
+    dt = np.dtype(dtype)
+    return {} if dt.kind in "OSUV" or h5py.check_string_dtype(dt) is not None or \
+        h5py.check_vlen_dtype(dt) is not None else _CHECKSUM
+
+
+# ------------------------------------------------------------------ exclusive writers
+# A writer holds an exclusive flock on ``LOG.lock`` (holding its PID) for as long as it
+# writes: the adaptive driver for a whole run, append_log & co. for one call (re-entrant
+# within a process).  The kernel releases a flock when its holder dies, so the lock file a
+# killed run leaves behind is simply taken over.
+_HELD: dict = {}  # realpath of the log -> [fd, depth]
+_HELD_GUARD = threading.RLock()
+
+
+def lock_path(path) -> Path:
+    """The lock file of a log: ``LOG.lock`` beside it."""
+    return Path(str(path) + ".lock")
+
+
+def _read_pid(fd) -> int | None:
+    try:
+        text = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+        return int(text) if text.isdigit() else None
+    except OSError:
+        return None
+
+
+def _acquire(path, wait: float) -> int:
+    lp = lock_path(path)
+    deadline = time.monotonic() + wait
+    while True:
+        try:
+            lp.parent.mkdir(parents=True, exist_ok=True)  # a new log's directory (write_log makes it too)
+            fd = os.open(lp, os.O_RDWR | os.O_CREAT, 0o666)
+        except OSError as exc:
+            raise _err(path, "lock", f"cannot create the lock file {lp} ({exc.strerror or exc}); a run needs "
+                       "a writable directory beside its log") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            pid = _read_pid(fd)
+            os.close(fd)
+            if time.monotonic() < deadline:
+                time.sleep(0.02)
+                continue
+            who = f"process {pid}" if pid else "another process"
+            raise _err(path, "lock", f"the log is being written by {who} (lock {lp}): a second run or resume "
+                       "on it is refused; wait for that run to end or stop it") from None
+        try:  # a holder that released unlinks the file: we must hold the file that is at lp
+            same = os.stat(lp).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            same = False
+        if not same:
+            os.close(fd)
+            continue
+        # A PID left in the file belongs to a killed holder (a live one would hold the flock).
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        return fd
+
+
+@contextlib.contextmanager
+def log_lock(path, *, wait: float = 0.5):
+    """Hold the exclusive writer lock of a log (``LOG.lock``, with this process's PID).
+
+    Re-entrant within a process.  Another process's lock is waited for at
+    most ``wait`` seconds, then refused with an :class:`InputError` naming
+    the holder's PID; a lock file left by a killed process is taken over.
+    """
+    key = os.path.realpath(path)
+    with _HELD_GUARD:
+        held = _HELD.get(key)
+        if held is not None:
+            held[1] += 1
+        else:
+            _HELD[key] = [_acquire(path, wait), 1]
+    try:
+        yield
+    finally:
+        with _HELD_GUARD:
+            held = _HELD[key]
+            held[1] -= 1
+            if held[1] == 0:
+                del _HELD[key]
+                with contextlib.suppress(OSError):
+                    os.unlink(lock_path(path))  # unlinked while locked: see _acquire
+                os.close(held[0])
+
+
+def live_writer(path) -> int | None:
+    """PID of another live process holding the writer lock of ``path`` (-1 if unknown), or None."""
+    if os.path.realpath(path) in _HELD:
+        return None
+    try:
+        fd = os.open(lock_path(path), os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except OSError:
+            return _read_pid(fd) or -1
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
+    finally:
+        os.close(fd)
+
+
+def _detail(exc) -> str:
+    return " ".join(str(exc).split())  # one line: h5py's messages carry newlines
 
 
 @dataclasses.dataclass(eq=False)
@@ -134,12 +261,97 @@ def _open(path, mode="r"):
         raise _err(path, "file", "does not exist")
     if path.is_dir():
         raise _err(path, "file", "is a directory; expected an HDF5 sample log")
-    try:
-        return h5py.File(path, mode)
-    except OSError as exc:
-        detail = " ".join(str(exc).split())  # one line: h5py's messages carry newlines
-        raise _err(path, "file", f"not a readable HDF5 file (truncated or another format: {detail}); "
-                   "regenerate it, or check the path") from None
+    for attempt in range(_LIVE_RETRIES + 1):
+        try:
+            # No HDF5 file locking: writers exclude each other with log_lock, and readers
+            # (info, denoise) must see a log while a run appends to it.
+            return h5py.File(path, mode, locking=False)
+        except (OSError, RuntimeError, ValueError, KeyError) as exc:
+            failure, pid = exc, live_writer(path)
+        if pid is None or mode != "r" or attempt == _LIVE_RETRIES:
+            break
+        time.sleep(_LIVE_RETRY_SECONDS)  # a run is half-way through an append: open again
+    detail = _detail(failure)
+    if pid is not None:
+        raise _err(path, "file", f"could not be opened while process {pid} is writing it ({detail}); try again")
+    if mode != "r" and isinstance(failure, OSError) and "ermission" in detail:
+        raise _err(path, "file", f"cannot be opened for writing ({detail})")
+    raise _err(path, "file", f"not a readable HDF5 file (truncated or another format: {detail}); "
+               "regenerate it, or check the path")
+
+
+_H5_ERRORS = (OSError, RuntimeError, KeyError, ValueError, TypeError, IndexError, OverflowError)
+
+
+def _bad_rows(d, s: int, e: int) -> tuple[int, int]:
+    """The first chunk-aligned row range of [s, e) of ``d`` that fails to read (else (s, e))."""
+    c = d.chunks[0] if d.chunks else max(e - s, 1)
+    for a in range(s - s % c, e, c):
+        b = min(a + c, d.shape[0])
+        try:
+            d[a:b]
+        except _H5_ERRORS:
+            return max(a, s), b
+    return s, e
+
+
+def _read_error(path, name: str, d, s: int, e: int, exc) -> InputError:
+    """A one-line error of a failed read of rows [s, e) of dataset ``name``."""
+    if isinstance(exc, InputError):
+        return exc
+    detail = _detail(exc)
+    pid = live_writer(path)
+    if pid is not None:
+        return _err(path, f"dataset /{name}", f"rows {s}-{e - 1} could not be read while process {pid} is "
+                    f"writing the log ({detail}); try again")
+    if "filter" in detail or "checksum" in detail.lower():
+        if d is not None:
+            with contextlib.suppress(*_H5_ERRORS):
+                s, e = _bad_rows(d, s, e)
+        return _err(path, f"dataset /{name}", f"rows {s}-{e - 1}: checksum mismatch (Fletcher-32), the stored "
+                    "data is damaged; regenerate the log or restore it from a copy")
+    return _err(path, f"dataset /{name}", f"rows {s}-{e - 1} could not be read ({detail}); the file is damaged")
+
+
+class _Reader:
+    """A log opened for reading that survives a concurrent append.
+
+    A read that fails while a live run holds the writer lock is retried on
+    a fresh open (the run may have been half-way through an append); any
+    other failure, or one that persists, becomes a one-line InputError
+    naming the dataset and rows.
+    """
+
+    def __init__(self, path):
+        self.path = path
+        self.f = _open(path)
+
+    def read(self, name: str, s: int, e: int, out=None):
+        for attempt in range(_LIVE_RETRIES + 1):
+            d = None
+            try:
+                d = self.f[name]
+                if out is None:
+                    return d[s:e]
+                d.read_direct(out, np.s_[s:e], np.s_[0:e - s])
+                return out[:e - s]
+            except _H5_ERRORS as exc:
+                if isinstance(exc, InputError):
+                    raise
+                if attempt == _LIVE_RETRIES or live_writer(self.path) is None:
+                    raise _read_error(self.path, name, d, s, e, exc) from None
+                self.f.close()
+                time.sleep(_LIVE_RETRY_SECONDS)
+                self.f = _open(self.path)
+
+    def close(self):
+        self.f.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
 
 
 def _json_attr(path, field, raw):
@@ -204,7 +416,13 @@ def _read_header(path, f) -> _Header:
         raise _err(path, "attribute width/height", "expected integers") from None
     if width < 1 or height < 1:
         raise _err(path, "attribute width/height", f"{width}x{height}, expected at least 1x1")
-    channels = _str_list(a["channels"])
+    if width * height > MAX_PIXELS:
+        raise _err(path, "attribute width/height", f"{width}x{height} = {width * height} pixels, beyond the "
+                   f"{MAX_PIXELS} pixels mcrecon can hold images of")
+    try:
+        channels = _str_list(a["channels"])
+    except (TypeError, ValueError, UnicodeDecodeError) as exc:
+        raise _err(path, "attribute channels", f"expected an array of strings ({_detail(exc)})") from None
     if not channels or len(set(channels)) != len(channels):
         raise _err(path, "attribute channels", f"{channels}: expected distinct non-empty names")
     pos, val = f.get("positions"), f.get("values")
@@ -231,6 +449,15 @@ def _read_header(path, f) -> _Header:
         raise _err(path, "attribute n_committed", f"is {n} but the datasets hold {rows} rows: "
                    "the file is truncated")
     return _Header(width, height, channels, n, rows, pos.dtype, val.dtype, minor, pos, val)
+
+
+def _read_ds(path, d, name: str, s: int = 0, e: int | None = None):
+    """Rows [s, e) of dataset ``d`` (``/name``); a failed read is a one-line InputError."""
+    e = d.shape[0] if e is None else e
+    try:
+        return d[s:e]
+    except _H5_ERRORS as exc:
+        raise _read_error(path, name, d, s, e, exc) from None
 
 
 def _strings(arr) -> list[str]:
@@ -277,20 +504,22 @@ def _read_round_records(path, run, n_rounds: int) -> list[dict]:
         if not isinstance(d, h5py.Dataset) or d.ndim != 1:
             raise _err(path, "dataset /run/records", f"shape {getattr(d, 'shape', None)}, expected (R,) strings")
         # Row i is round i's record; a round without one holds null (format_minor 1).
-        old = [_json_attr(path, "dataset run/records", x) for x in _strings(d[:n_rounds])]
+        old = [_json_attr(path, "dataset run/records", x) for x in _strings(_read_ds(path, d, "run/records", 0,
+                                                                                       min(n_rounds, d.shape[0])))]
     if "round_records" not in run:
         return [r for r in old or () if r is not None]
     # format_minor 2: compound rows + JSON of the keys outside the columns
     d = run["round_records"]
     _, cols = _record_columns(path, d)
-    rows = d[:n_rounds]
+    rows = _read_ds(path, d, "run/round_records", 0, min(n_rounds, d.shape[0]))
     present = rows["present"].astype(np.int64).tolist()
     values = [rows[c].tolist() for c in cols]  # Python ints and floats, exactly as stored
     extra = run.get("round_records_extra")
     if extra is not None and (not isinstance(extra, h5py.Dataset) or extra.ndim != 1):
         raise _err(path, "dataset /run/round_records_extra",
                    f"shape {getattr(extra, 'shape', None)}, expected (R,) strings")
-    extra = _strings(extra[:n_rounds]) if extra is not None else []
+    extra = _strings(_read_ds(path, extra, "run/round_records_extra", 0, min(n_rounds, extra.shape[0]))) \
+        if extra is not None else []
     out = []
     for i in range(n_rounds):
         p = present[i] if i < len(present) else 0
@@ -338,8 +567,21 @@ class SampleLog:
 
     def __init__(self, path):
         self.path = Path(path)
-        with _open(self.path) as f:
-            self._validate(f)
+        for attempt in range(_LIVE_RETRIES + 1):
+            try:
+                with _open(self.path) as f:
+                    self._validate(f)
+                return
+            except _H5_ERRORS as exc:
+                # A live run may be half-way through an append: read again (the committed
+                # part never changes).  A log at rest fails at once, in one line.
+                pid = live_writer(self.path)
+                if pid is None or attempt == _LIVE_RETRIES:
+                    if isinstance(exc, InputError):
+                        raise
+                    where = "while process %s is writing it" % pid if pid is not None else "(the file is damaged)"
+                    raise _err(self.path, "file", f"could not be read {where}: {_detail(exc)}") from None
+                time.sleep(_LIVE_RETRY_SECONDS)
 
     def _validate(self, f):
         path = self.path
@@ -359,7 +601,10 @@ class SampleLog:
         if n == 0:
             ends = np.zeros(0, np.int64)
         elif "rounds/end" in f:
-            ends = np.asarray(f["rounds/end"][...], dtype=np.int64)
+            d = f["rounds/end"]
+            if not isinstance(d, h5py.Dataset) or d.ndim != 1 or d.dtype.kind not in "iu":
+                raise _err(path, "dataset /rounds/end", f"shape {getattr(d, 'shape', None)}, expected (R,) integers")
+            ends = np.asarray(_read_ds(path, d, "rounds/end"), dtype=np.int64)
             ends = ends[ends <= n]
             if ends.size and (np.any(np.diff(ends) < 0)):
                 raise _err(path, "dataset /rounds/end", "must be non-decreasing")
@@ -399,7 +644,8 @@ class SampleLog:
         ends = []
         prev = None
         for start in range(0, n, DEFAULT_READ_ROWS):
-            r = np.asarray(rds[start:min(n, start + DEFAULT_READ_ROWS)], dtype=np.int64)
+            r = np.asarray(_read_ds(getattr(rds.file, "filename", "log"), rds, "round", start,
+                                    min(n, start + DEFAULT_READ_ROWS)), dtype=np.int64)
             if prev is not None and r.size and r[0] != prev:
                 ends.append(start)
             change = np.flatnonzero(np.diff(r)) + 1 + start
@@ -438,18 +684,16 @@ class SampleLog:
         else:
             sl = self.round_slices()
             ranges = [sl[int(r)] for r in rounds]
-        with _open(self.path) as f:
-            pos_d, val_d = f["positions"], f["values"]
-            rd = f["round"] if self._has_round else None
+        with _Reader(self.path) as f:
             for a, b in ranges:
                 for s in range(a, b, chunk_size):
                     e = min(b, s + chunk_size)
-                    pos = pos_d[s:e]
-                    val = val_d[s:e]
+                    pos = f.read("positions", s, e)
+                    val = f.read("values", s, e)
                     if not with_round:
                         rnd = None
-                    elif rd is not None:
-                        rnd = rd[s:e].astype(np.int64, copy=False)
+                    elif self._has_round:
+                        rnd = f.read("round", s, e).astype(np.int64, copy=False)
                     else:
                         rnd = (np.searchsorted(self.round_ends, np.arange(s, e), side="right")).astype(np.int64)
                     yield LogChunk(pos, val, rnd, s)
@@ -467,14 +711,11 @@ class SampleLog:
         """
         rows = buffers[0][0].shape[0]
         stop = self.n_samples if stop is None else min(int(stop), self.n_samples)
-        with _open(self.path) as f:
-            pos_d, val_d = f["positions"], f["values"]
+        with _Reader(self.path) as f:
             for i, s in enumerate(range(int(start), stop, rows)):
                 e = min(stop, s + rows)
                 pb, vb = buffers[i % len(buffers)]
-                pos_d.read_direct(pb, np.s_[s:e], np.s_[0:e - s])
-                val_d.read_direct(vb, np.s_[s:e], np.s_[0:e - s])
-                yield pb[:e - s], vb[:e - s]
+                yield f.read("positions", s, e, out=pb), f.read("values", s, e, out=vb)
 
     def read_all(self, *, rounds=None) -> LogChunk:
         """All committed samples (or those of some rounds) in memory."""
@@ -492,15 +733,15 @@ class SampleLog:
             raise _err(self.path, f"dataset /features/{name}",
                        f"no such feature; valid: {', '.join(self.feature_names) or '(none)'}")
         stop = self.n_samples if stop is None else min(stop, self.n_samples)
-        with _open(self.path) as f:
-            return f["features"][name][start:stop]
+        with _Reader(self.path) as f:
+            return f.read(f"features/{name}", start, stop)
 
     def reference(self) -> np.ndarray | None:
         """The reference image (H, W, C) float64, or None."""
         if not self.has_reference:
             return None
-        with _open(self.path) as f:
-            ref = np.asarray(f["reference"][...], dtype=np.float64)
+        with _Reader(self.path) as f:
+            ref = np.asarray(f.read("reference", 0, self.height), dtype=np.float64)
         return ref
 
     def __repr__(self) -> str:
@@ -579,6 +820,9 @@ def write_log(path, positions, values, *, width: int, height: int,
     channels = tuple(str(c) for c in channels)
     if width < 1 or height < 1:
         raise _err(path, "width/height", f"{width}x{height}, expected at least 1x1")
+    if width * height > MAX_PIXELS:
+        raise _err(path, "width/height", f"{width}x{height} = {width * height} pixels, beyond the {MAX_PIXELS} "
+                   "pixels mcrecon can hold images of")
     if not channels or len(set(channels)) != len(channels):
         raise _err(path, "channels", f"{channels}: expected distinct non-empty names")
     pos, val = _check_arrays(path, positions, values, width, height, len(channels))
@@ -602,7 +846,7 @@ def write_log(path, positions, values, *, width: int, height: int,
         meta_json = json.dumps(dict(metadata or {}), sort_keys=True, default=_json_default)
     except TypeError as exc:
         raise _err(path, "metadata", f"not JSON-serialisable: {exc}") from None
-    with atomic_path(path) as tmp:
+    with log_lock(path), atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
             f.attrs["format"] = FORMAT_NAME
             f.attrs["format_version"] = FORMAT_VERSION
@@ -611,20 +855,22 @@ def write_log(path, positions, values, *, width: int, height: int,
             f.attrs["height"] = height
             f.attrs["channels"] = np.array(channels, dtype=h5py.string_dtype())
             f.attrs["metadata_json"] = meta_json
-            f.create_dataset("positions", data=pos, maxshape=(None, 2), chunks=_chunks_for(n, 2))
-            f.create_dataset("values", data=val, maxshape=(None, val.shape[1]), chunks=_chunks_for(n, val.shape[1]))
-            f.create_dataset("round", data=rnd, maxshape=(None,), chunks=_chunks_for(n, None))
+            f.create_dataset("positions", data=pos, maxshape=(None, 2), chunks=_chunks_for(n, 2), **_CHECKSUM)
+            f.create_dataset("values", data=val, maxshape=(None, val.shape[1]), chunks=_chunks_for(n, val.shape[1]),
+                             **_CHECKSUM)
+            f.create_dataset("round", data=rnd, maxshape=(None,), chunks=_chunks_for(n, None), **_CHECKSUM)
             ends = round_ends_of(rnd)
             f.create_dataset("rounds/end", data=np.asarray(ends, np.int64), maxshape=(None,),
-                             chunks=(RECORD_CHUNK_ROWS,))
+                             chunks=(RECORD_CHUNK_ROWS,), **_CHECKSUM)
             for name, arr in dict(features or {}).items():
                 arr = np.asarray(arr)
                 if arr.shape[:1] != (n,):
                     raise _err(path, f"features/{name}", f"shape {arr.shape}, expected ({n}, ...)")
                 f.create_dataset(f"features/{name}", data=arr, maxshape=(None,) + arr.shape[1:],
-                                 chunks=(_chunk_rows(n),) + arr.shape[1:])
+                                 chunks=(_chunk_rows(n),) + arr.shape[1:], **_checksum_for(arr.dtype))
             if reference is not None:
-                f.create_dataset("reference", data=reference.astype(np.float32 if reference.dtype != np.float64 else np.float64))
+                f.create_dataset("reference", data=reference.astype(np.float32 if reference.dtype != np.float64
+                                                                    else np.float64), **_CHECKSUM)
             f.attrs["n_committed"] = np.int64(n)
     return path
 
@@ -691,7 +937,7 @@ def _ensure_resizable(f, name: str, keep: int, chunk_rows: int, *, dtype=None, h
     head = [] if head is None else list(head)
     shape = (len(head) + keep,) + d.shape[1:]
     new = f.create_dataset(tmp, shape=shape, dtype=dtype or d.dtype, maxshape=(None,) + d.shape[1:],
-                           chunks=(chunk_rows,) + d.shape[1:], fillvalue=fillvalue)
+                           chunks=(chunk_rows,) + d.shape[1:], fillvalue=fillvalue, **_checksum_for(dtype or d.dtype))
     if head:
         new[:len(head)] = np.array(head, dtype=object if new.dtype.kind == "O" else new.dtype)
     for s in range(0, keep, DEFAULT_READ_ROWS):
@@ -789,7 +1035,7 @@ def _write_round_record(f, run, d, i: int, rec, *, n_rows: int) -> None:
     if d is None:
         dt = ROUND_RECORD_DTYPE
         d = run.create_dataset("round_records", shape=(0,), dtype=dt, maxshape=(None,),
-                               chunks=(ROUND_RECORD_CHUNK_ROWS,), fillvalue=_blank_row(dt)[0])
+                               chunks=(ROUND_RECORD_CHUNK_ROWS,), fillvalue=_blank_row(dt)[0], **_CHECKSUM)
     else:
         dt, _ = _record_columns(None, d)
         if d.chunks is None or d.maxshape[0] is not None:  # other writers' fixed-size datasets: converted once
@@ -858,6 +1104,25 @@ def append_log(path, positions, values, *, round_index: int | None = None,
     path = Path(path)
     feats = {str(k): np.asarray(v) for k, v in dict(features or {}).items()}
     rec = None if round_record is None else _record_json(path, round_record)
+    with log_lock(path):
+        try:
+            return _append(path, pos_in=positions, val_in=values, round_index=round_index, feats=feats, rec=rec,
+                           round_record=round_record)
+        except _H5_ERRORS as exc:
+            if isinstance(exc, InputError):
+                raise
+            raise _write_error(path, exc) from None
+
+
+def _write_error(path, exc) -> InputError:
+    """A failed write (a full disk, an I/O error): one line; the committed rounds are untouched."""
+    detail = getattr(exc, "strerror", None) or _detail(exc)
+    return _err(path, "append", f"writing the round failed ({detail}); it was not committed and every round "
+                "committed before is kept: fix the cause (disk space, permissions) and resume the run")
+
+
+def _append(path, *, pos_in, val_in, round_index, feats, rec, round_record) -> int:  # noqa: C901
+    positions, values = pos_in, val_in
     with _open(path, "r+") as f:
         _recover_conversions(f)
         h = _read_header(path, f)
@@ -902,12 +1167,14 @@ def append_log(path, positions, values, *, round_index: int | None = None,
         chunk = h.positions.chunks[0] if h.positions.chunks else _chunk_rows(n)
         pos = cast_positions(pos, h.position_dtype)
         if "round" not in f:  # reads as round 0 for the committed samples (fill value, no data written)
-            f.create_dataset("round", shape=(n,), dtype=np.int32, maxshape=(None,), chunks=(chunk,), fillvalue=0)
+            f.create_dataset("round", shape=(n,), dtype=np.int32, maxshape=(None,), chunks=(chunk,), fillvalue=0,
+                             **_CHECKSUM)
         columns = [("positions", pos), ("values", val), ("round", np.full(m, round_index, np.int32))]
         if new_features:
             for name, arr in feats.items():
                 f.create_dataset(f"features/{name}", shape=(0,) + arr.shape[1:], dtype=arr.dtype,
-                                 maxshape=(None,) + arr.shape[1:], chunks=(chunk,) + arr.shape[1:])
+                                 maxshape=(None,) + arr.shape[1:], chunks=(chunk,) + arr.shape[1:],
+                                 **_checksum_for(arr.dtype))
         columns += [(f"features/{name}", arr) for name, arr in feats.items()]
         for name, data in columns:
             d = _ensure_resizable(f, name, n, chunk)
@@ -919,7 +1186,8 @@ def append_log(path, positions, values, *, round_index: int | None = None,
         # ---- per-round rows: /rounds/end and the records grow by one row (plus a round the reader inferred)
         new_ends = extra + [n + m]
         if "rounds/end" not in f:
-            f.create_dataset("rounds/end", shape=(0,), dtype=np.int64, maxshape=(None,), chunks=(RECORD_CHUNK_ROWS,))
+            f.create_dataset("rounds/end", shape=(0,), dtype=np.int64, maxshape=(None,), chunks=(RECORD_CHUNK_ROWS,),
+                             **_CHECKSUM)
         d = _ensure_resizable(f, "rounds/end", keep, RECORD_CHUNK_ROWS, dtype=np.int64)
         d.resize(keep + len(new_ends), axis=0)
         d[keep:] = new_ends
@@ -974,6 +1242,16 @@ def update_round_record(path, record: Mapping) -> None:
     """
     path = Path(path)
     rec = _record_json(path, record)  # refuses what is not JSON-serialisable, in either layout
+    with log_lock(path):
+        try:
+            _update_round_record(path, record, rec)
+        except _H5_ERRORS as exc:
+            if isinstance(exc, InputError):
+                raise
+            raise _write_error(path, exc) from None
+
+
+def _update_round_record(path, record, rec) -> None:
     with _open(path, "r+") as f:
         run = f.get("run")
         rows = run.get("round_records") if run is not None else None
@@ -1005,7 +1283,7 @@ def update_round_record(path, record: Mapping) -> None:
 
 def set_run_settings(path, settings: Mapping) -> None:
     """Store an adaptive run's settings (JSON) in the log, for resuming."""
-    with _open(path, "r+") as f:
+    with log_lock(path), _open(path, "r+") as f:
         f.require_group("run").attrs["settings_json"] = json.dumps(dict(settings), default=_json_default,
                                                                      sort_keys=True)
         f.flush()

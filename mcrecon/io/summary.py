@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..samples import check_samples, pixel_index
-from .samplelog import FORMAT_VERSION, SampleLog, read_log
+from .samplelog import FORMAT_VERSION, SampleLog, live_writer, read_log
 
 __all__ = ["summarize_log"]
 
@@ -24,13 +24,18 @@ def summarize_log(log) -> dict:
     -------
     dict
         ``file``, ``format_version``, ``width``, ``height``, ``channels``,
-        ``samples`` (committed), ``rounds``; per-pixel counts of the
+        ``samples`` (committed: what the renderer delivered, NaN/Inf
+        included; the count an adaptive run's budget and round records
+        use), ``finite_samples`` (those a reconstruction keeps under the
+        default ``drop`` policy), ``rounds``; per-pixel counts of the
         samples a reconstruction uses (NaN/Inf samples dropped):
         ``spp_min``, ``spp_mean``, ``spp_max``, ``empty_pixels``,
         ``pixels_with_one_sample``; ``nonfinite_samples`` (a NaN or Inf
         in any channel), ``negative_samples`` (a finite channel below 0),
         ``value_dtype``, ``features``, ``reference`` (whether the log
-        stores one) and ``metadata``.
+        stores one), ``metadata`` and ``writer_pid`` (the process of a
+        live run appending to the log, else None: the counts are those of
+        the rounds it had committed when the summary started).
 
     Raises
     ------
@@ -57,10 +62,11 @@ def summarize_log(log) -> dict:
         counts += np.bincount(pixel_index(pos, w), minlength=w * h)
     return {
         "file": str(log.path), "format_version": FORMAT_VERSION, "width": w, "height": h,
-        "channels": list(log.channels), "samples": log.n_samples, "rounds": log.n_rounds,
+        "channels": list(log.channels), "samples": log.n_samples, "finite_samples": log.n_samples - n_nonfinite,
+        "rounds": log.n_rounds,
         "spp_min": int(counts.min()), "spp_mean": float(counts.mean()), "spp_max": int(counts.max()),
         "empty_pixels": int((counts == 0).sum()), "pixels_with_one_sample": int((counts == 1).sum()),
         "nonfinite_samples": n_nonfinite, "negative_samples": n_negative,
         "value_dtype": str(log.value_dtype), "features": list(log.feature_names),
-        "reference": log.has_reference, "metadata": log.metadata,
+        "reference": log.has_reference, "metadata": log.metadata, "writer_pid": live_writer(log.path),
     }

@@ -1,0 +1,507 @@
+"""Per-pixel statistics EXRs: a renderer's mean, variance and sample count, read into :class:`PixelStats`.
+
+Most renderers never dump individual samples, but several write, per
+pixel, the mean and a variance (or a second moment) of their samples.
+:func:`read_pixel_stats_exr` turns such an EXR into the statistics every
+method that works from pixel statistics reconstructs from.
+
+Layouts
+-------
+``pbrt-v4``
+    pbrt-v4's GBufferFilm (``src/pbrt/film.cpp``, ``GBufferFilm::GetImage``):
+    ``R,G,B`` is the filter-weighted pixel mean in the output colour
+    space; ``Variance.R/G/B`` is ``VarianceEstimator::Variance()``, the
+    unbiased variance *of the samples* (``S / (n - 1)``, 0 for n <= 1), of
+    the *sensor* RGB values added to the pixel.  With pbrt's default
+    sensor (``cie1931``, no white balance) the sensor RGB is CIE XYZ, so
+    the variances are those of X, Y and Z.  The preset therefore works
+    in XYZ: mean = XYZ_from_RGB(file colour space) . (R, G, B), variance
+    = ``Variance.*`` as they are, and the reconstruction is converted back
+    to the file's RGB (:attr:`PixelStatsEXR.output_matrix`).  The count
+    is no channel: pbrt writes the header attribute ``samplesPerPixel``
+    (an int); without it ``--spp`` is required.  Every other channel
+    (``Albedo.*``, ``P.*``/``Px``, ``N.*``, ``Ns.*``, ``u``, ``v``,
+    ``dzdx``, ``dzdy``, ``RelativeVariance.*``) is ignored.
+    ``savefp16`` (default true) stores half floats: pbrt clamps ``R,G,B``
+    at 65504 (warned here), and a variance above 65504 becomes Inf in the
+    file (refused here: render with ``"bool savefp16" false``).
+``mitsuba-moment``
+    Mitsuba 3's ``moment`` integrator (``src/integrators/moment.cpp``)
+    wraps integrators and adds, for the integrator named ``P``, the AOVs
+    ``P.X, P.Y, P.Z`` (its radiance converted to CIE XYZ with
+    ``srgb_to_xyz``) and ``m2_P.X, m2_P.Y, m2_P.Z`` (their squares): the
+    film averages them into the first and second moments per pixel.  The
+    preset reads them: mean = m1, variance of the samples
+    ``n / (n - 1) * max(m2 - m1^2, 0)``, in XYZ, and converts the
+    reconstruction to sRGB with Mitsuba's ``xyz_to_srgb``.  Files written
+    from the film (``film.bitmap()``, the ``mitsuba`` command line) keep
+    the names; ``mi.util.write_bitmap(path, mi.render(...))`` writes the
+    tensor as ``ch0 ... ch8`` (R, G, B, X, Y, Z, m2 X, m2 Y, m2 Z for one
+    nested integrator without AOVs), which is recognised positionally.
+    Mitsuba writes no sample count: ``--spp`` is required.  Exact with a
+    ``box`` reconstruction filter; other filters spread a sample over
+    neighbouring pixels (moments become filter-weighted).
+explicit
+    ``mean=`` channels plus ``variance=`` channels (``variance_of``
+    'samples' or 'mean') or ``second_moment=`` channels, and a count.
+
+The count comes from ``spp`` (a number), or ``count`` (a number, a
+channel holding per-pixel counts, or a header attribute), or else the
+header attributes ``samplesPerPixel`` (pbrt-v4) or ``spp``.  A given
+``spp`` that contradicts the file's attribute is refused.
+
+Statistics from moments carry no per-pixel sample range
+(``stats.has_range`` False) and no subpixel grid nor samples, so methods
+that need those refuse them (:func:`check_method`); AWR's default
+``variance='range'`` needs the range, :func:`pixel_stats_options` switches
+it to ``'sample'`` when the user did not choose.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+import warnings
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from ..errors import InputError, McreconWarning
+from ..stats import PixelStats
+
+__all__ = ["LAYOUTS", "PixelStatsEXR", "read_pixel_stats_exr", "check_method", "pixel_stats_options",
+           "HALF_MAX", "MITSUBA_XYZ_TO_SRGB", "xyz_from_rgb_matrix"]
+
+#: The layout presets (besides the explicit mapping).
+LAYOUTS = ("pbrt-v4", "mitsuba-moment")
+
+#: The largest finite half float; pbrt clamps its fp16 output here.
+HALF_MAX = 65504.0
+
+#: Header attributes holding a per-pixel sample count, searched in this order.
+COUNT_ATTRIBUTES = ("samplesPerPixel", "spp")
+
+#: Mitsuba 3's ``xyz_to_srgb`` (include/mitsuba/core/spectrum.h); its inverse is ``srgb_to_xyz``.
+MITSUBA_XYZ_TO_SRGB = np.array([[3.240479, -1.537150, -0.498535],
+                                [-0.969256, 1.875991, 0.041556],
+                                [0.055648, -0.204043, 1.057311]])
+_MITSUBA_SRGB_TO_XYZ = np.array([[0.412453, 0.357580, 0.180423],
+                                 [0.212671, 0.715160, 0.072169],
+                                 [0.019334, 0.119193, 0.950227]])
+
+#: sRGB / Rec. 709 primaries and D65 white (EXR's default when no ``chromaticities`` attribute).
+_SRGB_CHROMATICITIES = ((0.64, 0.33), (0.30, 0.60), (0.15, 0.06), (0.3127, 0.3290))
+
+
+def xyz_from_rgb_matrix(chromaticities=_SRGB_CHROMATICITIES) -> np.ndarray:
+    """The 3x3 matrix taking linear RGB of the given primaries (red, green, blue, white xy) to XYZ.
+
+    The standard construction (white maps to Y = 1), as pbrt-v4's
+    ``RGBColorSpace`` builds its ``XYZFromRGB``.
+    """
+    (rx, ry), (gx, gy), (bx, by), (wx, wy) = chromaticities
+    prim = np.array([[rx / ry, gx / gy, bx / by], [1.0, 1.0, 1.0],
+                     [(1 - rx - ry) / ry, (1 - gx - gy) / gy, (1 - bx - by) / by]])
+    white = np.array([wx / wy, 1.0, (1 - wx - wy) / wy])
+    return prim * np.linalg.solve(prim, white)[None, :]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PixelStatsEXR:
+    """Pixel statistics read from an EXR, and how to turn a reconstruction into the file's colours.
+
+    Attributes
+    ----------
+    stats : PixelStats
+        Built with :meth:`PixelStats.from_moments` (``has_range`` False).
+    path : Path
+    layout : str
+        'pbrt-v4', 'mitsuba-moment' or 'explicit'.
+    sources : dict
+        The channels read: ``mean``, ``variance`` or ``second_moment``.
+    count_source : str
+        Where the sample count came from, for messages.
+    output_channels : tuple of str
+        Channel names of :meth:`output_image`.
+    output_matrix : ndarray (C_out, C) or None
+        Linear map from the statistics' channels to the output channels
+        (XYZ to RGB for the presets); None: the identity.
+    """
+
+    stats: PixelStats
+    path: Path
+    layout: str
+    sources: dict
+    count_source: str
+    output_channels: tuple
+    output_matrix: np.ndarray | None = None
+
+    def output_image(self, image) -> np.ndarray:
+        """A reconstruction of :attr:`stats` in the output channels (float64)."""
+        img = np.asarray(image, dtype=np.float64)
+        return img if self.output_matrix is None else img @ self.output_matrix.T
+
+
+# ------------------------------------------------------------------ reading
+class _EXR:
+    """The channels (float arrays, with their stored dtype) and header of one EXR."""
+
+    def __init__(self, path: Path):
+        import OpenEXR
+
+        if not path.exists():
+            raise InputError(str(path), "file", "does not exist")
+        try:
+            f = OpenEXR.File(str(path), separate_channels=True)
+            self.arrays = {name: np.asarray(ch.pixels) for name, ch in f.channels().items()}
+            self.header = dict(f.header())
+        except Exception as exc:
+            raise InputError(str(path), "file", f"not a readable EXR image ({exc})") from None
+        self.path = path
+        self.names = tuple(sorted(self.arrays))
+
+    def present(self) -> str:
+        names = self.names
+        shown = ", ".join(names[:40]) + (f", ... ({len(names)} channels)" if len(names) > 40 else "")
+        return shown or "(none)"
+
+    def get(self, names: Sequence[str], field: str) -> tuple[np.ndarray, bool]:
+        """(H, W, len(names)) float64 and whether any of them is stored as half floats."""
+        missing = [n for n in names if n not in self.arrays]
+        if missing:
+            raise InputError(str(self.path), field, f"channel {missing[0]!r} missing"
+                             + (f" (and {', '.join(missing[1:])})" if len(missing) > 1 else "")
+                             + f"; channels present: {self.present()}")
+        arrs = [self.arrays[n] for n in names]
+        half = any(a.dtype == np.float16 for a in arrs)
+        return np.stack([a.astype(np.float64) for a in arrs], axis=-1), half
+
+
+def _split(text, field) -> tuple[str, ...] | None:
+    if text is None:
+        return None
+    if isinstance(text, str):
+        parts = tuple(p.strip() for p in text.split(","))
+    else:
+        parts = tuple(str(p).strip() for p in text)
+    if not parts or any(not p for p in parts):
+        raise InputError(f"--{field.replace('_', '-')}", field, f"{text!r}: expected comma-separated channel "
+                         "names, e.g. R,G,B")
+    return parts
+
+
+def _as_count_number(value) -> int | None:
+    """A positive whole number given as text or number, else None."""
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        return int(value)
+    if isinstance(value, (float, np.floating)) and float(value).is_integer():
+        return int(value)
+    if isinstance(value, str) and re.fullmatch(r"\s*\d+\s*", value):
+        return int(value)
+    return None
+
+
+def _attribute_count(exr: _EXR, name: str):
+    v = exr.header.get(name)
+    if v is None:
+        return None
+    n = _as_count_number(v if not isinstance(v, np.ndarray) or v.size != 1 else v.item())
+    if n is None or n < 1:
+        raise InputError(str(exr.path), f"header attribute {name}", f"{v!r}: expected a positive whole number "
+                         "of samples per pixel")
+    return n
+
+
+def _resolve_count(exr: _EXR, count, spp):
+    """(count array or int, description)."""
+    where = str(exr.path)
+    if spp is not None and count is not None:
+        raise InputError("--spp/--count", "count", "give one of them: --spp N, or --count N|CHANNEL|ATTRIBUTE")
+    header_n, header_name = None, None
+    for name in COUNT_ATTRIBUTES:
+        header_n = _attribute_count(exr, name)
+        if header_n is not None:
+            header_name = name
+            break
+    given = spp if spp is not None else count
+    flag = "--spp" if spp is not None else "--count"
+    if given is not None:
+        n = _as_count_number(given)
+        if n is None and spp is not None:
+            raise InputError("--spp", "spp", f"{spp!r}: expected a positive whole number of samples per pixel")
+        if n is not None:
+            if n < 1:
+                raise InputError(flag, "count", f"{given!r}: expected at least 1 sample per pixel")
+            if header_n is not None and header_n != n:
+                raise InputError(where, f"header attribute {header_name}",
+                                 f"{header_n} samples per pixel, but {flag} says {n}: drop {flag} or fix it")
+            return n, f"{flag} {n}"
+        name = str(given)
+        if name in exr.arrays:
+            arr, _ = exr.get([name], "count")
+            return arr[..., 0], f"channel {name}"
+        if name in exr.header:
+            return _attribute_count(exr, name), f"header attribute {name}"
+        raise InputError(where, "count", f"{name!r} is neither a number, a channel nor a header attribute; "
+                         f"channels present: {exr.present()}")
+    if header_n is not None:
+        return header_n, f"header attribute {header_name} = {header_n}"
+    raise InputError(where, "sample count", "none in the file (no count channel, no samplesPerPixel/spp header "
+                     "attribute): pass --spp N (the samples per pixel the renderer took) or --count CHANNEL")
+
+
+def _mitsuba_prefixes(names) -> list[str]:
+    """Integrator names P with P.X/Y/Z and m2_P.X/Y/Z channels (the moment integrator's output)."""
+    out = []
+    for n in names:
+        m = re.fullmatch(r"m2_(.+)\.X", n)
+        if m:
+            p = m.group(1)
+            if all(c in names for c in (f"{p}.X", f"{p}.Y", f"{p}.Z", f"m2_{p}.Y", f"m2_{p}.Z")):
+                out.append(p)
+    return sorted(out)
+
+
+def _detect_layout(exr: _EXR) -> str | None:
+    names = set(exr.names)
+    if {"R", "G", "B", "Variance.R", "Variance.G", "Variance.B"} <= names:
+        return "pbrt-v4"
+    if _mitsuba_prefixes(names) or set(exr.names) == {f"ch{i}" for i in range(9)}:
+        return "mitsuba-moment"
+    return None
+
+
+def _file_chromaticities(exr: _EXR):
+    c = exr.header.get("chromaticities")
+    if c is None:
+        return _SRGB_CHROMATICITIES
+    try:
+        v = [float(x) for x in np.asarray(c, dtype=np.float64).ravel()]
+        return ((v[0], v[1]), (v[2], v[3]), (v[4], v[5]), (v[6], v[7]))
+    except Exception:
+        raise InputError(str(exr.path), "header attribute chromaticities", f"{c!r}: expected 8 numbers "
+                         "(red, green, blue, white x y)") from None
+
+
+def _warn_half_saturation(exr: _EXR, names, values, half, layout):
+    if not half:
+        return
+    sat = np.any(values >= HALF_MAX, axis=-1)
+    k = int(sat.sum())
+    if k:
+        hint = ("pbrt clamps values there when savefp16 is on (its default): these means are too low; "
+                "render with \"bool savefp16\" false" if layout == "pbrt-v4" else
+                "half floats cannot hold more: these means are clamped or overflowed; write float32 channels")
+        warnings.warn(f"{exr.path}: {','.join(names)}: {k} pixel(s) at {HALF_MAX:g}, the largest half float; "
+                      f"{hint}", McreconWarning, stacklevel=3)
+
+
+def _check_finite(exr, names, values, count, field, half):
+    sampled = np.broadcast_to(np.asarray(count) > 0, values.shape[:2])[..., None]
+    bad = sampled & ~np.isfinite(values)
+    if bad.any():
+        per = [names[c] for c in range(values.shape[2]) if bad[..., c].any()]
+        hint = (" (half-float channels overflow to Inf above 65504: render with float32 output, e.g. pbrt's "
+                "\"bool savefp16\" false)" if half and np.isinf(values[bad]).any() else "")
+        raise InputError(str(exr.path), ",".join(per), f"{int(bad.any(axis=2).sum())} sampled pixel(s) with "
+                         f"NaN or Inf {field}{hint}")
+
+
+def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance=None, second_moment=None,
+                         variance_of: str = "samples", count=None, spp=None) -> PixelStatsEXR:
+    """Read an EXR of per-pixel statistics (see the module docstring for the layouts).
+
+    Parameters
+    ----------
+    path : path-like
+    layout : {'pbrt-v4', 'mitsuba-moment'} or None
+        None: the explicit mapping when ``mean`` is given, else detected
+        from the channel names (pbrt-v4's ``Variance.R/G/B``, Mitsuba's
+        ``m2_*`` moments).
+    mean, variance, second_moment : str or sequence of str, optional
+        Comma-separated channel names; override the preset's.  Give
+        ``variance`` or ``second_moment`` (E[x^2]), not both.  Under
+        ``mitsuba-moment``, ``mean`` alone picks the first moments and the
+        second moments are ``m2_`` + each name.
+    variance_of : {'samples', 'mean'}
+        What the ``variance`` channels hold (explicit mapping).
+    count : int, str, optional
+        Samples per pixel: a number, a channel name or a header attribute.
+    spp : int, optional
+        Samples per pixel (the same as a numeric ``count``).
+
+    Returns
+    -------
+    PixelStatsEXR
+
+    Raises
+    ------
+    InputError
+        A missing channel (naming the channels present), no sample count,
+        NaN/Inf or negative variances in sampled pixels, contradicting
+        counts.
+    """
+    path = Path(path)
+    if layout is not None and layout not in LAYOUTS:
+        raise InputError("--layout", "layout", f"{layout!r}; valid: {', '.join(LAYOUTS)} (or the explicit "
+                         "mapping --mean ... --variance ...)")
+    if variance_of not in ("samples", "mean"):
+        raise InputError("--variance-of", "variance_of", f"{variance_of!r}; valid: samples, mean")
+    mean, variance, second_moment = (_split(mean, "mean"), _split(variance, "variance"),
+                                     _split(second_moment, "second_moment"))
+    if variance is not None and second_moment is not None:
+        raise InputError("--variance/--second-moment", "variance", "give one of them")
+    exr = _EXR(path)
+    where = str(path)
+    if layout is None:
+        layout = "explicit" if mean is not None else _detect_layout(exr)
+        if layout is None:
+            raise InputError(where, "layout", "not recognised (no pbrt-v4 Variance.R/G/B, no Mitsuba m2_* "
+                             f"moments); channels present: {exr.present()}; pass --layout pbrt-v4|mitsuba-moment "
+                             "or the mapping --mean R,G,B --variance ... --count N")
+    n, count_source = _resolve_count(exr, count, spp)
+    out_matrix, out_channels = None, None
+
+    if layout == "pbrt-v4":
+        rgb_names = mean or ("R", "G", "B")
+        m_rgb, half = exr.get(rgb_names, "mean")
+        _warn_half_saturation(exr, rgb_names, m_rgb, half, layout)
+        _check_finite(exr, rgb_names, m_rgb, n, "mean", half)
+        if second_moment is not None:
+            raise InputError("--second-moment", "second_moment", "pbrt-v4 writes variances: use --variance")
+        var_names = variance or ("Variance.R", "Variance.G", "Variance.B")
+        var, vhalf = exr.get(var_names, "variance")
+        _check_finite(exr, var_names, var, n, "variance", vhalf)
+        if len(rgb_names) == 3 and len(var_names) == 3:
+            xyz_from_rgb = xyz_from_rgb_matrix(_file_chromaticities(exr))
+            m = m_rgb @ xyz_from_rgb.T
+            channels = ("X", "Y", "Z")
+            out_matrix, out_channels = np.linalg.inv(xyz_from_rgb), tuple(rgb_names)
+        else:
+            m, channels = m_rgb, tuple(rgb_names)
+        sources = {"mean": tuple(rgb_names), "variance": tuple(var_names)}
+        v_of = "samples"
+    elif layout == "mitsuba-moment":
+        if variance is not None:
+            raise InputError("--variance", "variance", "the moment integrator writes second moments: use "
+                             "--second-moment (or --mean alone: m2_ + each name)")
+        if mean is None and set(exr.names) == {f"ch{i}" for i in range(9)}:
+            mean, second_moment = ("ch3", "ch4", "ch5"), ("ch6", "ch7", "ch8")
+        if mean is None:
+            prefixes = _mitsuba_prefixes(exr.names)
+            if not prefixes:
+                raise InputError(where, "mean", "no moment-integrator channels (P.X,P.Y,P.Z with m2_P.X,m2_P.Y,"
+                                 f"m2_P.Z); channels present: {exr.present()}")
+            if len(prefixes) > 1:
+                raise InputError(where, "mean", f"several moment-integrator outputs ({', '.join(prefixes)}): "
+                                 f"choose one with --mean P.X,P.Y,P.Z")
+            mean = tuple(f"{prefixes[0]}.{a}" for a in "XYZ")
+        if second_moment is None:
+            second_moment = tuple(f"m2_{c}" for c in mean)
+        if len(second_moment) != len(mean):
+            raise InputError("--second-moment", "second_moment", f"{len(second_moment)} channels for "
+                             f"{len(mean)} mean channels")
+        m, half = exr.get(mean, "mean")
+        m2, half2 = exr.get(second_moment, "second_moment")
+        _warn_half_saturation(exr, mean, m, half, layout)
+        _check_finite(exr, mean, m, n, "first moment", half)
+        _check_finite(exr, second_moment, m2, n, "second moment", half2)
+        var = _variance_from_moments(exr, second_moment, m, m2, n)
+        channels = ("X", "Y", "Z") if len(mean) == 3 else tuple(mean)
+        if len(mean) == 3:
+            out_matrix, out_channels = MITSUBA_XYZ_TO_SRGB.copy(), ("R", "G", "B")
+        sources = {"mean": tuple(mean), "second_moment": tuple(second_moment)}
+        v_of = "samples"
+    else:  # explicit
+        if mean is None:
+            raise InputError("--mean", "mean", "the explicit mapping needs --mean CHANNELS and --variance CHANNELS "
+                             "(or --second-moment CHANNELS)")
+        if variance is None and second_moment is None:
+            raise InputError("--variance", "variance", "the explicit mapping needs --variance CHANNELS (or "
+                             "--second-moment CHANNELS) besides --mean")
+        m, half = exr.get(mean, "mean")
+        _warn_half_saturation(exr, mean, m, half, layout)
+        _check_finite(exr, mean, m, n, "mean", half)
+        other = variance if variance is not None else second_moment
+        if len(other) != len(mean):
+            raise InputError("--variance" if variance is not None else "--second-moment", "channels",
+                             f"{len(other)} channels for {len(mean)} mean channels")
+        if variance is not None:
+            var, vhalf = exr.get(variance, "variance")
+            _check_finite(exr, variance, var, n, "variance", vhalf)
+            sources = {"mean": tuple(mean), "variance": tuple(variance)}
+            v_of = variance_of
+        else:
+            m2, half2 = exr.get(second_moment, "second_moment")
+            _check_finite(exr, second_moment, m2, n, "second moment", half2)
+            var = _variance_from_moments(exr, second_moment, m, m2, n)
+            sources = {"mean": tuple(mean), "second_moment": tuple(second_moment)}
+            v_of = "samples"
+        channels = tuple(mean)
+
+    names_for_var = sources.get("variance", sources.get("second_moment"))
+    sampled = np.broadcast_to(np.asarray(n) > 0, var.shape[:2])[..., None]
+    neg = sampled & (var < 0)
+    if neg.any():
+        per = [names_for_var[c] for c in range(var.shape[2]) if neg[..., c].any()]
+        raise InputError(where, ",".join(per), f"{int(neg.any(axis=2).sum())} sampled pixel(s) with a negative "
+                         "variance; a variance is >= 0")
+    n_arr = np.asarray(n)
+    if n_arr.ndim == 0:
+        var = np.where(int(n_arr) <= 1, 0.0, var)
+    else:
+        var = np.where((n_arr <= 1)[..., None], 0.0, var)
+    stats = PixelStats.from_moments(m, var, n, channels=channels, variance_of=v_of, where=where)
+    return PixelStatsEXR(stats, path, layout, sources, count_source,
+                         tuple(out_channels) if out_channels is not None else tuple(channels), out_matrix)
+
+
+def _variance_from_moments(exr, names, m1, m2, n) -> np.ndarray:
+    """The variance of the samples from the first and second moments (clamped at 0, times n / (n - 1))."""
+    n_arr = np.asarray(n, dtype=np.float64)
+    sampled = np.broadcast_to(n_arr > 0, m1.shape[:2])[..., None]
+    neg = sampled & (m2 < 0)
+    if neg.any():
+        per = [names[c] for c in range(m2.shape[2]) if neg[..., c].any()]
+        raise InputError(str(exr.path), ",".join(per), f"{int(neg.any(axis=2).sum())} sampled pixel(s) with a "
+                         "negative second moment E[x^2]; it is >= 0")
+    pop = np.maximum(m2 - m1 * m1, 0.0)
+    nn = n_arr if n_arr.ndim == 0 else n_arr[..., None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(nn > 1, pop * nn / np.maximum(nn - 1.0, 1.0), 0.0)
+
+
+# ------------------------------------------------------------------ methods
+def check_method(method, where: str = "pixel statistics") -> None:
+    """Refuse, with the reason, a method that cannot run on statistics read from an EXR."""
+    req = method.requires
+    if req.samples:
+        raise InputError(method.where, "input", f"{method.name} filters individual samples (their film "
+                         f"positions and values), which a pixel-statistics EXR ({where}) does not hold; give it "
+                         "a sample log, or pick gem, awr, box or ci")
+    if req.subpixels:
+        raise InputError(method.where, "input", f"this {method.name} configuration needs per-subpixel sums on a "
+                         f"{req.subpixels}x{req.subpixels} grid (subpixel_exact_below > 0), which a "
+                         f"pixel-statistics EXR ({where}) does not hold; use --subpixel-exact-below 0 (the pixel "
+                         "kernel) or a sample log")
+
+
+def pixel_stats_options(name: str, given: dict) -> tuple[dict, str | None]:
+    """Options for method ``name`` on statistics without the sample range, and a note when changed.
+
+    AWR's default ``variance='range'`` estimator needs each pixel's
+    sample minimum and maximum; a pixel-statistics EXR has none, so when
+    the user did not choose, ``variance='sample'`` (the sample variance)
+    is used; a ``variance`` the user gave that needs the range is refused.
+    """
+    opts = dict(given)
+    if name == "awr" and "variance" in opts and str(opts["variance"]) != "sample":
+        raise InputError("method awr", "--variance", f"{opts['variance']!r} needs each pixel's sample minimum and "
+                         "maximum, which a pixel-statistics EXR does not hold; use --variance sample (the default "
+                         "for these inputs)")
+    if name == "awr" and "variance" not in opts:
+        opts["variance"] = "sample"
+        return opts, ("awr: using --variance sample (the pixels' sample variance): the default 'range' "
+                      "estimator needs per-pixel sample minima and maxima, which a pixel-statistics EXR lacks")
+    return opts, None

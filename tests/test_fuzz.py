@@ -1,0 +1,195 @@
+"""Property-based fuzzing of the sample-log boundary (Hypothesis).
+
+Mutated logs (random bytes, truncation, attributes of other types and
+values, datasets of other shapes and dtypes, huge films) go through
+``mcrecon info`` and ``mcrecon denoise`` in a worker process, so a crash of
+the HDF5 library would show as a failure instead of killing the test run.
+Each must end in exit 2 with one error line, or in success with a finite
+image: never a traceback, a hang or a crash.
+
+A fixed seed (derandomized) and a small example budget by default; set
+``MCRECON_FULL=1`` for a larger budget (the ``slow`` test).
+"""
+
+import json
+import os
+import select
+import shutil
+import subprocess
+import sys
+import tempfile
+import textwrap
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+hypothesis = pytest.importorskip("hypothesis")
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from mcrecon.io import append_log, read_exr, write_log  # noqa: E402
+
+FULL = os.environ.get("MCRECON_FULL", "") not in ("", "0")
+
+WORKER = textwrap.dedent("""
+    import contextlib, io, json, sys, traceback
+    from mcrecon.cli import main
+    for line in sys.stdin:
+        argv = json.loads(line)
+        out, err = io.StringIO(), io.StringIO()
+        try:
+            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+                code = main(argv)
+        except SystemExit as exc:
+            code = exc.code
+        except BaseException:
+            code = "traceback"
+            err.write(traceback.format_exc())
+        print(json.dumps({"code": code, "err": err.getvalue()}), flush=True)
+""")
+
+
+class Worker:
+    """A persistent ``mcrecon`` process running one CLI command per request."""
+
+    def __init__(self):
+        self.proc = None
+
+    def run(self, argv, timeout=60.0):
+        if self.proc is None or self.proc.poll() is not None:
+            self.proc = subprocess.Popen([sys.executable, "-c", WORKER], stdin=subprocess.PIPE,
+                                         stdout=subprocess.PIPE, text=True)
+        self.proc.stdin.write(json.dumps([str(a) for a in argv]) + "\n")
+        self.proc.stdin.flush()
+        ready, _, _ = select.select([self.proc.stdout], [], [], timeout)
+        if not ready:
+            self.close()
+            return {"code": "hang", "err": f"no answer within {timeout} s"}
+        line = self.proc.stdout.readline()
+        if not line:
+            code = self.proc.wait()
+            self.proc = None
+            return {"code": "crash", "err": f"the worker died (status {code})"}
+        return json.loads(line)
+
+    def close(self):
+        if self.proc is not None:
+            self.proc.kill()
+            self.proc.wait()
+            self.proc.stdin.close()
+            self.proc.stdout.close()
+            self.proc = None
+
+
+@pytest.fixture(scope="module")
+def worker():
+    w = Worker()
+    yield w
+    w.close()
+
+
+@pytest.fixture(scope="module")
+def base_log(tmp_path_factory):
+    rng = np.random.default_rng(3)
+    path = tmp_path_factory.mktemp("fuzz") / "base.h5"
+    w, h, n = 8, 6, 600
+    write_log(path, rng.random((n, 2)) * [w, h], rng.random((n, 3)).astype(np.float32), width=w, height=h,
+              features={"depth": rng.random(n).astype(np.float32)}, reference=np.ones((h, w, 3)),
+              metadata={"renderer": "fuzz"})
+    append_log(path, rng.random((50, 2)) * [w, h], rng.random((50, 3)), features={"depth": np.ones(50)},
+               round_record={"round": 1, "samples": 50, "note": "x"})
+    return path
+
+
+ATTRS = ("width", "height", "channels", "format_version", "format_minor", "n_committed", "metadata_json", "format")
+ATTR_VALUES = st.one_of(
+    st.integers(-2**63, 2**63 - 1), st.sampled_from([0, 1, -1, 10**9, 2**31, 2**62]),
+    st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=12),
+    st.lists(st.text(max_size=4), max_size=4).map(lambda v: np.array(v, dtype=h5py.string_dtype())),
+    st.lists(st.integers(-5, 5), min_size=0, max_size=3).map(np.array),
+)
+DATASETS = ("positions", "values", "round", "rounds/end", "features/depth", "reference", "run/round_records")
+SHAPES = st.lists(st.integers(0, 700), min_size=0, max_size=3).map(tuple)
+DTYPES = st.sampled_from(["f4", "f8", "i4", "u1", "bool", "S3"])
+
+
+def _mutation():
+    return st.one_of(
+        st.tuples(st.just("bytes"), st.floats(0, 1), st.binary(min_size=1, max_size=64)),
+        st.tuples(st.just("truncate"), st.floats(0, 1), st.just(b"")),
+        st.tuples(st.just("attr"), st.sampled_from(ATTRS), ATTR_VALUES),
+        st.tuples(st.just("dataset"), st.sampled_from(DATASETS), st.tuples(SHAPES, DTYPES)),
+        st.tuples(st.just("huge"), st.sampled_from([(10**9, 10**9), (2**40, 1), (1, 2**33)]), st.just(None)),
+    )
+
+
+def _apply(path, mutation):
+    kind, where, what = mutation
+    if kind in ("bytes", "truncate"):
+        size = path.stat().st_size
+        at = min(int(where * size), size - 1)
+        with open(path, "r+b") as fh:
+            if kind == "truncate":
+                fh.truncate(at)
+            else:
+                fh.seek(at)
+                fh.write(what)
+        return
+    with h5py.File(path, "r+") as f:
+        if kind == "attr":
+            f.attrs[where] = what
+        elif kind == "huge":
+            f.attrs["width"], f.attrs["height"] = where
+        else:
+            shape, dtype = what
+            del f[where]
+            f.create_dataset(where, data=np.ones(shape, dtype=dtype) if dtype != "S3" else np.full(shape, b"abc"))
+
+
+def _check(worker, path, out_dir):
+    for argv in (["info", path], ["denoise", path, "-o", out_dir / "o.exr", "--png", out_dir / "o.png"]):
+        r = worker.run(argv)
+        code, err = r["code"], r["err"]
+        assert code in (0, 2), f"{argv[0]}: {code}: {err}"
+        assert "Traceback" not in err, err
+        errors = [ln for ln in err.splitlines() if "error" in ln]
+        if code == 2:
+            assert len(errors) == 1 and err.endswith("\n") and errors[0].startswith("mcrecon: error: "), err
+        else:
+            assert not errors, err
+            if argv[0] == "denoise":
+                img, _ = read_exr(out_dir / "o.exr")
+                assert np.isfinite(img).all()
+
+
+def _fuzz(worker, base_log, mutations):
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "m.h5"
+        shutil.copyfile(base_log, path)
+        for m in mutations:
+            try:
+                _apply(path, m)
+            except (OSError, ValueError, TypeError, KeyError, RuntimeError):
+                pass  # a mutation h5py refuses to make (or a file too damaged to mutate further)
+        _check(worker, path, Path(tmp))
+
+
+@settings(max_examples=25, derandomize=True, deadline=None, database=None,
+          suppress_health_check=list(HealthCheck))
+@given(mutations=st.lists(_mutation(), min_size=1, max_size=3))
+def test_mutated_logs_give_one_line_or_a_finite_image(worker, base_log, mutations):
+    _fuzz(worker, base_log, mutations)
+
+
+@pytest.mark.slow
+@settings(max_examples=400 if FULL else 60, derandomize=True, deadline=None, database=None,
+          suppress_health_check=list(HealthCheck))
+@given(mutations=st.lists(_mutation(), min_size=1, max_size=4))
+def test_mutated_logs_larger_budget(worker, base_log, mutations):
+    _fuzz(worker, base_log, mutations)
+
+
+def test_the_untouched_base_log_succeeds(worker, base_log, tmp_path):
+    _check(worker, base_log, tmp_path)

@@ -1,0 +1,323 @@
+"""Pixel-statistics EXRs (pbrt-v4 GBufferFilm, Mitsuba 3 moment integrator, explicit mapping) -> denoise."""
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import mcrecon
+from mcrecon import InputError, PixelStats
+from mcrecon.cli import main
+from mcrecon.io import read_exr, read_pixel_stats_exr
+from mcrecon.io.pixel_exr import MITSUBA_XYZ_TO_SRGB, xyz_from_rgb_matrix
+
+H, W, SPP = 12, 16, 8
+
+# pbrt-v4 GBufferFilm::GetImage's channel list (src/pbrt/film.cpp), in its order.
+PBRT_CHANNELS = ("R", "G", "B", "Albedo.R", "Albedo.G", "Albedo.B", "P.X", "P.Y", "P.Z", "dzdx", "dzdy",
+                 "N.X", "N.Y", "N.Z", "Ns.X", "Ns.Y", "Ns.Z", "u", "v", "Variance.R", "Variance.G", "Variance.B",
+                 "RelativeVariance.R", "RelativeVariance.G", "RelativeVariance.B")
+
+
+def run(args, capsys):
+    code = main([str(a) for a in args])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def write_channels(path, channels: dict, dtype=np.float32, **attrs):
+    import OpenEXR
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, **attrs}
+    data = {k: np.ascontiguousarray(v, dtype=dtype) for k, v in channels.items()}
+    with OpenEXR.File(header, data) as f:
+        f.write(str(path))
+    return path
+
+
+def samples(seed=0, h=H, w=W, spp=SPP):
+    """Per-pixel samples (H, W, spp, 3) of a smooth image with noise."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:h, 0:w]
+    base = np.stack([0.5 + 0.4 * np.sin(xx / 3.0), 0.3 + 0.2 * yy / h, 0.6 + 0.0 * xx], axis=-1)
+    return base[:, :, None, :] * rng.gamma(4.0, 0.25, (h, w, spp, 3))
+
+
+def pbrt_exr(path, s, *, dtype=np.float32, spp_attr=True, extra=True):
+    """A pbrt-v4 GBufferFilm-like EXR of samples ``s`` (sensor = XYZ, output = sRGB, box filter)."""
+    xyz_from_rgb = xyz_from_rgb_matrix()
+    rgb_from_xyz = np.linalg.inv(xyz_from_rgb)
+    xyz = s @ xyz_from_rgb.T                     # what pbrt's default sensor adds: XYZ per sample
+    mean_xyz = xyz.mean(axis=2)
+    var_xyz = xyz.var(axis=2, ddof=1)             # VarianceEstimator::Variance(): S / (n - 1)
+    rgb = mean_xyz @ rgb_from_xyz.T
+    rng = np.random.default_rng(7)
+    ch = {}
+    for name in PBRT_CHANNELS if extra else ("R", "G", "B", "Variance.R", "Variance.G", "Variance.B"):
+        ch[name] = rng.random(s.shape[:2])        # AOVs: noise that must be ignored
+    for i, c in enumerate("RGB"):
+        ch[c] = rgb[..., i]
+        ch[f"Variance.{c}"] = var_xyz[..., i]
+        ch[f"RelativeVariance.{c}"] = var_xyz[..., i] / np.maximum(mean_xyz[..., i], 1e-6)
+    attrs = {"samplesPerPixel": s.shape[2]} if spp_attr else {}
+    write_channels(path, ch, dtype=dtype, **attrs)
+    return mean_xyz, var_xyz, rgb
+
+
+def mitsuba_exr(path, s, *, prefix="nested"):
+    """A Mitsuba 3 moment-integrator-like EXR (film.bitmap() names) of samples ``s``."""
+    srgb_to_xyz = np.linalg.inv(MITSUBA_XYZ_TO_SRGB)
+    xyz = s @ srgb_to_xyz.T
+    m1, m2 = xyz.mean(axis=2), (xyz ** 2).mean(axis=2)
+    ch = {c: s.mean(axis=2)[..., i] for i, c in enumerate("RGB")}
+    for i, a in enumerate("XYZ"):
+        ch[f"{prefix}.{a}"] = m1[..., i]
+        ch[f"m2_{prefix}.{a}"] = m2[..., i]
+    write_channels(path, ch)
+    return m1, xyz.var(axis=2, ddof=1)
+
+
+# ------------------------------------------------------------------ statistics
+def test_pbrt_statistics_equal_from_moments(tmp_path):
+    s = samples()
+    mean_xyz, var_xyz, _ = pbrt_exr(tmp_path / "pbrt.exr", s)
+    pix = read_pixel_stats_exr(tmp_path / "pbrt.exr")
+    assert pix.layout == "pbrt-v4" and pix.count_source.startswith("header attribute samplesPerPixel")
+    ref = PixelStats.from_moments(mean_xyz, var_xyz, SPP, channels=("X", "Y", "Z"))
+    np.testing.assert_allclose(pix.stats.mean, ref.mean, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(pix.stats.m2, ref.m2, rtol=1e-5, atol=1e-7)
+    assert (pix.stats.count == SPP).all() and not pix.stats.has_range
+    assert pix.output_channels == ("R", "G", "B")
+    # box on these statistics is the file's own R,G,B
+    rgb_file = read_exr(tmp_path / "pbrt.exr")[0][..., :3]
+    np.testing.assert_allclose(pix.output_image(pix.stats.mean), rgb_file, rtol=1e-5, atol=1e-6)
+
+
+def test_pbrt_variance_is_of_the_samples_not_the_mean(tmp_path):
+    """pbrt writes S/(n-1): the statistics' variance of the mean is that over n."""
+    s = samples(1)
+    _, var_xyz, _ = pbrt_exr(tmp_path / "p.exr", s)
+    pix = read_pixel_stats_exr(tmp_path / "p.exr", layout="pbrt-v4")
+    np.testing.assert_allclose(pix.stats.mean_variance(), var_xyz / SPP, rtol=1e-5, atol=1e-9)
+
+
+def test_mitsuba_statistics_equal_from_moments(tmp_path):
+    s = samples(2)
+    m1, var = mitsuba_exr(tmp_path / "mi.exr", s)
+    pix = read_pixel_stats_exr(tmp_path / "mi.exr", spp=SPP)
+    assert pix.layout == "mitsuba-moment"
+    assert pix.sources == {"mean": ("nested.X", "nested.Y", "nested.Z"),
+                           "second_moment": ("m2_nested.X", "m2_nested.Y", "m2_nested.Z")}
+    ref = PixelStats.from_moments(m1, var, SPP, channels=("X", "Y", "Z"))
+    np.testing.assert_allclose(pix.stats.mean, ref.mean, rtol=1e-6)
+    np.testing.assert_allclose(pix.stats.m2, ref.m2, rtol=2e-4, atol=1e-6)  # float32 m2 - m1^2
+    np.testing.assert_allclose(pix.output_image(pix.stats.mean), s.mean(axis=2), rtol=1e-4, atol=1e-6)
+
+
+def test_explicit_mapping_count_channel_and_variance_of_mean(tmp_path):
+    rng = np.random.default_rng(3)
+    mean = rng.random((H, W, 3))
+    var = rng.random((H, W, 3)) * 0.1
+    n = rng.integers(2, 9, (H, W)).astype(np.float32)
+    ch = {"col.r": mean[..., 0], "col.g": mean[..., 1], "col.b": mean[..., 2],
+          "v.r": var[..., 0], "v.g": var[..., 1], "v.b": var[..., 2], "N": n, "junk": rng.random((H, W))}
+    write_channels(tmp_path / "x.exr", ch)
+    pix = read_pixel_stats_exr(tmp_path / "x.exr", mean="col.r,col.g,col.b", variance="v.r,v.g,v.b",
+                               count="N", variance_of="mean")
+    ref = PixelStats.from_moments(mean, var, n, channels=("col.r", "col.g", "col.b"), variance_of="mean")
+    np.testing.assert_allclose(pix.stats.m2, ref.m2, rtol=1e-5, atol=1e-7)
+    assert (pix.stats.count == n).all() and pix.output_matrix is None and pix.layout == "explicit"
+
+
+# ------------------------------------------------------------------ the command
+@pytest.mark.parametrize("layout", ["pbrt-v4", "mitsuba-moment"])
+@pytest.mark.parametrize("method", ["gem", "awr", "box"])
+def test_denoise_command_equals_reconstruct(tmp_path, capsys, layout, method):
+    s = samples(4, h=32, w=32)
+    path = tmp_path / f"{layout}.exr"
+    extra = []
+    if layout == "pbrt-v4":
+        pbrt_exr(path, s)
+    else:
+        mitsuba_exr(path, s)
+        extra = ["--spp", s.shape[2]]
+    out = tmp_path / "out.exr"
+    code, stdout, err = run(["denoise", path, "-o", out, "--method", method, "--layout", layout, *extra], capsys)
+    assert code == 0, err
+    assert f"layout {layout}" in err and "wrote" in stdout
+    if method == "awr":
+        assert "--variance sample" in err  # chosen for the user, and said so
+    img, names = read_exr(out)
+    assert names == ("R", "G", "B") and img.shape == (32, 32, 3)
+    pix = read_pixel_stats_exr(path, layout=layout, spp=None if layout == "pbrt-v4" else s.shape[2])
+    opts = {"variance": "sample"} if method == "awr" else {}
+    expect = pix.output_image(mcrecon.reconstruct(pix.stats, method=method, **opts))
+    np.testing.assert_allclose(img, expect.astype(np.float32), rtol=1e-6, atol=1e-7)
+    assert np.isfinite(img).all()
+
+
+def test_denoise_explicit_mapping(tmp_path, capsys):
+    s = samples(5)
+    ch = {"C.r": s.mean(axis=2)[..., 0], "C.g": s.mean(axis=2)[..., 1], "C.b": s.mean(axis=2)[..., 2]}
+    v = s.var(axis=2, ddof=1)
+    ch.update({"V.r": v[..., 0], "V.g": v[..., 1], "V.b": v[..., 2]})
+    write_channels(tmp_path / "e.exr", ch, spp=SPP)
+    code, _, err = run(["denoise", tmp_path / "e.exr", "-o", tmp_path / "o.exr", "--method", "gem",
+                        "--mean", "C.r,C.g,C.b", "--variance-channels", "V.r,V.g,V.b"], capsys)
+    assert code == 0, err
+    assert "header attribute spp" in err
+    img, names = read_exr(tmp_path / "o.exr")
+    assert names == ("C.r", "C.g", "C.b")
+    st = PixelStats.from_moments(s.mean(axis=2), v, SPP, channels=("C.r", "C.g", "C.b"))
+    np.testing.assert_allclose(img, mcrecon.reconstruct(st, method="gem").astype(np.float32), rtol=1e-5, atol=1e-6)
+
+
+# ------------------------------------------------------------------ errors
+def one_line_error(capsys, args):
+    code, _, err = run(args, capsys)
+    assert code == 2 and err.count("\n") == 1 and err.startswith("mcrecon: error:"), err
+    return err
+
+
+def test_missing_channel_names_file_channel_and_present(tmp_path, capsys):
+    pbrt_exr(tmp_path / "p.exr", samples(), extra=False)
+    err = one_line_error(capsys, ["denoise", tmp_path / "p.exr", "-o", tmp_path / "o.exr",
+                                  "--layout", "pbrt-v4", "--variance-channels", "Var.R,Var.G,Var.B"])
+    assert "p.exr" in err and "'Var.R' missing" in err and "Variance.G" in err  # channels present listed
+
+
+def test_no_count_says_pass_spp(tmp_path, capsys):
+    pbrt_exr(tmp_path / "p.exr", samples(), spp_attr=False)
+    err = one_line_error(capsys, ["denoise", tmp_path / "p.exr", "-o", tmp_path / "o.exr"])
+    assert "--spp" in err and "sample count" in err
+    mitsuba_exr(tmp_path / "m.exr", samples())
+    err = one_line_error(capsys, ["denoise", tmp_path / "m.exr", "-o", tmp_path / "o.exr", "--method", "gem"])
+    assert "--spp" in err
+
+
+def test_spp_contradicting_the_header_is_refused(tmp_path, capsys):
+    pbrt_exr(tmp_path / "p.exr", samples())
+    err = one_line_error(capsys, ["denoise", tmp_path / "p.exr", "-o", tmp_path / "o.exr", "--spp", "4"])
+    assert "samplesPerPixel" in err and "8" in err and "4" in err
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -0.5])
+def test_bad_variances_refused(tmp_path, capsys, bad):
+    s = samples()
+    pbrt_exr(tmp_path / "p.exr", s)
+    import OpenEXR
+
+    f = OpenEXR.File(str(tmp_path / "p.exr"), separate_channels=True)
+    ch = {k: np.array(v.pixels) for k, v in f.channels().items()}
+    ch["Variance.G"][3, 4] = bad
+    write_channels(tmp_path / "b.exr", ch, samplesPerPixel=SPP)
+    err = one_line_error(capsys, ["denoise", tmp_path / "b.exr", "-o", tmp_path / "o.exr"])
+    assert "b.exr" in err and "Variance.G" in err
+    assert ("negative" in err) if bad < 0 else ("NaN or Inf" in err)
+
+
+def test_half_float_saturation_warns_and_half_inf_variance_explains(tmp_path, capsys):
+    s = samples()
+    pbrt_exr(tmp_path / "p.exr", s, dtype=np.float16)
+    import OpenEXR
+
+    f = OpenEXR.File(str(tmp_path / "p.exr"), separate_channels=True)
+    ch = {k: np.array(v.pixels) for k, v in f.channels().items()}
+    ch["R"][0, 0] = 65504.0  # pbrt's clamp with savefp16
+    write_channels(tmp_path / "sat.exr", ch, dtype=np.float16, samplesPerPixel=SPP)
+    code, _, err = run(["denoise", tmp_path / "sat.exr", "-o", tmp_path / "o.exr"], capsys)
+    assert code == 0 and "warning" in err and "65504" in err and "savefp16" in err
+    ch["R"][0, 0] = 1.0
+    ch["Variance.B"][1, 1] = np.inf  # a variance above 65504 overflows in half
+    write_channels(tmp_path / "inf.exr", ch, dtype=np.float16, samplesPerPixel=SPP)
+    err = one_line_error(capsys, ["denoise", tmp_path / "inf.exr", "-o", tmp_path / "o.exr"])
+    assert "Variance.B" in err and "savefp16" in err
+
+
+@pytest.mark.parametrize("args, why", [(["--method", "splat"], "individual samples"),
+                                       (["--method", "gem", "--subpixel-exact-below", "2"], "subpixel")])
+def test_methods_needing_samples_refuse(tmp_path, capsys, args, why):
+    pbrt_exr(tmp_path / "p.exr", samples())
+    err = one_line_error(capsys, ["denoise", tmp_path / "p.exr", "-o", tmp_path / "o.exr", *args])
+    assert why in err and "pixel-statistics EXR" in err
+
+
+def test_awr_range_estimator_chosen_explicitly_is_refused(tmp_path, capsys):
+    pbrt_exr(tmp_path / "p.exr", samples())
+    err = one_line_error(capsys, ["denoise", tmp_path / "p.exr", "-o", tmp_path / "o.exr", "--method", "awr",
+                                  "--variance", "range"])
+    assert "minimum and maximum" in err
+
+
+def test_unrecognised_layout_and_flags_on_a_log(tmp_path, capsys):
+    write_channels(tmp_path / "plain.exr", {"R": np.ones((4, 4)), "G": np.ones((4, 4)), "B": np.ones((4, 4))})
+    err = one_line_error(capsys, ["denoise", tmp_path / "plain.exr", "-o", tmp_path / "o.exr", "--spp", "4"])
+    assert "not recognised" in err and "--mean" in err
+    code, _, err = run(["render-log", "--scene", "soft_shadow", "--spp", "2", "--size", "8x8", "-o",
+                        tmp_path / "l.h5"], capsys)
+    err = one_line_error(capsys, ["denoise", tmp_path / "l.h5", "-o", tmp_path / "o.exr", "--spp", "4"])
+    assert "--spp" in err and ".exr" in err
+
+
+def test_python_api_errors():
+    with pytest.raises(InputError, match="layout"):
+        read_pixel_stats_exr("x.exr", layout="blender")
+    with pytest.raises(InputError, match="does not exist"):
+        read_pixel_stats_exr("/nonexistent/x.exr", spp=4)
+
+
+# ------------------------------------------------------------------ a real Mitsuba render
+_RENDER = textwrap.dedent("""
+    import os, sys
+    from mcrecon.renderers.mitsuba import drjit_cache_dir
+    os.environ.setdefault("DRJIT_CACHE_DIR", drjit_cache_dir())
+    import mitsuba as mi
+    mi.set_variant("llvm_ad_rgb")
+    d = mi.cornell_box()
+    d["sensor"]["film"].update(width=24, height=16, rfilter={"type": "box"})
+    d["integrator"] = {"type": "moment", "nested": {"type": "path", "max_depth": 4}}
+    scene = mi.load_dict(d)
+    img = mi.render(scene, spp=int(sys.argv[2]), seed=1)
+    film = scene.sensors()[0].film()
+    mi.util.write_bitmap(sys.argv[1] + "/film.exr", film.bitmap(), write_async=False)   # names kept
+    mi.util.write_bitmap(sys.argv[1] + "/tensor.exr", img, write_async=False)          # ch0 ... ch8
+""")
+
+
+@pytest.fixture(scope="module")
+def mitsuba_moment_exrs(tmp_path_factory):
+    from mcrecon.renderers.mitsuba import mitsuba_available
+
+    ok, reason = mitsuba_available()
+    if not ok:
+        pytest.skip(f"Mitsuba 3 unavailable: {reason}")
+    d = tmp_path_factory.mktemp("mitsuba_moment")
+    proc = subprocess.run([sys.executable, "-c", _RENDER, str(d), "16"], capture_output=True, text=True,
+                          timeout=600)
+    if proc.returncode != 0:
+        pytest.fail(f"Mitsuba moment render failed: {proc.stderr[-2000:]}")
+    return d
+
+
+def test_real_mitsuba_moment_output(mitsuba_moment_exrs, capsys):
+    d = mitsuba_moment_exrs
+    film = read_pixel_stats_exr(d / "film.exr", spp=16)
+    assert film.layout == "mitsuba-moment" and film.sources["mean"] == ("nested.X", "nested.Y", "nested.Z")
+    rgb = read_exr(d / "film.exr")[0][..., :3]  # R, G, B first
+    # the moment AOVs are the sRGB radiance in XYZ: box on them gives the film's RGB back
+    np.testing.assert_allclose(film.output_image(film.stats.mean), rgb, rtol=1e-4, atol=1e-5)
+    assert (film.stats.m2 >= 0).all() and film.stats.m2.max() > 0
+    tensor = read_pixel_stats_exr(d / "tensor.exr", layout="mitsuba-moment", spp=16)
+    np.testing.assert_array_equal(tensor.stats.mean, film.stats.mean)
+    np.testing.assert_array_equal(tensor.stats.m2, film.stats.m2)
+    for method in ("gem", "awr", "box"):
+        out = d / f"{method}.exr"
+        code, _, err = run(["denoise", d / "film.exr", "-o", out, "--method", method, "--spp", "16"], capsys)
+        assert code == 0, err
+        opts = {"variance": "sample"} if method == "awr" else {}
+        expect = film.output_image(mcrecon.reconstruct(film.stats, method=method, **opts))
+        np.testing.assert_allclose(read_exr(out)[0], expect.astype(np.float32), rtol=1e-6, atol=1e-7)
