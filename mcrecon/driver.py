@@ -33,7 +33,7 @@ from .methods import Method, get_method
 from .methods.base import AdaptiveState, RunState
 from .renderers.protocol import SampleBatch, validate_reply
 from .renderers.spec import renderer_from_spec
-from .samples import FLOAT32_MAX, NONFINITE_POLICIES, float32_loses_spread
+from .samples import FLOAT32_MAX, NONFINITE_POLICIES, apply_nonfinite, float32_loses_spread
 from .stats import PixelStats
 
 __all__ = ["adapt", "resume", "AdaptiveResult", "round_seeds", "STORAGE_DTYPES"]
@@ -328,15 +328,19 @@ def _resume(log_path, renderer, *, progress, time_limit, track_error, on_round) 
         raise InputError(str(log_path), "renderer", f"renderer is {w}x{h} {channels}, the run was "
                          f"{s['width']}x{s['height']} {s['channels']}")
     method = get_method(s["method"], **s["method_options"])
-    stats = PixelStats.from_log(sl, subpixels=method.requires.subpixels, nonfinite=s["nonfinite"])
     ref = sl.reference()
     run = method.start(w, h, channels, reference=ref)
-    if method.requires.samples:
-        # Only methods that keep per-sample state see the rounds again, one
-        # round in memory at a time.
+    # Replay the committed rounds exactly as the live run took them: one batch
+    # per round (the statistics merge runs of same-pixel samples within a batch,
+    # so other batch boundaries would round differently for float64 values),
+    # one round in memory at a time; observe() only for methods that read samples.
+    stats = PixelStats(w, h, channels, subpixels=method.requires.subpixels)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", McreconWarning)  # the live run reported them
         for r in range(sl.n_rounds):
             chunk = sl.read_all(rounds=[r])
-            method.observe(run, SampleBatch(chunk.positions, chunk.values), r)
+            _take_round(method, run, stats, SampleBatch(chunk.positions, chunk.values), r, s["nonfinite"],
+                        str(log_path))
     records = list(sl.round_records)
     elapsed = float(records[-1]["wall_seconds"]) if records else 0.0
     budget = int(round(float(s["spp"]) * w * h))
@@ -346,6 +350,22 @@ def _resume(log_path, renderer, *, progress, time_limit, track_error, on_round) 
                 nonfinite=s["nonfinite"], max_rounds=10_000, track_error=track_error, eps=0.01,
                 elapsed=elapsed, on_round=on_round,
                 storage_dtype=s.get("storage_dtype", "float32") if sl.n_samples == 0 else str(sl.value_dtype))
+
+
+def _take_round(method, run, stats, batch, round_index, nonfinite, source) -> None:
+    """A committed round into the statistics and, for methods that read samples, into ``observe``.
+
+    The one path of the live run and of a resume's replay.  ``observe`` sees
+    the round after the run's NaN/Inf policy, exactly as the statistics did.
+    """
+    stats.add(batch.positions, batch.values, nonfinite=nonfinite, source=source)
+    if method.requires.samples:
+        pos, val = np.asarray(batch.positions), np.asarray(batch.values)
+        if val.ndim == 1:
+            val = val[:, None]
+        n_bad = int((~np.isfinite(val)).any(axis=1).sum()) if val.size else 0
+        pos, val = apply_nonfinite(pos, val, n_bad, nonfinite, where=source)
+        method.observe(run, SampleBatch(pos, val), round_index)
 
 
 def _resolve_storage(log_path, reply_dtype) -> str:
@@ -368,16 +388,17 @@ def _resolve_storage(log_path, reply_dtype) -> str:
     return dtype
 
 
-def _to_storage(batch, storage_dtype, stats, name, round_index, warned) -> SampleBatch:
+def _to_storage(batch, storage_dtype, stats, name, round_index, warned, log_path) -> SampleBatch:
     """Cast a validated reply to the log's dtype, refusing what float32 cannot hold."""
     val = np.asarray(batch.values)
     if storage_dtype == "float32" and val.dtype != np.float32:
         big = np.isfinite(val) & (np.abs(val) > FLOAT32_MAX)
         if big.any():
-            raise InputError("adapt", "storage_dtype", f"round {round_index} from {name} holds "
+            raise InputError(str(log_path), "storage_dtype", f"round {round_index} from {name} holds "
                              f"{int(big.any(axis=1).sum())} sample(s) beyond float32's range (up to "
-                             f"{float(np.abs(val[big]).max()):.3g}); nothing of this round was stored: run with "
-                             "storage_dtype='auto' or 'float64' (--storage-dtype auto), or --resume with it")
+                             f"{float(np.abs(val[big]).max()):.3g}); nothing of this round was stored, but this "
+                             "log stores float32: start the run again with a new log and storage_dtype='auto' "
+                             "or 'float64' (--storage-dtype auto)")
         if "spread" not in warned:
             lost = float32_loses_spread(batch.positions, val, width=stats.width, height=stats.height)
             if lost:
@@ -402,7 +423,6 @@ def _run(renderer, method, run, *, stats, rounds, round_index, budget, seed, log
     wall_start = time.perf_counter() - elapsed
     state = None
     warned = set()
-    observes = method.requires.samples
 
     def committed() -> int:
         # Samples dropped by the non-finite policy were rendered and committed: they
@@ -440,7 +460,7 @@ def _run(renderer, method, run, *, stats, rounds, round_index, budget, seed, log
             if storage_dtype == "auto":
                 storage_dtype = _resolve_storage(log_path, np.asarray(batch.values).dtype)
             if log_path is not None:
-                batch = _to_storage(batch, storage_dtype, stats, name, round_index, warned)
+                batch = _to_storage(batch, storage_dtype, stats, name, round_index, warned, log_path)
             if nonfinite == "raise":
                 bad = ~np.isfinite(np.asarray(batch.values)).all(axis=1)
                 if bad.any():
@@ -457,9 +477,7 @@ def _run(renderer, method, run, *, stats, rounds, round_index, budget, seed, log
                            features=batch.features if batch.features else None,
                            round_record={**record, "toolkit_seconds": toolkit_s,
                                          "wall_seconds": time.perf_counter() - wall_start})
-            stats.add(batch.positions, batch.values, nonfinite=nonfinite, source=name)
-            if observes:
-                method.observe(run, batch, round_index)
+            _take_round(method, run, stats, batch, round_index, nonfinite, name)
             toolkit_s += time.perf_counter() - t3
             record["toolkit_seconds"] = toolkit_s
             record["wall_seconds"] = time.perf_counter() - wall_start
