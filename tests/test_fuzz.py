@@ -19,6 +19,7 @@ import subprocess
 import sys
 import tempfile
 import textwrap
+import warnings
 from pathlib import Path
 
 import h5py
@@ -193,3 +194,170 @@ def test_mutated_logs_larger_budget(worker, base_log, mutations):
 
 def test_the_untouched_base_log_succeeds(worker, base_log, tmp_path):
     _check(worker, base_log, tmp_path)
+
+
+# ------------------------------------------------------------------ renderer replies (in process)
+from mcrecon.errors import InputError, RendererError  # noqa: E402
+from mcrecon.renderers.protocol import SampleBatch, SampleRequest, validate_reply  # noqa: E402
+
+W, H = 4, 3
+COUNTS = np.array([[1, 0, 2, 1], [0, 3, 1, 0], [1, 1, 0, 2]], np.int64)
+REQ_POS = np.array([[0.25, 0.5], [3.5, 2.75]])
+_FLOATS = st.one_of(st.floats(-10, 10), st.sampled_from([np.nan, np.inf, -np.inf, 1e308, -0.0, 3.9999999, 4.0]))
+
+
+def _good_reply(request, rng):
+    pix = np.repeat(np.arange(W * H), request.counts.ravel()) if request.counts is not None else np.zeros(0, int)
+    pos = np.stack([pix % W, pix // W], 1) + rng.random((pix.size, 2))
+    if request.positions is not None:
+        pos = np.concatenate([pos, request.positions])
+    return pos, rng.random((len(pos), 3))
+
+
+def _reply_mutation():
+    return st.one_of(
+        st.tuples(st.just("set"), st.sampled_from(["positions", "values"]), st.integers(0, 40), st.integers(0, 2),
+                  _FLOATS),
+        st.tuples(st.just("shape"), st.sampled_from(["positions", "values"]),
+                  st.lists(st.integers(0, 12), max_size=3).map(tuple), st.just(0), st.just(0.0)),
+        st.tuples(st.just("dtype"), st.sampled_from(["positions", "values"]),
+                  st.sampled_from(["f4", "f2", "i8", "u1", "bool", "c16", "O", "U3", "M8[s]"]), st.just(0), st.just(0.0)),
+        st.tuples(st.just("truncate"), st.sampled_from(["positions", "values"]), st.integers(0, 20), st.just(0),
+                  st.just(0.0)),
+        st.tuples(st.just("feature"), st.sampled_from(["depth", "", "a/b"]),
+                  st.sampled_from(["ok", "short", "scalar", "str", "obj", "2d"]), st.just(0), st.just(0.0)),
+        st.tuples(st.just("type"), st.sampled_from(["none", "list", "tuple1", "tuple4", "ragged", "dict"]),
+                  st.just(0), st.just(0), st.just(0.0)),
+    )
+
+
+def _mutate_reply(pos, val, feats, m):
+    kind, a, b, c, x = m
+    arrs = {"positions": pos, "values": val}
+    if kind == "set" and arrs[a].size:
+        arr = np.array(arrs[a], dtype=np.float64)
+        arr.reshape(-1, arr.shape[-1] if arr.ndim > 1 else 1)[b % max(1, arr.shape[0]), c % arr.shape[-1]
+                                                                if arr.ndim > 1 else 0] = x
+        arrs[a] = arr
+    elif kind == "shape":
+        arrs[a] = np.ones(b, dtype=np.float64) * 0.5
+    elif kind == "dtype":
+        try:
+            with warnings.catch_warnings():  # NaN to integers and the like: whatever numpy makes of it
+                warnings.simplefilter("ignore", RuntimeWarning)
+                arrs[a] = np.asarray(arrs[a]).astype(b)
+        except (TypeError, ValueError):
+            pass
+    elif kind == "truncate":
+        arrs[a] = np.asarray(arrs[a])[: b]
+    elif kind == "feature":
+        n = len(np.asarray(arrs["positions"]))
+        feats[a] = {"ok": np.ones(n), "short": np.ones(max(n - 1, 0)), "scalar": np.float64(1.0),
+                    "str": np.array(["x"] * n), "obj": np.array([None] * n, dtype=object), "2d": np.ones((n, 2, 2))}[b]
+    elif kind == "type":
+        return {"none": None, "list": [arrs["positions"], arrs["values"]],
+                "tuple1": (arrs["positions"],), "tuple4": (1, 2, 3, 4),
+                "ragged": ([[0.5, 0.5], [1.5]], arrs["values"]), "dict": dict(arrs)}[a], feats
+    return (arrs["positions"], arrs["values"]), feats
+
+
+def _check_reply(request, reply):
+    try:
+        batch = validate_reply(request, reply, n_channels=3, renderer="fuzz")
+    except RendererError as exc:
+        assert "\n" not in str(exc) and str(exc), repr(exc)
+        return
+    pos = np.asarray(batch.positions)
+    assert pos.shape == (request.total, 2) and np.isfinite(pos).all()
+    assert (pos >= 0).all() and (pos[:, 0] < W).all() and (pos[:, 1] < H).all()
+    assert np.asarray(batch.values).shape[0] == request.total
+
+
+def _reply_fuzz(use_counts, use_positions, seed, mutations):
+    request = SampleRequest(W, H, counts=COUNTS if use_counts or not use_positions else None,
+                            positions=REQ_POS if use_positions else None, round_index=1, seed=seed)
+    pos, val = _good_reply(request, np.random.default_rng(seed))
+    reply, feats = (pos, val), {}
+    for m in mutations:
+        if not isinstance(reply, tuple) or len(reply) != 2:
+            break
+        try:
+            with warnings.catch_warnings():  # complex to real, NaN to integers: whatever numpy makes of it
+                warnings.simplefilter("ignore")
+                reply, feats = _mutate_reply(*reply, feats, m)
+        except (ValueError, IndexError, TypeError, AttributeError):
+            pass  # a mutation that does not apply to what the earlier ones made
+    if isinstance(reply, tuple) and len(reply) == 2 and feats:
+        reply = SampleBatch(reply[0], reply[1], feats)
+    _check_reply(request, reply)
+
+
+REPLY_ARGS = dict(use_counts=st.booleans(), use_positions=st.booleans(), seed=st.integers(0, 2**32 - 1))
+
+
+@settings(max_examples=150, derandomize=True, deadline=None, database=None, suppress_health_check=list(HealthCheck))
+@given(mutations=st.lists(_reply_mutation(), min_size=0, max_size=3), **REPLY_ARGS)
+def test_mutated_replies_give_a_renderer_error_or_finite_samples(use_counts, use_positions, seed, mutations):
+    _reply_fuzz(use_counts, use_positions, seed, mutations)
+
+
+@pytest.mark.slow
+@settings(max_examples=3000 if FULL else 600, derandomize=True, deadline=None, database=None,
+          suppress_health_check=list(HealthCheck))
+@given(mutations=st.lists(_reply_mutation(), min_size=0, max_size=5), **REPLY_ARGS)
+def test_mutated_replies_larger_budget(use_counts, use_positions, seed, mutations):
+    _reply_fuzz(use_counts, use_positions, seed, mutations)
+
+
+# ------------------------------------------------------------------ request files (command protocol)
+from mcrecon.renderers.command import read_request, write_request  # noqa: E402
+
+REQ_ATTRS = ("format", "format_version", "width", "height", "round", "seed", "n_total", "channels")
+
+
+def _request_mutation():
+    return st.one_of(
+        st.tuples(st.just("attr"), st.sampled_from(REQ_ATTRS), ATTR_VALUES),
+        st.tuples(st.just("delattr"), st.sampled_from(REQ_ATTRS), st.just(None)),
+        st.tuples(st.just("dataset"), st.sampled_from(["counts", "positions"]),
+                  st.tuples(st.lists(st.integers(0, 6), max_size=3).map(tuple), DTYPES)),
+        st.tuples(st.just("huge"), st.sampled_from([(10**9, 10**9), (2**40, 1), (0, 3), (-1, 3)]), st.just(None)),
+    )
+
+
+def _request_fuzz(tmp_dir, mutations):
+    path = Path(tmp_dir) / "r.h5"
+    write_request(path, SampleRequest(W, H, counts=COUNTS, positions=REQ_POS, round_index=1, seed=5), channels="RGB")
+    for m in mutations:  # attribute and dataset edits through h5py (raw bytes are fuzzed in a worker above)
+        try:
+            if m[0] == "delattr":
+                with h5py.File(path, "r+") as f:
+                    del f.attrs[m[1]]
+            else:
+                _apply(path, m)
+        except (OSError, ValueError, TypeError, KeyError, RuntimeError):
+            pass
+    try:
+        req = read_request(path)
+    except InputError as exc:
+        assert "\n" not in str(exc) and str(path) in str(exc), repr(exc)
+        return
+    assert req.width >= 1 and req.height >= 1 and req.total >= 0
+    if req.positions is not None:
+        assert np.isfinite(req.positions).all()
+
+
+@settings(max_examples=100, derandomize=True, deadline=None, database=None, suppress_health_check=list(HealthCheck))
+@given(mutations=st.lists(_request_mutation(), min_size=1, max_size=3))
+def test_mutated_request_files_give_one_line_or_a_valid_request(mutations):
+    with tempfile.TemporaryDirectory() as tmp:
+        _request_fuzz(tmp, mutations)
+
+
+@pytest.mark.slow
+@settings(max_examples=2000 if FULL else 400, derandomize=True, deadline=None, database=None,
+          suppress_health_check=list(HealthCheck))
+@given(mutations=st.lists(_request_mutation(), min_size=1, max_size=5))
+def test_mutated_request_files_larger_budget(mutations):
+    with tempfile.TemporaryDirectory() as tmp:
+        _request_fuzz(tmp, mutations)

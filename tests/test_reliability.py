@@ -363,3 +363,85 @@ def test_huge_film_refused_before_any_allocation(tmp_path, capsys):
         assert code == 2 and err.count("\n") == 1 and "1000000000x1000000000" in err
     with pytest.raises(InputError, match="beyond"):
         write_log(tmp_path / "w.h5", np.zeros((0, 2)), np.zeros((0, 3)), width=10**9, height=10**9)
+
+
+# ------------------------------------------------------------------ stale renderer work directories
+def test_sigkilled_runs_renderer_workdir_removed_by_the_next_renderer(tmp_path, monkeypatch):
+    import tempfile
+
+    from mcrecon.renderers.command import remove_stale_workdirs
+
+    script = textwrap.dedent(f"""
+        import sys, time
+        from mcrecon.renderers.command import CommandRenderer
+        r = CommandRenderer([sys.executable, {FAULT!r}, "ok", "-1", "{{request}}", "{{reply}}"], width=4, height=4)
+        (r.workdir / "round-00000.request.h5").write_bytes(b"x")  # a round in flight
+        print(r.workdir, flush=True)
+        time.sleep(600)
+    """)
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        left = Path(proc.stdout.readline().strip())
+        assert left.parent == tmp_path and left.name.startswith(f"mcrecon-renderer-{proc.pid}-")
+        assert remove_stale_workdirs(tmp_path) == []  # its owner is alive: kept
+        assert left.is_dir()
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        proc.stdout.close()
+    assert left.is_dir()  # SIGKILL leaves no chance to clean up
+    legacy = tmp_path / "mcrecon-renderer-abc123"  # no PID in the name (older versions): left alone
+    legacy.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    r = CommandRenderer([sys.executable, FAULT, "ok", "-1", "{request}", "{reply}"], width=4, height=4)
+    assert not left.exists() and legacy.is_dir()
+    assert r.workdir.is_dir() and r.workdir.name.startswith(f"mcrecon-renderer-{os.getpid()}-")
+    assert remove_stale_workdirs(tmp_path) == []  # ours is alive
+    workdir = r.workdir
+    del r
+    assert not workdir.exists()
+
+
+# ------------------------------------------------------------------ a read-only directory mid-run
+@pytest.fixture
+def tmpfs(tmp_path):
+    """A small tmpfs mounted at ``tmp_path/mnt`` (root only; skipped, with the reason, otherwise)."""
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    out = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64m", "tmpfs", str(mnt)], capture_output=True, text=True)
+    if out.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here (needs root and mount permission): {out.stderr.strip()}")
+    yield mnt
+    while subprocess.run(["umount", str(mnt)], capture_output=True).returncode == 0:
+        pass  # the read-only bind mount over it, then the tmpfs
+
+
+def test_read_only_directory_mid_run_one_line_then_resume_matches(tmp_path, tmpfs):
+    from mcrecon.io import read_exr
+
+    def adapt_cli(log, out, extra_env=None):
+        argv = ["adapt", "--renderer-cmd", f"{sys.executable} {FAULT} ok -1 {{request}} {{reply}}", "--size",
+                "32x16", "--spp", "32", "--method", "box", "--seed", "9", "--quiet", "--log", str(log), "-o", str(out)]
+        return subprocess.run([sys.executable, "-m", "mcrecon", *argv], capture_output=True, text=True,
+                              env={**os.environ, **(extra_env or {})})
+
+    full = adapt_cli(tmp_path / "full.h5", tmp_path / "full.exr")
+    assert full.returncode == 0, full.stderr
+    log = tmpfs / "run.h5"
+    # at round 2 the renderer mounts the log's directory read-only over itself
+    out = adapt_cli(log, tmp_path / "ro.exr", {"FAULT_RENDERER_DISK": f"ro:{tmpfs}", "FAULT_RENDERER_DISK_ROUND": "2"})
+    assert out.returncode == 2, out
+    assert out.stderr.count("\n") == 1 and out.stderr.startswith("mcrecon: error: "), out.stderr
+    assert "cannot be opened for writing" in out.stderr and "Read-only file system" in out.stderr
+    assert "regenerate" not in out.stderr  # a healthy log is never called damaged
+    sl = read_log(log)  # every round committed before the fault
+    assert sl.n_rounds == 2 and list(sl.round_ends) == [512, 1024]
+    assert live_writer(log) is None  # the lock left behind (it could not be removed) is stale
+    assert subprocess.run(["umount", str(tmpfs)]).returncode == 0  # writable again
+    res = subprocess.run([sys.executable, "-m", "mcrecon", "adapt", "--resume", str(log), "-o",
+                          str(tmp_path / "resumed.exr"), "--quiet"], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert read_log(log).n_samples == read_log(tmp_path / "full.h5").n_samples == 32 * 16 * 32
+    np.testing.assert_array_equal(read_exr(tmp_path / "resumed.exr")[0], read_exr(tmp_path / "full.exr")[0])
+    assert not lock_path(log).exists()

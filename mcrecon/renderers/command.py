@@ -14,6 +14,8 @@ has committed every earlier round, so the run stays resumable.
 
 from __future__ import annotations
 
+import os
+import re
 import shutil
 import subprocess
 import tempfile
@@ -28,7 +30,52 @@ from ..errors import InputError, RendererError
 from ..io._atomic import atomic_path
 from .protocol import SampleBatch, SampleRequest
 
-__all__ = ["CommandRenderer", "write_request", "read_request", "REQUEST_FORMAT"]
+__all__ = ["CommandRenderer", "write_request", "read_request", "REQUEST_FORMAT", "remove_stale_workdirs"]
+
+WORKDIR_PREFIX = "mcrecon-renderer-"
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, owned by another user
+        return True
+    except OSError:
+        return False
+    return True
+
+
+def remove_stale_workdirs(tmpdir=None) -> list[Path]:
+    """Remove ``mcrecon-renderer-PID-*`` directories whose owner process has died.
+
+    A run killed with SIGKILL cannot remove its private work directory; the
+    next :class:`CommandRenderer` does.  Directories of live processes, of
+    other users and without a PID in their name (older versions) are left
+    alone.  Returns the directories removed.
+    """
+    root = Path(tmpdir if tmpdir is not None else tempfile.gettempdir())
+    removed = []
+    try:
+        entries = list(root.glob(WORKDIR_PREFIX + "*"))
+    except OSError:
+        return removed
+    for d in entries:
+        m = re.fullmatch(re.escape(WORKDIR_PREFIX) + r"(\d+)-.+", d.name)
+        if not m or _pid_alive(int(m.group(1))):
+            continue
+        try:
+            if d.is_symlink() or not d.is_dir() or d.stat().st_uid != os.getuid():
+                continue
+        except OSError:
+            continue
+        shutil.rmtree(d, ignore_errors=True)
+        if not d.exists():
+            removed.append(d)
+    return removed
 
 REQUEST_FORMAT = "mcrecon-request"
 REQUEST_VERSION = 1
@@ -55,19 +102,57 @@ def write_request(path, request: SampleRequest, *, channels: Sequence[str]) -> P
 
 
 def read_request(path) -> SampleRequest:
-    """Read a request file (what a Python renderer does first)."""
+    """Read a request file (what a Python renderer does first).
+
+    Any problem (not HDF5, another format, a missing or malformed attribute
+    or dataset, counts or positions that do not fit the film) raises a
+    one-line :class:`~mcrecon.errors.InputError` naming the file.
+    """
     path = Path(path)
+
+    def one_line(exc) -> str:
+        return " ".join(str(exc).split()) or type(exc).__name__
+
     try:
         f = h5py.File(path, "r")
-    except OSError as exc:
-        raise InputError(str(path), "file", f"not a readable request file: {exc}") from None
+    except (OSError, ValueError, RuntimeError) as exc:
+        raise InputError(str(path), "file", f"not a readable request file: {one_line(exc)}") from None
     with f:
-        if f.attrs.get("format") != REQUEST_FORMAT:
-            raise InputError(str(path), "attribute format", f"expected {REQUEST_FORMAT!r}")
-        counts = f["counts"][...] if "counts" in f else None
-        positions = f["positions"][...] if "positions" in f else None
-        return SampleRequest(int(f.attrs["width"]), int(f.attrs["height"]), counts=counts, positions=positions,
-                             round_index=int(f.attrs["round"]), seed=int(f.attrs["seed"]))
+        try:
+            if f.attrs.get("format") != REQUEST_FORMAT:
+                raise InputError(str(path), "attribute format", f"expected {REQUEST_FORMAT!r}")
+            ints = {}
+            for key in ("width", "height", "round", "seed"):
+                v = f.attrs.get(key)
+                v = v.item() if isinstance(v, np.ndarray) and v.size == 1 else v
+                if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)):
+                    got = (f"an array of shape {v.shape} dtype {v.dtype}" if isinstance(v, np.ndarray)
+                           else one_line(repr(v))[:60])
+                    raise InputError(str(path), f"attribute {key}", f"got {got}, expected an integer")
+                ints[key] = int(v)
+            if ints["width"] < 1 or ints["height"] < 1 or ints["round"] < 0 or ints["seed"] < 0:
+                raise InputError(str(path), "attributes width/height/round/seed",
+                                 f"got {ints}, expected width, height >= 1 and round, seed >= 0")
+            arrays = {}
+            for key, shape in (("counts", (ints["height"], ints["width"])), ("positions", None)):
+                d = f.get(key)
+                if d is None:
+                    arrays[key] = None
+                    continue
+                ok = isinstance(d, h5py.Dataset) and d.dtype.kind in ("iu" if key == "counts" else "iuf")
+                ok = ok and (d.shape == shape if shape else (d.ndim == 2 and d.shape[1] == 2))
+                if not ok:
+                    expect = f"{shape} integers" if shape else "(M, 2) numbers"
+                    raise InputError(str(path), f"dataset /{key}",
+                                     f"shape {getattr(d, 'shape', None)} dtype {getattr(d, 'dtype', None)}, "
+                                     f"expected {expect}")
+                arrays[key] = d[...]
+            return SampleRequest(ints["width"], ints["height"], counts=arrays["counts"],
+                                 positions=arrays["positions"], round_index=ints["round"], seed=ints["seed"])
+        except InputError:
+            raise
+        except (OSError, ValueError, TypeError, KeyError, RuntimeError, OverflowError) as exc:
+            raise InputError(str(path), "file", f"malformed request: {one_line(exc)}") from None
 
 
 class CommandRenderer:
@@ -85,7 +170,9 @@ class CommandRenderer:
         Seconds per round; the command is killed after it.
     workdir : path-like, optional
         Where request/reply files go (default: a private temporary
-        directory).  They are removed after each successful round.
+        directory ``mcrecon-renderer-PID-XXXX``, removed when the renderer
+        is collected; those left by killed processes are removed by the
+        next CommandRenderer).  They are removed after each successful round.
     """
 
     def __init__(self, argv: Sequence[str], *, width: int, height: int,
@@ -104,7 +191,10 @@ class CommandRenderer:
         self.channels = tuple(channels)
         self.timeout = timeout
         self._own_workdir = workdir is None
-        self.workdir = Path(workdir) if workdir is not None else Path(tempfile.mkdtemp(prefix="mcrecon-renderer-"))
+        if workdir is None:
+            remove_stale_workdirs()
+            workdir = tempfile.mkdtemp(prefix=f"{WORKDIR_PREFIX}{os.getpid()}-")
+        self.workdir = Path(workdir)
         self.workdir.mkdir(parents=True, exist_ok=True)
         self.name = f"renderer command {Path(argv[0]).name}"
         self.last_render_seconds = None

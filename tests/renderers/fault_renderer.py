@@ -8,9 +8,15 @@ FAULT_RENDERER_MARKER=PATH  append a line "ROUND PID" to PATH when called for a 
 FAULT_RENDERER_HOLD=K       for rounds >= K, write the marker and then wait to be killed
                             (at most 120 s) instead of rendering: the driver has then
                             committed rounds 0..K-1 and is blocked on this call
+FAULT_RENDERER_DISK=fill:PATH  at round FAULT_RENDERER_DISK_ROUND (default 2), fill the
+                            filesystem of PATH by writing PATH until it is full (ENOSPC)
+FAULT_RENDERER_DISK=ro:DIR     at that round, mount DIR read-only over itself (a bind mount;
+                            needs root; the test unmounts it)
 """
 
+import errno
 import os
+import subprocess
 import sys
 import time
 
@@ -32,6 +38,15 @@ def main(mode, fault_round, req_path, reply_path):
     if hold is not None and rnd >= int(hold):
         time.sleep(120)  # the test SIGKILLs the driver, then this process
         sys.exit(4)
+    disk = os.environ.get("FAULT_RENDERER_DISK")
+    if disk and rnd == int(os.environ.get("FAULT_RENDERER_DISK_ROUND", "2")):
+        action, target = disk.split(":", 1)
+        if action == "fill":
+            _fill(target)
+        elif action == "ro":
+            # a read-only bind mount over it: files opened before (the run's lock) stay writable
+            subprocess.run(["mount", "--bind", target, target], check=True)
+            subprocess.run(["mount", "-o", "remount,bind,ro", target], check=True)
     rng = np.random.default_rng(seed)
     pix = np.repeat(np.arange(w * h), counts.ravel())
     pos = np.concatenate([np.stack([pix % w, pix // w], 1) + rng.random((pix.size, 2)), extra])
@@ -64,6 +79,20 @@ def main(mode, fault_round, req_path, reply_path):
         f.attrs.update(format="mcrecon-sample-log", format_version=1, width=w, height=h, channels=channels)
         f["positions"] = pos
         f["values"] = val
+
+
+def _fill(path):
+    """Write ``path`` until its filesystem is full."""
+    block = b"\0" * 4096
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND)
+    try:
+        while True:
+            os.write(fd, block)
+    except OSError as exc:
+        if exc.errno != errno.ENOSPC:
+            raise
+    finally:
+        os.close(fd)
 
 
 if __name__ == "__main__":
