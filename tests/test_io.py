@@ -638,3 +638,18 @@ def test_written_files_get_the_umask_permissions(tmp_path):
     exr = write_exr(tmp_path / "p.exr", np.ones((2, 2, 3)))
     for p in (log, exr):
         assert stat.S_IMODE(os.stat(p).st_mode) == expect
+
+
+def test_an_unwritten_round_end_of_a_full_disk_is_not_a_round(tmp_path):
+    """A disk that filled during an append left /rounds/end = [.., n, 0] (the row's shape reached the
+    disk, its value did not): the log must still open with its committed rounds and take appends."""
+    path = write_log(tmp_path / "f.h5", np.full((4, 2), 0.5), np.ones((4, 3)), width=1, height=1,
+                     rounds=np.array([0, 0, 1, 1]))
+    with h5py.File(path, "r+") as f:
+        d = f["rounds/end"]
+        d.resize(3, axis=0)
+        d[2] = 0
+    log = read_log(path)
+    assert log.n_rounds == 2 and log.round_slices() == [(0, 2), (2, 4)]
+    append_log(path, np.full((2, 2), 0.5), np.ones((2, 3)))
+    assert read_log(path).round_slices() == [(0, 2), (2, 4), (4, 6)]

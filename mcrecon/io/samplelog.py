@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import fcntl
 import json
 import os
@@ -274,8 +275,11 @@ def _open(path, mode="r"):
     detail = _detail(failure)
     if pid is not None:
         raise _err(path, "file", f"could not be opened while process {pid} is writing it ({detail}); try again")
-    if mode != "r" and isinstance(failure, OSError) and "ermission" in detail:
-        raise _err(path, "file", f"cannot be opened for writing ({detail})")
+    if mode != "r" and isinstance(failure, OSError) and (
+            failure.errno in (errno.EACCES, errno.EPERM, errno.EROFS)
+            or "ermission" in detail or "Read-only file system" in detail):
+        raise _err(path, "file", f"cannot be opened for writing ({detail}); the log is intact with every "
+                   "committed round: make it writable and resume the run")
     raise _err(path, "file", f"not a readable HDF5 file (truncated or another format: {detail}); "
                "regenerate it, or check the path")
 
@@ -605,6 +609,7 @@ class SampleLog:
             if not isinstance(d, h5py.Dataset) or d.ndim != 1 or d.dtype.kind not in "iu":
                 raise _err(path, "dataset /rounds/end", f"shape {getattr(d, 'shape', None)}, expected (R,) integers")
             ends = np.asarray(_read_ds(path, d, "rounds/end"), dtype=np.int64)
+            ends = ends[:_committed_rows(ends, n)]
             ends = ends[ends <= n]
             if ends.size and (np.any(np.diff(ends) < 0)):
                 raise _err(path, "dataset /rounds/end", "must be non-decreasing")
@@ -885,6 +890,21 @@ def _json_default(o):
     raise TypeError(f"{type(o).__name__} is not JSON serialisable")
 
 
+def _committed_rows(ends: np.ndarray, n: int) -> int:
+    """How many leading rows of /rounds/end (or of its tail) are committed rounds.
+
+    An interrupted append leaves at most its own row past the committed ones:
+    the new end (> n) or, when the disk filled before its value was written,
+    the fill value 0 (found on a full disk: [2048, 4096, 0] with
+    n_committed = 4096).  Trailing rows above ``n`` or below their
+    predecessor are not committed.
+    """
+    k = int(ends.shape[0])
+    while k > 0 and (ends[k - 1] > n or (k > 1 and ends[k - 1] < ends[k - 2])):
+        k -= 1
+    return k
+
+
 def _committed_rounds(path, f, n: int) -> tuple[int, list[int]]:
     """Committed rounds of /rounds/end as a reader counts them, reading only its tail.
 
@@ -911,7 +931,7 @@ def _committed_rounds(path, f, n: int) -> tuple[int, list[int]]:
         lo = max(0, hi - block)
         tail = np.asarray(d[lo:hi], np.int64)
         if tail[0] <= n:
-            keep = lo + int(np.searchsorted(tail, n, side="right"))
+            keep = lo + _committed_rows(tail, n)
             break
         hi, block = lo, block * 4
     last = int(d[keep - 1]) if keep else None
