@@ -15,7 +15,7 @@ import numpy as np
 from .errors import InputError
 from .methods import Method, get_method
 from .methods.base import MethodInputs, RunState
-from .samples import SampleSet, check_policy
+from .samples import check_policy
 from .stats import PixelStats
 
 __all__ = ["reconstruct", "gather_inputs", "Reconstruction"]
@@ -60,13 +60,7 @@ class Reconstruction:
                 src = self.inputs.samples
                 with warnings.catch_warnings():  # the reconstruction already reported dropped samples
                     warnings.simplefilter("ignore")
-                    if hasattr(src, "round_slices"):  # a sample log
-                        stats = PixelStats.from_log(src, nonfinite=self.inputs.nonfinite)
-                    else:
-                        stats = PixelStats.from_batches(((c.positions, c.values) for c in
-                                                         src.iter_chunks(with_round=False)),
-                                                        width=src.width, height=src.height, channels=src.channels,
-                                                        nonfinite=self.inputs.nonfinite)
+                    stats = PixelStats.from_source(src, nonfinite=self.inputs.nonfinite)
             self._sanity = [output_sanity(self.image, stats) if stats is not None else None]
         return self._sanity[0]
 
@@ -109,21 +103,12 @@ def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=
         if isinstance(source, (str, Path)):
             from .io import read_log
             source = read_log(source)
-        if isinstance(source, SampleSet):
-            stored_ref = None
-            stats = None
-            if req.statistics:
-                stats = PixelStats.from_batches(((c.positions, c.values) for c in
-                                                 source.iter_chunks(with_round=False)),
-                                                width=source.width, height=source.height, channels=source.channels,
-                                                subpixels=req.subpixels, nonfinite=nonfinite, source=source.name)
-        elif hasattr(source, "round_slices") and hasattr(source, "iter_chunks"):  # a sample log
-            stats = PixelStats.from_log(source, subpixels=req.subpixels, nonfinite=nonfinite) \
-                if req.statistics else None
-            stored_ref = source.reference() if req.reference != "none" and hasattr(source, "reference") else None
-        else:
+        if not (hasattr(source, "round_slices") and hasattr(source, "iter_chunks")):
             raise InputError("reconstruct", "source", f"got {type(source).__name__}; expected a sample log path, "
                              "a SampleLog, a SampleSet or PixelStats")
+        stats = PixelStats.from_source(source, subpixels=req.subpixels, nonfinite=nonfinite) \
+            if req.statistics else None
+        stored_ref = source.reference() if req.reference != "none" and hasattr(source, "reference") else None
         samples = source if req.samples else None
     shape = stats.shape if stats is not None else (samples.height, samples.width, len(samples.channels))
     ref = reference if reference is not None else stored_ref

@@ -46,9 +46,7 @@ def _run(name: str, source, reference, nonfinite: str, options: dict) -> np.ndar
     if isinstance(source, SampleSet):
         stats = None
         if req.statistics:
-            stats = PixelStats.from_batches(((c.positions, c.values) for c in source.iter_chunks(with_round=False)),
-                                            width=source.width, height=source.height, channels=source.channels,
-                                            subpixels=req.subpixels, nonfinite=nonfinite, source=source.name)
+            stats = PixelStats.from_source(source, subpixels=req.subpixels, nonfinite=nonfinite)
             _check_stats(stats, where)
         elif source.n_samples == 0:
             raise InputError(where, "samples", "no samples: there is nothing to reconstruct")

@@ -488,6 +488,19 @@ class PixelStats:
         return cls.from_batches(batches, width=log.width, height=log.height, channels=log.channels,
                                 subpixels=subpixels, nonfinite=nonfinite, source=str(log.path))
 
+    @classmethod
+    def from_source(cls, source, *, subpixels: int = 0, nonfinite: str = "drop") -> "PixelStats":
+        """Stream any sample source: a sample log (its fast reader) or a
+        :class:`~mcrecon.samples.SampleSet` (any object with ``width``,
+        ``height``, ``channels`` and ``iter_chunks``)."""
+        if hasattr(source, "iter_into"):  # a SampleLog
+            return cls.from_log(source, subpixels=subpixels, nonfinite=nonfinite)
+        from .samples import source_name
+
+        return cls.from_batches(((c.positions, c.values) for c in source.iter_chunks(with_round=False)),
+                                width=source.width, height=source.height, channels=source.channels,
+                                subpixels=subpixels, nonfinite=nonfinite, source=source_name(source))
+
     # -------------------------------------------------------------- derived
     def sample_variance(self, *, ddof: int = 1, undefined: float = np.nan) -> np.ndarray:
         """Per-pixel sample variance ``m2 / (n - ddof)``, shape (H, W, C).
