@@ -4,7 +4,12 @@ Relative MSE follows the adaptive-rendering literature (Rousselle et al.
 2011): ``(img - ref)^2 / (ref^2 + eps)`` per pixel and channel, averaged
 over both, ``eps = 0.01`` by default.  PSNR needs an explicit data range:
 HDR images have none that a dtype could tell.  SSIM is computed by
-scikit-image on tone-mapped (sRGB, clipped) images, as a display metric.
+scikit-image on tone-mapped (sRGB, clipped) images, as a display metric;
+reports give ``1 - SSIM`` so that every metric is an error (lower is better).
+SMAPE is ``|img - ref| / (|img| + |ref| + eps)`` per pixel and channel,
+averaged over both, ``eps = 0.01`` by default (in [0, 1]; no factor 2).
+FLIP is NVIDIA's reference implementation (PyPI ``flip-evaluator``, an
+optional dependency: ``pip install flip-evaluator``), HDR-FLIP by default.
 """
 
 from __future__ import annotations
@@ -13,8 +18,10 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["relative_mse", "relative_mse_map", "mse", "rmse", "psnr", "ssim", "error_map", "compare",
-           "output_sanity"]
+__all__ = ["relative_mse", "relative_mse_map", "mse", "rmse", "psnr", "ssim", "smape", "smape_map", "flip",
+           "flip_available", "error_map", "compare", "output_sanity"]
+
+FLIP_INSTALL_HINT = "pip install flip-evaluator"
 
 
 def _pair(img, ref, where="compare"):
@@ -95,20 +102,119 @@ def ssim(img, ref, *, exposure: float = 0.0) -> float:
     return float(structural_similarity(a, b, data_range=1.0, channel_axis=2, win_size=win))
 
 
-def compare(img, ref, *, eps: float = 0.01, data_range: float | None = None) -> dict:
-    """All metrics as a dict (PSNR with ``data_range``, default the reference's max)."""
+def smape_map(img, ref, *, eps: float = 0.01) -> np.ndarray:
+    """Per-pixel ``|img - ref| / (|img| + |ref| + eps)``, mean over channels (H, W)."""
+    if not eps > 0:
+        raise InputError("smape", "eps", f"got {eps}, expected > 0")
+    a, b = _pair(img, ref, where="smape")
+    return np.mean(np.abs(a - b) / (np.abs(a) + np.abs(b) + eps), axis=2)
+
+
+def smape(img, ref, *, eps: float = 0.01) -> float:
+    """Symmetric mean absolute percentage error, in [0, 1].
+
+    ``|img - ref| / (|img| + |ref| + eps)`` averaged over pixels and
+    channels, ``eps = 0.01`` by default (no factor 2, so 0 for equal
+    images and at most 1).
+    """
+    return float(np.mean(smape_map(img, ref, eps=eps)))
+
+
+def flip_available() -> bool:
+    """True when ``flip-evaluator`` (NVIDIA's FLIP) can be imported."""
+    try:
+        import flip_evaluator  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _flip_rgb(x, hdr):
+    # flip-evaluator wants C-contiguous float32 (H, W, 3) arrays; one channel
+    # is repeated to grey RGB (it gives nonsense for a single channel).
+    # Rounding to float32 first makes float32 and float64 inputs agree exactly.
+    x = x.astype(np.float32).astype(np.float64)
+    if x.shape[2] == 1:
+        x = np.repeat(x, 3, axis=2)
+    elif x.shape[2] != 3:
+        raise InputError("flip", "channels", f"got {x.shape[2]} channels, FLIP compares 1 or 3 (RGB)")
+    if hdr:
+        # HDR-FLIP is defined for nonnegative linear (sRGB primaries) radiance.
+        x = np.maximum(x, 0.0)
+    else:
+        from .io.images import tonemap_srgb
+
+        x = tonemap_srgb(x)  # LDR-FLIP takes sRGB-encoded values in [0, 1]
+    return np.ascontiguousarray(x, dtype=np.float32)
+
+
+def flip(img, ref, *, hdr: bool = True) -> float:
+    """Mean FLIP error (NVIDIA's ``flip-evaluator``), HDR-FLIP by default.
+
+    HDR: linear images, negative values clamped to 0, FLIP's default
+    exposure range and ACES tone mapper.  LDR (``hdr=False``): both images
+    are first tone-mapped to sRGB and clipped to [0, 1].  67 pixels per
+    degree (FLIP's default).  NaN when the image has a non-finite value.
+
+    Raises
+    ------
+    InputError
+        When ``flip-evaluator`` is not installed (``pip install flip-evaluator``).
+
+    References
+    ----------
+    .. [1] P. Andersson et al., "FLIP: A Difference Evaluator for
+       Alternating Images", HPG 2020; "Visualizing Errors in Rendered High
+       Dynamic Range Images", Eurographics 2021.
+    """
+    try:
+        import flip_evaluator
+    except ImportError:
+        raise InputError("flip", "flip-evaluator", f"not installed; FLIP needs it: {FLIP_INSTALL_HINT}") from None
+    a, b = _pair(img, ref, where="flip")
+    if not np.isfinite(a).all():
+        return float("nan")
+    _, mean, _ = flip_evaluator.evaluate(_flip_rgb(b, hdr), _flip_rgb(a, hdr), "HDR" if hdr else "LDR",
+                                         applyMagma=False)
+    return float(mean)
+
+
+def compare(img, ref, *, eps: float = 0.01, data_range: float | None = None, smape_eps: float = 0.01,
+            flip_mode: str | None = "hdr") -> dict:
+    """All metrics as a dict (PSNR with ``data_range``, default the reference's max).
+
+    ``relative_mse`` with ``eps`` (also as ``relative_mse_eps``), ``smape``
+    with ``smape_eps``, ``ssim`` and ``one_minus_ssim``, and ``flip`` with
+    ``flip_mode`` ("hdr" or "ldr"; None skips FLIP).  When
+    ``flip-evaluator`` is not installed, ``flip`` is left out and
+    ``notes`` (a list of strings) says so.
+    """
+    if flip_mode not in (None, "hdr", "ldr"):
+        raise InputError("compare", "flip_mode", f"got {flip_mode!r}, expected 'hdr', 'ldr' or None")
     a, b = _pair(img, ref)
     if data_range is None:
         data_range = float(np.max(b)) if np.max(b) > 0 else 1.0
-    return {
+    s = ssim(a, b)
+    out = {
         "relative_mse": relative_mse(a, b, eps=eps),
+        "relative_mse_eps": eps,
+        "smape": smape(a, b, eps=smape_eps),
+        "smape_eps": smape_eps,
         "mse": mse(a, b),
         "rmse": rmse(a, b),
         "psnr": psnr(a, b, data_range=data_range),
         "psnr_data_range": data_range,
-        "ssim": ssim(a, b),
+        "ssim": s,
+        "one_minus_ssim": 1.0 - s,
         "eps": eps,
     }
+    if flip_mode is not None:
+        if flip_available():
+            out["flip"] = flip(a, b, hdr=flip_mode == "hdr")
+            out["flip_mode"] = flip_mode
+        else:
+            out["notes"] = [f"FLIP omitted: flip-evaluator is not installed ({FLIP_INSTALL_HINT})"]
+    return out
 
 
 def output_sanity(image, stats, *, radius: int = 1) -> dict | None:

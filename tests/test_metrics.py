@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from mcrecon import InputError
-from mcrecon.metrics import compare, mse, psnr, relative_mse, relative_mse_map, rmse, ssim
+from mcrecon.metrics import (compare, flip, flip_available, mse, psnr, relative_mse, relative_mse_map, rmse, smape,
+                             ssim)
 
 
 def test_relative_mse_by_hand():
@@ -43,4 +44,88 @@ def test_shape_mismatch_and_nonfinite_reference():
 def test_compare_is_finite_on_hdr(rng):
     ref = np.where(rng.random((16, 16, 3)) < 0.1, 500.0, 1e-3)
     out = compare(ref * 1.01, ref)
-    assert all(np.isfinite(v) for v in out.values())
+    assert all(np.isfinite(v) for v in out.values() if isinstance(v, float))
+
+
+def test_smape_by_hand():
+    ref = np.array([[[1.0, 0.0]]])
+    img = np.array([[[3.0, 0.0]]])
+    # channel 0: |3 - 1| / (3 + 1 + 0.01); channel 1: 0 / (0 + 0 + 0.01) = 0
+    assert smape(img, ref) == pytest.approx((2 / 4.01 + 0.0) / 2)
+    assert smape(img, ref, eps=1.0) == pytest.approx((2 / 5 + 0.0) / 2)
+    # sign-symmetric: |-1 - 1| / (1 + 1 + eps)
+    assert smape(-np.ones((2, 2, 1)), np.ones((2, 2, 1))) == pytest.approx(2 / 2.01)
+
+
+def test_smape_of_identical_images_is_zero(rng):
+    ref = rng.random((8, 8, 3)) * 100
+    assert smape(ref, ref) == 0.0
+    with pytest.raises(InputError, match="eps"):
+        smape(ref, ref, eps=0.0)
+
+
+needs_flip = pytest.mark.skipif(not flip_available(), reason="flip-evaluator not installed (pip install flip-evaluator)")
+
+
+@needs_flip
+@pytest.mark.parametrize("hdr", [True, False])
+def test_flip_zero_for_identical_and_positive_for_different(rng, hdr):
+    ref = rng.random((32, 32, 3)) * 4
+    assert flip(ref, ref, hdr=hdr) == 0.0
+    assert flip(ref.astype(np.float32), ref, hdr=hdr) == 0.0
+    d = flip(ref + rng.normal(0, 0.5, ref.shape), ref, hdr=hdr)
+    assert 0 < d <= 1
+    grey = ref[..., :1]
+    assert flip(grey, grey, hdr=hdr) == 0.0 and flip(grey * 2, grey, hdr=hdr) > 0
+
+
+def test_flip_without_flip_evaluator_says_how_to_install(monkeypatch, rng):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "flip_evaluator", None)  # import raises ImportError
+    ref = rng.random((8, 8, 3))
+    with pytest.raises(InputError, match="pip install flip-evaluator"):
+        flip(ref, ref)
+    out = compare(ref, ref)
+    assert "flip" not in out and "pip install flip-evaluator" in out["notes"][0]
+
+
+def _compare_json(tmp_path, capsys, *extra):
+    from mcrecon.cli import main
+    from mcrecon.io import write_exr
+
+    rng = np.random.default_rng(3)
+    ref = (rng.random((16, 16, 3)) * 2).astype(np.float32)
+    write_exr(tmp_path / "ref.exr", ref)
+    write_exr(tmp_path / "img.exr", ref * 1.1)
+    code = main(["compare", str(tmp_path / "img.exr"), str(tmp_path / "ref.exr"), *extra])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    return out.out, ref
+
+
+def test_compare_json_fields(tmp_path, capsys):
+    import json
+
+    text, ref = _compare_json(tmp_path, capsys, "--json", "--eps", "0.001", "--smape-eps", "0.1")
+    m = json.loads(text)
+    assert m["relative_mse_eps"] == 0.001 and m["smape_eps"] == 0.1
+    assert m["relative_mse"] == pytest.approx(relative_mse(ref * 1.1, ref, eps=0.001), rel=1e-5)
+    assert m["smape"] == pytest.approx(smape(ref * 1.1, ref, eps=0.1), rel=1e-5)
+    assert m["one_minus_ssim"] == pytest.approx(1 - m["ssim"]) and 0 < m["one_minus_ssim"] < 1
+    if flip_available():
+        assert m["flip_mode"] == "hdr" and 0 < m["flip"] < 1
+    else:
+        assert "flip" not in m and "pip install flip-evaluator" in m["notes"][0]
+
+
+@needs_flip
+def test_compare_ldr_flip_and_text_output(tmp_path, capsys):
+    import json
+
+    m = json.loads(_compare_json(tmp_path, capsys, "--json", "--ldr-flip")[0])
+    assert m["flip_mode"] == "ldr" and 0 < m["flip"] < 1
+    text = _compare_json(tmp_path, capsys)[0]
+    assert "relMSE (eps=0.01)" in text and "SMAPE (eps=0.01)" in text and "1-SSIM" in text and "HDR-FLIP" in text
+    m = json.loads(_compare_json(tmp_path, capsys, "--json", "--no-flip")[0])
+    assert "flip" not in m and "notes" not in m

@@ -249,12 +249,23 @@ def _cmd_compare(args):
 
     img, _ = read_exr(args.image)
     ref, _ = read_exr(args.reference)
-    out = compare(img, ref, eps=args.eps, data_range=args.data_range)
+    flip_mode = None if args.no_flip else ("ldr" if args.ldr_flip else "hdr")
+    out = compare(img, ref, eps=args.eps, data_range=args.data_range, smape_eps=args.smape_eps,
+                  flip_mode=flip_mode)
     if args.json:
         print(json.dumps(out, indent=2, sort_keys=True))
-    else:
-        for k, v in out.items():
-            print(f"{k:16s} {v:.6g}")
+        return 0
+    rows = [(f"relMSE (eps={out['relative_mse_eps']:g})", out["relative_mse"]),
+            (f"SMAPE (eps={out['smape_eps']:g})", out["smape"]),
+            ("1-SSIM", out["one_minus_ssim"])]
+    if "flip" in out:
+        rows.append((f"{out['flip_mode'].upper()}-FLIP", out["flip"]))
+    rows += [("MSE", out["mse"]), ("RMSE", out["rmse"]),
+             (f"PSNR (range={out['psnr_data_range']:g})", out["psnr"]), ("SSIM", out["ssim"])]
+    for k, v in rows:
+        print(f"{k:24s} {v:.6g}")
+    for note in out.get("notes", []):
+        print(f"note: {note}")
     return 0
 
 
@@ -452,6 +463,11 @@ def register(sub) -> None:
     s.add_argument("reference")
     s.add_argument("--eps", type=float, default=0.01, help="relative MSE epsilon (default 0.01)")
     s.add_argument("--data-range", type=float, default=None, help="PSNR data range (default: reference max)")
+    s.add_argument("--smape-eps", type=float, default=0.01, help="SMAPE epsilon (default 0.01)")
+    g = s.add_mutually_exclusive_group()
+    g.add_argument("--ldr-flip", action="store_true",
+                   help="LDR-FLIP on sRGB tone-mapped images instead of HDR-FLIP (the default)")
+    g.add_argument("--no-flip", action="store_true", help="skip FLIP")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=_cmd_compare)
 
