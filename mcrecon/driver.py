@@ -33,7 +33,7 @@ from .methods import Method, get_method
 from .methods.base import AdaptiveState, RunState
 from .renderers.protocol import SampleBatch, validate_reply
 from .renderers.spec import renderer_from_spec
-from .samples import FLOAT32_MAX, NONFINITE_POLICIES, apply_nonfinite, float32_loses_spread
+from .samples import FLOAT32_MAX, NONFINITE_POLICIES, apply_nonfinite, check_reference, float32_loses_spread
 from .stats import PixelStats
 
 __all__ = ["adapt", "resume", "AdaptiveResult", "round_seeds", "STORAGE_DTYPES"]
@@ -223,7 +223,7 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
         raise InputError("adapt", "nonfinite", f"got {nonfinite!r}; valid: {', '.join(NONFINITE_POLICIES)}")
     if time_limit is not None and not time_limit > 0:
         raise InputError("adapt", "time_limit", f"got {time_limit!r}, expected seconds > 0")
-    ref = _check_reference(reference, (h, w, len(channels)))
+    ref = check_reference(reference, (h, w, len(channels)))
     if storage_dtype not in STORAGE_DTYPES:
         raise InputError("adapt", "storage_dtype", f"got {storage_dtype!r}; valid: {', '.join(STORAGE_DTYPES)}")
     if float(spp) * w * h >= 2.0 ** 62:
@@ -270,19 +270,6 @@ def _start(renderer, method, *, w, h, channels, ref, budget, settings, seed, log
                 log_path=log_path, ref=ref, time_limit=time_limit, progress=progress, nonfinite=nonfinite,
                 max_rounds=max_rounds, track_error=track_error, eps=eps, elapsed=0.0, on_round=on_round,
                 storage_dtype=storage_dtype)
-
-
-def _check_reference(reference, shape):
-    if reference is None:
-        return None
-    ref = np.asarray(reference, dtype=np.float64)
-    if ref.ndim == 2 and shape[2] == 1:
-        ref = ref[..., None]
-    if ref.shape != shape:
-        raise InputError("reference", "shape", f"{ref.shape}, expected (height, width, channels) = {shape}")
-    if not np.isfinite(ref).all():
-        raise InputError("reference", "values", "contains NaN or Inf")
-    return ref
 
 
 def resume(log, renderer=None, *, progress: bool | None = None, time_limit: float | None = None,

@@ -15,7 +15,7 @@ import numpy as np
 from .errors import InputError
 from .methods import Method, get_method
 from .methods.base import MethodInputs, RunState
-from .samples import check_policy
+from .samples import check_policy, check_reference
 from .stats import PixelStats
 
 __all__ = ["reconstruct", "gather_inputs", "Reconstruction"]
@@ -65,17 +65,6 @@ class Reconstruction:
         return self._sanity[0]
 
 
-def _check_reference(reference, shape, where="reference"):
-    ref = np.asarray(reference, dtype=np.float64)
-    if ref.ndim == 2 and shape[2] == 1:
-        ref = ref[..., None]
-    if ref.shape != tuple(shape):
-        raise InputError(where, "shape", f"{ref.shape}, expected (height, width, channels) = {tuple(shape)}")
-    if not np.isfinite(ref).all():
-        raise InputError(where, "values", "contains NaN or Inf")
-    return ref
-
-
 def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=None) -> MethodInputs:
     """The inputs ``method`` declares, read from ``source``.
 
@@ -111,9 +100,7 @@ def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=
         stored_ref = source.reference() if req.reference != "none" and hasattr(source, "reference") else None
         samples = source if req.samples else None
     shape = stats.shape if stats is not None else (samples.height, samples.width, len(samples.channels))
-    ref = reference if reference is not None else stored_ref
-    if ref is not None:
-        ref = _check_reference(ref, shape)
+    ref = check_reference(reference if reference is not None else stored_ref, shape)
     return MethodInputs(stats, samples, ref if req.reference != "none" else None, nonfinite)
 
 

@@ -21,7 +21,7 @@ import numpy as np
 from .errors import InputError
 from .methods import get_method, method_class
 from .methods.base import MethodInputs
-from .samples import SampleSet, check_policy
+from .samples import SampleSet, check_policy, check_reference
 from .stats import PixelStats
 
 __all__ = ["box", "gem", "awr", "splat", "ci"]
@@ -63,13 +63,7 @@ def _run(name: str, source, reference, nonfinite: str, options: dict) -> np.ndar
         raise InputError(where, "input", f"got {type(source).__name__}; expected PixelStats "
                          "(PixelStats.from_moments / from_samples) or a mcrecon.SampleSet")
     if reference is not None:
-        h, w, c = inputs.shape
-        ref = np.asarray(reference, dtype=np.float64)
-        if ref.ndim == 2 and c == 1:
-            ref = ref[..., None]
-        if ref.shape != (h, w, c) or not np.isfinite(ref).all():
-            raise InputError(where, "reference", f"shape {ref.shape}, expected finite (height, width, channels) "
-                             f"= {(h, w, c)}")
+        ref = check_reference(reference, inputs.shape, where=f"{where}: reference")
         inputs = MethodInputs(inputs.stats, inputs.samples, ref, nonfinite)
     image = method.reconstruct(inputs)
     return np.asarray(image).astype(np.float32 if dtype == np.float32 else np.float64, copy=False)

@@ -189,6 +189,26 @@ def _widen(arr: np.ndarray) -> np.ndarray:
     return arr
 
 
+def check_reference(reference, shape, *, where: str = "reference"):
+    """A reference image as float64 (H, W, C), or None; the one check of every entry point.
+
+    A 2-D image is taken as one channel.  Raises :class:`InputError` naming
+    ``where`` for a shape other than ``shape`` (height, width, channels) or
+    NaN/Inf values.
+    """
+    if reference is None:
+        return None
+    shape = tuple(int(x) for x in shape)
+    ref = np.asarray(reference, dtype=np.float64)
+    if ref.ndim == 2 and shape[2] == 1:
+        ref = ref[..., None]
+    if ref.shape != shape:
+        raise InputError(where, "shape", f"{ref.shape}, expected (height, width, channels) = {shape}")
+    if not np.isfinite(ref).all():
+        raise InputError(where, "values", "contains NaN or Inf")
+    return ref
+
+
 def apply_nonfinite(positions, values, n_nonfinite: int, policy: str, *, where: str = "samples", error=InputError):
     """Apply the non-finite policy to a checked batch; returns ``(positions, values)``.
 
