@@ -73,6 +73,48 @@ def test_methods_are_immutable_and_validate_options_once(name):
         assert get_method(name, **{opt.name: opt.default}).params[opt.name] == opt.default
 
 
+@pytest.mark.parametrize("name", sorted(METHODS))
+def test_variants_preset_valid_options_and_explicit_options_win(name):
+    cls = get_method(name).__class__
+    opts = {o.name: o for o in cls.options}
+    if "variant" not in opts:
+        assert not cls.variants, f"{name} has variants but no variant option"
+        return
+    assert set(opts["variant"].choices) == set(cls.variants) and "paper" in cls.variants
+    for variant, presets in cls.variants.items():
+        m = get_method(name, variant=variant)
+        assert m.params["variant"] == variant
+        for oname, value in presets.items():
+            assert oname in opts, f"{name} variant {variant} presets unknown option {oname}"
+            assert opts[oname].convert(value, "t") == value  # presets pass the option's own validation
+            assert m.params[oname] == value == cls.option_default(oname, variant)
+        for oname, opt in opts.items():  # what a variant does not preset keeps the option's default
+            if oname not in presets and oname != "variant":
+                assert m.params[oname] == opt.default
+        for oname, value in presets.items():  # an explicit option wins over the variant's preset
+            other = opts[oname].default
+            if other != value:
+                assert get_method(name, variant=variant, **{oname: other}).params[oname] == other
+
+
+def test_variant_presets_apply_only_to_options_not_given():
+    from mcrecon.methods import Method, variant_option
+
+    class Toy(Method):
+        name = "toy"
+        variants = {"robust": {}, "paper": {"k": 3, "mode": "b"}}
+        options = (variant_option(variants), Option("k", int, 1, "k", min=1),
+                   Option("mode", str, "a", "mode", ("a", "b")))
+
+    assert dict(Toy().params) == {"variant": "robust", "k": 1, "mode": "a"}
+    assert dict(Toy(variant="paper").params) == {"variant": "paper", "k": 3, "mode": "b"}
+    assert dict(Toy(variant="paper", k=2).params) == {"variant": "paper", "k": 2, "mode": "b"}
+    with pytest.raises(InputError, match="valid: robust, paper"):
+        Toy(variant="nope")
+    with pytest.raises(ValueError, match="paper"):
+        variant_option({"robust": {}})
+
+
 def test_option_conversion_bounds_and_messages():
     o = Option("k", int, 2, "a count", min=1)
     assert o.convert("4", "m") == 4 and o.convert(4.0, "m") == 4

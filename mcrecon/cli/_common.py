@@ -82,8 +82,12 @@ def _metavar(opt) -> str:
     return {int: "N", float: "X", bool: "BOOL"}.get(opt.type, "TEXT")
 
 
-def _describe(opt) -> str:
-    return f"{opt.help} (default: {opt.default}; valid: {opt.expectation()})"
+def _describe(opt, cls=None) -> str:
+    others = ""
+    if cls is not None and opt.name != "variant":
+        others = "".join(f"; --variant {v}: {preset[opt.name]}" for v, preset in cls.variants.items()
+                         if opt.name in preset and preset[opt.name] != opt.default)
+    return f"{opt.help} (default: {opt.default}{others}; valid: {opt.expectation()})"
 
 
 def add_method_options(parser, flags: dict, methods=None) -> None:
@@ -99,14 +103,14 @@ def add_method_options(parser, flags: dict, methods=None) -> None:
             continue
         shared = [o for o in cls.options if o.name in registered]
         text = "".join(f"{flags[o.name]} {_metavar(o)}: the flag listed under {registered[o.name]} options; "
-                       f"for {name}: {_describe(o)}\n" for o in shared)
+                       f"for {name}: {_describe(o, cls)}\n" for o in shared)
         group = parser.add_argument_group(f"{name} options ({_summary(cls)})", text or None)
         for opt in cls.options:
             if opt.name in registered:
                 continue
             registered[opt.name] = name
             group.add_argument(flags[opt.name], dest=_DEST + opt.name, default=None, metavar=_metavar(opt),
-                               help=_describe(opt).replace("%", "%%"))
+                               help=_describe(opt, cls).replace("%", "%%"))
 
 
 def given_method_options(args) -> dict:

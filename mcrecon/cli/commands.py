@@ -297,7 +297,10 @@ def _cmd_methods(args):
         print("  (none)")
     indent = " " * 27
     for o in cls.options:
-        print(f"  {args.method_flags[o.name]:24s} {getattr(o.type, '__name__', o.type)}, default {o.default}")
+        presets = "".join(f", --variant {v}: {pre[o.name]}" for v, pre in cls.variants.items()
+                          if o.name in pre and pre[o.name] != o.default)
+        print(f"  {args.method_flags[o.name]:24s} {getattr(o.type, '__name__', o.type)}, default {o.default}"
+              f"{presets}")
         for text in (f"valid: {o.expectation()}", o.help):
             print(textwrap.fill(text, 100, initial_indent=indent, subsequent_indent=indent + "  "))
     req = get_method(args.name).requires

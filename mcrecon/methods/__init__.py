@@ -9,10 +9,10 @@ from __future__ import annotations
 import importlib
 
 from ..errors import InputError
-from .base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, uniform_counts
+from .base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, uniform_counts, variant_option
 
 __all__ = ["METHODS", "get_method", "method_class", "available_methods", "Method", "AdaptiveState",
-           "Option", "Requirements", "MethodInputs", "RunState", "uniform_counts"]
+           "Option", "Requirements", "MethodInputs", "RunState", "uniform_counts", "variant_option"]
 
 #: Registry: method name -> "module:Class".
 METHODS = {

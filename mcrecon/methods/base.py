@@ -61,7 +61,8 @@ from ..errors import InputError
 from ..renderers.protocol import SampleBatch, SampleRequest
 from ..stats import PixelStats
 
-__all__ = ["Method", "AdaptiveState", "Option", "Requirements", "MethodInputs", "RunState", "uniform_counts"]
+__all__ = ["Method", "AdaptiveState", "Option", "Requirements", "MethodInputs", "RunState", "uniform_counts",
+           "variant_option"]
 
 _MISSING = object()
 
@@ -180,6 +181,22 @@ class Option:
         if self.choices is not None and v not in self.choices:
             raise InputError(where, self.name, f"{value!r} is not valid; valid: {', '.join(map(str, self.choices))}")
         return v
+
+
+def variant_option(variants: Mapping[str, Mapping[str, Any]], default: str = "robust") -> Option:
+    """The ``variant`` option of a method whose defaults depart from its paper.
+
+    ``variants`` maps each variant name to the option values it presets
+    (the class attribute :attr:`Method.variants`); ``"paper"`` is the
+    paper's algorithm, ``default`` the measured default.  Options given
+    explicitly always win over a variant's presets.
+    """
+    names = tuple(variants)
+    if default not in names or "paper" not in names:
+        raise ValueError(f"variants {names}: need {default!r} and 'paper'")
+    return Option("variant", str, default,
+                  "algorithm variant: 'paper' presets every option to the paper's algorithm; "
+                  f"{default!r} is the measured default (departures documented on the method's page)", names)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -345,6 +362,10 @@ class Method:
     subpixels, needs_samples, reference : int, bool, str
         The default :attr:`requires` (override the property when it
         depends on the options).
+    variants : mapping
+        ``{variant name: {option: value}}`` for a method with a
+        ``variant`` option (:func:`variant_option`): the option values
+        each variant presets when they are not given explicitly.
 
     Subclasses never override ``__init__``: cross-option checks and
     derived configuration go into :meth:`_configure`.
@@ -357,6 +378,7 @@ class Method:
     subpixels: ClassVar[int] = 0
     needs_samples: ClassVar[bool] = False
     reference: ClassVar[str] = "none"
+    variants: ClassVar[Mapping[str, Mapping[str, Any]]] = {}
 
     def __init__(self, **options):
         where = self.where
@@ -364,10 +386,18 @@ class Method:
         unknown = sorted(set(options) - set(known))
         if unknown:
             raise InputError(where, unknown[0], f"unknown option; valid: {', '.join(known) or '(none)'}")
+        presets = {}
+        if "variant" in known:
+            value = options.get("variant", _MISSING)
+            variant = known["variant"].default if value is _MISSING else known["variant"].convert(value, where)
+            presets = dict(self.variants.get(variant, {}))
         params = {}
         for name, opt in known.items():
             value = options.get(name, _MISSING)
-            params[name] = opt.default if value is _MISSING else opt.convert(value, where)
+            if value is _MISSING:
+                params[name] = presets[name] if name in presets else opt.default
+            else:
+                params[name] = opt.convert(value, where)
         object.__setattr__(self, "_params", params)
         self._configure(params)
         object.__setattr__(self, "params", types.MappingProxyType(params))
@@ -385,6 +415,14 @@ class Method:
     def __repr__(self) -> str:
         opts = ", ".join(f"{k}={v!r}" for k, v in self.params.items())
         return f"{type(self).__name__}({opts})"
+
+    @classmethod
+    def option_default(cls, name: str, variant: str | None = None):
+        """The value option ``name`` takes when not given, under ``variant`` (default: the default variant)."""
+        known = {o.name: o for o in cls.options}
+        if variant is None and "variant" in known:
+            variant = known["variant"].default
+        return cls.variants.get(variant, {}).get(name, known[name].default)
 
     @property
     def where(self) -> str:
