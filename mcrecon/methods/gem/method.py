@@ -13,7 +13,7 @@ import numpy as np
 
 from ...errors import InputError
 from ...stats import PixelStats
-from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState
+from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, variant_option
 from .kernels import adaptive_sigmas, filled_subpixels, final_sigmas
 from .sampling import distribute_samples, sample_priority
 from .selection import GAMMA_MAX, OUTLIER_RULES, GEMSelection, _pick, gem_select, mean_variance_policy, oracle_select
@@ -79,7 +79,15 @@ class GEMMethod(Method):
     grid = 4
     adaptive = True
     initial_spp = 4
+    #: The paper's algorithm (``variant="paper"``) against the measured defaults
+    #: (docs/methods/gem.md, "Default vs paper"): error rate 0.1 (Sec. 7), the
+    #: Sec. 6 final outlier rule, every pixel voting in the stopping maps.
+    variants = {
+        "robust": {},
+        "paper": {"gamma": 0.1, "final_outliers": "paper", "zero_variance_votes": 3},
+    }
     options = (
+        variant_option(variants),
         Option("gamma", float, 0.2, "target error rate of the scale selector", min=0.0, max=GAMMA_MAX,
                min_open=True, max_open=True,
                note="the paper's z(gamma) = -log(1 - (1.9 gamma)^(1/sqrt 2)) is only calibrated there; "
