@@ -361,3 +361,105 @@ def test_mutated_request_files_give_one_line_or_a_valid_request(mutations):
 def test_mutated_request_files_larger_budget(mutations):
     with tempfile.TemporaryDirectory() as tmp:
         _request_fuzz(tmp, mutations)
+
+
+# ------------------------------------------------------------------ pixel-statistics EXR inputs (worker)
+EXR_CHANNELS = ("R", "G", "B", "Variance.R", "Variance.G", "Variance.B", "Albedo.R", "N.X")
+EXR_VALUES = st.sampled_from([np.nan, np.inf, -np.inf, -1.0, 0.0, 1e-30, 1e30, 65504.0, 7.0])
+EXR_DTYPES = st.sampled_from(["f4", "f2", "u4"])
+EXR_ATTR_VALUES = st.one_of(st.integers(-2**31, 2**31 - 1), st.sampled_from([0, 1, -1, 2**31 - 1]),
+                            st.floats(allow_nan=True, allow_infinity=True, width=32), st.text(max_size=8))
+
+
+def _exr_mutation():
+    return st.one_of(
+        st.tuples(st.just("bytes"), st.floats(0, 1), st.binary(min_size=1, max_size=32)),
+        st.tuples(st.just("truncate"), st.floats(0, 1), st.just(b"")),
+        st.tuples(st.just("value"), st.sampled_from(EXR_CHANNELS), st.tuples(EXR_VALUES, st.booleans())),
+        st.tuples(st.just("drop"), st.sampled_from(EXR_CHANNELS), st.just(None)),
+        st.tuples(st.just("dtype"), st.sampled_from(EXR_CHANNELS), EXR_DTYPES),
+        st.tuples(st.just("spp"), st.just("samplesPerPixel"), EXR_ATTR_VALUES),
+    )
+
+
+def _exr_channels(seed=5, h=6, w=8):
+    rng = np.random.default_rng(seed)
+    ch = {c: rng.random((h, w)).astype(np.float32) for c in EXR_CHANNELS}
+    return ch, {"samplesPerPixel": 16}
+
+
+def _write_exr(path, channels, attrs):
+    import OpenEXR
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, **attrs}
+    with OpenEXR.File(header, {k: np.ascontiguousarray(v) for k, v in channels.items()}) as f:
+        f.write(str(path))
+
+
+def _exr_fuzz(worker, mutations, commands=(0, 1, 2)):
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        path = tmp / "in.exr"
+        channels, attrs = _exr_channels()
+        raw = []
+        for kind, where, what in mutations:  # structured edits first, then raw bytes of the written file
+            if kind == "value":
+                value, everywhere = what
+                if everywhere:
+                    channels[where] = np.full_like(channels[where], value)
+                else:
+                    channels[where] = channels[where].copy()
+                    channels[where][2, 3] = value
+            elif kind == "drop":
+                channels.pop(where, None)
+            elif kind == "dtype" and where in channels:
+                channels[where] = channels[where].astype(what)
+            elif kind == "spp":
+                attrs[where] = what
+            else:
+                raw.append((kind, where, what))
+        try:
+            _write_exr(path, channels, attrs)
+        except Exception:  # noqa: BLE001 - a file OpenEXR refuses to write is no input
+            return
+        for m in raw:
+            _apply(path, m)
+        argvs = (["denoise", path, "-o", tmp / "o.exr", "--method", "box"],
+                 ["denoise", path, "-o", tmp / "o.exr", "--layout", "pbrt-v4", "--method", "gem"],
+                 ["denoise", path, "-o", tmp / "o.exr", "--mean", "R,G,B", "--variance",
+                  "Variance.R,Variance.G,Variance.B", "--spp", "4", "--method", "awr"])
+        for argv in (argvs[k] for k in commands):
+            r = worker.run(argv)
+            code, err = r["code"], r["err"]
+            assert code in (0, 2), f"{argv}: {code}: {err}"
+            assert "Traceback" not in err, err
+            errors = [ln for ln in err.splitlines() if "error" in ln]
+            if code == 2:
+                assert len(errors) == 1 and errors[0].startswith("mcrecon: error: "), err
+            else:
+                assert not errors, err
+                img, _ = read_exr(tmp / "o.exr")
+                assert np.isfinite(img).all(), argv
+
+
+def test_the_untouched_base_exr_denoises(worker):
+    _exr_fuzz(worker, [])
+    with tempfile.TemporaryDirectory() as tmp:  # and it really is accepted (not refused with one line)
+        path = Path(tmp) / "in.exr"
+        _write_exr(path, *_exr_channels())
+        r = worker.run(["denoise", path, "-o", Path(tmp) / "o.exr", "--method", "gem"])
+        assert r["code"] == 0, r
+
+
+@settings(max_examples=25, derandomize=True, deadline=None, database=None, suppress_health_check=list(HealthCheck))
+@given(mutations=st.lists(_exr_mutation(), min_size=1, max_size=3), command=st.integers(0, 2))
+def test_mutated_pixel_statistics_exrs_give_one_line_or_a_finite_image(worker, mutations, command):
+    _exr_fuzz(worker, mutations, (command,))
+
+
+@pytest.mark.slow
+@settings(max_examples=400 if FULL else 60, derandomize=True, deadline=None, database=None,
+          suppress_health_check=list(HealthCheck))
+@given(mutations=st.lists(_exr_mutation(), min_size=1, max_size=4))
+def test_mutated_pixel_statistics_exrs_larger_budget(worker, mutations):
+    _exr_fuzz(worker, mutations)
