@@ -10,14 +10,16 @@
    prints the time of one full priority update and the share of the image
    a local update would have had to recompute (``affected_fraction``): a
    full update per batch is justified when that share is large.
-3. ``--limits``: the measured limits, i.e. the cases where the paper's AWR
-   loses to the pixel mean (box) of the same samples, each beside that
-   baseline as a ratio measured in the same run (relative MSE, eps 0.01;
-   defaults 128x128, 32 spp, seed 1).  These were strict xfails in the
-   tests; a table cannot fail when the method gets better.
+3. ``--limits``: the paper's AWR (``variant="paper"``) and the robust
+   default side by side, each as a ratio to box measured in the same run
+   (relative MSE, eps 0.01; defaults 128x128, 32 spp, seed 1), offline on
+   uniform samples and adaptive at equal spp, on every built-in scene and
+   Mitsuba's Cornell box (when the bridge is available), with the number
+   of negative pixels each produces.  docs/methods/awr.md "Default vs
+   paper" quotes it.
 
 Usage: ``python benchmarks/bench_awr.py [--size 1024] [--spp 32] [--round-spp 2 4 8] [--skip-oidn]``
-       ``python benchmarks/bench_awr.py --limits [--size 128] [--spp 32] [--seeds 1 2]``
+       ``python benchmarks/bench_awr.py --limits [--size 128] [--spp 32] [--seeds 1 2] [--no-cornell]``
 """
 
 from __future__ import annotations
@@ -70,13 +72,17 @@ def bench_reconstruction(size, skip_oidn):
     print(f"== reconstruction {size}x{size} RGB (depth_of_field, 8 spp) ==")
     res = {}
     for wavelet in ("cdf97", "legall53", "haar"):
-        m = AWRMethod(wavelet=wavelet)
+        m = AWRMethod(variant="paper", wavelet=wavelet)
         m.reconstruct(stats)                       # warm caches (analysis matrices)
         res[wavelet], _ = best_of(lambda: m.reconstruct(stats))
         print(f"awr {wavelet:9s} {res[wavelet]:7.3f} s")
-    m = AWRMethod(propagation="cascade")
+    m = AWRMethod(variant="paper", propagation="cascade")
     t_cas, _ = best_of(lambda: m.reconstruct(stats))
     print(f"awr cdf97 (paper's cascade propagation) {t_cas:7.3f} s")
+    m = AWRMethod()
+    m.reconstruct(stats)
+    t_rob, _ = best_of(lambda: m.reconstruct(stats))
+    print(f"awr cdf97 robust default (log domain + safeguard) {t_rob:7.3f} s")
     if not skip_oidn:
         import pyoidn
         color = np.ascontiguousarray(stats.mean, dtype=np.float32)
@@ -99,7 +105,7 @@ def bench_adaptive(size, spp, rate, round_spp):
                 infos.append(dict(run.last_plan_info))
             return req
 
-    method = TimedAWR(round_spp=round_spp)
+    method = TimedAWR(variant="paper", round_spp=round_spp)
     renderer = PacedRenderer("depth_of_field", size, rate, seed=3)
     t = time.perf_counter()
     res = adapt(renderer, method, spp=spp, seed=3, progress=False, track_error=False)
@@ -118,50 +124,68 @@ def bench_adaptive(size, spp, rate, round_spp):
           f"renderer time per round at this rate: {round_spp * size * size / rate:.3f} s")
 
 
-#: The measured limits: (stage, scene, variance estimator) where the paper's AWR
-#: loses to or ties with box at 128x128, 32 spp (formerly strict xfails in tests/test_awr.py).
-LIMITS = [("offline", "soft_shadow", "range"), ("offline", "caustic", "range"), ("offline", "caustic", "sample"),
-          ("offline", "hdr", "range"), ("offline", "hdr", "sample"),
-          ("adaptive", "depth_of_field", "range"), ("adaptive", "hdr", "range"),
-          ("adaptive", "soft_shadow", "range")]  # a tie (0.90-1.00x), within the sampler's rounding sensitivity
+SCENES = ["soft_shadow", "depth_of_field", "motion_blur", "caustic", "hdr", "flat"]
 
 
-def bench_limits(size, spp, seeds):
-    """Relative MSE of each limit case beside box (the pixel mean of uniform samples), same run.
+def _cornell(size, seed):
+    """(renderer factory, reference) of Mitsuba's Cornell box, or None when the bridge is unavailable."""
+    try:
+        from mcrecon.renderers.mitsuba import MitsubaRenderer, mitsuba_available, render_reference
+    except ImportError:
+        return None
+    ok, _ = mitsuba_available()
+    if not ok:
+        return None
+    ref = render_reference(None, width=size, height=size, spp=1024, seed=12345)
+    return (lambda: MitsubaRenderer(None, width=size, height=size)), ref
 
-    Offline rows reconstruct the uniform samples themselves; adaptive rows
-    run the full method (AWR sampling + reconstruction, paper defaults)
-    with the same renderer seed and budget, no log.  The depth_of_field
-    row also gives offline AWR, the baseline the adaptive sampler loses to.
+
+def bench_limits(size, spp, seeds, cornell=True):
+    """Paper vs robust AWR beside box of the same samples, as ratios measured in the same run.
+
+    Offline rows reconstruct one set of uniform samples (box = their pixel
+    means); adaptive rows run the full method (sampler + reconstruction)
+    at the same budget and renderer seed against uniform box (the box
+    method's own adaptive run: uniform doubling rounds).  Relative MSE,
+    eps 0.01.  ``neg`` counts pixels below 0 from non-negative samples
+    (``mcrecon.metrics.output_sanity``).  The Cornell box (Mitsuba, 1024 spp
+    reference, seed 12345) is included when the bridge is available.
     """
-    print(f"== measured limits: relative MSE (eps 0.01), {size}x{size}, {spp} spp ==")
-    print(f"{'seed':>4}  {'case':<40} {'awr':>9} {'box':>9} {'awr/box':>8}")
+    import warnings
+
+    from mcrecon.metrics import output_sanity
+    from mcrecon.renderers.protocol import SampleRequest
+    warnings.simplefilter("ignore")
+    print(f"== paper vs robust awr, ratio of relative MSE (eps 0.01) to box, {size}x{size}, {spp} spp ==")
+    print(f"{'seed':>4}  {'scene':<15} {'stage':<9} {'box':>9} {'paper/box':>10} {'robust/box':>11} "
+          f"{'neg paper':>9} {'neg robust':>10}")
+    cb = _cornell(size, 1) if cornell else None
     for seed in seeds:
-        cache = {}
-
-        def uniform(scene):
-            if scene not in cache:
-                b = render_uniform(scene, width=size, height=size, spp=spp, seed=seed)
-                st = PixelStats.from_samples(b.positions, b.values, width=size, height=size)
-                ref = reference_image(scene, size, size)
-                cache[scene] = st, ref, relative_mse(get_method("box").reconstruct(st), ref)
-            return cache[scene]
-
-        for stage, scene, variance in LIMITS:
-            st, ref, box = uniform(scene)
-            note = ""
-            if stage == "offline":
-                err = relative_mse(get_method("awr", variance=variance).reconstruct(st), ref)
-                case = f"offline awr ({variance}), {scene}"
-            else:
-                res = adapt(SceneRenderer(scene, width=size, height=size, seed=seed), get_method("awr"), spp=spp,
-                            seed=seed, progress=False, track_error=False)
-                err = relative_mse(res.image, ref)
-                case = f"adaptive awr, {scene}"
-                if scene == "depth_of_field":
-                    off = relative_mse(get_method("awr").reconstruct(st), ref)
-                    note = f"   offline awr {off:.3g}: adaptive/offline {err / off:.2f}"
-            print(f"{seed:>4}  {case:<40} {err:9.3g} {box:9.3g} {err / box:8.3g}{note}")
+        cases = [(sc, (lambda sc=sc: SceneRenderer(sc, width=size, height=size, seed=seed)),
+                  reference_image(sc, size, size)) for sc in SCENES]
+        if cb is not None:
+            cases.append(("cornell", cb[0], cb[1]))
+        for scene, make, ref in cases:
+            r = make()
+            b = r.render(SampleRequest(size, size, counts=np.full((size, size), spp, np.int64), round_index=0,
+                                       seed=seed))
+            st = PixelStats.from_samples(b.positions, b.values, width=size, height=size)
+            box = relative_mse(st.mean, ref)
+            out, neg = {}, {}
+            for v in ("paper", "robust"):
+                img = get_method("awr", variant=v).reconstruct(st)
+                out[v] = relative_mse(img, ref) / box
+                neg[v] = output_sanity(img, st)["negative_pixels"]
+            print(f"{seed:>4}  {scene:<15} {'offline':<9} {box:9.3g} {out['paper']:10.3g} {out['robust']:11.3g} "
+                  f"{neg['paper']:9d} {neg['robust']:10d}", flush=True)
+            ubox = relative_mse(adapt(make(), "box", spp=spp, seed=seed, progress=False, track_error=False).image, ref)
+            for v in ("paper", "robust"):
+                res = adapt(make(), get_method("awr", variant=v), spp=spp, seed=seed, progress=False,
+                            track_error=False)
+                out[v] = relative_mse(res.image, ref) / ubox
+                neg[v] = output_sanity(res.image, res.stats)["negative_pixels"]
+            print(f"{seed:>4}  {scene:<15} {'adaptive':<9} {ubox:9.3g} {out['paper']:10.3g} {out['robust']:11.3g} "
+                  f"{neg['paper']:9d} {neg['robust']:10d}", flush=True)
 
 
 def main():
@@ -174,9 +198,10 @@ def main():
     ap.add_argument("--skip-adaptive", action="store_true")
     ap.add_argument("--limits", action="store_true", help="print the measured-limits table instead")
     ap.add_argument("--seeds", type=int, nargs="+", default=[1], help="renderer seeds of the limits table")
+    ap.add_argument("--no-cornell", action="store_true", help="leave Mitsuba's Cornell box out of --limits")
     a = ap.parse_args()
     if a.limits:
-        bench_limits(a.size or 128, a.spp, a.seeds)
+        bench_limits(a.size or 128, a.spp, a.seeds, cornell=not a.no_cornell)
         return
     a.size = a.size or 1024
     bench_reconstruction(a.size, a.skip_oidn)

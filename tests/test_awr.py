@@ -486,7 +486,7 @@ def test_plan_positions_budget_threshold_and_determinism():
 
 
 def test_method_plan_respects_remaining_and_returns_none():
-    m = AWRMethod(round_spp=1.0)
+    m = AWRMethod(variant="paper", round_spp=1.0)
     st = PixelStats(30, 20)
     state = AdaptiveState(st, 0, budget=30 * 20 * 6 + 17, n_samples=0, rng=np.random.default_rng(0))
     run = m.start(30, 20)
@@ -498,7 +498,7 @@ def test_method_plan_respects_remaining_and_returns_none():
     assert req.positions is not None and req.total == 17              # never more than remaining
     state = AdaptiveState(st2, 2, budget=st2.n_samples, n_samples=st2.n_samples, rng=np.random.default_rng(1))
     assert m.plan(run, state) is None
-    m2 = AWRMethod(priority_threshold=1e6)
+    m2 = AWRMethod(variant="paper", priority_threshold=1e6)
     state = AdaptiveState(st2, 1, budget=10 ** 6, n_samples=st2.n_samples, rng=np.random.default_rng(1))
     assert m2.plan(m2.start(30, 20), state) is None
 
@@ -528,13 +528,14 @@ def test_sampler_prefers_coarse_levels_in_smooth_noise_and_fine_levels_at_edges(
 
 # ---------------------------------------------------------------- robustness
 
+@pytest.mark.parametrize("variant", ["paper", "robust"])
 @pytest.mark.parametrize("h, w", [(1, 1), (1, 9), (7, 1), (13, 17), (8, 8)])
-def test_tiny_and_prime_sizes(h, w):
+def test_tiny_and_prime_sizes(h, w, variant):
     st = _noisy_stats(h, w, 3, 4)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        img = AWRMethod().reconstruct(st)
-        img2 = AWRMethod(levels=2).reconstruct(st) if min(h, w) >= 2 else img
+        img = AWRMethod(variant=variant).reconstruct(st)
+        img2 = AWRMethod(variant=variant, levels=2).reconstruct(st) if min(h, w) >= 2 else img
     assert img.shape == (h, w, 3) and np.isfinite(img).all() and np.isfinite(img2).all()
 
 
@@ -551,11 +552,15 @@ def test_extreme_inputs_stay_finite():
     st = PixelStats.from_samples(pos, val, width=w, height=h)
     for est in ("range", "contrast", "sample"):
         for wv in BASES:
-            img = AWRMethod(variance=est, wavelet=wv).reconstruct(st)
-            assert np.isfinite(img).all()
+            for variant in ("paper", "robust"):
+                img = AWRMethod(variant=variant, variance=est, wavelet=wv).reconstruct(st)
+                assert np.isfinite(img).all()
     one = PixelStats.from_samples(rng.random((h * w, 2)) * [w, h], rng.random((h * w, 3)), width=w, height=h)
     with pytest.warns(McreconWarning, match="without samples filled"):     # ~1 spp, many empty pixels
-        img = AWRMethod(variance="sample").reconstruct(one)
+        img = AWRMethod(variant="paper", variance="sample").reconstruct(one)
+    assert np.isfinite(img).all()
+    with pytest.warns(McreconWarning, match="without samples filled"):
+        img = AWRMethod().reconstruct(one)
     assert np.isfinite(img).all()
     pri = scale_priorities(st.mean, pixel_variance(st, "contrast"), levels=3)
     assert all(np.isfinite(p).all() for p in pri)
@@ -596,7 +601,7 @@ def test_awr_vs_box_on_scenes(scene, variance):
     ref = reference_image(scene, size, size)
     st = _scene_stats(scene, size, 32, seed=1)
     box = relative_mse(get_method("box").reconstruct(st), ref)
-    awr = relative_mse(get_method("awr", variance=variance).reconstruct(st), ref)
+    awr = relative_mse(get_method("awr", variant="paper", variance=variance).reconstruct(st), ref)
     assert awr < box, (awr, box)
 
 
@@ -614,7 +619,7 @@ def test_adaptive_awr_vs_box_on_scenes(scene):
     size = 128
     ref = reference_image(scene, size, size)
     box = relative_mse(get_method("box").reconstruct(_scene_stats(scene, size, 32, seed=1)), ref)
-    res = adapt(SceneRenderer(scene, width=size, height=size, seed=1), get_method("awr"), spp=32, seed=1,
+    res = adapt(SceneRenderer(scene, width=size, height=size, seed=1), get_method("awr", variant="paper"), spp=32, seed=1,
                 progress=False, track_error=False)
     adaptive = relative_mse(res.image, ref)
     assert adaptive < box, (adaptive, box)
@@ -632,13 +637,13 @@ def test_adaptive_awr_vs_offline_awr(scene):
     from mcrecon.metrics import relative_mse
     from mcrecon.renderers.scenes import SceneRenderer, reference_image
     size = 128
-    res = adapt(SceneRenderer(scene, width=size, height=size, seed=1), get_method("awr"), spp=32, seed=1,
+    res = adapt(SceneRenderer(scene, width=size, height=size, seed=1), get_method("awr", variant="paper"), spp=32, seed=1,
                 progress=False, track_error=False)
     assert int(res.counts.sum()) == 32 * size * size
     assert np.isfinite(res.image).all()
     if scene == "soft_shadow":
         ref = reference_image(scene, size, size)
-        off = relative_mse(get_method("awr").reconstruct(_scene_stats(scene, size, 32, seed=1)), ref)
+        off = relative_mse(get_method("awr", variant="paper").reconstruct(_scene_stats(scene, size, 32, seed=1)), ref)
         adaptive = relative_mse(res.image, ref)
         assert adaptive < off, (adaptive, off)
 
@@ -648,7 +653,7 @@ def test_awr_sampling_with_box_reconstruction():
     ``reconstruction='box'``) returns the pixel means of the adaptive samples."""
     from mcrecon.driver import adapt
     from mcrecon.renderers.scenes import SceneRenderer
-    res = adapt(SceneRenderer("soft_shadow", width=48, height=40, seed=2), get_method("awr", reconstruction="box"),
+    res = adapt(SceneRenderer("soft_shadow", width=48, height=40, seed=2), get_method("awr", variant="paper", reconstruction="box"),
                 spp=12, seed=2, progress=False, track_error=False)
     np.testing.assert_array_equal(res.image, res.stats.mean)
     assert res.counts.max() > 4 * res.counts.min()                    # really adaptive
@@ -659,7 +664,7 @@ def test_adaptive_run_reports_the_sample_density_map():
     from mcrecon.driver import adapt
     from mcrecon.renderers.scenes import SceneRenderer
     for recon in ("awr", "box"):
-        m = get_method("awr", reconstruction=recon)
+        m = get_method("awr", variant="paper", reconstruction=recon)
         res = adapt(SceneRenderer("soft_shadow", width=40, height=36, seed=3), m, spp=10, seed=3, progress=False,
                     track_error=False)
         d = res.diagnostics()
@@ -693,7 +698,7 @@ def test_depth_of_field_loss_is_the_sample_allocation():
     size, scene = 128, "depth_of_field"
     ref = reference_image(scene, size, size)
     uni = _scene_stats(scene, size, 32, seed=1)
-    res = adapt(SceneRenderer(scene, width=size, height=size, seed=1), get_method("awr"), spp=32, seed=1,
+    res = adapt(SceneRenderer(scene, width=size, height=size, seed=1), get_method("awr", variant="paper"), spp=32, seed=1,
                 progress=False, track_error=False)
     c = res.counts
     assert np.mean(c <= 5) > 0.35 and np.mean(c >= 64) > 0.3
@@ -701,13 +706,13 @@ def test_depth_of_field_loss_is_the_sample_allocation():
     big = _scene_stats(scene, size, 256, seed=99)
     sig2 = big.m2 / (big.count[..., None] - 1)
     oracle = awr_reconstruct(res.stats.mean, sig2 / res.stats.count[..., None])
-    offline = relative_mse(get_method("awr").reconstruct(uni), ref)
+    offline = relative_mse(get_method("awr", variant="paper").reconstruct(uni), ref)
     assert relative_mse(oracle, ref) > 1.3 * offline
 
 
 def test_diagnostics_maps():
     st = _noisy_stats(20, 30, 4, 5)
-    m = AWRMethod()
+    m = AWRMethod(variant="paper")
     run = m.start(30, 20)
     img = m.reconstruct(st, run=run)
     d = m.diagnostics(run)

@@ -30,7 +30,8 @@ References
 """
 
 from .method import AWRMethod
-from .reconstruction import VARIANCE_ESTIMATORS, awr_reconstruct, functional_variance, pixel_variance, soft_threshold
+from .reconstruction import (DOMAINS, VARIANCE_ESTIMATORS, awr_reconstruct, confidence_clamp, functional_variance,
+                             log_domain_reconstruct, pixel_variance, sample_range_bounds, soft_threshold)
 from .sampling import plan_awr_positions, sample_scale_functions, scale_priorities
 from .wavelets import (BOUNDARY_MODES, PROPAGATIONS, RECONSTRUCTION_RENORM, SAMPLING_RENORM, WAVELETS,
                        analysis_matrices, analyze, coefficient_variances, default_levels, equivalent_filter_norms,
@@ -43,4 +44,5 @@ __all__ = [
     "analysis_matrices", "analyze", "synthesize", "coefficient_variances",
     "renormalisation_factor", "equivalent_filter_norms", "soft_threshold", "awr_reconstruct", "scale_priorities",
     "sample_scale_functions", "plan_awr_positions", "AWRMethod",
+    "DOMAINS", "confidence_clamp", "log_domain_reconstruct", "sample_range_bounds",
 ]
