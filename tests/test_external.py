@@ -179,3 +179,122 @@ def test_sigkill_mid_run_then_resume_matches_uninterrupted(tmp_path):
     a, _ = read_exr(tmp_path / "resumed.exr")
     b, _ = read_exr(tmp_path / "full.exr")
     np.testing.assert_array_equal(a, b)
+
+
+# ---------------------------------------------------------------- what the protocol doc promises (issue 13, item 2)
+class _Recorder:
+    """An in-process renderer that records which parts each request carried."""
+
+    def __init__(self, w=12, h=8):
+        self.width, self.height, self.channels = w, h, ("R", "G", "B")
+        self.kinds = []
+
+    def render(self, req):
+        from mcrecon.renderers.protocol import SampleBatch, jittered_positions
+
+        self.kinds.append(("counts" if req.counts is not None else "") + ("positions" if req.positions is not None
+                                                                            else ""))
+        rng = np.random.default_rng(req.seed)
+        parts = ([jittered_positions(req.counts, rng)] if req.counts is not None else []) + \
+            ([req.positions] if req.positions is not None else [])
+        pos = np.concatenate(parts)
+        return SampleBatch(pos, 0.5 + pos[:, :1] / self.width + 0.2 * rng.random((len(pos), 3)))
+
+
+@pytest.mark.parametrize("method, later", [("box", "counts"), ("ci", "counts"), ("splat", "counts"),
+                                           ("gem", "positions"), ("awr", "positions")])
+def test_which_methods_send_counts_and_which_positions(method, later):
+    """docs/renderer-protocol.md's table: round 0 is counts for every method; then counts or positions."""
+    r = _Recorder()
+    from mcrecon import get_method
+
+    opts = {"gem": {"initial_spp": 2}, "awr": {"initial_spp": 2}, "ci": {"min_spp": 2}}.get(method, {})
+    adapt(r, get_method(method, **opts), spp=8, seed=1)
+    assert r.kinds[0] == "counts" and len(r.kinds) > 1, r.kinds
+    assert set(r.kinds[1:]) == {later}, r.kinds
+
+
+def test_reply_parts_other_than_samples_and_features_are_ignored(tmp_path):
+    """A reply may be a whole log: its /round, /rounds/end, /reference, metadata and records are not
+    copied to the run's log; its samples and features are."""
+    script = tmp_path / "rich_renderer.py"
+    script.write_text(f"""
+import sys, h5py, numpy as np
+sys.path.insert(0, {str(Path(EXAMPLE).parent)!r})
+from example_renderer import main
+main(sys.argv[1], sys.argv[2])
+with h5py.File(sys.argv[2], "r+") as f:
+    n, (w, h) = f["positions"].shape[0], (int(f.attrs["width"]), int(f.attrs["height"]))
+    f["round"] = np.full(n, 7, np.int32)
+    f["rounds/end"] = np.array([n], np.int64)
+    f["reference"] = np.ones((h, w, 3))
+    f["features/t"] = np.arange(n, dtype=np.int16)
+    f.attrs["metadata_json"] = '{{"renderer": "rich"}}'
+    f.attrs["format_minor"] = 2
+    f.create_group("run").attrs["settings_json"] = "{{}}"
+""")
+    log = tmp_path / "run.h5"
+    adapt(CommandRenderer([sys.executable, str(script), "{request}", "{reply}"], width=8, height=6), "box", spp=4,
+          seed=2, log=log)
+    got = read_log(log)
+    assert got.n_samples == 8 * 6 * 4 and got.feature_names == ("t",) and not got.has_reference
+    assert got.read_all().round.tolist() == sorted(got.read_all().round.tolist())
+    assert got.read_all().round[0] == 0 and got.metadata.get("renderer") != "rich"
+    assert got.read_feature("t").shape == (got.n_samples,)
+
+
+def test_renderer_cmd_is_split_by_shlex_never_by_a_shell(tmp_path):
+    """--renderer-cmd with quoted words (a script in a directory with a space) and a placeholder inside
+    a word; no shell: '$HOME' and ';' reach the command as they are."""
+    d = tmp_path / "my renderers"
+    d.mkdir()
+    script = d / "render it.py"
+    script.write_text(f"""
+import sys
+sys.path.insert(0, {str(Path(EXAMPLE).parent)!r})
+from example_renderer import main
+assert sys.argv[3:] == ["$HOME", ";", "two words"], sys.argv
+main(sys.argv[1], sys.argv[2].split("=", 1)[1])
+""")
+    cmd = f"{sys.executable} '{script}' {{request}} --out={{reply}} '$HOME' ';' \"two words\""
+    out = _run_cli(["adapt", "--renderer-cmd", cmd, "--size", "8x6", "--spp", "2", "--method", "box", "--quiet",
+                    "--log", str(tmp_path / "run.h5"), "-o", str(tmp_path / "o.exr")])
+    assert out.returncode == 0, out.stderr
+    assert read_log(tmp_path / "run.h5").run_settings["renderer_spec"]["argv"][1:3] == [str(script), "{request}"]
+
+
+@pytest.mark.parametrize("channels", ["R, G, B", "R,,B", "R,R"])
+def test_channels_flag_syntax(tmp_path, channels):
+    out = _run_cli(["adapt", "--renderer-cmd", f"{sys.executable} {EXAMPLE} {{request}} {{reply}}", "--channels",
+                    channels, "--size", "4x4", "--spp", "1", "-o", str(tmp_path / "o.exr")])
+    assert out.returncode == 2 and "channels" in out.stderr and "--channels R,G,B" in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1
+
+
+def test_exchange_files_live_in_a_private_temporary_directory(tmp_path, monkeypatch):
+    """Where request/reply files live: $TMPDIR/mcrecon-renderer-PID-XXXX/round-NNNNN.{request,reply}.h5,
+    removed after each round and with the renderer."""
+    import gc
+    import tempfile
+
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    monkeypatch.setattr(tempfile, "tempdir", None)
+    script = tmp_path / "seen.py"
+    script.write_text(f"""
+import sys
+sys.path.insert(0, {str(Path(EXAMPLE).parent)!r})
+from example_renderer import main
+open({str(tmp_path / 'seen.txt')!r}, "a").write(sys.argv[1] + " " + sys.argv[2] + "\\n")
+main(sys.argv[1], sys.argv[2])
+""")
+    r = CommandRenderer([sys.executable, str(script), "{request}", "{reply}"], width=4, height=4)
+    wd = r.workdir
+    assert wd.parent == tmp_path and wd.name.startswith(f"mcrecon-renderer-{os.getpid()}-")
+    adapt(r, "box", spp=4, seed=1)
+    seen = [ln.split() for ln in (tmp_path / "seen.txt").read_text().splitlines()]
+    assert seen[0] == [str(wd / "round-00000.request.h5"), str(wd / "round-00000.reply.h5")]
+    assert [Path(a).name for a, _ in seen][1] == "round-00001.request.h5"
+    assert list(wd.iterdir()) == []  # each accepted round's pair is removed
+    del r
+    gc.collect()
+    assert not wd.exists()

@@ -542,6 +542,53 @@ def _read_round_records(path, run, n_rounds: int) -> list[dict]:
     return out
 
 
+def _check_round_labels(path, rds, ends: np.ndarray) -> None:
+    """Refuse a /round that contradicts the committed rounds of /rounds/end, in one line.
+
+    /rounds/end gives the rounds; /round must agree: one label throughout
+    each committed round, a larger one in each later round.  Since /round
+    is non-decreasing, reading the first and last row of every non-empty
+    round is enough (2 rows per round, not the whole dataset).  Rows past
+    the committed ones were cut from ``ends`` before: they are not a
+    contradiction.
+    """
+    ends = np.asarray(ends, np.int64)
+    starts = np.concatenate([[0], ends[:-1]])
+    full = ends > starts
+    if not full.any():
+        return
+    idx = np.unique(np.concatenate([starts[full], ends[full] - 1]))
+    labels = dict(zip(idx.tolist(), _read_rows(path, rds, "round", idx).tolist()))
+    prev = None
+    for k in np.flatnonzero(full).tolist():
+        s, e = int(starts[k]), int(ends[k])
+        first, last = labels[s], labels[e - 1]
+        if first != last or (prev is not None and first <= prev[1]):
+            what = (f"{first} at row {s} and {last} at row {e - 1}" if first != last else
+                    f"{first} at row {s}, its first row, after {prev[1]} at row {prev[0]}, the last of the round "
+                    "before")
+            raise _err(path, "dataset /rounds/end",
+                       f"round {k} (rows {s}-{e - 1} by /rounds/end) contradicts /round, which holds {what}; "
+                       "/round must hold one label per round, larger in each later round: "
+                       "rewrite /rounds/end as the cumulative sample count at the end of each round of /round, "
+                       "or delete it (mcrecon then derives the rounds from /round)")
+        prev = (e - 1, last)
+
+
+def _read_rows(path, d, name: str, idx: np.ndarray) -> np.ndarray:
+    """Rows ``idx`` (sorted, distinct) of the 1-D dataset ``d``, as int64, in one point selection."""
+    if idx.size == 0:
+        return np.zeros(0, np.int64)
+    out = np.empty(idx.size, np.int64)
+    try:
+        fspace = d.id.get_space()
+        fspace.select_elements(np.asarray(idx, np.uint64).reshape(-1, 1))
+        d.id.read(h5py.h5s.create_simple((idx.size,)), fspace, out, mtype=h5py.h5t.NATIVE_INT64)
+    except _H5_ERRORS as exc:
+        raise _read_error(path, name, d, int(idx[0]), int(idx[-1]) + 1, exc) from None
+    return out
+
+
 class SampleLog:
     """A validated, lazily read sample log.  Obtain one with :func:`read_log`.
 
@@ -615,6 +662,8 @@ class SampleLog:
                 raise _err(path, "dataset /rounds/end", "must be non-decreasing")
             if not ends.size or ends[-1] != n:
                 ends = np.append(ends, n)
+            if self._has_round:
+                _check_round_labels(path, f["round"], ends)
         elif self._has_round:
             ends = self._scan_round_ends(f["round"], n)
         else:
@@ -1169,8 +1218,14 @@ def _append(path, *, pos_in, val_in, round_index, feats, rec, round_record) -> i
                 raise _err(path, "dataset /round", f"shape {getattr(r, 'shape', None)}, expected ({n},) integers")
         keep, extra = _committed_rounds(path, f, n)
         n_rounds = keep + len(extra)
+        # The round's label in /round must exceed the last committed one (readers refuse a /round
+        # that contradicts /rounds/end): by default the number of committed rounds, or more.
+        last = int(_read_rows(path, f["round"], "round", np.array([n - 1]))[0]) if n and "round" in f else None
         if round_index is None:
-            round_index = n_rounds
+            round_index = n_rounds if last is None else max(n_rounds, last + 1)
+        elif last is not None and int(round_index) <= last:
+            raise _err(path, "round_index", f"{round_index}, but the last committed round's label in /round is "
+                       f"{last}: a new round needs a larger one (leave it out to get {max(n_rounds, last + 1)})")
         run = f.get("run")
         rows = run.get("round_records") if run is not None else None
         recs = run.get("records") if run is not None and rows is None else None  # the JSON layout (minor < 2)
@@ -1187,8 +1242,14 @@ def _append(path, *, pos_in, val_in, round_index, feats, rec, round_record) -> i
         chunk = h.positions.chunks[0] if h.positions.chunks else _chunk_rows(n)
         pos = cast_positions(pos, h.position_dtype)
         if "round" not in f:  # reads as round 0 for the committed samples (fill value, no data written)
-            f.create_dataset("round", shape=(n,), dtype=np.int32, maxshape=(None,), chunks=(chunk,), fillvalue=0,
-                             **_CHECKSUM)
+            rd = f.create_dataset("round", shape=(n,), dtype=np.int32, maxshape=(None,), chunks=(chunk,),
+                                  fillvalue=0, **_CHECKSUM)
+            if n_rounds > 1:  # label the rounds /rounds/end gives, or /round would contradict it (written once)
+                ends = np.concatenate([np.asarray(f["rounds/end"][:keep], np.int64), extra]) \
+                    if "rounds/end" in f else np.asarray(extra, np.int64)
+                for k, (a, b) in enumerate(round_slices(ends)):
+                    for c in range(a, b if k else a, DEFAULT_READ_ROWS):
+                        rd[c:min(b, c + DEFAULT_READ_ROWS)] = k
         columns = [("positions", pos), ("values", val), ("round", np.full(m, round_index, np.int32))]
         if new_features:
             for name, arr in feats.items():

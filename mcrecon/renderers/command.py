@@ -30,7 +30,8 @@ from ..errors import InputError, RendererError
 from ..io._atomic import atomic_path
 from .protocol import SampleBatch, SampleRequest
 
-__all__ = ["CommandRenderer", "write_request", "read_request", "REQUEST_FORMAT", "remove_stale_workdirs"]
+__all__ = ["CommandRenderer", "write_request", "read_request", "request_channels", "REQUEST_FORMAT",
+           "remove_stale_workdirs"]
 
 WORKDIR_PREFIX = "mcrecon-renderer-"
 
@@ -86,14 +87,16 @@ def write_request(path, request: SampleRequest, *, channels: Sequence[str]) -> P
     path = Path(path)
     with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
+            # Types as docs/renderer-protocol.md lists them: strings variable-length UTF-8,
+            # integers int64 except the seed (uint64).
             f.attrs["format"] = REQUEST_FORMAT
-            f.attrs["format_version"] = REQUEST_VERSION
-            f.attrs["width"] = request.width
-            f.attrs["height"] = request.height
+            f.attrs["format_version"] = np.int64(REQUEST_VERSION)
+            f.attrs["width"] = np.int64(request.width)
+            f.attrs["height"] = np.int64(request.height)
             f.attrs["channels"] = np.array(list(channels), dtype=h5py.string_dtype())
-            f.attrs["round"] = request.round_index
+            f.attrs["round"] = np.int64(request.round_index)
             f.attrs["seed"] = np.uint64(request.seed)
-            f.attrs["n_total"] = request.total
+            f.attrs["n_total"] = np.int64(request.total)
             if request.counts is not None:
                 f.create_dataset("counts", data=request.counts.astype(np.int64))
             if request.positions is not None:
@@ -101,12 +104,28 @@ def write_request(path, request: SampleRequest, *, channels: Sequence[str]) -> P
     return path
 
 
+def _text(v):
+    """A string attribute's value as str: variable-length UTF-8 (str) or fixed-length ASCII (bytes)."""
+    if isinstance(v, np.ndarray) and v.shape == () or isinstance(v, np.generic):
+        v = v.item()
+    return v.decode("utf-8") if isinstance(v, bytes) else v
+
+
+def request_channels(path) -> tuple[str, ...]:
+    """The channel names of a request file (either string type), for a renderer that needs them."""
+    with h5py.File(path, "r") as f:
+        return tuple(_text(x) for x in np.atleast_1d(f.attrs["channels"]).tolist())
+
+
 def read_request(path) -> SampleRequest:
     """Read a request file (what a Python renderer does first).
 
     Any problem (not HDF5, another format, a missing or malformed attribute
-    or dataset, counts or positions that do not fit the film) raises a
-    one-line :class:`~mcrecon.errors.InputError` naming the file.
+    or dataset, counts or positions that do not fit the film, ``n_total``
+    other than ``sum(counts) + M``) raises a one-line
+    :class:`~mcrecon.errors.InputError` naming the file.  Strings may be
+    variable-length UTF-8 or fixed-length ASCII, integers of any integer
+    type (docs/renderer-protocol.md).
     """
     path = Path(path)
 
@@ -119,8 +138,14 @@ def read_request(path) -> SampleRequest:
         raise InputError(str(path), "file", f"not a readable request file: {one_line(exc)}") from None
     with f:
         try:
-            if f.attrs.get("format") != REQUEST_FORMAT:
+            if _text(f.attrs.get("format")) != REQUEST_FORMAT:
                 raise InputError(str(path), "attribute format", f"expected {REQUEST_FORMAT!r}")
+            ch = f.attrs.get("channels")
+            if ch is not None:
+                names = [_text(x) for x in np.atleast_1d(ch).tolist()]
+                if not names or not all(isinstance(x, str) and x for x in names):
+                    raise InputError(str(path), "attribute channels", f"got {one_line(repr(ch))[:60]}, expected "
+                                     "an array of non-empty strings")
             ints = {}
             for key in ("width", "height", "round", "seed"):
                 v = f.attrs.get(key)
@@ -147,8 +172,16 @@ def read_request(path) -> SampleRequest:
                                      f"shape {getattr(d, 'shape', None)} dtype {getattr(d, 'dtype', None)}, "
                                      f"expected {expect}")
                 arrays[key] = d[...]
-            return SampleRequest(ints["width"], ints["height"], counts=arrays["counts"],
-                                 positions=arrays["positions"], round_index=ints["round"], seed=ints["seed"])
+            req = SampleRequest(ints["width"], ints["height"], counts=arrays["counts"],
+                                positions=arrays["positions"], round_index=ints["round"], seed=ints["seed"])
+            total = f.attrs.get("n_total")
+            total = total.item() if isinstance(total, np.ndarray) and total.size == 1 else total
+            if total is not None and (isinstance(total, (bool, np.bool_)) or not isinstance(total, (int, np.integer))
+                                      or int(total) != req.total):
+                got = int(total) if isinstance(total, (int, np.integer)) else one_line(repr(total))[:60]
+                raise InputError(str(path), "attribute n_total", f"got {got}, expected "
+                                 f"sum(counts) + M = {req.total}, the number of samples the reply must hold")
+            return req
         except InputError:
             raise
         except (OSError, ValueError, TypeError, KeyError, RuntimeError, OverflowError) as exc:

@@ -129,7 +129,11 @@ def check_spec(spec: Any, *, where: str = "renderer spec", field: str = "rendere
         if "{request}" not in joined or "{reply}" not in joined:
             raise bad("argv", "a command with the {request} and {reply} placeholders")
         out["argv"] = argv
-        out["channels"] = strings("channels") if "channels" in spec else ["R", "G", "B"]
+        out["channels"] = channels = strings("channels") if "channels" in spec else ["R", "G", "B"]
+        if len(set(channels)) != len(channels) or any(not c or c != c.strip() or "," in c for c in channels):
+            # --channels R,G,B: comma-separated, no spaces, distinct non-empty names
+            raise bad("channels", "distinct non-empty names without commas or surrounding spaces, e.g. "
+                      "--channels R,G,B (comma-separated, no spaces; the order of the columns of /values)")
         timeout = spec.get("timeout")
         if timeout is not None and (isinstance(timeout, bool) or not isinstance(timeout, numbers.Real)
                                     or not timeout > 0):

@@ -1,0 +1,230 @@
+/* mcrecon_c_renderer.c - a minimal out-of-process renderer in C, written from
+ * docs/renderer-protocol.md with the HDF5 C API only.
+ *
+ *   mcrecon adapt --renderer-cmd "data_tools/c/mcrecon_c_renderer {request} {reply}" \
+ *       --size 64x64 --spp 16 --method gem -o out.exr --log run.h5
+ *
+ * It reads the request file (root attributes width, height, round, seed, n_total,
+ * channels; datasets /counts and/or /positions), renders a procedural image (a
+ * bright disc over a gradient, per-sample noise from the request's seed) and
+ * writes the reply, a sample log: /positions (N, 2) float64, /values (N, C)
+ * float32 and one feature, /features/depth (N,) float32, which mcrecon keeps
+ * in the run's log.  The counted samples come first, pixel by pixel, then one
+ * sample per requested position, in request order.
+ *
+ * It reads string attributes of either HDF5 string type (variable-length UTF-8
+ * as mcrecon writes them, or fixed-length ASCII) and integers of any width (HDF5
+ * converts them to long long on read), and writes the reply's strings as
+ * fixed-length ASCII, which mcrecon accepts as well.
+ *
+ * Build: make -C data_tools/c   (or: gcc -O2 -o mcrecon_c_renderer mcrecon_c_renderer.c
+ *        $(pkg-config --cflags --libs hdf5) -lm;  or: h5cc -O2 -o mcrecon_c_renderer mcrecon_c_renderer.c -lm)
+ */
+#include <hdf5.h>
+#include <math.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+static const char *g_path = "request";
+
+static void fail(const char *what) {
+    fprintf(stderr, "mcrecon_c_renderer: %s: %s\n", g_path, what);
+    exit(1);
+}
+#define CHECK(expr, what) do { if ((expr) < 0) fail(what " failed"); } while (0)
+
+static uint64_t splitmix64(uint64_t *s) {
+    uint64_t z = (*s += 0x9E3779B97F4A7C15ull);
+    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
+    z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
+    return z ^ (z >> 31);
+}
+static double uniform01(uint64_t *s) { return (double)(splitmix64(s) >> 11) * 0x1.0p-53; } /* [0, 1) */
+
+/* Channel c of the procedural image at film position (x, y), times the sample's noise. */
+static float shade(double x, double y, long long width, long long height, int c, double noise) {
+    double dx = x / width - 0.5, dy = y / height - 0.5;
+    double base = sqrt(dx * dx + dy * dy) < 0.3 ? 1.0 : 0.2 * x / width;
+    return (float)(base * noise / (1.0 + c));
+}
+
+/* A coordinate inside pixel cell [i, i+1): i + u rounds to i + 1 for large i and u close to 1,
+ * even in float64; clamp to the largest double below i + 1. */
+static double coord_in_cell(long long i, double u) {
+    double x = (double)i + u;
+    return x < (double)(i + 1) ? x : nextafter((double)(i + 1), (double)i);
+}
+
+/* ---------------------------------------------------------------- reading the request */
+static long long int_attr(hid_t f, const char *name) {
+    long long v = 0;
+    if (H5Aexists(f, name) <= 0) { fprintf(stderr, "mcrecon_c_renderer: %s: attribute %s missing\n", g_path, name); exit(1); }
+    hid_t a = H5Aopen(f, name, H5P_DEFAULT);
+    CHECK(a, "opening an attribute");
+    CHECK(H5Aread(a, H5T_NATIVE_LLONG, &v), "reading an integer attribute");
+    H5Aclose(a);
+    return v;
+}
+
+/* A string attribute (scalar or 1-D array) of either string type, as `count` malloc'd C strings. */
+static char **string_attr(hid_t f, const char *name, size_t *count) {
+    hid_t a = H5Aopen(f, name, H5P_DEFAULT);
+    CHECK(a, "opening a string attribute");
+    hid_t ft = H5Aget_type(a), sp = H5Aget_space(a);
+    if (H5Tget_class(ft) != H5T_STRING) fail("a string attribute is not a string");
+    hssize_t n = H5Sget_simple_extent_npoints(sp);
+    char **out = calloc((size_t)n, sizeof(char *));
+    if (H5Tis_variable_str(ft) > 0) {
+        hid_t mt = H5Tcopy(H5T_C_S1);
+        H5Tset_size(mt, H5T_VARIABLE);
+        H5Tset_cset(mt, H5Tget_cset(ft));
+        char **tmp = calloc((size_t)n, sizeof(char *));
+        CHECK(H5Aread(a, mt, tmp), "reading a string attribute");
+        for (hssize_t i = 0; i < n; i++) out[i] = strdup(tmp[i] ? tmp[i] : "");
+        H5Dvlen_reclaim(mt, sp, H5P_DEFAULT, tmp);
+        free(tmp);
+        H5Tclose(mt);
+    } else { /* fixed length: `size` bytes per string, NUL- or space-padded or full */
+        size_t size = H5Tget_size(ft);
+        hid_t mt = H5Tcopy(ft);
+        char *buf = calloc((size_t)n, size + 1);
+        CHECK(H5Aread(a, mt, buf), "reading a string attribute");
+        for (hssize_t i = 0; i < n; i++) {
+            out[i] = calloc(size + 1, 1);
+            memcpy(out[i], buf + i * size, size);
+            for (size_t k = strlen(out[i]); k > 0 && out[i][k - 1] == ' '; k--) out[i][k - 1] = 0;
+        }
+        free(buf);
+        H5Tclose(mt);
+    }
+    H5Tclose(ft); H5Sclose(sp); H5Aclose(a);
+    *count = (size_t)n;
+    return out;
+}
+
+/* ---------------------------------------------------------------- writing the reply */
+static void int_attr_write(hid_t f, const char *name, long long v) {
+    hid_t sp = H5Screate(H5S_SCALAR);
+    hid_t a = H5Acreate2(f, name, H5T_STD_I64LE, sp, H5P_DEFAULT, H5P_DEFAULT);
+    CHECK(a, "creating an attribute");
+    CHECK(H5Awrite(a, H5T_NATIVE_LLONG, &v), "writing an attribute");
+    H5Aclose(a); H5Sclose(sp);
+}
+
+/* Fixed-length ASCII strings, `n` of them (a 1-D array), or one scalar for n == 0. */
+static void ascii_attr_write(hid_t f, const char *name, char **text, size_t n) {
+    size_t size = 1;
+    for (size_t i = 0; i < (n ? n : 1); i++) if (strlen(text[i]) > size) size = strlen(text[i]);
+    hid_t t = H5Tcopy(H5T_C_S1);
+    H5Tset_size(t, size);
+    H5Tset_strpad(t, H5T_STR_NULLPAD);
+    H5Tset_cset(t, H5T_CSET_ASCII);
+    hsize_t dim = n;
+    hid_t sp = n ? H5Screate_simple(1, &dim, NULL) : H5Screate(H5S_SCALAR);
+    char *buf = calloc(n ? n : 1, size);
+    for (size_t i = 0; i < (n ? n : 1); i++) memcpy(buf + i * size, text[i], strlen(text[i]));
+    hid_t a = H5Acreate2(f, name, t, sp, H5P_DEFAULT, H5P_DEFAULT);
+    CHECK(a, "creating a string attribute");
+    CHECK(H5Awrite(a, t, buf), "writing a string attribute");
+    H5Aclose(a); H5Sclose(sp); H5Tclose(t); free(buf);
+}
+
+static void dataset_write(hid_t f, const char *name, hid_t filetype, hid_t memtype, int rank, hsize_t *dims,
+                          const void *buf) {
+    hid_t sp = H5Screate_simple(rank, dims, NULL);
+    hid_t lcpl = H5Pcreate(H5P_LINK_CREATE);
+    H5Pset_create_intermediate_group(lcpl, 1);
+    hid_t d = H5Dcreate2(f, name, filetype, sp, lcpl, H5P_DEFAULT, H5P_DEFAULT);
+    CHECK(d, "creating a reply dataset");
+    if (dims[0]) CHECK(H5Dwrite(d, memtype, H5S_ALL, H5S_ALL, H5P_DEFAULT, buf), "writing a reply dataset");
+    H5Dclose(d); H5Pclose(lcpl); H5Sclose(sp);
+}
+
+int main(int argc, char **argv) {
+    if (argc != 3) {
+        fprintf(stderr, "usage: mcrecon_c_renderer REQUEST.h5 REPLY.h5\n");
+        return 2;
+    }
+    H5Eset_auto2(H5E_DEFAULT, NULL, NULL);
+    g_path = argv[1];
+    hid_t f = H5Fopen(argv[1], H5F_ACC_RDONLY, H5P_DEFAULT);
+    CHECK(f, "opening the request");
+    size_t nfmt = 0, nch = 0;
+    char **fmt = string_attr(f, "format", &nfmt);
+    if (nfmt != 1 || strcmp(fmt[0], "mcrecon-request") != 0) fail("attribute format is not \"mcrecon-request\"");
+    if (int_attr(f, "format_version") != 1) fail("attribute format_version is not 1");
+    long long width = int_attr(f, "width"), height = int_attr(f, "height");
+    long long round = int_attr(f, "round"), n_total = int_attr(f, "n_total");
+    unsigned long long seed = 0;
+    {   /* the seed is an unsigned 64-bit integer */
+        hid_t a = H5Aopen(f, "seed", H5P_DEFAULT);
+        CHECK(a, "opening attribute seed");
+        CHECK(H5Aread(a, H5T_NATIVE_ULLONG, &seed), "reading attribute seed");
+        H5Aclose(a);
+    }
+    char **channels = string_attr(f, "channels", &nch);
+    if (width < 1 || height < 1 || nch < 1) fail("bad width, height or channels");
+
+    long long *counts = NULL, m = 0, nc = 0;
+    double *req_pos = NULL;
+    if (H5Lexists(f, "counts", H5P_DEFAULT) > 0) {
+        counts = malloc(sizeof(long long) * (size_t)(width * height));
+        hid_t d = H5Dopen2(f, "counts", H5P_DEFAULT);
+        CHECK(H5Dread(d, H5T_NATIVE_LLONG, H5S_ALL, H5S_ALL, H5P_DEFAULT, counts), "reading /counts");
+        H5Dclose(d);
+        for (long long p = 0; p < width * height; p++) nc += counts[p];
+    }
+    if (H5Lexists(f, "positions", H5P_DEFAULT) > 0) {
+        hid_t d = H5Dopen2(f, "positions", H5P_DEFAULT);
+        hid_t sp = H5Dget_space(d);
+        hsize_t dims[2];
+        if (H5Sget_simple_extent_ndims(sp) != 2) fail("/positions is not (M, 2)");
+        H5Sget_simple_extent_dims(sp, dims, NULL);
+        m = (long long)dims[0];
+        req_pos = malloc(sizeof(double) * 2 * (size_t)(m ? m : 1));
+        if (m) CHECK(H5Dread(d, H5T_NATIVE_DOUBLE, H5S_ALL, H5S_ALL, H5P_DEFAULT, req_pos), "reading /positions");
+        H5Sclose(sp); H5Dclose(d);
+    }
+    H5Fclose(f);
+    long long n = nc + m; /* n_total: the number of samples the reply must hold */
+    if (n != n_total) fail("sum(counts) + M differs from attribute n_total");
+
+    /* Render: counted samples pixel by pixel (row-major), then the requested positions in order. */
+    double *pos = malloc(sizeof(double) * 2 * (size_t)(n ? n : 1));
+    float *val = malloc(sizeof(float) * nch * (size_t)(n ? n : 1)), *depth = malloc(sizeof(float) * (size_t)(n ? n : 1));
+    uint64_t s = seed ^ (0x5851F42D4C957F2Dull * (uint64_t)(round + 1));
+    long long k = 0;
+    for (long long p = 0; counts && p < width * height; p++)
+        for (long long c = 0; c < counts[p]; c++, k++) {
+            pos[2 * k] = coord_in_cell(p % width, uniform01(&s));
+            pos[2 * k + 1] = coord_in_cell(p / width, uniform01(&s));
+        }
+    for (long long i = 0; i < m; i++, k++) {
+        pos[2 * k] = req_pos[2 * i];
+        pos[2 * k + 1] = req_pos[2 * i + 1];
+    }
+    for (k = 0; k < n; k++) {
+        double noise = 0.5 + uniform01(&s);
+        for (size_t c = 0; c < nch; c++) val[k * nch + c] = shade(pos[2 * k], pos[2 * k + 1], width, height, (int)c, noise);
+        depth[k] = (float)(1.0 + pos[2 * k + 1] / (double)height);
+    }
+
+    g_path = argv[2];
+    hid_t r = H5Fcreate(argv[2], H5F_ACC_TRUNC, H5P_DEFAULT, H5P_DEFAULT);
+    CHECK(r, "creating the reply");
+    char *format[1] = {"mcrecon-sample-log"};
+    ascii_attr_write(r, "format", format, 0);
+    int_attr_write(r, "format_version", 1);
+    int_attr_write(r, "width", width);
+    int_attr_write(r, "height", height);
+    ascii_attr_write(r, "channels", channels, nch);
+    hsize_t pdims[2] = {(hsize_t)n, 2}, vdims[2] = {(hsize_t)n, nch}, ddims[1] = {(hsize_t)n};
+    dataset_write(r, "positions", H5T_IEEE_F64LE, H5T_NATIVE_DOUBLE, 2, pdims, pos);
+    dataset_write(r, "values", H5T_IEEE_F32LE, H5T_NATIVE_FLOAT, 2, vdims, val);
+    dataset_write(r, "features/depth", H5T_IEEE_F32LE, H5T_NATIVE_FLOAT, 1, ddims, depth);
+    CHECK(H5Fclose(r), "closing the reply");
+    free(pos); free(val); free(depth); free(counts); free(req_pos);
+    return 0;
+}
