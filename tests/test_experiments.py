@@ -12,15 +12,12 @@ from mcrecon.experiments.stability import CASES, run_stability, write_stability_
 CONSISTENT = ["box", "gem", "awr", "splat", "ci"]
 
 #: Known, measured exceptions to "the error falls as spp grows" in the reduced (32x32, 4 -> 64 spp)
-#: form.  AWR's paper estimator sigma^2(F) = (Imax - Imin)^2 grows with every firefly a pixel
-#: catches, so on the caustic more samples mean more smoothing of the ring (relative MSE
-#: 1.07 -> 1.63); it is consistent only asymptotically.  Asserted to still hold, so a change
-#: that fixes it must remove the entry.
-#: Splatting (Suykens & Willems, Eq. 8) widens every caustic sample by (G/f)^(1/2) = p^(-1/2) ~ 5.8
-#: and early kernels hit the width cap where the pilot estimate is empty; the ring blurs into its
-#: black surroundings (0.37 -> 0.81 here; docs/methods/splat.md measures monotone decrease only
-#: from ~30,000 spp on this scene).
-NON_MONOTONE = {("caustic", "awr", "uniform"), ("caustic", "splat", "uniform")}
+#: form, for the *paper* variants (``variant="paper"``, measured in docs/methods/*.md): AWR's
+#: sigma^2(F) = (Imax - Imin)^2 grows with every firefly a pixel catches (caustic relative MSE
+#: 1.07 -> 1.63); Eq. 8 splatting widens every caustic sample by (G/f)^(1/2) ~ 5.8 (0.37 -> 0.81).
+#: The defaults tested here may or may not show them (robust AWR falls: not listed); an entry is
+#: exempt from the assertion, never asserted to fail (a test must not fail because a method got better).
+NON_MONOTONE = {("caustic", "splat", "uniform")}
 
 
 @pytest.mark.slow
@@ -43,9 +40,7 @@ def test_convergence_report_reduced(tmp_path, scene, full_run):
                 continue
             errs = [e for _, e in pts]
             falls = all(b < a for a, b in zip(errs, errs[1:]))
-            if (scene, method, mode) in NON_MONOTONE and not full_run:
-                assert not falls, f"{(scene, method, mode)} now converges monotonically: drop it from NON_MONOTONE"
-            elif (scene, method, mode) not in NON_MONOTONE:
+            if (scene, method, mode) not in NON_MONOTONE:
                 assert falls, (method, mode, pts)
     report = (tmp_path / "report.md").read_text()
     assert "reference" in report and "images/box_uniform.png" in report
