@@ -7,24 +7,53 @@ The public API in one place::
     log = mcrecon.read_log(path)
     image = mcrecon.reconstruct(log, method="gem", gamma=0.2)
     result = mcrecon.adapt(renderer, "gem", spp=32, log="run.h5")
+
+``import mcrecon`` is cheap: each public name imports its module on first
+use (PEP 562), so the command line starts without loading numba, SciPy or
+the methods it does not need.
 """
 
 from __future__ import annotations
 
+import importlib as _importlib
+
 from .errors import InputError, McreconWarning, RendererError
-from .io import append_log, read_exr, read_log, write_exr, write_log, write_png_preview
-from .methods import available_methods, get_method
-from .renderers import CallableRenderer, SampleBatch, SampleRequest
-from . import restoration
-from .reconstruction import Reconstruction, reconstruct
-from .samples import SampleSet
-from .stats import PixelStats
 
 __version__ = "0.1.0"
 
 __all__ = ["InputError", "RendererError", "McreconWarning", "write_log", "read_log", "append_log",
            "read_exr", "write_exr", "write_png_preview", "PixelStats", "SampleSet", "Reconstruction", "SampleRequest", "SampleBatch",
            "CallableRenderer", "reconstruct", "restoration", "adapt", "available_methods", "get_method", "__version__"]
+
+#: Public name -> the module that defines it (imported on first access).
+_LAZY = {
+    "append_log": ".io", "read_exr": ".io", "read_log": ".io", "write_exr": ".io", "write_log": ".io",
+    "write_png_preview": ".io",
+    "available_methods": ".methods", "get_method": ".methods",
+    "CallableRenderer": ".renderers", "SampleBatch": ".renderers", "SampleRequest": ".renderers",
+    "Reconstruction": ".reconstruction", "reconstruct": ".reconstruction",
+    "SampleSet": ".samples",
+    "PixelStats": ".stats",
+}
+
+#: Sub-modules reachable as attributes (``mcrecon.io.read_log``) without importing them first.
+_SUBMODULES = frozenset({"analysis", "cli", "distributed", "driver", "errors", "experiments", "io", "methods",
+                         "metrics", "reconstruction", "renderers", "restoration", "samples", "stats", "tone"})
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        value = getattr(_importlib.import_module(_LAZY[name], __name__), name)
+    elif name in _SUBMODULES:
+        value = _importlib.import_module(f".{name}", __name__)
+    else:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    globals()[name] = value  # later look-ups skip __getattr__
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__) | _SUBMODULES)
 
 
 def adapt(renderer, method, *, spp, **kwargs):

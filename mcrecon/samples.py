@@ -20,10 +20,11 @@ in memory.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+import threading
 from typing import Iterator, Sequence
 
-import numba
 import numpy as np
 
 from .errors import InputError
@@ -53,8 +54,63 @@ def source_name(src) -> str:
     return str(path) if path is not None else str(getattr(src, "name", "samples"))
 
 
+# ---------------------------------------------------------------- numba, on first use
+_LAZY_KERNEL_LOCK = threading.Lock()
+
+
+class _LazyKernel:
+    """A function that becomes ``numba.njit(**options)(func)`` at its first call.
+
+    numba itself (a third of a second to import) is imported then, not
+    when the module defining the kernel is: ``mcrecon info`` and
+    ``mcrecon --help`` never load it.  The compiled dispatcher replaces
+    the kernel in its module's namespace, so later calls through the
+    module go straight to it; numba's on-disk cache (``cache=True``) is
+    keyed by the function's file and name, exactly as with a decorator.
+    A lazy kernel cannot be called from other numba code.
+    """
+
+    def __init__(self, func, options):
+        functools.update_wrapper(self, func)
+        self._options = options
+        self._dispatcher = None
+
+    def __call__(self, *args):
+        d = self._dispatcher
+        if d is None:
+            d = self.compile()
+        return d(*args)
+
+    def compile(self):
+        """The numba dispatcher (made once; it compiles, or loads from the cache, per signature)."""
+        with _LAZY_KERNEL_LOCK:  # threads calling a kernel for the first time make one dispatcher
+            if self._dispatcher is None:
+                import numba
+
+                func = self.__wrapped__
+                dispatcher = numba.njit(**self._options)(func)
+                if func.__globals__.get(func.__name__) is self:
+                    func.__globals__[func.__name__] = dispatcher
+                self._dispatcher = dispatcher
+        return self._dispatcher
+
+    def __repr__(self) -> str:
+        return f"<lazy numba kernel {self.__module__}.{self.__qualname__}>"
+
+
+def lazy_njit(func=None, **options):
+    """A numba ``njit(**options)`` decorator that imports numba and makes the dispatcher at the first call.
+
+    For kernels called from Python only (a lazy kernel cannot be called
+    from another numba function): ``@lazy_njit(cache=True, nogil=True)``.
+    """
+    if func is None:
+        return lambda f: _LazyKernel(f, options)
+    return _LazyKernel(func, options)
+
+
 # ---------------------------------------------------------------- screening
-@numba.njit(cache=True, nogil=True)
+@lazy_njit(cache=True, nogil=True)
 def _quick_check_bits(pos_bits, val_bits, width_bits, height_bits, val_exp_mask):
     """Branch-free screening on the floats' bit patterns (integer reductions vectorise).
 
@@ -83,7 +139,7 @@ def _quick_check_bits(pos_bits, val_bits, width_bits, height_bits, val_exp_mask)
     return pos_ok, e != val_exp_mask
 
 
-@numba.njit(cache=True, nogil=True)
+@lazy_njit(cache=True, nogil=True)
 def _flat_bits_range(bits, exp_mask):
     """(min, max, max of bits & exp_mask) of a flat integer view: contiguous
     reductions that vectorise (3x faster than the two-column loop)."""
@@ -120,7 +176,7 @@ def _quick_check(pos, val, width, height):
     return bool(pos_ok), bool(val_ok)
 
 
-@numba.njit(cache=True, nogil=True)
+@lazy_njit(cache=True, nogil=True)
 def _scan(pos, val, width, height):
     """Count bad positions (non-finite or off the film) and non-finite value rows."""
     n_bad_pos = 0
@@ -138,6 +194,21 @@ def _scan(pos, val, width, height):
                 n_nonfinite += 1
                 break
     return n_bad_pos, first_bad_pos, n_nonfinite
+
+
+#: Batches of fewer samples are screened with NumPy (a few ms at most), larger ones by the kernels
+#: above: a small log is checked (``mcrecon info``) without loading numba, which costs far more.
+_NUMPY_SCREEN_ROWS = 1 << 16
+
+
+def _scan_numpy(pos, val, width, height):
+    """:func:`_scan` in NumPy: the same counts, compared in float64 as the kernel does."""
+    x, y = pos[:, 0], pos[:, 1]
+    w, h = np.float64(width), np.float64(height)
+    bad = ~((x >= 0.0) & (x < w) & (y >= 0.0) & (y < h))
+    n_bad = int(np.count_nonzero(bad))
+    first = int(np.argmax(bad)) if n_bad else -1
+    return n_bad, first, int(val.shape[0] - np.count_nonzero(np.isfinite(val).all(axis=1)))
 
 
 # ---------------------------------------------------------------- validation
@@ -173,8 +244,11 @@ def check_samples(positions, values, *, width: int, height: int, n_channels: int
         return pos, val, 0
     pos = np.ascontiguousarray(pos)
     val = np.ascontiguousarray(val)
-    pos_ok, val_ok = _quick_check(pos, val, width, height)
-    n_bad_pos, first_bad, n_nonfinite = (0, -1, 0) if pos_ok and val_ok else _scan(pos, val, width, height)
+    if pos.shape[0] < _NUMPY_SCREEN_ROWS:
+        n_bad_pos, first_bad, n_nonfinite = _scan_numpy(pos, val, width, height)
+    else:
+        pos_ok, val_ok = _quick_check(pos, val, width, height)
+        n_bad_pos, first_bad, n_nonfinite = (0, -1, 0) if pos_ok and val_ok else _scan(pos, val, width, height)
     if n_bad_pos:
         raise error(where, "positions", f"{n_bad_pos} sample(s) off the film [0, {width}) x [0, {height}) "
                     f"or non-finite, first at row {first_bad}: {pos[first_bad].tolist()}")
@@ -345,7 +419,7 @@ class SampleSet:
 
 
 # ---------------------------------------------------------------- precision
-@numba.njit(cache=True, nogil=True)
+@lazy_njit(cache=True, nogil=True)
 def _spread_lost(pos, val, width, height, lo64, hi64, lo32, hi32):
     n_pix = width * height
     for p in range(n_pix):

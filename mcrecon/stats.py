@@ -28,11 +28,10 @@ from __future__ import annotations
 import warnings
 from typing import Iterable, Sequence
 
-import numba
 import numpy as np
 
 from .errors import InputError, McreconWarning
-from .samples import NONFINITE_POLICIES, apply_nonfinite, check_policy, check_samples
+from .samples import NONFINITE_POLICIES, apply_nonfinite, check_policy, check_samples, lazy_njit
 
 __all__ = ["PixelStats", "NONFINITE_POLICIES", "fill_from_neighbours"]
 
@@ -85,7 +84,7 @@ def fill_from_neighbours(values: np.ndarray, defined: np.ndarray, fill: np.ndarr
     return np.where(fill[..., None], sub, values)
 
 
-@numba.njit(cache=True, nogil=True)
+@lazy_njit(cache=True, nogil=True)
 def _accumulate(pos, val, s, count, mean, m2, vmin, vmax, sub_sum, sub_count):
     """Add every sample into the per-pixel arrays (in place).
 

@@ -8,16 +8,41 @@
   of pixel estimates that the ``ci`` interval assumes (Sec. 3, 5.1).
 
 Like the methods, nothing here opens a file: sample logs come in as sample
-sources (:mod:`mcrecon.samples`).
+sources (:mod:`mcrecon.samples`).  The names import their module (numba,
+SciPy) on first use (PEP 562).
 """
 
 from __future__ import annotations
 
-from .bootstrap import (BiasEstimate, BootstrapBiasResult, bootstrap_bias, bootstrap_bias_log,
-                        bootstrap_bias_samples, exact_two_point_bias)
-from .grouping import PixelSamples, group_log, group_samples
-from .normality import ChiSquareResult, chi2_normality, normality_experiment, repeated_estimates
+import importlib as _importlib
 
 __all__ = ["PixelSamples", "group_samples", "group_log", "BiasEstimate", "BootstrapBiasResult", "bootstrap_bias",
            "bootstrap_bias_samples", "bootstrap_bias_log", "exact_two_point_bias", "ChiSquareResult",
            "chi2_normality", "repeated_estimates", "normality_experiment"]
+
+#: Public name -> the sub-module that defines it.
+_LAZY = {
+    **dict.fromkeys(("BiasEstimate", "BootstrapBiasResult", "bootstrap_bias", "bootstrap_bias_log",
+                     "bootstrap_bias_samples", "exact_two_point_bias"), "bootstrap"),
+    **dict.fromkeys(("PixelSamples", "group_log", "group_samples"), "grouping"),
+    **dict.fromkeys(("ChiSquareResult", "chi2_normality", "normality_experiment", "repeated_estimates"),
+                    "normality"),
+}
+
+
+#: Sub-modules reachable as attributes without importing them first.
+_SUBMODULES = frozenset(("bootstrap", "grouping", "normality"))
+
+
+def __getattr__(name: str):
+    if name in _SUBMODULES:
+        return _importlib.import_module(f".{name}", __name__)
+    if name not in _LAZY:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(_importlib.import_module(f".{_LAZY[name]}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

@@ -22,7 +22,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy import stats as sps
 
 from ..errors import InputError
 from ..renderers.protocol import SampleRequest, validate_reply
@@ -118,6 +117,8 @@ def chi2_normality(estimates, *, classes: int = 8, alpha: float = 0.05) -> ChiSq
     .. [1] Tamstorf and Jensen 1997, Sec. 3 and 5.1, Eq. (16).
     .. [2] Chernoff and Lehmann 1954.
     """
+    from scipy import stats as sps
+
     where = "chi2_normality"
     x = np.asarray(estimates, dtype=np.float64)
     if x.ndim < 2:

@@ -5,6 +5,11 @@ the file, the field and what was expected (no traceback).
 
 The commands live in :mod:`.commands` and :mod:`.experiments`, what they
 share in :mod:`._common`; this module builds the parser and runs one.
+
+Start-up stays quick: every command imports what it uses when it runs,
+and the method flags (which need every method class) are added only to
+the parser of the command being run (``mcrecon --help`` and
+``mcrecon info`` load no method).
 """
 
 from __future__ import annotations
@@ -20,13 +25,26 @@ from ._common import OneLineParser
 __all__ = ["main", "build_parser"]
 
 
-def build_parser() -> OneLineParser:
+def build_parser(command: str | None = None) -> OneLineParser:
+    """The ``mcrecon`` parser.
+
+    With ``command`` (the sub-command about to run), only that command's
+    parser gets the method flags, whose groups need the method classes;
+    the other sub-commands are complete but for them (never parsed).
+    Without it, every parser is complete.
+    """
     p = OneLineParser(prog="mcrecon", description="Adaptive sampling and reconstruction for Monte Carlo renderers.")
     sub = p.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
-    commands.register(sub)
-    experiments.register(sub)
-    batch.register(sub)
+    commands.register(sub, command)
+    experiments.register(sub, command)
+    batch.register(sub, command)
     return p
+
+
+def _command_of(argv) -> str | None:
+    """The sub-command ``argv`` names: its first word not starting with ``-`` (``mcrecon`` itself has
+    no option taking a value), or None (``mcrecon --help``, no command)."""
+    return next((a for a in argv if not a.startswith("-")), None)
 
 
 def _stdout_to_devnull() -> None:
@@ -40,7 +58,8 @@ def _stdout_to_devnull() -> None:
 
 
 def main(argv=None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
+    parser = build_parser(_command_of(argv) or "")  # "": no command, no method flags
     args = parser.parse_args(argv)
     with warnings.catch_warnings():
         warnings.simplefilter("always", McreconWarning)

@@ -14,12 +14,10 @@ import sys
 import textwrap
 from pathlib import Path
 
-import numpy as np
-
 from ..errors import InputError
 
 __all__ = ["OneLineParser", "HelpFormatter", "parse_size", "method_flags", "add_method_options",
-           "given_method_options", "make_method", "check_output", "write_outputs"]
+           "given_method_options", "make_method", "check_output", "write_outputs", "jit_notice"]
 
 _DEST = "mopt_"  # argparse dest of a method option: mopt_NAME
 
@@ -159,6 +157,8 @@ def check_output(out, png=None) -> None:
 def write_outputs(image, out, *, channels, png, exposure, diagnostics=None, diag_dir=None,
                   counts=None) -> list[Path]:
     """Write the EXR, its PNG preview and the diagnostic maps; returns the paths written."""
+    import numpy as np
+
     from ..io import write_exr, write_false_colour, write_png_preview
 
     out = Path(out)
@@ -178,3 +178,95 @@ def write_outputs(image, out, *, channels, png, exposure, diagnostics=None, diag
                 m = m.mean(axis=2)
             written.append(write_false_colour(d / f"{name}.png", m))
     return written
+
+
+# ----------------------------------------------------------------- first-run notice
+_PACKAGE = Path(__file__).resolve().parents[1]
+
+
+def _numba_cache_dirs(source_dir: Path) -> list[Path]:
+    """Where numba's ``cache=True`` may keep the kernels of a source directory (its locators, in order:
+    ``NUMBA_CACHE_DIR``, the ``__pycache__`` beside the source, the user-wide cache)."""
+    import hashlib
+
+    sub = f"{source_dir.name}_{hashlib.sha1(str(source_dir).encode()).hexdigest()}"
+    dirs = []
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        dirs.append(Path(os.environ["NUMBA_CACHE_DIR"]) / sub)
+    dirs.append(source_dir / "__pycache__")
+    dirs.append(Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "numba" / sub)
+    return dirs
+
+
+def _kernel_files(part) -> list[Path]:
+    """The package's source files at ``part`` (a file or a directory) that define cached numba kernels."""
+    p = _PACKAGE / part
+    files = []
+    for f in sorted(p.rglob("*.py")) if p.is_dir() else [p]:
+        try:
+            if "cache=True" in f.read_text(encoding="utf-8"):
+                files.append(f)
+        except OSError:
+            continue
+    return files
+
+
+def _cached(f: Path, tag: str) -> bool:
+    """Whether numba keeps a kernel index of source file ``f`` at least as new as ``f``."""
+    mtime = f.stat().st_mtime
+    for d in _numba_cache_dirs(f.parent):
+        try:
+            with os.scandir(d) as it:
+                if any(e.name.startswith(f"{f.stem}.") and e.name.endswith(f"{tag}.nbi") and e.stat().st_mtime >= mtime
+                       for e in it):
+                    return True
+        except OSError:
+            continue
+    return False
+
+
+def numba_cache_cold(parts) -> bool:
+    """Whether a run using the code at ``parts`` (package paths: files, or directories such as
+    ``methods/gem``) will compile numba kernels: some part defines cached kernels, and none of its files
+    has a numba cache newer than itself (the first run after an install or an edit).  A cheap heuristic
+    (file names and times; numba is not imported): a directory counts as compiled once any of its files
+    is, since a run need not use every kernel of a method.
+    """
+    tag = f".py{sys.version_info[0]}{sys.version_info[1]}"
+    for part in parts:
+        files = _kernel_files(part)
+        if files and not any(_cached(f, tag) for f in files):
+            return True
+    return False
+
+
+def jit_notice(parts, *, seconds: str | None = None, stream=None) -> bool:
+    """On a terminal, one line on stderr before a run whose numba kernels are not cached yet.
+
+    ``parts``: the package paths (files, directories) whose kernels the
+    run uses (:func:`numba_cache_cold`).  Returns whether the notice was
+    written.  Nothing happens when stderr is not a terminal (pipes, tests,
+    batch jobs).
+    """
+    stream = sys.stderr if stream is None else stream
+    try:
+        if not stream.isatty():
+            return False
+    except (AttributeError, ValueError):
+        return False
+    if not numba_cache_cold(tuple(parts)):
+        return False
+    stream.write(f"mcrecon: compiling numba kernels (first run only{', ' + seconds if seconds else ''})…\n")
+    stream.flush()
+    return True
+
+
+def method_kernels(method) -> tuple[str, ...]:
+    """The package paths of a method's code: its sub-package (``methods/gem``) or its module."""
+    mod = sys.modules.get(type(method).__module__)
+    f = Path(getattr(mod, "__file__", "") or "")
+    try:
+        rel = f.resolve().relative_to(_PACKAGE)
+    except ValueError:  # a method defined outside the package: nothing to check
+        return ()
+    return (str(rel.parent),) if rel.parent != Path("methods") else (str(rel),)

@@ -33,8 +33,9 @@ def _cmd_batch(args):
     return 2 if res.failed else 0
 
 
-def register(sub) -> None:
-    """Add ``mcrecon batch`` to the ``mcrecon`` sub-command parser."""
+def register(sub, command: str | None = None) -> None:
+    """Add ``mcrecon batch`` to the ``mcrecon`` sub-command parser (its method flags only when
+    ``command`` is ``batch`` or None: they need every method class)."""
     s = sub.add_parser("batch", help="reconstruct many sample logs on a Dask cluster (one EXR per log)",
                        formatter_class=HelpFormatter,
                        description="Reconstruct every log into OUT_DIR/<log name>.exr exactly as `mcrecon denoise` "
@@ -55,6 +56,9 @@ def register(sub) -> None:
     s.add_argument("--nonfinite", default="drop", choices=("drop", "zero", "raise"),
                    help="policy for NaN/Inf sample values (default drop)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(func=_cmd_batch)
+    if command not in (None, "batch"):
+        return
     flags = method_flags(set(s._option_string_actions))
     from ..methods import available_methods
 

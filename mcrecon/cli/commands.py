@@ -6,18 +6,15 @@ command needs them, so ``--help`` stays quick.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import shlex
 import textwrap
 import time
 from pathlib import Path
 
-import numpy as np
-
 from ..errors import InputError
 from ._common import (HelpFormatter, OneLineParser, add_method_options, check_output, given_method_options,
-                      make_method, method_flags, parse_size, write_outputs)
+                      jit_notice, make_method, method_flags, method_kernels, parse_size, write_outputs)
 
 __all__ = ["register"]
 
@@ -113,9 +110,12 @@ def _cmd_denoise(args):
         _refuse_pixel_stats_flags(args)
         method = make_method(args.method, args, args.method_flags)
         log = source = read_log(args.log)
+    jit_notice(method_kernels(method))
     t0 = time.perf_counter()
     rec = reconstruct(source, method=method, nonfinite=args.nonfinite, full=True)
     if source is not log:  # statistics in the file's working space (XYZ for the presets): to its RGB
+        import dataclasses
+
         rec = dataclasses.replace(rec, image=log.output_image(rec.image))
     dt = time.perf_counter() - t0
     counts = None
@@ -218,12 +218,15 @@ def _cmd_adapt(args):
             raise InputError("adapt", "--spp", "missing: give the sample budget in samples per pixel")
         renderer = renderer_from_spec(spec)
         if args.reference is not None:
+            import numpy as np
+
             from ..io import read_exr
 
             ref = read_exr(args.reference)[0].astype(np.float64)
         else:
             ref = reference_from_spec(spec)
         method = make_method(args.method, args, args.method_flags)
+        jit_notice(method_kernels(method) + (("renderers/scenes.py",) if args.scene is not None else ()))
         t0 = time.perf_counter()
         res = driver.adapt(renderer, method, spp=args.spp, seed=args.seed, log=args.log, reference=ref,
                            time_limit=args.time_limit, progress=progress, nonfinite=args.nonfinite,
@@ -333,15 +336,18 @@ def _cmd_demo(args):
     out.mkdir(parents=True, exist_ok=True)
     w, h = parse_size(args.size)
     scene = get_scene(args.scene)
+    methods = {name: get_method(name) for name in
+               ([m for m in args.methods.split(",") if m] if args.methods else available_methods())}
+    # The first demo after an install compiles the scene's and every method's kernels (then cached on disk).
+    jit_notice(("renderers/scenes.py",) + tuple(p for m in methods.values() for p in method_kernels(m)),
+               seconds="about 30 s")
     t0 = time.perf_counter()
     log_path = write_scene_log(scene, out / f"{scene.name}.h5", width=w, height=h, spp=args.spp, seed=args.seed)
     t_render = time.perf_counter() - t0
     log = read_log(log_path)
     ref = log.reference()
     print(f"rendered {scene.name} {w}x{h} at {args.spp} spp: {log.n_samples} samples in {t_render:.2f} s -> {log_path}")
-    methods = [m for m in args.methods.split(",") if m] if args.methods else available_methods()
-    for name in methods:
-        method = get_method(name)
+    for name, method in methods.items():
         t1 = time.perf_counter()
         img = reconstruct(log, method=method)
         dt = time.perf_counter() - t1
@@ -389,8 +395,12 @@ def _outputs(sp) -> None:
 
 
 
-def register(sub) -> None:
-    """Add the main commands to the ``mcrecon`` sub-command parser."""
+def register(sub, command: str | None = None) -> None:
+    """Add the main commands to the ``mcrecon`` sub-command parser.
+
+    The method flags go to denoise, adapt and methods only when
+    ``command`` is one of them, or None (every parser complete).
+    """
     s = sub.add_parser("info", help="describe a sample log")
     s.add_argument("log")
     s.add_argument("--json", action="store_true")
@@ -450,16 +460,19 @@ def register(sub) -> None:
 
     # One flag per method option for both commands: --NAME, or --method-NAME where
     # a command has its own --NAME (ci's exposure: --method-exposure).
-    taken = set(denoise._option_string_actions) | set(adapt._option_string_actions)
-    flags = method_flags(taken)
-    from ..methods import available_methods
+    # They need every method class: built only when one of these commands runs.
+    flags = None
+    if command is None or command in ("denoise", "adapt", "methods"):
+        taken = set(denoise._option_string_actions) | set(adapt._option_string_actions)
+        flags = method_flags(taken)
+        from ..methods import available_methods
 
-    for p in (denoise, adapt):
-        p.add_argument("--method", default="box", metavar="NAME",
-                       help=f"reconstruction method: {', '.join(available_methods())} (default box); its options "
-                            "are in the groups below; `mcrecon methods NAME` describes one")
-        add_method_options(p, flags)
-        p.set_defaults(method_flags=flags)
+        for p in (denoise, adapt):
+            p.add_argument("--method", default="box", metavar="NAME",
+                           help=f"reconstruction method: {', '.join(available_methods())} (default box); its "
+                                "options are in the groups below; `mcrecon methods NAME` describes one")
+            add_method_options(p, flags)
+            p.set_defaults(method_flags=flags)
 
     s = sub.add_parser("compare", help="error metrics of an EXR against a reference EXR")
     s.add_argument("image")

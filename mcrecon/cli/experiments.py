@@ -129,8 +129,9 @@ def _cmd_bias(args):
     return 0
 
 
-def register(sub) -> None:
-    """Add the experiment commands to the ``mcrecon`` sub-command parser."""
+def register(sub, command: str | None = None) -> None:
+    """Add the experiment commands to the ``mcrecon`` sub-command parser (bias's flags of method
+    ci only when ``command`` is ``bias`` or None: they need the method class)."""
     ex = sub.add_parser("experiment", help="figures and tables: convergence, error-rate, stability, normality")
     es = ex.add_subparsers(dest="experiment", required=True, parser_class=OneLineParser)
 
@@ -205,6 +206,8 @@ def register(sub) -> None:
     s.add_argument("--threshold", type=float, default=1 / 256, help="|bias| threshold reported (default 1/256)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", required=True)
-    flags = method_flags(set(s._option_string_actions), prefix="--rule-", methods=["ci"])
-    add_method_options(s, flags, methods=["ci"])
-    s.set_defaults(func=_cmd_bias, method_flags=flags)
+    s.set_defaults(func=_cmd_bias)
+    if command in (None, "bias"):
+        flags = method_flags(set(s._option_string_actions), prefix="--rule-", methods=["ci"])
+        add_method_options(s, flags, methods=["ci"])
+        s.set_defaults(method_flags=flags)

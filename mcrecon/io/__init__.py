@@ -1,11 +1,38 @@
-"""All file I/O of mcrecon: sample logs (HDF5) and images (EXR, PNG)."""
+"""All file I/O of mcrecon: sample logs (HDF5) and images (EXR, PNG).
 
-from .samplelog import (FORMAT_VERSION, LogChunk, SampleLog, append_log, read_log, set_run_settings,
-                        write_log)
-from .images import read_exr, write_exr, write_png_preview, write_false_colour, tonemap_srgb
-from .summary import summarize_log
-from .pixel_exr import PixelStatsEXR, read_pixel_stats_exr
+The names below import their module on first use (PEP 562): reading a
+log does not load the image writers, nor writing an EXR h5py.
+"""
+
+import importlib as _importlib
 
 __all__ = ["FORMAT_VERSION", "LogChunk", "SampleLog", "append_log", "read_log", "write_log",
            "set_run_settings", "read_exr", "write_exr", "write_png_preview", "write_false_colour",
            "tonemap_srgb", "summarize_log", "PixelStatsEXR", "read_pixel_stats_exr"]
+
+#: Public name -> the sub-module that defines it.
+_LAZY = {
+    **dict.fromkeys(("FORMAT_VERSION", "LogChunk", "SampleLog", "append_log", "read_log", "set_run_settings",
+                     "write_log"), "samplelog"),
+    **dict.fromkeys(("read_exr", "write_exr", "write_png_preview", "write_false_colour", "tonemap_srgb"), "images"),
+    "summarize_log": "summary",
+    "PixelStatsEXR": "pixel_exr", "read_pixel_stats_exr": "pixel_exr",
+}
+
+
+#: Sub-modules reachable as attributes without importing them first.
+_SUBMODULES = frozenset(("samplelog", "images", "summary", "pixel_exr", "_atomic"))
+
+
+def __getattr__(name: str):
+    if name in _SUBMODULES:
+        return _importlib.import_module(f".{name}", __name__)
+    if name not in _LAZY:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(_importlib.import_module(f".{_LAZY[name]}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

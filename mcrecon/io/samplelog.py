@@ -35,11 +35,10 @@ from pathlib import Path
 from typing import Iterator, Mapping, Sequence
 
 import h5py
-import numba
 import numpy as np
 
 from ..errors import InputError
-from ..samples import check_samples, round_ends_of, round_slices
+from ..samples import check_samples, lazy_njit, round_ends_of, round_slices
 from ._atomic import atomic_path
 
 __all__ = ["cast_positions", "FORMAT_NAME", "FORMAT_VERSION", "FORMAT_MINOR", "SampleLog", "LogChunk", "read_log",
@@ -219,7 +218,7 @@ class LogChunk:
         return (self.positions, self.values)[i]
 
 
-@numba.njit(cache=True, nogil=True)
+@lazy_njit(cache=True, nogil=True)
 def _cast_positions_f32(pos, out):
     for k in range(pos.shape[0]):
         for a in range(2):

@@ -5,7 +5,6 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
-from scipy import ndimage
 
 from ..errors import McreconWarning
 from .base import Method, MethodInputs, RunState
@@ -26,6 +25,8 @@ def fill_empty_pixels(image: np.ndarray, count: np.ndarray, *, source: str = "im
     if empty.all():
         warnings.warn(f"{source}: no samples at all; the image is 0", McreconWarning, stacklevel=3)
         return np.zeros_like(image)
+    from scipy import ndimage
+
     _, (iy, ix) = ndimage.distance_transform_edt(empty, return_indices=True)
     warnings.warn(f"{source}: {int(empty.sum())} pixel(s) without samples filled from their nearest "
                   "sampled neighbour", McreconWarning, stacklevel=3)
