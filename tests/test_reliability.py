@@ -445,3 +445,73 @@ def test_read_only_directory_mid_run_one_line_then_resume_matches(tmp_path, tmpf
     assert read_log(log).n_samples == read_log(tmp_path / "full.h5").n_samples == 32 * 16 * 32
     np.testing.assert_array_equal(read_exr(tmp_path / "resumed.exr")[0], read_exr(tmp_path / "full.exr")[0])
     assert not lock_path(log).exists()
+
+
+# ------------------------------------------------------------------ a full disk mid-run
+def _adapt_cli(log, out, extra_env=None, *, prelude=None):
+    argv = ["adapt", "--renderer-cmd", f"{sys.executable} {FAULT} ok -1 {{request}} {{reply}}", "--size",
+            "32x16", "--spp", "32", "--method", "box", "--seed", "9", "--quiet", "--log", str(log), "-o", str(out)]
+    env = {**os.environ, **(extra_env or {})}
+    if prelude is None:
+        return subprocess.run([sys.executable, "-m", "mcrecon", *argv], capture_output=True, text=True, env=env)
+    script = f"{prelude}\nimport sys\nfrom mcrecon.cli import run\nsys.argv[1:] = {argv!r}\nrun()"
+    return subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env)
+
+
+@pytest.mark.parametrize("path", ["checked", "inside_hdf5"])
+def test_full_disk_mid_run_one_line_then_resume_matches(tmp_path, tmpfs, path):
+    """At round 2 the renderer fills the log's file system (ENOSPC).
+
+    ``checked``: the append sees too little free space and refuses before
+    writing.  ``inside_hdf5``: with that check disabled, HDF5 itself hits
+    ENOSPC half-way through the round (the race the check cannot close);
+    HDF5 then cannot close the file, and its clean-up at exit used to
+    crash the process (SIGSEGV, exit 139) after the message.  Both: exit 2,
+    one line, the log opens with the two committed rounds, and once space
+    is freed the resumed run equals the uninterrupted one.
+    """
+    from mcrecon.io import read_exr
+
+    full = _adapt_cli(tmp_path / "full.h5", tmp_path / "full.exr")
+    assert full.returncode == 0, full.stderr
+    log, filler = tmpfs / "run.h5", tmpfs / "filler"
+    prelude = ("import mcrecon.io.samplelog as s; s._check_free_space = lambda *a, **k: None"
+               if path == "inside_hdf5" else None)
+    out = _adapt_cli(log, tmp_path / "o.exr", {"FAULT_RENDERER_DISK": f"fill:{filler}",
+                                               "FAULT_RENDERER_DISK_ROUND": "2"}, prelude=prelude)
+    assert out.returncode == 2, out
+    assert out.stderr.count("\n") == 1 and out.stderr.startswith("mcrecon: error: "), out.stderr
+    assert ("not enough free disk space" if path == "checked" else "No space left on device") in out.stderr
+    assert "regenerate" not in out.stderr
+    sl = read_log(log)
+    if path == "checked":
+        assert sl.n_rounds == 2 and list(sl.round_ends) == [512, 1024]
+    else:  # HDF5 fails when it next needs new space: rounds that fit in the file's free chunks commit
+        assert 2 <= sl.n_rounds < read_log(tmp_path / "full.h5").n_rounds
+        assert list(sl.round_ends) == list(read_log(tmp_path / "full.h5").round_ends[:sl.n_rounds])
+    filler.unlink()
+    res = subprocess.run([sys.executable, "-m", "mcrecon", "adapt", "--resume", str(log), "-o",
+                          str(tmp_path / "resumed.exr"), "--quiet"], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert read_log(log).n_samples == read_log(tmp_path / "full.h5").n_samples == 32 * 16 * 32
+    np.testing.assert_array_equal(read_exr(tmp_path / "resumed.exr")[0], read_exr(tmp_path / "full.exr")[0])
+
+
+def test_free_space_estimate_counts_whole_chunks(tmp_path, monkeypatch):
+    from mcrecon.io import samplelog
+
+    class FS:
+        f_frsize = 4096
+
+        def __init__(self, blocks):
+            self.f_bavail = blocks
+
+    chunk, row = 1000, 24
+    # n = 1500, m = 1000: chunks 2 (partial) and 3 are written -> 2 * 1000 * 24 bytes + margin
+    need = 2 * chunk * row + samplelog.APPEND_SPACE_MARGIN
+    monkeypatch.setattr(os, "statvfs", lambda p: FS(need // 4096 + 1))
+    samplelog._check_free_space(tmp_path / "x.h5", 1500, 1000, chunk, row)
+    monkeypatch.setattr(os, "statvfs", lambda p: FS(need // 4096 - 1))
+    with pytest.raises(InputError, match=r"not enough free disk space for the round \(1000 samples"):
+        samplelog._check_free_space(tmp_path / "x.h5", 1500, 1000, chunk, row)
+    samplelog._check_free_space(tmp_path / "x.h5", 1500, 0, chunk, row)  # nothing to write: no check

@@ -22,7 +22,10 @@ from ..errors import InputError, McreconWarning, RendererError
 from . import batch, commands, experiments
 from ._common import OneLineParser
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "run", "build_parser"]
+
+#: Set when a log write failed inside HDF5 (see :func:`run`).
+_STATE = {"hdf5_write_failed": False}
 
 
 def build_parser(command: str | None = None) -> OneLineParser:
@@ -81,6 +84,8 @@ def main(argv=None) -> int:
             return 0
         except (InputError, RendererError) as exc:
             sys.stderr.write(f"mcrecon: error: {exc}\n")
+            if getattr(exc, "write_failed", False):
+                _STATE["hdf5_write_failed"] = True  # run() ends the process without HDF5's clean-up
             return 2
         except OSError as exc:  # an output path that cannot be written, a full disk...
             where = exc.filename or "file system"
@@ -91,3 +96,21 @@ def main(argv=None) -> int:
             return 130
         finally:
             warnings.showwarning = showwarning
+
+
+def run() -> None:
+    """The ``mcrecon`` program: :func:`main`, then exit with its status.
+
+    After a log write failed inside HDF5 (a full disk), HDF5 keeps the log
+    open because its close cannot flush, and its own clean-up at
+    interpreter exit then crashes the process (SIGSEGV, measured with HDF5
+    2.0 / h5py 3.x).  Every committed round is on disk already, so the
+    process ends with ``os._exit`` after the one-line message instead.
+    """
+    code = main()
+    if _STATE["hdf5_write_failed"]:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    raise SystemExit(code)
+

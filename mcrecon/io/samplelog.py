@@ -1179,14 +1179,65 @@ def append_log(path, positions, values, *, round_index: int | None = None,
         except _H5_ERRORS as exc:
             if isinstance(exc, InputError):
                 raise
+            # Keep the failed write's h5py objects alive (through its traceback's frames):
+            # freeing them makes HDF5 retry the close that could not flush, which crashes
+            # the process (SIGSEGV after ENOSPC, measured).  See _write_error.
+            _FAILED_WRITES.append(exc)
             raise _write_error(path, exc) from None
 
 
+#: Exceptions of appends that failed inside HDF5, kept for the life of the process.
+_FAILED_WRITES: list = []
+
+
 def _write_error(path, exc) -> InputError:
-    """A failed write (a full disk, an I/O error): one line; the committed rounds are untouched."""
-    detail = getattr(exc, "strerror", None) or _detail(exc)
-    return _err(path, "append", f"writing the round failed ({detail}); it was not committed and every round "
-                "committed before is kept: fix the cause (disk space, permissions) and resume the run")
+    """A failed write (a full disk, an I/O error): one line; the committed rounds are untouched.
+
+    The error is marked ``write_failed``: HDF5 keeps the file open
+    internally when its close cannot flush, and its clean-up at
+    interpreter exit can then crash the process (measured: HDF5 2.0 via
+    h5py 3.x, SIGSEGV after ENOSPC), and so can freeing the h5py objects
+    of the failed append, which are therefore kept alive.  The ``mcrecon``
+    program ends such a process with ``os._exit`` after its one-line
+    message (:func:`mcrecon.cli.run`); a Python program that catches the
+    error should do the same once it has saved what it needs.
+    """
+    detail = " ".join(str(getattr(exc, "strerror", None) or _detail(exc)).split())
+    err = _err(path, "append", f"writing the round failed ({detail}); it was not committed and every round "
+               "committed before is kept: fix the cause (disk space, permissions) and resume the run")
+    err.write_failed = True
+    return err
+
+
+#: Space kept free beyond the round's chunks: HDF5 metadata (B-tree nodes, the
+#: records' rows, attributes) written by one append.
+APPEND_SPACE_MARGIN = 256 * 1024
+
+
+def _check_free_space(path, n: int, m: int, chunk: int, row_bytes: int) -> None:
+    """Refuse an append the file system has no room for, before the first write.
+
+    The estimate counts every chunk the append writes (the partial last one
+    and the new ones, at full size: HDF5 allocates whole chunks) plus
+    :data:`APPEND_SPACE_MARGIN`.  Running out of space inside HDF5 is
+    survivable (the round is not committed) but leaves HDF5 unable to
+    close the file; refusing first is the clean path.  A file system that
+    cannot tell (no ``statvfs``) is not checked.
+    """
+    if m <= 0:
+        return
+    try:
+        st = os.statvfs(Path(path).parent)
+    except (OSError, AttributeError):
+        return
+    free = st.f_bavail * st.f_frsize
+    chunks = -(-(n + m) // chunk) - n // chunk
+    need = chunks * chunk * row_bytes + APPEND_SPACE_MARGIN
+    if free < need:
+        err = _err(path, "append", f"not enough free disk space for the round ({m} samples need about "
+                   f"{need / 2**20:.1f} MiB, {free / 2**20:.1f} MiB free); it was not written and every round "
+                   "committed before is kept: free some space and resume the run")
+        raise err
 
 
 def _append(path, *, pos_in, val_in, round_index, feats, rec, round_record) -> int:  # noqa: C901
@@ -1239,6 +1290,8 @@ def _append(path, *, pos_in, val_in, round_index, feats, rec, round_record) -> i
 
         # ---- samples: truncate to n, extend by m
         chunk = h.positions.chunks[0] if h.positions.chunks else _chunk_rows(n)
+        _check_free_space(path, n, m, chunk, pos.dtype.itemsize * 2 + h.values.dtype.itemsize * val.shape[1] + 4
+                          + sum(a.dtype.itemsize * int(np.prod(a.shape[1:])) for a in feats.values()))
         pos = cast_positions(pos, h.position_dtype)
         if "round" not in f:  # reads as round 0 for the committed samples (fill value, no data written)
             rd = f.create_dataset("round", shape=(n,), dtype=np.int32, maxshape=(None,), chunks=(chunk,),
