@@ -6,14 +6,19 @@ RGB image; the ratio is measured in the same run, so machine load cancels
 to first order.  Target (issue 5): >= 5 M samples/s at a mean kernel
 radius of about 2 pixels.
 
-``--limits`` prints the measured limits instead: the caustic scene, where
-splatting loses to the pixel mean (box) of the same samples in relative
-MSE (eps 0.01), each number beside that baseline as a ratio measured in
-the same run (defaults 64x64, 64 spp).  These were strict xfails in the
-tests; a table cannot fail when the method gets better.
+``--limits`` prints the measured limits instead: relative MSE (eps 0.01)
+of the ``paper`` and ``robust`` (default) variants side by side, each as a
+ratio to the pixel mean (box) of the *same samples* measured in the same
+run, on every built-in scene, offline (uniform samples) and adaptive (the
+driver; its box column is the pixel mean of the run's own samples, and
+``box run`` the error of a separate box run, which draws other samples),
+then the caustic progressive run of the paper's variant round by round
+(defaults 128x128, 32 spp for the table; 64x64, 64 spp for the caustic
+rounds).  These were strict xfails in the tests; a table cannot fail
+when the method gets better.
 
 Run: ``python benchmarks/bench_splat.py [--size 512] [--spp 8] [--radius 2]``
-     ``python benchmarks/bench_splat.py --limits [--size 64] [--spp 64] [--seeds 5 7]``
+     ``python benchmarks/bench_splat.py --limits [--size 128] [--spp 32] [--seeds 5 7]``
 """
 
 from __future__ import annotations
@@ -57,6 +62,31 @@ def add_at_splat(pos, val, radius, width, height):
     return out
 
 
+def bench_variants(size, spp, seeds):
+    """Paper vs robust as ratios to box on the same samples, every built-in scene, offline and adaptive."""
+    import mcrecon
+    print(f"== relative MSE (eps 0.01) as ratio to box of the same samples, {size}x{size}, {spp} spp ==")
+    print(f"{'scene':15s} {'seed':>4} {'mode':8s} {'box':>9} {'paper':>9} {'robust':>8} {'box run':>9}")
+    for scene in scenes.scene_names():
+        ref = scenes.reference_image(scene, size, size)
+        for seed in seeds:
+            b = scenes.render_uniform(scene, width=size, height=size, spp=spp, seed=seed)
+            ss = mcrecon.SampleSet(b.positions, b.values, width=size, height=size)
+            st = PixelStats(size, size)
+            st.add(b.positions, b.values)
+            eb = relative_mse(st.mean, ref)
+            ep = relative_mse(mcrecon.reconstruct(ss, method=SplatMethod(variant="paper")), ref)
+            er = relative_mse(mcrecon.reconstruct(ss, method=SplatMethod()), ref)
+            print(f"{scene:15s} {seed:>4} {'offline':8s} {eb:9.3g} {ep / eb:9.3g} {er / eb:8.3g}")
+            r = scenes.SceneRenderer(scene, width=size, height=size, seed=seed)
+            rp = adapt(r, SplatMethod(variant="paper"), spp=spp, seed=seed, track_error=False)
+            rr = adapt(r, SplatMethod(), spp=spp, seed=seed, track_error=False)
+            eb = relative_mse(rr.stats.mean, ref)  # paper and robust plan the same rounds: same samples
+            e_run = relative_mse(adapt(r, "box", spp=spp, seed=seed, track_error=False).image, ref)
+            print(f"{scene:15s} {seed:>4} {'adaptive':8s} {eb:9.3g} {relative_mse(rp.image, ref) / eb:9.3g} "
+                  f"{relative_mse(rr.image, ref) / eb:8.3g} {e_run:9.3g}")
+
+
 def bench_limits(size, spp, seeds):
     """The caustic limits, each beside the pixel mean of the same samples (relative MSE, eps 0.01).
 
@@ -67,10 +97,10 @@ def bench_limits(size, spp, seeds):
        (uniform rounds) with the same renderer seed and budget.
     """
     ref = scenes.reference_image("caustic", size, size)
-    print(f"== measured limits on caustic: relative MSE (eps 0.01), {size}x{size} ==")
+    print(f"== measured limits of the paper's variant on caustic: relative MSE (eps 0.01), {size}x{size} ==")
     for seed in seeds:
         r = scenes.SceneRenderer("caustic", width=size, height=size, seed=seed)
-        sp = ProgressiveSplatter(size, size, 3)
+        sp = ProgressiveSplatter(size, size, 3)  # the paper's Fig. 3 (its defaults)
         st = PixelStats(size, size)
         rows, total = [], 0
         for j, n in enumerate(doubling_schedule(spp)):
@@ -84,22 +114,23 @@ def bench_limits(size, spp, seeds):
         print(f"  {'spp':>5} {'splat':>9} {'box':>9} {'splat/box':>10}")
         for tot, e, e_box in rows:
             print(f"  {tot:>5} {e:9.3g} {e_box:9.3g} {e / e_box:10.3g}")
-        s = relative_mse(adapt(r, SplatMethod(), spp=spp, seed=seed, track_error=False).image, ref)
+        s = relative_mse(adapt(r, SplatMethod(variant="paper"), spp=spp, seed=seed, track_error=False).image, ref)
         bx = relative_mse(adapt(r, "box", spp=spp, seed=seed, track_error=False).image, ref)
         print(f"seed {seed}: adaptive run at {spp} spp: splat {s:.3g}, box {bx:.3g}, splat/box {s / bx:.3g}")
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--size", type=int, default=None, help="film side (default 512; 64 with --limits)")
-    ap.add_argument("--spp", type=int, default=None, help="samples per pixel (default 8; 64 with --limits)")
+    ap.add_argument("--size", type=int, default=None, help="film side (default 512; 128 with --limits)")
+    ap.add_argument("--spp", type=int, default=None, help="samples per pixel (default 8; 32 with --limits)")
     ap.add_argument("--radius", type=float, default=2.0, help="mean kernel radius in pixels")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--limits", action="store_true", help="print the measured-limits table instead")
     ap.add_argument("--seeds", type=int, nargs="+", default=[5, 7], help="renderer seeds of the limits table")
     a = ap.parse_args(argv)
     if a.limits:
-        bench_limits(a.size or 64, a.spp or 64, a.seeds)
+        bench_variants(a.size or 128, a.spp or 32, a.seeds)
+        bench_limits(64, 64, a.seeds)
         return
     a.size, a.spp = a.size or 512, a.spp or 8
     rng = np.random.default_rng(0)

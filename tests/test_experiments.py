@@ -15,9 +15,9 @@ CONSISTENT = ["box", "gem", "awr", "splat", "ci"]
 #: form, for the *paper* variants (``variant="paper"``, measured in docs/methods/*.md): AWR's
 #: sigma^2(F) = (Imax - Imin)^2 grows with every firefly a pixel catches (caustic relative MSE
 #: 1.07 -> 1.63); Eq. 8 splatting widens every caustic sample by (G/f)^(1/2) ~ 5.8 (0.37 -> 0.81).
-#: The defaults tested here may or may not show them (robust AWR falls: not listed); an entry is
-#: exempt from the assertion, never asserted to fail (a test must not fail because a method got better).
-NON_MONOTONE = {("caustic", "splat", "uniform")}
+#: The defaults tested here (robust AWR and splat) fall: none is listed.  An entry would be exempt
+#: from the assertion, never asserted to fail (a test must not fail because a method got better).
+NON_MONOTONE: set = set()
 
 
 @pytest.mark.slow

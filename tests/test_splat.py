@@ -209,7 +209,7 @@ def test_method_energy_equals_sample_energy_on_scene(tmp_path):
     """Total splatted energy = total sample energy: sum(image) = sum of pixel means (uniform spp)."""
     path = scenes.write_scene_log("caustic", tmp_path / "c.h5", width=31, height=29, spp=16, seed=2,
                                   reference=False)
-    img = mcrecon.reconstruct(path, method=SplatMethod())
+    img = mcrecon.reconstruct(path, method=SplatMethod(variant="paper"))
     stats = PixelStats.from_log(path)
     np.testing.assert_allclose(img.sum((0, 1)), stats.mean.sum((0, 1)), rtol=1e-9)
     assert np.isfinite(img).all()
@@ -344,7 +344,7 @@ def test_relative_mse_falls_with_every_doubling(scene, full_run):
 
 def _caustic_pair(spp, seed, w=64):
     r = scenes.SceneRenderer("caustic", width=w, height=w, seed=seed)
-    s = adapt(r, SplatMethod(), spp=spp, seed=seed, track_error=False).image
+    s = adapt(r, SplatMethod(variant="paper"), spp=spp, seed=seed, track_error=False).image
     b = adapt(r, "box", spp=spp, seed=seed, track_error=False).image
     return s, b, scenes.reference_image("caustic", w, w)
 
@@ -379,21 +379,23 @@ def test_plan_schedule_every_pixel_each_round():
         adapt(r, SplatMethod(), spp=0.5, seed=1)
 
 
-def test_resume_rebuilds_progressive_state_exactly(tmp_path):
+@pytest.mark.parametrize("variant", ["robust", "paper"])
+def test_resume_rebuilds_progressive_state_exactly(tmp_path, variant):
     r = scenes.SceneRenderer("soft_shadow", width=16, height=12, seed=3)
-    full = adapt(r, "splat", spp=31, seed=4, log=tmp_path / "a.h5", track_error=False)
-    adapt(r, "splat", spp=31, seed=4, log=tmp_path / "b.h5", max_rounds=2, track_error=False)
+    m = SplatMethod(variant=variant)
+    full = adapt(r, m, spp=31, seed=4, log=tmp_path / "a.h5", track_error=False)
+    adapt(r, m, spp=31, seed=4, log=tmp_path / "b.h5", max_rounds=2, track_error=False)
     resumed = resume(tmp_path / "b.h5", r, track_error=False)
     np.testing.assert_array_equal(resumed.image, full.image)
     # offline replay of the adaptive log's rounds gives the same image
-    np.testing.assert_array_equal(mcrecon.reconstruct(tmp_path / "a.h5", method="splat"), full.image)
+    np.testing.assert_array_equal(mcrecon.reconstruct(tmp_path / "a.h5", method=m), full.image)
 
 
 def test_single_round_log_split_into_pixel_rank_pseudo_rounds(tmp_path):
     w = 10
     b = scenes.render_uniform("depth_of_field", width=w, height=w, spp=7, seed=1)
     path = write_log(tmp_path / "l.h5", b.positions, b.values, width=w, height=w)
-    img = mcrecon.reconstruct(path, method="splat")
+    img = mcrecon.reconstruct(path, method=SplatMethod(variant="paper"))
     pos = np.asarray(read_log(path).read_all().positions)
     sp = ProgressiveSplatter(w, w, 3)
     for p, v in rank_split(pos, b.values, w, doubling_schedule(7)):
@@ -407,7 +409,7 @@ def test_single_round_log_with_unequal_counts_covers_every_pixel(tmp_path, rng):
     pos = jittered_positions(counts, rng)
     val = rng.random((len(pos), 3))
     path = write_log(tmp_path / "u.h5", pos, val, width=w, height=h)
-    m = SplatMethod()
+    m = SplatMethod(variant="paper")
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no "pixels without samples" warning
         rec = mcrecon.reconstruct(path, method=m, full=True)

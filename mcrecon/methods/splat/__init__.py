@@ -4,7 +4,10 @@ The method filters *samples*, not pixels: every sample is spread over the
 image with an Epanechnikov kernel whose width grows with how "bad" the
 sample is compared with the current estimate of the image (Eq. 8), and
 shrinks as the number of samples grows; the image is built progressively
-in doubling rounds (Fig. 3).
+in doubling rounds (Fig. 3).  That is ``variant="paper"``; the default
+``variant="robust"`` keeps every sample in its pixel except the excess of
+outliers over their neighbourhood, which it spreads guided by the local
+mean (``docs/methods/splat.md``, "Default vs paper").
 
 :mod:`.kernels`
     The footprint of one sample: Eq. 4, the numba scatter loops, :func:`splat`.
@@ -26,9 +29,10 @@ References
 
 from .kernels import BOUNDARY_MODES, epanechnikov, splat
 from .method import SplatMethod
-from .progressive import LUMINANCE_WEIGHTS, NORMS, ProgressiveSplatter, kernel_width, pilot_width, sample_norm
+from .progressive import (GUIDES, LUMINANCE_WEIGHTS, NORMS, SPREADS, ProgressiveSplatter, kernel_width, pilot_width,
+                          sample_norm)
 # Importable from here as before, though not in __all__:
 from .progressive import doubling_schedule  # noqa: F401
 
 __all__ = ["SplatMethod", "ProgressiveSplatter", "epanechnikov", "kernel_width", "pilot_width",
-           "sample_norm", "splat", "BOUNDARY_MODES", "NORMS", "LUMINANCE_WEIGHTS"]
+           "sample_norm", "splat", "BOUNDARY_MODES", "NORMS", "LUMINANCE_WEIGHTS", "SPREADS", "GUIDES"]

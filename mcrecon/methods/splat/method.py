@@ -10,9 +10,10 @@ import numpy as np
 from ...errors import InputError, McreconWarning
 from ...renderers.protocol import SampleBatch, SampleRequest
 from ...samples import check_policy, source_name
-from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState
+from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, variant_option
 from .kernels import BOUNDARY_MODES
-from .progressive import NORMS, ProgressiveSplatter, _next_round, _select_by_rank, doubling_schedule
+from .progressive import (GUIDES, NORMS, SPREADS, ProgressiveSplatter, _next_round, _select_by_rank,
+                          doubling_schedule)
 
 __all__ = ["SplatMethod", "SplatRun"]
 
@@ -22,10 +23,15 @@ class SplatMethod(Method):
 
     Options
     -------
+    variant : {'robust', 'paper'}
+        ``paper`` presets the paper's algorithm (``spread='all'``,
+        ``guide='none'``, ``c=4``, ``alpha=0.3``); ``robust`` (default)
+        spreads only the excess of outliers (``docs/methods/splat.md``,
+        "Default vs paper").  Explicit options win over the presets.
     alpha : float
-        Exponent of N in Eq. 8 (default 1.5/5 = 0.3, the paper's Sec. 5); 0 < alpha <= 1.
+        Exponent of N in Eq. 8 (default 0.5; the paper's Sec. 5: 1.5/5 = 0.3); 0 < alpha <= 1.
     c : float
-        C of Eq. 8, the reference diameter in pixels at N = 1, G/f = 1 (default 4).
+        C of Eq. 8, the reference diameter in pixels at N = 1, G/f = 1 (default 2; the paper 4).
     c_prime : float
         C' of the pilot estimate, diameter C' N0^-1/2 (default 8: 8 px at N0 = 1).
     initial_spp : int
@@ -37,6 +43,18 @@ class SplatMethod(Method):
         Boundary-bias remedy (Sec. 5); default mirror.
     norm : {'luminance', 'mean', 'max'}
         Scalar G of a colour sample (and f of a pixel) in Eq. 8.
+    spread : {'outliers', 'all'}
+        ``all``: every sample gets its Eq. 8 kernel (the paper).
+        ``outliers``: a sample stays in its pixel unless its G exceeds
+        the largest ``mean + outlier_k * std`` of the 3x3 windows around
+        its pixel (pooled samples so far); then only the excess fraction
+        ``1 - tau/G`` of its value is splatted, with Eq. 8's width for
+        ``G - tau`` against the pooled mean.
+    outlier_k : float
+        k of that threshold (default 2).
+    guide : {'local_mean', 'none'}
+        Weights of the spread part: Epanechnikov times the pooled 3x3 mean
+        of G at each covered pixel (``local_mean``), or plain (``none``).
 
     Notes
     -----
@@ -48,7 +66,8 @@ class SplatMethod(Method):
     (Eq. 3 assumes an even sample density).  ``observe`` splats each
     committed round.  Offline (``inputs.samples``, a sample source such as
     a log): its rounds are replayed in order; a single-round source is
-    split into doubling pseudo-rounds by each pixel's sample order.
+    split into doubling pseudo-rounds by each pixel's sample order (paper)
+    or taken as one round (robust: every sample judged against all).
 
     References
     ----------
@@ -59,11 +78,19 @@ class SplatMethod(Method):
     name = "splat"
     adaptive = False
     requires = Requirements(samples=True, statistics=False)
+    #: ``paper``: every sample splatted with Eq. 8 widths (Suykens and Willems
+    #: 2000 as published).  ``robust`` (default): only the excess of outliers
+    #: is spread, guided by the local mean (docs/methods/splat.md, "Default vs paper").
+    variants = {"robust": {"spread": "outliers", "guide": "local_mean", "c": 2.0, "alpha": 0.5,
+                           "outlier_k": 2.0},
+                "paper": {"spread": "all", "guide": "none", "c": 4.0, "alpha": 0.3}}
     options = (
-        Option("alpha", float, 0.3, "exponent of N in the kernel width (Eq. 8), 0 < alpha <= 1",
+        variant_option(variants),
+        Option("alpha", float, 0.5, "exponent of N in the kernel width (Eq. 8), 0 < alpha <= 1",
                min=0.0, max=1.0, min_open=True,
                note="the paper uses 1.5/5; 1/5 and 1/2 are the classical extremes"),
-        Option("c", float, 4.0, "kernel diameter constant C in pixels (Eq. 8)", min=0.0, min_open=True),
+        Option("c", float, 2.0, "kernel diameter constant C in pixels (Eq. 8; the paper: 4)", min=0.0,
+               min_open=True),
         Option("c_prime", float, 8.0, "pilot kernel diameter constant C' in pixels (C' N0^-1/2)",
                min=0.0, min_open=True),
         Option("initial_spp", int, 1, "samples per pixel of the first round N0", min=1),
@@ -72,6 +99,12 @@ class SplatMethod(Method):
                min=1.0),
         Option("boundary", str, "mirror", "boundary-bias remedy", BOUNDARY_MODES),
         Option("norm", str, "luminance", "scalar value of a colour sample in Eq. 8", NORMS),
+        Option("spread", str, "outliers", "which samples are splatted: all (the paper) or only the excess "
+               "of outliers above their 3x3 neighbourhood's mean + k std (the rest stays in its pixel)", SPREADS),
+        Option("outlier_k", float, 2.0, "spread='outliers': a sample is an outlier above mean + k std of "
+               "the G of its 3x3 neighbourhood's samples", min=0.0),
+        Option("guide", str, "local_mean", "footprint weights of the spread part: none (Epanechnikov, the "
+               "paper) or local_mean (Epanechnikov times the pooled 3x3 mean of G at each pixel)", GUIDES),
     )
 
     def _configure(self, params: dict) -> None:
@@ -83,7 +116,8 @@ class SplatMethod(Method):
         p = self.params
         return ProgressiveSplatter(width, height, n_channels, c=p["c"], alpha=p["alpha"], c_prime=p["c_prime"],
                                    min_width=p["min_width"], max_width=p["max_width"],
-                                   boundary=p["boundary"], norm=p["norm"])
+                                   boundary=p["boundary"], norm=p["norm"], spread=p["spread"],
+                                   outlier_k=p["outlier_k"], guide=p["guide"])
 
     def start(self, width, height, channels=("R", "G", "B"), *, reference=None) -> "SplatRun":
         base = super().start(width, height, channels, reference=reference)
@@ -92,13 +126,19 @@ class SplatMethod(Method):
 
     # ------------------------------------------------------------ offline
     def halo(self, width, height):
-        # largest splat radius plus the pilot estimate's radius that sets it, +1 for the pixel cell
-        return int(np.ceil(self.params["max_width"] / 2 + self.params["c_prime"] / 2)) + 1
+        if self.params["spread"] == "all":
+            # largest splat radius plus the pilot estimate's radius that sets it, +1 for the pixel cell
+            return int(np.ceil(self.params["max_width"] / 2 + self.params["c_prime"] / 2)) + 1
+        # A sample up to max_width/2 away reaches the pixel; its weights are normalised over its whole
+        # footprint, whose guide (each covered pixel's 3x3 window mean) reaches max_width + 1 px away;
+        # its threshold needs samples within 2 px of it (less).  +1 for the pixel cell.
+        return int(np.ceil(self.params["max_width"])) + ProgressiveSplatter.POOL_RADIUS + 1
 
     def reconstruct_run(self, run: "SplatRun", inputs: MethodInputs) -> np.ndarray:
         """Replay the sample source's rounds in order through the progressive algorithm.
 
-        A source with a single round (an offline render) is split into
+        Robust variant (``spread='outliers'``): a source with a single round
+        is one round.  Paper: a source with a single round (an offline render) is split into
         pseudo-rounds N_0 = initial_spp, N_j = 2 N_{j-1}: within each pixel,
         its samples are taken in source order and the k-th of the pixel's
         ``n_p`` samples goes to the round whose share of ``n_p`` contains k
@@ -119,6 +159,12 @@ class SplatMethod(Method):
             for r in rounds:
                 sp.add_round_stream(lambda r=r: _arrays(src.iter_chunks(rounds=[r], with_round=False)),
                                     nonfinite=nonfinite, where=where)
+        elif rounds and self.params["spread"] == "outliers":
+            # Robust variant: a single-round source is one round.  Every sample is judged
+            # against the statistics of all samples (pseudo-rounds would judge the first
+            # ones against a few spp, too few for the outlier test: MIN_POOL).
+            sp.add_round_stream(lambda: _arrays(src.iter_chunks(with_round=False)), nonfinite=nonfinite,
+                                where=where)
         elif rounds:
             self._replay_single_round(src, sp, nonfinite, where)
         if sp.n_nonfinite:
