@@ -29,10 +29,15 @@ def _cmd_convergence(args):
     res = run_convergence(args.scene, methods=_csv_list(args.methods) if args.methods else None,
                           spp=_csv_list(args.spp, int, "--spp"), size=parse_size(args.size), seed=args.seed,
                           modes=_csv_list(args.modes, str, "--modes"),
-                          oidn=None if args.oidn == "auto" else args.oidn == "yes", out=args.out)
+                          oidn=None if args.oidn == "auto" else args.oidn == "yes", out=args.out,
+                          flip=None if args.flip == "auto" else args.flip == "yes", html=args.html)
     for r in res.rows:
+        flip = f"  FLIP {r['flip']:.4g}" if "flip" in r else ""
         print(f"{r['method']:6s} {r['mode']:8s} spp {r['spp']:4d}  relMSE {r['relative_mse']:.5g}  "
-              f"SSIM {r['ssim']:.4f}  renderer {r['renderer_seconds']:.3f} s  toolkit {r['toolkit_seconds']:.3f} s")
+              f"SMAPE {r['smape']:.4g}  1-SSIM {r['one_minus_ssim']:.4g}{flip}  "
+              f"renderer {r['renderer_seconds']:.3f} s  toolkit {r['toolkit_seconds']:.3f} s")
+    for note in res.notes:
+        print(f"note: {note}")
     for f in res.files:
         print(f"wrote {f}")
     return 0
@@ -75,7 +80,7 @@ def _cmd_gallery(args):
 
     path = write_gallery(args.out, scenes=_csv_list(args.scenes) if args.scenes else None,
                          methods=_csv_list(args.methods) if args.methods else None, size=parse_size(args.size),
-                         spp=args.spp, seed=args.seed)
+                         spp=args.spp, seed=args.seed, html=args.html)
     print(f"wrote {path}")
     return 0
 
@@ -135,15 +140,20 @@ def register(sub, command: str | None = None) -> None:
     ex = sub.add_parser("experiment", help="figures and tables: convergence, error-rate, stability, normality")
     es = ex.add_subparsers(dest="experiment", required=True, parser_class=OneLineParser)
 
-    s = es.add_parser("convergence", help="relative MSE/RMSE/SSIM against spp and wall time, per method")
+    s = es.add_parser("convergence", help="relative MSE, SMAPE, 1-SSIM, FLIP against spp and wall time, per method")
     s.add_argument("--scene", default="soft_shadow")
     s.add_argument("--methods", default=None, help="comma-separated (default: all available)")
     s.add_argument("--spp", default="4,8,16,32,64,128")
     s.add_argument("--size", default="128x128")
     s.add_argument("--modes", default="uniform,adaptive")
     s.add_argument("--oidn", default="auto", choices=("auto", "yes", "no"))
+    s.add_argument("--flip", default="auto", choices=("auto", "yes", "no"),
+                   help="HDR-FLIP per point (auto: when flip-evaluator is installed)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", required=True)
+    s.add_argument("--html", action="store_true",
+                   help="also write OUT/report.html: one self-contained interactive report (flip between "
+                        "methods, zoom, exposure, error maps)")
     s.set_defaults(func=_cmd_convergence)
 
     s = es.add_parser("oracle", help="the ceiling of Gaussian-scale selection on a scene, each method beside it")
@@ -171,6 +181,8 @@ def register(sub, command: str | None = None) -> None:
     s.add_argument("--spp", type=int, default=16)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", required=True)
+    s.add_argument("--html", action="store_true",
+                   help="also write OUT/gallery/SCENE.html, an interactive viewer per scene")
     s.set_defaults(func=_cmd_gallery)
 
     s = es.add_parser("error-rate", help="GEM's scale-selector error rate on a constant signal (Sec. 4.3)")

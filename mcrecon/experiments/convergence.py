@@ -5,7 +5,10 @@ of the scene and reconstructs it with every method (the same samples for
 all, as in GEM's Fig. 11); the *adaptive* mode runs each adaptive method
 through the driver with the same budget.  Every point records relative
 MSE, RMSE and SSIM against the scene's exact reference, and wall time split
-into renderer and toolkit.  Intel Open Image Denoise (``pyoidn``) joins as
+into renderer and toolkit.  Every point also records SMAPE, 1 - SSIM and,
+when ``flip-evaluator`` is installed, NVIDIA's HDR-FLIP (``flip``); the
+reports (``report.md``, and ``report.html`` with ``html=True``) give them
+all.  Intel Open Image Denoise (``pyoidn``) joins as
 an outside peer on the box-filtered uniform samples when it is installed.
 """
 
@@ -25,7 +28,8 @@ import numpy as np
 from ..errors import InputError, McreconWarning
 from ..io import write_exr, write_false_colour, write_log, write_png_preview
 from ..methods import available_methods, get_method, method_class
-from ..metrics import relative_mse, relative_mse_map, rmse, ssim
+from ..metrics import flip as flip_metric
+from ..metrics import flip_available, relative_mse, relative_mse_map, rmse, smape, ssim
 from ..reconstruction import reconstruct
 
 __all__ = ["run_convergence", "ConvergenceResult", "oidn_available", "oidn_denoise"]
@@ -55,16 +59,30 @@ class ConvergenceResult:
     reference: np.ndarray
     report_spp: int
     files: list
+    eps: float = 0.01  # relative MSE's
+    smape_eps: float = 0.01
+    flip: bool = False  # rows carry HDR-FLIP ("flip")
+    notes: list = dataclasses.field(default_factory=list)
 
 
-def _metrics(img, ref, eps):
-    return {"relative_mse": relative_mse(img, ref, eps=eps), "rmse": rmse(img, ref), "ssim": ssim(img, ref)}
+#: SMAPE's eps in the convergence reports (metrics.smape's default).
+SMAPE_EPS = 0.01
+
+
+def _metrics(img, ref, eps, use_flip=False):
+    s = ssim(img, ref)
+    out = {"relative_mse": relative_mse(img, ref, eps=eps), "rmse": rmse(img, ref), "ssim": s,
+           "smape": smape(img, ref, eps=SMAPE_EPS), "one_minus_ssim": 1.0 - s}
+    if use_flip:
+        out["flip"] = flip_metric(img, ref, hdr=True)
+    return out
 
 
 def run_convergence(scene: str = "soft_shadow", *, methods: Sequence[str] | None = None,
                     spp: Sequence[int] = (4, 8, 16, 32, 64, 128), size: tuple[int, int] = (128, 128),
                     seed: int = 0, modes: Sequence[str] = ("uniform", "adaptive"), oidn: bool | None = None,
-                    out=None, eps: float = 0.01, report_spp: int | None = None) -> ConvergenceResult:
+                    out=None, eps: float = 0.01, report_spp: int | None = None, flip: bool | None = None,
+                    html: bool = False) -> ConvergenceResult:
     """Run the convergence experiment; write CSV, JSON, plots and a report into ``out``.
 
     Parameters
@@ -83,6 +101,12 @@ def run_convergence(scene: str = "soft_shadow", *, methods: Sequence[str] | None
         Output directory (nothing is written when None).
     report_spp : int, optional
         Budget whose images go into the report (default: 32 if present, else the largest).
+    flip : bool, optional
+        Record HDR-FLIP per point (default: when ``flip-evaluator`` is
+        installed; True without it raises).
+    html : bool
+        Also write ``report.html``, the interactive report
+        (:mod:`mcrecon.experiments.html_report`), when ``out`` is given.
     """
     from ..driver import adapt
     from ..renderers.scenes import SceneRenderer, get_scene, reference_image, render_uniform
@@ -101,6 +125,16 @@ def run_convergence(scene: str = "soft_shadow", *, methods: Sequence[str] | None
     ref = reference_image(sc, w, h)
     if oidn is None:
         oidn = oidn_available()
+    notes = []
+    if flip is None:
+        flip = flip_available()
+        if not flip:
+            notes.append("FLIP omitted: flip-evaluator is not installed (pip install flip-evaluator)")
+    elif flip and not flip_available():
+        raise InputError("convergence", "flip", "flip-evaluator is not installed: pip install flip-evaluator")
+    if flip and ref.shape[2] not in (1, 3):
+        flip = False
+        notes.append(f"FLIP omitted: it compares 1 or 3 (RGB) channels, the scene has {ref.shape[2]}")
     if report_spp is None:
         report_spp = 32 if 32 in spp else spp[-1]
     rows, images, maps = [], {}, {}
@@ -124,7 +158,7 @@ def run_convergence(scene: str = "soft_shadow", *, methods: Sequence[str] | None
                     box_img = img
                 rows.append({"scene": scene, "method": name, "mode": "uniform", "spp": s,
                              "samples": len(batch), "renderer_seconds": t_render, "toolkit_seconds": dt,
-                             "wall_seconds": t_render + dt, **_metrics(img, ref, eps)})
+                             "wall_seconds": t_render + dt, **_metrics(img, ref, eps, flip)})
                 if s == report_spp:
                     images[(name, "uniform")] = img
             if oidn:
@@ -135,7 +169,7 @@ def run_convergence(scene: str = "soft_shadow", *, methods: Sequence[str] | None
                 dt = time.perf_counter() - t1
                 rows.append({"scene": scene, "method": "oidn", "mode": "uniform", "spp": s, "samples": len(batch),
                              "renderer_seconds": t_render, "toolkit_seconds": dt, "wall_seconds": t_render + dt,
-                             **_metrics(img, ref, eps)})
+                             **_metrics(img, ref, eps, flip)})
                 if s == report_spp:
                     images[("oidn", "uniform")] = img
             if s == report_spp:
@@ -155,7 +189,7 @@ def run_convergence(scene: str = "soft_shadow", *, methods: Sequence[str] | None
                 rows.append({"scene": scene, "method": name, "mode": "adaptive", "spp": s,
                              "samples": res.stats.n_samples, "renderer_seconds": res.renderer_seconds,
                              "toolkit_seconds": wall - res.renderer_seconds, "wall_seconds": wall,
-                             **_metrics(res.image, ref, eps)})
+                             **_metrics(res.image, ref, eps, flip)})
                 if s == report_spp:
                     images[(name, "adaptive")] = res.image
                     maps[(name, "adaptive")] = res.stats.count
@@ -163,14 +197,39 @@ def run_convergence(scene: str = "soft_shadow", *, methods: Sequence[str] | None
         tmpdir.rmdir()
     except OSError:
         pass
-    result = ConvergenceResult(rows, images, maps, ref, report_spp, [])
+    result = ConvergenceResult(rows, images, maps, ref, report_spp, [], eps=eps, smape_eps=SMAPE_EPS,
+                               flip=bool(flip), notes=notes)
     if out is not None:
-        result.files = _write_convergence(result, out, scene=scene)
+        result.files = _write_convergence(result, out, scene=scene, html=html)
     return result
 
 
-def _write_convergence(result: ConvergenceResult, out, *, scene: str) -> list:
-    """CSV, JSON, two log-log plots, images and a Markdown report."""
+def metrics_table(rows, *, flip: bool) -> list[str]:
+    """Markdown table lines of rows: relative MSE, SMAPE, 1 - SSIM, FLIP (when ``flip``), RMSE and times."""
+    head = "| method | mode | spp | relative MSE | SMAPE | 1−SSIM |" + (" FLIP |" if flip else "")
+    head += " RMSE | renderer s | toolkit s |"
+    out = [head, "|---|---|---:" + "|---:" * (head.count("|") - 4) + "|"]
+    for r in rows:
+        line = (f"| {r['method']} | {r['mode']} | {r['spp']} | {r['relative_mse']:.4g} | {r['smape']:.4g} | "
+                f"{r['one_minus_ssim']:.4g} |")
+        if flip:
+            line += f" {r['flip']:.4g} |"
+        line += f" {r['rmse']:.4g} | {r['renderer_seconds']:.3f} | {r['toolkit_seconds']:.3f} |"
+        out.append(line)
+    return out
+
+
+def metrics_legend(result: ConvergenceResult) -> str:
+    """One Markdown sentence defining the metrics of the tables."""
+    text = (f"relative MSE: mean (img − ref)² / (ref² + ε), ε = {result.eps:g}; SMAPE: mean |img − ref| / "
+            f"(|img| + |ref| + ε), ε = {result.smape_eps:g}; 1−SSIM on the sRGB previews; ")
+    text += ("FLIP: NVIDIA's HDR-FLIP (flip-evaluator), mean over pixels; " if result.flip else
+             "FLIP: not computed (" + ("; ".join(n for n in result.notes if "FLIP" in n) or "disabled") + "); ")
+    return text + "lower is better for all."
+
+
+def _write_convergence(result: ConvergenceResult, out, *, scene: str, html: bool = False) -> list:
+    """CSV, JSON, two log-log plots, images, a Markdown report and (``html``) the interactive one."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -221,13 +280,11 @@ def _write_convergence(result: ConvergenceResult, out, *, scene: str) -> list:
         gallery.append((f"{method} ({mode})" if method != "input" else "noisy input (box)", f"images/{stem}.png",
                         (f"images/{stem}_error.png", dens)))
     md = [f"# Convergence: {scene}", "",
-          f"Relative MSE (ε = 0.01) against average spp and against wall time; images at {result.report_spp} spp.", "",
+          f"Relative MSE (ε = {result.eps:g}) against average spp and against wall time; images at "
+          f"{result.report_spp} spp." + (" Interactive viewer: [report.html](report.html)." if html else ""), "",
           "![relative MSE vs spp](convergence_spp.png) ![relative MSE vs time](convergence_time.png)", "",
-          "| method | mode | spp | relative MSE | RMSE | SSIM | renderer s | toolkit s |",
-          "|---|---|---:|---:|---:|---:|---:|---:|"]
-    for r in sorted(result.rows, key=lambda r: (r["method"], r["mode"], r["spp"])):
-        md.append(f"| {r['method']} | {r['mode']} | {r['spp']} | {r['relative_mse']:.4g} | {r['rmse']:.4g} | "
-                  f"{r['ssim']:.4f} | {r['renderer_seconds']:.3f} | {r['toolkit_seconds']:.3f} |")
+          metrics_legend(result), ""]
+    md += metrics_table(sorted(result.rows, key=lambda r: (r["method"], r["mode"], r["spp"])), flip=result.flip)
     md += ["", "## Images (sRGB preview), relative-error maps (log scale 1e-5..1) and sample densities", "",
            "| image | picture | error | density |", "|---|---|---|---|"]
     for label, pic, extra in gallery:
@@ -236,4 +293,9 @@ def _write_convergence(result: ConvergenceResult, out, *, scene: str) -> list:
         md.append(f"| {label} | ![]({pic}) | {err} | {dens} |")
     (out / "report.md").write_text("\n".join(md) + "\n")
     files.append(out / "report.md")
+    if html:
+        from .html_report import write_html_report
+
+        files.append(write_html_report(out / "report.html", result, scene=scene,
+                                       plots=[out / "convergence_spp.png", out / "convergence_time.png"]))
     return files
