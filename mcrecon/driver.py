@@ -11,19 +11,34 @@ Randomness is derived from ``(seed, round index)``: the method's
 decisions use ``default_rng([seed, round, 1])`` and the renderer gets
 the seed ``SeedSequence([seed, round, 2])``.  A resumed run therefore
 takes exactly the decisions the uninterrupted run would have taken.
+
+Pipelined rounds (``adapt(..., pipeline=True)``, the default for methods
+that tolerate it): while the renderer renders round k+1 in the calling
+thread, one toolkit thread validates and commits round k (log append,
+statistics, ``observe``) and plans round k+2 from the rounds <= k.  The
+plan of round j therefore always sees the rounds <= j-2 (round 1 sees
+round 0: it is planned after round 0 is committed) and, as
+``state.pending``, the per-pixel counts of the round in flight; never
+anything that depends on timing.  A pipelined run is reproducible from
+its seed and resumes bit-identically (the resume re-plans the round that
+was in flight from the same statistics); the run settings record
+``pipeline`` so a resume continues the same way.
 """
 
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import math
 import sys
 import time
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
+import numba
 import numpy as np
 
 from .errors import InputError, McreconWarning, RendererError
@@ -36,7 +51,7 @@ from .renderers.spec import renderer_from_spec
 from .samples import FLOAT32_MAX, NONFINITE_POLICIES, apply_nonfinite, check_reference, float32_loses_spread
 from .stats import PixelStats
 
-__all__ = ["adapt", "resume", "AdaptiveResult", "round_seeds", "STORAGE_DTYPES"]
+__all__ = ["adapt", "resume", "AdaptiveResult", "round_seeds", "STORAGE_DTYPES", "method_pipelines"]
 
 #: Precisions a run's log can store samples in (see :func:`adapt`).
 STORAGE_DTYPES = ("auto", "float32", "float64")
@@ -80,6 +95,18 @@ class AdaptiveResult:
     log: Path | None
     method: Method
     run: RunState
+    #: Whether the rounds were pipelined (see :func:`adapt`).
+    pipelined: bool = False
+    #: Wall seconds of the adaptive loop (first request to last commit; the final
+    #: image is not part of it) and the part of them the renderer was not
+    #: rendering: waiting for a plan or a commit (this process's rounds only).
+    loop_seconds: float = 0.0
+    idle_seconds: float = 0.0
+    #: CPU seconds of the thread doing the toolkit's work (validation, commit,
+    #: statistics, planning; the filtering pool's helper threads not counted).
+    toolkit_cpu_seconds: float = 0.0
+    #: Seconds of the final reconstruction (``method.finish``).
+    finish_seconds: float = 0.0
 
     def diagnostics(self) -> dict:
         """The method's diagnostic maps of this run."""
@@ -169,7 +196,7 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
           max_rounds: int = 10_000, track_error: bool = True, eps: float = 0.01,
           metadata: Mapping | None = None, renderer_spec: Mapping | None = None,
           overwrite: bool = False, storage_dtype: str = "auto",
-          on_round: Callable[[dict], Any] | None = None) -> AdaptiveResult:
+          on_round: Callable[[dict], Any] | None = None, pipeline: bool | None = None) -> AdaptiveResult:
     """Run adaptive rounds until the budget, the method's target or a time limit.
 
     Parameters
@@ -209,6 +236,16 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
         and float64 replies, a round whose values exceed float32's range is
         refused before it is stored, and a warning (once per run) counts
         pixels whose spread float32 cannot hold (1e6 +- 1e-3).
+    pipeline : bool, optional
+        Pipelined rounds: the renderer renders round k+1 while a toolkit
+        thread commits round k and plans round k+2 from the rounds <= k
+        (one round of lag, the same in every run: reproducible and
+        resumable).  Default: what the method declares
+        (:func:`method_pipelines`); True for a method that declares it
+        cannot plan with a lag is refused.  Recorded in the run settings.
+        A pipelined run hands each reply to the toolkit thread while the
+        renderer answers the next request: a renderer must not modify a
+        reply's arrays after ``render`` returned them.
 
     Returns
     -------
@@ -230,11 +267,20 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
         raise InputError("adapt", "spp", f"{spp} samples per pixel on {w}x{h} is beyond any budget "
                          "(at most 2^62 samples)")
     budget = int(round(float(spp) * w * h))
+    declared = method_pipelines(method)
+    if pipeline is None:
+        pipeline = declared
+    elif pipeline not in (True, False):
+        raise InputError("adapt", "pipeline", f"got {pipeline!r}, expected True, False or None (the method's choice)")
+    elif pipeline and _declares(method):
+        raise InputError("adapt", "pipeline", f"method {method.name} cannot plan with one round of lag; "
+                         "run it with pipeline=False")
     settings = {
         "method": method.name, "method_options": dict(method.params), "spp": float(spp), "seed": int(seed),
         "nonfinite": nonfinite, "time_limit": time_limit, "width": w, "height": h,
         "channels": list(channels), "renderer": _renderer_name(renderer),
         "renderer_spec": dict(renderer_spec or {}), "storage_dtype": storage_dtype,
+        "pipeline": bool(pipeline),
     }
     log_path = None
     held = contextlib.ExitStack()
@@ -247,11 +293,11 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
         return _start(renderer, method, w=w, h=h, channels=channels, ref=ref, budget=budget, settings=settings,
                       seed=seed, log_path=log_path, overwrite=overwrite, metadata=metadata, storage_dtype=storage_dtype,
                       time_limit=time_limit, progress=progress, nonfinite=nonfinite, max_rounds=max_rounds,
-                      track_error=track_error, eps=eps, on_round=on_round)
+                      track_error=track_error, eps=eps, on_round=on_round, pipeline=bool(pipeline))
 
 
 def _start(renderer, method, *, w, h, channels, ref, budget, settings, seed, log_path, overwrite, metadata,
-           storage_dtype, time_limit, progress, nonfinite, max_rounds, track_error, eps, on_round):
+           storage_dtype, time_limit, progress, nonfinite, max_rounds, track_error, eps, on_round, pipeline):
     if log_path is not None:
         if log_path.exists() and not overwrite:
             raise InputError(str(log_path), "file", "exists; resume it with --resume / mcrecon.driver.resume, "
@@ -269,7 +315,7 @@ def _start(renderer, method, *, w, h, channels, ref, budget, settings, seed, log
     return _run(renderer, method, run, stats=stats, rounds=[], round_index=0, budget=budget, seed=int(seed),
                 log_path=log_path, ref=ref, time_limit=time_limit, progress=progress, nonfinite=nonfinite,
                 max_rounds=max_rounds, track_error=track_error, eps=eps, elapsed=0.0, on_round=on_round,
-                storage_dtype=storage_dtype)
+                storage_dtype=storage_dtype, pipeline=pipeline)
 
 
 def resume(log, renderer=None, *, progress: bool | None = None, time_limit: float | None = None,
@@ -317,42 +363,165 @@ def _resume(log_path, renderer, *, progress, time_limit, track_error, on_round) 
     method = get_method(s["method"], **s["method_options"])
     ref = sl.reference()
     run = method.start(w, h, channels, reference=ref)
+    pipeline = bool(s.get("pipeline", False))  # logs of runs before pipelining: sequential
+    budget = int(round(float(s["spp"]) * w * h))
     # Replay the committed rounds exactly as the live run took them: one batch
     # per round (the statistics merge runs of same-pixel samples within a batch,
     # so other batch boundaries would round differently for float64 values),
     # one round in memory at a time; observe() only for methods that read samples.
+    # A pipelined run had planned round K (the one in flight when it stopped) from
+    # the rounds <= K-2 with round K-1 pending: that plan is made again between
+    # the replays of rounds K-2 and K-1, exactly as the live run made it.
     stats = PixelStats(w, h, channels, subpixels=method.requires.subpixels)
+    k = sl.n_rounds
+    planned = None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", McreconWarning)  # the live run reported them
-        for r in range(sl.n_rounds):
+        for r in range(k):
             chunk = sl.read_all(rounds=[r])
+            if pipeline and r == k - 1 and k >= 2:
+                pending = _pixel_counts_of(chunk.positions, w, h)
+                planned = _plan_round(method, run, stats, k, budget, _committed(stats) + len(chunk.positions),
+                                      int(s["seed"]), ref, lag=1, pending=pending)
             _take_round(method, run, stats, SampleBatch(chunk.positions, chunk.values), r, s["nonfinite"],
                         str(log_path))
     records = list(sl.round_records)
     elapsed = float(records[-1]["wall_seconds"]) if records else 0.0
-    budget = int(round(float(s["spp"]) * w * h))
     tl = time_limit if time_limit is not None else s.get("time_limit")
-    return _run(renderer, method, run, stats=stats, rounds=records, round_index=sl.n_rounds, budget=budget,
+    return _run(renderer, method, run, stats=stats, rounds=records, round_index=k, budget=budget,
                 seed=int(s["seed"]), log_path=log_path, ref=ref, time_limit=tl, progress=progress,
                 nonfinite=s["nonfinite"], max_rounds=10_000, track_error=track_error, eps=0.01,
                 elapsed=elapsed, on_round=on_round,
-                storage_dtype=s.get("storage_dtype", "float32") if sl.n_samples == 0 else str(sl.value_dtype))
+                storage_dtype=s.get("storage_dtype", "float32") if sl.n_samples == 0 else str(sl.value_dtype),
+                pipeline=pipeline, planned=planned)
 
 
-def _take_round(method, run, stats, batch, round_index, nonfinite, source) -> None:
+def _take_round(method, run, stats, batch, round_index, nonfinite, source, n_nonfinite=None) -> None:
     """A committed round into the statistics and, for methods that read samples, into ``observe``.
 
     The one path of the live run and of a resume's replay.  ``observe`` sees
     the round after the run's NaN/Inf policy, exactly as the statistics did.
+    ``n_nonfinite`` (rows with a NaN or Inf value) is given by the live run,
+    whose reply :func:`validate_reply` has already checked (shapes, dtypes,
+    positions on the film): the statistics then take the arrays without
+    checking them again -- the same numbers as ``stats.add`` would ingest
+    (``check_samples`` returns contiguous arrays of the given float dtype).
     """
-    stats.add(batch.positions, batch.values, nonfinite=nonfinite, source=source)
-    if method.requires.samples:
+    if n_nonfinite is None:
+        stats.add(batch.positions, batch.values, nonfinite=nonfinite, source=source)
         pos, val = np.asarray(batch.positions), np.asarray(batch.values)
         if val.ndim == 1:
             val = val[:, None]
-        n_bad = int((~np.isfinite(val)).any(axis=1).sum()) if val.size else 0
+        n_bad = int((~np.isfinite(val)).any(axis=1).sum()) if (method.requires.samples and val.size) else 0
+    else:
+        pos = np.ascontiguousarray(batch.positions)
+        val = np.ascontiguousarray(batch.values)
+        if val.ndim == 1:
+            val = val[:, None]
+        n_bad = int(n_nonfinite)
+        if pos.shape[0]:
+            p2, v2 = apply_nonfinite(pos, val, n_bad, nonfinite, where=source)
+            stats._ingest(p2, v2, n_bad, nonfinite=nonfinite, source=source)
+    if method.requires.samples:
         pos, val = apply_nonfinite(pos, val, n_bad, nonfinite, where=source)
         method.observe(run, SampleBatch(pos, val), round_index)
+
+
+@numba.njit(cache=True, nogil=True)
+def _nonfinite_rows(val):
+    # rows holding a NaN or Inf value (one pass; the reply was validated before)
+    n = 0
+    for k in range(val.shape[0]):
+        for c in range(val.shape[1]):
+            if not np.isfinite(val[k, c]):
+                n += 1
+                break
+    return n
+
+
+def _pixel_counts_of(positions, w, h) -> np.ndarray:
+    """Samples per pixel (H, W) of film positions (on the film: validated)."""
+    pos = np.asarray(positions)
+    if pos.shape[0] == 0:
+        return np.zeros((h, w), np.int64)
+    idx = pos[:, 1].astype(np.int64) * w + pos[:, 0].astype(np.int64)
+    return np.bincount(idx, minlength=w * h).reshape(h, w)
+
+
+def _request_counts(req) -> np.ndarray:
+    """Samples per pixel (H, W) a request asks for (what its reply will add)."""
+    c = np.zeros((req.height, req.width), np.int64) if req.counts is None else req.counts.copy()
+    if req.positions is not None:
+        c += _pixel_counts_of(req.positions, req.width, req.height)
+    return c
+
+
+def _committed(stats) -> int:
+    # Samples dropped by the non-finite policy were rendered and committed: they
+    # count against the budget, or a renderer that keeps returning NaN never ends.
+    return stats.n_samples + stats.n_dropped
+
+
+#: Values of ``Method.pipeline`` (see :class:`mcrecon.methods.Method`).
+PIPELINE_DECLARATIONS = ("default", "allowed", "no")
+
+
+def _pipeline_declaration(method) -> str:
+    v = getattr(type(method), "pipeline", "allowed")
+    if v not in PIPELINE_DECLARATIONS:
+        raise InputError(f"method {getattr(method, 'name', type(method).__name__)}", "pipeline",
+                         f"class attribute {v!r}; valid: {', '.join(PIPELINE_DECLARATIONS)}")
+    return v
+
+
+def _declares(method) -> bool:
+    """Whether the method says it cannot plan with a lag (``pipeline = "no"``)."""
+    return _pipeline_declaration(method) == "no"
+
+
+def method_pipelines(method) -> bool:
+    """Whether ``method`` plans with one round of lag by default (:func:`adapt`'s ``pipeline``).
+
+    The method class declares it (``Method.pipeline``): ``"default"``
+    pipelines unless asked not to; ``"allowed"`` (the base class's value)
+    only with ``pipeline=True``; ``"no"`` refuses ``pipeline=True``.
+    """
+    return _pipeline_declaration(method) == "default"
+
+
+def _with_seed(req, round_index, seed):
+    """``req`` with its round index and renderer seed, without validating it again.
+
+    (``dataclasses.replace`` would re-run ``SampleRequest.__post_init__``: the
+    method built the request through its constructor, which checked it.)
+    """
+    out = copy.copy(req)
+    object.__setattr__(out, "round_index", int(round_index))
+    object.__setattr__(out, "seed", int(seed))
+    return out
+
+
+def _adaptive_state(stats, round_index, budget, n_samples, rng, ref, *, lag=0, pending=None) -> AdaptiveState:
+    return AdaptiveState(stats, round_index, budget, n_samples, rng, ref, lag=int(lag), pending=pending)
+
+
+def _plan_round(method, run, stats, round_index, budget, n_total, seed, ref, *, lag=0, pending=None):
+    """(request with its seeds, None) or (None, why the run stops) for round ``round_index``.
+
+    ``n_total``: samples committed plus in flight.  Depends only on its
+    arguments: the same in a live run and in a resume.
+    """
+    if n_total >= budget:
+        return None, "budget"
+    rng, rseed = round_seeds(seed, round_index)
+    state = _adaptive_state(stats, round_index, budget, n_total, rng, ref, lag=lag, pending=pending)
+    req = method.plan(run, state)
+    if req is None or req.total == 0:
+        return None, ("converged" if req is None or n_total < budget else "budget")
+    if req.total > state.remaining:
+        raise RuntimeError(f"method {method.name} planned {req.total} samples with only "
+                           f"{state.remaining} left in the budget (a bug in the method)")
+    return _with_seed(req, round_index, rseed), None
 
 
 def _resolve_storage(log_path, reply_dtype) -> str:
@@ -398,95 +567,255 @@ def _to_storage(batch, storage_dtype, stats, name, round_index, warned, log_path
                        batch.features)
 
 
+class _Round:
+    """What the toolkit does with one reply: validate, store, count (shared by both modes)."""
+
+    def __init__(self, method, run, stats, *, name, c, log_path, nonfinite, ref, track_error, eps, budget,
+                 storage_dtype, wall):
+        self.method, self.run, self.stats = method, run, stats
+        self.name, self.c, self.log_path, self.nonfinite = name, c, log_path, nonfinite
+        self.ref, self.track_error, self.eps, self.budget = ref, track_error, eps, budget
+        self.storage_dtype = storage_dtype
+        self.warned = set()
+        self.wall = wall  # () -> run wall seconds now
+
+    def receive(self, req, reply, round_index):
+        """The validated reply (stored precision) and its count of non-finite rows; nothing stored yet."""
+        batch = validate_reply(req, reply, n_channels=self.c, renderer=self.name)
+        if self.storage_dtype == "auto":
+            self.storage_dtype = _resolve_storage(self.log_path, np.asarray(batch.values).dtype)
+        if self.log_path is not None:
+            batch = _to_storage(batch, self.storage_dtype, self.stats, self.name, round_index, self.warned,
+                                self.log_path)
+        val = np.ascontiguousarray(batch.values)
+        n_bad = _nonfinite_rows(val) if val.size else 0
+        if self.nonfinite == "raise" and n_bad:
+            raise RendererError(self.name, "values", f"{n_bad} sample(s) with NaN or Inf in round "
+                                f"{round_index} (policy nonfinite='raise'); nothing of this round was stored")
+        return SampleBatch(np.ascontiguousarray(batch.positions), val, batch.features), n_bad
+
+    def commit(self, batch, n_bad, record, toolkit_s):
+        """Append to the log, then into the statistics (and ``observe``)."""
+        if self.log_path is not None:
+            append_log(self.log_path, batch.positions, batch.values, round_index=record["round"],
+                       features=batch.features if batch.features else None,
+                       round_record={**record, "toolkit_seconds": toolkit_s, "wall_seconds": self.wall()})
+        _take_round(self.method, self.run, self.stats, batch, record["round"], self.nonfinite, self.name,
+                    n_nonfinite=n_bad)
+
+    def evaluate(self, record, round_index):
+        """The error of the image after the round (not part of the run's time)."""
+        from .metrics import relative_mse
+
+        if self.ref is None or not self.track_error:
+            return 0.0
+        te = time.perf_counter()
+        rng, _ = round_seeds(0, 0)
+        st = _adaptive_state(self.stats, round_index, self.budget, _committed(self.stats), rng, self.ref)
+        record["error"] = relative_mse(self.method.finish(self.run, st), self.ref, eps=self.eps)
+        record["eval_seconds"] = time.perf_counter() - te
+        return record["eval_seconds"]
+
+
 def _run(renderer, method, run, *, stats, rounds, round_index, budget, seed, log_path, ref, time_limit,
          progress, nonfinite, max_rounds, track_error, eps, elapsed, on_round,
-         storage_dtype) -> AdaptiveResult:
-    from .metrics import relative_mse
-
+         storage_dtype, pipeline=False, planned=None) -> AdaptiveResult:
     name = _renderer_name(renderer)
-    c = len(stats.channels)
     bar = _Progress(progress, budget)
-    stopped = "budget"
-    wall_start = time.perf_counter() - elapsed
-    state = None
-    warned = set()
-
-    def committed() -> int:
-        # Samples dropped by the non-finite policy were rendered and committed: they
-        # count against the budget, or a renderer that keeps returning NaN never ends.
-        return stats.n_samples + stats.n_dropped
-
+    clock = {"wall_start": time.perf_counter() - elapsed}
+    rnd = _Round(method, run, stats, name=name, c=len(stats.channels), log_path=log_path, nonfinite=nonfinite,
+                 ref=ref, track_error=track_error, eps=eps, budget=budget, storage_dtype=storage_dtype,
+                 wall=lambda: time.perf_counter() - clock["wall_start"])
+    acct = {"render": 0.0, "cpu": 0.0}
+    loop_t0 = time.perf_counter()
     try:
-        while True:
-            if committed() >= budget:
-                stopped = "budget"
-                break
-            if round_index >= max_rounds:
-                stopped = "max_rounds"
-                break
-            if time_limit is not None and time.perf_counter() - wall_start >= time_limit:
-                stopped = "time_limit"
-                break
-            t0 = time.perf_counter()
-            rng, rseed = round_seeds(seed, round_index)
-            state = AdaptiveState(stats, round_index, budget, committed(), rng, ref)
-            req = method.plan(run, state)
-            if req is None or req.total == 0:
-                stopped = "converged" if req is None or committed() < budget else "budget"
-                break
-            if req.total > state.remaining:
-                raise RuntimeError(f"method {method.name} planned {req.total} samples with only "
-                                   f"{state.remaining} left in the budget (a bug in the method)")
-            req = dataclasses.replace(req, round_index=round_index, seed=rseed)
-            t1 = time.perf_counter()
-            reply = renderer.render(req)
-            t2 = time.perf_counter()
-            render_s = getattr(renderer, "last_render_seconds", None)
-            render_s = float(render_s) if render_s is not None else t2 - t1
-            batch = validate_reply(req, reply, n_channels=c, renderer=name)
-            if storage_dtype == "auto":
-                storage_dtype = _resolve_storage(log_path, np.asarray(batch.values).dtype)
-            if log_path is not None:
-                batch = _to_storage(batch, storage_dtype, stats, name, round_index, warned, log_path)
-            if nonfinite == "raise":
-                bad = ~np.isfinite(np.asarray(batch.values)).all(axis=1)
-                if bad.any():
-                    raise RendererError(name, "values", f"{int(bad.sum())} sample(s) with NaN or Inf in round "
-                                        f"{round_index} (policy nonfinite='raise'); nothing of this round was stored")
-            # Time in the renderer call beyond what the renderer reports as its own
-            # (file exchange, conversions) belongs to the toolkit side of the run.
-            toolkit_s = (t1 - t0) + (time.perf_counter() - t2) + max((t2 - t1) - render_s, 0.0)
-            record = {"round": round_index, "samples": len(batch),
-                      "samples_total": committed() + len(batch), "renderer_seconds": render_s}
-            t3 = time.perf_counter()
-            if log_path is not None:
-                append_log(log_path, batch.positions, batch.values, round_index=round_index,
-                           features=batch.features if batch.features else None,
-                           round_record={**record, "toolkit_seconds": toolkit_s,
-                                         "wall_seconds": time.perf_counter() - wall_start})
-            _take_round(method, run, stats, batch, round_index, nonfinite, name)
-            toolkit_s += time.perf_counter() - t3
-            record["toolkit_seconds"] = toolkit_s
-            record["wall_seconds"] = time.perf_counter() - wall_start
-            if ref is not None and track_error:
-                te = time.perf_counter()
-                st = AdaptiveState(stats, round_index, budget, committed(), rng, ref)
-                record["error"] = relative_mse(method.finish(run, st), ref, eps=eps)
-                record["eval_seconds"] = time.perf_counter() - te
-                wall_start += record["eval_seconds"]  # evaluation is not part of the run's time
-            if log_path is not None:
-                # The commit above stored the times known then; now the full round
-                # (statistics, observe, error) is known: a resume reports these.
-                update_round_record(log_path, record)
-            rounds.append(record)
-            if on_round is not None:
-                on_round(record)
-            bar.update(committed(), round_index, record["wall_seconds"])
-            round_index += 1
+        loop = _loop_pipelined if pipeline else _loop_sequential
+        stopped, round_index = loop(renderer, method, run, stats=stats, rounds=rounds, round_index=round_index,
+                                    budget=budget, seed=seed, ref=ref, time_limit=time_limit, max_rounds=max_rounds,
+                                    on_round=on_round, bar=bar, clock=clock, rnd=rnd, acct=acct, planned=planned)
     finally:
         bar.close()
+    loop_s = time.perf_counter() - loop_t0
+    tf = time.perf_counter()
     rng, _ = round_seeds(seed, round_index)
-    final = AdaptiveState(stats, round_index, budget, committed(), rng, ref)
+    final = _adaptive_state(stats, round_index, budget, _committed(stats), rng, ref)
     image = method.finish(run, final)
+    eval_s = sum(float(r.get("eval_seconds", 0.0)) for r in rounds[len(rounds) - acct.get("new", 0):])
     return AdaptiveResult(image=np.asarray(image, dtype=np.float64), stats=stats, rounds=rounds,
-                          stopped=stopped, log=log_path, method=method, run=run)
+                          stopped=stopped, log=log_path, method=method, run=run, pipelined=bool(pipeline),
+                          loop_seconds=loop_s - eval_s, idle_seconds=max(loop_s - eval_s - acct["render"], 0.0),
+                          toolkit_cpu_seconds=acct["cpu"], finish_seconds=time.perf_counter() - tf)
+
+
+def _render(renderer, req, acct):
+    """Call the renderer: (reply, seconds it reports as its own, seconds of the call beyond them)."""
+    t1 = time.perf_counter()
+    reply = renderer.render(req)
+    t2 = time.perf_counter()
+    render_s = getattr(renderer, "last_render_seconds", None)
+    render_s = float(render_s) if render_s is not None else t2 - t1
+    # Time in the renderer call beyond what the renderer reports as its own
+    # (file exchange, conversions) belongs to the toolkit side of the run.
+    acct["render"] += min(render_s, t2 - t1)
+    return reply, render_s, max((t2 - t1) - render_s, 0.0)
+
+
+def _finish_round(record, rounds, on_round, bar, stats, log_path, acct):
+    if log_path is not None:
+        # The commit stored the times known then; now the full round
+        # (statistics, observe, error) is known: a resume reports these.
+        update_round_record(log_path, record)
+    rounds.append(record)
+    acct["new"] = acct.get("new", 0) + 1
+    if on_round is not None:
+        on_round(record)
+    bar.update(_committed(stats), record["round"], record["wall_seconds"])
+
+
+def _loop_sequential(renderer, method, run, *, stats, rounds, round_index, budget, seed, ref, time_limit,
+                     max_rounds, on_round, bar, clock, rnd, acct, planned):
+    """Plan, render, validate, commit, one round after the other."""
+    while True:
+        if _committed(stats) >= budget:
+            return "budget", round_index
+        if round_index >= max_rounds:
+            return "max_rounds", round_index
+        if time_limit is not None and time.perf_counter() - clock["wall_start"] >= time_limit:
+            return "time_limit", round_index
+        t0, c0 = time.perf_counter(), time.thread_time()
+        req, why = _plan_round(method, run, stats, round_index, budget, _committed(stats), seed, ref)
+        if req is None:
+            return why, round_index
+        tp, cp = time.perf_counter(), time.thread_time()
+        reply, render_s, extra_s = _render(renderer, req, acct)
+        t2, c2 = time.perf_counter(), time.thread_time()
+        batch, n_bad = rnd.receive(req, reply, round_index)
+        toolkit_s = (tp - t0) + (time.perf_counter() - t2) + extra_s
+        record = {"round": round_index, "samples": len(batch),
+                  "samples_total": _committed(stats) + len(batch), "renderer_seconds": render_s}
+        t3 = time.perf_counter()
+        rnd.commit(batch, n_bad, record, toolkit_s)
+        toolkit_s += time.perf_counter() - t3
+        acct["cpu"] += (cp - c0) + (time.thread_time() - c2)
+        record["toolkit_seconds"] = toolkit_s
+        record["wall_seconds"] = rnd.wall()
+        clock["wall_start"] += rnd.evaluate(record, round_index)  # evaluation is not part of the run's time
+        _finish_round(record, rounds, on_round, bar, stats, rnd.log_path, acct)
+        round_index += 1
+
+
+def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget, seed, ref, time_limit,
+                    max_rounds, on_round, bar, clock, rnd, acct, planned):
+    """Render round j in this thread while the toolkit thread commits round j-1 and plans round j+1.
+
+    The plan of round j+1 sees the rounds <= j-1 and round j as ``pending``
+    counts; the plan of round 1 waits for round 0 (there is nothing to plan
+    from before).  The renderer stays in the calling thread (renderers with
+    thread affinity, signals, Ctrl-C); the toolkit's heavy parts release
+    the GIL (the statistics' and the methods' compiled kernels run with
+    ``nogil``, numpy's large-array loops, the filtering pool); h5py's
+    writes hold it for their duration.
+    """
+
+    def commit(prev, carry):
+        """Validate and commit ``prev`` = (round, request, reply, renderer s, extra s): its finished record."""
+        t0, c0 = time.perf_counter(), time.thread_time()
+        k, preq, reply, render_s, extra_s = prev
+        batch, n_bad = rnd.receive(preq, reply, k)
+        record = {"round": k, "samples": len(batch), "samples_total": _committed(stats) + len(batch),
+                  "renderer_seconds": render_s}
+        rnd.commit(batch, n_bad, record, carry + extra_s + (time.perf_counter() - t0))
+        # a round's toolkit time: its validation and commit, the beyond-renderer part
+        # of its render call, and the plan that made its request
+        record["toolkit_seconds"] = carry + extra_s + (time.perf_counter() - t0)
+        record["wall_seconds"] = rnd.wall()
+        acct["cpu"] += time.thread_time() - c0
+        return record
+
+    def plan(j, req_j):
+        """The plan of round j+1 from what is committed, round j (``req_j``) in flight: ((req, why), seconds)."""
+        t0, c0 = time.perf_counter(), time.thread_time()
+        if j + 1 >= max_rounds:
+            out = (None, "max_rounds")
+        elif req_j is None:
+            out = _plan_round(method, run, stats, j + 1, budget, _committed(stats), seed, ref, lag=1)
+        else:
+            out = _plan_round(method, run, stats, j + 1, budget, _committed(stats) + req_j.total, seed, ref,
+                              lag=1, pending=_request_counts(req_j))
+        acct["cpu"] += time.thread_time() - c0
+        return out, time.perf_counter() - t0
+
+    def job(prev, carry, j, req_j):
+        # the toolkit thread's work while round j renders
+        record = None
+        if prev is not None:
+            record = commit(prev, carry)
+            record["_eval"] = rnd.evaluate(record, record["round"])
+        return record, plan(j, req_j)
+
+    def done(record):
+        clock["wall_start"] += record.pop("_eval", 0.0)  # evaluation is not part of the run's time
+        _finish_round(record, rounds, on_round, bar, stats, rnd.log_path, acct)
+
+    j = round_index
+    if planned is None:
+        # a new run (round 0: nothing to plan from) or a resume after round 0 (round 1 sees it)
+        (req, why), carry = plan(j - 1, None)
+    else:
+        (req, why), carry = planned, 0.0
+    uncommitted = None   # the rendered round not yet committed
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mcrecon-toolkit")
+    fut = None
+    try:
+        while True:
+            if req is None:
+                stopped = why
+                break
+            if j >= max_rounds:
+                stopped = "max_rounds"
+                break
+            if time_limit is not None and time.perf_counter() - clock["wall_start"] >= time_limit:
+                stopped = "time_limit"
+                break
+            first = j == 0  # round 1 is planned from round 0, after it: no toolkit work to overlap
+            if not first:
+                fut = pool.submit(job, uncommitted, carry, j, req)
+                uncommitted = None
+            try:
+                reply, render_s, extra_s = _render(renderer, req, acct)
+            except BaseException:
+                if fut is not None:
+                    # the round before is committed first (nothing committed is lost);
+                    # a failure of that commit is the run's first error
+                    f, fut = fut, None
+                    exc = f.exception()
+                    if exc is not None:
+                        raise exc from None
+                    if f.result()[0] is not None:
+                        done(f.result()[0])
+                raise
+            rendered = (j, req, reply, render_s, extra_s)
+            if first:
+                record = commit(rendered, carry)
+                record["_eval"] = rnd.evaluate(record, j)
+                done(record)
+                (req, why), carry = plan(j, None)
+            else:
+                f, fut = fut, None
+                record, ((req, why), carry) = f.result()
+                if record is not None:
+                    done(record)
+                uncommitted = rendered
+            j += 1
+        if uncommitted is not None:
+            # the last round: commit it (nothing is left to plan)
+            prev, uncommitted = uncommitted, None
+            record = commit(prev, carry)
+            record["_eval"] = rnd.evaluate(record, record["round"])
+            done(record)
+        return stopped, j
+    finally:
+        if fut is not None:
+            with contextlib.suppress(BaseException):
+                fut.result()
+        pool.shutdown(wait=True)

@@ -168,6 +168,8 @@ def _refuse_run_flags(args) -> None:
     ignored += [args.method_flags[k] for k in given_method_options(args)]
     if args.method != "box" or args.seed != 0 or args.nonfinite != "drop" or args.storage_dtype != "auto":
         ignored.append("--method/--seed/--nonfinite/--storage-dtype")
+    if args.pipeline is not None:
+        ignored.append("--pipeline/--no-pipeline")
     if ignored:
         raise InputError(str(args.resume), "resume", f"{', '.join(ignored)} cannot change a recorded run; "
                          "a resumed run keeps its settings (only --time-limit, -o, --png, --diagnostics, "
@@ -231,7 +233,8 @@ def _cmd_adapt(args):
         res = driver.adapt(renderer, method, spp=args.spp, seed=args.seed, log=args.log, reference=ref,
                            time_limit=args.time_limit, progress=progress, nonfinite=args.nonfinite,
                            renderer_spec=spec, track_error=args.rounds_json is not None and ref is not None,
-                           storage_dtype=args.storage_dtype, metadata={"scene": spec.get("scene")})
+                           storage_dtype=args.storage_dtype, metadata={"scene": spec.get("scene")},
+                           pipeline=args.pipeline)
     t_total = time.perf_counter() - t0
     written = write_outputs(res.image, args.output, channels=res.stats.channels, png=args.png,
                             exposure=args.exposure, diagnostics=res.diagnostics(), diag_dir=args.diagnostics,
@@ -452,6 +455,13 @@ def register(sub, command: str | None = None) -> None:
                         "float32 replies as float32, float64 replies as float64); the statistics see exactly "
                         "what is stored, so float32 storage of values like 1e6 +- 1e-3 loses their spread "
                         "(warned) and refuses values beyond float32's range")
+    pipe = s.add_mutually_exclusive_group()
+    pipe.add_argument("--pipeline", dest="pipeline", action="store_const", const=True, default=None,
+                      help="render the next round while the toolkit commits and plans (one round of lag; "
+                           "default: what the method declares: box and ci yes, gem and awr only when asked, "
+                           "splat never)")
+    pipe.add_argument("--no-pipeline", dest="pipeline", action="store_const", const=False,
+                      help="strictly sequential rounds")
     s.add_argument("--rounds-json", default=None, metavar="FILE",
                    help="write per-round samples, renderer/toolkit seconds and (with a reference) the error")
     s.add_argument("--quiet", action="store_true", help="no progress bar")

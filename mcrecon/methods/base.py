@@ -306,6 +306,11 @@ class AdaptiveState:
     n_samples: int
     rng: np.random.Generator
     reference: np.ndarray | None = None
+    #: Rounds the statistics are behind the requests: 0, or 1 in a pipelined run
+    #: (:func:`mcrecon.driver.adapt`, ``pipeline``).
+    lag: int = 0
+    #: Samples per pixel (H, W) of the round in flight (requested, not in ``stats``), or None.
+    pending: np.ndarray | None = None
 
     @property
     def remaining(self) -> int:
@@ -362,6 +367,11 @@ class Method:
     subpixels, needs_samples, reference : int, bool, str
         The default :attr:`requires` (override the property when it
         depends on the options).
+    pipeline : {'default', 'allowed', 'no'}
+        Whether ``plan`` may run one round behind the renderer
+        (:func:`mcrecon.driver.adapt`, ``pipeline``): ``default`` pipelines
+        unless asked not to, ``allowed`` only when asked (a measured
+        quality cost), ``no`` refuses (the plan needs every round).
     variants : mapping
         ``{variant name: {option: value}}`` for a method with a
         ``variant`` option (:func:`variant_option`): the option values
@@ -379,6 +389,7 @@ class Method:
     needs_samples: ClassVar[bool] = False
     reference: ClassVar[str] = "none"
     variants: ClassVar[Mapping[str, Mapping[str, Any]]] = {}
+    pipeline: ClassVar[str] = "allowed"
 
     def __init__(self, **options):
         where = self.where

@@ -37,6 +37,7 @@ class BoxMethod(Method):
     """The per-pixel sample mean, with uniform sampling in doubling rounds."""
 
     name = "box"
+    pipeline = "default"  # uniform doubling rounds: bit-identical with one round of lag
 
     def halo(self, width, height):
         return 0  # the pixel's own mean (empty pixels aside: see Method.halo)

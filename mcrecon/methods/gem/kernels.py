@@ -26,7 +26,7 @@ from ...errors import InputError
 from ...stats import PixelStats
 
 __all__ = ["TRUNCATE", "adaptive_sigmas", "final_sigmas", "gaussian_kernel", "pixel_kernel", "kernel_radius",
-           "filled_subpixels", "subpixel_gaussian_exact", "FilterBank", "filter_bank"]
+           "filled_subpixels", "subpixel_gaussian_exact", "FilterBank", "filter_bank", "pending_n_eff"]
 
 #: Gaussian kernels are truncated at this many standard deviations (the
 #: tails hold 0.27 % of the weight) and renormalised.
@@ -340,6 +340,30 @@ def _filter_bank(base, mean_var, count, sigmas, *, subpixels, per_channel, with_
             n_eff.append(next(res))
     radii = np.array([kernel_radius(s_, subpixels, truncate=truncate) for s_ in sig])
     return FilterBank(sig, values, var, weight, n_eff, radii)
+
+
+def pending_n_eff(count: np.ndarray, pending: np.ndarray, sigmas, *, subpixels: int = 4,
+                  truncate: float = TRUNCATE, threads: int | None = None) -> list:
+    """Effective sample counts of every scale (as :func:`filter_bank`'s ``n_eff``) with
+    ``pending`` samples per pixel added to ``count``.
+
+    The weights stay those of the pixels that hold samples now (the filter
+    bank's mask); ``1 / n_q`` becomes ``1 / (n_q + pending_q)``.  Used by a
+    pipelined ``gem`` plan for the round in flight.
+    """
+    count = np.asarray(count)
+    mask = count > 0
+    mf = mask.astype(np.float64)
+    tot = count.astype(np.float64) + np.asarray(pending, dtype=np.float64)
+    inv_n = safe_div(mf, tot).astype(np.float32)
+    h, w_ = count.shape
+    kernels = [pixel_kernel(s_, subpixels, truncate=truncate) for s_ in np.asarray(sigmas, dtype=np.float64)]
+    if bool(mask.all()):
+        ws = [separable_weights(h, w_, k) for k in kernels]
+    else:
+        ws = correlate_jobs([(mf, k, None, 0) for k in kernels], threads)
+    jobs = [(inv_n, (k * k).astype(np.float32), w * w, 2) for k, w in zip(kernels, ws)]
+    return [np.where(mask, tot, 0.0)] + list(correlate_jobs(jobs, threads))
 
 
 # ----------------------------------------------------------------------------

@@ -76,6 +76,7 @@ class SplatMethod(Method):
     """
 
     name = "splat"
+    pipeline = "no"  # its round schedule counts the rounds observe() saw
     adaptive = False
     requires = Requirements(samples=True, statistics=False)
     #: ``paper``: every sample splatted with Eq. 8 widths (Suykens and Willems

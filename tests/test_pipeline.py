@@ -1,0 +1,320 @@
+"""Pipelined adaptive rounds (issue 15): one round of lag, reproducible, resumable bit for bit.
+
+While the renderer renders round k+1, the toolkit thread commits round k and
+plans round k+2 from the rounds <= k.  These tests pin the lag (what each plan
+sees), the exact shortcuts (box is bit-identical with and without the lag; the
+driver's one-pass commit equals ``stats.add``), and kill-and-resume of
+pipelined runs (in-process stops and SIGKILL at deterministic markers).
+"""
+
+import dataclasses
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mcrecon import InputError, get_method
+from mcrecon.driver import _take_round, _with_seed, adapt, method_pipelines, resume
+from mcrecon.io import read_log
+from mcrecon.methods import Method
+from mcrecon.renderers import CallableRenderer
+from mcrecon.renderers.command import CommandRenderer
+from mcrecon.renderers.protocol import SampleBatch, SampleRequest, jittered_positions
+from mcrecon.stats import PixelStats
+
+FAULT = str(Path(__file__).parent / "renderers" / "fault_renderer.py")
+
+
+def _renderer(w=16, h=12):
+    def fn(req):
+        rng = np.random.default_rng(req.seed)
+        pos = jittered_positions(req.counts, rng) if req.counts is not None else np.zeros((0, 2))
+        if req.positions is not None:
+            pos = np.concatenate([pos, req.positions])
+        base = 0.2 + 0.6 * (pos[:, :1] > w / 2) + 0.1 * np.sin(pos[:, 1:2])
+        val = np.repeat(base, 3, axis=1) * rng.uniform(0.5, 1.5, (len(pos), 1))
+        return SampleBatch(pos, val)
+    return CallableRenderer(fn, width=w, height=h, name="pipeline test renderer")
+
+
+OPTS = {"gem": {"initial_spp": 4, "iterations": 4}, "awr": {"initial_spp": 2}, "ci": {"min_spp": 2}, "box": {}}
+
+
+# ------------------------------------------------------------------ what each plan sees
+class _Spy(Method):
+    """Uniform doubling (the base plan) that records what every plan saw."""
+
+    name = "box"
+    pipeline = "default"
+
+    def reconstruct_run(self, run, inputs):
+        return inputs.stats.mean
+
+    def plan(self, run, state):
+        run.seen.append((state.round_index, int(state.stats.n_samples), int(state.n_samples), int(state.lag),
+                         None if state.pending is None else int(state.pending.sum())))
+        return super().plan(run, state)
+
+    def start(self, *a, **kw):
+        run = super().start(*a, **kw)
+        run.seen = []
+        return run
+
+
+def test_plan_of_round_j_sees_the_rounds_up_to_j_minus_2_and_round_j_minus_1_pending():
+    res = adapt(_renderer(), _Spy(), spp=16, seed=1, pipeline=True)
+    seen = res.run.seen
+    totals = [0] + [r["samples_total"] for r in res.rounds]
+    sizes = [r["samples"] for r in res.rounds]
+    assert [s[0] for s in seen] == list(range(len(seen)))
+    for j, committed, n, lag, pending in seen:
+        assert lag == 1
+        if j <= 1:  # round 0: nothing; round 1: planned after round 0 is committed, nothing pending
+            assert committed == totals[j] and n == totals[j] and pending is None
+        else:
+            assert committed == totals[j - 1] and pending == sizes[j - 1] and n == committed + pending
+    seq = adapt(_renderer(), _Spy(), spp=16, seed=1, pipeline=False).run.seen
+    assert all(s[1] == s[2] and s[3] == 0 and s[4] is None for s in seq)
+
+
+def test_box_is_bit_identical_with_and_without_the_lag():
+    """Uniform doubling depends only on the sample count, which counts the round in flight."""
+    a = adapt(_renderer(), "box", spp=12.5, seed=4, pipeline=False)
+    b = adapt(_renderer(), "box", spp=12.5, seed=4, pipeline=True)
+    assert b.pipelined and not a.pipelined
+    assert [r["samples"] for r in a.rounds] == [r["samples"] for r in b.rounds]
+    np.testing.assert_array_equal(a.image, b.image)
+    np.testing.assert_array_equal(a.counts, b.counts)
+
+
+@pytest.mark.parametrize("method", ["gem", "awr", "ci"])
+def test_pipelined_runs_are_reproducible_and_fill_the_budget(method, tmp_path):
+    m = get_method(method, **OPTS[method])
+    assert not method_pipelines(m)  # gem, awr, ci: allowed, off by default (quality cost, changed rule)
+    a = adapt(_renderer(), m, spp=12, seed=3, log=tmp_path / "a.h5", pipeline=True)
+    b = adapt(_renderer(), m, spp=12, seed=3, pipeline=True)
+    assert a.pipelined and read_log(tmp_path / "a.h5").run_settings["pipeline"] is True
+    np.testing.assert_array_equal(a.image, b.image)
+    assert [r["samples"] for r in a.rounds] == [r["samples"] for r in b.rounds]
+    if method != "ci":  # ci may stop early: every pixel converged
+        assert a.samples == 16 * 12 * 12 and a.stopped == "budget"
+    assert a.samples <= 16 * 12 * 12
+    assert sum(r["samples"] for r in a.rounds) == a.samples == read_log(tmp_path / "a.h5").n_samples
+
+
+def test_pipeline_choice_is_validated_and_defaults_follow_the_method():
+    assert method_pipelines(get_method("box"))
+    assert not any(method_pipelines(get_method(m)) for m in ("splat", "awr", "gem", "ci"))
+    assert adapt(_renderer(), get_method("awr", initial_spp=2), spp=4, pipeline=True).pipelined
+    with pytest.raises(InputError, match="pipeline"):
+        adapt(_renderer(), "splat", spp=4, pipeline=True)
+    with pytest.raises(InputError, match="pipeline"):
+        adapt(_renderer(), "box", spp=4, pipeline="yes")
+
+    class Undeclared(Method):  # a method that says nothing runs sequentially, unless asked
+        name = "box"
+
+        def reconstruct_run(self, run, inputs):
+            return inputs.stats.mean
+
+    assert not adapt(_renderer(), Undeclared(), spp=4).pipelined
+    assert adapt(_renderer(), Undeclared(), spp=4, pipeline=True).pipelined
+
+    class Misdeclared(Undeclared):
+        pipeline = True  # not one of the declarations
+
+    with pytest.raises(InputError, match="pipeline.*valid: default, allowed, no"):
+        adapt(_renderer(), Misdeclared(), spp=4)
+
+
+# ------------------------------------------------------------------ exact shortcuts
+def test_one_pass_commit_equals_stats_add_bit_for_bit(rng):
+    """The driver ingests the validated reply without re-checking it: the same statistics as stats.add."""
+    pos = rng.random((5000, 2)) * [16, 12]
+    val = rng.random((5000, 3)) * 1e3
+    val[7, 1] = np.nan
+    for dtype in (np.float32, np.float64):
+        p, v = pos.astype(dtype), val.astype(dtype)
+        m = get_method("box")
+        a, b = PixelStats(16, 12, ("R", "G", "B")), PixelStats(16, 12, ("R", "G", "B"))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            a.add(p, v, nonfinite="drop")
+            _take_round(m, None, b, SampleBatch(p, v), 0, "drop", "x", n_nonfinite=1)
+        for f in ("count", "mean", "m2", "min", "max"):
+            np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+        assert a.n_dropped == b.n_dropped == 1
+
+
+def test_request_seed_without_revalidation_equals_dataclasses_replace():
+    req = SampleRequest(8, 4, counts=np.ones((4, 8), np.int64), positions=np.array([[1.5, 2.5]]))
+    a = dataclasses.replace(req, round_index=3, seed=2**63 + 1)
+    b = _with_seed(req, 3, 2**63 + 1)
+    assert (a.round_index, a.seed, a.total) == (b.round_index, b.seed, b.total) and req.seed == 0
+    np.testing.assert_array_equal(a.counts, b.counts)
+    np.testing.assert_array_equal(a.positions, b.positions)
+
+
+def test_gem_plan_with_nothing_pending_is_the_plan_without_pending():
+    from mcrecon.driver import _adaptive_state, round_seeds
+
+    st = PixelStats.from_samples(np.random.default_rng(0).random((3000, 2)) * [16, 12],
+                                 np.random.default_rng(1).random((3000, 3)), width=16, height=12)
+    m = get_method("gem")
+    reqs = []
+    for pending in (None, np.zeros((12, 16), np.int64)):
+        rng, _ = round_seeds(0, 3)
+        reqs.append(m.plan(m.start(16, 12), _adaptive_state(st, 3, 16 * 12 * 32, 3000, rng, None, lag=1,
+                                                             pending=pending)))
+    np.testing.assert_array_equal(reqs[0].positions, reqs[1].positions)
+
+
+# ------------------------------------------------------------------ stop and resume (in process)
+@pytest.mark.parametrize("method, stop_after", [("gem", 1), ("gem", 2), ("gem", 4), ("awr", 3), ("ci", 2),
+                                                ("box", 3)])
+def test_stopped_pipelined_run_resumes_bit_identically(tmp_path, method, stop_after):
+    """Stopped after ``stop_after`` rounds (the next one was planned and in flight): the resume plans
+    it again from the same statistics and ends where the uninterrupted run ends."""
+    m = get_method(method, **OPTS[method])
+    full = adapt(_renderer(), m, spp=12, seed=5, log=tmp_path / "full.h5", track_error=False, pipeline=True)
+    assert len(full.rounds) > stop_after
+    log = tmp_path / "stopped.h5"
+    part = adapt(_renderer(), m, spp=12, seed=5, log=log, max_rounds=stop_after, track_error=False,
+                 pipeline=True)
+    assert part.stopped == "max_rounds" and read_log(log).n_rounds == stop_after
+    res = resume(log, _renderer(), track_error=False)
+    assert res.pipelined and res.samples == full.samples
+    np.testing.assert_array_equal(res.image, full.image)
+    a, b = read_log(log).read_all(), read_log(tmp_path / "full.h5").read_all()
+    np.testing.assert_array_equal(a.positions, b.positions)
+    np.testing.assert_array_equal(a.values, b.values)
+
+
+def test_faulty_reply_mid_pipeline_keeps_the_rounds_before_and_resumes(tmp_path):
+    bad_round = 3
+
+    def fn(req):
+        rng = np.random.default_rng(req.seed)
+        pos = jittered_positions(req.counts, rng) if req.counts is not None else np.zeros((0, 2))
+        if req.positions is not None:
+            pos = np.concatenate([pos, req.positions])
+        val = rng.random((len(pos), 3))
+        if req.round_index == bad_round:
+            val = val[:-1]
+        return SampleBatch(pos, val)
+
+    from mcrecon import RendererError
+
+    m = get_method("gem", **OPTS["gem"])
+    log = tmp_path / "run.h5"
+    with pytest.raises(RendererError, match="rows but"):
+        adapt(CallableRenderer(fn, width=16, height=12), m, spp=12, seed=2, log=log, pipeline=True)
+    assert read_log(log).n_rounds == bad_round  # every round before the bad reply is committed
+
+
+# ------------------------------------------------------------------ SIGKILL and resume
+DRIVER = textwrap.dedent("""
+    import os, sys
+    from mcrecon.driver import adapt
+    from mcrecon.methods.gem import GEMMethod
+    from mcrecon.renderers.command import CommandRenderer
+
+    log, marker, w, h, FAULT = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), sys.argv[5]
+
+    class MarkedGEM(GEMMethod):
+        # each plan is made by the toolkit thread after it committed the round before the
+        # one in flight: "planned J" means the rounds <= J-2 are in the log
+        def plan(self, run, state):
+            req = super().plan(run, state)
+            with open(marker, "a") as f:
+                f.write(f"planned {state.round_index}\\n")
+            return req
+
+    r = CommandRenderer([sys.executable, FAULT, "ok", "-1", "{request}", "{reply}"], width=w, height=h)
+    adapt(r, MarkedGEM(initial_spp=4, iterations=6), spp=16, seed=7, log=log, progress=False, track_error=False,
+          pipeline=True)
+""")
+
+
+def _wait_for(path: Path, line: str, proc, timeout: float = 120.0) -> None:
+    """Wait for a complete marker line (a safety deadline only: the writer is the event's own process)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if path.exists() and line + "\n" in path.read_text():
+            return
+        if proc.poll() is not None:
+            pytest.fail(f"the run ended (status {proc.returncode}) before {line!r}: {proc.stderr.read()!r}")
+        time.sleep(0.02)
+    pytest.fail(f"no {line!r} within {timeout} s")
+
+
+@pytest.mark.parametrize("hold", [pytest.param(2, marks=pytest.mark.slow), 4])
+def test_sigkill_of_a_pipelined_run_then_resume_matches_uninterrupted(tmp_path, hold):
+    """The renderer holds round ``hold`` (the driver blocks in that call); the toolkit thread then commits
+    round hold-1 and plans round hold+1 ("planned hold+1"): killed there, the log holds rounds 0..hold-1
+    and round ``hold`` was in flight.  The resume re-plans it and ends bit-identical to a run never killed."""
+    w, h = 12, 8
+    script = tmp_path / "driver.py"
+    script.write_text(DRIVER)
+    log, marker, rmarker = tmp_path / "killed.h5", tmp_path / "plans.txt", tmp_path / "rounds.txt"
+    env = {**os.environ, "FAULT_RENDERER_MARKER": str(rmarker), "FAULT_RENDERER_HOLD": str(hold)}
+    proc = subprocess.Popen([sys.executable, str(script), str(log), str(marker), str(w), str(h), FAULT],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+    try:
+        _wait_for(marker, f"planned {hold + 1}", proc)
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        proc.stderr.close()
+        if rmarker.exists():
+            for line in rmarker.read_text().splitlines():
+                try:
+                    os.kill(int(line.split()[1]), signal.SIGKILL)  # the held renderer
+                except (ProcessLookupError, IndexError, ValueError):
+                    pass
+    killed = read_log(log)
+    assert killed.n_rounds == hold and len(killed.round_records) == hold
+    assert killed.run_settings["pipeline"] is True
+
+    def renderer():
+        return CommandRenderer([sys.executable, FAULT, "ok", "-1", "{request}", "{reply}"], width=w, height=h)
+
+    res = resume(log, renderer(), track_error=False)
+    full = adapt(renderer(), get_method("gem", initial_spp=4, iterations=6), spp=16, seed=7,
+                 log=tmp_path / "full.h5", track_error=False, pipeline=True)
+    assert res.samples == full.samples == read_log(log).n_samples == w * h * 16
+    np.testing.assert_array_equal(res.image, full.image)
+    np.testing.assert_array_equal(read_log(log).read_all().positions,
+                                  read_log(tmp_path / "full.h5").read_all().positions)
+
+
+def test_cli_pipeline_flags(tmp_path, capsys):
+    from mcrecon.cli import main
+
+    common = ["adapt", "--scene", "flat", "--size", "12x8", "--spp", "8", "--quiet"]
+    for flag, method in (("--pipeline", "box"), ("--no-pipeline", "box"), ("--pipeline", "gem")):
+        log = tmp_path / f"{flag}{method}.h5"
+        assert main(common + ["--method", method, flag, "--log", str(log), "-o", str(log.with_suffix(".exr"))]) == 0
+        assert read_log(log).run_settings["pipeline"] is (flag == "--pipeline")
+    capsys.readouterr()
+    assert main(common + ["--method", "splat", "--pipeline", "-o", str(tmp_path / "s.exr")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "pipeline" in err
+    assert main(["adapt", "--resume", str(tmp_path / "--pipelinebox.h5"), "--no-pipeline", "-o",
+                 str(tmp_path / "r.exr")]) == 2
+    assert "--pipeline/--no-pipeline cannot change a recorded run" in capsys.readouterr().err
+
+
+def test_pipelined_ci_never_exceeds_max_spp():
+    # samples in flight count toward the cap: a pixel at max_spp - step with a step pending gets nothing more
+    m = get_method("ci", min_spp=4, step_spp=4, max_spp=12, tolerance=1e-6)  # nothing converges: the cap binds
+    res = adapt(_renderer(), m, spp=64, seed=2, pipeline=True, track_error=False)
+    assert res.pipelined and res.stats.count.max() <= 12
+    assert (res.stats.count == 12).mean() > 0.5  # most pixels reached the cap (constant ones stop), none beyond
