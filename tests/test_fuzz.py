@@ -463,3 +463,57 @@ def test_mutated_pixel_statistics_exrs_give_one_line_or_a_finite_image(worker, m
 @given(mutations=st.lists(_exr_mutation(), min_size=1, max_size=4))
 def test_mutated_pixel_statistics_exrs_larger_budget(worker, mutations):
     _exr_fuzz(worker, mutations)
+
+
+# ------------------------------------------------------------------ reply files (command protocol, in process)
+from mcrecon.renderers.command import CommandRenderer  # noqa: E402
+
+_COPY = "import shutil, sys; shutil.copyfile(sys.argv[1], sys.argv[2])"
+
+
+def _reply_file_fuzz(tmp_dir, mutations, use_positions):
+    tmp_dir = Path(tmp_dir)
+    tmp_dir.mkdir(parents=True, exist_ok=True)
+    request = SampleRequest(W, H, counts=COUNTS, positions=REQ_POS if use_positions else None, round_index=1,
+                            seed=5)
+    pos, val = _good_reply(request, np.random.default_rng(2))
+    src = tmp_dir / "made.h5"
+    write_log(src, pos, val, width=W, height=H,
+              features={"depth": np.arange(request.total, dtype=np.float32)})
+    for m in mutations:
+        try:
+            _apply(src, m)
+        except (OSError, ValueError, TypeError, KeyError, RuntimeError):
+            pass
+    r = CommandRenderer([sys.executable, "-c", _COPY, str(src), "{reply}", "{request}"], width=W, height=H,
+                        workdir=tmp_dir / "work")
+    try:
+        batch = r.render(request)
+        batch = validate_reply(request, batch, n_channels=3)
+    except (RendererError, InputError) as exc:
+        assert "\n" not in str(exc), repr(exc)
+        return
+    assert len(batch.positions) == request.total and np.isfinite(batch.positions).all()
+    return batch
+
+
+def test_the_untouched_reply_file_is_accepted_with_its_features(tmp_path):
+    for use_positions in (False, True):
+        batch = _reply_file_fuzz(tmp_path / str(use_positions), [], use_positions)
+        assert batch is not None and batch.features["depth"].shape == (len(batch.positions),)
+
+
+@settings(max_examples=30, derandomize=True, deadline=None, database=None, suppress_health_check=list(HealthCheck))
+@given(mutations=st.lists(_mutation(), min_size=1, max_size=3), use_positions=st.booleans())
+def test_mutated_reply_files_give_a_renderer_error_or_valid_samples(mutations, use_positions):
+    with tempfile.TemporaryDirectory() as tmp:
+        _reply_file_fuzz(tmp, mutations, use_positions)
+
+
+@pytest.mark.slow
+@settings(max_examples=400 if FULL else 60, derandomize=True, deadline=None, database=None,
+          suppress_health_check=list(HealthCheck))
+@given(mutations=st.lists(_mutation(), min_size=1, max_size=4), use_positions=st.booleans())
+def test_mutated_reply_files_larger_budget(mutations, use_positions):
+    with tempfile.TemporaryDirectory() as tmp:
+        _reply_file_fuzz(tmp, mutations, use_positions)
