@@ -9,7 +9,7 @@ keyword-only options are the method's options, validated by the one
 option path of :mod:`mcrecon.methods`.  The image comes back in the
 precision of the input values: float32 in, float32 out.
 
-Functions: :func:`box`, :func:`gem`, :func:`awr`, :func:`splat`, :func:`ci`.
+Functions: :func:`box`, :func:`gem`, :func:`awr`, :func:`splat`, :func:`ci`, :func:`auto`.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from .methods.base import MethodInputs
 from .samples import SampleSet, check_policy, check_reference
 from .stats import PixelStats
 
-__all__ = ["box", "gem", "awr", "splat", "ci"]
+__all__ = ["box", "gem", "awr", "splat", "ci", "auto"]
 
 
 def _check_stats(stats: PixelStats, where: str) -> None:
@@ -166,3 +166,21 @@ ci = _make(
     ">>> import numpy as np\n>>> from mcrecon import PixelStats\n>>> from mcrecon.restoration import box, ci\n"
     ">>> st = PixelStats.from_moments(np.random.default_rng(3).random((4, 5, 3)), np.zeros((4, 5, 3)), 2)\n"
     ">>> bool((ci(st, tolerance=0.01) == box(st)).all())\nTrue")
+
+auto = _make(
+    "auto", "Per-pixel choice among reconstructions by their estimated (reference-free) error.",
+    "source : PixelStats or SampleSet\n    With pixel statistics pass ``candidates='box,gauss'`` (the SURE candidates); the\n"
+    "    default candidates split the samples into two halves and need a SampleSet.",
+    "Candidates: the pixel mean, GEM's Gaussian scales (error by Stein's unbiased risk estimate with the\n"
+    "exact centre weight), cross-filtered non-local means and the black boxes awr/splat/oidn (error by\n"
+    "dual-buffer cross-validation); each pixel takes the candidate of least smoothed relative estimate.",
+    ".. [1] C. Stein, \"Estimation of the mean of a multivariate normal distribution\", Ann. Statist. 9(6), 1981.\n"
+    ".. [2] T.-M. Li, Y.-T. Wu, Y.-Y. Chuang, \"SURE-based optimization for adaptive sampling and\n"
+    "   reconstruction\", ACM Transactions on Graphics 31(6), 2012.\n"
+    ".. [3] F. Rousselle, C. Knaus, M. Zwicker, \"Adaptive rendering with non-local means filtering\",\n"
+    "   ACM Transactions on Graphics 31(6), 2012.",
+    ">>> import numpy as np\n>>> from mcrecon import PixelStats\n>>> from mcrecon.restoration import auto\n"
+    ">>> rng = np.random.default_rng(4)\n>>> mean = 1.0 + rng.normal(0, 0.1, (24, 24, 3))\n"
+    ">>> st = PixelStats.from_moments(mean, np.full((24, 24, 3), 0.16), 16)\n"
+    ">>> out = auto(st, candidates='box,gauss')\n"
+    ">>> out.shape, bool(np.abs(out - 1).std() < np.abs(mean - 1).std())\n((24, 24, 3), True)")

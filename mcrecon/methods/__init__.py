@@ -21,6 +21,7 @@ METHODS = {
     "awr": "mcrecon.methods.awr.method:AWRMethod",
     "splat": "mcrecon.methods.splat.method:SplatMethod",
     "ci": "mcrecon.methods.ci:CIMethod",
+    "auto": "mcrecon.methods.auto:AutoMethod",
 }
 
 

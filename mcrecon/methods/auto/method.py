@@ -1,0 +1,427 @@
+"""The ``auto`` method: per-pixel selection among reconstructions by their estimated error.
+
+Candidates (option ``candidates``): the pixel mean (``box``), every
+Gaussian scale of GEM's final filter bank (``gauss``), cross-filtered
+non-local means (``nlm``), and the black boxes ``awr``, ``splat`` and
+``oidn``.  Each comes with an unbiased per-pixel MSE estimate
+(:mod:`mcrecon.estimates`): Stein's estimate for the linear filters (box,
+Gaussians, and NL-means whose weights come from the other half of the
+samples), dual-buffer cross-validation for the black boxes.  The estimates,
+relative to a reference-free ``mu^2 + eps``, are smoothed (a normalised
+Gaussian of ``smooth`` pixels) and every pixel takes the candidate of least
+smoothed estimate.  ``docs/methods/auto.md`` derives every estimator.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import numpy as np
+from scipy import ndimage
+
+from ...errors import InputError, McreconWarning
+from ...estimates import (DEFAULT_EPS, Halves, cross_validation_mse, dual_buffer_mse, relative_denominator,
+                          split_halves, sure, sure_filter_bank)
+from ...renderers.protocol import SampleBatch
+from ...stats import PixelStats
+from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState
+from ..awr.reconstruction import confidence_clamp, sample_range_bounds
+from ..box import fill_empty_pixels
+from ..gem.kernels import final_sigmas
+from ..gem.selection import mean_variance_policy
+from .nlmeans import nlmeans_cross
+
+__all__ = ["AutoMethod", "AutoRun", "CANDIDATES", "DEFAULT_CANDIDATES", "DUAL_BUFFER"]
+
+#: Every candidate name ``candidates`` accepts.
+CANDIDATES = ("box", "gauss", "nlm", "awr", "splat", "oidn")
+#: Candidates that need the samples split into two halves.
+DUAL_BUFFER = ("nlm", "awr", "splat", "oidn")
+#: The measured default (docs/methods/auto.md, "Choosing the default candidates").
+DEFAULT_CANDIDATES = "box,gauss,nlm"
+
+_WHERE = "method auto"
+#: Standard errors of the pixel mean beyond which a candidate's departure from it counts as bias.
+Z_BIAS = 2.0
+#: The region guard's smoothing, in units of ``smooth``.
+GUARD = 2.0
+
+
+def _oidn_available() -> bool:
+    try:
+        import pyoidn  # noqa: F401
+    except Exception:
+        return False
+    return True
+
+
+def _smooth_masked(a: np.ndarray, sigma: float) -> np.ndarray:
+    """Normalised Gaussian smoothing of an (H, W) map over its finite entries.
+
+    NaN entries (no estimate) take their neighbours' average; +inf entries
+    (candidate impossible there) stay +inf; a pixel without any finite
+    neighbour stays +inf.
+    """
+    fin = np.isfinite(a)
+    if sigma <= 0:
+        return np.where(fin, a, np.inf)
+    z = np.where(fin, a, 0.0)
+    f = fin.astype(np.float64)
+    num = ndimage.gaussian_filter(z, sigma, mode="constant", truncate=3.0)
+    den = ndimage.gaussian_filter(f, sigma, mode="constant", truncate=3.0)
+    out = np.full(a.shape, np.inf)
+    np.divide(num, den, out=out, where=den > 1e-12)
+    return np.where(np.isposinf(a), np.inf, out)
+
+
+@dataclasses.dataclass(eq=False)
+class Candidate:
+    name: str
+    image: np.ndarray   # (H, W, C)
+    mse: np.ndarray     # (H, W, C) unbiased estimate (NaN: undefined at that pixel, +inf: impossible)
+
+
+class AutoMethod(Method):
+    """Per-pixel choice among candidate reconstructions by their estimated error.
+
+    Options
+    -------
+    candidates : str
+        Comma-separated subset of ``box, gauss, nlm, awr, splat, oidn``
+        (default ``box,gauss,nlm``).  ``nlm``, ``awr``, ``splat`` and
+        ``oidn`` split every pixel's samples into two halves (dual
+        buffers): they need the samples (``requires.samples``); ``oidn``
+        needs ``pyoidn``; ``splat`` only offline.
+    scales : int
+        Gaussian scales of ``gauss`` (GEM's final ones, sqrt 2 apart from sqrt 2 px; 8).
+    smooth : float
+        sigma (pixels) of the Gaussian smoothing of the error maps before
+        the choice (0: none).
+    nlm_radius, nlm_patch, nlm_k : int, int, float
+        NL-means search window (2r+1)^2, patch (2f+1)^2 and damping k.
+    initial_spp, iterations : int
+        Adaptive runs: the uniform first pass and the rounds after it.
+
+    Diagnostics: ``choice`` (candidate index per pixel, in the order of
+    :meth:`candidate_names`), ``estimated_mse`` (mean over channels of the
+    chosen candidate's unbiased estimate), ``estimated_rel_mse`` (the
+    smoothed relative estimate the choice minimised), ``sample_density``.
+    """
+
+    name = "auto"
+    adaptive = True
+    initial_spp = 4
+    options = (
+        Option("candidates", str, DEFAULT_CANDIDATES, "comma-separated candidate reconstructions: "
+               + ", ".join(CANDIDATES) + " (nlm/awr/splat/oidn need the samples: dual buffers)"),
+        Option("scales", int, 8, "Gaussian scales of the gauss candidates (GEM's final bank)", min=1, max=16),
+        Option("smooth", float, 2.0, "sigma (px) of the smoothing of the error maps before the choice "
+               "(0: none)", min=0.0, max=32.0),
+        Option("nlm_radius", int, 3, "NL-means search window radius r ((2r+1)^2 pixels)", min=1, max=15),
+        Option("nlm_patch", int, 1, "NL-means patch radius f ((2f+1)^2 pixels)", min=0, max=5),
+        Option("nlm_k", float, 0.45, "NL-means damping k of the variance-normalised distance", min=0.0,
+               min_open=True),
+        Option("initial_spp", int, 4, "samples per pixel of the uniform initial pass (>= 4: two per half)",
+               min=1),
+        Option("iterations", int, 4, "adaptive rounds after the initial pass", min=1),
+        Option("safeguard", float, 2.0, nullable=True, help="clamp each pixel into mean +- k standard errors "
+               "of its mean and into the range of the samples around it (k; None: no clamp)", min=0.0),
+    )
+
+    def _configure(self, params: dict) -> None:
+        names = [c.strip().lower() for c in str(params["candidates"]).split(",") if c.strip()]
+        if not names:
+            raise InputError(self.where, "candidates", f"{params['candidates']!r}: no candidate; valid: "
+                             + ", ".join(CANDIDATES))
+        bad = [c for c in names if c not in CANDIDATES]
+        if bad:
+            raise InputError(self.where, "candidates", f"{bad[0]!r} is not valid; valid: " + ", ".join(CANDIDATES))
+        if len(set(names)) != len(names):
+            raise InputError(self.where, "candidates", f"{params['candidates']!r} names a candidate twice")
+        if "oidn" in names and not _oidn_available():
+            raise InputError(self.where, "candidates", "'oidn' needs the Python package pyoidn "
+                             "(pip install pyoidn); valid without it: "
+                             + ", ".join(c for c in CANDIDATES if c != "oidn"))
+        ordered = tuple(c for c in CANDIDATES if c in names)
+        params["candidates"] = ",".join(ordered)
+        object.__setattr__(self, "_names", ordered)
+
+    @property
+    def requires(self) -> Requirements:
+        return Requirements(samples=any(c in DUAL_BUFFER for c in self._names))
+
+    def halo(self, width, height):
+        # the split into halves hashes the absolute pixel index, and awr/oidn
+        # are whole-image: no finite halo is stated
+        return None
+
+    def candidate_names(self) -> list[str]:
+        """Names of the candidates in ``choice`` order (``gauss`` expands to one per scale)."""
+        out = []
+        for c in self._names:
+            if c == "gauss":
+                out += [f"gauss{s:.3g}" for s in final_sigmas(self.params["scales"])]
+            else:
+                out.append(c)
+        return out
+
+    # ---------------------------------------------------------------- runs
+    def start(self, width, height, channels=("R", "G", "B"), *, reference=None) -> "AutoRun":
+        base = super().start(width, height, channels, reference=reference)
+        return AutoRun(**dataclasses.asdict(base))
+
+    def observe(self, run: "AutoRun", batch: SampleBatch, round_index: int) -> None:
+        """Split each committed round into the two halves (replayed in order on resume)."""
+        if run.halves is None:
+            run.halves = Halves.empty(run.width, run.height, run.channels)
+        run.halves.add(batch.positions, batch.values, nonfinite="drop", source=_WHERE)
+
+    # ------------------------------------------------------------ candidates
+    def _candidates(self, stats: PixelStats, halves: Halves | None, samples_source, nonfinite: str):
+        p = self.params
+        y = stats.mean
+        count = stats.count
+        v = mean_variance_policy(stats)
+        out: list[Candidate] = []
+        names = self._names
+        if "box" in names or "gauss" in names:
+            sig = final_sigmas(p["scales"]) if "gauss" in names else np.zeros(0)
+            sb = sure_filter_bank(y, v, count, sig)
+            if "box" in names:
+                out.append(Candidate("box", sb.values[0], sb.sure[0]))
+            for k in range(1, len(sb.values)):
+                out.append(Candidate(f"gauss{sb.sigmas[k - 1]:.3g}", sb.values[k], sb.sure[k]))
+        dual = [c for c in names if c in DUAL_BUFFER]
+        if dual and halves is None:
+            warnings.warn(f"{_WHERE}: candidates {', '.join(dual)} need the samples (two halves); only pixel "
+                          "statistics are available, so auto falls back to the SURE candidates "
+                          "(box, gauss)", McreconWarning, stacklevel=4)
+            dual = []
+            if not out:
+                sb = sure_filter_bank(y, v, count, final_sigmas(p["scales"]))
+                out = [Candidate("box", sb.values[0], sb.sure[0])]
+        if dual:
+            ha, hb = halves.a, halves.b
+            ya, yb = ha.mean, hb.mean
+            va, vb = mean_variance_policy(ha), mean_variance_policy(hb)
+            if "nlm" in dual:
+                fa, wa, fb, wb = nlmeans_cross(ya, va, ha.count, yb, vb, hb.count, radius=p["nlm_radius"],
+                                               patch=p["nlm_patch"], k=p["nlm_k"])
+                sa = sure(ya, va, fa, wa)
+                sbb = sure(yb, vb, fb, wb)
+                out.append(self._dual("nlm", fa, fb, sa, sbb, ha.count, hb.count))
+            for name in ("awr", "oidn", "splat"):
+                if name not in dual:
+                    continue
+                if name == "splat" and samples_source is None:
+                    warnings.warn(f"{_WHERE}: the splat candidate needs the samples themselves (offline "
+                                  "reconstruction of a log or SampleSet); left out of this run",
+                                  McreconWarning, stacklevel=4)
+                    continue
+                a, b = self._black_box(name, ha, hb, samples_source, nonfinite)
+                out.append(self._dual(name, a, b, cross_validation_mse(a, yb, vb), cross_validation_mse(b, ya, va),
+                                      ha.count, hb.count))
+        return out, y, v, count
+
+    @staticmethod
+    def _dual(name, a, b, est_a, est_b, ca, cb) -> Candidate:
+        both = (np.asarray(ca) > 0) & (np.asarray(cb) > 0)
+        img = 0.5 * (a + b)
+        mse = dual_buffer_mse(a, b, est_a, est_b)
+        # a pixel without a sample in one half: no unbiased estimate (NaN, filled by
+        # the smoothing); its value comes from the half that has one
+        img = np.where(both[..., None], img, np.where(np.isfinite(a), a, b))
+        mse = np.where(both[..., None], mse, np.nan)
+        img = np.where(np.isfinite(img), img, 0.0)
+        return Candidate(name, img, mse)
+
+    def _black_box(self, name, ha: PixelStats, hb: PixelStats, source, nonfinite):
+        from .. import get_method
+        if name == "awr":
+            m = get_method("awr")
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", McreconWarning)
+                return (np.asarray(m.reconstruct(ha), dtype=np.float64),
+                        np.asarray(m.reconstruct(hb), dtype=np.float64))
+        if name == "oidn":
+            import pyoidn
+            res = []
+            for h in (ha, hb):
+                img = fill_empty_pixels(h.mean.copy(), h.count, source=_WHERE) if (h.count == 0).any() else h.mean
+                c = img.shape[2]
+                rgb = np.zeros(img.shape[:2] + (3,), np.float32)
+                rgb[..., :min(c, 3)] = img[..., :3]
+                if c == 1:
+                    rgb[..., 1] = rgb[..., 2] = rgb[..., 0]
+                den = np.asarray(pyoidn.denoise(np.ascontiguousarray(rgb), hdr=True, quality="high"), np.float64)
+                full = img.astype(np.float64).copy()
+                full[..., :min(c, 3)] = den[..., :min(c, 3)]
+                res.append(full)
+            return res[0], res[1]
+        # splat: the two halves as sample sets (rounds dropped: single-round replay)
+        from ...samples import SampleSet
+        from ...estimates import split_labels
+        w, h = source.width, source.height
+        counter = np.zeros(w * h, np.int64)
+        parts = ([], []), ([], [])
+        for ch in source.iter_chunks(with_round=False):
+            pos, val = np.asarray(ch.positions), np.asarray(ch.values)
+            lab = split_labels(pos, w, h, counter)
+            for half in (0, 1):
+                sel = lab == half
+                parts[half][0].append(pos[sel])
+                parts[half][1].append(val[sel])
+        m = get_method("splat")
+        out = []
+        for half in (0, 1):
+            ss = SampleSet(np.concatenate(parts[half][0]), np.concatenate(parts[half][1]), width=w, height=h,
+                           channels=tuple(source.channels))
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", McreconWarning)
+                out.append(np.asarray(m.reconstruct(MethodInputs(None, ss, None, nonfinite)), dtype=np.float64))
+        return out[0], out[1]
+
+    # -------------------------------------------------------------- choice
+    def _select(self, run: "AutoRun", stats: PixelStats, halves, samples_source, nonfinite="drop"):
+        cands, y, v, count = self._candidates(stats, halves, samples_source, nonfinite)
+        den = relative_denominator(y, v, count, eps=DEFAULT_EPS)
+        smooth = self.params["smooth"]
+        # Smoothed estimates, floored by each pixel's own evidence of bias: a
+        # candidate whose value departs from the pixel mean by more than
+        # Z_BIAS standard errors has at least (|x - y| - z sqrt v)^2 of
+        # squared bias there, whatever its neighbours say (the smoothing
+        # would otherwise let noisy bright neighbours vote a blur into an
+        # exact dark pixel beside them).
+        sd = np.sqrt(v)
+        raw = [np.mean(c.mse / den, axis=2) for c in cands]
+        rel = []
+        for c, r0 in zip(cands, raw):
+            r = _smooth_masked(r0, smooth)
+            lb = np.maximum(np.abs(c.image - y) - Z_BIAS * sd, 0.0)
+            lb = np.where((count > 0)[..., None], lb, 0.0)
+            rel.append(np.maximum(r, np.mean(lb * lb / den, axis=2)))
+        rel = np.stack(rel)
+        # ties (e.g. noise-free regions, where every ratio is undefined) go to the first candidate
+        choice = np.argmin(np.where(np.isnan(rel), np.inf, rel), axis=0)
+        if cands[0].name == "box" and smooth > 0:
+            # Region guard: where the chosen candidates' unbiased estimates,
+            # summed over a neighbourhood (relative, as the metric sums them),
+            # exceed the pixel mean's, the region keeps the pixel mean.
+            rstack = np.stack([np.where(np.isfinite(r), r, np.nan) for r in raw])
+            chosen = np.take_along_axis(rstack, choice[None], axis=0)[0]
+            diff = _smooth_masked(chosen - raw[0], GUARD * smooth)
+            choice = np.where(np.isfinite(diff) & (diff > 0), 0, choice)
+        h, w = count.shape
+        img = np.take_along_axis(np.stack([c.image for c in cands]), choice[None, ..., None], axis=0)[0]
+        raw_abs = np.take_along_axis(np.stack([np.mean(c.mse, axis=2) for c in cands]), choice[None], axis=0)[0]
+        est_rel = np.take_along_axis(rel, choice[None], axis=0)[0]
+        img = fill_empty_pixels(img, count, source=_WHERE) if (count == 0).any() else img
+        img = np.where(np.isfinite(img), img, 0.0)
+        if self.params["safeguard"] is not None:
+            # The error estimates are noisy exactly where a rare bright sample sits; a
+            # candidate chosen on them may still carry its light into exact dark pixels
+            # beside it (caustic: 1.6x the pixel mean without the clamp).  Clamping onto
+            # an interval that holds the true value with high probability never moves
+            # an estimate away from it (the same safeguard as awr's robust default).
+            lo, hi = sample_range_bounds(stats)
+            img = confidence_clamp(img, y, v, self.params["safeguard"], lo, hi)
+        # the raw estimate is undefined at empty pixels: the smoothed absolute one there
+        raw_s = _smooth_masked(raw_abs, max(smooth, 1.0))
+        raw_abs = np.where(np.isfinite(raw_abs), raw_abs, raw_s)
+        run.diagnostics = {
+            "choice": choice.astype(np.float64),
+            "estimated_mse": np.where(np.isfinite(raw_abs), raw_abs, 0.0),
+            "estimated_rel_mse": np.where(np.isfinite(est_rel), est_rel, 0.0),
+            "sample_density": count.astype(np.float64),
+        }
+        return np.asarray(img, dtype=np.float64), est_rel
+
+    # ------------------------------------------------------------- offline
+    def reconstruct_run(self, run: "AutoRun", inputs: MethodInputs) -> np.ndarray:
+        """The per-pixel choice: (H, W, C) float64.
+
+        With samples (``inputs.samples``) the dual-buffer candidates split
+        them into halves; without (statistics only, e.g. the end of an
+        adaptive run whose halves ``observe`` built) the run's halves are
+        used, else only the SURE candidates (a warning says so).
+        """
+        stats = inputs.stats
+        halves = None
+        if any(c in DUAL_BUFFER for c in self._names):
+            if inputs.samples is not None:
+                halves = split_halves(inputs.samples, nonfinite=inputs.nonfinite)
+            elif run.halves is not None and int(run.halves.a.count.sum() + run.halves.b.count.sum()) == \
+                    int(stats.count.sum()):
+                halves = run.halves
+        img, _ = self._select(run, stats, halves, inputs.samples, inputs.nonfinite)
+        return img
+
+    def finish(self, run: "AutoRun", state: AdaptiveState) -> np.ndarray:
+        return self.reconstruct_run(run, state.inputs())
+
+    # ------------------------------------------------------------ adaptive
+    def plan(self, run: "AutoRun", state: AdaptiveState):
+        """Round 0: uniform ``initial_spp``; then ``iterations`` rounds placing samples greedily.
+
+        Each round reconstructs with every candidate, takes the chosen
+        result's smoothed relative error estimate ``e_p`` and sends
+        ``n_p`` samples in proportion to ``e_p * d / (n_p + d)`` (``d`` the
+        round's average spp): the fall of the variance part of the error
+        from d more samples, as GEM's Sec. 5 (n_eff = n, conservative for
+        filtered pixels).  Integer counts by largest remainders (ties by
+        pixel index): deterministic, so a resumed run plans the same.
+        """
+        p = self.params
+        remaining = state.remaining
+        if remaining <= 0:
+            return None
+        npix = state.width * state.height
+        if state.n_samples == 0:
+            return state.uniform_request(p["initial_spp"])
+        left = p["iterations"] - state.round_index + 1
+        n_round = remaining if left <= 1 else max(1, remaining // left)
+        halves = run.halves if any(c in DUAL_BUFFER for c in self._names) else None
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", McreconWarning)
+            _, est = self._select(run, state.stats, halves, None)
+        n = state.stats.count.astype(np.float64)
+        d = n_round / npix
+        pri = np.where(np.isfinite(est), np.maximum(est, 0.0), 0.0) * (d / (n + d))
+        pri = np.where(n == 0, np.inf, pri)
+        counts = _largest_remainder(pri, n_round)
+        return state.request(counts=counts)
+
+
+def _largest_remainder(pri: np.ndarray, total: int) -> np.ndarray:
+    """Integer counts summing to ``total`` in proportion to ``pri`` (inf: served first, evenly)."""
+    h, w = pri.shape
+    flat = pri.ravel()
+    counts = np.zeros(flat.size, np.int64)
+    inf = np.isposinf(flat)
+    if inf.any():
+        idx = np.flatnonzero(inf)
+        k = min(total, idx.size)
+        counts[idx[:k]] += 1
+        total -= k
+        flat = np.where(inf, 0.0, flat)
+    s = float(flat.sum())
+    if total > 0:
+        if not s > 0:
+            flat = np.ones(flat.size)
+            s = float(flat.size)
+        share = flat * (total / s)
+        base = np.floor(share).astype(np.int64)
+        rest = total - int(base.sum())
+        if rest > 0:
+            order = np.argsort(-(share - base), kind="stable")[:rest]
+            base[order] += 1
+        counts += base
+    return counts.reshape(h, w)
+
+
+@dataclasses.dataclass(eq=False)
+class AutoRun(RunState):
+    """Per-run state of :class:`AutoMethod`: the two halves of the committed samples (built by ``observe``)."""
+
+    halves: Halves | None = None

@@ -1,0 +1,214 @@
+"""Per-pixel error estimates without a reference (mcrecon.estimates): SURE and dual buffers.
+
+The accuracy statistic of every test is the ratio
+``R = sum_pixels(estimated MSE) / sum_pixels(true squared error)`` of one
+seed; its mean over seeds must be 1 (the estimators are unbiased), to
+within a tolerance derived from the spread of R over seeds.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mcrecon import PixelStats, SampleSet
+from mcrecon.estimates import (cross_validation_mse, dual_buffer_mse, dual_buffer_variance,
+                               gaussian_centre_weights, relative_denominator, split_halves, split_labels, sure,
+                               sure_filter_bank)
+from mcrecon.methods.gem import filter_bank, final_sigmas
+from mcrecon.methods.gem.selection import mean_variance_policy
+from mcrecon.renderers.scenes import reference_image, render_uniform
+
+
+# ------------------------------------------------------------------ exactness
+def test_centre_weights_are_the_filter_banks_own_weights():
+    """w_ii from gaussian_centre_weights equals the response of filter_bank to a unit impulse at i
+    (masking and renormalisation included): exact, not approximated."""
+    rng = np.random.default_rng(0)
+    h, w = 9, 11
+    count = rng.integers(0, 3, (h, w))
+    count[4, 5] = 2
+    sig = final_sigmas(3)
+    cw = gaussian_centre_weights(count, sig)
+    for i, j in ((4, 5), (0, 0), (8, 10)):
+        if count[i, j] == 0:
+            continue
+        e = np.zeros((h, w, 1))
+        e[i, j] = 1.0
+        bank = filter_bank(e, np.zeros((h, w, 1)), count, sig)
+        for k in range(len(sig)):
+            assert bank.values[k + 1][i, j, 0] == pytest.approx(cw[k][i, j], rel=1e-12, abs=1e-15)
+
+
+def test_sure_of_the_pixel_filter_is_its_variance():
+    y = np.random.default_rng(1).random((4, 5, 3))
+    v = np.full((4, 5, 3), 0.3)
+    np.testing.assert_allclose(sure(y, v, y, 1.0), v)
+
+
+def test_dual_buffer_identity_is_exact():
+    rng = np.random.default_rng(2)
+    a, b, mu = rng.random(100), rng.random(100), rng.random(100)
+    lhs = ((a + b) / 2 - mu) ** 2
+    np.testing.assert_allclose(dual_buffer_mse(a, b, (a - mu) ** 2, (b - mu) ** 2), lhs, rtol=1e-12, atol=1e-15)
+
+
+def test_split_alternates_within_pixels_and_is_stream_invariant():
+    rng = np.random.default_rng(3)
+    pos = rng.random((1000, 2)) * [7, 5]
+    c1 = np.zeros(35, np.int64)
+    whole = split_labels(pos, 7, 5, c1)
+    c2 = np.zeros(35, np.int64)
+    parts = np.concatenate([split_labels(pos[:123], 7, 5, c2), split_labels(pos[123:], 7, 5, c2)])
+    np.testing.assert_array_equal(whole, parts)
+    pix = np.floor(pos[:, 1]).astype(int) * 7 + np.floor(pos[:, 0]).astype(int)
+    for p in range(35):
+        lab = whole[pix == p]
+        assert abs(int(lab.sum()) * 2 - lab.size) <= 1  # halves differ by at most one sample
+
+
+def test_relative_denominator_keeps_a_dark_pixel_dark_beside_a_bright_edge():
+    y = np.zeros((9, 9, 1))
+    y[:, 5:] = 500.0
+    den = relative_denominator(y, np.zeros_like(y), eps=0.01)
+    assert den[4, 4, 0] == pytest.approx(0.01) and den[4, 5, 0] == pytest.approx(500.0 ** 2 + 0.01)
+
+
+# ------------------------------------------------------------------ accuracy
+def _stripes(w=64, h=48):
+    """A procedural scene with an exact reference: smooth gradient, a sharp step, fine stripes.
+    Samples: reference + Gaussian noise whose sigma varies over the image (heteroscedastic)."""
+    x = (np.arange(w) + 0.5) / w
+    yy = (np.arange(h) + 0.5) / h
+    X, Y = np.meshgrid(x, yy)
+    ref = 0.2 + 0.6 * X[..., None] * np.array([1.0, 0.8, 0.6])
+    ref = ref + (X > 0.6)[..., None] * 0.5
+    ref = ref + ((Y < 0.3) * (np.sin(40 * X) > 0))[..., None] * 0.3
+    sigma = np.broadcast_to(0.1 + 0.5 * Y[..., None], ref.shape).copy()
+    return ref, sigma
+
+
+def _procedural_samples(ref, sigma, spp, seed):
+    rng = np.random.default_rng(seed)
+    h, w, c = ref.shape
+    pix = np.repeat(np.arange(h * w), spp)
+    pos = np.stack([pix % w + rng.random(pix.size), pix // w + rng.random(pix.size)], axis=1)
+    val = ref.reshape(-1, c)[pix] + sigma.reshape(-1, c)[pix] * rng.standard_normal((pix.size, c))
+    return pos, val
+
+
+def _sure_ratios(make, seeds, sigmas):
+    """Per seed and scale: sum of SURE / sum of the true squared error."""
+    out = []
+    for seed in seeds:
+        pos, val, ref, w, h = make(seed)
+        st = PixelStats.from_samples(pos, val, width=w, height=h)
+        v = mean_variance_policy(st)
+        sb = sure_filter_bank(st.mean, v, st.count, sigmas)
+        out.append([float(np.sum(sb.sure[k]) / np.sum((sb.values[k] - ref) ** 2)) for k in range(len(sb.values))])
+    return np.array(out)
+
+
+def _make_procedural(spp):
+    ref, sigma = _stripes()
+
+    def make(seed):
+        pos, val = _procedural_samples(ref, sigma, spp, seed)
+        return pos, val, ref, ref.shape[1], ref.shape[0]
+    return make
+
+
+def _make_scene(name, size, spp):
+    ref = reference_image(name, size, size)
+
+    def make(seed):
+        b = render_uniform(name, width=size, height=size, spp=spp, seed=seed)
+        return b.positions, b.values, ref, size, size
+    return make
+
+
+def _check(ratios):
+    """Mean over seeds within 10 % of 1 (the issue's target) and within 4 standard errors + 2 % of 1.
+
+    The 2 % allows for what is not sampling noise: a ratio of sums is not the sum of ratios (its
+    bias is O(spread^2 / seeds)), and the fill-in policy for pixels with < 2 samples."""
+    mean = ratios.mean(axis=0)
+    se = ratios.std(axis=0, ddof=1) / np.sqrt(ratios.shape[0])
+    assert np.all(np.abs(mean - 1) <= 0.10), (mean, se)
+    assert np.all(np.abs(mean - 1) <= 4 * se + 0.02), (mean, se)
+    return mean, se
+
+
+def test_sure_is_unbiased_on_a_procedural_scene_reduced():
+    """Procedural stripes, 8 spp, 6 seeds, the box and 4 Gaussian scales.
+
+    Measured spread of R over seeds (MCRECON_FULL run, 64 seeds): std 0.01-0.03 per scale,
+    so the standard error of the 6-seed mean is <= 0.013 and a 10 % tolerance is > 7 standard
+    errors; the test asserts |mean - 1| <= 0.10 and <= 4 standard errors + 2 % (see _check)."""
+    _check(_sure_ratios(_make_procedural(8), range(6), final_sigmas(4)))
+
+
+@pytest.mark.slow
+def test_sure_is_unbiased_on_builtin_and_procedural_scenes(full_run):
+    """SURE summed over the image against the true squared error, every scale of GEM's final bank.
+
+    Scenes: the procedural stripes (Gaussian noise) and the built-in soft_shadow and depth_of_field
+    (renderer noise, 16 spp, 48x48).  Measured spread of R (std over seeds): procedural 0.01-0.03,
+    soft_shadow 0.02-0.08, depth_of_field 0.02-0.06 (the large scales, whose true error is mostly
+    bias, have the smallest relative spread).  Full run: 64 seeds (standard error <= 0.01);
+    reduced: 12 seeds (<= 0.025).  Asserted: |mean - 1| <= 10 % and <= 4 standard errors + 2 % (measured means 0.99-1.01)."""
+    n = 64 if full_run else 12
+    for make in (_make_procedural(8), _make_scene("soft_shadow", 48, 16), _make_scene("depth_of_field", 48, 16)):
+        _check(_sure_ratios(make, range(n), final_sigmas(8)))
+
+
+def _dual_ratios(make, seeds):
+    """Per seed: [variance part / true var of the half-average, CV estimate / true error] for the box
+    filter of the halves (unbiased: E[A] = E[B] = mu, so all its error is variance)."""
+    out = []
+    for seed in seeds:
+        pos, val, ref, w, h = make(seed)
+        hv = split_halves(SampleSet(pos, val, width=w, height=h))
+        a, b = hv.a.mean, hv.b.mean
+        true = np.sum(((a + b) / 2 - ref) ** 2)
+        var = np.sum(dual_buffer_variance(a, b))
+        cv = np.sum(dual_buffer_mse(a, b, cross_validation_mse(a, b, mean_variance_policy(hv.b)),
+                                    cross_validation_mse(b, a, mean_variance_policy(hv.a))))
+        out.append([var / true, cv / true])
+    return np.array(out)
+
+
+def test_dual_buffer_variance_part_is_unbiased_reduced():
+    """Unbiased reconstruction (the pixel mean of each half): the variance part (A-B)^2/4 and the
+    bias-inclusive cross-validation estimate against the true error, procedural scene, 8 spp, 8 seeds.
+    Measured spread of R: std 0.02 (variance part), 0.03 (CV); tolerance 10 % (> 9 standard errors)."""
+    _check(_dual_ratios(_make_procedural(8), range(8)))
+
+
+@pytest.mark.slow
+def test_dual_buffer_variance_part_is_unbiased_on_scenes(full_run):
+    """As above on soft_shadow (48x48, 16 spp).  Spread of R: std ~0.03; full 64 seeds, reduced 12.
+    What the variance part misses: a biased reconstruction's E[F] - mu (tested in test_auto:
+    a blur's (A-B)^2/4 is far below its true error, the cross-validation estimate is not)."""
+    n = 64 if full_run else 12
+    _check(_dual_ratios(_make_scene("soft_shadow", 48, 16), range(n)))
+
+
+def test_variance_part_misses_the_bias_and_cross_validation_sees_it():
+    """A strong blur of each half: (A-B)^2/4 sees only the variance; the cross-validation
+    estimate (A - y_B)^2 - v_B sees bias too (sum within 15 % over 4 seeds: bias dominates)."""
+    from scipy import ndimage
+    ref, sigma = _stripes()
+    r_var, r_cv = [], []
+    for seed in range(4):
+        pos, val = _procedural_samples(ref, sigma, 8, seed)
+        hv = split_halves(SampleSet(pos, val, width=ref.shape[1], height=ref.shape[0]))
+        blur = lambda x: ndimage.gaussian_filter(x, (4, 4, 0), mode="nearest")  # noqa: E731
+        a, b = blur(hv.a.mean), blur(hv.b.mean)
+        true = np.sum(((a + b) / 2 - ref) ** 2)
+        r_var.append(np.sum(dual_buffer_variance(a, b)) / true)
+        cv = dual_buffer_mse(a, b, cross_validation_mse(a, hv.b.mean, mean_variance_policy(hv.b)),
+                             cross_validation_mse(b, hv.a.mean, mean_variance_policy(hv.a)))
+        r_cv.append(np.sum(cv) / true)
+    assert np.mean(r_var) < 0.2
+    assert abs(np.mean(r_cv) - 1) < 0.15
