@@ -101,6 +101,28 @@ def test_cli_html_and_gallery(tmp_path, capsys):
     assert _layers((tmp_path / "g" / "gallery" / "flat.html").read_text())[0]["id"] == "reference"
 
 
+def test_report_command_rebuilds_the_page_from_the_run_folder(report, tmp_path, capsys):
+    from mcrecon.cli import main
+
+    out, res = report
+    assert main(["report", str(out), "-o", str(tmp_path / "again.html")]) == 0
+    fresh = _layers((out / "report.html").read_text())
+    again = _layers((tmp_path / "again.html").read_text())
+    # the same layers, labels, sample-density maps and error means (the run folder keeps float32 EXRs:
+    # the error means agree to float32 rounding of the images)
+    assert [(la["id"], la["label"], la["density"] is None) for la in again] == \
+        [(la["id"], la["label"], la["density"] is None) for la in fresh]
+    for a, b in zip(again, fresh):
+        if b.get("error_mean") is not None:
+            assert a["error_mean"] == pytest.approx(b["error_mean"], rel=1e-5)
+    capsys.readouterr()
+    assert main(["report", str(tmp_path), "-o", str(tmp_path / "x.html")]) == 2  # not a run folder
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "convergence.json" in err and "does not exist" in err
+    assert main(["report", str(out), "-o", str(tmp_path / "x.png")]) == 2
+    assert ".html" in capsys.readouterr().err
+
+
 def test_flip_left_out_with_a_note_when_not_installed(tmp_path, monkeypatch):
     monkeypatch.setattr(conv, "flip_available", lambda: False)
     res = run_convergence("flat", methods=["box"], spp=[2], size=(8, 8), modes=["uniform"], oidn=False,

@@ -43,6 +43,20 @@ def _cmd_convergence(args):
     return 0
 
 
+def _cmd_report(args):
+    from ..experiments.convergence import load_convergence
+    from ..experiments.html_report import write_html_report
+
+    out = Path(args.output)
+    if out.suffix.lower() not in (".html", ".htm"):
+        raise InputError(str(out), "-o", "expected a path ending in .html")
+    result, scene = load_convergence(args.run_dir)
+    run_dir = Path(args.run_dir)
+    plots = [p for p in (run_dir / "convergence_spp.png", run_dir / "convergence_time.png") if p.exists()]
+    print(f"wrote {write_html_report(out, result, scene=scene, plots=plots)}")
+    return 0
+
+
 def _cmd_oracle(args):
     from ..experiments.oracle import run_oracle
 
@@ -137,6 +151,10 @@ def _cmd_bias(args):
 def register(sub, command: str | None = None) -> None:
     """Add the experiment commands to the ``mcrecon`` sub-command parser (bias's flags of method
     ci only when ``command`` is ``bias`` or None: they need the method class)."""
+    r = sub.add_parser("report", help="the interactive HTML report of a convergence run's folder")
+    r.add_argument("run_dir", metavar="RUN_DIR", help="the --out folder of `mcrecon experiment convergence`")
+    r.add_argument("-o", "--output", required=True, metavar="HTML", help="the page to write (self-contained)")
+    r.set_defaults(func=_cmd_report)
     ex = sub.add_parser("experiment", help="figures and tables: convergence, error-rate, stability, normality")
     es = ex.add_subparsers(dest="experiment", required=True, parser_class=OneLineParser)
 

@@ -68,6 +68,69 @@ class ConvergenceResult:
 #: SMAPE's eps in the convergence reports (metrics.smape's default).
 SMAPE_EPS = 0.01
 
+#: What a convergence run directory records besides its rows (read by :func:`load_convergence`).
+RUN_FILE = "convergence_run.json"
+
+
+def load_convergence(run_dir) -> tuple[ConvergenceResult, str]:
+    """A convergence run written by :func:`run_convergence` (``out=``), read back: (result, scene).
+
+    Reads ``convergence.json`` (the rows), ``convergence_run.json`` (scene,
+    report spp, metric settings) and the linear images ``images/*.exr``
+    with the density maps ``images/*_density.npy``.  A missing or damaged
+    file is an :class:`~mcrecon.errors.InputError` naming it.
+    """
+    from ..errors import InputError
+    from ..io import read_exr
+
+    run_dir = Path(run_dir)
+
+    def load_json(name):
+        path = run_dir / name
+        try:
+            return json.loads(path.read_text())
+        except FileNotFoundError:
+            raise InputError(str(path), "file", "does not exist: RUN_DIR must be the --out folder of "
+                             "`mcrecon experiment convergence` (written by this version)") from None
+        except (OSError, ValueError) as exc:
+            raise InputError(str(path), "file", f"not readable JSON ({' '.join(str(exc).split())})") from None
+
+    if not run_dir.is_dir():
+        raise InputError(str(run_dir), "RUN_DIR", "is not a folder; give the --out folder of "
+                         "`mcrecon experiment convergence`")
+    rows = load_json("convergence.json")
+    meta = load_json(RUN_FILE)
+    try:
+        keys = [(str(m), str(mode)) for m, mode in meta["images"]]
+        scene, report_spp = str(meta["scene"]), int(meta["report_spp"])
+        eps, smape_eps, flip = float(meta["eps"]), float(meta["smape_eps"]), bool(meta["flip"])
+        notes = [str(n) for n in meta.get("notes", [])]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputError(str(run_dir / RUN_FILE), "fields", f"malformed ({exc!r}); write the run again") from None
+    if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+        raise InputError(str(run_dir / "convergence.json"), "rows", "expected a list of objects")
+    ref = read_exr(run_dir / "images" / "reference.exr")[0].astype(np.float64)
+    images, maps = {}, {}
+    for key in keys:
+        stem = f"{key[0]}_{key[1]}"
+        img = read_exr(run_dir / "images" / f"{stem}.exr")[0].astype(np.float64)
+        if img.shape != ref.shape:
+            raise InputError(str(run_dir / "images" / f"{stem}.exr"), "shape",
+                             f"{img.shape}, the reference is {ref.shape}")
+        images[key] = img
+        dens = run_dir / "images" / f"{stem}_density.npy"
+        if dens.exists():
+            try:
+                d = np.load(dens, allow_pickle=False)
+            except (OSError, ValueError) as exc:
+                raise InputError(str(dens), "file", f"not a numpy array ({' '.join(str(exc).split())})") from None
+            if d.shape != ref.shape[:2]:
+                raise InputError(str(dens), "shape", f"{d.shape}, expected {ref.shape[:2]}")
+            maps[key] = d
+    result = ConvergenceResult(rows, images, maps, ref, report_spp, [], eps=eps, smape_eps=smape_eps, flip=flip,
+                               notes=notes)
+    return result, scene
+
 
 def _metrics(img, ref, eps, use_flip=False):
     s = ssim(img, ref)
@@ -246,6 +309,11 @@ def _write_convergence(result: ConvergenceResult, out, *, scene: str, html: bool
     files.append(out / "convergence.csv")
     (out / "convergence.json").write_text(json.dumps(result.rows, indent=1))
     files.append(out / "convergence.json")
+    (out / RUN_FILE).write_text(json.dumps({
+        "scene": scene, "report_spp": result.report_spp, "eps": result.eps, "smape_eps": result.smape_eps,
+        "flip": result.flip, "notes": list(result.notes),
+        "images": [[m, mode] for (m, mode) in sorted(result.images)]}, indent=1))
+    files.append(out / RUN_FILE)
     lines = sorted({(r["method"], r["mode"]) for r in result.rows})
     for xkey, fname, xlabel in (("spp", "convergence_spp.png", "average samples per pixel"),
                                 ("wall_seconds", "convergence_time.png", "wall time [s] (renderer + toolkit)")):
@@ -271,6 +339,9 @@ def _write_convergence(result: ConvergenceResult, out, *, scene: str, html: bool
     for (method, mode), img in sorted(result.images.items()):
         stem = f"{method}_{mode}"
         write_png_preview(out / "images" / f"{stem}.png", img)
+        write_exr(out / "images" / f"{stem}.exr", img)  # linear: `mcrecon report` rebuilds the viewer from it
+        if (method, mode) in result.maps:
+            np.save(out / "images" / f"{stem}_density.npy", np.asarray(result.maps[(method, mode)]))
         write_false_colour(out / "images" / f"{stem}_error.png", relative_mse_map(img, ref), log=True,
                            vmin=1e-5, vmax=1.0)
         dens = None
