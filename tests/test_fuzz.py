@@ -130,6 +130,8 @@ def _apply(path, mutation):
     kind, where, what = mutation
     if kind in ("bytes", "truncate"):
         size = path.stat().st_size
+        if size == 0:
+            return  # truncated to nothing already
         at = min(int(where * size), size - 1)
         with open(path, "r+b") as fh:
             if kind == "truncate":
@@ -401,8 +403,10 @@ def _exr_fuzz(worker, mutations, commands=(0, 1, 2)):
         tmp = Path(tmp)
         path = tmp / "in.exr"
         channels, attrs = _exr_channels()
-        raw = []
+        raw, dtypes = [], {}
         for kind, where, what in mutations:  # structured edits first, then raw bytes of the written file
+            if kind in ("value", "dtype") and where not in channels:
+                continue  # the channel was dropped by an earlier mutation
             if kind == "value":
                 value, everywhere = what
                 if everywhere:
@@ -412,12 +416,19 @@ def _exr_fuzz(worker, mutations, commands=(0, 1, 2)):
                     channels[where][2, 3] = value
             elif kind == "drop":
                 channels.pop(where, None)
-            elif kind == "dtype" and where in channels:
-                channels[where] = channels[where].astype(what)
+            elif kind == "dtype":
+                dtypes[where] = what  # applied when the file is written (values stay float until then)
             elif kind == "spp":
                 attrs[where] = what
             else:
                 raw.append((kind, where, what))
+        for name, dt in dtypes.items():
+            if name in channels:
+                x = channels[name]
+                if np.dtype(dt).kind == "u":  # what an integer channel can hold
+                    x = np.clip(np.nan_to_num(x, nan=0.0, posinf=2**32 - 1, neginf=0.0), 0, 2**32 - 1)
+                with np.errstate(over="ignore", invalid="ignore"):
+                    channels[name] = x.astype(dt)
         try:
             _write_exr(path, channels, attrs)
         except Exception:  # noqa: BLE001 - a file OpenEXR refuses to write is no input
