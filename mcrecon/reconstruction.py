@@ -14,7 +14,8 @@ import numpy as np
 
 from .errors import InputError
 from .methods import Method, get_method
-from .methods.base import MethodInputs, RunState
+from .methods.base import MethodInputs, RunState, check_half_buffers, half_buffer_methods, is_half_buffer_pair, \
+    merge_halves
 from .samples import check_policy, check_reference
 from .stats import PixelStats
 
@@ -70,10 +71,13 @@ def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=
 
     Parameters
     ----------
-    source : path-like, SampleLog, SampleSet or PixelStats
+    source : path-like, SampleLog, SampleSet, PixelStats or (PixelStats, PixelStats)
         A sample log is streamed into statistics (with the subpixel grid the
         method asks for) and handed over as the sample source of methods
-        that filter samples; pixel statistics cannot serve those.
+        that filter samples; pixel statistics cannot serve those.  A tuple
+        of two PixelStats is a half-buffer pair (two independent halves of
+        the samples), for methods with ``requires.half_buffers``: handed
+        over as ``inputs.halves``, with ``inputs.stats`` their merge.
     method : Method
     nonfinite : {'drop', 'zero', 'raise'}
         Policy for NaN/Inf sample values.
@@ -83,7 +87,24 @@ def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=
     """
     check_policy(nonfinite, "reconstruct")
     req = method.requires
-    if isinstance(source, PixelStats):
+    halves = None
+    if is_half_buffer_pair(source):
+        if not req.half_buffers:
+            raise InputError(method.where, "halves", f"{method.name} does not use half buffers; methods that "
+                             f"do: {', '.join(half_buffer_methods()) or '(none)'} (for {method.name}, give the "
+                             "statistics of all the samples: mcrecon.methods.base.merge_halves(a, b))")
+        halves = check_half_buffers(source, "reconstruct")
+        if req.subpixels and halves[0].subpixels != req.subpixels:
+            raise InputError(method.where, "halves", f"this configuration needs a {req.subpixels}x"
+                             f"{req.subpixels} subpixel grid, got subpixels={halves[0].subpixels}")
+        stats, samples, stored_ref = merge_halves(*halves), None, None
+    elif isinstance(source, PixelStats):
+        if req.samples and req.half_buffers:
+            raise InputError(method.where, "input", f"{method.name} (these options) needs the individual "
+                             "samples or two independent half buffers, which one set of pixel statistics does not "
+                             "hold; give it a sample log or a SampleSet, or a half-buffer pair (stats_a, stats_b)"
+                             + ("; or candidates='box,gauss' (the SURE candidates need neither)"
+                                if method.name == "auto" else ""))
         if req.samples:
             raise InputError(method.where, "input", f"{method.name} filters individual samples, which pixel "
                              "statistics no longer hold; give it a sample log or a SampleSet")
@@ -94,14 +115,14 @@ def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=
             source = read_log(source)
         if not (hasattr(source, "round_slices") and hasattr(source, "iter_chunks")):
             raise InputError("reconstruct", "source", f"got {type(source).__name__}; expected a sample log path, "
-                             "a SampleLog, a SampleSet or PixelStats")
+                             "a SampleLog, a SampleSet, PixelStats or a half-buffer pair (stats_a, stats_b)")
         stats = PixelStats.from_source(source, subpixels=req.subpixels, nonfinite=nonfinite) \
             if req.statistics else None
         stored_ref = source.reference() if req.reference != "none" and hasattr(source, "reference") else None
         samples = source if req.samples else None
     shape = stats.shape if stats is not None else (samples.height, samples.width, len(samples.channels))
     ref = check_reference(reference if reference is not None else stored_ref, shape)
-    return MethodInputs(stats, samples, ref if req.reference != "none" else None, nonfinite)
+    return MethodInputs(stats, samples, ref if req.reference != "none" else None, nonfinite, halves)
 
 
 def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None, full: bool = False,
@@ -110,9 +131,13 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
 
     Parameters
     ----------
-    source : path-like, SampleLog, SampleSet or PixelStats
-        A sample log (streamed in chunks), samples in memory or statistics
-        already built.
+    source : path-like, SampleLog, SampleSet, PixelStats or (PixelStats, PixelStats)
+        A sample log (streamed in chunks), samples in memory, statistics
+        already built, or a half-buffer pair: statistics of two independent
+        halves of the samples (dual buffers a renderer wrote), for methods
+        that declare ``requires.half_buffers`` (``auto``).  The pair must
+        agree in size, channels and subpixel grid; each pixel's counts may
+        differ.  The statistics of all the samples are their Chan merge.
     method : str or Method
         A registered method name (``mcrecon.available_methods()``) with
         its keyword ``options``, or a method object.

@@ -4,7 +4,9 @@ Each function takes pixel statistics (:class:`~mcrecon.stats.PixelStats`,
 e.g. from :meth:`~mcrecon.stats.PixelStats.from_moments` on a renderer's
 mean / variance / count images, or from samples in memory with
 :meth:`~mcrecon.stats.PixelStats.from_samples`) or, for methods that
-filter individual samples, a :class:`~mcrecon.samples.SampleSet`; its
+filter individual samples, a :class:`~mcrecon.samples.SampleSet`; :func:`auto`
+also takes a half-buffer pair ``(stats_a, stats_b)`` (two independent halves
+of the samples, as renderers write dual buffers); its
 keyword-only options are the method's options, validated by the one
 option path of :mod:`mcrecon.methods`.  The image comes back in the
 precision of the input values: float32 in, float32 out.
@@ -20,7 +22,7 @@ import numpy as np
 
 from .errors import InputError
 from .methods import get_method, method_class
-from .methods.base import MethodInputs
+from .methods.base import MethodInputs, check_half_buffers, half_buffer_methods, is_half_buffer_pair, merge_halves
 from .samples import SampleSet, check_policy, check_reference
 from .stats import PixelStats
 
@@ -52,8 +54,29 @@ def _run(name: str, source, reference, nonfinite: str, options: dict) -> np.ndar
             raise InputError(where, "samples", "no samples: there is nothing to reconstruct")
         dtype = source.values.dtype
         inputs = MethodInputs(stats, source if req.samples else None, None, nonfinite)
+    elif is_half_buffer_pair(source):
+        if not req.half_buffers:
+            raise InputError(where, "halves", f"{name} does not use half buffers; functions that do: "
+                             f"{', '.join(half_buffer_methods()) or '(none)'} (for {name}, pass the statistics of "
+                             "all the samples: mcrecon.methods.base.merge_halves(a, b))")
+        a, b = check_half_buffers(source, where)
+        for i, h in enumerate((a, b)):
+            for field, arr in (("mean", h.mean), ("m2", h.m2)):
+                bad = (h.count > 0) & ~np.isfinite(arr).all(axis=2)
+                if bad.any():
+                    raise InputError(where, f"halves[{i}].{field}", f"{int(bad.sum())} sampled pixel(s) hold NaN "
+                                     "or Inf; fix the input")
+        stats = merge_halves(a, b)
+        _check_stats(stats, where)
+        dtype = stats.dtype
+        inputs = MethodInputs(stats, None, None, nonfinite, (a, b))
     elif isinstance(source, PixelStats):
         if req.samples:
+            if req.half_buffers:
+                hint = "; or candidates='box,gauss' (the SURE candidates need neither)" if name == "auto" else ""
+                raise InputError(where, "input", f"{name} (these options) needs the individual samples or two "
+                                 "independent half buffers, which one set of pixel statistics does not hold; pass a "
+                                 f"mcrecon.SampleSet, or a half-buffer pair (stats_a, stats_b){hint}")
             raise InputError(where, "input", f"{name} filters individual samples, which pixel statistics no "
                              "longer hold; pass a mcrecon.SampleSet")
         _check_stats(source, where)
@@ -61,10 +84,11 @@ def _run(name: str, source, reference, nonfinite: str, options: dict) -> np.ndar
         inputs = MethodInputs(source, None, None, nonfinite)
     else:
         raise InputError(where, "input", f"got {type(source).__name__}; expected PixelStats "
-                         "(PixelStats.from_moments / from_samples) or a mcrecon.SampleSet")
+                         "(PixelStats.from_moments / from_samples), a mcrecon.SampleSet"
+                         + (" or a half-buffer pair (stats_a, stats_b)" if req.half_buffers else ""))
     if reference is not None:
         ref = check_reference(reference, inputs.shape, where=f"{where}: reference")
-        inputs = MethodInputs(inputs.stats, inputs.samples, ref, nonfinite)
+        inputs = MethodInputs(inputs.stats, inputs.samples, ref, nonfinite, inputs.halves)
     image = method.reconstruct(inputs)
     return np.asarray(image).astype(np.float32 if dtype == np.float32 else np.float64, copy=False)
 
@@ -169,8 +193,11 @@ ci = _make(
 
 auto = _make(
     "auto", "Per-pixel choice among reconstructions by their estimated (reference-free) error.",
-    "source : PixelStats or SampleSet\n    With pixel statistics pass ``candidates='box,gauss'`` (the SURE candidates); the\n"
-    "    default candidates split the samples into two halves and need a SampleSet.",
+    "source : PixelStats, SampleSet or (PixelStats, PixelStats)\n    A SampleSet (the default candidates split "
+    "its samples into two halves), or a half-buffer pair\n    ``(stats_a, stats_b)``: statistics of two independent "
+    "halves of the samples (dual buffers a\n    renderer wrote; same size and channels, counts may differ), used as "
+    "the two halves and\n    merged for the SURE candidates.  With one set of pixel statistics pass\n"
+    "    ``candidates='box,gauss'`` (the SURE candidates).",
     "Candidates: the pixel mean, GEM's Gaussian scales (error by Stein's unbiased risk estimate with the\n"
     "exact centre weight), cross-filtered non-local means and the black boxes awr/splat/oidn (error by\n"
     "dual-buffer cross-validation); each pixel takes the candidate of least smoothed relative estimate.",

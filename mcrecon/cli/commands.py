@@ -49,52 +49,74 @@ def _cmd_info(args):
 
 # ----------------------------------------------------------------- denoise
 _PIXEL_STATS_FLAGS = (("layout", "--layout"), ("mean", "--mean"), ("variance_channels", "--variance-channels"),
-                      ("second_moment", "--second-moment"), ("count", "--count"), ("spp", "--spp"))
+                      ("second_moment", "--second-moment"), ("count", "--count"), ("spp", "--spp"),
+                      ("half_buffer", "--half-buffer"))
 
 
 def _refuse_pixel_stats_flags(args) -> None:
     given = [flag for dest, flag in _PIXEL_STATS_FLAGS if getattr(args, dest, None) is not None]
     if given or args.variance_of != "samples":
         raise InputError(str(args.log), ", ".join(given) or "--variance-of",
-                         "applies to a pixel-statistics EXR input (a path ending in .exr), not to a sample log")
+                         "applies to a pixel-statistics EXR input (a path ending in .exr), not to a sample log"
+                         + (" (a log holds the samples: methods that use halves split them themselves)"
+                            if getattr(args, "half_buffer", None) is not None else ""))
 
 
 class _PixelStatsInput:
-    """What the denoise report reads from a sample log, for statistics read from an EXR."""
+    """What the denoise report reads from a sample log, for statistics read from an EXR (or a half-buffer pair)."""
 
-    def __init__(self, pix):
+    def __init__(self, pix, other=None):
         self.pix = pix
         self.width, self.height = pix.stats.width, pix.stats.height
-        self.n_samples = int(pix.stats.count.sum())
+        self.n_samples = int(pix.stats.count.sum()) + (int(other.stats.count.sum()) if other is not None else 0)
         self.channels = pix.output_channels
         self.output_image = pix.output_image
+        self.pair = other is not None
 
     def reference(self):
         return None
 
 
 def _read_pixel_stats_input(args):
-    """(method, log-like description, PixelStats) of a pixel-statistics EXR input; notes go to stderr."""
+    """(method, log-like description, source) of a pixel-statistics EXR input; notes go to stderr.
+
+    The source is the file's PixelStats, or with ``--half-buffer`` the pair
+    (PixelStats of A, PixelStats of B) that :func:`mcrecon.reconstruct` takes.
+    """
     import sys
 
-    from ..io.pixel_exr import check_method, pixel_stats_options, read_pixel_stats_exr
+    from ..io.pixel_exr import check_method, pixel_stats_options, read_half_buffer_exrs, read_pixel_stats_exr
     from ..methods import get_method
 
+    pair = args.half_buffer is not None
     method = make_method(args.method, args, args.method_flags)  # validates the flags given
-    check_method(method, str(args.log))
-    opts, note = pixel_stats_options(method.name, given_method_options(args))
+    if pair and not str(args.half_buffer).lower().endswith(".exr"):
+        raise InputError(str(args.half_buffer), "--half-buffer", "expected an EXR of the other half of the "
+                         "samples (a path ending in .exr)")
+    where = f"{args.log} (with --half-buffer {args.half_buffer})" if pair else str(args.log)
+    opts, note = pixel_stats_options(method.name, given_method_options(args), half_buffers=pair)
     if note is not None:
         method = get_method(method.name, **opts)
+    check_method(method, where, half_buffers=pair)
+    if note is not None:
         sys.stderr.write(f"mcrecon: note: {note}\n")
-    pix = read_pixel_stats_exr(args.log, layout=args.layout, mean=args.mean, variance=args.variance_channels,
-                               second_moment=args.second_moment, variance_of=args.variance_of,
-                               count=args.count, spp=args.spp)
+    read = dict(layout=args.layout, mean=args.mean, variance=args.variance_channels,
+                second_moment=args.second_moment, variance_of=args.variance_of, count=args.count, spp=args.spp)
+    if pair:
+        pix, other = read_half_buffer_exrs(args.log, args.half_buffer, **read)
+        count_source = (pix.count_source if pix.count_source == other.count_source
+                        else f"{pix.count_source} / {other.count_source}")
+        name = f"{args.log} + {args.half_buffer} (half-buffer pair)"
+    else:
+        pix, other = read_pixel_stats_exr(args.log, **read), None
+        count_source, name = pix.count_source, str(args.log)
     what = ", ".join(f"{k} {','.join(v)}" for k, v in pix.sources.items())
     space = f"; reconstructed in {','.join(pix.stats.channels)}, written as {','.join(pix.output_channels)}" \
         if pix.output_matrix is not None else ""
-    sys.stderr.write(f"mcrecon: note: {args.log}: layout {pix.layout}: {what}; count from {pix.count_source}"
+    sys.stderr.write(f"mcrecon: note: {name}: layout {pix.layout}: {what}; count from {count_source}"
                      f"{space}\n")
-    return method, _PixelStatsInput(pix), pix.stats
+    source = (pix.stats, other.stats) if pair else pix.stats
+    return method, _PixelStatsInput(pix, other), source
 
 
 def _cmd_denoise(args):
@@ -124,7 +146,8 @@ def _cmd_denoise(args):
             PixelStats.from_log(log, nonfinite=args.nonfinite).count
     written = write_outputs(rec.image, args.output, channels=log.channels, png=args.png, exposure=args.exposure,
                             diagnostics=rec.diagnostics(), diag_dir=args.diagnostics, counts=counts)
-    msg = f"{method.name}: {log.width}x{log.height}, {log.n_samples} samples, reconstructed in {dt:.3f} s"
+    msg = (f"{method.name}: {log.width}x{log.height}, {log.n_samples} samples"
+           + (" (a half-buffer pair)" if getattr(log, "pair", False) else "") + f", reconstructed in {dt:.3f} s")
     dropped = rec.inputs.stats.n_dropped if rec.inputs.stats is not None else 0
     if dropped:
         msg += f" ({dropped} non-finite dropped)"
@@ -314,6 +337,9 @@ def _cmd_methods(args):
     print("\ninputs (method.requires, default options):")
     print(f"  {'pixel statistics':24s} {'yes, ' + grid if req.statistics else 'no'}")
     print(f"  {'individual samples':24s} {'yes' if req.samples else 'no'}")
+    print(f"  {'half-buffer pair':24s} "
+          + ("accepted in place of the samples (--half-buffer)" if req.half_buffers and req.samples else
+             "accepted (--half-buffer; merged)" if req.half_buffers else "no"))
     print(f"  {'reference image':24s} {req.reference}")
     return 0
 
@@ -416,7 +442,8 @@ def register(sub, command: str | None = None) -> None:
     px = denoise.add_argument_group(
         "pixel-statistics EXR input (a LOG ending in .exr)",
         "Layout presets, or an explicit mapping; the count from --spp, --count or the file's samplesPerPixel/spp "
-        "attribute. Methods that need individual samples (splat, gem with --subpixel-exact-below > 0) refuse it.")
+        "attribute. Methods that need individual samples (splat, gem with --subpixel-exact-below > 0) refuse it; "
+        "auto takes a half-buffer pair (--half-buffer), and on one EXR its SURE candidates (box,gauss).")
     px.add_argument("--layout", default=None, choices=("pbrt-v4", "mitsuba-moment"),  # pixel_exr.LAYOUTS
                     help="pbrt-v4 GBufferFilm (R,G,B + Variance.R/G/B) or Mitsuba 3's moment integrator "
                          "(P.X/Y/Z + m2_P.X/Y/Z); default: detected from the channel names, or the explicit mapping")
@@ -431,6 +458,10 @@ def register(sub, command: str | None = None) -> None:
     px.add_argument("--count", default=None, metavar="N|CHANNEL|ATTRIBUTE",
                     help="samples per pixel: a number, a channel of per-pixel counts, or a header attribute")
     px.add_argument("--spp", default=None, metavar="N", help="samples per pixel (a number; same as --count N)")
+    px.add_argument("--half-buffer", default=None, metavar="B.exr",
+                    help="the other half of a half-buffer pair: an EXR of samples independent of LOG's (dual "
+                         "buffers), read with the same layout flags (--spp/--count: each half's own); for methods "
+                         "that use half buffers (auto)")
     denoise.set_defaults(func=_cmd_denoise)
 
     s = adapt = sub.add_parser("adapt", help="run adaptive rounds against a renderer", formatter_class=HelpFormatter)

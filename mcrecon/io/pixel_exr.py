@@ -54,7 +54,17 @@ Statistics from moments carry no per-pixel sample range
 (``stats.has_range`` False) and no subpixel grid nor samples, so methods
 that need those refuse them (:func:`check_method`); AWR's default
 ``variance='range'`` needs the range, :func:`pixel_stats_options` switches
-it to ``'sample'`` when the user did not choose.
+it to ``'sample'`` when the user did not choose, and ``auto``'s default
+candidates need two halves of the samples, so it keeps only its SURE
+candidates (``box,gauss``) unless given a half-buffer pair.
+
+Half-buffer pairs
+-----------------
+Two EXRs of independent halves of the samples (dual buffers), read with
+the same options by :func:`read_half_buffer_exrs`: the same layout, size,
+channels and colour conversion; each file's count is its own half's.
+Methods that declare ``requires.half_buffers`` (``auto``) use the pair as
+their two halves; the statistics of all the samples are the Chan merge.
 """
 
 from __future__ import annotations
@@ -70,8 +80,8 @@ import numpy as np
 from ..errors import InputError, McreconWarning
 from ..stats import PixelStats
 
-__all__ = ["LAYOUTS", "PixelStatsEXR", "read_pixel_stats_exr", "check_method", "pixel_stats_options",
-           "HALF_MAX", "MITSUBA_XYZ_TO_SRGB", "xyz_from_rgb_matrix"]
+__all__ = ["LAYOUTS", "PixelStatsEXR", "read_pixel_stats_exr", "read_half_buffer_exrs", "check_method",
+           "pixel_stats_options", "HALF_MAX", "MITSUBA_XYZ_TO_SRGB", "xyz_from_rgb_matrix"]
 
 #: The layout presets (besides the explicit mapping).
 LAYOUTS = ("pbrt-v4", "mitsuba-moment")
@@ -472,11 +482,66 @@ def _variance_from_moments(exr, names, m1, m2, n) -> np.ndarray:
         return np.where(nn > 1, pop * nn / np.maximum(nn - 1.0, 1.0), 0.0)
 
 
+def read_half_buffer_exrs(path_a, path_b, **options) -> tuple[PixelStatsEXR, PixelStatsEXR]:
+    """Read a half-buffer pair: two EXRs of independent halves of the samples, with the same options.
+
+    ``options`` are those of :func:`read_pixel_stats_exr`, applied to both
+    files (a numeric ``spp`` / ``count`` is then the samples per pixel of
+    *each* half; a count channel or header attribute is read from each
+    file).  The two must agree in layout, size, channels and colour
+    conversion (a pbrt-v4 file's ``chromaticities``); each pixel's counts
+    may differ.  Returns the two :class:`PixelStatsEXR`; the statistics of
+    all the samples are ``merge_halves(a.stats, b.stats)``
+    (:func:`mcrecon.methods.base.merge_halves`).
+
+    Raises
+    ------
+    InputError
+        Anything :func:`read_pixel_stats_exr` refuses, or two files that do
+        not match (naming both files and the field).
+    """
+    a = read_pixel_stats_exr(path_a, **options)
+    b = read_pixel_stats_exr(path_b, **options)
+    where = f"{a.path} / {b.path} (half-buffer pair)"
+    if a.layout != b.layout:
+        raise InputError(where, "layout", f"the halves have different layouts: {a.layout} vs {b.layout}; "
+                         "pass --layout (or the explicit mapping) to read both the same way")
+    sa, sb = a.stats, b.stats
+    if (sa.height, sa.width) != (sb.height, sb.width):
+        raise InputError(where, "shape", f"the halves differ in size: {sa.width}x{sa.height} vs "
+                         f"{sb.width}x{sb.height} (width x height)")
+    if sa.channels != sb.channels or a.sources != b.sources or a.output_channels != b.output_channels:
+        raise InputError(where, "channels", f"the halves differ in channels: "
+                         f"{','.join(a.sources['mean'])} vs {','.join(b.sources['mean'])}")
+    ma, mb = a.output_matrix, b.output_matrix
+    if (ma is None) != (mb is None) or (ma is not None and not np.allclose(ma, mb, rtol=1e-6, atol=1e-9)):
+        raise InputError(where, "chromaticities", "the halves have different colour spaces (their "
+                         "chromaticities header attributes differ)")
+    return a, b
+
+
 # ------------------------------------------------------------------ methods
-def check_method(method, where: str = "pixel statistics") -> None:
-    """Refuse, with the reason, a method that cannot run on statistics read from an EXR."""
+def check_method(method, where: str = "pixel statistics", *, half_buffers: bool = False) -> None:
+    """Refuse, with the reason, a method that cannot run on statistics read from an EXR.
+
+    ``half_buffers``: the statistics come as a half-buffer pair (two EXRs
+    of independent halves), which methods declaring
+    ``requires.half_buffers`` take in place of the samples.
+    """
     req = method.requires
-    if req.samples:
+    if half_buffers and not req.half_buffers:
+        from ..methods.base import half_buffer_methods
+
+        raise InputError(method.where, "--half-buffer", f"{method.name} does not use half buffers; methods that "
+                         f"do: {', '.join(half_buffer_methods()) or '(none)'} (for {method.name}, give one EXR of "
+                         "all the samples)")
+    if req.samples and req.half_buffers and not half_buffers:
+        raise InputError(method.where, "input", f"{method.name} (these options) needs the individual samples or "
+                         f"two independent half buffers, which one pixel-statistics EXR ({where}) does not hold; "
+                         "give the other half with --half-buffer B.exr, or a sample log"
+                         + (", or use --candidates box,gauss (the SURE candidates)" if method.name == "auto"
+                            else ""))
+    if req.samples and not req.half_buffers:
         raise InputError(method.where, "input", f"{method.name} filters individual samples (their film "
                          f"positions and values), which a pixel-statistics EXR ({where}) does not hold; give it "
                          "a sample log, or pick gem, awr, box or ci")
@@ -487,15 +552,36 @@ def check_method(method, where: str = "pixel statistics") -> None:
                          "kernel) or a sample log")
 
 
-def pixel_stats_options(name: str, given: dict) -> tuple[dict, str | None]:
+def pixel_stats_options(name: str, given: dict, *, half_buffers: bool = False) -> tuple[dict, str | None]:
     """Options for method ``name`` on statistics without the sample range, and a note when changed.
 
     AWR's default ``variance='range'`` estimator needs each pixel's
     sample minimum and maximum; a pixel-statistics EXR has none, so when
     the user did not choose, ``variance='sample'`` (the sample variance)
     is used; a ``variance`` the user gave that needs the range is refused.
+
+    ``auto``'s default candidates include dual-buffer ones (``nlm``),
+    which need two halves of the samples: on one EXR (``half_buffers``
+    False) and without ``candidates`` given, its SURE candidates
+    (``box,gauss``) are used, with a note; candidates the user gave are
+    kept (:func:`check_method` then refuses dual-buffer ones, suggesting
+    ``--half-buffer``).
     """
     opts = dict(given)
+    if name == "auto" and not half_buffers and "candidates" not in opts:
+        from ..methods import method_class
+        from ..methods.auto.method import DUAL_BUFFER
+
+        default = str(next(o.default for o in method_class("auto").options if o.name == "candidates"))
+        kept = [c.strip() for c in default.split(",") if c.strip() and c.strip() not in DUAL_BUFFER]
+        dropped = [c.strip() for c in default.split(",") if c.strip() in DUAL_BUFFER]
+        if dropped:
+            opts["candidates"] = ",".join(kept)
+            many = len(dropped) > 1
+            return opts, (f"auto: using --candidates {','.join(kept)} (its SURE candidates): the default "
+                          f"candidate{'s' if many else ''} {','.join(dropped)} need{'' if many else 's'} two "
+                          "independent halves of the samples, which one "
+                          "pixel-statistics EXR does not hold; give the other half with --half-buffer B.exr")
     if name == "awr" and "variance" in opts and str(opts["variance"]) != "sample":
         raise InputError("method awr", "--variance", f"{opts['variance']!r} needs each pixel's sample minimum and "
                          "maximum, which a pixel-statistics EXR does not hold; use --variance sample (the default "

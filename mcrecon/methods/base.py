@@ -19,9 +19,10 @@ A method is two things (``docs/methods/writing-a-method.md``):
 Declared inputs
     :attr:`Method.requires` says what a method consumes
     (:class:`Requirements`): pixel statistics with or without a subpixel
-    grid, the individual samples, the reference image.  The reader or the
-    driver supplies them as :class:`MethodInputs`; a method never opens a
-    file (no module in ``mcrecon.methods`` imports the I/O layer).
+    grid, the individual samples, two independent half buffers in their
+    place, the reference image.  The reader or the driver supplies them as
+    :class:`MethodInputs`; a method never opens a file (no module in
+    ``mcrecon.methods`` imports the I/O layer).
 
 The hooks a method implements:
 
@@ -62,7 +63,7 @@ from ..renderers.protocol import SampleBatch, SampleRequest
 from ..stats import PixelStats
 
 __all__ = ["Method", "AdaptiveState", "Option", "Requirements", "MethodInputs", "RunState", "uniform_counts",
-           "variant_option"]
+           "variant_option", "check_half_buffers", "merge_halves", "is_half_buffer_pair", "half_buffer_methods"]
 
 _MISSING = object()
 
@@ -216,12 +217,23 @@ class Requirements:
     statistics : bool
         Whether the method reads pixel statistics (a method that only
         filters samples sets False, and none are built for it offline).
+    half_buffers : bool
+        Whether the method can work from two independent *half buffers*
+        (``inputs.halves``: two :class:`PixelStats` of disjoint halves of
+        every pixel's samples, as renderers write dual buffers) in place
+        of the individual samples.  With ``samples`` also True, offline
+        reconstruction accepts either (:meth:`Method.reconstruct`); the
+        statistics are then the Chan merge of the two halves
+        (:func:`merge_halves`).  Readers refuse a half-buffer pair for a
+        method that does not declare it.  Offline only: adaptive runs
+        still hand over every committed round through ``observe``.
     """
 
     subpixels: int = 0
     samples: bool = False
     reference: str = "none"
     statistics: bool = True
+    half_buffers: bool = False
 
     def __post_init__(self):
         if self.reference not in ("none", "optional", "required"):
@@ -240,6 +252,13 @@ class MethodInputs:
     samples : sample source or None
         The individual samples (:mod:`mcrecon.samples`), for methods with
         ``requires.samples``.
+    halves : tuple (PixelStats, PixelStats) or None
+        Two independent half buffers (statistics of disjoint halves of
+        every pixel's samples; same size, channels and subpixel grid, each
+        pixel's counts may differ), for methods with
+        ``requires.half_buffers``: in place of ``samples``, never with
+        them.  ``stats`` is then their Chan merge (:func:`merge_halves`;
+        :meth:`Method.reconstruct` fills it in when None).
     reference : ndarray (H, W, C) float64 or None
         The reference image, for methods that read one.
     nonfinite : {'drop', 'zero', 'raise'}
@@ -251,16 +270,69 @@ class MethodInputs:
     samples: Any = None
     reference: np.ndarray | None = None
     nonfinite: str = "drop"
+    halves: tuple[PixelStats, PixelStats] | None = None
 
     @property
     def shape(self) -> tuple[int, int, int]:
         if self.stats is not None:
             return self.stats.shape
+        if self.halves is not None:
+            return self.halves[0].shape
         return int(self.samples.height), int(self.samples.width), len(self.samples.channels)
 
     @property
     def channels(self) -> tuple[str, ...]:
-        return tuple(self.stats.channels if self.stats is not None else self.samples.channels)
+        if self.stats is not None:
+            return tuple(self.stats.channels)
+        if self.halves is not None:
+            return tuple(self.halves[0].channels)
+        return tuple(self.samples.channels)
+
+
+def is_half_buffer_pair(source) -> bool:
+    """Whether ``source`` is meant as a half-buffer pair: a tuple or a list (:func:`check_half_buffers`
+    then says what is wrong with one that is not two :class:`PixelStats`)."""
+    return isinstance(source, (tuple, list))
+
+
+def check_half_buffers(pair, where: str = "halves") -> tuple[PixelStats, PixelStats]:
+    """A validated half-buffer pair ``(a, b)``, or a one-line :class:`InputError` naming the field.
+
+    Both must be :class:`PixelStats` of the same size, channels and
+    subpixel grid; each pixel's counts may differ between them.  That the
+    halves are independent (disjoint samples) cannot be checked: it is
+    the caller's promise.
+    """
+    if not isinstance(pair, (tuple, list)):
+        raise InputError(where, "halves", f"got {type(pair).__name__}, expected a pair (stats_a, stats_b) of "
+                         "PixelStats of two independent halves of the samples")
+    if len(pair) != 2:
+        raise InputError(where, "halves", f"got {len(pair)} items, expected a pair (stats_a, stats_b) of "
+                         "PixelStats of two independent halves of the samples")
+    for i, h in enumerate(pair):
+        if not isinstance(h, PixelStats):
+            raise InputError(where, f"halves[{i}]", f"got {type(h).__name__}, expected PixelStats "
+                             "(e.g. PixelStats.from_moments of one half buffer)")
+    a, b = pair
+    if (a.height, a.width) != (b.height, b.width):
+        raise InputError(where, "shape", f"the halves differ in size: {a.width}x{a.height} vs "
+                         f"{b.width}x{b.height} (width x height)")
+    if a.channels != b.channels:
+        raise InputError(where, "channels", f"the halves differ in channels: {','.join(a.channels)} vs "
+                         f"{','.join(b.channels)}")
+    if a.subpixels != b.subpixels:
+        raise InputError(where, "subpixels", f"the halves differ in subpixel grid: {a.subpixels} vs "
+                         f"{b.subpixels}")
+    return a, b
+
+
+def merge_halves(a: PixelStats, b: PixelStats) -> PixelStats:
+    """The statistics of all the samples of two halves: their Chan merge (:meth:`PixelStats.merge`).
+
+    Equal, to rounding, to the statistics accumulated from every sample
+    (count exactly, mean and ``m2`` to a few ulps).  Neither half changes.
+    """
+    return a.copy().merge(b)
 
 
 @dataclasses.dataclass(eq=False)
@@ -348,6 +420,20 @@ def uniform_counts(width: int, height: int, n: int, rng: np.random.Generator) ->
     if extra:
         counts[rng.choice(p, size=extra, replace=False)] += 1
     return counts.reshape(height, width)
+
+
+def half_buffer_methods() -> list[str]:
+    """Names of the registered methods whose default configuration declares ``requires.half_buffers``."""
+    from . import available_methods, get_method
+
+    out = []
+    for name in available_methods():
+        try:
+            if get_method(name).requires.half_buffers:
+                out.append(name)
+        except Exception:  # a method that cannot be built with its defaults here (missing extra)
+            continue
+    return out
 
 
 class Method:
@@ -476,24 +562,41 @@ class Method:
 
         Parameters
         ----------
-        inputs : PixelStats or MethodInputs
-            Pixel statistics, or every input the method declared.
+        inputs : PixelStats, (PixelStats, PixelStats) or MethodInputs
+            Pixel statistics, a half-buffer pair (for methods with
+            ``requires.half_buffers``), or every input the method declared.
         reference : ndarray, optional
             The reference image (for methods that read one), when
-            ``inputs`` is plain statistics.
+            ``inputs`` is plain statistics or a pair.
         run : RunState, optional
             A state from :meth:`start` that receives the diagnostics; a
             fresh one by default.
+
+        A method with ``requires.samples`` and ``requires.half_buffers``
+        takes ``inputs.samples`` or ``inputs.halves`` (not both); with
+        halves and no ``inputs.stats``, the statistics are their merge.
         """
         if isinstance(inputs, PixelStats):
             inputs = MethodInputs(inputs, None, reference)
+        elif is_half_buffer_pair(inputs) and not isinstance(inputs, MethodInputs):
+            inputs = MethodInputs(None, None, reference, halves=tuple(inputs))
         if not isinstance(inputs, MethodInputs):
-            raise InputError(self.where, "inputs", f"got {type(inputs).__name__}, expected PixelStats or "
-                             "MethodInputs (for files and samples use mcrecon.reconstruct)")
+            raise InputError(self.where, "inputs", f"got {type(inputs).__name__}, expected PixelStats, a "
+                             "half-buffer pair (stats_a, stats_b) or MethodInputs (for files and samples use "
+                             "mcrecon.reconstruct)")
         req = self.requires
+        if inputs.halves is not None:
+            inputs = self._with_halves(inputs)
         if req.statistics and inputs.stats is None:
             raise InputError(self.where, "input", "needs pixel statistics (MethodInputs.stats)")
-        if req.samples and inputs.samples is None:
+        if req.samples and inputs.samples is None and inputs.halves is None:
+            if req.half_buffers:
+                raise InputError(self.where, "input", f"{self.name} needs the individual samples or two "
+                                 "independent half buffers, which one set of pixel statistics does not hold; give "
+                                 f"it samples (mcrecon.reconstruct(log_or_samples, method={self.name!r}), "
+                                 f"MethodInputs.samples) or a half-buffer pair (mcrecon.reconstruct((stats_a, "
+                                 f"stats_b), method={self.name!r}), MethodInputs.halves, `mcrecon denoise A.exr "
+                                 f"--half-buffer B.exr --method {self.name}`)")
             raise InputError(self.where, "input", f"{self.name} filters individual samples, which pixel "
                              "statistics no longer hold; give it samples (mcrecon.reconstruct(log_or_samples, "
                              f"method={self.name!r}) or `mcrecon denoise LOG --method {self.name}`)")
@@ -505,6 +608,28 @@ class Method:
             h, w, _ = inputs.shape
             run = self.start(w, h, inputs.channels, reference=inputs.reference)
         return self.reconstruct_run(run, inputs)
+
+    def _with_halves(self, inputs: MethodInputs) -> MethodInputs:
+        """``inputs`` with its half-buffer pair validated and ``stats`` their merge when not given."""
+        req = self.requires
+        if not req.half_buffers:
+            raise InputError(self.where, "halves", f"{self.name} does not use half buffers (methods that do "
+                             "declare requires.half_buffers: " + (", ".join(half_buffer_methods()) or "none")
+                             + "); give it the statistics of all the samples (merge_halves(a, b))")
+        if inputs.samples is not None:
+            raise InputError(self.where, "halves", "give the samples or a half-buffer pair, not both "
+                             "(the method splits samples itself)")
+        a, b = check_half_buffers(inputs.halves, self.where)
+        if req.subpixels and a.subpixels != req.subpixels:
+            raise InputError(self.where, "halves", f"need a {req.subpixels}x{req.subpixels} subpixel grid, "
+                             f"got subpixels={a.subpixels}")
+        stats = inputs.stats
+        if stats is None:
+            stats = merge_halves(a, b)
+        elif stats.shape != a.shape or not np.array_equal(stats.count, a.count + b.count):
+            raise InputError(self.where, "stats", "with a half-buffer pair the statistics must be the merge of "
+                             "the two halves (counts differ); leave MethodInputs.stats None to have them merged")
+        return dataclasses.replace(inputs, stats=stats, halves=(a, b))
 
     def reconstruct_run(self, run: RunState, inputs: MethodInputs) -> np.ndarray:
         """The method's reconstruction (the hook subclasses implement)."""
