@@ -62,13 +62,13 @@ import warnings
 
 import numba
 import numpy as np
-from scipy import ndimage
 
-from ._filtering import safe_div
+from ._filtering import numba_threads, safe_div
 from .errors import InputError
+from .samples import check_policy, check_samples
 from .stats import PixelStats
 
-__all__ = ["sure", "gaussian_centre_weights", "SureBank", "sure_filter_bank", "relative_denominator",
+__all__ = ["sure", "gaussian_centre_weights", "SureBank", "sure_filter_bank", "relative_denominator", "relative_denominator_loo",
            "relative", "split_labels", "split_halves", "Halves", "cross_validation_mse", "dual_buffer_variance",
            "dual_buffer_mse", "DEFAULT_EPS"]
 
@@ -174,22 +174,63 @@ def sure_filter_bank(y: np.ndarray, v: np.ndarray, count: np.ndarray, sigmas, *,
     Scales whose support holds no sample get +inf; a pixel without
     samples otherwise NaN (its own y is no measurement: undefined).
     """
-    from .methods.gem import filter_bank
+    from ._filtering import correlate_jobs, separable_weights
+    from .methods.gem import pixel_kernel
+    from .methods.gem.kernels import _check_inputs
 
+    # GEM's filter bank (mcrecon.methods.gem.filter_bank) restricted to what SURE
+    # needs -- the filtered values and the weight sums, by the same jobs on the
+    # same engine, so bit-identical to its values and weights (tested) -- and
+    # the SURE maps of all scales in one compiled pass
     count = np.asarray(count)
-    bank = filter_bank(y, v, count, sigmas, subpixels=subpixels, per_channel=False)
-    cw = [np.where(count > 0, 1.0, 0.0)] + gaussian_centre_weights(count, bank.sigmas, subpixels=subpixels,
-                                                                   weights=bank.weight[1:])
-    empty = (count == 0)[..., None]
+    y = np.asarray(y, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
+    _check_inputs("sure_filter_bank", y, v, count)
+    sig = np.asarray(sigmas, dtype=np.float64)
+    mask = count > 0
+    full = bool(mask.all())
+    mf = mask.astype(np.float64)
+    mb = y if full else y * mf[..., None]
+    h, w = count.shape
+    kernels = [pixel_kernel(s_, subpixels) for s_ in sig]
+    if full:
+        ws = [separable_weights(h, w, k) for k in kernels]
+    else:
+        ws = correlate_jobs([(mf, k, None, 0) for k in kernels])
+    values = [y] + correlate_jobs([(mb, k, wk, 1) for k, wk in zip(kernels, ws)])
+    weight = [mf] + list(ws)
+    cw = [np.where(count > 0, 1.0, 0.0)] + gaussian_centre_weights(count, sig, subpixels=subpixels, weights=ws)
+    yc = np.ascontiguousarray(y)
+    vc = np.ascontiguousarray(v)
     sures = []
-    for k in range(bank.n_scales):
-        s = sure(y, v, bank.values[k], cw[k])
+    for k in range(len(values)):
         # no sample in the support: no estimate at all (+inf); an empty pixel's
         # own y is not a measurement, so its SURE is undefined (NaN: callers
         # fill it from neighbours, as auto's smoothing does)
-        s = np.where((bank.weight[k] <= 0)[..., None], np.inf, np.where(empty, np.nan, s))
-        sures.append(s)
-    return SureBank(bank.sigmas, list(bank.values), sures, cw, list(bank.weight))
+        out = np.empty(y.shape)
+        _sure_masked(yc, vc, np.ascontiguousarray(values[k], dtype=np.float64),
+                     np.ascontiguousarray(cw[k], dtype=np.float64), np.ascontiguousarray(weight[k], dtype=np.float64),
+                     mask, out)
+        sures.append(out)
+    return SureBank(sig, values, sures, cw, weight)
+
+
+@numba.njit(cache=True, nogil=True)
+def _sure_masked(y, v, fy, cw, weight, has, out):
+    # sure(y, v, fy, cw), +inf where weight <= 0, else NaN where the pixel is empty
+    # (the arithmetic of :func:`sure`: d * d + (2 w - 1) v)
+    h, w, c = y.shape
+    for i in range(h):
+        for j in range(w):
+            t = 2.0 * cw[i, j] - 1.0
+            for ch in range(c):
+                if weight[i, j] <= 0:
+                    out[i, j, ch] = np.inf
+                elif not has[i, j]:
+                    out[i, j, ch] = np.nan
+                else:
+                    d = fy[i, j, ch] - y[i, j, ch]
+                    out[i, j, ch] = d * d + t * v[i, j, ch]
 
 
 # ----------------------------------------------------------------------------
@@ -226,7 +267,110 @@ def relative_denominator(y: np.ndarray, v: np.ndarray, count: np.ndarray | None 
                 med = np.nanmedian(stack, axis=0)
             med = np.where(np.isfinite(med), med, 0.0)
             return np.maximum(med, np.where(np.isfinite(q), q, 0.0)) + eps
-    return np.maximum(ndimage.median_filter(q, size=(3, 3, 1), mode="nearest"), q) + eps
+    out = np.empty(q.shape)
+    _median3_max_plus(np.ascontiguousarray(q), float(eps), out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _median9(p0, p1, p2, p3, p4, p5, p6, p7, p8):
+    # the median of 9 numbers by the 19 compare-exchanges of Paeth's network
+    # (exact: a selection, no arithmetic)
+    p1, p2 = min(p1, p2), max(p1, p2)
+    p4, p5 = min(p4, p5), max(p4, p5)
+    p7, p8 = min(p7, p8), max(p7, p8)
+    p0, p1 = min(p0, p1), max(p0, p1)
+    p3, p4 = min(p3, p4), max(p3, p4)
+    p6, p7 = min(p6, p7), max(p6, p7)
+    p1, p2 = min(p1, p2), max(p1, p2)
+    p4, p5 = min(p4, p5), max(p4, p5)
+    p7, p8 = min(p7, p8), max(p7, p8)
+    p3 = max(p0, p3)
+    p5 = min(p5, p8)
+    p4, p7 = min(p4, p7), max(p4, p7)
+    p6 = max(p3, p6)
+    p4 = max(p1, p4)
+    p2 = min(p2, p5)
+    p4 = min(p4, p7)
+    p4, p2 = min(p4, p2), max(p4, p2)
+    p4 = max(p6, p4)
+    return min(p4, p2)
+
+
+@numba.njit(cache=True, nogil=True)
+def _median3_max_plus(q, eps, out):
+    # max(3 x 3 median of q (edge pixels repeated, as ndimage's mode "nearest"), q) + eps
+    # per channel; q finite (the median of 9 numbers is exact: bit-identical to
+    # np.maximum(ndimage.median_filter(q, size=(3, 3, 1), mode="nearest"), q) + eps)
+    h, w, c = q.shape
+    for i in range(h):
+        i0 = max(i - 1, 0)
+        i2 = min(i + 1, h - 1)
+        for j in range(w):
+            j0 = max(j - 1, 0)
+            j2 = min(j + 1, w - 1)
+            for ch in range(c):
+                m = _median9(q[i0, j0, ch], q[i0, j, ch], q[i0, j2, ch], q[i, j0, ch], q[i, j, ch], q[i, j2, ch],
+                             q[i2, j0, ch], q[i2, j, ch], q[i2, j2, ch])
+                qq = q[i, j, ch]
+                out[i, j, ch] = (m if m >= qq else qq) + eps
+
+
+def relative_denominator_loo(y: np.ndarray, v: np.ndarray, count: np.ndarray | None = None, *,
+                             eps: float = DEFAULT_EPS) -> np.ndarray:
+    """A reference-free ``mu^2 + eps`` that does not depend on the pixel's own samples.
+
+    The median of ``q = max(y^2 - v, 0)`` over the 8 neighbours (edge
+    pixels repeated; pixels without samples left out; 0 if none), plus
+    eps.  :func:`relative_denominator` includes the pixel itself (and its
+    own q as a floor), so it is larger exactly where the pixel's noise is:
+    a relative SURE divided by it is biased low, by more for the scales that
+    average the noise away (measured on a flat field at 8 spp: the summed
+    relative SURE of every Gaussian scale came out -0.008 +- 0.0004 of
+    box-relative error while the true values fell from 0.006 to 5e-5).  A
+    denominator independent of pixel i keeps ``E[SURE_i / den_i] =
+    E[SURE_i] / den_i`` (up to the small correlation of SURE_i with its
+    neighbours' samples through the filter's weights on them).
+    """
+    if not eps > 0:
+        raise InputError("relative_denominator_loo", "eps", f"got {eps}, expected > 0")
+    q = np.maximum(y * y - v, 0.0)
+    has = np.ones(q.shape[:2], bool) if count is None else np.asarray(count) > 0
+    out = np.empty(q.shape)
+    _median8_plus(np.ascontiguousarray(q, dtype=np.float64), np.ascontiguousarray(has), float(eps), out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _median8_plus(q, has, eps, out):
+    h, w, c = q.shape
+    buf = np.empty(8)
+    for i in range(h):
+        for j in range(w):
+            for ch in range(c):
+                n = 0
+                for di in range(-1, 2):
+                    ii = min(max(i + di, 0), h - 1)
+                    for dj in range(-1, 2):
+                        if di == 0 and dj == 0:
+                            continue
+                        jj = min(max(j + dj, 0), w - 1)
+                        if not has[ii, jj]:
+                            continue
+                        x = q[ii, jj, ch]
+                        k = n
+                        while k > 0 and buf[k - 1] > x:
+                            buf[k] = buf[k - 1]
+                            k -= 1
+                        buf[k] = x
+                        n += 1
+                if n == 0:
+                    m = 0.0
+                elif n % 2 == 1:
+                    m = buf[n // 2]
+                else:
+                    m = 0.5 * (buf[n // 2 - 1] + buf[n // 2])
+                out[i, j, ch] = m + eps
 
 
 def relative(mse: np.ndarray, denominator: np.ndarray) -> np.ndarray:
@@ -248,6 +392,130 @@ def _labels_kernel(pix, counter, out):
         counter[p] = k + 1
         salt = ((p * 2654435761) >> 16) & 1
         out[i] = (k + salt) & 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _flush_run(pix, val, lab, half, k, end, m, width, count, mean, m2, vmin, vmax):
+    # the samples of ``half`` in [k, end) (m of them, all in one pixel): a two-pass
+    # mean and sum of squared deviations over the run, then one Chan et al. merge
+    # -- term for term the arithmetic of mcrecon.stats._accumulate on the half's
+    # samples in stream order
+    nch = val.shape[1]
+    ix = pix[k] % width
+    iy = pix[k] // width
+    na = count[iy, ix]
+    n = na + m
+    count[iy, ix] = n
+    wb = m / n
+    # the common case (a renderer's samples of a pixel one after another): the
+    # half's samples alternate with the other half's, stride 2 from k
+    alt = end - 1 - k == 2 * (m - 1)
+    if alt:
+        for j in range(k, end, 2):
+            if lab[j] != half:
+                alt = False
+                break
+    for c in range(nch):
+        acc = 0.0
+        lo = np.inf
+        hi = -np.inf
+        q = 0.0
+        if alt:
+            for t in range(m):
+                v = float(val[k + 2 * t, c])
+                acc += v
+                lo = min(lo, v)
+                hi = max(hi, v)
+            mu = acc / m
+            for t in range(m):
+                d = float(val[k + 2 * t, c]) - mu
+                q += d * d
+        else:
+            for j in range(k, end):
+                if lab[j] != half:
+                    continue
+                v = float(val[j, c])
+                acc += v
+                lo = min(lo, v)
+                hi = max(hi, v)
+            mu = acc / m
+            for j in range(k, end):
+                if lab[j] != half:
+                    continue
+                d = float(val[j, c]) - mu
+                q += d * d
+        delta = mu - mean[iy, ix, c]
+        mean[iy, ix, c] += delta * wb
+        m2[iy, ix, c] += q + delta * delta * na * wb
+        vmin[iy, ix, c] = min(vmin[iy, ix, c], lo)
+        vmax[iy, ix, c] = max(vmax[iy, ix, c], hi)
+
+
+@numba.njit(cache=True, nogil=True)
+def _split_part(pix, val, lab, p_lo, p_hi, width, ca, mean_a, m2_a, min_a, max_a, cb, mean_b, m2_b, min_b,
+                max_b):
+    # follow every half's runs through the whole stream; merge those of pixels in [p_lo, p_hi)
+    s0 = l0 = p0 = -1
+    s1 = l1 = p1 = -1
+    z0 = z1 = 0
+    for k in range(pix.size):
+        p = pix[k]
+        if lab[k] == 0:
+            if z0 > 0 and p0 != p:
+                if p_lo <= p0 < p_hi:
+                    _flush_run(pix, val, lab, 0, s0, l0 + 1, z0, width, ca, mean_a, m2_a, min_a, max_a)
+                z0 = 0
+            if z0 == 0:
+                s0 = k
+                p0 = p
+            z0 += 1
+            l0 = k
+        else:
+            if z1 > 0 and p1 != p:
+                if p_lo <= p1 < p_hi:
+                    _flush_run(pix, val, lab, 1, s1, l1 + 1, z1, width, cb, mean_b, m2_b, min_b, max_b)
+                z1 = 0
+            if z1 == 0:
+                s1 = k
+                p1 = p
+            z1 += 1
+            l1 = k
+    if z0 > 0 and p_lo <= p0 < p_hi:
+        _flush_run(pix, val, lab, 0, s0, l0 + 1, z0, width, ca, mean_a, m2_a, min_a, max_a)
+    if z1 > 0 and p_lo <= p1 < p_hi:
+        _flush_run(pix, val, lab, 1, s1, l1 + 1, z1, width, cb, mean_b, m2_b, min_b, max_b)
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _split_accumulate(pos, val, width, counter, n_parts, ca, mean_a, m2_a, min_a, max_a, cb, mean_b, m2_b, min_b,
+                      max_b):
+    """Label every sample (as :func:`_labels_kernel`) and add it to its half's statistics.
+
+    Runs of consecutive samples of a half in one pixel (consecutive in the
+    half's own sub-stream, as :func:`mcrecon.stats._accumulate` sees it
+    after a split) are merged as one.  ``n_parts`` ranges of pixels are
+    merged in parallel, each by one thread following the whole stream (the
+    result does not depend on ``n_parts``).  Positions must be on the film
+    and values finite.  Returns the number of samples of half 0.
+    """
+    n_total = pos.shape[0]
+    lab = np.empty(n_total, np.int8)
+    pix = np.empty(n_total, np.int64)
+    n_a = 0
+    for k in range(n_total):
+        p = int(pos[k, 1]) * width + int(pos[k, 0])
+        pix[k] = p
+        kk = counter[p]
+        counter[p] = kk + 1
+        salt = ((p * 2654435761) >> 16) & 1
+        h = (kk + salt) & 1
+        lab[k] = h
+        n_a += 1 - h
+    n_pix = counter.size
+    for part in numba.prange(n_parts):
+        _split_part(pix, val, lab, n_pix * part // n_parts, n_pix * (part + 1) // n_parts, width, ca, mean_a, m2_a,
+                    min_a, max_a, cb, mean_b, m2_b, min_b, max_b)
+    return n_a
 
 
 def split_labels(positions: np.ndarray, width: int, height: int, counter: np.ndarray) -> np.ndarray:
@@ -277,8 +545,40 @@ class Halves:
     b: PixelStats
     counter: np.ndarray
 
-    def add(self, positions, values, *, nonfinite: str = "drop", source: str = "samples") -> None:
-        """Split a batch (in stream order) and add each half to its statistics."""
+    def add(self, positions, values, *, nonfinite: str = "drop", source: str = "samples",
+            _checked: bool = False) -> None:
+        """Split a batch (in stream order) and add each half to its statistics.
+
+        One compiled pass labels every sample and accumulates it into its
+        half, without copying the halves out (:func:`_split_accumulate`);
+        its arithmetic is that of :meth:`PixelStats.add` on each half's
+        samples in stream order, so the statistics are bit-identical to
+        splitting first and adding each half (``tests/test_error_estimates.py``).
+        Batches with non-finite values take that reference path
+        (:meth:`_add_by_copies`), which applies the ``nonfinite`` policy.
+        """
+        a, b = self.a, self.b
+        if _checked:  # a SampleSet's arrays, validated when it was built, all values finite
+            pos, val, n_nonfinite = positions, values, 0
+        else:
+            pos, val, n_nonfinite = check_samples(positions, values, width=a.width, height=a.height,
+                                                  n_channels=len(a.channels), where=source, channels=a.channels)
+        if pos.shape[0] == 0:
+            return
+        if n_nonfinite:
+            self._add_by_copies(pos, val, nonfinite=nonfinite, source=source)
+            return
+        check_policy(nonfinite, source)
+        with numba_threads() as n_par:
+            n_a = _split_accumulate(pos, val, a.width, self.counter, n_par if pos.shape[0] >= 1 << 16 else 1,
+                                    a.count, a.mean, a.m2, a.min, a.max, b.count, b.mean, b.m2, b.min, b.max)
+        if n_a:
+            a._note_dtype(val.dtype)
+        if n_a < pos.shape[0]:
+            b._note_dtype(val.dtype)
+
+    def _add_by_copies(self, positions, values, *, nonfinite: str = "drop", source: str = "samples") -> None:
+        """The reference path of :meth:`add`: labels, then each half's samples into its statistics."""
         pos = np.asarray(positions)
         val = np.asarray(values)
         if val.ndim == 1:
@@ -297,9 +597,13 @@ class Halves:
 
 def split_halves(source, *, nonfinite: str = "drop") -> Halves:
     """Two independent halves of a sample source (log or SampleSet), rounds in order."""
+    from .samples import SampleSet
     h = Halves.empty(source.width, source.height, tuple(source.channels))
+    # a SampleSet validated its arrays when it was built (contiguous, on the film); if
+    # none of its values is NaN/Inf the policy has nothing to do: skip the re-check
+    checked = isinstance(source, SampleSet) and source.n_nonfinite == 0
     for ch in source.iter_chunks(with_round=False):
-        h.add(ch.positions, ch.values, nonfinite=nonfinite, source="samples")
+        h.add(ch.positions, ch.values, nonfinite=nonfinite, source="samples", _checked=checked)
     return h
 
 

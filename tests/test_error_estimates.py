@@ -21,6 +21,104 @@ from mcrecon.renderers.scenes import reference_image, render_uniform
 
 
 # ------------------------------------------------------------------ exactness
+def _stats_by_copies(src):
+    """The reference split: labels, then each half's samples copied into its own statistics."""
+    from mcrecon.estimates import Halves
+    h = Halves.empty(src.width, src.height, tuple(src.channels))
+    for ch in src.iter_chunks(with_round=False, chunk_size=97):
+        h._add_by_copies(ch.positions, ch.values)
+    return h
+
+
+@pytest.mark.parametrize("order", ["pixel", "shuffled", "interleaved"])
+def test_one_pass_split_is_bit_identical_to_splitting_by_copies(order, monkeypatch):
+    """The compiled one-pass split (labels and both halves' Welford/Chan statistics at once, pixel
+    ranges merged in parallel) gives the statistics, bit for bit, of labelling the stream and adding
+    each half's samples with PixelStats.add -- for a renderer's pixel-by-pixel order, a shuffled
+    stream (runs of one) and two pixels interleaved (a half's run spanning the other pixel), chunk
+    boundaries included, for 1 and 3 threads."""
+    from mcrecon import SampleSet
+    rng = np.random.default_rng(4)
+    w, h, spp = 13, 7, 9
+    pix = np.repeat(np.arange(w * h), spp)
+    if order == "shuffled":
+        pix = rng.permutation(pix)
+    elif order == "interleaved":
+        pix = np.stack([pix[: pix.size // 2], pix[pix.size // 2:][: pix.size // 2]], axis=1).ravel()
+    pos = np.stack([pix % w + rng.random(pix.size) * 0.99, pix // w + rng.random(pix.size) * 0.99], axis=1)
+    val = rng.standard_normal((pix.size, 3)) * 1e3 + 1e6  # Welford territory
+    ss = SampleSet(pos.astype(np.float32), val.astype(np.float32), width=w, height=h)
+    ref = _stats_by_copies(ss)
+    from mcrecon.estimates import Halves
+    for threads in ("1", "3"):
+        monkeypatch.setenv("MCRECON_THREADS", threads)
+        new = Halves.empty(w, h, ss.channels)
+        for ch in ss.iter_chunks(with_round=False, chunk_size=97):
+            new.add(ch.positions, ch.values)
+        for a, b in ((ref.a, new.a), (ref.b, new.b)):
+            for f in ("count", "mean", "m2", "min", "max"):
+                np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
+            assert a.dtype == b.dtype
+        np.testing.assert_array_equal(ref.counter, new.counter)
+
+
+def test_split_with_non_finite_values_applies_the_policy_per_half():
+    rng = np.random.default_rng(5)
+    pos = rng.random((400, 2)) * [5, 4]
+    val = rng.random((400, 2))
+    val[::37, 1] = np.nan
+    ss = SampleSet(pos, val, width=5, height=4)
+    hv = split_halves(ss)
+    ref = _stats_by_copies(ss)
+    np.testing.assert_array_equal(hv.a.mean, ref.a.mean)
+    assert hv.a.n_dropped + hv.b.n_dropped == 11
+
+
+def test_sure_filter_bank_values_and_weights_are_gems_filter_bank():
+    """sure_filter_bank filters only what SURE needs, by the same jobs: bit-identical values and
+    weights to mcrecon.methods.gem.filter_bank (full and masked images)."""
+    rng = np.random.default_rng(6)
+    for empty in (0.0, 0.15):
+        y = rng.random((23, 31, 3)) ** 3
+        v = rng.random((23, 31, 3)) * 0.01
+        count = (rng.random((23, 31)) >= empty).astype(np.int64) * 3
+        y[count == 0] = 0.0
+        v[count == 0] = 0.0
+        sb = sure_filter_bank(y, v, count, final_sigmas(5))
+        fb = filter_bank(y, v, count, final_sigmas(5), per_channel=False)
+        for k in range(fb.n_scales):
+            np.testing.assert_array_equal(sb.values[k], fb.values[k])
+            np.testing.assert_array_equal(sb.weight[k], fb.weight[k])
+            s = sure(y, v, fb.values[k], sb.centre_weight[k])
+            s = np.where((fb.weight[k] <= 0)[..., None], np.inf, np.where((count == 0)[..., None], np.nan, s))
+            np.testing.assert_array_equal(sb.sure[k], s)
+
+
+def test_relative_denominator_median_is_ndimages():
+    from scipy import ndimage
+    rng = np.random.default_rng(7)
+    y = rng.standard_normal((21, 34, 3))
+    y[rng.random(y.shape) < 0.3] = 0.5  # ties
+    v = rng.random(y.shape) * 0.1
+    q = np.maximum(y * y - v, 0.0)
+    ref = np.maximum(ndimage.median_filter(q, size=(3, 3, 1), mode="nearest"), q) + 0.01
+    np.testing.assert_array_equal(relative_denominator(y, v, eps=0.01), ref)
+
+
+def test_leave_one_out_denominator_ignores_the_pixels_own_samples():
+    from mcrecon.estimates import relative_denominator_loo
+    rng = np.random.default_rng(8)
+    y = rng.random((6, 7, 2))
+    v = np.zeros_like(y)
+    d = relative_denominator_loo(y, v, eps=0.01)
+    y2 = y.copy()
+    y2[3, 3] = 100.0
+    d2 = relative_denominator_loo(y2, v, eps=0.01)
+    assert np.array_equal(d[3, 3], d2[3, 3])
+    nb = np.delete((y * y)[2:5, 2:5].reshape(9, 2), 4, axis=0)
+    np.testing.assert_allclose(d[3, 3], np.median(nb, axis=0) + 0.01, rtol=1e-15)
+
+
 def test_centre_weights_are_the_filter_banks_own_weights():
     """w_ii from gaussian_centre_weights equals the response of filter_bank to a unit impulse at i
     (masking and renormalisation included): exact, not approximated."""

@@ -27,6 +27,8 @@ import math
 import numba
 import numpy as np
 
+from ..._filtering import numba_threads
+
 __all__ = ["NLM_ALPHA", "NLM_EPS", "nlmeans_cross"]
 
 #: Strength of the variance cancellation (1: the noise's expected contribution).
@@ -35,88 +37,150 @@ NLM_ALPHA = 1.0
 NLM_EPS = 1e-10
 
 
-@numba.njit(cache=True, nogil=True)
-def _pixel_distance(y, v, m, dy, dx, k2, alpha, eps, d, valid):
-    h, w, c = y.shape
-    for i in range(h):
-        qi = i + dy
-        for j in range(w):
-            qj = j + dx
-            if 0 <= qi < h and 0 <= qj < w and m[i, j] and m[qi, qj]:
-                s = 0.0
-                for ch in range(c):
-                    a = v[i, j, ch]
-                    b = v[qi, qj, ch]
-                    diff = y[i, j, ch] - y[qi, qj, ch]
-                    s += (diff * diff - alpha * (a + min(a, b))) / (eps + k2 * (a + b))
-                d[i, j] = s / c
-                valid[i, j] = 1.0
-            else:
-                d[i, j] = 0.0
-                valid[i, j] = 0.0
+#: Rows per band of the parallel kernel.  Results do not depend on it (nor
+#: on the number of threads): every output pixel is computed by one band, with
+#: the same arithmetic in the same order.
+_BAND = 32
 
 
-@numba.njit(cache=True, nogil=True)
-def _integral(a, out):
-    h, w = a.shape
-    for j in range(w + 1):
-        out[0, j] = 0.0
-    for i in range(h):
-        out[i + 1, 0] = 0.0
-        run = 0.0
-        for j in range(w):
-            run += a[i, j]
-            out[i + 1, j + 1] = out[i, j + 1] + run
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _band(ya, yb, xa, ua, xb, ub, bothf, maf, mbf, full, r, f, k2, alpha, eps, i0, i1, num_a, den_a, num_b,
+          den_b):
+    """Output rows [i0, i1) of both cross-filtered halves, every offset of the search window.
 
-
-@numba.njit(cache=True, nogil=True)
-def _accumulate(y, m, dy, dx, f, sd, sv, valid, num, den):
-    # weight of the pair (p, p + o) from the patch-mean distance; accumulate the
-    # other half's value at q
-    h, w, c = y.shape
-    for i in range(h):
-        qi = i + dy
-        if qi < 0 or qi >= h:
-            continue
-        i0 = max(i - f, 0)
-        i1 = min(i + f + 1, h)
-        for j in range(w):
-            qj = j + dx
-            if qj < 0 or qj >= w or valid[i, j] == 0.0 or not m[qi, qj]:
-                continue
-            j0 = max(j - f, 0)
-            j1 = min(j + f + 1, w)
-            nv = sv[i1, j1] - sv[i0, j1] - sv[i1, j0] + sv[i0, j0]
-            dist = (sd[i1, j1] - sd[i0, j1] - sd[i1, j0] + sd[i0, j0]) / nv
-            wt = 1.0 if dist <= 0.0 else math.exp(-dist)
-            den[i, j] += wt
-            for ch in range(c):
-                num[i, j, ch] += wt * y[qi, qj, ch]
-
-
-@numba.njit(cache=True, nogil=True)
-def _nlm_cross_kernel(ya, va, ma, yb, vb, mb, r, f, k2, alpha, eps, num_a, den_a, num_b, den_b):
-    h, w, c = ya.shape
-    both = ma & mb
-    d = np.empty((h, w))
-    valid = np.empty((h, w))
-    sd = np.empty((h + 1, w + 1))
-    sv = np.empty((h + 1, w + 1))
+    Per offset o: the per-pixel distances of the pairs (p, p + o) in rows
+    [i0 - f, i1 + f) -- from half B's data (xb, ub: weights that filter A)
+    and from half A's -- and their horizontal patch sums; then per output
+    row the vertical patch sums, the weights and the accumulation of the
+    other half's means at p + o.  Distances, patch sums and weights in
+    float32 (the inputs xa, ua, xb, ub), accumulation in float64.  Masks are
+    float 0/1 (``bothf``: a sample in both halves; ``maf``, ``mbf``: in A, in B).
+    ``full``: every pixel has samples in both halves; the number of compared
+    pairs of a patch is then the product of its row and column overlaps
+    (integers, exact in float32: the same values as summing the mask).
+    """
+    c, h, w = ya.shape
+    f32 = np.float32
+    rows = i1 - i0 + 2 * f
+    ha = np.zeros((rows, w), f32)
+    hb = np.zeros((rows, w), f32)
+    hv = np.zeros((rows, w), f32)
+    da = np.zeros(w, f32)
+    db = np.zeros(w, f32)
+    dv = np.zeros(w, f32)
+    sa = np.zeros(w, f32)
+    sb = np.zeros(w, f32)
+    sv = np.zeros(w, f32)
+    wa = np.zeros(w)
+    wb = np.zeros(w)
+    inv_c = f32(1.0) / f32(c)
+    one = f32(1.0)
+    zero = f32(0.0)
     for dy in range(-r, r + 1):
         for dx in range(-r, r + 1):
-            # weights from B filter A
-            _pixel_distance(yb, vb, both, dy, dx, k2, alpha, eps, d, valid)
-            _integral(d, sd)
-            _integral(valid, sv)
-            _accumulate(ya, ma, dy, dx, f, sd, sv, valid, num_a, den_a)
-            # weights from A filter B
-            _pixel_distance(ya, va, both, dy, dx, k2, alpha, eps, d, valid)
-            _integral(d, sd)
-            _accumulate(yb, mb, dy, dx, f, sd, sv, valid, num_b, den_b)
+            j0 = max(0, -dx)
+            j1 = min(w, w - dx)
+            for t in range(rows):
+                i = i0 - f + t
+                qi = i + dy
+                for j in range(w):
+                    da[j] = 0.0
+                    db[j] = 0.0
+                    dv[j] = 0.0
+                if 0 <= i < h and 0 <= qi < h:
+                    for ch in range(c):
+                        for j in range(j0, j1):
+                            a = ub[ch, i, j]
+                            b = ub[ch, qi, j + dx]
+                            diff = xb[ch, i, j] - xb[ch, qi, j + dx]
+                            da[j] += (diff * diff - alpha * (a + min(a, b))) / (eps + k2 * (a + b))
+                            a = ua[ch, i, j]
+                            b = ua[ch, qi, j + dx]
+                            diff = xa[ch, i, j] - xa[ch, qi, j + dx]
+                            db[j] += (diff * diff - alpha * (a + min(a, b))) / (eps + k2 * (a + b))
+                    if full:
+                        for j in range(j0, j1):
+                            da[j] = da[j] * inv_c
+                            db[j] = db[j] * inv_c
+                    else:
+                        for j in range(j0, j1):
+                            m = bothf[i, j] * bothf[qi, j + dx]
+                            da[j] = da[j] * inv_c * m
+                            db[j] = db[j] * inv_c * m
+                            dv[j] = m
+                for j in range(w):
+                    ha[t, j] = 0.0
+                    hb[t, j] = 0.0
+                for o in range(-f, f + 1):
+                    for j in range(max(0, -o), min(w, w - o)):
+                        ha[t, j] += da[j + o]
+                        hb[t, j] += db[j + o]
+                if not full:
+                    for j in range(w):
+                        hv[t, j] = 0.0
+                    for o in range(-f, f + 1):
+                        for j in range(max(0, -o), min(w, w - o)):
+                            hv[t, j] += dv[j + o]
+            for i in range(i0, i1):
+                qi = i + dy
+                if qi < 0 or qi >= h:
+                    continue
+                t = i - i0 + f
+                for j in range(w):
+                    sa[j] = ha[t - f, j]
+                    sb[j] = hb[t - f, j]
+                for tt in range(t - f + 1, t + f + 1):
+                    for j in range(w):
+                        sa[j] += ha[tt, j]
+                        sb[j] += hb[tt, j]
+                if full:
+                    # rows si of the patch with si and si + dy in the image, times the columns
+                    rc = min(i + f + 1, h, h - dy) - max(i - f, 0, -dy)
+                    for j in range(w):
+                        sv[j] = f32(rc * (min(j + f + 1, w, w - dx) - max(j - f, 0, -dx)))
+                else:
+                    for j in range(w):
+                        sv[j] = hv[t - f, j]
+                    for tt in range(t - f + 1, t + f + 1):
+                        for j in range(w):
+                            sv[j] += hv[tt, j]
+                # weight exp(-max(0, patch-mean distance)), 0 where the pair is not
+                # compared or q has no sample in the half filtered (a compared pair
+                # has sv >= 1: its own centre)
+                if full:
+                    for j in range(j0, j1):
+                        n = max(sv[j], one)
+                        wa[j] = math.exp(-max(sa[j] / n, zero))
+                        wb[j] = math.exp(-max(sb[j] / n, zero))
+                else:
+                    for j in range(j0, j1):
+                        m = bothf[i, j] * bothf[qi, j + dx]
+                        n = max(sv[j], one)
+                        wa[j] = math.exp(-max(sa[j] / n, zero)) * (m * maf[qi, j + dx])
+                        wb[j] = math.exp(-max(sb[j] / n, zero)) * (m * mbf[qi, j + dx])
+                for j in range(j0, j1):
+                    den_a[i, j] += wa[j]
+                    den_b[i, j] += wb[j]
+                for ch in range(c):
+                    for j in range(j0, j1):
+                        num_a[ch, i, j] += wa[j] * ya[ch, qi, j + dx]
+                        num_b[ch, i, j] += wb[j] * yb[ch, qi, j + dx]
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _nlm_cross_kernel(ya, yb, xa, ua, xb, ub, bothf, maf, mbf, full, r, f, k2, alpha, eps, band, num_a, den_a,
+                      num_b, den_b):
+    h = ya.shape[1]
+    n_bands = (h + band - 1) // band
+    for b in numba.prange(n_bands):
+        i0 = b * band
+        i1 = min(h, i0 + band)
+        _band(ya, yb, xa, ua, xb, ub, bothf, maf, mbf, full, r, f, k2, alpha, eps, i0, i1, num_a, den_a, num_b,
+              den_b)
 
 
 def nlmeans_cross(y_a, v_a, count_a, y_b, v_b, count_b, *, radius: int = 3, patch: int = 1,
-                  k: float = 0.45, alpha: float = NLM_ALPHA):
+                  k: float = 0.45, alpha: float = NLM_ALPHA, threads: int | None = None):
     """Cross-filtered non-local means of two halves.
 
     Parameters
@@ -130,6 +194,10 @@ def nlmeans_cross(y_a, v_a, count_a, y_b, v_b, count_b, *, radius: int = 3, patc
         Search window (2 radius + 1)^2, patch (2 patch + 1)^2.
     k : float
         Damping of the distance (0.45 in the paper).
+    threads : int, optional
+        Worker threads (default :func:`mcrecon._filtering.n_threads`:
+        ``$MCRECON_THREADS``, else the usable cores); the result is
+        bit-identical for any value.
 
     Returns
     -------
@@ -138,19 +206,35 @@ def nlmeans_cross(y_a, v_a, count_a, y_b, v_b, count_b, *, radius: int = 3, patc
         (H, W); the same for B filtered with A's weights.  Pixels with no
         sample in their own half are NaN (weight 0).
     """
-    ya = np.ascontiguousarray(y_a, dtype=np.float64)
-    yb = np.ascontiguousarray(y_b, dtype=np.float64)
-    va = np.ascontiguousarray(v_a, dtype=np.float64)
-    vb = np.ascontiguousarray(v_b, dtype=np.float64)
+    # channel planes (C, H, W): the kernel's inner loops run along contiguous rows
+    ya = np.ascontiguousarray(np.moveaxis(np.asarray(y_a, dtype=np.float64), 2, 0))
+    yb = np.ascontiguousarray(np.moveaxis(np.asarray(y_b, dtype=np.float64), 2, 0))
+    va = np.moveaxis(np.asarray(v_a, dtype=np.float64), 2, 0)
+    vb = np.moveaxis(np.asarray(v_b, dtype=np.float64), 2, 0)
     ma = np.ascontiguousarray(np.asarray(count_a) > 0)
     mb = np.ascontiguousarray(np.asarray(count_b) > 0)
-    h, w, c = ya.shape
-    num_a = np.zeros((h, w, c))
-    num_b = np.zeros((h, w, c))
+    # the distance is invariant to scaling y by s and Var by s^2 (up to eps):
+    # bring large values into float32's range
+    big = max(float(np.max(np.abs(ya), initial=0.0)), float(np.max(np.abs(yb), initial=0.0)))
+    s = 1.0 if big < 1e15 else 1.0 / big
+    xa, xb = (ya * s).astype(np.float32), (yb * s).astype(np.float32)
+    ua = np.ascontiguousarray(va * (s * s), dtype=np.float32)
+    ub = np.ascontiguousarray(vb * (s * s), dtype=np.float32)
+    bothf = (ma & mb).astype(np.float32)
+    c, h, w = ya.shape
+    num_a = np.zeros((c, h, w))
+    num_b = np.zeros((c, h, w))
     den_a = np.zeros((h, w))
     den_b = np.zeros((h, w))
-    _nlm_cross_kernel(ya, va, ma, yb, vb, mb, int(radius), int(patch), float(k) ** 2, float(alpha), NLM_EPS,
-                      num_a, den_a, num_b, den_b)
+    f32 = np.float32
+    with numba_threads(threads):
+        _nlm_cross_kernel(ya, yb, xa, ua, xb, ub, bothf, ma.astype(f32), mb.astype(f32), bool(ma.all() and mb.all()),
+                          int(radius), int(patch),
+                          f32(float(k) ** 2), f32(alpha), f32(NLM_EPS), _BAND, num_a, den_a, num_b, den_b)
+    num_a = np.moveaxis(num_a, 0, 2)
+    num_b = np.moveaxis(num_b, 0, 2)
+    ya = np.moveaxis(ya, 0, 2)
+    yb = np.moveaxis(yb, 0, 2)
     # a pixel with a sample in its own half but none in the other is not in
     # any comparison: it keeps its own mean (weight 1)
     for y, m, num, den in ((ya, ma, num_a, den_a), (yb, mb, num_b, den_b)):
