@@ -15,8 +15,7 @@ the methods it does not need.
 
 from __future__ import annotations
 
-import importlib as _importlib
-
+from ._lazy import lazy_exports as _lazy_exports
 from .errors import InputError, McreconWarning, RendererError
 
 __version__ = "0.1.0"
@@ -27,13 +26,13 @@ __all__ = ["InputError", "RendererError", "McreconWarning", "write_log", "read_l
 
 #: Public name -> the module that defines it (imported on first access).
 _LAZY = {
-    "append_log": ".io", "read_exr": ".io", "read_log": ".io", "write_exr": ".io", "write_log": ".io",
-    "write_png_preview": ".io",
-    "available_methods": ".methods", "get_method": ".methods",
-    "CallableRenderer": ".renderers", "SampleBatch": ".renderers", "SampleRequest": ".renderers",
-    "Reconstruction": ".reconstruction", "reconstruct": ".reconstruction",
-    "SampleSet": ".samples",
-    "PixelStats": ".stats",
+    "append_log": "io", "read_exr": "io", "read_log": "io", "write_exr": "io", "write_log": "io",
+    "write_png_preview": "io",
+    "available_methods": "methods", "get_method": "methods",
+    "CallableRenderer": "renderers", "SampleBatch": "renderers", "SampleRequest": "renderers",
+    "Reconstruction": "reconstruction", "reconstruct": "reconstruction",
+    "SampleSet": "samples",
+    "PixelStats": "stats",
 }
 
 #: Sub-modules reachable as attributes (``mcrecon.io.read_log``) without importing them first.
@@ -41,19 +40,7 @@ _SUBMODULES = frozenset({"analysis", "cli", "distributed", "driver", "errors", "
                          "metrics", "reconstruction", "renderers", "restoration", "samples", "stats", "tone"})
 
 
-def __getattr__(name: str):
-    if name in _LAZY:
-        value = getattr(_importlib.import_module(_LAZY[name], __name__), name)
-    elif name in _SUBMODULES:
-        value = _importlib.import_module(f".{name}", __name__)
-    else:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    globals()[name] = value  # later look-ups skip __getattr__
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__) | _SUBMODULES)
+__getattr__, __dir__ = _lazy_exports(__name__, _LAZY, _SUBMODULES, __all__)
 
 
 def adapt(renderer, method, *, spp, **kwargs):

@@ -14,7 +14,7 @@ SciPy) on first use (PEP 562).
 
 from __future__ import annotations
 
-import importlib as _importlib
+from .._lazy import lazy_exports as _lazy_exports
 
 __all__ = ["PixelSamples", "group_samples", "group_log", "BiasEstimate", "BootstrapBiasResult", "bootstrap_bias",
            "bootstrap_bias_samples", "bootstrap_bias_log", "exact_two_point_bias", "ChiSquareResult",
@@ -34,15 +34,4 @@ _LAZY = {
 _SUBMODULES = frozenset(("bootstrap", "grouping", "normality"))
 
 
-def __getattr__(name: str):
-    if name in _SUBMODULES:
-        return _importlib.import_module(f".{name}", __name__)
-    if name not in _LAZY:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(_importlib.import_module(f".{_LAZY[name]}", __name__), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = _lazy_exports(__name__, _LAZY, _SUBMODULES, __all__)

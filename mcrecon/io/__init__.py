@@ -4,7 +4,7 @@ The names below import their module on first use (PEP 562): reading a
 log does not load the image writers, nor writing an EXR h5py.
 """
 
-import importlib as _importlib
+from .._lazy import lazy_exports as _lazy_exports
 
 __all__ = ["FORMAT_VERSION", "LogChunk", "SampleLog", "append_log", "read_log", "write_log",
            "set_run_settings", "read_exr", "write_exr", "write_png_preview", "write_false_colour",
@@ -24,15 +24,4 @@ _LAZY = {
 _SUBMODULES = frozenset(("samplelog", "images", "summary", "pixel_exr", "_atomic"))
 
 
-def __getattr__(name: str):
-    if name in _SUBMODULES:
-        return _importlib.import_module(f".{name}", __name__)
-    if name not in _LAZY:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(_importlib.import_module(f".{_LAZY[name]}", __name__), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = _lazy_exports(__name__, _LAZY, _SUBMODULES, __all__)
