@@ -282,7 +282,9 @@ def test_nlmeans_kernel_matches_the_formula_and_not_the_thread_count():
 
 
 def test_compiled_selection_helpers_are_bit_identical_to_their_numpy_definitions():
-    from mcrecon.methods.auto.method import _mean_c, _sample_range_bounds, _smooth_masked, _smooth_masked_many
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    from mcrecon.methods.auto.method import _mean_c, _smooth_masked, _smooth_masked_many
     from mcrecon.methods.awr.reconstruction import sample_range_bounds
     rng = np.random.default_rng(2)
     a = rng.random((37, 44)) ** 3
@@ -299,8 +301,15 @@ def test_compiled_selection_helpers_are_bit_identical_to_their_numpy_definitions
     st = PixelStats.from_source(ss)
     st.count[3:6, 4:9] = 0
     st.min[3:6, 4:9], st.max[3:6, 4:9] = np.inf, -np.inf
-    for x, y in zip(sample_range_bounds(st), _sample_range_bounds(st)):
-        np.testing.assert_array_equal(x, y)
+    # the compiled neighbourhood range equals scipy's min/max filters on masked sources
+    for radius in (1, 2):
+        size = (2 * radius + 1, 2 * radius + 1, 1)
+        has = (st.count > 0)[..., None]
+        ref_lo = minimum_filter(np.where(has, st.min, np.inf), size=size, mode="nearest")
+        ref_hi = maximum_filter(np.where(has, st.max, -np.inf), size=size, mode="nearest")
+        ref = (np.where(np.isfinite(ref_lo), ref_lo, -np.inf), np.where(np.isfinite(ref_hi), ref_hi, np.inf))
+        for x, y in zip(sample_range_bounds(st, radius), ref):
+            np.testing.assert_array_equal(x, y)
 
 
 def test_global_prior_is_opt_in_and_takes_flat_regions_to_wide_scales():

@@ -30,7 +30,7 @@ from ...estimates import (DEFAULT_EPS, Halves, cross_validation_mse, dual_buffer
 from ...renderers.protocol import SampleBatch
 from ...stats import PixelStats
 from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState
-from ..awr.reconstruction import confidence_clamp
+from ..awr.reconstruction import confidence_clamp, sample_range_bounds
 from ..box import fill_empty_pixels
 from ..gem.kernels import final_sigmas
 from ..gem.selection import mean_variance_policy
@@ -228,40 +228,6 @@ def _pick_where(choice, k, src, out):
         if choice[p] == k:
             for q in range(n):
                 o2[p, q] = s2[p, q]
-
-
-@numba.njit(cache=True, nogil=True)
-def _range3(lo_src, hi_src, has, lo, hi):
-    # 3 x 3 (edge pixels repeated) min of lo_src / max of hi_src over pixels with
-    # samples, per channel; no sample around: (-inf, inf)
-    h, w, c = lo_src.shape
-    for i in range(h):
-        for j in range(w):
-            for ch in range(c):
-                a = np.inf
-                b = -np.inf
-                for di in range(-1, 2):
-                    ii = min(max(i + di, 0), h - 1)
-                    for dj in range(-1, 2):
-                        jj = min(max(j + dj, 0), w - 1)
-                        if has[ii, jj]:
-                            a = min(a, lo_src[ii, jj, ch])
-                            b = max(b, hi_src[ii, jj, ch])
-                lo[i, j, ch] = a if np.isfinite(a) else -np.inf
-                hi[i, j, ch] = b if np.isfinite(b) else np.inf
-
-
-def _sample_range_bounds(stats: PixelStats) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`mcrecon.methods.awr.reconstruction.sample_range_bounds` (radius 1) in one compiled pass.
-
-    Min and max are exact, so the bounds are identical to it (tested).
-    """
-    src_lo, src_hi = (stats.min, stats.max) if stats.has_range else (stats.mean, stats.mean)
-    lo = np.empty(stats.mean.shape)
-    hi = np.empty(stats.mean.shape)
-    _range3(np.ascontiguousarray(src_lo, dtype=np.float64), np.ascontiguousarray(src_hi, dtype=np.float64),
-            np.ascontiguousarray(stats.count > 0), lo, hi)
-    return lo, hi
 
 
 @dataclasses.dataclass(eq=False)
@@ -539,7 +505,7 @@ class AutoMethod(Method):
             # beside it (caustic: 1.6x the pixel mean without the clamp).  Clamping onto
             # an interval that holds the true value with high probability never moves
             # an estimate away from it (the same safeguard as awr's robust default).
-            lo, hi = _sample_range_bounds(stats)
+            lo, hi = sample_range_bounds(stats)
             img = confidence_clamp(img, y, v, self.params["safeguard"], lo, hi)
         # the raw estimate is undefined at empty pixels: the smoothed absolute one there
         fin = np.isfinite(raw_abs)
@@ -598,19 +564,20 @@ class AutoMethod(Method):
         pixel index): deterministic, so a resumed run plans the same.
         """
         p = self.params
+        if p["sampling"] == "uniform":
+            # Measured (128^2, 32 spp, 3 seeds, ratio to uniform box): greedy placement
+            # 0.705 / 0.857 / 0.563 / 1.38 / 0.506 on soft_shadow / depth_of_field /
+            # motion_blur / caustic / hdr, against uniform auto's 0.489 / 0.567 / 0.435 /
+            # 0.719 / 0.703: the estimates that pick a filter well are too noisy per pixel
+            # to place samples.  Uniform rounds doubling the total after the initial_spp
+            # pass, like box.
+            return super().plan(run, state)
         remaining = state.remaining
         if remaining <= 0:
             return None
         npix = state.width * state.height
         if state.n_samples == 0:
             return state.uniform_request(p["initial_spp"])
-        if p["sampling"] == "uniform":
-            # Measured (128^2, 32 spp, 3 seeds, ratio to uniform box): greedy placement
-            # 0.705 / 0.857 / 0.563 / 1.38 / 0.506 on soft_shadow / depth_of_field /
-            # motion_blur / caustic / hdr, against uniform auto's 0.489 / 0.567 / 0.435 /
-            # 0.719 / 0.703: the estimates that pick a filter well are too noisy per pixel
-            # to place samples.  Uniform rounds doubling the total, like box.
-            return super().plan(run, state)
         left = p["iterations"] - state.round_index + 1
         n_round = remaining if left <= 1 else max(1, remaining // left)
         halves = run.halves if any(c in DUAL_BUFFER for c in self._names) else None
