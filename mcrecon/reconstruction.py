@@ -32,12 +32,16 @@ class Reconstruction:
     method : Method
     run : RunState
     inputs : MethodInputs
+    fireflies : FireflySplit or None
+        With ``fireflies="cascade"``: the split (the method saw the base
+        samples; ``fireflies.excess`` is part of ``image``).
     """
 
     image: np.ndarray
     method: Method
     run: RunState
     inputs: MethodInputs
+    fireflies: object = None
     _sanity: list | None = dataclasses.field(default=None, repr=False)
 
     def diagnostics(self) -> dict:
@@ -125,8 +129,50 @@ def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=
     return MethodInputs(stats, samples, ref if req.reference != "none" else None, nonfinite, halves)
 
 
+def split_source_fireflies(source, *, nonfinite: str = "drop", **split_options):
+    """Read every sample of ``source`` and split it (:func:`mcrecon.fireflies.split_fireflies`).
+
+    Returns ``(base, split)``: a :class:`SampleSet` of the base samples
+    (same positions, channels and rounds) and the split.  The samples are
+    held in memory (positions, values and the base values: about 64 bytes
+    per sample for RGB).
+    """
+    from .fireflies import split_fireflies
+    from .samples import SampleSet, apply_nonfinite, check_samples
+
+    check_policy(nonfinite, "reconstruct")
+    if isinstance(source, PixelStats) or is_half_buffer_pair(source):
+        raise InputError("reconstruct", "fireflies", "fireflies='cascade' splits individual samples, which pixel "
+                         "statistics no longer hold; give a sample log or a SampleSet, or fireflies='none'")
+    if isinstance(source, (str, Path)):
+        from .io import read_log
+        source = read_log(source)
+    if not (hasattr(source, "round_slices") and hasattr(source, "iter_chunks")):
+        raise InputError("reconstruct", "source", f"got {type(source).__name__}; expected a sample log path, "
+                         "a SampleLog or a SampleSet")
+    where = getattr(source, "name", "samples")
+    chunks = [(c.positions, c.values, c.round) for c in source.iter_chunks(with_round=True)]
+    if chunks:
+        pos = np.concatenate([c[0] for c in chunks]).astype(np.float64, copy=False)
+        val = np.concatenate([c[1] for c in chunks]).astype(np.float64, copy=False)
+        rounds = np.concatenate([c[2] for c in chunks])
+    else:
+        pos, val, rounds = np.zeros((0, 2)), np.zeros((0, len(source.channels))), np.zeros(0, np.int64)
+    pos, val, n_bad = check_samples(pos, val, width=source.width, height=source.height,
+                                    n_channels=len(source.channels), where=where)
+    if n_bad:
+        finite = np.isfinite(val).all(axis=1)
+        pos, val = apply_nonfinite(pos, val, n_bad, nonfinite, where=where)
+        if nonfinite == "drop":
+            rounds = rounds[finite]
+    split = split_fireflies(pos, val, width=source.width, height=source.height, **split_options)
+    base = SampleSet(pos, split.base_values, width=source.width, height=source.height,
+                     channels=source.channels, rounds=rounds, name=where)
+    return base, split
+
+
 def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None, full: bool = False,
-                **options):
+                fireflies: str = "none", **options):
     """Reconstruct an (H, W, C) float64 image offline.
 
     Parameters
@@ -148,6 +194,13 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
     full : bool
         Return a :class:`Reconstruction` (image, method, run with its
         diagnostics) instead of the image.
+    fireflies : {'none', 'cascade'}
+        ``cascade``: split the samples into luminance cascades first
+        (:mod:`mcrecon.fireflies`); the method reconstructs the base part
+        and the rare bright part is added back, spread with the support its
+        sample density needs (energy kept, consistent).  Any method; needs
+        the individual samples (a log or a SampleSet) and holds them in
+        memory.  Measured in ``docs/which-method.md``.
 
     Examples
     --------
@@ -168,8 +221,21 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
         m = method
     else:
         m = get_method(str(method), **options)
+    from .fireflies import FIREFLY_MODES
+    if fireflies not in FIREFLY_MODES:
+        raise InputError("reconstruct", "fireflies", f"unknown mode {fireflies!r}; valid: {', '.join(FIREFLY_MODES)}")
+    split = None
+    if fireflies == "cascade":
+        if isinstance(source, (str, Path)):
+            from .io import read_log
+            source = read_log(source)
+        if reference is None and m.requires.reference != "none" and hasattr(source, "reference"):
+            reference = source.reference()  # the base SampleSet carries no stored reference
+        source, split = split_source_fireflies(source, nonfinite=nonfinite)
     inputs = gather_inputs(source, m, nonfinite=nonfinite, reference=reference)
     h, w, _ = inputs.shape
     run = m.start(w, h, inputs.channels, reference=inputs.reference)
     image = np.asarray(m.reconstruct(inputs, run=run), dtype=np.float64)
-    return Reconstruction(image, m, run, inputs) if full else image
+    if split is not None:
+        image = image + split.excess
+    return Reconstruction(image, m, run, inputs, fireflies=split) if full else image

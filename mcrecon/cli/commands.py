@@ -134,7 +134,7 @@ def _cmd_denoise(args):
         log = source = read_log(args.log)
     jit_notice(method_kernels(method))
     t0 = time.perf_counter()
-    rec = reconstruct(source, method=method, nonfinite=args.nonfinite, full=True)
+    rec = reconstruct(source, method=method, nonfinite=args.nonfinite, full=True, fireflies=args.fireflies)
     if source is not log:  # statistics in the file's working space (XYZ for the presets): to its RGB
         import dataclasses
 
@@ -151,6 +151,8 @@ def _cmd_denoise(args):
     dropped = rec.inputs.stats.n_dropped if rec.inputs.stats is not None else 0
     if dropped:
         msg += f" ({dropped} non-finite dropped)"
+    if rec.fireflies is not None:
+        msg += f", fireflies: {100 * rec.fireflies.moved_fraction:.3g} % of the luminance spread"
     ref = log.reference()
     if ref is not None:
         msg += f", relative MSE {relative_mse(rec.image, ref):.6g} against the log's reference"
@@ -439,6 +441,10 @@ def register(sub, command: str | None = None) -> None:
     denoise.add_argument("log", help="a sample log (.h5), or an EXR of per-pixel statistics (.exr: mean, "
                          "variance, count; see docs/pixel-statistics-inputs.md)")
     _outputs(denoise)
+    denoise.add_argument("--fireflies", default="none", choices=("none", "cascade"),  # fireflies.FIREFLY_MODES
+                         help="cascade: split the samples into luminance cascades first; the method reconstructs "
+                              "the base and rare bright parts are spread with the support their density needs "
+                              "(energy kept; any method; needs a sample log, held in memory)")
     px = denoise.add_argument_group(
         "pixel-statistics EXR input (a LOG ending in .exr)",
         "Layout presets, or an explicit mapping; the count from --spp, --count or the file's samplesPerPixel/spp "
