@@ -101,7 +101,7 @@ def variants_of(name):
     return ["robust", "paper"] if cls.variants else [None]
 
 
-def measure(scene, methods, spp, seeds, variance_spp, adaptive=True):
+def measure(scene, methods, spp, seeds, variance_spp, adaptive=True, oidn=False):
     ref = scene.reference()
     n = scene.size
     rows = {}  # (method, variant, mode) -> list of relMSE
@@ -116,6 +116,13 @@ def measure(scene, methods, spp, seeds, variance_spp, adaptive=True):
         mean_var = hstats.sample_variance(undefined=0.0) / np.maximum(stats.count, 1)[..., None]
         ceil.append(oracle_ceiling(stats, ref, mean_var).ceiling)
         rows.setdefault(("box", None, "offline"), []).append(relative_mse(stats.mean, ref))
+        if oidn:  # Intel OIDN on the pixel means (colour only), and auto with OIDN among its candidates
+            from mcrecon.experiments.convergence import oidn_denoise
+            from mcrecon.methods.auto.method import DEFAULT_CANDIDATES
+            rows.setdefault(("oidn", None, "offline"), []).append(relative_mse(oidn_denoise(stats.mean), ref))
+            m = get_method("auto", candidates=DEFAULT_CANDIDATES + ",oidn")
+            img = _quiet(lambda: reconstruct(ss, method=m))
+            rows.setdefault(("auto+oidn", None, "offline"), []).append(relative_mse(img, ref))
         for name in methods:
             for variant in variants_of(name):
                 opts = {} if variant is None else {"variant": variant}
@@ -143,6 +150,8 @@ def main(argv=None):
     ap.add_argument("--no-adaptive", action="store_true")
     ap.add_argument("--no-mitsuba", action="store_true")
     ap.add_argument("--markdown", action="store_true", help="print a Markdown table (docs/which-method.md)")
+    ap.add_argument("--no-oidn", action="store_true", help="leave out the OIDN columns (default: shown when "
+                    "pyoidn is installed)")
     a = ap.parse_args(argv)
     methods = a.methods or [m for m in available_methods() if m != "box"]
     names = a.scenes or scenes.scene_names() + ([] if a.no_mitsuba else ["cornell", "cornell_small_light"])
@@ -165,6 +174,10 @@ def main(argv=None):
                 cols.append((name, variant, "offline", tag))
             if not a.no_adaptive and get_method(name).adaptive:
                 cols.append((name, variant, "adaptive", tag + " adapt"))
+    from mcrecon.experiments.convergence import oidn_available
+    with_oidn = not a.no_oidn and oidn_available()
+    if with_oidn:
+        cols += [("oidn", None, "offline", "OIDN"), ("auto+oidn", None, "offline", "auto+OIDN")]
     print(f"# {a.size}x{a.size}, {a.spp} spp, seeds {a.seeds}; mean relative MSE (eps 0.01) over seeds; "
           "ratio to box (pixel mean of the same uniform samples) / ratio to the Gaussian-selection ceiling")
     header = ["scene", "box relMSE", "ceiling/box"] + [c[3] for c in cols]
@@ -173,9 +186,10 @@ def main(argv=None):
         print("|" + "---|" * len(header))
     else:
         print("  ".join(f"{h:>16s}" for h in header))
-    worst = {}
+    worst, below_oidn, auto_oidn_worse = {}, [0, 0], []
     for sc in scene_objs:
-        res, ceil, secs = measure(sc, methods, a.spp, a.seeds, a.variance_spp, adaptive=not a.no_adaptive)
+        res, ceil, secs = measure(sc, methods, a.spp, a.seeds, a.variance_spp, adaptive=not a.no_adaptive,
+                                  oidn=with_oidn)
         box = res[("box", None, "offline")]
         cells = [sc.name, f"{box:.3g}", f"{ceil / box:.2f}"]
         for name, variant, mode, tag in cols:
@@ -185,11 +199,19 @@ def main(argv=None):
                 continue
             cells.append(f"{e / box:.3g} / {e / ceil:.3g}")
             worst[tag] = max(worst.get(tag, 0.0), e / box)
+        if with_oidn and ("auto", None, "offline") in res:
+            below_oidn[0] += res[("auto", None, "offline")] < res[("oidn", None, "offline")]
+            below_oidn[1] += 1
+            if res[("auto+oidn", None, "offline")] > min(res[("oidn", None, "offline")], box):
+                auto_oidn_worse.append(sc.name)
         if a.markdown:
             print("| " + " | ".join(cells) + " |", flush=True)
         else:
             print("  ".join(f"{c:>16s}" for c in cells) + f"   ({secs:.0f} s)", flush=True)
     print("# worst ratio to box per column: " + ", ".join(f"{k} {v:.3g}" for k, v in worst.items()))
+    if with_oidn and "auto" in methods:
+        print(f"# auto below OIDN on {below_oidn[0]} of {below_oidn[1]} scenes; auto+OIDN worse than the better of "
+              f"OIDN and box on {len(auto_oidn_worse)}" + (f" ({', '.join(auto_oidn_worse)})" if auto_oidn_worse else ""))
     return 0
 
 

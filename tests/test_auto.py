@@ -207,7 +207,7 @@ def test_extreme_inputs_give_finite_images(case):
         assert rec.image[0, 0].max() < 1.0
 
 
-@pytest.mark.parametrize("sampling", ["uniform", "greedy"])
+@pytest.mark.parametrize("sampling", ["gem", "uniform", "greedy"])
 def test_adaptive_run_is_resume_safe_and_adaptive(tmp_path, sampling):
     r = SceneRenderer("soft_shadow", width=20, height=16, seed=0)
     log = tmp_path / "run.h5"
@@ -215,6 +215,12 @@ def test_adaptive_run_is_resume_safe_and_adaptive(tmp_path, sampling):
     res = _quiet(lambda: adapt(r, m, spp=12, seed=2, log=log, max_rounds=3, progress=False))
     if sampling == "greedy":
         assert res.counts.std() > 0  # not uniform after the initial pass
+    elif sampling == "gem":
+        # initial 4 spp, then half of each round uniform: every pixel keeps at least its initial
+        # samples plus about half a uniform share of the rest, and the other half is placed
+        n_uniform_part = (res.counts.sum() - 4 * res.counts.size) * 0.5 / res.counts.size
+        assert res.counts.min() >= 4 + np.floor(n_uniform_part) - 2
+        assert res.counts.std() > 1
     else:  # uniform doubling rounds: every pixel within one sample of the others
         assert res.counts.max() - res.counts.min() <= 1
     from mcrecon.driver import resume
@@ -326,3 +332,38 @@ def test_global_prior_is_opt_in_and_takes_flat_regions_to_wide_scales():
         r1.append(relative_mse(_quiet(lambda: mcrecon.reconstruct(ss, method=get_method("auto", global_prior=1.0))),
                                ref))
     assert np.mean(r1) < 0.8 * np.mean(r0), (r0, r1)
+
+
+def test_gem_sampling_places_the_non_uniform_share_where_gem_does():
+    """uniform_share=0 is GEM's own placement: the same positions as GEM's plan on the same statistics."""
+    from mcrecon.methods.base import AdaptiveState
+    from mcrecon.renderers import scenes
+    from mcrecon.stats import PixelStats
+
+    w, h = 24, 20
+    b = scenes.render_uniform(scenes.get_scene("soft_shadow"), width=w, height=h, spp=4, seed=3)
+    stats = PixelStats.from_samples(b.positions, b.values, width=w, height=h)
+
+    def plan(method):
+        state = AdaptiveState(stats=stats, round_index=1, budget=w * h * 16, n_samples=int(stats.count.sum()),
+                              rng=np.random.default_rng(7))
+        return method.plan(method.start(w, h), state)
+
+    req_auto = plan(get_method("auto", uniform_share=0.0, iterations=8))
+    req_gem = plan(get_method("gem"))
+    assert req_auto.counts is None and req_gem.counts is None
+    np.testing.assert_array_equal(req_auto.positions, req_gem.positions)
+    # with a uniform share, that share comes as counts spread evenly, the rest as GEM's positions
+    req = plan(get_method("auto", uniform_share=0.5, iterations=8))
+    n_round = req_gem.positions.shape[0]
+    assert req.counts.sum() == round(0.5 * n_round) and req.counts.max() - req.counts.min() <= 1
+    assert req.positions.shape[0] + req.counts.sum() == n_round
+
+
+def test_gem_sampling_pipelined_is_reproducible_and_spends_the_budget():
+    r = SceneRenderer("soft_shadow", width=20, height=16, seed=0)
+    runs = [_quiet(lambda: adapt(r, get_method("auto"), spp=12, seed=4, progress=False, pipeline=True))
+            for _ in range(2)]
+    np.testing.assert_array_equal(runs[0].image, runs[1].image)
+    np.testing.assert_array_equal(runs[0].counts, runs[1].counts)
+    assert runs[0].counts.sum() == 12 * 20 * 16 and runs[0].counts.std() > 1
