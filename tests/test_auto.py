@@ -287,6 +287,29 @@ def test_nlmeans_kernel_matches_the_formula_and_not_the_thread_count():
         np.testing.assert_allclose(a[fin], r[fin], rtol=1e-5, atol=1e-12)
 
 
+def test_fast_exp_of_the_nlmeans_weights_against_numpy():
+    """exp(-x) of the NL-means weights: within 2e-6 relative of float64 exp where weights matter
+    (x <= 30: weights >= 1e-13 next to a centre weight of 1), and 0 <= w < 2e-38 beyond x = 88."""
+    import numba
+
+    from mcrecon.methods.auto.nlmeans import _POW2_NEG, _exp_neg
+
+    @numba.njit
+    def many(xs, table):
+        out = np.empty_like(xs)
+        for i in range(xs.size):
+            out[i] = _exp_neg(xs[i], table)
+        return out
+
+    xs = np.concatenate([np.linspace(0, 30, 300_001), np.float32([1e-8, 0.6931472, 29.999])]).astype(np.float32)
+    got = many(xs, _POW2_NEG).astype(np.float64)
+    want = np.exp(-xs.astype(np.float64))
+    assert np.max(np.abs(got - want) / want) < 2e-6
+    assert got[0] == 1.0
+    far = many(np.float32([88.0, 100.0, 1e6, np.finfo(np.float32).max]), _POW2_NEG)
+    assert np.all((far >= 0) & (far < 2e-38))
+
+
 def test_compiled_selection_helpers_are_bit_identical_to_their_numpy_definitions():
     from scipy.ndimage import maximum_filter, minimum_filter
 

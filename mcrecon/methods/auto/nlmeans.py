@@ -22,7 +22,6 @@ exact centre weight ``1 / sum_q w_pq`` (w_pp = 1) is unbiased for its MSE
 
 from __future__ import annotations
 
-import math
 
 import numba
 import numpy as np
@@ -35,6 +34,38 @@ __all__ = ["NLM_ALPHA", "NLM_EPS", "nlmeans_cross"]
 NLM_ALPHA = 1.0
 #: eps of the distance's denominator (avoids 0 / 0 on noise-free pixels).
 NLM_EPS = 1e-10
+
+
+#: 2^-k for k = 0 .. 127 (float32): the integer part of :func:`_exp_neg`.
+_POW2_NEG = np.array([2.0 ** -k for k in range(128)], dtype=np.float32)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _exp_neg(x, table):
+    """exp(-x) for float32 x >= 0, within about 1e-6 relative of ``math.exp``; 0 beyond x = 88.
+
+    Written as 2^-n (a table) times the
+    degree-9 Taylor polynomial of exp(-t) at t = frac(x log2 e) ln 2 < ln 2
+    (truncation < ln2^10 / 10! = 7e-9).  Unlike libm's expf it vectorises:
+    the weights of NL-means were a third of its time (measured, issue 12).
+    Beyond x = 88 (weights below 1e-38 beside a centre weight of 1) it is 0.
+    """
+    y = x * np.float32(1.4426950408889634)
+    if y >= np.float32(127.0):
+        return np.float32(0.0)
+    n = np.int64(y)
+    t = (y - np.float32(n)) * np.float32(0.6931471805599453)
+    p = np.float32(-2.7557319223985893e-06)
+    p = p * t + np.float32(2.48015873015873e-05)
+    p = p * t + np.float32(-0.0001984126984126984)
+    p = p * t + np.float32(0.001388888888888889)
+    p = p * t + np.float32(-0.008333333333333333)
+    p = p * t + np.float32(0.041666666666666664)
+    p = p * t + np.float32(-0.16666666666666666)
+    p = p * t + np.float32(0.5)
+    p = p * t + np.float32(-1.0)
+    p = p * t + np.float32(1.0)
+    return p * table[n]
 
 
 #: Rows per band of the parallel kernel.  Results do not depend on it (nor
@@ -74,6 +105,7 @@ def _band(ya, yb, xa, ua, xb, ub, bothf, maf, mbf, full, r, f, k2, alpha, eps, i
     wa = np.zeros(w)
     wb = np.zeros(w)
     inv_c = f32(1.0) / f32(c)
+    pow2 = _POW2_NEG
     one = f32(1.0)
     zero = f32(0.0)
     for dy in range(-r, r + 1):
@@ -150,14 +182,14 @@ def _band(ya, yb, xa, ua, xb, ub, bothf, maf, mbf, full, r, f, k2, alpha, eps, i
                 if full:
                     for j in range(j0, j1):
                         n = max(sv[j], one)
-                        wa[j] = math.exp(-max(sa[j] / n, zero))
-                        wb[j] = math.exp(-max(sb[j] / n, zero))
+                        wa[j] = _exp_neg(max(sa[j] / n, zero), pow2)
+                        wb[j] = _exp_neg(max(sb[j] / n, zero), pow2)
                 else:
                     for j in range(j0, j1):
                         m = bothf[i, j] * bothf[qi, j + dx]
                         n = max(sv[j], one)
-                        wa[j] = math.exp(-max(sa[j] / n, zero)) * (m * maf[qi, j + dx])
-                        wb[j] = math.exp(-max(sb[j] / n, zero)) * (m * mbf[qi, j + dx])
+                        wa[j] = _exp_neg(max(sa[j] / n, zero), pow2) * (m * maf[qi, j + dx])
+                        wb[j] = _exp_neg(max(sb[j] / n, zero), pow2) * (m * mbf[qi, j + dx])
                 for j in range(j0, j1):
                     den_a[i, j] += wa[j]
                     den_b[i, j] += wb[j]
