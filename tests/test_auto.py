@@ -373,7 +373,7 @@ def test_gem_sampling_places_the_non_uniform_share_where_gem_does():
         return method.plan(method.start(w, h), state)
 
     req_auto = plan(get_method("auto", uniform_share=0.0, iterations=8))
-    req_gem = plan(get_method("gem"))
+    req_gem = plan(get_method("gem", uniform_share=0.0))
     assert req_auto.counts is None and req_gem.counts is None
     np.testing.assert_array_equal(req_auto.positions, req_gem.positions)
     # with a uniform share, that share comes as counts spread evenly, the rest as GEM's positions

@@ -749,7 +749,11 @@ def test_plan_rounds_and_budget():
         if rnd == 0:
             assert req.counts is not None and (req.counts == 4).all()
         else:
-            assert req.positions is not None and req.counts is None
+            # GEM's greedy positions plus the default's uniform quarter, spread evenly as counts
+            assert req.positions is not None and req.counts is not None
+            assert req.counts.sum() == round(0.25 * req.total) and req.counts.max() - req.counts.min() <= 1
+            paper = get_method("gem", variant="paper").plan(run, _state(st, rnd, budget))
+            assert paper.counts is None and paper.positions.shape[0] == req.total
         b = r.render(req.__class__(w, h, counts=req.counts, positions=req.positions, round_index=rnd, seed=1))
         st.add(b.positions, b.values)
         sizes.append(req.total)
