@@ -147,7 +147,8 @@ def _kill(pid: int) -> None:
 
 
 def test_sigkill_mid_run_then_resume_matches_uninterrupted(tmp_path):
-    cmd = f"{sys.executable} {FAULT} slow -1 {{request}} {{reply}}"
+    # (no "slow" renderer: the hold below is the synchronisation, a sleep per round only cost time)
+    cmd = f"{sys.executable} {FAULT} ok -1 {{request}} {{reply}}"
     common = ["adapt", "--renderer-cmd", cmd, "--size", "12x8", "--spp", "32", "--method", "box", "--seed", "9",
               "--quiet"]
     log = tmp_path / "killed.h5"
