@@ -203,13 +203,15 @@ class _Recorder:
 
 
 @pytest.mark.parametrize("method, later", [("box", "counts"), ("ci", "counts"), ("splat", "counts"),
-                                           ("gem", "positions"), ("awr", "positions")])
+                                           ("gem", "countspositions"), ("awr", "positions"),
+                                           ("auto", "countspositions")])
 def test_which_methods_send_counts_and_which_positions(method, later):
     """docs/renderer-protocol.md's table: round 0 is counts for every method; then counts or positions."""
     r = _Recorder()
     from mcrecon import get_method
 
-    opts = {"gem": {"initial_spp": 2}, "awr": {"initial_spp": 2}, "ci": {"min_spp": 2}}.get(method, {})
+    opts = {"gem": {"initial_spp": 2}, "awr": {"initial_spp": 2}, "ci": {"min_spp": 2},
+            "auto": {"initial_spp": 2}}.get(method, {})
     adapt(r, get_method(method, **opts), spp=8, seed=1)
     assert r.kinds[0] == "counts" and len(r.kinds) > 1, r.kinds
     assert set(r.kinds[1:]) == {later}, r.kinds
