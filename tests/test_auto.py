@@ -390,3 +390,28 @@ def test_gem_sampling_pipelined_is_reproducible_and_spends_the_budget():
     np.testing.assert_array_equal(runs[0].image, runs[1].image)
     np.testing.assert_array_equal(runs[0].counts, runs[1].counts)
     assert runs[0].counts.sum() == 12 * 20 * 16 and runs[0].counts.std() > 1
+
+
+def test_heavy_tailed_pixels_are_not_pushed_away_from_their_neighbours():
+    """Safeguard's last rule: where the 3x3 sample maximum exceeds 10x a pixel's mean, a candidate value
+    further from the neighbours' median than the pixel's own mean is replaced by that mean."""
+    from mcrecon.methods.auto.method import HEAVY_TAIL, _no_push_in_heavy_tails
+
+    y = np.full((5, 5, 1), 0.4)
+    y[2, 2, 0] = 18.0                      # a dark pixel that caught one emitter sample
+    hi = np.full((5, 5, 1), 0.5)
+    hi[1:4, 1:4, 0] = 500.0                # that sample is in every 3x3 window around it
+    y[1, 2, 0] = 0.5                       # a neighbour a little above its neighbours' median (0.4)
+    img = y.copy()
+    img[2, 2, 0] = 19.0                    # a candidate pushed it further up (bright neighbours elsewhere)
+    img[1, 1, 0] = 0.3                     # a neighbour pulled towards its own neighbourhood: kept
+    img[1, 2, 0] = 2.0                     # pushed further above its median: reverted
+    img[0, 0, 0] = 0.9                     # not heavy-tailed (hi 0.5 < 10 x 0.4): untouched
+    out = _no_push_in_heavy_tails(img, y, hi)
+    assert out[2, 2, 0] == 18.0 and out[1, 2, 0] == 0.5
+    assert out[1, 1, 0] == 0.3 and out[0, 0, 0] == 0.9
+    assert HEAVY_TAIL == 10.0
+    # a pixel pulled down towards darker neighbours keeps the candidate's value
+    img2 = y.copy()
+    img2[2, 2, 0] = 5.0
+    assert _no_push_in_heavy_tails(img2, y, hi)[2, 2, 0] == 5.0

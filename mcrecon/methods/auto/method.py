@@ -515,6 +515,7 @@ class AutoMethod(Method):
             # an estimate away from it (the same safeguard as awr's robust default).
             lo, hi = sample_range_bounds(stats)
             img = confidence_clamp(img, y, v, self.params["safeguard"], lo, hi)
+            img = _no_push_in_heavy_tails(img, y, hi)
         # the raw estimate is undefined at empty pixels: the smoothed absolute one there
         fin = np.isfinite(raw_abs)
         if not fin.all():
@@ -655,6 +656,42 @@ class AutoMethod(Method):
         if n_uniform > 0:
             counts = uniform_counts(state.width, state.height, n_uniform, state.rng)
         return state.request(positions=positions, counts=counts)
+
+
+#: A pixel's neighbourhood is heavy-tailed when the largest sample around it exceeds this many times its mean.
+HEAVY_TAIL = 10.0
+
+
+def _no_push_in_heavy_tails(img: np.ndarray, y: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Where the samples around a pixel are heavy-tailed, a candidate may pull it towards its neighbours, not away.
+
+    A pixel is heavy-tailed when the largest sample of its 3 x 3
+    neighbourhood (``hi``, from :func:`sample_range_bounds`) exceeds
+    :data:`HEAVY_TAIL` times its mean ``y``: rare huge samples (caustics,
+    small lights) are around.  There the error estimates that chose a
+    candidate are least reliable, and a candidate that moves the pixel
+    *further* from the median of its 8 neighbours' means than its own mean
+    is (above it when the mean is above the median, or below) carries a
+    neighbour's rare sample into it; the pixel keeps its own mean.  Per
+    channel.  Measured (128^2, 32 spp, 5 seeds, ratio to box): caustic
+    0.757 -> 0.522; soft shadow, depth of field, motion blur, hdr and flat
+    within 0.1 %; Mitsuba Cornell boxes +1.5-1.7 % (docs/methods/auto.md).
+    """
+    heavy = hi > HEAVY_TAIL * np.abs(y)
+    cand = heavy & (img != y)
+    if not cand.any():
+        return img
+    h, w, _ = y.shape
+    ii, jj, cc = np.nonzero(cand)
+    pad = np.pad(y, ((1, 1), (1, 1), (0, 0)), mode="edge")
+    neigh = np.stack([pad[ii + 1 + di, jj + 1 + dj, cc] for di in (-1, 0, 1) for dj in (-1, 0, 1)
+                      if (di, dj) != (0, 0)], axis=1)
+    med = np.median(neigh, axis=1)
+    yc, oc = y[ii, jj, cc], img[ii, jj, cc]
+    away = ((yc > med) & (oc > yc)) | ((yc < med) & (oc < yc))
+    out = img.copy()
+    out[ii[away], jj[away], cc[away]] = yc[away]
+    return out
 
 
 def _largest_remainder(pri: np.ndarray, total: int) -> np.ndarray:
