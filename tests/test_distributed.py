@@ -194,19 +194,20 @@ def big_stats(tmp_path_factory):
     return PixelStats.from_log(path)
 
 
-@pytest.mark.parametrize("method, options, tile", [
-    ("box", {}, 24),
-    ("ci", {}, 40),
-    ("gem", {"final_scales": 4}, 32),                            # halo 27: interior tiles
-    ("gem", {"final_scales": 4, "final_outliers": "paper"}, 16),  # halo 39
+@pytest.mark.parametrize("method, options, tile, on_cluster", [
+    ("box", {}, 24, True),
+    ("ci", {}, 40, False),
+    ("gem", {"final_scales": 4}, 32, True),                             # halo 27: interior tiles
+    ("gem", {"final_scales": 4, "final_outliers": "paper"}, 16, False),  # halo 39
 ])
-def test_tiled_equals_untiled_bit_for_bit(client, big_stats, method, options, tile):
+def test_tiled_equals_untiled_bit_for_bit(client, big_stats, method, options, tile, on_cluster):
     m = mcrecon.get_method(method, **options)
     halo = m.halo(big_stats.width, big_stats.height)
     assert halo is not None and 2 * halo + tile < big_stats.width     # some tiles see only part of the film
     full = mcrecon.reconstruct(big_stats, method=m)
     assert np.array_equal(D.reconstruct_tiled(big_stats, method=m, tile=tile), full)
-    assert np.array_equal(D.reconstruct_tiled(big_stats, method=m, tile=tile, client=client), full)
+    if on_cluster:   # the same tiles as futures (the other cases add only worker start-up imports)
+        assert np.array_equal(D.reconstruct_tiled(big_stats, method=m, tile=tile, client=client), full)
 
 
 def test_tiled_gem_default_halo(tmp_path):
