@@ -22,9 +22,13 @@ Three entry points, each identical in result to the one-process path:
     A huge film -> tiles with halos: each tile is reconstructed from the
     statistics of the tile grown by the method's declared
     :meth:`~mcrecon.methods.Method.halo`, then trimmed (what
-    ``dask.array.map_overlap`` does, applied to the several arrays of a
-    PixelStats, whose subpixel grid has another resolution).  Whole-image
-    methods (``halo`` None: awr) are refused.
+    ``dask.array.map_overlap`` with ``boundary="none"`` does, tested bit
+    for bit through :func:`map_tiles`, applied to the several arrays of a
+    PixelStats, whose subpixel grid has another resolution, or to the
+    samples that reach a tile for splat).  Whole-image methods (``halo``
+    None: awr) are refused, and so are the cases where splat is not local
+    (its paper variant; rounds whose density in a tile differs from the
+    film's).
 
 Without a ``client`` each function starts a :class:`distributed.LocalCluster`
 of worker processes (or, for :func:`reconstruct_tiled` and :func:`ingest`,
