@@ -22,9 +22,13 @@ Three entry points, each identical in result to the one-process path:
     A huge film -> tiles with halos: each tile is reconstructed from the
     statistics of the tile grown by the method's declared
     :meth:`~mcrecon.methods.Method.halo`, then trimmed (what
-    ``dask.array.map_overlap`` does, applied to the several arrays of a
-    PixelStats, whose subpixel grid has another resolution).  Whole-image
-    methods (``halo`` None: awr) are refused.
+    ``dask.array.map_overlap`` with ``boundary="none"`` does, tested bit
+    for bit through :func:`map_tiles`, applied to the several arrays of a
+    PixelStats, whose subpixel grid has another resolution, or to the
+    samples that reach a tile for splat).  Whole-image methods (``halo``
+    None: awr) are refused, and so are the cases where splat is not local
+    (its paper variant; rounds whose density in a tile differs from the
+    film's).
 
 Without a ``client`` each function starts a :class:`distributed.LocalCluster`
 of worker processes (or, for :func:`reconstruct_tiled` and :func:`ingest`,
@@ -52,8 +56,8 @@ import numpy as np
 
 from .errors import InputError, McreconWarning
 
-__all__ = ["denoise_many", "BatchResult", "ingest", "row_ranges", "tree_merge", "reconstruct_tiled",
-           "local_client", "denoise_frame", "SUMMARY_NAME"]
+__all__ = ["denoise_many", "BatchResult", "ingest", "row_ranges", "tree_merge", "reconstruct_tiled", "map_tiles",
+           "tile_boxes", "local_client", "denoise_frame", "SUMMARY_NAME"]
 
 #: Base name of the batch summary files in ``out_dir`` (``.csv`` and ``.json``).
 SUMMARY_NAME = "batch_summary"
@@ -97,9 +101,18 @@ def local_client(workers: int | None = None, *, threads: int | None = None):
     t = int(threads) if threads is not None else max(1, _cores() // n)
     import logging
 
-    cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                       dashboard_address=":0", silence_logs=logging.CRITICAL,
-                                       env={"MCRECON_THREADS": str(t), "OMP_NUM_THREADS": "1"})
+    import dask
+
+    # Dask's nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536 (to hand freed memory back
+    # to the OS).  Setting it also switches off glibc's adaptive mmap threshold, so every
+    # image-sized temporary becomes a fresh mmap whose pages fault in on first touch: a 512^2,
+    # 32-spp gem frame took 1.00-1.03 s instead of 0.79-0.88 s in the same process
+    # (docs/distributed.md, "Measured scaling").  Our workers allocate as `mcrecon denoise`
+    # does; an explicit MALLOC_TRIM_THRESHOLD_ in the environment is still inherited.
+    with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+        cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                           dashboard_address=":0", silence_logs=logging.CRITICAL,
+                                           env={"MCRECON_THREADS": str(t), "OMP_NUM_THREADS": "1"})
     try:
         client = distributed.Client(cluster)
         try:
@@ -400,40 +413,161 @@ def row_ranges(n: int, parts: int, *, align: int = 1) -> list[tuple[int, int]]:
 
 
 def _ingest_range(path: str, start: int, stop: int, subpixels: int, nonfinite: str, chunk_size: int):
-    """Partial statistics of rows [start, stop) of a log (runs on a worker)."""
+    """Partial statistics of rows [start, stop) of a log, as a :class:`_Band` (runs on a worker).
+
+    Streams the rows through two rotating buffers of ``chunk_size`` rows
+    (as :meth:`PixelStats.from_log` does: no array per chunk), so the
+    worker holds the image's statistics plus two chunks.
+    """
     from .io import read_log
     from .stats import PixelStats
 
     log = read_log(path)
-    batches = ((c.positions, c.values) for c in log.iter_chunks(start=start, stop=stop, chunk_size=chunk_size,
-                                                                 with_round=False))
+    stop = min(int(stop), log.n_samples)
+    rows = max(1, min(int(chunk_size), stop - int(start)))
+    bufs = [(np.empty((rows, 2), log.position_dtype), np.empty((rows, len(log.channels)), log.value_dtype))
+            for _ in range(2)]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", McreconWarning)  # counted in n_dropped / n_zeroed, warned once
-        return PixelStats.from_batches(batches, width=log.width, height=log.height, channels=log.channels,
-                                       subpixels=subpixels, nonfinite=nonfinite, source=str(log.path))
+        stats = PixelStats.from_batches(log.iter_into(bufs, start=int(start), stop=stop), width=log.width,
+                                        height=log.height, channels=log.channels, subpixels=subpixels,
+                                        nonfinite=nonfinite, source=str(log.path))
+    return _Band.of(stats)
+
+
+@dataclasses.dataclass
+class _Band:
+    """Statistics of image rows [y0, y0 + stats.height): the rows a partial touched.
+
+    A part of a log written pixel by pixel touches a band of image rows;
+    shipping and merging only that band moves a fraction of the image
+    between processes.  Rows outside the band are empty (count 0), and
+    merging an empty pixel is the identity bit for bit (``wb`` is 0 or 1,
+    the other terms vanish exactly), so merging bands gives exactly what
+    merging the full-image partials gives.
+    """
+
+    y0: int
+    stats: object            # PixelStats of the band's rows
+    height: int              # of the whole image
+
+    @classmethod
+    def of(cls, stats) -> "_Band":
+        rows = np.flatnonzero(stats.count.any(axis=1))
+        y0, y1 = (int(rows[0]), int(rows[-1]) + 1) if rows.size else (0, min(1, stats.height))
+        if (y0, y1) == (0, stats.height):
+            return cls(0, stats, stats.height)
+        return cls(y0, _crop_stats(stats, y0, y1, 0, stats.width), stats.height)
+
+    @property
+    def y1(self) -> int:
+        return self.y0 + self.stats.height
+
+    def full(self):
+        """The statistics of the whole image (empty outside the band)."""
+        if (self.y0, self.y1) == (0, self.height):
+            return self.stats
+        out = _empty_like(self.stats, self.height)
+        _copy_rows(out, self.y0, self.stats)
+        _carry_counters(out, self.stats)
+        return out
+
+
+def _empty_like(stats, height: int):
+    from .stats import PixelStats
+
+    out = PixelStats(stats.width, height, stats.channels, subpixels=stats.subpixels)
+    out.has_range = stats.has_range
+    return out
+
+
+def _rows_view(stats, y0: int, y1: int):
+    """A PixelStats whose arrays are views of rows [y0, y1) of ``stats``: merging into it writes ``stats``."""
+    from .stats import PixelStats
+
+    out = PixelStats.__new__(PixelStats)
+    d = dict(stats.__dict__)
+    for name in ("count", "mean", "m2", "min", "max"):
+        d[name] = getattr(stats, name)[y0:y1]
+    if stats.subpixels:
+        s = stats.subpixels
+        d["sub_sum"], d["sub_count"] = stats.sub_sum[y0 * s:y1 * s], stats.sub_count[y0 * s:y1 * s]
+    d["height"] = y1 - y0
+    d["n_dropped"] = d["n_zeroed"] = 0
+    out.__dict__.update(d)
+    return out
+
+
+def _carry_counters(into, other) -> None:
+    """What :meth:`PixelStats.merge` does besides the arrays (for merges done through row views)."""
+    into.n_dropped += other.n_dropped
+    into.n_zeroed += other.n_zeroed
+    into.has_range = into.has_range and other.has_range
+    if other._value_dtype is not None:
+        into._note_dtype(other._value_dtype)
+
+
+def _copy_rows(out, y0: int, stats) -> None:
+    """Write ``stats`` into the empty rows [y0, y0 + stats.height) of ``out``.
+
+    Equal to merging into them: with na = 0 the merge's weight is exactly
+    1 and its other terms vanish, so it stores the band's own numbers.
+    """
+    y1 = y0 + stats.height
+    for name in ("count", "mean", "m2", "min", "max"):
+        getattr(out, name)[y0:y1] = getattr(stats, name)
+    if out.subpixels:
+        s = out.subpixels
+        out.sub_sum[y0 * s:y1 * s] = stats.sub_sum
+        out.sub_count[y0 * s:y1 * s] = stats.sub_count
+
+
+def _merge_bands(a: _Band, b: _Band) -> _Band:
+    """``a`` merged with ``b`` (a first, as :meth:`PixelStats.merge`), over the union of their rows.
+
+    Rows only one band holds are copied (merging into empty rows is a
+    copy, see :func:`_copy_rows`); only rows both hold are merged.
+    """
+    y0, y1 = min(a.y0, b.y0), max(a.y1, b.y1)
+    if (y0, y1) == (a.y0, a.y1):
+        out = a.stats                                   # b's rows lie inside a's band: merge in place
+    else:
+        out = _empty_like(a.stats, y1 - y0)
+        _copy_rows(out, a.y0 - y0, a.stats)
+        _carry_counters(out, a.stats)
+    lo, hi = max(a.y0, b.y0), min(a.y1, b.y1)          # rows both bands hold
+    if hi > lo:
+        _rows_view(out, lo - y0, hi - y0).merge(_rows_view(b.stats, lo - b.y0, hi - b.y0))
+    for r0, r1 in ((b.y0, min(b.y1, a.y0)), (max(b.y0, a.y1), b.y1)):   # b's rows outside a's band
+        if r1 > r0:
+            _copy_rows(out, r0 - y0, _rows_view(b.stats, r0 - b.y0, r1 - b.y0))
+    _carry_counters(out, b.stats)
+    return _Band(y0, out, a.height)
 
 
 def _merge_two(a, b):
     return a.merge(b)
 
 
-def tree_merge(items: Sequence, merge=_merge_two, submit=None):
+def tree_merge(items: Sequence, merge=_merge_two, submit=None, *, until: int = 1):
     """Merge ``items`` pairwise, level by level (a balanced tree of depth ceil(log2 n)).
 
     ``submit(func, a, b)`` runs a merge (``client.submit``: the tree runs
     on the workers, futures in, futures out); default: in this process.
+    With ``until`` > 1 it stops at that many items and returns them (the
+    caller merges the last levels itself); else it returns the one result.
     """
     level = list(items)
     if not level:
         raise InputError("tree_merge", "items", "nothing to merge")
-    while len(level) > 1:
+    while len(level) > max(1, int(until)):
         nxt = []
         for k in range(0, len(level) - 1, 2):
             nxt.append(submit(merge, level[k], level[k + 1]) if submit else merge(level[k], level[k + 1]))
         if len(level) % 2:
             nxt.append(level[-1])
         level = nxt
-    return level[0]
+    return level[0] if until <= 1 else level
 
 
 def ingest(log, *, client=None, scheduler: str | None = None, workers: int | None = None,
@@ -447,8 +581,9 @@ def ingest(log, *, client=None, scheduler: str | None = None, workers: int | Non
         On a file system the workers share.
     client, scheduler, workers : see :func:`denoise_many`
     parts : int, optional
-        Row ranges (default: twice the workers).  Each worker holds the
-        image-sized partial statistics of its range plus one chunk.
+        Row ranges (default: one per worker).  Each worker holds the
+        image-sized partial statistics of its range plus two chunks; only
+        the band of image rows a range touched is shipped and merged.
     subpixels, nonfinite : see :meth:`PixelStats.from_log`
     chunk_size : int, optional
         Rows per read (default the log reader's); range boundaries fall
@@ -472,10 +607,14 @@ def ingest(log, *, client=None, scheduler: str | None = None, workers: int | Non
     rows = int(chunk_size or DEFAULT_READ_ROWS)
     with _client_for(client, scheduler, workers) as c:
         nw = max(1, len(c.nthreads()))
-        ranges = row_ranges(log.n_samples, parts or 2 * nw, align=rows)
+        ranges = row_ranges(log.n_samples, parts or nw, align=rows)
         futs = [c.submit(_ingest_range, path, a, b, int(subpixels), nonfinite, rows, pure=False)
                 for a, b in ranges]
-        stats = tree_merge(futs, submit=lambda f, a, b: c.submit(f, a, b, pure=False)).result()
+        # the tree runs on the workers down to two bands; their merge happens here, where the
+        # result has to come anyway: each band crosses the network once, in parallel
+        top = c.gather(tree_merge(futs, merge=_merge_bands, until=2,
+                                  submit=lambda f, a, b: c.submit(f, a, b, pure=False)))
+        stats = tree_merge(top, merge=_merge_bands).full()
     n_bad = stats.n_dropped + stats.n_zeroed
     if n_bad:
         verb = "dropped" if nonfinite == "drop" else "set to 0"
@@ -517,13 +656,184 @@ def _reconstruct_tile(method, stats, reference, inner):
 
 
 def tile_boxes(width: int, height: int, tile: int, halo: int):
-    """``(outer, inner)`` boxes of each tile: outer = the tile grown by ``halo`` and clipped,
-    inner = the tile inside the outer box; boxes are ((y0, y1), (x0, x1))."""
+    """``(outer, tile, inner)`` boxes of each tile, each box ((y0, y1), (x0, x1)).
+
+    outer = the tile grown by ``halo`` on every side and clipped to the
+    film (``dask.array.map_overlap`` with ``boundary="none"``); tile = the
+    tile in film coordinates; inner = the tile inside the outer box.
+    """
     for ty in range(0, height, tile):
         for tx in range(0, width, tile):
             y0, y1, x0, x1 = ty, min(height, ty + tile), tx, min(width, tx + tile)
             oy0, oy1, ox0, ox1 = max(0, y0 - halo), min(height, y1 + halo), max(0, x0 - halo), min(width, x1 + halo)
             yield ((oy0, oy1), (ox0, ox1)), ((y0, y1), (x0, x1)), ((y0 - oy0, y1 - oy0), (x0 - ox0, x1 - ox0))
+
+
+def _run_tiles(func, tasks, shape, client=None) -> np.ndarray:
+    """Assemble ``out[tile] = func(*args)`` for each ``(tile, args)`` of ``tasks``.
+
+    Without a client the tiles run here one after another; with one, as
+    Dask futures (arguments that are futures stay on the workers), placed
+    into the output as they complete.
+    """
+    out = np.empty(shape, np.float64)
+    if client is None:
+        for (iy, ix), args in tasks:
+            out[iy[0]:iy[1], ix[0]:ix[1]] = func(*args)
+        return out
+    distributed = _dask()
+    futs = {client.submit(func, *args, pure=False): box for box, args in tasks}
+    for f in distributed.as_completed(futs):
+        iy, ix = futs[f]
+        out[iy[0]:iy[1], ix[0]:ix[1]] = f.result()
+        f.release()
+    return out
+
+
+def _trim_apply(func, block, inner):
+    (a, b), (c, d) = inner
+    return np.asarray(func(block))[a:b, c:d]
+
+
+def map_tiles(func, image, *, tile: int, halo: int, client=None) -> np.ndarray:
+    """``func`` applied to tiles of ``image`` grown by ``halo`` (clipped at the edges), each trimmed back.
+
+    The tiling of :func:`reconstruct_tiled`, on a plain array: for a
+    ``func`` whose result at a pixel depends on pixels at most ``halo``
+    away it equals ``func(image)``, and it equals
+    ``dask.array.map_overlap(func, image, depth=halo, boundary="none")``
+    (``tests/test_distributed.py`` checks both bit for bit).  The output
+    is float64 with the image's first two dimensions.
+    """
+    image = np.asarray(image)
+    h, w = image.shape[:2]
+    tasks = [(box, (func, np.ascontiguousarray(image[oy[0]:oy[1], ox[0]:ox[1]]), inner))
+             for (oy, ox), box, inner in tile_boxes(w, h, int(tile), int(halo))]
+    probe = np.asarray(func(image[:1, :1]))
+    return _run_tiles(_trim_apply, tasks, (h, w) + probe.shape[2:], client)
+
+
+# ---------------------------------------------------------------- sample tiles (splat)
+class _TileSamples:
+    """The samples of one grown tile, shifted to its origin, as a sample source for a method.
+
+    Chunks are kept as the method reads the film's source (the same
+    chunk boundaries, each chunk reduced to the tile's samples), so the
+    method accumulates every pixel's contributions in the same order as
+    on the whole film.
+    """
+
+    def __init__(self, width, height, channels, name, rounds):
+        self.width, self.height, self.channels, self.name = width, height, tuple(channels), name
+        self._rounds = rounds        # [(round index or None, [(positions, values), ...]), ...]
+        ends = np.cumsum([sum(p.shape[0] for p, _ in chunks) for _, chunks in rounds])
+        self._slices = list(zip([0, *ends[:-1].tolist()], ends.tolist()))
+
+    @property
+    def n_samples(self) -> int:
+        return int(self._slices[-1][1]) if self._slices else 0
+
+    def round_slices(self):
+        return self._slices
+
+    def iter_chunks(self, *, rounds=None, with_round: bool = False, chunk_size=None):
+        from .samples import SampleChunk
+
+        groups = range(len(self._rounds)) if rounds is None else [int(r) for r in rounds]
+        for g in groups:
+            for pos, val in self._rounds[g][1]:
+                yield SampleChunk(pos, val, None, 0)
+
+
+def _film_rounds(source) -> list:
+    """How a sample-filtering method groups the source's chunks: per round (two or more), else all at once."""
+    nonempty = [r for r, (a, b) in enumerate(source.round_slices()) if b > a]
+    return [[r] for r in nonempty] if len(nonempty) >= 2 else [None]
+
+
+def _tile_samples(source, outer, where: str):
+    """The samples of ``source`` in the pixels of ``outer``, shifted by its origin; and the per-round counts.
+
+    Returns (_TileSamples, film counts per round, tile counts per round).
+    Positions are checked as the method checks them (an off-film or
+    non-finite position is the same one-line error).  Shifting a float
+    x >= x0 by an integer x0 is exact (x0 is a multiple of x's spacing),
+    so the method computes the same offsets to every pixel centre.
+    """
+    from .samples import check_samples
+
+    (oy0, oy1), (ox0, ox1) = outer
+    groups, film_n, tile_n = [], [], []
+    for g in _film_rounds(source):
+        chunks, nf, nt = [], 0, 0
+        for ch in source.iter_chunks(rounds=g, with_round=False):
+            pos, val, _ = check_samples(ch.positions, ch.values, width=source.width, height=source.height,
+                                        n_channels=len(source.channels), where=where)
+            nf += pos.shape[0]
+            ix, iy = np.floor(pos[:, 0]), np.floor(pos[:, 1])
+            keep = (ix >= ox0) & (ix < ox1) & (iy >= oy0) & (iy < oy1)
+            if keep.any():
+                p = pos[keep]
+                p[:, 0] -= ox0
+                p[:, 1] -= oy0
+                chunks.append((p, val[keep]))
+                nt += p.shape[0]
+        groups.append((None if g is None else g[0], chunks))
+        film_n.append(nf)
+        tile_n.append(nt)
+    sub = _TileSamples(ox1 - ox0, oy1 - oy0, source.channels, source_name_of(source), groups)
+    return sub, film_n, tile_n
+
+
+def source_name_of(source) -> str:
+    from .samples import source_name
+
+    return source_name(source)
+
+
+def _splat_tile(method, source, outer, inner, film_pixels: int, nonfinite: str, reference=None):
+    """Reconstruct one grown tile of a sample-filtering method from the samples that reach it (on a worker).
+
+    ``source`` is a log path (the worker streams the whole log and keeps
+    the tile's samples: memory is the grown tile's samples) or a
+    :class:`_TileSamples` already cut on the client.
+    """
+    from .methods.base import MethodInputs
+
+    where = f"{method.where} (tiled)"
+    if isinstance(source, _TileSamples):
+        sub, film_n, tile_n = source, None, None
+    else:
+        from .io import read_log
+
+        sub, film_n, tile_n = _tile_samples(read_log(source), outer, where)
+    if film_n is not None:
+        _check_round_densities(where, film_n, tile_n, film_pixels, sub.width * sub.height)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", McreconWarning)
+        img = method.reconstruct(MethodInputs(None, sub, reference, nonfinite=nonfinite))
+    (a, b), (c, d) = inner
+    return np.asarray(img[a:b, c:d], dtype=np.float64)
+
+
+def _check_round_densities(where, film_n, tile_n, film_pixels, tile_pixels):
+    """Refuse a tile whose rounds are not as dense as the film's.
+
+    Splatting weighs round j by its mean samples per pixel over the
+    *film*, N_j = n_j / pixels (Suykens and Willems' scale-down); a tile
+    reproduces it exactly only if its own rounds have the same densities
+    (equal fractions give the same correctly rounded quotient), as rounds
+    that sample every pixel alike do.  One round is weighed 1 whatever
+    its density.
+    """
+    if len(film_n) < 2:
+        return
+    for r, (nf, nt) in enumerate(zip(film_n, tile_n)):
+        if nt * film_pixels != nf * tile_pixels:
+            raise InputError(where, "rounds", f"round {r} has {nt / tile_pixels:.6g} samples per pixel in a tile "
+                             f"but {nf / film_pixels:.6g} over the film: splatting weighs rounds by their "
+                             "film-wide density, so tiles of an adaptively sampled log are not local; "
+                             "reconstruct it untiled (mcrecon.reconstruct)")
 
 
 def reconstruct_tiled(source, *, method="box", tile: int = 1024, client=None, reference=None,
@@ -532,27 +842,34 @@ def reconstruct_tiled(source, *, method="box", tile: int = 1024, client=None, re
 
     Parameters
     ----------
-    source : PixelStats, or a sample log path (ingested with :func:`ingest`
-        when a ``client`` is given, else :meth:`PixelStats.from_log`)
+    source : PixelStats, a sample log (path or SampleLog) or a SampleSet
+        Methods of pixel statistics take statistics (a log is ingested
+        with :func:`ingest` when a ``client`` is given, else
+        :meth:`PixelStats.from_log`).  Sample-filtering methods (splat)
+        take a log or a SampleSet: each tile gets the samples whose pixel
+        lies in the tile grown by the halo.
     method : str or Method
         A method declaring a finite :meth:`~mcrecon.methods.Method.halo`;
-        whole-image methods (awr) and methods that filter individual
-        samples (splat) are refused.
+        whole-image methods (awr) are refused.
     tile : int
         Tile side in pixels (the halo comes on top of it).
     client : distributed.Client, optional
         Tiles run as tasks on it; without one, in this process one after
         the other (memory: one grown tile at a time besides the input).
+        For a log and a sample-filtering method each task streams the log
+        itself (the log must be on a file system the workers share).
     reference : ndarray (H, W, C), optional
         For oracle modes (cropped with each tile).
 
     Raises
     ------
     InputError
-        A whole-image method, a sample-filtering method, or statistics with
-        a pixel of fewer than two samples (the fill-in policies for such
-        pixels can borrow from anywhere in the image, so no finite halo
-        makes the result local).
+        A whole-image method; statistics with a pixel of fewer than two
+        samples (the fill-in policies for such pixels can borrow from
+        anywhere in the image, so no finite halo makes the result local);
+        for splat, the paper variant (``spread='all'``: its pseudo-rounds
+        and scatter depend on the whole film) or rounds whose density in a
+        tile differs from the film's (adaptive logs).
     """
     from .methods import Method, get_method
     from .stats import PixelStats
@@ -561,9 +878,13 @@ def reconstruct_tiled(source, *, method="box", tile: int = 1024, client=None, re
     if isinstance(method, Method) and options:
         raise InputError("reconstruct_tiled", sorted(options)[0], "a method object already carries its options")
     where = f"{m.where} (tiled)"
-    if m.requires.samples or not m.requires.statistics:
-        raise InputError(where, "method", f"{m.name} filters individual samples; tiling splits pixel statistics "
-                         "only: reconstruct it untiled (mcrecon.reconstruct / mcrecon batch)")
+    tile = int(tile)
+    if tile < 1:
+        raise InputError(where, "tile", f"{tile}, expected a positive number of pixels")
+    if m.requires.samples:
+        return _reconstruct_tiled_samples(m, source, tile, client, reference, nonfinite, where)
+    if not m.requires.statistics:
+        raise InputError(where, "method", f"{m.name} reads neither pixel statistics nor samples")
     if isinstance(source, PixelStats):
         stats = source
     else:
@@ -571,14 +892,7 @@ def reconstruct_tiled(source, *, method="box", tile: int = 1024, client=None, re
             if client is not None else PixelStats.from_log(source, subpixels=m.requires.subpixels,
                                                            nonfinite=nonfinite)
     h, w, c = stats.shape
-    halo = m.halo(w, h)
-    if halo is None:
-        raise InputError(where, "halo", f"{m.name} is a whole-image method (its result at a pixel depends on the "
-                         "whole film); it cannot be tiled: reconstruct it untiled on one worker with the memory "
-                         "for the film (mcrecon.reconstruct)")
-    tile = int(tile)
-    if tile < 1:
-        raise InputError(where, "tile", f"{tile}, expected a positive number of pixels")
+    halo = _halo_or_refuse(m, w, h, where)
     few = int((stats.count < 2).sum())
     if few:
         raise InputError(where, "statistics", f"{few} pixel(s) with fewer than 2 samples: their fill-in may "
@@ -588,22 +902,62 @@ def reconstruct_tiled(source, *, method="box", tile: int = 1024, client=None, re
         raise InputError(where, "statistics", f"need a {m.requires.subpixels}x{m.requires.subpixels} subpixel "
                          f"grid, got subpixels={stats.subpixels}")
     ref = None if reference is None else np.asarray(reference, dtype=np.float64)
-    out = np.empty((h, w, c), np.float64)
-    boxes = list(tile_boxes(w, h, tile, halo))
-    if client is None:
-        for (oy, ox), (iy, ix), inner in boxes:
-            sub = _crop_stats(stats, oy[0], oy[1], ox[0], ox[1])
-            r = None if ref is None else ref[oy[0]:oy[1], ox[0]:ox[1]]
-            out[iy[0]:iy[1], ix[0]:ix[1]] = _reconstruct_tile(m, sub, r, inner)
-        return out
-    distributed = _dask()
-    mf = client.scatter(m, broadcast=True)
-    futs = {}
-    for (oy, ox), (iy, ix), inner in boxes:
-        sub = client.scatter(_crop_stats(stats, oy[0], oy[1], ox[0], ox[1]))
-        r = None if ref is None else client.scatter(ref[oy[0]:oy[1], ox[0]:ox[1]])
-        futs[client.submit(_reconstruct_tile, mf, sub, r, inner, pure=False)] = (iy, ix)
-    for f in distributed.as_completed(futs):
-        iy, ix = futs[f]
-        out[iy[0]:iy[1], ix[0]:ix[1]] = f.result()
-    return out
+    mf = m if client is None else client.scatter(m, broadcast=True)
+    tasks = []
+    for (oy, ox), box, inner in tile_boxes(w, h, tile, halo):
+        sub = _crop_stats(stats, oy[0], oy[1], ox[0], ox[1])
+        r = None if ref is None else ref[oy[0]:oy[1], ox[0]:ox[1]]
+        if client is not None:   # each grown tile goes to one worker, the film stays here
+            sub = client.scatter(sub)
+            r = None if r is None else client.scatter(r)
+        tasks.append((box, (mf, sub, r, inner)))
+    return _run_tiles(_reconstruct_tile, tasks, (h, w, c), client)
+
+
+def _halo_or_refuse(m, w, h, where) -> int:
+    halo = m.halo(w, h)
+    if halo is None:
+        raise InputError(where, "halo", f"{m.name} is a whole-image method (its result at a pixel depends on the "
+                         "whole film); it cannot be tiled: reconstruct it untiled on one worker with the memory "
+                         "for the film (mcrecon.reconstruct)")
+    return int(halo)
+
+
+def _reconstruct_tiled_samples(m, source, tile, client, reference, nonfinite, where):
+    from .io import read_log
+    from .io.samplelog import SampleLog
+    from .samples import SampleSet, check_policy
+    from .stats import PixelStats
+
+    check_policy(nonfinite, where)
+    if m.name == "splat" and m.params.get("spread") == "all":
+        raise InputError(where, "spread", "splat's paper variant (spread='all') is not local: it splits a "
+                         "single-round source into pseudo-rounds scheduled by the film's smallest pixel count, "
+                         "and sums large batches in two blocks whose split moves with the batch; tile the robust "
+                         "variant (the default), or reconstruct untiled")
+    if isinstance(source, PixelStats):
+        raise InputError(where, "source", f"{m.name} filters individual samples: give it a sample log or a "
+                         "SampleSet, not pixel statistics")
+    if isinstance(source, (str, os.PathLike)):
+        source = read_log(source)
+    if not isinstance(source, (SampleLog, SampleSet)):
+        raise InputError(where, "source", f"got {type(source).__name__}, expected a sample log or a SampleSet")
+    w, h, c = source.width, source.height, len(source.channels)
+    halo = _halo_or_refuse(m, w, h, where)
+    ref = None if reference is None else np.asarray(reference, dtype=np.float64)
+    mf = m if client is None else client.scatter(m, broadcast=True)
+    tasks = []
+    for outer, box, inner in tile_boxes(w, h, tile, halo):
+        (oy, ox) = outer
+        r = None if ref is None else ref[oy[0]:oy[1], ox[0]:ox[1]]
+        if isinstance(source, SampleLog):
+            src = str(Path(source.path).resolve())       # the task streams the log itself
+        else:
+            src, film_n, tile_n = _tile_samples(source, outer, where)
+            _check_round_densities(where, film_n, tile_n, w * h, src.width * src.height)
+            if client is not None:
+                src = client.scatter(src)
+        if client is not None and r is not None:
+            r = client.scatter(r)
+        tasks.append((box, (mf, src, outer, inner, w * h, nonfinite, r)))
+    return _run_tiles(_splat_tile, tasks, (h, w, c), client)

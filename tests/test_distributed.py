@@ -153,6 +153,26 @@ def test_distributed_ingestion_equals_one_process(client, tmp_path, subpixels):
     assert np.allclose(a, b, rtol=1e-12, atol=0)
 
 
+def test_banded_partials_merge_exactly_like_full_image_partials(tmp_path):
+    """Shipping only the rows a part touched changes nothing: merging an empty pixel is the identity."""
+    rng = np.random.default_rng(11)
+    w, h, spp = 24, 20, 6
+    ys, xs = np.divmod(np.repeat(np.arange(w * h), spp), w)                  # written pixel by pixel
+    pos = np.stack([xs + rng.random(xs.size), ys + rng.random(ys.size)], axis=1)
+    val = 5.0 + rng.normal(0, 1, (pos.shape[0], 3))
+    path = write_log(tmp_path / "rows.h5", pos, val, width=w, height=h)
+    ranges = D.row_ranges(pos.shape[0], 5, align=97)                         # bands overlap at their ends
+    bands = [D._ingest_range(str(path), a, b, 2, "drop", 97) for a, b in ranges]
+    assert all(0 < b.stats.height < h for b in bands)                       # really banded
+    fulls = [b.full() for b in bands]
+    assert all(f.height == h and f.n_samples == b.stats.n_samples for f, b in zip(fulls, bands))
+    merged = D.tree_merge(bands, merge=D._merge_bands).full()
+    reference = D.tree_merge([f.copy() for f in fulls])                      # PixelStats.merge of full images
+    for name in ("count", "mean", "m2", "min", "max", "sub_sum", "sub_count"):
+        assert np.array_equal(getattr(merged, name), getattr(reference, name)), name
+    assert merged.n_samples == pos.shape[0] and merged.dtype == reference.dtype
+
+
 def test_row_ranges_and_tree_merge():
     assert D.row_ranges(10, 3) == [(0, 3), (3, 6), (6, 10)]
     r = D.row_ranges(10_000, 4, align=997)
@@ -161,6 +181,7 @@ def test_row_ranges_and_tree_merge():
     assert D.row_ranges(5, 8) == [(k, k + 1) for k in range(5)]
     assert D.row_ranges(0, 3) == [(0, 0)]
     assert D.tree_merge([1, 2, 3, 4, 5], merge=lambda a, b: a + b) == 15
+    assert D.tree_merge([1, 2, 3, 4, 5], merge=lambda a, b: a + b, until=2) == [10, 5]   # [3, 7, 5] -> [10, 5]
     with pytest.raises(InputError):
         D.tree_merge([])
 
@@ -173,19 +194,20 @@ def big_stats(tmp_path_factory):
     return PixelStats.from_log(path)
 
 
-@pytest.mark.parametrize("method, options, tile", [
-    ("box", {}, 24),
-    ("ci", {}, 40),
-    ("gem", {"final_scales": 4}, 32),                            # halo 27: interior tiles
-    ("gem", {"final_scales": 4, "final_outliers": "paper"}, 16),  # halo 39
+@pytest.mark.parametrize("method, options, tile, on_cluster", [
+    ("box", {}, 24, True),
+    ("ci", {}, 40, False),
+    ("gem", {"final_scales": 4}, 32, True),                             # halo 27: interior tiles
+    ("gem", {"final_scales": 4, "final_outliers": "paper"}, 16, False),  # halo 39
 ])
-def test_tiled_equals_untiled_bit_for_bit(client, big_stats, method, options, tile):
+def test_tiled_equals_untiled_bit_for_bit(client, big_stats, method, options, tile, on_cluster):
     m = mcrecon.get_method(method, **options)
     halo = m.halo(big_stats.width, big_stats.height)
     assert halo is not None and 2 * halo + tile < big_stats.width     # some tiles see only part of the film
     full = mcrecon.reconstruct(big_stats, method=m)
     assert np.array_equal(D.reconstruct_tiled(big_stats, method=m, tile=tile), full)
-    assert np.array_equal(D.reconstruct_tiled(big_stats, method=m, tile=tile, client=client), full)
+    if on_cluster:   # the same tiles as futures (the other cases add only worker start-up imports)
+        assert np.array_equal(D.reconstruct_tiled(big_stats, method=m, tile=tile, client=client), full)
 
 
 def test_tiled_gem_default_halo(tmp_path):
@@ -199,12 +221,83 @@ def test_tiled_gem_default_halo(tmp_path):
     assert np.array_equal(D.reconstruct_tiled(st, method=m, tile=80), full)
 
 
-def test_tiled_refusals(big_stats, tmp_path):
+def test_tiling_is_dask_map_overlap(client):
+    """Our tiles (boxes, halos clipped at the film's edges, trimming, assembly) are map_overlap's, bit for bit."""
+    da = pytest.importorskip("dask.array")
+    from scipy import ndimage
+
+    rng = np.random.default_rng(5)
+    image = rng.random((53, 70))
+    tile, halo = 16, 4
+    running = lambda a: ndimage.uniform_filter(a, size=2 * halo + 1, mode="reflect")   # noqa: E731
+    local = lambda a: ndimage.gaussian_filter(a, sigma=1.5, truncate=halo / 1.5, mode="reflect")  # noqa: E731
+    for func in (running, local):
+        ours = D.map_tiles(func, image, tile=tile, halo=halo)
+        theirs = da.from_array(image, chunks=tile).map_overlap(func, depth=halo, boundary="none",
+                                                               dtype=float).compute(scheduler="sync")
+        assert np.array_equal(ours, theirs)
+        assert np.array_equal(D.map_tiles(func, image, tile=tile, halo=halo, client=client), theirs)
+    # a correlation of radius `halo` is local: tiles give the untiled result exactly ...
+    assert np.array_equal(D.map_tiles(local, image, tile=tile, halo=halo), local(image))
+    # ... and only with the whole halo (the comparison above can fail)
+    assert not np.array_equal(D.map_tiles(local, image, tile=tile, halo=halo - 1), local(image))
+    # a running sum (uniform_filter) rounds by its place in the line: equal to rounding only
+    assert np.allclose(D.map_tiles(running, image, tile=tile, halo=halo), running(image), rtol=1e-13, atol=0)
+
+
+def _fireflies(w=168, h=56, spp=8, seed=3):
+    """Samples written pixel by pixel (spp consecutive per pixel): a smooth image with 0.3 % fireflies."""
+    rng = np.random.default_rng(seed)
+    ys, xs = np.divmod(np.repeat(np.arange(w * h), spp), w)
+    pos = np.stack([xs + rng.random(xs.size), ys + rng.random(ys.size)], axis=1)
+    val = rng.gamma(4.0, 0.25, (pos.shape[0], 1)) * [1.0, 0.8, 0.6]
+    val[rng.random(pos.shape[0]) < 0.003] *= 1e4
+    return pos, val
+
+
+@pytest.fixture(scope="module")
+def splat_log(tmp_path_factory):
+    pos, val = _fireflies()
+    return write_log(tmp_path_factory.mktemp("splat") / "fireflies.h5", pos, val, width=168, height=56)
+
+
+def test_tiled_splat_equals_untiled_bit_for_bit(client, splat_log, monkeypatch):
+    m = mcrecon.get_method("splat")                              # the robust default
+    halo = m.halo(168, 56)
+    assert halo == 34 and 2 * halo + 40 < 168                      # interior tiles exist
+    full = mcrecon.reconstruct(splat_log, method=m, full=True)
+    assert full.run.splatter.rounds[0]["outliers"] > 100         # the fireflies' excess is spread
+    assert np.array_equal(D.reconstruct_tiled(splat_log, method=m, tile=40), full.image)
+    assert np.array_equal(D.reconstruct_tiled(str(splat_log), method=m, tile=56, client=client), full.image)
+    # the comparison can fail: with too small a halo, pixels near the tile edges change
+    monkeypatch.setattr(type(m), "halo", lambda self, w, h: 2)
+    assert not np.array_equal(D.reconstruct_tiled(splat_log, method=m, tile=40), full.image)
+
+
+def test_tiled_splat_rounds():
+    """Rounds are weighed by their film-wide density: equal in every tile (uniform rounds) or refused."""
+    pos, val = _fireflies()
+    rank = np.arange(pos.shape[0]) % 8
+    order = np.argsort(rank >= 2, kind="stable")                 # round 0: 2 spp everywhere, round 1: 6 spp
+    pos, val, rounds = pos[order], val[order], (rank[order] >= 2).astype(np.int64)
+    uniform = mcrecon.SampleSet(pos, val, width=168, height=56, rounds=rounds)
+    full = mcrecon.reconstruct(uniform, method="splat")
+    assert np.array_equal(D.reconstruct_tiled(uniform, method="splat", tile=48), full)
+    # an adaptive second round (samples on the left half only) is not local: refused
+    keep = (pos[:, 0] < 84) | (rounds == 0)
+    adaptive = mcrecon.SampleSet(pos[keep], val[keep], width=168, height=56, rounds=rounds[keep])
+    with pytest.raises(InputError, match="film-wide density"):
+        D.reconstruct_tiled(adaptive, method="splat", tile=48)
+
+
+def test_tiled_refusals(big_stats, splat_log, tmp_path):
     with pytest.raises(InputError, match="whole-image"):
         D.reconstruct_tiled(big_stats, method="awr")
     assert mcrecon.get_method("awr").halo(64, 64) is None
-    with pytest.raises(InputError, match="individual samples"):
+    with pytest.raises(InputError, match="sample log or a SampleSet"):
         D.reconstruct_tiled(big_stats, method="splat")
+    with pytest.raises(InputError, match="paper variant"):
+        D.reconstruct_tiled(splat_log, method="splat", variant="paper")
     thin = big_stats.copy()
     thin.count[5, 7] = 1
     with pytest.raises(InputError, match="fewer than 2 samples"):
