@@ -639,8 +639,10 @@ class _Round:
         """Append to the log, then into the statistics (and ``observe``)."""
         if self.log_path is not None:
             with self.timeline.phase("append", record["round"]):
+                # checked: receive() validated the reply (validate_reply, then the log's dtype):
+                # the commit does not scan it again
                 append_log(self.log_path, batch.positions, batch.values, round_index=record["round"],
-                           features=batch.features if batch.features else None,
+                           features=batch.features if batch.features else None, checked=True,
                            round_record={**record, "toolkit_seconds": toolkit_s, "wall_seconds": self.wall()})
         _take_round(self.method, self.run, self.stats, batch, record["round"], self.nonfinite, self.name,
                     n_nonfinite=n_bad, timeline=self.timeline)
