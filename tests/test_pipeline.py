@@ -325,3 +325,22 @@ def test_pipelined_ci_never_exceeds_max_spp():
     res = adapt(_renderer(), m, spp=64, seed=2, pipeline=True, track_error=False)
     assert res.pipelined and res.stats.count.max() <= 12
     assert (res.stats.count == 12).mean() > 0.5  # most pixels reached the cap (constant ones stop), none beyond
+
+
+def test_box_rounds_are_capped_and_still_bit_identical_with_the_lag():
+    """Box doubles its rounds up to 1/8 of the budget in whole spp (the pipelined run's last commit is
+    its unoverlapped tail); the floor that keeps small runs uncapped is lowered to see the cap here."""
+    from mcrecon.methods.box import BoxMethod
+
+    class SmallFloor(BoxMethod):
+        max_round_floor = 0
+
+    w, h = 16, 12
+    a = adapt(_renderer(w, h), SmallFloor(), spp=40, seed=2, pipeline=False)
+    b = adapt(_renderer(w, h), SmallFloor(), spp=40, seed=2, pipeline=True)
+    assert [r["samples"] // (w * h) for r in a.rounds] == [1, 1, 2, 4, 5, 5, 5, 5, 5, 5, 2]  # cap: 40/8 = 5 spp
+    assert [r["samples"] for r in a.rounds] == [r["samples"] for r in b.rounds] and b.pipelined
+    np.testing.assert_array_equal(a.image, b.image)
+    np.testing.assert_array_equal(a.counts, np.full((h, w), 40))
+    # the default floor (2^20 samples) leaves small runs doubling
+    assert [r["samples"] // (w * h) for r in adapt(_renderer(w, h), "box", spp=40, seed=2).rounds] == [1, 1, 2, 4, 8, 16, 8]
