@@ -57,9 +57,13 @@ def t_quantile(count, alpha: float) -> np.ndarray:
     out = np.full(n.shape, np.inf)
     ok = n >= 2
     if ok.any():
-        # Few distinct counts per image: evaluate scipy once per count.
-        uniq, inv = np.unique(n[ok], return_inverse=True)
-        out[ok] = sps.t.ppf(1.0 - alpha / 2.0, uniq - 1)[inv]
+        # Few distinct counts per image: evaluate scipy once per count (a table indexed
+        # by the count: no sort of the image's counts, as np.unique would do).
+        have = n[ok]
+        uniq = np.flatnonzero(np.bincount(have))
+        table = np.empty(int(uniq[-1]) + 1)
+        table[uniq] = sps.t.ppf(1.0 - alpha / 2.0, uniq - 1)
+        out[ok] = table[have]
     return out
 
 
@@ -394,6 +398,9 @@ class CIMethod(Method):
                              "zero": zero}
             return own, widths, zero is not None and bool(zero.any())
         changed = n != c["count"]
+        if changed.mean() > 0.5:  # most pixels changed: the whole image costs less than gathers and scatters
+            run.cache = None
+            return self._widths(run, st)
         if changed.any():
             h, w = n.shape
             own, widths, zero = c["own"], c["widths"], c["zero"]
@@ -479,7 +486,13 @@ class CIMethod(Method):
         # borrowed rank sends a tight budget to the dim pixels beside an emitter
         # instead of its rim, hdr 32 spp relative MSE 5.6x box instead of 1.3x).
         if borrowed:
-            ratio = np.max(rule.widths(st.mean, own_var, n), axis=-1) / (2.0 * rule.tolerance)
+            # the widths of the pixels' own variances: the cached ones, but where a pixel borrowed
+            zi = np.flatnonzero(run.cache["zero"])
+            h, w = n.shape
+            own_widths = widths.copy()
+            own_widths.reshape(h * w, -1)[zi] = rule.widths(st.mean.reshape(h * w, -1)[zi],
+                                                            own_var.reshape(h * w, -1)[zi], n.reshape(-1)[zi])
+            ratio = np.max(own_widths, axis=-1) / (2.0 * rule.tolerance)
             ratio = np.where(np.isfinite(ratio), ratio, 0.0)
         key = np.where(n.ravel() < 2, np.inf, ratio.ravel())
         order = np.argsort(-key, kind="stable")
