@@ -15,7 +15,7 @@ import numpy as np
 
 from .kernels import pixel_kernel
 
-__all__ = ["SAMPLING_EPS", "sample_priority", "distribute_samples", "sort_by_pixel"]
+__all__ = ["SAMPLING_EPS", "sample_priority", "distribute_samples", "sort_by_row"]
 
 #: Sec. 5: relative MSE for sampling divides by value^2 + 0.001.
 SAMPLING_EPS = 1e-3
@@ -150,16 +150,15 @@ def _place_in_pixels(pos, px, py, ox, oy):
 
 
 @numba.njit(cache=True, nogil=True)
-def _sorted_by_pixel(pos, w, h):
-    # a stable counting sort on the row-major pixel index: O(N + W H)
-    starts = np.zeros(w * h + 1, np.int64)
+def _sorted_by_row(pos, h):
+    # a stable counting sort on the pixel row: O(N + H), H sequential write streams
+    starts = np.zeros(h + 1, np.int64)
     key = np.empty(pos.shape[0], np.int64)
     for k in range(pos.shape[0]):
-        x = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
         y = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
-        key[k] = y * w + x
-        starts[key[k] + 1] += 1
-    for p in range(w * h):
+        key[k] = y
+        starts[y + 1] += 1
+    for p in range(h):
         starts[p + 1] += starts[p]
     out = np.empty_like(pos)
     for k in range(pos.shape[0]):
@@ -170,20 +169,21 @@ def _sorted_by_pixel(pos, w, h):
     return out
 
 
-def sort_by_pixel(positions: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Film positions (N, 2) in row-major pixel order, stable within a pixel (a copy).
+def sort_by_row(positions: np.ndarray, height: int) -> np.ndarray:
+    """Film positions (N, 2) ordered by pixel row, stable within a row (a copy).
 
     Why: a renderer answers in request order, and the statistics take
-    samples in pixel order several times faster than scattered ones (their
-    per-pixel accumulators stay in cache: measured 3.7 M samples on 1024^2,
-    0.15 s sorted against 1.1-2.0 s scattered), which is the pipelined
-    run's unoverlapped commit.  The order of a request does not change what
-    it asks for.
+    samples row by row several times faster than scattered ones (a row's
+    per-pixel accumulators stay in cache), which matters most for the
+    pipelined run's unoverlapped commits.  Measured, 3.7 M samples on
+    1024^2: ingest 0.90 s scattered, 0.17 s by row, 0.13 s by pixel; the
+    sort by row costs 0.09 s, by pixel 0.32 s.  The order of a request does
+    not change what it asks for.
     """
     pos = np.ascontiguousarray(positions, dtype=np.float64)
     if pos.shape[0] == 0:
         return pos.copy()
-    return _sorted_by_pixel(pos, int(width), int(height))
+    return _sorted_by_row(pos, int(height))
 
 
 def distribute_samples(priority: np.ndarray, selected: np.ndarray, sigmas, n_total: int,
@@ -201,8 +201,8 @@ def distribute_samples(priority: np.ndarray, selected: np.ndarray, sigmas, n_tot
     Returns
     -------
     ndarray (n_total, 2) float64
-        Film positions (x = column, y = row), in row-major pixel order
-        (:func:`sort_by_pixel`).
+        Film positions (x = column, y = row), ordered by row
+        (:func:`sort_by_row`).
     """
     h, w = selected.shape
     n_total = int(n_total)
@@ -261,4 +261,4 @@ def distribute_samples(priority: np.ndarray, selected: np.ndarray, sigmas, n_tot
         oy[todo] = 0
     pos = rng.random((n_all, 2))
     _place_in_pixels(pos, px, py, ox, oy)
-    return sort_by_pixel(pos, w, h)
+    return sort_by_row(pos, h)
