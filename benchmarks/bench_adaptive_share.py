@@ -27,8 +27,15 @@ log append, statistics ingest, observe, planning: wall and CPU seconds)
 and which of those phases the renderer was waiting for (the overlap of
 each phase with the renderer's idle intervals: the critical path).
 
+``--quality`` measures instead what the lag costs: relative MSE (eps 0.01)
+of pipelined over sequential runs at equal spp on every built-in scene,
+mean over ``--seeds`` seeds (ratio of the means), default 128^2, 32 spp.
+``--method-options gem:selection_every=2`` passes options to a method
+(also to compare a variant against the default, with ``--compare``).
+
 usage: python benchmarks/bench_adaptive_share.py [--size 512x512] [--spp 32] [--rate 2e6]
        [--methods box,gem,awr,ci,splat] [--renderer scene|mitsuba] [--log] [--profile]
+       python benchmarks/bench_adaptive_share.py --quality [--size 128x128] [--seeds 4]
 """
 
 import argparse
@@ -145,6 +152,59 @@ def profile_lines(res):
     return lines
 
 
+def parse_options(text):
+    """'gem:selection_every=2,gamma=0.2;ci:min_spp=4' -> {"gem": {...}, "ci": {...}} (values as Python literals)."""
+    import ast
+
+    out = {}
+    for part in filter(None, (text or "").split(";")):
+        name, _, opts = part.partition(":")
+        d = out.setdefault(name.strip(), {})
+        for kv in filter(None, opts.split(",")):
+            k, _, v = kv.partition("=")
+            try:
+                d[k.strip()] = ast.literal_eval(v.strip())
+            except (ValueError, SyntaxError):
+                d[k.strip()] = v.strip()
+    return out
+
+
+def quality(a, methods, options):
+    """Relative MSE pipelined / sequential (or variant / default with --compare), per scene and method."""
+    from mcrecon.metrics import relative_mse
+    from mcrecon.renderers.scenes import scene_names
+
+    w, h = (int(x) for x in a.size.split(",")[0].split("x"))
+    seeds = range(a.seeds)
+    rows = {}
+    for scene in scene_names():
+        ref = SceneRenderer(scene, width=w, height=h, seed=0).reference()
+        for name in methods:
+            errs = {}
+            for variant in ("base", "test"):
+                e = []
+                for seed in seeds:
+                    opts = options.get(name, {}) if (variant == "test" or not a.compare) else {}
+                    pipe = (variant == "test") if not a.compare else None
+                    m = get_method(name, **opts)
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore")
+                        res = adapt(SceneRenderer(scene, width=w, height=h, seed=seed), m, spp=a.spp, seed=seed,
+                                    progress=False, track_error=False,
+                                    pipeline=pipe if pipe is not None else None)
+                    e.append(relative_mse(res.image, ref))
+                errs[variant] = float(np.mean(e))
+            rows[(scene, name)] = errs["test"] / errs["base"]
+            print(f"{scene:15s} {name:6s} relMSE {errs['base']:.4g} -> {errs['test']:.4g}  ratio "
+                  f"{rows[(scene, name)]:.3f}", flush=True)
+    what = "variant / default" if a.compare else "pipelined / sequential"
+    print(f"\nrelative MSE {what}; {w}x{h}, {a.spp:g} spp, {a.seeds} seeds (ratio of the means)")
+    print("| scene | " + " | ".join(methods) + " |")
+    print("|---|" + "---|" * len(methods))
+    for scene in scene_names():
+        print(f"| {scene} | " + " | ".join(f"{rows[(scene, m)]:.3f}" for m in methods) + " |")
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--size", default="512x512", help="WxH, or several separated by commas (default 512x512)")
@@ -157,8 +217,19 @@ def main():
     p.add_argument("--log", action="store_true", help="commit every round to a sample log (in a temporary dir)")
     p.add_argument("--profile", action="store_true", help="where the toolkit's time goes, and what the renderer "
                    "waits for")
+    p.add_argument("--quality", action="store_true", help="relative MSE pipelined / sequential on the built-in scenes")
+    p.add_argument("--seeds", type=int, default=4)
+    p.add_argument("--method-options", default="", help="e.g. 'gem:selection_every=2;ci:min_spp=4'")
+    p.add_argument("--compare", action="store_true", help="with --quality: the --method-options variant against "
+                   "the default, both in the method's default mode")
     a = p.parse_args()
     methods = a.methods.split(",")
+    options = parse_options(a.method_options)
+    if a.quality:
+        if a.size == "512x512":
+            a.size = "128x128"
+        quality(a, methods, options)
+        return
     modes = [{"sequential": False, "pipelined": True}[m] for m in a.modes.split(",")]
     tmp = tempfile.TemporaryDirectory()
     with warnings.catch_warnings():
@@ -184,8 +255,8 @@ def main():
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")
                     try:
-                        res = adapt(r, get_method(name), spp=a.spp, seed=0, progress=False, track_error=False,
-                                    pipeline=pipe, log=log)
+                        res = adapt(r, get_method(name, **options.get(name, {})), spp=a.spp, seed=0,
+                                    progress=False, track_error=False, pipeline=pipe, log=log)
                     except Exception as exc:  # a method that cannot pipeline
                         print(f"{size:9s} {name:6s} {mode:10s} -- {exc}", flush=True)
                         continue

@@ -74,8 +74,6 @@ class _Checked(CIMethod):
         ref_state = copy.copy(state)
         object.__setattr__(ref_state, "rng", copy.deepcopy(state.rng))
         req = super().plan(run, state)
-        if state.lag and state.n_samples == 0:  # the pipelined split of the initial pass: no rule involved
-            return req
         need, diag = _reference_plan(self, state.stats, ref_state)
         got = self.diagnostics(run)
         for name in ("spp", "converged", "width_ratio"):
@@ -112,12 +110,3 @@ def test_every_plan_equals_the_full_rule(scene, spp, opts, pipeline):
     plain = adapt(SceneRenderer(scene, width=40, height=28, seed=1), get_method("ci", **opts), spp=spp, seed=3,
                   pipeline=pipeline, track_error=False)
     np.testing.assert_array_equal(plain.image, res.image)
-
-
-def test_pipelined_initial_pass_takes_two_rounds():
-    res = adapt(SceneRenderer("soft_shadow", width=16, height=8, seed=1), get_method("ci", min_spp=8), spp=24,
-                seed=1, pipeline=True, track_error=False)
-    assert [r["samples"] for r in res.rounds[:2]] == [4 * 128, 4 * 128]
-    seq = adapt(SceneRenderer("soft_shadow", width=16, height=8, seed=1), get_method("ci", min_spp=8), spp=24,
-                seed=1, pipeline=False, track_error=False)
-    assert seq.rounds[0]["samples"] == 8 * 128
