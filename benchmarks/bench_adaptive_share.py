@@ -12,7 +12,9 @@ in one process, after a small warm-up run of each (numba caches loaded,
 kernels compiled), and prints per mode:
 
 * idle share: the time the renderer was not rendering (waiting for a plan
-  or a commit, and the bridge's own Python around its render call) over
+  or a commit, and the bridge's own Python around its render call, shown
+  apart as "of which in the render call": the Mitsuba bridge's jittered
+  positions and array conversions outside its kernel launches) over
   the adaptive loop's wall time (first request to the last commit; the
   final image is not part of it) -- issue 15's measure;
 * toolkit CPU share: CPU seconds of the thread(s) doing the toolkit's work
@@ -264,7 +266,9 @@ def main():
                 loop = res.loop_seconds
                 idle = 100 * res.idle_seconds / loop
                 cpu = 100 * res.toolkit_cpu_seconds / loop
-                table.append((size, name, mode, idle, cpu, loop, res.renderer_seconds, len(res.rounds)))
+                bridge = 100 * sum(max(e["end"] - e["start"] - e["own"], 0.0) for e in res.timeline
+                                   if e["phase"] == "render") / loop
+                table.append((size, name, mode, idle, bridge, cpu, loop, res.renderer_seconds, len(res.rounds)))
                 print(f"{size:9s} {name:6s} {mode:10s} rounds {len(res.rounds):3d}  renderer {res.renderer_seconds:7.2f} s"
                       f"  loop {loop:7.2f} s  idle share {idle:5.1f}%  toolkit CPU share {cpu:5.1f}%"
                       f"  (final image {res.finish_seconds:5.2f} s)", flush=True)
@@ -275,12 +279,14 @@ def main():
                 print(f"{size:9s} {name:6s} pipelined / sequential: loop wall "
                       f"{out[True].loop_seconds / out[False].loop_seconds:.3f}", flush=True)
     print()
-    print("| size | method | mode | idle share | toolkit CPU share | loop s | renderer s | rounds | target |")
-    print("|---|---|---|---|---|---|---|---|---|")
-    for size, name, mode, idle, cpu, loop, rend, n in table:
+    print("| size | method | mode | idle share | of which in the render call | toolkit CPU share | loop s | "
+          "renderer s | rounds | target (idle) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for size, name, mode, idle, bridge, cpu, loop, rend, n in table:
         tgt = TARGETS.get(name)
         mark = "" if tgt is None else (f"<= {tgt:g} % " + ("met" if idle <= tgt else "missed"))
-        print(f"| {size} | {name} | {mode} | {idle:.1f} % | {cpu:.1f} % | {loop:.2f} | {rend:.2f} | {n} | {mark} |")
+        print(f"| {size} | {name} | {mode} | {idle:.1f} % | {bridge:.1f} % | {cpu:.1f} % | {loop:.2f} | {rend:.2f} "
+              f"| {n} | {mark} |")
 
 
 if __name__ == "__main__":
