@@ -103,7 +103,7 @@ class AdaptiveResult:
     #: rendering: waiting for a plan or a commit (this process's rounds only).
     loop_seconds: float = 0.0
     idle_seconds: float = 0.0
-    #: CPU seconds of the thread doing the toolkit's work (validation, commit,
+    #: CPU seconds of the threads doing the toolkit's work (validation, commit,
     #: statistics, planning; the filtering pool's helper threads not counted).
     toolkit_cpu_seconds: float = 0.0
     #: Seconds of the final reconstruction (``method.finish``).
@@ -428,7 +428,7 @@ def _resume(log_path, renderer, *, progress, time_limit, track_error, on_round) 
 
 
 def _take_round(method, run, stats, batch, round_index, nonfinite, source, n_nonfinite=None,
-                timeline=None) -> None:
+                timeline=None, helper=None) -> None:
     """A committed round into the statistics and, for methods that read samples, into ``observe``.
 
     The one path of the live run and of a resume's replay.  ``observe`` sees
@@ -438,6 +438,10 @@ def _take_round(method, run, stats, batch, round_index, nonfinite, source, n_non
     positions on the film): the statistics then take the arrays without
     checking them again -- the same numbers as ``stats.add`` would ingest
     (``check_samples`` returns contiguous arrays of the given float dtype).
+    ``helper`` (an idle one-thread executor, live runs only): the statistics
+    ingest the round there while ``observe`` runs here -- they read the
+    same arrays and write disjoint state, both compiled kernels that release
+    the GIL -- and both are done when this returns.
     """
     if n_nonfinite is None:
         stats.add(batch.positions, batch.values, nonfinite=nonfinite, source=source)
@@ -446,21 +450,38 @@ def _take_round(method, run, stats, batch, round_index, nonfinite, source, n_non
             val = val[:, None]
         n_bad = int((~np.isfinite(val)).any(axis=1).sum()) if (method.requires.samples and val.size) else 0
     else:
-        t, c = time.perf_counter(), time.thread_time()
         pos = np.ascontiguousarray(batch.positions)
         val = np.ascontiguousarray(batch.values)
         if val.ndim == 1:
             val = val[:, None]
         n_bad = int(n_nonfinite)
-        if pos.shape[0]:
-            p2, v2 = apply_nonfinite(pos, val, n_bad, nonfinite, where=source)
-            stats._ingest(p2, v2, n_bad, nonfinite=nonfinite, source=source)
-        if timeline is not None:
-            timeline.add("ingest", round_index, t, time.perf_counter(), time.thread_time() - c)
+
+        def ingest(**where):
+            t, c = time.perf_counter(), time.thread_time()
+            if pos.shape[0]:
+                p2, v2 = apply_nonfinite(pos, val, n_bad, nonfinite, where=source)
+                stats._ingest(p2, v2, n_bad, nonfinite=nonfinite, source=source)
+            if timeline is not None:
+                timeline.add("ingest", round_index, t, time.perf_counter(), time.thread_time() - c, **where)
+
+        # In the helper only when the ingest cannot warn (no NaN/Inf row): the warnings
+        # machinery is not thread-safe, and observe() may filter warnings meanwhile.
+        if helper is not None and method.requires.samples and not n_bad:
+            pending = helper.submit(ingest, helper=True)
+            try:
+                _observe(method, run, pos, val, n_bad, nonfinite, source, round_index, timeline)
+            finally:
+                pending.result()  # the statistics are complete before anything else happens
+            return
+        ingest()
     if method.requires.samples:
-        pos, val = apply_nonfinite(pos, val, n_bad, nonfinite, where=source)
-        with (timeline.phase("observe", round_index) if timeline is not None else contextlib.nullcontext()):
-            method.observe(run, SampleBatch(pos, val), round_index)
+        _observe(method, run, pos, val, n_bad, nonfinite, source, round_index, timeline)
+
+
+def _observe(method, run, pos, val, n_bad, nonfinite, source, round_index, timeline):
+    pos, val = apply_nonfinite(pos, val, n_bad, nonfinite, where=source)
+    with (timeline.phase("observe", round_index) if timeline is not None else contextlib.nullcontext()):
+        method.observe(run, SampleBatch(pos, val), round_index)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -635,8 +656,9 @@ class _Round:
                                 f"{round_index} (policy nonfinite='raise'); nothing of this round was stored")
         return SampleBatch(np.ascontiguousarray(batch.positions), val, batch.features), n_bad
 
-    def commit(self, batch, n_bad, record, toolkit_s):
-        """Append to the log, then into the statistics (and ``observe``)."""
+    def commit(self, batch, n_bad, record, toolkit_s, helper=None):
+        """Append to the log, then into the statistics (and ``observe``; with ``helper``, an idle
+        one-thread executor, the two at once: see :func:`_take_round`)."""
         if self.log_path is not None:
             with self.timeline.phase("append", record["round"]):
                 # checked: receive() validated the reply (validate_reply, then the log's dtype):
@@ -645,7 +667,7 @@ class _Round:
                            features=batch.features if batch.features else None, checked=True,
                            round_record={**record, "toolkit_seconds": toolkit_s, "wall_seconds": self.wall()})
         _take_round(self.method, self.run, self.stats, batch, record["round"], self.nonfinite, self.name,
-                    n_nonfinite=n_bad, timeline=self.timeline)
+                    n_nonfinite=n_bad, timeline=self.timeline, helper=helper)
 
     def evaluate(self, record, round_index):
         """The error of the image after the round (not part of the run's time)."""
@@ -690,7 +712,9 @@ def _run(renderer, method, run, *, stats, rounds, round_index, budget, seed, log
     return AdaptiveResult(image=np.asarray(image, dtype=np.float64), stats=stats, rounds=rounds,
                           stopped=stopped, log=log_path, method=method, run=run, pipelined=bool(pipeline),
                           loop_seconds=loop_s - eval_s, idle_seconds=max(loop_s - eval_s - acct["render"], 0.0),
-                          toolkit_cpu_seconds=acct["cpu"], finish_seconds=time.perf_counter() - tf,
+                          toolkit_cpu_seconds=acct["cpu"] + sum(e["cpu"] for e in timeline.events
+                                                                 if e.get("helper")),
+                          finish_seconds=time.perf_counter() - tf,
                           timeline=timeline.events)
 
 
@@ -723,6 +747,20 @@ def _finish_round(record, rounds, on_round, bar, stats, log_path, acct):
 def _loop_sequential(renderer, method, run, *, stats, rounds, round_index, budget, seed, ref, time_limit,
                      max_rounds, on_round, bar, clock, rnd, acct, planned):
     """Plan, render, validate, commit, one round after the other."""
+    # a method that reads samples observes a round while a helper thread ingests it
+    helper = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mcrecon-ingest") \
+        if method.requires.samples else None
+    try:
+        return _sequential_rounds(renderer, method, run, stats=stats, rounds=rounds, round_index=round_index,
+                                  budget=budget, seed=seed, ref=ref, time_limit=time_limit, max_rounds=max_rounds,
+                                  on_round=on_round, bar=bar, clock=clock, rnd=rnd, acct=acct, helper=helper)
+    finally:
+        if helper is not None:
+            helper.shutdown(wait=True)
+
+
+def _sequential_rounds(renderer, method, run, *, stats, rounds, round_index, budget, seed, ref, time_limit,
+                       max_rounds, on_round, bar, clock, rnd, acct, helper):
     while True:
         if _committed(stats) >= budget:
             return "budget", round_index
@@ -743,7 +781,7 @@ def _loop_sequential(renderer, method, run, *, stats, rounds, round_index, budge
         record = {"round": round_index, "samples": len(batch),
                   "samples_total": _committed(stats) + len(batch), "renderer_seconds": render_s}
         t3 = time.perf_counter()
-        rnd.commit(batch, n_bad, record, toolkit_s)
+        rnd.commit(batch, n_bad, record, toolkit_s, helper=helper)
         toolkit_s += time.perf_counter() - t3
         acct["cpu"] += (cp - c0) + (time.thread_time() - c2)
         record["toolkit_seconds"] = toolkit_s
@@ -766,14 +804,18 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
     writes hold it for their duration.
     """
 
-    def commit(prev, carry):
-        """Validate and commit ``prev`` = (round, request, reply, renderer s, extra s): its finished record."""
+    def commit(prev, carry, helper=None):
+        """Validate and commit ``prev`` = (round, request, reply, renderer s, extra s): its finished record.
+
+        ``helper``: the toolkit thread when it is idle (round 0 and the last round, committed by
+        this thread while nothing renders), to ingest while ``observe`` runs.
+        """
         t0, c0 = time.perf_counter(), time.thread_time()
         k, preq, reply, render_s, extra_s = prev
         batch, n_bad = rnd.receive(preq, reply, k)
         record = {"round": k, "samples": len(batch), "samples_total": _committed(stats) + len(batch),
                   "renderer_seconds": render_s}
-        rnd.commit(batch, n_bad, record, carry + extra_s + (time.perf_counter() - t0))
+        rnd.commit(batch, n_bad, record, carry + extra_s + (time.perf_counter() - t0), helper=helper)
         # a round's toolkit time: its validation and commit, the beyond-renderer part
         # of its render call, and the plan that made its request
         record["toolkit_seconds"] = carry + extra_s + (time.perf_counter() - t0)
@@ -846,7 +888,7 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
                 raise
             rendered = (j, req, reply, render_s, extra_s)
             if first:
-                record = commit(rendered, carry)
+                record = commit(rendered, carry, helper=pool)
                 record["_eval"] = rnd.evaluate(record, j)
                 done(record)
                 (req, why), carry = plan(j, None)
@@ -860,7 +902,7 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
         if uncommitted is not None:
             # the last round: commit it (nothing is left to plan)
             prev, uncommitted = uncommitted, None
-            record = commit(prev, carry)
+            record = commit(prev, carry, helper=pool)
             record["_eval"] = rnd.evaluate(record, record["round"])
             done(record)
         return stopped, j

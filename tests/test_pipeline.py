@@ -162,6 +162,30 @@ def test_one_pass_commit_equals_stats_add_bit_for_bit(rng):
         assert a.n_dropped == b.n_dropped == 1
 
 
+@pytest.mark.parametrize("n_bad", [0, 1])
+def test_ingest_beside_observe_equals_one_after_the_other(rng, n_bad):
+    """A helper thread ingests the round while splat observes it (n_bad = 0; with a NaN row the two run
+    one after the other, the warning in the caller's thread): statistics and image as without it."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from mcrecon.errors import McreconWarning
+
+    pos = np.ascontiguousarray(rng.random((20_000, 2)) * [16, 12])
+    val = rng.random((20_000, 3)) * 1e3
+    if n_bad:
+        val[7, 1] = np.nan
+    m = get_method("splat")
+    runs, stats = [m.start(16, 12), m.start(16, 12)], [PixelStats(16, 12, ("R", "G", "B")) for _ in range(2)]
+    with ThreadPoolExecutor(1) as helper:
+        for run, st, h in zip(runs, stats, (None, helper)):
+            with pytest.warns(McreconWarning) if n_bad else warnings.catch_warnings():
+                _take_round(m, run, st, SampleBatch(pos, val), 0, "drop", "x", n_nonfinite=n_bad, helper=h)
+    for f in ("count", "mean", "m2", "min", "max"):
+        np.testing.assert_array_equal(getattr(stats[0], f), getattr(stats[1], f))
+    np.testing.assert_array_equal(runs[0].splatter.image, runs[1].splatter.image)
+    assert stats[1].n_dropped == n_bad and runs[1].splatter.rounds == runs[0].splatter.rounds
+
+
 def test_request_seed_without_revalidation_equals_dataclasses_replace():
     req = SampleRequest(8, 4, counts=np.ones((4, 8), np.int64), positions=np.array([[1.5, 2.5]]))
     a = dataclasses.replace(req, round_index=3, seed=2**63 + 1)
