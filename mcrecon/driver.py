@@ -32,6 +32,7 @@ import copy
 import dataclasses
 import math
 import sys
+import threading
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -102,11 +103,18 @@ class AdaptiveResult:
     #: rendering: waiting for a plan or a commit (this process's rounds only).
     loop_seconds: float = 0.0
     idle_seconds: float = 0.0
-    #: CPU seconds of the thread doing the toolkit's work (validation, commit,
+    #: CPU seconds of the threads doing the toolkit's work (validation, commit,
     #: statistics, planning; the filtering pool's helper threads not counted).
     toolkit_cpu_seconds: float = 0.0
     #: Seconds of the final reconstruction (``method.finish``).
     finish_seconds: float = 0.0
+    #: The loop's phases in order of their end, for profiling: dicts with ``phase``
+    #: (``render``, ``validate``, ``append``, ``ingest``, ``observe``, ``plan``,
+    #: ``evaluate``), ``round``, ``start`` and ``end`` (wall seconds from the
+    #: loop's start), ``cpu`` (CPU seconds of the thread that ran it) and
+    #: ``thread`` (``renderer`` or ``toolkit``); ``render`` also has ``own``, the
+    #: seconds the renderer reports as its own.
+    timeline: list = dataclasses.field(default_factory=list)
 
     def diagnostics(self) -> dict:
         """The method's diagnostic maps of this run."""
@@ -171,6 +179,29 @@ class _Progress:
         if self.enabled:
             sys.stderr.write("\n")
             sys.stderr.flush()
+
+
+class _Timeline:
+    """Wall interval and thread CPU time of each phase of the loop (a few per round: negligible cost)."""
+
+    def __init__(self):
+        self.t0 = time.perf_counter()
+        self.events = []
+        self._renderer_thread = threading.get_ident()
+
+    @contextlib.contextmanager
+    def phase(self, name, round_index, **extra):
+        t, c = time.perf_counter(), time.thread_time()
+        try:
+            yield extra
+        finally:
+            self.add(name, round_index, t, time.perf_counter(), time.thread_time() - c, **extra)
+
+    def add(self, name, round_index, start, end, cpu, **extra):
+        self.events.append({"phase": name, "round": int(round_index), "start": start - self.t0,
+                            "end": end - self.t0, "cpu": cpu,
+                            "thread": "renderer" if threading.get_ident() == self._renderer_thread else "toolkit",
+                            **extra})
 
 
 def _renderer_name(renderer) -> str:
@@ -396,7 +427,8 @@ def _resume(log_path, renderer, *, progress, time_limit, track_error, on_round) 
                 pipeline=pipeline, planned=planned)
 
 
-def _take_round(method, run, stats, batch, round_index, nonfinite, source, n_nonfinite=None) -> None:
+def _take_round(method, run, stats, batch, round_index, nonfinite, source, n_nonfinite=None,
+                timeline=None, helper=None) -> None:
     """A committed round into the statistics and, for methods that read samples, into ``observe``.
 
     The one path of the live run and of a resume's replay.  ``observe`` sees
@@ -406,6 +438,10 @@ def _take_round(method, run, stats, batch, round_index, nonfinite, source, n_non
     positions on the film): the statistics then take the arrays without
     checking them again -- the same numbers as ``stats.add`` would ingest
     (``check_samples`` returns contiguous arrays of the given float dtype).
+    ``helper`` (an idle one-thread executor, live runs only): the statistics
+    ingest the round there while ``observe`` runs here -- they read the
+    same arrays and write disjoint state, both compiled kernels that release
+    the GIL -- and both are done when this returns.
     """
     if n_nonfinite is None:
         stats.add(batch.positions, batch.values, nonfinite=nonfinite, source=source)
@@ -419,11 +455,32 @@ def _take_round(method, run, stats, batch, round_index, nonfinite, source, n_non
         if val.ndim == 1:
             val = val[:, None]
         n_bad = int(n_nonfinite)
-        if pos.shape[0]:
-            p2, v2 = apply_nonfinite(pos, val, n_bad, nonfinite, where=source)
-            stats._ingest(p2, v2, n_bad, nonfinite=nonfinite, source=source)
+
+        def ingest(**where):
+            t, c = time.perf_counter(), time.thread_time()
+            if pos.shape[0]:
+                p2, v2 = apply_nonfinite(pos, val, n_bad, nonfinite, where=source)
+                stats._ingest(p2, v2, n_bad, nonfinite=nonfinite, source=source)
+            if timeline is not None:
+                timeline.add("ingest", round_index, t, time.perf_counter(), time.thread_time() - c, **where)
+
+        # In the helper only when the ingest cannot warn (no NaN/Inf row): the warnings
+        # machinery is not thread-safe, and observe() may filter warnings meanwhile.
+        if helper is not None and method.requires.samples and not n_bad:
+            pending = helper.submit(ingest, helper=True)
+            try:
+                _observe(method, run, pos, val, n_bad, nonfinite, source, round_index, timeline)
+            finally:
+                pending.result()  # the statistics are complete before anything else happens
+            return
+        ingest()
     if method.requires.samples:
-        pos, val = apply_nonfinite(pos, val, n_bad, nonfinite, where=source)
+        _observe(method, run, pos, val, n_bad, nonfinite, source, round_index, timeline)
+
+
+def _observe(method, run, pos, val, n_bad, nonfinite, source, round_index, timeline):
+    pos, val = apply_nonfinite(pos, val, n_bad, nonfinite, where=source)
+    with (timeline.phase("observe", round_index) if timeline is not None else contextlib.nullcontext()):
         method.observe(run, SampleBatch(pos, val), round_index)
 
 
@@ -571,8 +628,9 @@ class _Round:
     """What the toolkit does with one reply: validate, store, count (shared by both modes)."""
 
     def __init__(self, method, run, stats, *, name, c, log_path, nonfinite, ref, track_error, eps, budget,
-                 storage_dtype, wall):
+                 storage_dtype, wall, timeline):
         self.method, self.run, self.stats = method, run, stats
+        self.timeline = timeline
         self.name, self.c, self.log_path, self.nonfinite = name, c, log_path, nonfinite
         self.ref, self.track_error, self.eps, self.budget = ref, track_error, eps, budget
         self.storage_dtype = storage_dtype
@@ -581,6 +639,10 @@ class _Round:
 
     def receive(self, req, reply, round_index):
         """The validated reply (stored precision) and its count of non-finite rows; nothing stored yet."""
+        with self.timeline.phase("validate", round_index):
+            return self._receive(req, reply, round_index)
+
+    def _receive(self, req, reply, round_index):
         batch = validate_reply(req, reply, n_channels=self.c, renderer=self.name)
         if self.storage_dtype == "auto":
             self.storage_dtype = _resolve_storage(self.log_path, np.asarray(batch.values).dtype)
@@ -594,14 +656,18 @@ class _Round:
                                 f"{round_index} (policy nonfinite='raise'); nothing of this round was stored")
         return SampleBatch(np.ascontiguousarray(batch.positions), val, batch.features), n_bad
 
-    def commit(self, batch, n_bad, record, toolkit_s):
-        """Append to the log, then into the statistics (and ``observe``)."""
+    def commit(self, batch, n_bad, record, toolkit_s, helper=None):
+        """Append to the log, then into the statistics (and ``observe``; with ``helper``, an idle
+        one-thread executor, the two at once: see :func:`_take_round`)."""
         if self.log_path is not None:
-            append_log(self.log_path, batch.positions, batch.values, round_index=record["round"],
-                       features=batch.features if batch.features else None,
-                       round_record={**record, "toolkit_seconds": toolkit_s, "wall_seconds": self.wall()})
+            with self.timeline.phase("append", record["round"]):
+                # checked: receive() validated the reply (validate_reply, then the log's dtype):
+                # the commit does not scan it again
+                append_log(self.log_path, batch.positions, batch.values, round_index=record["round"],
+                           features=batch.features if batch.features else None, checked=True,
+                           round_record={**record, "toolkit_seconds": toolkit_s, "wall_seconds": self.wall()})
         _take_round(self.method, self.run, self.stats, batch, record["round"], self.nonfinite, self.name,
-                    n_nonfinite=n_bad)
+                    n_nonfinite=n_bad, timeline=self.timeline, helper=helper)
 
     def evaluate(self, record, round_index):
         """The error of the image after the round (not part of the run's time)."""
@@ -612,7 +678,8 @@ class _Round:
         te = time.perf_counter()
         rng, _ = round_seeds(0, 0)
         st = _adaptive_state(self.stats, round_index, self.budget, _committed(self.stats), rng, self.ref)
-        record["error"] = relative_mse(self.method.finish(self.run, st), self.ref, eps=self.eps)
+        with self.timeline.phase("evaluate", round_index):
+            record["error"] = relative_mse(self.method.finish(self.run, st), self.ref, eps=self.eps)
         record["eval_seconds"] = time.perf_counter() - te
         return record["eval_seconds"]
 
@@ -623,10 +690,11 @@ def _run(renderer, method, run, *, stats, rounds, round_index, budget, seed, log
     name = _renderer_name(renderer)
     bar = _Progress(progress, budget)
     clock = {"wall_start": time.perf_counter() - elapsed}
+    timeline = _Timeline()
     rnd = _Round(method, run, stats, name=name, c=len(stats.channels), log_path=log_path, nonfinite=nonfinite,
                  ref=ref, track_error=track_error, eps=eps, budget=budget, storage_dtype=storage_dtype,
-                 wall=lambda: time.perf_counter() - clock["wall_start"])
-    acct = {"render": 0.0, "cpu": 0.0}
+                 wall=lambda: time.perf_counter() - clock["wall_start"], timeline=timeline)
+    acct = {"render": 0.0, "cpu": 0.0, "timeline": timeline}
     loop_t0 = time.perf_counter()
     try:
         loop = _loop_pipelined if pipeline else _loop_sequential
@@ -644,7 +712,10 @@ def _run(renderer, method, run, *, stats, rounds, round_index, budget, seed, log
     return AdaptiveResult(image=np.asarray(image, dtype=np.float64), stats=stats, rounds=rounds,
                           stopped=stopped, log=log_path, method=method, run=run, pipelined=bool(pipeline),
                           loop_seconds=loop_s - eval_s, idle_seconds=max(loop_s - eval_s - acct["render"], 0.0),
-                          toolkit_cpu_seconds=acct["cpu"], finish_seconds=time.perf_counter() - tf)
+                          toolkit_cpu_seconds=acct["cpu"] + sum(e["cpu"] for e in timeline.events
+                                                                 if e.get("helper")),
+                          finish_seconds=time.perf_counter() - tf,
+                          timeline=timeline.events)
 
 
 def _render(renderer, req, acct):
@@ -654,6 +725,7 @@ def _render(renderer, req, acct):
     t2 = time.perf_counter()
     render_s = getattr(renderer, "last_render_seconds", None)
     render_s = float(render_s) if render_s is not None else t2 - t1
+    acct["timeline"].add("render", req.round_index, t1, t2, 0.0, own=render_s)
     # Time in the renderer call beyond what the renderer reports as its own
     # (file exchange, conversions) belongs to the toolkit side of the run.
     acct["render"] += min(render_s, t2 - t1)
@@ -675,6 +747,20 @@ def _finish_round(record, rounds, on_round, bar, stats, log_path, acct):
 def _loop_sequential(renderer, method, run, *, stats, rounds, round_index, budget, seed, ref, time_limit,
                      max_rounds, on_round, bar, clock, rnd, acct, planned):
     """Plan, render, validate, commit, one round after the other."""
+    # a method that reads samples observes a round while a helper thread ingests it
+    helper = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mcrecon-ingest") \
+        if method.requires.samples else None
+    try:
+        return _sequential_rounds(renderer, method, run, stats=stats, rounds=rounds, round_index=round_index,
+                                  budget=budget, seed=seed, ref=ref, time_limit=time_limit, max_rounds=max_rounds,
+                                  on_round=on_round, bar=bar, clock=clock, rnd=rnd, acct=acct, helper=helper)
+    finally:
+        if helper is not None:
+            helper.shutdown(wait=True)
+
+
+def _sequential_rounds(renderer, method, run, *, stats, rounds, round_index, budget, seed, ref, time_limit,
+                       max_rounds, on_round, bar, clock, rnd, acct, helper):
     while True:
         if _committed(stats) >= budget:
             return "budget", round_index
@@ -683,7 +769,8 @@ def _loop_sequential(renderer, method, run, *, stats, rounds, round_index, budge
         if time_limit is not None and time.perf_counter() - clock["wall_start"] >= time_limit:
             return "time_limit", round_index
         t0, c0 = time.perf_counter(), time.thread_time()
-        req, why = _plan_round(method, run, stats, round_index, budget, _committed(stats), seed, ref)
+        with acct["timeline"].phase("plan", round_index):
+            req, why = _plan_round(method, run, stats, round_index, budget, _committed(stats), seed, ref)
         if req is None:
             return why, round_index
         tp, cp = time.perf_counter(), time.thread_time()
@@ -694,7 +781,7 @@ def _loop_sequential(renderer, method, run, *, stats, rounds, round_index, budge
         record = {"round": round_index, "samples": len(batch),
                   "samples_total": _committed(stats) + len(batch), "renderer_seconds": render_s}
         t3 = time.perf_counter()
-        rnd.commit(batch, n_bad, record, toolkit_s)
+        rnd.commit(batch, n_bad, record, toolkit_s, helper=helper)
         toolkit_s += time.perf_counter() - t3
         acct["cpu"] += (cp - c0) + (time.thread_time() - c2)
         record["toolkit_seconds"] = toolkit_s
@@ -717,14 +804,18 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
     writes hold it for their duration.
     """
 
-    def commit(prev, carry):
-        """Validate and commit ``prev`` = (round, request, reply, renderer s, extra s): its finished record."""
+    def commit(prev, carry, helper=None):
+        """Validate and commit ``prev`` = (round, request, reply, renderer s, extra s): its finished record.
+
+        ``helper``: the toolkit thread when it is idle (round 0 and the last round, committed by
+        this thread while nothing renders), to ingest while ``observe`` runs.
+        """
         t0, c0 = time.perf_counter(), time.thread_time()
         k, preq, reply, render_s, extra_s = prev
         batch, n_bad = rnd.receive(preq, reply, k)
         record = {"round": k, "samples": len(batch), "samples_total": _committed(stats) + len(batch),
                   "renderer_seconds": render_s}
-        rnd.commit(batch, n_bad, record, carry + extra_s + (time.perf_counter() - t0))
+        rnd.commit(batch, n_bad, record, carry + extra_s + (time.perf_counter() - t0), helper=helper)
         # a round's toolkit time: its validation and commit, the beyond-renderer part
         # of its render call, and the plan that made its request
         record["toolkit_seconds"] = carry + extra_s + (time.perf_counter() - t0)
@@ -735,13 +826,14 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
     def plan(j, req_j):
         """The plan of round j+1 from what is committed, round j (``req_j``) in flight: ((req, why), seconds)."""
         t0, c0 = time.perf_counter(), time.thread_time()
-        if j + 1 >= max_rounds:
-            out = (None, "max_rounds")
-        elif req_j is None:
-            out = _plan_round(method, run, stats, j + 1, budget, _committed(stats), seed, ref, lag=1)
-        else:
-            out = _plan_round(method, run, stats, j + 1, budget, _committed(stats) + req_j.total, seed, ref,
-                              lag=1, pending=_request_counts(req_j))
+        with acct["timeline"].phase("plan", j + 1):
+            if j + 1 >= max_rounds:
+                out = (None, "max_rounds")
+            elif req_j is None:
+                out = _plan_round(method, run, stats, j + 1, budget, _committed(stats), seed, ref, lag=1)
+            else:
+                out = _plan_round(method, run, stats, j + 1, budget, _committed(stats) + req_j.total, seed, ref,
+                                  lag=1, pending=_request_counts(req_j))
         acct["cpu"] += time.thread_time() - c0
         return out, time.perf_counter() - t0
 
@@ -796,7 +888,7 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
                 raise
             rendered = (j, req, reply, render_s, extra_s)
             if first:
-                record = commit(rendered, carry)
+                record = commit(rendered, carry, helper=pool)
                 record["_eval"] = rnd.evaluate(record, j)
                 done(record)
                 (req, why), carry = plan(j, None)
@@ -810,7 +902,7 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
         if uncommitted is not None:
             # the last round: commit it (nothing is left to plan)
             prev, uncommitted = uncommitted, None
-            record = commit(prev, carry)
+            record = commit(prev, carry, helper=pool)
             record["_eval"] = rnd.evaluate(record, record["round"])
             done(record)
         return stopped, j

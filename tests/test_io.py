@@ -653,3 +653,40 @@ def test_an_unwritten_round_end_of_a_full_disk_is_not_a_round(tmp_path):
     assert log.n_rounds == 2 and log.round_slices() == [(0, 2), (2, 4)]
     append_log(path, np.full((2, 2), 0.5), np.ones((2, 3)))
     assert read_log(path).round_slices() == [(0, 2), (2, 4), (4, 6)]
+
+
+def _datasets(path):
+    """Every dataset's contents and every attribute of a log, by name."""
+    out = {}
+    with h5py.File(path, "r") as f:
+        def visit(name, obj):
+            out[name + "/@"] = {k: np.asarray(v).tolist() for k, v in obj.attrs.items()}
+            if isinstance(obj, h5py.Dataset):  # bytes: NaN fields compare equal, unlike floats
+                a = obj[()]
+                out[name] = a.tolist() if a.dtype.kind == "O" else (a.dtype.str, a.shape, a.tobytes())
+        f.visititems(visit)
+        out["/@"] = {k: np.asarray(v).tolist() for k, v in f.attrs.items()}
+    return out
+
+
+def test_append_checked_writes_the_same_log_and_the_default_still_validates(tmp_path, rng):
+    """``checked=True`` (the driver, for replies it validated) skips the per-sample scan only: the
+    file's datasets and attributes are the same as with the default, which still refuses bad rows."""
+    paths = []
+    for name in ("default", "checked"):
+        p = write_log(tmp_path / f"{name}.h5", np.zeros((0, 2)), np.zeros((0, 3), np.float32), width=9, height=7)
+        paths.append(p)
+    rounds = [(np.ascontiguousarray(rng.random((n, 2)) * [9, 7]), rng.random((n, 3)).astype(np.float32))
+              for n in (50, 1, 300)]
+    for k, (pos, val) in enumerate(rounds):
+        rec = {"round": k, "samples": len(pos), "toolkit_seconds": 0.5}
+        assert append_log(paths[0], pos, val, round_index=k, round_record=rec) == \
+            append_log(paths[1], pos, val, round_index=k, round_record=rec, checked=True)
+    assert _datasets(paths[0]) == _datasets(paths[1])
+    off = np.array([[9.5, 1.0]])  # off the film
+    with pytest.raises(InputError, match="off the film"):
+        append_log(paths[0], off, np.ones((1, 3)))
+    # arrays that cannot come from the validation (not contiguous) get the full check anyway
+    with pytest.raises(InputError, match="off the film"):
+        append_log(paths[1], np.asfortranarray(np.repeat(off, 2, axis=0)), np.ones((2, 3)), checked=True)
+    assert read_log(paths[0]).n_samples == read_log(paths[1]).n_samples == 351

@@ -44,7 +44,8 @@ def _renderer(w=16, h=12):
     return CallableRenderer(fn, width=w, height=h, name="pipeline test renderer")
 
 
-OPTS = {"gem": {"initial_spp": 4, "iterations": 4}, "awr": {"initial_spp": 2}, "ci": {"min_spp": 2}, "box": {}}
+OPTS = {"gem": {"initial_spp": 4, "iterations": 4}, "awr": {"initial_spp": 2}, "ci": {"min_spp": 2}, "box": {},
+        "splat": {}}
 
 
 # ------------------------------------------------------------------ what each plan sees
@@ -84,10 +85,13 @@ def test_plan_of_round_j_sees_the_rounds_up_to_j_minus_2_and_round_j_minus_1_pen
     assert all(s[1] == s[2] and s[3] == 0 and s[4] is None for s in seq)
 
 
-def test_box_is_bit_identical_with_and_without_the_lag():
-    """Uniform doubling depends only on the sample count, which counts the round in flight."""
-    a = adapt(_renderer(), "box", spp=12.5, seed=4, pipeline=False)
-    b = adapt(_renderer(), "box", spp=12.5, seed=4, pipeline=True)
+@pytest.mark.parametrize("method", ["box", "splat"])
+def test_box_and_splat_are_bit_identical_with_and_without_the_lag(method):
+    """Uniform doubling depends only on the sample count, which counts the round in flight
+    (splat reads its schedule from the rounds observed plus the pending one)."""
+    a = adapt(_renderer(), method, spp=12.5, seed=4, pipeline=False)
+    b = adapt(_renderer(), method, spp=12.5, seed=4, pipeline=True)
+    assert method_pipelines(get_method(method))
     assert b.pipelined and not a.pipelined
     assert [r["samples"] for r in a.rounds] == [r["samples"] for r in b.rounds]
     np.testing.assert_array_equal(a.image, b.image)
@@ -110,11 +114,16 @@ def test_pipelined_runs_are_reproducible_and_fill_the_budget(method, tmp_path):
 
 
 def test_pipeline_choice_is_validated_and_defaults_follow_the_method():
-    assert method_pipelines(get_method("box"))
-    assert not any(method_pipelines(get_method(m)) for m in ("splat", "awr", "gem", "ci"))
+    assert method_pipelines(get_method("box")) and method_pipelines(get_method("splat"))
+    assert not any(method_pipelines(get_method(m)) for m in ("awr", "gem", "ci"))
     assert adapt(_renderer(), get_method("awr", initial_spp=2), spp=4, pipeline=True).pipelined
+
+    class NoLag(_Spy):  # a method that cannot plan with a lag refuses pipeline=True
+        pipeline = "no"
+
+    assert not adapt(_renderer(), NoLag(), spp=4).pipelined
     with pytest.raises(InputError, match="pipeline"):
-        adapt(_renderer(), "splat", spp=4, pipeline=True)
+        adapt(_renderer(), NoLag(), spp=4, pipeline=True)
     with pytest.raises(InputError, match="pipeline"):
         adapt(_renderer(), "box", spp=4, pipeline="yes")
 
@@ -153,6 +162,30 @@ def test_one_pass_commit_equals_stats_add_bit_for_bit(rng):
         assert a.n_dropped == b.n_dropped == 1
 
 
+@pytest.mark.parametrize("n_bad", [0, 1])
+def test_ingest_beside_observe_equals_one_after_the_other(rng, n_bad):
+    """A helper thread ingests the round while splat observes it (n_bad = 0; with a NaN row the two run
+    one after the other, the warning in the caller's thread): statistics and image as without it."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from mcrecon.errors import McreconWarning
+
+    pos = np.ascontiguousarray(rng.random((20_000, 2)) * [16, 12])
+    val = rng.random((20_000, 3)) * 1e3
+    if n_bad:
+        val[7, 1] = np.nan
+    m = get_method("splat")
+    runs, stats = [m.start(16, 12), m.start(16, 12)], [PixelStats(16, 12, ("R", "G", "B")) for _ in range(2)]
+    with ThreadPoolExecutor(1) as helper:
+        for run, st, h in zip(runs, stats, (None, helper)):
+            with pytest.warns(McreconWarning) if n_bad else warnings.catch_warnings():
+                _take_round(m, run, st, SampleBatch(pos, val), 0, "drop", "x", n_nonfinite=n_bad, helper=h)
+    for f in ("count", "mean", "m2", "min", "max"):
+        np.testing.assert_array_equal(getattr(stats[0], f), getattr(stats[1], f))
+    np.testing.assert_array_equal(runs[0].splatter.image, runs[1].splatter.image)
+    assert stats[1].n_dropped == n_bad and runs[1].splatter.rounds == runs[0].splatter.rounds
+
+
 def test_request_seed_without_revalidation_equals_dataclasses_replace():
     req = SampleRequest(8, 4, counts=np.ones((4, 8), np.int64), positions=np.array([[1.5, 2.5]]))
     a = dataclasses.replace(req, round_index=3, seed=2**63 + 1)
@@ -178,7 +211,7 @@ def test_gem_plan_with_nothing_pending_is_the_plan_without_pending():
 
 # ------------------------------------------------------------------ stop and resume (in process)
 @pytest.mark.parametrize("method, stop_after", [("gem", 1), ("gem", 2), ("gem", 4), ("awr", 3), ("ci", 2),
-                                                ("box", 3)])
+                                                ("box", 3), ("splat", 2)])
 def test_stopped_pipelined_run_resumes_bit_identically(tmp_path, method, stop_after):
     """Stopped after ``stop_after`` rounds (the next one was planned and in flight): the resume plans
     it again from the same statistics and ends where the uninterrupted run ends."""
@@ -299,14 +332,12 @@ def test_cli_pipeline_flags(tmp_path, capsys):
     from mcrecon.cli import main
 
     common = ["adapt", "--scene", "flat", "--size", "12x8", "--spp", "8", "--quiet"]
-    for flag, method in (("--pipeline", "box"), ("--no-pipeline", "box"), ("--pipeline", "gem")):
+    for flag, method in (("--pipeline", "box"), ("--no-pipeline", "box"), ("--pipeline", "gem"),
+                         ("--pipeline", "splat")):
         log = tmp_path / f"{flag}{method}.h5"
         assert main(common + ["--method", method, flag, "--log", str(log), "-o", str(log.with_suffix(".exr"))]) == 0
         assert read_log(log).run_settings["pipeline"] is (flag == "--pipeline")
     capsys.readouterr()
-    assert main(common + ["--method", "splat", "--pipeline", "-o", str(tmp_path / "s.exr")]) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "pipeline" in err
     assert main(["adapt", "--resume", str(tmp_path / "--pipelinebox.h5"), "--no-pipeline", "-o",
                  str(tmp_path / "r.exr")]) == 2
     assert "--pipeline/--no-pipeline cannot change a recorded run" in capsys.readouterr().err
@@ -318,3 +349,22 @@ def test_pipelined_ci_never_exceeds_max_spp():
     res = adapt(_renderer(), m, spp=64, seed=2, pipeline=True, track_error=False)
     assert res.pipelined and res.stats.count.max() <= 12
     assert (res.stats.count == 12).mean() > 0.5  # most pixels reached the cap (constant ones stop), none beyond
+
+
+def test_box_rounds_are_capped_and_still_bit_identical_with_the_lag():
+    """Box doubles its rounds up to 1/8 of the budget in whole spp (the pipelined run's last commit is
+    its unoverlapped tail); the floor that keeps small runs uncapped is lowered to see the cap here."""
+    from mcrecon.methods.box import BoxMethod
+
+    class SmallFloor(BoxMethod):
+        max_round_floor = 0
+
+    w, h = 16, 12
+    a = adapt(_renderer(w, h), SmallFloor(), spp=40, seed=2, pipeline=False)
+    b = adapt(_renderer(w, h), SmallFloor(), spp=40, seed=2, pipeline=True)
+    assert [r["samples"] // (w * h) for r in a.rounds] == [1, 1, 2, 4, 5, 5, 5, 5, 5, 5, 2]  # cap: 40/8 = 5 spp
+    assert [r["samples"] for r in a.rounds] == [r["samples"] for r in b.rounds] and b.pipelined
+    np.testing.assert_array_equal(a.image, b.image)
+    np.testing.assert_array_equal(a.counts, np.full((h, w), 40))
+    # the default floor (2^20 samples) leaves small runs doubling
+    assert [r["samples"] // (w * h) for r in adapt(_renderer(w, h), "box", spp=40, seed=2).rounds] == [1, 1, 2, 4, 8, 16, 8]

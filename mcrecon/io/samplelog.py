@@ -822,6 +822,24 @@ def _check_arrays(where, positions, values, width, height, n_channels):
     return pos, val
 
 
+def _checked_arrays(where, positions, values, width, height, n_channels):
+    """Arrays the caller validated (``append_log(..., checked=True)``): shapes and dtypes only, O(1).
+
+    What check_samples returns is C-contiguous float32 or float64, (N, 2) and
+    (N, C); arrays that are not (the caller's claim cannot hold) get the full
+    check of :func:`_check_arrays`.
+    """
+    pos, val = np.asarray(positions), np.asarray(values)
+    if val.ndim == 1 and n_channels == 1:
+        val = val[:, None]
+    ok = (pos.ndim == 2 and pos.shape[1] == 2 and val.ndim == 2 and val.shape == (pos.shape[0], n_channels)
+          and pos.dtype in (np.float32, np.float64) and val.dtype in (np.float32, np.float64)
+          and pos.flags.c_contiguous and val.flags.c_contiguous)
+    if not ok:
+        return _check_arrays(where, positions, values, width, height, n_channels)
+    return pos, val
+
+
 def _chunk_rows(n: int) -> int:
     """Chunk rows for sample datasets starting with ``n`` rows.
 
@@ -1144,7 +1162,7 @@ def _write_round_record(f, run, d, i: int, rec, *, n_rows: int) -> None:
 
 def append_log(path, positions, values, *, round_index: int | None = None,
                features: Mapping[str, np.ndarray] | None = None,
-               round_record: Mapping | None = None) -> int:
+               round_record: Mapping | None = None, checked: bool = False) -> int:
     """Append one round of samples to an existing log and commit it.
 
     Rows beyond the committed count (left by an interrupted append) are
@@ -1164,6 +1182,14 @@ def append_log(path, positions, values, *, round_index: int | None = None,
     log.  A fixed-size dataset (other writers, or ``/run/records`` of logs
     written before format_minor 1) is converted to a resizable one once.
 
+    ``checked=True`` says the caller has already validated these arrays
+    for this log (:func:`mcrecon.samples.check_samples` with its width,
+    height and channels: contiguous float arrays, positions finite and on
+    the film): only their shapes and dtypes are checked again, not every
+    sample.  The adaptive driver passes it for the replies it validated
+    itself, so a round is validated and committed in one pass over it; the
+    file written is the same as without it.
+
     Returns
     -------
     int
@@ -1175,7 +1201,7 @@ def append_log(path, positions, values, *, round_index: int | None = None,
     with log_lock(path):
         try:
             return _append(path, pos_in=positions, val_in=values, round_index=round_index, feats=feats, rec=rec,
-                           round_record=round_record)
+                           round_record=round_record, checked=checked)
         except _H5_ERRORS as exc:
             if isinstance(exc, InputError):
                 raise
@@ -1240,12 +1266,15 @@ def _check_free_space(path, n: int, m: int, chunk: int, row_bytes: int) -> None:
         raise err
 
 
-def _append(path, *, pos_in, val_in, round_index, feats, rec, round_record) -> int:  # noqa: C901
+def _append(path, *, pos_in, val_in, round_index, feats, rec, round_record, checked=False) -> int:  # noqa: C901
     positions, values = pos_in, val_in
     with _open(path, "r+") as f:
         _recover_conversions(f)
         h = _read_header(path, f)
-        pos, val = _check_arrays(path, positions, values, h.width, h.height, len(h.channels))
+        if checked:
+            pos, val = _checked_arrays(path, positions, values, h.width, h.height, len(h.channels))
+        else:
+            pos, val = _check_arrays(path, positions, values, h.width, h.height, len(h.channels))
         m, n = pos.shape[0], h.n
         # ---- validate everything before the first write: a refused append leaves the file as it was
         fgroup = f.get("features")

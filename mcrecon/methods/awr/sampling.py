@@ -311,4 +311,7 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
     cover = np.cumsum(np.cumsum(diff, axis=0), axis=1)[:h, :w] > 0
     info["affected_fraction"] = float(cover.mean())
     pos = np.concatenate(parts, axis=0) if parts else np.zeros((0, 2))
-    return pos, info
+    # by row: the statistics take the reply several times faster (see sort_by_row)
+    from ..gem.sampling import sort_by_row
+
+    return sort_by_row(pos, h), info

@@ -76,7 +76,11 @@ class SplatMethod(Method):
     """
 
     name = "splat"
-    pipeline = "no"  # its round schedule counts the rounds observe() saw
+    #: Pipelines by default: the schedule is uniform doubling rounds, which the plan
+    #: reads from the rounds observed plus the one in flight (``state.pending``), so
+    #: a pipelined run asks for the same rounds and splats the same samples as a
+    #: sequential one (bit-identical images, tested).
+    pipeline = "default"
     adaptive = False
     requires = Requirements(samples=True, statistics=False)
     #: ``paper``: every sample splatted with Eq. 8 widths (Suykens and Willems
@@ -212,23 +216,34 @@ class SplatMethod(Method):
 
     # ----------------------------------------------------------- adaptive
     def plan(self, run: "SplatRun", state: AdaptiveState) -> SampleRequest | None:
-        """Every pixel gets N_j samples: N_0 = initial_spp, N_j = 2 N_{j-1}, the last round absorbing the rest."""
+        """Every pixel gets N_j samples: N_0 = initial_spp, N_j = 2 N_{j-1}, the last round absorbing the rest.
+
+        Pipelined (``state.lag`` = 1): the round in flight (``state.pending``,
+        every pixel the same count) is the previous round of the schedule; the
+        rounds asked for are those of a sequential run (unless NaN/Inf samples
+        were dropped: the schedule then counts the requested samples).
+        """
         p_film = state.width * state.height
         total_spp = state.budget // p_film
         if total_spp < 1 and run.n_rounds_seen == 0:
             raise InputError(self.where, "spp", f"budget of {state.budget} samples is below one sample per "
                              f"pixel ({p_film} pixels): splatting rounds sample every pixel")
-        rem = min(total_spp - int(round(run.spp_done)), state.remaining // p_film)
+        prev, done = run.prev_spp, run.spp_done
+        if state.lag and state.pending is not None:
+            prev = int(state.pending.sum()) / p_film
+            done = done + prev
+        rem = min(total_spp - int(round(done)), state.remaining // p_film)
         if rem < 1:
             return None
-        n = _next_round(rem, run.prev_spp, self.params["initial_spp"])
+        n = _next_round(rem, prev, self.params["initial_spp"])
         return state.request(counts=np.full((state.height, state.width), n, np.int64))
 
     def observe(self, run: "SplatRun", batch: SampleBatch, round_index: int) -> None:
         """Splat a committed round.
 
-        Non-finite values are dropped (the driver's statistics have already
-        applied and reported its policy).
+        The driver calls it with a committed round after its NaN/Inf policy:
+        validated arrays with finite values, which the splatter takes without
+        checking them again (``add_round(..., checked=True)``).
         """
         pos = np.asarray(batch.positions)
         val = np.asarray(batch.values)
@@ -237,7 +252,7 @@ class SplatMethod(Method):
         run.n_rounds_seen += 1
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", McreconWarning)
-            run.splatter.add_round(pos, val, nonfinite="drop", where=self.where)
+            run.splatter.add_round(pos, val, nonfinite="drop", where=self.where, checked=True)
         run.prev_spp = pos.shape[0] / (run.width * run.height)
         run.spp_done += run.prev_spp
 

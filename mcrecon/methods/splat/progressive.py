@@ -256,6 +256,128 @@ def _split_outliers(pos, val, norm_code, weights, wn, ws1, ws2, r, k_sigma, min_
     return n_out, n_capped
 
 
+@numba.njit(cache=True, nogil=True)
+def _count_and_moments(pos, val, norm_code, weights, counts, s1, s2):
+    """One pass over a round held in memory: samples per pixel and the sums of G and G^2 per pixel.
+
+    The same numbers as ``_pixel_counts`` then :func:`_g_moments` (integer
+    counts; the sums added in sample order).
+    """
+    h = s1.shape[0]
+    w = s1.shape[1]
+    nc = val.shape[1]
+    for k in range(pos.shape[0]):
+        # _norm_of's arithmetic written out: measured 5-7x faster here than the call
+        g = 0.0
+        if norm_code == 0:
+            for c in range(nc):
+                g += weights[c] * abs(np.float64(val[k, c]))
+        else:
+            for c in range(nc):
+                a = abs(np.float64(val[k, c]))
+                if a > g:
+                    g = a
+        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
+        py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+        counts[py, px] += 1
+        s1[py, px] += g
+        s2[py, px] += g * g
+
+
+@numba.njit(cache=True, nogil=True)
+def _outlier_thresholds(wn, ws1, ws2, r, k_sigma, min_pool, tau):
+    """The threshold tau of every pixel (:func:`_split_outliers` computes it per sample).
+
+    It depends only on the sample's pixel: computing it once per pixel is
+    the same arithmetic in the same order, so every sample sees the same
+    number (bit for bit), and a round costs one lookup per sample instead
+    of (2r+1)^2 window visits with a square root each.
+    """
+    h, w = wn.shape
+    for py in range(h):
+        for px in range(w):
+            t = 0.0
+            for j in range(max(py - r, 0), min(py + r, h - 1) + 1):
+                for i in range(max(px - r, 0), min(px + r, w - 1) + 1):
+                    nw = wn[j, i]
+                    if nw < min_pool:
+                        t = np.inf
+                        continue
+                    mean = ws1[j, i] / nw
+                    var = ws2[j, i] / nw - mean * mean
+                    if var < 0.0:
+                        var = 0.0
+                    tw = (mean + k_sigma * math.sqrt(var)) * (1.0 + 1e-9)
+                    if tw > t:
+                        t = tw
+            tau[py, px] = t
+
+
+@numba.njit(cache=True, nogil=True)
+def _split_and_deposit(pos, val, norm_code, weights, tau, fref, nmap, c, alpha, min_w, max_w, w_round, inv_counts,
+                       img, width_sum, width_n, out_idx, out_scale, out_rad):
+    """Robust variant, one pass over a round held in memory: split each sample (:func:`_split_outliers`
+    with the per-pixel thresholds ``tau``), deposit what stays in its pixel, record the kernel
+    diameters; the outliers' index, spread energy and radius go to ``out_*`` for the guided splat.
+
+    The arithmetic of the streamed path (split, ``scale = w_round / n_p``, the
+    own-pixel deposit ``scale (1 - frac)``, the widths' per-pixel sums) in the
+    same sample order.  Returns (outliers, capped).
+    """
+    h = nmap.shape[0]
+    w = nmap.shape[1]
+    nc = img.shape[2]
+    n_out = 0
+    n_capped = 0
+    for k in range(pos.shape[0]):
+        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
+        py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+        frac = 0.0
+        rad = -1.0
+        g = 0.0  # _norm_of written out (see _count_and_moments)
+        if norm_code == 0:
+            for ch in range(nc):
+                g += weights[ch] * abs(np.float64(val[k, ch]))
+        else:
+            for ch in range(nc):
+                a = abs(np.float64(val[k, ch]))
+                if a > g:
+                    g = a
+        if g > 0.0:
+            t = tau[py, px]
+            if g > t:
+                ex = g - t
+                f = fref[py, px]
+                n = nmap[py, px]
+                if f > 0.0 and f < np.inf:
+                    d = c * n ** (-alpha) * (math.sqrt(ex) / math.sqrt(f))
+                else:
+                    d = np.inf
+                if d >= max_w:
+                    if d > max_w:
+                        n_capped += 1
+                    d = max_w
+                if d > min_w:
+                    frac = ex / g
+                    rad = 0.5 * d
+        scale = w_round * inv_counts[py, px]
+        e = scale * (1.0 - frac)
+        if e != 0.0:
+            for ch in range(nc):
+                img[py, px, ch] += val[k, ch] * e
+        q = py * w + px
+        if rad > 0.0:
+            out_idx[n_out] = k
+            out_scale[n_out] = scale * frac
+            out_rad[n_out] = rad
+            n_out += 1
+            width_sum[q] += 2.0 * rad
+        else:
+            width_sum[q] += 2.0 * (0.5 * min_w)
+        width_n[q] += 1
+    return n_out, n_capped
+
+
 def _box_sum(a: np.ndarray, r: int) -> np.ndarray:
     """Sum of ``a`` (H, W) over the (2r+1)^2 window around each pixel, the window clipped to the film.
 
@@ -417,9 +539,37 @@ class ProgressiveSplatter:
         self._width_n += n
 
     # ------------------------------------------------------------- rounds
-    def add_round(self, positions, values, *, nonfinite: str = "drop", where: str = "samples") -> None:
-        """Add one round held in memory (Fig. 3: the first round, or one loop iteration)."""
-        self.add_round_stream(lambda: iter([(positions, values)]), nonfinite=nonfinite, where=where)
+    def add_round(self, positions, values, *, nonfinite: str = "drop", where: str = "samples",
+                  checked: bool = False) -> None:
+        """Add one round held in memory (Fig. 3: the first round, or one loop iteration).
+
+        The robust variant takes it in two fused passes (counts and G moments,
+        then split, own-pixel deposit and widths) with the outlier thresholds
+        computed once per pixel: the image, widths and round records are bit
+        for bit those of :meth:`add_round_stream` on the same arrays (tested),
+        at a fraction of the cost.  ``checked=True``: the arrays were already
+        checked by :func:`~mcrecon.samples.check_samples` and hold no NaN/Inf
+        value (the adaptive driver's committed rounds, after its policy):
+        they are not checked again.
+        """
+        if self.spread != "outliers":
+            self.add_round_stream(lambda: iter([(positions, values)]), nonfinite=nonfinite, where=where)
+            return
+        check_policy(nonfinite, where)
+        if checked:
+            pos, val = positions, values
+        else:
+            pos, val, n_bad = self._validated(positions, values, nonfinite, where)
+            self.n_nonfinite += n_bad
+        pos = np.ascontiguousarray(pos, dtype=np.float64)
+        val = np.ascontiguousarray(val, dtype=np.float64)
+        counts = np.zeros((self.height, self.width), np.int64)
+        s1 = np.zeros((self.height, self.width))
+        s2 = np.zeros((self.height, self.width))
+        _count_and_moments(pos, val, self._norm_code, self._weights, counts, s1, s2)
+        if int(counts.sum()) == 0:
+            return
+        self._add_round_robust(None, counts, s1, s2, self.spp_total == 0.0, nonfinite, where, arrays=(pos, val))
 
     def add_round_stream(self, chunks: Callable[[], Iterable], *, nonfinite: str = "drop",
                          where: str = "samples") -> None:
@@ -543,7 +693,7 @@ class ProgressiveSplatter:
         mean = np.where(n > 0, s1 / np.maximum(n, 1), 0.0)
         return n, s1, s2, np.ascontiguousarray(mean)
 
-    def _add_round_robust(self, chunks, counts, s1, s2, first, nonfinite, where):
+    def _add_round_robust(self, chunks, counts, s1, s2, first, nonfinite, where, arrays=None):
         """One round of the robust variant (``docs/methods/splat.md``, "Default vs paper").
 
         Every sample stays in its pixel (the one-pixel footprint, i.e. the
@@ -583,7 +733,21 @@ class ProgressiveSplatter:
         self._width_n = np.zeros(p_film, np.int64)
         mode = _BOUNDARY_CODE[self.boundary]
         outliers = capped = fallback = 0
-        for p, v in chunks():  # second pass: split and deposit
+        if arrays is not None:  # a round in memory (add_round): the fused pass
+            p, v = arrays
+            tau = np.empty((self.height, self.width))
+            _outlier_thresholds(wn, ws1, ws2, self.POOL_RADIUS, self.outlier_k, float(self.MIN_POOL), tau)
+            idx = np.empty(p.shape[0], np.int64)
+            oscale = np.empty(p.shape[0])
+            orad = np.empty(p.shape[0])
+            outliers, capped = _split_and_deposit(p, v, self._norm_code, self._weights, tau, fref, nmap, self.c,
+                                                  self.alpha, self.min_width, self.max_width, w_round, inv_counts,
+                                                  img, self._width_sum, self._width_n, idx, oscale, orad)
+            if outliers:
+                idx = idx[:outliers]
+                fallback = _splat_guided_loop(np.ascontiguousarray(p[idx]), np.ascontiguousarray(v[idx]),
+                                              oscale[:outliers], orad[:outliers], guide, mode, img)
+        for p, v in (chunks() if arrays is None else ()):  # second pass: split and deposit
             p, v, _ = self._validated(p, v, nonfinite, where)
             p = np.ascontiguousarray(p, dtype=np.float64)
             v = np.ascontiguousarray(v, dtype=np.float64)
