@@ -86,7 +86,8 @@ class GEMMethod(Method):
     #: (``state.pending``) from the pixels it would pick (see :meth:`plan`).  Not
     #: the default: the lag cost +45-54 % relative MSE on the caustic (128^2, 32 spp,
     #: 8-16 seeds; rare huge samples found one round late), +27 % on hdr and +12 % on
-    #: flat, 0.90-0.97 elsewhere (16 seeds, docs/pipelining.md).
+    #: flat, 0.90-0.97 elsewhere (16 seeds, docs/pipelining.md); with the default's
+    #: uniform quarter per round: caustic +42 %, flat +22 %, 0.73-1.04 elsewhere.
     pipeline = "allowed"
     #: The paper's algorithm (``variant="paper"``) against the measured defaults
     #: (docs/methods/gem.md, "Default vs paper"): error rate 0.1 (Sec. 7), the
