@@ -7,8 +7,8 @@ bands at the levels
 
 .. math::  \\tau_k = L_{max} / s^k, \\qquad k = 0, 1, \\dots, K-1,
 
-down to the median positive sample luminance (below it nothing is
-split), ``s = ratio``.  Where Zirr et al. down-weight a band that has too
+down to the first level at or below the median positive sample luminance
+(below that level nothing is split), ``s = ratio``.  Where Zirr et al. down-weight a band that has too
 few samples around a pixel (biased, energy lost), this module *moves* it:
 
 * A band is **dense** at pixel ``p`` when the 3x3 window around ``p``
@@ -29,11 +29,15 @@ few samples around a pixel (biased, energy lost), this module *moves* it:
 Properties (tested in ``tests/test_fireflies.py``):
 
 * **Energy**: base + excess is every sample's value; the spread image's
-  sum equals the excess pixel means' sum, so ``box(base) + excess`` has
-  the sum of the pixel means to rounding (1e-9 relative).
-* **Rims stay sharp**: an emitter's samples make every band dense in any
-  window that overlaps the emitter, so they stay in their pixels; only
-  bright samples with fewer than ``k_min`` like them within one pixel move.
+  sum equals the excess pixel means' sum, so the base's pixel means plus
+  the excess have the sum of the pixel means to rounding (1e-9 relative;
+  ``box`` fills empty pixels from the base, outside this balance).
+* **Rims stay sharp**: a window that holds at least ``min(k_min, frac *
+  n_window)`` samples of an emitter's brightness keeps them in their
+  pixels; only bright samples with fewer like them within one pixel move,
+  and only to pixels that saw samples at least that bright or their 3 x 3
+  neighbours (tested: nothing of an emitter reaches pixels two or more
+  pixels from any pixel it touches).
 * **Consistent**: as the sample count grows every band with non-zero
   probability becomes dense (``frac * n_window`` and ``k_min`` are
   reached), nothing moves, and the result is the method's on all samples.
@@ -94,6 +98,8 @@ class FireflySplit:
     moved_fraction: float
     k_min: int = 4
     neighbour_weight: float = 0.2
+    #: Non-finite samples the caller's policy removed or zeroed before the split (set by the caller).
+    n_nonfinite: int = 0
 
 
 def sample_luminance(values: np.ndarray) -> np.ndarray:

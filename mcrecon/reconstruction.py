@@ -43,6 +43,8 @@ class Reconstruction:
     inputs: MethodInputs
     fireflies: object = None
     _sanity: list | None = dataclasses.field(default=None, repr=False)
+    #: With ``fireflies``: the samples before the split (the base's range is clipped; the image is not).
+    _sanity_source: object = dataclasses.field(default=None, repr=False)
 
     def diagnostics(self) -> dict:
         """The method's diagnostic maps of this reconstruction."""
@@ -61,8 +63,10 @@ class Reconstruction:
             from .metrics import output_sanity
 
             stats = self.inputs.stats
-            if (stats is None or not stats.has_range) and self.inputs.samples is not None:
-                src = self.inputs.samples
+            if self._sanity_source is not None:
+                stats = None  # the base's statistics: compare with all the samples instead
+            if (stats is None or not stats.has_range) and (self._sanity_source or self.inputs.samples) is not None:
+                src = self._sanity_source if self._sanity_source is not None else self.inputs.samples
                 with warnings.catch_warnings():  # the reconstruction already reported dropped samples
                     warnings.simplefilter("ignore")
                     stats = PixelStats.from_source(src, nonfinite=self.inputs.nonfinite)
@@ -161,11 +165,19 @@ def split_source_fireflies(source, *, nonfinite: str = "drop", **split_options):
     pos, val, n_bad = check_samples(pos, val, width=source.width, height=source.height,
                                     n_channels=len(source.channels), where=where)
     if n_bad:
+        import warnings
+
+        from .errors import McreconWarning
+
         finite = np.isfinite(val).all(axis=1)
         pos, val = apply_nonfinite(pos, val, n_bad, nonfinite, where=where)
         if nonfinite == "drop":
             rounds = rounds[finite]
+        warnings.warn(f"{where}: values: {n_bad} sample(s) with NaN or Inf "
+                      f"{'dropped' if nonfinite == 'drop' else 'set to 0'} (policy nonfinite={nonfinite!r})",
+                      McreconWarning, stacklevel=3)
     split = split_fireflies(pos, val, width=source.width, height=source.height, **split_options)
+    split.n_nonfinite = int(n_bad)
     base = SampleSet(pos, split.base_values, width=source.width, height=source.height,
                      channels=source.channels, rounds=rounds, name=where)
     return base, split
@@ -200,7 +212,7 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
         and the rare bright part is added back, spread with the support its
         sample density needs (energy kept, consistent).  Any method; needs
         the individual samples (a log or a SampleSet) and holds them in
-        memory.  Measured in ``docs/which-method.md``.
+        memory.  Measured in ``docs/fireflies.md``.
 
     Examples
     --------
@@ -231,6 +243,7 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
             source = read_log(source)
         if reference is None and m.requires.reference != "none" and hasattr(source, "reference"):
             reference = source.reference()  # the base SampleSet carries no stored reference
+        original = source
         source, split = split_source_fireflies(source, nonfinite=nonfinite)
     inputs = gather_inputs(source, m, nonfinite=nonfinite, reference=reference)
     h, w, _ = inputs.shape
@@ -238,4 +251,7 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
     image = np.asarray(m.reconstruct(inputs, run=run), dtype=np.float64)
     if split is not None:
         image = image + split.excess
-    return Reconstruction(image, m, run, inputs, fireflies=split) if full else image
+    if not full:
+        return image
+    return Reconstruction(image, m, run, inputs, fireflies=split,
+                          _sanity_source=original if split is not None else None)

@@ -41,7 +41,8 @@ def box_of(pos, val, size):
 def test_energy_of_base_plus_spread_excess_equals_the_pixel_means(k_min, weight):
     size = 24
     pos, val, _ = firefly_field(size, 8, 0)
-    val[:40] = 5e4  # bright samples anywhere, film corners included (weights renormalised at the edges)
+    val[:40] = [5e4, 2e4, 3e3]  # coloured bright samples anywhere, film corners included (edge renormalisation)
+    val[val[:, 0] == 200.0] = [200.0, 80.0, 10.0]
     pos[:4] = [[0.1, 0.1], [23.9, 0.2], [0.3, 23.9], [23.95, 23.95]]
     split = split_fireflies(pos, val, width=size, height=size, k_min=k_min, neighbour_weight=weight)
     box = box_of(pos, val, size)
@@ -154,3 +155,24 @@ def test_cli_denoise_fireflies(tmp_path, capsys):
     code = main(["denoise", str(exr), "-o", str(tmp_path / "o.exr"), "--spp", "4", "--fireflies", "cascade"])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "fireflies" in err
+
+
+def test_sanity_and_dropped_counts_describe_all_the_samples_not_the_base(tmp_path, capsys):
+    """The base is clipped to each pixel's threshold: the output sanity check must compare the image with
+    all the samples (no false overshoot), and non-finite samples removed before the split are reported."""
+    size = 24
+    pos, val, _ = firefly_field(size, 8, 4)
+    samples = mcrecon.SampleSet(pos, val, width=size, height=size)
+    rec = mcrecon.reconstruct(samples, fireflies="cascade", full=True)
+    assert rec.fireflies.moved_fraction > 0
+    assert rec.sanity()["overshoot_pixels"] == 0
+    bad = val.copy()
+    bad[5] = np.nan
+    with pytest.warns(mcrecon.McreconWarning, match="1 sample"):
+        rec = mcrecon.reconstruct(mcrecon.SampleSet(pos, bad, width=size, height=size), fireflies="cascade",
+                                  full=True)
+    assert rec.fireflies.n_nonfinite == 1
+    log = tmp_path / "nan.h5"
+    write_log(log, pos, bad, width=size, height=size)
+    assert main(["denoise", str(log), "-o", str(tmp_path / "o.exr"), "--fireflies", "cascade"]) == 0
+    assert "(1 non-finite dropped)" in capsys.readouterr().out

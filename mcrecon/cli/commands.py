@@ -149,6 +149,8 @@ def _cmd_denoise(args):
     msg = (f"{method.name}: {log.width}x{log.height}, {log.n_samples} samples"
            + (" (a half-buffer pair)" if getattr(log, "pair", False) else "") + f", reconstructed in {dt:.3f} s")
     dropped = rec.inputs.stats.n_dropped if rec.inputs.stats is not None else 0
+    if rec.fireflies is not None and args.nonfinite == "drop":
+        dropped = rec.fireflies.n_nonfinite  # removed before the split, so the base's statistics never saw them
     if dropped:
         msg += f" ({dropped} non-finite dropped)"
     if rec.fireflies is not None:
