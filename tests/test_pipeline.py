@@ -368,3 +368,26 @@ def test_box_rounds_are_capped_and_still_bit_identical_with_the_lag():
     np.testing.assert_array_equal(a.counts, np.full((h, w), 40))
     # the default floor (2^20 samples) leaves small runs doubling
     assert [r["samples"] // (w * h) for r in adapt(_renderer(w, h), "box", spp=40, seed=2).rounds] == [1, 1, 2, 4, 8, 16, 8]
+
+
+@pytest.mark.parametrize("name", ["awr", "auto", "gem"])
+def test_a_pipelined_round_1_is_never_placed_from_empty_statistics(name):
+    """Round 1 of a pipelined run is planned while round 0 renders: with nothing committed, a placing
+    method must send uniform counts (its initial pass in two rounds), not positions chosen from empty
+    statistics (awr used to put every sample of that round into the first rows)."""
+    import numpy as np
+
+    from mcrecon.methods import get_method
+    from mcrecon.methods.base import AdaptiveState
+    from mcrecon.stats import PixelStats
+
+    w = h = 32
+    m = get_method(name)
+    run = m.start(w, h)
+    r0 = m.plan(run, AdaptiveState(stats=PixelStats(w, h), round_index=0, budget=32 * w * h, n_samples=0,
+                                   rng=np.random.default_rng(1), lag=1))
+    r1 = m.plan(run, AdaptiveState(stats=PixelStats(w, h), round_index=1, budget=32 * w * h, n_samples=r0.total,
+                                   rng=np.random.default_rng(1), lag=1, pending=r0.counts))
+    assert r0.positions is None and r1.positions is None
+    assert r1.counts.max() - r1.counts.min() <= 1
+    assert r0.total + r1.total == m.option_default("initial_spp") * w * h

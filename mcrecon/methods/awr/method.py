@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 
 from ...renderers.protocol import SampleRequest
-from ..base import AdaptiveState, Method, MethodInputs, Option, RunState, variant_option
+from ..base import AdaptiveState, Method, MethodInputs, Option, RunState, uniform_counts, variant_option
 from ..box import fill_empty_pixels
 from .reconstruction import (DOMAINS, VARIANCE_ESTIMATORS, awr_reconstruct, confidence_clamp, log_domain_reconstruct,
                              pixel_variance, sample_range_bounds)
@@ -139,9 +139,23 @@ class AWRMethod(Method):
         if remaining <= 0:
             return None
         npix = state.width * state.height
+        if state.lag:
+            # Pipelined: round 1 is planned while round 0 renders, from no statistics (the
+            # wavelet sampler then put every sample into the first rows).  As in
+            # GEMMethod.plan, the initial pass takes two rounds; the second needs nothing.
+            half = (p["initial_spp"] + 1) // 2
+            if half < p["initial_spp"]:
+                if state.n_samples == 0:
+                    return state.uniform_request(half)
+                initial = p["initial_spp"] * npix
+                if state.round_index == 1 and state.n_samples < initial:
+                    n = min(remaining, initial - state.n_samples)
+                    return state.request(counts=uniform_counts(state.width, state.height, n, state.rng))
         if state.n_samples == 0:
             return state.uniform_request(p["initial_spp"])
         quota = min(remaining, max(1, int(round(p["round_spp"] * npix))))
+        if int(state.stats.count.sum()) == 0:  # nothing committed to plan from (initial_spp 1, pipelined)
+            return state.request(counts=uniform_counts(state.width, state.height, quota, state.rng))
         pos, info = plan_awr_positions(
             state.stats, quota, state.rng, wavelet=p["wavelet"], levels=p["sampling_levels"], mode=p["boundary"],
             per_coefficient=p["per_coefficient"], renorm=p["sampling_renorm"], propagation=p["propagation"],
