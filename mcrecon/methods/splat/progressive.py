@@ -184,18 +184,27 @@ def _g_moments(pos, val, norm_code, weights, s1, s2):
         s2[py, px] += g * g
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _excess_width(g, t, f, n, c, alpha, min_w, max_w):
+    """Eq. 8's kernel diameter for the excess ``g - t`` of a sample (``g > t``) against its window's
+    pooled mean ``f`` and sample count ``n``, capped at ``max_w``: (diameter, capped)."""
+    ex = g - t
+    if f > 0.0 and f < np.inf:
+        d = c * n ** (-alpha) * (math.sqrt(ex) / math.sqrt(f))
+    else:
+        d = np.inf
+    capped = d > max_w
+    if d >= max_w:
+        d = max_w
+    return d, capped
+
+
 @numba.njit(cache=True, nogil=True)
-def _split_outliers(pos, val, norm_code, weights, wn, ws1, ws2, r, k_sigma, min_pool, fref, nmap, c, alpha,
-                    min_w, max_w, frac, radius):
+def _split_outliers(pos, val, norm_code, weights, tau, fref, nmap, c, alpha, min_w, max_w, frac, radius):
     """Robust variant: the part of each sample above its threshold, and that part's kernel radius.
 
-    The threshold of a sample in pixel p is the largest, over the
-    (2r+1)^2 windows that contain p (those centred within r of p), of
-    ``mean + k std`` of the G of the window's samples (``wn``, ``ws1``,
-    ``ws2``: count, sum of G, sum of G^2 per window); a window with fewer
-    than ``min_pool`` samples gives no test (infinite threshold).  The
-    maximum over windows keeps a sample beside a bright edge in place: the
-    window on the bright side explains it.  A sample with ``G <= tau``
+    The threshold of a sample is its pixel's ``tau``
+    (:func:`_outlier_thresholds`).  A sample with ``G <= tau``
     stays in its pixel (``frac = 0``).  Above, ``frac = 1 - tau / G`` of
     its value (every channel alike: the colour is kept, nothing is
     clipped) is the excess, splatted with Eq. 8's width for ``G - tau``
@@ -220,38 +229,15 @@ def _split_outliers(pos, val, norm_code, weights, wn, ws1, ws2, r, k_sigma, min_
             continue
         px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
         py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
-        t = 0.0
-        for j in range(max(py - r, 0), min(py + r, h - 1) + 1):
-            for i in range(max(px - r, 0), min(px + r, w - 1) + 1):
-                nw = wn[j, i]
-                if nw < min_pool:
-                    t = np.inf
-                    continue
-                mean = ws1[j, i] / nw
-                var = ws2[j, i] / nw - mean * mean
-                if var < 0.0:
-                    var = 0.0
-                # (1 + 1e-9): a zero-variance window must not flag its own samples through rounding
-                tw = (mean + k_sigma * math.sqrt(var)) * (1.0 + 1e-9)
-                if tw > t:
-                    t = tw
+        t = tau[py, px]
         if not g > t:
             continue
-        ex = g - t
-        f = fref[py, px]
-        n = nmap[py, px]
-        if f > 0.0 and f < np.inf:
-            d = c * n ** (-alpha) * (math.sqrt(ex) / math.sqrt(f))
-        else:
-            d = np.inf
-        if d >= max_w:
-            if d > max_w:
-                n_capped += 1
-            d = max_w
+        d, cap = _excess_width(g, t, fref[py, px], nmap[py, px], c, alpha, min_w, max_w)
+        n_capped += cap
         if d <= min_w:
             continue  # the excess would stay in the pixel anyway
         n_out += 1
-        frac[k] = ex / g
+        frac[k] = (g - t) / g
         radius[k] = 0.5 * d
     return n_out, n_capped
 
@@ -286,12 +272,17 @@ def _count_and_moments(pos, val, norm_code, weights, counts, s1, s2):
 
 @numba.njit(cache=True, nogil=True)
 def _outlier_thresholds(wn, ws1, ws2, r, k_sigma, min_pool, tau):
-    """The threshold tau of every pixel (:func:`_split_outliers` computes it per sample).
+    """The outlier threshold tau of every pixel (robust variant).
 
-    It depends only on the sample's pixel: computing it once per pixel is
-    the same arithmetic in the same order, so every sample sees the same
-    number (bit for bit), and a round costs one lookup per sample instead
-    of (2r+1)^2 window visits with a square root each.
+    The threshold of a sample in pixel p is the largest, over the
+    (2r+1)^2 windows that contain p (those centred within r of p), of
+    ``mean + k std`` of the G of the window's samples (``wn``, ``ws1``,
+    ``ws2``: count, sum of G, sum of G^2 per window); a window with fewer
+    than ``min_pool`` samples gives no test (infinite threshold).  The
+    maximum over windows keeps a sample beside a bright edge in place: the
+    window on the bright side explains it.  It depends only on the pixel:
+    computed once per pixel, a round costs one lookup per sample instead of
+    (2r+1)^2 window visits with a square root each.
     """
     h, w = wn.shape
     for py in range(h):
@@ -316,8 +307,8 @@ def _outlier_thresholds(wn, ws1, ws2, r, k_sigma, min_pool, tau):
 @numba.njit(cache=True, nogil=True)
 def _split_and_deposit(pos, val, norm_code, weights, tau, fref, nmap, c, alpha, min_w, max_w, w_round, inv_counts,
                        img, width_sum, width_n, out_idx, out_scale, out_rad):
-    """Robust variant, one pass over a round held in memory: split each sample (:func:`_split_outliers`
-    with the per-pixel thresholds ``tau``), deposit what stays in its pixel, record the kernel
+    """Robust variant, one pass over a round held in memory: split each sample (as :func:`_split_outliers`
+    does, with the per-pixel thresholds ``tau``), deposit what stays in its pixel, record the kernel
     diameters; the outliers' index, spread energy and radius go to ``out_*`` for the guided splat.
 
     The arithmetic of the streamed path (split, ``scale = w_round / n_p``, the
@@ -346,19 +337,10 @@ def _split_and_deposit(pos, val, norm_code, weights, tau, fref, nmap, c, alpha, 
         if g > 0.0:
             t = tau[py, px]
             if g > t:
-                ex = g - t
-                f = fref[py, px]
-                n = nmap[py, px]
-                if f > 0.0 and f < np.inf:
-                    d = c * n ** (-alpha) * (math.sqrt(ex) / math.sqrt(f))
-                else:
-                    d = np.inf
-                if d >= max_w:
-                    if d > max_w:
-                        n_capped += 1
-                    d = max_w
+                d, cap = _excess_width(g, t, fref[py, px], nmap[py, px], c, alpha, min_w, max_w)
+                n_capped += cap
                 if d > min_w:
-                    frac = ex / g
+                    frac = (g - t) / g
                     rad = 0.5 * d
         scale = w_round * inv_counts[py, px]
         e = scale * (1.0 - frac)
@@ -733,10 +715,10 @@ class ProgressiveSplatter:
         self._width_n = np.zeros(p_film, np.int64)
         mode = _BOUNDARY_CODE[self.boundary]
         outliers = capped = fallback = 0
+        tau = np.empty((self.height, self.width))
+        _outlier_thresholds(wn, ws1, ws2, self.POOL_RADIUS, self.outlier_k, float(self.MIN_POOL), tau)
         if arrays is not None:  # a round in memory (add_round): the fused pass
             p, v = arrays
-            tau = np.empty((self.height, self.width))
-            _outlier_thresholds(wn, ws1, ws2, self.POOL_RADIUS, self.outlier_k, float(self.MIN_POOL), tau)
             idx = np.empty(p.shape[0], np.int64)
             oscale = np.empty(p.shape[0])
             orad = np.empty(p.shape[0])
@@ -753,9 +735,8 @@ class ProgressiveSplatter:
             v = np.ascontiguousarray(v, dtype=np.float64)
             frac = np.empty(p.shape[0])
             rad = np.empty(p.shape[0])
-            n_out, n_cap = _split_outliers(p, v, self._norm_code, self._weights, wn, ws1, ws2, self.POOL_RADIUS,
-                                           self.outlier_k, float(self.MIN_POOL), fref, nmap, self.c, self.alpha,
-                                           self.min_width, self.max_width, frac, rad)
+            n_out, n_cap = _split_outliers(p, v, self._norm_code, self._weights, tau, fref, nmap, self.c,
+                                           self.alpha, self.min_width, self.max_width, frac, rad)
             outliers += n_out
             capped += n_cap
             ix = np.clip(np.floor(p[:, 0]).astype(np.int64), 0, self.width - 1)
