@@ -54,7 +54,7 @@ import dataclasses
 import math
 import numbers
 import types
-from typing import Any, ClassVar, Mapping, Sequence
+from typing import Any, Callable, ClassVar, Mapping, Sequence
 
 import numpy as np
 
@@ -409,6 +409,38 @@ class AdaptiveState:
         """``spp`` samples per pixel spread uniformly (at most what the budget has left)."""
         n = min(self.remaining, int(spp * self.width * self.height))
         return self.request(counts=uniform_counts(self.width, self.height, n, self.rng))
+
+    def request_with_uniform_share(self, n: int, share: float,
+                                   place: Callable[[int], np.ndarray]) -> SampleRequest:
+        """A round of ``n`` samples: ``round(share * n)`` spread uniformly (counts), the rest at the
+        positions ``place(n_placed)`` returns (called first, only when ``n_placed > 0``)."""
+        n_uniform = int(round(share * n))
+        positions = place(n - n_uniform) if n - n_uniform > 0 else None
+        counts = uniform_counts(self.width, self.height, n_uniform, self.rng) if n_uniform > 0 else None
+        return self.request(positions=positions, counts=counts)
+
+    def initial_pass(self, spp: int) -> tuple[SampleRequest | None, int]:
+        """The uniform initial pass of a method that places later samples from the statistics.
+
+        Returns ``(request, first)``: the request of this round while the
+        pass is not complete, else None; ``first``, the index of the first
+        round the method places itself.  Pipelined (``lag``), round 1 is
+        planned while round 0 renders, from no statistics: the pass then
+        takes two rounds, ceil(spp / 2) per pixel and the rest (which needs
+        nothing committed), and ``first`` is 2.
+        """
+        half = (spp + 1) // 2
+        if self.lag and half < spp:
+            if self.n_samples == 0:
+                return self.uniform_request(half), 2
+            initial = spp * self.width * self.height
+            if self.round_index == 1 and self.n_samples < initial:
+                n = min(self.remaining, initial - self.n_samples)
+                return self.request(counts=uniform_counts(self.width, self.height, n, self.rng)), 2
+            return None, 2
+        if self.n_samples == 0:
+            return self.uniform_request(spp), 1
+        return None, 1
 
 
 def uniform_counts(width: int, height: int, n: int, rng: np.random.Generator) -> np.ndarray:

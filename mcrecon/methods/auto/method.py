@@ -612,10 +612,10 @@ class AutoMethod(Method):
         sends ``remaining // (iterations - i + 1)``).  The GEM part is GEM's
         own planning with its default options on the committed statistics:
         its adaptive scale selection, the estimated relative MSE of the
-        selected filters, priorities ``sample_priority`` and
-        ``distribute_samples`` (pipelined, as in ``GEMMethod.plan``: the
-        initial pass in two rounds so that no placement is planned from
-        empty statistics, and the pending samples counted).  The uniform
+        selected filters and :meth:`GEMMethod.place` (pipelined, as in
+        ``GEMMethod.plan``: the initial pass in two rounds so that no
+        placement is planned from empty statistics,
+        :meth:`AdaptiveState.initial_pass`; the pending samples counted).  The uniform
         part keeps every pixel's share of samples at least ``uniform_share``
         of a uniform run's, so a pixel whose GEM estimate misleads is never
         starved.
@@ -626,55 +626,28 @@ class AutoMethod(Method):
         of each round uniform, auto beat uniform sampling on every built-in
         scene (docs/methods/auto.md).
         """
-        from ..gem.selection import _pick
-        from ..gem.method import _with_pending
-        from ..gem.sampling import distribute_samples, sample_priority
-
         p = self.params
         remaining = state.remaining
         if remaining <= 0:
             return None
         npix = state.width * state.height
-        first = 1
-        if state.lag:
-            # Pipelined: round 1 is planned while round 0 renders, from no statistics.  As in
-            # GEMMethod.plan, the initial pass takes two rounds (the second needs nothing
-            # committed), and the placed rounds are numbered from round 2.
-            half = (p["initial_spp"] + 1) // 2
-            if half < p["initial_spp"]:
-                first = 2
-                if state.n_samples == 0:
-                    return state.uniform_request(half)
-                initial = p["initial_spp"] * npix
-                if state.round_index == 1 and state.n_samples < initial:
-                    n = min(remaining, initial - state.n_samples)
-                    return state.request(counts=uniform_counts(state.width, state.height, n, state.rng))
-        if state.n_samples == 0:
-            return state.uniform_request(p["initial_spp"])
+        req, first = state.initial_pass(p["initial_spp"])
+        if req is not None:
+            return req
         left = p["iterations"] - (state.round_index - first + 1) + 1
         n_round = remaining if left <= 1 else max(1, remaining // left)
         if int(state.stats.count.sum()) == 0:
             # nothing committed yet to place samples by (initial_spp 1 under lag): uniform
             return state.request(counts=uniform_counts(state.width, state.height, n_round, state.rng))
-        n_uniform = int(round(p["uniform_share"] * n_round))
-        n_gem = n_round - n_uniform
-        positions = counts = None
-        if n_gem > 0:
+
+        def place(n_gem):
             gem = self._gem
             if run.gem_run is None:
                 run.gem_run = gem.start(state.width, state.height, state.stats.channels)
             sel = gem._select(run.gem_run, state.stats, final=False, want_mse=True)
-            n_pick = max(1, int(round(state.budget / npix)))
-            n_eff = _pick(sel.bank.n_eff, sel.selected)
-            mse = sel.mse
-            if state.lag and state.pending is not None and np.any(state.pending):
-                mse, n_eff = _with_pending(sel, state.stats.count, state.pending, n_eff, gem.grid)
-            _, pri = sample_priority(mse, sel.image, n_eff, n_pick)
-            positions = distribute_samples(pri, sel.selected, sel.bank.sigmas, n_gem, n_pick, state.rng,
-                                           subpixels=gem.grid)
-        if n_uniform > 0:
-            counts = uniform_counts(state.width, state.height, n_uniform, state.rng)
-        return state.request(positions=positions, counts=counts)
+            return gem.place(sel, sel.image, state, n_gem, max(1, int(round(state.budget / npix))))
+
+        return state.request_with_uniform_share(n_round, p["uniform_share"], place)
 
 
 #: A pixel's neighbourhood is heavy-tailed when the largest sample around it exceeds this many times its mean.

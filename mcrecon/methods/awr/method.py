@@ -139,20 +139,11 @@ class AWRMethod(Method):
         if remaining <= 0:
             return None
         npix = state.width * state.height
-        if state.lag:
-            # Pipelined: round 1 is planned while round 0 renders, from no statistics (the
-            # wavelet sampler then put every sample into the first rows).  As in
-            # GEMMethod.plan, the initial pass takes two rounds; the second needs nothing.
-            half = (p["initial_spp"] + 1) // 2
-            if half < p["initial_spp"]:
-                if state.n_samples == 0:
-                    return state.uniform_request(half)
-                initial = p["initial_spp"] * npix
-                if state.round_index == 1 and state.n_samples < initial:
-                    n = min(remaining, initial - state.n_samples)
-                    return state.request(counts=uniform_counts(state.width, state.height, n, state.rng))
-        if state.n_samples == 0:
-            return state.uniform_request(p["initial_spp"])
+        # pipelined, the pass takes two rounds: planned from no statistics, the wavelet
+        # sampler put every sample of round 1 into the first rows
+        req, _ = state.initial_pass(p["initial_spp"])
+        if req is not None:
+            return req
         quota = min(remaining, max(1, int(round(p["round_spp"] * npix))))
         if int(state.stats.count.sum()) == 0:  # nothing committed to plan from (initial_spp 1, pipelined)
             return state.request(counts=uniform_counts(state.width, state.height, quota, state.rng))

@@ -13,8 +13,7 @@ import numpy as np
 
 from ...errors import InputError
 from ...stats import PixelStats
-from ..base import (AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, uniform_counts,
-                    variant_option)
+from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, variant_option
 from .kernels import adaptive_sigmas, filled_subpixels, final_sigmas, pending_n_eff
 from .sampling import distribute_samples, sample_priority
 from .selection import GAMMA_MAX, OUTLIER_RULES, GEMSelection, _pick, gem_select, mean_variance_policy, oracle_select
@@ -245,20 +244,9 @@ class GEMMethod(Method):
         if remaining <= 0:
             return None
         npix = state.width * state.height
-        lag = int(state.lag)
-        first = 1
-        if lag:
-            half = (p["initial_spp"] + 1) // 2
-            if half < p["initial_spp"]:
-                first = 2
-                if state.n_samples == 0:
-                    return state.uniform_request(half)
-                initial = p["initial_spp"] * npix
-                if state.round_index == 1 and state.n_samples < initial:
-                    n = min(remaining, initial - state.n_samples)
-                    return state.request(counts=uniform_counts(state.width, state.height, n, state.rng))
-        if state.n_samples == 0:
-            return state.uniform_request(p["initial_spp"])
+        req, first = state.initial_pass(p["initial_spp"])
+        if req is not None:
+            return req
         left = p["iterations"] - (state.round_index - first + 1) + 1
         n_round = remaining if left <= 1 else max(1, remaining // left)
         n_pick = p["samples_per_pick"] or max(1, int(round(state.budget / npix)))
@@ -268,23 +256,25 @@ class GEMMethod(Method):
             est = float(np.mean(sel.mse / (value * value + TARGET_EPS)))
             if est <= p["target_rel_mse"]:
                 return None
-        n_eff = _pick(sel.bank.n_eff, sel.selected)
-        mse = sel.mse
-        pending = state.pending
-        if lag and pending is not None and np.any(pending):
-            mse, n_eff = _with_pending(sel, state.stats.count, pending, n_eff, self.grid)
         # A share of the round goes uniformly (a departure from the paper, measured in
         # docs/methods/gem.md): where the estimates point at the wrong pixels (depth of
         # field: edges the blur removed) no pixel is starved of samples.
-        n_uniform = int(round(p["uniform_share"] * n_round))
-        pos = counts = None
-        if n_round - n_uniform > 0:
-            _, pri = sample_priority(mse, value, n_eff, n_pick)
-            pos = distribute_samples(pri, sel.selected, sel.bank.sigmas, n_round - n_uniform, n_pick, state.rng,
-                                     subpixels=self.grid)
-        if n_uniform > 0:
-            counts = uniform_counts(state.width, state.height, n_uniform, state.rng)
-        return state.request(positions=pos, counts=counts)
+        return state.request_with_uniform_share(
+            n_round, p["uniform_share"], lambda n: self.place(sel, value, state, n, n_pick))
+
+    def place(self, sel: GEMSelection, value: np.ndarray, state: AdaptiveState, n: int, n_pick: int) -> np.ndarray:
+        """Positions of ``n`` samples by Sec. 5's greedy distribution over the selection ``sel``.
+
+        Priorities from the selected filters' estimated MSE relative to
+        ``value`` (the selection's image, or the reference for the oracle);
+        pipelined, the pending samples are counted as taken (:func:`_with_pending`).
+        """
+        n_eff = _pick(sel.bank.n_eff, sel.selected)
+        mse = sel.mse
+        if state.lag and state.pending is not None and np.any(state.pending):
+            mse, n_eff = _with_pending(sel, state.stats.count, state.pending, n_eff, self.grid)
+        _, pri = sample_priority(mse, value, n_eff, n_pick)
+        return distribute_samples(pri, sel.selected, sel.bank.sigmas, n, n_pick, state.rng, subpixels=self.grid)
 
 
 def _with_pending(sel, count, pending, n_eff, subpixels):
