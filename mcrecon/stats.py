@@ -80,6 +80,10 @@ def fill_from_neighbours(values: np.ndarray, defined: np.ndarray, fill: np.ndarr
         local = np.zeros(np.broadcast_shapes(num.shape, den.shape))
         np.divide(num, den, out=local, where=den > 0)
         glob = values[defined].mean(axis=0)
+        # An average cannot leave the range of what it averages, but uniform_filter's running
+        # sums can by rounding (-1e-14 from non-negative variances: a negative variance that
+        # awr then refused mid-run); clip it back into the defined values' range.
+        local = np.clip(local, values[defined].min(axis=0), values[defined].max(axis=0))
         sub = np.where(den > 1e-12, local, glob)
     return np.where(fill[..., None], sub, values)
 
