@@ -124,8 +124,17 @@ def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=
         if not (hasattr(source, "round_slices") and hasattr(source, "iter_chunks")):
             raise InputError("reconstruct", "source", f"got {type(source).__name__}; expected a sample log path, "
                              "a SampleLog, a SampleSet, PixelStats or a half-buffer pair (stats_a, stats_b)")
-        stats = PixelStats.from_source(source, subpixels=req.subpixels, nonfinite=nonfinite) \
-            if req.statistics else None
+        if req.samples and req.half_buffers and req.statistics and not req.subpixels:
+            # The method splits the samples into two halves anyway: one pass builds both,
+            # and the statistics of all the samples are their Chan merge (equal to
+            # accumulating every sample to a few ulps; auto at 1024^2: -0.45 s)
+            from .estimates import split_halves
+            split = split_halves(source, nonfinite=nonfinite)
+            halves = (split.a, split.b)
+            stats = merge_halves(*halves)
+        else:
+            stats = PixelStats.from_source(source, subpixels=req.subpixels, nonfinite=nonfinite) \
+                if req.statistics else None
         stored_ref = source.reference() if req.reference != "none" and hasattr(source, "reference") else None
         samples = source if req.samples else None
     shape = stats.shape if stats is not None else (samples.height, samples.width, len(samples.channels))

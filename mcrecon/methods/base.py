@@ -648,7 +648,9 @@ class Method:
             raise InputError(self.where, "halves", f"{self.name} does not use half buffers (methods that do "
                              "declare requires.half_buffers: " + (", ".join(half_buffer_methods()) or "none")
                              + "); give it the statistics of all the samples (merge_halves(a, b))")
-        if inputs.samples is not None:
+        if inputs.samples is not None and inputs.stats is None:
+            # both are allowed only as the reader builds them: the halves are the split of
+            # those samples and the statistics their merge (checked on the counts below)
             raise InputError(self.where, "halves", "give the samples or a half-buffer pair, not both "
                              "(the method splits samples itself)")
         a, b = check_half_buffers(inputs.halves, self.where)

@@ -21,7 +21,7 @@ import numba
 import numpy as np
 from scipy import ndimage
 
-from ..._filtering import correlate_jobs
+from ..._filtering import correlate_jobs, numba_threads
 
 from ...errors import InputError, McreconWarning
 from ...estimates import (DEFAULT_EPS, Halves, cross_validation_mse, dual_buffer_mse, relative_denominator,
@@ -673,21 +673,54 @@ def _no_push_in_heavy_tails(img: np.ndarray, y: np.ndarray, hi: np.ndarray) -> n
     0.757 -> 0.522; soft shadow, depth of field, motion blur, hdr and flat
     within 0.1 %; Mitsuba Cornell boxes +1.5-1.7 % (docs/methods/auto.md).
     """
-    heavy = hi > HEAVY_TAIL * np.abs(y)
-    cand = heavy & (img != y)
-    if not cand.any():
-        return img
-    h, w, _ = y.shape
-    ii, jj, cc = np.nonzero(cand)
-    pad = np.pad(y, ((1, 1), (1, 1), (0, 0)), mode="edge")
-    neigh = np.stack([pad[ii + 1 + di, jj + 1 + dj, cc] for di in (-1, 0, 1) for dj in (-1, 0, 1)
-                      if (di, dj) != (0, 0)], axis=1)
-    med = np.median(neigh, axis=1)
-    yc, oc = y[ii, jj, cc], img[ii, jj, cc]
-    away = ((yc > med) & (oc > yc)) | ((yc < med) & (oc < yc))
+    # one compiled pass: the test and the 8-neighbour median only where the rule can fire
+    # (the numpy formulation, kept in the tests as the reference, was 1.2 s of auto's 8 s at 1024^2)
+    img = np.ascontiguousarray(img, dtype=np.float64)
     out = img.copy()
-    out[ii[away], jj[away], cc[away]] = yc[away]
+    with numba_threads():
+        _no_push_kernel(img, np.ascontiguousarray(y, dtype=np.float64),
+                        np.ascontiguousarray(hi, dtype=np.float64), HEAVY_TAIL, out)
     return out
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _no_push_kernel(img, y, hi, heavy_tail, out):
+    """:func:`_no_push_in_heavy_tails` per pixel and channel (``out`` starts as a copy of ``img``).
+
+    The median of the 8 neighbours (edge-repeated) is the mean of the 4th
+    and 5th of them sorted, as :func:`numpy.median` computes it; NaN
+    anywhere among them makes it NaN, and a NaN median never reverts.
+    """
+    h, w, c = y.shape
+    for i in numba.prange(h):
+        nb = np.empty(8)
+        for j in range(w):
+            for ch in range(c):
+                yc = y[i, j, ch]
+                oc = img[i, j, ch]
+                if not (hi[i, j, ch] > heavy_tail * abs(yc)) or not (oc != yc):
+                    continue
+                k = 0
+                nan = False
+                for di in range(-1, 2):
+                    for dj in range(-1, 2):
+                        if di == 0 and dj == 0:
+                            continue
+                        v = y[min(max(i + di, 0), h - 1), min(max(j + dj, 0), w - 1), ch]
+                        if v != v:
+                            nan = True
+                        # insertion into the sorted prefix nb[:k]
+                        m = k
+                        while m > 0 and nb[m - 1] > v:
+                            nb[m] = nb[m - 1]
+                            m -= 1
+                        nb[m] = v
+                        k += 1
+                if nan:
+                    continue
+                med = (nb[3] + nb[4]) / 2.0
+                if (yc > med and oc > yc) or (yc < med and oc < yc):
+                    out[i, j, ch] = yc
 
 
 def _largest_remainder(pri: np.ndarray, total: int) -> np.ndarray:
