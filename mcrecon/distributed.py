@@ -85,6 +85,23 @@ def _cores() -> int:
         return os.cpu_count() or 1
 
 
+#: Dask housekeeping switched off or slowed down for the clusters :func:`local_client` starts.
+#: On a machine whose cores all run frames, every CPU-second the scheduler, the nannies and the
+#: workers' event loops spend is taken from a frame.  Measured on the 16-frame gem batch with 2
+#: workers on 2 cores (CPU time of the client process, which hosts the scheduler and the nannies,
+#: plus the workers' event-loop threads, during the batch; docs/distributed.md): 1.45-2.6 CPU-s
+#: with Dask's defaults, 0.9-1.0 without the profiler, 0.5-0.6 with the tick at 1 s too, against
+#: ~15 CPU-s of frames.  The statistical profiler samples the running task's stack 100 times a
+#: second on the worker's event loop (and a second thread watches each event loop); the tick
+#: wakes every event loop 50 times a second to check that it is not blocked (it warns after 3 s,
+#: which a 1 s tick still sees).  Only Dask's dashboard profile page loses anything.  A cluster
+#: the user starts (``--scheduler``) keeps its own configuration (docs/distributed.md).
+_QUIET = {
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "1s",
+}
+
+
 @contextlib.contextmanager
 def local_client(workers: int | None = None, *, threads: int | None = None):
     """A :class:`distributed.Client` on a fresh LocalCluster of ``workers`` processes (default: the cores).
@@ -109,7 +126,7 @@ def local_client(workers: int | None = None, *, threads: int | None = None):
     # 32-spp gem frame took 1.00-1.03 s instead of 0.79-0.88 s in the same process
     # (docs/distributed.md, "Measured scaling").  Our workers allocate as `mcrecon denoise`
     # does; an explicit MALLOC_TRIM_THRESHOLD_ in the environment is still inherited.
-    with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+    with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None, **_QUIET}):
         cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                                            dashboard_address=":0", silence_logs=logging.CRITICAL,
                                            env={"MCRECON_THREADS": str(t), "OMP_NUM_THREADS": "1"})

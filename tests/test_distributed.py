@@ -100,6 +100,17 @@ def test_batch_local_cluster_and_refusals(frames, tmp_path, capsys):
     assert "matches no file" in capsys.readouterr().err
 
 
+def _housekeeping(dask_worker):
+    import dask
+
+    return ("profile" in dask_worker.periodic_callbacks, dask.config.get("distributed.admin.tick.interval"))
+
+
+def test_local_cluster_workers_run_without_the_profiler(client):
+    """local_client's workers get its quieter Dask configuration (the nanny hands it to the worker process)."""
+    assert set(client.run(_housekeeping).values()) == {(False, "1s")}
+
+
 # ----------------------------------------------------------------- 2. ingestion
 def _merge_bound(st: PixelStats, parts: int):
     """Rounding bound of |distributed - one-process| for mean, m2 and subpixel sums (docs/distributed.md).
