@@ -11,9 +11,12 @@ Prints, all measured in this run:
 * the same frames in plain processes without Dask (1 vs 2 processes, one
   thread each): the workload's own ceiling on this machine;
 * the batch on a LocalCluster, 1 vs 2 workers with one thread each (and 1
-  worker with 2 threads, the default on 2 cores); the scheduler overhead
-  per task, the per-frame cost and I/O, and an extrapolation to many
-  workers;
+  worker with 2 threads, the default on 2 cores; and 2 workers with Dask's
+  default housekeeping, profiler on and 20 ms tick, which mcrecon's
+  local_client turns down); Dask's own CPU during each batch (client
+  process with the scheduler and the nannies, workers' event loops); the
+  scheduler overhead per task, the per-frame cost and I/O, and an
+  extrapolation to many workers;
 * ingestion of one big log: one process, and 1 vs 2 workers.
 
 Times are steady state: each worker has imported mcrecon and loaded its
