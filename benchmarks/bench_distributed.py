@@ -11,9 +11,12 @@ Prints, all measured in this run:
 * the same frames in plain processes without Dask (1 vs 2 processes, one
   thread each): the workload's own ceiling on this machine;
 * the batch on a LocalCluster, 1 vs 2 workers with one thread each (and 1
-  worker with 2 threads, the default on 2 cores); the scheduler overhead
-  per task, the per-frame cost and I/O, and an extrapolation to many
-  workers;
+  worker with 2 threads, the default on 2 cores; and 2 workers with Dask's
+  default housekeeping, profiler on and 20 ms tick, which mcrecon's
+  local_client turns down); Dask's own CPU during each batch (client
+  process with the scheduler and the nannies, workers' event loops); the
+  scheduler overhead per task, the per-frame cost and I/O, and an
+  extrapolation to many workers;
 * ingestion of one big log: one process, and 1 vs 2 workers.
 
 Times are steady state: each worker has imported mcrecon and loaded its
@@ -110,6 +113,34 @@ def _noop(x):
     return x
 
 
+def _loop_thread() -> int:
+    """The native id of the calling thread (``Client.run`` calls it on the worker's event loop)."""
+    import threading
+
+    return threading.get_native_id()
+
+
+def _housekeeping_cpu(client):
+    """A function giving the CPU seconds so far of this process (client, scheduler, nannies) and of
+    the workers' event-loop threads: Dask's own work, as opposed to the frames' (None without psutil)."""
+    try:
+        import psutil
+    except ImportError:
+        return None
+    me = psutil.Process()
+    loops = [(psutil.Process(pid), client.run(_loop_thread, workers=[addr])[addr])
+             for addr, pid in client.run(os.getpid).items()]
+
+    def now():
+        t = me.cpu_times()
+        own = t.user + t.system
+        ev = 0.0
+        for proc, tid in loops:
+            ev += sum(th.user_time + th.system_time for th in proc.threads() if th.id == tid)
+        return own, ev
+    return now
+
+
 def _warm(log, out_dir, method):
     from mcrecon.distributed import denoise_frame
 
@@ -183,24 +214,39 @@ def main():
 
         # ---- 2. the batch on Dask
         if "batch" not in skip:
+            # the last: local_client with Dask's default housekeeping (profiler on, 20 ms tick), to
+            # show in the same run what mcrecon's quieter configuration (D._QUIET) changes
+            default_label = "2 workers, Dask's default housekeeping"
             configs = (("1 worker, 1 thread", 1, 1), ("2 workers, 1 thread each", 2, 1),
-                       ("1 worker, 2 threads", 1, 2))
+                       ("1 worker, 2 threads", 1, 2), (default_label, 2, 1))
             times = {label: [] for label, _, _ in configs}
             per_frame = {label: [] for label, _, _ in configs}
             busy = {label: [] for label, _, _ in configs}
+            house = {label: [] for label, _, _ in configs}
             overhead = []
+            quiet = dict(D._QUIET)
             for r in range(rep):
                 for label, workers, threads in configs:
                     t0 = time.perf_counter()
-                    with D.local_client(workers, threads=threads) as c:
+                    D._QUIET = {} if label == default_label else quiet
+                    try:
+                        cm = D.local_client(workers, threads=threads)
+                        c = cm.__enter__()
+                    finally:
+                        D._QUIET = quiet
+                    try:
                         t_up = time.perf_counter() - t0
                         t = time.perf_counter()
                         c.run(_warm, str(paths[0]), str(work), args.method)   # every worker: imports, kernels
                         t_warm = time.perf_counter() - t
+                        cpu = _housekeeping_cpu(c)
+                        cpu0 = cpu and cpu()
                         t = time.perf_counter()
                         res = D.denoise_many(paths, method=args.method, client=c, out_dir=work / "out",
                                              force=True, progress=False, summary=False)
                         times[label].append(time.perf_counter() - t)
+                        if cpu:
+                            house[label].append(tuple(b - a for a, b in zip(cpu0, cpu())))
                         assert res.ok, res.failed
                         per_frame[label].append(float(np.median([x["seconds"] for x in res.records])))
                         busy[label].append(sum(x["seconds"] for x in res.records) / workers / times[label][-1])
@@ -209,6 +255,8 @@ def main():
                             t = time.perf_counter()
                             c.gather(c.map(_noop, range(n), pure=False))
                             overhead.append((time.perf_counter() - t) / n)
+                    finally:
+                        cm.__exit__(None, None, None)
                     if r == 0:
                         print(f"  {label}: cluster start {t_up:.1f} s, warm-up (imports, kernels, one frame) "
                               f"{t_warm:.1f} s (not timed below)")
@@ -219,9 +267,15 @@ def main():
                       f"{per_frame[label][i]:.3f} s per frame on its worker, workers busy {busy[label][i]:.0%} "
                       "of the time); runs: "
                       + ", ".join(f"{x:.2f}" for x in times[label]))
+                if house[label]:
+                    print("  Dask's own CPU during the batch (client process with the scheduler and the nannies "
+                          "+ the workers' event loops), per run: "
+                          + ", ".join(f"{a:.2f} + {b:.2f} CPU-s" for a, b in house[label]))
             r1 = best["1 worker, 1 thread"] / best["2 workers, 1 thread each"]
             r2 = best["1 worker, 2 threads"] / best["2 workers, 1 thread each"]
-            print(f"batch speed-up, 2 workers vs 1 (1 thread each): {r1:.2f}x; vs 1 worker with 2 threads: {r2:.2f}x")
+            r3 = best["1 worker, 1 thread"] / best[default_label]
+            print(f"batch speed-up, 2 workers vs 1 (1 thread each): {r1:.2f}x; vs 1 worker with 2 threads: {r2:.2f}x; "
+                  f"with Dask's default housekeeping: {r3:.2f}x")
             if "ceiling" not in skip:
                 print(f"  as a fraction of the machine's pure-CPU ceiling ({2 * c1 / c2:.2f}x): {r1 / (2 * c1 / c2):.0%}")
             if "plain" not in skip:

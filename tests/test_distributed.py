@@ -100,6 +100,17 @@ def test_batch_local_cluster_and_refusals(frames, tmp_path, capsys):
     assert "matches no file" in capsys.readouterr().err
 
 
+def _housekeeping(dask_worker):
+    import dask
+
+    return ("profile" in dask_worker.periodic_callbacks, dask.config.get("distributed.admin.tick.interval"))
+
+
+def test_local_cluster_workers_run_without_the_profiler(client):
+    """local_client's workers get its quieter Dask configuration (the nanny hands it to the worker process)."""
+    assert set(client.run(_housekeeping).values()) == {(False, "1s")}
+
+
 # ----------------------------------------------------------------- 2. ingestion
 def _merge_bound(st: PixelStats, parts: int):
     """Rounding bound of |distributed - one-process| for mean, m2 and subpixel sums (docs/distributed.md).
@@ -171,6 +182,12 @@ def test_banded_partials_merge_exactly_like_full_image_partials(tmp_path):
     for name in ("count", "mean", "m2", "min", "max", "sub_sum", "sub_count"):
         assert np.array_equal(getattr(merged, name), getattr(reference, name)), name
     assert merged.n_samples == pos.shape[0] and merged.dtype == reference.dtype
+    # the tasks ship bands packed as arrays (Dask sends arrays as raw frames): the same numbers
+    packed = D.tree_merge([D._ingest_part(str(path), a, b, 2, "drop", 97) for a, b in ranges], merge=D._merge_packed)
+    unpacked = D._Band.unpack(packed).full()
+    for name in ("count", "mean", "m2", "min", "max", "sub_sum", "sub_count"):
+        assert np.array_equal(getattr(unpacked, name), getattr(merged, name)), name
+    assert unpacked.n_samples == merged.n_samples and unpacked.dtype == merged.dtype
 
 
 def test_row_ranges_and_tree_merge():
