@@ -64,8 +64,8 @@ import numba
 import numpy as np
 
 from ._filtering import numba_threads, safe_div
-from .errors import InputError
-from .samples import check_policy, check_samples
+from .errors import InputError, McreconWarning
+from .samples import apply_nonfinite, check_policy, check_samples
 from .stats import PixelStats
 
 __all__ = ["sure", "gaussian_centre_weights", "SureBank", "sure_filter_bank", "relative_denominator", "relative_denominator_loo",
@@ -565,10 +565,10 @@ class Halves:
                                                   n_channels=len(a.channels), where=source, channels=a.channels)
         if pos.shape[0] == 0:
             return
-        if n_nonfinite:
-            self._add_by_copies(pos, val, nonfinite=nonfinite, source=source)
-            return
         check_policy(nonfinite, source)
+        if n_nonfinite:
+            self._add_by_copies(pos, val, nonfinite=nonfinite, source=source, n_nonfinite=n_nonfinite)
+            return
         with numba_threads() as n_par:
             n_a = _split_accumulate(pos, val, a.width, self.counter, n_par if pos.shape[0] >= 1 << 16 else 1,
                                     a.count, a.mean, a.m2, a.min, a.max, b.count, b.mean, b.m2, b.min, b.max)
@@ -577,13 +577,39 @@ class Halves:
         if n_a < pos.shape[0]:
             b._note_dtype(val.dtype)
 
-    def _add_by_copies(self, positions, values, *, nonfinite: str = "drop", source: str = "samples") -> None:
-        """The reference path of :meth:`add`: labels, then each half's samples into its statistics."""
+    def _add_by_copies(self, positions, values, *, nonfinite: str = "drop", source: str = "samples",
+                       n_nonfinite: int = 0) -> None:
+        """The reference path of :meth:`add`: labels, then each half's samples into its statistics.
+
+        Non-finite values (``n_nonfinite`` of them) get the policy on the
+        whole batch, as :class:`PixelStats` applies it: ``raise`` refuses
+        the batch untouched, ``drop``/``zero`` warn once with its count.
+        Labels are given before the policy, so a dropped sample still
+        takes its turn in its pixel (the halves of a stream do not depend
+        on which of its samples were bad).
+        """
         pos = np.asarray(positions)
         val = np.asarray(values)
         if val.ndim == 1:
             val = val[:, None]
+        if n_nonfinite and nonfinite == "raise":
+            apply_nonfinite(pos, val, n_nonfinite, nonfinite, where=source)  # raises, nothing changed
         lab = split_labels(pos, self.a.width, self.a.height, self.counter)
+        if n_nonfinite:
+            bad = ~np.isfinite(val).all(axis=1)
+            for half, st in ((0, self.a), (1, self.b)):
+                k = int(np.count_nonzero(bad & (lab == half)))
+                if nonfinite == "drop":
+                    st.n_dropped += k
+                else:
+                    st.n_zeroed += k
+            if nonfinite == "drop":
+                pos, val, lab = pos[~bad], val[~bad], lab[~bad]
+            else:
+                val = np.where(np.isfinite(val), val, val.dtype.type(0))
+            verb = "dropped" if nonfinite == "drop" else "set to 0"
+            warnings.warn(f"{source}: values: {n_nonfinite} sample(s) with NaN or Inf {verb} "
+                          f"(policy nonfinite={nonfinite!r})", McreconWarning, stacklevel=4)
         for half, st in ((0, self.a), (1, self.b)):
             sel = lab == half
             if sel.any():
@@ -596,14 +622,18 @@ class Halves:
 
 
 def split_halves(source, *, nonfinite: str = "drop") -> Halves:
-    """Two independent halves of a sample source (log or SampleSet), rounds in order."""
-    from .samples import SampleSet
+    """Two independent halves of a sample source (log or SampleSet), rounds in order.
+
+    Messages name the source (its file), as the statistics' reader does.
+    """
+    from .samples import SampleSet, source_name
+    name = source_name(source)
     h = Halves.empty(source.width, source.height, tuple(source.channels))
     # a SampleSet validated its arrays when it was built (contiguous, on the film); if
     # none of its values is NaN/Inf the policy has nothing to do: skip the re-check
     checked = isinstance(source, SampleSet) and source.n_nonfinite == 0
     for ch in source.iter_chunks(with_round=False):
-        h.add(ch.positions, ch.values, nonfinite=nonfinite, source="samples", _checked=checked)
+        h.add(ch.positions, ch.values, nonfinite=nonfinite, source=name, _checked=checked)
     return h
 
 

@@ -46,14 +46,15 @@ def _run(name: str, source, reference, nonfinite: str, options: dict) -> np.ndar
     req = method.requires
     check_policy(nonfinite, where)
     if isinstance(source, SampleSet):
-        stats = None
-        if req.statistics:
-            stats = PixelStats.from_source(source, subpixels=req.subpixels, nonfinite=nonfinite)
+        from .reconstruction import statistics_for
+
+        stats, halves = statistics_for(source, req, nonfinite=nonfinite)  # the readers' one path
+        if stats is not None:
             _check_stats(stats, where)
         elif source.n_samples == 0:
             raise InputError(where, "samples", "no samples: there is nothing to reconstruct")
         dtype = source.values.dtype
-        inputs = MethodInputs(stats, source if req.samples else None, None, nonfinite)
+        inputs = MethodInputs(stats, source if req.samples else None, None, nonfinite, halves)
     elif is_half_buffer_pair(source):
         if not req.half_buffers:
             raise InputError(where, "halves", f"{name} does not use half buffers; functions that do: "

@@ -325,3 +325,73 @@ def test_methods_command_lists_the_half_buffer_input(capsys):
     assert code == 0 and "half-buffer pair" in out and "in place of the samples" in out
     code, out, _ = run(["methods", "box"], capsys)
     assert code == 0 and "half-buffer pair" in out
+
+
+# ------------------------------------------------------------------ the reader's one pass for auto
+def test_every_path_to_the_same_samples_gives_auto_the_same_image(tmp_path):
+    """An adaptive run's image, the image of its log, of the same samples in a SampleSet and
+    through mcrecon.restoration: bit for bit (every path builds the halves and merges them)."""
+    from mcrecon.driver import adapt
+    from mcrecon.io import read_log
+    from mcrecon.renderers.scenes import SceneRenderer
+
+    log = tmp_path / "run.h5"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = adapt(SceneRenderer("caustic", width=24, height=20, seed=0), get_method("auto"), spp=12, seed=3,
+                    log=log, progress=False)
+        from_log = mcrecon.reconstruct(log, method="auto")
+        lg = read_log(log)
+        c = lg.read_all()
+        ss = SampleSet(c.positions, c.values, width=lg.width, height=lg.height, channels=lg.channels)
+        from_set = mcrecon.reconstruct(ss, method="auto")
+        from_restoration = mcrecon.restoration.auto(ss)
+    np.testing.assert_array_equal(res.image, from_log)
+    np.testing.assert_array_equal(from_set, from_log)
+    np.testing.assert_array_equal(from_restoration, from_log)
+
+
+def test_samples_with_a_pair_not_split_from_them_are_refused():
+    ss, other = sample_set(8, seed=1), sample_set(8, seed=2)
+    h = split_halves(other)
+    m = get_method("auto")
+    with pytest.raises(InputError, match="not both"):
+        m.reconstruct(MethodInputs(merge_halves(h.a, h.b), ss, None, "drop", (h.a, h.b)))
+
+
+@pytest.mark.parametrize("policy", ["drop", "zero", "raise"])
+def test_nonfinite_samples_through_the_one_pass_split_are_reported_once_with_the_file(tmp_path, policy):
+    """auto reads a log through the split: the policy applies to all the samples, the one warning
+    (or error) names the file and the total, the counts match gem's reader, and a bad sample still
+    takes its turn in its pixel (the halves of the good samples do not depend on the bad ones)."""
+    from mcrecon.io import write_log
+
+    ss = sample_set(8, seed=5)
+    val = np.array(ss.values, copy=True)
+    rows = np.array([3, 40, 41, 700, 1201])
+    val[rows, 0] = np.nan
+    val[rows[:2], 1] = np.inf
+    path = write_log(tmp_path / "bad.h5", ss.positions, val, width=W, height=H, channels=ss.channels)
+    if policy == "raise":
+        for method in ("auto", "gem"):
+            with pytest.raises(InputError, match=r"bad\.h5: values: 5 sample"):
+                mcrecon.reconstruct(path, method=method, nonfinite="raise")
+        return
+    got = {}
+    for method in ("auto", "gem"):
+        with warnings.catch_warnings(record=True) as w:
+            warnings.simplefilter("always")
+            got[method] = mcrecon.reconstruct(path, method=method, nonfinite=policy, full=True)
+        msgs = [str(x.message) for x in w if "NaN or Inf" in str(x.message)]
+        assert len(msgs) == 1 and msgs[0].startswith(str(path)) and ": values: 5 sample(s)" in msgs[0], msgs
+    for field in ("n_dropped", "n_zeroed", "n_samples"):
+        assert getattr(got["auto"].inputs.stats, field) == getattr(got["gem"].inputs.stats, field)
+    if policy == "drop":
+        h = got["auto"].inputs.halves
+        ref = split_halves(ss)  # the same stream with good values: the same labels
+        bad_pix = set((ss.positions[rows, 1].astype(int) * W + ss.positions[rows, 0].astype(int)).tolist())
+        keep = np.ones(H * W, bool)
+        keep[list(bad_pix)] = False
+        for got_half, ref_half in ((h[0], ref.a), (h[1], ref.b)):
+            np.testing.assert_array_equal(got_half.mean.reshape(H * W, -1)[keep],
+                                          ref_half.mean.reshape(H * W, -1)[keep])

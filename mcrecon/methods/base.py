@@ -63,7 +63,7 @@ from ..renderers.protocol import SampleBatch, SampleRequest
 from ..stats import PixelStats
 
 __all__ = ["Method", "AdaptiveState", "Option", "Requirements", "MethodInputs", "RunState", "uniform_counts",
-           "variant_option", "check_half_buffers", "merge_halves", "is_half_buffer_pair", "half_buffer_methods"]
+           "variant_option", "check_half_buffers", "merge_halves", "SplitHalves", "is_half_buffer_pair", "half_buffer_methods"]
 
 _MISSING = object()
 
@@ -256,9 +256,11 @@ class MethodInputs:
         Two independent half buffers (statistics of disjoint halves of
         every pixel's samples; same size, channels and subpixel grid, each
         pixel's counts may differ), for methods with
-        ``requires.half_buffers``: in place of ``samples``, never with
-        them.  ``stats`` is then their Chan merge (:func:`merge_halves`;
-        :meth:`Method.reconstruct` fills it in when None).
+        ``requires.half_buffers``: in place of ``samples``, or with them
+        only as a :class:`SplitHalves` of those very samples (a reader's
+        one pass for methods that need both).  ``stats`` is then their Chan
+        merge (:func:`merge_halves`; :meth:`Method.reconstruct` fills it in
+        when None).
     reference : ndarray (H, W, C) float64 or None
         The reference image, for methods that read one.
     nonfinite : {'drop', 'zero', 'raise'}
@@ -324,6 +326,23 @@ def check_half_buffers(pair, where: str = "halves") -> tuple[PixelStats, PixelSt
         raise InputError(where, "subpixels", f"the halves differ in subpixel grid: {a.subpixels} vs "
                          f"{b.subpixels}")
     return a, b
+
+
+class SplitHalves(tuple):
+    """A half-buffer pair (a, b) that a reader split from ``samples``, travelling with them.
+
+    A method declaring both ``requires.samples`` and ``requires.half_buffers``
+    splits the samples into halves itself; a reader that already made that
+    split in its one pass over the samples (:func:`mcrecon.reconstruction.statistics_for`)
+    hands it over as ``MethodInputs(stats=merge, samples=samples, halves=SplitHalves(a, b, samples))``.
+    Only a pair marked so may accompany samples: any other pair with samples
+    is refused (which samples would the halves be of?).
+    """
+
+    def __new__(cls, a: PixelStats, b: PixelStats, samples):
+        pair = super().__new__(cls, (a, b))
+        pair.samples = samples
+        return pair
 
 
 def merge_halves(a: PixelStats, b: PixelStats) -> PixelStats:
@@ -605,8 +624,9 @@ class Method:
             fresh one by default.
 
         A method with ``requires.samples`` and ``requires.half_buffers``
-        takes ``inputs.samples`` or ``inputs.halves`` (not both); with
-        halves and no ``inputs.stats``, the statistics are their merge.
+        takes ``inputs.samples`` or ``inputs.halves`` (both only when the
+        halves are a :class:`SplitHalves` of those samples); with halves and
+        no ``inputs.stats``, the statistics are their merge.
         """
         if isinstance(inputs, PixelStats):
             inputs = MethodInputs(inputs, None, reference)
@@ -648,9 +668,8 @@ class Method:
             raise InputError(self.where, "halves", f"{self.name} does not use half buffers (methods that do "
                              "declare requires.half_buffers: " + (", ".join(half_buffer_methods()) or "none")
                              + "); give it the statistics of all the samples (merge_halves(a, b))")
-        if inputs.samples is not None and inputs.stats is None:
-            # both are allowed only as the reader builds them: the halves are the split of
-            # those samples and the statistics their merge (checked on the counts below)
+        if inputs.samples is not None and getattr(inputs.halves, "samples", None) is not inputs.samples:
+            # both only as a reader builds them: the halves split from exactly those samples
             raise InputError(self.where, "halves", "give the samples or a half-buffer pair, not both "
                              "(the method splits samples itself)")
         a, b = check_half_buffers(inputs.halves, self.where)
@@ -663,7 +682,8 @@ class Method:
         elif stats.shape != a.shape or not np.array_equal(stats.count, a.count + b.count):
             raise InputError(self.where, "stats", "with a half-buffer pair the statistics must be the merge of "
                              "the two halves (counts differ); leave MethodInputs.stats None to have them merged")
-        return dataclasses.replace(inputs, stats=stats, halves=(a, b))
+        pair = inputs.halves if isinstance(inputs.halves, SplitHalves) else (a, b)
+        return dataclasses.replace(inputs, stats=stats, halves=pair)
 
     def reconstruct_run(self, run: RunState, inputs: MethodInputs) -> np.ndarray:
         """The method's reconstruction (the hook subclasses implement)."""

@@ -29,7 +29,8 @@ from ...estimates import (DEFAULT_EPS, Halves, cross_validation_mse, dual_buffer
                           split_halves, sure, sure_filter_bank)
 from ...renderers.protocol import SampleBatch
 from ...stats import PixelStats
-from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, uniform_counts
+from ..base import (AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, merge_halves,
+                    uniform_counts)
 from ..awr.reconstruction import confidence_clamp, sample_range_bounds
 from ..box import fill_empty_pixels
 from ..gem.kernels import final_sigmas
@@ -554,6 +555,9 @@ class AutoMethod(Method):
             elif run.halves is not None and int(run.halves.a.count.sum() + run.halves.b.count.sum()) == \
                     int(stats.count.sum()):
                 halves = run.halves
+                # the statistics as a reader gives them with the split (their merge): an
+                # adaptive run's image is then the image of its log, bit for bit
+                stats = merge_halves(halves.a, halves.b)
         img, _ = self._select(run, stats, halves, inputs.samples, inputs.nonfinite)
         return img
 
