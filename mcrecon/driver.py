@@ -110,7 +110,7 @@ class AdaptiveResult:
     finish_seconds: float = 0.0
     #: The loop's phases in order of their end, for profiling: dicts with ``phase``
     #: (``render``, ``validate``, ``append``, ``ingest``, ``observe``, ``plan``,
-    #: ``evaluate``), ``round``, ``start`` and ``end`` (wall seconds from the
+    #: ``prepare`` (the renderer's, pipelined runs), ``evaluate``), ``round``, ``start`` and ``end`` (wall seconds from the
     #: loop's start), ``cpu`` (CPU seconds of the thread that ran it) and
     #: ``thread`` (``renderer`` or ``toolkit``); ``render`` also has ``own``, the
     #: seconds the renderer reports as its own.
@@ -276,7 +276,12 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
         cannot plan with a lag is refused.  Recorded in the run settings.
         A pipelined run hands each reply to the toolkit thread while the
         renderer answers the next request: a renderer must not modify a
-        reply's arrays after ``render`` returned them.
+        reply's arrays after ``render`` returned them.  A renderer with a
+        ``prepare(request)`` method (optional; the Mitsuba bridge computes
+        its jittered positions there) has it called from the toolkit thread
+        right after each round is planned, while it renders the round
+        before; ``render(request)`` must return the same reply with or
+        without it.
 
     Returns
     -------
@@ -834,8 +839,17 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
             else:
                 out = _plan_round(method, run, stats, j + 1, budget, _committed(stats) + req_j.total, seed, ref,
                                   lag=1, pending=_request_counts(req_j))
+        if out[0] is not None and prepare is not None:
+            # the renderer's own preparation of the request (e.g. the Mitsuba bridge's jittered
+            # positions), here while it still renders round j rather than inside its next call
+            with acct["timeline"].phase("prepare", j + 1):
+                prepare(out[0])
         acct["cpu"] += time.thread_time() - c0
         return out, time.perf_counter() - t0
+
+    # optional: a renderer that computes part of its reply ahead (same reply with or without)
+    prepare = getattr(renderer, "prepare", None)
+    prepare = prepare if callable(prepare) else None
 
     def job(prev, carry, j, req_j):
         # the toolkit thread's work while round j renders

@@ -98,6 +98,39 @@ def test_box_and_splat_are_bit_identical_with_and_without_the_lag(method):
     np.testing.assert_array_equal(a.counts, b.counts)
 
 
+class _Preparing:
+    """A renderer with ``prepare`` (as the Mitsuba bridge): positions computed ahead, same replies."""
+
+    def __init__(self, inner):
+        self.inner, self.width, self.height, self.channels = inner, inner.width, inner.height, inner.channels
+        self.prepared = []  # (round, thread)
+
+    def prepare(self, req):
+        import threading
+
+        self.prepared.append((req.round_index, threading.current_thread().name))
+
+    def render(self, req):
+        return self.inner.render(req)
+
+
+@pytest.mark.parametrize("method", ["box", "gem"])
+def test_renderer_prepare_is_called_from_the_toolkit_thread_and_changes_nothing(method):
+    opts = OPTS[method]
+    plain = adapt(_renderer(), get_method(method, **opts), spp=12, seed=2, pipeline=True)
+    r = _Preparing(_renderer())
+    res = adapt(r, get_method(method, **opts), spp=12, seed=2, pipeline=True)
+    np.testing.assert_array_equal(plain.image, res.image)
+    assert [k for k, _ in r.prepared] == list(range(len(res.rounds)))
+    # rounds >= 2 are planned (and prepared) while the round before renders: in the toolkit thread
+    assert all(t.startswith("mcrecon-toolkit") for k, t in r.prepared if k >= 2)
+    assert any(e["phase"] == "prepare" for e in res.timeline)
+    # sequential runs do not call it
+    r2 = _Preparing(_renderer())
+    adapt(r2, get_method(method, **opts), spp=12, seed=2, pipeline=False)
+    assert r2.prepared == []
+
+
 @pytest.mark.parametrize("method", ["gem", "awr", "ci"])
 def test_pipelined_runs_are_reproducible_and_fill_the_budget(method, tmp_path):
     m = get_method(method, **OPTS[method])
