@@ -17,7 +17,9 @@ that tolerate it): while the renderer renders round k+1 in the calling
 thread, one toolkit thread validates and commits round k (log append,
 statistics, ``observe``) and plans round k+2 from the rounds <= k.  The
 plan of round j therefore always sees the rounds <= j-2 (round 1 sees
-round 0: it is planned after round 0 is committed) and, as
+round 0: it is planned after round 0 is committed, unless the method plans
+it blind, ``Method.plans_round_one_blind``: then while round 0 renders,
+from nothing committed) and, as
 ``state.pending``, the per-pixel counts of the round in flight; never
 anything that depends on timing.  A pipelined run is reproducible from
 its seed and resumes bit-identically (the resume re-plans the round that
@@ -407,7 +409,8 @@ def _resume(log_path, renderer, *, progress, time_limit, track_error, on_round) 
     # one round in memory at a time; observe() only for methods that read samples.
     # A pipelined run had planned round K (the one in flight when it stopped) from
     # the rounds <= K-2 with round K-1 pending: that plan is made again between
-    # the replays of rounds K-2 and K-1, exactly as the live run made it.
+    # the replays of rounds K-2 and K-1, exactly as the live run made it (K = 1
+    # too when the method plans round 1 blind: from nothing, round 0 pending).
     stats = PixelStats(w, h, channels, subpixels=method.requires.subpixels)
     k = sl.n_rounds
     planned = None
@@ -415,7 +418,7 @@ def _resume(log_path, renderer, *, progress, time_limit, track_error, on_round) 
         warnings.simplefilter("ignore", McreconWarning)  # the live run reported them
         for r in range(k):
             chunk = sl.read_all(rounds=[r])
-            if pipeline and r == k - 1 and k >= 2:
+            if pipeline and r == k - 1 and (k >= 2 or method.plans_round_one_blind()):
                 pending = _pixel_counts_of(chunk.positions, w, h)
                 planned = _plan_round(method, run, stats, k, budget, _committed(stats) + len(chunk.positions),
                                       int(s["seed"]), ref, lag=1, pending=pending)
@@ -802,7 +805,9 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
 
     The plan of round j+1 sees the rounds <= j-1 and round j as ``pending``
     counts; the plan of round 1 waits for round 0 (there is nothing to plan
-    from before).  The renderer stays in the calling thread (renderers with
+    from before) unless ``method.plans_round_one_blind()``: then it is made
+    while round 0 renders, with round 0 pending, and round 0's commit
+    overlaps round 1.  The renderer stays in the calling thread (renderers with
     thread affinity, signals, Ctrl-C); the toolkit's heavy parts release
     the GIL (the statistics' and the methods' compiled kernels run with
     ``nogil``, numpy's large-array loops, the filtering pool); h5py's
@@ -857,12 +862,15 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
         if prev is not None:
             record = commit(prev, carry)
             record["_eval"] = rnd.evaluate(record, record["round"])
-        return record, plan(j, req_j)
+        out, secs = plan(j, req_j)
+        # round 1 planned blind (prev None): round 0's plan time goes with round 1's
+        return record, (out, secs + (carry if prev is None else 0.0))
 
     def done(record):
         clock["wall_start"] += record.pop("_eval", 0.0)  # evaluation is not part of the run's time
         _finish_round(record, rounds, on_round, bar, stats, rnd.log_path, acct)
 
+    blind = bool(method.plans_round_one_blind())
     j = round_index
     if planned is None:
         # a new run (round 0: nothing to plan from) or a resume after round 0 (round 1 sees it)
@@ -883,7 +891,9 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
             if time_limit is not None and time.perf_counter() - clock["wall_start"] >= time_limit:
                 stopped = "time_limit"
                 break
-            first = j == 0  # round 1 is planned from round 0, after it: no toolkit work to overlap
+            # round 1 is planned from round 0, after it (no toolkit work to overlap), unless
+            # the method plans it blind (Method.plans_round_one_blind)
+            first = j == 0 and not blind
             if not first:
                 fut = pool.submit(job, uncommitted, carry, j, req)
                 uncommitted = None

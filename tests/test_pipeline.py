@@ -85,6 +85,42 @@ def test_plan_of_round_j_sees_the_rounds_up_to_j_minus_2_and_round_j_minus_1_pen
     assert all(s[1] == s[2] and s[3] == 0 and s[4] is None for s in seq)
 
 
+class _BlindSpy(_Spy):
+    def plans_round_one_blind(self):
+        return True
+
+
+def test_a_method_that_plans_round_one_blind_sees_round_zero_pending(tmp_path):
+    res = adapt(_renderer(), _BlindSpy(), spp=16, seed=1, pipeline=True)
+    seen = res.run.seen
+    totals = [0] + [r["samples_total"] for r in res.rounds]
+    sizes = [r["samples"] for r in res.rounds]
+    assert seen[0] == (0, 0, 0, 1, None)
+    for j, committed, n, lag, pending in seen[1:]:
+        assert lag == 1 and committed == totals[j - 1] and pending == sizes[j - 1] and n == committed + pending
+    # the same rounds as sequential (uniform doubling reads only the count)
+    seq = adapt(_renderer(), _BlindSpy(), spp=16, seed=1, pipeline=False)
+    assert [r["samples"] for r in seq.rounds] == sizes
+    np.testing.assert_array_equal(seq.image, res.image)
+    # box plans round 1 blind: stopped after round 0 or 1 and resumed (the resume plans the
+    # round in flight again, for K = 1 from nothing with round 0 pending), the same run
+    full = adapt(_renderer(), "box", spp=16, seed=1, pipeline=True)
+    for stop in (1, 2):
+        log = tmp_path / f"blind{stop}.h5"
+        adapt(_renderer(), "box", spp=16, seed=1, pipeline=True, log=log, max_rounds=stop)
+        done = resume(log, _renderer())
+        np.testing.assert_array_equal(done.image, full.image)
+        assert [r["samples"] for r in done.rounds] == [r["samples"] for r in full.rounds]
+
+
+def test_which_methods_plan_round_one_blind():
+    assert get_method("box").plans_round_one_blind() and get_method("splat").plans_round_one_blind()
+    assert get_method("gem").plans_round_one_blind() and get_method("awr").plans_round_one_blind()
+    assert not get_method("gem", initial_spp=1).plans_round_one_blind()
+    assert not get_method("awr", initial_spp=1).plans_round_one_blind()
+    assert not get_method("ci").plans_round_one_blind()
+
+
 @pytest.mark.parametrize("method", ["box", "splat"])
 def test_box_and_splat_are_bit_identical_with_and_without_the_lag(method):
     """Uniform doubling depends only on the sample count, which counts the round in flight
@@ -243,8 +279,8 @@ def test_gem_plan_with_nothing_pending_is_the_plan_without_pending():
 
 
 # ------------------------------------------------------------------ stop and resume (in process)
-@pytest.mark.parametrize("method, stop_after", [("gem", 1), ("gem", 2), ("gem", 4), ("awr", 3), ("ci", 2),
-                                                ("box", 3), ("splat", 2)])
+@pytest.mark.parametrize("method, stop_after", [("gem", 1), ("gem", 2), ("gem", 4), ("awr", 1), ("awr", 3),
+                                                ("ci", 2), ("box", 1), ("box", 3), ("splat", 1), ("splat", 2)])
 def test_stopped_pipelined_run_resumes_bit_identically(tmp_path, method, stop_after):
     """Stopped after ``stop_after`` rounds (the next one was planned and in flight): the resume plans
     it again from the same statistics and ends where the uninterrupted run ends."""

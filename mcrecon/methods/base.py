@@ -682,6 +682,19 @@ class Method:
         n = min(remaining, state.n_samples)
         return state.request(counts=uniform_counts(state.width, state.height, n, state.rng))
 
+    def plans_round_one_blind(self) -> bool:
+        """Pipelined: whether round 1 may be planned while round 0 renders.
+
+        Round 1's plan then sees no committed sample (``state.stats`` empty,
+        round 0 as ``state.pending``, ``state.n_samples`` counting it), and
+        round 0's commit overlaps round 1's rendering instead of holding the
+        renderer.  Only for a plan that reads nothing committed in round 1
+        (a uniform round that depends on the sample count, the second half
+        of a split initial pass: :meth:`AdaptiveState.initial_pass`).
+        Default False: round 1 is planned after round 0 is committed.
+        """
+        return False
+
     def observe(self, run: RunState, batch: SampleBatch, round_index: int) -> None:
         """See a committed round's samples (only called when ``requires.samples``)."""
 
