@@ -48,7 +48,7 @@ from .errors import InputError, McreconWarning, RendererError
 from .io.samplelog import (MAX_PIXELS, append_log, cast_positions, log_lock, read_log, set_run_settings,
                            update_round_record, write_log)
 from .methods import Method, get_method
-from .methods.base import AdaptiveState, RunState
+from .methods.base import PLAN_AFTER_COMMIT, AdaptiveState, RunState
 from .renderers.protocol import SampleBatch, validate_reply
 from .renderers.spec import renderer_from_spec
 from .samples import FLOAT32_MAX, NONFINITE_POLICIES, apply_nonfinite, check_reference, float32_loses_spread
@@ -422,6 +422,9 @@ def _resume(log_path, renderer, *, progress, time_limit, track_error, on_round) 
                 pending = _pixel_counts_of(chunk.positions, w, h)
                 planned = _plan_round(method, run, stats, k, budget, _committed(stats) + len(chunk.positions),
                                       int(s["seed"]), ref, lag=1, pending=pending)
+                if planned[0] is None and planned[1] == "wait":
+                    # the live run committed round K-1 first, then planned round K from it
+                    planned = None
             _take_round(method, run, stats, SampleBatch(chunk.positions, chunk.values), r, s["nonfinite"],
                         str(log_path))
     records = list(sl.round_records)
@@ -574,13 +577,21 @@ def _plan_round(method, run, stats, round_index, budget, n_total, seed, ref, *, 
     """(request with its seeds, None) or (None, why the run stops) for round ``round_index``.
 
     ``n_total``: samples committed plus in flight.  Depends only on its
-    arguments: the same in a live run and in a resume.
+    arguments: the same in a live run and in a resume.  ``(None, "wait")``:
+    the method returned :data:`~mcrecon.methods.base.PLAN_AFTER_COMMIT` (the
+    round in flight is committed first, then this round is planned again
+    without ``pending``).
     """
     if n_total >= budget:
         return None, "budget"
     rng, rseed = round_seeds(seed, round_index)
     state = _adaptive_state(stats, round_index, budget, n_total, rng, ref, lag=lag, pending=pending)
     req = method.plan(run, state)
+    if req is PLAN_AFTER_COMMIT:
+        if pending is None:
+            raise RuntimeError(f"method {method.name} returned PLAN_AFTER_COMMIT with no round in flight "
+                               "(a bug in the method)")
+        return None, "wait"
     if req is None or req.total == 0:
         return None, ("converged" if req is None or n_total < budget else "budget")
     if req.total > state.remaining:
@@ -922,6 +933,14 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
                 if record is not None:
                     done(record)
                 uncommitted = rendered
+                if req is None and why == "wait":
+                    # the method waits for the round just rendered (PLAN_AFTER_COMMIT):
+                    # commit it here, then plan the next round from it, as round 1 after round 0
+                    prev, uncommitted = uncommitted, None
+                    record = commit(prev, carry, helper=pool)
+                    record["_eval"] = rnd.evaluate(record, record["round"])
+                    done(record)
+                    (req, why), carry = plan(j, None)
             j += 1
         if uncommitted is not None:
             # the last round: commit it (nothing is left to plan)

@@ -63,9 +63,26 @@ from ..renderers.protocol import SampleBatch, SampleRequest
 from ..stats import PixelStats
 
 __all__ = ["Method", "AdaptiveState", "Option", "Requirements", "MethodInputs", "RunState", "uniform_counts",
-           "variant_option", "check_half_buffers", "merge_halves", "is_half_buffer_pair", "half_buffer_methods"]
+           "variant_option", "check_half_buffers", "merge_halves", "is_half_buffer_pair", "half_buffer_methods",
+           "PLAN_AFTER_COMMIT"]
 
 _MISSING = object()
+
+
+class _PlanAfterCommit:
+    def __repr__(self):
+        return "PLAN_AFTER_COMMIT"
+
+    def __reduce__(self):
+        return "PLAN_AFTER_COMMIT"
+
+
+#: What :meth:`Method.plan` may return in a pipelined run (``state.pending`` holds the
+#: round in flight) when it has nothing to ask for until that round is seen (e.g. every
+#: pixel it would serve still waits for its first samples): the driver commits the round
+#: in flight and plans the same round again from the statistics with it (``pending``
+#: None), as it plans round 1 after round 0.  Never returned without a round in flight.
+PLAN_AFTER_COMMIT = _PlanAfterCommit()
 
 
 @dataclasses.dataclass(frozen=True)
