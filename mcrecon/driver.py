@@ -49,7 +49,7 @@ from .io.samplelog import (MAX_PIXELS, append_log, cast_positions, log_lock, rea
                            update_round_record, write_log)
 from .methods import Method, get_method
 from .methods.base import PLAN_AFTER_COMMIT, AdaptiveState, RunState
-from .renderers.protocol import SampleBatch, validate_reply
+from .renderers.protocol import SampleBatch, _validate_reply
 from .renderers.spec import renderer_from_spec
 from .samples import FLOAT32_MAX, NONFINITE_POLICIES, apply_nonfinite, check_reference, float32_loses_spread
 from .stats import PixelStats
@@ -662,14 +662,15 @@ class _Round:
             return self._receive(req, reply, round_index)
 
     def _receive(self, req, reply, round_index):
-        batch = validate_reply(req, reply, n_channels=self.c, renderer=self.name)
+        # the rows with a NaN or Inf value are counted in the validation's one pass; the cast to
+        # the log's dtype keeps them (finite values beyond float32's range are refused there)
+        batch, n_bad = _validate_reply(req, reply, n_channels=self.c, renderer=self.name)
         if self.storage_dtype == "auto":
             self.storage_dtype = _resolve_storage(self.log_path, np.asarray(batch.values).dtype)
         if self.log_path is not None:
             batch = _to_storage(batch, self.storage_dtype, self.stats, self.name, round_index, self.warned,
                                 self.log_path)
         val = np.ascontiguousarray(batch.values)
-        n_bad = _nonfinite_rows(val) if val.size else 0
         if self.nonfinite == "raise" and n_bad:
             raise RendererError(self.name, "values", f"{n_bad} sample(s) with NaN or Inf in round "
                                 f"{round_index} (policy nonfinite='raise'); nothing of this round was stored")
