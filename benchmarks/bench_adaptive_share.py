@@ -56,7 +56,7 @@ from mcrecon.renderers.scenes import SceneRenderer
 METHODS = ("box", "gem", "awr", "ci", "splat")
 #: issue 15's targets, idle share in percent
 TARGETS = {"box": 2.0, "gem": 5.0, "awr": 5.0, "ci": 5.0, "splat": 8.0}
-PHASES = ("validate", "append", "ingest", "observe", "plan")
+PHASES = ("validate", "append", "ingest", "observe", "plan", "prepare")
 
 
 class ThrottledRenderer:

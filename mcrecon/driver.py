@@ -17,7 +17,9 @@ that tolerate it): while the renderer renders round k+1 in the calling
 thread, one toolkit thread validates and commits round k (log append,
 statistics, ``observe``) and plans round k+2 from the rounds <= k.  The
 plan of round j therefore always sees the rounds <= j-2 (round 1 sees
-round 0: it is planned after round 0 is committed) and, as
+round 0: it is planned after round 0 is committed, unless the method plans
+it blind, ``Method.plans_round_one_blind``: then while round 0 renders,
+from nothing committed) and, as
 ``state.pending``, the per-pixel counts of the round in flight; never
 anything that depends on timing.  A pipelined run is reproducible from
 its seed and resumes bit-identically (the resume re-plans the round that
@@ -46,8 +48,8 @@ from .errors import InputError, McreconWarning, RendererError
 from .io.samplelog import (MAX_PIXELS, append_log, cast_positions, log_lock, read_log, set_run_settings,
                            update_round_record, write_log)
 from .methods import Method, get_method
-from .methods.base import AdaptiveState, RunState
-from .renderers.protocol import SampleBatch, validate_reply
+from .methods.base import PLAN_AFTER_COMMIT, AdaptiveState, RunState
+from .renderers.protocol import SampleBatch, _validate_reply
 from .renderers.spec import renderer_from_spec
 from .samples import FLOAT32_MAX, NONFINITE_POLICIES, apply_nonfinite, check_reference, float32_loses_spread
 from .stats import PixelStats
@@ -110,7 +112,7 @@ class AdaptiveResult:
     finish_seconds: float = 0.0
     #: The loop's phases in order of their end, for profiling: dicts with ``phase``
     #: (``render``, ``validate``, ``append``, ``ingest``, ``observe``, ``plan``,
-    #: ``evaluate``), ``round``, ``start`` and ``end`` (wall seconds from the
+    #: ``prepare`` (the renderer's, pipelined runs), ``evaluate``), ``round``, ``start`` and ``end`` (wall seconds from the
     #: loop's start), ``cpu`` (CPU seconds of the thread that ran it) and
     #: ``thread`` (``renderer`` or ``toolkit``); ``render`` also has ``own``, the
     #: seconds the renderer reports as its own.
@@ -276,7 +278,12 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
         cannot plan with a lag is refused.  Recorded in the run settings.
         A pipelined run hands each reply to the toolkit thread while the
         renderer answers the next request: a renderer must not modify a
-        reply's arrays after ``render`` returned them.
+        reply's arrays after ``render`` returned them.  A renderer with a
+        ``prepare(request)`` method (optional; the Mitsuba bridge computes
+        its jittered positions there) has it called from the toolkit thread
+        right after each round is planned, while it renders the round
+        before; ``render(request)`` must return the same reply with or
+        without it.
 
     Returns
     -------
@@ -402,7 +409,8 @@ def _resume(log_path, renderer, *, progress, time_limit, track_error, on_round) 
     # one round in memory at a time; observe() only for methods that read samples.
     # A pipelined run had planned round K (the one in flight when it stopped) from
     # the rounds <= K-2 with round K-1 pending: that plan is made again between
-    # the replays of rounds K-2 and K-1, exactly as the live run made it.
+    # the replays of rounds K-2 and K-1, exactly as the live run made it (K = 1
+    # too when the method plans round 1 blind: from nothing, round 0 pending).
     stats = PixelStats(w, h, channels, subpixels=method.requires.subpixels)
     k = sl.n_rounds
     planned = None
@@ -410,10 +418,13 @@ def _resume(log_path, renderer, *, progress, time_limit, track_error, on_round) 
         warnings.simplefilter("ignore", McreconWarning)  # the live run reported them
         for r in range(k):
             chunk = sl.read_all(rounds=[r])
-            if pipeline and r == k - 1 and k >= 2:
+            if pipeline and r == k - 1 and (k >= 2 or method.plans_round_one_blind()):
                 pending = _pixel_counts_of(chunk.positions, w, h)
                 planned = _plan_round(method, run, stats, k, budget, _committed(stats) + len(chunk.positions),
                                       int(s["seed"]), ref, lag=1, pending=pending)
+                if planned[0] is None and planned[1] == "wait":
+                    # the live run committed round K-1 first, then planned round K from it
+                    planned = None
             _take_round(method, run, stats, SampleBatch(chunk.positions, chunk.values), r, s["nonfinite"],
                         str(log_path))
     records = list(sl.round_records)
@@ -566,13 +577,21 @@ def _plan_round(method, run, stats, round_index, budget, n_total, seed, ref, *, 
     """(request with its seeds, None) or (None, why the run stops) for round ``round_index``.
 
     ``n_total``: samples committed plus in flight.  Depends only on its
-    arguments: the same in a live run and in a resume.
+    arguments: the same in a live run and in a resume.  ``(None, "wait")``:
+    the method returned :data:`~mcrecon.methods.base.PLAN_AFTER_COMMIT` (the
+    round in flight is committed first, then this round is planned again
+    without ``pending``).
     """
     if n_total >= budget:
         return None, "budget"
     rng, rseed = round_seeds(seed, round_index)
     state = _adaptive_state(stats, round_index, budget, n_total, rng, ref, lag=lag, pending=pending)
     req = method.plan(run, state)
+    if req is PLAN_AFTER_COMMIT:
+        if pending is None:
+            raise RuntimeError(f"method {method.name} returned PLAN_AFTER_COMMIT with no round in flight "
+                               "(a bug in the method)")
+        return None, "wait"
     if req is None or req.total == 0:
         return None, ("converged" if req is None or n_total < budget else "budget")
     if req.total > state.remaining:
@@ -643,14 +662,15 @@ class _Round:
             return self._receive(req, reply, round_index)
 
     def _receive(self, req, reply, round_index):
-        batch = validate_reply(req, reply, n_channels=self.c, renderer=self.name)
+        # the rows with a NaN or Inf value are counted in the validation's one pass; the cast to
+        # the log's dtype keeps them (finite values beyond float32's range are refused there)
+        batch, n_bad = _validate_reply(req, reply, n_channels=self.c, renderer=self.name)
         if self.storage_dtype == "auto":
             self.storage_dtype = _resolve_storage(self.log_path, np.asarray(batch.values).dtype)
         if self.log_path is not None:
             batch = _to_storage(batch, self.storage_dtype, self.stats, self.name, round_index, self.warned,
                                 self.log_path)
         val = np.ascontiguousarray(batch.values)
-        n_bad = _nonfinite_rows(val) if val.size else 0
         if self.nonfinite == "raise" and n_bad:
             raise RendererError(self.name, "values", f"{n_bad} sample(s) with NaN or Inf in round "
                                 f"{round_index} (policy nonfinite='raise'); nothing of this round was stored")
@@ -797,7 +817,9 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
 
     The plan of round j+1 sees the rounds <= j-1 and round j as ``pending``
     counts; the plan of round 1 waits for round 0 (there is nothing to plan
-    from before).  The renderer stays in the calling thread (renderers with
+    from before) unless ``method.plans_round_one_blind()``: then it is made
+    while round 0 renders, with round 0 pending, and round 0's commit
+    overlaps round 1.  The renderer stays in the calling thread (renderers with
     thread affinity, signals, Ctrl-C); the toolkit's heavy parts release
     the GIL (the statistics' and the methods' compiled kernels run with
     ``nogil``, numpy's large-array loops, the filtering pool); h5py's
@@ -834,8 +856,17 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
             else:
                 out = _plan_round(method, run, stats, j + 1, budget, _committed(stats) + req_j.total, seed, ref,
                                   lag=1, pending=_request_counts(req_j))
+        if out[0] is not None and prepare is not None:
+            # the renderer's own preparation of the request (e.g. the Mitsuba bridge's jittered
+            # positions), here while it still renders round j rather than inside its next call
+            with acct["timeline"].phase("prepare", j + 1):
+                prepare(out[0])
         acct["cpu"] += time.thread_time() - c0
         return out, time.perf_counter() - t0
+
+    # optional: a renderer that computes part of its reply ahead (same reply with or without)
+    prepare = getattr(renderer, "prepare", None)
+    prepare = prepare if callable(prepare) else None
 
     def job(prev, carry, j, req_j):
         # the toolkit thread's work while round j renders
@@ -843,12 +874,15 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
         if prev is not None:
             record = commit(prev, carry)
             record["_eval"] = rnd.evaluate(record, record["round"])
-        return record, plan(j, req_j)
+        out, secs = plan(j, req_j)
+        # round 1 planned blind (prev None): round 0's plan time goes with round 1's
+        return record, (out, secs + (carry if prev is None else 0.0))
 
     def done(record):
         clock["wall_start"] += record.pop("_eval", 0.0)  # evaluation is not part of the run's time
         _finish_round(record, rounds, on_round, bar, stats, rnd.log_path, acct)
 
+    blind = bool(method.plans_round_one_blind())
     j = round_index
     if planned is None:
         # a new run (round 0: nothing to plan from) or a resume after round 0 (round 1 sees it)
@@ -869,7 +903,9 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
             if time_limit is not None and time.perf_counter() - clock["wall_start"] >= time_limit:
                 stopped = "time_limit"
                 break
-            first = j == 0  # round 1 is planned from round 0, after it: no toolkit work to overlap
+            # round 1 is planned from round 0, after it (no toolkit work to overlap), unless
+            # the method plans it blind (Method.plans_round_one_blind)
+            first = j == 0 and not blind
             if not first:
                 fut = pool.submit(job, uncommitted, carry, j, req)
                 uncommitted = None
@@ -898,6 +934,14 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
                 if record is not None:
                     done(record)
                 uncommitted = rendered
+                if req is None and why == "wait":
+                    # the method waits for the round just rendered (PLAN_AFTER_COMMIT):
+                    # commit it here, then plan the next round from it, as round 1 after round 0
+                    prev, uncommitted = uncommitted, None
+                    record = commit(prev, carry, helper=pool)
+                    record["_eval"] = rnd.evaluate(record, record["round"])
+                    done(record)
+                    (req, why), carry = plan(j, None)
             j += 1
         if uncommitted is not None:
             # the last round: commit it (nothing is left to plan)

@@ -485,6 +485,40 @@ def test_plan_positions_budget_threshold_and_determinism():
     assert 0 < len(p3) < 10 ** 7
 
 
+def test_pending_samples_count_as_taken():
+    """A pipelined plan discounts the round in flight: sigma^2(B) = sigma^2(F) / (N + pending)."""
+    st = _noisy_stats(48, 40, 4, 1)
+    base, _ = plan_awr_positions(st, 5000, np.random.default_rng(3))
+    # no pending sample (or none given): the sequential plan, bit for bit
+    same, _ = plan_awr_positions(st, 5000, np.random.default_rng(3), pending=np.zeros((48, 40), np.int64))
+    np.testing.assert_array_equal(base, same)
+    # many samples in flight in the left half: the batch goes mostly to the right half
+    pending = np.zeros((48, 40), np.int64)
+    pending[:, :20] = 64
+    pos, _ = plan_awr_positions(st, 5000, np.random.default_rng(3), pending=pending)
+    assert pos.shape == (5000, 2)
+    left_before = np.mean(base[:, 0] < 20)
+    left_after = np.mean(pos[:, 0] < 20)
+    assert left_after < 0.5 * left_before
+    # the pending samples discount exactly as committed ones would in Eq. 6
+    from mcrecon.methods.awr import sampling
+
+    seen = {}
+    orig = sampling.scale_priorities
+
+    def spy(mean, var, **kw):
+        seen["var"] = var
+        return orig(mean, var, **kw)
+
+    sampling.scale_priorities = spy
+    try:
+        plan_awr_positions(st, 5000, np.random.default_rng(3), pending=pending)
+    finally:
+        sampling.scale_priorities = orig
+    f = functional_variance(st, "contrast")
+    np.testing.assert_allclose(seen["var"], f / np.maximum(st.count + pending, 1)[..., None], rtol=1e-15)
+
+
 def test_method_plan_respects_remaining_and_returns_none():
     m = AWRMethod(variant="paper", round_spp=1.0)
     st = PixelStats(30, 20)

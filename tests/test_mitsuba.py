@@ -169,6 +169,39 @@ def test_counts_then_positions_and_determinism(cornell32):
 
 @pytest.mark.mitsuba
 @needs_mitsuba
+def test_prepare_in_another_thread_gives_the_same_reply():
+    """prepare() (the pipelined driver's toolkit thread) computes the film positions ahead;
+    render() of that request returns exactly the reply it returns without it, over several passes."""
+    import threading
+
+    r = MitsubaRenderer(None, width=24, height=16, spp_per_pass=2)
+    rng = np.random.default_rng(3)
+    counts = rng.integers(0, 5, (16, 24))
+    pos = rng.random((700, 2)) * [24, 16]
+    for kw in ({"counts": counts}, {"positions": pos}, {"counts": counts, "positions": pos}):
+        req = SampleRequest(24, 16, seed=7, round_index=2, **kw)
+        plain = r.render(req)
+        t = threading.Thread(target=r.prepare, args=(req,))
+        t.start()
+        t.join()
+        ahead = r.render(req)
+        np.testing.assert_array_equal(ahead.positions, plain.positions)
+        np.testing.assert_array_equal(ahead.values, plain.values)
+        assert ahead.values.dtype == np.float32 and ahead.positions.dtype == np.float64
+        # a prepared result is used once, by that request object only
+        other = SampleRequest(24, 16, seed=8, round_index=2, **kw)
+        r.prepare(req)
+        np.testing.assert_array_equal(r.render(other).values, r.render(other).values)
+        assert not np.array_equal(r.render(other).values, plain.values)
+    # the positions are those of the protocol's jittered_positions with the request's stream
+    from mcrecon.renderers.protocol import jittered_positions
+
+    req = SampleRequest(24, 16, counts=counts, seed=5, round_index=9)
+    np.testing.assert_array_equal(r.render(req).positions, jittered_positions(counts, np.random.default_rng([5, 9])))
+
+
+@pytest.mark.mitsuba
+@needs_mitsuba
 def test_passes_get_distinct_random_streams():
     # spp_per_pass=1 on 8x8: 64 samples per kernel launch.  The same position
     # repeated 256 times spans 4 passes; repeated seeds would repeat values.

@@ -85,6 +85,101 @@ def test_plan_of_round_j_sees_the_rounds_up_to_j_minus_2_and_round_j_minus_1_pen
     assert all(s[1] == s[2] and s[3] == 0 and s[4] is None for s in seq)
 
 
+class _BlindSpy(_Spy):
+    def plans_round_one_blind(self):
+        return True
+
+
+def test_a_method_that_plans_round_one_blind_sees_round_zero_pending(tmp_path):
+    res = adapt(_renderer(), _BlindSpy(), spp=16, seed=1, pipeline=True)
+    seen = res.run.seen
+    totals = [0] + [r["samples_total"] for r in res.rounds]
+    sizes = [r["samples"] for r in res.rounds]
+    assert seen[0] == (0, 0, 0, 1, None)
+    for j, committed, n, lag, pending in seen[1:]:
+        assert lag == 1 and committed == totals[j - 1] and pending == sizes[j - 1] and n == committed + pending
+    # the same rounds as sequential (uniform doubling reads only the count)
+    seq = adapt(_renderer(), _BlindSpy(), spp=16, seed=1, pipeline=False)
+    assert [r["samples"] for r in seq.rounds] == sizes
+    np.testing.assert_array_equal(seq.image, res.image)
+    # box plans round 1 blind: stopped after round 0 or 1 and resumed (the resume plans the
+    # round in flight again, for K = 1 from nothing with round 0 pending), the same run
+    full = adapt(_renderer(), "box", spp=16, seed=1, pipeline=True)
+    for stop in (1, 2):
+        log = tmp_path / f"blind{stop}.h5"
+        adapt(_renderer(), "box", spp=16, seed=1, pipeline=True, log=log, max_rounds=stop)
+        done = resume(log, _renderer())
+        np.testing.assert_array_equal(done.image, full.image)
+        assert [r["samples"] for r in done.rounds] == [r["samples"] for r in full.rounds]
+
+
+def test_plan_after_commit_waits_for_the_round_in_flight(tmp_path):
+    """ci pipelined: round 0 and 1 are the two halves of its initial pass; when every pixel of the
+    first half converged, round 2's plan waits (PLAN_AFTER_COMMIT) for round 1's pixels: the driver
+    commits round 1 and plans again -- here everything converged, the sequential run's samples."""
+    from mcrecon.renderers.scenes import SceneRenderer
+
+    def run(pipe, **kw):
+        return adapt(SceneRenderer("flat", width=40, height=28, seed=1), get_method("ci", min_spp=4, tolerance=10.0),
+                     spp=24, seed=3, pipeline=pipe, track_error=False, **kw)
+
+    seq, pip = run(False), run(True)
+    assert seq.stopped == pip.stopped == "converged" and seq.samples == pip.samples == 4 * 40 * 28
+    assert [r["samples"] for r in pip.rounds] == [2 * 40 * 28, 2 * 40 * 28]
+    np.testing.assert_array_equal(seq.counts, pip.counts)  # (other samples: the halves are other rounds)
+    # a method that returns it with nothing in flight is refused (a bug in the method)
+    from mcrecon.methods.base import PLAN_AFTER_COMMIT
+
+    class Bad(_Spy):
+        def plan(self, run, state):
+            return PLAN_AFTER_COMMIT
+
+    with pytest.raises(RuntimeError, match="PLAN_AFTER_COMMIT"):
+        adapt(_renderer(), Bad(), spp=4, pipeline=False)
+
+
+def _half_constant_renderer(w, h):
+    """Rows above the middle: the constant 0.5 (converged on the first samples); below: noise."""
+    def fn(req):
+        rng = np.random.default_rng(req.seed)
+        pos = jittered_positions(req.counts, rng) if req.counts is not None else np.zeros((0, 2))
+        noisy = pos[:, 1:2] >= h / 2
+        val = np.where(noisy, rng.uniform(0.0, 1.0, (len(pos), 1)), 0.5)
+        return SampleBatch(pos, np.repeat(val, 3, axis=1))
+    return CallableRenderer(fn, width=w, height=h, name="half constant")
+
+
+@pytest.mark.parametrize("stop_after", [1, 2, 3, 5])
+def test_a_pipelined_run_that_waited_resumes_bit_identically(tmp_path, stop_after):
+    """ci with a round that waits (PLAN_AFTER_COMMIT): stopped and resumed around the wait (the
+    resume plans the waiting round again, commits, plans from it), the same samples and image."""
+    m = get_method("ci", min_spp=4, step_spp=4, tolerance=0.02)
+    r = lambda: _half_constant_renderer(24, 20)  # noqa: E731
+    full = adapt(r(), m, spp=40, seed=6, log=tmp_path / "full.h5", pipeline=True, track_error=False)
+    assert len(full.rounds) > stop_after
+    # round 2 waited: the first half (constant, converged on its first samples) asked for nothing,
+    # so round 2 was planned twice (the second time after round 1's commit)
+    assert [e["round"] for e in full.timeline if e["phase"] == "plan"].count(2) == 2
+    assert full.rounds[2]["samples"] > 4 * 240  # the noisy half's step (and its border row's, borrowed)
+    log = tmp_path / "part.h5"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # stopped after round 0: half the pixels are empty
+        adapt(r(), m, spp=40, seed=6, log=log, max_rounds=stop_after, pipeline=True, track_error=False)
+    res = resume(log, r(), track_error=False)
+    np.testing.assert_array_equal(res.image, full.image)
+    a, b = read_log(log).read_all(), read_log(tmp_path / "full.h5").read_all()
+    np.testing.assert_array_equal(a.positions, b.positions)
+    np.testing.assert_array_equal(a.values, b.values)
+
+
+def test_which_methods_plan_round_one_blind():
+    assert get_method("box").plans_round_one_blind() and get_method("splat").plans_round_one_blind()
+    assert get_method("gem").plans_round_one_blind() and get_method("awr").plans_round_one_blind()
+    assert not get_method("gem", initial_spp=1).plans_round_one_blind()
+    assert not get_method("awr", initial_spp=1).plans_round_one_blind()
+    assert get_method("ci").plans_round_one_blind()  # its initial pass split by pixels, unseen pixels wait
+
+
 @pytest.mark.parametrize("method", ["box", "splat"])
 def test_box_and_splat_are_bit_identical_with_and_without_the_lag(method):
     """Uniform doubling depends only on the sample count, which counts the round in flight
@@ -96,6 +191,39 @@ def test_box_and_splat_are_bit_identical_with_and_without_the_lag(method):
     assert [r["samples"] for r in a.rounds] == [r["samples"] for r in b.rounds]
     np.testing.assert_array_equal(a.image, b.image)
     np.testing.assert_array_equal(a.counts, b.counts)
+
+
+class _Preparing:
+    """A renderer with ``prepare`` (as the Mitsuba bridge): positions computed ahead, same replies."""
+
+    def __init__(self, inner):
+        self.inner, self.width, self.height, self.channels = inner, inner.width, inner.height, inner.channels
+        self.prepared = []  # (round, thread)
+
+    def prepare(self, req):
+        import threading
+
+        self.prepared.append((req.round_index, threading.current_thread().name))
+
+    def render(self, req):
+        return self.inner.render(req)
+
+
+@pytest.mark.parametrize("method", ["box", "gem"])
+def test_renderer_prepare_is_called_from_the_toolkit_thread_and_changes_nothing(method):
+    opts = OPTS[method]
+    plain = adapt(_renderer(), get_method(method, **opts), spp=12, seed=2, pipeline=True)
+    r = _Preparing(_renderer())
+    res = adapt(r, get_method(method, **opts), spp=12, seed=2, pipeline=True)
+    np.testing.assert_array_equal(plain.image, res.image)
+    assert [k for k, _ in r.prepared] == list(range(len(res.rounds)))
+    # rounds >= 2 are planned (and prepared) while the round before renders: in the toolkit thread
+    assert all(t.startswith("mcrecon-toolkit") for k, t in r.prepared if k >= 2)
+    assert any(e["phase"] == "prepare" for e in res.timeline)
+    # sequential runs do not call it
+    r2 = _Preparing(_renderer())
+    adapt(r2, get_method(method, **opts), spp=12, seed=2, pipeline=False)
+    assert r2.prepared == []
 
 
 @pytest.mark.parametrize("method", ["gem", "awr", "ci"])
@@ -210,8 +338,8 @@ def test_gem_plan_with_nothing_pending_is_the_plan_without_pending():
 
 
 # ------------------------------------------------------------------ stop and resume (in process)
-@pytest.mark.parametrize("method, stop_after", [("gem", 1), ("gem", 2), ("gem", 4), ("awr", 3), ("ci", 2),
-                                                ("box", 3), ("splat", 2)])
+@pytest.mark.parametrize("method, stop_after", [("gem", 1), ("gem", 2), ("gem", 4), ("awr", 1), ("awr", 3),
+                                                ("ci", 2), ("box", 1), ("box", 3), ("splat", 1), ("splat", 2)])
 def test_stopped_pipelined_run_resumes_bit_identically(tmp_path, method, stop_after):
     """Stopped after ``stop_after`` rounds (the next one was planned and in flight): the resume plans
     it again from the same statistics and ends where the uninterrupted run ends."""

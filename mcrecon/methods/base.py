@@ -63,9 +63,26 @@ from ..renderers.protocol import SampleBatch, SampleRequest
 from ..stats import PixelStats
 
 __all__ = ["Method", "AdaptiveState", "Option", "Requirements", "MethodInputs", "RunState", "uniform_counts",
-           "variant_option", "check_half_buffers", "merge_halves", "SplitHalves", "is_half_buffer_pair", "half_buffer_methods"]
+           "variant_option", "check_half_buffers", "merge_halves", "SplitHalves", "is_half_buffer_pair",
+           "half_buffer_methods", "PLAN_AFTER_COMMIT"]
 
 _MISSING = object()
+
+
+class _PlanAfterCommit:
+    def __repr__(self):
+        return "PLAN_AFTER_COMMIT"
+
+    def __reduce__(self):
+        return "PLAN_AFTER_COMMIT"
+
+
+#: What :meth:`Method.plan` may return in a pipelined run (``state.pending`` holds the
+#: round in flight) when it has nothing to ask for until that round is seen (e.g. every
+#: pixel it would serve still waits for its first samples): the driver commits the round
+#: in flight and plans the same round again from the statistics with it (``pending``
+#: None), as it plans round 1 after round 0.  Never returned without a round in flight.
+PLAN_AFTER_COMMIT = _PlanAfterCommit()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -703,6 +720,19 @@ class Method:
             return state.uniform_request(max(1, int(self.params.get("initial_spp", self.initial_spp))))
         n = min(remaining, state.n_samples)
         return state.request(counts=uniform_counts(state.width, state.height, n, state.rng))
+
+    def plans_round_one_blind(self) -> bool:
+        """Pipelined: whether round 1 may be planned while round 0 renders.
+
+        Round 1's plan then sees no committed sample (``state.stats`` empty,
+        round 0 as ``state.pending``, ``state.n_samples`` counting it), and
+        round 0's commit overlaps round 1's rendering instead of holding the
+        renderer.  Only for a plan that reads nothing committed in round 1
+        (a uniform round that depends on the sample count, the second half
+        of a split initial pass: :meth:`AdaptiveState.initial_pass`).
+        Default False: round 1 is planned after round 0 is committed.
+        """
+        return False
 
     def observe(self, run: RunState, batch: SampleBatch, round_index: int) -> None:
         """See a committed round's samples (only called when ``requires.samples``)."""

@@ -49,6 +49,9 @@ class BoxMethod(Method):
     max_round_parts = 8
     max_round_floor = 1 << 20
 
+    def plans_round_one_blind(self) -> bool:
+        return True  # its rounds depend only on the sample count, which counts the round in flight
+
     def halo(self, width, height):
         return 0  # the pixel's own mean (empty pixels aside: see Method.halo)
 

@@ -42,14 +42,16 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Mapping
 
+import numba
 import numpy as np
 
 from ..errors import InputError, RendererError
-from .protocol import SampleBatch, SampleRequest, jittered_positions, pixel_index
+from .protocol import SampleBatch, SampleRequest, _place_in_pixels, pixel_index
 
 __all__ = ["MitsubaRenderer", "mitsuba_available", "render_reference", "dump_uniform_log",
            "SUPPORTED_VARIANTS", "drjit_cache_dir"]
@@ -278,7 +280,8 @@ class MitsubaRenderer:
         Time the last :meth:`render` spent inside Mitsuba/Dr.Jit (tracing,
         kernel compilation, launches, copying results out).  The adaptive
         driver counts it as renderer time and the rest of the call (our
-        jittered positions, batching, concatenation) as toolkit time.
+        jittered positions and their float32 film coordinates, unless
+        :meth:`prepare` computed them ahead) as toolkit time.
     last_call_seconds : float
         Wall time of the whole last :meth:`render` call.
     total_render_seconds : float
@@ -395,6 +398,9 @@ class MitsubaRenderer:
         self.last_call_seconds = 0.0
         self.total_render_seconds = 0.0
         self.n_rendered = 0
+        # film positions computed ahead by prepare(): id(request) -> (request, data)
+        self._prepared: dict = {}
+        self._prepared_lock = threading.Lock()
 
     def __repr__(self) -> str:
         return (f"MitsubaRenderer({self.scene_name!r}, {self.width}x{self.height}, variant={self.variant!r}, "
@@ -406,17 +412,19 @@ class MitsubaRenderer:
         return self.spp_per_pass * self.width * self.height
 
     # ------------------------------------------------------------ tracing
-    def _trace(self, pos: np.ndarray, seed32: int) -> np.ndarray:
-        """Radiance (n, 3) float32 of one path through each film position."""
+    def _trace(self, uv: np.ndarray, seed32: int, out: np.ndarray) -> None:
+        """Radiance of one path through each film position into ``out`` (n, 3) float32.
+
+        ``uv`` (2, n) float32: the normalised film positions (x / W, y / H).
+        """
         mi, dr = self._mi, self._dr
         mi.set_variant(self.variant)  # process-global: another renderer may have switched it
-        n = int(pos.shape[0])
+        n = int(uv.shape[1])
         s = self._sampler.clone()
         # An opaque seed is a kernel parameter; a Python int would be baked
         # into the kernel as a literal and force a recompilation per call.
         s.seed(dr.opaque(mi.UInt32, seed32), n)
-        p = mi.Point2f(mi.Float((pos[:, 0] / self.width).astype(np.float32)),
-                       mi.Float((pos[:, 1] / self.height).astype(np.float32)))
+        p = mi.Point2f(mi.Float(uv[0]), mi.Float(uv[1]))
         # Same sampler dimensions as Mitsuba's own render loop, minus the
         # pixel jitter (we give the film positions).
         aperture = s.next_2d() if self._needs_aperture else mi.Point2f(0.5, 0.5)
@@ -430,10 +438,54 @@ class MitsubaRenderer:
         dr.eval(L)
         # One channel at a time: converting the Color3f as a whole launches
         # an extra interleaving kernel whose size is compiled in.
-        out = np.empty((n, 3), np.float32)
         for c in range(3):
             out[:, c] = np.asarray(L[c], dtype=np.float32)
-        return out
+
+    def _film_positions(self, request: SampleRequest):
+        """(positions (n, 2) float64, normalised film positions (2, n) float32) of a request.
+
+        The jittered positions for ``counts`` (from ``default_rng([seed,
+        round_index])``), then the requested ``positions``, written into one
+        array (no concatenation), and their float32 ``(x / W, y / H)`` in
+        the same pass over them (:func:`_normalised`).
+        """
+        seed, rnd = int(request.seed), int(request.round_index)
+        nc, npos = request.n_from_counts, request.n_from_positions
+        pos = np.empty((nc + npos, 2), np.float64)
+        if nc:
+            rng = np.random.default_rng([seed & 0xFFFFFFFFFFFFFFFF, rnd & 0xFFFFFFFFFFFFFFFF])
+            # the numbers of jittered_positions(request.counts, rng), drawn into place
+            rng.random(out=pos[:nc])
+            _place_in_pixels(pos[:nc], np.ascontiguousarray(request.counts, np.int64).ravel(), self.width)
+        if npos:
+            pos[nc:] = request.positions
+        return pos, _normalised(pos, self.width, self.height)
+
+    def prepare(self, request: SampleRequest) -> None:
+        """Compute a request's film positions ahead of :meth:`render` (optional; any thread).
+
+        A pipelined :func:`mcrecon.adapt` calls it from its toolkit thread
+        right after planning a round, while this renderer still renders the
+        round before: the jittered positions and their float32 conversion
+        then overlap the rendering instead of delaying the next kernel
+        launch.  Pure numpy/numba (no Mitsuba call); :meth:`render` of the
+        same request object uses them and returns exactly what it returns
+        without ``prepare`` (tested).
+        """
+        if not isinstance(request, SampleRequest) or (request.width, request.height) != (self.width, self.height):
+            return  # render() reports it
+        data = self._film_positions(request)
+        with self._prepared_lock:
+            self._prepared[id(request)] = (request, data)
+            while len(self._prepared) > 2:  # a run that stopped before rendering a prepared round
+                self._prepared.pop(next(iter(self._prepared)))
+
+    def _take_prepared(self, request):
+        with self._prepared_lock:
+            got = self._prepared.pop(id(request), None)
+        if got is not None and got[0] is request:
+            return got[1]
+        return None
 
     def render(self, request: SampleRequest) -> SampleBatch:
         """Answer a request: jittered samples for ``counts``, then ``positions`` in order.
@@ -455,13 +507,8 @@ class MitsubaRenderer:
             raise InputError(self.name, "request width/height",
                              f"{request.width}x{request.height}, this scene's film is {self.width}x{self.height}")
         seed, rnd = int(request.seed), int(request.round_index)
-        parts = []
-        if request.counts is not None and request.n_from_counts:
-            rng = np.random.default_rng([seed & 0xFFFFFFFFFFFFFFFF, rnd & 0xFFFFFFFFFFFFFFFF])
-            parts.append(jittered_positions(request.counts, rng))
-        if request.positions is not None and request.n_from_positions:
-            parts.append(np.asarray(request.positions, np.float64))
-        pos = np.concatenate(parts) if parts else np.zeros((0, 2))
+        prepared = self._take_prepared(request)
+        pos, uv = prepared if prepared is not None else self._film_positions(request)
         n = pos.shape[0]
         values = np.empty((n, 3), np.float32)
         render_s = 0.0
@@ -474,7 +521,7 @@ class MitsubaRenderer:
             a, b = k * step, min(n, (k + 1) * step)
             t0 = time.perf_counter()
             try:
-                values[a:b] = self._trace(pos[a:b], int(seeds[k]))
+                self._trace(uv[:, a:b], int(seeds[k]), values[a:b])
             except Exception as exc:
                 raise RendererError(self.name, "render", f"Mitsuba failed on pass {k} of round {rnd}: "
                                     f"{type(exc).__name__}: {exc}") from exc
@@ -484,6 +531,20 @@ class MitsubaRenderer:
         self.n_rendered += n
         self.last_call_seconds = time.perf_counter() - t_call
         return SampleBatch(pos, values)
+
+
+@numba.njit(cache=True, nogil=True)
+def _normalised(pos, width, height):
+    """(2, n) float32 ``(x / W, y / H)``: float64 division, then rounding to float32 (as numpy's
+    ``(pos[:, 0] / W).astype(np.float32)``), each row contiguous for Dr.Jit."""
+    n = pos.shape[0]
+    out = np.empty((2, n), np.float32)
+    fw = float(width)
+    fh = float(height)
+    for k in range(n):
+        out[0, k] = np.float32(pos[k, 0] / fw)
+        out[1, k] = np.float32(pos[k, 1] / fh)
+    return out
 
 
 # ---------------------------------------------------- reference and logs

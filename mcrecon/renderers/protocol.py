@@ -193,6 +193,14 @@ def validate_reply(request: SampleRequest, batch, *, n_channels: int,
     Non-finite *values* are allowed here; the sample log's ingestion
     policy (``nonfinite=``) decides what happens to them.
     """
+    return _validate_reply(request, batch, n_channels=n_channels, renderer=renderer,
+                           position_tolerance=position_tolerance)[0]
+
+
+def _validate_reply(request: SampleRequest, batch, *, n_channels: int, renderer: str = "renderer",
+                    position_tolerance: float = 1e-4):
+    """:func:`validate_reply` and the number of rows with a NaN or Inf value, counted in the same
+    pass over the reply (:func:`~mcrecon.samples.check_samples`)."""
     if isinstance(batch, tuple) and len(batch) in (2, 3):
         batch = SampleBatch(*batch)
     if not isinstance(batch, SampleBatch):
@@ -206,8 +214,8 @@ def validate_reply(request: SampleRequest, batch, *, n_channels: int,
     n = request.total
     w, h = request.width, request.height
     # The shared sample checks (shapes, real dtypes, positions finite and on the film) ...
-    pos, val, _ = check_samples(pos, val, width=w, height=h, n_channels=n_channels, where=renderer,
-                                error=RendererError)
+    pos, val, n_nonfinite = check_samples(pos, val, width=w, height=h, n_channels=n_channels, where=renderer,
+                                          error=RendererError)
     # ... then what only a reply must satisfy: its request.
     if pos.shape[0] != n:
         raise RendererError(renderer, "reply length", f"{pos.shape[0]} samples, requested {n}")
@@ -246,4 +254,4 @@ def validate_reply(request: SampleRequest, batch, *, n_channels: int,
             raise RendererError(renderer, f"features/{name}", f"dtype {arr.dtype}, expected a numeric dtype "
                                 "(integer, float or bool)")
         feats[str(name)] = arr
-    return SampleBatch(pos, val, feats)
+    return SampleBatch(pos, val, feats), int(n_nonfinite)

@@ -132,6 +132,11 @@ class AWRMethod(Method):
         base = super().start(width, height, channels, reference=reference)
         return AWRRun(**dataclasses.asdict(base))
 
+    def plans_round_one_blind(self) -> bool:
+        # pipelined, an initial pass of >= 2 spp takes two rounds, the second uniform
+        # (AdaptiveState.initial_pass): it needs nothing committed
+        return self.params["initial_spp"] >= 2
+
     def plan(self, run: "AWRRun", state: AdaptiveState) -> SampleRequest | None:
         """Initial uniform pass, then batches of the wavelet sampler (§4.1)."""
         p = self.params
@@ -150,7 +155,8 @@ class AWRMethod(Method):
         pos, info = plan_awr_positions(
             state.stats, quota, state.rng, wavelet=p["wavelet"], levels=p["sampling_levels"], mode=p["boundary"],
             per_coefficient=p["per_coefficient"], renorm=p["sampling_renorm"], propagation=p["propagation"],
-            priority_threshold=p["priority_threshold"], estimator=p["sampling_variance"])
+            priority_threshold=p["priority_threshold"], estimator=p["sampling_variance"],
+            pending=state.pending if state.lag else None)
         run.last_plan_info = info
         if pos is None or len(pos) == 0:
             return None

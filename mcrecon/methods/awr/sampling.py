@@ -18,7 +18,7 @@ import numpy as np
 
 from ...stats import PixelStats
 from ..box import fill_empty_pixels
-from .reconstruction import pixel_variance
+from .reconstruction import functional_variance, pixel_variance
 from .wavelets import SAMPLING_RENORM, analysis_matrices, analyze, coefficient_variances, default_levels, get_wavelet
 
 __all__ = ["scale_priorities", "sample_scale_functions", "plan_awr_positions"]
@@ -231,7 +231,8 @@ def _draw_kernel(iy, ix, counts, u, py_ptr, py_idx, py_cdf, px_ptr, px_idx, px_c
 def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generator, *, wavelet: str = "cdf97",
                        levels: int = 5, mode: str = "symmetric", per_coefficient: int = 64,
                        renorm: float = SAMPLING_RENORM, propagation: str = "exact",
-                       priority_threshold: float | None = None, estimator: str = "contrast"):
+                       priority_threshold: float | None = None, estimator: str = "contrast",
+                       pending: np.ndarray | None = None):
     """One batch of the adaptive wavelet sampler (§4.1 Steps 2-3).
 
     Ranks all scale coefficients of levels 0..``levels`` by Eq. 8 and
@@ -242,6 +243,13 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
 
     Usable with any reconstruction (paper Fig. 10): the positions are a
     plain sample request.
+
+    ``pending`` (H, W), optional: samples per pixel of a round in flight
+    (a pipelined run).  They are counted as taken: sigma^2(B) =
+    sigma^2(F) / (N + pending) (Eq. 6 with the samples to come), so the
+    batch does not rank first the coefficients the round in flight already
+    serves.  The wavelet coefficients (the committed means) are unchanged:
+    the pending samples' expected mean is the current one.
 
     Returns
     -------
@@ -261,7 +269,10 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
     levels = int(min(levels, default_levels((h, w))))
     mean = fill_empty_pixels(stats.mean.copy(), stats.count, source="awr sampler") if (stats.count == 0).any() \
         else stats.mean
-    var = pixel_variance(stats, estimator)
+    if pending is not None and np.any(pending):
+        var = functional_variance(stats, estimator) / np.maximum(stats.count + np.asarray(pending), 1)[..., None]
+    else:
+        var = pixel_variance(stats, estimator)
     pri = scale_priorities(mean, var, wavelet=wavelet, levels=levels, mode=mode, renorm=renorm,
                            propagation=propagation)
     for k in range(1, levels + 1):

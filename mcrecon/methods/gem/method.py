@@ -220,6 +220,11 @@ class GEMMethod(Method):
         return np.asarray(img, dtype=np.float64)
 
     # ------------------------------------------------------------ adaptive
+    def plans_round_one_blind(self) -> bool:
+        # pipelined, an initial pass of >= 2 spp takes two rounds, the second uniform
+        # (AdaptiveState.initial_pass): it needs nothing committed
+        return self.params["initial_spp"] >= 2
+
     def plan(self, run: "GEMRun", state: AdaptiveState):
         """Round 0: uniform ``initial_spp``; then one adaptive iteration per round (Secs. 5, 6).
 

@@ -215,6 +215,9 @@ class SplatMethod(Method):
             sp.add_round_stream(lambda j=j: pseudo_round(j), nonfinite=nonfinite, where=where)
 
     # ----------------------------------------------------------- adaptive
+    def plans_round_one_blind(self) -> bool:
+        return True  # the schedule reads the round in flight (state.pending) as the previous round
+
     def plan(self, run: "SplatRun", state: AdaptiveState) -> SampleRequest | None:
         """Every pixel gets N_j samples: N_0 = initial_spp, N_j = 2 N_{j-1}, the last round absorbing the rest.
 
