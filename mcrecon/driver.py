@@ -281,8 +281,10 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
         reply's arrays after ``render`` returned them.  A renderer with a
         ``prepare(request)`` method (optional; the Mitsuba bridge computes
         its jittered positions there) has it called from the toolkit thread
-        right after each round is planned, while it renders the round
-        before; ``render(request)`` must return the same reply with or
+        right after a round is planned there, while it renders the round
+        before (rounds planned in the caller's thread -- round 0, a re-plan
+        after ``PLAN_AFTER_COMMIT`` -- and a resume's first round are not
+        prepared); ``render(request)`` must return the same reply with or
         without it.
 
     Returns

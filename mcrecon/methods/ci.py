@@ -456,7 +456,7 @@ class CIMethod(Method):
         counts[:p // 2] = min(self.rule.min_spp, self.rule.max_spp)
         return counts.reshape(state.height, state.width)
 
-    def plan(self, run: RunState, state: AdaptiveState) -> SampleRequest | None:
+    def plan(self, run: RunState, state: AdaptiveState) -> SampleRequest | object | None:
         """Round 0: ``min_spp`` everywhere; then ``step`` more to every pixel not converged (Eq. 10).
 
         While every pixel is below ``min_spp`` (nothing can have converged)
