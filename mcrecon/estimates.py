@@ -341,6 +341,33 @@ def relative_denominator_loo(y: np.ndarray, v: np.ndarray, count: np.ndarray | N
     return out
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def sorted_neighbours8(q, has, i, j, ch, buf):
+    """The 8 neighbours of pixel (i, j) in channel ch, edge-repeated, where ``has``: sorted into ``buf``.
+
+    Insertion sort (stable; a NaN stops no comparison, so it stays where it
+    arrived).  Returns how many were taken (0..8).
+    """
+    h, w, _ = q.shape
+    n = 0
+    for di in range(-1, 2):
+        ii = min(max(i + di, 0), h - 1)
+        for dj in range(-1, 2):
+            if di == 0 and dj == 0:
+                continue
+            jj = min(max(j + dj, 0), w - 1)
+            if not has[ii, jj]:
+                continue
+            x = q[ii, jj, ch]
+            k = n
+            while k > 0 and buf[k - 1] > x:
+                buf[k] = buf[k - 1]
+                k -= 1
+            buf[k] = x
+            n += 1
+    return n
+
+
 @numba.njit(cache=True, nogil=True)
 def _median8_plus(q, has, eps, out):
     h, w, c = q.shape
@@ -348,22 +375,7 @@ def _median8_plus(q, has, eps, out):
     for i in range(h):
         for j in range(w):
             for ch in range(c):
-                n = 0
-                for di in range(-1, 2):
-                    ii = min(max(i + di, 0), h - 1)
-                    for dj in range(-1, 2):
-                        if di == 0 and dj == 0:
-                            continue
-                        jj = min(max(j + dj, 0), w - 1)
-                        if not has[ii, jj]:
-                            continue
-                        x = q[ii, jj, ch]
-                        k = n
-                        while k > 0 and buf[k - 1] > x:
-                            buf[k] = buf[k - 1]
-                            k -= 1
-                        buf[k] = x
-                        n += 1
+                n = sorted_neighbours8(q, has, i, j, ch, buf)
                 if n == 0:
                     m = 0.0
                 elif n % 2 == 1:

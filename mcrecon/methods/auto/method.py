@@ -25,8 +25,7 @@ from ..._filtering import correlate_jobs, numba_threads
 
 from ...errors import InputError, McreconWarning
 from ...estimates import (DEFAULT_EPS, Halves, cross_validation_mse, dual_buffer_mse, relative_denominator,
-                          relative_denominator_loo,
-                          split_halves, sure, sure_filter_bank)
+                          relative_denominator_loo, sorted_neighbours8, split_halves, sure, sure_filter_bank)
 from ...renderers.protocol import SampleBatch
 from ...stats import PixelStats
 from ..base import (AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, merge_halves,
@@ -683,17 +682,18 @@ def _no_push_in_heavy_tails(img: np.ndarray, y: np.ndarray, hi: np.ndarray) -> n
     out = img.copy()
     with numba_threads():
         _no_push_kernel(img, np.ascontiguousarray(y, dtype=np.float64),
-                        np.ascontiguousarray(hi, dtype=np.float64), HEAVY_TAIL, out)
+                        np.ascontiguousarray(hi, dtype=np.float64), np.ones(y.shape[:2], bool), HEAVY_TAIL, out)
     return out
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _no_push_kernel(img, y, hi, heavy_tail, out):
+def _no_push_kernel(img, y, hi, every, heavy_tail, out):
     """:func:`_no_push_in_heavy_tails` per pixel and channel (``out`` starts as a copy of ``img``).
 
-    The median of the 8 neighbours (edge-repeated) is the mean of the 4th
-    and 5th of them sorted, as :func:`numpy.median` computes it; NaN
-    anywhere among them makes it NaN, and a NaN median never reverts.
+    The median of the 8 neighbours (edge-repeated; ``every`` all True:
+    an empty neighbour's mean counts) is the mean of the 4th and 5th of
+    them sorted, as :func:`numpy.median` computes it; NaN anywhere among
+    them makes it NaN, and a NaN median never reverts.
     """
     h, w, c = y.shape
     for i in numba.prange(h):
@@ -704,22 +704,11 @@ def _no_push_kernel(img, y, hi, heavy_tail, out):
                 oc = img[i, j, ch]
                 if not (hi[i, j, ch] > heavy_tail * abs(yc)) or not (oc != yc):
                     continue
-                k = 0
+                sorted_neighbours8(y, every, i, j, ch, nb)
                 nan = False
-                for di in range(-1, 2):
-                    for dj in range(-1, 2):
-                        if di == 0 and dj == 0:
-                            continue
-                        v = y[min(max(i + di, 0), h - 1), min(max(j + dj, 0), w - 1), ch]
-                        if v != v:
-                            nan = True
-                        # insertion into the sorted prefix nb[:k]
-                        m = k
-                        while m > 0 and nb[m - 1] > v:
-                            nb[m] = nb[m - 1]
-                            m -= 1
-                        nb[m] = v
-                        k += 1
+                for m in range(8):
+                    if nb[m] != nb[m]:
+                        nan = True
                 if nan:
                     continue
                 med = (nb[3] + nb[4]) / 2.0
