@@ -653,7 +653,7 @@ def ingest(log, *, client=None, scheduler: str | None = None, workers: int | Non
     """
     from .io import read_log
     from .io.samplelog import DEFAULT_READ_ROWS, SampleLog
-    from .samples import check_policy
+    from .samples import check_policy, warn_nonfinite
 
     check_policy(nonfinite, "ingest")
     if not isinstance(log, SampleLog):
@@ -672,9 +672,7 @@ def ingest(log, *, client=None, scheduler: str | None = None, workers: int | Non
         stats = tree_merge([_Band.unpack(t) for t in top], merge=_merge_bands).full()
     n_bad = stats.n_dropped + stats.n_zeroed
     if n_bad:
-        verb = "dropped" if nonfinite == "drop" else "set to 0"
-        warnings.warn(f"{log.path}: values: {n_bad} sample(s) with NaN or Inf {verb} "
-                      f"(policy nonfinite={nonfinite!r})", McreconWarning, stacklevel=2)
+        warn_nonfinite(str(log.path), n_bad, nonfinite, stacklevel=2)
     return stats
 
 

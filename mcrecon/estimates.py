@@ -64,8 +64,8 @@ import numba
 import numpy as np
 
 from ._filtering import numba_threads, safe_div
-from .errors import InputError, McreconWarning
-from .samples import apply_nonfinite, check_policy, check_samples
+from .errors import InputError
+from .samples import apply_nonfinite, check_policy, check_samples, warn_nonfinite
 from .stats import PixelStats
 
 __all__ = ["sure", "gaussian_centre_weights", "SureBank", "sure_filter_bank", "relative_denominator", "relative_denominator_loo",
@@ -615,13 +615,10 @@ class Halves:
                     st.n_dropped += k
                 else:
                     st.n_zeroed += k
-            if nonfinite == "drop":
-                pos, val, lab = pos[~bad], val[~bad], lab[~bad]
-            else:
-                val = np.where(np.isfinite(val), val, val.dtype.type(0))
-            verb = "dropped" if nonfinite == "drop" else "set to 0"
-            warnings.warn(f"{source}: values: {n_nonfinite} sample(s) with NaN or Inf {verb} "
-                          f"(policy nonfinite={nonfinite!r})", McreconWarning, stacklevel=4)
+            # the policy applied to the row numbers alongside the values (as the grouping does)
+            rows, val = apply_nonfinite(np.arange(pos.shape[0]), val, n_nonfinite, nonfinite, where=source)
+            pos, lab = pos[rows], lab[rows]
+            warn_nonfinite(source, n_nonfinite, nonfinite, stacklevel=4)
         for half, st in ((0, self.a), (1, self.b)):
             sel = lab == half
             if sel.any():

@@ -23,11 +23,12 @@ import dataclasses
 import functools
 import math
 import threading
+import warnings
 from typing import Iterator, Sequence
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, McreconWarning
 
 #: The public surface; the other names here (round helpers, the float32 spread
 #: check, pixel_index, source_name) serve the readers, the driver and the renderers.
@@ -299,6 +300,16 @@ def apply_nonfinite(positions, values, n_nonfinite: int, policy: str, *, where: 
         keep = finite.all(axis=1)
         return positions[keep], values[keep]
     return positions, np.where(finite, values, values.dtype.type(0))
+
+
+def warn_nonfinite(source: str, n_nonfinite: int, policy: str, *, stacklevel: int = 2) -> None:
+    """The one warning for ``n_nonfinite`` samples the ``drop``/``zero`` policy handled in ``source``.
+
+    ``stacklevel`` as the caller would pass to :func:`warnings.warn`.
+    """
+    verb = "dropped" if policy == "drop" else "set to 0"
+    warnings.warn(f"{source}: values: {n_nonfinite} sample(s) with NaN or Inf {verb} "
+                  f"(policy nonfinite={policy!r})", McreconWarning, stacklevel=stacklevel + 1)
 
 
 # ---------------------------------------------------------------- sources

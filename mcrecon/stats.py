@@ -25,13 +25,12 @@ References
 
 from __future__ import annotations
 
-import warnings
 from typing import Iterable, Sequence
 
 import numpy as np
 
-from .errors import InputError, McreconWarning
-from .samples import NONFINITE_POLICIES, apply_nonfinite, check_policy, check_samples, lazy_njit
+from .errors import InputError
+from .samples import NONFINITE_POLICIES, apply_nonfinite, check_policy, check_samples, lazy_njit, warn_nonfinite
 
 __all__ = ["PixelStats", "NONFINITE_POLICIES", "fill_from_neighbours"]
 
@@ -286,12 +285,9 @@ class PixelStats:
         if n_nonfinite:
             if nonfinite == "drop":
                 self.n_dropped += int(n_nonfinite)
-                verb = "dropped"
             else:
                 self.n_zeroed += int(n_nonfinite)
-                verb = "set to 0"
-            warnings.warn(f"{source}: values: {n_nonfinite} sample(s) with NaN or Inf {verb} "
-                          f"(policy nonfinite={nonfinite!r})", McreconWarning, stacklevel=3)
+            warn_nonfinite(source, n_nonfinite, nonfinite, stacklevel=3)
 
     def merge(self, other: "PixelStats") -> "PixelStats":
         """Merge another set of statistics into this one (Chan et al., in place)."""

@@ -10,14 +10,13 @@ validation path and NaN/Inf policy.  Nothing here opens a file.
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from typing import Sequence
 
 import numba
 import numpy as np
 
-from ..errors import InputError, McreconWarning
-from ..samples import apply_nonfinite, check_policy, check_samples, source_name
+from ..errors import InputError
+from ..samples import apply_nonfinite, check_policy, check_samples, source_name, warn_nonfinite
 
 __all__ = ["PixelSamples", "group_samples", "group_log"]
 
@@ -128,9 +127,7 @@ def group_samples(positions, values, *, width: int, height: int, channels: Seque
         # it keeps map the grouped samples back to the input rows (``order``).
         rows, val = apply_nonfinite(np.arange(pos.shape[0]), val, n_nonfinite, nonfinite, where=source)
         pos = pos[rows]
-        verb = "dropped" if nonfinite == "drop" else "set to 0"
-        warnings.warn(f"{source}: values: {n_nonfinite} sample(s) with NaN or Inf {verb} "
-                      f"(policy nonfinite={nonfinite!r})", McreconWarning, stacklevel=2)
+        warn_nonfinite(source, n_nonfinite, nonfinite, stacklevel=2)
     val = val.astype(np.float64, copy=False)
     pix = (np.floor(pos[:, 1]).astype(np.int64) * width + np.floor(pos[:, 0]).astype(np.int64))
     order, offsets = _counting_sort(pix, width * height)
