@@ -71,6 +71,54 @@ def _exp_neg(x, table):
     return p * table[n]
 
 
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _pair_dist(up, uq, xp, xq, alpha, k2, eps, acc, n):
+    for j in range(n):
+        a = up[j]
+        b = uq[j]
+        diff = xp[j] - xq[j]
+        acc[j] += (diff * diff - alpha * (a + min(a, b))) / (eps + k2 * (a + b))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _add_shifted(acc, x, n):
+    for j in range(n):
+        acc[j] += x[j]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _axpy(acc, wt, x, n):
+    for j in range(n):
+        acc[j] += wt[j] * x[j]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _weights(wa, wb, sa, sb, sv, pow2, nn):
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    for j in range(nn):
+        n = max(sv[j], one)
+        wa[j] = _exp_neg(max(sa[j] / n, zero), pow2)
+        wb[j] = _exp_neg(max(sb[j] / n, zero), pow2)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _mask_pairs(da, db, dv, mp, mq, inv_c, n):
+    for j in range(n):
+        m = mp[j] * mq[j]
+        da[j] = da[j] * inv_c * m
+        db[j] = db[j] * inv_c * m
+        dv[j] = m
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _mask_weights(wa, wb, mp, mq, maq, mbq, n):
+    for j in range(n):
+        m = mp[j] * mq[j]
+        wa[j] = wa[j] * (m * maq[j])
+        wb[j] = wb[j] * (m * mbq[j])
+
 #: Rows per band of the parallel kernel.  Results do not depend on it (nor
 #: on the number of threads): every output pixel is computed by one band, with
 #: the same arithmetic in the same order.
@@ -109,8 +157,6 @@ def _band(ya, yb, xa, ua, xb, ub, bothf, maf, mbf, full, r, f, k2, alpha, eps, i
     wb = np.zeros(w)
     inv_c = f32(1.0) / f32(c)
     pow2 = _POW2_NEG
-    one = f32(1.0)
-    zero = f32(0.0)
     for dy in range(-r, r + 1):
         for dx in range(-r, r + 1):
             j0 = max(0, -dx)
@@ -123,39 +169,36 @@ def _band(ya, yb, xa, ua, xb, ub, bothf, maf, mbf, full, r, f, k2, alpha, eps, i
                     db[j] = 0.0
                     dv[j] = 0.0
                 if 0 <= i < h and 0 <= qi < h:
+                    n_j = j1 - j0
+                    dav = da[j0:j1]
+                    dbv = db[j0:j1]
                     for ch in range(c):
-                        for j in range(j0, j1):
-                            a = ub[ch, i, j]
-                            b = ub[ch, qi, j + dx]
-                            diff = xb[ch, i, j] - xb[ch, qi, j + dx]
-                            da[j] += (diff * diff - alpha * (a + min(a, b))) / (eps + k2 * (a + b))
-                            a = ua[ch, i, j]
-                            b = ua[ch, qi, j + dx]
-                            diff = xa[ch, i, j] - xa[ch, qi, j + dx]
-                            db[j] += (diff * diff - alpha * (a + min(a, b))) / (eps + k2 * (a + b))
+                        _pair_dist(ub[ch, i, j0:j1], ub[ch, qi, j0 + dx:j1 + dx], xb[ch, i, j0:j1],
+                                   xb[ch, qi, j0 + dx:j1 + dx], alpha, k2, eps, dav, n_j)
+                        _pair_dist(ua[ch, i, j0:j1], ua[ch, qi, j0 + dx:j1 + dx], xa[ch, i, j0:j1],
+                                   xa[ch, qi, j0 + dx:j1 + dx], alpha, k2, eps, dbv, n_j)
                     if full:
                         for j in range(j0, j1):
                             da[j] = da[j] * inv_c
                             db[j] = db[j] * inv_c
                     else:
-                        for j in range(j0, j1):
-                            m = bothf[i, j] * bothf[qi, j + dx]
-                            da[j] = da[j] * inv_c * m
-                            db[j] = db[j] * inv_c * m
-                            dv[j] = m
+                        _mask_pairs(da[j0:j1], db[j0:j1], dv[j0:j1], bothf[i, j0:j1], bothf[qi, j0 + dx:j1 + dx],
+                                    inv_c, j1 - j0)
                 for j in range(w):
                     ha[t, j] = 0.0
                     hb[t, j] = 0.0
                 for o in range(-f, f + 1):
-                    for j in range(max(0, -o), min(w, w - o)):
-                        ha[t, j] += da[j + o]
-                        hb[t, j] += db[j + o]
+                    lo = max(0, -o)
+                    hi = min(w, w - o)
+                    _add_shifted(ha[t, lo:hi], da[lo + o:hi + o], hi - lo)
+                    _add_shifted(hb[t, lo:hi], db[lo + o:hi + o], hi - lo)
                 if not full:
                     for j in range(w):
                         hv[t, j] = 0.0
                     for o in range(-f, f + 1):
-                        for j in range(max(0, -o), min(w, w - o)):
-                            hv[t, j] += dv[j + o]
+                        lo = max(0, -o)
+                        hi = min(w, w - o)
+                        _add_shifted(hv[t, lo:hi], dv[lo + o:hi + o], hi - lo)
             for i in range(i0, i1):
                 qi = i + dy
                 if qi < 0 or qi >= h:
@@ -183,23 +226,17 @@ def _band(ya, yb, xa, ua, xb, ub, bothf, maf, mbf, full, r, f, k2, alpha, eps, i
                 # compared or q has no sample in the half filtered (a compared pair
                 # has sv >= 1: its own centre)
                 if full:
-                    for j in range(j0, j1):
-                        n = max(sv[j], one)
-                        wa[j] = _exp_neg(max(sa[j] / n, zero), pow2)
-                        wb[j] = _exp_neg(max(sb[j] / n, zero), pow2)
+                    _weights(wa[j0:j1], wb[j0:j1], sa[j0:j1], sb[j0:j1], sv[j0:j1], pow2, j1 - j0)
                 else:
-                    for j in range(j0, j1):
-                        m = bothf[i, j] * bothf[qi, j + dx]
-                        n = max(sv[j], one)
-                        wa[j] = _exp_neg(max(sa[j] / n, zero), pow2) * (m * maf[qi, j + dx])
-                        wb[j] = _exp_neg(max(sb[j] / n, zero), pow2) * (m * mbf[qi, j + dx])
+                    _weights(wa[j0:j1], wb[j0:j1], sa[j0:j1], sb[j0:j1], sv[j0:j1], pow2, j1 - j0)
+                    _mask_weights(wa[j0:j1], wb[j0:j1], bothf[i, j0:j1], bothf[qi, j0 + dx:j1 + dx],
+                                  maf[qi, j0 + dx:j1 + dx], mbf[qi, j0 + dx:j1 + dx], j1 - j0)
                 for j in range(j0, j1):
                     den_a[i, j] += wa[j]
                     den_b[i, j] += wb[j]
                 for ch in range(c):
-                    for j in range(j0, j1):
-                        num_a[ch, i, j] += wa[j] * ya[ch, qi, j + dx]
-                        num_b[ch, i, j] += wb[j] * yb[ch, qi, j + dx]
+                    _axpy(num_a[ch, i, j0:j1], wa[j0:j1], ya[ch, qi, j0 + dx:j1 + dx], j1 - j0)
+                    _axpy(num_b[ch, i, j0:j1], wb[j0:j1], yb[ch, qi, j0 + dx:j1 + dx], j1 - j0)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
