@@ -78,6 +78,10 @@ class _Checked(CIMethod):
 
     name = "ci"
 
+    # its plan is ci's, checked: the promise that ci's round 1 needs nothing committed holds
+    # (a subclass replacing plan must renew it, Method.plans_round_one_blind)
+    plans_round_one_blind = CIMethod.plans_round_one_blind
+
     def plan(self, run, state):
         import copy
 

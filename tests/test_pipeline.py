@@ -180,6 +180,43 @@ def test_which_methods_plan_round_one_blind():
     assert get_method("ci").plans_round_one_blind()  # its initial pass split by pixels, unseen pixels wait
 
 
+def test_a_subclass_replacing_plan_does_not_inherit_the_promise_to_plan_round_one_blind():
+    """Box promises its round 1 needs nothing committed; a subclass with a plan of its own has
+    not promised that (its round 1 would be planned from empty statistics), unless it says so."""
+    from mcrecon.methods.box import BoxMethod
+    from mcrecon.methods.ci import CIMethod
+
+    class SameBox(BoxMethod):
+        pass
+
+    class OwnPlan(BoxMethod):
+        def plan(self, run, state):
+            return super().plan(run, state)
+
+    class OwnPlanPromised(OwnPlan):
+        def plans_round_one_blind(self):
+            return True
+
+    class OwnCI(CIMethod):
+        def plan(self, run, state):
+            return super().plan(run, state)
+
+    assert SameBox().plans_round_one_blind()
+    assert not OwnPlan().plans_round_one_blind()
+    assert OwnPlanPromised().plans_round_one_blind()
+    assert not OwnCI().plans_round_one_blind()
+    # pipelined, OwnPlan's round 1 is then planned after round 0 is committed: it sees round 0
+    seen = []
+
+    class Spy(BoxMethod):
+        def plan(self, run, state):
+            seen.append(int(state.stats.count.sum()) if state.n_samples else None)
+            return super().plan(run, state)
+
+    adapt(_renderer(), Spy(), spp=4, seed=1, pipeline=True)
+    assert seen[0] is None and seen[1] > 0
+
+
 @pytest.mark.parametrize("method", ["box", "splat"])
 def test_box_and_splat_are_bit_identical_with_and_without_the_lag(method):
     """Uniform doubling depends only on the sample count, which counts the round in flight
@@ -390,6 +427,8 @@ DRIVER = textwrap.dedent("""
     log, marker, w, h, FAULT = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), sys.argv[5]
 
     class MarkedGEM(GEMMethod):
+        plans_round_one_blind = GEMMethod.plans_round_one_blind  # its plan is gem's, marked
+
         # each plan is made by the toolkit thread after it committed the round before the
         # one in flight: "planned J" means the rounds <= J-2 are in the log
         def plan(self, run, state):

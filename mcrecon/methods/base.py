@@ -545,6 +545,14 @@ class Method:
     variants: ClassVar[Mapping[str, Mapping[str, Any]]] = {}
     pipeline: ClassVar[str] = "allowed"
 
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        # plans_round_one_blind() is a promise about the plan defined beside it: a
+        # subclass that replaces plan without renewing the promise plans round 1
+        # after round 0 is committed (Method's default), as a method of its own would
+        if "plan" in cls.__dict__ and "plans_round_one_blind" not in cls.__dict__:
+            cls.plans_round_one_blind = Method.plans_round_one_blind
+
     def __init__(self, **options):
         where = self.where
         known = {o.name: o for o in self.options}
@@ -730,7 +738,9 @@ class Method:
         renderer.  Only for a plan that reads nothing committed in round 1
         (a uniform round that depends on the sample count, the second half
         of a split initial pass: :meth:`AdaptiveState.initial_pass`).
-        Default False: round 1 is planned after round 0 is committed.
+        Default False: round 1 is planned after round 0 is committed.  A
+        subclass that overrides ``plan`` but not this method gets the
+        default back (the promise was made for its parent's plan).
         """
         return False
 
