@@ -260,7 +260,9 @@ class AutoMethod(Method):
     initial_spp, iterations : int
         Adaptive runs: the uniform first pass and the rounds after it.
     safeguard : float or None
-        Clamp into mean +- k standard errors and the 3 x 3 sample range (2).
+        Clamp into mean +- k standard errors and the 3 x 3 sample range (4:
+        an interval that holds the true value of every pixel of a film with
+        high probability; docs/methods/auto.md, "Safeguard width").
     global_prior : float or None
         z of the global prior (:func:`_global_prior`; None, the default: off).
 
@@ -291,7 +293,7 @@ class AutoMethod(Method):
                "by auto's own error estimates", SAMPLINGS),
         Option("uniform_share", float, 0.5, "sampling='gem': share of each adaptive round spread uniformly "
                "(a defence against GEM's estimates where they mislead)", min=0.0, max=1.0),
-        Option("safeguard", float, 2.0, nullable=True, help="clamp each pixel into mean +- k standard errors "
+        Option("safeguard", float, 4.0, nullable=True, help="clamp each pixel into mean +- k standard errors "
                "of its mean and into the range of the samples around it (k; None: no clamp)", min=0.0),
         Option("global_prior", float, None, nullable=True, help="z: every pixel takes the candidate of least "
                "summed estimate over the image unless another's smoothed estimate is lower by more than z "
