@@ -66,6 +66,58 @@ def test_integer_attributes_of_any_integer_type_still_read(tmp_path):
     assert (log.width, log.height, log.n_samples) == (8, 6, 150)
 
 
+# ------------------------------------------------------------------ memory bombs
+def _small_memory(monkeypatch, nbytes):
+    monkeypatch.setattr(mcrecon.samples, "available_memory", lambda: nbytes)
+
+
+def test_a_film_larger_than_memory_is_refused_by_info_and_denoise(tmp_path, capsys, monkeypatch):
+    """200 samples on a 4096x4096 film: the per-pixel arrays need more than the machine has (here: 64 MiB)."""
+    path = _log(tmp_path)
+    with h5py.File(path, "r+") as f:
+        f.attrs["width"], f.attrs["height"] = 4096, 4096
+    _small_memory(monkeypatch, 64 << 20)
+    for argv in (["info", path], ["denoise", path, "-o", tmp_path / "o.exr"]):
+        code, _, err = _cli(argv, capsys)
+        _one_line(code, err, "4096x4096")
+        assert "memory" in err
+    assert not (tmp_path / "o.exr").exists()
+
+
+def test_a_film_within_the_pixel_limit_but_not_in_memory_is_refused(tmp_path, capsys):
+    """2^31 pixels is the format's limit; its per-pixel statistics (over 200 GB) fit no machine we run on:
+    one line, not numpy's MemoryError traceback."""
+    path = _log(tmp_path)
+    with h5py.File(path, "r+") as f:
+        f.attrs["width"], f.attrs["height"] = 65536, 32768
+    code, _, err = _cli(["denoise", path, "-o", tmp_path / "o.exr"], capsys)
+    _one_line(code, err, "65536x32768")
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["render-log", "--scene", "flat", "--spp", "2", "--size", "100000x100000", "-o", "{tmp}/r.h5"],
+     "100000x100000"),
+    (["adapt", "--scene", "flat", "--spp", "2", "--size", "100000x100000", "-o", "{tmp}/a.exr"], "100000x100000"),
+])
+def test_a_size_beyond_the_pixel_limit_is_refused_at_the_flag(tmp_path, capsys, argv, match):
+    code, _, err = _cli([a.replace("{tmp}", str(tmp_path)) for a in argv], capsys)
+    _one_line(code, err, match)
+    assert "--size" in err
+
+
+@pytest.mark.parametrize("argv", [
+    ["render-log", "--scene", "flat", "--spp", "2000000000", "--size", "64x64", "-o", "{tmp}/r.h5"],
+    # the whole budget is box's first round: this one was killed by the kernel's OOM killer at 24 GB
+    ["adapt", "--scene", "flat", "--spp", "1e12", "--size", "8x8", "-o", "{tmp}/a.exr", "--log", "{tmp}/a.h5",
+     "--quiet"],
+])
+def test_a_round_larger_than_memory_is_refused_before_rendering(tmp_path, capsys, monkeypatch, argv):
+    _small_memory(monkeypatch, 1 << 30)
+    code, _, err = _cli([a.replace("{tmp}", str(tmp_path)) for a in argv], capsys)
+    _one_line(code, err, "memory")
+    assert "samples" in err
+
+
 # ------------------------------------------------------------------ /rounds/end
 def test_a_negative_round_end_is_named_not_read_as_rows(tmp_path, capsys):
     path = _log(tmp_path, rounds=np.repeat([0, 1], 100))
@@ -74,3 +126,14 @@ def test_a_negative_round_end_is_named_not_read_as_rows(tmp_path, capsys):
     code, _, err = _cli(["info", path], capsys)
     _one_line(code, err, "dataset /rounds/end")
     assert "rows -5" not in err and "-5" in err
+
+
+# ------------------------------------------------------------------ CLI flags
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf", "1e400"])
+def test_a_non_finite_exposure_is_refused(tmp_path, capsys, value):
+    path = _log(tmp_path)
+    with pytest.raises(SystemExit) as exc:  # refused by the parser, before any work
+        main([str(a) for a in ["denoise", path, "-o", tmp_path / "o.exr", "--exposure", value]])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "--exposure" in err and err.count("\n") == 1 and "Traceback" not in err, err
+    assert not (tmp_path / "o.exr").exists()
