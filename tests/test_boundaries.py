@@ -118,6 +118,19 @@ def test_a_round_larger_than_memory_is_refused_before_rendering(tmp_path, capsys
     assert "samples" in err
 
 
+# ------------------------------------------------------------------ the log's reference
+def test_a_non_finite_reference_in_a_log_is_refused_naming_the_dataset_before_any_output(tmp_path, capsys):
+    ref = np.ones((6, 8, 3))
+    ref[1, 2, 0] = np.nan
+    path = _log(tmp_path, reference=np.ones((6, 8, 3)))
+    with h5py.File(path, "r+") as f:
+        f["reference"][...] = ref
+    code, _, err = _cli(["denoise", path, "-o", tmp_path / "o.exr"], capsys)
+    _one_line(code, err, "dataset /reference")
+    assert str(path) in err
+    assert not (tmp_path / "o.exr").exists()
+
+
 # ------------------------------------------------------------------ /rounds/end
 def test_a_negative_round_end_is_named_not_read_as_rows(tmp_path, capsys):
     path = _log(tmp_path, rounds=np.repeat([0, 1], 100))

@@ -133,6 +133,7 @@ def _cmd_denoise(args):
         _refuse_pixel_stats_flags(args)
         method = make_method(args.method, args, args.method_flags)
         log = source = read_log(args.log)
+    ref = log.reference()  # a bad reference is refused before the work, not after the output is written
     jit_notice(method_kernels(method))
     t0 = time.perf_counter()
     rec = reconstruct(source, method=method, nonfinite=args.nonfinite, full=True, fireflies=args.fireflies)
@@ -156,7 +157,6 @@ def _cmd_denoise(args):
         msg += f" ({dropped} non-finite dropped)"
     if rec.fireflies is not None:
         msg += f", fireflies: {100 * rec.fireflies.moved_fraction:.3g} % of the luminance spread"
-    ref = log.reference()
     if ref is not None:
         msg += f", relative MSE {relative_mse(rec.image, ref):.6g} against the log's reference"
     print(msg)

@@ -38,7 +38,7 @@ import h5py
 import numpy as np
 
 from ..errors import InputError
-from ..samples import check_samples, lazy_njit, round_ends_of, round_slices
+from ..samples import check_reference, check_samples, lazy_njit, round_ends_of, round_slices
 from ._atomic import atomic_path
 
 __all__ = ["cast_positions", "FORMAT_NAME", "FORMAT_VERSION", "FORMAT_MINOR", "SampleLog", "LogChunk", "read_log",
@@ -810,7 +810,8 @@ class SampleLog:
             return None
         with _Reader(self.path) as f:
             ref = np.asarray(f.read("reference", 0, self.height), dtype=np.float64)
-        return ref
+        return check_reference(ref, (self.height, self.width, len(self.channels)),
+                               where=f"{self.path}: dataset /reference")
 
     def __repr__(self) -> str:
         return (f"SampleLog({str(self.path)!r}, {self.width}x{self.height}, channels={','.join(self.channels)}, "
