@@ -150,3 +150,19 @@ def test_a_non_finite_exposure_is_refused(tmp_path, capsys, value):
     err = capsys.readouterr().err
     assert exc.value.code == 2 and "--exposure" in err and err.count("\n") == 1 and "Traceback" not in err, err
     assert not (tmp_path / "o.exr").exists()
+
+
+# ------------------------------------------------------------------ half-buffer pairs
+def test_a_half_buffer_pair_of_one_file_twice_is_refused(tmp_path, capsys):
+    """The same file as both halves has no noise between its halves: a dual-buffer estimate is silently 0."""
+    rng = np.random.default_rng(1)
+    img = rng.random((6, 8, 6)).astype(np.float32)
+    path = write_exr(tmp_path / "h.exr", img, channels=("R", "G", "B", "Variance.R", "Variance.G", "Variance.B"))
+    link = tmp_path / "h2.exr"
+    link.symlink_to(path)
+    for other in (path, link):
+        code, _, err = _cli(["denoise", path, "-o", tmp_path / "o.exr", "--method", "auto", "--mean", "R,G,B",
+                             "--variance-channels", "Variance.R,Variance.G,Variance.B", "--spp", "4",
+                             "--half-buffer", other], capsys)
+        errors = [ln for ln in err.splitlines() if "error" in ln]
+        assert code == 2 and len(errors) == 1 and "same file" in errors[0], err
