@@ -51,7 +51,8 @@ from .methods import Method, get_method
 from .methods.base import PLAN_AFTER_COMMIT, AdaptiveState, RunState
 from .renderers.protocol import SampleBatch, _validate_reply
 from .renderers.spec import renderer_from_spec
-from .samples import FLOAT32_MAX, NONFINITE_POLICIES, apply_nonfinite, check_reference, float32_loses_spread
+from .samples import (FLOAT32_MAX, NONFINITE_POLICIES, apply_nonfinite, check_memory, check_reference,
+                      float32_loses_spread)
 from .stats import PixelStats
 
 __all__ = ["adapt", "resume", "AdaptiveResult", "round_seeds", "STORAGE_DTYPES", "method_pipelines"]
@@ -742,6 +743,13 @@ def _run(renderer, method, run, *, stats, rounds, round_index, budget, seed, log
 
 def _render(renderer, req, acct):
     """Call the renderer: (reply, seconds it reports as its own, seconds of the call beyond them)."""
+    # A round this machine cannot hold (box doubles its rounds up to 1/8 of the budget) is refused
+    # before the renderer fills the memory with it (an --spp of 1e12 on 8x8 was killed by the kernel's
+    # OOM killer at 24 GB).  A round's peak is about 4x its positions and values as float64 (the reply,
+    # the renderer's and the validation's temporaries: measured 160 B a sample for RGB on a scene).
+    check_memory("adapt", "spp", 32.0 * req.total * (2 + len(renderer.channels)),
+                 f"round {req.round_index}'s {req.total} samples",
+                 "lower the budget (--spp); the rounds committed before are in the log")
     t1 = time.perf_counter()
     reply = renderer.render(req)
     t2 = time.perf_counter()

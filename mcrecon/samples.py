@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import os
 import threading
 import warnings
 from typing import Iterator, Sequence
@@ -254,6 +255,36 @@ def check_samples(positions, values, *, width: int, height: int, n_channels: int
         raise error(where, "positions", f"{n_bad_pos} sample(s) off the film [0, {width}) x [0, {height}) "
                     f"or non-finite, first at row {first_bad}: {pos[first_bad].tolist()}")
     return pos, val, int(n_nonfinite)
+
+
+def available_memory() -> int | None:
+    """Bytes of memory this machine can still give a process (Linux ``MemAvailable``), or None if unknown."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def check_memory(where: str, field: str, nbytes: float, what: str, fix: str) -> None:
+    """Refuse, in one line, an allocation of ``nbytes`` that this machine cannot hold.
+
+    Called before the arrays of a film (its per-pixel statistics, its counts)
+    or of a round of samples are allocated, so that a header or a budget
+    asking for more than the available memory ends in an
+    :class:`InputError`, not in a ``MemoryError`` traceback or the kernel's
+    OOM killer.  ``what`` says what would be allocated, ``fix`` what to do.
+    """
+    avail = available_memory()
+    if avail is not None and nbytes > avail:
+        raise InputError(where, field, f"{what} needs {nbytes / 2**30:.3g} GiB of memory, more than the "
+                         f"{avail / 2**30:.3g} GiB this machine has available; {fix}")
 
 
 def _widen(arr: np.ndarray) -> np.ndarray:

@@ -30,7 +30,8 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from .errors import InputError
-from .samples import NONFINITE_POLICIES, apply_nonfinite, check_policy, check_samples, lazy_njit, warn_nonfinite
+from .samples import (NONFINITE_POLICIES, apply_nonfinite, check_memory, check_policy, check_samples, lazy_njit,
+                      warn_nonfinite)
 
 __all__ = ["PixelStats", "NONFINITE_POLICIES", "fill_from_neighbours"]
 
@@ -158,6 +159,9 @@ class PixelStats:
         Subpixel grid resolution per pixel axis for ``sub_sum`` and
         ``sub_count``; 0 or 1 keeps no subpixel data (1 would equal the
         pixel sums).  GEM uses 4.
+    where : str, optional
+        The source named in the error when the film's arrays would need more
+        memory than the machine has available (:func:`mcrecon.samples.check_memory`).
 
     Attributes
     ----------
@@ -184,7 +188,7 @@ class PixelStats:
     """
 
     def __init__(self, width: int, height: int, channels: Sequence[str] = ("R", "G", "B"), *,
-                 subpixels: int = 0):
+                 subpixels: int = 0, where: str = "PixelStats"):
         width, height = int(width), int(height)
         if width < 1 or height < 1:
             raise InputError("PixelStats", "width/height", f"got {width}x{height}, expected at least 1x1")
@@ -197,6 +201,10 @@ class PixelStats:
             raise InputError("PixelStats", "channels", "expected at least one channel name")
         c = len(self.channels)
         self.subpixels = subpixels if subpixels > 1 else 0
+        per_pixel = 8 + 4 * 8 * c + self.subpixels ** 2 * 8 * (c + 1)  # count, mean, m2, min, max (+ subpixels)
+        check_memory(where, "width/height", float(width) * height * per_pixel,
+                     f"the per-pixel statistics of a {width}x{height} film with {c} channel(s)",
+                     "use a machine with more memory, or a smaller film")
         self.count = np.zeros((height, width), np.int64)
         self.mean = np.zeros((height, width, c), np.float64)
         self.m2 = np.zeros((height, width, c), np.float64)
@@ -445,7 +453,7 @@ class PixelStats:
         """
         from concurrent.futures import ThreadPoolExecutor
 
-        stats = cls(width, height, channels, subpixels=subpixels)
+        stats = cls(width, height, channels, subpixels=subpixels, where=source)
         it = iter(batches)
         with ThreadPoolExecutor(max_workers=1) as pool:
             pending = None

@@ -9,6 +9,7 @@ place they are validated.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import textwrap
@@ -16,7 +17,7 @@ from pathlib import Path
 
 from ..errors import InputError
 
-__all__ = ["OneLineParser", "HelpFormatter", "parse_size", "method_flags", "add_method_options",
+__all__ = ["OneLineParser", "HelpFormatter", "parse_size", "finite_float", "method_flags", "add_method_options",
            "given_method_options", "make_method", "check_output", "write_outputs", "jit_notice"]
 
 _DEST = "mopt_"  # argparse dest of a method option: mopt_NAME
@@ -46,7 +47,23 @@ def parse_size(text: str, where: str = "--size") -> tuple[int, int]:
         raise InputError(where, "size", f"{text!r}: expected WIDTHxHEIGHT, e.g. 128x128") from None
     if w < 1 or h < 1:
         raise InputError(where, "size", f"{text!r}: expected at least 1x1")
+    from ..io.samplelog import MAX_PIXELS
+
+    if w * h > MAX_PIXELS:
+        raise InputError(where, "size", f"{text!r}: {w}x{h} = {w * h} pixels, beyond the {MAX_PIXELS} pixels "
+                         "mcrecon can hold images of")
     return w, h
+
+
+def finite_float(text: str) -> float:
+    """An argparse type: a finite number (``nan``, ``inf`` and ``1e400`` are refused by the parser)."""
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid number: {text!r}") from None
+    if not math.isfinite(x):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a finite number")
+    return x
 
 
 # ----------------------------------------------------------------- method options

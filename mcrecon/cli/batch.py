@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from ._common import HelpFormatter, add_method_options, make_method, method_flags
+from ._common import HelpFormatter, add_method_options, finite_float, make_method, method_flags
 
 __all__ = ["register"]
 
@@ -52,7 +52,7 @@ def register(sub, command: str | None = None) -> None:
                    help="a running Dask scheduler, e.g. tcp://10.0.0.1:8786 (workers need mcrecon and the files)")
     s.add_argument("--force", action="store_true", help="reconstruct up-to-date frames too")
     s.add_argument("--png", action="store_true", help="also write each frame's PNG preview")
-    s.add_argument("--exposure", type=float, default=0.0, help="preview exposure in stops")
+    s.add_argument("--exposure", type=finite_float, default=0.0, help="preview exposure in stops")
     s.add_argument("--nonfinite", default="drop", choices=("drop", "zero", "raise"),
                    help="policy for NaN/Inf sample values (default drop)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -13,8 +13,9 @@ import time
 from pathlib import Path
 
 from ..errors import InputError
-from ._common import (HelpFormatter, OneLineParser, add_method_options, check_output, given_method_options,
-                      jit_notice, make_method, method_flags, method_kernels, parse_size, write_outputs)
+from ._common import (HelpFormatter, OneLineParser, add_method_options, check_output, finite_float,
+                      given_method_options, jit_notice, make_method, method_flags, method_kernels, parse_size,
+                      write_outputs)
 
 __all__ = ["register"]
 
@@ -132,6 +133,7 @@ def _cmd_denoise(args):
         _refuse_pixel_stats_flags(args)
         method = make_method(args.method, args, args.method_flags)
         log = source = read_log(args.log)
+    ref = log.reference()  # a bad reference is refused before the work, not after the output is written
     jit_notice(method_kernels(method))
     t0 = time.perf_counter()
     rec = reconstruct(source, method=method, nonfinite=args.nonfinite, full=True, fireflies=args.fireflies)
@@ -155,7 +157,6 @@ def _cmd_denoise(args):
         msg += f" ({dropped} non-finite dropped)"
     if rec.fireflies is not None:
         msg += f", fireflies: {100 * rec.fireflies.moved_fraction:.3g} % of the luminance spread"
-    ref = log.reference()
     if ref is not None:
         msg += f", relative MSE {relative_mse(rec.image, ref):.6g} against the log's reference"
     print(msg)
@@ -419,7 +420,7 @@ def _cmd_mitsuba(args):
 def _outputs(sp) -> None:
     sp.add_argument("-o", "--output", help="output EXR path")
     sp.add_argument("--png", default=None, help="preview PNG path (default: next to the EXR)")
-    sp.add_argument("--exposure", type=float, default=0.0, help="preview exposure in stops")
+    sp.add_argument("--exposure", type=finite_float, default=0.0, help="preview exposure in stops")
     sp.add_argument("--diagnostics", default=None, metavar="DIR",
                     help="write the method's diagnostic maps (and sample density) as PNGs into DIR")
     sp.add_argument("--nonfinite", default="drop", choices=("drop", "zero", "raise"),
@@ -570,6 +571,6 @@ def register(sub, command: str | None = None) -> None:
     s.add_argument("--size", default="128x128")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--methods", default=None, help="comma-separated (default: every available method)")
-    s.add_argument("--exposure", type=float, default=0.0)
+    s.add_argument("--exposure", type=finite_float, default=0.0)
     s.add_argument("--out", default="mcrecon_demo")
     s.set_defaults(func=_cmd_demo)

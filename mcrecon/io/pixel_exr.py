@@ -69,7 +69,9 @@ their two halves; the statistics of all the samples are the Chan merge.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import os
 import re
 import warnings
 from pathlib import Path
@@ -500,6 +502,11 @@ def read_half_buffer_exrs(path_a, path_b, **options) -> tuple[PixelStatsEXR, Pix
         Anything :func:`read_pixel_stats_exr` refuses, or two files that do
         not match (naming both files and the field).
     """
+    with contextlib.suppress(OSError):  # a missing file is named by the reader below
+        if os.path.samefile(path_a, path_b):
+            raise InputError(f"{path_a} / {path_b} (half-buffer pair)", "--half-buffer",
+                             "the same file as both halves: a pair is two EXRs of independent halves of the "
+                             "samples (their difference is the noise a dual-buffer method estimates)")
     a = read_pixel_stats_exr(path_a, **options)
     b = read_pixel_stats_exr(path_b, **options)
     where = f"{a.path} / {b.path} (half-buffer pair)"

@@ -38,7 +38,7 @@ import h5py
 import numpy as np
 
 from ..errors import InputError
-from ..samples import check_samples, lazy_njit, round_ends_of, round_slices
+from ..samples import check_reference, check_samples, lazy_njit, round_ends_of, round_slices
 from ._atomic import atomic_path
 
 __all__ = ["cast_positions", "FORMAT_NAME", "FORMAT_VERSION", "FORMAT_MINOR", "SampleLog", "LogChunk", "read_log",
@@ -364,6 +364,18 @@ def _json_attr(path, field, raw):
         raise _err(path, field, f"not valid JSON ({exc})") from None
 
 
+def _int_attr(v) -> int:
+    """An integer attribute: any HDF5 integer type, a scalar or a one-element array.
+
+    Raises TypeError for anything else (a float such as 8.5 or 8.0, a string,
+    a bool, several elements): ``int()`` would read 8.5 as 8 and "8" as 8.
+    """
+    arr = np.asarray(v)
+    if arr.size != 1 or arr.dtype.kind not in "iu":
+        raise TypeError(f"{v!r} is not an integer")
+    return int(arr.reshape(()))
+
+
 def _str_list(v) -> tuple[str, ...]:
     arr = np.atleast_1d(v)
     return tuple(x.decode() if isinstance(x, bytes) else str(x) for x in arr.tolist())
@@ -401,20 +413,20 @@ def _read_header(path, f) -> _Header:
         raise _err(path, "attribute format_version", f"missing; expected {FORMAT_VERSION} "
                    "(is this an mcrecon sample log? see docs/sample-log-format.md)")
     try:
-        ver = int(ver)
+        ver = _int_attr(ver)
     except (TypeError, ValueError):
         raise _err(path, "attribute format_version", f"is {ver!r}, expected the integer {FORMAT_VERSION}") from None
     if ver != FORMAT_VERSION:
         raise _err(path, "attribute format_version", f"is {ver}, this mcrecon reads version {FORMAT_VERSION}")
     try:
-        minor = int(a.get("format_minor", 0))  # any compatible revision is readable
+        minor = _int_attr(a.get("format_minor", 0))  # any compatible revision is readable
     except (TypeError, ValueError):
         raise _err(path, "attribute format_minor", f"is {a.get('format_minor')!r}, expected an integer") from None
     for key in ("width", "height", "channels"):
         if key not in a:
             raise _err(path, f"attribute {key}", "missing (see docs/sample-log-format.md)")
     try:
-        width, height = int(a["width"]), int(a["height"])
+        width, height = _int_attr(a["width"]), _int_attr(a["height"])
     except (TypeError, ValueError):
         raise _err(path, "attribute width/height", "expected integers") from None
     if width < 1 or height < 1:
@@ -443,7 +455,7 @@ def _read_header(path, f) -> _Header:
         raise _err(path, "dataset /values", f"dtype {val.dtype}, expected float32 or float64")
     rows = min(pos.shape[0], val.shape[0])
     try:
-        n = int(a.get("n_committed", rows))
+        n = _int_attr(a.get("n_committed", rows))
     except (TypeError, ValueError):
         raise _err(path, "attribute n_committed", f"is {a.get('n_committed')!r}, expected an integer") from None
     if pos.shape[0] != val.shape[0] and "n_committed" not in a:
@@ -657,6 +669,9 @@ class SampleLog:
             ends = np.asarray(_read_ds(path, d, "rounds/end"), dtype=np.int64)
             ends = ends[:_committed_rows(ends, n)]
             ends = ends[ends <= n]
+            if ends.size and ends[0] < 0:
+                raise _err(path, "dataset /rounds/end", f"row 0 is {ends[0]}, expected cumulative sample counts "
+                           ">= 0: rewrite it, or delete it (mcrecon then derives the rounds from /round)")
             if ends.size and (np.any(np.diff(ends) < 0)):
                 raise _err(path, "dataset /rounds/end", "must be non-decreasing")
             if not ends.size or ends[-1] != n:
@@ -795,7 +810,8 @@ class SampleLog:
             return None
         with _Reader(self.path) as f:
             ref = np.asarray(f.read("reference", 0, self.height), dtype=np.float64)
-        return ref
+        return check_reference(ref, (self.height, self.width, len(self.channels)),
+                               where=f"{self.path}: dataset /reference")
 
     def __repr__(self) -> str:
         return (f"SampleLog({str(self.path)!r}, {self.width}x{self.height}, channels={','.join(self.channels)}, "

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..samples import check_samples, pixel_index
+from ..samples import check_memory, check_samples, pixel_index
 from .samplelog import FORMAT_VERSION, SampleLog, live_writer, read_log
 
 __all__ = ["summarize_log"]
@@ -45,6 +45,8 @@ def summarize_log(log) -> dict:
     if not isinstance(log, SampleLog):
         log = read_log(log)
     w, h, nch = log.width, log.height, len(log.channels)
+    check_memory(str(log.path), "width/height", 16.0 * w * h, f"counting the samples of a {w}x{h} film per pixel",
+                 "use a machine with more memory")  # the counts and one chunk's bincount
     counts = np.zeros(w * h, np.int64)
     n_nonfinite = 0
     n_negative = 0

@@ -51,6 +51,7 @@ import numba
 import numpy as np
 
 from ..errors import InputError
+from ..samples import check_memory
 from .protocol import SampleBatch, SampleRequest, jittered_positions
 
 __all__ = [
@@ -939,6 +940,9 @@ def render_uniform(scene, *, width: int = 128, height: int = 128, spp: int, seed
     """``spp`` jittered samples in every pixel of a scene (one request, round 0, request seed 0)."""
     r = SceneRenderer(scene, width=width, height=height, seed=seed)
     spp = _check_int("render_uniform", "spp", spp, 1)
+    n = spp * r.width * r.height
+    check_memory("render_uniform", "spp", 8.0 * n * (2 + len(r.channels)),
+                 f"{spp} samples per pixel on {r.width}x{r.height} ({n} samples)", "lower --spp or --size")
     counts = np.full((r.height, r.width), spp, dtype=np.int64)
     return r.render(SampleRequest(r.width, r.height, counts=counts, round_index=0, seed=0))
 

@@ -1,0 +1,168 @@
+"""Boundary inputs found in review that the other boundary tests do not cover.
+
+Each test failed before its fix: attributes of the wrong type read as
+integers, memory bombs (a film or a sample budget this machine cannot hold)
+ending in a traceback or an OOM kill, a log's non-finite reference refused
+after the work with a message naming neither the file nor the dataset, a
+negative /rounds/end read as rows, a non-finite preview exposure, a
+half-buffer pair made of one file twice.
+"""
+
+import h5py
+import numpy as np
+import pytest
+
+import mcrecon.samples
+from mcrecon import InputError
+from mcrecon.cli import main
+from mcrecon.io import read_log, write_exr, write_log
+
+
+def _cli(argv, capsys):
+    code = main([str(a) for a in argv])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def _one_line(code, err, match):
+    assert code == 2, err
+    assert err.count("\n") == 1 and err.startswith("mcrecon: error: ") and "Traceback" not in err, err
+    assert match in err, err
+
+
+def _log(tmp_path, name="b.h5", w=8, h=6, n=200, **kw):
+    rng = np.random.default_rng(0)
+    return write_log(tmp_path / name, rng.random((n, 2)) * [w, h], rng.random((n, 3)).astype(np.float32),
+                     width=w, height=h, **kw)
+
+
+# ------------------------------------------------------------------ integer attributes
+@pytest.mark.parametrize("key, value, match", [
+    ("width", 8.5, "attribute width/height"),
+    ("width", 8.0, "attribute width/height"),
+    ("height", "6", "attribute width/height"),
+    ("width", True, "attribute width/height"),
+    ("n_committed", 100.5, "attribute n_committed"),
+    ("format_minor", 2.5, "attribute format_minor"),
+    ("format_version", 1.0, "attribute format_version"),
+])
+def test_integer_attributes_of_another_type_are_refused(tmp_path, capsys, key, value, match):
+    """int(8.5) == 8 and int("6") == 6 read a wrong header as a valid one; the format says integers."""
+    path = _log(tmp_path)
+    with h5py.File(path, "r+") as f:
+        f.attrs[key] = value
+    with pytest.raises(InputError, match=match):
+        read_log(path)
+    code, _, err = _cli(["info", path], capsys)
+    _one_line(code, err, match)
+
+
+def test_integer_attributes_of_any_integer_type_still_read(tmp_path):
+    path = _log(tmp_path)
+    with h5py.File(path, "r+") as f:
+        f.attrs["width"], f.attrs["height"] = np.uint8(8), np.array([6], np.int16)
+        f.attrs["n_committed"] = np.uint64(150)
+    log = read_log(path)
+    assert (log.width, log.height, log.n_samples) == (8, 6, 150)
+
+
+# ------------------------------------------------------------------ memory bombs
+def _small_memory(monkeypatch, nbytes):
+    monkeypatch.setattr(mcrecon.samples, "available_memory", lambda: nbytes)
+
+
+def test_a_film_larger_than_memory_is_refused_by_info_and_denoise(tmp_path, capsys, monkeypatch):
+    """200 samples on a 4096x4096 film: the per-pixel arrays need more than the machine has (here: 64 MiB)."""
+    path = _log(tmp_path)
+    with h5py.File(path, "r+") as f:
+        f.attrs["width"], f.attrs["height"] = 4096, 4096
+    _small_memory(monkeypatch, 64 << 20)
+    for argv in (["info", path], ["denoise", path, "-o", tmp_path / "o.exr"]):
+        code, _, err = _cli(argv, capsys)
+        _one_line(code, err, "4096x4096")
+        assert "memory" in err
+    assert not (tmp_path / "o.exr").exists()
+
+
+def test_a_film_within_the_pixel_limit_but_not_in_memory_is_refused(tmp_path, capsys):
+    """2^31 pixels is the format's limit; its per-pixel statistics (over 200 GB) fit no machine we run on:
+    one line, not numpy's MemoryError traceback."""
+    path = _log(tmp_path)
+    with h5py.File(path, "r+") as f:
+        f.attrs["width"], f.attrs["height"] = 65536, 32768
+    code, _, err = _cli(["denoise", path, "-o", tmp_path / "o.exr"], capsys)
+    _one_line(code, err, "65536x32768")
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["render-log", "--scene", "flat", "--spp", "2", "--size", "100000x100000", "-o", "{tmp}/r.h5"],
+     "100000x100000"),
+    (["adapt", "--scene", "flat", "--spp", "2", "--size", "100000x100000", "-o", "{tmp}/a.exr"], "100000x100000"),
+])
+def test_a_size_beyond_the_pixel_limit_is_refused_at_the_flag(tmp_path, capsys, argv, match):
+    code, _, err = _cli([a.replace("{tmp}", str(tmp_path)) for a in argv], capsys)
+    _one_line(code, err, match)
+    assert "--size" in err
+
+
+@pytest.mark.parametrize("argv", [
+    ["render-log", "--scene", "flat", "--spp", "2000000000", "--size", "64x64", "-o", "{tmp}/r.h5"],
+    # the whole budget is box's first round: this one was killed by the kernel's OOM killer at 24 GB
+    ["adapt", "--scene", "flat", "--spp", "1e12", "--size", "8x8", "-o", "{tmp}/a.exr", "--log", "{tmp}/a.h5",
+     "--quiet"],
+])
+def test_a_round_larger_than_memory_is_refused_before_rendering(tmp_path, capsys, monkeypatch, argv):
+    _small_memory(monkeypatch, 1 << 30)
+    code, _, err = _cli([a.replace("{tmp}", str(tmp_path)) for a in argv], capsys)
+    _one_line(code, err, "memory")
+    assert "samples" in err
+
+
+# ------------------------------------------------------------------ the log's reference
+def test_a_non_finite_reference_in_a_log_is_refused_naming_the_dataset_before_any_output(tmp_path, capsys):
+    ref = np.ones((6, 8, 3))
+    ref[1, 2, 0] = np.nan
+    path = _log(tmp_path, reference=np.ones((6, 8, 3)))
+    with h5py.File(path, "r+") as f:
+        f["reference"][...] = ref
+    code, _, err = _cli(["denoise", path, "-o", tmp_path / "o.exr"], capsys)
+    _one_line(code, err, "dataset /reference")
+    assert str(path) in err
+    assert not (tmp_path / "o.exr").exists()
+
+
+# ------------------------------------------------------------------ /rounds/end
+def test_a_negative_round_end_is_named_not_read_as_rows(tmp_path, capsys):
+    path = _log(tmp_path, rounds=np.repeat([0, 1], 100))
+    with h5py.File(path, "r+") as f:
+        f["rounds/end"][0] = -5
+    code, _, err = _cli(["info", path], capsys)
+    _one_line(code, err, "dataset /rounds/end")
+    assert "rows -5" not in err and "-5" in err
+
+
+# ------------------------------------------------------------------ CLI flags
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf", "1e400"])
+def test_a_non_finite_exposure_is_refused(tmp_path, capsys, value):
+    path = _log(tmp_path)
+    with pytest.raises(SystemExit) as exc:  # refused by the parser, before any work
+        main([str(a) for a in ["denoise", path, "-o", tmp_path / "o.exr", "--exposure", value]])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "--exposure" in err and err.count("\n") == 1 and "Traceback" not in err, err
+    assert not (tmp_path / "o.exr").exists()
+
+
+# ------------------------------------------------------------------ half-buffer pairs
+def test_a_half_buffer_pair_of_one_file_twice_is_refused(tmp_path, capsys):
+    """The same file as both halves has no noise between its halves: a dual-buffer estimate is silently 0."""
+    rng = np.random.default_rng(1)
+    img = rng.random((6, 8, 6)).astype(np.float32)
+    path = write_exr(tmp_path / "h.exr", img, channels=("R", "G", "B", "Variance.R", "Variance.G", "Variance.B"))
+    link = tmp_path / "h2.exr"
+    link.symlink_to(path)
+    for other in (path, link):
+        code, _, err = _cli(["denoise", path, "-o", tmp_path / "o.exr", "--method", "auto", "--mean", "R,G,B",
+                             "--variance-channels", "Variance.R,Variance.G,Variance.B", "--spp", "4",
+                             "--half-buffer", other], capsys)
+        errors = [ln for ln in err.splitlines() if "error" in ln]
+        assert code == 2 and len(errors) == 1 and "same file" in errors[0], err
