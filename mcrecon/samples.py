@@ -272,6 +272,10 @@ def available_memory() -> int | None:
         return None
 
 
+#: Allocations below this many bytes are not checked by :func:`check_memory`.
+_MEMORY_CHECK_FROM = 1 << 25
+
+
 def check_memory(where: str, field: str, nbytes: float, what: str, fix: str) -> None:
     """Refuse, in one line, an allocation of ``nbytes`` that this machine cannot hold.
 
@@ -281,6 +285,8 @@ def check_memory(where: str, field: str, nbytes: float, what: str, fix: str) -> 
     :class:`InputError`, not in a ``MemoryError`` traceback or the kernel's
     OOM killer.  ``what`` says what would be allocated, ``fix`` what to do.
     """
+    if nbytes < _MEMORY_CHECK_FROM:
+        return  # small films and rounds: not worth a read of /proc/meminfo each
     avail = available_memory()
     if avail is not None and nbytes > avail:
         raise InputError(where, field, f"{what} needs {nbytes / 2**30:.3g} GiB of memory, more than the "

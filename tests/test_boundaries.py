@@ -166,3 +166,25 @@ def test_a_half_buffer_pair_of_one_file_twice_is_refused(tmp_path, capsys):
                              "--half-buffer", other], capsys)
         errors = [ln for ln in err.splitlines() if "error" in ln]
         assert code == 2 and len(errors) == 1 and "same file" in errors[0], err
+
+
+def test_values_beyond_float32_are_said_once_when_written_to_an_exr(tmp_path):
+    """A float64 image with finite values beyond float32's range: the EXR (float32) holds +-Inf there,
+    and one McreconWarning says so with the count (before: numpy's overflow RuntimeWarning only)."""
+    import warnings
+
+    from mcrecon import McreconWarning
+    from mcrecon.io import read_exr
+
+    img = np.ones((4, 5, 3))
+    img[1, 2, 0] = 1e308
+    img[3, 4, 2] = -1e300
+    img[0, 0, 1] = np.inf  # already infinite: not counted
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        write_exr(tmp_path / "big.exr", img)
+    msgs = [str(w.message) for w in rec]
+    assert len(rec) == 1 and issubclass(rec[0].category, McreconWarning), msgs
+    assert "2 finite value(s)" in msgs[0] and "big.exr" in msgs[0]
+    back, _ = read_exr(tmp_path / "big.exr")
+    assert back[1, 2, 0] == np.inf and back[3, 4, 2] == -np.inf and back[2, 2, 2] == 1.0

@@ -7,13 +7,17 @@ sRGB curve, then clipped to [0, 1] for display).
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, McreconWarning
 from ._atomic import atomic_path
+
+#: The largest finite float32 (an EXR's values).
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 __all__ = ["write_exr", "read_exr", "tonemap_srgb", "write_png_preview", "write_false_colour"]
 
@@ -50,7 +54,16 @@ def write_exr(path, image, *, channels: Sequence[str] | None = None) -> Path:
     channels = tuple(str(x) for x in channels)
     if len(channels) != c or len(set(channels)) != c:
         raise InputError(str(path), "channels", f"{channels}: expected {c} distinct names")
-    data = {name: np.ascontiguousarray(img[..., i], dtype=np.float32) for i, name in enumerate(channels)}
+    if img.dtype.kind == "f" and img.dtype.itemsize > 4:
+        # a float32 EXR cannot hold finite values beyond +-3.4e38: they become +-Inf (said once,
+        # with the count; never rescaled -- the radiance is the user's)
+        over = np.count_nonzero(np.isfinite(img) & (np.abs(img) > _FLOAT32_MAX))
+        if over:
+            warnings.warn(f"{path}: {over} finite value(s) beyond float32's range (|x| > 3.4e38) are stored as "
+                          "+-Inf: the EXR holds float32; scale the renderer's units to keep them",
+                          McreconWarning, stacklevel=2)
+    with np.errstate(over="ignore"):
+        data = {name: np.ascontiguousarray(img[..., i], dtype=np.float32) for i, name in enumerate(channels)}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
               "mcrecon_channels": ",".join(channels)}
     with atomic_path(path, suffix=path.suffix) as tmp, OpenEXR.File(header, data) as f:
