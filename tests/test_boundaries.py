@@ -188,3 +188,16 @@ def test_values_beyond_float32_are_said_once_when_written_to_an_exr(tmp_path):
     assert "2 finite value(s)" in msgs[0] and "big.exr" in msgs[0]
     back, _ = read_exr(tmp_path / "big.exr")
     assert back[1, 2, 0] == np.inf and back[3, 4, 2] == -np.inf and back[2, 2, 2] == 1.0
+
+
+def test_a_channel_named_twice_in_a_mapping_is_refused_at_the_flag(tmp_path, capsys):
+    """``--mean R,R,B`` was read, reconstructed, and refused only when the output EXR got two channels
+    named R (the error named the output); now the flag is refused before any work."""
+    rng = np.random.default_rng(1)
+    img = rng.random((6, 8, 6)).astype(np.float32)
+    path = write_exr(tmp_path / "p.exr", img, channels=("R", "G", "B", "Variance.R", "Variance.G", "Variance.B"))
+    code, _, err = _cli(["denoise", path, "-o", tmp_path / "o.exr", "--mean", "R,R,B",
+                         "--variance-channels", "Variance.R,Variance.G,Variance.B", "--spp", "4"], capsys)
+    _one_line(code, err, "--mean")
+    assert "'R' twice" in err
+    assert not (tmp_path / "o.exr").exists()

@@ -200,6 +200,11 @@ def _split(text, field) -> tuple[str, ...] | None:
     if not parts or any(not p for p in parts):
         raise InputError(f"--{field.replace('_', '-')}", field, f"{text!r}: expected comma-separated channel "
                          "names, e.g. R,G,B")
+    if field == "mean" and len(set(parts)) != len(parts):  # they name the output channels
+        # (a variance or moment channel may serve several mean channels)
+        dup = next(p for p in parts if parts.count(p) > 1)
+        raise InputError(f"--{field.replace('_', '-')}", field, f"{text!r} names channel {dup!r} twice; "
+                         "each output channel needs its own, e.g. R,G,B")
     return parts
 
 
