@@ -201,8 +201,19 @@ def test_a_subclass_replacing_plan_does_not_inherit_the_promise_to_plan_round_on
         def plan(self, run, state):
             return super().plan(run, state)
 
-    assert SameBox().plans_round_one_blind()
+    class PlanMixin:  # a plain mixin placed before box supplies the plan that runs
+        def plan(self, run, state):
+            return super().plan(run, state)
+
+    class Mixed(PlanMixin, BoxMethod):
+        pass
+
+    class Rebound(BoxMethod):
+        plan = BoxMethod.plan  # the very plan box's promise was made for
+
+    assert SameBox().plans_round_one_blind() and Rebound().plans_round_one_blind()
     assert not OwnPlan().plans_round_one_blind()
+    assert not Mixed().plans_round_one_blind()
     assert OwnPlanPromised().plans_round_one_blind()
     assert not OwnCI().plans_round_one_blind()
     # pipelined, OwnPlan's round 1 is then planned after round 0 is committed: it sees round 0

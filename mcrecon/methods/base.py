@@ -51,6 +51,7 @@ stopped.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import math
 import numbers
 import types
@@ -547,10 +548,13 @@ class Method:
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
-        # plans_round_one_blind() is a promise about the plan defined beside it: a
-        # subclass that replaces plan without renewing the promise plans round 1
-        # after round 0 is committed (Method's default), as a method of its own would
-        if "plan" in cls.__dict__ and "plans_round_one_blind" not in cls.__dict__:
+        # plans_round_one_blind() is a promise about the plan its class sees: a
+        # subclass whose plan is another (its own, or a mixin's placed before the
+        # promising class) plans round 1 after round 0 is committed (Method's
+        # default), as a method of its own would, unless it renews the promise
+        owner = next(k for k in cls.__mro__ if "plans_round_one_blind" in k.__dict__)
+        if owner is not cls and owner is not Method and \
+                inspect.getattr_static(owner, "plan", None) is not inspect.getattr_static(cls, "plan", None):
             cls.plans_round_one_blind = Method.plans_round_one_blind
 
     def __init__(self, **options):
