@@ -115,15 +115,35 @@ def test_default_safeguard_costs_nothing_on_a_flat_field():
     h, w = 40, 48
     ref = np.full((h, w, 3), 0.5)
     sigma = np.full((h, w, 3), 0.5)
-    err = {None: [], 2.0: [], 1e6: []}
+    err = {"default": [], 2.0: [], 1e6: []}
     for seed in range(4):
         ss = _samples(ref, sigma, 8, seed)
         for k in err:
-            m = get_method("auto") if k is None else get_method("auto", safeguard=k)
+            m = get_method("auto") if k == "default" else get_method("auto", safeguard=k)
             err[k].append(relative_mse(_quiet(lambda: mcrecon.reconstruct(ss, method=m)), ref))
     assert get_method("auto").params["safeguard"] == 4.0
-    assert np.mean(err[None]) / np.mean(err[1e6]) <= 1.02, err
+    assert np.mean(err["default"]) / np.mean(err[1e6]) <= 1.02, err
     assert np.mean(err[2.0]) / np.mean(err[1e6]) >= 1.2, err
+
+
+def test_default_safeguard_still_protects_the_built_in_caustic():
+    """The other side of the width: a clamp so wide that only the zero-variance pins and the sample
+    range are left (``safeguard=1e6``) lets the caustic's light into its dark pixels.  Built-in
+    caustic, 48x48, 32 spp, seeds 0-2, relative MSE / box: default 0.393, 0.340, 0.326; 1e6 0.488,
+    0.393, 0.369 (measured; each seed 12-19 % lower with the default).  Bound: the default's mean at
+    most 0.95x the unclamped one's (measured 0.85x)."""
+    from mcrecon.renderers import scenes
+
+    sc = scenes.get_scene("caustic")
+    ref = scenes.reference_image(sc, 48, 48)
+    err = {"default": [], 1e6: []}
+    for seed in range(3):
+        b = scenes.render_uniform(sc, width=48, height=48, spp=32, seed=seed)
+        ss = mcrecon.SampleSet(b.positions, b.values, width=48, height=48)
+        for k in err:
+            m = get_method("auto") if k == "default" else get_method("auto", safeguard=k)
+            err[k].append(relative_mse(_quiet(lambda: mcrecon.reconstruct(ss, method=m)), ref))
+    assert np.mean(err["default"]) <= 0.95 * np.mean(err[1e6]), err
 
 
 def test_diagnostics_are_present_finite_and_name_the_choice():

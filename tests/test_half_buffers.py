@@ -182,7 +182,7 @@ def test_exr_pair_through_cli_and_python_gives_autos_image_of_the_samples(tmp_pa
         np.testing.assert_array_equal(got.count, exact.count)
         np.testing.assert_allclose(got.mean, exact.mean, rtol=0, atol=tol32)
 
-    for safeguard in ("none", None):  # None: the default (2.0)
+    for safeguard in ("none", None):  # None: the default (4.0)
         opts = {} if safeguard is None else {"safeguard": None}
         flag = [] if safeguard is None else ["--safeguard", "none"]
         out = tmp_path / f"out_{safeguard}.exr"

@@ -71,8 +71,11 @@ def _exp_neg(x, table):
     return p * table[n]
 
 
+# The row loops of _band run in these helpers on 0-based views of equal length:
+# an index such as j + dx, whose sign numba cannot prove, gets a negative-index
+# wraparound check that kept LLVM from vectorising the loops (2.6x slower).
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _pair_dist(up, uq, xp, xq, alpha, k2, eps, acc, n):
     for j in range(n):
         a = up[j]
@@ -81,19 +84,19 @@ def _pair_dist(up, uq, xp, xq, alpha, k2, eps, acc, n):
         acc[j] += (diff * diff - alpha * (a + min(a, b))) / (eps + k2 * (a + b))
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _add_shifted(acc, x, n):
     for j in range(n):
         acc[j] += x[j]
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _axpy(acc, wt, x, n):
     for j in range(n):
         acc[j] += wt[j] * x[j]
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _weights(wa, wb, sa, sb, sv, pow2, nn):
     one = np.float32(1.0)
     zero = np.float32(0.0)
@@ -103,7 +106,7 @@ def _weights(wa, wb, sa, sb, sv, pow2, nn):
         wb[j] = _exp_neg(max(sb[j] / n, zero), pow2)
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _mask_pairs(da, db, dv, mp, mq, inv_c, n):
     for j in range(n):
         m = mp[j] * mq[j]
@@ -112,12 +115,13 @@ def _mask_pairs(da, db, dv, mp, mq, inv_c, n):
         dv[j] = m
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _mask_weights(wa, wb, mp, mq, maq, mbq, n):
     for j in range(n):
         m = mp[j] * mq[j]
         wa[j] = wa[j] * (m * maq[j])
         wb[j] = wb[j] * (m * mbq[j])
+
 
 #: Rows per band of the parallel kernel.  Results do not depend on it (nor
 #: on the number of threads): every output pixel is computed by one band, with
@@ -225,10 +229,8 @@ def _band(ya, yb, xa, ua, xb, ub, bothf, maf, mbf, full, r, f, k2, alpha, eps, i
                 # weight exp(-max(0, patch-mean distance)), 0 where the pair is not
                 # compared or q has no sample in the half filtered (a compared pair
                 # has sv >= 1: its own centre)
-                if full:
-                    _weights(wa[j0:j1], wb[j0:j1], sa[j0:j1], sb[j0:j1], sv[j0:j1], pow2, j1 - j0)
-                else:
-                    _weights(wa[j0:j1], wb[j0:j1], sa[j0:j1], sb[j0:j1], sv[j0:j1], pow2, j1 - j0)
+                _weights(wa[j0:j1], wb[j0:j1], sa[j0:j1], sb[j0:j1], sv[j0:j1], pow2, j1 - j0)
+                if not full:
                     _mask_weights(wa[j0:j1], wb[j0:j1], bothf[i, j0:j1], bothf[qi, j0 + dx:j1 + dx],
                                   maf[qi, j0 + dx:j1 + dx], mbf[qi, j0 + dx:j1 + dx], j1 - j0)
                 for j in range(j0, j1):
