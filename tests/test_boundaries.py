@@ -201,3 +201,15 @@ def test_a_channel_named_twice_in_a_mapping_is_refused_at_the_flag(tmp_path, cap
     _one_line(code, err, "--mean")
     assert "'R' twice" in err
     assert not (tmp_path / "o.exr").exists()
+
+
+def test_a_sample_count_beyond_int64_is_refused_as_a_count(tmp_path, capsys):
+    """``--spp 99999999999999999999999`` on a statistics EXR was refused as "count: dtype object"."""
+    rng = np.random.default_rng(1)
+    img = rng.random((6, 8, 6)).astype(np.float32)
+    path = write_exr(tmp_path / "p.exr", img, channels=("R", "G", "B", "Variance.R", "Variance.G", "Variance.B"))
+    code, _, err = _cli(["denoise", path, "-o", tmp_path / "o.exr", "--mean", "R,G,B",
+                         "--variance-channels", "Variance.R,Variance.G,Variance.B",
+                         "--spp", "99999999999999999999999"], capsys)
+    _one_line(code, err, "--spp")
+    assert "positive whole number" in err

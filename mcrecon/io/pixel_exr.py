@@ -208,15 +208,20 @@ def _split(text, field) -> tuple[str, ...] | None:
     return parts
 
 
+#: The largest sample count a pixel may hold (the statistics count in int64).
+_MAX_COUNT = np.iinfo(np.int64).max
+
+
 def _as_count_number(value) -> int | None:
-    """A positive whole number given as text or number, else None."""
+    """A whole number given as text or number (None if not one, or beyond int64's range)."""
+    n = None
     if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
-        return int(value)
-    if isinstance(value, (float, np.floating)) and float(value).is_integer():
-        return int(value)
-    if isinstance(value, str) and re.fullmatch(r"\s*\d+\s*", value):
-        return int(value)
-    return None
+        n = int(value)
+    elif isinstance(value, (float, np.floating)) and float(value).is_integer():
+        n = int(value)
+    elif isinstance(value, str) and re.fullmatch(r"\s*\d+\s*", value):
+        n = int(value)
+    return n if n is not None and n <= _MAX_COUNT else None
 
 
 def _attribute_count(exr: _EXR, name: str):
