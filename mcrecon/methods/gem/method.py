@@ -16,7 +16,7 @@ from ...stats import PixelStats
 from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, variant_option
 from .kernels import adaptive_sigmas, filled_subpixels, final_sigmas, pending_n_eff
 from .sampling import distribute_samples, sample_priority
-from .selection import GAMMA_MAX, OUTLIER_RULES, GEMSelection, _pick, gem_select, mean_variance_policy, oracle_select
+from .selection import CHANNEL_WEIGHTS, GAMMA_MAX, OUTLIER_RULES, GEMSelection, _pick, gem_select, mean_variance_policy, oracle_select
 
 __all__ = ["GEMMethod", "GEMRun", "TARGET_EPS"]
 
@@ -61,6 +61,10 @@ class GEMMethod(Method):
     final_outliers : {'paper', 'adaptive'}
         Outlier-removal rule of the final reconstruction (see
         :func:`gem_select`).
+    channel_weights : {'relative', 'absolute'}
+        Channel sum of the scale selector (see :func:`gem_select`):
+        'relative' (default) minimises each pixel's relative MSE,
+        'absolute' its summed squared error (the paper).
     subpixel_exact_below : float
         Gaussian scales with sigma below this (pixels) are computed on the
         4 x 4 subpixel grid itself (:func:`subpixel_gaussian_exact`); the
@@ -90,10 +94,12 @@ class GEMMethod(Method):
     pipeline = "allowed"
     #: The paper's algorithm (``variant="paper"``) against the measured defaults
     #: (docs/methods/gem.md, "Default vs paper"): error rate 0.1 (Sec. 7), the
-    #: Sec. 6 final outlier rule, every pixel voting in the stopping maps.
+    #: Sec. 6 final outlier rule, every pixel voting in the stopping maps, the
+    #: channels' squared errors summed without weights.
     variants = {
         "robust": {},
-        "paper": {"gamma": 0.1, "final_outliers": "paper", "zero_variance_votes": 3, "uniform_share": 0.0},
+        "paper": {"gamma": 0.1, "final_outliers": "paper", "zero_variance_votes": 3, "uniform_share": 0.0,
+                  "channel_weights": "absolute"},
     }
     options = (
         variant_option(variants),
@@ -117,6 +123,9 @@ class GEMMethod(Method):
                "adaptive (1x size, both ways)", choices=OUTLIER_RULES),
         Option("zero_variance_votes", int, 2, "stopping-map votes of pixels with zero variance: "
                "0 none, 1 adaptive phase, 2 final reconstruction, 3 both", choices=(0, 1, 2, 3)),
+        Option("channel_weights", str, "relative", "how the scale selector sums channels: relative "
+               "(each channel's error over value^2 + 0.01, the pixel's relative MSE) or absolute (plain sum, "
+               "the paper)", choices=CHANNEL_WEIGHTS),
         Option("subpixel_exact_below", float, 0.0, "filter scales with sigma below this (px) on the 4x4 "
                "subpixel grid itself (slower; 0: pixel-level equivalent kernel)", min=0.0),
     )
@@ -172,7 +181,8 @@ class GEMMethod(Method):
         else:
             sel = gem_select(base, mv, count, sig, gamma=p["gamma"], final=final, subpixels=s,
                              want_mse=want_mse, sub=sub, exact_below=eb, outlier_rule=p["final_outliers"],
-                             zero_variance_votes=bool(p["zero_variance_votes"] & (2 if final else 1)))
+                             zero_variance_votes=bool(p["zero_variance_votes"] & (2 if final else 1)),
+                             channel_weights=p["channel_weights"])
         # The maps are built when asked for (diagnostics()): a planning round
         # would otherwise spend ~5 % of its time on images nobody reads.
         run.diagnostics = {}

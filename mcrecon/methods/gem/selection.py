@@ -24,7 +24,7 @@ from ...errors import InputError
 from ...stats import PixelStats, fill_from_neighbours
 from .kernels import TRUNCATE, FilterBank, _chan_sum, _check_inputs, _filter_bank, _uses_sub, gaussian_kernel
 
-__all__ = ["GAMMA_MAX", "OUTLIER_RULES", "check_gamma", "z_of_gamma", "mean_variance_policy", "bias_coefficient",
+__all__ = ["GAMMA_MAX", "OUTLIER_RULES", "CHANNEL_WEIGHTS", "CHANNEL_EPS", "check_gamma", "z_of_gamma", "mean_variance_policy", "bias_coefficient",
            "scale_selector_terms", "stopping_maps", "remove_outliers", "select_from_stops", "GEMSelection",
            "gem_select", "oracle_select", "estimate_mse"]
 
@@ -33,6 +33,12 @@ __all__ = ["GAMMA_MAX", "OUTLIER_RULES", "check_gamma", "z_of_gamma", "mean_vari
 GAMMA_MAX = 0.4
 #: Outlier-removal rules of the final reconstruction (see :func:`gem_select`).
 OUTLIER_RULES = ("paper", "adaptive")
+#: Channel weighting of the scale selector (see :func:`stopping_maps`):
+#: 'relative' divides each channel's terms by value^2 + CHANNEL_EPS (the
+#: pixel's relative MSE, with the eps of :func:`mcrecon.metrics.relative_mse`),
+#: 'absolute' sums the channels' squared errors as the paper does.
+CHANNEL_WEIGHTS = ("relative", "absolute")
+CHANNEL_EPS = 1e-2
 
 
 # ----------------------------------------------------------------------------
@@ -184,13 +190,42 @@ def _stop_pair(e, coef, vsc, vsf, rho_z, weighted, delta, stop):
             stop[i, j] = ((b * rho_z[i, j] + vt) if weighted else d) > 0
 
 
-def stopping_maps(bank: FilterBank, count: np.ndarray, gamma: float | None):
+@numba.njit(cache=True, nogil=True)
+def _stop_pair_relative(f, c, vf, vc, eps, coef, rho_z, weighted, delta, stop):
+    # per channel weight 1 / (c^2 + eps) (c: the pair's coarse value), the same
+    # weight on the bias and the variance term of that channel, summed over
+    # channels: S of the pixel's relative MSE; stop and delta as in _stop_pair
+    h, w, nc = f.shape
+    for i in range(h):
+        for j in range(w):
+            e = 0.0
+            vt = 0.0
+            for ch in range(nc):
+                cc = c[i, j, ch]
+                wt = 1.0 / (cc * cc + eps)
+                dd = cc - f[i, j, ch]
+                e += wt * (dd * dd)
+                vt += wt * (np.float64(vc[i, j, ch]) - np.float64(vf[i, j, ch]))
+            b = coef * e
+            d = b + vt
+            delta[i, j] = d
+            stop[i, j] = ((b * rho_z[i, j] + vt) if weighted else d) > 0
+
+
+def stopping_maps(bank: FilterBank, count: np.ndarray, gamma: float | None, *, channel_eps: float | None = None):
     """Binary stopping maps ``S_k > 0`` for every pair (k, k+1), and the unweighted S_k.
 
-    Channels are combined by summing S over channels (the total squared
-    error of the pixel).  Returns ``stops`` (K, H, W) bool and ``delta``
-    (K, H, W), the unweighted estimate of MSE[k+1] - MSE[k] summed over
-    channels.
+    Channels are combined by summing S over channels: with ``channel_eps``
+    None the plain sum (the pixel's total squared error, the paper's
+    choice); with a number each channel's bias and variance terms are
+    divided by ``c^2 + channel_eps`` (c: that channel's value at the pair's
+    coarse scale), so S estimates the change of the pixel's *relative* MSE
+    summed over channels (needs a bank with per-channel variances).  The
+    weights are common to both sides of the comparison, so with one channel
+    (or channels proportional to each other) the decisions are unchanged.
+    Returns ``stops`` (K, H, W) bool and ``delta`` (K, H, W), the estimate
+    of MSE[k+1] - MSE[k] without the rho z(gamma) weight, summed over
+    channels with the same channel weights.
     """
     nk = bank.n_scales - 1
     h, w = count.shape
@@ -199,6 +234,17 @@ def stopping_maps(bank: FilterBank, count: np.ndarray, gamma: float | None):
     rho_z = np.zeros((1, 1))
     if gamma is not None:
         rho_z = (1.0 - 1.0 / np.maximum(count, 1)) * z_of_gamma(gamma)
+    if channel_eps is not None:
+        if any(v.ndim != 3 for v in bank.var):
+            raise InputError("stopping_maps", "bank", "channel_eps needs per-channel variances "
+                             "(filter_bank(..., per_channel=True))")
+        eps = float(channel_eps)
+        for k in range(nk):
+            r_f, r_c = _pair_radii(bank, k)
+            _stop_pair_relative(np.ascontiguousarray(bank.values[k]), np.ascontiguousarray(bank.values[k + 1]),
+                                np.ascontiguousarray(bank.var[k]), np.ascontiguousarray(bank.var[k + 1]), eps,
+                                bias_coefficient(r_f, r_c), rho_z, gamma is not None, delta[k], stops[k])
+        return stops, delta
     # channel sums of each scale's variance, once (each serves two pairs)
     vsum = [_chan_sum(v) for v in bank.var]
     dv = None
@@ -339,7 +385,8 @@ def _pick_kernel(arrs, sel, out):
 
 def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subpixels: int = 4,
                want_mse: bool = False, sub: np.ndarray | None = None, exact_below: float = 0.0,
-               outlier_rule: str = "adaptive", zero_variance_votes: bool = False) -> GEMSelection:
+               outlier_rule: str = "adaptive", zero_variance_votes: bool = False,
+               channel_weights: str = "relative") -> GEMSelection:
     """Filter selection of Secs. 4 and 6 on pixel arrays (works for 1-D signals as 1 x N images).
 
     Stopping maps from Eq. 1 weighted by rho z(gamma); pixels without samples
@@ -371,6 +418,11 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
         reflects their own zero variance, not the local bias; see
         ``docs/methods/gem.md`` for the measured effect (off while sampling,
         on in the final reconstruction by default in :class:`GEMMethod`).
+    channel_weights : {'relative', 'absolute'}
+        How S is summed over channels (:func:`stopping_maps`): 'relative'
+        (default) weighs each channel by 1 / (value^2 + CHANNEL_EPS), so the
+        choice minimises the pixel's relative MSE, the error the toolkit
+        reports; 'absolute' is the paper's plain sum of squared errors.
 
     Raises
     ------
@@ -381,18 +433,22 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
 
     Notes
     -----
-    Channels are combined by summing S over channels (the pixel's total
-    squared error), one scale per pixel.  z(gamma) was calibrated by the
+    Channels are combined by summing S over channels (weighted, see
+    ``channel_weights``), one scale per pixel.  z(gamma) was calibrated by the
     paper on one channel; with independent noise in three channels the
     realised error rate departs from gamma (measured in the tests).
     """
     count = np.asarray(count)
     if outlier_rule not in OUTLIER_RULES:
         raise InputError("gem_select", "outlier_rule", f"{outlier_rule!r}; valid: {', '.join(OUTLIER_RULES)}")
+    if channel_weights not in CHANNEL_WEIGHTS:
+        raise InputError("gem_select", "channel_weights",
+                         f"{channel_weights!r}; valid: {', '.join(CHANNEL_WEIGHTS)}")
+    relative = channel_weights == "relative" and np.ndim(base) == 3 and np.shape(base)[2] > 1
     _check_inputs("gem_select", base, mean_var, count, sub=sub if _uses_sub(sub, sigmas, exact_below) else None)
-    bank = _filter_bank(base, mean_var, count, sigmas, subpixels=subpixels, per_channel=want_mse,
+    bank = _filter_bank(base, mean_var, count, sigmas, subpixels=subpixels, per_channel=want_mse or relative,
                         with_n_eff=want_mse, sub=sub, exact_below=exact_below, truncate=TRUNCATE)
-    stops_raw, _ = stopping_maps(bank, count, gamma)
+    stops_raw, _ = stopping_maps(bank, count, gamma, channel_eps=CHANNEL_EPS if relative else None)
     empty = count == 0
     for k in range(stops_raw.shape[0]):
         # no data of its own / in the fine scale's support: go coarser
