@@ -391,6 +391,50 @@ def test_relative_channel_weights_keep_a_dim_channels_edge():
         G.gem_select(base, mv, cnt, G.final_sigmas(2), gamma=0.2, final=True, channel_weights="max")
 
 
+def test_confirmed_stops_remove_false_stops_on_a_flat_field_and_keep_an_edge():
+    """confirm_stops=1 (default): a Gaussian pair's stop needs the next pair's stop before the vote.
+
+    Flat field 64 x 64, 32 spp, three independent U(0, 1) channels (the
+    per-scale tests fire on ~20 % of the pixels).  The vote is monotone in
+    its inputs and confirmation only removes raw stops, so no pixel may
+    select a finer scale with it (exact).  Measured over 10 seeds: pixels
+    below the widest scale 7.7 % -> 4.1 %, relative MSE ratio (confirmed /
+    not) 0.60 per seed (sd 0.14, so the mean over 10 seeds has sd 0.045):
+    bound 0.8.  A step 0 | 1 (per-sample sd 0.3): ratio 0.987 (5 seeds,
+    each 0.98-1.0): bound 1.05.
+    """
+    from mcrecon.metrics import relative_mse
+    h = w = 64
+    n = 32
+    cnt = np.full((h, w), n)
+    sig = G.final_sigmas(8)
+    ratios = []
+    for seed in range(10):
+        rng = np.random.default_rng(seed)
+        s = rng.uniform(0.0, 1.0, (h, w, n, 3))
+        base, mv = s.mean(2), s.var(2, ddof=1) / n
+        sel = {c: G.gem_select(base, mv, cnt, sig, gamma=0.2, final=True, confirm_stops=c) for c in (0, 1)}
+        assert np.all(sel[1].selected >= sel[0].selected)
+        ratios.append(relative_mse(sel[1].image, np.full_like(base, 0.5)) /
+                      relative_mse(sel[0].image, np.full_like(base, 0.5)))
+    assert np.mean(ratios) < 0.8
+    ref = np.zeros((h, w, 3))
+    ref[:, w // 2:] = 1.0
+    edge = []
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+        s = ref[:, :, None, :] + 0.3 * rng.standard_normal((h, w, n, 3))
+        base, mv = s.mean(2), s.var(2, ddof=1) / n
+        edge.append([relative_mse(G.gem_select(base, mv, cnt, sig, gamma=0.2, final=True, confirm_stops=c).image,
+                                  ref) for c in (0, 1)])
+    edge = np.array(edge)
+    assert edge[:, 1].mean() < 1.05 * edge[:, 0].mean()
+    assert get_method("gem").params["confirm_stops"] == 1
+    assert get_method("gem", variant="paper").params["confirm_stops"] == 0
+    with pytest.raises(InputError, match="confirm_stops"):
+        G.gem_select(base, mv, cnt, sig, gamma=0.2, final=True, confirm_stops=3)
+
+
 # ----------------------------------------------------------------------------
 # Sec. 4.3: error rate on a constant signal
 # ----------------------------------------------------------------------------

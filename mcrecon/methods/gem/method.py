@@ -65,6 +65,11 @@ class GEMMethod(Method):
         Channel sum of the scale selector (see :func:`gem_select`):
         'relative' (default) minimises each pixel's relative MSE,
         'absolute' its summed squared error (the paper).
+    confirm_stops : {0, 1, 2}
+        Final reconstruction only: a stop of pair (k, k+1) enters the
+        outlier removal only if pair (k+1, k+2) stops too; 1 (default) for
+        the Gaussian pairs, 2 also for the pixel filter's pair, 0 never
+        (the paper).  See :func:`gem_select`.
     subpixel_exact_below : float
         Gaussian scales with sigma below this (pixels) are computed on the
         4 x 4 subpixel grid itself (:func:`subpixel_gaussian_exact`); the
@@ -99,7 +104,7 @@ class GEMMethod(Method):
     variants = {
         "robust": {},
         "paper": {"gamma": 0.1, "final_outliers": "paper", "zero_variance_votes": 3, "uniform_share": 0.0,
-                  "channel_weights": "absolute"},
+                  "channel_weights": "absolute", "confirm_stops": 0},
     }
     options = (
         variant_option(variants),
@@ -126,6 +131,8 @@ class GEMMethod(Method):
         Option("channel_weights", str, "relative", "how the scale selector sums channels: relative "
                "(each channel's error over value^2 + 0.01, the pixel's relative MSE) or absolute (plain sum, "
                "the paper)", choices=CHANNEL_WEIGHTS),
+        Option("confirm_stops", int, 1, "final reconstruction: a raw stop of pair k counts only if pair k+1 "
+               "stops too; 0 never (the paper), 1 Gaussian pairs (k >= 1), 2 every pair", choices=(0, 1, 2)),
         Option("subpixel_exact_below", float, 0.0, "filter scales with sigma below this (px) on the 4x4 "
                "subpixel grid itself (slower; 0: pixel-level equivalent kernel)", min=0.0),
     )
@@ -182,7 +189,7 @@ class GEMMethod(Method):
             sel = gem_select(base, mv, count, sig, gamma=p["gamma"], final=final, subpixels=s,
                              want_mse=want_mse, sub=sub, exact_below=eb, outlier_rule=p["final_outliers"],
                              zero_variance_votes=bool(p["zero_variance_votes"] & (2 if final else 1)),
-                             channel_weights=p["channel_weights"])
+                             channel_weights=p["channel_weights"], confirm_stops=p["confirm_stops"] if final else 0)
         # The maps are built when asked for (diagnostics()): a planning round
         # would otherwise spend ~5 % of its time on images nobody reads.
         run.diagnostics = {}

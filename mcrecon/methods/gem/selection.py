@@ -386,7 +386,7 @@ def _pick_kernel(arrs, sel, out):
 def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subpixels: int = 4,
                want_mse: bool = False, sub: np.ndarray | None = None, exact_below: float = 0.0,
                outlier_rule: str = "adaptive", zero_variance_votes: bool = False,
-               channel_weights: str = "relative") -> GEMSelection:
+               channel_weights: str = "relative", confirm_stops: int = 0) -> GEMSelection:
     """Filter selection of Secs. 4 and 6 on pixel arrays (works for 1-D signals as 1 x N images).
 
     Stopping maps from Eq. 1 weighted by rho z(gamma); pixels without samples
@@ -423,6 +423,15 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
         (default) weighs each channel by 1 / (value^2 + CHANNEL_EPS), so the
         choice minimises the pixel's relative MSE, the error the toolkit
         reports; 'absolute' is the paper's plain sum of squared errors.
+    confirm_stops : {0, 1, 2}
+        A stop of pair (k, k+1) enters the outlier removal only if pair
+        (k+1, k+2) stops too (before outlier removal): 0 never (the paper),
+        1 for the Gaussian pairs (k >= 1), 2 for every pair.  Under the
+        locally quadratic model the bias difference grows with the scale,
+        so a stop caused by bias is confirmed; a stop caused by noise is
+        confirmed only as often as two nested tests err together.
+        :class:`GEMMethod` passes 1 in its final reconstruction (measured in
+        ``docs/methods/gem.md``); this function's default is 0.
 
     Raises
     ------
@@ -441,6 +450,8 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
     count = np.asarray(count)
     if outlier_rule not in OUTLIER_RULES:
         raise InputError("gem_select", "outlier_rule", f"{outlier_rule!r}; valid: {', '.join(OUTLIER_RULES)}")
+    if confirm_stops not in (0, 1, 2):
+        raise InputError("gem_select", "confirm_stops", f"{confirm_stops!r}; valid: 0, 1, 2")
     if channel_weights not in CHANNEL_WEIGHTS:
         raise InputError("gem_select", "channel_weights",
                          f"{channel_weights!r}; valid: {', '.join(CHANNEL_WEIGHTS)}")
@@ -456,7 +467,12 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
     zero_var = ~empty
     for c in range(mean_var.shape[2]):        # np.all(mean_var <= 0, axis=2), without the slow short axis
         zero_var &= mean_var[..., c] <= 0.0
-    stops = remove_outliers(stops_raw, bank.sigmas, final=final and outlier_rule == "paper",
+    stops_in = stops_raw
+    if confirm_stops:
+        stops_in = stops_raw.copy()
+        for k in range(2 - confirm_stops, stops_raw.shape[0] - 1):
+            stops_in[k] &= stops_raw[k + 1]
+    stops = remove_outliers(stops_in, bank.sigmas, final=final and outlier_rule == "paper",
                             voters=~empty if zero_variance_votes else ~(empty | zero_var))
     for k in range(stops.shape[0]):
         stops[k] &= bank.weight[k] > 0
