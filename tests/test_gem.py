@@ -878,6 +878,11 @@ def test_plan_is_deterministic_given_the_state():
     a = m.plan(m.start(12, 10), _state(st, 3, 32 * 120, seed=9))
     b = m.plan(m.start(12, 10), _state(st, 3, 32 * 120, seed=9))
     np.testing.assert_array_equal(a.positions, b.positions)
+    # the final-reconstruction options (channel weights, confirmed stops) leave the sampling unchanged
+    for opts in ({"channel_weights": "absolute"}, {"confirm_stops": 0}):
+        m2 = get_method("gem", **opts)
+        c = m2.plan(m2.start(12, 10), _state(st, 3, 32 * 120, seed=9))
+        np.testing.assert_array_equal(a.positions, c.positions)
 
 
 def test_target_rel_mse_stops_early_and_oracle_needs_reference():

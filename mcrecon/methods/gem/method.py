@@ -62,9 +62,10 @@ class GEMMethod(Method):
         Outlier-removal rule of the final reconstruction (see
         :func:`gem_select`).
     channel_weights : {'relative', 'absolute'}
-        Channel sum of the scale selector (see :func:`gem_select`):
-        'relative' (default) minimises each pixel's relative MSE,
-        'absolute' its summed squared error (the paper).
+        Channel sum of the scale selector in the final reconstruction (see
+        :func:`gem_select`): 'relative' (default) minimises each pixel's
+        relative MSE, 'absolute' its summed squared error (the paper).  The
+        adaptive phase always sums absolutely (measured in docs/methods/gem.md).
     confirm_stops : {0, 1, 2}
         Final reconstruction only: a stop of pair (k, k+1) enters the
         outlier removal only if pair (k+1, k+2) stops too; 1 (default) for
@@ -128,9 +129,9 @@ class GEMMethod(Method):
                "adaptive (1x size, both ways)", choices=OUTLIER_RULES),
         Option("zero_variance_votes", int, 2, "stopping-map votes of pixels with zero variance: "
                "0 none, 1 adaptive phase, 2 final reconstruction, 3 both", choices=(0, 1, 2, 3)),
-        Option("channel_weights", str, "relative", "how the scale selector sums channels: relative "
-               "(each channel's error over value^2 + 0.01, the pixel's relative MSE) or absolute (plain sum, "
-               "the paper)", choices=CHANNEL_WEIGHTS),
+        Option("channel_weights", str, "relative", "final reconstruction: how the scale selector sums "
+               "channels, relative (each channel's error over value^2 + 0.01, the pixel's relative MSE) or "
+               "absolute (plain sum, the paper)", choices=CHANNEL_WEIGHTS),
         Option("confirm_stops", int, 1, "final reconstruction: a raw stop of pair k counts only if pair k+1 "
                "stops too; 0 never (the paper), 1 Gaussian pairs (k >= 1), 2 every pair", choices=(0, 1, 2)),
         Option("subpixel_exact_below", float, 0.0, "filter scales with sigma below this (px) on the 4x4 "
@@ -189,7 +190,8 @@ class GEMMethod(Method):
             sel = gem_select(base, mv, count, sig, gamma=p["gamma"], final=final, subpixels=s,
                              want_mse=want_mse, sub=sub, exact_below=eb, outlier_rule=p["final_outliers"],
                              zero_variance_votes=bool(p["zero_variance_votes"] & (2 if final else 1)),
-                             channel_weights=p["channel_weights"], confirm_stops=p["confirm_stops"] if final else 0)
+                             channel_weights=p["channel_weights"] if final else "absolute",
+                             confirm_stops=p["confirm_stops"] if final else 0)
         # The maps are built when asked for (diagnostics()): a planning round
         # would otherwise spend ~5 % of its time on images nobody reads.
         run.diagnostics = {}
