@@ -185,7 +185,8 @@ class GEMMethod(Method):
                                  "reference, e.g. adapt(..., reference=...)); use oracle=0 without one")
             if ref.shape != base.shape:
                 raise InputError(_WHERE, "reference", f"shape {ref.shape}, expected {base.shape}")
-            sel = oracle_select(base, mv, count, sig, ref, subpixels=s, sub=sub, exact_below=eb)
+            sel = oracle_select(base, mv, count, sig, ref, subpixels=s, sub=sub, exact_below=eb,
+                                channel_weights=p["channel_weights"] if final else "absolute")
         else:
             sel = gem_select(base, mv, count, sig, gamma=p["gamma"], final=final, subpixels=s,
                              want_mse=want_mse, sub=sub, exact_below=eb, outlier_rule=p["final_outliers"],

@@ -484,7 +484,8 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
 
 
 def oracle_select(base, mean_var, count, sigmas, reference, *, subpixels: int = 4,
-                  sub: np.ndarray | None = None, exact_below: float = 0.0) -> GEMSelection:
+                  sub: np.ndarray | None = None, exact_below: float = 0.0,
+                  channel_weights: str = "relative") -> GEMSelection:
     """The paper's OUR-GRD selection: exhaustive argmin of bias^2 + Var with the true bias.
 
     The bias of scale k is ``K_k * reference - reference`` (the reference
@@ -492,7 +493,10 @@ def oracle_select(base, mean_var, count, sigmas, reference, *, subpixels: int = 
     is unbiased.  The per-sample variance is a property of the renderer
     that a reference image does not carry, so the variances are the
     sample estimates (Eq. 2) -- the same ones GEM uses.  The MSE is summed
-    over channels for the choice and kept per channel for sampling.
+    over channels for the choice (``channel_weights`` as in :func:`gem_select`:
+    'relative' divides each channel by reference^2 + CHANNEL_EPS, the pixel's
+    relative MSE; 'absolute' the plain sum of the paper) and kept per
+    channel for sampling.
 
     Raises
     ------
@@ -503,6 +507,9 @@ def oracle_select(base, mean_var, count, sigmas, reference, *, subpixels: int = 
     """
     ref = np.asarray(reference, dtype=np.float64)
     count = np.asarray(count)
+    if channel_weights not in CHANNEL_WEIGHTS:
+        raise InputError("oracle_select", "channel_weights",
+                         f"{channel_weights!r}; valid: {', '.join(CHANNEL_WEIGHTS)}")
     _check_inputs("oracle_select", base, mean_var, count, reference=ref,
                   sub=sub if _uses_sub(sub, sigmas, exact_below) else None)
     bank = _filter_bank(base, mean_var, count, sigmas, subpixels=subpixels, per_channel=True, with_n_eff=True,
@@ -515,7 +522,11 @@ def oracle_select(base, mean_var, count, sigmas, reference, *, subpixels: int = 
         m = b * b + bank.var[k]
         m = np.where((bank.weight[k] > 0)[..., None], m, np.inf)  # no data in the support
         mses.append(m)
-    tot = np.stack([m.sum(axis=2) for m in mses])
+    if channel_weights == "relative" and ref.ndim == 3 and ref.shape[2] > 1:
+        wch = 1.0 / (ref * ref + CHANNEL_EPS)
+        tot = np.stack([(m * wch).sum(axis=2) for m in mses])
+    else:
+        tot = np.stack([m.sum(axis=2) for m in mses])
     selected = np.argmin(tot, axis=0).astype(np.int64)
     image = _pick(bank.values, selected)
     mse = _pick(mses, selected)
