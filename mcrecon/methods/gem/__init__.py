@@ -68,13 +68,15 @@ from .kernels import (FilterBank, adaptive_sigmas, filled_subpixels, filter_bank
                       kernel_radius, pixel_kernel, subpixel_gaussian_exact)
 from .method import GEMMethod
 from .sampling import SAMPLING_EPS, distribute_samples, sample_priority
-from .selection import (GAMMA_MAX, GEMSelection, bias_coefficient, check_gamma, estimate_mse, gem_select,
+from .selection import (CHANNEL_EPS, CHANNEL_WEIGHTS, GAMMA_MAX, GEMSelection, bias_coefficient, check_gamma, estimate_mse, gem_select,
                         mean_variance_policy, oracle_select, remove_outliers, scale_selector_terms,
                         select_from_stops, stopping_maps, z_of_gamma)
 
 __all__ = [
     "GEMMethod",
     "GAMMA_MAX",
+    "CHANNEL_WEIGHTS",
+    "CHANNEL_EPS",
     "SAMPLING_EPS",
     "z_of_gamma",
     "check_gamma",

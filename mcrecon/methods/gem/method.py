@@ -16,7 +16,7 @@ from ...stats import PixelStats
 from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, variant_option
 from .kernels import adaptive_sigmas, filled_subpixels, final_sigmas, pending_n_eff
 from .sampling import distribute_samples, sample_priority
-from .selection import GAMMA_MAX, OUTLIER_RULES, GEMSelection, _pick, gem_select, mean_variance_policy, oracle_select
+from .selection import CHANNEL_WEIGHTS, GAMMA_MAX, OUTLIER_RULES, GEMSelection, _pick, gem_select, mean_variance_policy, oracle_select
 
 __all__ = ["GEMMethod", "GEMRun", "TARGET_EPS"]
 
@@ -61,6 +61,16 @@ class GEMMethod(Method):
     final_outliers : {'paper', 'adaptive'}
         Outlier-removal rule of the final reconstruction (see
         :func:`gem_select`).
+    channel_weights : {'relative', 'absolute'}
+        Channel sum of the scale selector in the final reconstruction (see
+        :func:`gem_select`): 'relative' (default) minimises each pixel's
+        relative MSE, 'absolute' its summed squared error (the paper).  The
+        adaptive phase always sums absolutely (measured in docs/methods/gem.md).
+    confirm_stops : {0, 1, 2}
+        Final reconstruction only: a stop of pair (k, k+1) enters the
+        outlier removal only if pair (k+1, k+2) stops too; 1 (default) for
+        the Gaussian pairs, 2 also for the pixel filter's pair, 0 never
+        (the paper).  See :func:`gem_select`.
     subpixel_exact_below : float
         Gaussian scales with sigma below this (pixels) are computed on the
         4 x 4 subpixel grid itself (:func:`subpixel_gaussian_exact`); the
@@ -90,10 +100,12 @@ class GEMMethod(Method):
     pipeline = "allowed"
     #: The paper's algorithm (``variant="paper"``) against the measured defaults
     #: (docs/methods/gem.md, "Default vs paper"): error rate 0.1 (Sec. 7), the
-    #: Sec. 6 final outlier rule, every pixel voting in the stopping maps.
+    #: Sec. 6 final outlier rule, every pixel voting in the stopping maps, the
+    #: channels' squared errors summed without weights.
     variants = {
         "robust": {},
-        "paper": {"gamma": 0.1, "final_outliers": "paper", "zero_variance_votes": 3, "uniform_share": 0.0},
+        "paper": {"gamma": 0.1, "final_outliers": "paper", "zero_variance_votes": 3, "uniform_share": 0.0,
+                  "channel_weights": "absolute", "confirm_stops": 0},
     }
     options = (
         variant_option(variants),
@@ -117,6 +129,11 @@ class GEMMethod(Method):
                "adaptive (1x size, both ways)", choices=OUTLIER_RULES),
         Option("zero_variance_votes", int, 2, "stopping-map votes of pixels with zero variance: "
                "0 none, 1 adaptive phase, 2 final reconstruction, 3 both", choices=(0, 1, 2, 3)),
+        Option("channel_weights", str, "relative", "final reconstruction: how the scale selector sums "
+               "channels, relative (each channel's error over value^2 + 0.01, the pixel's relative MSE) or "
+               "absolute (plain sum, the paper)", choices=CHANNEL_WEIGHTS),
+        Option("confirm_stops", int, 1, "final reconstruction: a raw stop of pair k counts only if pair k+1 "
+               "stops too; 0 never (the paper), 1 Gaussian pairs (k >= 1), 2 every pair", choices=(0, 1, 2)),
         Option("subpixel_exact_below", float, 0.0, "filter scales with sigma below this (px) on the 4x4 "
                "subpixel grid itself (slower; 0: pixel-level equivalent kernel)", min=0.0),
     )
@@ -168,11 +185,14 @@ class GEMMethod(Method):
                                  "reference, e.g. adapt(..., reference=...)); use oracle=0 without one")
             if ref.shape != base.shape:
                 raise InputError(_WHERE, "reference", f"shape {ref.shape}, expected {base.shape}")
-            sel = oracle_select(base, mv, count, sig, ref, subpixels=s, sub=sub, exact_below=eb)
+            sel = oracle_select(base, mv, count, sig, ref, subpixels=s, sub=sub, exact_below=eb,
+                                channel_weights=p["channel_weights"] if final else "absolute")
         else:
             sel = gem_select(base, mv, count, sig, gamma=p["gamma"], final=final, subpixels=s,
                              want_mse=want_mse, sub=sub, exact_below=eb, outlier_rule=p["final_outliers"],
-                             zero_variance_votes=bool(p["zero_variance_votes"] & (2 if final else 1)))
+                             zero_variance_votes=bool(p["zero_variance_votes"] & (2 if final else 1)),
+                             channel_weights=p["channel_weights"] if final else "absolute",
+                             confirm_stops=p["confirm_stops"] if final else 0)
         # The maps are built when asked for (diagnostics()): a planning round
         # would otherwise spend ~5 % of its time on images nobody reads.
         run.diagnostics = {}

@@ -24,7 +24,7 @@ from ...errors import InputError
 from ...stats import PixelStats, fill_from_neighbours
 from .kernels import TRUNCATE, FilterBank, _chan_sum, _check_inputs, _filter_bank, _uses_sub, gaussian_kernel
 
-__all__ = ["GAMMA_MAX", "OUTLIER_RULES", "check_gamma", "z_of_gamma", "mean_variance_policy", "bias_coefficient",
+__all__ = ["GAMMA_MAX", "OUTLIER_RULES", "CHANNEL_WEIGHTS", "CHANNEL_EPS", "check_gamma", "z_of_gamma", "mean_variance_policy", "bias_coefficient",
            "scale_selector_terms", "stopping_maps", "remove_outliers", "select_from_stops", "GEMSelection",
            "gem_select", "oracle_select", "estimate_mse"]
 
@@ -33,6 +33,12 @@ __all__ = ["GAMMA_MAX", "OUTLIER_RULES", "check_gamma", "z_of_gamma", "mean_vari
 GAMMA_MAX = 0.4
 #: Outlier-removal rules of the final reconstruction (see :func:`gem_select`).
 OUTLIER_RULES = ("paper", "adaptive")
+#: Channel weighting of the scale selector (see :func:`stopping_maps`):
+#: 'relative' divides each channel's terms by value^2 + CHANNEL_EPS (the
+#: pixel's relative MSE, with the eps of :func:`mcrecon.metrics.relative_mse`),
+#: 'absolute' sums the channels' squared errors as the paper does.
+CHANNEL_WEIGHTS = ("relative", "absolute")
+CHANNEL_EPS = 1e-2
 
 
 # ----------------------------------------------------------------------------
@@ -184,13 +190,42 @@ def _stop_pair(e, coef, vsc, vsf, rho_z, weighted, delta, stop):
             stop[i, j] = ((b * rho_z[i, j] + vt) if weighted else d) > 0
 
 
-def stopping_maps(bank: FilterBank, count: np.ndarray, gamma: float | None):
+@numba.njit(cache=True, nogil=True)
+def _stop_pair_relative(f, c, vf, vc, eps, coef, rho_z, weighted, delta, stop):
+    # per channel weight 1 / (c^2 + eps) (c: the pair's coarse value), the same
+    # weight on the bias and the variance term of that channel, summed over
+    # channels: S of the pixel's relative MSE; stop and delta as in _stop_pair
+    h, w, nc = f.shape
+    for i in range(h):
+        for j in range(w):
+            e = 0.0
+            vt = 0.0
+            for ch in range(nc):
+                cc = c[i, j, ch]
+                wt = 1.0 / (cc * cc + eps)
+                dd = cc - f[i, j, ch]
+                e += wt * (dd * dd)
+                vt += wt * (np.float64(vc[i, j, ch]) - np.float64(vf[i, j, ch]))
+            b = coef * e
+            d = b + vt
+            delta[i, j] = d
+            stop[i, j] = ((b * rho_z[i, j] + vt) if weighted else d) > 0
+
+
+def stopping_maps(bank: FilterBank, count: np.ndarray, gamma: float | None, *, channel_eps: float | None = None):
     """Binary stopping maps ``S_k > 0`` for every pair (k, k+1), and the unweighted S_k.
 
-    Channels are combined by summing S over channels (the total squared
-    error of the pixel).  Returns ``stops`` (K, H, W) bool and ``delta``
-    (K, H, W), the unweighted estimate of MSE[k+1] - MSE[k] summed over
-    channels.
+    Channels are combined by summing S over channels: with ``channel_eps``
+    None the plain sum (the pixel's total squared error, the paper's
+    choice); with a number each channel's bias and variance terms are
+    divided by ``c^2 + channel_eps`` (c: that channel's value at the pair's
+    coarse scale), so S estimates the change of the pixel's *relative* MSE
+    summed over channels (needs a bank with per-channel variances).  The
+    weights are common to both sides of the comparison, so with one channel
+    (or channels proportional to each other) the decisions are unchanged.
+    Returns ``stops`` (K, H, W) bool and ``delta`` (K, H, W), the estimate
+    of MSE[k+1] - MSE[k] without the rho z(gamma) weight, summed over
+    channels with the same channel weights.
     """
     nk = bank.n_scales - 1
     h, w = count.shape
@@ -199,6 +234,17 @@ def stopping_maps(bank: FilterBank, count: np.ndarray, gamma: float | None):
     rho_z = np.zeros((1, 1))
     if gamma is not None:
         rho_z = (1.0 - 1.0 / np.maximum(count, 1)) * z_of_gamma(gamma)
+    if channel_eps is not None:
+        if any(v.ndim != 3 for v in bank.var):
+            raise InputError("stopping_maps", "bank", "channel_eps needs per-channel variances "
+                             "(filter_bank(..., per_channel=True))")
+        eps = float(channel_eps)
+        for k in range(nk):
+            r_f, r_c = _pair_radii(bank, k)
+            _stop_pair_relative(np.ascontiguousarray(bank.values[k]), np.ascontiguousarray(bank.values[k + 1]),
+                                np.ascontiguousarray(bank.var[k]), np.ascontiguousarray(bank.var[k + 1]), eps,
+                                bias_coefficient(r_f, r_c), rho_z, gamma is not None, delta[k], stops[k])
+        return stops, delta
     # channel sums of each scale's variance, once (each serves two pairs)
     vsum = [_chan_sum(v) for v in bank.var]
     dv = None
@@ -339,7 +385,8 @@ def _pick_kernel(arrs, sel, out):
 
 def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subpixels: int = 4,
                want_mse: bool = False, sub: np.ndarray | None = None, exact_below: float = 0.0,
-               outlier_rule: str = "adaptive", zero_variance_votes: bool = False) -> GEMSelection:
+               outlier_rule: str = "adaptive", zero_variance_votes: bool = False,
+               channel_weights: str = "relative", confirm_stops: int = 0) -> GEMSelection:
     """Filter selection of Secs. 4 and 6 on pixel arrays (works for 1-D signals as 1 x N images).
 
     Stopping maps from Eq. 1 weighted by rho z(gamma); pixels without samples
@@ -371,6 +418,20 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
         reflects their own zero variance, not the local bias; see
         ``docs/methods/gem.md`` for the measured effect (off while sampling,
         on in the final reconstruction by default in :class:`GEMMethod`).
+    channel_weights : {'relative', 'absolute'}
+        How S is summed over channels (:func:`stopping_maps`): 'relative'
+        (default) weighs each channel by 1 / (value^2 + CHANNEL_EPS), so the
+        choice minimises the pixel's relative MSE, the error the toolkit
+        reports; 'absolute' is the paper's plain sum of squared errors.
+    confirm_stops : {0, 1, 2}
+        A stop of pair (k, k+1) enters the outlier removal only if pair
+        (k+1, k+2) stops too (before outlier removal): 0 never (the paper),
+        1 for the Gaussian pairs (k >= 1), 2 for every pair.  Under the
+        locally quadratic model the bias difference grows with the scale,
+        so a stop caused by bias is confirmed; a stop caused by noise is
+        confirmed only as often as two nested tests err together.
+        :class:`GEMMethod` passes 1 in its final reconstruction (measured in
+        ``docs/methods/gem.md``); this function's default is 0.
 
     Raises
     ------
@@ -381,18 +442,24 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
 
     Notes
     -----
-    Channels are combined by summing S over channels (the pixel's total
-    squared error), one scale per pixel.  z(gamma) was calibrated by the
+    Channels are combined by summing S over channels (weighted, see
+    ``channel_weights``), one scale per pixel.  z(gamma) was calibrated by the
     paper on one channel; with independent noise in three channels the
     realised error rate departs from gamma (measured in the tests).
     """
     count = np.asarray(count)
     if outlier_rule not in OUTLIER_RULES:
         raise InputError("gem_select", "outlier_rule", f"{outlier_rule!r}; valid: {', '.join(OUTLIER_RULES)}")
+    if confirm_stops not in (0, 1, 2):
+        raise InputError("gem_select", "confirm_stops", f"{confirm_stops!r}; valid: 0, 1, 2")
+    if channel_weights not in CHANNEL_WEIGHTS:
+        raise InputError("gem_select", "channel_weights",
+                         f"{channel_weights!r}; valid: {', '.join(CHANNEL_WEIGHTS)}")
+    relative = channel_weights == "relative" and np.ndim(base) == 3 and np.shape(base)[2] > 1
     _check_inputs("gem_select", base, mean_var, count, sub=sub if _uses_sub(sub, sigmas, exact_below) else None)
-    bank = _filter_bank(base, mean_var, count, sigmas, subpixels=subpixels, per_channel=want_mse,
+    bank = _filter_bank(base, mean_var, count, sigmas, subpixels=subpixels, per_channel=want_mse or relative,
                         with_n_eff=want_mse, sub=sub, exact_below=exact_below, truncate=TRUNCATE)
-    stops_raw, _ = stopping_maps(bank, count, gamma)
+    stops_raw, _ = stopping_maps(bank, count, gamma, channel_eps=CHANNEL_EPS if relative else None)
     empty = count == 0
     for k in range(stops_raw.shape[0]):
         # no data of its own / in the fine scale's support: go coarser
@@ -400,7 +467,12 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
     zero_var = ~empty
     for c in range(mean_var.shape[2]):        # np.all(mean_var <= 0, axis=2), without the slow short axis
         zero_var &= mean_var[..., c] <= 0.0
-    stops = remove_outliers(stops_raw, bank.sigmas, final=final and outlier_rule == "paper",
+    stops_in = stops_raw
+    if confirm_stops:
+        stops_in = stops_raw.copy()
+        for k in range(2 - confirm_stops, stops_raw.shape[0] - 1):
+            stops_in[k] &= stops_raw[k + 1]
+    stops = remove_outliers(stops_in, bank.sigmas, final=final and outlier_rule == "paper",
                             voters=~empty if zero_variance_votes else ~(empty | zero_var))
     for k in range(stops.shape[0]):
         stops[k] &= bank.weight[k] > 0
@@ -412,7 +484,8 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
 
 
 def oracle_select(base, mean_var, count, sigmas, reference, *, subpixels: int = 4,
-                  sub: np.ndarray | None = None, exact_below: float = 0.0) -> GEMSelection:
+                  sub: np.ndarray | None = None, exact_below: float = 0.0,
+                  channel_weights: str = "relative") -> GEMSelection:
     """The paper's OUR-GRD selection: exhaustive argmin of bias^2 + Var with the true bias.
 
     The bias of scale k is ``K_k * reference - reference`` (the reference
@@ -420,7 +493,10 @@ def oracle_select(base, mean_var, count, sigmas, reference, *, subpixels: int = 
     is unbiased.  The per-sample variance is a property of the renderer
     that a reference image does not carry, so the variances are the
     sample estimates (Eq. 2) -- the same ones GEM uses.  The MSE is summed
-    over channels for the choice and kept per channel for sampling.
+    over channels for the choice (``channel_weights`` as in :func:`gem_select`:
+    'relative' divides each channel by reference^2 + CHANNEL_EPS, the pixel's
+    relative MSE; 'absolute' the plain sum of the paper) and kept per
+    channel for sampling.
 
     Raises
     ------
@@ -431,6 +507,9 @@ def oracle_select(base, mean_var, count, sigmas, reference, *, subpixels: int = 
     """
     ref = np.asarray(reference, dtype=np.float64)
     count = np.asarray(count)
+    if channel_weights not in CHANNEL_WEIGHTS:
+        raise InputError("oracle_select", "channel_weights",
+                         f"{channel_weights!r}; valid: {', '.join(CHANNEL_WEIGHTS)}")
     _check_inputs("oracle_select", base, mean_var, count, reference=ref,
                   sub=sub if _uses_sub(sub, sigmas, exact_below) else None)
     bank = _filter_bank(base, mean_var, count, sigmas, subpixels=subpixels, per_channel=True, with_n_eff=True,
@@ -443,7 +522,11 @@ def oracle_select(base, mean_var, count, sigmas, reference, *, subpixels: int = 
         m = b * b + bank.var[k]
         m = np.where((bank.weight[k] > 0)[..., None], m, np.inf)  # no data in the support
         mses.append(m)
-    tot = np.stack([m.sum(axis=2) for m in mses])
+    if channel_weights == "relative" and ref.ndim == 3 and ref.shape[2] > 1:
+        wch = 1.0 / (ref * ref + CHANNEL_EPS)
+        tot = np.stack([(m * wch).sum(axis=2) for m in mses])
+    else:
+        tot = np.stack([m.sum(axis=2) for m in mses])
     selected = np.argmin(tot, axis=0).astype(np.int64)
     image = _pick(bank.values, selected)
     mse = _pick(mses, selected)
