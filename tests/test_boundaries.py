@@ -213,3 +213,25 @@ def test_a_sample_count_beyond_int64_is_refused_as_a_count(tmp_path, capsys):
                          "--spp", "99999999999999999999999"], capsys)
     _one_line(code, err, "--spp")
     assert "positive whole number" in err
+
+
+@pytest.mark.parametrize("method, extra", [("gem", []), ("awr", ["--round-spp", "1e10"])])
+def test_a_planned_round_larger_than_memory_is_refused_before_its_positions_are_drawn(tmp_path, capsys,
+                                                                                     monkeypatch, method, extra):
+    """gem's and awr's plans draw every sample's position: ``--spp 1e12`` on 8x8 made gem allocate
+    43.7 TiB (a MemoryError traceback) before the driver's round check could run (awr's rounds are
+    ``round_spp`` per pixel: its bomb needs that option too)."""
+    _small_memory(monkeypatch, 1 << 30)
+    code, _, err = _cli(["adapt", "--scene", "flat", "--spp", "1e12", "--size", "8x8", "--method", method, *extra,
+                         "-o", tmp_path / "a.exr", "--log", tmp_path / "a.h5", "--quiet"], capsys)
+    _one_line(code, err, "memory")
+    assert f"method {method}" in err and "sample positions" in err
+
+
+@pytest.mark.parametrize("flag, value", [("--final-scales", "1000"), ("--adaptive-scales", "11")])
+def test_gem_scale_counts_are_bounded(tmp_path, capsys, flag, value):
+    """``--final-scales 1000`` ran for minutes (Gaussians of 2^500 px); 16 final scales reach 256 px,
+    10 adaptive (dyadic) scales 512 px."""
+    path = _log(tmp_path)
+    code, _, err = _cli(["denoise", path, "-o", tmp_path / "o.exr", "--method", "gem", flag, value], capsys)
+    _one_line(code, err, flag.lstrip("-").replace("-", "_"))

@@ -16,6 +16,7 @@ import functools
 import numba
 import numpy as np
 
+from ...samples import check_memory
 from ...stats import PixelStats
 from ..box import fill_empty_pixels
 from .reconstruction import functional_variance, pixel_variance
@@ -265,6 +266,10 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
     info = {"max_priority": float("nan"), "levels_used": {}, "affected_fraction": 0.0}
     if n_samples <= 0:
         return None, info
+    # the positions and their per-sample temporaries: refused in one line before a budget the
+    # machine cannot hold is allocated
+    check_memory("method awr", "spp", 64.0 * n_samples, f"a round of {n_samples} sample positions",
+                 "lower the budget (--spp)")
     h, w = stats.height, stats.width
     levels = int(min(levels, default_levels((h, w))))
     mean = fill_empty_pixels(stats.mean.copy(), stats.count, source="awr sampler") if (stats.count == 0).any() \

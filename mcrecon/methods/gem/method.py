@@ -123,8 +123,9 @@ class GEMMethod(Method):
                "(0: the paper's greedy distribution alone)", min=0.0, max=1.0),
         Option("samples_per_pick", int, 0, "samples each selected pixel spreads over its filter "
                "(0: the average spp of the budget, as in the paper)", min=0),
-        Option("adaptive_scales", int, 4, "dyadic Gaussian scales from 1 px used while sampling", min=1),
-        Option("final_scales", int, 8, "Gaussian scales sqrt(2) apart from sqrt(2) px in the final image", min=1),
+        Option("adaptive_scales", int, 4, "dyadic Gaussian scales from 1 px used while sampling", min=1, max=10),
+        Option("final_scales", int, 8, "Gaussian scales sqrt(2) apart from sqrt(2) px in the final image", min=1,
+               max=16),
         Option("final_outliers", str, "adaptive", "final outlier removal: paper (2x size, coarser only) or "
                "adaptive (1x size, both ways)", choices=OUTLIER_RULES),
         Option("zero_variance_votes", int, 2, "stopping-map votes of pixels with zero variance: "

@@ -13,7 +13,12 @@ import math
 import numba
 import numpy as np
 
+from ...samples import check_memory
 from .kernels import pixel_kernel
+
+#: Bytes a planned sample takes while its position is drawn: pixel and offset (4 int64),
+#: the position (2 float64) and the row sort's order and copy.
+_BYTES_PER_PLANNED_SAMPLE = 80.0
 
 __all__ = ["SAMPLING_EPS", "sample_priority", "distribute_samples", "sort_by_row"]
 
@@ -209,6 +214,10 @@ def distribute_samples(priority: np.ndarray, selected: np.ndarray, sigmas, n_tot
     n_per_pick = max(1, int(n_per_pick))
     if n_total <= 0:
         return np.zeros((0, 2))
+    # the positions and their per-sample temporaries (pixel, offset, order): refused in one
+    # line before a budget the machine cannot hold is allocated
+    check_memory("method gem", "spp", _BYTES_PER_PLANNED_SAMPLE * n_total,
+                 f"a round of {n_total} sample positions", "lower the budget (--spp)")
     m = n_total // n_per_pick
     rem = n_total - m * n_per_pick
     n_pick = min(m + (1 if rem else 0), h * w)
