@@ -446,6 +446,84 @@ def test_confirmed_stops_remove_false_stops_on_a_flat_field_and_keep_an_edge():
 # ----------------------------------------------------------------------------
 
 @pytest.mark.slow
+def test_confirm_pair_stops_asks_the_next_pair_only_and_leaves_the_widest_pair():
+    """The confirmation rule on hand-made raw stops (5 pairs, one pixel per column): pair k's stop
+    survives iff pair k+1 stopped raw; pair 0 is confirmed only with confirm_stops=2; the widest
+    pair is never confirmed; a gap further up does not matter (next pair only, not a chain)."""
+    raw = np.array([[1, 1, 1, 0, 1],   # pair 0
+                    [1, 0, 1, 1, 0],   # pair 1
+                    [1, 1, 0, 1, 0],   # pair 2
+                    [0, 1, 1, 1, 1],   # pair 3
+                    [1, 0, 1, 1, 1]],  # pair 4: the widest
+                   bool)[:, None, :]
+    c0 = gem_selection.confirm_pair_stops(raw, 0)
+    c1 = gem_selection.confirm_pair_stops(raw, 1)
+    c2 = gem_selection.confirm_pair_stops(raw, 2)
+    np.testing.assert_array_equal(c0, raw)
+    np.testing.assert_array_equal(c1[0], raw[0])                   # the pixel filter's pair untouched
+    np.testing.assert_array_equal(c2[0], raw[0] & raw[1])
+    for k in (1, 2, 3):
+        np.testing.assert_array_equal(c1[k], raw[k] & raw[k + 1])  # next pair only
+        np.testing.assert_array_equal(c2[k], raw[k] & raw[k + 1])
+    np.testing.assert_array_equal(c1[4], raw[4])                   # the widest pair: unconfirmed
+    # column 0: pairs 1 and 2 stop, 3 does not -> pair 1 still counts (a chain would drop it)
+    assert c1[1, 0, 0] and not c1[2, 0, 0]
+    assert gem_selection.CHANNEL_EPS == 0.01  # the eps of mcrecon.metrics.relative_mse, the reported error
+
+
+def test_relative_weights_do_not_spread_a_value_whose_square_overflows():
+    """A pixel whose samples are all 1e200 (a float64 log; variance 0): 1 / (c^2 + eps) overflowed to
+    a weight 0, 0 * inf gave a NaN statistic, a NaN never stops, and the huge value spread over
+    1014 of 1024 pixels (review of the relative weights).  The weight is now taken without squaring
+    the value: as many pixels get it as with the paper's absolute sum (12 measured; 14 relative)."""
+    rng = np.random.default_rng(0)
+    h = w = 32
+    n = 16
+    s = 1.0 + 0.3 * rng.standard_normal((h, w, n, 3))
+    base, mv = s.mean(2), s.var(2, ddof=1) / n
+    base[16, 16] = 1e200
+    mv[16, 16] = 0.0
+    cnt = np.full((h, w), n)
+    spread = {}
+    for cw, conf in (("absolute", 0), ("relative", 1)):
+        r = G.gem_select(base, mv, cnt, G.final_sigmas(8), gamma=0.2, final=True, channel_weights=cw,
+                         confirm_stops=conf)
+        spread[cw] = int((np.abs(r.image) > 1e100).any(axis=2).sum())
+    assert 1 <= spread["relative"] <= 2 * spread["absolute"], spread
+
+
+def test_gem_passes_its_final_options_to_the_final_selection_only(monkeypatch):
+    """The method, not only gem_select: the final reconstruction gets channel_weights and
+    confirm_stops as configured; the sampling plan (auto uses it too) always the paper's
+    'absolute' and 0, so adaptive runs take the samples they took before the options existed."""
+    seen = []
+    real = gem_selection.gem_select
+
+    def spy(*args, **kw):
+        seen.append((kw["final"], kw.get("channel_weights"), kw.get("confirm_stops")))
+        return real(*args, **kw)
+
+    import mcrecon.methods.gem.method as gem_method
+    monkeypatch.setattr(gem_method, "gem_select", spy)
+    rng = np.random.default_rng(0)
+    h, w, n = 12, 10, 4
+    pix = np.repeat(np.arange(h * w), n)
+    pos = np.stack([pix % w + rng.random(pix.size), pix // w + rng.random(pix.size)], axis=1)
+    ss = mcrecon.SampleSet(pos, rng.random((pix.size, 3)), width=w, height=h)
+    for opts, want in (({}, ("relative", 1)), ({"channel_weights": "absolute", "confirm_stops": 2},
+                                                ("absolute", 2)), ({"variant": "paper"}, ("absolute", 0))):
+        seen.clear()
+        m = get_method("gem", **opts)
+        mcrecon.reconstruct(ss, method=m)
+        assert seen and all(s == (True,) + want for s in seen), (opts, seen)
+        seen.clear()
+        st = PixelStats(w, h, subpixels=4)
+        st.add(pos, ss.values)
+        req = m.plan(m.start(w, h), _state(st, 1, 2 * st.n_samples))  # an adaptive round: plans from a selection
+        assert req is not None and req.positions is not None
+        assert seen and all(s == (False, "absolute", 0) for s in seen), (opts, seen)
+
+
 def test_error_rate_tracks_gamma_and_is_flat_in_noise_variance(full_run):
     """Fraction of wrong stop decisions on a constant 1-D signal (paper Sec. 4.3, Figs. 4-5).
 

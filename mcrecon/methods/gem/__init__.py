@@ -36,7 +36,11 @@ Pipeline (one call of :func:`gem_select`):
    :func:`filter_bank`.
 3. **Scale selector** S (Eq. 1) per pair of consecutive scales with the
    bias term weighted by rho = 1 - 1/|P| and z(gamma) (Sec. 4.3),
-   :func:`scale_selector_terms`; binary stopping maps ``S > 0``.
+   :func:`scale_selector_terms`; binary stopping maps ``S > 0``.  The
+   default's final reconstruction sums S over channels weighted by
+   1 / (value^2 + 0.01) (the pixel's relative MSE; the paper: a plain sum)
+   and counts a Gaussian pair's stop only if the next pair stops too
+   (:func:`confirm_pair_stops`; docs/methods/gem.md, "Default vs paper").
 4. **Outlier removal** (Sec. 4.4, Sec. 6) on each stopping map,
    :func:`remove_outliers`; the selected scale is the finest with stop = 1
    (:func:`select_from_stops`).
@@ -68,7 +72,8 @@ from .kernels import (FilterBank, adaptive_sigmas, filled_subpixels, filter_bank
                       kernel_radius, pixel_kernel, subpixel_gaussian_exact)
 from .method import GEMMethod
 from .sampling import SAMPLING_EPS, distribute_samples, sample_priority
-from .selection import (CHANNEL_EPS, CHANNEL_WEIGHTS, GAMMA_MAX, GEMSelection, bias_coefficient, check_gamma, estimate_mse, gem_select,
+from .selection import (CHANNEL_EPS, CHANNEL_WEIGHTS, GAMMA_MAX, GEMSelection, bias_coefficient, check_gamma,
+                        confirm_pair_stops, estimate_mse, gem_select,
                         mean_variance_policy, oracle_select, remove_outliers, scale_selector_terms,
                         select_from_stops, stopping_maps, z_of_gamma)
 
@@ -80,6 +85,7 @@ __all__ = [
     "SAMPLING_EPS",
     "z_of_gamma",
     "check_gamma",
+    "confirm_pair_stops",
     "adaptive_sigmas",
     "final_sigmas",
     "gaussian_kernel",

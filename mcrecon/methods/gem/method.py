@@ -134,7 +134,8 @@ class GEMMethod(Method):
                "channels, relative (each channel's error over value^2 + 0.01, the pixel's relative MSE) or "
                "absolute (plain sum, the paper)", choices=CHANNEL_WEIGHTS),
         Option("confirm_stops", int, 1, "final reconstruction: a raw stop of pair k counts only if pair k+1 "
-               "stops too; 0 never (the paper), 1 Gaussian pairs (k >= 1), 2 every pair", choices=(0, 1, 2)),
+               "stops too (the widest pair has none: unconfirmed); 0 never (the paper), 1 Gaussian pairs (k >= 1), "
+               "2 every pair", choices=(0, 1, 2)),
         Option("subpixel_exact_below", float, 0.0, "filter scales with sigma below this (px) on the 4x4 "
                "subpixel grid itself (slower; 0: pixel-level equivalent kernel)", min=0.0),
     )
@@ -202,8 +203,9 @@ class GEMMethod(Method):
 
     def diagnostics(self, run: "GEMRun"):
         """Maps of the run's last reconstruction or planning step: ``selected_scale``,
-        ``sample_density``, ``stop_k`` / ``stop_raw_k`` (after / before outlier
-        removal) and, when sampling, ``est_rel_mse``."""
+        ``sample_density``, ``stop_k`` / ``stop_raw_k`` (after confirmation and
+        outlier removal / the test itself, before both) and, when sampling,
+        ``est_rel_mse``."""
         if run.pending is not None:
             selected, stops_raw, stops, mse, image, count = run.pending
             d = {"selected_scale": selected.astype(np.float64),

@@ -24,7 +24,7 @@ from ...errors import InputError
 from ...stats import PixelStats, fill_from_neighbours
 from .kernels import TRUNCATE, FilterBank, _chan_sum, _check_inputs, _filter_bank, _uses_sub, gaussian_kernel
 
-__all__ = ["GAMMA_MAX", "OUTLIER_RULES", "CHANNEL_WEIGHTS", "CHANNEL_EPS", "check_gamma", "z_of_gamma", "mean_variance_policy", "bias_coefficient",
+__all__ = ["GAMMA_MAX", "OUTLIER_RULES", "CHANNEL_WEIGHTS", "CHANNEL_EPS", "check_gamma", "confirm_pair_stops", "z_of_gamma", "mean_variance_policy", "bias_coefficient",
            "scale_selector_terms", "stopping_maps", "remove_outliers", "select_from_stops", "GEMSelection",
            "gem_select", "oracle_select", "estimate_mse"]
 
@@ -190,6 +190,10 @@ def _stop_pair(e, coef, vsc, vsf, rho_z, weighted, delta, stop):
             stop[i, j] = ((b * rho_z[i, j] + vt) if weighted else d) > 0
 
 
+#: Beyond this |value| the relative weight is computed without squaring the value.
+_BIG = 1e150
+
+
 @numba.njit(cache=True, nogil=True)
 def _stop_pair_relative(f, c, vf, vc, eps, coef, rho_z, weighted, delta, stop):
     # per channel weight 1 / (c^2 + eps) (c: the pair's coarse value), the same
@@ -202,10 +206,19 @@ def _stop_pair_relative(f, c, vf, vc, eps, coef, rho_z, weighted, delta, stop):
             vt = 0.0
             for ch in range(nc):
                 cc = c[i, j, ch]
-                wt = 1.0 / (cc * cc + eps)
                 dd = cc - f[i, j, ch]
-                e += wt * (dd * dd)
-                vt += wt * (np.float64(vc[i, j, ch]) - np.float64(vf[i, j, ch]))
+                dv = np.float64(vc[i, j, ch]) - np.float64(vf[i, j, ch])
+                if abs(cc) < _BIG:
+                    wt = 1.0 / (cc * cc + eps)
+                    e += wt * (dd * dd)
+                    vt += wt * dv
+                else:
+                    # cc^2 would overflow (weight 0, then 0 * inf = NaN, and a NaN S
+                    # never stops: a huge value spread to its neighbours); here
+                    # cc^2 + eps == cc^2, so divide by |cc| twice instead
+                    t = dd / abs(cc)
+                    e += t * t
+                    vt += (dv / abs(cc)) / abs(cc)
             b = coef * e
             d = b + vt
             delta[i, j] = d
@@ -383,6 +396,22 @@ def _pick_kernel(arrs, sel, out):
             out[p, c] = a[p, c]
 
 
+def confirm_pair_stops(stops_raw: np.ndarray, confirm_stops: int) -> np.ndarray:
+    """Stops of the pairs (k, k+1) that count: a raw stop of pair k needs the raw stop of pair k+1.
+
+    ``confirm_stops`` 0: none is confirmed (the paper); 1: the Gaussian
+    pairs (k >= 1); 2: every pair, the pixel filter's (k = 0) too.  Only the
+    *next* pair's raw stop is asked for (not a chain of every coarser pair),
+    and the widest pair has no next pair: its stop counts unconfirmed.  So
+    with 2 final scales (pairs 0 and 1) ``confirm_stops=1`` changes nothing,
+    with 1 scale neither value does.  Returns a new array.
+    """
+    out = stops_raw.copy()
+    for k in range(2 - confirm_stops if confirm_stops else out.shape[0], stops_raw.shape[0] - 1):
+        out[k] &= stops_raw[k + 1]
+    return out
+
+
 def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subpixels: int = 4,
                want_mse: bool = False, sub: np.ndarray | None = None, exact_below: float = 0.0,
                outlier_rule: str = "adaptive", zero_variance_votes: bool = False,
@@ -431,7 +460,9 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
         so a stop caused by bias is confirmed; a stop caused by noise is
         confirmed only as often as two nested tests err together.
         :class:`GEMMethod` passes 1 in its final reconstruction (measured in
-        ``docs/methods/gem.md``); this function's default is 0.
+        ``docs/methods/gem.md``); this function's default is 0.  The widest
+        pair has no next pair and counts unconfirmed
+        (:func:`confirm_pair_stops`).
 
     Raises
     ------
@@ -467,11 +498,7 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
     zero_var = ~empty
     for c in range(mean_var.shape[2]):        # np.all(mean_var <= 0, axis=2), without the slow short axis
         zero_var &= mean_var[..., c] <= 0.0
-    stops_in = stops_raw
-    if confirm_stops:
-        stops_in = stops_raw.copy()
-        for k in range(2 - confirm_stops, stops_raw.shape[0] - 1):
-            stops_in[k] &= stops_raw[k + 1]
+    stops_in = confirm_pair_stops(stops_raw, confirm_stops)
     stops = remove_outliers(stops_in, bank.sigmas, final=final and outlier_rule == "paper",
                             voters=~empty if zero_variance_votes else ~(empty | zero_var))
     for k in range(stops.shape[0]):
