@@ -41,7 +41,6 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
-import numba
 import numpy as np
 
 from .errors import InputError, McreconWarning, RendererError
@@ -496,18 +495,6 @@ def _observe(method, run, pos, val, n_bad, nonfinite, source, round_index, timel
     pos, val = apply_nonfinite(pos, val, n_bad, nonfinite, where=source)
     with (timeline.phase("observe", round_index) if timeline is not None else contextlib.nullcontext()):
         method.observe(run, SampleBatch(pos, val), round_index)
-
-
-@numba.njit(cache=True, nogil=True)
-def _nonfinite_rows(val):
-    # rows holding a NaN or Inf value (one pass; the reply was validated before)
-    n = 0
-    for k in range(val.shape[0]):
-        for c in range(val.shape[1]):
-            if not np.isfinite(val[k, c]):
-                n += 1
-                break
-    return n
 
 
 def _pixel_counts_of(positions, w, h) -> np.ndarray:
