@@ -14,10 +14,8 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import InputError, McreconWarning
+from ..samples import FLOAT32_MAX
 from ._atomic import atomic_path
-
-#: The largest finite float32 (an EXR's values).
-_FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 __all__ = ["write_exr", "read_exr", "tonemap_srgb", "write_png_preview", "write_false_colour"]
 
@@ -57,7 +55,7 @@ def write_exr(path, image, *, channels: Sequence[str] | None = None) -> Path:
     if img.dtype.kind == "f" and img.dtype.itemsize > 4:
         # a float32 EXR cannot hold finite values beyond +-3.4e38: they become +-Inf (said once,
         # with the count; never rescaled -- the radiance is the user's)
-        over = np.count_nonzero(np.isfinite(img) & (np.abs(img) > _FLOAT32_MAX))
+        over = np.count_nonzero(np.isfinite(img) & (np.abs(img) > FLOAT32_MAX))
         if over:
             warnings.warn(f"{path}: {over} finite value(s) beyond float32's range (|x| > 3.4e38) are stored as "
                           "+-Inf: the EXR holds float32; scale the renderer's units to keep them",
