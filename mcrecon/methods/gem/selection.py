@@ -21,6 +21,7 @@ from scipy import ndimage
 
 from ..._filtering import correlate_jobs, safe_div, separable_weights
 from ...errors import InputError
+from ...estimates import DEFAULT_EPS
 from ...stats import PixelStats, fill_from_neighbours
 from .kernels import TRUNCATE, FilterBank, _chan_sum, _check_inputs, _filter_bank, _uses_sub, gaussian_kernel
 
@@ -38,7 +39,12 @@ OUTLIER_RULES = ("paper", "adaptive")
 #: pixel's relative MSE, with the eps of :func:`mcrecon.metrics.relative_mse`),
 #: 'absolute' sums the channels' squared errors as the paper does.
 CHANNEL_WEIGHTS = ("relative", "absolute")
-CHANNEL_EPS = 1e-2
+CHANNEL_EPS = DEFAULT_EPS
+
+
+def _check_channel_weights(where: str, channel_weights) -> None:
+    if channel_weights not in CHANNEL_WEIGHTS:
+        raise InputError(where, "channel_weights", f"{channel_weights!r}; valid: {', '.join(CHANNEL_WEIGHTS)}")
 
 
 # ----------------------------------------------------------------------------
@@ -483,9 +489,7 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
         raise InputError("gem_select", "outlier_rule", f"{outlier_rule!r}; valid: {', '.join(OUTLIER_RULES)}")
     if confirm_stops not in (0, 1, 2):
         raise InputError("gem_select", "confirm_stops", f"{confirm_stops!r}; valid: 0, 1, 2")
-    if channel_weights not in CHANNEL_WEIGHTS:
-        raise InputError("gem_select", "channel_weights",
-                         f"{channel_weights!r}; valid: {', '.join(CHANNEL_WEIGHTS)}")
+    _check_channel_weights("gem_select", channel_weights)
     relative = channel_weights == "relative" and np.ndim(base) == 3 and np.shape(base)[2] > 1
     _check_inputs("gem_select", base, mean_var, count, sub=sub if _uses_sub(sub, sigmas, exact_below) else None)
     bank = _filter_bank(base, mean_var, count, sigmas, subpixels=subpixels, per_channel=want_mse or relative,
@@ -534,9 +538,7 @@ def oracle_select(base, mean_var, count, sigmas, reference, *, subpixels: int = 
     """
     ref = np.asarray(reference, dtype=np.float64)
     count = np.asarray(count)
-    if channel_weights not in CHANNEL_WEIGHTS:
-        raise InputError("oracle_select", "channel_weights",
-                         f"{channel_weights!r}; valid: {', '.join(CHANNEL_WEIGHTS)}")
+    _check_channel_weights("oracle_select", channel_weights)
     _check_inputs("oracle_select", base, mean_var, count, reference=ref,
                   sub=sub if _uses_sub(sub, sigmas, exact_below) else None)
     bank = _filter_bank(base, mean_var, count, sigmas, subpixels=subpixels, per_channel=True, with_n_eff=True,
