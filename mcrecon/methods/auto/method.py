@@ -261,8 +261,9 @@ class AutoMethod(Method):
         Adaptive runs: the uniform first pass and the rounds after it.
     safeguard : float or None
         Clamp into mean +- k standard errors and the 3 x 3 sample range (4:
-        an interval that holds the true value of every pixel of a film with
-        high probability; docs/methods/auto.md, "Safeguard width").
+        the interval then misses the true value of ~0.04 % of the pixels at
+        32 spp, 0.5 % at 8 spp, against 5-9 % at k = 2; docs/methods/auto.md,
+        "Safeguard width").
     global_prior : float or None
         z of the global prior (:func:`_global_prior`; None, the default: off).
 
