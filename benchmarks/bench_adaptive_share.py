@@ -238,8 +238,6 @@ def main():
         warnings.simplefilter("ignore")
         for name in methods:  # load every method's compiled kernels before any measurement
             for pipe in modes:
-                if pipe and not method_pipelines(get_method(name)) and get_method(name).pipeline == "no":
-                    continue
                 adapt(SceneRenderer(a.scene, width=48, height=40, seed=0), name, spp=8, seed=0, progress=False,
                       track_error=False, pipeline=pipe,
                       log=Path(tmp.name) / f"warm-{name}-{pipe}.h5" if a.log else None)

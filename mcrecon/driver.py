@@ -12,16 +12,20 @@ decisions use ``default_rng([seed, round, 1])`` and the renderer gets
 the seed ``SeedSequence([seed, round, 2])``.  A resumed run therefore
 takes exactly the decisions the uninterrupted run would have taken.
 
-Pipelined rounds (``adapt(..., pipeline=True)``, the default for methods
-that tolerate it): while the renderer renders round k+1 in the calling
-thread, one toolkit thread validates and commits round k (log append,
-statistics, ``observe``) and plans round k+2 from the rounds <= k.  The
-plan of round j therefore always sees the rounds <= j-2 (round 1 sees
-round 0: it is planned after round 0 is committed, unless the method plans
-it blind, ``Method.plans_round_one_blind``: then while round 0 renders,
-from nothing committed) and, as
+The driver owns the schedule: it takes the uniform initial pass itself
+(``Method.initial_pass``), so a method's ``plan`` never sees empty
+statistics.  Pipelined rounds (``adapt(..., pipeline=True)``, the default
+for methods that declare ``pipeline = True``): while the renderer renders
+round k+1 in the calling thread, one toolkit thread validates and commits
+round k (log append, statistics, ``observe``) and plans round k+2 from the
+rounds <= k.  A plan therefore sees the rounds <= j-2 and, as
 ``state.pending``, the per-pixel counts of the round in flight; never
-anything that depends on timing.  A pipelined run is reproducible from
+anything that depends on timing.  The initial pass is split in two rounds
+(half, then the rest, both the driver's) when it has two or more samples
+per pixel, so the first plan sees its first half; a pass of one sample per
+pixel is committed before the first plan.  A plan that asks for nothing
+while a round is in flight waits for it: the driver commits that round and
+plans again.  A pipelined run is reproducible from
 its seed and resumes bit-identically (the resume re-plans the round that
 was in flight from the same statistics); the run settings record
 ``pipeline`` so a resume continues the same way.
@@ -47,7 +51,7 @@ from .errors import InputError, McreconWarning, RendererError
 from .io.samplelog import (MAX_PIXELS, append_log, cast_positions, log_lock, read_log, set_run_settings,
                            update_round_record, write_log)
 from .methods import Method, get_method
-from .methods.base import PLAN_AFTER_COMMIT, AdaptiveState, RunState
+from .methods.base import AdaptiveState, RunState, uniform_counts
 from .renderers.protocol import SampleBatch, _validate_reply
 from .renderers.spec import renderer_from_spec
 from .samples import (FLOAT32_MAX, NONFINITE_POLICIES, apply_nonfinite, check_memory, check_reference,
@@ -274,8 +278,7 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
         thread commits round k and plans round k+2 from the rounds <= k
         (one round of lag, the same in every run: reproducible and
         resumable).  Default: what the method declares
-        (:func:`method_pipelines`); True for a method that declares it
-        cannot plan with a lag is refused.  Recorded in the run settings.
+        (:func:`method_pipelines`).  Recorded in the run settings.
         A pipelined run hands each reply to the toolkit thread while the
         renderer answers the next request: a renderer must not modify a
         reply's arrays after ``render`` returned them.  A renderer with a
@@ -283,7 +286,7 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
         its jittered positions there) has it called from the toolkit thread
         right after a round is planned there, while it renders the round
         before (rounds planned in the caller's thread -- round 0, a re-plan
-        after ``PLAN_AFTER_COMMIT`` -- and a resume's first round are not
+        after a plan that waited -- and a resume's first round are not
         prepared); ``render(request)`` must return the same reply with or
         without it.
 
@@ -307,14 +310,10 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
         raise InputError("adapt", "spp", f"{spp} samples per pixel on {w}x{h} is beyond any budget "
                          "(at most 2^62 samples)")
     budget = int(round(float(spp) * w * h))
-    declared = method_pipelines(method)
     if pipeline is None:
-        pipeline = declared
+        pipeline = method_pipelines(method)
     elif pipeline not in (True, False):
         raise InputError("adapt", "pipeline", f"got {pipeline!r}, expected True, False or None (the method's choice)")
-    elif pipeline and _declares(method):
-        raise InputError("adapt", "pipeline", f"method {method.name} cannot plan with one round of lag; "
-                         "run it with pipeline=False")
     settings = {
         "method": method.name, "method_options": dict(method.params), "spp": float(spp), "seed": int(seed),
         "nonfinite": nonfinite, "time_limit": time_limit, "width": w, "height": h,
@@ -411,8 +410,8 @@ def _resume(log_path, renderer, *, progress, time_limit, track_error, on_round) 
     # one round in memory at a time; observe() only for methods that read samples.
     # A pipelined run had planned round K (the one in flight when it stopped) from
     # the rounds <= K-2 with round K-1 pending: that plan is made again between
-    # the replays of rounds K-2 and K-1, exactly as the live run made it (K = 1
-    # too when the method plans round 1 blind: from nothing, round 0 pending).
+    # the replays of rounds K-2 and K-1, exactly as the live run made it (round 1,
+    # when the driver split the initial pass, depends only on the sample count).
     stats = PixelStats(w, h, channels, subpixels=method.requires.subpixels)
     k = sl.n_rounds
     planned = None
@@ -420,10 +419,11 @@ def _resume(log_path, renderer, *, progress, time_limit, track_error, on_round) 
         warnings.simplefilter("ignore", McreconWarning)  # the live run reported them
         for r in range(k):
             chunk = sl.read_all(rounds=[r])
-            if pipeline and r == k - 1 and (k >= 2 or method.plans_round_one_blind()):
+            if pipeline and r == k - 1 and k >= 2:
                 pending = _pixel_counts_of(chunk.positions, w, h)
                 planned = _plan_round(method, run, stats, k, budget, _committed(stats) + len(chunk.positions),
-                                      int(s["seed"]), ref, lag=1, pending=pending)
+                                      int(s["seed"]), ref, pending=pending,
+                                      initial_rounds=_initial_rounds(method, pipeline, budget, w * h))
                 if planned[0] is None and planned[1] == "wait":
                     # the live run committed round K-1 first, then planned round K from it
                     planned = None
@@ -520,31 +520,31 @@ def _committed(stats) -> int:
     return stats.n_samples + stats.n_dropped
 
 
-#: Values of ``Method.pipeline`` (see :class:`mcrecon.methods.Method`).
-PIPELINE_DECLARATIONS = ("default", "allowed", "no")
-
-
-def _pipeline_declaration(method) -> str:
-    v = getattr(type(method), "pipeline", "allowed")
-    if v not in PIPELINE_DECLARATIONS:
+def method_pipelines(method) -> bool:
+    """Whether ``method`` plans with one round of lag by default (:func:`adapt`'s ``pipeline``):
+    what its class declares (``Method.pipeline``, a bool)."""
+    v = getattr(type(method), "pipeline", False)
+    if not isinstance(v, bool):
         raise InputError(f"method {getattr(method, 'name', type(method).__name__)}", "pipeline",
-                         f"class attribute {v!r}; valid: {', '.join(PIPELINE_DECLARATIONS)}")
+                         f"class attribute {v!r}; expected True (plans are safe from statistics one round "
+                         "old) or False")
     return v
 
 
-def _declares(method) -> bool:
-    """Whether the method says it cannot plan with a lag (``pipeline = "no"``)."""
-    return _pipeline_declaration(method) == "no"
+def _initial_rounds(method, pipeline: bool, budget: int, pixels: int) -> int:
+    """Rounds of the uniform initial pass the driver takes: two when pipelined and the pass has
+    two or more samples per pixel (half, then the rest), else one."""
+    return 2 if pipeline and method.initial_pass(budget, pixels) >= 2 else 1
 
 
-def method_pipelines(method) -> bool:
-    """Whether ``method`` plans with one round of lag by default (:func:`adapt`'s ``pipeline``).
-
-    The method class declares it (``Method.pipeline``): ``"default"``
-    pipelines unless asked not to; ``"allowed"`` (the base class's value)
-    only with ``pipeline=True``; ``"no"`` refuses ``pipeline=True``.
-    """
-    return _pipeline_declaration(method) == "default"
+def _initial_request(method, state: AdaptiveState, initial_rounds: int):
+    """The driver's round of the uniform initial pass (round 0, or round 1 of a split pass)."""
+    w, h = state.width, state.height
+    spp = method.initial_pass(state.budget, w * h)
+    if state.round_index == 0:
+        return state.uniform_request((spp + 1) // 2 if initial_rounds == 2 else spp)
+    n = min(state.remaining, spp * w * h - state.n_samples)
+    return state.request(counts=uniform_counts(w, h, max(n, 0), state.rng))
 
 
 def _with_seed(req, round_index, seed):
@@ -559,31 +559,35 @@ def _with_seed(req, round_index, seed):
     return out
 
 
-def _adaptive_state(stats, round_index, budget, n_samples, rng, ref, *, lag=0, pending=None) -> AdaptiveState:
-    return AdaptiveState(stats, round_index, budget, n_samples, rng, ref, lag=int(lag), pending=pending)
+def _adaptive_state(stats, round_index, budget, n_samples, rng, ref, *, pending=None,
+                    initial_rounds=1) -> AdaptiveState:
+    return AdaptiveState(stats, round_index, budget, n_samples, rng, ref, pending=pending,
+                         iteration=max(int(round_index) - int(initial_rounds), 0))
 
 
-def _plan_round(method, run, stats, round_index, budget, n_total, seed, ref, *, lag=0, pending=None):
+def _plan_round(method, run, stats, round_index, budget, n_total, seed, ref, *, pending=None, initial_rounds=1):
     """(request with its seeds, None) or (None, why the run stops) for round ``round_index``.
 
-    ``n_total``: samples committed plus in flight.  Depends only on its
-    arguments: the same in a live run and in a resume.  ``(None, "wait")``:
-    the method returned :data:`~mcrecon.methods.base.PLAN_AFTER_COMMIT` (the
-    round in flight is committed first, then this round is planned again
-    without ``pending``).
+    ``n_total``: samples committed plus in flight (``pending``, per pixel).
+    The rounds of the initial pass are the driver's own; later ones the
+    method's plan.  Depends only on its arguments: the same in a live run
+    and in a resume.  ``(None, "wait")``: with a round in flight the plan
+    asked for nothing (the round in flight is committed first, then this
+    round is planned again without ``pending``).
     """
     if n_total >= budget:
         return None, "budget"
     rng, rseed = round_seeds(seed, round_index)
-    state = _adaptive_state(stats, round_index, budget, n_total, rng, ref, lag=lag, pending=pending)
-    req = method.plan(run, state)
-    if req is PLAN_AFTER_COMMIT:
-        if pending is None:
-            raise RuntimeError(f"method {method.name} returned PLAN_AFTER_COMMIT with no round in flight "
-                               "(a bug in the method)")
-        return None, "wait"
-    if req is None or req.total == 0:
-        return None, ("converged" if req is None or n_total < budget else "budget")
+    state = _adaptive_state(stats, round_index, budget, n_total, rng, ref, pending=pending,
+                            initial_rounds=initial_rounds)
+    if round_index < initial_rounds:
+        req = _initial_request(method, state, initial_rounds)
+    else:
+        req = method.plan(run, state)
+    if req is None:
+        return None, "converged"
+    if req.total == 0:
+        return None, ("wait" if pending is not None else "converged")
     if req.total > state.remaining:
         raise RuntimeError(f"method {method.name} planned {req.total} samples with only "
                            f"{state.remaining} left in the budget (a bug in the method)")
@@ -704,7 +708,8 @@ def _run(renderer, method, run, *, stats, rounds, round_index, budget, seed, log
     rnd = _Round(method, run, stats, name=name, c=len(stats.channels), log_path=log_path, nonfinite=nonfinite,
                  ref=ref, track_error=track_error, eps=eps, budget=budget, storage_dtype=storage_dtype,
                  wall=lambda: time.perf_counter() - clock["wall_start"], timeline=timeline)
-    acct = {"render": 0.0, "cpu": 0.0, "timeline": timeline}
+    acct = {"render": 0.0, "cpu": 0.0, "timeline": timeline,
+            "initial_rounds": _initial_rounds(method, pipeline, budget, stats.width * stats.height)}
     loop_t0 = time.perf_counter()
     try:
         loop = _loop_pipelined if pipeline else _loop_sequential
@@ -787,7 +792,8 @@ def _sequential_rounds(renderer, method, run, *, stats, rounds, round_index, bud
             return "time_limit", round_index
         t0, c0 = time.perf_counter(), time.thread_time()
         with acct["timeline"].phase("plan", round_index):
-            req, why = _plan_round(method, run, stats, round_index, budget, _committed(stats), seed, ref)
+            req, why = _plan_round(method, run, stats, round_index, budget, _committed(stats), seed, ref,
+                                   initial_rounds=acct["initial_rounds"])
         if req is None:
             return why, round_index
         tp, cp = time.perf_counter(), time.thread_time()
@@ -814,8 +820,8 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
 
     The plan of round j+1 sees the rounds <= j-1 and round j as ``pending``
     counts; the plan of round 1 waits for round 0 (there is nothing to plan
-    from before) unless ``method.plans_round_one_blind()``: then it is made
-    while round 0 renders, with round 0 pending, and round 0's commit
+    from before) unless it is the second half of the driver's split initial
+    pass: then it is made while round 0 renders, and round 0's commit
     overlaps round 1.  The renderer stays in the calling thread (renderers with
     thread affinity, signals, Ctrl-C); the toolkit's heavy parts release
     the GIL (the statistics' and the methods' compiled kernels run with
@@ -849,10 +855,11 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
             if j + 1 >= max_rounds:
                 out = (None, "max_rounds")
             elif req_j is None:
-                out = _plan_round(method, run, stats, j + 1, budget, _committed(stats), seed, ref, lag=1)
+                out = _plan_round(method, run, stats, j + 1, budget, _committed(stats), seed, ref,
+                                  initial_rounds=acct["initial_rounds"])
             else:
                 out = _plan_round(method, run, stats, j + 1, budget, _committed(stats) + req_j.total, seed, ref,
-                                  lag=1, pending=_request_counts(req_j))
+                                  pending=_request_counts(req_j), initial_rounds=acct["initial_rounds"])
         if out[0] is not None and prepare is not None:
             # the renderer's own preparation of the request (e.g. the Mitsuba bridge's jittered
             # positions), here while it still renders round j rather than inside its next call
@@ -879,7 +886,7 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
         clock["wall_start"] += record.pop("_eval", 0.0)  # evaluation is not part of the run's time
         _finish_round(record, rounds, on_round, bar, stats, rnd.log_path, acct)
 
-    blind = bool(method.plans_round_one_blind())
+    blind = acct["initial_rounds"] == 2  # round 1 is the second half of the driver's initial pass
     j = round_index
     if planned is None:
         # a new run (round 0: nothing to plan from) or a resume after round 0 (round 1 sees it)
@@ -901,7 +908,7 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
                 stopped = "time_limit"
                 break
             # round 1 is planned from round 0, after it (no toolkit work to overlap), unless
-            # the method plans it blind (Method.plans_round_one_blind)
+            # it is the driver's second half of a split initial pass
             first = j == 0 and not blind
             if not first:
                 fut = pool.submit(job, uncommitted, carry, j, req)
@@ -932,7 +939,7 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
                     done(record)
                 uncommitted = rendered
                 if req is None and why == "wait":
-                    # the method waits for the round just rendered (PLAN_AFTER_COMMIT):
+                    # the method waits for the round just rendered (it asked for nothing):
                     # commit it here, then plan the next round from it, as round 1 after round 0
                     prev, uncommitted = uncommitted, None
                     record = commit(prev, carry, helper=pool)

@@ -503,20 +503,18 @@ def test_heavy_tail_rule_compiled_equals_its_numpy_statement(seed):
 
 
 def test_gem_sampling_pipelined_never_places_samples_from_empty_statistics():
-    """Under lag, round 1 is planned while round 0 renders: it must be uniform (the initial pass in two
-    rounds, as GEM does), not GEM's placement on empty statistics (ties broken towards the top rows)."""
-    from mcrecon.methods.base import AdaptiveState
+    """Under lag, round 1 is planned while round 0 renders: it must be uniform (the driver's initial pass
+    in two rounds), not GEM's placement on empty statistics (ties broken towards the top rows)."""
+    from mcrecon.driver import _initial_rounds, _plan_round
     from mcrecon.stats import PixelStats
 
     w = h = 32
     m = get_method("auto")
     run = m.start(w, h)
     empty = PixelStats(w, h)
-    st0 = AdaptiveState(stats=empty, round_index=0, budget=32 * w * h, n_samples=0, rng=np.random.default_rng(1),
-                        lag=1)
-    r0 = m.plan(run, st0)
+    k = _initial_rounds(m, True, 32 * w * h, w * h)
+    r0, _ = _plan_round(m, run, empty, 0, 32 * w * h, 0, 1, None, initial_rounds=k)
     assert r0.positions is None and r0.counts.sum() == 2 * w * h
-    st1 = AdaptiveState(stats=empty, round_index=1, budget=32 * w * h, n_samples=2 * w * h,
-                        rng=np.random.default_rng(1), lag=1, pending=np.full((h, w), 2))
-    r1 = m.plan(run, st1)
+    r1, _ = _plan_round(m, run, empty, 1, 32 * w * h, 2 * w * h, 1, None, pending=np.full((h, w), 2),
+                        initial_rounds=k)
     assert r1.positions is None and r1.counts.sum() == 2 * w * h and r1.counts.max() - r1.counts.min() <= 1

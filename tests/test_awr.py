@@ -524,7 +524,8 @@ def test_method_plan_respects_remaining_and_returns_none():
     st = PixelStats(30, 20)
     state = AdaptiveState(st, 0, budget=30 * 20 * 6 + 17, n_samples=0, rng=np.random.default_rng(0))
     run = m.start(30, 20)
-    req = m.plan(run, state)
+    from mcrecon.driver import _initial_request
+    req = _initial_request(m, state, 1)  # the driver takes the initial pass the method declares
     assert req.counts is not None and req.total == 4 * 600            # initial 4 spp (paper)
     st2 = _noisy_stats(20, 30, 4, 2)
     state = AdaptiveState(st2, 1, budget=st2.n_samples + 17, n_samples=st2.n_samples, rng=np.random.default_rng(1))

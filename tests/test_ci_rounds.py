@@ -18,7 +18,7 @@ import pytest
 from mcrecon.driver import adapt
 from mcrecon.methods import get_method
 from mcrecon.methods.ci import CIMethod, borrow_neighbour_variance
-from mcrecon.methods.base import PLAN_AFTER_COMMIT, uniform_counts
+from mcrecon.methods.base import uniform_counts
 from mcrecon.renderers.scenes import SceneRenderer
 
 
@@ -37,19 +37,13 @@ def _reference_plan(method, st, state):
     finite = np.isfinite(ratio)
     ratio = np.where(finite, ratio, float(ratio[finite].max()) if finite.any() else 0.0)
     diag = {"spp": n.astype(np.float64), "converged": done.astype(np.float64), "width_ratio": ratio}
-    p = state.width * state.height
-    if state.lag and state.n_samples == 0 and state.remaining >= rule.min_spp * p and p >= 2:
-        # pipelined round 0: the initial pass of the first half of the pixels (row-major)
-        half = np.zeros(p, np.int64)
-        half[:p // 2] = rule.min_spp
-        return half.reshape(n.shape), diag
     if state.remaining <= 0 or done.all():
         return None, diag
     have = n + pending
     need = np.where(have < rule.min_spp, rule.min_spp - have, rule.step)
     need = np.where(done, 0, np.minimum(need, rule.max_spp - have)).astype(np.int64)
     if state.pending is not None:
-        need[(n == 0) & (have > 0)] = 0  # pipelined: a pixel waits for its first samples to be seen
+        need[(n < rule.min_spp) & (have > n)] = 0  # pipelined: a pixel waits for its initial pass to be seen
         if not need.any():
             return "wait", diag
     if int(need.sum()) <= state.remaining:
@@ -78,10 +72,6 @@ class _Checked(CIMethod):
 
     name = "ci"
 
-    # its plan is ci's, checked: the promise that ci's round 1 needs nothing committed holds
-    # (a subclass replacing plan must renew it, Method.plans_round_one_blind)
-    plans_round_one_blind = CIMethod.plans_round_one_blind
-
     def plan(self, run, state):
         import copy
 
@@ -95,7 +85,7 @@ class _Checked(CIMethod):
         if need is None:
             assert req is None
         elif isinstance(need, str):
-            assert req is PLAN_AFTER_COMMIT
+            assert req is not None and req.total == 0  # asks for nothing: waits for the round in flight
             run.waited += 1
         else:
             np.testing.assert_array_equal(req.counts, need, err_msg=f"round {state.round_index}")

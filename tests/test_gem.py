@@ -918,10 +918,13 @@ def test_empty_pixels_are_filled_with_a_warning():
 # ----------------------------------------------------------------------------
 
 def _state(stats, rnd, budget, seed=0, ref=None):
-    return AdaptiveState(stats, rnd, budget, stats.n_samples, np.random.default_rng([seed, rnd, 1]), ref)
+    # a sequential run: round 0 is the driver's initial pass, round r >= 1 the plan's iteration r - 1
+    return AdaptiveState(stats, rnd, budget, stats.n_samples, np.random.default_rng([seed, rnd, 1]), ref,
+                         iteration=max(rnd - 1, 0))
 
 
 def test_plan_rounds_and_budget():
+    from mcrecon.driver import _initial_request
     from mcrecon.renderers.scenes import SceneRenderer
     w = h = 16
     r = SceneRenderer("soft_shadow", width=w, height=h, seed=0)
@@ -932,7 +935,8 @@ def test_plan_rounds_and_budget():
     rnd = 0
     run = m.start(w, h)
     while True:
-        req = m.plan(run, _state(st, rnd, budget))
+        state = _state(st, rnd, budget)
+        req = (_initial_request(m, state, 1) if rnd == 0 else m.plan(run, state))  # the driver's round 0
         if req is None:
             break
         if rnd == 0:

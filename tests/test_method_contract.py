@@ -230,3 +230,79 @@ def test_the_contract_documents_example_method_runs(tmp_path):
     fref = reference_image("flat", 16, 16)
     assert relative_mse(mcrecon.reconstruct(flat, method=m), fref) < \
         relative_mse(mcrecon.reconstruct(flat, method="box"), fref)
+    # registered, a stopped run resumes from its log alone and ends as the uninterrupted one
+    from mcrecon import methods as registry
+
+    before = dict(registry.METHODS)
+    try:
+        registry.register_method("blur", mod.BlurMethod)
+        adapt(r, m, spp=8, seed=5, reference=ref, log=tmp_path / "part.h5", progress=False, max_rounds=2)
+        done = resume(tmp_path / "part.h5", r, progress=False)
+        np.testing.assert_array_equal(done.image, res.image)
+    finally:
+        registry.METHODS.clear()
+        registry.METHODS.update(before)
+        registry._CLASSES.clear()
+    # the contract page promises a complete example under 80 lines
+    assert len((ROOT / "docs/methods/example_method.py").read_text().splitlines()) < 80
+
+
+# ------------------------------------------------------------------ registering a user's method
+def test_register_method_adds_a_class_or_a_path_and_refuses_clashes():
+    import mcrecon
+    from mcrecon import methods as registry
+    from mcrecon.methods.box import BoxMethod
+
+    class Halved(BoxMethod):
+        name = "halved_test"
+
+        def reconstruct_run(self, run, inputs):
+            return super().reconstruct_run(run, inputs) * 0.5
+
+    before = dict(registry.METHODS)
+    try:
+        registry.register_method("halved_test", Halved)
+        assert "halved_test" in mcrecon.available_methods()
+        st = mcrecon.PixelStats.from_moments(np.full((2, 3, 3), 4.0), np.ones((2, 3, 3)), np.full((2, 3), 2))
+        np.testing.assert_array_equal(mcrecon.reconstruct(st, method="halved_test"), 2.0)
+        registry.register_method("box_path_test", "mcrecon.methods.box:BoxMethod")
+        assert type(mcrecon.get_method("box_path_test")) is BoxMethod
+        with pytest.raises(InputError, match="registered already"):
+            registry.register_method("gem", Halved)  # a built-in is never replaced
+        with pytest.raises(InputError, match="replace=True"):
+            registry.register_method("halved_test", BoxMethod)
+        registry.register_method("halved_test", BoxMethod, replace=True)
+        assert type(mcrecon.get_method("halved_test")) is BoxMethod
+        with pytest.raises(InputError, match="not a subclass"):
+            registry.register_method("nope", dict)
+    finally:
+        registry.METHODS.clear()
+        registry.METHODS.update(before)
+        registry._CLASSES.clear()
+
+
+def test_an_entry_point_in_the_methods_group_registers_a_method(tmp_path, monkeypatch):
+    """A package declaring ``[project.entry-points."mcrecon.methods"]`` is found without editing the registry."""
+    from mcrecon import methods as registry
+
+    pkg = tmp_path / "userblur"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("from mcrecon.methods.box import BoxMethod\n\n"
+                                     "class UserBlur(BoxMethod):\n    name = 'userblur'\n")
+    dist = tmp_path / "userblur-1.0.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: userblur\nVersion: 1.0\n")
+    (dist / "entry_points.txt").write_text("[mcrecon.methods]\nuserblur = userblur:UserBlur\n"
+                                           "gem = userblur:UserBlur\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    before = dict(registry.METHODS)
+    monkeypatch.setattr(registry, "_entry_points_read", False)
+    try:
+        with pytest.warns(McreconWarning, match="gem.*taken"):
+            names = registry.available_methods()
+        assert "userblur" in names
+        assert registry.get_method("userblur").name == "userblur"
+        assert registry.METHODS["gem"] == before["gem"]
+    finally:
+        registry.METHODS.clear()
+        registry.METHODS.update(before)

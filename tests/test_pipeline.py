@@ -53,13 +53,13 @@ class _Spy(Method):
     """Uniform doubling (the base plan) that records what every plan saw."""
 
     name = "box"
-    pipeline = "default"
+    pipeline = True
 
     def reconstruct_run(self, run, inputs):
         return inputs.stats.mean
 
     def plan(self, run, state):
-        run.seen.append((state.round_index, int(state.stats.n_samples), int(state.n_samples), int(state.lag),
+        run.seen.append((state.round_index, int(state.stats.n_samples), int(state.n_samples),
                          None if state.pending is None else int(state.pending.sum())))
         return super().plan(run, state)
 
@@ -74,36 +74,34 @@ def test_plan_of_round_j_sees_the_rounds_up_to_j_minus_2_and_round_j_minus_1_pen
     seen = res.run.seen
     totals = [0] + [r["samples_total"] for r in res.rounds]
     sizes = [r["samples"] for r in res.rounds]
-    assert [s[0] for s in seen] == list(range(len(seen)))
-    for j, committed, n, lag, pending in seen:
-        assert lag == 1
-        if j <= 1:  # round 0: nothing; round 1: planned after round 0 is committed, nothing pending
-            assert committed == totals[j] and n == totals[j] and pending is None
+    # round 0 is the driver's initial pass (1 spp): the first plan is round 1's
+    assert [s[0] for s in seen] == list(range(1, len(seen) + 1)) and sizes[0] == 16 * 12
+    for j, committed, n, pending in seen:
+        assert committed > 0  # a plan never sees empty statistics
+        if j == 1:  # planned after the one-round initial pass is committed, nothing pending
+            assert committed == totals[1] and n == totals[1] and pending is None
         else:
             assert committed == totals[j - 1] and pending == sizes[j - 1] and n == committed + pending
     seq = adapt(_renderer(), _Spy(), spp=16, seed=1, pipeline=False).run.seen
-    assert all(s[1] == s[2] and s[3] == 0 and s[4] is None for s in seq)
+    assert all(s[1] == s[2] and s[3] is None for s in seq)
 
 
-class _BlindSpy(_Spy):
-    def plans_round_one_blind(self):
-        return True
+class _SplitSpy(_Spy):
+    initial_spp = 4
 
 
-def test_a_method_that_plans_round_one_blind_sees_round_zero_pending(tmp_path):
-    res = adapt(_renderer(), _BlindSpy(), spp=16, seed=1, pipeline=True)
+def test_a_split_initial_pass_lets_the_first_plan_see_its_first_half(tmp_path):
+    """Pipelined, an initial pass of >= 2 spp is the driver's two rounds (half, then the rest, the
+    second planned while the first renders): the first plan sees the first half, the rest pending."""
+    res = adapt(_renderer(), _SplitSpy(), spp=16, seed=1, pipeline=True)
     seen = res.run.seen
-    totals = [0] + [r["samples_total"] for r in res.rounds]
     sizes = [r["samples"] for r in res.rounds]
-    assert seen[0] == (0, 0, 0, 1, None)
-    for j, committed, n, lag, pending in seen[1:]:
-        assert lag == 1 and committed == totals[j - 1] and pending == sizes[j - 1] and n == committed + pending
-    # the same rounds as sequential (uniform doubling reads only the count)
-    seq = adapt(_renderer(), _BlindSpy(), spp=16, seed=1, pipeline=False)
-    assert [r["samples"] for r in seq.rounds] == sizes
-    np.testing.assert_array_equal(seq.image, res.image)
-    # box plans round 1 blind: stopped after round 0 or 1 and resumed (the resume plans the
-    # round in flight again, for K = 1 from nothing with round 0 pending), the same run
+    assert sizes[:2] == [2 * 16 * 12, 2 * 16 * 12]
+    assert seen[0] == (2, 2 * 16 * 12, 4 * 16 * 12, 2 * 16 * 12)
+    seq = adapt(_renderer(), _SplitSpy(), spp=16, seed=1, pipeline=False)
+    assert [r["samples"] for r in seq.rounds][0] == 4 * 16 * 12
+    assert seq.run.seen[0][:3] == (1, 4 * 16 * 12, 4 * 16 * 12)
+    # box: stopped after round 0 or 1 and resumed (the resume plans the round in flight again), the same run
     full = adapt(_renderer(), "box", spp=16, seed=1, pipeline=True)
     for stop in (1, 2):
         log = tmp_path / f"blind{stop}.h5"
@@ -113,10 +111,10 @@ def test_a_method_that_plans_round_one_blind_sees_round_zero_pending(tmp_path):
         assert [r["samples"] for r in done.rounds] == [r["samples"] for r in full.rounds]
 
 
-def test_plan_after_commit_waits_for_the_round_in_flight(tmp_path):
-    """ci pipelined: round 0 and 1 are the two halves of its initial pass; when every pixel of the
-    first half converged, round 2's plan waits (PLAN_AFTER_COMMIT) for round 1's pixels: the driver
-    commits round 1 and plans again -- here everything converged, the sequential run's samples."""
+def test_a_plan_asking_for_nothing_waits_for_the_round_in_flight(tmp_path):
+    """ci pipelined: rounds 0 and 1 are the two halves of its initial pass; every pixel's pass is
+    then in flight, so round 2's plan asks for nothing: the driver commits round 1 and plans again --
+    here everything converged, the sequential run's samples."""
     from mcrecon.renderers.scenes import SceneRenderer
 
     def run(pipe, **kw):
@@ -126,16 +124,16 @@ def test_plan_after_commit_waits_for_the_round_in_flight(tmp_path):
     seq, pip = run(False), run(True)
     assert seq.stopped == pip.stopped == "converged" and seq.samples == pip.samples == 4 * 40 * 28
     assert [r["samples"] for r in pip.rounds] == [2 * 40 * 28, 2 * 40 * 28]
+    assert [e["round"] for e in pip.timeline if e["phase"] == "plan"].count(2) == 2
     np.testing.assert_array_equal(seq.counts, pip.counts)  # (other samples: the halves are other rounds)
-    # a method that returns it with nothing in flight is refused (a bug in the method)
-    from mcrecon.methods.base import PLAN_AFTER_COMMIT
 
-    class Bad(_Spy):
+    # with nothing in flight, a plan that asks for nothing ends the run
+    class Nothing(_Spy):
         def plan(self, run, state):
-            return PLAN_AFTER_COMMIT
+            return state.request(counts=np.zeros((state.height, state.width), np.int64))
 
-    with pytest.raises(RuntimeError, match="PLAN_AFTER_COMMIT"):
-        adapt(_renderer(), Bad(), spp=4, pipeline=False)
+    res = adapt(_renderer(), Nothing(), spp=4, pipeline=False)
+    assert res.stopped == "converged" and [r["samples"] for r in res.rounds] == [16 * 12]
 
 
 def _half_constant_renderer(w, h):
@@ -151,20 +149,18 @@ def _half_constant_renderer(w, h):
 
 @pytest.mark.parametrize("stop_after", [1, 2, 3, 5])
 def test_a_pipelined_run_that_waited_resumes_bit_identically(tmp_path, stop_after):
-    """ci with a round that waits (PLAN_AFTER_COMMIT): stopped and resumed around the wait (the
+    """ci with a round that waits (asks for nothing): stopped and resumed around the wait (the
     resume plans the waiting round again, commits, plans from it), the same samples and image."""
     m = get_method("ci", min_spp=4, step_spp=4, tolerance=0.02)
     r = lambda: _half_constant_renderer(24, 20)  # noqa: E731
     full = adapt(r(), m, spp=40, seed=6, log=tmp_path / "full.h5", pipeline=True, track_error=False)
     assert len(full.rounds) > stop_after
-    # round 2 waited: the first half (constant, converged on its first samples) asked for nothing,
+    # round 2 waited: every pixel's initial pass was in flight (round 1, its second half),
     # so round 2 was planned twice (the second time after round 1's commit)
     assert [e["round"] for e in full.timeline if e["phase"] == "plan"].count(2) == 2
     assert full.rounds[2]["samples"] > 4 * 240  # the noisy half's step (and its border row's, borrowed)
     log = tmp_path / "part.h5"
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # stopped after round 0: half the pixels are empty
-        adapt(r(), m, spp=40, seed=6, log=log, max_rounds=stop_after, pipeline=True, track_error=False)
+    adapt(r(), m, spp=40, seed=6, log=log, max_rounds=stop_after, pipeline=True, track_error=False)
     res = resume(log, r(), track_error=False)
     np.testing.assert_array_equal(res.image, full.image)
     a, b = read_log(log).read_all(), read_log(tmp_path / "full.h5").read_all()
@@ -172,60 +168,42 @@ def test_a_pipelined_run_that_waited_resumes_bit_identically(tmp_path, stop_afte
     np.testing.assert_array_equal(a.values, b.values)
 
 
-def test_which_methods_plan_round_one_blind():
-    assert get_method("box").plans_round_one_blind() and get_method("splat").plans_round_one_blind()
-    assert get_method("gem").plans_round_one_blind() and get_method("awr").plans_round_one_blind()
-    assert not get_method("gem", initial_spp=1).plans_round_one_blind()
-    assert not get_method("awr", initial_spp=1).plans_round_one_blind()
-    assert get_method("ci").plans_round_one_blind()  # its initial pass split by pixels, unseen pixels wait
+def test_which_initial_passes_the_driver_splits():
+    from mcrecon.driver import _initial_rounds
+
+    npix, budget = 16 * 12, 32 * 16 * 12
+    for name, opts, rounds in (("box", {}, 1), ("splat", {}, 1), ("gem", {}, 2), ("awr", {}, 2),
+                               ("gem", {"initial_spp": 1}, 1), ("awr", {"initial_spp": 1}, 1), ("ci", {}, 2),
+                               ("auto", {}, 2)):
+        m = get_method(name, **opts)
+        assert _initial_rounds(m, True, budget, npix) == rounds, name
+        assert _initial_rounds(m, False, budget, npix) == 1, name
 
 
-def test_a_subclass_replacing_plan_does_not_inherit_the_promise_to_plan_round_one_blind():
-    """Box promises its round 1 needs nothing committed; a subclass with a plan of its own has
-    not promised that (its round 1 would be planned from empty statistics), unless it says so."""
+def test_no_plan_of_any_subclass_sees_empty_statistics():
+    """The driver takes the initial pass itself: a subclass with a plan of its own (or a mixin's)
+    is first asked for round 1 or later, with samples committed, pipelined or not."""
     from mcrecon.methods.box import BoxMethod
     from mcrecon.methods.ci import CIMethod
 
-    class SameBox(BoxMethod):
-        pass
-
-    class OwnPlan(BoxMethod):
-        def plan(self, run, state):
-            return super().plan(run, state)
-
-    class OwnPlanPromised(OwnPlan):
-        def plans_round_one_blind(self):
-            return True
-
-    class OwnCI(CIMethod):
-        def plan(self, run, state):
-            return super().plan(run, state)
-
-    class PlanMixin:  # a plain mixin placed before box supplies the plan that runs
-        def plan(self, run, state):
-            return super().plan(run, state)
-
-    class Mixed(PlanMixin, BoxMethod):
-        pass
-
-    class Rebound(BoxMethod):
-        plan = BoxMethod.plan  # the very plan box's promise was made for
-
-    assert SameBox().plans_round_one_blind() and Rebound().plans_round_one_blind()
-    assert not OwnPlan().plans_round_one_blind()
-    assert not Mixed().plans_round_one_blind()
-    assert OwnPlanPromised().plans_round_one_blind()
-    assert not OwnCI().plans_round_one_blind()
-    # pipelined, OwnPlan's round 1 is then planned after round 0 is committed: it sees round 0
     seen = []
 
-    class Spy(BoxMethod):
+    class PlanMixin:
         def plan(self, run, state):
-            seen.append(int(state.stats.count.sum()) if state.n_samples else None)
+            seen.append((state.round_index, int(state.stats.count.sum())))
             return super().plan(run, state)
 
-    adapt(_renderer(), Spy(), spp=4, seed=1, pipeline=True)
-    assert seen[0] is None and seen[1] > 0
+    class OwnBox(PlanMixin, BoxMethod):
+        pass
+
+    class OwnCI(PlanMixin, CIMethod):
+        pass
+
+    for m in (OwnBox(), OwnCI(min_spp=2, tolerance=1e-4)):
+        for pipe in (False, True):
+            seen.clear()
+            adapt(_renderer(), m, spp=8, seed=1, pipeline=pipe)
+            assert seen and all(n > 0 for _, n in seen) and seen[0][0] >= 1, (m, pipe, seen)
 
 
 @pytest.mark.parametrize("method", ["box", "splat"])
@@ -291,32 +269,19 @@ def test_pipelined_runs_are_reproducible_and_fill_the_budget(method, tmp_path):
 
 def test_pipeline_choice_is_validated_and_defaults_follow_the_method():
     assert method_pipelines(get_method("box")) and method_pipelines(get_method("splat"))
-    assert not any(method_pipelines(get_method(m)) for m in ("awr", "gem", "ci"))
+    assert not any(method_pipelines(get_method(m)) for m in ("awr", "gem", "ci", "auto"))
     assert adapt(_renderer(), get_method("awr", initial_spp=2), spp=4, pipeline=True).pipelined
 
-    class NoLag(_Spy):  # a method that cannot plan with a lag refuses pipeline=True
-        pipeline = "no"
+    class NoLag(_Spy):  # a method whose plans need every round: sequential unless asked
+        pipeline = False
 
     assert not adapt(_renderer(), NoLag(), spp=4).pipelined
-    with pytest.raises(InputError, match="pipeline"):
-        adapt(_renderer(), NoLag(), spp=4, pipeline=True)
-    with pytest.raises(InputError, match="pipeline"):
-        adapt(_renderer(), "box", spp=4, pipeline="yes")
 
-    class Undeclared(Method):  # a method that says nothing runs sequentially, unless asked
-        name = "box"
+    class Unclear(_Spy):  # the declaration is a bool, nothing else
+        pipeline = "no"
 
-        def reconstruct_run(self, run, inputs):
-            return inputs.stats.mean
-
-    assert not adapt(_renderer(), Undeclared(), spp=4).pipelined
-    assert adapt(_renderer(), Undeclared(), spp=4, pipeline=True).pipelined
-
-    class Misdeclared(Undeclared):
-        pipeline = True  # not one of the declarations
-
-    with pytest.raises(InputError, match="pipeline.*valid: default, allowed, no"):
-        adapt(_renderer(), Misdeclared(), spp=4)
+    with pytest.raises(InputError, match="pipeline.*expected True"):
+        adapt(_renderer(), Unclear(), spp=4)
 
 
 # ------------------------------------------------------------------ exact shortcuts
@@ -380,7 +345,7 @@ def test_gem_plan_with_nothing_pending_is_the_plan_without_pending():
     reqs = []
     for pending in (None, np.zeros((12, 16), np.int64)):
         rng, _ = round_seeds(0, 3)
-        reqs.append(m.plan(m.start(16, 12), _adaptive_state(st, 3, 16 * 12 * 32, 3000, rng, None, lag=1,
+        reqs.append(m.plan(m.start(16, 12), _adaptive_state(st, 3, 16 * 12 * 32, 3000, rng, None,
                                                              pending=pending)))
     np.testing.assert_array_equal(reqs[0].positions, reqs[1].positions)
 
@@ -438,8 +403,6 @@ DRIVER = textwrap.dedent("""
     log, marker, w, h, FAULT = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), sys.argv[5]
 
     class MarkedGEM(GEMMethod):
-        plans_round_one_blind = GEMMethod.plans_round_one_blind  # its plan is gem's, marked
-
         # each plan is made by the toolkit thread after it committed the round before the
         # one in flight: "planned J" means the rounds <= J-2 are in the log
         def plan(self, run, state):
@@ -550,22 +513,23 @@ def test_box_rounds_are_capped_and_still_bit_identical_with_the_lag():
 
 @pytest.mark.parametrize("name", ["awr", "auto", "gem"])
 def test_a_pipelined_round_1_is_never_placed_from_empty_statistics(name):
-    """Round 1 of a pipelined run is planned while round 0 renders: with nothing committed, a placing
-    method must send uniform counts (its initial pass in two rounds), not positions chosen from empty
+    """Round 1 of a pipelined run is planned while round 0 renders: with nothing committed, it must
+    be uniform counts (the driver's initial pass in two rounds), not positions chosen from empty
     statistics (awr used to put every sample of that round into the first rows)."""
     import numpy as np
 
+    from mcrecon.driver import _initial_rounds, _plan_round
     from mcrecon.methods import get_method
-    from mcrecon.methods.base import AdaptiveState
     from mcrecon.stats import PixelStats
 
     w = h = 32
     m = get_method(name)
     run = m.start(w, h)
-    r0 = m.plan(run, AdaptiveState(stats=PixelStats(w, h), round_index=0, budget=32 * w * h, n_samples=0,
-                                   rng=np.random.default_rng(1), lag=1))
-    r1 = m.plan(run, AdaptiveState(stats=PixelStats(w, h), round_index=1, budget=32 * w * h, n_samples=r0.total,
-                                   rng=np.random.default_rng(1), lag=1, pending=r0.counts))
+    budget = 32 * w * h
+    k = _initial_rounds(m, True, budget, w * h)
+    r0, _ = _plan_round(m, run, PixelStats(w, h), 0, budget, 0, 1, None, initial_rounds=k)
+    r1, _ = _plan_round(m, run, PixelStats(w, h), 1, budget, r0.total, 1, None, pending=r0.counts,
+                        initial_rounds=k)
     assert r0.positions is None and r1.positions is None
     assert r1.counts.max() - r1.counts.min() <= 1
     assert r0.total + r1.total == m.option_default("initial_spp") * w * h

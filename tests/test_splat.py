@@ -373,8 +373,11 @@ def test_plan_schedule_every_pixel_each_round():
     res = adapt(r, SplatMethod(), spp=64, seed=1, track_error=False)
     assert [x["samples"] // 40 for x in res.rounds] == [1, 2, 4, 8, 16, 33]
     assert (res.counts == 64).all()
-    res = adapt(r, SplatMethod(initial_spp=2), spp=10.5, seed=1, track_error=False)
+    res = adapt(r, SplatMethod(initial_spp=2), spp=10.5, seed=1, track_error=False, pipeline=False)
     assert [x["samples"] for x in res.rounds] == [80, 320]  # 2, then 8; the 20 left over stay unspent
+    # pipelined, the driver splits an initial pass of >= 2 spp in two rounds (1 + 1), then 2, then the rest
+    res = adapt(r, SplatMethod(initial_spp=2), spp=10.5, seed=1, track_error=False, pipeline=True)
+    assert [x["samples"] for x in res.rounds] == [40, 40, 80, 240]
     with pytest.raises(InputError, match="one sample per pixel"):
         adapt(r, SplatMethod(), spp=0.5, seed=1)
 

@@ -1,17 +1,22 @@
 """Method registry: name -> class, imported lazily.
 
 Each paper's method lives in its own module.  :func:`get_method` gives a
-stable error listing the valid names for an unknown one.
+stable error listing the valid names for an unknown one.  A user's package
+adds a method without editing this registry: :func:`register_method` at
+run time, or an entry point in the ``mcrecon.methods`` group of its
+packaging metadata (``[project.entry-points."mcrecon.methods"]``,
+``blur = "mypkg.blur:BlurMethod"``), read on the registry's first use.
 """
 
 from __future__ import annotations
 
 import importlib
+import warnings
 
-from ..errors import InputError
+from ..errors import InputError, McreconWarning
 from .base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, uniform_counts, variant_option
 
-__all__ = ["METHODS", "get_method", "method_class", "available_methods", "Method", "AdaptiveState",
+__all__ = ["METHODS", "get_method", "method_class", "available_methods", "register_method", "Method", "AdaptiveState",
            "Option", "Requirements", "MethodInputs", "RunState", "uniform_counts", "variant_option"]
 
 #: Registry: method name -> "module:Class".
@@ -25,13 +30,79 @@ METHODS = {
 }
 
 
+#: The entry-point group a package declares its methods in.
+ENTRY_POINT_GROUP = "mcrecon.methods"
+_BUILTIN = frozenset(METHODS)
+_entry_points_read = False
+
+
+def register_method(name: str, target, *, replace: bool = False) -> None:
+    """Add a method to the registry under ``name``.
+
+    Parameters
+    ----------
+    name : str
+        The name ``get_method``, ``mcrecon.reconstruct(..., method=name)``
+        and ``--method`` use.
+    target : type or str
+        A :class:`Method` subclass, or ``"package.module:Class"`` (imported
+        on first use).
+    replace : bool
+        Allow replacing a registered method of that name (never a built-in one).
+    """
+    if not isinstance(name, str) or not name.isidentifier():
+        raise InputError("register_method", "name", f"{name!r}, expected a method name (letters, digits, _)")
+    cls = None
+    if isinstance(target, type):
+        if not issubclass(target, Method):
+            raise InputError("register_method", "target", f"{target.__name__} is not a subclass of "
+                             "mcrecon.methods.Method")
+        cls, target = target, f"{target.__module__}:{target.__qualname__}"
+    elif not (isinstance(target, str) and target.count(":") == 1):
+        raise InputError("register_method", "target", f"{target!r}, expected a Method subclass or "
+                         "'package.module:Class'")
+    if name in METHODS and (name in _BUILTIN or not replace) and METHODS[name] != target:
+        raise InputError("register_method", "name", f"{name!r} is registered already ({METHODS[name]})"
+                         + ("" if name in _BUILTIN else "; pass replace=True to replace it"))
+    METHODS[name] = target
+    if cls is not None:
+        _CLASSES[name] = cls
+    else:
+        _CLASSES.pop(name, None)
+
+
+#: Classes registered as objects (one defined in __main__ or in a function cannot be imported by name).
+_CLASSES: dict = {}
+
+
+def _read_entry_points() -> None:
+    global _entry_points_read
+    if _entry_points_read:
+        return
+    _entry_points_read = True
+    from importlib.metadata import entry_points
+
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        if ep.name in METHODS and METHODS[ep.name] != ep.value:
+            warnings.warn(f"entry point {ep.name} = {ep.value!r} ({ENTRY_POINT_GROUP}): the name is taken by "
+                          f"{METHODS[ep.name]}; ignored", McreconWarning, stacklevel=3)
+            continue
+        METHODS[ep.name] = ep.value
+
+
 def _load(name: str):
+    if name in _CLASSES:
+        return _CLASSES[name]
     mod, cls = METHODS[name].split(":")
-    return getattr(importlib.import_module(mod), cls)
+    obj = importlib.import_module(mod)
+    for part in cls.split("."):
+        obj = getattr(obj, part)
+    return obj
 
 
 def available_methods() -> list[str]:
     """Names of the registered methods whose module is present."""
+    _read_entry_points()
     out = []
     for name in METHODS:
         try:
@@ -43,6 +114,7 @@ def available_methods() -> list[str]:
 
 
 def method_class(name: str) -> type[Method]:
+    _read_entry_points()
     if name not in METHODS:
         raise InputError("method", "name", f"unknown method {name!r}; valid: {', '.join(available_methods())}")
     try:

@@ -1,57 +1,37 @@
 """The contract every reconstruction / adaptive-sampling method implements.
 
-A method is two things (``docs/methods/writing-a-method.md``):
+A method is configuration plus a per-run state, taught as eight concepts
+in ``docs/methods/writing-a-method.md``:
 
-*Configuration*
-    The method object.  It is built with keyword-only options, each
-    described by an :class:`Option` (type, bounds, nullability, choices)
-    and validated once, here in the base class; the CLI uses the same
-    descriptions unchanged.  After ``__init__`` the object is immutable:
-    one method object serves any number of runs, in any order.
+1. **Options** -- :class:`Option` descriptions, validated once here; the
+   object is immutable afterwards (variants: :func:`variant_option`).
+2. **Inputs** -- :attr:`Method.requires`, a :class:`Requirements`; the
+   reader or the driver supplies them as :class:`MethodInputs`.  A method
+   never opens a file (no module in ``mcrecon.methods`` imports the I/O
+   layer).
+3. **Run state** -- :attr:`Method.run_type`, a :class:`RunState`
+   subclass created once per run by :meth:`Method.start`.
+4. **Reconstruction** -- :meth:`Method.reconstruct_run`.
+5. **Placement** -- :meth:`Method.place` (the round sized by
+   :meth:`Method.plan`, which a method may replace).
+6. **Initial pass** -- :meth:`Method.initial_pass`: the driver takes it,
+   so a plan never sees empty statistics.
+7. **Pipelining** -- :attr:`Method.pipeline`: plans safe from statistics
+   one round old (``AdaptiveState.pending``: the round in flight).
+8. **Samples as they come** -- :meth:`Method.observe` (methods that
+   declare ``requires.samples``) and :meth:`Method.finish`.
 
-*Per-run state*
-    ``start(width, height, channels, reference=...)`` returns a
-    :class:`RunState` (or a subclass) that holds everything a run
-    accumulates: a progressive image, the last selection, diagnostics.
-    The driver (or :func:`mcrecon.reconstruct`) keeps it and passes it
-    back to every call of that run.
-
-Declared inputs
-    :attr:`Method.requires` says what a method consumes
-    (:class:`Requirements`): pixel statistics with or without a subpixel
-    grid, the individual samples, two independent half buffers in their
-    place, the reference image.  The reader or the driver supplies them as
-    :class:`MethodInputs`; a method never opens a file (no module in
-    ``mcrecon.methods`` imports the I/O layer).
-
-The hooks a method implements:
-
-``reconstruct_run(run, inputs) -> image``
-    Offline reconstruction of an (H, W, C) float64 image.
-``plan(run, state) -> SampleRequest | None``
-    Next round's request (default: uniform rounds that double the total),
-    or None when the method's own target is met.
-``observe(run, batch, round_index)``
-    Only for methods that declare ``requires.samples``: a committed
-    round's samples.  A resumed run replays it round by round.
-``finish(run, state) -> image``
-    Final image of an adaptive run (default: ``reconstruct_run`` on the
-    run's statistics).
-``diagnostics(run) -> dict``
-    Scalar (H, W) maps of the last reconstruction or planning step.
-
-Resume contract: ``plan`` may depend only on the options, the run state
-and ``state`` (statistics of every committed sample, round index,
-budget, the round's RNG).  A resumed run rebuilds the statistics from the
-log and, for methods that observe samples, replays ``observe`` for each
-committed round in order, so it continues exactly where the killed run
-stopped.
+Resume contract: a plan may depend only on the options, the run state
+and the :class:`AdaptiveState` (statistics of every committed sample,
+round index, budget, the round's RNG).  A resumed run rebuilds the
+statistics from the log and, for methods that observe samples, replays
+``observe`` for each committed round in order, so it continues exactly
+where the killed run stopped.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import math
 import numbers
 import types
@@ -65,25 +45,9 @@ from ..stats import PixelStats
 
 __all__ = ["Method", "AdaptiveState", "Option", "Requirements", "MethodInputs", "RunState", "uniform_counts",
            "variant_option", "check_half_buffers", "merge_halves", "SplitHalves", "is_half_buffer_pair",
-           "half_buffer_methods", "PLAN_AFTER_COMMIT"]
+           "half_buffer_methods"]
 
 _MISSING = object()
-
-
-class _PlanAfterCommit:
-    def __repr__(self):
-        return "PLAN_AFTER_COMMIT"
-
-    def __reduce__(self):
-        return "PLAN_AFTER_COMMIT"
-
-
-#: What :meth:`Method.plan` may return in a pipelined run (``state.pending`` holds the
-#: round in flight) when it has nothing to ask for until that round is seen (e.g. every
-#: pixel it would serve still waits for its first samples): the driver commits the round
-#: in flight and plans the same round again from the statistics with it (``pending``
-#: None), as it plans round 1 after round 0.  Never returned without a round in flight.
-PLAN_AFTER_COMMIT = _PlanAfterCommit()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -389,7 +353,10 @@ class RunState:
 
 @dataclasses.dataclass(eq=False)
 class AdaptiveState:
-    """What a method sees when it plans the next round.
+    """What a method sees when it plans a round.
+
+    The driver takes the uniform initial pass itself (:meth:`Method.initial_pass`),
+    so ``stats`` always holds samples when ``plan`` is called.
 
     Attributes
     ----------
@@ -397,16 +364,22 @@ class AdaptiveState:
         Statistics of every committed sample (subpixel grid as the method
         asked for).
     round_index : int
-        Index of the round being planned (0 = initial pass).
+        Index of the round being planned (0 = the first round of the initial pass).
     budget : int
         Total sample budget of the run (average spp x pixels).
     n_samples : int
-        Samples committed so far.
+        Samples committed so far plus those in flight (``pending``).
     rng : numpy.random.Generator
         Random numbers for this round's decisions, derived from the run's
         seed and the round index (reproducible, resumable).
     reference : ndarray (H, W, C) or None
         Ground truth when the run has one (oracle modes, experiments).
+    pending : ndarray (H, W) of int64 or None
+        Pipelined runs: samples per pixel of the round in flight (requested,
+        not yet in ``stats``); None when every requested sample is committed.
+    iteration : int
+        Index of this plan among the method's own (0: the first after the
+        initial pass).
     """
 
     stats: PixelStats
@@ -415,11 +388,8 @@ class AdaptiveState:
     n_samples: int
     rng: np.random.Generator
     reference: np.ndarray | None = None
-    #: Rounds the statistics are behind the requests: 0, or 1 in a pipelined run
-    #: (:func:`mcrecon.driver.adapt`, ``pipeline``).
-    lag: int = 0
-    #: Samples per pixel (H, W) of the round in flight (requested, not in ``stats``), or None.
     pending: np.ndarray | None = None
+    iteration: int = 0
 
     @property
     def remaining(self) -> int:
@@ -446,38 +416,6 @@ class AdaptiveState:
         """``spp`` samples per pixel spread uniformly (at most what the budget has left)."""
         n = min(self.remaining, int(spp * self.width * self.height))
         return self.request(counts=uniform_counts(self.width, self.height, n, self.rng))
-
-    def request_with_uniform_share(self, n: int, share: float,
-                                   place: Callable[[int], np.ndarray]) -> SampleRequest:
-        """A round of ``n`` samples: ``round(share * n)`` spread uniformly (counts), the rest at the
-        positions ``place(n_placed)`` returns (called first, only when ``n_placed > 0``)."""
-        n_uniform = int(round(share * n))
-        positions = place(n - n_uniform) if n - n_uniform > 0 else None
-        counts = uniform_counts(self.width, self.height, n_uniform, self.rng) if n_uniform > 0 else None
-        return self.request(positions=positions, counts=counts)
-
-    def initial_pass(self, spp: int) -> tuple[SampleRequest | None, int]:
-        """The uniform initial pass of a method that places later samples from the statistics.
-
-        Returns ``(request, first)``: the request of this round while the
-        pass is not complete, else None; ``first``, the index of the first
-        round the method places itself.  Pipelined (``lag``), round 1 is
-        planned while round 0 renders, from no statistics: the pass then
-        takes two rounds, ceil(spp / 2) per pixel and the rest (which needs
-        nothing committed), and ``first`` is 2.
-        """
-        half = (spp + 1) // 2
-        if self.lag and half < spp:
-            if self.n_samples == 0:
-                return self.uniform_request(half), 2
-            initial = spp * self.width * self.height
-            if self.round_index == 1 and self.n_samples < initial:
-                n = min(self.remaining, initial - self.n_samples)
-                return self.request(counts=uniform_counts(self.width, self.height, n, self.rng)), 2
-            return None, 2
-        if self.n_samples == 0:
-            return self.uniform_request(spp), 1
-        return None, 1
 
 
 def uniform_counts(width: int, height: int, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -506,7 +444,7 @@ def half_buffer_methods() -> list[str]:
 
 
 class Method:
-    """Base class: validated immutable options, uniform sampling in doubling rounds.
+    """Base class: validated immutable options, a per-run state, uniform sampling in doubling rounds.
 
     Class attributes
     ----------------
@@ -514,23 +452,24 @@ class Method:
         Registry name.
     options : tuple of Option
         Keyword options (and CLI flags), validated by ``__init__``.
-    adaptive : bool
-        Whether ``plan`` distributes samples by itself (else uniform).
-    initial_spp : int
-        Uniform sampling: spp of the first round; later rounds double the
-        total.  An ``initial_spp`` option overrides it.
-    subpixels, needs_samples, reference : int, bool, str
-        The default :attr:`requires` (override the property when it
-        depends on the options).
-    pipeline : {'default', 'allowed', 'no'}
-        Whether ``plan`` may run one round behind the renderer
-        (:func:`mcrecon.driver.adapt`, ``pipeline``): ``default`` pipelines
-        unless asked not to, ``allowed`` only when asked (a measured
-        quality cost), ``no`` refuses (the plan needs every round).
     variants : mapping
         ``{variant name: {option: value}}`` for a method with a
         ``variant`` option (:func:`variant_option`): the option values
         each variant presets when they are not given explicitly.
+    requires : Requirements
+        The inputs the method reads (a property when they depend on the options).
+    run_type : type
+        The :class:`RunState` subclass :meth:`start` creates for a run.
+    adaptive : bool
+        Whether ``plan`` distributes samples by itself (else uniform).
+    initial_spp : int
+        Samples per pixel of the uniform initial pass the driver takes
+        before the first plan; an ``initial_spp`` option overrides it
+        (:meth:`initial_pass`).
+    pipeline : bool
+        Whether ``plan`` is safe from statistics one round old (the round
+        in flight as ``state.pending``): adaptive runs then pipeline by
+        default (:func:`mcrecon.adaptive.adapt`, ``pipeline``).
 
     Subclasses never override ``__init__``: cross-option checks and
     derived configuration go into :meth:`_configure`.
@@ -538,24 +477,19 @@ class Method:
 
     name: ClassVar[str] = "?"
     options: ClassVar[tuple[Option, ...]] = ()
+    variants: ClassVar[Mapping[str, Mapping[str, Any]]] = {}
+    requires: ClassVar[Requirements] = Requirements()
+    run_type: ClassVar[type] = RunState
     adaptive: ClassVar[bool] = False
     initial_spp: ClassVar[int] = 1
-    subpixels: ClassVar[int] = 0
-    needs_samples: ClassVar[bool] = False
-    reference: ClassVar[str] = "none"
-    variants: ClassVar[Mapping[str, Mapping[str, Any]]] = {}
-    pipeline: ClassVar[str] = "allowed"
-
-    def __init_subclass__(cls, **kwargs):
-        super().__init_subclass__(**kwargs)
-        # plans_round_one_blind() is a promise about the plan its class sees: a
-        # subclass whose plan is another (its own, or a mixin's placed before the
-        # promising class) plans round 1 after round 0 is committed (Method's
-        # default), as a method of its own would, unless it renews the promise
-        owner = next(k for k in cls.__mro__ if "plans_round_one_blind" in k.__dict__)
-        if owner is not cls and owner is not Method and \
-                inspect.getattr_static(owner, "plan", None) is not inspect.getattr_static(cls, "plan", None):
-            cls.plans_round_one_blind = Method.plans_round_one_blind
+    pipeline: ClassVar[bool] = False
+    #: Uniform doubling rounds are capped at 1 / max_round_parts of the budget (whole samples per
+    #: pixel), never below max_round_floor samples.  Plain doubling ends with a round of half the
+    #: budget, whose commit is the one step of a pipelined run nothing overlaps (the renderer has
+    #: finished); the cap bounds that tail at about 1/8 of the commit work (docs/pipelining.md).
+    #: Below the floor (~30 ms of commit) a cap would only add rounds, each with its fixed cost.
+    max_round_parts: ClassVar[int] = 8
+    max_round_floor: ClassVar[int] = 1 << 20
 
     def __init__(self, **options):
         where = self.where
@@ -606,12 +540,6 @@ class Method:
         """How error messages name this method."""
         return f"method {self.name}"
 
-    @property
-    def requires(self) -> Requirements:
-        """The inputs this method consumes (see :class:`Requirements`)."""
-        return Requirements(subpixels=int(self.subpixels), samples=bool(self.needs_samples),
-                            reference=self.reference)
-
     def halo(self, width: int, height: int) -> int | None:
         """Pixels of context the offline result at a pixel needs: an int, or None for the whole image.
 
@@ -633,7 +561,7 @@ class Method:
         if self.requires.reference == "required" and reference is None:
             raise InputError(self.where, "reference", "this configuration needs a reference image "
                              "(the run's reference, or one stored in the log)")
-        return RunState(int(width), int(height), tuple(str(c) for c in channels), reference)
+        return self.run_type(int(width), int(height), tuple(str(c) for c in channels), reference)
 
     # -------------------------------------------------------------- offline
     def reconstruct(self, inputs, *, reference: np.ndarray | None = None,
@@ -719,34 +647,68 @@ class Method:
         raise NotImplementedError
 
     # ------------------------------------------------------------- adaptive
-    def plan(self, run: RunState, state: AdaptiveState) -> SampleRequest | None:
-        """Next round's request, or None when the method's target is met.
+    def initial_pass(self, budget: int, pixels: int) -> int:
+        """Samples per pixel of the uniform initial pass the driver takes before the first plan.
 
-        Default: uniform rounds, ``initial_spp`` first, then each round
-        doubles the total, the last one filling the budget exactly.
+        The ``initial_spp`` option when the method has one, else the class
+        attribute; the driver caps the pass at the run's ``budget`` (samples
+        on ``pixels`` pixels).  A method that cannot run on that budget
+        raises :class:`InputError` here, before anything is rendered.
+        Pipelined, the driver splits a pass of two or more samples per
+        pixel into two rounds (half, then the rest), so that the first plan
+        sees the first half while the second renders.
+        """
+        return max(1, int(self.params.get("initial_spp", self.initial_spp)))
+
+    def plan(self, run: RunState, state: AdaptiveState) -> SampleRequest | None:
+        """The next round's request after the initial pass, or None when the method's target is met.
+
+        The round's size: with an ``iterations`` option, what is left spread
+        over the iterations still to come (the last takes everything);
+        with a ``round_spp`` option, that many samples per pixel; else the
+        total doubles, each round capped (``max_round_parts``).  A share
+        ``uniform_share`` (an option, default 0) of the round is spread
+        uniformly; :meth:`place` places the rest.  An empty request in a
+        pipelined run asks the driver to commit the round in flight and
+        plan again from it.
         """
         remaining = state.remaining
         if remaining <= 0:
             return None
-        if state.n_samples == 0:
-            return state.uniform_request(max(1, int(self.params.get("initial_spp", self.initial_spp))))
-        n = min(remaining, state.n_samples)
-        return state.request(counts=uniform_counts(state.width, state.height, n, state.rng))
+        p = self.params
+        npix = state.width * state.height
+        if "iterations" in p:
+            left = p["iterations"] - state.iteration
+            n = remaining if left <= 1 else max(1, remaining // left)
+        elif "round_spp" in p:
+            n = min(remaining, max(1, int(round(p["round_spp"] * npix))))
+        else:
+            n = self.doubling_round(state)
+        n_uniform = int(round(p.get("uniform_share", 0.0) * n))
+        placed = self.place(run, state, n - n_uniform)
+        if placed is None:
+            return None
+        counts = uniform_counts(state.width, state.height, n_uniform, state.rng) if n_uniform > 0 else None
+        placed = np.asarray(placed)
+        if placed.ndim == 2 and placed.shape == (state.height, state.width) and placed.dtype.kind in "iu":
+            counts = placed if counts is None else counts + placed
+            return state.request(counts=counts)
+        return state.request(positions=placed if len(placed) else None, counts=counts)
 
-    def plans_round_one_blind(self) -> bool:
-        """Pipelined: whether round 1 may be planned while round 0 renders.
+    def doubling_round(self, state: AdaptiveState) -> int:
+        """Samples of a round that doubles the total, capped at 1 / ``max_round_parts`` of the budget."""
+        npix = state.width * state.height
+        cap_spp = max(-(-state.budget // (self.max_round_parts * npix)), -(-self.max_round_floor // npix))
+        return min(state.remaining, state.n_samples, cap_spp * npix)
 
-        Round 1's plan then sees no committed sample (``state.stats`` empty,
-        round 0 as ``state.pending``, ``state.n_samples`` counting it), and
-        round 0's commit overlaps round 1's rendering instead of holding the
-        renderer.  Only for a plan that reads nothing committed in round 1
-        (a uniform round that depends on the sample count, the second half
-        of a split initial pass: :meth:`AdaptiveState.initial_pass`).
-        Default False: round 1 is planned after round 0 is committed.  A
-        subclass that overrides ``plan`` but not this method gets the
-        default back (the promise was made for its parent's plan).
+    def place(self, run: RunState, state: AdaptiveState, n: int):
+        """Where ``n`` samples of the round go: film positions (n, 2), or counts per pixel (H, W) of int.
+
+        Default: spread uniformly.  None stops the run (the method's target
+        is met).  Called with ``n`` = 0 too (it must then use no random
+        numbers): a method that stops on a target checks it here.
         """
-        return False
+        return uniform_counts(state.width, state.height, n, state.rng)
 
     def observe(self, run: RunState, batch: SampleBatch, round_index: int) -> None:
         """See a committed round's samples (only called when ``requires.samples``)."""

@@ -34,7 +34,7 @@ from ..errors import InputError
 from ..renderers.protocol import SampleRequest
 from ..stats import PixelStats
 from ..tone import TONE_OPERATORS, get_tone_operator, tone_map
-from .base import (PLAN_AFTER_COMMIT, AdaptiveState, Method, MethodInputs, Option, RunState, uniform_counts,
+from .base import (AdaptiveState, Method, MethodInputs, Option, RunState, uniform_counts,
                    variant_option)
 from .box import fill_empty_pixels
 
@@ -277,6 +277,15 @@ def borrow_neighbour_variance(variance, count, mean=None) -> np.ndarray:
 # The method
 # --------------------------------------------------------------------------
 
+@dataclasses.dataclass(eq=False)
+class CIRun(RunState):
+    """Per-run state of :class:`CIMethod`: the widths of the last plan, reused where nothing changed."""
+
+    cache: dict | None = None
+    #: (count, mean, m2, pending) of a plan that took the shortcut: its maps are built when asked for
+    diagnostics_from: tuple | None = None
+
+
 class CIMethod(Method):
     """Confidence-interval adaptive sampling with a tone operator.
 
@@ -298,14 +307,14 @@ class CIMethod(Method):
     """
 
     name = "ci"
+    run_type = CIRun
     adaptive = True
     #: One round of lag (``adapt(..., pipeline=True)``) only when asked: a pixel then gets
     #: its next step before the previous one is seen, so the rule's per-pixel counts
     #: differ from the paper's (measured: emitter pixels stopping at min_spp 0.90 -> 0.898
     #: on the hdr run of tests/test_tamstorf.py); pending samples count toward max_spp.
-    #: The initial pass takes two rounds split by pixels and a pixel waits for its first
-    #: samples (see plan; docs/pipelining.md has the measured cost).
-    pipeline = "allowed"
+    #: A pixel whose initial pass is still in flight waits for it (see plan).
+    pipeline = False
     #: The paper's rule (``variant="paper"``) against the measured default
     #: (docs/methods/ci.md, "Default vs paper"): zero-variance pixels borrow
     #: their neighbours' variance instead of stopping on their first samples.
@@ -357,9 +366,9 @@ class CIMethod(Method):
         run.diagnostics["width_ratio"] = ratio
         return ratio
 
-    def start(self, width, height, channels=("R", "G", "B"), *, reference=None) -> "CIRun":
-        base = super().start(width, height, channels, reference=reference)
-        return CIRun(**dataclasses.asdict(base))
+    def initial_pass(self, budget: int, pixels: int) -> int:
+        """``min_spp`` (capped by ``max_spp``): Eq. 6 needs a sample variance in every pixel."""
+        return min(self.rule.min_spp, self.rule.max_spp)
 
     def diagnostics(self, run: RunState):
         snap = getattr(run, "diagnostics_from", None)
@@ -441,39 +450,20 @@ class CIMethod(Method):
         zero = c["zero"]
         return c["own"], c["widths"], zero is not None and bool(zero.any())
 
-    def plans_round_one_blind(self) -> bool:
-        # pipelined, round 0 is the initial pass of the first half of the pixels and round 1
-        # that of the second half (see plan): round 1 needs nothing committed
-        return True
-
-    def _first_half(self, state: AdaptiveState, remaining: int):
-        """Pipelined round 0: ``min_spp`` in the first half of the pixels (row-major), None when
-        the film has one pixel or the budget does not hold the whole initial pass."""
-        p = state.width * state.height
-        if p < 2 or self.rule.min_spp * p > remaining:
-            return None
-        counts = np.zeros(p, np.int64)
-        counts[:p // 2] = min(self.rule.min_spp, self.rule.max_spp)
-        return counts.reshape(state.height, state.width)
-
-    def plan(self, run: RunState, state: AdaptiveState) -> SampleRequest | object | None:
-        """Round 0: ``min_spp`` everywhere; then ``step`` more to every pixel not converged (Eq. 10).
+    def plan(self, run: RunState, state: AdaptiveState) -> SampleRequest | None:
+        """After the initial pass (``min_spp`` everywhere): ``step`` more to every pixel not converged (Eq. 10).
 
         While every pixel is below ``min_spp`` (nothing can have converged)
         the plan needs no interval: it tops every pixel up (or adds a step
         to the pixels the round in flight tops up), exactly what the full
         rule would ask for, and builds its diagnostic maps only when asked.
-        Pipelined (``state.pending``: the round in flight), the initial pass
-        takes two rounds split by pixels: round 0 the first half of the
-        pixels (row-major), round 1, planned while round 0 renders, the
-        second half; a pixel none of whose samples has been seen gets no
-        step (it waits for them), so round 2 serves the first half only, from
-        its exact intervals, while round 1 renders.  When every pixel that
-        is not done waits, the plan returns :data:`PLAN_AFTER_COMMIT`.
-        (Measured and rejected before: splitting the pass in two rounds of
-        half the spp each, every pixel then getting a second uniform step
-        before any is seen: +12-22 % relative MSE on 4 of the 6 built-in
-        scenes, 128^2, 32 spp, 16 seeds.)
+        Pipelined (``state.pending``: the round in flight), a pixel whose
+        initial pass is not yet seen whole gets no step (it waits for it);
+        when every pixel that is not done waits, the plan asks for nothing,
+        and the driver commits the round in flight and plans again.
+        (Measured and rejected before: every pixel getting a second uniform
+        step before its initial pass is seen: +12-22 % relative MSE on 4 of
+        the 6 built-in scenes, 128^2, 32 spp, 16 seeds.)
         """
         remaining = state.remaining
         st = state.stats
@@ -482,13 +472,8 @@ class CIMethod(Method):
         # a pipelined run: samples requested but not yet in the statistics count toward the caps
         pending = state.pending if state.pending is not None else 0
         have = n + pending
-        # pipelined: a pixel none of whose samples is seen yet waits for them (no blind step)
-        unseen = (n == 0) & (have > 0) if state.pending is not None else None
-        if state.lag and state.n_samples == 0 and remaining > 0:
-            half = self._first_half(state, remaining)
-            if half is not None:
-                run.diagnostics_from = (n.copy(), st.mean.copy(), st.m2.copy(), np.zeros(n.shape, np.int64))
-                return state.request(counts=half)
+        # pipelined: a pixel whose initial pass is still in flight waits for it (no blind step)
+        unseen = (n < rule.min_spp) & (have > n) if state.pending is not None else None
         if remaining > 0 and int(n.max()) < rule.min_spp and int(np.max(have)) < rule.max_spp:
             # no pixel can be done: every one is topped up to min_spp or gets a step
             need = np.where(have < rule.min_spp, rule.min_spp - have, rule.step)
@@ -498,9 +483,7 @@ class CIMethod(Method):
             if int(need.sum()) <= remaining:
                 run.diagnostics_from = (n.copy(), st.mean.copy(), st.m2.copy(),
                                         np.array(pending, np.int64, copy=True))
-                if not need.any():
-                    return PLAN_AFTER_COMMIT  # every pixel waits for the round in flight
-                return state.request(counts=need)
+                return state.request(counts=need)  # nothing asked: every pixel waits for the round in flight
         run.diagnostics_from = None
         own_var, widths, borrowed = self._widths(run, st)
         done = (_all_channels(widths <= 2.0 * rule.tolerance) & (n >= rule.min_spp)) | (have >= rule.max_spp)
@@ -515,7 +498,7 @@ class CIMethod(Method):
         if unseen is not None:
             need[unseen] = 0
             if not need.any():
-                return PLAN_AFTER_COMMIT  # the pixels not done all wait for their first samples
+                return state.request(counts=need)  # the pixels not done all wait for their initial pass
         total = int(need.sum())
         if total <= remaining:
             return state.request(counts=need)
@@ -614,12 +597,3 @@ def _max_around_kernel(var, flat_idx, out):
                     if v > m:
                         m = v
             out[q, c] = m
-
-
-@dataclasses.dataclass(eq=False)
-class CIRun(RunState):
-    """Per-run state of :class:`CIMethod`: the widths of the last plan, reused where nothing changed."""
-
-    cache: dict | None = None
-    #: (count, mean, m2, pending) of a plan that took the shortcut: its maps are built when asked for
-    diagnostics_from: tuple | None = None

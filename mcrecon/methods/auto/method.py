@@ -239,6 +239,15 @@ class Candidate:
     mse: np.ndarray     # (H, W, C) unbiased estimate (NaN: undefined at that pixel, +inf: impossible)
 
 
+@dataclasses.dataclass(eq=False)
+class AutoRun(RunState):
+    """Per-run state of :class:`AutoMethod`: the two halves of the committed samples (built by ``observe``)."""
+
+    halves: Halves | None = None
+    #: GEM's run state for ``sampling="gem"`` (its selection's diagnostics only; planning reads the statistics).
+    gem_run: object = None
+
+
 class AutoMethod(Method):
     """Per-pixel choice among candidate reconstructions by their estimated error.
 
@@ -274,6 +283,7 @@ class AutoMethod(Method):
     """
 
     name = "auto"
+    run_type = AutoRun
     adaptive = True
     initial_spp = 4
     options = (
@@ -345,10 +355,6 @@ class AutoMethod(Method):
         return out
 
     # ---------------------------------------------------------------- runs
-    def start(self, width, height, channels=("R", "G", "B"), *, reference=None) -> "AutoRun":
-        base = super().start(width, height, channels, reference=reference)
-        return AutoRun(**dataclasses.asdict(base))
-
     def observe(self, run: "AutoRun", batch: SampleBatch, round_index: int) -> None:
         """Split each committed round into the two halves (replayed in order on resume)."""
         if run.halves is None:
@@ -568,21 +574,25 @@ class AutoMethod(Method):
 
     # ------------------------------------------------------------ adaptive
     def plan(self, run: "AutoRun", state: AdaptiveState):
-        """Round 0: uniform ``initial_spp``; then rounds as ``sampling`` says.
+        """After the initial pass (uniform ``initial_spp``), rounds as ``sampling`` says.
 
-        ``gem`` (default): :meth:`_plan_gem`.  ``uniform``: doubling uniform
-        rounds.  ``greedy``: ``iterations`` rounds placing samples greedily.
-        Each greedy round reconstructs with every candidate, takes the chosen
-        result's smoothed relative error estimate ``e_p`` and sends
-        ``n_p`` samples in proportion to ``e_p * d / (n_p + d)`` (``d`` the
-        round's average spp): the fall of the variance part of the error
-        from d more samples, as GEM's Sec. 5 (n_eff = n, conservative for
-        filtered pixels).  Integer counts by largest remainders (ties by
-        pixel index): deterministic, so a resumed run plans the same.
+        ``gem`` (default): :meth:`Method.plan` with :meth:`place`.
+        ``uniform``: doubling uniform rounds.  ``greedy``: ``iterations``
+        rounds placing samples greedily.  Each greedy round reconstructs
+        with every candidate, takes the chosen result's smoothed relative
+        error estimate ``e_p`` and sends ``n_p`` samples in proportion to
+        ``e_p * d / (n_p + d)`` (``d`` the round's average spp): the fall of
+        the variance part of the error from d more samples, as GEM's Sec. 5
+        (n_eff = n, conservative for filtered pixels).  Integer counts by
+        largest remainders (ties by pixel index): deterministic, so a
+        resumed run plans the same.
         """
         p = self.params
         if p["sampling"] == "gem":
-            return self._plan_gem(run, state)
+            return super().plan(run, state)
+        remaining = state.remaining
+        if remaining <= 0:
+            return None
         if p["sampling"] == "uniform":
             # Measured (128^2, 32 spp, 3 seeds, ratio to uniform box): greedy placement
             # 0.705 / 0.857 / 0.563 / 1.38 / 0.506 on soft_shadow / depth_of_field /
@@ -590,14 +600,10 @@ class AutoMethod(Method):
             # 0.719 / 0.703: the estimates that pick a filter well are too noisy per pixel
             # to place samples.  Uniform rounds doubling the total after the initial_spp
             # pass, like box.
-            return super().plan(run, state)
-        remaining = state.remaining
-        if remaining <= 0:
-            return None
+            n = self.doubling_round(state)
+            return state.request(counts=uniform_counts(state.width, state.height, n, state.rng))
         npix = state.width * state.height
-        if state.n_samples == 0:
-            return state.uniform_request(p["initial_spp"])
-        left = p["iterations"] - state.round_index + 1
+        left = p["iterations"] - state.iteration
         n_round = remaining if left <= 1 else max(1, remaining // left)
         halves = run.halves if any(c in DUAL_BUFFER for c in self._names) else None
         with warnings.catch_warnings():
@@ -610,21 +616,17 @@ class AutoMethod(Method):
         counts = _largest_remainder(pri, n_round)
         return state.request(counts=counts)
 
+    def place(self, run: "AutoRun", state: AdaptiveState, n: int):
+        """GEM's placement (Sec. 5) of ``n`` samples; :meth:`Method.plan` spreads ``uniform_share`` uniformly.
 
-    def _plan_gem(self, run: "AutoRun", state: AdaptiveState):
-        """GEM's placement (Sec. 5) for ``1 - uniform_share`` of each round, the rest uniform.
-
-        Round 0: uniform ``initial_spp``; then ``iterations`` rounds (round i
-        sends ``remaining // (iterations - i + 1)``).  The GEM part is GEM's
-        own planning with its default options on the committed statistics:
-        its adaptive scale selection, the estimated relative MSE of the
-        selected filters and :meth:`GEMMethod.place` (pipelined, as in
-        ``GEMMethod.plan``: the initial pass in two rounds so that no
-        placement is planned from empty statistics,
-        :meth:`AdaptiveState.initial_pass`; the pending samples counted).  The uniform
-        part keeps every pixel's share of samples at least ``uniform_share``
-        of a uniform run's, so a pixel whose GEM estimate misleads is never
-        starved.
+        Rounds: ``iterations`` after the initial pass (iteration i sends
+        ``remaining // (iterations - i)``).  The GEM part is GEM's own
+        planning with its default options on the committed statistics: its
+        adaptive scale selection, the estimated relative MSE of the
+        selected filters and :meth:`GEMMethod.place_greedy` (pipelined, the
+        pending samples counted).  The uniform part keeps every pixel's
+        share of samples at least ``uniform_share`` of a uniform run's, so
+        a pixel whose GEM estimate misleads is never starved.
 
         Measured (128^2, 32 spp, ratio to box of uniform samples, 3 seeds):
         auto's own greedy placement and GEM's placement alone lost to uniform
@@ -632,28 +634,16 @@ class AutoMethod(Method):
         of each round uniform, auto beat uniform sampling on every built-in
         scene (docs/methods/auto.md).
         """
-        p = self.params
-        remaining = state.remaining
-        if remaining <= 0:
-            return None
+        if n <= 0:
+            return np.zeros((0, 2))
+        if int(state.stats.count.sum()) == 0:  # nothing committed to place by (every sample dropped as NaN)
+            return uniform_counts(state.width, state.height, n, state.rng)
+        gem = self._gem
         npix = state.width * state.height
-        req, first = state.initial_pass(p["initial_spp"])
-        if req is not None:
-            return req
-        left = p["iterations"] - (state.round_index - first + 1) + 1
-        n_round = remaining if left <= 1 else max(1, remaining // left)
-        if int(state.stats.count.sum()) == 0:
-            # nothing committed yet to place samples by (initial_spp 1 under lag): uniform
-            return state.request(counts=uniform_counts(state.width, state.height, n_round, state.rng))
-
-        def place(n_gem):
-            gem = self._gem
-            if run.gem_run is None:
-                run.gem_run = gem.start(state.width, state.height, state.stats.channels)
-            sel = gem._select(run.gem_run, state.stats, final=False, want_mse=True)
-            return gem.place(sel, sel.image, state, n_gem, max(1, int(round(state.budget / npix))))
-
-        return state.request_with_uniform_share(n_round, p["uniform_share"], place)
+        if run.gem_run is None:
+            run.gem_run = gem.start(state.width, state.height, state.stats.channels)
+        sel = gem.select(run.gem_run, state.stats, final=False, want_mse=True)
+        return gem.place_greedy(sel, sel.image, state, n, max(1, int(round(state.budget / npix))))
 
 
 #: A pixel's neighbourhood is heavy-tailed when the largest sample around it exceeds this many times its mean.
@@ -744,12 +734,3 @@ def _largest_remainder(pri: np.ndarray, total: int) -> np.ndarray:
             base[order] += 1
         counts += base
     return counts.reshape(h, w)
-
-
-@dataclasses.dataclass(eq=False)
-class AutoRun(RunState):
-    """Per-run state of :class:`AutoMethod`: the two halves of the committed samples (built by ``observe``)."""
-
-    halves: Halves | None = None
-    #: GEM's run state for ``sampling="gem"`` (its selection's diagnostics only; planning reads the statistics).
-    gem_run: object = None

@@ -20,6 +20,13 @@ __all__ = ["AWRMethod", "AWRRun"]
 _MAX_LEVELS = 12
 
 
+@dataclasses.dataclass(eq=False)
+class AWRRun(RunState):
+    """Per-run state of :class:`AWRMethod`: what the sampler's last round did."""
+
+    last_plan_info: dict = dataclasses.field(default_factory=dict)
+
+
 class AWRMethod(Method):
     """Adaptive wavelet rendering: wavelet sampling and soft-thresholding reconstruction.
 
@@ -35,8 +42,9 @@ class AWRMethod(Method):
     """
 
     name = "awr"
+    run_type = AWRRun
     adaptive = True
-    pipeline = "allowed"  # measured +3..31 % relative MSE with one round of lag: only when asked
+    pipeline = False  # measured +3..31 % relative MSE with one round of lag: only when asked
     initial_spp = 16
     #: ``variant="paper"`` presets every algorithm option to Overbeck et al.
     #: 2009; the default ``robust`` departs from it where measurement says it
@@ -128,39 +136,25 @@ class AWRMethod(Method):
         return img
 
     # ------------------------------------------------------------- adaptive
-    def start(self, width, height, channels=("R", "G", "B"), *, reference=None) -> "AWRRun":
-        base = super().start(width, height, channels, reference=reference)
-        return AWRRun(**dataclasses.asdict(base))
+    def place(self, run: "AWRRun", state: AdaptiveState, n: int):
+        """Positions of the wavelet sampler's next batch of ``n`` samples (§4.1), or None when it has none.
 
-    def plans_round_one_blind(self) -> bool:
-        # pipelined, an initial pass of >= 2 spp takes two rounds, the second uniform
-        # (AdaptiveState.initial_pass): it needs nothing committed
-        return self.params["initial_spp"] >= 2
-
-    def plan(self, run: "AWRRun", state: AdaptiveState) -> SampleRequest | None:
-        """Initial uniform pass, then batches of the wavelet sampler (§4.1)."""
+        :meth:`Method.plan` sizes the batch (``round_spp`` per pixel).
+        Pipelined, the variance of each coefficient counts the samples in
+        flight (``state.pending``).
+        """
         p = self.params
-        remaining = state.remaining
-        if remaining <= 0:
-            return None
-        npix = state.width * state.height
-        # pipelined, the pass takes two rounds: planned from no statistics, the wavelet
-        # sampler put every sample of round 1 into the first rows
-        req, _ = state.initial_pass(p["initial_spp"])
-        if req is not None:
-            return req
-        quota = min(remaining, max(1, int(round(p["round_spp"] * npix))))
-        if int(state.stats.count.sum()) == 0:  # nothing committed to plan from (initial_spp 1, pipelined)
-            return state.request(counts=uniform_counts(state.width, state.height, quota, state.rng))
+        if int(state.stats.count.sum()) == 0:  # nothing committed to place by (every sample dropped as NaN)
+            return uniform_counts(state.width, state.height, n, state.rng)
         pos, info = plan_awr_positions(
-            state.stats, quota, state.rng, wavelet=p["wavelet"], levels=p["sampling_levels"], mode=p["boundary"],
+            state.stats, n, state.rng, wavelet=p["wavelet"], levels=p["sampling_levels"], mode=p["boundary"],
             per_coefficient=p["per_coefficient"], renorm=p["sampling_renorm"], propagation=p["propagation"],
             priority_threshold=p["priority_threshold"], estimator=p["sampling_variance"],
-            pending=state.pending if state.lag else None)
+            pending=state.pending)
         run.last_plan_info = info
         if pos is None or len(pos) == 0:
             return None
-        return state.request(positions=pos)
+        return pos
 
     def finish(self, run: "AWRRun", state: AdaptiveState) -> np.ndarray:
         """AWR (or, with ``reconstruction='box'``, box) image of the adaptive samples.
@@ -174,10 +168,3 @@ class AWRMethod(Method):
         if self.params["reconstruction"] == "box":
             return fill_empty_pixels(state.stats.mean.copy(), state.stats.count, source="awr")
         return self.reconstruct_run(run, state.inputs())
-
-
-@dataclasses.dataclass(eq=False)
-class AWRRun(RunState):
-    """Per-run state of :class:`AWRMethod`: what the sampler's last round did."""
-
-    last_plan_info: dict = dataclasses.field(default_factory=dict)

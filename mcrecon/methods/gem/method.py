@@ -28,6 +28,13 @@ TARGET_EPS = 1e-2
 _WHERE = "method gem"
 
 
+@dataclasses.dataclass(eq=False)
+class GEMRun(RunState):
+    """Per-run state of :class:`GEMMethod`: the last selection, kept until its diagnostics are asked for."""
+
+    pending: tuple | None = None
+
+
 class GEMMethod(Method):
     """Greedy error minimization (Rousselle, Knaus, Zwicker 2011).
 
@@ -83,21 +90,21 @@ class GEMMethod(Method):
     """
 
     name = "gem"
+    run_type = GEMRun
     #: The paper's 4 x 4 subpixel grid.  The default filters emulate it exactly
     #: per pixel (:func:`pixel_kernel`), so the statistics keep the grid itself
     #: only when ``subpixel_exact_below > 0`` asks to filter on it (see __init__).
     grid = 4
     adaptive = True
     initial_spp = 4
-    #: Plans with one round of lag when asked (``adapt(..., pipeline=True)``): the
-    #: initial pass is then split in two rounds (the second planned from nothing),
-    #: and each adaptive round discounts the samples still in flight
+    #: Plans with one round of lag when asked (``adapt(..., pipeline=True)``): each
+    #: adaptive round discounts the samples still in flight
     #: (``state.pending``) from the pixels it would pick (see :meth:`plan`).  Not
     #: the default: the lag cost +45-54 % relative MSE on the caustic (128^2, 32 spp,
     #: 8-16 seeds; rare huge samples found one round late), +27 % on hdr and +12 % on
     #: flat, 0.90-0.97 elsewhere (16 seeds, docs/pipelining.md); with the default's
     #: uniform quarter per round: caustic +42 %, flat +22 %, 0.73-1.04 elsewhere.
-    pipeline = "allowed"
+    pipeline = False
     #: The paper's algorithm (``variant="paper"``) against the measured defaults
     #: (docs/methods/gem.md, "Default vs paper"): error rate 0.1 (Sec. 7), the
     #: Sec. 6 final outlier rule, every pixel voting in the stopping maps, the
@@ -160,18 +167,19 @@ class GEMMethod(Method):
 
     # ---------------------------------------------------------------- core
     def start(self, width, height, channels=("R", "G", "B"), *, reference=None) -> "GEMRun":
-        base = super().start(width, height, channels, reference=reference)
+        run = super().start(width, height, channels, reference=reference)
         if reference is not None:
             ref = np.asarray(reference, dtype=np.float64)
             if ref.ndim == 2:
                 ref = ref[..., None]
-            expect = (int(height), int(width), len(base.channels))
+            expect = (int(height), int(width), len(run.channels))
             if ref.shape != expect:
                 raise InputError(_WHERE, "reference", f"shape {ref.shape}, expected {expect}")
-            base.reference = ref
-        return GEMRun(**dataclasses.asdict(base))
+            run.reference = ref
+        return run
 
-    def _select(self, run: "GEMRun", stats: PixelStats, *, final: bool, want_mse: bool = False) -> GEMSelection:
+    def select(self, run: "GEMRun", stats: PixelStats, *, final: bool, want_mse: bool = False) -> GEMSelection:
+        """GEM's scale selection on ``stats``: the final reconstruction's (``final``) or the sampling phase's."""
         p = self.params
         sig = final_sigmas(p["final_scales"]) if final else adaptive_sigmas(p["adaptive_scales"])
         base = stats.mean
@@ -234,7 +242,7 @@ class GEMMethod(Method):
         """
         if run.reference is None and inputs.reference is not None:
             run.reference = self.start(run.width, run.height, run.channels, reference=inputs.reference).reference
-        sel = self._select(run, inputs.stats, final=True)
+        sel = self.select(run, inputs.stats, final=True)
         img = sel.image
         no_data = sel.bank.weight[-1] <= 0
         if no_data.any():
@@ -243,42 +251,23 @@ class GEMMethod(Method):
         return np.asarray(img, dtype=np.float64)
 
     # ------------------------------------------------------------ adaptive
-    def plans_round_one_blind(self) -> bool:
-        # pipelined, an initial pass of >= 2 spp takes two rounds, the second uniform
-        # (AdaptiveState.initial_pass): it needs nothing committed
-        return self.params["initial_spp"] >= 2
+    def place(self, run: "GEMRun", state: AdaptiveState, n: int):
+        """One adaptive iteration (Secs. 5, 6): positions of ``n`` samples, or None at ``target_rel_mse``.
 
-    def plan(self, run: "GEMRun", state: AdaptiveState):
-        """Round 0: uniform ``initial_spp``; then one adaptive iteration per round (Secs. 5, 6).
-
-        Iteration i (= round index) sends ``remaining // (iterations - i + 1)``
-        samples, the last one everything left; beyond ``iterations`` rounds
-        (a resumed or interrupted run) the rest goes in one round.  Returns
-        None once the estimated relative MSE meets ``target_rel_mse``.
-
-        Pipelined (``state.lag`` = 1: the statistics lack the round in
-        flight, whose samples per pixel are ``state.pending``): the initial
-        pass takes two rounds (ceil(initial_spp / 2) spp, then the rest,
-        which needs no statistics, so the renderer never waits for the first
-        selection), the iterations are numbered from round 2, and the
-        priorities count the pending samples as if they were taken: each
-        pixel's selected filter gets its effective sample count with them
-        (:func:`pending_n_eff`), and its variance shrinks accordingly
+        :meth:`Method.plan` sizes the round (iteration i sends
+        ``remaining // (iterations - i)``, the last everything left) and
+        spreads ``uniform_share`` of it uniformly.  Pipelined
+        (``state.pending``: the round in flight, not in the statistics),
+        the priorities count the pending samples as if they were taken:
+        each pixel's selected filter gets its effective sample count with
+        them (:func:`pending_n_eff`), and its variance shrinks accordingly
         (MSE = bias^2 + Var, Var ~ 1 / n_s), so a round does not pick the
         pixels the round in flight already serves.
         """
         p = self.params
-        remaining = state.remaining
-        if remaining <= 0:
-            return None
         npix = state.width * state.height
-        req, first = state.initial_pass(p["initial_spp"])
-        if req is not None:
-            return req
-        left = p["iterations"] - (state.round_index - first + 1) + 1
-        n_round = remaining if left <= 1 else max(1, remaining // left)
         n_pick = p["samples_per_pick"] or max(1, int(round(state.budget / npix)))
-        sel = self._select(run, state.stats, final=False, want_mse=True)
+        sel = self.select(run, state.stats, final=False, want_mse=True)
         value = run.reference if p["oracle"] else sel.image
         if p["target_rel_mse"] is not None and np.isfinite(sel.mse).all():
             est = float(np.mean(sel.mse / (value * value + TARGET_EPS)))
@@ -287,10 +276,12 @@ class GEMMethod(Method):
         # A share of the round goes uniformly (a departure from the paper, measured in
         # docs/methods/gem.md): where the estimates point at the wrong pixels (depth of
         # field: edges the blur removed) no pixel is starved of samples.
-        return state.request_with_uniform_share(
-            n_round, p["uniform_share"], lambda n: self.place(sel, value, state, n, n_pick))
+        if n <= 0:
+            return np.zeros((0, 2))
+        return self.place_greedy(sel, value, state, n, n_pick)
 
-    def place(self, sel: GEMSelection, value: np.ndarray, state: AdaptiveState, n: int, n_pick: int) -> np.ndarray:
+    def place_greedy(self, sel: GEMSelection, value: np.ndarray, state: AdaptiveState, n: int,
+                     n_pick: int) -> np.ndarray:
         """Positions of ``n`` samples by Sec. 5's greedy distribution over the selection ``sel``.
 
         Priorities from the selected filters' estimated MSE relative to
@@ -299,7 +290,7 @@ class GEMMethod(Method):
         """
         n_eff = _pick(sel.bank.n_eff, sel.selected)
         mse = sel.mse
-        if state.lag and state.pending is not None and np.any(state.pending):
+        if state.pending is not None and np.any(state.pending):
             mse, n_eff = _with_pending(sel, state.stats.count, state.pending, n_eff, self.grid)
         _, pri = sample_priority(mse, value, n_eff, n_pick)
         return distribute_samples(pri, sel.selected, sel.bank.sigmas, n, n_pick, state.rng, subpixels=self.grid)
@@ -318,10 +309,3 @@ def _with_pending(sel, count, pending, n_eff, subpixels):
     ratio = np.divide(n_eff, n_new, out=np.ones_like(n_new), where=n_new > 0)
     mse = sel.mse - var_sel * (1.0 - ratio)[..., None]
     return np.maximum(mse, 0.0), np.maximum(n_new, n_eff)
-
-
-@dataclasses.dataclass(eq=False)
-class GEMRun(RunState):
-    """Per-run state of :class:`GEMMethod`: the last selection, kept until its diagnostics are asked for."""
-
-    pending: tuple | None = None

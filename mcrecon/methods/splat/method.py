@@ -18,6 +18,16 @@ from .progressive import (GUIDES, NORMS, SPREADS, ProgressiveSplatter, _next_rou
 __all__ = ["SplatMethod", "SplatRun"]
 
 
+@dataclasses.dataclass(eq=False)
+class SplatRun(RunState):
+    """Per-run state of :class:`SplatMethod`: the progressive splatter and the round schedule so far."""
+
+    splatter: ProgressiveSplatter | None = None
+    prev_spp: float | None = None
+    spp_done: float = 0.0
+    n_rounds_seen: int = 0
+
+
 class SplatMethod(Method):
     """Progressive variable-width Epanechnikov splatting (Suykens and Willems 2000).
 
@@ -76,11 +86,12 @@ class SplatMethod(Method):
     """
 
     name = "splat"
+    run_type = SplatRun
     #: Pipelines by default: the schedule is uniform doubling rounds, which the plan
     #: reads from the rounds observed plus the one in flight (``state.pending``), so
     #: a pipelined run asks for the same rounds and splats the same samples as a
     #: sequential one (bit-identical images, tested).
-    pipeline = "default"
+    pipeline = True
     adaptive = False
     requires = Requirements(samples=True, statistics=False)
     #: ``paper``: every sample splatted with Eq. 8 widths (Suykens and Willems
@@ -125,9 +136,9 @@ class SplatMethod(Method):
                                    outlier_k=p["outlier_k"], guide=p["guide"])
 
     def start(self, width, height, channels=("R", "G", "B"), *, reference=None) -> "SplatRun":
-        base = super().start(width, height, channels, reference=reference)
-        return SplatRun(**dataclasses.asdict(base),
-                        splatter=self._new_splatter(base.width, base.height, len(base.channels)))
+        run = super().start(width, height, channels, reference=reference)
+        run.splatter = self._new_splatter(run.width, run.height, len(run.channels))
+        return run
 
     # ------------------------------------------------------------ offline
     def halo(self, width, height):
@@ -215,24 +226,25 @@ class SplatMethod(Method):
             sp.add_round_stream(lambda j=j: pseudo_round(j), nonfinite=nonfinite, where=where)
 
     # ----------------------------------------------------------- adaptive
-    def plans_round_one_blind(self) -> bool:
-        return True  # the schedule reads the round in flight (state.pending) as the previous round
+    def initial_pass(self, budget: int, pixels: int) -> int:
+        """N_0 = ``initial_spp`` (capped by the budget); a budget below one sample per pixel is refused."""
+        if budget // pixels < 1:
+            raise InputError(self.where, "spp", f"budget of {budget} samples is below one sample per "
+                             f"pixel ({pixels} pixels): splatting rounds sample every pixel")
+        return min(self.params["initial_spp"], budget // pixels)
 
     def plan(self, run: "SplatRun", state: AdaptiveState) -> SampleRequest | None:
         """Every pixel gets N_j samples: N_0 = initial_spp, N_j = 2 N_{j-1}, the last round absorbing the rest.
 
-        Pipelined (``state.lag`` = 1): the round in flight (``state.pending``,
-        every pixel the same count) is the previous round of the schedule; the
-        rounds asked for are those of a sequential run (unless NaN/Inf samples
-        were dropped: the schedule then counts the requested samples).
+        Pipelined (``state.pending``): the round in flight (every pixel the
+        same count) is the previous round of the schedule; the rounds asked
+        for are those of a sequential run (unless NaN/Inf samples were
+        dropped: the schedule then counts the requested samples).
         """
         p_film = state.width * state.height
         total_spp = state.budget // p_film
-        if total_spp < 1 and run.n_rounds_seen == 0:
-            raise InputError(self.where, "spp", f"budget of {state.budget} samples is below one sample per "
-                             f"pixel ({p_film} pixels): splatting rounds sample every pixel")
         prev, done = run.prev_spp, run.spp_done
-        if state.lag and state.pending is not None:
+        if state.pending is not None:
             prev = int(state.pending.sum()) / p_film
             done = done + prev
         rem = min(total_spp - int(round(done)), state.remaining // p_film)
@@ -275,13 +287,3 @@ def _arrays(chunks):
     """(positions, values) of each chunk of a sample source."""
     for ch in chunks:
         yield ch.positions, ch.values
-
-
-@dataclasses.dataclass(eq=False)
-class SplatRun(RunState):
-    """Per-run state of :class:`SplatMethod`: the progressive splatter and the round schedule so far."""
-
-    splatter: ProgressiveSplatter | None = None
-    prev_spp: float | None = None
-    spp_done: float = 0.0
-    n_rounds_seen: int = 0
