@@ -106,3 +106,25 @@ def test_batch_literal_name_and_damaged_output_redone(client, shots, tmp_path, c
     cap = capsys.readouterr()
     assert "1 reconstructed" in cap.out and "4x4" in cap.err
     assert exr.read_bytes() == good
+
+
+# ----------------------------------------------------------------- 2. render-log --reference-exr
+def test_render_log_writes_the_stored_reference_as_exr(tmp_path, capsys):
+    from mcrecon.io import read_log
+
+    log, ref = tmp_path / "c.h5", tmp_path / "ref.exr"
+    assert main(["render-log", "--scene", "caustic", "--spp", "2", "--size", "12x8", "-o", str(log),
+                 "--reference-exr", str(ref)]) == 0
+    assert f"wrote {ref}" in capsys.readouterr().out
+    img, channels = read_exr(ref)
+    stored = read_log(log)
+    assert channels == stored.channels
+    assert np.array_equal(img, stored.reference().astype(np.float32))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.h5", "ref.exr"]   # no temporary left
+
+    other = tmp_path / "d.h5"
+    for bad, text in ((str(other), "is the -o sample log"), (str(tmp_path / "r.png"), ".exr")):
+        assert main(["render-log", "--scene", "caustic", "--spp", "2", "--size", "12x8", "-o", str(other),
+                     "--reference-exr", bad]) == 2
+        assert text in _one_line_error(capsys)
+    assert not other.exists()                            # refused before any work

@@ -353,8 +353,17 @@ def _cmd_render_log(args):
     from ..renderers.scenes import get_scene, write_scene_log
 
     w, h = parse_size(args.size)
+    if args.reference_exr is not None:
+        if Path(args.reference_exr).resolve() == Path(args.output).resolve():
+            raise InputError(str(args.reference_exr), "--reference-exr", "is the -o sample log: give another path")
+        check_output(args.reference_exr)
     path = write_scene_log(get_scene(args.scene), args.output, width=w, height=h, spp=args.spp, seed=args.seed)
     print(f"wrote {path}")
+    if args.reference_exr is not None:
+        from ..io import read_log, write_exr
+
+        log = read_log(path)   # the reference exactly as stored in the log
+        print(f"wrote {write_exr(args.reference_exr, log.reference(), channels=log.channels)}")
     return 0
 
 
@@ -549,6 +558,9 @@ def register(sub, command: str | None = None) -> None:
     s.add_argument("--size", default="128x128")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("-o", "--output", required=True)
+    s.add_argument("--reference-exr", default=None, metavar="REF.exr",
+                   help="also write the scene's exact reference (the one stored in the log) as an EXR, "
+                        "e.g. for `mcrecon compare`")
     s.set_defaults(func=_cmd_render_log)
 
     s = sub.add_parser("mitsuba", help="Mitsuba 3 bridge (optional extra): reference images and uniform logs")
