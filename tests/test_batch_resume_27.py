@@ -128,3 +128,38 @@ def test_render_log_writes_the_stored_reference_as_exr(tmp_path, capsys):
                      "--reference-exr", bad]) == 2
         assert text in _one_line_error(capsys)
     assert not other.exists()                            # refused before any work
+
+
+# ----------------------------------------------------------------- 3. resume from another directory
+ROOT = Path(__file__).parents[1]
+
+
+def test_resume_of_a_relative_renderer_command_from_another_directory(tmp_path, capsys, monkeypatch):
+    import sys
+
+    from mcrecon.io import read_log
+    from mcrecon.io.samplelog import set_run_settings
+
+    log = tmp_path / "run.h5"
+    monkeypatch.chdir(ROOT)          # as the README has it: a path relative to the clone
+    cmd = f"{sys.executable} data_tools/example_renderer.py {{request}} {{reply}}"
+    assert main(["adapt", "--renderer-cmd", cmd, "--size", "8x8", "--spp", "8", "--method", "box",
+                 "--log", str(log), "--time-limit", "1e-9", "-o", str(tmp_path / "a.exr"), "--quiet"]) == 0
+    assert "stopped: time_limit" in capsys.readouterr().out
+    spec = read_log(log).run_settings["renderer_spec"]
+    assert spec["argv"][1] == "data_tools/example_renderer.py" and spec["cwd"] == str(ROOT)
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    assert main(["adapt", "--resume", str(log), "--time-limit", "600", "-o", str(tmp_path / "b.exr"),
+                 "--quiet"]) == 0
+    assert "stopped: budget" in capsys.readouterr().out
+    assert read_log(log).n_samples == 8 * 8 * 8
+
+    settings = read_log(log).run_settings            # a recorded directory that is gone: one line
+    settings["renderer_spec"]["cwd"] = str(tmp_path / "gone")
+    set_run_settings(log, settings)
+    assert main(["adapt", "--resume", str(log), "-o", str(tmp_path / "c.exr"), "--quiet"]) == 2
+    err = _one_line_error(capsys)
+    assert "renderer_spec.cwd" in err and "gone" in err and "not a directory" in err
