@@ -72,7 +72,8 @@ class AdaptiveResult:
     rounds : list of dict
         Per round: ``round``, ``samples`` (this round), ``samples_total``,
         ``renderer_seconds``, ``toolkit_seconds``, ``wall_seconds``
-        (cumulative, renderer + toolkit), ``error`` (relative MSE of the
+        (cumulative run time, over the sessions of a resumed run; renderer +
+        toolkit when sequential, less when pipelined: they overlap), ``error`` (relative MSE of the
         image after the round, when a reference is given) and
         ``eval_seconds`` (time to compute that error, not counted in the
         toolkit time).
@@ -100,6 +101,9 @@ class AdaptiveResult:
     run: RunState
     #: Whether the rounds were pipelined (see :func:`adapt`).
     pipelined: bool = False
+    #: Rounds committed before this call (by the sessions a :func:`resume` continues):
+    #: ``rounds[resumed_rounds:]`` are this session's, those the times below describe.
+    resumed_rounds: int = 0
     #: Wall seconds of the adaptive loop (first request to last commit; the final
     #: image is not part of it) and the part of them the renderer was not
     #: rendering: waiting for a plan or a commit (this process's rounds only).
@@ -705,6 +709,7 @@ def _run(renderer, method, run, *, stats, rounds, round_index, budget, seed, log
                  ref=ref, track_error=track_error, eps=eps, budget=budget, storage_dtype=storage_dtype,
                  wall=lambda: time.perf_counter() - clock["wall_start"], timeline=timeline)
     acct = {"render": 0.0, "cpu": 0.0, "timeline": timeline}
+    n_before = len(rounds)
     loop_t0 = time.perf_counter()
     try:
         loop = _loop_pipelined if pipeline else _loop_sequential
@@ -721,6 +726,7 @@ def _run(renderer, method, run, *, stats, rounds, round_index, budget, seed, log
     eval_s = sum(float(r.get("eval_seconds", 0.0)) for r in rounds[len(rounds) - acct.get("new", 0):])
     return AdaptiveResult(image=np.asarray(image, dtype=np.float64), stats=stats, rounds=rounds,
                           stopped=stopped, log=log_path, method=method, run=run, pipelined=bool(pipeline),
+                          resumed_rounds=n_before,
                           loop_seconds=loop_s - eval_s, idle_seconds=max(loop_s - eval_s - acct["render"], 0.0),
                           toolkit_cpu_seconds=acct["cpu"] + sum(e["cpu"] for e in timeline.events
                                                                  if e.get("helper")),

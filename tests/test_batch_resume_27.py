@@ -163,3 +163,48 @@ def test_resume_of_a_relative_renderer_command_from_another_directory(tmp_path, 
     assert main(["adapt", "--resume", str(log), "-o", str(tmp_path / "c.exr"), "--quiet"]) == 2
     err = _one_line_error(capsys)
     assert "renderer_spec.cwd" in err and "gone" in err and "not a directory" in err
+
+
+# ----------------------------------------------------------------- 4. the run summary's times
+_TIMES = r"time (?P<t>[\d.]+) s \(renderer (?P<r>[\d.]+) s, (?:toolkit (?P<k>[\d.]+) s\)|waiting for the " \
+         r"toolkit (?P<w>[\d.]+) s; toolkit (?P<kp>[\d.]+) s, overlapping the renderer\))"
+_ROUNDING = 0.005   # each printed figure is rounded to 2 decimals
+
+
+def _times(out: str) -> dict:
+    import re
+
+    m = re.search(_TIMES, out)
+    assert m, out
+    return {k: float(v) for k, v in m.groupdict().items() if v is not None}
+
+
+@pytest.mark.parametrize("pipe", ["--no-pipeline", "--pipeline"])
+def test_run_summary_parts_never_exceed_the_whole(tmp_path, capsys, pipe):
+    assert main(["adapt", "--scene", "soft_shadow", "--size", "16x16", "--spp", "32", "--method", "box", pipe,
+                 "-o", str(tmp_path / "a.exr"), "--quiet"]) == 0
+    t = _times(capsys.readouterr().out)
+    if pipe == "--pipeline":   # the renderer's time and its waits are the loop; the toolkit overlaps them
+        assert t["r"] + t["w"] <= t["t"] + 3 * _ROUNDING and t["kp"] <= t["t"] + 2 * _ROUNDING
+    else:
+        assert "k" in t and t["r"] + t["k"] <= t["t"] + 3 * _ROUNDING
+
+
+def test_resumed_run_summary_gives_this_sessions_times(tmp_path, capsys):
+    from mcrecon.driver import adapt
+    from mcrecon.io import read_log
+    from mcrecon.io.samplelog import update_round_record
+    from mcrecon.renderers import renderer_from_spec, scene_spec
+
+    log = tmp_path / "r.h5"
+    spec = scene_spec("soft_shadow", width=16, height=16)
+    adapt(renderer_from_spec(spec), "box", spp=32, log=log, renderer_spec=spec, max_rounds=2, progress=False,
+          pipeline=False)
+    # the earlier session rendered for 100 s (a slow renderer): its rounds are not this session's time
+    last = read_log(log).round_records[-1]
+    update_round_record(log, {**last, "renderer_seconds": 100.0})
+    assert main(["adapt", "--resume", str(log), "-o", str(tmp_path / "b.exr"), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    t = _times(out)
+    assert t["r"] + t["k"] <= t["t"] + 3 * _ROUNDING
+    assert "before this resume: 2 round(s), renderer 10" in out   # named apart: 100 s and the round before

@@ -213,6 +213,28 @@ def _print_sanity(s) -> None:
           + (f", {s['nonfinite_pixels']} non-finite" if s["nonfinite_pixels"] else ""))
 
 
+def _run_times(res, t_total) -> str:
+    """This session's wall time and its parts, which never add up to more than it.
+
+    The parts are this session's rounds only (a resume's earlier sessions are
+    named apart); pipelined, the renderer renders while the toolkit works, so
+    the renderer's time is given with the time it waited for the toolkit.
+    """
+    new, old = res.rounds[res.resumed_rounds:], res.rounds[:res.resumed_rounds]
+    r = sum(float(x["renderer_seconds"]) for x in new)
+    k = sum(float(x["toolkit_seconds"]) for x in new)
+    if res.pipelined:
+        text = (f"time {t_total:.2f} s (renderer {r:.2f} s, waiting for the toolkit {res.idle_seconds:.2f} s; "
+                f"toolkit {k:.2f} s, overlapping the renderer)")
+    else:
+        text = f"time {t_total:.2f} s (renderer {r:.2f} s, toolkit {k:.2f} s)"
+    if old:
+        text += (f"; before this resume: {len(old)} round(s), renderer "
+                 f"{sum(float(x['renderer_seconds']) for x in old):.2f} s, toolkit "
+                 f"{sum(float(x['toolkit_seconds']) for x in old):.2f} s")
+    return text
+
+
 def _report_run(res, ref, t_total) -> None:
     from ..metrics import relative_mse
 
@@ -221,8 +243,7 @@ def _report_run(res, ref, t_total) -> None:
     w, h = res.stats.width, res.stats.height
     msg = (f"{res.method.name}: {len(res.rounds)} round(s), {n} samples ({n / (w * h):.2f} spp"
            + (f", {res.samples_dropped} non-finite dropped" if res.samples_dropped else "")
-           + f"), stopped: {res.stopped}; time {t_total:.2f} s (renderer {res.renderer_seconds:.2f} s, "
-           f"toolkit {res.toolkit_seconds:.2f} s)")
+           + f"), stopped: {res.stopped}; " + _run_times(res, t_total))
     if ref is not None:
         msg += f"; relative MSE {relative_mse(res.image, ref):.6g}"
     print(msg)
