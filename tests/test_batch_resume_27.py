@@ -208,3 +208,42 @@ def test_resumed_run_summary_gives_this_sessions_times(tmp_path, capsys):
     t = _times(out)
     assert t["r"] + t["k"] <= t["t"] + 3 * _ROUNDING
     assert "before this resume: 2 round(s), renderer 10" in out   # named apart: 100 s and the round before
+
+
+# ----------------------------------------------------------------- 5. progress of --renderer-cmd runs
+def test_renderer_cmd_run_shows_per_round_progress_when_asked(tmp_path, capsys):
+    import sys
+
+    example = ROOT / "data_tools" / "example_renderer.py"
+    cmd = f"{sys.executable} {example} {{request}} {{reply}}"
+    # awr renders its 16 spp in one round: the progress must say so while it renders, not only after
+    argv = ["adapt", "--renderer-cmd", cmd, "--size", "8x8", "--spp", "16", "--method", "awr",
+            "-o", str(tmp_path / "a.exr")]
+    assert main(argv + ["--progress"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    starts = [i for i, line in enumerate(err) if "round 0: rendering 1024 samples" in line]
+    ends = [i for i, line in enumerate(err) if "round 0  1024 samples" in line]
+    assert starts and ends and starts[0] < ends[0], err
+    assert all("\r" not in line for line in err)          # not a terminal: plain lines
+    for quiet in ("--no-progress", "--quiet"):
+        assert main(argv + [quiet]) == 0
+        assert "round 0" not in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(argv + ["--progress", "--quiet"])
+
+
+def test_progress_is_on_by_default_on_a_terminal(tmp_path, monkeypatch):
+    import io
+    import sys
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    term = Terminal()
+    monkeypatch.setattr(sys, "stderr", term)
+    cmd = f"{sys.executable} {ROOT / 'data_tools' / 'example_renderer.py'} {{request}} {{reply}}"
+    assert main(["adapt", "--renderer-cmd", cmd, "--size", "8x8", "--spp", "16", "--method", "awr",
+                 "-o", str(tmp_path / "a.exr")]) == 0
+    text = term.getvalue()
+    assert "round 0: rendering 1024 samples" in text and "\r[" in text   # said while round 0 renders

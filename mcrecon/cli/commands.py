@@ -201,7 +201,7 @@ def _refuse_run_flags(args) -> None:
     if ignored:
         raise InputError(str(args.resume), "resume", f"{', '.join(ignored)} cannot change a recorded run; "
                          "a resumed run keeps its settings (only --time-limit, -o, --png, --diagnostics, "
-                         "--quiet apply)")
+                         "--progress/--no-progress/--quiet apply)")
 
 
 def _print_sanity(s) -> None:
@@ -255,7 +255,7 @@ def _cmd_adapt(args):
     from ..io import read_log
 
     check_output(args.output, args.png)
-    progress = None if not args.quiet else False
+    progress = args.progress
     if args.resume:
         _refuse_run_flags(args)
         t0 = time.perf_counter()
@@ -534,7 +534,12 @@ def register(sub, command: str | None = None) -> None:
                       help="strictly sequential rounds")
     s.add_argument("--rounds-json", default=None, metavar="FILE",
                    help="write per-round samples, renderer/toolkit seconds and (with a reference) the error")
-    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    prog = s.add_mutually_exclusive_group()
+    prog.add_argument("--progress", dest="progress", action="store_const", const=True, default=None,
+                      help="per-round progress on stderr even when it is not a terminal (one line per event; "
+                           "default: on a terminal only)")
+    prog.add_argument("--no-progress", "--quiet", dest="progress", action="store_const", const=False,
+                      help="no progress on stderr")
     _outputs(s)
     s.set_defaults(func=_cmd_adapt)
 
