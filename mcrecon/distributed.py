@@ -143,6 +143,19 @@ def local_client(workers: int | None = None, *, threads: int | None = None):
         cluster.close()
 
 
+def _local_workers(workers: int | None, frames: int) -> int:
+    """Workers of a local cluster for ``frames`` frames: never more than the frames or the cores
+    (each extra worker is an idle process of a few hundred MB; a million of them never start)."""
+    cores = _cores()
+    if workers is not None and (isinstance(workers, bool) or int(workers) != workers or workers < 1):
+        raise InputError("batch", "workers", f"{workers!r}, expected a positive integer")
+    n = min(cores if workers is None else int(workers), max(frames, 1), cores)
+    if workers is not None and n < workers:
+        warnings.warn(f"batch: {workers} workers capped at {n} ({frames} frame(s) to reconstruct, "
+                      f"{cores} core(s))", McreconWarning, stacklevel=3)
+    return n
+
+
 @contextlib.contextmanager
 def _client_for(client=None, scheduler: str | None = None, workers: int | None = None):
     if client is not None:
@@ -245,7 +258,9 @@ def _expand(paths) -> list[Path]:
     out = []
     for p in paths:
         s = str(p)
-        if any(ch in s for ch in "*?["):
+        # a name that exists is that file, even if it holds glob characters ('shot[1].h5'):
+        # globbing it could pick a neighbour ('shot1.h5') or nothing
+        if any(ch in s for ch in "*?[") and not os.path.isfile(s):
             hits = sorted(glob.glob(s))
             if not hits:
                 raise InputError(s, "logs", "the pattern matches no file")
@@ -277,17 +292,50 @@ def _previous(json_path: Path) -> dict:
         return {}
 
 
+def _damaged_output(log: Path, out: Path) -> str | None:
+    """Why an existing output EXR is not this log's image (None when its header fits the log).
+
+    The EXR is published atomically, but a file can still be truncated or
+    replaced afterwards (a full disk, a copy that stopped): its header is read
+    (cheap, no pixels) and its size and channel count checked against the log's.
+    """
+    import OpenEXR
+
+    from .io import read_log
+
+    try:
+        h = OpenEXR.File(str(out), header_only=True).header()
+        (x0, y0), (x1, y1) = (tuple(int(v) for v in c) for c in h["dataWindow"])
+        n_channels = len(h["channels"])
+    except Exception as exc:  # noqa: BLE001 -- any failure to read the header is damage
+        return f"not a readable EXR ({' '.join(str(exc).split()) or type(exc).__name__})"
+    try:
+        log = read_log(log)
+    except InputError:
+        return None   # the frame fails on its own, with the log's error
+    got, want = (x1 - x0 + 1, y1 - y0 + 1, n_channels), (log.width, log.height, len(log.channels))
+    if got != want:
+        return f"{got[0]}x{got[1]} with {got[2]} channel(s), the log is {want[0]}x{want[1]} with {want[2]}"
+    return None
+
+
 def _up_to_date(log: Path, out: Path, prev: dict | None, config: dict) -> bool:
     try:
-        if not out.is_file() or out.stat().st_size == 0:
+        if not out.is_file():
             return False
         if out.stat().st_mtime_ns < log.stat().st_mtime_ns:
             return False
     except OSError:
         return False
-    # the EXR is published atomically: it exists only complete; it must also
-    # have been made by this method configuration (when a summary says so)
-    return prev is None or prev.get("config") in (None, config)
+    # it must have been made by this method configuration (when a summary says so)
+    if prev is not None and prev.get("config") not in (None, config):
+        return False
+    damage = _damaged_output(log, out)
+    if damage is not None:
+        warnings.warn(f"{out}: existing output is damaged ({damage}): reconstructing it again",
+                      McreconWarning, stacklevel=3)
+        return False
+    return True
 
 
 class _Progress:
@@ -392,6 +440,8 @@ def denoise_many(paths, *, method="box", out_dir, client=None, scheduler: str | 
     bar = _Progress(len(todo), progress)
     if todo:
         distributed = _dask()
+        if client is None and scheduler is None:
+            workers = _local_workers(workers, len(todo))
         with _client_for(client, scheduler, workers) as c:
             futures = {}
             for i, p, out in todo:

@@ -76,7 +76,8 @@ class AdaptiveResult:
     rounds : list of dict
         Per round: ``round``, ``samples`` (this round), ``samples_total``,
         ``renderer_seconds``, ``toolkit_seconds``, ``wall_seconds``
-        (cumulative, renderer + toolkit), ``error`` (relative MSE of the
+        (cumulative run time, over the sessions of a resumed run; renderer +
+        toolkit when sequential, less when pipelined: they overlap), ``error`` (relative MSE of the
         image after the round, when a reference is given) and
         ``eval_seconds`` (time to compute that error, not counted in the
         toolkit time).
@@ -104,6 +105,9 @@ class AdaptiveResult:
     run: RunState
     #: Whether the rounds were pipelined (see :func:`adapt`).
     pipelined: bool = False
+    #: Rounds committed before this call (by the sessions a :func:`resume` continues):
+    #: ``rounds[resumed_rounds:]`` are this session's, those the times below describe.
+    resumed_rounds: int = 0
     #: Wall seconds of the adaptive loop (first request to last commit; the final
     #: image is not part of it) and the part of them the renderer was not
     #: rendering: waiting for a plan or a commit (this process's rounds only).
@@ -169,20 +173,35 @@ def round_seeds(seed: int, round_index: int) -> tuple[np.random.Generator, int]:
 
 
 class _Progress:
-    def __init__(self, enabled: bool | None, budget: int):
-        self.enabled = sys.stderr.isatty() if enabled is None else bool(enabled)
-        self.budget = max(budget, 1)
+    """Per-round progress on stderr: one line redrawn on a terminal, a line per event otherwise (forced on)."""
 
-    def update(self, n: int, rnd: int, wall: float):
-        if not self.enabled:
-            return
-        frac = min(n / self.budget, 1.0)
-        bar = "#" * int(30 * frac)
-        sys.stderr.write(f"\r[{bar:<30}] {100 * frac:5.1f}%  round {rnd}  {n} samples  {wall:6.1f} s")
+    def __init__(self, enabled: bool | None, budget: int):
+        tty = sys.stderr.isatty()
+        self.enabled = tty if enabled is None else bool(enabled)
+        self.tty = tty
+        self.budget = max(budget, 1)
+        self.n, self.wall = 0, 0.0
+
+    def _write(self, text: str):
+        sys.stderr.write(f"\r{text}\033[K" if self.tty else f"{text}\n")
         sys.stderr.flush()
 
-    def close(self):
+    def _bar(self, n: int) -> str:
+        frac = min(n / self.budget, 1.0)
+        return f"[{'#' * int(30 * frac):<30}] {100 * frac:5.1f}%"
+
+    def rendering(self, rnd: int, samples: int):
+        # said when a round starts: a long round (or a run of one round) is not silent until its end
         if self.enabled:
+            self._write(f"{self._bar(self.n)}  round {rnd}: rendering {samples} samples  ({self.wall:.1f} s so far)")
+
+    def update(self, n: int, rnd: int, wall: float):
+        self.n, self.wall = n, wall
+        if self.enabled:
+            self._write(f"{self._bar(n)}  round {rnd}  {n} samples  {wall:6.1f} s")
+
+    def close(self):
+        if self.enabled and self.tty:
             sys.stderr.write("\n")
             sys.stderr.flush()
 
@@ -708,8 +727,10 @@ def _run(renderer, method, run, *, stats, rounds, round_index, budget, seed, log
     rnd = _Round(method, run, stats, name=name, c=len(stats.channels), log_path=log_path, nonfinite=nonfinite,
                  ref=ref, track_error=track_error, eps=eps, budget=budget, storage_dtype=storage_dtype,
                  wall=lambda: time.perf_counter() - clock["wall_start"], timeline=timeline)
-    acct = {"render": 0.0, "cpu": 0.0, "timeline": timeline,
+    acct = {"render": 0.0, "cpu": 0.0, "timeline": timeline, "bar": bar,
             "initial_rounds": _initial_rounds(method, pipeline, budget, stats.width * stats.height)}
+    bar.n, bar.wall = _committed(stats), elapsed
+    n_before = len(rounds)
     loop_t0 = time.perf_counter()
     try:
         loop = _loop_pipelined if pipeline else _loop_sequential
@@ -726,6 +747,7 @@ def _run(renderer, method, run, *, stats, rounds, round_index, budget, seed, log
     eval_s = sum(float(r.get("eval_seconds", 0.0)) for r in rounds[len(rounds) - acct.get("new", 0):])
     return AdaptiveResult(image=np.asarray(image, dtype=np.float64), stats=stats, rounds=rounds,
                           stopped=stopped, log=log_path, method=method, run=run, pipelined=bool(pipeline),
+                          resumed_rounds=n_before,
                           loop_seconds=loop_s - eval_s, idle_seconds=max(loop_s - eval_s - acct["render"], 0.0),
                           toolkit_cpu_seconds=acct["cpu"] + sum(e["cpu"] for e in timeline.events
                                                                  if e.get("helper")),
@@ -742,6 +764,7 @@ def _render(renderer, req, acct):
     check_memory("adapt", "spp", 32.0 * req.total * (2 + len(renderer.channels)),
                  f"round {req.round_index}'s {req.total} samples",
                  "lower the budget (--spp); the rounds committed before are in the log")
+    acct["bar"].rendering(req.round_index, req.total)
     t1 = time.perf_counter()
     reply = renderer.render(req)
     t2 = time.perf_counter()

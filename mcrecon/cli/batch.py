@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 
 from ._common import HelpFormatter, add_method_options, finite_float, make_method, method_flags
@@ -16,8 +17,6 @@ def _cmd_batch(args):
     if args.workers is not None and args.scheduler is not None:
         raise InputError("batch", "--workers/--scheduler", "give one: --workers N starts a local cluster, "
                          "--scheduler ADDRESS uses a running one")
-    if args.workers is not None and args.workers < 1:
-        raise InputError("batch", "--workers", f"{args.workers}, expected a positive integer")
     method = make_method(args.method, args, args.method_flags)
     res = denoise_many(args.logs, method=method, out_dir=args.out_dir, scheduler=args.scheduler,
                        workers=args.workers, nonfinite=args.nonfinite, force=args.force, png=args.png,
@@ -33,6 +32,17 @@ def _cmd_batch(args):
     return 2 if res.failed else 0
 
 
+def _positive_int(text: str) -> int:
+    """An argparse type: an integer >= 1."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid integer: {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a positive integer")
+    return n
+
+
 def register(sub, command: str | None = None) -> None:
     """Add ``mcrecon batch`` to the ``mcrecon`` sub-command parser (its method flags only when
     ``command`` is ``batch`` or None: they need every method class)."""
@@ -40,14 +50,17 @@ def register(sub, command: str | None = None) -> None:
                        formatter_class=HelpFormatter,
                        description="Reconstruct every log into OUT_DIR/<log name>.exr exactly as `mcrecon denoise` "
                                    "would, on a local Dask cluster (--workers) or a running scheduler "
-                                   "(--scheduler). A rerun skips frames whose EXR is newer than the log; a failing "
+                                   "(--scheduler). A rerun skips frames whose EXR is newer than the log and readable (its header "
+                                   "fits the log); a failing "
                                    "frame is reported and the others complete (exit status 2). Writes "
                                    "OUT_DIR/batch_summary.csv and .json. Needs the dask extra: "
                                    "pip install 'mcrecon[dask]'.")
-    s.add_argument("logs", nargs="+", metavar="LOG", help="sample logs or glob patterns (quote them: 'frames/*.h5')")
+    s.add_argument("logs", nargs="+", metavar="LOG", help="sample logs or glob patterns (quote them: 'frames/*.h5'); a name that "
+                        "exists is that file, literally")
     s.add_argument("--out-dir", required=True, metavar="DIR", help="output directory (shared with the workers)")
-    s.add_argument("--workers", type=int, default=None, metavar="N",
-                   help="worker processes of the local cluster (default: the cores)")
+    s.add_argument("--workers", type=_positive_int, default=None, metavar="N",
+                   help="worker processes of the local cluster (default and at most: the cores, "
+                        "and no more than the frames)")
     s.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="a running Dask scheduler, e.g. tcp://10.0.0.1:8786 (workers need mcrecon and the files)")
     s.add_argument("--force", action="store_true", help="reconstruct up-to-date frames too")

@@ -201,7 +201,7 @@ def _refuse_run_flags(args) -> None:
     if ignored:
         raise InputError(str(args.resume), "resume", f"{', '.join(ignored)} cannot change a recorded run; "
                          "a resumed run keeps its settings (only --time-limit, -o, --png, --diagnostics, "
-                         "--quiet apply)")
+                         "--progress/--no-progress/--quiet apply)")
 
 
 def _print_sanity(s) -> None:
@@ -213,6 +213,28 @@ def _print_sanity(s) -> None:
           + (f", {s['nonfinite_pixels']} non-finite" if s["nonfinite_pixels"] else ""))
 
 
+def _run_times(res, t_total) -> str:
+    """This session's wall time and its parts, which never add up to more than it.
+
+    The parts are this session's rounds only (a resume's earlier sessions are
+    named apart); pipelined, the renderer renders while the toolkit works, so
+    the renderer's time is given with the time it waited for the toolkit.
+    """
+    new, old = res.rounds[res.resumed_rounds:], res.rounds[:res.resumed_rounds]
+    r = sum(float(x["renderer_seconds"]) for x in new)
+    k = sum(float(x["toolkit_seconds"]) for x in new)
+    if res.pipelined:
+        text = (f"time {t_total:.2f} s (renderer {r:.2f} s, waiting for the toolkit {res.idle_seconds:.2f} s; "
+                f"toolkit {k:.2f} s, overlapping the renderer)")
+    else:
+        text = f"time {t_total:.2f} s (renderer {r:.2f} s, toolkit {k:.2f} s)"
+    if old:
+        text += (f"; before this resume: {len(old)} round(s), renderer "
+                 f"{sum(float(x['renderer_seconds']) for x in old):.2f} s, toolkit "
+                 f"{sum(float(x['toolkit_seconds']) for x in old):.2f} s")
+    return text
+
+
 def _report_run(res, ref, t_total) -> None:
     from ..metrics import relative_mse
 
@@ -221,8 +243,7 @@ def _report_run(res, ref, t_total) -> None:
     w, h = res.stats.width, res.stats.height
     msg = (f"{res.method.name}: {len(res.rounds)} round(s), {n} samples ({n / (w * h):.2f} spp"
            + (f", {res.samples_dropped} non-finite dropped" if res.samples_dropped else "")
-           + f"), stopped: {res.stopped}; time {t_total:.2f} s (renderer {res.renderer_seconds:.2f} s, "
-           f"toolkit {res.toolkit_seconds:.2f} s)")
+           + f"), stopped: {res.stopped}; " + _run_times(res, t_total))
     if ref is not None:
         msg += f"; relative MSE {relative_mse(res.image, ref):.6g}"
     print(msg)
@@ -234,7 +255,7 @@ def _cmd_adapt(args):
     from ..io import read_log
 
     check_output(args.output, args.png)
-    progress = None if not args.quiet else False
+    progress = args.progress
     if args.resume:
         _refuse_run_flags(args)
         t0 = time.perf_counter()
@@ -353,8 +374,17 @@ def _cmd_render_log(args):
     from ..renderers.scenes import get_scene, write_scene_log
 
     w, h = parse_size(args.size)
+    if args.reference_exr is not None:
+        if Path(args.reference_exr).resolve() == Path(args.output).resolve():
+            raise InputError(str(args.reference_exr), "--reference-exr", "is the -o sample log: give another path")
+        check_output(args.reference_exr)
     path = write_scene_log(get_scene(args.scene), args.output, width=w, height=h, spp=args.spp, seed=args.seed)
     print(f"wrote {path}")
+    if args.reference_exr is not None:
+        from ..io import read_log, write_exr
+
+        log = read_log(path)   # the reference exactly as stored in the log
+        print(f"wrote {write_exr(args.reference_exr, log.reference(), channels=log.channels)}")
     return 0
 
 
@@ -504,7 +534,12 @@ def register(sub, command: str | None = None) -> None:
                       help="strictly sequential rounds")
     s.add_argument("--rounds-json", default=None, metavar="FILE",
                    help="write per-round samples, renderer/toolkit seconds and (with a reference) the error")
-    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    prog = s.add_mutually_exclusive_group()
+    prog.add_argument("--progress", dest="progress", action="store_const", const=True, default=None,
+                      help="per-round progress on stderr even when it is not a terminal (one line per event; "
+                           "default: on a terminal only)")
+    prog.add_argument("--no-progress", "--quiet", dest="progress", action="store_const", const=False,
+                      help="no progress on stderr")
     _outputs(s)
     s.set_defaults(func=_cmd_adapt)
 
@@ -549,6 +584,9 @@ def register(sub, command: str | None = None) -> None:
     s.add_argument("--size", default="128x128")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("-o", "--output", required=True)
+    s.add_argument("--reference-exr", default=None, metavar="REF.exr",
+                   help="also write the scene's exact reference (the one stored in the log) as an EXR, "
+                        "e.g. for `mcrecon compare`")
     s.set_defaults(func=_cmd_render_log)
 
     s = sub.add_parser("mitsuba", help="Mitsuba 3 bridge (optional extra): reference images and uniform logs")

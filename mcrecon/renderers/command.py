@@ -206,10 +206,13 @@ class CommandRenderer:
         directory ``mcrecon-renderer-PID-XXXX``, removed when the renderer
         is collected; those left by killed processes are removed by the
         next CommandRenderer).  They are removed after each successful round.
+    cwd : path-like, optional
+        The directory the command runs in (default: the current one).
     """
 
     def __init__(self, argv: Sequence[str], *, width: int, height: int,
-                 channels: Sequence[str] = ("R", "G", "B"), timeout: float | None = 600.0, workdir=None):
+                 channels: Sequence[str] = ("R", "G", "B"), timeout: float | None = 600.0, workdir=None,
+                 cwd=None):
         argv = [str(a) for a in argv]
         if not argv:
             raise InputError("renderer command", "argv", "empty")
@@ -227,7 +230,8 @@ class CommandRenderer:
         if workdir is None:
             remove_stale_workdirs()
             workdir = tempfile.mkdtemp(prefix=f"{WORKDIR_PREFIX}{os.getpid()}-")
-        self.workdir = Path(workdir)
+        self.workdir = Path(workdir).absolute()   # the command may run elsewhere (cwd)
+        self.cwd = None if cwd is None else str(cwd)
         self.workdir.mkdir(parents=True, exist_ok=True)
         self.name = f"renderer command {Path(argv[0]).name}"
         self.last_render_seconds = None
@@ -250,7 +254,7 @@ class CommandRenderer:
         t0 = time.perf_counter()
         try:
             proc = subprocess.run(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                  timeout=self.timeout, shell=False, check=False)
+                                  timeout=self.timeout, shell=False, check=False, cwd=self.cwd)
         except FileNotFoundError:
             raise RendererError(self.name, "command", f"{argv[0]!r} not found") from None
         except PermissionError:

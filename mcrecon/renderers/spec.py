@@ -7,7 +7,8 @@ without being told what it was.  Three kinds exist::
 
     {"kind": "scene",   "scene": NAME, "width": W, "height": H, "seed": S}
     {"kind": "command", "argv": [...], "width": W, "height": H,
-                        "channels": [...], "timeout": SECONDS or None, "workdir": DIR or None}
+                        "channels": [...], "timeout": SECONDS or None, "workdir": DIR or None,
+                        "cwd": DIR or None}
     {"kind": "mitsuba", "scene": XML or None (the Cornell box), "width": W, "height": H}
 
 :func:`scene_spec`, :func:`command_spec` and :func:`mitsuba_spec` write
@@ -27,6 +28,7 @@ Example
 from __future__ import annotations
 
 import numbers
+import os
 from typing import Any, Mapping, Sequence
 
 from ..errors import InputError
@@ -37,7 +39,7 @@ __all__ = ["KINDS", "scene_spec", "command_spec", "mitsuba_spec", "check_spec", 
 #: The renderer kinds a spec can name, with their required and optional keys.
 KINDS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "scene": (("scene", "width", "height"), ("seed",)),
-    "command": (("argv", "width", "height"), ("channels", "timeout", "workdir")),
+    "command": (("argv", "width", "height"), ("channels", "timeout", "workdir", "cwd")),
     "mitsuba": (("width", "height"), ("scene",)),
 }
 
@@ -49,16 +51,27 @@ def scene_spec(scene: str, *, width: int, height: int, seed: int = 0) -> dict:
 
 
 def command_spec(argv: Sequence[str], *, width: int, height: int, channels: Sequence[str] = ("R", "G", "B"),
-                 timeout: float | None = 600.0, workdir=None) -> dict:
-    """The spec of an external renderer command (:class:`mcrecon.renderers.command.CommandRenderer`)."""
+                 timeout: float | None = 600.0, workdir=None, cwd=None) -> dict:
+    """The spec of an external renderer command (:class:`mcrecon.renderers.command.CommandRenderer`).
+
+    ``cwd`` (default: the current directory, now) is where the command runs,
+    recorded as an absolute path: the relative paths of ``argv``
+    (``data_tools/example_renderer.py``), and those the renderer opens
+    itself, mean the same when the run is resumed from another directory.
+    The program is still looked up on ``PATH`` (``python``) unless it is a
+    path (``./render``, relative to ``cwd``).  ``workdir`` is recorded as an
+    absolute path too.
+    """
     return check_spec({"kind": "command", "argv": list(argv), "width": width, "height": height,
                        "channels": list(channels), "timeout": timeout,
-                       "workdir": None if workdir is None else str(workdir)})
+                       "workdir": None if workdir is None else os.path.abspath(workdir),
+                       "cwd": os.path.abspath(os.getcwd() if cwd is None else cwd)})
 
 
 def mitsuba_spec(scene=None, *, width: int, height: int) -> dict:
-    """The spec of a Mitsuba 3 scene file, or of the built-in Cornell box for None."""
-    return check_spec({"kind": "mitsuba", "scene": None if scene is None else str(scene),
+    """The spec of a Mitsuba 3 scene file (recorded as an absolute path, so a resume from another
+    directory finds it), or of the built-in Cornell box for None."""
+    return check_spec({"kind": "mitsuba", "scene": None if scene is None else os.path.abspath(scene),
                        "width": width, "height": height})
 
 
@@ -140,6 +153,9 @@ def check_spec(spec: Any, *, where: str = "renderer spec", field: str = "rendere
             raise bad("timeout", "seconds > 0 or null (no time-out)")
         out["timeout"] = None if timeout is None else float(timeout)
         out["workdir"] = text_or_none("workdir")
+        out["cwd"] = cwd = text_or_none("cwd")   # None (a spec without it): the current directory
+        if cwd is not None and not os.path.isabs(cwd):
+            raise bad("cwd", "an absolute directory (the one the run's command ran in) or null")
     else:
         out["scene"] = text_or_none("scene")
     return out
@@ -157,8 +173,12 @@ def renderer_from_spec(spec, *, where: str = "renderer spec", field: str = "rend
     if kind == "command":
         from .command import CommandRenderer
 
+        if spec["cwd"] is not None and not os.path.isdir(spec["cwd"]):
+            raise InputError(where, f"{field}.cwd", f"{spec['cwd']!r} is not a directory: the command ran there "
+                             "and its relative paths are relative to it; restore it, or resume in Python "
+                             "with resume(log, CommandRenderer(..., cwd=DIR))")
         return CommandRenderer(spec["argv"], width=w, height=h, channels=tuple(spec["channels"]),
-                               timeout=spec["timeout"], workdir=spec["workdir"])
+                               timeout=spec["timeout"], workdir=spec["workdir"], cwd=spec["cwd"])
     from .mitsuba import MitsubaRenderer
 
     return MitsubaRenderer(spec["scene"], width=w, height=h)
