@@ -81,6 +81,7 @@ import numpy as np
 
 from ..errors import InputError, McreconWarning
 from ..stats import PixelStats
+from .images import subsampled
 
 __all__ = ["LAYOUTS", "PixelStatsEXR", "read_pixel_stats_exr", "read_half_buffer_exrs", "check_method",
            "pixel_stats_options", "HALF_MAX", "MITSUBA_XYZ_TO_SRGB", "xyz_from_rgb_matrix"]
@@ -160,16 +161,9 @@ class _EXR:
     """The channels (float arrays, with their stored dtype) and header of one EXR."""
 
     def __init__(self, path: Path):
-        import OpenEXR
+        from .images import open_exr
 
-        if not path.exists():
-            raise InputError(str(path), "file", "does not exist")
-        try:
-            f = OpenEXR.File(str(path), separate_channels=True)
-            self.arrays = {name: np.asarray(ch.pixels) for name, ch in f.channels().items()}
-            self.header = dict(f.header())
-        except Exception as exc:
-            raise InputError(str(path), "file", f"not a readable EXR image ({exc})") from None
+        self.arrays, self.sampling, self.header = open_exr(path)
         self.path = path
         self.names = tuple(sorted(self.arrays))
 
@@ -185,6 +179,7 @@ class _EXR:
             raise InputError(str(self.path), field, f"channel {missing[0]!r} missing"
                              + (f" (and {', '.join(missing[1:])})" if len(missing) > 1 else "")
                              + f"; channels present: {self.present()}")
+        subsampled(self.path, self.sampling, names)
         arrs = [self.arrays[n] for n in names]
         half = any(a.dtype == np.float16 for a in arrs)
         return np.stack([a.astype(np.float64) for a in arrs], axis=-1), half
