@@ -114,7 +114,7 @@ def test_degenerate_chromaticities_are_refused(tmp_path, capsys, chrom):
     code, out, err = _cli(["denoise", p, "-o", tmp_path / "o.exr"], capsys)
     _one_line(code, err, str(p), "chromaticities")
     with pytest.raises(InputError, match="chromaticities"):
-        xyz_from_rgb_matrix(chrom)
+        xyz_from_rgb_matrix(tuple(zip(chrom[::2], chrom[1::2])))
 
 
 def _run_folder(tmp_path, rows):

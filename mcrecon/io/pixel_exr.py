@@ -107,16 +107,29 @@ _MITSUBA_SRGB_TO_XYZ = np.array([[0.412453, 0.357580, 0.180423],
 _SRGB_CHROMATICITIES = ((0.64, 0.33), (0.30, 0.60), (0.15, 0.06), (0.3127, 0.3290))
 
 
-def xyz_from_rgb_matrix(chromaticities=_SRGB_CHROMATICITIES) -> np.ndarray:
+def xyz_from_rgb_matrix(chromaticities=_SRGB_CHROMATICITIES, *, where: str = "xyz_from_rgb_matrix",
+                        field: str = "chromaticities") -> np.ndarray:
     """The 3x3 matrix taking linear RGB of the given primaries (red, green, blue, white xy) to XYZ.
 
     The standard construction (white maps to Y = 1), as pbrt-v4's
-    ``RGBColorSpace`` builds its ``XYZFromRGB``.
+    ``RGBColorSpace`` builds its ``XYZFromRGB``.  Chromaticities that
+    define no colour space (a y of 0, primaries on one line) are an
+    :class:`InputError` naming ``where`` and ``field``.
     """
     (rx, ry), (gx, gy), (bx, by), (wx, wy) = chromaticities
+    xy = np.array([rx, ry, gx, gy, bx, by, wx, wy], dtype=np.float64)
+    shown = "(" + ", ".join(f"{v:g}" for v in xy) + ")"
+    if not np.isfinite(xy).all() or not (xy[1::2] != 0).all():  # ACES AP0's blue has y < 0
+        raise InputError(where, field, f"{shown}: every x, y must be finite and every y (red, green, blue, white) nonzero; "
+                         "these define no colour space (the sRGB/Rec. 709 ones are 0.64 0.33 0.3 0.6 0.15 0.06 "
+                         "0.3127 0.329)")
     prim = np.array([[rx / ry, gx / gy, bx / by], [1.0, 1.0, 1.0],
                      [(1 - rx - ry) / ry, (1 - gx - gy) / gy, (1 - bx - by) / by]])
     white = np.array([wx / wy, 1.0, (1 - wx - wy) / wy])
+    # primaries on one line (or one point) span no 3-D colour space: no matrix to XYZ exists
+    if not np.linalg.cond(prim) < 1e12:
+        raise InputError(where, field, f"{shown}: the red, green and blue primaries lie on one line (or "
+                         "coincide), so they span no colour space; write the file's real primaries")
     return prim * np.linalg.solve(prim, white)[None, :]
 
 
@@ -295,6 +308,8 @@ def _file_chromaticities(exr: _EXR):
         return _SRGB_CHROMATICITIES
     try:
         v = [float(x) for x in np.asarray(c, dtype=np.float64).ravel()]
+        if len(v) != 8:
+            raise ValueError(len(v))
         return ((v[0], v[1]), (v[2], v[3]), (v[4], v[5]), (v[6], v[7]))
     except Exception:
         raise InputError(str(exr.path), "header attribute chromaticities", f"{c!r}: expected 8 numbers "
@@ -391,7 +406,8 @@ def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance
         var, vhalf = exr.get(var_names, "variance")
         _check_finite(exr, var_names, var, n, "variance", vhalf)
         if len(rgb_names) == 3 and len(var_names) == 3:
-            xyz_from_rgb = xyz_from_rgb_matrix(_file_chromaticities(exr))
+            xyz_from_rgb = xyz_from_rgb_matrix(_file_chromaticities(exr), where=where,
+                                               field="header attribute chromaticities")
             m = m_rgb @ xyz_from_rgb.T
             channels = ("X", "Y", "Z")
             out_matrix, out_channels = np.linalg.inv(xyz_from_rgb), tuple(rgb_names)
