@@ -181,7 +181,11 @@ def _renderer_spec(args) -> dict:
 
         return scene_spec(get_scene(args.scene).name, width=w, height=h, seed=args.seed)
     if args.renderer_cmd is not None:
-        argv = shlex.split(args.renderer_cmd)
+        try:
+            argv = shlex.split(args.renderer_cmd)
+        except ValueError as exc:  # an unclosed quote
+            raise InputError("--renderer-cmd", "command", f"{args.renderer_cmd!r}: {str(exc).lower()}; it is split "
+                             "like a shell would (quote words with spaces, close every quote)") from None
         if not argv:
             raise InputError("--renderer-cmd", "command", "empty")
         return command_spec(argv, width=w, height=h, channels=args.channels.split(","), timeout=args.timeout)
