@@ -281,6 +281,20 @@ def _resolve_count(exr: _EXR, count, spp):
                      "attribute): pass --spp N (the samples per pixel the renderer took) or --count CHANNEL")
 
 
+def _check_total(exr: _EXR, n, count_source: str, flag: str) -> None:
+    """Refuse a count whose total over the image exceeds int64, in which the statistics count samples."""
+    pixels = max((a.size for a in exr.arrays.values()), default=0)
+    if np.ndim(n) == 0:
+        if int(n) * pixels > _MAX_COUNT:
+            given = count_source.startswith(flag)  # the flag's number, else the file's attribute
+            raise InputError(flag if given else str(exr.path), flag.lstrip("-") if given else count_source, f"{int(n)} samples per pixel on {pixels} pixels is {int(n) * pixels} "
+                             f"samples, beyond the 2^63 - 1 mcrecon counts: at most {_MAX_COUNT // pixels} "
+                             "samples per pixel on this image")
+    elif float(np.sum(n, dtype=np.float64)) > _MAX_COUNT:
+        raise InputError(str(exr.path), count_source, "the counts add up to more than the 2^63 - 1 samples "
+                         "mcrecon counts")
+
+
 def _mitsuba_prefixes(names) -> list[str]:
     """Integrator names P with P.X/Y/Z and m2_P.X/Y/Z channels (the moment integrator's output)."""
     out = []
@@ -393,6 +407,7 @@ def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance
                              f"moments); channels present: {exr.present()}; pass --layout pbrt-v4|mitsuba-moment "
                              "or the mapping --mean R,G,B --variance ... --count N")
     n, count_source = _resolve_count(exr, count, spp)
+    _check_total(exr, n, count_source, "--spp" if spp is not None else "--count")
     out_matrix, out_channels = None, None
 
     if layout == "pbrt-v4":
@@ -565,6 +580,9 @@ def read_half_buffer_exrs(path_a, path_b, **options) -> tuple[PixelStatsEXR, Pix
     if sa.channels != sb.channels or a.sources != b.sources or a.output_channels != b.output_channels:
         raise InputError(where, "channels", f"the halves differ in channels: "
                          f"{','.join(a.sources['mean'])} vs {','.join(b.sources['mean'])}")
+    if int(sa.count.sum(dtype=np.float64)) + int(sb.count.sum(dtype=np.float64)) > _MAX_COUNT:
+        raise InputError(where, "count", "the two halves hold more than the 2^63 - 1 samples mcrecon counts "
+                         "together: lower --spp/--count")
     ma, mb = a.output_matrix, b.output_matrix
     if (ma is None) != (mb is None) or (ma is not None and not np.allclose(ma, mb, rtol=1e-6, atol=1e-9)):
         raise InputError(where, "chromaticities", "the halves have different colour spaces (their "
