@@ -99,8 +99,6 @@ def _read_pixel_stats_input(args):
     if note is not None:
         method = get_method(method.name, **opts)
     check_method(method, where, half_buffers=pair)
-    if note is not None:
-        sys.stderr.write(f"mcrecon: note: {note}\n")
     read = dict(layout=args.layout, mean=args.mean, variance=args.variance_channels,
                 second_moment=args.second_moment, variance_of=args.variance_of, count=args.count, spp=args.spp)
     if pair:
@@ -111,6 +109,8 @@ def _read_pixel_stats_input(args):
     else:
         pix, other = read_pixel_stats_exr(args.log, **read), None
         count_source, name = pix.count_source, str(args.log)
+    if note is not None:  # after the input is read: a refused input gets its one error line only
+        sys.stderr.write(f"mcrecon: note: {note}\n")
     what = ", ".join(f"{k} {','.join(v)}" for k, v in pix.sources.items())
     space = f"; reconstructed in {','.join(pix.stats.channels)}, written as {','.join(pix.output_channels)}" \
         if pix.output_matrix is not None else ""
