@@ -12,6 +12,7 @@ import os
 import re
 import sys
 import tempfile
+import threading
 import warnings
 from pathlib import Path
 from typing import Sequence
@@ -78,6 +79,9 @@ def write_exr(path, image, *, channels: Sequence[str] | None = None) -> Path:
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 
 
+_FD_LOCK = threading.Lock()
+
+
 @contextlib.contextmanager
 def _quiet_fds():
     """Send what C/C++ code prints to file descriptors 1 and 2 into a temporary file while inside.
@@ -87,7 +91,8 @@ def _quiet_fds():
     Yields the file, whose text is the library's words (for the message).
     """
     saved = []
-    with tempfile.TemporaryFile(mode="w+b") as sink:
+    # one at a time: two threads swapping fds 1/2 would restore each other's sinks
+    with _FD_LOCK, tempfile.TemporaryFile(mode="w+b") as sink:
         for stream in (sys.stdout, sys.stderr):
             with contextlib.suppress(AttributeError, ValueError, OSError):
                 stream.flush()
