@@ -120,9 +120,9 @@ def xyz_from_rgb_matrix(chromaticities=_SRGB_CHROMATICITIES, *, where: str = "xy
     xy = np.array([rx, ry, gx, gy, bx, by, wx, wy], dtype=np.float64)
     shown = "(" + ", ".join(f"{v:g}" for v in xy) + ")"
     if not np.isfinite(xy).all() or not (xy[1::2] != 0).all():  # ACES AP0's blue has y < 0
-        raise InputError(where, field, f"{shown}: every x, y must be finite and every y (red, green, blue, white) nonzero; "
-                         "these define no colour space (the sRGB/Rec. 709 ones are 0.64 0.33 0.3 0.6 0.15 0.06 "
-                         "0.3127 0.329)")
+        raise InputError(where, field, f"{shown}: every x, y must be finite and every y (red, green, blue, "
+                         "white) nonzero; these define no colour space (sRGB / Rec. 709: 0.64 0.33 0.3 0.6 0.15 "
+                         "0.06 0.3127 0.329)")
     prim = np.array([[rx / ry, gx / gy, bx / by], [1.0, 1.0, 1.0],
                      [(1 - rx - ry) / ry, (1 - gx - gy) / gy, (1 - bx - by) / by]])
     white = np.array([wx / wy, 1.0, (1 - wx - wy) / wy])
@@ -287,7 +287,8 @@ def _check_total(exr: _EXR, n, count_source: str, flag: str) -> None:
     if np.ndim(n) == 0:
         if int(n) * pixels > _MAX_COUNT:
             given = count_source.startswith(flag)  # the flag's number, else the file's attribute
-            raise InputError(flag if given else str(exr.path), flag.lstrip("-") if given else count_source, f"{int(n)} samples per pixel on {pixels} pixels is {int(n) * pixels} "
+            raise InputError(flag if given else str(exr.path), flag.lstrip("-") if given else count_source,
+                             f"{int(n)} samples per pixel on {pixels} pixels is {int(n) * pixels} "
                              f"samples, beyond the 2^63 - 1 mcrecon counts: at most {_MAX_COUNT // pixels} "
                              "samples per pixel on this image")
     elif float(np.sum(n, dtype=np.float64)) > _MAX_COUNT:
