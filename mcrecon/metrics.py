@@ -24,7 +24,13 @@ __all__ = ["relative_mse", "relative_mse_map", "mse", "rmse", "psnr", "ssim", "s
 FLIP_INSTALL_HINT = "pip install flip-evaluator"
 
 
-def _pair(img, ref, where="compare"):
+def _pair(img, ref, where="compare", *, names=None, finite_image=False):
+    """Both images as (H, W, C) float64, of one shape, the reference finite.
+
+    ``names``: (image, reference) names for the messages (the files
+    compared), else the roles; ``finite_image`` refuses NaN/Inf in the
+    image too.
+    """
     a = np.asarray(img, dtype=np.float64)
     b = np.asarray(ref, dtype=np.float64)
     if a.ndim == 2:
@@ -32,10 +38,18 @@ def _pair(img, ref, where="compare"):
     if b.ndim == 2:
         b = b[..., None]
     if a.shape != b.shape:
+        if names is not None:
+            raise InputError(f"{names[0]} / {names[1]}", "shape", f"{a.shape} and {b.shape} (height, width, "
+                             "channels) differ; compare images of the same size and channel count")
         raise InputError(where, "shape", f"image {a.shape} and reference {b.shape} differ; "
                          "compare images of the same size and channel count")
-    if not np.isfinite(b).all():
-        raise InputError(where, "reference", f"{int((~np.isfinite(b)).sum())} non-finite value(s)")
+    for arr, i, role, check in ((b, 1, "reference", True), (a, 0, "image", finite_image)):
+        if check and not np.isfinite(arr).all():
+            k = int(np.count_nonzero(~np.isfinite(arr)))
+            if names is not None:
+                raise InputError(names[i], "values", f"{k} non-finite value(s) (NaN or Inf); "
+                                 "the metrics compare finite images")
+            raise InputError(where, role, f"{k} non-finite value(s)")
     return a, b
 
 
@@ -148,6 +162,28 @@ def _flip_rgb(x, hdr):
     return np.ascontiguousarray(x, dtype=np.float32)
 
 
+#: FLIP clamps the reference's median luminance to at least this (float32's epsilon) when it derives
+#: HDR-FLIP's exposure range; a maximum below it gives a start exposure above the stop exposure.
+_FLIP_MIN_LUMINANCE = float(np.finfo(np.float32).eps)
+
+
+def _hdr_flip_undefined(ref_rgb) -> str | None:
+    """Why HDR-FLIP is not defined against this reference (FLIP-ready RGB), or None.
+
+    HDR-FLIP's exposures run from log2(x / Y_max) to log2(x / max(Y_median,
+    eps)), Y being the reference's luminance: a reference whose Y_max is
+    below eps (all black, or nearly) has no exposure range, and
+    flip-evaluator then prints an error on stdout and ends the process.
+    """
+    r, g, b = (ref_rgb[..., i].astype(np.float64) for i in range(3))
+    y_max = float(np.max((2613072.0 * r + 8788810.0 * g + 887015.0 * b) / 12288897.0))  # FLIP's linear RGB to Y
+    if y_max < _FLIP_MIN_LUMINANCE * (1 + 1e-5):  # the margin covers float32 rounding of FLIP's own Y
+        return (f"HDR-FLIP is not defined: the reference's largest luminance is {y_max:.3g} (an all-black or "
+                f"nearly black reference, below {_FLIP_MIN_LUMINANCE:.3g}), so FLIP has no exposure range; "
+                "use LDR-FLIP (--ldr-flip) or skip FLIP (--no-flip)")
+    return None
+
+
 def flip(img, ref, *, hdr: bool = True) -> float:
     """Mean FLIP error (NVIDIA's ``flip-evaluator``), HDR-FLIP by default.
 
@@ -159,7 +195,9 @@ def flip(img, ref, *, hdr: bool = True) -> float:
     Raises
     ------
     InputError
-        When ``flip-evaluator`` is not installed (``pip install flip-evaluator``).
+        When ``flip-evaluator`` is not installed (``pip install flip-evaluator``),
+        or, for HDR-FLIP, the reference is (nearly) black: FLIP has no
+        exposure range then.
 
     References
     ----------
@@ -174,24 +212,30 @@ def flip(img, ref, *, hdr: bool = True) -> float:
     a, b = _pair(img, ref, where="flip")
     if not np.isfinite(a).all():
         return float("nan")
-    _, mean, _ = flip_evaluator.evaluate(_flip_rgb(b, hdr), _flip_rgb(a, hdr), "HDR" if hdr else "LDR",
-                                         applyMagma=False)
+    ref_rgb = _flip_rgb(b, hdr)
+    why = _hdr_flip_undefined(ref_rgb) if hdr else None
+    if why is not None:
+        raise InputError("flip", "reference", why)
+    _, mean, _ = flip_evaluator.evaluate(ref_rgb, _flip_rgb(a, hdr), "HDR" if hdr else "LDR", applyMagma=False)
     return float(mean)
 
 
 def compare(img, ref, *, eps: float = 0.01, data_range: float | None = None, smape_eps: float = 0.01,
-            flip_mode: str | None = "hdr") -> dict:
+            flip_mode: str | None = "hdr", names: tuple[str, str] | None = None) -> dict:
     """All metrics as a dict (PSNR with ``data_range``, default the reference's max).
 
     ``relative_mse`` with ``eps`` (also as ``relative_mse_eps``), ``smape``
     with ``smape_eps``, ``ssim`` and ``one_minus_ssim``, and ``flip`` with
     ``flip_mode`` ("hdr" or "ldr"; None skips FLIP).  When
-    ``flip-evaluator`` is not installed, ``flip`` is left out and
-    ``notes`` (a list of strings) says so.
+    ``flip-evaluator`` is not installed, or HDR-FLIP is not defined (a
+    black reference), ``flip`` is left out and ``notes`` (a list of
+    strings) says why.  Both images must be finite (NaN or Inf in either
+    is an :class:`InputError` with the count); ``names`` (image,
+    reference), e.g. their files, are what the errors name.
     """
     if flip_mode not in (None, "hdr", "ldr"):
         raise InputError("compare", "flip_mode", f"got {flip_mode!r}, expected 'hdr', 'ldr' or None")
-    a, b = _pair(img, ref)
+    a, b = _pair(img, ref, names=names, finite_image=True)
     if data_range is None:
         data_range = float(np.max(b)) if np.max(b) > 0 else 1.0
     s = ssim(a, b)
@@ -209,11 +253,14 @@ def compare(img, ref, *, eps: float = 0.01, data_range: float | None = None, sma
         "eps": eps,
     }
     if flip_mode is not None:
-        if flip_available():
+        why = _hdr_flip_undefined(_flip_rgb(b, True)) if flip_mode == "hdr" and b.shape[2] in (1, 3) else None
+        if not flip_available():
+            out["notes"] = [f"FLIP omitted: flip-evaluator is not installed ({FLIP_INSTALL_HINT})"]
+        elif why is not None:
+            out["notes"] = [f"FLIP omitted: {why}"]
+        else:
             out["flip"] = flip(a, b, hdr=flip_mode == "hdr")
             out["flip_mode"] = flip_mode
-        else:
-            out["notes"] = [f"FLIP omitted: flip-evaluator is not installed ({FLIP_INSTALL_HINT})"]
     return out
 
 

@@ -609,7 +609,7 @@ def test_png_preview_and_false_colour(tmp_path, rng):
     write_false_colour(tmp_path / "m.png", m)
     b = np.asarray(Image.open(tmp_path / "m.png"))
     assert b.shape == (3, 4, 3) and (b[0, 0] == 0).all() and not (b[2, 3] == b[0, 1]).all()
-    with pytest.raises(InputError, match="not a readable EXR"):
+    with pytest.raises(InputError, match="not an OpenEXR file"):
         read_exr(tmp_path / "p.png")
 
 

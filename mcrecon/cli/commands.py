@@ -99,8 +99,6 @@ def _read_pixel_stats_input(args):
     if note is not None:
         method = get_method(method.name, **opts)
     check_method(method, where, half_buffers=pair)
-    if note is not None:
-        sys.stderr.write(f"mcrecon: note: {note}\n")
     read = dict(layout=args.layout, mean=args.mean, variance=args.variance_channels,
                 second_moment=args.second_moment, variance_of=args.variance_of, count=args.count, spp=args.spp)
     if pair:
@@ -111,6 +109,8 @@ def _read_pixel_stats_input(args):
     else:
         pix, other = read_pixel_stats_exr(args.log, **read), None
         count_source, name = pix.count_source, str(args.log)
+    if note is not None:  # after the input is read: a refused input gets its one error line only
+        sys.stderr.write(f"mcrecon: note: {note}\n")
     what = ", ".join(f"{k} {','.join(v)}" for k, v in pix.sources.items())
     space = f"; reconstructed in {','.join(pix.stats.channels)}, written as {','.join(pix.output_channels)}" \
         if pix.output_matrix is not None else ""
@@ -181,7 +181,11 @@ def _renderer_spec(args) -> dict:
 
         return scene_spec(get_scene(args.scene).name, width=w, height=h, seed=args.seed)
     if args.renderer_cmd is not None:
-        argv = shlex.split(args.renderer_cmd)
+        try:
+            argv = shlex.split(args.renderer_cmd)
+        except ValueError as exc:  # an unclosed quote
+            raise InputError("--renderer-cmd", "command", f"{args.renderer_cmd!r}: {str(exc).lower()}; it is split "
+                             "like a shell would (quote words with spaces, close every quote)") from None
         if not argv:
             raise InputError("--renderer-cmd", "command", "empty")
         return command_spec(argv, width=w, height=h, channels=args.channels.split(","), timeout=args.timeout)
@@ -298,15 +302,38 @@ def _cmd_adapt(args):
 
 
 # ----------------------------------------------------------------- small commands
+def _compare_reference(path):
+    """(reference image, its name): an EXR, or the reference a sample log keeps (``render-log`` stores one)."""
+    from ..io import read_exr, read_log
+    from ..io.images import EXR_MAGIC
+
+    p = Path(path)
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(8)
+    except OSError:
+        head = EXR_MAGIC  # read_exr names what is wrong (missing, a directory...)
+    is_log = head == b"\x89HDF\r\n\x1a\n" or p.suffix.lower() in (".h5", ".hdf5")
+    if head[:4] == EXR_MAGIC or not is_log:
+        return read_exr(p)[0], str(p)
+    log = read_log(p)
+    ref = log.reference()
+    if ref is None:
+        raise InputError(str(p), "dataset /reference", "none: this sample log keeps no reference image; compare "
+                         "against a reference EXR, or a log written by `mcrecon render-log` (which stores its "
+                         "scene's exact reference)")
+    return ref, f"{p}: dataset /reference"
+
+
 def _cmd_compare(args):
     from ..io import read_exr
     from ..metrics import compare
 
     img, _ = read_exr(args.image)
-    ref, _ = read_exr(args.reference)
+    ref, ref_name = _compare_reference(args.reference)
     flip_mode = None if args.no_flip else ("ldr" if args.ldr_flip else "hdr")
     out = compare(img, ref, eps=args.eps, data_range=args.data_range, smape_eps=args.smape_eps,
-                  flip_mode=flip_mode)
+                  flip_mode=flip_mode, names=(str(args.image), ref_name))
     if args.json:
         print(json.dumps(out, indent=2, sort_keys=True))
         return 0
@@ -559,9 +586,9 @@ def register(sub, command: str | None = None) -> None:
             add_method_options(p, flags)
             p.set_defaults(method_flags=flags)
 
-    s = sub.add_parser("compare", help="error metrics of an EXR against a reference EXR")
+    s = sub.add_parser("compare", help="error metrics of an EXR against a reference EXR (or a sample log's reference)")
     s.add_argument("image")
-    s.add_argument("reference")
+    s.add_argument("reference", help="a reference EXR, or a sample log that stores one (`mcrecon render-log`)")
     s.add_argument("--eps", type=float, default=0.01, help="relative MSE epsilon (default 0.01)")
     s.add_argument("--data-range", type=float, default=None, help="PSNR data range (default: reference max)")
     s.add_argument("--smape-eps", type=float, default=0.01, help="SMAPE epsilon (default 0.01)")

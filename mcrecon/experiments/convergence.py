@@ -17,6 +17,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import math
 import tempfile
 import time
 import warnings
@@ -107,8 +108,7 @@ def load_convergence(run_dir) -> tuple[ConvergenceResult, str]:
         notes = [str(n) for n in meta.get("notes", [])]
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(str(run_dir / RUN_FILE), "fields", f"malformed ({exc!r}); write the run again") from None
-    if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
-        raise InputError(str(run_dir / "convergence.json"), "rows", "expected a list of objects")
+    _check_rows(run_dir / "convergence.json", rows)
     ref = read_exr(run_dir / "images" / "reference.exr")[0].astype(np.float64)
     images, maps = {}, {}
     for key in keys:
@@ -130,6 +130,45 @@ def load_convergence(run_dir) -> tuple[ConvergenceResult, str]:
     result = ConvergenceResult(rows, images, maps, ref, report_spp, [], eps=eps, smape_eps=smape_eps, flip=flip,
                                notes=notes)
     return result, scene
+
+
+#: The fields of a convergence.json record the report reads, by kind.
+_ROW_TEXT = ("method", "mode")
+_ROW_COUNTS = (("spp", 1), ("samples", 0))
+_ROW_SECONDS = ("renderer_seconds", "toolkit_seconds", "wall_seconds")
+_ROW_METRICS = ("relative_mse", "smape", "one_minus_ssim", "rmse")
+_ROW_OPTIONAL_METRICS = ("flip", "ssim")
+
+
+def _check_rows(path: Path, rows) -> None:
+    """Refuse convergence.json records the report cannot show as written (missing fields, text for a
+    number, a non-finite time), naming the file, the record and the field."""
+    if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+        raise InputError(str(path), "rows", "expected a list of objects")
+
+    def number(v):
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+    for i, r in enumerate(rows):
+        def bad(field, expected):
+            got = "missing" if field not in r else f"{r[field]!r}"
+            return InputError(str(path), f"record {i} field {field}", f"{got}: expected {expected}; write the run "
+                              "again (`mcrecon experiment convergence --out`)")
+
+        for k in _ROW_TEXT:
+            if not isinstance(r.get(k), str) or not r[k]:
+                raise bad(k, "a name (text)")
+        for k, least in _ROW_COUNTS:
+            v = r.get(k)
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= least):
+                raise bad(k, f"a whole number >= {least}")
+        for k in _ROW_SECONDS:
+            v = r.get(k)
+            if not (number(v) and math.isfinite(v) and v >= 0):
+                raise bad(k, "a finite number of seconds >= 0")
+        for k in _ROW_METRICS + _ROW_OPTIONAL_METRICS:
+            if (k in r or k in _ROW_METRICS) and not number(r.get(k)):
+                raise bad(k, "a number (NaN or Infinity where the metric is not finite)")
 
 
 def _metrics(img, ref, eps, use_flip=False):

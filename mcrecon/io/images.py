@@ -7,6 +7,12 @@ sRGB curve, then clipped to [0, 1] for display).
 
 from __future__ import annotations
 
+import contextlib
+import os
+import re
+import sys
+import tempfile
+import threading
 import warnings
 from pathlib import Path
 from typing import Sequence
@@ -69,31 +75,117 @@ def write_exr(path, image, *, channels: Sequence[str] | None = None) -> Path:
     return path
 
 
-def read_exr(path) -> tuple[np.ndarray, tuple[str, ...]]:
-    """Read an EXR: (H, W, C) float32 image and its channel names.
+#: The first four bytes of every OpenEXR file.
+EXR_MAGIC = b"\x76\x2f\x31\x01"
 
-    The channel order written by :func:`write_exr` is restored; for other
-    files R, G, B, A come first, then the rest alphabetically.
+
+_FD_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _quiet_fds():
+    """Send what C/C++ code prints to file descriptors 1 and 2 into a temporary file while inside.
+
+    The OpenEXR library prints its own lines about a damaged file (to
+    stdout and stderr) before it raises; mcrecon says it in one line.
+    Yields the file, whose text is the library's words (for the message).
+    """
+    saved = []
+    # one at a time: two threads swapping fds 1/2 would restore each other's sinks
+    with _FD_LOCK, tempfile.TemporaryFile(mode="w+b") as sink:
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(AttributeError, ValueError, OSError):
+                stream.flush()
+        try:
+            for fd in (1, 2):
+                try:
+                    saved.append((fd, os.dup(fd)))
+                except OSError:  # no such descriptor (a daemon): nothing to silence
+                    continue
+                os.dup2(sink.fileno(), fd)
+            yield sink
+        finally:
+            for fd, copy in saved:
+                os.dup2(copy, fd)
+                os.close(copy)
+
+
+def _exr_failure(path: Path, exc: Exception, said: bytes) -> InputError:
+    """What is true about an EXR that OpenEXR could not read (its own error text misleads)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(4)
+    except OSError as e:
+        return InputError(str(path), "file", f"cannot be read ({e.strerror or e})")
+    if head != EXR_MAGIC:
+        what = "empty" if not head else "no OpenEXR magic number"
+        return InputError(str(path), "file", f"not an OpenEXR file ({what}); give an .exr image")
+    lines = [ln.strip() for ln in said.decode(errors="replace").splitlines() if ln.strip()]
+    found = (re.search(r"\((EXR_ERR_\w+)\)\s*(.*)", ln) for ln in lines)
+    detail = next((f"{m.group(1)}: {m.group(2)}" for m in found if m), None)
+    return InputError(str(path), "file", "truncated or corrupt OpenEXR file ("
+                      + (detail or " ".join(str(exc).split())) + "); write it again")
+
+
+def open_exr(path) -> tuple[dict, dict, dict]:
+    """The channels of an EXR as ``{name: array}``, their ``{name: (xSampling, ySampling)}`` and its header.
+
+    Every input EXR is opened here: a missing, truncated or corrupt file,
+    or one that is no EXR, is one :class:`InputError` naming it, and the
+    OpenEXR library's own output is kept off stdout and stderr.
     """
     import OpenEXR
 
     path = Path(path)
     if not path.exists():
         raise InputError(str(path), "file", "does not exist")
-    try:
-        f = OpenEXR.File(str(path), separate_channels=True)
-        chans = f.channels()
-        header = f.header()
-    except Exception as exc:
-        raise InputError(str(path), "file", f"not a readable EXR image ({exc})") from None
+    with _quiet_fds() as sink:
+        try:
+            f = OpenEXR.File(str(path), separate_channels=True)
+            chans = f.channels()
+            arrays = {name: np.asarray(ch.pixels) for name, ch in chans.items()}
+            sampling = {name: (int(ch.xSampling), int(ch.ySampling)) for name, ch in chans.items()}
+            header = dict(f.header())
+            exc = None
+        except Exception as e:  # noqa: BLE001 - OpenEXR raises bare RuntimeErrors and others
+            exc = e
+        sink.seek(0)
+        said = sink.read()
+    if exc is not None:
+        raise _exr_failure(path, exc, said) from None
+    return arrays, sampling, header
+
+
+def subsampled(path, sampling: dict, names) -> None:
+    """Refuse channels among ``names`` stored subsampled (x/ySampling > 1): mcrecon reads full-resolution
+    channels only (one value per pixel)."""
+    sub = [n for n in names if sampling.get(n, (1, 1)) != (1, 1)]
+    if sub:
+        xs, ys = sampling[sub[0]]
+        raise InputError(str(path), f"channel {sub[0]!r}", f"subsampled (xSampling {xs}, ySampling {ys})"
+                         + (f", as are {', '.join(sub[1:])}" if len(sub) > 1 else "")
+                         + ": mcrecon reads one value per pixel; write the channel at full resolution")
+
+
+def read_exr(path) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Read an EXR: (H, W, C) float32 image and its channel names.
+
+    The channel order written by :func:`write_exr` is restored; for other
+    files R, G, B, A come first, then the rest alphabetically.
+    """
+    path = Path(path)
+    chans, sampling, header = open_exr(path)
     names = list(chans.keys())
+    if not names:
+        raise InputError(str(path), "channels", "none: the EXR holds no image")
+    subsampled(path, sampling, names)
     order = header.get("mcrecon_channels")
     if isinstance(order, str) and sorted(order.split(",")) == sorted(names):
         names = order.split(",")
     else:
         first = [n for n in ("R", "G", "B", "A") if n in names]
         names = first + sorted(n for n in names if n not in first)
-    img = np.stack([np.asarray(chans[n].pixels, dtype=np.float32) for n in names], axis=-1)
+    img = np.stack([np.asarray(chans[n], dtype=np.float32) for n in names], axis=-1)
     return img, tuple(names)
 
 

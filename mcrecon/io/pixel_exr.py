@@ -81,6 +81,7 @@ import numpy as np
 
 from ..errors import InputError, McreconWarning
 from ..stats import PixelStats
+from .images import subsampled
 
 __all__ = ["LAYOUTS", "PixelStatsEXR", "read_pixel_stats_exr", "read_half_buffer_exrs", "check_method",
            "pixel_stats_options", "HALF_MAX", "MITSUBA_XYZ_TO_SRGB", "xyz_from_rgb_matrix"]
@@ -106,16 +107,29 @@ _MITSUBA_SRGB_TO_XYZ = np.array([[0.412453, 0.357580, 0.180423],
 _SRGB_CHROMATICITIES = ((0.64, 0.33), (0.30, 0.60), (0.15, 0.06), (0.3127, 0.3290))
 
 
-def xyz_from_rgb_matrix(chromaticities=_SRGB_CHROMATICITIES) -> np.ndarray:
+def xyz_from_rgb_matrix(chromaticities=_SRGB_CHROMATICITIES, *, where: str = "xyz_from_rgb_matrix",
+                        field: str = "chromaticities") -> np.ndarray:
     """The 3x3 matrix taking linear RGB of the given primaries (red, green, blue, white xy) to XYZ.
 
     The standard construction (white maps to Y = 1), as pbrt-v4's
-    ``RGBColorSpace`` builds its ``XYZFromRGB``.
+    ``RGBColorSpace`` builds its ``XYZFromRGB``.  Chromaticities that
+    define no colour space (a y of 0, primaries on one line) are an
+    :class:`InputError` naming ``where`` and ``field``.
     """
     (rx, ry), (gx, gy), (bx, by), (wx, wy) = chromaticities
+    xy = np.array([rx, ry, gx, gy, bx, by, wx, wy], dtype=np.float64)
+    shown = "(" + ", ".join(f"{v:g}" for v in xy) + ")"
+    if not np.isfinite(xy).all() or not (xy[1::2] != 0).all():  # ACES AP0's blue has y < 0
+        raise InputError(where, field, f"{shown}: every x, y must be finite and every y (red, green, blue, "
+                         "white) nonzero; these define no colour space (sRGB / Rec. 709: 0.64 0.33 0.3 0.6 0.15 "
+                         "0.06 0.3127 0.329)")
     prim = np.array([[rx / ry, gx / gy, bx / by], [1.0, 1.0, 1.0],
                      [(1 - rx - ry) / ry, (1 - gx - gy) / gy, (1 - bx - by) / by]])
     white = np.array([wx / wy, 1.0, (1 - wx - wy) / wy])
+    # primaries on one line (or one point) span no 3-D colour space: no matrix to XYZ exists
+    if not np.linalg.cond(prim) < 1e12:
+        raise InputError(where, field, f"{shown}: the red, green and blue primaries lie on one line (or "
+                         "coincide), so they span no colour space; write the file's real primaries")
     return prim * np.linalg.solve(prim, white)[None, :]
 
 
@@ -160,16 +174,9 @@ class _EXR:
     """The channels (float arrays, with their stored dtype) and header of one EXR."""
 
     def __init__(self, path: Path):
-        import OpenEXR
+        from .images import open_exr
 
-        if not path.exists():
-            raise InputError(str(path), "file", "does not exist")
-        try:
-            f = OpenEXR.File(str(path), separate_channels=True)
-            self.arrays = {name: np.asarray(ch.pixels) for name, ch in f.channels().items()}
-            self.header = dict(f.header())
-        except Exception as exc:
-            raise InputError(str(path), "file", f"not a readable EXR image ({exc})") from None
+        self.arrays, self.sampling, self.header = open_exr(path)
         self.path = path
         self.names = tuple(sorted(self.arrays))
 
@@ -185,6 +192,7 @@ class _EXR:
             raise InputError(str(self.path), field, f"channel {missing[0]!r} missing"
                              + (f" (and {', '.join(missing[1:])})" if len(missing) > 1 else "")
                              + f"; channels present: {self.present()}")
+        subsampled(self.path, self.sampling, names)
         arrs = [self.arrays[n] for n in names]
         half = any(a.dtype == np.float16 for a in arrs)
         return np.stack([a.astype(np.float64) for a in arrs], axis=-1), half
@@ -273,6 +281,21 @@ def _resolve_count(exr: _EXR, count, spp):
                      "attribute): pass --spp N (the samples per pixel the renderer took) or --count CHANNEL")
 
 
+def _check_total(exr: _EXR, n, count_source: str, flag: str) -> None:
+    """Refuse a count whose total over the image exceeds int64, in which the statistics count samples."""
+    pixels = max((a.size for a in exr.arrays.values()), default=0)
+    if np.ndim(n) == 0:
+        if int(n) * pixels > _MAX_COUNT:
+            given = count_source.startswith(flag)  # the flag's number, else the file's attribute
+            raise InputError(flag if given else str(exr.path), flag.lstrip("-") if given else count_source,
+                             f"{int(n)} samples per pixel on {pixels} pixels is {int(n) * pixels} "
+                             f"samples, beyond the 2^63 - 1 mcrecon counts: at most {_MAX_COUNT // pixels} "
+                             "samples per pixel on this image")
+    elif float(np.sum(n, dtype=np.float64)) > _MAX_COUNT:
+        raise InputError(str(exr.path), count_source, "the counts add up to more than the 2^63 - 1 samples "
+                         "mcrecon counts")
+
+
 def _mitsuba_prefixes(names) -> list[str]:
     """Integrator names P with P.X/Y/Z and m2_P.X/Y/Z channels (the moment integrator's output)."""
     out = []
@@ -300,6 +323,8 @@ def _file_chromaticities(exr: _EXR):
         return _SRGB_CHROMATICITIES
     try:
         v = [float(x) for x in np.asarray(c, dtype=np.float64).ravel()]
+        if len(v) != 8:
+            raise ValueError(len(v))
         return ((v[0], v[1]), (v[2], v[3]), (v[4], v[5]), (v[6], v[7]))
     except Exception:
         raise InputError(str(exr.path), "header attribute chromaticities", f"{c!r}: expected 8 numbers "
@@ -383,6 +408,7 @@ def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance
                              f"moments); channels present: {exr.present()}; pass --layout pbrt-v4|mitsuba-moment "
                              "or the mapping --mean R,G,B --variance ... --count N")
     n, count_source = _resolve_count(exr, count, spp)
+    _check_total(exr, n, count_source, "--spp" if spp is not None else "--count")
     out_matrix, out_channels = None, None
 
     if layout == "pbrt-v4":
@@ -396,7 +422,8 @@ def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance
         var, vhalf = exr.get(var_names, "variance")
         _check_finite(exr, var_names, var, n, "variance", vhalf)
         if len(rgb_names) == 3 and len(var_names) == 3:
-            xyz_from_rgb = xyz_from_rgb_matrix(_file_chromaticities(exr))
+            xyz_from_rgb = xyz_from_rgb_matrix(_file_chromaticities(exr), where=where,
+                                               field="header attribute chromaticities")
             m = m_rgb @ xyz_from_rgb.T
             channels = ("X", "Y", "Z")
             out_matrix, out_channels = np.linalg.inv(xyz_from_rgb), tuple(rgb_names)
@@ -429,7 +456,7 @@ def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance
         _warn_half_saturation(exr, mean, m, half, layout)
         _check_finite(exr, mean, m, n, "first moment", half)
         _check_finite(exr, second_moment, m2, n, "second moment", half2)
-        var = _variance_from_moments(exr, second_moment, m, m2, n)
+        var = _variance_from_moments(exr, second_moment, m, m2, n, half or half2)
         channels = ("X", "Y", "Z") if len(mean) == 3 else tuple(mean)
         if len(mean) == 3:
             out_matrix, out_channels = MITSUBA_XYZ_TO_SRGB.copy(), ("R", "G", "B")
@@ -457,7 +484,7 @@ def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance
         else:
             m2, half2 = exr.get(second_moment, "second_moment")
             _check_finite(exr, second_moment, m2, n, "second moment", half2)
-            var = _variance_from_moments(exr, second_moment, m, m2, n)
+            var = _variance_from_moments(exr, second_moment, m, m2, n, half or half2)
             sources = {"mean": tuple(mean), "second_moment": tuple(second_moment)}
             v_of = "samples"
         channels = tuple(mean)
@@ -479,8 +506,20 @@ def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance
                          tuple(out_channels) if out_channels is not None else tuple(channels), out_matrix)
 
 
-def _variance_from_moments(exr, names, m1, m2, n) -> np.ndarray:
-    """The variance of the samples from the first and second moments (clamped at 0, times n / (n - 1))."""
+#: Unit roundoff of float32, in which renderers accumulate a film's moments.
+_F32_U = 2.0 ** -24
+
+
+def _variance_from_moments(exr, names, m1, m2, n, half=False) -> np.ndarray:
+    """The variance of the samples from the first and second moments (clamped at 0, times n / (n - 1)).
+
+    A second moment below the squared mean by more than float rounding is
+    damage (or moments of different samples), warned with its pixel count.
+    The bound is the worst case of a float32 film's accumulation over n
+    weighted samples plus the storage's rounding, relative to
+    max(E[x^2], mean^2): ``6 (n + 1) 2^-24 + 3 u`` (u: 2^-24 for float32
+    channels, 2^-11 for half floats); a constant pixel lands within it.
+    """
     n_arr = np.asarray(n, dtype=np.float64)
     sampled = np.broadcast_to(n_arr > 0, m1.shape[:2])[..., None]
     neg = sampled & (m2 < 0)
@@ -488,8 +527,20 @@ def _variance_from_moments(exr, names, m1, m2, n) -> np.ndarray:
         per = [names[c] for c in range(m2.shape[2]) if neg[..., c].any()]
         raise InputError(str(exr.path), ",".join(per), f"{int(neg.any(axis=2).sum())} sampled pixel(s) with a "
                          "negative second moment E[x^2]; it is >= 0")
-    pop = np.maximum(m2 - m1 * m1, 0.0)
+    sq = m1 * m1
     nn = n_arr if n_arr.ndim == 0 else n_arr[..., None]
+    u = 2.0 ** -11 if half else _F32_U
+    tol = 6.0 * (nn + 1.0) * _F32_U + 3.0 * u
+    damaged = sampled & (sq - m2 > tol * np.maximum(sq, m2))
+    if damaged.any():
+        per = [names[c] for c in range(m2.shape[2]) if damaged[..., c].any()]
+        n_max = float(np.max(n_arr))
+        warnings.warn(f"{exr.path}: {','.join(per)}: {int(damaged.any(axis=2).sum())} sampled pixel(s) with a "
+                      "second moment below the squared mean by more than float rounding (relative "
+                      f"6 (n + 1) 2^-24 + 3 u = {6.0 * (n_max + 1.0) * _F32_U + 3.0 * u:.2g} at n = {n_max:g}); "
+                      "their variance is set to 0: the moments are damaged or not of the same samples",
+                      McreconWarning, stacklevel=3)
+    pop = np.maximum(m2 - sq, 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(nn > 1, pop * nn / np.maximum(nn - 1.0, 1.0), 0.0)
 
@@ -530,6 +581,9 @@ def read_half_buffer_exrs(path_a, path_b, **options) -> tuple[PixelStatsEXR, Pix
     if sa.channels != sb.channels or a.sources != b.sources or a.output_channels != b.output_channels:
         raise InputError(where, "channels", f"the halves differ in channels: "
                          f"{','.join(a.sources['mean'])} vs {','.join(b.sources['mean'])}")
+    if int(sa.count.sum(dtype=np.float64)) + int(sb.count.sum(dtype=np.float64)) > _MAX_COUNT:
+        raise InputError(where, "count", "the two halves hold more than the 2^63 - 1 samples mcrecon counts "
+                         "together: lower --spp/--count")
     ma, mb = a.output_matrix, b.output_matrix
     if (ma is None) != (mb is None) or (ma is not None and not np.allclose(ma, mb, rtol=1e-6, atol=1e-9)):
         raise InputError(where, "chromaticities", "the halves have different colour spaces (their "

@@ -269,6 +269,7 @@ class CommandRenderer:
             raise RendererError(self.name, "exit status", f"{proc.returncode} in round {request.round_index}: {tail}")
         if not reply_path.exists():
             raise RendererError(self.name, "reply", f"{reply_path} was not written")
+        self._check_declared_length(reply_path, request)
         try:
             reply = read_log(reply_path)
             data = reply.read_all()
@@ -286,6 +287,24 @@ class CommandRenderer:
         for p in (req_path, reply_path):
             p.unlink(missing_ok=True)
         return SampleBatch(np.asarray(data.positions, np.float64), data.values, features)
+
+    def _check_declared_length(self, reply_path: Path, request: SampleRequest) -> None:
+        """Refuse a reply whose datasets declare another number of samples than requested, from the
+        file's metadata alone: a reply declaring 200 M rows (unwritten chunks cost no disk) would
+        otherwise be read whole before its length is checked."""
+        from ..io.samplelog import _H5_ERRORS, _open, _read_header
+
+        try:
+            with _open(reply_path) as f:
+                n = _read_header(reply_path, f).n
+        except InputError as exc:
+            raise RendererError(self.name, "reply", f"malformed: {exc}") from None
+        except _H5_ERRORS as exc:
+            raise RendererError(self.name, "reply", f"malformed: {reply_path}: {' '.join(str(exc).split())}") \
+                from None
+        if n != request.total:
+            raise RendererError(self.name, "reply length", f"{reply_path} declares {n} samples, requested "
+                                f"{request.total} (round {request.round_index})")
 
     def _read_features(self, reply, reply_path: Path) -> dict[str, np.ndarray]:
         """The reply's per-sample features ``/features/NAME``: shape (N, ...), a numeric dtype.
