@@ -110,8 +110,10 @@ def _run(argv, cwd: Path, capsys, where: str) -> None:
 
 def _hdf5_dev() -> str | None:
     """Why the HDF5 C tools cannot be built here, or None."""
-    if not (shutil.which("gcc") or shutil.which("cc")) or not shutil.which("make"):
-        return "no C compiler or make"
+    if not (shutil.which("gcc") or shutil.which("cc")):
+        return "no C compiler (apt install gcc)"
+    if not shutil.which("make"):
+        return "make not installed (apt install make)"
     if shutil.which("pkg-config") is None:
         return "pkg-config not installed (apt install pkg-config libhdf5-dev)"
     if subprocess.run(["pkg-config", "--exists", "hdf5"]).returncode != 0:
