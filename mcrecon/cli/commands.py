@@ -416,8 +416,8 @@ def _demo_warm_up(scene, methods, spp, seed) -> None:
 
     parts = tuple(dict.fromkeys(("renderers/scenes.py",) + tuple(p for m in methods.values()
                                                                  for p in method_kernels(m))))
-    # the expected time: the parts without a numba cache index, or all of them when the index looks complete
-    # (a kernel source newer than its cache, a cache elsewhere)
+    # the expected time: of the parts whose numba cache index is missing; of all of them when every index is
+    # there and the warm-up is slow all the same (numba keeps its cache somewhere this check does not look)
     guess = (sum(_DEMO_COMPILE_SECONDS.get(p, 1) for p in parts if numba_cache_cold((p,)))
              or sum(_DEMO_COMPILE_SECONDS.get(p, 1) for p in parts))
     timer = threading.Timer(_COMPILING_AFTER, compile_notice, kwargs={"seconds": guess})
@@ -425,7 +425,8 @@ def _demo_warm_up(scene, methods, spp, seed) -> None:
     timer.start()
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            log = read_log(write_scene_log(scene, Path(tmp) / "warm-up.h5", width=16, height=16, spp=spp, seed=seed))
+            log = read_log(write_scene_log(scene, Path(tmp) / "warm-up.h5", width=16, height=16, spp=spp,
+                                           seed=seed))
             for method in methods.values():
                 reconstruct(log, method=method)
     finally:

@@ -291,8 +291,9 @@ _ACCEPTED_INPUTS = ("expected an HDF5 sample log (.h5, from a renderer or `mcrec
                     "docs/sample-log-format.md); `mcrecon denoise` also takes a pixel-statistics EXR whose path "
                     "ends in .exr (mean, variance, count: docs/pixel-statistics-inputs.md)")
 
-_SIGNATURES = ((b"\x89HDF\r\n\x1a\n", "hdf5"), (b"v/1\x01", "an OpenEXR image"), (b"\x89PNG\r\n\x1a\n", "a PNG image"),
-               (b"\xff\xd8\xff", "a JPEG image"), (b"#?RADIANCE", "a Radiance HDR image"), (b"#?RGBE", "a Radiance HDR image"),
+_SIGNATURES = ((b"\x89HDF\r\n\x1a\n", "hdf5"), (b"v/1\x01", "an OpenEXR image"),
+               (b"\x89PNG\r\n\x1a\n", "a PNG image"), (b"\xff\xd8\xff", "a JPEG image"),
+               (b"#?RADIANCE", "a Radiance HDR image"), (b"#?RGBE", "a Radiance HDR image"),
                (b"II*\x00", "a TIFF image"), (b"MM\x00*", "a TIFF image"), (b"PK\x03\x04", "a zip archive"))
 
 
