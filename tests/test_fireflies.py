@@ -1,5 +1,7 @@
 """Sample-space firefly handling (mcrecon.fireflies): energy, sharp rims, consistency, one path for every method."""
 
+from contextlib import nullcontext
+
 import numpy as np
 import pytest
 
@@ -70,8 +72,12 @@ def test_an_emitters_rim_is_not_smeared_into_dark_pixels(spp):
     touched[rows, cols] = True
     from scipy import ndimage
     near = ndimage.binary_dilation(touched, iterations=1)
-    image = box_of(pos, split.base_values, size) + split.excess
-    assert np.abs(image - box_of(pos, val, size))[~near].max() <= 1e-3
+    empty = PixelStats.from_samples(pos, val, width=size, height=size).count == 0
+    with pytest.warns(mcrecon.McreconWarning, match="without samples filled") if empty.any() else nullcontext():
+        image = box_of(pos, split.base_values, size) + split.excess
+    with pytest.warns(mcrecon.McreconWarning, match="without samples filled") if empty.any() else nullcontext():
+        box = box_of(pos, val, size)
+    assert np.abs(image - box)[~near].max() <= 1e-3
     # inside the emitter (pixels whose 3x3 window is all emitter) nothing moves at all
     core = ndimage.binary_erosion(touched, iterations=2)
     assert np.isinf(split.threshold[core]).all() and np.all(split.excess[core] == 0)

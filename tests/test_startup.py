@@ -165,8 +165,8 @@ def test_jit_notice_only_on_a_terminal_with_a_cold_cache(monkeypatch, tmp_path):
     monkeypatch.setattr(_common, "numba_cache_cold", lambda parts: True)
     pipe, tty = io.StringIO(), _Terminal()
     assert not _common.jit_notice(("methods",), stream=pipe) and pipe.getvalue() == ""
-    assert _common.jit_notice(("methods",), seconds="about 30 s", stream=tty)
-    assert tty.getvalue() == "mcrecon: compiling numba kernels (first run only, about 30 s)…\n"
+    assert _common.jit_notice(("methods",), seconds=30, stream=tty)
+    assert tty.getvalue() == "mcrecon: compiling kernels (first run only, ~30 s)\n"
     monkeypatch.setattr(_common, "numba_cache_cold", lambda parts: False)
     assert not _common.jit_notice(("methods",), stream=_Terminal())
 

@@ -18,7 +18,8 @@ from pathlib import Path
 from ..errors import InputError
 
 __all__ = ["OneLineParser", "HelpFormatter", "parse_size", "finite_float", "method_flags", "add_method_options",
-           "given_method_options", "make_method", "check_output", "write_outputs", "jit_notice"]
+           "given_method_options", "make_method", "check_output", "write_outputs", "jit_notice",
+           "compile_notice"]
 
 _DEST = "mopt_"  # argparse dest of a method option: mopt_NAME
 
@@ -29,6 +30,40 @@ class OneLineParser(argparse.ArgumentParser):
     def error(self, message):
         sys.stderr.write(f"{self.prog}: error: {message}\n")
         raise SystemExit(2)
+
+    def parse_args(self, args=None, namespace=None):
+        # argparse's own parse_args, but an unknown long option gets the closest option of the
+        # sub-command that was parsing it (`--methd` -> `--method`)
+        ns, extras = self.parse_known_args(args, namespace)
+        if extras:
+            self.error(f"unrecognized arguments: {' '.join(extras)}{_suggestions(self, ns, extras)}")
+        return ns
+
+
+def _leaf_parser(parser, ns):
+    """The (sub-)sub-command parser that parsed ``ns`` (the parser itself without sub-commands)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            child = action.choices.get(getattr(ns, action.dest, None) or "")
+            if child is not None:
+                return _leaf_parser(child, ns)
+    return parser
+
+
+def _suggestions(parser, ns, extras) -> str:
+    """`` (did you mean --x?)`` for the unknown long options of ``extras`` close to an option of the command."""
+    import difflib
+
+    known = sorted(o for o in _leaf_parser(parser, ns)._option_string_actions if o.startswith("--"))
+    hints = []
+    for arg in extras:
+        if not arg.startswith("--") or arg == "--":
+            continue
+        name = arg.split("=", 1)[0]
+        close = difflib.get_close_matches(name, known, n=1, cutoff=0.7)
+        if close:
+            hints.append(f"{name}: did you mean {close[0]}?")
+    return f" ({'; '.join(hints)})" if hints else ""
 
 
 class HelpFormatter(argparse.HelpFormatter):
@@ -155,10 +190,11 @@ def make_method(name: str, args, flags: dict):
 
 
 # ----------------------------------------------------------------- outputs
-def check_output(out, png=None) -> None:
-    """Refuse an output the run could not write, before any work is done."""
+def check_output(out, png=None, *, command: str = "mcrecon") -> None:
+    """Refuse an output the run could not write, before any work is done (``command``: the sub-command,
+    where a missing ``-o`` is reported)."""
     if out is None:
-        raise InputError("mcrecon", "-o/--output", "missing: give the output EXR path")
+        raise InputError(command, "-o/--output", "missing: give the output EXR path")
     for p, suffix in ((Path(out), ".exr"), (None if png is None else Path(png), ".png")):
         if p is None:
             continue
@@ -203,14 +239,14 @@ _PACKAGE = Path(__file__).resolve().parents[1]
 
 def _numba_cache_dirs(source_dir: Path) -> list[Path]:
     """Where numba's ``cache=True`` may keep the kernels of a source directory (its locators, in order:
-    ``NUMBA_CACHE_DIR``, the ``__pycache__`` beside the source, the user-wide cache)."""
+    ``NUMBA_CACHE_DIR``, which when set is the only one numba uses, else the ``__pycache__`` beside the
+    source or the user-wide cache)."""
     import hashlib
 
     sub = f"{source_dir.name}_{hashlib.sha1(str(source_dir).encode()).hexdigest()}"
-    dirs = []
     if os.environ.get("NUMBA_CACHE_DIR"):
-        dirs.append(Path(os.environ["NUMBA_CACHE_DIR"]) / sub)
-    dirs.append(source_dir / "__pycache__")
+        return [Path(os.environ["NUMBA_CACHE_DIR"]) / sub]
+    dirs = [source_dir / "__pycache__"]
     dirs.append(Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "numba" / sub)
     return dirs
 
@@ -257,7 +293,14 @@ def numba_cache_cold(parts) -> bool:
     return False
 
 
-def jit_notice(parts, *, seconds: str | None = None, stream=None) -> bool:
+def compile_notice(seconds: float | None = None, stream=None) -> None:
+    """The one line saying that numba compiles kernels now (``seconds``: the expected time, ``~N s``)."""
+    stream = sys.stderr if stream is None else stream
+    stream.write(f"mcrecon: compiling kernels (first run only{f', ~{seconds:.0f} s' if seconds else ''})\n")
+    stream.flush()
+
+
+def jit_notice(parts, *, seconds: float | None = None, stream=None) -> bool:
     """On a terminal, one line on stderr before a run whose numba kernels are not cached yet.
 
     ``parts``: the package paths (files, directories) whose kernels the
@@ -273,8 +316,7 @@ def jit_notice(parts, *, seconds: str | None = None, stream=None) -> bool:
         return False
     if not numba_cache_cold(tuple(parts)):
         return False
-    stream.write(f"mcrecon: compiling numba kernels (first run only{', ' + seconds if seconds else ''})…\n")
-    stream.flush()
+    compile_notice(seconds, stream)
     return True
 
 

@@ -29,7 +29,8 @@ def _cmd_convergence(args):
     res = run_convergence(args.scene, methods=_csv_list(args.methods) if args.methods else None,
                           spp=_csv_list(args.spp, int, "--spp"), size=parse_size(args.size), seed=args.seed,
                           modes=_csv_list(args.modes, str, "--modes"),
-                          oidn=None if args.oidn == "auto" else args.oidn == "yes", out=args.out,
+                          oidn=None if args.oidn == "auto" else args.oidn == "yes",
+                          out=args.out if args.out is not None else f"convergence_{args.scene}",
                           flip=None if args.flip == "auto" else args.flip == "yes", html=args.html)
     for r in res.rows:
         flip = f"  FLIP {r['flip']:.4g}" if "flip" in r else ""
@@ -168,7 +169,8 @@ def register(sub, command: str | None = None) -> None:
     s.add_argument("--flip", default="auto", choices=("auto", "yes", "no"),
                    help="HDR-FLIP per point (auto: when flip-evaluator is installed)")
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--out", required=True)
+    s.add_argument("--out", default=None, metavar="DIR",
+                   help="folder of the tables, plots and report (default: convergence_SCENE)")
     s.add_argument("--html", action="store_true",
                    help="also write OUT/report.html: one self-contained interactive report (flip between "
                         "methods, zoom, exposure, error maps)")

@@ -279,8 +279,52 @@ def _open(path, mode="r"):
             or "ermission" in detail or "Read-only file system" in detail):
         raise _err(path, "file", f"cannot be opened for writing ({detail}); the log is intact with every "
                    "committed round: make it writable and resume the run")
-    raise _err(path, "file", f"not a readable HDF5 file (truncated or another format: {detail}); "
-               "regenerate it, or check the path")
+    kind = _file_kind(path)
+    if kind == "hdf5":
+        raise _err(path, "file", f"not a readable HDF5 file (truncated or damaged: {detail}); regenerate it")
+    looks = f": it is {kind}" if kind else f" (truncated or another format: {detail})"
+    raise _err(path, "file", f"not a readable HDF5 file{looks}; {_ACCEPTED_INPUTS}")
+
+
+#: What the commands reading a file take, for the message about a file that is none of them.
+_ACCEPTED_INPUTS = ("expected an HDF5 sample log (.h5, from a renderer or `mcrecon render-log`: "
+                    "docs/sample-log-format.md); `mcrecon denoise` also takes a pixel-statistics EXR whose path "
+                    "ends in .exr (mean, variance, count: docs/pixel-statistics-inputs.md)")
+
+_SIGNATURES = ((b"\x89HDF\r\n\x1a\n", "hdf5"), (b"v/1\x01", "an OpenEXR image"),
+               (b"\x89PNG\r\n\x1a\n", "a PNG image"), (b"\xff\xd8\xff", "a JPEG image"),
+               (b"#?RADIANCE", "a Radiance HDR image"), (b"#?RGBE", "a Radiance HDR image"),
+               (b"II*\x00", "a TIFF image"), (b"MM\x00*", "a TIFF image"), (b"PK\x03\x04", "a zip archive"))
+
+
+def _file_kind(path) -> str | None:
+    """What a file that h5py cannot open looks like, from its first bytes: "hdf5" (an HDF5 signature at
+    offset 0 or at a user-block offset 512, 1024...: damaged), "an OpenEXR image", "a text file"...,
+    or None (unknown)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+            f.seek(0, os.SEEK_END)
+            size = f.tell()
+            offset = 512
+            while offset < min(size, 1 << 20):  # the HDF5 signature after a user block
+                f.seek(offset)
+                if f.read(8) == _SIGNATURES[0][0]:
+                    return "hdf5"
+                offset *= 2
+    except OSError:
+        return None
+    if not head:
+        return "an empty file (0 bytes)"
+    for magic, kind in _SIGNATURES:
+        if head.startswith(magic):
+            return kind
+    try:
+        head.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        if exc.start < len(head) - 4:  # not only a character cut at the end of the block read
+            return None
+    return "a text file" if all(c >= 32 or c in b"\t\n\r" for c in head[:256]) else None
 
 
 _H5_ERRORS = (OSError, RuntimeError, KeyError, ValueError, TypeError, IndexError, OverflowError)
