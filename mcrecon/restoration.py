@@ -22,74 +22,24 @@ import numpy as np
 
 from .errors import InputError
 from .methods import get_method, method_class
-from .methods.base import MethodInputs, check_half_buffers, half_buffer_methods, is_half_buffer_pair, merge_halves
-from .samples import SampleSet, check_policy, check_reference
-from .stats import PixelStats
+from .samples import SampleSet
 
 __all__ = ["box", "gem", "awr", "splat", "ci", "auto"]
 
 
-def _check_stats(stats: PixelStats, where: str) -> None:
-    sampled = stats.count > 0
-    if not sampled.any():
-        raise InputError(where, "stats", "no pixel has a sample: there is nothing to reconstruct")
-    for name, arr in (("mean", stats.mean), ("m2", stats.m2)):
-        bad = sampled & ~np.isfinite(arr).all(axis=2)
-        if bad.any():
-            raise InputError(where, f"stats.{name}", f"{int(bad.sum())} sampled pixel(s) hold NaN or Inf "
-                             "(statistics built outside PixelStats.add/from_moments?); fix the input")
-
-
 def _run(name: str, source, reference, nonfinite: str, options: dict) -> np.ndarray:
+    """The method's image of ``source`` (read by the one dispatcher), in the precision of the input values."""
+    from .reconstruction import check_given_statistics, gather_inputs
+
     where = f"mcrecon.restoration.{name}"
     method = get_method(name, **options)
-    req = method.requires
-    check_policy(nonfinite, where)
-    if isinstance(source, SampleSet):
-        from .reconstruction import statistics_for
-
-        stats, halves = statistics_for(source, req, nonfinite=nonfinite)  # the readers' one path
-        if stats is not None:
-            _check_stats(stats, where)
+    inputs = gather_inputs(source, method, nonfinite=nonfinite, reference=reference, where=where, logs=False)
+    if isinstance(source, SampleSet):  # samples the caller gave: refuse a set without any
+        if inputs.stats is not None:
+            check_given_statistics(inputs.stats, where)
         elif source.n_samples == 0:
             raise InputError(where, "samples", "no samples: there is nothing to reconstruct")
-        dtype = source.values.dtype
-        inputs = MethodInputs(stats, source if req.samples else None, None, nonfinite, halves)
-    elif is_half_buffer_pair(source):
-        if not req.half_buffers:
-            raise InputError(where, "halves", f"{name} does not use half buffers; functions that do: "
-                             f"{', '.join(half_buffer_methods()) or '(none)'} (for {name}, pass the statistics of "
-                             "all the samples: mcrecon.methods.base.merge_halves(a, b))")
-        a, b = check_half_buffers(source, where)
-        for i, h in enumerate((a, b)):
-            for field, arr in (("mean", h.mean), ("m2", h.m2)):
-                bad = (h.count > 0) & ~np.isfinite(arr).all(axis=2)
-                if bad.any():
-                    raise InputError(where, f"halves[{i}].{field}", f"{int(bad.sum())} sampled pixel(s) hold NaN "
-                                     "or Inf; fix the input")
-        stats = merge_halves(a, b)
-        _check_stats(stats, where)
-        dtype = stats.dtype
-        inputs = MethodInputs(stats, None, None, nonfinite, (a, b))
-    elif isinstance(source, PixelStats):
-        if req.samples:
-            if req.half_buffers:
-                hint = "; or candidates='box,gauss' (the SURE candidates need neither)" if name == "auto" else ""
-                raise InputError(where, "input", f"{name} (these options) needs the individual samples or two "
-                                 "independent half buffers, which one set of pixel statistics does not hold; pass a "
-                                 f"mcrecon.SampleSet, or a half-buffer pair (stats_a, stats_b){hint}")
-            raise InputError(where, "input", f"{name} filters individual samples, which pixel statistics no "
-                             "longer hold; pass a mcrecon.SampleSet")
-        _check_stats(source, where)
-        dtype = source.dtype
-        inputs = MethodInputs(source, None, None, nonfinite)
-    else:
-        raise InputError(where, "input", f"got {type(source).__name__}; expected PixelStats "
-                         "(PixelStats.from_moments / from_samples), a mcrecon.SampleSet"
-                         + (" or a half-buffer pair (stats_a, stats_b)" if req.half_buffers else ""))
-    if reference is not None:
-        ref = check_reference(reference, inputs.shape, where=f"{where}: reference")
-        inputs = MethodInputs(inputs.stats, inputs.samples, ref, nonfinite, inputs.halves)
+    dtype = source.values.dtype if isinstance(source, SampleSet) else inputs.stats.dtype
     image = method.reconstruct(inputs)
     return np.asarray(image).astype(np.float32 if dtype == np.float32 else np.float64, copy=False)
 

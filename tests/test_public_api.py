@@ -1,0 +1,49 @@
+"""The Python API's shape: one input type for ``Method.reconstruct``, one dispatcher, literal
+``restoration`` signatures, exposure in stops, and ``dir()`` of each public module."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import mcrecon
+from mcrecon import InputError, PixelStats
+from mcrecon.methods import get_method
+from mcrecon.methods.base import MethodInputs
+
+
+def _stats(h=6, w=7, seed=0):
+    rng = np.random.default_rng(seed)
+    return PixelStats.from_moments(1.0 + rng.normal(0, 0.1, (h, w, 3)), np.full((h, w, 3), 0.04), 8)
+
+
+def test_method_reconstruct_takes_method_inputs_only():
+    st = _stats()
+    m = get_method("box")
+    for bad in (st, (st, st), st.mean):
+        with pytest.raises(InputError, match=r"MethodInputs\(stats\)") as exc:
+            m.reconstruct(bad)
+        assert "mcrecon.reconstruct(source, method='box')" in str(exc.value)
+    np.testing.assert_array_equal(m.reconstruct(MethodInputs(st)), mcrecon.reconstruct(st, method=m))
+
+
+def test_one_dispatcher_checks_the_statistics_the_caller_gives():
+    """mcrecon.reconstruct and mcrecon.restoration refuse the same bad statistics and halves."""
+    from mcrecon.estimates import split_halves
+    from mcrecon.samples import SampleSet
+
+    rng = np.random.default_rng(1)
+    ss = SampleSet(rng.random((400, 2)) * 8, rng.random((400, 3)), width=8, height=8)
+    a, b = split_halves(ss).a, split_halves(ss).b
+    bad = _stats()
+    bad.mean[2, 3, 1] = np.nan  # filled in from outside
+    bad_half = split_halves(ss).b
+    bad_half.m2[1, 1, 0] = np.inf
+    cases = [(bad, "box", "stats.mean"), (PixelStats(4, 4), "gem", "stats"), ((a, bad_half), "auto", "halves[1].m2")]
+    for source, name, field in cases:
+        for call, where in ((lambda: mcrecon.reconstruct(source, method=name), "reconstruct"),
+                            (lambda: getattr(mcrecon.restoration, name)(source), f"mcrecon.restoration.{name}")):
+            with pytest.raises(InputError) as exc:
+                call()
+            assert (exc.value.where, exc.value.field) == (where, field)
+    np.testing.assert_array_equal(mcrecon.restoration.auto((a, b)), mcrecon.reconstruct((a, b), method="auto"))
