@@ -47,3 +47,20 @@ def test_one_dispatcher_checks_the_statistics_the_caller_gives():
                 call()
             assert (exc.value.where, exc.value.field) == (where, field)
     np.testing.assert_array_equal(mcrecon.restoration.auto((a, b)), mcrecon.reconstruct((a, b), method="auto"))
+
+
+def test_exposure_is_in_stops_everywhere():
+    from mcrecon.io.images import tonemap_srgb
+    from mcrecon.methods.ci import StoppingRule
+    from mcrecon.tone import tone_map
+
+    x = np.array([0.05, 0.2, 0.3])
+    assert get_method("ci").params["exposure"] == 0.0
+    np.testing.assert_allclose(tone_map(x, tone="linear", exposure=2.0), 4.0 * x)
+    np.testing.assert_allclose(tone_map(x, tone="linear", exposure=-1.0), 0.5 * x)
+    # the same stops as the PNG preview (whose curve differs: compare the scale)
+    np.testing.assert_allclose(tonemap_srgb(x, exposure=2.0), tonemap_srgb(4.0 * x))
+    rule = StoppingRule(exposure=-2.0)  # negative stops are valid
+    assert rule.scale == 0.25
+    assert get_method("ci", exposure=-1.0).rule.exposure == -1.0
+
