@@ -315,3 +315,8 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
         return image
     return Reconstruction(image, m, run, inputs, fireflies=split,
                           _sanity_source=original if split is not None else None)
+
+
+from ._lazy import public_dir as _public_dir  # noqa: E402
+
+__dir__ = _public_dir(__name__)

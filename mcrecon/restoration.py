@@ -162,3 +162,8 @@ auto = _make(
     ">>> st = PixelStats.from_moments(mean, np.full((24, 24, 3), 0.16), 16)\n"
     ">>> out = auto(st, candidates='box,gauss')\n"
     ">>> out.shape, bool(np.abs(out - 1).std() < np.abs(mean - 1).std())\n((24, 24, 3), True)")
+
+
+from ._lazy import public_dir as _public_dir  # noqa: E402
+
+__dir__ = _public_dir(__name__)

@@ -64,3 +64,16 @@ def test_exposure_is_in_stops_everywhere():
     assert rule.scale == 0.25
     assert get_method("ci", exposure=-1.0).rule.exposure == -1.0
 
+
+PUBLIC_MODULES = ["mcrecon", "mcrecon.restoration", "mcrecon.methods", "mcrecon.io", "mcrecon.renderers",
+                  "mcrecon.metrics", "mcrecon.reconstruction", "mcrecon.samples", "mcrecon.stats", "mcrecon.driver",
+                  "mcrecon.distributed", "mcrecon.experiments"]
+
+
+@pytest.mark.parametrize("name", PUBLIC_MODULES)
+def test_dir_shows_only_the_public_names(name):
+    import importlib
+
+    module = importlib.import_module(name)
+    assert dir(module) == sorted(module.__all__)
+    assert [n for n in module.__all__ if not hasattr(module, n)] == []
