@@ -77,3 +77,32 @@ def test_dir_shows_only_the_public_names(name):
     module = importlib.import_module(name)
     assert dir(module) == sorted(module.__all__)
     assert [n for n in module.__all__ if not hasattr(module, n)] == []
+
+
+def test_restoration_functions_are_written_out_with_the_methods_options():
+    """What static tools see (the source, not a runtime signature) lists each method's options."""
+    import ast
+    import inspect
+
+    from mcrecon import restoration
+    from mcrecon.methods import method_class
+
+    tree = ast.parse(inspect.getsource(restoration))
+    defs = {n.name: n for n in tree.body if isinstance(n, ast.FunctionDef)}
+    assert restoration.__all__ == ["box", "gem", "awr", "splat", "auto"] and not hasattr(restoration, "ci")
+    for name in restoration.__all__:
+        fn, options = defs[name], method_class(name).options
+        assert [a.arg for a in fn.args.posonlyargs] == ["source"] and not fn.args.args
+        tail = ["reference", "nonfinite"] if any(o.name == "oracle" for o in options) else ["nonfinite"]
+        assert [a.arg for a in fn.args.kwonlyargs] == [o.name for o in options] + tail
+        defaults = [ast.literal_eval(d) for d in fn.args.kw_defaults]
+        assert defaults == [o.default for o in options] + [None] * (len(tail) - 1) + ["drop"]
+        assert fn.args.vararg is None and fn.args.kwarg.arg == "unknown"  # unknown names: InputError
+        doc = ast.get_docstring(fn)
+        for section in ("Parameters", "Returns", "Raises", "Notes", "References", "Examples"):
+            assert f"\n{section}\n" in doc, (name, section)
+        assert all(f"\n{o.name} : " in doc for o in options)
+    # options left at their default take the variant's presets, as get_method gives them
+    st = _stats(16, 16)
+    np.testing.assert_array_equal(restoration.gem(st, variant="paper"),
+                                  mcrecon.reconstruct(st, method="gem", variant="paper").astype(st.dtype))
