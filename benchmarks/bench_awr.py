@@ -31,6 +31,7 @@ import numpy as np
 
 from mcrecon.driver import adapt
 from mcrecon.methods import get_method
+from mcrecon.methods.base import MethodInputs
 from mcrecon.methods.awr import AWRMethod, plan_awr_positions
 from mcrecon.metrics import relative_mse
 from mcrecon.renderers.scenes import SceneRenderer, reference_image, render_uniform
@@ -73,15 +74,15 @@ def bench_reconstruction(size, skip_oidn):
     res = {}
     for wavelet in ("cdf97", "legall53", "haar"):
         m = AWRMethod(variant="paper", wavelet=wavelet)
-        m.reconstruct(stats)                       # warm caches (analysis matrices)
-        res[wavelet], _ = best_of(lambda: m.reconstruct(stats))
+        m.reconstruct(MethodInputs(stats))                       # warm caches (analysis matrices)
+        res[wavelet], _ = best_of(lambda: m.reconstruct(MethodInputs(stats)))
         print(f"awr {wavelet:9s} {res[wavelet]:7.3f} s")
     m = AWRMethod(variant="paper", propagation="cascade")
-    t_cas, _ = best_of(lambda: m.reconstruct(stats))
+    t_cas, _ = best_of(lambda: m.reconstruct(MethodInputs(stats)))
     print(f"awr cdf97 (paper's cascade propagation) {t_cas:7.3f} s")
     m = AWRMethod()
-    m.reconstruct(stats)
-    t_rob, _ = best_of(lambda: m.reconstruct(stats))
+    m.reconstruct(MethodInputs(stats))
+    t_rob, _ = best_of(lambda: m.reconstruct(MethodInputs(stats)))
     print(f"awr cdf97 robust default (log domain + safeguard) {t_rob:7.3f} s")
     if not skip_oidn:
         import pyoidn
@@ -173,7 +174,7 @@ def bench_limits(size, spp, seeds, cornell=True):
             box = relative_mse(st.mean, ref)
             out, neg = {}, {}
             for v in ("paper", "robust"):
-                img = get_method("awr", variant=v).reconstruct(st)
+                img = get_method("awr", variant=v).reconstruct(MethodInputs(st))
                 out[v] = relative_mse(img, ref) / box
                 neg[v] = output_sanity(img, st)["negative_pixels"]
             print(f"{seed:>4}  {scene:<15} {'offline':<9} {box:9.3g} {out['paper']:10.3g} {out['robust']:11.3g} "

@@ -4,7 +4,7 @@ Prints ratios against baselines measured in the same run (machines are
 shared and noisy):
 
 1. Final reconstruction of a W x W RGB, 32-spp input (default 1024):
-   ``gem.reconstruct(stats)`` against ``box`` and against Intel Open Image
+   ``gem.reconstruct(MethodInputs(stats))`` against ``box`` and against Intel Open Image
    Denoise (``pyoidn.denoise(color, hdr=True, quality="high")`` on the box
    pixel means, if installed).  Target: gem <= 3 x OIDN.  With ``--log``
    the 32-spp input is also written as a sample log and
@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from mcrecon.methods import get_method
+from mcrecon.methods.base import MethodInputs
 from mcrecon.methods.gem import GEMMethod, pixel_kernel
 from mcrecon.reconstruction import reconstruct
 from mcrecon.renderers.scenes import SceneRenderer, render_uniform
@@ -85,9 +86,9 @@ def bench_final(size, repeat, scene, use_log):
     print(f"input: {scene} {size}x{size} RGB 32 spp ({len(batch) / 1e6:.1f} M samples), "
           f"rendered + accumulated in {time.perf_counter() - t:.1f} s")
     gem, box = get_method("gem"), get_method("box")
-    gem.reconstruct(stats)                      # warm-up (imports, kernels)
-    t_gem, all_gem = _time(lambda: gem.reconstruct(stats), repeat)
-    t_box, _ = _time(lambda: box.reconstruct(stats), repeat)
+    gem.reconstruct(MethodInputs(stats))                      # warm-up (imports, kernels)
+    t_gem, all_gem = _time(lambda: gem.reconstruct(MethodInputs(stats)), repeat)
+    t_box, _ = _time(lambda: box.reconstruct(MethodInputs(stats)), repeat)
     print(f"gem.reconstruct: {t_gem:.3f} s (runs {', '.join(f'{x:.3f}' for x in all_gem)})")
     print(f"box.reconstruct: {t_box:.4f} s   ratio gem/box = {t_gem / t_box:.0f}")
     try:
@@ -171,7 +172,7 @@ def bench_adaptive(size, scene, rate):
     tk = res.toolkit_seconds
     modelled = r.samples / rate
     t = time.perf_counter()
-    m.reconstruct(res.stats)
+    m.reconstruct(MethodInputs(res.stats))
     final = time.perf_counter() - t
     print(f"adaptive {scene} {size}x{size}, 32 spp ({r.samples / 1e6:.1f} M samples, {len(res.rounds)} rounds):")
     print(f"  toolkit in the loop {tk:.2f} s (GEM planning {res.run.plan_seconds:.2f} s, statistics/"

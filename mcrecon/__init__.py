@@ -22,7 +22,10 @@ __version__ = "0.1.0"
 
 __all__ = ["InputError", "RendererError", "McreconWarning", "write_log", "read_log", "append_log",
            "read_exr", "write_exr", "write_png_preview", "PixelStats", "SampleSet", "Reconstruction", "SampleRequest", "SampleBatch",
-           "CallableRenderer", "reconstruct", "restoration", "adapt", "available_methods", "get_method", "__version__"]
+           "CallableRenderer", "reconstruct", "restoration", "adapt", "available_methods", "get_method", "__version__",
+           # the public modules
+           "distributed", "driver", "experiments", "io", "methods", "metrics", "reconstruction", "renderers",
+           "samples", "stats"]
 
 #: Public name -> the module that defines it (imported on first access).
 _LAZY = {

@@ -9,7 +9,7 @@ from typing import Callable, Iterable, Mapping
 
 def lazy_exports(package: str, lazy: Mapping[str, str], submodules: Iterable[str],
                  public: Iterable[str]) -> tuple[Callable[[str], object], Callable[[], list[str]]]:
-    """The ``__getattr__`` and ``__dir__`` of ``package``.
+    """The ``__getattr__`` and ``__dir__`` (:func:`public_dir`) of ``package``.
 
     ``lazy`` maps a public name to the sub-module (relative to ``package``,
     without the dot) that defines it; ``submodules`` are reachable as
@@ -30,7 +30,18 @@ def lazy_exports(package: str, lazy: Mapping[str, str], submodules: Iterable[str
         setattr(module, name, value)
         return value
 
-    def __dir__() -> list[str]:
-        return sorted(set(vars(module)) | public | submodules)
+    return __getattr__, public_dir(package)
 
-    return __getattr__, __dir__
+
+def public_dir(module_name: str) -> Callable[[], list[str]]:
+    """A module's ``__dir__``: its ``__all__``, sorted, so ``dir()`` shows the public names only.
+
+    Imports (``np``, ``InputError``) and helpers stay reachable as
+    attributes; tab completion and ``dir()`` list the API.
+    """
+    module = sys.modules[module_name]
+
+    def __dir__() -> list[str]:
+        return sorted(module.__all__)
+
+    return __dir__

@@ -1064,3 +1064,8 @@ def _reconstruct_tiled_samples(m, source, tile, client, reference, nonfinite, wh
             r = client.scatter(r)
         tasks.append((box, (mf, src, outer, inner, w * h, nonfinite, r)))
     return _run_tiles(_splat_tile, tasks, (h, w, c), client)
+
+
+from ._lazy import public_dir as _public_dir  # noqa: E402
+
+__dir__ = _public_dir(__name__)

@@ -982,3 +982,8 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
             with contextlib.suppress(BaseException):
                 fut.result()
         pool.shutdown(wait=True)
+
+
+from ._lazy import public_dir as _public_dir  # noqa: E402
+
+__dir__ = _public_dir(__name__)

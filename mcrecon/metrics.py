@@ -325,3 +325,8 @@ def output_sanity(image, stats, *, radius: int = 1) -> dict | None:
         "max_overshoot_relative": float(rel.flat[worst]) if over.size else 0.0,
         "nonfinite_pixels": int((~finite).any(axis=2).sum()),
     }
+
+
+from ._lazy import public_dir as _public_dir  # noqa: E402
+
+__dir__ = _public_dir(__name__)

@@ -16,10 +16,11 @@ from .errors import InputError
 from .methods import Method, get_method
 from .methods.base import MethodInputs, RunState, SplitHalves, check_half_buffers, half_buffer_methods, \
     is_half_buffer_pair, merge_halves
-from .samples import check_policy, check_reference
+from .samples import SampleSet, check_policy, check_reference
 from .stats import PixelStats
 
-__all__ = ["reconstruct", "gather_inputs", "Reconstruction"]
+__all__ = ["reconstruct", "gather_inputs", "check_given_statistics", "statistics_for", "split_source_fireflies",
+           "Reconstruction"]
 
 
 @dataclasses.dataclass(eq=False)
@@ -94,8 +95,27 @@ def statistics_for(source, req, *, nonfinite: str = "drop"):
     return stats, None
 
 
-def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=None) -> MethodInputs:
-    """The inputs ``method`` declares, read from ``source``.
+def check_given_statistics(stats: PixelStats, where: str, field: str = "stats", *,
+                           need_samples: bool = True) -> None:
+    """Refuse statistics a user built that hold NaN/Inf in a sampled pixel, or (``need_samples``) no sample.
+
+    :meth:`PixelStats.add` and :meth:`PixelStats.from_moments` never make
+    such statistics; arrays filled in from outside can, and a method would
+    spread the NaN over its support.
+    """
+    sampled = stats.count > 0
+    if need_samples and not sampled.any():
+        raise InputError(where, field, "no pixel has a sample: there is nothing to reconstruct")
+    for name, arr in (("mean", stats.mean), ("m2", stats.m2)):
+        bad = sampled & ~np.isfinite(arr).all(axis=2)
+        if bad.any():
+            raise InputError(where, f"{field}.{name}", f"{int(bad.sum())} sampled pixel(s) hold NaN or Inf "
+                             "(statistics built outside PixelStats.add/from_moments?); fix the input")
+
+
+def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=None, where: str | None = None,
+                  logs: bool = True) -> MethodInputs:
+    """The inputs ``method`` declares, read from ``source``: the one place a source becomes MethodInputs.
 
     Parameters
     ----------
@@ -107,50 +127,69 @@ def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=
         the samples), for methods with ``requires.half_buffers``: handed
         over as ``inputs.halves``, with ``inputs.stats`` their merge.  For
         a method that needs the samples and takes half buffers, the
-        samples come with their split (:func:`statistics_for`).
+        samples come with their split (:func:`statistics_for`).  Pixel
+        statistics and halves the caller gives are checked
+        (:func:`check_given_statistics`).
     method : Method
     nonfinite : {'drop', 'zero', 'raise'}
         Policy for NaN/Inf sample values.
     reference : ndarray (H, W, C), optional
         The reference image; by default the log's stored one, for methods
         that read a reference.
+    where : str, optional
+        How error messages name the caller (e.g. ``"mcrecon.restoration.gem"``);
+        by default the method for what it refuses and ``"reconstruct"`` for
+        the source.
+    logs : bool
+        Accept sample log paths and SampleLogs (False: in-memory sources only).
     """
-    check_policy(nonfinite, "reconstruct")
-    req = method.requires
+    src_where = where or "reconstruct"
+    m_where = where or method.where
+    check_policy(nonfinite, src_where)
+    req, name = method.requires, method.name
+    samples_from = "a sample log or a SampleSet" if logs else "a mcrecon.SampleSet"
     halves = None
     if is_half_buffer_pair(source):
         if not req.half_buffers:
-            raise InputError(method.where, "halves", f"{method.name} does not use half buffers; methods that "
-                             f"do: {', '.join(half_buffer_methods()) or '(none)'} (for {method.name}, give the "
+            raise InputError(m_where, "halves", f"{name} does not use half buffers; methods that "
+                             f"do: {', '.join(half_buffer_methods()) or '(none)'} (for {name}, give the "
                              "statistics of all the samples: mcrecon.methods.base.merge_halves(a, b))")
-        halves = check_half_buffers(source, "reconstruct")
+        halves = check_half_buffers(source, src_where)
         if req.subpixels and halves[0].subpixels != req.subpixels:
-            raise InputError(method.where, "halves", f"this configuration needs a {req.subpixels}x"
+            raise InputError(m_where, "halves", f"this configuration needs a {req.subpixels}x"
                              f"{req.subpixels} subpixel grid, got subpixels={halves[0].subpixels}")
+        for i, h in enumerate(halves):
+            check_given_statistics(h, src_where, f"halves[{i}]", need_samples=False)
         stats, samples, stored_ref = merge_halves(*halves), None, None
+        check_given_statistics(stats, src_where, "halves")
     elif isinstance(source, PixelStats):
         if req.samples and req.half_buffers:
-            raise InputError(method.where, "input", f"{method.name} (these options) needs the individual "
+            raise InputError(m_where, "input", f"{name} (these options) needs the individual "
                              "samples or two independent half buffers, which one set of pixel statistics does not "
-                             "hold; give it a sample log or a SampleSet, or a half-buffer pair (stats_a, stats_b)"
+                             f"hold; give it {samples_from}, or a half-buffer pair (stats_a, stats_b)"
                              + ("; or candidates='box,gauss' (the SURE candidates need neither)"
-                                if method.name == "auto" else ""))
+                                if name == "auto" else ""))
         if req.samples:
-            raise InputError(method.where, "input", f"{method.name} filters individual samples, which pixel "
-                             "statistics no longer hold; give it a sample log or a SampleSet")
+            raise InputError(m_where, "input", f"{name} filters individual samples, which pixel "
+                             f"statistics no longer hold; give it {samples_from}")
+        check_given_statistics(source, src_where)
         stats, samples, stored_ref = source, None, None
     else:
-        if isinstance(source, (str, Path)):
+        if logs and isinstance(source, (str, Path)):
             from .io import read_log
             source = read_log(source)
-        if not (hasattr(source, "round_slices") and hasattr(source, "iter_chunks")):
-            raise InputError("reconstruct", "source", f"got {type(source).__name__}; expected a sample log path, "
-                             "a SampleLog, a SampleSet, PixelStats or a half-buffer pair (stats_a, stats_b)")
+        if not (hasattr(source, "round_slices") and hasattr(source, "iter_chunks")) or \
+                not (logs or isinstance(source, SampleSet)):
+            kinds = "a sample log path, a SampleLog, a SampleSet, PixelStats" if logs else \
+                "PixelStats (PixelStats.from_moments / from_samples), a mcrecon.SampleSet"
+            raise InputError(src_where, "source", f"got {type(source).__name__}; expected {kinds} or a "
+                             "half-buffer pair (stats_a, stats_b)")
         stats, halves = statistics_for(source, req, nonfinite=nonfinite)
         stored_ref = source.reference() if req.reference != "none" and hasattr(source, "reference") else None
         samples = source if req.samples else None
     shape = stats.shape if stats is not None else (samples.height, samples.width, len(samples.channels))
-    ref = check_reference(reference if reference is not None else stored_ref, shape)
+    ref = check_reference(reference if reference is not None else stored_ref, shape,
+                          **({"where": f"{where}: reference"} if where else {}))
     return MethodInputs(stats, samples, ref if req.reference != "none" else None, nonfinite, halves)
 
 
@@ -276,3 +315,8 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
         return image
     return Reconstruction(image, m, run, inputs, fireflies=split,
                           _sanity_source=original if split is not None else None)
+
+
+from ._lazy import public_dir as _public_dir  # noqa: E402
+
+__dir__ = _public_dir(__name__)

@@ -11,204 +11,488 @@ keyword-only options are the method's options, validated by the one
 option path of :mod:`mcrecon.methods`.  The image comes back in the
 precision of the input values: float32 in, float32 out.
 
-Functions: :func:`box`, :func:`gem`, :func:`awr`, :func:`splat`, :func:`ci`, :func:`auto`.
+Functions: :func:`box`, :func:`gem`, :func:`awr`, :func:`splat`, :func:`auto` (``ci``'s offline image
+is :func:`box`; its stopping rule is adaptive: :func:`mcrecon.adapt`).  Each is written out with the
+method's options, so static tools see them; a test keeps them equal to the methods' options.
 """
 
 from __future__ import annotations
-
-import inspect
 
 import numpy as np
 
 from .errors import InputError
 from .methods import get_method, method_class
-from .methods.base import MethodInputs, check_half_buffers, half_buffer_methods, is_half_buffer_pair, merge_halves
-from .samples import SampleSet, check_policy, check_reference
-from .stats import PixelStats
+from .samples import SampleSet
 
-__all__ = ["box", "gem", "awr", "splat", "ci", "auto"]
+__all__ = ["box", "gem", "awr", "splat", "auto"]
 
 
-def _check_stats(stats: PixelStats, where: str) -> None:
-    sampled = stats.count > 0
-    if not sampled.any():
-        raise InputError(where, "stats", "no pixel has a sample: there is nothing to reconstruct")
-    for name, arr in (("mean", stats.mean), ("m2", stats.m2)):
-        bad = sampled & ~np.isfinite(arr).all(axis=2)
-        if bad.any():
-            raise InputError(where, f"stats.{name}", f"{int(bad.sum())} sampled pixel(s) hold NaN or Inf "
-                             "(statistics built outside PixelStats.add/from_moments?); fix the input")
+def _run(name: str, source, reference, nonfinite: str, options: dict, unknown: dict) -> np.ndarray:
+    """The method's image of ``source`` (read by the one dispatcher), in the precision of the input values.
 
+    Options at their default are left out, so that a variant's presets apply to them
+    (:func:`mcrecon.methods.base.variant_option`).
+    """
+    from .reconstruction import check_given_statistics, gather_inputs
 
-def _run(name: str, source, reference, nonfinite: str, options: dict) -> np.ndarray:
     where = f"mcrecon.restoration.{name}"
-    method = get_method(name, **options)
-    req = method.requires
-    check_policy(nonfinite, where)
-    if isinstance(source, SampleSet):
-        from .reconstruction import statistics_for
-
-        stats, halves = statistics_for(source, req, nonfinite=nonfinite)  # the readers' one path
-        if stats is not None:
-            _check_stats(stats, where)
+    if unknown:
+        valid = sorted(options)
+        raise InputError(where, sorted(unknown)[0], f"unknown option; valid: {', '.join(valid) or '(none)'}")
+    defaults = {o.name: o.default for o in method_class(name).options}
+    method = get_method(name, **{k: v for k, v in options.items() if not _is_default(v, defaults[k])})
+    inputs = gather_inputs(source, method, nonfinite=nonfinite, reference=reference, where=where, logs=False)
+    if isinstance(source, SampleSet):  # samples the caller gave: refuse a set without any
+        if inputs.stats is not None:
+            check_given_statistics(inputs.stats, where)
         elif source.n_samples == 0:
             raise InputError(where, "samples", "no samples: there is nothing to reconstruct")
-        dtype = source.values.dtype
-        inputs = MethodInputs(stats, source if req.samples else None, None, nonfinite, halves)
-    elif is_half_buffer_pair(source):
-        if not req.half_buffers:
-            raise InputError(where, "halves", f"{name} does not use half buffers; functions that do: "
-                             f"{', '.join(half_buffer_methods()) or '(none)'} (for {name}, pass the statistics of "
-                             "all the samples: mcrecon.methods.base.merge_halves(a, b))")
-        a, b = check_half_buffers(source, where)
-        for i, h in enumerate((a, b)):
-            for field, arr in (("mean", h.mean), ("m2", h.m2)):
-                bad = (h.count > 0) & ~np.isfinite(arr).all(axis=2)
-                if bad.any():
-                    raise InputError(where, f"halves[{i}].{field}", f"{int(bad.sum())} sampled pixel(s) hold NaN "
-                                     "or Inf; fix the input")
-        stats = merge_halves(a, b)
-        _check_stats(stats, where)
-        dtype = stats.dtype
-        inputs = MethodInputs(stats, None, None, nonfinite, (a, b))
-    elif isinstance(source, PixelStats):
-        if req.samples:
-            if req.half_buffers:
-                hint = "; or candidates='box,gauss' (the SURE candidates need neither)" if name == "auto" else ""
-                raise InputError(where, "input", f"{name} (these options) needs the individual samples or two "
-                                 "independent half buffers, which one set of pixel statistics does not hold; pass a "
-                                 f"mcrecon.SampleSet, or a half-buffer pair (stats_a, stats_b){hint}")
-            raise InputError(where, "input", f"{name} filters individual samples, which pixel statistics no "
-                             "longer hold; pass a mcrecon.SampleSet")
-        _check_stats(source, where)
-        dtype = source.dtype
-        inputs = MethodInputs(source, None, None, nonfinite)
-    else:
-        raise InputError(where, "input", f"got {type(source).__name__}; expected PixelStats "
-                         "(PixelStats.from_moments / from_samples), a mcrecon.SampleSet"
-                         + (" or a half-buffer pair (stats_a, stats_b)" if req.half_buffers else ""))
-    if reference is not None:
-        ref = check_reference(reference, inputs.shape, where=f"{where}: reference")
-        inputs = MethodInputs(inputs.stats, inputs.samples, ref, nonfinite, inputs.halves)
+    dtype = source.values.dtype if isinstance(source, SampleSet) else inputs.stats.dtype
     image = method.reconstruct(inputs)
     return np.asarray(image).astype(np.float32 if dtype == np.float32 else np.float64, copy=False)
 
 
-def _make(name: str, summary: str, input_doc: str, notes: str, references: str, examples: str):
-    cls = method_class(name)
-    params = [inspect.Parameter("source", inspect.Parameter.POSITIONAL_ONLY)]
-    opt_docs = []
-    for o in cls.options:
-        params.append(inspect.Parameter(o.name, inspect.Parameter.KEYWORD_ONLY, default=o.default))
-        opt_docs.append(f"{o.name} : {getattr(o.type, '__name__', o.type)}, optional\n"
-                        f"    {o.help}; {o.expectation()} (default {o.default!r}).")
-    uses_ref = any(o.name == "oracle" for o in cls.options)
-    if uses_ref:
-        params.append(inspect.Parameter("reference", inspect.Parameter.KEYWORD_ONLY, default=None))
-        opt_docs.append("reference : ndarray (H, W, C), optional\n    The reference image (for ``oracle=1``).")
-    params.append(inspect.Parameter("nonfinite", inspect.Parameter.KEYWORD_ONLY, default="drop"))
-    opt_docs.append("nonfinite : {'drop', 'zero', 'raise'}, optional\n"
-                    "    Policy for NaN/Inf sample values of a SampleSet (default 'drop').")
-    valid = {o.name for o in cls.options}
-
-    def fn(source, /, *, reference=None, nonfinite="drop", **options):
-        unknown = sorted(set(options) - valid)
-        if unknown:
-            raise InputError(f"mcrecon.restoration.{name}", unknown[0],
-                             f"unknown option; valid: {', '.join(sorted(valid)) or '(none)'}")
-        return _run(name, source, reference, nonfinite, options)
-
-    fn.__name__ = fn.__qualname__ = name
-    fn.__module__ = __name__
-    fn.__signature__ = inspect.Signature(params, return_annotation=np.ndarray)
-    body = "\n".join(opt_docs)
-    fn.__doc__ = (f"{summary}\n\nParameters\n----------\n{input_doc}\n{body}\n\nReturns\n-------\n"
-                  "image : ndarray (H, W, C)\n    float32 when the input values were float32, else float64.\n\n"
-                  "Raises\n------\nInputError\n    Invalid options (the message lists the valid values), NaN/Inf "
-                  "in the statistics, an input without any sample, the wrong kind of input.\n\n"
-                  f"Notes\n-----\n{notes}\n\nReferences\n----------\n{references}\n\nExamples\n--------\n{examples}")
-    return fn
+def _is_default(value, default) -> bool:
+    if value is default:
+        return True
+    try:
+        return type(value) is not bool and bool(value == default)
+    except (TypeError, ValueError):  # not comparable: given (get_method reports what is wrong with it)
+        return False
 
 
-_STATS = ("source : PixelStats\n    Pixel statistics, e.g. ``PixelStats.from_moments(mean, variance, count)`` "
-          "or ``PixelStats.from_samples(...)``; a SampleSet is accepted too.")
+def box(source, /, *, nonfinite="drop", **unknown) -> np.ndarray:
+    """The pixel mean, empty pixels filled from their nearest sampled neighbour (the baseline).
 
-box = _make(
-    "box", "The pixel mean, empty pixels filled from their nearest sampled neighbour (the baseline).", _STATS,
-    "Every other method is measured against this one.",
-    ".. [1] (none: the estimator every Monte Carlo renderer starts from)",
-    ">>> import numpy as np\n>>> from mcrecon import PixelStats\n>>> from mcrecon.restoration import box\n"
-    ">>> st = PixelStats.from_moments(np.ones((2, 3, 3), np.float32), np.zeros((2, 3, 3)), 4)\n"
-    ">>> box(st).dtype, box(st).shape\n(dtype('float32'), (2, 3, 3))")
+    Parameters
+    ----------
+    source : PixelStats
+        Pixel statistics, e.g. ``PixelStats.from_moments(mean, variance, count)`` or
+        ``PixelStats.from_samples(...)``; a SampleSet is accepted too.
+    nonfinite : {'drop', 'zero', 'raise'}, optional
+        Policy for NaN/Inf sample values of a SampleSet (default 'drop').
 
-gem = _make(
-    "gem", "Greedy error minimization: per-pixel Gaussian scale selection (final reconstruction).", _STATS,
-    "Selects, per pixel, among Gaussian filters sqrt(2) apart the largest scale whose bias is not yet\n"
-    "significant (an ICI-style selector with error rate ``gamma``), with outlier removal on the stopping maps.",
-    ".. [1] F. Rousselle, C. Knaus, M. Zwicker, \"Adaptive Sampling and Reconstruction using Greedy Error\n"
-    "   Minimization\", ACM Transactions on Graphics 30(6) (SIGGRAPH Asia), 2011.",
-    ">>> import numpy as np\n>>> from mcrecon import PixelStats\n>>> from mcrecon.restoration import gem\n"
-    ">>> rng = np.random.default_rng(0)\n"
-    ">>> mean = (1.0 + rng.normal(0, 0.1, (16, 16, 3))).astype(np.float32)\n"
-    ">>> st = PixelStats.from_moments(mean, np.full((16, 16, 3), 0.16), 16)\n"
-    ">>> out = gem(st, gamma=0.2)\n>>> out.dtype, bool(np.abs(out - 1).std() < np.abs(mean - 1).std())\n"
-    "(dtype('float32'), True)")
+    Returns
+    -------
+    image : ndarray (H, W, C)
+        float32 when the input values were float32, else float64.
 
-awr = _make(
-    "awr", "Adaptive wavelet rendering: soft thresholding of wavelet coefficients by their propagated variance.",
-    _STATS,
-    "CDF 9/7 (also LeGall 5/3 and Haar) coefficients are soft-thresholded by the variance of the pixel means\n"
-    "propagated through the transform.  The default variance estimator ``range`` needs each pixel's sample\n"
-    "range: statistics from moments carry none, so use ``variance='sample'`` with them.",
-    ".. [1] R. S. Overbeck, C. Donner, R. Ramamoorthi, \"Adaptive Wavelet Rendering\", ACM Transactions on\n"
-    "   Graphics 28(5) (SIGGRAPH Asia), 2009.",
-    ">>> import numpy as np\n>>> from mcrecon import PixelStats\n>>> from mcrecon.restoration import awr\n"
-    ">>> rng = np.random.default_rng(1)\n>>> mean = 1.0 + rng.normal(0, 0.1, (32, 32, 3))\n"
-    ">>> st = PixelStats.from_moments(mean, np.full((32, 32, 3), 0.16), 16)\n"
-    ">>> out = awr(st, variance='sample')\n>>> out.shape, bool(np.abs(out - 1).std() < np.abs(mean - 1).std())\n"
-    "((32, 32, 3), True)")
+    Raises
+    ------
+    InputError
+        Invalid or unknown options (the message lists the valid values), NaN/Inf in the
+        statistics, an input without any sample, the wrong kind of input.
 
-splat = _make(
-    "splat", "Progressive, energy-preserving, variable-width Epanechnikov splatting of individual samples.",
-    "source : SampleSet\n    The samples (rounds are replayed in order; a single round is split into\n"
-    "    doubling pseudo-rounds per pixel).",
-    "Needs the individual samples: pixel statistics are refused.",
-    ".. [1] F. Suykens, Y. D. Willems, \"Adaptive Filtering for Progressive Monte Carlo Image Rendering\",\n"
-    "   WSCG 2000.",
-    ">>> import numpy as np, mcrecon\n>>> from mcrecon.restoration import splat\n"
-    ">>> rng = np.random.default_rng(2)\n>>> pos = (rng.random((3200, 2)) * 20).astype(np.float32)\n"
-    ">>> samples = mcrecon.SampleSet(pos, np.ones((3200, 3), np.float32), width=20, height=20)\n"
-    ">>> out = splat(samples)\n>>> out.dtype, bool(np.isclose(out.sum(), 3 * 400 * 1.0, rtol=1e-5))\n"
-    "(dtype('float32'), True)")
+    Notes
+    -----
+    Every other method is measured against this one.
 
-ci = _make(
-    "ci", "Tamstorf & Jensen's estimate: the per-pixel sample mean (Eq. 2, box filter).", _STATS,
-    "The method's contribution is adaptive (where to stop sampling, by tone-mapped confidence intervals);\n"
-    "offline its image is the pixel mean of the samples, exactly as :func:`box`.  Its options (the stopping\n"
-    "rule) are validated here too, so a rule can be checked before an adaptive run.",
-    ".. [1] R. Tamstorf, H. W. Jensen, \"Adaptive Sampling and Bias Estimation in Path Tracing\",\n"
-    "   Rendering Techniques '97 (Eurographics Workshop on Rendering), 1997.",
-    ">>> import numpy as np\n>>> from mcrecon import PixelStats\n>>> from mcrecon.restoration import box, ci\n"
-    ">>> st = PixelStats.from_moments(np.random.default_rng(3).random((4, 5, 3)), np.zeros((4, 5, 3)), 2)\n"
-    ">>> bool((ci(st, tolerance=0.01) == box(st)).all())\nTrue")
+    References
+    ----------
+    .. [1] (none: the estimator every Monte Carlo renderer starts from)
 
-auto = _make(
-    "auto", "Per-pixel choice among reconstructions by their estimated (reference-free) error.",
-    "source : PixelStats, SampleSet or (PixelStats, PixelStats)\n    A SampleSet (the default candidates split "
-    "its samples into two halves), or a half-buffer pair\n    ``(stats_a, stats_b)``: statistics of two independent "
-    "halves of the samples (dual buffers a\n    renderer wrote; same size and channels, counts may differ), used as "
-    "the two halves and\n    merged for the SURE candidates.  With one set of pixel statistics pass\n"
-    "    ``candidates='box,gauss'`` (the SURE candidates).",
-    "Candidates: the pixel mean, GEM's Gaussian scales (error by Stein's unbiased risk estimate with the\n"
-    "exact centre weight), cross-filtered non-local means and the black boxes awr/splat/oidn (error by\n"
-    "dual-buffer cross-validation); each pixel takes the candidate of least smoothed relative estimate.",
-    ".. [1] C. Stein, \"Estimation of the mean of a multivariate normal distribution\", Ann. Statist. 9(6), 1981.\n"
-    ".. [2] T.-M. Li, Y.-T. Wu, Y.-Y. Chuang, \"SURE-based optimization for adaptive sampling and\n"
-    "   reconstruction\", ACM Transactions on Graphics 31(6), 2012.\n"
-    ".. [3] F. Rousselle, C. Knaus, M. Zwicker, \"Adaptive rendering with non-local means filtering\",\n"
-    "   ACM Transactions on Graphics 31(6), 2012.",
-    ">>> import numpy as np\n>>> from mcrecon import PixelStats\n>>> from mcrecon.restoration import auto\n"
-    ">>> rng = np.random.default_rng(4)\n>>> mean = 1.0 + rng.normal(0, 0.1, (24, 24, 3))\n"
-    ">>> st = PixelStats.from_moments(mean, np.full((24, 24, 3), 0.16), 16)\n"
-    ">>> out = auto(st, candidates='box,gauss')\n"
-    ">>> out.shape, bool(np.abs(out - 1).std() < np.abs(mean - 1).std())\n((24, 24, 3), True)")
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from mcrecon import PixelStats
+    >>> from mcrecon.restoration import box
+    >>> st = PixelStats.from_moments(np.ones((2, 3, 3), np.float32), np.zeros((2, 3, 3)), 4)
+    >>> box(st).dtype, box(st).shape
+    (dtype('float32'), (2, 3, 3))
+    """
+    return _run("box", source, None, nonfinite, dict(), unknown)
+
+
+def gem(source, /, *, variant="robust", gamma=0.2, oracle=0, target_rel_mse=None, initial_spp=4, iterations=8,
+        uniform_share=0.25, samples_per_pick=0, adaptive_scales=4, final_scales=8, final_outliers="adaptive",
+        zero_variance_votes=2, channel_weights="relative", confirm_stops=1, subpixel_exact_below=0.0,
+        reference=None, nonfinite="drop", **unknown) -> np.ndarray:
+    """Greedy error minimization: per-pixel Gaussian scale selection (final reconstruction).
+
+    Parameters
+    ----------
+    source : PixelStats
+        Pixel statistics, e.g. ``PixelStats.from_moments(mean, variance, count)`` or
+        ``PixelStats.from_samples(...)``; a SampleSet is accepted too.
+    variant : {'robust', 'paper'}, optional
+        Algorithm variant: 'paper' presets every option to the paper's algorithm; 'robust' is the measured
+        default (departures documented on the method's page) (default "robust").
+    gamma : float, optional
+        Target error rate of the scale selector; a finite number with 0 < gamma < 0.4 (the paper's z(gamma) =
+        -log(1 - (1.9 gamma)^(1/sqrt 2)) is only calibrated there; use e.g. 0.1 to 0.3, default 0.2) (default
+        0.2; ``variant='paper'``: 0.1).
+    oracle : {0, 1}, optional
+        1: select and sample with the true bias from the reference (OUR-GRD) (default 0).
+    target_rel_mse : float or None, optional
+        Stop early when the estimated relative MSE (eps 0.01) reaches this; a finite number > 0 or None
+        (default None).
+    initial_spp : int, optional
+        Samples per pixel of the uniform initial pass; an integer >= 1 (default 4).
+    iterations : int, optional
+        Adaptive iterations after the initial pass; an integer >= 1 (default 8).
+    uniform_share : float, optional
+        Share of each adaptive round spread uniformly over the film (0: the paper's greedy distribution
+        alone); a finite number with 0 <= uniform_share <= 1 (default 0.25; ``variant='paper'``: 0.0).
+    samples_per_pick : int, optional
+        Samples each selected pixel spreads over its filter (0: the average spp of the budget, as in the
+        paper); an integer >= 0 (default 0).
+    adaptive_scales : int, optional
+        Dyadic Gaussian scales from 1 px used while sampling; an integer with 1 <= adaptive_scales <= 10
+        (default 4).
+    final_scales : int, optional
+        Gaussian scales sqrt(2) apart from sqrt(2) px in the final image; an integer with 1 <= final_scales <=
+        16 (default 8).
+    final_outliers : {'paper', 'adaptive'}, optional
+        Final outlier removal: paper (2x size, coarser only) or adaptive (1x size, both ways) (default
+        "adaptive"; ``variant='paper'``: "paper").
+    zero_variance_votes : {0, 1, 2, 3}, optional
+        Stopping-map votes of pixels with zero variance: 0 none, 1 adaptive phase, 2 final reconstruction, 3
+        both (default 2; ``variant='paper'``: 3).
+    channel_weights : {'relative', 'absolute'}, optional
+        Final reconstruction: how the scale selector sums channels, relative (each channel's error over
+        value^2 + 0.01, the pixel's relative MSE) or absolute (plain sum, the paper) (default "relative";
+        ``variant='paper'``: "absolute").
+    confirm_stops : {0, 1, 2}, optional
+        Final reconstruction: a raw stop of pair k counts only if pair k+1 stops too (the widest pair has
+        none: unconfirmed); 0 never (the paper), 1 Gaussian pairs (k >= 1), 2 every pair (default 1;
+        ``variant='paper'``: 0).
+    subpixel_exact_below : float, optional
+        Filter scales with sigma below this (px) on the 4x4 subpixel grid itself (slower; 0: pixel-level
+        equivalent kernel); a finite number >= 0 (default 0.0).
+    reference : ndarray (H, W, C), optional
+        The reference image (for ``oracle=1``).
+    nonfinite : {'drop', 'zero', 'raise'}, optional
+        Policy for NaN/Inf sample values of a SampleSet (default 'drop').
+
+    Returns
+    -------
+    image : ndarray (H, W, C)
+        float32 when the input values were float32, else float64.
+
+    Raises
+    ------
+    InputError
+        Invalid or unknown options (the message lists the valid values), NaN/Inf in the
+        statistics, an input without any sample, the wrong kind of input.
+
+    Notes
+    -----
+    Selects, per pixel, among Gaussian filters sqrt(2) apart the largest scale whose bias is not yet
+    significant (an ICI-style selector with error rate ``gamma``), with outlier removal on the stopping maps.
+
+    With ``variant='paper'`` every option left at the default shown takes the paper's value
+    (given after each option above); to combine the paper variant with an option at its
+    default value, use ``mcrecon.reconstruct(source, method='gem', variant='paper', ...)``.
+
+    References
+    ----------
+    .. [1] F. Rousselle, C. Knaus, M. Zwicker, "Adaptive Sampling and Reconstruction using Greedy Error
+       Minimization", ACM Transactions on Graphics 30(6) (SIGGRAPH Asia), 2011.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from mcrecon import PixelStats
+    >>> from mcrecon.restoration import gem
+    >>> rng = np.random.default_rng(0)
+    >>> mean = (1.0 + rng.normal(0, 0.1, (16, 16, 3))).astype(np.float32)
+    >>> st = PixelStats.from_moments(mean, np.full((16, 16, 3), 0.16), 16)
+    >>> out = gem(st, gamma=0.2)
+    >>> out.dtype, bool(np.abs(out - 1).std() < np.abs(mean - 1).std())
+    (dtype('float32'), True)
+    """
+    return _run("gem", source, reference, nonfinite, dict(variant=variant, gamma=gamma, oracle=oracle,
+        target_rel_mse=target_rel_mse, initial_spp=initial_spp, iterations=iterations,
+        uniform_share=uniform_share, samples_per_pick=samples_per_pick, adaptive_scales=adaptive_scales,
+        final_scales=final_scales, final_outliers=final_outliers, zero_variance_votes=zero_variance_votes,
+        channel_weights=channel_weights, confirm_stops=confirm_stops,
+        subpixel_exact_below=subpixel_exact_below), unknown)
+
+
+def awr(source, /, *, variant="robust", wavelet="cdf97", cs=1.0, variance="sample", domain="log",
+        log_offset=0.01, safeguard=2.0, levels=None, boundary="symmetric", propagation="exact",
+        renorm=0.7071067811865476, sampling_renorm=1.05, sampling_levels=5, sampling_variance="contrast",
+        per_coefficient=64, round_spp=4.0, initial_spp=16, priority_threshold=None, reconstruction="awr",
+        nonfinite="drop", **unknown) -> np.ndarray:
+    """Adaptive wavelet rendering: soft thresholding of wavelet coefficients by their propagated variance.
+
+    Parameters
+    ----------
+    source : PixelStats
+        Pixel statistics, e.g. ``PixelStats.from_moments(mean, variance, count)`` or
+        ``PixelStats.from_samples(...)``; a SampleSet is accepted too.
+    variant : {'robust', 'paper'}, optional
+        Algorithm variant: 'paper' presets every option to the paper's algorithm; 'robust' is the measured
+        default (departures documented on the method's page) (default "robust").
+    wavelet : {'cdf97', 'legall53', 'haar'}, optional
+        Wavelet basis (default "cdf97").
+    cs : float, optional
+        Smoothing constant c_s of Eq. 11 (0 = no smoothing); a finite number >= 0 (default 1.0).
+    variance : {'range', 'contrast', 'sample'}, optional
+        Sigma^2(F) estimator of the reconstruction (paper: range) (default "sample"; ``variant='paper'``:
+        "range").
+    domain : {'linear', 'log'}, optional
+        Domain of the wavelet shrinkage: linear (paper) or log(mean + delta), delta = log_offset x the
+        channel's mean pixel (signed channels stay linear) (default "log"; ``variant='paper'``: "linear").
+    log_offset : float, optional
+        Delta of the log domain as a fraction of the channel's mean pixel; a finite number > 0 (default 0.01).
+    safeguard : float or None, optional
+        Clamp each pixel into mean +- k standard errors of its mean and into the range of the samples around
+        it (k; None: no clamp, the paper); a finite number >= 0 or None (default 2.0; ``variant='paper'``:
+        None).
+    levels : int or None, optional
+        Reconstruction depth (default: floor(log2(min side)) - 2, at most 6); an integer with 0 <= levels <=
+        12 or None (default None).
+    boundary : {'symmetric', 'periodization'}, optional
+        Wavelet boundary extension (default "symmetric").
+    propagation : {'exact', 'cascade'}, optional
+        Variance propagation: exact Eq. 9/10 or the paper's squared-tap DWT (default "exact").
+    renorm : float, optional
+        Sum of the squared reconstruction filters (paper 2^-1/2); a finite number > 0 (default
+        0.7071067811865476).
+    sampling_renorm : float, optional
+        Sum of the squared sampling filters (paper 1.05); a finite number > 0 (default 1.05).
+    sampling_levels : int, optional
+        Highest scale level the sampler ranks (paper 5); an integer >= 0 (default 5).
+    sampling_variance : {'range', 'contrast', 'sample'}, optional
+        Sigma^2(F) estimator of the sampler (paper: contrast) (default "contrast").
+    per_coefficient : int, optional
+        Samples per selected level-0 coefficient (x 2^k at level k; paper 64); an integer >= 1 (default 64).
+    round_spp : float, optional
+        Samples per pixel placed per adaptive round (priority update interval); a finite number > 0 (default
+        4.0).
+    initial_spp : int, optional
+        Uniform samples per pixel of the first round (paper 4; capped by the budget); an integer >= 1 (default
+        16; ``variant='paper'``: 4).
+    priority_threshold : float or None, optional
+        Stop sampling when no priority exceeds this; a finite number or None (default None).
+    reconstruction : {'awr', 'box'}, optional
+        Final image of an adaptive run: awr, or box (AWR sampling only) (default "awr").
+    nonfinite : {'drop', 'zero', 'raise'}, optional
+        Policy for NaN/Inf sample values of a SampleSet (default 'drop').
+
+    Returns
+    -------
+    image : ndarray (H, W, C)
+        float32 when the input values were float32, else float64.
+
+    Raises
+    ------
+    InputError
+        Invalid or unknown options (the message lists the valid values), NaN/Inf in the
+        statistics, an input without any sample, the wrong kind of input.
+
+    Notes
+    -----
+    CDF 9/7 (also LeGall 5/3 and Haar) coefficients are soft-thresholded by the variance of the pixel means
+    propagated through the transform.  The default variance estimator ``range`` needs each pixel's sample
+    range: statistics from moments carry none, so use ``variance='sample'`` with them.
+
+    With ``variant='paper'`` every option left at the default shown takes the paper's value
+    (given after each option above); to combine the paper variant with an option at its
+    default value, use ``mcrecon.reconstruct(source, method='awr', variant='paper', ...)``.
+
+    References
+    ----------
+    .. [1] R. S. Overbeck, C. Donner, R. Ramamoorthi, "Adaptive Wavelet Rendering", ACM Transactions on
+       Graphics 28(5) (SIGGRAPH Asia), 2009.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from mcrecon import PixelStats
+    >>> from mcrecon.restoration import awr
+    >>> rng = np.random.default_rng(1)
+    >>> mean = 1.0 + rng.normal(0, 0.1, (32, 32, 3))
+    >>> st = PixelStats.from_moments(mean, np.full((32, 32, 3), 0.16), 16)
+    >>> out = awr(st, variance='sample')
+    >>> out.shape, bool(np.abs(out - 1).std() < np.abs(mean - 1).std())
+    ((32, 32, 3), True)
+    """
+    return _run("awr", source, None, nonfinite, dict(variant=variant, wavelet=wavelet, cs=cs,
+        variance=variance, domain=domain, log_offset=log_offset, safeguard=safeguard, levels=levels,
+        boundary=boundary, propagation=propagation, renorm=renorm, sampling_renorm=sampling_renorm,
+        sampling_levels=sampling_levels, sampling_variance=sampling_variance, per_coefficient=per_coefficient,
+        round_spp=round_spp, initial_spp=initial_spp, priority_threshold=priority_threshold,
+        reconstruction=reconstruction), unknown)
+
+
+def splat(source, /, *, variant="robust", alpha=0.5, c=2.0, c_prime=8.0, initial_spp=1, min_width=1.0,
+          max_width=32.0, boundary="mirror", norm="luminance", spread="outliers", outlier_k=2.0,
+          guide="local_mean", nonfinite="drop", **unknown) -> np.ndarray:
+    """Progressive, energy-preserving, variable-width Epanechnikov splatting of individual samples.
+
+    Parameters
+    ----------
+    source : SampleSet
+        The samples (rounds are replayed in order; a single round is split into doubling pseudo-rounds per
+        pixel).
+    variant : {'robust', 'paper'}, optional
+        Algorithm variant: 'paper' presets every option to the paper's algorithm; 'robust' is the measured
+        default (departures documented on the method's page) (default "robust").
+    alpha : float, optional
+        Exponent of N in the kernel width (Eq. 8), 0 < alpha <= 1; a finite number with 0 < alpha <= 1 (the
+        paper uses 1.5/5; 1/5 and 1/2 are the classical extremes) (default 0.5; ``variant='paper'``: 0.3).
+    c : float, optional
+        Kernel diameter constant C in pixels (Eq. 8; the paper: 4); a finite number > 0 (default 2.0;
+        ``variant='paper'``: 4.0).
+    c_prime : float, optional
+        Pilot kernel diameter constant C' in pixels (C' N0^-1/2); a finite number > 0 (default 8.0).
+    initial_spp : int, optional
+        Samples per pixel of the first round N0; an integer >= 1 (default 1).
+    min_width : float, optional
+        Smallest kernel diameter in pixels (>= 1); a finite number >= 1 (default 1.0).
+    max_width : float, optional
+        Largest kernel diameter in pixels (cap for huge G/f; >= min_width); a finite number >= 1 (default
+        32.0).
+    boundary : {'mirror', 'renormalize', 'none'}, optional
+        Boundary-bias remedy (default "mirror").
+    norm : {'luminance', 'mean', 'max'}, optional
+        Scalar value of a colour sample in Eq. 8 (default "luminance").
+    spread : {'all', 'outliers'}, optional
+        Which samples are splatted: all (the paper) or only the excess of outliers above their 3x3
+        neighbourhood's mean + k std (the rest stays in its pixel) (default "outliers"; ``variant='paper'``:
+        "all").
+    outlier_k : float, optional
+        With spread='outliers': a sample is an outlier above mean + k std of the G of its 3x3 neighbourhood's
+        samples; a finite number >= 0 (default 2.0).
+    guide : {'none', 'local_mean'}, optional
+        Footprint weights of the spread part: none (Epanechnikov, the paper) or local_mean (Epanechnikov times
+        the pooled 3x3 mean of G at each pixel) (default "local_mean"; ``variant='paper'``: "none").
+    nonfinite : {'drop', 'zero', 'raise'}, optional
+        Policy for NaN/Inf sample values of a SampleSet (default 'drop').
+
+    Returns
+    -------
+    image : ndarray (H, W, C)
+        float32 when the input values were float32, else float64.
+
+    Raises
+    ------
+    InputError
+        Invalid or unknown options (the message lists the valid values), NaN/Inf in the
+        statistics, an input without any sample, the wrong kind of input.
+
+    Notes
+    -----
+    Needs the individual samples: pixel statistics are refused.
+
+    With ``variant='paper'`` every option left at the default shown takes the paper's value
+    (given after each option above); to combine the paper variant with an option at its
+    default value, use ``mcrecon.reconstruct(source, method='splat', variant='paper', ...)``.
+
+    References
+    ----------
+    .. [1] F. Suykens, Y. D. Willems, "Adaptive Filtering for Progressive Monte Carlo Image Rendering",
+       WSCG 2000.
+
+    Examples
+    --------
+    >>> import numpy as np, mcrecon
+    >>> from mcrecon.restoration import splat
+    >>> rng = np.random.default_rng(2)
+    >>> pos = (rng.random((3200, 2)) * 20).astype(np.float32)
+    >>> samples = mcrecon.SampleSet(pos, np.ones((3200, 3), np.float32), width=20, height=20)
+    >>> out = splat(samples)
+    >>> out.dtype, bool(np.isclose(out.sum(), 3 * 400 * 1.0, rtol=1e-5))
+    (dtype('float32'), True)
+    """
+    return _run("splat", source, None, nonfinite, dict(variant=variant, alpha=alpha, c=c, c_prime=c_prime,
+        initial_spp=initial_spp, min_width=min_width, max_width=max_width, boundary=boundary, norm=norm,
+        spread=spread, outlier_k=outlier_k, guide=guide), unknown)
+
+
+def auto(source, /, *, candidates="box,gauss,nlm", scales=8, smooth=2.0, nlm_radius=3, nlm_patch=1,
+         nlm_k=0.45, initial_spp=4, iterations=4, sampling="gem", uniform_share=0.5, safeguard=4.0,
+         global_prior=None, nonfinite="drop", **unknown) -> np.ndarray:
+    """Per-pixel choice among reconstructions by their estimated (reference-free) error.
+
+    Parameters
+    ----------
+    source : PixelStats, SampleSet or (PixelStats, PixelStats)
+        A SampleSet (the default candidates split its samples into two halves), or a half-buffer pair
+        ``(stats_a, stats_b)``: statistics of two independent halves of the samples (dual buffers a renderer
+        wrote; same size and channels, counts may differ), used as the two halves and merged for the SURE
+        candidates.  With one set of pixel statistics pass ``candidates='box,gauss'`` (the SURE candidates).
+    candidates : str, optional
+        Comma-separated candidate reconstructions: box, gauss, nlm, awr, splat, oidn (nlm/awr/splat/oidn need
+        the samples: dual buffers); a string (default "box,gauss,nlm").
+    scales : int, optional
+        Gaussian scales of the gauss candidates (GEM's final bank); an integer with 1 <= scales <= 16 (default
+        8).
+    smooth : float, optional
+        Sigma (px) of the smoothing of the error maps before the choice (0: none); a finite number with 0 <=
+        smooth <= 32 (default 2.0).
+    nlm_radius : int, optional
+        NL-means search window radius r ((2r+1)^2 pixels); an integer with 1 <= nlm_radius <= 15 (default 3).
+    nlm_patch : int, optional
+        NL-means patch radius f ((2f+1)^2 pixels); an integer with 0 <= nlm_patch <= 5 (default 1).
+    nlm_k : float, optional
+        NL-means damping k of the variance-normalised distance; a finite number > 0 (default 0.45).
+    initial_spp : int, optional
+        Samples per pixel of the uniform initial pass (>= 4: two per half); an integer >= 1 (default 4).
+    iterations : int, optional
+        Adaptive rounds after the initial pass; an integer >= 1 (default 4).
+    sampling : {'gem', 'uniform', 'greedy'}, optional
+        Adaptive runs: gem (GEM's greedy relative-MSE placement for part of each round, the rest uniform;
+        measured best, docs/methods/auto.md), uniform rounds, or greedy placement by auto's own error
+        estimates (default "gem").
+    uniform_share : float, optional
+        With sampling='gem': share of each adaptive round spread uniformly (a defence against GEM's
+        estimates where they mislead); a finite number with 0 <= uniform_share <= 1 (default 0.5).
+    safeguard : float or None, optional
+        Clamp each pixel into mean +- k standard errors of its mean and into the range of the samples around
+        it (k; None: no clamp); a finite number >= 0 or None (default 4.0).
+    global_prior : float or None, optional
+        Z: every pixel takes the candidate of least summed estimate over the image unless another's smoothed
+        estimate is lower by more than z standard errors (None: off; measured trade-off in
+        docs/methods/auto.md); a finite number >= 0 or None (default None).
+    nonfinite : {'drop', 'zero', 'raise'}, optional
+        Policy for NaN/Inf sample values of a SampleSet (default 'drop').
+
+    Returns
+    -------
+    image : ndarray (H, W, C)
+        float32 when the input values were float32, else float64.
+
+    Raises
+    ------
+    InputError
+        Invalid or unknown options (the message lists the valid values), NaN/Inf in the
+        statistics, an input without any sample, the wrong kind of input.
+
+    Notes
+    -----
+    Candidates: the pixel mean, GEM's Gaussian scales (error by Stein's unbiased risk estimate with the
+    exact centre weight), cross-filtered non-local means and the black boxes awr/splat/oidn (error by
+    dual-buffer cross-validation); each pixel takes the candidate of least smoothed relative estimate.
+
+    References
+    ----------
+    .. [1] C. Stein, "Estimation of the mean of a multivariate normal distribution", Ann. Statist. 9(6), 1981.
+    .. [2] T.-M. Li, Y.-T. Wu, Y.-Y. Chuang, "SURE-based optimization for adaptive sampling and
+       reconstruction", ACM Transactions on Graphics 31(6), 2012.
+    .. [3] F. Rousselle, C. Knaus, M. Zwicker, "Adaptive rendering with non-local means filtering",
+       ACM Transactions on Graphics 31(6), 2012.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from mcrecon import PixelStats
+    >>> from mcrecon.restoration import auto
+    >>> rng = np.random.default_rng(4)
+    >>> mean = 1.0 + rng.normal(0, 0.1, (24, 24, 3))
+    >>> st = PixelStats.from_moments(mean, np.full((24, 24, 3), 0.16), 16)
+    >>> out = auto(st, candidates='box,gauss')
+    >>> out.shape, bool(np.abs(out - 1).std() < np.abs(mean - 1).std())
+    ((24, 24, 3), True)
+    """
+    return _run("auto", source, None, nonfinite, dict(candidates=candidates, scales=scales, smooth=smooth,
+        nlm_radius=nlm_radius, nlm_patch=nlm_patch, nlm_k=nlm_k, initial_spp=initial_spp,
+        iterations=iterations, sampling=sampling, uniform_share=uniform_share, safeguard=safeguard,
+        global_prior=global_prior), unknown)
+
+
+from ._lazy import public_dir as _public_dir  # noqa: E402
+
+__dir__ = _public_dir(__name__)

@@ -523,3 +523,8 @@ def pixel_index(positions: np.ndarray, width: int) -> np.ndarray:
     """Flat pixel index ``row * width + col`` of film positions."""
     pos = np.asarray(positions)
     return np.floor(pos[:, 1]).astype(np.int64) * width + np.floor(pos[:, 0]).astype(np.int64)
+
+
+from ._lazy import public_dir as _public_dir  # noqa: E402
+
+__dir__ = _public_dir(__name__)

@@ -552,3 +552,8 @@ class PixelStats:
     def __repr__(self) -> str:
         return (f"PixelStats({self.width}x{self.height}, channels={','.join(self.channels)}, "
                 f"samples={self.n_samples}, subpixels={self.subpixels})")
+
+
+from ._lazy import public_dir as _public_dir  # noqa: E402
+
+__dir__ = _public_dir(__name__)

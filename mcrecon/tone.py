@@ -2,7 +2,8 @@
 
 A registry of monotone non-decreasing functions (:data:`TONE_OPERATORS`,
 :func:`register_tone_operator`, :func:`get_tone_operator`) and
-:func:`tone_map`, the displayed value ``T(exposure * x)``.  The ``ci``
+:func:`tone_map`, the displayed value ``T(2**exposure * x)`` (exposure in stops, as the
+PNG previews of :mod:`mcrecon.io.images` take it).  The ``ci``
 method (:mod:`mcrecon.methods.ci`) decides on the displayed value, and the
 bootstrap bias (:mod:`mcrecon.analysis.bootstrap`) reports bias in display
 space; anyone else may use them too.
@@ -129,9 +130,9 @@ def get_tone_operator(name: str, *, where: str = "tone") -> ToneOperator:
     return op
 
 
-def tone_map(x, *, tone: str = "gamma", gamma: float = 2.2, exposure: float = 1.0) -> np.ndarray:
-    """Displayed value ``T(exposure * x)`` (Eq. 4)."""
+def tone_map(x, *, tone: str = "gamma", gamma: float = 2.2, exposure: float = 0.0) -> np.ndarray:
+    """Displayed value ``T(2**exposure * x)`` (Eq. 4), ``exposure`` in stops."""
     op = get_tone_operator(tone)
     with np.errstate(invalid="ignore", over="ignore"):
-        # exposure * (+-inf) stays +-inf for exposure > 0; no NaN arises.
-        return op.fn(float(exposure) * np.asarray(x, dtype=np.float64), float(gamma))
+        # 2**exposure > 0, so a scaled +-inf stays +-inf; no NaN arises.
+        return op.fn(2.0 ** float(exposure) * np.asarray(x, dtype=np.float64), float(gamma))

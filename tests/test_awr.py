@@ -16,8 +16,10 @@ import numpy as np
 import pytest
 from scipy import stats as sstats
 
+import mcrecon
 from mcrecon.errors import InputError, McreconWarning
 from mcrecon.methods import AdaptiveState, get_method
+from mcrecon.methods.base import MethodInputs
 from mcrecon.methods.awr import (
     RECONSTRUCTION_RENORM, SAMPLING_RENORM, WAVELETS, AWRMethod, analysis_matrices, analyze,
     awr_reconstruct, coefficient_variances, default_levels, equivalent_filter_norms, functional_variance,
@@ -569,8 +571,8 @@ def test_tiny_and_prime_sizes(h, w, variant):
     st = _noisy_stats(h, w, 3, 4)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        img = AWRMethod(variant=variant).reconstruct(st)
-        img2 = AWRMethod(variant=variant, levels=2).reconstruct(st) if min(h, w) >= 2 else img
+        img = mcrecon.reconstruct(st, method=AWRMethod(variant=variant))
+        img2 = mcrecon.reconstruct(st, method=AWRMethod(variant=variant, levels=2)) if min(h, w) >= 2 else img
     assert img.shape == (h, w, 3) and np.isfinite(img).all() and np.isfinite(img2).all()
 
 
@@ -588,14 +590,14 @@ def test_extreme_inputs_stay_finite():
     for est in ("range", "contrast", "sample"):
         for wv in BASES:
             for variant in ("paper", "robust"):
-                img = AWRMethod(variant=variant, variance=est, wavelet=wv).reconstruct(st)
+                img = mcrecon.reconstruct(st, method=AWRMethod(variant=variant, variance=est, wavelet=wv))
                 assert np.isfinite(img).all()
     one = PixelStats.from_samples(rng.random((h * w, 2)) * [w, h], rng.random((h * w, 3)), width=w, height=h)
     with pytest.warns(McreconWarning, match="without samples filled"):     # ~1 spp, many empty pixels
-        img = AWRMethod(variant="paper", variance="sample").reconstruct(one)
+        img = mcrecon.reconstruct(one, method=AWRMethod(variant="paper", variance="sample"))
     assert np.isfinite(img).all()
     with pytest.warns(McreconWarning, match="without samples filled"):
-        img = AWRMethod().reconstruct(one)
+        img = mcrecon.reconstruct(one, method=AWRMethod())
     assert np.isfinite(img).all()
     pri = scale_priorities(st.mean, pixel_variance(st, "contrast"), levels=3)
     assert all(np.isfinite(p).all() for p in pri)
@@ -635,8 +637,8 @@ def test_awr_vs_box_on_scenes(scene, variance):
     size = 128
     ref = reference_image(scene, size, size)
     st = _scene_stats(scene, size, 32, seed=1)
-    box = relative_mse(get_method("box").reconstruct(st), ref)
-    awr = relative_mse(get_method("awr", variant="paper", variance=variance).reconstruct(st), ref)
+    box = relative_mse(mcrecon.reconstruct(st, method="box"), ref)
+    awr = relative_mse(mcrecon.reconstruct(st, method="awr", variant="paper", variance=variance), ref)
     assert awr < box, (awr, box)
 
 
@@ -653,7 +655,7 @@ def test_adaptive_awr_vs_box_on_scenes(scene):
     from mcrecon.renderers.scenes import SceneRenderer, reference_image
     size = 128
     ref = reference_image(scene, size, size)
-    box = relative_mse(get_method("box").reconstruct(_scene_stats(scene, size, 32, seed=1)), ref)
+    box = relative_mse(mcrecon.reconstruct(_scene_stats(scene, size, 32, seed=1), method="box"), ref)
     res = adapt(SceneRenderer(scene, width=size, height=size, seed=1), get_method("awr", variant="paper"), spp=32, seed=1,
                 progress=False, track_error=False)
     adaptive = relative_mse(res.image, ref)
@@ -678,7 +680,7 @@ def test_adaptive_awr_vs_offline_awr(scene):
     assert np.isfinite(res.image).all()
     if scene == "soft_shadow":
         ref = reference_image(scene, size, size)
-        off = relative_mse(get_method("awr", variant="paper").reconstruct(_scene_stats(scene, size, 32, seed=1)), ref)
+        off = relative_mse(mcrecon.reconstruct(_scene_stats(scene, size, 32, seed=1), method="awr", variant="paper"), ref)
         adaptive = relative_mse(res.image, ref)
         assert adaptive < off, (adaptive, off)
 
@@ -741,7 +743,7 @@ def test_depth_of_field_loss_is_the_sample_allocation():
     big = _scene_stats(scene, size, 256, seed=99)
     sig2 = big.m2 / (big.count[..., None] - 1)
     oracle = awr_reconstruct(res.stats.mean, sig2 / res.stats.count[..., None])
-    offline = relative_mse(get_method("awr", variant="paper").reconstruct(uni), ref)
+    offline = relative_mse(mcrecon.reconstruct(uni, method="awr", variant="paper"), ref)
     assert relative_mse(oracle, ref) > 1.3 * offline
 
 
@@ -749,7 +751,7 @@ def test_diagnostics_maps():
     st = _noisy_stats(20, 30, 4, 5)
     m = AWRMethod(variant="paper")
     run = m.start(30, 20)
-    img = m.reconstruct(st, run=run)
+    img = m.reconstruct(MethodInputs(st), run=run)
     d = m.diagnostics(run)
     assert set(d) == {"pixel_std", "smoothing"}
     assert d["pixel_std"].shape == (20, 30) and d["smoothing"].shape == (20, 30)

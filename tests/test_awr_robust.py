@@ -25,6 +25,7 @@ import math
 import numpy as np
 import pytest
 
+import mcrecon
 from mcrecon.driver import adapt
 from mcrecon.methods import get_method
 from mcrecon.methods.awr import AWRMethod
@@ -147,7 +148,7 @@ def test_variants_preset_the_paper_and_explicit_options_win():
     assert AWRMethod(variant="paper", safeguard=2.0).params["safeguard"] == 2.0
     # paper variant = the paper's reconstruction, nothing else on top
     st = _uniform_stats("step", 8, 1)
-    img = paper.reconstruct(st)
+    img = mcrecon.reconstruct(st, method=paper)
     np.testing.assert_array_equal(img, awr_reconstruct(st.mean, pixel_variance(st, "range")))
 
 
@@ -173,10 +174,10 @@ def test_robust_offline_never_worse_than_box_and_no_negative_pixels(scene):
     for seed in SEEDS:
         st = _uniform_stats(scene, 16, seed)
         box = relative_mse(st.mean, ref)
-        img = AWRMethod().reconstruct(st)
+        img = mcrecon.reconstruct(st, method=AWRMethod())
         ratios.append(relative_mse(img, ref) / box)
         if seed in SEEDS[:2]:
-            paper.append(relative_mse(AWRMethod(variant="paper").reconstruct(st), ref) / box)
+            paper.append(relative_mse(mcrecon.reconstruct(st, method=AWRMethod(variant="paper")), ref) / box)
         sanity = output_sanity(img, st)
         assert sanity["negative_pixels"] == 0 and sanity["overshoot_pixels"] == 0 and sanity["nonfinite_pixels"] == 0
     r = np.array(ratios)

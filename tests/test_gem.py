@@ -22,7 +22,7 @@ from mcrecon import _filtering
 from mcrecon._filtering import correlate_jobs
 from mcrecon.errors import InputError, McreconWarning
 from mcrecon.methods import get_method
-from mcrecon.methods.base import AdaptiveState
+from mcrecon.methods.base import AdaptiveState, MethodInputs
 from mcrecon.methods.gem import kernels as gem_kernels
 from mcrecon.methods.gem import selection as gem_selection
 from mcrecon.methods.gem.kernels import _chan_sum
@@ -207,8 +207,8 @@ def test_pixel_path_approximation_costs_no_accuracy():
         ref = reference_image(scene, 48, 48)
         b = render_uniform(scene, width=48, height=48, spp=32, seed=5)
         st = _stats(b.positions, b.values, 48, 48)
-        fast = relative_mse(get_method("gem").reconstruct(st), ref)
-        exact = relative_mse(get_method("gem", subpixel_exact_below=100.0).reconstruct(st), ref)
+        fast = relative_mse(mcrecon.reconstruct(st, method="gem"), ref)
+        exact = relative_mse(mcrecon.reconstruct(st, method="gem", subpixel_exact_below=100.0), ref)
         assert fast <= 1.1 * exact, (scene, fast, exact)
 
 
@@ -862,7 +862,7 @@ def test_flat_noise_goes_coarse_and_edges_stay_sharp():
     st = _stats(pos, val, w, h)
     m = get_method("gem")
     run = m.start(w, h)
-    img = m.reconstruct(st, run=run)
+    img = m.reconstruct(MethodInputs(st), run=run)
     sel = m.diagnostics(run)["selected_scale"]
     assert np.median(sel[:, 5:25]) >= 4       # flat regions: coarse scales
     assert (sel[:, 31:33] == 0).all()          # the step: the pixel filter
@@ -882,7 +882,7 @@ def test_extreme_shapes_and_inputs_are_finite(shape):
         with warnings.catch_warnings():
             warnings.simplefilter("error")
             warnings.simplefilter("ignore", McreconWarning)
-            img = get_method("gem").reconstruct(st)
+            img = mcrecon.reconstruct(st, method="gem")
         assert img.shape == (h, w, 3) and img.dtype == np.float64 and np.isfinite(img).all()
 
 
@@ -900,7 +900,7 @@ def test_one_spp_policy_and_hdr_neighbours():
                                        width=2, height=1, subpixels=4)
     mv1 = G.mean_variance_policy(only_one)
     assert np.isfinite(mv1).all() and (mv1 > 0).all()
-    img = get_method("gem").reconstruct(only_one)
+    img = mcrecon.reconstruct(only_one, method="gem")
     assert np.isfinite(img).all()
 
 
@@ -908,7 +908,7 @@ def test_empty_pixels_are_filled_with_a_warning():
     st = PixelStats(15, 15, subpixels=4)
     st.add(np.array([[0.5, 0.5]]), np.array([[1.0, 2.0, 3.0]]))
     with pytest.warns(McreconWarning):
-        img = get_method("gem", final_scales=1).reconstruct(st)   # sigma sqrt(2): support 5 px
+        img = mcrecon.reconstruct(st, method="gem", final_scales=1)   # sigma sqrt(2): support 5 px
     assert np.isfinite(img).all()
     np.testing.assert_allclose(img[14, 14], [1.0, 2.0, 3.0])
 
@@ -985,7 +985,7 @@ def test_target_rel_mse_stops_early_and_oracle_needs_reference():
         get_method("gem", oracle=1).start(8, 8)
     assert exc.value.field == "reference"
     with pytest.raises(InputError):
-        get_method("gem", oracle=1).reconstruct(st)
+        mcrecon.reconstruct(st, method="gem", oracle=1)
 
 
 # ----------------------------------------------------------------------------
@@ -1058,7 +1058,7 @@ def test_gem_beats_box_on_every_scene(full_run):
         for seed in range(seeds):
             b = render_uniform(scene, width=size, height=size, spp=32, seed=seed)
             st = _stats(b.positions, b.values, size, size)
-            diffs.append(relative_mse(st.mean, ref) - relative_mse(get_method("gem").reconstruct(st), ref))
+            diffs.append(relative_mse(st.mean, ref) - relative_mse(mcrecon.reconstruct(st, method="gem"), ref))
         d = np.array(diffs)
         se = d.std(ddof=1) / math.sqrt(len(d))
         assert d.mean() > 2 * se, (scene, d)
@@ -1087,11 +1087,11 @@ def test_adaptive_beats_offline_and_oracle_is_not_worse(full_run):
         d_ad, d_or, d_sel, gem_err = [], [], [], []
         for seed in range(seeds):
             b = render_uniform(scene, width=size, height=size, spp=32, seed=seed)
-            off = relative_mse(get_method("gem").reconstruct(_stats(b.positions, b.values, size, size)), ref)
+            off = relative_mse(mcrecon.reconstruct(_stats(b.positions, b.values, size, size), method="gem"), ref)
             r = SceneRenderer(scene, width=size, height=size, seed=seed)
             res = _drive(r, get_method("gem"), 32, seed)
             ad = relative_mse(res.image, ref)
-            sel = relative_mse(get_method("gem", oracle=1).reconstruct(res.stats, reference=ref), ref)
+            sel = relative_mse(get_method("gem", oracle=1).reconstruct(MethodInputs(res.stats, reference=ref)), ref)
             orc = relative_mse(_drive(r, get_method("gem", oracle=1), 32, seed, reference=ref).image, ref)
             d_ad.append(off - ad)
             d_sel.append(sel - ad)
@@ -1113,7 +1113,7 @@ def test_oracle_offline_uses_the_log_reference(tmp_path):
     m = get_method("gem", oracle=1)
     a = mcrecon.reconstruct(path, method=m)
     stats = PixelStats.from_log(path, subpixels=4)
-    b = get_method("gem", oracle=1).reconstruct(stats, reference=reference_image("soft_shadow", 24, 24))
+    b = get_method("gem", oracle=1).reconstruct(MethodInputs(stats, reference=reference_image("soft_shadow", 24, 24)))
     np.testing.assert_array_equal(a, b)
 
 

@@ -104,7 +104,7 @@ def test_pair_of_autos_own_split_gives_the_image_of_the_samples(spp):
     np.testing.assert_array_equal(pair.diagnostics()["choice"], full.diagnostics()["choice"])
     np.testing.assert_array_equal(pair.image, full.image)
     np.testing.assert_array_equal(mcrecon.restoration.auto((h.a, h.b)), full.image)
-    np.testing.assert_array_equal(get_method("auto").reconstruct([h.a, h.b]), full.image)
+    np.testing.assert_array_equal(get_method("auto").reconstruct(MethodInputs(None, halves=[h.a, h.b])), full.image)
     assert pair.inputs.halves is not None and pair.inputs.stats.n_samples == ss.n_samples
     assert full.inputs.halves is not None and full.inputs.samples is not None
     np.testing.assert_array_equal(full.inputs.stats.mean, merge_halves(h.a, h.b).mean)
@@ -243,7 +243,7 @@ def test_auto_on_one_exr_uses_its_sure_candidates_and_suggests_the_pair(tmp_path
     with pytest.raises(InputError, match=r"half-buffer pair \(stats_a, stats_b\); or candidates='box,gauss'"):
         mcrecon.restoration.auto(pix.stats)
     with pytest.raises(InputError, match="MethodInputs.halves"):
-        get_method("auto").reconstruct(pix.stats)
+        get_method("auto").reconstruct(MethodInputs(pix.stats))
 
 
 # ------------------------------------------------------------------ refusals
@@ -257,7 +257,7 @@ def test_methods_without_half_buffers_refuse_the_pair(tmp_path, capsys):
         assert f"{method} does not use half buffers" in err and "methods that do: auto" in err
     for call in (lambda: mcrecon.reconstruct((h.a, h.b), method="box"),
                  lambda: mcrecon.restoration.box((h.a, h.b)),
-                 lambda: get_method("gem").reconstruct((h.a, h.b))):
+                 lambda: get_method("gem").reconstruct(MethodInputs(None, halves=(h.a, h.b)))):
         with pytest.raises(InputError, match="does not use half buffers.*auto"):
             call()
     # a sample log holds the samples: --half-buffer does not apply
@@ -292,7 +292,7 @@ def test_mismatched_pairs_are_refused_in_one_line(tmp_path, capsys):
              ((h.a, PixelStats.from_source(ss, subpixels=4)), "subpixels")]
     for pair, field in cases:
         for call in (lambda: mcrecon.reconstruct(pair, method="auto"), lambda: mcrecon.restoration.auto(pair),
-                     lambda: get_method("auto").reconstruct(pair)):
+                     lambda: get_method("auto").reconstruct(MethodInputs(None, halves=pair))):
             with pytest.raises(InputError, match=field) as exc:
                 call()
             assert "\n" not in str(exc.value)
@@ -314,7 +314,7 @@ def test_method_inputs_contract():
     # statistics given with the pair: used as they are (they must be the merge)
     merged = merge_halves(h.a, h.b)
     np.testing.assert_array_equal(m.reconstruct(MethodInputs(merged, None, halves=(h.a, h.b))),
-                                  m.reconstruct((h.a, h.b)))
+                                  m.reconstruct(MethodInputs(None, halves=(h.a, h.b))))
     # SURE candidates on a pair: the merged statistics
     np.testing.assert_array_equal(mcrecon.reconstruct((h.a, h.b), method="auto", candidates="box,gauss"),
                                   mcrecon.reconstruct(merged, method="auto", candidates="box,gauss"))

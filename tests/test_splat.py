@@ -20,6 +20,7 @@ from mcrecon.driver import adapt, resume
 from mcrecon.errors import InputError, McreconWarning
 from mcrecon.io import read_log, write_log
 from mcrecon.methods import get_method
+from mcrecon.methods.base import MethodInputs
 from mcrecon.methods.splat import (ProgressiveSplatter, SplatMethod, doubling_schedule, epanechnikov, kernel_width,
                                    pilot_width, sample_norm, splat)
 from mcrecon.methods.splat.progressive import _radii
@@ -471,7 +472,7 @@ def test_samples_checked_by_the_shared_path(rng):
 
 def test_reconstruct_from_stats_is_refused():
     with pytest.raises(InputError, match="individual samples"):
-        SplatMethod().reconstruct(PixelStats(4, 4))
+        SplatMethod().reconstruct(MethodInputs(PixelStats(4, 4)))
     with pytest.raises(InputError, match="individual samples"):
         mcrecon.reconstruct(PixelStats(4, 4), method="splat")
 

@@ -71,8 +71,8 @@ def test_tone_operators_registry_and_values():
     np.testing.assert_allclose(tone_map(x, tone="linear"), x)
     r = tone_map(x, tone="reinhard", gamma=2.0)
     np.testing.assert_allclose(r, [0, 0, (0.2) ** 0.5, 0.5 ** 0.5, 0.8 ** 0.5, 1.0])
-    # exposure scales the radiance before the operator
-    np.testing.assert_allclose(tone_map(0.5, tone="gamma", exposure=2.0), 1.0)
+    # exposure (stops) scales the radiance by 2**exposure before the operator
+    np.testing.assert_allclose(tone_map(0.5, tone="gamma", exposure=1.0), 1.0)
 
 
 def test_unknown_tone_lists_valid_names():

@@ -316,7 +316,7 @@ def _bootstrap_generic(vals, offsets, theta, base, B, rule, tq, op, out):
     nonempty = np.flatnonzero(np.diff(offsets) > 0)
     chunk = max(1, 2_000_000 // max(B * C, 1))
     two_d = 2.0 * rule.tolerance
-    e, g = float(rule.exposure), float(rule.gamma)
+    e, g = rule.scale, float(rule.gamma)
     for a in range(0, nonempty.size, chunk):
         pixels = nonempty[a:a + chunk]
         pix = np.repeat(pixels, B)
@@ -580,7 +580,7 @@ def bootstrap_bias_samples(samples: PixelSamples, *, B: int = 1000, seed: int = 
         if op.code >= 0:
             _bootstrap_kernel(vals, samples.offsets, theta, base, B, int(rule.min_spp), int(rule.step),
                               int(rule.max_spp), tq, 2.0 * rule.tolerance, op.code, 1.0 / rule.gamma,
-                              float(rule.exposure), _slope_table(1.0 / rule.gamma), *out)
+                              rule.scale, _slope_table(1.0 / rule.gamma), *out)
         else:
             _bootstrap_generic(vals, samples.offsets, theta, base, B, rule, tq, op, out)
     dev_mean, dev_m2, disp_mean, disp_m2, spp_mean, capped = out
@@ -594,7 +594,7 @@ def bootstrap_bias_samples(samples: PixelSamples, *, B: int = 1000, seed: int = 
         return BiasEstimate(t.reshape(shape), t.reshape(shape) + bias, bias, se, mc, bias - z * mc, bias + z * mc)
 
     with np.errstate(invalid="ignore", over="ignore"):
-        t_disp = op.fn(rule.exposure * theta, rule.gamma)
+        t_disp = op.fn(rule.scale * theta, rule.gamma)
     t_disp = np.where(cnt[:, None] > 0, t_disp, 0.0)
     return BootstrapBiasResult(
         radiance=est(theta, dev_mean, dev_m2), display=est(t_disp, disp_mean, disp_m2),

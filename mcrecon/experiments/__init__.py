@@ -8,3 +8,8 @@ run_convergence``): each pulls in plotting and scene code.
 """
 
 __all__: list[str] = []
+
+
+from .._lazy import public_dir as _public_dir  # noqa: E402
+
+__dir__ = _public_dir(__name__)

@@ -127,3 +127,8 @@ def method_class(name: str) -> type[Method]:
 def get_method(name: str, **options) -> Method:
     """Instantiate a registered method with keyword options."""
     return method_class(name)(**options)
+
+
+from .._lazy import public_dir as _public_dir  # noqa: E402
+
+__dir__ = _public_dir(__name__)

@@ -564,18 +564,17 @@ class Method:
         return self.run_type(int(width), int(height), tuple(str(c) for c in channels), reference)
 
     # -------------------------------------------------------------- offline
-    def reconstruct(self, inputs, *, reference: np.ndarray | None = None,
-                    run: RunState | None = None) -> np.ndarray:
+    def reconstruct(self, inputs: MethodInputs, *, run: RunState | None = None) -> np.ndarray:
         """Reconstruct an (H, W, C) float64 image.
 
         Parameters
         ----------
-        inputs : PixelStats, (PixelStats, PixelStats) or MethodInputs
-            Pixel statistics, a half-buffer pair (for methods with
-            ``requires.half_buffers``), or every input the method declared.
-        reference : ndarray, optional
-            The reference image (for methods that read one), when
-            ``inputs`` is plain statistics or a pair.
+        inputs : MethodInputs
+            Every input the method declared (:attr:`requires`); wrap pixel
+            statistics as ``MethodInputs(stats)``.  To reconstruct from a
+            file, samples, statistics or a half-buffer pair, use
+            :func:`mcrecon.reconstruct` (``mcrecon.reconstruct(source,
+            method=...)``), which reads what the method declares.
         run : RunState, optional
             A state from :meth:`start` that receives the diagnostics; a
             fresh one by default.
@@ -585,14 +584,11 @@ class Method:
         halves are a :class:`SplitHalves` of those samples); with halves and
         no ``inputs.stats``, the statistics are their merge.
         """
-        if isinstance(inputs, PixelStats):
-            inputs = MethodInputs(inputs, None, reference)
-        elif is_half_buffer_pair(inputs) and not isinstance(inputs, MethodInputs):
-            inputs = MethodInputs(None, None, reference, halves=tuple(inputs))
         if not isinstance(inputs, MethodInputs):
-            raise InputError(self.where, "inputs", f"got {type(inputs).__name__}, expected PixelStats, a "
-                             "half-buffer pair (stats_a, stats_b) or MethodInputs (for files and samples use "
-                             "mcrecon.reconstruct)")
+            raise InputError(self.where, "inputs", f"got {type(inputs).__name__}, expected MethodInputs; wrap "
+                             "pixel statistics as MethodInputs(stats) (a half-buffer pair as "
+                             "MethodInputs(None, halves=(a, b))), or use mcrecon.reconstruct(source, "
+                             f"method={self.name!r}) for files, samples, statistics and half-buffer pairs")
         req = self.requires
         if inputs.halves is not None:
             inputs = self._with_halves(inputs)

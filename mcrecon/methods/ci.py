@@ -106,7 +106,7 @@ def confidence_interval(mean, variance, count, *, alpha: float = 0.05) -> tuple[
 
 
 def display_width(lower, upper, *, tone: str = "gamma", gamma: float = 2.2,
-                  exposure: float = 1.0) -> np.ndarray:
+                  exposure: float = 0.0) -> np.ndarray:
     """``T(L_U) - T(L_L)``: the interval's width on the display (Eq. 9-10)."""
     tu = tone_map(upper, tone=tone, gamma=gamma, exposure=exposure)
     tl = tone_map(lower, tone=tone, gamma=gamma, exposure=exposure)
@@ -137,7 +137,8 @@ class StoppingRule:
     gamma : float
         Display gamma used by the ``gamma`` and ``reinhard`` operators.
     exposure : float
-        Radiance scale ``e`` applied before the operator.
+        Exposure in stops: the radiance is scaled by ``e = 2**exposure``
+        before the operator (0: unscaled).
     min_spp : int
         Initial samples per pixel, >= 2.  The paper uses Purgathofer's lower
         bound [2], which its text does not restate; we use a documented
@@ -157,7 +158,7 @@ class StoppingRule:
     alpha: float = 0.05
     tone: str = "gamma"
     gamma: float = 2.2
-    exposure: float = 1.0
+    exposure: float = 0.0
     min_spp: int = DEFAULT_MIN_SPP
     step_spp: int = 0
     max_spp: int = 1024
@@ -166,8 +167,9 @@ class StoppingRule:
         where = "stopping rule"
         for name in ("tolerance", "gamma", "exposure"):
             v = getattr(self, name)
-            if not (isinstance(v, (int, float, np.number)) and math.isfinite(v) and v > 0):
-                raise InputError(where, name, f"got {v!r}, expected a finite number > 0")
+            if not (isinstance(v, (int, float, np.number)) and math.isfinite(v) and (v > 0 or name == "exposure")):
+                raise InputError(where, name, f"got {v!r}, expected a finite number" + ("" if name == "exposure"
+                                                                                       else " > 0"))
         if not (isinstance(self.alpha, (int, float, np.number)) and 0.0 < self.alpha < 1.0):
             raise InputError(where, "alpha", f"got {self.alpha!r}, expected 0 < alpha < 1 "
                              "(1 - alpha is the confidence level)")
@@ -189,6 +191,11 @@ class StoppingRule:
     def step(self) -> int:
         return int(self.step_spp or self.min_spp)
 
+    @property
+    def scale(self) -> float:
+        """The radiance factor ``e = 2**exposure``."""
+        return 2.0 ** float(self.exposure)
+
     def widths(self, mean, variance, count) -> np.ndarray:
         """Display width ``T(e U) - T(e L)`` per pixel and channel."""
         lo, hi = confidence_interval(mean, variance, count, alpha=self.alpha)
@@ -209,7 +216,7 @@ class StoppingRule:
 
 
 def stopping_rule(mean, variance, count, *, tolerance: float = 1.0 / 256.0, alpha: float = 0.05,
-                  tone: str = "gamma", gamma: float = 2.2, exposure: float = 1.0,
+                  tone: str = "gamma", gamma: float = 2.2, exposure: float = 0.0,
                   per_channel: bool = False) -> np.ndarray:
     """Eq. (10): ``T(L_U) - T(L_L) <= 2 d`` with ``[L_L, L_U]`` from Eq. (6).
 
@@ -328,7 +335,7 @@ class CIMethod(Method):
         Option("tone", str, "gamma", "tone operator T: " + ", ".join(
             f"{k} ({v.help})" for k, v in TONE_OPERATORS.items())),
         Option("gamma", float, 2.2, "display gamma of the gamma/reinhard operators", min=0.0, min_open=True),
-        Option("exposure", float, 1.0, "radiance scale applied before the tone operator", min=0.0, min_open=True),
+        Option("exposure", float, 0.0, "exposure in stops before the tone operator (radiance scaled by 2**exposure)"),
         Option("min_spp", int, DEFAULT_MIN_SPP, "initial samples per pixel", min=2,
                note="Eq. 6 needs a sample variance"),
         Option("step_spp", int, 0, "samples added per round to unconverged pixels (0: min_spp)", min=0),

@@ -20,3 +20,8 @@ from .spec import (KINDS, check_spec, command_spec, mitsuba_spec, reference_from
 __all__ = ["SampleRequest", "SampleBatch", "Renderer", "validate_reply", "CallableRenderer",
            "KINDS", "scene_spec", "command_spec", "mitsuba_spec", "check_spec", "renderer_from_spec",
            "reference_from_spec"]
+
+
+from .._lazy import public_dir as _public_dir  # noqa: E402
+
+__dir__ = _public_dir(__name__)

@@ -426,8 +426,8 @@ class AutoMethod(Method):
             m = get_method("awr")
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", McreconWarning)
-                return (np.asarray(m.reconstruct(ha), dtype=np.float64),
-                        np.asarray(m.reconstruct(hb), dtype=np.float64))
+                return (np.asarray(m.reconstruct(MethodInputs(ha)), dtype=np.float64),
+                        np.asarray(m.reconstruct(MethodInputs(hb)), dtype=np.float64))
         if name == "oidn":
             import pyoidn
             res = []
