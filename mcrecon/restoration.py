@@ -18,10 +18,13 @@ method's options, so static tools see them; a test keeps them equal to the metho
 
 from __future__ import annotations
 
+import functools
+import inspect
+
 import numpy as np
 
 from .errors import InputError
-from .methods import get_method, method_class
+from .methods import get_method
 from .samples import SampleSet
 
 __all__ = ["box", "gem", "awr", "splat", "auto"]
@@ -30,7 +33,7 @@ __all__ = ["box", "gem", "awr", "splat", "auto"]
 def _run(name: str, source, reference, nonfinite: str, options: dict, unknown: dict) -> np.ndarray:
     """The method's image of ``source`` (read by the one dispatcher), in the precision of the input values.
 
-    Options at their default are left out, so that a variant's presets apply to them
+    ``options`` are those the caller gave: the variant's presets apply to the others
     (:func:`mcrecon.methods.base.variant_option`).
     """
     from .reconstruction import check_given_statistics, gather_inputs
@@ -39,8 +42,7 @@ def _run(name: str, source, reference, nonfinite: str, options: dict, unknown: d
     if unknown:
         valid = sorted(options)
         raise InputError(where, sorted(unknown)[0], f"unknown option; valid: {', '.join(valid) or '(none)'}")
-    defaults = {o.name: o.default for o in method_class(name).options}
-    method = get_method(name, **{k: v for k, v in options.items() if not _is_default(v, defaults[k])})
+    method = get_method(name, **options)
     inputs = gather_inputs(source, method, nonfinite=nonfinite, reference=reference, where=where, logs=False)
     if isinstance(source, SampleSet):  # samples the caller gave: refuse a set without any
         if inputs.stats is not None:
@@ -52,15 +54,28 @@ def _run(name: str, source, reference, nonfinite: str, options: dict, unknown: d
     return np.asarray(image).astype(np.float32 if dtype == np.float32 else np.float64, copy=False)
 
 
-def _is_default(value, default) -> bool:
-    if value is default:
-        return True
-    try:
-        return type(value) is not bool and bool(value == default)
-    except (TypeError, ValueError):  # not comparable: given (get_method reports what is wrong with it)
-        return False
+def _given_options(fn):
+    """Run ``fn``'s method with the options the caller gave.
+
+    The functions below are written out (their signatures and docstrings are what
+    static tools and readers see), with each option's default shown; the call itself
+    goes through here, which sees only what was given, so that an option left out
+    takes the chosen variant's preset while a value given explicitly always wins --
+    also one equal to the default shown.
+    """
+    name = fn.__name__
+    valid = frozenset(inspect.signature(fn).parameters) - {"source", "reference", "nonfinite", "unknown"}
+
+    @functools.wraps(fn)
+    def call(source, /, *, reference=None, nonfinite="drop", **given):
+        options = {k: v for k, v in given.items() if k in valid}
+        unknown = {k: v for k, v in given.items() if k not in valid}
+        return _run(name, source, reference, nonfinite, options, unknown)
+
+    return call
 
 
+@_given_options
 def box(source, /, *, nonfinite="drop", **unknown) -> np.ndarray:
     """The pixel mean, empty pixels filled from their nearest sampled neighbour (the baseline).
 
@@ -100,9 +115,9 @@ def box(source, /, *, nonfinite="drop", **unknown) -> np.ndarray:
     >>> box(st).dtype, box(st).shape
     (dtype('float32'), (2, 3, 3))
     """
-    return _run("box", source, None, nonfinite, dict(), unknown)
 
 
+@_given_options
 def gem(source, /, *, variant="robust", gamma=0.2, oracle=0, target_rel_mse=None, initial_spp=4, iterations=8,
         uniform_share=0.25, samples_per_pick=0, adaptive_scales=4, final_scales=8, final_outliers="adaptive",
         zero_variance_votes=2, channel_weights="relative", confirm_stops=1, subpixel_exact_below=0.0,
@@ -180,9 +195,8 @@ def gem(source, /, *, variant="robust", gamma=0.2, oracle=0, target_rel_mse=None
     Selects, per pixel, among Gaussian filters sqrt(2) apart the largest scale whose bias is not yet
     significant (an ICI-style selector with error rate ``gamma``), with outlier removal on the stopping maps.
 
-    With ``variant='paper'`` every option left at the default shown takes the paper's value
-    (given after each option above); to combine the paper variant with an option at its
-    default value, use ``mcrecon.reconstruct(source, method='gem', variant='paper', ...)``.
+    With ``variant='paper'`` every option not given takes the paper's value (given after each
+    option above); a value given explicitly always wins, also one equal to the default shown.
 
     References
     ----------
@@ -201,14 +215,9 @@ def gem(source, /, *, variant="robust", gamma=0.2, oracle=0, target_rel_mse=None
     >>> out.dtype, bool(np.abs(out - 1).std() < np.abs(mean - 1).std())
     (dtype('float32'), True)
     """
-    return _run("gem", source, reference, nonfinite, dict(variant=variant, gamma=gamma, oracle=oracle,
-        target_rel_mse=target_rel_mse, initial_spp=initial_spp, iterations=iterations,
-        uniform_share=uniform_share, samples_per_pick=samples_per_pick, adaptive_scales=adaptive_scales,
-        final_scales=final_scales, final_outliers=final_outliers, zero_variance_votes=zero_variance_votes,
-        channel_weights=channel_weights, confirm_stops=confirm_stops,
-        subpixel_exact_below=subpixel_exact_below), unknown)
 
 
+@_given_options
 def awr(source, /, *, variant="robust", wavelet="cdf97", cs=1.0, variance="sample", domain="log",
         log_offset=0.01, safeguard=2.0, levels=None, boundary="symmetric", propagation="exact",
         renorm=0.7071067811865476, sampling_renorm=1.05, sampling_levels=5, sampling_variance="contrast",
@@ -288,9 +297,8 @@ def awr(source, /, *, variant="robust", wavelet="cdf97", cs=1.0, variance="sampl
     propagated through the transform.  The default variance estimator ``range`` needs each pixel's sample
     range: statistics from moments carry none, so use ``variance='sample'`` with them.
 
-    With ``variant='paper'`` every option left at the default shown takes the paper's value
-    (given after each option above); to combine the paper variant with an option at its
-    default value, use ``mcrecon.reconstruct(source, method='awr', variant='paper', ...)``.
+    With ``variant='paper'`` every option not given takes the paper's value (given after each
+    option above); a value given explicitly always wins, also one equal to the default shown.
 
     References
     ----------
@@ -309,14 +317,9 @@ def awr(source, /, *, variant="robust", wavelet="cdf97", cs=1.0, variance="sampl
     >>> out.shape, bool(np.abs(out - 1).std() < np.abs(mean - 1).std())
     ((32, 32, 3), True)
     """
-    return _run("awr", source, None, nonfinite, dict(variant=variant, wavelet=wavelet, cs=cs,
-        variance=variance, domain=domain, log_offset=log_offset, safeguard=safeguard, levels=levels,
-        boundary=boundary, propagation=propagation, renorm=renorm, sampling_renorm=sampling_renorm,
-        sampling_levels=sampling_levels, sampling_variance=sampling_variance, per_coefficient=per_coefficient,
-        round_spp=round_spp, initial_spp=initial_spp, priority_threshold=priority_threshold,
-        reconstruction=reconstruction), unknown)
 
 
+@_given_options
 def splat(source, /, *, variant="robust", alpha=0.5, c=2.0, c_prime=8.0, initial_spp=1, min_width=1.0,
           max_width=32.0, boundary="mirror", norm="luminance", spread="outliers", outlier_k=2.0,
           guide="local_mean", nonfinite="drop", **unknown) -> np.ndarray:
@@ -377,9 +380,8 @@ def splat(source, /, *, variant="robust", alpha=0.5, c=2.0, c_prime=8.0, initial
     -----
     Needs the individual samples: pixel statistics are refused.
 
-    With ``variant='paper'`` every option left at the default shown takes the paper's value
-    (given after each option above); to combine the paper variant with an option at its
-    default value, use ``mcrecon.reconstruct(source, method='splat', variant='paper', ...)``.
+    With ``variant='paper'`` every option not given takes the paper's value (given after each
+    option above); a value given explicitly always wins, also one equal to the default shown.
 
     References
     ----------
@@ -397,11 +399,9 @@ def splat(source, /, *, variant="robust", alpha=0.5, c=2.0, c_prime=8.0, initial
     >>> out.dtype, bool(np.isclose(out.sum(), 3 * 400 * 1.0, rtol=1e-5))
     (dtype('float32'), True)
     """
-    return _run("splat", source, None, nonfinite, dict(variant=variant, alpha=alpha, c=c, c_prime=c_prime,
-        initial_spp=initial_spp, min_width=min_width, max_width=max_width, boundary=boundary, norm=norm,
-        spread=spread, outlier_k=outlier_k, guide=guide), unknown)
 
 
+@_given_options
 def auto(source, /, *, candidates="box,gauss,nlm", scales=8, smooth=2.0, nlm_radius=3, nlm_patch=1,
          nlm_k=0.45, initial_spp=4, iterations=4, sampling="gem", uniform_share=0.5, safeguard=4.0,
          global_prior=None, nonfinite="drop", **unknown) -> np.ndarray:
@@ -487,10 +487,6 @@ def auto(source, /, *, candidates="box,gauss,nlm", scales=8, smooth=2.0, nlm_rad
     >>> out.shape, bool(np.abs(out - 1).std() < np.abs(mean - 1).std())
     ((24, 24, 3), True)
     """
-    return _run("auto", source, None, nonfinite, dict(candidates=candidates, scales=scales, smooth=smooth,
-        nlm_radius=nlm_radius, nlm_patch=nlm_patch, nlm_k=nlm_k, initial_spp=initial_spp,
-        iterations=iterations, sampling=sampling, uniform_share=uniform_share, safeguard=safeguard,
-        global_prior=global_prior), unknown)
 
 
 from ._lazy import public_dir as _public_dir  # noqa: E402

@@ -102,7 +102,12 @@ def test_restoration_functions_are_written_out_with_the_methods_options():
         for section in ("Parameters", "Returns", "Raises", "Notes", "References", "Examples"):
             assert f"\n{section}\n" in doc, (name, section)
         assert all(f"\n{o.name} : " in doc for o in options)
-    # options left at their default take the variant's presets, as get_method gives them
+    # options not given take the variant's presets, as get_method gives them; a given value wins,
+    # also one equal to the default shown (it is not silently replaced by the paper's)
     st = _stats(16, 16)
     np.testing.assert_array_equal(restoration.gem(st, variant="paper"),
                                   mcrecon.reconstruct(st, method="gem", variant="paper").astype(st.dtype))
+    mixed = mcrecon.reconstruct(st, method="gem", variant="paper", final_outliers="adaptive", gamma=0.2)
+    np.testing.assert_array_equal(restoration.gem(st, variant="paper", final_outliers="adaptive", gamma=0.2),
+                                  mixed.astype(st.dtype))
+    assert not np.array_equal(mixed, mcrecon.reconstruct(st, method="gem", variant="paper"))
