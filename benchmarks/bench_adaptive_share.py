@@ -48,9 +48,10 @@ from pathlib import Path
 
 import numpy as np
 
-from mcrecon.driver import adapt, method_pipelines
+from mcrecon.adaptive.run import adapt
+from mcrecon.adaptive.schedule import method_pipelines
 from mcrecon.methods import get_method
-from mcrecon.renderers.protocol import SampleRequest
+from mcrecon.core.requests import SampleRequest
 from mcrecon.renderers.scenes import SceneRenderer
 
 METHODS = ("box", "gem", "awr", "ci", "splat")
@@ -173,7 +174,7 @@ def parse_options(text):
 
 def quality(a, methods, options):
     """Relative MSE pipelined / sequential (or variant / default with --compare), per scene and method."""
-    from mcrecon.metrics import relative_mse
+    from mcrecon.core.metrics import relative_mse
     from mcrecon.renderers.scenes import scene_names
 
     w, h = (int(x) for x in a.size.split(",")[0].split("x"))

@@ -58,11 +58,12 @@ def _time(ss, m) -> float:
 
 def profile(ss, m) -> None:
     """Stage times of one auto reconstruction (statistics, halves, candidates, selection)."""
-    from mcrecon.estimates import split_halves, sure_filter_bank
+    from mcrecon.core.halves import split_halves
+    from mcrecon.methods.auto.estimates import sure_filter_bank
     from mcrecon.methods.auto.nlmeans import nlmeans_cross
     from mcrecon.methods.gem import final_sigmas
-    from mcrecon.methods.base import merge_halves
-    from mcrecon.methods.gem.selection import mean_variance_policy
+    from mcrecon.core.halves import merge_halves
+    from mcrecon.core.fill import mean_variance_policy
 
     t = time.perf_counter()
     hv = split_halves(ss)  # the reader's one pass for auto: the halves, then their merge

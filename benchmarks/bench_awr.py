@@ -4,7 +4,7 @@
    + synthesis) against OIDN ``pyoidn.denoise(color, hdr=True,
    quality="high")`` on the same pixel means.  Target: ratio <= 1 (the
    paper: < 1 s).
-2. Toolkit share of the adaptive loop (``mcrecon.driver.adapt``) with a
+2. Toolkit share of the adaptive loop (``mcrecon.adaptive.run.adapt``) with a
    renderer of ~2 M samples/s (a built-in scene padded with sleep to that
    rate).  Target <= 15 % (the paper: 34.5 s of 211 s = 16 %).  Also
    prints the time of one full priority update and the share of the image
@@ -29,13 +29,13 @@ import time
 
 import numpy as np
 
-from mcrecon.driver import adapt
+from mcrecon.adaptive.run import adapt
 from mcrecon.methods import get_method
 from mcrecon.methods.base import MethodInputs
 from mcrecon.methods.awr import AWRMethod, plan_awr_positions
-from mcrecon.metrics import relative_mse
+from mcrecon.core.metrics import relative_mse
 from mcrecon.renderers.scenes import SceneRenderer, reference_image, render_uniform
-from mcrecon.stats import PixelStats
+from mcrecon.core.stats import PixelStats
 
 
 def best_of(fn, repeat=3):
@@ -149,13 +149,13 @@ def bench_limits(size, spp, seeds, cornell=True):
     at the same budget and renderer seed against uniform box (the box
     method's own adaptive run: uniform doubling rounds).  Relative MSE,
     eps 0.01.  ``neg`` counts pixels below 0 from non-negative samples
-    (``mcrecon.metrics.output_sanity``).  The Cornell box (Mitsuba, 1024 spp
+    (``mcrecon.core.metrics.output_sanity``).  The Cornell box (Mitsuba, 1024 spp
     reference, seed 12345) is included when the bridge is available.
     """
     import warnings
 
-    from mcrecon.metrics import output_sanity
-    from mcrecon.renderers.protocol import SampleRequest
+    from mcrecon.core.metrics import output_sanity
+    from mcrecon.core.requests import SampleRequest
     warnings.simplefilter("ignore")
     print(f"== paper vs robust awr, ratio of relative MSE (eps 0.01) to box, {size}x{size}, {spp} spp ==")
     print(f"{'seed':>4}  {'scene':<15} {'stage':<9} {'box':>9} {'paper/box':>10} {'robust/box':>11} "

@@ -31,10 +31,10 @@ import time
 import numba
 import numpy as np
 
-from mcrecon.analysis import PixelSamples, bootstrap_bias_samples, group_samples
-from mcrecon.methods.ci import StoppingRule
+from mcrecon.methods.ci.analysis import PixelSamples, bootstrap_bias_samples, group_samples
+from mcrecon.methods.ci.method import StoppingRule
 from mcrecon.renderers.scenes import render_uniform
-from mcrecon.tone import TONE_OPERATORS, register_tone_operator
+from mcrecon.methods.ci.tone import TONE_OPERATORS, register_tone_operator
 
 
 def _subset(s: PixelSamples, pixels: np.ndarray) -> PixelSamples:

@@ -19,9 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from mcrecon.io import read_log, samplelog, write_log
-from mcrecon.io.samplelog import DEFAULT_READ_ROWS
-from mcrecon.stats import PixelStats
+from mcrecon.io import read_log, reader as samplelog, write_log
+from mcrecon.io import logformat as samplelog_logformat
+from mcrecon.core.samples import DEFAULT_READ_ROWS
+from mcrecon.core.stats import PixelStats
 
 
 def _best(fn, repeat):
@@ -51,20 +52,20 @@ def main():
     rng = np.random.default_rng(0)
     pos = (rng.random((n, 2), np.float32) * np.float32(w - 1e-3)).astype(np.float32)
     val = rng.random((n, 3), np.float32)
-    saved = dict(samplelog._CHECKSUM)
+    saved = dict(samplelog_logformat._CHECKSUM)
     rows = {}
     with tempfile.TemporaryDirectory() as tmp:
         for label, checksum in (("fletcher32", saved), ("plain", {})):
             path = Path(tmp) / f"{label}.h5"
-            samplelog._CHECKSUM.clear()
-            samplelog._CHECKSUM.update(checksum)
+            samplelog_logformat._CHECKSUM.clear()
+            samplelog_logformat._CHECKSUM.update(checksum)
             try:
                 t_write = _best(lambda: write_log(path, pos, val, width=w, height=w), args.repeat)
             finally:
-                samplelog._CHECKSUM.clear()
-                samplelog._CHECKSUM.update(saved)
+                samplelog_logformat._CHECKSUM.clear()
+                samplelog_logformat._CHECKSUM.update(saved)
             t_raw = _best(lambda: _raw_read(path), args.repeat)
-            t_stats = _best(lambda: PixelStats.from_log(path), args.repeat)
+            t_stats = _best(lambda: PixelStats.from_log(read_log(path)), args.repeat)
             rows[label] = (t_write, t_raw, t_stats, path.stat().st_size)
     print(f"{n} float32 RGB samples, {w}x{w} film, best of {args.repeat}")
     print(f"{'':12s} {'write s':>9s} {'raw read s':>11s} {'from_log s':>11s} {'MB':>8s}")

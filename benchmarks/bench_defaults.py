@@ -28,14 +28,14 @@ import warnings
 
 import numpy as np
 
-from mcrecon.driver import adapt
+from mcrecon.adaptive.run import adapt
 from mcrecon.experiments.oracle import oracle_ceiling
 from mcrecon.methods import available_methods, get_method
-from mcrecon.metrics import relative_mse
-from mcrecon.reconstruction import reconstruct
+from mcrecon.core.metrics import relative_mse
+from mcrecon.offline.reconstruction import reconstruct
 from mcrecon.renderers import scenes
-from mcrecon.samples import SampleSet
-from mcrecon.stats import PixelStats
+from mcrecon.core.samples import SampleSet
+from mcrecon.core.stats import PixelStats
 
 
 def _quiet(fn):

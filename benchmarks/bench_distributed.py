@@ -60,7 +60,7 @@ def _memory_loop(reps: int) -> float:
 
 def _frames_loop(paths: list, method: str) -> float:
     os.environ["MCRECON_THREADS"] = "1"
-    from mcrecon.distributed import denoise_frame
+    from mcrecon.distributed.batch import denoise_frame
 
     out = Path(tempfile.gettempdir()) / f"mcrecon-bench-plain-{os.getpid()}.exr"
     for p in paths:
@@ -142,7 +142,7 @@ def _housekeeping_cpu(client):
 
 
 def _warm(log, out_dir, method):
-    from mcrecon.distributed import denoise_frame
+    from mcrecon.distributed.batch import denoise_frame
 
     denoise_frame(log, f"{out_dir}/warm-{os.getpid()}.exr", method, {})
 
@@ -186,7 +186,10 @@ def main():
     rep = max(1, args.repeat)
 
     from mcrecon import distributed as D
-    from mcrecon.stats import PixelStats
+    from mcrecon.distributed import batch as D_batch
+    from mcrecon.distributed import cluster as D_cluster
+    from mcrecon.distributed import ingestion as D_ingestion
+    from mcrecon.core.stats import PixelStats
 
     work = Path(args.dir or tempfile.mkdtemp(prefix="mcrecon-bench-dist-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -215,7 +218,7 @@ def main():
         # ---- 2. the batch on Dask
         if "batch" not in skip:
             # the last: local_client with Dask's default housekeeping (profiler on, 20 ms tick), to
-            # show in the same run what mcrecon's quieter configuration (D._QUIET) changes
+            # show in the same run what mcrecon's quieter configuration (D_cluster._QUIET) changes
             default_label = "2 workers, Dask's default housekeeping"
             configs = (("1 worker, 1 thread", 1, 1), ("2 workers, 1 thread each", 2, 1),
                        ("1 worker, 2 threads", 1, 2), (default_label, 2, 1))
@@ -224,16 +227,16 @@ def main():
             busy = {label: [] for label, _, _ in configs}
             house = {label: [] for label, _, _ in configs}
             overhead = []
-            quiet = dict(D._QUIET)
+            quiet = dict(D_cluster._QUIET)
             for r in range(rep):
                 for label, workers, threads in configs:
                     t0 = time.perf_counter()
-                    D._QUIET = {} if label == default_label else quiet
+                    D_cluster._QUIET = {} if label == default_label else quiet
                     try:
-                        cm = D.local_client(workers, threads=threads)
+                        cm = D_cluster.local_client(workers, threads=threads)
                         c = cm.__enter__()
                     finally:
-                        D._QUIET = quiet
+                        D_cluster._QUIET = quiet
                     try:
                         t_up = time.perf_counter() - t0
                         t = time.perf_counter()
@@ -242,7 +245,7 @@ def main():
                         cpu = _housekeeping_cpu(c)
                         cpu0 = cpu and cpu()
                         t = time.perf_counter()
-                        res = D.denoise_many(paths, method=args.method, client=c, out_dir=work / "out",
+                        res = D_batch.denoise_many(paths, method=args.method, client=c, out_dir=work / "out",
                                              force=True, progress=False, summary=False)
                         times[label].append(time.perf_counter() - t)
                         if cpu:
@@ -302,14 +305,16 @@ def main():
             one = None
             for _ in range(rep):
                 t = time.perf_counter()
-                one = PixelStats.from_log(big)
+                from mcrecon.io import read_log
+
+                one = PixelStats.from_log(read_log(big))
                 one_runs.append(time.perf_counter() - t)
             for _ in range(rep):
                 for workers in (1, 2):
-                    with D.local_client(workers, threads=1) as c:
-                        D.ingest(big, client=c)                       # warm: imports, kernels
+                    with D_cluster.local_client(workers, threads=1) as c:
+                        D_ingestion.ingest(big, client=c)                       # warm: imports, kernels
                         t = time.perf_counter()
-                        st = D.ingest(big, client=c)                  # one part per worker
+                        st = D_ingestion.ingest(big, client=c)                  # one part per worker
                         it[workers].append(time.perf_counter() - t)
                     assert np.array_equal(st.count, one.count)
             t_one = min(one_runs)

@@ -2,7 +2,7 @@
 
 For each scene, film size and spp, each seed's uniform samples are
 reconstructed by every listed method twice -- on all the samples, and on
-the base of :func:`mcrecon.fireflies.split_fireflies` with the spread
+the base of :func:`mcrecon.filters.fireflies.split_fireflies` with the spread
 excess added back -- and the mean relative MSE (eps 0.01) over the seeds is
 printed as ratios measured in this run: ``m+c / m`` (below 1: the split
 helps that method) and each to box.  Also printed: the share of the
@@ -22,8 +22,8 @@ import warnings
 import numpy as np
 
 import mcrecon
-from mcrecon.fireflies import split_fireflies
-from mcrecon.metrics import relative_mse
+from mcrecon.filters.fireflies import split_fireflies
+from mcrecon.core.metrics import relative_mse
 from mcrecon.renderers import scenes
 
 

@@ -12,11 +12,11 @@ shared and noisy):
    reconstruction) is timed.
 2. Filter bank of a planning step (4 dyadic scales, per-channel
    variances, effective counts) on the same input: the compiled, threaded
-   :func:`mcrecon.methods.gem.filter_bank` (on :mod:`mcrecon._filtering`,
+   :func:`mcrecon.methods.gem.filter_bank` (on :mod:`mcrecon.filters.engine`,
    ``MCRECON_THREADS`` worker threads) against itself on one thread and
    against the plain ``scipy.ndimage.correlate1d`` formulation it replaced
    (bit-identical results, checked here too).
-3. Adaptive loop through :func:`mcrecon.driver.adapt` with a renderer
+3. Adaptive loop through :func:`mcrecon.adaptive.run.adapt` with a renderer
    built-in scene; the toolkit time (driver wall time minus the render
    calls) is compared with the time a ~2 M samples/s renderer (``--rate``)
    would need for the same samples: toolkit share of the total (target
@@ -39,9 +39,9 @@ import numpy as np
 from mcrecon.methods import get_method
 from mcrecon.methods.base import MethodInputs
 from mcrecon.methods.gem import GEMMethod, pixel_kernel
-from mcrecon.reconstruction import reconstruct
+from mcrecon.offline.reconstruction import reconstruct
 from mcrecon.renderers.scenes import SceneRenderer, render_uniform
-from mcrecon.stats import PixelStats
+from mcrecon.core.stats import PixelStats
 
 
 def _time(fn, repeat):
@@ -119,7 +119,7 @@ def _ndimage_filter_bank(base, mean_var, count, sigmas):
     """The filter bank written with scipy.ndimage, as before the compiled kernel (the baseline)."""
     from scipy import ndimage
 
-    from mcrecon._filtering import mask_weights, safe_div
+    from mcrecon.filters.engine import mask_weights, safe_div
 
     def corr2(x, k):
         y = ndimage.correlate1d(x, k, axis=0, mode="constant", cval=0.0)
@@ -143,7 +143,7 @@ def _ndimage_filter_bank(base, mean_var, count, sigmas):
 
 
 def bench_filter_bank(stats, repeat):
-    from mcrecon._filtering import n_threads
+    from mcrecon.filters.engine import n_threads
     from mcrecon.methods import gem as G
     mv = G.mean_variance_policy(stats)
     sig = G.adaptive_sigmas(4)
@@ -163,7 +163,7 @@ def bench_filter_bank(stats, repeat):
 def bench_adaptive(size, scene, rate):
     """Toolkit time = the driver's wall time minus the actual render calls; the
     share is computed against the time a renderer of ``rate`` samples/s takes."""
-    from mcrecon.driver import adapt
+    from mcrecon.adaptive.run import adapt
     r = CountingRenderer(scene, size)
     m = TimedGEM()
     t = time.perf_counter()

@@ -21,8 +21,8 @@ import h5py
 import numpy as np
 
 from mcrecon.io import read_log
-from mcrecon.io.samplelog import DEFAULT_READ_ROWS
-from mcrecon.stats import PixelStats
+from mcrecon.core.samples import DEFAULT_READ_ROWS
+from mcrecon.core.stats import PixelStats
 
 
 def raw_read(path, n):

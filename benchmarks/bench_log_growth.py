@@ -2,7 +2,7 @@
 
 Each round is appended with ``append_log`` (with its round record) and its
 record then rewritten with ``update_round_record``, exactly as
-``mcrecon.driver._run`` does, into a log created like the driver's (an empty
+``mcrecon.adaptive.run._run`` does, into a log created like the driver's (an empty
 float32 RGB log plus run settings).  Prints, all measured in this run:
 
 * the log size against the bytes of the samples (positions + values + round
@@ -46,7 +46,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from mcrecon.io import samplelog
+from mcrecon.io import reader as samplelog
 
 W, H = 64, 64
 SAMPLE_BYTES = 2 * 4 + 3 * 4 + 4  # float32 positions, float32 RGB values, int32 round index
@@ -54,7 +54,7 @@ PER_ROUND = ("rounds/end", "run/records", "run/round_records", "run/round_record
 
 
 def run(mod, path, rounds, m, *, records=True, reference=False, extra_key=False, json_layout=False, seed=0):
-    """Log ``rounds`` rounds of ``m`` samples like mcrecon.driver._run; return per-round seconds.
+    """Log ``rounds`` rounds of ``m`` samples like mcrecon.adaptive.run._run; return per-round seconds.
 
     ``extra_key``: every record also has a key outside the fixed columns.
     ``json_layout``: the log starts with an empty JSON ``/run/records``, as

@@ -15,9 +15,9 @@ import warnings
 
 import numpy as np
 
-from mcrecon.driver import adapt
+from mcrecon.adaptive.run import adapt
 from mcrecon.methods import available_methods, get_method
-from mcrecon.metrics import relative_mse
+from mcrecon.core.metrics import relative_mse
 from mcrecon.renderers.mitsuba import MitsubaRenderer, mitsuba_available, render_reference
 
 

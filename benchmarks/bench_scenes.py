@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from mcrecon.renderers import scenes as S
-from mcrecon.renderers.protocol import SampleRequest
+from mcrecon.core.requests import SampleRequest
 
 
 def best_of(fn, repeat=3):

@@ -29,13 +29,13 @@ import time
 
 import numpy as np
 
-from mcrecon.driver import adapt
+from mcrecon.adaptive.run import adapt
 from mcrecon.methods.splat import ProgressiveSplatter, SplatMethod, doubling_schedule, splat
 from mcrecon.methods.splat.kernels import _BOUNDARY_CODE, _splat_loop
-from mcrecon.metrics import relative_mse
+from mcrecon.core.metrics import relative_mse
 from mcrecon.renderers import scenes
-from mcrecon.renderers.protocol import SampleRequest, jittered_positions
-from mcrecon.stats import PixelStats
+from mcrecon.core.requests import SampleRequest, jittered_positions
+from mcrecon.core.stats import PixelStats
 
 
 def add_at_splat(pos, val, radius, width, height):

@@ -11,7 +11,7 @@ import tempfile
 import h5py
 import numpy as np
 
-from mcrecon.io.samplelog import DEFAULT_CHUNK_ROWS, FORMAT_NAME, FORMAT_VERSION, cast_positions
+from mcrecon.io.logformat import DEFAULT_CHUNK_ROWS, FORMAT_NAME, FORMAT_VERSION, cast_positions
 
 
 def main(argv=None):

@@ -24,8 +24,7 @@ __all__ = ["InputError", "RendererError", "McreconWarning", "write_log", "read_l
            "read_exr", "write_exr", "write_png_preview", "PixelStats", "SampleSet", "Reconstruction", "SampleRequest", "SampleBatch",
            "CallableRenderer", "reconstruct", "restoration", "adapt", "available_methods", "get_method", "__version__",
            # the public modules
-           "distributed", "driver", "experiments", "io", "methods", "metrics", "reconstruction", "renderers",
-           "samples", "stats"]
+           "adaptive", "core", "distributed", "experiments", "filters", "io", "methods", "offline", "renderers"]
 
 #: Public name -> the module that defines it (imported on first access).
 _LAZY = {
@@ -33,21 +32,21 @@ _LAZY = {
     "write_png_preview": "io",
     "available_methods": "methods", "get_method": "methods",
     "CallableRenderer": "renderers", "SampleBatch": "renderers", "SampleRequest": "renderers",
-    "Reconstruction": "reconstruction", "reconstruct": "reconstruction",
-    "SampleSet": "samples",
-    "PixelStats": "stats",
+    "Reconstruction": "offline.reconstruction", "reconstruct": "offline.reconstruction",
+    "SampleSet": "core.samples",
+    "PixelStats": "core.stats",
 }
 
 #: Sub-modules reachable as attributes (``mcrecon.io.read_log``) without importing them first.
-_SUBMODULES = frozenset({"analysis", "cli", "distributed", "driver", "errors", "experiments", "io", "methods",
-                         "metrics", "reconstruction", "renderers", "restoration", "samples", "stats", "tone"})
+_SUBMODULES = frozenset({"adaptive", "cli", "core", "distributed", "errors", "experiments", "filters", "io",
+                         "methods", "offline", "renderers", "restoration"})
 
 
 __getattr__, __dir__ = _lazy_exports(__name__, _LAZY, _SUBMODULES, __all__)
 
 
 def adapt(renderer, method, *, spp, **kwargs):
-    """Run adaptive rounds; see :func:`mcrecon.driver.adapt`."""
-    from .driver import adapt as _adapt
+    """Run adaptive rounds; see :func:`mcrecon.adaptive.run.adapt`."""
+    from .adaptive.run import adapt as _adapt
 
     return _adapt(renderer, method, spp=spp, **kwargs)

@@ -1,10 +1,10 @@
 """Array-level reconstruction, one function per method (in the style of ``skimage.restoration``).
 
-Each function takes pixel statistics (:class:`~mcrecon.stats.PixelStats`,
-e.g. from :meth:`~mcrecon.stats.PixelStats.from_moments` on a renderer's
+Each function takes pixel statistics (:class:`~mcrecon.core.stats.PixelStats`,
+e.g. from :meth:`~mcrecon.core.stats.PixelStats.from_moments` on a renderer's
 mean / variance / count images, or from samples in memory with
-:meth:`~mcrecon.stats.PixelStats.from_samples`) or, for methods that
-filter individual samples, a :class:`~mcrecon.samples.SampleSet`; :func:`auto`
+:meth:`~mcrecon.core.stats.PixelStats.from_samples`) or, for methods that
+filter individual samples, a :class:`~mcrecon.core.samples.SampleSet`; :func:`auto`
 also takes a half-buffer pair ``(stats_a, stats_b)`` (two independent halves
 of the samples, as renderers write dual buffers); its
 keyword-only options are the method's options, validated by the one
@@ -25,7 +25,7 @@ import numpy as np
 
 from .errors import InputError
 from .methods import get_method
-from .samples import SampleSet
+from .core.samples import SampleSet
 
 __all__ = ["box", "gem", "awr", "splat", "auto"]
 
@@ -36,7 +36,7 @@ def _run(name: str, source, reference, nonfinite: str, options: dict, unknown: d
     ``options`` are those the caller gave: the variant's presets apply to the others
     (:func:`mcrecon.methods.base.variant_option`).
     """
-    from .reconstruction import check_given_statistics, gather_inputs
+    from .offline.inputs import check_given_statistics, gather_inputs
 
     where = f"mcrecon.restoration.{name}"
     if unknown:

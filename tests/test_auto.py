@@ -9,13 +9,14 @@ import pytest
 
 import mcrecon
 from mcrecon import PixelStats, SampleSet
-from mcrecon.driver import adapt
+from mcrecon.adaptive.run import adapt
 from mcrecon.errors import InputError, McreconWarning
-from mcrecon.estimates import split_halves, sure
+from mcrecon.core.halves import split_halves
+from mcrecon.methods.auto.estimates import sure
 from mcrecon.methods import get_method
 from mcrecon.methods.auto import nlmeans_cross
-from mcrecon.methods.gem.selection import mean_variance_policy
-from mcrecon.metrics import relative_mse
+from mcrecon.core.fill import mean_variance_policy
+from mcrecon.core.metrics import relative_mse
 from mcrecon.renderers.scenes import SceneRenderer
 
 
@@ -208,7 +209,7 @@ def test_nlm_error_estimate_is_unbiased_reduced():
     error: mean over 6 seeds within 10 % (measured spread of the ratio: std ~0.05, so 10 % is
     about 5 standard errors of the 6-seed mean)."""
     ref, sigma = _scene_edges()
-    from mcrecon.estimates import dual_buffer_mse
+    from mcrecon.methods.auto.estimates import dual_buffer_mse
     r = []
     for seed in range(6):
         hv = split_halves(_samples(ref, sigma, 8, seed))
@@ -264,7 +265,7 @@ def test_adaptive_run_is_resume_safe_and_adaptive(tmp_path, sampling):
         assert res.counts.std() > 1
     else:  # uniform doubling rounds: every pixel within one sample of the others
         assert res.counts.max() - res.counts.min() <= 1
-    from mcrecon.driver import resume
+    from mcrecon.adaptive.run import resume
     full = _quiet(lambda: adapt(r, m, spp=12, seed=2, progress=False))
     cont = _quiet(lambda: resume(log, r, progress=False))
     np.testing.assert_array_equal(cont.counts, full.counts)
@@ -355,8 +356,9 @@ def test_fast_exp_of_the_nlmeans_weights_against_numpy():
 def test_compiled_selection_helpers_are_bit_identical_to_their_numpy_definitions():
     from scipy.ndimage import maximum_filter, minimum_filter
 
-    from mcrecon.methods.auto.method import _mean_c, _smooth_masked, _smooth_masked_many
-    from mcrecon.methods.awr.reconstruction import sample_range_bounds
+    from mcrecon.methods.auto.selection import _mean_c
+    from mcrecon.filters.masked import _smooth_masked, _smooth_masked_many
+    from mcrecon.core.safeguard import sample_range_bounds
     rng = np.random.default_rng(2)
     a = rng.random((37, 44)) ** 3
     b = a.copy()
@@ -403,7 +405,7 @@ def test_gem_sampling_places_the_non_uniform_share_where_gem_does():
     """uniform_share=0 is GEM's own placement: the same positions as GEM's plan on the same statistics."""
     from mcrecon.methods.base import AdaptiveState
     from mcrecon.renderers import scenes
-    from mcrecon.stats import PixelStats
+    from mcrecon.core.stats import PixelStats
 
     w, h = 24, 20
     b = scenes.render_uniform(scenes.get_scene("soft_shadow"), width=w, height=h, spp=4, seed=3)
@@ -437,7 +439,7 @@ def test_gem_sampling_pipelined_is_reproducible_and_spends_the_budget():
 def test_heavy_tailed_pixels_are_not_pushed_away_from_their_neighbours():
     """Safeguard's last rule: where the 3x3 sample maximum exceeds 10x a pixel's mean, a candidate value
     further from the neighbours' median than the pixel's own mean is replaced by that mean."""
-    from mcrecon.methods.auto.method import HEAVY_TAIL, _no_push_in_heavy_tails
+    from mcrecon.methods.auto.selection import HEAVY_TAIL, _no_push_in_heavy_tails
 
     y = np.full((5, 5, 1), 0.4)
     y[2, 2, 0] = 18.0                      # a dark pixel that caught one emitter sample
@@ -464,7 +466,7 @@ def test_heavy_tailed_pixels_are_not_pushed_away_from_their_neighbours():
 
 def _no_push_reference(img, y, hi):
     """The rule as numpy states it (np.median of the 8 edge-repeated neighbours): the compiled pass must equal it."""
-    from mcrecon.methods.auto.method import HEAVY_TAIL
+    from mcrecon.methods.auto.selection import HEAVY_TAIL
 
     cand = (hi > HEAVY_TAIL * np.abs(y)) & (img != y)
     ii, jj, cc = np.nonzero(cand)
@@ -483,7 +485,7 @@ def _no_push_reference(img, y, hi):
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_heavy_tail_rule_compiled_equals_its_numpy_statement(seed):
     """Bit for bit on heavy-tailed random films (ties, zeros, NaN means, 1-pixel-wide films included)."""
-    from mcrecon.methods.auto.method import _no_push_in_heavy_tails
+    from mcrecon.methods.auto.selection import _no_push_in_heavy_tails
 
     rng = np.random.default_rng(seed)
     for h, w in ((1, 1), (1, 7), (6, 1), (23, 31)):
@@ -505,8 +507,8 @@ def test_heavy_tail_rule_compiled_equals_its_numpy_statement(seed):
 def test_gem_sampling_pipelined_never_places_samples_from_empty_statistics():
     """Under lag, round 1 is planned while round 0 renders: it must be uniform (the driver's initial pass
     in two rounds), not GEM's placement on empty statistics (ties broken towards the top rows)."""
-    from mcrecon.driver import _initial_rounds, _plan_round
-    from mcrecon.stats import PixelStats
+    from mcrecon.adaptive.schedule import _initial_rounds, _plan_round
+    from mcrecon.core.stats import PixelStats
 
     w = h = 32
     m = get_method("auto")

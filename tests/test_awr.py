@@ -25,7 +25,7 @@ from mcrecon.methods.awr import (
     awr_reconstruct, coefficient_variances, default_levels, equivalent_filter_norms, functional_variance,
     get_wavelet, pixel_variance, plan_awr_positions, renormalisation_factor, sample_scale_functions,
     scale_priorities, soft_threshold, synthesize)
-from mcrecon.stats import PixelStats
+from mcrecon.core.stats import PixelStats
 
 BASES = list(WAVELETS)
 MODES = ["symmetric", "periodization"]
@@ -461,7 +461,7 @@ def test_importance_sampling_follows_abs_scale_function(wavelet):
 
 
 def _noisy_stats(h, w, spp, seed, scale=1.0):
-    from mcrecon.renderers.protocol import jittered_positions
+    from mcrecon.core.requests import jittered_positions
     rng = np.random.default_rng(seed)
     pos = jittered_positions(np.full((h, w), spp), rng)
     n = len(pos)
@@ -526,7 +526,7 @@ def test_method_plan_respects_remaining_and_returns_none():
     st = PixelStats(30, 20)
     state = AdaptiveState(st, 0, budget=30 * 20 * 6 + 17, n_samples=0, rng=np.random.default_rng(0))
     run = m.start(30, 20)
-    from mcrecon.driver import _initial_request
+    from mcrecon.adaptive.schedule import _initial_request
     req = _initial_request(m, state, 1)  # the driver takes the initial pass the method declares
     assert req.counts is not None and req.total == 4 * 600            # initial 4 spp (paper)
     st2 = _noisy_stats(20, 30, 4, 2)
@@ -632,7 +632,7 @@ def test_awr_vs_box_on_scenes(scene, variance):
 
     Margins: >= 4 % (depth_of_field, range), run-to-run sd < 0.5 %.
     """
-    from mcrecon.metrics import relative_mse
+    from mcrecon.core.metrics import relative_mse
     from mcrecon.renderers.scenes import reference_image
     size = 128
     ref = reference_image(scene, size, size)
@@ -650,8 +650,8 @@ def test_adaptive_awr_vs_box_on_scenes(scene):
     soft_shadow it ties (0.90-1.00x over 4 seeds, docs/methods/awr.md): a
     benchmark row, not an assertion.  It loses on depth_of_field and hdr: measured
     limits (``python benchmarks/bench_awr.py --limits``, docs/methods/awr.md)."""
-    from mcrecon.driver import adapt
-    from mcrecon.metrics import relative_mse
+    from mcrecon.adaptive.run import adapt
+    from mcrecon.core.metrics import relative_mse
     from mcrecon.renderers.scenes import SceneRenderer, reference_image
     size = 128
     ref = reference_image(scene, size, size)
@@ -670,8 +670,8 @@ def test_adaptive_awr_vs_offline_awr(scene):
     paper's sampler loses (4.1e-3 vs 2.6e-3, 2 seeds: it allocates worse
     than uniform, test_depth_of_field_loss_is_the_sample_allocation): a
     measured limit (``python benchmarks/bench_awr.py --limits``), not asserted."""
-    from mcrecon.driver import adapt
-    from mcrecon.metrics import relative_mse
+    from mcrecon.adaptive.run import adapt
+    from mcrecon.core.metrics import relative_mse
     from mcrecon.renderers.scenes import SceneRenderer, reference_image
     size = 128
     res = adapt(SceneRenderer(scene, width=size, height=size, seed=1), get_method("awr", variant="paper"), spp=32, seed=1,
@@ -688,7 +688,7 @@ def test_adaptive_awr_vs_offline_awr(scene):
 def test_awr_sampling_with_box_reconstruction():
     """Paper Fig. 10: the sampler alone, another reconstruction (option
     ``reconstruction='box'``) returns the pixel means of the adaptive samples."""
-    from mcrecon.driver import adapt
+    from mcrecon.adaptive.run import adapt
     from mcrecon.renderers.scenes import SceneRenderer
     res = adapt(SceneRenderer("soft_shadow", width=48, height=40, seed=2), get_method("awr", variant="paper", reconstruction="box"),
                 spp=12, seed=2, progress=False, track_error=False)
@@ -698,7 +698,7 @@ def test_awr_sampling_with_box_reconstruction():
 
 def test_adaptive_run_reports_the_sample_density_map():
     """``finish`` publishes the per-pixel sample counts as diagnostic ``samples``."""
-    from mcrecon.driver import adapt
+    from mcrecon.adaptive.run import adapt
     from mcrecon.renderers.scenes import SceneRenderer
     for recon in ("awr", "box"):
         m = get_method("awr", variant="paper", reconstruction=recon)
@@ -729,8 +729,8 @@ def test_depth_of_field_loss_is_the_sample_allocation():
     samples has relative sd sqrt(2/255) = 9 % per pixel, which moves the
     AWR error by ~1 % (measured 4.0e-3 at 256 and 512 spp).
     """
-    from mcrecon.driver import adapt
-    from mcrecon.metrics import relative_mse
+    from mcrecon.adaptive.run import adapt
+    from mcrecon.core.metrics import relative_mse
     from mcrecon.renderers.scenes import SceneRenderer, reference_image
     size, scene = 128, "depth_of_field"
     ref = reference_image(scene, size, size)

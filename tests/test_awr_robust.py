@@ -26,14 +26,14 @@ import numpy as np
 import pytest
 
 import mcrecon
-from mcrecon.driver import adapt
+from mcrecon.adaptive.run import adapt
 from mcrecon.methods import get_method
 from mcrecon.methods.awr import AWRMethod
-from mcrecon.methods.awr.reconstruction import (awr_reconstruct, confidence_clamp, log_domain_reconstruct,
-                                                pixel_variance, sample_range_bounds)
-from mcrecon.metrics import output_sanity, relative_mse
-from mcrecon.renderers.protocol import SampleBatch, jittered_positions
-from mcrecon.stats import PixelStats
+from mcrecon.methods.awr.reconstruction import awr_reconstruct, log_domain_reconstruct, pixel_variance
+from mcrecon.core.safeguard import confidence_clamp, sample_range_bounds
+from mcrecon.core.metrics import output_sanity, relative_mse
+from mcrecon.core.requests import SampleBatch, jittered_positions
+from mcrecon.core.stats import PixelStats
 
 SIZE = 48
 FIREFLY_P, FIREFLY_L = 1e-3, 200.0
@@ -90,7 +90,7 @@ class _Renderer:
 
 def _uniform_stats(scene, spp, seed):
     r = _Renderer(scene, seed)
-    from mcrecon.renderers.protocol import SampleRequest
+    from mcrecon.core.requests import SampleRequest
     b = r.render(SampleRequest(SIZE, SIZE, counts=np.full((SIZE, SIZE), spp, np.int64), round_index=0))
     return PixelStats.from_samples(b.positions, b.values, width=SIZE, height=SIZE)
 

@@ -20,7 +20,7 @@ from mcrecon import InputError, McreconWarning, RendererError
 from mcrecon.cli import main
 from mcrecon.io import read_exr, write_exr, write_log
 from mcrecon.io.pixel_exr import MITSUBA_XYZ_TO_SRGB, read_pixel_stats_exr, xyz_from_rgb_matrix
-from mcrecon.metrics import flip_available
+from mcrecon.core.metrics import flip_available
 
 ROOT = Path(__file__).resolve().parents[1]
 H, W, SPP = 8, 10, 8
@@ -172,7 +172,7 @@ def test_compare_against_an_all_black_reference_computes_the_rest(tmp_path):
     assert code == 0, (code, out, err)
     res = json.loads(out)
     assert "flip" not in res and res["mse"] > 0 and any("FLIP" in n and "black" in n for n in res["notes"])
-    from mcrecon.metrics import flip
+    from mcrecon.core.metrics import flip
 
     with pytest.raises(InputError, match="FLIP"):
         flip(read_exr(a)[0], read_exr(z)[0])
@@ -197,9 +197,9 @@ with h5py.File(sys.argv[2], "w") as f:
 
 def test_a_reply_declaring_more_rows_than_requested_is_refused_before_reading(tmp_path, monkeypatch):
     """A reply of 200 M declared rows was read whole (killed at 8 GiB) before its length was checked."""
-    from mcrecon.io import samplelog
+    from mcrecon.io import reader as samplelog
     from mcrecon.renderers.command import CommandRenderer
-    from mcrecon.renderers.protocol import SampleRequest
+    from mcrecon.core.requests import SampleRequest
 
     def no_read(*a, **k):
         raise AssertionError("the reply's samples were read before its declared length was checked")

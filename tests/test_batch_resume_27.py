@@ -28,8 +28,10 @@ def _one_line_error(capsys) -> str:
 def client():
     pytest.importorskip("distributed", reason="needs the dask extra: pip install 'mcrecon[dask]'")
     from mcrecon import distributed as D
+    from mcrecon.distributed import batch as D_batch
+    from mcrecon.distributed import cluster as D_cluster
 
-    with D.local_client(1, threads=1) as c:
+    with D_cluster.local_client(1, threads=1) as c:
         yield c
 
 
@@ -45,6 +47,8 @@ def shots(tmp_path_factory):
 def test_batch_workers_capped_at_frames_and_cores(shots, tmp_path, capsys, monkeypatch):
     pytest.importorskip("distributed")
     from mcrecon import distributed as D
+    from mcrecon.distributed import batch as D_batch
+    from mcrecon.distributed import cluster as D_cluster
 
     asked = []
 
@@ -54,7 +58,7 @@ def test_batch_workers_capped_at_frames_and_cores(shots, tmp_path, capsys, monke
         raise InputError("test", "cluster", "not started")
         yield  # pragma: no cover
 
-    monkeypatch.setattr(D, "local_client", no_cluster)
+    monkeypatch.setattr(D_cluster, "local_client", no_cluster)
     assert main(["batch", str(shots / "shot1.h5"), "--out-dir", str(tmp_path), "--workers", "1000000",
                  "--quiet"]) == 2
     assert asked == [1]                                  # one frame: one worker, not a million
@@ -72,12 +76,14 @@ def test_batch_workers_capped_at_frames_and_cores(shots, tmp_path, capsys, monke
 def test_batch_existing_name_is_literal_not_a_pattern(shots):
     pytest.importorskip("distributed")
     from mcrecon import distributed as D
+    from mcrecon.distributed import batch as D_batch
+    from mcrecon.distributed import cluster as D_cluster
 
-    assert D._expand([str(shots / "shot[1].h5")]) == [shots / "shot[1].h5"]   # not shot1.h5
-    assert D._expand([str(shots / "take[2].h5")]) == [shots / "take[2].h5"]   # exists: no "matches no file"
-    assert D._expand([str(shots / "shot?.h5")]) == [shots / "shot1.h5"]       # a pattern still globs
+    assert D_batch._expand([str(shots / "shot[1].h5")]) == [shots / "shot[1].h5"]   # not shot1.h5
+    assert D_batch._expand([str(shots / "take[2].h5")]) == [shots / "take[2].h5"]   # exists: no "matches no file"
+    assert D_batch._expand([str(shots / "shot?.h5")]) == [shots / "shot1.h5"]       # a pattern still globs
     with pytest.raises(InputError, match="matches no file"):
-        D._expand([str(shots / "take[3].h5")])
+        D_batch._expand([str(shots / "take[3].h5")])
 
 
 def test_batch_literal_name_and_damaged_output_redone(client, shots, tmp_path, capsys):
@@ -138,7 +144,7 @@ def test_resume_of_a_relative_renderer_command_from_another_directory(tmp_path, 
     import sys
 
     from mcrecon.io import read_log
-    from mcrecon.io.samplelog import set_run_settings
+    from mcrecon.io.writer import set_run_settings
 
     log = tmp_path / "run.h5"
     monkeypatch.chdir(ROOT)          # as the README has it: a path relative to the clone
@@ -191,9 +197,9 @@ def test_run_summary_parts_never_exceed_the_whole(tmp_path, capsys, pipe):
 
 
 def test_resumed_run_summary_gives_this_sessions_times(tmp_path, capsys):
-    from mcrecon.driver import adapt
+    from mcrecon.adaptive.run import adapt
     from mcrecon.io import read_log
-    from mcrecon.io.samplelog import update_round_record
+    from mcrecon.io.writer import update_round_record
     from mcrecon.renderers import renderer_from_spec, scene_spec
 
     log = tmp_path / "r.h5"

@@ -12,7 +12,7 @@ import h5py
 import numpy as np
 import pytest
 
-import mcrecon.samples
+import mcrecon.core.samples
 from mcrecon import InputError
 from mcrecon.cli import main
 from mcrecon.io import read_log, write_exr, write_log
@@ -68,7 +68,7 @@ def test_integer_attributes_of_any_integer_type_still_read(tmp_path):
 
 # ------------------------------------------------------------------ memory bombs
 def _small_memory(monkeypatch, nbytes):
-    monkeypatch.setattr(mcrecon.samples, "available_memory", lambda: nbytes)
+    monkeypatch.setattr(mcrecon.core.samples, "available_memory", lambda: nbytes)
 
 
 def test_a_film_larger_than_memory_is_refused_by_info_and_denoise(tmp_path, capsys, monkeypatch):

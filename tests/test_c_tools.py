@@ -25,9 +25,9 @@ import pytest
 
 from mcrecon import InputError, RendererError
 from mcrecon.io import append_log, read_exr, read_log
-from mcrecon.io.samplelog import cast_positions
+from mcrecon.io.logformat import cast_positions
 from mcrecon.renderers.command import read_request, write_request
-from mcrecon.renderers.protocol import SampleRequest, validate_reply
+from mcrecon.core.requests import SampleRequest, validate_reply
 
 REPO = Path(__file__).parents[1]
 C_DIR = REPO / "data_tools" / "c"

@@ -15,9 +15,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mcrecon.driver import adapt
+from mcrecon.adaptive.run import adapt
 from mcrecon.methods import get_method
-from mcrecon.methods.ci import CIMethod, borrow_neighbour_variance
+from mcrecon.methods.ci.method import CIMethod, borrow_neighbour_variance
 from mcrecon.methods.base import uniform_counts
 from mcrecon.renderers.scenes import SceneRenderer
 

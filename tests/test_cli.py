@@ -12,7 +12,7 @@ import pytest
 
 from mcrecon import InputError
 from mcrecon.cli import main
-from mcrecon.driver import adapt, resume
+from mcrecon.adaptive.run import adapt, resume
 from mcrecon.io import read_exr, read_log, set_run_settings, summarize_log, write_exr, write_log
 from mcrecon.methods import available_methods, method_class
 from mcrecon.renderers import command_spec, renderer_from_spec, scene_spec
@@ -342,7 +342,8 @@ def test_resume_honours_time_limit_and_refuses_run_flags(tmp_path, capsys):
 def test_cli_modules_import_only_downward():
     """__init__ -> commands, experiments, batch -> _common; never back up (no import cycles)."""
     cli = ROOT / "mcrecon" / "cli"
-    allowed = {"__init__": {"commands", "experiments", "batch", "_common"}, "commands": {"_common"},
+    allowed = {"__init__": {"commands", "experiments", "batch", "_common"}, "commands": {"_common", "builtins"},
+               "builtins": {"_common"},
                "experiments": {"_common"}, "batch": {"_common"}, "_common": set()}
     for path in sorted(cli.glob("*.py")):
         seen = set()
@@ -356,7 +357,7 @@ def test_cli_modules_import_only_downward():
 
 def test_storage_dtype_flag_offers_what_the_driver_accepts():
     from mcrecon.cli import build_parser
-    from mcrecon.driver import STORAGE_DTYPES
+    from mcrecon.adaptive.schedule import STORAGE_DTYPES
     p = build_parser()
     adapt = p._subparsers._group_actions[0].choices["adapt"]
     action = next(a for a in adapt._actions if "--storage-dtype" in a.option_strings)
@@ -377,6 +378,6 @@ def test_demo_writes_every_method_and_reports_its_error(tmp_path, capsys):
     for name in methods:
         img, _ = mcrecon.read_exr(out / f"soft_shadow_{name}.exr")
         assert img.shape == (20, 24, 3) and (out / f"soft_shadow_{name}.png").exists()
-        from mcrecon.metrics import relative_mse
+        from mcrecon.core.metrics import relative_mse
         assert float(errors[name]) == pytest.approx(relative_mse(img.astype(np.float64), ref), rel=1e-4)
     assert mcrecon.read_log(out / "soft_shadow.h5").n_samples == 24 * 20 * 4

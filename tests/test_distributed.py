@@ -18,16 +18,21 @@ distributed = pytest.importorskip("distributed", reason="needs the dask extra: p
 
 import mcrecon  # noqa: E402
 from mcrecon import distributed as D  # noqa: E402
+from mcrecon.distributed import ingestion as DI  # noqa: E402
+from mcrecon.distributed import batch as D_batch
+from mcrecon.distributed import cluster as D_cluster
+from mcrecon.distributed import ingestion as D_ingestion
+from mcrecon.distributed import tiles as D_tiles
 from mcrecon.cli import main  # noqa: E402
 from mcrecon.errors import InputError  # noqa: E402
-from mcrecon.io import read_exr, write_log  # noqa: E402
+from mcrecon.io import read_exr, read_log, write_log  # noqa: E402
 from mcrecon.renderers.scenes import get_scene, write_scene_log  # noqa: E402
-from mcrecon.stats import PixelStats  # noqa: E402
+from mcrecon.core.stats import PixelStats  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def client():
-    with D.local_client(2, threads=1) as c:
+    with D_cluster.local_client(2, threads=1) as c:
         yield c
 
 
@@ -76,10 +81,10 @@ def test_batch_equals_denoise_bit_for_bit_bad_frame_and_rerun(client, frames, tm
     assert all((out / f"f{i}.exr").stat().st_mtime_ns == mtimes[i] for i in range(3))
     # a log newer than its output is redone; so is every frame under other options
     os.utime(frames / "f1.h5", ns=(mtimes[1] + 10**9, mtimes[1] + 10**9))
-    res = D.denoise_many([frames / f"f{i}.h5" for i in range(3)], method="gem", gamma=0.25, out_dir=out,
+    res = D_batch.denoise_many([frames / f"f{i}.h5" for i in range(3)], method="gem", gamma=0.25, out_dir=out,
                          client=client)
     assert [r["status"] for r in res.records] == ["skipped", "done", "skipped"] and res.ok
-    res = D.denoise_many([frames / f"f{i}.h5" for i in range(3)], method="gem", gamma=0.3, out_dir=out,
+    res = D_batch.denoise_many([frames / f"f{i}.h5" for i in range(3)], method="gem", gamma=0.3, out_dir=out,
                          client=client)
     assert [r["status"] for r in res.records] == ["done"] * 3
 
@@ -143,9 +148,9 @@ def test_distributed_ingestion_equals_one_process(client, tmp_path, subpixels):
     pos = np.minimum(pos, np.nextafter(np.float32([w, h]), 0))
     val = (1000.0 + rng.normal(0, 1, (n, 3)) * [1, 1e-2, 10]).astype(np.float32)  # offset: rounding shows
     path = write_log(tmp_path / "big.h5", pos, val, width=w, height=h)
-    one = PixelStats.from_log(path, subpixels=subpixels)
+    one = PixelStats.from_log(read_log(path), subpixels=subpixels)
     parts = 5
-    dist = D.ingest(path, client=client, parts=parts, chunk_size=997, subpixels=subpixels)
+    dist = D_ingestion.ingest(path, client=client, parts=parts, chunk_size=997, subpixels=subpixels)
     assert np.array_equal(dist.count, one.count) and dist.n_samples == n
     assert np.array_equal(dist.min, one.min) and np.array_equal(dist.max, one.max)
     bm, b2 = _merge_bound(one, parts)
@@ -172,35 +177,35 @@ def test_banded_partials_merge_exactly_like_full_image_partials(tmp_path):
     pos = np.stack([xs + rng.random(xs.size), ys + rng.random(ys.size)], axis=1)
     val = 5.0 + rng.normal(0, 1, (pos.shape[0], 3))
     path = write_log(tmp_path / "rows.h5", pos, val, width=w, height=h)
-    ranges = D.row_ranges(pos.shape[0], 5, align=97)                         # bands overlap at their ends
-    bands = [D._ingest_range(str(path), a, b, 2, "drop", 97) for a, b in ranges]
+    ranges = D_ingestion.row_ranges(pos.shape[0], 5, align=97)                         # bands overlap at their ends
+    bands = [D_ingestion._ingest_range(str(path), a, b, 2, "drop", 97) for a, b in ranges]
     assert all(0 < b.stats.height < h for b in bands)                       # really banded
     fulls = [b.full() for b in bands]
     assert all(f.height == h and f.n_samples == b.stats.n_samples for f, b in zip(fulls, bands))
-    merged = D.tree_merge(bands, merge=D._merge_bands).full()
-    reference = D.tree_merge([f.copy() for f in fulls])                      # PixelStats.merge of full images
+    merged = D_ingestion.tree_merge(bands, merge=D_ingestion._merge_bands).full()
+    reference = D_ingestion.tree_merge([f.copy() for f in fulls])                      # PixelStats.merge of full images
     for name in ("count", "mean", "m2", "min", "max", "sub_sum", "sub_count"):
         assert np.array_equal(getattr(merged, name), getattr(reference, name)), name
     assert merged.n_samples == pos.shape[0] and merged.dtype == reference.dtype
     # the tasks ship bands packed as arrays (Dask sends arrays as raw frames): the same numbers
-    packed = D.tree_merge([D._ingest_part(str(path), a, b, 2, "drop", 97) for a, b in ranges], merge=D._merge_packed)
-    unpacked = D._Band.unpack(packed).full()
+    packed = D_ingestion.tree_merge([D_ingestion._ingest_part(str(path), a, b, 2, "drop", 97) for a, b in ranges], merge=D_ingestion._merge_packed)
+    unpacked = D_ingestion._Band.unpack(packed).full()
     for name in ("count", "mean", "m2", "min", "max", "sub_sum", "sub_count"):
         assert np.array_equal(getattr(unpacked, name), getattr(merged, name)), name
     assert unpacked.n_samples == merged.n_samples and unpacked.dtype == merged.dtype
 
 
 def test_row_ranges_and_tree_merge():
-    assert D.row_ranges(10, 3) == [(0, 3), (3, 6), (6, 10)]
-    r = D.row_ranges(10_000, 4, align=997)
+    assert D_ingestion.row_ranges(10, 3) == [(0, 3), (3, 6), (6, 10)]
+    r = D_ingestion.row_ranges(10_000, 4, align=997)
     assert r[0][0] == 0 and r[-1][1] == 10_000 and all(a % 997 == 0 for a, _ in r)
     assert all(b == c for (_, b), (c, _) in zip(r[:-1], r[1:]))
-    assert D.row_ranges(5, 8) == [(k, k + 1) for k in range(5)]
-    assert D.row_ranges(0, 3) == [(0, 0)]
-    assert D.tree_merge([1, 2, 3, 4, 5], merge=lambda a, b: a + b) == 15
-    assert D.tree_merge([1, 2, 3, 4, 5], merge=lambda a, b: a + b, until=2) == [10, 5]   # [3, 7, 5] -> [10, 5]
+    assert D_ingestion.row_ranges(5, 8) == [(k, k + 1) for k in range(5)]
+    assert D_ingestion.row_ranges(0, 3) == [(0, 0)]
+    assert D_ingestion.tree_merge([1, 2, 3, 4, 5], merge=lambda a, b: a + b) == 15
+    assert D_ingestion.tree_merge([1, 2, 3, 4, 5], merge=lambda a, b: a + b, until=2) == [10, 5]   # [3, 7, 5] -> [10, 5]
     with pytest.raises(InputError):
-        D.tree_merge([])
+        D_ingestion.tree_merge([])
 
 
 # ----------------------------------------------------------------- 3. tiles
@@ -208,7 +213,7 @@ def test_row_ranges_and_tree_merge():
 def big_stats(tmp_path_factory):
     d = tmp_path_factory.mktemp("tiles")
     path = write_scene_log(get_scene("soft_shadow"), d / "t.h5", width=104, height=88, spp=4, seed=3)
-    return PixelStats.from_log(path)
+    return PixelStats.from_log(read_log(path))
 
 
 @pytest.mark.parametrize("method, options, tile, on_cluster", [
@@ -222,9 +227,9 @@ def test_tiled_equals_untiled_bit_for_bit(client, big_stats, method, options, ti
     halo = m.halo(big_stats.width, big_stats.height)
     assert halo is not None and 2 * halo + tile < big_stats.width     # some tiles see only part of the film
     full = mcrecon.reconstruct(big_stats, method=m)
-    assert np.array_equal(D.reconstruct_tiled(big_stats, method=m, tile=tile), full)
+    assert np.array_equal(D_tiles.reconstruct_tiled(big_stats, method=m, tile=tile), full)
     if on_cluster:   # the same tiles as futures (the other cases add only worker start-up imports)
-        assert np.array_equal(D.reconstruct_tiled(big_stats, method=m, tile=tile, client=client), full)
+        assert np.array_equal(D_tiles.reconstruct_tiled(big_stats, method=m, tile=tile, client=client), full)
 
 
 def test_tiled_gem_default_halo(tmp_path):
@@ -232,10 +237,10 @@ def test_tiled_gem_default_halo(tmp_path):
     assert m.halo(1, 1) == 99                       # 49 (sigma 16 pixel kernel) + 49 (outlier vote) + 1
     assert mcrecon.get_method("gem", final_outliers="paper").halo(1, 1) == 147
     path = write_scene_log(get_scene("soft_shadow"), tmp_path / "wide.h5", width=240, height=48, spp=4, seed=5)
-    st = PixelStats.from_log(path)
+    st = PixelStats.from_log(read_log(path))
     full = mcrecon.reconstruct(st, method=m)
     # tiles [0, 80) [80, 160) [160, 240): the outer ones see x < 179 and x >= 61 only
-    assert np.array_equal(D.reconstruct_tiled(st, method=m, tile=80), full)
+    assert np.array_equal(D_tiles.reconstruct_tiled(st, method=m, tile=80), full)
 
 
 def test_tiling_is_dask_map_overlap(client):
@@ -249,17 +254,17 @@ def test_tiling_is_dask_map_overlap(client):
     running = lambda a: ndimage.uniform_filter(a, size=2 * halo + 1, mode="reflect")   # noqa: E731
     local = lambda a: ndimage.gaussian_filter(a, sigma=1.5, truncate=halo / 1.5, mode="reflect")  # noqa: E731
     for func in (running, local):
-        ours = D.map_tiles(func, image, tile=tile, halo=halo)
+        ours = D_tiles.map_tiles(func, image, tile=tile, halo=halo)
         theirs = da.from_array(image, chunks=tile).map_overlap(func, depth=halo, boundary="none",
                                                                dtype=float).compute(scheduler="sync")
         assert np.array_equal(ours, theirs)
-        assert np.array_equal(D.map_tiles(func, image, tile=tile, halo=halo, client=client), theirs)
+        assert np.array_equal(D_tiles.map_tiles(func, image, tile=tile, halo=halo, client=client), theirs)
     # a correlation of radius `halo` is local: tiles give the untiled result exactly ...
-    assert np.array_equal(D.map_tiles(local, image, tile=tile, halo=halo), local(image))
+    assert np.array_equal(D_tiles.map_tiles(local, image, tile=tile, halo=halo), local(image))
     # ... and only with the whole halo (the comparison above can fail)
-    assert not np.array_equal(D.map_tiles(local, image, tile=tile, halo=halo - 1), local(image))
+    assert not np.array_equal(D_tiles.map_tiles(local, image, tile=tile, halo=halo - 1), local(image))
     # a running sum (uniform_filter) rounds by its place in the line: equal to rounding only
-    assert np.allclose(D.map_tiles(running, image, tile=tile, halo=halo), running(image), rtol=1e-13, atol=0)
+    assert np.allclose(D_tiles.map_tiles(running, image, tile=tile, halo=halo), running(image), rtol=1e-13, atol=0)
 
 
 def _fireflies(w=168, h=56, spp=8, seed=3):
@@ -284,11 +289,11 @@ def test_tiled_splat_equals_untiled_bit_for_bit(client, splat_log, monkeypatch):
     assert halo == 34 and 2 * halo + 40 < 168                      # interior tiles exist
     full = mcrecon.reconstruct(splat_log, method=m, full=True)
     assert full.run.splatter.rounds[0]["outliers"] > 100         # the fireflies' excess is spread
-    assert np.array_equal(D.reconstruct_tiled(splat_log, method=m, tile=40), full.image)
-    assert np.array_equal(D.reconstruct_tiled(str(splat_log), method=m, tile=56, client=client), full.image)
+    assert np.array_equal(D_tiles.reconstruct_tiled(splat_log, method=m, tile=40), full.image)
+    assert np.array_equal(D_tiles.reconstruct_tiled(str(splat_log), method=m, tile=56, client=client), full.image)
     # the comparison can fail: with too small a halo, pixels near the tile edges change
     monkeypatch.setattr(type(m), "halo", lambda self, w, h: 2)
-    assert not np.array_equal(D.reconstruct_tiled(splat_log, method=m, tile=40), full.image)
+    assert not np.array_equal(D_tiles.reconstruct_tiled(splat_log, method=m, tile=40), full.image)
 
 
 def test_tiled_splat_rounds():
@@ -299,25 +304,25 @@ def test_tiled_splat_rounds():
     pos, val, rounds = pos[order], val[order], (rank[order] >= 2).astype(np.int64)
     uniform = mcrecon.SampleSet(pos, val, width=168, height=56, rounds=rounds)
     full = mcrecon.reconstruct(uniform, method="splat")
-    assert np.array_equal(D.reconstruct_tiled(uniform, method="splat", tile=48), full)
+    assert np.array_equal(D_tiles.reconstruct_tiled(uniform, method="splat", tile=48), full)
     # an adaptive second round (samples on the left half only) is not local: refused
     keep = (pos[:, 0] < 84) | (rounds == 0)
     adaptive = mcrecon.SampleSet(pos[keep], val[keep], width=168, height=56, rounds=rounds[keep])
     with pytest.raises(InputError, match="film-wide density"):
-        D.reconstruct_tiled(adaptive, method="splat", tile=48)
+        D_tiles.reconstruct_tiled(adaptive, method="splat", tile=48)
 
 
 def test_tiled_refusals(big_stats, splat_log, tmp_path):
     with pytest.raises(InputError, match="whole-image"):
-        D.reconstruct_tiled(big_stats, method="awr")
+        D_tiles.reconstruct_tiled(big_stats, method="awr")
     assert mcrecon.get_method("awr").halo(64, 64) is None
     with pytest.raises(InputError, match="sample log or a SampleSet"):
-        D.reconstruct_tiled(big_stats, method="splat")
+        D_tiles.reconstruct_tiled(big_stats, method="splat")
     with pytest.raises(InputError, match="paper variant"):
-        D.reconstruct_tiled(splat_log, method="splat", variant="paper")
+        D_tiles.reconstruct_tiled(splat_log, method="splat", variant="paper")
     thin = big_stats.copy()
     thin.count[5, 7] = 1
     with pytest.raises(InputError, match="fewer than 2 samples"):
-        D.reconstruct_tiled(thin, method="box")
+        D_tiles.reconstruct_tiled(thin, method="box")
     with pytest.raises(InputError, match="tile"):
-        D.reconstruct_tiled(big_stats, method="box", tile=0)
+        D_tiles.reconstruct_tiled(big_stats, method="box", tile=0)

@@ -4,11 +4,12 @@ import numpy as np
 import pytest
 
 from mcrecon import InputError, RendererError
-from mcrecon.driver import adapt, resume, round_seeds
+from mcrecon.adaptive.run import adapt, resume
+from mcrecon.adaptive.schedule import round_seeds
 from mcrecon.io import read_log
 from mcrecon.methods import Method
 from mcrecon.renderers import CallableRenderer
-from mcrecon.renderers.protocol import SampleBatch, SampleRequest, jittered_positions, validate_reply
+from mcrecon.core.requests import SampleBatch, SampleRequest, jittered_positions, validate_reply
 
 
 def _shade(pos, seed):
@@ -345,7 +346,7 @@ def test_adaptive_splat_applies_the_runs_nonfinite_policy(tmp_path):
 def test_validation_counts_the_nonfinite_rows_of_a_reply_in_its_one_pass(n, dtype):
     """The driver takes the count of rows with a NaN or Inf value from validate_reply's pass:
     the same count as a separate scan of the values (rows, not values)."""
-    from mcrecon.renderers.protocol import _validate_reply
+    from mcrecon.core.requests import _validate_reply
 
     rng = np.random.default_rng(n)
     req = SampleRequest(16, 12, positions=rng.random((n, 2)) * [16, 12])

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from mcrecon.io import read_log
-from mcrecon.stats import PixelStats
+from mcrecon.core.stats import PixelStats
 
 # Reports each append before it starts and once it has returned (committed), so the
 # test knows what the log must hold without opening it while the appender runs.

@@ -1,4 +1,4 @@
-"""Per-pixel error estimates without a reference (mcrecon.estimates): SURE and dual buffers.
+"""Per-pixel error estimates without a reference (mcrecon.methods.auto.estimates): SURE and dual buffers.
 
 The accuracy statistic of every test is the ratio
 ``R = sum_pixels(estimated MSE) / sum_pixels(true squared error)`` of one
@@ -12,18 +12,18 @@ import numpy as np
 import pytest
 
 from mcrecon import McreconWarning, PixelStats, SampleSet
-from mcrecon.estimates import (cross_validation_mse, dual_buffer_mse, dual_buffer_variance,
-                               gaussian_centre_weights, relative_denominator, split_halves, split_labels, sure,
-                               sure_filter_bank)
+from mcrecon.methods.auto.estimates import (cross_validation_mse, dual_buffer_mse, dual_buffer_variance,
+    gaussian_centre_weights, relative_denominator, sure, sure_filter_bank)
+from mcrecon.core.halves import split_halves, split_labels
 from mcrecon.methods.gem import filter_bank, final_sigmas
-from mcrecon.methods.gem.selection import mean_variance_policy
+from mcrecon.core.fill import mean_variance_policy
 from mcrecon.renderers.scenes import reference_image, render_uniform
 
 
 # ------------------------------------------------------------------ exactness
 def _stats_by_copies(src):
     """The reference split: labels, then each half's samples copied into its own statistics."""
-    from mcrecon.estimates import Halves
+    from mcrecon.core.halves import Halves
     h = Halves.empty(src.width, src.height, tuple(src.channels))
     for ch in src.iter_chunks(with_round=False, chunk_size=97):
         h._add_by_copies(ch.positions, ch.values)
@@ -49,7 +49,7 @@ def test_one_pass_split_is_bit_identical_to_splitting_by_copies(order, monkeypat
     val = rng.standard_normal((pix.size, 3)) * 1e3 + 1e6  # Welford territory
     ss = SampleSet(pos.astype(np.float32), val.astype(np.float32), width=w, height=h)
     ref = _stats_by_copies(ss)
-    from mcrecon.estimates import Halves
+    from mcrecon.core.halves import Halves
     for threads in ("1", "3"):
         monkeypatch.setenv("MCRECON_THREADS", threads)
         new = Halves.empty(w, h, ss.channels)
@@ -108,7 +108,7 @@ def test_relative_denominator_median_is_ndimages():
 
 
 def test_leave_one_out_denominator_ignores_the_pixels_own_samples():
-    from mcrecon.estimates import relative_denominator_loo
+    from mcrecon.methods.auto.estimates import relative_denominator_loo
     rng = np.random.default_rng(8)
     y = rng.random((6, 7, 2))
     v = np.zeros_like(y)

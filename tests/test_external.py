@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from mcrecon import InputError, RendererError
-from mcrecon.driver import adapt, resume
+from mcrecon.adaptive.run import adapt, resume
 from mcrecon.io import read_exr, read_log
 from mcrecon.renderers.command import CommandRenderer, read_request, write_request
-from mcrecon.renderers.protocol import SampleRequest
+from mcrecon.core.requests import SampleRequest
 
 FAULT = str(Path(__file__).parent / "renderers" / "fault_renderer.py")
 FEATURES = str(Path(__file__).parent / "renderers" / "feature_renderer.py")
@@ -191,7 +191,7 @@ class _Recorder:
         self.kinds = []
 
     def render(self, req):
-        from mcrecon.renderers.protocol import SampleBatch, jittered_positions
+        from mcrecon.core.requests import SampleBatch, jittered_positions
 
         self.kinds.append(("counts" if req.counts is not None else "") + ("positions" if req.positions is not None
                                                                             else ""))

@@ -1,4 +1,4 @@
-"""Sample-space firefly handling (mcrecon.fireflies): energy, sharp rims, consistency, one path for every method."""
+"""Sample-space firefly handling (mcrecon.filters.fireflies): energy, sharp rims, consistency, one path for every method."""
 
 from contextlib import nullcontext
 
@@ -8,11 +8,11 @@ import pytest
 import mcrecon
 from mcrecon import InputError
 from mcrecon.cli import main
-from mcrecon.fireflies import sample_luminance, split_fireflies
+from mcrecon.filters.fireflies import sample_luminance, split_fireflies
 from mcrecon.io import write_exr, write_log
-from mcrecon.metrics import relative_mse
+from mcrecon.core.metrics import relative_mse
 from mcrecon.methods import available_methods
-from mcrecon.stats import PixelStats
+from mcrecon.core.stats import PixelStats
 
 
 def firefly_field(size, spp, seed, *, p=1 / 500, base=0.1, spike=200.0):

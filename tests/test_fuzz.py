@@ -200,7 +200,7 @@ def test_the_untouched_base_log_succeeds(worker, base_log, tmp_path):
 
 # ------------------------------------------------------------------ renderer replies (in process)
 from mcrecon.errors import InputError, RendererError  # noqa: E402
-from mcrecon.renderers.protocol import SampleBatch, SampleRequest, validate_reply  # noqa: E402
+from mcrecon.core.requests import SampleBatch, SampleRequest, validate_reply  # noqa: E402
 
 W, H = 4, 3
 COUNTS = np.array([[1, 0, 2, 1], [0, 3, 1, 0], [1, 1, 0, 2]], np.int64)

@@ -12,14 +12,16 @@ import warnings
 
 import numpy as np
 
+from mcrecon.io import read_log
+
 import mcrecon
 import pytest
 import pywt
 from scipy import ndimage
 
 import mcrecon.methods.gem as G
-from mcrecon import _filtering
-from mcrecon._filtering import correlate_jobs
+from mcrecon.filters import engine as _filtering
+from mcrecon.filters.engine import correlate_jobs
 from mcrecon.errors import InputError, McreconWarning
 from mcrecon.methods import get_method
 from mcrecon.methods.base import AdaptiveState, MethodInputs
@@ -28,7 +30,7 @@ from mcrecon.methods.gem import selection as gem_selection
 from mcrecon.methods.gem.kernels import _chan_sum
 from mcrecon.methods.gem.sampling import _kernel_offsets
 from mcrecon.methods.gem.selection import _estimate_mse_numpy, _pick
-from mcrecon.stats import PixelStats
+from mcrecon.core.stats import PixelStats
 
 
 # ----------------------------------------------------------------------------
@@ -47,8 +49,8 @@ def _uniform_samples(rng, w, h, spp, fn):
 
 
 def _drive(renderer, method, spp, seed, reference=None):
-    """Adaptive rounds through the driver (mcrecon.driver.adapt)."""
-    from mcrecon.driver import adapt
+    """Adaptive rounds through the driver (mcrecon.adaptive.run.adapt)."""
+    from mcrecon.adaptive.run import adapt
     return adapt(renderer, method, spp=spp, seed=seed, reference=reference, track_error=False)
 
 
@@ -201,7 +203,7 @@ def test_pixel_path_approximation_costs_no_accuracy():
     pixel path is at most 1.1 x that of filtering every scale on the 4 x 4
     grid (measured ratios in docs/methods/gem.md: 0.98-1.02, flat 0.15-0.3).
     """
-    from mcrecon.metrics import relative_mse
+    from mcrecon.core.metrics import relative_mse
     from mcrecon.renderers.scenes import reference_image, render_uniform, scene_names
     for scene in scene_names():
         ref = reference_image(scene, 48, 48)
@@ -368,7 +370,7 @@ def test_relative_channel_weights_keep_a_dim_channels_edge():
     same weights: oracle / gem 0.77-0.87 (6 seeds), relative / absolute
     oracle 0.045-0.057; bounds 1 and 0.5.
     """
-    from mcrecon.metrics import relative_mse
+    from mcrecon.core.metrics import relative_mse
     h = w = 48
     n = 32
     ref = np.empty((h, w, 3))
@@ -409,7 +411,7 @@ def test_confirmed_stops_remove_false_stops_on_a_flat_field_and_keep_an_edge():
     bound 0.8.  A step 0 | 1 (per-sample sd 0.3): ratio 0.987 (5 seeds,
     each 0.98-1.0): bound 1.05.
     """
-    from mcrecon.metrics import relative_mse
+    from mcrecon.core.metrics import relative_mse
     h = w = 64
     n = 32
     cnt = np.full((h, w), n)
@@ -468,7 +470,7 @@ def test_confirm_pair_stops_asks_the_next_pair_only_and_leaves_the_widest_pair()
     np.testing.assert_array_equal(c1[4], raw[4])                   # the widest pair: unconfirmed
     # column 0: pairs 1 and 2 stop, 3 does not -> pair 1 still counts (a chain would drop it)
     assert c1[1, 0, 0] and not c1[2, 0, 0]
-    assert gem_selection.CHANNEL_EPS == 0.01  # the eps of mcrecon.metrics.relative_mse, the reported error
+    assert gem_selection.CHANNEL_EPS == 0.01  # the eps of mcrecon.core.metrics.relative_mse, the reported error
 
 
 def test_relative_weights_do_not_spread_a_value_whose_square_overflows():
@@ -924,7 +926,7 @@ def _state(stats, rnd, budget, seed=0, ref=None):
 
 
 def test_plan_rounds_and_budget():
-    from mcrecon.driver import _initial_request
+    from mcrecon.adaptive.schedule import _initial_request
     from mcrecon.renderers.scenes import SceneRenderer
     w = h = 16
     r = SceneRenderer("soft_shadow", width=w, height=h, seed=0)
@@ -1049,7 +1051,7 @@ def test_gem_beats_box_on_every_scene(full_run):
     Paired over seeds (same samples for both): the mean paired difference
     must be positive by 2 standard errors of the paired differences.
     """
-    from mcrecon.metrics import relative_mse
+    from mcrecon.core.metrics import relative_mse
     from mcrecon.renderers.scenes import reference_image, render_uniform, scene_names
     size, seeds = (128, 6) if full_run else (128, 3)   # features shrink below filterable at 64 px
     for scene in scene_names():
@@ -1079,7 +1081,7 @@ def test_adaptive_beats_offline_and_oracle_is_not_worse(full_run):
     on motion_blur, where OUR-GRD's greedy distribution is measurably worse
     than GEM's at 128 px (docs/methods/gem.md, "Known deviations").
     """
-    from mcrecon.metrics import relative_mse
+    from mcrecon.core.metrics import relative_mse
     from mcrecon.renderers.scenes import SceneRenderer, reference_image, render_uniform
     size, seeds = (128, 4) if full_run else (64, 2)
     for scene in ("soft_shadow", "motion_blur", "caustic"):
@@ -1112,7 +1114,7 @@ def test_oracle_offline_uses_the_log_reference(tmp_path):
     path = write_scene_log("soft_shadow", tmp_path / "s.h5", width=24, height=24, spp=8)
     m = get_method("gem", oracle=1)
     a = mcrecon.reconstruct(path, method=m)
-    stats = PixelStats.from_log(path, subpixels=4)
+    stats = PixelStats.from_log(read_log(path), subpixels=4)
     b = get_method("gem", oracle=1).reconstruct(MethodInputs(stats, reference=reference_image("soft_shadow", 24, 24)))
     np.testing.assert_array_equal(a, b)
 

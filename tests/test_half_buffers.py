@@ -1,7 +1,7 @@
 """Half-buffer pairs: two independent halves of the samples (dual buffers) in place of the samples.
 
 The halves here are exactly the split ``auto`` makes of the samples
-(:func:`mcrecon.estimates.split_halves`), so a pair built from them must
+(:func:`mcrecon.core.halves.split_halves`), so a pair built from them must
 give auto's image of the samples.  Two things differ when the pair comes
 through EXRs, and each is tested on its own:
 
@@ -25,11 +25,12 @@ import pytest
 import mcrecon
 from mcrecon import InputError, PixelStats, SampleSet
 from mcrecon.cli import main
-from mcrecon.estimates import split_halves
+from mcrecon.core.halves import split_halves
 from mcrecon.io import read_exr
 from mcrecon.io.pixel_exr import read_half_buffer_exrs, xyz_from_rgb_matrix
 from mcrecon.methods import get_method
-from mcrecon.methods.base import MethodInputs, merge_halves
+from mcrecon.methods.base import MethodInputs
+from mcrecon.core.halves import merge_halves
 
 H, W = 20, 28
 EPS64 = np.finfo(np.float64).eps
@@ -331,7 +332,7 @@ def test_methods_command_lists_the_half_buffer_input(capsys):
 def test_every_path_to_the_same_samples_gives_auto_the_same_image(tmp_path):
     """An adaptive run's image, the image of its log, of the same samples in a SampleSet and
     through mcrecon.restoration: bit for bit (every path builds the halves and merges them)."""
-    from mcrecon.driver import adapt
+    from mcrecon.adaptive.run import adapt
     from mcrecon.io import read_log
     from mcrecon.renderers.scenes import SceneRenderer
 

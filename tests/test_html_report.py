@@ -20,7 +20,7 @@ import pytest
 from mcrecon.cli import main
 from mcrecon.experiments import convergence as conv
 from mcrecon.experiments.convergence import run_convergence
-from mcrecon.metrics import flip_available
+from mcrecon.core.metrics import flip_available
 
 SIZE = (24, 16)  # not square: catches a width/height swap
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -262,7 +262,7 @@ def test_screenshot_shows_pixelated_image(page, report):
     blocks = shot.reshape(h, s, w, s, 3)[:, 2:-2, :, 2:-2]
     assert np.ptp(blocks, axis=(1, 3)).max() <= 2
     # and its centres are the PNG preview of the reference
-    from mcrecon.io.images import tonemap_srgb
+    from mcrecon.core.display import tonemap_srgb
 
     want = np.round(tonemap_srgb(res.reference) * 255)
     assert np.abs(shot[s // 2::s, s // 2::s] - want).max() <= 2

@@ -11,8 +11,10 @@ import pytest
 
 from mcrecon import InputError, PixelStats
 from mcrecon.io import append_log, read_exr, read_log, write_exr, write_false_colour, write_log, write_png_preview
-from mcrecon.io import samplelog
-from mcrecon.io.samplelog import APPEND_CHUNK_ROWS, cast_positions, update_round_record
+from mcrecon.io import reader as samplelog
+from mcrecon.io import logformat as samplelog_logformat
+from mcrecon.io.logformat import APPEND_CHUNK_ROWS, cast_positions
+from mcrecon.io.writer import update_round_record
 
 
 def _log(tmp_path, rng, n=500, w=9, h=7, c=3, **kw):
@@ -112,7 +114,7 @@ def _round(rng, m=10):
 
 
 def _driver_round(path, rng, r, total, m=10, *, reference=False):
-    """One round as mcrecon.driver._run logs it: append with a record, then the full record
+    """One round as mcrecon.adaptive.run._run logs it: append with a record, then the full record
     (with ``reference``, also the error and the time to evaluate it)."""
     pos, val = _round(rng, m)
     rec = {"round": r, "samples": m, "samples_total": total + m, "renderer_seconds": float(rng.random()) * 1e-3}
@@ -155,12 +157,12 @@ def test_records_and_round_ends_after_many_appends_and_updates(tmp_path, rng):
     assert log.n_samples == total and log.n_rounds == 300
     np.testing.assert_array_equal(log.round_ends, np.cumsum([1 + r % 7 for r in range(300)]))
     assert log.round_records == expect  # the updated (full) records, one per round
-    assert log.format_minor == samplelog.FORMAT_MINOR
+    assert log.format_minor == samplelog_logformat.FORMAT_MINOR
     np.testing.assert_array_equal(log.read_all(rounds=[299]).round, 299)
     with h5py.File(path, "r") as f:  # grown in place: resizable, chunked, one row per round
         for name in ("rounds/end", "run/round_records"):
             assert f[name].maxshape == (None,) and f[name].chunks is not None and f[name].shape == (300,)
-        assert f["run/round_records"].dtype == samplelog.ROUND_RECORD_DTYPE
+        assert f["run/round_records"].dtype == samplelog_logformat.ROUND_RECORD_DTYPE
         assert "records" not in f["run"] and "round_records_extra" not in f["run"]
 
 
@@ -560,7 +562,7 @@ def test_positions_off_film_in_file_are_reported(tmp_path, rng):
     with h5py.File(path, "r+") as f:
         f["positions"][3] = [100.0, 1.0]
     with pytest.raises(InputError, match="a.h5: positions: 1 sample\\(s\\) off the film"):
-        PixelStats.from_log(path)
+        PixelStats.from_log(read_log(path))
 
 
 def test_write_log_validation_and_atomicity(tmp_path, rng):

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 import mcrecon
-from mcrecon.driver import adapt, resume
+from mcrecon.adaptive.run import adapt, resume
 from mcrecon.errors import InputError, McreconWarning
 from mcrecon.methods import METHODS, Option, get_method
-from mcrecon.metrics import relative_mse
+from mcrecon.core.metrics import relative_mse
 from mcrecon.renderers.scenes import SceneRenderer, reference_image, write_scene_log
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from mcrecon import InputError
-from mcrecon.metrics import (compare, flip, flip_available, mse, psnr, relative_mse, relative_mse_map, rmse, smape,
-                             ssim)
+from mcrecon.core.metrics import (compare, flip, flip_available, mse, psnr, relative_mse, relative_mse_map, rmse,
+    smape, ssim)
 
 
 def test_relative_mse_by_hand():

@@ -14,7 +14,8 @@ import pytest
 from mcrecon.errors import InputError, RendererError
 from mcrecon.renderers.mitsuba import (MitsubaRenderer, _to_float32_positions, dump_uniform_log,
                                     mitsuba_available, render_reference)
-from mcrecon.renderers.protocol import SampleRequest, pixel_index, validate_reply
+from mcrecon.core.requests import SampleRequest, validate_reply
+from mcrecon.core.samples import pixel_index
 
 _OK, _REASON = mitsuba_available()
 needs_mitsuba = pytest.mark.skipif(not _OK, reason=f"Mitsuba bridge unavailable: {_REASON}")
@@ -194,7 +195,7 @@ def test_prepare_in_another_thread_gives_the_same_reply():
         np.testing.assert_array_equal(r.render(other).values, r.render(other).values)
         assert not np.array_equal(r.render(other).values, plain.values)
     # the positions are those of the protocol's jittered_positions with the request's stream
-    from mcrecon.renderers.protocol import jittered_positions
+    from mcrecon.core.requests import jittered_positions
 
     req = SampleRequest(24, 16, counts=counts, seed=5, round_index=9)
     np.testing.assert_array_equal(r.render(req).positions, jittered_positions(counts, np.random.default_rng([5, 9])))
@@ -295,7 +296,7 @@ def test_bridge_mean_matches_mi_render(cornell32):
 @needs_mitsuba
 def test_dump_uniform_log_reads_back(tmp_path):
     from mcrecon.io import read_log
-    from mcrecon.stats import PixelStats
+    from mcrecon.core.stats import PixelStats
 
     path = tmp_path / "cornell.h5"
     out = dump_uniform_log(path, None, width=16, height=12, spp=5, seed=3, reference_spp=8, spp_per_pass=2)

@@ -131,19 +131,21 @@ def test_convergence_writes_a_default_folder(tmp_path, monkeypatch, capsys):
 
 
 def test_demo_says_it_compiles_and_times_without_compiling(tmp_path, monkeypatch, capsys):
-    from mcrecon.cli import commands
+    from mcrecon.cli import builtins, commands
+    from mcrecon.cli import builtins as commands_builtins
 
     calls = []
-    import mcrecon.reconstruction as rec
+    import mcrecon.offline.reconstruction as rec
+    from mcrecon.offline import reconstruction as rec_reconstruction
 
-    real = rec.reconstruct
+    real = rec_reconstruction.reconstruct
 
     def counting(source, method, **kw):
         calls.append((method.name, source.width))
         return real(source, method=method, **kw)
 
-    monkeypatch.setattr(rec, "reconstruct", counting)
-    monkeypatch.setattr(commands, "_COMPILING_AFTER", 0.0)  # as if the warm-up were compiling
+    monkeypatch.setattr(rec_reconstruction, "reconstruct", counting)
+    monkeypatch.setattr(commands_builtins, "_COMPILING_AFTER", 0.0)  # as if the warm-up were compiling
     code, out, err = run(["demo", "--size", "24x20", "--spp", "2", "--methods", "box,ci", "--out", tmp_path / "d"],
                          capsys)
     assert code == 0, err
@@ -151,7 +153,7 @@ def test_demo_says_it_compiles_and_times_without_compiling(tmp_path, monkeypatch
     # a warm-up on a tiny log first, then each method twice on the demo's log: the second is timed
     assert calls == [("box", 16), ("ci", 16), ("box", 24), ("box", 24), ("ci", 24), ("ci", 24)]
     assert "time: the method's second reconstruction" in out and "ci and splat are (nearly) box" in out
-    monkeypatch.setattr(commands, "_COMPILING_AFTER", 1e6)  # a warm cache: no notice
+    monkeypatch.setattr(commands_builtins, "_COMPILING_AFTER", 1e6)  # a warm cache: no notice
     code, out, err = run(["demo", "--size", "24x20", "--spp", "2", "--methods", "box", "--out", tmp_path / "d"],
                          capsys)
     assert code == 0 and err == "" and "ci and splat" not in out

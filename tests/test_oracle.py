@@ -4,7 +4,7 @@ import numpy as np
 
 from mcrecon import PixelStats
 from mcrecon.experiments.oracle import oracle_ceiling, run_oracle
-from mcrecon.metrics import relative_mse
+from mcrecon.core.metrics import relative_mse
 
 
 def test_noise_free_input_reaches_zero_with_the_pixel_filter():

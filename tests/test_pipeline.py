@@ -21,13 +21,15 @@ import numpy as np
 import pytest
 
 from mcrecon import InputError, get_method
-from mcrecon.driver import _take_round, _with_seed, adapt, method_pipelines, resume
+from mcrecon.adaptive.rounds import _take_round
+from mcrecon.adaptive.schedule import _with_seed, method_pipelines
+from mcrecon.adaptive.run import adapt, resume
 from mcrecon.io import read_log
 from mcrecon.methods import Method
 from mcrecon.renderers import CallableRenderer
 from mcrecon.renderers.command import CommandRenderer
-from mcrecon.renderers.protocol import SampleBatch, SampleRequest, jittered_positions
-from mcrecon.stats import PixelStats
+from mcrecon.core.requests import SampleBatch, SampleRequest, jittered_positions
+from mcrecon.core.stats import PixelStats
 
 FAULT = str(Path(__file__).parent / "renderers" / "fault_renderer.py")
 
@@ -169,7 +171,7 @@ def test_a_pipelined_run_that_waited_resumes_bit_identically(tmp_path, stop_afte
 
 
 def test_which_initial_passes_the_driver_splits():
-    from mcrecon.driver import _initial_rounds
+    from mcrecon.adaptive.schedule import _initial_rounds
 
     npix, budget = 16 * 12, 32 * 16 * 12
     for name, opts, rounds in (("box", {}, 1), ("splat", {}, 1), ("gem", {}, 2), ("awr", {}, 2),
@@ -184,7 +186,7 @@ def test_no_plan_of_any_subclass_sees_empty_statistics():
     """The driver takes the initial pass itself: a subclass with a plan of its own (or a mixin's)
     is first asked for round 1 or later, with samples committed, pipelined or not."""
     from mcrecon.methods.box import BoxMethod
-    from mcrecon.methods.ci import CIMethod
+    from mcrecon.methods.ci.method import CIMethod
 
     seen = []
 
@@ -337,7 +339,7 @@ def test_request_seed_without_revalidation_equals_dataclasses_replace():
 
 
 def test_gem_plan_with_nothing_pending_is_the_plan_without_pending():
-    from mcrecon.driver import _adaptive_state, round_seeds
+    from mcrecon.adaptive.schedule import _adaptive_state, round_seeds
 
     st = PixelStats.from_samples(np.random.default_rng(0).random((3000, 2)) * [16, 12],
                                  np.random.default_rng(1).random((3000, 3)), width=16, height=12)
@@ -396,7 +398,7 @@ def test_faulty_reply_mid_pipeline_keeps_the_rounds_before_and_resumes(tmp_path)
 # ------------------------------------------------------------------ SIGKILL and resume
 DRIVER = textwrap.dedent("""
     import os, sys
-    from mcrecon.driver import adapt
+    from mcrecon.adaptive import adapt
     from mcrecon.methods.gem import GEMMethod
     from mcrecon.renderers.command import CommandRenderer
 
@@ -518,9 +520,9 @@ def test_a_pipelined_round_1_is_never_placed_from_empty_statistics(name):
     statistics (awr used to put every sample of that round into the first rows)."""
     import numpy as np
 
-    from mcrecon.driver import _initial_rounds, _plan_round
+    from mcrecon.adaptive.schedule import _initial_rounds, _plan_round
     from mcrecon.methods import get_method
-    from mcrecon.stats import PixelStats
+    from mcrecon.core.stats import PixelStats
 
     w = h = 32
     m = get_method(name)

@@ -29,8 +29,8 @@ def test_method_reconstruct_takes_method_inputs_only():
 
 def test_one_dispatcher_checks_the_statistics_the_caller_gives():
     """mcrecon.reconstruct and mcrecon.restoration refuse the same bad statistics and halves."""
-    from mcrecon.estimates import split_halves
-    from mcrecon.samples import SampleSet
+    from mcrecon.core.halves import split_halves
+    from mcrecon.core.samples import SampleSet
 
     rng = np.random.default_rng(1)
     ss = SampleSet(rng.random((400, 2)) * 8, rng.random((400, 3)), width=8, height=8)
@@ -50,9 +50,9 @@ def test_one_dispatcher_checks_the_statistics_the_caller_gives():
 
 
 def test_exposure_is_in_stops_everywhere():
-    from mcrecon.io.images import tonemap_srgb
-    from mcrecon.methods.ci import StoppingRule
-    from mcrecon.tone import tone_map
+    from mcrecon.core.display import tonemap_srgb
+    from mcrecon.methods.ci.method import StoppingRule
+    from mcrecon.methods.ci.tone import tone_map
 
     x = np.array([0.05, 0.2, 0.3])
     assert get_method("ci").params["exposure"] == 0.0
@@ -66,7 +66,7 @@ def test_exposure_is_in_stops_everywhere():
 
 
 PUBLIC_MODULES = ["mcrecon", "mcrecon.restoration", "mcrecon.methods", "mcrecon.io", "mcrecon.renderers",
-                  "mcrecon.metrics", "mcrecon.reconstruction", "mcrecon.samples", "mcrecon.stats", "mcrecon.driver",
+                  "mcrecon.core.metrics", "mcrecon.offline", "mcrecon.core.samples", "mcrecon.core.stats", "mcrecon.adaptive",
                   "mcrecon.distributed", "mcrecon.experiments"]
 
 

@@ -17,13 +17,14 @@ import pytest
 import mcrecon
 from mcrecon import InputError
 from mcrecon.cli import main
-from mcrecon.driver import adapt, resume
+from mcrecon.adaptive.run import adapt, resume
 from mcrecon.io import append_log, read_log, summarize_log, write_log
-from mcrecon.io import samplelog
-from mcrecon.io.samplelog import live_writer, lock_path, log_lock
-from mcrecon.metrics import output_sanity
+from mcrecon.io import reader as samplelog
+from mcrecon.io import writer as samplelog_writer
+from mcrecon.io.lock import live_writer, lock_path, log_lock
+from mcrecon.core.metrics import output_sanity
 from mcrecon.renderers.command import CommandRenderer
-from mcrecon.stats import PixelStats
+from mcrecon.core.stats import PixelStats
 
 FAULT = str(Path(__file__).parent / "renderers" / "fault_renderer.py")
 
@@ -83,7 +84,7 @@ def test_random_bytes_in_sample_data_exit_2_with_one_line(tmp_path, rng, capsys)
         assert f"{path}: dataset /values: rows 65536-131071: checksum mismatch" in err
     assert not (tmp_path / "out.exr").exists()
     with pytest.raises(InputError, match="rows 65536-131071: checksum mismatch"):
-        PixelStats.from_log(path)
+        PixelStats.from_log(read_log(path))
 
 
 @pytest.mark.parametrize("dataset, match", [("positions", "dataset /positions: rows 0-3009: checksum mismatch"),
@@ -186,7 +187,7 @@ def test_second_run_refused_while_a_run_holds_its_log_then_stale_lock_taken_over
 def test_lock_is_reentrant_in_process_and_refuses_other_processes(tmp_path):
     log = tmp_path / "a.h5"
     script = textwrap.dedent(f"""
-        from mcrecon.io.samplelog import log_lock
+        from mcrecon.io.lock import log_lock
         import sys
         try:
             with log_lock({str(log)!r}, wait=0.1):
@@ -208,7 +209,7 @@ def test_lock_is_reentrant_in_process_and_refuses_other_processes(tmp_path):
 APPENDER = textwrap.dedent("""
     import sys, numpy as np
     from mcrecon.io import write_log, append_log
-    from mcrecon.io.samplelog import log_lock
+    from mcrecon.io.lock import log_lock
     p = sys.argv[1]
     rng = np.random.default_rng(1)
     with log_lock(p):  # as a run does: held for the whole run
@@ -324,7 +325,7 @@ def test_failing_write_mid_append_keeps_committed_rounds_and_resume_matches(tmp_
     log = tmp_path / "faulty.h5"
     real = h5py.Dataset.__setitem__
     calls = {"appends": 0}
-    real_append = samplelog._append
+    real_append = samplelog_writer._append
 
     def counting_append(*a, **kw):
         calls["appends"] += 1
@@ -335,7 +336,7 @@ def test_failing_write_mid_append_keeps_committed_rounds_and_resume_matches(tmp_
             raise OSError(28, "No space left on device")
         return real(self, key, value)
 
-    monkeypatch.setattr(samplelog, "_append", counting_append)
+    monkeypatch.setattr(samplelog_writer, "_append", counting_append)
     monkeypatch.setattr(h5py.Dataset, "__setitem__", failing_setitem)
     with pytest.raises(InputError) as exc:
         adapt(renderer(), "gem", spp=24, seed=5, log=log, track_error=False)
@@ -475,7 +476,7 @@ def test_full_disk_mid_run_one_line_then_resume_matches(tmp_path, tmpfs, path):
     full = _adapt_cli(tmp_path / "full.h5", tmp_path / "full.exr")
     assert full.returncode == 0, full.stderr
     log, filler = tmpfs / "run.h5", tmpfs / "filler"
-    prelude = ("import mcrecon.io.samplelog as s; s._check_free_space = lambda *a, **k: None"
+    prelude = ("import mcrecon.io.writer as s; s._check_free_space = lambda *a, **k: None"
                if path == "inside_hdf5" else None)
     out = _adapt_cli(log, tmp_path / "o.exr", {"FAULT_RENDERER_DISK": f"fill:{filler}",
                                                "FAULT_RENDERER_DISK_ROUND": "2"}, prelude=prelude)
@@ -498,7 +499,8 @@ def test_full_disk_mid_run_one_line_then_resume_matches(tmp_path, tmpfs, path):
 
 
 def test_free_space_estimate_counts_whole_chunks(tmp_path, monkeypatch):
-    from mcrecon.io import samplelog
+    from mcrecon.io import reader as samplelog
+    from mcrecon.io import writer as samplelog_writer
 
     class FS:
         f_frsize = 4096
@@ -508,10 +510,10 @@ def test_free_space_estimate_counts_whole_chunks(tmp_path, monkeypatch):
 
     chunk, row = 1000, 24
     # n = 1500, m = 1000: chunks 2 (partial) and 3 are written -> 2 * 1000 * 24 bytes + margin
-    need = 2 * chunk * row + samplelog.APPEND_SPACE_MARGIN
+    need = 2 * chunk * row + samplelog_writer.APPEND_SPACE_MARGIN
     monkeypatch.setattr(os, "statvfs", lambda p: FS(need // 4096 + 1))
-    samplelog._check_free_space(tmp_path / "x.h5", 1500, 1000, chunk, row)
+    samplelog_writer._check_free_space(tmp_path / "x.h5", 1500, 1000, chunk, row)
     monkeypatch.setattr(os, "statvfs", lambda p: FS(need // 4096 - 1))
     with pytest.raises(InputError, match=r"not enough free disk space for the round \(1000 samples"):
-        samplelog._check_free_space(tmp_path / "x.h5", 1500, 1000, chunk, row)
-    samplelog._check_free_space(tmp_path / "x.h5", 1500, 0, chunk, row)  # nothing to write: no check
+        samplelog_writer._check_free_space(tmp_path / "x.h5", 1500, 1000, chunk, row)
+    samplelog_writer._check_free_space(tmp_path / "x.h5", 1500, 0, chunk, row)  # nothing to write: no check

@@ -13,8 +13,8 @@ from mcrecon.errors import InputError
 from mcrecon.renderers.scenes import render_uniform, write_scene_log
 
 
-@pytest.mark.parametrize("module", ["mcrecon.restoration", "mcrecon.reconstruction", "mcrecon.stats",
-                                    "mcrecon.samples"])
+@pytest.mark.parametrize("module", ["mcrecon.restoration", "mcrecon.offline.reconstruction", "mcrecon.core.stats",
+                                    "mcrecon.core.samples"])
 def test_examples_run(module):
     import importlib
     res = doctest.testmod(importlib.import_module(module), optionflags=doctest.ELLIPSIS)

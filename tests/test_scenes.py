@@ -12,7 +12,10 @@ import pytest
 
 from mcrecon.errors import InputError
 from mcrecon.renderers import scenes as S
-from mcrecon.renderers.protocol import SampleRequest, pixel_index, validate_reply
+from mcrecon.renderers.scenes import base as S_base
+from mcrecon.renderers.scenes import catalog as S_catalog
+from mcrecon.core.requests import SampleRequest, validate_reply
+from mcrecon.core.samples import pixel_index
 
 pytestmark = pytest.mark.filterwarnings("error")
 
@@ -63,10 +66,10 @@ def _z_check(samples, expected, *, extra_tol=0.0, rare=False):
 
 def test_scene_names_and_registry():
     assert S.scene_names() == NAMES
-    assert list(S.SCENES) == NAMES
+    assert list(S_catalog.SCENES) == NAMES
     for name in NAMES:
         sc = S.get_scene(name)
-        assert isinstance(sc, S.Scene)
+        assert isinstance(sc, S_catalog.Scene)
         assert sc.name == name
         assert tuple(sc.channels) == ("R", "G", "B")
         assert sc.n_dims >= 1 and sc.description
@@ -185,8 +188,8 @@ def test_soft_shadow_has_sharp_edges_and_soft_penumbra():
     y = np.array([0.05, 0.05])
     x = np.array([0.9 - 1e-9, 0.9 + 1e-9])
     e = sc.expected(x, y)
-    lit = (S._SS_AMBIENT + S._SS_LIGHT)
-    np.testing.assert_allclose(np.abs(e[0] - e[1]), np.abs(S._SS_A0 - S._SS_A1) * lit, rtol=1e-12)
+    lit = (S_catalog._SS_AMBIENT + S_catalog._SS_LIGHT)
+    np.testing.assert_allclose(np.abs(e[0] - e[1]), np.abs(S_catalog._SS_A0 - S_catalog._SS_A1) * lit, rtol=1e-12)
     # Across the left edge a = 0.12 of occluder 1's shadow (at y = 0.25,
     # well inside its y range): fully lit where x + w(x)/2 < a, umbra where
     # x - w(x)/2 > a, exactly half visible at x = a, monotone in between.
@@ -194,19 +197,19 @@ def test_soft_shadow_has_sharp_edges_and_soft_penumbra():
     x_lit = (a - 0.005 - 1e-9) / 1.055      # x + (0.01 + 0.11 x)/2 = a - 1e-9
     x_umbra = (a + 0.005 + 1e-9) / 0.945    # x - (0.01 + 0.11 x)/2 = a + 1e-9
     xs = np.sort(np.append(np.linspace(x_lit, x_umbra, 41), a))
-    assert S._checker(x_lit, 0.25, 10.0) == S._checker(x_umbra, 0.25, 10.0)  # one albedo cell
+    assert S_base._checker(x_lit, 0.25, 10.0) == S_base._checker(x_umbra, 0.25, 10.0)  # one albedo cell
     ev = sc.expected(xs, np.full(xs.size, 0.25))[:, 0]
-    alb = S._SS_A0[0] if S._checker(a, 0.25, 10.0) == 0 else S._SS_A1[0]
-    vis = (ev / alb - S._SS_AMBIENT) / S._SS_LIGHT[0]
+    alb = S_catalog._SS_A0[0] if S_base._checker(a, 0.25, 10.0) == 0 else S_catalog._SS_A1[0]
+    vis = (ev / alb - S_catalog._SS_AMBIENT) / S_catalog._SS_LIGHT[0]
     assert vis[0] == pytest.approx(1.0, abs=1e-12) and vis[-1] == pytest.approx(0.0, abs=1e-12)
     assert vis[xs == a][0] == pytest.approx(0.5, abs=1e-12)
     assert np.all(np.diff(vis) < 0)
-    assert S.SoftShadowScene.penumbra_width(1.0) * 128 == pytest.approx(15.36)
+    assert S_catalog.SoftShadowScene.penumbra_width(1.0) * 128 == pytest.approx(15.36)
 
 
 def test_depth_of_field_blur_range():
     sc = S.get_scene("depth_of_field")
-    R = S.DepthOfFieldScene.blur_width
+    R = S_catalog.DepthOfFieldScene.blur_width
     assert R(0.5) == 0.0 and R(0.6) == 0.0
     assert R(0.0) * 128 == pytest.approx(8.0)
     # In focus, samples are deterministic: the texture itself.
@@ -223,14 +226,14 @@ def test_dof_box_averages_match_quadrature():
     z, width = 0.437, 0.09
     s = z + width * ((np.arange(200000) + 0.5) / 200000 - 0.5)
     sq = np.where((6 * s) % 1.0 < 0.5, 1.0, -1.0).mean()
-    assert S._box_square_wave(z, 6.0, width) == pytest.approx(sq, abs=1e-4)
+    assert S_base._box_square_wave(z, 6.0, width) == pytest.approx(sq, abs=1e-4)
     s2 = z + width * ((np.arange(4000) + 0.5) / 4000 - 0.5)
-    wv = np.array([S._wave(3 * t + 1 / 3) for t in s2]).mean()
-    assert S._box_wave(z, 3.0, 1 / 3, width) == pytest.approx(wv, abs=1e-5)
+    wv = np.array([S_base._wave(3 * t + 1 / 3) for t in s2]).mean()
+    assert S_base._box_wave(z, 3.0, 1 / 3, width) == pytest.approx(wv, abs=1e-5)
 
 
 def test_motion_blur_objects_never_overlap():
-    boxes = S.MotionBlurScene.swept_boxes()
+    boxes = S_catalog.MotionBlurScene.swept_boxes()
     for i in range(len(boxes)):
         for j in range(i):
             a, b = boxes[i], boxes[j]
@@ -240,8 +243,8 @@ def test_motion_blur_objects_never_overlap():
     sc = S.get_scene("motion_blur")
     e = sc.expected([0.3], [0.15])[0]
     frac = (0.25 / 0.35) - (0.07 / 0.35)
-    b = S._MB_BACKGROUND * (0.55 + 0.45 * S._checker(0.3, 0.15, 16.0))
-    np.testing.assert_allclose(e, b + frac * (S._MB_OBJECTS[0, 6:9] - b), rtol=1e-12)
+    b = S_catalog._MB_BACKGROUND * (0.55 + 0.45 * S_base._checker(0.3, 0.15, 16.0))
+    np.testing.assert_allclose(e, b + frac * (S_catalog._MB_OBJECTS[0, 6:9] - b), rtol=1e-12)
 
 
 def test_caustic_zero_fraction_and_rare_huge_samples():
@@ -284,7 +287,7 @@ def test_hdr_dynamic_range_and_bimodal_rim():
     mid = ref[:, int(0.7 * 128):, 0]
     assert 0.3 < mid.mean() < 0.6
     # A pixel on the emitter's rim sees both ~500 and dim values.
-    cx, cy, r = S.HDRScene.emitter
+    cx, cy, r = S_catalog.HDRScene.emitter
     px, py = int((cx + r) * 128), int(cy * 128)
     counts = np.zeros((128, 128), np.int64)
     counts[py, px] = 400
@@ -413,7 +416,7 @@ def test_write_scene_log_round_trip(tmp_path):
     assert not read_log(p2).has_reference
 
 
-class _Ramp(S.Scene):
+class _Ramp(S_catalog.Scene):
     """A user-defined numpy scene: L = (x + u, y, x y), E = (x + 1/2, y, x y)."""
 
     name = "ramp"
@@ -437,7 +440,7 @@ def test_user_scene_and_empty_requests():
     b = S.SceneRenderer(sc, width=5, height=3).render(SampleRequest(5, 3, counts=np.ones((3, 5), np.int64)))
     assert b.values.shape == (15, 3)
     with pytest.raises(NotImplementedError):
-        S.Scene().expected([0.5], [0.5])
+        S_catalog.Scene().expected([0.5], [0.5])
     # A request for no samples gets an empty, well-shaped reply.
     for name in NAMES:
         r = S.SceneRenderer(name, width=4, height=3)

@@ -16,7 +16,7 @@ import numpy as np
 import mcrecon
 import pytest
 
-from mcrecon.driver import adapt, resume
+from mcrecon.adaptive.run import adapt, resume
 from mcrecon.errors import InputError, McreconWarning
 from mcrecon.io import read_log, write_log
 from mcrecon.methods import get_method
@@ -24,10 +24,10 @@ from mcrecon.methods.base import MethodInputs
 from mcrecon.methods.splat import (ProgressiveSplatter, SplatMethod, doubling_schedule, epanechnikov, kernel_width,
                                    pilot_width, sample_norm, splat)
 from mcrecon.methods.splat.progressive import _radii
-from mcrecon.metrics import mse, relative_mse
+from mcrecon.core.metrics import mse, relative_mse
 from mcrecon.renderers import scenes
-from mcrecon.renderers.protocol import SampleRequest, jittered_positions
-from mcrecon.stats import PixelStats
+from mcrecon.core.requests import SampleRequest, jittered_positions
+from mcrecon.core.stats import PixelStats
 
 
 # ----------------------------------------------------------------------------
@@ -211,7 +211,7 @@ def test_method_energy_equals_sample_energy_on_scene(tmp_path):
     path = scenes.write_scene_log("caustic", tmp_path / "c.h5", width=31, height=29, spp=16, seed=2,
                                   reference=False)
     img = mcrecon.reconstruct(path, method=SplatMethod(variant="paper"))
-    stats = PixelStats.from_log(path)
+    stats = PixelStats.from_log(read_log(path))
     np.testing.assert_allclose(img.sum((0, 1)), stats.mean.sum((0, 1)), rtol=1e-9)
     assert np.isfinite(img).all()
 
@@ -437,7 +437,7 @@ def test_nonfinite_policies_in_logs(tmp_path, rng):
 
 
 def test_samples_checked_by_the_shared_path(rng):
-    """The splatter and splat() check samples with mcrecon.samples (the rules and messages of the
+    """The splatter and splat() check samples with mcrecon.core.samples (the rules and messages of the
     statistics and the log reader), and the offline warning counts each NaN/Inf sample once."""
     w, h = 6, 4
     pos = jittered_positions(np.ones((h, w), int), rng)

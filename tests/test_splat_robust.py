@@ -22,13 +22,13 @@ import pytest
 
 import mcrecon
 from mcrecon.errors import McreconWarning
-from mcrecon.driver import adapt
+from mcrecon.adaptive.run import adapt
 from mcrecon.methods.splat import ProgressiveSplatter, SplatMethod, doubling_schedule, splat
 from mcrecon.methods.splat.kernels import _splat_guided_loop
-from mcrecon.metrics import relative_mse
+from mcrecon.core.metrics import relative_mse
 from mcrecon.renderers.callable import CallableRenderer
-from mcrecon.renderers.protocol import jittered_positions
-from mcrecon.stats import PixelStats
+from mcrecon.core.requests import jittered_positions
+from mcrecon.core.stats import PixelStats
 
 W = 32
 P_FIREFLY = 1 / 200
@@ -273,7 +273,7 @@ def _rank_rounds(pos, val, schedule):
 def test_robust_resume_and_offline_replay_exact(tmp_path):
     """An interrupted adaptive run resumes to the same image, and the log replays to it offline
     (round by round), with outliers actually spread."""
-    from mcrecon.driver import resume
+    from mcrecon.adaptive.run import resume
     r = renderer("fireflies", 4)
     full = adapt(r, "splat", spp=24, seed=4, log=tmp_path / "a.h5", track_error=False)
     assert sum(x["outliers"] for x in full.run.splatter.rounds) > 0

@@ -105,15 +105,16 @@ def test_every_public_name_resolves():
     for name in mcrecon.__all__:
         assert getattr(mcrecon, name) is not None, name
     assert set(mcrecon.__all__) <= set(dir(mcrecon))
-    assert mcrecon.reconstruct.__module__ == "mcrecon.reconstruction"
-    assert mcrecon.write_log.__module__ == "mcrecon.io.samplelog"
+    assert mcrecon.reconstruct.__module__ == "mcrecon.offline.reconstruction"
+    assert mcrecon.write_log.__module__ == "mcrecon.io.writer"
     assert callable(mcrecon.adapt) and isinstance(mcrecon.__version__, str)
     # sub-modules as attributes, as before the names were lazy
-    assert mcrecon.io.samplelog.read_log is mcrecon.read_log
-    assert callable(mcrecon.driver.resume) and callable(mcrecon.restoration.gem)
+    assert mcrecon.io.reader.read_log is mcrecon.read_log
+    assert callable(mcrecon.adaptive.run.resume) and callable(mcrecon.restoration.gem)
     with pytest.raises(AttributeError):
         mcrecon.no_such_name  # noqa: B018
-    from mcrecon import analysis, io as mio
+    from mcrecon.methods.ci import analysis
+    from mcrecon import io as mio
 
     for mod in (mio, analysis):
         for name in mod.__all__:
@@ -126,7 +127,7 @@ def test_every_public_name_resolves():
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_numpy_screen_equals_the_kernel(dtype):
     """Small batches are checked in NumPy (no numba at start-up): the same counts as the kernel."""
-    from mcrecon import samples
+    from mcrecon.core import samples
 
     w, h = 7, 3
     rng = np.random.default_rng(1)
@@ -148,7 +149,7 @@ def test_numpy_screen_equals_the_kernel(dtype):
 
 
 def test_lazy_kernel_becomes_the_numba_dispatcher():
-    from mcrecon import stats
+    from mcrecon.core import stats
 
     stats.PixelStats.from_samples(np.array([[0.5, 0.5]]), np.ones((1, 1)), width=1, height=1, channels=("Y",))
     assert type(stats._accumulate).__name__ == "CPUDispatcher"  # replaced in the module at the first call

@@ -167,7 +167,7 @@ def test_one_by_one_and_negative_values():
 
 
 def test_quick_screen_is_exact_on_non_square_films():
-    from mcrecon.samples import _quick_check
+    from mcrecon.core.samples import _quick_check
 
     ok = np.ones((1, 3), np.float32)
     assert _quick_check(np.array([[3.9, 0.5]], np.float32), ok, 4, 2) == (True, True)   # x above the short side
@@ -178,7 +178,7 @@ def test_quick_screen_is_exact_on_non_square_films():
 
 # ------------------------------------------------------------------ the one fill-in policy
 def test_fill_from_neighbours_policy():
-    from mcrecon.stats import fill_from_neighbours
+    from mcrecon.core.fill import fill_from_neighbours
     v = np.zeros((4, 5, 2))
     defined = np.zeros((4, 5), bool)
     v[0, 0], defined[0, 0] = (4.0, 40.0), True
@@ -209,10 +209,10 @@ def test_fill_from_neighbours_policy():
 def test_gem_and_awr_use_the_same_fill_in():
     """Pixels with one sample get the same neighbourhood estimate in both methods (sample variance)."""
     from mcrecon.methods.awr.reconstruction import functional_variance
-    from mcrecon.methods.gem.selection import mean_variance_policy
+    from mcrecon.core.fill import mean_variance_policy
     rng = np.random.default_rng(3)
     counts = rng.integers(1, 4, (9, 11))
-    from mcrecon.renderers.protocol import jittered_positions
+    from mcrecon.core.requests import jittered_positions
     pos = jittered_positions(counts, rng)
     st = PixelStats.from_samples(pos, rng.random((len(pos), 3)), width=11, height=9)
     gem_var = mean_variance_policy(st) * st.count[..., None]
@@ -235,7 +235,7 @@ def test_fill_from_neighbours_stays_in_the_range_of_the_defined_values():
     """The 3x3 average of defined values lies within their range; uniform_filter's running sums left it by
     rounding (-1.1e-14 from non-negative inputs with seed 15 below; a negative variance made an adaptive
     awr run at initial_spp=1 refuse its own statistics)."""
-    from mcrecon.stats import fill_from_neighbours
+    from mcrecon.core.fill import fill_from_neighbours
 
     for seed in (15, 16, 17):
         rng = np.random.default_rng(seed)

@@ -19,12 +19,12 @@ from scipy import stats as sps
 from mcrecon.errors import InputError, McreconWarning
 from mcrecon.methods import get_method
 from mcrecon.methods.base import AdaptiveState
-from mcrecon.analysis import (
-    bootstrap_bias, bootstrap_bias_log, bootstrap_bias_samples, chi2_normality, exact_two_point_bias,
-    group_samples, normality_experiment, repeated_estimates)
-from mcrecon.methods.ci import CIMethod, StoppingRule, confidence_interval, display_width, stopping_rule, t_quantile
-from mcrecon.stats import PixelStats
-from mcrecon.tone import TONE_OPERATORS, get_tone_operator, register_tone_operator, tone_map
+from mcrecon.methods.ci.analysis import (bootstrap_bias, bootstrap_bias_log, bootstrap_bias_samples,
+    chi2_normality, exact_two_point_bias, group_samples, normality_experiment, repeated_estimates)
+from mcrecon.methods.ci.method import (CIMethod, StoppingRule, confidence_interval, display_width, stopping_rule,
+    t_quantile)
+from mcrecon.core.stats import PixelStats
+from mcrecon.methods.ci.tone import TONE_OPERATORS, get_tone_operator, register_tone_operator, tone_map
 
 
 # ---------------------------------------------------------------- helpers
@@ -216,7 +216,7 @@ def test_plan_rounds_only_unconverged_pixels():
 
 
 def test_borrow_neighbour_variance_formula():
-    from mcrecon.methods.ci import borrow_neighbour_variance
+    from mcrecon.methods.ci.method import borrow_neighbour_variance
 
     var = np.zeros((4, 5, 2))
     var[0, 0] = [2.0, 0.5]           # noisy corner pixel
@@ -272,8 +272,8 @@ def test_robust_default_does_not_stop_a_caustic_early_and_beats_the_paper_rule()
     direction with a factor-2 margin: the per-seed spread of the paper
     rule's error is dominated by a few pixels that stopped (about 30 %).
     """
-    from mcrecon.driver import adapt
-    from mcrecon.metrics import relative_mse
+    from mcrecon.adaptive.run import adapt
+    from mcrecon.core.metrics import relative_mse
     from mcrecon.renderers.scenes import SceneRenderer, reference_image
 
     n = 48
@@ -331,7 +331,7 @@ def test_plan_on_extreme_inputs_is_finite_and_silent(tone):
 
 
 def test_adaptive_run_through_driver_stops_when_converged():
-    from mcrecon.driver import adapt
+    from mcrecon.adaptive.run import adapt
     from mcrecon.renderers.scenes import SceneRenderer
 
     m = get_method("ci", alpha=0.5, tolerance=0.02, max_spp=512)
@@ -404,7 +404,7 @@ def test_exact_two_point_bias_matches_simulation_of_the_rule():
 
 def _replica(values, B, seed, rule):
     """Pure-Python replica of the bootstrap (SplitMix64 streams, Eq. 13-15)."""
-    from mcrecon.analysis.bootstrap import _seed_base
+    from mcrecon.methods.ci.analysis.bootstrap import _seed_base
 
     M = (1 << 64) - 1
 
@@ -759,7 +759,7 @@ def test_normality_rejection_falls_toward_5_percent_on_a_scene(full_run):
 # ---------------------------------------------- the bright-emitter experiment
 
 def _hdr_regions(W, H):
-    from mcrecon.renderers.scenes import HDRScene
+    from mcrecon.renderers.scenes.catalog import HDRScene
 
     cx, cy, r = HDRScene.emitter
     yy, xx = np.mgrid[0:H, 0:W]
@@ -796,7 +796,7 @@ def test_tone_operator_beats_fixed_and_linear_wastes_samples_on_the_emitter(full
     the rule stops (Kirk and Arvo's bias, the paper's "noisy spots" caveat),
     leaving display errors up to 1 that dominate the image RMS.
     """
-    from mcrecon.driver import adapt
+    from mcrecon.adaptive.run import adapt
     from mcrecon.renderers.scenes import SceneRenderer, reference_image
 
     W = H = 128 if full_run else 64

@@ -4,7 +4,7 @@ import numba
 import numpy as np
 import pytest
 
-from mcrecon._filtering import n_threads, numba_threads
+from mcrecon.filters.engine import n_threads, numba_threads
 from mcrecon.errors import InputError
 
 
@@ -29,8 +29,8 @@ def test_numba_loops_follow_the_setting_and_restore_it(monkeypatch):
 
 
 def test_parallel_results_do_not_depend_on_the_thread_count(monkeypatch):
-    from mcrecon.analysis import bootstrap_bias
-    from mcrecon.methods.ci import StoppingRule
+    from mcrecon.methods.ci.analysis import bootstrap_bias
+    from mcrecon.methods.ci.method import StoppingRule
     rng = np.random.default_rng(0)
     pos = np.column_stack([np.repeat(np.arange(6) + 0.5, 40), np.full(240, 0.5)])
     val = rng.exponential(1.0, (240, 3))

@@ -82,7 +82,7 @@ def parse_size(text: str, where: str = "--size") -> tuple[int, int]:
         raise InputError(where, "size", f"{text!r}: expected WIDTHxHEIGHT, e.g. 128x128") from None
     if w < 1 or h < 1:
         raise InputError(where, "size", f"{text!r}: expected at least 1x1")
-    from ..io.samplelog import MAX_PIXELS
+    from ..io.logformat import MAX_PIXELS
 
     if w * h > MAX_PIXELS:
         raise InputError(where, "size", f"{text!r}: {w}x{h} = {w * h} pixels, beyond the {MAX_PIXELS} pixels "

@@ -11,7 +11,7 @@ __all__ = ["register"]
 
 
 def _cmd_batch(args):
-    from ..distributed import denoise_many
+    from ..distributed.batch import denoise_many
     from ..errors import InputError
 
     if args.workers is not None and args.scheduler is not None:

@@ -1,4 +1,4 @@
-"""The main commands: info, denoise, adapt, compare, scenes, methods, render-log, demo, mitsuba.
+"""The main commands: info, reconstruct (denoise), adapt, compare; the others are in :mod:`.builtins`.
 
 Each only composes public calls of the package; imports are made where a
 command needs them, so ``--help`` stays quick.
@@ -8,17 +8,15 @@ from __future__ import annotations
 
 import json
 import shlex
-import textwrap
 import time
 from pathlib import Path
 
 from ..errors import InputError
 from ._common import (HelpFormatter, OneLineParser, add_method_options, check_output, finite_float,
-                      given_method_options, jit_notice, make_method, method_flags, method_kernels, parse_size,
-                      write_outputs)
+    given_method_options, jit_notice, make_method, method_flags, method_kernels, parse_size, write_outputs)
+from .builtins import _cmd_demo, _cmd_methods, _cmd_mitsuba, _cmd_render_log, _cmd_scenes
 
-__all__ = ["register"]
-
+__all__ = ['register']
 
 # ----------------------------------------------------------------- info
 _INFO_LINES = ("file", "width", "height", "channels", "samples", "finite_samples", "rounds", "spp_min", "spp_mean",
@@ -86,7 +84,8 @@ def _read_pixel_stats_input(args):
     """
     import sys
 
-    from ..io.pixel_exr import check_method, pixel_stats_options, read_half_buffer_exrs, read_pixel_stats_exr
+    from ..offline.inputs import check_method, pixel_stats_options
+    from ..io.pixel_exr import read_half_buffer_exrs, read_pixel_stats_exr
     from ..methods import get_method
 
     pair = args.half_buffer is not None
@@ -122,9 +121,9 @@ def _read_pixel_stats_input(args):
 
 def _cmd_denoise(args):
     from ..io import read_log
-    from ..metrics import relative_mse
-    from ..reconstruction import reconstruct
-    from ..stats import PixelStats
+    from ..core.metrics import relative_mse
+    from ..offline.reconstruction import reconstruct
+    from ..core.stats import PixelStats
 
     check_output(args.output, args.png, command=args.command)
     if str(args.log).lower().endswith(".exr"):  # per-pixel statistics a renderer wrote (pbrt-v4, Mitsuba...)
@@ -145,7 +144,7 @@ def _cmd_denoise(args):
     counts = None
     if args.diagnostics:
         counts = rec.inputs.stats.count if rec.inputs.stats is not None else \
-            PixelStats.from_log(log, nonfinite=args.nonfinite).count
+            PixelStats.from_log(read_log(log), nonfinite=args.nonfinite).count
     written = write_outputs(rec.image, args.output, channels=log.channels, png=args.png, exposure=args.exposure,
                             diagnostics=rec.diagnostics(), diag_dir=args.diagnostics, counts=counts)
     msg = (f"{method.name}: {log.width}x{log.height}, {log.n_samples} samples"
@@ -169,7 +168,7 @@ def _cmd_denoise(args):
 # ----------------------------------------------------------------- adapt
 def _renderer_spec(args) -> dict:
     """The spec of the renderer the flags name (recorded in the log for --resume)."""
-    from ..renderers import command_spec, mitsuba_spec, scene_spec
+    from ..renderers.spec import command_spec, mitsuba_spec, scene_spec
 
     sources = [x for x in (args.scene, args.renderer_cmd, args.mitsuba) if x is not None]
     if len(sources) != 1:
@@ -240,7 +239,7 @@ def _run_times(res, t_total) -> str:
 
 
 def _report_run(res, ref, t_total) -> None:
-    from ..metrics import relative_mse
+    from ..core.metrics import relative_mse
 
     # One count of samples (as `mcrecon info` and the round records): what the renderer delivered.
     n = res.samples
@@ -255,7 +254,7 @@ def _report_run(res, ref, t_total) -> None:
 
 
 def _cmd_adapt(args):
-    from .. import driver
+    from ..adaptive import run as driver_run
     from ..io import read_log
 
     check_output(args.output, args.png, command=args.command)
@@ -263,10 +262,10 @@ def _cmd_adapt(args):
     if args.resume:
         _refuse_run_flags(args)
         t0 = time.perf_counter()
-        res = driver.resume(args.resume, progress=progress, time_limit=args.time_limit)
+        res = driver_run.resume(args.resume, progress=progress, time_limit=args.time_limit)
         ref = read_log(args.resume).reference()
     else:
-        from ..renderers import reference_from_spec, renderer_from_spec
+        from ..renderers.spec import reference_from_spec, renderer_from_spec
 
         spec = _renderer_spec(args)
         if args.spp is None:
@@ -281,9 +280,9 @@ def _cmd_adapt(args):
         else:
             ref = reference_from_spec(spec)
         method = make_method(args.method, args, args.method_flags)
-        jit_notice(method_kernels(method) + (("renderers/scenes.py",) if args.scene is not None else ()))
+        jit_notice(method_kernels(method) + (("renderers/scenes", "core", "filters") if args.scene is not None else ()))
         t0 = time.perf_counter()
-        res = driver.adapt(renderer, method, spp=args.spp, seed=args.seed, log=args.log, reference=ref,
+        res = driver_run.adapt(renderer, method, spp=args.spp, seed=args.seed, log=args.log, reference=ref,
                            time_limit=args.time_limit, progress=progress, nonfinite=args.nonfinite,
                            renderer_spec=spec, track_error=args.rounds_json is not None and ref is not None,
                            storage_dtype=args.storage_dtype, metadata={"scene": spec.get("scene")},
@@ -327,7 +326,7 @@ def _compare_reference(path):
 
 def _cmd_compare(args):
     from ..io import read_exr
-    from ..metrics import compare
+    from ..core.metrics import compare
 
     img, _ = read_exr(args.image)
     ref, ref_name = _compare_reference(args.reference)
@@ -348,207 +347,6 @@ def _cmd_compare(args):
         print(f"{k:24s} {v:.6g}")
     for note in out.get("notes", []):
         print(f"note: {note}")
-    return 0
-
-
-def _cmd_scenes(args):
-    from ..renderers.scenes import get_scene, scene_names
-
-    for name in scene_names():
-        print(f"{name:16s} {get_scene(name).description}")
-    return 0
-
-
-def _json_value(v):
-    """An option default as JSON holds it (numbers, strings, booleans, None, lists; else its text)."""
-    if v is None or isinstance(v, (bool, int, str)) or (isinstance(v, float) and v == v and abs(v) != float("inf")):
-        return v
-    if isinstance(v, (tuple, list)):
-        return [_json_value(x) for x in v]
-    return str(v)
-
-
-def _method_description(name, flags) -> dict:
-    """What `mcrecon methods --json` says of one method: its options (flag, type, default, valid values)
-    and its inputs (method.requires with the default options)."""
-    from ..methods import get_method, method_class
-
-    cls = method_class(name)
-    doc = (cls.__doc__ or "").strip().splitlines()
-    req = get_method(name).requires
-    return {"name": name, "summary": doc[0].strip() if doc else "", "adaptive": bool(cls.adaptive),
-            "options": [{"name": o.name, "flag": flags[o.name], "type": getattr(o.type, "__name__", str(o.type)),
-                         "default": _json_value(o.default), "valid": o.expectation(), "help": o.help,
-                         "variants": {v: _json_value(pre[o.name]) for v, pre in cls.variants.items() if o.name in pre}}
-                        for o in cls.options],
-            "inputs": {"statistics": bool(req.statistics), "subpixels": int(req.subpixels),
-                       "samples": bool(req.samples), "half_buffers": bool(req.half_buffers),
-                       "reference": str(req.reference)}}
-
-
-def _cmd_methods(args):
-    import sys
-
-    from ..methods import available_methods, get_method, method_class
-
-    if args.json:
-        names = available_methods() if args.name is None else [args.name]
-        out = [_method_description(n, args.method_flags) for n in names]
-        print(json.dumps(out if args.name is None else out[0], indent=2))
-        return 0
-    if args.name is None:
-        for name in available_methods():
-            cls = method_class(name)
-            doc = (cls.__doc__ or "").strip().splitlines()[0] if cls.__doc__ else ""
-            opts = " ".join(args.method_flags[o.name] for o in cls.options)
-            print(f"{name:8s} {doc}" + (f"  [{opts}]" if opts else ""))
-        # stdout is the list a script reads, one method a line; the hint is for the person at the terminal
-        sys.stderr.write("mcrecon: `mcrecon methods NAME` describes one method's options and inputs; "
-                         "`mcrecon methods --json` lists them all as JSON.\n")
-        return 0
-    cls = method_class(args.name)
-    doc = (cls.__doc__ or "").strip().splitlines()
-    print(f"{args.name}: {doc[0].strip() if doc else ''}")
-    print(f"adaptive sampling: {'yes, it places samples itself' if cls.adaptive else 'no, uniform rounds'}")
-    print(f"\noptions (flags of `mcrecon denoise/adapt --method {args.name}`):")
-    if not cls.options:
-        print("  (none)")
-    indent = " " * 27
-    for o in cls.options:
-        presets = "".join(f", --variant {v}: {pre[o.name]}" for v, pre in cls.variants.items()
-                          if o.name in pre and pre[o.name] != o.default)
-        print(f"  {args.method_flags[o.name]:24s} {getattr(o.type, '__name__', o.type)}, default {o.default}"
-              f"{presets}")
-        for text in (f"valid: {o.expectation()}", o.help):
-            print(textwrap.fill(text, 100, initial_indent=indent, subsequent_indent=indent + "  "))
-    req = get_method(args.name).requires
-    grid = f"{req.subpixels}x{req.subpixels} subpixel grid" if req.subpixels else "no subpixel grid"
-    print("\ninputs (method.requires, default options):")
-    print(f"  {'pixel statistics':24s} {'yes, ' + grid if req.statistics else 'no'}")
-    print(f"  {'individual samples':24s} {'yes' if req.samples else 'no'}")
-    print(f"  {'half-buffer pair':24s} "
-          + ("accepted in place of the samples (--half-buffer)" if req.half_buffers and req.samples else
-             "accepted (--half-buffer; merged)" if req.half_buffers else "no"))
-    print(f"  {'reference image':24s} {req.reference}")
-    return 0
-
-
-def _cmd_render_log(args):
-    from ..renderers.scenes import get_scene, write_scene_log
-
-    w, h = parse_size(args.size)
-    if args.reference_exr is not None:
-        if Path(args.reference_exr).resolve() == Path(args.output).resolve():
-            raise InputError(str(args.reference_exr), "--reference-exr", "is the -o sample log: give another path")
-        check_output(args.reference_exr)
-    path = write_scene_log(get_scene(args.scene), args.output, width=w, height=h, spp=args.spp, seed=args.seed)
-    print(f"wrote {path}")
-    if args.reference_exr is not None:
-        from ..io import read_log, write_exr
-
-        log = read_log(path)   # the reference exactly as stored in the log
-        print(f"wrote {write_exr(args.reference_exr, log.reference(), channels=log.channels)}")
-    return 0
-
-
-#: Seconds numba took to compile each part's kernels on a first demo (measured on 2 shared cores; kernels
-#: that several methods share are counted with the first method that runs them).
-_DEMO_COMPILE_SECONDS = {"renderers/scenes.py": 6, "methods/box.py": 1, "methods/gem": 7, "methods/awr": 1,
-                         "methods/splat": 4, "methods/ci.py": 1, "methods/auto": 30}
-#: A warm-up of every method on a tiny log takes well under a second once the kernels are cached (0.2 s
-#: measured): still running after this many seconds, it is compiling.
-_COMPILING_AFTER = 2.0
-
-
-def _demo_warm_up(scene, methods, spp, seed) -> None:
-    """Render a tiny log and reconstruct it with every method: compiles (or loads from numba's cache) every
-    kernel the demo runs, with the one-line notice when that takes long (a cold cache)."""
-    import tempfile
-    import threading
-
-    from ..io import read_log
-    from ..reconstruction import reconstruct
-    from ..renderers.scenes import write_scene_log
-    from ._common import compile_notice, numba_cache_cold
-
-    parts = tuple(dict.fromkeys(("renderers/scenes.py",) + tuple(p for m in methods.values()
-                                                                 for p in method_kernels(m))))
-    # the expected time: of the parts whose numba cache index is missing; of all of them when every index is
-    # there and the warm-up is slow all the same (numba keeps its cache somewhere this check does not look)
-    guess = (sum(_DEMO_COMPILE_SECONDS.get(p, 1) for p in parts if numba_cache_cold((p,)))
-             or sum(_DEMO_COMPILE_SECONDS.get(p, 1) for p in parts))
-    timer = threading.Timer(_COMPILING_AFTER, compile_notice, kwargs={"seconds": guess})
-    timer.daemon = True
-    timer.start()
-    try:
-        with tempfile.TemporaryDirectory() as tmp:
-            log = read_log(write_scene_log(scene, Path(tmp) / "warm-up.h5", width=16, height=16, spp=spp,
-                                           seed=seed))
-            for method in methods.values():
-                reconstruct(log, method=method)
-    finally:
-        timer.cancel()
-
-
-def _cmd_demo(args):
-    """The README's main job: render a log of a built-in scene, reconstruct, write EXR + PNG, print error."""
-    from ..io import read_log, write_exr, write_png_preview
-    from ..methods import available_methods, get_method
-    from ..metrics import relative_mse
-    from ..reconstruction import reconstruct
-    from ..renderers.scenes import get_scene, write_scene_log
-
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    w, h = parse_size(args.size)
-    scene = get_scene(args.scene)
-    methods = {name: get_method(name) for name in
-               ([m for m in args.methods.split(",") if m] if args.methods else available_methods())}
-    _demo_warm_up(scene, methods, args.spp, args.seed)
-    t0 = time.perf_counter()
-    log_path = write_scene_log(scene, out / f"{scene.name}.h5", width=w, height=h, spp=args.spp, seed=args.seed)
-    t_render = time.perf_counter() - t0
-    log = read_log(log_path)
-    ref = log.reference()
-    print(f"rendered {scene.name} {w}x{h} at {args.spp} spp: {log.n_samples} samples in {t_render:.2f} s -> {log_path}")
-    for name, method in methods.items():
-        reconstruct(log, method=method)  # whatever the warm-up's tiny log left to compile: not timed
-        t1 = time.perf_counter()
-        img = reconstruct(log, method=method)
-        dt = time.perf_counter() - t1
-        paths = write_outputs(img, out / f"{scene.name}_{name}.exr", channels=log.channels, png=None,
-                              exposure=args.exposure)
-        print(f"{name:6s} relative MSE {relative_mse(img, ref):.7g}  time* {dt:.3f} s  -> "
-              + ", ".join(str(p) for p in paths))
-    write_exr(out / f"{scene.name}_reference.exr", ref, channels=log.channels)
-    write_png_preview(out / f"{scene.name}_reference.png", ref, exposure=args.exposure)
-    print("* time: the method's second reconstruction of the log, so without the kernel compilation of a first run")
-    if {"ci", "splat"} & set(methods) and "box" in methods:
-        print("ci and splat are (nearly) box here by design: on uniform samples ci reconstructs the pixel mean (its "
-              "part is where to sample: `mcrecon adapt --method ci`), and robust splat is the pixel mean but for "
-              "the outlier samples it spreads")
-    return 0
-
-
-def _cmd_mitsuba(args):
-    from ..renderers import mitsuba as mb
-    from ..io import write_exr, write_png_preview
-
-    w, h = parse_size(args.size)
-    scene = None if args.scene in (None, "cornell-box") else args.scene
-    t0 = time.perf_counter()
-    if args.mitsuba_command == "reference":
-        ref = mb.render_reference(scene, width=w, height=h, spp=args.spp, seed=args.seed)
-        out = Path(args.output)
-        write_exr(out, ref)
-        write_png_preview(out.with_suffix(".png"), ref)
-        print(f"rendered a {w}x{h}, {args.spp}-spp reference in {time.perf_counter() - t0:.1f} s")
-        print(f"wrote {out}\nwrote {out.with_suffix('.png')}")
-    else:
-        path = mb.dump_uniform_log(args.output, scene, width=w, height=h, spp=args.spp, seed=args.seed,
-                                   reference_spp=args.reference_spp)
-        print(f"rendered a {w}x{h}, {args.spp}-spp uniform log in {time.perf_counter() - t0:.1f} s")
-        print(f"wrote {path}")
     return 0
 
 
@@ -626,7 +424,7 @@ def register(sub, command: str | None = None) -> None:
     s.add_argument("--time-limit", type=float, default=None, help="wall seconds")
     s.add_argument("--reference", default=None, metavar="EXR",
                    help="reference image for the error (built-in scenes have their own)")
-    s.add_argument("--storage-dtype", default="auto", choices=("auto", "float32", "float64"),  # driver.STORAGE_DTYPES
+    s.add_argument("--storage-dtype", default="auto", choices=("auto", "float32", "float64"),  # driver_schedule.STORAGE_DTYPES
                    help="precision of the stored positions/values (default auto: what the renderer sends, "
                         "float32 replies as float32, float64 replies as float64); the statistics see exactly "
                         "what is stored, so float32 storage of values like 1e6 +- 1e-3 loses their spread "

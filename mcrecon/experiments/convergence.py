@@ -29,9 +29,9 @@ import numpy as np
 from ..errors import InputError, McreconWarning
 from ..io import write_exr, write_false_colour, write_log, write_png_preview
 from ..methods import available_methods, get_method, method_class
-from ..metrics import flip as flip_metric
-from ..metrics import flip_available, relative_mse, relative_mse_map, rmse, smape, ssim
-from ..reconstruction import reconstruct
+from ..core.metrics import flip as flip_metric
+from ..core.metrics import flip_available, relative_mse, relative_mse_map, rmse, smape, ssim
+from ..offline.reconstruction import reconstruct
 
 __all__ = ["run_convergence", "ConvergenceResult", "oidn_available", "oidn_denoise"]
 
@@ -210,7 +210,7 @@ def run_convergence(scene: str = "soft_shadow", *, methods: Sequence[str] | None
         Also write ``report.html``, the interactive report
         (:mod:`mcrecon.experiments.html_report`), when ``out`` is given.
     """
-    from ..driver import adapt
+    from ..adaptive.run import adapt
     from ..renderers.scenes import SceneRenderer, get_scene, reference_image, render_uniform
 
     sc = get_scene(scene)

@@ -27,7 +27,8 @@ def run_error_rate(out=None, *, gammas: Sequence[float] = (0.05, 0.1, 0.15, 0.2,
                    noise_vars: Sequence[float] = (0.1, 1.0, 10.0, 100.0, 1000.0),
                    radii: Sequence[float] = (1.0, 2.0, 4.0), spp_list: Sequence[int] = (4, 8, 16, 32, 64),
                    n_pixels: int = 200_000, spp: int = 32, seed: int = 0) -> dict:
-    from ..methods.gem import error_rate_experiment, z_of_gamma
+    from ..methods.gem.experiment import error_rate_experiment
+    from ..methods.gem.selection import z_of_gamma
 
     vs_gamma = []
     for g in gammas:

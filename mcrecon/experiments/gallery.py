@@ -13,8 +13,8 @@ from pathlib import Path
 from typing import Sequence
 
 from ..io import write_false_colour, write_png_preview
-from ..metrics import flip_available, relative_mse, smape, ssim
-from ..metrics import flip as flip_metric
+from ..core.metrics import flip_available, relative_mse, smape, ssim
+from ..core.metrics import flip as flip_metric
 
 __all__ = ["write_gallery"]
 

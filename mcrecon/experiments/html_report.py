@@ -44,7 +44,7 @@ from typing import Sequence
 import numpy as np
 
 from ..io import write_false_colour, write_png_preview
-from ..metrics import relative_mse_map
+from ..core.metrics import relative_mse_map
 
 __all__ = ["write_html_report", "report_layers", "METRIC_COLUMNS", "ERROR_MAP_RANGE"]
 

@@ -24,9 +24,10 @@ import dataclasses
 
 import numpy as np
 
-from ..metrics import relative_mse
-from ..methods.gem import filter_bank, final_sigmas
-from ..stats import PixelStats
+from ..core.metrics import relative_mse
+from ..methods.gem.kernels import filter_bank
+from ..filters.gaussian import final_sigmas
+from ..core.stats import PixelStats
 
 __all__ = ["OracleResult", "oracle_ceiling", "run_oracle"]
 
@@ -106,7 +107,7 @@ def run_oracle(scene, *, spp: int, size=(128, 128), seed: int = 0, variance_spp:
 
     from ..errors import McreconWarning
     from ..methods import available_methods, get_method
-    from ..reconstruction import reconstruct
+    from ..offline.reconstruction import reconstruct
     from ..renderers.scenes import get_scene, reference_image, render_uniform
 
     sc = get_scene(scene)
@@ -129,7 +130,7 @@ def run_oracle(scene, *, spp: int, size=(128, 128), seed: int = 0, variance_spp:
             warnings.simplefilter("ignore", McreconWarning)
             inputs = stats if not m.requires.samples and not m.requires.subpixels else None
             if inputs is None:
-                from ..samples import SampleSet
+                from ..core.samples import SampleSet
                 inputs = SampleSet(b.positions, b.values, width=w, height=h, channels=sc.channels)
             img = reconstruct(inputs, method=m)
         err = relative_mse(img, ref, eps=eps)

@@ -26,8 +26,8 @@ import numpy as np
 from ..io import write_log
 from ..methods import available_methods, get_method
 from ..renderers.callable import CallableRenderer
-from ..renderers.protocol import SampleBatch, jittered_positions
-from ..reconstruction import reconstruct
+from ..core.requests import SampleBatch, jittered_positions
+from ..offline.reconstruction import reconstruct
 
 __all__ = ["CASES", "StabilityCase", "run_stability", "write_stability_table"]
 
@@ -126,7 +126,7 @@ def _run_one(fn):
 def run_stability(*, methods: Sequence[str] | None = None, cases: Sequence[str] | None = None,
                   modes: Sequence[str] = ("offline", "adaptive"), seed: int = 0) -> list[dict]:
     """Run every (case, method, mode); return one row per run."""
-    from ..driver import adapt
+    from ..adaptive.run import adapt
 
     methods = list(methods) if methods else available_methods()
     chosen = [c for c in CASES if cases is None or c.name in cases]

@@ -23,7 +23,7 @@ __all__ = ["run_normality", "run_bias"]
 def run_normality(renderer, *, n_values: Sequence[int] = (10, 20, 50), m: int = 100, seed: int = 0,
                   classes: int = 8, alpha: float = 0.05, out=None) -> dict:
     """Chi-square normality test for each n; writes normality.json and z-map PNGs into ``out``."""
-    from ..analysis import normality_experiment
+    from ..methods.ci.analysis import normality_experiment
 
     results = []
     for n in n_values:
@@ -78,7 +78,7 @@ def run_bias(source, *, B: int = 1000, seed: int = 0, rule=None, level: float = 
 
     Writes bias.json (summary numbers) and one PNG per map into ``out``.
     """
-    from ..analysis import bootstrap_bias, bootstrap_bias_log
+    from ..methods.ci.analysis import bootstrap_bias, bootstrap_bias_log
 
     t0 = time.perf_counter()
     if isinstance(source, dict):

@@ -12,8 +12,9 @@ __all__ = ["FORMAT_VERSION", "LogChunk", "SampleLog", "append_log", "read_log", 
 
 #: Public name -> the sub-module that defines it.
 _LAZY = {
-    **dict.fromkeys(("FORMAT_VERSION", "LogChunk", "SampleLog", "append_log", "read_log", "set_run_settings",
-                     "write_log"), "samplelog"),
+    **dict.fromkeys(("FORMAT_VERSION", "LogChunk"), "logformat"),
+    **dict.fromkeys(("SampleLog", "read_log"), "reader"),
+    **dict.fromkeys(("append_log", "set_run_settings", "write_log"), "writer"),
     **dict.fromkeys(("read_exr", "write_exr", "write_png_preview", "write_false_colour", "tonemap_srgb"), "images"),
     "summarize_log": "summary",
     "PixelStatsEXR": "pixel_exr", "read_pixel_stats_exr": "pixel_exr",
@@ -21,7 +22,7 @@ _LAZY = {
 
 
 #: Sub-modules reachable as attributes without importing them first.
-_SUBMODULES = frozenset(("samplelog", "images", "summary", "pixel_exr", "_atomic"))
+_SUBMODULES = frozenset(("reader", "writer", "lock", "logformat", "images", "summary", "pixel_exr", "_atomic"))
 
 
 __getattr__, __dir__ = _lazy_exports(__name__, _LAZY, _SUBMODULES, __all__)

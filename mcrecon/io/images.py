@@ -20,11 +20,11 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import InputError, McreconWarning
-from ..samples import FLOAT32_MAX
+from ..core.samples import FLOAT32_MAX
 from ._atomic import atomic_path
+from ..core.display import tonemap_srgb
 
-__all__ = ["write_exr", "read_exr", "tonemap_srgb", "write_png_preview", "write_false_colour"]
-
+__all__ = ['write_exr', 'read_exr', 'write_png_preview', 'write_false_colour']
 
 def _as_hwc(img, where) -> np.ndarray:
     arr = np.asarray(img)
@@ -187,17 +187,6 @@ def read_exr(path) -> tuple[np.ndarray, tuple[str, ...]]:
         names = first + sorted(n for n in names if n not in first)
     img = np.stack([np.asarray(chans[n], dtype=np.float32) for n in names], axis=-1)
     return img, tuple(names)
-
-
-def tonemap_srgb(image, *, exposure: float = 0.0) -> np.ndarray:
-    """Display values in [0, 1]: scale by 2**exposure, sRGB curve, clip.
-
-    Only for previews; never applied to data that is saved as EXR.
-    """
-    x = np.asarray(image, dtype=np.float64) * (2.0 ** float(exposure))
-    x = np.nan_to_num(x, nan=0.0, posinf=1.0, neginf=0.0)
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
 def _save_png(path: Path, rgb8: np.ndarray):

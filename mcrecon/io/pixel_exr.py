@@ -80,11 +80,10 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import InputError, McreconWarning
-from ..stats import PixelStats
+from ..core.stats import PixelStats
 from .images import subsampled
 
-__all__ = ["LAYOUTS", "PixelStatsEXR", "read_pixel_stats_exr", "read_half_buffer_exrs", "check_method",
-           "pixel_stats_options", "HALF_MAX", "MITSUBA_XYZ_TO_SRGB", "xyz_from_rgb_matrix"]
+__all__ = ['LAYOUTS', 'PixelStatsEXR', 'read_pixel_stats_exr', 'read_half_buffer_exrs', 'HALF_MAX', 'MITSUBA_XYZ_TO_SRGB', 'xyz_from_rgb_matrix']
 
 #: The layout presets (besides the explicit mapping).
 LAYOUTS = ("pbrt-v4", "mitsuba-moment")
@@ -555,7 +554,7 @@ def read_half_buffer_exrs(path_a, path_b, **options) -> tuple[PixelStatsEXR, Pix
     conversion (a pbrt-v4 file's ``chromaticities``); each pixel's counts
     may differ.  Returns the two :class:`PixelStatsEXR`; the statistics of
     all the samples are ``merge_halves(a.stats, b.stats)``
-    (:func:`mcrecon.methods.base.merge_halves`).
+    (:func:`mcrecon.core.halves.merge_halves`).
 
     Raises
     ------
@@ -589,76 +588,3 @@ def read_half_buffer_exrs(path_a, path_b, **options) -> tuple[PixelStatsEXR, Pix
         raise InputError(where, "chromaticities", "the halves have different colour spaces (their "
                          "chromaticities header attributes differ)")
     return a, b
-
-
-# ------------------------------------------------------------------ methods
-def check_method(method, where: str = "pixel statistics", *, half_buffers: bool = False) -> None:
-    """Refuse, with the reason, a method that cannot run on statistics read from an EXR.
-
-    ``half_buffers``: the statistics come as a half-buffer pair (two EXRs
-    of independent halves), which methods declaring
-    ``requires.half_buffers`` take in place of the samples.
-    """
-    req = method.requires
-    if half_buffers and not req.half_buffers:
-        from ..methods.base import half_buffer_methods
-
-        raise InputError(method.where, "--half-buffer", f"{method.name} does not use half buffers; methods that "
-                         f"do: {', '.join(half_buffer_methods()) or '(none)'} (for {method.name}, give one EXR of "
-                         "all the samples)")
-    if req.samples and req.half_buffers and not half_buffers:
-        raise InputError(method.where, "input", f"{method.name} (these options) needs the individual samples or "
-                         f"two independent half buffers, which one pixel-statistics EXR ({where}) does not hold; "
-                         "give the other half with --half-buffer B.exr, or a sample log"
-                         + (", or use --candidates box,gauss (the SURE candidates)" if method.name == "auto"
-                            else ""))
-    if req.samples and not req.half_buffers:
-        raise InputError(method.where, "input", f"{method.name} filters individual samples (their film "
-                         f"positions and values), which a pixel-statistics EXR ({where}) does not hold; give it "
-                         "a sample log, or pick gem, awr, box or ci")
-    if req.subpixels:
-        raise InputError(method.where, "input", f"this {method.name} configuration needs per-subpixel sums on a "
-                         f"{req.subpixels}x{req.subpixels} grid (subpixel_exact_below > 0), which a "
-                         f"pixel-statistics EXR ({where}) does not hold; use --subpixel-exact-below 0 (the pixel "
-                         "kernel) or a sample log")
-
-
-def pixel_stats_options(name: str, given: dict, *, half_buffers: bool = False) -> tuple[dict, str | None]:
-    """Options for method ``name`` on statistics without the sample range, and a note when changed.
-
-    AWR's default ``variance='range'`` estimator needs each pixel's
-    sample minimum and maximum; a pixel-statistics EXR has none, so when
-    the user did not choose, ``variance='sample'`` (the sample variance)
-    is used; a ``variance`` the user gave that needs the range is refused.
-
-    ``auto``'s default candidates include dual-buffer ones (``nlm``),
-    which need two halves of the samples: on one EXR (``half_buffers``
-    False) and without ``candidates`` given, its SURE candidates
-    (``box,gauss``) are used, with a note; candidates the user gave are
-    kept (:func:`check_method` then refuses dual-buffer ones, suggesting
-    ``--half-buffer``).
-    """
-    opts = dict(given)
-    if name == "auto" and not half_buffers and "candidates" not in opts:
-        from ..methods import method_class
-        from ..methods.auto.method import DUAL_BUFFER
-
-        default = str(next(o.default for o in method_class("auto").options if o.name == "candidates"))
-        kept = [c.strip() for c in default.split(",") if c.strip() and c.strip() not in DUAL_BUFFER]
-        dropped = [c.strip() for c in default.split(",") if c.strip() in DUAL_BUFFER]
-        if dropped:
-            opts["candidates"] = ",".join(kept)
-            many = len(dropped) > 1
-            return opts, (f"auto: using --candidates {','.join(kept)} (its SURE candidates): the default "
-                          f"candidate{'s' if many else ''} {','.join(dropped)} need{'' if many else 's'} two "
-                          "independent halves of the samples, which one "
-                          "pixel-statistics EXR does not hold; give the other half with --half-buffer B.exr")
-    if name == "awr" and "variance" in opts and str(opts["variance"]) != "sample":
-        raise InputError("method awr", "--variance", f"{opts['variance']!r} needs each pixel's sample minimum and "
-                         "maximum, which a pixel-statistics EXR does not hold; use --variance sample (the default "
-                         "for these inputs)")
-    if name == "awr" and "variance" not in opts:
-        opts["variance"] = "sample"
-        return opts, ("awr: using --variance sample (the pixels' sample variance): the default 'range' "
-                      "estimator needs per-pixel sample minima and maxima, which a pixel-statistics EXR lacks")
-    return opts, None

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..samples import check_memory, check_samples, pixel_index
-from .samplelog import FORMAT_VERSION, SampleLog, live_writer, read_log
+from ..core.samples import check_memory, check_samples, pixel_index
+from .logformat import FORMAT_VERSION
+from .reader import SampleLog, read_log
+from .lock import live_writer
 
 __all__ = ["summarize_log"]
 

@@ -25,7 +25,7 @@ METHODS = {
     "gem": "mcrecon.methods.gem:GEMMethod",
     "awr": "mcrecon.methods.awr.method:AWRMethod",
     "splat": "mcrecon.methods.splat.method:SplatMethod",
-    "ci": "mcrecon.methods.ci:CIMethod",
+    "ci": "mcrecon.methods.ci.method:CIMethod",
     "auto": "mcrecon.methods.auto:AutoMethod",
 }
 

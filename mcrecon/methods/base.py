@@ -35,17 +35,16 @@ import dataclasses
 import math
 import numbers
 import types
-from typing import Any, Callable, ClassVar, Mapping, Sequence
+from typing import Any, ClassVar, Mapping, Sequence
 
 import numpy as np
 
 from ..errors import InputError
-from ..renderers.protocol import SampleBatch, SampleRequest
-from ..stats import PixelStats
+from ..core.requests import SampleBatch, SampleRequest
+from ..core.stats import PixelStats
+from ..core.halves import SplitHalves, check_half_buffers, merge_halves
 
-__all__ = ["Method", "AdaptiveState", "Option", "Requirements", "MethodInputs", "RunState", "uniform_counts",
-           "variant_option", "check_half_buffers", "merge_halves", "SplitHalves", "is_half_buffer_pair",
-           "half_buffer_methods"]
+__all__ = ['Method', 'AdaptiveState', 'Option', 'Requirements', 'MethodInputs', 'RunState', 'uniform_counts', 'variant_option', 'half_buffer_methods']
 
 _MISSING = object()
 
@@ -191,7 +190,7 @@ class Requirements:
     subpixels : int
         Subpixel grid per pixel axis the pixel statistics must keep (0: none).
     samples : bool
-        The individual samples: offline a :class:`~mcrecon.samples.SampleSource`
+        The individual samples: offline a :class:`~mcrecon.core.samples.SampleSource`
         in ``inputs.samples``; in adaptive runs every committed round
         through ``observe`` (and replayed on resume).
     reference : {'none', 'optional', 'required'}
@@ -232,7 +231,7 @@ class MethodInputs:
         Per-pixel statistics (with the subpixel grid the method asked
         for); None only for methods with ``requires.statistics`` False.
     samples : sample source or None
-        The individual samples (:mod:`mcrecon.samples`), for methods with
+        The individual samples (:mod:`mcrecon.core.samples`), for methods with
         ``requires.samples``.
     halves : tuple (PixelStats, PixelStats) or None
         Two independent half buffers (statistics of disjoint halves of
@@ -271,69 +270,6 @@ class MethodInputs:
         if self.halves is not None:
             return tuple(self.halves[0].channels)
         return tuple(self.samples.channels)
-
-
-def is_half_buffer_pair(source) -> bool:
-    """Whether ``source`` is meant as a half-buffer pair: a tuple or a list (:func:`check_half_buffers`
-    then says what is wrong with one that is not two :class:`PixelStats`)."""
-    return isinstance(source, (tuple, list))
-
-
-def check_half_buffers(pair, where: str = "halves") -> tuple[PixelStats, PixelStats]:
-    """A validated half-buffer pair ``(a, b)``, or a one-line :class:`InputError` naming the field.
-
-    Both must be :class:`PixelStats` of the same size, channels and
-    subpixel grid; each pixel's counts may differ between them.  That the
-    halves are independent (disjoint samples) cannot be checked: it is
-    the caller's promise.
-    """
-    if not isinstance(pair, (tuple, list)):
-        raise InputError(where, "halves", f"got {type(pair).__name__}, expected a pair (stats_a, stats_b) of "
-                         "PixelStats of two independent halves of the samples")
-    if len(pair) != 2:
-        raise InputError(where, "halves", f"got {len(pair)} items, expected a pair (stats_a, stats_b) of "
-                         "PixelStats of two independent halves of the samples")
-    for i, h in enumerate(pair):
-        if not isinstance(h, PixelStats):
-            raise InputError(where, f"halves[{i}]", f"got {type(h).__name__}, expected PixelStats "
-                             "(e.g. PixelStats.from_moments of one half buffer)")
-    a, b = pair
-    if (a.height, a.width) != (b.height, b.width):
-        raise InputError(where, "shape", f"the halves differ in size: {a.width}x{a.height} vs "
-                         f"{b.width}x{b.height} (width x height)")
-    if a.channels != b.channels:
-        raise InputError(where, "channels", f"the halves differ in channels: {','.join(a.channels)} vs "
-                         f"{','.join(b.channels)}")
-    if a.subpixels != b.subpixels:
-        raise InputError(where, "subpixels", f"the halves differ in subpixel grid: {a.subpixels} vs "
-                         f"{b.subpixels}")
-    return a, b
-
-
-class SplitHalves(tuple):
-    """A half-buffer pair (a, b) that a reader split from ``samples``, travelling with them.
-
-    A method declaring both ``requires.samples`` and ``requires.half_buffers``
-    splits the samples into halves itself; a reader that already made that
-    split in its one pass over the samples (:func:`mcrecon.reconstruction.statistics_for`)
-    hands it over as ``MethodInputs(stats=merge, samples=samples, halves=SplitHalves(a, b, samples))``.
-    Only a pair marked so may accompany samples: any other pair with samples
-    is refused (which samples would the halves be of?).
-    """
-
-    def __new__(cls, a: PixelStats, b: PixelStats, samples):
-        pair = super().__new__(cls, (a, b))
-        pair.samples = samples
-        return pair
-
-
-def merge_halves(a: PixelStats, b: PixelStats) -> PixelStats:
-    """The statistics of all the samples of two halves: their Chan merge (:meth:`PixelStats.merge`).
-
-    Equal, to rounding, to the statistics accumulated from every sample
-    (count exactly, mean and ``m2`` to a few ulps).  Neither half changes.
-    """
-    return a.copy().merge(b)
 
 
 @dataclasses.dataclass(eq=False)
@@ -545,10 +481,10 @@ class Method:
 
         A reconstruction of a tile extended by ``halo`` pixels on every
         side (clipped at the film's edges) gives the untiled result inside
-        the tile (:func:`mcrecon.distributed.reconstruct_tiled`), provided
+        the tile (:func:`mcrecon.distributed.tiles.reconstruct_tiled`), provided
         every pixel has at least two samples: the fill-in policies for
-        pixels with fewer (:func:`mcrecon.stats.fill_from_neighbours`,
-        :func:`mcrecon.methods.box.fill_empty_pixels`) may borrow from the
+        pixels with fewer (:func:`mcrecon.core.fill.fill_from_neighbours`,
+        :func:`mcrecon.core.fill.fill_empty_pixels`) may borrow from the
         whole image.  Default None: a method that declares nothing is
         whole-image.
         """

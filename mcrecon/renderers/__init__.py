@@ -13,7 +13,8 @@ Only the light parts are imported here; import :mod:`.command`,
 """
 
 from .callable import CallableRenderer
-from .protocol import Renderer, SampleBatch, SampleRequest, validate_reply
+from .protocol import Renderer
+from ..core.requests import SampleBatch, SampleRequest, validate_reply
 from .spec import (KINDS, check_spec, command_spec, mitsuba_spec, reference_from_spec, renderer_from_spec,
                    scene_spec)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Callable, Sequence
 
 from ..errors import RendererError
-from .protocol import SampleBatch, SampleRequest
+from ..core.requests import SampleBatch, SampleRequest
 
 __all__ = ["CallableRenderer"]
 

@@ -28,7 +28,7 @@ import numpy as np
 
 from ..errors import InputError, RendererError
 from ..io._atomic import atomic_path
-from .protocol import SampleBatch, SampleRequest
+from ..core.requests import SampleBatch, SampleRequest
 
 __all__ = ["CommandRenderer", "write_request", "read_request", "request_channels", "REQUEST_FORMAT",
            "remove_stale_workdirs"]
@@ -241,7 +241,7 @@ class CommandRenderer:
             shutil.rmtree(getattr(self, "workdir", ""), ignore_errors=True)
 
     def render(self, request: SampleRequest) -> SampleBatch:
-        from ..io.samplelog import read_log
+        from ..io.reader import read_log
 
         stem = f"round-{request.round_index:05d}"
         req_path = self.workdir / f"{stem}.request.h5"
@@ -292,7 +292,7 @@ class CommandRenderer:
         """Refuse a reply whose datasets declare another number of samples than requested, from the
         file's metadata alone: a reply declaring 200 M rows (unwritten chunks cost no disk) would
         otherwise be read whole before its length is checked."""
-        from ..io.samplelog import _H5_ERRORS, _open, _read_header
+        from ..io.logformat import _H5_ERRORS, _open, _read_header
 
         try:
             with _open(reply_path) as f:

@@ -51,7 +51,8 @@ import numba
 import numpy as np
 
 from ..errors import InputError, RendererError
-from .protocol import SampleBatch, SampleRequest, _place_in_pixels, pixel_index
+from ..core.requests import SampleBatch, SampleRequest, _place_in_pixels
+from ..core.samples import pixel_index
 
 __all__ = ["MitsubaRenderer", "mitsuba_available", "render_reference", "dump_uniform_log",
            "SUPPORTED_VARIANTS", "drjit_cache_dir"]

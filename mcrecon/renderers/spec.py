@@ -1,7 +1,7 @@
 """Renderer specs: how to build a renderer again, as a small JSON-able dict.
 
 An adaptive run records the spec of its renderer in its log
-(``adapt(..., renderer_spec=spec)``), so that :func:`mcrecon.driver.resume`
+(``adapt(..., renderer_spec=spec)``), so that :func:`mcrecon.adaptive.run.resume`
 and ``mcrecon adapt --resume LOG`` can rebuild the renderer and go on
 without being told what it was.  Three kinds exist::
 

@@ -4,7 +4,7 @@
 * :mod:`.nlmeans` -- cross-filtered non-local means with the variance-normalised
   patch distance of Rousselle, Knaus, Zwicker 2012.
 
-The error estimators live in :mod:`mcrecon.estimates`.
+The error estimators live in :mod:`mcrecon.methods.auto.estimates`.
 """
 
 from __future__ import annotations

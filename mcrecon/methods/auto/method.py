@@ -4,7 +4,7 @@ Candidates (option ``candidates``): the pixel mean (``box``), every
 Gaussian scale of GEM's final filter bank (``gauss``), cross-filtered
 non-local means (``nlm``), and the black boxes ``awr``, ``splat`` and
 ``oidn``.  Each comes with an unbiased per-pixel MSE estimate
-(:mod:`mcrecon.estimates`): Stein's estimate for the linear filters (box,
+(:mod:`mcrecon.methods.auto.estimates`): Stein's estimate for the linear filters (box,
 Gaussians, and NL-means whose weights come from the other half of the
 samples), dual-buffer cross-validation for the black boxes.  The estimates,
 relative to a reference-free ``mu^2 + eps``, are smoothed (a normalised
@@ -17,26 +17,27 @@ from __future__ import annotations
 import dataclasses
 import warnings
 
-import numba
 import numpy as np
-from scipy import ndimage
 
-from ..._filtering import correlate_jobs, numba_threads
 
 from ...errors import InputError, McreconWarning
-from ...estimates import (DEFAULT_EPS, Halves, cross_validation_mse, dual_buffer_mse, relative_denominator,
-                          relative_denominator_loo, sorted_neighbours8, split_halves, sure, sure_filter_bank)
-from ...renderers.protocol import SampleBatch
-from ...stats import PixelStats
-from ..base import (AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, merge_halves,
-                    uniform_counts)
-from ..awr.reconstruction import confidence_clamp, sample_range_bounds
-from ..box import fill_empty_pixels
-from ..gem.kernels import final_sigmas
-from ..gem.selection import mean_variance_policy
+from ...core.metrics import DEFAULT_EPS
+from ...core.halves import Halves, split_halves
+from .estimates import (cross_validation_mse, dual_buffer_mse, relative_denominator, relative_denominator_loo,
+    sure, sure_filter_bank)
+from ...core.requests import SampleBatch
+from ...core.stats import PixelStats
+from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, uniform_counts
+from ...core.halves import merge_halves
+from ...core.safeguard import confidence_clamp, sample_range_bounds
+from ...core.fill import fill_empty_pixels
+from ...filters.gaussian import final_sigmas
+from ...core.fill import mean_variance_policy
 from .nlmeans import nlmeans_cross
+from ...filters.masked import _smooth_masked, _smooth_masked_many
+from .selection import _floored, _global_prior, _largest_remainder, _mean_c, _no_push_in_heavy_tails, _pick_where
 
-__all__ = ["AutoMethod", "AutoRun", "CANDIDATES", "DEFAULT_CANDIDATES", "DUAL_BUFFER"]
+__all__ = ['AutoMethod', 'AutoRun', 'CANDIDATES', 'DEFAULT_CANDIDATES', 'DUAL_BUFFER']
 
 #: Every candidate name ``candidates`` accepts.
 CANDIDATES = ("box", "gauss", "nlm", "awr", "splat", "oidn")
@@ -60,176 +61,6 @@ def _oidn_available() -> bool:
     except Exception:
         return False
     return True
-
-
-def _smooth_masked(a: np.ndarray, sigma: float) -> np.ndarray:
-    """Normalised Gaussian smoothing of an (H, W) map over its finite entries.
-
-    NaN entries (no estimate) take their neighbours' average; +inf entries
-    (candidate impossible there) stay +inf; a pixel without any finite
-    neighbour stays +inf.
-    """
-    fin = np.isfinite(a)
-    if sigma <= 0:
-        return np.where(fin, a, np.inf)
-    z = np.where(fin, a, 0.0)
-    f = fin.astype(np.float64)
-    num = ndimage.gaussian_filter(z, sigma, mode="constant", truncate=3.0)
-    den = ndimage.gaussian_filter(f, sigma, mode="constant", truncate=3.0)
-    out = np.full(a.shape, np.inf)
-    np.divide(num, den, out=out, where=den > 1e-12)
-    return np.where(np.isposinf(a), np.inf, out)
-
-
-def _gauss_kernel(sigma: float, truncate: float = 3.0) -> np.ndarray:
-    """The 1-D kernel ``scipy.ndimage.gaussian_filter`` uses (same arithmetic, so bit-identical)."""
-    radius = int(truncate * float(sigma) + 0.5)
-    x = np.arange(-radius, radius + 1)
-    phi = np.exp(-0.5 / (float(sigma) * float(sigma)) * x ** 2)
-    return phi / phi.sum()
-
-
-def _smooth_masked_many(maps: list, sigma: float) -> list:
-    """:func:`_smooth_masked` of several maps at once, on the threaded filter engine.
-
-    Bit-identical to it (:mod:`mcrecon._filtering` reproduces
-    ``scipy.ndimage``'s arithmetic term for term; the weight sums of maps
-    finite everywhere are filtered once).
-    """
-    if sigma <= 0:
-        return [_smooth_masked(a, sigma) for a in maps]
-    k = _gauss_kernel(sigma)
-    jobs, full = [], []
-    for a in maps:
-        fin = np.isfinite(a)
-        jobs.append((np.where(fin, a, 0.0), k, None, 0))
-        full.append(bool(fin.all()))
-        if not full[-1]:
-            jobs.append((fin.astype(np.float64), k, None, 0))
-    if any(full):
-        jobs.append((np.ones(maps[0].shape), k, None, 0))
-    res = correlate_jobs(jobs)
-    full_den = res[-1] if any(full) else None
-    res = iter(res)
-    out = []
-    for a, f in zip(maps, full):
-        num = next(res)
-        den = full_den if f else next(res)
-        o = np.full(a.shape, np.inf)
-        np.divide(num, den, out=o, where=den > 1e-12)
-        out.append(np.where(np.isposinf(a), np.inf, o))
-    return out
-
-
-@numba.njit(cache=True, nogil=True)
-def _chan_mean_ratio(mse, den, out):
-    # out = mean over channels of mse / den: the channel terms added in order
-    # from the first, then divided by C -- numpy's np.mean(axis=2) for C < 8
-    h, w, c = mse.shape
-    for i in range(h):
-        for j in range(w):
-            s = mse[i, j, 0] / den[i, j, 0]
-            for ch in range(1, c):
-                s += mse[i, j, ch] / den[i, j, ch]
-            out[i, j] = s / c
-
-
-@numba.njit(cache=True, nogil=True)
-def _chan_mean(a, out):
-    h, w, c = a.shape
-    for i in range(h):
-        for j in range(w):
-            s = a[i, j, 0]
-            for ch in range(1, c):
-                s += a[i, j, ch]
-            out[i, j] = s / c
-
-
-def _mean_c(a: np.ndarray, den: np.ndarray | None = None) -> np.ndarray:
-    """``np.mean(a / den, axis=2)`` (bit-identical; compiled for fewer than 8 channels)."""
-    if a.shape[2] >= 8:
-        return np.mean(a if den is None else a / den, axis=2)
-    out = np.empty(a.shape[:2])
-    if den is None:
-        _chan_mean(np.ascontiguousarray(a, dtype=np.float64), out)
-    else:
-        _chan_mean_ratio(np.ascontiguousarray(a, dtype=np.float64), np.ascontiguousarray(den, dtype=np.float64),
-                         out)
-    return out
-
-
-@numba.njit(cache=True, nogil=True)
-def _nanmax(a, b):
-    # np.maximum: NaN if either is NaN
-    if a != a or b != b:
-        return np.nan
-    return a if a >= b else b
-
-
-@numba.njit(cache=True, nogil=True)
-def _floored(r, x, y, sd, den, has, z, out):
-    """``max(r, mean_c max(|x - y| - z sd, 0)^2 / den)`` (0 floor where the pixel is empty), NaN as np.maximum."""
-    h, w, c = x.shape
-    for i in range(h):
-        for j in range(w):
-            s = 0.0
-            for ch in range(c):
-                lb = abs(x[i, j, ch] - y[i, j, ch]) - z * sd[i, j, ch]
-                lb = _nanmax(lb, 0.0)
-                if not has[i, j]:
-                    lb = 0.0
-                t = lb * lb / den[i, j, ch]
-                s = t if ch == 0 else s + t
-            out[i, j] = _nanmax(r[i, j], s / c)
-
-
-def _global_prior(raw, loo, smoothed, rel, relm, choice, sigma, z):
-    """The per-pixel choice with the best single candidate over the image as the default.
-
-    ``g`` = the candidate of least summed relative estimate over the pixels
-    where every candidate has one (far less noisy than any per-pixel
-    estimate).  A pixel keeps ``g`` unless another candidate k's smoothed
-    estimate is lower by more than ``z`` standard errors of the smoothed
-    difference ``raw_k - raw_g`` (local spread over ``N = 4 pi sigma^2``
-    effective pixels); among ``g`` and such candidates the least smoothed
-    estimate wins.  Where ``g`` itself shows evidence of bias (its floor is
-    active) the plain per-pixel choice stands.  Returns ``(choice, g)``.
-    """
-    fin = np.logical_and.reduce([np.isfinite(r) for r in loo])
-    if not fin.any():
-        return choice, None
-    g = int(np.argmin([float(np.sum(r[fin])) for r in loo]))
-    n_eff = 4.0 * np.pi * sigma * sigma
-    ok = np.zeros(relm.shape, bool)
-    ok[g] = True
-    others = [k for k in range(len(raw)) if k != g]
-    maps = []
-    for k in others:
-        d = loo[k] - loo[g]
-        d = np.where(np.isnan(loo[k]) | np.isnan(loo[g]) | np.isinf(loo[g]), np.nan, d)
-        maps += [d, d * d]
-    sm = _smooth_masked_many(maps, sigma)
-    for i, k in enumerate(others):
-        m, q = sm[2 * i], sm[2 * i + 1]
-        with np.errstate(invalid="ignore"):
-            se = np.sqrt(np.maximum(q - m * m, 0.0) / n_eff)
-            ok[k] = np.isfinite(m) & (m < -z * se)
-    default = np.isfinite(relm[g]) & (rel[g] <= np.maximum(smoothed[g], 0.0))
-    c2 = np.argmin(np.where(ok, relm, np.inf), axis=0)
-    return np.where(default, c2, choice), g
-
-
-@numba.njit(cache=True, nogil=True)
-def _pick_where(choice, k, src, out):
-    # out[p] = src[p] where choice[p] == k (src (H, W, C) or (H, W) raveled alike)
-    m = choice.size
-    n = src.size // m
-    s2 = src.reshape(m, n)
-    o2 = out.reshape(m, n)
-    for p in range(m):
-        if choice[p] == k:
-            for q in range(n):
-                o2[p, q] = s2[p, q]
 
 
 @dataclasses.dataclass(eq=False)
@@ -329,8 +160,8 @@ class AutoMethod(Method):
         params["candidates"] = ",".join(ordered)
         object.__setattr__(self, "_names", ordered)
         if params["sampling"] == "gem":  # its planner, with GEM's defaults
-            from ..gem.method import GEMMethod
-            object.__setattr__(self, "_gem", GEMMethod())
+            from .. import get_method
+            object.__setattr__(self, "_gem", get_method("gem"))
 
     @property
     def requires(self) -> Requirements:
@@ -444,8 +275,8 @@ class AutoMethod(Method):
                 res.append(full)
             return res[0], res[1]
         # splat: the two halves as sample sets (rounds dropped: single-round replay)
-        from ...samples import SampleSet
-        from ...estimates import split_labels
+        from ...core.samples import SampleSet
+        from ...core.halves import split_labels
         w, h = source.width, source.height
         counter = np.zeros(w * h, np.int64)
         parts = ([], []), ([], [])
@@ -644,93 +475,3 @@ class AutoMethod(Method):
             run.gem_run = gem.start(state.width, state.height, state.stats.channels)
         sel = gem.select(run.gem_run, state.stats, final=False, want_mse=True)
         return gem.place_greedy(sel, sel.image, state, n, max(1, int(round(state.budget / npix))))
-
-
-#: A pixel's neighbourhood is heavy-tailed when the largest sample around it exceeds this many times its mean.
-HEAVY_TAIL = 10.0
-
-
-def _no_push_in_heavy_tails(img: np.ndarray, y: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Where the samples around a pixel are heavy-tailed, a candidate may pull it towards its neighbours, not away.
-
-    A pixel is heavy-tailed when the largest sample of its 3 x 3
-    neighbourhood (``hi``, from :func:`sample_range_bounds`) exceeds
-    :data:`HEAVY_TAIL` times its mean ``y``: rare huge samples (caustics,
-    small lights) are around.  There the error estimates that chose a
-    candidate are least reliable, and a candidate that moves the pixel
-    *further* from the median of its 8 neighbours' means than its own mean
-    is (above it when the mean is above the median, or below) carries a
-    neighbour's rare sample into it; the pixel keeps its own mean.  Per
-    channel; at the film's border the missing neighbours repeat the edge
-    (the pixel itself may count up to three times), an empty neighbour's
-    mean is 0.  From pixel statistics without a sample range (a half-buffer
-    pair, an EXR) ``hi`` is the 3 x 3 maximum of the pixel means, so the
-    rule then fires at any edge of more than 10x contrast.  Measured (128^2, 32 spp, 5 seeds, ratio to box): caustic
-    0.757 -> 0.522; soft shadow, depth of field, motion blur, hdr and flat
-    within 0.1 %; Mitsuba Cornell boxes +1.5-1.7 % (docs/methods/auto.md).
-    """
-    # one compiled pass: the test and the 8-neighbour median only where the rule can fire
-    # (the numpy formulation, kept in the tests as the reference, was 1.2 s of auto's 8 s at 1024^2)
-    img = np.ascontiguousarray(img, dtype=np.float64)
-    out = img.copy()
-    with numba_threads():
-        _no_push_kernel(img, np.ascontiguousarray(y, dtype=np.float64),
-                        np.ascontiguousarray(hi, dtype=np.float64), np.ones(y.shape[:2], bool), HEAVY_TAIL, out)
-    return out
-
-
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _no_push_kernel(img, y, hi, every, heavy_tail, out):
-    """:func:`_no_push_in_heavy_tails` per pixel and channel (``out`` starts as a copy of ``img``).
-
-    The median of the 8 neighbours (edge-repeated; ``every`` all True:
-    an empty neighbour's mean counts) is the mean of the 4th and 5th of
-    them sorted, as :func:`numpy.median` computes it; NaN anywhere among
-    them makes it NaN, and a NaN median never reverts.
-    """
-    h, w, c = y.shape
-    for i in numba.prange(h):
-        nb = np.empty(8)
-        for j in range(w):
-            for ch in range(c):
-                yc = y[i, j, ch]
-                oc = img[i, j, ch]
-                if not (hi[i, j, ch] > heavy_tail * abs(yc)) or not (oc != yc):
-                    continue
-                sorted_neighbours8(y, every, i, j, ch, nb)
-                nan = False
-                for m in range(8):
-                    if nb[m] != nb[m]:
-                        nan = True
-                if nan:
-                    continue
-                med = (nb[3] + nb[4]) / 2.0
-                if (yc > med and oc > yc) or (yc < med and oc < yc):
-                    out[i, j, ch] = yc
-
-
-def _largest_remainder(pri: np.ndarray, total: int) -> np.ndarray:
-    """Integer counts summing to ``total`` in proportion to ``pri`` (inf: served first, evenly)."""
-    h, w = pri.shape
-    flat = pri.ravel()
-    counts = np.zeros(flat.size, np.int64)
-    inf = np.isposinf(flat)
-    if inf.any():
-        idx = np.flatnonzero(inf)
-        k = min(total, idx.size)
-        counts[idx[:k]] += 1
-        total -= k
-        flat = np.where(inf, 0.0, flat)
-    s = float(flat.sum())
-    if total > 0:
-        if not s > 0:
-            flat = np.ones(flat.size)
-            s = float(flat.size)
-        share = flat * (total / s)
-        base = np.floor(share).astype(np.int64)
-        rest = total - int(base.sum())
-        if rest > 0:
-            order = np.argsort(-(share - base), kind="stable")[:rest]
-            base[order] += 1
-        counts += base
-    return counts.reshape(h, w)

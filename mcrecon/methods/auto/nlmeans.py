@@ -17,7 +17,7 @@ difference (the authors' course-notes code), k = 0.45 as in the paper.
 half A's means and vice versa.  ``F_B y_A`` is then a linear filter of
 ``y_A`` whose weights do not depend on ``y_A``, so Stein's estimate with the
 exact centre weight ``1 / sum_q w_pq`` (w_pp = 1) is unbiased for its MSE
-(:func:`mcrecon.estimates.sure`).
+(:func:`mcrecon.methods.auto.estimates.sure`).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ..._filtering import numba_threads
+from ...filters.engine import numba_threads
 
 __all__ = ["NLM_ALPHA", "NLM_EPS", "nlmeans_cross"]
 
@@ -269,7 +269,7 @@ def nlmeans_cross(y_a, v_a, count_a, y_b, v_b, count_b, *, radius: int = 3, patc
     k : float
         Damping of the distance (0.45 in the paper).
     threads : int, optional
-        Worker threads (default :func:`mcrecon._filtering.n_threads`:
+        Worker threads (default :func:`mcrecon.filters.engine.n_threads`:
         ``$MCRECON_THREADS``, else the usable cores); the result is
         bit-identical for any value.
 

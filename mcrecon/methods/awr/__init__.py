@@ -30,8 +30,9 @@ References
 """
 
 from .method import AWRMethod
-from .reconstruction import (DOMAINS, VARIANCE_ESTIMATORS, awr_reconstruct, confidence_clamp, functional_variance,
-                             log_domain_reconstruct, pixel_variance, sample_range_bounds, soft_threshold)
+from .reconstruction import (DOMAINS, VARIANCE_ESTIMATORS, awr_reconstruct, functional_variance,
+    log_domain_reconstruct, pixel_variance, soft_threshold)
+from ...core.safeguard import confidence_clamp, sample_range_bounds
 from .sampling import plan_awr_positions, sample_scale_functions, scale_priorities
 from .wavelets import (BOUNDARY_MODES, PROPAGATIONS, RECONSTRUCTION_RENORM, SAMPLING_RENORM, WAVELETS,
                        analysis_matrices, analyze, coefficient_variances, default_levels, equivalent_filter_norms,

@@ -6,11 +6,10 @@ import dataclasses
 
 import numpy as np
 
-from ...renderers.protocol import SampleRequest
 from ..base import AdaptiveState, Method, MethodInputs, Option, RunState, uniform_counts, variant_option
-from ..box import fill_empty_pixels
-from .reconstruction import (DOMAINS, VARIANCE_ESTIMATORS, awr_reconstruct, confidence_clamp, log_domain_reconstruct,
-                             pixel_variance, sample_range_bounds)
+from ...core.fill import fill_empty_pixels
+from .reconstruction import DOMAINS, VARIANCE_ESTIMATORS, awr_reconstruct, log_domain_reconstruct, pixel_variance
+from ...core.safeguard import confidence_clamp, sample_range_bounds
 from .sampling import plan_awr_positions
 from .wavelets import BOUNDARY_MODES, PROPAGATIONS, RECONSTRUCTION_RENORM, SAMPLING_RENORM, WAVELETS, default_levels
 

@@ -18,12 +18,12 @@ import numba
 import numpy as np
 
 from ...errors import InputError
-from ...stats import PixelStats, fill_from_neighbours
+from ...core.stats import PixelStats
+from ...core.fill import fill_from_neighbours
 from .wavelets import (RECONSTRUCTION_RENORM, _check_mode, analyze, coefficient_variances, default_levels,
-                       get_wavelet, synthesize)
+    get_wavelet, synthesize)
 
-__all__ = ["VARIANCE_ESTIMATORS", "functional_variance", "pixel_variance", "soft_threshold", "awr_reconstruct",
-           "sample_range_bounds", "confidence_clamp", "log_domain_reconstruct", "DOMAINS"]
+__all__ = ['VARIANCE_ESTIMATORS', 'functional_variance', 'pixel_variance', 'soft_threshold', 'awr_reconstruct', 'log_domain_reconstruct', 'DOMAINS']
 
 #: Domains the wavelet shrinkage can work in: the pixel values (paper) or
 #: their logarithm (robust default, see :func:`log_domain_reconstruct`).
@@ -56,7 +56,7 @@ def functional_variance(stats: PixelStats, estimator: str = "range") -> np.ndarr
     -------
     ndarray (H, W, C)
         Finite and >= 0.  Policy for pixels with ``n <= 1`` (no spread
-        measurable; the shared :func:`mcrecon.stats.fill_from_neighbours`):
+        measurable; the shared :func:`mcrecon.core.fill.fill_from_neighbours`):
         they take the average of ``sigma^2(F)`` over the pixels with
         ``n >= 2`` in their 3x3 neighbourhood inside the image, else the
         channel's average over all pixels with ``n >= 2``, else 0 (then the
@@ -247,94 +247,6 @@ def _awr_core(mean, var, *, wavelet, cs, levels, mode, propagation, renorm, axes
     for det, dv in zip(details, dvar):
         new.append({key: soft_threshold(c, np.sqrt(dv[key]), cs) for key, c in det.items()})
     return synthesize(approx, new, shapes, wavelet, mode=mode, axes=axes)
-
-
-# --------------------------------------------------------------------------
-# Safeguard of the robust default (not in the paper)
-# --------------------------------------------------------------------------
-
-@numba.njit(cache=True, nogil=True)
-def _neighbourhood_range(lo_src, hi_src, has, radius, lo, hi):
-    # (2 radius + 1)^2 (edge pixels repeated) min of lo_src / max of hi_src over pixels
-    # with samples, per channel; no sample around: (-inf, inf)
-    h, w, c = lo_src.shape
-    for i in range(h):
-        for j in range(w):
-            for ch in range(c):
-                a = np.inf
-                b = -np.inf
-                for di in range(-radius, radius + 1):
-                    ii = min(max(i + di, 0), h - 1)
-                    for dj in range(-radius, radius + 1):
-                        jj = min(max(j + dj, 0), w - 1)
-                        if has[ii, jj]:
-                            a = min(a, lo_src[ii, jj, ch])
-                            b = max(b, hi_src[ii, jj, ch])
-                lo[i, j, ch] = a if np.isfinite(a) else -np.inf
-                hi[i, j, ch] = b if np.isfinite(b) else np.inf
-
-
-def sample_range_bounds(stats: PixelStats, radius: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Smallest and largest sample of each pixel's (2 radius + 1)^2 neighbourhood, per channel.
-
-    The range :func:`mcrecon.metrics.output_sanity` checks a reconstruction
-    against.  Statistics without a per-pixel range (built from moments)
-    use the neighbourhood's pixel means instead (a narrower range inside
-    the samples' one).  A neighbourhood without any sample gets
-    ``(-inf, inf)``: no bound.  One compiled pass (min and max are exact:
-    equal to ``scipy.ndimage`` minimum/maximum filters with ``nearest``
-    edges, tested).
-    """
-    src_lo, src_hi = (stats.min, stats.max) if stats.has_range else (stats.mean, stats.mean)
-    lo = np.empty(stats.mean.shape)
-    hi = np.empty(stats.mean.shape)
-    _neighbourhood_range(np.ascontiguousarray(src_lo, dtype=np.float64),
-                         np.ascontiguousarray(src_hi, dtype=np.float64), np.ascontiguousarray(stats.count > 0),
-                         int(radius), lo, hi)
-    return lo, hi
-
-
-def confidence_clamp(image: np.ndarray, mean: np.ndarray, var_mean: np.ndarray, k: float,
-                     lo: np.ndarray | None = None, hi: np.ndarray | None = None) -> np.ndarray:
-    """Clamp a reconstruction into each pixel's confidence interval of its mean.
-
-    ``out = clip(image, a, b)`` with ``a = max(mean - k se, lo)``,
-    ``b = min(mean + k se, hi)``, ``se = sqrt(var_mean)`` (the standard
-    error of the pixel mean), and the interval widened to contain ``mean``
-    if the bounds ``lo``/``hi`` exclude it.
-
-    Why: the interval ``mean +- k se`` holds the true pixel value with high
-    probability wherever the mean is reliable.  Clipping onto an interval
-    that contains the true value never moves an estimate away from it
-    (projection onto a convex set), and bounds every pixel's departure
-    from its mean by ``k`` standard errors.  So wavelet shrinkage can still
-    remove noise where the mean is uncertain, but it cannot smear an
-    emitter's large rim variance into dim neighbours whose means are
-    precise (AWR's failure on HDR edges, docs/methods/awr.md).  A pixel
-    whose samples all agree (se = 0) keeps its mean.  ``lo``/``hi``
-    (:func:`sample_range_bounds`) keep the output inside the range of the
-    samples around it: no negative pixel from non-negative samples.
-
-    Parameters
-    ----------
-    image, mean, var_mean : ndarray, same shape
-    k : float
-        Interval half-width in standard errors (>= 0; 0 returns ``mean``).
-    lo, hi : ndarray, optional
-        Extra bounds (same shape; ``-inf``/``inf`` for none).
-    """
-    image = np.asarray(image, dtype=np.float64)
-    mean = np.asarray(mean, dtype=np.float64)
-    half = float(k) * np.sqrt(np.maximum(np.asarray(var_mean, dtype=np.float64), 0.0))
-    a = mean - half
-    b = mean + half
-    if lo is not None:
-        a = np.maximum(a, lo)
-    if hi is not None:
-        b = np.minimum(b, hi)
-    a = np.minimum(a, mean)
-    b = np.maximum(b, mean)
-    return np.clip(image, a, b)
 
 
 def log_domain_reconstruct(mean: np.ndarray, var: np.ndarray, *, offset: float = 0.01, **kw) -> np.ndarray:

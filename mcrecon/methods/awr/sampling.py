@@ -16,9 +16,9 @@ import functools
 import numba
 import numpy as np
 
-from ...samples import check_memory
-from ...stats import PixelStats
-from ..box import fill_empty_pixels
+from ...core.samples import check_memory
+from ...core.stats import PixelStats
+from ...core.fill import fill_empty_pixels
 from .reconstruction import functional_variance, pixel_variance
 from .wavelets import SAMPLING_RENORM, analysis_matrices, analyze, coefficient_variances, default_levels, get_wavelet
 
@@ -328,6 +328,6 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
     info["affected_fraction"] = float(cover.mean())
     pos = np.concatenate(parts, axis=0) if parts else np.zeros((0, 2))
     # by row: the statistics take the reply several times faster (see sort_by_row)
-    from ..gem.sampling import sort_by_row
+    from ...core.samples import sort_by_row
 
     return sort_by_row(pos, h), info

@@ -51,7 +51,7 @@ Pipeline (one call of :func:`gem_select`):
 
 The public array functions (:func:`filter_bank`, :func:`gem_select`,
 :func:`oracle_select`) refuse NaN or Inf values and negative counts.  The
-convolutions run on :mod:`mcrecon._filtering` (``MCRECON_THREADS`` sets
+convolutions run on :mod:`mcrecon.filters.engine` (``MCRECON_THREADS`` sets
 its worker threads; results are identical for any number).
 
 References
@@ -68,14 +68,14 @@ References
 from __future__ import annotations
 
 from .experiment import error_rate_experiment
-from .kernels import (FilterBank, adaptive_sigmas, filled_subpixels, filter_bank, final_sigmas, gaussian_kernel,
-                      kernel_radius, pixel_kernel, subpixel_gaussian_exact)
+from .kernels import FilterBank, filled_subpixels, filter_bank, subpixel_gaussian_exact
+from ...filters.gaussian import adaptive_sigmas, final_sigmas, gaussian_kernel, kernel_radius, pixel_kernel
 from .method import GEMMethod
 from .sampling import SAMPLING_EPS, distribute_samples, sample_priority
 from .selection import (CHANNEL_EPS, CHANNEL_WEIGHTS, GAMMA_MAX, GEMSelection, bias_coefficient, check_gamma,
-                        confirm_pair_stops, estimate_mse, gem_select,
-                        mean_variance_policy, oracle_select, remove_outliers, scale_selector_terms,
-                        select_from_stops, stopping_maps, z_of_gamma)
+    confirm_pair_stops, estimate_mse, gem_select, oracle_select, remove_outliers, scale_selector_terms,
+    select_from_stops, stopping_maps, z_of_gamma)
+from ...core.fill import mean_variance_policy
 
 __all__ = [
     "GEMMethod",

@@ -12,7 +12,7 @@ import numpy as np
 from scipy import ndimage
 
 from ...errors import InputError
-from .kernels import gaussian_kernel
+from ...filters.gaussian import gaussian_kernel
 from .selection import check_gamma, scale_selector_terms, z_of_gamma
 
 __all__ = ["error_rate_experiment"]

@@ -12,16 +12,18 @@ import dataclasses
 import numpy as np
 
 from ...errors import InputError
-from ...stats import PixelStats
+from ...core.stats import PixelStats
 from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, variant_option
-from .kernels import adaptive_sigmas, filled_subpixels, final_sigmas, pending_n_eff
+from ...filters.gaussian import adaptive_sigmas, final_sigmas
+from .kernels import filled_subpixels, pending_n_eff
 from .sampling import distribute_samples, sample_priority
-from .selection import CHANNEL_WEIGHTS, GAMMA_MAX, OUTLIER_RULES, GEMSelection, _pick, gem_select, mean_variance_policy, oracle_select
+from .selection import CHANNEL_WEIGHTS, GAMMA_MAX, OUTLIER_RULES, GEMSelection, _pick, gem_select, oracle_select
+from ...core.fill import mean_variance_policy
 
 __all__ = ["GEMMethod", "GEMRun", "TARGET_EPS"]
 
 #: Relative MSE of the user's target (option ``target_rel_mse``): the same
-#: eps as :func:`mcrecon.metrics.relative_mse`, so the target means what the
+#: eps as :func:`mcrecon.core.metrics.relative_mse`, so the target means what the
 #: reported error means.
 TARGET_EPS = 1e-2
 
@@ -158,7 +160,7 @@ class GEMMethod(Method):
         # largest final filter's pixel-kernel radius + the largest outlier-removal
         # kernel's radius (twice the scale under the paper's rule) + 1 for the 3x3
         # variance fill-in: 49 + 49 + 1 = 99 px by default, 147 px with 'paper'
-        from .kernels import TRUNCATE, gaussian_kernel, pixel_kernel
+        from ...filters.gaussian import TRUNCATE, gaussian_kernel, pixel_kernel
         sig = final_sigmas(self.params["final_scales"])
         factor = 2.0 if self.params["final_outliers"] == "paper" else 1.0
         r_filter = max((pixel_kernel(s_, self.grid).size - 1) // 2 for s_ in sig)
@@ -236,7 +238,7 @@ class GEMMethod(Method):
         Statistics without a subpixel grid work too (the default filters
         need only pixel means).  Pixels without a sample anywhere in the
         coarsest filter's support take their nearest sampled neighbour's
-        value (:func:`mcrecon.methods.box.fill_empty_pixels`, with a warning).
+        value (:func:`mcrecon.core.fill.fill_empty_pixels`, with a warning).
         With ``oracle=1`` the run's reference (``inputs.reference`` or the
         one given to :meth:`start`) gives the true bias.
         """
@@ -246,7 +248,7 @@ class GEMMethod(Method):
         img = sel.image
         no_data = sel.bank.weight[-1] <= 0
         if no_data.any():
-            from ..box import fill_empty_pixels
+            from ...core.fill import fill_empty_pixels
             img = fill_empty_pixels(img, (~no_data).astype(np.int64), source=_WHERE)
         return np.asarray(img, dtype=np.float64)
 

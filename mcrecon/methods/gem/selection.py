@@ -17,17 +17,14 @@ import math
 
 import numba
 import numpy as np
-from scipy import ndimage
 
-from ..._filtering import correlate_jobs, safe_div, separable_weights
+from ...filters.engine import correlate_jobs, separable_weights
 from ...errors import InputError
-from ...estimates import DEFAULT_EPS
-from ...stats import PixelStats, fill_from_neighbours
-from .kernels import TRUNCATE, FilterBank, _chan_sum, _check_inputs, _filter_bank, _uses_sub, gaussian_kernel
+from ...core.metrics import DEFAULT_EPS
+from ...filters.gaussian import TRUNCATE, _check_inputs, gaussian_kernel
+from .kernels import FilterBank, _chan_sum, _filter_bank, _uses_sub
 
-__all__ = ["GAMMA_MAX", "OUTLIER_RULES", "CHANNEL_WEIGHTS", "CHANNEL_EPS", "check_gamma", "confirm_pair_stops", "z_of_gamma", "mean_variance_policy", "bias_coefficient",
-           "scale_selector_terms", "stopping_maps", "remove_outliers", "select_from_stops", "GEMSelection",
-           "gem_select", "oracle_select", "estimate_mse"]
+__all__ = ['GAMMA_MAX', 'OUTLIER_RULES', 'CHANNEL_WEIGHTS', 'CHANNEL_EPS', 'check_gamma', 'confirm_pair_stops', 'z_of_gamma', 'bias_coefficient', 'scale_selector_terms', 'stopping_maps', 'remove_outliers', 'select_from_stops', 'GEMSelection', 'gem_select', 'oracle_select', 'estimate_mse']
 
 #: gamma must lie in (0, GAMMA_MAX): the paper's z(gamma) is "valid in the
 #: range 0 < gamma < 0.4" (and undefined from 1.9 gamma >= 1, gamma ~ 0.526).
@@ -36,7 +33,7 @@ GAMMA_MAX = 0.4
 OUTLIER_RULES = ("paper", "adaptive")
 #: Channel weighting of the scale selector (see :func:`stopping_maps`):
 #: 'relative' divides each channel's terms by value^2 + CHANNEL_EPS (the
-#: pixel's relative MSE, with the eps of :func:`mcrecon.metrics.relative_mse`),
+#: pixel's relative MSE, with the eps of :func:`mcrecon.core.metrics.relative_mse`),
 #: 'absolute' sums the channels' squared errors as the paper does.
 CHANNEL_WEIGHTS = ("relative", "absolute")
 CHANNEL_EPS = DEFAULT_EPS
@@ -83,41 +80,6 @@ def z_of_gamma(gamma) -> float:
     """
     g = check_gamma(gamma)
     return -math.log(1.0 - (1.9 * g) ** (1.0 / math.sqrt(2.0)))
-
-
-# ----------------------------------------------------------------------------
-# Finest scale: variance of the pixel means
-# ----------------------------------------------------------------------------
-
-def mean_variance_policy(stats: PixelStats) -> np.ndarray:
-    """Variance of each pixel's mean, ``s^2 / n`` (Sec. 6), with a policy for n < 2.
-
-    Policy (the shared :func:`mcrecon.stats.fill_from_neighbours`,
-    documented in ``docs/methods/gem.md``): a pixel with a single sample has
-    no sample variance of its own; it borrows the average sample variance of
-    the pixels with n >= 2 in its 3 x 3 neighbourhood, else the image-wide
-    average over pixels with n >= 2, else (no pixel has two samples, e.g. a
-    1-spp log) the variance of the pixel values in its 3 x 3 neighbourhood
-    (signal plus noise: conservative, it errs towards keeping detail).
-    Empty pixels get 0 (they are masked out).
-
-    Returns
-    -------
-    ndarray (H, W, C) float64
-    """
-    n = stats.count
-    var = stats.sample_variance(undefined=0.0)
-
-    def spread_of_pixel_values():
-        has = (n >= 1).astype(np.float64)
-        m = stats.mean * has[..., None]
-        den = ndimage.uniform_filter(has, size=3, mode="constant")[..., None]
-        m1 = safe_div(ndimage.uniform_filter(m, size=(3, 3, 1), mode="constant"), den)
-        m2 = safe_div(ndimage.uniform_filter(m * m, size=(3, 3, 1), mode="constant"), den)
-        return np.maximum(m2 - m1 * m1, 0.0)
-
-    var = fill_from_neighbours(var, n >= 2, n == 1, fallback=spread_of_pixel_values)
-    return var / np.maximum(n, 1)[..., None]
 
 
 # ----------------------------------------------------------------------------

@@ -29,10 +29,10 @@ References
 
 from .kernels import BOUNDARY_MODES, epanechnikov, splat
 from .method import SplatMethod
-from .progressive import (GUIDES, LUMINANCE_WEIGHTS, NORMS, SPREADS, ProgressiveSplatter, kernel_width, pilot_width,
-                          sample_norm)
+from .progressive import GUIDES, NORMS, SPREADS, ProgressiveSplatter, kernel_width, pilot_width, sample_norm
+from ...filters.luminance import LUMINANCE_WEIGHTS
 # Importable from here as before, though not in __all__:
-from .progressive import doubling_schedule  # noqa: F401
+from .schedule import doubling_schedule  # noqa: F401
 
 __all__ = ["SplatMethod", "ProgressiveSplatter", "epanechnikov", "kernel_width", "pilot_width",
            "sample_norm", "splat", "BOUNDARY_MODES", "NORMS", "LUMINANCE_WEIGHTS", "SPREADS", "GUIDES"]

@@ -22,8 +22,8 @@ import numba
 import numpy as np
 
 from ...errors import InputError
-from ..._filtering import numba_threads
-from ...samples import check_samples
+from ...filters.engine import numba_threads
+from ...core.samples import check_samples
 
 __all__ = ["BOUNDARY_MODES", "epanechnikov", "splat"]
 
@@ -236,10 +236,10 @@ def splat(positions, values, widths, *, width: int, height: int, scale=1.0, boun
     ------
     InputError
         Mis-shaped arrays, positions non-finite or off the film (the
-        checks of :func:`mcrecon.samples.check_samples`), an unknown
+        checks of :func:`mcrecon.core.samples.check_samples`), an unknown
         ``boundary``, an ``out`` of the wrong shape or dtype.  NaN or Inf
         *values* are splatted as given: apply a policy first
-        (:func:`mcrecon.samples.apply_nonfinite`).
+        (:func:`mcrecon.core.samples.apply_nonfinite`).
     """
     if boundary not in _BOUNDARY_CODE:
         raise InputError("splat", "boundary", f"{boundary!r}; valid: {', '.join(BOUNDARY_MODES)}")

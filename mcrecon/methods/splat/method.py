@@ -8,12 +8,12 @@ import warnings
 import numpy as np
 
 from ...errors import InputError, McreconWarning
-from ...renderers.protocol import SampleBatch, SampleRequest
-from ...samples import check_policy, source_name
+from ...core.requests import SampleBatch, SampleRequest
+from ...core.samples import check_policy, source_name
 from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, variant_option
 from .kernels import BOUNDARY_MODES
-from .progressive import (GUIDES, NORMS, SPREADS, ProgressiveSplatter, _next_round, _select_by_rank,
-                          doubling_schedule)
+from .progressive import GUIDES, NORMS, SPREADS, ProgressiveSplatter
+from .schedule import _next_round, _select_by_rank, doubling_schedule
 
 __all__ = ["SplatMethod", "SplatRun"]
 

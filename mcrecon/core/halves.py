@@ -1,0 +1,340 @@
+"""Half buffers: two independent halves of every pixel's samples.
+
+A renderer's dual buffers arrive as a pair of :class:`~mcrecon.core.stats.PixelStats`
+(:func:`check_half_buffers`, merged by :func:`merge_halves`); a sample source is split in
+one pass (:func:`split_halves`, by each pixel's own sample order).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ..errors import InputError
+from .stats import PixelStats
+
+import numba
+
+from ..filters.engine import numba_threads
+from .samples import apply_nonfinite, check_policy, check_samples, warn_nonfinite
+
+__all__ = ['check_half_buffers', 'merge_halves', 'SplitHalves', 'is_half_buffer_pair', 'split_labels', 'split_halves', 'Halves']
+
+def is_half_buffer_pair(source) -> bool:
+    """Whether ``source`` is meant as a half-buffer pair: a tuple or a list (:func:`check_half_buffers`
+    then says what is wrong with one that is not two :class:`PixelStats`)."""
+    return isinstance(source, (tuple, list))
+
+
+def check_half_buffers(pair, where: str = "halves") -> tuple[PixelStats, PixelStats]:
+    """A validated half-buffer pair ``(a, b)``, or a one-line :class:`InputError` naming the field.
+
+    Both must be :class:`PixelStats` of the same size, channels and
+    subpixel grid; each pixel's counts may differ between them.  That the
+    halves are independent (disjoint samples) cannot be checked: it is
+    the caller's promise.
+    """
+    if not isinstance(pair, (tuple, list)):
+        raise InputError(where, "halves", f"got {type(pair).__name__}, expected a pair (stats_a, stats_b) of "
+                         "PixelStats of two independent halves of the samples")
+    if len(pair) != 2:
+        raise InputError(where, "halves", f"got {len(pair)} items, expected a pair (stats_a, stats_b) of "
+                         "PixelStats of two independent halves of the samples")
+    for i, h in enumerate(pair):
+        if not isinstance(h, PixelStats):
+            raise InputError(where, f"halves[{i}]", f"got {type(h).__name__}, expected PixelStats "
+                             "(e.g. PixelStats.from_moments of one half buffer)")
+    a, b = pair
+    if (a.height, a.width) != (b.height, b.width):
+        raise InputError(where, "shape", f"the halves differ in size: {a.width}x{a.height} vs "
+                         f"{b.width}x{b.height} (width x height)")
+    if a.channels != b.channels:
+        raise InputError(where, "channels", f"the halves differ in channels: {','.join(a.channels)} vs "
+                         f"{','.join(b.channels)}")
+    if a.subpixels != b.subpixels:
+        raise InputError(where, "subpixels", f"the halves differ in subpixel grid: {a.subpixels} vs "
+                         f"{b.subpixels}")
+    return a, b
+
+
+class SplitHalves(tuple):
+    """A half-buffer pair (a, b) that a reader split from ``samples``, travelling with them.
+
+    A method declaring both ``requires.samples`` and ``requires.half_buffers``
+    splits the samples into halves itself; a reader that already made that
+    split in its one pass over the samples (:func:`mcrecon.offline.inputs.statistics_for`)
+    hands it over as ``MethodInputs(stats=merge, samples=samples, halves=SplitHalves(a, b, samples))``.
+    Only a pair marked so may accompany samples: any other pair with samples
+    is refused (which samples would the halves be of?).
+    """
+
+    def __new__(cls, a: PixelStats, b: PixelStats, samples):
+        pair = super().__new__(cls, (a, b))
+        pair.samples = samples
+        return pair
+
+
+def merge_halves(a: PixelStats, b: PixelStats) -> PixelStats:
+    """The statistics of all the samples of two halves: their Chan merge (:meth:`PixelStats.merge`).
+
+    Equal, to rounding, to the statistics accumulated from every sample
+    (count exactly, mean and ``m2`` to a few ulps).  Neither half changes.
+    """
+    return a.copy().merge(b)
+
+
+# ----------------------------------------------------------------------------
+# Dual buffers
+# ----------------------------------------------------------------------------
+
+@numba.njit(cache=True, nogil=True)
+def _labels_kernel(pix, counter, out):
+    # the k-th sample of pixel p goes to half (k + salt(p)) & 1; salt from a
+    # multiplicative hash of p, so which half gets a pixel's odd sample varies
+    for i in range(pix.size):
+        p = pix[i]
+        k = counter[p]
+        counter[p] = k + 1
+        salt = ((p * 2654435761) >> 16) & 1
+        out[i] = (k + salt) & 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _flush_run(pix, val, lab, half, k, end, m, width, count, mean, m2, vmin, vmax):
+    # the samples of ``half`` in [k, end) (m of them, all in one pixel): a two-pass
+    # mean and sum of squared deviations over the run, then one Chan et al. merge
+    # -- term for term the arithmetic of mcrecon.core.stats._accumulate on the half's
+    # samples in stream order
+    nch = val.shape[1]
+    ix = pix[k] % width
+    iy = pix[k] // width
+    na = count[iy, ix]
+    n = na + m
+    count[iy, ix] = n
+    wb = m / n
+    # the common case (a renderer's samples of a pixel one after another): the
+    # half's samples alternate with the other half's, stride 2 from k
+    alt = end - 1 - k == 2 * (m - 1)
+    if alt:
+        for j in range(k, end, 2):
+            if lab[j] != half:
+                alt = False
+                break
+    for c in range(nch):
+        acc = 0.0
+        lo = np.inf
+        hi = -np.inf
+        q = 0.0
+        if alt:
+            for t in range(m):
+                v = float(val[k + 2 * t, c])
+                acc += v
+                lo = min(lo, v)
+                hi = max(hi, v)
+            mu = acc / m
+            for t in range(m):
+                d = float(val[k + 2 * t, c]) - mu
+                q += d * d
+        else:
+            for j in range(k, end):
+                if lab[j] != half:
+                    continue
+                v = float(val[j, c])
+                acc += v
+                lo = min(lo, v)
+                hi = max(hi, v)
+            mu = acc / m
+            for j in range(k, end):
+                if lab[j] != half:
+                    continue
+                d = float(val[j, c]) - mu
+                q += d * d
+        delta = mu - mean[iy, ix, c]
+        mean[iy, ix, c] += delta * wb
+        m2[iy, ix, c] += q + delta * delta * na * wb
+        vmin[iy, ix, c] = min(vmin[iy, ix, c], lo)
+        vmax[iy, ix, c] = max(vmax[iy, ix, c], hi)
+
+
+@numba.njit(cache=True, nogil=True)
+def _split_part(pix, val, lab, p_lo, p_hi, width, ca, mean_a, m2_a, min_a, max_a, cb, mean_b, m2_b, min_b,
+                max_b):
+    # follow every half's runs through the whole stream; merge those of pixels in [p_lo, p_hi)
+    s0 = l0 = p0 = -1
+    s1 = l1 = p1 = -1
+    z0 = z1 = 0
+    for k in range(pix.size):
+        p = pix[k]
+        if lab[k] == 0:
+            if z0 > 0 and p0 != p:
+                if p_lo <= p0 < p_hi:
+                    _flush_run(pix, val, lab, 0, s0, l0 + 1, z0, width, ca, mean_a, m2_a, min_a, max_a)
+                z0 = 0
+            if z0 == 0:
+                s0 = k
+                p0 = p
+            z0 += 1
+            l0 = k
+        else:
+            if z1 > 0 and p1 != p:
+                if p_lo <= p1 < p_hi:
+                    _flush_run(pix, val, lab, 1, s1, l1 + 1, z1, width, cb, mean_b, m2_b, min_b, max_b)
+                z1 = 0
+            if z1 == 0:
+                s1 = k
+                p1 = p
+            z1 += 1
+            l1 = k
+    if z0 > 0 and p_lo <= p0 < p_hi:
+        _flush_run(pix, val, lab, 0, s0, l0 + 1, z0, width, ca, mean_a, m2_a, min_a, max_a)
+    if z1 > 0 and p_lo <= p1 < p_hi:
+        _flush_run(pix, val, lab, 1, s1, l1 + 1, z1, width, cb, mean_b, m2_b, min_b, max_b)
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _split_accumulate(pos, val, width, counter, n_parts, ca, mean_a, m2_a, min_a, max_a, cb, mean_b, m2_b, min_b,
+                      max_b):
+    """Label every sample (as :func:`_labels_kernel`) and add it to its half's statistics.
+
+    Runs of consecutive samples of a half in one pixel (consecutive in the
+    half's own sub-stream, as :func:`mcrecon.core.stats._accumulate` sees it
+    after a split) are merged as one.  ``n_parts`` ranges of pixels are
+    merged in parallel, each by one thread following the whole stream (the
+    result does not depend on ``n_parts``).  Positions must be on the film
+    and values finite.  Returns the number of samples of half 0.
+    """
+    n_total = pos.shape[0]
+    lab = np.empty(n_total, np.int8)
+    pix = np.empty(n_total, np.int64)
+    n_a = 0
+    for k in range(n_total):
+        p = int(pos[k, 1]) * width + int(pos[k, 0])
+        pix[k] = p
+        kk = counter[p]
+        counter[p] = kk + 1
+        salt = ((p * 2654435761) >> 16) & 1
+        h = (kk + salt) & 1
+        lab[k] = h
+        n_a += 1 - h
+    n_pix = counter.size
+    for part in numba.prange(n_parts):
+        _split_part(pix, val, lab, n_pix * part // n_parts, n_pix * (part + 1) // n_parts, width, ca, mean_a, m2_a,
+                    min_a, max_a, cb, mean_b, m2_b, min_b, max_b)
+    return n_a
+
+
+def split_labels(positions: np.ndarray, width: int, height: int, counter: np.ndarray) -> np.ndarray:
+    """Half (0 or 1) of each sample: alternating within each pixel, by (pixel, index within pixel).
+
+    ``counter`` (H*W int64, updated in place) holds how many samples each
+    pixel has had so far, so a stream split chunk by chunk or round by
+    round gets the same labels as the whole stream.  Every pixel's halves
+    differ by at most one sample.  Positions outside the film are counted
+    in the nearest border pixel (they are dropped later by the statistics).
+    """
+    pos = np.asarray(positions)
+    if pos.shape[0] == 0:
+        return np.zeros(0, np.int8)
+    ix = np.clip(np.floor(np.nan_to_num(pos[:, 0], nan=0.0)), 0, width - 1).astype(np.int64)
+    iy = np.clip(np.floor(np.nan_to_num(pos[:, 1], nan=0.0)), 0, height - 1).astype(np.int64)
+    out = np.empty(pos.shape[0], np.int8)
+    _labels_kernel(iy * width + ix, counter, out)
+    return out
+
+
+@dataclasses.dataclass(eq=False)
+class Halves:
+    """Statistics of the two halves of every pixel's samples (:func:`split_halves`)."""
+
+    a: PixelStats
+    b: PixelStats
+    counter: np.ndarray
+
+    def add(self, positions, values, *, nonfinite: str = "drop", source: str = "samples",
+            _checked: bool = False) -> None:
+        """Split a batch (in stream order) and add each half to its statistics.
+
+        One compiled pass labels every sample and accumulates it into its
+        half, without copying the halves out (:func:`_split_accumulate`);
+        its arithmetic is that of :meth:`PixelStats.add` on each half's
+        samples in stream order, so the statistics are bit-identical to
+        splitting first and adding each half (``tests/test_error_estimates.py``).
+        Batches with non-finite values take that reference path
+        (:meth:`_add_by_copies`), which applies the ``nonfinite`` policy.
+        """
+        a, b = self.a, self.b
+        if _checked:  # a SampleSet's arrays, validated when it was built, all values finite
+            pos, val, n_nonfinite = positions, values, 0
+        else:
+            pos, val, n_nonfinite = check_samples(positions, values, width=a.width, height=a.height,
+                                                  n_channels=len(a.channels), where=source, channels=a.channels)
+        if pos.shape[0] == 0:
+            return
+        check_policy(nonfinite, source)
+        if n_nonfinite:
+            self._add_by_copies(pos, val, nonfinite=nonfinite, source=source, n_nonfinite=n_nonfinite)
+            return
+        with numba_threads() as n_par:
+            n_a = _split_accumulate(pos, val, a.width, self.counter, n_par if pos.shape[0] >= 1 << 16 else 1,
+                                    a.count, a.mean, a.m2, a.min, a.max, b.count, b.mean, b.m2, b.min, b.max)
+        if n_a:
+            a._note_dtype(val.dtype)
+        if n_a < pos.shape[0]:
+            b._note_dtype(val.dtype)
+
+    def _add_by_copies(self, positions, values, *, nonfinite: str = "drop", source: str = "samples",
+                       n_nonfinite: int = 0) -> None:
+        """The reference path of :meth:`add`: labels, then each half's samples into its statistics.
+
+        Non-finite values (``n_nonfinite`` of them) get the policy on the
+        whole batch, as :class:`PixelStats` applies it: ``raise`` refuses
+        the batch untouched, ``drop``/``zero`` warn once with its count.
+        Labels are given before the policy, so a dropped sample still
+        takes its turn in its pixel (the halves of a stream do not depend
+        on which of its samples were bad).
+        """
+        pos = np.asarray(positions)
+        val = np.asarray(values)
+        if val.ndim == 1:
+            val = val[:, None]
+        if n_nonfinite and nonfinite == "raise":
+            apply_nonfinite(pos, val, n_nonfinite, nonfinite, where=source)  # raises, nothing changed
+        lab = split_labels(pos, self.a.width, self.a.height, self.counter)
+        if n_nonfinite:
+            bad = ~np.isfinite(val).all(axis=1)
+            for half, st in ((0, self.a), (1, self.b)):
+                k = int(np.count_nonzero(bad & (lab == half)))
+                if nonfinite == "drop":
+                    st.n_dropped += k
+                else:
+                    st.n_zeroed += k
+            # the policy applied to the row numbers alongside the values (as the grouping does)
+            rows, val = apply_nonfinite(np.arange(pos.shape[0]), val, n_nonfinite, nonfinite, where=source)
+            pos, lab = pos[rows], lab[rows]
+            warn_nonfinite(source, n_nonfinite, nonfinite, stacklevel=4)
+        for half, st in ((0, self.a), (1, self.b)):
+            sel = lab == half
+            if sel.any():
+                st.add(pos[sel], val[sel], nonfinite=nonfinite, source=source)
+
+    @classmethod
+    def empty(cls, width: int, height: int, channels) -> "Halves":
+        return cls(PixelStats(width, height, channels), PixelStats(width, height, channels),
+                   np.zeros(int(width) * int(height), np.int64))
+
+
+def split_halves(source, *, nonfinite: str = "drop") -> Halves:
+    """Two independent halves of a sample source (log or SampleSet), rounds in order.
+
+    Messages name the source (its file), as the statistics' reader does.
+    """
+    from .samples import SampleSet, source_name
+    name = source_name(source)
+    h = Halves.empty(source.width, source.height, tuple(source.channels))
+    # a SampleSet validated its arrays when it was built (contiguous, on the film); if
+    # none of its values is NaN/Inf the policy has nothing to do: skip the re-check
+    checked = isinstance(source, SampleSet) and source.n_nonfinite == 0
+    for ch in source.iter_chunks(with_round=False):
+        h.add(ch.positions, ch.values, nonfinite=nonfinite, source=name, _checked=checked)
+    return h

@@ -1,0 +1,507 @@
+"""Per-pixel sample statistics, built by streaming samples in chunks.
+
+:class:`PixelStats` keeps, per pixel and channel, the sample count, the
+mean and the sum of squared deviations ``m2`` (Welford updates within a
+batch, Chan et al. merges between batches), the minimum and maximum, and
+optionally per-subpixel sums and counts on an ``s x s`` grid per pixel
+(kept only for a method that declares ``requires.subpixels``: GEM asks
+for its 4 x 4 grid only with ``subpixel_exact_below > 0``; the grid costs
+s^2 times the image).  Memory is bounded by the image (times s^2 with a
+grid), never by the sample count.  Statistics can also be built from a
+renderer's per-pixel mean / variance / count images
+(:meth:`PixelStats.from_moments`), and :func:`fill_from_neighbours` is
+the one policy for pixels with fewer than two samples.
+
+Welford's update keeps the variance accurate for values near 1e6 with a
+spread of 1e-3, where a sum of squares loses every significant digit.
+
+References
+----------
+.. [1] B. P. Welford, "Note on a method for calculating corrected sums of
+   squares and products", Technometrics 4(3), 1962.
+.. [2] T. F. Chan, G. H. Golub, R. J. LeVeque, "Updating formulae and a
+   pairwise algorithm for computing sample variances", 1979.
+"""
+
+from __future__ import annotations
+
+import os
+
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from ..errors import InputError
+from .samples import (apply_nonfinite, check_memory, check_policy, check_samples, lazy_njit,
+    warn_nonfinite)
+
+
+from .._lazy import public_dir as _public_dir  # noqa: E402
+
+__all__ = ['PixelStats']
+
+@lazy_njit(cache=True, nogil=True)
+def _accumulate(pos, val, s, count, mean, m2, vmin, vmax, sub_sum, sub_count):
+    """Add every sample into the per-pixel arrays (in place).
+
+    Renderers usually emit the samples of a pixel one after another, so
+    the loop takes *runs* of consecutive samples in the same pixel: a
+    two-pass mean and sum of squared deviations over the run (exact and
+    stable, in cache), then one Chan et al. merge into the pixel.  A run
+    of one sample is exactly Welford's update.  Values must be finite and
+    positions valid (the caller applies the policies first, see ``_scan``).
+    """
+    nch = val.shape[1]
+    n_total = pos.shape[0]
+    k = 0
+    while k < n_total:
+        ix = int(pos[k, 0])
+        iy = int(pos[k, 1])
+        end = k + 1
+        while end < n_total and int(pos[end, 0]) == ix and int(pos[end, 1]) == iy:
+            end += 1
+        m = end - k
+        na = count[iy, ix]
+        n = na + m
+        count[iy, ix] = n
+        wb = m / n
+        for c in range(nch):
+            acc = 0.0
+            lo = np.inf
+            hi = -np.inf
+            for j in range(k, end):
+                v = float(val[j, c])
+                acc += v
+                lo = min(lo, v)
+                hi = max(hi, v)
+            mu = acc / m
+            q = 0.0
+            for j in range(k, end):
+                d = float(val[j, c]) - mu
+                q += d * d
+            delta = mu - mean[iy, ix, c]
+            mean[iy, ix, c] += delta * wb
+            m2[iy, ix, c] += q + delta * delta * na * wb
+            vmin[iy, ix, c] = min(vmin[iy, ix, c], lo)
+            vmax[iy, ix, c] = max(vmax[iy, ix, c], hi)
+        if s > 0:
+            last = s - 1
+            for j in range(k, end):
+                sx = int(pos[j, 0] * s)
+                sy = int(pos[j, 1] * s)
+                # x * s can round up past the pixel's last subpixel; keep it inside.
+                sx = min(sx, ix * s + last)
+                sy = min(sy, iy * s + last)
+                sub_count[sy, sx] += 1
+                for c in range(nch):
+                    sub_sum[sy, sx, c] += float(val[j, c])
+        k = end
+
+
+class PixelStats:
+    """Running per-pixel statistics of Monte Carlo samples.
+
+    Parameters
+    ----------
+    width, height : int
+        Film size in pixels.
+    channels : sequence of str
+        Channel names.
+    subpixels : int, optional
+        Subpixel grid resolution per pixel axis for ``sub_sum`` and
+        ``sub_count``; 0 or 1 keeps no subpixel data (1 would equal the
+        pixel sums).  GEM uses 4.
+    where : str, optional
+        The source named in the error when the film's arrays would need more
+        memory than the machine has available (:func:`mcrecon.core.samples.check_memory`).
+
+    Attributes
+    ----------
+    count : ndarray of int64, shape (H, W)
+    mean : ndarray of float64, shape (H, W, C)
+        0 in empty pixels.
+    m2 : ndarray of float64, shape (H, W, C)
+        Sum of squared deviations from the mean.
+    min, max : ndarray of float64, shape (H, W, C)
+        +inf / -inf in empty pixels.
+    sub_sum : ndarray of float64, shape (H*s, W*s, C), or None
+    sub_count : ndarray of int64, shape (H*s, W*s), or None
+    n_dropped : int
+        Samples skipped by the ``drop`` non-finite policy.
+    n_zeroed : int
+        Samples whose non-finite values the ``zero`` policy replaced.
+    has_range : bool
+        Whether ``min`` and ``max`` are known (False for :meth:`from_moments`).
+    dtype : numpy dtype
+        The floating dtype of the values these statistics were built from
+        (float32 if every batch was float32; float64 otherwise or when
+        empty).  The statistics themselves are float64; array-level
+        functions return images in this dtype.
+    """
+
+    def __init__(self, width: int, height: int, channels: Sequence[str] = ("R", "G", "B"), *,
+                 subpixels: int = 0, where: str = "PixelStats"):
+        width, height = int(width), int(height)
+        if width < 1 or height < 1:
+            raise InputError("PixelStats", "width/height", f"got {width}x{height}, expected at least 1x1")
+        subpixels = int(subpixels)
+        if subpixels < 0:
+            raise InputError("PixelStats", "subpixels", f"got {subpixels}, expected 0 or a positive integer")
+        self.width, self.height = width, height
+        self.channels = tuple(str(c) for c in channels)
+        if not self.channels:
+            raise InputError("PixelStats", "channels", "expected at least one channel name")
+        c = len(self.channels)
+        self.subpixels = subpixels if subpixels > 1 else 0
+        per_pixel = 8 + 4 * 8 * c + self.subpixels ** 2 * 8 * (c + 1)  # count, mean, m2, min, max (+ subpixels)
+        check_memory(where, "width/height", float(width) * height * per_pixel,
+                     f"the per-pixel statistics of a {width}x{height} film with {c} channel(s)",
+                     "use a machine with more memory, or a smaller film")
+        self.count = np.zeros((height, width), np.int64)
+        self.mean = np.zeros((height, width, c), np.float64)
+        self.m2 = np.zeros((height, width, c), np.float64)
+        self.min = np.full((height, width, c), np.inf)
+        self.max = np.full((height, width, c), -np.inf)
+        if self.subpixels:
+            s = self.subpixels
+            self.sub_sum = np.zeros((height * s, width * s, c), np.float64)
+            self.sub_count = np.zeros((height * s, width * s), np.int64)
+        else:
+            self.sub_sum = None
+            self.sub_count = None
+        self.n_dropped = 0
+        self.n_zeroed = 0
+        #: False for statistics built from moments (:meth:`from_moments`):
+        #: ``min`` / ``max`` are then unknown (NaN).
+        self.has_range = True
+        self._value_dtype = None
+
+    # ------------------------------------------------------------------ build
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """(H, W, C) of the images these statistics describe."""
+        return self.height, self.width, len(self.channels)
+
+    @property
+    def dtype(self) -> np.dtype:
+        return np.dtype(np.float64) if self._value_dtype is None else self._value_dtype
+
+    def _note_dtype(self, dtype) -> None:
+        dtype = np.dtype(dtype)
+        self._value_dtype = dtype if self._value_dtype is None else np.promote_types(self._value_dtype, dtype)
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.count.sum())
+
+    def add(self, positions, values, *, nonfinite: str = "drop", source: str = "samples") -> "PixelStats":
+        """Add a batch of samples (Welford/Chan updates, in place).
+
+        Parameters
+        ----------
+        positions : array_like, shape (N, 2)
+            Film positions, x the column and y the row.
+        values : array_like, shape (N, C)
+        nonfinite : {'drop', 'zero', 'raise'}
+            Policy for samples with a NaN or infinite value, see
+            :data:`NONFINITE_POLICIES`.
+        source : str
+            Named in error messages (a file path, a renderer).
+
+        Raises
+        ------
+        InputError
+            Mis-shaped arrays, positions off the film or non-finite, or a
+            non-finite value under ``nonfinite='raise'``.  The statistics
+            are unchanged when it raises.
+        """
+        prepared = self._prepare(positions, values, nonfinite=nonfinite, source=source)
+        if prepared is not None:
+            self._ingest(*prepared, nonfinite=nonfinite, source=source)
+        return self
+
+    def _prepare(self, positions, values, *, nonfinite: str, source: str):
+        """Validate a batch and apply the non-finite policy; touches no statistics.
+
+        Returns ``(positions, values, n_nonfinite)`` ready for :meth:`_ingest`,
+        or None for an empty batch.  Split from the accumulation so a reader
+        can validate the next batch while the previous one is accumulated.
+        """
+        check_policy(nonfinite, source)
+        pos, val, n_nonfinite = check_samples(positions, values, width=self.width, height=self.height,
+                                              n_channels=len(self.channels), where=source, channels=self.channels)
+        if pos.shape[0] == 0:
+            return None
+        pos, val = apply_nonfinite(pos, val, n_nonfinite, nonfinite, where=source)
+        return pos, val, n_nonfinite
+
+    def _ingest(self, pos, val, n_nonfinite, *, nonfinite: str, source: str) -> None:
+        """Accumulate a batch prepared by :meth:`_prepare` (releases the GIL)."""
+        s = self.subpixels
+        sub_sum = self.sub_sum if s else np.zeros((1, 1, 1))
+        sub_count = self.sub_count if s else np.zeros((1, 1), np.int64)
+        _accumulate(pos, val, s, self.count, self.mean, self.m2, self.min, self.max, sub_sum, sub_count)
+        self._note_dtype(val.dtype)
+        if n_nonfinite:
+            if nonfinite == "drop":
+                self.n_dropped += int(n_nonfinite)
+            else:
+                self.n_zeroed += int(n_nonfinite)
+            warn_nonfinite(source, n_nonfinite, nonfinite, stacklevel=3)
+
+    def merge(self, other: "PixelStats") -> "PixelStats":
+        """Merge another set of statistics into this one (Chan et al., in place)."""
+        if (other.width, other.height, other.channels, other.subpixels) != (
+                self.width, self.height, self.channels, self.subpixels):
+            raise InputError("PixelStats.merge", "other",
+                             "size, channels and subpixels must match: "
+                             f"{other.width}x{other.height} {other.channels} s={other.subpixels} vs "
+                             f"{self.width}x{self.height} {self.channels} s={self.subpixels}")
+        na = self.count[..., None].astype(np.float64)
+        nb = other.count[..., None].astype(np.float64)
+        n = na + nb
+        with np.errstate(invalid="ignore", divide="ignore"):
+            delta = other.mean - self.mean
+            wb = np.where(n > 0, nb / n, 0.0)
+            self.m2 += other.m2 + delta * delta * na * wb
+            self.mean += delta * wb
+        self.count += other.count
+        np.minimum(self.min, other.min, out=self.min)
+        np.maximum(self.max, other.max, out=self.max)
+        self.has_range = self.has_range and other.has_range
+        if other._value_dtype is not None:
+            self._note_dtype(other._value_dtype)
+        if self.subpixels:
+            self.sub_sum += other.sub_sum
+            self.sub_count += other.sub_count
+        self.n_dropped += other.n_dropped
+        self.n_zeroed += other.n_zeroed
+        return self
+
+    def copy(self) -> "PixelStats":
+        out = PixelStats.__new__(PixelStats)
+        out.__dict__.update({k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items()})
+        return out
+
+    @classmethod
+    def from_moments(cls, mean, variance, count, *, channels: Sequence[str] | None = None,
+                     variance_of: str = "samples", where: str = "from_moments") -> "PixelStats":
+        """Statistics from per-pixel images: mean, variance and sample count.
+
+        Most renderers can write these even when they cannot dump samples.
+
+        Parameters
+        ----------
+        mean : array_like (H, W, C) or (H, W)
+            Per-pixel sample mean.
+        variance : array_like, same shape as ``mean``
+            Per-pixel variance: of the samples (``variance_of='samples'``,
+            the unbiased ``m2 / (n - 1)``; pbrt-v4's ``Variance`` channels)
+            or of the pixel mean (``variance_of='mean'``, i.e. divided by n).
+        count : array_like (H, W) of integers, or an int
+            Samples per pixel (0 for an empty pixel: its mean and variance
+            are ignored).
+        channels : sequence of str, optional
+            Default R, G, B for three channels, else C0, C1, ...
+        variance_of : {'samples', 'mean'}
+
+        Returns
+        -------
+        PixelStats
+            With ``has_range`` False: the per-pixel minimum and maximum
+            are unknown (NaN), so estimators that need the sample range
+            refuse these statistics.
+
+        Raises
+        ------
+        InputError
+            Mismatched shapes, NaN/Inf or negative variances in sampled
+            pixels, non-integer or negative counts, a variance in a pixel
+            with fewer than two samples that is not 0.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from mcrecon import PixelStats
+        >>> mean = np.full((4, 5, 3), 0.5)
+        >>> st = PixelStats.from_moments(mean, np.full((4, 5, 3), 0.04), 16)
+        >>> st.shape, int(st.count.sum())
+        ((4, 5, 3), 320)
+        >>> float(st.mean_variance()[0, 0, 0])
+        0.0025
+        """
+        if variance_of not in ("samples", "mean"):
+            raise InputError(where, "variance_of", f"{variance_of!r}; valid: samples, mean")
+        m = np.asarray(mean, dtype=np.float64)
+        v = np.asarray(variance, dtype=np.float64)
+        if m.ndim == 2:
+            m = m[..., None]
+        if v.ndim == 2:
+            v = v[..., None]
+        if m.ndim != 3 or m.shape[0] < 1 or m.shape[1] < 1 or m.shape[2] < 1:
+            raise InputError(where, "mean", f"shape {np.shape(mean)}, expected (height, width, channels)")
+        if v.shape != m.shape:
+            raise InputError(where, "variance", f"shape {np.shape(variance)}, expected {m.shape} like the mean")
+        h, w, c = m.shape
+        n = np.asarray(count)
+        if n.ndim == 0:
+            n = np.full((h, w), n)
+        if n.shape != (h, w):
+            raise InputError(where, "count", f"shape {n.shape}, expected (height, width) = {(h, w)} or one number")
+        if n.dtype.kind == "f":
+            if not np.isfinite(n).all() or np.any(n != np.round(n)):
+                raise InputError(where, "count", "expected whole numbers of samples per pixel")
+        elif n.dtype.kind not in "iu":
+            raise InputError(where, "count", f"dtype {n.dtype}, expected integers")
+        n = n.astype(np.int64)
+        if (n < 0).any():
+            raise InputError(where, "count", f"{int((n < 0).sum())} negative count(s)")
+        sampled = np.broadcast_to((n > 0)[..., None], m.shape)
+        for name, a in (("mean", m), ("variance", v)):
+            bad = sampled & ~np.isfinite(a)
+            if bad.any():
+                raise InputError(where, name, f"{int(bad.any(axis=2).sum())} sampled pixel(s) with NaN or Inf; "
+                                 "fix the renderer output or set their count to 0")
+        if (sampled & (v < 0)).any():
+            raise InputError(where, "variance", f"{int((sampled & (v < 0)).any(axis=2).sum())} pixel(s) with a "
+                             "negative variance")
+        if variance_of == "mean":
+            v = v * n[..., None]
+        few = np.broadcast_to((n == 1)[..., None], m.shape)
+        if (few & (v > 0)).any():
+            raise InputError(where, "variance", f"{int((few & (v > 0)).any(axis=2).sum())} pixel(s) with one "
+                             "sample but a non-zero variance: a variance needs two samples (check count)")
+        names = tuple(channels) if channels is not None else (
+            ("R", "G", "B") if c == 3 else tuple(f"C{i}" for i in range(c)))
+        if len(names) != c:
+            raise InputError(where, "channels", f"{len(names)} names for {c} channels")
+        st = cls(w, h, names)
+        st.count[...] = n
+        st.mean[...] = np.where(sampled, m, 0.0)
+        st.m2[...] = np.where(sampled, v * np.maximum(n - 1, 0)[..., None], 0.0)
+        st.min[...] = np.where(sampled, np.nan, np.inf)
+        st.max[...] = np.where(sampled, np.nan, -np.inf)
+        st.has_range = False
+        st._note_dtype(np.result_type(np.asarray(mean).dtype, np.float32) if np.asarray(mean).dtype.kind == "f"
+                       else np.float64)
+        return st
+
+    @classmethod
+    def from_samples(cls, positions, values, *, width: int, height: int,
+                     channels: Sequence[str] = ("R", "G", "B"), subpixels: int = 0,
+                     nonfinite: str = "drop") -> "PixelStats":
+        """Statistics of one batch of samples held in memory."""
+        return cls(width, height, channels, subpixels=subpixels).add(positions, values, nonfinite=nonfinite)
+
+    @classmethod
+    def from_batches(cls, batches: Iterable, *, width: int, height: int,
+                     channels: Sequence[str] = ("R", "G", "B"), subpixels: int = 0,
+                     nonfinite: str = "drop", source: str = "samples") -> "PixelStats":
+        """Stream (positions, values) batches into new statistics.
+
+        The next batch is fetched while the previous one is accumulated
+        (the accumulation releases the GIL), so reading a file and
+        accumulating overlap.
+        """
+        from concurrent.futures import ThreadPoolExecutor
+
+        stats = cls(width, height, channels, subpixels=subpixels, where=source)
+        it = iter(batches)
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            pending = None
+            while True:
+                # Read and validate the next batch here while the worker accumulates
+                # the previous one; wait for it before reading again (rotating
+                # buffers get reused).  Validation errors surface before any
+                # statistics change for that batch.
+                batch = next(it, None)
+                prepared = None if batch is None else \
+                    stats._prepare(batch[0], batch[1], nonfinite=nonfinite, source=source)
+                if pending is not None:
+                    pending.result()
+                if batch is None:
+                    break
+                if prepared is not None:
+                    pending = pool.submit(stats._ingest, *prepared, nonfinite=nonfinite, source=source)
+        return stats
+
+    @classmethod
+    def from_log(cls, log, *, subpixels: int = 0, nonfinite: str = "drop",
+                 rounds=None, chunk_size: int | None = None) -> "PixelStats":
+        """Stream an opened sample log (:func:`mcrecon.read_log`, a :class:`~mcrecon.io.SampleLog`) in chunks."""
+        if isinstance(log, (str, os.PathLike)):
+            raise InputError("PixelStats.from_log", "log", f"{os.fspath(log)!r} is a path: open it with "
+                             "mcrecon.read_log(path) first (the statistics layer reads no files)")
+        if rounds is None:
+            # Two rotating buffers: one is filled while the other is accumulated.
+            from .samples import DEFAULT_READ_ROWS
+
+            rows = min(int(chunk_size or DEFAULT_READ_ROWS), max(log.n_samples, 1))
+            bufs = [(np.empty((rows, 2), log.position_dtype), np.empty((rows, len(log.channels)), log.value_dtype))
+                    for _ in range(2)]
+            batches = log.iter_into(bufs)
+        else:
+            kw = {} if chunk_size is None else {"chunk_size": chunk_size}
+            batches = ((b.positions, b.values) for b in log.iter_chunks(rounds=rounds, with_round=False, **kw))
+        return cls.from_batches(batches, width=log.width, height=log.height, channels=log.channels,
+                                subpixels=subpixels, nonfinite=nonfinite, source=str(log.path))
+
+    @classmethod
+    def from_source(cls, source, *, subpixels: int = 0, nonfinite: str = "drop") -> "PixelStats":
+        """Stream any sample source: a sample log (its fast reader) or a
+        :class:`~mcrecon.core.samples.SampleSet` (any object with ``width``,
+        ``height``, ``channels`` and ``iter_chunks``)."""
+        if hasattr(source, "iter_into"):  # a SampleLog
+            return cls.from_log(source, subpixels=subpixels, nonfinite=nonfinite)
+        from .samples import source_name
+
+        return cls.from_batches(((c.positions, c.values) for c in source.iter_chunks(with_round=False)),
+                                width=source.width, height=source.height, channels=source.channels,
+                                subpixels=subpixels, nonfinite=nonfinite, source=source_name(source))
+
+    # -------------------------------------------------------------- derived
+    def sample_variance(self, *, ddof: int = 1, undefined: float = np.nan) -> np.ndarray:
+        """Per-pixel sample variance ``m2 / (n - ddof)``, shape (H, W, C).
+
+        Pixels with ``n <= ddof`` have no variance estimate; they get
+        ``undefined`` (NaN by default: the caller picks a policy).
+        Rounding can leave ``m2`` a hair below 0; it is clamped at 0.
+        """
+        n = self.count[..., None]
+        out = np.full(self.mean.shape, undefined, dtype=np.float64)
+        ok = np.broadcast_to(n > ddof, out.shape)
+        np.divide(np.maximum(self.m2, 0.0), np.maximum(n - ddof, 1), out=out, where=ok)
+        return out
+
+    def mean_variance(self, *, undefined: float = np.nan) -> np.ndarray:
+        """Variance of the pixel mean, ``sample_variance / n``, shape (H, W, C)."""
+        var = self.sample_variance(undefined=undefined)
+        n = np.maximum(self.count[..., None], 1)
+        return var / n
+
+    def subpixel_means(self, *, fill: str = "pixel") -> np.ndarray:
+        """Subpixel means, shape (H*s, W*s, C).
+
+        Empty subpixels take the mean of their pixel (``fill='pixel'``) or
+        NaN (``fill='nan'``); subpixels of empty pixels take 0 or NaN.
+        """
+        if not self.subpixels:
+            raise InputError("PixelStats", "subpixels", "these statistics keep no subpixel data; "
+                             "build them with subpixels=4")
+        s = self.subpixels
+        cnt = self.sub_count[..., None]
+        out = np.empty_like(self.sub_sum)
+        np.divide(self.sub_sum, np.maximum(cnt, 1), out=out)
+        if fill == "pixel":
+            pix = np.repeat(np.repeat(self.mean, s, axis=0), s, axis=1)
+        elif fill == "nan":
+            pix = np.full_like(out, np.nan)
+        else:
+            raise InputError("PixelStats.subpixel_means", "fill", f"got {fill!r}; valid: pixel, nan")
+        return np.where(cnt > 0, out, pix)
+
+    def __repr__(self) -> str:
+        return (f"PixelStats({self.width}x{self.height}, channels={','.join(self.channels)}, "
+                f"samples={self.n_samples}, subpixels={self.subpixels})")
+
+__dir__ = _public_dir(__name__)

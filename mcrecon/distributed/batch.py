@@ -1,0 +1,344 @@
+"""Scale-out on Dask (``dask.distributed``): many frames, huge logs, huge images.
+
+Three entry points, each identical in result to the one-process path:
+
+:func:`denoise_many`
+    Many sample logs -> one EXR each (``mcrecon batch``): one task per
+    frame, run with :func:`mcrecon.reconstruct` exactly as ``mcrecon
+    denoise`` runs it, so the images are bit-identical.  Outputs are
+    written atomically; a rerun skips frames whose output is newer than
+    their log (and was made by the same method and options); a failing
+    frame is reported with its one-line error and the others complete; a
+    summary (frame, method, relative MSE against the log's reference,
+    seconds, worker) is written as CSV and JSON.
+:func:`ingest`
+    One huge log -> :class:`~mcrecon.core.stats.PixelStats`: workers read
+    disjoint row ranges (HDF5 hyperslabs of the log on a shared file
+    system) into partial statistics merged pairwise in a tree by Chan et
+    al.'s formulas (:meth:`PixelStats.merge`).  Counts, minima, maxima
+    and subpixel counts are exact; means and ``m2`` agree to rounding
+    (bound in ``docs/distributed.md``).
+:func:`reconstruct_tiled`
+    A huge film -> tiles with halos: each tile is reconstructed from the
+    statistics of the tile grown by the method's declared
+    :meth:`~mcrecon.methods.Method.halo`, then trimmed (what
+    ``dask.array.map_overlap`` with ``boundary="none"`` does, tested bit
+    for bit through :func:`map_tiles`, applied to the several arrays of a
+    PixelStats, whose subpixel grid has another resolution, or to the
+    samples that reach a tile for splat).  Whole-image methods (``halo``
+    None: awr) are refused, and so are the cases where splat is not local
+    (its paper variant; rounds whose density in a tile differs from the
+    film's).
+
+Without a ``client`` each function starts a :class:`distributed.LocalCluster`
+of worker processes (or, for :func:`reconstruct_tiled` and :func:`ingest`,
+runs in this process); with ``scheduler=ADDRESS`` it connects to a running
+scheduler.  Workers need mcrecon installed and the logs and the output
+directory on a file system they share with the client.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import os
+import sys
+import time
+import warnings
+from pathlib import Path
+
+
+from ..errors import InputError, McreconWarning
+
+
+from .._lazy import public_dir as _public_dir  # noqa: E402
+from .cluster import _client_for, _dask, _local_workers, _one_line, _worker_name
+
+__all__ = ['denoise_many', 'BatchResult', 'denoise_frame', 'SUMMARY_NAME']
+
+#: Base name of the batch summary files in ``out_dir`` (``.csv`` and ``.json``).
+SUMMARY_NAME = "batch_summary"
+SUMMARY_FIELDS = ("frame", "log", "output", "status", "method", "rel_mse", "seconds", "worker", "samples",
+                  "error")
+
+
+# ----------------------------------------------------------------------------
+# 1. Many logs -> many images
+# ----------------------------------------------------------------------------
+
+def denoise_frame(log_path, out_path, method: str, options: dict, *, nonfinite: str = "drop",
+                  png: bool = False, exposure: float = 0.0) -> dict:
+    """Reconstruct one frame exactly as ``mcrecon denoise`` does and write its EXR atomically.
+
+    Runs on a worker; never raises: a failure comes back as
+    ``status='failed'`` with the one-line error.
+    """
+    from ..io import read_log, write_exr, write_png_preview
+    from ..core.metrics import relative_mse
+    from ..offline.reconstruction import reconstruct
+
+    log_path, out_path = Path(log_path), Path(out_path)
+    rec = {"frame": log_path.stem, "log": str(log_path), "output": str(out_path), "method": method,
+           "rel_mse": None, "seconds": None, "worker": _worker_name(), "samples": None, "error": None}
+    t0 = time.perf_counter()
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", McreconWarning)
+            log = read_log(log_path)
+            r = reconstruct(log, method=method, nonfinite=nonfinite, full=True, **options)
+            if png:  # the preview first: the EXR (atomic) marks a complete frame
+                write_png_preview(out_path.with_suffix(".png"), r.image, exposure=exposure)
+            write_exr(out_path, r.image, channels=log.channels)
+            ref = log.reference()
+            if ref is not None:
+                rec["rel_mse"] = relative_mse(r.image, ref)
+            rec["samples"] = int(log.n_samples)
+        rec["warnings"] = [" ".join(str(w.message).split()) for w in caught
+                           if issubclass(w.category, McreconWarning)]
+        rec["status"] = "done"
+    except Exception as exc:  # noqa: BLE001 -- a bad frame must not stop the batch
+        rec["status"] = "failed"
+        rec["error"] = _one_line(exc)
+    rec["seconds"] = time.perf_counter() - t0
+    return rec
+
+
+@dataclasses.dataclass
+class BatchResult:
+    """What :func:`denoise_many` did: one record per frame (in input order) and the summary files."""
+
+    records: list
+    summary_csv: Path | None
+    summary_json: Path | None
+    seconds: float
+
+    @property
+    def failed(self) -> list:
+        return [r for r in self.records if r["status"] == "failed"]
+
+    @property
+    def ok(self) -> bool:
+        return not self.failed
+
+
+def _expand(paths) -> list[Path]:
+    import glob
+
+    if isinstance(paths, (str, os.PathLike)):
+        paths = [paths]
+    out = []
+    for p in paths:
+        s = str(p)
+        # a name that exists is that file, even if it holds glob characters ('shot[1].h5'):
+        # globbing it could pick a neighbour ('shot1.h5') or nothing
+        if any(ch in s for ch in "*?[") and not os.path.isfile(s):
+            hits = sorted(glob.glob(s))
+            if not hits:
+                raise InputError(s, "logs", "the pattern matches no file")
+            out.extend(Path(h) for h in hits)
+        else:
+            out.append(Path(s))
+    if not out:
+        raise InputError("batch", "logs", "no sample log given")
+    return out
+
+
+def _config(method, options: dict, nonfinite: str) -> dict:
+    from ..methods.base import Method
+    from ..methods import get_method
+
+    if isinstance(method, Method):
+        if options:
+            raise InputError("batch", sorted(options)[0], "a method object already carries its options")
+        m = method
+    else:
+        m = get_method(str(method), **options)   # validate once, here, before any work
+    return {"method": m.name, "options": dict(m.params), "nonfinite": nonfinite}
+
+
+def _previous(json_path: Path) -> dict:
+    try:
+        data = json.loads(json_path.read_text())
+        return {r["frame"]: r for r in data.get("frames", []) if r.get("status") in ("done", "skipped")}
+    except (OSError, ValueError, AttributeError, TypeError, KeyError):
+        return {}
+
+
+def _damaged_output(log: Path, out: Path) -> str | None:
+    """Why an existing output EXR is not this log's image (None when its header fits the log).
+
+    The EXR is published atomically, but a file can still be truncated or
+    replaced afterwards (a full disk, a copy that stopped): its header is read
+    (cheap, no pixels) and its size and channel count checked against the log's.
+    """
+    import OpenEXR
+
+    from ..io import read_log
+
+    try:
+        h = OpenEXR.File(str(out), header_only=True).header()
+        (x0, y0), (x1, y1) = (tuple(int(v) for v in c) for c in h["dataWindow"])
+        n_channels = len(h["channels"])
+    except Exception as exc:  # noqa: BLE001 -- any failure to read the header is damage
+        return f"not a readable EXR ({' '.join(str(exc).split()) or type(exc).__name__})"
+    try:
+        log = read_log(log)
+    except InputError:
+        return None   # the frame fails on its own, with the log's error
+    got, want = (x1 - x0 + 1, y1 - y0 + 1, n_channels), (log.width, log.height, len(log.channels))
+    if got != want:
+        return f"{got[0]}x{got[1]} with {got[2]} channel(s), the log is {want[0]}x{want[1]} with {want[2]}"
+    return None
+
+
+def _up_to_date(log: Path, out: Path, prev: dict | None, config: dict) -> bool:
+    try:
+        if not out.is_file():
+            return False
+        if out.stat().st_mtime_ns < log.stat().st_mtime_ns:
+            return False
+    except OSError:
+        return False
+    # it must have been made by this method configuration (when a summary says so)
+    if prev is not None and prev.get("config") not in (None, config):
+        return False
+    damage = _damaged_output(log, out)
+    if damage is not None:
+        warnings.warn(f"{out}: existing output is damaged ({damage}): reconstructing it again",
+                      McreconWarning, stacklevel=3)
+        return False
+    return True
+
+
+class _Progress:
+    """A one-line progress bar on a terminal (stderr); silent otherwise."""
+
+    def __init__(self, total: int, enabled: bool | None):
+        self.total, self.done, self.failed = total, 0, 0
+        self.on = sys.stderr.isatty() if enabled is None else bool(enabled)
+
+    def step(self, failed: bool) -> None:
+        self.done += 1
+        self.failed += bool(failed)
+        if self.on:
+            width = 30
+            fill = int(width * self.done / max(self.total, 1))
+            sys.stderr.write(f"\r[{'#' * fill}{'.' * (width - fill)}] {self.done}/{self.total} frames"
+                             + (f", {self.failed} failed" if self.failed else ""))
+            sys.stderr.flush()
+
+    def close(self) -> None:
+        if self.on and self.total:
+            sys.stderr.write("\n")
+
+
+def _write_summary(out_dir: Path, records: list, config: dict, seconds: float) -> tuple[Path, Path]:
+    from ..io._atomic import atomic_path
+
+    csv_path, json_path = out_dir / f"{SUMMARY_NAME}.csv", out_dir / f"{SUMMARY_NAME}.json"
+    with atomic_path(csv_path) as tmp, open(tmp, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=SUMMARY_FIELDS, extrasaction="ignore")
+        w.writeheader()
+        for r in records:
+            w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in SUMMARY_FIELDS})
+    doc = {"config": config, "seconds": seconds,
+           "frames": [{**{k: r.get(k) for k in SUMMARY_FIELDS}, "warnings": r.get("warnings", []),
+                       "config": r.get("config")} for r in records]}
+    with atomic_path(json_path) as tmp, open(tmp, "w") as f:
+        json.dump(doc, f, indent=1)
+    return csv_path, json_path
+
+
+def denoise_many(paths, *, method="box", out_dir, client=None, scheduler: str | None = None,
+                 workers: int | None = None, nonfinite: str = "drop", force: bool = False, png: bool = False,
+                 exposure: float = 0.0, progress: bool | None = None, summary: bool = True,
+                 **options) -> BatchResult:
+    """Reconstruct every sample log in ``paths`` into ``out_dir/<log stem>.exr`` on a Dask cluster.
+
+    Parameters
+    ----------
+    paths : path, glob pattern or sequence of them
+        Sample logs (patterns like ``'frames/*.h5'`` are expanded here).
+    method : str or Method
+        A registered method with its ``options`` as keywords (validated
+        here, before any work), or a method object.
+    out_dir : path
+        Output directory (created), shared with the workers.
+    client : distributed.Client, optional
+        An existing client; else ``scheduler`` (an address to connect to);
+        else a LocalCluster of ``workers`` processes (default: the cores)
+        is started and closed.
+    nonfinite : {'drop', 'zero', 'raise'}
+    force : bool
+        Reconstruct frames whose output is already up to date too.
+    png : bool
+        Also write each frame's PNG preview (with ``exposure`` stops).
+    progress : bool, optional
+        A progress bar on stderr (default: when stderr is a terminal).
+    summary : bool
+        Write ``out_dir/batch_summary.csv`` and ``.json``.
+
+    Returns
+    -------
+    BatchResult
+        ``records`` in input order: ``status`` is ``done``, ``skipped``
+        (up to date) or ``failed`` (with ``error``, one line).
+    """
+    from ..core.samples import check_policy
+
+    check_policy(nonfinite, "batch")
+    logs = _expand(paths)
+    stems = {}
+    for p in logs:
+        if p.stem in stems and stems[p.stem] != p:
+            raise InputError(str(p), "frame", f"same name as {stems[p.stem]}: both would write {p.stem}.exr")
+        stems[p.stem] = p
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    config = _config(method, options, nonfinite)
+    prev = _previous(out_dir / f"{SUMMARY_NAME}.json")
+    t0 = time.perf_counter()
+    records: dict[int, dict] = {}
+    todo = []
+    for i, p in enumerate(logs):
+        out = out_dir / f"{p.stem}.exr"
+        if not force and _up_to_date(p, out, prev.get(p.stem), config):
+            old = prev.get(p.stem) or {}
+            records[i] = {**{k: old.get(k) for k in SUMMARY_FIELDS}, "frame": p.stem, "log": str(p),
+                          "output": str(out), "status": "skipped", "method": config["method"], "error": None,
+                          "config": config}
+        else:
+            todo.append((i, p, out))
+    bar = _Progress(len(todo), progress)
+    if todo:
+        distributed = _dask()
+        if client is None and scheduler is None:
+            workers = _local_workers(workers, len(todo))
+        with _client_for(client, scheduler, workers) as c:
+            futures = {}
+            for i, p, out in todo:
+                f = c.submit(denoise_frame, str(p), str(out), config["method"], config["options"],
+                             nonfinite=nonfinite, png=png, exposure=exposure, pure=False,
+                             key=f"mcrecon-frame-{i}-{p.stem}-{os.urandom(4).hex()}")
+                futures[f] = i
+            for f in distributed.as_completed(futures):
+                i = futures[f]
+                try:
+                    rec = f.result()
+                except Exception as exc:  # noqa: BLE001 -- a lost worker, a pickling error
+                    _, p, out = todo[[t[0] for t in todo].index(i)]
+                    rec = {"frame": p.stem, "log": str(p), "output": str(out), "method": config["method"],
+                           "status": "failed", "error": _one_line(exc)}
+                rec["config"] = config
+                records[i] = rec
+                bar.step(rec["status"] == "failed")
+    bar.close()
+    ordered = [records[i] for i in range(len(logs))]
+    seconds = time.perf_counter() - t0
+    csv_path = json_path = None
+    if summary:
+        csv_path, json_path = _write_summary(out_dir, ordered, config, seconds)
+    return BatchResult(ordered, csv_path, json_path, seconds)
+
+__dir__ = _public_dir(__name__)

@@ -1,0 +1,346 @@
+"""Tiled reconstruction of one huge film with explicit halos.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError, McreconWarning
+
+
+from .cluster import _dask
+from .ingestion import _crop_stats, ingest
+
+__all__ = ['reconstruct_tiled', 'map_tiles', 'tile_boxes']
+
+def _reconstruct_tile(method, stats, reference, inner):
+    """Reconstruct one grown tile and trim it to its inner part (runs on a worker)."""
+    from ..methods.base import MethodInputs
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", McreconWarning)
+        img = method.reconstruct(MethodInputs(stats, None, reference))
+    (a, b), (c, d) = inner
+    return np.asarray(img[a:b, c:d], dtype=np.float64)
+
+
+def tile_boxes(width: int, height: int, tile: int, halo: int):
+    """``(outer, tile, inner)`` boxes of each tile, each box ((y0, y1), (x0, x1)).
+
+    outer = the tile grown by ``halo`` on every side and clipped to the
+    film (``dask.array.map_overlap`` with ``boundary="none"``); tile = the
+    tile in film coordinates; inner = the tile inside the outer box.
+    """
+    for ty in range(0, height, tile):
+        for tx in range(0, width, tile):
+            y0, y1, x0, x1 = ty, min(height, ty + tile), tx, min(width, tx + tile)
+            oy0, oy1, ox0, ox1 = max(0, y0 - halo), min(height, y1 + halo), max(0, x0 - halo), min(width, x1 + halo)
+            yield ((oy0, oy1), (ox0, ox1)), ((y0, y1), (x0, x1)), ((y0 - oy0, y1 - oy0), (x0 - ox0, x1 - ox0))
+
+
+def _run_tiles(func, tasks, shape, client=None) -> np.ndarray:
+    """Assemble ``out[tile] = func(*args)`` for each ``(tile, args)`` of ``tasks``.
+
+    Without a client the tiles run here one after another; with one, as
+    Dask futures (arguments that are futures stay on the workers), placed
+    into the output as they complete.
+    """
+    out = np.empty(shape, np.float64)
+    if client is None:
+        for (iy, ix), args in tasks:
+            out[iy[0]:iy[1], ix[0]:ix[1]] = func(*args)
+        return out
+    distributed = _dask()
+    futs = {client.submit(func, *args, pure=False): box for box, args in tasks}
+    for f in distributed.as_completed(futs):
+        iy, ix = futs[f]
+        out[iy[0]:iy[1], ix[0]:ix[1]] = f.result()
+        f.release()
+    return out
+
+
+def _trim_apply(func, block, inner):
+    (a, b), (c, d) = inner
+    return np.asarray(func(block))[a:b, c:d]
+
+
+def map_tiles(func, image, *, tile: int, halo: int, client=None) -> np.ndarray:
+    """``func`` applied to tiles of ``image`` grown by ``halo`` (clipped at the edges), each trimmed back.
+
+    The tiling of :func:`reconstruct_tiled`, on a plain array: for a
+    ``func`` whose result at a pixel depends on pixels at most ``halo``
+    away it equals ``func(image)``, and it equals
+    ``dask.array.map_overlap(func, image, depth=halo, boundary="none")``
+    (``tests/test_distributed.py`` checks both bit for bit).  The output
+    is float64 with the image's first two dimensions.
+    """
+    image = np.asarray(image)
+    h, w = image.shape[:2]
+    tasks = [(box, (func, np.ascontiguousarray(image[oy[0]:oy[1], ox[0]:ox[1]]), inner))
+             for (oy, ox), box, inner in tile_boxes(w, h, int(tile), int(halo))]
+    probe = np.asarray(func(image[:1, :1]))
+    return _run_tiles(_trim_apply, tasks, (h, w) + probe.shape[2:], client)
+
+
+# ---------------------------------------------------------------- sample tiles (splat)
+class _TileSamples:
+    """The samples of one grown tile, shifted to its origin, as a sample source for a method.
+
+    Chunks are kept as the method reads the film's source (the same
+    chunk boundaries, each chunk reduced to the tile's samples), so the
+    method accumulates every pixel's contributions in the same order as
+    on the whole film.
+    """
+
+    def __init__(self, width, height, channels, name, rounds):
+        self.width, self.height, self.channels, self.name = width, height, tuple(channels), name
+        self._rounds = rounds        # [(round index or None, [(positions, values), ...]), ...]
+        ends = np.cumsum([sum(p.shape[0] for p, _ in chunks) for _, chunks in rounds])
+        self._slices = list(zip([0, *ends[:-1].tolist()], ends.tolist()))
+
+    @property
+    def n_samples(self) -> int:
+        return int(self._slices[-1][1]) if self._slices else 0
+
+    def round_slices(self):
+        return self._slices
+
+    def iter_chunks(self, *, rounds=None, with_round: bool = False, chunk_size=None):
+        from ..core.samples import SampleChunk
+
+        groups = range(len(self._rounds)) if rounds is None else [int(r) for r in rounds]
+        for g in groups:
+            for pos, val in self._rounds[g][1]:
+                yield SampleChunk(pos, val, None, 0)
+
+
+def _film_rounds(source) -> list:
+    """How a sample-filtering method groups the source's chunks: per round (two or more), else all at once."""
+    nonempty = [r for r, (a, b) in enumerate(source.round_slices()) if b > a]
+    return [[r] for r in nonempty] if len(nonempty) >= 2 else [None]
+
+
+def _tile_samples(source, outer, where: str):
+    """The samples of ``source`` in the pixels of ``outer``, shifted by its origin; and the per-round counts.
+
+    Returns (_TileSamples, film counts per round, tile counts per round).
+    Positions are checked as the method checks them (an off-film or
+    non-finite position is the same one-line error).  Shifting a float
+    x >= x0 by an integer x0 is exact (x0 is a multiple of x's spacing),
+    so the method computes the same offsets to every pixel centre.
+    """
+    from ..core.samples import check_samples
+
+    (oy0, oy1), (ox0, ox1) = outer
+    groups, film_n, tile_n = [], [], []
+    for g in _film_rounds(source):
+        chunks, nf, nt = [], 0, 0
+        for ch in source.iter_chunks(rounds=g, with_round=False):
+            pos, val, _ = check_samples(ch.positions, ch.values, width=source.width, height=source.height,
+                                        n_channels=len(source.channels), where=where)
+            nf += pos.shape[0]
+            ix, iy = np.floor(pos[:, 0]), np.floor(pos[:, 1])
+            keep = (ix >= ox0) & (ix < ox1) & (iy >= oy0) & (iy < oy1)
+            if keep.any():
+                p = pos[keep]
+                p[:, 0] -= ox0
+                p[:, 1] -= oy0
+                chunks.append((p, val[keep]))
+                nt += p.shape[0]
+        groups.append((None if g is None else g[0], chunks))
+        film_n.append(nf)
+        tile_n.append(nt)
+    sub = _TileSamples(ox1 - ox0, oy1 - oy0, source.channels, source_name_of(source), groups)
+    return sub, film_n, tile_n
+
+
+def source_name_of(source) -> str:
+    from ..core.samples import source_name
+
+    return source_name(source)
+
+
+def _splat_tile(method, source, outer, inner, film_pixels: int, nonfinite: str, reference=None):
+    """Reconstruct one grown tile of a sample-filtering method from the samples that reach it (on a worker).
+
+    ``source`` is a log path (the worker streams the whole log and keeps
+    the tile's samples: memory is the grown tile's samples) or a
+    :class:`_TileSamples` already cut on the client.
+    """
+    from ..methods.base import MethodInputs
+
+    where = f"{method.where} (tiled)"
+    if isinstance(source, _TileSamples):
+        sub, film_n, tile_n = source, None, None
+    else:
+        from ..io import read_log
+
+        sub, film_n, tile_n = _tile_samples(read_log(source), outer, where)
+    if film_n is not None:
+        _check_round_densities(where, film_n, tile_n, film_pixels, sub.width * sub.height)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", McreconWarning)
+        img = method.reconstruct(MethodInputs(None, sub, reference, nonfinite=nonfinite))
+    (a, b), (c, d) = inner
+    return np.asarray(img[a:b, c:d], dtype=np.float64)
+
+
+def _check_round_densities(where, film_n, tile_n, film_pixels, tile_pixels):
+    """Refuse a tile whose rounds are not as dense as the film's.
+
+    Splatting weighs round j by its mean samples per pixel over the
+    *film*, N_j = n_j / pixels (Suykens and Willems' scale-down); a tile
+    reproduces it exactly only if its own rounds have the same densities
+    (equal fractions give the same correctly rounded quotient), as rounds
+    that sample every pixel alike do.  One round is weighed 1 whatever
+    its density.
+    """
+    if len(film_n) < 2:
+        return
+    for r, (nf, nt) in enumerate(zip(film_n, tile_n)):
+        if nt * film_pixels != nf * tile_pixels:
+            raise InputError(where, "rounds", f"round {r} has {nt / tile_pixels:.6g} samples per pixel in a tile "
+                             f"but {nf / film_pixels:.6g} over the film: splatting weighs rounds by their "
+                             "film-wide density, so tiles of an adaptively sampled log are not local; "
+                             "reconstruct it untiled (mcrecon.reconstruct)")
+
+
+def reconstruct_tiled(source, *, method="box", tile: int = 1024, client=None, reference=None,
+                      nonfinite: str = "drop", **options) -> np.ndarray:
+    """Reconstruct in tiles with halos: the untiled image of a local method, tile by tile.
+
+    Parameters
+    ----------
+    source : PixelStats, a sample log (path or SampleLog) or a SampleSet
+        Methods of pixel statistics take statistics (a log is ingested
+        with :func:`ingest` when a ``client`` is given, else
+        :meth:`PixelStats.from_log`).  Sample-filtering methods (splat)
+        take a log or a SampleSet: each tile gets the samples whose pixel
+        lies in the tile grown by the halo.
+    method : str or Method
+        A method declaring a finite :meth:`~mcrecon.methods.Method.halo`;
+        whole-image methods (awr) are refused.
+    tile : int
+        Tile side in pixels (the halo comes on top of it).
+    client : distributed.Client, optional
+        Tiles run as tasks on it; without one, in this process one after
+        the other (memory: one grown tile at a time besides the input).
+        For a log and a sample-filtering method each task streams the log
+        itself (the log must be on a file system the workers share).
+    reference : ndarray (H, W, C), optional
+        For oracle modes (cropped with each tile).
+
+    Raises
+    ------
+    InputError
+        A whole-image method; statistics with a pixel of fewer than two
+        samples (the fill-in policies for such pixels can borrow from
+        anywhere in the image, so no finite halo makes the result local);
+        for splat, the paper variant (``spread='all'``: its pseudo-rounds
+        and scatter depend on the whole film) or rounds whose density in a
+        tile differs from the film's (adaptive logs).
+    """
+    from ..methods.base import Method
+    from ..methods import get_method
+    from ..core.stats import PixelStats
+
+    m = method if isinstance(method, Method) else get_method(str(method), **options)
+    if isinstance(method, Method) and options:
+        raise InputError("reconstruct_tiled", sorted(options)[0], "a method object already carries its options")
+    where = f"{m.where} (tiled)"
+    tile = int(tile)
+    if tile < 1:
+        raise InputError(where, "tile", f"{tile}, expected a positive number of pixels")
+    if m.requires.samples:
+        return _reconstruct_tiled_samples(m, source, tile, client, reference, nonfinite, where)
+    if not m.requires.statistics:
+        raise InputError(where, "method", f"{m.name} reads neither pixel statistics nor samples")
+    if isinstance(source, PixelStats):
+        stats = source
+    else:
+        stats = ingest(source, client=client, subpixels=m.requires.subpixels, nonfinite=nonfinite) \
+            if client is not None else PixelStats.from_log(_opened(source), subpixels=m.requires.subpixels,
+                                                           nonfinite=nonfinite)
+    h, w, c = stats.shape
+    halo = _halo_or_refuse(m, w, h, where)
+    few = int((stats.count < 2).sum())
+    if few:
+        raise InputError(where, "statistics", f"{few} pixel(s) with fewer than 2 samples: their fill-in may "
+                         "borrow from the whole image, so tiles would not reproduce the untiled result; "
+                         "reconstruct untiled, or give every pixel at least 2 samples")
+    if m.requires.subpixels and stats.subpixels != m.requires.subpixels:
+        raise InputError(where, "statistics", f"need a {m.requires.subpixels}x{m.requires.subpixels} subpixel "
+                         f"grid, got subpixels={stats.subpixels}")
+    ref = None if reference is None else np.asarray(reference, dtype=np.float64)
+    mf = m if client is None else client.scatter(m, broadcast=True)
+    tasks = []
+    for (oy, ox), box, inner in tile_boxes(w, h, tile, halo):
+        sub = _crop_stats(stats, oy[0], oy[1], ox[0], ox[1])
+        r = None if ref is None else ref[oy[0]:oy[1], ox[0]:ox[1]]
+        if client is not None:   # each grown tile goes to one worker, the film stays here
+            sub = client.scatter(sub)
+            r = None if r is None else client.scatter(r)
+        tasks.append((box, (mf, sub, r, inner)))
+    return _run_tiles(_reconstruct_tile, tasks, (h, w, c), client)
+
+
+def _halo_or_refuse(m, w, h, where) -> int:
+    halo = m.halo(w, h)
+    if halo is None:
+        raise InputError(where, "halo", f"{m.name} is a whole-image method (its result at a pixel depends on the "
+                         "whole film); it cannot be tiled: reconstruct it untiled on one worker with the memory "
+                         "for the film (mcrecon.reconstruct)")
+    return int(halo)
+
+
+def _reconstruct_tiled_samples(m, source, tile, client, reference, nonfinite, where):
+    from ..io import read_log
+    from ..io.reader import SampleLog
+    from ..core.samples import SampleSet, check_policy
+    from ..core.stats import PixelStats
+
+    check_policy(nonfinite, where)
+    if m.name == "splat" and m.params.get("spread") == "all":
+        raise InputError(where, "spread", "splat's paper variant (spread='all') is not local: it splits a "
+                         "single-round source into pseudo-rounds scheduled by the film's smallest pixel count, "
+                         "and sums large batches in two blocks whose split moves with the batch; tile the robust "
+                         "variant (the default), or reconstruct untiled")
+    if isinstance(source, PixelStats):
+        raise InputError(where, "source", f"{m.name} filters individual samples: give it a sample log or a "
+                         "SampleSet, not pixel statistics")
+    if isinstance(source, (str, os.PathLike)):
+        source = read_log(source)
+    if not isinstance(source, (SampleLog, SampleSet)):
+        raise InputError(where, "source", f"got {type(source).__name__}, expected a sample log or a SampleSet")
+    w, h, c = source.width, source.height, len(source.channels)
+    halo = _halo_or_refuse(m, w, h, where)
+    ref = None if reference is None else np.asarray(reference, dtype=np.float64)
+    mf = m if client is None else client.scatter(m, broadcast=True)
+    tasks = []
+    for outer, box, inner in tile_boxes(w, h, tile, halo):
+        (oy, ox) = outer
+        r = None if ref is None else ref[oy[0]:oy[1], ox[0]:ox[1]]
+        if isinstance(source, SampleLog):
+            src = str(Path(source.path).resolve())       # the task streams the log itself
+        else:
+            src, film_n, tile_n = _tile_samples(source, outer, where)
+            _check_round_densities(where, film_n, tile_n, w * h, src.width * src.height)
+            if client is not None:
+                src = client.scatter(src)
+        if client is not None and r is not None:
+            r = client.scatter(r)
+        tasks.append((box, (mf, src, outer, inner, w * h, nonfinite, r)))
+    return _run_tiles(_splat_tile, tasks, (h, w, c), client)
+
+
+def _opened(source):
+    """A sample log opened from a path (a SampleLog or SampleSet is returned as it is)."""
+    import os
+
+    from ..io import read_log
+
+    return read_log(source) if isinstance(source, (str, os.PathLike)) else source

@@ -1,0 +1,354 @@
+"""The sample log's format: constants, the header, opening a file, errors that name it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import errno
+import json
+import os
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from ..core.samples import lazy_njit
+from .lock import _err, live_writer
+
+__all__ = ['cast_positions', 'FORMAT_NAME', 'FORMAT_VERSION', 'FORMAT_MINOR', 'LogChunk', 'DEFAULT_CHUNK_ROWS', 'MAX_PIXELS']
+
+FORMAT_NAME = "mcrecon-sample-log"
+FORMAT_VERSION = 1
+#: Compatible revision of version 1 written by this module (attribute ``format_minor``;
+#: absent means 0).  1: ``/rounds/end`` and ``/run/records`` are resizable and grow by
+#: one row per round; row i of ``/run/records`` is round i's record (``null``: none).
+#: 2: round records are rows of the compound dataset /run/round_records (one column per
+#: known key, a bit mask of the keys present), keys outside the columns in JSON in
+#: /run/round_records_extra; /run/records (JSON) is kept for logs that already have it.
+FORMAT_MINOR = 2
+#: Rows per HDF5 chunk of a log written whole: 65536 samples = 512 KiB of float32 positions.
+DEFAULT_CHUNK_ROWS = 1 << 16
+#: Rows per chunk of a log that starts small and grows by appended rounds (the adaptive
+#: driver's): HDF5 allocates whole chunks, so this bounds the slack of a small log
+#: (24 B/sample with float32 RGB: 96 KiB) while keeping large logs fast to stream.
+APPEND_CHUNK_ROWS = 1 << 12
+#: Rows per chunk of the per-round datasets /rounds/end (8 B/row) and /run/records (16 B/row).
+RECORD_CHUNK_ROWS = 1 << 8
+#: Stand-in record of a round that has none (keeps /run/records aligned with the rounds).
+_NO_RECORD = "null"
+#: Columns of /run/round_records written by this module: the keys of the adaptive driver's
+#: round records.  ``present`` is a bit mask: bit 0 set = the round has a record, bit k
+#: (k >= 1) set = the k-th column after ``present`` holds that key's value.  An absent key
+#: reads -1 (integer columns) or NaN (float columns), but only ``present`` says it is absent.
+ROUND_RECORD_DTYPE = np.dtype([("present", "<u2"), ("round", "<i8"), ("samples", "<i8"), ("samples_total", "<i8"),
+                               ("renderer_seconds", "<f8"), ("toolkit_seconds", "<f8"), ("wall_seconds", "<f8"),
+                               ("error", "<f8"), ("eval_seconds", "<f8")])
+#: Rows per chunk of /run/round_records: 64 rows of 66 B, about 4 KiB.
+ROUND_RECORD_CHUNK_ROWS = 1 << 6
+_HAS_RECORD = 1
+#: Group holding a dataset being converted to a resizable one (see _ensure_resizable).
+_CONVERT = "_convert"
+_VALID_FLOATS = (np.float32, np.float64)
+#: Largest film a log may describe (width * height): refused before anything is allocated.
+MAX_PIXELS = 1 << 31
+#: Fletcher-32 checksum on every chunked dataset this module creates (variable-length string
+#: datasets excepted: HDF5 filters only fixed-size types).  A damaged chunk fails to read.
+_CHECKSUM = {"fletcher32": True}
+#: Re-reads of a log a live run is appending to, when a read meets a half-written state.
+_LIVE_RETRIES = 20
+_LIVE_RETRY_SECONDS = 0.05
+
+
+def _checksum_for(dtype) -> dict:
+    dt = np.dtype(dtype)
+    return {} if dt.kind in "OSUV" or h5py.check_string_dtype(dt) is not None or \
+        h5py.check_vlen_dtype(dt) is not None else _CHECKSUM
+
+
+def _detail(exc) -> str:
+    return " ".join(str(exc).split())  # one line: h5py's messages carry newlines
+
+
+@dataclasses.dataclass(eq=False)
+class LogChunk:
+    """A contiguous run of samples read from a log."""
+
+    positions: np.ndarray  # (n, 2)
+    values: np.ndarray  # (n, C)
+    round: np.ndarray  # (n,) int
+    start: int  # index of the first sample in the log
+
+    def __len__(self) -> int:
+        return int(self.positions.shape[0])
+
+    def __getitem__(self, i):  # (positions, values) unpacking
+        return (self.positions, self.values)[i]
+
+
+@lazy_njit(cache=True, nogil=True)
+def _cast_positions_f32(pos, out):
+    for k in range(pos.shape[0]):
+        for a in range(2):
+            x = pos[k, a]
+            y = np.float32(x)
+            # float32 rounding can carry x = 127.99999999 up to 128.0: keep the pixel.
+            if np.floor(y) != np.floor(x):
+                y = np.nextafter(np.float32(np.floor(x) + 1.0), np.float32(0.0))
+            out[k, a] = y
+    return out
+
+
+def cast_positions(positions, dtype) -> np.ndarray:
+    """Cast film positions to ``dtype`` without moving any into the next pixel.
+
+    float32 rounding can turn x = 127.99999999 into 128.0; such positions
+    are set to the largest value of that dtype inside their pixel.
+    """
+    pos = np.asarray(positions)
+    dtype = np.dtype(dtype)
+    if pos.dtype == dtype:
+        return pos
+    if dtype == np.float32 and pos.dtype == np.float64 and pos.ndim == 2 and pos.shape[1] == 2:
+        return _cast_positions_f32(np.ascontiguousarray(pos), np.empty(pos.shape, np.float32))
+    out = pos.astype(dtype)
+    moved = np.floor(out) != np.floor(pos)
+    if moved.any():
+        cell = np.floor(pos[moved])
+        out[moved] = np.nextafter((cell + 1).astype(dtype), dtype.type(0))
+    return out
+
+
+def _open(path, mode="r"):
+    path = Path(path)
+    if not path.exists():
+        raise _err(path, "file", "does not exist")
+    if path.is_dir():
+        raise _err(path, "file", "is a directory; expected an HDF5 sample log")
+    for attempt in range(_LIVE_RETRIES + 1):
+        try:
+            # No HDF5 file locking: writers exclude each other with log_lock, and readers
+            # (info, denoise) must see a log while a run appends to it.
+            return h5py.File(path, mode, locking=False)
+        except (OSError, RuntimeError, ValueError, KeyError) as exc:
+            failure, pid = exc, live_writer(path)
+        if pid is None or mode != "r" or attempt == _LIVE_RETRIES:
+            break
+        time.sleep(_LIVE_RETRY_SECONDS)  # a run is half-way through an append: open again
+    detail = _detail(failure)
+    if pid is not None:
+        raise _err(path, "file", f"could not be opened while process {pid} is writing it ({detail}); try again")
+    if mode != "r" and isinstance(failure, OSError) and (
+            failure.errno in (errno.EACCES, errno.EPERM, errno.EROFS)
+            or "ermission" in detail or "Read-only file system" in detail):
+        raise _err(path, "file", f"cannot be opened for writing ({detail}); the log is intact with every "
+                   "committed round: make it writable and resume the run")
+    kind = _file_kind(path)
+    if kind == "hdf5":
+        raise _err(path, "file", f"not a readable HDF5 file (truncated or damaged: {detail}); regenerate it")
+    looks = f": it is {kind}" if kind else f" (truncated or another format: {detail})"
+    raise _err(path, "file", f"not a readable HDF5 file{looks}; {_ACCEPTED_INPUTS}")
+
+
+#: What the commands reading a file take, for the message about a file that is none of them.
+_ACCEPTED_INPUTS = ("expected an HDF5 sample log (.h5, from a renderer or `mcrecon render-log`: "
+                    "docs/sample-log-format.md); `mcrecon denoise` also takes a pixel-statistics EXR whose path "
+                    "ends in .exr (mean, variance, count: docs/pixel-statistics-inputs.md)")
+
+
+def _file_kind(path) -> str | None:
+    """What a file that h5py cannot open looks like, from its first bytes: "hdf5" (an HDF5 signature at
+    offset 0 or at a user-block offset 512, 1024...: damaged), "an OpenEXR image", "a text file"...,
+    or None (unknown)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+            f.seek(0, os.SEEK_END)
+            size = f.tell()
+            offset = 512
+            while offset < min(size, 1 << 20):  # the HDF5 signature after a user block
+                f.seek(offset)
+                if f.read(8) == _SIGNATURES[0][0]:
+                    return "hdf5"
+                offset *= 2
+    except OSError:
+        return None
+    if not head:
+        return "an empty file (0 bytes)"
+    for magic, kind in _SIGNATURES:
+        if head.startswith(magic):
+            return kind
+    try:
+        head.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        if exc.start < len(head) - 4:  # not only a character cut at the end of the block read
+            return None
+    return "a text file" if all(c >= 32 or c in b"\t\n\r" for c in head[:256]) else None
+
+
+_H5_ERRORS = (OSError, RuntimeError, KeyError, ValueError, TypeError, IndexError, OverflowError)
+
+
+def _json_attr(path, field, raw):
+    try:
+        return json.loads(raw.decode() if isinstance(raw, bytes) else str(raw))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise _err(path, field, f"not valid JSON ({exc})") from None
+
+
+def _int_attr(v) -> int:
+    """An integer attribute: any HDF5 integer type, a scalar or a one-element array.
+
+    Raises TypeError for anything else (a float such as 8.5 or 8.0, a string,
+    a bool, several elements): ``int()`` would read 8.5 as 8 and "8" as 8.
+    """
+    arr = np.asarray(v)
+    if arr.size != 1 or arr.dtype.kind not in "iu":
+        raise TypeError(f"{v!r} is not an integer")
+    return int(arr.reshape(()))
+
+
+def _str_list(v) -> tuple[str, ...]:
+    arr = np.atleast_1d(v)
+    return tuple(x.decode() if isinstance(x, bytes) else str(x) for x in arr.tolist())
+
+
+@dataclasses.dataclass(frozen=True)
+class _Header:
+    width: int
+    height: int
+    channels: tuple
+    n: int  # committed samples
+    rows: int  # rows of /positions and /values (>= n)
+    position_dtype: np.dtype
+    value_dtype: np.dtype
+    format_minor: int
+    positions: h5py.Dataset
+    values: h5py.Dataset
+
+
+def _read_header(path, f) -> _Header:
+    """Validate the root attributes and the shapes of /positions and /values.
+
+    Reads attributes and dataset metadata only (no samples, no per-round
+    datasets): what an append needs, in time independent of the log's size.
+    """
+    attrs = f.attrs
+    have = set(attrs.keys())  # one listing; then read only what is there
+    a = {k: attrs[k] for k in ("format", "format_version", "format_minor", "width", "height", "channels",
+                               "n_committed") if k in have}
+    fmt = a.get("format")
+    if fmt is not None and (fmt.decode() if isinstance(fmt, bytes) else str(fmt)) != FORMAT_NAME:
+        raise _err(path, "attribute format", f"is {fmt!r}, expected {FORMAT_NAME!r}")
+    ver = a.get("format_version")
+    if ver is None:
+        raise _err(path, "attribute format_version", f"missing; expected {FORMAT_VERSION} "
+                   "(is this an mcrecon sample log? see docs/sample-log-format.md)")
+    try:
+        ver = _int_attr(ver)
+    except (TypeError, ValueError):
+        raise _err(path, "attribute format_version", f"is {ver!r}, expected the integer {FORMAT_VERSION}") from None
+    if ver != FORMAT_VERSION:
+        raise _err(path, "attribute format_version", f"is {ver}, this mcrecon reads version {FORMAT_VERSION}")
+    try:
+        minor = _int_attr(a.get("format_minor", 0))  # any compatible revision is readable
+    except (TypeError, ValueError):
+        raise _err(path, "attribute format_minor", f"is {a.get('format_minor')!r}, expected an integer") from None
+    for key in ("width", "height", "channels"):
+        if key not in a:
+            raise _err(path, f"attribute {key}", "missing (see docs/sample-log-format.md)")
+    try:
+        width, height = _int_attr(a["width"]), _int_attr(a["height"])
+    except (TypeError, ValueError):
+        raise _err(path, "attribute width/height", "expected integers") from None
+    if width < 1 or height < 1:
+        raise _err(path, "attribute width/height", f"{width}x{height}, expected at least 1x1")
+    if width * height > MAX_PIXELS:
+        raise _err(path, "attribute width/height", f"{width}x{height} = {width * height} pixels, beyond the "
+                   f"{MAX_PIXELS} pixels mcrecon can hold images of")
+    try:
+        channels = _str_list(a["channels"])
+    except (TypeError, ValueError, UnicodeDecodeError) as exc:
+        raise _err(path, "attribute channels", f"expected an array of strings ({_detail(exc)})") from None
+    if not channels or len(set(channels)) != len(channels):
+        raise _err(path, "attribute channels", f"{channels}: expected distinct non-empty names")
+    pos, val = f.get("positions"), f.get("values")
+    for name, d in (("positions", pos), ("values", val)):
+        if not isinstance(d, h5py.Dataset):
+            raise _err(path, f"dataset /{name}", "missing (see docs/sample-log-format.md)")
+    if pos.ndim != 2 or pos.shape[1] != 2:
+        raise _err(path, "dataset /positions", f"shape {pos.shape}, expected (N, 2)")
+    if val.ndim != 2 or val.shape[1] != len(channels):
+        raise _err(path, "dataset /values", f"shape {val.shape}, expected (N, {len(channels)}) "
+                   f"for channels {','.join(channels)}")
+    if pos.dtype not in _VALID_FLOATS:
+        raise _err(path, "dataset /positions", f"dtype {pos.dtype}, expected float32 or float64")
+    if val.dtype not in _VALID_FLOATS:
+        raise _err(path, "dataset /values", f"dtype {val.dtype}, expected float32 or float64")
+    rows = min(pos.shape[0], val.shape[0])
+    try:
+        n = _int_attr(a.get("n_committed", rows))
+    except (TypeError, ValueError):
+        raise _err(path, "attribute n_committed", f"is {a.get('n_committed')!r}, expected an integer") from None
+    if pos.shape[0] != val.shape[0] and "n_committed" not in a:
+        raise _err(path, "dataset /values", f"{val.shape[0]} rows but /positions has {pos.shape[0]}")
+    if n < 0 or n > rows:
+        raise _err(path, "attribute n_committed", f"is {n} but the datasets hold {rows} rows: "
+                   "the file is truncated")
+    return _Header(width, height, channels, n, rows, pos.dtype, val.dtype, minor, pos, val)
+
+
+def _strings(arr) -> list[str]:
+    """Decode the elements of a string dataset slice (bytes or str) to str."""
+    return [x.decode() if isinstance(x, bytes) else str(x) for x in np.asarray(arr, dtype=object).ravel().tolist()]
+
+
+_ROW_TYPE = []  # the HDF5 type of ROUND_RECORD_DTYPE, made once
+
+
+def _row_type():
+    if not _ROW_TYPE:
+        _ROW_TYPE.append(h5py.h5t.py_create(ROUND_RECORD_DTYPE))
+    return _ROW_TYPE[0]
+
+
+def _record_columns(path, d) -> tuple[np.dtype, tuple[str, ...]]:
+    """Validate a /run/round_records dataset; return its dtype and value columns in bit order."""
+    if not isinstance(d, h5py.Dataset) or d.ndim != 1:
+        raise _err(path, "dataset /run/round_records", f"shape {getattr(d, 'shape', None)}, expected (R,) "
+                   "compound rows (see docs/sample-log-format.md)")
+    if d.id.get_type() == _row_type():
+        # This module's layout.  (Converting an HDF5 compound type to a numpy dtype, as
+        # Dataset.dtype does, costs more than the rest of an append's record.)
+        return ROUND_RECORD_DTYPE, ROUND_RECORD_DTYPE.names[1:]
+    dt = d.dtype
+    names = dt.names
+    if not names or "present" not in names:
+        raise _err(path, "dataset /run/round_records", f"dtype {dt}, expected a compound with an integer "
+                   "field 'present' (see docs/sample-log-format.md)")
+    cols = tuple(n for n in names if n != "present")
+    bad = [n for n in names if dt[n].shape != () or dt[n].kind not in ("iu" if n == "present" else "iuf")]
+    if bad or len(cols) >= 8 * dt["present"].itemsize:
+        raise _err(path, "dataset /run/round_records", f"dtype {dt}: fields must be scalar integers or floats, "
+                   "one bit of 'present' per field")
+    return dt, cols
+
+
+def _committed_rows(ends: np.ndarray, n: int) -> int:
+    """How many leading rows of /rounds/end (or of its tail) are committed rounds.
+
+    An interrupted append leaves at most its own row past the committed ones:
+    the new end (> n) or, when the disk filled before its value was written,
+    the fill value 0 (found on a full disk: [2048, 4096, 0] with
+    n_committed = 4096).  Trailing rows above ``n`` or below their
+    predecessor are not committed.
+    """
+    k = int(ends.shape[0])
+    while k > 0 and (ends[k - 1] > n or (k > 1 and ends[k - 1] < ends[k - 2])):
+        k -= 1
+    return k
+
+_SIGNATURES = ((b"\x89HDF\r\n\x1a\n", "hdf5"), (b"v/1\x01", "an OpenEXR image"),
+               (b"\x89PNG\r\n\x1a\n", "a PNG image"), (b"\xff\xd8\xff", "a JPEG image"),
+               (b"#?RADIANCE", "a Radiance HDR image"), (b"#?RGBE", "a Radiance HDR image"),
+               (b"II*\x00", "a TIFF image"), (b"MM\x00*", "a TIFF image"), (b"PK\x03\x04", "a zip archive"))

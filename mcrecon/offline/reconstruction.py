@@ -1,0 +1,204 @@
+"""Offline reconstruction from any source: a sample log, samples in memory, pixel statistics.
+
+:func:`reconstruct` is the one path the Python API, the CLI and the
+experiments take: it reads what the method declares it needs
+(:attr:`mcrecon.methods.Method.requires`), starts a run, and reconstructs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..methods.base import Method
+from ..methods import get_method
+from ..methods.base import MethodInputs, RunState
+from ..core.halves import is_half_buffer_pair
+from ..core.samples import SampleSet, check_policy
+from ..core.stats import PixelStats
+
+
+from .._lazy import public_dir as _public_dir  # noqa: E402
+from .inputs import gather_inputs
+
+__all__ = ['reconstruct', 'split_source_fireflies', 'Reconstruction']
+
+@dataclasses.dataclass(eq=False)
+class Reconstruction:
+    """An image with the method and run that made it.
+
+    Attributes
+    ----------
+    image : ndarray (H, W, C) float64
+    method : Method
+    run : RunState
+    inputs : MethodInputs
+    fireflies : FireflySplit or None
+        With ``fireflies="cascade"``: the split (the method saw the base
+        samples; ``fireflies.excess`` is part of ``image``).
+    """
+
+    image: np.ndarray
+    method: Method
+    run: RunState
+    inputs: MethodInputs
+    fireflies: object = None
+    _sanity: list | None = dataclasses.field(default=None, repr=False)
+    #: With ``fireflies``: the samples before the split (the base's range is clipped; the image is not).
+    _sanity_source: object = dataclasses.field(default=None, repr=False)
+
+    def diagnostics(self) -> dict:
+        """The method's diagnostic maps of this reconstruction."""
+        return dict(self.method.diagnostics(self.run))
+
+    def sanity(self) -> dict | None:
+        """Negative pixels from non-negative samples and overshoot beyond the samples' 3x3 range.
+
+        See :func:`mcrecon.core.metrics.output_sanity`; computed on first use
+        (methods that read no statistics get them from their samples, one
+        more streaming pass).  None for pixel statistics without a range.
+        """
+        if self._sanity is None:
+            import warnings
+
+            from ..core.metrics import output_sanity
+
+            stats = self.inputs.stats
+            if self._sanity_source is not None:
+                stats = None  # the base's statistics: compare with all the samples instead
+            if (stats is None or not stats.has_range) and (self._sanity_source or self.inputs.samples) is not None:
+                src = self._sanity_source if self._sanity_source is not None else self.inputs.samples
+                with warnings.catch_warnings():  # the reconstruction already reported dropped samples
+                    warnings.simplefilter("ignore")
+                    stats = PixelStats.from_source(src, nonfinite=self.inputs.nonfinite)
+            self._sanity = [output_sanity(self.image, stats) if stats is not None else None]
+        return self._sanity[0]
+
+
+def split_source_fireflies(source, *, nonfinite: str = "drop", **split_options):
+    """Read every sample of ``source`` and split it (:func:`mcrecon.filters.fireflies.split_fireflies`).
+
+    Returns ``(base, split)``: a :class:`SampleSet` of the base samples
+    (same positions, channels and rounds) and the split.  The samples are
+    held in memory (positions, values and the base values: about 64 bytes
+    per sample for RGB).
+    """
+    from ..filters.fireflies import split_fireflies
+    from ..core.samples import apply_nonfinite, check_samples
+
+    check_policy(nonfinite, "reconstruct")
+    if isinstance(source, PixelStats) or is_half_buffer_pair(source):
+        raise InputError("reconstruct", "fireflies", "fireflies='cascade' splits individual samples, which pixel "
+                         "statistics no longer hold; give a sample log or a SampleSet, or fireflies='none'")
+    if isinstance(source, (str, Path)):
+        from ..io import read_log
+        source = read_log(source)
+    if not (hasattr(source, "round_slices") and hasattr(source, "iter_chunks")):
+        raise InputError("reconstruct", "source", f"got {type(source).__name__}; expected a sample log path, "
+                         "a SampleLog or a SampleSet")
+    where = getattr(source, "name", "samples")
+    chunks = [(c.positions, c.values, c.round) for c in source.iter_chunks(with_round=True)]
+    if chunks:
+        pos = np.concatenate([c[0] for c in chunks]).astype(np.float64, copy=False)
+        val = np.concatenate([c[1] for c in chunks]).astype(np.float64, copy=False)
+        rounds = np.concatenate([c[2] for c in chunks])
+    else:
+        pos, val, rounds = np.zeros((0, 2)), np.zeros((0, len(source.channels))), np.zeros(0, np.int64)
+    pos, val, n_bad = check_samples(pos, val, width=source.width, height=source.height,
+                                    n_channels=len(source.channels), where=where)
+    if n_bad:
+        import warnings
+
+        from ..errors import McreconWarning
+
+        finite = np.isfinite(val).all(axis=1)
+        pos, val = apply_nonfinite(pos, val, n_bad, nonfinite, where=where)
+        if nonfinite == "drop":
+            rounds = rounds[finite]
+        warnings.warn(f"{where}: values: {n_bad} sample(s) with NaN or Inf "
+                      f"{'dropped' if nonfinite == 'drop' else 'set to 0'} (policy nonfinite={nonfinite!r})",
+                      McreconWarning, stacklevel=3)
+    split = split_fireflies(pos, val, width=source.width, height=source.height, **split_options)
+    split.n_nonfinite = int(n_bad)
+    base = SampleSet(pos, split.base_values, width=source.width, height=source.height,
+                     channels=source.channels, rounds=rounds, name=where)
+    return base, split
+
+
+def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None, full: bool = False,
+                fireflies: str = "none", **options):
+    """Reconstruct an (H, W, C) float64 image offline.
+
+    Parameters
+    ----------
+    source : path-like, SampleLog, SampleSet, PixelStats or (PixelStats, PixelStats)
+        A sample log (streamed in chunks), samples in memory, statistics
+        already built, or a half-buffer pair: statistics of two independent
+        halves of the samples (dual buffers a renderer wrote), for methods
+        that declare ``requires.half_buffers`` (``auto``).  The pair must
+        agree in size, channels and subpixel grid; each pixel's counts may
+        differ.  The statistics of all the samples are their Chan merge.
+    method : str or Method
+        A registered method name (``mcrecon.available_methods()``) with
+        its keyword ``options``, or a method object.
+    nonfinite : {'drop', 'zero', 'raise'}
+        Policy for NaN/Inf sample values.
+    reference : ndarray, optional
+        Reference image for methods that read one (default: the log's).
+    full : bool
+        Return a :class:`Reconstruction` (image, method, run with its
+        diagnostics) instead of the image.
+    fireflies : {'none', 'cascade'}
+        ``cascade``: split the samples into luminance cascades first
+        (:mod:`mcrecon.filters.fireflies`); the method reconstructs the base part
+        and the rare bright part is added back, spread with the support its
+        sample density needs (energy kept, consistent).  Any method; needs
+        the individual samples (a log or a SampleSet) and holds them in
+        memory.  Measured in ``docs/fireflies.md``.
+
+    Examples
+    --------
+    >>> import numpy as np, mcrecon
+    >>> rng = np.random.default_rng(0)
+    >>> pos = rng.random((4000, 2)) * [20, 10]
+    >>> samples = mcrecon.SampleSet(pos, rng.normal(1.0, 0.1, (4000, 3)), width=20, height=10)
+    >>> image = mcrecon.reconstruct(samples, method="gem")
+    >>> image.shape
+    (10, 20, 3)
+    >>> bool(abs(image.mean() - 1.0) < 0.01)
+    True
+    """
+    if isinstance(method, Method):
+        if options:
+            raise InputError("reconstruct", sorted(options)[0], "options go to get_method(); a method object "
+                             "already carries its options")
+        m = method
+    else:
+        m = get_method(str(method), **options)
+    from ..filters.fireflies import FIREFLY_MODES
+    if fireflies not in FIREFLY_MODES:
+        raise InputError("reconstruct", "fireflies", f"unknown mode {fireflies!r}; valid: {', '.join(FIREFLY_MODES)}")
+    split = None
+    if fireflies == "cascade":
+        if isinstance(source, (str, Path)):
+            from ..io import read_log
+            source = read_log(source)
+        if reference is None and m.requires.reference != "none" and hasattr(source, "reference"):
+            reference = source.reference()  # the base SampleSet carries no stored reference
+        original = source
+        source, split = split_source_fireflies(source, nonfinite=nonfinite)
+    inputs = gather_inputs(source, m, nonfinite=nonfinite, reference=reference)
+    h, w, _ = inputs.shape
+    run = m.start(w, h, inputs.channels, reference=inputs.reference)
+    image = np.asarray(m.reconstruct(inputs, run=run), dtype=np.float64)
+    if split is not None:
+        image = image + split.excess
+    if not full:
+        return image
+    return Reconstruction(image, m, run, inputs, fireflies=split,
+                          _sanity_source=original if split is not None else None)
+
+__dir__ = _public_dir(__name__)
