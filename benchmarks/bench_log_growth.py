@@ -161,7 +161,7 @@ def load_old(ref):
     """The previous samplelog.py from git as a temporary module (or None if unavailable/identical)."""
     repo = Path(__file__).resolve().parents[1]
     try:
-        src = subprocess.run(["git", "-C", str(repo), "show", f"{ref}:mcrecon/io/samplelog.py"],
+        src = subprocess.run(["git", "-C", str(repo), "show", f"{ref}:mcrecon/io/writer.py"],
                              capture_output=True, text=True, check=True).stdout
     except (OSError, subprocess.CalledProcessError) as exc:
         print(f"[old code] not available from git {ref}: {exc}")
