@@ -158,10 +158,10 @@ def report(label, path, rounds, m, t_append, t_update):
 
 
 def load_old(ref):
-    """The previous samplelog.py from git as a temporary module (or None if unavailable/identical)."""
+    """A samplelog.py from git (refs before it was split into io/reader, writer, lock) as a temporary module, or None."""
     repo = Path(__file__).resolve().parents[1]
     try:
-        src = subprocess.run(["git", "-C", str(repo), "show", f"{ref}:mcrecon/io/writer.py"],
+        src = subprocess.run(["git", "-C", str(repo), "show", f"{ref}:mcrecon/io/samplelog.py"],
                              capture_output=True, text=True, check=True).stdout
     except (OSError, subprocess.CalledProcessError) as exc:
         print(f"[old code] not available from git {ref}: {exc}")
