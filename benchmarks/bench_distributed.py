@@ -60,11 +60,11 @@ def _memory_loop(reps: int) -> float:
 
 def _frames_loop(paths: list, method: str) -> float:
     os.environ["MCRECON_THREADS"] = "1"
-    from mcrecon.distributed.batch import denoise_frame
+    from mcrecon.distributed.batch import reconstruct_frame
 
     out = Path(tempfile.gettempdir()) / f"mcrecon-bench-plain-{os.getpid()}.exr"
     for p in paths:
-        denoise_frame(p, out, method, {})
+        reconstruct_frame(p, out, method, {})
     out.unlink(missing_ok=True)
     return 0.0
 
@@ -142,9 +142,9 @@ def _housekeeping_cpu(client):
 
 
 def _warm(log, out_dir, method):
-    from mcrecon.distributed.batch import denoise_frame
+    from mcrecon.distributed.batch import reconstruct_frame
 
-    denoise_frame(log, f"{out_dir}/warm-{os.getpid()}.exr", method, {})
+    reconstruct_frame(log, f"{out_dir}/warm-{os.getpid()}.exr", method, {})
 
 
 def _write_logs(args, work: Path):
@@ -245,7 +245,7 @@ def main():
                         cpu = _housekeeping_cpu(c)
                         cpu0 = cpu and cpu()
                         t = time.perf_counter()
-                        res = D_batch.denoise_many(paths, method=args.method, client=c, out_dir=work / "out",
+                        res = D_batch.reconstruct_many(paths, method=args.method, client=c, out_dir=work / "out",
                                              force=True, progress=False, summary=False)
                         times[label].append(time.perf_counter() - t)
                         if cpu:

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+
+import mcrecon
 import pytest
 
 from mcrecon import InputError
@@ -57,6 +59,18 @@ def test_info_counts_nonfinite_and_negative(tmp_path, capsys):
     code, out, err = run(["info", tmp_path / "x.h5", "--json"], capsys)
     info = json.loads(out)
     assert info["nonfinite_samples"] == 2 and info["negative_samples"] == 1 and info["empty_pixels"] == 1
+
+
+def test_reconstruct_is_the_verb_and_denoise_its_alias(scene_log, tmp_path, capsys):
+    """One verb (issue 23): `mcrecon reconstruct`, as mcrecon.reconstruct; `denoise` stays an alias."""
+    a, b = tmp_path / "a.exr", tmp_path / "b.exr"
+    assert run(["reconstruct", scene_log, "-o", a, "--method", "gem"], capsys)[0] == 0
+    assert run(["denoise", scene_log, "-o", b, "--method", "gem"], capsys)[0] == 0
+    np.testing.assert_array_equal(read_exr(a)[0], read_exr(b)[0])
+    np.testing.assert_array_equal(read_exr(a)[0], mcrecon.reconstruct(scene_log, method="gem").astype(np.float32))
+    from mcrecon.cli import build_parser
+
+    assert "alias: denoise" in build_parser().format_help()
 
 
 def test_denoise_writes_exr_png_and_diagnostics(scene_log, tmp_path, capsys):

@@ -81,10 +81,10 @@ def test_batch_equals_denoise_bit_for_bit_bad_frame_and_rerun(client, frames, tm
     assert all((out / f"f{i}.exr").stat().st_mtime_ns == mtimes[i] for i in range(3))
     # a log newer than its output is redone; so is every frame under other options
     os.utime(frames / "f1.h5", ns=(mtimes[1] + 10**9, mtimes[1] + 10**9))
-    res = D_batch.denoise_many([frames / f"f{i}.h5" for i in range(3)], method="gem", gamma=0.25, out_dir=out,
+    res = D_batch.reconstruct_many([frames / f"f{i}.h5" for i in range(3)], method="gem", gamma=0.25, out_dir=out,
                          client=client)
     assert [r["status"] for r in res.records] == ["skipped", "done", "skipped"] and res.ok
-    res = D_batch.denoise_many([frames / f"f{i}.h5" for i in range(3)], method="gem", gamma=0.3, out_dir=out,
+    res = D_batch.reconstruct_many([frames / f"f{i}.h5" for i in range(3)], method="gem", gamma=0.3, out_dir=out,
                          client=client)
     assert [r["status"] for r in res.records] == ["done"] * 3
 

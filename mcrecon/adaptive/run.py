@@ -342,7 +342,7 @@ def _resume(log_path, renderer, *, progress, time_limit, track_error, on_round) 
     s = sl.run_settings
     if not s:
         raise InputError(str(log_path), "run settings", "none recorded: this log was not written by an "
-                         "adaptive run (use `mcrecon denoise` for offline logs)")
+                         "adaptive run (use `mcrecon reconstruct` for offline logs)")
     if renderer is None:
         spec = s.get("renderer_spec")
         if not spec:

@@ -11,14 +11,14 @@ __all__ = ["register"]
 
 
 def _cmd_batch(args):
-    from ..distributed.batch import denoise_many
+    from ..distributed.batch import reconstruct_many
     from ..errors import InputError
 
     if args.workers is not None and args.scheduler is not None:
         raise InputError("batch", "--workers/--scheduler", "give one: --workers N starts a local cluster, "
                          "--scheduler ADDRESS uses a running one")
     method = make_method(args.method, args, args.method_flags)
-    res = denoise_many(args.logs, method=method, out_dir=args.out_dir, scheduler=args.scheduler,
+    res = reconstruct_many(args.logs, method=method, out_dir=args.out_dir, scheduler=args.scheduler,
                        workers=args.workers, nonfinite=args.nonfinite, force=args.force, png=args.png,
                        exposure=args.exposure, progress=False if args.quiet else None)
     done = sum(r["status"] == "done" for r in res.records)
@@ -48,7 +48,7 @@ def register(sub, command: str | None = None) -> None:
     ``command`` is ``batch`` or None: they need every method class)."""
     s = sub.add_parser("batch", help="reconstruct many sample logs on a Dask cluster (one EXR per log)",
                        formatter_class=HelpFormatter,
-                       description="Reconstruct every log into OUT_DIR/<log name>.exr exactly as `mcrecon denoise` "
+                       description="Reconstruct every log into OUT_DIR/<log name>.exr exactly as `mcrecon reconstruct` "
                                    "would, on a local Dask cluster (--workers) or a running scheduler "
                                    "(--scheduler). A rerun skips frames whose EXR is newer than the log and readable (its header "
                                    "fits the log); a failing "

@@ -70,7 +70,7 @@ def _cmd_methods(args):
     doc = (cls.__doc__ or "").strip().splitlines()
     print(f"{args.name}: {doc[0].strip() if doc else ''}")
     print(f"adaptive sampling: {'yes, it places samples itself' if cls.adaptive else 'no, uniform rounds'}")
-    print(f"\noptions (flags of `mcrecon denoise/adapt --method {args.name}`):")
+    print(f"\noptions (flags of `mcrecon reconstruct/adapt --method {args.name}`):")
     if not cls.options:
         print("  (none)")
     indent = " " * 27

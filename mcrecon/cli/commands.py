@@ -119,7 +119,7 @@ def _read_pixel_stats_input(args):
     return method, _PixelStatsInput(pix, other), source
 
 
-def _cmd_denoise(args):
+def _cmd_reconstruct(args):
     from ..io import read_log
     from ..core.metrics import relative_mse
     from ..offline.reconstruction import reconstruct
@@ -374,7 +374,8 @@ def register(sub, command: str | None = None) -> None:
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=_cmd_info)
 
-    denoise = sub.add_parser("denoise", help="reconstruct an image from a sample log", formatter_class=HelpFormatter)
+    denoise = sub.add_parser("reconstruct", aliases=["denoise"], formatter_class=HelpFormatter,
+                             help="reconstruct an image from a sample log or a pixel-statistics EXR (alias: denoise)")
     denoise.add_argument("log", help="a sample log (.h5), or an EXR of per-pixel statistics (.exr: mean, "
                          "variance, count; see docs/pixel-statistics-inputs.md)")
     _outputs(denoise)
@@ -405,7 +406,7 @@ def register(sub, command: str | None = None) -> None:
                     help="the other half of a half-buffer pair: an EXR of samples independent of LOG's (dual "
                          "buffers), read with the same layout flags (--spp/--count: each half's own); for methods "
                          "that use half buffers (auto)")
-    denoise.set_defaults(func=_cmd_denoise)
+    denoise.set_defaults(func=_cmd_reconstruct)
 
     s = adapt = sub.add_parser("adapt", help="run adaptive rounds against a renderer", formatter_class=HelpFormatter)
     s.add_argument("--scene", default=None, help="built-in scene (see `mcrecon scenes`)")
@@ -451,7 +452,7 @@ def register(sub, command: str | None = None) -> None:
     # a command has its own --NAME (ci's exposure: --method-exposure).
     # They need every method class: built only when one of these commands runs.
     flags = None
-    if command is None or command in ("denoise", "adapt", "methods"):
+    if command is None or command in ("reconstruct", "denoise", "adapt", "methods"):
         taken = set(denoise._option_string_actions) | set(adapt._option_string_actions)
         flags = method_flags(taken)
         from ..methods import available_methods

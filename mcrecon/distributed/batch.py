@@ -2,7 +2,7 @@
 
 Three entry points, each identical in result to the one-process path:
 
-:func:`denoise_many`
+:func:`reconstruct_many`
     Many sample logs -> one EXR each (``mcrecon batch``): one task per
     frame, run with :func:`mcrecon.reconstruct` exactly as ``mcrecon
     denoise`` runs it, so the images are bit-identical.  Outputs are
@@ -55,7 +55,7 @@ from ..errors import InputError, McreconWarning
 from .._lazy import public_dir as _public_dir  # noqa: E402
 from .cluster import _client_for, _dask, _local_workers, _one_line, _worker_name
 
-__all__ = ['denoise_many', 'BatchResult', 'denoise_frame', 'SUMMARY_NAME']
+__all__ = ['reconstruct_many', 'BatchResult', 'reconstruct_frame', 'SUMMARY_NAME']
 
 #: Base name of the batch summary files in ``out_dir`` (``.csv`` and ``.json``).
 SUMMARY_NAME = "batch_summary"
@@ -67,9 +67,9 @@ SUMMARY_FIELDS = ("frame", "log", "output", "status", "method", "rel_mse", "seco
 # 1. Many logs -> many images
 # ----------------------------------------------------------------------------
 
-def denoise_frame(log_path, out_path, method: str, options: dict, *, nonfinite: str = "drop",
+def reconstruct_frame(log_path, out_path, method: str, options: dict, *, nonfinite: str = "drop",
                   png: bool = False, exposure: float = 0.0) -> dict:
-    """Reconstruct one frame exactly as ``mcrecon denoise`` does and write its EXR atomically.
+    """Reconstruct one frame exactly as ``mcrecon reconstruct`` does and write its EXR atomically.
 
     Runs on a worker; never raises: a failure comes back as
     ``status='failed'`` with the one-line error.
@@ -106,7 +106,7 @@ def denoise_frame(log_path, out_path, method: str, options: dict, *, nonfinite: 
 
 @dataclasses.dataclass
 class BatchResult:
-    """What :func:`denoise_many` did: one record per frame (in input order) and the summary files."""
+    """What :func:`reconstruct_many` did: one record per frame (in input order) and the summary files."""
 
     records: list
     summary_csv: Path | None
@@ -250,7 +250,7 @@ def _write_summary(out_dir: Path, records: list, config: dict, seconds: float) -
     return csv_path, json_path
 
 
-def denoise_many(paths, *, method="box", out_dir, client=None, scheduler: str | None = None,
+def reconstruct_many(paths, *, method="box", out_dir, client=None, scheduler: str | None = None,
                  workers: int | None = None, nonfinite: str = "drop", force: bool = False, png: bool = False,
                  exposure: float = 0.0, progress: bool | None = None, summary: bool = True,
                  **options) -> BatchResult:
@@ -318,7 +318,7 @@ def denoise_many(paths, *, method="box", out_dir, client=None, scheduler: str | 
         with _client_for(client, scheduler, workers) as c:
             futures = {}
             for i, p, out in todo:
-                f = c.submit(denoise_frame, str(p), str(out), config["method"], config["options"],
+                f = c.submit(reconstruct_frame, str(p), str(out), config["method"], config["options"],
                              nonfinite=nonfinite, png=png, exposure=exposure, pure=False,
                              key=f"mcrecon-frame-{i}-{p.stem}-{os.urandom(4).hex()}")
                 futures[f] = i

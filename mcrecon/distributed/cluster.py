@@ -74,7 +74,7 @@ def local_client(workers: int | None = None, *, threads: int | None = None):
     # to the OS).  Setting it also switches off glibc's adaptive mmap threshold, so every
     # image-sized temporary becomes a fresh mmap whose pages fault in on first touch: a 512^2,
     # 32-spp gem frame took 1.00-1.03 s instead of 0.79-0.88 s in the same process
-    # (docs/distributed.md, "Measured scaling").  Our workers allocate as `mcrecon denoise`
+    # (docs/distributed.md, "Measured scaling").  Our workers allocate as `mcrecon reconstruct`
     # does; an explicit MALLOC_TRIM_THRESHOLD_ in the environment is still inherited.
     with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None, **_QUIET}):
         cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,

@@ -232,7 +232,7 @@ def ingest(log, *, client=None, scheduler: str | None = None, workers: int | Non
     ----------
     log : path or SampleLog
         On a file system the workers share.
-    client, scheduler, workers : see :func:`denoise_many`
+    client, scheduler, workers : see :func:`reconstruct_many`
     parts : int, optional
         Row ranges (default: one per worker).  Each worker holds the
         image-sized partial statistics of its range plus two chunks; only

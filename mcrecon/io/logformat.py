@@ -152,7 +152,7 @@ def _open(path, mode="r"):
 
 #: What the commands reading a file take, for the message about a file that is none of them.
 _ACCEPTED_INPUTS = ("expected an HDF5 sample log (.h5, from a renderer or `mcrecon render-log`: "
-                    "docs/sample-log-format.md); `mcrecon denoise` also takes a pixel-statistics EXR whose path "
+                    "docs/sample-log-format.md); `mcrecon reconstruct` also takes a pixel-statistics EXR whose path "
                     "ends in .exr (mean, variance, count: docs/pixel-statistics-inputs.md)")
 
 

@@ -536,11 +536,11 @@ class Method:
                                  "independent half buffers, which one set of pixel statistics does not hold; give "
                                  f"it samples (mcrecon.reconstruct(log_or_samples, method={self.name!r}), "
                                  f"MethodInputs.samples) or a half-buffer pair (mcrecon.reconstruct((stats_a, "
-                                 f"stats_b), method={self.name!r}), MethodInputs.halves, `mcrecon denoise A.exr "
+                                 f"stats_b), method={self.name!r}), MethodInputs.halves, `mcrecon reconstruct A.exr "
                                  f"--half-buffer B.exr --method {self.name}`)")
             raise InputError(self.where, "input", f"{self.name} filters individual samples, which pixel "
                              "statistics no longer hold; give it samples (mcrecon.reconstruct(log_or_samples, "
-                             f"method={self.name!r}) or `mcrecon denoise LOG --method {self.name}`)")
+                             f"method={self.name!r}) or `mcrecon reconstruct LOG --method {self.name}`)")
         if req.subpixels and inputs.stats is not None and inputs.stats.subpixels != req.subpixels:
             raise InputError(self.where, "statistics", f"need a {req.subpixels}x{req.subpixels} subpixel grid, "
                              f"got subpixels={inputs.stats.subpixels}; build them with "
