@@ -10,7 +10,20 @@ from __future__ import annotations
 __all__ = ["InputError", "RendererError", "McreconWarning"]
 
 
-class InputError(ValueError):
+class _Located:
+    """An error that says where, which field and what was expected: ``"where: field: problem"``."""
+
+    def __init__(self, where: str, field: str, problem: str):
+        self.where = str(where)
+        self.field = str(field)
+        self.problem = str(problem)
+        super().__init__(f"{self.where}: {self.field}: {self.problem}")
+
+    def __reduce__(self):  # pickled as built (Dask workers send errors back)
+        return type(self), (self.where, self.field, self.problem)
+
+
+class InputError(_Located, ValueError):
     """Bad input at a boundary: a file, a CLI argument, an option value.
 
     Parameters
@@ -23,25 +36,14 @@ class InputError(ValueError):
         What is wrong and what was expected (the fix).
     """
 
-    def __init__(self, where: str, field: str, problem: str):
-        self.where = str(where)
-        self.field = str(field)
-        self.problem = str(problem)
-        super().__init__(f"{self.where}: {self.field}: {self.problem}")
 
 
-class RendererError(RuntimeError):
+class RendererError(_Located, RuntimeError):
     """A renderer failed to answer a request, or answered it wrongly.
 
     The adaptive driver raises it after the log holds every committed
-    round, so the run can be resumed.
+    round, so the run can be resumed.  ``where`` names the renderer.
     """
-
-    def __init__(self, renderer: str, field: str, problem: str):
-        self.where = str(renderer)
-        self.field = str(field)
-        self.problem = str(problem)
-        super().__init__(f"{self.where}: {self.field}: {self.problem}")
 
 
 class McreconWarning(UserWarning):

@@ -235,3 +235,15 @@ def test_gem_scale_counts_are_bounded(tmp_path, capsys, flag, value):
     path = _log(tmp_path)
     code, _, err = _cli(["denoise", path, "-o", tmp_path / "o.exr", "--method", "gem", flag, value], capsys)
     _one_line(code, err, flag.lstrip("-").replace("-", "_"))
+
+
+def test_boundary_errors_name_where_field_and_problem_and_pickle_as_built():
+    import pickle
+
+    from mcrecon.errors import InputError, RendererError
+
+    for cls, base in ((InputError, ValueError), (RendererError, RuntimeError)):
+        e = cls("run.h5", "values", "NaN in row 3; fix the renderer")
+        assert isinstance(e, base) and str(e) == "run.h5: values: NaN in row 3; fix the renderer"
+        back = pickle.loads(pickle.dumps(e))
+        assert type(back) is cls and (back.where, back.field, back.problem) == (e.where, e.field, e.problem)

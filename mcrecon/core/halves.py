@@ -157,39 +157,40 @@ def _flush_run(pix, val, lab, half, k, end, m, width, count, mean, m2, vmin, vma
         vmax[iy, ix, c] = max(vmax[iy, ix, c], hi)
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _flush_half(h, pix, val, lab, start, end, size, width, ca, mean_a, m2_a, min_a, max_a, cb, mean_b, m2_b,
+                min_b, max_b):
+    if h == 0:
+        _flush_run(pix, val, lab, 0, start, end, size, width, ca, mean_a, m2_a, min_a, max_a)
+    else:
+        _flush_run(pix, val, lab, 1, start, end, size, width, cb, mean_b, m2_b, min_b, max_b)
+
+
 @numba.njit(cache=True, nogil=True)
 def _split_part(pix, val, lab, p_lo, p_hi, width, ca, mean_a, m2_a, min_a, max_a, cb, mean_b, m2_b, min_b,
                 max_b):
     # follow every half's runs through the whole stream; merge those of pixels in [p_lo, p_hi)
-    s0 = l0 = p0 = -1
-    s1 = l1 = p1 = -1
-    z0 = z1 = 0
+    start = np.full(2, -1, np.int64)   # per half: first and last sample of its current run,
+    last = np.full(2, -1, np.int64)    # the run's pixel and its length
+    pixel = np.full(2, -1, np.int64)
+    size = np.zeros(2, np.int64)
     for k in range(pix.size):
         p = pix[k]
-        if lab[k] == 0:
-            if z0 > 0 and p0 != p:
-                if p_lo <= p0 < p_hi:
-                    _flush_run(pix, val, lab, 0, s0, l0 + 1, z0, width, ca, mean_a, m2_a, min_a, max_a)
-                z0 = 0
-            if z0 == 0:
-                s0 = k
-                p0 = p
-            z0 += 1
-            l0 = k
-        else:
-            if z1 > 0 and p1 != p:
-                if p_lo <= p1 < p_hi:
-                    _flush_run(pix, val, lab, 1, s1, l1 + 1, z1, width, cb, mean_b, m2_b, min_b, max_b)
-                z1 = 0
-            if z1 == 0:
-                s1 = k
-                p1 = p
-            z1 += 1
-            l1 = k
-    if z0 > 0 and p_lo <= p0 < p_hi:
-        _flush_run(pix, val, lab, 0, s0, l0 + 1, z0, width, ca, mean_a, m2_a, min_a, max_a)
-    if z1 > 0 and p_lo <= p1 < p_hi:
-        _flush_run(pix, val, lab, 1, s1, l1 + 1, z1, width, cb, mean_b, m2_b, min_b, max_b)
+        h = 0 if lab[k] == 0 else 1
+        if size[h] > 0 and pixel[h] != p:
+            if p_lo <= pixel[h] < p_hi:
+                _flush_half(h, pix, val, lab, start[h], last[h] + 1, size[h], width, ca, mean_a, m2_a, min_a,
+                            max_a, cb, mean_b, m2_b, min_b, max_b)
+            size[h] = 0
+        if size[h] == 0:
+            start[h] = k
+            pixel[h] = p
+        size[h] += 1
+        last[h] = k
+    for h in range(2):
+        if size[h] > 0 and p_lo <= pixel[h] < p_hi:
+            _flush_half(h, pix, val, lab, start[h], last[h] + 1, size[h], width, ca, mean_a, m2_a, min_a, max_a,
+                        cb, mean_b, m2_b, min_b, max_b)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
+from .samples import as_hwc
 
 
 from .._lazy import public_dir as _public_dir  # noqa: E402
@@ -39,12 +40,7 @@ def _pair(img, ref, where="compare", *, names=None, finite_image=False):
     compared), else the roles; ``finite_image`` refuses NaN/Inf in the
     image too.
     """
-    a = np.asarray(img, dtype=np.float64)
-    b = np.asarray(ref, dtype=np.float64)
-    if a.ndim == 2:
-        a = a[..., None]
-    if b.ndim == 2:
-        b = b[..., None]
+    a, b = as_hwc(img), as_hwc(ref)
     if a.shape != b.shape:
         if names is not None:
             raise InputError(f"{names[0]} / {names[1]}", "shape", f"{a.shape} and {b.shape} (height, width, "

@@ -529,6 +529,12 @@ def float32_loses_spread(positions, values, *, width: int, height: int) -> int:
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
+def as_hwc(image, dtype=np.float64) -> np.ndarray:
+    """An image as (H, W, C) of ``dtype``: a single-channel (H, W) array gets a channel axis."""
+    a = np.asarray(image, dtype=dtype)
+    return a[..., None] if a.ndim == 2 else a
+
+
 def pixel_index(positions: np.ndarray, width: int) -> np.ndarray:
     """Flat pixel index ``row * width + col`` of film positions."""
     pos = np.asarray(positions)

@@ -32,7 +32,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from ..errors import InputError
-from .samples import (apply_nonfinite, check_memory, check_policy, check_samples, lazy_njit,
+from .samples import (as_hwc, apply_nonfinite, check_memory, check_policy, check_samples, lazy_njit,
     warn_nonfinite)
 
 
@@ -332,12 +332,7 @@ class PixelStats:
         """
         if variance_of not in ("samples", "mean"):
             raise InputError(where, "variance_of", f"{variance_of!r}; valid: samples, mean")
-        m = np.asarray(mean, dtype=np.float64)
-        v = np.asarray(variance, dtype=np.float64)
-        if m.ndim == 2:
-            m = m[..., None]
-        if v.ndim == 2:
-            v = v[..., None]
+        m, v = as_hwc(mean), as_hwc(variance)
         if m.ndim != 3 or m.shape[0] < 1 or m.shape[1] < 1 or m.shape[2] < 1:
             raise InputError(where, "mean", f"shape {np.shape(mean)}, expected (height, width, channels)")
         if v.shape != m.shape:

@@ -106,17 +106,11 @@ def _draw(vals, lo, n, state, k, target, s1, s2):
         while k < target:
             state = state + _GOLDEN
             z = _mix64(state)
-            r = lo + np.int64(((z >> sh) * nn) >> sh)
-            v0, v1, v2 = vals[r, 0], vals[r, 1], vals[r, 2]
-            a1 += v0
-            b1 += v1
-            c1 += v2
-            a2 += v0 * v0
-            b2 += v1 * v1
-            c2 += v2 * v2
-            k += 1
-            if k < target:
-                r = lo + np.int64(((z & m32) * nn) >> sh)
+            for half in range(2):  # the high 32 bits, then the low ones (unless the target is reached)
+                if half == 1 and k >= target:
+                    break
+                bits = (z >> sh) if half == 0 else (z & m32)
+                r = lo + np.int64((bits * nn) >> sh)
                 v0, v1, v2 = vals[r, 0], vals[r, 1], vals[r, 2]
                 a1 += v0
                 b1 += v1
