@@ -8,6 +8,7 @@ sRGB curve, then clipped to [0, 1] for display).
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import re
 import sys
@@ -91,8 +92,11 @@ def _quiet_fds():
     Yields the file, whose text is the library's words (for the message).
     """
     saved = []
-    # one at a time: two threads swapping fds 1/2 would restore each other's sinks
-    with _FD_LOCK, tempfile.TemporaryFile(mode="w+b") as sink:
+    # one at a time: two threads swapping fds 1/2 would restore each other's sinks; the binding may
+    # also print through Python's sys.stdout/sys.stderr, kept apart and added to the sink at the end
+    py_out = io.StringIO()
+    with _FD_LOCK, tempfile.TemporaryFile(mode="w+b") as sink, contextlib.redirect_stdout(py_out), \
+            contextlib.redirect_stderr(py_out):
         for stream in (sys.stdout, sys.stderr):
             with contextlib.suppress(AttributeError, ValueError, OSError):
                 stream.flush()
@@ -105,9 +109,21 @@ def _quiet_fds():
                 os.dup2(sink.fileno(), fd)
             yield sink
         finally:
+            _flush_c_streams()  # what the library printed is still in libc's buffers: into the sink with it
+            if py_out.getvalue():
+                sink.seek(0, os.SEEK_END)
+                sink.write(py_out.getvalue().encode(errors="replace"))
             for fd, copy in saved:
                 os.dup2(copy, fd)
                 os.close(copy)
+
+
+def _flush_c_streams() -> None:
+    """fflush(NULL): C's (and C++'s, synced with them) buffered output reaches its file descriptor now."""
+    import ctypes
+
+    with contextlib.suppress(OSError, AttributeError, TypeError):
+        ctypes.CDLL(None).fflush(None)
 
 
 def _exr_failure(path: Path, exc: Exception, said: bytes) -> InputError:
@@ -140,6 +156,7 @@ def open_exr(path) -> tuple[dict, dict, dict]:
     if not path.exists():
         raise InputError(str(path), "file", "does not exist")
     with _quiet_fds() as sink:
+        f = chans = None
         try:
             f = OpenEXR.File(str(path), separate_channels=True)
             chans = f.channels()
@@ -149,6 +166,9 @@ def open_exr(path) -> tuple[dict, dict, dict]:
             exc = None
         except Exception as e:  # noqa: BLE001 - OpenEXR raises bare RuntimeErrors and others
             exc = e
+            exc.__traceback__ = None  # nothing keeps the half-read file alive past the silenced region
+        del f, chans  # the library may still print as it closes the file
+        _flush_c_streams()
         sink.seek(0)
         said = sink.read()
     if exc is not None:
