@@ -46,7 +46,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from mcrecon.io import reader as samplelog
+from mcrecon.io import writer as samplelog  # the log writer: write_log, append_log, its chunk constants
 
 W, H = 64, 64
 SAMPLE_BYTES = 2 * 4 + 3 * 4 + 4  # float32 positions, float32 RGB values, int32 round index

@@ -24,7 +24,7 @@ import inspect
 import numpy as np
 
 from .errors import InputError
-from .methods import get_method
+from .methods import get_method, method_class
 from .core.samples import SampleSet
 
 __all__ = ["box", "gem", "awr", "splat", "auto"]
@@ -40,7 +40,7 @@ def _run(name: str, source, reference, nonfinite: str, options: dict, unknown: d
 
     where = f"mcrecon.restoration.{name}"
     if unknown:
-        valid = sorted(options)
+        valid = sorted(o.name for o in method_class(name).options)
         raise InputError(where, sorted(unknown)[0], f"unknown option; valid: {', '.join(valid) or '(none)'}")
     method = get_method(name, **options)
     inputs = gather_inputs(source, method, nonfinite=nonfinite, reference=reference, where=where, logs=False)

@@ -100,16 +100,32 @@ def test_methods_never_open_files_and_each_method_imports_only_the_contract_and_
     bad = []
     for mod, path, is_pkg in _modules():
         parts = mod.split(".")
-        if len(parts) < 3 or parts[1] != "methods" or parts[2] in ("base", "__init__"):
+        if len(parts) < 2 or parts[1] != "methods":
             continue
         own = ".".join(parts[:3])
+        contract = len(parts) < 3 or parts[2] == "base"  # the registry and the contract
         for target, line in _imports(mod, path, is_pkg):
             tparts = target.split(".")
             if len(tparts) >= 2 and tparts[1] == "io":
                 bad.append(f"{path.relative_to(PACKAGE.parent)}:{line} opens files through {target}")
-            if len(tparts) >= 3 and tparts[1] == "methods" and tparts[2] != "base" \
+            if not contract and len(tparts) >= 3 and tparts[1] == "methods" and tparts[2] != "base" \
                     and ".".join(tparts[:3]) != own:
                 bad.append(f"{path.relative_to(PACKAGE.parent)}:{line} ({own}) imports another method: {target}")
+    assert not bad, "\n".join(bad)
+
+
+def test_only_io_opens_hdf5_and_exr_files():
+    """h5py and OpenEXR are imported by io/ alone, and by the out-of-process renderer, whose request and
+    reply files are its protocol with the renderer (docs/architecture.md); never by a method."""
+    allowed = ("mcrecon.io", "mcrecon.renderers.command")
+    bad = []
+    for mod, path, _ in _modules():
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else []
+            for n in names:
+                if n.split(".")[0] in ("h5py", "OpenEXR") and not mod.startswith(allowed):
+                    bad.append(f"{path.relative_to(PACKAGE.parent)}:{node.lineno} imports {n}")
     assert not bad, "\n".join(bad)
 
 

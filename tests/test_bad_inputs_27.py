@@ -327,3 +327,14 @@ def test_compare_takes_the_reference_stored_in_a_sample_log(tmp_path, capsys):
     bare = write_log(tmp_path / "bare.h5", rng.random((40, 2)) * [8, 6], rng.random((40, 3)), width=8, height=6)
     code, out, err = _cli(["compare", a, bare], capsys)
     _one_line(code, err, str(bare), "no reference", "render-log")
+
+
+def test_a_log_the_disk_cannot_hold_is_refused_before_rendering(tmp_path):
+    """`mcrecon mitsuba log --spp 9223372036854775807` used to render pass after pass into the log until
+    the disk was full; the size is now checked before the first sample (the check the command uses)."""
+    from mcrecon.io.writer import check_log_fits
+
+    with pytest.raises(InputError, match=r"mitsuba log: spp: .* GiB, more than the .* GiB free .*lower --spp"):
+        check_log_fits(tmp_path / "big.h5", 2 ** 62, 3, where="mitsuba log")
+    check_log_fits(tmp_path / "small.h5", 1000, 3, where="mitsuba log")  # fits: no error
+    assert not (tmp_path / "big.h5").exists()

@@ -107,6 +107,12 @@ def test_batch_literal_name_and_damaged_output_redone(client, shots, tmp_path, c
     assert "damaged" in cap.err and "not a readable EXR" in cap.err and str(exr) in cap.err
     assert exr.read_bytes() == good
 
+    exr.write_bytes(good[:len(good) // 2])               # cut after its header: the pixels are missing
+    assert main(argv) == 0
+    cap = capsys.readouterr()
+    assert "1 reconstructed" in cap.out and "not a readable EXR" in cap.err
+    assert exr.read_bytes() == good
+
     write_exr(exr, np.zeros((4, 4, 3)))                  # readable, but not this log's size
     assert main(argv) == 0
     cap = capsys.readouterr()

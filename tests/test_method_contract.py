@@ -265,14 +265,23 @@ def test_register_method_adds_a_class_or_a_path_and_refuses_clashes():
         assert "halved_test" in mcrecon.available_methods()
         st = mcrecon.PixelStats.from_moments(np.full((2, 3, 3), 4.0), np.ones((2, 3, 3)), np.full((2, 3), 2))
         np.testing.assert_array_equal(mcrecon.reconstruct(st, method="halved_test"), 2.0)
+        # a path is imported on first use; its class must carry the registered name
         registry.register_method("box_path_test", "mcrecon.methods.box:BoxMethod")
-        assert type(mcrecon.get_method("box_path_test")) is BoxMethod
+        with pytest.raises(InputError, match="box_path_test.*not available.*name is 'box'"):
+            mcrecon.get_method("box_path_test")
         with pytest.raises(InputError, match="registered already"):
-            registry.register_method("gem", Halved)  # a built-in is never replaced
+            registry.register_method("gem", type("GemToo", (Halved,), {"name": "gem"}))  # a built-in stays
+
+        class HalvedToo(Halved):
+            name = "halved_test"
+
         with pytest.raises(InputError, match="replace=True"):
-            registry.register_method("halved_test", BoxMethod)
-        registry.register_method("halved_test", BoxMethod, replace=True)
-        assert type(mcrecon.get_method("halved_test")) is BoxMethod
+            registry.register_method("halved_test", HalvedToo)
+        registry.register_method("halved_test", HalvedToo, replace=True)
+        assert type(mcrecon.get_method("halved_test")) is HalvedToo
+        # the log records the method's own name and --resume looks it up: the two must agree
+        with pytest.raises(InputError, match="Halved.name is 'halved_test'.*--resume"):
+            registry.register_method("other_name", Halved)
         with pytest.raises(InputError, match="not a subclass"):
             registry.register_method("nope", dict)
     finally:

@@ -130,8 +130,20 @@ def test_convergence_writes_a_default_folder(tmp_path, monkeypatch, capsys):
     assert (tmp_path / "convergence_flat" / "report.md").exists() and "wrote convergence_flat" in out
 
 
+def test_bias_and_the_experiments_write_a_default_folder(tmp_path, monkeypatch, capsys):
+    """`mcrecon bias --scene flat` stopped at `the following arguments are required: --out`, as convergence did."""
+    monkeypatch.chdir(tmp_path)
+    code, out, err = run(["bias", "--scene", "flat", "--size", "8x8", "--spp", "8", "--B", "20"], capsys)
+    assert code == 0, err
+    assert (tmp_path / "bias_flat" / "bias.json").exists() and "wrote bias_flat" in out
+    from mcrecon.cli import build_parser
+
+    for cmd in (["experiment", "stability"], ["experiment", "gallery"], ["experiment", "error-rate"],
+                ["experiment", "normality", "--scene", "flat"]):
+        assert build_parser(cmd[0]).parse_args(cmd).out is None  # not required; the command names it
+
+
 def test_demo_says_it_compiles_and_times_without_compiling(tmp_path, monkeypatch, capsys):
-    from mcrecon.cli import builtins, commands
     from mcrecon.cli import builtins as commands_builtins
 
     calls = []

@@ -535,3 +535,15 @@ def test_a_pipelined_round_1_is_never_placed_from_empty_statistics(name):
     assert r0.positions is None and r1.positions is None
     assert r1.counts.max() - r1.counts.min() <= 1
     assert r0.total + r1.total == m.option_default("initial_spp") * w * h
+
+
+@pytest.mark.parametrize("pipeline", [False, True])
+def test_a_placement_of_no_positions_asks_for_nothing(pipeline):
+    """place() returning an empty (0, 2) array is a round of nothing: the run ends (or, pipelined, waits
+    for the round in flight first), never an invalid request."""
+    class Nowhere(_Spy):
+        def place(self, run, state, n):
+            return np.zeros((0, 2))
+
+    res = adapt(_renderer(), Nowhere(), spp=4, seed=1, pipeline=pipeline)
+    assert res.stopped == "converged" and res.samples == 16 * 12

@@ -67,7 +67,7 @@ def test_exposure_is_in_stops_everywhere():
 
 PUBLIC_MODULES = ["mcrecon", "mcrecon.restoration", "mcrecon.methods", "mcrecon.io", "mcrecon.renderers",
                   "mcrecon.core.metrics", "mcrecon.offline", "mcrecon.core.samples", "mcrecon.core.stats", "mcrecon.adaptive",
-                  "mcrecon.distributed", "mcrecon.experiments"]
+                  "mcrecon.distributed", "mcrecon.experiments", "mcrecon.core", "mcrecon.filters"]
 
 
 @pytest.mark.parametrize("name", PUBLIC_MODULES)

@@ -104,6 +104,9 @@ def test_validation_at_the_top():
         restoration.gem(PixelStats.from_samples(pos, val, width=24, height=20), gamma=0.5)
     with pytest.raises(InputError, match="unknown option; valid"):
         restoration.gem(PixelStats.from_samples(pos, val, width=24, height=20), sigma=2)
+    # the message lists every valid option, not only those the call gave
+    with pytest.raises(InputError, match="valid: .*confirm_stops.*gamma.*variant"):
+        restoration.gem(PixelStats.from_samples(pos, val, width=24, height=20), gamma=0.3, gamm=0.2)
     with pytest.raises(InputError, match="expected PixelStats"):
         restoration.gem(np.zeros((4, 4, 3)))
 

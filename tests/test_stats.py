@@ -244,3 +244,30 @@ def test_fill_from_neighbours_stays_in_the_range_of_the_defined_values():
         out = fill_from_neighbours(v, d)
         assert out.min() >= v[d].min() and out.max() <= v[d].max()
         np.testing.assert_array_equal(out[d], v[d])
+
+
+def test_crop_is_the_statistics_of_the_window_and_a_row_view_shares_memory():
+    from mcrecon import InputError
+
+    rng = np.random.default_rng(7)
+    pos = rng.random((4000, 2)) * [10, 8]
+    val = rng.random((4000, 3))
+    st = PixelStats.from_samples(pos, val, width=10, height=8, subpixels=2)
+    c = st.crop(2, 6, 3, 9)
+    inside = (pos[:, 0] >= 3) & (pos[:, 0] < 9) & (pos[:, 1] >= 2) & (pos[:, 1] < 6)
+    direct = PixelStats.from_samples(pos[inside] - [3, 2], val[inside], width=6, height=4, subpixels=2)
+    assert (c.width, c.height) == (6, 4)
+    np.testing.assert_array_equal(c.count, direct.count)
+    np.testing.assert_allclose(c.mean, direct.mean, rtol=1e-12)
+    np.testing.assert_allclose(c.m2, direct.m2, rtol=1e-9, atol=1e-12)
+    np.testing.assert_array_equal(c.sub_count, direct.sub_count)
+    assert not np.shares_memory(c.mean, st.mean)
+    rows = st.crop(1, 3, view=True)
+    assert np.shares_memory(rows.mean, st.mean) and rows.height == 2
+    arrays, fields = st.to_arrays()
+    back = PixelStats.from_arrays(arrays, fields)
+    assert back.mean is st.mean and back.width == 10
+    with pytest.raises(InputError, match="window"):
+        st.crop(0, 9)
+    with pytest.raises(InputError, match="whole rows"):
+        st.crop(0, 2, 1, 5, view=True)

@@ -835,3 +835,25 @@ def test_tone_operator_beats_fixed_and_linear_wastes_samples_on_the_emitter(full
         interior = emitter & ~rim
         assert np.median(lin_free.counts[interior]) == 1024 and np.all(g.counts[interior] == 8)
     assert np.mean(ratios) < 0.9
+
+
+def test_a_ci_run_logged_with_a_linear_exposure_resumes_with_the_same_rule(tmp_path):
+    """Logs of runs before ``exposure`` became stops recorded the linear factor (default 1.0): a resume
+    reads it as the stops it means (0.0), so the run goes on with the rule it started with."""
+    from mcrecon.adaptive.run import adapt, resume
+    from mcrecon.io import read_log
+    from mcrecon.io.writer import set_run_settings
+    from mcrecon.renderers.scenes import SceneRenderer
+
+    r = SceneRenderer("soft_shadow", width=16, height=12, seed=1)
+    m = CIMethod(tolerance=0.02, exposure=1.0)  # 1 stop: twice the radiance
+    full = adapt(r, m, spp=24, seed=2, track_error=False, progress=False)
+    log = tmp_path / "old.h5"
+    adapt(r, m, spp=24, seed=2, log=log, max_rounds=2, track_error=False, progress=False)
+    s = dict(read_log(log).run_settings)
+    s.pop("options_version")
+    s["method_options"] = {**s["method_options"], "exposure": 2.0}  # as an old log wrote 1 stop
+    set_run_settings(log, s)
+    done = resume(log, r, track_error=False, progress=False)
+    assert done.method.params["exposure"] == 1.0
+    np.testing.assert_array_equal(done.image, full.image)

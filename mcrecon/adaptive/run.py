@@ -273,7 +273,7 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
         "nonfinite": nonfinite, "time_limit": time_limit, "width": w, "height": h,
         "channels": list(channels), "renderer": _renderer_name(renderer),
         "renderer_spec": dict(renderer_spec or {}), "storage_dtype": storage_dtype,
-        "pipeline": bool(pipeline),
+        "pipeline": bool(pipeline), "options_version": OPTIONS_VERSION,
     }
     log_path = None
     held = contextlib.ExitStack()
@@ -309,6 +309,18 @@ def _start(renderer, method, *, w, h, channels, ref, budget, settings, seed, log
                 log_path=log_path, ref=ref, time_limit=time_limit, progress=progress, nonfinite=nonfinite,
                 max_rounds=max_rounds, track_error=track_error, eps=eps, elapsed=0.0, on_round=on_round,
                 storage_dtype=storage_dtype, pipeline=pipeline)
+
+
+#: Version of the recorded method options: 2 since ci's ``exposure`` is in stops (it was a linear factor).
+OPTIONS_VERSION = 2
+
+
+def _current_options(settings: Mapping) -> dict:
+    """The recorded method options as today's options mean them (a log of an older run is resumed alike)."""
+    opts = dict(settings["method_options"])
+    if int(settings.get("options_version", 1)) < 2 and settings["method"] == "ci" and "exposure" in opts:
+        opts["exposure"] = math.log2(float(opts["exposure"]))  # a linear factor then, stops now: 1.0 -> 0.0
+    return opts
 
 
 def resume(log, renderer=None, *, progress: bool | None = None, time_limit: float | None = None,
@@ -353,7 +365,7 @@ def _resume(log_path, renderer, *, progress, time_limit, track_error, on_round) 
     if (w, h, list(channels)) != (s["width"], s["height"], list(s["channels"])):
         raise InputError(str(log_path), "renderer", f"renderer is {w}x{h} {channels}, the run was "
                          f"{s['width']}x{s['height']} {s['channels']}")
-    method = get_method(s["method"], **s["method_options"])
+    method = get_method(s["method"], **_current_options(s))
     ref = sl.reference()
     run = method.start(w, h, channels, reference=ref)
     pipeline = bool(s.get("pipeline", False))  # logs of runs before pipelining: sequential

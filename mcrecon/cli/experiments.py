@@ -77,6 +77,7 @@ def _cmd_oracle(args):
 
 
 def _cmd_stability(args):
+    args.out = args.out if args.out is not None else "stability"
     from ..experiments.stability import run_stability, write_stability_table
 
     rows = run_stability(methods=_csv_list(args.methods) if args.methods else None,
@@ -91,6 +92,7 @@ def _cmd_stability(args):
 
 
 def _cmd_gallery(args):
+    args.out = args.out if args.out is not None else "gallery"
     from ..experiments.gallery import write_gallery
 
     path = write_gallery(args.out, scenes=_csv_list(args.scenes) if args.scenes else None,
@@ -101,6 +103,7 @@ def _cmd_gallery(args):
 
 
 def _cmd_error_rate(args):
+    args.out = args.out if args.out is not None else "error_rate"
     from ..experiments.error_rate import run_error_rate
 
     rep = run_error_rate(args.out, gammas=_csv_list(args.gammas, float, "--gammas"),
@@ -114,6 +117,7 @@ def _cmd_error_rate(args):
 
 
 def _cmd_normality(args):
+    args.out = args.out if args.out is not None else f"normality_{args.scene}"
     from ..experiments.statistics import run_normality
     from ..renderers.scenes import SceneRenderer
 
@@ -129,6 +133,7 @@ def _cmd_normality(args):
 
 
 def _cmd_bias(args):
+    args.out = args.out if args.out is not None else "bias_" + (Path(args.log).stem if args.log else str(args.scene))
     from ..experiments.statistics import run_bias
 
     if (args.log is None) == (args.scene is None):
@@ -191,7 +196,7 @@ def register(sub, command: str | None = None) -> None:
     s.add_argument("--methods", default=None)
     s.add_argument("--cases", default=None, help="comma-separated case names (default: all)")
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--out", required=True)
+    s.add_argument("--out", default=None, metavar="DIR", help="output folder (default: named after the command)")
     s.set_defaults(func=_cmd_stability)
 
     s = es.add_parser("gallery", help="the documentation gallery: every scene and method (writes OUT/gallery.md)")
@@ -200,7 +205,7 @@ def register(sub, command: str | None = None) -> None:
     s.add_argument("--size", default="96x96")
     s.add_argument("--spp", type=int, default=16)
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--out", required=True)
+    s.add_argument("--out", default=None, metavar="DIR", help="output folder (default: named after the command)")
     s.add_argument("--html", action="store_true",
                    help="also write OUT/gallery/SCENE.html, an interactive viewer per scene")
     s.set_defaults(func=_cmd_gallery)
@@ -211,7 +216,7 @@ def register(sub, command: str | None = None) -> None:
     s.add_argument("--pixels", type=int, default=200_000, help="pixels of the constant signal")
     s.add_argument("--spp", type=int, default=32)
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--out", required=True)
+    s.add_argument("--out", default=None, metavar="DIR", help="output folder (default: named after the command)")
     s.set_defaults(func=_cmd_error_rate)
 
     s = es.add_parser("normality", help="chi-square normality test of pixel estimates (Tamstorf & Jensen)")
@@ -222,7 +227,7 @@ def register(sub, command: str | None = None) -> None:
     s.add_argument("--classes", type=int, default=8)
     s.add_argument("--alpha", type=float, default=0.05)
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--out", required=True)
+    s.add_argument("--out", default=None, metavar="DIR", help="output folder (default: named after the command)")
     s.set_defaults(func=_cmd_normality)
 
     s = sub.add_parser("bias", help="bootstrap bias of the adaptive stopping rule on a log or a scene",
@@ -237,7 +242,7 @@ def register(sub, command: str | None = None) -> None:
     s.add_argument("--level", type=float, default=0.95, help="level of the reported bias interval")
     s.add_argument("--threshold", type=float, default=1 / 256, help="|bias| threshold reported (default 1/256)")
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--out", required=True)
+    s.add_argument("--out", default=None, metavar="DIR", help="output folder (default: named after the command)")
     s.set_defaults(func=_cmd_bias)
     if command in (None, "bias"):
         flags = method_flags(set(s._option_string_actions), prefix="--rule-", methods=["ci"])

@@ -11,3 +11,10 @@
 
 It imports nothing of mcrecon but :mod:`mcrecon.errors` and :mod:`mcrecon.filters` (docs/architecture.md).
 """
+
+from .._lazy import lazy_exports as _lazy_exports
+
+#: The sub-modules, reachable as attributes (imported on first use).
+__all__ = ['display', 'fill', 'halves', 'metrics', 'requests', 'safeguard', 'samples', 'stats']
+
+__getattr__, __dir__ = _lazy_exports(__name__, {}, __all__, __all__)

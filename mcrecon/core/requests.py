@@ -15,7 +15,7 @@ import numba
 import numpy as np
 
 from ..errors import RendererError
-from .samples import check_samples  # pixel_index: the film's pixel numbering, shared with the readers
+from .samples import check_samples
 
 __all__ = ['SampleRequest', 'SampleBatch', 'validate_reply', 'jittered_positions']
 

@@ -283,6 +283,49 @@ class PixelStats:
         out.__dict__.update({k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items()})
         return out
 
+    def crop(self, y0: int, y1: int, x0: int = 0, x1: int | None = None, *, view: bool = False) -> "PixelStats":
+        """The statistics of the pixels [y0:y1, x0:x1] (the subpixel grid with them).
+
+        ``view``: arrays that are views of this object's (rows only, x0 = 0 and
+        x1 the width): merging into the crop writes these statistics.
+        Otherwise contiguous copies.  The counters of samples the NaN/Inf
+        policy dropped or zeroed belong to the whole film: a crop starts at 0.
+        """
+        x1 = self.width if x1 is None else int(x1)
+        y0, y1, x0 = int(y0), int(y1), int(x0)
+        if not (0 <= y0 <= y1 <= self.height and 0 <= x0 <= x1 <= self.width):
+            raise InputError("PixelStats.crop", "window", f"rows {y0}:{y1}, columns {x0}:{x1} of a "
+                             f"{self.width}x{self.height} film")
+        if view and (x0, x1) != (0, self.width):
+            raise InputError("PixelStats.crop", "view", "views are of whole rows (x0=0, x1=width)")
+        take = (lambda a: a) if view else np.ascontiguousarray
+        d = dict(self.__dict__)
+        for name in ("count", "mean", "m2", "min", "max"):
+            d[name] = take(getattr(self, name)[y0:y1, x0:x1])
+        s = self.subpixels
+        if s:
+            d["sub_sum"] = take(self.sub_sum[y0 * s:y1 * s, x0 * s:x1 * s])
+            d["sub_count"] = take(self.sub_count[y0 * s:y1 * s, x0 * s:x1 * s])
+        d["width"], d["height"] = x1 - x0, y1 - y0
+        d["n_dropped"] = d["n_zeroed"] = 0
+        out = PixelStats.__new__(PixelStats)
+        out.__dict__.update(d)
+        return out
+
+    def to_arrays(self) -> tuple[dict, dict]:
+        """``(arrays, fields)``: the numpy arrays and the small fields, which :meth:`from_arrays` joins again
+        (to ship statistics as raw array frames, e.g. between Dask workers, instead of one pickle)."""
+        arrays = {k: v for k, v in self.__dict__.items() if isinstance(v, np.ndarray)}
+        return arrays, {k: v for k, v in self.__dict__.items() if k not in arrays}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict, fields: dict) -> "PixelStats":
+        """Statistics from :meth:`to_arrays` (the arrays are used as they are, not copied)."""
+        out = cls.__new__(cls)
+        out.__dict__.update(fields)
+        out.__dict__.update(arrays)
+        return out
+
     @classmethod
     def from_moments(cls, mean, variance, count, *, channels: Sequence[str] | None = None,
                      variance_of: str = "samples", where: str = "from_moments") -> "PixelStats":

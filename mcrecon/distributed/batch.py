@@ -166,27 +166,24 @@ def _previous(json_path: Path) -> dict:
 
 
 def _damaged_output(log: Path, out: Path) -> str | None:
-    """Why an existing output EXR is not this log's image (None when its header fits the log).
+    """Why an existing output EXR is not this log's image (None when it reads whole and fits the log).
 
     The EXR is published atomically, but a file can still be truncated or
-    replaced afterwards (a full disk, a copy that stopped): its header is read
-    (cheap, no pixels) and its size and channel count checked against the log's.
+    replaced afterwards (a full disk, a copy that stopped): it is read whole
+    (an image: cheap beside its reconstruction; a file cut after its header
+    reads no pixels) and its size and channel count checked against the log's.
     """
-    import OpenEXR
-
-    from ..io import read_log
+    from ..io import read_exr, read_log
 
     try:
-        h = OpenEXR.File(str(out), header_only=True).header()
-        (x0, y0), (x1, y1) = (tuple(int(v) for v in c) for c in h["dataWindow"])
-        n_channels = len(h["channels"])
-    except Exception as exc:  # noqa: BLE001 -- any failure to read the header is damage
-        return f"not a readable EXR ({' '.join(str(exc).split()) or type(exc).__name__})"
+        image, channels = read_exr(out)
+    except InputError as exc:
+        return f"not a readable EXR ({exc.problem})"
     try:
         log = read_log(log)
     except InputError:
         return None   # the frame fails on its own, with the log's error
-    got, want = (x1 - x0 + 1, y1 - y0 + 1, n_channels), (log.width, log.height, len(log.channels))
+    got, want = (image.shape[1], image.shape[0], len(channels)), (log.width, log.height, len(log.channels))
     if got != want:
         return f"{got[0]}x{got[1]} with {got[2]} channel(s), the log is {want[0]}x{want[1]} with {want[2]}"
     return None

@@ -91,20 +91,16 @@ class _Band:
         Measured on this machine for the 104 MiB statistics of a 1024^2
         film: 0.47-0.54 s as a PixelStats, 0.11-0.13 s as its arrays.
         """
-        d = self.stats.__dict__
-        names = tuple(k for k, v in d.items() if isinstance(v, np.ndarray))
-        small = {k: v for k, v in d.items() if k not in names}
-        return (*(d[k] for k in names), (names, small, self.y0, self.height))
+        arrays, small = self.stats.to_arrays()
+        names = tuple(arrays)
+        return (*(arrays[k] for k in names), (names, small, self.y0, self.height))
 
     @classmethod
     def unpack(cls, packed: tuple) -> "_Band":
         from ..core.stats import PixelStats
 
         *arrays, (names, small, y0, height) = packed
-        stats = PixelStats.__new__(PixelStats)
-        stats.__dict__.update(small)
-        stats.__dict__.update(zip(names, arrays))
-        return cls(y0, stats, height)
+        return cls(y0, PixelStats.from_arrays(dict(zip(names, arrays)), small), height)
 
     def full(self):
         """The statistics of the whole image (empty outside the band)."""
@@ -126,19 +122,7 @@ def _empty_like(stats, height: int):
 
 def _rows_view(stats, y0: int, y1: int):
     """A PixelStats whose arrays are views of rows [y0, y1) of ``stats``: merging into it writes ``stats``."""
-    from ..core.stats import PixelStats
-
-    out = PixelStats.__new__(PixelStats)
-    d = dict(stats.__dict__)
-    for name in ("count", "mean", "m2", "min", "max"):
-        d[name] = getattr(stats, name)[y0:y1]
-    if stats.subpixels:
-        s = stats.subpixels
-        d["sub_sum"], d["sub_count"] = stats.sub_sum[y0 * s:y1 * s], stats.sub_count[y0 * s:y1 * s]
-    d["height"] = y1 - y0
-    d["n_dropped"] = d["n_zeroed"] = 0
-    out.__dict__.update(d)
-    return out
+    return stats.crop(y0, y1, view=True)
 
 
 def _carry_counters(into, other) -> None:
@@ -281,16 +265,4 @@ def ingest(log, *, client=None, scheduler: str | None = None, workers: int | Non
 
 def _crop_stats(stats, y0: int, y1: int, x0: int, x1: int):
     """The statistics of the pixels [y0:y1, x0:x1] (copies)."""
-    from ..core.stats import PixelStats
-
-    out = PixelStats.__new__(PixelStats)
-    d = dict(stats.__dict__)
-    s = stats.subpixels
-    for name in ("count", "mean", "m2", "min", "max"):
-        d[name] = np.ascontiguousarray(getattr(stats, name)[y0:y1, x0:x1])
-    if s:
-        d["sub_sum"] = np.ascontiguousarray(stats.sub_sum[y0 * s:y1 * s, x0 * s:x1 * s])
-        d["sub_count"] = np.ascontiguousarray(stats.sub_count[y0 * s:y1 * s, x0 * s:x1 * s])
-    d["width"], d["height"] = x1 - x0, y1 - y0
-    out.__dict__.update(d)
-    return out
+    return stats.crop(y0, y1, x0, x1)

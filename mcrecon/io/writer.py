@@ -457,6 +457,19 @@ def _check_free_space(path, n: int, m: int, chunk: int, row_bytes: int) -> None:
         raise err
 
 
+def check_log_fits(path, n: int, n_channels: int, *, where: str) -> None:
+    """Refuse, before anything is rendered, a log of ``n`` float32 samples that ``path``'s disk cannot take."""
+    need = 4.0 * n * (2 + n_channels)
+    try:
+        st = os.statvfs(Path(path).parent)
+    except (OSError, AttributeError):  # no such folder (the writer names it), or no statvfs
+        return
+    free = st.f_bavail * st.f_frsize
+    if need > free:
+        raise InputError(where, "spp", f"{n} samples make a log of {need / 2**30:.3g} GiB, more than the "
+                         f"{free / 2**30:.3g} GiB free for {path}; lower --spp or --size")
+
+
 def _append(path, *, pos_in, val_in, round_index, feats, rec, round_record, checked=False) -> int:  # noqa: C901
     positions, values = pos_in, val_in
     with _open(path, "r+") as f:

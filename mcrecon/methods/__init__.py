@@ -57,6 +57,11 @@ def register_method(name: str, target, *, replace: bool = False) -> None:
         if not issubclass(target, Method):
             raise InputError("register_method", "target", f"{target.__name__} is not a subclass of "
                              "mcrecon.methods.Method")
+        if getattr(target, "name", None) != name:
+            raise InputError("register_method", "name", f"{name!r}, but {target.__name__}.name is "
+                             f"{getattr(target, 'name', None)!r}: a run's log records the method's own name and "
+                             f"--resume looks it up; register it as {getattr(target, 'name', None)!r} or set "
+                             f"name = {name!r} on the class")
         cls, target = target, f"{target.__module__}:{target.__qualname__}"
     elif not (isinstance(target, str) and target.count(":") == 1):
         raise InputError("register_method", "target", f"{target!r}, expected a Method subclass or "
@@ -97,6 +102,9 @@ def _load(name: str):
     obj = importlib.import_module(mod)
     for part in cls.split("."):
         obj = getattr(obj, part)
+    if getattr(obj, "name", None) != name:
+        raise ImportError(f"{METHODS[name]}.name is {getattr(obj, 'name', None)!r}, registered as {name!r} "
+                          "(a run's log records the method's own name: they must agree)")
     return obj
 
 

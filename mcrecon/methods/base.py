@@ -625,6 +625,8 @@ class Method:
         if placed.ndim == 2 and placed.shape == (state.height, state.width) and placed.dtype.kind in "iu":
             counts = placed if counts is None else counts + placed
             return state.request(counts=counts)
+        if not len(placed) and counts is None:  # nothing placed, nothing uniform: ask for nothing
+            counts = np.zeros((state.height, state.width), np.int64)
         return state.request(positions=placed if len(placed) else None, counts=counts)
 
     def doubling_round(self, state: AdaptiveState) -> int:

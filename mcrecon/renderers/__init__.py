@@ -1,7 +1,8 @@
 """Renderers: the protocol mcrecon speaks with them, and the renderers it ships.
 
-* :mod:`.protocol`: :class:`SampleRequest`, :class:`SampleBatch`, the
-  :class:`Renderer` protocol, :func:`validate_reply`;
+* :mod:`.protocol`: the :class:`Renderer` protocol (the requests and replies it speaks,
+  :class:`SampleRequest`, :class:`SampleBatch` and :func:`validate_reply`, are
+  :mod:`mcrecon.core.requests`, re-exported here);
 * :mod:`.callable`: :class:`CallableRenderer`, a Python function as a renderer;
 * :mod:`.command`: ``CommandRenderer``, an external command exchanging HDF5 files;
 * :mod:`.scenes`: the built-in procedural scenes with exact references;

@@ -661,12 +661,14 @@ def dump_uniform_log(path, scene=None, *, width: int | None = None, height: int 
     """
     from ..io import append_log, write_log
     from ..io._atomic import atomic_path
+    from ..io.writer import check_log_fits
 
     spp = _check_int("spp", spp, minimum=1)
     seed = _check_int("seed", seed, minimum=0)
     reference_spp = _check_int("reference_spp", reference_spp, minimum=1, allow_none=True)
     path = Path(path)
     r = _make_renderer(scene, width, height, variant, max_depth, spp_per_pass)
+    check_log_fits(path, spp * r.width * r.height, len(r.channels), where="mitsuba log")
     reference = None
     if reference_spp is not None:
         # An independent stream: the reference must not share noise with the samples.

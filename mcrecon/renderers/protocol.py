@@ -11,8 +11,10 @@ request asks for samples in two ways that may be combined:
   positions (x is the column, y the row).
 
 The reply is a :class:`SampleBatch`: positions (N, 2) and values (N, C).
-:func:`validate_reply` checks it against the request before anything is
-stored: never trust a renderer's reply.
+:func:`~mcrecon.core.requests.validate_reply` checks it against the request
+before anything is stored: never trust a renderer's reply.  The request and
+reply types live in :mod:`mcrecon.core.requests` (methods build requests and
+must not import the renderers).
 """
 
 from __future__ import annotations

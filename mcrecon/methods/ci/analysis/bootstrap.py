@@ -191,7 +191,7 @@ def _width_decided(code, lo, hi, inv_gamma, two_d, tab):
 
 
 @numba.njit(cache=True, inline="always")
-def _rule_ok(s1, s2, k, theta, p, tq, two_d, code, inv_gamma, exposure, tab):
+def _rule_ok(s1, s2, k, theta, p, tq, two_d, code, inv_gamma, scale, tab):
     """Eq. (10) in every channel, from centred running sums (same arithmetic
     as the numpy path: mean, var = m2/(k-1), h = t sqrt(var/k))."""
     for c in range(s1.size):
@@ -201,8 +201,8 @@ def _rule_ok(s1, s2, k, theta, p, tq, two_d, code, inv_gamma, exposure, tab):
             var = 0.0
         h = tq * math.sqrt(var / k)
         mu = theta[p, c] + m
-        lo = exposure * (mu - h)
-        hi = exposure * (mu + h)
+        lo = scale * (mu - h)
+        hi = scale * (mu + h)
         dec = _width_decided(code, lo, hi, inv_gamma, two_d, tab)
         if dec == 0:
             return False
@@ -216,7 +216,7 @@ def _rule_ok(s1, s2, k, theta, p, tq, two_d, code, inv_gamma, exposure, tab):
 
 @numba.njit(cache=True, parallel=True)
 def _bootstrap_kernel(vals, offsets, theta, base, B, n0, step, max_n, tq, two_d, code, inv_gamma,
-                      exposure, tab, dev_mean, dev_m2, disp_mean, disp_m2, spp_mean, capped):
+                      scale, tab, dev_mean, dev_m2, disp_mean, disp_m2, spp_mean, capped):
     P = offsets.size - 1
     C = vals.shape[1]
     for p in prange(P):
@@ -246,7 +246,7 @@ def _bootstrap_kernel(vals, offsets, theta, base, B, n0, step, max_n, tq, two_d,
         d2 = np.zeros(C)
         t0 = np.empty(C)
         for c in range(C):
-            t0[c] = _tone_scalar(code, exposure * theta[p, c], inv_gamma)
+            t0[c] = _tone_scalar(code, scale * theta[p, c], inv_gamma)
         ksum = 0.0
         ncap = 0
         for b in range(B):
@@ -261,7 +261,7 @@ def _bootstrap_kernel(vals, offsets, theta, base, B, n0, step, max_n, tq, two_d,
                 if k >= max_n:
                     ncap += 1
                     break
-                if _rule_ok(s1, s2, k, theta, p, tq[k], two_d, code, inv_gamma, exposure, tab):
+                if _rule_ok(s1, s2, k, theta, p, tq[k], two_d, code, inv_gamma, scale, tab):
                     break
                 target = min(k + step, max_n)
             ksum += k
@@ -272,7 +272,7 @@ def _bootstrap_kernel(vals, offsets, theta, base, B, n0, step, max_n, tq, two_d,
                 delta = dev - am[c]
                 am[c] += delta * inv
                 a2[c] += delta * (dev - am[c])
-                dd = _tone_scalar(code, exposure * (theta[p, c] + dev), inv_gamma) - t0[c]
+                dd = _tone_scalar(code, scale * (theta[p, c] + dev), inv_gamma) - t0[c]
                 delta = dd - dm[c]
                 dm[c] += delta * inv
                 d2[c] += delta * (dd - dm[c])
