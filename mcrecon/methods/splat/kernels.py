@@ -69,6 +69,92 @@ def _reflect(i, n):
     return m
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _scratch(radius):
+    """Scratch buffers (weights, column and row indices) for the footprint of the widest sample."""
+    rmax = 0.0
+    for k in range(radius.shape[0]):
+        if radius[k] > rmax:
+            rmax = radius[k]
+    side = 2 * int(math.ceil(rmax)) + 2
+    cap = side * side
+    return np.empty(cap), np.empty(cap, np.int64), np.empty(cap, np.int64)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _film_index(i, n, mode, guided):
+    """(index deposited to, index of the guide) of grid index i on a film of n: i itself on the film;
+    off it, its mirror image (mode none deposits nothing: -1, and needs the mirror only for a guide)."""
+    if 0 <= i < n:
+        return i, i
+    if mode == 2 and not guided:
+        return -1, i
+    m = _reflect(i, n)
+    return (-1 if mode == 2 else m), m
+@numba.njit(cache=True, nogil=True, inline="always")
+def _footprint(x, y, r, h, w, mode, guide, guided, wbuf, ibuf, jbuf):
+    """The pixel centres strictly inside the support of radius ``r`` around (x, y) and their weights.
+
+    The weight of centre q is ``1 - |q - (x, y)|^2 / r^2``, times ``guide[q]`` when ``guided`` (then
+    centres of weight <= 0 are left out; off-film centres use the guide of their mirror image).
+    Film indices after the boundary mode go to ``ibuf``/``jbuf`` (-1: mode none, off the film).
+    Returns (sum of the weights, number of centres).
+    """
+    r2 = r * r
+    inv_r2 = 1.0 / r2
+    # centres c = j + 1/2 with |c - y| < r  <=>  y - 1/2 - r < j < y - 1/2 + r
+    jlo = int(math.floor(y - 0.5 - r)) + 1
+    jhi = int(math.ceil(y - 0.5 + r)) - 1
+    if mode == 1:
+        jlo = max(jlo, 0)
+        jhi = min(jhi, h - 1)
+    s = 0.0
+    m = 0
+    for j in range(jlo, jhi + 1):
+        dy = j + 0.5 - y
+        rem = r2 - dy * dy
+        if rem <= 0.0:
+            continue
+        jj, jg = _film_index(j, h, mode, guided)
+        half = math.sqrt(rem)
+        ilo = int(math.floor(x - 0.5 - half)) + 1
+        ihi = int(math.ceil(x - 0.5 + half)) - 1
+        if mode == 1:
+            ilo = max(ilo, 0)
+            ihi = min(ihi, w - 1)
+        dy2 = dy * dy * inv_r2
+        for i in range(ilo, ihi + 1):
+            dx = i + 0.5 - x
+            q = dx * dx * inv_r2 + dy2
+            if q < 1.0:
+                wt = 1.0 - q
+                ii, ig = _film_index(i, w, mode, guided)
+                if guided:
+                    wt = wt * guide[jg, ig]
+                    if not wt > 0.0:
+                        continue
+                s += wt
+                wbuf[m] = wt
+                ibuf[m] = ii
+                jbuf[m] = jj
+                m += 1
+    return s, m
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _deposit_weights(out, v, e, wbuf, ibuf, jbuf, m):
+    """Add ``v * (wbuf[t] * e)`` at each centre t of a footprint (mode none: off-film weight is lost)."""
+    nc = out.shape[2]
+    for t in range(m):
+        ii = ibuf[t]
+        jj = jbuf[t]
+        if ii < 0 or jj < 0:
+            continue
+        wt = wbuf[t] * e
+        for c in range(nc):
+            out[jj, ii, c] += v[c] * wt
+
+
 @numba.njit(cache=True, nogil=True)
 def _splat_loop(pos, val, scale, radius, mode, out):
     """Deposit each sample's ``val * scale`` with a normalised Epanechnikov footprint.
@@ -84,16 +170,9 @@ def _splat_loop(pos, val, scale, radius, mode, out):
     w = out.shape[1]
     nc = out.shape[2]
     n = pos.shape[0]
-    rmax = 0.0
-    for k in range(n):
-        if radius[k] > rmax:
-            rmax = radius[k]
-    side = 2 * int(math.ceil(rmax)) + 2
-    cap = side * side
-    wbuf = np.empty(cap)
-    ibuf = np.empty(cap, np.int64)
-    jbuf = np.empty(cap, np.int64)
+    wbuf, ibuf, jbuf = _scratch(radius)
     vv = np.empty(nc)
+    no_guide = np.ones((1, 1))
     n_fallback = 0
     for k in range(n):
         r = radius[k]
@@ -103,44 +182,7 @@ def _splat_loop(pos, val, scale, radius, mode, out):
         y = np.float64(pos[k, 1])
         for c in range(nc):
             vv[c] = val[k, c]
-        r2 = r * r
-        inv_r2 = 1.0 / r2
-        # centres c = j + 1/2 with |c - y| < r  <=>  y - 1/2 - r < j < y - 1/2 + r
-        jlo = int(math.floor(y - 0.5 - r)) + 1
-        jhi = int(math.ceil(y - 0.5 + r)) - 1
-        if mode == 1:
-            jlo = max(jlo, 0)
-            jhi = min(jhi, h - 1)
-        s = 0.0
-        m = 0
-        for j in range(jlo, jhi + 1):
-            dy = j + 0.5 - y
-            rem = r2 - dy * dy
-            if rem <= 0.0:
-                continue
-            jj = j
-            if j < 0 or j >= h:
-                jj = -1 if mode == 2 else _reflect(j, h)
-            half = math.sqrt(rem)
-            ilo = int(math.floor(x - 0.5 - half)) + 1
-            ihi = int(math.ceil(x - 0.5 + half)) - 1
-            if mode == 1:
-                ilo = max(ilo, 0)
-                ihi = min(ihi, w - 1)
-            dy2 = dy * dy * inv_r2
-            for i in range(ilo, ihi + 1):
-                dx = i + 0.5 - x
-                q = dx * dx * inv_r2 + dy2
-                if q < 1.0:
-                    wt = 1.0 - q
-                    s += wt
-                    ii = i
-                    if i < 0 or i >= w:
-                        ii = -1 if mode == 2 else _reflect(i, w)
-                    wbuf[m] = wt
-                    ibuf[m] = ii
-                    jbuf[m] = jj
-                    m += 1
+        s, m = _footprint(x, y, r, h, w, mode, no_guide, False, wbuf, ibuf, jbuf)
         if not s > 0.0:
             # No pixel centre inside the support: the whole sample goes to its
             # own pixel (whose centre is the nearest one).
@@ -167,14 +209,7 @@ def _splat_loop(pos, val, scale, radius, mode, out):
                 out[jj, ii, 1] += v1 * wt
                 out[jj, ii, 2] += v2 * wt
             continue
-        for t in range(m):
-            ii = ibuf[t]
-            jj = jbuf[t]
-            if ii < 0 or jj < 0:
-                continue  # mode none: weight outside the film is lost
-            wt = wbuf[t] * e
-            for c in range(nc):
-                out[jj, ii, c] += vv[c] * wt
+        _deposit_weights(out, vv, e, wbuf, ibuf, jbuf, m)
     return n_fallback
 
 
@@ -285,15 +320,7 @@ def _splat_guided_loop(pos, val, scale, radius, guide, mode, out):
     w = out.shape[1]
     nc = out.shape[2]
     n = pos.shape[0]
-    rmax = 0.0
-    for k in range(n):
-        if radius[k] > rmax:
-            rmax = radius[k]
-    side = 2 * int(math.ceil(rmax)) + 2
-    cap = side * side
-    wbuf = np.empty(cap)
-    ibuf = np.empty(cap, np.int64)
-    jbuf = np.empty(cap, np.int64)
+    wbuf, ibuf, jbuf = _scratch(radius)
     n_fallback = 0
     for k in range(n):
         r = radius[k]
@@ -303,49 +330,7 @@ def _splat_guided_loop(pos, val, scale, radius, guide, mode, out):
         y = np.float64(pos[k, 1])
         px = min(max(int(math.floor(x)), 0), w - 1)
         py = min(max(int(math.floor(y)), 0), h - 1)
-        r2 = r * r
-        inv_r2 = 1.0 / r2
-        jlo = int(math.floor(y - 0.5 - r)) + 1
-        jhi = int(math.ceil(y - 0.5 + r)) - 1
-        if mode == 1:
-            jlo = max(jlo, 0)
-            jhi = min(jhi, h - 1)
-        s = 0.0
-        m = 0
-        for j in range(jlo, jhi + 1):
-            dy = j + 0.5 - y
-            rem = r2 - dy * dy
-            if rem <= 0.0:
-                continue
-            jj = j
-            jg = j
-            if j < 0 or j >= h:
-                jg = _reflect(j, h)
-                jj = -1 if mode == 2 else jg
-            half = math.sqrt(rem)
-            ilo = int(math.floor(x - 0.5 - half)) + 1
-            ihi = int(math.ceil(x - 0.5 + half)) - 1
-            if mode == 1:
-                ilo = max(ilo, 0)
-                ihi = min(ihi, w - 1)
-            dy2 = dy * dy * inv_r2
-            for i in range(ilo, ihi + 1):
-                dx = i + 0.5 - x
-                q = dx * dx * inv_r2 + dy2
-                if q < 1.0:
-                    ii = i
-                    ig = i
-                    if i < 0 or i >= w:
-                        ig = _reflect(i, w)
-                        ii = -1 if mode == 2 else ig
-                    wt = (1.0 - q) * guide[jg, ig]
-                    if not wt > 0.0:
-                        continue
-                    s += wt
-                    wbuf[m] = wt
-                    ibuf[m] = ii
-                    jbuf[m] = jj
-                    m += 1
+        s, m = _footprint(x, y, r, h, w, mode, guide, True, wbuf, ibuf, jbuf)
         if not s > 0.0:
             n_fallback += 1
             e = scale[k]
@@ -353,14 +338,7 @@ def _splat_guided_loop(pos, val, scale, radius, guide, mode, out):
                 out[py, px, c] += val[k, c] * e
             continue
         e = scale[k] / s
-        for t in range(m):
-            ii = ibuf[t]
-            jj = jbuf[t]
-            if ii < 0 or jj < 0:
-                continue
-            wt = wbuf[t] * e
-            for c in range(nc):
-                out[jj, ii, c] += val[k, c] * wt
+        _deposit_weights(out, val[k], e, wbuf, ibuf, jbuf, m)
     return n_fallback
 
 

@@ -156,19 +156,6 @@ def _radii(pos, val, norm_code, weights, ref, nmap, pilot, c, alpha, c_prime, mi
     return n_capped
 
 
-@numba.njit(cache=True, nogil=True)
-def _g_moments(pos, val, norm_code, weights, s1, s2):
-    """Accumulate per pixel the sum of G and of G^2 (robust variant: the pixels' own sample statistics)."""
-    h = s1.shape[0]
-    w = s1.shape[1]
-    for k in range(pos.shape[0]):
-        g = _norm_of(val, k, norm_code, weights)
-        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
-        py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
-        s1[py, px] += g
-        s2[py, px] += g * g
-
-
 # ----------------------------------------------------------------------------
 # The progressive algorithm (Fig. 3)
 # ----------------------------------------------------------------------------
@@ -379,10 +366,11 @@ class ProgressiveSplatter:
             for p, v in chunks():  # first pass: counts per pixel (and the one count of NaN/Inf samples)
                 p, v, n_bad = self._validated(p, v, nonfinite, where)
                 self.n_nonfinite += n_bad
-                counts += self._pixel_counts(p)
                 if robust:  # ... and the sums of G, G^2 per pixel
-                    _g_moments(p, np.ascontiguousarray(v, dtype=np.float64), self._norm_code, self._weights,
-                               s1, s2)
+                    _count_and_moments(p, np.ascontiguousarray(v, dtype=np.float64), self._norm_code,
+                                       self._weights, counts, s1, s2)
+                else:
+                    counts += self._pixel_counts(p)
         n_round = int(counts.sum())
         if n_round == 0:
             return
@@ -437,12 +425,13 @@ class ProgressiveSplatter:
                 img[empty] += w_round * ref_img[empty]
             self.image = img
             self.spp_total = total
-        with np.errstate(invalid="ignore", divide="ignore"):
-            self.last_widths = np.where(self._width_n > 0, self._width_sum / np.maximum(self._width_n, 1),
-                                        0.0).reshape(self.height, self.width)
         self._finish_round(n_j, n_round, capped, fallback, empty, first, where)
 
     def _finish_round(self, n_j, n_round, capped, fallback, empty, first, where, **extra):
+        """Record the round: the mean kernel diameter per pixel, the round's counts, a warning for unsampled pixels."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            self.last_widths = np.where(self._width_n > 0, self._width_sum / np.maximum(self._width_n, 1),
+                                        0.0).reshape(self.height, self.width)
         n_empty = int(empty.sum())
         self.rounds.append({"spp": n_j, "samples": n_round, "capped": capped, "fallback": fallback,
                             "empty_pixels": n_empty, **extra})
@@ -548,7 +537,4 @@ class ProgressiveSplatter:
             img[empty] += w_round * prev[empty]
         self.image = img
         self.spp_total = total
-        with np.errstate(invalid="ignore", divide="ignore"):
-            self.last_widths = np.where(self._width_n > 0, self._width_sum / np.maximum(self._width_n, 1),
-                                        0.0).reshape(self.height, self.width)
         self._finish_round(n_j, n_round, capped, int(fallback), empty, first, where, outliers=outliers)
