@@ -138,15 +138,15 @@ def test_no_spread_across_an_hdr_step():
 
 
 def test_consistent_error_falls_to_zero_with_spp():
-    """Consistency: on the smooth gradient the error falls with every 4x spp (mean of 3 seeds at 4, 16,
-    64, 256 spp), never above the pixel mean's, and the filter hands over to the pixel mean as N
-    grows: the kernels narrow (Eq. 8) and the ratio to the pixel mean rises towards 1.
-    Measured: errors 0.023, 0.0040, 0.0015, 0.0010 (successive ratios 5.7, 2.6, 1.5; asserted
-    > 1.3, the seed spread of a 3-seed mean is a few %); ratio to box 0.29, 0.21, 0.32, 0.87;
-    mean kernel diameter 5.0, 3.3, 2.2, 1.5."""
+    """Consistency: on the smooth gradient the error falls with every 4x spp (mean of 3 seeds at 8, 32,
+    128, 512 spp), never above the pixel mean's, and the filter hands over to the pixel mean as N
+    grows: the kernels narrow (Eq. 8) until they reach no neighbour (diameter <= 2 on the pixel grid).
+    Measured: errors 0.0077, 0.0024, 0.0011, 0.00058 (successive ratios 3.2, 2.2, 1.9; asserted
+    > 1.5, the seed spread of a 3-seed mean is <= 12 %); ratio to box 0.20, 0.24, 0.47, 1.000;
+    mean kernel diameter 4.1, 2.7, 1.8, 1.3."""
     ref = smooth_reference()
     errs, boxes, widths = [], [], []
-    for spp in (4, 16, 64, 256):
+    for spp in (8, 32, 128, 512):
         e, bx = [], []
         for seed in range(3):
             pos, val = smooth_samples(spp, seed)
@@ -159,7 +159,17 @@ def test_consistent_error_falls_to_zero_with_spp():
                 widths.append(rec.run.diagnostics["kernel_width"].mean())
         errs.append(np.mean(e))
         boxes.append(np.mean(bx))
-    assert all(b < a / 1.3 for a, b in zip(errs, errs[1:])), errs
+    assert all(b < a / 1.5 for a, b in zip(errs, errs[1:])), errs
     assert all(e <= b for e, b in zip(errs, boxes)), (errs, boxes)
-    assert errs[-1] / boxes[-1] > errs[1] / boxes[1], (errs, boxes)
+    assert errs[0] < 0.4 * boxes[0] and errs[-1] > 0.9 * boxes[-1], (errs, boxes)
     assert all(b < a for a, b in zip(widths, widths[1:])), widths
+
+
+def test_no_spread_before_the_outlier_test_can_run():
+    """At 4 spp no 3x3 window holds the outlier test's 64 samples: no sample is known to be consistent,
+    so the default is the pixel mean (spreading untested spikes lost to box on the caustic, 1.015x)."""
+    pos, val = uniform_samples("fireflies", 4, 0)
+    ss = mcrecon.SampleSet(pos, val, width=W, height=W)
+    st = PixelStats(W, W)
+    st.add(pos, val)
+    np.testing.assert_allclose(mcrecon.reconstruct(ss, method="splat"), st.mean, rtol=1e-12)

@@ -105,9 +105,10 @@ def edge_radius(stats, k):
 
 
 @numba.njit(cache=True, nogil=True)
-def _consistent_radii(pos, val, norm_code, weights, frac, fref, nmap, r_edge, c, alpha, min_w, max_w, radius):
-    """Support radius of each consistent sample (``frac = 0``: not an outlier): Eq. 8 against the window
-    mean ``fref``; -1 for outliers and where the diameter, or the pixel's ``2 r_edge``, is at most ``min_w``."""
+def _consistent_radii(pos, val, norm_code, weights, frac, tau, fref, nmap, r_edge, c, alpha, min_w, max_w, radius):
+    """Support radius of each consistent sample (``frac = 0`` under a finite threshold ``tau``: the outlier
+    test ran and passed it): Eq. 8 against the window mean ``fref``; -1 for outliers, for samples no test
+    could judge yet, and where the diameter, or the pixel's ``2 r_edge``, is at most ``min_w``."""
     h = nmap.shape[0]
     w = nmap.shape[1]
     for k in range(pos.shape[0]):
@@ -119,6 +120,8 @@ def _consistent_radii(pos, val, norm_code, weights, frac, fref, nmap, r_edge, c,
             continue
         px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
         py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+        if not tau[py, px] < np.inf:
+            continue  # too few samples around for the outlier test: not known to be consistent
         d, _ = _excess_width(g, 0.0, fref[py, px], nmap[py, px], c, alpha, min_w, max_w)
         if min(d, 2.0 * r_edge[py, px]) > min_w:  # else nothing would leave the pixel
             radius[k] = 0.5 * d

@@ -33,11 +33,14 @@ class SplatMethod(Method):
 
     Options
     -------
-    variant : {'robust', 'paper'}
+    variant : {'robust', 'outliers', 'paper'}
         ``paper`` presets the paper's algorithm (``spread='all'``,
-        ``guide='none'``, ``c=4``, ``alpha=0.3``); ``robust`` (default)
-        spreads only the excess of outliers (``docs/methods/splat.md``,
-        "Default vs paper").  Explicit options win over the presets.
+        ``guide='none'``, ``c=4``, ``alpha=0.3``); ``robust`` (default,
+        ``spread='consistent'``) spreads the excess of outliers and the
+        consistent samples, gated by the pixels' statistics
+        (``docs/methods/splat.md``, "The default filters"); ``outliers``
+        spreads only the excess of outliers (the default before issue 26).
+        Explicit options win over the presets.
     alpha : float
         Exponent of N in Eq. 8 (default 0.5; the paper's Sec. 5: 1.5/5 = 0.3); 0 < alpha <= 1.
     c : float
@@ -53,8 +56,13 @@ class SplatMethod(Method):
         Boundary-bias remedy (Sec. 5); default mirror.
     norm : {'luminance', 'mean', 'max'}
         Scalar G of a colour sample (and f of a pixel) in Eq. 8.
-    spread : {'outliers', 'all'}
+    spread : {'consistent', 'outliers', 'all'}
         ``all``: every sample gets its Eq. 8 kernel (the paper).
+        ``consistent``: as ``outliers``, and every sample that is not an
+        outlier is spread with Eq. 8's width (``spread_c``,
+        ``spread_alpha``) into the pixels whose means and variances do not
+        tell them apart from its own at ``false_rejection`` and within
+        ``k se / |grad|`` of both (:mod:`.consistent`).
         ``outliers``: a sample stays in its pixel unless its G exceeds
         the largest ``mean + outlier_k * std`` of the 3x3 windows around
         its pixel (pooled samples so far); then only the excess fraction
@@ -62,6 +70,10 @@ class SplatMethod(Method):
         ``G - tau`` against the pooled mean.
     outlier_k : float
         k of that threshold (default 2).
+    false_rejection : float
+        Rate at which the gate tells two pixels of one distribution apart (default 0.05).
+    spread_c, spread_alpha : float
+        C and alpha of Eq. 8 for the consistent samples (default 8 and the paper's 0.3).
     guide : {'local_mean', 'none'}
         Weights of the spread part: Epanechnikov times the pooled 3x3 mean
         of G at each covered pixel (``local_mean``), or plain (``none``).
@@ -95,8 +107,10 @@ class SplatMethod(Method):
     adaptive = False
     requires = Requirements(samples=True, statistics=False)
     #: ``paper``: every sample splatted with Eq. 8 widths (Suykens and Willems
-    #: 2000 as published).  ``robust`` (default): only the excess of outliers
-    #: is spread, guided by the local mean (docs/methods/splat.md, "Default vs paper").
+    #: 2000 as published).  ``robust`` (default): the excess of outliers spread
+    #: guided by the local mean, consistent samples gated by the pixels' statistics
+    #: (docs/methods/splat.md, "The default filters").  ``outliers``: only the
+    #: excess of outliers (the default before issue 26).
     variants = {"robust": {"spread": "consistent", "guide": "local_mean", "c": 2.0, "alpha": 0.5,
                            "outlier_k": 2.0},
                 "outliers": {"spread": "outliers", "guide": "local_mean", "c": 2.0, "alpha": 0.5,
@@ -117,8 +131,10 @@ class SplatMethod(Method):
                min=1.0),
         Option("boundary", str, "mirror", "boundary-bias remedy", BOUNDARY_MODES),
         Option("norm", str, "luminance", "scalar value of a colour sample in Eq. 8", NORMS),
-        Option("spread", str, "consistent", "which samples are splatted: all (the paper) or only the excess "
-               "of outliers above their 3x3 neighbourhood's mean + k std (the rest stays in its pixel)", SPREADS),
+        Option("spread", str, "consistent", "which samples are splatted: all (the paper), outliers (only the "
+               "excess of outliers above their 3x3 neighbourhood's mean + k std; the rest stays in its pixel) "
+               "or consistent (as outliers, and the other samples into the pixels whose statistics match)",
+               SPREADS),
         Option("outlier_k", float, 2.0, "spread='outliers': a sample is an outlier above mean + k std of "
                "the G of its 3x3 neighbourhood's samples", min=0.0),
         Option("false_rejection", float, 0.05, "spread='consistent': rate at which two pixels of the same "

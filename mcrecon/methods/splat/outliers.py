@@ -82,7 +82,7 @@ def _count_and_moments(pos, val, norm_code, weights, counts, s1, s2):
 
 
 @numba.njit(cache=True, nogil=True)
-def _outlier_thresholds(wn, ws1, ws2, r, k_sigma, min_pool, tau):
+def _outlier_thresholds(wn, ws1, ws2, r, k_sigma, min_pool, tau, skip_small=False):
     """The outlier threshold tau of every pixel (robust variant).
 
     The threshold of a sample in pixel p is the largest, over the
@@ -93,18 +93,24 @@ def _outlier_thresholds(wn, ws1, ws2, r, k_sigma, min_pool, tau):
     maximum over windows keeps a sample beside a bright edge in place: the
     window on the bright side explains it.  It depends only on the pixel:
     computed once per pixel, a round costs one lookup per sample instead of
-    (2r+1)^2 window visits with a square root each.
+    (2r+1)^2 window visits with a square root each.  ``skip_small``: the
+    maximum over the windows that hold ``min_pool`` samples, infinite only if
+    none does (at the film border, where windows are clipped, the test still
+    runs once the interior windows are full).
     """
     h, w = wn.shape
     for py in range(h):
         for px in range(w):
             t = 0.0
+            counted = False
             for j in range(max(py - r, 0), min(py + r, h - 1) + 1):
                 for i in range(max(px - r, 0), min(px + r, w - 1) + 1):
                     nw = wn[j, i]
                     if nw < min_pool:
-                        t = np.inf
+                        if not skip_small:
+                            t = np.inf
                         continue
+                    counted = True
                     mean = ws1[j, i] / nw
                     var = ws2[j, i] / nw - mean * mean
                     if var < 0.0:
@@ -112,7 +118,7 @@ def _outlier_thresholds(wn, ws1, ws2, r, k_sigma, min_pool, tau):
                     tw = (mean + k_sigma * math.sqrt(var)) * (1.0 + 1e-9)
                     if tw > t:
                         t = tw
-            tau[py, px] = t
+            tau[py, px] = t if counted or not skip_small else np.inf
 
 
 @numba.njit(cache=True, nogil=True)

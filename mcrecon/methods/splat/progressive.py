@@ -516,8 +516,10 @@ class ProgressiveSplatter:
         mode = _BOUNDARY_CODE[self.boundary]
         outliers = capped = fallback = 0
         tau = np.empty((self.height, self.width))
-        _outlier_thresholds(wn, ws1, ws2, self.POOL_RADIUS, self.outlier_k, float(self.MIN_POOL), tau)
         consistent = self.spread == "consistent"
+        # consistent: a sample is spread only once the outlier test judged it, so the test must run
+        # wherever it can, also at the film border (over the full windows there)
+        _outlier_thresholds(wn, ws1, ws2, self.POOL_RADIUS, self.outlier_k, float(self.MIN_POOL), tau, consistent)
         if consistent:  # the gate's pixel statistics and the gradient bound, all samples so far
             gstats = pixel_moments(self.cum_counts, self._cs1, self._cs2)
             r_edge = edge_radius(gstats, self._gate_k)
@@ -548,7 +550,7 @@ class ProgressiveSplatter:
             scale = w_round * inv_counts[iy, ix]
             if consistent:
                 krad = np.empty(p.shape[0])
-                _consistent_radii(p, v, self._norm_code, self._weights, frac, fref, nmap, r_edge, self.spread_c,
+                _consistent_radii(p, v, self._norm_code, self._weights, frac, tau, fref, nmap, r_edge, self.spread_c,
                                   self.spread_alpha, self.min_width, self.max_width, krad)
                 fallback += _splat_gated_loop(p, v, scale * (1.0 - frac), krad, r_edge, gstats, self._gate_k ** 2,
                                               mode, img)
