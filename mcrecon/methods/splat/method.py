@@ -137,6 +137,8 @@ class SplatMethod(Method):
                SPREADS),
         Option("outlier_k", float, 2.0, "spread='outliers': a sample is an outlier above mean + k std of "
                "the G of its 3x3 neighbourhood's samples", min=0.0),
+        Option("guide", str, "local_mean", "footprint weights of the spread part: none (Epanechnikov, the "
+               "paper) or local_mean (Epanechnikov times the pooled 3x3 mean of G at each pixel)", GUIDES),
         Option("false_rejection", float, 0.05, "spread='consistent': rate at which two pixels of the same "
                "expectation are told apart (sets the gate's k standard errors)", min=0.0, max=1.0,
                min_open=True, max_open=True),
@@ -144,8 +146,6 @@ class SplatMethod(Method):
                "of the consistent samples' kernels", min=0.0, min_open=True),
         Option("spread_alpha", float, 0.3, "spread='consistent': Eq. 8's exponent of N for the consistent "
                "samples' kernels (the paper's 1.5/5)", min=0.0, max=1.0, min_open=True),
-        Option("guide", str, "local_mean", "footprint weights of the spread part: none (Epanechnikov, the "
-               "paper) or local_mean (Epanechnikov times the pooled 3x3 mean of G at each pixel)", GUIDES),
     )
 
     def _configure(self, params: dict) -> None:
