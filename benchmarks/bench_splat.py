@@ -17,15 +17,29 @@ then the caustic progressive run of the paper's variant round by round
 rounds).  These were strict xfails in the tests; a table cannot fail
 when the method gets better.
 
+``--defaults`` prints the table of issue 26: the default (``robust``,
+which filters), the default before it (``outliers``) and ``paper``, each as
+a ratio to the pixel mean of the same samples, mean over the seeds, offline
+and adaptive, on every built-in scene and, with Mitsuba installed, the
+Cornell boxes of ``bench_defaults.py`` (``--no-mitsuba`` skips them).
+``--convergence`` writes ``docs/images/splat_convergence.png``: relative MSE
+against spp (4 .. 256, one uniform render per budget and seed) of the
+default, box and the paper's variant on every built-in scene.
+
 Run: ``python benchmarks/bench_splat.py [--size 512] [--spp 8] [--radius 2]``
      ``python benchmarks/bench_splat.py --limits [--size 128] [--spp 32] [--seeds 5 7]``
+     ``python benchmarks/bench_splat.py --defaults [--size 128] [--spp 32] [--seeds 0 1 2 3] [--no-mitsuba]``
+     ``python benchmarks/bench_splat.py --convergence [--size 128] [--seeds 0 1] [--out docs/images]``
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
+import warnings
+from pathlib import Path
 
 import numpy as np
 
@@ -119,6 +133,108 @@ def bench_limits(size, spp, seeds):
         print(f"seed {seed}: adaptive run at {spp} spp: splat {s:.3g}, box {bx:.3g}, splat/box {s / bx:.3g}")
 
 
+VARIANTS = ("robust", "outliers", "paper")
+
+
+def _scenes(size, mitsuba, ref_spp=2048):
+    sys.path.insert(0, str(Path(__file__).parent))
+    from bench_defaults import BuiltinScene, MitsubaScene
+    out = [BuiltinScene(name, size) for name in scenes.scene_names()]
+    if mitsuba:
+        try:
+            import mitsuba  # noqa: F401
+        except ImportError:
+            return out
+        out += [MitsubaScene("cornell_box", size, ref_spp, False),
+                MitsubaScene("cornell_small_light", size, ref_spp, True)]
+    return out
+
+
+def bench_defaults(size, spp, seeds, mitsuba):
+    """Issue 26's table: each variant's relative MSE over box of the same samples, mean over the seeds."""
+    import mcrecon
+    print(f"== splat variants / box of the same samples (relative MSE, eps 0.01), {size}x{size}, {spp} spp, "
+          f"seeds {' '.join(map(str, seeds))} ==")
+    print(f"{'scene':20s} {'mode':8s} {'box':>9} " + " ".join(f"{v:>15}" for v in VARIANTS))
+    for sc in _scenes(size, mitsuba):
+        ref = sc.reference()
+        for mode in ("offline", "adaptive"):
+            box, ratios = [], {v: [] for v in VARIANTS}
+            for seed in seeds:
+                if mode == "offline":
+                    pos, val = sc.uniform(spp, seed)
+                    ss = mcrecon.SampleSet(pos, val, width=size, height=size)
+                    st = PixelStats(size, size)
+                    st.add(pos, val)
+                    eb = relative_mse(st.mean, ref)
+                    for v in VARIANTS:
+                        with warnings.catch_warnings():
+                            warnings.simplefilter("ignore")
+                            ratios[v].append(relative_mse(mcrecon.reconstruct(ss, method=SplatMethod(variant=v)),
+                                                          ref) / eb)
+                else:  # the variants plan the same rounds: the same samples, box = their pixel mean
+                    eb = None
+                    for v in VARIANTS:
+                        with warnings.catch_warnings():
+                            warnings.simplefilter("ignore")
+                            res = adapt(sc.renderer(seed), SplatMethod(variant=v), spp=spp, seed=seed,
+                                        track_error=False, progress=False)
+                        eb = relative_mse(res.stats.mean, ref) if eb is None else eb
+                        ratios[v].append(relative_mse(res.image, ref) / eb)
+                box.append(eb)
+            cells = " ".join(f"{np.mean(r):6.3f} [{min(r):.2f}-{max(r):.2f}]" for r in ratios.values())
+            print(f"{sc.name:20s} {mode:8s} {np.mean(box):9.3g} {cells}", flush=True)
+
+
+def bench_convergence(size, seeds, out):
+    """Relative MSE against spp, 4 .. 256: the default, box and the paper's variant, every built-in scene."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import mcrecon
+    spps = [4, 8, 16, 32, 64, 128, 256]
+    names = scenes.scene_names()
+    fig, axes = plt.subplots(2, (len(names) + 1) // 2, figsize=(4 * ((len(names) + 1) // 2), 7.5))
+    print(f"== relative MSE (eps 0.01) against spp, {size}x{size}, mean of seeds {' '.join(map(str, seeds))} ==")
+    for ax, name in zip(axes.ravel(), names):
+        ref = scenes.reference_image(name, size, size)
+        curves = {"box": [], "splat (default)": [], "splat paper": []}
+        for n in spps:
+            e = {k: [] for k in curves}
+            for seed in seeds:
+                b = scenes.render_uniform(name, width=size, height=size, spp=n, seed=seed)
+                ss = mcrecon.SampleSet(b.positions, b.values, width=size, height=size)
+                st = PixelStats(size, size)
+                st.add(b.positions, b.values)
+                e["box"].append(relative_mse(st.mean, ref))
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    e["splat (default)"].append(relative_mse(mcrecon.reconstruct(ss, method=SplatMethod()), ref))
+                    e["splat paper"].append(relative_mse(mcrecon.reconstruct(ss, method=SplatMethod(variant="paper")),
+                                                         ref))
+            for k in curves:
+                curves[k].append(float(np.mean(e[k])))
+        print(f"{name:15s} " + "  ".join(f"{k}: " + " ".join(f"{x:.3g}" for x in v) for k, v in curves.items()),
+              flush=True)
+        for (k, v), style in zip(curves.items(), ("k-o", "C0-s", "C3-^")):
+            ax.loglog(spps, v, style, label=k, ms=4)
+        ax.set_title(name)
+        ax.set_xlabel("samples per pixel")
+        ax.set_ylabel("relative MSE")
+        ax.grid(True, which="both", alpha=0.3)
+    for ax in axes.ravel()[len(names):]:
+        ax.axis("off")
+    axes.ravel()[0].legend()
+    fig.suptitle(f"splat: error against spp ({size}x{size}, uniform renders, mean of {len(seeds)} seeds)")
+    fig.tight_layout()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = out / ".splat_convergence.png.tmp"
+    fig.savefig(tmp, format="png", dpi=90)
+    os.replace(tmp, out / "splat_convergence.png")
+    print(f"wrote {out / 'splat_convergence.png'}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=None, help="film side (default 512; 128 with --limits)")
@@ -127,7 +243,19 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--limits", action="store_true", help="print the measured-limits table instead")
     ap.add_argument("--seeds", type=int, nargs="+", default=[5, 7], help="renderer seeds of the limits table")
+    ap.add_argument("--defaults", action="store_true", help="print issue 26's table of the variants instead")
+    ap.add_argument("--convergence", action="store_true", help="write the convergence plot instead")
+    ap.add_argument("--no-mitsuba", action="store_true", help="--defaults: built-in scenes only")
+    ap.add_argument("--out", default=str(Path(__file__).parent.parent / "docs" / "images"),
+                    help="--convergence: folder of the plot")
     a = ap.parse_args(argv)
+    if a.defaults:
+        bench_defaults(a.size or 128, a.spp or 32, a.seeds if a.seeds != [5, 7] else [0, 1, 2, 3],
+                       not a.no_mitsuba)
+        return
+    if a.convergence:
+        bench_convergence(a.size or 128, a.seeds if a.seeds != [5, 7] else [0, 1], a.out)
+        return
     if a.limits:
         bench_variants(a.size or 128, a.spp or 32, a.seeds)
         bench_limits(64, 64, a.seeds)

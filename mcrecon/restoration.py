@@ -321,8 +321,9 @@ def awr(source, /, *, variant="robust", wavelet="cdf97", cs=1.0, variance="sampl
 
 @_given_options
 def splat(source, /, *, variant="robust", alpha=0.5, c=2.0, c_prime=8.0, initial_spp=1, min_width=1.0,
-          max_width=32.0, boundary="mirror", norm="luminance", spread="outliers", outlier_k=2.0,
-          guide="local_mean", nonfinite="drop", **unknown) -> np.ndarray:
+          max_width=32.0, boundary="mirror", norm="luminance", spread="consistent", outlier_k=2.0,
+          guide="local_mean", false_rejection=0.05, spread_c=8.0, spread_alpha=0.3, nonfinite="drop",
+          **unknown) -> np.ndarray:
     """Progressive, energy-preserving, variable-width Epanechnikov splatting of individual samples.
 
     Parameters
@@ -330,9 +331,10 @@ def splat(source, /, *, variant="robust", alpha=0.5, c=2.0, c_prime=8.0, initial
     source : SampleSet
         The samples (rounds are replayed in order; a single round is split into doubling pseudo-rounds per
         pixel).
-    variant : {'robust', 'paper'}, optional
+    variant : {'robust', 'outliers', 'paper'}, optional
         Algorithm variant: 'paper' presets every option to the paper's algorithm; 'robust' is the measured
-        default (departures documented on the method's page) (default "robust").
+        default (departures documented on the method's page); 'outliers' the default before issue 26
+        (default "robust").
     alpha : float, optional
         Exponent of N in the kernel width (Eq. 8), 0 < alpha <= 1; a finite number with 0 < alpha <= 1 (the
         paper uses 1.5/5; 1/5 and 1/2 are the classical extremes) (default 0.5; ``variant='paper'``: 0.3).
@@ -352,16 +354,26 @@ def splat(source, /, *, variant="robust", alpha=0.5, c=2.0, c_prime=8.0, initial
         Boundary-bias remedy (default "mirror").
     norm : {'luminance', 'mean', 'max'}, optional
         Scalar value of a colour sample in Eq. 8 (default "luminance").
-    spread : {'all', 'outliers'}, optional
-        Which samples are splatted: all (the paper) or only the excess of outliers above their 3x3
-        neighbourhood's mean + k std (the rest stays in its pixel) (default "outliers"; ``variant='paper'``:
-        "all").
+    spread : {'all', 'outliers', 'consistent'}, optional
+        Which samples are splatted: all (the paper), outliers (only the excess of outliers above their 3x3
+        neighbourhood's mean + k std; the rest stays in its pixel) or consistent (as outliers, and the
+        other samples into the pixels whose statistics match) (default "consistent"; ``variant='paper'``:
+        "all"; ``variant='outliers'``: "outliers").
     outlier_k : float, optional
         With spread='outliers': a sample is an outlier above mean + k std of the G of its 3x3 neighbourhood's
         samples; a finite number >= 0 (default 2.0).
     guide : {'none', 'local_mean'}, optional
         Footprint weights of the spread part: none (Epanechnikov, the paper) or local_mean (Epanechnikov times
         the pooled 3x3 mean of G at each pixel) (default "local_mean"; ``variant='paper'``: "none").
+    false_rejection : float, optional
+        With spread='consistent': rate at which two pixels of the same expectation are told apart (sets the
+        gate's k standard errors); a finite number with 0 < false_rejection < 1 (default 0.05).
+    spread_c : float, optional
+        With spread='consistent': Eq. 8's C (diameter in pixels at N = 1, G/f = 1) of the consistent
+        samples' kernels; a finite number > 0 (default 8.0).
+    spread_alpha : float, optional
+        With spread='consistent': Eq. 8's exponent of N for the consistent samples' kernels (the paper's
+        1.5/5); a finite number with 0 < spread_alpha <= 1 (default 0.3).
     nonfinite : {'drop', 'zero', 'raise'}, optional
         Policy for NaN/Inf sample values of a SampleSet (default 'drop').
 

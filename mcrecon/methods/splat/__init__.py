@@ -5,15 +5,20 @@ image with an Epanechnikov kernel whose width grows with how "bad" the
 sample is compared with the current estimate of the image (Eq. 8), and
 shrinks as the number of samples grows; the image is built progressively
 in doubling rounds (Fig. 3).  That is ``variant="paper"``; the default
-``variant="robust"`` keeps every sample in its pixel except the excess of
-outliers over their neighbourhood, which it spreads guided by the local
-mean (``docs/methods/splat.md``, "Default vs paper").
+``variant="robust"`` spreads the excess of outliers over their
+neighbourhood guided by the local mean, and every consistent sample with
+Eq. 8's width, but only into pixels whose statistics do not tell them
+apart and within the local gradient's bound (``docs/methods/splat.md``,
+"The default filters"); ``variant="outliers"`` moves the outliers' excess
+only (the default before issue 26).
 
 :mod:`.kernels`
     The footprint of one sample: Eq. 4, the numba scatter loops, :func:`splat`.
 :mod:`.progressive`
     Eq. 8 widths, the running image of Fig. 3 (:class:`ProgressiveSplatter`),
     round schedules.
+:mod:`.outliers`, :mod:`.consistent`
+    The default's outlier split, and its gated spread of consistent samples.
 :mod:`.method`
     :class:`SplatMethod` behind the method contract.
 

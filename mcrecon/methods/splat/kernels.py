@@ -69,6 +69,137 @@ def _reflect(i, n):
     return m
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _scratch(radius):
+    """Scratch buffers (weights, column and row indices) for the footprint of the widest sample."""
+    rmax = 0.0
+    for k in range(radius.shape[0]):
+        if radius[k] > rmax:
+            rmax = radius[k]
+    side = 2 * int(math.ceil(rmax)) + 2
+    cap = side * side + 1  # + 1: the share a gated footprint keeps home
+    return np.empty(cap), np.empty(cap, np.int64), np.empty(cap, np.int64)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _film_index(i, n, mode, guided):
+    """(index deposited to, index of the guide) of grid index i on a film of n: i itself on the film;
+    off it, its mirror image (mode none deposits nothing: -1, and needs the mirror only for a guide)."""
+    if 0 <= i < n:
+        return i, i
+    if mode == 2 and not guided:
+        return -1, i
+    m = _reflect(i, n)
+    return (-1 if mode == 2 else m), m
+@numba.njit(cache=True, nogil=True, inline="always")
+def _same_pixel_stats(gs, pj, pi, qj, qi, k2):
+    """Whether neither the means nor the spreads of pixels p and q tell them apart, in every channel.
+
+    ``gs[..., c, :]`` holds (mean, squared standard error of the mean, log sample variance, its
+    variance 2 / (n - 1)): the means must differ by at most k standard errors of their difference,
+    and the log variances by at most k of theirs (the normal approximation of both)."""
+    if qj == pj and qi == pi:
+        return True
+    for c in range(gs.shape[2]):
+        d = gs[qj, qi, c, 0] - gs[pj, pi, c, 0]
+        if not d * d <= k2 * (gs[pj, pi, c, 1] + gs[qj, qi, c, 1]):
+            return False
+        d = gs[qj, qi, c, 2] - gs[pj, pi, c, 2]
+        if not d * d <= k2 * (gs[pj, pi, c, 3] + gs[qj, qi, c, 3]):
+            return False
+    return True
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _footprint(x, y, r, h, w, mode, guide, guided, wbuf, ibuf, jbuf, gs, pj, pi, k2, gated):
+    """The pixel centres strictly inside the support of radius ``r`` around (x, y) and their weights.
+
+    The weight of centre q is ``1 - |q - (x, y)|^2 / r^2``, times ``guide[q]`` when ``guided`` (then
+    centres of weight <= 0 are left out; off-film centres use the guide of their mirror image).
+    ``gated`` (the sample's pixel (pj, pi) at the centre, ``guide`` a radius per pixel): the weights
+    still sum over the whole support, but a centre q receives ``1 - d^2 / min(r, guide[p], guide[q])^2``
+    only if its pixel passes :func:`_same_pixel_stats` against p; the rest of its weight goes to p,
+    as one last entry.  Pair-symmetric: p sends q what q would send p.
+    Film indices after the boundary mode go to ``ibuf``/``jbuf`` (-1: mode none, off the film).
+    Returns (sum of the weights, number of entries).
+    """
+    r2 = r * r
+    inv_r2 = 1.0 / r2
+    # centres c = j + 1/2 with |c - y| < r  <=>  y - 1/2 - r < j < y - 1/2 + r
+    jlo = int(math.floor(y - 0.5 - r)) + 1
+    jhi = int(math.ceil(y - 0.5 + r)) - 1
+    if mode == 1:
+        jlo = max(jlo, 0)
+        jhi = min(jhi, h - 1)
+    s = 0.0
+    m = 0
+    home = 0.0
+    for j in range(jlo, jhi + 1):
+        dy = j + 0.5 - y
+        rem = r2 - dy * dy
+        if rem <= 0.0:
+            continue
+        jj, jg = _film_index(j, h, mode, guided or gated)
+        half = math.sqrt(rem)
+        ilo = int(math.floor(x - 0.5 - half)) + 1
+        ihi = int(math.ceil(x - 0.5 + half)) - 1
+        if mode == 1:
+            ilo = max(ilo, 0)
+            ihi = min(ihi, w - 1)
+        dy2 = dy * dy * inv_r2
+        for i in range(ilo, ihi + 1):
+            dx = i + 0.5 - x
+            q = dx * dx * inv_r2 + dy2
+            if q < 1.0:
+                wt = 1.0 - q
+                ii, ig = _film_index(i, w, mode, guided or gated)
+                if gated:
+                    s += wt
+                    sent = 0.0
+                    if _same_pixel_stats(gs, pj, pi, jg, ig, k2):
+                        re = min(guide[pj, pi], guide[jg, ig])
+                        d2 = q * r2
+                        if d2 < re * re:
+                            sent = wt if re >= r else 1.0 - d2 / (re * re)
+                    home += wt - sent
+                    if not sent > 0.0:
+                        continue
+                    wbuf[m] = sent
+                    ibuf[m] = ii
+                    jbuf[m] = jj
+                    m += 1
+                    continue
+                if guided:
+                    wt = wt * guide[jg, ig]
+                    if not wt > 0.0:
+                        continue
+                s += wt
+                wbuf[m] = wt
+                ibuf[m] = ii
+                jbuf[m] = jj
+                m += 1
+    if home > 0.0:
+        wbuf[m] = home
+        ibuf[m] = pi
+        jbuf[m] = pj
+        m += 1
+    return s, m
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _deposit_weights(out, v, e, wbuf, ibuf, jbuf, m):
+    """Add ``v * (wbuf[t] * e)`` at each centre t of a footprint (mode none: off-film weight is lost)."""
+    nc = out.shape[2]
+    for t in range(m):
+        ii = ibuf[t]
+        jj = jbuf[t]
+        if ii < 0 or jj < 0:
+            continue
+        wt = wbuf[t] * e
+        for c in range(nc):
+            out[jj, ii, c] += v[c] * wt
+
+
 @numba.njit(cache=True, nogil=True)
 def _splat_loop(pos, val, scale, radius, mode, out):
     """Deposit each sample's ``val * scale`` with a normalised Epanechnikov footprint.
@@ -84,16 +215,10 @@ def _splat_loop(pos, val, scale, radius, mode, out):
     w = out.shape[1]
     nc = out.shape[2]
     n = pos.shape[0]
-    rmax = 0.0
-    for k in range(n):
-        if radius[k] > rmax:
-            rmax = radius[k]
-    side = 2 * int(math.ceil(rmax)) + 2
-    cap = side * side
-    wbuf = np.empty(cap)
-    ibuf = np.empty(cap, np.int64)
-    jbuf = np.empty(cap, np.int64)
+    wbuf, ibuf, jbuf = _scratch(radius)
     vv = np.empty(nc)
+    no_guide = np.ones((1, 1))
+    no_stats = np.zeros((1, 1, 1, 4))
     n_fallback = 0
     for k in range(n):
         r = radius[k]
@@ -103,44 +228,8 @@ def _splat_loop(pos, val, scale, radius, mode, out):
         y = np.float64(pos[k, 1])
         for c in range(nc):
             vv[c] = val[k, c]
-        r2 = r * r
-        inv_r2 = 1.0 / r2
-        # centres c = j + 1/2 with |c - y| < r  <=>  y - 1/2 - r < j < y - 1/2 + r
-        jlo = int(math.floor(y - 0.5 - r)) + 1
-        jhi = int(math.ceil(y - 0.5 + r)) - 1
-        if mode == 1:
-            jlo = max(jlo, 0)
-            jhi = min(jhi, h - 1)
-        s = 0.0
-        m = 0
-        for j in range(jlo, jhi + 1):
-            dy = j + 0.5 - y
-            rem = r2 - dy * dy
-            if rem <= 0.0:
-                continue
-            jj = j
-            if j < 0 or j >= h:
-                jj = -1 if mode == 2 else _reflect(j, h)
-            half = math.sqrt(rem)
-            ilo = int(math.floor(x - 0.5 - half)) + 1
-            ihi = int(math.ceil(x - 0.5 + half)) - 1
-            if mode == 1:
-                ilo = max(ilo, 0)
-                ihi = min(ihi, w - 1)
-            dy2 = dy * dy * inv_r2
-            for i in range(ilo, ihi + 1):
-                dx = i + 0.5 - x
-                q = dx * dx * inv_r2 + dy2
-                if q < 1.0:
-                    wt = 1.0 - q
-                    s += wt
-                    ii = i
-                    if i < 0 or i >= w:
-                        ii = -1 if mode == 2 else _reflect(i, w)
-                    wbuf[m] = wt
-                    ibuf[m] = ii
-                    jbuf[m] = jj
-                    m += 1
+        s, m = _footprint(x, y, r, h, w, mode, no_guide, False, wbuf, ibuf, jbuf, no_stats, 0, 0,
+                          0.0, False)
         if not s > 0.0:
             # No pixel centre inside the support: the whole sample goes to its
             # own pixel (whose centre is the nearest one).
@@ -167,14 +256,7 @@ def _splat_loop(pos, val, scale, radius, mode, out):
                 out[jj, ii, 1] += v1 * wt
                 out[jj, ii, 2] += v2 * wt
             continue
-        for t in range(m):
-            ii = ibuf[t]
-            jj = jbuf[t]
-            if ii < 0 or jj < 0:
-                continue  # mode none: weight outside the film is lost
-            wt = wbuf[t] * e
-            for c in range(nc):
-                out[jj, ii, c] += vv[c] * wt
+        _deposit_weights(out, vv, e, wbuf, ibuf, jbuf, m)
     return n_fallback
 
 
@@ -285,15 +367,8 @@ def _splat_guided_loop(pos, val, scale, radius, guide, mode, out):
     w = out.shape[1]
     nc = out.shape[2]
     n = pos.shape[0]
-    rmax = 0.0
-    for k in range(n):
-        if radius[k] > rmax:
-            rmax = radius[k]
-    side = 2 * int(math.ceil(rmax)) + 2
-    cap = side * side
-    wbuf = np.empty(cap)
-    ibuf = np.empty(cap, np.int64)
-    jbuf = np.empty(cap, np.int64)
+    wbuf, ibuf, jbuf = _scratch(radius)
+    no_stats = np.zeros((1, 1, 1, 4))
     n_fallback = 0
     for k in range(n):
         r = radius[k]
@@ -303,49 +378,8 @@ def _splat_guided_loop(pos, val, scale, radius, guide, mode, out):
         y = np.float64(pos[k, 1])
         px = min(max(int(math.floor(x)), 0), w - 1)
         py = min(max(int(math.floor(y)), 0), h - 1)
-        r2 = r * r
-        inv_r2 = 1.0 / r2
-        jlo = int(math.floor(y - 0.5 - r)) + 1
-        jhi = int(math.ceil(y - 0.5 + r)) - 1
-        if mode == 1:
-            jlo = max(jlo, 0)
-            jhi = min(jhi, h - 1)
-        s = 0.0
-        m = 0
-        for j in range(jlo, jhi + 1):
-            dy = j + 0.5 - y
-            rem = r2 - dy * dy
-            if rem <= 0.0:
-                continue
-            jj = j
-            jg = j
-            if j < 0 or j >= h:
-                jg = _reflect(j, h)
-                jj = -1 if mode == 2 else jg
-            half = math.sqrt(rem)
-            ilo = int(math.floor(x - 0.5 - half)) + 1
-            ihi = int(math.ceil(x - 0.5 + half)) - 1
-            if mode == 1:
-                ilo = max(ilo, 0)
-                ihi = min(ihi, w - 1)
-            dy2 = dy * dy * inv_r2
-            for i in range(ilo, ihi + 1):
-                dx = i + 0.5 - x
-                q = dx * dx * inv_r2 + dy2
-                if q < 1.0:
-                    ii = i
-                    ig = i
-                    if i < 0 or i >= w:
-                        ig = _reflect(i, w)
-                        ii = -1 if mode == 2 else ig
-                    wt = (1.0 - q) * guide[jg, ig]
-                    if not wt > 0.0:
-                        continue
-                    s += wt
-                    wbuf[m] = wt
-                    ibuf[m] = ii
-                    jbuf[m] = jj
-                    m += 1
+        s, m = _footprint(x, y, r, h, w, mode, guide, True, wbuf, ibuf, jbuf, no_stats, 0, 0, 0.0,
+                          False)
         if not s > 0.0:
             n_fallback += 1
             e = scale[k]
@@ -353,14 +387,7 @@ def _splat_guided_loop(pos, val, scale, radius, guide, mode, out):
                 out[py, px, c] += val[k, c] * e
             continue
         e = scale[k] / s
-        for t in range(m):
-            ii = ibuf[t]
-            jj = jbuf[t]
-            if ii < 0 or jj < 0:
-                continue
-            wt = wbuf[t] * e
-            for c in range(nc):
-                out[jj, ii, c] += val[k, c] * wt
+        _deposit_weights(out, val[k], e, wbuf, ibuf, jbuf, m)
     return n_fallback
 
 
@@ -378,3 +405,42 @@ def _deposit_own_pixel(pos, val, scale, out):
         py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
         for c in range(nc):
             out[py, px, c] += val[k, c] * e
+
+
+@numba.njit(cache=True, nogil=True)
+def _splat_gated_loop(pos, val, scale, radius, r_edge, gs, k2, mode, out):
+    """Like :func:`_splat_loop`, but a sample of pixel p reaches only the pixels q whose statistics ``gs``
+    do not tell them apart from p's at ``k = sqrt(k2)`` (:func:`_same_pixel_stats`; off-film
+    centres: their mirror image), and only within
+    ``min(r_edge[p], r_edge[q])``; what the footprint would give elsewhere stays in p.  Normalised
+    over the whole footprint, so each sample deposits exactly ``val * scale``, and pair-symmetric:
+    a region of equal pixels keeps its values.  ``radius <= 0``: the sample goes to its own pixel.
+    """
+    h = out.shape[0]
+    w = out.shape[1]
+    nc = out.shape[2]
+    wbuf, ibuf, jbuf = _scratch(radius)
+    n_fallback = 0
+    for k in range(pos.shape[0]):
+        e = scale[k]
+        if e == 0.0:
+            continue
+        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
+        py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+        # Centred on the pixel centre, not the sample: normalised footprints of jittered positions are
+        # no partition of unity (a flat field would come out noisy); footprints of one width centred
+        # on the pixel grid are, so a stationary region keeps its expectation.
+        x = px + 0.5
+        y = py + 0.5
+        r = radius[k]
+        s = 0.0
+        m = 0
+        if r > 0.0:
+            s, m = _footprint(x, y, r, h, w, mode, r_edge, False, wbuf, ibuf, jbuf, gs, py, px, k2, True)
+        if not s > 0.0:
+            n_fallback += r > 0.0
+            for c in range(nc):
+                out[py, px, c] += val[k, c] * e
+            continue
+        _deposit_weights(out, val[k], e / s, wbuf, ibuf, jbuf, m)
+    return n_fallback

@@ -33,11 +33,14 @@ class SplatMethod(Method):
 
     Options
     -------
-    variant : {'robust', 'paper'}
+    variant : {'robust', 'outliers', 'paper'}
         ``paper`` presets the paper's algorithm (``spread='all'``,
-        ``guide='none'``, ``c=4``, ``alpha=0.3``); ``robust`` (default)
-        spreads only the excess of outliers (``docs/methods/splat.md``,
-        "Default vs paper").  Explicit options win over the presets.
+        ``guide='none'``, ``c=4``, ``alpha=0.3``); ``robust`` (default,
+        ``spread='consistent'``) spreads the excess of outliers and the
+        consistent samples, gated by the pixels' statistics
+        (``docs/methods/splat.md``, "The default filters"); ``outliers``
+        spreads only the excess of outliers (the default before issue 26).
+        Explicit options win over the presets.
     alpha : float
         Exponent of N in Eq. 8 (default 0.5; the paper's Sec. 5: 1.5/5 = 0.3); 0 < alpha <= 1.
     c : float
@@ -53,8 +56,13 @@ class SplatMethod(Method):
         Boundary-bias remedy (Sec. 5); default mirror.
     norm : {'luminance', 'mean', 'max'}
         Scalar G of a colour sample (and f of a pixel) in Eq. 8.
-    spread : {'outliers', 'all'}
+    spread : {'consistent', 'outliers', 'all'}
         ``all``: every sample gets its Eq. 8 kernel (the paper).
+        ``consistent``: as ``outliers``, and every sample that is not an
+        outlier is spread with Eq. 8's width (``spread_c``,
+        ``spread_alpha``) into the pixels whose means and variances do not
+        tell them apart from its own at ``false_rejection`` and within
+        ``k se / |grad|`` of both (:mod:`.consistent`).
         ``outliers``: a sample stays in its pixel unless its G exceeds
         the largest ``mean + outlier_k * std`` of the 3x3 windows around
         its pixel (pooled samples so far); then only the excess fraction
@@ -62,6 +70,10 @@ class SplatMethod(Method):
         ``G - tau`` against the pooled mean.
     outlier_k : float
         k of that threshold (default 2).
+    false_rejection : float
+        Rate at which the gate tells two pixels of one distribution apart (default 0.05).
+    spread_c, spread_alpha : float
+        C and alpha of Eq. 8 for the consistent samples (default 8 and the paper's 0.3).
     guide : {'local_mean', 'none'}
         Weights of the spread part: Epanechnikov times the pooled 3x3 mean
         of G at each covered pixel (``local_mean``), or plain (``none``).
@@ -95,10 +107,14 @@ class SplatMethod(Method):
     adaptive = False
     requires = Requirements(samples=True, statistics=False)
     #: ``paper``: every sample splatted with Eq. 8 widths (Suykens and Willems
-    #: 2000 as published).  ``robust`` (default): only the excess of outliers
-    #: is spread, guided by the local mean (docs/methods/splat.md, "Default vs paper").
-    variants = {"robust": {"spread": "outliers", "guide": "local_mean", "c": 2.0, "alpha": 0.5,
+    #: 2000 as published).  ``robust`` (default): the excess of outliers spread
+    #: guided by the local mean, consistent samples gated by the pixels' statistics
+    #: (docs/methods/splat.md, "The default filters").  ``outliers``: only the
+    #: excess of outliers (the default before issue 26).
+    variants = {"robust": {"spread": "consistent", "guide": "local_mean", "c": 2.0, "alpha": 0.5,
                            "outlier_k": 2.0},
+                "outliers": {"spread": "outliers", "guide": "local_mean", "c": 2.0, "alpha": 0.5,
+                             "outlier_k": 2.0},
                 "paper": {"spread": "all", "guide": "none", "c": 4.0, "alpha": 0.3}}
     options = (
         variant_option(variants),
@@ -115,12 +131,21 @@ class SplatMethod(Method):
                min=1.0),
         Option("boundary", str, "mirror", "boundary-bias remedy", BOUNDARY_MODES),
         Option("norm", str, "luminance", "scalar value of a colour sample in Eq. 8", NORMS),
-        Option("spread", str, "outliers", "which samples are splatted: all (the paper) or only the excess "
-               "of outliers above their 3x3 neighbourhood's mean + k std (the rest stays in its pixel)", SPREADS),
+        Option("spread", str, "consistent", "which samples are splatted: all (the paper), outliers (only the "
+               "excess of outliers above their 3x3 neighbourhood's mean + k std; the rest stays in its pixel) "
+               "or consistent (as outliers, and the other samples into the pixels whose statistics match)",
+               SPREADS),
         Option("outlier_k", float, 2.0, "spread='outliers': a sample is an outlier above mean + k std of "
                "the G of its 3x3 neighbourhood's samples", min=0.0),
         Option("guide", str, "local_mean", "footprint weights of the spread part: none (Epanechnikov, the "
                "paper) or local_mean (Epanechnikov times the pooled 3x3 mean of G at each pixel)", GUIDES),
+        Option("false_rejection", float, 0.05, "spread='consistent': rate at which two pixels of the same "
+               "expectation are told apart (sets the gate's k standard errors)", min=0.0, max=1.0,
+               min_open=True, max_open=True),
+        Option("spread_c", float, 8.0, "spread='consistent': Eq. 8's C (diameter in pixels at N = 1, G/f = 1) "
+               "of the consistent samples' kernels", min=0.0, min_open=True),
+        Option("spread_alpha", float, 0.3, "spread='consistent': Eq. 8's exponent of N for the consistent "
+               "samples' kernels (the paper's 1.5/5)", min=0.0, max=1.0, min_open=True),
     )
 
     def _configure(self, params: dict) -> None:
@@ -133,7 +158,9 @@ class SplatMethod(Method):
         return ProgressiveSplatter(width, height, n_channels, c=p["c"], alpha=p["alpha"], c_prime=p["c_prime"],
                                    min_width=p["min_width"], max_width=p["max_width"],
                                    boundary=p["boundary"], norm=p["norm"], spread=p["spread"],
-                                   outlier_k=p["outlier_k"], guide=p["guide"])
+                                   outlier_k=p["outlier_k"], guide=p["guide"],
+                                   false_rejection=p["false_rejection"], spread_c=p["spread_c"],
+                                   spread_alpha=p["spread_alpha"])
 
     def start(self, width, height, channels=("R", "G", "B"), *, reference=None) -> "SplatRun":
         run = super().start(width, height, channels, reference=reference)
@@ -175,7 +202,7 @@ class SplatMethod(Method):
             for r in rounds:
                 sp.add_round_stream(lambda r=r: _arrays(src.iter_chunks(rounds=[r], with_round=False)),
                                     nonfinite=nonfinite, where=where)
-        elif rounds and self.params["spread"] == "outliers":
+        elif rounds and self.params["spread"] != "all":
             # Robust variant: a single-round source is one round.  Every sample is judged
             # against the statistics of all samples (pseudo-rounds would judge the first
             # ones against a few spp, too few for the outlier test: MIN_POOL).

@@ -69,25 +69,11 @@ def _split_outliers(pos, val, norm_code, weights, tau, fref, nmap, c, alpha, min
 
 @numba.njit(cache=True, nogil=True)
 def _count_and_moments(pos, val, norm_code, weights, counts, s1, s2):
-    """One pass over a round held in memory: samples per pixel and the sums of G and G^2 per pixel.
-
-    The same numbers as ``_pixel_counts`` then :func:`_g_moments` (integer
-    counts; the sums added in sample order).
-    """
+    """One pass over samples: add to each pixel its sample count and the sums of G and G^2 (in sample order)."""
     h = s1.shape[0]
     w = s1.shape[1]
-    nc = val.shape[1]
     for k in range(pos.shape[0]):
-        # _norm_of's arithmetic written out: measured 5-7x faster here than the call
-        g = 0.0
-        if norm_code == 0:
-            for c in range(nc):
-                g += weights[c] * abs(np.float64(val[k, c]))
-        else:
-            for c in range(nc):
-                a = abs(np.float64(val[k, c]))
-                if a > g:
-                    g = a
+        g = _norm_of(val, k, norm_code, weights)
         px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
         py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
         counts[py, px] += 1
@@ -96,7 +82,7 @@ def _count_and_moments(pos, val, norm_code, weights, counts, s1, s2):
 
 
 @numba.njit(cache=True, nogil=True)
-def _outlier_thresholds(wn, ws1, ws2, r, k_sigma, min_pool, tau):
+def _outlier_thresholds(wn, ws1, ws2, r, k_sigma, min_pool, tau, skip_small=False):
     """The outlier threshold tau of every pixel (robust variant).
 
     The threshold of a sample in pixel p is the largest, over the
@@ -107,18 +93,24 @@ def _outlier_thresholds(wn, ws1, ws2, r, k_sigma, min_pool, tau):
     maximum over windows keeps a sample beside a bright edge in place: the
     window on the bright side explains it.  It depends only on the pixel:
     computed once per pixel, a round costs one lookup per sample instead of
-    (2r+1)^2 window visits with a square root each.
+    (2r+1)^2 window visits with a square root each.  ``skip_small``: the
+    maximum over the windows that hold ``min_pool`` samples, infinite only if
+    none does (at the film border, where windows are clipped, the test still
+    runs once the interior windows are full).
     """
     h, w = wn.shape
     for py in range(h):
         for px in range(w):
             t = 0.0
+            counted = False
             for j in range(max(py - r, 0), min(py + r, h - 1) + 1):
                 for i in range(max(px - r, 0), min(px + r, w - 1) + 1):
                     nw = wn[j, i]
                     if nw < min_pool:
-                        t = np.inf
+                        if not skip_small:
+                            t = np.inf
                         continue
+                    counted = True
                     mean = ws1[j, i] / nw
                     var = ws2[j, i] / nw - mean * mean
                     if var < 0.0:
@@ -126,7 +118,7 @@ def _outlier_thresholds(wn, ws1, ws2, r, k_sigma, min_pool, tau):
                     tw = (mean + k_sigma * math.sqrt(var)) * (1.0 + 1e-9)
                     if tw > t:
                         t = tw
-            tau[py, px] = t
+            tau[py, px] = t if counted or not skip_small else np.inf
 
 
 @numba.njit(cache=True, nogil=True)
@@ -150,15 +142,7 @@ def _split_and_deposit(pos, val, norm_code, weights, tau, fref, nmap, c, alpha, 
         py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
         frac = 0.0
         rad = -1.0
-        g = 0.0  # _norm_of written out (see _count_and_moments)
-        if norm_code == 0:
-            for ch in range(nc):
-                g += weights[ch] * abs(np.float64(val[k, ch]))
-        else:
-            for ch in range(nc):
-                a = abs(np.float64(val[k, ch]))
-                if a > g:
-                    g = a
+        g = _norm_of(val, k, norm_code, weights)
         if g > 0.0:
             t = tau[py, px]
             if g > t:
@@ -200,8 +184,9 @@ def _box_sum(a: np.ndarray, r: int) -> np.ndarray:
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, inline="always")
 def _norm_of(val, k, norm_code, weights):
+    """G of sample k (see ``NORMS``).  Inlined: as a call it made the per-sample passes 5-7x slower."""
     nc = val.shape[1]
     g = 0.0
     if norm_code == 0:  # weighted sum of |v| (luminance or mean)

@@ -35,6 +35,8 @@ from ...errors import InputError, McreconWarning
 from ...core.samples import apply_nonfinite, check_policy, check_samples
 from .kernels import BOUNDARY_MODES, _BOUNDARY_CODE, _deposit_own_pixel, _scatter, _splat_guided_loop
 from ...filters.luminance import LUMINANCE_WEIGHTS
+from .consistent import _consistent_radii, channel_sums, edge_radius, gate_k, pixel_moments
+from .kernels import _splat_gated_loop
 from .outliers import _box_sum, _count_and_moments, _norm_of, _outlier_thresholds, _split_and_deposit, _split_outliers
 
 __all__ = ['NORMS', 'kernel_width', 'pilot_width', 'sample_norm', 'ProgressiveSplatter']
@@ -48,8 +50,10 @@ __all__ = ['NORMS', 'kernel_width', 'pilot_width', 'sample_norm', 'ProgressiveSp
 NORMS = ("luminance", "mean", "max")
 #: Which samples are splatted: ``all`` (the paper: every sample, Eq. 8
 #: widths) or ``outliers`` (robust variant: only the excess of samples above
-#: their neighbourhood's threshold, everything else stays in its pixel).
-SPREADS = ("all", "outliers")
+#: their neighbourhood's threshold, everything else stays in its pixel) or ``consistent`` (the default
+#: since issue 26: as ``outliers``, and the rest spreads too, gated by the pixels' statistics:
+#: :mod:`.consistent`).
+SPREADS = ("all", "outliers", "consistent")
 #: Footprint weights of the spread part: ``none`` (plain Epanechnikov) or
 #: ``local_mean`` (Epanechnikov times the pooled 3x3 mean of G at each
 #: covered pixel: energy goes where the neighbourhoods' samples are bright).
@@ -156,19 +160,6 @@ def _radii(pos, val, norm_code, weights, ref, nmap, pilot, c, alpha, c_prime, mi
     return n_capped
 
 
-@numba.njit(cache=True, nogil=True)
-def _g_moments(pos, val, norm_code, weights, s1, s2):
-    """Accumulate per pixel the sum of G and of G^2 (robust variant: the pixels' own sample statistics)."""
-    h = s1.shape[0]
-    w = s1.shape[1]
-    for k in range(pos.shape[0]):
-        g = _norm_of(val, k, norm_code, weights)
-        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
-        py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
-        s1[py, px] += g
-        s2[py, px] += g * g
-
-
 # ----------------------------------------------------------------------------
 # The progressive algorithm (Fig. 3)
 # ----------------------------------------------------------------------------
@@ -228,13 +219,19 @@ class ProgressiveSplatter:
     def __init__(self, width: int, height: int, n_channels: int, *, c: float = 4.0, alpha: float = 0.3,
                  c_prime: float = 8.0, min_width: float = 1.0, max_width: float = 32.0,
                  boundary: str = "mirror", norm: str = "luminance", spread: str = "all",
-                 outlier_k: float = 2.0, guide: str = "none"):
+                 outlier_k: float = 2.0, guide: str = "none", false_rejection: float = 0.05,
+                 spread_c: float = 8.0, spread_alpha: float = 0.3):
         self.width, self.height, self.n_channels = int(width), int(height), int(n_channels)
         if spread not in SPREADS:
             raise InputError("method splat", "spread", f"{spread!r}; valid: {', '.join(SPREADS)}")
         if guide not in GUIDES:
             raise InputError("method splat", "guide", f"{guide!r}; valid: {', '.join(GUIDES)}")
         self.spread, self.outlier_k, self.guide = spread, float(outlier_k), guide
+        if not 0.0 < false_rejection < 1.0:
+            raise InputError("method splat", "false_rejection", f"{false_rejection!r}, expected 0 < rate < 1")
+        self.false_rejection = float(false_rejection)
+        self.spread_c, self.spread_alpha = float(spread_c), float(spread_alpha)
+        self._gate_k = gate_k(self.false_rejection, self.n_channels)
         self.c, self.alpha, self.c_prime = float(c), float(alpha), float(c_prime)
         self.min_width, self.max_width = float(min_width), float(max_width)
         if boundary not in _BOUNDARY_CODE:
@@ -269,6 +266,9 @@ class ProgressiveSplatter:
         # robust variant: cumulative per-pixel sums of G and G^2
         self._s1 = np.zeros((self.height, self.width))
         self._s2 = np.zeros((self.height, self.width))
+        # spread="consistent": cumulative per-pixel, per-channel sums of the values and their squares
+        self._cs1 = np.zeros((self.height, self.width, self.n_channels))
+        self._cs2 = np.zeros((self.height, self.width, self.n_channels))
 
     # ------------------------------------------------------------ helpers
     def _pixel_counts(self, pos) -> np.ndarray:
@@ -328,7 +328,7 @@ class ProgressiveSplatter:
         value (the adaptive driver's committed rounds, after its policy):
         they are not checked again.
         """
-        if self.spread != "outliers":
+        if self.spread != "outliers":  # the paper's rounds, and the gated spread, go through the streamed path
             self.add_round_stream(lambda: iter([(positions, values)]), nonfinite=nonfinite, where=where)
             return
         check_policy(nonfinite, where)
@@ -358,7 +358,7 @@ class ProgressiveSplatter:
         """
         check_policy(nonfinite, where)
         first = self.spp_total == 0.0
-        robust = self.spread == "outliers"
+        robust = self.spread != "all"
         s1 = np.zeros((self.height, self.width))
         s2 = np.zeros((self.height, self.width))
         if first and not robust:
@@ -379,10 +379,15 @@ class ProgressiveSplatter:
             for p, v in chunks():  # first pass: counts per pixel (and the one count of NaN/Inf samples)
                 p, v, n_bad = self._validated(p, v, nonfinite, where)
                 self.n_nonfinite += n_bad
-                counts += self._pixel_counts(p)
                 if robust:  # ... and the sums of G, G^2 per pixel
-                    _g_moments(p, np.ascontiguousarray(v, dtype=np.float64), self._norm_code, self._weights,
-                               s1, s2)
+                    _count_and_moments(p, np.ascontiguousarray(v, dtype=np.float64), self._norm_code,
+                                       self._weights, counts, s1, s2)
+                    if self.spread == "consistent":  # ... and of every channel's values and squares
+                        c1, c2 = channel_sums(p, v, self.width, self.height)
+                        self._cs1 += c1
+                        self._cs2 += c2
+                else:
+                    counts += self._pixel_counts(p)
         n_round = int(counts.sum())
         if n_round == 0:
             return
@@ -437,12 +442,13 @@ class ProgressiveSplatter:
                 img[empty] += w_round * ref_img[empty]
             self.image = img
             self.spp_total = total
-        with np.errstate(invalid="ignore", divide="ignore"):
-            self.last_widths = np.where(self._width_n > 0, self._width_sum / np.maximum(self._width_n, 1),
-                                        0.0).reshape(self.height, self.width)
         self._finish_round(n_j, n_round, capped, fallback, empty, first, where)
 
     def _finish_round(self, n_j, n_round, capped, fallback, empty, first, where, **extra):
+        """Record the round: the mean kernel diameter per pixel, the round's counts, a warning for unsampled pixels."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            self.last_widths = np.where(self._width_n > 0, self._width_sum / np.maximum(self._width_n, 1),
+                                        0.0).reshape(self.height, self.width)
         n_empty = int(empty.sum())
         self.rounds.append({"spp": n_j, "samples": n_round, "capped": capped, "fallback": fallback,
                             "empty_pixels": n_empty, **extra})
@@ -510,7 +516,13 @@ class ProgressiveSplatter:
         mode = _BOUNDARY_CODE[self.boundary]
         outliers = capped = fallback = 0
         tau = np.empty((self.height, self.width))
-        _outlier_thresholds(wn, ws1, ws2, self.POOL_RADIUS, self.outlier_k, float(self.MIN_POOL), tau)
+        consistent = self.spread == "consistent"
+        # consistent: a sample is spread only once the outlier test judged it, so the test must run
+        # wherever it can, also at the film border (over the full windows there)
+        _outlier_thresholds(wn, ws1, ws2, self.POOL_RADIUS, self.outlier_k, float(self.MIN_POOL), tau, consistent)
+        if consistent:  # the gate's pixel statistics and the gradient bound, all samples so far
+            gstats = pixel_moments(self.cum_counts, self._cs1, self._cs2)
+            r_edge = edge_radius(gstats, self._gate_k)
         if arrays is not None:  # a round in memory (add_round): the fused pass
             p, v = arrays
             idx = np.empty(p.shape[0], np.int64)
@@ -536,19 +548,24 @@ class ProgressiveSplatter:
             ix = np.clip(np.floor(p[:, 0]).astype(np.int64), 0, self.width - 1)
             iy = np.clip(np.floor(p[:, 1]).astype(np.int64), 0, self.height - 1)
             scale = w_round * inv_counts[iy, ix]
-            _deposit_own_pixel(p, v, scale * (1.0 - frac), img)
+            if consistent:
+                krad = np.empty(p.shape[0])
+                _consistent_radii(p, v, self._norm_code, self._weights, frac, tau, fref, nmap, r_edge, self.spread_c,
+                                  self.spread_alpha, self.min_width, self.max_width, krad)
+                fallback += _splat_gated_loop(p, v, scale * (1.0 - frac), krad, r_edge, gstats, self._gate_k ** 2,
+                                              mode, img)
+            else:
+                _deposit_own_pixel(p, v, scale * (1.0 - frac), img)
             sel = rad > 0
             if sel.any():
                 ps = np.ascontiguousarray(p[sel])
                 vs = np.ascontiguousarray(v[sel])
                 fallback += _splat_guided_loop(ps, vs, scale[sel] * frac[sel], np.ascontiguousarray(rad[sel]),
                                                guide, mode, img)
-            self._record_widths(p, np.where(sel, rad, 0.5 * self.min_width))
+            self._record_widths(p, np.where(sel, rad, np.where(krad > 0, krad, 0.5 * self.min_width)
+                                                        if consistent else 0.5 * self.min_width))
         if empty.any() and not first:
             img[empty] += w_round * prev[empty]
         self.image = img
         self.spp_total = total
-        with np.errstate(invalid="ignore", divide="ignore"):
-            self.last_widths = np.where(self._width_n > 0, self._width_sum / np.maximum(self._width_n, 1),
-                                        0.0).reshape(self.height, self.width)
         self._finish_round(n_j, n_round, capped, int(fallback), empty, first, where, outliers=outliers)

@@ -1,0 +1,127 @@
+"""Splatting that filters (the default since issue 26): consistent samples spread too, never across an edge.
+
+Every sample's part that is not an outlier's excess (:mod:`.outliers`) gets
+Eq. 8's kernel, ``h = C N^-alpha (G / f)^(1/2)``, shrinking as its pixel's
+sample count N grows, bounded twice by what the pixel statistics can see:
+
+* **the gate**: a pixel q receives a share of a sample of pixel p only if,
+  in every channel, ``|m_q - m_p| <= k sqrt(se_p^2 + se_q^2)`` (m the pixel
+  means, se their standard errors) and ``|ln s_q^2 - ln s_p^2| <= k sqrt(2 /
+  (n_p - 1) + 2 / (n_q - 1))`` (s^2 the sample variances): neither the means
+  nor the spreads tell the two pixels apart.  For two pixels of the same
+  distribution both standardised differences are about N(0, 1), so ``k``
+  follows from a false-rejection rate (two-sided, Bonferroni over the two
+  tests of every channel): :func:`gate_k`.  The spread test keeps a bright,
+  noisy pixel (a caustic's) from exchanging with a dim, quiet neighbour
+  whose mean its large standard error would not tell apart;
+* **the gradient bound**: a sample of p reaches q only within
+  ``min(r_p, r_q)``, ``r = k se / |grad m|`` (smallest over the channels,
+  the gradient's own noise taken out: :func:`edge_radius`): spreading along
+  the local colour gradient moves a sample's expectation by at most k
+  standard errors of its pixel at the rim.  A pixel whose samples have no
+  spread (se = 0) has no noise to remove and exchanges nothing.
+
+The footprint is centred on the sample's pixel centre and normalised over
+its whole support; what it would give a pixel the gate refuses, or beyond
+the bound, stays in the sample's own pixel.  So a sample deposits exactly
+its energy, and the exchange is pair-symmetric (p sends q the share q would
+send p): a region of equal pixels keeps its values exactly.  (Centred on the
+jittered sample position, normalised footprints are no partition of unity:
+a flat field of 1 with 0.1 % noise came out with 5 % rms error at 32 spp.)
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from scipy.special import ndtri
+
+from .outliers import _excess_width, _norm_of
+
+
+def gate_k(rate: float, n_channels: int) -> float:
+    """k of the gate: P(|z| > k) = rate / (2 n_channels) for z ~ N(0, 1) (two tests per channel)."""
+    return float(ndtri(1.0 - rate / (4.0 * n_channels)))
+
+
+def channel_sums(pos, val, width, height):
+    """Per pixel and channel the sums of the values and of their squares, (H, W, C) each."""
+    ix = np.clip(np.floor(pos[:, 0]).astype(np.int64), 0, width - 1)
+    iy = np.clip(np.floor(pos[:, 1]).astype(np.int64), 0, height - 1)
+    idx = iy * width + ix
+    nc = val.shape[1]
+    s1 = np.empty((height * width, nc))
+    s2 = np.empty((height * width, nc))
+    for c in range(nc):
+        v = np.asarray(val[:, c], dtype=np.float64)
+        s1[:, c] = np.bincount(idx, weights=v, minlength=width * height)
+        s2[:, c] = np.bincount(idx, weights=v * v, minlength=width * height)
+    return s1.reshape(height, width, nc), s2.reshape(height, width, nc)
+
+
+def pixel_moments(counts, s1, s2):
+    """Per pixel and channel (H, W, C, 4): the mean, the squared standard error of the mean, the log
+    sample variance and its variance ``2 / (n - 1)`` (normal approximation).  Below two samples the
+    standard error is infinite (nothing known); a variance of 0 has log -inf (only equal pixels match).
+    """
+    n = counts.astype(np.float64)[:, :, None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(n > 0, s1 / np.maximum(n, 1.0), 0.0)
+        var = np.maximum(s2 / np.maximum(n, 1.0) - mean * mean, 0.0) * n / np.maximum(n - 1.0, 1.0)
+        ok = n >= 2
+        se2 = np.where(ok, var / np.maximum(n, 1.0), np.inf)
+        lv = np.where(ok, np.log(var), 0.0)
+        tv = np.broadcast_to(np.where(ok, 2.0 / np.maximum(n - 1.0, 1.0), np.inf), mean.shape)
+    return np.ascontiguousarray(np.stack([mean, se2, lv, tv], axis=-1))
+
+
+def edge_radius(stats, k):
+    """Largest support radius per pixel: ``k se / |grad m|``, the smallest over the channels.
+
+    Spreading a sample over a radius r along a gradient g moves its expectation by up to ``|g| r``
+    at the rim: no more than k standard errors of the pixel's mean, the gate's own tolerance (the
+    gate accepts a neighbour whose mean differs by up to k standard errors of the difference).  The gradient is
+    Sobel's (central differences smoothed 1-2-1 across, on the film mirrored at its borders), and
+    its own noise is taken out: ``|g|^2 = max(0, gx^2 + gy^2 - var(gx) - var(gy))`` with the
+    variances from the neighbours' standard errors, so pure noise does not pass for an edge.
+    0 where se is 0 (nothing to remove) or unknown (fewer than two samples).
+    """
+    mean, se2 = stats[..., 0], stats[..., 1]
+    m = np.pad(mean, ((1, 1), (1, 1), (0, 0)), mode="symmetric")
+    v = np.pad(np.where(np.isfinite(se2), se2, 0.0), ((1, 1), (1, 1), (0, 0)), mode="symmetric")
+    dx, vx = m[:, 2:] - m[:, :-2], v[:, 2:] + v[:, :-2]
+    dy, vy = m[2:] - m[:-2], v[2:] + v[:-2]
+    gx = (dx[:-2] + 2.0 * dx[1:-1] + dx[2:]) / 8.0
+    gy = (dy[:, :-2] + 2.0 * dy[:, 1:-1] + dy[:, 2:]) / 8.0
+    var_g = (vx[:-2] + 4.0 * vx[1:-1] + vx[2:] + vy[:, :-2] + 4.0 * vy[:, 1:-1] + vy[:, 2:]) / 64.0
+    se = np.sqrt(se2)
+    g = np.sqrt(np.maximum(gx * gx + gy * gy - var_g, 0.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.where(g > 0, k * se / g, np.inf)
+    r = np.where(np.isfinite(se) & (se > 0), r, 0.0)
+    return np.ascontiguousarray(r.min(axis=2))
+
+
+@numba.njit(cache=True, nogil=True)
+def _consistent_radii(pos, val, norm_code, weights, frac, tau, fref, nmap, r_edge, c, alpha, min_w, max_w, radius):
+    """Support radius of each consistent sample (``frac = 0`` under a finite threshold ``tau``: the outlier
+    test ran and passed it): Eq. 8 against the window mean ``fref``; -1 for outliers, for samples no test
+    could judge yet, and where the diameter, or the pixel's ``2 r_edge``, is at most ``min_w``."""
+    h = nmap.shape[0]
+    w = nmap.shape[1]
+    for k in range(pos.shape[0]):
+        radius[k] = -1.0
+        if frac[k] > 0.0:
+            continue  # an outlier: its excess is spread by the outlier rule, the rest stays
+        g = _norm_of(val, k, norm_code, weights)
+        if not g > 0.0:
+            continue
+        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
+        py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+        if not tau[py, px] < np.inf:
+            continue  # too few samples around for the outlier test: not known to be consistent
+        d, _ = _excess_width(g, 0.0, fref[py, px], nmap[py, px], c, alpha, min_w, max_w)
+        if min(d, 2.0 * r_edge[py, px]) > min_w:  # else nothing would leave the pixel
+            radius[k] = 0.5 * d
