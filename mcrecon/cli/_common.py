@@ -17,7 +17,7 @@ from pathlib import Path
 
 from ..errors import InputError
 
-__all__ = ["OneLineParser", "HelpFormatter", "parse_size", "finite_float", "method_flags", "add_method_options",
+__all__ = ["OneLineParser", "HelpFormatter", "parse_size", "finite_float", "add_scene_flags", "method_flags", "add_method_options",
            "given_method_options", "make_method", "check_output", "write_outputs", "jit_notice",
            "compile_notice"]
 
@@ -88,6 +88,14 @@ def parse_size(text: str, where: str = "--size") -> tuple[int, int]:
         raise InputError(where, "size", f"{text!r}: {w}x{h} = {w * h} pixels, beyond the {MAX_PIXELS} pixels "
                          "mcrecon can hold images of")
     return w, h
+
+
+def add_scene_flags(parser, *, spp: int = 16, size: str = "128x128", scene: str = "soft_shadow") -> None:
+    """The flags of a command that renders a built-in scene: --scene, --spp, --size, --seed."""
+    parser.add_argument("--scene", default=scene, help="built-in scene (see `mcrecon scenes`)")
+    parser.add_argument("--spp", type=int, default=spp)
+    parser.add_argument("--size", default=size)
+    parser.add_argument("--seed", type=int, default=0)
 
 
 def finite_float(text: str) -> float:

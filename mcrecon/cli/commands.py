@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 from ..errors import InputError
-from ._common import (HelpFormatter, OneLineParser, add_method_options, check_output, finite_float,
+from ._common import (HelpFormatter, OneLineParser, add_method_options, add_scene_flags, check_output, finite_float,
     given_method_options, jit_notice, make_method, method_flags, method_kernels, parse_size, write_outputs)
 from .builtins import _cmd_demo, _cmd_methods, _cmd_mitsuba, _cmd_render_log, _cmd_scenes
 
@@ -511,10 +511,7 @@ def register(sub, command: str | None = None) -> None:
         m.set_defaults(func=_cmd_mitsuba)
 
     s = sub.add_parser("demo", help="the main job on a built-in scene: log, reconstruct, EXR + PNG, error")
-    s.add_argument("--scene", default="soft_shadow")
-    s.add_argument("--spp", type=int, default=16)
-    s.add_argument("--size", default="128x128")
-    s.add_argument("--seed", type=int, default=0)
+    add_scene_flags(s)
     s.add_argument("--methods", default=None, help="comma-separated (default: every available method)")
     s.add_argument("--exposure", type=finite_float, default=0.0)
     s.add_argument("--out", default="mcrecon_demo")

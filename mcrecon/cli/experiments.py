@@ -10,7 +10,8 @@ import json
 from pathlib import Path
 
 from ..errors import InputError
-from ._common import HelpFormatter, OneLineParser, add_method_options, make_method, method_flags, parse_size
+from ._common import (HelpFormatter, OneLineParser, add_method_options, add_scene_flags, make_method, method_flags,
+                      parse_size)
 
 __all__ = ["register"]
 
@@ -182,10 +183,7 @@ def register(sub, command: str | None = None) -> None:
     s.set_defaults(func=_cmd_convergence)
 
     s = es.add_parser("oracle", help="the ceiling of Gaussian-scale selection on a scene, each method beside it")
-    s.add_argument("--scene", default="soft_shadow")
-    s.add_argument("--spp", type=int, default=32)
-    s.add_argument("--size", default="128x128")
-    s.add_argument("--seed", type=int, default=0)
+    add_scene_flags(s, spp=32)
     s.add_argument("--variance-spp", type=int, default=256,
                    help="spp of the independent render that measures each pixel's variance")
     s.add_argument("--methods", default=None, help="comma-separated (default: every available method)")
