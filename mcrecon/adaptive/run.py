@@ -57,9 +57,10 @@ from ..core.samples import (NONFINITE_POLICIES, check_reference)
 from ..core.stats import PixelStats
 
 
-from .._lazy import public_dir as _public_dir  # noqa: E402
+from .._lazy import public_dir as _public_dir
 from .rounds import _Progress, _Round, _Timeline, _loop_pipelined, _loop_sequential, _take_round
-from .schedule import STORAGE_DTYPES, _adaptive_state, _committed, _initial_rounds, _pixel_counts_of, _plan_round, method_pipelines, round_seeds
+from .schedule import (STORAGE_DTYPES, _adaptive_state, _committed, _initial_rounds, _pixel_counts_of,
+                       _plan_round, method_pipelines, round_seeds)
 
 __all__ = ['adapt', 'resume', 'AdaptiveResult']
 

@@ -19,7 +19,8 @@ import numba
 from ..filters.engine import numba_threads
 from .samples import apply_nonfinite, check_policy, check_samples, warn_nonfinite
 
-__all__ = ['check_half_buffers', 'merge_halves', 'SplitHalves', 'is_half_buffer_pair', 'split_labels', 'split_halves', 'Halves']
+__all__ = ['check_half_buffers', 'merge_halves', 'SplitHalves', 'is_half_buffer_pair', 'split_labels',
+           'split_halves', 'Halves']
 
 def is_half_buffer_pair(source) -> bool:
     """Whether ``source`` is meant as a half-buffer pair: a tuple or a list (:func:`check_half_buffers`

@@ -22,7 +22,7 @@ from ..errors import InputError
 from .samples import as_hwc
 
 
-from .._lazy import public_dir as _public_dir  # noqa: E402
+from .._lazy import public_dir as _public_dir
 
 #: eps of the relative estimates: that of :func:`mcrecon.core.metrics.relative_mse`.
 DEFAULT_EPS = 1e-2

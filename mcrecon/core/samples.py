@@ -29,17 +29,8 @@ from typing import Iterator, Sequence
 
 import numpy as np
 
+from .._lazy import public_dir as _public_dir
 from ..errors import InputError, McreconWarning
-
-
-from .._lazy import public_dir as _public_dir  # noqa: E402
-
-
-pass
-
-
-
-pass
 
 #: The public surface; the other names here (round helpers, the float32 spread
 #: check, pixel_index, source_name) serve the readers, the driver and the renderers.

@@ -36,7 +36,7 @@ from .samples import (as_hwc, apply_nonfinite, check_memory, check_policy, check
     warn_nonfinite)
 
 
-from .._lazy import public_dir as _public_dir  # noqa: E402
+from .._lazy import public_dir as _public_dir
 
 __all__ = ['PixelStats']
 

@@ -11,7 +11,8 @@ from .batch import BatchResult, SUMMARY_NAME, reconstruct_frame, reconstruct_man
 from .ingestion import ingest, row_ranges, tree_merge
 from .tiles import map_tiles, reconstruct_tiled, tile_boxes
 
-__all__ = ['reconstruct_many', 'BatchResult', 'reconstruct_frame', 'SUMMARY_NAME', 'local_client', 'ingest', 'row_ranges', 'tree_merge', 'reconstruct_tiled', 'map_tiles', 'tile_boxes']
+__all__ = ['reconstruct_many', 'BatchResult', 'reconstruct_frame', 'SUMMARY_NAME', 'local_client', 'ingest',
+           'row_ranges', 'tree_merge', 'reconstruct_tiled', 'map_tiles', 'tile_boxes']
 
 from .._lazy import public_dir as _public_dir  # noqa: E402
 

@@ -52,7 +52,7 @@ from pathlib import Path
 from ..errors import InputError, McreconWarning
 
 
-from .._lazy import public_dir as _public_dir  # noqa: E402
+from .._lazy import public_dir as _public_dir
 from .cluster import _client_for, _dask, _local_workers, _one_line, _worker_name
 
 __all__ = ['reconstruct_many', 'BatchResult', 'reconstruct_frame', 'SUMMARY_NAME']

@@ -10,6 +10,6 @@ run_convergence``): each pulls in plotting and scene code.
 __all__: list[str] = []
 
 
-from .._lazy import public_dir as _public_dir  # noqa: E402
+from .._lazy import public_dir as _public_dir
 
 __dir__ = _public_dir(__name__)

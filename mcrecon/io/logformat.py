@@ -16,7 +16,8 @@ import numpy as np
 from ..core.samples import lazy_njit
 from .lock import _err, live_writer
 
-__all__ = ['cast_positions', 'FORMAT_NAME', 'FORMAT_VERSION', 'FORMAT_MINOR', 'LogChunk', 'DEFAULT_CHUNK_ROWS', 'MAX_PIXELS']
+__all__ = ['cast_positions', 'FORMAT_NAME', 'FORMAT_VERSION', 'FORMAT_MINOR', 'LogChunk', 'DEFAULT_CHUNK_ROWS',
+           'MAX_PIXELS']
 
 FORMAT_NAME = "mcrecon-sample-log"
 FORMAT_VERSION = 1

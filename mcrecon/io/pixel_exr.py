@@ -83,7 +83,8 @@ from ..errors import InputError, McreconWarning
 from ..core.stats import PixelStats
 from .images import subsampled
 
-__all__ = ['LAYOUTS', 'PixelStatsEXR', 'read_pixel_stats_exr', 'read_half_buffer_exrs', 'HALF_MAX', 'MITSUBA_XYZ_TO_SRGB', 'xyz_from_rgb_matrix']
+__all__ = ['LAYOUTS', 'PixelStatsEXR', 'read_pixel_stats_exr', 'read_half_buffer_exrs', 'HALF_MAX',
+           'MITSUBA_XYZ_TO_SRGB', 'xyz_from_rgb_matrix']
 
 #: The layout presets (besides the explicit mapping).
 LAYOUTS = ("pbrt-v4", "mitsuba-moment")

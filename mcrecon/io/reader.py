@@ -35,7 +35,8 @@ from ..errors import InputError
 from ..core.samples import check_reference, round_slices
 from ..core.samples import DEFAULT_READ_ROWS
 from .lock import _err, live_writer
-from .logformat import LogChunk, _H5_ERRORS, _HAS_RECORD, _LIVE_RETRIES, _LIVE_RETRY_SECONDS, _committed_rows, _detail, _json_attr, _open, _read_header, _record_columns, _strings
+from .logformat import (LogChunk, _H5_ERRORS, _HAS_RECORD, _LIVE_RETRIES, _LIVE_RETRY_SECONDS, _committed_rows,
+                        _detail, _json_attr, _open, _read_header, _record_columns, _strings)
 
 __all__ = ['SampleLog', 'read_log']
 

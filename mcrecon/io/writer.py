@@ -16,7 +16,10 @@ from ..core.samples import check_samples, round_ends_of, round_slices
 from ._atomic import atomic_path
 from ..core.samples import DEFAULT_READ_ROWS
 from .lock import _err, log_lock
-from .logformat import APPEND_CHUNK_ROWS, DEFAULT_CHUNK_ROWS, FORMAT_MINOR, FORMAT_NAME, FORMAT_VERSION, MAX_PIXELS, RECORD_CHUNK_ROWS, ROUND_RECORD_CHUNK_ROWS, ROUND_RECORD_DTYPE, _CHECKSUM, _CONVERT, _H5_ERRORS, _HAS_RECORD, _NO_RECORD, _checksum_for, _committed_rows, _detail, _open, _read_header, _record_columns, _row_type, _strings, cast_positions
+from .logformat import (APPEND_CHUNK_ROWS, DEFAULT_CHUNK_ROWS, FORMAT_MINOR, FORMAT_NAME, FORMAT_VERSION,
+                        MAX_PIXELS, RECORD_CHUNK_ROWS, ROUND_RECORD_CHUNK_ROWS, ROUND_RECORD_DTYPE, _CHECKSUM,
+                        _CONVERT, _H5_ERRORS, _HAS_RECORD, _NO_RECORD, _checksum_for, _committed_rows, _detail,
+                        _open, _read_header, _record_columns, _row_type, _strings, cast_positions)
 from .reader import SampleLog, _read_rows
 
 __all__ = ['write_log', 'append_log', 'update_round_record', 'set_run_settings']

@@ -44,7 +44,8 @@ from ..core.requests import SampleBatch, SampleRequest
 from ..core.stats import PixelStats
 from ..core.halves import SplitHalves, check_half_buffers, merge_halves
 
-__all__ = ['Method', 'AdaptiveState', 'Option', 'Requirements', 'MethodInputs', 'RunState', 'uniform_counts', 'variant_option', 'half_buffer_methods']
+__all__ = ['Method', 'AdaptiveState', 'Option', 'Requirements', 'MethodInputs', 'RunState', 'uniform_counts',
+           'variant_option', 'half_buffer_methods']
 
 _MISSING = object()
 

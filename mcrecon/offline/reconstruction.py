@@ -21,7 +21,7 @@ from ..core.samples import SampleSet, check_policy
 from ..core.stats import PixelStats
 
 
-from .._lazy import public_dir as _public_dir  # noqa: E402
+from .._lazy import public_dir as _public_dir
 from .inputs import gather_inputs
 
 __all__ = ['reconstruct', 'split_source_fireflies', 'Reconstruction']

@@ -67,7 +67,9 @@ from ...filters.engine import safe_div
 from ...errors import InputError
 from ...core.metrics import DEFAULT_EPS
 
-__all__ = ['sure', 'gaussian_centre_weights', 'SureBank', 'sure_filter_bank', 'relative_denominator', 'relative_denominator_loo', 'relative', 'cross_validation_mse', 'dual_buffer_variance', 'dual_buffer_mse']
+__all__ = ['sure', 'gaussian_centre_weights', 'SureBank', 'sure_filter_bank', 'relative_denominator',
+           'relative_denominator_loo', 'relative', 'cross_validation_mse', 'dual_buffer_variance',
+           'dual_buffer_mse']
 
 # ----------------------------------------------------------------------------
 # SURE for linear filters

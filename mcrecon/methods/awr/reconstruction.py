@@ -23,7 +23,8 @@ from ...core.fill import fill_from_neighbours
 from .wavelets import (RECONSTRUCTION_RENORM, _check_mode, analyze, coefficient_variances, default_levels,
     get_wavelet, synthesize)
 
-__all__ = ['VARIANCE_ESTIMATORS', 'functional_variance', 'pixel_variance', 'soft_threshold', 'awr_reconstruct', 'log_domain_reconstruct', 'DOMAINS']
+__all__ = ['VARIANCE_ESTIMATORS', 'functional_variance', 'pixel_variance', 'soft_threshold', 'awr_reconstruct',
+           'log_domain_reconstruct', 'DOMAINS']
 
 #: Domains the wavelet shrinkage can work in: the pixel values (paper) or
 #: their logarithm (robust default, see :func:`log_domain_reconstruct`).

@@ -24,7 +24,9 @@ from ...core.metrics import DEFAULT_EPS
 from ...filters.gaussian import TRUNCATE, _check_inputs, gaussian_kernel
 from .kernels import FilterBank, _chan_sum, _filter_bank, _uses_sub
 
-__all__ = ['GAMMA_MAX', 'OUTLIER_RULES', 'CHANNEL_WEIGHTS', 'CHANNEL_EPS', 'check_gamma', 'confirm_pair_stops', 'z_of_gamma', 'bias_coefficient', 'scale_selector_terms', 'stopping_maps', 'remove_outliers', 'select_from_stops', 'GEMSelection', 'gem_select', 'oracle_select', 'estimate_mse']
+__all__ = ['GAMMA_MAX', 'OUTLIER_RULES', 'CHANNEL_WEIGHTS', 'CHANNEL_EPS', 'check_gamma', 'confirm_pair_stops',
+           'z_of_gamma', 'bias_coefficient', 'scale_selector_terms', 'stopping_maps', 'remove_outliers',
+           'select_from_stops', 'GEMSelection', 'gem_select', 'oracle_select', 'estimate_mse']
 
 #: gamma must lie in (0, GAMMA_MAX): the paper's z(gamma) is "valid in the
 #: range 0 < gamma < 0.4" (and undefined from 1.9 gamma >= 1, gamma ~ 0.526).

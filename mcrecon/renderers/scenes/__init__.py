@@ -47,7 +47,6 @@ from __future__ import annotations
 import functools
 from pathlib import Path
 
-import numba
 import numpy as np
 
 from ...errors import InputError
@@ -56,7 +55,10 @@ from ...core.requests import SampleBatch, SampleRequest, jittered_positions
 from .catalog import (SCENES, CausticScene, DepthOfFieldScene, FlatScene, HDRScene, MotionBlurScene, Scene,
                       SoftShadowScene)
 
-__all__ = ['scene_names', 'get_scene', 'reference_image', 'SceneRenderer', 'render_uniform', 'write_scene_log']
+__all__ = ["SCENES", "Scene", "SoftShadowScene", "DepthOfFieldScene", "MotionBlurScene", "CausticScene",
+           "HDRScene", "FlatScene", "scene_names", "get_scene", "reference_image", "SceneRenderer",
+           "render_uniform", "write_scene_log"]
+
 
 def scene_names() -> list[str]:
     """Names of the built-in scenes, in registry order."""

@@ -10,7 +10,8 @@ import numpy as np
 from ...errors import InputError
 from .base import _as_xy, _box_square_wave, _box_wave, _checker, _njit, _overlap_fraction, _square_wave, _wave
 
-__all__ = ['SCENES', 'Scene', 'SoftShadowScene', 'DepthOfFieldScene', 'MotionBlurScene', 'CausticScene', 'HDRScene', 'FlatScene']
+__all__ = ['SCENES', 'Scene', 'SoftShadowScene', 'DepthOfFieldScene', 'MotionBlurScene', 'CausticScene',
+           'HDRScene', 'FlatScene']
 
 # ----------------------------------------------------------------------------
 # Scenes
