@@ -17,6 +17,7 @@ from ..io.logformat import cast_positions
 from ..io.writer import append_log, set_run_settings, update_round_record, write_log
 from ..io.reader import read_log
 from ..core.requests import SampleBatch, _validate_reply
+from ..core.features import check_features, layout_of, take_rows
 from ..core.samples import (FLOAT32_MAX, apply_nonfinite, check_memory, float32_loses_spread)
 
 
@@ -95,8 +96,13 @@ def _take_round(method, run, stats, batch, round_index, nonfinite, source, n_non
     same arrays and write disjoint state, both compiled kernels that release
     the GIL -- and both are done when this returns.
     """
+    if method.requires.features != "none" and batch.features and not stats.features and stats.n_samples == 0:
+        # the renderer's first round says which features it sends; every later round sends the same
+        stats.keep_features({name: 1 if np.ndim(a) == 1 else int(np.shape(a)[1]) for name, a in batch.features.items()})
+    feats, n_fz = (check_features(batch.features, len(batch.positions), where=source, layout=layout_of(stats.features))
+                   if stats.features else ({}, 0))
     if n_nonfinite is None:
-        stats.add(batch.positions, batch.values, nonfinite=nonfinite, source=source)
+        stats.add(batch.positions, batch.values, features=feats, nonfinite=nonfinite, source=source)
         pos, val = np.asarray(batch.positions), np.asarray(batch.values)
         if val.ndim == 1:
             val = val[:, None]
@@ -111,8 +117,10 @@ def _take_round(method, run, stats, batch, round_index, nonfinite, source, n_non
         def ingest(**where):
             t, c = time.perf_counter(), time.thread_time()
             if pos.shape[0]:
+                f2 = take_rows(feats, np.isfinite(val).all(axis=1)) if (feats and n_bad and nonfinite == "drop") \
+                    else feats
                 p2, v2 = apply_nonfinite(pos, val, n_bad, nonfinite, where=source)
-                stats._ingest(p2, v2, n_bad, nonfinite=nonfinite, source=source)
+                stats._ingest(p2, v2, n_bad, f2, n_fz, nonfinite=nonfinite, source=source)
             if timeline is not None:
                 timeline.add("ingest", round_index, t, time.perf_counter(), time.thread_time() - c, **where)
 
@@ -121,19 +129,23 @@ def _take_round(method, run, stats, batch, round_index, nonfinite, source, n_non
         if helper is not None and method.requires.samples and not n_bad:
             pending = helper.submit(ingest, helper=True)
             try:
-                _observe(method, run, pos, val, n_bad, nonfinite, source, round_index, timeline)
+                _observe(method, run, pos, val, n_bad, nonfinite, source, round_index, timeline, feats)
             finally:
                 pending.result()  # the statistics are complete before anything else happens
             return
         ingest()
     if method.requires.samples:
-        _observe(method, run, pos, val, n_bad, nonfinite, source, round_index, timeline)
+        _observe(method, run, pos, val, n_bad, nonfinite, source, round_index, timeline, feats)
 
 
-def _observe(method, run, pos, val, n_bad, nonfinite, source, round_index, timeline):
+def _observe(method, run, pos, val, n_bad, nonfinite, source, round_index, timeline, feats=None):
+    """``observe`` the round after the NaN/Inf policy; with the features the statistics keep (same rows)."""
+    feats = feats or {}
+    if feats and n_bad and nonfinite == "drop":
+        feats = take_rows(feats, np.isfinite(val).all(axis=1))
     pos, val = apply_nonfinite(pos, val, n_bad, nonfinite, where=source)
     with (timeline.phase("observe", round_index) if timeline is not None else contextlib.nullcontext()):
-        method.observe(run, SampleBatch(pos, val), round_index)
+        method.observe(run, SampleBatch(pos, val, feats), round_index)
 
 
 def _resolve_storage(log_path, reply_dtype) -> str:

@@ -385,7 +385,7 @@ def _resume(log_path, renderer, *, progress, time_limit, track_error, on_round) 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", McreconWarning)  # the live run reported them
         for r in range(k):
-            chunk = sl.read_all(rounds=[r])
+            chunk = sl.read_all(rounds=[r], features=sl.feature_names if method.requires.features != "none" else ())
             if pipeline and r == k - 1 and k >= 2:
                 pending = _pixel_counts_of(chunk.positions, w, h)
                 planned = _plan_round(method, run, stats, k, budget, _committed(stats) + len(chunk.positions),
@@ -394,8 +394,8 @@ def _resume(log_path, renderer, *, progress, time_limit, track_error, on_round) 
                 if planned[0] is None and planned[1] == "wait":
                     # the live run committed round K-1 first, then planned round K from it
                     planned = None
-            _take_round(method, run, stats, SampleBatch(chunk.positions, chunk.values), r, s["nonfinite"],
-                        str(log_path))
+            _take_round(method, run, stats, SampleBatch(chunk.positions, chunk.values, chunk.features), r,
+                        s["nonfinite"], str(log_path))
     records = list(sl.round_records)
     elapsed = float(records[-1]["wall_seconds"]) if records else 0.0
     tl = time_limit if time_limit is not None else s.get("time_limit")

@@ -17,6 +17,7 @@ from .stats import PixelStats
 import numba
 
 from ..filters.engine import numba_threads
+from .features import check_features, layout_of, take_rows, warn_feature_zeroed
 from .samples import apply_nonfinite, check_policy, check_samples, warn_nonfinite
 
 __all__ = ['check_half_buffers', 'merge_halves', 'SplitHalves', 'is_half_buffer_pair', 'split_labels',
@@ -253,7 +254,7 @@ class Halves:
     b: PixelStats
     counter: np.ndarray
 
-    def add(self, positions, values, *, nonfinite: str = "drop", source: str = "samples",
+    def add(self, positions, values, *, features=None, nonfinite: str = "drop", source: str = "samples",
             _checked: bool = False) -> None:
         """Split a batch (in stream order) and add each half to its statistics.
 
@@ -264,29 +265,45 @@ class Halves:
         splitting first and adding each half (``tests/test_error_estimates.py``).
         Batches with non-finite values take that reference path
         (:meth:`_add_by_copies`), which applies the ``nonfinite`` policy.
+        Features (those both halves keep, :class:`PixelStats` ``features``)
+        are split with the same labels as the colour.
         """
         a, b = self.a, self.b
         if _checked:  # a SampleSet's arrays, validated when it was built, all values finite
             pos, val, n_nonfinite = positions, values, 0
+            feats, n_fz = ({name: features[name] for name in a.features}, 0) if a.features else ({}, 0)
         else:
             pos, val, n_nonfinite = check_samples(positions, values, width=a.width, height=a.height,
                                                   n_channels=len(a.channels), where=source, channels=a.channels)
+            feats, n_fz = check_features(features, pos.shape[0], where=source, layout=layout_of(a.features)) \
+                if a.features else ({}, 0)
         if pos.shape[0] == 0:
             return
         check_policy(nonfinite, source)
+        if n_fz:
+            warn_feature_zeroed(source, n_fz, stacklevel=2)
         if n_nonfinite:
-            self._add_by_copies(pos, val, nonfinite=nonfinite, source=source, n_nonfinite=n_nonfinite)
+            self._add_by_copies(pos, val, nonfinite=nonfinite, source=source, n_nonfinite=n_nonfinite,
+                                features=feats)
             return
+        counter0 = self.counter.copy() if feats else None
         with numba_threads() as n_par:
-            n_a = _split_accumulate(pos, val, a.width, self.counter, n_par if pos.shape[0] >= 1 << 16 else 1,
+            n_parts = n_par if pos.shape[0] >= 1 << 16 else 1
+            n_a = _split_accumulate(pos, val, a.width, self.counter, n_parts,
                                     a.count, a.mean, a.m2, a.min, a.max, b.count, b.mean, b.m2, b.min, b.max)
+            for name, f in feats.items():
+                fa, fb = a.features[name], b.features[name]
+                _split_accumulate(pos, f, a.width, counter0.copy(), n_parts, fa.count, fa.mean, fa.m2, fa.min,
+                                  fa.max, fb.count, fb.mean, fb.m2, fb.min, fb.max)
+                fa._note_dtype(f.dtype)
+                fb._note_dtype(f.dtype)
         if n_a:
             a._note_dtype(val.dtype)
         if n_a < pos.shape[0]:
             b._note_dtype(val.dtype)
 
     def _add_by_copies(self, positions, values, *, nonfinite: str = "drop", source: str = "samples",
-                       n_nonfinite: int = 0) -> None:
+                       n_nonfinite: int = 0, features=None) -> None:
         """The reference path of :meth:`add`: labels, then each half's samples into its statistics.
 
         Non-finite values (``n_nonfinite`` of them) get the policy on the
@@ -314,29 +331,39 @@ class Halves:
             # the policy applied to the row numbers alongside the values (as the grouping does)
             rows, val = apply_nonfinite(np.arange(pos.shape[0]), val, n_nonfinite, nonfinite, where=source)
             pos, lab = pos[rows], lab[rows]
+            features = take_rows(features or {}, rows)
             warn_nonfinite(source, n_nonfinite, nonfinite, stacklevel=4)
         for half, st in ((0, self.a), (1, self.b)):
             sel = lab == half
             if sel.any():
-                st.add(pos[sel], val[sel], nonfinite=nonfinite, source=source)
+                st.add(pos[sel], val[sel], features=take_rows(features or {}, sel), nonfinite=nonfinite,
+                       source=source)
 
     @classmethod
-    def empty(cls, width: int, height: int, channels) -> "Halves":
-        return cls(PixelStats(width, height, channels), PixelStats(width, height, channels),
+    def empty(cls, width: int, height: int, channels, *, features=None) -> "Halves":
+        """Empty halves of a ``width`` x ``height`` film, keeping ``features`` (as :class:`PixelStats`)."""
+        return cls(PixelStats(width, height, channels, features=features),
+                   PixelStats(width, height, channels, features=features),
                    np.zeros(int(width) * int(height), np.int64))
 
 
-def split_halves(source, *, nonfinite: str = "drop") -> Halves:
+def split_halves(source, *, nonfinite: str = "drop", features=()) -> Halves:
     """Two independent halves of a sample source (log or SampleSet), rounds in order.
 
+    ``features``: the source's per-sample features to split with the
+    samples (names, or ``"all"``; :meth:`PixelStats.from_log`).
     Messages name the source (its file), as the statistics' reader does.
     """
     from .samples import SampleSet, source_name
+    from .features import source_features, source_layout
     name = source_name(source)
-    h = Halves.empty(source.width, source.height, tuple(source.channels))
+    names = source_features(source, features)
+    h = Halves.empty(source.width, source.height, tuple(source.channels), features=source_layout(source, names))
     # a SampleSet validated its arrays when it was built (contiguous, on the film); if
     # none of its values is NaN/Inf the policy has nothing to do: skip the re-check
     checked = isinstance(source, SampleSet) and source.n_nonfinite == 0
-    for ch in source.iter_chunks(with_round=False):
-        h.add(ch.positions, ch.values, nonfinite=nonfinite, source=name, _checked=checked)
+    chunks = source.iter_chunks(with_round=False, features=names) if names else source.iter_chunks(with_round=False)
+    for ch in chunks:
+        h.add(ch.positions, ch.values, features=ch.features if names else None, nonfinite=nonfinite, source=name,
+              _checked=checked)
     return h

@@ -373,6 +373,7 @@ class SampleChunk:
     values: np.ndarray
     round: np.ndarray | None
     start: int
+    features: dict = dataclasses.field(default_factory=dict)  # name -> (n, k), the features asked for
 
     def __len__(self) -> int:
         return int(self.positions.shape[0])
@@ -392,6 +393,10 @@ class SampleSet:
     rounds : array_like of int (N,), optional
         Round index per sample, non-decreasing (default: one round).
         NaN/Inf values are kept; readers apply their policy.
+    features : mapping of str to array_like (N,) or (N, k), optional
+        Per-sample features (``albedo``, ``normal``, ``depth``, any
+        others; :mod:`mcrecon.core.features`), validated once here;
+        non-finite entries are set to 0 and counted (``n_feature_zeroed``).
 
     Raises
     ------
@@ -414,7 +419,7 @@ class SampleSet:
     """
 
     def __init__(self, positions, values, *, width: int, height: int, channels: Sequence[str] | None = None,
-                 rounds=None, name: str = "samples"):
+                 rounds=None, features=None, name: str = "samples"):
         self.name = str(name)
         self.width, self.height = int(width), int(height)
         if self.width < 1 or self.height < 1:
@@ -437,6 +442,20 @@ class SampleSet:
             if n and np.any(np.diff(r) < 0):
                 raise InputError(self.name, "rounds", "must be non-decreasing (samples grouped by round in order)")
             self.round_ends = round_ends_of(r)
+        from .features import check_features, warn_feature_zeroed
+
+        self.features, self.n_feature_zeroed = check_features(features, n, where=self.name)
+        if self.n_feature_zeroed:
+            warn_feature_zeroed(self.name, self.n_feature_zeroed)
+
+    @property
+    def feature_names(self) -> tuple[str, ...]:
+        return tuple(self.features)
+
+    @property
+    def feature_shapes(self) -> dict[str, tuple[int, ...]]:
+        """Per-sample shape of each feature (``(k,)``)."""
+        return {name: arr.shape[1:] for name, arr in self.features.items()}
 
     @property
     def n_samples(self) -> int:
@@ -450,8 +469,13 @@ class SampleSet:
         """(start, stop) sample ranges of each round."""
         return round_slices(self.round_ends)
 
-    def iter_chunks(self, *, chunk_size: int = 1 << 20, rounds=None, with_round: bool = True) -> Iterator[SampleChunk]:
-        """Chunks of at most ``chunk_size`` samples (of some rounds), as views."""
+    def iter_chunks(self, *, chunk_size: int = 1 << 20, rounds=None, with_round: bool = True,
+                    features=()) -> Iterator[SampleChunk]:
+        """Chunks of at most ``chunk_size`` samples (of some rounds), as views (``features``: names to include)."""
+        for name in features:
+            if name not in self.features:
+                raise InputError(self.name, "features", f"no feature {name!r}; it has: "
+                                 f"{', '.join(self.features) or '(none)'}")
         sl = self.round_slices()
         ranges = [(0, self.n_samples)] if rounds is None else [sl[int(r)] for r in rounds]
         for a, b in ranges:
@@ -460,11 +484,13 @@ class SampleSet:
                 rnd = None
                 if with_round:
                     rnd = np.searchsorted(self.round_ends, np.arange(s, e), side="right").astype(np.int64)
-                yield SampleChunk(self.positions[s:e], self.values[s:e], rnd, s)
+                yield SampleChunk(self.positions[s:e], self.values[s:e], rnd, s,
+                                  {name: self.features[name][s:e] for name in features})
 
     def __repr__(self) -> str:
+        feats = f", features={','.join(self.features)}" if self.features else ""
         return (f"SampleSet({self.width}x{self.height}, channels={','.join(self.channels)}, "
-                f"samples={self.n_samples}, rounds={self.n_rounds})")
+                f"samples={self.n_samples}, rounds={self.n_rounds}{feats})")
 
 
 # ---------------------------------------------------------------- precision

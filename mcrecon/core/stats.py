@@ -32,6 +32,8 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from ..errors import InputError
+from .features import (check_features, feature_components, feature_layout, layout_of, source_features, source_layout,
+    warn_feature_zeroed)
 from .samples import (as_hwc, apply_nonfinite, check_memory, check_policy, check_samples, lazy_njit,
     warn_nonfinite)
 
@@ -39,6 +41,7 @@ from .samples import (as_hwc, apply_nonfinite, check_memory, check_policy, check
 from .._lazy import public_dir as _public_dir
 
 __all__ = ['PixelStats']
+
 
 @lazy_njit(cache=True, nogil=True)
 def _accumulate(pos, val, s, count, mean, m2, vmin, vmax, sub_sum, sub_count):
@@ -111,6 +114,10 @@ class PixelStats:
         Subpixel grid resolution per pixel axis for ``sub_sum`` and
         ``sub_count``; 0 or 1 keeps no subpixel data (1 would equal the
         pixel sums).  GEM uses 4.
+    features : mapping of str to int, or sequence of str, optional
+        Per-sample features to accumulate (name -> number of components,
+        or canonical names: ``albedo``, ``normal``, ``depth``;
+        :mod:`mcrecon.core.features`).  Every :meth:`add` must then give them.
     where : str, optional
         The source named in the error when the film's arrays would need more
         memory than the machine has available (:func:`mcrecon.core.samples.check_memory`).
@@ -130,6 +137,13 @@ class PixelStats:
         Samples skipped by the ``drop`` non-finite policy.
     n_zeroed : int
         Samples whose non-finite values the ``zero`` policy replaced.
+    features : dict of str to PixelStats
+        Per feature, the statistics of its components (channels named by
+        :func:`~mcrecon.core.features.feature_components`: ``albedo`` R,G,B,
+        ``normal`` X,Y,Z, ``depth`` Z); same film and counts as the
+        colour.  Empty when none are kept.
+    n_feature_zeroed : int
+        Samples whose non-finite feature entries were set to 0.
     has_range : bool
         Whether ``min`` and ``max`` are known (False for :meth:`from_moments`).
     dtype : numpy dtype
@@ -140,7 +154,7 @@ class PixelStats:
     """
 
     def __init__(self, width: int, height: int, channels: Sequence[str] = ("R", "G", "B"), *,
-                 subpixels: int = 0, where: str = "PixelStats"):
+                 subpixels: int = 0, features=None, where: str = "PixelStats"):
         width, height = int(width), int(height)
         if width < 1 or height < 1:
             raise InputError("PixelStats", "width/height", f"got {width}x{height}, expected at least 1x1")
@@ -153,7 +167,10 @@ class PixelStats:
             raise InputError("PixelStats", "channels", "expected at least one channel name")
         c = len(self.channels)
         self.subpixels = subpixels if subpixels > 1 else 0
-        per_pixel = 8 + 4 * 8 * c + self.subpixels ** 2 * 8 * (c + 1)  # count, mean, m2, min, max (+ subpixels)
+        layout = feature_layout(features)
+        n_feat = sum(layout.values())
+        # count, mean, m2, min, max (+ subpixels) (+ each feature's count, mean, m2, min, max)
+        per_pixel = 8 + 4 * 8 * c + self.subpixels ** 2 * 8 * (c + 1) + 8 * len(layout) + 4 * 8 * n_feat
         check_memory(where, "width/height", float(width) * height * per_pixel,
                      f"the per-pixel statistics of a {width}x{height} film with {c} channel(s)",
                      "use a machine with more memory, or a smaller film")
@@ -171,6 +188,9 @@ class PixelStats:
             self.sub_count = None
         self.n_dropped = 0
         self.n_zeroed = 0
+        self.n_feature_zeroed = 0
+        self.features = {name: PixelStats(width, height, feature_components(name, k), where=where)
+                         for name, k in layout.items()}
         #: False for statistics built from moments (:meth:`from_moments`):
         #: ``min`` / ``max`` are then unknown (NaN).
         self.has_range = True
@@ -194,7 +214,22 @@ class PixelStats:
     def n_samples(self) -> int:
         return int(self.count.sum())
 
-    def add(self, positions, values, *, nonfinite: str = "drop", source: str = "samples") -> "PixelStats":
+    def keep_features(self, features) -> "PixelStats":
+        """Start keeping ``features`` (as the constructor's ``features``); only while no sample is in."""
+        if self.n_samples:
+            raise InputError("PixelStats.keep_features", "features", "these statistics already hold samples "
+                             "without those features; give features= when creating them")
+        for name, k in feature_layout(features).items():
+            self.features[name] = PixelStats(self.width, self.height, feature_components(name, k))
+        return self
+
+    @property
+    def feature_names(self) -> tuple[str, ...]:
+        """Names of the features these statistics keep (``()`` when none)."""
+        return tuple(self.features)
+
+    def add(self, positions, values, *, features=None, nonfinite: str = "drop",
+            source: str = "samples") -> "PixelStats":
         """Add a batch of samples (Welford/Chan updates, in place).
 
         Parameters
@@ -202,6 +237,10 @@ class PixelStats:
         positions : array_like, shape (N, 2)
             Film positions, x the column and y the row.
         values : array_like, shape (N, C)
+        features : mapping of str to array_like (N,) or (N, k), optional
+            Per-sample features; must hold every feature these statistics
+            keep (others are ignored).  Non-finite entries are set to 0
+            (counted in ``n_feature_zeroed``, one warning).
         nonfinite : {'drop', 'zero', 'raise'}
             Policy for samples with a NaN or infinite value, see
             :data:`NONFINITE_POLICIES`.
@@ -215,33 +254,50 @@ class PixelStats:
             non-finite value under ``nonfinite='raise'``.  The statistics
             are unchanged when it raises.
         """
-        prepared = self._prepare(positions, values, nonfinite=nonfinite, source=source)
+        prepared = self._prepare(positions, values, nonfinite=nonfinite, source=source, features=features)
         if prepared is not None:
             self._ingest(*prepared, nonfinite=nonfinite, source=source)
         return self
 
-    def _prepare(self, positions, values, *, nonfinite: str, source: str):
+    def _prepare(self, positions, values, *, nonfinite: str, source: str, features=None):
         """Validate a batch and apply the non-finite policy; touches no statistics.
 
-        Returns ``(positions, values, n_nonfinite)`` ready for :meth:`_ingest`,
-        or None for an empty batch.  Split from the accumulation so a reader
-        can validate the next batch while the previous one is accumulated.
+        Returns ``(positions, values, n_nonfinite, features, n_feature_zeroed)``
+        ready for :meth:`_ingest`, or None for an empty batch.  Split from the
+        accumulation so a reader can validate the next batch while the
+        previous one is accumulated.
         """
         check_policy(nonfinite, source)
         pos, val, n_nonfinite = check_samples(positions, values, width=self.width, height=self.height,
                                               n_channels=len(self.channels), where=source, channels=self.channels)
+        feats, n_fz = {}, 0
+        if self.features:
+            feats, n_fz = check_features(features, pos.shape[0], where=source, layout=layout_of(self.features))
         if pos.shape[0] == 0:
             return None
+        if n_nonfinite and nonfinite == "drop" and feats:
+            keep = np.isfinite(val).all(axis=1)
+            feats = {name: arr[keep] for name, arr in feats.items()}
         pos, val = apply_nonfinite(pos, val, n_nonfinite, nonfinite, where=source)
-        return pos, val, n_nonfinite
+        return pos, val, n_nonfinite, feats, n_fz
 
-    def _ingest(self, pos, val, n_nonfinite, *, nonfinite: str, source: str) -> None:
+    def _ingest(self, pos, val, n_nonfinite, feats=None, n_feature_zeroed=0, *, nonfinite: str,
+                source: str) -> None:
         """Accumulate a batch prepared by :meth:`_prepare` (releases the GIL)."""
         s = self.subpixels
         sub_sum = self.sub_sum if s else np.zeros((1, 1, 1))
         sub_count = self.sub_count if s else np.zeros((1, 1), np.int64)
         _accumulate(pos, val, s, self.count, self.mean, self.m2, self.min, self.max, sub_sum, sub_count)
         self._note_dtype(val.dtype)
+        if feats:
+            no_sub, no_sub_count = np.zeros((1, 1, 1)), np.zeros((1, 1), np.int64)
+            for name, fst in self.features.items():
+                f = feats[name]
+                _accumulate(pos, f, 0, fst.count, fst.mean, fst.m2, fst.min, fst.max, no_sub, no_sub_count)
+                fst._note_dtype(f.dtype)
+        if n_feature_zeroed:
+            self.n_feature_zeroed += int(n_feature_zeroed)
+            warn_feature_zeroed(source, n_feature_zeroed, stacklevel=3)
         if n_nonfinite:
             if nonfinite == "drop":
                 self.n_dropped += int(n_nonfinite)
@@ -250,13 +306,19 @@ class PixelStats:
             warn_nonfinite(source, n_nonfinite, nonfinite, stacklevel=3)
 
     def merge(self, other: "PixelStats") -> "PixelStats":
-        """Merge another set of statistics into this one (Chan et al., in place)."""
+        """Merge another set of statistics into this one (Chan et al., in place; features too)."""
         if (other.width, other.height, other.channels, other.subpixels) != (
                 self.width, self.height, self.channels, self.subpixels):
             raise InputError("PixelStats.merge", "other",
                              "size, channels and subpixels must match: "
                              f"{other.width}x{other.height} {other.channels} s={other.subpixels} vs "
                              f"{self.width}x{self.height} {self.channels} s={self.subpixels}")
+        if layout_of(self.features) != layout_of(other.features):
+            raise InputError("PixelStats.merge", "other", "the features must match: "
+                             f"{layout_of(other.features)} vs {layout_of(self.features)}")
+        for name, fst in self.features.items():
+            fst.merge(other.features[name])
+        self.n_feature_zeroed += other.n_feature_zeroed
         na = self.count[..., None].astype(np.float64)
         nb = other.count[..., None].astype(np.float64)
         n = na + nb
@@ -281,6 +343,15 @@ class PixelStats:
     def copy(self) -> "PixelStats":
         out = PixelStats.__new__(PixelStats)
         out.__dict__.update({k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items()})
+        out.features = {name: fst.copy() for name, fst in self.features.items()}
+        return out
+
+    def without_features(self) -> "PixelStats":
+        """These statistics without their features (a shallow view: the arrays are shared)."""
+        out = PixelStats.__new__(PixelStats)
+        out.__dict__.update(self.__dict__)
+        out.features = {}
+        out.n_feature_zeroed = 0
         return out
 
     def crop(self, y0: int, y1: int, x0: int = 0, x1: int | None = None, *, view: bool = False) -> "PixelStats":
@@ -307,7 +378,8 @@ class PixelStats:
             d["sub_sum"] = take(self.sub_sum[y0 * s:y1 * s, x0 * s:x1 * s])
             d["sub_count"] = take(self.sub_count[y0 * s:y1 * s, x0 * s:x1 * s])
         d["width"], d["height"] = x1 - x0, y1 - y0
-        d["n_dropped"] = d["n_zeroed"] = 0
+        d["n_dropped"] = d["n_zeroed"] = d["n_feature_zeroed"] = 0
+        d["features"] = {name: fst.crop(y0, y1, x0, x1, view=view) for name, fst in self.features.items()}
         out = PixelStats.__new__(PixelStats)
         out.__dict__.update(d)
         return out
@@ -316,19 +388,33 @@ class PixelStats:
         """``(arrays, fields)``: the numpy arrays and the small fields, which :meth:`from_arrays` joins again
         (to ship statistics as raw array frames, e.g. between Dask workers, instead of one pickle)."""
         arrays = {k: v for k, v in self.__dict__.items() if isinstance(v, np.ndarray)}
-        return arrays, {k: v for k, v in self.__dict__.items() if k not in arrays}
+        fields = {k: v for k, v in self.__dict__.items() if k not in arrays and k != "features"}
+        fields["features"] = {}
+        for name, fst in self.features.items():
+            f_arrays, f_fields = fst.to_arrays()
+            arrays.update({f"features/{name}/{k}": v for k, v in f_arrays.items()})
+            fields["features"][name] = f_fields
+        return arrays, fields
 
     @classmethod
     def from_arrays(cls, arrays: dict, fields: dict) -> "PixelStats":
         """Statistics from :meth:`to_arrays` (the arrays are used as they are, not copied)."""
         out = cls.__new__(cls)
+        fields = dict(fields)
+        feature_fields = fields.pop("features", {}) or {}
         out.__dict__.update(fields)
-        out.__dict__.update(arrays)
+        out.__dict__.update({k: v for k, v in arrays.items() if not k.startswith("features/")})
+        out.features = {}
+        for name, f_fields in feature_fields.items():
+            prefix = f"features/{name}/"
+            out.features[name] = cls.from_arrays(
+                {k[len(prefix):]: v for k, v in arrays.items() if k.startswith(prefix)}, f_fields)
+        out.__dict__.setdefault("n_feature_zeroed", 0)
         return out
 
     @classmethod
     def from_moments(cls, mean, variance, count, *, channels: Sequence[str] | None = None,
-                     variance_of: str = "samples", where: str = "from_moments") -> "PixelStats":
+                     variance_of: str = "samples", features=None, where: str = "from_moments") -> "PixelStats":
         """Statistics from per-pixel images: mean, variance and sample count.
 
         Most renderers can write these even when they cannot dump samples.
@@ -347,6 +433,11 @@ class PixelStats:
         channels : sequence of str, optional
             Default R, G, B for three channels, else C0, C1, ...
         variance_of : {'samples', 'mean'}
+        features : mapping of str to (mean, variance), optional
+            Per-pixel feature images (e.g. ``{"albedo": (mean, variance)}``,
+            each (H, W, k) or (H, W)), with the same ``count`` and
+            ``variance_of``; a variance of None means unknown and is taken
+            as 0 (noise-free features).
 
         Returns
         -------
@@ -422,28 +513,48 @@ class PixelStats:
         st.has_range = False
         st._note_dtype(np.result_type(np.asarray(mean).dtype, np.float32) if np.asarray(mean).dtype.kind == "f"
                        else np.float64)
+        if features is not None:
+            if not hasattr(features, "items"):
+                raise InputError(where, "features", f"got {type(features).__name__}, expected a mapping "
+                                 "name -> (mean, variance)")
+            for name, pair in features.items():
+                if not isinstance(pair, (tuple, list)) or len(pair) != 2:
+                    raise InputError(where, f"features/{name}", "expected a pair (mean, variance) of per-pixel "
+                                     "images (variance None when unknown)")
+                f_mean = as_hwc(pair[0])
+                f_var = np.zeros_like(f_mean) if pair[1] is None else pair[1]
+                if f_mean.ndim != 3 or f_mean.shape[:2] != (h, w):
+                    raise InputError(where, f"features/{name}", f"mean shape {np.shape(pair[0])}, expected "
+                                     f"({h}, {w}) or ({h}, {w}, k) like the colour")
+                fst = cls.from_moments(f_mean, f_var, n, channels=feature_components(str(name), f_mean.shape[2]),
+                                       variance_of=variance_of, where=f"{where}: features/{name}")
+                st.features[str(name)] = fst
         return st
 
     @classmethod
     def from_samples(cls, positions, values, *, width: int, height: int,
                      channels: Sequence[str] = ("R", "G", "B"), subpixels: int = 0,
-                     nonfinite: str = "drop") -> "PixelStats":
-        """Statistics of one batch of samples held in memory."""
-        return cls(width, height, channels, subpixels=subpixels).add(positions, values, nonfinite=nonfinite)
+                     nonfinite: str = "drop", features=None) -> "PixelStats":
+        """Statistics of one batch of samples held in memory (``features``: name -> (N, k) per-sample array)."""
+        layout = {} if features is None else {
+            str(k): (1 if np.ndim(v) == 1 else int(np.shape(v)[1])) for k, v in dict(features).items()}
+        return cls(width, height, channels, subpixels=subpixels, features=layout).add(
+            positions, values, features=features, nonfinite=nonfinite)
 
     @classmethod
     def from_batches(cls, batches: Iterable, *, width: int, height: int,
                      channels: Sequence[str] = ("R", "G", "B"), subpixels: int = 0,
-                     nonfinite: str = "drop", source: str = "samples") -> "PixelStats":
+                     nonfinite: str = "drop", source: str = "samples", features=None) -> "PixelStats":
         """Stream (positions, values) batches into new statistics.
 
-        The next batch is fetched while the previous one is accumulated
-        (the accumulation releases the GIL), so reading a file and
-        accumulating overlap.
+        With ``features`` (name -> components), each batch is
+        ``(positions, values, {name: array})``.  The next batch is fetched
+        while the previous one is accumulated (the accumulation releases the
+        GIL), so reading a file and accumulating overlap.
         """
         from concurrent.futures import ThreadPoolExecutor
 
-        stats = cls(width, height, channels, subpixels=subpixels, where=source)
+        stats = cls(width, height, channels, subpixels=subpixels, features=features, where=source)
         it = iter(batches)
         with ThreadPoolExecutor(max_workers=1) as pool:
             pending = None
@@ -454,7 +565,8 @@ class PixelStats:
                 # statistics change for that batch.
                 batch = next(it, None)
                 prepared = None if batch is None else \
-                    stats._prepare(batch[0], batch[1], nonfinite=nonfinite, source=source)
+                    stats._prepare(batch[0], batch[1], nonfinite=nonfinite, source=source,
+                                   features=batch[2] if len(batch) > 2 else None)
                 if pending is not None:
                     pending.result()
                 if batch is None:
@@ -465,11 +577,23 @@ class PixelStats:
 
     @classmethod
     def from_log(cls, log, *, subpixels: int = 0, nonfinite: str = "drop",
-                 rounds=None, chunk_size: int | None = None) -> "PixelStats":
-        """Stream an opened sample log (:func:`mcrecon.read_log`, a :class:`~mcrecon.io.SampleLog`) in chunks."""
+                 rounds=None, chunk_size: int | None = None, features=()) -> "PixelStats":
+        """Stream an opened sample log (:func:`mcrecon.read_log`, a :class:`~mcrecon.io.SampleLog`) in chunks.
+
+        ``features``: names of the log's per-sample features to accumulate
+        too (``"all"`` for every one it has; by default none).
+        """
         if isinstance(log, (str, os.PathLike)):
             raise InputError("PixelStats.from_log", "log", f"{os.fspath(log)!r} is a path: open it with "
                              "mcrecon.read_log(path) first (the statistics layer reads no files)")
+        names = source_features(log, features)
+        if names:
+            kw = {} if chunk_size is None else {"chunk_size": chunk_size}
+            batches = ((b.positions, b.values, b.features) for b in
+                       log.iter_chunks(rounds=rounds, with_round=False, features=names, **kw))
+            return cls.from_batches(batches, width=log.width, height=log.height, channels=log.channels,
+                                    subpixels=subpixels, nonfinite=nonfinite, source=str(log.path),
+                                    features=source_layout(log, names))
         if rounds is None:
             # Two rotating buffers: one is filled while the other is accumulated.
             from .samples import DEFAULT_READ_ROWS
@@ -485,17 +609,24 @@ class PixelStats:
                                 subpixels=subpixels, nonfinite=nonfinite, source=str(log.path))
 
     @classmethod
-    def from_source(cls, source, *, subpixels: int = 0, nonfinite: str = "drop") -> "PixelStats":
+    def from_source(cls, source, *, subpixels: int = 0, nonfinite: str = "drop", features=()) -> "PixelStats":
         """Stream any sample source: a sample log (its fast reader) or a
         :class:`~mcrecon.core.samples.SampleSet` (any object with ``width``,
-        ``height``, ``channels`` and ``iter_chunks``)."""
+        ``height``, ``channels`` and ``iter_chunks``).  ``features`` as
+        :meth:`from_log`."""
         if hasattr(source, "iter_into"):  # a SampleLog
-            return cls.from_log(source, subpixels=subpixels, nonfinite=nonfinite)
+            return cls.from_log(source, subpixels=subpixels, nonfinite=nonfinite, features=features)
         from .samples import source_name
 
-        return cls.from_batches(((c.positions, c.values) for c in source.iter_chunks(with_round=False)),
-                                width=source.width, height=source.height, channels=source.channels,
-                                subpixels=subpixels, nonfinite=nonfinite, source=source_name(source))
+        names = source_features(source, features)
+        if names:
+            batches = ((c.positions, c.values, c.features)
+                       for c in source.iter_chunks(with_round=False, features=names))
+        else:
+            batches = ((c.positions, c.values) for c in source.iter_chunks(with_round=False))
+        return cls.from_batches(batches, width=source.width, height=source.height, channels=source.channels,
+                                subpixels=subpixels, nonfinite=nonfinite, source=source_name(source),
+                                features=source_layout(source, names))
 
     # -------------------------------------------------------------- derived
     def sample_variance(self, *, ddof: int = 1, undefined: float = np.nan) -> np.ndarray:

@@ -79,6 +79,7 @@ class LogChunk:
     values: np.ndarray  # (n, C)
     round: np.ndarray  # (n,) int
     start: int  # index of the first sample in the log
+    features: dict = dataclasses.field(default_factory=dict)  # name -> (n, ...), the features asked for
 
     def __len__(self) -> int:
         return int(self.positions.shape[0])

@@ -293,10 +293,14 @@ class SampleLog:
             ends = np.array([n], np.int64)
         self.round_ends = ends
         self.feature_names = tuple(sorted(f["features"].keys())) if "features" in f else ()
+        self.feature_shapes = {}
         for name in self.feature_names:
             d = f["features"][name]
             if not isinstance(d, h5py.Dataset) or d.shape[:1] < (n,):
                 raise _err(path, f"dataset /features/{name}", f"shape {getattr(d, 'shape', None)}, expected ({n}, ...)")
+            if d.dtype.kind not in "fiu":
+                raise _err(path, f"dataset /features/{name}", f"dtype {d.dtype}, expected a real numeric dtype")
+            self.feature_shapes[name] = tuple(d.shape[1:])
         self.has_reference = "reference" in f
         if self.has_reference:
             ref = f["reference"]
@@ -342,7 +346,8 @@ class SampleLog:
         return round_slices(self.round_ends)
 
     def iter_chunks(self, *, chunk_size: int = DEFAULT_READ_ROWS, rounds=None,
-                    start: int = 0, stop: int | None = None, with_round: bool = True) -> Iterator[LogChunk]:
+                    start: int = 0, stop: int | None = None, with_round: bool = True,
+                    features=()) -> Iterator[LogChunk]:
         """Stream committed samples in chunks of at most ``chunk_size`` rows.
 
         Parameters
@@ -353,7 +358,13 @@ class SampleLog:
             Sample range when ``rounds`` is None.
         with_round : bool
             Read the per-sample round index (``chunk.round``; else None).
+        features : sequence of str
+            Per-sample features to read with the samples (``chunk.features``).
         """
+        for name in features:
+            if name not in self.feature_names:
+                raise _err(self.path, f"dataset /features/{name}",
+                           f"no such feature; valid: {', '.join(self.feature_names) or '(none)'}")
         chunk_size = max(int(chunk_size), 1)
         if rounds is None:
             stop = self.n_samples if stop is None else min(int(stop), self.n_samples)
@@ -373,7 +384,8 @@ class SampleLog:
                         rnd = f.read("round", s, e).astype(np.int64, copy=False)
                     else:
                         rnd = (np.searchsorted(self.round_ends, np.arange(s, e), side="right")).astype(np.int64)
-                    yield LogChunk(pos, val, rnd, s)
+                    feats = {name: f.read(f"features/{name}", s, e) for name in features}
+                    yield LogChunk(pos, val, rnd, s, feats)
 
     def iter_into(self, buffers, *, start: int = 0, stop: int | None = None):
         """Stream committed samples into caller-owned buffers, rotating through them.
@@ -394,16 +406,17 @@ class SampleLog:
                 pb, vb = buffers[i % len(buffers)]
                 yield f.read("positions", s, e, out=pb), f.read("values", s, e, out=vb)
 
-    def read_all(self, *, rounds=None) -> LogChunk:
-        """All committed samples (or those of some rounds) in memory."""
-        chunks = list(self.iter_chunks(rounds=rounds))
+    def read_all(self, *, rounds=None, features=()) -> LogChunk:
+        """All committed samples (or those of some rounds) in memory, with the ``features`` named."""
+        chunks = list(self.iter_chunks(rounds=rounds, features=features))
         if not chunks:
             c = len(self.channels)
             return LogChunk(np.zeros((0, 2), self.position_dtype), np.zeros((0, c), self.value_dtype),
-                            np.zeros(0, np.int64), 0)
+                            np.zeros(0, np.int64), 0, {})
         return LogChunk(np.concatenate([c.positions for c in chunks]),
                         np.concatenate([c.values for c in chunks]),
-                        np.concatenate([c.round for c in chunks]), chunks[0].start)
+                        np.concatenate([c.round for c in chunks]), chunks[0].start,
+                        {name: np.concatenate([c.features[name] for c in chunks]) for name in features})
 
     def read_feature(self, name: str, *, start: int = 0, stop: int | None = None) -> np.ndarray:
         if name not in self.feature_names:

@@ -209,6 +209,12 @@ class Requirements:
         (:func:`merge_halves`).  Readers refuse a half-buffer pair for a
         method that does not declare it.  Offline only: adaptive runs
         still hand over every committed round through ``observe``.
+    features : {'none', 'optional', 'required'}
+        Whether the method reads per-sample features (albedo, normal,
+        depth, ...; :mod:`mcrecon.core.features`).  With 'optional' or
+        'required' the statistics and half buffers carry every feature
+        the source has (``stats.features``); 'required' refuses a source
+        without any.  With 'none' they carry none (and cost nothing).
     """
 
     subpixels: int = 0
@@ -216,10 +222,13 @@ class Requirements:
     reference: str = "none"
     statistics: bool = True
     half_buffers: bool = False
+    features: str = "none"
 
     def __post_init__(self):
         if self.reference not in ("none", "optional", "required"):
             raise ValueError(f"Requirements.reference: {self.reference!r}; valid: none, optional, required")
+        if self.features not in ("none", "optional", "required"):
+            raise ValueError(f"Requirements.features: {self.features!r}; valid: none, optional, required")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

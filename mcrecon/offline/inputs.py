@@ -12,7 +12,7 @@ from ..errors import InputError
 from ..methods.base import Method
 from ..methods.base import MethodInputs, half_buffer_methods
 from ..core.halves import SplitHalves, check_half_buffers, is_half_buffer_pair, merge_halves
-from ..core.samples import SampleSet, check_policy, check_reference
+from ..core.samples import SampleSet, check_policy, check_reference, source_name
 from ..core.stats import PixelStats
 
 
@@ -32,13 +32,30 @@ def statistics_for(source, req, *, nonfinite: str = "drop"):
     accumulating every sample to a few ulps; auto at 1024^2: -0.45 s).
     Otherwise the statistics (if declared) and no halves.
     """
+    features = "all" if req.features != "none" else ()
     if req.samples and req.half_buffers and req.statistics and not req.subpixels:
         from ..core.halves import split_halves
-        split = split_halves(source, nonfinite=nonfinite)
+        split = split_halves(source, nonfinite=nonfinite, features=features)
         return merge_halves(split.a, split.b), SplitHalves(split.a, split.b, source)
-    stats = PixelStats.from_source(source, subpixels=req.subpixels, nonfinite=nonfinite) \
+    stats = PixelStats.from_source(source, subpixels=req.subpixels, nonfinite=nonfinite, features=features) \
         if req.statistics else None
     return stats, None
+
+
+def check_features_for(method: Method, features: tuple, where: str, source_kind: str) -> None:
+    """Refuse a source without features for a method that requires them (naming the fix)."""
+    if method.requires.features == "required" and not features:
+        raise InputError(where, "features", f"{method.name} needs per-sample features (albedo, normal, depth) and "
+                         f"{source_kind} has none; write them into the log (/features/NAME), pass "
+                         "SampleSet(features=...) or PixelStats.from_moments(features=...), or pick another method")
+
+
+def fit_features(stats: PixelStats | None, req):
+    """Statistics given by the caller, with their features dropped for a method that reads none
+    (so a method that says ``features='none'`` sees exactly what it always saw)."""
+    if stats is None or req.features != "none" or not stats.features:
+        return stats
+    return stats.without_features()
 
 
 def check_given_statistics(stats: PixelStats, where: str, field: str = "stats", *,
@@ -106,6 +123,12 @@ def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=
                              f"{req.subpixels} subpixel grid, got subpixels={halves[0].subpixels}")
         for i, h in enumerate(halves):
             check_given_statistics(h, src_where, f"halves[{i}]", need_samples=False)
+        if halves[0].feature_names != halves[1].feature_names:
+            raise InputError(src_where, "halves", f"the halves differ in features: "
+                             f"{','.join(halves[0].feature_names) or 'none'} vs "
+                             f"{','.join(halves[1].feature_names) or 'none'}")
+        check_features_for(method, halves[0].feature_names, m_where, "the half buffers")
+        halves = (fit_features(halves[0], req), fit_features(halves[1], req))
         stats, samples, stored_ref = merge_halves(*halves), None, None
         check_given_statistics(stats, src_where, "halves")
     elif isinstance(source, PixelStats):
@@ -119,7 +142,8 @@ def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=
             raise InputError(m_where, "input", f"{name} filters individual samples, which pixel "
                              f"statistics no longer hold; give it {samples_from}")
         check_given_statistics(source, src_where)
-        stats, samples, stored_ref = source, None, None
+        check_features_for(method, source.feature_names, m_where, "these pixel statistics")
+        stats, samples, stored_ref = fit_features(source, req), None, None
     else:
         if logs and isinstance(source, (str, Path)):
             from ..io import read_log
@@ -130,6 +154,7 @@ def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=
                 "PixelStats (PixelStats.from_moments / from_samples), a mcrecon.SampleSet"
             raise InputError(src_where, "source", f"got {type(source).__name__}; expected {kinds} or a "
                              "half-buffer pair (stats_a, stats_b)")
+        check_features_for(method, tuple(getattr(source, "feature_names", ())), m_where, source_name(source))
         stats, halves = statistics_for(source, req, nonfinite=nonfinite)
         stored_ref = source.reference() if req.reference != "none" and hasattr(source, "reference") else None
         samples = source if req.samples else None

@@ -1,0 +1,174 @@
+"""Per-sample features: albedo, normal, depth and any others a renderer sends.
+
+A renderer can hand out, per sample, what its primary ray hit: the
+surface's ``albedo`` (3 components), its shading ``normal`` (3) and the
+hit's ``depth`` (1).  Feature-guided reconstruction (NFOR, RDFC-style
+filters) uses them to tell texture from noise.  They travel with the
+samples (``SampleSet(features=...)``, a sample log's ``/features/NAME``,
+a renderer's ``SampleBatch.features``) and are accumulated per pixel like
+the colour: :class:`~mcrecon.core.stats.PixelStats` keeps, per feature, a
+``PixelStats`` of its components (mean, ``m2``, count: Welford within a
+batch, Chan between batches), and each half buffer keeps its own.
+
+The one validation path is :func:`check_features`: every feature an
+(N,) or (N, k) array of a real dtype; values that are not finite (a depth
+of +inf where a ray left the scene, a NaN normal) are set to 0 and
+counted, because a feature is a guide, not radiance: dropping the sample
+would lose its colour.  A sample the colour's NaN policy drops is dropped
+from its features too (:func:`take_rows`).
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from .._lazy import public_dir as _public_dir
+from ..errors import InputError, McreconWarning
+
+__all__ = ["CANONICAL_FEATURES", "feature_components", "check_features", "feature_layout", "take_rows"]
+
+#: The documented feature names and their components.  Any other name is
+#: kept and usable; its components are named "0", "1", ...
+CANONICAL_FEATURES: dict[str, tuple[str, ...]] = {
+    "albedo": ("R", "G", "B"),
+    "normal": ("X", "Y", "Z"),
+    "depth": ("Z",),
+}
+
+
+def feature_components(name: str, k: int) -> tuple[str, ...]:
+    """Component names of a feature with ``k`` components (canonical names when they fit)."""
+    canon = CANONICAL_FEATURES.get(name)
+    if canon is not None and len(canon) == k:
+        return canon
+    return tuple(str(i) for i in range(k))
+
+
+def feature_layout(features) -> dict[str, int]:
+    """``{name: number of components}`` from a mapping of name to count, or a sequence of canonical names.
+
+    >>> feature_layout(["albedo", "depth"])
+    {'albedo': 3, 'depth': 1}
+    """
+    if features is None:
+        return {}
+    if isinstance(features, Mapping):
+        out = {}
+        for name, k in features.items():
+            if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or int(k) < 1:
+                raise InputError("features", str(name), f"got {k!r} components, expected a positive integer")
+            out[str(name)] = int(k)
+        return out
+    if isinstance(features, str):
+        features = [features]
+    out = {}
+    for name in features:
+        if name not in CANONICAL_FEATURES:
+            raise InputError("features", str(name), "a feature given by name alone must be one of "
+                             f"{', '.join(CANONICAL_FEATURES)}; give others as a mapping name -> components")
+        out[str(name)] = len(CANONICAL_FEATURES[name])
+    return out
+
+
+def check_features(features, n: int, *, where: str = "samples", error=InputError,
+                   layout: Mapping[str, int] | None = None) -> tuple[dict[str, np.ndarray], int]:
+    """Validate per-sample features for ``n`` samples: ``({name: (n, k) array}, n_zeroed)``.
+
+    Each array comes back 2-D, C-contiguous, in a floating dtype (float16
+    widened to float32, integers to float64).  Non-finite entries are set
+    to 0 (in a copy) and counted in ``n_zeroed`` (samples with any such
+    entry).  ``layout`` (name -> components), when given, restricts the
+    result to those features, each of which must be present with that many
+    components; features outside it are ignored.  Raises ``error(where,
+    field, problem)`` naming ``features/NAME``.
+    """
+    given = {} if features is None else features
+    if not isinstance(given, Mapping):
+        raise error(where, "features", f"got {type(given).__name__}, expected a mapping name -> (N, k) array")
+    names = list(given) if layout is None else list(layout)
+    out: dict[str, np.ndarray] = {}
+    n_zeroed = 0
+    for name in names:
+        if name not in given:
+            raise error(where, f"features/{name}", f"missing: these statistics keep feature {name!r} "
+                        f"(given: {', '.join(map(str, given)) or 'none'}); send it with every sample")
+        arr = np.asarray(given[name])
+        if arr.ndim == 1:
+            arr = arr[:, None]
+        if arr.ndim != 2 or arr.shape[0] != n:
+            raise error(where, f"features/{name}", f"shape {np.shape(given[name])}, expected ({n},) or ({n}, k) "
+                        "for one row per sample")
+        if layout is not None and arr.shape[1] != layout[name]:
+            raise error(where, f"features/{name}", f"{arr.shape[1]} component(s), expected {layout[name]}")
+        if arr.dtype.kind not in "fiu" or arr.dtype.kind == "b":
+            raise error(where, f"features/{name}", f"dtype {arr.dtype}, expected a real numeric dtype")
+        if arr.dtype.kind in "iu" or arr.dtype.itemsize > 8:
+            arr = arr.astype(np.float64)
+        elif arr.dtype.itemsize < 4:
+            arr = arr.astype(np.float32)
+        arr = np.ascontiguousarray(arr)
+        finite = np.isfinite(arr)
+        if not finite.all():
+            bad_rows = ~finite.all(axis=1)
+            n_zeroed = max(n_zeroed, int(bad_rows.sum()))
+            arr = np.where(finite, arr, arr.dtype.type(0))
+        out[str(name)] = arr
+    return out, n_zeroed
+
+
+def warn_feature_zeroed(source: str, n_zeroed: int, *, stacklevel: int = 2) -> None:
+    """The one warning for samples whose non-finite feature entries were set to 0."""
+    warnings.warn(f"{source}: features: {n_zeroed} sample(s) with NaN or Inf feature values set to 0 "
+                  "(a depth of inf where a ray left the scene is common; the colour is kept)",
+                  McreconWarning, stacklevel=stacklevel + 1)
+
+
+def take_rows(features: Mapping[str, np.ndarray], rows) -> dict[str, np.ndarray]:
+    """The features of the samples ``rows`` selects (a boolean mask or indices)."""
+    return {name: arr[rows] for name, arr in features.items()}
+
+
+def layout_of(stats_features: Mapping) -> dict[str, int]:
+    """``{name: components}`` of a statistics' ``features`` dict."""
+    return {name: len(st.channels) for name, st in stats_features.items()}
+
+
+def source_features(source, features) -> tuple[str, ...]:
+    """The feature names of ``source`` to accumulate: ``features`` checked against what it has.
+
+    ``"all"``: every feature the source has; a name it lacks is refused
+    naming the source and what it has.
+    """
+    have = tuple(getattr(source, "feature_names", ()))
+    if features is None or (not isinstance(features, str) and len(features) == 0):
+        return ()
+    if isinstance(features, str):
+        if features == "all":
+            return have
+        features = (features,)
+    missing = [f for f in features if f not in have]
+    if missing:
+        from .samples import source_name
+        raise InputError(source_name(source), "features", f"no feature {', '.join(map(repr, missing))}; "
+                         f"it has: {', '.join(have) or '(none)'}")
+    return tuple(features)
+
+
+def source_layout(source, names) -> dict[str, int]:
+    """``{name: components}`` of the features ``names`` of ``source`` (from its ``feature_shapes``)."""
+    shapes = getattr(source, "feature_shapes", {})
+    out = {}
+    for name in names:
+        shape = tuple(shapes[name])
+        if len(shape) > 1:
+            from .samples import source_name
+            raise InputError(source_name(source), f"features/{name}", f"per-sample shape {shape}, expected () "
+                             "or (k,): one row of components per sample")
+        out[name] = int(shape[0]) if shape else 1
+    return out
+
+
+__dir__ = _public_dir(__name__)

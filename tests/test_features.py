@@ -1,0 +1,199 @@
+"""Per-sample features end to end: accumulated per pixel like the colour.
+
+Every check is against a brute-force computation over the same samples
+(per-pixel mean and unbiased variance of each feature component), or an
+invariant of the half-buffer split (the halves' merge equals the whole).
+"""
+
+import numpy as np
+import pytest
+
+import mcrecon
+from mcrecon.core.features import check_features, feature_components, feature_layout
+from mcrecon.core.halves import split_halves
+from mcrecon.core.samples import SampleSet
+from mcrecon.core.stats import PixelStats
+from mcrecon.errors import InputError, McreconWarning
+
+W, H = 7, 5
+
+
+def _samples(n=3000, seed=3):
+    rng = np.random.default_rng(seed)
+    pos = rng.uniform(0, [W, H], size=(n, 2))
+    val = rng.gamma(2.0, 1.0, size=(n, 3))
+    feats = {"albedo": rng.uniform(0, 1, size=(n, 3)), "normal": rng.normal(size=(n, 3)),
+             "depth": rng.exponential(4.0, size=n)}
+    return pos, val, feats
+
+
+def _brute(pos, f):
+    """Per-pixel mean, unbiased variance and count of ``f`` ((n, k)) by explicit loops over pixels."""
+    f = f.reshape(len(f), -1)
+    px = np.floor(pos).astype(int)
+    mean = np.zeros((H, W, f.shape[1]))
+    var = np.full((H, W, f.shape[1]), np.nan)
+    cnt = np.zeros((H, W), int)
+    for y in range(H):
+        for x in range(W):
+            sel = (px[:, 0] == x) & (px[:, 1] == y)
+            cnt[y, x] = sel.sum()
+            if sel.any():
+                mean[y, x] = f[sel].mean(axis=0)
+            if sel.sum() > 1:
+                var[y, x] = f[sel].var(axis=0, ddof=1)
+    return mean, var, cnt
+
+
+def test_feature_statistics_match_brute_force_means_and_variances():
+    pos, val, feats = _samples()
+    st = PixelStats.from_samples(pos, val, width=W, height=H, features=feats)
+    assert st.feature_names == ("albedo", "normal", "depth")
+    assert st.features["albedo"].channels == ("R", "G", "B")
+    assert st.features["depth"].channels == ("Z",)
+    for name, f in feats.items():
+        mean, var, cnt = _brute(pos, f)
+        fst = st.features[name]
+        np.testing.assert_array_equal(fst.count, cnt)
+        np.testing.assert_allclose(fst.mean, mean, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(fst.sample_variance(), var, rtol=1e-9)
+    # the colour is what it is without features
+    plain = PixelStats.from_samples(pos, val, width=W, height=H)
+    np.testing.assert_array_equal(st.mean, plain.mean)
+    np.testing.assert_array_equal(st.m2, plain.m2)
+
+
+def test_batches_merge_and_copies_keep_features():
+    pos, val, feats = _samples()
+    whole = PixelStats.from_samples(pos, val, width=W, height=H, features=feats)
+    a = PixelStats(W, H, features={"albedo": 3, "normal": 3, "depth": 1})
+    b = PixelStats(W, H, features=["albedo", "normal", "depth"])
+    cut = 1234
+    a.add(pos[:cut], val[:cut], features={k: v[:cut] for k, v in feats.items()})
+    b.add(pos[cut:], val[cut:], features={k: v[cut:] for k, v in feats.items()})
+    a.merge(b)  # Chan
+    for name in feats:
+        np.testing.assert_allclose(a.features[name].mean, whole.features[name].mean, rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(a.features[name].m2, whole.features[name].m2, rtol=1e-9, atol=1e-12)
+    c = whole.copy()
+    c.features["depth"].mean[0, 0] += 1
+    assert c.features["depth"].mean[0, 0] != whole.features["depth"].mean[0, 0]
+    crop = whole.crop(1, 4, 2, 6)
+    np.testing.assert_array_equal(crop.features["normal"].mean, whole.features["normal"].mean[1:4, 2:6])
+    arrays, fields = whole.to_arrays()
+    back = PixelStats.from_arrays(arrays, fields)
+    np.testing.assert_array_equal(back.features["albedo"].m2, whole.features["albedo"].m2)
+    assert whole.without_features().feature_names == ()
+
+
+def test_merging_statistics_with_different_features_is_refused():
+    pos, val, feats = _samples(200)
+    a = PixelStats.from_samples(pos, val, width=W, height=H, features=feats)
+    b = PixelStats.from_samples(pos, val, width=W, height=H, features={"depth": feats["depth"]})
+    with pytest.raises(InputError, match="features must match"):
+        a.merge(b)
+
+
+def test_halves_split_features_with_the_colour_and_merge_to_the_whole():
+    pos, val, feats = _samples(4000)
+    ss = SampleSet(pos, val, width=W, height=H, features=feats)
+    h = split_halves(ss, features="all")
+    whole = PixelStats.from_source(ss, features="all")
+    for name in feats:
+        fa, fb = h.a.features[name], h.b.features[name]
+        # each half's feature counts are its colour counts: one label per sample
+        np.testing.assert_array_equal(fa.count, h.a.count)
+        np.testing.assert_array_equal(fb.count, h.b.count)
+        merged = fa.copy().merge(fb)
+        np.testing.assert_allclose(merged.mean, whole.features[name].mean, rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(merged.m2, whole.features[name].m2, rtol=1e-9, atol=1e-12)
+    # the halves hold the same samples' features as their colour: brute force on half a
+    lab_a = h.a.count.sum()
+    assert 0 < lab_a < len(pos)
+
+
+def test_nonfinite_features_are_zeroed_counted_and_warned_and_dropped_samples_lose_their_features():
+    pos, val, feats = _samples(500)
+    feats["depth"] = feats["depth"].copy()
+    feats["depth"][:7] = np.inf  # rays that left the scene
+    val = val.copy()
+    val[10] = np.nan  # the colour's drop policy drops this sample, features included
+    with pytest.warns(McreconWarning, match="7 sample"):
+        st = PixelStats.from_samples(pos, val, width=W, height=H, features=feats, nonfinite="drop")
+    assert st.n_feature_zeroed == 7 and st.n_dropped == 1
+    keep = np.isfinite(val).all(axis=1)
+    d = np.where(np.isfinite(feats["depth"]), feats["depth"], 0.0)[keep]
+    mean, _, cnt = _brute(pos[keep], d)
+    np.testing.assert_array_equal(st.features["depth"].count, cnt)
+    np.testing.assert_allclose(st.features["depth"].mean, mean, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("bad, match", [
+    ({"albedo": np.zeros((9, 3))}, r"features/albedo.*shape"),
+    ({"albedo": np.array(["a"] * 500)}, r"features/albedo.*dtype"),
+])
+def test_malformed_features_are_refused_naming_the_field(bad, match):
+    pos, val, _ = _samples(500)
+    with pytest.raises(InputError, match=match):
+        SampleSet(pos, val, width=W, height=H, features=bad)
+
+
+def test_statistics_that_keep_a_feature_refuse_a_batch_without_it():
+    pos, val, feats = _samples(100)
+    st = PixelStats(W, H, features=["albedo", "depth"])
+    with pytest.raises(InputError, match=r"features/depth.*missing"):
+        st.add(pos, val, features={"albedo": feats["albedo"]})
+    assert st.n_samples == 0  # unchanged when it raises
+
+
+def test_feature_layout_and_components():
+    assert feature_layout(["albedo", "depth"]) == {"albedo": 3, "depth": 1}
+    assert feature_components("normal", 3) == ("X", "Y", "Z")
+    assert feature_components("uv", 2) == ("0", "1")
+    with pytest.raises(InputError, match="must be one of"):
+        feature_layout(["visibility"])
+    out, n = check_features({"d": np.array([1, 2], np.int32)}, 2)
+    assert out["d"].dtype == np.float64 and out["d"].shape == (2, 1) and n == 0
+
+
+def test_from_moments_carries_feature_images():
+    rng = np.random.default_rng(0)
+    mean = rng.uniform(size=(H, W, 3))
+    var = rng.uniform(size=(H, W, 3))
+    count = np.full((H, W), 8)
+    alb = rng.uniform(size=(H, W, 3))
+    depth = rng.uniform(size=(H, W))
+    st = PixelStats.from_moments(mean, var, count, features={"albedo": (alb, None), "depth": (depth, 0.5 * depth)})
+    np.testing.assert_array_equal(st.features["albedo"].mean, alb)
+    np.testing.assert_allclose(st.features["albedo"].sample_variance(), 0.0)
+    np.testing.assert_allclose(st.features["depth"].sample_variance()[..., 0], 0.5 * depth)
+    np.testing.assert_array_equal(st.features["depth"].count, count)
+    with pytest.raises(InputError, match="features/depth"):
+        PixelStats.from_moments(mean, var, count, features={"depth": (np.zeros((2, 2)), None)})
+
+
+def test_features_round_trip_through_a_sample_log(tmp_path):
+    pos, val, feats = _samples(2500)
+    path = tmp_path / "f.h5"
+    mcrecon.write_log(path, pos, val, width=W, height=H, features=feats)
+    log = mcrecon.read_log(path)
+    assert set(log.feature_names) == set(feats)
+    st = PixelStats.from_log(log, features="all", chunk_size=700)  # several chunks: Chan between them
+    plain = PixelStats.from_log(log)
+    with pytest.raises(InputError, match="no feature 'visibility'"):
+        PixelStats.from_log(log, features=["visibility"])
+    assert plain.feature_names == ()
+    for name, f in feats.items():
+        mean, var, _ = _brute(pos, f)
+        np.testing.assert_allclose(st.features[name].mean, mean, rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(st.features[name].sample_variance(), var, rtol=1e-4, atol=1e-6)
+
+
+def test_methods_that_read_no_features_give_identical_images_with_and_without_them(tmp_path):
+    pos, val, feats = _samples(3000)
+    with_f = SampleSet(pos, val, width=W, height=H, features=feats)
+    without = SampleSet(pos, val, width=W, height=H)
+    for name in ("box", "awr"):
+        a = mcrecon.reconstruct(with_f, method=name)
+        b = mcrecon.reconstruct(without, method=name)
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
