@@ -120,7 +120,10 @@ def test_default_safeguard_costs_nothing_on_a_flat_field():
     for seed in range(4):
         ss = _samples(ref, sigma, 8, seed)
         for k in err:
-            m = get_method("auto") if k == "default" else get_method("auto", safeguard=k)
+            # the plain per-pixel choice (global_prior=None): what the clamp costs it.  With the global
+            # prior's near-exact wide Gaussian on this field the same clamp is 1.17x of a far smaller error
+            m = get_method("auto", global_prior=None) if k == "default" else \
+                get_method("auto", safeguard=k, global_prior=None)
             err[k].append(relative_mse(_quiet(lambda: mcrecon.reconstruct(ss, method=m)), ref))
     assert get_method("auto").params["safeguard"] == 4.0
     assert np.mean(err["default"]) / np.mean(err[1e6]) <= 1.02, err
@@ -385,20 +388,98 @@ def test_compiled_selection_helpers_are_bit_identical_to_their_numpy_definitions
             np.testing.assert_array_equal(x, y)
 
 
-def test_global_prior_is_opt_in_and_takes_flat_regions_to_wide_scales():
-    """global_prior=z: the best single candidate by summed (leave-one-out relative) estimate is every
-    pixel's default.  On a flat field (8 spp, 4 seeds) it lowers auto's error (measured 0.068 -> 0.043
-    of the pixel mean at z = 1); off by default."""
-    assert get_method("auto").params["global_prior"] is None
-    ref = np.full((40, 48, 3), 0.5)
-    sig = np.full(ref.shape, 0.5)
-    r0, r1 = [], []
+def _best_single_candidate(ss, ref):
+    """relMSE of auto's best candidate used at every pixel, through auto's safeguard (the clamp and the
+    heavy-tail rule): what auto would output had it chosen that one candidate everywhere."""
+    from mcrecon.core.halves import merge_halves
+    from mcrecon.core.safeguard import confidence_clamp, sample_range_bounds
+    from mcrecon.methods.auto.selection import _no_push_in_heavy_tails
+
+    auto = get_method("auto")
+    h = split_halves(ss)
+    st = merge_halves(h.a, h.b)
+    cands, y, v, _ = auto._candidates(st, h, ss, "drop")
+    lo, hi = sample_range_bounds(st)
+    return min(relative_mse(_no_push_in_heavy_tails(confidence_clamp(c.image, y, v, 4.0, lo, hi), y, hi), ref)
+               for c in cands)
+
+
+@pytest.mark.parametrize("noise", ["gaussian", "exponential"])
+def test_auto_is_within_1_2x_of_its_best_single_candidate_on_flat_fields(noise):
+    """The plain per-pixel choice was 20-70x worse than its own widest Gaussian on flat noise (every
+    pixel's SURE noise swamps the small differences between wide scales, and the bias floor at 2 sd
+    hands one pure-noise pixel in 20 to a narrow filter).  The global prior (default z = 3) makes the
+    best single candidate every pixel's default.  Measured (64 x 64, 8 spp, seeds 0-3): default / best
+    single 1.00-1.04 per seed (Gaussian), 1.00-1.08 (exponential); the plain choice 26x and 4.5x the
+    default.  Bounds: 1.2x (the issue's target) and a factor 3.  (At 16 spp on 40 x 48 the Gaussian
+    case gave 1.0-4.6 per seed: on so few pixels the summed estimates cannot tell scale 8 from 16,
+    whose errors are both < 2e-4 of the mean's; docs/methods/auto.md, Limits.)"""
+    assert get_method("auto").params["global_prior"] == 3.0
+    h = w = 64
+    spp = 8
+    ref = np.full((h, w, 3), 0.5)
+    r_def, r_off, r_best = [], [], []
     for seed in range(4):
-        ss = _samples(ref, sig, 8, seed)
-        r0.append(relative_mse(_quiet(lambda: mcrecon.reconstruct(ss, method="auto")), ref))
-        r1.append(relative_mse(_quiet(lambda: mcrecon.reconstruct(ss, method=get_method("auto", global_prior=1.0))),
-                               ref))
-    assert np.mean(r1) < 0.8 * np.mean(r0), (r0, r1)
+        if noise == "gaussian":
+            ss = _samples(ref, np.full(ref.shape, 0.5), spp, seed)
+        else:
+            rng = np.random.default_rng(seed)
+            pix = np.repeat(np.arange(h * w), spp)
+            pos = np.stack([pix % w, pix // w], 1) + rng.uniform(size=(pix.size, 2))
+            ss = SampleSet(pos, 0.5 * rng.exponential(size=(pix.size, 3)), width=w, height=h)
+        r_def.append(relative_mse(_quiet(lambda: mcrecon.reconstruct(ss, method="auto")), ref))
+        r_off.append(relative_mse(_quiet(lambda: mcrecon.reconstruct(ss, method=get_method("auto", global_prior=None))),
+                                  ref))
+        r_best.append(_quiet(lambda: _best_single_candidate(ss, ref)))
+    assert np.mean(r_def) <= 1.2 * np.mean(r_best), (r_def, r_best)
+    assert np.mean(r_def) < np.mean(r_off) / 3, (r_def, r_off)
+
+
+def _prior_inputs(h=12, w=14, n_cands=3):
+    from mcrecon.methods.auto.method import Candidate
+
+    rng = np.random.default_rng(0)
+    y = rng.uniform(0.4, 0.6, size=(h, w, 3))
+    v = np.full((h, w, 3), 0.01)
+    count = np.full((h, w), 16)
+    cands = [Candidate("box", y.copy(), v.copy())]
+    for k in range(1, n_cands):
+        cands.append(Candidate(f"gauss{k}", np.full((h, w, 3), 0.5), np.full((h, w, 3), 0.01 / (4.0 * k))))
+    raw = [c.mse.mean(axis=2) / 0.26 for c in cands]
+    return cands, raw, np.stack(raw), y, v, count, (y.copy(), y.copy())
+
+
+def test_global_prior_takes_the_best_single_candidate_and_leaves_heavy_tailed_or_biased_pixels_alone():
+    from mcrecon.methods.auto.method import Candidate
+    from mcrecon.methods.auto.selection import _global_prior
+
+    cands, raw, relm, y, v, count, bounds = _prior_inputs()
+    plain = np.zeros(y.shape[:2], np.int64)  # a per-pixel choice that kept the mean everywhere
+    got = _global_prior(cands, raw, raw, relm, plain, y, v, count, bounds, 2.0, 3.0, 4.0)
+    assert (got == 2).all()  # the candidate of least summed estimate, everywhere
+    # a pixel with rare huge samples around (3x3 maximum > 30x its mean) keeps its per-pixel choice
+    hi = bounds[1].copy()
+    hi[3, 4] = 100.0
+    got = _global_prior(cands, raw, raw, relm, plain, y, v, count, (bounds[0], hi), 2.0, 3.0, 4.0)
+    assert got[3, 4] == 0 and (np.delete(got.ravel(), 3 * 14 + 4) == 2).all()
+    # so does a pixel where the global candidate departs from the mean by more than 5 standard errors
+    img = cands[2].image.copy()
+    img[5, 6, 1] = y[5, 6, 1] + 6 * 0.1
+    c2 = cands[:2] + [Candidate(cands[2].name, img, cands[2].mse)]
+    got = _global_prior(c2, raw, raw, relm, plain, y, v, count, bounds, 2.0, 3.0, 4.0)
+    assert got[5, 6] == 0 and got[5, 7] == 2
+
+
+def test_global_prior_changes_nothing_when_the_pixel_mean_is_the_best_single_candidate():
+    from mcrecon.methods.auto.selection import _global_prior
+
+    cands, raw, relm, y, v, count, bounds = _prior_inputs()
+    for c in cands[1:]:
+        c.mse[...] = 1.0  # every filter far worse than the mean's v = 0.01
+    raw = [c.mse.mean(axis=2) / 0.26 for c in cands]
+    plain = np.random.default_rng(1).integers(0, 3, size=y.shape[:2])
+    got = _global_prior(cands, raw, raw, np.stack(raw), plain, y, v, count, bounds, 2.0, 3.0, 4.0)
+    np.testing.assert_array_equal(got, plain)
 
 
 def test_gem_sampling_places_the_non_uniform_share_where_gem_does():
@@ -520,3 +601,39 @@ def test_gem_sampling_pipelined_never_places_samples_from_empty_statistics():
     r1, _ = _plan_round(m, run, empty, 1, 32 * w * h, 2 * w * h, 1, None, pending=np.full((h, w), 2),
                         initial_rounds=k)
     assert r1.positions is None and r1.counts.sum() == 2 * w * h and r1.counts.max() - r1.counts.min() <= 1
+
+
+def test_heavy_tailed_test_matches_a_whole_image_median_filter():
+    """_heavy_tailed computes the 3x3 median only where the first test fires: the same answer as the
+    whole-image scipy median filter (edges repeated), on a field with rare bright pixels and NaN."""
+    from scipy.ndimage import median_filter
+    from mcrecon.methods.auto.selection import _heavy_tailed
+
+    rng = np.random.default_rng(5)
+    y = rng.uniform(0.0, 1.0, size=(17, 23, 3))
+    y[rng.random(y.shape) < 0.05] = 0.001
+    y[2, 3, 1] = np.nan
+    hi = np.where(rng.random(y.shape) < 0.1, 50.0, 1.0)
+    ay = np.abs(np.where(np.isfinite(y), y, 0.0))
+    ref = hi > 30.0 * np.maximum(ay, median_filter(ay, size=(3, 3, 1), mode="nearest"))
+    got = _heavy_tailed(y, hi, 30.0)
+    np.testing.assert_array_equal(got, ref)
+    assert 0 < got.sum() < got.size
+
+
+def test_trimmed_sum_matches_sorting_and_a_few_huge_estimates_cannot_choose_the_global_candidate():
+    from mcrecon.methods.auto.selection import PRIOR_TRIM, _global_prior, _trimmed_sum
+
+    d = np.random.default_rng(2).standard_normal(1001)
+    t = int(PRIOR_TRIM * d.size)
+    assert _trimmed_sum(d, PRIOR_TRIM) == pytest.approx(np.sort(d)[t:d.size - t].sum(), rel=1e-12)
+    assert _trimmed_sum(d[:10], PRIOR_TRIM) == pytest.approx(d[:10].sum(), rel=1e-12)  # nothing to trim
+    # candidate 2 is better at every pixel but one, where its estimate is huge (an emitter's edge):
+    # the untrimmed sum would pick candidate 1, the trimmed one picks 2
+    cands, raw, relm, y, v, count, bounds = _prior_inputs()
+    cands[2].mse[0, 0] = 1e4
+    raw = [c.mse.mean(axis=2) / 0.26 for c in cands]
+    assert np.sum(raw[2]) > np.sum(raw[1])
+    plain = np.zeros(y.shape[:2], np.int64)
+    got = _global_prior(cands, raw, raw, np.stack(raw), plain, y, v, count, bounds, 2.0, 3.0, None)
+    assert (got.ravel()[1:] == 2).all()

@@ -23,7 +23,7 @@ import numpy as np
 from ...errors import InputError, McreconWarning
 from ...core.metrics import DEFAULT_EPS
 from ...core.halves import Halves, split_halves
-from .estimates import (cross_validation_mse, dual_buffer_mse, relative_denominator, relative_denominator_loo,
+from .estimates import (cross_validation_mse, dual_buffer_mse, relative_denominator,
     sure, sure_filter_bank)
 from ...core.requests import SampleBatch
 from ...core.stats import PixelStats
@@ -35,7 +35,8 @@ from ...filters.gaussian import final_sigmas
 from ...core.fill import mean_variance_policy
 from .nlmeans import nlmeans_cross
 from ...filters.masked import _smooth_masked, _smooth_masked_many
-from .selection import _floored, _global_prior, _largest_remainder, _mean_c, _no_push_in_heavy_tails, _pick_where
+from .selection import (_floored, _global_prior, _largest_remainder, _mean_c, _no_push_in_heavy_tails,
+    _pick_where)
 
 __all__ = ['AutoMethod', 'AutoRun', 'CANDIDATES', 'DEFAULT_CANDIDATES', 'DUAL_BUFFER']
 
@@ -105,7 +106,9 @@ class AutoMethod(Method):
         32 spp, 0.5 % at 8 spp, against 5-9 % at k = 2; docs/methods/auto.md,
         "Safeguard width").
     global_prior : float or None
-        z of the global prior (:func:`_global_prior`; None, the default: off).
+        z of the global prior (:func:`_global_prior`; 3, the default since
+        2026-12-02: auto within 1.2x of its best single candidate on every
+        scene measured; None: off, the plain per-pixel choice).
 
     Diagnostics: ``choice`` (candidate index per pixel, in the order of
     :meth:`candidate_names`), ``estimated_mse`` (mean over channels of the
@@ -137,9 +140,9 @@ class AutoMethod(Method):
                "(a defence against GEM's estimates where they mislead)", min=0.0, max=1.0),
         Option("safeguard", float, 4.0, nullable=True, help="clamp each pixel into mean +- k standard errors "
                "of its mean and into the range of the samples around it (k; None: no clamp)", min=0.0),
-        Option("global_prior", float, None, nullable=True, help="z: every pixel takes the candidate of least "
+        Option("global_prior", float, 3.0, nullable=True, help="z: every pixel takes the candidate of least "
                "summed estimate over the image unless another's smoothed estimate is lower by more than z "
-               "standard errors (None: off; measured trade-off in docs/methods/auto.md)", min=0.0),
+               "standard errors (None: off, the plain per-pixel choice; docs/methods/auto.md)", min=0.0),
     )
 
     def _configure(self, params: dict) -> None:
@@ -312,6 +315,7 @@ class AutoMethod(Method):
         raw = [_mean_c(c.mse, den) for c in cands]
         smoothed = _smooth_masked_many(raw, smooth)
         h, w = count.shape
+        bounds = None
         has = np.ascontiguousarray(count > 0)
         yc = np.ascontiguousarray(y, dtype=np.float64)
         rel = []
@@ -323,9 +327,9 @@ class AutoMethod(Method):
         relm = np.stack([np.where(np.isnan(r), np.inf, r) for r in rel])
         choice = np.argmin(relm, axis=0)
         if self.params["global_prior"] is not None and len(cands) > 1 and smooth > 0:
-            den_loo = relative_denominator_loo(y, v, count, eps=DEFAULT_EPS)
-            loo = [_mean_c(c.mse, den_loo) for c in cands]
-            choice, _ = _global_prior(raw, loo, smoothed, rel, relm, choice, smooth, self.params["global_prior"])
+            bounds = sample_range_bounds(stats)
+            choice = _global_prior(cands, raw, smoothed, relm, choice, y, v, count, bounds, smooth,
+                                   self.params["global_prior"], self.params["safeguard"])
         # ties (e.g. noise-free regions, where every ratio is undefined) go to the first candidate
         if cands[0].name == "box" and smooth > 0:
             # Region guard: where the chosen candidates' unbiased estimates,
@@ -353,7 +357,7 @@ class AutoMethod(Method):
             # beside it (caustic: 1.6x the pixel mean without the clamp).  Clamping onto
             # an interval that holds the true value with high probability never moves
             # an estimate away from it (the same safeguard as awr's robust default).
-            lo, hi = sample_range_bounds(stats)
+            lo, hi = sample_range_bounds(stats) if bounds is None else bounds
             img = confidence_clamp(img, y, v, self.params["safeguard"], lo, hi)
             img = _no_push_in_heavy_tails(img, y, hi)
         # the raw estimate is undefined at empty pixels: the smoothed absolute one there
