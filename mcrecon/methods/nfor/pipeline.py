@@ -34,7 +34,7 @@ import numpy as np
 from .nlmeans import nlmeans_filter
 from .regression import RIDGE, collaborative_regression
 
-__all__ = ["nfor_denoise", "estimate_mse", "PAPER"]
+__all__ = ["nfor_denoise", "prefilter_features", "cross_regression", "estimate_mse", "PAPER"]
 
 #: The reference implementation's parameters.
 PAPER = dict(feature_radius=5, feature_patch=3, feature_k=0.5, radius=9, patch=3, bandwidths=(0.5, 1.0),
@@ -54,6 +54,33 @@ def estimate_mse(y_a, y_b, f_a, f_b, variance) -> np.ndarray:
     mse_a = (y_b - f_a) ** 2 - 2.0 * variance
     mse_b = (y_a - f_b) ** 2 - 2.0 * variance
     return 0.5 * (mse_a + mse_b) - 0.25 * (f_b - f_a) ** 2
+
+
+def prefilter_features(feat_a, feat_b, feat_variance, *, radius=5, patch=3, k=0.5, threads=None):
+    """Sec. 5.1: each half's features NL-means filtered with the *other* half's weights (per channel).
+
+    ``feat_variance`` is the variance of the full buffer's feature mean
+    (doubled here for a half).  Returns ``(pf_a, pf_b)``, (H, W, D) each.
+    """
+    if not np.shape(feat_a)[2]:
+        return feat_a, feat_b
+    pf_a = nlmeans_filter(feat_a, feat_b, feat_variance, radius=radius, patch=patch, k=k, variance_scale=2.0,
+                          threads=threads)
+    pf_b = nlmeans_filter(feat_b, feat_a, feat_variance, radius=radius, patch=patch, k=k, variance_scale=2.0,
+                          threads=threads)
+    return pf_a, pf_b
+
+
+def cross_regression(y_a, y_b, variance, pf_a, pf_b, *, radius=9, patch=3, k=1.0, ridge=RIDGE, threads=None):
+    """Sec. 5.2 for one bandwidth: half A regressed on half B's features with weights from B's colour, and
+    B on A's.  ``F_A`` is then a linear function of ``y_A`` whose weights and design carry none of ``y_A``'s
+    noise (nor of A's features), which the MSE estimate (:func:`estimate_mse`) relies on.
+    Returns ``(F_A, F_B)``."""
+    c_a = collaborative_regression(y_a, y_b, variance, pf_b, radius=radius, patch=patch, k=k, variance_scale=2.0,
+                                   ridge=ridge, threads=threads)
+    c_b = collaborative_regression(y_b, y_a, variance, pf_a, radius=radius, patch=patch, k=k, variance_scale=2.0,
+                                   ridge=ridge, threads=threads)
+    return c_a, c_b
 
 
 def nfor_denoise(y_a, y_b, variance, feat_a, feat_b, feat_variance, *, feature_radius=5, feature_patch=3,
@@ -97,20 +124,13 @@ def nfor_denoise(y_a, y_b, variance, feat_a, feat_b, feat_variance, *, feature_r
         raise ValueError(f"nfor_denoise: bandwidths {bandwidths!r}: one or two values")
     y = 0.5 * (y_a + y_b)
     # 1. feature prefiltering, cross-buffer (A's features with B's weights)
-    if fa.shape[2]:
-        pf_a = nlmeans_filter(fa, fb, fv, radius=feature_radius, patch=feature_patch, k=feature_k,
-                              variance_scale=2.0, threads=threads)
-        pf_b = nlmeans_filter(fb, fa, fv, radius=feature_radius, patch=feature_patch, k=feature_k,
-                              variance_scale=2.0, threads=threads)
-    else:
-        pf_a, pf_b = fa, fb
+    pf_a, pf_b = prefilter_features(fa, fb, fv, radius=feature_radius, patch=feature_patch, k=feature_k,
+                                    threads=threads)
     # 2. regression per bandwidth, cross-buffer (A's colour: B's weights and B's features)
     cands = []
     for k in bandwidths:
-        c_a = collaborative_regression(y_a, y_b, var, pf_b, radius=radius, patch=patch, k=k, variance_scale=2.0,
-                                       ridge=ridge, threads=threads)
-        c_b = collaborative_regression(y_b, y_a, var, pf_a, radius=radius, patch=patch, k=k, variance_scale=2.0,
-                                       ridge=ridge, threads=threads)
+        c_a, c_b = cross_regression(y_a, y_b, var, pf_a, pf_b, radius=radius, patch=patch, k=k, ridge=ridge,
+                                    threads=threads)
         mse = nlmeans_filter(estimate_mse(y_a, y_b, c_a, c_b, var), y, var, radius=mse_radius, patch=mse_patch,
                              k=mse_k, threads=threads)
         cands.append((c_a, c_b, mse))
