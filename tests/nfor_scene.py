@@ -55,6 +55,13 @@ def scene_samples(width=64, height=64, spp=16, seed=0, *, square=8, blur=2.5):
     n = width * height * spp
     pix = np.repeat(np.arange(width * height), spp)
     pos = np.stack([pix % width + rng.random(n), pix // width + rng.random(n)], axis=1)
+    val, feats = scene_values(pos, rng, width, height, square=square, blur=blur)
+    return SampleSet(pos, val, width=width, height=height, features=feats)
+
+
+def scene_values(pos, rng, width, height, *, square=8, blur=2.5):
+    """Values (n, 3) and features of samples at film positions ``pos`` (n, 2)."""
+    n = len(pos)
     look = pos.copy()
     band = pos[:, 0] >= 2 * width / 3
     look[band] += rng.normal(0.0, blur, size=(int(band.sum()), 2))
@@ -62,7 +69,7 @@ def scene_samples(width=64, height=64, spp=16, seed=0, *, square=8, blur=2.5):
     val = _colour(x, y, width, height, square) * rng.exponential(1.0, size=(n, 1))
     feats = {"albedo": _albedo(x, y, square), "normal": _normal(x, y, width, height),
              "depth": _depth(x, y, width, height)}
-    return SampleSet(pos, val, width=width, height=height, features=feats)
+    return val, feats
 
 
 def scene_reference(width=64, height=64, *, square=8, blur=2.5, sub=8, gh=16):

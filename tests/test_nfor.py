@@ -10,7 +10,9 @@ import mcrecon
 from mcrecon.core.fill import mean_variance_policy
 from mcrecon.core.halves import split_halves
 from mcrecon.core.metrics import relative_mse
+from mcrecon.core.requests import SampleBatch, jittered_positions
 from mcrecon.core.samples import SampleSet
+from mcrecon.renderers.callable import CallableRenderer
 from mcrecon.errors import InputError
 from mcrecon.filters.cross_bilateral import cross_bilateral
 from mcrecon.methods.auto.nlmeans import nlmeans_cross
@@ -19,7 +21,7 @@ from mcrecon.methods.nfor.nlmeans import DISTANCE_CLAMP, MIN_CENTER_WEIGHT, NLM_
 from mcrecon.methods.nfor.pipeline import cross_regression, estimate_mse, prefilter_features
 from mcrecon.methods.nfor.regression import RIDGE, collaborative_regression, standardise
 
-from nfor_scene import scene_reference, scene_samples
+from nfor_scene import scene_reference, scene_samples, scene_values
 
 
 # ------------------------------------------------------------------ brute force
@@ -215,3 +217,27 @@ def test_reconstruct_from_samples_equals_the_half_buffer_pair_and_refuses_withou
         mcrecon.reconstruct((h.a.without_features(), h.b.without_features()), method="nfor")
     with pytest.raises(InputError, match="bandwidths"):
         mcrecon.get_method("nfor", bandwidths="0.5,1,2")
+
+
+def _renderer(features=True, w=20, h=16):
+    def render(request):
+        rng = np.random.default_rng(request.seed)
+        pos = jittered_positions(request.counts, rng) if request.positions is None else request.positions
+        val, feats = scene_values(pos, rng, w, h)
+        return SampleBatch(pos, val, feats if features else {})
+    return CallableRenderer(render, width=w, height=h, name="textured")
+
+
+def test_adaptive_runs_observe_the_halves_reuse_the_object_and_match_their_log(tmp_path):
+    """An adaptive run's halves (built round by round by observe) are the log's split: the run's image is
+    the offline image of its log; one method object serves runs as fresh ones do; no features: refused."""
+    m = mcrecon.get_method("nfor", radius=4)
+    res = mcrecon.adapt(_renderer(), m, spp=8, seed=1, log=str(tmp_path / "a.h5"), progress=False)
+    # to rounding: the run accumulates the halves round by round, the reader in chunks of the log
+    np.testing.assert_allclose(res.image, mcrecon.reconstruct(str(tmp_path / "a.h5"), method=m), rtol=1e-9)
+    other = mcrecon.adapt(_renderer(w=13, h=9), m, spp=6, seed=2, progress=False)
+    again = mcrecon.adapt(_renderer(), m, spp=8, seed=1, progress=False)
+    np.testing.assert_array_equal(again.image, res.image)
+    assert other.image.shape == (9, 13, 3) and np.isfinite(other.image).all()
+    with pytest.raises(InputError, match="features"):
+        mcrecon.adapt(_renderer(features=False), m, spp=4, seed=1, progress=False)

@@ -106,6 +106,10 @@ class NFORMethod(Method):
     def observe(self, run: NFORRun, batch: SampleBatch, round_index: int) -> None:
         """Split each committed round, features with it, into the two halves (replayed in order on resume)."""
         if run.halves is None:
+            if not batch.features:  # refuse on the first round, not after the whole budget is rendered
+                raise InputError(_WHERE, "features", "nfor needs per-sample features (albedo, normal, depth) and the "
+                                 "renderer's replies have none; render them with the samples "
+                                 "(SampleBatch.features), or pick another method")
             layout = {n: 1 if np.ndim(f) == 1 else int(np.shape(f)[1]) for n, f in (batch.features or {}).items()}
             run.halves = Halves.empty(run.width, run.height, run.channels, features=layout)
         run.halves.add(batch.positions, batch.values, features=batch.features or None, nonfinite="drop",
