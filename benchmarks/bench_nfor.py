@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT), str(ROOT / "tests")]  # this checkout's mcrecon, and the test scene
 
 import mcrecon  # noqa: E402
 from mcrecon.core.fill import mean_variance_policy  # noqa: E402

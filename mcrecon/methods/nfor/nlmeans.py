@@ -46,62 +46,62 @@ BAND = 16
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def offset_distances(guide, var, dy, dx, i0, i1, f, k2, eps, clamp, dpix, out):
+def offset_distances(guide, var, dy, dx, i0, i1, f, k2, eps, clamp, sat, out):
     """Patch distances D_c(p, o) of offset o = (dy, dx) for the pixels p of rows [i0, i1).
 
-    guide, var : (C, H, W) float32; dpix : scratch (C, i1 - i0 + 2f, W) float32;
-    out : (C, i1 - i0, W) float32, the patch-mean distance where q = p + o lies in
-    the image (elsewhere left unspecified: the callers skip those pairs).
+    guide, var : (C, H, W) float32; sat : scratch (C, i1 - i0 + 2f + 1, W + 1) float64, the summed-area
+    table of the pixel distances (0 where s or s + o is outside the image), so that a patch sum costs
+    four look-ups whatever f; out : (C, i1 - i0, W) float32, the patch-mean distance where q = p + o
+    lies in the image (elsewhere left unspecified: the callers skip those pairs).
     """
     c, h, w = guide.shape
     rows = i1 - i0 + 2 * f
     j0 = max(0, -dx)
     j1 = min(w, w - dx)
+    for ch in range(c):
+        for j in range(w + 1):
+            sat[ch, 0, j] = 0.0
     for t in range(rows):
         i = i0 - f + t
         qi = i + dy
+        inside = 0 <= i < h and 0 <= qi < h
         for ch in range(c):
+            run = 0.0
+            sat[ch, t + 1, 0] = 0.0
             for j in range(w):
-                dpix[ch, t, j] = 0.0
-        if i < 0 or i >= h or qi < 0 or qi >= h:
-            continue
-        for ch in range(c):
-            for j in range(j0, j1):
-                vp = var[ch, i, j]
-                vq = var[ch, qi, j + dx]
-                diff = guide[ch, i, j] - guide[ch, qi, j + dx]
-                d = (diff * diff - (vp + min(vp, vq))) / (eps + k2 * (vp + vq))
-                dpix[ch, t, j] = min(d, clamp)
-    hs = np.zeros(w, np.float32)
+                if inside and j0 <= j < j1:
+                    vp = var[ch, i, j]
+                    vq = var[ch, qi, j + dx]
+                    diff = guide[ch, i, j] - guide[ch, qi, j + dx]
+                    d = (diff * diff - (vp + min(vp, vq))) / (eps + k2 * (vp + vq))
+                    run += min(d, clamp)
+                sat[ch, t + 1, j + 1] = sat[ch, t, j + 1] + run
     for r in range(i1 - i0):
         i = i0 + r
-        # rows s of the patch with s and s + dy inside the image
+        # rows s of the patch with s and s + dy inside the image (table rows: s - (i0 - f))
         rlo = max(i - f, 0, -dy)
         rhi = min(i + f + 1, h, h - dy)
-        for ch in range(c):
-            for j in range(w):
-                hs[j] = 0.0
-            for s in range(rlo, rhi):
-                t = s - (i0 - f)
-                for j in range(w):
-                    hs[j] += dpix[ch, t, j]
-            for j in range(j0, j1):
-                clo = max(j - f, j0)
-                chi = min(j + f + 1, j1)
-                acc = np.float32(0.0)
-                for jj in range(clo, chi):
-                    acc += hs[jj]
-                out[ch, r, j] = acc / np.float32((rhi - rlo) * (chi - clo))
+        if rhi <= rlo:
+            continue
+        tlo = rlo - (i0 - f)
+        thi = rhi - (i0 - f)
+        for j in range(j0, j1):
+            clo = max(j - f, j0)
+            chi = min(j + f + 1, j1)
+            inv_n = 1.0 / ((rhi - rlo) * (chi - clo))
+            for ch in range(c):
+                tot = sat[ch, thi, chi] - sat[ch, tlo, chi] - sat[ch, thi, clo] + sat[ch, tlo, clo]
+                out[ch, r, j] = tot * inv_n
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _nlm_band(img, guide, var, r, f, k2, eps, clamp, min_centre, i0, i1, num, den):
     c, h, w = img.shape
-    dpix = np.zeros((guide.shape[0], i1 - i0 + 2 * f, w), np.float32)
+    sat = np.zeros((guide.shape[0], i1 - i0 + 2 * f + 1, w + 1))
     dist = np.zeros((guide.shape[0], i1 - i0, w), np.float32)
     for dy in range(-r, r + 1):
         for dx in range(-r, r + 1):
-            offset_distances(guide, var, dy, dx, i0, i1, f, k2, eps, clamp, dpix, dist)
+            offset_distances(guide, var, dy, dx, i0, i1, f, k2, eps, clamp, sat, dist)
             j0 = max(0, -dx)
             j1 = min(w, w - dx)
             for rr in range(i1 - i0):

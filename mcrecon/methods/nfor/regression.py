@@ -87,12 +87,12 @@ def _band(y, guide, var, feats, r, f, k2, ridge, eps, clamp, min_centre, i0, i1,
     side = 2 * r + 1
     wts = np.zeros((side * side, n_rows, w), np.float32)
     cg = guide.shape[0]
-    dpix = np.zeros((cg, n_rows + 2 * f, w), np.float32)
+    sat = np.zeros((cg, n_rows + 2 * f + 1, w + 1))
     dist = np.zeros((cg, n_rows, w), np.float32)
     for dy in range(-r, r + 1):
         for dx in range(-r, r + 1):
             o = (dy + r) * side + (dx + r)
-            offset_distances(guide, var, dy, dx, i0, i1, f, k2, eps, clamp, dpix, dist)
+            offset_distances(guide, var, dy, dx, i0, i1, f, k2, eps, clamp, sat, dist)
             j0 = max(0, -dx)
             j1 = min(w, w - dx)
             for rr in range(n_rows):
@@ -109,16 +109,21 @@ def _band(y, guide, var, feats, r, f, k2, ridge, eps, clamp, min_centre, i0, i1,
                     wts[o, rr, j] = wt
     a = np.zeros((d, d))
     bm = np.zeros((d, nc))
-    x = np.zeros(d)
+    # the window as contiguous rows (design transposed, weighted design, colours): the normal equations
+    # and the predictions are then dot products of length n over the window, which LLVM vectorises
+    # (3x faster than accumulating outer products pixel by pixel, measured at 128^2)
+    n_max = side * side
+    xt = np.zeros((d, n_max))
+    wx = np.zeros((d, n_max))
+    yt = np.zeros((nc, n_max))
+    wv = np.zeros(n_max)
+    qrow = np.zeros(n_max, np.int64)
+    qcol = np.zeros(n_max, np.int64)
     inv_r = 1.0 / max(r, 1)
     for rr in range(n_rows):
         i = i0 + rr
         for j in range(w):
-            for p in range(d):
-                for q in range(d):
-                    a[p, q] = 0.0
-                for c in range(nc):
-                    bm[p, c] = 0.0
+            n = 0
             for dy in range(-r, r + 1):
                 qi = i + dy
                 if qi < 0 or qi >= h:
@@ -130,44 +135,49 @@ def _band(y, guide, var, feats, r, f, k2, ridge, eps, clamp, min_centre, i0, i1,
                     wt = float(wts[(dy + r) * side + (dx + r), rr, j])
                     if wt == 0.0:
                         continue
-                    x[0] = 1.0
-                    x[1] = dx * inv_r
-                    x[2] = dy * inv_r
+                    wv[n] = wt
+                    qrow[n] = qi
+                    qcol[n] = qj
+                    xt[0, n] = 1.0
+                    xt[1, n] = dx * inv_r
+                    xt[2, n] = dy * inv_r
                     for m in range(nf):
-                        x[3 + m] = feats[m, qi, qj] - feats[m, i, j]
-                    for p in range(d):
-                        wx = wt * x[p]
-                        for q in range(p + 1):
-                            a[p, q] += wx * x[q]
-                        for c in range(nc):
-                            bm[p, c] += wx * y[c, qi, qj]
+                        xt[3 + m, n] = feats[m, qi, qj] - feats[m, i, j]
+                    for c in range(nc):
+                        yt[c, n] = y[c, qi, qj]
+                    n += 1
+            for p in range(d):
+                for t in range(n):
+                    wx[p, t] = wv[t] * xt[p, t]
+            for p in range(d):
+                for q in range(p + 1):
+                    acc_pq = 0.0
+                    for t in range(n):
+                        acc_pq += wx[p, t] * xt[q, t]
+                    a[p, q] = acc_pq
+                for c in range(nc):
+                    acc_pc = 0.0
+                    for t in range(n):
+                        acc_pc += wx[p, t] * yt[c, t]
+                    bm[p, c] = acc_pc
             s0 = a[0, 0]
             for p in range(1, d):
                 a[p, p] += ridge * s0
             _solve_spd(a, bm, d, nc)
-            for dy in range(-r, r + 1):
-                qi = i + dy
-                if qi < 0 or qi >= h:
-                    continue
-                t = rr + r + dy
-                for dx in range(-r, r + 1):
-                    qj = j + dx
-                    if qj < 0 or qj >= w:
-                        continue
-                    wt = float(wts[(dy + r) * side + (dx + r), rr, j])
-                    if wt == 0.0:
-                        continue
-                    x[0] = 1.0
-                    x[1] = dx * inv_r
-                    x[2] = dy * inv_r
-                    for m in range(nf):
-                        x[3 + m] = feats[m, qi, qj] - feats[m, i, j]
-                    for c in range(nc):
-                        pred = 0.0
-                        for p in range(d):
-                            pred += x[p] * bm[p, c]
-                        acc[c, t, qj] += wt * pred
-                    acc[nc, t, qj] += wt
+            for c in range(nc):
+                for t in range(n):
+                    yt[c, t] = 0.0
+                for p in range(d):
+                    beta = bm[p, c]
+                    for t in range(n):
+                        yt[c, t] += beta * xt[p, t]
+            for t in range(n):
+                row = qrow[t] - (i0 - r)
+                col = qcol[t]
+                wt = wv[t]
+                for c in range(nc):
+                    acc[c, row, col] += wt * yt[c, t]
+                acc[nc, row, col] += wt
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
