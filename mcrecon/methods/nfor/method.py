@@ -63,8 +63,11 @@ def feature_planes(a: PixelStats, b: PixelStats, stats: PixelStats) -> tuple[np.
 
 
 class NFORMethod(Method):
-    """Nonlinearly weighted first-order regression (Bitterli, Rousselle, Moon, Iglesias-Guitian, Adler,
-    Mitchell, Jarosz, Novak 2016, CGF 35(4)) on two half buffers with per-sample features.
+    """Feature-guided first-order regression on half buffers (NFOR, Bitterli et al. 2016); needs features.
+
+    Bitterli, Rousselle, Moon, Iglesias-Guitian, Adler, Mitchell, Jarosz,
+    Novak 2016, "Nonlinearly weighted first-order regression for denoising
+    Monte Carlo renderings", CGF 35(4).
 
     Needs the samples (split into two halves here) or a half-buffer pair,
     and features (albedo, normal, depth or any other); refuses sources
