@@ -241,3 +241,21 @@ def test_adaptive_runs_observe_the_halves_reuse_the_object_and_match_their_log(t
     assert other.image.shape == (9, 13, 3) and np.isfinite(other.image).all()
     with pytest.raises(InputError, match="features"):
         mcrecon.adapt(_renderer(features=False), m, spp=4, seed=1, progress=False)
+
+
+def test_sparse_pixels_and_a_firefly_stay_finite_and_unclipped():
+    """Pixels with no sample in a half (or none at all) are filled, n < 2 follows the fill-in policy;
+    a 1e6 firefly is not clipped (the image keeps energy of that order near it)."""
+    rng = np.random.default_rng(8)
+    w, h = 20, 16
+    n = w * h * 3
+    pos = rng.uniform(0, [w, h], size=(n, 2))
+    pos = pos[~((pos[:, 0] < 3) & (pos[:, 1] < 3))]  # a 3 x 3 corner without samples
+    val, feats = scene_values(pos, rng, w, h)
+    val[0] = 1e6
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        img = mcrecon.reconstruct(SampleSet(pos, val, width=w, height=h, features=feats), method="nfor", radius=4)
+    assert np.isfinite(img).all()
+    px = np.floor(pos[0]).astype(int)
+    assert img[max(px[1] - 4, 0):px[1] + 5, max(px[0] - 4, 0):px[0] + 5].max() > 1e3
