@@ -98,6 +98,9 @@ def test_collaborative_regression_matches_brute_force_fits_and_averaging():
     got, got_den = collaborative_regression(y, guide, var, feats, radius=r, patch=f, k=k, return_weights=True)
     np.testing.assert_allclose(got_den, den, rtol=2e-5)
     np.testing.assert_allclose(got, num / den[..., None], rtol=1e-4, atol=1e-6)
+    # row bands accumulate privately and are summed in a fixed order: any thread count, the same bits
+    np.testing.assert_array_equal(collaborative_regression(y, guide, var, feats, radius=r, patch=f, k=k, threads=1),
+                                  collaborative_regression(y, guide, var, feats, radius=r, patch=f, k=k, threads=2))
 
 
 # ------------------------------------------------------------------ exactness
@@ -217,6 +220,9 @@ def test_reconstruct_from_samples_equals_the_half_buffer_pair_and_refuses_withou
         mcrecon.reconstruct((h.a.without_features(), h.b.without_features()), method="nfor")
     with pytest.raises(InputError, match="bandwidths"):
         mcrecon.get_method("nfor", bandwidths="0.5,1,2")
+    # the default variant is the paper's algorithm for now (docs/methods/nfor.md)
+    paper, default = mcrecon.get_method("nfor", variant="paper").params, mcrecon.get_method("nfor").params
+    assert {k: v for k, v in paper.items() if k != "variant"} == {k: v for k, v in default.items() if k != "variant"}
 
 
 def _renderer(features=True, w=20, h=16):
