@@ -163,7 +163,7 @@ def test_dual_buffer_mse_estimate_is_unbiased_for_a_fixed_linear_filter():
     rng = np.random.default_rng(11)
     truth = np.array([1.0, 2.0, 3.0, 4.0])
     sig2 = 0.5  # variance of a half's mean: the full buffer's mean has sig2 / 2
-    n = 400_000
+    n = 200_000
     y_a = truth + rng.normal(0, np.sqrt(sig2), size=(n, 4))
     y_b = truth + rng.normal(0, np.sqrt(sig2), size=(n, 4))
     filt = lambda y: 0.6 * y + 0.4 * y.mean(axis=1, keepdims=True)  # biased, variance-reducing
