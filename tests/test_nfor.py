@@ -18,7 +18,7 @@ from mcrecon.filters.cross_bilateral import cross_bilateral
 from mcrecon.methods.auto.nlmeans import nlmeans_cross
 from mcrecon.methods.nfor.method import feature_planes
 from mcrecon.methods.nfor.nlmeans import DISTANCE_CLAMP, MIN_CENTER_WEIGHT, NLM_EPS, nlmeans_filter
-from mcrecon.methods.nfor.pipeline import cross_regression, estimate_mse, prefilter_features
+from mcrecon.methods.nfor.pipeline import cross_regression, estimate_mse, nfor_denoise, prefilter_features
 from mcrecon.methods.nfor.regression import RIDGE, collaborative_regression, standardise
 
 from nfor_scene import scene_reference, scene_samples, scene_values
@@ -209,6 +209,14 @@ def test_reconstruct_from_samples_equals_the_half_buffer_pair_and_refuses_withou
     img = rec.image
     diag = rec.diagnostics()
     assert set(diag) >= {"selection", "estimated_mse"} and 0 <= diag["selection"].min() <= diag["selection"].max() <= 1
+    # the array-level pipeline: without the second pass, the image is the mean of the halves' results
+    st = split_halves(ss, features="all")
+    whole = st.a.copy().merge(st.b)
+    fa, fb, fv = feature_planes(st.a, st.b, whole)
+    d = {}
+    one = nfor_denoise(st.a.mean, st.b.mean, mean_variance_policy(whole), fa, fb, fv, second_pass=False,
+                       diagnostics=d)
+    np.testing.assert_allclose(one, 0.5 * (d["half_results"][0] + d["half_results"][1]), rtol=1e-15)
     h = split_halves(ss, features="all")
     pair = mcrecon.reconstruct((h.a, h.b), method="nfor", radius=9)
     np.testing.assert_array_equal(img, pair)

@@ -107,7 +107,11 @@ def nfor_denoise(y_a, y_b, variance, feat_a, feat_b, feat_variance, *, feature_r
         image is the average of the two halves' results.
     diagnostics : dict, optional
         Receives ``selection`` (H, W): the filtered selection map averaged
-        over channels (0: the first bandwidth), and ``estimated_mse`` (H, W).
+        over channels (0: the first bandwidth), ``estimated_mse`` (H, W)
+        of the selection's best candidate, and ``half_results``: the two
+        halves' first-pass results ``(r_A, r_B)`` (H, W, C) before the
+        second pass (with ``second_pass=False`` the image is their mean:
+        a caller can cross-validate them against the other half).
     (the other parameters: see :data:`PAPER` and the module's stages)
 
     Returns
@@ -161,4 +165,5 @@ def nfor_denoise(y_a, y_b, variance, feat_a, feat_b, feat_variance, *, feature_r
     if diagnostics is not None:
         diagnostics["selection"] = sel.mean(axis=2)
         diagnostics["estimated_mse"] = mse_best.mean(axis=2)
+        diagnostics["half_results"] = (r_a, r_b)
     return res
