@@ -116,6 +116,8 @@ def test_every_method_takes_the_split_through_reconstruct():
     samples = mcrecon.SampleSet(pos, val, width=size, height=size)
     box = mcrecon.reconstruct(samples)
     for name in available_methods():
+        if mcrecon.get_method(name).requires.features == "required":
+            continue  # these samples have no features
         rec = mcrecon.reconstruct(samples, method=name, fireflies="cascade", full=True)
         assert rec.image.shape == (size, size, 3) and np.isfinite(rec.image).all(), name
         assert rec.fireflies is not None and rec.fireflies.moved_fraction > 0, name

@@ -27,6 +27,7 @@ METHODS = {
     "splat": "mcrecon.methods.splat.method:SplatMethod",
     "ci": "mcrecon.methods.ci.method:CIMethod",
     "auto": "mcrecon.methods.auto:AutoMethod",
+    "nfor": "mcrecon.methods.nfor:NFORMethod",
 }
 
 

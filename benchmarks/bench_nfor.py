@@ -1,0 +1,90 @@
+"""nfor against box, the cross-bilateral filter, colour-only NL-means and OIDN (+albedo +normal).
+
+On the synthetic textured scene of ``tests/nfor_scene.py`` (checkerboard
+albedo x smooth shading, exponential per-sample noise, a defocused band
+whose features are noisy), relMSE (mcrecon.core.metrics, eps 0.01) of each
+method for 3 seeds, and nfor's reconstruction time (CPU time of the
+process, and wall time) at 128^2 and 512^2, warm (after a first run).
+
+    python benchmarks/bench_nfor.py [--size 128] [--spp 32] [--big 512] [--big-spp 16]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT), str(ROOT / "tests")]  # this checkout's mcrecon, and the test scene
+
+import mcrecon  # noqa: E402
+from mcrecon.core.fill import mean_variance_policy  # noqa: E402
+from mcrecon.core.halves import split_halves  # noqa: E402
+from mcrecon.core.metrics import relative_mse  # noqa: E402
+from mcrecon.filters.cross_bilateral import cross_bilateral  # noqa: E402
+from mcrecon.methods.auto.nlmeans import nlmeans_cross  # noqa: E402
+from mcrecon.methods.nfor.method import feature_planes  # noqa: E402
+from nfor_scene import scene_reference, scene_samples  # noqa: E402
+
+
+def _oidn(colour, albedo, normal):
+    try:
+        import pyoidn
+    except ImportError:
+        return None
+    f = lambda a: np.ascontiguousarray(a, dtype=np.float32)  # noqa: E731
+    return np.asarray(pyoidn.denoise(f(colour), f(np.clip(albedo, 0, 1)), f(normal), hdr=True, quality="high"),
+                      dtype=np.float64)
+
+
+def candidates(ss):
+    h = split_halves(ss, features="all")
+    st = h.a.copy().merge(h.b)
+    var = mean_variance_policy(st)
+    fa, fb, fv = feature_planes(h.a, h.b, st)
+    feat = 0.5 * (fa + fb)
+    na, _, nb, _ = nlmeans_cross(h.a.mean, mean_variance_policy(h.a), h.a.count, h.b.mean,
+                                 mean_variance_policy(h.b), h.b.count, radius=7, patch=3)
+    out = {"box": st.mean, "cross_bilateral": cross_bilateral(st.mean, var, feat, fv), "nlm_colour": 0.5 * (na + nb),
+           "oidn_albedo_normal": _oidn(st.mean, st.features["albedo"].mean, st.features["normal"].mean)}
+    t0, w0 = time.process_time(), time.perf_counter()
+    out["nfor"] = mcrecon.reconstruct(ss, method="nfor")
+    return out, time.process_time() - t0, time.perf_counter() - w0
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--size", type=int, default=128)
+    ap.add_argument("--spp", type=int, default=32)
+    ap.add_argument("--big", type=int, default=512)
+    ap.add_argument("--big-spp", type=int, default=16)
+    a = ap.parse_args(argv)
+    sq = max(a.size // 8, 2)
+    ref = scene_reference(a.size, a.size, square=sq)
+    mcrecon.reconstruct(scene_samples(32, 32, 4, seed=9, square=4), method="nfor")  # compile / load the cache
+    rows = []
+    for seed in (0, 1, 2):
+        out, cpu, wall = candidates(scene_samples(a.size, a.size, a.spp, seed=seed, square=sq))
+        e = {k: (relative_mse(v, ref) if v is not None else np.nan) for k, v in out.items()}
+        rows.append(e)
+        print(f"seed {seed}: " + "  ".join(f"{k} {v:.5f}" for k, v in e.items())
+              + f"   nfor {a.size}^2 x {a.spp} spp: cpu {cpu:.2f} s wall {wall:.2f} s", flush=True)
+    names = list(rows[0])
+    print(f"\nrelMSE / box, {a.size}^2, {a.spp} spp, mean over 3 seeds (min-max):")
+    for k in names:
+        r = np.array([row[k] / row["box"] for row in rows])
+        print(f"  {k:20s} {r.mean():.4f} ({r.min():.4f}-{r.max():.4f})")
+    if a.big:
+        ss = scene_samples(a.big, a.big, a.big_spp, seed=0, square=max(a.big // 8, 2))
+        t0, w0 = time.process_time(), time.perf_counter()
+        mcrecon.reconstruct(ss, method="nfor")
+        print(f"\nnfor {a.big}^2 x {a.big_spp} spp: cpu {time.process_time() - t0:.1f} s, "
+              f"wall {time.perf_counter() - w0:.1f} s")
+
+
+if __name__ == "__main__":
+    main()

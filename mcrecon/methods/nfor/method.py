@@ -1,0 +1,159 @@
+"""``nfor``: the registered method (Bitterli et al. 2016) on half buffers with per-sample features."""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import numpy as np
+
+from ...core.fill import fill_empty_pixels, mean_variance_policy
+from ...core.halves import Halves, split_halves
+from ...core.requests import SampleBatch
+from ...core.stats import PixelStats
+from ...errors import InputError, McreconWarning
+from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, variant_option
+from .pipeline import PAPER, nfor_denoise
+from .regression import RIDGE
+
+__all__ = ["NFORMethod", "NFORRun", "feature_planes"]
+
+_WHERE = "method nfor"
+
+
+@dataclasses.dataclass(eq=False)
+class NFORRun(RunState):
+    """Per-run state: the two halves of the committed samples with their features (built by ``observe``)."""
+
+    halves: Halves | None = None
+
+
+def _parse_bandwidths(text: str) -> tuple[float, ...]:
+    try:
+        ks = tuple(float(t) for t in str(text).split(",") if t.strip())
+    except ValueError:
+        ks = ()
+    if len(ks) not in (1, 2) or not all(np.isfinite(k) and k > 0 for k in ks):
+        raise InputError(_WHERE, "bandwidths", f"{text!r}, expected one or two positive numbers separated by a "
+                         "comma (the paper: 0.5,1.0)")
+    return ks
+
+
+def feature_planes(a: PixelStats, b: PixelStats, stats: PixelStats) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every feature component of the halves as (H, W, D) means, and the variance of the full mean.
+
+    Pixels without a sample in a half take their nearest sampled
+    neighbour's value there (:func:`mcrecon.core.fill.fill_empty_pixels`);
+    the variance follows the one fill-in policy for pixels with fewer
+    than two samples (:func:`mcrecon.core.fill.mean_variance_policy`).
+    """
+    fa, fb, fv = [], [], []
+    for name in a.feature_names:
+        ha, hb = a.features[name], b.features[name]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", McreconWarning)  # the colour's fill warns once for the pixel
+            fa.append(fill_empty_pixels(ha.mean.copy(), ha.count, source=_WHERE))
+            fb.append(fill_empty_pixels(hb.mean.copy(), hb.count, source=_WHERE))
+        fv.append(mean_variance_policy(stats.features[name]))
+    h, w = a.count.shape
+    if not fa:
+        z = np.zeros((h, w, 0))
+        return z, z, z
+    return np.concatenate(fa, axis=2), np.concatenate(fb, axis=2), np.concatenate(fv, axis=2)
+
+
+class NFORMethod(Method):
+    """Feature-guided first-order regression on half buffers (NFOR, Bitterli et al. 2016); needs features.
+
+    Bitterli, Rousselle, Moon, Iglesias-Guitian, Adler, Mitchell, Jarosz,
+    Novak 2016, "Nonlinearly weighted first-order regression for denoising
+    Monte Carlo renderings", CGF 35(4).
+
+    Needs the samples (split into two halves here) or a half-buffer pair,
+    and features (albedo, normal, depth or any other); refuses sources
+    without features.  Uniform sampling in doubling rounds when run
+    adaptively.  ``variant='robust'`` (the default) equals ``'paper'`` for
+    now: no departure has been measured to pay (docs/methods/nfor.md).
+    """
+
+    name = "nfor"
+    variants = {"robust": {}, "paper": {}}
+    options = (
+        variant_option(variants),
+        Option("bandwidths", str, "0.5,1.0", "NL-means bandwidths k of the regression's candidates (one or two, "
+               "comma separated; the paper: 0.5,1.0)"),
+        Option("radius", int, PAPER["radius"], "regression window radius (the window is (2r+1)^2; paper: 9)",
+               min=1, max=30),
+        Option("patch", int, PAPER["patch"], "NL-means patch radius of the regression weights (paper: 3)",
+               min=0, max=10),
+        Option("feature_radius", int, PAPER["feature_radius"], "search radius of the feature prefilter (paper: 5)",
+               min=0, max=30),
+        Option("feature_patch", int, PAPER["feature_patch"], "patch radius of the feature prefilter (paper: 3)",
+               min=0, max=10),
+        Option("feature_k", float, PAPER["feature_k"], "bandwidth of the feature prefilter (paper: 0.5)",
+               min=0.0, min_open=True),
+        Option("second_pass", bool, PAPER["second_pass"], "Sec. 5.4's second regression of the averaged halves"),
+        Option("ridge", float, RIDGE, "ridge on the regression's non-constant columns (standardised features), "
+               "times the window's total weight: makes flat or collinear features solvable", min=0.0, max=1.0),
+        Option("threads", int, None, "worker threads (default: $MCRECON_THREADS, else the usable cores)", min=1),
+    )
+    requires = Requirements(samples=True, half_buffers=True, features="required")
+    run_type = NFORRun
+    initial_spp = 4  # two samples in each half: a pixel's half needs one, its variance two in all
+    pipeline = True  # uniform rounds: the plan reads only the sample count
+
+    def _configure(self, params: dict) -> None:
+        object.__setattr__(self, "_bandwidths", _parse_bandwidths(params["bandwidths"]))
+
+    # ---------------------------------------------------------------- runs
+    def observe(self, run: NFORRun, batch: SampleBatch, round_index: int) -> None:
+        """Split each committed round, features with it, into the two halves (replayed in order on resume)."""
+        if run.halves is None:
+            if not batch.features:  # refuse on the first round, not after the whole budget is rendered
+                raise InputError(_WHERE, "features", "nfor needs per-sample features (albedo, normal, depth) and the "
+                                 "renderer's replies have none; render them with the samples "
+                                 "(SampleBatch.features), or pick another method")
+            layout = {n: 1 if np.ndim(f) == 1 else int(np.shape(f)[1]) for n, f in (batch.features or {}).items()}
+            run.halves = Halves.empty(run.width, run.height, run.channels, features=layout)
+        run.halves.add(batch.positions, batch.values, features=batch.features or None, nonfinite="drop",
+                       source=_WHERE)
+
+    def finish(self, run: NFORRun, state: AdaptiveState) -> np.ndarray:
+        return self.reconstruct_run(run, state.inputs())
+
+    def _pair(self, run: NFORRun, inputs: MethodInputs):
+        if inputs.halves is not None:
+            return inputs.halves[0], inputs.halves[1]
+        if inputs.samples is not None:
+            split = split_halves(inputs.samples, nonfinite=inputs.nonfinite, features="all")
+            return split.a, split.b
+        if run.halves is not None:
+            return run.halves.a, run.halves.b
+        raise InputError(_WHERE, "input", "nfor needs the samples or two independent half buffers with features; "
+                         "give it a sample log, a SampleSet(features=...) or a half-buffer pair")
+
+    def reconstruct_run(self, run: NFORRun, inputs: MethodInputs) -> np.ndarray:
+        """The NFOR image (H, W, C) float64 (:func:`mcrecon.methods.nfor.pipeline.nfor_denoise`)."""
+        a, b = self._pair(run, inputs)
+        if not a.feature_names:
+            raise InputError(_WHERE, "features", "nfor needs per-sample features (albedo, normal, depth) and the "
+                             "samples have none; render them with the samples (SampleBatch.features, "
+                             "/features/NAME in a log), or pick another method")
+        stats = a.copy().merge(b)
+        if (stats.count == 0).all():
+            raise InputError(_WHERE, "input", "no pixel has a sample: there is nothing to reconstruct")
+        ya = fill_empty_pixels(a.mean.copy(), a.count, source=_WHERE)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", McreconWarning)  # one warning for the empty pixels is enough
+            yb = fill_empty_pixels(b.mean.copy(), b.count, source=_WHERE)
+        var = mean_variance_policy(stats)
+        fa, fb, fv = feature_planes(a, b, stats)
+        p = self.params
+        diag: dict = {}
+        img = nfor_denoise(ya, yb, var, fa, fb, fv, bandwidths=self._bandwidths, radius=p["radius"],
+                           patch=p["patch"], feature_radius=p["feature_radius"], feature_patch=p["feature_patch"],
+                           feature_k=p["feature_k"], second_pass=p["second_pass"], ridge=p["ridge"],
+                           threads=p["threads"], diagnostics=diag)
+        run.diagnostics = {"selection": diag["selection"], "estimated_mse": np.maximum(diag["estimated_mse"], 0.0),
+                           "sample_density": stats.count.astype(np.float64)}
+        return np.asarray(img, dtype=np.float64)

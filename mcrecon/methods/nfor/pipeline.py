@@ -1,0 +1,169 @@
+"""The NFOR pipeline on arrays (Bitterli et al. 2016, Sec. 5), stage by stage.
+
+1. **Feature prefiltering** (Sec. 5.1): each feature channel of half A is
+   NL-means filtered with weights from the same channel of half B and vice
+   versa (patch 3, window 5, k = 0.5, variance x 2: the halves').
+2. **Regression** (Sec. 5.2): for each bandwidth k (0.5, 1.0), half A's
+   colour is regressed on half B's prefiltered features with NL-means
+   weights from half B's colour (and B on A's): the cross-buffer weights
+   and features carry none of the noise of the colour they filter
+   (:func:`.regression.collaborative_regression`, window 9, patch 3).
+3. **MSE estimate and selection** (Sec. 5.3): with the halves independent,
+   ``E[(y_B - F_A)^2] = MSE(F_A) + Var(y_B)``, so the MSE of the average of
+   the two filtered halves is estimated per channel by
+   ``((y_B - F_A)^2 - 2V + (y_A - F_B)^2 - 2V) / 2 - (F_A - F_B)^2 / 4``
+   (V: the variance of the full buffer's mean, 2V a half's), NL-means
+   filtered (patch 1, window 9, k = 1, guided by the full buffer); the
+   binary map "k = 1.0 has the lower estimate" is filtered the same way and
+   blends the two candidates of each half.
+4. **Second pass** (Sec. 5.4): the halves' results are averaged, their
+   squared half difference / 4 the variance of that average; the features
+   averaged likewise and NL-means filtered once more (patch 3, window 2,
+   k = 0.5); one last collaborative regression (k = 1) of the average,
+   guided by itself, gives the image.
+
+The parameters are those of the reference implementation (Tungsten's
+``src/denoiser/denoiser.cpp``); the paper text could not be consulted here
+(docs/methods/nfor.md).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .nlmeans import nlmeans_filter
+from .regression import RIDGE, collaborative_regression
+
+__all__ = ["nfor_denoise", "prefilter_features", "cross_regression", "estimate_mse", "PAPER"]
+
+#: The reference implementation's parameters.
+PAPER = dict(feature_radius=5, feature_patch=3, feature_k=0.5, radius=9, patch=3, bandwidths=(0.5, 1.0),
+             mse_radius=9, mse_patch=1, mse_k=1.0, final_feature_radius=2, final_feature_patch=3,
+             final_feature_k=0.5, final_k=1.0, second_pass=True)
+
+
+def estimate_mse(y_a, y_b, f_a, f_b, variance) -> np.ndarray:
+    """Dual-buffer estimate of the MSE of ``(f_a + f_b) / 2`` (unfiltered; may be negative).
+
+    ``f_a`` filters half A with weights and features from half B only
+    (and vice versa), so y_B is independent of f_A: ``E[(y_B - f_A)^2] =
+    MSE(f_A) + 2 variance`` (``variance``: of the full buffer's mean).
+    The MSE of the average is the average MSE minus the spread of the two
+    around it, ``(f_A - f_B)^2 / 4``.
+    """
+    mse_a = (y_b - f_a) ** 2 - 2.0 * variance
+    mse_b = (y_a - f_b) ** 2 - 2.0 * variance
+    return 0.5 * (mse_a + mse_b) - 0.25 * (f_b - f_a) ** 2
+
+
+def prefilter_features(feat_a, feat_b, feat_variance, *, radius=5, patch=3, k=0.5, threads=None):
+    """Sec. 5.1: each half's features NL-means filtered with the *other* half's weights (per channel).
+
+    ``feat_variance`` is the variance of the full buffer's feature mean
+    (doubled here for a half).  Returns ``(pf_a, pf_b)``, (H, W, D) each.
+    """
+    if not np.shape(feat_a)[2]:
+        return feat_a, feat_b
+    pf_a = nlmeans_filter(feat_a, feat_b, feat_variance, radius=radius, patch=patch, k=k, variance_scale=2.0,
+                          threads=threads)
+    pf_b = nlmeans_filter(feat_b, feat_a, feat_variance, radius=radius, patch=patch, k=k, variance_scale=2.0,
+                          threads=threads)
+    return pf_a, pf_b
+
+
+def cross_regression(y_a, y_b, variance, pf_a, pf_b, *, radius=9, patch=3, k=1.0, ridge=RIDGE, threads=None):
+    """Sec. 5.2 for one bandwidth: half A regressed on half B's features with weights from B's colour, and
+    B on A's.  ``F_A`` is then a linear function of ``y_A`` whose weights and design carry none of ``y_A``'s
+    noise (nor of A's features), which the MSE estimate (:func:`estimate_mse`) relies on.
+    Returns ``(F_A, F_B)``."""
+    c_a = collaborative_regression(y_a, y_b, variance, pf_b, radius=radius, patch=patch, k=k, variance_scale=2.0,
+                                   ridge=ridge, threads=threads)
+    c_b = collaborative_regression(y_b, y_a, variance, pf_a, radius=radius, patch=patch, k=k, variance_scale=2.0,
+                                   ridge=ridge, threads=threads)
+    return c_a, c_b
+
+
+def nfor_denoise(y_a, y_b, variance, feat_a, feat_b, feat_variance, *, feature_radius=5, feature_patch=3,
+                 feature_k=0.5, radius=9, patch=3, bandwidths=(0.5, 1.0), mse_radius=9, mse_patch=1, mse_k=1.0,
+                 final_feature_radius=2, final_feature_patch=3, final_feature_k=0.5, final_k=1.0,
+                 second_pass=True, ridge=RIDGE, threads=None, diagnostics=None) -> np.ndarray:
+    """NFOR on two half buffers with per-pixel features.
+
+    Parameters
+    ----------
+    y_a, y_b : ndarray (H, W, C)
+        The halves' pixel means (independent halves of the samples).
+    variance : ndarray (H, W, C)
+        Variance of the mean of *all* the samples (a half's mean has twice it).
+    feat_a, feat_b : ndarray (H, W, D)
+        The halves' feature means, one channel per feature component.
+    feat_variance : ndarray (H, W, D)
+        Variance of the features' mean of all the samples.
+    bandwidths : sequence of one or two floats
+        The candidates' NL-means bandwidths k of the regression; with two,
+        the filtered selection map blends them (the paper: 0.5 and 1.0).
+    second_pass : bool
+        Sec. 5.4's second regression of the averaged result; without it the
+        image is the average of the two halves' results.
+    diagnostics : dict, optional
+        Receives ``selection`` (H, W): the filtered selection map averaged
+        over channels (0: the first bandwidth), ``estimated_mse`` (H, W)
+        of the selection's best candidate, and ``half_results``: the two
+        halves' first-pass results ``(r_A, r_B)`` (H, W, C) before the
+        second pass (with ``second_pass=False`` the image is their mean:
+        a caller can cross-validate them against the other half).
+    (the other parameters: see :data:`PAPER` and the module's stages)
+
+    Returns
+    -------
+    ndarray (H, W, C) float64
+    """
+    y_a = np.asarray(y_a, dtype=np.float64)
+    y_b = np.asarray(y_b, dtype=np.float64)
+    var = np.asarray(variance, dtype=np.float64)
+    fa = np.asarray(feat_a, dtype=np.float64)
+    fb = np.asarray(feat_b, dtype=np.float64)
+    fv = np.asarray(feat_variance, dtype=np.float64)
+    if len(bandwidths) not in (1, 2):
+        raise ValueError(f"nfor_denoise: bandwidths {bandwidths!r}: one or two values")
+    y = 0.5 * (y_a + y_b)
+    # 1. feature prefiltering, cross-buffer (A's features with B's weights)
+    pf_a, pf_b = prefilter_features(fa, fb, fv, radius=feature_radius, patch=feature_patch, k=feature_k,
+                                    threads=threads)
+    # 2. regression per bandwidth, cross-buffer (A's colour: B's weights and B's features)
+    cands = []
+    for k in bandwidths:
+        c_a, c_b = cross_regression(y_a, y_b, var, pf_a, pf_b, radius=radius, patch=patch, k=k, ridge=ridge,
+                                    threads=threads)
+        mse = nlmeans_filter(estimate_mse(y_a, y_b, c_a, c_b, var), y, var, radius=mse_radius, patch=mse_patch,
+                             k=mse_k, threads=threads)
+        cands.append((c_a, c_b, mse))
+    # 3. selection, per channel: the binary map "the second bandwidth's estimate is not larger", filtered
+    if len(cands) == 1:
+        r_a, r_b, mse_best = cands[0]
+        sel = np.zeros_like(y)
+    else:
+        (a0, b0, m0), (a1, b1, m1) = cands
+        sel = nlmeans_filter((m0 >= m1).astype(np.float64), y, var, radius=mse_radius, patch=mse_patch, k=mse_k,
+                             threads=threads)
+        r_a = a0 + sel * (a1 - a0)
+        r_b = b0 + sel * (b1 - b0)
+        mse_best = np.minimum(m0, m1)
+    # 4. second pass on the averages
+    res = 0.5 * (r_a + r_b)
+    if second_pass:
+        res_var = 0.25 * (r_b - r_a) ** 2
+        if fa.shape[2]:
+            feat = 0.5 * (pf_a + pf_b)
+            feat_var = 0.25 * (pf_b - pf_a) ** 2
+            feat = nlmeans_filter(feat, feat, feat_var, radius=final_feature_radius, patch=final_feature_patch,
+                                  k=final_feature_k, threads=threads)
+        else:
+            feat = fa
+        res = collaborative_regression(res, res, res_var, feat, radius=radius, patch=patch, k=final_k,
+                                       variance_scale=2.0, ridge=ridge, threads=threads)
+    if diagnostics is not None:
+        diagnostics["selection"] = sel.mean(axis=2)
+        diagnostics["estimated_mse"] = mse_best.mean(axis=2)
+        diagnostics["half_results"] = (r_a, r_b)
+    return res
