@@ -416,7 +416,7 @@ def splat(source, /, *, variant="robust", alpha=0.5, c=2.0, c_prime=8.0, initial
 @_given_options
 def auto(source, /, *, candidates="box,gauss,nlm", scales=8, smooth=2.0, nlm_radius=3, nlm_patch=1,
          nlm_k=0.45, initial_spp=4, iterations=4, sampling="gem", uniform_share=0.5, safeguard=4.0,
-         global_prior=None, nonfinite="drop", **unknown) -> np.ndarray:
+         global_prior=3.0, nonfinite="drop", **unknown) -> np.ndarray:
     """Per-pixel choice among reconstructions by their estimated (reference-free) error.
 
     Parameters
@@ -457,8 +457,8 @@ def auto(source, /, *, candidates="box,gauss,nlm", scales=8, smooth=2.0, nlm_rad
         it (k; None: no clamp); a finite number >= 0 or None (default 4.0).
     global_prior : float or None, optional
         Z: every pixel takes the candidate of least summed estimate over the image unless another's smoothed
-        estimate is lower by more than z standard errors (None: off; measured trade-off in
-        docs/methods/auto.md); a finite number >= 0 or None (default None).
+        estimate is lower by more than z standard errors (None: off, the plain per-pixel choice;
+        docs/methods/auto.md); a finite number >= 0 or None (default 3.0).
     nonfinite : {'drop', 'zero', 'raise'}, optional
         Policy for NaN/Inf sample values of a SampleSet (default 'drop').
 
