@@ -249,7 +249,8 @@ def _digests(name, tmp_path, **kw):
     log = read_log(S.write_scene_log(name, tmp_path / f"{name}.h5", width=12, height=10, spp=2, seed=1,
                                      quadrature=4, **kw))
     d = log.read_all()
-    ld = _dig(d.positions, d.values, log.reference()) + json.dumps(log.metadata, sort_keys=True) + str(log.feature_names)
+    ld = (_dig(d.positions, d.values, log.reference()) + json.dumps(log.metadata, sort_keys=True)
+          + str(log.feature_names))
     return [_dig(b.positions, b.values), _dig(rb.positions, rb.values), _dig(ref),
             hashlib.sha256(ld.encode()).hexdigest()[:16]], b, rb
 

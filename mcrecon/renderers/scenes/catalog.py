@@ -10,8 +10,8 @@ import numpy as np
 from ...errors import InputError
 from .base import _as_xy
 # the constants are re-exported: tests and users read them as catalog attributes
-from .kernels import (_CA_CX, _CA_CY, _CA_P, _CA_TABLE_TOP, _DOF_RMAX, _HD_CX, _HD_CY, _HD_R, _MB_BACKGROUND,  # noqa: F401
-                      _MB_OBJECTS, _SS_A0, _SS_A1, _SS_AMBIENT, _SS_LIGHT, _SS_OCCLUDERS, _expected_loop,
+from .kernels import (_CA_CX, _CA_CY, _CA_P, _CA_TABLE_TOP, _DOF_RMAX, _HD_CX, _HD_CY, _HD_R,  # noqa: F401
+                      _MB_BACKGROUND, _MB_OBJECTS, _SS_A0, _SS_A1, _SS_AMBIENT, _SS_LIGHT, _SS_OCCLUDERS, _expected_loop,
                       _feature_expected_loop, _feature_reference_loop, _features_loop, _mb_swept_boxes,
                       _radiance_loop, _reference_loop)
 from .textured import _CD_APERTURE, _CD_FOCUS, _CD_PLANES, _CW_OCC
