@@ -1,6 +1,6 @@
 """What per-sample features are worth on the textured built-in scenes: relMSE of each method over the pixel mean's.
 
-Run:  python benchmarks/bench_features.py [--size 128] [--spp 32] [--seeds 3] [--scenes checker_wall,checker_dof]
+Run:  python benchmarks/bench_features.py [--size 128] [--spp 32] [--seeds 3] [--scenes checker_wall,checker_spot,checker_dof]
                                           [--methods gem,awr,splat,auto]
 
 For each textured scene (exact colour reference, per-sample albedo, normal
@@ -78,7 +78,7 @@ def main():
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--spp", type=int, default=32)
     ap.add_argument("--seeds", type=int, default=3)
-    ap.add_argument("--scenes", default="checker_wall,checker_dof")
+    ap.add_argument("--scenes", default="checker_wall,checker_spot,checker_dof")
     ap.add_argument("--methods", default="gem,awr,splat,auto")
     a = ap.parse_args()
     scenes = [s for s in a.scenes.split(",") if s]

@@ -34,7 +34,7 @@ from mcrecon.renderers.scenes import textured as S_tex
 pytestmark = pytest.mark.filterwarnings("error")
 
 OLD = ["soft_shadow", "depth_of_field", "motion_blur", "caustic", "hdr", "flat"]
-TEXTURED = ["checker_wall", "checker_dof"]
+TEXTURED = ["checker_wall", "checker_spot", "checker_dof"]
 ALL = OLD + TEXTURED
 LAYOUT = {"albedo": 3, "normal": 3, "depth": 1}
 # as in test_scenes: ~4000 comparisons per test, a Gaussian |z| > 5.5 has probability ~1e-4 overall
@@ -163,6 +163,30 @@ def test_textured_colour_is_albedo_times_shading():
     vis = shade / S_tex._CW_LIGHT
     assert np.all((np.abs(vis) < 1e-12) | (np.abs(vis - 1.0) < 1e-12))
     assert 0.05 < np.mean(vis < 0.5) < 0.5, "the occluder must shadow part of the wall"
+
+
+def test_checker_spot_small_light_is_rare_and_huge():
+    """checker_spot: colour / albedo - sky is 0 or l f V / p sample by sample, the light found with
+    probability p (binomial: 5 standard deviations), and its texture (features) is checker_wall's."""
+    rng = np.random.default_rng(8)
+    n = 40000
+    x, y = rng.random(n), rng.random(n)
+    u = rng.random((n, 4))
+    sc = S.get_scene("checker_spot")
+    col, f = sc.radiance(x, y, u), sc.features(x, y, u)
+    light = col / f["albedo"] - S_tex._CS_SKY * 2.0 * u[:, 3:4]
+    fall = 1.0 / (1.0 + ((x - S_tex._CS_CX) ** 2 + (y - S_tex._CS_CY) ** 2) / S_tex._CS_S2)
+    on = light[:, 0] > 1e-9
+    np.testing.assert_allclose(light[on], S_tex._CS_LIGHT * fall[on, None] / S_tex._CS_P, rtol=1e-12)
+    assert np.all(np.abs(light[~on]) < 1e-12)
+    assert np.all(u[on, 0] < S_tex._CS_P)          # only light-finding samples carry the light
+    p = S_tex._CS_P
+    hit = np.mean(u[:, 0] < p)
+    assert abs(np.mean(on) - hit) <= hit and abs(hit - p) < 5 * np.sqrt(p * (1 - p) / n)
+    assert col.max() > 10 * sc.expected(x, y).mean(), "rare samples must be much larger than the mean"
+    for k in LAYOUT:
+        np.testing.assert_array_equal(S.feature_reference("checker_spot", 32, 32)[k],
+                                      S.feature_reference("checker_wall", 32, 32)[k])
 
 
 def test_checker_wall_texture_is_sharp_in_the_reference():

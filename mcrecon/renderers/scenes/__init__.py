@@ -29,6 +29,9 @@ The scenes stress exactly what the adaptive-sampling papers are about:
 ``checker_wall``
     a checkerboard wall (16 px and 4 px squares at 128 px) under a soft
     shadow and a noisy sky: noise-free albedo explains the texture;
+``checker_spot``
+    the same wall under a small light found by 1 sample in 20 (high
+    variance, fireflies over sharp texture);
 ``checker_dof``
     checkered cards at three depths through a thin lens: colour *and*
     features are blurred and noisy off focus.
@@ -65,12 +68,12 @@ import numpy as np
 from ...errors import InputError
 from ...core.samples import check_memory
 from ...core.requests import SampleBatch, SampleRequest, jittered_positions
-from .catalog import (FEATURE_LAYOUT, SCENES, CausticScene, CheckerDofScene, CheckerWallScene, DepthOfFieldScene,
-                      FlatScene, HDRScene, MotionBlurScene, Scene, SoftShadowScene, split_features)
+from .catalog import (FEATURE_LAYOUT, SCENES, CausticScene, CheckerDofScene, CheckerSpotScene, CheckerWallScene,
+                      DepthOfFieldScene, FlatScene, HDRScene, MotionBlurScene, Scene, SoftShadowScene, split_features)
 
 __all__ = ["SCENES", "FEATURE_LAYOUT", "Scene", "SoftShadowScene", "DepthOfFieldScene", "MotionBlurScene",
-           "CausticScene", "HDRScene", "FlatScene", "CheckerWallScene", "CheckerDofScene", "scene_names",
-           "get_scene", "reference_image", "feature_reference", "SceneRenderer", "render_uniform",
+           "CausticScene", "HDRScene", "FlatScene", "CheckerWallScene", "CheckerSpotScene", "CheckerDofScene",
+           "scene_names", "get_scene", "reference_image", "feature_reference", "SceneRenderer", "render_uniform",
            "write_scene_log"]
 
 

@@ -11,13 +11,13 @@ from ...errors import InputError
 from .base import _as_xy
 # the constants are re-exported: tests and users read them as catalog attributes
 from .kernels import (_CA_CX, _CA_CY, _CA_P, _CA_TABLE_TOP, _DOF_RMAX, _HD_CX, _HD_CY, _HD_R,  # noqa: F401
-                      _MB_BACKGROUND, _MB_OBJECTS, _SS_A0, _SS_A1, _SS_AMBIENT, _SS_LIGHT, _SS_OCCLUDERS, _expected_loop,
-                      _feature_expected_loop, _feature_reference_loop, _features_loop, _mb_swept_boxes,
-                      _radiance_loop, _reference_loop)
-from .textured import _CD_APERTURE, _CD_FOCUS, _CD_PLANES, _CW_OCC
+                      _MB_BACKGROUND, _MB_OBJECTS, _SS_A0, _SS_A1, _SS_AMBIENT, _SS_LIGHT, _SS_OCCLUDERS,
+                      _expected_loop, _feature_expected_loop, _feature_reference_loop, _features_loop,
+                      _mb_swept_boxes, _radiance_loop, _reference_loop)
+from .textured import _CD_APERTURE, _CD_FOCUS, _CD_PLANES, _CS_OCC, _CS_P, _CW_OCC
 
 __all__ = ['SCENES', 'FEATURE_LAYOUT', 'Scene', 'SoftShadowScene', 'DepthOfFieldScene', 'MotionBlurScene',
-           'CausticScene', 'HDRScene', 'FlatScene', 'CheckerWallScene', 'CheckerDofScene']
+           'CausticScene', 'HDRScene', 'FlatScene', 'CheckerWallScene', 'CheckerSpotScene', 'CheckerDofScene']
 
 #: The built-in scenes' per-sample features of the primary hit, in the order of the kernels' 7-float
 #: feature vector: name -> components (mcrecon.core.features.CANONICAL_FEATURES).
@@ -426,6 +426,39 @@ class CheckerWallScene(Scene):
         return 0.02 + 0.10 * np.asarray(x, dtype=np.float64)
 
 
+class CheckerSpotScene(Scene):
+    r"""checker_wall's textured wall lit by a small light that a sample finds rarely: high variance.
+
+    .. math::
+
+        L_c(x, y, u) = a_c(x, y)\,\Bigl(2 k u_4 + \ell_c\, f(x, y)\,
+                       \frac{[u_1 < p]}{p}\, V(x, y, u_2, u_3)\Bigr),\qquad p = 0.05
+
+    The albedo ``a`` is :class:`CheckerWallScene`'s (same features); the sky
+    ``k = 0.04``; the small light ``l = (0.95, 0.85, 0.65)`` with the smooth
+    spot falloff ``f = 1 / (1 + ((x - 0.68)^2 + (y - 0.30)^2) / 0.09)`` is
+    reached by one sample in 20, worth ``1/p = 20`` times its share (values
+    up to ~18 beside a mean below 1); its shadow has core ``[0.30, 0.56] x
+    [0.46, 0.82]`` and a narrow penumbra ``0.004 + 0.012 x`` (0.5 to 2 px at
+    128 px).  ``u1`` being independent of the light position,
+
+    .. math::
+
+        E_u[L_c] = a_c\,\bigl(k + \ell_c f (1 - P^x P^y)\bigr).
+
+    ``n_dims = 4``.
+    """
+
+    name = "checker_spot"
+    description = "checker_wall's texture under a small light found 1 sample in 20: high variance (4 dims)"
+    n_dims = 4
+    feature_names = tuple(FEATURE_LAYOUT)
+    features_default = True
+    p = _CS_P
+    occluder = _CS_OCC
+    _kernel = 8
+
+
 class CheckerDofScene(Scene):
     r"""Three checkerboard-textured planes at different depths through a thin lens (depth of field).
 
@@ -503,4 +536,5 @@ _FLAT_FEATURES = np.array([0.5, 0.5, 0.5, 0.0, 0.0, -1.0, 1.0])
 
 #: Registry: scene name -> class (calling it gives a Scene).
 SCENES: dict = {cls.name: cls for cls in (SoftShadowScene, DepthOfFieldScene, MotionBlurScene,
-                                         CausticScene, HDRScene, FlatScene, CheckerWallScene, CheckerDofScene)}
+                                         CausticScene, HDRScene, FlatScene, CheckerWallScene, CheckerSpotScene,
+                                         CheckerDofScene)}

@@ -9,8 +9,9 @@ from __future__ import annotations
 import numpy as np
 
 from .base import _box_square_wave, _box_wave, _checker, _njit, _overlap_fraction, _square_wave, _wave
-from .textured import (_cd_expected, _cd_feature_expected, _cd_features, _cd_radiance, _cw_expected,
-                       _cw_feature_expected, _cw_features, _cw_radiance)
+from .textured import (_cd_expected, _cd_feature_expected, _cd_features, _cd_radiance, _cs_expected,
+                       _cs_feature_expected, _cs_features, _cs_radiance, _cw_expected, _cw_feature_expected,
+                       _cw_features, _cw_radiance)
 # --- soft_shadow -------------------------------------------------------------
 
 _SS_A0 = np.array([0.80, 0.72, 0.55])
@@ -440,6 +441,8 @@ def _point_radiance(kernel, x, y, u, out):
         _cw_radiance(x, y, u, out)
     elif kernel == 7:
         _cd_radiance(x, y, u, out)
+    elif kernel == 8:
+        _cs_radiance(x, y, u, out)
 
 
 @_njit
@@ -458,6 +461,8 @@ def _point_expected(kernel, x, y, out):
         _cw_expected(x, y, out)
     elif kernel == 7:
         _cd_expected(x, y, out)
+    elif kernel == 8:
+        _cs_expected(x, y, out)
 
 
 @_njit
@@ -476,6 +481,8 @@ def _point_features(kernel, x, y, u, f):
         _cw_features(x, y, u, f)
     elif kernel == 7:
         _cd_features(x, y, u, f)
+    elif kernel == 8:
+        _cs_features(x, y, u, f)
 
 
 @_njit
@@ -494,6 +501,8 @@ def _point_feature_expected(kernel, x, y, f):
         _cw_feature_expected(x, y, f)
     elif kernel == 7:
         _cd_feature_expected(x, y, f)
+    elif kernel == 8:
+        _cs_feature_expected(x, y, f)
 
 
 @_njit

@@ -1,5 +1,5 @@
-"""Kernels of the textured scenes (``checker_wall``, ``checker_dof``): radiance, per-sample features and
-their exact expectations (compiled, nogil).
+"""Kernels of the textured scenes (``checker_wall``, ``checker_spot``, ``checker_dof``): radiance, per-sample
+features and their exact expectations (compiled, nogil).
 
 Feature vectors are 7 floats: albedo R, G, B, normal X, Y, Z, depth (see
 :data:`mcrecon.renderers.scenes.catalog.FEATURE_LAYOUT`).  The classes and
@@ -83,6 +83,65 @@ def _cw_feature_expected(x, y, f):
 @_njit
 def _cw_features(x, y, u, f):
     # The primary hit does not depend on the light or sky samples: the features are exact per point.
+    _cw_feature_expected(x, y, f)
+
+
+# --- checker_spot ------------------------------------------------------------
+
+#: The small light is found by the BSDF sample with probability p (else the sample sees only the sky):
+#: its contribution is l f(x, y) V / p on a hit, so ~1 sample in 20 carries nearly all the light.
+_CS_P = 0.05
+_CS_SKY = 0.04
+_CS_LIGHT = np.array([0.95, 0.85, 0.65])
+#: Spot falloff f = 1 / (1 + |(x, y) - c|^2 / s^2): smooth, deterministic.
+_CS_CX, _CS_CY, _CS_S2 = 0.68, 0.30, 0.09
+#: The small light's shadow core (normalised film space), penumbra 0.004 + 0.012 x (0.5 to 2 px at 128 px).
+_CS_OCC = np.array([0.30, 0.56, 0.46, 0.82])
+
+
+@_njit
+def _cs_width(x):
+    return 0.004 + 0.012 * x
+
+
+@_njit
+def _cs_falloff(x, y):
+    return 1.0 / (1.0 + ((x - _CS_CX) ** 2 + (y - _CS_CY) ** 2) / _CS_S2)
+
+
+@_njit
+def _cs_radiance(x, y, u, out):
+    vis = 0.0
+    if u[0] < _CS_P:
+        w = _cs_width(x)
+        sx = x + w * (u[1] - 0.5)
+        sy = y + w * (u[2] - 0.5)
+        vis = 0.0 if (_CS_OCC[0] <= sx <= _CS_OCC[1] and _CS_OCC[2] <= sy <= _CS_OCC[3]) else 1.0 / _CS_P
+    light = _cs_falloff(x, y) * vis
+    sky = _CS_SKY * 2.0 * u[3]
+    _cw_albedo(x, y, out)
+    for c in range(3):
+        out[c] *= sky + _CS_LIGHT[c] * light
+
+
+@_njit
+def _cs_expected(x, y, out):
+    w = _cs_width(x)
+    vis = 1.0 - (_overlap_fraction(x - 0.5 * w, x + 0.5 * w, _CS_OCC[0], _CS_OCC[1])
+                 * _overlap_fraction(y - 0.5 * w, y + 0.5 * w, _CS_OCC[2], _CS_OCC[3]))
+    light = _cs_falloff(x, y) * vis
+    _cw_albedo(x, y, out)
+    for c in range(3):
+        out[c] *= _CS_SKY + _CS_LIGHT[c] * light
+
+
+@_njit
+def _cs_feature_expected(x, y, f):
+    _cw_feature_expected(x, y, f)  # the same wall as checker_wall
+
+
+@_njit
+def _cs_features(x, y, u, f):
     _cw_feature_expected(x, y, f)
 
 
