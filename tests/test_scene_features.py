@@ -408,3 +408,27 @@ def test_cli_demo_on_checker_wall(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "checker_wall" in out and "features" in out
     assert read_log(tmp_path / "checker_wall.h5").feature_names == ("albedo", "depth", "normal")
+
+
+def test_a_feature_method_gets_the_scene_features_offline_and_adaptive(tmp_path):
+    """A method declaring features="required" reads the scenes' features from a log and from a SceneRenderer
+    in an adaptive run.  At 32 px checker_wall's squares (4 px and 1 px) are pixel-aligned, so the pixel
+    means of its (deterministic) albedo equal the feature reference to rounding, whatever the jitter."""
+    import mcrecon
+    from mcrecon.methods import Method, Requirements
+
+    class AlbedoProbe(Method):
+        name = "albedo_probe"
+        requires = Requirements(features="required")
+
+        def reconstruct_run(self, run, inputs):
+            return inputs.stats.features["albedo"].mean
+
+    ref = S.feature_reference("checker_wall", 32, 32)["albedo"]
+    log = S.write_scene_log("checker_wall", tmp_path / "cw.h5", width=32, height=32, spp=3, seed=1)
+    np.testing.assert_allclose(mcrecon.reconstruct(log, method=AlbedoProbe()), ref, rtol=1e-12)
+    res = mcrecon.adapt(S.SceneRenderer("checker_wall", width=32, height=32, seed=2), method=AlbedoProbe(), spp=4)
+    np.testing.assert_allclose(res.image, ref, rtol=1e-12)
+    with pytest.raises(InputError, match="feature"):   # an older scene's default log has none to give
+        mcrecon.reconstruct(S.write_scene_log("flat", tmp_path / "f.h5", width=4, height=4, spp=2),
+                            method=AlbedoProbe())
