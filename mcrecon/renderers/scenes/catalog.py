@@ -119,13 +119,13 @@ class Scene:
         self._check_has_features("features")
         x, y = _as_xy(self.name, x, y)
         u = self._check_u(x, u)
-        return split_features(self._features(x, y, u))
+        return {k: np.ascontiguousarray(v) for k, v in split_features(self._features(x, y, u)).items()}
 
     def expected_features(self, x, y) -> dict:
         """E_u of :meth:`features` at each point, in closed form (same dict layout)."""
         self._check_has_features("expected_features")
         x, y = _as_xy(self.name, x, y)
-        return split_features(self._expected_features(x, y))
+        return {k: np.ascontiguousarray(v) for k, v in split_features(self._expected_features(x, y)).items()}
 
     def _check_has_features(self, what):
         if not self.feature_names:
