@@ -19,7 +19,8 @@ from mcrecon.core.samples import pixel_index
 
 pytestmark = pytest.mark.filterwarnings("error")
 
-NAMES = ["soft_shadow", "depth_of_field", "motion_blur", "caustic", "hdr", "flat"]
+NAMES = ["soft_shadow", "depth_of_field", "motion_blur", "caustic", "hdr", "flat", "checker_wall", "checker_spot",
+         "checker_dof"]
 
 # Tolerance in standard errors for a single comparison.  With ~3000
 # comparisons per test a Gaussian |z| > 5.5 happens with probability

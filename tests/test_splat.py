@@ -316,7 +316,8 @@ def test_border_darkening_flat_scene(boundary):
 # ----------------------------------------------------------------------------
 
 @pytest.mark.slow
-@pytest.mark.parametrize("scene", [s for s in scenes.scene_names() if s != "caustic"])
+# the six scenes measured below, not the textured ones (issue 24)
+@pytest.mark.parametrize("scene", [s for s in scenes.scene_names()[:6] if s != "caustic"])
 def test_relative_mse_falls_with_every_doubling(scene, full_run):
     """Along one progressive run, relative MSE falls after every round (N_j = 2 N_{j-1}),
     and its ratio to the pixel-mean error of the same samples moves back towards 1.

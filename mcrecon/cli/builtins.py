@@ -15,7 +15,10 @@ def _cmd_scenes(args):
     from ..renderers.scenes import get_scene, scene_names
 
     for name in scene_names():
-        print(f"{name:16s} {get_scene(name).description}")
+        sc = get_scene(name)
+        # which scenes send albedo/normal/depth per sample by default, and which only with --features
+        tag = "features: on" if sc.features_default else "features: opt-in" if sc.feature_names else "no features"
+        print(f"{name:16s} {tag:17s} {sc.description}")
     return 0
 
 
@@ -101,7 +104,8 @@ def _cmd_render_log(args):
         if Path(args.reference_exr).resolve() == Path(args.output).resolve():
             raise InputError(str(args.reference_exr), "--reference-exr", "is the -o sample log: give another path")
         check_output(args.reference_exr)
-    path = write_scene_log(get_scene(args.scene), args.output, width=w, height=h, spp=args.spp, seed=args.seed)
+    path = write_scene_log(get_scene(args.scene), args.output, width=w, height=h, spp=args.spp, seed=args.seed,
+                           features=getattr(args, "features", None))
     print(f"wrote {path}")
     if args.reference_exr is not None:
         from ..io import read_log, write_exr
@@ -173,7 +177,9 @@ def _cmd_demo(args):
     t_render = time.perf_counter() - t0
     log = read_log(log_path)
     ref = log.reference()
-    print(f"rendered {scene.name} {w}x{h} at {args.spp} spp: {log.n_samples} samples in {t_render:.2f} s -> {log_path}")
+    feats = f" with features {', '.join(log.feature_names)}" if log.feature_names else ""
+    print(f"rendered {scene.name} {w}x{h} at {args.spp} spp: {log.n_samples} samples{feats} in {t_render:.2f} s "
+          f"-> {log_path}")
     for name, method in methods.items():
         reconstruct(log, method=method)  # whatever the warm-up's tiny log left to compile: not timed
         t1 = time.perf_counter()

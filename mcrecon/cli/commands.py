@@ -6,6 +6,7 @@ command needs them, so ``--help`` stays quick.
 
 from __future__ import annotations
 
+import argparse
 import json
 import shlex
 import time
@@ -491,6 +492,9 @@ def register(sub, command: str | None = None) -> None:
     s.add_argument("--size", default="128x128")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("-o", "--output", required=True)
+    s.add_argument("--features", action=argparse.BooleanOptionalAction, default=None,
+                   help="store per-sample albedo, normal and depth in the log (default: the scene's, see "
+                        "`mcrecon scenes`)")
     s.add_argument("--reference-exr", default=None, metavar="REF.exr",
                    help="also write the scene's exact reference (the one stored in the log) as an EXR, "
                         "e.g. for `mcrecon compare`")

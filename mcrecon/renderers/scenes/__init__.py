@@ -25,7 +25,23 @@ The scenes stress exactly what the adaptive-sampling papers are about:
     an emitter of radiance ~500 beside surfaces of 1e-3 .. 1e-2 and a
     mid-grey region (Tamstorf and Jensen's "scene with a bright emitter");
 ``flat``
-    constant expectation with uniform noise (border and variance tests).
+    constant expectation with uniform noise (border and variance tests);
+``checker_wall``
+    a checkerboard wall (16 px and 4 px squares at 128 px) under a soft
+    shadow and a noisy sky: noise-free albedo explains the texture;
+``checker_spot``
+    the same wall under a small light found by 1 sample in 20 (high
+    variance, fireflies over sharp texture);
+``checker_dof``
+    checkered cards at three depths through a thin lens: colour *and*
+    features are blurred and noisy off focus.
+
+Every built-in scene also gives per-sample features of the primary hit
+(``albedo``, ``normal``, ``depth``, :meth:`Scene.features`) with exact
+expectations (:func:`feature_reference`): computed from the same random
+numbers as the colour, so they draw nothing extra.  The textured scenes
+send them by default; the others only when asked (``features=True``), so
+that their default samples, logs and references stay as they were.
 
 The formulas are in each class's docstring and in ``docs/scenes.md``.
 
@@ -52,12 +68,13 @@ import numpy as np
 from ...errors import InputError
 from ...core.samples import check_memory
 from ...core.requests import SampleBatch, SampleRequest, jittered_positions
-from .catalog import (SCENES, CausticScene, DepthOfFieldScene, FlatScene, HDRScene, MotionBlurScene, Scene,
-                      SoftShadowScene)
+from .catalog import (FEATURE_LAYOUT, SCENES, CausticScene, CheckerDofScene, CheckerSpotScene, CheckerWallScene,
+                      DepthOfFieldScene, FlatScene, HDRScene, MotionBlurScene, Scene, SoftShadowScene, split_features)
 
-__all__ = ["SCENES", "Scene", "SoftShadowScene", "DepthOfFieldScene", "MotionBlurScene", "CausticScene",
-           "HDRScene", "FlatScene", "scene_names", "get_scene", "reference_image", "SceneRenderer",
-           "render_uniform", "write_scene_log"]
+__all__ = ["SCENES", "FEATURE_LAYOUT", "Scene", "SoftShadowScene", "DepthOfFieldScene", "MotionBlurScene",
+           "CausticScene", "HDRScene", "FlatScene", "CheckerWallScene", "CheckerSpotScene", "CheckerDofScene",
+           "scene_names", "get_scene", "reference_image", "feature_reference", "SceneRenderer", "render_uniform",
+           "write_scene_log"]
 
 
 def scene_names() -> list[str]:
@@ -132,6 +149,55 @@ def reference_image(scene, width: int, height: int, *, quadrature: int = 32) -> 
     return sc._reference(width, height, quadrature)
 
 
+@functools.lru_cache(maxsize=16)
+def _feature_reference_cached(name: str, width: int, height: int, quadrature: int) -> np.ndarray:
+    out = get_scene(name)._feature_reference(width, height, quadrature)
+    out.setflags(write=False)
+    return out
+
+
+def feature_reference(scene, width: int, height: int, *, quadrature: int = 32) -> dict:
+    """The exact expected features of a scene, averaged over each pixel's area.
+
+    What the per-pixel means of the features converge to: the pixel-area
+    average (midpoint rule, ``quadrature x quadrature`` points, as
+    :func:`reference_image`, with the same error bounds) of
+    :meth:`Scene.expected_features`, itself exact over the random
+    dimensions.  A normal's pixel average is not of unit length where the
+    pixel sees several surfaces (that is what a pixel mean of normals is).
+
+    Parameters
+    ----------
+    scene : str or Scene
+        A built-in scene name or a Scene with ``feature_names``.
+    width, height : int
+        Film size in pixels (>= 1).
+    quadrature : int
+        Midpoint-rule points per pixel and axis (>= 1).
+
+    Returns
+    -------
+    dict
+        ``{"albedo": (H, W, 3), "normal": (H, W, 3), "depth": (H, W, 1)}``
+        float64, fresh writable arrays.
+
+    Raises
+    ------
+    InputError
+        For a scene without features.
+    """
+    sc = get_scene(scene)
+    sc._check_has_features("feature_reference")
+    width = _check_int("feature_reference", "width", width, 1)
+    height = _check_int("feature_reference", "height", height, 1)
+    quadrature = _check_int("feature_reference", "quadrature", quadrature, 1)
+    if sc.name in SCENES and type(sc) is SCENES[sc.name]:
+        arr = _feature_reference_cached(sc.name, width, height, quadrature)
+    else:
+        arr = sc._feature_reference(width, height, quadrature)
+    return {name: np.array(a) for name, a in split_features(arr).items()}
+
+
 # ----------------------------------------------------------------------------
 # Renderer
 # ----------------------------------------------------------------------------
@@ -149,21 +215,30 @@ class SceneRenderer:
         Renderer seed (>= 0).  Round random numbers come from
         ``np.random.default_rng([seed, request.seed, request.round_index])``,
         so the same request gives the same samples.
+    features : bool or None
+        Send the per-sample features (``albedo`` (N, 3), ``normal`` (N, 3),
+        ``depth`` (N, 1)) in each reply's ``SampleBatch.features``.  None
+        (default): the scene's ``features_default`` (on for the textured
+        scenes, off for the others).
 
     Notes
     -----
     The reply lists the samples for ``request.counts`` first (uniformly
     jittered inside each pixel, sorted by pixel, see
     :func:`mcrecon.core.requests.jittered_positions`), then one sample per
-    requested position, in request order.  Values are float64 (N, 3).
+    requested position, in request order.  Values are float64 (N, 3).  The
+    features are functions of the same random numbers as the colour, so
+    turning them on or off leaves positions and values bit-identical.
     """
 
-    def __init__(self, scene, *, width: int = 128, height: int = 128, seed: int = 0):
+    def __init__(self, scene, *, width: int = 128, height: int = 128, seed: int = 0, features=None):
         self.scene = get_scene(scene)
         self.width = _check_int("SceneRenderer", "width", width, 1)
         self.height = _check_int("SceneRenderer", "height", height, 1)
         self.seed = _check_int("SceneRenderer", "seed", seed, 0)
+        self.features = _check_features_flag("SceneRenderer", self.scene, features)
         self.channels = tuple(self.scene.channels)
+        self.feature_names = tuple(self.scene.feature_names) if self.features else ()
         self.name = f"scene:{self.scene.name}"
 
     def render(self, request: SampleRequest) -> SampleBatch:
@@ -182,36 +257,66 @@ class SceneRenderer:
             parts.append(np.asarray(request.positions, dtype=np.float64))
         pos = np.concatenate(parts, axis=0) if len(parts) > 1 else parts[0]
         u = rng.random((pos.shape[0], self.scene.n_dims))
-        values = self.scene.radiance(pos[:, 0] / self.width, pos[:, 1] / self.height, u)
-        return SampleBatch(pos, values)
+        x, y = pos[:, 0] / self.width, pos[:, 1] / self.height
+        values = self.scene.radiance(x, y, u)
+        if not self.features:
+            return SampleBatch(pos, values)
+        return SampleBatch(pos, values, self.scene.features(x, y, u))
 
     def reference(self, *, quadrature: int = 32) -> np.ndarray:
         """:func:`reference_image` of this scene at this film size."""
         return reference_image(self.scene, self.width, self.height, quadrature=quadrature)
 
+    def feature_reference(self, *, quadrature: int = 32) -> dict:
+        """:func:`feature_reference` of this scene at this film size."""
+        return feature_reference(self.scene, self.width, self.height, quadrature=quadrature)
+
     def __repr__(self) -> str:
-        return f"SceneRenderer({self.scene.name!r}, width={self.width}, height={self.height}, seed={self.seed})"
+        extra = "" if self.features == self.scene.features_default else f", features={self.features}"
+        return (f"SceneRenderer({self.scene.name!r}, width={self.width}, height={self.height}, seed={self.seed}"
+                f"{extra})")
 
 
-def render_uniform(scene, *, width: int = 128, height: int = 128, spp: int, seed: int = 0) -> SampleBatch:
-    """``spp`` jittered samples in every pixel of a scene (one request, round 0, request seed 0)."""
-    r = SceneRenderer(scene, width=width, height=height, seed=seed)
+def _check_features_flag(where, scene, features) -> bool:
+    """``features`` (None: the scene's default) as a bool, refused for a scene without features."""
+    if features is None:
+        return bool(scene.features_default and scene.feature_names)
+    if not isinstance(features, (bool, np.bool_)):
+        raise InputError(where, "features", f"{features!r}, expected True, False or None (the scene's default)")
+    if features and not scene.feature_names:
+        raise InputError(where, "features", f"scene {scene.name!r} has no per-sample features; pass "
+                         "features=False, or use a built-in scene")
+    return bool(features)
+
+
+def render_uniform(scene, *, width: int = 128, height: int = 128, spp: int, seed: int = 0,
+                   features=None) -> SampleBatch:
+    """``spp`` jittered samples in every pixel of a scene (one request, round 0, request seed 0).
+
+    ``features``: as :class:`SceneRenderer` (None: the scene's default).
+    """
+    r = SceneRenderer(scene, width=width, height=height, seed=seed, features=features)
     spp = _check_int("render_uniform", "spp", spp, 1)
     n = spp * r.width * r.height
-    check_memory("render_uniform", "spp", 8.0 * n * (2 + len(r.channels)),
+    n_feat = sum(FEATURE_LAYOUT.values()) if r.features else 0
+    check_memory("render_uniform", "spp", 8.0 * n * (2 + len(r.channels) + n_feat),
                  f"{spp} samples per pixel on {r.width}x{r.height} ({n} samples)", "lower --spp or --size")
     counts = np.full((r.height, r.width), spp, dtype=np.int64)
     return r.render(SampleRequest(r.width, r.height, counts=counts, round_index=0, seed=0))
 
 
 def write_scene_log(scene, path, *, width: int = 128, height: int = 128, spp: int, seed: int = 0,
-                    reference: bool = True, quadrature: int = 32) -> Path:
+                    reference: bool = True, quadrature: int = 32, features=None) -> Path:
     """Render ``spp`` samples per pixel of a scene and write them as a sample log.
 
     The log's metadata is ``{"renderer": "mcrecon.scenes", "scene": name,
     "seed": seed, "settings": {"width", "height", "spp", "quadrature",
     "n_dims"}}``; with ``reference=True`` the :func:`reference_image` is
-    stored in it.
+    stored in it.  With features (``features=True``, or None for a scene
+    whose ``features_default`` is on) the log holds ``/features/albedo``,
+    ``/features/normal`` and ``/features/depth`` per sample and the
+    settings say ``"features": [names]``; without them the log is exactly
+    what it was before scenes had features.
 
     Returns
     -------
@@ -221,10 +326,12 @@ def write_scene_log(scene, path, *, width: int = 128, height: int = 128, spp: in
     from ...io import write_log
 
     sc = get_scene(scene)
-    batch = render_uniform(sc, width=width, height=height, spp=spp, seed=seed)
+    batch = render_uniform(sc, width=width, height=height, spp=spp, seed=seed, features=features)
     ref = reference_image(sc, width, height, quadrature=quadrature) if reference else None
     meta = {"renderer": "mcrecon.scenes", "scene": sc.name, "seed": int(seed),
             "settings": {"width": int(width), "height": int(height), "spp": int(spp),
                          "quadrature": int(quadrature), "n_dims": int(sc.n_dims)}}
+    if batch.features:
+        meta["settings"]["features"] = list(batch.features)
     return write_log(path, batch.positions, batch.values, width=width, height=height,
-                     channels=sc.channels, reference=ref, metadata=meta)
+                     channels=sc.channels, features=batch.features or None, reference=ref, metadata=meta)

@@ -1,5 +1,5 @@
-"""The built-in procedural scenes: the Scene base class, each scene's radiance and exact
-expectation.
+"""The built-in procedural scenes: the Scene base class and each scene's class (its formulas); the
+compiled kernels are in :mod:`.kernels` (the older scenes) and :mod:`.textured` (the textured ones).
 """
 
 from __future__ import annotations
@@ -8,10 +8,30 @@ from __future__ import annotations
 import numpy as np
 
 from ...errors import InputError
-from .base import _as_xy, _box_square_wave, _box_wave, _checker, _njit, _overlap_fraction, _square_wave, _wave
+from .base import _as_xy
+# the constants are re-exported: tests and users read them as catalog attributes
+from .kernels import (_CA_CX, _CA_CY, _CA_P, _CA_TABLE_TOP, _DOF_RMAX, _HD_CX, _HD_CY, _HD_R,  # noqa: F401
+                      _MB_BACKGROUND, _MB_OBJECTS, _SS_A0, _SS_A1, _SS_AMBIENT, _SS_LIGHT, _SS_OCCLUDERS,
+                      _expected_loop, _feature_expected_loop, _feature_reference_loop, _features_loop,
+                      _mb_swept_boxes, _radiance_loop, _reference_loop)
+from .textured import _CD_APERTURE, _CD_FOCUS, _CD_PLANES, _CS_OCC, _CS_P, _CW_OCC
 
-__all__ = ['SCENES', 'Scene', 'SoftShadowScene', 'DepthOfFieldScene', 'MotionBlurScene', 'CausticScene',
-           'HDRScene', 'FlatScene']
+__all__ = ['SCENES', 'FEATURE_LAYOUT', 'Scene', 'SoftShadowScene', 'DepthOfFieldScene', 'MotionBlurScene',
+           'CausticScene', 'HDRScene', 'FlatScene', 'CheckerWallScene', 'CheckerSpotScene', 'CheckerDofScene']
+
+#: The built-in scenes' per-sample features of the primary hit, in the order of the kernels' 7-float
+#: feature vector: name -> components (mcrecon.core.features.CANONICAL_FEATURES).
+FEATURE_LAYOUT = {"albedo": 3, "normal": 3, "depth": 1}
+_N_FEATURES = 7
+
+
+def split_features(arr) -> dict:
+    """``{name: view}`` of a (..., 7) feature array in :data:`FEATURE_LAYOUT` order (depth keeps a last axis of 1)."""
+    out, k = {}, 0
+    for name, n in FEATURE_LAYOUT.items():
+        out[name] = arr[..., k:k + n]
+        k += n
+    return out
 
 # ----------------------------------------------------------------------------
 # Scenes
@@ -40,25 +60,31 @@ class Scene:
     by ``_kernel`` (see :func:`_point_radiance`); a user's subclass may
     instead override ``_radiance(x, y, u)`` and ``_expected(x, y)`` with
     vectorised numpy code (``_kernel = 0``).
+
+    Features (``feature_names``, the built-in scenes: ``albedo``, ``normal``,
+    ``depth``, see :data:`FEATURE_LAYOUT` and ``docs/scenes.md``) are those
+    of the primary hit of the same sample: a function of the same ``(x, y,
+    u)`` as its colour, so that asking for them draws no extra random
+    numbers and leaves the colour unchanged.  :meth:`expected_features` is
+    their exact expectation over ``u``.  A numpy subclass with features
+    overrides ``_features(x, y, u)`` and ``_expected_features(x, y)``,
+    each returning an (N, 7) array in :data:`FEATURE_LAYOUT` order.
     """
 
     name: str = ""
     description: str = ""
     channels: tuple = ("R", "G", "B")
     n_dims: int = 0
+    #: Names of the per-sample features :meth:`features` gives (empty: the scene has none).
+    feature_names: tuple = ()
+    #: Whether :class:`SceneRenderer` and :func:`write_scene_log` send the features unless told otherwise.
+    features_default: bool = False
     _kernel: int = 0
 
     def radiance(self, x, y, u) -> np.ndarray:
         """Sample values (N, 3) float64 at normalised positions, ``u`` (N, n_dims) in [0, 1)."""
         x, y = _as_xy(self.name, x, y)
-        u = np.asarray(u, dtype=np.float64)
-        if u.ndim == 1 and self.n_dims == 1:
-            u = u[:, None]
-        if u.shape != (x.size, self.n_dims):
-            raise InputError(f"scene {self.name!r}", "u",
-                             f"shape {u.shape}, expected ({x.size}, {self.n_dims}): one row of "
-                             f"{self.n_dims} uniform numbers per point")
-        return self._radiance(x, y, np.ascontiguousarray(u))
+        return self._radiance(x, y, self._check_u(x, u))
 
     def expected(self, x, y) -> np.ndarray:
         """E_u[radiance(x, y, u)] (N, 3) float64, in closed form."""
@@ -79,11 +105,76 @@ class Scene:
         _expected_loop(self._kernel, x, y, out)
         return out
 
+    def features(self, x, y, u) -> dict:
+        """Per-sample features of the primary hit: ``{"albedo": (N, 3), "normal": (N, 3), "depth": (N, 1)}``.
+
+        The same arguments as :meth:`radiance`; row i of each array belongs to
+        the sample whose colour is row i of ``radiance(x, y, u)``.
+
+        Raises
+        ------
+        InputError
+            For a scene without features (``feature_names`` empty).
+        """
+        self._check_has_features("features")
+        x, y = _as_xy(self.name, x, y)
+        u = self._check_u(x, u)
+        return {k: np.ascontiguousarray(v) for k, v in split_features(self._features(x, y, u)).items()}
+
+    def expected_features(self, x, y) -> dict:
+        """E_u of :meth:`features` at each point, in closed form (same dict layout)."""
+        self._check_has_features("expected_features")
+        x, y = _as_xy(self.name, x, y)
+        return {k: np.ascontiguousarray(v) for k, v in split_features(self._expected_features(x, y)).items()}
+
+    def _check_has_features(self, what):
+        if not self.feature_names:
+            raise InputError(f"scene {self.name!r}", "features",
+                             f"{what}: this scene has no per-sample features; the built-in scenes do")
+
+    def _check_u(self, x, u):
+        u = np.asarray(u, dtype=np.float64)
+        if u.ndim == 1 and self.n_dims == 1:
+            u = u[:, None]
+        if u.shape != (x.size, self.n_dims):
+            raise InputError(f"scene {self.name!r}", "u",
+                             f"shape {u.shape}, expected ({x.size}, {self.n_dims}): one row of "
+                             f"{self.n_dims} uniform numbers per point")
+        return np.ascontiguousarray(u)
+
+    def _features(self, x, y, u):
+        if not self._kernel:
+            raise NotImplementedError(f"{type(self).__name__} must override _features(x, y, u) or set _kernel")
+        out = np.empty((x.size, _N_FEATURES))
+        _features_loop(self._kernel, x, y, u, out)
+        return out
+
+    def _expected_features(self, x, y):
+        if not self._kernel:
+            raise NotImplementedError(f"{type(self).__name__} must override _expected_features(x, y) or set "
+                                      "_kernel")
+        out = np.empty((x.size, _N_FEATURES))
+        _feature_expected_loop(self._kernel, x, y, out)
+        return out
+
     def _reference(self, width, height, quadrature):
         out = np.empty((height, width, len(self.channels)))
         if self._kernel:
             _reference_loop(self._kernel, width, height, quadrature, out)
             return out
+        return self._midpoint(self.expected, out, width, height, quadrature)
+
+    def _feature_reference(self, width, height, quadrature):
+        """(H, W, 7) pixel averages of :meth:`_expected_features` (midpoint rule, as :meth:`_reference`)."""
+        out = np.empty((height, width, _N_FEATURES))
+        if self._kernel:
+            _feature_reference_loop(self._kernel, width, height, quadrature, out)
+            return out
+        return self._midpoint(lambda x, y: self._expected_features(*_as_xy(self.name, x, y)), out, width,
+                              height, quadrature)
+
+    @staticmethod
+    def _midpoint(expected, out, width, height, quadrature):
         # Pure-numpy scenes: the same midpoint rule, a block of rows at a time.
         q = quadrature
         off = (np.arange(q) + 0.5) / q
@@ -93,61 +184,12 @@ class Scene:
             j1 = min(height, j0 + rows)
             ys = ((np.arange(j0, j1)[:, None] + off[None, :]) / height).ravel()
             yy, xx = np.meshgrid(ys, xs, indexing="ij")
-            vals = self.expected(xx.ravel(), yy.ravel()).reshape(j1 - j0, q, width, q, -1)
+            vals = expected(xx.ravel(), yy.ravel()).reshape(j1 - j0, q, width, q, -1)
             out[j0:j1] = vals.mean(axis=(1, 3))
         return out
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}()"
-
-
-# --- soft_shadow -------------------------------------------------------------
-
-_SS_A0 = np.array([0.80, 0.72, 0.55])
-_SS_A1 = np.array([0.18, 0.22, 0.32])
-_SS_AMBIENT = 0.08
-_SS_LIGHT = np.array([1.0, 0.95, 0.85])
-_SS_CHECKER = 10.0
-# (a, b, c, d): each occluder's shadow core [a, b] x [c, d] in normalised film space.
-_SS_OCCLUDERS = np.array([[0.12, 0.48, 0.18, 0.38],
-                          [0.30, 0.88, 0.58, 0.70]])
-
-
-@_njit
-def _ss_width(x, y):
-    return 0.01 + 0.11 * x
-
-
-@_njit
-def _ss_shade(x, y, vis, out):
-    chk = _checker(x, y, _SS_CHECKER)
-    for c in range(3):
-        albedo = _SS_A0[c] + (_SS_A1[c] - _SS_A0[c]) * chk
-        out[c] = albedo * (_SS_AMBIENT + _SS_LIGHT[c] * vis)
-
-
-@_njit
-def _ss_radiance(x, y, u, out):
-    w = _ss_width(x, y)
-    sx = x + w * (u[0] - 0.5)
-    sy = y + w * (u[1] - 0.5)
-    vis = 1.0
-    for k in range(_SS_OCCLUDERS.shape[0]):
-        o = _SS_OCCLUDERS[k]
-        if o[0] <= sx <= o[1] and o[2] <= sy <= o[3]:
-            vis = 0.0
-    _ss_shade(x, y, vis, out)
-
-
-@_njit
-def _ss_expected(x, y, out):
-    w = _ss_width(x, y)
-    vis = 1.0
-    for k in range(_SS_OCCLUDERS.shape[0]):
-        o = _SS_OCCLUDERS[k]
-        vis -= (_overlap_fraction(x - 0.5 * w, x + 0.5 * w, o[0], o[1])
-                * _overlap_fraction(y - 0.5 * w, y + 0.5 * w, o[2], o[3]))
-    _ss_shade(x, y, vis, out)
 
 
 class SoftShadowScene(Scene):
@@ -185,6 +227,7 @@ class SoftShadowScene(Scene):
     name = "soft_shadow"
     description = "checkerboard under an area light: sharp albedo edges beside soft penumbrae (2 dims)"
     n_dims = 2
+    feature_names = tuple(FEATURE_LAYOUT)  # opt-in: features_default False keeps old outputs
     occluders = _SS_OCCLUDERS
     _kernel = 1
 
@@ -192,46 +235,6 @@ class SoftShadowScene(Scene):
     def penumbra_width(x):
         """Penumbra width w(x) = 0.01 + 0.11 x (normalised film units)."""
         return 0.01 + 0.11 * np.asarray(x, dtype=np.float64)
-
-
-# --- depth_of_field ----------------------------------------------------------
-
-_DOF_RMAX = 1.0 / 16.0
-_DOF_A = np.array([0.60, 0.55, 0.55])
-_DOF_B = np.array([0.25, -0.15, 0.20])    # checker q(6s) q(6t)
-_DOF_D = np.array([0.12, 0.15, 0.10])     # smooth wave w(3 s + phi)
-_DOF_PHI = np.array([0.0, 1.0 / 3.0, 2.0 / 3.0])
-_DOF_E = np.array([0.08, 0.05, 0.12])     # smooth wave w(2 t + psi)
-_DOF_PSI = np.array([0.25, 0.0, 0.5])
-_DOF_F = np.array([0.10, 0.12, -0.08])    # fine stripes q(20 s)
-
-
-@_njit
-def _dof_r(x, y):
-    return _DOF_RMAX * min(1.0, max(0.0, (abs(y - 0.5) - 0.1) / 0.4))
-
-
-@_njit
-def _dof_radiance(x, y, u, out):
-    r = _dof_r(x, y)
-    s = x + r * (u[0] - 0.5)
-    t = y + r * (u[1] - 0.5)
-    qq = _square_wave(6.0 * s) * _square_wave(6.0 * t)
-    stripes = _square_wave(20.0 * s)
-    for c in range(3):
-        out[c] = (_DOF_A[c] + _DOF_B[c] * qq + _DOF_D[c] * _wave(3.0 * s + _DOF_PHI[c])
-                  + _DOF_E[c] * _wave(2.0 * t + _DOF_PSI[c]) + _DOF_F[c] * stripes)
-
-
-@_njit
-def _dof_expected(x, y, out):
-    r = _dof_r(x, y)
-    # u1 and u2 are independent: the average of q(6s) q(6t) is the product of the averages.
-    qq = _box_square_wave(x, 6.0, r) * _box_square_wave(y, 6.0, r)
-    stripes = _box_square_wave(x, 20.0, r)
-    for c in range(3):
-        out[c] = (_DOF_A[c] + _DOF_B[c] * qq + _DOF_D[c] * _box_wave(x, 3.0, _DOF_PHI[c], r)
-                  + _DOF_E[c] * _box_wave(y, 2.0, _DOF_PSI[c], r) + _DOF_F[c] * stripes)
 
 
 class DepthOfFieldScene(Scene):
@@ -268,6 +271,7 @@ class DepthOfFieldScene(Scene):
     name = "depth_of_field"
     description = "thin lens, square aperture: in focus in the middle, 8 px blur at top/bottom at 128 px (2 dims)"
     n_dims = 2
+    feature_names = tuple(FEATURE_LAYOUT)  # opt-in: features_default False keeps old outputs
     r_max = _DOF_RMAX
     _kernel = 2
 
@@ -275,86 +279,6 @@ class DepthOfFieldScene(Scene):
     def blur_width(y):
         """Side R(y) of the square circle of confusion (normalised film units)."""
         return _DOF_RMAX * np.clip((np.abs(np.asarray(y, dtype=np.float64) - 0.5) - 0.1) / 0.4, 0.0, 1.0)
-
-
-# --- motion_blur -------------------------------------------------------------
-
-_MB_BACKGROUND = np.array([0.30, 0.32, 0.36])
-# x0, y0, width, height, vx, vy (per shutter interval), then the colour.
-_MB_OBJECTS = np.array([
-    [0.05, 0.08, 0.18, 0.18, 0.35, 0.00, 0.95, 0.20, 0.15],    # red square, medium speed
-    [0.85, 0.35, 0.04, 0.22, -0.50, 0.00, 0.20, 0.90, 0.25],   # green bar, fast, leftwards
-    [0.05, 0.38, 0.10, 0.15, 0.02, 0.00, 0.95, 0.85, 0.20],    # yellow box, almost still
-    [0.10, 0.65, 0.12, 0.12, 0.25, 0.15, 0.20, 0.35, 0.95],    # blue square, diagonal
-    [0.55, 0.70, 0.08, 0.08, 0.35, 0.00, 0.95, 0.95, 0.95],    # small white square, horizontal
-])
-
-
-def _mb_swept_boxes():
-    o = _MB_OBJECTS
-    x0, y0, w, h, vx, vy = (o[:, k] for k in range(6))
-    return np.stack([np.minimum(x0, x0 + vx), np.maximum(x0, x0 + vx) + w,
-                     np.minimum(y0, y0 + vy), np.maximum(y0, y0 + vy) + h], axis=1)
-
-
-def _mb_check_disjoint():
-    boxes = _mb_swept_boxes()
-    for i in range(len(boxes)):
-        for j in range(i):
-            a, b = boxes[i], boxes[j]
-            if a[0] < b[1] and b[0] < a[1] and a[2] < b[3] and b[2] < a[3]:
-                raise AssertionError(f"motion_blur objects {j} and {i} overlap in space-time")
-
-
-# The closed form below assumes no two objects ever cover the same point.
-_mb_check_disjoint()
-
-
-@_njit
-def _mb_background(x, y, out):
-    g = 0.55 + 0.45 * _checker(x, y, 16.0)
-    for c in range(3):
-        out[c] = _MB_BACKGROUND[c] * g
-
-
-@_njit
-def _mb_interval(p, p0, size, v):
-    """Times t at which p0 + v t <= p < p0 + v t + size, as (lo, hi) (empty if lo >= hi)."""
-    if v == 0.0:
-        if p0 <= p < p0 + size:
-            return -np.inf, np.inf
-        return np.inf, -np.inf
-    t1 = (p - p0 - size) / v
-    t2 = (p - p0) / v
-    return min(t1, t2), max(t1, t2)
-
-
-@_njit
-def _mb_radiance(x, y, u, out):
-    t = u[0]
-    _mb_background(x, y, out)
-    for k in range(_MB_OBJECTS.shape[0]):
-        o = _MB_OBJECTS[k]
-        ox = o[0] + o[4] * t
-        oy = o[1] + o[5] * t
-        if ox <= x < ox + o[2] and oy <= y < oy + o[3]:
-            for c in range(3):
-                out[c] = o[6 + c]
-
-
-@_njit
-def _mb_expected(x, y, out):
-    _mb_background(x, y, out)
-    b0, b1, b2 = out[0], out[1], out[2]
-    for k in range(_MB_OBJECTS.shape[0]):
-        o = _MB_OBJECTS[k]
-        lx, hx = _mb_interval(x, o[0], o[2], o[4])
-        ly, hy = _mb_interval(y, o[1], o[3], o[5])
-        frac = min(hx, hy, 1.0) - max(lx, ly, 0.0)
-        if frac > 0.0:
-            out[0] += frac * (o[6] - b0)
-            out[1] += frac * (o[7] - b1)
-            out[2] += frac * (o[8] - b2)
 
 
 class MotionBlurScene(Scene):
@@ -385,6 +309,7 @@ class MotionBlurScene(Scene):
     name = "motion_blur"
     description = "coloured boxes moving at different speeds over a sharp static checkerboard (1 dim)"
     n_dims = 1
+    feature_names = tuple(FEATURE_LAYOUT)  # opt-in: features_default False keeps old outputs
     objects = _MB_OBJECTS
     _kernel = 3
 
@@ -392,51 +317,6 @@ class MotionBlurScene(Scene):
     def swept_boxes() -> np.ndarray:
         """(K, 4) array of [x_min, x_max, y_min, y_max] covered by each object during the shutter."""
         return _mb_swept_boxes()
-
-
-# --- caustic -----------------------------------------------------------------
-
-_CA_P = 0.03
-_CA_CX, _CA_CY = 0.5, 0.45
-_CA_COLOUR = np.array([1.0, 0.85, 0.5])
-_CA_GLOW = 0.02
-_CA_HALF_WIDTH = 0.02
-_CA_TABLE_TOP = 0.85
-_CA_TABLE = np.array([0.05, 0.035, 0.02])
-
-
-@_njit
-def _ca_parts(x, y):
-    """(caustic intensity C / colour, table background g / colour) at one point."""
-    dx = x - _CA_CX
-    dy = y - _CA_CY
-    r = np.sqrt(dx * dx + dy * dy)
-    cos_t = dx / r if r > 0.0 else 1.0        # any direction at the centre
-    r0 = 0.28 * (1.0 - 0.3 * cos_t)
-    z = (r - r0) / _CA_HALF_WIDTH
-    bump = (1.0 - z * z) ** 2 if abs(z) < 1.0 else 0.0
-    inner = max(0.0, 1.0 - r / r0) ** 2
-    caustic = (3.0 + 1.5 * cos_t) * bump + _CA_GLOW * inner
-    table = 0.0
-    if y > _CA_TABLE_TOP:
-        table = (y - _CA_TABLE_TOP) / (1.0 - _CA_TABLE_TOP) * (1.0 + 0.5 * np.sin(6.0 * np.pi * x))
-    return caustic, table
-
-
-@_njit
-def _ca_radiance(x, y, u, out):
-    caustic, table = _ca_parts(x, y)
-    hit = caustic / _CA_P if u[0] < _CA_P else 0.0
-    noise = 2.0 * u[1]
-    for c in range(3):
-        out[c] = _CA_TABLE[c] * table * noise + _CA_COLOUR[c] * hit
-
-
-@_njit
-def _ca_expected(x, y, out):
-    caustic, table = _ca_parts(x, y)
-    for c in range(3):
-        out[c] = _CA_TABLE[c] * table + _CA_COLOUR[c] * caustic
 
 
 class CausticScene(Scene):
@@ -468,62 +348,11 @@ class CausticScene(Scene):
     name = "caustic"
     description = "caustic ring hit with probability 3%: 97% zero samples and rare huge ones (2 dims)"
     n_dims = 2
+    feature_names = tuple(FEATURE_LAYOUT)  # opt-in: features_default False keeps old outputs
     p = _CA_P
     centre = (_CA_CX, _CA_CY)
     table_top = _CA_TABLE_TOP
     _kernel = 4
-
-
-# --- hdr ---------------------------------------------------------------------
-
-_HD_CX, _HD_CY, _HD_R = 0.3, 0.3, 0.14
-_HD_POWER = 500.0
-_HD_EMIT = np.array([1.0, 0.9, 0.75])
-_HD_MID_LEFT = 0.62
-_HD_MID = np.array([1.0, 0.95, 0.9])
-_HD_DIM = np.array([1.0, 0.8, 0.6])
-_HD_OCC = (0.12, 0.42, 0.62, 0.78)
-
-
-@_njit
-def _hd_base(x, y):
-    """(region, base value): region 0 emitter, 1 mid panel, 2 dim surface."""
-    rho2 = ((x - _HD_CX) ** 2 + (y - _HD_CY) ** 2) / (_HD_R * _HD_R)
-    if rho2 < 1.0:
-        return 0, _HD_POWER * (1.0 - 0.2 * rho2)
-    if x >= _HD_MID_LEFT:
-        return 1, 0.5 * (0.8 + 0.2 * _square_wave(8.0 * y))
-    return 2, 1e-3 * (0.5 + 0.5 * _checker(x, y, 12.0))
-
-
-@_njit
-def _hd_write(region, base, scale, vis, out):
-    for c in range(3):
-        if region == 0:
-            out[c] = base * scale * _HD_EMIT[c]
-        elif region == 1:
-            out[c] = base * scale * _HD_MID[c]
-        else:
-            out[c] = base * (1.0 + 9.0 * vis) * _HD_DIM[c]
-
-
-@_njit
-def _hd_radiance(x, y, u, out):
-    region, base = _hd_base(x, y)
-    w = 0.02 + 0.1 * x
-    sx = x + w * (u[1] - 0.5)
-    sy = y + w * (u[2] - 0.5)
-    blocked = _HD_OCC[0] <= sx <= _HD_OCC[1] and _HD_OCC[2] <= sy <= _HD_OCC[3]
-    _hd_write(region, base, 0.5 + u[0], 0.0 if blocked else 1.0, out)
-
-
-@_njit
-def _hd_expected(x, y, out):
-    region, base = _hd_base(x, y)
-    w = 0.02 + 0.1 * x
-    vis = 1.0 - (_overlap_fraction(x - 0.5 * w, x + 0.5 * w, _HD_OCC[0], _HD_OCC[1])
-                 * _overlap_fraction(y - 0.5 * w, y + 0.5 * w, _HD_OCC[2], _HD_OCC[3]))
-    _hd_write(region, base, 1.0, vis, out)
 
 
 class HDRScene(Scene):
@@ -550,74 +379,122 @@ class HDRScene(Scene):
     name = "hdr"
     description = "bright emitter (~500) beside dim surfaces (1e-3..1e-2) and a mid-grey panel (3 dims)"
     n_dims = 3
+    feature_names = tuple(FEATURE_LAYOUT)  # opt-in: features_default False keeps old outputs
     emitter = (_HD_CX, _HD_CY, _HD_R)
     _kernel = 5
 
 
-# --- drivers -----------------------------------------------------------------
-# One loop for all scenes, selecting the scalar functions by an integer id:
-# numba's on-disk cache cannot store loops that take jitted functions as
-# arguments (it fails to pickle the function type), and the id test is
-# loop-invariant (hoisted by the compiler, or a perfectly predicted branch).
+# --- checker_wall, checker_dof (kernels in .textured) ---------------------------
 
-@_njit
-def _point_radiance(kernel, x, y, u, out):
-    if kernel == 1:
-        _ss_radiance(x, y, u, out)
-    elif kernel == 2:
-        _dof_radiance(x, y, u, out)
-    elif kernel == 3:
-        _mb_radiance(x, y, u, out)
-    elif kernel == 4:
-        _ca_radiance(x, y, u, out)
-    elif kernel == 5:
-        _hd_radiance(x, y, u, out)
+class CheckerWallScene(Scene):
+    r"""A checkerboard-textured wall under an area light's soft shadow and a sky: texture the albedo explains.
 
+    .. math::
 
-@_njit
-def _point_expected(kernel, x, y, out):
-    if kernel == 1:
-        _ss_expected(x, y, out)
-    elif kernel == 2:
-        _dof_expected(x, y, out)
-    elif kernel == 3:
-        _mb_expected(x, y, out)
-    elif kernel == 4:
-        _ca_expected(x, y, out)
-    elif kernel == 5:
-        _hd_expected(x, y, out)
+        L_c(x, y, u) = a_c(x, y)\,\bigl(2 k u_3 + \ell_c\, V(x, y, u_1, u_2)\bigr)
 
+    The albedo ``a`` is a checkerboard of squares 1/8 (16 px at 128 px),
+    ``(0.85, 0.82, 0.75)`` / ``(0.06, 0.07, 0.10)``, except in the quadrant
+    ``x >= 1/2, y >= 1/2``: squares 1/32 (4 px), ``(0.92, 0.38, 0.22)`` /
+    ``(0.18, 0.52, 0.90)``.  The sky term ``k = 0.25`` is estimated with one
+    uniform number (``2 k u3``, mean ``k``), so every pixel is noisy; the
+    light ``l = (0.80, 0.77, 0.72)`` is a square area light whose visibility
+    ``V`` is that of :class:`SoftShadowScene` for one occluder with shadow
+    core ``[0.22, 0.70] x [0.28, 0.68]`` and penumbra ``w(x) = 0.02 + 0.10 x``
+    (2.6 to 15 px at 128 px).  The albedo being deterministic,
 
-@_njit
-def _radiance_loop(kernel, x, y, u, out):
-    for i in range(x.shape[0]):
-        _point_radiance(kernel, x[i], y[i], u[i], out[i])
+    .. math::
 
+        E_u[L_c] = a_c\,\bigl(k + \ell_c (1 - P^x P^y)\bigr)
 
-@_njit
-def _expected_loop(kernel, x, y, out):
-    for i in range(x.shape[0]):
-        _point_expected(kernel, x[i], y[i], out[i])
+    with ``P^x``, ``P^y`` the overlap fractions of :class:`SoftShadowScene`.
+    Features: ``albedo = a`` (noise-free), ``normal = (0, 0, -1)``, ``depth = 2``.
+    ``n_dims = 3``.
+    """
+
+    name = "checker_wall"
+    description = "checkerboard wall (16 px and 4 px squares) under a soft shadow and a noisy sky (3 dims)"
+    n_dims = 3
+    feature_names = tuple(FEATURE_LAYOUT)
+    features_default = True
+    occluder = _CW_OCC
+    _kernel = 6
+
+    @staticmethod
+    def penumbra_width(x):
+        """Penumbra width w(x) = 0.02 + 0.10 x (normalised film units)."""
+        return 0.02 + 0.10 * np.asarray(x, dtype=np.float64)
 
 
-@_njit
-def _reference_loop(kernel, width, height, q, out):
-    """Midpoint rule, q x q points per pixel, of the expectation of scene ``kernel``."""
-    buf = np.empty(out.shape[2])
-    acc = np.empty(out.shape[2])
-    inv = 1.0 / (q * q)
-    for j in range(height):
-        for i in range(width):
-            acc[:] = 0.0
-            for b in range(q):
-                yy = (j + (b + 0.5) / q) / height
-                for a in range(q):
-                    xx = (i + (a + 0.5) / q) / width
-                    _point_expected(kernel, xx, yy, buf)
-                    for c in range(acc.shape[0]):
-                        acc[c] += buf[c]
-            for c in range(acc.shape[0]):
-                out[j, i, c] = acc[c] * inv
+class CheckerSpotScene(Scene):
+    r"""checker_wall's textured wall lit by a small light that a sample finds rarely: high variance.
+
+    .. math::
+
+        L_c(x, y, u) = a_c(x, y)\,\Bigl(2 k u_4 + \ell_c\, f(x, y)\,
+                       \frac{[u_1 < p]}{p}\, V(x, y, u_2, u_3)\Bigr),\qquad p = 0.05
+
+    The albedo ``a`` is :class:`CheckerWallScene`'s (same features); the sky
+    ``k = 0.04``; the small light ``l = (0.95, 0.85, 0.65)`` with the smooth
+    spot falloff ``f = 1 / (1 + ((x - 0.68)^2 + (y - 0.30)^2) / 0.09)`` is
+    reached by one sample in 20, worth ``1/p = 20`` times its share (values
+    up to ~18 beside a mean below 1); its shadow has core ``[0.30, 0.56] x
+    [0.46, 0.82]`` and a narrow penumbra ``0.004 + 0.012 x`` (0.5 to 2 px at
+    128 px).  ``u1`` being independent of the light position,
+
+    .. math::
+
+        E_u[L_c] = a_c\,\bigl(k + \ell_c f (1 - P^x P^y)\bigr).
+
+    ``n_dims = 4``.
+    """
+
+    name = "checker_spot"
+    description = "checker_wall's texture under a small light found 1 sample in 20: high variance (4 dims)"
+    n_dims = 4
+    feature_names = tuple(FEATURE_LAYOUT)
+    features_default = True
+    p = _CS_P
+    occluder = _CS_OCC
+    _kernel = 8
+
+
+class CheckerDofScene(Scene):
+    r"""Three checkerboard-textured planes at different depths through a thin lens (depth of field).
+
+    A ray from film point ``(x, y)`` through the square lens aperture at
+    offset ``(u1 - 1/2, u2 - 1/2)`` meets the plane at depth ``z`` at the
+    projected film point ``(x + R(z)(u1 - 1/2), y + R(z)(u2 - 1/2))``,
+    ``R(z) = a (1/z - 1/z_f)``, ``a = 1/8``, focus ``z_f = 2``.  Front to back:
+
+    * a near card, ``z = 1`` (``R = 1/16``: 8 px blur at 128 px), rectangle
+      ``[2/32, 15/32] x [14/32, 30/32]``, squares 1/16;
+    * a card in focus, ``z = 2``, ``[13/32, 30/32] x [2/32, 17/32]``, squares
+      1/32 (4 px), partly behind the near card;
+    * a wall, ``z = 3`` (``R = -1/48``, 2.7 px), everywhere, squares 1/8.
+
+    The sample sees the first plane whose rectangle holds its projected
+    point; colour = albedo x ``E_k (1/2 + u3)`` (irradiance ``E`` = 1.0, 1.1,
+    0.9; u3 an independent light sample).  Each hit event is a box in
+    ``(u1, u2)`` minus the boxes of the planes in front; expanded by
+    inclusion-exclusion into signed boxes, the checker ``(A0 + A1)/2 -
+    (A1 - A0)/2 q(n s/2) q(n t/2)`` integrates over each exactly (products
+    of triangle-wave differences), so E_u[L] and the features' expectations
+    are exact.  Features: the hit plane's albedo, its normal (near card
+    ``(0, -0.6, -0.8)``, card in focus ``(-0.6, 0, -0.8)``, wall ``(0, 0,
+    -1)``) and depth ``z``: noisy and blurred where the colour is.
+    ``n_dims = 3``.
+    """
+
+    name = "checker_dof"
+    description = "checkered cards at 3 depths through a thin lens: features blurred and noisy off focus (3 dims)"
+    n_dims = 3
+    feature_names = tuple(FEATURE_LAYOUT)
+    features_default = True
+    planes = _CD_PLANES
+    aperture = _CD_APERTURE
+    focus = _CD_FOCUS
+    _kernel = 7
 
 
 # --- flat --------------------------------------------------------------------
@@ -632,6 +509,7 @@ class FlatScene(Scene):
     name = "flat"
     description = "constant 0.5 with uniform noise in [0, 1) per channel (3 dims)"
     n_dims = 3
+    feature_names = tuple(FEATURE_LAYOUT)  # opt-in: features_default False keeps old outputs
 
     def _radiance(self, x, y, u):
         return u.copy()
@@ -642,7 +520,21 @@ class FlatScene(Scene):
     def _reference(self, width, height, quadrature):
         return np.full((height, width, 3), 0.5)
 
+    def _features(self, x, y, u):
+        # a grey card facing the camera at depth 1: colour = albedo x (2 u_c), mean 1
+        return np.tile(_FLAT_FEATURES, (x.size, 1))
+
+    def _expected_features(self, x, y):
+        return np.tile(_FLAT_FEATURES, (x.size, 1))
+
+    def _feature_reference(self, width, height, quadrature):
+        return np.tile(_FLAT_FEATURES, (height, width, 1))
+
+
+_FLAT_FEATURES = np.array([0.5, 0.5, 0.5, 0.0, 0.0, -1.0, 1.0])
+
 
 #: Registry: scene name -> class (calling it gives a Scene).
 SCENES: dict = {cls.name: cls for cls in (SoftShadowScene, DepthOfFieldScene, MotionBlurScene,
-                                         CausticScene, HDRScene, FlatScene)}
+                                         CausticScene, HDRScene, FlatScene, CheckerWallScene, CheckerSpotScene,
+                                         CheckerDofScene)}

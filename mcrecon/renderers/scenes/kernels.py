@@ -1,0 +1,568 @@
+"""Compiled kernels of the built-in scenes (numba, nogil): each scene's radiance, expectation, per-sample
+features and their expectation at one point, and the loops that drive them by a scene id.
+
+The formulas are documented on the scene classes (:mod:`.catalog`) and in ``docs/scenes.md``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .base import _box_square_wave, _box_wave, _checker, _njit, _overlap_fraction, _square_wave, _wave
+from .textured import (_cd_expected, _cd_feature_expected, _cd_features, _cd_radiance, _cs_expected,
+                       _cs_feature_expected, _cs_features, _cs_radiance, _cw_expected, _cw_feature_expected,
+                       _cw_features, _cw_radiance)
+# --- soft_shadow -------------------------------------------------------------
+
+_SS_A0 = np.array([0.80, 0.72, 0.55])
+_SS_A1 = np.array([0.18, 0.22, 0.32])
+_SS_AMBIENT = 0.08
+_SS_LIGHT = np.array([1.0, 0.95, 0.85])
+_SS_CHECKER = 10.0
+# (a, b, c, d): each occluder's shadow core [a, b] x [c, d] in normalised film space.
+_SS_OCCLUDERS = np.array([[0.12, 0.48, 0.18, 0.38],
+                          [0.30, 0.88, 0.58, 0.70]])
+
+
+@_njit
+def _ss_width(x, y):
+    return 0.01 + 0.11 * x
+
+
+@_njit
+def _ss_shade(x, y, vis, out):
+    chk = _checker(x, y, _SS_CHECKER)
+    for c in range(3):
+        albedo = _SS_A0[c] + (_SS_A1[c] - _SS_A0[c]) * chk
+        out[c] = albedo * (_SS_AMBIENT + _SS_LIGHT[c] * vis)
+
+
+@_njit
+def _ss_radiance(x, y, u, out):
+    w = _ss_width(x, y)
+    sx = x + w * (u[0] - 0.5)
+    sy = y + w * (u[1] - 0.5)
+    vis = 1.0
+    for k in range(_SS_OCCLUDERS.shape[0]):
+        o = _SS_OCCLUDERS[k]
+        if o[0] <= sx <= o[1] and o[2] <= sy <= o[3]:
+            vis = 0.0
+    _ss_shade(x, y, vis, out)
+
+
+@_njit
+def _ss_expected(x, y, out):
+    w = _ss_width(x, y)
+    vis = 1.0
+    for k in range(_SS_OCCLUDERS.shape[0]):
+        o = _SS_OCCLUDERS[k]
+        vis -= (_overlap_fraction(x - 0.5 * w, x + 0.5 * w, o[0], o[1])
+                * _overlap_fraction(y - 0.5 * w, y + 0.5 * w, o[2], o[3]))
+    _ss_shade(x, y, vis, out)
+
+
+# --- depth_of_field ----------------------------------------------------------
+
+_DOF_RMAX = 1.0 / 16.0
+_DOF_A = np.array([0.60, 0.55, 0.55])
+_DOF_B = np.array([0.25, -0.15, 0.20])    # checker q(6s) q(6t)
+_DOF_D = np.array([0.12, 0.15, 0.10])     # smooth wave w(3 s + phi)
+_DOF_PHI = np.array([0.0, 1.0 / 3.0, 2.0 / 3.0])
+_DOF_E = np.array([0.08, 0.05, 0.12])     # smooth wave w(2 t + psi)
+_DOF_PSI = np.array([0.25, 0.0, 0.5])
+_DOF_F = np.array([0.10, 0.12, -0.08])    # fine stripes q(20 s)
+
+
+@_njit
+def _dof_r(x, y):
+    return _DOF_RMAX * min(1.0, max(0.0, (abs(y - 0.5) - 0.1) / 0.4))
+
+
+@_njit
+def _dof_radiance(x, y, u, out):
+    r = _dof_r(x, y)
+    s = x + r * (u[0] - 0.5)
+    t = y + r * (u[1] - 0.5)
+    qq = _square_wave(6.0 * s) * _square_wave(6.0 * t)
+    stripes = _square_wave(20.0 * s)
+    for c in range(3):
+        out[c] = (_DOF_A[c] + _DOF_B[c] * qq + _DOF_D[c] * _wave(3.0 * s + _DOF_PHI[c])
+                  + _DOF_E[c] * _wave(2.0 * t + _DOF_PSI[c]) + _DOF_F[c] * stripes)
+
+
+@_njit
+def _dof_expected(x, y, out):
+    r = _dof_r(x, y)
+    # u1 and u2 are independent: the average of q(6s) q(6t) is the product of the averages.
+    qq = _box_square_wave(x, 6.0, r) * _box_square_wave(y, 6.0, r)
+    stripes = _box_square_wave(x, 20.0, r)
+    for c in range(3):
+        out[c] = (_DOF_A[c] + _DOF_B[c] * qq + _DOF_D[c] * _box_wave(x, 3.0, _DOF_PHI[c], r)
+                  + _DOF_E[c] * _box_wave(y, 2.0, _DOF_PSI[c], r) + _DOF_F[c] * stripes)
+
+
+# --- motion_blur -------------------------------------------------------------
+
+_MB_BACKGROUND = np.array([0.30, 0.32, 0.36])
+# x0, y0, width, height, vx, vy (per shutter interval), then the colour.
+_MB_OBJECTS = np.array([
+    [0.05, 0.08, 0.18, 0.18, 0.35, 0.00, 0.95, 0.20, 0.15],    # red square, medium speed
+    [0.85, 0.35, 0.04, 0.22, -0.50, 0.00, 0.20, 0.90, 0.25],   # green bar, fast, leftwards
+    [0.05, 0.38, 0.10, 0.15, 0.02, 0.00, 0.95, 0.85, 0.20],    # yellow box, almost still
+    [0.10, 0.65, 0.12, 0.12, 0.25, 0.15, 0.20, 0.35, 0.95],    # blue square, diagonal
+    [0.55, 0.70, 0.08, 0.08, 0.35, 0.00, 0.95, 0.95, 0.95],    # small white square, horizontal
+])
+
+
+def _mb_swept_boxes():
+    o = _MB_OBJECTS
+    x0, y0, w, h, vx, vy = (o[:, k] for k in range(6))
+    return np.stack([np.minimum(x0, x0 + vx), np.maximum(x0, x0 + vx) + w,
+                     np.minimum(y0, y0 + vy), np.maximum(y0, y0 + vy) + h], axis=1)
+
+
+def _mb_check_disjoint():
+    boxes = _mb_swept_boxes()
+    for i in range(len(boxes)):
+        for j in range(i):
+            a, b = boxes[i], boxes[j]
+            if a[0] < b[1] and b[0] < a[1] and a[2] < b[3] and b[2] < a[3]:
+                raise AssertionError(f"motion_blur objects {j} and {i} overlap in space-time")
+
+
+# The closed form below assumes no two objects ever cover the same point.
+_mb_check_disjoint()
+
+
+@_njit
+def _mb_background(x, y, out):
+    g = 0.55 + 0.45 * _checker(x, y, 16.0)
+    for c in range(3):
+        out[c] = _MB_BACKGROUND[c] * g
+
+
+@_njit
+def _mb_interval(p, p0, size, v):
+    """Times t at which p0 + v t <= p < p0 + v t + size, as (lo, hi) (empty if lo >= hi)."""
+    if v == 0.0:
+        if p0 <= p < p0 + size:
+            return -np.inf, np.inf
+        return np.inf, -np.inf
+    t1 = (p - p0 - size) / v
+    t2 = (p - p0) / v
+    return min(t1, t2), max(t1, t2)
+
+
+@_njit
+def _mb_radiance(x, y, u, out):
+    t = u[0]
+    _mb_background(x, y, out)
+    for k in range(_MB_OBJECTS.shape[0]):
+        o = _MB_OBJECTS[k]
+        ox = o[0] + o[4] * t
+        oy = o[1] + o[5] * t
+        if ox <= x < ox + o[2] and oy <= y < oy + o[3]:
+            for c in range(3):
+                out[c] = o[6 + c]
+
+
+@_njit
+def _mb_expected(x, y, out):
+    _mb_background(x, y, out)
+    b0, b1, b2 = out[0], out[1], out[2]
+    for k in range(_MB_OBJECTS.shape[0]):
+        o = _MB_OBJECTS[k]
+        lx, hx = _mb_interval(x, o[0], o[2], o[4])
+        ly, hy = _mb_interval(y, o[1], o[3], o[5])
+        frac = min(hx, hy, 1.0) - max(lx, ly, 0.0)
+        if frac > 0.0:
+            out[0] += frac * (o[6] - b0)
+            out[1] += frac * (o[7] - b1)
+            out[2] += frac * (o[8] - b2)
+
+
+# --- caustic -----------------------------------------------------------------
+
+_CA_P = 0.03
+_CA_CX, _CA_CY = 0.5, 0.45
+_CA_COLOUR = np.array([1.0, 0.85, 0.5])
+_CA_GLOW = 0.02
+_CA_HALF_WIDTH = 0.02
+_CA_TABLE_TOP = 0.85
+_CA_TABLE = np.array([0.05, 0.035, 0.02])
+
+
+@_njit
+def _ca_parts(x, y):
+    """(caustic intensity C / colour, table background g / colour) at one point."""
+    dx = x - _CA_CX
+    dy = y - _CA_CY
+    r = np.sqrt(dx * dx + dy * dy)
+    cos_t = dx / r if r > 0.0 else 1.0        # any direction at the centre
+    r0 = 0.28 * (1.0 - 0.3 * cos_t)
+    z = (r - r0) / _CA_HALF_WIDTH
+    bump = (1.0 - z * z) ** 2 if abs(z) < 1.0 else 0.0
+    inner = max(0.0, 1.0 - r / r0) ** 2
+    caustic = (3.0 + 1.5 * cos_t) * bump + _CA_GLOW * inner
+    table = 0.0
+    if y > _CA_TABLE_TOP:
+        table = (y - _CA_TABLE_TOP) / (1.0 - _CA_TABLE_TOP) * (1.0 + 0.5 * np.sin(6.0 * np.pi * x))
+    return caustic, table
+
+
+@_njit
+def _ca_radiance(x, y, u, out):
+    caustic, table = _ca_parts(x, y)
+    hit = caustic / _CA_P if u[0] < _CA_P else 0.0
+    noise = 2.0 * u[1]
+    for c in range(3):
+        out[c] = _CA_TABLE[c] * table * noise + _CA_COLOUR[c] * hit
+
+
+@_njit
+def _ca_expected(x, y, out):
+    caustic, table = _ca_parts(x, y)
+    for c in range(3):
+        out[c] = _CA_TABLE[c] * table + _CA_COLOUR[c] * caustic
+
+
+# --- hdr ---------------------------------------------------------------------
+
+_HD_CX, _HD_CY, _HD_R = 0.3, 0.3, 0.14
+_HD_POWER = 500.0
+_HD_EMIT = np.array([1.0, 0.9, 0.75])
+_HD_MID_LEFT = 0.62
+_HD_MID = np.array([1.0, 0.95, 0.9])
+_HD_DIM = np.array([1.0, 0.8, 0.6])
+_HD_OCC = (0.12, 0.42, 0.62, 0.78)
+
+
+@_njit
+def _hd_base(x, y):
+    """(region, base value): region 0 emitter, 1 mid panel, 2 dim surface."""
+    rho2 = ((x - _HD_CX) ** 2 + (y - _HD_CY) ** 2) / (_HD_R * _HD_R)
+    if rho2 < 1.0:
+        return 0, _HD_POWER * (1.0 - 0.2 * rho2)
+    if x >= _HD_MID_LEFT:
+        return 1, 0.5 * (0.8 + 0.2 * _square_wave(8.0 * y))
+    return 2, 1e-3 * (0.5 + 0.5 * _checker(x, y, 12.0))
+
+
+@_njit
+def _hd_write(region, base, scale, vis, out):
+    for c in range(3):
+        if region == 0:
+            out[c] = base * scale * _HD_EMIT[c]
+        elif region == 1:
+            out[c] = base * scale * _HD_MID[c]
+        else:
+            out[c] = base * (1.0 + 9.0 * vis) * _HD_DIM[c]
+
+
+@_njit
+def _hd_radiance(x, y, u, out):
+    region, base = _hd_base(x, y)
+    w = 0.02 + 0.1 * x
+    sx = x + w * (u[1] - 0.5)
+    sy = y + w * (u[2] - 0.5)
+    blocked = _HD_OCC[0] <= sx <= _HD_OCC[1] and _HD_OCC[2] <= sy <= _HD_OCC[3]
+    _hd_write(region, base, 0.5 + u[0], 0.0 if blocked else 1.0, out)
+
+
+@_njit
+def _hd_expected(x, y, out):
+    region, base = _hd_base(x, y)
+    w = 0.02 + 0.1 * x
+    vis = 1.0 - (_overlap_fraction(x - 0.5 * w, x + 0.5 * w, _HD_OCC[0], _HD_OCC[1])
+                 * _overlap_fraction(y - 0.5 * w, y + 0.5 * w, _HD_OCC[2], _HD_OCC[3]))
+    _hd_write(region, base, 1.0, vis, out)
+
+
+# --- features of the primary hit (albedo 0:3, normal 3:6, depth 6) ----------
+# Camera space: X right (film columns), Y down (film rows), Z forward, the
+# depth the hit's Z; normals face the camera (n_Z < 0).  Each scene's colour is
+# albedo x shading (+ emission): the formulas are in docs/scenes.md.
+
+@_njit
+def _set_normal_depth(f, nx, ny, nz, depth):
+    f[3] = nx
+    f[4] = ny
+    f[5] = nz
+    f[6] = depth
+
+
+@_njit
+def _ss_feature_expected(x, y, f):
+    # a ground plane seen from straight above; colour = albedo (0.08 + l V)
+    chk = _checker(x, y, _SS_CHECKER)
+    for c in range(3):
+        f[c] = _SS_A0[c] + (_SS_A1[c] - _SS_A0[c]) * chk
+    _set_normal_depth(f, 0.0, 0.0, -1.0, 1.0)
+
+
+@_njit
+def _ss_features(x, y, u, f):
+    _ss_feature_expected(x, y, f)  # the light sample does not move the primary hit
+
+
+#: depth_of_field: colour = albedo x this irradiance (keeps the albedo <= 0.92).
+_DOF_IRRADIANCE = 1.25
+#: its plane recedes towards the bottom of the image: depth 2 + 2 (t - 1/2) at the hit's projected row t
+_DOF_NORMAL = np.array([0.0, -1.0, -2.0]) / np.sqrt(5.0)
+
+
+@_njit
+def _dof_features(x, y, u, f):
+    _dof_radiance(x, y, u, f)   # the texture at the lens ray's hit point (s, t)
+    for c in range(3):
+        f[c] /= _DOF_IRRADIANCE
+    t = y + _dof_r(x, y) * (u[1] - 0.5)
+    _set_normal_depth(f, _DOF_NORMAL[0], _DOF_NORMAL[1], _DOF_NORMAL[2], 2.0 + 2.0 * (t - 0.5))
+
+
+@_njit
+def _dof_feature_expected(x, y, f):
+    _dof_expected(x, y, f)
+    for c in range(3):
+        f[c] /= _DOF_IRRADIANCE
+    # depth is linear in t and E[t] = y (u2 - 1/2 has mean 0)
+    _set_normal_depth(f, _DOF_NORMAL[0], _DOF_NORMAL[1], _DOF_NORMAL[2], 2.0 + 2.0 * (y - 0.5))
+
+
+#: motion_blur: colour = albedo (unit irradiance); the wall at depth 3, object k at depth 1 + 0.25 k,
+#: all facing the camera.
+_MB_WALL_DEPTH = 3.0
+
+
+@_njit
+def _mb_features(x, y, u, f):
+    t = u[0]
+    _mb_background(x, y, f)
+    _set_normal_depth(f, 0.0, 0.0, -1.0, _MB_WALL_DEPTH)
+    for k in range(_MB_OBJECTS.shape[0]):
+        o = _MB_OBJECTS[k]
+        ox = o[0] + o[4] * t
+        oy = o[1] + o[5] * t
+        if ox <= x < ox + o[2] and oy <= y < oy + o[3]:
+            for c in range(3):
+                f[c] = o[6 + c]
+            f[6] = 1.0 + 0.25 * k
+
+
+@_njit
+def _mb_feature_expected(x, y, f):
+    _mb_background(x, y, f)
+    _set_normal_depth(f, 0.0, 0.0, -1.0, _MB_WALL_DEPTH)
+    b0, b1, b2 = f[0], f[1], f[2]
+    for k in range(_MB_OBJECTS.shape[0]):
+        o = _MB_OBJECTS[k]
+        lx, hx = _mb_interval(x, o[0], o[2], o[4])
+        ly, hy = _mb_interval(y, o[1], o[3], o[5])
+        frac = min(hx, hy, 1.0) - max(lx, ly, 0.0)
+        if frac > 0.0:
+            f[0] += frac * (o[6] - b0)
+            f[1] += frac * (o[7] - b1)
+            f[2] += frac * (o[8] - b2)
+            f[6] += frac * (1.0 + 0.25 * k - _MB_WALL_DEPTH)
+
+
+#: caustic: a grey floor (the caustic's colour is the light's) seen obliquely, farther at the top; the
+#: table top (y > 0.85) has albedo 10 T (its radiance T g 2 u2 is that albedo under a dim irradiance).
+_CA_FLOOR_ALBEDO = 0.7
+_CA_NORMAL = (0.0, -0.8, -0.6)
+
+
+@_njit
+def _ca_feature_expected(x, y, f):
+    if y > _CA_TABLE_TOP:
+        for c in range(3):
+            f[c] = 10.0 * _CA_TABLE[c]
+        depth = 0.8
+    else:
+        for c in range(3):
+            f[c] = _CA_FLOOR_ALBEDO
+        depth = 3.0 - 2.0 * y
+    _set_normal_depth(f, _CA_NORMAL[0], _CA_NORMAL[1], _CA_NORMAL[2], depth)
+
+
+@_njit
+def _ca_features(x, y, u, f):
+    _ca_feature_expected(x, y, f)  # the path choices do not move the primary hit
+
+
+#: hdr: the emitter has albedo 0 (pure emission); the mid panel albedo 0.5 m (0.8 + 0.2 q(8y)) under
+#: irradiance (1/2 + u1), tilted towards the left; the dim surfaces albedo 0.8 d (1/2 + checker/2) under
+#: 1.25e-3 (1 + 9 V).
+_HD_PANEL_NORMAL = (-0.6, 0.0, -0.8)
+
+
+@_njit
+def _hd_feature_expected(x, y, f):
+    region, base = _hd_base(x, y)
+    for c in range(3):
+        if region == 0:
+            f[c] = 0.0
+        elif region == 1:
+            f[c] = base * _HD_MID[c]
+        else:
+            f[c] = 800.0 * base * _HD_DIM[c]
+    if region == 0:
+        _set_normal_depth(f, 0.0, 0.0, -1.0, 1.5)
+    elif region == 1:
+        _set_normal_depth(f, _HD_PANEL_NORMAL[0], _HD_PANEL_NORMAL[1], _HD_PANEL_NORMAL[2], 2.0)
+    else:
+        _set_normal_depth(f, 0.0, 0.0, -1.0, 2.5)
+
+
+@_njit
+def _hd_features(x, y, u, f):
+    _hd_feature_expected(x, y, f)
+
+
+# --- drivers -----------------------------------------------------------------
+# One loop for all scenes, selecting the scalar functions by an integer id:
+# numba's on-disk cache cannot store loops that take jitted functions as
+# arguments (it fails to pickle the function type), and the id test is
+# loop-invariant (hoisted by the compiler, or a perfectly predicted branch).
+
+@_njit
+def _point_radiance(kernel, x, y, u, out):
+    if kernel == 1:
+        _ss_radiance(x, y, u, out)
+    elif kernel == 2:
+        _dof_radiance(x, y, u, out)
+    elif kernel == 3:
+        _mb_radiance(x, y, u, out)
+    elif kernel == 4:
+        _ca_radiance(x, y, u, out)
+    elif kernel == 5:
+        _hd_radiance(x, y, u, out)
+    elif kernel == 6:
+        _cw_radiance(x, y, u, out)
+    elif kernel == 7:
+        _cd_radiance(x, y, u, out)
+    elif kernel == 8:
+        _cs_radiance(x, y, u, out)
+
+
+@_njit
+def _point_expected(kernel, x, y, out):
+    if kernel == 1:
+        _ss_expected(x, y, out)
+    elif kernel == 2:
+        _dof_expected(x, y, out)
+    elif kernel == 3:
+        _mb_expected(x, y, out)
+    elif kernel == 4:
+        _ca_expected(x, y, out)
+    elif kernel == 5:
+        _hd_expected(x, y, out)
+    elif kernel == 6:
+        _cw_expected(x, y, out)
+    elif kernel == 7:
+        _cd_expected(x, y, out)
+    elif kernel == 8:
+        _cs_expected(x, y, out)
+
+
+@_njit
+def _point_features(kernel, x, y, u, f):
+    if kernel == 1:
+        _ss_features(x, y, u, f)
+    elif kernel == 2:
+        _dof_features(x, y, u, f)
+    elif kernel == 3:
+        _mb_features(x, y, u, f)
+    elif kernel == 4:
+        _ca_features(x, y, u, f)
+    elif kernel == 5:
+        _hd_features(x, y, u, f)
+    elif kernel == 6:
+        _cw_features(x, y, u, f)
+    elif kernel == 7:
+        _cd_features(x, y, u, f)
+    elif kernel == 8:
+        _cs_features(x, y, u, f)
+
+
+@_njit
+def _point_feature_expected(kernel, x, y, f):
+    if kernel == 1:
+        _ss_feature_expected(x, y, f)
+    elif kernel == 2:
+        _dof_feature_expected(x, y, f)
+    elif kernel == 3:
+        _mb_feature_expected(x, y, f)
+    elif kernel == 4:
+        _ca_feature_expected(x, y, f)
+    elif kernel == 5:
+        _hd_feature_expected(x, y, f)
+    elif kernel == 6:
+        _cw_feature_expected(x, y, f)
+    elif kernel == 7:
+        _cd_feature_expected(x, y, f)
+    elif kernel == 8:
+        _cs_feature_expected(x, y, f)
+
+
+@_njit
+def _radiance_loop(kernel, x, y, u, out):
+    for i in range(x.shape[0]):
+        _point_radiance(kernel, x[i], y[i], u[i], out[i])
+
+
+@_njit
+def _expected_loop(kernel, x, y, out):
+    for i in range(x.shape[0]):
+        _point_expected(kernel, x[i], y[i], out[i])
+
+
+@_njit
+def _features_loop(kernel, x, y, u, out):
+    for i in range(x.shape[0]):
+        _point_features(kernel, x[i], y[i], u[i], out[i])
+
+
+@_njit
+def _feature_expected_loop(kernel, x, y, out):
+    for i in range(x.shape[0]):
+        _point_feature_expected(kernel, x[i], y[i], out[i])
+
+
+@_njit
+def _feature_reference_loop(kernel, width, height, q, out):
+    """Midpoint rule, q x q points per pixel, of the expected features of scene ``kernel`` (as below)."""
+    buf = np.empty(out.shape[2])
+    inv = 1.0 / (q * q)
+    for j in range(height):
+        for i in range(width):
+            out[j, i, :] = 0.0
+            for b in range(q):
+                yy = (j + (b + 0.5) / q) / height
+                for a in range(q):
+                    xx = (i + (a + 0.5) / q) / width
+                    _point_feature_expected(kernel, xx, yy, buf)
+                    for c in range(buf.shape[0]):
+                        out[j, i, c] += buf[c]
+            for c in range(buf.shape[0]):
+                out[j, i, c] *= inv
+
+
+@_njit
+def _reference_loop(kernel, width, height, q, out):
+    """Midpoint rule, q x q points per pixel, of the expectation of scene ``kernel``."""
+    buf = np.empty(out.shape[2])
+    acc = np.empty(out.shape[2])
+    inv = 1.0 / (q * q)
+    for j in range(height):
+        for i in range(width):
+            acc[:] = 0.0
+            for b in range(q):
+                yy = (j + (b + 0.5) / q) / height
+                for a in range(q):
+                    xx = (i + (a + 0.5) / q) / width
+                    _point_expected(kernel, xx, yy, buf)
+                    for c in range(acc.shape[0]):
+                        acc[c] += buf[c]
+            for c in range(acc.shape[0]):
+                out[j, i, c] = acc[c] * inv
