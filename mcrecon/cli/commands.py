@@ -175,6 +175,9 @@ def _renderer_spec(args) -> dict:
         raise InputError("adapt", "renderer", "give exactly one of --scene NAME, --renderer-cmd CMD, "
                          "--mitsuba [SCENE.xml|cornell-box], or --resume LOG")
     w, h = parse_size(args.size)
+    if args.features is not None and args.mitsuba is None:
+        raise InputError("adapt", "--features", "chooses the Mitsuba bridge's per-sample features (with "
+                         "--mitsuba); a built-in scene or an external renderer sends what it sends")
     if args.scene is not None:
         from ..renderers.scenes import get_scene
 
@@ -188,13 +191,15 @@ def _renderer_spec(args) -> dict:
         if not argv:
             raise InputError("--renderer-cmd", "command", "empty")
         return command_spec(argv, width=w, height=h, channels=args.channels.split(","), timeout=args.timeout)
-    return mitsuba_spec(None if args.mitsuba == "cornell-box" else args.mitsuba, width=w, height=h)
+    return mitsuba_spec(None if args.mitsuba == "cornell-box" else args.mitsuba, width=w, height=h,
+                        features="all" if args.features is None else args.features)
 
 
 def _refuse_run_flags(args) -> None:
     """A resumed run keeps its recorded settings: refuse flags that would change them."""
     ignored = [flag for flag, v in (("--scene", args.scene), ("--renderer-cmd", args.renderer_cmd),
-                                    ("--mitsuba", args.mitsuba), ("--spp", args.spp), ("--log", args.log),
+                                    ("--mitsuba", args.mitsuba), ("--features", args.features), ("--spp", args.spp),
+                                    ("--log", args.log),
                                     ("--reference", args.reference)) if v is not None]
     ignored += [args.method_flags[k] for k in given_method_options(args)]
     if args.method != "box" or args.seed != 0 or args.nonfinite != "drop" or args.storage_dtype != "auto":
@@ -415,6 +420,9 @@ def register(sub, command: str | None = None) -> None:
                         "(split like a shell would, never run through one)")
     s.add_argument("--mitsuba", default=None, nargs="?", const="cornell-box", metavar="SCENE.xml",
                    help="Mitsuba 3 bridge (optional extra): a scene file, default the Cornell box")
+    s.add_argument("--features", default=None, metavar="none|albedo,normal,depth",
+                   help="with --mitsuba: the per-sample features of the primary hit it sends and the log stores "
+                        "(default all three; none to switch off)")
     s.add_argument("--channels", default="R,G,B", help="channel names of an external renderer")
     s.add_argument("--timeout", type=float, default=600.0, help="seconds per round for an external renderer")
     s.add_argument("--size", default="128x128", help="film size WIDTHxHEIGHT (default 128x128)")
@@ -507,6 +515,9 @@ def register(sub, command: str | None = None) -> None:
         m.add_argument("--seed", type=int, default=0)
         if name == "log":
             m.add_argument("--reference-spp", type=int, default=None, help="also store a reference of this spp")
+            m.add_argument("--features", default="all", metavar="none|albedo,normal,depth",
+                           help="per-sample features of the primary hit to store (/features/NAME; default all "
+                                "three: albedo, shading normal, camera-space depth; none to switch off)")
         m.add_argument("-o", "--output", required=True)
         m.set_defaults(func=_cmd_mitsuba)
 
