@@ -110,7 +110,9 @@ def _read_pixel_stats_input(args):
         count_source, name = pix.count_source, str(args.log)
     if note is not None:  # after the input is read: a refused input gets its one error line only
         sys.stderr.write(f"mcrecon: note: {note}\n")
-    what = ", ".join(f"{k} {','.join(v)}" for k, v in pix.sources.items())
+    what = ", ".join(f"{k} {','.join(v)}" for k, v in pix.sources.items() if k != "features")
+    if pix.sources.get("features"):
+        what += ", features " + ", ".join(f"{f} ({','.join(c)})" for f, c in pix.sources["features"].items())
     space = f"; reconstructed in {','.join(pix.stats.channels)}, written as {','.join(pix.output_channels)}" \
         if pix.output_matrix is not None else ""
     sys.stderr.write(f"mcrecon: note: {name}: layout {pix.layout}: {what}; count from {count_source}"

@@ -58,6 +58,34 @@ it to ``'sample'`` when the user did not choose, and ``auto``'s default
 candidates need two halves of the samples, so it keeps only its SURE
 candidates (``box,gauss``) unless given a half-buffer pair.
 
+Features
+--------
+Feature channels found next to the colour are read into the statistics'
+per-pixel features (``PixelStats.from_moments(features=...)``; see
+``docs/pixel-statistics-inputs.md``), by :data:`FEATURE_CHANNELS`:
+
+* pbrt-v4 (``pbrt-v4`` layout or an explicit mapping): ``albedo`` from
+  ``Albedo.R/G/B``; ``normal`` from ``Ns.X/Y/Z`` (the shading normal),
+  else ``N.X/Y/Z`` (the geometric one); ``depth`` from ``P.Z`` (pbrt
+  writes the camera-space position: its z is the depth).  pbrt writes no
+  variance of them: they count as noise-free (variance None).
+* Mitsuba 3's ``aov`` integrator (explicit mapping): the AOV names
+  ``albedo`` (``albedo.R/G/B``), ``sh_normal`` or ``nn`` (``.X/Y/Z``,
+  the name Mitsuba's documentation gives the ``sh_normal`` AOV) and
+  ``depth``, ``dd`` or ``dd.y`` (``.T``).  Mitsuba names the channels
+  after the AOV's *name*, not its type: other names are not guessed.
+* Mitsuba's ``moment`` integrator wrapping an ``aov`` integrator named
+  ``P`` (the prefix of the colour moments): the same AOV names prefixed
+  ``P.``, with their second moments ``m2_P.*``, which give the features'
+  variances like the colour's.
+
+Two candidates for one feature (``sh_normal`` and ``nn``, pbrt and
+Mitsuba names) are refused as ambiguous, naming them: choose with
+``features={"normal": "nn.X,nn.Y,nn.Z"}``.  Non-finite feature values in
+sampled pixels are set to 0 and warned, as for per-sample features
+(:func:`mcrecon.core.features.check_features`).  ``features="none"``
+reads none.
+
 Half-buffer pairs
 -----------------
 Two EXRs of independent halves of the samples (dual buffers), read with
@@ -75,7 +103,7 @@ import os
 import re
 import warnings
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -84,7 +112,7 @@ from ..core.stats import PixelStats
 from .images import subsampled
 
 __all__ = ['LAYOUTS', 'PixelStatsEXR', 'read_pixel_stats_exr', 'read_half_buffer_exrs', 'HALF_MAX',
-           'MITSUBA_XYZ_TO_SRGB', 'xyz_from_rgb_matrix']
+           'MITSUBA_XYZ_TO_SRGB', 'xyz_from_rgb_matrix', 'FEATURE_CHANNELS', 'find_feature_channels']
 
 #: The layout presets (besides the explicit mapping).
 LAYOUTS = ("pbrt-v4", "mitsuba-moment")
@@ -102,6 +130,22 @@ MITSUBA_XYZ_TO_SRGB = np.array([[3.240479, -1.537150, -0.498535],
 _MITSUBA_SRGB_TO_XYZ = np.array([[0.412453, 0.357580, 0.180423],
                                  [0.212671, 0.715160, 0.072169],
                                  [0.019334, 0.119193, 0.950227]])
+
+#: Where each feature is found: ``{feature: (source, [channel names, ...] in order of preference)}``
+#: per source (pbrt-v4 names, Mitsuba aov names); a Mitsuba moment layout looks for the
+#: Mitsuba names behind its prefix ``P.`` with second moments ``m2_P.*``.
+FEATURE_CHANNELS: dict[str, dict[str, tuple[tuple[str, ...], ...]]] = {
+    "albedo": {"pbrt-v4": (("Albedo.R", "Albedo.G", "Albedo.B"),),
+               "mitsuba": (("albedo.R", "albedo.G", "albedo.B"),)},
+    # pbrt: the shading normal first, the geometric one only without it (a preference, not ambiguity)
+    "normal": {"pbrt-v4": (("Ns.X", "Ns.Y", "Ns.Z"), ("N.X", "N.Y", "N.Z")),
+               "mitsuba": (("sh_normal.X", "sh_normal.Y", "sh_normal.Z"), ("nn.X", "nn.Y", "nn.Z"))},
+    "depth": {"pbrt-v4": (("P.Z",),),
+              "mitsuba": (("depth.T",), ("dd.T",), ("dd.y.T",))},
+}
+#: Sources whose candidates are alternatives in order of preference; in the others two present
+#: candidates are ambiguous.
+_PREFERENCE_SOURCES = ("pbrt-v4",)
 
 #: sRGB / Rec. 709 primaries and D65 white (EXR's default when no ``chromaticities`` attribute).
 _SRGB_CHROMATICITIES = ((0.64, 0.33), (0.30, 0.60), (0.15, 0.06), (0.3127, 0.3290))
@@ -305,7 +349,8 @@ def _mitsuba_prefixes(names) -> list[str]:
             p = m.group(1)
             if all(c in names for c in (f"{p}.X", f"{p}.Y", f"{p}.Z", f"m2_{p}.Y", f"m2_{p}.Z")):
                 out.append(p)
-    return sorted(out)
+    # the AOVs of an aov integrator P (P.nn.X: its normals) are not a second colour output
+    return sorted(p for p in out if not any(p.startswith(q + ".") for q in out))
 
 
 def _detect_layout(exr: _EXR) -> str | None:
@@ -315,6 +360,113 @@ def _detect_layout(exr: _EXR) -> str | None:
     if _mitsuba_prefixes(names) or set(exr.names) == {f"ch{i}" for i in range(9)}:
         return "mitsuba-moment"
     return None
+
+
+def find_feature_channels(names, layout: str, *, prefix: str | None = None, features="auto",
+                          where: str = "EXR") -> dict[str, tuple[tuple[str, ...], tuple[str, ...] | None]]:
+    """The feature channels of an EXR: ``{feature: (mean channels, second-moment channels or None)}``.
+
+    Parameters
+    ----------
+    names : iterable of str
+        The file's channel names.
+    layout : {'pbrt-v4', 'mitsuba-moment', 'explicit'}
+        pbrt-v4 looks for pbrt's names, mitsuba-moment for Mitsuba's behind
+        ``prefix`` (with ``m2_`` second moments), explicit for both.
+    prefix : str, optional
+        The moment integrator's output the colour comes from (``nested``).
+    features : 'auto', 'none' or mapping
+        'auto': every feature of :data:`FEATURE_CHANNELS` found; 'none':
+        none; a mapping ``{feature: "C1,C2,C3"}``: those channels (their
+        ``m2_`` second moments too under mitsuba-moment, when present).
+    where : str
+        The file, for errors.
+
+    Raises
+    ------
+    InputError
+        A feature with two candidates (naming both and the fix), an
+        unknown ``features`` value, a mapped channel that is missing.
+    """
+    names = set(names)
+    if isinstance(features, str) and features == "none":
+        return {}
+    if isinstance(features, Mapping):
+        out = {}
+        for feat, chans in features.items():
+            chans = _split(chans, "features")
+            missing = [c for c in chans if c not in names]
+            if missing:
+                raise InputError(where, f"features/{feat}", f"channel {missing[0]!r} missing; channels present: "
+                                 f"{', '.join(sorted(names)[:40])}")
+            m2 = tuple(f"m2_{c}" for c in chans)
+            out[str(feat)] = (chans, m2 if layout == "mitsuba-moment" and set(m2) <= names else None)
+        return out
+    if not (isinstance(features, str) and features == "auto"):
+        raise InputError(where, "features", f"{features!r}; valid: 'auto', 'none', or a mapping feature -> "
+                         "comma-separated channels (e.g. {'normal': 'nn.X,nn.Y,nn.Z'})")
+    if layout == "mitsuba-moment" and prefix is None:
+        return {}  # positional ch0 ... ch8: no names, no features
+    out = {}
+    for feat, by_source in FEATURE_CHANNELS.items():
+        found = []  # (source, mean channels, m2 channels or None)
+        for source, candidates in by_source.items():
+            if layout == "pbrt-v4" and source != "pbrt-v4":
+                continue
+            if layout == "mitsuba-moment" and source != "mitsuba":
+                continue
+            hits = []
+            for cand in candidates:
+                if layout == "mitsuba-moment":
+                    cand = tuple(f"{prefix}.{c}" for c in cand)
+                    m2 = tuple(f"m2_{c}" for c in cand)
+                    if set(cand) <= names and set(m2) <= names:
+                        hits.append((source, cand, m2))
+                elif set(cand) <= names:
+                    hits.append((source, cand, None))
+            if source in _PREFERENCE_SOURCES:
+                hits = hits[:1]
+            found += hits
+        if len(found) > 1:
+            shown = " and ".join(",".join(f[1]) for f in found)
+            raise InputError(where, f"features/{feat}", f"ambiguous: {shown} could both be the {feat}; choose "
+                             f"with features={{{feat!r}: '{','.join(found[0][1])}'}} (Python), or drop one from the "
+                             "file")
+        if found:
+            out[feat] = (found[0][1], found[0][2])
+    return out
+
+
+def _read_features(exr: _EXR, found, n):
+    """``{feature: (mean (H, W, k), variance of the samples or None)}`` of the channels ``found``."""
+    from ..core.features import warn_feature_zeroed
+
+    out = {}
+    zeroed = 0
+    sampled = np.broadcast_to(np.asarray(n) > 0, (exr.arrays[next(iter(exr.arrays))].shape[:2]))
+    for feat, (chans, m2_chans) in found.items():
+        m, half = exr.get(chans, f"features/{feat}")
+        var = None
+        if m2_chans is not None:
+            m2, half2 = exr.get(m2_chans, f"features/{feat}")
+            bad = ~(np.isfinite(m) & np.isfinite(m2)).all(axis=-1) & sampled
+            if bad.any():
+                zeroed = max(zeroed, int(bad.sum()))
+                m = np.where(bad[..., None], 0.0, m)
+                m2 = np.where(bad[..., None], 0.0, m2)
+            m2 = np.maximum(m2, 0.0)  # a feature's moments are a guide: no damage report, no refusal
+            var = _variance_from_moments(exr, m2_chans, m, m2, n, half or half2)
+        else:
+            bad = ~np.isfinite(m).all(axis=-1) & sampled
+            if bad.any():
+                zeroed = max(zeroed, int(bad.sum()))
+                m = np.where(bad[..., None], 0.0, m)
+        # an empty pixel's values are ignored by the statistics; keep them finite
+        m = np.where(np.isfinite(m), m, 0.0)
+        out[feat] = (m, var)
+    if zeroed:
+        warn_feature_zeroed(str(exr.path), zeroed, stacklevel=4)
+    return out
 
 
 def _file_chromaticities(exr: _EXR):
@@ -356,7 +508,7 @@ def _check_finite(exr, names, values, count, field, half):
 
 
 def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance=None, second_moment=None,
-                         variance_of: str = "samples", count=None, spp=None) -> PixelStatsEXR:
+                         variance_of: str = "samples", count=None, spp=None, features="auto") -> PixelStatsEXR:
     """Read an EXR of per-pixel statistics (see the module docstring for the layouts).
 
     Parameters
@@ -377,10 +529,16 @@ def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance
         Samples per pixel: a number, a channel name or a header attribute.
     spp : int, optional
         Samples per pixel (the same as a numeric ``count``).
+    features : 'auto', 'none' or mapping
+        The feature channels to read into ``stats.features`` (see
+        :func:`find_feature_channels` and the module notes): 'auto'
+        (default) every one found, 'none' none, or ``{feature: channels}``.
 
     Returns
     -------
     PixelStatsEXR
+        ``sources["features"]`` names the channels each feature was read
+        from (``{}`` when none).
 
     Raises
     ------
@@ -407,6 +565,9 @@ def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance
             raise InputError(where, "layout", "not recognised (no pbrt-v4 Variance.R/G/B, no Mitsuba m2_* "
                              f"moments); channels present: {exr.present()}; pass --layout pbrt-v4|mitsuba-moment "
                              "or the mapping --mean R,G,B --variance ... --count N")
+    if not (isinstance(features, Mapping) or features in ("auto", "none")):
+        raise InputError(where, "features", f"{features!r}; valid: 'auto', 'none', or a mapping feature -> "
+                         "comma-separated channels")
     n, count_source = _resolve_count(exr, count, spp)
     _check_total(exr, n, count_source, "--spp" if spp is not None else "--count")
     out_matrix, out_channels = None, None
@@ -462,6 +623,8 @@ def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance
             out_matrix, out_channels = MITSUBA_XYZ_TO_SRGB.copy(), ("R", "G", "B")
         sources = {"mean": tuple(mean), "second_moment": tuple(second_moment)}
         v_of = "samples"
+        m_prefix = re.fullmatch(r"(.+)\.X", mean[0]) if len(mean) == 3 else None
+        feature_prefix = m_prefix.group(1) if m_prefix else None
     else:  # explicit
         if mean is None:
             raise InputError("--mean", "mean", "the explicit mapping needs --mean CHANNELS and --variance CHANNELS "
@@ -501,7 +664,18 @@ def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance
         var = np.where(int(n_arr) <= 1, 0.0, var)
     else:
         var = np.where((n_arr <= 1)[..., None], 0.0, var)
-    stats = PixelStats.from_moments(m, var, n, channels=channels, variance_of=v_of, where=where)
+    found = find_feature_channels(exr.names, layout, features=features, where=where,
+                                  prefix=feature_prefix if layout == "mitsuba-moment" else None)
+    # a colour channel is no feature (a mapping --mean P.X,P.Y,P.Z of other data would be read twice)
+    used = set(sources["mean"]) | set(sources.get("variance", ())) | set(sources.get("second_moment", ()))
+    found = {f: c for f, c in found.items() if not set(c[0]) & used}
+    feats = _read_features(exr, found, n) if found else None
+    if feats:
+        n_arr = np.asarray(n)
+        one = (n_arr <= 1) if n_arr.ndim else np.full(m.shape[:2], int(n_arr) <= 1)
+        feats = {f: (fm, None if fv is None else np.where(one[..., None], 0.0, fv)) for f, (fm, fv) in feats.items()}
+    sources["features"] = {f: c[0] for f, c in found.items()}
+    stats = PixelStats.from_moments(m, var, n, channels=channels, variance_of=v_of, where=where, features=feats)
     return PixelStatsEXR(stats, path, layout, sources, count_source,
                          tuple(out_channels) if out_channels is not None else tuple(channels), out_matrix)
 
