@@ -563,6 +563,18 @@ def test_cli_mitsuba_log_and_adapt_features(tmp_path, capsys):
     base = ["mitsuba", "log", "--size", "8x8", "--spp", "2"]
     assert main(base + ["-o", str(tmp_path / "a.h5")]) == 0
     assert set(read_log(tmp_path / "a.h5").feature_names) == {"albedo", "normal", "depth"}
+    capsys.readouterr()
+    assert main(["info", str(tmp_path / "a.h5")]) == 0
+    out = capsys.readouterr().out
+    for line in ("albedo                 3 component(s) R,G,B, float32",
+                 "normal                 3 component(s) X,Y,Z, float32",
+                 "depth                  1 component(s) Z, float32"):
+        assert line in out
+    assert main(["info", "--json", str(tmp_path / "a.h5")]) == 0
+    import json
+    det = json.loads(capsys.readouterr().out)["feature_details"]
+    assert {d["name"]: (d["components"], d["dtype"]) for d in det} == {
+        "albedo": (["R", "G", "B"], "float32"), "normal": (["X", "Y", "Z"], "float32"), "depth": (["Z"], "float32")}
     assert main(base + ["--features", "none", "-o", str(tmp_path / "b.h5")]) == 0
     assert read_log(tmp_path / "b.h5").feature_names == ()
     assert main(base + ["--features", "depth", "-o", str(tmp_path / "c.h5")]) == 0

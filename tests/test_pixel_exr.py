@@ -476,3 +476,34 @@ def test_denoise_command_reads_pbrt_features(tmp_path, capsys):
     code, _, err = run(["denoise", path, "-o", tmp_path / "o.exr", "--method", "box"], capsys)
     assert code == 0, err
     assert "features albedo (Albedo.R,Albedo.G,Albedo.B), normal (Ns.X,Ns.Y,Ns.Z), depth (P.Z)" in err
+
+
+def test_info_lists_the_features_of_an_exr(tmp_path, capsys):
+    import json
+
+    s = samples(13)
+    path = tmp_path / "m.exr"
+    mitsuba_exr(path, s)
+    from mcrecon.io.images import open_exr
+    ch = dict(open_exr(path)[0])
+    for c in "RGB":
+        ch[f"nested.albedo.{c}"] = ch[f"m2_nested.albedo.{c}"] = np.full((H, W), 0.5)
+    ch["nested.dd.T"] = ch["m2_nested.dd.T"] = np.ones((H, W))
+    write_channels(path, ch)
+    code, out, err = run(["info", path], capsys)
+    assert code == 0, err
+    assert "layout                   mitsuba-moment" in out
+    assert "count                    none in the file (pass --spp N)" in out
+    assert ("feature albedo           nested.albedo.R,nested.albedo.G,nested.albedo.B (variance from "
+            "m2_nested.albedo.R,m2_nested.albedo.G,m2_nested.albedo.B)") in out
+    assert "feature depth            nested.dd.T (variance from m2_nested.dd.T)" in out
+    code, out, _ = run(["info", "--json", path], capsys)
+    info = json.loads(out)
+    assert [f["name"] for f in info["features"]] == ["albedo", "depth"]
+    assert (info["width"], info["height"]) == (W, H)
+    # pbrt: its names, its count attribute, no feature variances
+    pbrt_exr(tmp_path / "p.exr", s)
+    code, out, _ = run(["info", tmp_path / "p.exr"], capsys)
+    assert "layout                   pbrt-v4" in out and f"samplesPerPixel = {SPP}" in out
+    assert "feature normal           Ns.X,Ns.Y,Ns.Z (no variance)" in out
+    assert "feature depth            P.Z (no variance)" in out

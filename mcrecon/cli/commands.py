@@ -25,10 +25,67 @@ _INFO_LINES = ("file", "width", "height", "channels", "samples", "finite_samples
                "features", "reference")
 
 
+def _log_feature_details(path) -> list[dict]:
+    """Name, components (canonical names where they fit) and stored dtype of each feature of a log."""
+    import h5py
+
+    from ..core.features import feature_components
+    from ..io import read_log
+
+    log = read_log(path)
+    out = []
+    with h5py.File(path, "r") as f:
+        for name in log.feature_names:
+            shape = tuple(log.feature_shapes[name])
+            k = shape[0] if len(shape) == 1 else 1 if not shape else None
+            comps = list(feature_components(name, k)) if k is not None else [f"shape {shape}"]
+            out.append({"name": name, "components": comps, "dtype": str(f["features"][name].dtype)})
+    return out
+
+
+def _exr_info(path) -> dict:
+    """What ``mcrecon denoise`` would find in a pixel-statistics EXR, without needing its sample count."""
+    from ..io.pixel_exr import (COUNT_ATTRIBUTES, _EXR, _detect_layout, _mitsuba_prefixes,
+                                find_feature_channels)
+
+    exr = _EXR(Path(path))
+    shapes = {a.shape for a in exr.arrays.values()}
+    h, w = next(iter(shapes)) if len(shapes) == 1 else (None, None)
+    layout = _detect_layout(exr)
+    prefixes = _mitsuba_prefixes(exr.names) if layout == "mitsuba-moment" else []
+    feats = find_feature_channels(exr.names, layout or "explicit", where=str(path),
+                                  prefix=prefixes[0] if len(prefixes) == 1 else None)
+    count = next((f"{a} = {exr.header[a]}" for a in COUNT_ATTRIBUTES if a in exr.header), None)
+    return {"file": str(path), "width": w, "height": h, "channels": list(exr.names),
+            "layout": layout,
+            "count": count or "none in the file (pass --spp N)",
+            "features": [{"name": f, "channels": list(m), "second_moments": list(m2) if m2 else None}
+                         for f, (m, m2) in feats.items()]}
+
+
 def _cmd_info(args):
     from ..io import summarize_log
 
+    info = _exr_info(args.log) if str(args.log).lower().endswith(".exr") else None
+    if info is not None and (info["layout"] is None and not info["features"]):
+        info = None  # a plain image: the log reader says what it is and what is accepted
+    if info is not None:
+        if info["layout"] is None:
+            info["layout"] = "not recognised (explicit mapping: --mean ... --variance-channels ...)"
+        if args.json:
+            print(json.dumps(info, indent=2, sort_keys=True))
+            return 0
+        for k in ("file", "width", "height", "channels", "layout", "count"):
+            v = info[k]
+            print(f"{k:24s} {','.join(v) if isinstance(v, list) else v}")
+        if not info["features"]:
+            print(f"{'features':24s} -")
+        for f in info["features"]:
+            var = f"variance from {','.join(f['second_moments'])}" if f["second_moments"] else "no variance"
+            print(f"{'feature ' + f['name']:24s} {','.join(f['channels'])} ({var})")
+        return 0
     info = summarize_log(args.log)
+    info["feature_details"] = _log_feature_details(args.log)
     if args.json:
         print(json.dumps(info, indent=2, sort_keys=True))
         return 0
@@ -39,6 +96,10 @@ def _cmd_info(args):
         if isinstance(v, float):
             v = f"{v:.3f}"
         print(f"{k:24s} {v}")
+        if k == "features":
+            for f in info["feature_details"]:
+                print(f"{'  ' + f['name']:24s} {len(f['components'])} component(s) "
+                      f"{','.join(f['components'])}, {f['dtype']}")
     if info["metadata"]:
         print(f"{'metadata':24s} {json.dumps(info['metadata'], sort_keys=True)}")
     if info["writer_pid"] is not None:
@@ -376,8 +437,8 @@ def register(sub, command: str | None = None) -> None:
     The method flags go to denoise, adapt and methods only when
     ``command`` is one of them, or None (every parser complete).
     """
-    s = sub.add_parser("info", help="describe a sample log")
-    s.add_argument("log")
+    s = sub.add_parser("info", help="describe a sample log, or a pixel-statistics EXR (layout, features found)")
+    s.add_argument("log", help="a sample log (.h5), or an EXR of per-pixel statistics (.exr)")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=_cmd_info)
 
