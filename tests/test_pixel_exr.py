@@ -286,6 +286,12 @@ _RENDER = textwrap.dedent("""
     film = scene.sensors()[0].film()
     mi.util.write_bitmap(sys.argv[1] + "/film.exr", film.bitmap(), write_async=False)   # names kept
     mi.util.write_bitmap(sys.argv[1] + "/tensor.exr", img, write_async=False)          # ch0 ... ch8
+    # moment of an aov integrator: the colour and the features' moments (nested.albedo.R, m2_...)
+    d["integrator"] = {"type": "moment", "nested": {"type": "aov", "aovs": "albedo:albedo,nn:sh_normal,dd:depth",
+                                                    "inner": {"type": "path", "max_depth": 4}}}
+    scene = mi.load_dict(d)
+    mi.render(scene, spp=int(sys.argv[2]), seed=1)
+    mi.util.write_bitmap(sys.argv[1] + "/aov.exr", scene.sensors()[0].film().bitmap(), write_async=False)
 """)
 
 
@@ -507,3 +513,24 @@ def test_info_lists_the_features_of_an_exr(tmp_path, capsys):
     assert "layout                   pbrt-v4" in out and f"samplesPerPixel = {SPP}" in out
     assert "feature normal           Ns.X,Ns.Y,Ns.Z (no variance)" in out
     assert "feature depth            P.Z (no variance)" in out
+
+
+def test_real_mitsuba_moment_of_aov_features(mitsuba_moment_exrs, capsys):
+    d = mitsuba_moment_exrs
+    pix = read_pixel_stats_exr(d / "aov.exr", spp=16)
+    assert pix.layout == "mitsuba-moment" and pix.sources["mean"] == ("nested.X", "nested.Y", "nested.Z")
+    assert pix.sources["features"] == {"albedo": ("nested.albedo.R", "nested.albedo.G", "nested.albedo.B"),
+                                       "normal": ("nested.nn.X", "nested.nn.Y", "nested.nn.Z"),
+                                       "depth": ("nested.dd.T",)}
+    st = pix.stats
+    a = st.features["albedo"].mean
+    assert a.min() >= 0 and a.max() <= 1 and a.max() > 0.1  # the Cornell box's diffuse walls
+    # a 24x16 film shows the box and black beyond its sides (depth 0 there: nothing hit); pixel means
+    # of unit normals have length <= 1, 1 inside a face
+    depth = st.features["depth"].mean[..., 0]
+    assert (depth >= 0).all() and (depth > 0).mean() > 0.5
+    length = np.linalg.norm(st.features["normal"].mean, axis=-1)
+    assert length.max() <= 1 + 1e-5 and np.median(length[depth > 0]) > 0.98  # 24x16: many edge pixels
+    assert (st.features["albedo"].sample_variance() >= 0).all()
+    code, _, err = run(["denoise", d / "aov.exr", "-o", d / "aov_box.exr", "--spp", "16"], capsys)
+    assert code == 0 and "features albedo (nested.albedo.R" in err, err
