@@ -31,11 +31,12 @@ as ratios to box's (below 1 is better), with each method's reconstruction
 time (CPU seconds of this process, ``time.process_time``: the machine may
 be loaded).
 
-Cost (2 shared cores, measured on the run reported in docs/mitsuba.md):
-about 1 minute per scene for the references at 128^2 x 4096 spp
-(``max_depth`` 6), a few seconds for the logs, then seconds per method;
-with the cache, only the reconstructions.  ``--ref-spp 1024`` for a quick
-look (its own noise then inflates the small relMSEs).
+Cost (2 cores shared with four other jobs, the run reported in
+docs/mitsuba.md): 149 s wall, 58 s CPU for the first run (references at
+128^2 x 4096 spp, ``max_depth`` 6: 24-71 s wall each; logs 1-4 s), 16 s
+wall once cached (only the reconstructions).  ``--ref-spp 1024`` for a
+quick look (its own noise then inflates the small relMSEs: by about
+box's relMSE / 1024 * 32).
 
 Usage::
 
