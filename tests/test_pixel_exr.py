@@ -473,6 +473,15 @@ def test_half_buffer_pair_keeps_features(tmp_path):
     m = merge_halves(a.stats, b.stats)
     # equal counts: the merged albedo mean is the halves' average
     np.testing.assert_allclose(m.features["albedo"].mean[0, 0], [0.375, 0.475, 0.575], rtol=1e-6)
+    # one half without the albedo: refused, naming the features of both
+    from mcrecon.io.images import open_exr
+    ch = {k: v for k, v in open_exr(paths[1])[0].items() if not k.startswith("Albedo.")}
+    write_channels(paths[1], ch, samplesPerPixel=SPP)
+    with pytest.raises(InputError, match=r"features: the halves carry different features: albedo \(Albedo.R,"
+                                         r"Albedo.G,Albedo.B\), normal .* vs normal"):
+        read_half_buffer_exrs(*paths)
+    a, b = read_half_buffer_exrs(*paths, features="none")
+    assert a.stats.feature_names == b.stats.feature_names == ()
 
 
 def test_denoise_command_reads_pbrt_features(tmp_path, capsys):

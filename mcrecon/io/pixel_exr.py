@@ -630,6 +630,11 @@ def read_half_buffer_exrs(path_a, path_b, **options) -> tuple[PixelStatsEXR, Pix
     if (sa.height, sa.width) != (sb.height, sb.width):
         raise InputError(where, "shape", f"the halves differ in size: {sa.width}x{sa.height} vs "
                          f"{sb.width}x{sb.height} (width x height)")
+    fa, fb = a.sources.get("features", {}), b.sources.get("features", {})
+    if fa != fb:
+        show = lambda f: ", ".join(f"{k} ({','.join(v)})" for k, v in f.items()) or "none"  # noqa: E731
+        raise InputError(where, "features", f"the halves carry different features: {show(fa)} vs {show(fb)}; "
+                         "write the same feature channels into both (or read none: features='none')")
     if sa.channels != sb.channels or a.sources != b.sources or a.output_channels != b.output_channels:
         raise InputError(where, "channels", f"the halves differ in channels: "
                          f"{','.join(a.sources['mean'])} vs {','.join(b.sources['mean'])}")
