@@ -589,3 +589,13 @@ def test_cli_mitsuba_log_and_adapt_features(tmp_path, capsys):
     assert main(["adapt", "--scene", "flat", "--size", "8x8", "--spp", "2", "--features", "none",
                  "-o", str(tmp_path / "e.exr")]) != 0
     assert "--features: chooses the Mitsuba bridge's" in capsys.readouterr().err
+
+
+@pytest.mark.mitsuba
+@needs_mitsuba
+def test_renderer_from_spec_sends_the_recorded_features():
+    from mcrecon.renderers.spec import mitsuba_spec, renderer_from_spec
+
+    assert renderer_from_spec(mitsuba_spec(None, width=8, height=8, features="depth")).features == ("depth",)
+    old = {"kind": "mitsuba", "scene": None, "width": 8, "height": 8}  # recorded before features existed
+    assert renderer_from_spec(old).features == ()
