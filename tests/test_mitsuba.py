@@ -535,6 +535,11 @@ def test_log_has_features_by_default_and_none_on_request(tmp_path):
                                     features={f: np.concatenate([x.features[f] for x in bs]) for f in r.features})
     for f in r.features:
         np.testing.assert_allclose(st.features[f].mean, again.features[f].mean, rtol=1e-6, atol=1e-7)
+    # a renderer's own features by default; a feature it does not send is refused
+    r_depth = MitsubaRenderer(feature_scene(12, 8), features="depth")
+    assert read_log(dump_uniform_log(tmp_path / "d.h5", r_depth, spp=1)).feature_names == ("depth",)
+    with pytest.raises(InputError, match="albedo asked for, but this renderer was built with features='depth'"):
+        dump_uniform_log(tmp_path / "e.h5", r_depth, spp=1, features="albedo,depth")
     none = dump_uniform_log(tmp_path / "n.h5", feature_scene(12, 8), spp=2, seed=4, features="none")
     log = read_log(none)
     assert tuple(log.feature_names) == () and log.metadata["features"] == "none"

@@ -105,7 +105,7 @@ def _to_float32_positions(pos: np.ndarray) -> np.ndarray:
 
 def dump_uniform_log(path, scene=None, *, width: int | None = None, height: int | None = None, spp: int = 16,
                      seed: int = 0, reference_spp: int | None = None, variant: str = "llvm_ad_rgb",
-                     max_depth: int | None = None, spp_per_pass: int = 16, features="all"):
+                     max_depth: int | None = None, spp_per_pass: int = 16, features=None):
     """Render ``spp`` uniform jittered samples per pixel into an mcrecon sample log.
 
     The log (``mcrecon.io.write_log`` format) holds one round per pass of at
@@ -128,10 +128,11 @@ def dump_uniform_log(path, scene=None, *, width: int | None = None, height: int 
         Seed of the samples.
     reference_spp : int, optional
         Samples per pixel of the stored reference (none when omitted).
-    features : "all", "none" or sequence of str
-        Per-sample features stored as ``/features/NAME`` (default all:
-        albedo, normal, depth; see :class:`MitsubaRenderer`).  With a
-        :class:`MitsubaRenderer` as ``scene``, a subset of its features.
+    features : None, "all", "none" or sequence of str
+        Per-sample features stored as ``/features/NAME`` (see
+        :class:`MitsubaRenderer`).  None (default): all (albedo, normal,
+        depth), or with a :class:`MitsubaRenderer` as ``scene`` the ones it
+        was built with; otherwise a subset of those.
 
     Returns
     -------
@@ -144,9 +145,12 @@ def dump_uniform_log(path, scene=None, *, width: int | None = None, height: int 
     spp = _bridge()._check_int("spp", spp, minimum=1)
     seed = _bridge()._check_int("seed", seed, minimum=0)
     reference_spp = _bridge()._check_int("reference_spp", reference_spp, minimum=1, allow_none=True)
-    names = _bridge().check_mitsuba_features(features, where="dump_uniform_log")
+    names = None if features is None else _bridge().check_mitsuba_features(features, where="dump_uniform_log")
     path = Path(path)
-    r = _make_renderer(scene, width, height, variant, max_depth, spp_per_pass, features=names)
+    r = _make_renderer(scene, width, height, variant, max_depth, spp_per_pass,
+                       features="all" if names is None else names)
+    if names is None:
+        names = r.features
     missing = [f for f in names if f not in r.features]
     if missing:
         raise InputError(r.name, "features", f"{', '.join(missing)} asked for, but this renderer was built with "
