@@ -149,6 +149,24 @@ def test_c_writer_appends_rounds_extending_features_and_discarding_uncommitted_r
 
 
 # ------------------------------------------------------------------ the C renderer
+def _check_c_features(log, w, h):
+    """The C renderer's surfaces, recomputed here: a hemisphere over the disc, a plane behind it."""
+    pos = np.asarray(log.read_all().positions, np.float64)
+    dx, dy = pos[:, 0] / w - 0.5, pos[:, 1] / h - 0.5
+    r2 = (dx ** 2 + dy ** 2) / 0.09
+    disc = r2 < 1
+    assert disc.any() and (~disc).any()
+    nz = np.sqrt(np.clip(1 - r2, 0, None))
+    albedo = np.where(disc[:, None], [0.8, 0.5, 0.2], 0.5)
+    normal = np.where(disc[:, None], np.stack([dx / 0.3, dy / 0.3, nz], axis=1), [0.0, 0.0, 1.0])
+    depth = np.where(disc, 1 - 0.3 * nz, 1 + pos[:, 1] / h)
+    np.testing.assert_allclose(log.read_feature("albedo"), albedo, rtol=1e-6)
+    # atol: nz = sqrt(1 - r2) amplifies the positions' rounding near the rim (1e-6 -> 2e-6 at nz 0.03)
+    np.testing.assert_allclose(log.read_feature("normal"), normal, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(np.linalg.norm(log.read_feature("normal"), axis=1), 1.0, rtol=1e-5)
+    np.testing.assert_allclose(log.read_feature("depth"), depth, rtol=1e-6, atol=1e-5)
+
+
 def _adapt(c_tools, tmp_path, method, *extra, w=16, h=12, spp=6):
     log = tmp_path / f"{method}.h5"
     # The binary's path holds a space: quoted for shlex, never through a shell.
@@ -165,9 +183,9 @@ def test_c_renderer_drives_an_adaptive_run(c_tools, tmp_path, method):
     got = read_log(log)
     assert got.n_samples == 16 * 12 * 6 and got.n_rounds >= 2
     assert got.run_settings["renderer_spec"]["argv"][0] == str(c_tools["mcrecon_c_renderer"])
-    assert got.feature_names == ("depth",)  # the reply's features reach the log, every round
-    pos = np.asarray(got.read_all().positions, np.float64)
-    np.testing.assert_allclose(got.read_feature("depth"), 1 + pos[:, 1] / 12, rtol=1e-6)
+    # the reply's features reach the log, every round (HDF5 lists them by name)
+    assert got.feature_names == ("albedo", "depth", "normal")
+    _check_c_features(got, 16, 12)
     img, _ = read_exr(tmp_path / f"{method}.exr")
     assert img.shape == (12, 16, 3) and np.isfinite(img).all()
     assert sum(r["samples"] for r in got.round_records) == got.n_samples
@@ -198,7 +216,7 @@ def test_c_renderer_answers_counts_and_positions_together_and_either_string_type
         log = read_log(reply)  # fixed-length ASCII strings in the reply
         with h5py.File(reply, "r") as f:
             assert h5py.check_string_dtype(f.attrs.get_id("channels").dtype).length == 1
-        assert log.channels == ("R", "G", "B", "A") and log.feature_names == ("depth",)
+        assert log.channels == ("R", "G", "B", "A") and log.feature_names == ("albedo", "depth", "normal")
         data = log.read_all()
         batch = validate_reply(req, (data.positions, data.values), n_channels=4, renderer="c")
         np.testing.assert_array_equal(batch.positions[5:], pos)

@@ -63,7 +63,9 @@ def test_reply_features_reach_the_log_of_an_adaptive_run(tmp_path):
 @pytest.mark.parametrize("mode, match", [
     ("short", r"shape \(95,\), expected \(96, \.\.\.\)"),
     ("long", r"shape \(97,\), expected \(96, \.\.\.\)"),
-    ("text", "dtype object, expected a numeric dtype"),
+    ("text", "dtype object, expected a real numeric dtype"),
+    ("matrix", r"shape \(96, 2, 2\), expected \(96,\) or \(96, k\)"),
+    ("bool", "dtype bool, expected a real numeric dtype"),
 ])
 def test_bad_reply_features_name_the_reply_file_and_dataset(tmp_path, mode, match):
     r = CommandRenderer([sys.executable, FEATURES, mode, "{request}", "{reply}"], width=12, height=8,
@@ -74,6 +76,42 @@ def test_bad_reply_features_name_the_reply_file_and_dataset(tmp_path, mode, matc
     assert "\n" not in msg
     assert f"reply {tmp_path / 'exchange' / 'round-00000.reply.h5'} dataset /features/depth" in msg
     assert re.search(match, msg), msg
+
+
+@pytest.mark.parametrize("mode, match", [
+    ("rename", r"round 1 sends dist \(\d+,\), normal \(\d+, 3\); the first reply sent depth \(96,\), "
+               r"normal \(96, 3\): every round must send the same features"),
+    ("widen", r"round 1 sends depth \(\d+,\), normal \(\d+, 4\); the first reply sent depth \(96,\), "
+              r"normal \(96, 3\)"),
+])
+def test_reply_features_must_stay_the_same_every_round(tmp_path, mode, match):
+    r = CommandRenderer([sys.executable, FEATURES, mode, "{request}", "{reply}"], width=12, height=8)
+    with pytest.raises(RendererError, match=match) as exc:
+        adapt(r, "box", spp=8, seed=3, log=tmp_path / "run.h5")
+    assert "/features" in str(exc.value)
+    # round 0 was committed before the bad round: the run is resumable
+    assert read_log(tmp_path / "run.h5").n_rounds >= 1
+
+
+def test_nonfinite_reply_features_are_zeroed_and_warned(tmp_path):
+    from mcrecon.errors import McreconWarning
+
+    r = CommandRenderer([sys.executable, FEATURES, "nan", "{request}", "{reply}"], width=12, height=8)
+    with pytest.warns(McreconWarning, match=r"round 0 \(later rounds are not warned again\): features: 2 "
+                                            r"sample\(s\) with NaN or Inf feature values set to 0") as rec:
+        adapt(r, "box", spp=8, seed=3, log=tmp_path / "run.h5")
+    got = read_log(tmp_path / "run.h5")
+    depth = got.read_feature("depth")
+    assert np.isfinite(depth).all()
+    pos = np.asarray(got.read_all().positions, np.float64)
+    ends = np.concatenate([[0], np.cumsum([rec["samples"] for rec in got.round_records])])
+    bad = np.zeros(len(depth), bool)
+    bad[ends[:-1]] = bad[ends[1:] - 1] = True  # each round's first and last rows
+    np.testing.assert_array_equal(depth[bad], 0.0)
+    np.testing.assert_allclose(depth[~bad], (pos[:, 0] + 1000 * pos[:, 1])[~bad], rtol=1e-6)
+    # the colour of those samples is kept; one warning for the run, not one per round
+    assert got.n_samples == 12 * 8 * 8 and got.n_rounds > 1
+    assert sum("feature values set to 0" in str(w.message) for w in rec) == 1
 
 
 @pytest.mark.parametrize("mode, match", [

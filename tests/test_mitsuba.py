@@ -391,3 +391,216 @@ def test_probe_survives_an_aborting_llvm(monkeypatch):
     monkeypatch.setenv("DRJIT_LIBLLVM_PATH", old[0])
     ok, reason = mb.mitsuba_available(refresh=True)
     assert not ok and "SIGABRT" in reason and "libllvm19" in reason
+
+
+# ------------------------------------------------------------ features
+# A 2x2 texture of distinct colours on a plane facing the camera at distance D,
+# a glass sphere in front of it, and a constant environment elsewhere.
+TEXELS = np.array([[[0.9, 0.1, 0.1], [0.1, 0.8, 0.2]],
+                   [[0.2, 0.3, 0.7], [0.5, 0.5, 0.5]]], np.float32)
+D, FOV = 5.0, 40.0
+
+
+def feature_scene(width=24, height=16, integrator=None, tilt=0.0):
+    """The textured plane (rotated by ``tilt`` degrees about y) and a glass sphere."""
+    import mitsuba as mi
+
+    T = mi.ScalarTransform4f
+    return {"type": "scene", "integrator": integrator or {"type": "path", "max_depth": 3},
+            "sensor": {"type": "perspective", "fov": FOV,
+                       "to_world": T().look_at(origin=[0, 0, D], target=[0, 0, 0], up=[0, 1, 0]),
+                       "film": {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"}}},
+            "plane": {"type": "rectangle", "to_world": T().rotate([0, 1, 0], tilt).scale([1.2, 1.0, 1.0]),
+                      "bsdf": {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": mi.Bitmap(TEXELS),
+                                                                  "filter_type": "nearest"}}},
+            "glass": {"type": "sphere", "center": [1.3, 0.75, 1.0], "radius": 0.3, "bsdf": {"type": "dielectric"}},
+            "env": {"type": "constant"}}
+
+
+def _uniform_batch(r, spp=4, seed=2):
+    counts = np.full((r.height, r.width), spp, np.int64)
+    return r.render(SampleRequest(r.width, r.height, counts=counts, seed=seed))
+
+
+def test_feature_option_is_validated():
+    from mcrecon.renderers.mitsuba import check_mitsuba_features
+
+    assert check_mitsuba_features("all") == ("albedo", "normal", "depth")
+    assert check_mitsuba_features("none") == () == check_mitsuba_features([])
+    assert check_mitsuba_features("depth,albedo") == ("albedo", "depth")
+    for bad in ("colour", "albedo,albedo", 3, ["normal", None]):
+        with pytest.raises(InputError, match="features"):
+            check_mitsuba_features(bad)
+    with pytest.raises(InputError, match="unknown feature 'colour'"):
+        MitsubaRenderer(None, features="albedo,colour", probe=False)
+
+
+@pytest.mark.mitsuba
+@needs_mitsuba
+def test_features_albedo_normal_depth_of_known_surfaces():
+    r = MitsubaRenderer(feature_scene(), spp_per_pass=2)
+    assert r.features == ("albedo", "normal", "depth")
+    b = _uniform_batch(r)
+    n = len(b)
+    assert set(b.features) == {"albedo", "normal", "depth"}
+    assert b.features["albedo"].shape == (n, 3) and b.features["normal"].shape == (n, 3)
+    assert b.features["depth"].shape == (n,)
+    assert all(f.dtype == np.float32 for f in b.features.values())
+    alb, nor, dep = b.features["albedo"], b.features["normal"], b.features["depth"]
+    # Every sample either misses (all features 0), hits glass (albedo 1: no diffuse lobe) or hits
+    # the plane (albedo exactly one of the texels, normal +z toward the camera).
+    texel = np.any(np.all(alb[:, None, :] == TEXELS.reshape(1, 4, 3), axis=2), axis=1)
+    glass = np.all(alb == 1.0, axis=1)
+    miss = dep == 0
+    assert texel.sum() > n // 4 and glass.sum() > 10 and miss.sum() > n // 10
+    assert np.all(texel | glass | miss)
+    np.testing.assert_array_equal(alb[miss], 0.0)
+    np.testing.assert_array_equal(nor[miss], 0.0)
+    for k in range(4):  # every texel is seen
+        assert np.all(alb == TEXELS.reshape(4, 3)[k], axis=1).sum() > 10
+    np.testing.assert_allclose(nor[texel], np.broadcast_to([0, 0, 1], (texel.sum(), 3)), atol=1e-6)
+    # Depth is camera-space z: D on the whole plane z = 0 facing the camera.
+    np.testing.assert_allclose(dep[texel], D, rtol=1e-6)
+    # Glass sphere: unit normals, the hit c + r n on the side facing the camera, at depth D - z.
+    ng = nor[glass].astype(np.float64)
+    np.testing.assert_allclose(np.linalg.norm(ng, axis=1), 1.0, rtol=1e-5)
+    hit = np.array([1.3, 0.75, 1.0]) + 0.3 * ng
+    assert np.all(np.sum(ng * (np.array([0, 0, D]) - hit), axis=1) > 0)
+    np.testing.assert_allclose(dep[glass], D - hit[:, 2], rtol=1e-4)
+
+
+@pytest.mark.mitsuba
+@needs_mitsuba
+def test_albedo_matches_mitsuba_aov_image_where_the_pixel_is_uniform():
+    # Mitsuba's own aov integrator as the ground truth of where each texel is on the film:
+    # samples inside pixels whose 3x3 neighbourhood has one albedo must have exactly it.
+    import mitsuba as mi
+
+    mi.set_variant("llvm_ad_rgb")
+    aov = feature_scene(integrator={"type": "aov", "aovs": "a:albedo"})
+    img = np.asarray(mi.render(mi.load_dict(aov), spp=16, seed=1))[..., :3]
+    r = MitsubaRenderer(feature_scene(), features="albedo")
+    b = _uniform_batch(r, spp=2)
+    assert set(b.features) == {"albedo"}
+    pad = np.pad(img, ((1, 1), (1, 1), (0, 0)), mode="edge")
+    same = np.all([np.all(pad[1 + dy:17 + dy, 1 + dx:25 + dx] == img, axis=-1)
+                   for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=0)
+    texel_px = same & np.any(np.all(img[:, :, None, :] == TEXELS.reshape(1, 1, 4, 3), axis=-1), axis=-1)
+    assert texel_px.sum() > 40
+    px = pixel_index(b.positions, r.width)
+    sel = texel_px.ravel()[px]
+    np.testing.assert_array_equal(b.features["albedo"][sel], img.reshape(-1, 3)[px[sel]])
+
+
+@pytest.mark.mitsuba
+@needs_mitsuba
+def test_normal_of_a_tilted_plane():
+    tilt = 30.0
+    r = MitsubaRenderer(feature_scene(tilt=tilt), features=["normal", "depth"])
+    b = _uniform_batch(r, spp=2)
+    assert set(b.features) == {"normal", "depth"}
+    nor, dep = b.features["normal"], b.features["depth"]
+    on_plane = (dep > 0) & (np.abs(nor[:, 0]) > 0.1) & (np.abs(nor[:, 1]) < 1e-4)  # not the sphere
+    assert on_plane.sum() > len(b) // 4
+    expect = [np.sin(np.radians(tilt)), 0.0, np.cos(np.radians(tilt))]  # R_y(tilt) (0, 0, 1)
+    np.testing.assert_allclose(nor[on_plane], np.broadcast_to(expect, (on_plane.sum(), 3)), atol=1e-5)
+    # Camera-space depth of the tilted plane x sin + z cos = 0 seen from (0, 0, D) along -z: the
+    # hit (x, y, z) has depth D - z and x = -z cot(tilt); with the film's x offset u = x / depth
+    # (the sign of u is the camera's mirror image: |u| is what the geometry fixes)
+    # z = -u (D - z) tan(tilt) gives depth = D / (1 - u tan(tilt)) for one sign of u.
+    t = np.tan(np.radians(FOV / 2))
+    u = np.abs(2 * b.positions[:, 0] / r.width - 1) * t
+    d = dep[on_plane]
+    cand = np.stack([D / (1 - u * np.tan(np.radians(tilt))), D / (1 + u * np.tan(np.radians(tilt)))])[:, on_plane]
+    assert np.all(np.min(np.abs(cand - d) / d, axis=0) < 1e-5)
+
+
+@pytest.mark.mitsuba
+@needs_mitsuba
+def test_log_has_features_by_default_and_none_on_request(tmp_path):
+    from mcrecon.io import read_log
+    from mcrecon.core.stats import PixelStats
+
+    r = MitsubaRenderer(feature_scene(12, 8), spp_per_pass=2)
+    path = dump_uniform_log(tmp_path / "f.h5", r, spp=3, seed=4)
+    log = read_log(path)
+    assert set(log.feature_names) == {"albedo", "normal", "depth"}  # (HDF5 lists them by name)
+    assert log.metadata["features"] == "albedo,normal,depth"
+    st = PixelStats.from_log(log, features="all")
+    # The per-pixel means of the logged features are the renderer's, for the same seed.
+    bs = [r.render(SampleRequest(12, 8, counts=np.full((8, 12), m, np.int64), round_index=k, seed=4))
+          for k, m in enumerate((2, 1))]  # the passes of 2 and 1 spp
+    again = PixelStats.from_samples(np.concatenate([x.positions for x in bs]), np.concatenate([x.values for x in bs]),
+                                    width=12, height=8,
+                                    features={f: np.concatenate([x.features[f] for x in bs]) for f in r.features})
+    for f in r.features:
+        np.testing.assert_allclose(st.features[f].mean, again.features[f].mean, rtol=1e-6, atol=1e-7)
+    # a renderer's own features by default; a feature it does not send is refused
+    r_depth = MitsubaRenderer(feature_scene(12, 8), features="depth")
+    assert read_log(dump_uniform_log(tmp_path / "d.h5", r_depth, spp=1)).feature_names == ("depth",)
+    with pytest.raises(InputError, match="albedo asked for, but this renderer was built with features='depth'"):
+        dump_uniform_log(tmp_path / "e.h5", r_depth, spp=1, features="albedo,depth")
+    none = dump_uniform_log(tmp_path / "n.h5", feature_scene(12, 8), spp=2, seed=4, features="none")
+    log = read_log(none)
+    assert tuple(log.feature_names) == () and log.metadata["features"] == "none"
+    # the colour is the same with or without features (same random numbers)
+    with_f = read_log(dump_uniform_log(tmp_path / "w.h5", feature_scene(12, 8), spp=2, seed=4))
+    np.testing.assert_array_equal(PixelStats.from_log(log).mean, PixelStats.from_log(with_f).mean)
+
+
+def test_mitsuba_spec_records_features():
+    from mcrecon.renderers.spec import check_spec, mitsuba_spec
+
+    assert mitsuba_spec(None, width=4, height=4)["features"] == "albedo,normal,depth"
+    assert mitsuba_spec(None, width=4, height=4, features="none")["features"] == "none"
+    # a spec recorded before features existed rendered none
+    assert check_spec({"kind": "mitsuba", "scene": None, "width": 4, "height": 4})["features"] == "none"
+    with pytest.raises(InputError, match="features"):
+        check_spec({"kind": "mitsuba", "scene": None, "width": 4, "height": 4, "features": "colour"})
+
+
+@pytest.mark.mitsuba
+@needs_mitsuba
+def test_cli_mitsuba_log_and_adapt_features(tmp_path, capsys):
+    from mcrecon.cli import main
+    from mcrecon.io import read_log
+
+    base = ["mitsuba", "log", "--size", "8x8", "--spp", "2"]
+    assert main(base + ["-o", str(tmp_path / "a.h5")]) == 0
+    assert set(read_log(tmp_path / "a.h5").feature_names) == {"albedo", "normal", "depth"}
+    capsys.readouterr()
+    assert main(["info", str(tmp_path / "a.h5")]) == 0
+    out = capsys.readouterr().out
+    for line in ("albedo                 3 component(s) R,G,B, float32",
+                 "normal                 3 component(s) X,Y,Z, float32",
+                 "depth                  1 component(s) Z, float32"):
+        assert line in out
+    assert main(["info", "--json", str(tmp_path / "a.h5")]) == 0
+    import json
+    det = json.loads(capsys.readouterr().out)["feature_details"]
+    assert {d["name"]: (d["components"], d["dtype"]) for d in det} == {
+        "albedo": (["R", "G", "B"], "float32"), "normal": (["X", "Y", "Z"], "float32"), "depth": (["Z"], "float32")}
+    assert main(base + ["--features", "none", "-o", str(tmp_path / "b.h5")]) == 0
+    assert read_log(tmp_path / "b.h5").feature_names == ()
+    assert main(base + ["--features", "depth", "-o", str(tmp_path / "c.h5")]) == 0
+    assert read_log(tmp_path / "c.h5").feature_names == ("depth",)
+    # adapt --mitsuba stores what the bridge sends, every round
+    assert main(["adapt", "--mitsuba", "--size", "8x8", "--spp", "4", "--features", "albedo,normal",
+                 "--log", str(tmp_path / "d.h5"), "-o", str(tmp_path / "d.exr"), "--no-progress"]) == 0
+    log = read_log(tmp_path / "d.h5")
+    assert set(log.feature_names) == {"albedo", "normal"}
+    assert log.n_samples == 4 * 64
+    capsys.readouterr()
+    assert main(["adapt", "--scene", "flat", "--size", "8x8", "--spp", "2", "--features", "none",
+                 "-o", str(tmp_path / "e.exr")]) != 0
+    assert "--features: chooses the Mitsuba bridge's" in capsys.readouterr().err
+
+
+@pytest.mark.mitsuba
+@needs_mitsuba
+def test_renderer_from_spec_sends_the_recorded_features():
+    from mcrecon.renderers.spec import mitsuba_spec, renderer_from_spec
+
+    assert renderer_from_spec(mitsuba_spec(None, width=8, height=8, features="depth")).features == ("depth",)
+    old = {"kind": "mitsuba", "scene": None, "width": 8, "height": 8}  # recorded before features existed
+    assert renderer_from_spec(old).features == ()

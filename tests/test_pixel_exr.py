@@ -13,7 +13,8 @@ import mcrecon
 from mcrecon import InputError, PixelStats
 from mcrecon.cli import main
 from mcrecon.io import read_exr, read_pixel_stats_exr
-from mcrecon.io.pixel_exr import MITSUBA_XYZ_TO_SRGB, xyz_from_rgb_matrix
+from mcrecon.errors import McreconWarning
+from mcrecon.io.pixel_exr import MITSUBA_XYZ_TO_SRGB, read_half_buffer_exrs, xyz_from_rgb_matrix
 
 H, W, SPP = 12, 16, 8
 
@@ -111,7 +112,7 @@ def test_mitsuba_statistics_equal_from_moments(tmp_path):
     pix = read_pixel_stats_exr(tmp_path / "mi.exr", spp=SPP)
     assert pix.layout == "mitsuba-moment"
     assert pix.sources == {"mean": ("nested.X", "nested.Y", "nested.Z"),
-                           "second_moment": ("m2_nested.X", "m2_nested.Y", "m2_nested.Z")}
+                           "second_moment": ("m2_nested.X", "m2_nested.Y", "m2_nested.Z"), "features": {}}
     ref = PixelStats.from_moments(m1, var, SPP, channels=("X", "Y", "Z"))
     np.testing.assert_allclose(pix.stats.mean, ref.mean, rtol=1e-6)
     np.testing.assert_allclose(pix.stats.m2, ref.m2, rtol=2e-4, atol=1e-6)  # float32 m2 - m1^2
@@ -285,6 +286,12 @@ _RENDER = textwrap.dedent("""
     film = scene.sensors()[0].film()
     mi.util.write_bitmap(sys.argv[1] + "/film.exr", film.bitmap(), write_async=False)   # names kept
     mi.util.write_bitmap(sys.argv[1] + "/tensor.exr", img, write_async=False)          # ch0 ... ch8
+    # moment of an aov integrator: the colour and the features' moments (nested.albedo.R, m2_...)
+    d["integrator"] = {"type": "moment", "nested": {"type": "aov", "aovs": "albedo:albedo,nn:sh_normal,dd:depth",
+                                                    "inner": {"type": "path", "max_depth": 4}}}
+    scene = mi.load_dict(d)
+    mi.render(scene, spp=int(sys.argv[2]), seed=1)
+    mi.util.write_bitmap(sys.argv[1] + "/aov.exr", scene.sensors()[0].film().bitmap(), write_async=False)
 """)
 
 
@@ -321,3 +328,218 @@ def test_real_mitsuba_moment_output(mitsuba_moment_exrs, capsys):
         opts = {"variance": "sample"} if method == "awr" else {}
         expect = film.output_image(mcrecon.reconstruct(film.stats, method=method, **opts))
         np.testing.assert_allclose(read_exr(out)[0], expect.astype(np.float32), rtol=1e-6, atol=1e-7)
+
+
+# ------------------------------------------------------------------ features
+def _feature_images(seed=5, h=H, w=W):
+    rng = np.random.default_rng(seed)
+    return {"albedo": rng.uniform(0, 1, (h, w, 3)), "normal": rng.normal(size=(h, w, 3)),
+            "geo": rng.normal(size=(h, w, 3)), "depth": rng.uniform(1, 9, (h, w))}
+
+
+def test_pbrt_gbuffer_features_albedo_shading_normal_and_depth(tmp_path):
+    s = samples(6)
+    f = _feature_images()
+    path = tmp_path / "g.exr"
+    pbrt_exr(path, s)
+    from mcrecon.io.images import open_exr
+    ch = dict(open_exr(path)[0])
+    for i, c in enumerate("RGB"):
+        ch[f"Albedo.{c}"] = f["albedo"][..., i]
+    for i, c in enumerate("XYZ"):
+        ch[f"Ns.{c}"], ch[f"N.{c}"], ch[f"P.{c}"] = f["normal"][..., i], f["geo"][..., i], f["depth"] * (i + 1) / 3
+    write_channels(path, ch, samplesPerPixel=SPP)
+    pix = read_pixel_stats_exr(path)
+    st = pix.stats
+    assert st.feature_names == ("albedo", "normal", "depth")
+    assert pix.sources["features"] == {"albedo": ("Albedo.R", "Albedo.G", "Albedo.B"),
+                                       "normal": ("Ns.X", "Ns.Y", "Ns.Z"), "depth": ("P.Z",)}
+    f32 = lambda a: np.asarray(a, np.float32).astype(np.float64)  # noqa: E731 (the file stores float32)
+    np.testing.assert_array_equal(st.features["albedo"].mean, f32(f["albedo"]))
+    np.testing.assert_array_equal(st.features["normal"].mean, f32(f["normal"]))  # Ns, not N
+    np.testing.assert_array_equal(st.features["depth"].mean[..., 0], f32(f["depth"]))  # P.Z
+    assert st.features["albedo"].channels == ("R", "G", "B") and st.features["depth"].channels == ("Z",)
+    np.testing.assert_array_equal(st.features["albedo"].m2, 0.0)  # pbrt writes no feature variance
+    # the colour is what it was without features
+    plain = read_pixel_stats_exr(path, features="none")
+    assert plain.stats.feature_names == () and plain.sources["features"] == {}
+    np.testing.assert_array_equal(plain.stats.mean, st.mean)
+    np.testing.assert_array_equal(plain.stats.m2, st.m2)
+    # without the shading normal, the geometric one
+    del ch["Ns.X"], ch["Ns.Y"], ch["Ns.Z"]
+    write_channels(path, ch, samplesPerPixel=SPP)
+    np.testing.assert_array_equal(read_pixel_stats_exr(path).stats.features["normal"].mean, f32(f["geo"]))
+
+
+def test_mitsuba_moment_of_aov_features_give_their_variances(tmp_path):
+    """moment(aov(albedo, nn, dd) + path): P.albedo.R ... with m2_: the features' sample variances."""
+    s = samples(7)
+    rng = np.random.default_rng(8)
+    per = {"albedo": rng.uniform(0, 1, s.shape), "nn": rng.normal(size=s.shape), "dd": rng.uniform(1, 5, s.shape[:3])}
+    path = tmp_path / "m.exr"
+    m1, var = mitsuba_exr(path, s)
+    from mcrecon.io.images import open_exr
+    ch = dict(open_exr(path)[0])
+    comps = {"albedo": "RGB", "nn": "XYZ", "dd": "T"}
+    for name, x in per.items():
+        x = x.reshape(s.shape[:3] + (-1,))
+        for i, c in enumerate(comps[name]):
+            ch[f"nested.{name}.{c}"] = x[..., i].mean(axis=2)
+            ch[f"m2_nested.{name}.{c}"] = (x[..., i] ** 2).mean(axis=2)
+    # the inner integrator's own image as an AOV: not a feature, not a second colour output
+    for c in "RGBA":
+        ch[f"nested.inner.{c}"] = ch[f"m2_nested.inner.{c}"] = np.ones((H, W))
+    write_channels(path, ch)
+    pix = read_pixel_stats_exr(path, spp=SPP)
+    assert pix.layout == "mitsuba-moment" and pix.sources["mean"] == ("nested.X", "nested.Y", "nested.Z")
+    assert pix.sources["features"] == {"albedo": ("nested.albedo.R", "nested.albedo.G", "nested.albedo.B"),
+                                       "normal": ("nested.nn.X", "nested.nn.Y", "nested.nn.Z"),
+                                       "depth": ("nested.dd.T",)}
+    for feat, name in (("albedo", "albedo"), ("normal", "nn"), ("depth", "dd")):
+        x = per[name].reshape(s.shape[:3] + (-1,))
+        fs = pix.stats.features[feat]
+        np.testing.assert_allclose(fs.mean, x.mean(axis=2), rtol=1e-6, atol=1e-7)
+        # n/(n-1) (m2 - m1^2) from float32 moments: the brute-force unbiased variance
+        np.testing.assert_allclose(fs.sample_variance(), x.var(axis=2, ddof=1), rtol=2e-3, atol=2e-5)
+
+
+def test_mitsuba_aov_names_with_an_explicit_colour_mapping(tmp_path):
+    rng = np.random.default_rng(9)
+    f = _feature_images(10)
+    ch = {c: rng.random((H, W)) for c in ("R", "G", "B", "vR", "vG", "vB")}
+    for i, c in enumerate("RGB"):
+        ch[f"albedo.{c}"] = f["albedo"][..., i]
+    for i, c in enumerate("XYZ"):
+        ch[f"sh_normal.{c}"] = f["normal"][..., i]
+    ch["dd.y.T"] = f["depth"]
+    write_channels(tmp_path / "a.exr", ch)
+    pix = read_pixel_stats_exr(tmp_path / "a.exr", mean="R,G,B", variance="vR,vG,vB", spp=4)
+    assert pix.sources["features"] == {"albedo": ("albedo.R", "albedo.G", "albedo.B"),
+                                       "normal": ("sh_normal.X", "sh_normal.Y", "sh_normal.Z"),
+                                       "depth": ("dd.y.T",)}
+    np.testing.assert_allclose(pix.stats.features["depth"].mean[..., 0], f["depth"], rtol=1e-6)
+    # two normals (sh_normal and nn) are ambiguous: refused naming both, a mapping chooses
+    for i, c in enumerate("XYZ"):
+        ch[f"nn.{c}"] = f["geo"][..., i]
+    write_channels(tmp_path / "b.exr", ch)
+    with pytest.raises(InputError, match=r"features/normal: ambiguous: sh_normal.X,sh_normal.Y,sh_normal.Z and "
+                                         r"nn.X,nn.Y,nn.Z .*features=\{'normal'"):
+        read_pixel_stats_exr(tmp_path / "b.exr", mean="R,G,B", variance="vR,vG,vB", spp=4)
+    pix = read_pixel_stats_exr(tmp_path / "b.exr", mean="R,G,B", variance="vR,vG,vB", spp=4,
+                               features={"normal": "nn.X,nn.Y,nn.Z", "albedo": "albedo.R,albedo.G,albedo.B"})
+    assert pix.stats.feature_names == ("normal", "albedo")
+    np.testing.assert_allclose(pix.stats.features["normal"].mean, f["geo"], rtol=1e-6)
+    with pytest.raises(InputError, match="features/normal: channel 'nope.X' missing"):
+        read_pixel_stats_exr(tmp_path / "b.exr", mean="R,G,B", variance="vR,vG,vB", spp=4,
+                             features={"normal": "nope.X,nope.Y,nope.Z"})
+    with pytest.raises(InputError, match="features: 'some'; valid: 'auto', 'none'"):
+        read_pixel_stats_exr(tmp_path / "b.exr", mean="R,G,B", variance="vR,vG,vB", spp=4, features="some")
+
+
+def test_nonfinite_feature_values_are_zeroed_and_warned(tmp_path):
+    s = samples(11)
+    path = tmp_path / "n.exr"
+    pbrt_exr(path, s)
+    from mcrecon.io.images import open_exr
+    ch = dict(open_exr(path)[0])
+    depth = np.full((H, W), 3.0)
+    depth[2, 3] = np.inf  # a ray that left the scene
+    depth[4, 1] = np.nan
+    ch["P.Z"] = depth
+    write_channels(path, ch, samplesPerPixel=SPP)
+    with pytest.warns(McreconWarning, match=r"2 sample\(s\) with NaN or Inf feature values set to 0"):
+        pix = read_pixel_stats_exr(path)
+    d = pix.stats.features["depth"].mean[..., 0]
+    assert d[2, 3] == 0 and d[4, 1] == 0 and np.all(np.delete(d.ravel(), [2 * W + 3, 4 * W + 1]) == 3.0)
+    np.testing.assert_array_equal(pix.stats.mean, read_pixel_stats_exr(path, features="none").stats.mean)
+
+
+def test_half_buffer_pair_keeps_features(tmp_path):
+    from mcrecon.core.halves import merge_halves
+
+    paths = []
+    for k in (0, 1):
+        s = samples(20 + k)
+        p = tmp_path / f"h{k}.exr"
+        pbrt_exr(p, s)
+        from mcrecon.io.images import open_exr
+        ch = dict(open_exr(p)[0])
+        for i, c in enumerate("RGB"):
+            ch[f"Albedo.{c}"] = np.full((H, W), 0.25 * (k + 1) + 0.1 * i)
+        write_channels(p, ch, samplesPerPixel=SPP)
+        paths.append(p)
+    a, b = read_half_buffer_exrs(*paths)
+    assert a.stats.feature_names == b.stats.feature_names == ("albedo", "normal", "depth")
+    m = merge_halves(a.stats, b.stats)
+    # equal counts: the merged albedo mean is the halves' average
+    np.testing.assert_allclose(m.features["albedo"].mean[0, 0], [0.375, 0.475, 0.575], rtol=1e-6)
+    # one half without the albedo: refused, naming the features of both
+    from mcrecon.io.images import open_exr
+    ch = {k: v for k, v in open_exr(paths[1])[0].items() if not k.startswith("Albedo.")}
+    write_channels(paths[1], ch, samplesPerPixel=SPP)
+    with pytest.raises(InputError, match=r"features: the halves carry different features: albedo \(Albedo.R,"
+                                         r"Albedo.G,Albedo.B\), normal .* vs normal"):
+        read_half_buffer_exrs(*paths)
+    a, b = read_half_buffer_exrs(*paths, features="none")
+    assert a.stats.feature_names == b.stats.feature_names == ()
+
+
+def test_denoise_command_reads_pbrt_features(tmp_path, capsys):
+    s = samples(12)
+    path = tmp_path / "g.exr"
+    pbrt_exr(path, s, extra=True)  # Albedo, N, Ns, P among the channels
+    code, _, err = run(["denoise", path, "-o", tmp_path / "o.exr", "--method", "box"], capsys)
+    assert code == 0, err
+    assert "features albedo (Albedo.R,Albedo.G,Albedo.B), normal (Ns.X,Ns.Y,Ns.Z), depth (P.Z)" in err
+
+
+def test_info_lists_the_features_of_an_exr(tmp_path, capsys):
+    import json
+
+    s = samples(13)
+    path = tmp_path / "m.exr"
+    mitsuba_exr(path, s)
+    from mcrecon.io.images import open_exr
+    ch = dict(open_exr(path)[0])
+    for c in "RGB":
+        ch[f"nested.albedo.{c}"] = ch[f"m2_nested.albedo.{c}"] = np.full((H, W), 0.5)
+    ch["nested.dd.T"] = ch["m2_nested.dd.T"] = np.ones((H, W))
+    write_channels(path, ch)
+    code, out, err = run(["info", path], capsys)
+    assert code == 0, err
+    assert "layout                   mitsuba-moment" in out
+    assert "count                    none in the file (pass --spp N)" in out
+    assert ("feature albedo           nested.albedo.R,nested.albedo.G,nested.albedo.B (variance from "
+            "m2_nested.albedo.R,m2_nested.albedo.G,m2_nested.albedo.B)") in out
+    assert "feature depth            nested.dd.T (variance from m2_nested.dd.T)" in out
+    code, out, _ = run(["info", "--json", path], capsys)
+    info = json.loads(out)
+    assert [f["name"] for f in info["features"]] == ["albedo", "depth"]
+    assert (info["width"], info["height"]) == (W, H)
+    # pbrt: its names, its count attribute, no feature variances
+    pbrt_exr(tmp_path / "p.exr", s)
+    code, out, _ = run(["info", tmp_path / "p.exr"], capsys)
+    assert "layout                   pbrt-v4" in out and f"samplesPerPixel = {SPP}" in out
+    assert "feature normal           Ns.X,Ns.Y,Ns.Z (no variance)" in out
+    assert "feature depth            P.Z (no variance)" in out
+
+
+def test_real_mitsuba_moment_of_aov_features(mitsuba_moment_exrs, capsys):
+    d = mitsuba_moment_exrs
+    pix = read_pixel_stats_exr(d / "aov.exr", spp=16)
+    assert pix.layout == "mitsuba-moment" and pix.sources["mean"] == ("nested.X", "nested.Y", "nested.Z")
+    assert pix.sources["features"] == {"albedo": ("nested.albedo.R", "nested.albedo.G", "nested.albedo.B"),
+                                       "normal": ("nested.nn.X", "nested.nn.Y", "nested.nn.Z"),
+                                       "depth": ("nested.dd.T",)}
+    st = pix.stats
+    a = st.features["albedo"].mean
+    assert a.min() >= 0 and a.max() <= 1 and a.max() > 0.1  # the Cornell box's diffuse walls
+    # a 24x16 film shows the box and black beyond its sides (depth 0 there: nothing hit); pixel means
+    # of unit normals have length <= 1, 1 inside a face
+    depth = st.features["depth"].mean[..., 0]
+    assert (depth >= 0).all() and (depth > 0).mean() > 0.5
+    length = np.linalg.norm(st.features["normal"].mean, axis=-1)
+    assert length.max() <= 1 + 1e-5 and np.median(length[depth > 0]) > 0.98  # 24x16: many edge pixels
+    assert (st.features["albedo"].sample_variance() >= 0).all()
+    code, _, err = run(["denoise", d / "aov.exr", "-o", d / "aov_box.exr", "--spp", "16"], capsys)
+    assert code == 0 and "features albedo (nested.albedo.R" in err, err

@@ -8,9 +8,15 @@
  * channels; datasets /counts and/or /positions), renders a procedural image (a
  * bright disc over a gradient, per-sample noise from the request's seed) and
  * writes the reply, a sample log: /positions (N, 2) float64, /values (N, C)
- * float32 and one feature, /features/depth (N,) float32, which mcrecon keeps
- * in the run's log.  The counted samples come first, pixel by pixel, then one
- * sample per requested position, in request order.
+ * float32 and the three canonical per-sample features of the surface each
+ * sample sees (docs/renderer-protocol.md, "Per-sample features"):
+ * /features/albedo (N, 3), /features/normal (N, 3) and /features/depth (N,),
+ * float32, which mcrecon keeps in the run's log and feature-guided methods
+ * read.  The disc is a hemisphere bulging toward the camera (albedo
+ * (0.8, 0.5, 0.2), its normal, depth 1 - its height); the gradient behind it
+ * a plane (albedo 0.5 grey, normal +z, depth 1 + y / height).  The counted
+ * samples come first, pixel by pixel, then one sample per requested position,
+ * in request order.
  *
  * It reads string attributes of either HDF5 string type (variable-length UTF-8
  * as mcrecon writes them, or fixed-length ASCII) and integers of any width (HDF5
@@ -48,6 +54,22 @@ static float shade(double x, double y, long long width, long long height, int c,
     double dx = x / width - 0.5, dy = y / height - 0.5;
     double base = sqrt(dx * dx + dy * dy) < 0.3 ? 1.0 : 0.2 * x / width;
     return (float)(base * noise / (1.0 + c));
+}
+
+/* The surface seen at film position (x, y): albedo[3], unit normal[3] and depth. */
+static void surface(double x, double y, long long width, long long height, float *albedo, float *normal,
+                    float *depth) {
+    double dx = x / width - 0.5, dy = y / height - 0.5, r2 = (dx * dx + dy * dy) / (0.3 * 0.3);
+    if (r2 < 1.0) { /* the hemisphere over the disc, radius 0.3 in film units */
+        double nz = sqrt(1.0 - r2);
+        albedo[0] = 0.8f; albedo[1] = 0.5f; albedo[2] = 0.2f;
+        normal[0] = (float)(dx / 0.3); normal[1] = (float)(dy / 0.3); normal[2] = (float)nz;
+        *depth = (float)(1.0 - 0.3 * nz);
+    } else {
+        albedo[0] = albedo[1] = albedo[2] = 0.5f;
+        normal[0] = normal[1] = 0.0f; normal[2] = 1.0f;
+        *depth = (float)(1.0 + y / (double)height);
+    }
 }
 
 /* A coordinate inside pixel cell [i, i+1): i + u rounds to i + 1 for large i and u close to 1,
@@ -194,6 +216,7 @@ int main(int argc, char **argv) {
     /* Render: counted samples pixel by pixel (row-major), then the requested positions in order. */
     double *pos = malloc(sizeof(double) * 2 * (size_t)(n ? n : 1));
     float *val = malloc(sizeof(float) * nch * (size_t)(n ? n : 1)), *depth = malloc(sizeof(float) * (size_t)(n ? n : 1));
+    float *albedo = malloc(sizeof(float) * 3 * (size_t)(n ? n : 1)), *normal = malloc(sizeof(float) * 3 * (size_t)(n ? n : 1));
     uint64_t s = seed ^ (0x5851F42D4C957F2Dull * (uint64_t)(round + 1));
     long long k = 0;
     for (long long p = 0; counts && p < width * height; p++)
@@ -208,7 +231,7 @@ int main(int argc, char **argv) {
     for (k = 0; k < n; k++) {
         double noise = 0.5 + uniform01(&s);
         for (size_t c = 0; c < nch; c++) val[k * nch + c] = shade(pos[2 * k], pos[2 * k + 1], width, height, (int)c, noise);
-        depth[k] = (float)(1.0 + pos[2 * k + 1] / (double)height);
+        surface(pos[2 * k], pos[2 * k + 1], width, height, albedo + 3 * k, normal + 3 * k, depth + k);
     }
 
     g_path = argv[2];
@@ -220,11 +243,13 @@ int main(int argc, char **argv) {
     int_attr_write(r, "width", width);
     int_attr_write(r, "height", height);
     ascii_attr_write(r, "channels", channels, nch);
-    hsize_t pdims[2] = {(hsize_t)n, 2}, vdims[2] = {(hsize_t)n, nch}, ddims[1] = {(hsize_t)n};
+    hsize_t pdims[2] = {(hsize_t)n, 2}, vdims[2] = {(hsize_t)n, nch}, ddims[1] = {(hsize_t)n}, fdims[2] = {(hsize_t)n, 3};
     dataset_write(r, "positions", H5T_IEEE_F64LE, H5T_NATIVE_DOUBLE, 2, pdims, pos);
     dataset_write(r, "values", H5T_IEEE_F32LE, H5T_NATIVE_FLOAT, 2, vdims, val);
+    dataset_write(r, "features/albedo", H5T_IEEE_F32LE, H5T_NATIVE_FLOAT, 2, fdims, albedo);
+    dataset_write(r, "features/normal", H5T_IEEE_F32LE, H5T_NATIVE_FLOAT, 2, fdims, normal);
     dataset_write(r, "features/depth", H5T_IEEE_F32LE, H5T_NATIVE_FLOAT, 1, ddims, depth);
     CHECK(H5Fclose(r), "closing the reply");
-    free(pos); free(val); free(depth); free(counts); free(req_pos);
+    free(pos); free(val); free(depth); free(albedo); free(normal); free(counts); free(req_pos);
     return 0;
 }

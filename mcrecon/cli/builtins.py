@@ -218,7 +218,7 @@ def _cmd_mitsuba(args):
         print(f"wrote {out}\nwrote {out.with_suffix('.png')}")
     else:
         path = mb.dump_uniform_log(args.output, scene, width=w, height=h, spp=args.spp, seed=args.seed,
-                                   reference_spp=args.reference_spp)
+                                   reference_spp=args.reference_spp, features=args.features)
         print(f"rendered a {w}x{h}, {args.spp}-spp uniform log in {time.perf_counter() - t0:.1f} s")
         print(f"wrote {path}")
     return 0

@@ -26,10 +26,65 @@ _INFO_LINES = ("file", "width", "height", "channels", "samples", "finite_samples
                "features", "reference")
 
 
+def _log_feature_details(path) -> list[dict]:
+    """Name, components (canonical names where they fit) and stored dtype of each feature of a log."""
+    from ..core.features import feature_components
+    from ..io import read_log
+
+    log = read_log(path)
+    out = []
+    for name in log.feature_names:
+        shape = tuple(log.feature_shapes[name])
+        k = shape[0] if len(shape) == 1 else 1 if not shape else None
+        comps = list(feature_components(name, k)) if k is not None else [f"shape {shape}"]
+        dtype = log.read_feature(name, stop=1).dtype  # the stored dtype (one row read)
+        out.append({"name": name, "components": comps, "dtype": str(dtype)})
+    return out
+
+
+def _exr_info(path) -> dict:
+    """What ``mcrecon denoise`` would find in a pixel-statistics EXR, without needing its sample count."""
+    from ..io.pixel_exr import (COUNT_ATTRIBUTES, _EXR, _detect_layout, _mitsuba_prefixes,
+                                find_feature_channels)
+
+    exr = _EXR(Path(path))
+    shapes = {a.shape for a in exr.arrays.values()}
+    h, w = next(iter(shapes)) if len(shapes) == 1 else (None, None)
+    layout = _detect_layout(exr)
+    prefixes = _mitsuba_prefixes(exr.names) if layout == "mitsuba-moment" else []
+    feats = find_feature_channels(exr.names, layout or "explicit", where=str(path),
+                                  prefix=prefixes[0] if len(prefixes) == 1 else None)
+    count = next((f"{a} = {exr.header[a]}" for a in COUNT_ATTRIBUTES if a in exr.header), None)
+    return {"file": str(path), "width": w, "height": h, "channels": list(exr.names),
+            "layout": layout,
+            "count": count or "none in the file (pass --spp N)",
+            "features": [{"name": f, "channels": list(m), "second_moments": list(m2) if m2 else None}
+                         for f, (m, m2) in feats.items()]}
+
+
 def _cmd_info(args):
     from ..io import summarize_log
 
+    info = _exr_info(args.log) if str(args.log).lower().endswith(".exr") else None
+    if info is not None and (info["layout"] is None and not info["features"]):
+        info = None  # a plain image: the log reader says what it is and what is accepted
+    if info is not None:
+        if info["layout"] is None:
+            info["layout"] = "not recognised (explicit mapping: --mean ... --variance-channels ...)"
+        if args.json:
+            print(json.dumps(info, indent=2, sort_keys=True))
+            return 0
+        for k in ("file", "width", "height", "channels", "layout", "count"):
+            v = info[k]
+            print(f"{k:24s} {','.join(v) if isinstance(v, list) else v}")
+        if not info["features"]:
+            print(f"{'features':24s} -")
+        for f in info["features"]:
+            var = f"variance from {','.join(f['second_moments'])}" if f["second_moments"] else "no variance"
+            print(f"{'feature ' + f['name']:24s} {','.join(f['channels'])} ({var})")
+        return 0
     info = summarize_log(args.log)
+    info["feature_details"] = _log_feature_details(args.log)
     if args.json:
         print(json.dumps(info, indent=2, sort_keys=True))
         return 0
@@ -40,6 +95,10 @@ def _cmd_info(args):
         if isinstance(v, float):
             v = f"{v:.3f}"
         print(f"{k:24s} {v}")
+        if k == "features":
+            for f in info["feature_details"]:
+                print(f"{'  ' + f['name']:24s} {len(f['components'])} component(s) "
+                      f"{','.join(f['components'])}, {f['dtype']}")
     if info["metadata"]:
         print(f"{'metadata':24s} {json.dumps(info['metadata'], sort_keys=True)}")
     if info["writer_pid"] is not None:
@@ -111,7 +170,9 @@ def _read_pixel_stats_input(args):
         count_source, name = pix.count_source, str(args.log)
     if note is not None:  # after the input is read: a refused input gets its one error line only
         sys.stderr.write(f"mcrecon: note: {note}\n")
-    what = ", ".join(f"{k} {','.join(v)}" for k, v in pix.sources.items())
+    what = ", ".join(f"{k} {','.join(v)}" for k, v in pix.sources.items() if k != "features")
+    if pix.sources.get("features"):
+        what += ", features " + ", ".join(f"{f} ({','.join(c)})" for f, c in pix.sources["features"].items())
     space = f"; reconstructed in {','.join(pix.stats.channels)}, written as {','.join(pix.output_channels)}" \
         if pix.output_matrix is not None else ""
     sys.stderr.write(f"mcrecon: note: {name}: layout {pix.layout}: {what}; count from {count_source}"
@@ -176,6 +237,9 @@ def _renderer_spec(args) -> dict:
         raise InputError("adapt", "renderer", "give exactly one of --scene NAME, --renderer-cmd CMD, "
                          "--mitsuba [SCENE.xml|cornell-box], or --resume LOG")
     w, h = parse_size(args.size)
+    if args.features is not None and args.mitsuba is None:
+        raise InputError("adapt", "--features", "chooses the Mitsuba bridge's per-sample features (with "
+                         "--mitsuba); a built-in scene or an external renderer sends what it sends")
     if args.scene is not None:
         from ..renderers.scenes import get_scene
 
@@ -189,13 +253,15 @@ def _renderer_spec(args) -> dict:
         if not argv:
             raise InputError("--renderer-cmd", "command", "empty")
         return command_spec(argv, width=w, height=h, channels=args.channels.split(","), timeout=args.timeout)
-    return mitsuba_spec(None if args.mitsuba == "cornell-box" else args.mitsuba, width=w, height=h)
+    return mitsuba_spec(None if args.mitsuba == "cornell-box" else args.mitsuba, width=w, height=h,
+                        features="all" if args.features is None else args.features)
 
 
 def _refuse_run_flags(args) -> None:
     """A resumed run keeps its recorded settings: refuse flags that would change them."""
     ignored = [flag for flag, v in (("--scene", args.scene), ("--renderer-cmd", args.renderer_cmd),
-                                    ("--mitsuba", args.mitsuba), ("--spp", args.spp), ("--log", args.log),
+                                    ("--mitsuba", args.mitsuba), ("--features", args.features), ("--spp", args.spp),
+                                    ("--log", args.log),
                                     ("--reference", args.reference)) if v is not None]
     ignored += [args.method_flags[k] for k in given_method_options(args)]
     if args.method != "box" or args.seed != 0 or args.nonfinite != "drop" or args.storage_dtype != "auto":
@@ -370,8 +436,8 @@ def register(sub, command: str | None = None) -> None:
     The method flags go to denoise, adapt and methods only when
     ``command`` is one of them, or None (every parser complete).
     """
-    s = sub.add_parser("info", help="describe a sample log")
-    s.add_argument("log")
+    s = sub.add_parser("info", help="describe a sample log, or a pixel-statistics EXR (layout, features found)")
+    s.add_argument("log", help="a sample log (.h5), or an EXR of per-pixel statistics (.exr)")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=_cmd_info)
 
@@ -416,6 +482,9 @@ def register(sub, command: str | None = None) -> None:
                         "(split like a shell would, never run through one)")
     s.add_argument("--mitsuba", default=None, nargs="?", const="cornell-box", metavar="SCENE.xml",
                    help="Mitsuba 3 bridge (optional extra): a scene file, default the Cornell box")
+    s.add_argument("--features", default=None, metavar="none|albedo,normal,depth",
+                   help="with --mitsuba: the per-sample features of the primary hit it sends and the log stores "
+                        "(default all three; none to switch off)")
     s.add_argument("--channels", default="R,G,B", help="channel names of an external renderer")
     s.add_argument("--timeout", type=float, default=600.0, help="seconds per round for an external renderer")
     s.add_argument("--size", default="128x128", help="film size WIDTHxHEIGHT (default 128x128)")
@@ -511,6 +580,9 @@ def register(sub, command: str | None = None) -> None:
         m.add_argument("--seed", type=int, default=0)
         if name == "log":
             m.add_argument("--reference-spp", type=int, default=None, help="also store a reference of this spp")
+            m.add_argument("--features", default="all", metavar="none|albedo,normal,depth",
+                           help="per-sample features of the primary hit to store (/features/NAME; default all "
+                                "three: albedo, shading normal, camera-space depth; none to switch off)")
         m.add_argument("-o", "--output", required=True)
         m.set_defaults(func=_cmd_mitsuba)
 

@@ -58,6 +58,34 @@ it to ``'sample'`` when the user did not choose, and ``auto``'s default
 candidates need two halves of the samples, so it keeps only its SURE
 candidates (``box,gauss``) unless given a half-buffer pair.
 
+Features
+--------
+Feature channels found next to the colour are read into the statistics'
+per-pixel features (``PixelStats.from_moments(features=...)``; see
+``docs/pixel-statistics-inputs.md``), by :data:`FEATURE_CHANNELS`:
+
+* pbrt-v4 (``pbrt-v4`` layout or an explicit mapping): ``albedo`` from
+  ``Albedo.R/G/B``; ``normal`` from ``Ns.X/Y/Z`` (the shading normal),
+  else ``N.X/Y/Z`` (the geometric one); ``depth`` from ``P.Z`` (pbrt
+  writes the camera-space position: its z is the depth).  pbrt writes no
+  variance of them: they count as noise-free (variance None).
+* Mitsuba 3's ``aov`` integrator (explicit mapping): the AOV names
+  ``albedo`` (``albedo.R/G/B``), ``sh_normal`` or ``nn`` (``.X/Y/Z``,
+  the name Mitsuba's documentation gives the ``sh_normal`` AOV) and
+  ``depth``, ``dd`` or ``dd.y`` (``.T``).  Mitsuba names the channels
+  after the AOV's *name*, not its type: other names are not guessed.
+* Mitsuba's ``moment`` integrator wrapping an ``aov`` integrator named
+  ``P`` (the prefix of the colour moments): the same AOV names prefixed
+  ``P.``, with their second moments ``m2_P.*``, which give the features'
+  variances like the colour's.
+
+Two candidates for one feature (``sh_normal`` and ``nn``, pbrt and
+Mitsuba names) are refused as ambiguous, naming them: choose with
+``features={"normal": "nn.X,nn.Y,nn.Z"}``.  Non-finite feature values in
+sampled pixels are set to 0 and warned, as for per-sample features
+(:func:`mcrecon.core.features.check_features`).  ``features="none"``
+reads none.
+
 Half-buffer pairs
 -----------------
 Two EXRs of independent halves of the samples (dual buffers), read with
@@ -75,16 +103,17 @@ import os
 import re
 import warnings
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
 from ..errors import InputError, McreconWarning
 from ..core.stats import PixelStats
 from .images import subsampled
+from .pixel_exr_features import FEATURE_CHANNELS, _read_features, find_feature_channels  # noqa: F401 (re-exported)
 
 __all__ = ['LAYOUTS', 'PixelStatsEXR', 'read_pixel_stats_exr', 'read_half_buffer_exrs', 'HALF_MAX',
-           'MITSUBA_XYZ_TO_SRGB', 'xyz_from_rgb_matrix']
+           'MITSUBA_XYZ_TO_SRGB', 'xyz_from_rgb_matrix', 'FEATURE_CHANNELS', 'find_feature_channels']
 
 #: The layout presets (besides the explicit mapping).
 LAYOUTS = ("pbrt-v4", "mitsuba-moment")
@@ -305,7 +334,8 @@ def _mitsuba_prefixes(names) -> list[str]:
             p = m.group(1)
             if all(c in names for c in (f"{p}.X", f"{p}.Y", f"{p}.Z", f"m2_{p}.Y", f"m2_{p}.Z")):
                 out.append(p)
-    return sorted(out)
+    # the AOVs of an aov integrator P (P.nn.X: its normals) are not a second colour output
+    return sorted(p for p in out if not any(p.startswith(q + ".") for q in out))
 
 
 def _detect_layout(exr: _EXR) -> str | None:
@@ -356,7 +386,7 @@ def _check_finite(exr, names, values, count, field, half):
 
 
 def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance=None, second_moment=None,
-                         variance_of: str = "samples", count=None, spp=None) -> PixelStatsEXR:
+                         variance_of: str = "samples", count=None, spp=None, features="auto") -> PixelStatsEXR:
     """Read an EXR of per-pixel statistics (see the module docstring for the layouts).
 
     Parameters
@@ -377,10 +407,16 @@ def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance
         Samples per pixel: a number, a channel name or a header attribute.
     spp : int, optional
         Samples per pixel (the same as a numeric ``count``).
+    features : 'auto', 'none' or mapping
+        The feature channels to read into ``stats.features`` (see
+        :func:`find_feature_channels` and the module notes): 'auto'
+        (default) every one found, 'none' none, or ``{feature: channels}``.
 
     Returns
     -------
     PixelStatsEXR
+        ``sources["features"]`` names the channels each feature was read
+        from (``{}`` when none).
 
     Raises
     ------
@@ -407,6 +443,9 @@ def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance
             raise InputError(where, "layout", "not recognised (no pbrt-v4 Variance.R/G/B, no Mitsuba m2_* "
                              f"moments); channels present: {exr.present()}; pass --layout pbrt-v4|mitsuba-moment "
                              "or the mapping --mean R,G,B --variance ... --count N")
+    if not (isinstance(features, Mapping) or features in ("auto", "none")):
+        raise InputError(where, "features", f"{features!r}; valid: 'auto', 'none', or a mapping feature -> "
+                         "comma-separated channels")
     n, count_source = _resolve_count(exr, count, spp)
     _check_total(exr, n, count_source, "--spp" if spp is not None else "--count")
     out_matrix, out_channels = None, None
@@ -462,6 +501,8 @@ def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance
             out_matrix, out_channels = MITSUBA_XYZ_TO_SRGB.copy(), ("R", "G", "B")
         sources = {"mean": tuple(mean), "second_moment": tuple(second_moment)}
         v_of = "samples"
+        m_prefix = re.fullmatch(r"(.+)\.X", mean[0]) if len(mean) == 3 else None
+        feature_prefix = m_prefix.group(1) if m_prefix else None
     else:  # explicit
         if mean is None:
             raise InputError("--mean", "mean", "the explicit mapping needs --mean CHANNELS and --variance CHANNELS "
@@ -501,7 +542,18 @@ def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance
         var = np.where(int(n_arr) <= 1, 0.0, var)
     else:
         var = np.where((n_arr <= 1)[..., None], 0.0, var)
-    stats = PixelStats.from_moments(m, var, n, channels=channels, variance_of=v_of, where=where)
+    found = find_feature_channels(exr.names, layout, features=features, where=where,
+                                  prefix=feature_prefix if layout == "mitsuba-moment" else None)
+    # a colour channel is no feature (a mapping --mean P.X,P.Y,P.Z of other data would be read twice)
+    used = set(sources["mean"]) | set(sources.get("variance", ())) | set(sources.get("second_moment", ()))
+    found = {f: c for f, c in found.items() if not set(c[0]) & used}
+    feats = _read_features(exr, found, n) if found else None
+    if feats:
+        n_arr = np.asarray(n)
+        one = (n_arr <= 1) if n_arr.ndim else np.full(m.shape[:2], int(n_arr) <= 1)
+        feats = {f: (fm, None if fv is None else np.where(one[..., None], 0.0, fv)) for f, (fm, fv) in feats.items()}
+    sources["features"] = {f: c[0] for f, c in found.items()}
+    stats = PixelStats.from_moments(m, var, n, channels=channels, variance_of=v_of, where=where, features=feats)
     return PixelStatsEXR(stats, path, layout, sources, count_source,
                          tuple(out_channels) if out_channels is not None else tuple(channels), out_matrix)
 
@@ -578,6 +630,11 @@ def read_half_buffer_exrs(path_a, path_b, **options) -> tuple[PixelStatsEXR, Pix
     if (sa.height, sa.width) != (sb.height, sb.width):
         raise InputError(where, "shape", f"the halves differ in size: {sa.width}x{sa.height} vs "
                          f"{sb.width}x{sb.height} (width x height)")
+    fa, fb = a.sources.get("features", {}), b.sources.get("features", {})
+    if fa != fb:
+        show = lambda f: ", ".join(f"{k} ({','.join(v)})" for k, v in f.items()) or "none"  # noqa: E731
+        raise InputError(where, "features", f"the halves carry different features: {show(fa)} vs {show(fb)}; "
+                         "write the same feature channels into both (or read none: features='none')")
     if sa.channels != sb.channels or a.sources != b.sources or a.output_channels != b.output_channels:
         raise InputError(where, "channels", f"the halves differ in channels: "
                          f"{','.join(a.sources['mean'])} vs {','.join(b.sources['mean'])}")

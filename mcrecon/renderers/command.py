@@ -6,7 +6,9 @@ argument list, never through a shell) with the ``{request}`` and
 ``{reply}`` placeholders replaced by the two paths, waits for it to exit
 (with a time-out), and reads the *reply*, a file in the sample-log
 format: positions, values and any per-sample features (``/features/NAME``,
-shape ``(N, ...)``, numeric), which reach the run's log.  Every failure
+shape ``(N,)`` or ``(N, k)``, integer or float; the same names and shapes
+every round; NaN/Inf set to 0 and warned), which reach the run's log and
+the statistics of methods that read features.  Every failure
 (cannot start, time-out, non-zero exit, missing, malformed or short reply,
 a bad feature) raises :class:`~mcrecon.errors.RendererError`; the driver
 has committed every earlier round, so the run stays resumable.
@@ -235,6 +237,9 @@ class CommandRenderer:
         self.workdir.mkdir(parents=True, exist_ok=True)
         self.name = f"renderer command {Path(argv[0]).name}"
         self.last_render_seconds = None
+        # {name: per-sample shape} of the first reply: every later reply must send the same
+        self._feature_layout: dict[str, tuple[int, ...]] | None = None
+        self._warned_zeroed = False
 
     def __del__(self):
         if getattr(self, "_own_workdir", False):
@@ -283,7 +288,7 @@ class CommandRenderer:
         if tuple(reply.channels) != self.channels:
             raise RendererError(self.name, "reply channels", f"{','.join(reply.channels)}, "
                                 f"expected {','.join(self.channels)}")
-        features = self._read_features(reply, reply_path)
+        features = self._read_features(reply, reply_path, request.round_index)
         for p in (req_path, reply_path):
             p.unlink(missing_ok=True)
         return SampleBatch(np.asarray(data.positions, np.float64), data.values, features)
@@ -306,26 +311,58 @@ class CommandRenderer:
             raise RendererError(self.name, "reply length", f"{reply_path} declares {n} samples, requested "
                                 f"{request.total} (round {request.round_index})")
 
-    def _read_features(self, reply, reply_path: Path) -> dict[str, np.ndarray]:
-        """The reply's per-sample features ``/features/NAME``: shape (N, ...), a numeric dtype.
+    def _read_features(self, reply, reply_path: Path, round_index: int) -> dict[str, np.ndarray]:
+        """The reply's per-sample features ``/features/NAME``, validated at the boundary.
 
+        Each is (N,) or (N, k) of a real numeric dtype (integers, floats;
+        not bool or strings); the names and per-sample shapes are those of
+        the first reply (the first reply decides, as in the log); values
+        that are not finite are set to 0 in a copy and warned, as
+        :func:`mcrecon.core.features.check_features` does (a depth of inf
+        where a ray left the scene: the sample's colour is kept).
         ``read_log`` has checked that each is a dataset of at least N rows;
-        rows past N are allowed only in a reply that records ``n_committed``
-        (an appended log), as for its positions and values.
+        rows past N are allowed only in a reply that records
+        ``n_committed`` (an appended log), as for its positions and values.
         """
-        if not reply.feature_names:
-            return {}
+        from ..core.features import warn_feature_zeroed
+
         n = reply.n_samples
         features = {}
-        with h5py.File(reply_path, "r") as f:
-            appended = "n_committed" in f.attrs
-            for name in reply.feature_names:
-                d = f["features"][name]
-                field = f"reply {reply_path} dataset /features/{name}"
-                if d.ndim == 0 or d.shape[0] < n or (d.shape[0] != n and not appended):
-                    raise RendererError(self.name, field, f"shape {d.shape}, expected ({n}, ...): one row per sample")
-                if d.dtype.kind not in "biuf":
-                    raise RendererError(self.name, field, f"dtype {d.dtype}, expected a numeric dtype "
-                                        "(integer, float or bool)")
-                features[name] = d[:n]
+        if reply.feature_names:
+            with h5py.File(reply_path, "r") as f:
+                appended = "n_committed" in f.attrs
+                for name in reply.feature_names:
+                    d = f["features"][name]
+                    field = f"reply {reply_path} dataset /features/{name}"
+                    if d.ndim == 0 or d.shape[0] < n or (d.shape[0] != n and not appended):
+                        raise RendererError(self.name, field, f"shape {d.shape}, expected ({n}, ...): one row per "
+                                            "sample")
+                    if d.ndim > 2:
+                        raise RendererError(self.name, field, f"shape {d.shape}, expected ({n},) or ({n}, k): one "
+                                            "row of k components per sample")
+                    if d.dtype.kind not in "iuf":
+                        raise RendererError(self.name, field, f"dtype {d.dtype}, expected a numeric dtype "
+                                            "(integer or float)")
+                    features[name] = d[:n]
+        layout = {name: tuple(arr.shape[1:]) for name, arr in features.items()}
+        if self._feature_layout is None:
+            self._feature_layout = layout
+        elif layout != self._feature_layout:
+            show = lambda lay: ", ".join(f"{k} {(n,) + v}" for k, v in sorted(lay.items())) or "none"  # noqa: E731
+            raise RendererError(self.name, f"reply {reply_path} /features",
+                                f"round {round_index} sends {show(layout)}; the first reply sent "
+                                f"{show(self._feature_layout)}: every round must send "
+                                "the same features with the same shapes")
+        zeroed = 0
+        for name, arr in features.items():
+            if arr.dtype.kind == "f":
+                finite = np.isfinite(arr)
+                if not finite.all():
+                    rows = ~finite if arr.ndim == 1 else ~finite.all(axis=1)
+                    zeroed = max(zeroed, int(rows.sum()))
+                    features[name] = np.where(finite, arr, arr.dtype.type(0))
+        if zeroed and not self._warned_zeroed:
+            self._warned_zeroed = True  # once per renderer: a scene with sky has them every round
+            warn_feature_zeroed(f"{self.name}: round {round_index} (later rounds are not warned again)", zeroed,
+                                stacklevel=4)
         return features

@@ -13,6 +13,16 @@ How one sample is computed (the recipe measured in ``shared/NOTES.md``)::
     L, _, _ = integrator.sample(scene, s, ray, None, True)
     dr.eval(L * w)  # once per batch
 
+Per-sample features (on by default, ``features="none"`` to switch off): the
+primary ray of every sample is intersected once more and the hit's
+``albedo`` (3), shading ``normal`` (3, world space) and ``depth`` (1, the
+hit's camera-space z) are evaluated in the same ``dr.eval`` as
+the radiance (see :data:`MITSUBA_FEATURES` and ``docs/mitsuba.md``)::
+
+    si = scene.ray_intersect(Ray3f(ray)); bsdf = si.bsdf(ray)
+    albedo = bsdf.eval_diffuse_reflectance(si)  (1 where the BSDF has no diffuse lobe)
+    normal = si.sh_frame.n; depth = dot(si.p - camera, axis)   (each 0 where the ray hits nothing)
+
 Film coordinates are mcrecon's: ``x`` the column, ``y`` the row counted
 from the *top*; Mitsuba's normalised film position ``(x / W, y / H)`` uses
 the same orientation as the rows of ``mi.render``'s output (checked by
@@ -52,15 +62,18 @@ import numpy as np
 
 from ..errors import InputError, RendererError
 from ..core.requests import SampleBatch, SampleRequest, _place_in_pixels
-from ..core.samples import pixel_index
 
 __all__ = ["MitsubaRenderer", "mitsuba_available", "render_reference", "dump_uniform_log",
-           "SUPPORTED_VARIANTS", "drjit_cache_dir"]
+           "SUPPORTED_VARIANTS", "MITSUBA_FEATURES", "drjit_cache_dir"]
 
 #: Variants whose ``integrator.sample`` is vectorised and returns RGB
 #: (a ``Color3f``).  ``scalar_rgb`` would need one Python call per sample
 #: (~0.1 M samples/s); spectral/mono variants return other quantities.
 SUPPORTED_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
+
+#: The per-sample features the bridge can write, and their components
+#: (``features="all"``, the default, is all of them).
+MITSUBA_FEATURES: dict[str, int] = {"albedo": 3, "normal": 3, "depth": 1}
 
 #: Seconds the availability probe may take (import + one kernel compile,
 #: normally 1-3 s; generous because CI machines are shared).
@@ -220,6 +233,36 @@ def _check_int(field, value, *, minimum, allow_none=False, extra=()):
     return int(value)
 
 
+def check_mitsuba_features(features, *, where: str = _WHERE) -> tuple[str, ...]:
+    """The feature names an option value asks for, in :data:`MITSUBA_FEATURES` order.
+
+    ``"all"`` (every feature), ``"none"``, ``None`` or an empty sequence (no
+    features), a comma-separated string (``"albedo,depth"``, as the CLI's
+    ``--features``) or a sequence of names.
+    """
+    valid = ", ".join(MITSUBA_FEATURES)
+    if features is None:
+        return ()
+    if isinstance(features, str):
+        if features == "all":
+            return tuple(MITSUBA_FEATURES)
+        if features == "none":
+            return ()
+        features = [f.strip() for f in features.split(",")]
+    try:
+        names = list(features)
+    except TypeError:
+        raise InputError(where, "features", f"got {type(features).__name__}, expected 'all', 'none' or names "
+                         f"from {valid}") from None
+    bad = [f for f in names if not isinstance(f, str) or f not in MITSUBA_FEATURES]
+    if bad:
+        raise InputError(where, "features", f"unknown feature {bad[0]!r}; valid: 'all', 'none', or a "
+                         f"comma-separated list of {valid}")
+    if len(set(names)) != len(names):
+        raise InputError(where, "features", f"{','.join(names)} names a feature twice")
+    return tuple(f for f in MITSUBA_FEATURES if f in names)
+
+
 def _resize_scene_dict(d: Mapping, width: int | None, height: int | None) -> dict:
     """Copy of a Mitsuba scene dict with every sensor's film resized."""
     def copy_dicts(x):
@@ -270,6 +313,10 @@ class MitsubaRenderer:
         before importing Mitsuba here, so a broken LLVM raises a clear
         :class:`~mcrecon.errors.RendererError` instead of aborting this
         process.
+    features : "all", "none" or sequence of str
+        Per-sample features of the primary hit sent with every sample
+        (``SampleBatch.features``): ``albedo`` (N, 3), ``normal`` (N, 3)
+        and ``depth`` (N,), all float32; default all three.  See the notes.
 
     Attributes
     ----------
@@ -309,6 +356,21 @@ class MitsubaRenderer:
     * The reply lists the samples for ``request.counts`` first (sorted by
       pixel, row-major), then one sample per ``request.positions`` row, in
       request order, with the requested positions returned exactly.
+    * Features are those of the primary ray's first hit (the same ray the
+      path starts with, so they share its depth of field and motion blur):
+      ``albedo`` is ``BSDF.eval_diffuse_reflectance`` where the hit's BSDF
+      has a diffuse lobe (diffuse, plastic, principled, blends: its diffuse
+      reflectance, textures included), and 1 where it has none (dielectric,
+      thin dielectric, conductors): Mitsuba returns 0 there for smooth
+      BSDFs and the BSDF's value at normal incidence times pi for rough
+      ones (25 for a rough conductor with alpha 0.1), neither an albedo;
+      1 is what Open Image Denoise asks for on specular surfaces of
+      unknown reflectivity.  ``normal`` is the world-space shading normal
+      ``si.sh_frame.n``; ``depth`` the hit's camera-space z (its distance
+      from the camera along the viewing axis, as pbrt-v4's ``P.Z``; the
+      camera's transform at construction), not ``si.t``, which Mitsuba
+      measures from the near-clip plane.  A ray that hits nothing gets 0
+      in every feature.
 
     References
     ----------
@@ -320,8 +382,9 @@ class MitsubaRenderer:
 
     def __init__(self, scene=None, *, width: int | None = None, height: int | None = None,
                  variant: str = "llvm_ad_rgb", spp_per_pass: int = 16, max_depth: int | None = None,
-                 params: Mapping | None = None, probe: bool = True):
+                 params: Mapping | None = None, probe: bool = True, features="all"):
         # --- validate every option before touching Mitsuba
+        self.features = check_mitsuba_features(features)
         width = _check_int("width", width, minimum=1, allow_none=True)
         height = _check_int("height", height, minimum=1, allow_none=True)
         if not isinstance(variant, str) or variant not in SUPPORTED_VARIANTS:
@@ -394,6 +457,10 @@ class MitsubaRenderer:
         self._shutter_open = float(self._sensor.shutter_open())
         self._shutter_time = float(self._sensor.shutter_open_time())
         self._needs_aperture = bool(self._sensor.needs_aperture_sample())
+        # Camera-space depth: the camera's position and unit viewing axis (its +z) in world space.
+        m = np.asarray(self._sensor.world_transform().matrix, np.float64).reshape(4, 4)
+        axis = m[:3, 2] / np.linalg.norm(m[:3, 2])
+        self._camera_origin, self._camera_axis = tuple(map(float, m[:3, 3])), tuple(map(float, axis))
         self.name = f"mitsuba:{Path(self.scene_name).name}"
         self.last_render_seconds = 0.0
         self.last_call_seconds = 0.0
@@ -405,7 +472,7 @@ class MitsubaRenderer:
 
     def __repr__(self) -> str:
         return (f"MitsubaRenderer({self.scene_name!r}, {self.width}x{self.height}, variant={self.variant!r}, "
-                f"spp_per_pass={self.spp_per_pass})")
+                f"spp_per_pass={self.spp_per_pass}, features={','.join(self.features) or 'none'!r})")
 
     @property
     def pass_size(self) -> int:
@@ -413,10 +480,12 @@ class MitsubaRenderer:
         return self.spp_per_pass * self.width * self.height
 
     # ------------------------------------------------------------ tracing
-    def _trace(self, uv: np.ndarray, seed32: int, out: np.ndarray) -> None:
+    def _trace(self, uv: np.ndarray, seed32: int, out: np.ndarray, feats: Mapping[str, np.ndarray]) -> None:
         """Radiance of one path through each film position into ``out`` (n, 3) float32.
 
         ``uv`` (2, n) float32: the normalised film positions (x / W, y / H).
+        ``feats``: name -> (n, k) float32 views to fill with the primary
+        hit's features (see the class notes), evaluated with the radiance.
         """
         mi, dr = self._mi, self._dr
         mi.set_variant(self.variant)  # process-global: another renderer may have switched it
@@ -436,11 +505,42 @@ class MitsubaRenderer:
         ray.has_differentials = False
         L, _valid, _aux = self._integrator.sample(self._scene, s, ray, None, True)
         L = L * weight
-        dr.eval(L)
+        got = self._primary_features(ray, tuple(feats)) if feats else {}
+        # One evaluation for the radiance and the features: one kernel launch.
+        dr.eval(L, *got.values())
         # One channel at a time: converting the Color3f as a whole launches
         # an extra interleaving kernel whose size is compiled in.
         for c in range(3):
             out[:, c] = np.asarray(L[c], dtype=np.float32)
+        for name, dst in feats.items():
+            x = got[name]
+            if dst.shape[1] == 1:
+                dst[:, 0] = np.asarray(x, dtype=np.float32)
+            else:
+                for c in range(dst.shape[1]):
+                    dst[:, c] = np.asarray(x[c], dtype=np.float32)
+
+    def _primary_features(self, ray, names) -> dict:
+        """Dr.Jit expressions (not evaluated) of the features of the primary ray's first hit."""
+        mi, dr = self._mi, self._dr
+        si = self._scene.ray_intersect(mi.Ray3f(ray))
+        hit = si.is_valid()
+        out = {}
+        if "albedo" in names:
+            bsdf = si.bsdf(ray)
+            # eval_diffuse_reflectance is an albedo only for BSDFs with a diffuse lobe
+            # (0 for smooth glass/metal, unbounded for rough ones): 1 elsewhere (class notes).
+            diffuse = mi.has_flag(bsdf.flags(), mi.BSDFFlags.Diffuse)
+            a = dr.select(diffuse, bsdf.eval_diffuse_reflectance(si, hit), mi.Color3f(1.0))
+            out["albedo"] = dr.select(hit, a, mi.Color3f(0.0))
+        if "normal" in names:
+            out["normal"] = dr.select(hit, si.sh_frame.n, mi.Vector3f(0.0))
+        if "depth" in names:
+            # camera-space z of the hit (as pbrt's P.Z), not si.t: Mitsuba starts camera rays on the
+            # near-clip plane, so si.t falls short of the distance by near_clip / cos(angle)
+            z = dr.dot(si.p - mi.Point3f(*self._camera_origin), mi.Vector3f(*self._camera_axis))
+            out["depth"] = dr.select(hit, z, mi.Float(0.0))
+        return out
 
     def _film_positions(self, request: SampleRequest):
         """(positions (n, 2) float64, normalised film positions (2, n) float32) of a request.
@@ -499,8 +599,14 @@ class MitsubaRenderer:
         Returns
         -------
         SampleBatch
-            positions (N, 2) float64 and values (N, 3) float32.
+            positions (N, 2) float64, values (N, 3) float32 and the
+            features (float32: albedo and normal (N, 3), depth (N,)).
         """
+        return self._render(request, self.features)
+
+    def _render(self, request: SampleRequest, features: tuple[str, ...]) -> SampleBatch:
+        """:meth:`render` with the features ``features`` (a subset of ``self.features``; the
+        reference renders none)."""
         t_call = time.perf_counter()
         if not isinstance(request, SampleRequest):
             raise InputError(self.name, "request", f"got {type(request).__name__}, expected a SampleRequest")
@@ -512,6 +618,7 @@ class MitsubaRenderer:
         pos, uv = prepared if prepared is not None else self._film_positions(request)
         n = pos.shape[0]
         values = np.empty((n, 3), np.float32)
+        feats = {name: np.empty((n, MITSUBA_FEATURES[name]), np.float32) for name in features}
         render_s = 0.0
         step = self.pass_size
         n_pass = -(-n // step)
@@ -522,7 +629,7 @@ class MitsubaRenderer:
             a, b = k * step, min(n, (k + 1) * step)
             t0 = time.perf_counter()
             try:
-                self._trace(uv[:, a:b], int(seeds[k]), values[a:b])
+                self._trace(uv[:, a:b], int(seeds[k]), values[a:b], {f: v[a:b] for f, v in feats.items()})
             except Exception as exc:
                 raise RendererError(self.name, "render", f"Mitsuba failed on pass {k} of round {rnd}: "
                                     f"{type(exc).__name__}: {exc}") from exc
@@ -531,7 +638,8 @@ class MitsubaRenderer:
         self.total_render_seconds += render_s
         self.n_rendered += n
         self.last_call_seconds = time.perf_counter() - t_call
-        return SampleBatch(pos, values)
+        # depth as (N,): one component, stored as /features/depth of shape (N,)
+        return SampleBatch(pos, values, {f: (v[:, 0] if v.shape[1] == 1 else v) for f, v in feats.items()})
 
 
 @numba.njit(cache=True, nogil=True)
@@ -549,143 +657,5 @@ def _normalised(pos, width, height):
 
 
 # ---------------------------------------------------- reference and logs
-
-def _make_renderer(scene, width, height, variant, max_depth, spp_per_pass):
-    if isinstance(scene, MitsubaRenderer):
-        if (width or scene.width, height or scene.height) != (scene.width, scene.height):
-            raise InputError(scene.name, "width/height", f"requested {width}x{height}, the renderer's film is "
-                             f"{scene.width}x{scene.height}")
-        return scene
-    return MitsubaRenderer(scene, width=width, height=height, variant=variant, max_depth=max_depth,
-                           spp_per_pass=spp_per_pass)
-
-
-def _uniform_passes(renderer: MitsubaRenderer, spp: int, seed: int):
-    """Yield uniform batches (positions, values), one per pass of <= spp_per_pass spp."""
-    done, k = 0, 0
-    while done < spp:
-        m = min(renderer.spp_per_pass, spp - done)
-        counts = np.full((renderer.height, renderer.width), m, np.int64)
-        yield renderer.render(SampleRequest(renderer.width, renderer.height, counts=counts,
-                                            round_index=k, seed=seed))
-        done += m
-        k += 1
-
-
-def render_reference(scene=None, *, width: int | None = None, height: int | None = None, spp: int = 1024,
-                     seed: int = 0, variant: str = "llvm_ad_rgb", max_depth: int | None = None,
-                     spp_per_pass: int = 16) -> np.ndarray:
-    """A high-spp reference image: the per-pixel mean of ``spp`` jittered samples.
-
-    It goes through the bridge (not ``mi.render``) so that it estimates
-    exactly what mcrecon reconstructs from the bridge's samples: the box
-    integral of the radiance over each pixel, without Mitsuba's film
-    reconstruction filter (Gaussian in the Cornell box) and with the same
-    integrator settings.
-
-    Parameters
-    ----------
-    scene : None, path, dict or MitsubaRenderer
-        As :class:`MitsubaRenderer` (an existing renderer is reused).
-    width, height : int, optional
-        Film size (default 128 x 128 for the Cornell box).
-    spp : int
-        Samples per pixel.
-    seed : int
-        Seeds the passes (use a seed different from the one of the samples
-        being evaluated: the reference must be independent of them).
-    variant, max_depth, spp_per_pass
-        As :class:`MitsubaRenderer`.
-
-    Returns
-    -------
-    ndarray of float64, shape (H, W, 3)
-        Accumulated in float64; never clipped.
-
-    References
-    ----------
-    .. [1] W. Jakob et al., "Mitsuba 3 renderer", 2022.
-    """
-    spp = _check_int("spp", spp, minimum=1)
-    seed = _check_int("seed", seed, minimum=0)
-    r = _make_renderer(scene, width, height, variant, max_depth, spp_per_pass)
-    acc = np.zeros((r.height * r.width, 3), np.float64)
-    for batch in _uniform_passes(r, spp, seed):
-        idx = pixel_index(batch.positions, r.width)
-        for c in range(3):
-            acc[:, c] += np.bincount(idx, weights=batch.values[:, c].astype(np.float64), minlength=acc.shape[0])
-    return (acc / spp).reshape(r.height, r.width, 3)
-
-
-def _to_float32_positions(pos: np.ndarray) -> np.ndarray:
-    """float32 copies of film positions that stay inside their pixels.
-
-    Rounding i + u (u just below 1) to float32 can give i + 1, moving the
-    sample to the next pixel (or off the film); clamp to the largest float32
-    below i + 1.
-    """
-    cell = np.floor(pos)
-    p32 = pos.astype(np.float32)
-    return np.minimum(p32, np.nextafter((cell + 1).astype(np.float32), np.float32(0)))
-
-
-def dump_uniform_log(path, scene=None, *, width: int | None = None, height: int | None = None, spp: int = 16,
-                     seed: int = 0, reference_spp: int | None = None, variant: str = "llvm_ad_rgb",
-                     max_depth: int | None = None, spp_per_pass: int = 16):
-    """Render ``spp`` uniform jittered samples per pixel into an mcrecon sample log.
-
-    The log (``mcrecon.io.write_log`` format) holds one round per pass of at
-    most ``spp_per_pass`` samples per pixel, float32 positions and values,
-    metadata naming the renderer, scene, variant, integrator depth, spp,
-    seed and the Mitsuba version, and, with ``reference_spp``, a reference
-    from :func:`render_reference` rendered with an independent seed.  The
-    file is written under a temporary name and renamed when complete, so a
-    crash never leaves a partial log at ``path``.
-
-    Parameters
-    ----------
-    path : path-like
-        The ``.h5`` log to write.
-    scene, width, height, variant, max_depth, spp_per_pass
-        As :class:`MitsubaRenderer`.
-    spp : int
-        Samples per pixel in the log.
-    seed : int
-        Seed of the samples.
-    reference_spp : int, optional
-        Samples per pixel of the stored reference (none when omitted).
-
-    Returns
-    -------
-    pathlib.Path
-    """
-    from ..io import append_log, write_log
-    from ..io._atomic import atomic_path
-    from ..io.writer import check_log_fits
-
-    spp = _check_int("spp", spp, minimum=1)
-    seed = _check_int("seed", seed, minimum=0)
-    reference_spp = _check_int("reference_spp", reference_spp, minimum=1, allow_none=True)
-    path = Path(path)
-    r = _make_renderer(scene, width, height, variant, max_depth, spp_per_pass)
-    check_log_fits(path, spp * r.width * r.height, len(r.channels), where="mitsuba log")
-    reference = None
-    if reference_spp is not None:
-        # An independent stream: the reference must not share noise with the samples.
-        ref_seed = int(np.random.SeedSequence([seed, 0x726566]).generate_state(1, np.uint32)[0])
-        reference = render_reference(r, width=r.width, height=r.height, spp=reference_spp, seed=ref_seed)
-    metadata = {"renderer": "mitsuba", "mitsuba_version": r._mi.__version__, "variant": r.variant,
-                "scene": r.scene_name, "max_depth": r.max_depth, "integrator": str(r._integrator).split("[")[0].strip(),
-                "sampling": "uniform jittered", "spp": spp, "seed": seed, "spp_per_pass": r.spp_per_pass,
-                "reference_spp": reference_spp, "positions": "x = column, y = row from the top"}
-    with atomic_path(path) as tmp:
-        first = True
-        for k, batch in enumerate(_uniform_passes(r, spp, seed)):
-            pos = _to_float32_positions(batch.positions)
-            if first:
-                write_log(tmp, pos, batch.values, width=r.width, height=r.height, channels=r.channels,
-                          rounds=np.zeros(len(batch), np.int32), reference=reference, metadata=metadata)
-                first = False
-            else:
-                append_log(tmp, pos, batch.values, round_index=k)
-    return path
+# (in mitsuba_logs, re-exported here: they are part of this module's interface)
+from .mitsuba_logs import _to_float32_positions, dump_uniform_log, render_reference  # noqa: E402,F401

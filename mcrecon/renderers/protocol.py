@@ -10,7 +10,12 @@ request asks for samples in two ways that may be combined:
 * ``positions`` (M, 2): the renderer evaluates exactly these film
   positions (x is the column, y the row).
 
-The reply is a :class:`SampleBatch`: positions (N, 2) and values (N, C).
+The reply is a :class:`SampleBatch`: positions (N, 2) and values (N, C),
+and optionally per-sample ``features`` (name -> (N,) or (N, k) array; the
+canonical ``albedo`` (N, 3), ``normal`` (N, 3), ``depth`` (N,) of
+:mod:`mcrecon.core.features`), which the adaptive driver stores in the run's
+log and, for methods that declare features, in the statistics.  Every round
+must send the same features (``docs/renderer-protocol.md``).
 :func:`~mcrecon.core.requests.validate_reply` checks it against the request
 before anything is stored: never trust a renderer's reply.  The request and
 reply types live in :mod:`mcrecon.core.requests` (methods build requests and

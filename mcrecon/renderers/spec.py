@@ -9,7 +9,8 @@ without being told what it was.  Three kinds exist::
     {"kind": "command", "argv": [...], "width": W, "height": H,
                         "channels": [...], "timeout": SECONDS or None, "workdir": DIR or None,
                         "cwd": DIR or None}
-    {"kind": "mitsuba", "scene": XML or None (the Cornell box), "width": W, "height": H}
+    {"kind": "mitsuba", "scene": XML or None (the Cornell box), "width": W, "height": H,
+                        "features": "albedo,normal,depth" | "none" | ... (default all)}
 
 :func:`scene_spec`, :func:`command_spec` and :func:`mitsuba_spec` write
 one; :func:`check_spec` validates one (a spec read back from a log is
@@ -40,7 +41,7 @@ __all__ = ["KINDS", "scene_spec", "command_spec", "mitsuba_spec", "check_spec", 
 KINDS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "scene": (("scene", "width", "height"), ("seed",)),
     "command": (("argv", "width", "height"), ("channels", "timeout", "workdir", "cwd")),
-    "mitsuba": (("width", "height"), ("scene",)),
+    "mitsuba": (("width", "height"), ("scene", "features")),
 }
 
 
@@ -68,11 +69,15 @@ def command_spec(argv: Sequence[str], *, width: int, height: int, channels: Sequ
                        "cwd": os.path.abspath(os.getcwd() if cwd is None else cwd)})
 
 
-def mitsuba_spec(scene=None, *, width: int, height: int) -> dict:
+def mitsuba_spec(scene=None, *, width: int, height: int, features="all") -> dict:
     """The spec of a Mitsuba 3 scene file (recorded as an absolute path, so a resume from another
-    directory finds it), or of the built-in Cornell box for None."""
+    directory finds it), or of the built-in Cornell box for None; ``features`` as
+    :class:`~mcrecon.renderers.mitsuba.MitsubaRenderer` (recorded as a comma-separated list or "none")."""
+    from .mitsuba import check_mitsuba_features
+
+    names = check_mitsuba_features(features, where="mitsuba_spec")
     return check_spec({"kind": "mitsuba", "scene": None if scene is None else os.path.abspath(scene),
-                       "width": width, "height": height})
+                       "width": width, "height": height, "features": ",".join(names) or "none"})
 
 
 # ---------------------------------------------------------------- checking
@@ -157,7 +162,14 @@ def check_spec(spec: Any, *, where: str = "renderer spec", field: str = "rendere
         if cwd is not None and not os.path.isabs(cwd):
             raise bad("cwd", "an absolute directory (the one the run's command ran in) or null")
     else:
+        from .mitsuba import check_mitsuba_features
+
         out["scene"] = text_or_none("scene")
+        # a spec written before features existed rendered none: resume it without them
+        feats = spec.get("features", "none")
+        if not isinstance(feats, str):
+            raise bad("features", "a comma-separated string of albedo, normal, depth, or 'none'")
+        out["features"] = ",".join(check_mitsuba_features(feats, where=where)) or "none"
     return out
 
 
@@ -181,7 +193,7 @@ def renderer_from_spec(spec, *, where: str = "renderer spec", field: str = "rend
                                timeout=spec["timeout"], workdir=spec["workdir"], cwd=spec["cwd"])
     from .mitsuba import MitsubaRenderer
 
-    return MitsubaRenderer(spec["scene"], width=w, height=h)
+    return MitsubaRenderer(spec["scene"], width=w, height=h, features=spec["features"])
 
 
 def reference_from_spec(spec, *, where: str = "renderer spec", field: str = "renderer_spec"):
