@@ -322,8 +322,8 @@ def awr(source, /, *, variant="robust", wavelet="cdf97", cs=1.0, variance="sampl
 @_given_options
 def splat(source, /, *, variant="robust", alpha=0.5, c=2.0, c_prime=8.0, initial_spp=1, min_width=1.0,
           max_width=32.0, boundary="mirror", norm="luminance", spread="consistent", outlier_k=2.0,
-          guide="local_mean", false_rejection=0.05, spread_c=8.0, spread_alpha=0.3, nonfinite="drop",
-          **unknown) -> np.ndarray:
+          guide="local_mean", false_rejection=0.05, spread_c=8.0, spread_alpha=0.3, feature_gate="auto",
+          nonfinite="drop", **unknown) -> np.ndarray:
     """Progressive, energy-preserving, variable-width Epanechnikov splatting of individual samples.
 
     Parameters
@@ -374,6 +374,10 @@ def splat(source, /, *, variant="robust", alpha=0.5, c=2.0, c_prime=8.0, initial
     spread_alpha : float, optional
         With spread='consistent': Eq. 8's exponent of N for the consistent samples' kernels (the paper's
         1.5/5); a finite number with 0 < spread_alpha <= 1 (default 0.3).
+    feature_gate : {'auto', 'none'}, optional
+        With spread='consistent': also refuse a pixel whose feature means (albedo, normal, depth) differ by
+        more than k times the pixels' own feature spread (auto: when the samples carry features) or compare
+        the colour only (none) (default "auto").
     nonfinite : {'drop', 'zero', 'raise'}, optional
         Policy for NaN/Inf sample values of a SampleSet (default 'drop').
 

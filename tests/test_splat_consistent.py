@@ -12,8 +12,10 @@ import numpy as np
 import pytest
 
 import mcrecon
+from mcrecon.adaptive.run import adapt
 from mcrecon.core.metrics import relative_mse
-from mcrecon.core.requests import jittered_positions
+from mcrecon.core.requests import SampleBatch, jittered_positions
+from mcrecon.renderers.callable import CallableRenderer
 from mcrecon.core.stats import PixelStats
 from mcrecon.methods.splat import SplatMethod
 from mcrecon.methods.splat.consistent import edge_radius, gate_k, pixel_moments
@@ -52,7 +54,7 @@ def _rejections(stats_a, stats_b, k2):
     for i in range(stats_a.shape[1]):
         both[0, 0] = stats_a[0, i]
         both[0, 1] = stats_b[0, i]
-        n += not _same_pixel_stats(both, 0, 0, 0, 1, k2)
+        n += not _same_pixel_stats(both, np.zeros((1, 2, 0, 2)), 0, 0, 0, 1, k2)
     return n
 
 
@@ -173,3 +175,142 @@ def test_no_spread_before_the_outlier_test_can_run():
     st = PixelStats(W, W)
     st.add(pos, val)
     np.testing.assert_allclose(mcrecon.reconstruct(ss, method="splat"), st.mean, rtol=1e-12)
+
+
+# ------------------------------------------------------------------ flat noise, a sharp edge, features
+def flat_samples(spp, seed, size=W):
+    """A constant 0.5 with uniform noise in [0, 1) per channel (the ``flat`` scene's law, drawn here)."""
+    rng = np.random.default_rng([seed, 13])
+    pos = jittered_positions(np.full((size, size), spp), rng)
+    return pos, rng.random((len(pos), 3))
+
+
+def test_default_filters_flat_noise():
+    """Flat noise, 32 spp: the default's relative MSE is < 0.6x the pixel mean's (issue 26's target) on
+    each of three seeds; measured 0.44-0.46 (at 128^2: 0.437).  The pixel mean's relative MSE of 32^2 x 3
+    values has a relative standard deviation of about sqrt(2 / 3072) = 2.6 %, so an image that regressed
+    to the pixel mean (ratio 1) cannot pass, nor one that filtered half as much (about 0.7)."""
+    for seed in range(3):
+        pos, val = flat_samples(32, seed)
+        e, e_box, _, _ = _errors(pos, val, np.full((W, W, 3), 0.5))
+        assert e < 0.6 * e_box, (seed, e / e_box)
+
+
+def step_samples(spp, seed, lo=0.2, hi=1.0, features=False):
+    """A sharp step at the pixel boundary x = 16: ``hi`` left, ``lo`` right, times noise U[0, 2); with
+    ``features``, an albedo that is the step's (0.8 | 0.3, noise-free) and a constant normal and depth."""
+    rng = np.random.default_rng([seed, 17])
+    pos = jittered_positions(np.full((W, W), spp), rng)
+    left = pos[:, 0] < W // 2
+    val = (np.where(left, hi, lo) * 2 * rng.random(len(pos)))[:, None] * COLOUR
+    if not features:
+        return pos, val, None
+    n = len(pos)
+    return pos, val, {"albedo": np.where(left[:, None], 0.8, 0.3) * np.ones((n, 3)),
+                      "normal": np.tile([0.0, 0.0, 1.0], (n, 1)), "depth": np.full(n, 4.0)}
+
+
+def _left_energy(img, pos, val):
+    """The image's sum over the left half and the left half's sample energy (sum of its pixel means)."""
+    st = PixelStats(W, W)
+    st.add(pos, val)
+    return img[:, :W // 2].sum(axis=(0, 1)), st.mean[:, :W // 2].sum(axis=(0, 1)), st
+
+
+def test_no_energy_crosses_a_sharp_edge():
+    """A step 1.0 | 0.2 on a pixel boundary, 16 spp, three seeds: the left half's energy after the
+    default is its samples' to 1e-9 (nothing crossed: the gate tells the sides apart, 0.8 against
+    k sqrt(se_l^2 + se_r^2) = 0.39), while both halves are filtered (relative MSE below the pixel
+    mean's on each)."""
+    for seed in range(3):
+        pos, val, _ = step_samples(16, seed)
+        img = mcrecon.reconstruct(mcrecon.SampleSet(pos, val, width=W, height=W), method="splat")
+        got, want, st = _left_energy(img, pos, val)
+        np.testing.assert_allclose(got, want, rtol=1e-9)
+        ref = np.where(np.arange(W) < W // 2, 1.0, 0.2)[None, :, None] * COLOUR * np.ones((W, 1, 1))
+        for side in (slice(0, W // 2), slice(W // 2, W)):
+            assert relative_mse(img[:, side], ref[:, side]) < relative_mse(st.mean[:, side], ref[:, side])
+
+
+def test_features_without_information_change_nothing():
+    """The optional path: no features, features that are equal everywhere (they tell no pixel apart)
+    and informative features with ``feature_gate='none'`` give the same image, bit for bit, as the
+    colour-only default, offline and adaptive (the driver hands the features to ``observe``)."""
+    pos, val, feats = step_samples(16, 0, lo=0.45, hi=0.6, features=True)
+    n = len(pos)
+    flat = {"albedo": np.full((n, 3), 0.5), "normal": np.tile([0.0, 0.0, 1.0], (n, 1)), "depth": np.full(n, 4.0)}
+    base = mcrecon.reconstruct(mcrecon.SampleSet(pos, val, width=W, height=W), method="splat")
+    same = mcrecon.reconstruct(mcrecon.SampleSet(pos, val, width=W, height=W, features=flat), method="splat")
+    off = mcrecon.reconstruct(mcrecon.SampleSet(pos, val, width=W, height=W, features=feats),
+                              method=SplatMethod(feature_gate="none"))
+    on = mcrecon.reconstruct(mcrecon.SampleSet(pos, val, width=W, height=W, features=feats), method="splat")
+    np.testing.assert_array_equal(same, base)
+    np.testing.assert_array_equal(off, base)
+    assert not np.array_equal(on, base)  # the informative features do act
+
+    def renderer(with_features):
+        def fn(req):
+            rng = np.random.default_rng([7, req.round_index])
+            p = jittered_positions(req.counts, rng)
+            left = p[:, 0] < W // 2
+            v = (np.where(left, 0.6, 0.45) * 2 * rng.random(len(p)))[:, None] * COLOUR
+            f = {"albedo": np.full((len(p), 3), 0.5), "depth": np.full(len(p), 4.0)}
+            return SampleBatch(p, v, f if with_features else {})
+        return CallableRenderer(fn, width=W, height=W)
+
+    runs = [adapt(renderer(w), "splat", spp=16, seed=0, track_error=False, progress=False).image for w in (0, 1)]
+    np.testing.assert_array_equal(runs[1], runs[0])
+
+
+def test_features_keep_an_edge_the_colour_noise_hides():
+    """A step 0.6 | 0.45 on a pixel boundary under noise U[0, 2), 16 spp: the colour cannot see it
+    (the means differ by 0.15, about 1.6 standard errors of their difference, below the gate's 2.64),
+    so the colour-only default leaks energy across (measured 0.24-0.31 % of the left half's, seeds
+    0-2; adaptive 0.12 %).  With the noise-free albedo of the step as a feature nothing crosses (left
+    energy to 1e-9, offline and adaptive: pure pixels have no albedo spread, so different albedos are
+    refused), and the image is closer to the reference (relative MSE measured 2-3.5 % below
+    colour-only's, asserted lower on every seed)."""
+    ref = np.where(np.arange(W) < W // 2, 0.6, 0.45)[None, :, None] * COLOUR * np.ones((W, 1, 1))
+    for seed in range(3):
+        pos, val, feats = step_samples(16, seed, lo=0.45, hi=0.6, features=True)
+        with_f = mcrecon.reconstruct(mcrecon.SampleSet(pos, val, width=W, height=W, features=feats), method="splat")
+        colour = mcrecon.reconstruct(mcrecon.SampleSet(pos, val, width=W, height=W), method="splat")
+        got, want, st = _left_energy(with_f, pos, val)
+        np.testing.assert_allclose(got, want, rtol=1e-9)
+        leak, _, _ = _left_energy(colour, pos, val)
+        assert np.all(np.abs(leak - want) > 1e-3 * want), (seed, leak / want - 1)
+        assert relative_mse(with_f, ref) < relative_mse(colour, ref) < relative_mse(st.mean, ref)
+        np.testing.assert_allclose(with_f.sum(axis=(0, 1)), st.mean.sum(axis=(0, 1)), rtol=1e-9)  # energy
+
+    def fn(req, features=True):  # the adaptive driver hands the round's features to observe
+        rng = np.random.default_rng([7, req.round_index])
+        p = jittered_positions(req.counts, rng)
+        left = p[:, 0] < W // 2
+        v = (np.where(left, 0.6, 0.45) * 2 * rng.random(len(p)))[:, None] * COLOUR
+        return SampleBatch(p, v, {"albedo": np.where(left[:, None], 0.8, 0.3) * np.ones((len(p), 3))}
+                           if features else {})
+
+    def left_share(features):
+        res = adapt(CallableRenderer(lambda req: fn(req, features), width=W, height=W), "splat", spp=16, seed=0,
+                    track_error=False, progress=False)
+        return res.image[:, :W // 2].sum(axis=(0, 1)) / res.stats.mean[:, :W // 2].sum(axis=(0, 1)) - 1
+
+    np.testing.assert_allclose(left_share(True), 0.0, atol=1e-9)
+    assert np.all(np.abs(left_share(False)) > 1e-4)
+
+
+def test_features_reach_the_gate_from_a_log_as_from_a_sample_set(tmp_path):
+    """A log's /features/NAME reach the gate as a SampleSet's do: the same image, bit for bit."""
+    pos, val, feats = step_samples(8, 1, lo=0.45, hi=0.6, features=True)
+    path = tmp_path / "f.h5"
+    mcrecon.write_log(path, pos, val, width=W, height=W, features=feats)
+    a = mcrecon.reconstruct(path, method="splat")
+    b = mcrecon.reconstruct(mcrecon.SampleSet(pos, val, width=W, height=W, features=feats), method="splat")
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, mcrecon.reconstruct(mcrecon.SampleSet(pos, val, width=W, height=W),
+                                                     method="splat"))
+
+
+def test_feature_gate_option_is_validated():
+    with pytest.raises(mcrecon.InputError, match="feature_gate.*auto, none"):
+        SplatMethod(feature_gate="albedo")

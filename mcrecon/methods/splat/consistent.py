@@ -19,7 +19,15 @@ sample count N grows, bounded twice by what the pixel statistics can see:
   the gradient's own noise taken out: :func:`edge_radius`): spreading along
   the local colour gradient moves a sample's expectation by at most k
   standard errors of its pixel at the rim.  A pixel whose samples have no
-  spread (se = 0) has no noise to remove and exchanges nothing.
+  spread (se = 0) has no noise to remove and exchanges nothing;
+* **the features** (when the samples carry them: albedo, normal, depth, any
+  other): q also needs, in every feature component, ``(f_q - f_p)^2 <= k^2
+  (s_p^2 + s_q^2)`` (f the pixels' feature means, s^2 their feature sample
+  variances: :func:`feature_moments`).  A feature is no noisy estimate to be
+  averaged but what the pixel's samples hit: two pixels whose feature means
+  lie further apart than their own spreads of it saw different surfaces (a
+  texture edge the colour noise hides), while a feature that varies inside
+  the pixels (an edge crossing one, defocus, motion) lets the colour decide.
 
 The footprint is centred on the sample's pixel centre and normalised over
 its whole support; what it would give a pixel the gate refuses, or beyond
@@ -59,6 +67,75 @@ def channel_sums(pos, val, width, height):
         s1[:, c] = np.bincount(idx, weights=v, minlength=width * height)
         s2[:, c] = np.bincount(idx, weights=v * v, minlength=width * height)
     return s1.reshape(height, width, nc), s2.reshape(height, width, nc)
+
+
+class FeatureSums:
+    """Cumulative per-pixel sums of every feature component and of its square (all rounds so far).
+
+    The components of all features are stacked in the order first given (``names``, ``sizes``).
+    Sums are of ``f - shift``, ``shift`` the first chunk's mean of each component: a depth of
+    1000 +- 0.01 keeps its spread (sums of squares of the raw values would cancel it away).
+    """
+
+    def __init__(self, width, height):
+        self.width, self.height = int(width), int(height)
+        self.names: tuple[str, ...] | None = None
+        self.sizes: tuple[int, ...] = ()
+        self.n = np.zeros((height, width))
+        self.s1 = self.s2 = self.shift = None
+
+    def add(self, pos, feats, where):
+        """Add the features (``{name: (N, k)}``, the rows of ``pos``) of one chunk."""
+        from ...errors import InputError
+
+        names = tuple(feats)
+        if self.names is None:
+            self.names = names
+            self.sizes = tuple(int(np.shape(feats[k])[1]) if np.ndim(feats[k]) == 2 else 1 for k in names)
+        elif names != self.names:
+            raise InputError(where, "features", f"a round carries features {', '.join(names) or '(none)'}, "
+                             f"earlier rounds {', '.join(self.names) or '(none)'}: every round must carry the same")
+        if not names:
+            return
+        f = np.concatenate([np.asarray(feats[k], dtype=np.float64).reshape(len(pos), -1) for k in names], axis=1)
+        if not np.isfinite(f).all():  # a guide, not radiance: as check_features does, non-finite entries are 0
+            f = np.where(np.isfinite(f), f, 0.0)
+        if f.shape[1] != sum(self.sizes):
+            raise InputError(where, "features", f"{f.shape[1]} components, earlier rounds {sum(self.sizes)}")
+        if self.shift is None:
+            self.shift = f.mean(axis=0) if len(f) else np.zeros(f.shape[1])
+            self.s1 = np.zeros((self.height, self.width, f.shape[1]))
+            self.s2 = np.zeros((self.height, self.width, f.shape[1]))
+        c1, c2 = channel_sums(pos, f - self.shift, self.width, self.height)
+        self.s1 += c1
+        self.s2 += c2
+        ix = np.clip(np.floor(pos[:, 0]).astype(np.int64), 0, self.width - 1)
+        iy = np.clip(np.floor(pos[:, 1]).astype(np.int64), 0, self.height - 1)
+        self.n += np.bincount(iy * self.width + ix, minlength=self.width * self.height).reshape(self.height, self.width)
+
+    @property
+    def any(self) -> bool:
+        return self.s1 is not None
+
+
+#: Relative floor of a feature's spread in the gate: means that agree to this many digits are equal
+#: (sums of equal values differ in the last bits between pixels of different sample counts).
+FEATURE_FLOOR = 1e-6
+
+
+def feature_moments(fsum: FeatureSums | None) -> np.ndarray:
+    """Per pixel and feature component (H, W, F, 2): the mean and the sample variance plus a floor
+    ``(FEATURE_FLOOR |mean|)^2 + 1e-300``.  Below two samples the variance is infinite (nothing known:
+    the features pass).  No features: F = 0, and the gate tests none."""
+    if fsum is None or not fsum.any:
+        return np.zeros((1, 1, 0, 2))
+    n = fsum.n[:, :, None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        m0 = np.where(n > 0, fsum.s1 / np.maximum(n, 1.0), 0.0)
+        var = np.maximum(fsum.s2 / np.maximum(n, 1.0) - m0 * m0, 0.0) * n / np.maximum(n - 1.0, 1.0)
+        mean = m0 + fsum.shift
+        var = np.where(n >= 2, var + (FEATURE_FLOOR * mean) ** 2 + 1e-300, np.inf)
+    return np.ascontiguousarray(np.stack([mean, var], axis=-1))
 
 
 def pixel_moments(counts, s1, s2):
