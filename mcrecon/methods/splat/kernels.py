@@ -99,10 +99,12 @@ def _same_pixel_stats(gs, fs, pj, pi, qj, qi, k2):
     ``gs[..., c, :]`` holds (mean, squared standard error of the mean, log sample variance, its
     variance 2 / (n - 1)): the means must differ by at most k standard errors of their difference,
     and the log variances by at most k of theirs (the normal approximation of both).
-    ``fs[..., c, :]`` holds (mean, sample variance + floor) of every feature component (none: a
-    last axis of length 0 skips the test): the feature means must differ by at most k of the
-    pixels' own feature spreads, ``(f_q - f_p)^2 <= k^2 (s_p^2 + s_q^2)``; two pixels whose
-    noise-free albedo (or normal, depth) differs are on different surfaces."""
+    ``fs[..., c, :]`` holds (mean, sample variance + floor, slope along x, slope along y, squared
+    standard error) of every feature component (none: a third axis of length 0 skips the test): the
+    feature means must differ by at most k of the pixels' own feature spreads plus what the larger
+    of their smooth slopes explains over the distance, and k standard errors of that
+    (:func:`.consistent.feature_moments`); two pixels whose noise-free albedo (or normal, depth)
+    jumps are on different surfaces."""
     if qj == pj and qi == pi:
         return True
     for c in range(gs.shape[2]):
@@ -112,9 +114,15 @@ def _same_pixel_stats(gs, fs, pj, pi, qj, qi, k2):
         d = gs[qj, qi, c, 2] - gs[pj, pi, c, 2]
         if not d * d <= k2 * (gs[pj, pi, c, 3] + gs[qj, qi, c, 3]):
             return False
+    ax = abs(qi - pi)
+    ay = abs(qj - pj)
+    noise = k2 * (2.0 + 0.5 * (ax * ax + ay * ay))  # k^2 (variance of the difference and the slopes) / se^2
     for c in range(fs.shape[2]):
         d = fs[qj, qi, c, 0] - fs[pj, pi, c, 0]
-        if not d * d <= k2 * (fs[pj, pi, c, 1] + fs[qj, qi, c, 1]):
+        t = ax * max(abs(fs[pj, pi, c, 2]), abs(fs[qj, qi, c, 2])) + ay * max(abs(fs[pj, pi, c, 3]),
+                                                                         abs(fs[qj, qi, c, 3]))
+        t += math.sqrt(noise * max(fs[pj, pi, c, 4], fs[qj, qi, c, 4]))
+        if not d * d <= k2 * (fs[pj, pi, c, 1] + fs[qj, qi, c, 1]) + t * t:
             return False
     return True
 
@@ -421,7 +429,7 @@ def _deposit_own_pixel(pos, val, scale, out):
 @numba.njit(cache=True, nogil=True)
 def _splat_gated_loop(pos, val, scale, radius, r_edge, gs, fs, k2, mode, out):
     """Like :func:`_splat_loop`, but a sample of pixel p reaches only the pixels q whose statistics ``gs``
-    and features ``fs`` (last axis 0: none) do not tell them apart from p's at ``k = sqrt(k2)``
+    and features ``fs`` (third axis 0: none) do not tell them apart from p's at ``k = sqrt(k2)``
     (:func:`_same_pixel_stats`; off-film
     centres: their mirror image), and only within
     ``min(r_edge[p], r_edge[q])``; what the footprint would give elsewhere stays in p.  Normalised
