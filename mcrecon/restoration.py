@@ -320,7 +320,7 @@ def awr(source, /, *, variant="robust", wavelet="cdf97", cs=1.0, variance="sampl
 
 
 @_given_options
-def splat(source, /, *, variant="robust", alpha=0.5, c=2.0, c_prime=8.0, initial_spp=1, min_width=1.0,
+def splat(source, /, *, variant="robust", alpha=0.5, c=2.0, c_prime=8.0, initial_spp=16, min_width=1.0,
           max_width=32.0, boundary="mirror", norm="luminance", spread="consistent", outlier_k=2.0,
           guide="local_mean", false_rejection=0.05, spread_c=8.0, spread_alpha=0.3, feature_gate="auto",
           nonfinite="drop", **unknown) -> np.ndarray:
@@ -344,7 +344,8 @@ def splat(source, /, *, variant="robust", alpha=0.5, c=2.0, c_prime=8.0, initial
     c_prime : float, optional
         Pilot kernel diameter constant C' in pixels (C' N0^-1/2); a finite number > 0 (default 8.0).
     initial_spp : int, optional
-        Samples per pixel of the first round N0; an integer >= 1 (default 1).
+        Samples per pixel of the first round N0 (the paper: 1); an integer >= 1 (default 16;
+        ``variant='outliers'``: 1; ``variant='paper'``: 1).
     min_width : float, optional
         Smallest kernel diameter in pixels (>= 1); a finite number >= 1 (default 1.0).
     max_width : float, optional

@@ -48,7 +48,12 @@ class SplatMethod(Method):
     c_prime : float
         C' of the pilot estimate, diameter C' N0^-1/2 (default 8: 8 px at N0 = 1).
     initial_spp : int
-        N_0, samples per pixel of the first (stored) round (default 1).
+        N_0, samples per pixel of the first (stored) round (default 16; the
+        paper, and ``outliers``: 1).  The default's outlier test judges a
+        sample once its 3x3 window holds 64 samples (8 spp), and only judged
+        samples spread: rounds before that stay in their pixels, and Fig. 3
+        never revisits a round.  16 (8 + 8 when pipelined) judges the first
+        round already.
     min_width, max_width : float
         Clamp of the kernel diameter in pixels (default 1 = "one pixel" of
         the paper, and 32: the cap for huge G/f and f = 0).
@@ -121,10 +126,10 @@ class SplatMethod(Method):
     #: (docs/methods/splat.md, "The default filters").  ``outliers``: only the
     #: excess of outliers (the default before issue 26).
     variants = {"robust": {"spread": "consistent", "guide": "local_mean", "c": 2.0, "alpha": 0.5,
-                           "outlier_k": 2.0},
+                           "outlier_k": 2.0, "initial_spp": 16},
                 "outliers": {"spread": "outliers", "guide": "local_mean", "c": 2.0, "alpha": 0.5,
-                             "outlier_k": 2.0},
-                "paper": {"spread": "all", "guide": "none", "c": 4.0, "alpha": 0.3}}
+                             "outlier_k": 2.0, "initial_spp": 1},
+                "paper": {"spread": "all", "guide": "none", "c": 4.0, "alpha": 0.3, "initial_spp": 1}}
     options = (
         variant_option(variants),
         Option("alpha", float, 0.5, "exponent of N in the kernel width (Eq. 8), 0 < alpha <= 1",
@@ -134,7 +139,7 @@ class SplatMethod(Method):
                min_open=True),
         Option("c_prime", float, 8.0, "pilot kernel diameter constant C' in pixels (C' N0^-1/2)",
                min=0.0, min_open=True),
-        Option("initial_spp", int, 1, "samples per pixel of the first round N0", min=1),
+        Option("initial_spp", int, 16, "samples per pixel of the first round N0 (the paper: 1)", min=1),
         Option("min_width", float, 1.0, "smallest kernel diameter in pixels (>= 1)", min=1.0),
         Option("max_width", float, 32.0, "largest kernel diameter in pixels (cap for huge G/f; >= min_width)",
                min=1.0),
