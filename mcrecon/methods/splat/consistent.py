@@ -74,8 +74,9 @@ class FeatureSums:
     """Cumulative per-pixel sums of every feature component and of its square (all rounds so far).
 
     The components of all features are stacked in the order first given (``names``, ``sizes``).
-    Sums are of ``f - shift``, ``shift`` the first chunk's mean of each component: a depth of
-    1000 +- 0.01 keeps its spread (sums of squares of the raw values would cancel it away).
+    Sums are of ``f - shift``, ``shift`` per pixel its first sample's value: a depth of 1000 +- 0.01
+    keeps its spread (sums of squares of the raw values would cancel it away), and the sums of a
+    pixel depend on its own samples only (a tile of the film sums them as the film does).
     """
 
     def __init__(self, width, height):
@@ -103,16 +104,22 @@ class FeatureSums:
             f = np.where(np.isfinite(f), f, 0.0)
         if f.shape[1] != sum(self.sizes):
             raise InputError(where, "features", f"{f.shape[1]} components, earlier rounds {sum(self.sizes)}")
+        nf = f.shape[1]
         if self.shift is None:
-            self.shift = f.mean(axis=0) if len(f) else np.zeros(f.shape[1])
-            self.s1 = np.zeros((self.height, self.width, f.shape[1]))
-            self.s2 = np.zeros((self.height, self.width, f.shape[1]))
-        c1, c2 = channel_sums(pos, f - self.shift, self.width, self.height)
-        self.s1 += c1
-        self.s2 += c2
+            self.shift = np.zeros((self.height * self.width, nf))
+            self.s1 = np.zeros((self.height, self.width, nf))
+            self.s2 = np.zeros((self.height, self.width, nf))
         ix = np.clip(np.floor(pos[:, 0]).astype(np.int64), 0, self.width - 1)
         iy = np.clip(np.floor(pos[:, 1]).astype(np.int64), 0, self.height - 1)
-        self.n += np.bincount(iy * self.width + ix, minlength=self.width * self.height).reshape(self.height, self.width)
+        idx = iy * self.width + ix
+        new = self.n.ravel()[idx] == 0  # samples of pixels without any so far: the first one sets the shift
+        if new.any():
+            first_pix, first = np.unique(idx[new], return_index=True)
+            self.shift[first_pix] = f[np.flatnonzero(new)[first]]
+        c1, c2 = channel_sums(pos, f - self.shift[idx], self.width, self.height)
+        self.s1 += c1
+        self.s2 += c2
+        self.n += np.bincount(idx, minlength=self.width * self.height).reshape(self.height, self.width)
 
     @property
     def any(self) -> bool:
@@ -167,10 +174,10 @@ def feature_moments(fsum: FeatureSums | None) -> np.ndarray:
     with np.errstate(invalid="ignore", divide="ignore"):
         m0 = np.where(n > 0, fsum.s1 / np.maximum(n, 1.0), 0.0)
         var = np.maximum(fsum.s2 / np.maximum(n, 1.0) - m0 * m0, 0.0) * n / np.maximum(n - 1.0, 1.0)
-        mean = m0 + fsum.shift
+        mean = m0 + fsum.shift.reshape(m0.shape)
         var = np.where(n >= 2, var + (FEATURE_FLOOR * mean) ** 2 + 1e-300, np.inf)
         se2 = var / np.maximum(n, 1.0)
-    sx, sy = _limited_slopes(m0)  # differences of the shifted means: the same, without the shift's rounding
+    sx, sy = _limited_slopes(mean)
     return np.ascontiguousarray(np.stack([mean, var, sx, sy, se2], axis=-1))
 
 
