@@ -109,21 +109,31 @@ class FeatureSums:
             self.shift = np.zeros((self.height * self.width, nf))
             self.s1 = np.zeros((self.height, self.width, nf))
             self.s2 = np.zeros((self.height, self.width, nf))
-        ix = np.clip(np.floor(pos[:, 0]).astype(np.int64), 0, self.width - 1)
-        iy = np.clip(np.floor(pos[:, 1]).astype(np.int64), 0, self.height - 1)
-        idx = iy * self.width + ix
-        new = self.n.ravel()[idx] == 0  # samples of pixels without any so far: the first one sets the shift
-        if new.any():
-            first_pix, first = np.unique(idx[new], return_index=True)
-            self.shift[first_pix] = f[np.flatnonzero(new)[first]]
-        c1, c2 = channel_sums(pos, f - self.shift[idx], self.width, self.height)
-        self.s1 += c1
-        self.s2 += c2
-        self.n += np.bincount(idx, minlength=self.width * self.height).reshape(self.height, self.width)
+        _add_feature_sums(np.ascontiguousarray(pos, dtype=np.float64), np.ascontiguousarray(f), self.n, self.shift,
+                          self.s1, self.s2)
 
     @property
     def any(self) -> bool:
         return self.s1 is not None
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_feature_sums(pos, f, n, shift, s1, s2):
+    """Add samples' features to the per-pixel sums in sample order; a pixel's first sample sets its shift."""
+    h, w = n.shape
+    nf = f.shape[1]
+    for k in range(pos.shape[0]):
+        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
+        py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+        q = py * w + px
+        if n[py, px] == 0:
+            for c in range(nf):
+                shift[q, c] = f[k, c]
+        for c in range(nf):
+            d = f[k, c] - shift[q, c]
+            s1[py, px, c] += d
+            s2[py, px, c] += d * d
+        n[py, px] += 1.0
 
 
 #: Relative floor of a feature's spread in the gate: means that agree to this many digits are equal
