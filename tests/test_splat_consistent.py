@@ -377,3 +377,19 @@ def test_tiled_with_features_equals_untiled_bit_for_bit():
     full = mcrecon.reconstruct(ss, method=m)
     np.testing.assert_array_equal(D_tiles.reconstruct_tiled(ss, method=m, tile=32), full)
     assert not np.array_equal(full, mcrecon.reconstruct(mcrecon.SampleSet(pos, val, width=w, height=h), method=m))
+
+
+def test_dropped_samples_lose_their_features_too():
+    """A sample the NaN policy drops is dropped from the gate's feature sums as well: the image equals
+    the one of the samples without it (rows removed up front), bit for bit."""
+    pos, val, feats = step_samples(16, 2, lo=0.45, hi=0.6, features=True)
+    bad = np.zeros(len(pos), bool)
+    bad[[5, 777, 4000]] = True
+    val_nan = val.copy()
+    val_nan[bad, 1] = np.nan
+    with pytest.warns(mcrecon.McreconWarning, match="3 sample"):
+        got = mcrecon.reconstruct(mcrecon.SampleSet(pos, val_nan, width=W, height=W, features=feats), method="splat")
+    keep = ~bad
+    want = mcrecon.reconstruct(mcrecon.SampleSet(pos[keep], val[keep], width=W, height=W,
+                                                 features={k: v[keep] for k, v in feats.items()}), method="splat")
+    np.testing.assert_array_equal(got, want)
