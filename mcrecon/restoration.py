@@ -320,10 +320,10 @@ def awr(source, /, *, variant="robust", wavelet="cdf97", cs=1.0, variance="sampl
 
 
 @_given_options
-def splat(source, /, *, variant="robust", alpha=0.5, c=2.0, c_prime=8.0, initial_spp=1, min_width=1.0,
+def splat(source, /, *, variant="robust", alpha=0.5, c=2.0, c_prime=8.0, initial_spp=16, min_width=1.0,
           max_width=32.0, boundary="mirror", norm="luminance", spread="consistent", outlier_k=2.0,
-          guide="local_mean", false_rejection=0.05, spread_c=8.0, spread_alpha=0.3, nonfinite="drop",
-          **unknown) -> np.ndarray:
+          guide="local_mean", false_rejection=0.05, spread_c=8.0, spread_alpha=0.3, feature_gate="auto",
+          nonfinite="drop", **unknown) -> np.ndarray:
     """Progressive, energy-preserving, variable-width Epanechnikov splatting of individual samples.
 
     Parameters
@@ -344,7 +344,8 @@ def splat(source, /, *, variant="robust", alpha=0.5, c=2.0, c_prime=8.0, initial
     c_prime : float, optional
         Pilot kernel diameter constant C' in pixels (C' N0^-1/2); a finite number > 0 (default 8.0).
     initial_spp : int, optional
-        Samples per pixel of the first round N0; an integer >= 1 (default 1).
+        Samples per pixel of the first round N0 (the paper: 1); an integer >= 1 (default 16;
+        ``variant='outliers'``: 1; ``variant='paper'``: 1).
     min_width : float, optional
         Smallest kernel diameter in pixels (>= 1); a finite number >= 1 (default 1.0).
     max_width : float, optional
@@ -374,6 +375,10 @@ def splat(source, /, *, variant="robust", alpha=0.5, c=2.0, c_prime=8.0, initial
     spread_alpha : float, optional
         With spread='consistent': Eq. 8's exponent of N for the consistent samples' kernels (the paper's
         1.5/5); a finite number with 0 < spread_alpha <= 1 (default 0.3).
+    feature_gate : {'auto', 'none'}, optional
+        With spread='consistent': also refuse a pixel whose feature means (albedo, normal, depth) differ by
+        more than k times the pixels' own feature spread (auto: when the samples carry features) or compare
+        the colour only (none) (default "auto").
     nonfinite : {'drop', 'zero', 'raise'}, optional
         Policy for NaN/Inf sample values of a SampleSet (default 'drop').
 

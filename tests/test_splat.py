@@ -372,8 +372,13 @@ def test_caustic_spike_noise_reduced(spp):
 
 def test_plan_schedule_every_pixel_each_round():
     r = scenes.SceneRenderer("flat", width=8, height=5, seed=0)
-    res = adapt(r, SplatMethod(), spp=64, seed=1, track_error=False)
+    res = adapt(r, SplatMethod(initial_spp=1), spp=64, seed=1, track_error=False)
     assert [x["samples"] // 40 for x in res.rounds] == [1, 2, 4, 8, 16, 33]
+    # the default's N_0 = 16, split 8 + 8 when pipelined (the default): every round judged by the outlier test
+    res = adapt(r, SplatMethod(), spp=64, seed=1, track_error=False)
+    assert [x["samples"] // 40 for x in res.rounds] == [8, 8, 16, 32]
+    res = adapt(r, SplatMethod(), spp=64, seed=1, track_error=False, pipeline=False)
+    assert [x["samples"] // 40 for x in res.rounds] == [16, 48]
     assert (res.counts == 64).all()
     res = adapt(r, SplatMethod(initial_spp=2), spp=10.5, seed=1, track_error=False, pipeline=False)
     assert [x["samples"] for x in res.rounds] == [80, 320]  # 2, then 8; the 20 left over stay unspent

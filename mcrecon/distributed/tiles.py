@@ -96,10 +96,11 @@ class _TileSamples:
     on the whole film.
     """
 
-    def __init__(self, width, height, channels, name, rounds):
+    def __init__(self, width, height, channels, name, rounds, feature_names=()):
         self.width, self.height, self.channels, self.name = width, height, tuple(channels), name
-        self._rounds = rounds        # [(round index or None, [(positions, values), ...]), ...]
-        ends = np.cumsum([sum(p.shape[0] for p, _ in chunks) for _, chunks in rounds])
+        self.feature_names = tuple(feature_names)  # per-sample features kept with the samples (splat's gate)
+        self._rounds = rounds        # [(round index or None, [(positions, values, features), ...]), ...]
+        ends = np.cumsum([sum(p.shape[0] for p, _, _ in chunks) for _, chunks in rounds])
         self._slices = list(zip([0, *ends[:-1].tolist()], ends.tolist()))
 
     @property
@@ -109,13 +110,13 @@ class _TileSamples:
     def round_slices(self):
         return self._slices
 
-    def iter_chunks(self, *, rounds=None, with_round: bool = False, chunk_size=None):
+    def iter_chunks(self, *, rounds=None, with_round: bool = False, chunk_size=None, features=()):
         from ..core.samples import SampleChunk
 
         groups = range(len(self._rounds)) if rounds is None else [int(r) for r in rounds]
         for g in groups:
-            for pos, val in self._rounds[g][1]:
-                yield SampleChunk(pos, val, None, 0)
+            for pos, val, feats in self._rounds[g][1]:
+                yield SampleChunk(pos, val, None, 0, {k: feats[k] for k in features})
 
 
 def _film_rounds(source) -> list:
@@ -137,9 +138,11 @@ def _tile_samples(source, outer, where: str):
 
     (oy0, oy1), (ox0, ox1) = outer
     groups, film_n, tile_n = [], [], []
+    names = tuple(getattr(source, "feature_names", ()))
+    fkw = {"features": names} if names else {}
     for g in _film_rounds(source):
         chunks, nf, nt = [], 0, 0
-        for ch in source.iter_chunks(rounds=g, with_round=False):
+        for ch in source.iter_chunks(rounds=g, with_round=False, **fkw):
             pos, val, _ = check_samples(ch.positions, ch.values, width=source.width, height=source.height,
                                         n_channels=len(source.channels), where=where)
             nf += pos.shape[0]
@@ -149,12 +152,12 @@ def _tile_samples(source, outer, where: str):
                 p = pos[keep]
                 p[:, 0] -= ox0
                 p[:, 1] -= oy0
-                chunks.append((p, val[keep]))
+                chunks.append((p, val[keep], {k: np.asarray(a)[keep] for k, a in (ch.features or {}).items()}))
                 nt += p.shape[0]
         groups.append((None if g is None else g[0], chunks))
         film_n.append(nf)
         tile_n.append(nt)
-    sub = _TileSamples(ox1 - ox0, oy1 - oy0, source.channels, source_name_of(source), groups)
+    sub = _TileSamples(ox1 - ox0, oy1 - oy0, source.channels, source_name_of(source), groups, names)
     return sub, film_n, tile_n
 
 

@@ -7,7 +7,8 @@ shrinks as the number of samples grows; the image is built progressively
 in doubling rounds (Fig. 3).  That is ``variant="paper"``; the default
 ``variant="robust"`` spreads the excess of outliers over their
 neighbourhood guided by the local mean, and every consistent sample with
-Eq. 8's width, but only into pixels whose statistics do not tell them
+Eq. 8's width, but only into pixels whose statistics (and, when the
+samples carry them, features: albedo, normal, depth) do not tell them
 apart and within the local gradient's bound (``docs/methods/splat.md``,
 "The default filters"); ``variant="outliers"`` moves the outliers' excess
 only (the default before issue 26).

@@ -92,12 +92,19 @@ def _film_index(i, n, mode, guided):
     m = _reflect(i, n)
     return (-1 if mode == 2 else m), m
 @numba.njit(cache=True, nogil=True, inline="always")
-def _same_pixel_stats(gs, pj, pi, qj, qi, k2):
-    """Whether neither the means nor the spreads of pixels p and q tell them apart, in every channel.
+def _same_pixel_stats(gs, fs, pj, pi, qj, qi, k2):
+    """Whether neither the means nor the spreads of pixels p and q tell them apart, in every channel,
+    nor their features.
 
     ``gs[..., c, :]`` holds (mean, squared standard error of the mean, log sample variance, its
     variance 2 / (n - 1)): the means must differ by at most k standard errors of their difference,
-    and the log variances by at most k of theirs (the normal approximation of both)."""
+    and the log variances by at most k of theirs (the normal approximation of both).
+    ``fs[..., c, :]`` holds (mean, sample variance + floor, slope along x, slope along y, squared
+    standard error) of every feature component (none: a third axis of length 0 skips the test): the
+    feature means must differ by at most k of the pixels' own feature spreads plus what the larger
+    of their smooth slopes explains over the distance, and k standard errors of that
+    (:func:`.consistent.feature_moments`); two pixels whose noise-free albedo (or normal, depth)
+    jumps are on different surfaces."""
     if qj == pj and qi == pi:
         return True
     for c in range(gs.shape[2]):
@@ -107,18 +114,28 @@ def _same_pixel_stats(gs, pj, pi, qj, qi, k2):
         d = gs[qj, qi, c, 2] - gs[pj, pi, c, 2]
         if not d * d <= k2 * (gs[pj, pi, c, 3] + gs[qj, qi, c, 3]):
             return False
+    ax = abs(qi - pi)
+    ay = abs(qj - pj)
+    noise = k2 * (2.0 + 0.5 * (ax * ax + ay * ay))  # k^2 (variance of the difference and the slopes) / se^2
+    for c in range(fs.shape[2]):
+        d = fs[qj, qi, c, 0] - fs[pj, pi, c, 0]
+        t = ax * max(abs(fs[pj, pi, c, 2]), abs(fs[qj, qi, c, 2])) + ay * max(abs(fs[pj, pi, c, 3]),
+                                                                         abs(fs[qj, qi, c, 3]))
+        t += math.sqrt(noise * max(fs[pj, pi, c, 4], fs[qj, qi, c, 4]))
+        if not d * d <= k2 * (fs[pj, pi, c, 1] + fs[qj, qi, c, 1]) + t * t:
+            return False
     return True
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _footprint(x, y, r, h, w, mode, guide, guided, wbuf, ibuf, jbuf, gs, pj, pi, k2, gated):
+def _footprint(x, y, r, h, w, mode, guide, guided, wbuf, ibuf, jbuf, gs, fs, pj, pi, k2, gated):
     """The pixel centres strictly inside the support of radius ``r`` around (x, y) and their weights.
 
     The weight of centre q is ``1 - |q - (x, y)|^2 / r^2``, times ``guide[q]`` when ``guided`` (then
     centres of weight <= 0 are left out; off-film centres use the guide of their mirror image).
     ``gated`` (the sample's pixel (pj, pi) at the centre, ``guide`` a radius per pixel): the weights
     still sum over the whole support, but a centre q receives ``1 - d^2 / min(r, guide[p], guide[q])^2``
-    only if its pixel passes :func:`_same_pixel_stats` against p; the rest of its weight goes to p,
+    only if its pixel passes :func:`_same_pixel_stats` against p (colour ``gs``, features ``fs``); the rest of its weight goes to p,
     as one last entry.  Pair-symmetric: p sends q what q would send p.
     Film indices after the boundary mode go to ``ibuf``/``jbuf`` (-1: mode none, off the film).
     Returns (sum of the weights, number of entries).
@@ -156,7 +173,7 @@ def _footprint(x, y, r, h, w, mode, guide, guided, wbuf, ibuf, jbuf, gs, pj, pi,
                 if gated:
                     s += wt
                     sent = 0.0
-                    if _same_pixel_stats(gs, pj, pi, jg, ig, k2):
+                    if _same_pixel_stats(gs, fs, pj, pi, jg, ig, k2):
                         re = min(guide[pj, pi], guide[jg, ig])
                         d2 = q * r2
                         if d2 < re * re:
@@ -219,6 +236,7 @@ def _splat_loop(pos, val, scale, radius, mode, out):
     vv = np.empty(nc)
     no_guide = np.ones((1, 1))
     no_stats = np.zeros((1, 1, 1, 4))
+    no_feats = np.zeros((1, 1, 0, 2))
     n_fallback = 0
     for k in range(n):
         r = radius[k]
@@ -228,7 +246,7 @@ def _splat_loop(pos, val, scale, radius, mode, out):
         y = np.float64(pos[k, 1])
         for c in range(nc):
             vv[c] = val[k, c]
-        s, m = _footprint(x, y, r, h, w, mode, no_guide, False, wbuf, ibuf, jbuf, no_stats, 0, 0,
+        s, m = _footprint(x, y, r, h, w, mode, no_guide, False, wbuf, ibuf, jbuf, no_stats, no_feats, 0, 0,
                           0.0, False)
         if not s > 0.0:
             # No pixel centre inside the support: the whole sample goes to its
@@ -369,6 +387,7 @@ def _splat_guided_loop(pos, val, scale, radius, guide, mode, out):
     n = pos.shape[0]
     wbuf, ibuf, jbuf = _scratch(radius)
     no_stats = np.zeros((1, 1, 1, 4))
+    no_feats = np.zeros((1, 1, 0, 2))
     n_fallback = 0
     for k in range(n):
         r = radius[k]
@@ -378,7 +397,7 @@ def _splat_guided_loop(pos, val, scale, radius, guide, mode, out):
         y = np.float64(pos[k, 1])
         px = min(max(int(math.floor(x)), 0), w - 1)
         py = min(max(int(math.floor(y)), 0), h - 1)
-        s, m = _footprint(x, y, r, h, w, mode, guide, True, wbuf, ibuf, jbuf, no_stats, 0, 0, 0.0,
+        s, m = _footprint(x, y, r, h, w, mode, guide, True, wbuf, ibuf, jbuf, no_stats, no_feats, 0, 0, 0.0,
                           False)
         if not s > 0.0:
             n_fallback += 1
@@ -408,9 +427,10 @@ def _deposit_own_pixel(pos, val, scale, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def _splat_gated_loop(pos, val, scale, radius, r_edge, gs, k2, mode, out):
+def _splat_gated_loop(pos, val, scale, radius, r_edge, gs, fs, k2, mode, out):
     """Like :func:`_splat_loop`, but a sample of pixel p reaches only the pixels q whose statistics ``gs``
-    do not tell them apart from p's at ``k = sqrt(k2)`` (:func:`_same_pixel_stats`; off-film
+    and features ``fs`` (third axis 0: none) do not tell them apart from p's at ``k = sqrt(k2)``
+    (:func:`_same_pixel_stats`; off-film
     centres: their mirror image), and only within
     ``min(r_edge[p], r_edge[q])``; what the footprint would give elsewhere stays in p.  Normalised
     over the whole footprint, so each sample deposits exactly ``val * scale``, and pair-symmetric:
@@ -436,7 +456,7 @@ def _splat_gated_loop(pos, val, scale, radius, r_edge, gs, k2, mode, out):
         s = 0.0
         m = 0
         if r > 0.0:
-            s, m = _footprint(x, y, r, h, w, mode, r_edge, False, wbuf, ibuf, jbuf, gs, py, px, k2, True)
+            s, m = _footprint(x, y, r, h, w, mode, r_edge, False, wbuf, ibuf, jbuf, gs, fs, py, px, k2, True)
         if not s > 0.0:
             n_fallback += r > 0.0
             for c in range(nc):

@@ -12,7 +12,7 @@ from ...core.requests import SampleBatch, SampleRequest
 from ...core.samples import check_policy, source_name
 from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, variant_option
 from .kernels import BOUNDARY_MODES
-from .progressive import GUIDES, NORMS, SPREADS, ProgressiveSplatter
+from .progressive import FEATURE_GATES, GUIDES, NORMS, SPREADS, ProgressiveSplatter
 from .schedule import _next_round, _select_by_rank, doubling_schedule
 
 __all__ = ["SplatMethod", "SplatRun"]
@@ -48,7 +48,12 @@ class SplatMethod(Method):
     c_prime : float
         C' of the pilot estimate, diameter C' N0^-1/2 (default 8: 8 px at N0 = 1).
     initial_spp : int
-        N_0, samples per pixel of the first (stored) round (default 1).
+        N_0, samples per pixel of the first (stored) round (default 16; the
+        paper, and ``outliers``: 1).  The default's outlier test judges a
+        sample once its 3x3 window holds 64 samples (8 spp), and only judged
+        samples spread: rounds before that stay in their pixels, and Fig. 3
+        never revisits a round.  16 (8 + 8 when pipelined) judges the first
+        round already.
     min_width, max_width : float
         Clamp of the kernel diameter in pixels (default 1 = "one pixel" of
         the paper, and 32: the cap for huge G/f and f = 0).
@@ -74,6 +79,13 @@ class SplatMethod(Method):
         Rate at which the gate tells two pixels of one distribution apart (default 0.05).
     spread_c, spread_alpha : float
         C and alpha of Eq. 8 for the consistent samples (default 8 and the paper's 0.3).
+    feature_gate : {'auto', 'none'}
+        ``spread='consistent'``: the gate also compares the per-sample
+        features (albedo, normal, depth, any other) the samples carry, when
+        they carry any (``auto``, default): a pixel q receives nothing from p
+        where a feature's means differ by more than ``k`` times the pixels'
+        own spread of it.  ``none``: the colour statistics only.  Without
+        features both give the same image, bit for bit.
     guide : {'local_mean', 'none'}
         Weights of the spread part: Epanechnikov times the pooled 3x3 mean
         of G at each covered pixel (``local_mean``), or plain (``none``).
@@ -105,17 +117,19 @@ class SplatMethod(Method):
     #: sequential one (bit-identical images, tested).
     pipeline = True
     adaptive = False
-    requires = Requirements(samples=True, statistics=False)
+    #: features='optional': the samples' features, when the source has them, reach the default's gate
+    #: (offline in the sample chunks, adaptive in the committed rounds); no statistics are built for it.
+    requires = Requirements(samples=True, statistics=False, features="optional")
     #: ``paper``: every sample splatted with Eq. 8 widths (Suykens and Willems
     #: 2000 as published).  ``robust`` (default): the excess of outliers spread
     #: guided by the local mean, consistent samples gated by the pixels' statistics
     #: (docs/methods/splat.md, "The default filters").  ``outliers``: only the
     #: excess of outliers (the default before issue 26).
     variants = {"robust": {"spread": "consistent", "guide": "local_mean", "c": 2.0, "alpha": 0.5,
-                           "outlier_k": 2.0},
+                           "outlier_k": 2.0, "initial_spp": 16},
                 "outliers": {"spread": "outliers", "guide": "local_mean", "c": 2.0, "alpha": 0.5,
-                             "outlier_k": 2.0},
-                "paper": {"spread": "all", "guide": "none", "c": 4.0, "alpha": 0.3}}
+                             "outlier_k": 2.0, "initial_spp": 1},
+                "paper": {"spread": "all", "guide": "none", "c": 4.0, "alpha": 0.3, "initial_spp": 1}}
     options = (
         variant_option(variants),
         Option("alpha", float, 0.5, "exponent of N in the kernel width (Eq. 8), 0 < alpha <= 1",
@@ -125,7 +139,7 @@ class SplatMethod(Method):
                min_open=True),
         Option("c_prime", float, 8.0, "pilot kernel diameter constant C' in pixels (C' N0^-1/2)",
                min=0.0, min_open=True),
-        Option("initial_spp", int, 1, "samples per pixel of the first round N0", min=1),
+        Option("initial_spp", int, 16, "samples per pixel of the first round N0 (the paper: 1)", min=1),
         Option("min_width", float, 1.0, "smallest kernel diameter in pixels (>= 1)", min=1.0),
         Option("max_width", float, 32.0, "largest kernel diameter in pixels (cap for huge G/f; >= min_width)",
                min=1.0),
@@ -146,6 +160,9 @@ class SplatMethod(Method):
                "of the consistent samples' kernels", min=0.0, min_open=True),
         Option("spread_alpha", float, 0.3, "spread='consistent': Eq. 8's exponent of N for the consistent "
                "samples' kernels (the paper's 1.5/5)", min=0.0, max=1.0, min_open=True),
+        Option("feature_gate", str, "auto", "spread='consistent': also refuse a pixel whose feature means "
+               "(albedo, normal, depth) differ by more than k times the pixels' own feature spread (auto: when "
+               "the samples carry features) or compare the colour only (none)", FEATURE_GATES),
     )
 
     def _configure(self, params: dict) -> None:
@@ -160,7 +177,7 @@ class SplatMethod(Method):
                                    boundary=p["boundary"], norm=p["norm"], spread=p["spread"],
                                    outlier_k=p["outlier_k"], guide=p["guide"],
                                    false_rejection=p["false_rejection"], spread_c=p["spread_c"],
-                                   spread_alpha=p["spread_alpha"])
+                                   spread_alpha=p["spread_alpha"], feature_gate=p["feature_gate"])
 
     def start(self, width, height, channels=("R", "G", "B"), *, reference=None) -> "SplatRun":
         run = super().start(width, height, channels, reference=reference)
@@ -198,15 +215,19 @@ class SplatMethod(Method):
             run.splatter = self._new_splatter(run.width, run.height, len(run.channels))
         sp = run.splatter
         rounds = [r for r, (a, b) in enumerate(src.round_slices()) if b > a]
+        # the features the gate reads (spread='consistent', feature_gate='auto'), if the source has any
+        feats = tuple(getattr(src, "feature_names", ())) \
+            if self.params["spread"] == "consistent" and self.params["feature_gate"] == "auto" else ()
+        fkw = {"features": feats} if feats else {}
         if len(rounds) >= 2:
             for r in rounds:
-                sp.add_round_stream(lambda r=r: _arrays(src.iter_chunks(rounds=[r], with_round=False)),
+                sp.add_round_stream(lambda r=r: _arrays(src.iter_chunks(rounds=[r], with_round=False, **fkw)),
                                     nonfinite=nonfinite, where=where)
         elif rounds and self.params["spread"] != "all":
             # Robust variant: a single-round source is one round.  Every sample is judged
             # against the statistics of all samples (pseudo-rounds would judge the first
             # ones against a few spp, too few for the outlier test: MIN_POOL).
-            sp.add_round_stream(lambda: _arrays(src.iter_chunks(with_round=False)), nonfinite=nonfinite,
+            sp.add_round_stream(lambda: _arrays(src.iter_chunks(with_round=False, **fkw)), nonfinite=nonfinite,
                                 where=where)
         elif rounds:
             self._replay_single_round(src, sp, nonfinite, where)
@@ -242,7 +263,7 @@ class SplatMethod(Method):
         def pseudo_round(j):
             rank = np.zeros(w * h, np.int64)
             lo, hi = bounds[j], bounds[j + 1]
-            for pos, val in _arrays(src.iter_chunks(with_round=False)):
+            for pos, val, _ in _arrays(src.iter_chunks(with_round=False)):
                 pos = np.asarray(pos)
                 mask = np.empty(pos.shape[0], np.bool_)
                 _select_by_rank(self._pixel_index(pos, w, h), rank, lo, hi, mask)
@@ -294,7 +315,8 @@ class SplatMethod(Method):
         run.n_rounds_seen += 1
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", McreconWarning)
-            run.splatter.add_round(pos, val, nonfinite="drop", where=self.where, checked=True)
+            run.splatter.add_round(pos, val, features=batch.features or None, nonfinite="drop", where=self.where,
+                                   checked=True)
         run.prev_spp = pos.shape[0] / (run.width * run.height)
         run.spp_done += run.prev_spp
 
@@ -311,6 +333,6 @@ class SplatMethod(Method):
 
 
 def _arrays(chunks):
-    """(positions, values) of each chunk of a sample source."""
+    """(positions, values, features or None) of each chunk of a sample source."""
     for ch in chunks:
-        yield ch.positions, ch.values
+        yield ch.positions, ch.values, (getattr(ch, "features", None) or None)

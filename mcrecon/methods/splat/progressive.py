@@ -35,7 +35,8 @@ from ...errors import InputError, McreconWarning
 from ...core.samples import apply_nonfinite, check_policy, check_samples
 from .kernels import BOUNDARY_MODES, _BOUNDARY_CODE, _deposit_own_pixel, _scatter, _splat_guided_loop
 from ...filters.luminance import LUMINANCE_WEIGHTS
-from .consistent import _consistent_radii, channel_sums, edge_radius, gate_k, pixel_moments
+from .consistent import (FeatureSums, _consistent_radii, channel_sums, edge_radius, feature_moments, gate_k,
+                         pixel_moments)
 from .kernels import _splat_gated_loop
 from .outliers import _box_sum, _count_and_moments, _norm_of, _outlier_thresholds, _split_and_deposit, _split_outliers
 
@@ -58,6 +59,9 @@ SPREADS = ("all", "outliers", "consistent")
 #: ``local_mean`` (Epanechnikov times the pooled 3x3 mean of G at each
 #: covered pixel: energy goes where the neighbourhoods' samples are bright).
 GUIDES = ("none", "local_mean")
+#: ``spread="consistent"``: whether the gate also compares the per-sample features the samples carry
+#: (``auto``: when there are any) or the colour statistics only (``none``).
+FEATURE_GATES = ("auto", "none")
 
 
 # ----------------------------------------------------------------------------
@@ -220,7 +224,7 @@ class ProgressiveSplatter:
                  c_prime: float = 8.0, min_width: float = 1.0, max_width: float = 32.0,
                  boundary: str = "mirror", norm: str = "luminance", spread: str = "all",
                  outlier_k: float = 2.0, guide: str = "none", false_rejection: float = 0.05,
-                 spread_c: float = 8.0, spread_alpha: float = 0.3):
+                 spread_c: float = 8.0, spread_alpha: float = 0.3, feature_gate: str = "auto"):
         self.width, self.height, self.n_channels = int(width), int(height), int(n_channels)
         if spread not in SPREADS:
             raise InputError("method splat", "spread", f"{spread!r}; valid: {', '.join(SPREADS)}")
@@ -231,6 +235,9 @@ class ProgressiveSplatter:
             raise InputError("method splat", "false_rejection", f"{false_rejection!r}, expected 0 < rate < 1")
         self.false_rejection = float(false_rejection)
         self.spread_c, self.spread_alpha = float(spread_c), float(spread_alpha)
+        if feature_gate not in FEATURE_GATES:
+            raise InputError("method splat", "feature_gate", f"{feature_gate!r}; valid: {', '.join(FEATURE_GATES)}")
+        self.feature_gate = feature_gate
         self._gate_k = gate_k(self.false_rejection, self.n_channels)
         self.c, self.alpha, self.c_prime = float(c), float(alpha), float(c_prime)
         self.min_width, self.max_width = float(min_width), float(max_width)
@@ -269,6 +276,9 @@ class ProgressiveSplatter:
         # spread="consistent": cumulative per-pixel, per-channel sums of the values and their squares
         self._cs1 = np.zeros((self.height, self.width, self.n_channels))
         self._cs2 = np.zeros((self.height, self.width, self.n_channels))
+        # ... and of every feature component the samples carry (the gate's feature test), if any
+        self._fsum = FeatureSums(self.width, self.height) \
+            if spread == "consistent" and feature_gate == "auto" else None
 
     # ------------------------------------------------------------ helpers
     def _pixel_counts(self, pos) -> np.ndarray:
@@ -315,7 +325,7 @@ class ProgressiveSplatter:
         self._width_n += n
 
     # ------------------------------------------------------------- rounds
-    def add_round(self, positions, values, *, nonfinite: str = "drop", where: str = "samples",
+    def add_round(self, positions, values, *, features=None, nonfinite: str = "drop", where: str = "samples",
                   checked: bool = False) -> None:
         """Add one round held in memory (Fig. 3: the first round, or one loop iteration).
 
@@ -326,10 +336,13 @@ class ProgressiveSplatter:
         at a fraction of the cost.  ``checked=True``: the arrays were already
         checked by :func:`~mcrecon.core.samples.check_samples` and hold no NaN/Inf
         value (the adaptive driver's committed rounds, after its policy):
-        they are not checked again.
+        they are not checked again.  ``features`` (``{name: (N, k)}``, rows of the samples, as
+        :func:`mcrecon.core.features.check_features` returns them): read by the default's gate
+        (``spread="consistent"``), ignored otherwise.
         """
         if self.spread != "outliers":  # the paper's rounds, and the gated spread, go through the streamed path
-            self.add_round_stream(lambda: iter([(positions, values)]), nonfinite=nonfinite, where=where)
+            item = (positions, values, features) if features else (positions, values)
+            self.add_round_stream(lambda: iter([item]), nonfinite=nonfinite, where=where)
             return
         check_policy(nonfinite, where)
         if checked:
@@ -349,7 +362,8 @@ class ProgressiveSplatter:
 
     def add_round_stream(self, chunks: Callable[[], Iterable], *, nonfinite: str = "drop",
                          where: str = "samples") -> None:
-        """Add one round given as re-iterable chunks: ``chunks()`` yields (positions, values).
+        """Add one round given as re-iterable chunks: ``chunks()`` yields (positions, values) or
+        (positions, values, features), features ``{name: (N, k)}`` or None (read by the default's gate).
 
         The paper's first round is materialised (Fig. 3 stores the first
         batch: it is splatted twice); every other round (and every round of
@@ -364,7 +378,7 @@ class ProgressiveSplatter:
         if first and not robust:
             # Fig. 3 stores the first batch: it is splatted twice (pilot, then Eq. 8)
             parts = []
-            for p, v in chunks():
+            for p, v, *_ in chunks():
                 p, v, n_bad = self._validated(p, v, nonfinite, where)
                 self.n_nonfinite += n_bad
                 parts.append((p, np.asarray(v, dtype=np.float64)))
@@ -376,9 +390,15 @@ class ProgressiveSplatter:
             counts = self._pixel_counts(pos)
         else:
             counts = np.zeros((self.height, self.width), np.int64)
-            for p, v in chunks():  # first pass: counts per pixel (and the one count of NaN/Inf samples)
+            for p, v, *f in chunks():  # first pass: counts per pixel (and the one count of NaN/Inf samples)
+                feats = f[0] if f else None
+                if feats and self._fsum is not None and nonfinite == "drop":
+                    keep = np.isfinite(np.asarray(v)).all(axis=1)  # the rows apply_nonfinite keeps
+                    feats = feats if keep.all() else {k: np.asarray(a)[keep] for k, a in feats.items()}
                 p, v, n_bad = self._validated(p, v, nonfinite, where)
                 self.n_nonfinite += n_bad
+                if self._fsum is not None:  # every round carries the same features, or none
+                    self._fsum.add(p, feats or {}, where)
                 if robust:  # ... and the sums of G, G^2 per pixel
                     _count_and_moments(p, np.ascontiguousarray(v, dtype=np.float64), self._norm_code,
                                        self._weights, counts, s1, s2)
@@ -426,7 +446,7 @@ class ProgressiveSplatter:
             # Scale down: f_j = (N_total - N_j) / N_total * f_{j-1}
             img = ref_img * (self.spp_total / total)
             w_round = n_j / total
-            for p, v in chunks():  # second pass: the splat
+            for p, v, *_ in chunks():  # second pass: the splat
                 p, v, _ = self._validated(p, v, nonfinite, where)
                 v = np.ascontiguousarray(v, dtype=np.float64)
                 ix = np.clip(np.floor(p[:, 0]).astype(np.int64), 0, self.width - 1)
@@ -523,6 +543,7 @@ class ProgressiveSplatter:
         if consistent:  # the gate's pixel statistics and the gradient bound, all samples so far
             gstats = pixel_moments(self.cum_counts, self._cs1, self._cs2)
             r_edge = edge_radius(gstats, self._gate_k)
+            fstats = feature_moments(self._fsum)  # (1, 1, 0, 2) without features: the gate tests none
         if arrays is not None:  # a round in memory (add_round): the fused pass
             p, v = arrays
             idx = np.empty(p.shape[0], np.int64)
@@ -535,7 +556,7 @@ class ProgressiveSplatter:
                 idx = idx[:outliers]
                 fallback = _splat_guided_loop(np.ascontiguousarray(p[idx]), np.ascontiguousarray(v[idx]),
                                               oscale[:outliers], orad[:outliers], guide, mode, img)
-        for p, v in (chunks() if arrays is None else ()):  # second pass: split and deposit
+        for p, v, *_ in (chunks() if arrays is None else ()):  # second pass: split and deposit
             p, v, _ = self._validated(p, v, nonfinite, where)
             p = np.ascontiguousarray(p, dtype=np.float64)
             v = np.ascontiguousarray(v, dtype=np.float64)
@@ -552,8 +573,8 @@ class ProgressiveSplatter:
                 krad = np.empty(p.shape[0])
                 _consistent_radii(p, v, self._norm_code, self._weights, frac, tau, fref, nmap, r_edge, self.spread_c,
                                   self.spread_alpha, self.min_width, self.max_width, krad)
-                fallback += _splat_gated_loop(p, v, scale * (1.0 - frac), krad, r_edge, gstats, self._gate_k ** 2,
-                                              mode, img)
+                fallback += _splat_gated_loop(p, v, scale * (1.0 - frac), krad, r_edge, gstats, fstats,
+                                              self._gate_k ** 2, mode, img)
             else:
                 _deposit_own_pixel(p, v, scale * (1.0 - frac), img)
             sel = rad > 0
