@@ -17,9 +17,9 @@ from mcrecon.errors import InputError
 from mcrecon.filters.cross_bilateral import cross_bilateral
 from mcrecon.methods.auto.nlmeans import nlmeans_cross
 from mcrecon.methods.nfor.method import feature_planes
-from mcrecon.methods.nfor.nlmeans import DISTANCE_CLAMP, MIN_CENTER_WEIGHT, NLM_EPS, nlmeans_filter
+from mcrecon.filters.nlmeans import DISTANCE_CLAMP, MIN_CENTER_WEIGHT, NLM_EPS, nlmeans_filter
 from mcrecon.methods.nfor.pipeline import cross_regression, estimate_mse, nfor_denoise, prefilter_features
-from mcrecon.methods.nfor.regression import RIDGE, collaborative_regression, standardise
+from mcrecon.filters.regression import RIDGE, collaborative_regression, standardise
 
 from nfor_scene import scene_reference, scene_samples, scene_values
 

@@ -38,12 +38,14 @@ from ...filters.masked import _smooth_masked, _smooth_masked_many
 from .selection import (_floored, _global_prior, _largest_remainder, _mean_c, _no_push_in_heavy_tails,
     _pick_where)
 
-__all__ = ['AutoMethod', 'AutoRun', 'CANDIDATES', 'DEFAULT_CANDIDATES', 'DUAL_BUFFER']
+__all__ = ['AutoMethod', 'AutoRun', 'CANDIDATES', 'DEFAULT_CANDIDATES', 'DUAL_BUFFER', 'FEATURE_CANDIDATES']
 
 #: Every candidate name ``candidates`` accepts.
 CANDIDATES = ("box", "gauss", "nlm", "awr", "splat", "oidn")
 #: Candidates that need the samples split into two halves.
 DUAL_BUFFER = ("nlm", "awr", "splat", "oidn")
+#: Feature-guided candidates (option ``feature_candidates``), used when the samples carry features.
+FEATURE_CANDIDATES = ("nfor", "xbil")
 #: Placement of the adaptive rounds' samples (option ``sampling``).
 SAMPLINGS = ("gem", "uniform", "greedy")
 #: The measured default (docs/methods/auto.md, "Choosing the default candidates").
@@ -62,6 +64,36 @@ def _oidn_available() -> bool:
     except Exception:
         return False
     return True
+
+
+def feature_guided_half(name: str, half: PixelStats) -> np.ndarray:
+    """A feature-guided filter of one half buffer from that half alone (its colour and its features).
+
+    ``xbil``: :func:`~mcrecon.filters.cross_bilateral.cross_bilateral` (RDFC-style: feature distances
+    normalised by the features' variance).  ``nfor``: NFOR's feature prefilter and collaborative
+    first-order regression (:mod:`mcrecon.methods.nfor`; window 19 x 19, patch 3, k = 1) with the
+    half's own NL-means weights, not NFOR's crossed halves: a crossed half (A filtered with B's
+    weights) is not independent of B, and its cross-validation was 0.77x its true error on a
+    textured Mitsuba wall, where auto then chose it at 1.23x the error of auto without features
+    (docs/methods/auto.md).  Pixels without a sample take their nearest sampled neighbour's values.
+    """
+    from ...filters.nlmeans import nlmeans_filter
+    from ...filters.regression import collaborative_regression
+    from ...filters.cross_bilateral import cross_bilateral
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", McreconWarning)  # the colour's fill warns for the run
+        fill = (lambda a, n: fill_empty_pixels(a.copy(), n, source=_WHERE) if (n == 0).any() else a)
+        y = fill(half.mean, half.count)
+        f = np.concatenate([fill(half.features[n].mean, half.features[n].count) for n in half.feature_names], axis=2)
+    v = mean_variance_policy(half)
+    fv = np.concatenate([mean_variance_policy(half.features[n]) for n in half.feature_names], axis=2)
+    if name == "xbil":
+        return cross_bilateral(y, v, f, fv)
+    if name == "nfor":
+        pf = nlmeans_filter(f, f, fv, radius=5, patch=3, k=0.5)
+        return collaborative_regression(y, y, v, pf, radius=9, patch=3, k=1.0, variance_scale=1.0)
+    raise ValueError(f"feature_guided_half: {name!r}; valid: " + ", ".join(FEATURE_CANDIDATES))
 
 
 @dataclasses.dataclass(eq=False)
@@ -91,6 +123,16 @@ class AutoMethod(Method):
         ``oidn`` split every pixel's samples into two halves (dual
         buffers): they need the samples (``requires.samples``); ``oidn``
         needs ``pyoidn``; ``splat`` only offline.
+    feature_candidates : str
+        When the samples carry per-sample features (albedo, normal,
+        depth): comma-separated subset of ``nfor, xbil`` added to the
+        candidates (default both; ``none``: colour only).  Each filters
+        one half from that half alone (:func:`feature_guided_half`), so
+        its cross-validation is unbiased.  They run on the halves: with
+        the SURE candidates alone (``box,gauss``) they are left out.  With
+        ``oidn`` among the candidates OIDN gets each half's albedo and
+        normal.  Without features the run is the colour-only one, bit for
+        bit.
     scales : int
         Gaussian scales of ``gauss`` (GEM's final ones, sqrt 2 apart from sqrt 2 px; 8).
     smooth : float
@@ -123,6 +165,10 @@ class AutoMethod(Method):
     options = (
         Option("candidates", str, DEFAULT_CANDIDATES, "comma-separated candidate reconstructions: "
                + ", ".join(CANDIDATES) + " (nlm/awr/splat/oidn need the samples: dual buffers)"),
+        Option("feature_candidates", str, "nfor,xbil", "when the samples carry features (and the halves are "
+               "split: a dual-buffer candidate or a half-buffer pair): comma-separated feature-guided candidates "
+               "added to candidates: nfor (first-order regression, Bitterli et al. 2016), xbil (cross-bilateral, "
+               "Rousselle et al. 2013); none: colour only"),
         Option("scales", int, 8, "Gaussian scales of the gauss candidates (GEM's final bank)", min=1, max=16),
         Option("smooth", float, 2.0, "sigma (px) of the smoothing of the error maps before the choice "
                "(0: none)", min=0.0, max=32.0),
@@ -162,6 +208,19 @@ class AutoMethod(Method):
         ordered = tuple(c for c in CANDIDATES if c in names)
         params["candidates"] = ",".join(ordered)
         object.__setattr__(self, "_names", ordered)
+        fnames = [c.strip().lower() for c in str(params["feature_candidates"]).split(",") if c.strip()]
+        if fnames in ([], ["none"]):
+            fnames = []
+        bad = [c for c in fnames if c not in FEATURE_CANDIDATES]
+        if bad:
+            raise InputError(self.where, "feature_candidates", f"{bad[0]!r} is not valid; valid: none or "
+                             + ", ".join(FEATURE_CANDIDATES))
+        if len(set(fnames)) != len(fnames):
+            raise InputError(self.where, "feature_candidates", f"{params['feature_candidates']!r} names a candidate "
+                             "twice")
+        fordered = tuple(c for c in FEATURE_CANDIDATES if c in fnames)
+        params["feature_candidates"] = ",".join(fordered) or "none"
+        object.__setattr__(self, "_feature_names", fordered)
         if params["sampling"] == "gem":  # its planner, with GEM's defaults
             from .. import get_method
             object.__setattr__(self, "_gem", get_method("gem"))
@@ -171,7 +230,13 @@ class AutoMethod(Method):
         # the dual-buffer candidates need the samples split in two, or two half buffers a
         # renderer wrote (half_buffers: the pair stands in for the samples; with SURE
         # candidates alone the pair is merged into the statistics of all the samples)
-        return Requirements(samples=any(c in DUAL_BUFFER for c in self._names), half_buffers=True)
+        # features: read when the source has them and a candidate uses them (the feature-guided ones,
+        # and OIDN's albedo and normal); a source without features gives exactly the colour-only run
+        uses = bool(self._feature_names) or "oidn" in self._names
+        # (the feature-guided candidates run on the halves: with the SURE candidates alone, which need
+        # none, they are left out)
+        return Requirements(samples=any(c in DUAL_BUFFER for c in self._names), half_buffers=True,
+                            features="optional" if uses else "none")
 
     def halo(self, width, height):
         # the split into halves hashes the absolute pixel index, and awr/oidn
@@ -188,12 +253,22 @@ class AutoMethod(Method):
                 out.append(c)
         return out
 
+    def feature_candidate_names(self) -> list[str]:
+        """Names of the feature-guided candidates, after :meth:`candidate_names` in ``choice`` when the
+        samples carry features."""
+        return list(self._feature_names)
+
     # ---------------------------------------------------------------- runs
     def observe(self, run: "AutoRun", batch: SampleBatch, round_index: int) -> None:
         """Split each committed round into the two halves (replayed in order on resume)."""
+        keep = self.requires.features != "none" and bool(batch.features)
         if run.halves is None:
-            run.halves = Halves.empty(run.width, run.height, run.channels)
-        run.halves.add(batch.positions, batch.values, nonfinite="drop", source=_WHERE)
+            # the renderer's first round says which features it sends (every later round sends the same)
+            layout = {n: 1 if np.ndim(f) == 1 else int(np.shape(f)[1]) for n, f in batch.features.items()} \
+                if keep else None
+            run.halves = Halves.empty(run.width, run.height, run.channels, features=layout)
+        run.halves.add(batch.positions, batch.values, features=batch.features if run.halves.a.features else None,
+                       nonfinite="drop", source=_WHERE)
 
     # ------------------------------------------------------------ candidates
     def _candidates(self, stats: PixelStats, halves: Halves | None, samples_source, nonfinite: str):
@@ -240,7 +315,23 @@ class AutoMethod(Method):
                 a, b = self._black_box(name, ha, hb, samples_source, nonfinite)
                 out.append(self._dual(name, a, b, cross_validation_mse(a, yb, vb), cross_validation_mse(b, ya, va),
                                       ha.count, hb.count))
+        if self._feature_names and halves is not None and halves.a.features:
+            out += self._feature_candidates(stats, halves.a, halves.b)
         return out, y, v, count
+
+    def _feature_candidates(self, stats: PixelStats, ha: PixelStats, hb: PixelStats) -> list[Candidate]:
+        """The feature-guided candidates on the two halves (:func:`feature_guided_half` of each).
+
+        Each half is filtered with its own colour and features only, so each result is independent
+        of the other half and its cross-validation against it unbiased (as for the black boxes).
+        """
+        out = []
+        for name in self._feature_names:
+            a = feature_guided_half(name, ha)
+            b = feature_guided_half(name, hb)
+            out.append(self._dual(name, a, b, cross_validation_mse(a, hb.mean, mean_variance_policy(hb)),
+                                  cross_validation_mse(b, ha.mean, mean_variance_policy(ha)), ha.count, hb.count))
+        return out
 
     @staticmethod
     def _dual(name, a, b, est_a, est_b, ca, cb) -> Candidate:
@@ -253,6 +344,23 @@ class AutoMethod(Method):
         mse = np.where(both[..., None], mse, np.nan)
         img = np.where(np.isfinite(img), img, 0.0)
         return Candidate(name, img, mse)
+
+    @staticmethod
+    def _oidn_aux(h: PixelStats) -> tuple:
+        """OIDN's auxiliary images from a half's own features: ``(albedo, normal)``, ``(albedo,)`` or ``()``.
+
+        The half's pixel means (noisy under defocus and at few samples, so OIDN prefilters them:
+        ``clean_aux`` stays off); OIDN takes a normal only beside an albedo."""
+        aux = []
+        for name in ("albedo", "normal"):
+            f = h.features.get(name)
+            if f is None or f.mean.shape[2] != 3:
+                break
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", McreconWarning)
+                m = fill_empty_pixels(f.mean.copy(), f.count, source=_WHERE) if (f.count == 0).any() else f.mean
+            aux.append(np.ascontiguousarray(m, dtype=np.float32))
+        return tuple(aux)
 
     def _black_box(self, name, ha: PixelStats, hb: PixelStats, source, nonfinite):
         from .. import get_method
@@ -272,7 +380,8 @@ class AutoMethod(Method):
                 rgb[..., :min(c, 3)] = img[..., :3]
                 if c == 1:
                     rgb[..., 1] = rgb[..., 2] = rgb[..., 0]
-                den = np.asarray(pyoidn.denoise(np.ascontiguousarray(rgb), hdr=True, quality="high"), np.float64)
+                aux = self._oidn_aux(h)
+                den = np.asarray(pyoidn.denoise(np.ascontiguousarray(rgb), *aux, hdr=True, quality="high"), np.float64)
                 full = img.astype(np.float64).copy()
                 full[..., :min(c, 3)] = den[..., :min(c, 3)]
                 res.append(full)
@@ -329,7 +438,8 @@ class AutoMethod(Method):
         if self.params["global_prior"] is not None and len(cands) > 1 and smooth > 0:
             bounds = sample_range_bounds(stats)
             choice = _global_prior(cands, raw, smoothed, relm, choice, y, v, count, bounds, smooth,
-                                   self.params["global_prior"], self.params["safeguard"])
+                                   self.params["global_prior"], self.params["safeguard"],
+                                   [k for k, c in enumerate(cands) if c.name in FEATURE_CANDIDATES])
         # ties (e.g. noise-free regions, where every ratio is undefined) go to the first candidate
         if cands[0].name == "box" and smooth > 0:
             # Region guard: where the chosen candidates' unbiased estimates,
@@ -394,7 +504,8 @@ class AutoMethod(Method):
                 ha, hb = pair
                 halves = Halves(ha, hb, (ha.count + hb.count).ravel().astype(np.int64))
             elif inputs.samples is not None:
-                halves = split_halves(inputs.samples, nonfinite=inputs.nonfinite)
+                halves = split_halves(inputs.samples, nonfinite=inputs.nonfinite,
+                                      features="all" if self.requires.features != "none" else ())
             elif run.halves is not None and int(run.halves.a.count.sum() + run.halves.b.count.sum()) == \
                     int(stats.count.sum()):
                 halves = run.halves

@@ -84,10 +84,6 @@ Z_BIAS_PRIOR = 5.0
 #: and their 3 x 3 neighbourhood's mean (rare huge samples around).  Not HEAVY_TAIL's 10: 32 exponential samples per pixel exceed 10x
 #: their mean somewhere in a 3 x 3 neighbourhood at ~4 % of the pixels, 30x practically never.
 HEAVY_PRIOR = 30.0
-#: Share of the per-pixel differences of estimates trimmed at each end when the global candidate is
-#: chosen: on a Cornell box with a small bright light two emitter-edge pixels (relative estimates
-#: ~1e4, the typical ~1) decided the whole image's default; trimmed 0.1-5 % gave the same choices.
-PRIOR_TRIM = 0.01
 
 
 def _heavy_tailed(y: np.ndarray, hi: np.ndarray, factor: float) -> np.ndarray:
@@ -105,17 +101,26 @@ def _heavy_tailed(y: np.ndarray, hi: np.ndarray, factor: float) -> np.ndarray:
     return out
 
 
-def _trimmed_sum(d: np.ndarray, trim: float) -> float:
-    """Sum of ``d`` without its ``trim`` share of smallest and of largest entries (rounded down)."""
-    n = d.size
-    t = int(trim * n)
-    if t == 0 or n <= 2 * t:
-        return float(np.sum(d))
-    part = np.partition(d, (t, n - t - 1))
-    return float(np.sum(part[t:n - t]))
+#: Standard errors by which a feature-guided candidate's summed estimate must undercut the best colour
+#: candidate's to become the global default, and the tile (pixels) of the sums the error comes from.
+Z_GLOBAL = 2.0
+BLOCK = 8
 
 
-def _global_prior(cands, raw, smoothed, relm, choice, y, v, count, bounds, sigma, z, safeguard):
+def _significantly_lower(d: np.ndarray) -> bool:
+    """Whether ``sum(d) < -Z_GLOBAL * se``, se from the spread of the sums over BLOCK x BLOCK tiles."""
+    h, w = d.shape
+    hb, wb = -(-h // BLOCK), -(-w // BLOCK)
+    pad = np.zeros((hb * BLOCK, wb * BLOCK))
+    pad[:h, :w] = d
+    t = pad.reshape(hb, BLOCK, wb, BLOCK).sum(axis=(1, 3)).ravel()
+    if t.size < 2:
+        return False
+    se = float(np.sqrt(t.size) * np.std(t, ddof=1))
+    return float(t.sum()) < -Z_GLOBAL * se
+
+
+def _global_prior(cands, raw, smoothed, relm, choice, y, v, count, bounds, sigma, z, safeguard, guarded=()):
     """The per-pixel choice with the best single candidate over the image as the default.
 
     ``g`` = the candidate of least summed leave-one-out relative estimate
@@ -123,25 +128,28 @@ def _global_prior(cands, raw, smoothed, relm, choice, y, v, count, bounds, sigma
     pixel's estimate capped at ``(safeguard + 1)^2 v``: after the clamp
     into ``y +- safeguard sd`` no candidate's squared error exceeds about
     that, so a candidate that is wild at a few pixels the safeguard repairs
-    is not ruled out for them.  The sums are compared as trimmed sums of
-    the per-pixel differences from candidate 0 (:data:`PRIOR_TRIM` at each
-    end), so that a handful of pixels with huge estimates cannot decide
-    for the whole image.  Over ~all pixels they are far less noisy than any
-    per-pixel estimate.  A pixel takes ``g`` unless another
+    is not ruled out for them.  Over ~all pixels the sums are far less
+    noisy than any per-pixel estimate.  A pixel takes ``g`` unless another
     candidate k's smoothed estimate is lower by more than ``z`` standard
     errors of the smoothed difference ``raw_k - raw_g`` (local spread over
     ``N = 4 pi sigma^2`` effective pixels); among ``g`` and such candidates
     the least smoothed estimate wins (``g``'s own unfloored: its bias is the
     next test's).  Pixels keep the plain per-pixel ``choice`` where ``g``
     departs from the pixel mean by more than :data:`Z_BIAS_PRIOR` standard
-    errors (evidence of bias), where rare huge samples are around
-    (:data:`HEAVY_PRIOR`; there every estimate is least reliable) and where
+    errors (evidence of bias), where rare huge samples are around or the
+    pixel is far brighter than its neighbours (:data:`HEAVY_PRIOR`; there
+    every estimate is least reliable, and a relative one divided by the
+    neighbours' mu^2 can be 10^4 times the typical) and where
     all samples agree (v = 0: the safeguard pins them whatever is chosen);
     the last two do not vote either.  When ``g`` is the pixel mean
     (candidate 0 named ``box``) the plain choice stands everywhere: the
     region guard already makes the mean the default of every region
     without evidence against it (measured: a global box default cost the
-    built-in caustic 15 %).  Returns the new choice.
+    built-in caustic 15 %).  A ``guarded`` candidate (the feature-guided
+    ones) is ``g`` only if its sum undercuts the best other candidate's
+    significantly (:func:`_significantly_lower`): their estimates are the
+    noisiest where they differ most, at texture edges.  Returns the new
+    choice.
     """
     from scipy.ndimage import uniform_filter
 
@@ -153,13 +161,26 @@ def _global_prior(cands, raw, smoothed, relm, choice, y, v, count, bounds, sigma
     # (so that one pixel whose mean fell near 0 by chance does not count; a median, not a mean,
     # which a bright emitter beside dim pixels would dominate)
     apart = np.any(_heavy_tailed(y, bounds[1], HEAVY_PRIOR), axis=2)
+    # and pixels far brighter than their neighbourhood (an emitter's edge): their relative estimates,
+    # divided by the neighbours' mu^2, reach ~1e4 where the typical is ~1 (a Cornell box with a small
+    # bright light: two such pixels made a 1.41 px Gaussian the whole image's default)
+    with np.errstate(invalid="ignore"):
+        apart |= np.any(np.maximum(y * y - v, 0.0) > HEAVY_PRIOR ** 2 * den_loo, axis=2)
     if safeguard is not None:
         apart |= ~np.any(v > 0, axis=2)
     vote = np.logical_and.reduce([np.isfinite(r) for r in loo]) & ~apart
     if not vote.any():
         return choice
-    # the sums compared as trimmed sums of differences from candidate 0 (PRIOR_TRIM)
-    g = int(np.argmin([_trimmed_sum(r[vote] - loo[0][vote], PRIOR_TRIM) for r in loo]))
+    sums = [float(np.sum(r[vote])) for r in loo]
+    g = int(np.argmin(sums))
+    plain = [k for k in range(len(cands)) if k not in guarded]
+    if g in guarded and plain:
+        # a guarded (feature-guided) candidate is the default only where its lower sum is real: lower
+        # than the best other candidate's by Z_GLOBAL standard errors of the summed difference, from
+        # sums over BLOCK x BLOCK tiles (neighbouring pixels' estimates are correlated)
+        c = plain[int(np.argmin([sums[k] for k in plain]))]
+        if not _significantly_lower(np.where(vote, loo[g] - loo[c], 0.0)):
+            g = c
     if g == 0 and cands[0].name == "box":
         return choice
     n_eff = 4.0 * np.pi * sigma * sigma

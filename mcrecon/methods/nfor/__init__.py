@@ -9,9 +9,9 @@
 from __future__ import annotations
 
 from .method import NFORMethod, NFORRun
-from .nlmeans import nlmeans_filter
+from ...filters.nlmeans import nlmeans_filter
 from .pipeline import PAPER, estimate_mse, nfor_denoise
-from .regression import collaborative_regression
+from ...filters.regression import collaborative_regression
 
 __all__ = ["NFORMethod", "NFORRun", "PAPER", "collaborative_regression", "estimate_mse", "nfor_denoise",
            "nlmeans_filter"]

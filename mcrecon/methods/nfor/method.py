@@ -14,7 +14,7 @@ from ...core.stats import PixelStats
 from ...errors import InputError, McreconWarning
 from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, variant_option
 from .pipeline import PAPER, nfor_denoise
-from .regression import RIDGE
+from ...filters.regression import RIDGE
 
 __all__ = ["NFORMethod", "NFORRun", "feature_planes"]
 

@@ -31,8 +31,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .nlmeans import nlmeans_filter
-from .regression import RIDGE, collaborative_regression
+from ...filters.nlmeans import nlmeans_filter
+from ...filters.regression import RIDGE, collaborative_regression
 
 __all__ = ["nfor_denoise", "prefilter_features", "cross_regression", "estimate_mse", "PAPER"]
 

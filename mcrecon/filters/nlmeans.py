@@ -31,7 +31,7 @@ import math
 import numba
 import numpy as np
 
-from ...filters.engine import numba_threads
+from .engine import numba_threads
 
 __all__ = ["NLM_EPS", "DISTANCE_CLAMP", "MIN_CENTER_WEIGHT", "nlmeans_filter", "as_planes"]
 

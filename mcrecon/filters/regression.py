@@ -30,7 +30,7 @@ import math
 import numba
 import numpy as np
 
-from ...filters.engine import numba_threads
+from .engine import numba_threads
 from .nlmeans import BAND, DISTANCE_CLAMP, MIN_CENTER_WEIGHT, NLM_EPS, as_planes, offset_distances
 
 __all__ = ["RIDGE", "collaborative_regression", "standardise"]
