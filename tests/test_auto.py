@@ -658,7 +658,7 @@ def test_without_features_auto_is_the_colour_only_auto_bit_for_bit():
     np.testing.assert_array_equal(_quiet(lambda: mcrecon.reconstruct(ss_f, method=get_method("auto", feature_candidates="none"))), base)
     assert get_method("auto", feature_candidates="none").requires.features == "none"
     assert get_method("auto").requires.features == "optional"
-    with pytest.raises(InputError, match="feature_candidates.*valid: none or nfor, xbil"):
+    with pytest.raises(InputError, match="feature_candidates.*valid: none or nfor, xbil, fbil"):
         get_method("auto", feature_candidates="oidn")
 
 
@@ -708,3 +708,48 @@ def test_adaptive_auto_with_features_gives_the_image_of_its_log(tmp_path):
     offline = _quiet(lambda: mcrecon.reconstruct(mcrecon.read_log(log), method="auto"))
     np.testing.assert_allclose(res.image, offline, rtol=1e-9, atol=1e-12)
     assert mcrecon.read_log(log).feature_names == ("albedo", "depth", "normal")
+
+
+def test_feature_bilateral_centre_weight_is_the_impulse_response_and_its_sure_is_unbiased():
+    """fbil (features only in the weights: linear in the colour).  Its centre weight 1 / sum w is exactly
+    its response at i to a unit impulse at i (brute force), and with noise-free features its SURE summed
+    over an image the features do not explain alone (checkerboard albedo 0.2 / 0.8 in 4 px squares times
+    a horizontal shading ramp; Gaussian noise of the mean sd 0.1; 20 seeds) matches the true squared
+    error: measured pooled ratio 0.982, per seed 0.92-1.08.  Bound 0.95-1.05: four standard errors of
+    the pooled ratio (a wrong centre weight moves it by 2 w_ii v per pixel, several times that)."""
+    from mcrecon.filters.cross_bilateral import cross_bilateral
+    from mcrecon.methods.auto.method import _feature_bilateral
+
+    h, w = 24, 28
+    yy, xx = np.mgrid[0:h, 0:w]
+    alb = np.where(((yy // 4) + (xx // 4)) % 2 == 0, 0.2, 0.8)[..., None] * np.ones(3)
+    mu = alb * (0.5 + xx / w)[..., None] ** 2
+    v = np.full((h, w, 3), 0.01)
+    _, wsum = cross_bilateral(alb, v, alb, np.zeros_like(alb), k_colour=None, return_weights=True)
+    for (i, j) in ((0, 0), (5, 9), (23, 27)):
+        e = np.zeros((h, w, 3))
+        e[i, j] = 1.0
+        resp = cross_bilateral(e, v, alb, np.zeros_like(alb), k_colour=None)
+        assert resp[i, j, 0] == pytest.approx(1.0 / wsum[i, j], rel=1e-12)
+    est = true = 0.0
+    for seed in range(20):
+        y = mu + 0.1 * np.random.default_rng(seed).standard_normal(mu.shape)
+        st = PixelStats.from_moments(y, 16 * v, np.full((h, w), 16), features={"albedo": (alb, None)})
+        c = _feature_bilateral(st, st.mean, v)
+        est += float(np.sum(c.mse))
+        true += float(np.sum((c.image - mu) ** 2))
+    assert 0.95 < est / true < 1.05, est / true
+
+
+def test_pixel_statistics_with_features_use_them():
+    """One set of pixel statistics with feature images (an EXR's Albedo/N/P.Z) and the SURE candidates:
+    fbil joins them.  checker_spot, 64^2, 16 spp, seeds 0-2: measured relMSE 0.78-0.81 of the
+    colour-only run's; bound 0.9 (seed spread ~0.01)."""
+    r_f, r_c = [], []
+    for seed in range(3):
+        ss, ref = _textured(seed, scene="checker_spot", size=64)
+        st = PixelStats.from_source(ss, features="all")
+        r_f.append(relative_mse(_quiet(lambda: mcrecon.reconstruct(st, method=get_method("auto", candidates="box,gauss"))), ref))
+        r_c.append(relative_mse(_quiet(lambda: mcrecon.reconstruct(
+            st, method=get_method("auto", candidates="box,gauss", feature_candidates="none"))), ref))
+    assert np.mean(r_f) < 0.9 * np.mean(r_c), (r_f, r_c)

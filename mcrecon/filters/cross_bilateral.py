@@ -83,7 +83,8 @@ def feature_gradient2(features) -> np.ndarray:
 
 
 def cross_bilateral(image, variance, features, feature_variance, *, radius: int = 10, k_colour: float | None = 0.45,
-                    k_feature: float = 0.6, tau: float = 1e-3, threads: int | None = None) -> np.ndarray:
+                    k_feature: float = 0.6, tau: float = 1e-3, threads: int | None = None,
+                    return_weights: bool = False):
     """RDFC-style cross-bilateral filter of a noisy image guided by its features.
 
     Parameters
@@ -106,10 +107,14 @@ def cross_bilateral(image, variance, features, feature_variance, *, radius: int 
         Floor of the feature distance's normaliser (RDFC: 1e-3).
     threads : int, optional
         Worker threads (the result does not depend on them).
+    return_weights : bool
+        Also return each pixel's weight sum (H, W); its own weight is 1, so
+        ``1 / sum`` is the filter's centre weight ``w_ii`` (with
+        ``k_colour=None`` the filter is linear in the image: SURE applies).
 
     Returns
     -------
-    ndarray (H, W, C) float64
+    ndarray (H, W, C) float64 (and (H, W) weight sums with ``return_weights``)
     """
     valid = {"radius": radius >= 0, "k_feature": k_feature > 0, "tau": tau > 0,
              "k_colour": k_colour is None or k_colour > 0}
@@ -133,4 +138,5 @@ def cross_bilateral(image, variance, features, feature_variance, *, radius: int 
     kc = 1.0 if k_colour is None else float(k_colour)
     with numba_threads(threads):
         _kernel(*planes, int(radius), kc * kc, float(k_feature) ** 2, k_colour is not None, num, den)
-    return np.moveaxis(num / den, 0, 2)
+    out = np.moveaxis(num / den, 0, 2)
+    return (out, den) if return_weights else out

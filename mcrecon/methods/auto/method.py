@@ -45,7 +45,7 @@ CANDIDATES = ("box", "gauss", "nlm", "awr", "splat", "oidn")
 #: Candidates that need the samples split into two halves.
 DUAL_BUFFER = ("nlm", "awr", "splat", "oidn")
 #: Feature-guided candidates (option ``feature_candidates``), used when the samples carry features.
-FEATURE_CANDIDATES = ("nfor", "xbil")
+FEATURE_CANDIDATES = ("nfor", "xbil", "fbil")
 #: Placement of the adaptive rounds' samples (option ``sampling``).
 SAMPLINGS = ("gem", "uniform", "greedy")
 #: The measured default (docs/methods/auto.md, "Choosing the default candidates").
@@ -96,6 +96,30 @@ def feature_guided_half(name: str, half: PixelStats) -> np.ndarray:
     raise ValueError(f"feature_guided_half: {name!r}; valid: " + ", ".join(FEATURE_CANDIDATES))
 
 
+def _feature_bilateral(stats: PixelStats, y: np.ndarray, v: np.ndarray) -> "Candidate":
+    """``fbil``: a joint bilateral filter of the pixel means with weights from the features alone.
+
+    Linear in the colour (weights that do not look at it), so Stein's estimate applies as for the
+    Gaussians, with the centre weight ``w_ii = 1 / sum_q w_iq`` (the centre's own weight is 1):
+    the one feature-guided candidate that needs no halves, so pixel statistics (a pbrt-v4 GBuffer
+    or Mitsuba AOV EXR) use their features too.  The features' own noise is correlated with the
+    colour's (the same samples), so the estimate is exact only for noise-free features.
+    """
+    from ...filters.cross_bilateral import cross_bilateral
+    from .estimates import sure
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", McreconWarning)
+        fill = (lambda a, n: fill_empty_pixels(a.copy(), n, source=_WHERE) if (n == 0).any() else a)
+        yf = fill(y, stats.count)
+        f = np.concatenate([fill(stats.features[n].mean, stats.features[n].count) for n in stats.feature_names],
+                           axis=2)
+    fv = np.concatenate([mean_variance_policy(stats.features[n]) for n in stats.feature_names], axis=2)
+    img, wsum = cross_bilateral(yf, v, f, fv, k_colour=None, return_weights=True)
+    mse = sure(y, v, img, 1.0 / wsum)
+    return Candidate("fbil", img, np.where((stats.count > 0)[..., None], mse, np.nan))
+
+
 @dataclasses.dataclass(eq=False)
 class Candidate:
     name: str
@@ -124,12 +148,13 @@ class AutoMethod(Method):
         buffers): they need the samples (``requires.samples``); ``oidn``
         needs ``pyoidn``; ``splat`` only offline.
     feature_candidates : str
-        When the samples carry per-sample features (albedo, normal,
-        depth): comma-separated subset of ``nfor, xbil`` added to the
-        candidates (default both; ``none``: colour only).  Each filters
-        one half from that half alone (:func:`feature_guided_half`), so
-        its cross-validation is unbiased.  They run on the halves: with
-        the SURE candidates alone (``box,gauss``) they are left out.  With
+        When the statistics carry per-pixel features (albedo, normal,
+        depth): comma-separated subset of ``nfor, xbil, fbil`` added to
+        the candidates (default all; ``none``: colour only).  ``nfor`` and
+        ``xbil`` filter one half from that half alone
+        (:func:`feature_guided_half`), so their cross-validation is
+        unbiased; they run on the halves.  ``fbil`` (:func:`_feature_bilateral`)
+        runs only without halves (pixel statistics: an EXR), by SURE.  With
         ``oidn`` among the candidates OIDN gets each half's albedo and
         normal.  Without features the run is the colour-only one, bit for
         bit.
@@ -165,10 +190,10 @@ class AutoMethod(Method):
     options = (
         Option("candidates", str, DEFAULT_CANDIDATES, "comma-separated candidate reconstructions: "
                + ", ".join(CANDIDATES) + " (nlm/awr/splat/oidn need the samples: dual buffers)"),
-        Option("feature_candidates", str, "nfor,xbil", "when the samples carry features (and the halves are "
-               "split: a dual-buffer candidate or a half-buffer pair): comma-separated feature-guided candidates "
-               "added to candidates: nfor (first-order regression, Bitterli et al. 2016), xbil (cross-bilateral, "
-               "Rousselle et al. 2013); none: colour only"),
+        Option("feature_candidates", str, "nfor,xbil,fbil", "when the statistics carry features: comma-separated "
+               "feature-guided candidates added to candidates: nfor (first-order regression, Bitterli et al. 2016) "
+               "and xbil (cross-bilateral, Rousselle et al. 2013) on the halves; fbil (bilateral with feature "
+               "weights only, SURE) from pixel statistics without halves; none: colour only"),
         Option("scales", int, 8, "Gaussian scales of the gauss candidates (GEM's final bank)", min=1, max=16),
         Option("smooth", float, 2.0, "sigma (px) of the smoothing of the error maps before the choice "
                "(0: none)", min=0.0, max=32.0),
@@ -317,6 +342,10 @@ class AutoMethod(Method):
                                       ha.count, hb.count))
         if self._feature_names and halves is not None and halves.a.features:
             out += self._feature_candidates(stats, halves.a, halves.b)
+        if "fbil" in self._feature_names and stats.features and halves is None:
+            # only without halves: beside the halves' candidates its estimate, biased where the features
+            # are noisy (defocus), cost auto 2.3x on the built-in checker_dof (docs/methods/auto.md)
+            out.append(_feature_bilateral(stats, y, v))
         return out, y, v, count
 
     def _feature_candidates(self, stats: PixelStats, ha: PixelStats, hb: PixelStats) -> list[Candidate]:
@@ -326,7 +355,7 @@ class AutoMethod(Method):
         of the other half and its cross-validation against it unbiased (as for the black boxes).
         """
         out = []
-        for name in self._feature_names:
+        for name in (n for n in self._feature_names if n != "fbil"):
             a = feature_guided_half(name, ha)
             b = feature_guided_half(name, hb)
             out.append(self._dual(name, a, b, cross_validation_mse(a, hb.mean, mean_variance_policy(hb)),
