@@ -126,8 +126,8 @@ def summarise(data: dict, top: int) -> dict:
         t = by_top.setdefault(r["top"], [0, 0.0])
         t[0] += 1
         t[1] += r["seconds"]
-    print(f"  wall {data['process_wall']:.1f} s, CPU (user+sys, with child processes) {data['process_cpu']:.1f} s;"
-          f" in the main process: {len(recs)} compilations, {total:.1f} CPU s of compilation")
+    print(f"  wall {data['process_wall']:.1f} s, CPU (user+sys, with child processes) {data['process_cpu']:.1f} s,"
+          f" of the main process {data['cpu']:.1f} s; in it {len(recs)} compilations, {total:.1f} CPU s of them")
     for mod, (n, s) in sorted(by_mod.items(), key=lambda kv: -kv[1][1]):
         print(f"    {mod:48s} {n:4d} compilations {s:7.2f} s")
     if top:
@@ -141,7 +141,7 @@ def summarise(data: dict, top: int) -> dict:
                 for a in sigs:
                     print(f"        ({', '.join(a)})")
     return {"compilations": len(recs), "compile_seconds": total, "wall": data["process_wall"],
-            "cpu": data["process_cpu"],
+            "cpu": data["process_cpu"], "main_cpu": data["cpu"],
             "modules": {m: {"compilations": n, "seconds": s} for m, (n, s) in by_mod.items()},
             "kernels": [{"kernel": f"{m}.{k}", "n": n, "seconds": s, "signatures": sg}
                         for (m, k), (n, s, sg) in by_kernel.items()],
