@@ -106,15 +106,16 @@ def pairs(renderer, methods, size, spp, scene, rate, repeat) -> dict:
 
 
 def table(renderer: str, res: dict) -> list[str]:
-    lines = [f"| {renderer} | uniform wall s | adaptive wall s | wall ratio median | spread | CPU ratio median | "
-             f"spread | target (wall) |", "|---|---|---|---|---|---|---|---|"]
+    lines = [f"| {renderer} | pairs | uniform wall s | adaptive wall s | wall ratio median | spread | uniform CPU s | "
+             f"adaptive CPU s | CPU ratio median | spread | target (wall) |", "|---" * 11 + "|"]
     for m, runs in res.items():
         rw = [r["adapt_wall"] / r["uniform_wall"] for r in runs]
         rc = [r["adapt_cpu"] / r["uniform_cpu"] for r in runs]
         t = TARGETS.get(m)
-        lines.append(f"| {m} | {statistics.median(r['uniform_wall'] for r in runs):.2f} | "
-                     f"{statistics.median(r['adapt_wall'] for r in runs):.2f} | {statistics.median(rw):.3f} | "
-                     f"{min(rw):.3f}-{max(rw):.3f} | {statistics.median(rc):.3f} | {min(rc):.3f}-{max(rc):.3f} | "
+        med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
+        lines.append(f"| {m} | {len(runs)} | {med['uniform_wall']:.1f} | {med['adapt_wall']:.1f} | "
+                     f"{statistics.median(rw):.3f} | {min(rw):.3f}-{max(rw):.3f} | {med['uniform_cpu']:.2f} | "
+                     f"{med['adapt_cpu']:.2f} | {statistics.median(rc):.3f} | {min(rc):.3f}-{max(rc):.3f} | "
                      f"{'-' if t is None else f'<= {t:.2f}'} |")
     return lines
 
