@@ -212,7 +212,9 @@ class _Round:
     def _receive(self, req, reply, round_index):
         # the rows with a NaN or Inf value are counted in the validation's one pass; the cast to
         # the log's dtype keeps them (finite values beyond float32's range are refused there)
-        batch, n_bad = _validate_reply(req, reply, n_channels=self.c, renderer=self.name)
+        # with a log, float32 positions go to its dtype once (in _to_storage), not through float64 first
+        batch, n_bad = _validate_reply(req, reply, n_channels=self.c, renderer=self.name,
+                                       keep_float32=self.log_path is not None)
         if self.storage_dtype == "auto":
             self.storage_dtype = _resolve_storage(self.log_path, np.asarray(batch.values).dtype)
         if self.log_path is not None:

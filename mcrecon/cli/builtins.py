@@ -115,41 +115,138 @@ def _cmd_render_log(args):
     return 0
 
 
-#: Seconds numba took to compile each part's kernels on a first demo (measured on 2 shared cores; kernels
-#: that several methods share are counted with the first method that runs them).
-_DEMO_COMPILE_SECONDS = {"renderers/scenes": 6, "core": 2, "filters": 1, "methods/box.py": 1, "methods/gem": 5,
-                         "methods/awr": 1, "methods/splat": 4, "methods/ci": 1, "methods/auto": 29}
+#: CPU seconds numba took to compile each part's kernels on a first demo in one process (measured with
+#: benchmarks/bench_first_run.py --one-process on 2 loaded cores; kernels that several methods share are
+#: counted with the first method that runs them).
+_DEMO_COMPILE_SECONDS = {"renderers/scenes": 6, "core": 3, "filters": 3, "methods/box.py": 0.5, "methods/gem": 1,
+                         "methods/awr": 0.5, "methods/splat": 6, "methods/ci": 0.5, "methods/auto": 8}
 #: A warm-up of every method on a tiny log takes well under a second once the kernels are cached (0.2 s
 #: measured): still running after this many seconds, it is compiling.
 _COMPILING_AFTER = 2.0
+#: A cold warm-up expected to take at least this long compiles on two processes (a second interpreter
+#: costs ~1 s to start, and compiles again the kernels both halves of the methods use).
+_TWO_PROCESSES_AFTER = 8.0
+
+
+#: The second compiler gives up when the tiny log has not appeared after this many seconds.
+_CHILD_WAIT = 600.0
+
+
+def _warm_up_child_main(log_path: str, ready: str, names) -> int:
+    """The second compiler of a cold demo: reconstruct the tiny log at ``log_path`` (once the file ``ready``
+    exists) with the methods ``names``, which compiles their kernels into numba's cache."""
+    import os
+
+    from ..io import read_log
+    from ..methods import get_method
+    from ..offline.reconstruction import reconstruct
+
+    methods = [get_method(n) for n in names]   # imports their modules while the parent renders the log
+    parent = os.getppid()
+    t0 = time.monotonic()
+    while not os.path.exists(ready):
+        if os.getppid() != parent or time.monotonic() - t0 > _CHILD_WAIT:
+            return 1
+        time.sleep(0.05)
+    log = read_log(log_path)
+    for m in methods:
+        reconstruct(log, method=m)
+    return 0
+
+
+def _warm_up_child(log_path: Path, ready: Path, names):
+    """Start :func:`_warm_up_child_main` in a second interpreter, or None when it cannot start.  Its output is
+    discarded: the parent compiles whatever it failed to."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ)
+    # the same mcrecon as this process, whatever the working directory
+    root = str(Path(__file__).resolve().parents[2])
+    env["PYTHONPATH"] = os.pathsep.join([root] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
+    code = ("import sys\nfrom mcrecon.cli.builtins import _warm_up_child_main\n"
+            f"sys.exit(_warm_up_child_main({str(log_path)!r}, {str(ready)!r}, {list(names)!r}))")
+    try:
+        return subprocess.Popen([sys.executable, "-c", code], env=env, stdin=subprocess.DEVNULL,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    except OSError:
+        return None
+
+
+def _two_process_split(costs, shared: float) -> int:
+    """Where to cut the methods (in their order) so that this process compiles ``costs[:k]`` and a second
+    one ``costs[k:]``, both also paying ``shared``: the ``k`` of the least longer side (:func:`_longer_side`);
+    ``len(costs)`` (no second process) when that saves less than 2 s."""
+    total = shared + sum(costs)
+    best_k = min(range(1, len(costs) + 1), key=lambda k: _longer_side(costs, shared, k))
+    return best_k if total >= _TWO_PROCESSES_AFTER and total - _longer_side(costs, shared, best_k) >= 2.0 \
+        else len(costs)
+
+
+def _longer_side(costs, shared: float, k: int) -> float:
+    """Expected seconds of a warm-up split at ``k``: the longer of this process's and the second one's (which
+    starts ~1 s later); ``k == len(costs)``: all in this process."""
+    if k >= len(costs):
+        return shared + sum(costs)
+    return shared + max(sum(costs[:k]), 1.0 + sum(costs[k:]))
 
 
 def _demo_warm_up(scene, methods, spp, seed) -> None:
     """Render a tiny log and reconstruct it with every method: compiles (or loads from numba's cache) every
-    kernel the demo runs, with the one-line notice when that takes long (a cold cache)."""
+    kernel the demo runs, with the one-line notice when that takes long (a cold cache).
+
+    On a cold cache with two or more usable cores the methods at the end of the list compile in a second
+    interpreter at the same time (numba compiles one kernel at a time per process; the second one imports
+    while this one renders the tiny log, then reads it); this process reconstructs those methods once it
+    has finished, loading their kernels from the cache.
+    """
     import tempfile
     import threading
 
+    from ..filters.engine import n_threads
     from ..io import read_log
     from ..offline.reconstruction import reconstruct
     from ..renderers.scenes import write_scene_log
     from ._common import compile_notice, numba_cache_cold
 
-    parts = tuple(dict.fromkeys(("renderers/scenes", "core", "filters") + tuple(p for m in methods.values()
-                                                                 for p in method_kernels(m))))
+    base = ("renderers/scenes", "core", "filters")
+    parts = tuple(dict.fromkeys(base + tuple(p for m in methods.values() for p in method_kernels(m))))
+    cold = {p for p in parts if numba_cache_cold((p,))}
     # the expected time: of the parts whose numba cache index is missing; of all of them when every index is
     # there and the warm-up is slow all the same (numba keeps its cache somewhere this check does not look)
-    guess = (sum(_DEMO_COMPILE_SECONDS.get(p, 1) for p in parts if numba_cache_cold((p,)))
+    guess = (sum(_DEMO_COMPILE_SECONDS.get(p, 1) for p in cold)
              or sum(_DEMO_COMPILE_SECONDS.get(p, 1) for p in parts))
+    names = list(methods)
+    split = len(names)
+    if cold and len(names) > 1 and n_threads() > 1:
+        seen: set = set(base)
+        costs = []
+        for m in methods.values():
+            own = [p for p in method_kernels(m) if p not in seen]
+            seen.update(own)
+            costs.append(sum(_DEMO_COMPILE_SECONDS.get(p, 1) for p in own if p in cold))
+        shared = sum(_DEMO_COMPILE_SECONDS.get(p, 1) for p in base if p in cold)
+        split = _two_process_split(costs, shared)
+        guess = min(guess, _longer_side(costs, shared, split))
     timer = threading.Timer(_COMPILING_AFTER, compile_notice, kwargs={"seconds": guess})
     timer.daemon = True
     timer.start()
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            log = read_log(write_scene_log(scene, Path(tmp) / "warm-up.h5", width=16, height=16, spp=spp,
-                                           seed=seed))
-            for method in methods.values():
-                reconstruct(log, method=method)
+            path, ready = Path(tmp) / "warm-up.h5", Path(tmp) / "ready"
+            child = _warm_up_child(path, ready, names[split:]) if split < len(names) else None
+            try:
+                log = read_log(write_scene_log(scene, path, width=16, height=16, spp=spp, seed=seed))
+                ready.touch()
+                for i, method in enumerate(methods.values()):
+                    if i == split and child is not None:
+                        child.wait()  # its kernels are in numba's cache now: the reconstructions below load them
+                    reconstruct(log, method=method)
+            finally:
+                if child is not None and child.poll() is None:  # interrupted: the second compiler stops too
+                    child.kill()
+                    child.wait()
     finally:
         timer.cancel()
 

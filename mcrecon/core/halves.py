@@ -16,7 +16,7 @@ from .stats import PixelStats
 
 import numba
 
-from ..filters.engine import numba_threads
+from ..filters.engine import n_threads, parallel_calls
 from .features import check_features, layout_of, take_rows, warn_feature_zeroed
 from .samples import apply_nonfinite, check_policy, check_samples, warn_nonfinite
 
@@ -162,10 +162,11 @@ def _flush_run(pix, val, lab, half, k, end, m, width, count, mean, m2, vmin, vma
 @numba.njit(cache=True, nogil=True, inline="always")
 def _flush_half(h, pix, val, lab, start, end, size, width, ca, mean_a, m2_a, min_a, max_a, cb, mean_b, m2_b,
                 min_b, max_b):
+    # ``h`` (a variable, never the literals 0 and 1) as the half: one compiled _flush_run, not one per literal
     if h == 0:
-        _flush_run(pix, val, lab, 0, start, end, size, width, ca, mean_a, m2_a, min_a, max_a)
+        _flush_run(pix, val, lab, h, start, end, size, width, ca, mean_a, m2_a, min_a, max_a)
     else:
-        _flush_run(pix, val, lab, 1, start, end, size, width, cb, mean_b, m2_b, min_b, max_b)
+        _flush_run(pix, val, lab, h, start, end, size, width, cb, mean_b, m2_b, min_b, max_b)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -195,7 +196,6 @@ def _split_part(pix, val, lab, p_lo, p_hi, width, ca, mean_a, m2_a, min_a, max_a
                         cb, mean_b, m2_b, min_b, max_b)
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
 def _split_accumulate(pos, val, width, counter, n_parts, ca, mean_a, m2_a, min_a, max_a, cb, mean_b, m2_b, min_b,
                       max_b):
     """Label every sample (as :func:`_labels_kernel`) and add it to its half's statistics.
@@ -203,15 +203,28 @@ def _split_accumulate(pos, val, width, counter, n_parts, ca, mean_a, m2_a, min_a
     Runs of consecutive samples of a half in one pixel (consecutive in the
     half's own sub-stream, as :func:`mcrecon.core.stats._accumulate` sees it
     after a split) are merged as one.  ``n_parts`` ranges of pixels are
-    merged in parallel, each by one thread following the whole stream (the
-    result does not depend on ``n_parts``).  Positions must be on the film
-    and values finite.  Returns the number of samples of half 0.
+    merged in parallel (the filters' thread pool: a ``parallel=True`` kernel
+    cost 1.9 s of compilation on a first run), each by one thread following
+    the whole stream (the result does not depend on ``n_parts``).  Positions
+    must be on the film and values finite.  Returns the number of samples of
+    half 0.
     """
     n_total = pos.shape[0]
     lab = np.empty(n_total, np.int8)
     pix = np.empty(n_total, np.int64)
+    n_a = _split_label(pos, width, counter, pix, lab)
+    n_pix = counter.size
+    parallel_calls(_split_part, [(pix, val, lab, n_pix * part // n_parts, n_pix * (part + 1) // n_parts, width,
+                                  ca, mean_a, m2_a, min_a, max_a, cb, mean_b, m2_b, min_b, max_b)
+                                 for part in range(n_parts)], threads=n_parts)
+    return n_a
+
+
+@numba.njit(cache=True, nogil=True)
+def _split_label(pos, width, counter, pix, lab):
+    # pixel index and half of every sample (the labels of _labels_kernel); the samples of half 0
     n_a = 0
-    for k in range(n_total):
+    for k in range(pos.shape[0]):
         p = int(pos[k, 1]) * width + int(pos[k, 0])
         pix[k] = p
         kk = counter[p]
@@ -220,10 +233,6 @@ def _split_accumulate(pos, val, width, counter, n_parts, ca, mean_a, m2_a, min_a
         h = (kk + salt) & 1
         lab[k] = h
         n_a += 1 - h
-    n_pix = counter.size
-    for part in numba.prange(n_parts):
-        _split_part(pix, val, lab, n_pix * part // n_parts, n_pix * (part + 1) // n_parts, width, ca, mean_a, m2_a,
-                    min_a, max_a, cb, mean_b, m2_b, min_b, max_b)
     return n_a
 
 
@@ -287,16 +296,15 @@ class Halves:
                                 features=feats)
             return
         counter0 = self.counter.copy() if feats else None
-        with numba_threads() as n_par:
-            n_parts = n_par if pos.shape[0] >= 1 << 16 else 1
-            n_a = _split_accumulate(pos, val, a.width, self.counter, n_parts,
-                                    a.count, a.mean, a.m2, a.min, a.max, b.count, b.mean, b.m2, b.min, b.max)
-            for name, f in feats.items():
-                fa, fb = a.features[name], b.features[name]
-                _split_accumulate(pos, f, a.width, counter0.copy(), n_parts, fa.count, fa.mean, fa.m2, fa.min,
-                                  fa.max, fb.count, fb.mean, fb.m2, fb.min, fb.max)
-                fa._note_dtype(f.dtype)
-                fb._note_dtype(f.dtype)
+        n_parts = n_threads() if pos.shape[0] >= 1 << 16 else 1
+        n_a = _split_accumulate(pos, val, a.width, self.counter, n_parts,
+                                a.count, a.mean, a.m2, a.min, a.max, b.count, b.mean, b.m2, b.min, b.max)
+        for name, f in feats.items():
+            fa, fb = a.features[name], b.features[name]
+            _split_accumulate(pos, f, a.width, counter0.copy(), n_parts, fa.count, fa.mean, fa.m2, fa.min,
+                              fa.max, fb.count, fb.mean, fb.m2, fb.min, fb.max)
+            fa._note_dtype(f.dtype)
+            fb._note_dtype(f.dtype)
         if n_a:
             a._note_dtype(val.dtype)
         if n_a < pos.shape[0]:

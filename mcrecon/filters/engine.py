@@ -42,7 +42,8 @@ from scipy import ndimage
 
 from ..errors import InputError
 
-__all__ = ["ENV_THREADS", "n_threads", "numba_threads", "correlate_jobs", "corr2", "safe_div", "separable_weights",
+__all__ = ["ENV_THREADS", "n_threads", "numba_threads", "parallel_calls", "correlate_jobs", "corr2", "safe_div",
+           "separable_weights",
            "mask_weights"]
 
 #: Environment variable that sets the number of worker threads.
@@ -128,6 +129,26 @@ def _pool(n: int) -> ThreadPoolExecutor:
         return _POOL
 
 
+def parallel_calls(fn, arg_tuples, threads: int | None = None) -> list:
+    """``[fn(*args) for args in arg_tuples]``, on the thread pool (:func:`n_threads` workers).
+
+    ``fn`` is a ``nogil`` numba kernel writing disjoint parts of its
+    outputs, so the calls run in parallel and the result does not depend on
+    the number of threads.  This replaces ``parallel=True`` kernels whose
+    ``prange`` loop only calls such a kernel: the same parallelism, without
+    numba's parallel compilation (a ``parallel=True`` wrapper costs seconds of
+    compilation on a first run, e.g. 6.7 s for the NL-means bands, measured
+    with benchmarks/bench_first_run.py).  One thread, or one call: run on the
+    calling thread.
+    """
+    arg_tuples = list(arg_tuples)
+    n = min(n_threads(threads), len(arg_tuples))
+    if n <= 1:
+        return [fn(*a) for a in arg_tuples]
+    futs = [_pool(n_threads(threads)).submit(fn, *a) for a in arg_tuples]
+    return [f.result() for f in futs]
+
+
 # ----------------------------------------------------------------------------
 # The compiled separable correlation
 # ----------------------------------------------------------------------------
@@ -168,7 +189,10 @@ def _corr2_rows(x, k, c, den, mode, out, i0, i1):
             a = x[lo] if lo >= 0 else zero
             b = x[hi] if hi < h else zero
             _add_pair(acc, a, b, k[r + jj])
-        rnd[:] = acc                      # ndimage stores the first pass in x's dtype
+        # ndimage stores the first pass in x's dtype.  Element loops, not ``rnd[:] = acc``: a slice
+        # assignment compiles numba's shape-mismatch message (string formatting, ~1.5 s of a first run)
+        for q in range(n):
+            rnd[q] = acc[q]
         # axis 1 on the zero-padded row, channel stride c
         for q in range(n):
             buf[pad + q] = rnd[q]
@@ -177,7 +201,8 @@ def _corr2_rows(x, k, c, den, mode, out, i0, i1):
         for jj in range(-r, 0):
             d = -jj * c
             _add_pair(acc, buf[pad - d:pad - d + n], buf[pad + d:pad + d + n], k[r + jj])
-        rnd[:] = acc
+        for q in range(n):
+            rnd[q] = acc[q]
         if mode == 0:
             for q in range(n):
                 out[i, q] = rnd[q]

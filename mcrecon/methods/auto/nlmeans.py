@@ -26,7 +26,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ...filters.engine import numba_threads
+from ...filters.engine import parallel_calls
 
 __all__ = ["NLM_ALPHA", "NLM_EPS", "nlmeans_cross"]
 
@@ -241,18 +241,6 @@ def _band(ya, yb, xa, ua, xb, ub, bothf, maf, mbf, full, r, f, k2, alpha, eps, i
                     _axpy(num_b[ch, i, j0:j1], wb[j0:j1], yb[ch, qi, j0 + dx:j1 + dx], j1 - j0)
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _nlm_cross_kernel(ya, yb, xa, ua, xb, ub, bothf, maf, mbf, full, r, f, k2, alpha, eps, band, num_a, den_a,
-                      num_b, den_b):
-    h = ya.shape[1]
-    n_bands = (h + band - 1) // band
-    for b in numba.prange(n_bands):
-        i0 = b * band
-        i1 = min(h, i0 + band)
-        _band(ya, yb, xa, ua, xb, ub, bothf, maf, mbf, full, r, f, k2, alpha, eps, i0, i1, num_a, den_a, num_b,
-              den_b)
-
-
 def nlmeans_cross(y_a, v_a, count_a, y_b, v_b, count_b, *, radius: int = 3, patch: int = 1,
                   k: float = 0.45, alpha: float = NLM_ALPHA, threads: int | None = None):
     """Cross-filtered non-local means of two halves.
@@ -301,10 +289,13 @@ def nlmeans_cross(y_a, v_a, count_a, y_b, v_b, count_b, *, radius: int = 3, patc
     den_a = np.zeros((h, w))
     den_b = np.zeros((h, w))
     f32 = np.float32
-    with numba_threads(threads):
-        _nlm_cross_kernel(ya, yb, xa, ua, xb, ub, bothf, ma.astype(f32), mb.astype(f32), bool(ma.all() and mb.all()),
-                          int(radius), int(patch),
-                          f32(float(k) ** 2), f32(alpha), f32(NLM_EPS), _BAND, num_a, den_a, num_b, den_b)
+    maf, mbf, full = ma.astype(f32), mb.astype(f32), bool(ma.all() and mb.all())
+    consts = (int(radius), int(patch), f32(float(k) ** 2), f32(alpha), f32(NLM_EPS))
+    # bands of rows on the filters' thread pool (a parallel=True kernel around _band cost 6.7 s of
+    # compilation on a first run)
+    parallel_calls(_band, [(ya, yb, xa, ua, xb, ub, bothf, maf, mbf, full) + consts
+                           + (i0, min(h, i0 + _BAND), num_a, den_a, num_b, den_b) for i0 in range(0, h, _BAND)],
+                   threads)
     num_a = np.moveaxis(num_a, 0, 2)
     num_b = np.moveaxis(num_b, 0, 2)
     ya = np.moveaxis(ya, 0, 2)

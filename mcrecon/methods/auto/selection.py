@@ -7,7 +7,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ...filters.engine import numba_threads
+from ...filters.engine import parallel_calls
 
 from .estimates import relative_denominator_loo, sorted_neighbours8
 from ...core.metrics import DEFAULT_EPS
@@ -214,13 +214,21 @@ def _global_prior(cands, raw, smoothed, relm, choice, y, v, count, bounds, sigma
     return np.where(default, c2, choice)
 
 
-@numba.njit(cache=True, nogil=True)
 def _pick_where(choice, k, src, out):
-    # out[p] = src[p] where choice[p] == k (src (H, W, C) or (H, W) raveled alike)
+    """``out[p] = src[p]`` where ``choice[p] == k`` (src and out (H, W, C) or (H, W), C-contiguous, raveled alike).
+
+    Both as 2-D (pixels, values) views: one compiled kernel for images and maps (it was compiled for each).
+    """
     m = choice.size
-    n = src.size // m
-    s2 = src.reshape(m, n)
-    o2 = out.reshape(m, n)
+    if not out.flags.c_contiguous:
+        raise ValueError("_pick_where writes into a C-contiguous out")
+    _pick_rows(np.ascontiguousarray(choice, dtype=np.int64), int(k), np.ascontiguousarray(src).reshape(m, -1),
+               out.reshape(m, -1))
+
+
+@numba.njit(cache=True, nogil=True)
+def _pick_rows(choice, k, s2, o2):
+    m, n = s2.shape
     for p in range(m):
         if choice[p] == k:
             for q in range(n):
@@ -254,15 +262,22 @@ def _no_push_in_heavy_tails(img: np.ndarray, y: np.ndarray, hi: np.ndarray) -> n
     # (the numpy formulation, kept in the tests as the reference, was 1.2 s of auto's 8 s at 1024^2)
     img = np.ascontiguousarray(img, dtype=np.float64)
     out = img.copy()
-    with numba_threads():
-        _no_push_kernel(img, np.ascontiguousarray(y, dtype=np.float64),
-                        np.ascontiguousarray(hi, dtype=np.float64), np.ones(y.shape[:2], bool), HEAVY_TAIL, out)
+    y = np.ascontiguousarray(y, dtype=np.float64)
+    hi = np.ascontiguousarray(hi, dtype=np.float64)
+    every = np.ones(y.shape[:2], bool)
+    # row blocks on the filters' thread pool (a parallel=True kernel cost 1.5 s of compilation on a first run)
+    parallel_calls(_no_push_rows, [(img, y, hi, every, HEAVY_TAIL, out, i0, min(i0 + _ROWS, y.shape[0]))
+                                   for i0 in range(0, y.shape[0], _ROWS)])
     return out
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _no_push_kernel(img, y, hi, every, heavy_tail, out):
-    """:func:`_no_push_in_heavy_tails` per pixel and channel (``out`` starts as a copy of ``img``).
+#: Rows per call of :func:`_no_push_rows` (each output pixel is computed by one call: no effect on the result).
+_ROWS = 64
+
+
+@numba.njit(cache=True, nogil=True)
+def _no_push_rows(img, y, hi, every, heavy_tail, out, i0, i1):
+    """:func:`_no_push_in_heavy_tails` per pixel and channel in rows [i0, i1) (``out`` starts as a copy of ``img``).
 
     The median of the 8 neighbours (edge-repeated; ``every`` all True:
     an empty neighbour's mean counts) is the mean of the 4th and 5th of
@@ -270,8 +285,8 @@ def _no_push_kernel(img, y, hi, every, heavy_tail, out):
     them makes it NaN, and a NaN median never reverts.
     """
     h, w, c = y.shape
-    for i in numba.prange(h):
-        nb = np.empty(8)
+    nb = np.empty(8)
+    for i in range(i0, i1):
         for j in range(w):
             for ch in range(c):
                 yc = y[i, j, ch]

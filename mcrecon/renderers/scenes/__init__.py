@@ -61,6 +61,9 @@ References
 from __future__ import annotations
 
 import functools
+import math
+import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -202,6 +205,28 @@ def feature_reference(scene, width: int, height: int, *, quadrature: int = 32) -
 # Renderer
 # ----------------------------------------------------------------------------
 
+#: Environment variable: the samples per second of every :class:`SceneRenderer` without ``rate=`` (benchmarks).
+ENV_SCENE_RATE = "MCRECON_SCENE_RATE"
+
+
+def _check_rate(rate):
+    """``rate`` (or ``$MCRECON_SCENE_RATE`` when None) as a positive float, or None for no limit."""
+    where, field = "SceneRenderer", "rate"
+    if rate is None:
+        raw = os.environ.get(ENV_SCENE_RATE, "").strip()
+        if not raw:
+            return None
+        where, field, rate = "environment", ENV_SCENE_RATE, raw
+    try:
+        r = float(rate)
+    except (TypeError, ValueError):
+        r = float("nan")
+    if not (r > 0 and math.isfinite(r)) or isinstance(rate, bool):
+        raise InputError(where, field, f"{rate!r}: expected a positive number of samples per second (e.g. 2e6), "
+                         f"or unset for no limit")
+    return r
+
+
 class SceneRenderer:
     """A built-in scene as a renderer (:class:`mcrecon.renderers.protocol.Renderer`).
 
@@ -220,6 +245,12 @@ class SceneRenderer:
         ``depth`` (N, 1)) in each reply's ``SampleBatch.features``.  None
         (default): the scene's ``features_default`` (on for the textured
         scenes, off for the others).
+    rate : float, optional
+        Benchmarks: samples per second at most; a reply of n samples then
+        takes at least n / rate seconds (asleep for the rest; the samples are
+        the same).  Default: ``$MCRECON_SCENE_RATE`` when set (so that whole
+        commands, ``mcrecon adapt --scene`` and ``render-log``, can stand in
+        for a renderer of a realistic speed), else no limit.
 
     Notes
     -----
@@ -231,12 +262,14 @@ class SceneRenderer:
     turning them on or off leaves positions and values bit-identical.
     """
 
-    def __init__(self, scene, *, width: int = 128, height: int = 128, seed: int = 0, features=None):
+    def __init__(self, scene, *, width: int = 128, height: int = 128, seed: int = 0, features=None,
+                 rate: float | None = None):
         self.scene = get_scene(scene)
         self.width = _check_int("SceneRenderer", "width", width, 1)
         self.height = _check_int("SceneRenderer", "height", height, 1)
         self.seed = _check_int("SceneRenderer", "seed", seed, 0)
         self.features = _check_features_flag("SceneRenderer", self.scene, features)
+        self.rate = _check_rate(rate)
         self.channels = tuple(self.scene.channels)
         self.feature_names = tuple(self.scene.feature_names) if self.features else ()
         self.name = f"scene:{self.scene.name}"
@@ -249,6 +282,7 @@ class SceneRenderer:
                              f"{self.width}x{self.height}")
         seed = _check_int(self.name, "request.seed", request.seed, 0)
         rnd = _check_int(self.name, "request.round_index", request.round_index, 0)
+        t0 = time.perf_counter()
         rng = np.random.default_rng([self.seed, seed, rnd])
         parts = []
         if request.counts is not None:
@@ -259,9 +293,12 @@ class SceneRenderer:
         u = rng.random((pos.shape[0], self.scene.n_dims))
         x, y = pos[:, 0] / self.width, pos[:, 1] / self.height
         values = self.scene.radiance(x, y, u)
-        if not self.features:
-            return SampleBatch(pos, values)
-        return SampleBatch(pos, values, self.scene.features(x, y, u))
+        feats = self.scene.features(x, y, u) if self.features else None
+        if self.rate is not None:
+            rest = pos.shape[0] / self.rate - (time.perf_counter() - t0)
+            if rest > 0:
+                time.sleep(rest)
+        return SampleBatch(pos, values) if feats is None else SampleBatch(pos, values, feats)
 
     def reference(self, *, quadrature: int = 32) -> np.ndarray:
         """:func:`reference_image` of this scene at this film size."""
