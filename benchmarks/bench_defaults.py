@@ -88,7 +88,7 @@ class MitsubaScene:
         return render_reference(self._r, spp=self.ref_spp, seed=12345)
 
     def uniform(self, spp, seed):
-        from mcrecon.renderers.mitsuba import _uniform_passes
+        from mcrecon.renderers.mitsuba_logs import _uniform_passes
         parts = list(_uniform_passes(self._r, spp, seed + 1))
         return (np.concatenate([p.positions for p in parts]), np.concatenate([p.values for p in parts]))
 

@@ -2,14 +2,16 @@
 
 Run (from the checkout, so that its mcrecon is imported):
       PYTHONPATH=. python benchmarks/bench_features.py [--size 128] [--spp 32] [--seeds 3]
-                   [--scenes checker_wall,checker_spot,checker_dof] [--methods gem,awr,splat,auto]
+                   [--scenes checker_wall,checker_spot,checker_dof] [--methods gem,awr,splat,nfor,auto]
 
 For each textured scene (exact colour reference, per-sample albedo, normal
 and depth) and seed, one uniform log of ``spp`` jittered samples per pixel
 is reconstructed by
 
 * ``box``: the pixel mean, the baseline every ratio divides by;
-* mcrecon's colour-only methods (default gem, awr, splat, auto);
+* mcrecon's methods with the samples and their features (default gem,
+  awr, splat, nfor, auto without its feature candidates
+  ``auto:feature_candidates=none``, and auto);
 * OIDN colour-only: ``pyoidn.denoise(box, hdr=True, quality="high")``;
 * OIDN + features: ``pyoidn.denoise(box, albedo, normal, hdr=True,
   quality="high")`` with the *pixel means* of the per-sample albedo and
@@ -49,6 +51,13 @@ def _oidn(color, albedo=None, normal=None, clean_aux=False):
     return np.asarray(out, dtype=np.float64)
 
 
+def _method(spec: str):
+    """``name`` or ``name:key=value:key=value`` (e.g. ``auto:feature_candidates=none``)."""
+    name, *opts = spec.split(":")
+    kw = dict(o.split("=", 1) for o in opts)
+    return mcrecon.get_method(name, **kw) if kw else name
+
+
 def run(scenes, methods, size, spp, seeds):
     rows = {}
     for scene in scenes:
@@ -63,9 +72,10 @@ def run(scenes, methods, size, spp, seeds):
             e_box = relative_mse(box, ref)
             out = {}
             for m in methods:
-                mcrecon.reconstruct(src, method=m)   # compile / warm (not timed)
+                method = _method(m)
+                mcrecon.reconstruct(src, method=method)   # compile / warm (not timed)
                 t = time.process_time()
-                img = mcrecon.reconstruct(src, method=m)
+                img = mcrecon.reconstruct(src, method=method)
                 out[m] = (relative_mse(img, ref), time.process_time() - t)
             alb, nrm = st.features["albedo"].mean, st.features["normal"].mean
             for label, args, kw in (("oidn", (box,), {}), ("oidn+alb", (box, alb), {}),
@@ -86,18 +96,20 @@ def main():
     ap.add_argument("--spp", type=int, default=32)
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--scenes", default="checker_wall,checker_spot,checker_dof")
-    ap.add_argument("--methods", default="gem,awr,splat,auto")
+    ap.add_argument("--methods", default="gem,awr,splat,nfor,auto:feature_candidates=none,auto",
+                    help="comma-separated; name:key=value:... passes options")
     a = ap.parse_args()
     scenes = [s for s in a.scenes.split(",") if s]
     methods = [m for m in a.methods.split(",") if m]
     rows = run(scenes, methods, a.size, a.spp, a.seeds)
     print(f"{a.size}x{a.size}, {a.spp} spp, {a.seeds} seeds; ratio = relMSE / relMSE(box), mean +- s.e. over seeds; "
           "CPU seconds per reconstruction (process_time)")
-    print(f"{'scene':14s} {'method':14s} {'ratio':>16s} {'relMSE':>10s} {'cpu s':>7s}")
+    w = max(14, *(len(m) for m in methods))
+    print(f"{'scene':14s} {'method':{w}s} {'ratio':>16s} {'relMSE':>10s} {'cpu s':>7s}")
     for (scene, label), vals in rows.items():
         v = np.array(vals)
         se = v[:, 0].std(ddof=1) / np.sqrt(len(v)) if len(v) > 1 else float("nan")
-        print(f"{scene:14s} {label:14s} {v[:, 0].mean():8.3f} +- {se:5.3f} {v[:, 1].mean():10.5f} "
+        print(f"{scene:14s} {label:{w}s} {v[:, 0].mean():8.3f} +- {se:5.3f} {v[:, 1].mean():10.5f} "
               f"{v[:, 2].mean():7.2f}")
 
 
