@@ -114,10 +114,11 @@ def test_exp_neg_is_exp_to_1e_9_and_zero_beyond_80():
 
 
 @pytest.mark.parametrize("r, f", [(4, 3), (9, 1), (2, 0)])
-def test_fast_kernels_equal_the_reference_kernels_to_1e_7(r, f):
+def test_fast_kernels_equal_the_reference_kernels_to_1e_6(r, f):
     """The vectorised kernels (direct patch sums, offset-major normal equations, polynomial exp) against
     the first implementation (summed-area tables, per-window dot products, math.exp), kept in
-    nfor/reference.py: they differ by rounding only (measured 4e-9 at most); weights with bimodal
+    nfor/reference.py: they differ by rounding only (a float32 patch distance one ulp apart: measured 1.3e-7
+    at most at 128^2); weights with bimodal
     distances, features with a gradient and noise, and a border wider than the window on a 37 x 41 image."""
     rng = np.random.default_rng(7)
     h, w = 37, 41
@@ -127,12 +128,12 @@ def test_fast_kernels_equal_the_reference_kernels_to_1e_7(r, f):
     feats = rng.uniform(size=(h, w, 5)) + np.linspace(0, 4, w)[None, :, None]
     np.testing.assert_allclose(nlmeans_filter(y, guide, var, radius=r, patch=f, k=0.6, variance_scale=2.0),
                                nlmeans_filter_reference(y, guide, var, radius=r, patch=f, k=0.6, variance_scale=2.0),
-                               rtol=1e-7)
+                               rtol=1e-6)
     got, got_w = collaborative_regression(y, guide, var, feats, radius=r, patch=f, k=0.8, return_weights=True)
     want, want_w = collaborative_regression_reference(y, guide, var, feats, radius=r, patch=f, k=0.8,
                                                       return_weights=True)
-    np.testing.assert_allclose(got_w, want_w, rtol=1e-7)
-    np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-9 * np.abs(want).max())
+    np.testing.assert_allclose(got_w, want_w, rtol=1e-6)
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9 * np.abs(want).max())
 
 
 # ------------------------------------------------------------------ exactness

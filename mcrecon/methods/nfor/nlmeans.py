@@ -66,6 +66,66 @@ def exp_neg(t):
     return p if t <= 80.0 else 0.0
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _box_rows(pd, r0, f, vs):
+    """vs[j] = sum of pd[r0 .. r0 + 2f, j] in float64, left to right (as a sequential sum).
+
+    The sum written as one expression per element for the usual patch radii: LLVM vectorises a loop,
+    not a runtime-length inner loop, and one pass is 3x faster than adding row after row (measured)."""
+    wp = vs.shape[0]
+    if f == 0:
+        p0 = pd[r0]
+        for j in range(wp):
+            vs[j] = float(p0[j])
+    elif f == 1:
+        p0, p1, p2 = pd[r0], pd[r0 + 1], pd[r0 + 2]
+        for j in range(wp):
+            vs[j] = float(p0[j]) + float(p1[j]) + float(p2[j])
+    elif f == 2:
+        p0, p1, p2, p3, p4 = pd[r0], pd[r0 + 1], pd[r0 + 2], pd[r0 + 3], pd[r0 + 4]
+        for j in range(wp):
+            vs[j] = float(p0[j]) + float(p1[j]) + float(p2[j]) + float(p3[j]) + float(p4[j])
+    elif f == 3:
+        p0, p1, p2, p3, p4, p5, p6 = pd[r0], pd[r0 + 1], pd[r0 + 2], pd[r0 + 3], pd[r0 + 4], pd[r0 + 5], pd[r0 + 6]
+        for j in range(wp):
+            vs[j] = (float(p0[j]) + float(p1[j]) + float(p2[j]) + float(p3[j]) + float(p4[j]) + float(p5[j])
+                     + float(p6[j]))
+    else:
+        for j in range(wp):
+            vs[j] = 0.0
+        for b in range(2 * f + 1):
+            src = pd[r0 + b]
+            for j in range(wp):
+                vs[j] += src[j]
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _box_cols(v, n, f, hs):
+    """hs[t] = sum of v[t .. t + 2f] for t < n, left to right (see :func:`_box_rows`)."""
+    if f == 0:
+        for t in range(n):
+            hs[t] = v[t]
+    elif f == 1:
+        a, b, c = v[0:n], v[1:n + 1], v[2:n + 2]
+        for t in range(n):
+            hs[t] = a[t] + b[t] + c[t]
+    elif f == 2:
+        a, b, c, d, e = v[0:n], v[1:n + 1], v[2:n + 2], v[3:n + 3], v[4:n + 4]
+        for t in range(n):
+            hs[t] = a[t] + b[t] + c[t] + d[t] + e[t]
+    elif f == 3:
+        a, b, c, d, e, g, k = v[0:n], v[1:n + 1], v[2:n + 2], v[3:n + 3], v[4:n + 4], v[5:n + 5], v[6:n + 6]
+        for t in range(n):
+            hs[t] = a[t] + b[t] + c[t] + d[t] + e[t] + g[t] + k[t]
+    else:
+        for t in range(n):
+            hs[t] = 0.0
+        for b in range(2 * f + 1):
+            src = v[b:b + n]
+            for t in range(n):
+                hs[t] += src[t]
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def offset_distances(guide, var, dy, dx, i0, i1, f, k2, eps, clamp, pd, vs, hs, inv_cols, out):
     """Patch distances D_c(p, o) of offset o = (dy, dx) for the pixels p of rows [i0, i1).
@@ -75,7 +135,8 @@ def offset_distances(guide, var, dy, dx, i0, i1, f, k2, eps, clamp, pd, vs, hs, 
     columns of padding each side; vs, hs, inv_cols (W + 2f) float64.  out : (C, i1 - i0, W) float32, the patch-mean
     distance where q = p + o lies in the image (elsewhere left unspecified: the callers skip those pairs).
     Every loop runs along a row without a carried dependency (LLVM vectorises them): the pixel distances
-    once per offset, then per patch the (2f + 1) rows and (2f + 1) columns summed directly, in float64.
+    once per offset, then per patch the (2f + 1) rows and (2f + 1) columns summed directly, in float64
+    (:func:`_box_rows`, :func:`_box_cols`).
     """
     c, h, w = guide.shape
     rows = i1 - i0 + 2 * f
@@ -111,19 +172,9 @@ def offset_distances(guide, var, dy, dx, i0, i1, f, k2, eps, clamp, pd, vs, hs, 
         if nr <= 0:
             continue
         for ch in range(c):
-            for jj in range(wp):
-                vs[jj] = 0.0
-            for b in range(2 * f + 1):
-                src = pd[ch, rr + b]
-                for jj in range(wp):
-                    vs[jj] += src[jj]
+            _box_rows(pd[ch], rr, f, vs)
             n = j1 - j0
-            for t2 in range(n):
-                hs[t2] = 0.0
-            for b in range(2 * f + 1):
-                src2 = vs[j0 + b:j1 + b]
-                for t2 in range(n):
-                    hs[t2] += src2[t2]
+            _box_cols(vs[j0:], n, f, hs)
             dst2 = out[ch, rr, j0:j1]
             inv_r = 1.0 / nr
             for t2 in range(n):
