@@ -266,6 +266,18 @@ def test_reconstruct_from_samples_equals_the_half_buffer_pair_and_refuses_withou
     assert {k: v for k, v in paper.items() if k != "variant"} == {k: v for k, v in default.items() if k != "variant"}
 
 
+def test_restoration_nfor_is_the_method_on_samples_and_on_a_half_buffer_pair():
+    ss = scene_samples(20, 18, 8, seed=4)
+    img = mcrecon.restoration.nfor(ss, radius=4)
+    np.testing.assert_array_equal(img, mcrecon.reconstruct(ss, method="nfor", radius=4))
+    h = split_halves(ss, features="all")
+    np.testing.assert_array_equal(mcrecon.restoration.nfor((h.a, h.b), radius=4), img)
+    with pytest.raises(InputError, match="features"):
+        mcrecon.restoration.nfor(SampleSet(ss.positions, ss.values, width=20, height=18))
+    with pytest.raises(InputError, match="valid: bandwidths"):
+        mcrecon.restoration.nfor(ss, window=4)
+
+
 def _renderer(features=True, w=20, h=16):
     def render(request):
         rng = np.random.default_rng(request.seed)
