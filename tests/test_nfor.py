@@ -278,6 +278,26 @@ def test_restoration_nfor_is_the_method_on_samples_and_on_a_half_buffer_pair():
         mcrecon.restoration.nfor(ss, window=4)
 
 
+def test_demo_runs_nfor_by_default_on_the_textured_scenes_only(tmp_path, monkeypatch, capsys):
+    """The demo's default method list (here cut to box and nfor) keeps nfor on a scene that renders
+    features (checker_wall) and leaves it out, saying why, on one that does not (soft_shadow)."""
+    import re
+
+    import mcrecon.methods
+    from mcrecon.cli import main
+
+    monkeypatch.setattr(mcrecon.methods, "available_methods", lambda: ["box", "nfor"])
+    assert main(["demo", "--scene", "checker_wall", "--size", "16x16", "--spp", "4", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    errors = dict(re.findall(r"^(\w+)\s+relative MSE ([0-9.eE+-]+)", out, re.M))
+    assert set(errors) == {"box", "nfor"} and "not run" not in out, out
+    assert (tmp_path / "checker_wall_nfor.exr").exists()
+    assert main(["demo", "--scene", "soft_shadow", "--size", "16x16", "--spp", "4", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"^box\s+relative MSE", out, re.M) and not re.search(r"^nfor\s", out, re.M)
+    assert "not run: nfor" in out
+
+
 def _renderer(features=True, w=20, h=16):
     def render(request):
         rng = np.random.default_rng(request.seed)
