@@ -119,7 +119,7 @@ def _cmd_render_log(args):
 #: that several methods share are counted with the first method that runs them).
 _DEMO_COMPILE_SECONDS = {"renderers/scenes": 6, "core": 2, "filters": 1, "methods/box.py": 1, "methods/gem": 5,
                          "methods/awr": 1, "methods/splat": 4, "methods/ci": 1, "methods/auto": 29,
-                         "methods/nfor": 36}
+                         "methods/nfor": 25}
 #: A warm-up of every method on a tiny log takes well under a second once the kernels are cached (0.2 s
 #: measured): still running after this many seconds, it is compiling.
 _COMPILING_AFTER = 2.0

@@ -46,7 +46,7 @@ MIN_CENTER_WEIGHT = 1e-4
 BAND = 16
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def exp_neg(t):
     """exp(-t) for t >= 0 (float64), vectorisable: 0 beyond t = 80, elsewhere within 1e-9 relative.
 
@@ -66,7 +66,7 @@ def exp_neg(t):
     return p if t <= 80.0 else 0.0
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _box_rows(pd, r0, f, vs):
     """vs[j] = sum of pd[r0 .. r0 + 2f, j] in float64, left to right (as a sequential sum).
 
@@ -99,7 +99,7 @@ def _box_rows(pd, r0, f, vs):
                 vs[j] += src[j]
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _box_cols(v, n, f, hs):
     """hs[t] = sum of v[t .. t + 2f] for t < n, left to right (see :func:`_box_rows`)."""
     if f == 0:
