@@ -134,6 +134,9 @@ def test_fast_kernels_equal_the_reference_kernels_to_1e_6(r, f):
                                                       return_weights=True)
     np.testing.assert_allclose(got_w, want_w, rtol=1e-6)
     np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9 * np.abs(want).max())
+    # row bands in parallel, each pixel's sums in a fixed order: the same bits on any thread count
+    np.testing.assert_array_equal(nlmeans_filter(y, guide, var, radius=r, patch=f, k=0.6, threads=1),
+                                  nlmeans_filter(y, guide, var, radius=r, patch=f, k=0.6, threads=2))
 
 
 # ------------------------------------------------------------------ exactness
