@@ -5,8 +5,14 @@ albedo x smooth shading, exponential per-sample noise, a defocused band
 whose features are noisy), relMSE (mcrecon.core.metrics, eps 0.01) of each
 method for 3 seeds, and nfor's reconstruction time (CPU time of the
 process, and wall time) at 128^2 and 512^2, warm (after a first run).
+With ``--scenes``, instead: the built-in textured scenes (checker_wall,
+checker_dof, checker_spot: exact reference, per-sample albedo, normal,
+depth), relMSE / box of nfor beside OIDN + albedo + normal (pixel means of
+the features, as benchmarks/bench_features.py) for 3 seeds, and nfor's CPU
+time per reconstruction.
 
     python benchmarks/bench_nfor.py [--size 128] [--spp 32] [--big 512] [--big-spp 16]
+    python benchmarks/bench_nfor.py --scenes checker_wall,checker_dof,checker_spot [--size 128] [--spp 32]
 """
 
 from __future__ import annotations
@@ -56,13 +62,44 @@ def candidates(ss):
     return out, time.process_time() - t0, time.perf_counter() - w0
 
 
+def scenes_table(scenes, size, spp, seeds=(0, 1, 2)):
+    from mcrecon.core.samples import SampleSet
+    from mcrecon.core.stats import PixelStats
+    from mcrecon.renderers import scenes as S
+
+    mcrecon.reconstruct(scene_samples(32, 32, 4, seed=9, square=4), method="nfor")  # compile / load the cache
+    print(f"{size}^2, {spp} spp; relMSE / relMSE(box) per seed, mean (min-max); nfor CPU s (process_time)")
+    for scene in scenes:
+        ref = S.reference_image(scene, size, size)
+        rows = []
+        for seed in seeds:
+            b = S.render_uniform(scene, width=size, height=size, spp=spp, seed=seed, features=True)
+            st = PixelStats.from_samples(b.positions, b.values, width=size, height=size, features=b.features)
+            src = SampleSet(b.positions, b.values, width=size, height=size, features=b.features)
+            e_box = relative_mse(st.mean, ref)
+            t0 = time.process_time()
+            img = mcrecon.reconstruct(src, method="nfor")
+            cpu = time.process_time() - t0
+            oidn = _oidn(st.mean, st.features["albedo"].mean, st.features["normal"].mean)
+            rows.append((e_box, relative_mse(img, ref) / e_box,
+                         relative_mse(oidn, ref) / e_box if oidn is not None else np.nan, cpu))
+        r = np.array(rows)
+        fmt = lambda c: f"{r[:, c].mean():.3f} ({r[:, c].min():.3f}-{r[:, c].max():.3f})"  # noqa: E731
+        print(f"  {scene:13s} box relMSE {r[:, 0].mean():.5f}  nfor {fmt(1)}  oidn+alb+nrm {fmt(2)}  nfor cpu {r[:, 3].mean():.2f} s",
+              flush=True)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--spp", type=int, default=32)
     ap.add_argument("--big", type=int, default=512)
     ap.add_argument("--big-spp", type=int, default=16)
+    ap.add_argument("--scenes", default="", help="comma-separated built-in textured scenes: the scene table only")
     a = ap.parse_args(argv)
+    if a.scenes:
+        scenes_table([s for s in a.scenes.split(",") if s], a.size, a.spp)
+        return
     sq = max(a.size // 8, 2)
     ref = scene_reference(a.size, a.size, square=sq)
     mcrecon.reconstruct(scene_samples(32, 32, 4, seed=9, square=4), method="nfor")  # compile / load the cache

@@ -19,6 +19,8 @@ from mcrecon.methods.auto.nlmeans import nlmeans_cross
 from mcrecon.methods.nfor.method import feature_planes
 from mcrecon.filters.nlmeans import DISTANCE_CLAMP, MIN_CENTER_WEIGHT, NLM_EPS, nlmeans_filter
 from mcrecon.methods.nfor.pipeline import cross_regression, estimate_mse, nfor_denoise, prefilter_features
+from mcrecon.filters.nlmeans import exp_neg
+from mcrecon.methods.nfor.reference import collaborative_regression_reference, nlmeans_filter_reference
 from mcrecon.filters.regression import RIDGE, collaborative_regression, standardise
 
 from nfor_scene import scene_reference, scene_samples, scene_values
@@ -101,6 +103,40 @@ def test_collaborative_regression_matches_brute_force_fits_and_averaging():
     # row bands accumulate privately and are summed in a fixed order: any thread count, the same bits
     np.testing.assert_array_equal(collaborative_regression(y, guide, var, feats, radius=r, patch=f, k=k, threads=1),
                                   collaborative_regression(y, guide, var, feats, radius=r, patch=f, k=k, threads=2))
+
+
+# ------------------------------------------------------------------ fast kernels = the reference kernels
+def test_exp_neg_is_exp_to_1e_9_and_zero_beyond_80():
+    t = np.concatenate([np.linspace(0.0, 80.0, 4001), [1e-12, 79.999, 80.0]])
+    got = np.array([exp_neg(x) for x in t])
+    np.testing.assert_allclose(got, np.exp(-t), rtol=1e-9, atol=0)
+    assert exp_neg(0.0) == 1.0 and exp_neg(80.0 + 1e-9) == 0.0 and exp_neg(1e4) == 0.0
+
+
+@pytest.mark.parametrize("r, f", [(4, 3), (9, 1), (2, 0)])
+def test_fast_kernels_equal_the_reference_kernels_to_1e_6(r, f):
+    """The vectorised kernels (direct patch sums, offset-major normal equations, polynomial exp) against
+    the first implementation (summed-area tables, per-window dot products, math.exp), kept in
+    nfor/reference.py: they differ by rounding only (a float32 patch distance one ulp apart: measured 1.3e-7
+    at most at 128^2); weights with bimodal
+    distances, features with a gradient and noise, and a border wider than the window on a 37 x 41 image."""
+    rng = np.random.default_rng(7)
+    h, w = 37, 41
+    y = rng.gamma(2.0, 1.0, size=(h, w, 3)) * np.where(rng.uniform(size=(h, w, 1)) < 0.5, 1.0, 8.0)
+    guide = y * rng.exponential(1.0, size=y.shape)
+    var = rng.uniform(0.05, 3.0, size=y.shape)
+    feats = rng.uniform(size=(h, w, 5)) + np.linspace(0, 4, w)[None, :, None]
+    np.testing.assert_allclose(nlmeans_filter(y, guide, var, radius=r, patch=f, k=0.6, variance_scale=2.0),
+                               nlmeans_filter_reference(y, guide, var, radius=r, patch=f, k=0.6, variance_scale=2.0),
+                               rtol=1e-6)
+    got, got_w = collaborative_regression(y, guide, var, feats, radius=r, patch=f, k=0.8, return_weights=True)
+    want, want_w = collaborative_regression_reference(y, guide, var, feats, radius=r, patch=f, k=0.8,
+                                                      return_weights=True)
+    np.testing.assert_allclose(got_w, want_w, rtol=1e-6)
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9 * np.abs(want).max())
+    # row bands in parallel, each pixel's sums in a fixed order: the same bits on any thread count
+    np.testing.assert_array_equal(nlmeans_filter(y, guide, var, radius=r, patch=f, k=0.6, threads=1),
+                                  nlmeans_filter(y, guide, var, radius=r, patch=f, k=0.6, threads=2))
 
 
 # ------------------------------------------------------------------ exactness
@@ -231,6 +267,38 @@ def test_reconstruct_from_samples_equals_the_half_buffer_pair_and_refuses_withou
     # the default variant is the paper's algorithm for now (docs/methods/nfor.md)
     paper, default = mcrecon.get_method("nfor", variant="paper").params, mcrecon.get_method("nfor").params
     assert {k: v for k, v in paper.items() if k != "variant"} == {k: v for k, v in default.items() if k != "variant"}
+
+
+def test_restoration_nfor_is_the_method_on_samples_and_on_a_half_buffer_pair():
+    ss = scene_samples(20, 18, 8, seed=4)
+    img = mcrecon.restoration.nfor(ss, radius=4)
+    np.testing.assert_array_equal(img, mcrecon.reconstruct(ss, method="nfor", radius=4))
+    h = split_halves(ss, features="all")
+    np.testing.assert_array_equal(mcrecon.restoration.nfor((h.a, h.b), radius=4), img)
+    with pytest.raises(InputError, match="features"):
+        mcrecon.restoration.nfor(SampleSet(ss.positions, ss.values, width=20, height=18))
+    with pytest.raises(InputError, match="valid: bandwidths"):
+        mcrecon.restoration.nfor(ss, window=4)
+
+
+def test_demo_runs_nfor_by_default_on_the_textured_scenes_only(tmp_path, monkeypatch, capsys):
+    """The demo's default method list (here cut to box and nfor) keeps nfor on a scene that renders
+    features (checker_wall) and leaves it out, saying why, on one that does not (soft_shadow)."""
+    import re
+
+    import mcrecon.methods
+    from mcrecon.cli import main
+
+    monkeypatch.setattr(mcrecon.methods, "available_methods", lambda: ["box", "nfor"])
+    assert main(["demo", "--scene", "checker_wall", "--size", "16x16", "--spp", "4", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    errors = dict(re.findall(r"^(\w+)\s+relative MSE ([0-9.eE+-]+)", out, re.M))
+    assert set(errors) == {"box", "nfor"} and "not run" not in out, out
+    assert (tmp_path / "checker_wall_nfor.exr").exists()
+    assert main(["demo", "--scene", "soft_shadow", "--size", "16x16", "--spp", "4", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"^box\s+relative MSE", out, re.M) and not re.search(r"^nfor\s", out, re.M)
+    assert "not run: nfor" in out
 
 
 def _renderer(features=True, w=20, h=16):

@@ -89,7 +89,7 @@ def test_restoration_functions_are_written_out_with_the_methods_options():
 
     tree = ast.parse(inspect.getsource(restoration))
     defs = {n.name: n for n in tree.body if isinstance(n, ast.FunctionDef)}
-    assert restoration.__all__ == ["box", "gem", "awr", "splat", "auto"] and not hasattr(restoration, "ci")
+    assert restoration.__all__ == ["box", "gem", "awr", "splat", "auto", "nfor"] and not hasattr(restoration, "ci")
     for name in restoration.__all__:
         fn, options = defs[name], method_class(name).options
         assert [a.arg for a in fn.args.posonlyargs] == ["source"] and not fn.args.args

@@ -119,7 +119,8 @@ def _cmd_render_log(args):
 #: benchmarks/bench_first_run.py --one-process on 2 loaded cores; kernels that several methods share are
 #: counted with the first method that runs them).
 _DEMO_COMPILE_SECONDS = {"renderers/scenes": 6, "core": 3, "filters": 3, "methods/box.py": 0.5, "methods/gem": 1,
-                         "methods/awr": 0.5, "methods/splat": 6, "methods/ci": 0.5, "methods/auto": 8}
+                         "methods/awr": 0.5, "methods/splat": 6, "methods/ci": 0.5, "methods/auto": 8,
+                         "methods/nfor": 25}
 #: A warm-up of every method on a tiny log takes well under a second once the kernels are cached (0.2 s
 #: measured): still running after this many seconds, it is compiling.
 _COMPILING_AFTER = 2.0
@@ -265,8 +266,11 @@ def _cmd_demo(args):
     scene = get_scene(args.scene)
     methods = {name: get_method(name) for name in
                ([m for m in args.methods.split(",") if m] if args.methods else available_methods())}
-    # by default, not the methods that need per-sample features (nfor), which the scenes' logs do not hold
-    skipped = [] if args.methods else [n for n, m in methods.items() if m.requires.features == "required"]
+    # by default, the methods that need per-sample features (nfor) only on the scenes whose logs hold them
+    # (the textured scenes: write_scene_log's features default to the scene's features_default)
+    has_features = bool(scene.features_default and scene.feature_names)
+    skipped = [] if args.methods or has_features else [n for n, m in methods.items()
+                                                       if m.requires.features == "required"]
     methods = {n: m for n, m in methods.items() if n not in skipped}
     _demo_warm_up(scene, methods, args.spp, args.seed)
     t0 = time.perf_counter()
@@ -290,8 +294,8 @@ def _cmd_demo(args):
     write_png_preview(out / f"{scene.name}_reference.png", ref, exposure=args.exposure)
     print("* time: the method's second reconstruction of the log, so without the kernel compilation of a first run")
     if skipped:
-        print(f"not run: {', '.join(skipped)} (need per-sample features; ask for them with --methods on a log "
-              "that has features)")
+        print(f"not run: {', '.join(skipped)} (need per-sample features, which this scene does not render; the "
+              "textured scenes do: `mcrecon scenes`)")
     if {"ci", "splat"} & set(methods) and "box" in methods:
         print("ci and splat are (nearly) box here by design: on uniform samples ci reconstructs the pixel mean (its "
               "part is where to sample: `mcrecon adapt --method ci`), and robust splat is the pixel mean but for "
