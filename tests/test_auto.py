@@ -753,3 +753,26 @@ def test_pixel_statistics_with_features_use_them():
         r_c.append(relative_mse(_quiet(lambda: mcrecon.reconstruct(
             st, method=get_method("auto", candidates="box,gauss", feature_candidates="none"))), ref))
     assert np.mean(r_f) < 0.9 * np.mean(r_c), (r_f, r_c)
+
+
+@pytest.mark.parametrize("size", [(8, 8), (40, 3), (2, 2)])
+def test_feature_guided_auto_and_nfor_run_on_films_narrower_than_their_windows(size):
+    """NFOR's regression window is 19 x 19: an offset wider than the film has no pair (a film 2-8 px
+    wide crashed in its kernel)."""
+    from mcrecon.renderers import scenes
+
+    h, w = size
+    b = scenes.render_uniform(scenes.get_scene("checker_wall"), width=w, height=h, spp=8, seed=0, features=True)
+    ss = SampleSet(b.positions, b.values, width=w, height=h, features=b.features)
+    for m in ("auto", "nfor"):
+        img = _quiet(lambda: mcrecon.reconstruct(ss, method=m))
+        assert img.shape == (h, w, 3) and np.isfinite(img).all()
+
+
+def test_feature_candidates_none_makes_oidn_colour_only_too():
+    pytest.importorskip("pyoidn")
+    ss_f, _ = _textured(0)
+    ss = SampleSet(ss_f.positions, ss_f.values, width=ss_f.width, height=ss_f.height)
+    opts = dict(candidates="box,gauss,nlm,oidn", feature_candidates="none")
+    np.testing.assert_array_equal(_quiet(lambda: mcrecon.reconstruct(ss_f, method=get_method("auto", **opts))),
+                                  _quiet(lambda: mcrecon.reconstruct(ss, method=get_method("auto", **opts))))

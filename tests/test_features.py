@@ -107,9 +107,18 @@ def test_halves_split_features_with_the_colour_and_merge_to_the_whole():
         merged = fa.copy().merge(fb)
         np.testing.assert_allclose(merged.mean, whole.features[name].mean, rtol=1e-12, atol=1e-14)
         np.testing.assert_allclose(merged.m2, whole.features[name].m2, rtol=1e-9, atol=1e-12)
-    # the halves hold the same samples' features as their colour: brute force on half a
-    lab_a = h.a.count.sum()
-    assert 0 < lab_a < len(pos)
+    # the halves hold the same samples' features as their colour: brute force on each half, from the
+    # labels of the reference split (split_labels, stream order), in the one-pass and the parallel path
+    from mcrecon.core.halves import split_labels
+
+    lab = split_labels(pos, W, H, np.zeros(W * H, np.int64))
+    for half, st in ((0, h.a), (1, h.b)):
+        sel = lab == half
+        for name, f in feats.items():
+            mean, var, cnt = _brute(pos[sel], f[sel])
+            np.testing.assert_array_equal(st.features[name].count, cnt)
+            np.testing.assert_allclose(st.features[name].mean, mean, rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(st.features[name].sample_variance(), var, rtol=1e-9)
 
 
 def test_nonfinite_features_are_zeroed_counted_and_warned_and_dropped_samples_lose_their_features():
@@ -197,3 +206,69 @@ def test_methods_that_read_no_features_give_identical_images_with_and_without_th
         a = mcrecon.reconstruct(with_f, method=name)
         b = mcrecon.reconstruct(without, method=name)
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_the_parallel_split_keeps_features_with_their_samples():
+    """Past 65536 samples the split runs in parallel parts: the features still follow their samples."""
+    pos, val, feats = _samples(70_000, seed=9)
+    h = split_halves(SampleSet(pos, val, width=W, height=H, features=feats), features="all")
+    from mcrecon.core.halves import split_labels
+
+    lab = split_labels(pos, W, H, np.zeros(W * H, np.int64))
+    for half, st in ((0, h.a), (1, h.b)):
+        mean, _, cnt = _brute(pos[lab == half], feats["albedo"][lab == half])
+        np.testing.assert_array_equal(st.features["albedo"].count, cnt)
+        np.testing.assert_allclose(st.features["albedo"].mean, mean, rtol=1e-12, atol=1e-12)
+
+
+def test_samples_with_a_non_finite_entry_in_any_feature_are_counted_once():
+    pos, val, feats = _samples(300)
+    feats["depth"] = feats["depth"].copy()
+    feats["depth"][:3] = np.inf
+    feats["normal"] = feats["normal"].copy()
+    feats["normal"][3:6] = np.nan
+    feats["normal"][0] = np.nan  # a sample bad in two features counts once
+    with pytest.warns(McreconWarning):
+        ss = SampleSet(pos, val, width=W, height=H, features=feats)
+    assert ss.n_feature_zeroed == 6
+
+
+@pytest.mark.parametrize("bad, match", [
+    ({"a": 1.0}, r"features/a: shape \(\)"),
+    (["albedo"], r"features: got list, expected a mapping"),
+    ({"e": np.zeros((300, 0))}, r"features/e: shape \(300, 0\): no component"),
+])
+def test_from_samples_refuses_malformed_features_with_one_clear_error(bad, match):
+    pos, val, _ = _samples(300)
+    with pytest.raises(InputError, match=match):
+        PixelStats.from_samples(pos, val, width=W, height=H, features=bad)
+
+
+def test_a_log_with_a_mask_and_a_matrix_feature_opens_and_methods_use_what_they_can(tmp_path):
+    """bool features are 0/1; a per-sample (2, 2) matrix cannot be accumulated per pixel: methods whose
+    features are optional leave it out instead of refusing the log."""
+    pos, val, feats = _samples(3000)
+    feats["mask"] = np.arange(3000) % 2 == 0
+    feats["mat"] = np.ones((3000, 2, 2))
+    path = tmp_path / "odd.h5"
+    mcrecon.write_log(path, pos, val, width=W, height=H, features=feats)
+    log = mcrecon.read_log(path)
+    st = PixelStats.from_log(log, features=["mask"])
+    mean, _, _ = _brute(pos, feats["mask"].astype(np.float64))
+    np.testing.assert_allclose(st.features["mask"].mean, mean, rtol=1e-6, atol=1e-7)
+    for m in ("box", "auto", "nfor"):
+        img = mcrecon.reconstruct(log, method=m)
+        assert np.isfinite(img).all()
+
+
+def test_half_buffer_pairs_with_the_same_features_in_another_order_are_accepted():
+    pos, val, feats = _samples(4000)
+    h = split_halves(SampleSet(pos, val, width=W, height=H, features=feats), features="all")
+    rev = {name: feats[name] for name in reversed(list(feats))}
+    h2 = split_halves(SampleSet(pos, val, width=W, height=H, features=rev), features="all")
+    assert h.b.feature_names != h2.b.feature_names
+    a = mcrecon.reconstruct((h.a, h.b), method="auto")
+    b = mcrecon.reconstruct((h.a, h2.b), method="auto")
+    np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
+    with pytest.raises(InputError, match="halves differ in features"):
+        mcrecon.reconstruct((h.a, h.b.without_features()), method="auto")

@@ -17,7 +17,7 @@ from ..io.logformat import cast_positions
 from ..io.writer import append_log, set_run_settings, update_round_record, write_log
 from ..io.reader import read_log
 from ..core.requests import SampleBatch, _validate_reply
-from ..core.features import check_features, layout_of, take_rows
+from ..core.features import check_features, layout_of, take_rows, usable_layout
 from ..core.samples import (FLOAT32_MAX, apply_nonfinite, check_memory, float32_loses_spread)
 
 
@@ -98,7 +98,7 @@ def _take_round(method, run, stats, batch, round_index, nonfinite, source, n_non
     """
     if method.requires.features != "none" and batch.features and not stats.features and stats.n_samples == 0:
         # the renderer's first round says which features it sends; every later round sends the same
-        stats.keep_features({name: 1 if np.ndim(a) == 1 else int(np.shape(a)[1]) for name, a in batch.features.items()})
+        stats.keep_features(usable_layout(batch.features))
     feats, n_fz = (check_features(batch.features, len(batch.positions), where=source, layout=layout_of(stats.features))
                    if stats.features else ({}, 0))
     if n_nonfinite is None:

@@ -21,14 +21,15 @@ from its features too (:func:`take_rows`).
 from __future__ import annotations
 
 import warnings
-from typing import Mapping, Sequence
+from typing import Mapping
 
 import numpy as np
 
 from .._lazy import public_dir as _public_dir
 from ..errors import InputError, McreconWarning
 
-__all__ = ["CANONICAL_FEATURES", "feature_components", "check_features", "feature_layout", "take_rows"]
+__all__ = ["CANONICAL_FEATURES", "feature_components", "check_features", "feature_layout", "take_rows",
+           "usable_layout", "usable_names"]
 
 #: The documented feature names and their components.  Any other name is
 #: kept and usable; its components are named "0", "1", ...
@@ -77,8 +78,8 @@ def check_features(features, n: int, *, where: str = "samples", error=InputError
                    layout: Mapping[str, int] | None = None) -> tuple[dict[str, np.ndarray], int]:
     """Validate per-sample features for ``n`` samples: ``({name: (n, k) array}, n_zeroed)``.
 
-    Each array comes back 2-D, C-contiguous, in a floating dtype (float16
-    widened to float32, integers to float64).  Non-finite entries are set
+    Each array comes back 2-D, C-contiguous, in a floating dtype (bool and
+    float16 as float32, integers as float64).  Non-finite entries are set
     to 0 (in a copy) and counted in ``n_zeroed`` (samples with any such
     entry).  ``layout`` (name -> components), when given, restricts the
     result to those features, each of which must be present with that many
@@ -90,7 +91,7 @@ def check_features(features, n: int, *, where: str = "samples", error=InputError
         raise error(where, "features", f"got {type(given).__name__}, expected a mapping name -> (N, k) array")
     names = list(given) if layout is None else list(layout)
     out: dict[str, np.ndarray] = {}
-    n_zeroed = 0
+    bad_rows = None  # samples with a non-finite entry in any feature
     for name in names:
         if name not in given:
             raise error(where, f"features/{name}", f"missing: these statistics keep feature {name!r} "
@@ -103,19 +104,23 @@ def check_features(features, n: int, *, where: str = "samples", error=InputError
                         "for one row per sample")
         if layout is not None and arr.shape[1] != layout[name]:
             raise error(where, f"features/{name}", f"{arr.shape[1]} component(s), expected {layout[name]}")
-        if arr.dtype.kind not in "fiu" or arr.dtype.kind == "b":
-            raise error(where, f"features/{name}", f"dtype {arr.dtype}, expected a real numeric dtype")
-        if arr.dtype.kind in "iu" or arr.dtype.itemsize > 8:
+        if arr.dtype.kind not in "fiub":
+            raise error(where, f"features/{name}", f"dtype {arr.dtype}, expected a numeric dtype "
+                        "(integer, float or bool)")
+        if arr.shape[1] == 0:
+            raise error(where, f"features/{name}", f"shape {arr.shape}: no component; give at least one")
+        if arr.dtype.kind == "b" or (arr.dtype.kind == "f" and arr.dtype.itemsize < 4):
+            arr = arr.astype(np.float32)  # a mask as 0/1; half floats widened
+        elif arr.dtype.kind in "iu" or arr.dtype.itemsize > 8:
             arr = arr.astype(np.float64)
-        elif arr.dtype.itemsize < 4:
-            arr = arr.astype(np.float32)
         arr = np.ascontiguousarray(arr)
         finite = np.isfinite(arr)
         if not finite.all():
-            bad_rows = ~finite.all(axis=1)
-            n_zeroed = max(n_zeroed, int(bad_rows.sum()))
+            bad = ~finite.all(axis=1)
+            bad_rows = bad if bad_rows is None else bad_rows | bad
             arr = np.where(finite, arr, arr.dtype.type(0))
         out[str(name)] = arr
+    n_zeroed = 0 if bad_rows is None else int(bad_rows.sum())
     return out, n_zeroed
 
 
@@ -129,6 +134,29 @@ def warn_feature_zeroed(source: str, n_zeroed: int, *, stacklevel: int = 2) -> N
 def take_rows(features: Mapping[str, np.ndarray], rows) -> dict[str, np.ndarray]:
     """The features of the samples ``rows`` selects (a boolean mask or indices)."""
     return {name: arr[rows] for name, arr in features.items()}
+
+
+def usable_layout(features: Mapping) -> dict[str, int]:
+    """``{name: components}`` of the per-sample features a method can accumulate: (N,) or (N, k) arrays
+    of a numeric dtype.  Others (an (N, 2, 2) matrix, strings) are left out, not refused: a method
+    whose features are optional ignores what it cannot use (a method that requires features is refused
+    when none is left)."""
+    out = {}
+    for name, arr in (features or {}).items():
+        a = np.asarray(arr) if not hasattr(arr, "shape") else arr
+        if len(a.shape) in (1, 2) and np.dtype(a.dtype).kind in "fiub" and (len(a.shape) == 1 or a.shape[1] > 0):
+            out[str(name)] = 1 if len(a.shape) == 1 else int(a.shape[1])
+    return out
+
+
+def usable_names(source) -> tuple[str, ...]:
+    """The features of a sample source (log or SampleSet) :func:`usable_layout` keeps, by their per-sample
+    shapes (``feature_shapes``) and dtypes (``feature_dtypes`` where the source has them)."""
+    shapes = getattr(source, "feature_shapes", {}) or {}
+    dtypes = getattr(source, "feature_dtypes", {}) or {}
+    return tuple(n for n in getattr(source, "feature_names", ())
+                 if len(tuple(shapes.get(n, ()))) <= 1 and np.dtype(dtypes.get(n, np.float64)).kind in "fiub"
+                 and tuple(shapes.get(n, ())) != (0,))
 
 
 def layout_of(stats_features: Mapping) -> dict[str, int]:

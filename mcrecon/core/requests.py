@@ -221,12 +221,22 @@ def _validate_reply(request: SampleRequest, batch, *, n_channels: int, renderer:
     elif not (keep_float32 and pos.dtype == np.float32):
         pos = pos.astype(np.float64, copy=False)
     feats = {}
-    for name, arr in dict(batch.features or {}).items():
-        arr = np.asarray(arr)
-        if arr.shape[:1] != (n,):
-            raise RendererError(renderer, f"features/{name}", f"shape {arr.shape}, expected ({n}, ...)")
-        if arr.dtype.kind not in "fiub":
-            raise RendererError(renderer, f"features/{name}", f"dtype {arr.dtype}, expected a numeric dtype "
-                                "(integer, float or bool)")
-        feats[str(name)] = arr
+    if batch.features:
+        # the one validation path of features (mcrecon.core.features): (N,) or (N, k), a real numeric
+        # dtype; NaN/Inf entries set to 0 and counted (a feature guides, it is not radiance)
+        from .features import check_features, warn_feature_zeroed
+
+        if not hasattr(batch.features, "items"):
+            raise RendererError(renderer, "features", f"got {type(batch.features).__name__}, expected a mapping "
+                                "name -> (N,) or (N, k) array")
+        checked, n_fz = check_features(batch.features, n, where=renderer, error=RendererError)
+        # as sent (shape (N,) or (N, k), dtype), unless a non-finite entry had to be set to 0
+        feats = {}
+        for name, arr in batch.features.items():
+            given = np.asarray(arr)
+            fixed = checked[str(name)]
+            feats[str(name)] = given if not n_fz or np.isfinite(given).all() else \
+                (fixed[:, 0] if given.ndim == 1 else fixed)
+        if n_fz:
+            warn_feature_zeroed(renderer, n_fz, stacklevel=3)
     return SampleBatch(pos, val, feats), int(n_nonfinite)

@@ -536,8 +536,12 @@ class PixelStats:
                      channels: Sequence[str] = ("R", "G", "B"), subpixels: int = 0,
                      nonfinite: str = "drop", features=None) -> "PixelStats":
         """Statistics of one batch of samples held in memory (``features``: name -> (N, k) per-sample array)."""
-        layout = {} if features is None else {
-            str(k): (1 if np.ndim(v) == 1 else int(np.shape(v)[1])) for k, v in dict(features).items()}
+        layout = {}
+        if features is not None:
+            from .features import check_features
+            n = int(np.shape(positions)[0]) if np.ndim(positions) else 0
+            checked, _ = check_features(features, n, where="PixelStats.from_samples")  # one clear error first
+            layout = {name: arr.shape[1] for name, arr in checked.items()}
         return cls(width, height, channels, subpixels=subpixels, features=layout).add(
             positions, values, features=features, nonfinite=nonfinite)
 

@@ -110,6 +110,8 @@ def _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, i0, i
             offset_distances(guide, var, dy, dx, i0, i1, f, k2, eps, clamp, pd, vs, hs, ic, dist)
             j0 = max(0, -dx)
             j1 = min(w, w - dx)
+            if j1 <= j0:  # the offset leaves a film narrower than it: no pair (weights stay 0)
+                continue
             floor = min_centre if dy == 0 and dx == 0 else 0.0
             for rr in range(n_rows):
                 qi = i0 + rr + dy

@@ -298,8 +298,9 @@ class SampleLog:
             d = f["features"][name]
             if not isinstance(d, h5py.Dataset) or d.shape[:1] < (n,):
                 raise _err(path, f"dataset /features/{name}", f"shape {getattr(d, 'shape', None)}, expected ({n}, ...)")
-            if d.dtype.kind not in "fiu":
-                raise _err(path, f"dataset /features/{name}", f"dtype {d.dtype}, expected a real numeric dtype")
+            if d.dtype.kind not in "fiub":
+                raise _err(path, f"dataset /features/{name}", f"dtype {d.dtype}, expected a numeric dtype "
+                           "(integer, float or bool)")
             self.feature_shapes[name] = tuple(d.shape[1:])
         self.has_reference = "reference" in f
         if self.has_reference:

@@ -32,7 +32,9 @@ def statistics_for(source, req, *, nonfinite: str = "drop"):
     accumulating every sample to a few ulps; auto at 1024^2: -0.45 s).
     Otherwise the statistics (if declared) and no halves.
     """
-    features = "all" if req.features != "none" else ()
+    # every feature the method can accumulate ((N,) or (N, k) per sample); others are ignored
+    from ..core.features import usable_names
+    features = usable_names(source) if req.features != "none" else ()
     if req.samples and req.half_buffers and req.statistics and not req.subpixels:
         from ..core.halves import split_halves
         split = split_halves(source, nonfinite=nonfinite, features=features)
@@ -123,10 +125,12 @@ def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=
                              f"{req.subpixels} subpixel grid, got subpixels={halves[0].subpixels}")
         for i, h in enumerate(halves):
             check_given_statistics(h, src_where, f"halves[{i}]", need_samples=False)
-        if halves[0].feature_names != halves[1].feature_names:
-            raise InputError(src_where, "halves", f"the halves differ in features: "
-                             f"{','.join(halves[0].feature_names) or 'none'} vs "
-                             f"{','.join(halves[1].feature_names) or 'none'}")
+        from ..core.features import layout_of
+        la, lb = layout_of(halves[0].features), layout_of(halves[1].features)
+        if la != lb:  # the same names and components, in any order
+            fmt = lambda lay: ",".join(f"{n}({k})" for n, k in sorted(lay.items())) or "none"
+            raise InputError(src_where, "halves", f"the halves differ in features: {fmt(la)} vs {fmt(lb)}; "
+                             "give both halves the same features")
         check_features_for(method, halves[0].feature_names, m_where, "the half buffers")
         halves = (fit_features(halves[0], req), fit_features(halves[1], req))
         stats, samples, stored_ref = merge_halves(*halves), None, None

@@ -314,8 +314,8 @@ class CommandRenderer:
     def _read_features(self, reply, reply_path: Path, round_index: int) -> dict[str, np.ndarray]:
         """The reply's per-sample features ``/features/NAME``, validated at the boundary.
 
-        Each is (N,) or (N, k) of a real numeric dtype (integers, floats;
-        not bool or strings); the names and per-sample shapes are those of
+        Each is (N,) or (N, k) of a numeric dtype (integers, floats, bool
+        as 0/1; not strings); the names and per-sample shapes are those of
         the first reply (the first reply decides, as in the log); values
         that are not finite are set to 0 in a copy and warned, as
         :func:`mcrecon.core.features.check_features` does (a depth of inf

@@ -22,6 +22,7 @@ import numpy as np
 
 from ...errors import InputError, McreconWarning
 from ...core.metrics import DEFAULT_EPS
+from ...core.features import usable_layout, usable_names
 from ...core.halves import Halves, split_halves
 from .estimates import (cross_validation_mse, dual_buffer_mse, relative_denominator,
     sure, sure_filter_bank)
@@ -257,7 +258,7 @@ class AutoMethod(Method):
         # candidates alone the pair is merged into the statistics of all the samples)
         # features: read when the source has them and a candidate uses them (the feature-guided ones,
         # and OIDN's albedo and normal); a source without features gives exactly the colour-only run
-        uses = bool(self._feature_names) or "oidn" in self._names
+        uses = bool(self._feature_names)
         # (the feature-guided candidates run on the halves: with the SURE candidates alone, which need
         # none, they are left out)
         return Requirements(samples=any(c in DUAL_BUFFER for c in self._names), half_buffers=True,
@@ -289,8 +290,7 @@ class AutoMethod(Method):
         keep = self.requires.features != "none" and bool(batch.features)
         if run.halves is None:
             # the renderer's first round says which features it sends (every later round sends the same)
-            layout = {n: 1 if np.ndim(f) == 1 else int(np.shape(f)[1]) for n, f in batch.features.items()} \
-                if keep else None
+            layout = usable_layout(batch.features) if keep else None
             run.halves = Halves.empty(run.width, run.height, run.channels, features=layout)
         run.halves.add(batch.positions, batch.values, features=batch.features if run.halves.a.features else None,
                        nonfinite="drop", source=_WHERE)
@@ -409,7 +409,7 @@ class AutoMethod(Method):
                 rgb[..., :min(c, 3)] = img[..., :3]
                 if c == 1:
                     rgb[..., 1] = rgb[..., 2] = rgb[..., 0]
-                aux = self._oidn_aux(h)
+                aux = self._oidn_aux(h) if self._feature_names else ()  # feature_candidates='none': colour only
                 den = np.asarray(pyoidn.denoise(np.ascontiguousarray(rgb), *aux, hdr=True, quality="high"), np.float64)
                 full = img.astype(np.float64).copy()
                 full[..., :min(c, 3)] = den[..., :min(c, 3)]
@@ -534,7 +534,8 @@ class AutoMethod(Method):
                 halves = Halves(ha, hb, (ha.count + hb.count).ravel().astype(np.int64))
             elif inputs.samples is not None:
                 halves = split_halves(inputs.samples, nonfinite=inputs.nonfinite,
-                                      features="all" if self.requires.features != "none" else ())
+                                      features=usable_names(inputs.samples) if self.requires.features != "none"
+                                      else ())
             elif run.halves is not None and int(run.halves.a.count.sum() + run.halves.b.count.sum()) == \
                     int(stats.count.sum()):
                 halves = run.halves

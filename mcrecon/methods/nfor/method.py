@@ -7,6 +7,7 @@ import warnings
 
 import numpy as np
 
+from ...core.features import usable_layout, usable_names
 from ...core.fill import fill_empty_pixels, mean_variance_policy
 from ...core.halves import Halves, split_halves
 from ...core.requests import SampleBatch
@@ -113,7 +114,7 @@ class NFORMethod(Method):
                 raise InputError(_WHERE, "features", "nfor needs per-sample features (albedo, normal, depth) and the "
                                  "renderer's replies have none; render them with the samples "
                                  "(SampleBatch.features), or pick another method")
-            layout = {n: 1 if np.ndim(f) == 1 else int(np.shape(f)[1]) for n, f in (batch.features or {}).items()}
+            layout = usable_layout(batch.features or {})
             run.halves = Halves.empty(run.width, run.height, run.channels, features=layout)
         run.halves.add(batch.positions, batch.values, features=batch.features or None, nonfinite="drop",
                        source=_WHERE)
@@ -125,7 +126,7 @@ class NFORMethod(Method):
         if inputs.halves is not None:
             return inputs.halves[0], inputs.halves[1]
         if inputs.samples is not None:
-            split = split_halves(inputs.samples, nonfinite=inputs.nonfinite, features="all")
+            split = split_halves(inputs.samples, nonfinite=inputs.nonfinite, features=usable_names(inputs.samples))
             return split.a, split.b
         if run.halves is not None:
             return run.halves.a, run.halves.b
