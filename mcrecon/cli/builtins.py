@@ -296,10 +296,9 @@ def _cmd_demo(args):
     if skipped:
         print(f"not run: {', '.join(skipped)} (need per-sample features, which this scene does not render; the "
               "textured scenes do: `mcrecon scenes`)")
-    if {"ci", "splat"} & set(methods) and "box" in methods:
-        print("ci and splat are (nearly) box here by design: on uniform samples ci reconstructs the pixel mean (its "
-              "part is where to sample: `mcrecon adapt --method ci`), and robust splat is the pixel mean but for "
-              "the outlier samples it spreads")
+    if "ci" in methods and "box" in methods:
+        print("ci is box here by design: on uniform samples it reconstructs the pixel mean (its part is where to "
+              "sample: `mcrecon adapt --method ci`)")
     return 0
 
 
