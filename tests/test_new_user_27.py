@@ -164,7 +164,7 @@ def test_demo_says_it_compiles_and_times_without_compiling(tmp_path, monkeypatch
     assert re.fullmatch(r"mcrecon: compiling kernels \(first run only, ~\d+ s\)\n", err)
     # a warm-up on a tiny log first, then each method twice on the demo's log: the second is timed
     assert calls == [("box", 16), ("ci", 16), ("box", 24), ("box", 24), ("ci", 24), ("ci", 24)]
-    assert "time: the method's second reconstruction" in out and "ci and splat are (nearly) box" in out
+    assert "time: the method's second reconstruction" in out and "ci is box here by design" in out
     monkeypatch.setattr(commands_builtins, "_COMPILING_AFTER", 1e6)  # a warm cache: no notice
     code, out, err = run(["demo", "--size", "24x20", "--spp", "2", "--methods", "box", "--out", tmp_path / "d"],
                          capsys)
