@@ -455,18 +455,18 @@ def test_global_prior_takes_the_best_single_candidate_and_leaves_heavy_tailed_or
 
     cands, raw, relm, y, v, count, bounds = _prior_inputs()
     plain = np.zeros(y.shape[:2], np.int64)  # a per-pixel choice that kept the mean everywhere
-    got = _global_prior(cands, raw, raw, relm, plain, y, v, count, bounds, 2.0, 3.0, 4.0)
+    got = _global_prior(cands, raw, relm, plain, y, v, count, bounds, 2.0, 3.0, 4.0)
     assert (got == 2).all()  # the candidate of least summed estimate, everywhere
     # a pixel with rare huge samples around (3x3 maximum > 30x its mean) keeps its per-pixel choice
     hi = bounds[1].copy()
     hi[3, 4] = 100.0
-    got = _global_prior(cands, raw, raw, relm, plain, y, v, count, (bounds[0], hi), 2.0, 3.0, 4.0)
+    got = _global_prior(cands, raw, relm, plain, y, v, count, (bounds[0], hi), 2.0, 3.0, 4.0)
     assert got[3, 4] == 0 and (np.delete(got.ravel(), 3 * 14 + 4) == 2).all()
     # so does a pixel where the global candidate departs from the mean by more than 5 standard errors
     img = cands[2].image.copy()
     img[5, 6, 1] = y[5, 6, 1] + 6 * 0.1
     c2 = cands[:2] + [Candidate(cands[2].name, img, cands[2].mse)]
-    got = _global_prior(c2, raw, raw, relm, plain, y, v, count, bounds, 2.0, 3.0, 4.0)
+    got = _global_prior(c2, raw, relm, plain, y, v, count, bounds, 2.0, 3.0, 4.0)
     assert got[5, 6] == 0 and got[5, 7] == 2
 
 
@@ -478,7 +478,7 @@ def test_global_prior_changes_nothing_when_the_pixel_mean_is_the_best_single_can
         c.mse[...] = 1.0  # every filter far worse than the mean's v = 0.01
     raw = [c.mse.mean(axis=2) / 0.26 for c in cands]
     plain = np.random.default_rng(1).integers(0, 3, size=y.shape[:2])
-    got = _global_prior(cands, raw, raw, np.stack(raw), plain, y, v, count, bounds, 2.0, 3.0, 4.0)
+    got = _global_prior(cands, raw, np.stack(raw), plain, y, v, count, bounds, 2.0, 3.0, 4.0)
     np.testing.assert_array_equal(got, plain)
 
 
@@ -634,7 +634,7 @@ def test_a_pixel_far_brighter_than_its_neighbours_does_not_choose_the_global_can
     y = y.copy()
     y[0, 0] = 100.0
     plain = np.zeros(y.shape[:2], np.int64)
-    got = _global_prior(cands, raw, raw, np.stack(raw), plain, y, v, count, (y.copy(), y.copy()), 2.0, 3.0, None)
+    got = _global_prior(cands, raw, np.stack(raw), plain, y, v, count, (y.copy(), y.copy()), 2.0, 3.0, None)
     assert got[0, 0] == 0 and (got.ravel()[1:] == 2).all()
 
 

@@ -67,6 +67,25 @@ def _oidn_available() -> bool:
     return True
 
 
+def _filled(a: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """``a`` with empty pixels (``count == 0``) taken from their nearest sampled neighbour; ``a`` itself
+    when none is empty (the colour's fill already warned for the run)."""
+    if not (count == 0).any():
+        return a
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", McreconWarning)
+        return fill_empty_pixels(a.copy(), count, source=_WHERE)
+
+
+def _feature_planes(st: PixelStats) -> tuple[np.ndarray, np.ndarray]:
+    """Every feature component of ``st`` as (H, W, D) pixel means (empty pixels filled) and the
+    variance of those means (:func:`mean_variance_policy`)."""
+    names = st.feature_names
+    f = np.concatenate([_filled(st.features[n].mean, st.features[n].count) for n in names], axis=2)
+    fv = np.concatenate([mean_variance_policy(st.features[n]) for n in names], axis=2)
+    return f, fv
+
+
 def feature_guided_half(name: str, half: PixelStats) -> np.ndarray:
     """A feature-guided filter of one half buffer from that half alone (its colour and its features).
 
@@ -82,13 +101,9 @@ def feature_guided_half(name: str, half: PixelStats) -> np.ndarray:
     from ...filters.regression import collaborative_regression
     from ...filters.cross_bilateral import cross_bilateral
 
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", McreconWarning)  # the colour's fill warns for the run
-        fill = (lambda a, n: fill_empty_pixels(a.copy(), n, source=_WHERE) if (n == 0).any() else a)
-        y = fill(half.mean, half.count)
-        f = np.concatenate([fill(half.features[n].mean, half.features[n].count) for n in half.feature_names], axis=2)
+    y = _filled(half.mean, half.count)
+    f, fv = _feature_planes(half)
     v = mean_variance_policy(half)
-    fv = np.concatenate([mean_variance_policy(half.features[n]) for n in half.feature_names], axis=2)
     if name == "xbil":
         return cross_bilateral(y, v, f, fv)
     if name == "nfor":
@@ -109,14 +124,8 @@ def _feature_bilateral(stats: PixelStats, y: np.ndarray, v: np.ndarray) -> "Cand
     from ...filters.cross_bilateral import cross_bilateral
     from .estimates import sure
 
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", McreconWarning)
-        fill = (lambda a, n: fill_empty_pixels(a.copy(), n, source=_WHERE) if (n == 0).any() else a)
-        yf = fill(y, stats.count)
-        f = np.concatenate([fill(stats.features[n].mean, stats.features[n].count) for n in stats.feature_names],
-                           axis=2)
-    fv = np.concatenate([mean_variance_policy(stats.features[n]) for n in stats.feature_names], axis=2)
-    img, wsum = cross_bilateral(yf, v, f, fv, k_colour=None, return_weights=True)
+    f, fv = _feature_planes(stats)
+    img, wsum = cross_bilateral(_filled(y, stats.count), v, f, fv, k_colour=None, return_weights=True)
     mse = sure(y, v, img, 1.0 / wsum)
     return Candidate("fbil", img, np.where((stats.count > 0)[..., None], mse, np.nan))
 
@@ -256,13 +265,11 @@ class AutoMethod(Method):
         # the dual-buffer candidates need the samples split in two, or two half buffers a
         # renderer wrote (half_buffers: the pair stands in for the samples; with SURE
         # candidates alone the pair is merged into the statistics of all the samples)
-        # features: read when the source has them and a candidate uses them (the feature-guided ones,
-        # and OIDN's albedo and normal); a source without features gives exactly the colour-only run
-        uses = bool(self._feature_names)
-        # (the feature-guided candidates run on the halves: with the SURE candidates alone, which need
-        # none, they are left out)
+        # features: read when the source has them and a feature candidate is on (nfor/xbil on the
+        # halves, fbil without them; OIDN takes each half's albedo and normal then); a source without
+        # features gives exactly the colour-only run
         return Requirements(samples=any(c in DUAL_BUFFER for c in self._names), half_buffers=True,
-                            features="optional" if uses else "none")
+                            features="optional" if self._feature_names else "none")
 
     def halo(self, width, height):
         # the split into halves hashes the absolute pixel index, and awr/oidn
@@ -278,11 +285,6 @@ class AutoMethod(Method):
             else:
                 out.append(c)
         return out
-
-    def feature_candidate_names(self) -> list[str]:
-        """Names of the feature-guided candidates, after :meth:`candidate_names` in ``choice`` when the
-        samples carry features."""
-        return list(self._feature_names)
 
     # ---------------------------------------------------------------- runs
     def observe(self, run: "AutoRun", batch: SampleBatch, round_index: int) -> None:
@@ -385,10 +387,7 @@ class AutoMethod(Method):
             f = h.features.get(name)
             if f is None or f.mean.shape[2] != 3:
                 break
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", McreconWarning)
-                m = fill_empty_pixels(f.mean.copy(), f.count, source=_WHERE) if (f.count == 0).any() else f.mean
-            aux.append(np.ascontiguousarray(m, dtype=np.float32))
+            aux.append(np.ascontiguousarray(_filled(f.mean, f.count), dtype=np.float32))
         return tuple(aux)
 
     def _black_box(self, name, ha: PixelStats, hb: PixelStats, source, nonfinite):
@@ -466,7 +465,7 @@ class AutoMethod(Method):
         choice = np.argmin(relm, axis=0)
         if self.params["global_prior"] is not None and len(cands) > 1 and smooth > 0:
             bounds = sample_range_bounds(stats)
-            choice = _global_prior(cands, raw, smoothed, relm, choice, y, v, count, bounds, smooth,
+            choice = _global_prior(cands, smoothed, relm, choice, y, v, count, bounds, smooth,
                                    self.params["global_prior"], self.params["safeguard"],
                                    [k for k, c in enumerate(cands) if c.name in FEATURE_CANDIDATES])
         # ties (e.g. noise-free regions, where every ratio is undefined) go to the first candidate

@@ -120,7 +120,7 @@ def _significantly_lower(d: np.ndarray) -> bool:
     return float(t.sum()) < -Z_GLOBAL * se
 
 
-def _global_prior(cands, raw, smoothed, relm, choice, y, v, count, bounds, sigma, z, safeguard, guarded=()):
+def _global_prior(cands, smoothed, relm, choice, y, v, count, bounds, sigma, z, safeguard, guarded=()):
     """The per-pixel choice with the best single candidate over the image as the default.
 
     ``g`` = the candidate of least summed leave-one-out relative estimate
