@@ -67,3 +67,29 @@ def _smooth_masked_many(maps: list, sigma: float) -> list:
         np.divide(num, den, out=o, where=den > 1e-12)
         out.append(np.where(np.isposinf(a), np.inf, o))
     return out
+
+
+def effective_counts(masks: list, sigma: float) -> list:
+    """Per pixel, how many independent pixels :func:`_smooth_masked` of a map defined on each mask averages.
+
+    The smoothed value at p is ``sum_j w_j m_j x_j / sum_j w_j m_j`` (w the
+    Gaussian of ``sigma``, m the mask); for independent x_j of equal
+    variance s^2 its variance is ``s^2 / n_p`` with ``n_p = (sum_j w_j
+    m_j)^2 / sum_j w_j^2 m_j``: ``4 pi sigma^2`` inside a full mask (the
+    continuous limit), about half that along the image's edges and a
+    quarter in its corners, where the normalised kernel sees half or a
+    quarter of its pixels.  0 where the mask is empty within reach.
+    """
+    k = _gauss_kernel(sigma)
+    jobs = []
+    for m in masks:
+        f = np.asarray(m, dtype=np.float64)
+        jobs += [(f, k, None, 0), (f, k * k, None, 0)]
+    res = correlate_jobs(jobs)
+    out = []
+    for i in range(len(masks)):
+        s1, s2 = res[2 * i], res[2 * i + 1]
+        n = np.zeros(s1.shape)
+        np.divide(s1 * s1, s2, out=n, where=s2 > 1e-300)
+        out.append(n)
+    return out
