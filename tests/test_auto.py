@@ -547,16 +547,54 @@ def test_global_prior_takes_the_best_single_candidate_and_leaves_heavy_tailed_or
     got, _ = _global_prior(cands, raw, relm, plain, y, v, count, bounds, 2.0, 3.0, 4.0)
     assert (got == 2).all()  # the candidate of least summed estimate, everywhere
     # a pixel with rare huge samples around (3x3 maximum > 30x its mean) keeps its per-pixel choice
+    # where the global candidate lies farther from its 8 neighbours' median than that choice (a firefly
+    # the global candidate kept), and takes the global candidate where it lies nearer
     hi = bounds[1].copy()
-    hi[3, 4] = 100.0
-    got, _ = _global_prior(cands, raw, relm, plain, y, v, count, (bounds[0], hi), 2.0, 3.0, 4.0)
-    assert got[3, 4] == 0 and (np.delete(got.ravel(), 3 * 14 + 4) == 2).all()
+    hi[3, 4] = hi[8, 9] = 100.0
+    img = cands[2].image.copy()
+    img[3, 4] = 3.0
+    kept = cands[:2] + [Candidate(cands[2].name, img, cands[2].mse)]
+    got, _ = _global_prior(kept, raw, relm, plain, y, v, count, (bounds[0], hi), 2.0, 3.0, 4.0)
+    assert got[3, 4] == 0 and got[8, 9] == 2
+    assert (np.delete(got.ravel(), 3 * 14 + 4) == 2).all()
     # so does a pixel where the global candidate departs from the mean by more than 5 standard errors
     img = cands[2].image.copy()
     img[5, 6, 1] = y[5, 6, 1] + 6 * 0.1
     c2 = cands[:2] + [Candidate(cands[2].name, img, cands[2].mse)]
     got, _ = _global_prior(c2, raw, relm, plain, y, v, count, bounds, 2.0, 3.0, 4.0)
     assert got[5, 6] == 0 and got[5, 7] == 2
+
+
+def test_nearer_the_neighbours_compares_distances_to_the_8_neighbour_median_by_brute_force():
+    from mcrecon.methods.auto.method import Candidate
+    from mcrecon.methods.auto.selection import _nearer_the_neighbours
+
+    rng = np.random.default_rng(8)
+    h, w, c = 7, 9, 3
+    y = rng.random((h, w, c))
+    cands = [Candidate(f"c{k}", rng.random((h, w, c)) * 2, np.zeros((h, w, c))) for k in range(3)]
+    choice = rng.integers(0, 3, size=(h, w))
+    where = rng.random((h, w)) < 0.6
+    where[0, 0] = where[h - 1, 4] = True
+    got = _nearer_the_neighbours(cands, 1, choice, y, where)
+    pad = np.pad(y, ((1, 1), (1, 1), (0, 0)), mode="edge")
+    for i in range(h):
+        for j in range(w):
+            if not where[i, j]:
+                assert not got[i, j]
+                continue
+            nb = [pad[i + 1 + di, j + 1 + dj] for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj]
+            med = np.median(np.stack(nb), axis=0)
+            dg = np.abs(cands[1].image[i, j] - med).sum()
+            dc = np.abs(cands[choice[i, j]].image[i, j] - med).sum()
+            assert got[i, j] == (dg <= dc), (i, j)
+    y[2, 3, 1] = np.nan  # a NaN among a pixel's neighbours: never nearer
+    far = [cands[0], Candidate("g", cands[0].image.copy(), cands[0].mse)]  # equal values: nearer where no NaN
+    got = _nearer_the_neighbours(far, 1, np.zeros((h, w), np.int64), y, np.ones((h, w), bool))
+    near_nan = np.zeros((h, w), bool)
+    near_nan[1:4, 2:5] = True
+    near_nan[2, 3] = False  # the NaN pixel's own neighbours are finite
+    assert not got[near_nan].any() and got[~near_nan].all()
 
 
 def test_global_prior_changes_nothing_when_the_pixel_mean_is_the_best_single_candidate():

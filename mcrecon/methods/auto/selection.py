@@ -120,6 +120,45 @@ def _significantly_lower(d: np.ndarray) -> bool:
     return float(t.sum()) < -Z_GLOBAL * se
 
 
+def _nearer_the_neighbours(cands, g, choice, y, where):
+    """Per pixel of ``where``: candidate ``g``'s value no farther than the chosen candidate's from the median
+    of the 8 neighbours' means (the sum over channels of the distances; edges repeated, empty neighbours'
+    means 0); False elsewhere and where a neighbour's mean or a value is NaN."""
+    out = np.zeros(y.shape[:2], bool)
+    idx = np.nonzero(where)
+    if not idx[0].size:
+        return out
+    i, j = idx
+    chosen = np.empty((i.size, y.shape[2]))
+    pick = choice[idx]
+    for k in np.unique(pick):
+        sel = pick == k
+        chosen[sel] = cands[int(k)].image[i[sel], j[sel]]
+    out[idx] = _nearer_at(np.ascontiguousarray(y, dtype=np.float64), i.astype(np.int64), j.astype(np.int64),
+                          np.ascontiguousarray(cands[g].image[idx], dtype=np.float64), chosen)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearer_at(y, ii, jj, xg, xc):
+    every = np.ones(y.shape[:2], np.bool_)
+    nb = np.empty(8)
+    res = np.zeros(ii.size, np.bool_)
+    for p in range(ii.size):
+        dg = 0.0
+        dc = 0.0
+        for ch in range(y.shape[2]):
+            sorted_neighbours8(y, every, ii[p], jj[p], ch, nb)
+            for m in range(8):
+                if nb[m] != nb[m]:
+                    dg = np.nan
+            med = (nb[3] + nb[4]) / 2.0
+            dg += abs(xg[p, ch] - med)
+            dc += abs(xc[p, ch] - med)
+        res[p] = dg <= dc  # False when any is NaN
+    return res
+
+
 def _global_prior(cands, smoothed, relm, choice, y, v, count, bounds, sigma, z, safeguard, guarded=()):
     """The per-pixel choice with the best single candidate over the image as the default.
 
@@ -140,12 +179,13 @@ def _global_prior(cands, smoothed, relm, choice, y, v, count, bounds, sigma, z, 
     pixel is far brighter than its neighbours (:data:`HEAVY_PRIOR`; there
     every estimate is least reliable, and a relative one divided by the
     neighbours' mu^2 can be 10^4 times the typical) and where
-    all samples agree (v = 0: the safeguard pins them whatever is chosen);
-    the last two do not vote either.  (Giving the heavy-tailed pixels ``g``
-    instead helped the built-in checker_spot, 0.19 -> 0.09 of the mean's
-    error, and broke a Mitsuba scene with caustics through glass, 0.10 ->
-    0.54: nfor, ``g`` there, smooths the caustics its features do not
-    see.)  When ``g`` is the pixel mean (candidate 0 named ``box``) the
+    all samples agree (v = 0: the safeguard pins them whatever is chosen),
+    unless ``g`` lies no farther than the plain choice from the median of
+    the 8 neighbours' means (:func:`_nearer_the_neighbours`); none of these
+    vote.  (Giving all of them ``g`` helped the built-in checker_spot,
+    0.19 -> 0.13 of the mean's error, and broke a Mitsuba scene with
+    caustics through glass, 0.10 -> 0.54: one firefly that nfor, ``g``
+    there, kept and the plain choice had removed.)  When ``g`` is the pixel mean (candidate 0 named ``box``) the
     plain choice stands everywhere: the
     region guard already makes the mean the default of every region
     without evidence against it (measured: a global box default cost the
@@ -215,7 +255,10 @@ def _global_prior(cands, smoothed, relm, choice, y, v, count, bounds, sigma, z, 
                                                    mode="nearest")))
     with np.errstate(invalid="ignore"):
         biased = np.any(np.abs(cands[g].image - y) > Z_BIAS_PRIOR * sd_test, axis=2) & (count > 0)
-    default = np.isfinite(relm[g]) & ~biased & ~apart
+    # where the estimates are least reliable (rare huge samples around) g still stands if it lies no
+    # farther than the plain choice from the median of the 8 neighbours' means: a robust reference
+    # that a firefly kept by g (NFOR's own-patch weights keep one) lies far from
+    default = np.isfinite(relm[g]) & ~biased & (~apart | _nearer_the_neighbours(cands, g, choice, y, apart))
     # g's own bias was the test above; its floor at Z_BIAS (4.6 % of pure-noise pixels) would hand
     # the pixel to any alternative that passed the z test by chance
     relm = relm.copy()
