@@ -242,7 +242,10 @@ def _global_prior(cands, smoothed, relm, choice, y, v, count, bounds, sigma, z, 
     # image's edges, a quarter in its corners (with 4 pi sigma^2 everywhere, 9 of the 16 regions of
     # flat exponential noise, 64^2 at 8 spp, 4 seeds, where a worse candidate passed the test lay
     # on the border; the flat field's error 0.00079 -> 0.00070 of the mean's, 128^2 at 32 spp)
-    n_eff = dict(zip(others, effective_counts([np.isfinite(maps[2 * i]) for i in range(len(others))], sigma)))
+    masks = [np.isfinite(maps[2 * i]) for i in range(len(others))]
+    first = [next(a for a in range(i + 1) if np.array_equal(masks[a], masks[i])) for i in range(len(masks))]
+    counts = dict(zip(sorted(set(first)), effective_counts([masks[a] for a in sorted(set(first))], sigma)))
+    n_eff = {k: counts[first[i]] for i, k in enumerate(others)}  # (the masks are mostly one: filtered once)
     for i, k in enumerate(others):
         m, q = sm[2 * i], sm[2 * i + 1]
         with np.errstate(invalid="ignore", divide="ignore"):
