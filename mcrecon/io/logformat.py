@@ -8,6 +8,7 @@ import errno
 import json
 import os
 import time
+import zlib
 from pathlib import Path
 
 import h5py
@@ -50,6 +51,9 @@ ROUND_RECORD_CHUNK_ROWS = 1 << 6
 _HAS_RECORD = 1
 #: Group holding a dataset being converted to a resizable one (see _ensure_resizable).
 _CONVERT = "_convert"
+#: Group holding, per checksummed dataset, the digest of the committed rows of its partly filled
+#: last chunk, written and flushed before an append rewrites that chunk (see _tail_rows).
+_TAIL = "_tail"
 _VALID_FLOATS = (np.float32, np.float64)
 #: Largest film a log may describe (width * height): refused before anything is allocated.
 MAX_PIXELS = 1 << 31
@@ -349,6 +353,113 @@ def _committed_rows(ends: np.ndarray, n: int) -> int:
     while k > 0 and (ends[k - 1] > n or (k > 1 and ends[k - 1] < ends[k - 2])):
         k -= 1
     return k
+
+
+def _tail_digest(raw: bytes) -> np.ndarray:
+    """The digest /_tail keeps of a chunk's committed bytes: CRC-32 and Adler-32, as two int64.
+
+    Two independent 32-bit checks (64 bits in all, stronger than the
+    chunk's own Fletcher-32), at about 0.5 ms per MiB: a 65 536-row chunk
+    is digested in a fraction of the time HDF5 takes to rewrite it.
+    """
+    return np.array([zlib.crc32(raw), zlib.adler32(raw)], np.int64)
+
+
+def _tail_info(f, name: str, d):
+    """``(a, b, same, digest, old)`` noted in /_tail for ``d`` (``/name``) if they describe it now, else None.
+
+    Rows [a, b) of ``d`` are the committed rows of its partly filled last
+    chunk when an append (or a record's update) began to rewrite it: rows
+    [a, same) are rewritten with the same bytes, whose digest is noted;
+    rows [same, b) are replaced (a record's update), their old bytes are
+    noted in ``old``.  The notes (attribute ``name`` of /_tail: int64
+    start, stop, same_stop, n_committed, digest; ``name:old``: uint8)
+    describe ``d`` now while the file's ``n_committed`` is the one they
+    were made in, and only for chunks spanning every column.
+    """
+    t = f.get(_TAIL)
+    if not isinstance(t, h5py.Group) or d.chunks is None or tuple(d.chunks[1:]) != tuple(d.shape[1:]):
+        return None
+    try:
+        at = t.attrs
+        note = np.asarray(at[name])
+        if note.shape != (6,) or note.dtype.kind not in "iu":
+            return None
+        a, b, same, nc = (int(x) for x in note[:4])
+        old = np.asarray(at[f"{name}:old"], np.uint8).tobytes() if same < b else b""
+        cur = _int_attr(f.attrs["n_committed"])
+    except (KeyError, TypeError, ValueError, OSError):
+        return None
+    c = d.chunks[0]
+    if nc != cur or a < 0 or a % c or not 0 < b - a < c or not a <= same <= b or b > d.shape[0]:
+        return None
+    return a, b, same, note[4:].astype("<i8"), old
+
+
+def _raw_chunk(d, a: int) -> bytes | None:
+    """The stored bytes of the chunk of ``d`` at row ``a`` (unchecked), for chunks stored with Fletcher-32
+    alone (what this module writes: the bytes are the rows, then the checksum); else None."""
+    try:
+        dcpl = d.id.get_create_plist()
+        if [dcpl.get_filter(i)[0] for i in range(dcpl.get_nfilters())] != [h5py.h5z.FILTER_FLETCHER32]:
+            return None
+        mask, raw = d.id.read_direct_chunk((a,) + (0,) * (d.ndim - 1))
+    except (AttributeError, *_H5_ERRORS):
+        return None
+    full = d.dtype.itemsize * int(np.prod(d.chunks))
+    return bytes(raw[:full]) if mask == 0 and len(raw) == full + 4 else None
+
+
+def _tail_rows(f, name: str, d, s: int, e: int, *, short: bool = False):
+    """Rows [s, e) of ``d`` (``/name``) after a read failed: those of a torn last chunk from its stored bytes.
+
+    HDF5 writes into a partly filled chunk by rewriting it whole (its
+    committed rows with the same bytes) and then its Fletcher-32 checksum;
+    a kill in the middle leaves the committed rows' bytes intact and the
+    checksum wrong.  So when /_tail's notes describe ``d`` now (see
+    :func:`_tail_info`) and the chunk's stored bytes of rows [a, same) have
+    the digest kept there, they are the committed rows; anything else
+    (damage) gets None, so it is reported.  Rows past ``b`` are not
+    committed: with ``short`` the rows are cut there (a caller that reads a
+    dataset whole and keeps its committed rows), else such a request gets
+    None.
+    """
+    info = _tail_info(f, name, d)
+    if info is None:
+        return None
+    a, b, same, digest, old = info
+    if e > b:
+        if not short:
+            return None
+        e = b
+    if e <= a or s >= e:
+        return None
+    row_bytes = d.dtype.itemsize * int(np.prod(d.shape[1:]))
+    raw = _raw_chunk(d, a)
+    if raw is None or len(old) != (b - same) * row_bytes:
+        return None
+    kept = raw[:(same - a) * row_bytes]
+    if not np.array_equal(_tail_digest(kept), digest):
+        return None
+    rows = np.frombuffer(kept + old, dtype=d.dtype).reshape((b - a,) + d.shape[1:])
+    try:
+        head = d[s:a] if s < a else None
+    except _H5_ERRORS:
+        return None
+    tail = rows[max(s, a) - a:e - a].copy()
+    return tail if head is None else np.concatenate([head, tail])
+
+
+def _read_slice(f, name: str, d, s: int, e: int, *, short: bool = False):
+    """``d[s:e]`` (``d`` is ``/name``), reading a torn last chunk's committed rows from /_tail; else raises."""
+    try:
+        return d[s:e]
+    except _H5_ERRORS:
+        rows = _tail_rows(f, name, d, s, e, short=short)
+        if rows is None:
+            raise
+        return rows
+
 
 _SIGNATURES = ((b"\x89HDF\r\n\x1a\n", "hdf5"), (b"v/1\x01", "an OpenEXR image"),
                (b"\x89PNG\r\n\x1a\n", "a PNG image"), (b"\xff\xd8\xff", "a JPEG image"),

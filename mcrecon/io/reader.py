@@ -36,15 +36,20 @@ from ..core.samples import check_reference, round_slices
 from ..core.samples import DEFAULT_READ_ROWS
 from .lock import _err, live_writer
 from .logformat import (LogChunk, _H5_ERRORS, _HAS_RECORD, _LIVE_RETRIES, _LIVE_RETRY_SECONDS, _committed_rows,
-                        _detail, _json_attr, _open, _read_header, _record_columns, _strings)
+                        _detail, _json_attr, _open, _read_header, _read_slice, _record_columns, _strings,
+                        _tail_info, _tail_rows)
 
 __all__ = ['SampleLog', 'read_log']
 
 def _bad_rows(d, s: int, e: int) -> tuple[int, int]:
-    """The first chunk-aligned row range of [s, e) of ``d`` that fails to read (else (s, e))."""
+    """The first chunk-aligned row range of [s, e) of ``d`` that fails to read (else (s, e)), cut to [s, e).
+
+    Cut: rows past ``e`` (past the committed ones, those an interrupted
+    append left) are not named.
+    """
     c = d.chunks[0] if d.chunks else max(e - s, 1)
     for a in range(s - s % c, e, c):
-        b = min(a + c, d.shape[0])
+        b = min(a + c, d.shape[0], e)
         try:
             d[a:b]
         except _H5_ERRORS:
@@ -95,6 +100,14 @@ class _Reader:
             except _H5_ERRORS as exc:
                 if isinstance(exc, InputError):
                     raise
+                # A kill during an append's rewrite of the last, partly filled chunk: its
+                # committed rows are intact, /_tail tells (genuine damage still fails).
+                rows = None if d is None else _tail_rows(self.f, name, d, s, e)
+                if rows is not None:
+                    if out is None:
+                        return rows
+                    out[:e - s] = rows
+                    return out[:e - s]
                 if attempt == _LIVE_RETRIES or live_writer(self.path) is None:
                     raise _read_error(self.path, name, d, s, e, exc) from None
                 self.f.close()
@@ -111,11 +124,16 @@ class _Reader:
         self.close()
 
 
-def _read_ds(path, d, name: str, s: int = 0, e: int | None = None):
-    """Rows [s, e) of dataset ``d`` (``/name``); a failed read is a one-line InputError."""
+def _read_ds(path, d, name: str, s: int = 0, e: int | None = None, *, short: bool = False):
+    """Rows [s, e) of dataset ``d`` (``/name``); a failed read is a one-line InputError.
+
+    A torn last chunk (a kill during an append) reads its committed rows
+    from /_tail; with ``short`` (a per-round dataset read whole, of which
+    the caller keeps the committed rows) the rows then end with them.
+    """
     e = d.shape[0] if e is None else e
     try:
-        return d[s:e]
+        return _read_slice(d.file, name, d, s, e, short=short)
     except _H5_ERRORS as exc:
         raise _read_error(path, name, d, s, e, exc) from None
 
@@ -135,7 +153,7 @@ def _read_round_records(path, run, n_rounds: int) -> list[dict]:
     # format_minor 2: compound rows + JSON of the keys outside the columns
     d = run["round_records"]
     _, cols = _record_columns(path, d)
-    rows = _read_ds(path, d, "run/round_records", 0, min(n_rounds, d.shape[0]))
+    rows = _read_ds(path, d, "run/round_records", 0, min(n_rounds, d.shape[0]), short=True)
     present = rows["present"].astype(np.int64).tolist()
     values = [rows[c].tolist() for c in cols]  # Python ints and floats, exactly as stored
     extra = run.get("round_records_extra")
@@ -199,13 +217,44 @@ def _read_rows(path, d, name: str, idx: np.ndarray) -> np.ndarray:
     """Rows ``idx`` (sorted, distinct) of the 1-D dataset ``d``, as int64, in one point selection."""
     if idx.size == 0:
         return np.zeros(0, np.int64)
-    out = np.empty(idx.size, np.int64)
     try:
+        return _point_rows(d, idx)
+    except _H5_ERRORS as exc:
+        out = _torn_point_rows(d, name, np.asarray(idx, np.int64))  # a torn last chunk: see _read_ds
+        if out is None:
+            raise _read_error(path, name, d, int(idx[0]), int(idx[-1]) + 1, exc) from None
+        return out
+
+
+def _point_rows(d, idx) -> np.ndarray:
+    out = np.empty(idx.size, np.int64)
+    if idx.size:
         fspace = d.id.get_space()
         fspace.select_elements(np.asarray(idx, np.uint64).reshape(-1, 1))
         d.id.read(h5py.h5s.create_simple((idx.size,)), fspace, out, mtype=h5py.h5t.NATIVE_INT64)
-    except _H5_ERRORS as exc:
-        raise _read_error(path, name, d, int(idx[0]), int(idx[-1]) + 1, exc) from None
+    return out
+
+
+def _torn_point_rows(d, name: str, idx: np.ndarray):
+    """Rows ``idx`` of ``d`` with those in a torn last chunk from /_tail (see _tail_rows), or None."""
+    f = d.file
+    info = _tail_info(f, name, d)
+    if info is None:
+        return None
+    a, b = info[:2]
+    inside = (idx >= a) & (idx < b)
+    if not inside.any():
+        return None
+    lo, hi = int(idx[inside][0]), int(idx[inside][-1]) + 1
+    rows = _tail_rows(f, name, d, lo, hi)
+    if rows is None:
+        return None
+    out = np.empty(idx.size, np.int64)
+    out[inside] = np.asarray(rows, np.int64)[idx[inside] - lo]
+    try:
+        out[~inside] = _point_rows(d, idx[~inside])
+    except _H5_ERRORS:
+        return None
     return out
 
 
@@ -275,7 +324,7 @@ class SampleLog:
             d = f["rounds/end"]
             if not isinstance(d, h5py.Dataset) or d.ndim != 1 or d.dtype.kind not in "iu":
                 raise _err(path, "dataset /rounds/end", f"shape {getattr(d, 'shape', None)}, expected (R,) integers")
-            ends = np.asarray(_read_ds(path, d, "rounds/end"), dtype=np.int64)
+            ends = np.asarray(_read_ds(path, d, "rounds/end", short=True), dtype=np.int64)
             ends = ends[:_committed_rows(ends, n)]
             ends = ends[ends <= n]
             if ends.size and ends[0] < 0:

@@ -19,8 +19,9 @@ from .lock import _err, log_lock
 from .logformat import (APPEND_CHUNK_ROWS, DEFAULT_CHUNK_ROWS, FORMAT_MINOR, FORMAT_NAME, FORMAT_VERSION,
                         MAX_PIXELS, RECORD_CHUNK_ROWS, ROUND_RECORD_CHUNK_ROWS, ROUND_RECORD_DTYPE, _CHECKSUM,
                         _CONVERT, _H5_ERRORS, _HAS_RECORD, _NO_RECORD, _checksum_for, _committed_rows, _detail,
-                        _open, _read_header, _record_columns, _row_type, _strings, cast_positions)
+                        _open, _read_header, _read_slice, _record_columns, _row_type, _strings, cast_positions)
 from .reader import SampleLog, _read_rows
+from ._tail import _save_tail
 
 __all__ = ['write_log', 'append_log', 'update_round_record', 'set_run_settings']
 
@@ -189,12 +190,12 @@ def _committed_rounds(path, f, n: int) -> tuple[int, list[int]]:
     block = 64
     while hi > 0:
         lo = max(0, hi - block)
-        tail = np.asarray(d[lo:hi], np.int64)
+        tail = np.asarray(_read_slice(f, "rounds/end", d, lo, hi, short=True), np.int64)
         if tail[0] <= n:
             keep = lo + _committed_rows(tail, n)
             break
         hi, block = lo, block * 4
-    last = int(d[keep - 1]) if keep else None
+    last = int(_read_slice(f, "rounds/end", d, keep - 1, keep)[0]) if keep else None
     return keep, ([] if last == n else [n])
 
 
@@ -545,8 +546,18 @@ def _append(path, *, pos_in, val_in, round_index, feats, rec, round_record, chec
                                  maxshape=(None,) + arr.shape[1:], chunks=(chunk,) + arr.shape[1:],
                                  **_checksum_for(arr.dtype))
         columns += [(f"features/{name}", arr) for name, arr in feats.items()]
-        for name, data in columns:
-            d = _ensure_resizable(f, name, n, chunk)
+        ds = [(_ensure_resizable(f, name, n, chunk), data) for name, data in columns]
+        # ---- before the first rewrite of a chunk holding committed rows: copy those rows
+        if "n_committed" not in f.attrs:  # a log from another writer: every row is committed
+            f.attrs["n_committed"] = np.int64(n)
+        for (name, _), (d, _) in zip(columns, ds):
+            _save_tail(path, f, name, n, n, d=d)
+        if "rounds/end" in f:
+            _save_tail(path, f, "rounds/end", keep, n)
+        if rows is not None:
+            _save_tail(path, f, "run/round_records", min(rows.shape[0], n_rounds), n)
+        f.flush()
+        for d, data in ds:
             if d.shape[0] != n + m:
                 d.resize(n + m, axis=0)
             if m:
@@ -638,6 +649,10 @@ def _update_round_record(path, record, rec) -> None:
             # Row i is round i's record; rows past the committed rounds (an interrupted
             # append) are left for the next append to drop.
             if n_rounds:
+                if "n_committed" in f.attrs:  # copy the rows the rewrite of the last round's row rewrites
+                    _save_tail(path, f, "run/round_records", min(rows.shape[0], n_rounds), h.n,
+                               same=n_rounds - 1)
+                    f.flush()
                 _write_round_record(f, run, rows, n_rounds - 1, record, n_rows=max(rows.shape[0], n_rounds))
                 f.flush()
             return
