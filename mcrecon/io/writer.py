@@ -547,7 +547,7 @@ def _append(path, *, pos_in, val_in, round_index, feats, rec, round_record, chec
                                  **_checksum_for(arr.dtype))
         columns += [(f"features/{name}", arr) for name, arr in feats.items()]
         ds = [(_ensure_resizable(f, name, n, chunk), data) for name, data in columns]
-        # ---- before the first rewrite of a chunk holding committed rows: copy those rows
+        # ---- before the first rewrite of a chunk holding committed rows: note their digest (/_tail)
         if "n_committed" not in f.attrs:  # a log from another writer: every row is committed
             f.attrs["n_committed"] = np.int64(n)
         for (name, _), (d, _) in zip(columns, ds):
