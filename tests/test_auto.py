@@ -554,8 +554,9 @@ def test_global_prior_takes_the_best_single_candidate_and_leaves_heavy_tailed_or
     img = cands[2].image.copy()
     img[3, 4] = 3.0
     kept = cands[:2] + [Candidate(cands[2].name, img, cands[2].mse)]
-    got, _ = _global_prior(kept, raw, relm, plain, y, v, count, (bounds[0], hi), 2.0, 3.0, 4.0)
+    got, held = _global_prior(kept, raw, relm, plain, y, v, count, (bounds[0], hi), 2.0, 3.0, 4.0)
     assert got[3, 4] == 0 and got[8, 9] == 2
+    assert not held[3, 4] and held[8, 9] and held.sum() == got.size - 1  # the pixels holding the default
     assert (np.delete(got.ravel(), 3 * 14 + 4) == 2).all()
     # so does a pixel where the global candidate departs from the mean by more than 5 standard errors
     img = cands[2].image.copy()
@@ -563,6 +564,12 @@ def test_global_prior_takes_the_best_single_candidate_and_leaves_heavy_tailed_or
     c2 = cands[:2] + [Candidate(cands[2].name, img, cands[2].mse)]
     got, _ = _global_prior(c2, raw, relm, plain, y, v, count, bounds, 2.0, 3.0, 4.0)
     assert got[5, 6] == 0 and got[5, 7] == 2
+    # where the per-pixel choice happens to be the default's candidate but the test kept that choice,
+    # the pixel does not count as holding the default (the region guard still reviews it)
+    plain_g = plain.copy()
+    plain_g[5, 6] = 2
+    got, held = _global_prior(c2, raw, relm, plain_g, y, v, count, bounds, 2.0, 3.0, 4.0)
+    assert got[5, 6] == 2 and not held[5, 6] and held[5, 7]
 
 
 def test_nearer_the_neighbours_compares_distances_to_the_8_neighbour_median_by_brute_force():

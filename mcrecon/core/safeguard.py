@@ -117,10 +117,14 @@ def _pooled_rows(v, count, radius, out):
                 for ii in range(max(i - radius, 0), min(i + radius + 1, h)):
                     for jj in range(max(j - radius, 0), min(j + radius + 1, w)):
                         if count[ii, jj] > 0:
-                            buf[m] = count[ii, jj] * v[ii, jj, ch]
+                            x = count[ii, jj] * v[ii, jj, ch]
+                            k = m  # insertion sort into buf[:m] (NaN sorts last, as np.sort puts it)
+                            while k > 0 and (buf[k - 1] > x or (x == x and buf[k - 1] != buf[k - 1])):
+                                buf[k] = buf[k - 1]
+                                k -= 1
+                            buf[k] = x
                             m += 1
-                s = np.sort(buf[:m])
-                med = s[m // 2] if m % 2 == 1 else 0.5 * (s[m // 2 - 1] + s[m // 2])
+                med = buf[m // 2] if m % 2 == 1 else 0.5 * (buf[m // 2 - 1] + buf[m // 2])
                 if med / n > out[i, j, ch]:
                     out[i, j, ch] = med / n
 

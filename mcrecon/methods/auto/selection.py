@@ -171,7 +171,8 @@ def _global_prior(cands, smoothed, relm, choice, y, v, count, bounds, sigma, z, 
     noisy than any per-pixel estimate.  A pixel takes ``g`` unless another
     candidate k's smoothed estimate is lower by more than ``z`` standard
     errors of the smoothed difference ``raw_k - raw_g`` (local spread over
-    ``N = 4 pi sigma^2`` effective pixels); among ``g`` and such candidates
+    the smoothing's effective pixels, :func:`effective_counts`: ``4 pi
+    sigma^2`` inside the image, about half along its edges); among ``g`` and such candidates
     the least smoothed estimate wins (``g``'s own unfloored: its bias is the
     next test's).  Pixels keep the plain per-pixel ``choice`` where ``g``
     departs from the pixel mean by more than :data:`Z_BIAS_PRIOR` standard
@@ -181,7 +182,8 @@ def _global_prior(cands, smoothed, relm, choice, y, v, count, bounds, sigma, z, 
     neighbours' mu^2 can be 10^4 times the typical) and where
     all samples agree (v = 0: the safeguard pins them whatever is chosen),
     unless ``g`` lies no farther than the plain choice from the median of
-    the 8 neighbours' means (:func:`_nearer_the_neighbours`); none of these
+    the 8 neighbours' means (:func:`_nearer_the_neighbours`) and no other
+    candidate passed the local test (then they take ``g``); none of these
     vote.  (Giving all of them ``g`` helped the built-in checker_spot,
     0.19 -> 0.13 of the mean's error, and broke a Mitsuba scene with
     caustics through glass, 0.10 -> 0.54: one firefly that nfor, ``g``
@@ -267,8 +269,11 @@ def _global_prior(cands, smoothed, relm, choice, y, v, count, bounds, sigma, z, 
     relm = relm.copy()
     relm[g] = np.where(np.isfinite(smoothed[g]), smoothed[g], relm[g])
     c2 = np.argmin(np.where(ok, relm, np.inf), axis=0)
+    # the median test compared g: an apart pixel whose best alternative c2 is another candidate keeps
+    # the plain choice
+    default &= ~(apart & (c2 != g))
     out = np.where(default, c2, choice)
-    return out, out == g
+    return out, default & (c2 == g)
 
 
 def _pick_where(choice, k, src, out):
