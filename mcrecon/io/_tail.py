@@ -10,7 +10,7 @@ import h5py
 import numpy as np
 
 from .logformat import _H5_ERRORS, _TAIL, _tail_digest, _tail_info, _tail_rows
-from .reader import _read_ds, _read_error
+from .reader import _read_error
 
 
 def _set_attr(attrs, key: str, v) -> None:

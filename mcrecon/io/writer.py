@@ -649,7 +649,7 @@ def _update_round_record(path, record, rec) -> None:
             # Row i is round i's record; rows past the committed rounds (an interrupted
             # append) are left for the next append to drop.
             if n_rounds:
-                if "n_committed" in f.attrs:  # copy the rows the rewrite of the last round's row rewrites
+                if "n_committed" in f.attrs:  # note the rows the rewrite of the last round's row rewrites
                     _save_tail(path, f, "run/round_records", min(rows.shape[0], n_rounds), h.n,
                                same=n_rounds - 1)
                     f.flush()

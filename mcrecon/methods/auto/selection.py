@@ -260,18 +260,18 @@ def _global_prior(cands, smoothed, relm, choice, y, v, count, bounds, sigma, z, 
                                                    mode="nearest")))
     with np.errstate(invalid="ignore"):
         biased = np.any(np.abs(cands[g].image - y) > Z_BIAS_PRIOR * sd_test, axis=2) & (count > 0)
-    # where the estimates are least reliable (rare huge samples around) g still stands if it lies no
-    # farther than the plain choice from the median of the 8 neighbours' means: a robust reference
-    # that a firefly kept by g (NFOR's own-patch weights keep one) lies far from
-    default = np.isfinite(relm[g]) & ~biased & (~apart | _nearer_the_neighbours(cands, g, choice, y, apart))
     # g's own bias was the test above; its floor at Z_BIAS (4.6 % of pure-noise pixels) would hand
     # the pixel to any alternative that passed the z test by chance
+    fin_g = np.isfinite(relm[g])
     relm = relm.copy()
     relm[g] = np.where(np.isfinite(smoothed[g]), smoothed[g], relm[g])
     c2 = np.argmin(np.where(ok, relm, np.inf), axis=0)
-    # the median test compared g: an apart pixel whose best alternative c2 is another candidate keeps
-    # the plain choice
-    default &= ~(apart & (c2 != g))
+    # where the estimates are least reliable (rare huge samples around) g still stands, if no other
+    # candidate passed the local test there, where it lies no farther than the plain choice from the
+    # median of the 8 neighbours' means: a robust reference that a firefly kept by g (NFOR's
+    # own-patch weights keep one) lies far from
+    at_g = apart & (c2 == g)
+    default = fin_g & ~biased & (~apart | _nearer_the_neighbours(cands, g, choice, y, at_g))
     out = np.where(default, c2, choice)
     return out, default & (c2 == g)
 
