@@ -393,3 +393,56 @@ def test_dropped_samples_lose_their_features_too():
     want = mcrecon.reconstruct(mcrecon.SampleSet(pos[keep], val[keep], width=W, height=W,
                                                  features={k: v[keep] for k, v in feats.items()}), method="splat")
     np.testing.assert_array_equal(got, want)
+
+
+def test_round_in_memory_equals_the_streamed_round_bit_for_bit():
+    """The driver's rounds (``add_round(..., checked=True)``: float32 as a renderer replies, features in
+    their own dtypes, one of them non-finite) give the image, widths and round records of the streamed
+    path on float64 copies, bit for bit, over three rounds whose samples are listed pixel by pixel and
+    shuffled (the gate's per-pixel cache)."""
+    from mcrecon.methods.splat.progressive import ProgressiveSplatter
+
+    rng = np.random.default_rng(5)
+    a = ProgressiveSplatter(W, W, 3)
+    b = ProgressiveSplatter(W, W, 3)
+    for j, spp in enumerate((8, 8, 16)):
+        pos, val, feats = step_samples(spp, 10 + j, lo=0.45, hi=0.6, features=True)
+        feats = {"albedo": feats["albedo"].astype(np.float32),
+                 "depth": (1000.0 + 0.01 * pos[:, :1] + 0.001 * rng.random((len(pos), 1)))}
+        feats["depth"][::97] = np.nan  # a guide: counts as 0, in both paths
+        if j == 1:
+            order = rng.permutation(len(pos))
+            pos, val, feats = pos[order], val[order], {k: f[order] for k, f in feats.items()}
+        a.add_round(pos.astype(np.float32), val.astype(np.float32), features=feats, checked=True)
+        p64 = pos.astype(np.float32).astype(np.float64)
+        v64 = val.astype(np.float32).astype(np.float64)
+        f64 = {k: np.asarray(f, np.float64) for k, f in feats.items()}
+        b.add_round_stream(lambda: iter([(p64, v64, f64)]))
+        np.testing.assert_array_equal(a.image, b.image)
+        np.testing.assert_array_equal(a.last_widths, b.last_widths)
+        assert a.rounds == b.rounds
+    assert np.any(a.last_widths > 1.0)  # samples did spread (a diameter of 1: stayed in the pixel)
+
+
+def test_feature_moments_equal_the_array_expressions():
+    """The compiled feature moments (mean, floored variance, limited slopes, squared standard error)
+    equal the array expressions they replace, bit for bit, with pixels of 0, 1 and many samples."""
+    from mcrecon.methods.splat.consistent import FEATURE_FLOOR, FeatureSums, _limited_slopes, feature_moments
+
+    rng = np.random.default_rng(3)
+    fs = FeatureSums(37, 23)
+    pos = rng.uniform(0, 1, (3000, 2)) * [37, 23]
+    pos[:40] = [30.5, 20.5]  # one pixel of many samples
+    fs.add(pos, {"albedo": rng.uniform(0, 1, (3000, 3)).astype(np.float32),
+                 "depth": 1000 + rng.normal(0, 0.01, (3000, 1)), "normal": np.where(rng.random((3000, 3)) < .5, 1., -.5)},
+           "test")
+    assert {0, 1}.issubset(set(fs.n.ravel().astype(int))) and fs.n.max() > 40
+    n = fs.n[:, :, None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        m0 = np.where(n > 0, fs.s1 / np.maximum(n, 1.0), 0.0)
+        var = np.maximum(fs.s2 / np.maximum(n, 1.0) - m0 * m0, 0.0) * n / np.maximum(n - 1.0, 1.0)
+        mean = m0 + fs.shift.reshape(m0.shape)
+        var = np.where(n >= 2, var + (FEATURE_FLOOR * mean) ** 2 + 1e-300, np.inf)
+        se2 = var / np.maximum(n, 1.0)
+    sx, sy = _limited_slopes(mean)
+    np.testing.assert_array_equal(feature_moments(fs), np.stack([mean, var, sx, sy, se2], axis=-1))

@@ -56,18 +56,23 @@ def gate_k(rate: float, n_channels: int) -> float:
 
 
 def channel_sums(pos, val, width, height):
-    """Per pixel and channel the sums of the values and of their squares, (H, W, C) each."""
-    ix = np.clip(np.floor(pos[:, 0]).astype(np.int64), 0, width - 1)
-    iy = np.clip(np.floor(pos[:, 1]).astype(np.int64), 0, height - 1)
-    idx = iy * width + ix
-    nc = val.shape[1]
-    s1 = np.empty((height * width, nc))
-    s2 = np.empty((height * width, nc))
-    for c in range(nc):
-        v = np.asarray(val[:, c], dtype=np.float64)
-        s1[:, c] = np.bincount(idx, weights=v, minlength=width * height)
-        s2[:, c] = np.bincount(idx, weights=v * v, minlength=width * height)
-    return s1.reshape(height, width, nc), s2.reshape(height, width, nc)
+    """Per pixel and channel the sums of the values and of their squares, (H, W, C) each (in sample order)."""
+    s1 = np.zeros((height, width, val.shape[1]))
+    s2 = np.zeros((height, width, val.shape[1]))
+    _add_channel_sums(pos, val, s1, s2)
+    return s1, s2
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_channel_sums(pos, val, s1, s2):
+    h, w, nc = s1.shape
+    for k in range(pos.shape[0]):
+        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
+        py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+        for c in range(nc):
+            v = np.float64(val[k, c])
+            s1[py, px, c] += v
+            s2[py, px, c] += v * v
 
 
 class FeatureSums:
@@ -99,18 +104,24 @@ class FeatureSums:
                              f"earlier rounds {', '.join(self.names) or '(none)'}: every round must carry the same")
         if not names:
             return
-        f = np.concatenate([np.asarray(feats[k], dtype=np.float64).reshape(len(pos), -1) for k in names], axis=1)
-        if not np.isfinite(f).all():  # a guide, not radiance: as check_features does, non-finite entries are 0
-            f = np.where(np.isfinite(f), f, 0.0)
-        if f.shape[1] != sum(self.sizes):
-            raise InputError(where, "features", f"{f.shape[1]} components, earlier rounds {sum(self.sizes)}")
-        nf = f.shape[1]
+        parts = [np.asarray(feats[k]) for k in names]
+        parts = [np.ascontiguousarray(x.reshape(len(pos), -1) if x.ndim != 2 else x) for x in parts]
+        nf = sum(x.shape[1] for x in parts)
+        if nf != sum(self.sizes):
+            raise InputError(where, "features", f"{nf} components, earlier rounds {sum(self.sizes)}")
         if self.shift is None:
             self.shift = np.zeros((self.height * self.width, nf))
             self.s1 = np.zeros((self.height, self.width, nf))
             self.s2 = np.zeros((self.height, self.width, nf))
-        _add_feature_sums(np.ascontiguousarray(pos, dtype=np.float64), np.ascontiguousarray(f), self.n, self.shift,
-                          self.s1, self.s2)
+        # each feature in its own precision (a renderer's float32 is widened exactly in the kernel),
+        # not stacked: stacking the components was most of the cost
+        pos = np.ascontiguousarray(pos)
+        first = np.full(self.height * self.width, -1, np.int64)
+        _first_samples(pos, self.n, first)
+        col = 0
+        for x in parts:
+            _add_feature_sums(pos, x, col, first, self.shift, self.s1, self.s2)
+            col += x.shape[1]
 
     @property
     def any(self) -> bool:
@@ -118,22 +129,37 @@ class FeatureSums:
 
 
 @numba.njit(cache=True, nogil=True)
-def _add_feature_sums(pos, f, n, shift, s1, s2):
-    """Add samples' features to the per-pixel sums in sample order; a pixel's first sample sets its shift."""
+def _first_samples(pos, n, first):
+    """Count the samples of each pixel in ``n``; ``first[q]``: the index of the sample that sets pixel q's
+    shift (its first sample ever, when it had none before), else left at -1."""
     h, w = n.shape
+    for k in range(pos.shape[0]):
+        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
+        py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+        if n[py, px] == 0:
+            first[py * w + px] = k
+        n[py, px] += 1.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_feature_sums(pos, f, col, first, shift, s1, s2):
+    """Add one feature's components (columns ``col``... of the sums) in sample order; a pixel's first sample
+    sets its shift.  A non-finite component counts as 0 (a guide, not radiance, as check_features does)."""
+    h, w = s1.shape[0], s1.shape[1]
     nf = f.shape[1]
     for k in range(pos.shape[0]):
         px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
         py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
         q = py * w + px
-        if n[py, px] == 0:
-            for c in range(nf):
-                shift[q, c] = f[k, c]
         for c in range(nf):
-            d = f[k, c] - shift[q, c]
-            s1[py, px, c] += d
-            s2[py, px, c] += d * d
-        n[py, px] += 1.0
+            x = np.float64(f[k, c])
+            if not math.isfinite(x):
+                x = 0.0
+            if first[q] == k:
+                shift[q, col + c] = x
+            d = x - shift[q, col + c]
+            s1[py, px, col + c] += d
+            s2[py, px, col + c] += d * d
 
 
 #: Relative floor of a feature's spread in the gate: means that agree to this many digits are equal
@@ -180,15 +206,52 @@ def feature_moments(fsum: FeatureSums | None) -> np.ndarray:
     """
     if fsum is None or not fsum.any:
         return np.zeros((1, 1, 0, 5))
-    n = fsum.n[:, :, None]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        m0 = np.where(n > 0, fsum.s1 / np.maximum(n, 1.0), 0.0)
-        var = np.maximum(fsum.s2 / np.maximum(n, 1.0) - m0 * m0, 0.0) * n / np.maximum(n - 1.0, 1.0)
-        mean = m0 + fsum.shift.reshape(m0.shape)
-        var = np.where(n >= 2, var + (FEATURE_FLOOR * mean) ** 2 + 1e-300, np.inf)
-        se2 = var / np.maximum(n, 1.0)
-    sx, sy = _limited_slopes(mean)
-    return np.ascontiguousarray(np.stack([mean, var, sx, sy, se2], axis=-1))
+    h, w, nf = fsum.s1.shape
+    out = np.empty((h, w, nf, 5))
+    _feature_moments(fsum.n, fsum.s1, fsum.s2, fsum.shift.reshape(h, w, nf), FEATURE_FLOOR, out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _mc_slope(a, b):
+    """The monotonised central difference of backward and forward differences a, b (:func:`_limited_slopes`)."""
+    if not a * b > 0:
+        return 0.0
+    c = 0.5 * (a + b)
+    lim = min(min(abs(c), 2.0 * abs(a)), 2.0 * abs(b))
+    return lim if c > 0 else -lim
+
+
+@numba.njit(cache=True, nogil=True)
+def _feature_moments(n, s1, s2, shift, floor, out):
+    """:func:`feature_moments` in one pass per component: the same operations, in the same order, as the
+    array expressions of :func:`_limited_slopes` and the moments (bit for bit; tested)."""
+    h, w, nf = s1.shape
+    for y in range(h):
+        for x in range(w):
+            nn = n[y, x]
+            for c in range(nf):
+                m0 = s1[y, x, c] / max(nn, 1.0) if nn > 0 else 0.0
+                var = max(s2[y, x, c] / max(nn, 1.0) - m0 * m0, 0.0) * nn / max(nn - 1.0, 1.0)
+                mean = m0 + shift[y, x, c]
+                if nn >= 2:
+                    fm = floor * mean
+                    var = var + fm * fm + 1e-300
+                else:
+                    var = np.inf
+                out[y, x, c, 0] = mean
+                out[y, x, c, 1] = var
+                out[y, x, c, 4] = var / max(nn, 1.0)
+    for y in range(h):
+        for x in range(w):
+            for c in range(nf):
+                m = out[y, x, c, 0]
+                a = m - out[y, x - 1, c, 0] if x > 0 else 0.0
+                b = out[y, x + 1, c, 0] - m if x < w - 1 else 0.0
+                out[y, x, c, 2] = _mc_slope(a, b)
+                a = m - out[y - 1, x, c, 0] if y > 0 else 0.0
+                b = out[y + 1, x, c, 0] - m if y < h - 1 else 0.0
+                out[y, x, c, 3] = _mc_slope(a, b)
 
 
 def pixel_moments(counts, s1, s2):

@@ -128,7 +128,8 @@ def _same_pixel_stats(gs, fs, pj, pi, qj, qi, k2):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _footprint(x, y, r, h, w, mode, guide, guided, wbuf, ibuf, jbuf, gs, fs, pj, pi, k2, gated):
+def _footprint(x, y, r, h, w, mode, guide, guided, wbuf, ibuf, jbuf, gs, fs, pj, pi, k2, gated, gate_seen, gate_pass,
+               gate_key, gate_r):
     """The pixel centres strictly inside the support of radius ``r`` around (x, y) and their weights.
 
     The weight of centre q is ``1 - |q - (x, y)|^2 / r^2``, times ``guide[q]`` when ``guided`` (then
@@ -138,6 +139,9 @@ def _footprint(x, y, r, h, w, mode, guide, guided, wbuf, ibuf, jbuf, gs, fs, pj,
     only if its pixel passes :func:`_same_pixel_stats` against p (colour ``gs``, features ``fs``); the rest of its weight goes to p,
     as one last entry.  Pair-symmetric: p sends q what q would send p.
     Film indices after the boundary mode go to ``ibuf``/``jbuf`` (-1: mode none, off the film).
+    ``gated``: the gate's answer for the offset (j - pj, i - pi) is kept in ``gate_pass`` where
+    ``gate_seen`` holds ``gate_key`` (offsets within ``gate_r``), so the samples of one pixel test each
+    neighbour once (the caller changes ``gate_key`` with the pixel).
     Returns (sum of the weights, number of entries).
     """
     r2 = r * r
@@ -173,7 +177,11 @@ def _footprint(x, y, r, h, w, mode, guide, guided, wbuf, ibuf, jbuf, gs, fs, pj,
                 if gated:
                     s += wt
                     sent = 0.0
-                    if _same_pixel_stats(gs, fs, pj, pi, jg, ig, k2):
+                    t = (j - pj + gate_r) * (2 * gate_r + 1) + (i - pi + gate_r)
+                    if gate_seen[t] != gate_key:
+                        gate_seen[t] = gate_key
+                        gate_pass[t] = _same_pixel_stats(gs, fs, pj, pi, jg, ig, k2)
+                    if gate_pass[t]:
                         re = min(guide[pj, pi], guide[jg, ig])
                         d2 = q * r2
                         if d2 < re * re:
@@ -237,6 +245,8 @@ def _splat_loop(pos, val, scale, radius, mode, out):
     no_guide = np.ones((1, 1))
     no_stats = np.zeros((1, 1, 1, 4))
     no_feats = np.zeros((1, 1, 0, 2))
+    no_seen = np.zeros(1, np.int64)
+    no_pass = np.zeros(1, np.bool_)
     n_fallback = 0
     for k in range(n):
         r = radius[k]
@@ -247,7 +257,7 @@ def _splat_loop(pos, val, scale, radius, mode, out):
         for c in range(nc):
             vv[c] = val[k, c]
         s, m = _footprint(x, y, r, h, w, mode, no_guide, False, wbuf, ibuf, jbuf, no_stats, no_feats, 0, 0,
-                          0.0, False)
+                          0.0, False, no_seen, no_pass, 0, 0)
         if not s > 0.0:
             # No pixel centre inside the support: the whole sample goes to its
             # own pixel (whose centre is the nearest one).
@@ -388,6 +398,8 @@ def _splat_guided_loop(pos, val, scale, radius, guide, mode, out):
     wbuf, ibuf, jbuf = _scratch(radius)
     no_stats = np.zeros((1, 1, 1, 4))
     no_feats = np.zeros((1, 1, 0, 2))
+    no_seen = np.zeros(1, np.int64)
+    no_pass = np.zeros(1, np.bool_)
     n_fallback = 0
     for k in range(n):
         r = radius[k]
@@ -398,7 +410,7 @@ def _splat_guided_loop(pos, val, scale, radius, guide, mode, out):
         px = min(max(int(math.floor(x)), 0), w - 1)
         py = min(max(int(math.floor(y)), 0), h - 1)
         s, m = _footprint(x, y, r, h, w, mode, guide, True, wbuf, ibuf, jbuf, no_stats, no_feats, 0, 0, 0.0,
-                          False)
+                          False, no_seen, no_pass, 0, 0)
         if not s > 0.0:
             n_fallback += 1
             e = scale[k]
@@ -427,7 +439,7 @@ def _deposit_own_pixel(pos, val, scale, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def _splat_gated_loop(pos, val, scale, radius, r_edge, gs, fs, k2, mode, out):
+def _splat_gated_loop(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, fs, k2, mode, out):
     """Like :func:`_splat_loop`, but a sample of pixel p reaches only the pixels q whose statistics ``gs``
     and features ``fs`` (third axis 0: none) do not tell them apart from p's at ``k = sqrt(k2)``
     (:func:`_same_pixel_stats`; off-film
@@ -435,18 +447,29 @@ def _splat_gated_loop(pos, val, scale, radius, r_edge, gs, fs, k2, mode, out):
     ``min(r_edge[p], r_edge[q])``; what the footprint would give elsewhere stays in p.  Normalised
     over the whole footprint, so each sample deposits exactly ``val * scale``, and pair-symmetric:
     a region of equal pixels keeps its values.  ``radius <= 0``: the sample goes to its own pixel.
+    ``scale`` of sample k is ``w_round * inv_counts[p] * (1 - frac[k])`` (the share of the round that
+    stays with the sample, not its outlier excess).  The gate's answer for a neighbour is computed once
+    per run of consecutive samples of one pixel (a renderer's reply lists a pixel's samples together).
     """
     h = out.shape[0]
     w = out.shape[1]
     nc = out.shape[2]
     wbuf, ibuf, jbuf = _scratch(radius)
+    r_max = 0.0
+    for k in range(radius.shape[0]):
+        r_max = max(r_max, radius[k])
+    gate_r = int(math.ceil(r_max)) + 1
+    gate_seen = np.full((2 * gate_r + 1) ** 2, -1, np.int64)
+    gate_pass = np.zeros((2 * gate_r + 1) ** 2, np.bool_)
+    gate_key = -1
+    last = -1
     n_fallback = 0
     for k in range(pos.shape[0]):
-        e = scale[k]
-        if e == 0.0:
-            continue
         px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
         py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+        e = w_round * inv_counts[py, px] * (1.0 - frac[k])
+        if e == 0.0:
+            continue
         # Centred on the pixel centre, not the sample: normalised footprints of jittered positions are
         # no partition of unity (a flat field would come out noisy); footprints of one width centred
         # on the pixel grid are, so a stationary region keeps its expectation.
@@ -456,7 +479,11 @@ def _splat_gated_loop(pos, val, scale, radius, r_edge, gs, fs, k2, mode, out):
         s = 0.0
         m = 0
         if r > 0.0:
-            s, m = _footprint(x, y, r, h, w, mode, r_edge, False, wbuf, ibuf, jbuf, gs, fs, py, px, k2, True)
+            if py * w + px != last:
+                last = py * w + px
+                gate_key += 1
+            s, m = _footprint(x, y, r, h, w, mode, r_edge, False, wbuf, ibuf, jbuf, gs, fs, py, px, k2, True,
+                              gate_seen, gate_pass, gate_key, gate_r)
         if not s > 0.0:
             n_fallback += r > 0.0
             for c in range(nc):
@@ -464,3 +491,20 @@ def _splat_gated_loop(pos, val, scale, radius, r_edge, gs, fs, k2, mode, out):
             continue
         _deposit_weights(out, val[k], e / s, wbuf, ibuf, jbuf, m)
     return n_fallback
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_widths(pos, radius, spread_radius, default_radius, width_sum, width_n):
+    """Add each sample's kernel diameter to its pixel's sum (in sample order): ``radius`` where it is
+    positive (an outlier's excess), else ``spread_radius`` where positive, else ``default_radius``."""
+    h, w = width_sum.shape
+    for k in range(pos.shape[0]):
+        r = radius[k]
+        if not r > 0.0:
+            r = spread_radius[k] if spread_radius[k] > 0.0 else default_radius
+        if not r > 0.0:
+            continue
+        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
+        py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+        width_sum[py, px] += 2.0 * r
+        width_n[py, px] += 1

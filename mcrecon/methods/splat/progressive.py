@@ -37,7 +37,7 @@ from .kernels import BOUNDARY_MODES, _BOUNDARY_CODE, _deposit_own_pixel, _scatte
 from ...filters.luminance import LUMINANCE_WEIGHTS
 from .consistent import (FeatureSums, _consistent_radii, channel_sums, edge_radius, feature_moments, gate_k,
                          pixel_moments)
-from .kernels import _splat_gated_loop
+from .kernels import _add_widths, _splat_gated_loop
 from .outliers import _box_sum, _count_and_moments, _norm_of, _outlier_thresholds, _split_and_deposit, _split_outliers
 
 __all__ = ['NORMS', 'kernel_width', 'pilot_width', 'sample_norm', 'ProgressiveSplatter']
@@ -340,7 +340,9 @@ class ProgressiveSplatter:
         :func:`mcrecon.core.features.check_features` returns them): read by the default's gate
         (``spread="consistent"``), ignored otherwise.
         """
-        if self.spread != "outliers":  # the paper's rounds, and the gated spread, go through the streamed path
+        if self.spread == "all" or (self.spread == "consistent" and not checked):
+            # the paper's rounds, and a gated round not yet checked (its features follow the rows that
+            # the NaN/Inf policy keeps), go through the streamed path
             item = (positions, values, features) if features else (positions, values)
             self.add_round_stream(lambda: iter([item]), nonfinite=nonfinite, where=where)
             return
@@ -350,11 +352,20 @@ class ProgressiveSplatter:
         else:
             pos, val, n_bad = self._validated(positions, values, nonfinite, where)
             self.n_nonfinite += n_bad
-        pos = np.ascontiguousarray(pos, dtype=np.float64)
-        val = np.ascontiguousarray(val, dtype=np.float64)
+        # the gated spread's kernels read float32 as it comes (widened exactly where they compute); the
+        # outlier-only rule's fused pass takes float64
+        dtype = None if self.spread == "consistent" else np.float64
+        pos = np.ascontiguousarray(pos, dtype=dtype)
+        val = np.ascontiguousarray(val, dtype=dtype)
         counts = np.zeros((self.height, self.width), np.int64)
         s1 = np.zeros((self.height, self.width))
         s2 = np.zeros((self.height, self.width))
+        if self.spread == "consistent":  # the pass of add_round_stream, on the arrays as given
+            if self._fsum is not None:
+                self._fsum.add(pos, features or {}, where)
+            c1, c2 = channel_sums(pos, val, self.width, self.height)
+            self._cs1 += c1
+            self._cs2 += c2
         _count_and_moments(pos, val, self._norm_code, self._weights, counts, s1, s2)
         if int(counts.sum()) == 0:
             return
@@ -544,7 +555,7 @@ class ProgressiveSplatter:
             gstats = pixel_moments(self.cum_counts, self._cs1, self._cs2)
             r_edge = edge_radius(gstats, self._gate_k)
             fstats = feature_moments(self._fsum)  # (1, 1, 0, 2) without features: the gate tests none
-        if arrays is not None:  # a round in memory (add_round): the fused pass
+        if arrays is not None and not consistent:  # a round in memory (add_round): the fused pass
             p, v = arrays
             idx = np.empty(p.shape[0], np.int64)
             oscale = np.empty(p.shape[0])
@@ -556,35 +567,41 @@ class ProgressiveSplatter:
                 idx = idx[:outliers]
                 fallback = _splat_guided_loop(np.ascontiguousarray(p[idx]), np.ascontiguousarray(v[idx]),
                                               oscale[:outliers], orad[:outliers], guide, mode, img)
-        for p, v, *_ in (chunks() if arrays is None else ()):  # second pass: split and deposit
-            p, v, _ = self._validated(p, v, nonfinite, where)
-            p = np.ascontiguousarray(p, dtype=np.float64)
-            v = np.ascontiguousarray(v, dtype=np.float64)
+        if arrays is None:
+            rounds = (self._validated(p, v, nonfinite, where)[:2] for p, v, *_ in chunks())
+        else:  # a round in memory, checked and converted once (add_round); the outlier-only rule is done above
+            rounds = [arrays] if consistent else []
+        w2 = self._width_sum.reshape(self.height, self.width)
+        n2 = self._width_n.reshape(self.height, self.width)
+        for p, v in rounds:  # second pass: split and deposit
+            p = np.ascontiguousarray(p, dtype=None if consistent else np.float64)
+            v = np.ascontiguousarray(v, dtype=None if consistent else np.float64)
             frac = np.empty(p.shape[0])
             rad = np.empty(p.shape[0])
             n_out, n_cap = _split_outliers(p, v, self._norm_code, self._weights, tau, fref, nmap, self.c,
                                            self.alpha, self.min_width, self.max_width, frac, rad)
             outliers += n_out
             capped += n_cap
-            ix = np.clip(np.floor(p[:, 0]).astype(np.int64), 0, self.width - 1)
-            iy = np.clip(np.floor(p[:, 1]).astype(np.int64), 0, self.height - 1)
-            scale = w_round * inv_counts[iy, ix]
             if consistent:
                 krad = np.empty(p.shape[0])
                 _consistent_radii(p, v, self._norm_code, self._weights, frac, tau, fref, nmap, r_edge, self.spread_c,
                                   self.spread_alpha, self.min_width, self.max_width, krad)
-                fallback += _splat_gated_loop(p, v, scale * (1.0 - frac), krad, r_edge, gstats, fstats,
+                fallback += _splat_gated_loop(p, v, w_round, inv_counts, frac, krad, r_edge, gstats, fstats,
                                               self._gate_k ** 2, mode, img)
             else:
-                _deposit_own_pixel(p, v, scale * (1.0 - frac), img)
-            sel = rad > 0
-            if sel.any():
+                krad = rad
+                ix = np.clip(np.floor(p[:, 0]).astype(np.int64), 0, self.width - 1)
+                iy = np.clip(np.floor(p[:, 1]).astype(np.int64), 0, self.height - 1)
+                _deposit_own_pixel(p, v, w_round * inv_counts[iy, ix] * (1.0 - frac), img)
+            sel = np.flatnonzero(rad > 0)
+            if sel.size:
                 ps = np.ascontiguousarray(p[sel])
-                vs = np.ascontiguousarray(v[sel])
-                fallback += _splat_guided_loop(ps, vs, scale[sel] * frac[sel], np.ascontiguousarray(rad[sel]),
-                                               guide, mode, img)
-            self._record_widths(p, np.where(sel, rad, np.where(krad > 0, krad, 0.5 * self.min_width)
-                                                        if consistent else 0.5 * self.min_width))
+                ix = np.clip(np.floor(ps[:, 0]).astype(np.int64), 0, self.width - 1)
+                iy = np.clip(np.floor(ps[:, 1]).astype(np.int64), 0, self.height - 1)
+                fallback += _splat_guided_loop(ps.astype(np.float64), np.ascontiguousarray(v[sel], dtype=np.float64),
+                                               w_round * inv_counts[iy, ix] * frac[sel],
+                                               np.ascontiguousarray(rad[sel]), guide, mode, img)
+            _add_widths(p, rad, krad, 0.5 * self.min_width, w2, n2)
         if empty.any() and not first:
             img[empty] += w_round * prev[empty]
         self.image = img
