@@ -226,18 +226,28 @@ class _Round:
                                 f"{round_index} (policy nonfinite='raise'); nothing of this round was stored")
         return SampleBatch(np.ascontiguousarray(batch.positions), val, batch.features), n_bad
 
-    def commit(self, batch, n_bad, record, toolkit_s, helper=None):
+    def commit(self, batch, n_bad, record, toolkit_s, helper=None, writer=None):
         """Append to the log, then into the statistics (and ``observe``; with ``helper``, an idle
-        one-thread executor, the two at once: see :func:`_take_round`)."""
+        one-thread executor, the two at once: see :func:`_take_round`).
+
+        ``writer`` (a one-thread executor): the append is submitted there and its future returned;
+        the statistics take the round meanwhile.  The round is committed when the future is done.
+        """
+        pending = None
         if self.log_path is not None:
-            with self.timeline.phase("append", record["round"]):
-                # checked: receive() validated the reply (validate_reply, then the log's dtype):
-                # the commit does not scan it again
-                append_log(self.log_path, batch.positions, batch.values, round_index=record["round"],
-                           features=batch.features if batch.features else None, checked=True,
-                           round_record={**record, "toolkit_seconds": toolkit_s, "wall_seconds": self.wall()})
+            rec = {**record, "toolkit_seconds": toolkit_s, "wall_seconds": self.wall()}
+            pending = self._append(batch, record["round"], rec) if writer is None else \
+                writer.submit(self._append, batch, record["round"], rec)
         _take_round(self.method, self.run, self.stats, batch, record["round"], self.nonfinite, self.name,
                     n_nonfinite=n_bad, timeline=self.timeline, helper=helper)
+        return pending
+
+    def _append(self, batch, round_index, rec):
+        with self.timeline.phase("append", round_index):
+            # checked: receive() validated the reply (validate_reply, then the log's dtype):
+            # the commit does not scan it again
+            append_log(self.log_path, batch.positions, batch.values, round_index=round_index,
+                       features=batch.features if batch.features else None, checked=True, round_record=rec)
 
     def evaluate(self, record, round_index):
         """The error of the image after the round (not part of the run's time)."""
@@ -290,21 +300,69 @@ def _finish_round(record, rounds, on_round, bar, stats, log_path, acct):
 
 def _loop_sequential(renderer, method, run, *, stats, rounds, round_index, budget, seed, ref, time_limit,
                      max_rounds, on_round, bar, clock, rnd, acct, planned):
-    """Plan, render, validate, commit, one round after the other."""
+    """Plan, render, validate, commit, one round after the other; the log written behind.
+
+    Each plan sees every round before it, as in a run without a log.  With a
+    log, round j is written by a writer thread while round j+1 is planned and
+    rendered (the renderer waits for nothing but its plan); round j+1 is
+    submitted only once round j is on disk, and ``on_round`` is called for a
+    round once it is committed.  A run stopped meanwhile (Ctrl-C, a
+    renderer's error) first waits for that write: nothing rendered and
+    handed over is lost; a killed one resumes from the rounds on disk (the
+    one being written is planned and rendered again, the same round: the
+    plan and the seeds depend on the rounds before it only).  The last
+    round's write is left to ``acct["drain"]``, which the caller runs after
+    the final image (the two overlap).
+    """
     # a method that reads samples observes a round while a helper thread ingests it
     helper = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mcrecon-ingest") \
         if method.requires.samples else None
+    writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mcrecon-log") \
+        if rnd.log_path is not None else None
+    behind = []  # (future or None, record): the round being written and its record, at most one
+
+    def drain():
+        try:
+            _written(behind, rounds, on_round, bar, stats, rnd, acct, wait=True)
+        finally:
+            if writer is not None:
+                writer.shutdown(wait=True)
+
     try:
-        return _sequential_rounds(renderer, method, run, stats=stats, rounds=rounds, round_index=round_index,
-                                  budget=budget, seed=seed, ref=ref, time_limit=time_limit, max_rounds=max_rounds,
-                                  on_round=on_round, bar=bar, clock=clock, rnd=rnd, acct=acct, helper=helper)
+        out = _sequential_rounds(renderer, method, run, stats=stats, rounds=rounds, round_index=round_index,
+                                 budget=budget, seed=seed, ref=ref, time_limit=time_limit, max_rounds=max_rounds,
+                                 on_round=on_round, bar=bar, clock=clock, rnd=rnd, acct=acct, helper=helper,
+                                 writer=writer, behind=behind)
+    except BaseException:
+        drain()
+        raise
     finally:
         if helper is not None:
             helper.shutdown(wait=True)
+    # the last round's write overlaps the final image: the caller drains it (``acct["drain"]``)
+    acct["drain"] = drain
+    return out
+
+
+def _written(behind, rounds, on_round, bar, stats, rnd, acct, *, wait):
+    """Finish the round written behind once it is on disk (``wait``: wait for it); True when none is left.
+
+    A failed write raises here: the run stops with that round not committed (its samples were not lost
+    silently: the error says which file and why)."""
+    if not behind:
+        return True
+    fut, record = behind[0]
+    if fut is not None and not (wait or fut.done()):
+        return False
+    behind.clear()
+    if fut is not None:
+        fut.result()
+    _finish_round(record, rounds, on_round, bar, stats, rnd.log_path, acct)
+    return True
 
 
 def _sequential_rounds(renderer, method, run, *, stats, rounds, round_index, budget, seed, ref, time_limit,
-                       max_rounds, on_round, bar, clock, rnd, acct, helper):
+                       max_rounds, on_round, bar, clock, rnd, acct, helper, writer, behind):
     while True:
         if _committed(stats) >= budget:
             return "budget", round_index
@@ -318,6 +376,7 @@ def _sequential_rounds(renderer, method, run, *, stats, rounds, round_index, bud
                                    initial_rounds=acct["initial_rounds"])
         if req is None:
             return why, round_index
+        _written(behind, rounds, on_round, bar, stats, rnd, acct, wait=False)  # done while planning, usually
         tp, cp = time.perf_counter(), time.thread_time()
         reply, render_s, extra_s = _render(renderer, req, acct)
         t2, c2 = time.perf_counter(), time.thread_time()
@@ -326,13 +385,16 @@ def _sequential_rounds(renderer, method, run, *, stats, rounds, round_index, bud
         record = {"round": round_index, "samples": len(batch),
                   "samples_total": _committed(stats) + len(batch), "renderer_seconds": render_s}
         t3 = time.perf_counter()
-        rnd.commit(batch, n_bad, record, toolkit_s, helper=helper)
+        _written(behind, rounds, on_round, bar, stats, rnd, acct, wait=True)  # one round on its way at a time
+        pending = rnd.commit(batch, n_bad, record, toolkit_s, helper=helper, writer=writer)
         toolkit_s += time.perf_counter() - t3
         acct["cpu"] += (cp - c0) + (time.thread_time() - c2)
         record["toolkit_seconds"] = toolkit_s
         record["wall_seconds"] = rnd.wall()
         clock["wall_start"] += rnd.evaluate(record, round_index)  # evaluation is not part of the run's time
-        _finish_round(record, rounds, on_round, bar, stats, rnd.log_path, acct)
+        behind.append((pending, record))
+        if writer is None:
+            _written(behind, rounds, on_round, bar, stats, rnd, acct, wait=True)
         round_index += 1
 
 
@@ -362,7 +424,12 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
         batch, n_bad = rnd.receive(preq, reply, k)
         record = {"round": k, "samples": len(batch), "samples_total": _committed(stats) + len(batch),
                   "renderer_seconds": render_s}
-        rnd.commit(batch, n_bad, record, carry + extra_s + (time.perf_counter() - t0), helper=helper)
+        # committed by this thread while nothing renders (``helper``): the log's append runs beside the
+        # statistics and observe, and is done before the round counts as committed
+        pending = rnd.commit(batch, n_bad, record, carry + extra_s + (time.perf_counter() - t0), helper=helper,
+                             writer=writer if helper is not None else None)
+        if pending is not None:
+            pending.result()
         # a round's toolkit time: its validation and commit, the beyond-renderer part
         # of its render call, and the plan that made its request
         record["toolkit_seconds"] = carry + extra_s + (time.perf_counter() - t0)
@@ -417,6 +484,7 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
         (req, why), carry = planned, 0.0
     uncommitted = None   # the rendered round not yet committed
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mcrecon-toolkit")
+    writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mcrecon-log") if rnd.log_path is not None else None
     fut = None
     try:
         while True:
@@ -481,3 +549,5 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
             with contextlib.suppress(BaseException):
                 fut.result()
         pool.shutdown(wait=True)
+        if writer is not None:
+            writer.shutdown(wait=True)

@@ -427,13 +427,20 @@ def _run(renderer, method, run, *, stats, rounds, round_index, budget, seed, log
         stopped, round_index = loop(renderer, method, run, stats=stats, rounds=rounds, round_index=round_index,
                                     budget=budget, seed=seed, ref=ref, time_limit=time_limit, max_rounds=max_rounds,
                                     on_round=on_round, bar=bar, clock=clock, rnd=rnd, acct=acct, planned=planned)
+        loop_s = time.perf_counter() - loop_t0
+        tf = time.perf_counter()
+        try:
+            rng, _ = round_seeds(seed, round_index)
+            final = _adaptive_state(stats, round_index, budget, _committed(stats), rng, ref)
+            image = method.finish(run, final)
+        finally:
+            # the last round's log write (a sequential loop leaves it running behind): committed before
+            # the run returns, whatever the final image did
+            drain = acct.pop("drain", None)
+            if drain is not None:
+                drain()
     finally:
         bar.close()
-    loop_s = time.perf_counter() - loop_t0
-    tf = time.perf_counter()
-    rng, _ = round_seeds(seed, round_index)
-    final = _adaptive_state(stats, round_index, budget, _committed(stats), rng, ref)
-    image = method.finish(run, final)
     eval_s = sum(float(r.get("eval_seconds", 0.0)) for r in rounds[len(rounds) - acct.get("new", 0):])
     return AdaptiveResult(image=np.asarray(image, dtype=np.float64), stats=stats, rounds=rounds,
                           stopped=stopped, log=log_path, method=method, run=run, pipelined=bool(pipeline),
