@@ -108,6 +108,10 @@ def test_confidence_interval_matches_formula_and_undefined_counts():
                     assert lo[j, i, c] == pytest.approx(mean[j, i, c] - h, rel=1e-12)
                     assert hi[j, i, c] == pytest.approx(mean[j, i, c] + h, rel=1e-12)
     assert np.isinf(t_quantile([0, 1], 0.05)).all()
+    # the quantile is Student's t, bit for bit scipy.stats.t.ppf's, for every count and level
+    counts = np.arange(2, 3000)
+    for a in (0.5, 0.1, 0.05, 0.01, 1e-6):
+        np.testing.assert_array_equal(t_quantile(counts, a), sps.t.ppf(1 - a / 2, counts - 1))
 
 
 def test_t_interval_covers_at_nominal_rate_for_normal_samples():

@@ -28,6 +28,7 @@ import weakref
 
 import numba
 import numpy as np
+from scipy.special import stdtrit
 
 from ...errors import InputError
 from ...core.requests import SampleRequest
@@ -61,10 +62,10 @@ def t_quantile(count, alpha: float) -> np.ndarray:
         # by the count: no sort of the image's counts, as np.unique would do).
         have = n[ok]
         uniq = np.flatnonzero(np.bincount(have))
-        from scipy import stats as sps  # here: importing scipy.stats costs every command 0.3 s
-
         table = np.empty(int(uniq[-1]) + 1)
-        table[uniq] = sps.t.ppf(1.0 - alpha / 2.0, uniq - 1)
+        # Student's t quantile: scipy.stats.t.ppf is this function (whose module would cost every
+        # command that imports the methods 0.3-0.5 s)
+        table[uniq] = stdtrit(uniq - 1, 1.0 - alpha / 2.0)
         out[ok] = table[have]
     return out
 
