@@ -144,3 +144,70 @@ def test_sigkill_while_written_behind_then_resume_matches_uninterrupted(tmp_path
                  log=tmp_path / "full.h5", track_error=False, progress=False)
     np.testing.assert_array_equal(res.image, full.image)
     np.testing.assert_array_equal(read_log(log).read_all().positions, read_log(tmp_path / "full.h5").read_all().positions)
+
+
+def test_a_renderer_that_refills_its_buffers_still_gets_its_own_rounds_in_the_log(tmp_path, monkeypatch):
+    """A callable that fills one values array again every round (allowed: it is not ``fresh_replies``):
+    the writer gets a copy, so the log holds each round's own values even when the write lags behind the
+    next render (the append is slowed here so that it always does)."""
+    real = rounds_mod.append_log
+
+    def slow(*a, **kw):
+        time.sleep(0.15)  # the next round renders into the same buffer meanwhile
+        return real(*a, **kw)
+
+    buf = {}
+
+    def refilling(req):
+        b = _fn(req)
+        out = buf.setdefault("v", np.empty((0, 3)))
+        if out.shape != b.values.shape:
+            out = buf["v"] = np.empty(b.values.shape)
+        out[...] = b.values
+        return SampleBatch(b.positions, out)
+
+    monkeypatch.setattr(rounds_mod, "append_log", slow)
+    res = adapt(CallableRenderer(refilling, width=W, height=H), _gem(), spp=12, seed=6, log=tmp_path / "r.h5",
+                track_error=False, progress=False)
+    fresh = adapt(CallableRenderer(_fn, width=W, height=H), _gem(), spp=12, seed=6, log=tmp_path / "f.h5",
+                  track_error=False, progress=False)
+    np.testing.assert_array_equal(res.image, fresh.image)
+    np.testing.assert_array_equal(read_log(tmp_path / "r.h5").read_all().values,
+                                  read_log(tmp_path / "f.h5").read_all().values)
+
+
+class _InterruptedOnce:
+    """A future whose first ``result()`` is interrupted by Ctrl-C (the write itself goes on)."""
+
+    def __init__(self):
+        self.calls = 0
+
+    def done(self):
+        return True
+
+    def result(self):
+        self.calls += 1
+        if self.calls == 1:
+            raise KeyboardInterrupt
+        return None
+
+
+def test_ctrl_c_while_waiting_for_a_write_waits_it_out_then_stops():
+    """Ctrl-C during the wait does not abandon the write (the run holds the log's lock until it is done):
+    the round is finished (on_round sees it), then the interrupt is raised."""
+    fut, seen = _InterruptedOnce(), []
+
+    class Bar:
+        def update(self, *a):
+            pass
+
+    stats = type("S", (), {"n_samples": 0, "n_dropped": 0})()
+    behind = [(fut, {"round": 4, "wall_seconds": 0.0})]
+    with pytest.raises(KeyboardInterrupt):
+        rounds_mod._written(behind, [], seen.append, Bar(), stats, type("R", (), {"log_path": None})(), {},
+                            wait=True)
+    assert fut.calls == 2 and [r["round"] for r in seen] == [4] and not behind
+    fut2 = _InterruptedOnce()
+    with pytest.raises(KeyboardInterrupt):
+        rounds_mod._wait_out(fut2)
+    assert fut2.calls == 2

@@ -203,6 +203,7 @@ class _Round:
         self.storage_dtype = storage_dtype
         self.warned = set()
         self.wall = wall  # () -> run wall seconds now
+        self.fresh_replies = False  # the loop sets it from the renderer (see commit)
 
     def receive(self, req, reply, round_index):
         """The validated reply (stored precision) and its count of non-finite rows; nothing stored yet."""
@@ -226,24 +227,35 @@ class _Round:
                                 f"{round_index} (policy nonfinite='raise'); nothing of this round was stored")
         return SampleBatch(np.ascontiguousarray(batch.positions), val, batch.features), n_bad
 
-    def commit(self, batch, n_bad, record, toolkit_s, helper=None, writer=None):
+    def commit(self, batch, n_bad, record, toolkit_s, helper=None, writer=None, writer_copy=None):
         """Append to the log, then into the statistics (and ``observe``; with ``helper``, an idle
         one-thread executor, the two at once: see :func:`_take_round`).
 
         ``writer`` (a one-thread executor): the append is submitted there and its future returned;
         the statistics take the round meanwhile.  The round is committed when the future is done.
+        ``writer_copy``: hand the writer a copy of the arrays (default: unless the renderer's replies
+        are ``fresh_replies``); not needed when the caller waits for the write before the next render.
         """
         pending = None
         if self.log_path is not None:
             rec = {**record, "toolkit_seconds": toolkit_s, "wall_seconds": self.wall()}
-            pending = self._append(batch, record["round"], rec) if writer is None else \
-                writer.submit(self._append, batch, record["round"], rec)
+            if writer is None:
+                self._append(batch, record["round"], rec)
+            else:
+                # written while the renderer renders the next round: a renderer that may fill the same
+                # buffers again (not ``fresh_replies``) hands the writer a copy
+                copy = (not self.fresh_replies) if writer_copy is None else writer_copy
+                kept = batch if not copy else SampleBatch(
+                    np.array(batch.positions), np.array(batch.values),
+                    {k: np.array(v) for k, v in batch.features.items()} if batch.features else batch.features)
+                pending = writer.submit(self._append, kept, record["round"], rec, True)
         _take_round(self.method, self.run, self.stats, batch, record["round"], self.nonfinite, self.name,
                     n_nonfinite=n_bad, timeline=self.timeline, helper=helper)
         return pending
 
-    def _append(self, batch, round_index, rec):
-        with self.timeline.phase("append", round_index):
+    def _append(self, batch, round_index, rec, on_writer=False):
+        # on the writer thread: tagged as a helper's phase (its CPU counts in toolkit_cpu_seconds)
+        with self.timeline.phase("append", round_index, **({"helper": True} if on_writer else {})):
             # checked: receive() validated the reply (validate_reply, then the log's dtype):
             # the commit does not scan it again
             append_log(self.log_path, batch.positions, batch.values, round_index=round_index,
@@ -328,6 +340,7 @@ def _loop_sequential(renderer, method, run, *, stats, rounds, round_index, budge
             if writer is not None:
                 writer.shutdown(wait=True)
 
+    rnd.fresh_replies = bool(getattr(renderer, "fresh_replies", False))
     try:
         out = _sequential_rounds(renderer, method, run, stats=stats, rounds=rounds, round_index=round_index,
                                  budget=budget, seed=seed, ref=ref, time_limit=time_limit, max_rounds=max_rounds,
@@ -336,11 +349,27 @@ def _loop_sequential(renderer, method, run, *, stats, rounds, round_index, budge
     except BaseException:
         drain()
         raise
+    else:
+        # the last round's write overlaps the final image: the caller drains it (``acct["drain"]``)
+        acct["drain"] = drain
     finally:
         if helper is not None:
             helper.shutdown(wait=True)
-    # the last round's write overlaps the final image: the caller drains it (``acct["drain"]``)
-    acct["drain"] = drain
+    return out
+
+
+def _wait_out(fut):
+    """``fut.result()``, waited for to the end even through Ctrl-C (raised after it): a log write is
+    never abandoned half way while the run still holds the log's lock."""
+    interrupted = None
+    while True:
+        try:
+            out = fut.result()
+            break
+        except KeyboardInterrupt as exc:
+            interrupted = exc
+    if interrupted is not None:
+        raise interrupted
     return out
 
 
@@ -348,16 +377,27 @@ def _written(behind, rounds, on_round, bar, stats, rnd, acct, *, wait):
     """Finish the round written behind once it is on disk (``wait``: wait for it); True when none is left.
 
     A failed write raises here: the run stops with that round not committed (its samples were not lost
-    silently: the error says which file and why)."""
+    silently: the error says which file and why).  Ctrl-C while waiting does not abandon the write (the
+    log's lock is held until it is done): the wait goes on, and the interrupt is raised after it."""
     if not behind:
         return True
     fut, record = behind[0]
     if fut is not None and not (wait or fut.done()):
         return False
+    interrupted = None
+    while fut is not None:
+        try:
+            fut.result()
+            break
+        except KeyboardInterrupt as exc:
+            interrupted = exc
+        except BaseException:
+            behind.clear()  # the write failed: nothing left to wait for
+            raise
     behind.clear()
-    if fut is not None:
-        fut.result()
     _finish_round(record, rounds, on_round, bar, stats, rnd.log_path, acct)
+    if interrupted is not None:
+        raise interrupted
     return True
 
 
@@ -427,9 +467,9 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
         # committed by this thread while nothing renders (``helper``): the log's append runs beside the
         # statistics and observe, and is done before the round counts as committed
         pending = rnd.commit(batch, n_bad, record, carry + extra_s + (time.perf_counter() - t0), helper=helper,
-                             writer=writer if helper is not None else None)
+                             writer=writer if helper is not None else None, writer_copy=False)
         if pending is not None:
-            pending.result()
+            _wait_out(pending)
         # a round's toolkit time: its validation and commit, the beyond-renderer part
         # of its render call, and the plan that made its request
         record["toolkit_seconds"] = carry + extra_s + (time.perf_counter() - t0)

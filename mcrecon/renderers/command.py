@@ -212,6 +212,10 @@ class CommandRenderer:
         The directory the command runs in (default: the current one).
     """
 
+    #: Every reply's arrays are new (never a buffer the renderer fills again): the driver keeps them
+    #: for the log while the next round renders, without a copy (renderers without it are copied).
+    fresh_replies = True
+
     def __init__(self, argv: Sequence[str], *, width: int, height: int,
                  channels: Sequence[str] = ("R", "G", "B"), timeout: float | None = 600.0, workdir=None,
                  cwd=None):

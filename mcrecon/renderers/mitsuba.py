@@ -378,6 +378,10 @@ class MitsubaRenderer:
        https://mitsuba-renderer.org.
     """
 
+    #: Every reply's arrays are new (never a buffer the renderer fills again): the driver keeps them
+    #: for the log while the next round renders, without a copy (renderers without it are copied).
+    fresh_replies = True
+
     channels = ("R", "G", "B")
 
     def __init__(self, scene=None, *, width: int | None = None, height: int | None = None,

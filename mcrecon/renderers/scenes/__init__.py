@@ -262,6 +262,10 @@ class SceneRenderer:
     turning them on or off leaves positions and values bit-identical.
     """
 
+    #: Every reply's arrays are new (never a buffer the renderer fills again): the driver keeps them
+    #: for the log while the next round renders, without a copy (renderers without it are copied).
+    fresh_replies = True
+
     def __init__(self, scene, *, width: int = 128, height: int = 128, seed: int = 0, features=None,
                  rate: float | None = None):
         self.scene = get_scene(scene)
