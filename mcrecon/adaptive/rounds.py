@@ -195,7 +195,7 @@ class _Round:
     """What the toolkit does with one reply: validate, store, count (shared by both modes)."""
 
     def __init__(self, method, run, stats, *, name, c, log_path, nonfinite, ref, track_error, eps, budget,
-                 storage_dtype, wall, timeline):
+                 storage_dtype, wall, timeline, fresh_replies=False):
         self.method, self.run, self.stats = method, run, stats
         self.timeline = timeline
         self.name, self.c, self.log_path, self.nonfinite = name, c, log_path, nonfinite
@@ -203,7 +203,7 @@ class _Round:
         self.storage_dtype = storage_dtype
         self.warned = set()
         self.wall = wall  # () -> run wall seconds now
-        self.fresh_replies = False  # the loop sets it from the renderer (see commit)
+        self.fresh_replies = fresh_replies  # the renderer's: each reply's arrays are new (see commit)
 
     def receive(self, req, reply, round_index):
         """The validated reply (stored precision) and its count of non-finite rows; nothing stored yet."""
@@ -340,7 +340,6 @@ def _loop_sequential(renderer, method, run, *, stats, rounds, round_index, budge
             if writer is not None:
                 writer.shutdown(wait=True)
 
-    rnd.fresh_replies = bool(getattr(renderer, "fresh_replies", False))
     try:
         out = _sequential_rounds(renderer, method, run, stats=stats, rounds=rounds, round_index=round_index,
                                  budget=budget, seed=seed, ref=ref, time_limit=time_limit, max_rounds=max_rounds,
@@ -384,20 +383,14 @@ def _written(behind, rounds, on_round, bar, stats, rnd, acct, *, wait):
     fut, record = behind[0]
     if fut is not None and not (wait or fut.done()):
         return False
-    interrupted = None
-    while fut is not None:
-        try:
-            fut.result()
-            break
-        except KeyboardInterrupt as exc:
-            interrupted = exc
-        except BaseException:
-            behind.clear()  # the write failed: nothing left to wait for
-            raise
     behind.clear()
+    try:
+        if fut is not None:
+            _wait_out(fut)
+    except KeyboardInterrupt:  # raised once the write was done: the round is committed
+        _finish_round(record, rounds, on_round, bar, stats, rnd.log_path, acct)
+        raise
     _finish_round(record, rounds, on_round, bar, stats, rnd.log_path, acct)
-    if interrupted is not None:
-        raise interrupted
     return True
 
 

@@ -416,7 +416,8 @@ def _run(renderer, method, run, *, stats, rounds, round_index, budget, seed, log
     timeline = _Timeline()
     rnd = _Round(method, run, stats, name=name, c=len(stats.channels), log_path=log_path, nonfinite=nonfinite,
                  ref=ref, track_error=track_error, eps=eps, budget=budget, storage_dtype=storage_dtype,
-                 wall=lambda: time.perf_counter() - clock["wall_start"], timeline=timeline)
+                 wall=lambda: time.perf_counter() - clock["wall_start"], timeline=timeline,
+                 fresh_replies=bool(getattr(renderer, "fresh_replies", False)))
     acct = {"render": 0.0, "cpu": 0.0, "timeline": timeline, "bar": bar,
             "initial_rounds": _initial_rounds(method, pipeline, budget, stats.width * stats.height)}
     bar.n, bar.wall = _committed(stats), elapsed
