@@ -167,32 +167,9 @@ def _add_feature_sums(pos, f, col, first, shift, s1, s2):
 FEATURE_FLOOR = 1e-6
 
 
-def _limited_slopes(m):
-    """Per pixel and component the smooth slope of ``m`` (H, W, F) along x and y: the monotonised
-    central difference, ``minmod((a + b) / 2, 2 a, 2 b)`` of the backward and forward differences a, b
-    (minmod: the argument of least magnitude if all agree in sign, else 0).  A ramp has its slope (the
-    central difference, the least noisy estimate); a step has slope 0 beside it (one of a, b is 0),
-    so a slope never excuses a discontinuity.  At the film border the missing difference is 0.
-    (Measured and rejected: plain minmod(a, b), the smaller of two noisy differences, underestimates
-    a ramp's slope whose pixel means carry the noise of random positions: a depth ramp then refused 7 %
-    of the pairs two pixels apart at 16 spp.)"""
-    def slope(a, b):
-        c = 0.5 * (a + b)
-        lim = np.minimum(np.minimum(np.abs(c), 2.0 * np.abs(a)), 2.0 * np.abs(b))
-        return np.where((a * b > 0), np.sign(c) * lim, 0.0)
-
-    dx = np.diff(m, axis=1)
-    zx = np.zeros_like(m[:, :1])
-    sx = slope(np.concatenate([zx, dx], axis=1), np.concatenate([dx, zx], axis=1))
-    dy = np.diff(m, axis=0)
-    zy = np.zeros_like(m[:1])
-    sy = slope(np.concatenate([zy, dy], axis=0), np.concatenate([dy, zy], axis=0))
-    return sx, sy
-
-
 def feature_moments(fsum: FeatureSums | None) -> np.ndarray:
     """Per pixel and feature component (H, W, F, 5): the mean, the sample variance plus a floor
-    ``(FEATURE_FLOOR |mean|)^2 + 1e-300``, the smooth slopes along x and y (:func:`_limited_slopes`) and
+    ``(FEATURE_FLOOR |mean|)^2 + 1e-300``, the smooth slopes along x and y (:func:`_mc_slope`) and
     the squared standard error of the mean (that variance over n).
 
     The gate lets q receive from p, in every component, when ``(f_q - f_p)^2 <= k^2 (s_p^2 + s_q^2) +
@@ -214,7 +191,13 @@ def feature_moments(fsum: FeatureSums | None) -> np.ndarray:
 
 @numba.njit(cache=True, nogil=True)
 def _mc_slope(a, b):
-    """The monotonised central difference of backward and forward differences a, b (:func:`_limited_slopes`)."""
+    """The smooth slope from the backward and forward differences a, b: the monotonised central
+    difference, ``minmod((a + b) / 2, 2 a, 2 b)`` (minmod: the argument of least magnitude if all agree in
+    sign, else 0).  A ramp has its slope (the central difference, the least noisy estimate); a step has
+    slope 0 beside it (one of a, b is 0), so a slope never excuses a discontinuity.  At the film border
+    the missing difference is 0.  (Measured and rejected: plain minmod(a, b), the smaller of two noisy
+    differences, underestimates a ramp's slope whose pixel means carry the noise of random positions: a
+    depth ramp then refused 7 % of the pairs two pixels apart at 16 spp.)"""
     if not a * b > 0:
         return 0.0
     c = 0.5 * (a + b)
@@ -224,8 +207,9 @@ def _mc_slope(a, b):
 
 @numba.njit(cache=True, nogil=True)
 def _feature_moments(n, s1, s2, shift, floor, out):
-    """:func:`feature_moments` in one pass per component: the same operations, in the same order, as the
-    array expressions of :func:`_limited_slopes` and the moments (bit for bit; tested)."""
+    """:func:`feature_moments`, pixel by pixel: the moments, then the slopes of the means (:func:`_mc_slope`
+    of the differences to the left and right, above and below); bit for bit the array expressions it
+    replaced (tests/test_splat_consistent.py)."""
     h, w, nf = s1.shape
     for y in range(h):
         for x in range(w):

@@ -70,13 +70,19 @@ def _reflect(i, n):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _scratch(radius):
-    """Scratch buffers (weights, column and row indices) for the footprint of the widest sample."""
+def _max_radius(radius):
+    """The largest radius (0 for none or only non-positive ones)."""
     rmax = 0.0
     for k in range(radius.shape[0]):
         if radius[k] > rmax:
             rmax = radius[k]
-    side = 2 * int(math.ceil(rmax)) + 2
+    return rmax
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _scratch(radius):
+    """Scratch buffers (weights, column and row indices) for the footprint of the widest sample."""
+    side = 2 * int(math.ceil(_max_radius(radius))) + 2
     cap = side * side + 1  # + 1: the share a gated footprint keeps home
     return np.empty(cap), np.empty(cap, np.int64), np.empty(cap, np.int64)
 
@@ -455,10 +461,7 @@ def _splat_gated_loop(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
     w = out.shape[1]
     nc = out.shape[2]
     wbuf, ibuf, jbuf = _scratch(radius)
-    r_max = 0.0
-    for k in range(radius.shape[0]):
-        r_max = max(r_max, radius[k])
-    gate_r = int(math.ceil(r_max)) + 1
+    gate_r = int(math.ceil(_max_radius(radius))) + 1
     gate_seen = np.full((2 * gate_r + 1) ** 2, -1, np.int64)
     gate_pass = np.zeros((2 * gate_r + 1) ** 2, np.bool_)
     gate_key = -1

@@ -281,10 +281,14 @@ class ProgressiveSplatter:
             if spread == "consistent" and feature_gate == "auto" else None
 
     # ------------------------------------------------------------ helpers
+    def _pixel_of(self, pos) -> tuple[np.ndarray, np.ndarray]:
+        """(row, column) of each sample's pixel, positions on the border clipped to the film."""
+        return (np.clip(np.floor(pos[:, 1]).astype(np.int64), 0, self.height - 1),
+                np.clip(np.floor(pos[:, 0]).astype(np.int64), 0, self.width - 1))
+
     def _pixel_counts(self, pos) -> np.ndarray:
         w, h = self.width, self.height
-        ix = np.clip(np.floor(pos[:, 0]).astype(np.int64), 0, w - 1)
-        iy = np.clip(np.floor(pos[:, 1]).astype(np.int64), 0, h - 1)
+        iy, ix = self._pixel_of(pos)
         return np.bincount(iy * w + ix, minlength=w * h).reshape(h, w)
 
     def _validated(self, positions, values, nonfinite, where):
@@ -316,8 +320,7 @@ class ProgressiveSplatter:
         """Mean kernel diameter of the samples of each pixel (diagnostic), 0 where none splatted."""
         keep = radius > 0
         w, h = self.width, self.height
-        ix = np.clip(np.floor(pos[keep, 0]).astype(np.int64), 0, w - 1)
-        iy = np.clip(np.floor(pos[keep, 1]).astype(np.int64), 0, h - 1)
+        iy, ix = self._pixel_of(pos[keep])
         idx = iy * w + ix
         s = np.bincount(idx, weights=2.0 * radius[keep], minlength=w * h)
         n = np.bincount(idx, minlength=w * h)
@@ -437,8 +440,7 @@ class ProgressiveSplatter:
         capped = fallback = 0
         if first:
             # f'_0: fixed-width density estimate of the stored first batch (C' N0^-1/2) ...
-            scale = inv_counts[np.clip(np.floor(pos[:, 1]).astype(np.int64), 0, self.height - 1),
-                               np.clip(np.floor(pos[:, 0]).astype(np.int64), 0, self.width - 1)]
+            scale = inv_counts[self._pixel_of(pos)]
             rad, _ = self._radii(pos, val, np.zeros((self.height, self.width)), True)
             pilot = np.zeros_like(self.image)
             self._deposit(pos, val, scale, rad, pilot)
@@ -460,9 +462,7 @@ class ProgressiveSplatter:
             for p, v, *_ in chunks():  # second pass: the splat
                 p, v, _ = self._validated(p, v, nonfinite, where)
                 v = np.ascontiguousarray(v, dtype=np.float64)
-                ix = np.clip(np.floor(p[:, 0]).astype(np.int64), 0, self.width - 1)
-                iy = np.clip(np.floor(p[:, 1]).astype(np.int64), 0, self.height - 1)
-                scale = w_round * inv_counts[iy, ix]
+                scale = w_round * inv_counts[self._pixel_of(p)]
                 rad, cap = self._radii(p, v, ref, False)
                 capped += cap
                 fallback += self._deposit(p, v, scale, rad, img)
@@ -590,18 +590,21 @@ class ProgressiveSplatter:
                                               self._gate_k ** 2, mode, img)
             else:
                 krad = rad
-                ix = np.clip(np.floor(p[:, 0]).astype(np.int64), 0, self.width - 1)
-                iy = np.clip(np.floor(p[:, 1]).astype(np.int64), 0, self.height - 1)
-                _deposit_own_pixel(p, v, w_round * inv_counts[iy, ix] * (1.0 - frac), img)
+                _deposit_own_pixel(p, v, w_round * inv_counts[self._pixel_of(p)] * (1.0 - frac), img)
             sel = np.flatnonzero(rad > 0)
             if sel.size:
                 ps = np.ascontiguousarray(p[sel])
-                ix = np.clip(np.floor(ps[:, 0]).astype(np.int64), 0, self.width - 1)
-                iy = np.clip(np.floor(ps[:, 1]).astype(np.int64), 0, self.height - 1)
-                fallback += _splat_guided_loop(ps.astype(np.float64), np.ascontiguousarray(v[sel], dtype=np.float64),
-                                               w_round * inv_counts[iy, ix] * frac[sel],
+                fallback += _splat_guided_loop(ps.astype(np.float64, copy=False),
+                                               np.ascontiguousarray(v[sel], dtype=np.float64),
+                                               w_round * inv_counts[self._pixel_of(ps)] * frac[sel],
                                                np.ascontiguousarray(rad[sel]), guide, mode, img)
-            _add_widths(p, rad, krad, 0.5 * self.min_width, w2, n2)
+            if arrays is None:  # a chunk's sums are added as a whole, as a round's were (the same sums)
+                cw, cn = np.zeros_like(w2), np.zeros_like(n2)
+                _add_widths(p, rad, krad, 0.5 * self.min_width, cw, cn)
+                w2 += cw
+                n2 += cn
+            else:
+                _add_widths(p, rad, krad, 0.5 * self.min_width, w2, n2)
         if empty.any() and not first:
             img[empty] += w_round * prev[empty]
         self.image = img
