@@ -42,6 +42,7 @@ Usage::
 
     python benchmarks/mitsuba_textured.py --root /tmp/mitsuba_textured
     python benchmarks/mitsuba_textured.py --root DIR --scenes thin_lens --methods box,gem
+    python benchmarks/mitsuba_textured.py --root DIR --seeds 3 --methods nfor,auto:feature_candidates=none,auto
 """
 
 from __future__ import annotations
@@ -123,19 +124,21 @@ def build_scene(name: str, size: int) -> dict:
     return scene
 
 
-def cached(root: Path, name: str, size: int, spp: int, ref_spp: int):
-    """(log path, reference (H, W, 3) float64) of one scene, rendered once and cached under ``root``."""
+def cached(root: Path, name: str, size: int, spp: int, ref_spp: int, seed: int = 1):
+    """(log path, reference (H, W, 3) float64) of one scene, rendered once and cached under ``root``.
+
+    ``seed`` is the log's (1: the first log, whose file name has no seed); the reference has its own."""
     from mcrecon.renderers.mitsuba import MitsubaRenderer, dump_uniform_log, render_reference
 
     root.mkdir(parents=True, exist_ok=True)
-    log = root / f"{name}_{size}_{spp}spp.h5"
+    log = root / (f"{name}_{size}_{spp}spp.h5" if seed == 1 else f"{name}_{size}_{spp}spp_seed{seed}.h5")
     ref_path = root / f"{name}_{size}_{ref_spp}spp_ref.npy"
     renderer = None
     if not log.exists() or not ref_path.exists():
         renderer = MitsubaRenderer(build_scene(name, size), spp_per_pass=16)
     if not log.exists():
         t0 = time.perf_counter()
-        dump_uniform_log(log, renderer, spp=spp, seed=1)
+        dump_uniform_log(log, renderer, spp=spp, seed=seed)
         print(f"  {name}: log {size}^2 x {spp} spp with features in {time.perf_counter() - t0:.1f} s wall")
     if not ref_path.exists():
         t0 = time.perf_counter()
@@ -153,6 +156,14 @@ def oidn(color, albedo=None, normal=None):
         return np.asarray(pyoidn.denoise(c(color), hdr=True, quality="high"), np.float64)
     return np.asarray(pyoidn.denoise(c(color), c(np.clip(albedo, 0, 1)), c(np.clip(normal, -1, 1)), hdr=True,
                                      quality="high", clean_aux=False), np.float64)
+
+
+def _method(spec: str):
+    """``name`` or ``name:key=value:key=value`` (e.g. ``auto:feature_candidates=none``)."""
+    import mcrecon
+
+    name, *opts = spec.split(":")
+    return mcrecon.get_method(name, **dict(o.split("=", 1) for o in opts)) if opts else name
 
 
 def evaluate(log, ref, methods):
@@ -180,7 +191,7 @@ def evaluate(log, ref, methods):
             continue
         t0 = time.process_time()
         try:
-            img = mcrecon.reconstruct(str(log), method=m)
+            img = mcrecon.reconstruct(str(log), method=_method(m))
         except Exception as exc:  # a method that cannot run on this input: say why, go on
             print(f"  {m}: did not run: {type(exc).__name__}: {str(exc).splitlines()[0][:160]}")
             continue
@@ -195,7 +206,10 @@ def main(argv=None):
     ap.add_argument("--spp", type=int, default=32)
     ap.add_argument("--ref-spp", type=int, default=4096)
     ap.add_argument("--scenes", default=",".join(SCENES))
-    ap.add_argument("--methods", default=None, help="mcrecon methods (default: every registered one)")
+    ap.add_argument("--methods", default=None, help="mcrecon methods, each name or name:key=value:... "
+                    "(default: every registered one)")
+    ap.add_argument("--seeds", type=int, default=1, help="logs per scene (seeds 1..N; one reference): ratios "
+                    "are means over them")
     args = ap.parse_args(argv)
 
     import os
@@ -211,12 +225,18 @@ def main(argv=None):
     methods = args.methods.split(",") if args.methods else list(mcrecon.available_methods())
     rows = {}
     for name in args.scenes.split(","):
-        log, ref = cached(Path(args.root), name, args.size, args.spp, args.ref_spp)
-        rows[name] = evaluate(log, ref, methods)
+        per_seed = []
+        for seed in range(1, args.seeds + 1):
+            log, ref = cached(Path(args.root), name, args.size, args.spp, args.ref_spp, seed)
+            per_seed.append(evaluate(log, ref, methods))
+        # per method: the mean over the logs of its ratio to box's relMSE (box: its mean relMSE), mean CPU s
+        rows[name] = {m: (float(np.mean([r[m][0] / (1.0 if m == "box" else r["box"][0]) for r in per_seed])),
+                          float(np.mean([r[m][1] for r in per_seed])))
+                      for m in per_seed[0] if all(m in r for r in per_seed)}
     names = ["box"] + [k for k in ("oidn", "oidn+aux") if any(k in r for r in rows.values())] \
         + [m for m in methods if m != "box"]
-    print(f"\nrelMSE / relMSE(box), {args.size}^2, {args.spp} spp uniform, reference {args.ref_spp} spp "
-          "(CPU s of the reconstruction in brackets)")
+    print(f"\nrelMSE / relMSE(box), {args.size}^2, {args.spp} spp uniform, reference {args.ref_spp} spp, "
+          f"mean over {args.seeds} log(s) (CPU s of the reconstruction in brackets)")
     print(f"{'method':10s}" + "".join(f"{n:>24s}" for n in rows))
     for m in names:
         cells = []
@@ -225,7 +245,7 @@ def main(argv=None):
                 cells.append(f"{'-':>24s}")
                 continue
             e, t = r[m]
-            val = f"{e:.4g} (box)" if m == "box" else f"{e / r['box'][0]:.3f}"
+            val = f"{e:.4g} (box)" if m == "box" else f"{e:.3f}"
             cells.append(f"{val + f' [{t:.1f}]':>24s}")
         print(f"{m:10s}" + "".join(cells))
     return rows

@@ -46,7 +46,7 @@ CANDIDATES = ("box", "gauss", "nlm", "awr", "splat", "oidn")
 #: Candidates that need the samples split into two halves.
 DUAL_BUFFER = ("nlm", "awr", "splat", "oidn")
 #: Feature-guided candidates (option ``feature_candidates``), used when the samples carry features.
-FEATURE_CANDIDATES = ("nfor", "xbil", "fbil")
+FEATURE_CANDIDATES = ("nfor", "xbil", "dnlm", "fbil")
 #: Placement of the adaptive rounds' samples (option ``sampling``).
 SAMPLINGS = ("gem", "uniform", "greedy")
 #: The measured default (docs/methods/auto.md, "Choosing the default candidates").
@@ -92,7 +92,9 @@ def feature_guided_half(name: str, half: PixelStats) -> np.ndarray:
     ``xbil``: :func:`~mcrecon.filters.cross_bilateral.cross_bilateral` (RDFC-style: feature distances
     normalised by the features' variance).  ``nfor``: NFOR's feature prefilter and collaborative
     first-order regression (:mod:`mcrecon.methods.nfor`; window 19 x 19, patch 3, k = 1) with the
-    half's own NL-means weights, not NFOR's crossed halves: a crossed half (A filtered with B's
+    half's own NL-means weights (``dnlm``: NL-means of the half's colour divided by its albedo,
+    multiplied back, :func:`~mcrecon.filters.demodulation.demodulated_nlmeans`; None without an
+    ``albedo`` feature), not NFOR's crossed halves: a crossed half (A filtered with B's
     weights) is not independent of B, and its cross-validation was 0.77x its true error on a
     textured Mitsuba wall, where auto then chose it at 1.23x the error of auto without features
     (docs/methods/auto.md).  Pixels without a sample take their nearest sampled neighbour's values.
@@ -100,8 +102,14 @@ def feature_guided_half(name: str, half: PixelStats) -> np.ndarray:
     from ...filters.nlmeans import nlmeans_filter
     from ...filters.regression import collaborative_regression
     from ...filters.cross_bilateral import cross_bilateral
+    from ...filters.demodulation import demodulated_nlmeans
 
     y = _filled(half.mean, half.count)
+    if name == "dnlm":
+        alb = half.features.get("albedo")
+        if alb is None:
+            return None
+        return demodulated_nlmeans(y, mean_variance_policy(half), _filled(alb.mean, alb.count))
     f, fv = _feature_planes(half)
     v = mean_variance_policy(half)
     if name == "xbil":
@@ -159,9 +167,11 @@ class AutoMethod(Method):
         needs ``pyoidn``; ``splat`` only offline.
     feature_candidates : str
         When the statistics carry per-pixel features (albedo, normal,
-        depth): comma-separated subset of ``nfor, xbil, fbil`` added to
-        the candidates (default all; ``none``: colour only).  ``nfor`` and
-        ``xbil`` filter one half from that half alone
+        depth): comma-separated subset of ``nfor, xbil, dnlm, fbil`` added
+        to the candidates (default all; ``none``: colour only).  ``nfor``,
+        ``xbil`` and ``dnlm`` (NL-means of the colour divided by the
+        albedo, then multiplied back; only with an ``albedo`` feature)
+        filter one half from that half alone
         (:func:`feature_guided_half`), so their cross-validation is
         unbiased; they run on the halves.  ``fbil`` (:func:`_feature_bilateral`)
         runs only without halves (pixel statistics: an EXR), by SURE.  With
@@ -200,9 +210,10 @@ class AutoMethod(Method):
     options = (
         Option("candidates", str, DEFAULT_CANDIDATES, "comma-separated candidate reconstructions: "
                + ", ".join(CANDIDATES) + " (nlm/awr/splat/oidn need the samples: dual buffers)"),
-        Option("feature_candidates", str, "nfor,xbil,fbil", "when the statistics carry features: comma-separated "
-               "feature-guided candidates added to candidates: nfor (first-order regression, Bitterli et al. 2016) "
-               "and xbil (cross-bilateral, Rousselle et al. 2013) on the halves; fbil (bilateral with feature "
+        Option("feature_candidates", str, "nfor,xbil,dnlm,fbil", "when the statistics carry features: "
+               "comma-separated feature-guided candidates added to candidates: nfor (first-order regression, "
+               "Bitterli et al. 2016), xbil (cross-bilateral, Rousselle et al. 2013) and dnlm (NL-means of the "
+               "colour divided by the albedo) on the halves; fbil (bilateral with feature "
                "weights only, SURE) from pixel statistics without halves; none: colour only"),
         Option("scales", int, 8, "Gaussian scales of the gauss candidates (GEM's final bank)", min=1, max=16),
         Option("smooth", float, 2.0, "sigma (px) of the smoothing of the error maps before the choice "
@@ -360,6 +371,8 @@ class AutoMethod(Method):
         for name in (n for n in self._feature_names if n != "fbil"):
             a = feature_guided_half(name, ha)
             b = feature_guided_half(name, hb)
+            if a is None or b is None:   # a feature it needs is not in the samples
+                continue
             out.append(self._dual(name, a, b, cross_validation_mse(a, hb.mean, mean_variance_policy(hb)),
                                   cross_validation_mse(b, ha.mean, mean_variance_policy(ha)), ha.count, hb.count))
         return out
