@@ -9,7 +9,7 @@ gem and auto, interleaved so that machine load hits every method alike.
 Printed: median seconds per method and the ratios auto/gem and auto/box
 measured in this run.
 
-Run: ``python benchmarks/bench_auto.py [--size 1024] [--spp 32] [--reps 3] [--profile]``
+Run: ``python benchmarks/bench_auto.py [--size 1024] [--spp 32] [--reps 3] [--profile] [--features]``
 (``--profile`` adds a breakdown of auto's stages in one extra run).
 """
 
@@ -25,7 +25,9 @@ import mcrecon
 from mcrecon.methods import get_method
 
 
-def synthetic_samples(size: int, spp: int, seed: int = 0) -> mcrecon.SampleSet:
+def synthetic_samples(size: int, spp: int, seed: int = 0, features: bool = False) -> mcrecon.SampleSet:
+    """The samples; with ``features`` each also carries an albedo (a checkerboard of 8 px squares,
+    which the colour is multiplied by), a normal and a depth, as a renderer's primary hit gives them."""
     rng = np.random.default_rng(seed)
     w = h = size
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float32) + 0.5
@@ -45,7 +47,17 @@ def synthetic_samples(size: int, spp: int, seed: int = 0) -> mcrecon.SampleSet:
     val *= sigma.reshape(-1, 3)[pix]
     val += ref.reshape(-1, 3)[pix]
     del pix
-    return mcrecon.SampleSet(pos, val, width=w, height=h)
+    if not features:
+        return mcrecon.SampleSet(pos, val, width=w, height=h)
+    sq = np.maximum(1.0, 8.0 * s)
+    on = ((np.floor(pos[:, 0] / sq) + np.floor(pos[:, 1] / sq)) % 2).astype(np.float32)
+    albedo = (0.2 + 0.6 * on)[:, None] * np.array([0.9, 0.8, 0.7], np.float32)
+    val *= albedo
+    normal = np.zeros((n, 3), np.float32)
+    normal[:, 2] = 1.0
+    depth = (1.0 + pos[:, 1:2] / h).astype(np.float32)
+    return mcrecon.SampleSet(pos, val, width=w, height=h,
+                             features={"albedo": albedo, "normal": normal, "depth": depth})
 
 
 def _time(ss, m) -> float:
@@ -88,11 +100,13 @@ def main(argv=None) -> None:
     ap.add_argument("--spp", type=int, default=32)
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--features", action="store_true", help="samples with albedo, normal and depth (auto then "
+                    "adds its feature-guided candidates; gem and box ignore the features)")
     a = ap.parse_args(argv)
-    ss = synthetic_samples(a.size, a.spp)
+    ss = synthetic_samples(a.size, a.spp, features=a.features)
     methods = {"box": get_method("box"), "gem": get_method("gem"), "auto": get_method("auto")}
     # compile every kernel once on a small image
-    small = synthetic_samples(64, 4, seed=1)
+    small = synthetic_samples(64, 4, seed=1, features=a.features)
     for m in methods.values():
         _time(small, m)
     times = {k: [] for k in methods}

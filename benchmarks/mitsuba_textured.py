@@ -43,6 +43,7 @@ Usage::
     python benchmarks/mitsuba_textured.py --root /tmp/mitsuba_textured
     python benchmarks/mitsuba_textured.py --root DIR --scenes thin_lens --methods box,gem
     python benchmarks/mitsuba_textured.py --root DIR --seeds 3 --methods nfor,auto:feature_candidates=none,auto
+    python benchmarks/mitsuba_textured.py --root DIR --seeds 3 --methods auto --adaptive auto
 """
 
 from __future__ import annotations
@@ -199,6 +200,22 @@ def evaluate(log, ref, methods):
     return out
 
 
+def adaptive(name, size, spp, seed, method, ref):
+    """(relMSE, CPU s) of an adaptive run of ``method`` on one scene through the bridge (features on)."""
+    import warnings
+
+    import mcrecon
+    from mcrecon.core.metrics import relative_mse
+    from mcrecon.renderers.mitsuba import MitsubaRenderer
+
+    renderer = MitsubaRenderer(build_scene(name, size), spp_per_pass=16)
+    t0 = time.process_time()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = mcrecon.adapt(renderer, _method(method), spp=spp, seed=seed, progress=False)
+    return relative_mse(np.asarray(res.image, np.float64), ref, eps=0.01), time.process_time() - t0
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--root", required=True, help="cache directory for the logs and references")
@@ -210,6 +227,9 @@ def main(argv=None):
                     "(default: every registered one)")
     ap.add_argument("--seeds", type=int, default=1, help="logs per scene (seeds 1..N; one reference): ratios "
                     "are means over them")
+    ap.add_argument("--adaptive", default="", help="methods also run adaptively (mcrecon.adapt through the "
+                    "bridge, features on, --spp on average, each seed's run seed): rows 'adapt NAME', their ratio "
+                    "to the uniform box of the same seed's log")
     args = ap.parse_args(argv)
 
     import os
@@ -229,12 +249,14 @@ def main(argv=None):
         for seed in range(1, args.seeds + 1):
             log, ref = cached(Path(args.root), name, args.size, args.spp, args.ref_spp, seed)
             per_seed.append(evaluate(log, ref, methods))
+            for m in (m for m in args.adaptive.split(",") if m):
+                per_seed[-1][f"adapt {m}"] = adaptive(name, args.size, args.spp, seed, m, ref)
         # per method: the mean over the logs of its ratio to box's relMSE (box: its mean relMSE), mean CPU s
         rows[name] = {m: (float(np.mean([r[m][0] / (1.0 if m == "box" else r["box"][0]) for r in per_seed])),
                           float(np.mean([r[m][1] for r in per_seed])))
                       for m in per_seed[0] if all(m in r for r in per_seed)}
     names = ["box"] + [k for k in ("oidn", "oidn+aux") if any(k in r for r in rows.values())] \
-        + [m for m in methods if m != "box"]
+        + [m for m in methods if m != "box"] + [f"adapt {m}" for m in args.adaptive.split(",") if m]
     print(f"\nrelMSE / relMSE(box), {args.size}^2, {args.spp} spp uniform, reference {args.ref_spp} spp, "
           f"mean over {args.seeds} log(s) (CPU s of the reconstruction in brackets)")
     print(f"{'method':10s}" + "".join(f"{n:>24s}" for n in rows))

@@ -90,14 +90,15 @@ def feature_guided_half(name: str, half: PixelStats) -> np.ndarray:
     """A feature-guided filter of one half buffer from that half alone (its colour and its features).
 
     ``xbil``: :func:`~mcrecon.filters.cross_bilateral.cross_bilateral` (RDFC-style: feature distances
-    normalised by the features' variance).  ``nfor``: NFOR's feature prefilter and collaborative
-    first-order regression (:mod:`mcrecon.methods.nfor`; window 19 x 19, patch 3, k = 1) with the
-    half's own NL-means weights (``dnlm``: NL-means of the half's colour divided by its albedo,
-    multiplied back, :func:`~mcrecon.filters.demodulation.demodulated_nlmeans`; None without an
-    ``albedo`` feature), not NFOR's crossed halves: a crossed half (A filtered with B's
-    weights) is not independent of B, and its cross-validation was 0.77x its true error on a
-    textured Mitsuba wall, where auto then chose it at 1.23x the error of auto without features
-    (docs/methods/auto.md).  Pixels without a sample take their nearest sampled neighbour's values.
+    normalised by the features' variance; window 11 x 11).  ``dnlm``: NL-means of the half's colour
+    divided by its albedo, multiplied back (:func:`~mcrecon.filters.demodulation.demodulated_nlmeans`);
+    None when the half has no ``albedo`` feature.  ``nfor``: NFOR's feature prefilter and
+    collaborative first-order regression (:mod:`mcrecon.methods.nfor`; window 19 x 19, patch 3,
+    k = 1) with the half's own NL-means weights, not NFOR's crossed halves: a crossed half (A
+    filtered with B's weights) is not independent of B, and its cross-validation was 0.77x its true
+    error on a textured Mitsuba wall, where auto then chose it at 1.23x the error of auto without
+    features (docs/methods/auto.md).  Pixels without a sample take their nearest sampled neighbour's
+    values.
     """
     from ...filters.nlmeans import nlmeans_filter
     from ...filters.regression import collaborative_regression
@@ -113,7 +114,9 @@ def feature_guided_half(name: str, half: PixelStats) -> np.ndarray:
     f, fv = _feature_planes(half)
     v = mean_variance_policy(half)
     if name == "xbil":
-        return cross_bilateral(y, v, f, fv)
+        # window 11^2, not RDFC's 21^2: the same choice on every scene measured (within 1.5 %) at
+        # 0.28x the time (8.5 -> 2.4 s a half at 1024^2; docs/methods/auto.md)
+        return cross_bilateral(y, v, f, fv, radius=5)
     if name == "nfor":
         pf = nlmeans_filter(f, f, fv, radius=5, patch=3, k=0.5)
         return collaborative_regression(y, y, v, pf, radius=9, patch=3, k=1.0, variance_scale=1.0)
@@ -168,7 +171,9 @@ class AutoMethod(Method):
     feature_candidates : str
         When the statistics carry per-pixel features (albedo, normal,
         depth): comma-separated subset of ``nfor, xbil, dnlm, fbil`` added
-        to the candidates (default all; ``none``: colour only).  ``nfor``,
+        to the candidates (default ``xbil,dnlm,fbil``: ``nfor`` costs 14 s
+        at 1024^2 for gains on few scenes, docs/methods/auto.md; ``none``:
+        colour only).  ``nfor``,
         ``xbil`` and ``dnlm`` (NL-means of the colour divided by the
         albedo, then multiplied back; only with an ``albedo`` feature)
         filter one half from that half alone
@@ -210,7 +215,7 @@ class AutoMethod(Method):
     options = (
         Option("candidates", str, DEFAULT_CANDIDATES, "comma-separated candidate reconstructions: "
                + ", ".join(CANDIDATES) + " (nlm/awr/splat/oidn need the samples: dual buffers)"),
-        Option("feature_candidates", str, "nfor,xbil,dnlm,fbil", "when the statistics carry features: "
+        Option("feature_candidates", str, "xbil,dnlm,fbil", "when the statistics carry features: "
                "comma-separated feature-guided candidates added to candidates: nfor (first-order regression, "
                "Bitterli et al. 2016), xbil (cross-bilateral, Rousselle et al. 2013) and dnlm (NL-means of the "
                "colour divided by the albedo) on the halves; fbil (bilateral with feature "
