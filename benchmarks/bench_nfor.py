@@ -7,12 +7,15 @@ method for 3 seeds, and nfor's reconstruction time (CPU time of the
 process, and wall time) at 128^2 and 512^2, warm (after a first run).
 With ``--scenes``, instead: the built-in textured scenes (checker_wall,
 checker_dof, checker_spot: exact reference, per-sample albedo, normal,
-depth), relMSE / box of nfor beside OIDN + albedo + normal (pixel means of
-the features, as benchmarks/bench_features.py) for 3 seeds, and nfor's CPU
-time per reconstruction.
+depth), relMSE / box of nfor beside the cross-bilateral filter, colour-only
+NL-means and OIDN + albedo + normal (pixel means of the features, as
+benchmarks/bench_features.py) for 3 seeds, and nfor's CPU time per
+reconstruction; with ``--mitsuba-root`` the same for the three textured
+Mitsuba scenes of benchmarks/mitsuba_textured.py.
 
     python benchmarks/bench_nfor.py [--size 128] [--spp 32] [--big 512] [--big-spp 16]
     python benchmarks/bench_nfor.py --scenes checker_wall,checker_dof,checker_spot [--size 128] [--spp 32]
+    python benchmarks/bench_nfor.py --mitsuba-root DIR [--seeds 3]   (needs the Mitsuba extra)
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / "tests")]  # this checkout's mcrecon, and the test scene
+sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "benchmarks")]  # this checkout, the test scene
 
 import mcrecon  # noqa: E402
 from mcrecon.core.fill import mean_variance_policy  # noqa: E402
@@ -62,31 +65,49 @@ def candidates(ss):
     return out, time.process_time() - t0, time.perf_counter() - w0
 
 
-def scenes_table(scenes, size, spp, seeds=(0, 1, 2)):
-    from mcrecon.core.samples import SampleSet
-    from mcrecon.core.stats import PixelStats
-    from mcrecon.renderers import scenes as S
-
+def _table(label_sources, header):
+    """relMSE / box of nfor, the cross-bilateral filter, colour-only NL-means and OIDN + aux, per scene:
+    ``label_sources`` yields (scene, [(source, reference), ...])."""
     mcrecon.reconstruct(scene_samples(32, 32, 4, seed=9, square=4), method="nfor")  # compile / load the cache
-    print(f"{size}^2, {spp} spp; relMSE / relMSE(box) per seed, mean (min-max); nfor CPU s (process_time)")
-    for scene in scenes:
-        ref = S.reference_image(scene, size, size)
+    print(header + "; relMSE / relMSE(box), mean over seeds (min-max); nfor CPU s (process_time)")
+    cols = ("nfor", "cross_bilateral", "nlm_colour", "oidn_albedo_normal")
+    for scene, pairs in label_sources:
         rows = []
-        for seed in seeds:
-            b = S.render_uniform(scene, width=size, height=size, spp=spp, seed=seed, features=True)
-            st = PixelStats.from_samples(b.positions, b.values, width=size, height=size, features=b.features)
-            src = SampleSet(b.positions, b.values, width=size, height=size, features=b.features)
-            e_box = relative_mse(st.mean, ref)
-            t0 = time.process_time()
-            img = mcrecon.reconstruct(src, method="nfor")
-            cpu = time.process_time() - t0
-            oidn = _oidn(st.mean, st.features["albedo"].mean, st.features["normal"].mean)
-            rows.append((e_box, relative_mse(img, ref) / e_box,
-                         relative_mse(oidn, ref) / e_box if oidn is not None else np.nan, cpu))
+        for src, ref in pairs:
+            out, cpu, _ = candidates(src)
+            e_box = relative_mse(out["box"], ref)
+            rows.append([e_box] + [relative_mse(out[c], ref) / e_box if out[c] is not None else np.nan
+                                   for c in cols] + [cpu])
         r = np.array(rows)
         fmt = lambda c: f"{r[:, c].mean():.3f} ({r[:, c].min():.3f}-{r[:, c].max():.3f})"  # noqa: E731
-        print(f"  {scene:13s} box relMSE {r[:, 0].mean():.5f}  nfor {fmt(1)}  oidn+alb+nrm {fmt(2)}  nfor cpu {r[:, 3].mean():.2f} s",
-              flush=True)
+        print(f"  {scene:14s} box relMSE {r[:, 0].mean():.5f}  " + "  ".join(f"{c} {fmt(i + 1)}"
+                                                                            for i, c in enumerate(cols))
+              + f"  nfor cpu {r[:, -1].mean():.2f} s", flush=True)
+
+
+def scenes_table(scenes, size, spp, seeds=(0, 1, 2)):
+    from mcrecon.core.samples import SampleSet
+    from mcrecon.renderers import scenes as S
+
+    def sources(scene):
+        ref = S.reference_image(scene, size, size)
+        for seed in seeds:
+            b = S.render_uniform(scene, width=size, height=size, spp=spp, seed=seed, features=True)
+            yield SampleSet(b.positions, b.values, width=size, height=size, features=b.features), ref
+
+    _table(((sc, sources(sc)) for sc in scenes), f"built-in scenes, {size}^2, {spp} spp, seeds {list(seeds)}")
+
+
+def mitsuba_table(root, seeds):
+    """The textured Mitsuba scenes of benchmarks/mitsuba_textured.py (its cached logs, rendered if absent)."""
+    import mitsuba_textured as mt
+
+    def sources(name):
+        for seed in range(1, seeds + 1):
+            log, ref = mt.cached(Path(root), name, 128, 32, 4096, seed)
+            yield mcrecon.read_log(log), ref
+
+    _table(((n, sources(n)) for n in mt.SCENES), f"Mitsuba textured scenes, 128^2, 32 spp, {seeds} logs")
 
 
 def main(argv=None):
@@ -96,7 +117,13 @@ def main(argv=None):
     ap.add_argument("--big", type=int, default=512)
     ap.add_argument("--big-spp", type=int, default=16)
     ap.add_argument("--scenes", default="", help="comma-separated built-in textured scenes: the scene table only")
+    ap.add_argument("--mitsuba-root", default="", help="cache directory of benchmarks/mitsuba_textured.py: the "
+                    "table of its three textured Mitsuba scenes only")
+    ap.add_argument("--seeds", type=int, default=3, help="with --mitsuba-root: logs per scene")
     a = ap.parse_args(argv)
+    if a.mitsuba_root:
+        mitsuba_table(a.mitsuba_root, a.seeds)
+        return
     if a.scenes:
         scenes_table([s for s in a.scenes.split(",") if s], a.size, a.spp)
         return
