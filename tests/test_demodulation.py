@@ -25,8 +25,8 @@ def test_a_constant_albedo_changes_nothing():
                                    nlmeans_filter(y, y, v, **OPTS), rtol=1e-4, atol=1e-9)
 
 
-def test_below_the_floor_pixels_are_filtered_as_colour():
-    """Albedo 0 (metal, glass, emitters): the divisor is the floor everywhere, a constant: the colour filter."""
+def test_an_albedo_of_zero_everywhere_is_the_colour_filter():
+    """Albedo 0 (metal, glass, emitters) everywhere: the divisor is the floor, a constant: the colour filter."""
     y, v = _noisy((16, 16, 3), 1)
     np.testing.assert_allclose(demodulated_nlmeans(y, v, np.zeros((16, 16, 3)), **OPTS),
                                nlmeans_filter(y, y, v, **OPTS), rtol=1e-4, atol=1e-9)
@@ -52,11 +52,28 @@ def test_a_checkerboard_under_smooth_light_keeps_its_edges():
     assert e_demod < 0.3 * e_colour, (e_demod / e_mean, e_colour / e_mean)
 
 
+def test_the_filter_is_scale_free():
+    """Colour x c (variance x c^2) gives the image x c, for a dim and a bright image alike: the quotient is
+    filtered in units of its mean magnitude (with the NL-means distance's absolute eps, a checkerboard
+    scaled by 1e-3 lost three quarters of the filter's gain)."""
+    h = w = 32
+    yy, xx = np.mgrid[0:h, 0:w]
+    alb = np.where(((yy // 4) + (xx // 4)) % 2 == 0, 0.9, 0.3)[..., None] * np.ones(3)
+    rng = np.random.default_rng(5)
+    y = alb * (1.0 + 0.5 * xx / w)[..., None] + 0.05 * rng.standard_normal((h, w, 3))
+    v = np.full(y.shape, 0.05 ** 2)
+    base = demodulated_nlmeans(y, v, alb, **OPTS)
+    for c in (1e-6, 1e-3, 1e4):
+        np.testing.assert_allclose(demodulated_nlmeans(c * y, c * c * v, alb, **OPTS), c * base, rtol=1e-4,
+                                   atol=1e-12 * c)
+
+
 def test_the_divisor():
     """Per channel when the albedo has the image's channels, their mean otherwise; NaN and values below
     the floor (negative ones too) become the floor."""
-    a = np.array([[[0.5, 0.01, np.nan]]])
-    np.testing.assert_array_equal(demodulation_divisor(a, 3), [[[0.5, ALBEDO_FLOOR, ALBEDO_FLOOR]]])
+    a = np.array([[[0.5, 0.01, np.nan]], [[np.inf, -np.inf, 2.0]]])
+    np.testing.assert_array_equal(demodulation_divisor(a, 3), [[[0.5, ALBEDO_FLOOR, ALBEDO_FLOOR]],
+                                                               [[ALBEDO_FLOOR, ALBEDO_FLOOR, 2.0]]])
     np.testing.assert_allclose(demodulation_divisor(np.array([[[0.2, 0.4, 0.6]]]), 1), [[[0.4]]])
     np.testing.assert_allclose(demodulation_divisor(np.array([[0.3]]), 2), [[[0.3, 0.3]]])
     np.testing.assert_array_equal(demodulation_divisor(np.array([[[-1.0]]]), 1, floor=0.1), [[[0.1]]])
@@ -66,5 +83,16 @@ def test_shapes_are_checked():
     y, v = _noisy((8, 8, 3), 3)
     with pytest.raises(ValueError, match="albedo .* does not match image"):
         demodulated_nlmeans(y, v, np.ones((8, 9, 3)))
+    with pytest.raises(ValueError, match="variance .* does not match image"):
+        demodulated_nlmeans(y, v[..., :1], np.ones((8, 8, 3)))
     with pytest.raises(ValueError, match=r"must be \(H, W, C\)"):
         demodulated_nlmeans(y[..., 0], v[..., 0], np.ones((8, 8)))
+
+
+def test_the_docstring_example_runs():
+    import doctest
+
+    import mcrecon.filters.demodulation as mod
+
+    res = doctest.testmod(mod)
+    assert res.failed == 0 and res.attempted > 0

@@ -86,7 +86,7 @@ def _feature_planes(st: PixelStats) -> tuple[np.ndarray, np.ndarray]:
     return f, fv
 
 
-def feature_guided_half(name: str, half: PixelStats) -> np.ndarray:
+def feature_guided_half(name: str, half: PixelStats) -> np.ndarray | None:
     """A feature-guided filter of one half buffer from that half alone (its colour and its features).
 
     ``xbil``: :func:`~mcrecon.filters.cross_bilateral.cross_bilateral` (RDFC-style: feature distances
@@ -153,6 +153,9 @@ class AutoRun(RunState):
     """Per-run state of :class:`AutoMethod`: the two halves of the committed samples (built by ``observe``)."""
 
     halves: Halves | None = None
+    #: Names of the last reconstruction's candidates in ``choice`` order (the feature-guided ones
+    #: included: which of them run depends on the features the samples carry).
+    candidate_names: list | None = None
     #: GEM's run state for ``sampling="gem"`` (its selection's diagnostics only; planning reads the statistics).
     gem_run: object = None
 
@@ -281,7 +284,7 @@ class AutoMethod(Method):
         # the dual-buffer candidates need the samples split in two, or two half buffers a
         # renderer wrote (half_buffers: the pair stands in for the samples; with SURE
         # candidates alone the pair is merged into the statistics of all the samples)
-        # features: read when the source has them and a feature candidate is on (nfor/xbil on the
+        # features: read when the source has them and a feature candidate is on (nfor/xbil/dnlm on the
         # halves, fbil without them; OIDN takes each half's albedo and normal then); a source without
         # features gives exactly the colour-only run
         return Requirements(samples=any(c in DUAL_BUFFER for c in self._names), half_buffers=True,
@@ -293,7 +296,10 @@ class AutoMethod(Method):
         return None
 
     def candidate_names(self) -> list[str]:
-        """Names of the candidates in ``choice`` order (``gauss`` expands to one per scale)."""
+        """Names of the colour candidates in ``choice`` order (``gauss`` expands to one per scale).
+
+        With features the feature-guided candidates follow them; a run's own list, those included,
+        is :attr:`AutoRun.candidate_names` after its reconstruction."""
         out = []
         for c in self._names:
             if c == "gauss":
@@ -388,8 +394,10 @@ class AutoMethod(Method):
         img = 0.5 * (a + b)
         mse = dual_buffer_mse(a, b, est_a, est_b)
         # a pixel without a sample in one half: no unbiased estimate (NaN, filled by
-        # the smoothing); its value comes from the half that has one
-        img = np.where(both[..., None], img, np.where(np.isfinite(a), a, b))
+        # the smoothing); its value comes from the half that has one (the feature
+        # candidates fill a half's empty pixels from its neighbours, so both are finite there)
+        only_b = (np.asarray(cb) > 0) & ~(np.asarray(ca) > 0)
+        img = np.where(both[..., None], img, np.where(only_b[..., None] | ~np.isfinite(a), b, a))
         mse = np.where(both[..., None], mse, np.nan)
         img = np.where(np.isfinite(img), img, 0.0)
         return Candidate(name, img, mse)
@@ -458,6 +466,7 @@ class AutoMethod(Method):
     # -------------------------------------------------------------- choice
     def _select(self, run: "AutoRun", stats: PixelStats, halves, samples_source, nonfinite="drop"):
         cands, y, v, count = self._candidates(stats, halves, samples_source, nonfinite)
+        run.candidate_names = [c.name for c in cands]
         den = relative_denominator(y, v, count, eps=DEFAULT_EPS)
         smooth = self.params["smooth"]
         # Smoothed estimates, floored by each pixel's own evidence of bias: a
