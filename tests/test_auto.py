@@ -830,7 +830,7 @@ def test_the_run_names_every_candidate_of_its_choice():
     ss, _ = _textured(0)
     rec = _quiet(lambda: mcrecon.reconstruct(ss, method="auto", full=True))
     names = rec.run.candidate_names
-    assert names[:10] == get_method("auto").candidate_names() and names[10:] == ["xbil", "dnlm"]
+    assert names[:10] == get_method("auto").candidate_names() and names[10:] == ["nfor", "xbil", "dnlm"]
     assert rec.diagnostics()["choice"].max() < len(names)
     assert "dnlm" in [names[int(k)] for k in np.unique(rec.diagnostics()["choice"])]
 
@@ -868,7 +868,7 @@ def test_without_an_albedo_dnlm_is_left_out():
                    features={k: v for k, v in ss.features.items() if k != "albedo"})
     np.testing.assert_array_equal(_quiet(lambda: mcrecon.reconstruct(ss, method="auto")),
                                   _quiet(lambda: mcrecon.reconstruct(ss, method=get_method(
-                                      "auto", feature_candidates="xbil,fbil"))))
+                                      "auto", feature_candidates="nfor,xbil,fbil"))))
 
 
 def test_feature_candidates_are_cross_validated_without_bias():

@@ -174,9 +174,7 @@ class AutoMethod(Method):
     feature_candidates : str
         When the statistics carry per-pixel features (albedo, normal,
         depth): comma-separated subset of ``nfor, xbil, dnlm, fbil`` added
-        to the candidates (default ``xbil,dnlm,fbil``: ``nfor`` costs 14 s
-        at 1024^2 for gains on few scenes, docs/methods/auto.md; ``none``:
-        colour only).  ``nfor``,
+        to the candidates (default all; ``none``: colour only).  ``nfor``,
         ``xbil`` and ``dnlm`` (NL-means of the colour divided by the
         albedo, then multiplied back; only with an ``albedo`` feature)
         filter one half from that half alone
@@ -218,7 +216,7 @@ class AutoMethod(Method):
     options = (
         Option("candidates", str, DEFAULT_CANDIDATES, "comma-separated candidate reconstructions: "
                + ", ".join(CANDIDATES) + " (nlm/awr/splat/oidn need the samples: dual buffers)"),
-        Option("feature_candidates", str, "xbil,dnlm,fbil", "when the statistics carry features: "
+        Option("feature_candidates", str, "nfor,xbil,dnlm,fbil", "when the statistics carry features: "
                "comma-separated feature-guided candidates added to candidates: nfor (first-order regression, "
                "Bitterli et al. 2016), xbil (cross-bilateral, Rousselle et al. 2013) and dnlm (NL-means of the "
                "colour divided by the albedo) on the halves; fbil (bilateral with feature "
