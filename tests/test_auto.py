@@ -973,3 +973,19 @@ def test_feature_candidates_none_makes_oidn_colour_only_too():
     opts = dict(candidates="box,gauss,nlm,oidn", feature_candidates="none")
     np.testing.assert_array_equal(_quiet(lambda: mcrecon.reconstruct(ss_f, method=get_method("auto", **opts))),
                                   _quiet(lambda: mcrecon.reconstruct(ss, method=get_method("auto", **opts))))
+
+
+def test_a_feature_candidate_is_the_global_default_at_half_a_standard_error(monkeypatch):
+    """_significantly_lower: the summed difference against Z_GLOBAL standard errors from the spread of
+    its 8 x 8 tiles' sums.  Tile sums -2, 1, -2, 1: total -2, se = sqrt(4) * std = 2 sqrt(3) = 3.46:
+    lower by 0.58 se, so it passes at the default 0.5 and not at the former 2."""
+    from mcrecon.methods.auto import selection
+
+    d = np.zeros((16, 16))
+    d[0, 0], d[0, 8], d[8, 0], d[8, 8] = -2.0, 1.0, -2.0, 1.0
+    assert selection.Z_GLOBAL == 0.5 and selection.BLOCK == 8
+    assert selection._significantly_lower(d)
+    monkeypatch.setattr(selection, "Z_GLOBAL", 2.0)
+    assert not selection._significantly_lower(d)
+    monkeypatch.setattr(selection, "Z_GLOBAL", 0.6)   # 0.58 se: just short of it
+    assert not selection._significantly_lower(d)
