@@ -56,6 +56,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(1, str(Path(__file__).resolve().parent))
+
+from bench_features import _method  # noqa: E402  (name or name:key=value:... method specs)
 
 SCENES = ("floor_spheres", "thin_lens", "wall_floor")
 
@@ -157,14 +160,6 @@ def oidn(color, albedo=None, normal=None):
         return np.asarray(pyoidn.denoise(c(color), hdr=True, quality="high"), np.float64)
     return np.asarray(pyoidn.denoise(c(color), c(np.clip(albedo, 0, 1)), c(np.clip(normal, -1, 1)), hdr=True,
                                      quality="high", clean_aux=False), np.float64)
-
-
-def _method(spec: str):
-    """``name`` or ``name:key=value:key=value`` (e.g. ``auto:feature_candidates=none``)."""
-    import mcrecon
-
-    name, *opts = spec.split(":")
-    return mcrecon.get_method(name, **dict(o.split("=", 1) for o in opts)) if opts else name
 
 
 def evaluate(log, ref, methods):
