@@ -24,12 +24,11 @@ against, and an array-level candidate (:func:`cross_bilateral`).
 
 from __future__ import annotations
 
-import math
-
 import numba
 import numpy as np
 
 from .engine import numba_threads
+from .nlmeans import exp_neg
 
 __all__ = ["cross_bilateral", "feature_gradient2"]
 
@@ -39,32 +38,53 @@ _EPS = 1e-10
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _row(img, var, feat, fvar, fden, r, kc2, kf2, use_colour, i, num, den):
+    """Row i of the filter, offset by offset: for each window row qi and column offset dx the distances of
+    every pixel of the row at once (loops along the row on 0-based slices: LLVM vectorises them), then its
+    weight and contribution.  Each pixel sums its window's pixels in the window's row-major order and each
+    distance term in the order of the formula; the weight is :func:`~.nlmeans.exp_neg` (vectorisable,
+    within 1e-9 relative of ``exp(-d)``; a NaN distance weighs 0): 4x the pixel-by-pixel loop's speed."""
     c, h, w = img.shape
     nf = feat.shape[0]
     inv_c = 1.0 / c
-    for j in range(w):
-        acc_w = 0.0
-        for qi in range(max(0, i - r), min(h, i + r + 1)):
-            for qj in range(max(0, j - r), min(w, j + r + 1)):
-                d = 0.0
-                if use_colour:
-                    dc = 0.0
-                    for ch in range(c):
-                        vp = var[ch, i, j]
-                        vq = var[ch, qi, qj]
-                        diff = img[ch, i, j] - img[ch, qi, qj]
-                        dc += (diff * diff - (vp + min(vp, vq))) / (_EPS + kc2 * (vp + vq))
-                    d = max(d, dc * inv_c)
-                for m in range(nf):
-                    sp = fvar[m, i, j]
-                    sq = fvar[m, qi, qj]
-                    diff = feat[m, i, j] - feat[m, qi, qj]
-                    d = max(d, (diff * diff - (sp + min(sp, sq))) / (kf2 * fden[m, i, j]))
-                wt = math.exp(-d)
-                acc_w += wt
+    dist = np.empty(w)
+    for qi in range(max(0, i - r), min(h, i + r + 1)):
+        for dx in range(-r, r + 1):
+            j0 = max(0, -dx)
+            j1 = min(w, w - dx)
+            n = j1 - j0
+            if n <= 0:
+                continue
+            d = dist[:n]
+            for t in range(n):
+                d[t] = 0.0
+            if use_colour:
                 for ch in range(c):
-                    num[ch, i, j] += wt * img[ch, qi, qj]
-        den[i, j] = acc_w
+                    up, uq = img[ch, i, j0:j1], img[ch, qi, j0 + dx:j1 + dx]
+                    vp_, vq_ = var[ch, i, j0:j1], var[ch, qi, j0 + dx:j1 + dx]
+                    for t in range(n):
+                        vp = vp_[t]
+                        vq = vq_[t]
+                        diff = up[t] - uq[t]
+                        d[t] += (diff * diff - (vp + min(vp, vq))) / (_EPS + kc2 * (vp + vq))
+                for t in range(n):
+                    d[t] = max(0.0, d[t] * inv_c)
+            for m in range(nf):
+                fp, fq = feat[m, i, j0:j1], feat[m, qi, j0 + dx:j1 + dx]
+                sp_, sq_, fd = fvar[m, i, j0:j1], fvar[m, qi, j0 + dx:j1 + dx], fden[m, i, j0:j1]
+                for t in range(n):
+                    sp = sp_[t]
+                    sq = sq_[t]
+                    diff = fp[t] - fq[t]
+                    d[t] = max(d[t], (diff * diff - (sp + min(sp, sq))) / (kf2 * fd[t]))
+            dn = den[i, j0:j1]
+            for t in range(n):
+                wt = exp_neg(d[t])
+                d[t] = wt
+                dn[t] += wt
+            for ch in range(c):
+                nu, src = num[ch, i, j0:j1], img[ch, qi, j0 + dx:j1 + dx]
+                for t in range(n):
+                    nu[t] += d[t] * src[t]
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
