@@ -105,6 +105,28 @@ def test_collaborative_regression_matches_brute_force_fits_and_averaging():
                                   collaborative_regression(y, guide, var, feats, radius=r, patch=f, k=k, threads=2))
 
 
+def test_centre_weight_is_the_derivative_of_each_output_by_its_own_input():
+    """With the guide and the features fixed the regression is linear in the image: a unit impulse at
+    pixel i moves output i by exactly the centre weight (for every channel), and asking for it changes
+    neither the image nor the weights."""
+    y, guide, var, feats = _tiny(2, h=8, w=11)
+    r, f, k = 3, 1, 0.8
+    plain, den = collaborative_regression(y, guide, var, feats, radius=r, patch=f, k=k, return_weights=True)
+    out, den2, cw = collaborative_regression(y, guide, var, feats, radius=r, patch=f, k=k, return_weights=True,
+                                             return_centre_weight=True)
+    np.testing.assert_array_equal(out, plain)
+    np.testing.assert_array_equal(den2, den)
+    h, w, c = y.shape
+    for i in range(h):
+        for j in range(w):
+            for ch in range(c):
+                e = np.zeros_like(y)
+                e[i, j, ch] = 1.0
+                moved = collaborative_regression(y + e, guide, var, feats, radius=r, patch=f, k=k) - plain
+                assert moved[i, j, ch] == pytest.approx(cw[i, j], rel=1e-9, abs=1e-12)
+    assert 0.0 < cw.min() and cw.max() <= 1.0 + 1e-12
+
+
 # ------------------------------------------------------------------ fast kernels = the reference kernels
 def test_exp_neg_is_exp_to_1e_9_and_zero_beyond_80():
     t = np.concatenate([np.linspace(0.0, 80.0, 4001), [1e-12, 79.999, 80.0]])

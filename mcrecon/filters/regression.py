@@ -77,9 +77,10 @@ def _solve_spd(a, b, d, nc):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, i0, i1, acc):
-    """Rows [i0, i1) as window centres; predictions accumulated into acc (C + 1, i1 - i0 + 2r, W + 2r),
-    whose (t, u) is image pixel (i0 - r + t, u - r) (the last plane: the weights).
+def _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, leverage, i0, i1, acc):
+    """Rows [i0, i1) as window centres; predictions accumulated into acc (C + 1 [+ 1], i1 - i0 + 2r, W + 2r),
+    whose (t, u) is image pixel (i0 - r + t, u - r) (plane C: the weights; with ``leverage``, plane C + 1:
+    sum_p w_pq^2 x_q^T A_p^-1 x_q, the numerator of the filter's centre weight :func:`_leverages`).
 
     ypad (C, H + 2r, W + 2r), fpad (D, H + 2r, W + 2r): colour and features padded by r zeros, so that
     every window is whole (outside the image the weight is 0 and adds exactly nothing).  Offset-major:
@@ -136,6 +137,8 @@ def _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, i0, i
     wv = np.zeros(n)
     a = np.zeros((de, de))
     bm = np.zeros((d, nc))
+    zt = np.zeros((de, n)) if leverage else np.zeros((0, n))
+    lev = np.zeros(n) if leverage else np.zeros(0)
     inv_r = 1.0 / max(r, 1)
     for dy in range(-r, r + 1):  # the pixel-offset columns are the same for every window
         for dx in range(-r, r + 1):
@@ -169,6 +172,8 @@ def _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, i0, i
                 a[p, p] += ridge * s0
             _solve_spd(a, bm, d, nc)
             _predict(xt, bm, yp, d, n)
+            if leverage:
+                _leverages(a, xt, zt, lev, d, n)
             # 3. each fit predicts its window: acc(q) += w_pq x_q^T beta_p
             for dy in range(side):
                 for c in range(nc):
@@ -181,6 +186,11 @@ def _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, i0, i
                 ws = wv[dy * side:(dy + 1) * side]
                 for u in range(side):
                     dst[u] += ws[u]
+                if leverage:
+                    dst = acc[nc + 1, rr + dy, j:j + side]
+                    ls = lev[dy * side:(dy + 1) * side]
+                    for u in range(side):
+                        dst[u] += ws[u] * ws[u] * ls[u]
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
@@ -228,6 +238,31 @@ def _normal_equations(xt, wx, wv, yt, a, bm, d, de, n):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
+def _leverages(chol, xt, zt, lev, d, n):
+    """lev[t] = x_t^T A^-1 x_t over the window, from the Cholesky factor L of A (lower triangle of ``chol``):
+    z = L^-1 x_t by forward substitution, for every t at once (loops along the window), lev = |z|^2.
+
+    The prediction of pixel t by this window moves by ``w_t lev[t]`` per unit of y_t (d beta = A^-1 x_t
+    w_t dy_t), so summed over the windows covering a pixel, weighted as the collaborative average weighs
+    them, it is the filter's derivative at the pixel itself: Stein's estimate needs nothing else."""
+    for t in range(n):
+        lev[t] = 0.0
+    for i in range(d):
+        zi, xi = zt[i], xt[i]
+        for t in range(n):
+            zi[t] = xi[t]
+        for k in range(i):
+            lik = chol[i, k]
+            zk = zt[k]
+            for t in range(n):
+                zi[t] -= lik * zk[t]
+        inv = 1.0 / chol[i, i]
+        for t in range(n):
+            zi[t] *= inv
+            lev[t] += zi[t] * zi[t]
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
 def _predict(xt, beta, yp, d, n):
     """yp[c, t] = x_t^T beta[:, c] over the window (two columns per pass: half the stores)."""
     nc = yp.shape[0]
@@ -250,12 +285,13 @@ def _predict(xt, beta, yp, d, n):
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _regression_kernel(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, band, accs):
+def _regression_kernel(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, leverage, band, accs):
     h = guide.shape[1]
     n_bands = (h + band - 1) // band
     for b in numba.prange(n_bands):
         i0 = b * band
-        _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, i0, min(h, i0 + band), accs[b])
+        _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, leverage, i0, min(h, i0 + band),
+              accs[b])
 
 
 @numba.njit(cache=True, nogil=True)
@@ -286,7 +322,7 @@ def standardise(features) -> np.ndarray:
 
 def collaborative_regression(image, guide, variance, features, *, radius: int = 9, patch: int = 3, k: float = 1.0,
                              variance_scale: float = 2.0, ridge: float = RIDGE, threads: int | None = None,
-                             return_weights: bool = False):
+                             return_weights: bool = False, return_centre_weight: bool = False):
     """Collaborative first-order regression of ``image`` on ``features``, weighted by NL-means of ``guide``.
 
     Parameters
@@ -311,10 +347,19 @@ def collaborative_regression(image, guide, variance, features, *, radius: int = 
     return_weights : bool
         Also return the per-pixel sum of the weights of the predictions
         averaged (the collaborative denominator).
+    return_centre_weight : bool
+        Also return each pixel's centre weight ``w_ii``, the derivative of
+        its output by its own input value, ``sum_p w_pi^2 x_i^T A_p^-1 x_i
+        / sum_p w_pi``: with a guide and features independent of ``image``
+        the filter is linear in it, and Stein's estimate of its MSE is
+        exact with this ``w_ii``
+        (:func:`mcrecon.methods.auto.estimates.sure`).  Costs about half
+        the regression again.
 
     Returns
     -------
-    ndarray (H, W, C) float64 (and (H, W) weights with ``return_weights``)
+    ndarray (H, W, C) float64, then (H, W) weights with ``return_weights``
+    and (H, W) centre weights with ``return_centre_weight``
     """
     y = as_planes(image)
     g = as_planes(guide, np.float32)
@@ -330,13 +375,15 @@ def collaborative_regression(image, guide, variance, features, *, radius: int = 
                          f"variance {v.shape}, features {fp.shape} (planes)")
     r = int(radius)
     n_bands = (h + BAND - 1) // BAND
-    accs = np.zeros((n_bands, nc + 1, BAND + 2 * r, w + 2 * r))
+    planes = nc + 1 + bool(return_centre_weight)
+    accs = np.zeros((n_bands, planes, BAND + 2 * r, w + 2 * r))
     pad = ((0, 0), (r, r), (r, r))
     with numba_threads(threads):
         _regression_kernel(np.pad(y, pad), g, v, np.pad(fp, pad), r, int(patch), np.float32(float(k) ** 2),
-                           float(ridge), np.float32(NLM_EPS), np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT, BAND,
-                           accs)
-    out = np.zeros((nc + 1, h, w))
+                           float(ridge), np.float32(NLM_EPS), np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT,
+                           bool(return_centre_weight), BAND, accs)
+    out = np.zeros((planes, h, w))
     _gather(accs, r, BAND, out)
     res = np.moveaxis(out[:nc] / out[nc], 0, 2)
-    return (res, out[nc]) if return_weights else res
+    extra = ((out[nc],) if return_weights else ()) + ((out[nc + 1] / out[nc],) if return_centre_weight else ())
+    return (res,) + extra if extra else res
