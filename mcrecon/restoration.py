@@ -419,7 +419,7 @@ def splat(source, /, *, variant="robust", alpha=0.5, c=2.0, c_prime=8.0, initial
 
 
 @_given_options
-def auto(source, /, *, candidates="box,gauss,nlm", feature_candidates="nfor,xbil,dnlm,fbil", scales=8, smooth=2.0, nlm_radius=3, nlm_patch=1,
+def auto(source, /, *, candidates="box,gauss,nlm", feature_candidates="nfor,nfor_own,dnlm,mix,fbil", scales=8, smooth=2.0, nlm_radius=3, nlm_patch=1,
          nlm_k=0.45, initial_spp=4, iterations=4, sampling="gem", uniform_share=0.5, safeguard=4.0,
          global_prior=3.0, nonfinite="drop", **unknown) -> np.ndarray:
     """Per-pixel choice among reconstructions by their estimated (reference-free) error.
@@ -435,11 +435,12 @@ def auto(source, /, *, candidates="box,gauss,nlm", feature_candidates="nfor,xbil
         Comma-separated candidate reconstructions: box, gauss, nlm, awr, splat, oidn (nlm/awr/splat/oidn need
         the samples: dual buffers); a string (default "box,gauss,nlm").
     feature_candidates : str, optional
-        When the statistics carry features: comma-separated feature-guided candidates added to candidates:
-        nfor (first-order regression, Bitterli et al. 2016), xbil (cross-bilateral, Rousselle et al. 2013) and
-        dnlm (NL-means of the colour divided by the albedo) on the halves; fbil (bilateral with feature weights
-        only, SURE) from pixel statistics without halves; none: colour only; a string (default
-        "nfor,xbil,dnlm,fbil").
+        When the statistics carry features: comma-separated feature-guided candidates added to candidates, on
+        the halves: nfor (first-order regression on the other half's weights and features, Bitterli et al.
+        2016; SURE), nfor_own (the same on the half's own), dnlm (NL-means of the colour divided by the
+        albedo), mix (nfor_own and dnlm averaged 1:2, 1:1, 2:1), xbil (cross-bilateral, Rousselle et al.
+        2013); fbil (bilateral with feature weights only, SURE) from pixel statistics without halves; none:
+        colour only; a string (default "nfor,nfor_own,dnlm,mix,fbil").
     scales : int, optional
         Gaussian scales of the gauss candidates (GEM's final bank); an integer with 1 <= scales <= 16 (default
         8).

@@ -40,14 +40,19 @@ from ...filters.masked import _smooth_masked, _smooth_masked_many
 from .selection import (_floored, _global_prior, _largest_remainder, _mean_c, _no_push_in_heavy_tails,
     _pick_where)
 
-__all__ = ['AutoMethod', 'AutoRun', 'CANDIDATES', 'DEFAULT_CANDIDATES', 'DUAL_BUFFER', 'FEATURE_CANDIDATES']
+__all__ = ['AutoMethod', 'AutoRun', 'CANDIDATES', 'DEFAULT_CANDIDATES', 'DEFAULT_FEATURE_CANDIDATES', 'DUAL_BUFFER',
+           'FEATURE_CANDIDATES', 'MIX_WEIGHTS']
 
 #: Every candidate name ``candidates`` accepts.
 CANDIDATES = ("box", "gauss", "nlm", "awr", "splat", "oidn")
 #: Candidates that need the samples split into two halves.
 DUAL_BUFFER = ("nlm", "awr", "splat", "oidn")
 #: Feature-guided candidates (option ``feature_candidates``), used when the samples carry features.
-FEATURE_CANDIDATES = ("nfor", "xbil", "dnlm", "fbil")
+FEATURE_CANDIDATES = ("nfor", "nfor_own", "dnlm", "mix", "xbil", "fbil")
+#: The measured default of ``feature_candidates`` (docs/methods/auto.md, "With per-sample features").
+DEFAULT_FEATURE_CANDIDATES = "nfor,nfor_own,dnlm,mix,fbil"
+#: Weights of ``nfor_own`` in the ``mix`` candidates (``w nfor_own + (1 - w) dnlm`` per half).
+MIX_WEIGHTS = (1 / 3, 1 / 2, 2 / 3)
 #: Placement of the adaptive rounds' samples (option ``sampling``).
 SAMPLINGS = ("gem", "uniform", "greedy")
 #: The measured default (docs/methods/auto.md, "Choosing the default candidates").
@@ -89,8 +94,9 @@ def _feature_planes(st: PixelStats) -> tuple[np.ndarray, np.ndarray]:
 
 class _HalfPlanes:
     """One half buffer's inputs to the feature-guided filters, each computed once and only if asked for:
-    its colour and the variance of its means (also the other half's cross-validation needs), and its
-    features with their variances (:func:`_feature_planes`)."""
+    its colour and the variance of its means (also the other half's cross-validation needs), its
+    features with their variances (:func:`_feature_planes`), and those features NL-means prefiltered
+    (NFOR's Sec. 5.1 with the half's own weights: window 11^2, patch 7^2, k = 0.5)."""
 
     def __init__(self, half: PixelStats):
         self.half = half
@@ -107,6 +113,13 @@ class _HalfPlanes:
     def features(self) -> tuple[np.ndarray, np.ndarray]:
         return _feature_planes(self.half)
 
+    @functools.cached_property
+    def prefiltered(self) -> np.ndarray:
+        from ...filters.nlmeans import nlmeans_filter
+
+        f, fv = self.features
+        return nlmeans_filter(f, f, fv, radius=5, patch=3, k=0.5)
+
 
 def feature_guided_half(name: str, half: PixelStats | _HalfPlanes) -> np.ndarray | None:
     """A feature-guided filter of one half buffer from that half alone (its colour and its features).
@@ -114,16 +127,12 @@ def feature_guided_half(name: str, half: PixelStats | _HalfPlanes) -> np.ndarray
     ``xbil``: :func:`~mcrecon.filters.cross_bilateral.cross_bilateral` (RDFC-style: feature distances
     normalised by the features' variance; window 11 x 11).  ``dnlm``: NL-means of the half's colour
     divided by its albedo, multiplied back (:func:`~mcrecon.filters.demodulation.demodulated_nlmeans`);
-    None when the half has no ``albedo`` feature.  ``nfor``: NFOR's feature prefilter and
+    None when the half has no ``albedo`` feature.  ``nfor_own``: NFOR's feature prefilter and
     collaborative first-order regression (:mod:`mcrecon.methods.nfor`; window 19 x 19, patch 3,
-    k = 1) with the half's own NL-means weights, not NFOR's crossed halves: a crossed half (A
-    filtered with B's weights) is not independent of B, and its cross-validation was 0.77x its true
-    error on a textured Mitsuba wall, where auto then chose it at 1.23x the error of auto without
-    features (docs/methods/auto.md).  Pixels without a sample take their nearest sampled neighbour's
+    k = 1) with the half's own NL-means weights and features (NFOR's crossed halves are the ``nfor``
+    candidate, :func:`_regressions`).  Pixels without a sample take their nearest sampled neighbour's
     values.
     """
-    from ...filters.nlmeans import nlmeans_filter
-    from ...filters.regression import collaborative_regression
     from ...filters.cross_bilateral import cross_bilateral
     from ...filters.demodulation import demodulated_nlmeans
 
@@ -134,15 +143,40 @@ def feature_guided_half(name: str, half: PixelStats | _HalfPlanes) -> np.ndarray
         if alb is None:
             return None
         return demodulated_nlmeans(y, v, _filled(alb.mean, alb.count))
-    f, fv = p.features
     if name == "xbil":
         # window 11^2, not RDFC's 21^2: the same choice on every scene measured (within 1.5 %) at
         # 0.28x the time (8.5 -> 2.4 s a half at 1024^2; docs/methods/auto.md)
+        f, fv = p.features
         return cross_bilateral(y, v, f, fv, radius=5)
-    if name == "nfor":
-        pf = nlmeans_filter(f, f, fv, radius=5, patch=3, k=0.5)
-        return collaborative_regression(y, y, v, pf, radius=9, patch=3, k=1.0, variance_scale=1.0)
-    raise ValueError(f"feature_guided_half: {name!r}; valid: " + ", ".join(FEATURE_CANDIDATES))
+    if name == "nfor_own":
+        return _regressions(p, None)[0]
+    raise ValueError(f"feature_guided_half: {name!r}; valid: xbil, dnlm, nfor_own")
+
+
+def _regressions(guide: _HalfPlanes, other: _HalfPlanes | None, *, own: bool = True):
+    """NFOR's collaborative regression (window 19 x 19, patch 3, k = 1) on one half's NL-means weights and
+    prefiltered features, of that half's colour (``own``: the ``nfor_own`` image) and of the ``other``
+    half's (NFOR's cross-buffer image of the other half, with its centre weight).
+
+    The weights and the design, and so the normal equations and their factorisation, serve both colours:
+    one pass instead of two.  The cross-buffer image of half B is a linear function of B's colour whose
+    weights and features come from half A alone, so Stein's estimate with the exact centre weight
+    (:func:`~mcrecon.filters.regression.collaborative_regression`) is unbiased for its MSE; NFOR's own
+    dual-buffer estimate of it is not (its filtered halves depend on both halves: 0.77x the true error
+    on a textured Mitsuba wall).  Returns ``(own image or None, other's image or None, its centre
+    weight or None)``.
+    """
+    from ...filters.regression import collaborative_regression
+
+    parts = ([guide.colour] if own else []) + ([other.colour] if other is not None else [])
+    c = guide.colour.shape[2]
+    img = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=2)
+    res = collaborative_regression(img, guide.colour, guide.variance, guide.prefiltered, radius=9, patch=3, k=1.0,
+                                   variance_scale=1.0, return_centre_weight=other is not None)
+    if other is None:
+        return res, None, None
+    out, cw = res
+    return (out[..., :c] if own else None), out[..., -c:], cw
 
 
 def _feature_bilateral(stats: PixelStats, y: np.ndarray, v: np.ndarray) -> "Candidate":
@@ -160,7 +194,18 @@ def _feature_bilateral(stats: PixelStats, y: np.ndarray, v: np.ndarray) -> "Cand
     f, fv = _feature_planes(stats)
     img, wsum = cross_bilateral(_filled(y, stats.count), v, f, fv, k_colour=None, return_weights=True)
     mse = sure(y, v, img, 1.0 / wsum)
-    return Candidate("fbil", img, np.where((stats.count > 0)[..., None], mse, np.nan))
+    return Candidate("fbil", img, np.where((stats.count > 0)[..., None], mse, np.nan), feature=True)
+
+
+def _albedo_divisor(stats: PixelStats) -> np.ndarray | None:
+    """Each pixel's albedo as a divisor of its colour (:func:`~mcrecon.filters.demodulation.demodulation_divisor`:
+    floored at 0.02), or None without an ``albedo`` feature."""
+    from ...filters.demodulation import demodulation_divisor
+
+    alb = stats.features.get("albedo") if stats.features else None
+    if alb is None:
+        return None
+    return demodulation_divisor(_filled(alb.mean, alb.count), stats.mean.shape[2])
 
 
 @dataclasses.dataclass(eq=False)
@@ -168,6 +213,7 @@ class Candidate:
     name: str
     image: np.ndarray   # (H, W, C)
     mse: np.ndarray     # (H, W, C) unbiased estimate (NaN: undefined at that pixel, +inf: impossible)
+    feature: bool = False   # guided by the features (the global prior's default test treats these apart)
 
 
 @dataclasses.dataclass(eq=False)
@@ -195,17 +241,22 @@ class AutoMethod(Method):
         needs ``pyoidn``; ``splat`` only offline.
     feature_candidates : str
         When the statistics carry per-pixel features (albedo, normal,
-        depth): comma-separated subset of ``nfor, xbil, dnlm, fbil`` added
-        to the candidates (default all; ``none``: colour only).  ``nfor``,
-        ``xbil`` and ``dnlm`` (NL-means of the colour divided by the
-        albedo, then multiplied back; only with an ``albedo`` feature)
-        filter one half from that half alone
-        (:func:`feature_guided_half`), so their cross-validation is
-        unbiased; they run on the halves.  ``fbil`` (:func:`_feature_bilateral`)
-        runs only without halves (pixel statistics: an EXR), by SURE.  With
-        ``oidn`` among the candidates OIDN gets each half's albedo and
-        normal.  Without features the run is the colour-only one, bit for
-        bit.
+        depth): comma-separated subset of ``nfor, nfor_own, dnlm, mix,
+        xbil, fbil`` added to the candidates (default
+        ``nfor,nfor_own,dnlm,mix,fbil``; ``none``: colour only).  On the
+        halves: ``nfor`` regresses each half on the other half's NL-means
+        weights and prefiltered features (NFOR's cross-buffer regression,
+        scored by Stein's estimate with its exact centre weight,
+        :func:`_regressions`); ``nfor_own``, ``dnlm`` (NL-means of the
+        colour divided by the albedo, then multiplied back; only with an
+        ``albedo`` feature), ``xbil`` and ``mix`` (``nfor_own`` and
+        ``dnlm`` averaged with the weights :data:`MIX_WEIGHTS`: three
+        candidates) filter one half from that half alone
+        (:func:`feature_guided_half`), scored by cross-validation against
+        the other.  ``fbil`` (:func:`_feature_bilateral`) runs only
+        without halves (pixel statistics: an EXR), by SURE.  With ``oidn``
+        among the candidates OIDN gets each half's albedo and normal.
+        Without features the run is the colour-only one, bit for bit.
     scales : int
         Gaussian scales of ``gauss`` (GEM's final ones, sqrt 2 apart from sqrt 2 px; 8).
     smooth : float
@@ -238,11 +289,12 @@ class AutoMethod(Method):
     options = (
         Option("candidates", str, DEFAULT_CANDIDATES, "comma-separated candidate reconstructions: "
                + ", ".join(CANDIDATES) + " (nlm/awr/splat/oidn need the samples: dual buffers)"),
-        Option("feature_candidates", str, "nfor,xbil,dnlm,fbil", "when the statistics carry features: "
-               "comma-separated feature-guided candidates added to candidates: nfor (first-order regression, "
-               "Bitterli et al. 2016), xbil (cross-bilateral, Rousselle et al. 2013) and dnlm (NL-means of the "
-               "colour divided by the albedo) on the halves; fbil (bilateral with feature "
-               "weights only, SURE) from pixel statistics without halves; none: colour only"),
+        Option("feature_candidates", str, DEFAULT_FEATURE_CANDIDATES, "when the statistics carry features: "
+               "comma-separated feature-guided candidates added to candidates, on the halves: nfor (first-order "
+               "regression on the other half's weights and features, Bitterli et al. 2016; SURE), nfor_own (the "
+               "same on the half's own), dnlm (NL-means of the colour divided by the albedo), mix (nfor_own and "
+               "dnlm averaged 1:2, 1:1, 2:1), xbil (cross-bilateral, Rousselle et al. 2013); fbil (bilateral "
+               "with feature weights only, SURE) from pixel statistics without halves; none: colour only"),
         Option("scales", int, 8, "Gaussian scales of the gauss candidates (GEM's final bank)", min=1, max=16),
         Option("smooth", float, 2.0, "sigma (px) of the smoothing of the error maps before the choice "
                "(0: none)", min=0.0, max=32.0),
@@ -393,24 +445,48 @@ class AutoMethod(Method):
         return out, y, v, count
 
     def _feature_candidates(self, stats: PixelStats, ha: PixelStats, hb: PixelStats) -> list[Candidate]:
-        """The feature-guided candidates on the two halves (:func:`feature_guided_half` of each).
+        """The feature-guided candidates on the two halves.
 
-        Each half is filtered with its own colour and features only, so each result is independent
-        of the other half and its cross-validation against it unbiased (as for the black boxes).
+        ``nfor_own``, ``dnlm``, ``xbil`` and the ``mix`` of the first two filter each half with its own
+        colour and features only (:func:`feature_guided_half`), so each result is independent of the
+        other half and its cross-validation against it unbiased (as for the black boxes).  ``nfor``
+        filters each half with the other's weights and features (:func:`_regressions`), so it is
+        scored by Stein's estimate instead, exact for a filter linear in the half it filters.
         """
-        out = []
+        from .estimates import sure
+
+        names = self._feature_names
         pa, pb = _HalfPlanes(ha), _HalfPlanes(hb)
-        for name in (n for n in self._feature_names if n != "fbil"):
-            a = feature_guided_half(name, pa)
-            b = feature_guided_half(name, pb)
-            if a is None or b is None:   # a feature it needs is not in the samples
-                continue
-            out.append(self._dual(name, a, b, cross_validation_mse(a, hb.mean, pb.variance),
-                                  cross_validation_mse(b, ha.mean, pa.variance), ha.count, hb.count))
+        own = {}
+        out = []
+        want_own = "nfor_own" in names or ("mix" in names and "albedo" in ha.features)
+        if "nfor" in names or want_own:
+            # one regression per half serves that half's own image and the other half's crossed one
+            own_a, cross_b, cw_b = _regressions(pa, pb if "nfor" in names else None, own=want_own)
+            own_b, cross_a, cw_a = _regressions(pb, pa if "nfor" in names else None, own=want_own)
+            if want_own:
+                own["nfor_own"] = (own_a, own_b)
+            if "nfor" in names:
+                out.append(self._dual("nfor", cross_a, cross_b, sure(ha.mean, pa.variance, cross_a, cw_a),
+                                      sure(hb.mean, pb.variance, cross_b, cw_b), ha.count, hb.count, feature=True))
+        for name in ("dnlm", "xbil"):
+            if name in names or (name == "dnlm" and "mix" in names):
+                a, b = feature_guided_half(name, pa), feature_guided_half(name, pb)
+                if a is not None and b is not None:   # None: a feature it needs is not in the samples
+                    own[name] = (a, b)
+        if "mix" in names and "dnlm" in own and "nfor_own" in own:
+            (ra, rb), (da, db) = own["nfor_own"], own["dnlm"]
+            for w in MIX_WEIGHTS:
+                own[f"mix{round(100 * w)}"] = (w * ra + (1.0 - w) * da, w * rb + (1.0 - w) * db)
+        for name, (a, b) in own.items():
+            if name in names or name.startswith("mix"):
+                out.append(self._dual(name, a, b, cross_validation_mse(a, hb.mean, pb.variance),
+                                      cross_validation_mse(b, ha.mean, pa.variance), ha.count, hb.count,
+                                      feature=True))
         return out
 
     @staticmethod
-    def _dual(name, a, b, est_a, est_b, ca, cb) -> Candidate:
+    def _dual(name, a, b, est_a, est_b, ca, cb, feature=False) -> Candidate:
         both = (np.asarray(ca) > 0) & (np.asarray(cb) > 0)
         img = 0.5 * (a + b)
         mse = dual_buffer_mse(a, b, est_a, est_b)
@@ -421,7 +497,7 @@ class AutoMethod(Method):
         img = np.where(both[..., None], img, np.where(only_b[..., None] | ~np.isfinite(a), b, a))
         mse = np.where(both[..., None], mse, np.nan)
         img = np.where(np.isfinite(img), img, 0.0)
-        return Candidate(name, img, mse)
+        return Candidate(name, img, mse, feature)
 
     @staticmethod
     def _oidn_aux(h: PixelStats) -> tuple:
@@ -501,7 +577,16 @@ class AutoMethod(Method):
         # component has a small variance of its own and a true value far outside its mean +- 4 sd
         # (the built-in checker_spot: the clamp on the own variance took nfor's 0.08 of the pixel
         # mean's error to 0.32).  The unbiased estimates themselves keep v.
-        v_safe = pooled_mean_variance(v, count) if self.params["safeguard"] is not None else v
+        # With an albedo the neighbourhood is pooled, and the heavy-tail rule's median taken, in units
+        # of each pixel's albedo (_albedo_divisor): a light square beside dark ones had its interval
+        # narrowed by theirs (checker_spot 0.119 -> 0.107 of the mean's error with it).
+        divisor = _albedo_divisor(stats) if self.params["safeguard"] is not None else None
+        if self.params["safeguard"] is None:
+            v_safe = v
+        elif divisor is None:
+            v_safe = pooled_mean_variance(v, count)
+        else:
+            v_safe = pooled_mean_variance(v / (divisor * divisor), count) * (divisor * divisor)
         sd = np.sqrt(v_safe)
         raw = [_mean_c(c.mse, den) for c in cands]
         smoothed = _smooth_masked_many(raw, smooth)
@@ -522,7 +607,7 @@ class AutoMethod(Method):
             bounds = sample_range_bounds(stats)
             choice, on_default = _global_prior(cands, smoothed, relm, choice, y, v, count, bounds, smooth,
                                                self.params["global_prior"], self.params["safeguard"],
-                                               [k for k, c in enumerate(cands) if c.name in FEATURE_CANDIDATES])
+                                               [k for k, c in enumerate(cands) if c.feature])
         # ties (e.g. noise-free regions, where every ratio is undefined) go to the first candidate
         if cands[0].name == "box" and smooth > 0:
             # Region guard: where the chosen candidates' unbiased estimates,
@@ -556,7 +641,7 @@ class AutoMethod(Method):
             # an estimate away from it (the same safeguard as awr's robust default).
             lo, hi = sample_range_bounds(stats) if bounds is None else bounds
             img = confidence_clamp(img, y, v_safe, self.params["safeguard"], lo, hi)
-            img = _no_push_in_heavy_tails(img, y, hi)
+            img = _no_push_in_heavy_tails(img, y, hi, scale=divisor)
         # the raw estimate is undefined at empty pixels: the smoothed absolute one there
         fin = np.isfinite(raw_abs)
         if not fin.all():
