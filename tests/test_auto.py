@@ -583,18 +583,21 @@ def test_nearer_the_neighbours_compares_distances_to_the_8_neighbour_median_by_b
     choice = rng.integers(0, 3, size=(h, w))
     where = rng.random((h, w)) < 0.6
     where[0, 0] = where[h - 1, 4] = True
-    got = _nearer_the_neighbours(cands, 1, choice, y, where)
-    pad = np.pad(y, ((1, 1), (1, 1), (0, 0)), mode="edge")
-    for i in range(h):
-        for j in range(w):
-            if not where[i, j]:
-                assert not got[i, j]
-                continue
-            nb = [pad[i + 1 + di, j + 1 + dj] for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj]
-            med = np.median(np.stack(nb), axis=0)
-            dg = np.abs(cands[1].image[i, j] - med).sum()
-            dc = np.abs(cands[choice[i, j]].image[i, j] - med).sum()
-            assert got[i, j] == (dg <= dc), (i, j)
+    scale = rng.choice([0.05, 0.4, 0.9], size=(h, w, c))   # an albedo: everything divided by it
+    for sc in (None, scale):
+        got = _nearer_the_neighbours(cands, 1, choice, y, where, sc)
+        div = np.ones_like(y) if sc is None else sc
+        pad = np.pad(y / div, ((1, 1), (1, 1), (0, 0)), mode="edge")
+        for i in range(h):
+            for j in range(w):
+                if not where[i, j]:
+                    assert not got[i, j]
+                    continue
+                nb = [pad[i + 1 + di, j + 1 + dj] for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj]
+                med = np.median(np.stack(nb), axis=0)
+                dg = np.abs(cands[1].image[i, j] / div[i, j] - med).sum()
+                dc = np.abs(cands[choice[i, j]].image[i, j] / div[i, j] - med).sum()
+                assert got[i, j] == (dg <= dc), (i, j)
     y[2, 3, 1] = np.nan  # a NaN among a pixel's neighbours: never nearer
     far = [cands[0], Candidate("g", cands[0].image.copy(), cands[0].mse)]  # equal values: nearer where no NaN
     got = _nearer_the_neighbours(far, 1, np.zeros((h, w), np.int64), y, np.ones((h, w), bool))

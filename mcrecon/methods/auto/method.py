@@ -607,7 +607,7 @@ class AutoMethod(Method):
             bounds = sample_range_bounds(stats)
             choice, on_default = _global_prior(cands, smoothed, relm, choice, y, v, count, bounds, smooth,
                                                self.params["global_prior"], self.params["safeguard"],
-                                               [k for k, c in enumerate(cands) if c.feature])
+                                               [k for k, c in enumerate(cands) if c.feature], divisor)
         # ties (e.g. noise-free regions, where every ratio is undefined) go to the first candidate
         if cands[0].name == "box" and smooth > 0:
             # Region guard: where the chosen candidates' unbiased estimates,
