@@ -83,7 +83,7 @@ def merge_halves(a: PixelStats, b: PixelStats) -> PixelStats:
     Equal, to rounding, to the statistics accumulated from every sample
     (count exactly, mean and ``m2`` to a few ulps).  Neither half changes.
     """
-    return a.copy().merge(b)
+    return a.merged(b)
 
 
 # ----------------------------------------------------------------------------
