@@ -22,11 +22,13 @@ from mcrecon.renderers.scenes import reference_image, render_uniform
 
 # ------------------------------------------------------------------ exactness
 def _stats_by_copies(src):
-    """The reference split: labels, then each half's samples copied into its own statistics."""
+    """The reference split: labels, then each half's samples (features with them) copied into its own
+    statistics."""
     from mcrecon.core.halves import Halves
-    h = Halves.empty(src.width, src.height, tuple(src.channels))
-    for ch in src.iter_chunks(with_round=False, chunk_size=97):
-        h._add_by_copies(ch.positions, ch.values)
+    from mcrecon.core.features import usable_layout
+    h = Halves.empty(src.width, src.height, tuple(src.channels), features=usable_layout(src.features) or None)
+    for ch in src.iter_chunks(with_round=False, chunk_size=97, features=src.feature_names):
+        h._add_by_copies(ch.positions, ch.values, features=ch.features)
     return h
 
 
@@ -36,7 +38,8 @@ def test_one_pass_split_is_bit_identical_to_splitting_by_copies(order, monkeypat
     ranges merged in parallel) gives the statistics, bit for bit, of labelling the stream and adding
     each half's samples with PixelStats.add -- for a renderer's pixel-by-pixel order, a shuffled
     stream (runs of one) and two pixels interleaved (a half's run spanning the other pixel), chunk
-    boundaries included, for 1 and 3 threads."""
+    boundaries included, for 1 and 3 threads and the runs found in blocks of any size; the features
+    (of other dtypes and widths) split with the colour's runs."""
     from mcrecon import SampleSet
     rng = np.random.default_rng(4)
     w, h, spp = 13, 7, 9
@@ -47,18 +50,22 @@ def test_one_pass_split_is_bit_identical_to_splitting_by_copies(order, monkeypat
         pix = np.stack([pix[: pix.size // 2], pix[pix.size // 2:][: pix.size // 2]], axis=1).ravel()
     pos = np.stack([pix % w + rng.random(pix.size) * 0.99, pix // w + rng.random(pix.size) * 0.99], axis=1)
     val = rng.standard_normal((pix.size, 3)) * 1e3 + 1e6  # Welford territory
-    ss = SampleSet(pos.astype(np.float32), val.astype(np.float32), width=w, height=h)
+    feats = {"albedo": rng.random((pix.size, 3)).astype(np.float32), "depth": rng.random(pix.size) * 1e3 + 1e6}
+    ss = SampleSet(pos.astype(np.float32), val.astype(np.float32), width=w, height=h, features=feats)
     ref = _stats_by_copies(ss)
     from mcrecon.core.halves import Halves
-    for threads in ("1", "3"):
+    monkeypatch.setattr("mcrecon.core.halves._PARALLEL_MIN_SAMPLES", 0)  # pixel ranges in parallel at any size
+    for threads, block in (("1", 1 << 16), ("3", 1 << 16), ("3", 5), ("1", 1)):
         monkeypatch.setenv("MCRECON_THREADS", threads)
-        new = Halves.empty(w, h, ss.channels)
-        for ch in ss.iter_chunks(with_round=False, chunk_size=97):
-            new.add(ch.positions, ch.values)
+        monkeypatch.setattr("mcrecon.core.halves._RUN_BLOCK", block)  # a batch's runs found in blocks
+        new = Halves.empty(w, h, ss.channels, features={"albedo": 3, "depth": 1})
+        for ch in ss.iter_chunks(with_round=False, chunk_size=97, features=ss.feature_names):
+            new.add(ch.positions, ch.values, features=ch.features)
         for a, b in ((ref.a, new.a), (ref.b, new.b)):
-            for f in ("count", "mean", "m2", "min", "max"):
-                np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
-            assert a.dtype == b.dtype
+            for x, y in [(a, b)] + [(a.features[k], b.features[k]) for k in feats]:
+                for f in ("count", "mean", "m2", "min", "max"):
+                    np.testing.assert_array_equal(getattr(x, f), getattr(y, f), err_msg=f)
+                assert x.dtype == y.dtype
         np.testing.assert_array_equal(ref.counter, new.counter)
 
 

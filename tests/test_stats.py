@@ -70,6 +70,56 @@ def test_merge_with_empty_pixels(rng):
     assert a.count.tolist() == [[1, 0]] and a.mean[0, 0, 0] == 1.0 and a.mean[0, 1, 0] == 0.0
 
 
+def _numpy_merge(a, b):
+    """The reference Chan merge of ``a`` and ``b`` (count, mean, m2, min, max) in NumPy expressions."""
+    na = a.count[..., None].astype(np.float64)
+    nb = b.count[..., None].astype(np.float64)
+    n = na + nb
+    with np.errstate(invalid="ignore", divide="ignore"):
+        delta = b.mean - a.mean
+        wb = np.where(n > 0, nb / n, 0.0)
+        m2 = a.m2 + (b.m2 + delta * delta * na * wb)
+        mean = a.mean + delta * wb
+    return a.count + b.count, mean, m2, np.minimum(a.min, b.min), np.maximum(a.max, b.max)
+
+
+def test_compiled_merge_is_the_numpy_merge_bit_for_bit(rng):
+    """merge (in place) and merged (new statistics, inputs unchanged) give bit for bit the NumPy
+    expressions, features and subpixel sums included: empty pixels, values at 1e6 with a small spread,
+    unknown ranges (NaN min/max of from_moments statistics), signed zeros (of two equal values the
+    second is kept, as np.minimum/np.maximum do)."""
+    w, h = 70, 150  # more rows than one task of the thread pool
+    lay = {"albedo": 3, "depth": 1}
+
+    def stats(seed, n):
+        r = np.random.default_rng(seed)
+        pos = r.random((n, 2)) * [w, h]
+        val = 1e6 + r.normal(0, 1e-3, (n, 3))
+        val[::7] = r.choice([0.0, -0.0], size=(val[::7].shape))
+        feats = {"albedo": r.random((n, 3)).astype(np.float32), "depth": r.random(n)}
+        return PixelStats.from_samples(pos, val, width=w, height=h, subpixels=2, features=feats)
+
+    a, b = stats(1, 20000), stats(2, 3000)
+    a.min[0, :3] = np.nan  # unknown ranges in some pixels of one side
+    b.max[1, :2] = np.nan
+    keep = {k: v.copy() for k, v in a.__dict__.items() if isinstance(v, np.ndarray)}
+    pairs = [(a, b)] + [(a.features[k], b.features[k]) for k in lay]
+    want = [_numpy_merge(x, y) for x, y in pairs]
+    new = a.merged(b)
+    for k, v in keep.items():
+        np.testing.assert_array_equal(getattr(a, k), v)
+    a.merge(b)
+    for got in (new, a):
+        for st, ref in zip([got] + [got.features[k] for k in lay], want):
+            for f, r in zip(("count", "mean", "m2", "min", "max"), ref):
+                g = getattr(st, f)
+                assert g.dtype == r.dtype and np.array_equal(g, r, equal_nan=True), f
+                assert np.array_equal(np.signbit(g), np.signbit(r)), f
+        np.testing.assert_array_equal(got.sub_count, keep["sub_count"] + b.sub_count)
+        np.testing.assert_array_equal(got.sub_sum, keep["sub_sum"] + b.sub_sum)
+        assert got.n_samples == 23000 and got.dtype == np.float64
+
+
 def test_welford_stable_at_large_offset(rng):
     # 1e6 + spread 1e-3: a naive sum of squares in float64 loses all digits
     # (1e12 * eps ~ 1e-4 > the 1e-6 variance), Welford keeps them.

@@ -307,6 +307,19 @@ class PixelStats:
 
     def merge(self, other: "PixelStats") -> "PixelStats":
         """Merge another set of statistics into this one (Chan et al., in place; features too)."""
+        self._check_mergeable(other)
+        return self._merge_from(self, other)
+
+    def merged(self, other: "PixelStats") -> "PixelStats":
+        """The merge of these statistics and ``other`` (:meth:`merge`) as new statistics; neither changes.
+
+        Bit-identical to ``self.copy().merge(other)``, with each array written
+        once instead of copied and then rewritten.
+        """
+        self._check_mergeable(other)
+        return self._with_arrays(np.empty_like)._merge_from(self, other)
+
+    def _check_mergeable(self, other: "PixelStats") -> None:
         if (other.width, other.height, other.channels, other.subpixels) != (
                 self.width, self.height, self.channels, self.subpixels):
             raise InputError("PixelStats.merge", "other",
@@ -316,34 +329,33 @@ class PixelStats:
         if layout_of(self.features) != layout_of(other.features):
             raise InputError("PixelStats.merge", "other", "the features must match: "
                              f"{layout_of(other.features)} vs {layout_of(self.features)}")
+
+    def _merge_from(self, a: "PixelStats", b: "PixelStats") -> "PixelStats":
+        """Make these statistics (``a`` itself, or arrays shaped as ``a``'s) the merge of ``a`` and ``b``."""
+        from .merge import merge_moments
+
         for name, fst in self.features.items():
-            fst.merge(other.features[name])
-        self.n_feature_zeroed += other.n_feature_zeroed
-        na = self.count[..., None].astype(np.float64)
-        nb = other.count[..., None].astype(np.float64)
-        n = na + nb
-        with np.errstate(invalid="ignore", divide="ignore"):
-            delta = other.mean - self.mean
-            wb = np.where(n > 0, nb / n, 0.0)
-            self.m2 += other.m2 + delta * delta * na * wb
-            self.mean += delta * wb
-        self.count += other.count
-        np.minimum(self.min, other.min, out=self.min)
-        np.maximum(self.max, other.max, out=self.max)
-        self.has_range = self.has_range and other.has_range
-        if other._value_dtype is not None:
-            self._note_dtype(other._value_dtype)
+            fst._merge_from(a.features[name], b.features[name])
+        self.n_feature_zeroed = a.n_feature_zeroed + b.n_feature_zeroed
+        merge_moments(a, b, self)
+        self.has_range = a.has_range and b.has_range
+        if b._value_dtype is not None:
+            self._note_dtype(b._value_dtype)
         if self.subpixels:
-            self.sub_sum += other.sub_sum
-            self.sub_count += other.sub_count
-        self.n_dropped += other.n_dropped
-        self.n_zeroed += other.n_zeroed
+            np.add(a.sub_sum, b.sub_sum, out=self.sub_sum)
+            np.add(a.sub_count, b.sub_count, out=self.sub_count)
+        self.n_dropped = a.n_dropped + b.n_dropped
+        self.n_zeroed = a.n_zeroed + b.n_zeroed
         return self
 
     def copy(self) -> "PixelStats":
+        return self._with_arrays(np.ndarray.copy)
+
+    def _with_arrays(self, make) -> "PixelStats":
+        """Statistics with these fields and ``make(array)`` for each array (features too)."""
         out = PixelStats.__new__(PixelStats)
-        out.__dict__.update({k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items()})
-        out.features = {name: fst.copy() for name, fst in self.features.items()}
+        out.__dict__.update({k: (make(v) if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items()})
+        out.features = {name: fst._with_arrays(make) for name, fst in self.features.items()}
         return out
 
     def without_features(self) -> "PixelStats":

@@ -670,7 +670,7 @@ class AutoMethod(Method):
         halves = None
         pair = getattr(inputs, "halves", None)
         if pair is not None and stats is None:
-            stats = pair[0].copy().merge(pair[1])
+            stats = merge_halves(pair[0], pair[1])
         if any(c in DUAL_BUFFER for c in self._names):
             if pair is not None:
                 ha, hb = pair

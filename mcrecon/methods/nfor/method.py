@@ -9,7 +9,7 @@ import numpy as np
 
 from ...core.features import usable_layout, usable_names
 from ...core.fill import fill_empty_pixels, mean_variance_policy
-from ...core.halves import Halves, split_halves
+from ...core.halves import Halves, merge_halves, split_halves
 from ...core.requests import SampleBatch
 from ...core.stats import PixelStats
 from ...errors import InputError, McreconWarning
@@ -140,7 +140,7 @@ class NFORMethod(Method):
             raise InputError(_WHERE, "features", "nfor needs per-sample features (albedo, normal, depth) and the "
                              "samples have none; render them with the samples (SampleBatch.features, "
                              "/features/NAME in a log), or pick another method")
-        stats = a.copy().merge(b)
+        stats = merge_halves(a, b)
         if (stats.count == 0).all():
             raise InputError(_WHERE, "input", "no pixel has a sample: there is nothing to reconstruct")
         ya = fill_empty_pixels(a.mean.copy(), a.count, source=_WHERE)

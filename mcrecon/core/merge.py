@@ -1,0 +1,55 @@
+"""The Chan et al. merge of two sets of per-pixel statistics, as one compiled pass (:meth:`PixelStats.merge`).
+
+Each output element is computed, term for term, by the NumPy expressions
+the merge was first written with (``np.minimum``/``np.maximum`` included:
+NaN propagates, and of two equal values the second is kept), so the
+results are bit-identical to them; but every array is read and written
+once, without the temporaries (several the size of the mean) those
+expressions allocated, and :meth:`PixelStats.merged` writes new statistics
+without copying the first input first.  The output may be the first input
+(a merge in place): each element is read before it is written.
+"""
+
+from __future__ import annotations
+
+from .samples import lazy_njit
+
+__all__ = ["merge_moments"]
+
+#: Rows merged by one task of the filters' thread pool (a task costs ~20 us).
+_ROWS_PER_TASK = 64
+
+
+@lazy_njit(cache=True, nogil=True)
+def _merge_rows(count_a, mean_a, m2_a, min_a, max_a, count_b, mean_b, m2_b, min_b, max_b, count, mean, m2, vmin,
+                vmax, i0, i1):
+    for i in range(i0, i1):
+        for j in range(count_a.shape[1]):
+            na = float(count_a[i, j])
+            nb = float(count_b[i, j])
+            n = na + nb
+            wb = nb / n if n > 0 else 0.0
+            count[i, j] = count_a[i, j] + count_b[i, j]
+            for c in range(mean_a.shape[2]):
+                delta = mean_b[i, j, c] - mean_a[i, j, c]
+                m2[i, j, c] = m2_a[i, j, c] + (m2_b[i, j, c] + delta * delta * na * wb)
+                mean[i, j, c] = mean_a[i, j, c] + delta * wb
+                lo, hi = min_a[i, j, c], min_b[i, j, c]
+                vmin[i, j, c] = lo if lo < hi or lo != lo else hi
+                lo, hi = max_a[i, j, c], max_b[i, j, c]
+                vmax[i, j, c] = lo if lo > hi or lo != lo else hi
+
+
+def merge_moments(a, b, out) -> None:
+    """Write the Chan merge of ``a`` and ``b`` (count, mean, m2, min, max) into ``out``'s arrays.
+
+    ``a``, ``b`` and ``out`` are :class:`~mcrecon.core.stats.PixelStats`
+    of one film and channels (``out`` may be ``a``).  Row blocks are merged
+    on the filters' thread pool (:func:`mcrecon.filters.engine.parallel_calls`).
+    """
+    from ..filters.engine import parallel_calls
+
+    h = a.count.shape[0]
+    arrays = (a.count, a.mean, a.m2, a.min, a.max, b.count, b.mean, b.m2, b.min, b.max,
+              out.count, out.mean, out.m2, out.min, out.max)
+    parallel_calls(_merge_rows, [arrays + (i, min(i + _ROWS_PER_TASK, h)) for i in range(0, h, _ROWS_PER_TASK)])
