@@ -525,7 +525,7 @@ def test_auto_is_within_1_2x_of_its_best_single_candidate_on_flat_fields(noise, 
 
 
 def _prior_inputs(h=12, w=14, n_cands=3):
-    from mcrecon.methods.auto.method import Candidate
+    from mcrecon.methods.auto.features import Candidate
 
     rng = np.random.default_rng(0)
     y = rng.uniform(0.4, 0.6, size=(h, w, 3))
@@ -539,7 +539,7 @@ def _prior_inputs(h=12, w=14, n_cands=3):
 
 
 def test_global_prior_takes_the_best_single_candidate_and_leaves_heavy_tailed_or_biased_pixels_alone():
-    from mcrecon.methods.auto.method import Candidate
+    from mcrecon.methods.auto.features import Candidate
     from mcrecon.methods.auto.selection import _global_prior
 
     cands, raw, relm, y, v, count, bounds = _prior_inputs()
@@ -573,7 +573,7 @@ def test_global_prior_takes_the_best_single_candidate_and_leaves_heavy_tailed_or
 
 
 def test_nearer_the_neighbours_compares_distances_to_the_8_neighbour_median_by_brute_force():
-    from mcrecon.methods.auto.method import Candidate
+    from mcrecon.methods.auto.features import Candidate
     from mcrecon.methods.auto.selection import _nearer_the_neighbours
 
     rng = np.random.default_rng(8)
@@ -839,7 +839,7 @@ def test_feature_guided_auto_beats_colour_only_auto_on_a_textured_scene():
 def test_each_half_of_a_feature_candidate_depends_on_that_half_alone():
     """What makes the cross-validation unbiased, checked directly: changing every value of half B (colour
     and features) leaves each candidate's half-A image unchanged, bit for bit."""
-    from mcrecon.methods.auto.method import feature_guided_half
+    from mcrecon.methods.auto.features import feature_guided_half
 
     ss, _ = _textured(0)
     h = split_halves(ss, features="all")
@@ -858,7 +858,7 @@ def test_the_crossed_regression_is_linear_in_its_half_with_everything_else_from_
     colour, linearly (A's features changed: the same bits; A's colour doubled: the image doubled), its
     weights and design come from half B (B's features changed: the image moves), and its centre weight
     is the image's derivative at each pixel by the pixel's own value."""
-    from mcrecon.methods.auto.method import _HalfPlanes, _regressions
+    from mcrecon.methods.auto.features import _HalfPlanes, _regressions
 
     ss, _ = _textured(0, size=20)
     h = split_halves(ss, features="all")
@@ -974,7 +974,7 @@ def test_feature_bilateral_centre_weight_is_the_impulse_response_and_its_sure_is
     error: measured pooled ratio 0.982, per seed 0.92-1.08.  Bound 0.95-1.05: four standard errors of
     the pooled ratio (a wrong centre weight moves it by 2 w_ii v per pixel, several times that)."""
     from mcrecon.filters.cross_bilateral import cross_bilateral
-    from mcrecon.methods.auto.method import _feature_bilateral
+    from mcrecon.methods.auto.features import _feature_bilateral
 
     h, w = 24, 28
     yy, xx = np.mgrid[0:h, 0:w]
