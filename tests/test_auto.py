@@ -417,21 +417,25 @@ def test_pooled_mean_variance_is_the_pixel_variance_floored_by_the_neighbourhood
     from mcrecon.core.safeguard import pooled_mean_variance
 
     rng = np.random.default_rng(4)
-    h, w = 9, 11
-    count = rng.integers(0, 6, size=(h, w))
-    v = rng.random((h, w, 2)) ** 3 / np.maximum(count, 1)[..., None]
-    v[count == 0] = 0.0
-    for radius in (1, 2):
-        ref = v.copy()
-        for i in range(h):
-            for j in range(w):
-                if count[i, j] == 0:
-                    continue
-                for c in range(2):
-                    nb = [count[a, b] * v[a, b, c] for a in range(max(i - radius, 0), min(i + radius + 1, h))
-                          for b in range(max(j - radius, 0), min(j + radius + 1, w)) if count[a, b] > 0]
-                    ref[i, j, c] = max(v[i, j, c], float(np.median(nb)) / count[i, j])
-        np.testing.assert_allclose(pooled_mean_variance(v, count, radius), ref, rtol=1e-15, atol=0)
+    # exact, on sparse counts and on full 3 x 3 neighbourhoods (the median network) with ties and zeros,
+    # over two row blocks
+    for h, w, low in ((9, 11, 0), (70, 13, 1)):
+        count = rng.integers(low, 6, size=(h, w))
+        v = rng.random((h, w, 2)) ** 3 / np.maximum(count, 1)[..., None]
+        v[rng.random(v.shape) < 0.2] = 0.5
+        v[rng.random(v.shape) < 0.3] = 0.0
+        v[count == 0] = 0.0
+        for radius in (1, 2):
+            ref = v.copy()
+            for i in range(h):
+                for j in range(w):
+                    if count[i, j] == 0:
+                        continue
+                    for c in range(2):
+                        nb = [count[a, b] * v[a, b, c] for a in range(max(i - radius, 0), min(i + radius + 1, h))
+                              for b in range(max(j - radius, 0), min(j + radius + 1, w)) if count[a, b] > 0]
+                        ref[i, j, c] = max(v[i, j, c], float(np.median(nb)) / count[i, j])
+            np.testing.assert_array_equal(pooled_mean_variance(v, count, radius), ref)
     with pytest.raises(ValueError, match="var_mean"):
         pooled_mean_variance(v[..., 0], count)
 

@@ -7,6 +7,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ..filters.engine import parallel_rows
+from ..filters.order import median9
 from .stats import PixelStats
 
 __all__ = ['sample_range_bounds', 'confidence_clamp', 'pooled_mean_variance']
@@ -100,19 +102,41 @@ def confidence_clamp(image: np.ndarray, mean: np.ndarray, var_mean: np.ndarray, 
 
 
 @numba.njit(cache=True, nogil=True)
-def _pooled_rows(v, count, radius, out):
-    # per pixel and channel: max(v, median of n_q v_q over the neighbourhood's pixels q with samples / n)
+def _pooled_rows(v, count, radius, out, i0, i1):
+    # rows [i0, i1): per pixel and channel, max(v, median of n_q v_q over the neighbourhood's pixels q
+    # with samples / n).  A full 3 x 3 neighbourhood without NaN (nearly every pixel) takes the median by
+    # the network: the same element the sort gives, unless it is a zero (+0 and -0 sort as equals, and
+    # which one the sort keeps can decide the output's sign), which takes the sort
     h, w, c = v.shape
     side = 2 * radius + 1
     buf = np.empty(side * side)
-    for i in range(h):
+    for i in range(i0, i1):
         for j in range(w):
             n = count[i, j]
             for ch in range(c):
                 out[i, j, ch] = v[i, j, ch]
             if n <= 0:
                 continue
+            full = radius == 1 and 0 < i < h - 1 and 0 < j < w - 1
+            if full:
+                for ii in range(i - 1, i + 2):
+                    for jj in range(j - 1, j + 2):
+                        if count[ii, jj] <= 0:
+                            full = False
             for ch in range(c):
+                if full:
+                    p0, p1, p2 = count[i - 1, j - 1] * v[i - 1, j - 1, ch], count[i - 1, j] * v[i - 1, j, ch], \
+                        count[i - 1, j + 1] * v[i - 1, j + 1, ch]
+                    p3, p4, p5 = count[i, j - 1] * v[i, j - 1, ch], count[i, j] * v[i, j, ch], \
+                        count[i, j + 1] * v[i, j + 1, ch]
+                    p6, p7, p8 = count[i + 1, j - 1] * v[i + 1, j - 1, ch], count[i + 1, j] * v[i + 1, j, ch], \
+                        count[i + 1, j + 1] * v[i + 1, j + 1, ch]
+                    t = p0 + p1 + p2 + p3 + p4 + p5 + p6 + p7 + p8
+                    med = median9(p0, p1, p2, p3, p4, p5, p6, p7, p8)
+                    if t == t and med != 0.0:
+                        if med / n > out[i, j, ch]:
+                            out[i, j, ch] = med / n
+                        continue
                 m = 0
                 for ii in range(max(i - radius, 0), min(i + radius + 1, h)):
                     for jj in range(max(j - radius, 0), min(j + radius + 1, w)):
@@ -164,5 +188,5 @@ def pooled_mean_variance(var_mean: np.ndarray, count: np.ndarray, radius: int = 
         raise ValueError(f"pooled_mean_variance: var_mean (H, W, C) and count (H, W) expected, got "
                          f"{v.shape} and {count.shape}")
     out = np.empty_like(v)
-    _pooled_rows(v, np.ascontiguousarray(count, dtype=np.int64), int(radius), out)
+    parallel_rows(_pooled_rows, (v, np.ascontiguousarray(count, dtype=np.int64), int(radius), out), v.shape[0])
     return out

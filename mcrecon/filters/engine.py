@@ -42,7 +42,7 @@ from scipy import ndimage
 
 from ..errors import InputError
 
-__all__ = ["ENV_THREADS", "n_threads", "numba_threads", "parallel_calls", "correlate_jobs", "corr2", "safe_div",
+__all__ = ["ENV_THREADS", "n_threads", "numba_threads", "parallel_calls", "parallel_rows", "correlate_jobs", "corr2", "safe_div",
            "separable_weights",
            "mask_weights"]
 
@@ -147,6 +147,20 @@ def parallel_calls(fn, arg_tuples, threads: int | None = None) -> list:
         return [fn(*a) for a in arg_tuples]
     futs = [_pool(n_threads(threads)).submit(fn, *a) for a in arg_tuples]
     return [f.result() for f in futs]
+
+
+#: Rows per call of :func:`parallel_rows`.
+ROW_BLOCK = 64
+
+
+def parallel_rows(fn, args: tuple, h: int, threads: int | None = None) -> None:
+    """``fn(*args, i0, i1)`` for blocks of :data:`ROW_BLOCK` rows ``[i0, i1)`` of an ``h``-row image, on the
+    thread pool (:func:`parallel_calls`).
+
+    ``fn`` is a ``nogil`` kernel that computes each output row in one call, so the result does not
+    depend on the number of threads (nor on the block size).
+    """
+    parallel_calls(fn, [(*args, i0, min(i0 + ROW_BLOCK, h)) for i0 in range(0, h, ROW_BLOCK)], threads)
 
 
 # ----------------------------------------------------------------------------

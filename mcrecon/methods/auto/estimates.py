@@ -63,7 +63,8 @@ import warnings
 import numba
 import numpy as np
 
-from ...filters.engine import safe_div
+from ...filters.engine import parallel_rows, safe_div
+from ...filters.order import median9, middle8
 from ...errors import InputError
 from ...core.metrics import DEFAULT_EPS
 
@@ -267,31 +268,6 @@ def relative_denominator(y: np.ndarray, v: np.ndarray, count: np.ndarray | None 
     return out
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _median9(p0, p1, p2, p3, p4, p5, p6, p7, p8):
-    # the median of 9 numbers by the 19 compare-exchanges of Paeth's network
-    # (exact: a selection, no arithmetic)
-    p1, p2 = min(p1, p2), max(p1, p2)
-    p4, p5 = min(p4, p5), max(p4, p5)
-    p7, p8 = min(p7, p8), max(p7, p8)
-    p0, p1 = min(p0, p1), max(p0, p1)
-    p3, p4 = min(p3, p4), max(p3, p4)
-    p6, p7 = min(p6, p7), max(p6, p7)
-    p1, p2 = min(p1, p2), max(p1, p2)
-    p4, p5 = min(p4, p5), max(p4, p5)
-    p7, p8 = min(p7, p8), max(p7, p8)
-    p3 = max(p0, p3)
-    p5 = min(p5, p8)
-    p4, p7 = min(p4, p7), max(p4, p7)
-    p6 = max(p3, p6)
-    p4 = max(p1, p4)
-    p2 = min(p2, p5)
-    p4 = min(p4, p7)
-    p4, p2 = min(p4, p2), max(p4, p2)
-    p4 = max(p6, p4)
-    return min(p4, p2)
-
-
 @numba.njit(cache=True, nogil=True)
 def _median3_max_plus(q, eps, out):
     # max(3 x 3 median of q (edge pixels repeated, as ndimage's mode "nearest"), q) + eps
@@ -305,7 +281,7 @@ def _median3_max_plus(q, eps, out):
             j0 = max(j - 1, 0)
             j2 = min(j + 1, w - 1)
             for ch in range(c):
-                m = _median9(q[i0, j0, ch], q[i0, j, ch], q[i0, j2, ch], q[i, j0, ch], q[i, j, ch], q[i, j2, ch],
+                m = median9(q[i0, j0, ch], q[i0, j, ch], q[i0, j2, ch], q[i, j0, ch], q[i, j, ch], q[i, j2, ch],
                              q[i2, j0, ch], q[i2, j, ch], q[i2, j2, ch])
                 qq = q[i, j, ch]
                 out[i, j, ch] = (m if m >= qq else qq) + eps
@@ -332,7 +308,8 @@ def relative_denominator_loo(y: np.ndarray, v: np.ndarray, count: np.ndarray | N
     q = np.maximum(y * y - v, 0.0)
     has = np.ones(q.shape[:2], bool) if count is None else np.asarray(count) > 0
     out = np.empty(q.shape)
-    _median8_plus(np.ascontiguousarray(q, dtype=np.float64), np.ascontiguousarray(has), float(eps), out)
+    parallel_rows(_median8_plus, (np.ascontiguousarray(q, dtype=np.float64), np.ascontiguousarray(has), float(eps), out),
+                  q.shape[0])
     return out
 
 
@@ -364,12 +341,28 @@ def sorted_neighbours8(q, has, i, j, ch, buf):
 
 
 @numba.njit(cache=True, nogil=True)
-def _median8_plus(q, has, eps, out):
+def _median8_plus(q, has, eps, out, i0, i1):
+    # rows [i0, i1) of relative_denominator_loo; where all 8 neighbours have samples and no NaN
+    # (nearly every pixel) the middle pair by the network, the same two elements the sort gives
     h, w, c = q.shape
     buf = np.empty(8)
-    for i in range(h):
+    for i in range(i0, i1):
+        ia = max(i - 1, 0)
+        ib = min(i + 1, h - 1)
         for j in range(w):
+            ja = max(j - 1, 0)
+            jb = min(j + 1, w - 1)
+            full = has[ia, ja] and has[ia, j] and has[ia, jb] and has[i, ja] and has[i, jb] and has[ib, ja] \
+                and has[ib, j] and has[ib, jb]
             for ch in range(c):
+                if full:
+                    p0, p1, p2, p3 = q[ia, ja, ch], q[ia, j, ch], q[ia, jb, ch], q[i, ja, ch]
+                    p4, p5, p6, p7 = q[i, jb, ch], q[ib, ja, ch], q[ib, j, ch], q[ib, jb, ch]
+                    t = p0 + p1 + p2 + p3 + p4 + p5 + p6 + p7
+                    if t == t:  # no NaN among them (the network does not order a NaN as the sort does)
+                        a, b = middle8(p0, p1, p2, p3, p4, p5, p6, p7)
+                        out[i, j, ch] = 0.5 * (a + b) + eps
+                        continue
                 n = sorted_neighbours8(q, has, i, j, ch, buf)
                 if n == 0:
                     m = 0.0

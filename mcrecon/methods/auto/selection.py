@@ -7,7 +7,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ...filters.engine import parallel_calls
+from ...filters.engine import parallel_rows
 
 from .estimates import relative_denominator_loo, sorted_neighbours8
 from ...core.metrics import DEFAULT_EPS
@@ -331,13 +331,8 @@ def _no_push_in_heavy_tails(img: np.ndarray, y: np.ndarray, hi: np.ndarray) -> n
     hi = np.ascontiguousarray(hi, dtype=np.float64)
     every = np.ones(y.shape[:2], bool)
     # row blocks on the filters' thread pool (a parallel=True kernel cost 1.5 s of compilation on a first run)
-    parallel_calls(_no_push_rows, [(img, y, hi, every, HEAVY_TAIL, out, i0, min(i0 + _ROWS, y.shape[0]))
-                                   for i0 in range(0, y.shape[0], _ROWS)])
+    parallel_rows(_no_push_rows, (img, y, hi, every, HEAVY_TAIL, out), y.shape[0])
     return out
-
-
-#: Rows per call of :func:`_no_push_rows` (each output pixel is computed by one call: no effect on the result).
-_ROWS = 64
 
 
 @numba.njit(cache=True, nogil=True)
