@@ -18,11 +18,11 @@ __all__ = ['sample_range_bounds', 'confidence_clamp', 'pooled_mean_variance']
 # --------------------------------------------------------------------------
 
 @numba.njit(cache=True, nogil=True)
-def _neighbourhood_range(lo_src, hi_src, has, radius, lo, hi):
-    # (2 radius + 1)^2 (edge pixels repeated) min of lo_src / max of hi_src over pixels
+def _neighbourhood_range(lo_src, hi_src, has, radius, lo, hi, i0, i1):
+    # rows [i0, i1): (2 radius + 1)^2 (edge pixels repeated) min of lo_src / max of hi_src over pixels
     # with samples, per channel; no sample around: (-inf, inf)
     h, w, c = lo_src.shape
-    for i in range(h):
+    for i in range(i0, i1):
         for j in range(w):
             for ch in range(c):
                 a = np.inf
@@ -52,9 +52,9 @@ def sample_range_bounds(stats: PixelStats, radius: int = 1) -> tuple[np.ndarray,
     src_lo, src_hi = (stats.min, stats.max) if stats.has_range else (stats.mean, stats.mean)
     lo = np.empty(stats.mean.shape)
     hi = np.empty(stats.mean.shape)
-    _neighbourhood_range(np.ascontiguousarray(src_lo, dtype=np.float64),
-                         np.ascontiguousarray(src_hi, dtype=np.float64), np.ascontiguousarray(stats.count > 0),
-                         int(radius), lo, hi)
+    parallel_rows(_neighbourhood_range, (np.ascontiguousarray(src_lo, dtype=np.float64),
+                                         np.ascontiguousarray(src_hi, dtype=np.float64),
+                                         np.ascontiguousarray(stats.count > 0), int(radius), lo, hi), lo.shape[0])
     return lo, hi
 
 
@@ -89,16 +89,20 @@ def confidence_clamp(image: np.ndarray, mean: np.ndarray, var_mean: np.ndarray, 
     """
     image = np.asarray(image, dtype=np.float64)
     mean = np.asarray(mean, dtype=np.float64)
-    half = float(k) * np.sqrt(np.maximum(np.asarray(var_mean, dtype=np.float64), 0.0))
+    # the same operations in place: two image-sized temporaries, not eight (fresh memory costs more
+    # than the arithmetic)
+    half = np.maximum(np.asarray(var_mean, dtype=np.float64), 0.0)
+    np.sqrt(half, out=half)
+    np.multiply(float(k), half, out=half)
     a = mean - half
-    b = mean + half
+    b = np.add(mean, half, out=half)
     if lo is not None:
-        a = np.maximum(a, lo)
+        np.maximum(a, lo, out=a)
     if hi is not None:
-        b = np.minimum(b, hi)
-    a = np.minimum(a, mean)
-    b = np.maximum(b, mean)
-    return np.clip(image, a, b)
+        np.minimum(b, hi, out=b)
+    np.minimum(a, mean, out=a)
+    np.maximum(b, mean, out=b)
+    return np.clip(image, a, b, out=a)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -11,8 +11,9 @@ NaN-free inputs.
 from __future__ import annotations
 
 import numba
+import numpy as np
 
-__all__ = ["median9", "middle8"]
+__all__ = ["median9", "middle8", "neighbour_median8"]
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -61,3 +62,18 @@ def middle8(p0, p1, p2, p3, p4, p5, p6, p7):
     p3 = min(p3, p5)
     p3, p4 = min(p3, p4), max(p3, p4)
     return p3, p4
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def neighbour_median8(q, i, j, ch):
+    """The median of the 8 neighbours of pixel (i, j) of ``q`` (H, W, C) in channel ``ch``, edges repeated
+    (the mean of the middle pair, as :func:`numpy.median` computes it); NaN if any of them is NaN."""
+    h, w = q.shape[0], q.shape[1]
+    ia, ib = max(i - 1, 0), min(i + 1, h - 1)
+    ja, jb = max(j - 1, 0), min(j + 1, w - 1)
+    p0, p1, p2, p3 = q[ia, ja, ch], q[ia, j, ch], q[ia, jb, ch], q[i, ja, ch]
+    p4, p5, p6, p7 = q[i, jb, ch], q[ib, ja, ch], q[ib, j, ch], q[ib, jb, ch]
+    if p0 != p0 or p1 != p1 or p2 != p2 or p3 != p3 or p4 != p4 or p5 != p5 or p6 != p6 or p7 != p7:
+        return np.nan
+    a, b = middle8(p0, p1, p2, p3, p4, p5, p6, p7)
+    return (a + b) / 2.0

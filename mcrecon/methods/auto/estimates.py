@@ -264,17 +264,17 @@ def relative_denominator(y: np.ndarray, v: np.ndarray, count: np.ndarray | None 
             med = np.where(np.isfinite(med), med, 0.0)
             return np.maximum(med, np.where(np.isfinite(q), q, 0.0)) + eps
     out = np.empty(q.shape)
-    _median3_max_plus(np.ascontiguousarray(q), float(eps), out)
+    parallel_rows(_median3_max_plus, (np.ascontiguousarray(q), float(eps), out), q.shape[0])
     return out
 
 
 @numba.njit(cache=True, nogil=True)
-def _median3_max_plus(q, eps, out):
-    # max(3 x 3 median of q (edge pixels repeated, as ndimage's mode "nearest"), q) + eps
+def _median3_max_plus(q, eps, out, r0, r1):
+    # rows [r0, r1): max(3 x 3 median of q (edge pixels repeated, as ndimage's mode "nearest"), q) + eps
     # per channel; q finite (the median of 9 numbers is exact: bit-identical to
     # np.maximum(ndimage.median_filter(q, size=(3, 3, 1), mode="nearest"), q) + eps)
     h, w, c = q.shape
-    for i in range(h):
+    for i in range(r0, r1):
         i0 = max(i - 1, 0)
         i2 = min(i + 1, h - 1)
         for j in range(w):
@@ -282,7 +282,7 @@ def _median3_max_plus(q, eps, out):
             j2 = min(j + 1, w - 1)
             for ch in range(c):
                 m = median9(q[i0, j0, ch], q[i0, j, ch], q[i0, j2, ch], q[i, j0, ch], q[i, j, ch], q[i, j2, ch],
-                             q[i2, j0, ch], q[i2, j, ch], q[i2, j2, ch])
+                            q[i2, j0, ch], q[i2, j, ch], q[i2, j2, ch])
                 qq = q[i, j, ch]
                 out[i, j, ch] = (m if m >= qq else qq) + eps
 

@@ -9,32 +9,61 @@ import numpy as np
 
 from ...filters.engine import parallel_rows
 
-from .estimates import relative_denominator_loo, sorted_neighbours8
+from .estimates import relative_denominator_loo
 from ...core.metrics import DEFAULT_EPS
-from ...filters.masked import _smooth_masked_many, effective_counts
+from ...filters.masked import MaskedSmoothing, effective_counts
+from ...filters.order import median9, neighbour_median8
 
-@numba.njit(cache=True, nogil=True)
-def _chan_mean_ratio(mse, den, out):
-    # out = mean over channels of mse / den: the channel terms added in order
-    # from the first, then divided by C -- numpy's np.mean(axis=2) for C < 8
-    h, w, c = mse.shape
-    for i in range(h):
-        for j in range(w):
-            s = mse[i, j, 0] / den[i, j, 0]
-            for ch in range(1, c):
-                s += mse[i, j, ch] / den[i, j, ch]
-            out[i, j] = s / c
+@numba.njit(cache=True, nogil=True, inline="always")
+def _chan_mean_at(a, den, i, j):
+    # mean over channels of a / den at pixel (i, j): the channel terms added in order from the
+    # first, then divided by C -- numpy's np.mean(axis=2) for C < 8 (den None: of a itself)
+    c = a.shape[2]
+    s = a[i, j, 0] if den is None else a[i, j, 0] / den[i, j, 0]
+    for ch in range(1, c):
+        s += a[i, j, ch] if den is None else a[i, j, ch] / den[i, j, ch]
+    return s / c
 
 
-@numba.njit(cache=True, nogil=True)
-def _chan_mean(a, out):
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _chan_mean_rows(a, den, out, i0, i1):
+    # each row's ratios in one flat loop (contiguous: vectorised), then summed per pixel
     h, w, c = a.shape
-    for i in range(h):
-        for j in range(w):
-            s = a[i, j, 0]
-            for ch in range(1, c):
-                s += a[i, j, ch]
-            out[i, j] = s / c
+    n = w * c
+    buf = np.empty(n)
+    for i in range(i0, i1):
+        ar = a[i].reshape(n)
+        if den is None:
+            for q in range(n):
+                buf[q] = ar[q]
+        else:
+            dr = den[i].reshape(n)
+            for q in range(n):
+                buf[q] = ar[q] / dr[q]
+        _sum_channels(buf, c, out[i])
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _sum_channels(buf, c, out_row):
+    # out_row[j] = (buf[j c] + buf[j c + 1] + ...) / c, added in order from the first
+    for j in range(out_row.size):
+        s = buf[j * c]
+        for ch in range(1, c):
+            s += buf[j * c + ch]
+        out_row[j] = s / c
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _pick_mean_rows(choice, k, a, den, out, i0, i1):
+    # out = the channel mean of a / den where choice == k
+    for i in range(i0, i1):
+        for j in range(a.shape[1]):
+            if choice[i, j] == k:
+                out[i, j] = _chan_mean_at(a, den, i, j)
+
+
+def _c64(a):
+    return None if a is None else np.ascontiguousarray(a, dtype=np.float64)
 
 
 def _mean_c(a: np.ndarray, den: np.ndarray | None = None) -> np.ndarray:
@@ -42,11 +71,40 @@ def _mean_c(a: np.ndarray, den: np.ndarray | None = None) -> np.ndarray:
     if a.shape[2] >= 8:
         return np.mean(a if den is None else a / den, axis=2)
     out = np.empty(a.shape[:2])
-    if den is None:
-        _chan_mean(np.ascontiguousarray(a, dtype=np.float64), out)
-    else:
-        _chan_mean_ratio(np.ascontiguousarray(a, dtype=np.float64), np.ascontiguousarray(den, dtype=np.float64),
-                         out)
+    parallel_rows(_chan_mean_rows, (_c64(a), _c64(den), out), a.shape[0])
+    return out
+
+
+def _pick_mean_c(choice: np.ndarray, k: int, a: np.ndarray, den: np.ndarray | None, out: np.ndarray) -> None:
+    """``out[p] = _mean_c(a, den)[p]`` where ``choice[p] == k``, computed only there."""
+    if a.shape[2] >= 8:
+        _pick_where(choice.ravel(), k, _mean_c(a, den), out)
+        return
+    parallel_rows(_pick_mean_rows, (np.ascontiguousarray(choice, dtype=np.int64), int(k), _c64(a), _c64(den), out),
+                  a.shape[0])
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _capped_mean_rows(a, v, s, den, out, i0, i1):
+    # the channel mean of np.minimum(a, s * v) / den: NaN if either is NaN, the second on ties
+    h, w, c = a.shape
+    n = w * c
+    buf = np.empty(n)
+    for i in range(i0, i1):
+        ar, vr, dr = a[i].reshape(n), v[i].reshape(n), den[i].reshape(n)
+        for q in range(n):
+            x = ar[q]
+            m = s * vr[q]
+            buf[q] = (x if x < m or x != x else m) / dr[q]
+        _sum_channels(buf, c, out[i])
+
+
+def _capped_mean_c(a: np.ndarray, v: np.ndarray, s: float | None, den: np.ndarray) -> np.ndarray:
+    """``_mean_c(np.minimum(a, s * v), den)`` (``s`` None: no cap), without the capped copy of ``a``."""
+    if s is None or a.shape[2] >= 8:
+        return _mean_c(a if s is None else np.where(np.isnan(a), np.nan, np.minimum(a, s * v)), den)
+    out = np.empty(a.shape[:2])
+    parallel_rows(_capped_mean_rows, (_c64(a), _c64(v), float(s), _c64(den), out), a.shape[0])
     return out
 
 
@@ -58,21 +116,74 @@ def _nanmax(a, b):
     return a if a >= b else b
 
 
-@numba.njit(cache=True, nogil=True)
-def _floored(r, x, y, sd, den, has, z, out):
-    """``max(r, mean_c max(|x - y| - z sd, 0)^2 / den)`` (0 floor where the pixel is empty), NaN as np.maximum."""
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _floored_rows(r, x, y, sd, den, has, z, out, i0, i1):
+    # rows [i0, i1) of _floored: the squared bias bounds of a row in one flat loop (vectorised), then
+    # summed per pixel (an empty pixel's bound is 0: its terms 0 / den)
     h, w, c = x.shape
-    for i in range(h):
+    n = w * c
+    buf = np.empty(n)
+    for i in range(i0, i1):
+        xr, yr, sr, dr = x[i].reshape(n), y[i].reshape(n), sd[i].reshape(n), den[i].reshape(n)
+        for q in range(n):
+            lb = abs(xr[q] - yr[q]) - z * sr[q]
+            lb = np.nan if lb != lb else (lb if lb >= 0.0 else 0.0)
+            buf[q] = lb * lb / dr[q]
         for j in range(w):
-            s = 0.0
-            for ch in range(c):
-                lb = abs(x[i, j, ch] - y[i, j, ch]) - z * sd[i, j, ch]
-                lb = _nanmax(lb, 0.0)
-                if not has[i, j]:
-                    lb = 0.0
-                t = lb * lb / den[i, j, ch]
-                s = t if ch == 0 else s + t
-            out[i, j] = _nanmax(r[i, j], s / c)
+            if not has[i, j]:
+                for ch in range(c):
+                    buf[j * c + ch] = 0.0 / dr[j * c + ch]
+        _sum_channels(buf, c, out[i])
+        for j in range(w):
+            out[i, j] = _nanmax(r[i, j], out[i, j])
+
+
+def _floored(r, x, y, sd, den, has, z, out):
+    """``out = max(r, mean_c max(|x - y| - z sd, 0)^2 / den)`` (0 floor where the pixel is empty), NaN as
+    np.maximum; ``has`` the pixels with samples."""
+    parallel_rows(_floored_rows, (_c64(r), _c64(x), _c64(y), _c64(sd), _c64(den), np.ascontiguousarray(has),
+                                  float(z), out), x.shape[0])
+
+
+@numba.njit(cache=True, nogil=True)
+def _take_lower_rows(vals, k, best, idx, i0, i1):
+    # where vals (NaN as +inf) < best: best = vals, idx = k
+    for i in range(i0, i1):
+        for j in range(vals.shape[1]):
+            x = vals[i, j]
+            if x < best[i, j]:
+                best[i, j] = x
+                idx[i, j] = k
+
+
+class _FirstLeast:
+    """The index of the least of maps offered one at a time (NaN counting as +inf): ``np.argmin`` of their
+    stack, ties to the first, without the stack.  A pixel where every map is NaN or +inf keeps index 0."""
+
+    def __init__(self, shape):
+        self.best = np.full(shape, np.inf)
+        self.index = np.zeros(shape, np.int64)
+
+    def offer(self, k: int, vals: np.ndarray) -> None:
+        parallel_rows(_take_lower_rows, (_c64(vals), int(k), self.best, self.index), vals.shape[0])
+
+
+def _relative_choice(cands, den, y, sd, count, smoothing, z):
+    """Every candidate's smoothed relative estimate floored by its own evidence of bias (:func:`_floored`
+    at ``z`` standard errors ``sd``) as a (K, H, W) array, and the per-pixel choice (the first of least
+    estimate; an undefined one, NaN, never chosen over a defined one).
+
+    One candidate at a time: its relative map, smoothed (``smoothing``, a :class:`MaskedSmoothing`),
+    floored into its plane; the maps of all at once cost more in fresh memory than in arithmetic.
+    """
+    h, w = count.shape
+    has = np.ascontiguousarray(count > 0)
+    rel = np.empty((len(cands), h, w))
+    least = _FirstLeast((h, w))
+    for k, c in enumerate(cands):
+        _floored(smoothing([_mean_c(c.mse, den)])[0], c.image, y, sd, den, has, z, rel[k])
+        least.offer(k, rel[k])
+    return rel, least.index
 
 
 #: Standard errors (the larger of the pixel's and its 3 x 3 neighbourhood's mean) beyond which the
@@ -86,18 +197,46 @@ Z_BIAS_PRIOR = 5.0
 HEAVY_PRIOR = 30.0
 
 
-def _heavy_tailed(y: np.ndarray, hi: np.ndarray, factor: float) -> np.ndarray:
-    """Per pixel and channel: the 3 x 3 sample maximum ``hi`` above ``factor`` times both ``|y|`` and the
-    median of ``|y|`` over the 3 x 3 neighbourhood (edges repeated).  The median only where the first
-    test fires (rare): a whole-image median filter cost 1 s at 1024^2."""
-    ay = np.abs(np.where(np.isfinite(y), y, 0.0))
-    out = hi > factor * ay
-    idx = np.nonzero(out)
-    if idx[0].size:
-        pad = np.pad(ay, ((1, 1), (1, 1), (0, 0)), mode="edge")
-        i, j, c = idx
-        nb = np.stack([pad[i + di, j + dj, c] for di in range(3) for dj in range(3)], axis=1)
-        out[idx] = hi[idx] > factor * np.median(nb, axis=1)
+@numba.njit(cache=True, nogil=True, inline="always")
+def _abs0(x):
+    return abs(x) if np.isfinite(x) else 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _apart_rows(y, v, hi, den_loo, heavy, bright, need_v, out, i0, i1):
+    # rows [i0, i1) of _apart; |y| read as 0 where y is not finite
+    h, w, c = y.shape
+    for i in range(i0, i1):
+        ia, ib = max(i - 1, 0), min(i + 1, h - 1)
+        for j in range(w):
+            ja, jb = max(j - 1, 0), min(j + 1, w - 1)
+            apart = False
+            any_v = False
+            for ch in range(c):
+                yc = y[i, j, ch]
+                ay = _abs0(yc)
+                if hi[i, j, ch] > heavy * ay:
+                    med = median9(_abs0(y[ia, ja, ch]), _abs0(y[ia, j, ch]), _abs0(y[ia, jb, ch]),
+                                  _abs0(y[i, ja, ch]), ay, _abs0(y[i, jb, ch]),
+                                  _abs0(y[ib, ja, ch]), _abs0(y[ib, j, ch]), _abs0(y[ib, jb, ch]))
+                    if hi[i, j, ch] > heavy * med:
+                        apart = True
+                if _nanmax(yc * yc - v[i, j, ch], 0.0) > bright * den_loo[i, j, ch]:
+                    apart = True
+                if v[i, j, ch] > 0:
+                    any_v = True
+            out[i, j] = apart or (need_v and not any_v)
+
+
+def _apart(y: np.ndarray, v: np.ndarray, hi: np.ndarray, den_loo: np.ndarray, need_v: bool) -> np.ndarray:
+    """The pixels the global prior leaves out, (H, W) bool: in any channel, rare huge samples around (the
+    3 x 3 sample maximum ``hi`` above :data:`HEAVY_PRIOR` times both ``|y|`` and the median of ``|y|``
+    over the 3 x 3 neighbourhood, edges repeated), or far brighter than the neighbourhood
+    (``max(y^2 - v, 0)`` above ``HEAVY_PRIOR^2`` times ``den_loo``); with ``need_v`` also pixels without
+    variance in any channel.  One compiled pass, the median only where the first test fires."""
+    out = np.empty(y.shape[:2], bool)
+    parallel_rows(_apart_rows, (_c64(y), _c64(v), _c64(hi), _c64(den_loo), HEAVY_PRIOR, HEAVY_PRIOR ** 2,
+                                bool(need_v), out), y.shape[0])
     return out
 
 
@@ -131,38 +270,39 @@ def _nearer_the_neighbours(cands, g, choice, y, where):
     idx = np.nonzero(where)
     if not idx[0].size:
         return out
-    i, j = idx
+    i, j = idx[0].astype(np.int64), idx[1].astype(np.int64)
+    pick = np.ascontiguousarray(choice[idx], dtype=np.int64)
     chosen = np.empty((i.size, y.shape[2]))
-    pick = choice[idx]
-    for k in np.unique(pick):
-        sel = pick == k
-        chosen[sel] = cands[int(k)].image[i[sel], j[sel]]
-    out[idx] = _nearer_at(np.ascontiguousarray(y, dtype=np.float64), i.astype(np.int64), j.astype(np.int64),
-                          np.ascontiguousarray(cands[g].image[idx], dtype=np.float64), chosen)
+    for k, c in enumerate(cands):
+        _gather_at(pick, k, _c64(c.image), i, j, chosen)
+    out[idx] = _nearer_at(_c64(y), i, j, np.ascontiguousarray(cands[g].image[idx], dtype=np.float64), chosen)
     return out
 
 
 @numba.njit(cache=True, nogil=True)
+def _gather_at(pick, k, image, ii, jj, out):
+    # out[p] = image[ii[p], jj[p]] where pick[p] == k
+    for p in range(pick.size):
+        if pick[p] == k:
+            for ch in range(image.shape[2]):
+                out[p, ch] = image[ii[p], jj[p], ch]
+
+
+@numba.njit(cache=True, nogil=True)
 def _nearer_at(y, ii, jj, xg, xc):
-    every = np.ones(y.shape[:2], np.bool_)
-    nb = np.empty(8)
     res = np.zeros(ii.size, np.bool_)
     for p in range(ii.size):
         dg = 0.0
         dc = 0.0
         for ch in range(y.shape[2]):
-            sorted_neighbours8(y, every, ii[p], jj[p], ch, nb)
-            for m in range(8):
-                if nb[m] != nb[m]:
-                    dg = np.nan
-            med = (nb[3] + nb[4]) / 2.0
+            med = neighbour_median8(y, ii[p], jj[p], ch)
             dg += abs(xg[p, ch] - med)
             dc += abs(xc[p, ch] - med)
         res[p] = dg <= dc  # False when any is NaN
     return res
 
 
-def _global_prior(cands, smoothed, relm, choice, y, v, count, bounds, sigma, z, safeguard, guarded=()):
+def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, safeguard, guarded=()):
     """The per-pixel choice with the best single candidate over the image as the default.
 
     ``g`` = the candidate of least summed leave-one-out relative estimate
@@ -200,25 +340,25 @@ def _global_prior(cands, smoothed, relm, choice, y, v, count, bounds, sigma, z, 
     noisiest where they differ most, at texture edges.  Returns the new
     choice and the mask of pixels whose choice is ``g`` (all False when the
     prior does not apply).
-    """
-    from scipy.ndimage import uniform_filter
 
+    ``smoothed(k)``: candidate k's smoothed relative estimate (asked for
+    ``g``'s only); ``rel`` (K, H, W): the floored ones ``choice`` minimised
+    (NaN: undefined, never the least).  Each other candidate's test runs on
+    its own, one after the other (the difference maps of all of them at
+    once cost more in fresh memory than their arithmetic).
+    """
     den_loo = relative_denominator_loo(y, v, count, eps=DEFAULT_EPS)
-    cap = None if safeguard is None else (safeguard + 1.0) ** 2 * v
-    loo = [_mean_c(c.mse if cap is None else np.where(np.isnan(c.mse), np.nan, np.minimum(c.mse, cap)), den_loo)
-           for c in cands]
+    loo = [_capped_mean_c(c.mse, v, None if safeguard is None else (safeguard + 1.0) ** 2, den_loo) for c in cands]
     # rare huge samples: the 3 x 3 maximum far above the pixel's mean and its neighbourhood's median
     # (so that one pixel whose mean fell near 0 by chance does not count; a median, not a mean,
-    # which a bright emitter beside dim pixels would dominate)
-    apart = np.any(_heavy_tailed(y, bounds[1], HEAVY_PRIOR), axis=2)
-    # and pixels far brighter than their neighbourhood (an emitter's edge): their relative estimates,
-    # divided by the neighbours' mu^2, reach ~1e4 where the typical is ~1 (a Cornell box with a small
-    # bright light: two such pixels made a 1.41 px Gaussian the whole image's default)
-    with np.errstate(invalid="ignore"):
-        apart |= np.any(np.maximum(y * y - v, 0.0) > HEAVY_PRIOR ** 2 * den_loo, axis=2)
-    if safeguard is not None:
-        apart |= ~np.any(v > 0, axis=2)
-    vote = np.logical_and.reduce([np.isfinite(r) for r in loo]) & ~apart
+    # which a bright emitter beside dim pixels would dominate); and pixels far brighter than their
+    # neighbourhood (an emitter's edge): their relative estimates, divided by the neighbours' mu^2,
+    # reach ~1e4 where the typical is ~1 (a Cornell box with a small bright light: two such pixels
+    # made a 1.41 px Gaussian the whole image's default)
+    apart = _apart(y, v, bounds[1], den_loo, safeguard is not None)
+    vote = ~apart
+    for r in loo:
+        vote &= np.isfinite(r)
     none = np.zeros(choice.shape, bool)
     if not vote.any():
         return choice, none
@@ -234,49 +374,154 @@ def _global_prior(cands, smoothed, relm, choice, y, v, count, bounds, sigma, z, 
             g = c
     if g == 0 and cands[0].name == "box":
         return choice, none
-    ok = np.zeros(relm.shape, bool)
-    ok[g] = True
-    others = [k for k in range(len(cands)) if k != g]
-    maps = []
-    for k in others:
-        d = loo[k] - loo[g]
-        d = np.where(np.isnan(loo[k]) | np.isnan(loo[g]) | np.isinf(loo[g]), np.nan, d)
-        maps += [d, d * d]
-    sm = _smooth_masked_many(maps, sigma)
-    # the smoothing's effective number of pixels, per pixel: about half of 4 pi sigma^2 along the
-    # image's edges, a quarter in its corners (with 4 pi sigma^2 everywhere, 9 of the 16 regions of
-    # flat exponential noise, 64^2 at 8 spp, 4 seeds, where a worse candidate passed the test lay
-    # on the border; the flat field's error 0.00079 -> 0.00070 of the mean's, 128^2 at 32 spp)
-    masks = [np.isfinite(maps[2 * i]) for i in range(len(others))]
-    first = [next(a for a in range(i + 1) if np.array_equal(masks[a], masks[i])) for i in range(len(masks))]
-    counts = dict(zip(sorted(set(first)), effective_counts([masks[a] for a in sorted(set(first))], sigma)))
-    n_eff = {k: counts[first[i]] for i, k in enumerate(others)}  # (the masks are mostly one: filtered once)
-    for i, k in enumerate(others):
-        m, q = sm[2 * i], sm[2 * i + 1]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            se = np.sqrt(np.maximum(q - m * m, 0.0) / n_eff[k])
-            ok[k] = np.isfinite(m) & (m < -z * se)
+    smoothing = MaskedSmoothing(sigma)
+    least = _FirstLeast(choice.shape)
+    masks, n_eff = [], []
+    h = choice.shape[0]
+    for k in range(len(cands)):
+        if k == g:
+            # g's own unfloored estimate: its bias is the test below; its floor at Z_BIAS (4.6 % of
+            # pure-noise pixels) would hand the pixel to any alternative that passed the z test by chance
+            sg = smoothed(g)
+            least.offer(g, np.where(np.isfinite(sg), sg, rel[g]))
+            continue
+        d, d2, mask = np.empty(choice.shape), np.empty(choice.shape), np.empty(choice.shape, bool)
+        parallel_rows(_difference_rows, (loo[k], loo[g], d, d2, mask), h)
+        m, q = smoothing([d, d2])
+        # the smoothing's effective number of pixels, per pixel: about half of 4 pi sigma^2 along the
+        # image's edges, a quarter in its corners (with 4 pi sigma^2 everywhere, 9 of the 16 regions of
+        # flat exponential noise, 64^2 at 8 spp, 4 seeds, where a worse candidate passed the test lay
+        # on the border; the flat field's error 0.00079 -> 0.00070 of the mean's, 128^2 at 32 spp).
+        # The masks are mostly one: filtered once.
+        a = next((a for a, mk in enumerate(masks) if np.array_equal(mk, mask)), None)
+        if a is None:
+            a = len(masks)
+            masks.append(mask)
+            n_eff += effective_counts([mask], sigma)
+        # k's estimate where it passed its test (written over m), +inf elsewhere
+        parallel_rows(_passed_rows, (m, q, n_eff[a], float(z), rel[k], m), h)
+        least.offer(k, m)
+    c2 = least.index
     # the test's standard error: the larger of the pixel's own and its 3 x 3 neighbourhood's mean
     # (a pixel's own sample variance is often far too small under skewed noise: with exponential
     # samples at 32 spp its own alone flagged 1.7 % of a flat field at 4 sd)
-    sd_test = np.sqrt(np.maximum(v, uniform_filter(np.where(np.isfinite(v), v, 0.0), size=(3, 3, 1),
-                                                   mode="nearest")))
-    with np.errstate(invalid="ignore"):
-        biased = np.any(np.abs(cands[g].image - y) > Z_BIAS_PRIOR * sd_test, axis=2) & (count > 0)
-    # g's own bias was the test above; its floor at Z_BIAS (4.6 % of pure-noise pixels) would hand
-    # the pixel to any alternative that passed the z test by chance
-    fin_g = np.isfinite(relm[g])
-    relm = relm.copy()
-    relm[g] = np.where(np.isfinite(smoothed[g]), smoothed[g], relm[g])
-    c2 = np.argmin(np.where(ok, relm, np.inf), axis=0)
+    vc = _c64(v)
+    v_nb = np.empty(vc.shape)
+    _neighbourhood_mean(vc, v_nb)
+    biased = np.empty(choice.shape, bool)
+    parallel_rows(_biased_rows, (_c64(cands[g].image), _c64(y), vc, v_nb, Z_BIAS_PRIOR,
+                                 np.ascontiguousarray(count > 0), biased), h)
     # where the estimates are least reliable (rare huge samples around) g still stands, if no other
     # candidate passed the local test there, where it lies no farther than the plain choice from the
     # median of the 8 neighbours' means: a robust reference that a firefly kept by g (NFOR's
     # own-patch weights keep one) lies far from
     at_g = apart & (c2 == g)
-    default = fin_g & ~biased & (~apart | _nearer_the_neighbours(cands, g, choice, y, at_g))
+    default = np.isfinite(rel[g]) & ~biased & (~apart | _nearer_the_neighbours(cands, g, choice, y, at_g))
     out = np.where(default, c2, choice)
     return out, default & (c2 == g)
+
+
+@numba.njit(cache=True, nogil=True)
+def _difference_rows(lk, lg, d, d2, mask, i0, i1):
+    # d = lk - lg, NaN where either is NaN or lg is infinite; d2 = d * d; mask = d finite
+    for i in range(i0, i1):
+        for j in range(lk.shape[1]):
+            a, b = lk[i, j], lg[i, j]
+            x = np.nan if (a != a or b != b or np.isinf(b)) else a - b
+            d[i, j] = x
+            d2[i, j] = x * x
+            mask[i, j] = np.isfinite(x)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _passed_rows(m, q, n, z, rel, out, i0, i1):
+    # out = rel where m < -z se, se = sqrt(max(q - m^2, 0) / n) (m finite), else +inf
+    for i in range(i0, i1):
+        for j in range(m.shape[1]):
+            mm = m[i, j]
+            se = np.sqrt(_nanmax(q[i, j] - mm * mm, 0.0) / n[i, j])
+            out[i, j] = rel[i, j] if np.isfinite(mm) and mm < (-z) * se else np.inf
+
+
+@numba.njit(cache=True, nogil=True)
+def _neighbourhood_mean(v, out):
+    """``scipy.ndimage.uniform_filter(where(isfinite(v), v, 0), size=(3, 3, 1), mode="nearest")`` of
+    ``v`` (H, W, C), term for term as scipy computes it (so bit-identical, tested): along axis 0, then
+    axis 1, a running sum ``t`` of the 3 values under the window (edges repeated; first ``((0 + x_0) +
+    x_0) + x_1``, then ``t += x_new - x_old``), each output ``t / 3``, the first pass stored as float64."""
+    h, w, c = v.shape
+    n = w * c
+    x = v.reshape(h, n)
+    t = np.empty(n)
+    first = np.empty((h, n))
+    for q in range(n):
+        t[q] = ((0.0 + _finite0(x[0, q])) + _finite0(x[0, q])) + _finite0(x[min(1, h - 1), q])
+        first[0, q] = t[q] / 3.0
+    for i in range(1, h):
+        a, b = x[min(i + 1, h - 1)], x[max(i - 2, 0)]
+        for q in range(n):
+            t[q] += _finite0(a[q]) - _finite0(b[q])
+            first[i, q] = t[q] / 3.0
+    o = out.reshape(h, n)
+    for i in range(h):
+        r = first[i]
+        for ch in range(c):
+            s = ((0.0 + r[ch]) + r[ch]) + r[min(1, w - 1) * c + ch]
+            o[i, ch] = s / 3.0
+            for j in range(1, w):
+                s += r[min(j + 1, w - 1) * c + ch] - r[max(j - 2, 0) * c + ch]
+                o[i, j * c + ch] = s / 3.0
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _finite0(x):
+    return x if np.isfinite(x) else 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _biased_rows(x, y, v, v_nb, zb, has, out, i0, i1):
+    # any channel with |x - y| > zb sqrt(max(v, v_nb)) (NaN as np.maximum), at pixels with samples
+    for i in range(i0, i1):
+        for j in range(x.shape[1]):
+            b = False
+            for ch in range(x.shape[2]):
+                if abs(x[i, j, ch] - y[i, j, ch]) > zb * np.sqrt(_nanmax(v[i, j, ch], v_nb[i, j, ch])):
+                    b = True
+            out[i, j] = b and has[i, j]
+
+
+def _region_guard(cands, den, choice, keep, sigma):
+    """``choice`` with the pixel mean (0) where the chosen candidates' relative estimates minus the mean's,
+    smoothed (``sigma``), exceed 0, except at ``keep``; the estimates unsmoothed and unfloored, each only
+    where it is chosen."""
+    h, w = choice.shape
+    diff = np.empty((h, w))
+    for k, c in enumerate(cands):
+        _pick_mean_c(choice, k, c.mse, den, diff)
+    parallel_rows(_minus_finite_rows, (diff, _mean_c(cands[0].mse, den)), h)
+    diff = MaskedSmoothing(sigma)([diff])[0]
+    return np.where(np.isfinite(diff) & (diff > 0) & ~keep, 0, choice)
+
+
+@numba.njit(cache=True, nogil=True)
+def _minus_finite_rows(a, b, i0, i1):
+    # a = a - b, each non-finite one read as NaN
+    for i in range(i0, i1):
+        for j in range(a.shape[1]):
+            x, y = a[i, j], b[i, j]
+            a[i, j] = (x if np.isfinite(x) else np.nan) - (y if np.isfinite(y) else np.nan)
+
+
+def _picked(cands, rel, choice):
+    """Per pixel, the chosen candidate's image, the channel mean of its unbiased estimate and its
+    relative estimate (``rel[choice]``)."""
+    h, w = choice.shape
+    img = np.empty(cands[0].image.shape)
+    raw_abs = np.empty((h, w))
+    for k, c in enumerate(cands):
+        _pick_where(choice.ravel(), k, c.image, img)
+        _pick_mean_c(choice, k, c.mse, None, raw_abs)
+    return img, raw_abs, np.take_along_axis(rel, choice[None], axis=0)[0]
 
 
 def _pick_where(choice, k, src, out):
@@ -329,23 +574,21 @@ def _no_push_in_heavy_tails(img: np.ndarray, y: np.ndarray, hi: np.ndarray) -> n
     out = img.copy()
     y = np.ascontiguousarray(y, dtype=np.float64)
     hi = np.ascontiguousarray(hi, dtype=np.float64)
-    every = np.ones(y.shape[:2], bool)
     # row blocks on the filters' thread pool (a parallel=True kernel cost 1.5 s of compilation on a first run)
-    parallel_rows(_no_push_rows, (img, y, hi, every, HEAVY_TAIL, out), y.shape[0])
+    parallel_rows(_no_push_rows, (img, y, hi, HEAVY_TAIL, out), y.shape[0])
     return out
 
 
 @numba.njit(cache=True, nogil=True)
-def _no_push_rows(img, y, hi, every, heavy_tail, out, i0, i1):
+def _no_push_rows(img, y, hi, heavy_tail, out, i0, i1):
     """:func:`_no_push_in_heavy_tails` per pixel and channel in rows [i0, i1) (``out`` starts as a copy of ``img``).
 
-    The median of the 8 neighbours (edge-repeated; ``every`` all True:
-    an empty neighbour's mean counts) is the mean of the 4th and 5th of
-    them sorted, as :func:`numpy.median` computes it; NaN anywhere among
-    them makes it NaN, and a NaN median never reverts.
+    The median of the 8 neighbours (edge-repeated; an empty neighbour's mean
+    counts) is :func:`~mcrecon.filters.order.neighbour_median8`, as
+    :func:`numpy.median` computes it; NaN anywhere among them makes it NaN,
+    and a NaN median never reverts.
     """
     h, w, c = y.shape
-    nb = np.empty(8)
     for i in range(i0, i1):
         for j in range(w):
             for ch in range(c):
@@ -353,14 +596,7 @@ def _no_push_rows(img, y, hi, every, heavy_tail, out, i0, i1):
                 oc = img[i, j, ch]
                 if not (hi[i, j, ch] > heavy_tail * abs(yc)) or not (oc != yc):
                     continue
-                sorted_neighbours8(y, every, i, j, ch, nb)
-                nan = False
-                for m in range(8):
-                    if nb[m] != nb[m]:
-                        nan = True
-                if nan:
-                    continue
-                med = (nb[3] + nb[4]) / 2.0
+                med = neighbour_median8(y, i, j, ch)  # NaN: no comparison below holds
                 if (yc > med and oc > yc) or (yc < med and oc < yc):
                     out[i, j, ch] = yc
 
