@@ -114,13 +114,13 @@ def test_confidence_clamp_formula_analytic():
     np.testing.assert_array_equal(confidence_clamp(image, mean, var, 0.0), mean)
     # an interval wider than every departure, without bounds, is the identity
     np.testing.assert_array_equal(confidence_clamp(image, mean, var + 100.0, 2.0), image)
-    # computed in place, it is the formula's numpy statement bit for bit (signed zeros, NaN and inf too)
+    # compiled, it is the formula's numpy statement bit for bit (signed zeros, NaN of either sign and inf too)
     r = np.random.default_rng(3)
     image, mean, var = r.normal(size=(3, 40, 50, 3))
     var = np.abs(var)
     lo, hi = mean - r.random(mean.shape), mean + r.random(mean.shape)
-    for a, vals in ((image, (-0.0, 0.0, np.nan, np.inf)), (mean, (-0.0, 0.0, np.nan)), (var, (0.0, -0.0, np.nan)),
-                    (lo, (-np.inf, 0.0, -0.0, np.nan)), (hi, (np.inf, -0.0, 0.0))):
+    for a, vals in ((image, (-0.0, 0.0, np.nan, -np.nan, np.inf)), (mean, (-0.0, 0.0, np.nan)),
+                    (var, (0.0, -0.0, -np.nan)), (lo, (-np.inf, 0.0, -0.0, np.nan)), (hi, (np.inf, -0.0, 0.0, -np.nan))):
         for x in vals:
             a[r.random(a.shape) < 0.05] = x
     for k in (0.0, 4.0):

@@ -488,6 +488,8 @@ class AutoMethod(Method):
     def _select(self, run: "AutoRun", stats: PixelStats, halves, samples_source, nonfinite="drop"):
         cands, y, v, count = self._candidates(stats, halves, samples_source, nonfinite)
         run.candidate_names = [c.name for c in cands]
+        for c in cands:  # the selection's passes read C order: one copy of a planar image, not one per pass
+            c.image = np.ascontiguousarray(c.image, dtype=np.float64)
         den = relative_denominator(y, v, count, eps=DEFAULT_EPS)
         smooth = self.params["smooth"]
         # Smoothed estimates, floored by each pixel's own evidence of bias: a

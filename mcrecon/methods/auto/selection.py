@@ -12,7 +12,7 @@ from ...filters.engine import parallel_rows
 from .estimates import relative_denominator_loo
 from ...core.metrics import DEFAULT_EPS
 from ...filters.masked import MaskedSmoothing, effective_counts
-from ...filters.order import median9, neighbour_median8
+from ...filters.order import median9, neighbour_median8, neighbour_medians8
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _chan_mean_at(a, den, i, j):
@@ -80,7 +80,7 @@ def _pick_mean_c(choice: np.ndarray, k: int, a: np.ndarray, den: np.ndarray | No
     if a.shape[2] >= 8:
         _pick_where(choice.ravel(), k, _mean_c(a, den), out)
         return
-    parallel_rows(_pick_mean_rows, (np.ascontiguousarray(choice, dtype=np.int64), int(k), _c64(a), _c64(den), out),
+    parallel_rows(_pick_mean_rows, (np.ascontiguousarray(choice), int(k), _c64(a), _c64(den), out),
                   a.shape[0])
 
 
@@ -125,11 +125,14 @@ def _floored_rows(r, x, y, sd, den, has, z, out, i0, i1):
     buf = np.empty(n)
     for i in range(i0, i1):
         xr, yr, sr, dr = x[i].reshape(n), y[i].reshape(n), sd[i].reshape(n), den[i].reshape(n)
+        every = True
+        for j in range(w):
+            every = every and has[i, j]
         for q in range(n):
             lb = abs(xr[q] - yr[q]) - z * sr[q]
             lb = np.nan if lb != lb else (lb if lb >= 0.0 else 0.0)
             buf[q] = lb * lb / dr[q]
-        for j in range(w):
+        for j in range(0 if every else w):
             if not has[i, j]:
                 for ch in range(c):
                     buf[j * c + ch] = 0.0 / dr[j * c + ch]
@@ -440,7 +443,7 @@ def _passed_rows(m, q, n, z, rel, out, i0, i1):
         for j in range(m.shape[1]):
             mm = m[i, j]
             se = np.sqrt(_nanmax(q[i, j] - mm * mm, 0.0) / n[i, j])
-            out[i, j] = rel[i, j] if np.isfinite(mm) and mm < (-z) * se else np.inf
+            out[i, j] = rel[i, j] if np.isfinite(mm) & (mm < (-z) * se) else np.inf
 
 
 @numba.njit(cache=True, nogil=True)
@@ -490,14 +493,20 @@ def _biased_rows(x, y, v, v_nb, zb, has, out, i0, i1):
             out[i, j] = b and has[i, j]
 
 
+def _compact(choice, n):
+    """``choice`` as the smallest integers that hold ``n`` candidates: the picks read it once per candidate."""
+    return choice.astype(np.uint8) if n <= 256 else choice
+
+
 def _region_guard(cands, den, choice, keep, sigma):
     """``choice`` with the pixel mean (0) where the chosen candidates' relative estimates minus the mean's,
     smoothed (``sigma``), exceed 0, except at ``keep``; the estimates unsmoothed and unfloored, each only
     where it is chosen."""
     h, w = choice.shape
     diff = np.empty((h, w))
+    pick = _compact(choice, len(cands))
     for k, c in enumerate(cands):
-        _pick_mean_c(choice, k, c.mse, den, diff)
+        _pick_mean_c(pick, k, c.mse, den, diff)
     parallel_rows(_minus_finite_rows, (diff, _mean_c(cands[0].mse, den)), h)
     diff = MaskedSmoothing(sigma)([diff])[0]
     return np.where(np.isfinite(diff) & (diff > 0) & ~keep, 0, choice)
@@ -518,9 +527,10 @@ def _picked(cands, rel, choice):
     h, w = choice.shape
     img = np.empty(cands[0].image.shape)
     raw_abs = np.empty((h, w))
+    pick = _compact(choice, len(cands))
     for k, c in enumerate(cands):
-        _pick_where(choice.ravel(), k, c.image, img)
-        _pick_mean_c(choice, k, c.mse, None, raw_abs)
+        _pick_where(pick.ravel(), k, c.image, img)
+        _pick_mean_c(pick, k, c.mse, None, raw_abs)
     return img, raw_abs, np.take_along_axis(rel, choice[None], axis=0)[0]
 
 
@@ -532,7 +542,7 @@ def _pick_where(choice, k, src, out):
     m = choice.size
     if not out.flags.c_contiguous:
         raise ValueError("_pick_where writes into a C-contiguous out")
-    _pick_rows(np.ascontiguousarray(choice, dtype=np.int64), int(k), np.ascontiguousarray(src).reshape(m, -1),
+    _pick_rows(np.ascontiguousarray(choice), int(k), np.ascontiguousarray(src).reshape(m, -1),
                out.reshape(m, -1))
 
 
@@ -586,19 +596,23 @@ def _no_push_rows(img, y, hi, heavy_tail, out, i0, i1):
     The median of the 8 neighbours (edge-repeated; an empty neighbour's mean
     counts) is :func:`~mcrecon.filters.order.neighbour_median8`, as
     :func:`numpy.median` computes it; NaN anywhere among them makes it NaN,
-    and a NaN median never reverts.
+    and a NaN median never reverts.  Computed for whole rows
+    (:func:`~mcrecon.filters.order.neighbour_medians8`): the rule fires at
+    half the values of a film with rare huge samples.
     """
     h, w, c = y.shape
+    n = w * c
+    med = np.empty(n)
     for i in range(i0, i1):
-        for j in range(w):
+        neighbour_medians8(y, i, med[c:n - c] if w > 1 else med[:0])
+        for j in (0, w - 1):
             for ch in range(c):
-                yc = y[i, j, ch]
-                oc = img[i, j, ch]
-                if not (hi[i, j, ch] > heavy_tail * abs(yc)) or not (oc != yc):
-                    continue
-                med = neighbour_median8(y, i, j, ch)  # NaN: no comparison below holds
-                if (yc > med and oc > yc) or (yc < med and oc < yc):
-                    out[i, j, ch] = yc
+                med[j * c + ch] = neighbour_median8(y, i, j, ch)
+        yr, ir, hr, orow = y[i].reshape(n), img[i].reshape(n), hi[i].reshape(n), out[i].reshape(n)
+        for q in range(n):
+            yc, oc, md = yr[q], ir[q], med[q]
+            if hr[q] > heavy_tail * abs(yc) and oc != yc and ((yc > md and oc > yc) or (yc < md and oc < yc)):
+                orow[q] = yc
 
 
 def _largest_remainder(pri: np.ndarray, total: int) -> np.ndarray:
