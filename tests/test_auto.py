@@ -365,7 +365,7 @@ def test_fast_exp_of_the_nlmeans_weights_against_numpy():
 def test_compiled_selection_helpers_are_bit_identical_to_their_numpy_definitions():
     from scipy.ndimage import maximum_filter, minimum_filter, uniform_filter
 
-    from mcrecon.methods.auto.selection import (_FirstLeast, _capped_mean_c, _floored, _mean_c,
+    from mcrecon.methods.auto.selection import (_FirstLeast, _biased, _capped_mean_c, _floored, _mean_c,
                                                 _neighbourhood_mean, _pick_mean_c)
     from mcrecon.filters.masked import MaskedSmoothing, _smooth_masked
     from mcrecon.core.safeguard import sample_range_bounds
@@ -421,8 +421,16 @@ def test_compiled_selection_helpers_are_bit_identical_to_their_numpy_definitions
         vv[rng.random(shape) < 0.05] = np.nan
         got = np.empty(shape)
         _neighbourhood_mean(vv, got)
-        np.testing.assert_array_equal(got, uniform_filter(np.where(np.isfinite(vv), vv, 0.0), size=(3, 3, 1),
-                                                          mode="nearest"))
+        v_nb = uniform_filter(np.where(np.isfinite(vv), vv, 0.0), size=(3, 3, 1), mode="nearest")
+        np.testing.assert_array_equal(got, v_nb)
+        # and the global prior's bias test on it, row by row
+        xg, yg = rng.random(shape), rng.random(shape)
+        has = rng.random(shape[:2]) < 0.9
+        biased = np.empty(shape[:2], bool)
+        _biased(xg, yg, vv, 5.0, has, biased)
+        with np.errstate(invalid="ignore"):
+            ref = np.any(np.abs(xg - yg) > 5.0 * np.sqrt(np.maximum(vv, v_nb)), axis=2) & has
+        np.testing.assert_array_equal(biased, ref)
     ss, _, _ = _caustic_ring_samples(1)
     st = PixelStats.from_source(ss)
     st.count[3:6, 4:9] = 0
@@ -764,6 +772,9 @@ def test_heavy_tail_rule_compiled_equals_its_numpy_statement(seed):
         got = _no_push_in_heavy_tails(img, y, hi)
         ref = _no_push_reference(img, y, hi)
         np.testing.assert_array_equal(got, ref)
+        inplace = img.copy()
+        _no_push_in_heavy_tails(inplace, y, hi, out=inplace)
+        np.testing.assert_array_equal(inplace, ref)
         assert (got != img).sum() > 0 or h * w < 8   # the rule fired: the comparison is not vacuous
 
 

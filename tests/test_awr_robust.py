@@ -130,6 +130,9 @@ def test_confidence_clamp_formula_analytic():
         got = confidence_clamp(image, mean, var, k, lo, hi)
         np.testing.assert_array_equal(got, ref)
         assert np.array_equal(np.signbit(got), np.signbit(ref))
+        inplace = image.copy()
+        confidence_clamp(inplace, mean, var, k, lo, hi, out=inplace)
+        assert np.array_equal(np.signbit(inplace), np.signbit(ref)) and np.array_equal(inplace, ref, equal_nan=True)
 
 
 def test_sample_range_bounds_and_log_domain_identities(rng):

@@ -109,7 +109,8 @@ def sample_range_bounds(stats: PixelStats, radius: int = 1) -> tuple[np.ndarray,
 
 
 def confidence_clamp(image: np.ndarray, mean: np.ndarray, var_mean: np.ndarray, k: float,
-                     lo: np.ndarray | None = None, hi: np.ndarray | None = None) -> np.ndarray:
+                     lo: np.ndarray | None = None, hi: np.ndarray | None = None,
+                     out: np.ndarray | None = None) -> np.ndarray:
     """Clamp a reconstruction into each pixel's confidence interval of its mean.
 
     ``out = clip(image, a, b)`` with ``a = max(mean - k se, lo)``,
@@ -136,6 +137,9 @@ def confidence_clamp(image: np.ndarray, mean: np.ndarray, var_mean: np.ndarray, 
         Interval half-width in standard errors (>= 0; 0 returns ``mean``).
     lo, hi : ndarray, optional
         Extra bounds (same shape; ``-inf``/``inf`` for none).
+    out : ndarray, optional
+        C-contiguous float64 array of the result's shape to write into
+        (``image`` itself may be given); default a new one.
     """
     # one compiled pass of numpy's operations (np.maximum, np.minimum and np.clip as numpy computes
     # them: the first NaN, else the second operand on a tie of +0 and -0), bit-identical to
@@ -148,7 +152,9 @@ def confidence_clamp(image: np.ndarray, mean: np.ndarray, var_mean: np.ndarray, 
     it = iter(flat[3:])
     lo_f = next(it) if lo is not None else None
     hi_f = next(it) if hi is not None else None
-    out = np.empty(arrs[0].shape)
+    out = np.empty(arrs[0].shape) if out is None else out
+    if out.shape != arrs[0].shape or out.dtype != np.float64 or not out.flags.c_contiguous:
+        raise ValueError("confidence_clamp: out must be a C-contiguous float64 array of the result's shape")
     n = out.size
     step = max(1, -(-n // 16))
     parallel_calls(_clamp_flat, [(flat[0], flat[1], flat[2], float(k), lo_f, hi_f, out.ravel(), p, min(p + step, n))

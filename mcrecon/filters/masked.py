@@ -131,10 +131,13 @@ def effective_counts(masks: list, sigma: float) -> list:
         f = np.asarray(m, dtype=np.float64)
         jobs += [(f, k, None, 0), (f, k * k, None, 0)]
     res = correlate_jobs(jobs)
-    out = []
     for i in range(len(masks)):
-        s1, s2 = res[2 * i], res[2 * i + 1]
-        n = np.zeros(s1.shape)
-        np.divide(s1 * s1, s2, out=n, where=s2 > 1e-300)
-        out.append(n)
-    return out
+        _effective_rows(res[2 * i].ravel(), res[2 * i + 1].ravel())
+    return res[::2]
+
+
+@numba.njit(cache=True, nogil=True)
+def _effective_rows(s1, s2):
+    # s1 = s1^2 / s2 where s2 > 1e-300, else 0 (in place)
+    for p in range(s1.size):
+        s1[p] = s1[p] * s1[p] / s2[p] if s2[p] > 1e-300 else 0.0

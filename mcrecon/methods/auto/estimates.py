@@ -339,8 +339,8 @@ def relative_denominator_loo(y: np.ndarray, v: np.ndarray, count: np.ndarray | N
     q = _excess_square(y, v)
     has = np.ones(q.shape[:2], bool) if count is None else np.asarray(count) > 0
     out = np.empty(q.shape)
-    parallel_rows(_median8_plus, (np.ascontiguousarray(q, dtype=np.float64), np.ascontiguousarray(has), float(eps), out),
-                  q.shape[0])
+    parallel_rows(_median8_plus, (np.ascontiguousarray(q, dtype=np.float64), np.ascontiguousarray(has), float(eps),
+                                  out), q.shape[0])
     return out
 
 

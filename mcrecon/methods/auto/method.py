@@ -529,7 +529,7 @@ class AutoMethod(Method):
             choice = _region_guard(cands, den, choice, on_default, GUARD * smooth)
         img, raw_abs, est_rel = _picked(cands, rel, choice)
         img = fill_empty_pixels(img, count, source=_WHERE) if (count == 0).any() else img
-        img = np.where(np.isfinite(img), img, 0.0)
+        img[~np.isfinite(img)] = 0.0
         if self.params["safeguard"] is not None:
             # The error estimates are noisy exactly where a rare bright sample sits; a
             # candidate chosen on them may still carry its light into exact dark pixels
@@ -537,8 +537,8 @@ class AutoMethod(Method):
             # an interval that holds the true value with high probability never moves
             # an estimate away from it (the same safeguard as awr's robust default).
             lo, hi = sample_range_bounds(stats) if bounds is None else bounds
-            img = confidence_clamp(img, y, v_safe, self.params["safeguard"], lo, hi)
-            img = _no_push_in_heavy_tails(img, y, hi)
+            confidence_clamp(img, y, v_safe, self.params["safeguard"], lo, hi, out=img)
+            _no_push_in_heavy_tails(img, y, hi, out=img)
         # the raw estimate is undefined at empty pixels: the smoothed absolute one there
         fin = np.isfinite(raw_abs)
         if not fin.all():

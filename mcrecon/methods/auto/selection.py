@@ -110,7 +110,8 @@ def _capped_mean_c(a: np.ndarray, v: np.ndarray, s: float | None, den: np.ndarra
 
 @numba.njit(cache=True, nogil=True)
 def _nanmax(a, b):
-    # np.maximum: NaN if either is NaN
+    # NaN if either is NaN, else the larger (the first of +0 and -0, where np.maximum gives the second:
+    # the kernels that compare its result, not store it, use it in place of np.maximum)
     if a != a or b != b:
         return np.nan
     return a if a >= b else b
@@ -408,12 +409,8 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     # the test's standard error: the larger of the pixel's own and its 3 x 3 neighbourhood's mean
     # (a pixel's own sample variance is often far too small under skewed noise: with exponential
     # samples at 32 spp its own alone flagged 1.7 % of a flat field at 4 sd)
-    vc = _c64(v)
-    v_nb = np.empty(vc.shape)
-    _neighbourhood_mean(vc, v_nb)
     biased = np.empty(choice.shape, bool)
-    parallel_rows(_biased_rows, (_c64(cands[g].image), _c64(y), vc, v_nb, Z_BIAS_PRIOR,
-                                 np.ascontiguousarray(count > 0), biased), h)
+    _biased(_c64(cands[g].image), _c64(y), _c64(v), Z_BIAS_PRIOR, np.ascontiguousarray(count > 0), biased)
     # where the estimates are least reliable (rare huge samples around) g still stands, if no other
     # candidate passed the local test there, where it lies no farther than the plain choice from the
     # median of the 8 neighbours' means: a robust reference that a firefly kept by g (NFOR's
@@ -446,6 +443,29 @@ def _passed_rows(m, q, n, z, rel, out, i0, i1):
             out[i, j] = rel[i, j] if np.isfinite(mm) & (mm < (-z) * se) else np.inf
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _neighbourhood_mean_row(x, i, c, t, r, out_row):
+    # row i of _neighbourhood_mean of x (H, W * C), rows in order: t, the running sums along axis 0,
+    # advanced from row i - 1 to row i; r a row buffer
+    h, n = x.shape
+    w = n // c
+    if i == 0:
+        for q in range(n):
+            t[q] = ((0.0 + _finite0(x[0, q])) + _finite0(x[0, q])) + _finite0(x[min(1, h - 1), q])
+    else:
+        a, b = x[min(i + 1, h - 1)], x[max(i - 2, 0)]
+        for q in range(n):
+            t[q] += _finite0(a[q]) - _finite0(b[q])
+    for q in range(n):
+        r[q] = t[q] / 3.0
+    for ch in range(c):
+        s = ((0.0 + r[ch]) + r[ch]) + r[min(1, w - 1) * c + ch]
+        out_row[ch] = s / 3.0
+        for j in range(1, w):
+            s += r[min(j + 1, w - 1) * c + ch] - r[max(j - 2, 0) * c + ch]
+            out_row[j * c + ch] = s / 3.0
+
+
 @numba.njit(cache=True, nogil=True)
 def _neighbourhood_mean(v, out):
     """``scipy.ndimage.uniform_filter(where(isfinite(v), v, 0), size=(3, 3, 1), mode="nearest")`` of
@@ -454,26 +474,9 @@ def _neighbourhood_mean(v, out):
     x_0) + x_1``, then ``t += x_new - x_old``), each output ``t / 3``, the first pass stored as float64."""
     h, w, c = v.shape
     n = w * c
-    x = v.reshape(h, n)
-    t = np.empty(n)
-    first = np.empty((h, n))
-    for q in range(n):
-        t[q] = ((0.0 + _finite0(x[0, q])) + _finite0(x[0, q])) + _finite0(x[min(1, h - 1), q])
-        first[0, q] = t[q] / 3.0
-    for i in range(1, h):
-        a, b = x[min(i + 1, h - 1)], x[max(i - 2, 0)]
-        for q in range(n):
-            t[q] += _finite0(a[q]) - _finite0(b[q])
-            first[i, q] = t[q] / 3.0
-    o = out.reshape(h, n)
+    t, r = np.empty(n), np.empty(n)
     for i in range(h):
-        r = first[i]
-        for ch in range(c):
-            s = ((0.0 + r[ch]) + r[ch]) + r[min(1, w - 1) * c + ch]
-            o[i, ch] = s / 3.0
-            for j in range(1, w):
-                s += r[min(j + 1, w - 1) * c + ch] - r[max(j - 2, 0) * c + ch]
-                o[i, j * c + ch] = s / 3.0
+        _neighbourhood_mean_row(v.reshape(h, n), i, c, t, r, out[i].reshape(n))
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -482,13 +485,18 @@ def _finite0(x):
 
 
 @numba.njit(cache=True, nogil=True)
-def _biased_rows(x, y, v, v_nb, zb, has, out, i0, i1):
-    # any channel with |x - y| > zb sqrt(max(v, v_nb)) (NaN as np.maximum), at pixels with samples
-    for i in range(i0, i1):
-        for j in range(x.shape[1]):
+def _biased(x, y, v, zb, has, out):
+    """Per pixel with samples: any channel with ``|x - y| > zb sqrt(max(v, v_nb))`` (NaN as np.maximum),
+    ``v_nb`` the :func:`_neighbourhood_mean` of ``v``, row by row (no image of it)."""
+    h, w, c = x.shape
+    n = w * c
+    t, r, nb = np.empty(n), np.empty(n), np.empty(n)
+    for i in range(h):
+        _neighbourhood_mean_row(v.reshape(h, n), i, c, t, r, nb)
+        for j in range(w):
             b = False
-            for ch in range(x.shape[2]):
-                if abs(x[i, j, ch] - y[i, j, ch]) > zb * np.sqrt(_nanmax(v[i, j, ch], v_nb[i, j, ch])):
+            for ch in range(c):
+                if abs(x[i, j, ch] - y[i, j, ch]) > zb * np.sqrt(_nanmax(v[i, j, ch], nb[j * c + ch])):
                     b = True
             out[i, j] = b and has[i, j]
 
@@ -559,7 +567,8 @@ def _pick_rows(choice, k, s2, o2):
 HEAVY_TAIL = 10.0
 
 
-def _no_push_in_heavy_tails(img: np.ndarray, y: np.ndarray, hi: np.ndarray) -> np.ndarray:
+def _no_push_in_heavy_tails(img: np.ndarray, y: np.ndarray, hi: np.ndarray, out: np.ndarray | None = None
+                            ) -> np.ndarray:
     """Where the samples around a pixel are heavy-tailed, a candidate may pull it towards its neighbours, not away.
 
     A pixel is heavy-tailed when the largest sample of its 3 x 3
@@ -577,11 +586,13 @@ def _no_push_in_heavy_tails(img: np.ndarray, y: np.ndarray, hi: np.ndarray) -> n
     rule then fires at any edge of more than 10x contrast.  Measured (128^2, 32 spp, 5 seeds, ratio to box): caustic
     0.757 -> 0.522; soft shadow, depth of field, motion blur, hdr and flat
     within 0.1 %; Mitsuba Cornell boxes +1.5-1.7 % (docs/methods/auto.md).
+    Written into ``out`` (default a new array; ``img`` itself may be given:
+    each value reads only its own pixel of ``img``).
     """
-    # one compiled pass: the test and the 8-neighbour median only where the rule can fire
-    # (the numpy formulation, kept in the tests as the reference, was 1.2 s of auto's 8 s at 1024^2)
+    # one compiled pass (the numpy formulation, kept in the tests as the reference, was 1.2 s of
+    # auto's 8 s at 1024^2)
     img = np.ascontiguousarray(img, dtype=np.float64)
-    out = img.copy()
+    out = img.copy() if out is None else out
     y = np.ascontiguousarray(y, dtype=np.float64)
     hi = np.ascontiguousarray(hi, dtype=np.float64)
     # row blocks on the filters' thread pool (a parallel=True kernel cost 1.5 s of compilation on a first run)
