@@ -7,7 +7,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ..filters.engine import parallel_calls, parallel_rows
+from ..filters.engine import parallel_rows
 from ..filters.order import median9
 from .stats import PixelStats
 
@@ -148,17 +148,16 @@ def confidence_clamp(image: np.ndarray, mean: np.ndarray, var_mean: np.ndarray, 
     # cost more than the arithmetic
     arrs = np.broadcast_arrays(*[np.asarray(a, dtype=np.float64) for a in (image, mean, var_mean)
                                  + tuple(b for b in (lo, hi) if b is not None)])
-    flat = [np.ascontiguousarray(a).ravel() for a in arrs]
+    shape = arrs[0].shape
+    rows = shape[0] if len(shape) > 1 else 1
+    flat = [np.ascontiguousarray(a).reshape(rows, -1) for a in arrs]
     it = iter(flat[3:])
     lo_f = next(it) if lo is not None else None
     hi_f = next(it) if hi is not None else None
-    out = np.empty(arrs[0].shape) if out is None else out
-    if out.shape != arrs[0].shape or out.dtype != np.float64 or not out.flags.c_contiguous:
+    out = np.empty(shape) if out is None else out
+    if out.shape != shape or out.dtype != np.float64 or not out.flags.c_contiguous:
         raise ValueError("confidence_clamp: out must be a C-contiguous float64 array of the result's shape")
-    n = out.size
-    step = max(1, -(-n // 16))
-    parallel_calls(_clamp_flat, [(flat[0], flat[1], flat[2], float(k), lo_f, hi_f, out.ravel(), p, min(p + step, n))
-                                 for p in range(0, n, step)])
+    parallel_rows(_clamp_rows, (flat[0], flat[1], flat[2], float(k), lo_f, hi_f, out.reshape(rows, -1)), rows)
     return out
 
 
@@ -174,17 +173,18 @@ def _np_min(a, b):
 
 
 @numba.njit(cache=True, nogil=True)
-def _clamp_flat(image, mean, var, k, lo, hi, out, p0, p1):
-    for p in range(p0, p1):
-        m = mean[p]
-        half = k * np.sqrt(_np_max(var[p], 0.0))
-        a = m - half
-        b = m + half
-        if lo is not None:
-            a = _np_max(a, lo[p])
-        if hi is not None:
-            b = _np_min(b, hi[p])
-        out[p] = _np_min(_np_max(image[p], _np_min(a, m)), _np_max(b, m))
+def _clamp_rows(image, mean, var, k, lo, hi, out, i0, i1):
+    for i in range(i0, i1):
+        for p in range(image.shape[1]):
+            m = mean[i, p]
+            half = k * np.sqrt(_np_max(var[i, p], 0.0))
+            a = m - half
+            b = m + half
+            if lo is not None:
+                a = _np_max(a, lo[i, p])
+            if hi is not None:
+                b = _np_min(b, hi[i, p])
+            out[i, p] = _np_min(_np_max(image[i, p], _np_min(a, m)), _np_max(b, m))
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
