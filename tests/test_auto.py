@@ -365,8 +365,9 @@ def test_fast_exp_of_the_nlmeans_weights_against_numpy():
 def test_compiled_selection_helpers_are_bit_identical_to_their_numpy_definitions():
     from scipy.ndimage import maximum_filter, minimum_filter, uniform_filter
 
-    from mcrecon.methods.auto.selection import (_FirstLeast, _biased, _capped_mean_c, _floored, _mean_c,
-                                                _neighbourhood_mean, _pick_mean_c)
+    from mcrecon.methods.auto.selection import (_FirstLeast, _biased, _capped_mean_c, _compress,
+                                                _difference_rows, _floored, _mean_c, _neighbourhood_mean,
+                                                _passed_rows, _pick_mean_c)
     from mcrecon.filters.masked import MaskedSmoothing, _smooth_masked
     from mcrecon.core.safeguard import sample_range_bounds
     rng = np.random.default_rng(2)
@@ -414,6 +415,28 @@ def test_compiled_selection_helpers_are_bit_identical_to_their_numpy_definitions
         least.offer(k, mk)
     np.testing.assert_array_equal(least.index, np.argmin(np.stack([np.where(np.isnan(mk), np.inf, mk)
                                                                     for mk in maps]), axis=0))
+    # the global prior's sums of the voters, its difference maps and local test
+    vote = rng.random(r.shape) < 0.8
+    buf = np.empty(r.size)
+    rr = rng.standard_normal(r.shape) * 10.0 ** rng.uniform(-5, 5, r.shape)
+    assert float(np.sum(buf[:_compress(rr.ravel(), vote.ravel(), buf)])) == float(np.sum(rr[vote]))
+    lk, lg = maps[1] - 1.5, maps[2] - 1.0
+    lg[3, 4] = -np.inf
+    d, d2, fin = np.empty(r.shape), np.empty(r.shape), np.empty(r.shape, bool)
+    _difference_rows(lk, lg, d, d2, fin, 0, r.shape[0])
+    dref = np.where(np.isnan(lk) | np.isnan(lg) | np.isinf(lg), np.nan, lk - lg)
+    np.testing.assert_array_equal(d, dref)
+    np.testing.assert_array_equal(d2, dref * dref)
+    np.testing.assert_array_equal(fin, np.isfinite(dref))
+    mm, qq, neff = rng.standard_normal(r.shape), rng.random(r.shape), rng.random(r.shape) * 50
+    mm[rng.random(r.shape) < 0.05] = np.inf
+    neff[rng.random(r.shape) < 0.05] = 0.0
+    passed = np.empty(r.shape)
+    _passed_rows(mm, qq, neff, 0.5, r, passed, 0, r.shape[0])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ok = np.isfinite(mm) & (mm < -0.5 * np.sqrt(np.maximum(qq - mm * mm, 0.0) / neff))
+    np.testing.assert_array_equal(passed, np.where(ok, r, np.inf))
+    assert ok.any() and not ok.all()
     # scipy's 3 x 3 uniform filter of the finite variances, term for term
     for shape in ((1, 1, 1), (1, 6, 3), (7, 1, 2), (70, 9, 3)):
         vv = rng.exponential(1.0, shape) ** 3

@@ -105,6 +105,9 @@ def test_relative_denominator_median_is_ndimages():
     q = np.maximum(y * y - v, 0.0)
     ref = np.maximum(ndimage.median_filter(q, size=(3, 3, 1), mode="nearest"), q) + 0.01
     np.testing.assert_array_equal(relative_denominator(y, v, eps=0.01), ref)
+    from mcrecon.methods.auto.estimates import _excess_square
+    y[0, 0], v[0, 1], v[0, 2] = np.nan, np.nan, y[0, 2, 0] ** 2
+    np.testing.assert_array_equal(_excess_square(y, v), np.maximum(y * y - v, 0.0))
 
 
 def test_leave_one_out_denominator_ignores_the_pixels_own_samples():

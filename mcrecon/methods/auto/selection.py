@@ -366,7 +366,10 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     none = np.zeros(choice.shape, bool)
     if not vote.any():
         return choice, none
-    sums = [float(np.sum(r[vote])) for r in loo]
+    # np.sum(r[vote]) of each, the voters gathered into one buffer (numpy's pairwise sum of the same
+    # contiguous values: the same bits)
+    buf = np.empty(vote.size)
+    sums = [float(np.sum(buf[:_compress(r.ravel(), vote.ravel(), buf)])) for r in loo]
     g = int(np.argmin(sums))
     plain = [k for k in range(len(cands)) if k not in guarded]
     if g in guarded and plain:
@@ -419,6 +422,16 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     default = np.isfinite(rel[g]) & ~biased & (~apart | _nearer_the_neighbours(cands, g, choice, y, at_g))
     out = np.where(default, c2, choice)
     return out, default & (c2 == g)
+
+
+@numba.njit(cache=True, nogil=True)
+def _compress(a, keep, out):
+    # out[:n] = a[keep], returns n (each value written, the next one over it unless kept: no branch)
+    n = 0
+    for p in range(a.size):
+        out[n] = a[p]
+        n += keep[p]
+    return n
 
 
 @numba.njit(cache=True, nogil=True)
