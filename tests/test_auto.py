@@ -365,9 +365,10 @@ def test_fast_exp_of_the_nlmeans_weights_against_numpy():
 def test_compiled_selection_helpers_are_bit_identical_to_their_numpy_definitions():
     from scipy.ndimage import maximum_filter, minimum_filter, uniform_filter
 
-    from mcrecon.methods.auto.selection import (_FirstLeast, _biased, _capped_mean_c, _compress,
-                                                _difference_rows, _floored, _mean_c, _neighbourhood_mean,
-                                                _passed_rows, _pick_mean_c)
+    from mcrecon.methods.auto.method import Candidate
+    from mcrecon.methods.auto.passes import _FirstLeast, _arrays, _floor_and_choose, _mean_c, _means, _picked
+    from mcrecon.methods.auto.selection import (_biased, _compress, _difference_rows, _guard_rows,
+                                                _neighbourhood_mean, _passed_rows)
     from mcrecon.filters.masked import MaskedSmoothing, _smooth_masked
     from mcrecon.core.safeguard import sample_range_bounds
     rng = np.random.default_rng(2)
@@ -382,29 +383,53 @@ def test_compiled_selection_helpers_are_bit_identical_to_their_numpy_definitions
     sm = MaskedSmoothing(2.0)
     for x in (a, b, a * 2 + 1, a):
         np.testing.assert_array_equal(sm([x])[0], _smooth_masked(x, 2.0))
-    m, d = rng.random((70, 8, 3)) - 0.1, rng.random((70, 8, 3)) + 0.01
-    m[rng.random(m.shape) < 0.05] = np.nan
-    m[rng.random(m.shape) < 0.05] = np.inf
-    v = rng.random(m.shape) * 0.1
-    v[rng.random(m.shape) < 0.05] = np.nan
-    np.testing.assert_array_equal(_mean_c(m, d), np.mean(m / d, axis=2))
-    np.testing.assert_array_equal(_mean_c(m), np.mean(m, axis=2))
-    np.testing.assert_array_equal(_capped_mean_c(m, v, 25.0, d),
-                                  np.mean(np.where(np.isnan(m), np.nan, np.minimum(m, 25.0 * v)) / d, axis=2))
-    choice = rng.integers(0, 3, m.shape[:2])
-    out = np.full(m.shape[:2], -1.0)
-    _pick_mean_c(choice, 1, m, d, out)
-    np.testing.assert_array_equal(out, np.where(choice == 1, np.mean(m / d, axis=2), -1.0))
-    # the floor: max(r, mean_c max(|x - y| - z sd, 0)^2 / den), 0 where the pixel is empty, NaN as np.maximum
-    x, yy, sd = rng.random(m.shape), rng.random(m.shape), rng.random(m.shape) * 0.1
+    # channel means of every candidate's estimate at once: numpy's (pairwise from 8 channels)
+    for c in (1, 3, 9):
+        ms = [rng.random((70, 8, c)) - 0.1 for _ in range(3)]
+        for mk in ms:
+            mk[rng.random(mk.shape) < 0.05] = np.nan
+            mk[rng.random(mk.shape) < 0.05] = np.inf
+        d = rng.random((70, 8, c)) + 0.01
+        v = rng.random(d.shape) * 0.1
+        v[rng.random(d.shape) < 0.05] = np.nan
+        for got, mk in zip(_means(ms, d), ms):
+            np.testing.assert_array_equal(got, np.mean(mk / d, axis=2))
+        for got, mk in zip(_means(ms, d, v, 25.0), ms):
+            np.testing.assert_array_equal(got, np.mean(np.where(np.isnan(mk), np.nan, np.minimum(mk, 25.0 * v)) / d,
+                                                       axis=2))
+        np.testing.assert_array_equal(_mean_c(ms[0]), np.mean(ms[0], axis=2))
+    m = ms[0][..., :3]
+    d = d[..., :3]
+    # the floor, max(r, mean_c max(|x - y| - z sd, 0)^2 / den) (0 where the pixel is empty, NaN as
+    # np.maximum), in place for every candidate, and the choice: np.argmin of the floored stack with NaN
+    # as +inf (ties and all-undefined pixels to the first)
+    xs = [rng.random(m.shape) for _ in range(3)]
+    yy, sd = rng.random(m.shape), rng.random(m.shape) * 0.1
     yy[rng.random(m.shape) < 0.05] = np.nan
-    r = rng.random(m.shape[:2])
-    r[rng.random(r.shape) < 0.05] = np.nan
-    has = rng.random(r.shape) < 0.9
-    lb = np.where(has[..., None], np.maximum(np.abs(x - yy) - 2.0 * sd, 0.0), 0.0)
-    out = np.empty(r.shape)
-    _floored(r, x, yy, sd, d, has, 2.0, out)
-    np.testing.assert_array_equal(out, np.maximum(r, np.mean(lb * lb / d, axis=2)))
+    rel = rng.integers(0, 3, (3,) + m.shape[:2]).astype(float) * 0.01
+    rel[rng.random(rel.shape) < 0.05] = np.nan
+    rel[:, :2] = np.nan
+    has = rng.random(m.shape[:2]) < 0.9
+    ref = np.stack([np.maximum(r, np.mean(lb * lb / d, axis=2)) for r, lb in
+                    zip(rel, [np.where(has[..., None], np.maximum(np.abs(x - yy) - 2.0 * sd, 0.0), 0.0) for x in xs])])
+    choice = _floor_and_choose(rel, xs, yy, sd, d, has, 2.0)
+    np.testing.assert_array_equal(rel, ref)
+    np.testing.assert_array_equal(choice, np.argmin(np.where(np.isnan(ref), np.inf, ref), axis=0))
+    assert len(set(choice.ravel())) == 3
+    # the picks by the choice and the region guard's difference of relative estimates
+    mses = [m, m * 2, -m]
+    cands = [Candidate(f"c{k}", x, mk) for k, (x, mk) in enumerate(zip(xs, mses))]
+    img, raw_abs, est = _picked(cands, rel, choice)
+    np.testing.assert_array_equal(img, np.take_along_axis(np.stack(xs), choice[None, ..., None], axis=0)[0])
+    np.testing.assert_array_equal(raw_abs, np.take_along_axis(np.stack([np.mean(mk, axis=2) for mk in mses]),
+                                                              choice[None], axis=0)[0])
+    np.testing.assert_array_equal(est, np.take_along_axis(rel, choice[None], axis=0)[0])
+    raw = np.stack([np.mean(mk / d, axis=2) for mk in mses])
+    fin = np.where(np.isfinite(raw), raw, np.nan)
+    diff = np.empty(choice.shape)
+    _guard_rows(_arrays(mses), d, choice, diff, 0, diff.shape[0])
+    np.testing.assert_array_equal(diff, np.take_along_axis(fin, choice[None], axis=0)[0] - fin[0])
+    r = rel[0]
     # the running choice: np.argmin of the stack with NaN as +inf (ties and all-undefined pixels to the first)
     maps = [rng.integers(0, 3, r.shape).astype(float) for _ in range(4)]
     maps[1][rng.random(r.shape) < 0.2] = np.nan

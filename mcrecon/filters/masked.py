@@ -46,17 +46,23 @@ class MaskedSmoothing:
     filtered as it is (zeroing its non-finite entries would copy it), and
     the weight sum of such maps, the same for all of them, is filtered once
     for every call on the object.  Each result is written over its filtered
-    values: no full-image temporary but the filtered maps themselves (fresh
-    memory costs more than the arithmetic here).
+    values, or into ``out`` (arrays of the maps' shape, the maps themselves
+    allowed): no full-image temporary but the filtered maps (fresh memory
+    costs more than the arithmetic here).
     """
 
     def __init__(self, sigma: float):
         self.sigma = float(sigma)
         self._full_den = None
 
-    def __call__(self, maps: list) -> list:
+    def __call__(self, maps: list, out: list | None = None) -> list:
         if self.sigma <= 0:
-            return [_smooth_masked(a, self.sigma) for a in maps]
+            res = [_smooth_masked(a, self.sigma) for a in maps]
+            if out is None:
+                return res
+            for o, r in zip(out, res):
+                o[...] = r
+            return out
         k = _gauss_kernel(self.sigma)
         maps = [np.ascontiguousarray(a, dtype=np.float64) for a in maps]
         jobs, full = [], []
@@ -76,13 +82,14 @@ class MaskedSmoothing:
         if new_den:
             self._full_den = res.pop()
         res = iter(res)
-        out = []
-        for a, f in zip(maps, full):
+        result = []
+        for p, (a, f) in enumerate(zip(maps, full)):
             num = next(res)
             den = self._full_den if f else next(res)
-            parallel_rows(_normalise_rows, (num, den, a), a.shape[0])
-            out.append(num)
-        return out
+            dst = num if out is None else out[p]
+            parallel_rows(_normalise_rows, (num, den, a, dst), a.shape[0])
+            result.append(dst)
+        return result
 
 
 @numba.njit(cache=True, nogil=True)
@@ -103,15 +110,15 @@ def _split_finite(a, z, f):
 
 
 @numba.njit(cache=True, nogil=True)
-def _normalise_rows(num, den, a, i0, i1):
-    # rows [i0, i1): num / den where den > 1e-12, else +inf; +inf where a is (in place over num)
+def _normalise_rows(num, den, a, dst, i0, i1):
+    # rows [i0, i1): dst = num / den where den > 1e-12, else +inf; +inf where a is (dst may be num or a)
     for i in range(i0, i1):
         for j in range(num.shape[1]):
             d = den[i, j]
             if a[i, j] == np.inf or not d > 1e-12:
-                num[i, j] = np.inf
+                dst[i, j] = np.inf
             else:
-                num[i, j] = num[i, j] / d
+                dst[i, j] = num[i, j] / d
 
 
 def effective_counts(masks: list, sigma: float) -> list:

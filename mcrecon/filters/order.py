@@ -1,11 +1,13 @@
 """Order statistics of a pixel's neighbourhood: medians of 8 and 9 numbers by compare-exchange networks.
 
 A network only selects (min and max, no arithmetic), so its result is the
-same element a sort would put there, bit for bit; unlike an insertion sort
-it has no data-dependent branches, which is what costs time when the
-values are noise (a mispredicted branch per element).  With a NaN among the
-inputs min and max do not order them: callers take the networks only for
-NaN-free inputs.
+value a sort would put there (of +0 and -0, which compare equal, not
+necessarily the same one: a caller whose output could keep the zero's sign
+takes a zero from its sort); unlike an insertion sort it has no
+data-dependent branches, which is what costs time when the values are
+noise (a mispredicted branch per element), and it vectorises over a row.
+With a NaN among the inputs min and max do not order them: callers take
+the networks only for NaN-free inputs.
 """
 
 from __future__ import annotations

@@ -37,8 +37,8 @@ from ...filters.gaussian import final_sigmas
 from ...core.fill import mean_variance_policy
 from .nlmeans import nlmeans_cross
 from ...filters.masked import MaskedSmoothing, _smooth_masked
-from .selection import (_global_prior, _largest_remainder, _mean_c, _no_push_in_heavy_tails, _picked,
-    _region_guard, _relative_choice)
+from .passes import _mean_c, _picked
+from .selection import _global_prior, _largest_remainder, _no_push_in_heavy_tails, _region_guard, _relative_choice
 
 __all__ = ['AutoMethod', 'AutoRun', 'CANDIDATES', 'DEFAULT_CANDIDATES', 'DUAL_BUFFER', 'FEATURE_CANDIDATES']
 

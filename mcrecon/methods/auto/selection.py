@@ -1,4 +1,5 @@
-"""auto's per-pixel selection: channel means of estimates, floors, the global prior, heavy tails.
+"""auto's per-pixel selection: the floored relative estimates and the plain choice, the global prior, the
+region guard, heavy tails (the passes over all candidates' maps: :mod:`.passes`).
 """
 
 from __future__ import annotations
@@ -10,184 +11,25 @@ import numpy as np
 from ...filters.engine import parallel_rows
 
 from .estimates import relative_denominator_loo
+from .passes import _FirstLeast, _arrays, _c64, _channel_mean, _floor_and_choose, _means, _nanmax
 from ...core.metrics import DEFAULT_EPS
 from ...filters.masked import MaskedSmoothing, effective_counts
 from ...filters.order import median9, neighbour_median8, neighbour_medians8
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _chan_mean_at(a, den, i, j):
-    # mean over channels of a / den at pixel (i, j): the channel terms added in order from the
-    # first, then divided by C -- numpy's np.mean(axis=2) for C < 8 (den None: of a itself)
-    c = a.shape[2]
-    s = a[i, j, 0] if den is None else a[i, j, 0] / den[i, j, 0]
-    for ch in range(1, c):
-        s += a[i, j, ch] if den is None else a[i, j, ch] / den[i, j, ch]
-    return s / c
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _chan_mean_rows(a, den, out, i0, i1):
-    # each row's ratios in one flat loop (contiguous: vectorised), then summed per pixel
-    h, w, c = a.shape
-    n = w * c
-    buf = np.empty(n)
-    for i in range(i0, i1):
-        ar = a[i].reshape(n)
-        if den is None:
-            for q in range(n):
-                buf[q] = ar[q]
-        else:
-            dr = den[i].reshape(n)
-            for q in range(n):
-                buf[q] = ar[q] / dr[q]
-        _sum_channels(buf, c, out[i])
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _sum_channels(buf, c, out_row):
-    # out_row[j] = (buf[j c] + buf[j c + 1] + ...) / c, added in order from the first
-    for j in range(out_row.size):
-        s = buf[j * c]
-        for ch in range(1, c):
-            s += buf[j * c + ch]
-        out_row[j] = s / c
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _pick_mean_rows(choice, k, a, den, out, i0, i1):
-    # out = the channel mean of a / den where choice == k
-    for i in range(i0, i1):
-        for j in range(a.shape[1]):
-            if choice[i, j] == k:
-                out[i, j] = _chan_mean_at(a, den, i, j)
-
-
-def _c64(a):
-    return None if a is None else np.ascontiguousarray(a, dtype=np.float64)
-
-
-def _mean_c(a: np.ndarray, den: np.ndarray | None = None) -> np.ndarray:
-    """``np.mean(a / den, axis=2)`` (bit-identical; compiled for fewer than 8 channels)."""
-    if a.shape[2] >= 8:
-        return np.mean(a if den is None else a / den, axis=2)
-    out = np.empty(a.shape[:2])
-    parallel_rows(_chan_mean_rows, (_c64(a), _c64(den), out), a.shape[0])
-    return out
-
-
-def _pick_mean_c(choice: np.ndarray, k: int, a: np.ndarray, den: np.ndarray | None, out: np.ndarray) -> None:
-    """``out[p] = _mean_c(a, den)[p]`` where ``choice[p] == k``, computed only there."""
-    if a.shape[2] >= 8:
-        _pick_where(choice.ravel(), k, _mean_c(a, den), out)
-        return
-    parallel_rows(_pick_mean_rows, (np.ascontiguousarray(choice), int(k), _c64(a), _c64(den), out),
-                  a.shape[0])
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _capped_mean_rows(a, v, s, den, out, i0, i1):
-    # the channel mean of np.minimum(a, s * v) / den: NaN if either is NaN, the second on ties
-    h, w, c = a.shape
-    n = w * c
-    buf = np.empty(n)
-    for i in range(i0, i1):
-        ar, vr, dr = a[i].reshape(n), v[i].reshape(n), den[i].reshape(n)
-        for q in range(n):
-            x = ar[q]
-            m = s * vr[q]
-            buf[q] = (x if x < m or x != x else m) / dr[q]
-        _sum_channels(buf, c, out[i])
-
-
-def _capped_mean_c(a: np.ndarray, v: np.ndarray, s: float | None, den: np.ndarray) -> np.ndarray:
-    """``_mean_c(np.minimum(a, s * v), den)`` (``s`` None: no cap), without the capped copy of ``a``."""
-    if s is None or a.shape[2] >= 8:
-        return _mean_c(a if s is None else np.where(np.isnan(a), np.nan, np.minimum(a, s * v)), den)
-    out = np.empty(a.shape[:2])
-    parallel_rows(_capped_mean_rows, (_c64(a), _c64(v), float(s), _c64(den), out), a.shape[0])
-    return out
-
-
-@numba.njit(cache=True, nogil=True)
-def _nanmax(a, b):
-    # NaN if either is NaN, else the larger (the first of +0 and -0, where np.maximum gives the second:
-    # the kernels that compare its result, not store it, use it in place of np.maximum)
-    if a != a or b != b:
-        return np.nan
-    return a if a >= b else b
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _floored_rows(r, x, y, sd, den, has, z, out, i0, i1):
-    # rows [i0, i1) of _floored: the squared bias bounds of a row in one flat loop (vectorised), then
-    # summed per pixel (an empty pixel's bound is 0: its terms 0 / den)
-    h, w, c = x.shape
-    n = w * c
-    buf = np.empty(n)
-    for i in range(i0, i1):
-        xr, yr, sr, dr = x[i].reshape(n), y[i].reshape(n), sd[i].reshape(n), den[i].reshape(n)
-        every = True
-        for j in range(w):
-            every = every and has[i, j]
-        for q in range(n):
-            lb = abs(xr[q] - yr[q]) - z * sr[q]
-            lb = np.nan if lb != lb else (lb if lb >= 0.0 else 0.0)
-            buf[q] = lb * lb / dr[q]
-        for j in range(0 if every else w):
-            if not has[i, j]:
-                for ch in range(c):
-                    buf[j * c + ch] = 0.0 / dr[j * c + ch]
-        _sum_channels(buf, c, out[i])
-        for j in range(w):
-            out[i, j] = _nanmax(r[i, j], out[i, j])
-
-
-def _floored(r, x, y, sd, den, has, z, out):
-    """``out = max(r, mean_c max(|x - y| - z sd, 0)^2 / den)`` (0 floor where the pixel is empty), NaN as
-    np.maximum; ``has`` the pixels with samples."""
-    parallel_rows(_floored_rows, (_c64(r), _c64(x), _c64(y), _c64(sd), _c64(den), np.ascontiguousarray(has),
-                                  float(z), out), x.shape[0])
-
-
-@numba.njit(cache=True, nogil=True)
-def _take_lower_rows(vals, k, best, idx, i0, i1):
-    # where vals (NaN as +inf) < best: best = vals, idx = k
-    for i in range(i0, i1):
-        for j in range(vals.shape[1]):
-            x = vals[i, j]
-            if x < best[i, j]:
-                best[i, j] = x
-                idx[i, j] = k
-
-
-class _FirstLeast:
-    """The index of the least of maps offered one at a time (NaN counting as +inf): ``np.argmin`` of their
-    stack, ties to the first, without the stack.  A pixel where every map is NaN or +inf keeps index 0."""
-
-    def __init__(self, shape):
-        self.best = np.full(shape, np.inf)
-        self.index = np.zeros(shape, np.int64)
-
-    def offer(self, k: int, vals: np.ndarray) -> None:
-        parallel_rows(_take_lower_rows, (_c64(vals), int(k), self.best, self.index), vals.shape[0])
-
 
 def _relative_choice(cands, den, y, sd, count, smoothing, z):
-    """Every candidate's smoothed relative estimate floored by its own evidence of bias (:func:`_floored`
-    at ``z`` standard errors ``sd``) as a (K, H, W) array, and the per-pixel choice (the first of least
-    estimate; an undefined one, NaN, never chosen over a defined one).
+    """Every candidate's smoothed relative estimate floored by its own evidence of bias
+    (:func:`_floor_and_choose` at ``z`` standard errors ``sd``) as a (K, H, W) array, and the per-pixel
+    choice (the first of least estimate; an undefined one, NaN, never chosen over a defined one).
 
-    One candidate at a time: its relative map, smoothed (``smoothing``, a :class:`MaskedSmoothing`),
-    floored into its plane; the maps of all at once cost more in fresh memory than in arithmetic.
+    The relative maps of all candidates in one pass, each smoothed in its own plane (``smoothing``, a
+    :class:`MaskedSmoothing`), then floored and chosen among in one pass: no map beyond the (K, H, W)
+    array (fresh memory costs more than the arithmetic here).
     """
-    h, w = count.shape
-    has = np.ascontiguousarray(count > 0)
-    rel = np.empty((len(cands), h, w))
-    least = _FirstLeast((h, w))
-    for k, c in enumerate(cands):
-        _floored(smoothing([_mean_c(c.mse, den)])[0], c.image, y, sd, den, has, z, rel[k])
-        least.offer(k, rel[k])
-    return rel, least.index
+    rel = _means([c.mse for c in cands], den)
+    for k in range(len(cands)):
+        smoothing([rel[k]], out=[rel[k]])
+    return rel, _floor_and_choose(rel, [c.image for c in cands], y, sd, den, count > 0, z)
 
 
 #: Standard errors (the larger of the pixel's and its 3 x 3 neighbourhood's mean) beyond which the
@@ -271,39 +113,29 @@ def _nearer_the_neighbours(cands, g, choice, y, where):
     of the 8 neighbours' means (the sum over channels of the distances; edges repeated, empty neighbours'
     means 0); False elsewhere and where a neighbour's mean or a value is NaN."""
     out = np.zeros(y.shape[:2], bool)
-    idx = np.nonzero(where)
-    if not idx[0].size:
-        return out
-    i, j = idx[0].astype(np.int64), idx[1].astype(np.int64)
-    pick = np.ascontiguousarray(choice[idx], dtype=np.int64)
-    chosen = np.empty((i.size, y.shape[2]))
-    for k, c in enumerate(cands):
-        _gather_at(pick, k, _c64(c.image), i, j, chosen)
-    out[idx] = _nearer_at(_c64(y), i, j, np.ascontiguousarray(cands[g].image[idx], dtype=np.float64), chosen)
+    if where.any():
+        parallel_rows(_nearer_rows, (_c64(y), _arrays([c.image for c in cands]), int(g),
+                                     np.ascontiguousarray(choice), np.ascontiguousarray(where), out), y.shape[0])
     return out
 
 
 @numba.njit(cache=True, nogil=True)
-def _gather_at(pick, k, image, ii, jj, out):
-    # out[p] = image[ii[p], jj[p]] where pick[p] == k
-    for p in range(pick.size):
-        if pick[p] == k:
-            for ch in range(image.shape[2]):
-                out[p, ch] = image[ii[p], jj[p], ch]
-
-
-@numba.njit(cache=True, nogil=True)
-def _nearer_at(y, ii, jj, xg, xc):
-    res = np.zeros(ii.size, np.bool_)
-    for p in range(ii.size):
-        dg = 0.0
-        dc = 0.0
-        for ch in range(y.shape[2]):
-            med = neighbour_median8(y, ii[p], jj[p], ch)
-            dg += abs(xg[p, ch] - med)
-            dc += abs(xc[p, ch] - med)
-        res[p] = dg <= dc  # False when any is NaN
-    return res
+def _nearer_rows(y, images, g, choice, where, out, i0, i1):
+    h, w, c = y.shape
+    xg = images[g]
+    for i in range(i0, i1):
+        for k in range(len(images)):
+            xk = images[k]
+            for j in range(w):
+                if not where[i, j] or choice[i, j] != k:
+                    continue
+                dg = 0.0
+                dc = 0.0
+                for ch in range(c):
+                    med = neighbour_median8(y, i, j, ch)
+                    dg += abs(xg[i, j, ch] - med)
+                    dc += abs(xk[i, j, ch] - med)
+                out[i, j] = dg <= dc  # False when any is NaN
 
 
 def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, safeguard, guarded=()):
@@ -352,7 +184,7 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     once cost more in fresh memory than their arithmetic).
     """
     den_loo = relative_denominator_loo(y, v, count, eps=DEFAULT_EPS)
-    loo = [_capped_mean_c(c.mse, v, None if safeguard is None else (safeguard + 1.0) ** 2, den_loo) for c in cands]
+    loo = _means([c.mse for c in cands], den_loo, v, None if safeguard is None else (safeguard + 1.0) ** 2)
     # rare huge samples: the 3 x 3 maximum far above the pixel's mean and its neighbourhood's median
     # (so that one pixel whose mean fell near 0 by chance does not count; a median, not a mean,
     # which a bright emitter beside dim pixels would dominate); and pixels far brighter than their
@@ -360,9 +192,8 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     # reach ~1e4 where the typical is ~1 (a Cornell box with a small bright light: two such pixels
     # made a 1.41 px Gaussian the whole image's default)
     apart = _apart(y, v, bounds[1], den_loo, safeguard is not None)
-    vote = ~apart
-    for r in loo:
-        vote &= np.isfinite(r)
+    vote = np.empty(apart.shape, bool)
+    parallel_rows(_voters_rows, (loo, apart, vote), vote.shape[0])
     none = np.zeros(choice.shape, bool)
     if not vote.any():
         return choice, none
@@ -422,6 +253,17 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     default = np.isfinite(rel[g]) & ~biased & (~apart | _nearer_the_neighbours(cands, g, choice, y, at_g))
     out = np.where(default, c2, choice)
     return out, default & (c2 == g)
+
+
+@numba.njit(cache=True, nogil=True)
+def _voters_rows(loo, apart, vote, i0, i1):
+    # vote = not apart and every candidate's estimate finite
+    for i in range(i0, i1):
+        for j in range(apart.shape[1]):
+            ok = not apart[i, j]
+            for k in range(loo.shape[0]):
+                ok = ok and np.isfinite(loo[k, i, j])
+            vote[i, j] = ok
 
 
 @numba.njit(cache=True, nogil=True)
@@ -514,66 +356,36 @@ def _biased(x, y, v, zb, has, out):
             out[i, j] = b and has[i, j]
 
 
-def _compact(choice, n):
-    """``choice`` as the smallest integers that hold ``n`` candidates: the picks read it once per candidate."""
-    return choice.astype(np.uint8) if n <= 256 else choice
-
-
 def _region_guard(cands, den, choice, keep, sigma):
     """``choice`` with the pixel mean (0) where the chosen candidates' relative estimates minus the mean's,
     smoothed (``sigma``), exceed 0, except at ``keep``; the estimates unsmoothed and unfloored, each only
     where it is chosen."""
-    h, w = choice.shape
-    diff = np.empty((h, w))
-    pick = _compact(choice, len(cands))
-    for k, c in enumerate(cands):
-        _pick_mean_c(pick, k, c.mse, den, diff)
-    parallel_rows(_minus_finite_rows, (diff, _mean_c(cands[0].mse, den)), h)
+    diff = np.empty(choice.shape)
+    parallel_rows(_guard_rows, (_arrays([c.mse for c in cands]), _c64(den), np.ascontiguousarray(choice), diff),
+                  diff.shape[0])
     diff = MaskedSmoothing(sigma)([diff])[0]
     return np.where(np.isfinite(diff) & (diff > 0) & ~keep, 0, choice)
 
 
-@numba.njit(cache=True, nogil=True)
-def _minus_finite_rows(a, b, i0, i1):
-    # a = a - b, each non-finite one read as NaN
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _guard_rows(mses, den, choice, out, i0, i1):
+    # out = the chosen candidate's relative estimate minus the first's (the channel means of mse / den),
+    # each non-finite one read as NaN
+    h, w, c = den.shape
+    a = np.empty(c)
+    b = np.empty(c)
     for i in range(i0, i1):
-        for j in range(a.shape[1]):
-            x, y = a[i, j], b[i, j]
-            a[i, j] = (x if np.isfinite(x) else np.nan) - (y if np.isfinite(y) else np.nan)
-
-
-def _picked(cands, rel, choice):
-    """Per pixel, the chosen candidate's image, the channel mean of its unbiased estimate and its
-    relative estimate (``rel[choice]``)."""
-    h, w = choice.shape
-    img = np.empty(cands[0].image.shape)
-    raw_abs = np.empty((h, w))
-    pick = _compact(choice, len(cands))
-    for k, c in enumerate(cands):
-        _pick_where(pick.ravel(), k, c.image, img)
-        _pick_mean_c(pick, k, c.mse, None, raw_abs)
-    return img, raw_abs, np.take_along_axis(rel, choice[None], axis=0)[0]
-
-
-def _pick_where(choice, k, src, out):
-    """``out[p] = src[p]`` where ``choice[p] == k`` (src and out (H, W, C) or (H, W), C-contiguous, raveled alike).
-
-    Both as 2-D (pixels, values) views: one compiled kernel for images and maps (it was compiled for each).
-    """
-    m = choice.size
-    if not out.flags.c_contiguous:
-        raise ValueError("_pick_where writes into a C-contiguous out")
-    _pick_rows(np.ascontiguousarray(choice), int(k), np.ascontiguousarray(src).reshape(m, -1),
-               out.reshape(m, -1))
-
-
-@numba.njit(cache=True, nogil=True)
-def _pick_rows(choice, k, s2, o2):
-    m, n = s2.shape
-    for p in range(m):
-        if choice[p] == k:
-            for q in range(n):
-                o2[p, q] = s2[p, q]
+        m0 = mses[0]
+        for k in range(len(mses)):
+            mk = mses[k]
+            for j in range(w):
+                if choice[i, j] != k:
+                    continue
+                for ch in range(c):
+                    a[ch] = mk[i, j, ch] / den[i, j, ch]
+                    b[ch] = m0[i, j, ch] / den[i, j, ch]
+                x, y0 = _channel_mean(a, 0, c), _channel_mean(b, 0, c)
+                out[i, j] = (x if np.isfinite(x) else np.nan) - (y0 if np.isfinite(y0) else np.nan)
 
 
 #: A pixel's neighbourhood is heavy-tailed when the largest sample around it exceeds this many times its mean.
