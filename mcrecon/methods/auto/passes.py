@@ -23,11 +23,25 @@ def _c64(a):
 
 def _arrays(arrays) -> List:
     """The candidates' (H, W, C) arrays for the kernels that read all of them in one pass over the rows
-    (a typed list: one compiled kernel for any number of candidates)."""
-    out = List()
-    for a in arrays:
-        out.append(np.ascontiguousarray(a, dtype=np.float64))
+    (a typed list: one compiled kernel for any number of candidates).  Built by cached kernels: the
+    typed list's own Python methods compile anew in every process (0.2 s)."""
+    arrays = [np.ascontiguousarray(a, dtype=np.float64) for a in arrays]
+    out = _list_start(arrays[0])
+    for a in arrays[1:]:
+        _list_push(out, a)
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _list_start(a):
+    out = List()
+    out.append(a)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _list_push(arrays, a):
+    arrays.append(a)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -108,27 +122,24 @@ def _channel_mean(a, o, c):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _means_rows(arrays, den, s, v, out, i0, i1):
+def _means_rows(arrays, den, cap, s, v, out, i0, i1):
     # rows [i0, i1) of _means: a row's ratios in one flat loop (vectorised), then the channel means
+    # (one signature whether capped or not: each costs a compilation and a load from the cache)
     h, w, c = out.shape[1], out.shape[2], arrays[0].shape[2]
     n = w * c
     buf = np.empty(n)
     for i in range(i0, i1):
+        dr, vr = den[i].reshape(n), v[i].reshape(n)
         for k in range(len(arrays)):
             ar = arrays[k][i].reshape(n)
-            if den is None:
-                for q in range(n):
-                    buf[q] = ar[q]
-            elif v is None:
-                dr = den[i].reshape(n)
-                for q in range(n):
-                    buf[q] = ar[q] / dr[q]
-            else:
-                dr, vr = den[i].reshape(n), v[i].reshape(n)
+            if cap:
                 for q in range(n):
                     x = ar[q]
                     m = s * vr[q]
                     buf[q] = (x if x < m or x != x else m) / dr[q]
+            else:
+                for q in range(n):
+                    buf[q] = ar[q] / dr[q]
             ok = out[k, i]
             for j in range(w):
                 ok[j] = _channel_mean(buf, j * c, c)
@@ -141,11 +152,13 @@ def _means(arrays: list, den: np.ndarray | None = None, v: np.ndarray | None = N
     One compiled pass over the rows for all of them (``den`` and ``v`` read once, not once per
     candidate).  Bit-identical to numpy from 8 channels; below, the channels added in order from
     the first, as numpy does but for the sign of a zero sum.  A NaN estimate stays NaN through the cap.
+    Without ``den`` the means of the arrays themselves (divided by ones: the same values).
     """
     first = arrays[0]
     out = np.empty((len(arrays),) + first.shape[:2])
-    parallel_rows(_means_rows, (_arrays(arrays), _c64(den), 0.0 if s is None else float(s),
-                                None if s is None else _c64(v), out), first.shape[0])
+    den = np.ones(first.shape) if den is None else _c64(den)
+    parallel_rows(_means_rows, (_arrays(arrays), den, s is not None, 0.0 if s is None else float(s),
+                                den if s is None else _c64(v), out), first.shape[0])
     return out
 
 
