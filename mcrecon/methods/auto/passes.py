@@ -274,15 +274,16 @@ def _picked(cands, rel, choice):
 @numba.njit(cache=True, nogil=True)
 def _pick_rows(images, mses, rel, choice, img, raw_abs, est, i0, i1):
     h, w, c = img.shape
-    a = np.empty(c)
+    a = np.empty(w * c)
     for i in range(i0, i1):
         for k in range(len(images)):
             xk, mk = images[k], mses[k]
             for j in range(w):
                 if choice[i, j] != k:
                     continue
+                o = j * c
                 for ch in range(c):
                     img[i, j, ch] = xk[i, j, ch]
-                    a[ch] = mk[i, j, ch]
-                raw_abs[i, j] = _channel_mean(a, 0, c)
+                    a[o + ch] = mk[i, j, ch]
+                raw_abs[i, j] = _channel_mean(a, o, c)
                 est[i, j] = rel[k, i, j]

@@ -372,8 +372,8 @@ def _guard_rows(mses, den, choice, out, i0, i1):
     # out = the chosen candidate's relative estimate minus the first's (the channel means of mse / den),
     # each non-finite one read as NaN
     h, w, c = den.shape
-    a = np.empty(c)
-    b = np.empty(c)
+    a = np.empty(w * c)
+    b = np.empty(w * c)
     for i in range(i0, i1):
         m0 = mses[0]
         for k in range(len(mses)):
@@ -381,10 +381,11 @@ def _guard_rows(mses, den, choice, out, i0, i1):
             for j in range(w):
                 if choice[i, j] != k:
                     continue
+                o = j * c
                 for ch in range(c):
-                    a[ch] = mk[i, j, ch] / den[i, j, ch]
-                    b[ch] = m0[i, j, ch] / den[i, j, ch]
-                x, y0 = _channel_mean(a, 0, c), _channel_mean(b, 0, c)
+                    a[o + ch] = mk[i, j, ch] / den[i, j, ch]
+                    b[o + ch] = m0[i, j, ch] / den[i, j, ch]
+                x, y0 = _channel_mean(a, o, c), _channel_mean(b, o, c)
                 out[i, j] = (x if np.isfinite(x) else np.nan) - (y0 if np.isfinite(y0) else np.nan)
 
 
