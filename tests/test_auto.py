@@ -363,10 +363,13 @@ def test_fast_exp_of_the_nlmeans_weights_against_numpy():
 
 
 def test_compiled_selection_helpers_are_bit_identical_to_their_numpy_definitions():
-    from scipy.ndimage import maximum_filter, minimum_filter
+    from scipy.ndimage import maximum_filter, minimum_filter, uniform_filter
 
-    from mcrecon.methods.auto.selection import _mean_c
-    from mcrecon.filters.masked import _smooth_masked, _smooth_masked_many
+    from mcrecon.methods.auto.method import Candidate
+    from mcrecon.methods.auto.passes import _FirstLeast, _arrays, _floor_and_choose, _mean_c, _means, _picked
+    from mcrecon.methods.auto.selection import (_biased, _compress, _difference_rows, _guard_rows,
+                                                _neighbourhood_mean, _passed_rows)
+    from mcrecon.filters.masked import MaskedSmoothing, _smooth_masked
     from mcrecon.core.safeguard import sample_range_bounds
     rng = np.random.default_rng(2)
     a = rng.random((37, 44)) ** 3
@@ -374,11 +377,108 @@ def test_compiled_selection_helpers_are_bit_identical_to_their_numpy_definitions
     b[3, 4] = np.nan
     b[5, 5] = np.inf
     for sigma in (0.7, 2.0, 4.0):
-        for x, y in zip((a, b, a * 2 + 1), _smooth_masked_many([a, b, a * 2 + 1], sigma)):
+        for x, y in zip((a, b, a * 2 + 1), MaskedSmoothing(sigma)([a, b, a * 2 + 1])):
             np.testing.assert_array_equal(_smooth_masked(x, sigma), y)
-    m, d = rng.random((9, 8, 3)), rng.random((9, 8, 3)) + 0.01
-    np.testing.assert_array_equal(_mean_c(m, d), np.mean(m / d, axis=2))
-    np.testing.assert_array_equal(_mean_c(m), np.mean(m, axis=2))
+    # one MaskedSmoothing for several calls (the weight sum of full maps filtered once) is _smooth_masked
+    sm = MaskedSmoothing(2.0)
+    for x in (a, b, a * 2 + 1, a):
+        np.testing.assert_array_equal(sm([x])[0], _smooth_masked(x, 2.0))
+    # channel means of every candidate's estimate at once: numpy's (pairwise from 8 channels)
+    for c in (1, 3, 9):
+        ms = [rng.random((70, 8, c)) - 0.1 for _ in range(3)]
+        for mk in ms:
+            mk[rng.random(mk.shape) < 0.05] = np.nan
+            mk[rng.random(mk.shape) < 0.05] = np.inf
+        d = rng.random((70, 8, c)) + 0.01
+        v = rng.random(d.shape) * 0.1
+        v[rng.random(d.shape) < 0.05] = np.nan
+        for got, mk in zip(_means(ms, d), ms):
+            np.testing.assert_array_equal(got, np.mean(mk / d, axis=2))
+        for got, mk in zip(_means(ms, d, v, 25.0), ms):
+            np.testing.assert_array_equal(got, np.mean(np.where(np.isnan(mk), np.nan, np.minimum(mk, 25.0 * v)) / d,
+                                                       axis=2))
+        np.testing.assert_array_equal(_mean_c(ms[0]), np.mean(ms[0], axis=2))
+    m = ms[0][..., :3]
+    d = d[..., :3]
+    # the floor, max(r, mean_c max(|x - y| - z sd, 0)^2 / den) (0 where the pixel is empty, NaN as
+    # np.maximum), in place for every candidate, and the choice: np.argmin of the floored stack with NaN
+    # as +inf (ties and all-undefined pixels to the first)
+    xs = [rng.random(m.shape) for _ in range(3)]
+    yy, sd = rng.random(m.shape), rng.random(m.shape) * 0.1
+    yy[rng.random(m.shape) < 0.05] = np.nan
+    rel = rng.integers(0, 3, (3,) + m.shape[:2]).astype(float) * 0.01
+    rel[rng.random(rel.shape) < 0.05] = np.nan
+    rel[:, :2] = np.nan
+    has = rng.random(m.shape[:2]) < 0.9
+    ref = np.stack([np.maximum(r, np.mean(lb * lb / d, axis=2)) for r, lb in
+                    zip(rel, [np.where(has[..., None], np.maximum(np.abs(x - yy) - 2.0 * sd, 0.0), 0.0) for x in xs])])
+    choice = _floor_and_choose(rel, xs, yy, sd, d, has, 2.0)
+    np.testing.assert_array_equal(rel, ref)
+    np.testing.assert_array_equal(choice, np.argmin(np.where(np.isnan(ref), np.inf, ref), axis=0))
+    assert len(set(choice.ravel())) == 3
+    # the picks by the choice and the region guard's difference of relative estimates
+    mses = [m, m * 2, -m]
+    cands = [Candidate(f"c{k}", x, mk) for k, (x, mk) in enumerate(zip(xs, mses))]
+    img, raw_abs, est = _picked(cands, rel, choice)
+    np.testing.assert_array_equal(img, np.take_along_axis(np.stack(xs), choice[None, ..., None], axis=0)[0])
+    np.testing.assert_array_equal(raw_abs, np.take_along_axis(np.stack([np.mean(mk, axis=2) for mk in mses]),
+                                                              choice[None], axis=0)[0])
+    np.testing.assert_array_equal(est, np.take_along_axis(rel, choice[None], axis=0)[0])
+    raw = np.stack([np.mean(mk / d, axis=2) for mk in mses])
+    fin = np.where(np.isfinite(raw), raw, np.nan)
+    diff = np.empty(choice.shape)
+    _guard_rows(_arrays(mses), d, choice, diff, 0, diff.shape[0])
+    np.testing.assert_array_equal(diff, np.take_along_axis(fin, choice[None], axis=0)[0] - fin[0])
+    r = rel[0]
+    # the running choice: np.argmin of the stack with NaN as +inf (ties and all-undefined pixels to the first)
+    maps = [rng.integers(0, 3, r.shape).astype(float) for _ in range(4)]
+    maps[1][rng.random(r.shape) < 0.2] = np.nan
+    maps[2][rng.random(r.shape) < 0.2] = np.inf
+    maps[0][:5] = maps[1][:5] = maps[2][:5] = maps[3][:5] = np.nan
+    least = _FirstLeast(r.shape)
+    for k, mk in enumerate(maps):
+        least.offer(k, mk)
+    np.testing.assert_array_equal(least.index, np.argmin(np.stack([np.where(np.isnan(mk), np.inf, mk)
+                                                                    for mk in maps]), axis=0))
+    # the global prior's sums of the voters, its difference maps and local test
+    vote = rng.random(r.shape) < 0.8
+    buf = np.empty(r.size)
+    rr = rng.standard_normal(r.shape) * 10.0 ** rng.uniform(-5, 5, r.shape)
+    assert float(np.sum(buf[:_compress(rr.ravel(), vote.ravel(), buf)])) == float(np.sum(rr[vote]))
+    lk, lg = maps[1] - 1.5, maps[2] - 1.0
+    lg[3, 4] = -np.inf
+    d, d2, fin = np.empty(r.shape), np.empty(r.shape), np.empty(r.shape, bool)
+    _difference_rows(lk, lg, d, d2, fin, 0, r.shape[0])
+    dref = np.where(np.isnan(lk) | np.isnan(lg) | np.isinf(lg), np.nan, lk - lg)
+    np.testing.assert_array_equal(d, dref)
+    np.testing.assert_array_equal(d2, dref * dref)
+    np.testing.assert_array_equal(fin, np.isfinite(dref))
+    mm, qq, neff = rng.standard_normal(r.shape), rng.random(r.shape), rng.random(r.shape) * 50
+    mm[rng.random(r.shape) < 0.05] = np.inf
+    neff[rng.random(r.shape) < 0.05] = 0.0
+    passed = np.empty(r.shape)
+    _passed_rows(mm, qq, neff, 0.5, r, passed, 0, r.shape[0])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ok = np.isfinite(mm) & (mm < -0.5 * np.sqrt(np.maximum(qq - mm * mm, 0.0) / neff))
+    np.testing.assert_array_equal(passed, np.where(ok, r, np.inf))
+    assert ok.any() and not ok.all()
+    # scipy's 3 x 3 uniform filter of the finite variances, term for term
+    for shape in ((1, 1, 1), (1, 6, 3), (7, 1, 2), (70, 9, 3)):
+        vv = rng.exponential(1.0, shape) ** 3
+        vv[rng.random(shape) < 0.2] = 0.0
+        vv[rng.random(shape) < 0.05] = np.nan
+        got = np.empty(shape)
+        _neighbourhood_mean(vv, got)
+        v_nb = uniform_filter(np.where(np.isfinite(vv), vv, 0.0), size=(3, 3, 1), mode="nearest")
+        np.testing.assert_array_equal(got, v_nb)
+        # and the global prior's bias test on it, row by row
+        xg, yg = rng.random(shape), rng.random(shape)
+        has = rng.random(shape[:2]) < 0.9
+        biased = np.empty(shape[:2], bool)
+        _biased(xg, yg, vv, 5.0, has, biased)
+        with np.errstate(invalid="ignore"):
+            ref = np.any(np.abs(xg - yg) > 5.0 * np.sqrt(np.maximum(vv, v_nb)), axis=2) & has
+        np.testing.assert_array_equal(biased, ref)
     ss, _, _ = _caustic_ring_samples(1)
     st = PixelStats.from_source(ss)
     st.count[3:6, 4:9] = 0
@@ -417,21 +517,25 @@ def test_pooled_mean_variance_is_the_pixel_variance_floored_by_the_neighbourhood
     from mcrecon.core.safeguard import pooled_mean_variance
 
     rng = np.random.default_rng(4)
-    h, w = 9, 11
-    count = rng.integers(0, 6, size=(h, w))
-    v = rng.random((h, w, 2)) ** 3 / np.maximum(count, 1)[..., None]
-    v[count == 0] = 0.0
-    for radius in (1, 2):
-        ref = v.copy()
-        for i in range(h):
-            for j in range(w):
-                if count[i, j] == 0:
-                    continue
-                for c in range(2):
-                    nb = [count[a, b] * v[a, b, c] for a in range(max(i - radius, 0), min(i + radius + 1, h))
-                          for b in range(max(j - radius, 0), min(j + radius + 1, w)) if count[a, b] > 0]
-                    ref[i, j, c] = max(v[i, j, c], float(np.median(nb)) / count[i, j])
-        np.testing.assert_allclose(pooled_mean_variance(v, count, radius), ref, rtol=1e-15, atol=0)
+    # exact, on sparse counts and on full 3 x 3 neighbourhoods (the median network) with ties and zeros,
+    # over two row blocks
+    for h, w, low in ((9, 11, 0), (70, 13, 1)):
+        count = rng.integers(low, 6, size=(h, w))
+        v = rng.random((h, w, 2)) ** 3 / np.maximum(count, 1)[..., None]
+        v[rng.random(v.shape) < 0.2] = 0.5
+        v[rng.random(v.shape) < 0.3] = 0.0
+        v[count == 0] = 0.0
+        for radius in (1, 2):
+            ref = v.copy()
+            for i in range(h):
+                for j in range(w):
+                    if count[i, j] == 0:
+                        continue
+                    for c in range(2):
+                        nb = [count[a, b] * v[a, b, c] for a in range(max(i - radius, 0), min(i + radius + 1, h))
+                              for b in range(max(j - radius, 0), min(j + radius + 1, w)) if count[a, b] > 0]
+                        ref[i, j, c] = max(v[i, j, c], float(np.median(nb)) / count[i, j])
+            np.testing.assert_array_equal(pooled_mean_variance(v, count, radius), ref)
     with pytest.raises(ValueError, match="var_mean"):
         pooled_mean_variance(v[..., 0], count)
 
@@ -483,10 +587,10 @@ def test_effective_counts_match_the_variance_of_the_masked_smoothing_by_brute_fo
     assert 0.5 < n_full[0, 14] / n_full[11, 14] < 0.6
     assert 0.25 < n_full[0, 0] / n_full[11, 14] < 0.36
     # and the empirical variance of the smoothing of white noise agrees (400 draws: 7 % spread)
-    from mcrecon.filters.masked import _smooth_masked_many
+    from mcrecon.filters.masked import MaskedSmoothing
 
     draws = rng.standard_normal((400, h, w))
-    sm = np.array(_smooth_masked_many([np.where(mask, d, np.nan) for d in draws], sigma))
+    sm = np.array(MaskedSmoothing(sigma)([np.where(mask, d, np.nan) for d in draws]))
     for (i, j) in [(11, 14), (0, 0)]:
         assert np.var(sm[:, i, j]) * n_masked[i, j] == pytest.approx(1.0, abs=0.2)
 
@@ -544,7 +648,7 @@ def test_global_prior_takes_the_best_single_candidate_and_leaves_heavy_tailed_or
 
     cands, raw, relm, y, v, count, bounds = _prior_inputs()
     plain = np.zeros(y.shape[:2], np.int64)  # a per-pixel choice that kept the mean everywhere
-    got, _ = _global_prior(cands, raw, relm, plain, y, v, count, bounds, 2.0, 3.0, 4.0)
+    got, _ = _global_prior(cands, raw.__getitem__, relm, plain, y, v, count, bounds, 2.0, 3.0, 4.0)
     assert (got == 2).all()  # the candidate of least summed estimate, everywhere
     # a pixel with rare huge samples around (3x3 maximum > 30x its mean) keeps its per-pixel choice
     # where the global candidate lies farther from its 8 neighbours' median than that choice (a firefly
@@ -554,7 +658,7 @@ def test_global_prior_takes_the_best_single_candidate_and_leaves_heavy_tailed_or
     img = cands[2].image.copy()
     img[3, 4] = 3.0
     kept = cands[:2] + [Candidate(cands[2].name, img, cands[2].mse)]
-    got, held = _global_prior(kept, raw, relm, plain, y, v, count, (bounds[0], hi), 2.0, 3.0, 4.0)
+    got, held = _global_prior(kept, raw.__getitem__, relm, plain, y, v, count, (bounds[0], hi), 2.0, 3.0, 4.0)
     assert got[3, 4] == 0 and got[8, 9] == 2
     assert not held[3, 4] and held[8, 9] and held.sum() == got.size - 1  # the pixels holding the default
     assert (np.delete(got.ravel(), 3 * 14 + 4) == 2).all()
@@ -562,13 +666,13 @@ def test_global_prior_takes_the_best_single_candidate_and_leaves_heavy_tailed_or
     img = cands[2].image.copy()
     img[5, 6, 1] = y[5, 6, 1] + 6 * 0.1
     c2 = cands[:2] + [Candidate(cands[2].name, img, cands[2].mse)]
-    got, _ = _global_prior(c2, raw, relm, plain, y, v, count, bounds, 2.0, 3.0, 4.0)
+    got, _ = _global_prior(c2, raw.__getitem__, relm, plain, y, v, count, bounds, 2.0, 3.0, 4.0)
     assert got[5, 6] == 0 and got[5, 7] == 2
     # where the per-pixel choice happens to be the default's candidate but the test kept that choice,
     # the pixel does not count as holding the default (the region guard still reviews it)
     plain_g = plain.copy()
     plain_g[5, 6] = 2
-    got, held = _global_prior(c2, raw, relm, plain_g, y, v, count, bounds, 2.0, 3.0, 4.0)
+    got, held = _global_prior(c2, raw.__getitem__, relm, plain_g, y, v, count, bounds, 2.0, 3.0, 4.0)
     assert got[5, 6] == 2 and not held[5, 6] and held[5, 7]
 
 
@@ -615,7 +719,7 @@ def test_global_prior_changes_nothing_when_the_pixel_mean_is_the_best_single_can
         c.mse[...] = 1.0  # every filter far worse than the mean's v = 0.01
     raw = [c.mse.mean(axis=2) / 0.26 for c in cands]
     plain = np.random.default_rng(1).integers(0, 3, size=y.shape[:2])
-    got, _ = _global_prior(cands, raw, np.stack(raw), plain, y, v, count, bounds, 2.0, 3.0, 4.0)
+    got, _ = _global_prior(cands, raw.__getitem__, np.stack(raw), plain, y, v, count, bounds, 2.0, 3.0, 4.0)
     np.testing.assert_array_equal(got, plain)
 
 
@@ -721,6 +825,9 @@ def test_heavy_tail_rule_compiled_equals_its_numpy_statement(seed):
         got = _no_push_in_heavy_tails(img, y, hi)
         ref = _no_push_reference(img, y, hi)
         np.testing.assert_array_equal(got, ref)
+        inplace = img.copy()
+        _no_push_in_heavy_tails(inplace, y, hi, out=inplace)
+        np.testing.assert_array_equal(inplace, ref)
         assert (got != img).sum() > 0 or h * w < 8   # the rule fired: the comparison is not vacuous
         scale = rng.choice([0.02, 0.3, 0.9], (h, w, 3))   # an albedo
         np.testing.assert_array_equal(_no_push_in_heavy_tails(img, y, hi, scale=scale),
@@ -765,22 +872,31 @@ def test_gem_sampling_pipelined_never_places_samples_from_empty_statistics():
     assert r1.positions is None and r1.counts.sum() == 2 * w * h and r1.counts.max() - r1.counts.min() <= 1
 
 
-def test_heavy_tailed_test_matches_a_whole_image_median_filter():
-    """_heavy_tailed computes the 3x3 median only where the first test fires: the same answer as the
-    whole-image scipy median filter (edges repeated), on a field with rare bright pixels and NaN."""
+def test_pixels_apart_from_the_global_prior_match_their_numpy_statement():
+    """_apart computes the 3x3 median only where the heavy-tail test's first half fires: the same answer as
+    the whole-image scipy median filter (edges repeated), with the brightness test and (need_v) the pixels
+    without variance, on a field with rare bright pixels, NaN, zeros and ties."""
     from scipy.ndimage import median_filter
-    from mcrecon.methods.auto.selection import _heavy_tailed
+    from mcrecon.methods.auto.selection import HEAVY_PRIOR, _apart
 
     rng = np.random.default_rng(5)
-    y = rng.uniform(0.0, 1.0, size=(17, 23, 3))
-    y[rng.random(y.shape) < 0.05] = 0.001
-    y[2, 3, 1] = np.nan
-    hi = np.where(rng.random(y.shape) < 0.1, 50.0, 1.0)
-    ay = np.abs(np.where(np.isfinite(y), y, 0.0))
-    ref = hi > 30.0 * np.maximum(ay, median_filter(ay, size=(3, 3, 1), mode="nearest"))
-    got = _heavy_tailed(y, hi, 30.0)
-    np.testing.assert_array_equal(got, ref)
-    assert 0 < got.sum() < got.size
+    for h, w in ((17, 23), (70, 9), (1, 5)):
+        y = rng.uniform(0.0, 1.0, size=(h, w, 3))
+        y[rng.random(y.shape) < 0.05] = 0.001
+        y[rng.random(y.shape) < 0.05] = 0.5
+        y[rng.random(y.shape) < 0.02] = np.nan
+        v = rng.uniform(0.0, 0.01, size=y.shape)
+        v[rng.random(y.shape[:2]) < 0.1] = 0.0
+        den = rng.uniform(0.0005, 0.01, size=y.shape)
+        hi = np.where(rng.random(y.shape) < 0.1, 50.0, 1.0)
+        ay = np.abs(np.where(np.isfinite(y), y, 0.0))
+        heavy = hi > HEAVY_PRIOR * np.maximum(ay, median_filter(ay, size=(3, 3, 1), mode="nearest"))
+        with np.errstate(invalid="ignore"):
+            bright = np.maximum(y * y - v, 0.0) > HEAVY_PRIOR ** 2 * den
+        ref = np.any(heavy | bright, axis=2)
+        np.testing.assert_array_equal(_apart(y, v, hi, den, False), ref)
+        np.testing.assert_array_equal(_apart(y, v, hi, den, True), ref | ~np.any(v > 0, axis=2))
+        assert h * w < 10 or (0 < ref.sum() < ref.size and bright.any() and heavy.any())
 
 
 def test_a_pixel_far_brighter_than_its_neighbours_does_not_choose_the_global_candidate():
@@ -796,7 +912,7 @@ def test_a_pixel_far_brighter_than_its_neighbours_does_not_choose_the_global_can
     y = y.copy()
     y[0, 0] = 100.0
     plain = np.zeros(y.shape[:2], np.int64)
-    got, _ = _global_prior(cands, raw, np.stack(raw), plain, y, v, count, (y.copy(), y.copy()), 2.0, 3.0, None)
+    got, _ = _global_prior(cands, raw.__getitem__, np.stack(raw), plain, y, v, count, (y.copy(), y.copy()), 2.0, 3.0, None)
     assert got[0, 0] == 0 and (got.ravel()[1:] == 2).all()
 
 

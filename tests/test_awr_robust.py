@@ -114,6 +114,25 @@ def test_confidence_clamp_formula_analytic():
     np.testing.assert_array_equal(confidence_clamp(image, mean, var, 0.0), mean)
     # an interval wider than every departure, without bounds, is the identity
     np.testing.assert_array_equal(confidence_clamp(image, mean, var + 100.0, 2.0), image)
+    # compiled, it is the formula's numpy statement bit for bit (signed zeros, NaN of either sign and inf too)
+    r = np.random.default_rng(3)
+    image, mean, var = r.normal(size=(3, 40, 50, 3))
+    var = np.abs(var)
+    lo, hi = mean - r.random(mean.shape), mean + r.random(mean.shape)
+    for a, vals in ((image, (-0.0, 0.0, np.nan, -np.nan, np.inf)), (mean, (-0.0, 0.0, np.nan)),
+                    (var, (0.0, -0.0, -np.nan)), (lo, (-np.inf, 0.0, -0.0, np.nan)), (hi, (np.inf, -0.0, 0.0, -np.nan))):
+        for x in vals:
+            a[r.random(a.shape) < 0.05] = x
+    for k in (0.0, 4.0):
+        half = k * np.sqrt(np.maximum(var, 0.0))
+        ref = np.clip(image, np.minimum(np.maximum(mean - half, lo), mean),
+                      np.maximum(np.minimum(mean + half, hi), mean))
+        got = confidence_clamp(image, mean, var, k, lo, hi)
+        np.testing.assert_array_equal(got, ref)
+        assert np.array_equal(np.signbit(got), np.signbit(ref))
+        inplace = image.copy()
+        confidence_clamp(inplace, mean, var, k, lo, hi, out=inplace)
+        assert np.array_equal(np.signbit(inplace), np.signbit(ref)) and np.array_equal(inplace, ref, equal_nan=True)
 
 
 def test_sample_range_bounds_and_log_domain_identities(rng):

@@ -112,6 +112,9 @@ def test_relative_denominator_median_is_ndimages():
     q = np.maximum(y * y - v, 0.0)
     ref = np.maximum(ndimage.median_filter(q, size=(3, 3, 1), mode="nearest"), q) + 0.01
     np.testing.assert_array_equal(relative_denominator(y, v, eps=0.01), ref)
+    from mcrecon.methods.auto.estimates import _excess_square
+    y[0, 0], v[0, 1], v[0, 2] = np.nan, np.nan, y[0, 2, 0] ** 2
+    np.testing.assert_array_equal(_excess_square(y, v), np.maximum(y * y - v, 0.0))
 
 
 def test_leave_one_out_denominator_ignores_the_pixels_own_samples():
@@ -126,6 +129,41 @@ def test_leave_one_out_denominator_ignores_the_pixels_own_samples():
     assert np.array_equal(d[3, 3], d2[3, 3])
     nb = np.delete((y * y)[2:5, 2:5].reshape(9, 2), 4, axis=0)
     np.testing.assert_allclose(d[3, 3], np.median(nb, axis=0) + 0.01, rtol=1e-15)
+
+
+def test_leave_one_out_denominator_equals_the_median_of_the_sorted_neighbours_by_brute_force():
+    """Bit for bit: the median of the 8 edge-repeated neighbours with samples (their sorted order as
+    the stable sort leaves it, NaN where it arrived), plus eps; ties, zeros, NaN and empty pixels, so both
+    the network (full neighbourhoods without NaN) and the sort are exercised."""
+    from mcrecon.methods.auto.estimates import relative_denominator_loo
+    rng = np.random.default_rng(9)
+    h, w = 23, 70  # two row blocks
+    y = rng.standard_normal((h, w, 3))
+    y[rng.random(y.shape) < 0.2] = 0.5  # ties
+    y[rng.random(y.shape) < 0.01] = np.nan
+    v = rng.random(y.shape) * 0.3
+    count = rng.integers(0, 40, (h, w))
+    q = np.maximum(y * y - v, 0.0)
+    got = relative_denominator_loo(y, v, count, eps=0.01)
+    assert (q == 0).any() and ((count > 0) & (np.roll(count, 1, 0) > 0)).any()
+    for i in range(h):
+        for j in range(w):
+            for c in range(3):
+                nb = []
+                for di in (-1, 0, 1):
+                    for dj in (-1, 0, 1):
+                        a, b = min(max(i + di, 0), h - 1), min(max(j + dj, 0), w - 1)
+                        if (di or dj) and count[a, b] > 0:
+                            nb.append(q[a, b, c])
+                s = []
+                for x in nb:  # insertion sort: a NaN stops no comparison
+                    k = len(s)
+                    while k > 0 and s[k - 1] > x:
+                        k -= 1
+                    s.insert(k, x)
+                n = len(s)
+                m = 0.0 if n == 0 else s[n // 2] if n % 2 else 0.5 * (s[n // 2 - 1] + s[n // 2])
+                np.testing.assert_array_equal(got[i, j, c], m + 0.01)
 
 
 def test_centre_weights_are_the_filter_banks_own_weights():
@@ -319,3 +357,22 @@ def test_variance_part_misses_the_bias_and_cross_validation_sees_it():
         r_cv.append(np.sum(cv) / true)
     assert np.mean(r_var) < 0.2
     assert abs(np.mean(r_cv) - 1) < 0.15
+
+
+def test_median_networks_sort_every_zero_one_input():
+    """The 0-1 principle: a compare-exchange network that selects correctly on every input of zeros and
+    ones does so on every input; median9 and middle8 (mcrecon.filters.order) checked on all of them."""
+    import itertools
+    import numba
+    from mcrecon.filters.order import median9, middle8
+
+    @numba.njit
+    def both(a):
+        return median9(a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8]), \
+            middle8(a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7])
+
+    for bits in itertools.product((0.0, 1.0), repeat=9):
+        a = np.array(bits)
+        m9, m8 = both(a)
+        s9, s8 = np.sort(a), np.sort(a[:8])
+        assert m9 == s9[4] and m8 == (s8[3], s8[4]), bits

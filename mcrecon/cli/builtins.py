@@ -118,8 +118,8 @@ def _cmd_render_log(args):
 #: CPU seconds numba took to compile each part's kernels on a first demo in one process (measured with
 #: benchmarks/bench_first_run.py --one-process on 2 loaded cores; kernels that several methods share are
 #: counted with the first method that runs them).
-_DEMO_COMPILE_SECONDS = {"renderers/scenes": 6, "core": 3, "filters": 3, "methods/box.py": 0.5, "methods/gem": 1,
-                         "methods/awr": 0.5, "methods/splat": 6, "methods/ci": 0.5, "methods/auto": 8,
+_DEMO_COMPILE_SECONDS = {"renderers/scenes": 6, "core": 5, "filters": 4, "methods/box.py": 0.5, "methods/gem": 1,
+                         "methods/awr": 0.5, "methods/splat": 6, "methods/ci": 0.5, "methods/auto": 12,
                          "methods/nfor": 25}
 #: A warm-up of every method on a tiny log takes well under a second once the kernels are cached (0.2 s
 #: measured): still running after this many seconds, it is compiling.

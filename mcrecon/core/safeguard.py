@@ -7,6 +7,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ..filters.engine import parallel_rows
+from ..filters.order import median9
 from .stats import PixelStats
 
 __all__ = ['sample_range_bounds', 'confidence_clamp', 'pooled_mean_variance']
@@ -16,18 +18,68 @@ __all__ = ['sample_range_bounds', 'confidence_clamp', 'pooled_mean_variance']
 # --------------------------------------------------------------------------
 
 @numba.njit(cache=True, nogil=True)
-def _neighbourhood_range(lo_src, hi_src, has, radius, lo, hi):
-    # (2 radius + 1)^2 (edge pixels repeated) min of lo_src / max of hi_src over pixels
-    # with samples, per channel; no sample around: (-inf, inf)
+def _neighbourhood_range(lo_src, hi_src, has, radius, lo, hi, i0, i1):
+    # rows [i0, i1): (2 radius + 1)^2 (edge pixels repeated) min of lo_src / max of hi_src over pixels
+    # with samples, per channel (NaN never taken); no sample around: (-inf, inf).  Separable, over
+    # whole rows (vectorised): the min of the column minima.  Exact, as min and max are, but for
+    # which of +0 and -0 wins a tie: a zero is taken again in the pixel-by-pixel scan's order, as
+    # are the first and last columns.
     h, w, c = lo_src.shape
-    for i in range(h):
+    n = w * c
+    r = radius
+    m = max(n - 2 * r * c, 0)
+    cmin = np.empty(n)
+    cmax = np.empty(n)
+    for i in range(i0, i1):
+        every = True
+        for di in range(-r, r + 1):
+            ii = min(max(i + di, 0), h - 1)
+            for j in range(w):
+                every = every and has[ii, j]
+        for q in range(n):
+            cmin[q] = np.inf
+            cmax[q] = -np.inf
+        for di in range(-r, r + 1):
+            ii = min(max(i + di, 0), h - 1)
+            lr, hr = lo_src[ii].reshape(n), hi_src[ii].reshape(n)
+            if every:
+                for q in range(n):
+                    cmin[q] = min(cmin[q], lr[q])
+                    cmax[q] = max(cmax[q], hr[q])
+            else:
+                for j in range(w):
+                    if has[ii, j]:
+                        for ch in range(c):
+                            q = j * c + ch
+                            cmin[q] = min(cmin[q], lr[q])
+                            cmax[q] = max(cmax[q], hr[q])
+        lo1, hi1 = lo[i].reshape(n)[r * c:r * c + m], hi[i].reshape(n)[r * c:r * c + m]
+        for k in range(m):
+            lo1[k] = np.inf
+            hi1[k] = -np.inf
+        for dj in range(2 * r + 1):
+            a, b = cmin[dj * c:dj * c + m], cmax[dj * c:dj * c + m]
+            for k in range(m):
+                lo1[k] = min(lo1[k], a[k])
+                hi1[k] = max(hi1[k], b[k])
+        zeros = 0
+        for k in range(m):
+            a, b = lo1[k], hi1[k]
+            zeros += (a == 0.0) | (b == 0.0)
+            lo1[k] = a if np.isfinite(a) else -np.inf
+            hi1[k] = b if np.isfinite(b) else np.inf
         for j in range(w):
+            inner = r <= j < w - r
+            if inner and zeros == 0:
+                continue
             for ch in range(c):
+                if inner and lo[i, j, ch] != 0.0 and hi[i, j, ch] != 0.0:
+                    continue
                 a = np.inf
                 b = -np.inf
-                for di in range(-radius, radius + 1):
+                for di in range(-r, r + 1):
                     ii = min(max(i + di, 0), h - 1)
-                    for dj in range(-radius, radius + 1):
+                    for dj in range(-r, r + 1):
                         jj = min(max(j + dj, 0), w - 1)
                         if has[ii, jj]:
                             a = min(a, lo_src[ii, jj, ch])
@@ -50,14 +102,15 @@ def sample_range_bounds(stats: PixelStats, radius: int = 1) -> tuple[np.ndarray,
     src_lo, src_hi = (stats.min, stats.max) if stats.has_range else (stats.mean, stats.mean)
     lo = np.empty(stats.mean.shape)
     hi = np.empty(stats.mean.shape)
-    _neighbourhood_range(np.ascontiguousarray(src_lo, dtype=np.float64),
-                         np.ascontiguousarray(src_hi, dtype=np.float64), np.ascontiguousarray(stats.count > 0),
-                         int(radius), lo, hi)
+    parallel_rows(_neighbourhood_range, (np.ascontiguousarray(src_lo, dtype=np.float64),
+                                         np.ascontiguousarray(src_hi, dtype=np.float64),
+                                         np.ascontiguousarray(stats.count > 0), int(radius), lo, hi), lo.shape[0])
     return lo, hi
 
 
 def confidence_clamp(image: np.ndarray, mean: np.ndarray, var_mean: np.ndarray, k: float,
-                     lo: np.ndarray | None = None, hi: np.ndarray | None = None) -> np.ndarray:
+                     lo: np.ndarray | None = None, hi: np.ndarray | None = None,
+                     out: np.ndarray | None = None) -> np.ndarray:
     """Clamp a reconstruction into each pixel's confidence interval of its mean.
 
     ``out = clip(image, a, b)`` with ``a = max(mean - k se, lo)``,
@@ -84,49 +137,136 @@ def confidence_clamp(image: np.ndarray, mean: np.ndarray, var_mean: np.ndarray, 
         Interval half-width in standard errors (>= 0; 0 returns ``mean``).
     lo, hi : ndarray, optional
         Extra bounds (same shape; ``-inf``/``inf`` for none).
+    out : ndarray, optional
+        C-contiguous float64 array of the result's shape to write into
+        (``image`` itself may be given); default a new one.
     """
-    image = np.asarray(image, dtype=np.float64)
-    mean = np.asarray(mean, dtype=np.float64)
-    half = float(k) * np.sqrt(np.maximum(np.asarray(var_mean, dtype=np.float64), 0.0))
-    a = mean - half
-    b = mean + half
-    if lo is not None:
-        a = np.maximum(a, lo)
-    if hi is not None:
-        b = np.minimum(b, hi)
-    a = np.minimum(a, mean)
-    b = np.maximum(b, mean)
-    return np.clip(image, a, b)
+    # one compiled pass of numpy's operations (np.maximum, np.minimum and np.clip as numpy computes
+    # them: the first NaN, else the second operand on a tie of +0 and -0), bit-identical to
+    # np.clip(image, np.minimum(np.maximum(mean - half, lo), mean), np.maximum(np.minimum(mean + half, hi),
+    # mean)) with half = k * np.sqrt(np.maximum(var_mean, 0)) (tested); eight image-sized temporaries
+    # cost more than the arithmetic
+    arrs = np.broadcast_arrays(*[np.asarray(a, dtype=np.float64) for a in (image, mean, var_mean)
+                                 + tuple(b for b in (lo, hi) if b is not None)])
+    shape = arrs[0].shape
+    rows = shape[0] if len(shape) > 1 else 1
+    flat = [np.ascontiguousarray(a).reshape(rows, -1) for a in arrs]
+    it = iter(flat[3:])
+    lo_f = next(it) if lo is not None else None
+    hi_f = next(it) if hi is not None else None
+    out = np.empty(shape) if out is None else out
+    if out.shape != shape or out.dtype != np.float64 or not out.flags.c_contiguous:
+        raise ValueError("confidence_clamp: out must be a C-contiguous float64 array of the result's shape")
+    parallel_rows(_clamp_rows, (flat[0], flat[1], flat[2], float(k), lo_f, hi_f, out.reshape(rows, -1)), rows)
+    return out
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _np_max(a, b):
+    # np.maximum: the first NaN, else the larger, the second on a tie (+0 and -0)
+    return a if a != a else (b if b != b else (a if a > b else b))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _np_min(a, b):
+    return a if a != a else (b if b != b else (a if a < b else b))
 
 
 @numba.njit(cache=True, nogil=True)
-def _pooled_rows(v, count, radius, out):
-    # per pixel and channel: max(v, median of n_q v_q over the neighbourhood's pixels q with samples / n)
+def _clamp_rows(image, mean, var, k, lo, hi, out, i0, i1):
+    for i in range(i0, i1):
+        for p in range(image.shape[1]):
+            m = mean[i, p]
+            half = k * np.sqrt(_np_max(var[i, p], 0.0))
+            a = m - half
+            b = m + half
+            if lo is not None:
+                a = _np_max(a, lo[i, p])
+            if hi is not None:
+                b = _np_min(b, hi[i, p])
+            out[i, p] = _np_min(_np_max(image[i, p], _np_min(a, m)), _np_max(b, m))
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _pooled_rows(v, count, radius, out, i0, i1):
+    # rows [i0, i1): per pixel and channel, max(v, median of n_q v_q over the neighbourhood's pixels q
+    # with samples / n).  An interior pixel whose 3 x 3 neighbours all have samples (nearly every pixel)
+    # takes the median from the network, run with the floor over a whole row in one loop on
+    # equal-length slices (vectorised, no data-dependent branch): the element the sort gives, unless
+    # NaN is among them or it is a zero (+0 and -0 sort as equals, and which one the sort keeps can
+    # decide the output's sign).  Those, and the other pixels, are redone with the sort.
     h, w, c = v.shape
-    side = 2 * radius + 1
-    buf = np.empty(side * side)
-    for i in range(h):
+    n = w * c
+    m = max(n - 2 * c, 0)
+    buf = np.empty((2 * radius + 1) ** 2)
+    x = np.empty((3, n))  # n_q v_q of rows i - 1, i, i + 1 (a ring: row r in x[r % 3])
+    col = np.empty(w, np.bool_)  # the 3 pixels of column j in those rows have samples
+    cnt = np.empty(n)  # row i's counts, per value
+    med = np.empty(m)
+    tot = np.empty(m)
+    have = -2  # the last row in the ring
+    for i in range(i0, i1):
+        orow, vrow = out[i].reshape(n), v[i].reshape(n)
+        for q in range(n):
+            orow[q] = vrow[q]
+        fast = radius == 1 and 0 < i < h - 1 and w > 2
+        every = False  # every pixel of the row between its first and last has a full neighbourhood
+        redo = 1  # values the network leaves to the sort
+        if fast:
+            for r in range(max(i - 1, have + 1), i + 2):
+                xr = x[r % 3]
+                for j in range(w):
+                    for ch in range(c):
+                        xr[j * c + ch] = count[r, j] * v[r, j, ch]
+            have = i + 1
+            for j in range(w):
+                col[j] = count[i - 1, j] > 0 and count[i, j] > 0 and count[i + 1, j] > 0
+                for ch in range(c):
+                    cnt[j * c + ch] = count[i, j]
+            xa, xb, xd = x[(i - 1) % 3], x[i % 3], x[(i + 1) % 3]
+            a0, a1, a2 = xa[:m], xa[c:c + m], xa[2 * c:]
+            b0, b1, b2 = xb[:m], xb[c:c + m], xb[2 * c:]
+            d0, d1, d2 = xd[:m], xd[c:c + m], xd[2 * c:]
+            o1, v1, n1 = orow[c:c + m], vrow[c:c + m], cnt[c:c + m]
+            redo = 0
+            for q in range(m):
+                md = median9(a0[q], a1[q], a2[q], b0[q], b1[q], b2[q], d0[q], d1[q], d2[q])
+                med[q] = md
+                t = a0[q] + a1[q] + a2[q] + b0[q] + b1[q] + b2[q] + d0[q] + d1[q] + d2[q]
+                tot[q] = t
+                redo += (t != t) | (md == 0.0)
+                f = md / n1[q]
+                o1[q] = f if f > v1[q] else v1[q]
+            every = True
+            for j in range(w):
+                every = every and col[j]
         for j in range(w):
-            n = count[i, j]
-            for ch in range(c):
-                out[i, j, ch] = v[i, j, ch]
-            if n <= 0:
+            if every and redo == 0 and 0 < j < w - 1:
                 continue
+            nn = count[i, j]
+            full = fast and 0 < j < w - 1 and col[j - 1] and col[j] and col[j + 1]
             for ch in range(c):
-                m = 0
+                if full:
+                    q = (j - 1) * c + ch
+                    if tot[q] == tot[q] and med[q] != 0.0:
+                        continue
+                out[i, j, ch] = v[i, j, ch]
+                if nn <= 0:
+                    continue
+                k = 0
                 for ii in range(max(i - radius, 0), min(i + radius + 1, h)):
                     for jj in range(max(j - radius, 0), min(j + radius + 1, w)):
                         if count[ii, jj] > 0:
-                            x = count[ii, jj] * v[ii, jj, ch]
-                            k = m  # insertion sort into buf[:m] (NaN sorts last, as np.sort puts it)
-                            while k > 0 and (buf[k - 1] > x or (x == x and buf[k - 1] != buf[k - 1])):
-                                buf[k] = buf[k - 1]
-                                k -= 1
-                            buf[k] = x
-                            m += 1
-                med = buf[m // 2] if m % 2 == 1 else 0.5 * (buf[m // 2 - 1] + buf[m // 2])
-                if med / n > out[i, j, ch]:
-                    out[i, j, ch] = med / n
+                            xq = count[ii, jj] * v[ii, jj, ch]
+                            p = k  # insertion sort into buf[:k] (NaN sorts last, as np.sort puts it)
+                            while p > 0 and (buf[p - 1] > xq or (xq == xq and buf[p - 1] != buf[p - 1])):
+                                buf[p] = buf[p - 1]
+                                p -= 1
+                            buf[p] = xq
+                            k += 1
+                md = buf[k // 2] if k % 2 == 1 else 0.5 * (buf[k // 2 - 1] + buf[k // 2])
+                if md / nn > out[i, j, ch]:
+                    out[i, j, ch] = md / nn
 
 
 def pooled_mean_variance(var_mean: np.ndarray, count: np.ndarray, radius: int = 1) -> np.ndarray:
@@ -164,5 +304,5 @@ def pooled_mean_variance(var_mean: np.ndarray, count: np.ndarray, radius: int = 
         raise ValueError(f"pooled_mean_variance: var_mean (H, W, C) and count (H, W) expected, got "
                          f"{v.shape} and {count.shape}")
     out = np.empty_like(v)
-    _pooled_rows(v, np.ascontiguousarray(count, dtype=np.int64), int(radius), out)
+    parallel_rows(_pooled_rows, (v, np.ascontiguousarray(count, dtype=np.int64), int(radius), out), v.shape[0])
     return out

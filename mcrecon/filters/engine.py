@@ -42,7 +42,7 @@ from scipy import ndimage
 
 from ..errors import InputError
 
-__all__ = ["ENV_THREADS", "n_threads", "numba_threads", "parallel_calls", "correlate_jobs", "corr2", "safe_div",
+__all__ = ["ENV_THREADS", "n_threads", "numba_threads", "parallel_calls", "parallel_rows", "correlate_jobs", "corr2", "safe_div",
            "separable_weights",
            "mask_weights"]
 
@@ -147,6 +147,29 @@ def parallel_calls(fn, arg_tuples, threads: int | None = None) -> list:
         return [fn(*a) for a in arg_tuples]
     futs = [_pool(n_threads(threads)).submit(fn, *a) for a in arg_tuples]
     return [f.result() for f in futs]
+
+
+#: Fewest rows per call of :func:`parallel_rows`.
+ROW_BLOCK = 64
+
+
+def parallel_rows(fn, args: tuple, h: int, threads: int | None = None) -> None:
+    """``fn(*args, i0, i1)`` for blocks of rows ``[i0, i1)`` covering an ``h``-row image, on the thread pool
+    (:func:`parallel_calls`).
+
+    ``fn`` is a ``nogil`` kernel that computes each output row in one call, so the result does not
+    depend on the number of threads (nor on the blocks).  Up to four blocks per thread (of at least
+    :data:`ROW_BLOCK` rows: a task costs ~15 us, and auto's selection makes ~160 such calls), and as
+    for the filters an image smaller than ``2**15`` values (the first array argument's size) stays on
+    the calling thread.
+    """
+    n = n_threads(threads)
+    size = next((a.size for a in args if isinstance(a, np.ndarray)), _PARALLEL_MIN)
+    if n == 1 or size < _PARALLEL_MIN:
+        fn(*args, 0, h)
+        return
+    rows = max(ROW_BLOCK, -(-h // (4 * n)))
+    parallel_calls(fn, [(*args, i0, min(i0 + rows, h)) for i0 in range(0, h, rows)], threads)
 
 
 # ----------------------------------------------------------------------------

@@ -4,10 +4,11 @@
 from __future__ import annotations
 
 
+import numba
 import numpy as np
 from scipy import ndimage
 
-from .engine import correlate_jobs
+from .engine import correlate_jobs, parallel_rows
 
 
 def _smooth_masked(a: np.ndarray, sigma: float) -> np.ndarray:
@@ -37,36 +38,87 @@ def _gauss_kernel(sigma: float, truncate: float = 3.0) -> np.ndarray:
     return phi / phi.sum()
 
 
-def _smooth_masked_many(maps: list, sigma: float) -> list:
-    """:func:`_smooth_masked` of several maps at once, on the threaded filter engine.
+class MaskedSmoothing:
+    """:func:`_smooth_masked` of (H, W) float64 maps of one film at one ``sigma``, on the threaded filter engine.
 
     Bit-identical to it (:mod:`mcrecon.filters.engine` reproduces
-    ``scipy.ndimage``'s arithmetic term for term; the weight sums of maps
-    finite everywhere are filtered once).
+    ``scipy.ndimage``'s arithmetic term for term).  A map finite everywhere is
+    filtered as it is (zeroing its non-finite entries would copy it), and
+    the weight sum of such maps, the same for all of them, is filtered once
+    for every call on the object.  Each result is written over its filtered
+    values, or into ``out`` (arrays of the maps' shape, the maps themselves
+    allowed): no full-image temporary but the filtered maps (fresh memory
+    costs more than the arithmetic here).
     """
-    if sigma <= 0:
-        return [_smooth_masked(a, sigma) for a in maps]
-    k = _gauss_kernel(sigma)
-    jobs, full = [], []
-    for a in maps:
-        fin = np.isfinite(a)
-        jobs.append((np.where(fin, a, 0.0), k, None, 0))
-        full.append(bool(fin.all()))
-        if not full[-1]:
-            jobs.append((fin.astype(np.float64), k, None, 0))
-    if any(full):
-        jobs.append((np.ones(maps[0].shape), k, None, 0))
-    res = correlate_jobs(jobs)
-    full_den = res[-1] if any(full) else None
-    res = iter(res)
-    out = []
-    for a, f in zip(maps, full):
-        num = next(res)
-        den = full_den if f else next(res)
-        o = np.full(a.shape, np.inf)
-        np.divide(num, den, out=o, where=den > 1e-12)
-        out.append(np.where(np.isposinf(a), np.inf, o))
-    return out
+
+    def __init__(self, sigma: float):
+        self.sigma = float(sigma)
+        self._full_den = None
+
+    def __call__(self, maps: list, out: list | None = None) -> list:
+        if self.sigma <= 0:
+            res = [_smooth_masked(a, self.sigma) for a in maps]
+            if out is None:
+                return res
+            for o, r in zip(out, res):
+                o[...] = r
+            return out
+        k = _gauss_kernel(self.sigma)
+        maps = [np.ascontiguousarray(a, dtype=np.float64) for a in maps]
+        jobs, full = [], []
+        for a in maps:
+            full.append(bool(_all_finite(a.ravel())))
+            if full[-1]:
+                jobs.append((a, k, None, 0))
+            else:
+                z, f = np.empty(a.shape), np.empty(a.shape)
+                _split_finite(a.ravel(), z.ravel(), f.ravel())
+                jobs += [(z, k, None, 0), (f, k, None, 0)]
+        shape = maps[0].shape if maps else None
+        new_den = any(full) and (self._full_den is None or self._full_den.shape != shape)
+        if new_den:
+            jobs.append((np.ones(shape), k, None, 0))
+        res = correlate_jobs(jobs)
+        if new_den:
+            self._full_den = res.pop()
+        res = iter(res)
+        result = []
+        for p, (a, f) in enumerate(zip(maps, full)):
+            num = next(res)
+            den = self._full_den if f else next(res)
+            dst = num if out is None else out[p]
+            parallel_rows(_normalise_rows, (num, den, a, dst), a.shape[0])
+            result.append(dst)
+        return result
+
+
+@numba.njit(cache=True, nogil=True)
+def _all_finite(a):
+    for x in a:
+        if not np.isfinite(x):
+            return False
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _split_finite(a, z, f):
+    # z = where(isfinite(a), a, 0), f = isfinite(a) as 0/1
+    for i in range(a.size):
+        fin = np.isfinite(a[i])
+        z[i] = a[i] if fin else 0.0
+        f[i] = 1.0 if fin else 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _normalise_rows(num, den, a, dst, i0, i1):
+    # rows [i0, i1): dst = num / den where den > 1e-12, else +inf; +inf where a is (dst may be num or a)
+    for i in range(i0, i1):
+        for j in range(num.shape[1]):
+            d = den[i, j]
+            if a[i, j] == np.inf or not d > 1e-12:
+                dst[i, j] = np.inf
+            else:
+                dst[i, j] = num[i, j] / d
 
 
 def effective_counts(masks: list, sigma: float) -> list:
@@ -86,10 +138,13 @@ def effective_counts(masks: list, sigma: float) -> list:
         f = np.asarray(m, dtype=np.float64)
         jobs += [(f, k, None, 0), (f, k * k, None, 0)]
     res = correlate_jobs(jobs)
-    out = []
     for i in range(len(masks)):
-        s1, s2 = res[2 * i], res[2 * i + 1]
-        n = np.zeros(s1.shape)
-        np.divide(s1 * s1, s2, out=n, where=s2 > 1e-300)
-        out.append(n)
-    return out
+        _effective_rows(res[2 * i].ravel(), res[2 * i + 1].ravel())
+    return res[::2]
+
+
+@numba.njit(cache=True, nogil=True)
+def _effective_rows(s1, s2):
+    # s1 = s1^2 / s2 where s2 > 1e-300, else 0 (in place)
+    for p in range(s1.size):
+        s1[p] = s1[p] * s1[p] / s2[p] if s2[p] > 1e-300 else 0.0

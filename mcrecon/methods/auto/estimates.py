@@ -63,7 +63,8 @@ import warnings
 import numba
 import numpy as np
 
-from ...filters.engine import safe_div
+from ...filters.engine import parallel_rows, safe_div
+from ...filters.order import median9, neighbour_medians8
 from ...errors import InputError
 from ...core.metrics import DEFAULT_EPS
 
@@ -232,6 +233,24 @@ def _sure_masked(y, v, fy, cw, weight, has, out):
 # Relative versions
 # ----------------------------------------------------------------------------
 
+def _excess_square(y: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``np.maximum(y * y - v, 0.0)`` in one compiled pass (no full-image temporaries)."""
+    y = np.ascontiguousarray(y, dtype=np.float64)
+    q = np.empty(y.shape)
+    parallel_rows(_excess_square_rows, (y.reshape(y.shape[0], -1), np.ascontiguousarray(v, dtype=np.float64)
+                                        .reshape(y.shape[0], -1), q.reshape(y.shape[0], -1)), y.shape[0])
+    return q
+
+
+@numba.njit(cache=True, nogil=True)
+def _excess_square_rows(y, v, q, i0, i1):
+    # np.maximum: NaN stays NaN, and a tie with 0 gives the second operand
+    for i in range(i0, i1):
+        for k in range(y.shape[1]):
+            x = y[i, k] * y[i, k] - v[i, k]
+            q[i, k] = x if (x > 0.0 or x != x) else 0.0
+
+
 def relative_denominator(y: np.ndarray, v: np.ndarray, count: np.ndarray | None = None, *,
                          eps: float = DEFAULT_EPS) -> np.ndarray:
     """A reference-free ``mu^2 + eps`` per pixel and channel.
@@ -248,7 +267,7 @@ def relative_denominator(y: np.ndarray, v: np.ndarray, count: np.ndarray | None 
     """
     if not eps > 0:
         raise InputError("relative_denominator", "eps", f"got {eps}, expected > 0")
-    q = np.maximum(y * y - v, 0.0)
+    q = _excess_square(y, v)
     if count is not None:
         has = np.asarray(count) > 0
         if not has.all():
@@ -263,52 +282,40 @@ def relative_denominator(y: np.ndarray, v: np.ndarray, count: np.ndarray | None 
             med = np.where(np.isfinite(med), med, 0.0)
             return np.maximum(med, np.where(np.isfinite(q), q, 0.0)) + eps
     out = np.empty(q.shape)
-    _median3_max_plus(np.ascontiguousarray(q), float(eps), out)
+    parallel_rows(_median3_max_plus, (np.ascontiguousarray(q), float(eps), out), q.shape[0])
     return out
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _median9(p0, p1, p2, p3, p4, p5, p6, p7, p8):
-    # the median of 9 numbers by the 19 compare-exchanges of Paeth's network
-    # (exact: a selection, no arithmetic)
-    p1, p2 = min(p1, p2), max(p1, p2)
-    p4, p5 = min(p4, p5), max(p4, p5)
-    p7, p8 = min(p7, p8), max(p7, p8)
-    p0, p1 = min(p0, p1), max(p0, p1)
-    p3, p4 = min(p3, p4), max(p3, p4)
-    p6, p7 = min(p6, p7), max(p6, p7)
-    p1, p2 = min(p1, p2), max(p1, p2)
-    p4, p5 = min(p4, p5), max(p4, p5)
-    p7, p8 = min(p7, p8), max(p7, p8)
-    p3 = max(p0, p3)
-    p5 = min(p5, p8)
-    p4, p7 = min(p4, p7), max(p4, p7)
-    p6 = max(p3, p6)
-    p4 = max(p1, p4)
-    p2 = min(p2, p5)
-    p4 = min(p4, p7)
-    p4, p2 = min(p4, p2), max(p4, p2)
-    p4 = max(p6, p4)
-    return min(p4, p2)
-
-
 @numba.njit(cache=True, nogil=True)
-def _median3_max_plus(q, eps, out):
-    # max(3 x 3 median of q (edge pixels repeated, as ndimage's mode "nearest"), q) + eps
+def _median3_max_plus(q, eps, out, r0, r1):
+    # rows [r0, r1): max(3 x 3 median of q (edge pixels repeated, as ndimage's mode "nearest"), q) + eps
     # per channel; q finite (the median of 9 numbers is exact: bit-identical to
-    # np.maximum(ndimage.median_filter(q, size=(3, 3, 1), mode="nearest"), q) + eps)
+    # np.maximum(ndimage.median_filter(q, size=(3, 3, 1), mode="nearest"), q) + eps).  The pixels
+    # between the first and last column in one loop over equal-length slices of the three rows
+    # (vectorised), the network's arguments in the same order as at the edges.
     h, w, c = q.shape
-    for i in range(h):
-        i0 = max(i - 1, 0)
-        i2 = min(i + 1, h - 1)
-        for j in range(w):
+    n = w * c
+    m = max(n - 2 * c, 0)
+    for i in range(r0, r1):
+        ra, rb, rd = q[max(i - 1, 0)].reshape(n), q[i].reshape(n), q[min(i + 1, h - 1)].reshape(n)
+        a0, a1, a2 = ra[:m], ra[c:c + m], ra[2 * c:2 * c + m]
+        b0, b1, b2 = rb[:m], rb[c:c + m], rb[2 * c:2 * c + m]
+        d0, d1, d2 = rd[:m], rd[c:c + m], rd[2 * c:2 * c + m]
+        o1 = out[i].reshape(n)[c:c + m]
+        for k in range(m):
+            md = median9(a0[k], a1[k], a2[k], b0[k], b1[k], b2[k], d0[k], d1[k], d2[k])
+            qq = b1[k]
+            o1[k] = (md if md >= qq else qq) + eps
+        for j in (0, w - 1):
+            i0 = max(i - 1, 0)
+            i2 = min(i + 1, h - 1)
             j0 = max(j - 1, 0)
             j2 = min(j + 1, w - 1)
             for ch in range(c):
-                m = _median9(q[i0, j0, ch], q[i0, j, ch], q[i0, j2, ch], q[i, j0, ch], q[i, j, ch], q[i, j2, ch],
+                md = median9(q[i0, j0, ch], q[i0, j, ch], q[i0, j2, ch], q[i, j0, ch], q[i, j, ch], q[i, j2, ch],
                              q[i2, j0, ch], q[i2, j, ch], q[i2, j2, ch])
                 qq = q[i, j, ch]
-                out[i, j, ch] = (m if m >= qq else qq) + eps
+                out[i, j, ch] = (md if md >= qq else qq) + eps
 
 
 def relative_denominator_loo(y: np.ndarray, v: np.ndarray, count: np.ndarray | None = None, *,
@@ -329,10 +336,11 @@ def relative_denominator_loo(y: np.ndarray, v: np.ndarray, count: np.ndarray | N
     """
     if not eps > 0:
         raise InputError("relative_denominator_loo", "eps", f"got {eps}, expected > 0")
-    q = np.maximum(y * y - v, 0.0)
+    q = _excess_square(y, v)
     has = np.ones(q.shape[:2], bool) if count is None else np.asarray(count) > 0
     out = np.empty(q.shape)
-    _median8_plus(np.ascontiguousarray(q, dtype=np.float64), np.ascontiguousarray(has), float(eps), out)
+    parallel_rows(_median8_plus, (np.ascontiguousarray(q, dtype=np.float64), np.ascontiguousarray(has), float(eps),
+                                  out), q.shape[0])
     return out
 
 
@@ -364,20 +372,40 @@ def sorted_neighbours8(q, has, i, j, ch, buf):
 
 
 @numba.njit(cache=True, nogil=True)
-def _median8_plus(q, has, eps, out):
+def _median8_plus(q, has, eps, out, i0, i1):
+    # rows [i0, i1) of relative_denominator_loo.  Where the 3 x 3 neighbourhood has samples and no NaN
+    # (nearly every pixel) the median of the middle pair from the network, the same two elements the
+    # sort gives, for whole rows at once (neighbour_medians8); the rest take the sort.
     h, w, c = q.shape
     buf = np.empty(8)
-    for i in range(h):
+    col = np.empty(w, np.bool_)  # column j of the three rows has samples
+    med = np.empty(max(w * c - 2 * c, 0))
+    for i in range(i0, i1):
+        ia = max(i - 1, 0)
+        ib = min(i + 1, h - 1)
+        nan = neighbour_medians8(q, i, med)
+        o1 = out[i].reshape(w * c)[c:c + med.size]
+        for k in range(med.size):
+            o1[k] = med[k] + eps
+        every = True
         for j in range(w):
+            col[j] = has[ia, j] and has[i, j] and has[ib, j]
+            every = every and col[j]
+        for j in range(w):
+            if every and nan == 0 and 0 < j < w - 1:
+                continue
+            full = 0 < j < w - 1 and col[j - 1] and col[j] and col[j + 1]
             for ch in range(c):
-                n = sorted_neighbours8(q, has, i, j, ch, buf)
-                if n == 0:
-                    m = 0.0
-                elif n % 2 == 1:
-                    m = buf[n // 2]
+                if full and med[(j - 1) * c + ch] == med[(j - 1) * c + ch]:
+                    continue  # (a NaN among them: the network does not order it as the sort does)
+                nb = sorted_neighbours8(q, has, i, j, ch, buf)
+                if nb == 0:
+                    md = 0.0
+                elif nb % 2 == 1:
+                    md = buf[nb // 2]
                 else:
-                    m = 0.5 * (buf[n // 2 - 1] + buf[n // 2])
-                out[i, j, ch] = m + eps
+                    md = 0.5 * (buf[nb // 2 - 1] + buf[nb // 2])
+                out[i, j, ch] = md + eps
 
 
 def relative(mse: np.ndarray, denominator: np.ndarray) -> np.ndarray:

@@ -37,9 +37,9 @@ from ...core.fill import mean_variance_policy
 from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGHTS, Candidate, _albedo_divisor,
     _feature_bilateral, _filled, dual_candidate, feature_candidates)
 from .nlmeans import nlmeans_cross
-from ...filters.masked import _smooth_masked, _smooth_masked_many
-from .selection import (_floored, _global_prior, _largest_remainder, _mean_c, _no_push_in_heavy_tails,
-    _pick_where)
+from ...filters.masked import MaskedSmoothing, _smooth_masked
+from .passes import _mean_c, _picked
+from .selection import _global_prior, _largest_remainder, _no_push_in_heavy_tails, _region_guard, _relative_choice
 
 __all__ = ['AutoMethod', 'AutoRun', 'CANDIDATES', 'DEFAULT_CANDIDATES', 'DEFAULT_FEATURE_CANDIDATES', 'DUAL_BUFFER',
            'FEATURE_CANDIDATES', 'MIX_WEIGHTS']
@@ -367,6 +367,8 @@ class AutoMethod(Method):
     def _select(self, run: "AutoRun", stats: PixelStats, halves, samples_source, nonfinite="drop"):
         cands, y, v, count = self._candidates(stats, halves, samples_source, nonfinite)
         run.candidate_names = [c.name for c in cands]
+        for c in cands:  # the selection's passes read C order: one copy of a planar image, not one per pass
+            c.image = np.ascontiguousarray(c.image, dtype=np.float64)
         den = relative_denominator(y, v, count, eps=DEFAULT_EPS)
         smooth = self.params["smooth"]
         # Smoothed estimates, floored by each pixel's own evidence of bias: a
@@ -391,26 +393,18 @@ class AutoMethod(Method):
         else:
             v_safe = pooled_mean_variance(v / (divisor * divisor), count) * (divisor * divisor)
         sd = np.sqrt(v_safe)
-        raw = [_mean_c(c.mse, den) for c in cands]
-        smoothed = _smooth_masked_many(raw, smooth)
+        smoothing = MaskedSmoothing(smooth)
+        rel, choice = _relative_choice(cands, den, y, sd, count, smoothing, Z_BIAS)
         h, w = count.shape
         bounds = None
-        has = np.ascontiguousarray(count > 0)
-        yc = np.ascontiguousarray(y, dtype=np.float64)
-        rel = []
-        for c, r in zip(cands, smoothed):
-            out = np.empty((h, w))
-            _floored(np.ascontiguousarray(r), np.ascontiguousarray(c.image, dtype=np.float64), yc, sd, den, has,
-                     Z_BIAS, out)
-            rel.append(out)
-        relm = np.stack([np.where(np.isnan(r), np.inf, r) for r in rel])
-        choice = np.argmin(relm, axis=0)
         on_default = np.zeros((h, w), bool)
         if self.params["global_prior"] is not None and len(cands) > 1 and smooth > 0:
             bounds = sample_range_bounds(stats)
-            choice, on_default = _global_prior(cands, smoothed, relm, choice, y, v, count, bounds, smooth,
-                                               self.params["global_prior"], self.params["safeguard"],
-                                               [k for k, c in enumerate(cands) if c.feature], divisor)
+            # the default's smoothed estimate again, not every candidate's kept until the default is known
+            choice, on_default = _global_prior(cands, lambda k: smoothing([_mean_c(cands[k].mse, den)])[0], rel,
+                                               choice, y, v, count, bounds, smooth, self.params["global_prior"],
+                                               self.params["safeguard"], [k for k, c in enumerate(cands) if c.feature],
+                                               divisor)
         # ties (e.g. noise-free regions, where every ratio is undefined) go to the first candidate
         if cands[0].name == "box" and smooth > 0:
             # Region guard: where the chosen candidates' unbiased estimates,
@@ -420,22 +414,10 @@ class AutoMethod(Method):
             # noisy test than a neighbourhood's (measured, 128^2, 32 spp, 3 seeds: soft shadow
             # 0.445 -> 0.430 of the mean's error, motion blur 0.362 -> 0.359, hdr 0.682 -> 0.675;
             # a textured Mitsuba scene with caustics through glass 0.101 -> 0.104).
-            chosen = np.empty((h, w))
-            for k, r0 in enumerate(raw):
-                _pick_where(choice.ravel(), k, r0, chosen)
-            chosen = np.where(np.isfinite(chosen), chosen, np.nan)
-            r00 = np.where(np.isfinite(raw[0]), raw[0], np.nan)
-            diff = _smooth_masked_many([chosen - r00], GUARD * smooth)[0]
-            choice = np.where(np.isfinite(diff) & (diff > 0) & ~on_default, 0, choice)
-        img = np.empty(y.shape)
-        raw_abs = np.empty((h, w))
-        for k, c in enumerate(cands):
-            _pick_where(choice.ravel(), k, np.ascontiguousarray(c.image, dtype=np.float64), img)
-            if (choice == k).any():
-                _pick_where(choice.ravel(), k, _mean_c(c.mse), raw_abs)
-        est_rel = np.take_along_axis(np.stack(rel), choice[None], axis=0)[0]
+            choice = _region_guard(cands, den, choice, on_default, GUARD * smooth)
+        img, raw_abs, est_rel = _picked(cands, rel, choice)
         img = fill_empty_pixels(img, count, source=_WHERE) if (count == 0).any() else img
-        img = np.where(np.isfinite(img), img, 0.0)
+        img[~np.isfinite(img)] = 0.0
         if self.params["safeguard"] is not None:
             # The error estimates are noisy exactly where a rare bright sample sits; a
             # candidate chosen on them may still carry its light into exact dark pixels
@@ -443,8 +425,8 @@ class AutoMethod(Method):
             # an interval that holds the true value with high probability never moves
             # an estimate away from it (the same safeguard as awr's robust default).
             lo, hi = sample_range_bounds(stats) if bounds is None else bounds
-            img = confidence_clamp(img, y, v_safe, self.params["safeguard"], lo, hi)
-            img = _no_push_in_heavy_tails(img, y, hi, scale=divisor)
+            confidence_clamp(img, y, v_safe, self.params["safeguard"], lo, hi, out=img)
+            _no_push_in_heavy_tails(img, y, hi, out=img, scale=divisor)
         # the raw estimate is undefined at empty pixels: the smoothed absolute one there
         fin = np.isfinite(raw_abs)
         if not fin.all():

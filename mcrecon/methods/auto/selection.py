@@ -1,4 +1,5 @@
-"""auto's per-pixel selection: channel means of estimates, floors, the global prior, heavy tails.
+"""auto's per-pixel selection: the floored relative estimates and the plain choice, the global prior, the
+region guard, heavy tails (the passes over all candidates' maps: :mod:`.passes`).
 """
 
 from __future__ import annotations
@@ -7,72 +8,28 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ...filters.engine import parallel_calls
+from ...filters.engine import parallel_rows
 
-from .estimates import relative_denominator_loo, sorted_neighbours8
+from .estimates import relative_denominator_loo
+from .passes import _FirstLeast, _arrays, _c64, _channel_mean, _floor_and_choose, _means, _nanmax
 from ...core.metrics import DEFAULT_EPS
-from ...filters.masked import _smooth_masked_many, effective_counts
-
-@numba.njit(cache=True, nogil=True)
-def _chan_mean_ratio(mse, den, out):
-    # out = mean over channels of mse / den: the channel terms added in order
-    # from the first, then divided by C -- numpy's np.mean(axis=2) for C < 8
-    h, w, c = mse.shape
-    for i in range(h):
-        for j in range(w):
-            s = mse[i, j, 0] / den[i, j, 0]
-            for ch in range(1, c):
-                s += mse[i, j, ch] / den[i, j, ch]
-            out[i, j] = s / c
+from ...filters.masked import MaskedSmoothing, effective_counts
+from ...filters.order import median9, neighbour_median8, neighbour_medians8
 
 
-@numba.njit(cache=True, nogil=True)
-def _chan_mean(a, out):
-    h, w, c = a.shape
-    for i in range(h):
-        for j in range(w):
-            s = a[i, j, 0]
-            for ch in range(1, c):
-                s += a[i, j, ch]
-            out[i, j] = s / c
+def _relative_choice(cands, den, y, sd, count, smoothing, z):
+    """Every candidate's smoothed relative estimate floored by its own evidence of bias
+    (:func:`_floor_and_choose` at ``z`` standard errors ``sd``) as a (K, H, W) array, and the per-pixel
+    choice (the first of least estimate; an undefined one, NaN, never chosen over a defined one).
 
-
-def _mean_c(a: np.ndarray, den: np.ndarray | None = None) -> np.ndarray:
-    """``np.mean(a / den, axis=2)`` (bit-identical; compiled for fewer than 8 channels)."""
-    if a.shape[2] >= 8:
-        return np.mean(a if den is None else a / den, axis=2)
-    out = np.empty(a.shape[:2])
-    if den is None:
-        _chan_mean(np.ascontiguousarray(a, dtype=np.float64), out)
-    else:
-        _chan_mean_ratio(np.ascontiguousarray(a, dtype=np.float64), np.ascontiguousarray(den, dtype=np.float64),
-                         out)
-    return out
-
-
-@numba.njit(cache=True, nogil=True)
-def _nanmax(a, b):
-    # np.maximum: NaN if either is NaN
-    if a != a or b != b:
-        return np.nan
-    return a if a >= b else b
-
-
-@numba.njit(cache=True, nogil=True)
-def _floored(r, x, y, sd, den, has, z, out):
-    """``max(r, mean_c max(|x - y| - z sd, 0)^2 / den)`` (0 floor where the pixel is empty), NaN as np.maximum."""
-    h, w, c = x.shape
-    for i in range(h):
-        for j in range(w):
-            s = 0.0
-            for ch in range(c):
-                lb = abs(x[i, j, ch] - y[i, j, ch]) - z * sd[i, j, ch]
-                lb = _nanmax(lb, 0.0)
-                if not has[i, j]:
-                    lb = 0.0
-                t = lb * lb / den[i, j, ch]
-                s = t if ch == 0 else s + t
-            out[i, j] = _nanmax(r[i, j], s / c)
+    The relative maps of all candidates in one pass, each smoothed in its own plane (``smoothing``, a
+    :class:`MaskedSmoothing`), then floored and chosen among in one pass: no map beyond the (K, H, W)
+    array (fresh memory costs more than the arithmetic here).
+    """
+    rel = _means([c.mse for c in cands], den)
+    for k in range(len(cands)):
+        smoothing([rel[k]], out=[rel[k]])
+    return rel, _floor_and_choose(rel, [c.image for c in cands], y, sd, den, count > 0, z)
 
 
 #: Standard errors (the larger of the pixel's and its 3 x 3 neighbourhood's mean) beyond which the
@@ -86,18 +43,46 @@ Z_BIAS_PRIOR = 5.0
 HEAVY_PRIOR = 30.0
 
 
-def _heavy_tailed(y: np.ndarray, hi: np.ndarray, factor: float) -> np.ndarray:
-    """Per pixel and channel: the 3 x 3 sample maximum ``hi`` above ``factor`` times both ``|y|`` and the
-    median of ``|y|`` over the 3 x 3 neighbourhood (edges repeated).  The median only where the first
-    test fires (rare): a whole-image median filter cost 1 s at 1024^2."""
-    ay = np.abs(np.where(np.isfinite(y), y, 0.0))
-    out = hi > factor * ay
-    idx = np.nonzero(out)
-    if idx[0].size:
-        pad = np.pad(ay, ((1, 1), (1, 1), (0, 0)), mode="edge")
-        i, j, c = idx
-        nb = np.stack([pad[i + di, j + dj, c] for di in range(3) for dj in range(3)], axis=1)
-        out[idx] = hi[idx] > factor * np.median(nb, axis=1)
+@numba.njit(cache=True, nogil=True, inline="always")
+def _abs0(x):
+    return abs(x) if np.isfinite(x) else 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _apart_rows(y, v, hi, den_loo, heavy, bright, need_v, out, i0, i1):
+    # rows [i0, i1) of _apart; |y| read as 0 where y is not finite
+    h, w, c = y.shape
+    for i in range(i0, i1):
+        ia, ib = max(i - 1, 0), min(i + 1, h - 1)
+        for j in range(w):
+            ja, jb = max(j - 1, 0), min(j + 1, w - 1)
+            apart = False
+            any_v = False
+            for ch in range(c):
+                yc = y[i, j, ch]
+                ay = _abs0(yc)
+                if hi[i, j, ch] > heavy * ay:
+                    med = median9(_abs0(y[ia, ja, ch]), _abs0(y[ia, j, ch]), _abs0(y[ia, jb, ch]),
+                                  _abs0(y[i, ja, ch]), ay, _abs0(y[i, jb, ch]),
+                                  _abs0(y[ib, ja, ch]), _abs0(y[ib, j, ch]), _abs0(y[ib, jb, ch]))
+                    if hi[i, j, ch] > heavy * med:
+                        apart = True
+                if _nanmax(yc * yc - v[i, j, ch], 0.0) > bright * den_loo[i, j, ch]:
+                    apart = True
+                if v[i, j, ch] > 0:
+                    any_v = True
+            out[i, j] = apart or (need_v and not any_v)
+
+
+def _apart(y: np.ndarray, v: np.ndarray, hi: np.ndarray, den_loo: np.ndarray, need_v: bool) -> np.ndarray:
+    """The pixels the global prior leaves out, (H, W) bool: in any channel, rare huge samples around (the
+    3 x 3 sample maximum ``hi`` above :data:`HEAVY_PRIOR` times both ``|y|`` and the median of ``|y|``
+    over the 3 x 3 neighbourhood, edges repeated), or far brighter than the neighbourhood
+    (``max(y^2 - v, 0)`` above ``HEAVY_PRIOR^2`` times ``den_loo``); with ``need_v`` also pixels without
+    variance in any channel.  One compiled pass, the median only where the first test fires."""
+    out = np.empty(y.shape[:2], bool)
+    parallel_rows(_apart_rows, (_c64(y), _c64(v), _c64(hi), _c64(den_loo), HEAVY_PRIOR, HEAVY_PRIOR ** 2,
+                                bool(need_v), out), y.shape[0])
     return out
 
 
@@ -130,46 +115,41 @@ def _nearer_the_neighbours(cands, g, choice, y, where, scale=None):
     positive: the albedo) the means and values are divided by it first, as in
     :func:`_no_push_in_heavy_tails`: on a texture the neighbours' colour is another square's."""
     out = np.zeros(y.shape[:2], bool)
-    idx = np.nonzero(where)
-    if not idx[0].size:
-        return out
-    i, j = idx
-    chosen = np.empty((i.size, y.shape[2]))
-    pick = choice[idx]
-    for k in np.unique(pick):
-        sel = pick == k
-        chosen[sel] = cands[int(k)].image[i[sel], j[sel]]
-    xg = cands[g].image[idx]
-    if scale is not None:
-        y = y / scale
-        chosen = chosen / scale[idx]
-        xg = xg / scale[idx]
-    out[idx] = _nearer_at(np.ascontiguousarray(y, dtype=np.float64), i.astype(np.int64), j.astype(np.int64),
-                          np.ascontiguousarray(xg, dtype=np.float64), chosen)
+    if where.any():
+        yr = y if scale is None else y / scale
+        sc = np.ones((0, 0, 0)) if scale is None else scale
+        parallel_rows(_nearer_rows, (_c64(yr), _c64(sc), _arrays([c.image for c in cands]), int(g),
+                                     np.ascontiguousarray(choice), np.ascontiguousarray(where), out), y.shape[0])
     return out
 
 
 @numba.njit(cache=True, nogil=True)
-def _nearer_at(y, ii, jj, xg, xc):
-    every = np.ones(y.shape[:2], np.bool_)
-    nb = np.empty(8)
-    res = np.zeros(ii.size, np.bool_)
-    for p in range(ii.size):
-        dg = 0.0
-        dc = 0.0
-        for ch in range(y.shape[2]):
-            sorted_neighbours8(y, every, ii[p], jj[p], ch, nb)
-            for m in range(8):
-                if nb[m] != nb[m]:
-                    dg = np.nan
-            med = (nb[3] + nb[4]) / 2.0
-            dg += abs(xg[p, ch] - med)
-            dc += abs(xc[p, ch] - med)
-        res[p] = dg <= dc  # False when any is NaN
-    return res
+def _nearer_rows(y, scale, images, g, choice, where, out, i0, i1):
+    """``y``: the means, already divided by ``scale`` where ``scale`` is not empty (then each value is too)."""
+    h, w, c = y.shape
+    xg = images[g]
+    scaled = scale.size > 0
+    for i in range(i0, i1):
+        for k in range(len(images)):
+            xk = images[k]
+            for j in range(w):
+                if not where[i, j] or choice[i, j] != k:
+                    continue
+                dg = 0.0
+                dc = 0.0
+                for ch in range(c):
+                    med = neighbour_median8(y, i, j, ch)
+                    if scaled:
+                        s = scale[i, j, ch]
+                        dg += abs(xg[i, j, ch] / s - med)
+                        dc += abs(xk[i, j, ch] / s - med)
+                    else:
+                        dg += abs(xg[i, j, ch] - med)
+                        dc += abs(xk[i, j, ch] - med)
+                out[i, j] = dg <= dc  # False when any is NaN
 
 
-def _global_prior(cands, smoothed, relm, choice, y, v, count, bounds, sigma, z, safeguard, guarded=(), scale=None):
+def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, safeguard, guarded=(), scale=None):
     """The per-pixel choice with the best single candidate over the image as the default.
 
     ``g`` = the candidate of least summed leave-one-out relative estimate
@@ -209,29 +189,31 @@ def _global_prior(cands, smoothed, relm, choice, y, v, count, bounds, sigma, z, 
     the built-in checker_spot 0.098 -> 0.071 of the mean's error).  Returns the new
     choice and the mask of pixels whose choice is ``g`` (all False when the
     prior does not apply).
-    """
-    from scipy.ndimage import uniform_filter
 
+    ``smoothed(k)``: candidate k's smoothed relative estimate (asked for
+    ``g``'s only); ``rel`` (K, H, W): the floored ones ``choice`` minimised
+    (NaN: undefined, never the least).  Each other candidate's test runs on
+    its own, one after the other (the difference maps of all of them at
+    once cost more in fresh memory than their arithmetic).
+    """
     den_loo = relative_denominator_loo(y, v, count, eps=DEFAULT_EPS)
-    cap = None if safeguard is None else (safeguard + 1.0) ** 2 * v
-    loo = [_mean_c(c.mse if cap is None else np.where(np.isnan(c.mse), np.nan, np.minimum(c.mse, cap)), den_loo)
-           for c in cands]
+    loo = _means([c.mse for c in cands], den_loo, v, None if safeguard is None else (safeguard + 1.0) ** 2)
     # rare huge samples: the 3 x 3 maximum far above the pixel's mean and its neighbourhood's median
     # (so that one pixel whose mean fell near 0 by chance does not count; a median, not a mean,
-    # which a bright emitter beside dim pixels would dominate)
-    apart = np.any(_heavy_tailed(y, bounds[1], HEAVY_PRIOR), axis=2)
-    # and pixels far brighter than their neighbourhood (an emitter's edge): their relative estimates,
-    # divided by the neighbours' mu^2, reach ~1e4 where the typical is ~1 (a Cornell box with a small
-    # bright light: two such pixels made a 1.41 px Gaussian the whole image's default)
-    with np.errstate(invalid="ignore"):
-        apart |= np.any(np.maximum(y * y - v, 0.0) > HEAVY_PRIOR ** 2 * den_loo, axis=2)
-    if safeguard is not None:
-        apart |= ~np.any(v > 0, axis=2)
-    vote = np.logical_and.reduce([np.isfinite(r) for r in loo]) & ~apart
+    # which a bright emitter beside dim pixels would dominate); and pixels far brighter than their
+    # neighbourhood (an emitter's edge): their relative estimates, divided by the neighbours' mu^2,
+    # reach ~1e4 where the typical is ~1 (a Cornell box with a small bright light: two such pixels
+    # made a 1.41 px Gaussian the whole image's default)
+    apart = _apart(y, v, bounds[1], den_loo, safeguard is not None)
+    vote = np.empty(apart.shape, bool)
+    parallel_rows(_voters_rows, (loo, apart, vote), vote.shape[0])
     none = np.zeros(choice.shape, bool)
     if not vote.any():
         return choice, none
-    sums = [float(np.sum(r[vote])) for r in loo]
+    # np.sum(r[vote]) of each, the voters gathered into one buffer (numpy's pairwise sum of the same
+    # contiguous values: the same bits)
+    buf = np.empty(vote.size)
+    sums = [float(np.sum(buf[:_compress(r.ravel(), vote.ravel(), buf)])) for r in loo]
     g = int(np.argmin(sums))
     plain = [k for k in range(len(cands)) if k not in guarded]
     if g in guarded and plain:
@@ -243,78 +225,189 @@ def _global_prior(cands, smoothed, relm, choice, y, v, count, bounds, sigma, z, 
             g = c
     if g == 0 and cands[0].name == "box":
         return choice, none
-    ok = np.zeros(relm.shape, bool)
-    ok[g] = True
-    others = [k for k in range(len(cands)) if k != g]
-    maps = []
-    for k in others:
-        d = loo[k] - loo[g]
-        d = np.where(np.isnan(loo[k]) | np.isnan(loo[g]) | np.isinf(loo[g]), np.nan, d)
-        maps += [d, d * d]
-    sm = _smooth_masked_many(maps, sigma)
-    # the smoothing's effective number of pixels, per pixel: about half of 4 pi sigma^2 along the
-    # image's edges, a quarter in its corners (with 4 pi sigma^2 everywhere, 9 of the 16 regions of
-    # flat exponential noise, 64^2 at 8 spp, 4 seeds, where a worse candidate passed the test lay
-    # on the border; the flat field's error 0.00079 -> 0.00070 of the mean's, 128^2 at 32 spp)
-    masks = [np.isfinite(maps[2 * i]) for i in range(len(others))]
-    first = [next(a for a in range(i + 1) if np.array_equal(masks[a], masks[i])) for i in range(len(masks))]
-    counts = dict(zip(sorted(set(first)), effective_counts([masks[a] for a in sorted(set(first))], sigma)))
-    n_eff = {k: counts[first[i]] for i, k in enumerate(others)}  # (the masks are mostly one: filtered once)
-    for i, k in enumerate(others):
-        m, q = sm[2 * i], sm[2 * i + 1]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            se = np.sqrt(np.maximum(q - m * m, 0.0) / n_eff[k])
-            ok[k] = np.isfinite(m) & (m < -z * se)
+    smoothing = MaskedSmoothing(sigma)
+    least = _FirstLeast(choice.shape)
+    masks, n_eff = [], []
+    h = choice.shape[0]
+    for k in range(len(cands)):
+        if k == g:
+            # g's own unfloored estimate: its bias is the test below; its floor at Z_BIAS (4.6 % of
+            # pure-noise pixels) would hand the pixel to any alternative that passed the z test by chance
+            sg = smoothed(g)
+            least.offer(g, np.where(np.isfinite(sg), sg, rel[g]))
+            continue
+        d, d2, mask = np.empty(choice.shape), np.empty(choice.shape), np.empty(choice.shape, bool)
+        parallel_rows(_difference_rows, (loo[k], loo[g], d, d2, mask), h)
+        m, q = smoothing([d, d2])
+        # the smoothing's effective number of pixels, per pixel: about half of 4 pi sigma^2 along the
+        # image's edges, a quarter in its corners (with 4 pi sigma^2 everywhere, 9 of the 16 regions of
+        # flat exponential noise, 64^2 at 8 spp, 4 seeds, where a worse candidate passed the test lay
+        # on the border; the flat field's error 0.00079 -> 0.00070 of the mean's, 128^2 at 32 spp).
+        # The masks are mostly one: filtered once.
+        a = next((a for a, mk in enumerate(masks) if np.array_equal(mk, mask)), None)
+        if a is None:
+            a = len(masks)
+            masks.append(mask)
+            n_eff += effective_counts([mask], sigma)
+        # k's estimate where it passed its test (written over m), +inf elsewhere
+        parallel_rows(_passed_rows, (m, q, n_eff[a], float(z), rel[k], m), h)
+        least.offer(k, m)
+    c2 = least.index
     # the test's standard error: the larger of the pixel's own and its 3 x 3 neighbourhood's mean
     # (a pixel's own sample variance is often far too small under skewed noise: with exponential
     # samples at 32 spp its own alone flagged 1.7 % of a flat field at 4 sd)
-    sd_test = np.sqrt(np.maximum(v, uniform_filter(np.where(np.isfinite(v), v, 0.0), size=(3, 3, 1),
-                                                   mode="nearest")))
-    with np.errstate(invalid="ignore"):
-        biased = np.any(np.abs(cands[g].image - y) > Z_BIAS_PRIOR * sd_test, axis=2) & (count > 0)
-    # g's own bias was the test above; its floor at Z_BIAS (4.6 % of pure-noise pixels) would hand
-    # the pixel to any alternative that passed the z test by chance
-    fin_g = np.isfinite(relm[g])
-    relm = relm.copy()
-    relm[g] = np.where(np.isfinite(smoothed[g]), smoothed[g], relm[g])
-    c2 = np.argmin(np.where(ok, relm, np.inf), axis=0)
+    biased = np.empty(choice.shape, bool)
+    _biased(_c64(cands[g].image), _c64(y), _c64(v), Z_BIAS_PRIOR, np.ascontiguousarray(count > 0), biased)
     # where the estimates are least reliable (rare huge samples around) g still stands, if no other
     # candidate passed the local test there, where it lies no farther than the plain choice from the
     # median of the 8 neighbours' means: a robust reference that a firefly kept by g (NFOR's
     # own-patch weights keep one) lies far from
     at_g = apart & (c2 == g)
-    default = fin_g & ~biased & (~apart | _nearer_the_neighbours(cands, g, choice, y, at_g, scale))
+    default = np.isfinite(rel[g]) & ~biased & (~apart | _nearer_the_neighbours(cands, g, choice, y, at_g, scale))
     out = np.where(default, c2, choice)
     return out, default & (c2 == g)
 
 
-def _pick_where(choice, k, src, out):
-    """``out[p] = src[p]`` where ``choice[p] == k`` (src and out (H, W, C) or (H, W), C-contiguous, raveled alike).
-
-    Both as 2-D (pixels, values) views: one compiled kernel for images and maps (it was compiled for each).
-    """
-    m = choice.size
-    if not out.flags.c_contiguous:
-        raise ValueError("_pick_where writes into a C-contiguous out")
-    _pick_rows(np.ascontiguousarray(choice, dtype=np.int64), int(k), np.ascontiguousarray(src).reshape(m, -1),
-               out.reshape(m, -1))
+@numba.njit(cache=True, nogil=True)
+def _voters_rows(loo, apart, vote, i0, i1):
+    # vote = not apart and every candidate's estimate finite
+    for i in range(i0, i1):
+        for j in range(apart.shape[1]):
+            ok = not apart[i, j]
+            for k in range(loo.shape[0]):
+                ok = ok and np.isfinite(loo[k, i, j])
+            vote[i, j] = ok
 
 
 @numba.njit(cache=True, nogil=True)
-def _pick_rows(choice, k, s2, o2):
-    m, n = s2.shape
-    for p in range(m):
-        if choice[p] == k:
-            for q in range(n):
-                o2[p, q] = s2[p, q]
+def _compress(a, keep, out):
+    # out[:n] = a[keep], returns n (each value written, the next one over it unless kept: no branch)
+    n = 0
+    for p in range(a.size):
+        out[n] = a[p]
+        n += keep[p]
+    return n
+
+
+@numba.njit(cache=True, nogil=True)
+def _difference_rows(lk, lg, d, d2, mask, i0, i1):
+    # d = lk - lg, NaN where either is NaN or lg is infinite; d2 = d * d; mask = d finite
+    for i in range(i0, i1):
+        for j in range(lk.shape[1]):
+            a, b = lk[i, j], lg[i, j]
+            x = np.nan if (a != a or b != b or np.isinf(b)) else a - b
+            d[i, j] = x
+            d2[i, j] = x * x
+            mask[i, j] = np.isfinite(x)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _passed_rows(m, q, n, z, rel, out, i0, i1):
+    # out = rel where m < -z se, se = sqrt(max(q - m^2, 0) / n) (m finite), else +inf
+    for i in range(i0, i1):
+        for j in range(m.shape[1]):
+            mm = m[i, j]
+            se = np.sqrt(_nanmax(q[i, j] - mm * mm, 0.0) / n[i, j])
+            out[i, j] = rel[i, j] if np.isfinite(mm) & (mm < (-z) * se) else np.inf
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _neighbourhood_mean_row(x, i, c, t, r, out_row):
+    # row i of _neighbourhood_mean of x (H, W * C), rows in order: t, the running sums along axis 0,
+    # advanced from row i - 1 to row i; r a row buffer
+    h, n = x.shape
+    w = n // c
+    if i == 0:
+        for q in range(n):
+            t[q] = ((0.0 + _finite0(x[0, q])) + _finite0(x[0, q])) + _finite0(x[min(1, h - 1), q])
+    else:
+        a, b = x[min(i + 1, h - 1)], x[max(i - 2, 0)]
+        for q in range(n):
+            t[q] += _finite0(a[q]) - _finite0(b[q])
+    for q in range(n):
+        r[q] = t[q] / 3.0
+    for ch in range(c):
+        s = ((0.0 + r[ch]) + r[ch]) + r[min(1, w - 1) * c + ch]
+        out_row[ch] = s / 3.0
+        for j in range(1, w):
+            s += r[min(j + 1, w - 1) * c + ch] - r[max(j - 2, 0) * c + ch]
+            out_row[j * c + ch] = s / 3.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _neighbourhood_mean(v, out):
+    """``scipy.ndimage.uniform_filter(where(isfinite(v), v, 0), size=(3, 3, 1), mode="nearest")`` of
+    ``v`` (H, W, C), term for term as scipy computes it (so bit-identical, tested): along axis 0, then
+    axis 1, a running sum ``t`` of the 3 values under the window (edges repeated; first ``((0 + x_0) +
+    x_0) + x_1``, then ``t += x_new - x_old``), each output ``t / 3``, the first pass stored as float64."""
+    h, w, c = v.shape
+    n = w * c
+    t, r = np.empty(n), np.empty(n)
+    for i in range(h):
+        _neighbourhood_mean_row(v.reshape(h, n), i, c, t, r, out[i].reshape(n))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _finite0(x):
+    return x if np.isfinite(x) else 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _biased(x, y, v, zb, has, out):
+    """Per pixel with samples: any channel with ``|x - y| > zb sqrt(max(v, v_nb))`` (NaN as np.maximum),
+    ``v_nb`` the :func:`_neighbourhood_mean` of ``v``, row by row (no image of it)."""
+    h, w, c = x.shape
+    n = w * c
+    t, r, nb = np.empty(n), np.empty(n), np.empty(n)
+    for i in range(h):
+        _neighbourhood_mean_row(v.reshape(h, n), i, c, t, r, nb)
+        for j in range(w):
+            b = False
+            for ch in range(c):
+                if abs(x[i, j, ch] - y[i, j, ch]) > zb * np.sqrt(_nanmax(v[i, j, ch], nb[j * c + ch])):
+                    b = True
+            out[i, j] = b and has[i, j]
+
+
+def _region_guard(cands, den, choice, keep, sigma):
+    """``choice`` with the pixel mean (0) where the chosen candidates' relative estimates minus the mean's,
+    smoothed (``sigma``), exceed 0, except at ``keep``; the estimates unsmoothed and unfloored, each only
+    where it is chosen."""
+    diff = np.empty(choice.shape)
+    parallel_rows(_guard_rows, (_arrays([c.mse for c in cands]), _c64(den), np.ascontiguousarray(choice), diff),
+                  diff.shape[0])
+    diff = MaskedSmoothing(sigma)([diff])[0]
+    return np.where(np.isfinite(diff) & (diff > 0) & ~keep, 0, choice)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _guard_rows(mses, den, choice, out, i0, i1):
+    # out = the chosen candidate's relative estimate minus the first's (the channel means of mse / den),
+    # each non-finite one read as NaN
+    h, w, c = den.shape
+    a = np.empty(w * c)
+    b = np.empty(w * c)
+    for i in range(i0, i1):
+        m0 = mses[0]
+        for k in range(len(mses)):
+            mk = mses[k]
+            for j in range(w):
+                if choice[i, j] != k:
+                    continue
+                o = j * c
+                for ch in range(c):
+                    a[o + ch] = mk[i, j, ch] / den[i, j, ch]
+                    b[o + ch] = m0[i, j, ch] / den[i, j, ch]
+                x, y0 = _channel_mean(a, o, c), _channel_mean(b, o, c)
+                out[i, j] = (x if np.isfinite(x) else np.nan) - (y0 if np.isfinite(y0) else np.nan)
 
 
 #: A pixel's neighbourhood is heavy-tailed when the largest sample around it exceeds this many times its mean.
 HEAVY_TAIL = 10.0
 
 
-def _no_push_in_heavy_tails(img: np.ndarray, y: np.ndarray, hi: np.ndarray, *, scale: np.ndarray | None = None
-                            ) -> np.ndarray:
+def _no_push_in_heavy_tails(img: np.ndarray, y: np.ndarray, hi: np.ndarray, out: np.ndarray | None = None, *,
+                            scale: np.ndarray | None = None) -> np.ndarray:
     """Where the samples around a pixel are heavy-tailed, a candidate may pull it towards its neighbours, not away.
 
     A pixel is heavy-tailed when the largest sample of its 3 x 3
@@ -332,6 +425,8 @@ def _no_push_in_heavy_tails(img: np.ndarray, y: np.ndarray, hi: np.ndarray, *, s
     rule then fires at any edge of more than 10x contrast.  Measured (128^2, 32 spp, 5 seeds, ratio to box): caustic
     0.757 -> 0.522; soft shadow, depth of field, motion blur, hdr and flat
     within 0.1 %; Mitsuba Cornell boxes +1.5-1.7 % (docs/methods/auto.md).
+    Written into ``out`` (default a new array; ``img`` itself may be given:
+    each value reads only its own pixel of ``img``).
 
     ``scale`` (H, W, C), positive: the median and the pixel's side of it are taken of ``y / scale``
     (auto passes the albedo: the light, not the texture, is what a rare sample carries).  On a
@@ -339,53 +434,42 @@ def _no_push_in_heavy_tails(img: np.ndarray, y: np.ndarray, hi: np.ndarray, *, s
     every candidate that moved a dark pixel beside light ones further down, towards its truth
     (a textured Mitsuba corridor: dnlm alone 0.075 of the mean's error, through the rule 0.099).
     """
-    # one compiled pass: the test and the 8-neighbour median only where the rule can fire
-    # (the numpy formulation, kept in the tests as the reference, was 1.2 s of auto's 8 s at 1024^2)
+    # one compiled pass (the numpy formulation, kept in the tests as the reference, was 1.2 s of
+    # auto's 8 s at 1024^2)
     img = np.ascontiguousarray(img, dtype=np.float64)
-    out = img.copy()
+    out = img.copy() if out is None else out
     y = np.ascontiguousarray(y, dtype=np.float64)
     hi = np.ascontiguousarray(hi, dtype=np.float64)
     ref = y if scale is None else np.ascontiguousarray(y / scale, dtype=np.float64)
-    every = np.ones(y.shape[:2], bool)
     # row blocks on the filters' thread pool (a parallel=True kernel cost 1.5 s of compilation on a first run)
-    parallel_calls(_no_push_rows, [(img, y, ref, hi, every, HEAVY_TAIL, out, i0, min(i0 + _ROWS, y.shape[0]))
-                                   for i0 in range(0, y.shape[0], _ROWS)])
+    parallel_rows(_no_push_rows, (img, y, ref, hi, HEAVY_TAIL, out), y.shape[0])
     return out
 
 
-#: Rows per call of :func:`_no_push_rows` (each output pixel is computed by one call: no effect on the result).
-_ROWS = 64
-
-
 @numba.njit(cache=True, nogil=True)
-def _no_push_rows(img, y, ref, hi, every, heavy_tail, out, i0, i1):
+def _no_push_rows(img, y, ref, hi, heavy_tail, out, i0, i1):
     """:func:`_no_push_in_heavy_tails` per pixel and channel in rows [i0, i1) (``out`` starts as a copy of ``img``).
 
-    The median of the 8 neighbours' ``ref`` (``y``, or ``y / scale``; edge-repeated; ``every`` all True:
-    an empty neighbour's mean counts) is the mean of the 4th and 5th of
-    them sorted, as :func:`numpy.median` computes it; NaN anywhere among
-    them makes it NaN, and a NaN median never reverts.
+    The median of the 8 neighbours' ``ref`` (``y``, or ``y / scale``; edge-repeated; an empty neighbour's mean
+    counts) is :func:`~mcrecon.filters.order.neighbour_median8`, as
+    :func:`numpy.median` computes it; NaN anywhere among them makes it NaN,
+    and a NaN median never reverts.  Computed for whole rows
+    (:func:`~mcrecon.filters.order.neighbour_medians8`): the rule fires at
+    half the values of a film with rare huge samples.
     """
     h, w, c = y.shape
-    nb = np.empty(8)
+    n = w * c
+    med = np.empty(n)
     for i in range(i0, i1):
-        for j in range(w):
+        neighbour_medians8(ref, i, med[c:n - c] if w > 1 else med[:0])
+        for j in (0, w - 1):
             for ch in range(c):
-                yc = y[i, j, ch]
-                oc = img[i, j, ch]
-                if not (hi[i, j, ch] > heavy_tail * abs(yc)) or not (oc != yc):
-                    continue
-                sorted_neighbours8(ref, every, i, j, ch, nb)
-                nan = False
-                for m in range(8):
-                    if nb[m] != nb[m]:
-                        nan = True
-                if nan:
-                    continue
-                med = (nb[3] + nb[4]) / 2.0
-                rc = ref[i, j, ch]
-                if (rc > med and oc > yc) or (rc < med and oc < yc):
-                    out[i, j, ch] = yc
+                med[j * c + ch] = neighbour_median8(ref, i, j, ch)
+        yr, rr, ir, hr, orow = y[i].reshape(n), ref[i].reshape(n), img[i].reshape(n), hi[i].reshape(n), out[i].reshape(n)
+        for q in range(n):
+            yc, rc, oc, md = yr[q], rr[q], ir[q], med[q]
+            if hr[q] > heavy_tail * abs(yc) and oc != yc and ((rc > md and oc > yc) or (rc < md and oc < yc)):
+                orow[q] = yc
 
 
 def _largest_remainder(pri: np.ndarray, total: int) -> np.ndarray:
