@@ -457,3 +457,92 @@ def test_feature_moments_equal_the_array_expressions():
         se2 = var / np.maximum(n, 1.0)
     sx, sy = limited_slopes(mean)
     np.testing.assert_array_equal(feature_moments(fs), np.stack([mean, var, sx, sy, se2], axis=-1))
+
+
+def _band_rounds(w, h, seed):
+    """Three rounds (8, 8, 16 spp) of a noisy gradient with a few spikes (their excess goes through the
+    guided splat after the gated one), an albedo step across the rows and a depth with NaNs (a guide: 0);
+    the first round listed pixel by pixel, the second round-robin over the pixels (one pixel's samples
+    interleaved with every other's), the third shuffled.  Positions and values float32 and float64, as
+    renderers send them."""
+    rng = np.random.default_rng([seed, 23])
+    out = []
+    for j, spp in enumerate((8, 8, 16)):
+        pos = jittered_positions(np.full((h, w), spp), rng)
+        n = len(pos)
+        val = ((0.3 + 0.4 * pos[:, 0] / w) * 2 * rng.random(n))[:, None] * COLOUR
+        val[rng.random(n) < 0.003] *= 40.0
+        feats = {"albedo": (np.where(pos[:, 1] < h / 2, 0.8, 0.3)[:, None] * np.ones(3)).astype(np.float32),
+                 "depth": 2.0 + 0.01 * pos[:, :1] + 0.001 * rng.random((n, 1))}
+        feats["depth"][::53] = np.nan
+        order = [np.arange(n), np.argsort(np.arange(n) % spp, kind="stable"), rng.permutation(n)][j]
+        out.append((pos[order].astype(np.float32), val[order], {k: f[order] for k, f in feats.items()}))
+    return out
+
+
+def _splat_in_threads(rounds, w, h, boundary, streamed):
+    """(image, kernel widths, round records) after each round: in memory as the driver hands rounds over,
+    or streamed in two chunks with two NaN values (dropped)."""
+    sp = SplatMethod(boundary=boundary)._new_splatter(w, h, 3)
+    got = []
+    for pos, val, feats in rounds:
+        if streamed:
+            val = val.copy()
+            val[[3, len(val) // 2 + 1], 1] = np.nan
+            cut = len(pos) // 3
+            parts = [(pos[a:b], val[a:b], {k: f[a:b] for k, f in feats.items()}) for a, b in ((0, cut), (cut, None))]
+            sp.add_round_stream(lambda: iter(parts))
+        else:
+            sp.add_round(pos, val, features=feats, checked=True)
+        got.append((sp.image.copy(), sp.last_widths.copy(), list(sp.rounds)))
+    return got
+
+
+@pytest.mark.parametrize("w, h, boundary", [(24, 20, "mirror"), (24, 20, "renormalize"), (24, 20, "none"),
+                                            (3, 40, "mirror"), (40, 3, "mirror"), (40, 3, "none"), (50, 1, "mirror")])
+def test_gated_splat_in_bands_equals_one_thread_bit_for_bit(w, h, boundary, monkeypatch):
+    """A round's passes on two threads (bands of rows, ranges of samples), in uneven bands and in a band per
+    row give the one-threaded image, kernel widths and round records bit for bit, in memory and streamed:
+    samples shuffled and interleaved across pixels, features with NaNs, films narrower and shorter than
+    the footprints (mirrored more than once), a one-row film."""
+    from mcrecon.methods.splat import bands as B
+
+    monkeypatch.setattr(B, "BAND_MIN", 0)
+    rounds = _band_rounds(w, h, 4)
+    uneven = sorted({0, 1, max(1, h // 3), h})
+    splits = {"one thread": ("1", None), "two threads": ("2", None),
+              "uneven bands": ("2", list(zip(uneven[:-1], uneven[1:]))),
+              "a band per row": ("2", [(j, j + 1) for j in range(h)])}
+    for streamed in (False, True):
+        runs = {}
+        for name, (threads, bands) in splits.items():
+            with monkeypatch.context() as m:
+                m.setenv("MCRECON_THREADS", threads)
+                if bands is not None:
+                    m.setattr(B, "row_bands", lambda work, n, bands=bands: bands)
+                runs[name] = _splat_in_threads(rounds, w, h, boundary, streamed)
+        for name, got in runs.items():
+            for (img, wid, rec), (img1, wid1, rec1) in zip(got, runs["one thread"]):
+                np.testing.assert_array_equal(img, img1, err_msg=name)
+                np.testing.assert_array_equal(wid, wid1, err_msg=name)
+                assert rec == rec1, name
+        img, wid, rec = runs["one thread"][-1]
+        assert np.any(wid > 1.0)  # the consistent samples did spread
+        assert h == 1 or sum(r["outliers"] for r in rec) > 0  # ... and outliers' excess too (too few samples
+        # around a pixel of the one-row film for the outlier test)
+
+
+def test_row_bands_cover_the_film_in_order():
+    """Bands of rows: consecutive, covering the film, at most one per thread, of about equal work."""
+    from mcrecon.methods.splat.bands import row_bands
+
+    assert row_bands(np.ones(512), 2) == [(0, 256), (256, 512)]
+    assert row_bands(np.ones(512), 1) == [(0, 512)]
+    assert row_bands(np.ones(1), 2) == [(0, 1)]
+    assert row_bands(np.zeros(7), 2) == [(0, 7)]
+    assert row_bands(np.ones(3), 8) == [(0, 1), (1, 2), (2, 3)]
+    work = np.r_[np.full(100, 3.0), np.ones(300)]  # the top rows three times the work
+    assert row_bands(work, 2) == [(0, 100), (100, 400)]
+    for n in (2, 3, 5):
+        b = row_bands(np.random.default_rng(n).random(97), n)
+        assert b[0][0] == 0 and b[-1][1] == 97 and all(x[1] == y[0] and x[0] < x[1] for x, y in zip(b, b[1:]))

@@ -218,13 +218,14 @@ def _footprint(x, y, r, h, w, mode, guide, guided, wbuf, ibuf, jbuf, gs, fs, pj,
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _deposit_weights(out, v, e, wbuf, ibuf, jbuf, m):
-    """Add ``v * (wbuf[t] * e)`` at each centre t of a footprint (mode none: off-film weight is lost)."""
+def _deposit_weights(out, v, e, wbuf, ibuf, jbuf, m, j0, j1):
+    """Add ``v * (wbuf[t] * e)`` at each centre t of a footprint in the rows ``j0 <= j < j1`` of ``out``
+    (a band of the film; mode none: off-film weight is lost)."""
     nc = out.shape[2]
     for t in range(m):
         ii = ibuf[t]
         jj = jbuf[t]
-        if ii < 0 or jj < 0:
+        if ii < 0 or not j0 <= jj < j1:
             continue
         wt = wbuf[t] * e
         for c in range(nc):
@@ -290,7 +291,7 @@ def _splat_loop(pos, val, scale, radius, mode, out):
                 out[jj, ii, 1] += v1 * wt
                 out[jj, ii, 2] += v2 * wt
             continue
-        _deposit_weights(out, vv, e, wbuf, ibuf, jbuf, m)
+        _deposit_weights(out, vv, e, wbuf, ibuf, jbuf, m, 0, h)
     return n_fallback
 
 
@@ -424,7 +425,7 @@ def _splat_guided_loop(pos, val, scale, radius, guide, mode, out):
                 out[py, px, c] += val[k, c] * e
             continue
         e = scale[k] / s
-        _deposit_weights(out, val[k], e, wbuf, ibuf, jbuf, m)
+        _deposit_weights(out, val[k], e, wbuf, ibuf, jbuf, m, 0, h)
     return n_fallback
 
 
@@ -445,7 +446,7 @@ def _deposit_own_pixel(pos, val, scale, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def _splat_gated_loop(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, fs, k2, mode, out):
+def _splat_gated_loop(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, fs, k2, mode, out, j0, j1):
     """Like :func:`_splat_loop`, but a sample of pixel p reaches only the pixels q whose statistics ``gs``
     and features ``fs`` (third axis 0: none) do not tell them apart from p's at ``k = sqrt(k2)``
     (:func:`_same_pixel_stats`; off-film
@@ -456,6 +457,12 @@ def _splat_gated_loop(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
     ``scale`` of sample k is ``w_round * inv_counts[p] * (1 - frac[k])`` (the share of the round that
     stays with the sample, not its outlier excess).  The gate's answer for a neighbour is computed once
     per run of consecutive samples of one pixel (a renderer's reply lists a pixel's samples together).
+
+    Only the rows ``j0 <= j < j1`` of ``out`` receive deposits (a band; 0, H: the film), and only the
+    samples whose own pixel lies in them count as fallbacks (returned).  The samples are visited in
+    order and every footprint is computed and normalised whole, so each pixel of the band receives the
+    deposits the whole film's loop gives it, in the same order: bands run by separate threads
+    (:func:`.bands.in_bands`) give the one-threaded image bit for bit.
     """
     h = out.shape[0]
     w = out.shape[1]
@@ -470,6 +477,12 @@ def _splat_gated_loop(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
     for k in range(pos.shape[0]):
         px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
         py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+        r = radius[k]
+        # rows from the pixel's to the band: a footprint reaches rows less than r away (mirroring folds
+        # a row no further from the pixel), so a sample farther off gives the band nothing
+        d = j0 - py if py < j0 else py - j1 + 1
+        if d > 0 and not d < r:
+            continue
         e = w_round * inv_counts[py, px] * (1.0 - frac[k])
         if e == 0.0:
             continue
@@ -478,7 +491,6 @@ def _splat_gated_loop(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
         # on the pixel grid are, so a stationary region keeps its expectation.
         x = px + 0.5
         y = py + 0.5
-        r = radius[k]
         s = 0.0
         m = 0
         if r > 0.0:
@@ -488,11 +500,12 @@ def _splat_gated_loop(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
             s, m = _footprint(x, y, r, h, w, mode, r_edge, False, wbuf, ibuf, jbuf, gs, fs, py, px, k2, True,
                               gate_seen, gate_pass, gate_key, gate_r)
         if not s > 0.0:
-            n_fallback += r > 0.0
-            for c in range(nc):
-                out[py, px, c] += val[k, c] * e
+            if d <= 0:
+                n_fallback += r > 0.0
+                for c in range(nc):
+                    out[py, px, c] += val[k, c] * e
             continue
-        _deposit_weights(out, val[k], e / s, wbuf, ibuf, jbuf, m)
+        _deposit_weights(out, val[k], e / s, wbuf, ibuf, jbuf, m, j0, j1)
     return n_fallback
 
 

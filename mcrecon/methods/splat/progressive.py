@@ -38,6 +38,7 @@ from ...filters.luminance import LUMINANCE_WEIGHTS
 from .consistent import (FeatureSums, _consistent_radii, channel_sums, edge_radius, feature_moments, gate_k,
                          pixel_moments)
 from .kernels import _add_widths, _splat_gated_loop
+from .bands import in_bands
 from .outliers import _box_sum, _count_and_moments, _norm_of, _outlier_thresholds, _split_and_deposit, _split_outliers
 
 __all__ = ['NORMS', 'kernel_width', 'pilot_width', 'sample_norm', 'ProgressiveSplatter']
@@ -552,6 +553,7 @@ class ProgressiveSplatter:
         # wherever it can, also at the film border (over the full windows there)
         _outlier_thresholds(wn, ws1, ws2, self.POOL_RADIUS, self.outlier_k, float(self.MIN_POOL), tau, consistent)
         if consistent:  # the gate's pixel statistics and the gradient bound, all samples so far
+            row_work = counts.sum(axis=1)  # the gated splat's bands of rows: about equal samples each
             gstats = pixel_moments(self.cum_counts, self._cs1, self._cs2)
             r_edge = edge_radius(gstats, self._gate_k)
             fstats = feature_moments(self._fsum)  # (1, 1, 0, 2) without features: the gate tests none
@@ -586,8 +588,11 @@ class ProgressiveSplatter:
                 krad = np.empty(p.shape[0])
                 _consistent_radii(p, v, self._norm_code, self._weights, frac, tau, fref, nmap, r_edge, self.spread_c,
                                   self.spread_alpha, self.min_width, self.max_width, krad)
-                fallback += _splat_gated_loop(p, v, w_round, inv_counts, frac, krad, r_edge, gstats, fstats,
-                                              self._gate_k ** 2, mode, img)
+                # in bands of rows of about equal samples, one per thread; a sample near a band's edge
+                # costs both threads its footprint
+                fallback += sum(in_bands(_splat_gated_loop, (p, v, w_round, inv_counts, frac, krad, r_edge, gstats,
+                                                             fstats, self._gate_k ** 2, mode, img),
+                                         p.shape[0], self.height, row_work=row_work))
             else:
                 krad = rad
                 _deposit_own_pixel(p, v, w_round * inv_counts[self._pixel_of(p)] * (1.0 - frac), img)
