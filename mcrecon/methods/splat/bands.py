@@ -46,7 +46,10 @@ def in_bands(kernel, args, n_samples: int, height: int, *, row_work=None, bands=
     return parallel_calls(kernel, [tuple(args) + (j0, j1) for j0, j1 in bands], threads)
 
 
-def sample_ranges(n_samples: int, threads: int | None = None) -> list[tuple[int, int]]:
-    """Consecutive ranges ``(a, b)`` of the samples, one per thread (one below :data:`BAND_MIN`)."""
+def in_ranges(kernel, args, n_samples: int, *, threads: int | None = None) -> list:
+    """``kernel(*args, k0, k1)`` for consecutive ranges of the samples, one per thread (one below
+    :data:`BAND_MIN`), on the pool: for a pass that writes one value per sample.  Returns the results in
+    range order."""
     n = _parts(n_samples, threads)
-    return [(n_samples * t // n, n_samples * (t + 1) // n) for t in range(n)]
+    return parallel_calls(kernel, [tuple(args) + (n_samples * t // n, n_samples * (t + 1) // n) for t in range(n)],
+                          threads)

@@ -282,13 +282,14 @@ def edge_radius(stats, k):
 
 
 @numba.njit(cache=True, nogil=True)
-def _consistent_radii(pos, val, norm_code, weights, frac, tau, fref, nmap, r_edge, c, alpha, min_w, max_w, radius):
-    """Support radius of each consistent sample (``frac = 0`` under a finite threshold ``tau``: the outlier
-    test ran and passed it): Eq. 8 against the window mean ``fref``; -1 for outliers, for samples no test
-    could judge yet, and where the diameter, or the pixel's ``2 r_edge``, is at most ``min_w``."""
+def _consistent_radii(pos, val, norm_code, weights, frac, tau, fref, nmap, r_edge, c, alpha, min_w, max_w, radius,
+                      k0, k1):
+    """Support radius of each consistent sample ``k0 <= k < k1`` (``frac = 0`` under a finite threshold ``tau``:
+    the outlier test ran and passed it): Eq. 8 against the window mean ``fref``; -1 for outliers, for samples
+    no test could judge yet, and where the diameter, or the pixel's ``2 r_edge``, is at most ``min_w``."""
     h = nmap.shape[0]
     w = nmap.shape[1]
-    for k in range(pos.shape[0]):
+    for k in range(k0, k1):
         radius[k] = -1.0
         if frac[k] > 0.0:
             continue  # an outlier: its excess is spread by the outlier rule, the rest stays

@@ -25,8 +25,8 @@ def _excess_width(g, t, f, n, c, alpha, min_w, max_w):
 
 
 @numba.njit(cache=True, nogil=True)
-def _split_outliers(pos, val, norm_code, weights, tau, fref, nmap, c, alpha, min_w, max_w, frac, radius):
-    """Robust variant: the part of each sample above its threshold, and that part's kernel radius.
+def _split_outliers(pos, val, norm_code, weights, tau, fref, nmap, c, alpha, min_w, max_w, frac, radius, k0, k1):
+    """Robust variant: the part of each sample ``k0 <= k < k1`` above its threshold, and that part's kernel radius.
 
     The threshold of a sample is its pixel's ``tau``
     (:func:`_outlier_thresholds`).  A sample with ``G <= tau``
@@ -46,7 +46,7 @@ def _split_outliers(pos, val, norm_code, weights, tau, fref, nmap, c, alpha, min
     w = nmap.shape[1]
     n_out = 0
     n_capped = 0
-    for k in range(pos.shape[0]):
+    for k in range(k0, k1):
         frac[k] = 0.0
         radius[k] = -1.0
         g = _norm_of(val, k, norm_code, weights)

@@ -38,7 +38,7 @@ from ...filters.luminance import LUMINANCE_WEIGHTS
 from .consistent import (FeatureSums, _consistent_radii, channel_sums, edge_radius, feature_moments, gate_k,
                          pixel_moments)
 from .kernels import _add_widths, _splat_gated_loop
-from .bands import in_bands
+from .bands import in_bands, in_ranges
 from .outliers import _box_sum, _count_and_moments, _norm_of, _outlier_thresholds, _split_and_deposit, _split_outliers
 
 __all__ = ['NORMS', 'kernel_width', 'pilot_width', 'sample_norm', 'ProgressiveSplatter']
@@ -580,14 +580,16 @@ class ProgressiveSplatter:
             v = np.ascontiguousarray(v, dtype=None if consistent else np.float64)
             frac = np.empty(p.shape[0])
             rad = np.empty(p.shape[0])
-            n_out, n_cap = _split_outliers(p, v, self._norm_code, self._weights, tau, fref, nmap, self.c,
-                                           self.alpha, self.min_width, self.max_width, frac, rad)
-            outliers += n_out
-            capped += n_cap
+            for n_out, n_cap in in_ranges(_split_outliers, (p, v, self._norm_code, self._weights, tau, fref, nmap,
+                                                            self.c, self.alpha, self.min_width, self.max_width, frac,
+                                                            rad), p.shape[0]):
+                outliers += n_out
+                capped += n_cap
             if consistent:
                 krad = np.empty(p.shape[0])
-                _consistent_radii(p, v, self._norm_code, self._weights, frac, tau, fref, nmap, r_edge, self.spread_c,
-                                  self.spread_alpha, self.min_width, self.max_width, krad)
+                in_ranges(_consistent_radii, (p, v, self._norm_code, self._weights, frac, tau, fref, nmap, r_edge,
+                                              self.spread_c, self.spread_alpha, self.min_width, self.max_width, krad),
+                          p.shape[0])
                 # in bands of rows of about equal samples, one per thread; a sample near a band's edge
                 # costs both threads its footprint
                 fallback += sum(in_bands(_splat_gated_loop, (p, v, w_round, inv_counts, frac, krad, r_edge, gstats,
