@@ -509,6 +509,8 @@ def test_gated_splat_in_bands_equals_one_thread_bit_for_bit(w, h, boundary, monk
 
     monkeypatch.setattr(B, "BAND_MIN", 0)
     rounds = _band_rounds(w, h, 4)
+    # the first round's rows never decrease (each band visits its rows' samples), the last one's do
+    assert B.rows_sorted(rounds[0][0], h, threads=2) and (h == 1 or not B.rows_sorted(rounds[2][0], h, threads=2))
     uneven = sorted({0, 1, max(1, h // 3), h})
     splits = {"one thread": ("1", None), "two threads": ("2", None),
               "uneven bands": ("2", list(zip(uneven[:-1], uneven[1:]))),
@@ -546,3 +548,24 @@ def test_row_bands_cover_the_film_in_order():
     for n in (2, 3, 5):
         b = row_bands(np.random.default_rng(n).random(97), n)
         assert b[0][0] == 0 and b[-1][1] == 97 and all(x[1] == y[0] and x[0] < x[1] for x, y in zip(b, b[1:]))
+
+
+def test_rows_sorted_reads_the_clipped_rows(monkeypatch):
+    """Whether the samples' rows (floor of y, clipped to the film) never decrease, against numpy's answer:
+    sorted and shuffled positions, one pair swapped, positions on the film's lower edge (y = H: row H - 1)."""
+    from mcrecon.methods.splat import bands as B
+
+    monkeypatch.setattr(B, "BAND_MIN", 0)
+    rng = np.random.default_rng(8)
+    h = 9
+    for n in (1, 2, 50, 1000):
+        y = np.sort(rng.random(n) * h)
+        cases = [y, rng.permutation(y), np.r_[y, h, h - 0.5, h], np.r_[y[:n // 2], h, y[n // 2:]]]
+        if n > 3:
+            z = y.copy()
+            z[[n // 2, n // 2 + 2]] = z[[n // 2 + 2, n // 2]]
+            cases.append(z)
+        for yy in cases:
+            pos = np.stack([np.zeros_like(yy), yy], axis=1)
+            rows = np.minimum(np.floor(yy), h - 1)
+            assert B.rows_sorted(pos, h, threads=2) == bool(np.all(np.diff(rows) >= 0))

@@ -47,6 +47,7 @@ import numba
 import numpy as np
 from scipy.special import ndtri
 
+from .bands import in_bands
 from .outliers import _excess_width, _norm_of
 
 
@@ -55,20 +56,23 @@ def gate_k(rate: float, n_channels: int) -> float:
     return float(ndtri(1.0 - rate / (4.0 * n_channels)))
 
 
-def channel_sums(pos, val, width, height):
-    """Per pixel and channel the sums of the values and of their squares, (H, W, C) each (in sample order)."""
+def channel_sums(pos, val, width, height, sorted_rows=False):
+    """Per pixel and channel the sums of the values and of their squares, (H, W, C) each (in sample order;
+    in bands of rows on the filters' threads, :func:`.bands.in_bands`)."""
     s1 = np.zeros((height, width, val.shape[1]))
     s2 = np.zeros((height, width, val.shape[1]))
-    _add_channel_sums(pos, val, s1, s2)
+    in_bands(_add_channel_sums, (pos, val, s1, s2), pos, height, sorted_rows=sorted_rows)
     return s1, s2
 
 
 @numba.njit(cache=True, nogil=True)
-def _add_channel_sums(pos, val, s1, s2):
+def _add_channel_sums(pos, val, s1, s2, k0, k1, j0, j1):
     h, w, nc = s1.shape
-    for k in range(pos.shape[0]):
-        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
+    for k in range(k0, k1):
         py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+        if not j0 <= py < j1:
+            continue
+        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
         for c in range(nc):
             v = np.float64(val[k, c])
             s1[py, px, c] += v
@@ -91,8 +95,9 @@ class FeatureSums:
         self.n = np.zeros((height, width))
         self.s1 = self.s2 = self.shift = None
 
-    def add(self, pos, feats, where):
-        """Add the features (``{name: (N, k)}``, the rows of ``pos``) of one chunk."""
+    def add(self, pos, feats, where, sorted_rows=False):
+        """Add the features (``{name: (N, k)}``, the rows of ``pos``) of one chunk (in bands of rows on the
+        filters' threads, :func:`.bands.in_bands`)."""
         from ...errors import InputError
 
         names = tuple(feats)
@@ -117,10 +122,11 @@ class FeatureSums:
         # not stacked: stacking the components was most of the cost
         pos = np.ascontiguousarray(pos)
         first = np.full(self.height * self.width, -1, np.int64)
-        _first_samples(pos, self.n, first)
+        in_bands(_first_samples, (pos, self.n, first), pos, self.height, sorted_rows=sorted_rows)
         col = 0
         for x in parts:
-            _add_feature_sums(pos, x, col, first, self.shift, self.s1, self.s2)
+            in_bands(_add_feature_sums, (pos, x, col, first, self.shift, self.s1, self.s2), pos, self.height,
+                     sorted_rows=sorted_rows)
             col += x.shape[1]
 
     @property
@@ -129,27 +135,33 @@ class FeatureSums:
 
 
 @numba.njit(cache=True, nogil=True)
-def _first_samples(pos, n, first):
-    """Count the samples of each pixel in ``n``; ``first[q]``: the index of the sample that sets pixel q's
-    shift (its first sample ever, when it had none before), else left at -1."""
+def _first_samples(pos, n, first, k0, k1, j0, j1):
+    """Count the samples ``k0 <= k < k1`` of each pixel of the rows ``j0 <= j < j1`` in ``n``; ``first[q]``: the
+    index of the sample that sets pixel q's shift (its first sample ever, when it had none before), else
+    left at -1."""
     h, w = n.shape
-    for k in range(pos.shape[0]):
-        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
+    for k in range(k0, k1):
         py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+        if not j0 <= py < j1:
+            continue
+        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
         if n[py, px] == 0:
             first[py * w + px] = k
         n[py, px] += 1.0
 
 
 @numba.njit(cache=True, nogil=True)
-def _add_feature_sums(pos, f, col, first, shift, s1, s2):
-    """Add one feature's components (columns ``col``... of the sums) in sample order; a pixel's first sample
-    sets its shift.  A non-finite component counts as 0 (a guide, not radiance, as check_features does)."""
+def _add_feature_sums(pos, f, col, first, shift, s1, s2, k0, k1, j0, j1):
+    """Add one feature's components (columns ``col``... of the sums) of the samples ``k0 <= k < k1`` in sample
+    order, to the pixels of the rows ``j0 <= j < j1``; a pixel's first sample sets its shift.  A non-finite
+    component counts as 0 (a guide, not radiance, as check_features does)."""
     h, w = s1.shape[0], s1.shape[1]
     nf = f.shape[1]
-    for k in range(pos.shape[0]):
-        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
+    for k in range(k0, k1):
         py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+        if not j0 <= py < j1:
+            continue
+        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
         q = py * w + px
         for c in range(nf):
             x = np.float64(f[k, c])

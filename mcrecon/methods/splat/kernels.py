@@ -446,7 +446,7 @@ def _deposit_own_pixel(pos, val, scale, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def _splat_gated_loop(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, fs, k2, mode, out, j0, j1):
+def _splat_gated_loop(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, fs, k2, mode, out, k0, k1, j0, j1):
     """Like :func:`_splat_loop`, but a sample of pixel p reaches only the pixels q whose statistics ``gs``
     and features ``fs`` (third axis 0: none) do not tell them apart from p's at ``k = sqrt(k2)``
     (:func:`_same_pixel_stats`; off-film
@@ -458,11 +458,12 @@ def _splat_gated_loop(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
     stays with the sample, not its outlier excess).  The gate's answer for a neighbour is computed once
     per run of consecutive samples of one pixel (a renderer's reply lists a pixel's samples together).
 
-    Only the rows ``j0 <= j < j1`` of ``out`` receive deposits (a band; 0, H: the film), and only the
-    samples whose own pixel lies in them count as fallbacks (returned).  The samples are visited in
-    order and every footprint is computed and normalised whole, so each pixel of the band receives the
-    deposits the whole film's loop gives it, in the same order: bands run by separate threads
-    (:func:`.bands.in_bands`) give the one-threaded image bit for bit.
+    Only the rows ``j0 <= j < j1`` of ``out`` receive deposits (a band; 0, H: the film), from the samples
+    ``k0 <= k < k1`` (at least those that reach the band), and only the samples whose own pixel lies in
+    them count as fallbacks (returned).  The samples are visited in order and every footprint is computed
+    and normalised whole, so each pixel of the band receives the deposits the whole film's loop gives it,
+    in the same order: bands run by separate threads (:func:`.bands.in_bands`) give the one-threaded
+    image bit for bit.
     """
     h = out.shape[0]
     w = out.shape[1]
@@ -474,7 +475,7 @@ def _splat_gated_loop(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
     gate_key = -1
     last = -1
     n_fallback = 0
-    for k in range(pos.shape[0]):
+    for k in range(k0, k1):
         px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
         py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
         r = radius[k]
@@ -510,17 +511,20 @@ def _splat_gated_loop(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
 
 
 @numba.njit(cache=True, nogil=True)
-def _add_widths(pos, radius, spread_radius, default_radius, width_sum, width_n):
-    """Add each sample's kernel diameter to its pixel's sum (in sample order): ``radius`` where it is
-    positive (an outlier's excess), else ``spread_radius`` where positive, else ``default_radius``."""
+def _add_widths(pos, radius, spread_radius, default_radius, width_sum, width_n, k0, k1, j0, j1):
+    """Add the kernel diameter of each sample ``k0 <= k < k1`` of the rows ``j0 <= j < j1`` to its pixel's sum
+    (in sample order): ``radius`` where it is positive (an outlier's excess), else ``spread_radius`` where
+    positive, else ``default_radius``."""
     h, w = width_sum.shape
-    for k in range(pos.shape[0]):
+    for k in range(k0, k1):
+        py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+        if not j0 <= py < j1:
+            continue
         r = radius[k]
         if not r > 0.0:
             r = spread_radius[k] if spread_radius[k] > 0.0 else default_radius
         if not r > 0.0:
             continue
         px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
-        py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
         width_sum[py, px] += 2.0 * r
         width_n[py, px] += 1

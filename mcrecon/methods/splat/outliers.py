@@ -68,14 +68,17 @@ def _split_outliers(pos, val, norm_code, weights, tau, fref, nmap, c, alpha, min
 
 
 @numba.njit(cache=True, nogil=True)
-def _count_and_moments(pos, val, norm_code, weights, counts, s1, s2):
-    """One pass over samples: add to each pixel its sample count and the sums of G and G^2 (in sample order)."""
+def _count_and_moments(pos, val, norm_code, weights, counts, s1, s2, k0, k1, j0, j1):
+    """One pass over the samples ``k0 <= k < k1``: add to each pixel of the rows ``j0 <= j < j1`` its sample
+    count and the sums of G and G^2 (in sample order)."""
     h = s1.shape[0]
     w = s1.shape[1]
-    for k in range(pos.shape[0]):
+    for k in range(k0, k1):
+        py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+        if not j0 <= py < j1:
+            continue
         g = _norm_of(val, k, norm_code, weights)
         px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
-        py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
         counts[py, px] += 1
         s1[py, px] += g
         s2[py, px] += g * g

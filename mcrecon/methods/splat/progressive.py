@@ -38,7 +38,7 @@ from ...filters.luminance import LUMINANCE_WEIGHTS
 from .consistent import (FeatureSums, _consistent_radii, channel_sums, edge_radius, feature_moments, gate_k,
                          pixel_moments)
 from .kernels import _add_widths, _splat_gated_loop
-from .bands import in_bands, in_ranges
+from .bands import in_bands, in_ranges, rows_sorted
 from .outliers import _box_sum, _count_and_moments, _norm_of, _outlier_thresholds, _split_and_deposit, _split_outliers
 
 __all__ = ['NORMS', 'kernel_width', 'pilot_width', 'sample_norm', 'ProgressiveSplatter']
@@ -364,16 +364,18 @@ class ProgressiveSplatter:
         counts = np.zeros((self.height, self.width), np.int64)
         s1 = np.zeros((self.height, self.width))
         s2 = np.zeros((self.height, self.width))
+        srt = rows_sorted(pos, self.height)
         if self.spread == "consistent":  # the pass of add_round_stream, on the arrays as given
             if self._fsum is not None:
-                self._fsum.add(pos, features or {}, where)
-            c1, c2 = channel_sums(pos, val, self.width, self.height)
+                self._fsum.add(pos, features or {}, where, srt)
+            c1, c2 = channel_sums(pos, val, self.width, self.height, srt)
             self._cs1 += c1
             self._cs2 += c2
-        _count_and_moments(pos, val, self._norm_code, self._weights, counts, s1, s2)
+        in_bands(_count_and_moments, (pos, val, self._norm_code, self._weights, counts, s1, s2), pos, self.height,
+                 sorted_rows=srt)
         if int(counts.sum()) == 0:
             return
-        self._add_round_robust(None, counts, s1, s2, self.spp_total == 0.0, nonfinite, where, arrays=(pos, val))
+        self._add_round_robust(None, counts, s1, s2, self.spp_total == 0.0, nonfinite, where, arrays=(pos, val, srt))
 
     def add_round_stream(self, chunks: Callable[[], Iterable], *, nonfinite: str = "drop",
                          where: str = "samples") -> None:
@@ -412,13 +414,14 @@ class ProgressiveSplatter:
                     feats = feats if keep.all() else {k: np.asarray(a)[keep] for k, a in feats.items()}
                 p, v, n_bad = self._validated(p, v, nonfinite, where)
                 self.n_nonfinite += n_bad
+                srt = rows_sorted(p, self.height) if robust else False
                 if self._fsum is not None:  # every round carries the same features, or none
-                    self._fsum.add(p, feats or {}, where)
+                    self._fsum.add(p, feats or {}, where, srt)
                 if robust:  # ... and the sums of G, G^2 per pixel
-                    _count_and_moments(p, np.ascontiguousarray(v, dtype=np.float64), self._norm_code,
-                                       self._weights, counts, s1, s2)
+                    in_bands(_count_and_moments, (p, np.ascontiguousarray(v, dtype=np.float64), self._norm_code,
+                                                  self._weights, counts, s1, s2), p, self.height, sorted_rows=srt)
                     if self.spread == "consistent":  # ... and of every channel's values and squares
-                        c1, c2 = channel_sums(p, v, self.width, self.height)
+                        c1, c2 = channel_sums(p, v, self.width, self.height, srt)
                         self._cs1 += c1
                         self._cs2 += c2
                 else:
@@ -558,7 +561,7 @@ class ProgressiveSplatter:
             r_edge = edge_radius(gstats, self._gate_k)
             fstats = feature_moments(self._fsum)  # (1, 1, 0, 2) without features: the gate tests none
         if arrays is not None and not consistent:  # a round in memory (add_round): the fused pass
-            p, v = arrays
+            p, v, _ = arrays
             idx = np.empty(p.shape[0], np.int64)
             oscale = np.empty(p.shape[0])
             orad = np.empty(p.shape[0])
@@ -569,15 +572,17 @@ class ProgressiveSplatter:
                 idx = idx[:outliers]
                 fallback = _splat_guided_loop(np.ascontiguousarray(p[idx]), np.ascontiguousarray(v[idx]),
                                               oscale[:outliers], orad[:outliers], guide, mode, img)
-        if arrays is None:
-            rounds = (self._validated(p, v, nonfinite, where)[:2] for p, v, *_ in chunks())
+        if arrays is None:  # (positions, values, whether their rows are sorted: not known yet)
+            rounds = ((*self._validated(p, v, nonfinite, where)[:2], None) for p, v, *_ in chunks())
         else:  # a round in memory, checked and converted once (add_round); the outlier-only rule is done above
             rounds = [arrays] if consistent else []
         w2 = self._width_sum.reshape(self.height, self.width)
         n2 = self._width_n.reshape(self.height, self.width)
-        for p, v in rounds:  # second pass: split and deposit
+        for p, v, srt in rounds:  # second pass: split and deposit
             p = np.ascontiguousarray(p, dtype=None if consistent else np.float64)
             v = np.ascontiguousarray(v, dtype=None if consistent else np.float64)
+            if srt is None:
+                srt = rows_sorted(p, self.height)
             frac = np.empty(p.shape[0])
             rad = np.empty(p.shape[0])
             for n_out, n_cap in in_ranges(_split_outliers, (p, v, self._norm_code, self._weights, tau, fref, nmap,
@@ -591,10 +596,11 @@ class ProgressiveSplatter:
                                               self.spread_c, self.spread_alpha, self.min_width, self.max_width, krad),
                           p.shape[0])
                 # in bands of rows of about equal samples, one per thread; a sample near a band's edge
-                # costs both threads its footprint
+                # costs both threads its footprint (reach: a radius is at most max_width / 2)
                 fallback += sum(in_bands(_splat_gated_loop, (p, v, w_round, inv_counts, frac, krad, r_edge, gstats,
                                                              fstats, self._gate_k ** 2, mode, img),
-                                         p.shape[0], self.height, row_work=row_work))
+                                         p, self.height, row_work=row_work, sorted_rows=srt,
+                                         reach=int(math.ceil(0.5 * self.max_width)) + 1))
             else:
                 krad = rad
                 _deposit_own_pixel(p, v, w_round * inv_counts[self._pixel_of(p)] * (1.0 - frac), img)
@@ -607,11 +613,11 @@ class ProgressiveSplatter:
                                                np.ascontiguousarray(rad[sel]), guide, mode, img)
             if arrays is None:  # a chunk's sums are added as a whole, as a round's were (the same sums)
                 cw, cn = np.zeros_like(w2), np.zeros_like(n2)
-                _add_widths(p, rad, krad, 0.5 * self.min_width, cw, cn)
+                in_bands(_add_widths, (p, rad, krad, 0.5 * self.min_width, cw, cn), p, self.height, sorted_rows=srt)
                 w2 += cw
                 n2 += cn
             else:
-                _add_widths(p, rad, krad, 0.5 * self.min_width, w2, n2)
+                in_bands(_add_widths, (p, rad, krad, 0.5 * self.min_width, w2, n2), p, self.height, sorted_rows=srt)
         if empty.any() and not first:
             img[empty] += w_round * prev[empty]
         self.image = img
