@@ -20,6 +20,8 @@ only (the default before issue 26).
     round schedules.
 :mod:`.outliers`, :mod:`.consistent`
     The default's outlier split, and its gated spread of consistent samples.
+:mod:`.bands`
+    A round's per-sample passes on the filters' threads, bit for bit one thread's.
 :mod:`.method`
     :class:`SplatMethod` behind the method contract.
 

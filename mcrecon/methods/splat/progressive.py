@@ -206,8 +206,10 @@ class ProgressiveSplatter:
     Rounds are added with :meth:`add_round` (samples in memory) or
     :meth:`add_round_stream` (two passes over re-iterable chunks: counts,
     then splats).  Adding the same rounds in the same order gives the
-    same image bit for bit (the scatter is sequential, or two fixed
-    blocks summed in order: independent of the thread count).  Every
+    same image bit for bit, whatever the number of threads (the paper's
+    scatter is sequential, or two fixed blocks summed in order; the
+    default's passes run in bands of rows that give one thread's bits:
+    :mod:`.bands`).  Every
     chunk is checked by :func:`mcrecon.core.samples.check_samples` and its
     NaN/Inf values handled by :func:`mcrecon.core.samples.apply_nonfinite`
     under ``nonfinite``, without a warning here: callers report
