@@ -569,3 +569,39 @@ def test_rows_sorted_reads_the_clipped_rows(monkeypatch):
             pos = np.stack([np.zeros_like(yy), yy], axis=1)
             rows = np.minimum(np.floor(yy), h - 1)
             assert B.rows_sorted(pos, h, threads=2) == bool(np.all(np.diff(rows) >= 0))
+
+
+def test_adaptive_and_offline_splat_do_not_depend_on_the_thread_count(monkeypatch):
+    """Through the driver (observe of pipelined rounds with features) and offline (a SampleSet, one streamed
+    round): the image, the kernel widths and the round records with one thread and with two, bit for bit."""
+    from mcrecon.methods.splat import bands as B
+
+    monkeypatch.setattr(B, "BAND_MIN", 0)
+    w, h = 40, 28
+
+    def fn(req):  # the noisy gradient of _band_rounds, with an albedo edge across the bands of rows
+        rng = np.random.default_rng([3, req.round_index])
+        p = jittered_positions(req.counts, rng)
+        v = ((0.3 + 0.4 * p[:, 0] / w) * 2 * rng.random(len(p)))[:, None] * COLOUR
+        v[rng.random(len(p)) < 0.003] *= 40.0
+        return SampleBatch(p.astype(np.float32), v.astype(np.float32),
+                           {"albedo": np.where(p[:, :1] < w / 2, 0.8, 0.3).astype(np.float32) * np.ones(3, np.float32)})
+
+    rounds = _band_rounds(w, h, 9)
+    pos, val = (np.concatenate(x) for x in zip(*[(p, v) for p, v, _ in rounds]))
+    feats = np.where(pos[:, :1] < w / 2, 0.8, 0.3) * np.ones(3)  # an edge across the bands, not along them
+    got = {}
+    for threads in ("1", "2"):
+        monkeypatch.setenv("MCRECON_THREADS", threads)
+        res = adapt(CallableRenderer(fn, width=w, height=h), "splat", spp=32, seed=0, track_error=False,
+                    progress=False)
+        off = mcrecon.reconstruct(mcrecon.SampleSet(pos, val, width=w, height=h, features={"albedo": feats}),
+                                  method="splat", full=True)
+        got[threads] = (res.image, res.run.diagnostics["kernel_width"], res.run.splatter.rounds, off.image,
+                        off.run.diagnostics["kernel_width"], off.run.splatter.rounds)
+    for a, b in zip(got["1"], got["2"]):
+        if isinstance(a, list):
+            assert a == b
+        else:
+            np.testing.assert_array_equal(a, b)
+    assert np.any(got["1"][1] > 1.0) and np.any(got["1"][4] > 1.0)
