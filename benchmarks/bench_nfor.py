@@ -7,7 +7,7 @@ method for 3 seeds, and nfor's reconstruction time (CPU time of the
 process, and wall time) at 128^2 and 512^2, warm (after a first run).
 With ``--scenes``, instead: the built-in textured scenes (checker_wall,
 checker_dof, checker_spot: exact reference, per-sample albedo, normal,
-depth), relMSE / box of nfor beside the cross-bilateral filter, colour-only
+depth), relMSE / box of nfor (its default and variant='paper') beside the cross-bilateral filter, colour-only
 NL-means and OIDN + albedo + normal (pixel means of the features, as
 benchmarks/bench_features.py) for 3 seeds, and nfor's CPU time per
 reconstruction; with ``--mitsuba-root`` the same for the three textured
@@ -62,7 +62,9 @@ def candidates(ss):
            "oidn_albedo_normal": _oidn(st.mean, st.features["albedo"].mean, st.features["normal"].mean)}
     t0, w0 = time.process_time(), time.perf_counter()
     out["nfor"] = mcrecon.reconstruct(ss, method="nfor")
-    return out, time.process_time() - t0, time.perf_counter() - w0
+    cpu, wall = time.process_time() - t0, time.perf_counter() - w0
+    out["nfor_paper"] = mcrecon.reconstruct(ss, method="nfor", variant="paper")  # the paper's qualitative result
+    return out, cpu, wall
 
 
 def _table(label_sources, header):
@@ -70,7 +72,7 @@ def _table(label_sources, header):
     ``label_sources`` yields (scene, [(source, reference), ...])."""
     mcrecon.reconstruct(scene_samples(32, 32, 4, seed=9, square=4), method="nfor")  # compile / load the cache
     print(header + "; relMSE / relMSE(box), mean over seeds (min-max); nfor CPU s (process_time)")
-    cols = ("nfor", "cross_bilateral", "nlm_colour", "oidn_albedo_normal")
+    cols = ("nfor", "nfor_paper", "cross_bilateral", "nlm_colour", "oidn_albedo_normal")
     for scene, pairs in label_sources:
         rows = []
         for src, ref in pairs:

@@ -11,7 +11,8 @@ from ..filters.engine import parallel_rows
 from ..filters.order import median9
 from .stats import PixelStats
 
-__all__ = ['sample_range_bounds', 'confidence_clamp', 'pooled_mean_variance']
+__all__ = ['sample_range_bounds', 'confidence_clamp', 'pooled_mean_variance', 'albedo_divisor',
+           'safeguard_variance']
 
 # --------------------------------------------------------------------------
 # Safeguard of the robust default (not in the paper)
@@ -306,3 +307,40 @@ def pooled_mean_variance(var_mean: np.ndarray, count: np.ndarray, radius: int = 
     out = np.empty_like(v)
     parallel_rows(_pooled_rows, (v, np.ascontiguousarray(count, dtype=np.int64), int(radius), out), v.shape[0])
     return out
+
+
+def albedo_divisor(stats: PixelStats) -> np.ndarray | None:
+    """Each pixel's albedo as a divisor of its colour, or None without an ``albedo`` feature.
+
+    :func:`~mcrecon.filters.demodulation.demodulation_divisor` of the albedo's pixel means
+    (floored at 0.02); empty pixels take their nearest sampled neighbour's albedo.
+    """
+    import warnings
+
+    from ..errors import McreconWarning
+    from ..filters.demodulation import demodulation_divisor
+    from .fill import fill_empty_pixels
+
+    alb = stats.features.get("albedo") if stats.features else None
+    if alb is None:
+        return None
+    mean = alb.mean
+    if (alb.count == 0).any():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", McreconWarning)  # the colour's fill warns once for the pixel
+            mean = fill_empty_pixels(mean.copy(), alb.count, source="albedo")
+    return demodulation_divisor(mean, stats.mean.shape[2])
+
+
+def safeguard_variance(var_mean: np.ndarray, count: np.ndarray, divisor: np.ndarray | None = None) -> np.ndarray:
+    """The variance a confidence clamp is built on: :func:`pooled_mean_variance`, in units of the albedo.
+
+    With ``divisor`` (:func:`albedo_divisor`, (H, W, C)) the neighbourhood is pooled in units of each
+    pixel's albedo, ``pooled_mean_variance(v / d^2) d^2``: on a texture a light square's
+    neighbourhood holds dark squares, whose variance in colour units would narrow its interval
+    (the built-in checker_spot: auto 0.119 -> 0.107 of the pixel mean's error in albedo units).
+    """
+    if divisor is None:
+        return pooled_mean_variance(var_mean, count)
+    d2 = divisor * divisor
+    return pooled_mean_variance(var_mean / d2, count) * d2

@@ -181,17 +181,6 @@ def _feature_bilateral(stats: PixelStats, y: np.ndarray, v: np.ndarray) -> "Cand
     return Candidate("fbil", img, np.where((stats.count > 0)[..., None], mse, np.nan), feature=True)
 
 
-def _albedo_divisor(stats: PixelStats) -> np.ndarray | None:
-    """Each pixel's albedo as a divisor of its colour (:func:`~mcrecon.filters.demodulation.demodulation_divisor`:
-    floored at 0.02), or None without an ``albedo`` feature."""
-    from ...filters.demodulation import demodulation_divisor
-
-    alb = stats.features.get("albedo") if stats.features else None
-    if alb is None:
-        return None
-    return demodulation_divisor(_filled(alb.mean, alb.count), stats.mean.shape[2])
-
-
 def feature_candidates(names, ha: PixelStats, hb: PixelStats) -> list[Candidate]:
     """The feature-guided candidates ``names`` (of :data:`FEATURE_CANDIDATES`) on the two halves.
 

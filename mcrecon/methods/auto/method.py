@@ -30,11 +30,11 @@ from ...core.requests import SampleBatch
 from ...core.stats import PixelStats
 from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, uniform_counts
 from ...core.halves import merge_halves
-from ...core.safeguard import confidence_clamp, pooled_mean_variance, sample_range_bounds
+from ...core.safeguard import albedo_divisor, confidence_clamp, safeguard_variance, sample_range_bounds
 from ...core.fill import fill_empty_pixels
 from ...filters.gaussian import final_sigmas
 from ...core.fill import mean_variance_policy
-from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGHTS, Candidate, _albedo_divisor,
+from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGHTS, Candidate,
     _feature_bilateral, _filled, dual_candidate, feature_candidates)
 from .nlmeans import nlmeans_cross
 from ...filters.masked import MaskedSmoothing, _smooth_masked
@@ -383,15 +383,10 @@ class AutoMethod(Method):
         # (the built-in checker_spot: the clamp on the own variance took nfor's 0.08 of the pixel
         # mean's error to 0.32).  The unbiased estimates themselves keep v.
         # With an albedo the neighbourhood is pooled, and the heavy-tail rule's median taken, in units
-        # of each pixel's albedo (_albedo_divisor): a light square beside dark ones had its interval
+        # of each pixel's albedo (albedo_divisor): a light square beside dark ones had its interval
         # narrowed by theirs (checker_spot 0.119 -> 0.107 of the mean's error with it).
-        divisor = _albedo_divisor(stats) if self.params["safeguard"] is not None else None
-        if self.params["safeguard"] is None:
-            v_safe = v
-        elif divisor is None:
-            v_safe = pooled_mean_variance(v, count)
-        else:
-            v_safe = pooled_mean_variance(v / (divisor * divisor), count) * (divisor * divisor)
+        divisor = albedo_divisor(stats) if self.params["safeguard"] is not None else None
+        v_safe = v if self.params["safeguard"] is None else safeguard_variance(v, count, divisor)
         sd = np.sqrt(v_safe)
         smoothing = MaskedSmoothing(smooth)
         rel, choice = _relative_choice(cands, den, y, sd, count, smoothing, Z_BIAS)
