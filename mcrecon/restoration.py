@@ -516,8 +516,8 @@ def auto(source, /, *, candidates="box,gauss,nlm", feature_candidates="nfor,nfor
 
 @_given_options
 def nfor(source, /, *, variant="robust", bandwidths="0.5,1.0", radius=9, patch=3, feature_radius=5,
-         feature_patch=3, feature_k=0.5, second_pass=True, ridge=1e-10, threads=None, nonfinite="drop",
-         **unknown) -> np.ndarray:
+         feature_patch=3, feature_k=0.5, second_pass=True, ridge=1e-10, safeguard=4.0, threads=None,
+         nonfinite="drop", **unknown) -> np.ndarray:
     """Feature-guided first-order regression on half buffers (NFOR): denoising with albedo, normal, depth.
 
     Parameters
@@ -527,8 +527,8 @@ def nfor(source, /, *, variant="robust", bandwidths="0.5,1.0", radius=9, patch=3
         half-buffer pair ``(stats_a, stats_b)`` of two independent halves with features
         (``PixelStats(features=...)``).  Sources without features are refused.
     variant : {'robust', 'paper'}, optional
-        Algorithm variant: 'paper' is the reference implementation's algorithm; 'robust' equals it for now
-        (no departure measured to pay, docs/methods/nfor.md) (default "robust").
+        Algorithm variant: 'paper' is the reference implementation's algorithm; 'robust' clamps its image
+        into each pixel's confidence interval (``safeguard``, docs/methods/nfor.md) (default "robust").
     bandwidths : str, optional
         NL-means bandwidths k of the regression's candidates (one or two, comma separated; the paper: 0.5,1.0)
         (default "0.5,1.0").
@@ -551,6 +551,10 @@ def nfor(source, /, *, variant="robust", bandwidths="0.5,1.0", radius=9, patch=3
         Ridge on the regression's non-constant columns (standardised features), times the window's total
         weight: makes flat or collinear features solvable; a finite number with 0 <= ridge <= 1
         (default 1e-10).
+    safeguard : float or None, optional
+        Clamp each pixel into mean +- k standard errors of its mean (the variance floored by its
+        neighbourhood's, in albedo units) and into the range of the samples around it (k; None: no clamp, the
+        paper); a finite number >= 0 or None (default 4.0; ``variant='paper'``: None).
     threads : int or None, optional
         Worker threads (default: $MCRECON_THREADS, else the usable cores); the result does not depend on it.
     nonfinite : {'drop', 'zero', 'raise'}, optional
@@ -572,7 +576,9 @@ def nfor(source, /, *, variant="robust", bandwidths="0.5,1.0", radius=9, patch=3
     Per pixel, a first-order model of the colour in the features over a 19 x 19 window, weighted by
     NL-means weights of the colour alone, the windows' predictions averaged; everything on two half
     buffers crossed (half A filtered with half B's weights and features), whose dual-buffer error estimate
-    picks the bandwidth per pixel; a second regression of the averaged halves.  Stages, parameters,
+    picks the bandwidth per pixel; a second regression of the averaged halves.  The default then clamps
+    each pixel into its confidence interval (a caustic's rare samples are otherwise spread over exact dim
+    neighbours: 12x the pixel mean's error on the built-in caustic).  Stages, parameters,
     tolerances and measured errors and times: docs/methods/nfor.md.
 
     References
