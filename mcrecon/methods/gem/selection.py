@@ -18,7 +18,7 @@ import math
 import numba
 import numpy as np
 
-from ...filters.engine import correlate_jobs, separable_weights
+from ...filters.engine import correlate_jobs, parallel_calls, separable_weights
 from ...errors import InputError
 from ...core.metrics import DEFAULT_EPS
 from ...filters.gaussian import TRUNCATE, _check_inputs, gaussian_kernel
@@ -160,6 +160,24 @@ def _stop_pair(e, coef, vsc, vsf, rho_z, weighted, delta, stop):
             stop[i, j] = ((b * rho_z[i, j] + vt) if weighted else d) > 0
 
 
+@numba.njit(cache=True, nogil=True)
+def _stop_pair_abs(f, c, vsc, vsf, coef, rho_z, weighted, delta, stop):
+    # _stop_pair with |c - f|^2 summed over channels in the same pass (channels left to right from
+    # 0, as numpy's einsum of the difference with itself): one call per pair, the pairs on the threads
+    h, w, nc = f.shape
+    for i in range(h):
+        for j in range(w):
+            e = 0.0
+            for ch in range(nc):
+                d = c[i, j, ch] - f[i, j, ch]
+                e += d * d
+            b = coef * e
+            vt = vsc[i, j] - vsf[i, j]
+            dd = b + vt
+            delta[i, j] = dd
+            stop[i, j] = ((b * rho_z[i, j] + vt) if weighted else dd) > 0
+
+
 #: Beyond this |value| the relative weight is computed without squaring the value.
 _BIG = 1e150
 
@@ -230,6 +248,14 @@ def stopping_maps(bank: FilterBank, count: np.ndarray, gamma: float | None, *, c
         return stops, delta
     # channel sums of each scale's variance, once (each serves two pairs)
     vsum = [_chan_sum(v) for v in bank.var]
+    if all(v.ndim == 3 and v.dtype == np.float64 for v in bank.values) and \
+            all(v.dtype == np.float64 for v in vsum):
+        # the pairs are independent: one compiled pass each, on the filters' threads
+        vals = [np.ascontiguousarray(v) for v in bank.values]
+        parallel_calls(_stop_pair_abs, [(vals[k], vals[k + 1], vsum[k + 1], vsum[k],
+                                         bias_coefficient(*_pair_radii(bank, k)), rho_z, gamma is not None,
+                                         delta[k], stops[k]) for k in range(nk)])
+        return stops, delta
     dv = None
     for k in range(nk):
         r_f, r_c = _pair_radii(bank, k)
@@ -286,11 +312,13 @@ def remove_outliers(stops: np.ndarray, sigmas, *, final: bool = False, size_fact
     if not full:
         jobs += [(vf, g, None, 0) for g in ks]
     conv = correlate_jobs(jobs, threads)
+    jobs = []
     for k in range(stops.shape[0]):
         g = ks[k]
         g0 = g[(g.size - 1) // 2] ** 2             # centre weight of the 2-D kernel
         wsum = separable_weights(h, w, g) if full else conv[stops.shape[0] + k]
-        _vote(conv[k], ms[k], wsum, vf, g0, np.ascontiguousarray(stops[k]), bool(final), out[k])
+        jobs.append((conv[k], ms[k], wsum, vf, g0, np.ascontiguousarray(stops[k]), bool(final), out[k]))
+    parallel_calls(_vote, jobs, threads)  # each map's vote writes its own output
     return out
 
 
