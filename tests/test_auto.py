@@ -1003,6 +1003,21 @@ def test_heavy_tail_rule_leaves_feature_guided_values_where_the_light_is_rarely_
     assert e < 0.064 * e_box, e / e_box
 
 
+def test_a_pixel_without_samples_keeps_a_filled_value_under_the_safeguard():
+    """An empty pixel has no interval (mean 0, variance 0); with and without features auto gives it the
+    value filled in from its neighbours (the clamp used to set it to 0): inside their range."""
+    from mcrecon.renderers import scenes
+
+    b = scenes.render_uniform("checker_spot", width=24, height=20, spp=8, seed=3, features=True)
+    keep = ~((np.floor(b.positions[:, 0]) == 15) & (np.floor(b.positions[:, 1]) == 10))
+    for feats in ({k: v[keep] for k, v in b.features.items()}, None):
+        ss = SampleSet(b.positions[keep], b.values[keep], width=24, height=20, features=feats)
+        img = _quiet(lambda: mcrecon.reconstruct(ss, method="auto"))
+        around = np.concatenate([img[9:12, 14:17].reshape(-1, 3)[:4], img[9:12, 14:17].reshape(-1, 3)[5:]])
+        assert (img[10, 15] >= around.min(axis=0)).all() and (img[10, 15] <= around.max(axis=0)).all(), img[10, 15]
+        assert (img[10, 15] > 0).all()
+
+
 def test_each_half_of_a_feature_candidate_depends_on_that_half_alone():
     """What makes the cross-validation unbiased, checked directly: changing every value of half B (colour
     and features) leaves each candidate's half-A image unchanged, bit for bit."""

@@ -397,3 +397,20 @@ def test_robust_default_stays_below_the_pixel_mean_under_a_caustic_where_the_pap
     e_box = relative_mse(mcrecon.reconstruct(ss, method="box"), ref)
     assert e["paper"] > 1.5 * e_box, (e, e_box)
     assert e["robust"] < 0.6 * e_box, (e, e_box)
+
+
+def test_a_pixel_without_samples_keeps_its_filled_value_under_the_safeguard():
+    """The clamp has no interval at an empty pixel (mean 0, variance 0): the default keeps the value the
+    paper's algorithm filled in from the neighbours there (it was set to 0)."""
+    from mcrecon.renderers import scenes
+
+    b = scenes.render_uniform("checker_spot", width=24, height=20, spp=8, seed=3, features=True)
+    keep = ~((np.floor(b.positions[:, 0]) == 15) & (np.floor(b.positions[:, 1]) == 10))
+    ss = SampleSet(b.positions[keep], b.values[keep], width=24, height=20,
+                   features={k: v[keep] for k, v in b.features.items()})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        paper = mcrecon.reconstruct(ss, method="nfor", variant="paper")
+        robust = mcrecon.reconstruct(ss, method="nfor")
+    assert (paper[10, 15] > 0.05).all()
+    np.testing.assert_array_equal(robust[10, 15], paper[10, 15])

@@ -420,6 +420,10 @@ class AutoMethod(Method):
             # an interval that holds the true value with high probability never moves
             # an estimate away from it (the same safeguard as awr's robust default).
             lo, hi = sample_range_bounds(stats) if bounds is None else bounds
+            # a pixel without samples has no interval (its mean 0, its variance 0): it keeps the value
+            # filled in from its neighbours above, which the clamp would set to 0
+            empty = count == 0
+            filled = img[empty] if empty.any() else None
             confidence_clamp(img, y, v_safe, self.params["safeguard"], lo, hi, out=img)
             # The heavy-tail rule judges a push by the median of the neighbours' means, which under
             # a rarely found light lies below the truth (the pixel means are right-skewed): a
@@ -435,6 +439,8 @@ class AutoMethod(Method):
             _no_push_in_heavy_tails(img, y, hi, out=img, scale=divisor)
             if kept is not None:
                 img[keep] = kept
+            if filled is not None:
+                img[empty] = filled
         # the raw estimate is undefined at empty pixels: the smoothed absolute one there
         fin = np.isfinite(raw_abs)
         if not fin.all():
