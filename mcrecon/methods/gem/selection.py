@@ -162,8 +162,10 @@ def _stop_pair(e, coef, vsc, vsf, rho_z, weighted, delta, stop):
 
 @numba.njit(cache=True, nogil=True)
 def _stop_pair_abs(f, c, vsc, vsf, coef, rho_z, weighted, delta, stop):
-    # _stop_pair with |c - f|^2 summed over channels in the same pass (channels left to right from
-    # 0, as numpy's einsum of the difference with itself): one call per pair, the pairs on the threads
+    # _stop_pair with |c - f|^2 summed over channels in the same pass, left to right from channel 0:
+    # one call per pair, the pairs on the threads.  numpy's einsum, which this replaced, may add the
+    # channels in another order (3 channels: (0 + 2) + 1), so ``delta`` can differ from it in the
+    # last bit; the stops, images and plans were identical on every input compared.
     h, w, nc = f.shape
     for i in range(h):
         for j in range(w):
