@@ -202,6 +202,18 @@ def test_info_into_a_closed_pipe_exits_0(scene_log):
     assert r.returncode == 0 and r.stdout.startswith("file") and r.stderr == ""
 
 
+def test_a_closed_pipe_does_not_stop_the_command(tmp_path):
+    # `mcrecon render-log ... | head -1`: the reader leaves after the first line, and the files printed
+    # after it (here the reference EXR) must still be written
+    log, exr = tmp_path / "r.h5", tmp_path / "ref.exr"
+    proc = subprocess.Popen([sys.executable, "-m", "mcrecon", "render-log", "--scene", "soft_shadow", "--size",
+                             "8x8", "--spp", "2", "-o", str(log), "--reference-exr", str(exr)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    proc.stdout.close()
+    assert proc.wait() == 0
+    assert log.is_file() and exr.is_file()
+
+
 # ------------------------------------------------------------------ method options
 @pytest.mark.parametrize("command", ["denoise", "adapt"])
 def test_help_groups_the_options_per_method(command, capsys):

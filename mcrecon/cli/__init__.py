@@ -50,14 +50,48 @@ def _command_of(argv) -> str | None:
     return next((a for a in argv if not a.startswith("-")), None)
 
 
-def _stdout_to_devnull() -> None:
-    """After a closed pipe: send what is left to devnull, so the flush at exit cannot fail again
-    (as the Python docs on SIGPIPE recommend)."""
+def _to_devnull(stream) -> None:
+    """After a closed pipe: send what is left of ``stream`` to devnull, so the flush at exit cannot
+    fail again (as the Python docs on SIGPIPE recommend)."""
     try:
         devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-    except (OSError, ValueError, AttributeError):  # stdout is no file (captured): nothing to flush
+        os.dup2(devnull, stream.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):  # no file (captured): nothing to flush
         pass
+
+
+class _ReaderMayLeave:
+    """A text stream whose reader may go away (``mcrecon demo | head -3``): after a closed pipe what is
+    written is dropped and the command goes on.  Its files are its result and the lines it prints only
+    report them, so a reader that stopped reading must not stop the command half way (it had left
+    8 of a demo's 15 files, an adaptive run without its rounds JSON, and exit status 0)."""
+
+    def __init__(self, stream):
+        self._stream = stream
+        self._gone = False
+
+    def write(self, text):
+        if not self._gone:
+            try:
+                return self._stream.write(text)
+            except BrokenPipeError:
+                self._leave()
+        return len(text)
+
+    def flush(self):
+        if not self._gone:
+            try:
+                self._stream.flush()
+            except BrokenPipeError:
+                self._leave()
+
+    def _leave(self):
+        self._gone = True
+        _to_devnull(self._stream)
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
 
 
 def main(argv=None) -> int:
@@ -75,12 +109,14 @@ def main(argv=None) -> int:
                 showwarning(message, category, filename, lineno, file, line)
 
         warnings.showwarning = _one_line
+        streams = sys.stdout, sys.stderr
+        sys.stdout, sys.stderr = _ReaderMayLeave(sys.stdout), _ReaderMayLeave(sys.stderr)
         try:
             code = int(args.func(args) or 0)
             sys.stdout.flush()  # a reader that went away shows here, not at exit
             return code
-        except BrokenPipeError:  # `mcrecon info LOG | head`: the reader has what it wanted
-            _stdout_to_devnull()
+        except BrokenPipeError:  # a write that bypassed the wrapper (a library's own handle)
+            _to_devnull(streams[0])
             return 0
         except (InputError, RendererError) as exc:
             sys.stderr.write(f"mcrecon: error: {exc}\n")
@@ -95,6 +131,9 @@ def main(argv=None) -> int:
             sys.stderr.write("mcrecon: interrupted\n")
             return 130
         finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            sys.stdout, sys.stderr = streams
             warnings.showwarning = showwarning
 
 
