@@ -356,6 +356,20 @@ def test_scene_file_and_size_mismatch(tmp_path):
     assert "width/height" in exc.value.field and "20x10" in exc.value.problem
     with pytest.raises(InputError):
         r.render(SampleRequest(12, 6, counts=np.ones((6, 12), np.int64)))
+    # the command line: without --size a scene file renders at its own film size (the default
+    # 128x128 was forced on it, and nothing could be omitted); a --size that differs is refused
+    from mcrecon.cli import main
+    from mcrecon.io import read_log
+
+    assert main(["mitsuba", "log", "--scene", str(xml), "--spp", "1", "-o", str(tmp_path / "q.h5")]) == 0
+    assert (read_log(tmp_path / "q.h5").width, read_log(tmp_path / "q.h5").height) == (20, 10)
+    assert main(["adapt", "--mitsuba", str(xml), "--spp", "2", "--method", "gem", "--log", str(tmp_path / "a.h5"),
+                 "-o", str(tmp_path / "a.exr"), "--no-progress"]) == 0
+    log = read_log(tmp_path / "a.h5")
+    assert (log.width, log.height, log.n_samples) == (20, 10, 400)
+    assert main(["adapt", "--mitsuba", str(xml), "--size", "30x10", "--spp", "2", "-o",
+                 str(tmp_path / "b.exr")]) == 2
+    assert not (tmp_path / "b.exr").exists()
 
 
 # ------------------------------------------------- the availability probe

@@ -306,19 +306,23 @@ def _cmd_mitsuba(args):
     from ..renderers import mitsuba as mb
     from ..io import write_exr, write_png_preview
 
-    w, h = parse_size(args.size)
     scene = None if args.scene in (None, "cornell-box") else args.scene
+    # a scene file renders at its own film size unless --size is given; the Cornell box at 128x128
+    w, h = (None, None) if args.size is None and scene is not None else parse_size(args.size or "128x128")
     t0 = time.perf_counter()
     if args.mitsuba_command == "reference":
         ref = mb.render_reference(scene, width=w, height=h, spp=args.spp, seed=args.seed)
         out = Path(args.output)
         write_exr(out, ref)
         write_png_preview(out.with_suffix(".png"), ref)
-        print(f"rendered a {w}x{h}, {args.spp}-spp reference in {time.perf_counter() - t0:.1f} s")
+        print(f"rendered a {ref.shape[1]}x{ref.shape[0]}, {args.spp}-spp reference in {time.perf_counter() - t0:.1f} s")
         print(f"wrote {out}\nwrote {out.with_suffix('.png')}")
     else:
         path = mb.dump_uniform_log(args.output, scene, width=w, height=h, spp=args.spp, seed=args.seed,
                                    reference_spp=args.reference_spp, features=args.features)
-        print(f"rendered a {w}x{h}, {args.spp}-spp uniform log in {time.perf_counter() - t0:.1f} s")
+        from ..io import read_log
+
+        lg = read_log(path)
+        print(f"rendered a {lg.width}x{lg.height}, {args.spp}-spp uniform log in {time.perf_counter() - t0:.1f} s")
         print(f"wrote {path}")
     return 0

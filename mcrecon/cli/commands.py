@@ -227,7 +227,28 @@ def _cmd_reconstruct(args):
     return 0
 
 
+#: Film size of a built-in scene, the Cornell box and an external renderer without --size.
+DEFAULT_SIZE = "128x128"
+
+
 # ----------------------------------------------------------------- adapt
+def _renderer(args):
+    """(the spec of the renderer the flags name, recorded in the log for --resume; the renderer).
+
+    A Mitsuba scene file without ``--size`` renders at its own film size: the bridge reads it while
+    loading the scene, and the spec records it."""
+    from ..renderers.spec import mitsuba_spec, renderer_from_spec
+
+    if args.mitsuba not in (None, "cornell-box") and args.size is None:
+        from ..renderers.mitsuba import MitsubaRenderer
+
+        feats = "all" if args.features is None else args.features
+        renderer = MitsubaRenderer(args.mitsuba, features=feats)
+        return mitsuba_spec(args.mitsuba, width=renderer.width, height=renderer.height, features=feats), renderer
+    spec = _renderer_spec(args)
+    return spec, renderer_from_spec(spec)
+
+
 def _renderer_spec(args) -> dict:
     """The spec of the renderer the flags name (recorded in the log for --resume)."""
     from ..renderers.spec import command_spec, mitsuba_spec, scene_spec
@@ -236,7 +257,7 @@ def _renderer_spec(args) -> dict:
     if len(sources) != 1:
         raise InputError("adapt", "renderer", "give exactly one of --scene NAME, --renderer-cmd CMD, "
                          "--mitsuba [SCENE.xml|cornell-box], or --resume LOG")
-    w, h = parse_size(args.size)
+    w, h = parse_size(DEFAULT_SIZE if args.size is None else args.size)
     if args.features is not None and args.mitsuba is None:
         raise InputError("adapt", "--features", "chooses the Mitsuba bridge's per-sample features (with "
                          "--mitsuba); a built-in scene or an external renderer sends what it sends")
@@ -332,12 +353,11 @@ def _cmd_adapt(args):
         res = driver_run.resume(args.resume, progress=progress, time_limit=args.time_limit)
         ref = read_log(args.resume).reference()
     else:
-        from ..renderers.spec import reference_from_spec, renderer_from_spec
+        from ..renderers.spec import reference_from_spec
 
-        spec = _renderer_spec(args)
         if args.spp is None:
             raise InputError("adapt", "--spp", "missing: give the sample budget in samples per pixel")
-        renderer = renderer_from_spec(spec)
+        spec, renderer = _renderer(args)
         if args.reference is not None:
             import numpy as np
 
@@ -487,7 +507,8 @@ def register(sub, command: str | None = None) -> None:
                         "(default all three; none to switch off)")
     s.add_argument("--channels", default="R,G,B", help="channel names of an external renderer")
     s.add_argument("--timeout", type=float, default=600.0, help="seconds per round for an external renderer")
-    s.add_argument("--size", default="128x128", help="film size WIDTHxHEIGHT (default 128x128)")
+    s.add_argument("--size", default=None, help="film size WIDTHxHEIGHT (default 128x128; a --mitsuba scene "
+                                                   "file: its own film's)")
     s.add_argument("--spp", type=float, default=None, help="sample budget, average samples per pixel")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--log", default=None, help="sample log to write (commits every round)")
@@ -575,7 +596,8 @@ def register(sub, command: str | None = None) -> None:
                       ("log", "dump a uniform sample log (optionally with a reference) for offline denoising")):
         m = ms.add_parser(name, help=hlp)
         m.add_argument("--scene", default=None, help="scene XML (default: the built-in Cornell box)")
-        m.add_argument("--size", default="128x128")
+        m.add_argument("--size", default=None, help="film size WIDTHxHEIGHT (default: a scene file's own film, "
+                                                    "the Cornell box 128x128)")
         m.add_argument("--spp", type=int, default=1024 if name == "reference" else 16)
         m.add_argument("--seed", type=int, default=0)
         if name == "log":
