@@ -202,6 +202,29 @@ def test_info_into_a_closed_pipe_exits_0(scene_log):
     assert r.returncode == 0 and r.stdout.startswith("file") and r.stderr == ""
 
 
+def test_log_outputs_are_logs_and_are_not_replaced_silently(tmp_path, capsys):
+    # render-log replaced a 5-round adaptive log without a word, and wrote HDF5 into "x.exr" (which
+    # every later command then refused as "not an OpenEXR file")
+    log = tmp_path / "keep.h5"
+    args = ["render-log", "--scene", "flat", "--spp", "1", "--size", "4x4", "-o"]
+    code, _, err = run(args + [str(log)], capsys)
+    assert code == 0 and log.is_file()
+    before = log.read_bytes()
+    code, _, err = run(args + [str(log)], capsys)
+    assert code == 2 and "exists" in err and "--overwrite" in err and len(err.strip().splitlines()) == 1
+    assert log.read_bytes() == before
+    code, _, err = run(["render-log", "--scene", "flat", "--spp", "2", "--size", "4x4", "-o", str(log),
+                        "--overwrite"], capsys)
+    assert code == 0 and log.read_bytes() != before
+    for bad in (["render-log", "--scene", "flat", "--spp", "1", "--size", "4x4", "-o", str(tmp_path / "x.exr")],
+                ["adapt", "--scene", "flat", "--spp", "2", "--size", "4x4", "--log", str(tmp_path / "x.exr"),
+                 "-o", str(tmp_path / "y.exr")],
+                ["mitsuba", "reference", "--spp", "1", "-o", str(tmp_path / "r.h5")]):
+        code, _, err = run(bad, capsys)
+        assert code == 2 and "expected a path ending in" in err and len(err.strip().splitlines()) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.h5"]
+
+
 def test_a_closed_pipe_does_not_stop_the_command(tmp_path):
     # `mcrecon render-log ... | head -1`: the reader leaves after the first line, and the files printed
     # after it (here the reference EXR) must still be written

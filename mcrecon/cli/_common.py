@@ -215,6 +215,30 @@ def check_output(out, png=None, *, command: str = "mcrecon") -> None:
             raise InputError(str(p), "output", f"cannot be written: {parent} is not a writable directory")
 
 
+#: Suffixes of a sample log the commands write (HDF5).
+LOG_SUFFIXES = (".h5", ".hdf5")
+
+
+def check_log_output(path, *, flag: str = "-o/--output", overwrite: bool | None = False) -> None:
+    """Refuse a sample log the command could not write, or should not: a path not ending in ``.h5``
+    (``.hdf5``: an HDF5 log named ``x.exr`` fails every later command as "not an OpenEXR file"), and,
+    unless ``overwrite`` (None: the caller has its own rule), an existing file: it may hold a run's
+    samples, which a new log would replace without a word."""
+    p = Path(path)
+    if p.suffix.lower() not in LOG_SUFFIXES:
+        raise InputError(str(p), flag, f"expected a path ending in {' or '.join(LOG_SUFFIXES)} (an HDF5 sample log)")
+    if p.is_dir():
+        raise InputError(str(p), flag, "is a directory; expected the path of a sample log to write")
+    if overwrite is False and p.exists():
+        raise InputError(str(p), flag, "exists (it may hold samples): give another path, or --overwrite to "
+                         "replace it")
+    parent = p.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK):
+        raise InputError(str(p), flag, f"cannot be written: {parent} is not a writable directory")
+
+
 def write_outputs(image, out, *, channels, png, exposure, diagnostics=None, diag_dir=None,
                   counts=None) -> list[Path]:
     """Write the EXR, its PNG preview and the diagnostic maps; returns the paths written."""

@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 from ..errors import InputError
-from ._common import (check_output, method_kernels, parse_size, write_outputs)
+from ._common import (check_log_output, check_output, method_kernels, parse_size, write_outputs)
 
 def _cmd_scenes(args):
     from ..renderers.scenes import get_scene, scene_names
@@ -100,6 +100,7 @@ def _cmd_render_log(args):
     from ..renderers.scenes import get_scene, write_scene_log
 
     w, h = parse_size(args.size)
+    check_log_output(args.output, overwrite=args.overwrite)
     if args.reference_exr is not None:
         if Path(args.reference_exr).resolve() == Path(args.output).resolve():
             raise InputError(str(args.reference_exr), "--reference-exr", "is the -o sample log: give another path")
@@ -309,6 +310,10 @@ def _cmd_mitsuba(args):
     scene = None if args.scene in (None, "cornell-box") else args.scene
     # a scene file renders at its own film size unless --size is given; the Cornell box at 128x128
     w, h = (None, None) if args.size is None and scene is not None else parse_size(args.size or "128x128")
+    if args.mitsuba_command == "reference":
+        check_output(args.output)
+    else:
+        check_log_output(args.output, overwrite=args.overwrite)
     t0 = time.perf_counter()
     if args.mitsuba_command == "reference":
         ref = mb.render_reference(scene, width=w, height=h, spp=args.spp, seed=args.seed)

@@ -13,8 +13,9 @@ import time
 from pathlib import Path
 
 from ..errors import InputError
-from ._common import (HelpFormatter, OneLineParser, add_method_options, add_scene_flags, check_output, finite_float,
-    given_method_options, jit_notice, make_method, method_flags, method_kernels, parse_size, write_outputs)
+from ._common import (HelpFormatter, OneLineParser, add_method_options, add_scene_flags, check_log_output,
+                      check_output, finite_float, given_method_options, jit_notice, make_method, method_flags,
+                      method_kernels, parse_size, write_outputs)
 from .builtins import _cmd_demo, _cmd_methods, _cmd_mitsuba, _cmd_render_log, _cmd_scenes
 
 __all__ = ['register']
@@ -357,6 +358,8 @@ def _cmd_adapt(args):
 
         if args.spp is None:
             raise InputError("adapt", "--spp", "missing: give the sample budget in samples per pixel")
+        if args.log is not None:  # an existing log is the driver's to refuse (it names --resume)
+            check_log_output(args.log, flag="--log", overwrite=None)
         spec, renderer = _renderer(args)
         if args.reference is not None:
             import numpy as np
@@ -581,7 +584,8 @@ def register(sub, command: str | None = None) -> None:
     s.add_argument("--spp", type=int, required=True)
     s.add_argument("--size", default="128x128")
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("-o", "--output", required=True)
+    s.add_argument("-o", "--output", required=True, help="the sample log to write (.h5)")
+    s.add_argument("--overwrite", action="store_true", help="replace an existing -o log")
     s.add_argument("--features", action=argparse.BooleanOptionalAction, default=None,
                    help="store per-sample albedo, normal and depth in the log (default: the scene's, see "
                         "`mcrecon scenes`)")
@@ -605,7 +609,11 @@ def register(sub, command: str | None = None) -> None:
             m.add_argument("--features", default="all", metavar="none|albedo,normal,depth",
                            help="per-sample features of the primary hit to store (/features/NAME; default all "
                                 "three: albedo, shading normal, camera-space depth; none to switch off)")
-        m.add_argument("-o", "--output", required=True)
+        if name == "log":
+            m.add_argument("-o", "--output", required=True, help="the sample log to write (.h5)")
+            m.add_argument("--overwrite", action="store_true", help="replace an existing -o log")
+        else:
+            m.add_argument("-o", "--output", required=True, help="the reference EXR to write (.exr)")
         m.set_defaults(func=_cmd_mitsuba)
 
     s = sub.add_parser("demo", help="the main job on a built-in scene: log, reconstruct, EXR + PNG, error")
