@@ -194,3 +194,18 @@ def test_cold_cache_detection(monkeypatch, tmp_path):
     os.utime(src, (nbi.stat().st_mtime - 10,) * 2)
     assert not _common.numba_cache_cold((".",))  # a directory: compiled once any of its files is
     assert _common.numba_cache_cold(("other.py",))
+
+
+def test_method_kernels_name_the_feature_filters_for_inputs_with_features():
+    # a first `denoise --method auto` of a log with features compiled the regression for 14 s without a
+    # notice: the method's own package was cached (the demo's colour-only scene) and nothing else was asked
+    from mcrecon.cli import _common
+    from mcrecon.methods import get_method
+
+    auto, gem = get_method("auto"), get_method("gem")
+    assert _common.method_kernels(auto) == ("methods/auto",)
+    with_features = _common.method_kernels(auto, features=True)
+    assert with_features[0] == "methods/auto" and set(_common.FEATURE_KERNELS) <= set(with_features)
+    assert _common.method_kernels(gem, features=True) == ("methods/gem",)  # gem reads no features
+    for part in _common.FEATURE_KERNELS:  # each a file of the package that defines cached kernels
+        assert _common._kernel_files(part)

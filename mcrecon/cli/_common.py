@@ -352,12 +352,21 @@ def jit_notice(parts, *, seconds: float | None = None, stream=None) -> bool:
     return True
 
 
-def method_kernels(method) -> tuple[str, ...]:
-    """The package paths of a method's code: its sub-package (``methods/gem``) or its module."""
+#: The compiled feature filters a method that reads features runs when the input carries them (the
+#: demo's colour-only scene compiles neither: a first `denoise --method auto` of a log with features
+#: compiled for 14 s without a word).
+FEATURE_KERNELS = ("filters/regression.py", "filters/cross_bilateral.py")
+
+
+def method_kernels(method, *, features: bool = False) -> tuple[str, ...]:
+    """The package paths of a method's code: its sub-package (``methods/gem``) or its module; with
+    ``features`` (the input carries them) and a method that reads them, the feature filters too."""
     mod = sys.modules.get(type(method).__module__)
     f = Path(getattr(mod, "__file__", "") or "")
     try:
         rel = f.resolve().relative_to(_PACKAGE)
     except ValueError:  # a method defined outside the package: nothing to check
         return ()
-    return (str(rel.parent),) if rel.parent != Path("methods") else (str(rel),)
+    own = (str(rel.parent),) if rel.parent != Path("methods") else (str(rel),)
+    reads = getattr(getattr(method, "requires", None), "features", "none") != "none"
+    return own + (FEATURE_KERNELS if features and reads else ())

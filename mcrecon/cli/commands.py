@@ -182,6 +182,15 @@ def _read_pixel_stats_input(args):
     return method, _PixelStatsInput(pix, other), source
 
 
+def _input_features(source) -> tuple:
+    """The feature names a reconstruction's input carries (a log, pixel statistics, or a pair of them)."""
+    first = source[0] if isinstance(source, tuple) else source
+    names = getattr(first, "feature_names", None)
+    if names is None:
+        names = tuple(getattr(first, "features", None) or ())
+    return tuple(names)
+
+
 def _cmd_reconstruct(args):
     from ..io import read_log
     from ..core.metrics import relative_mse
@@ -196,7 +205,7 @@ def _cmd_reconstruct(args):
         method = make_method(args.method, args, args.method_flags)
         log = source = read_log(args.log)
     ref = log.reference()  # a bad reference is refused before the work, not after the output is written
-    jit_notice(method_kernels(method))
+    jit_notice(method_kernels(method, features=bool(_input_features(source))))
     t0 = time.perf_counter()
     rec = reconstruct(source, method=method, nonfinite=args.nonfinite, full=True, fireflies=args.fireflies)
     if source is not log:  # statistics in the file's working space (XYZ for the presets): to its RGB
@@ -370,7 +379,10 @@ def _cmd_adapt(args):
         else:
             ref = reference_from_spec(spec)
         method = make_method(args.method, args, args.method_flags)
-        jit_notice(method_kernels(method) + (("renderers/scenes", "core", "filters") if args.scene is not None else ()))
+        sends = (spec.get("features", "none") != "none" if spec["kind"] == "mitsuba"
+                 else bool(getattr(renderer, "features", False)))
+        jit_notice(method_kernels(method, features=sends)
+                   + (("renderers/scenes", "core", "filters") if args.scene is not None else ()))
         t0 = time.perf_counter()
         res = driver_run.adapt(renderer, method, spp=args.spp, seed=args.seed, log=args.log, reference=ref,
                            time_limit=args.time_limit, progress=progress, nonfinite=args.nonfinite,
