@@ -324,11 +324,16 @@ def _run_times(res, t_total) -> str:
     new, old = res.rounds[res.resumed_rounds:], res.rounds[:res.resumed_rounds]
     r = sum(float(x["renderer_seconds"]) for x in new)
     k = sum(float(x["toolkit_seconds"]) for x in new)
+    # the rest of the session: the final image, and the error after each round (--rounds-json)
+    rest = f", final image {float(getattr(res, 'finish_seconds', 0.0) or 0.0):.2f} s"
+    e = sum(float(x.get("eval_seconds", 0.0)) for x in new)
+    if e > 0:
+        rest += f", error after each round {e:.2f} s"
     if res.pipelined:
         text = (f"time {t_total:.2f} s (renderer {r:.2f} s, waiting for the toolkit {res.idle_seconds:.2f} s; "
-                f"toolkit {k:.2f} s, overlapping the renderer)")
+                f"toolkit {k:.2f} s, overlapping the renderer{rest})")
     else:
-        text = f"time {t_total:.2f} s (renderer {r:.2f} s, toolkit {k:.2f} s)"
+        text = f"time {t_total:.2f} s (renderer {r:.2f} s, toolkit {k:.2f} s{rest})"
     if old:
         text += (f"; before this resume: {len(old)} round(s), renderer "
                  f"{sum(float(x['renderer_seconds']) for x in old):.2f} s, toolkit "
