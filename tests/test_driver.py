@@ -358,3 +358,25 @@ def test_validation_counts_the_nonfinite_rows_of_a_reply_in_its_one_pass(n, dtyp
     clean, none = _validate_reply(req, (req.positions, rng.random((n, 3)).astype(dtype)), n_channels=3)
     assert none == 0
     np.testing.assert_array_equal(validate_reply(req, (req.positions, val), n_channels=3).values, batch.values)
+
+
+def test_python_runs_record_their_renderer_and_resume_from_the_log_alone(tmp_path):
+    # README: "in Python, resume("run.h5") does the same" -- it raised "renderer_spec: none recorded"
+    # for every run not started by the command line
+    from mcrecon.adaptive.run import adapt, resume
+    from mcrecon.renderers.scenes import SceneRenderer
+
+    whole = adapt(SceneRenderer("checker_wall", width=16, height=16), "gem", spp=8, seed=3, progress=False)
+    log = tmp_path / "run.h5"
+    part = adapt(SceneRenderer("checker_wall", width=16, height=16), "gem", spp=8, seed=3, log=str(log),
+                 progress=False, max_rounds=3)
+    assert part.samples < whole.samples
+    done = resume(str(log), progress=False)
+    assert done.samples == whole.samples
+    np.testing.assert_array_equal(done.image, whole.image)
+    # a renderer a spec cannot describe records none (features other than the scene's default)
+    other = tmp_path / "other.h5"
+    adapt(SceneRenderer("checker_wall", width=8, height=8, features=False), "box", spp=2, log=str(other),
+          progress=False)
+    with pytest.raises(InputError, match="none recorded"):
+        resume(str(other), progress=False)

@@ -218,6 +218,9 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
         reference; excluded from the toolkit time).
     renderer_spec : mapping, optional
         How to recreate the renderer (stored with the run for ``--resume``).
+        Default: the renderer's own ``spec()`` when it has one (the built-in
+        scenes, the command renderer and the Mitsuba bridge do, for what a
+        spec can say), so ``resume(log)`` rebuilds it without being told.
     storage_dtype : {'auto', 'float32', 'float64'}
         Precision of the stored positions and values.  ``auto`` (default)
         stores what the renderer sends: float32 replies as float32,
@@ -265,6 +268,9 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
         raise InputError("adapt", "spp", f"{spp} samples per pixel on {w}x{h} is beyond any budget "
                          "(at most 2^62 samples)")
     budget = int(round(float(spp) * w * h))
+    if renderer_spec is None:
+        own = getattr(renderer, "spec", None)
+        renderer_spec = own() if callable(own) else None
     if pipeline is None:
         pipeline = method_pipelines(method)
     elif pipeline not in (True, False):

@@ -245,6 +245,14 @@ class CommandRenderer:
         self._feature_layout: dict[str, tuple[int, ...]] | None = None
         self._warned_zeroed = False
 
+    def spec(self) -> dict:
+        """How to build this renderer again (:func:`mcrecon.renderers.spec.command_spec`): a work
+        directory of its own is not recorded (a resumed run makes a new one)."""
+        from .spec import command_spec
+
+        return command_spec(self.argv, width=self.width, height=self.height, channels=self.channels,
+                            timeout=self.timeout, workdir=None if self._own_workdir else self.workdir, cwd=self.cwd)
+
     def __del__(self):
         if getattr(self, "_own_workdir", False):
             shutil.rmtree(getattr(self, "workdir", ""), ignore_errors=True)

@@ -415,6 +415,11 @@ class MitsubaRenderer:
                              "a path to a Mitsuba scene XML file, or a Mitsuba scene dict")
         if params and kind != "file":
             raise InputError(_WHERE, "params", "only used with a scene file")
+        # what spec() can say: the Cornell box or a scene file, without params, at the default variant,
+        # depth and passes
+        self._spec_scene = (None if kind == "cornell" else str(scene.resolve()) if kind == "file" and not params
+                            else False)
+        self._spec_defaults = (variant == "llvm_ad_rgb" and max_depth is None and spp_per_pass == 16)
         self.variant = variant
         if probe:
             ok, reason = mitsuba_available(variant)
@@ -592,6 +597,16 @@ class MitsubaRenderer:
             return got[1]
         return None
 
+
+    def spec(self) -> dict | None:
+        """How to build this renderer again (:func:`mcrecon.renderers.spec.mitsuba_spec`), or None when a
+        spec cannot say it (a scene dict, scene parameters, another variant, depth or pass size)."""
+        from .spec import mitsuba_spec
+
+        if self._spec_scene is False or not self._spec_defaults:
+            return None
+        return mitsuba_spec(self._spec_scene, width=self.width, height=self.height,
+                            features=",".join(self.features) or "none")
     def render(self, request: SampleRequest) -> SampleBatch:
         """Answer a request: jittered samples for ``counts``, then ``positions`` in order.
 
