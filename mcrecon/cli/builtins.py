@@ -92,6 +92,9 @@ def _cmd_methods(args):
     print(f"  {'half-buffer pair':24s} "
           + ("accepted in place of the samples (--half-buffer)" if req.half_buffers and req.samples else
              "accepted (--half-buffer; merged)" if req.half_buffers else "no"))
+    print(f"  {'per-sample features':24s} "
+          + {"required": "required (albedo, normal, depth: a log's /features/NAME, a renderer's replies)",
+             "optional": "read when the input carries them"}.get(req.features, "not read"))
     print(f"  {'reference image':24s} {req.reference}")
     return 0
 

@@ -408,8 +408,9 @@ class MitsubaRenderer:
             kind = "file"
             scene = Path(scene)
             if not scene.is_file():
-                raise InputError(str(scene), "scene", "no such file; expected a Mitsuba scene XML file, "
-                                 "a scene dict, or None for the built-in Cornell box")
+                raise InputError(str(scene), "scene", f"{'is a directory' if scene.is_dir() else 'no such file'}; "
+                                 "expected a Mitsuba scene XML file, a scene dict, or None for the built-in "
+                                 "Cornell box")
         else:
             raise InputError(_WHERE, "scene", f"got {type(scene).__name__}, expected None (Cornell box), "
                              "a path to a Mitsuba scene XML file, or a Mitsuba scene dict")
