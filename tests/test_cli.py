@@ -279,6 +279,9 @@ def test_methods_describes_one_method(capsys):
         assert f"{o.type.__name__}, default {o.default}" in line
         assert o.expectation().split("(")[0].strip() in " ".join(out.split())
     assert "inputs (method.requires" in out and "pixel statistics" in out and "reference image" in out
+    assert "per-sample features      not read" in out
+    code, out, err = run(["methods", "nfor"], capsys)
+    assert code == 0 and "per-sample features      required" in out
     code, out, err = run(["methods", "ci"], capsys)
     assert code == 0 and "--method-exposure" in out  # ci's exposure on denoise/adapt (which have --exposure)
     code, out, err = run(["methods", "nope"], capsys)
