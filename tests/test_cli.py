@@ -448,3 +448,18 @@ def test_adapt_names_where_its_time_went(tmp_path, capsys):
     code, out, err = run(["adapt", "--scene", "flat", "--size", "8x8", "--spp", "8", "--method", "gem", "-o",
                           str(tmp_path / "b.exr")], capsys)
     assert code == 0 and "final image" in out and "error after each round" not in out
+
+
+def test_adapt_scene_features_opt_in(tmp_path, capsys):
+    # `mcrecon scenes` calls soft_shadow's features opt-in, but adapt refused --features without --mitsuba
+    from mcrecon.io import read_log
+
+    log = tmp_path / "f.h5"
+    code, out, err = run(["adapt", "--scene", "soft_shadow", "--features", "all", "--size", "8x8", "--spp", "4",
+                          "--method", "nfor", "--log", str(log), "-o", str(tmp_path / "f.exr")], capsys)
+    assert code == 0, err
+    assert set(read_log(log).feature_names) == {"albedo", "normal", "depth"}
+    assert read_log(log).run_settings["renderer_spec"]["features"] is True   # a resume sends them again
+    code, _, err = run(["adapt", "--scene", "checker_wall", "--features", "albedo", "--size", "8x8", "--spp", "2",
+                        "-o", str(tmp_path / "g.exr")], capsys)
+    assert code == 2 and "with --scene, all" in err and len(err.strip().splitlines()) == 1

@@ -374,9 +374,17 @@ def test_python_runs_record_their_renderer_and_resume_from_the_log_alone(tmp_pat
     done = resume(str(log), progress=False)
     assert done.samples == whole.samples
     np.testing.assert_array_equal(done.image, whole.image)
-    # a renderer a spec cannot describe records none (features other than the scene's default)
+    # features other than the scene's default are recorded too
+    plain = tmp_path / "plain.h5"
+    adapt(SceneRenderer("checker_wall", width=8, height=8, features=False), "box", spp=4, log=str(plain),
+          progress=False, max_rounds=1)
+    assert read_log(plain).run_settings["renderer_spec"]["features"] is False
+    assert resume(str(plain), progress=False).samples == 4 * 64
+    assert read_log(plain).feature_names == ()
+    # a renderer without spec() records none: resume(log, renderer) then
     other = tmp_path / "other.h5"
-    adapt(SceneRenderer("checker_wall", width=8, height=8, features=False), "box", spp=2, log=str(other),
-          progress=False)
+    r = CallableRenderer(lambda req: SampleBatch(jittered_positions(req.counts, np.random.default_rng(0)),
+                                                 np.ones((int(req.counts.sum()), 3))), width=4, height=4)
+    adapt(r, "box", spp=2, log=str(other), progress=False)
     with pytest.raises(InputError, match="none recorded"):
         resume(str(other), progress=False)

@@ -605,9 +605,9 @@ def test_cli_mitsuba_log_and_adapt_features(tmp_path, capsys):
     assert set(log.feature_names) == {"albedo", "normal"}
     assert log.n_samples == 4 * 64
     capsys.readouterr()
-    assert main(["adapt", "--scene", "flat", "--size", "8x8", "--spp", "2", "--features", "none",
-                 "-o", str(tmp_path / "e.exr")]) != 0
-    assert "--features: chooses the Mitsuba bridge's" in capsys.readouterr().err
+    assert main(["adapt", "--renderer-cmd", "x {request} {reply}", "--size", "8x8", "--spp", "2", "--features",
+                 "none", "-o", str(tmp_path / "e.exr")]) != 0
+    assert "--features: chooses the per-sample features of the Mitsuba bridge" in capsys.readouterr().err
 
 
 @pytest.mark.mitsuba

@@ -268,13 +268,23 @@ def _renderer_spec(args) -> dict:
         raise InputError("adapt", "renderer", "give exactly one of --scene NAME, --renderer-cmd CMD, "
                          "--mitsuba [SCENE.xml|cornell-box], or --resume LOG")
     w, h = parse_size(DEFAULT_SIZE if args.size is None else args.size)
-    if args.features is not None and args.mitsuba is None:
-        raise InputError("adapt", "--features", "chooses the Mitsuba bridge's per-sample features (with "
-                         "--mitsuba); a built-in scene or an external renderer sends what it sends")
+    if args.features is not None and args.mitsuba is None and args.scene is None:
+        raise InputError("adapt", "--features", "chooses the per-sample features of the Mitsuba bridge "
+                         "(--mitsuba) or of a built-in scene (--scene); an external renderer sends what it sends")
     if args.scene is not None:
         from ..renderers.scenes import get_scene
 
-        return scene_spec(get_scene(args.scene).name, width=w, height=h, seed=args.seed)
+        scene = get_scene(args.scene)
+        feats = None
+        if args.features is not None:
+            if args.features not in ("all", "none"):
+                raise InputError("adapt", "--features", f"{args.features!r}: with --scene, all (the scene's "
+                                 f"{', '.join(scene.feature_names) or 'none'}) or none")
+            feats = args.features == "all"
+            if feats and not scene.feature_names:
+                raise InputError("adapt", "--features", f"scene {scene.name!r} has no per-sample features "
+                                 "(`mcrecon scenes`)")
+        return scene_spec(scene.name, width=w, height=h, seed=args.seed, features=feats)
     if args.renderer_cmd is not None:
         try:
             argv = shlex.split(args.renderer_cmd)
@@ -524,7 +534,8 @@ def register(sub, command: str | None = None) -> None:
                    help="Mitsuba 3 bridge (optional extra): a scene file, default the Cornell box")
     s.add_argument("--features", default=None, metavar="none|albedo,normal,depth",
                    help="with --mitsuba: the per-sample features of the primary hit it sends and the log stores "
-                        "(default all three; none to switch off)")
+                        "(default all three; none to switch off); with --scene: all or none (default: the "
+                        "scene's, see `mcrecon scenes`)")
     s.add_argument("--channels", default="R,G,B", help="channel names of an external renderer")
     s.add_argument("--timeout", type=float, default=600.0, help="seconds per round for an external renderer")
     s.add_argument("--size", default=None, help="film size WIDTHxHEIGHT (default 128x128; a --mitsuba scene "

@@ -5,7 +5,8 @@ An adaptive run records the spec of its renderer in its log
 and ``mcrecon adapt --resume LOG`` can rebuild the renderer and go on
 without being told what it was.  Three kinds exist::
 
-    {"kind": "scene",   "scene": NAME, "width": W, "height": H, "seed": S}
+    {"kind": "scene",   "scene": NAME, "width": W, "height": H, "seed": S,
+                        "features": true | false (optional; absent: the scene's default)}
     {"kind": "command", "argv": [...], "width": W, "height": H,
                         "channels": [...], "timeout": SECONDS or None, "workdir": DIR or None,
                         "cwd": DIR or None}
@@ -39,16 +40,20 @@ __all__ = ["KINDS", "scene_spec", "command_spec", "mitsuba_spec", "check_spec", 
 
 #: The renderer kinds a spec can name, with their required and optional keys.
 KINDS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
-    "scene": (("scene", "width", "height"), ("seed",)),
+    "scene": (("scene", "width", "height"), ("seed", "features")),
     "command": (("argv", "width", "height"), ("channels", "timeout", "workdir", "cwd")),
     "mitsuba": (("width", "height"), ("scene", "features")),
 }
 
 
 # ---------------------------------------------------------------- writing
-def scene_spec(scene: str, *, width: int, height: int, seed: int = 0) -> dict:
-    """The spec of a built-in scene (:class:`mcrecon.renderers.scenes.SceneRenderer`)."""
-    return check_spec({"kind": "scene", "scene": scene, "width": width, "height": height, "seed": seed})
+def scene_spec(scene: str, *, width: int, height: int, seed: int = 0, features: bool | None = None) -> dict:
+    """The spec of a built-in scene (:class:`mcrecon.renderers.scenes.SceneRenderer`); ``features``: whether
+    it sends its per-sample features (None: the scene's default, recorded as no key)."""
+    spec = {"kind": "scene", "scene": scene, "width": width, "height": height, "seed": seed}
+    if features is not None:
+        spec["features"] = features
+    return check_spec(spec)
 
 
 def command_spec(argv: Sequence[str], *, width: int, height: int, channels: Sequence[str] = ("R", "G", "B"),
@@ -141,6 +146,10 @@ def check_spec(spec: Any, *, where: str = "renderer spec", field: str = "rendere
             raise bad("scene", f"a built-in scene: {', '.join(scene_names())}")
         out["scene"] = spec["scene"]
         out["seed"] = integer("seed", 0) if "seed" in spec else 0
+        if "features" in spec:  # absent: the scene's default
+            if not isinstance(spec["features"], bool):
+                raise bad("features", "true or false (absent: the scene's default)")
+            out["features"] = spec["features"]
     elif kind == "command":
         argv = strings("argv")
         joined = " ".join(argv)
@@ -181,7 +190,7 @@ def renderer_from_spec(spec, *, where: str = "renderer spec", field: str = "rend
     if kind == "scene":
         from .scenes import SceneRenderer
 
-        return SceneRenderer(spec["scene"], width=w, height=h, seed=spec["seed"])
+        return SceneRenderer(spec["scene"], width=w, height=h, seed=spec["seed"], features=spec.get("features"))
     if kind == "command":
         from .command import CommandRenderer
 

@@ -130,8 +130,8 @@ class NFORMethod(Method):
         if run.halves is None:
             if not batch.features:  # refuse on the first round, not after the whole budget is rendered
                 raise InputError(_WHERE, "features", "nfor needs per-sample features (albedo, normal, depth) and the "
-                                 "renderer's replies have none: the textured built-in scenes send them "
-                                 "(`mcrecon scenes`), the Mitsuba bridge by default, a renderer of your own in "
+                                 "renderer's replies have none: the built-in scenes send them with "
+                                 "--features all (`mcrecon scenes`), the Mitsuba bridge by default, a renderer of your own in "
                                  "its replies (SampleBatch.features; /features/NAME of a command's reply); or "
                                  "pick another method")
             layout = usable_layout(batch.features or {})

@@ -278,14 +278,14 @@ class SceneRenderer:
         self.feature_names = tuple(self.scene.feature_names) if self.features else ()
         self.name = f"scene:{self.scene.name}"
 
-    def spec(self) -> dict | None:
-        """How to build this renderer again (:mod:`mcrecon.renderers.spec`), or None when a spec cannot
-        say it (features other than the scene's default).  ``rate`` changes no reply: not recorded."""
+    def spec(self) -> dict:
+        """How to build this renderer again (:mod:`mcrecon.renderers.spec`); features other than the
+        scene's default are recorded.  ``rate`` changes no reply: not recorded."""
         from ..spec import scene_spec
 
-        if self.features != bool(self.scene.features_default and self.scene.feature_names):
-            return None
-        return scene_spec(self.scene.name, width=self.width, height=self.height, seed=self.seed)
+        default = bool(self.scene.features_default and self.scene.feature_names)
+        return scene_spec(self.scene.name, width=self.width, height=self.height, seed=self.seed,
+                          features=None if self.features == default else self.features)
 
     def render(self, request: SampleRequest) -> SampleBatch:
         """Answer a request (counts first, then explicit positions in order)."""
