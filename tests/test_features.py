@@ -272,3 +272,77 @@ def test_half_buffer_pairs_with_the_same_features_in_another_order_are_accepted(
     np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
     with pytest.raises(InputError, match="halves differ in features"):
         mcrecon.reconstruct((h.a, h.b.without_features()), method="auto")
+
+
+# ------------------------------------------------- features as files and C writers give them
+def _wall_log(tmp_path, name, convert=None, extra=None, size=16, spp=4):
+    """A checker_wall log whose features pass through ``convert`` (dtype, byte order, sentinels)."""
+    from mcrecon.io import write_log
+    from mcrecon.renderers import scenes as S
+
+    b = S.render_uniform("checker_wall", width=size, height=size, spp=spp, seed=2, features=True)
+    feats = {k: (convert(k, np.asarray(v)) if convert else np.asarray(v)) for k, v in b.features.items()}
+    feats.update(extra or {})
+    return write_log(tmp_path / name, b.positions, b.values, width=size, height=size, features=feats)
+
+
+def test_check_features_gives_native_floats_and_zeroes_sentinels():
+    n = 6
+    big = np.arange(n * 3, dtype=">f8").reshape(n, 3)
+    half = np.arange(n, dtype=np.float16)
+    sentinel = np.array([1.0, 2.0, np.finfo(np.float64).max, -1e200, 3.0, 1e99])
+    out, n_zeroed = check_features({"albedo": big, "depth": half, "z": sentinel}, n)
+    assert out["albedo"].dtype == np.dtype("<f8") and out["albedo"].dtype.isnative
+    np.testing.assert_array_equal(out["albedo"], big.astype("<f8"))
+    assert out["depth"].dtype == np.float32
+    np.testing.assert_array_equal(out["z"][:, 0], [1.0, 2.0, 0.0, 0.0, 3.0, 1e99])  # beyond 1e100: as Inf
+    assert n_zeroed == 2
+    with pytest.raises(InputError, match=r"features/depth.*4096 components, at most 64"):
+        check_features({"depth": np.zeros((4096, 4096), np.float32)}, 4096)
+
+
+def test_logs_with_odd_feature_dtypes_reconstruct_as_their_values(tmp_path):
+    # float16 (documented as accepted) and big-endian features crashed splat, nfor and auto in numba
+    # with a traceback; an (N, 2, 2) extra made splat count "11 components, earlier rounds 8"
+    plain = _wall_log(tmp_path, "plain.h5", convert=lambda k, v: v.astype(np.float16).astype(np.float32))
+    half = _wall_log(tmp_path, "half.h5", convert=lambda k, v: v.astype(np.float16))
+    swapped = _wall_log(tmp_path, "be.h5", convert=lambda k, v: v.astype(np.float16).astype(">f4"),
+                        extra={"mat": np.zeros((16 * 16 * 4, 2, 2), np.float32)})
+    for method in ("splat", "nfor", "auto"):
+        want = mcrecon.reconstruct(str(plain), method=method)
+        for path in (half, swapped):
+            np.testing.assert_array_equal(mcrecon.reconstruct(str(path), method=method), want, err_msg=method)
+
+
+def test_huge_feature_sentinels_do_not_make_nan_images(tmp_path):
+    # a DBL_MAX "no hit" depth on 30 % of the samples: nfor wrote an EXR of NaN with exit status 0
+    rng = np.random.default_rng(0)
+
+    def sentinel(k, v):
+        v = v.astype(np.float64)
+        if k == "depth":
+            v = v.copy()
+            v[rng.random(v.shape[0]) < 0.3] = np.finfo(np.float64).max
+        return v
+
+    path = _wall_log(tmp_path, "sent.h5", convert=sentinel)
+    for method in ("nfor", "auto", "splat"):
+        with pytest.warns(McreconWarning, match=r"beyond \+-1e\+100 feature values set to 0"):
+            img = mcrecon.reconstruct(str(path), method=method)
+        assert np.isfinite(img).all(), method
+
+
+def test_log_feature_groups_and_shapes_are_checked_on_opening(tmp_path):
+    import h5py
+
+    from mcrecon.io import read_log
+
+    path = _wall_log(tmp_path, "ds.h5", size=4, spp=1)
+    with h5py.File(path, "r+") as f:
+        del f["features"]
+        f["features"] = np.zeros(16)
+    with pytest.raises(InputError, match=r"/features: a dataset, expected a group"):
+        read_log(path)
+    wide = _wall_log(tmp_path, "wide.h5", size=4, spp=1, extra={"z": np.zeros((16, 100), np.float32)})
+    with pytest.raises(InputError, match=r"dataset /features/z: shape \(16, 100\): more than 64 components"):
+        read_log(wide)

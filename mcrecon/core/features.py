@@ -11,10 +11,12 @@ the colour: :class:`~mcrecon.core.stats.PixelStats` keeps, per feature, a
 batch, Chan between batches), and each half buffer keeps its own.
 
 The one validation path is :func:`check_features`: every feature an
-(N,) or (N, k) array of a real dtype; values that are not finite (a depth
-of +inf where a ray left the scene, a NaN normal) are set to 0 and
-counted, because a feature is a guide, not radiance: dropping the sample
-would lose its colour.  A sample the colour's NaN policy drops is dropped
+(N,) or (N, k) array of a real dtype (at most :data:`MAX_COMPONENTS`
+components), returned in native byte order; values that are not finite (a
+depth of +inf where a ray left the scene, a NaN normal) or beyond
+:data:`FEATURE_LIMIT` in magnitude (a "no hit" sentinel such as DBL_MAX)
+are set to 0 and counted, because a feature is a guide, not radiance:
+dropping the sample would lose its colour.  A sample the colour's NaN policy drops is dropped
 from its features too (:func:`take_rows`).
 """
 
@@ -38,6 +40,16 @@ CANONICAL_FEATURES: dict[str, tuple[str, ...]] = {
     "normal": ("X", "Y", "Z"),
     "depth": ("Z",),
 }
+
+
+#: Feature values beyond this magnitude count as missing, as NaN and Inf do: a renderer's "no hit"
+#: sentinel (DBL_MAX, 1e300) squared overflows the regression's and the gate's sums, and nfor and auto
+#: wrote images of NaN with exit status 0.  Any real albedo, normal or depth is far below it.
+FEATURE_LIMIT = 1e100
+
+#: Most components one feature may have: a writer's broadcasting slip gives an (N, N) array, whose
+#: thousands of components the regression would solve for (a 32^2, 4-spp log ran for over 5 minutes).
+MAX_COMPONENTS = 64
 
 
 def feature_components(name: str, k: int) -> tuple[str, ...]:
@@ -109,12 +121,19 @@ def check_features(features, n: int, *, where: str = "samples", error=InputError
                         "(integer, float or bool)")
         if arr.shape[1] == 0:
             raise error(where, f"features/{name}", f"shape {arr.shape}: no component; give at least one")
+        if arr.shape[1] > MAX_COMPONENTS:
+            raise error(where, f"features/{name}", f"shape {arr.shape}: {arr.shape[1]} components, at most "
+                        f"{MAX_COMPONENTS} (one row per sample of (N,) or (N, k); an (N, N) array is usually "
+                        "a broadcasting slip)")
         if arr.dtype.kind == "b" or (arr.dtype.kind == "f" and arr.dtype.itemsize < 4):
             arr = arr.astype(np.float32)  # a mask as 0/1; half floats widened
         elif arr.dtype.kind in "iu" or arr.dtype.itemsize > 8:
             arr = arr.astype(np.float64)
+        elif not arr.dtype.isnative:  # big-endian from a file or a C writer: the kernels read native floats
+            arr = arr.astype(arr.dtype.newbyteorder("="))
         arr = np.ascontiguousarray(arr)
-        finite = np.isfinite(arr)
+        # False for NaN, Inf and sentinels beyond the limit (a finite float32 is always within it)
+        finite = np.isfinite(arr) if arr.dtype.itemsize <= 4 else np.abs(arr) <= FEATURE_LIMIT
         if not finite.all():
             bad = ~finite.all(axis=1)
             bad_rows = bad if bad_rows is None else bad_rows | bad
@@ -126,8 +145,9 @@ def check_features(features, n: int, *, where: str = "samples", error=InputError
 
 def warn_feature_zeroed(source: str, n_zeroed: int, *, stacklevel: int = 2) -> None:
     """The one warning for samples whose non-finite feature entries were set to 0."""
-    warnings.warn(f"{source}: features: {n_zeroed} sample(s) with NaN or Inf feature values set to 0 "
-                  "(a depth of inf where a ray left the scene is common; the colour is kept)",
+    warnings.warn(f"{source}: features: {n_zeroed} sample(s) with NaN, Inf or beyond +-{FEATURE_LIMIT:.0e} "
+                  "feature values set to 0 (a depth of inf where a ray left the scene is common; the colour "
+                  "is kept)",
                   McreconWarning, stacklevel=stacklevel + 1)
 
 
@@ -144,7 +164,8 @@ def usable_layout(features: Mapping) -> dict[str, int]:
     out = {}
     for name, arr in (features or {}).items():
         a = np.asarray(arr) if not hasattr(arr, "shape") else arr
-        if len(a.shape) in (1, 2) and np.dtype(a.dtype).kind in "fiub" and (len(a.shape) == 1 or a.shape[1] > 0):
+        if len(a.shape) in (1, 2) and np.dtype(a.dtype).kind in "fiub" and (
+                len(a.shape) == 1 or 0 < a.shape[1] <= MAX_COMPONENTS):
             out[str(name)] = 1 if len(a.shape) == 1 else int(a.shape[1])
     return out
 

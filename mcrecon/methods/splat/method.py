@@ -231,6 +231,10 @@ class SplatMethod(Method):
                                 where=where)
         elif rounds:
             self._replay_single_round(src, sp, nonfinite, where)
+        if sp.n_feature_zeroed:
+            from ...core.features import warn_feature_zeroed
+
+            warn_feature_zeroed(where, sp.n_feature_zeroed)
         if sp.n_nonfinite:
             warnings.warn(f"{where}: values: {sp.n_nonfinite} sample(s) with NaN or Inf "
                           f"{'dropped' if nonfinite == 'drop' else 'set to 0'} (policy nonfinite={nonfinite!r})",

@@ -32,6 +32,7 @@ import numba
 import numpy as np
 
 from ...errors import InputError, McreconWarning
+from ...core.features import check_features, usable_layout
 from ...core.samples import apply_nonfinite, check_policy, check_samples
 from .kernels import BOUNDARY_MODES, _BOUNDARY_CODE, _deposit_own_pixel, _scatter, _splat_guided_loop
 from ...filters.luminance import LUMINANCE_WEIGHTS
@@ -272,6 +273,7 @@ class ProgressiveSplatter:
         self.cum_counts = np.zeros((self.height, self.width), np.int64)
         self.rounds: list[dict] = []
         self.n_nonfinite = 0
+        self.n_feature_zeroed = 0  # samples whose NaN, Inf or sentinel feature entries were set to 0
         self.last_widths = np.zeros((self.height, self.width))
         # robust variant: cumulative per-pixel sums of G and G^2
         self._s1 = np.zeros((self.height, self.width))
@@ -418,7 +420,13 @@ class ProgressiveSplatter:
                 self.n_nonfinite += n_bad
                 srt = rows_sorted(p, self.height) if robust else False
                 if self._fsum is not None:  # every round carries the same features, or none
-                    self._fsum.add(p, feats or {}, where, srt)
+                    # as read from a file or given: through the one feature check (native floats, NaN, Inf
+                    # and "no hit" sentinels zeroed); what a method cannot use (an (N, 2, 2) array) is left
+                    # out, as the other methods leave it
+                    feats = {k: feats[k] for k in usable_layout(feats)} if feats else {}
+                    feats, n_fz = check_features(feats, p.shape[0], where=where)
+                    self.n_feature_zeroed += n_fz
+                    self._fsum.add(p, feats, where, srt)
                 if robust:  # ... and the sums of G, G^2 per pixel
                     in_bands(_count_and_moments, (p, np.ascontiguousarray(v, dtype=np.float64), self._norm_code,
                                                   self._weights, counts, s1, s2), p, self.height, sorted_rows=srt)
