@@ -346,3 +346,11 @@ def test_log_feature_groups_and_shapes_are_checked_on_opening(tmp_path):
     wide = _wall_log(tmp_path, "wide.h5", size=4, spp=1, extra={"z": np.zeros((16, 100), np.float32)})
     with pytest.raises(InputError, match=r"dataset /features/z: shape \(16, 100\): more than 64 components"):
         read_log(wide)
+
+
+def test_from_moments_refuses_text_images_naming_the_field():
+    text = np.full((2, 2), "a")
+    with pytest.raises(InputError, match=r"features/albedo mean: dtype <U1, expected a numeric image"):
+        PixelStats.from_moments(np.ones((2, 2, 3)), np.zeros((2, 2, 3)), 4, features={"albedo": (text, None)})
+    with pytest.raises(InputError, match=r"from_moments: variance: dtype"):
+        PixelStats.from_moments(np.ones((2, 2)), text, 4)
