@@ -143,9 +143,10 @@ def check_features(features, n: int, *, where: str = "samples", error=InputError
     return out, n_zeroed
 
 
-def warn_feature_zeroed(source: str, n_zeroed: int, *, stacklevel: int = 2) -> None:
-    """The one warning for samples whose non-finite feature entries were set to 0."""
-    warnings.warn(f"{source}: features: {n_zeroed} sample(s) with NaN, Inf or beyond +-{FEATURE_LIMIT:.0e} "
+def warn_feature_zeroed(source: str, n_zeroed: int, *, stacklevel: int = 2, unit: str = "sample") -> None:
+    """The one warning for samples (``unit``: or pixels of a feature image) whose non-finite feature entries
+    were set to 0."""
+    warnings.warn(f"{source}: features: {n_zeroed} {unit}(s) with NaN, Inf or beyond +-{FEATURE_LIMIT:.0e} "
                   "feature values set to 0 (a depth of inf where a ray left the scene is common; the colour "
                   "is kept)",
                   McreconWarning, stacklevel=stacklevel + 1)

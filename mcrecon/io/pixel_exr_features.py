@@ -141,5 +141,5 @@ def _read_features(exr, found, n):
         m = np.where(np.isfinite(m), m, 0.0)
         out[feat] = (m, var)
     if zeroed:
-        warn_feature_zeroed(str(exr.path), zeroed, stacklevel=4)
+        warn_feature_zeroed(str(exr.path), zeroed, stacklevel=4, unit="pixel")
     return out
