@@ -546,8 +546,14 @@ def float32_loses_spread(positions, values, *, width: int, height: int) -> int:
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
-def as_hwc(image, dtype=np.float64) -> np.ndarray:
-    """An image as (H, W, C) of ``dtype``: a single-channel (H, W) array gets a channel axis."""
+def as_hwc(image, dtype=np.float64, *, where: str | None = None, field: str = "image") -> np.ndarray:
+    """An image as (H, W, C) of ``dtype``: a single-channel (H, W) array gets a channel axis.  With
+    ``where``, an image that is not numeric (text, objects) is refused naming ``field``, not with
+    numpy's bare ValueError."""
+    if where is not None:
+        kind = np.asarray(image).dtype.kind
+        if kind not in "fiub":
+            raise InputError(where, field, f"dtype {np.asarray(image).dtype}, expected a numeric image")
     a = np.asarray(image, dtype=dtype)
     return a[..., None] if a.ndim == 2 else a
 

@@ -101,15 +101,6 @@ def _accumulate(pos, val, s, count, mean, m2, vmin, vmax, sub_sum, sub_count):
         k = end
 
 
-
-def _numeric_image(where: str, field: str, image) -> np.ndarray:
-    """``as_hwc(image)``, refused with an :class:`InputError` naming ``field`` unless it is numeric (a string
-    or object array raised a bare ValueError from numpy)."""
-    a = np.asarray(image)
-    if a.dtype.kind not in "fiub":
-        raise InputError(where, field, f"dtype {a.dtype}, expected a numeric image")
-    return as_hwc(a)
-
 class PixelStats:
     """Running per-pixel statistics of Monte Carlo samples.
 
@@ -487,7 +478,7 @@ class PixelStats:
         """
         if variance_of not in ("samples", "mean"):
             raise InputError(where, "variance_of", f"{variance_of!r}; valid: samples, mean")
-        m, v = _numeric_image(where, "mean", mean), _numeric_image(where, "variance", variance)
+        m, v = as_hwc(mean, where=where, field="mean"), as_hwc(variance, where=where, field="variance")
         if m.ndim != 3 or m.shape[0] < 1 or m.shape[1] < 1 or m.shape[2] < 1:
             raise InputError(where, "mean", f"shape {np.shape(mean)}, expected (height, width, channels)")
         if v.shape != m.shape:
@@ -542,7 +533,7 @@ class PixelStats:
                 if not isinstance(pair, (tuple, list)) or len(pair) != 2:
                     raise InputError(where, f"features/{name}", "expected a pair (mean, variance) of per-pixel "
                                      "images (variance None when unknown)")
-                f_mean = _numeric_image(where, f"features/{name} mean", pair[0])
+                f_mean = as_hwc(pair[0], where=where, field=f"features/{name} mean")
                 f_var = np.zeros_like(f_mean) if pair[1] is None else pair[1]
                 if f_mean.ndim != 3 or f_mean.shape[:2] != (h, w):
                     raise InputError(where, f"features/{name}", f"mean shape {np.shape(pair[0])}, expected "
