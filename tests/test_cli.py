@@ -237,6 +237,16 @@ def test_a_closed_pipe_does_not_stop_the_command(tmp_path):
     assert log.is_file() and exr.is_file()
 
 
+def test_closed_descriptors_do_not_stop_the_command(tmp_path):
+    # `>&- 2>&-`: Python leaves sys.stdout/sys.stderr None; wrapping None was a traceback (exit 120)
+    log, exr = tmp_path / "c.h5", tmp_path / "c.exr"
+    cmd = (f"{sys.executable} -m mcrecon render-log --scene flat --spp 1 --size 4x4 -o {log} "
+           f"--reference-exr {exr} >&- 2>&-")
+    assert subprocess.run(["bash", "-c", cmd]).returncode == 0
+    assert log.is_file() and exr.is_file()
+    assert subprocess.run(["bash", "-c", cmd]).returncode == 2  # the log exists: refused, even unheard
+
+
 # ------------------------------------------------------------------ method options
 @pytest.mark.parametrize("command", ["denoise", "adapt"])
 def test_help_groups_the_options_per_method(command, capsys):

@@ -98,7 +98,7 @@ def test_nonfinite_reply_features_are_zeroed_and_warned(tmp_path):
 
     r = CommandRenderer([sys.executable, FEATURES, "nan", "{request}", "{reply}"], width=12, height=8)
     with pytest.warns(McreconWarning, match=r"round 0 \(later rounds are not warned again\): features: 2 "
-                                            r"sample\(s\) with NaN, Inf or beyond \+-1e\+100 feature values set to 0") as rec:
+                                            r"sample\(s\) with NaN, Inf or beyond \+-1e\+30 feature values set to 0") as rec:
         adapt(r, "box", spp=8, seed=3, log=tmp_path / "run.h5")
     got = read_log(tmp_path / "run.h5")
     depth = got.read_feature("depth")

@@ -370,6 +370,9 @@ def test_scene_file_and_size_mismatch(tmp_path):
     assert main(["adapt", "--mitsuba", str(xml), "--size", "30x10", "--spp", "2", "-o",
                  str(tmp_path / "b.exr")]) == 2
     assert not (tmp_path / "b.exr").exists()
+    # without --size the one-renderer rule still holds (the film-size path skipped it)
+    assert main(["adapt", "--mitsuba", str(xml), "--scene", "flat", "--spp", "2", "-o",
+                 str(tmp_path / "c.exr")]) == 2
 
 
 # ------------------------------------------------- the availability probe

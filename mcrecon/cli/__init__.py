@@ -94,6 +94,19 @@ class _ReaderMayLeave:
         return getattr(self._stream, name)
 
 
+class _Nowhere:
+    """The stream of a closed descriptor: takes everything, keeps nothing, is no terminal."""
+
+    def write(self, text):
+        return len(text)
+
+    def flush(self):
+        pass
+
+    def isatty(self):
+        return False
+
+
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     parser = build_parser(_command_of(argv) or "")  # "": no command, no method flags
@@ -110,7 +123,8 @@ def main(argv=None) -> int:
 
         warnings.showwarning = _one_line
         streams = sys.stdout, sys.stderr
-        sys.stdout, sys.stderr = _ReaderMayLeave(sys.stdout), _ReaderMayLeave(sys.stderr)
+        # a closed descriptor (`2>&-`) leaves the stream None: what would go there is dropped
+        sys.stdout, sys.stderr = (_Nowhere() if x is None else _ReaderMayLeave(x) for x in streams)
         try:
             code = int(args.func(args) or 0)
             sys.stdout.flush()  # a reader that went away shows here, not at exit

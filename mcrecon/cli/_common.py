@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import contextlib
 import os
 import sys
 import textwrap
@@ -213,6 +214,20 @@ def check_output(out, png=None, *, command: str = "mcrecon") -> None:
             parent = parent.parent
         if not parent.is_dir() or not os.access(parent, os.W_OK):
             raise InputError(str(p), "output", f"cannot be written: {parent} is not a writable directory")
+
+
+@contextlib.contextmanager
+def film_size_flag():
+    """A Mitsuba scene file whose film differs from ``--size``: the bridge's error, in the command line's
+    terms (it speaks of width/height and scene parameters, which the command line has not)."""
+    try:
+        yield
+    except InputError as exc:
+        if exc.field != "width/height":
+            raise
+        raise InputError(exc.where, "--size", exc.problem.split("; set the film size")[0].replace(
+            "requested", "--size") + "; omit --size to render at the film's own size, or change the film "
+            "in the scene file") from None
 
 
 #: Suffixes of a sample log the commands write (HDF5).

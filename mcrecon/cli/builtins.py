@@ -9,7 +9,8 @@ import time
 from pathlib import Path
 
 from ..errors import InputError
-from ._common import (check_log_output, check_output, method_kernels, parse_size, write_outputs)
+from ._common import (check_log_output, check_output, film_size_flag, method_kernels, parse_size,
+                      write_outputs)
 
 def _cmd_scenes(args):
     from ..renderers.scenes import get_scene, scene_names
@@ -308,7 +309,6 @@ def _cmd_demo(args):
 
 def _cmd_mitsuba(args):
     from ..renderers import mitsuba as mb
-    from ..io import write_exr, write_png_preview
 
     scene = None if args.scene in (None, "cornell-box") else args.scene
     # a scene file renders at its own film size unless --size is given; the Cornell box at 128x128
@@ -318,6 +318,13 @@ def _cmd_mitsuba(args):
     else:
         check_log_output(args.output, overwrite=args.overwrite)
     t0 = time.perf_counter()
+    with film_size_flag():
+        return _mitsuba_render(args, mb, scene, w, h, t0)
+
+
+def _mitsuba_render(args, mb, scene, w, h, t0):
+    from ..io import write_exr, write_png_preview
+
     if args.mitsuba_command == "reference":
         ref = mb.render_reference(scene, width=w, height=h, spp=args.spp, seed=args.seed)
         out = Path(args.output)

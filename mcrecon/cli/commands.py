@@ -14,7 +14,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from ._common import (HelpFormatter, OneLineParser, add_method_options, add_scene_flags, check_log_output,
-                      check_output, finite_float, given_method_options, jit_notice, make_method, method_flags,
+                      check_output, film_size_flag, finite_float, given_method_options, jit_notice, make_method, method_flags,
                       method_kernels, parse_size, write_outputs)
 from .builtins import _cmd_demo, _cmd_methods, _cmd_mitsuba, _cmd_render_log, _cmd_scenes
 
@@ -249,6 +249,7 @@ def _renderer(args):
     loading the scene, and the spec records it."""
     from ..renderers.spec import mitsuba_spec, renderer_from_spec
 
+    _one_renderer(args)
     if args.mitsuba not in (None, "cornell-box") and args.size is None:
         from ..renderers.mitsuba import MitsubaRenderer
 
@@ -256,17 +257,22 @@ def _renderer(args):
         renderer = MitsubaRenderer(args.mitsuba, features=feats)
         return mitsuba_spec(args.mitsuba, width=renderer.width, height=renderer.height, features=feats), renderer
     spec = _renderer_spec(args)
-    return spec, renderer_from_spec(spec)
+    with film_size_flag():
+        return spec, renderer_from_spec(spec)
+
+
+def _one_renderer(args) -> None:
+    sources = [x for x in (args.scene, args.renderer_cmd, args.mitsuba) if x is not None]
+    if len(sources) != 1:
+        raise InputError("adapt", "renderer", "give exactly one of --scene NAME, --renderer-cmd CMD, "
+                         "--mitsuba [SCENE.xml|cornell-box], or --resume LOG")
 
 
 def _renderer_spec(args) -> dict:
     """The spec of the renderer the flags name (recorded in the log for --resume)."""
     from ..renderers.spec import command_spec, mitsuba_spec, scene_spec
 
-    sources = [x for x in (args.scene, args.renderer_cmd, args.mitsuba) if x is not None]
-    if len(sources) != 1:
-        raise InputError("adapt", "renderer", "give exactly one of --scene NAME, --renderer-cmd CMD, "
-                         "--mitsuba [SCENE.xml|cornell-box], or --resume LOG")
+    _one_renderer(args)
     w, h = parse_size(DEFAULT_SIZE if args.size is None else args.size)
     if args.features is not None and args.mitsuba is None and args.scene is None:
         raise InputError("adapt", "--features", "chooses the per-sample features of the Mitsuba bridge "

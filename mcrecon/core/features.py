@@ -44,12 +44,19 @@ CANONICAL_FEATURES: dict[str, tuple[str, ...]] = {
 
 #: Feature values beyond this magnitude count as missing, as NaN and Inf do: a renderer's "no hit"
 #: sentinel (DBL_MAX, 1e300) squared overflows the regression's and the gate's sums, and nfor and auto
-#: wrote images of NaN with exit status 0.  Any real albedo, normal or depth is far below it.
-FEATURE_LIMIT = 1e100
+#: wrote images of NaN with exit status 0; float32's FLT_MAX overflowed the float32 feature variance.
+#: Any real albedo, normal or depth is far below it.
+FEATURE_LIMIT = 1e30
 
 #: Most components one feature may have: a writer's broadcasting slip gives an (N, N) array, whose
 #: thousands of components the regression would solve for (a 32^2, 4-spp log ran for over 5 minutes).
 MAX_COMPONENTS = 64
+
+
+def within_feature_limit(arr: np.ndarray) -> np.ndarray:
+    """Per entry of a float array: finite and within :data:`FEATURE_LIMIT` (False for NaN, Inf and
+    "no hit" sentinels), the limit compared in the array's own precision."""
+    return np.abs(arr) <= arr.dtype.type(FEATURE_LIMIT)
 
 
 def feature_components(name: str, k: int) -> tuple[str, ...]:
@@ -132,8 +139,7 @@ def check_features(features, n: int, *, where: str = "samples", error=InputError
         elif not arr.dtype.isnative:  # big-endian from a file or a C writer: the kernels read native floats
             arr = arr.astype(arr.dtype.newbyteorder("="))
         arr = np.ascontiguousarray(arr)
-        # False for NaN, Inf and sentinels beyond the limit (a finite float32 is always within it)
-        finite = np.isfinite(arr) if arr.dtype.itemsize <= 4 else np.abs(arr) <= FEATURE_LIMIT
+        finite = within_feature_limit(arr)
         if not finite.all():
             bad = ~finite.all(axis=1)
             bad_rows = bad if bad_rows is None else bad_rows | bad

@@ -224,18 +224,19 @@ def _validate_reply(request: SampleRequest, batch, *, n_channels: int, renderer:
     if batch.features:
         # the one validation path of features (mcrecon.core.features): (N,) or (N, k), a real numeric
         # dtype; NaN/Inf entries set to 0 and counted (a feature guides, it is not radiance)
-        from .features import check_features, warn_feature_zeroed
+        from .features import check_features, warn_feature_zeroed, within_feature_limit
 
         if not hasattr(batch.features, "items"):
             raise RendererError(renderer, "features", f"got {type(batch.features).__name__}, expected a mapping "
                                 "name -> (N,) or (N, k) array")
         checked, n_fz = check_features(batch.features, n, where=renderer, error=RendererError)
-        # as sent (shape (N,) or (N, k), dtype), unless a non-finite entry had to be set to 0
+        # as sent (shape (N,) or (N, k), dtype), unless an entry had to be set to 0 (NaN, Inf, a sentinel
+        # beyond the limit: the log stores the zeroed copy, and the commit does not zero and warn again)
         feats = {}
         for name, arr in batch.features.items():
             given = np.asarray(arr)
             fixed = checked[str(name)]
-            feats[str(name)] = given if not n_fz or np.isfinite(given).all() else \
+            feats[str(name)] = given if not n_fz or within_feature_limit(np.asarray(given, dtype=fixed.dtype)).all() else \
                 (fixed[:, 0] if given.ndim == 1 else fixed)
         if n_fz:
             warn_feature_zeroed(renderer, n_fz, stacklevel=3)

@@ -551,9 +551,13 @@ def as_hwc(image, dtype=np.float64, *, where: str | None = None, field: str = "i
     ``where``, an image that is not numeric (text, objects) is refused naming ``field``, not with
     numpy's bare ValueError."""
     if where is not None:
-        kind = np.asarray(image).dtype.kind
-        if kind not in "fiub":
-            raise InputError(where, field, f"dtype {np.asarray(image).dtype}, expected a numeric image")
+        try:
+            given = np.asarray(image)
+        except ValueError:  # a ragged nesting of lists
+            raise InputError(where, field, "not an array: nested lists of unequal lengths; give an (H, W) or "
+                             "(H, W, C) numeric image") from None
+        if given.dtype.kind not in "fiub":
+            raise InputError(where, field, f"dtype {given.dtype}, expected a numeric image")
     a = np.asarray(image, dtype=dtype)
     return a[..., None] if a.ndim == 2 else a
 

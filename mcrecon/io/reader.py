@@ -34,7 +34,6 @@ import numpy as np
 from ..errors import InputError
 from ..core.samples import check_reference, round_slices
 from ..core.samples import DEFAULT_READ_ROWS
-from ..core.features import MAX_COMPONENTS
 from .lock import _err, live_writer
 from .logformat import (LogChunk, _H5_ERRORS, _HAS_RECORD, _LIVE_RETRIES, _LIVE_RETRY_SECONDS, _committed_rows,
                         _detail, _json_attr, _open, _read_header, _read_slice, _record_columns, _strings,
@@ -354,10 +353,6 @@ class SampleLog:
             if d.dtype.kind not in "fiub":
                 raise _err(path, f"dataset /features/{name}", f"dtype {d.dtype}, expected a numeric dtype "
                            "(integer, float or bool)")
-            if int(np.prod(d.shape[1:], dtype=np.int64)) > MAX_COMPONENTS:
-                raise _err(path, f"dataset /features/{name}", f"shape {d.shape}: more than {MAX_COMPONENTS} "
-                           "components per sample (an (N, N) array is usually a broadcasting slip); write it "
-                           "as (N,) or (N, k)")
             self.feature_shapes[name] = tuple(d.shape[1:])
         self.has_reference = "reference" in f
         if self.has_reference:
