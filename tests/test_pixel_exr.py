@@ -454,6 +454,20 @@ def test_nonfinite_feature_values_are_zeroed_and_warned(tmp_path):
     np.testing.assert_array_equal(pix.stats.mean, read_pixel_stats_exr(path, features="none").stats.mean)
 
 
+def test_a_partial_feature_is_said_not_dropped_silently(tmp_path):
+    s = samples(12)
+    path = tmp_path / "p.exr"
+    pbrt_exr(path, s)
+    from mcrecon.io.images import open_exr
+    ch = dict(open_exr(path)[0])
+    del ch["Albedo.B"]
+    write_channels(path, ch, samplesPerPixel=SPP)
+    with pytest.warns(McreconWarning, match=r"features/albedo: Albedo.R, Albedo.G present without Albedo.B: "
+                                             r"the albedo is left out"):
+        pix = read_pixel_stats_exr(path)
+    assert "albedo" not in pix.stats.features and "normal" in pix.stats.features
+
+
 def test_half_buffer_pair_keeps_features(tmp_path):
     from mcrecon.core.halves import merge_halves
 

@@ -109,6 +109,27 @@ def find_feature_channels(names, layout: str, *, prefix: str | None = None, feat
                              "file")
         if found:
             out[feat] = (found[0][1], found[0][2])
+            continue
+        # some of a feature's channels but not all: said, not silently dropped (Albedo.R and .G without .B)
+        for source, candidates in by_source.items():
+            for cand in candidates:
+                if layout == "mitsuba-moment":
+                    if source != "mitsuba":
+                        continue
+                    cand = tuple(f"{prefix}.{c}" for c in cand)
+                elif layout == "pbrt-v4" and source != "pbrt-v4":
+                    continue
+                have = [c for c in cand if c in names]
+                if have and len(have) < len(cand):
+                    import warnings
+
+                    from ..errors import McreconWarning
+
+                    warnings.warn(f"{where}: features/{feat}: {', '.join(have)} present without "
+                                  f"{', '.join(c for c in cand if c not in names)}: the {feat} is left out "
+                                  "(write all its channels, or map them: features={...})", McreconWarning,
+                                  stacklevel=3)
+                    break
     return out
 
 
