@@ -445,12 +445,14 @@ def test_nonfinite_feature_values_are_zeroed_and_warned(tmp_path):
     depth = np.full((H, W), 3.0)
     depth[2, 3] = np.inf  # a ray that left the scene
     depth[4, 1] = np.nan
+    depth[5, 5] = np.finfo(np.float32).max  # a float32 writer's "no hit"
     ch["P.Z"] = depth
     write_channels(path, ch, samplesPerPixel=SPP)
-    with pytest.warns(McreconWarning, match=r"2 pixel\(s\) with NaN, Inf or beyond \+-1e\+30 feature values set to 0"):
+    with pytest.warns(McreconWarning, match=r"3 pixel\(s\) with NaN, Inf or beyond \+-1e\+30 feature values set to 0"):
         pix = read_pixel_stats_exr(path)
     d = pix.stats.features["depth"].mean[..., 0]
-    assert d[2, 3] == 0 and d[4, 1] == 0 and np.all(np.delete(d.ravel(), [2 * W + 3, 4 * W + 1]) == 3.0)
+    assert d[2, 3] == 0 and d[4, 1] == 0 and d[5, 5] == 0
+    assert np.all(np.delete(d.ravel(), [2 * W + 3, 4 * W + 1, 5 * W + 5]) == 3.0)
     np.testing.assert_array_equal(pix.stats.mean, read_pixel_stats_exr(path, features="none").stats.mean)
 
 

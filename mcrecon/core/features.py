@@ -56,6 +56,8 @@ MAX_COMPONENTS = 64
 def within_feature_limit(arr: np.ndarray) -> np.ndarray:
     """Per entry of a float array: finite and within :data:`FEATURE_LIMIT` (False for NaN, Inf and
     "no hit" sentinels), the limit compared in the array's own precision."""
+    if arr.dtype.itemsize < 4:  # half floats end below the limit
+        return np.isfinite(arr)
     return np.abs(arr) <= arr.dtype.type(FEATURE_LIMIT)
 
 

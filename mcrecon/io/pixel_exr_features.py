@@ -135,7 +135,7 @@ def find_feature_channels(names, layout: str, *, prefix: str | None = None, feat
 
 def _read_features(exr, found, n):
     """``{feature: (mean (H, W, k), variance of the samples or None)}`` of the channels ``found``."""
-    from ..core.features import warn_feature_zeroed
+    from ..core.features import warn_feature_zeroed, within_feature_limit
     from .pixel_exr import _variance_from_moments
 
     out = {}
@@ -146,7 +146,8 @@ def _read_features(exr, found, n):
         var = None
         if m2_chans is not None:
             m2, half2 = exr.get(m2_chans, f"features/{feat}")
-            bad = ~(np.isfinite(m) & np.isfinite(m2)).all(axis=-1) & sampled
+            # NaN, Inf or a "no hit" sentinel (FLT_MAX) beyond the features' limit, as in a log
+            bad = ~(within_feature_limit(m) & np.isfinite(m2)).all(axis=-1) & sampled
             if bad.any():
                 zeroed = max(zeroed, int(bad.sum()))
                 m = np.where(bad[..., None], 0.0, m)
@@ -154,7 +155,7 @@ def _read_features(exr, found, n):
             m2 = np.maximum(m2, 0.0)  # a feature's moments are a guide: no damage report, no refusal
             var = _variance_from_moments(exr, m2_chans, m, m2, n, half or half2)
         else:
-            bad = ~np.isfinite(m).all(axis=-1) & sampled
+            bad = ~within_feature_limit(m).all(axis=-1) & sampled
             if bad.any():
                 zeroed = max(zeroed, int(bad.sum()))
                 m = np.where(bad[..., None], 0.0, m)
