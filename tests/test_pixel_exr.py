@@ -559,3 +559,18 @@ def test_real_mitsuba_moment_of_aov_features(mitsuba_moment_exrs, capsys):
     assert (st.features["albedo"].sample_variance() >= 0).all()
     code, _, err = run(["denoise", d / "aov.exr", "-o", d / "aov_box.exr", "--spp", "16"], capsys)
     assert code == 0 and "features albedo (nested.albedo.R" in err, err
+
+
+def test_a_multi_part_exr_says_what_it_does_not_read(tmp_path):
+    # a renderer's feature part (part 1) was dropped without a word
+    import OpenEXR
+
+    path = tmp_path / "mp.exr"
+    head = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    OpenEXR.File([OpenEXR.Part({**head, "name": "beauty"}, {"RGB": np.ones((4, 5, 3), np.float32)}),
+                  OpenEXR.Part({**head, "name": "aux"}, {"Albedo": np.ones((4, 5, 3), np.float32)})]).write(str(path))
+    from mcrecon.io.images import open_exr
+    with pytest.warns(McreconWarning, match=r"2 parts; only the first is read, not the channels of the others "
+                                             r"\(Albedo.B, Albedo.G, Albedo.R\)"):
+        arrays = open_exr(path)[0]
+    assert sorted(arrays) == ["B", "G", "R"]

@@ -157,12 +157,14 @@ def open_exr(path) -> tuple[dict, dict, dict]:
         raise InputError(str(path), "file", "does not exist")
     with _quiet_fds() as sink:
         f = chans = None
+        others = []
         try:
             f = OpenEXR.File(str(path), separate_channels=True)
             chans = f.channels()
             arrays = {name: np.asarray(ch.pixels) for name, ch in chans.items()}
             sampling = {name: (int(ch.xSampling), int(ch.ySampling)) for name, ch in chans.items()}
             header = dict(f.header())
+            others = [sorted(part.channels) for part in (getattr(f, "parts", None) or [])[1:]]
             exc = None
         except Exception as e:  # noqa: BLE001 - OpenEXR raises bare RuntimeErrors and others
             exc = e
@@ -173,6 +175,15 @@ def open_exr(path) -> tuple[dict, dict, dict]:
         said = sink.read()
     if exc is not None:
         raise _exr_failure(path, exc, said) from None
+    if others:  # a multi-part file: what lies in the other parts (a renderer's feature part) is not read
+        import warnings
+
+        from ..errors import McreconWarning
+
+        shown = "; ".join(", ".join(c[:6]) + (", ..." if len(c) > 6 else "") for c in others)
+        warnings.warn(f"{path}: {len(others) + 1} parts; only the first is read, not the channels of the "
+                      f"others ({shown}): write them into the first part to use them", McreconWarning,
+                      stacklevel=2)
     return arrays, sampling, header
 
 
