@@ -9,9 +9,10 @@ place they are validated.
 from __future__ import annotations
 
 import argparse
-import math
 import contextlib
+import math
 import os
+import re
 import sys
 import textwrap
 from pathlib import Path
@@ -209,25 +210,30 @@ def check_output(out, png=None, *, command: str = "mcrecon") -> None:
             continue
         if p.suffix.lower() != suffix:
             raise InputError(str(p), "output", f"expected a path ending in {suffix}")
-        parent = p.parent
-        while not parent.exists() and parent != parent.parent:
-            parent = parent.parent
-        if not parent.is_dir() or not os.access(parent, os.W_OK):
-            raise InputError(str(p), "output", f"cannot be written: {parent} is not a writable directory")
+        _check_writable_parent(p, "output")
+
+
+def _check_writable_parent(p: Path, field: str) -> None:
+    """Refuse a path whose nearest existing ancestor is no writable directory (before any work is done)."""
+    parent = p.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK):
+        raise InputError(str(p), field, f"cannot be written: {parent} is not a writable directory")
 
 
 @contextlib.contextmanager
-def film_size_flag():
+def film_size_flag(size):
     """A Mitsuba scene file whose film differs from ``--size``: the bridge's error, in the command line's
     terms (it speaks of width/height and scene parameters, which the command line has not)."""
     try:
         yield
     except InputError as exc:
-        if exc.field != "width/height":
+        film = re.search(r"film is (\d+x\d+)", exc.problem) if exc.field == "width/height" else None
+        if film is None:
             raise
-        raise InputError(exc.where, "--size", exc.problem.split("; set the film size")[0].replace(
-            "requested", "--size") + "; omit --size to render at the film's own size, or change the film "
-            "in the scene file") from None
+        raise InputError(exc.where, "--size", f"--size {size} but the scene's film is {film.group(1)}; omit "
+                         "--size to render at the film's own size, or change the film in the scene file") from None
 
 
 #: Suffixes of a sample log the commands write (HDF5).
@@ -247,11 +253,7 @@ def check_log_output(path, *, flag: str = "-o/--output", overwrite: bool | None 
     if overwrite is False and p.exists():
         raise InputError(str(p), flag, "exists (it may hold samples): give another path, or --overwrite to "
                          "replace it")
-    parent = p.parent
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
-    if not parent.is_dir() or not os.access(parent, os.W_OK):
-        raise InputError(str(p), flag, f"cannot be written: {parent} is not a writable directory")
+    _check_writable_parent(p, flag)
 
 
 def write_outputs(image, out, *, channels, png, exposure, diagnostics=None, diag_dir=None,

@@ -308,6 +308,7 @@ def _cmd_demo(args):
 
 
 def _cmd_mitsuba(args):
+    from ..io import read_log, write_exr, write_png_preview
     from ..renderers import mitsuba as mb
 
     scene = None if args.scene in (None, "cornell-box") else args.scene
@@ -318,25 +319,18 @@ def _cmd_mitsuba(args):
     else:
         check_log_output(args.output, overwrite=args.overwrite)
     t0 = time.perf_counter()
-    with film_size_flag():
-        return _mitsuba_render(args, mb, scene, w, h, t0)
-
-
-def _mitsuba_render(args, mb, scene, w, h, t0):
-    from ..io import write_exr, write_png_preview
-
     if args.mitsuba_command == "reference":
-        ref = mb.render_reference(scene, width=w, height=h, spp=args.spp, seed=args.seed)
+        with film_size_flag(args.size):
+            ref = mb.render_reference(scene, width=w, height=h, spp=args.spp, seed=args.seed)
         out = Path(args.output)
         write_exr(out, ref)
         write_png_preview(out.with_suffix(".png"), ref)
         print(f"rendered a {ref.shape[1]}x{ref.shape[0]}, {args.spp}-spp reference in {time.perf_counter() - t0:.1f} s")
         print(f"wrote {out}\nwrote {out.with_suffix('.png')}")
     else:
-        path = mb.dump_uniform_log(args.output, scene, width=w, height=h, spp=args.spp, seed=args.seed,
-                                   reference_spp=args.reference_spp, features=args.features)
-        from ..io import read_log
-
+        with film_size_flag(args.size):
+            path = mb.dump_uniform_log(args.output, scene, width=w, height=h, spp=args.spp, seed=args.seed,
+                                       reference_spp=args.reference_spp, features=args.features)
         lg = read_log(path)
         print(f"rendered a {lg.width}x{lg.height}, {args.spp}-spp uniform log in {time.perf_counter() - t0:.1f} s")
         print(f"wrote {path}")

@@ -14,8 +14,8 @@ from pathlib import Path
 
 from ..errors import InputError
 from ._common import (HelpFormatter, OneLineParser, add_method_options, add_scene_flags, check_log_output,
-                      check_output, film_size_flag, finite_float, given_method_options, jit_notice, make_method, method_flags,
-                      method_kernels, parse_size, write_outputs)
+                      check_output, film_size_flag, finite_float, given_method_options, jit_notice, make_method,
+                      method_flags, method_kernels, parse_size, write_outputs)
 from .builtins import _cmd_demo, _cmd_methods, _cmd_mitsuba, _cmd_render_log, _cmd_scenes
 
 __all__ = ['register']
@@ -247,32 +247,27 @@ def _renderer(args):
 
     A Mitsuba scene file without ``--size`` renders at its own film size: the bridge reads it while
     loading the scene, and the spec records it."""
-    from ..renderers.spec import mitsuba_spec, renderer_from_spec
+    from ..renderers.spec import renderer_from_spec
 
-    _one_renderer(args)
-    if args.mitsuba not in (None, "cornell-box") and args.size is None:
-        from ..renderers.mitsuba import MitsubaRenderer
-
-        feats = "all" if args.features is None else args.features
-        renderer = MitsubaRenderer(args.mitsuba, features=feats)
-        return mitsuba_spec(args.mitsuba, width=renderer.width, height=renderer.height, features=feats), renderer
-    spec = _renderer_spec(args)
-    with film_size_flag():
-        return spec, renderer_from_spec(spec)
-
-
-def _one_renderer(args) -> None:
     sources = [x for x in (args.scene, args.renderer_cmd, args.mitsuba) if x is not None]
     if len(sources) != 1:
         raise InputError("adapt", "renderer", "give exactly one of --scene NAME, --renderer-cmd CMD, "
                          "--mitsuba [SCENE.xml|cornell-box], or --resume LOG")
+    if args.mitsuba not in (None, "cornell-box") and args.size is None:
+        from ..renderers.mitsuba import MitsubaRenderer
+
+        renderer = MitsubaRenderer(args.mitsuba, features="all" if args.features is None else args.features)
+        return renderer.spec(), renderer
+    spec = _renderer_spec(args)
+    with film_size_flag(args.size):
+        return spec, renderer_from_spec(spec)
 
 
 def _renderer_spec(args) -> dict:
-    """The spec of the renderer the flags name (recorded in the log for --resume)."""
+    """The spec of the renderer the flags name (recorded in the log for --resume; one of them is named:
+    :func:`_renderer`)."""
     from ..renderers.spec import command_spec, mitsuba_spec, scene_spec
 
-    _one_renderer(args)
     w, h = parse_size(DEFAULT_SIZE if args.size is None else args.size)
     if args.features is not None and args.mitsuba is None and args.scene is None:
         raise InputError("adapt", "--features", "chooses the per-sample features of the Mitsuba bridge "
@@ -400,8 +395,8 @@ def _cmd_adapt(args):
         else:
             ref = reference_from_spec(spec)
         method = make_method(args.method, args, args.method_flags)
-        sends = (spec.get("features", "none") != "none" if spec["kind"] == "mitsuba"
-                 else bool(getattr(renderer, "features", False)))
+        # (a scene's flag, the Mitsuba bridge's names; a command renderer says nothing before its reply)
+        sends = bool(getattr(renderer, "features", False))
         jit_notice(method_kernels(method, features=sends)
                    + (("renderers/scenes", "core", "filters") if args.scene is not None else ()))
         t0 = time.perf_counter()

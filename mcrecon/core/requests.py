@@ -236,8 +236,8 @@ def _validate_reply(request: SampleRequest, batch, *, n_channels: int, renderer:
         for name, arr in batch.features.items():
             given = np.asarray(arr)
             fixed = checked[str(name)]
-            feats[str(name)] = given if not n_fz or within_feature_limit(np.asarray(given, dtype=fixed.dtype)).all() else \
-                (fixed[:, 0] if given.ndim == 1 else fixed)
+            zeroed = n_fz and not within_feature_limit(np.asarray(given, dtype=fixed.dtype)).all()
+            feats[str(name)] = (fixed[:, 0] if given.ndim == 1 else fixed) if zeroed else given
         if n_fz:
             warn_feature_zeroed(renderer, n_fz, stacklevel=3)
     return SampleBatch(pos, val, feats), int(n_nonfinite)

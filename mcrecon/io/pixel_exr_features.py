@@ -85,6 +85,7 @@ def find_feature_channels(names, layout: str, *, prefix: str | None = None, feat
     out = {}
     for feat, by_source in FEATURE_CHANNELS.items():
         found = []  # (source, mean channels, m2 channels or None)
+        partial = None  # the first candidate with some of its channels but not all
         for source, candidates in by_source.items():
             if layout == "pbrt-v4" and source != "pbrt-v4":
                 continue
@@ -99,6 +100,8 @@ def find_feature_channels(names, layout: str, *, prefix: str | None = None, feat
                         hits.append((source, cand, m2))
                 elif set(cand) <= names:
                     hits.append((source, cand, None))
+                if partial is None and 0 < len(names.intersection(cand)) < len(cand):
+                    partial = cand
             if source in _PREFERENCE_SOURCES:
                 hits = hits[:1]
             found += hits
@@ -109,27 +112,14 @@ def find_feature_channels(names, layout: str, *, prefix: str | None = None, feat
                              "file")
         if found:
             out[feat] = (found[0][1], found[0][2])
-            continue
-        # some of a feature's channels but not all: said, not silently dropped (Albedo.R and .G without .B)
-        for source, candidates in by_source.items():
-            for cand in candidates:
-                if layout == "mitsuba-moment":
-                    if source != "mitsuba":
-                        continue
-                    cand = tuple(f"{prefix}.{c}" for c in cand)
-                elif layout == "pbrt-v4" and source != "pbrt-v4":
-                    continue
-                have = [c for c in cand if c in names]
-                if have and len(have) < len(cand):
-                    import warnings
+        elif partial is not None:  # said, not silently dropped (Albedo.R and .G without .B)
+            import warnings
 
-                    from ..errors import McreconWarning
+            from ..errors import McreconWarning
 
-                    warnings.warn(f"{where}: features/{feat}: {', '.join(have)} present without "
-                                  f"{', '.join(c for c in cand if c not in names)}: the {feat} is left out "
-                                  "(write all its channels, or map them: features={...})", McreconWarning,
-                                  stacklevel=3)
-                    break
+            warnings.warn(f"{where}: features/{feat}: {', '.join(c for c in partial if c in names)} present "
+                          f"without {', '.join(c for c in partial if c not in names)}: the {feat} is left out "
+                          "(write all its channels, or map them: features={...})", McreconWarning, stacklevel=3)
     return out
 
 

@@ -598,7 +598,6 @@ class MitsubaRenderer:
             return got[1]
         return None
 
-
     def spec(self) -> dict | None:
         """How to build this renderer again (:func:`mcrecon.renderers.spec.mitsuba_spec`), or None when a
         spec cannot say it (a scene dict, scene parameters, another variant, depth or pass size)."""
@@ -608,6 +607,7 @@ class MitsubaRenderer:
             return None
         return mitsuba_spec(self._spec_scene, width=self.width, height=self.height,
                             features=",".join(self.features) or "none")
+
     def render(self, request: SampleRequest) -> SampleBatch:
         """Answer a request: jittered samples for ``counts``, then ``positions`` in order.
 

@@ -131,9 +131,9 @@ class NFORMethod(Method):
             if not batch.features:  # refuse on the first round, not after the whole budget is rendered
                 raise InputError(_WHERE, "features", "nfor needs per-sample features (albedo, normal, depth) and the "
                                  "renderer's replies have none: the built-in scenes send them with "
-                                 "--features all (`mcrecon scenes`), the Mitsuba bridge by default, a renderer of your own in "
-                                 "its replies (SampleBatch.features; /features/NAME of a command's reply); or "
-                                 "pick another method")
+                                 "--features all (`mcrecon scenes`), the Mitsuba bridge by default, a renderer "
+                                 "of your own in its replies (SampleBatch.features; /features/NAME of a "
+                                 "command's reply); or pick another method")
             layout = usable_layout(batch.features or {})
             run.halves = Halves.empty(run.width, run.height, run.channels, features=layout)
         run.halves.add(batch.positions, batch.values, features=batch.features or None, nonfinite="drop",

@@ -283,7 +283,7 @@ class SceneRenderer:
         scene's default are recorded.  ``rate`` changes no reply: not recorded."""
         from ..spec import scene_spec
 
-        default = bool(self.scene.features_default and self.scene.feature_names)
+        default = _check_features_flag(self.name, self.scene, None)
         return scene_spec(self.scene.name, width=self.width, height=self.height, seed=self.seed,
                           features=None if self.features == default else self.features)
 
