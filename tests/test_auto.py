@@ -897,7 +897,7 @@ def test_heavy_tail_rule_takes_the_texture_out_of_its_reference():
 def test_gem_sampling_pipelined_never_places_samples_from_empty_statistics():
     """Under lag, round 1 is planned while round 0 renders: it must be uniform (the driver's initial pass
     in two rounds), not GEM's placement on empty statistics (ties broken towards the top rows)."""
-    from mcrecon.adaptive.schedule import _initial_rounds, _plan_round
+    from mcrecon.adaptive.schedule import Schedule, _initial_rounds
     from mcrecon.core.stats import PixelStats
 
     w = h = 32
@@ -905,10 +905,10 @@ def test_gem_sampling_pipelined_never_places_samples_from_empty_statistics():
     run = m.start(w, h)
     empty = PixelStats(w, h)
     k = _initial_rounds(m, True, 32 * w * h, w * h)
-    r0, _ = _plan_round(m, run, empty, 0, 32 * w * h, 0, 1, None, initial_rounds=k)
+    schedule = Schedule(budget=32 * w * h, seed=1, initial_rounds=k)
+    r0, _ = schedule.plan(m, run, empty, 0, 0)
     assert r0.positions is None and r0.counts.sum() == 2 * w * h
-    r1, _ = _plan_round(m, run, empty, 1, 32 * w * h, 2 * w * h, 1, None, pending=np.full((h, w), 2),
-                        initial_rounds=k)
+    r1, _ = schedule.plan(m, run, empty, 1, 2 * w * h, pending=np.full((h, w), 2))
     assert r1.positions is None and r1.counts.sum() == 2 * w * h and r1.counts.max() - r1.counts.min() <= 1
 
 

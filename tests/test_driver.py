@@ -218,7 +218,8 @@ def test_values_beyond_float32_are_never_turned_into_inf(tmp_path):
     assert np.isfinite(read_log(tmp_path / "auto.h5").read_all().values).all()
     with pytest.raises(InputError, match="beyond float32's range.*storage_dtype='auto'"):
         adapt(r, "box", spp=4, seed=1, log=tmp_path / "f32.h5", storage_dtype="float32")
-    assert read_log(tmp_path / "f32.h5").n_samples == 0  # nothing stored, the log still opens
+    assert not (tmp_path / "f32.h5").exists()  # refused on the first reply: no log left to refuse the retry
+    adapt(r, "box", spp=4, seed=1, log=tmp_path / "f32.h5")
     with pytest.raises(InputError, match="storage_dtype"):
         adapt(r, "box", spp=4, storage_dtype="float16")
 

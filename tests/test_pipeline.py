@@ -14,6 +14,7 @@ import subprocess
 import sys
 import textwrap
 import time
+import types
 import warnings
 from pathlib import Path
 
@@ -290,6 +291,11 @@ def test_pipeline_choice_is_validated_and_defaults_follow_the_method():
 
 
 # ------------------------------------------------------------------ exact shortcuts
+def _intake(method, run, stats):
+    """What _take_round reads of a run's context."""
+    return types.SimpleNamespace(method=method, run=run, stats=stats, nonfinite="drop")
+
+
 def test_one_pass_commit_equals_stats_add_bit_for_bit(rng):
     """The driver ingests the validated reply without re-checking it: the same statistics as stats.add."""
     pos = rng.random((5000, 2)) * [16, 12]
@@ -302,7 +308,7 @@ def test_one_pass_commit_equals_stats_add_bit_for_bit(rng):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             a.add(p, v, nonfinite="drop")
-            _take_round(m, None, b, SampleBatch(p, v), 0, "drop", "x", n_nonfinite=1)
+            _take_round(_intake(m, None, b), SampleBatch(p, v), 0, source="x", n_nonfinite=1)
         for f in ("count", "mean", "m2", "min", "max"):
             np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
         assert a.n_dropped == b.n_dropped == 1
@@ -325,7 +331,7 @@ def test_ingest_beside_observe_equals_one_after_the_other(rng, n_bad):
     with ThreadPoolExecutor(1) as helper:
         for run, st, h in zip(runs, stats, (None, helper)):
             with pytest.warns(McreconWarning) if n_bad else warnings.catch_warnings():
-                _take_round(m, run, st, SampleBatch(pos, val), 0, "drop", "x", n_nonfinite=n_bad, helper=h)
+                _take_round(_intake(m, run, st), SampleBatch(pos, val), 0, source="x", n_nonfinite=n_bad, helper=h)
     for f in ("count", "mean", "m2", "min", "max"):
         np.testing.assert_array_equal(getattr(stats[0], f), getattr(stats[1], f))
     np.testing.assert_array_equal(runs[0].splatter.image, runs[1].splatter.image)
@@ -342,7 +348,7 @@ def test_request_seed_without_revalidation_equals_dataclasses_replace():
 
 
 def test_gem_plan_with_nothing_pending_is_the_plan_without_pending():
-    from mcrecon.adaptive.schedule import _adaptive_state, round_seeds
+    from mcrecon.adaptive.schedule import Schedule, _adaptive_state, round_seeds
 
     st = PixelStats.from_samples(np.random.default_rng(0).random((3000, 2)) * [16, 12],
                                  np.random.default_rng(1).random((3000, 3)), width=16, height=12)
@@ -350,8 +356,8 @@ def test_gem_plan_with_nothing_pending_is_the_plan_without_pending():
     reqs = []
     for pending in (None, np.zeros((12, 16), np.int64)):
         rng, _ = round_seeds(0, 3)
-        reqs.append(m.plan(m.start(16, 12), _adaptive_state(st, 3, 16 * 12 * 32, 3000, rng, None,
-                                                             pending=pending)))
+        reqs.append(m.plan(m.start(16, 12), _adaptive_state(st, Schedule(budget=16 * 12 * 32, seed=0), 3, 3000,
+                                                             rng, pending=pending)))
     np.testing.assert_array_equal(reqs[0].positions, reqs[1].positions)
 
 
@@ -523,7 +529,7 @@ def test_a_pipelined_round_1_is_never_placed_from_empty_statistics(name):
     statistics (awr used to put every sample of that round into the first rows)."""
     import numpy as np
 
-    from mcrecon.adaptive.schedule import _initial_rounds, _plan_round
+    from mcrecon.adaptive.schedule import Schedule, _initial_rounds
     from mcrecon.methods import get_method
     from mcrecon.core.stats import PixelStats
 
@@ -532,9 +538,9 @@ def test_a_pipelined_round_1_is_never_placed_from_empty_statistics(name):
     run = m.start(w, h)
     budget = 32 * w * h
     k = _initial_rounds(m, True, budget, w * h)
-    r0, _ = _plan_round(m, run, PixelStats(w, h), 0, budget, 0, 1, None, initial_rounds=k)
-    r1, _ = _plan_round(m, run, PixelStats(w, h), 1, budget, r0.total, 1, None, pending=r0.counts,
-                        initial_rounds=k)
+    schedule = Schedule(budget=budget, seed=1, initial_rounds=k)
+    r0, _ = schedule.plan(m, run, PixelStats(w, h), 0, 0)
+    r1, _ = schedule.plan(m, run, PixelStats(w, h), 1, r0.total, pending=r0.counts)
     assert r0.positions is None and r1.positions is None
     assert r1.counts.max() - r1.counts.min() <= 1
     assert r0.total + r1.total == m.option_default("initial_spp") * w * h

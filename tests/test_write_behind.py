@@ -11,6 +11,7 @@ import subprocess
 import sys
 import textwrap
 import time
+import types
 from pathlib import Path
 
 import numpy as np
@@ -201,12 +202,16 @@ def test_ctrl_c_while_waiting_for_a_write_waits_it_out_then_stops():
         def update(self, *a):
             pass
 
+    from mcrecon.adaptive.context import RunClock
+
     stats = type("S", (), {"n_samples": 0, "n_dropped": 0})()
-    behind = [(fut, {"round": 4, "wall_seconds": 0.0})]
+    ctx = types.SimpleNamespace(log_path=None, rounds=[], on_round=seen.append, bar=Bar(), stats=stats,
+                                clock=RunClock())
+    writes = rounds_mod._LogWrites(ctx)
+    writes.behind.append((fut, {"round": 4, "wall_seconds": 0.0}))
     with pytest.raises(KeyboardInterrupt):
-        rounds_mod._written(behind, [], seen.append, Bar(), stats, type("R", (), {"log_path": None})(), {},
-                            wait=True)
-    assert fut.calls == 2 and [r["round"] for r in seen] == [4] and not behind
+        writes.written(wait=True)
+    assert fut.calls == 2 and [r["round"] for r in seen] == [4] and not writes.behind
     fut2 = _InterruptedOnce()
     with pytest.raises(KeyboardInterrupt):
         rounds_mod._wait_out(fut2)

@@ -1,11 +1,12 @@
 """One round of an adaptive run: render, validate, commit; the sequential and pipelined loops.
+
+Every function here reads the run from its :class:`~.context.RunContext`
+(``ctx``) and accounts into the context's clock.
 """
 
 from __future__ import annotations
 
 import contextlib
-import sys
-import threading
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -19,72 +20,15 @@ from ..io.reader import read_log
 from ..core.requests import SampleBatch, _validate_reply
 from ..core.features import check_features, layout_of, take_rows, usable_layout
 from ..core.samples import (FLOAT32_MAX, apply_nonfinite, check_memory, float32_loses_spread)
+from .schedule import _adaptive_state, _committed, _request_counts, round_seeds
 
 
-from .schedule import _adaptive_state, _committed, _plan_round, _request_counts, round_seeds
+def _take_round(ctx, batch, round_index, *, source, n_nonfinite=None, timeline=None, helper=None) -> None:
+    """A committed round into the run's statistics and, for methods that read samples, into ``observe``.
 
-class _Progress:
-    """Per-round progress on stderr: one line redrawn on a terminal, a line per event otherwise (forced on)."""
-
-    def __init__(self, enabled: bool | None, budget: int):
-        tty = sys.stderr.isatty()
-        self.enabled = tty if enabled is None else bool(enabled)
-        self.tty = tty
-        self.budget = max(budget, 1)
-        self.n, self.wall = 0, 0.0
-
-    def _write(self, text: str):
-        sys.stderr.write(f"\r{text}\033[K" if self.tty else f"{text}\n")
-        sys.stderr.flush()
-
-    def _bar(self, n: int) -> str:
-        frac = min(n / self.budget, 1.0)
-        return f"[{'#' * int(30 * frac):<30}] {100 * frac:5.1f}%"
-
-    def rendering(self, rnd: int, samples: int):
-        # said when a round starts: a long round (or a run of one round) is not silent until its end
-        if self.enabled:
-            self._write(f"{self._bar(self.n)}  round {rnd}: rendering {samples} samples  ({self.wall:.1f} s so far)")
-
-    def update(self, n: int, rnd: int, wall: float):
-        self.n, self.wall = n, wall
-        if self.enabled:
-            self._write(f"{self._bar(n)}  round {rnd}  {n} samples  {wall:6.1f} s")
-
-    def close(self):
-        if self.enabled and self.tty:
-            sys.stderr.write("\n")
-            sys.stderr.flush()
-
-
-class _Timeline:
-    """Wall interval and thread CPU time of each phase of the loop (a few per round: negligible cost)."""
-
-    def __init__(self):
-        self.t0 = time.perf_counter()
-        self.events = []
-        self._renderer_thread = threading.get_ident()
-
-    @contextlib.contextmanager
-    def phase(self, name, round_index, **extra):
-        t, c = time.perf_counter(), time.thread_time()
-        try:
-            yield extra
-        finally:
-            self.add(name, round_index, t, time.perf_counter(), time.thread_time() - c, **extra)
-
-    def add(self, name, round_index, start, end, cpu, **extra):
-        self.events.append({"phase": name, "round": int(round_index), "start": start - self.t0,
-                            "end": end - self.t0, "cpu": cpu,
-                            "thread": "renderer" if threading.get_ident() == self._renderer_thread else "toolkit",
-                            **extra})
-
-
-def _take_round(method, run, stats, batch, round_index, nonfinite, source, n_nonfinite=None,
-                timeline=None, helper=None) -> None:
-    """A committed round into the statistics and, for methods that read samples, into ``observe``.
-
-    The one path of the live run and of a resume's replay.  ``observe`` sees
+    The one path of the live run and of a resume's replay: the method, its
+    run state, the statistics and the NaN/Inf policy are the context's;
+    ``source`` names the round's origin in warnings and errors.  ``observe`` sees
     the round after the run's NaN/Inf policy, exactly as the statistics did.
     ``n_nonfinite`` (rows with a NaN or Inf value) is given by the live run,
     whose reply :func:`validate_reply` has already checked (shapes, dtypes,
@@ -96,6 +40,7 @@ def _take_round(method, run, stats, batch, round_index, nonfinite, source, n_non
     same arrays and write disjoint state, both compiled kernels that release
     the GIL -- and both are done when this returns.
     """
+    method, stats, nonfinite = ctx.method, ctx.stats, ctx.nonfinite
     if method.requires.features != "none" and batch.features and not stats.features and stats.n_samples == 0:
         # the renderer's first round says which features it sends; every later round sends the same
         stats.keep_features(usable_layout(batch.features))
@@ -129,23 +74,23 @@ def _take_round(method, run, stats, batch, round_index, nonfinite, source, n_non
         if helper is not None and method.requires.samples and not n_bad:
             pending = helper.submit(ingest, helper=True)
             try:
-                _observe(method, run, pos, val, n_bad, nonfinite, source, round_index, timeline, feats)
+                _observe(ctx, SampleBatch(pos, val, feats), n_bad, round_index, source=source, timeline=timeline)
             finally:
                 pending.result()  # the statistics are complete before anything else happens
             return
         ingest()
     if method.requires.samples:
-        _observe(method, run, pos, val, n_bad, nonfinite, source, round_index, timeline, feats)
+        _observe(ctx, SampleBatch(pos, val, feats), n_bad, round_index, source=source, timeline=timeline)
 
 
-def _observe(method, run, pos, val, n_bad, nonfinite, source, round_index, timeline, feats=None):
+def _observe(ctx, batch, n_bad, round_index, *, source, timeline):
     """``observe`` the round after the NaN/Inf policy; with the features the statistics keep (same rows)."""
-    feats = feats or {}
+    pos, val, feats, nonfinite = batch.positions, batch.values, batch.features or {}, ctx.nonfinite
     if feats and n_bad and nonfinite == "drop":
         feats = take_rows(feats, np.isfinite(val).all(axis=1))
     pos, val = apply_nonfinite(pos, val, n_bad, nonfinite, where=source)
     with (timeline.phase("observe", round_index) if timeline is not None else contextlib.nullcontext()):
-        method.observe(run, SampleBatch(pos, val, feats), round_index)
+        ctx.method.observe(ctx.run, SampleBatch(pos, val, feats), round_index)
 
 
 def _resolve_storage(log_path, reply_dtype) -> str:
@@ -168,42 +113,19 @@ def _resolve_storage(log_path, reply_dtype) -> str:
     return dtype
 
 
-def _to_storage(batch, storage_dtype, stats, name, round_index, warned, log_path) -> SampleBatch:
-    """Cast a validated reply to the log's dtype, refusing what float32 cannot hold."""
-    val = np.asarray(batch.values)
-    if storage_dtype == "float32" and val.dtype != np.float32:
-        big = np.isfinite(val) & (np.abs(val) > FLOAT32_MAX)
-        if big.any():
-            raise InputError(str(log_path), "storage_dtype", f"round {round_index} from {name} holds "
-                             f"{int(big.any(axis=1).sum())} sample(s) beyond float32's range (up to "
-                             f"{float(np.abs(val[big]).max()):.3g}); nothing of this round was stored, but this "
-                             "log stores float32: start the run again with a new log and storage_dtype='auto' "
-                             "or 'float64' (--storage-dtype auto)")
-        if "spread" not in warned:
-            lost = float32_loses_spread(batch.positions, val, width=stats.width, height=stats.height)
-            if lost:
-                warned.add("spread")
-                warnings.warn(f"{name}: round {round_index}: float32 storage loses the spread of the samples in "
-                              f"{lost} pixel(s) (e.g. 1e6 +- 1e-3 rounds to one value, variance 0); keep it with "
-                              "storage_dtype='auto' or 'float64' (--storage-dtype auto)", McreconWarning,
-                              stacklevel=4)
-    return SampleBatch(cast_positions(batch.positions, storage_dtype), val.astype(storage_dtype, copy=False),
-                       batch.features)
-
-
 class _Round:
-    """What the toolkit does with one reply: validate, store, count (shared by both modes)."""
+    """What the toolkit does with one reply: validate, store, count (shared by both loops)."""
 
-    def __init__(self, method, run, stats, *, name, c, log_path, nonfinite, ref, track_error, eps, budget,
-                 storage_dtype, wall, timeline, fresh_replies=False):
-        self.method, self.run, self.stats = method, run, stats
-        self.timeline = timeline
-        self.name, self.c, self.log_path, self.nonfinite = name, c, log_path, nonfinite
-        self.ref, self.track_error, self.eps, self.budget = ref, track_error, eps, budget
-        self.storage_dtype = storage_dtype
+    def __init__(self, ctx):
+        self.ctx = ctx
+        self.name, self.c, self.log_path = ctx.name, len(ctx.stats.channels), ctx.log_path
+        self.storage_dtype = ctx.storage_dtype  # ``auto``: resolved on the first reply
         self.warned = set()
-        self.wall = wall  # () -> run wall seconds now
-        self.fresh_replies = fresh_replies  # the renderer's: each reply's arrays are new (see commit)
+        self.fresh_replies = bool(getattr(ctx.renderer, "fresh_replies", False))  # each reply's arrays are new
+
+    @property
+    def timeline(self):
+        return self.ctx.clock.timeline
 
     def receive(self, req, reply, round_index):
         """The validated reply (stored precision) and its count of non-finite rows; nothing stored yet."""
@@ -219,15 +141,36 @@ class _Round:
         if self.storage_dtype == "auto":
             self.storage_dtype = _resolve_storage(self.log_path, np.asarray(batch.values).dtype)
         if self.log_path is not None:
-            batch = _to_storage(batch, self.storage_dtype, self.stats, self.name, round_index, self.warned,
-                                self.log_path)
+            batch = self._to_storage(batch, round_index)
         val = np.ascontiguousarray(batch.values)
-        if self.nonfinite == "raise" and n_bad:
+        if self.ctx.nonfinite == "raise" and n_bad:
             raise RendererError(self.name, "values", f"{n_bad} sample(s) with NaN or Inf in round "
                                 f"{round_index} (policy nonfinite='raise'); nothing of this round was stored")
         return SampleBatch(np.ascontiguousarray(batch.positions), val, batch.features), n_bad
 
-    def commit(self, batch, n_bad, record, toolkit_s, helper=None, writer=None, writer_copy=None):
+    def _to_storage(self, batch, round_index) -> SampleBatch:
+        """Cast a validated reply to the log's dtype, refusing what float32 cannot hold."""
+        val, dtype, name = np.asarray(batch.values), self.storage_dtype, self.name
+        if dtype == "float32" and val.dtype != np.float32:
+            big = np.isfinite(val) & (np.abs(val) > FLOAT32_MAX)
+            if big.any():
+                raise InputError(str(self.log_path), "storage_dtype", f"round {round_index} from {name} holds "
+                                 f"{int(big.any(axis=1).sum())} sample(s) beyond float32's range (up to "
+                                 f"{float(np.abs(val[big]).max()):.3g}); nothing of this round was stored, but "
+                                 "this log stores float32: start the run again with a new log and "
+                                 "storage_dtype='auto' or 'float64' (--storage-dtype auto)")
+            if "spread" not in self.warned:
+                stats = self.ctx.stats
+                lost = float32_loses_spread(batch.positions, val, width=stats.width, height=stats.height)
+                if lost:
+                    self.warned.add("spread")
+                    warnings.warn(f"{name}: round {round_index}: float32 storage loses the spread of the samples "
+                                  f"in {lost} pixel(s) (e.g. 1e6 +- 1e-3 rounds to one value, variance 0); keep it "
+                                  "with storage_dtype='auto' or 'float64' (--storage-dtype auto)", McreconWarning,
+                                  stacklevel=4)
+        return SampleBatch(cast_positions(batch.positions, dtype), val.astype(dtype, copy=False), batch.features)
+
+    def commit(self, batch, n_bad, record, toolkit_s, *, helper=None, writer=None, writer_copy=None):
         """Append to the log, then into the statistics (and ``observe``; with ``helper``, an idle
         one-thread executor, the two at once: see :func:`_take_round`).
 
@@ -238,7 +181,7 @@ class _Round:
         """
         pending = None
         if self.log_path is not None:
-            rec = {**record, "toolkit_seconds": toolkit_s, "wall_seconds": self.wall()}
+            rec = {**record, "toolkit_seconds": toolkit_s, "wall_seconds": self.ctx.clock.wall()}
             if writer is None:
                 self._append(batch, record["round"], rec)
             else:
@@ -249,8 +192,8 @@ class _Round:
                     np.array(batch.positions), np.array(batch.values),
                     {k: np.array(v) for k, v in batch.features.items()} if batch.features else batch.features)
                 pending = writer.submit(self._append, kept, record["round"], rec, True)
-        _take_round(self.method, self.run, self.stats, batch, record["round"], self.nonfinite, self.name,
-                    n_nonfinite=n_bad, timeline=self.timeline, helper=helper)
+        _take_round(self.ctx, batch, record["round"], source=self.name, n_nonfinite=n_bad, timeline=self.timeline,
+                    helper=helper)
         return pending
 
     def _append(self, batch, round_index, rec, on_writer=False):
@@ -265,96 +208,51 @@ class _Round:
         """The error of the image after the round (not part of the run's time)."""
         from ..core.metrics import relative_mse
 
-        if self.ref is None or not self.track_error:
+        ctx = self.ctx
+        if ctx.reference is None or not ctx.track_error:
             return 0.0
         te = time.perf_counter()
         rng, _ = round_seeds(0, 0)
-        st = _adaptive_state(self.stats, round_index, self.budget, _committed(self.stats), rng, self.ref)
+        st = _adaptive_state(ctx.stats, ctx.schedule, round_index, _committed(ctx.stats), rng)
         with self.timeline.phase("evaluate", round_index):
-            record["error"] = relative_mse(self.method.finish(self.run, st), self.ref, eps=self.eps)
+            record["error"] = relative_mse(ctx.method.finish(ctx.run, st), ctx.reference, eps=ctx.eps)
         record["eval_seconds"] = time.perf_counter() - te
         return record["eval_seconds"]
 
 
-def _render(renderer, req, acct):
+def _render(ctx, req):
     """Call the renderer: (reply, seconds it reports as its own, seconds of the call beyond them)."""
+    renderer = ctx.renderer
     # A round this machine cannot hold (box doubles its rounds up to 1/8 of the budget) is refused
-    # before the renderer fills the memory with it (an --spp of 1e12 on 8x8 was killed by the kernel's
-    # OOM killer at 24 GB).  A round's peak is about 4x its positions and values as float64 (the reply,
-    # the renderer's and the validation's temporaries: measured 160 B a sample for RGB on a scene).
+    # before the renderer fills the memory with it.  A round's peak is about 4x its positions and
+    # values as float64 (the reply, the renderer's and the validation's temporaries).
     check_memory("adapt", "spp", 32.0 * req.total * (2 + len(renderer.channels)),
                  f"round {req.round_index}'s {req.total} samples",
                  "lower the budget (--spp); the rounds committed before are in the log")
-    acct["bar"].rendering(req.round_index, req.total)
+    ctx.bar.rendering(req.round_index, req.total)
     t1 = time.perf_counter()
     reply = renderer.render(req)
     t2 = time.perf_counter()
     render_s = getattr(renderer, "last_render_seconds", None)
     render_s = float(render_s) if render_s is not None else t2 - t1
-    acct["timeline"].add("render", req.round_index, t1, t2, 0.0, own=render_s)
+    ctx.clock.timeline.add("render", req.round_index, t1, t2, 0.0, own=render_s)
     # Time in the renderer call beyond what the renderer reports as its own
     # (file exchange, conversions) belongs to the toolkit side of the run.
-    acct["render"] += min(render_s, t2 - t1)
+    ctx.clock.render_seconds += min(render_s, t2 - t1)
     return reply, render_s, max((t2 - t1) - render_s, 0.0)
 
 
-def _finish_round(record, rounds, on_round, bar, stats, log_path, acct):
-    if log_path is not None:
+def _finish_round(ctx, record):
+    """A committed round's full record: into the log, the run's records, ``on_round`` and the progress."""
+    if ctx.log_path is not None:
         # The commit stored the times known then; now the full round
         # (statistics, observe, error) is known: a resume reports these.
-        update_round_record(log_path, record)
-    rounds.append(record)
-    acct["new"] = acct.get("new", 0) + 1
-    if on_round is not None:
-        on_round(record)
-    bar.update(_committed(stats), record["round"], record["wall_seconds"])
-
-
-def _loop_sequential(renderer, method, run, *, stats, rounds, round_index, budget, seed, ref, time_limit,
-                     max_rounds, on_round, bar, clock, rnd, acct, planned):
-    """Plan, render, validate, commit, one round after the other; the log written behind.
-
-    Each plan sees every round before it, as in a run without a log.  With a
-    log, round j is written by a writer thread while round j+1 is planned and
-    rendered (the renderer waits for nothing but its plan); round j+1 is
-    submitted only once round j is on disk, and ``on_round`` is called for a
-    round once it is committed.  A run stopped meanwhile (Ctrl-C, a
-    renderer's error) first waits for that write: nothing rendered and
-    handed over is lost; a killed one resumes from the rounds on disk (the
-    one being written is planned and rendered again, the same round: the
-    plan and the seeds depend on the rounds before it only).  The last
-    round's write is left to ``acct["drain"]``, which the caller runs after
-    the final image (the two overlap).
-    """
-    # a method that reads samples observes a round while a helper thread ingests it
-    helper = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mcrecon-ingest") \
-        if method.requires.samples else None
-    writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mcrecon-log") \
-        if rnd.log_path is not None else None
-    behind = []  # (future or None, record): the round being written and its record, at most one
-
-    def drain():
-        try:
-            _written(behind, rounds, on_round, bar, stats, rnd, acct, wait=True)
-        finally:
-            if writer is not None:
-                writer.shutdown(wait=True)
-
-    try:
-        out = _sequential_rounds(renderer, method, run, stats=stats, rounds=rounds, round_index=round_index,
-                                 budget=budget, seed=seed, ref=ref, time_limit=time_limit, max_rounds=max_rounds,
-                                 on_round=on_round, bar=bar, clock=clock, rnd=rnd, acct=acct, helper=helper,
-                                 writer=writer, behind=behind)
-    except BaseException:
-        drain()
-        raise
-    else:
-        # the last round's write overlaps the final image: the caller drains it (``acct["drain"]``)
-        acct["drain"] = drain
-    finally:
-        if helper is not None:
-            helper.shutdown(wait=True)
-    return out
+        update_round_record(ctx.log_path, record)
+    ctx.rounds.append(record)
+    ctx.clock.new_rounds += 1
+    if ctx.on_round is not None:
+        ctx.on_round(record)
+    ctx.bar.update(_committed(ctx.stats), record["round"], record["wall_seconds"])
 
 
 def _wait_out(fut):
@@ -372,67 +270,122 @@ def _wait_out(fut):
     return out
 
 
-def _written(behind, rounds, on_round, bar, stats, rnd, acct, *, wait):
-    """Finish the round written behind once it is on disk (``wait``: wait for it); True when none is left.
+class _LogWrites:
+    """The log's writer thread and the round written behind the loop (at most one, in ``behind``).
 
-    A failed write raises here: the run stops with that round not committed (its samples were not lost
-    silently: the error says which file and why).  Ctrl-C while waiting does not abandon the write (the
-    log's lock is held until it is done): the wait goes on, and the interrupt is raised after it."""
-    if not behind:
+    The sequential loop hands a round's append to :attr:`executor` and goes on
+    planning and rendering; the pipelined loop waits for each append.  The run
+    calls :meth:`drain` once its loop has ended (after the final image, which
+    overlaps the last write, or on the way out of an error): the round written
+    behind is then committed and the thread ends.  Without a log there is no
+    thread, and each round is finished as soon as it is handed over.
+    """
+
+    def __init__(self, ctx):
+        self.ctx = ctx
+        self.executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mcrecon-log") \
+            if ctx.log_path is not None else None
+        self.behind = []  # (future or None, record)
+
+    def hand_over(self, pending, record) -> None:
+        """The round whose append is ``pending`` (None: none) is written behind; without a thread it is done."""
+        self.behind.append((pending, record))
+        if self.executor is None:
+            self.written(wait=True)
+
+    def written(self, *, wait) -> bool:
+        """Finish the round written behind once it is on disk (``wait``: wait for it); True when none is left.
+
+        A failed write raises here: the run stops with that round not committed (its samples were not
+        lost silently: the error says which file and why).  Ctrl-C while waiting does not abandon the
+        write (the log's lock is held until it is done): the wait goes on, and the interrupt is raised
+        after it."""
+        if not self.behind:
+            return True
+        fut, record = self.behind[0]
+        if fut is not None and not (wait or fut.done()):
+            return False
+        self.behind.clear()
+        try:
+            if fut is not None:
+                _wait_out(fut)
+        except KeyboardInterrupt:  # raised once the write was done: the round is committed
+            _finish_round(self.ctx, record)
+            raise
+        _finish_round(self.ctx, record)
         return True
-    fut, record = behind[0]
-    if fut is not None and not (wait or fut.done()):
-        return False
-    behind.clear()
+
+    def drain(self) -> None:
+        """Wait for the round written behind (it is committed before the run returns), then end the thread."""
+        try:
+            self.written(wait=True)
+        finally:
+            if self.executor is not None:
+                self.executor.shutdown(wait=True)
+
+
+def _loop_sequential(ctx, rnd, writes):
+    """Plan, render, validate, commit, one round after the other; the log written behind.
+
+    Each plan sees every round before it, as in a run without a log.  With a
+    log, round j is written by ``writes``' thread while round j+1 is planned and
+    rendered (the renderer waits for nothing but its plan); round j+1 is
+    submitted only once round j is on disk, and ``on_round`` is called for a
+    round once it is committed.  A run stopped meanwhile (Ctrl-C, a
+    renderer's error) first waits for that write (:meth:`_LogWrites.drain`):
+    nothing rendered and handed over is lost; a killed one resumes from the
+    rounds on disk (the one being written is planned and rendered again, the
+    same round: the plan and the seeds depend on the rounds before it only).
+    The last round's write is left running behind: the run drains it after
+    the final image (the two overlap).  Returns (why the run stopped, the
+    next round's index).
+    """
+    # a method that reads samples observes a round while a helper thread ingests it
+    helper = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mcrecon-ingest") \
+        if ctx.method.requires.samples else None
     try:
-        if fut is not None:
-            _wait_out(fut)
-    except KeyboardInterrupt:  # raised once the write was done: the round is committed
-        _finish_round(record, rounds, on_round, bar, stats, rnd.log_path, acct)
-        raise
-    _finish_round(record, rounds, on_round, bar, stats, rnd.log_path, acct)
-    return True
+        return _sequential_rounds(ctx, rnd, writes, helper)
+    finally:
+        if helper is not None:
+            helper.shutdown(wait=True)
 
 
-def _sequential_rounds(renderer, method, run, *, stats, rounds, round_index, budget, seed, ref, time_limit,
-                       max_rounds, on_round, bar, clock, rnd, acct, helper, writer, behind):
+def _sequential_rounds(ctx, rnd, writes, helper):
+    stats, schedule, clock = ctx.stats, ctx.schedule, ctx.clock
+    round_index = ctx.round_index
     while True:
-        if _committed(stats) >= budget:
+        if _committed(stats) >= schedule.budget:
             return "budget", round_index
-        if round_index >= max_rounds:
+        if round_index >= schedule.max_rounds:
             return "max_rounds", round_index
-        if time_limit is not None and time.perf_counter() - clock["wall_start"] >= time_limit:
+        if clock.past(schedule.time_limit):
             return "time_limit", round_index
         t0, c0 = time.perf_counter(), time.thread_time()
-        with acct["timeline"].phase("plan", round_index):
-            req, why = _plan_round(method, run, stats, round_index, budget, _committed(stats), seed, ref,
-                                   initial_rounds=acct["initial_rounds"])
+        with clock.timeline.phase("plan", round_index):
+            req, why = ctx.plan(round_index)
         if req is None:
             return why, round_index
-        _written(behind, rounds, on_round, bar, stats, rnd, acct, wait=False)  # done while planning, usually
+        writes.written(wait=False)  # done while planning, usually
         tp, cp = time.perf_counter(), time.thread_time()
-        reply, render_s, extra_s = _render(renderer, req, acct)
+        reply, render_s, extra_s = _render(ctx, req)
         t2, c2 = time.perf_counter(), time.thread_time()
         batch, n_bad = rnd.receive(req, reply, round_index)
         toolkit_s = (tp - t0) + (time.perf_counter() - t2) + extra_s
         record = {"round": round_index, "samples": len(batch),
                   "samples_total": _committed(stats) + len(batch), "renderer_seconds": render_s}
         t3 = time.perf_counter()
-        _written(behind, rounds, on_round, bar, stats, rnd, acct, wait=True)  # one round on its way at a time
-        pending = rnd.commit(batch, n_bad, record, toolkit_s, helper=helper, writer=writer)
+        writes.written(wait=True)  # one round on its way at a time
+        pending = rnd.commit(batch, n_bad, record, toolkit_s, helper=helper, writer=writes.executor)
         toolkit_s += time.perf_counter() - t3
-        acct["cpu"] += (cp - c0) + (time.thread_time() - c2)
+        clock.toolkit_cpu += (cp - c0) + (time.thread_time() - c2)
         record["toolkit_seconds"] = toolkit_s
-        record["wall_seconds"] = rnd.wall()
-        clock["wall_start"] += rnd.evaluate(record, round_index)  # evaluation is not part of the run's time
-        behind.append((pending, record))
-        if writer is None:
-            _written(behind, rounds, on_round, bar, stats, rnd, acct, wait=True)
+        record["wall_seconds"] = clock.wall()
+        clock.exclude(rnd.evaluate(record, round_index))  # evaluation is not part of the run's time
+        writes.hand_over(pending, record)
         round_index += 1
 
 
-def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget, seed, ref, time_limit,
-                    max_rounds, on_round, bar, clock, rnd, acct, planned):
+def _loop_pipelined(ctx, rnd, writes):
     """Render round j in this thread while the toolkit thread commits round j-1 and plans round j+1.
 
     The plan of round j+1 sees the rounds <= j-1 and round j as ``pending``
@@ -443,8 +396,11 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
     thread affinity, signals, Ctrl-C); the toolkit's heavy parts release
     the GIL (the statistics' and the methods' compiled kernels run with
     ``nogil``, numpy's large-array loops, the filtering pool); h5py's
-    writes hold it for their duration.
+    writes hold it for their duration.  Each round's append goes to ``writes``' thread and is
+    waited for.  Returns (why the run stopped, the next round's index).
     """
+    stats, schedule, clock = ctx.stats, ctx.schedule, ctx.clock
+    writer = writes.executor
 
     def commit(prev, carry, helper=None):
         """Validate and commit ``prev`` = (round, request, reply, renderer s, extra s): its finished record.
@@ -466,32 +422,30 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
         # a round's toolkit time: its validation and commit, the beyond-renderer part
         # of its render call, and the plan that made its request
         record["toolkit_seconds"] = carry + extra_s + (time.perf_counter() - t0)
-        record["wall_seconds"] = rnd.wall()
-        acct["cpu"] += time.thread_time() - c0
+        record["wall_seconds"] = clock.wall()
+        clock.toolkit_cpu += time.thread_time() - c0
         return record
 
     def plan(j, req_j):
         """The plan of round j+1 from what is committed, round j (``req_j``) in flight: ((req, why), seconds)."""
         t0, c0 = time.perf_counter(), time.thread_time()
-        with acct["timeline"].phase("plan", j + 1):
-            if j + 1 >= max_rounds:
+        with clock.timeline.phase("plan", j + 1):
+            if j + 1 >= schedule.max_rounds:
                 out = (None, "max_rounds")
             elif req_j is None:
-                out = _plan_round(method, run, stats, j + 1, budget, _committed(stats), seed, ref,
-                                  initial_rounds=acct["initial_rounds"])
+                out = ctx.plan(j + 1)
             else:
-                out = _plan_round(method, run, stats, j + 1, budget, _committed(stats) + req_j.total, seed, ref,
-                                  pending=_request_counts(req_j), initial_rounds=acct["initial_rounds"])
+                out = ctx.plan(j + 1, in_flight=req_j.total, pending=_request_counts(req_j))
         if out[0] is not None and prepare is not None:
             # the renderer's own preparation of the request (e.g. the Mitsuba bridge's jittered
             # positions), here while it still renders round j rather than inside its next call
-            with acct["timeline"].phase("prepare", j + 1):
+            with clock.timeline.phase("prepare", j + 1):
                 prepare(out[0])
-        acct["cpu"] += time.thread_time() - c0
+        clock.toolkit_cpu += time.thread_time() - c0
         return out, time.perf_counter() - t0
 
     # optional: a renderer that computes part of its reply ahead (same reply with or without)
-    prepare = getattr(renderer, "prepare", None)
+    prepare = getattr(ctx.renderer, "prepare", None)
     prepare = prepare if callable(prepare) else None
 
     def job(prev, carry, j, req_j):
@@ -505,11 +459,12 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
         return record, (out, secs + (carry if prev is None else 0.0))
 
     def done(record):
-        clock["wall_start"] += record.pop("_eval", 0.0)  # evaluation is not part of the run's time
-        _finish_round(record, rounds, on_round, bar, stats, rnd.log_path, acct)
+        clock.exclude(record.pop("_eval", 0.0))  # evaluation is not part of the run's time
+        _finish_round(ctx, record)
 
-    blind = acct["initial_rounds"] == 2  # round 1 is the second half of the driver's initial pass
-    j = round_index
+    blind = schedule.initial_rounds == 2  # round 1 is the second half of the driver's initial pass
+    j = ctx.round_index
+    planned = ctx.planned
     if planned is None:
         # a new run (round 0: nothing to plan from) or a resume after round 0 (round 1 sees it)
         (req, why), carry = plan(j - 1, None)
@@ -517,17 +472,16 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
         (req, why), carry = planned, 0.0
     uncommitted = None   # the rendered round not yet committed
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mcrecon-toolkit")
-    writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mcrecon-log") if rnd.log_path is not None else None
     fut = None
     try:
         while True:
             if req is None:
                 stopped = why
                 break
-            if j >= max_rounds:
+            if j >= schedule.max_rounds:
                 stopped = "max_rounds"
                 break
-            if time_limit is not None and time.perf_counter() - clock["wall_start"] >= time_limit:
+            if clock.past(schedule.time_limit):
                 stopped = "time_limit"
                 break
             # round 1 is planned from round 0, after it (no toolkit work to overlap), unless
@@ -537,7 +491,7 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
                 fut = pool.submit(job, uncommitted, carry, j, req)
                 uncommitted = None
             try:
-                reply, render_s, extra_s = _render(renderer, req, acct)
+                reply, render_s, extra_s = _render(ctx, req)
             except BaseException:
                 if fut is not None:
                     # the round before is committed first (nothing committed is lost);
@@ -582,5 +536,3 @@ def _loop_pipelined(renderer, method, run, *, stats, rounds, round_index, budget
             with contextlib.suppress(BaseException):
                 fut.result()
         pool.shutdown(wait=True)
-        if writer is not None:
-            writer.shutdown(wait=True)

@@ -44,13 +44,11 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from ..errors import InputError, McreconWarning
-from ..io.logformat import MAX_PIXELS
 from ..io.writer import set_run_settings, write_log
 from ..io.lock import log_lock
 from ..io.reader import read_log
-from ..methods.base import Method
+from ..methods.base import Method, RunState
 from ..methods import get_method
-from ..methods.base import RunState
 from ..core.requests import SampleBatch
 from ..renderers.spec import renderer_from_spec
 from ..core.samples import (NONFINITE_POLICIES, check_reference)
@@ -58,9 +56,9 @@ from ..core.stats import PixelStats
 
 
 from .._lazy import public_dir as _public_dir
-from .rounds import _Progress, _Round, _Timeline, _loop_pipelined, _loop_sequential, _take_round
-from .schedule import (STORAGE_DTYPES, _adaptive_state, _committed, _initial_rounds, _pixel_counts_of,
-                       _plan_round, method_pipelines, round_seeds)
+from .context import RunContext, SessionOptions, _check_renderer, _renderer_name
+from .rounds import _LogWrites, _Round, _loop_pipelined, _loop_sequential, _take_round
+from .schedule import STORAGE_DTYPES, _pixel_counts_of, method_pipelines, round_seeds
 
 __all__ = ['adapt', 'resume', 'AdaptiveResult']
 
@@ -165,24 +163,6 @@ class AdaptiveResult:
         return float(sum(r["toolkit_seconds"] for r in self.rounds))
 
 
-def _renderer_name(renderer) -> str:
-    return str(getattr(renderer, "name", type(renderer).__name__))
-
-
-def _check_renderer(renderer):
-    for attr in ("width", "height", "channels", "render"):
-        if not hasattr(renderer, attr):
-            raise InputError("renderer", attr, "missing: a renderer needs width, height, channels and "
-                             "render(request) (see mcrecon.renderers.protocol.Renderer)")
-    w, h = int(renderer.width), int(renderer.height)
-    if w < 1 or h < 1:
-        raise InputError("renderer", "width/height", f"{w}x{h}, expected at least 1x1")
-    if w * h > MAX_PIXELS:
-        raise InputError("renderer", "width/height", f"{w}x{h} = {w * h} pixels, beyond the {MAX_PIXELS} pixels "
-                         "mcrecon can hold images of")
-    return w, h, tuple(str(c) for c in renderer.channels)
-
-
 def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=None,
           time_limit: float | None = None, progress: bool | None = None, nonfinite: str = "drop",
           max_rounds: int = 10_000, track_error: bool = True, eps: float = 0.01,
@@ -267,7 +247,6 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
     if float(spp) * w * h >= 2.0 ** 62:
         raise InputError("adapt", "spp", f"{spp} samples per pixel on {w}x{h} is beyond any budget "
                          "(at most 2^62 samples)")
-    budget = int(round(float(spp) * w * h))
     if renderer_spec is None:
         own = getattr(renderer, "spec", None)
         renderer_spec = own() if callable(own) else None
@@ -282,40 +261,47 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
         "renderer_spec": dict(renderer_spec or {}), "storage_dtype": storage_dtype,
         "pipeline": bool(pipeline), "options_version": OPTIONS_VERSION,
     }
-    log_path = None
-    held = contextlib.ExitStack()
-    if log is not None:
-        log_path = Path(log)
-        # The run holds its log's writer lock from creation to the end: a second run or
-        # a resume on the same log is refused (naming this process), see log_lock.
-        held.enter_context(log_lock(log_path))
-    with held:
-        return _start(renderer, method, w=w, h=h, channels=channels, ref=ref, budget=budget, settings=settings,
-                      seed=seed, log_path=log_path, overwrite=overwrite, metadata=metadata, storage_dtype=storage_dtype,
-                      time_limit=time_limit, progress=progress, nonfinite=nonfinite, max_rounds=max_rounds,
-                      track_error=track_error, eps=eps, on_round=on_round, pipeline=bool(pipeline))
-
-
-def _start(renderer, method, *, w, h, channels, ref, budget, settings, seed, log_path, overwrite, metadata,
-           storage_dtype, time_limit, progress, nonfinite, max_rounds, track_error, eps, on_round, pipeline):
-    if log_path is not None:
+    session = SessionOptions(progress=progress, time_limit=time_limit, track_error=track_error, eps=eps,
+                             max_rounds=max_rounds, on_round=on_round)
+    if log is None:
+        return _drive(RunContext.assemble(renderer, method, settings, reference=ref, log_path=None, session=session))
+    log_path = Path(log)
+    # The run holds its log's writer lock from creation to the end: a second run or
+    # a resume on the same log is refused (naming this process), see log_lock.
+    with log_lock(log_path):
         if log_path.exists() and not overwrite:
             raise InputError(str(log_path), "file", "exists; resume it with --resume / mcrecon.adaptive.run.resume, "
                              "or choose another path")
-        meta = {"renderer": _renderer_name(renderer), "seed": int(seed), **dict(metadata or {}),
-                "settings": settings}
-        # ``auto`` creates float32 datasets; the first reply may turn them into float64
-        # (the log is still empty then, see _resolve_storage).
-        placeholder = "float32" if storage_dtype == "auto" else storage_dtype
-        write_log(log_path, np.zeros((0, 2), placeholder), np.zeros((0, len(channels)), placeholder),
-                  width=w, height=h, channels=channels, reference=ref, metadata=meta)
-        set_run_settings(log_path, settings)
-    stats = PixelStats(w, h, channels, subpixels=method.requires.subpixels)
-    run = method.start(w, h, channels, reference=ref)
-    return _run(renderer, method, run, stats=stats, rounds=[], round_index=0, budget=budget, seed=int(seed),
-                log_path=log_path, ref=ref, time_limit=time_limit, progress=progress, nonfinite=nonfinite,
-                max_rounds=max_rounds, track_error=track_error, eps=eps, elapsed=0.0, on_round=on_round,
-                storage_dtype=storage_dtype, pipeline=pipeline)
+        ctx = None
+        try:
+            _create_log(log_path, settings, reference=ref, metadata=metadata)
+            ctx = RunContext.assemble(renderer, method, settings, reference=ref, log_path=log_path, session=session)
+            return _drive(ctx)
+        except Exception:
+            if ctx is None or not ctx.rounds:
+                # refused or failed before its first round was committed: the log holds nothing to resume,
+                # and left behind it would refuse the retry ("exists")
+                _remove_log(log_path)
+            raise
+
+
+def _create_log(log_path, settings, *, reference, metadata):
+    """A new run's empty log, its metadata and run settings."""
+    meta = {"renderer": settings["renderer"], "seed": settings["seed"], **dict(metadata or {}),
+            "settings": settings}
+    # ``auto`` creates float32 datasets; the first reply may turn them into float64
+    # (the log is still empty then, see _resolve_storage).
+    placeholder = "float32" if settings["storage_dtype"] == "auto" else settings["storage_dtype"]
+    c = len(settings["channels"])
+    write_log(log_path, np.zeros((0, 2), placeholder), np.zeros((0, c), placeholder), width=settings["width"],
+              height=settings["height"], channels=tuple(settings["channels"]), reference=reference, metadata=meta)
+    set_run_settings(log_path, settings)
+
+
+def _remove_log(log_path) -> None:
+    """Remove a log this run created (a log a resume continues is never removed)."""
+    with contextlib.suppress(FileNotFoundError):
+        log_path.unlink()
 
 
 #: Version of the recorded method options: 2 since ci's ``exposure`` is in stops (it was a linear factor).
@@ -351,12 +337,12 @@ def resume(log, renderer=None, *, progress: bool | None = None, time_limit: floa
         As for :func:`adapt`; ``time_limit`` defaults to the recorded one.
     """
     log_path = Path(log)
+    session = SessionOptions(progress=progress, time_limit=time_limit, track_error=track_error, on_round=on_round)
     with log_lock(log_path):  # refused while another run or resume writes this log
-        return _resume(log_path, renderer, progress=progress, time_limit=time_limit, track_error=track_error,
-                       on_round=on_round)
+        return _resume(log_path, renderer, session)
 
 
-def _resume(log_path, renderer, *, progress, time_limit, track_error, on_round) -> AdaptiveResult:
+def _resume(log_path, renderer, session) -> AdaptiveResult:
     sl = read_log(log_path)
     s = sl.run_settings
     if not s:
@@ -373,89 +359,71 @@ def _resume(log_path, renderer, *, progress, time_limit, track_error, on_round) 
         raise InputError(str(log_path), "renderer", f"renderer is {w}x{h} {channels}, the run was "
                          f"{s['width']}x{s['height']} {s['channels']}")
     method = get_method(s["method"], **_current_options(s))
-    ref = sl.reference()
-    run = method.start(w, h, channels, reference=ref)
-    pipeline = bool(s.get("pipeline", False))  # logs of runs before pipelining: sequential
-    budget = int(round(float(s["spp"]) * w * h))
-    # Replay the committed rounds exactly as the live run took them: one batch
-    # per round (the statistics merge runs of same-pixel samples within a batch,
-    # so other batch boundaries would round differently for float64 values),
-    # one round in memory at a time; observe() only for methods that read samples.
-    # A pipelined run had planned round K (the one in flight when it stopped) from
-    # the rounds <= K-2 with round K-1 pending: that plan is made again between
-    # the replays of rounds K-2 and K-1, exactly as the live run made it (round 1,
-    # when the driver split the initial pass, depends only on the sample count).
-    stats = PixelStats(w, h, channels, subpixels=method.requires.subpixels)
-    k = sl.n_rounds
+    ctx = RunContext.assemble(renderer, method, s, reference=sl.reference(), log_path=log_path, session=session,
+                              resumed=sl)
+    ctx.planned = _replay(ctx, sl)
+    return _drive(ctx)
+
+
+def _replay(ctx, sl):
+    """The log's committed rounds into the context's statistics and method, exactly as the live run took them.
+
+    One batch per round (the statistics merge runs of same-pixel samples
+    within a batch, so other batch boundaries would round differently for
+    float64 values), one round in memory at a time; ``observe`` only for
+    methods that read samples.  A pipelined run had planned round K (the one
+    in flight when it stopped) from the rounds <= K-2 with round K-1 pending:
+    that plan is made again between the replays of rounds K-2 and K-1,
+    exactly as the live run made it (round 1, when the driver split the
+    initial pass, depends only on the sample count).  Returns that plan
+    (None: the session plans its first round itself).
+    """
+    k, w, h = sl.n_rounds, ctx.stats.width, ctx.stats.height
+    features = sl.feature_names if ctx.method.requires.features != "none" else ()
     planned = None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", McreconWarning)  # the live run reported them
         for r in range(k):
-            chunk = sl.read_all(rounds=[r], features=sl.feature_names if method.requires.features != "none" else ())
-            if pipeline and r == k - 1 and k >= 2:
-                pending = _pixel_counts_of(chunk.positions, w, h)
-                planned = _plan_round(method, run, stats, k, budget, _committed(stats) + len(chunk.positions),
-                                      int(s["seed"]), ref, pending=pending,
-                                      initial_rounds=_initial_rounds(method, pipeline, budget, w * h))
+            chunk = sl.read_all(rounds=[r], features=features)
+            if ctx.schedule.pipeline and r == k - 1 and k >= 2:
+                planned = ctx.plan(k, in_flight=len(chunk.positions),
+                                   pending=_pixel_counts_of(chunk.positions, w, h))
                 if planned[0] is None and planned[1] == "wait":
                     # the live run committed round K-1 first, then planned round K from it
                     planned = None
-            _take_round(method, run, stats, SampleBatch(chunk.positions, chunk.values, chunk.features), r,
-                        s["nonfinite"], str(log_path))
-    records = list(sl.round_records)
-    elapsed = float(records[-1]["wall_seconds"]) if records else 0.0
-    tl = time_limit if time_limit is not None else s.get("time_limit")
-    return _run(renderer, method, run, stats=stats, rounds=records, round_index=k, budget=budget,
-                seed=int(s["seed"]), log_path=log_path, ref=ref, time_limit=tl, progress=progress,
-                nonfinite=s["nonfinite"], max_rounds=10_000, track_error=track_error, eps=0.01,
-                elapsed=elapsed, on_round=on_round,
-                storage_dtype=s.get("storage_dtype", "float32") if sl.n_samples == 0 else str(sl.value_dtype),
-                pipeline=pipeline, planned=planned)
+            _take_round(ctx, SampleBatch(chunk.positions, chunk.values, chunk.features), r, source=str(ctx.log_path))
+    return planned
 
 
-def _run(renderer, method, run, *, stats, rounds, round_index, budget, seed, log_path, ref, time_limit,
-         progress, nonfinite, max_rounds, track_error, eps, elapsed, on_round,
-         storage_dtype, pipeline=False, planned=None) -> AdaptiveResult:
-    name = _renderer_name(renderer)
-    bar = _Progress(progress, budget)
-    clock = {"wall_start": time.perf_counter() - elapsed}
-    timeline = _Timeline()
-    rnd = _Round(method, run, stats, name=name, c=len(stats.channels), log_path=log_path, nonfinite=nonfinite,
-                 ref=ref, track_error=track_error, eps=eps, budget=budget, storage_dtype=storage_dtype,
-                 wall=lambda: time.perf_counter() - clock["wall_start"], timeline=timeline,
-                 fresh_replies=bool(getattr(renderer, "fresh_replies", False)))
-    acct = {"render": 0.0, "cpu": 0.0, "timeline": timeline, "bar": bar,
-            "initial_rounds": _initial_rounds(method, pipeline, budget, stats.width * stats.height)}
-    bar.n, bar.wall = _committed(stats), elapsed
-    n_before = len(rounds)
+def _drive(ctx) -> AdaptiveResult:
+    """This session of the run: its loop, then the final image."""
+    ctx.start()
+    rnd, writes = _Round(ctx), _LogWrites(ctx)
+    n_before = len(ctx.rounds)
     loop_t0 = time.perf_counter()
     try:
-        loop = _loop_pipelined if pipeline else _loop_sequential
-        stopped, round_index = loop(renderer, method, run, stats=stats, rounds=rounds, round_index=round_index,
-                                    budget=budget, seed=seed, ref=ref, time_limit=time_limit, max_rounds=max_rounds,
-                                    on_round=on_round, bar=bar, clock=clock, rnd=rnd, acct=acct, planned=planned)
-        loop_s = time.perf_counter() - loop_t0
-        tf = time.perf_counter()
         try:
-            rng, _ = round_seeds(seed, round_index)
-            final = _adaptive_state(stats, round_index, budget, _committed(stats), rng, ref)
-            image = method.finish(run, final)
+            loop = _loop_pipelined if ctx.schedule.pipeline else _loop_sequential
+            stopped, round_index = loop(ctx, rnd, writes)
+            loop_s = time.perf_counter() - loop_t0
+            tf = time.perf_counter()
+            rng, _ = round_seeds(ctx.schedule.seed, round_index)
+            image = ctx.method.finish(ctx.run, ctx.schedule.final_state(ctx.stats, round_index, rng))
         finally:
             # the last round's log write (a sequential loop leaves it running behind): committed before
             # the run returns, whatever the final image did
-            drain = acct.pop("drain", None)
-            if drain is not None:
-                drain()
+            writes.drain()
     finally:
-        bar.close()
-    eval_s = sum(float(r.get("eval_seconds", 0.0)) for r in rounds[len(rounds) - acct.get("new", 0):])
-    return AdaptiveResult(image=np.asarray(image, dtype=np.float64), stats=stats, rounds=rounds,
-                          stopped=stopped, log=log_path, method=method, run=run, pipelined=bool(pipeline),
-                          resumed_rounds=n_before,
-                          loop_seconds=loop_s - eval_s, idle_seconds=max(loop_s - eval_s - acct["render"], 0.0),
-                          toolkit_cpu_seconds=acct["cpu"] + sum(e["cpu"] for e in timeline.events
-                                                                 if e.get("helper")),
+        ctx.bar.close()
+    clock = ctx.clock
+    eval_s = sum(float(r.get("eval_seconds", 0.0)) for r in ctx.rounds[len(ctx.rounds) - clock.new_rounds:])
+    return AdaptiveResult(image=np.asarray(image, dtype=np.float64), stats=ctx.stats, rounds=ctx.rounds,
+                          stopped=stopped, log=ctx.log_path, method=ctx.method, run=ctx.run,
+                          pipelined=ctx.schedule.pipeline, resumed_rounds=n_before,
+                          loop_seconds=loop_s - eval_s, idle_seconds=max(loop_s - eval_s - clock.render_seconds, 0.0),
+                          toolkit_cpu_seconds=clock.toolkit_cpu + sum(e["cpu"] for e in clock.timeline.events
+                                                                      if e.get("helper")),
                           finish_seconds=time.perf_counter() - tf,
-                          timeline=timeline.events)
+                          timeline=clock.timeline.events)
 
 __dir__ = _public_dir(__name__)

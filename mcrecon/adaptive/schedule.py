@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 
 import numpy as np
 
@@ -87,36 +88,74 @@ def _with_seed(req, round_index, seed):
     return out
 
 
-def _adaptive_state(stats, round_index, budget, n_samples, rng, ref, *, pending=None,
+def _adaptive_state(stats, schedule, round_index, n_samples, rng, *, pending=None,
                     initial_rounds=1) -> AdaptiveState:
-    return AdaptiveState(stats, round_index, budget, n_samples, rng, ref, pending=pending,
+    """The state a plan (or the final image) sees; ``iteration`` counts from the end of ``initial_rounds``."""
+    return AdaptiveState(stats, round_index, schedule.budget, n_samples, rng, schedule.reference, pending=pending,
                          iteration=max(int(round_index) - int(initial_rounds), 0))
 
 
-def _plan_round(method, run, stats, round_index, budget, n_total, seed, ref, *, pending=None, initial_rounds=1):
-    """(request with its seeds, None) or (None, why the run stops) for round ``round_index``.
+@dataclasses.dataclass(frozen=True, eq=False)
+class Schedule:
+    """What decides a run's rounds: its budget, seed, the driver's initial pass and when it stops.
 
-    ``n_total``: samples committed plus in flight (``pending``, per pixel).
-    The rounds of the initial pass are the driver's own; later ones the
-    method's plan.  Depends only on its arguments: the same in a live run
-    and in a resume.  ``(None, "wait")``: with a round in flight the plan
-    asked for nothing (the round in flight is committed first, then this
-    round is planned again without ``pending``).
+    The same in a live run and in its resume (only ``time_limit`` may be
+    given again), so a plan depends on the committed statistics alone.
+
+    Attributes
+    ----------
+    budget : int
+        Samples of the whole run (``round(spp * W * H)``).
+    seed : int
+        The run seed (:func:`round_seeds`).
+    initial_rounds : int
+        Rounds of the driver's uniform initial pass (:func:`_initial_rounds`).
+    reference : ndarray (H, W, C) or None
+        Ground truth the plans see (oracle modes) and the per-round error uses.
+    max_rounds : int
+        No round with this index or later starts.
+    time_limit : float or None
+        Wall seconds of the run (over its sessions); no round starts after it.
+    pipeline : bool
+        Pipelined rounds (see :func:`mcrecon.adaptive.adapt`).
     """
-    if n_total >= budget:
-        return None, "budget"
-    rng, rseed = round_seeds(seed, round_index)
-    state = _adaptive_state(stats, round_index, budget, n_total, rng, ref, pending=pending,
-                            initial_rounds=initial_rounds)
-    if round_index < initial_rounds:
-        req = _initial_request(method, state, initial_rounds)
-    else:
-        req = method.plan(run, state)
-    if req is None:
-        return None, "converged"
-    if req.total == 0:
-        return None, ("wait" if pending is not None else "converged")
-    if req.total > state.remaining:
-        raise RuntimeError(f"method {method.name} planned {req.total} samples with only "
-                           f"{state.remaining} left in the budget (a bug in the method)")
-    return _with_seed(req, round_index, rseed), None
+
+    budget: int
+    seed: int
+    initial_rounds: int = 1
+    reference: np.ndarray | None = None
+    max_rounds: int = 10_000
+    time_limit: float | None = None
+    pipeline: bool = False
+
+    def plan(self, method, run, stats, round_index, n_total, *, pending=None):
+        """(request with its seeds, None) or (None, why the run stops) for round ``round_index``.
+
+        ``n_total``: samples committed plus in flight (``pending``, per pixel).
+        The rounds of the initial pass are the driver's own; later ones the
+        method's plan.  Depends only on its arguments: the same in a live run
+        and in a resume.  ``(None, "wait")``: with a round in flight the plan
+        asked for nothing (the round in flight is committed first, then this
+        round is planned again without ``pending``).
+        """
+        if n_total >= self.budget:
+            return None, "budget"
+        rng, rseed = round_seeds(self.seed, round_index)
+        state = _adaptive_state(stats, self, round_index, n_total, rng, pending=pending,
+                                initial_rounds=self.initial_rounds)
+        if round_index < self.initial_rounds:
+            req = _initial_request(method, state, self.initial_rounds)
+        else:
+            req = method.plan(run, state)
+        if req is None:
+            return None, "converged"
+        if req.total == 0:
+            return None, ("wait" if pending is not None else "converged")
+        if req.total > state.remaining:
+            raise RuntimeError(f"method {method.name} planned {req.total} samples with only "
+                               f"{state.remaining} left in the budget (a bug in the method)")
+        return _with_seed(req, round_index, rseed), None
+
+    def final_state(self, stats, round_index, rng) -> AdaptiveState:
+        """The state the image after round ``round_index - 1`` is made from (``method.finish``)."""
+        return _adaptive_state(stats, self, round_index, _committed(stats), rng)
