@@ -387,11 +387,12 @@ def _cmd_adapt(args):
             check_log_output(args.log, flag="--log", overwrite=None)
         spec, renderer = _renderer(args)
         if args.reference is not None:
-            import numpy as np
-
+            from ..core.samples import check_reference
             from ..io import read_exr
 
-            ref = read_exr(args.reference)[0].astype(np.float64)
+            # checked here, where the file is known: the driver's check can name only "reference"
+            ref = check_reference(read_exr(args.reference)[0], (renderer.height, renderer.width,
+                                                                len(renderer.channels)), where=args.reference)
         else:
             ref = reference_from_spec(spec)
         method = make_method(args.method, args, args.method_flags)
