@@ -1,6 +1,8 @@
 """Adaptive runs: rounds of plan -> request -> render -> validate -> commit, resumable from their log.
 
 * :mod:`.run` -- :func:`adapt`, :func:`resume`, :class:`AdaptiveResult`;
+* :mod:`.context` -- :class:`~.context.RunContext`, the run's parts, schedule and accounting, assembled
+  once by ``adapt`` and ``resume`` alike; :class:`~.context.RunClock`;
 * :mod:`.schedule` -- round seeds, the driver's initial pass, planning a round, pipelining declarations;
 * :mod:`.rounds` -- one round (render, validate, commit) and the sequential and pipelined loops.
 """

@@ -183,7 +183,11 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
         Run seed: the whole run is reproducible from it.
     log : path-like, optional
         Sample log to create; every round is committed to it before the
-        next request.  Refused if it exists, unless ``overwrite``.
+        next request.  Refused if it exists, unless ``overwrite``.  A run
+        that raises before its first round is committed (a renderer that
+        fails in round 0, a method that refuses the first reply) removes
+        the log it created: there is nothing to resume, and the retry is
+        not refused.  Once a round is committed, the log stays resumable.
     reference : ndarray (H, W, C), optional
         Ground truth for the per-round error (and oracle modes).
     time_limit : float, optional
