@@ -276,9 +276,9 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
         if log_path.exists() and not overwrite:
             raise InputError(str(log_path), "file", "exists; resume it with --resume / mcrecon.adaptive.run.resume, "
                              "or choose another path")
+        _create_log(log_path, settings, reference=ref, metadata=metadata)
         ctx = None
         try:
-            _create_log(log_path, settings, reference=ref, metadata=metadata)
             ctx = RunContext.assemble(renderer, method, settings, reference=ref, log_path=log_path, session=session)
             return _drive(ctx)
         except Exception:
@@ -290,21 +290,27 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
 
 
 def _create_log(log_path, settings, *, reference, metadata):
-    """A new run's empty log, its metadata and run settings."""
+    """A new run's empty log, its metadata and run settings (a log that fails half way is removed)."""
     meta = {"renderer": settings["renderer"], "seed": settings["seed"], **dict(metadata or {}),
             "settings": settings}
     # ``auto`` creates float32 datasets; the first reply may turn them into float64
     # (the log is still empty then, see _resolve_storage).
     placeholder = "float32" if settings["storage_dtype"] == "auto" else settings["storage_dtype"]
     c = len(settings["channels"])
+    # written atomically: a failure leaves the path as it was (a file ``overwrite`` would replace included)
     write_log(log_path, np.zeros((0, 2), placeholder), np.zeros((0, c), placeholder), width=settings["width"],
               height=settings["height"], channels=tuple(settings["channels"]), reference=reference, metadata=meta)
-    set_run_settings(log_path, settings)
+    try:
+        set_run_settings(log_path, settings)
+    except Exception:
+        _remove_log(log_path)
+        raise
 
 
 def _remove_log(log_path) -> None:
-    """Remove a log this run created (a log a resume continues is never removed)."""
-    with contextlib.suppress(FileNotFoundError):
+    """Remove a log this run created (a log a resume continues is never removed); the run's own error,
+    raised after this, is what the caller hears of: a removal that fails is left at that."""
+    with contextlib.suppress(OSError):
         log_path.unlink()
 
 
