@@ -34,6 +34,7 @@ from .._lazy import public_dir as _public_dir
 from ..core.stats import PixelStats
 from ..errors import InputError
 from ..io.logformat import MAX_PIXELS
+from ..methods.base import Method, RunState
 from .schedule import Schedule, _committed, _initial_rounds
 
 __all__ = ["RunContext", "RunClock", "SessionOptions"]
@@ -189,8 +190,8 @@ class RunContext:
     """
 
     renderer: Any
-    method: Any
-    run: Any
+    method: Method
+    run: RunState
     stats: PixelStats
     schedule: Schedule
     log_path: Path | None
