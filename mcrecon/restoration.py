@@ -116,13 +116,13 @@ def _method_function(fn):
     cls = method_class(name)
     written = inspect.signature(fn)
     params = [p for p in written.parameters.values() if p.kind is not inspect.Parameter.VAR_KEYWORD]
-    source, own = params[0], params[1:]
+    source_param, own = params[0], params[1:]
     valid = [o.name for o in cls.options]
     clash = set(valid) & {p.name for p in params}
     if clash:
         raise TypeError(f"restoration.{name}: options {sorted(clash)} clash with the function's own parameters")
-    options = [inspect.Parameter(o.name, inspect.Parameter.KEYWORD_ONLY, default=o.default, annotation=_annotation(o))
-               for o in cls.options]
+    option_params = [inspect.Parameter(o.name, inspect.Parameter.KEYWORD_ONLY, default=o.default,
+                                       annotation=_annotation(o)) for o in cls.options]
     own_defaults = {p.name: p.default for p in own}
 
     @functools.wraps(fn)
@@ -132,7 +132,7 @@ def _method_function(fn):
         unknown = {k: v for k, v in given.items() if k not in valid}
         return _run(name, source, fixed.get("reference"), fixed["nonfinite"], options, unknown)
 
-    call.__signature__ = written.replace(parameters=[source, *options, *own])
+    call.__signature__ = written.replace(parameters=[source_param, *option_params, *own])
     call.__doc__ = _with_option_entries(fn.__doc__, cls, [p.name for p in own])
     del call.__wrapped__  # the signature is the one built here, not the written-out one's
     return call
