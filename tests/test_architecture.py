@@ -1,9 +1,10 @@
 """The layers of docs/architecture.md, enforced: every import in mcrecon/ goes to its own layer or a lower one.
 
 Imports are read from the source (module level and inside functions alike), so a
-lazy import cannot hide an upward dependency.  Also: no import circle among the
-modules at module level, every module at most 700 lines, and each paper's method
-package imports only the contract, the shared layers and itself.
+lazy import cannot hide an upward dependency or an import circle.  Also: no import
+circle among the modules, every module at most 700 lines, each paper's method
+package imports only the contract, the shared layers and itself, and the private
+names one package imports from another do not grow in number.
 """
 
 from __future__ import annotations
@@ -41,9 +42,10 @@ def _modules():
         yield ".".join(parts), path, is_pkg
 
 
-def _imports(mod: str, path: Path, is_pkg: bool, *, top_only: bool = False):
-    """(target module, line) of every mcrecon import in a file (targets resolved to modules where they are)."""
-    tree = ast.parse(path.read_text())
+def _imports(mod: str, path: Path, is_pkg: bool, *, top_only: bool = False, source: str | None = None):
+    """(target module, line) of every mcrecon import in a file (targets resolved to modules where they are);
+    ``source``: the text to read in place of the file's."""
+    tree = ast.parse(path.read_text() if source is None else source)
     nodes = tree.body if top_only else ast.walk(tree)
     for node in nodes:
         if isinstance(node, ast.ImportFrom):
@@ -129,19 +131,33 @@ def test_only_io_opens_hdf5_and_exr_files():
     assert not bad, "\n".join(bad)
 
 
-def test_no_import_circle_at_module_level():
-    graph = {}
-    for mod, path, is_pkg in _modules():
-        graph[mod] = {t for t, _ in _imports(mod, path, is_pkg, top_only=True) if t != mod}
-    # a package's __init__ importing its own sub-modules is how packages re-export: not a circle
-    # unless a sub-module imports the package back at module level
+#: Import circles known to be removed on other branches, tolerated until they are merged: each an exact
+#: set of modules.  Empty this list once those branches are in (a circle listed here that no longer exists
+#: is harmless; any other circle fails the test).
+KNOWN_CIRCLES = [
+    {"mcrecon.methods", "mcrecon.methods.base"},                    # the registry and the method contract
+    {"mcrecon.io.pixel_exr", "mcrecon.io.pixel_exr_features"},      # pixel EXR inputs and their features
+]
+
+
+def _import_graph(*, top_only: bool = False, sources: dict | None = None) -> dict[str, set[str]]:
+    """``{module: the mcrecon modules it imports}``, module level and, unless ``top_only``, inside functions
+    (``sources``: ``{module: text}`` read in place of those modules' files)."""
+    sources = sources or {}
+    return {mod: {t for t, _ in _imports(mod, path, is_pkg, top_only=top_only, source=sources.get(mod)) if t != mod}
+            for mod, path, is_pkg in _modules()}
+
+
+def _import_circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected groups of more than one module of an import graph, each sorted, in a stable
+    order (Tarjan's algorithm)."""
     index, low, stack, on, circles = {}, {}, [], set(), []
 
     def visit(v):
         index[v] = low[v] = len(index)
         stack.append(v)
         on.add(v)
-        for w in graph.get(v, ()):
+        for w in sorted(graph.get(v, ())):
             if w not in graph:
                 continue
             if w not in index:
@@ -161,11 +177,89 @@ def test_no_import_circle_at_module_level():
                 circles.append(sorted(comp))
 
     import sys
-    sys.setrecursionlimit(10000)
-    for v in graph:
-        if v not in index:
-            visit(v)
-    assert not circles, f"import circles: {circles}"
+    limit = sys.getrecursionlimit()
+    sys.setrecursionlimit(max(limit, 10000))
+    try:
+        for v in sorted(graph):
+            if v not in index:
+                visit(v)
+    finally:
+        sys.setrecursionlimit(limit)
+    return sorted(circles)
+
+
+def test_no_import_circle():
+    """No two modules import each other, directly or through others, counting the imports inside
+    functions: a lazy import defers a circle to run time, it does not remove it.  (A package's
+    ``__init__`` importing its sub-modules is a circle only where a sub-module imports the package back.)"""
+    circles = _import_circles(_import_graph())
+    unknown = [c for c in circles if set(c) not in KNOWN_CIRCLES]
+    known = [c for c in circles if set(c) in KNOWN_CIRCLES]
+    assert not unknown, (f"import circles (module level and inside functions): {unknown}"
+                         + (f"; tolerated until merged (KNOWN_CIRCLES): {known}" if known else ""))
+
+
+def test_the_circle_check_reads_imports_inside_functions():
+    """A circle closed by an import inside a function is found (core/features naming its sources through
+    core/samples, which imports core/features, was one), and a module-level-only reading misses it."""
+    features = PACKAGE / "core" / "features.py"
+    lazy = {"mcrecon.core.features": features.read_text() + "\n\ndef _name(src):\n"
+            "    from .samples import source_name\n    return source_name(src)\n"}
+    pair = ["mcrecon.core.features", "mcrecon.core.samples"]
+    assert pair in _import_circles(_import_graph(sources=lazy))
+    assert pair not in _import_circles(_import_graph(top_only=True, sources=lazy))
+
+
+#: Underscore-private names one top-level part of the package imports from another (``from mcrecon.X
+#: import _name`` in a module outside X): at most this many.  Lower it as they go (a name another package
+#: needs becomes public there); never raise it.
+MAX_PRIVATE_IMPORTS_ACROSS_PACKAGES = 13
+
+
+def _private_imports_across_packages(sources: dict | None = None) -> list[str]:
+    """``file:line: target._name`` for every import of an underscore-private name (``_x``, not a dunder)
+    whose importing module is in another top-level part of mcrecon (core, io, methods, ...) than the
+    module it imports from; imports inside functions count too (``sources``: ``{module: text}`` read in
+    place of those modules' files)."""
+    sources = sources or {}
+    out = []
+    for mod, path, is_pkg in _modules():
+        text = sources.get(mod)
+        for node in ast.walk(ast.parse(path.read_text() if text is None else text)):
+            if not isinstance(node, ast.ImportFrom):
+                continue
+            if node.level:
+                base = mod.split(".") if is_pkg else mod.split(".")[:-1]
+                base = base[:len(base) - (node.level - 1)] if node.level > 1 else base
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            if not target.startswith("mcrecon") or _part(target) == _part(mod):
+                continue
+            out += [f"{path.relative_to(PACKAGE.parent)}:{node.lineno}: {target}.{a.name}" for a in node.names
+                    if a.name.startswith("_") and not a.name.startswith("__")]
+    return out
+
+
+def test_private_names_imported_across_packages_do_not_grow():
+    found = _private_imports_across_packages()
+    assert len(found) <= MAX_PRIVATE_IMPORTS_ACROSS_PACKAGES, (
+        f"{len(found)} underscore-private names imported across packages (at most "
+        f"{MAX_PRIVATE_IMPORTS_ACROSS_PACKAGES}): make a name another package needs public in its own "
+        "package:\n" + "\n".join(found))
+
+
+def test_the_private_import_count_reads_relative_and_function_local_imports():
+    """Counted: a private name from another package, by a relative import inside a function; not counted:
+    one from the module's own package, a public name, a dunder."""
+    before = len(_private_imports_across_packages())
+    text = (PACKAGE / "methods" / "box.py").read_text() + (
+        "\n\ndef _f():\n    from ..core.samples import _LazyKernel\n    from .base import _MISSING\n"
+        "    from ..core.samples import source_name, __doc__\n")
+    found = _private_imports_across_packages({"mcrecon.methods.box": text})
+    assert len(found) == before + 1
+    box = [f for f in found if f.startswith("mcrecon/methods/box.py")]
+    assert box[-1].endswith(": mcrecon.core.samples._LazyKernel")
 
 
 @pytest.mark.parametrize("mod,path", [(m, p) for m, p, _ in _modules()], ids=lambda x: str(x))

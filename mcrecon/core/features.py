@@ -194,6 +194,12 @@ def layout_of(stats_features: Mapping) -> dict[str, int]:
     return {name: len(st.channels) for name, st in stats_features.items()}
 
 
+def source_name(src) -> str:
+    """How messages name a sample source (its file, else its repr)."""
+    path = getattr(src, "path", None)
+    return str(path) if path is not None else str(getattr(src, "name", "samples"))
+
+
 def source_features(source, features) -> tuple[str, ...]:
     """The feature names of ``source`` to accumulate: ``features`` checked against what it has.
 
@@ -209,7 +215,6 @@ def source_features(source, features) -> tuple[str, ...]:
         features = (features,)
     missing = [f for f in features if f not in have]
     if missing:
-        from .samples import source_name
         raise InputError(source_name(source), "features", f"no feature {', '.join(map(repr, missing))}; "
                          f"it has: {', '.join(have) or '(none)'}")
     return tuple(features)
@@ -222,7 +227,6 @@ def source_layout(source, names) -> dict[str, int]:
     for name in names:
         shape = tuple(shapes[name])
         if len(shape) > 1:
-            from .samples import source_name
             raise InputError(source_name(source), f"features/{name}", f"per-sample shape {shape}, expected () "
                              "or (k,): one row of components per sample")
         out[name] = int(shape[0]) if shape else 1

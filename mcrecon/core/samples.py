@@ -31,6 +31,8 @@ import numpy as np
 
 from .._lazy import public_dir as _public_dir
 from ..errors import InputError, McreconWarning
+# source_name lives with the features, which name sources in their messages too; its users import it from here
+from .features import check_features, source_name, warn_feature_zeroed  # noqa: F401
 
 #: The public surface; the other names here (round helpers, the float32 spread
 #: check, pixel_index, source_name) serve the readers, the driver and the renderers.
@@ -49,12 +51,6 @@ def check_policy(policy: str, where: str = "samples") -> str:
     if policy not in NONFINITE_POLICIES:
         raise InputError(where, "nonfinite", f"unknown policy {policy!r}; valid: {', '.join(NONFINITE_POLICIES)}")
     return policy
-
-
-def source_name(src) -> str:
-    """How messages name a sample source (its file, else its repr)."""
-    path = getattr(src, "path", None)
-    return str(path) if path is not None else str(getattr(src, "name", "samples"))
 
 
 # ---------------------------------------------------------------- numba, on first use
@@ -442,8 +438,6 @@ class SampleSet:
             if n and np.any(np.diff(r) < 0):
                 raise InputError(self.name, "rounds", "must be non-decreasing (samples grouped by round in order)")
             self.round_ends = round_ends_of(r)
-        from .features import check_features, warn_feature_zeroed
-
         self.features, self.n_feature_zeroed = check_features(features, n, where=self.name)
         if self.n_feature_zeroed:
             warn_feature_zeroed(self.name, self.n_feature_zeroed)

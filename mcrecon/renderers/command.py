@@ -31,6 +31,7 @@ import numpy as np
 from ..errors import InputError, RendererError
 from ..io._atomic import atomic_path
 from ..core.requests import SampleBatch, SampleRequest
+from .spec_format import command_spec
 
 __all__ = ["CommandRenderer", "write_request", "read_request", "request_channels", "REQUEST_FORMAT",
            "remove_stale_workdirs"]
@@ -246,10 +247,8 @@ class CommandRenderer:
         self._warned_zeroed = False
 
     def spec(self) -> dict:
-        """How to build this renderer again (:func:`mcrecon.renderers.spec.command_spec`): a work
+        """How to build this renderer again (:func:`mcrecon.renderers.spec_format.command_spec`): a work
         directory of its own is not recorded (a resumed run makes a new one)."""
-        from .spec import command_spec
-
         return command_spec(self.argv, width=self.width, height=self.height, channels=self.channels,
                             timeout=self.timeout, workdir=None if self._own_workdir else self.workdir, cwd=self.cwd)
 

@@ -62,6 +62,10 @@ import numpy as np
 
 from ..errors import InputError, RendererError
 from ..core.requests import SampleBatch, SampleRequest, _place_in_pixels
+# the feature names are part of the spec format (a spec records them): defined there, part of this interface
+from .spec_format import MITSUBA_FEATURES, check_mitsuba_features, mitsuba_spec
+from . import mitsuba_logs as _logs
+from .mitsuba_logs import _check_int, _to_float32_positions, dump_uniform_log, render_reference  # noqa: F401
 
 __all__ = ["MitsubaRenderer", "mitsuba_available", "render_reference", "dump_uniform_log",
            "SUPPORTED_VARIANTS", "MITSUBA_FEATURES", "drjit_cache_dir"]
@@ -70,10 +74,6 @@ __all__ = ["MitsubaRenderer", "mitsuba_available", "render_reference", "dump_uni
 #: (a ``Color3f``).  ``scalar_rgb`` would need one Python call per sample
 #: (~0.1 M samples/s); spectral/mono variants return other quantities.
 SUPPORTED_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
-
-#: The per-sample features the bridge can write, and their components
-#: (``features="all"``, the default, is all of them).
-MITSUBA_FEATURES: dict[str, int] = {"albedo": 3, "normal": 3, "depth": 1}
 
 #: Seconds the availability probe may take (import + one kernel compile,
 #: normally 1-3 s; generous because CI machines are shared).
@@ -222,16 +222,6 @@ def mitsuba_available(variant: str = "llvm_ad_rgb", *, timeout: float = PROBE_TI
 
 
 # ------------------------------------------------------------- the renderer
-
-def _check_int(field, value, *, minimum, allow_none=False, extra=()):
-    if value is None and allow_none:
-        return None
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) \
-            or (value < minimum and value not in extra):
-        valid = f"an integer >= {minimum}" + ("".join(f" or {e}" for e in extra))
-        raise InputError(_WHERE, field, f"got {value!r}, expected {valid}" + (" or None" if allow_none else ""))
-    return int(value)
-
 
 def check_mitsuba_features(features, *, where: str = _WHERE) -> tuple[str, ...]:
     """The feature names an option value asks for, in :data:`MITSUBA_FEATURES` order.
@@ -599,10 +589,8 @@ class MitsubaRenderer:
         return None
 
     def spec(self) -> dict | None:
-        """How to build this renderer again (:func:`mcrecon.renderers.spec.mitsuba_spec`), or None when a
+        """How to build this renderer again (:func:`mcrecon.renderers.spec_format.mitsuba_spec`), or None when a
         spec cannot say it (a scene dict, scene parameters, another variant, depth or pass size)."""
-        from .spec import mitsuba_spec
-
         if self._spec_scene is False or not self._spec_defaults:
             return None
         return mitsuba_spec(self._spec_scene, width=self.width, height=self.height,
@@ -677,5 +665,6 @@ def _normalised(pos, width, height):
 
 
 # ---------------------------------------------------- reference and logs
-# (in mitsuba_logs, re-exported here: they are part of this module's interface)
-from .mitsuba_logs import _to_float32_positions, dump_uniform_log, render_reference  # noqa: E402,F401
+# (in mitsuba_logs, re-exported here: they are part of this module's interface; they build their renderers
+# with this module's class, handed over here, so that mitsuba_logs never imports this module back)
+_logs._renderer_class = MitsubaRenderer

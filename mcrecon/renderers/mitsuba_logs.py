@@ -15,22 +15,36 @@ import numpy as np
 from ..errors import InputError
 from ..core.requests import SampleRequest
 from ..core.samples import pixel_index
-
-# mitsuba re-exports this module's functions at its end: import it at call time (no import cycle)
-def _bridge():
-    from . import mitsuba
-    return mitsuba
+from .spec_format import MITSUBA_FEATURES, check_mitsuba_features
 
 __all__ = ["render_reference", "dump_uniform_log"]
 
+#: The bridge's renderer class, which builds a renderer from a scene argument (None, a path or a dict).
+#: :mod:`.mitsuba` defines it and re-exports this module's functions as part of its interface; it hands
+#: the class over here when it does, so this module never imports the bridge back.
+_renderer_class = None
+
+
+def _check_int(field, value, *, minimum, allow_none=False, extra=()):
+    """``value`` as an int >= ``minimum`` (or one of ``extra``; None with ``allow_none``), else an
+    :class:`InputError` naming the bridge and ``field`` (the bridge's own options use it too)."""
+    if value is None and allow_none:
+        return None
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) \
+            or (value < minimum and value not in extra):
+        valid = f"an integer >= {minimum}" + ("".join(f" or {e}" for e in extra))
+        raise InputError("MitsubaRenderer", field,
+                         f"got {value!r}, expected {valid}" + (" or None" if allow_none else ""))
+    return int(value)
+
 
 def _make_renderer(scene, width, height, variant, max_depth, spp_per_pass, features="all"):
-    if isinstance(scene, _bridge().MitsubaRenderer):
+    if isinstance(scene, _renderer_class):
         if (width or scene.width, height or scene.height) != (scene.width, scene.height):
             raise InputError(scene.name, "width/height", f"requested {width}x{height}, the renderer's film is "
                              f"{scene.width}x{scene.height}")
         return scene
-    return _bridge().MitsubaRenderer(scene, width=width, height=height, variant=variant, max_depth=max_depth,
+    return _renderer_class(scene, width=width, height=height, variant=variant, max_depth=max_depth,
                            spp_per_pass=spp_per_pass, features=features)
 
 
@@ -80,8 +94,8 @@ def render_reference(scene=None, *, width: int | None = None, height: int | None
     ----------
     .. [1] W. Jakob et al., "Mitsuba 3 renderer", 2022.
     """
-    spp = _bridge()._check_int("spp", spp, minimum=1)
-    seed = _bridge()._check_int("seed", seed, minimum=0)
+    spp = _check_int("spp", spp, minimum=1)
+    seed = _check_int("seed", seed, minimum=0)
     r = _make_renderer(scene, width, height, variant, max_depth, spp_per_pass, features="none")
     acc = np.zeros((r.height * r.width, 3), np.float64)
     for batch in _uniform_passes(r, spp, seed):
@@ -142,10 +156,10 @@ def dump_uniform_log(path, scene=None, *, width: int | None = None, height: int 
     from ..io._atomic import atomic_path
     from ..io.writer import check_log_fits
 
-    spp = _bridge()._check_int("spp", spp, minimum=1)
-    seed = _bridge()._check_int("seed", seed, minimum=0)
-    reference_spp = _bridge()._check_int("reference_spp", reference_spp, minimum=1, allow_none=True)
-    names = None if features is None else _bridge().check_mitsuba_features(features, where="dump_uniform_log")
+    spp = _check_int("spp", spp, minimum=1)
+    seed = _check_int("seed", seed, minimum=0)
+    reference_spp = _check_int("reference_spp", reference_spp, minimum=1, allow_none=True)
+    names = None if features is None else check_mitsuba_features(features, where="dump_uniform_log")
     path = Path(path)
     r = _make_renderer(scene, width, height, variant, max_depth, spp_per_pass,
                        features="all" if names is None else names)
@@ -155,7 +169,7 @@ def dump_uniform_log(path, scene=None, *, width: int | None = None, height: int 
     if missing:
         raise InputError(r.name, "features", f"{', '.join(missing)} asked for, but this renderer was built with "
                          f"features={','.join(r.features) or 'none'!r}")
-    n_comp = len(r.channels) + sum(_bridge().MITSUBA_FEATURES[f] for f in names)
+    n_comp = len(r.channels) + sum(MITSUBA_FEATURES[f] for f in names)
     check_log_fits(path, spp * r.width * r.height, n_comp, where="mitsuba log")
     reference = None
     if reference_spp is not None:

@@ -83,50 +83,10 @@ class AutoRun(RunState):
 class AutoMethod(Method):
     """Per-pixel choice among candidate reconstructions by their estimated error.
 
-    Options
-    -------
-    candidates : str
-        Comma-separated subset of ``box, gauss, nlm, awr, splat, oidn``
-        (default ``box,gauss,nlm``).  ``nlm``, ``awr``, ``splat`` and
-        ``oidn`` split every pixel's samples into two halves (dual
-        buffers): they need the samples (``requires.samples``); ``oidn``
-        needs ``pyoidn``; ``splat`` only offline.
-    feature_candidates : str
-        When the statistics carry per-pixel features (albedo, normal,
-        depth): comma-separated subset of ``nfor, nfor_own, dnlm, mix,
-        xbil, fbil`` added to the candidates (default
-        ``nfor,nfor_own,dnlm,mix,fbil``; ``none``: colour only).  On the
-        halves: ``nfor`` regresses each half on the other half's NL-means
-        weights and prefiltered features (NFOR's cross-buffer regression,
-        scored by Stein's estimate with its exact centre weight,
-        :func:`.features._regressions`); ``nfor_own``, ``dnlm`` (NL-means of the
-        colour divided by the albedo, then multiplied back; only with an
-        ``albedo`` feature), ``xbil`` and ``mix`` (``nfor_own`` and
-        ``dnlm`` averaged with the weights :data:`MIX_WEIGHTS`: three
-        candidates) filter one half from that half alone
-        (:func:`.features.feature_guided_half`), scored by cross-validation against
-        the other.  ``fbil`` (:func:`.features._feature_bilateral`) runs only
-        without halves (pixel statistics: an EXR), by SURE.  With ``oidn``
-        among the candidates OIDN gets each half's albedo and normal.
-        Without features the run is the colour-only one, bit for bit.
-    scales : int
-        Gaussian scales of ``gauss`` (GEM's final ones, sqrt 2 apart from sqrt 2 px; 8).
-    smooth : float
-        sigma (pixels) of the Gaussian smoothing of the error maps before
-        the choice (0: none).
-    nlm_radius, nlm_patch, nlm_k : int, int, float
-        NL-means search window (2r+1)^2, patch (2f+1)^2 and damping k.
-    initial_spp, iterations : int
-        Adaptive runs: the uniform first pass and the rounds after it.
-    safeguard : float or None
-        Clamp into mean +- k standard errors and the 3 x 3 sample range (4:
-        the interval then misses the true value of ~0.04 % of the pixels at
-        32 spp, 0.5 % at 8 spp, against 5-9 % at k = 2; docs/methods/auto.md,
-        "Safeguard width").
-    global_prior : float or None
-        z of the global prior (:func:`_global_prior`; 3, the default since
-        2026-12-02: auto within 1.2x of its best single candidate on every
-        scene measured; None: off, the plain per-pixel choice).
+    Options (keyword-only; also the CLI flags and ``mcrecon methods auto``):
+    :attr:`options`.  Without features a run is the colour-only one, bit
+    for bit; with ``oidn`` among the candidates OIDN gets each half's
+    albedo and normal.
 
     Diagnostics: ``choice`` (candidate index per pixel, in the order of
     :meth:`candidate_names`), ``estimated_mse`` (mean over channels of the
@@ -140,7 +100,8 @@ class AutoMethod(Method):
     initial_spp = 4
     options = (
         Option("candidates", str, DEFAULT_CANDIDATES, "comma-separated candidate reconstructions: "
-               + ", ".join(CANDIDATES) + " (nlm/awr/splat/oidn need the samples: dual buffers)"),
+               + ", ".join(CANDIDATES) + " (nlm/awr/splat/oidn split every pixel's samples into two halves: "
+               "they need the samples or a half-buffer pair; oidn needs pyoidn; splat only offline)"),
         Option("feature_candidates", str, DEFAULT_FEATURE_CANDIDATES, "when the statistics carry features: "
                "comma-separated feature-guided candidates added to candidates, on the halves: nfor (first-order "
                "regression on the other half's weights and features, Bitterli et al. 2016; SURE), nfor_own (the "

@@ -29,7 +29,8 @@ class AWRRun(RunState):
 class AWRMethod(Method):
     """Adaptive wavelet rendering: wavelet sampling and soft-thresholding reconstruction.
 
-    Options (keyword-only; also CLI flags): see :attr:`options`.
+    Options (keyword-only; also the CLI flags and ``mcrecon methods awr``):
+    :attr:`options`.
 
     Diagnostics: ``pixel_std`` and ``smoothing`` of the reconstruction,
     ``samples`` (samples per pixel) of an adaptive run.

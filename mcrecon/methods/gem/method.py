@@ -48,42 +48,8 @@ class GEMMethod(Method):
     relative MSE falls fastest (Sec. 5); ``finish`` is the final
     reconstruction.
 
-    Parameters
-    ----------
-    gamma : float
-        Target error rate of the scale selector, 0 < gamma < 0.4 (0.2).
-    oracle : {0, 1}
-        1: the paper's OUR-GRD -- selection and sampling from the true bias
-        of the reference (needs one: ``adapt(..., reference=)`` or
-        ``reconstruct(stats, reference=)``).
-    target_rel_mse : float or None
-        Stop sampling early once the estimated relative MSE (eps 0.01)
-        averaged over the image is at most this.
-    initial_spp, iterations : int
-        Uniform initial pass (4) and adaptive iterations (8).
-    samples_per_pick : int
-        Samples each selected pixel distributes over its filter; 0 = the
-        average spp of the budget (the paper's n).
-    adaptive_scales, final_scales : int
-        Gaussian scales of the adaptive phase (4 dyadic from 1 px) and of
-        the final reconstruction (8, sqrt(2) apart from sqrt(2) px).
-    final_outliers : {'paper', 'adaptive'}
-        Outlier-removal rule of the final reconstruction (see
-        :func:`gem_select`).
-    channel_weights : {'relative', 'absolute'}
-        Channel sum of the scale selector in the final reconstruction (see
-        :func:`gem_select`): 'relative' (default) minimises each pixel's
-        relative MSE, 'absolute' its summed squared error (the paper).  The
-        adaptive phase always sums absolutely (measured in docs/methods/gem.md).
-    confirm_stops : {0, 1, 2}
-        Final reconstruction only: a stop of pair (k, k+1) enters the
-        outlier removal only if pair (k+1, k+2) stops too; 1 (default) for
-        the Gaussian pairs, 2 also for the pixel filter's pair, 0 never
-        (the paper).  See :func:`gem_select`.
-    subpixel_exact_below : float
-        Gaussian scales with sigma below this (pixels) are computed on the
-        4 x 4 subpixel grid itself (:func:`subpixel_gaussian_exact`); the
-        others, and all by default (0), with the equivalent pixel kernel.
+    Options (keyword-only; also the CLI flags and ``mcrecon methods gem``):
+    :attr:`options`.
 
     References
     ----------
@@ -121,11 +87,12 @@ class GEMMethod(Method):
         Option("gamma", float, 0.2, "target error rate of the scale selector", min=0.0, max=GAMMA_MAX,
                min_open=True, max_open=True,
                note="the paper's z(gamma) = -log(1 - (1.9 gamma)^(1/sqrt 2)) is only calibrated there; "
-                    "use e.g. 0.1 to 0.3, default 0.2"),
-        Option("oracle", int, 0, "1: select and sample with the true bias from the reference (OUR-GRD)",
+                    "use e.g. 0.1 to 0.3"),
+        Option("oracle", int, 0, "1: select and sample with the true bias from the reference, the paper's OUR-GRD "
+               "(needs one: adapt(..., reference=) or reconstruct(stats, reference=))",
                choices=(0, 1)),
-        Option("target_rel_mse", float, None, "stop early when the estimated relative MSE (eps 0.01) "
-               "reaches this", min=0.0, min_open=True),
+        Option("target_rel_mse", float, None, "stop sampling early once the estimated relative MSE "
+               "(eps 0.01) averaged over the image is at most this", min=0.0, min_open=True),
         Option("initial_spp", int, 4, "samples per pixel of the uniform initial pass", min=1),
         Option("iterations", int, 8, "adaptive iterations after the initial pass", min=1),
         Option("uniform_share", float, 0.25, "share of each adaptive round spread uniformly over the film "
@@ -141,7 +108,7 @@ class GEMMethod(Method):
                "0 none, 1 adaptive phase, 2 final reconstruction, 3 both", choices=(0, 1, 2, 3)),
         Option("channel_weights", str, "relative", "final reconstruction: how the scale selector sums "
                "channels, relative (each channel's error over value^2 + 0.01, the pixel's relative MSE) or "
-               "absolute (plain sum, the paper)", choices=CHANNEL_WEIGHTS),
+               "absolute (plain sum, the paper); the adaptive phase always sums absolutely", choices=CHANNEL_WEIGHTS),
         Option("confirm_stops", int, 1, "final reconstruction: a raw stop of pair k counts only if pair k+1 "
                "stops too (the widest pair has none: unconfirmed); 0 never (the paper), 1 Gaussian pairs (k >= 1), "
                "2 every pair", choices=(0, 1, 2)),

@@ -31,64 +31,8 @@ class SplatRun(RunState):
 class SplatMethod(Method):
     """Progressive variable-width Epanechnikov splatting (Suykens and Willems 2000).
 
-    Options
-    -------
-    variant : {'robust', 'outliers', 'paper'}
-        ``paper`` presets the paper's algorithm (``spread='all'``,
-        ``guide='none'``, ``c=4``, ``alpha=0.3``); ``robust`` (default,
-        ``spread='consistent'``) spreads the excess of outliers and the
-        consistent samples, gated by the pixels' statistics
-        (``docs/methods/splat.md``, "The default filters"); ``outliers``
-        spreads only the excess of outliers (the default before issue 26).
-        Explicit options win over the presets.
-    alpha : float
-        Exponent of N in Eq. 8 (default 0.5; the paper's Sec. 5: 1.5/5 = 0.3); 0 < alpha <= 1.
-    c : float
-        C of Eq. 8, the reference diameter in pixels at N = 1, G/f = 1 (default 2; the paper 4).
-    c_prime : float
-        C' of the pilot estimate, diameter C' N0^-1/2 (default 8: 8 px at N0 = 1).
-    initial_spp : int
-        N_0, samples per pixel of the first (stored) round (default 16; the
-        paper, and ``outliers``: 1).  The default's outlier test judges a
-        sample once its 3x3 window holds 64 samples (8 spp), and only judged
-        samples spread: rounds before that stay in their pixels, and Fig. 3
-        never revisits a round.  16 (8 + 8 when pipelined) judges the first
-        round already.
-    min_width, max_width : float
-        Clamp of the kernel diameter in pixels (default 1 = "one pixel" of
-        the paper, and 32: the cap for huge G/f and f = 0).
-    boundary : {'mirror', 'renormalize', 'none'}
-        Boundary-bias remedy (Sec. 5); default mirror.
-    norm : {'luminance', 'mean', 'max'}
-        Scalar G of a colour sample (and f of a pixel) in Eq. 8.
-    spread : {'consistent', 'outliers', 'all'}
-        ``all``: every sample gets its Eq. 8 kernel (the paper).
-        ``consistent``: as ``outliers``, and every sample that is not an
-        outlier is spread with Eq. 8's width (``spread_c``,
-        ``spread_alpha``) into the pixels whose means and variances do not
-        tell them apart from its own at ``false_rejection`` and within
-        ``k se / |grad|`` of both (:mod:`.consistent`).
-        ``outliers``: a sample stays in its pixel unless its G exceeds
-        the largest ``mean + outlier_k * std`` of the 3x3 windows around
-        its pixel (pooled samples so far); then only the excess fraction
-        ``1 - tau/G`` of its value is splatted, with Eq. 8's width for
-        ``G - tau`` against the pooled mean.
-    outlier_k : float
-        k of that threshold (default 2).
-    false_rejection : float
-        Rate at which the gate tells two pixels of one distribution apart (default 0.05).
-    spread_c, spread_alpha : float
-        C and alpha of Eq. 8 for the consistent samples (default 8 and the paper's 0.3).
-    feature_gate : {'auto', 'none'}
-        ``spread='consistent'``: the gate also compares the per-sample
-        features (albedo, normal, depth, any other) the samples carry, when
-        they carry any (``auto``, default): a pixel q receives nothing from p
-        where a feature's means differ by more than ``k`` times the pixels'
-        own spread of it.  ``none``: the colour statistics only.  Without
-        features both give the same image, bit for bit.
-    guide : {'local_mean', 'none'}
-        Weights of the spread part: Epanechnikov times the pooled 3x3 mean
-        of G at each covered pixel (``local_mean``), or plain (``none``).
+    Options (keyword-only; also the CLI flags and ``mcrecon methods splat``):
+    :attr:`options`.
 
     Notes
     -----
@@ -124,14 +68,18 @@ class SplatMethod(Method):
     #: 2000 as published).  ``robust`` (default): the excess of outliers spread
     #: guided by the local mean, consistent samples gated by the pixels' statistics
     #: (docs/methods/splat.md, "The default filters").  ``outliers``: only the
-    #: excess of outliers (the default before issue 26).
+    #: excess of outliers.
     variants = {"robust": {"spread": "consistent", "guide": "local_mean", "c": 2.0, "alpha": 0.5,
                            "outlier_k": 2.0, "initial_spp": 16},
                 "outliers": {"spread": "outliers", "guide": "local_mean", "c": 2.0, "alpha": 0.5,
                              "outlier_k": 2.0, "initial_spp": 1},
                 "paper": {"spread": "all", "guide": "none", "c": 4.0, "alpha": 0.3, "initial_spp": 1}}
     options = (
-        variant_option(variants),
+        dataclasses.replace(variant_option(variants), help=(
+            "algorithm variant: 'paper' presets the paper's algorithm (every sample splatted with Eq. 8's "
+            "width); 'robust', the measured default, spreads the excess of outliers and the consistent "
+            "samples, gated by the pixels' statistics (docs/methods/splat.md); 'outliers' spreads only the "
+            "excess of outliers")),
         Option("alpha", float, 0.5, "exponent of N in the kernel width (Eq. 8), 0 < alpha <= 1",
                min=0.0, max=1.0, min_open=True,
                note="the paper uses 1.5/5; 1/5 and 1/2 are the classical extremes"),
@@ -139,7 +87,9 @@ class SplatMethod(Method):
                min_open=True),
         Option("c_prime", float, 8.0, "pilot kernel diameter constant C' in pixels (C' N0^-1/2)",
                min=0.0, min_open=True),
-        Option("initial_spp", int, 16, "samples per pixel of the first round N0 (the paper: 1)", min=1),
+        Option("initial_spp", int, 16, "samples per pixel of the first round N0 (the paper: 1); the outlier "
+               "test judges a sample once its 3x3 window holds 64 samples and only judged samples spread, so "
+               "16 (8 + 8 when pipelined) judges the first round already", min=1),
         Option("min_width", float, 1.0, "smallest kernel diameter in pixels (>= 1)", min=1.0),
         Option("max_width", float, 32.0, "largest kernel diameter in pixels (cap for huge G/f; >= min_width)",
                min=1.0),
@@ -162,7 +112,8 @@ class SplatMethod(Method):
                "samples' kernels (the paper's 1.5/5)", min=0.0, max=1.0, min_open=True),
         Option("feature_gate", str, "auto", "spread='consistent': also refuse a pixel whose feature means "
                "(albedo, normal, depth) differ by more than k times the pixels' own feature spread (auto: when "
-               "the samples carry features) or compare the colour only (none)", FEATURE_GATES),
+               "the samples carry features) or compare the colour only (none); without features both give the "
+               "same image", FEATURE_GATES),
     )
 
     def _configure(self, params: dict) -> None:

@@ -71,6 +71,7 @@ import numpy as np
 from ...errors import InputError
 from ...core.samples import check_memory
 from ...core.requests import SampleBatch, SampleRequest, jittered_positions
+from ..spec_format import scene_spec
 from .catalog import (FEATURE_LAYOUT, SCENES, CausticScene, CheckerDofScene, CheckerSpotScene, CheckerWallScene,
                       DepthOfFieldScene, FlatScene, HDRScene, MotionBlurScene, Scene, SoftShadowScene, split_features)
 
@@ -279,10 +280,8 @@ class SceneRenderer:
         self.name = f"scene:{self.scene.name}"
 
     def spec(self) -> dict:
-        """How to build this renderer again (:mod:`mcrecon.renderers.spec`); features other than the
+        """How to build this renderer again (:mod:`mcrecon.renderers.spec_format`); features other than the
         scene's default are recorded.  ``rate`` changes no reply: not recorded."""
-        from ..spec import scene_spec
-
         default = _check_features_flag(self.name, self.scene, None)
         return scene_spec(self.scene.name, width=self.width, height=self.height, seed=self.seed,
                           features=None if self.features == default else self.features)
