@@ -39,7 +39,7 @@ class SplatMethod(Method):
         ``spread='consistent'``) spreads the excess of outliers and the
         consistent samples, gated by the pixels' statistics
         (``docs/methods/splat.md``, "The default filters"); ``outliers``
-        spreads only the excess of outliers (the default before issue 26).
+        spreads only the excess of outliers.
         Explicit options win over the presets.
     alpha : float
         Exponent of N in Eq. 8 (default 0.5; the paper's Sec. 5: 1.5/5 = 0.3); 0 < alpha <= 1.
@@ -124,7 +124,7 @@ class SplatMethod(Method):
     #: 2000 as published).  ``robust`` (default): the excess of outliers spread
     #: guided by the local mean, consistent samples gated by the pixels' statistics
     #: (docs/methods/splat.md, "The default filters").  ``outliers``: only the
-    #: excess of outliers (the default before issue 26).
+    #: excess of outliers, every consistent sample kept in its pixel.
     variants = {"robust": {"spread": "consistent", "guide": "local_mean", "c": 2.0, "alpha": 0.5,
                            "outlier_k": 2.0, "initial_spp": 16},
                 "outliers": {"spread": "outliers", "guide": "local_mean", "c": 2.0, "alpha": 0.5,
