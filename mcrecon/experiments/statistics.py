@@ -1,7 +1,7 @@
 """Statistical experiments of Tamstorf & Jensen 1997 in report form.
 
 * :func:`run_normality`: the chi-square normality test of the pixel
-  estimates for several n (the paper: 10% -> 7% rejections for n = 10 -> 50),
+  estimates for several n (the paper: 10% rejections at n = 10, 7% at n = 50),
   JSON numbers and a z map per n.
 * :func:`run_bias`: bootstrap bias of the adaptive stopping rule over an
   image (from a log or a built-in scene), JSON numbers and maps.

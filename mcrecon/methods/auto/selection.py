@@ -174,19 +174,18 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     unless ``g`` lies no farther than the plain choice from the median of
     the 8 neighbours' means (:func:`_nearer_the_neighbours`) and no other
     candidate passed the local test (then they take ``g``); none of these
-    vote.  (Giving all of them ``g`` helped the built-in checker_spot,
-    0.19 -> 0.13 of the mean's error, and broke a Mitsuba scene with
-    caustics through glass, 0.10 -> 0.54: one firefly that nfor, ``g``
-    there, kept and the plain choice had removed.)  When ``g`` is the pixel mean (candidate 0 named ``box``) the
+    vote.  (Not all of them take ``g``: where ``g`` keeps a firefly that the
+    plain choice removes, as nfor does behind glass, one pixel can rule an
+    image's error.)  When ``g`` is the pixel mean (candidate 0 named ``box``) the
     plain choice stands everywhere: the
     region guard already makes the mean the default of every region
-    without evidence against it (measured: a global box default cost the
-    built-in caustic 15 %).  A ``guarded`` candidate (the feature-guided
+    without evidence against it (a global box default costs the built-in
+    caustic 15 %).  A ``guarded`` candidate (the feature-guided
     ones) is ``g`` only if its sum undercuts the best other candidate's
     significantly (:func:`_significantly_lower`): their estimates are the
     noisiest where they differ most, at texture edges.  ``scale`` (the albedo)
-    divides the means and values of the median test (:func:`_nearer_the_neighbours`;
-    the built-in checker_spot 0.098 -> 0.071 of the mean's error).  Returns the new
+    divides the means and values of the median test (:func:`_nearer_the_neighbours`:
+    on a texture a neighbour's colour is another square's).  Returns the new
     choice and the mask of pixels whose choice is ``g`` (all False when the
     prior does not apply).
 
@@ -241,8 +240,8 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
         m, q = smoothing([d, d2])
         # the smoothing's effective number of pixels, per pixel: about half of 4 pi sigma^2 along the
         # image's edges, a quarter in its corners (with 4 pi sigma^2 everywhere, 9 of the 16 regions of
-        # flat exponential noise, 64^2 at 8 spp, 4 seeds, where a worse candidate passed the test lay
-        # on the border; the flat field's error 0.00079 -> 0.00070 of the mean's, 128^2 at 32 spp).
+        # flat exponential noise, 64^2 at 8 spp, 4 seeds, where a worse candidate passes the test lie
+        # on the border).
         # The masks are mostly one: filtered once.
         a = next((a for a, mk in enumerate(masks) if np.array_equal(mk, mask)), None)
         if a is None:
@@ -422,9 +421,9 @@ def _no_push_in_heavy_tails(img: np.ndarray, y: np.ndarray, hi: np.ndarray, out:
     (the pixel itself may count up to three times), an empty neighbour's
     mean is 0.  From pixel statistics without a sample range (a half-buffer
     pair, an EXR) ``hi`` is the 3 x 3 maximum of the pixel means, so the
-    rule then fires at any edge of more than 10x contrast.  Measured (128^2, 32 spp, 5 seeds, ratio to box): caustic
-    0.757 -> 0.522; soft shadow, depth of field, motion blur, hdr and flat
-    within 0.1 %; Mitsuba Cornell boxes +1.5-1.7 % (docs/methods/auto.md).
+    rule then fires at any edge of more than 10x contrast.  It protects the
+    built-in caustic and hdr's rim pixels; elsewhere it costs little
+    (docs/methods/auto.md, "Selection rule").
     Written into ``out`` (default a new array; ``img`` itself may be given:
     each value reads only its own pixel of ``img``).
 

@@ -319,8 +319,8 @@ class CIMethod(Method):
     adaptive = True
     #: One round of lag (``adapt(..., pipeline=True)``) only when asked: a pixel then gets
     #: its next step before the previous one is seen, so the rule's per-pixel counts
-    #: differ from the paper's (measured: emitter pixels stopping at min_spp 0.90 -> 0.898
-    #: on the hdr run of tests/test_tamstorf.py); pending samples count toward max_spp.
+    #: differ from the paper's (the share of emitter pixels stopping at min_spp is 0.898 with
+    #: the lag against 0.90 without it, on the hdr run of tests/test_tamstorf.py); pending samples count toward max_spp.
     #: A pixel whose initial pass is still in flight waits for it (see plan).
     pipeline = False
     #: The paper's rule (``variant="paper"``) against the measured default
@@ -469,7 +469,7 @@ class CIMethod(Method):
         initial pass is not yet seen whole gets no step (it waits for it);
         when every pixel that is not done waits, the plan asks for nothing,
         and the driver commits the round in flight and plans again.
-        (Measured and rejected before: every pixel getting a second uniform
+        (Measured and rejected: every pixel getting a second uniform
         step before its initial pass is seen: +12-22 % relative MSE on 4 of
         the 6 built-in scenes, 128^2, 32 spp, 16 seeds.)
         """

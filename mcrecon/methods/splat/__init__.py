@@ -11,7 +11,7 @@ Eq. 8's width, but only into pixels whose statistics (and, when the
 samples carry them, features: albedo, normal, depth) do not tell them
 apart and within the local gradient's bound (``docs/methods/splat.md``,
 "The default filters"); ``variant="outliers"`` moves the outliers' excess
-only (the default before issue 26).
+only and leaves every consistent sample in its pixel.
 
 :mod:`.kernels`
     The footprint of one sample: Eq. 4, the numba scatter loops, :func:`splat`.

@@ -1,4 +1,4 @@
-"""Splatting that filters (the default since issue 26): consistent samples spread too, never across an edge.
+"""Splatting that filters (the default, ``spread="consistent"``): consistent samples spread too, never across an edge.
 
 Every sample's part that is not an outlier's excess (:mod:`.outliers`) gets
 Eq. 8's kernel, ``h = C N^-alpha (G / f)^(1/2)``, shrinking as its pixel's

@@ -68,7 +68,7 @@ class SplatMethod(Method):
     #: 2000 as published).  ``robust`` (default): the excess of outliers spread
     #: guided by the local mean, consistent samples gated by the pixels' statistics
     #: (docs/methods/splat.md, "The default filters").  ``outliers``: only the
-    #: excess of outliers.
+    #: excess of outliers, every consistent sample kept in its pixel.
     variants = {"robust": {"spread": "consistent", "guide": "local_mean", "c": 2.0, "alpha": 0.5,
                            "outlier_k": 2.0, "initial_spp": 16},
                 "outliers": {"spread": "outliers", "guide": "local_mean", "c": 2.0, "alpha": 0.5,

@@ -53,8 +53,8 @@ __all__ = ['NORMS', 'kernel_width', 'pilot_width', 'sample_norm', 'ProgressiveSp
 NORMS = ("luminance", "mean", "max")
 #: Which samples are splatted: ``all`` (the paper: every sample, Eq. 8
 #: widths) or ``outliers`` (robust variant: only the excess of samples above
-#: their neighbourhood's threshold, everything else stays in its pixel) or ``consistent`` (the default
-#: since issue 26: as ``outliers``, and the rest spreads too, gated by the pixels' statistics:
+#: their neighbourhood's threshold, everything else stays in its pixel) or ``consistent`` (the
+#: default: as ``outliers``, and the rest spreads too, gated by the pixels' statistics:
 #: :mod:`.consistent`).
 SPREADS = ("all", "outliers", "consistent")
 #: Footprint weights of the spread part: ``none`` (plain Epanechnikov) or
