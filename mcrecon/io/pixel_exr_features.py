@@ -15,6 +15,7 @@ from typing import Mapping
 import numpy as np
 
 from ..errors import InputError
+from ._exr_moments import _split, _variance_from_moments
 
 __all__ = ["FEATURE_CHANNELS", "find_feature_channels"]
 
@@ -61,8 +62,6 @@ def find_feature_channels(names, layout: str, *, prefix: str | None = None, feat
         A feature with two candidates (naming both and the fix), an
         unknown ``features`` value, a mapped channel that is missing.
     """
-    from .pixel_exr import _split
-
     names = set(names)
     if isinstance(features, str) and features == "none":
         return {}
@@ -126,7 +125,6 @@ def find_feature_channels(names, layout: str, *, prefix: str | None = None, feat
 def _read_features(exr, found, n):
     """``{feature: (mean (H, W, k), variance of the samples or None)}`` of the channels ``found``."""
     from ..core.features import warn_feature_zeroed, within_feature_limit
-    from .pixel_exr import _variance_from_moments
 
     out = {}
     zeroed = 0
