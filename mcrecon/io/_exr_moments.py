@@ -64,7 +64,7 @@ def _variance_from_moments(exr, names, m1, m2, n, half=False) -> np.ndarray:
                       "second moment below the squared mean by more than float rounding (relative "
                       f"6 (n + 1) 2^-24 + 3 u = {6.0 * (n_max + 1.0) * _F32_U + 3.0 * u:.2g} at n = {n_max:g}); "
                       "their variance is set to 0: the moments are damaged or not of the same samples",
-                      McreconWarning, stacklevel=3)
+                      McreconWarning, stacklevel=4)
     pop = np.maximum(m2 - sq, 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(nn > 1, pop * nn / np.maximum(nn - 1.0, 1.0), 0.0)

@@ -77,7 +77,8 @@ per-pixel features (``PixelStats.from_moments(features=...)``; see
 * Mitsuba's ``moment`` integrator wrapping an ``aov`` integrator named
   ``P`` (the prefix of the colour moments): the same AOV names prefixed
   ``P.``, with their second moments ``m2_P.*``, which give the features'
-  variances like the colour's.
+  variances like the colour's; a feature whose ``m2_`` channels are not all
+  there is read from its means alone, as noise-free (as pbrt's).
 
 Two candidates for one feature (``sh_normal`` and ``nn``, pbrt and
 Mitsuba names) are refused as ambiguous, naming them: choose with
@@ -204,9 +205,11 @@ class _EXR:
     """The channels (float arrays, with their stored dtype) and header of one EXR."""
 
     def __init__(self, path: Path):
-        from .images import open_exr
+        from .images import open_exr_parts
 
-        self.arrays, self.sampling, self.header = open_exr(path)
+        # parts: what a multi-part file's other parts hold, said once the file is read (a refused file
+        # says it in its one error line)
+        self.arrays, self.sampling, self.header, self.parts = open_exr_parts(path)
         self.path = path
         self.names = tuple(sorted(self.arrays))
 
@@ -282,6 +285,10 @@ def _resolve_count(exr: _EXR, count, spp):
         name = str(given)
         if name in exr.arrays:
             arr, _ = exr.get([name], "count")
+            if not (arr > 0).any():  # refused here, not after a method's note on the statistics
+                raise InputError(where, f"count channel {name}", "0 in every pixel: no pixel has a sample, "
+                                 "there is nothing to reconstruct; give the channel of the per-pixel sample "
+                                 "counts, or --spp N")
             return arr[..., 0], f"channel {name}"
         if name in exr.header:
             return _attribute_count(exr, name), f"header attribute {name}"
@@ -354,7 +361,7 @@ def _warn_half_saturation(exr: _EXR, names, values, half, layout):
                 "render with \"bool savefp16\" false" if layout == "pbrt-v4" else
                 "half floats cannot hold more: these means are clamped or overflowed; write float32 channels")
         warnings.warn(f"{exr.path}: {','.join(names)}: {k} pixel(s) at {HALF_MAX:g}, the largest half float; "
-                      f"{hint}", McreconWarning, stacklevel=3)
+                      f"{hint}", McreconWarning, stacklevel=4)
 
 
 def _check_finite(exr, names, values, count, field, half):
@@ -419,6 +426,21 @@ def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance
     if variance is not None and second_moment is not None:
         raise InputError("--variance/--second-moment", "variance", "give one of them")
     exr = _EXR(path)
+    try:
+        out = _read_stats(exr, layout, mean, variance, second_moment, variance_of, count, spp, features)
+    except InputError as exc:
+        if exr.parts is None or str(exc.where) != str(path):
+            raise
+        raise type(exc)(exc.where, exc.field, f"{exc.problem} ({exr.parts})") from None
+    if exr.parts is not None:
+        warnings.warn(f"{path}: {exr.parts}", McreconWarning, stacklevel=2)
+    return out
+
+
+def _read_stats(exr: _EXR, layout, mean, variance, second_moment, variance_of, count, spp,
+                features) -> PixelStatsEXR:
+    """:func:`read_pixel_stats_exr` of the opened file, its options checked."""
+    path = exr.path
     where = str(path)
     if layout is None:
         layout = "explicit" if mean is not None else _detect_layout(exr)
