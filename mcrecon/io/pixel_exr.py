@@ -286,9 +286,9 @@ def _resolve_count(exr: _EXR, count, spp):
         if name in exr.arrays:
             arr, _ = exr.get([name], "count")
             if not (arr > 0).any():  # refused here, not after a method's note on the statistics
-                raise InputError(where, f"count channel {name}", "0 in every pixel: no pixel has a sample, "
-                                 "there is nothing to reconstruct; give the channel of the per-pixel sample "
-                                 "counts, or --spp N")
+                raise InputError(where, f"count channel {name}", "no pixel has a positive count (no sample "
+                                 "anywhere), there is nothing to reconstruct; give the channel of the per-pixel "
+                                 "sample counts, or --spp N")
             return arr[..., 0], f"channel {name}"
         if name in exr.header:
             return _attribute_count(exr, name), f"header attribute {name}"

@@ -451,7 +451,7 @@ class MitsubaRenderer:
         film = self._sensor.film()
         fw, fh = (int(v) for v in film.crop_size())
         from ..io.logformat import MAX_PIXELS  # a film no log or image holds (Mitsuba loads a width of 0)
-        if not 1 <= fw * fh <= MAX_PIXELS or min(fw, fh) < 1:
+        if min(fw, fh) < 1 or fw * fh > MAX_PIXELS:
             raise InputError(self.scene_name, "film width/height", f"{fw}x{fh}: expected at least 1x1 and at "
                              f"most {MAX_PIXELS} pixels; set the film's width and height in the scene")
         if (width is not None and width != fw) or (height is not None and height != fh):
