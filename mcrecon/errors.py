@@ -7,17 +7,37 @@ CLI can print it as one line and a user knows what to fix.
 
 from __future__ import annotations
 
+import re
+
 __all__ = ["InputError", "RendererError", "McreconWarning"]
 
 
+#: Characters that would break the one line of a message: line and paragraph breaks, other C0/C1
+#: controls (an escape sequence from a file would be run by the terminal).
+_UNPRINTABLE = re.compile("[\x00-\x1f\x7f-\x9f\u2028\u2029]")
+
+
+def one_line(text) -> str:
+    """``text`` with every control character written as an escape (``\\n``, ``\\x1b``): a name read from a
+    file (a dataset, a channel, a path) may hold a newline, and a message that names it stays one line."""
+    text = str(text)
+    if not _UNPRINTABLE.search(text):
+        return text
+    return _UNPRINTABLE.sub(lambda m: repr(m.group())[1:-1], text)
+
+
 class _Located:
-    """An error that says where, which field and what was expected: ``"where: field: problem"``."""
+    """An error that says where, which field and what was expected: ``"where: field: problem"``.
+
+    The three parts are kept as given; the message shows them on one line (:func:`one_line`), which is
+    where every error's text is formatted.
+    """
 
     def __init__(self, where: str, field: str, problem: str):
         self.where = str(where)
         self.field = str(field)
         self.problem = str(problem)
-        super().__init__(f"{self.where}: {self.field}: {self.problem}")
+        super().__init__(f"{one_line(self.where)}: {one_line(self.field)}: {one_line(self.problem)}")
 
     def __reduce__(self):  # pickled as built (Dask workers send errors back)
         return type(self), (self.where, self.field, self.problem)

@@ -29,16 +29,16 @@ _INFO_LINES = ("file", "width", "height", "channels", "samples", "finite_samples
 
 def _log_feature_details(path) -> list[dict]:
     """Name, components (canonical names where they fit) and stored dtype of each feature of a log."""
-    from ..core.features import feature_components
+    from ..core.features import MAX_COMPONENTS, feature_components
     from ..io import read_log
 
     log = read_log(path)
     out = []
     for name in log.feature_names:
         shape = tuple(log.feature_shapes[name])
-        k = shape[0] if len(shape) == 1 else 1 if not shape else None
+        k = shape[0] if len(shape) == 1 and shape[0] <= MAX_COMPONENTS else 1 if not shape else None
         comps = list(feature_components(name, k)) if k is not None else [f"shape {shape}"]
-        dtype = log.read_feature(name, stop=1).dtype  # the stored dtype (one row read)
+        dtype = log.feature_dtypes[name]  # the stored dtype, from the metadata (no row read)
         out.append({"name": name, "components": comps, "dtype": str(dtype)})
     return out
 

@@ -181,12 +181,31 @@ def usable_layout(features: Mapping) -> dict[str, int]:
 
 def usable_names(source) -> tuple[str, ...]:
     """The features of a sample source (log or SampleSet) :func:`usable_layout` keeps, by their per-sample
-    shapes (``feature_shapes``) and dtypes (``feature_dtypes`` where the source has them)."""
+    shapes (``feature_shapes``) and dtypes (``feature_dtypes`` where the source has them).
+
+    A feature of the right kind but more than :data:`MAX_COMPONENTS` components is refused here, from its
+    declared shape, before anything is read or allocated: a method reading it would size its statistics
+    by it (an (N, 4e9) dataset declared and never written asked for 14 TiB)."""
     shapes = getattr(source, "feature_shapes", {}) or {}
     dtypes = getattr(source, "feature_dtypes", {}) or {}
-    return tuple(n for n in getattr(source, "feature_names", ())
-                 if len(tuple(shapes.get(n, ()))) <= 1 and np.dtype(dtypes.get(n, np.float64)).kind in "fiub"
-                 and tuple(shapes.get(n, ())) != (0,))
+    out = []
+    for n in getattr(source, "feature_names", ()):
+        shape = tuple(shapes.get(n, ()))
+        if len(shape) > 1 or np.dtype(dtypes.get(n, np.float64)).kind not in "fiub" or shape == (0,):
+            continue
+        _check_width(source, n, shape)
+        out.append(n)
+    return tuple(out)
+
+
+def _check_width(source, name, shape) -> None:
+    """Refuse a feature of more than :data:`MAX_COMPONENTS` components per sample, naming it."""
+    if shape and shape[0] > MAX_COMPONENTS:
+        from .samples import source_name
+        raise InputError(source_name(source), f"features/{name}", f"per-sample shape {shape}: {shape[0]} "
+                         f"components, at most {MAX_COMPONENTS} (one row per sample of (N,) or (N, k); an (N, N) "
+                         "array is usually a broadcasting slip): rewrite or delete it (methods that read no "
+                         "features, such as box or gem, ignore it)")
 
 
 def layout_of(stats_features: Mapping) -> dict[str, int]:
@@ -229,6 +248,7 @@ def source_layout(source, names) -> dict[str, int]:
         if len(shape) > 1:
             raise InputError(source_name(source), f"features/{name}", f"per-sample shape {shape}, expected () "
                              "or (k,): one row of components per sample")
+        _check_width(source, name, shape)
         out[name] = int(shape[0]) if shape else 1
     return out
 

@@ -148,8 +148,22 @@ def open_exr(path) -> tuple[dict, dict, dict]:
 
     Every input EXR is opened here: a missing, truncated or corrupt file,
     or one that is no EXR, is one :class:`InputError` naming it, and the
-    OpenEXR library's own output is kept off stdout and stderr.
+    OpenEXR library's own output is kept off stdout and stderr.  A
+    multi-part file is warned (:func:`open_exr_parts` says it instead).
     """
+    arrays, sampling, header, parts = open_exr_parts(path)
+    if parts is not None:
+        import warnings
+
+        from ..errors import McreconWarning
+
+        warnings.warn(f"{path}: {parts}", McreconWarning, stacklevel=2)
+    return arrays, sampling, header
+
+
+def open_exr_parts(path) -> tuple[dict, dict, dict, str | None]:
+    """:func:`open_exr` and, for a multi-part file, what its other parts hold that is not read (else None):
+    a reader that may yet refuse the file says it in its one line, not in a warning before it."""
     import OpenEXR
 
     path = Path(path)
@@ -175,16 +189,12 @@ def open_exr(path) -> tuple[dict, dict, dict]:
         said = sink.read()
     if exc is not None:
         raise _exr_failure(path, exc, said) from None
+    parts = None
     if others:  # a multi-part file: what lies in the other parts (a renderer's feature part) is not read
-        import warnings
-
-        from ..errors import McreconWarning
-
         shown = "; ".join(", ".join(c[:6]) + (", ..." if len(c) > 6 else "") for c in others)
-        warnings.warn(f"{path}: {len(others) + 1} parts; only the first is read, not the channels of the "
-                      f"others ({shown}): write them into the first part to use them", McreconWarning,
-                      stacklevel=2)
-    return arrays, sampling, header
+        parts = (f"{len(others) + 1} parts; only the first is read, not the channels of the others ({shown}): "
+                 "write them into the first part to use them")
+    return arrays, sampling, header, parts
 
 
 def subsampled(path, sampling: dict, names) -> None:

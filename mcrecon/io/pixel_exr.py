@@ -77,7 +77,8 @@ per-pixel features (``PixelStats.from_moments(features=...)``; see
 * Mitsuba's ``moment`` integrator wrapping an ``aov`` integrator named
   ``P`` (the prefix of the colour moments): the same AOV names prefixed
   ``P.``, with their second moments ``m2_P.*``, which give the features'
-  variances like the colour's.
+  variances like the colour's; a feature whose ``m2_`` channels are not all
+  there is read from its means alone, as noise-free (as pbrt's).
 
 Two candidates for one feature (``sh_normal`` and ``nn``, pbrt and
 Mitsuba names) are refused as ambiguous, naming them: choose with
@@ -109,6 +110,7 @@ import numpy as np
 
 from ..errors import InputError, McreconWarning
 from ..core.stats import PixelStats
+from ._exr_moments import _split, _variance_from_moments
 from .images import subsampled
 from .pixel_exr_features import FEATURE_CHANNELS, _read_features, find_feature_channels  # noqa: F401 (re-exported)
 
@@ -203,9 +205,11 @@ class _EXR:
     """The channels (float arrays, with their stored dtype) and header of one EXR."""
 
     def __init__(self, path: Path):
-        from .images import open_exr
+        from .images import open_exr_parts
 
-        self.arrays, self.sampling, self.header = open_exr(path)
+        # parts: what a multi-part file's other parts hold, said once the file is read (a refused file
+        # says it in its one error line)
+        self.arrays, self.sampling, self.header, self.parts = open_exr_parts(path)
         self.path = path
         self.names = tuple(sorted(self.arrays))
 
@@ -225,24 +229,6 @@ class _EXR:
         arrs = [self.arrays[n] for n in names]
         half = any(a.dtype == np.float16 for a in arrs)
         return np.stack([a.astype(np.float64) for a in arrs], axis=-1), half
-
-
-def _split(text, field) -> tuple[str, ...] | None:
-    if text is None:
-        return None
-    if isinstance(text, str):
-        parts = tuple(p.strip() for p in text.split(","))
-    else:
-        parts = tuple(str(p).strip() for p in text)
-    if not parts or any(not p for p in parts):
-        raise InputError(f"--{field.replace('_', '-')}", field, f"{text!r}: expected comma-separated channel "
-                         "names, e.g. R,G,B")
-    if field == "mean" and len(set(parts)) != len(parts):  # they name the output channels
-        # (a variance or moment channel may serve several mean channels)
-        dup = next(p for p in parts if parts.count(p) > 1)
-        raise InputError(f"--{field.replace('_', '-')}", field, f"{text!r} names channel {dup!r} twice; "
-                         "each output channel needs its own, e.g. R,G,B")
-    return parts
 
 
 #: The largest sample count a pixel may hold (the statistics count in int64).
@@ -299,6 +285,10 @@ def _resolve_count(exr: _EXR, count, spp):
         name = str(given)
         if name in exr.arrays:
             arr, _ = exr.get([name], "count")
+            if not (arr > 0).any():  # refused here, not after a method's note on the statistics
+                raise InputError(where, f"count channel {name}", "no pixel has a positive count (no sample "
+                                 "anywhere), there is nothing to reconstruct; give the channel of the per-pixel "
+                                 "sample counts, or --spp N")
             return arr[..., 0], f"channel {name}"
         if name in exr.header:
             return _attribute_count(exr, name), f"header attribute {name}"
@@ -371,7 +361,7 @@ def _warn_half_saturation(exr: _EXR, names, values, half, layout):
                 "render with \"bool savefp16\" false" if layout == "pbrt-v4" else
                 "half floats cannot hold more: these means are clamped or overflowed; write float32 channels")
         warnings.warn(f"{exr.path}: {','.join(names)}: {k} pixel(s) at {HALF_MAX:g}, the largest half float; "
-                      f"{hint}", McreconWarning, stacklevel=3)
+                      f"{hint}", McreconWarning, stacklevel=4)
 
 
 def _check_finite(exr, names, values, count, field, half):
@@ -436,6 +426,21 @@ def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance
     if variance is not None and second_moment is not None:
         raise InputError("--variance/--second-moment", "variance", "give one of them")
     exr = _EXR(path)
+    try:
+        out = _read_stats(exr, layout, mean, variance, second_moment, variance_of, count, spp, features)
+    except InputError as exc:
+        if exr.parts is None or str(exc.where) != str(path):
+            raise
+        raise type(exc)(exc.where, exc.field, f"{exc.problem} ({exr.parts})") from None
+    if exr.parts is not None:
+        warnings.warn(f"{path}: {exr.parts}", McreconWarning, stacklevel=2)
+    return out
+
+
+def _read_stats(exr: _EXR, layout, mean, variance, second_moment, variance_of, count, spp,
+                features) -> PixelStatsEXR:
+    """:func:`read_pixel_stats_exr` of the opened file, its options checked."""
+    path = exr.path
     where = str(path)
     if layout is None:
         layout = "explicit" if mean is not None else _detect_layout(exr)
@@ -556,45 +561,6 @@ def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance
     stats = PixelStats.from_moments(m, var, n, channels=channels, variance_of=v_of, where=where, features=feats)
     return PixelStatsEXR(stats, path, layout, sources, count_source,
                          tuple(out_channels) if out_channels is not None else tuple(channels), out_matrix)
-
-
-#: Unit roundoff of float32, in which renderers accumulate a film's moments.
-_F32_U = 2.0 ** -24
-
-
-def _variance_from_moments(exr, names, m1, m2, n, half=False) -> np.ndarray:
-    """The variance of the samples from the first and second moments (clamped at 0, times n / (n - 1)).
-
-    A second moment below the squared mean by more than float rounding is
-    damage (or moments of different samples), warned with its pixel count.
-    The bound is the worst case of a float32 film's accumulation over n
-    weighted samples plus the storage's rounding, relative to
-    max(E[x^2], mean^2): ``6 (n + 1) 2^-24 + 3 u`` (u: 2^-24 for float32
-    channels, 2^-11 for half floats); a constant pixel lands within it.
-    """
-    n_arr = np.asarray(n, dtype=np.float64)
-    sampled = np.broadcast_to(n_arr > 0, m1.shape[:2])[..., None]
-    neg = sampled & (m2 < 0)
-    if neg.any():
-        per = [names[c] for c in range(m2.shape[2]) if neg[..., c].any()]
-        raise InputError(str(exr.path), ",".join(per), f"{int(neg.any(axis=2).sum())} sampled pixel(s) with a "
-                         "negative second moment E[x^2]; it is >= 0")
-    sq = m1 * m1
-    nn = n_arr if n_arr.ndim == 0 else n_arr[..., None]
-    u = 2.0 ** -11 if half else _F32_U
-    tol = 6.0 * (nn + 1.0) * _F32_U + 3.0 * u
-    damaged = sampled & (sq - m2 > tol * np.maximum(sq, m2))
-    if damaged.any():
-        per = [names[c] for c in range(m2.shape[2]) if damaged[..., c].any()]
-        n_max = float(np.max(n_arr))
-        warnings.warn(f"{exr.path}: {','.join(per)}: {int(damaged.any(axis=2).sum())} sampled pixel(s) with a "
-                      "second moment below the squared mean by more than float rounding (relative "
-                      f"6 (n + 1) 2^-24 + 3 u = {6.0 * (n_max + 1.0) * _F32_U + 3.0 * u:.2g} at n = {n_max:g}); "
-                      "their variance is set to 0: the moments are damaged or not of the same samples",
-                      McreconWarning, stacklevel=3)
-    pop = np.maximum(m2 - sq, 0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(nn > 1, pop * nn / np.maximum(nn - 1.0, 1.0), 0.0)
 
 
 def read_half_buffer_exrs(path_a, path_b, **options) -> tuple[PixelStatsEXR, PixelStatsEXR]:

@@ -15,12 +15,14 @@ from typing import Mapping
 import numpy as np
 
 from ..errors import InputError
+from ._exr_moments import _split, _variance_from_moments
 
 __all__ = ["FEATURE_CHANNELS", "find_feature_channels"]
 
 #: Where each feature is found: ``{feature: (source, [channel names, ...] in order of preference)}``
 #: per source (pbrt-v4 names, Mitsuba aov names); a Mitsuba moment layout looks for the
-#: Mitsuba names behind its prefix ``P.`` with second moments ``m2_P.*``.
+#: Mitsuba names behind its prefix ``P.`` with second moments ``m2_P.*`` (read without a
+#: variance, as pbrt's, when some of those are missing).
 FEATURE_CHANNELS: dict[str, dict[str, tuple[tuple[str, ...], ...]]] = {
     "albedo": {"pbrt-v4": (("Albedo.R", "Albedo.G", "Albedo.B"),),
                "mitsuba": (("albedo.R", "albedo.G", "albedo.B"),)},
@@ -61,8 +63,6 @@ def find_feature_channels(names, layout: str, *, prefix: str | None = None, feat
         A feature with two candidates (naming both and the fix), an
         unknown ``features`` value, a mapped channel that is missing.
     """
-    from .pixel_exr import _split
-
     names = set(names)
     if isinstance(features, str) and features == "none":
         return {}
@@ -96,8 +96,8 @@ def find_feature_channels(names, layout: str, *, prefix: str | None = None, feat
                 if layout == "mitsuba-moment":
                     cand = tuple(f"{prefix}.{c}" for c in cand)
                     m2 = tuple(f"m2_{c}" for c in cand)
-                    if set(cand) <= names and set(m2) <= names:
-                        hits.append((source, cand, m2))
+                    if set(cand) <= names:  # without all its m2_ moments: means only, as pbrt's features
+                        hits.append((source, cand, m2 if set(m2) <= names else None))
                 elif set(cand) <= names:
                     hits.append((source, cand, None))
                 if partial is None and 0 < len(names.intersection(cand)) < len(cand):
@@ -119,14 +119,13 @@ def find_feature_channels(names, layout: str, *, prefix: str | None = None, feat
 
             warnings.warn(f"{where}: features/{feat}: {', '.join(c for c in partial if c in names)} present "
                           f"without {', '.join(c for c in partial if c not in names)}: the {feat} is left out "
-                          "(write all its channels, or map them: features={...})", McreconWarning, stacklevel=3)
+                          "(write all its channels, or map them: features={...})", McreconWarning, stacklevel=4)
     return out
 
 
 def _read_features(exr, found, n):
     """``{feature: (mean (H, W, k), variance of the samples or None)}`` of the channels ``found``."""
     from ..core.features import warn_feature_zeroed, within_feature_limit
-    from .pixel_exr import _variance_from_moments
 
     out = {}
     zeroed = 0
@@ -153,5 +152,5 @@ def _read_features(exr, found, n):
         m = np.where(np.isfinite(m), m, 0.0)
         out[feat] = (m, var)
     if zeroed:
-        warn_feature_zeroed(str(exr.path), zeroed, stacklevel=4, unit="pixel")
+        warn_feature_zeroed(str(exr.path), zeroed, stacklevel=5, unit="pixel")
     return out

@@ -57,6 +57,24 @@ def _bad_rows(d, s: int, e: int) -> tuple[int, int]:
     return s, e
 
 
+def _member(path, group, name: str, shown: str):
+    """``group[name]``, or a one-line error naming ``shown`` when it cannot be opened: a soft link to
+    nothing or to itself, an external link to a missing file (HDF5 says only "component not found")."""
+    try:
+        return group[name]
+    except _H5_ERRORS as exc:
+        link = None
+        with contextlib.suppress(*_H5_ERRORS):
+            link = group.get(name, getlink=True)
+        if isinstance(link, h5py.SoftLink):
+            what = f"a soft link to {link.path}, which does not lead to an object (missing, or a loop of links)"
+        elif isinstance(link, h5py.ExternalLink):
+            what = f"an external link to {link.path} in {link.filename}, which cannot be opened"
+        else:
+            what = f"cannot be opened ({_detail(exc)})"
+        raise _err(path, shown, f"{what}: store the data itself there, or delete it") from None
+
+
 def _read_error(path, name: str, d, s: int, e: int, exc) -> InputError:
     """A one-line error of a failed read of rows [s, e) of dataset ``name``."""
     if isinstance(exc, InputError):
@@ -346,18 +364,23 @@ class SampleLog:
                        "feature, one row per sample)")
         self.feature_names = tuple(sorted(f["features"].keys())) if "features" in f else ()
         self.feature_shapes = {}
+        self.feature_dtypes = {}  # the stored dtypes, from the metadata (a row of a wide feature is no read)
         for name in self.feature_names:
-            d = f["features"][name]
+            d = _member(path, f["features"], name, f"/features/{name}")
             if not isinstance(d, h5py.Dataset) or d.shape[:1] < (n,):
                 raise _err(path, f"dataset /features/{name}", f"shape {getattr(d, 'shape', None)}, expected ({n}, ...)")
             if d.dtype.kind not in "fiub":
                 raise _err(path, f"dataset /features/{name}", f"dtype {d.dtype}, expected a numeric dtype "
                            "(integer, float or bool)")
             self.feature_shapes[name] = tuple(d.shape[1:])
+            self.feature_dtypes[name] = d.dtype
         self.has_reference = "reference" in f
         if self.has_reference:
-            ref = f["reference"]
+            ref = _member(path, f, "reference", "/reference")
             expect = (self.height, self.width, len(self.channels))
+            if not isinstance(ref, h5py.Dataset):
+                raise _err(path, "dataset /reference", f"a {type(ref).__name__.lower()}, expected a dataset of shape "
+                           f"(height, width, channels) = {expect}: write the reference image there, or delete it")
             if ref.shape != expect:
                 raise _err(path, "dataset /reference", f"shape {ref.shape}, expected (height, width, channels) = {expect}")
         meta = a.get("metadata_json", "{}")

@@ -144,7 +144,7 @@ def write_log(path, positions, values, *, width: int, height: int,
             f.create_dataset("rounds/end", data=np.asarray(ends, np.int64), maxshape=(None,),
                              chunks=(RECORD_CHUNK_ROWS,), **_CHECKSUM)
             for name, arr in dict(features or {}).items():
-                arr = np.asarray(arr)
+                arr = _feature_array(path, name, arr)
                 if arr.shape[:1] != (n,):
                     raise _err(path, f"features/{name}", f"shape {arr.shape}, expected ({n}, ...)")
                 f.create_dataset(f"features/{name}", data=arr, maxshape=(None,) + arr.shape[1:],
@@ -154,6 +154,15 @@ def write_log(path, positions, values, *, width: int, height: int,
                                                                     else np.float64), **_CHECKSUM)
             f.attrs["n_committed"] = np.int64(n)
     return path
+
+
+def _feature_array(path, name, arr) -> np.ndarray:
+    """A feature as an array of a dtype the reader takes (integer, float, bool), else refused naming it."""
+    arr = np.asarray(arr)
+    if arr.dtype.kind not in "fiub":
+        raise _err(path, f"features/{name}", f"dtype {arr.dtype}, expected a numeric dtype (integer, float or "
+                   "bool): one number per component and sample")
+    return arr
 
 
 def _json_default(o):
@@ -391,7 +400,7 @@ def append_log(path, positions, values, *, round_index: int | None = None,
         The committed sample count after the append.
     """
     path = Path(path)
-    feats = {str(k): np.asarray(v) for k, v in dict(features or {}).items()}
+    feats = {str(k): _feature_array(path, k, v) for k, v in dict(features or {}).items()}
     rec = None if round_record is None else _record_json(path, round_record)
     with log_lock(path):
         try:
@@ -461,8 +470,14 @@ def _check_free_space(path, n: int, m: int, chunk: int, row_bytes: int) -> None:
         raise err
 
 
-def check_log_fits(path, n: int, n_channels: int, *, where: str) -> None:
-    """Refuse, before anything is rendered, a log of ``n`` float32 samples that ``path``'s disk cannot take."""
+def check_log_fits(path, n: int, n_channels: int, *, where: str, spp: int | None = None,
+                   film: str = "--size") -> None:
+    """Refuse, before anything is rendered, a log of ``n`` float32 samples that ``path``'s disk cannot take.
+
+    With ``spp`` (``n`` is that many samples per pixel) the advice is one that works: the largest spp
+    that fits, or, when even 1 spp does not, a smaller film (``film`` says how to make it smaller: a
+    scene file's film is set in the file) or another disk.
+    """
     need = 4.0 * n * (2 + n_channels)
     try:
         st = os.statvfs(Path(path).parent)
@@ -470,8 +485,16 @@ def check_log_fits(path, n: int, n_channels: int, *, where: str) -> None:
         return
     free = st.f_bavail * st.f_frsize
     if need > free:
+        per_spp = need / spp if spp else None
+        if per_spp is None:
+            advice = f"lower --spp, or make the film smaller ({film})"
+        elif per_spp <= free:
+            advice = f"lower --spp to at most {int(free // per_spp)}, or free disk space"
+        else:
+            advice = (f"even 1 spp needs {per_spp / 2**30:.3g} GiB: make the film smaller ({film}), free disk "
+                      "space, or write the log to a larger disk")
         raise InputError(where, "spp", f"{n} samples make a log of {need / 2**30:.3g} GiB, more than the "
-                         f"{free / 2**30:.3g} GiB free for {path}; lower --spp or --size")
+                         f"{free / 2**30:.3g} GiB free for {path}; {advice}")
 
 
 def _append(path, *, pos_in, val_in, round_index, feats, rec, round_record, checked=False) -> int:  # noqa: C901

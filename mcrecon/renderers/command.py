@@ -328,14 +328,15 @@ class CommandRenderer:
         Each is (N,) or (N, k) of a numeric dtype (integers, floats, bool
         as 0/1; not strings); the names and per-sample shapes are those of
         the first reply (the first reply decides, as in the log); values
-        that are not finite are set to 0 in a copy and warned, as
+        that are not finite or beyond the features' limit (a DBL_MAX "no
+        hit") are set to 0 in a copy and warned once per renderer, as
         :func:`mcrecon.core.features.check_features` does (a depth of inf
         where a ray left the scene: the sample's colour is kept).
         ``read_log`` has checked that each is a dataset of at least N rows;
         rows past N are allowed only in a reply that records
         ``n_committed`` (an appended log), as for its positions and values.
         """
-        from ..core.features import warn_feature_zeroed
+        from ..core.features import warn_feature_zeroed, within_feature_limit
 
         n = reply.n_samples
         features = {}
@@ -351,10 +352,11 @@ class CommandRenderer:
                     if d.ndim > 2:
                         raise RendererError(self.name, field, f"shape {d.shape}, expected ({n},) or ({n}, k): one "
                                             "row of k components per sample")
-                    if d.dtype.kind not in "iuf":
+                    if d.dtype.kind not in "iufb":
                         raise RendererError(self.name, field, f"dtype {d.dtype}, expected a numeric dtype "
-                                            "(integer or float)")
-                    features[name] = d[:n]
+                                            "(integer, float or bool)")
+                    # a bool mask is taken as 0/1 (renderer-protocol.md)
+                    features[name] = d[:n].astype(np.uint8) if d.dtype.kind == "b" else d[:n]
         layout = {name: tuple(arr.shape[1:]) for name, arr in features.items()}
         if self._feature_layout is None:
             self._feature_layout = layout
@@ -367,7 +369,7 @@ class CommandRenderer:
         zeroed = 0
         for name, arr in features.items():
             if arr.dtype.kind == "f":
-                finite = np.isfinite(arr)
+                finite = within_feature_limit(arr)  # NaN, Inf and "no hit" sentinels (DBL_MAX), warned once
                 if not finite.all():
                     rows = ~finite if arr.ndim == 1 else ~finite.all(axis=1)
                     zeroed = max(zeroed, int(rows.sum()))

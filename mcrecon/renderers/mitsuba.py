@@ -440,6 +440,10 @@ class MitsubaRenderer:
         self._sensor = sensors[0]
         film = self._sensor.film()
         fw, fh = (int(v) for v in film.crop_size())
+        from ..io.logformat import MAX_PIXELS  # a film no log or image holds (Mitsuba loads a width of 0)
+        if min(fw, fh) < 1 or fw * fh > MAX_PIXELS:
+            raise InputError(self.scene_name, "film width/height", f"{fw}x{fh}: expected at least 1x1 and at "
+                             f"most {MAX_PIXELS} pixels; set the film's width and height in the scene")
         if (width is not None and width != fw) or (height is not None and height != fh):
             raise InputError(self.scene_name, "width/height",
                              f"requested {width}x{height} but the scene's film is {fw}x{fh}; set the film size "

@@ -170,7 +170,8 @@ def dump_uniform_log(path, scene=None, *, width: int | None = None, height: int 
         raise InputError(r.name, "features", f"{', '.join(missing)} asked for, but this renderer was built with "
                          f"features={','.join(r.features) or 'none'!r}")
     n_comp = len(r.channels) + sum(MITSUBA_FEATURES[f] for f in names)
-    check_log_fits(path, spp * r.width * r.height, n_comp, where="mitsuba log")
+    check_log_fits(path, spp * r.width * r.height, n_comp, where="mitsuba log", spp=spp,
+                   film="--size" if r._spec_scene is None else "the film's width/height in the scene")
     reference = None
     if reference_spp is not None:
         # An independent stream: the reference must not share noise with the samples.
