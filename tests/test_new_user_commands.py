@@ -139,3 +139,125 @@ def test_time_plot_runs_forward_in_time_in_budget_order(tmp_path, monkeypatch):
     assert ys == [0.5, 0.25, 0.125, 0.0625]                         # budgets in order: the error falls
     assert all(b > a for a, b in zip(xs, xs[1:]))                    # and time only goes forward
     assert xs[-1] == pytest.approx(sum(times.values()))
+
+
+# ---- the README's command-line block ------------------------------------------------------------------------------
+
+def _readme_block(heading: str) -> str:
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    section = text[text.index(f"\n## {heading}\n"):]
+    m = re.search(r"^```(sh|python)\n(.*?)^```", section, re.M | re.S)
+    return m.group(2)
+
+
+def _shell_commands(block: str) -> list[list[str]]:
+    import shlex
+
+    return [shlex.split(line, comments=True) for line in block.replace("\\\n", " ").splitlines()
+            if shlex.split(line, comments=True)]
+
+
+def test_readme_command_block_writes_each_output_once():
+    """The gem image the diagnostics describe is not replaced by a later command's: one command, one name
+    (but the resume, which continues the run that wrote it)."""
+    written = {}
+    for argv in _shell_commands(_readme_block("Command line")):
+        for flag in ("-o", "--reference-exr", "--log"):
+            if flag in argv:
+                path = argv[argv.index(flag) + 1]
+                assert path not in written or "--resume" in argv, f"{path}: {written.get(path)} and {argv}"
+                written[path] = argv
+        if argv[:2] == ["mcrecon", "reconstruct"]:
+            gem_out = argv[argv.index("-o") + 1]
+    assert any(a[:2] == ["mcrecon", "compare"] and a[2] == gem_out for a in _shell_commands(
+        _readme_block("Command line")))
+
+
+def test_readme_command_block_runs_as_written_outside_the_repository(scratch, monkeypatch, capsys):
+    """Copied into a terminal in any folder (the venv active: `python` and `mcrecon` are its own), every
+    line works: nothing relative to the clone."""
+    import os
+    import subprocess
+    import sys
+
+    work, _ = scratch
+    monkeypatch.setenv("PATH", os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", ""))
+    # an installed mcrecon: importable by the renderer command from any folder
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(ROOT)] + [p for p in os.environ.get("PYTHONPATH", "")
+                                                                     .split(os.pathsep) if p]))
+    for argv in _shell_commands(_readme_block("Command line")):
+        assert argv[0] == "mcrecon", argv
+        code, out, err = run(argv[1:], capsys)
+        assert code == 0, f"{' '.join(argv)}: {err.strip()}"
+    for name in ("caustic_reference.exr", "caustic_reference.png", "caustic_gem.exr", "diag/sample_density.png",
+                 "adapt_gem.exr", "ext.exr"):
+        assert (work / name).stat().st_size > 0, name
+    assert not (work / "data_tools").exists()
+    proc = subprocess.run([sys.executable, "-m", "mcrecon.renderers.example"], capture_output=True, text=True,
+                          cwd=work)
+    assert proc.returncode == 2 and proc.stderr.startswith("usage: python -m mcrecon.renderers.example")
+
+
+# ---- Ctrl-C ---------------------------------------------------------------------------------------------------------
+
+def test_ctrl_c_in_adapt_with_a_log_says_how_to_continue_and_that_command_does(scratch):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    work, _ = scratch
+    env = dict(os.environ, MCRECON_SCENE_RATE="2000")  # a renderer slow enough to be interrupted half-way
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
+    argv = [sys.executable, "-m", "mcrecon", "adapt", "--scene", "soft_shadow", "--size", "16x16", "--spp", "64",
+            "--method", "box", "--log", "my run.h5", "-o", "o.exr", "--quiet"]
+    proc = subprocess.Popen(argv, cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.monotonic()
+    while not (work / "my run.h5").exists() and time.monotonic() - t0 < 60:
+        time.sleep(0.05)
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)  # what Ctrl-C sends
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert err == "mcrecon: interrupted; `mcrecon adapt --resume 'my run.h5' -o o.exr` continues the run from " \
+                  "its last committed round\n"
+    resume = re.search(r"`mcrecon (.*?)`", err).group(1)
+    import shlex
+
+    env["MCRECON_SCENE_RATE"] = ""
+    done = subprocess.run([sys.executable, "-m", "mcrecon", *shlex.split(resume)], cwd=work, env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and "stopped: budget" in done.stdout, done.stderr
+    assert "before this resume" in done.stdout
+
+
+@pytest.mark.parametrize("argv", [
+    ["adapt", "--scene", "flat", "--size", "8x8", "--spp", "4", "-o", "o.exr"],                       # no log
+    ["adapt", "--scene", "flat", "--size", "8x8", "--spp", "4", "-o", "o.exr", "--log", "never.h5"],  # none yet
+    ["reconstruct", "s.h5", "-o", "o.exr"],
+])
+def test_ctrl_c_without_a_log_on_disk_says_only_interrupted(argv, scratch, monkeypatch, capsys):
+    from mcrecon.cli import commands
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(commands, "_cmd_adapt", interrupted)
+    monkeypatch.setattr(commands, "_cmd_reconstruct", interrupted)
+    code, out, err = run(argv, capsys)
+    assert code == 130 and err == "mcrecon: interrupted\n"
+
+
+# ---- outputs a person reads ---------------------------------------------------------------------------------------
+
+def test_render_log_reference_exr_gets_its_png_preview_beside_it(scratch, capsys):
+    from PIL import Image
+
+    work, _ = scratch
+    code, out, err = run(["render-log", "--scene", "soft_shadow", "--spp", "2", "--size", "24x16", "-o", "s.h5",
+                          "--reference-exr", "ref.exr"], capsys)
+    assert code == 0, err
+    assert "wrote ref.exr" in out and "wrote ref.png" in out
+    with Image.open(work / "ref.png") as im:
+        assert im.size == (24, 16) and len(np.unique(np.asarray(im.convert("L")))) > 4  # the scene, not a blank
