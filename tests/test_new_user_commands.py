@@ -261,3 +261,69 @@ def test_render_log_reference_exr_gets_its_png_preview_beside_it(scratch, capsys
     assert "wrote ref.exr" in out and "wrote ref.png" in out
     with Image.open(work / "ref.png") as im:
         assert im.size == (24, 16) and len(np.unique(np.asarray(im.convert("L")))) > 4  # the scene, not a blank
+
+
+# ---- the README's Python section and help() -------------------------------------------------------------------------
+
+def test_readme_python_block_runs_as_written(scratch):
+    """Extracted and run in a fresh interpreter in a scratch folder: the renderer it passes to adapt is a
+    mcrecon.CallableRenderer, and every name it uses is defined in it."""
+    import os
+    import subprocess
+    import sys
+
+    work, _ = scratch
+    block = _readme_block("Python")
+    assert "mcrecon.CallableRenderer(" in block and "mcrecon.adapt(renderer" in block
+    (work / "example.py").write_text(block)
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
+    proc = subprocess.run([sys.executable, "-W", "error", "example.py"], cwd=work, env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert (work / "log.h5").exists() and (work / "run.h5").exists()
+
+
+def test_adapt_refuses_a_plain_function_naming_callable_renderer():
+    import mcrecon
+    from mcrecon.errors import InputError
+
+    def shade(request):
+        return None
+
+    with pytest.raises(InputError) as exc:
+        mcrecon.adapt(shade, "gem", spp=4)
+    assert exc.value.where == "adapt" and exc.value.field == "renderer"
+    assert "shade is a plain function" in str(exc.value) and "mcrecon.CallableRenderer(fn, width=W, height=H)" \
+        in str(exc.value)
+
+
+def test_help_of_adapt_documents_every_parameter_and_its_example_runs():
+    import doctest
+    import inspect
+
+    import mcrecon
+    from mcrecon.adaptive import run as driver
+
+    doc = mcrecon.adapt.__doc__
+    for section in ("Parameters", "Returns", "Raises", "Examples"):
+        assert f"\n    {section}\n    {'-' * len(section)}\n" in doc, section
+    for name in inspect.signature(driver.adapt).parameters:
+        assert re.search(rf"\n    {name} : ", doc), name
+    assert "CallableRenderer" in doc and "resume" in doc
+    test = doctest.DocTestParser().get_doctest(doc, {}, "mcrecon.adapt", None, 0)
+    runner = doctest.DocTestRunner(verbose=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        runner.run(test)
+    assert runner.tries > 0 and runner.failures == 0
+
+
+def test_help_of_reconstruct_names_every_method_that_takes_half_buffers():
+    import mcrecon
+    from mcrecon.methods.base import half_buffer_methods
+
+    doc = " ".join(mcrecon.reconstruct.__doc__.split())
+    assert half_buffer_methods() == ["auto", "nfor"]
+    for name in half_buffer_methods():
+        assert f"``{name}``" in doc[doc.index("half-buffer pair"):doc.index("The pair must")], name
