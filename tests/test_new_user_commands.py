@@ -327,3 +327,35 @@ def test_help_of_reconstruct_names_every_method_that_takes_half_buffers():
     assert half_buffer_methods() == ["auto", "nfor"]
     for name in half_buffer_methods():
         assert f"``{name}``" in doc[doc.index("half-buffer pair"):doc.index("The pair must")], name
+
+
+def test_diagnostics_pngs_have_a_title_with_the_values_and_a_colour_bar(scratch, monkeypatch, capsys):
+    """A uniform log's sample_density is one value everywhere: the PNG says which, drawn mid-scale on a
+    colour bar around it."""
+    from matplotlib.figure import Figure
+    from PIL import Image
+
+    work, _ = scratch
+    seen = {}
+    real = Figure.savefig
+
+    def recording(self, fname, *a, **k):
+        cbar = [ax for ax in self.axes if ax.get_label() == "<colorbar>"]
+        seen[len(seen)] = (self.axes[0].get_title(), cbar[0].get_ylim() if cbar else None)
+        return real(self, fname, *a, **k)
+
+    monkeypatch.setattr(Figure, "savefig", recording)
+    code, _, err = run(["render-log", "--scene", "flat", "--spp", "4", "--size", "24x16", "-o", "u.h5"], capsys)
+    assert code == 0, err
+    code, out, err = run(["reconstruct", "u.h5", "-o", "u.exr", "--method", "gem", "--diagnostics", "diag"], capsys)
+    assert code == 0, err
+    titles = {t.split(":")[0]: (t, lim) for t, lim in seen.values()}
+    assert {"sample_density", "selected_scale"} <= set(titles)
+    title, (lo, hi) = titles["sample_density"]
+    assert title == "sample_density: every pixel 4" and lo < 4 < hi
+    title, (lo, hi) = titles["selected_scale"]
+    assert re.fullmatch(r"selected_scale: \S+ to \S+|selected_scale: every pixel \S+", title)
+    with Image.open(work / "diag" / "sample_density.png") as im:
+        assert im.size[0] > 24 * 4  # a figure, not the 24x16 map alone
+        colours = np.unique(np.asarray(im.convert("RGB")).reshape(-1, 3), axis=0)
+    assert len(colours) > 50  # text, axes and a colour bar beside the one colour of the map
