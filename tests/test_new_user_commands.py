@@ -359,3 +359,67 @@ def test_diagnostics_pngs_have_a_title_with_the_values_and_a_colour_bar(scratch,
         assert im.size[0] > 24 * 4  # a figure, not the 24x16 map alone
         colours = np.unique(np.asarray(im.convert("RGB")).reshape(-1, 3), axis=0)
     assert len(colours) > 50  # text, axes and a colour bar beside the one colour of the map
+
+
+# ---- what the README's install leaves skipped ---------------------------------------------------------------------
+
+def test_readme_install_brings_oidn_and_says_how_to_get_the_mitsuba_tests():
+    import tomllib
+
+    deps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    assert any(re.match(r"pyoidn\b", d) for d in deps), deps  # `pip install -e ".[test]"` brings OIDN
+    setup = (ROOT / "README.md").read_text(encoding="utf-8")
+    setup = " ".join(setup[setup.index("## Set-up"):setup.index("## Methods")].split())
+    assert "`PYTHON=.venv/bin/python bash data_tools/install_mitsuba.sh`" in setup
+    assert "Mitsuba 3 bridge's tests need" in setup and "libLLVM 19" in setup
+    assert (ROOT / "data_tools" / "install_mitsuba.sh").exists()
+
+
+#: Words that say how to get what a skipped test lacks.
+_HOW = ("install", "pip ", "apt", "root", "MCRECON_")
+#: Variables whose text says it already: mitsuba_available()'s reason (checked below), the C tools' and the
+#: docs test's HDF5 checks (install hints, collected in ``skipped``) and the docs' skip marks (why a block
+#: is not run here, tests/test_docs_commands.py).
+_SAYS_HOW = {"_REASON", "reason", "why", "skipped"}
+
+
+def _skip_reasons():
+    """(file:line, reason node or None) of every skip in tests/*.py: pytest.skip(...), importorskip's
+    reason=, skipif's reason=."""
+    for path in sorted((ROOT / "tests").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if not isinstance(node, ast.Call):
+                continue
+            name = ast.unparse(node.func)
+            if name not in ("pytest.skip", "pytest.importorskip", "pytest.mark.skipif"):
+                continue
+            reason = next((k.value for k in node.keywords if k.arg == "reason"), None)
+            if name == "pytest.skip" and reason is None and node.args:
+                reason = node.args[0]
+            yield f"{path.name}:{node.lineno}", reason
+
+
+def test_every_skip_reason_says_what_is_missing_and_how_to_get_it():
+    """`pytest -rs` after the README's install: each skip names what it lacks and how to get it (a skip
+    that is a statement about the code, not a missing thing, is no skip: such a case leaves the grid)."""
+    bad = []
+    for where, reason in _skip_reasons():
+        if reason is None:
+            bad.append(f"{where}: no reason (importorskip's own names the module, not how to get it)")
+            continue
+        text = " ".join(n.value for n in ast.walk(reason) if isinstance(n, ast.Constant) and isinstance(n.value, str))
+        names = {n.id for n in ast.walk(reason) if isinstance(n, ast.Name)}
+        if not (any(w in text for w in _HOW) or names & _SAYS_HOW):
+            bad.append(f"{where}: {ast.unparse(reason)}")
+    assert not bad, "\n".join(bad)
+
+
+def test_mitsuba_skip_reason_says_how_to_install_it(monkeypatch):
+    import importlib.util
+
+    from mcrecon.renderers import mitsuba as mb
+
+    monkeypatch.setattr(mb, "_PROBE_CACHE", {})
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None)
+    ok, reason = mb.mitsuba_available()
+    assert not ok and "not installed" in reason and "bash data_tools/install_mitsuba.sh" in reason
