@@ -231,7 +231,8 @@ def run_convergence(scene: str = "soft_shadow", *, methods: Sequence[str] | None
     sc = get_scene(scene)
     if features is None:
         features = bool(sc.feature_names)
-    features = SceneRenderer(sc, width=1, height=1, features=features).features  # refused for a scene without
+    # validated as the renderer does (True is refused for a scene without features)
+    features = SceneRenderer(sc, width=1, height=1, features=features).features
     notes = []
     if methods:
         methods = list(methods)
