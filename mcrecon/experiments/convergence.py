@@ -451,9 +451,12 @@ def _write_convergence(result: ConvergenceResult, out, *, scene: str, html: bool
                                 ("wall_seconds", "convergence_time.png",
                                  "cumulative wall time [s] of the runs up to each budget")):
         fig, ax = plt.subplots(figsize=(6, 4.5), dpi=100)
+        # one colour per method (its uniform line solid, its adaptive one dashed): ten colours for up to ten
+        # methods, where one per line would repeat among a full run's 12 lines
+        colour = {m: f"C{i % 10}" for i, m in enumerate(sorted({m for m, _ in lines}))}
         for method, mode in lines:
             xs, ys = plot_points(result.rows, method, mode, xkey)
-            ax.loglog(xs, ys, "o-" if mode == "uniform" else "s--", label=f"{method} ({mode})")
+            ax.loglog(xs, ys, "o-" if mode == "uniform" else "s--", color=colour[method], label=f"{method} ({mode})")
         ax.set_xlabel(xlabel)
         ax.set_ylabel("relative MSE")
         ax.set_title(f"{scene}")
