@@ -1208,7 +1208,8 @@ def test_feature_guided_auto_and_nfor_run_on_films_narrower_than_their_windows(s
 
 
 def test_feature_candidates_none_makes_oidn_colour_only_too():
-    pytest.importorskip("pyoidn")
+    pytest.importorskip("pyoidn", reason="needs pyoidn (Intel OIDN), a dependency of mcrecon: pip install -e . "
+                        "(or pip install pyoidn)")
     ss_f, _ = _textured(0)
     ss = SampleSet(ss_f.positions, ss_f.values, width=ss_f.width, height=ss_f.height)
     opts = dict(candidates="box,gauss,nlm,oidn", feature_candidates="none")

@@ -162,7 +162,7 @@ def test_renderer_cmd_with_an_unclosed_quote_names_the_flag(tmp_path, capsys):
 
 
 # ------------------------------------------------------------------ 2. crash, memory
-@pytest.mark.skipif(not flip_available(), reason="flip-evaluator not installed")
+@pytest.mark.skipif(not flip_available(), reason="flip-evaluator not installed (pip install flip-evaluator)")
 def test_compare_against_an_all_black_reference_computes_the_rest(tmp_path):
     """HDR-FLIP's exposure range is empty for a black reference: flip-evaluator printed on stdout and
     ended the process with status 255."""

@@ -45,7 +45,7 @@ def shots(tmp_path_factory):
 
 
 def test_batch_workers_capped_at_frames_and_cores(shots, tmp_path, capsys, monkeypatch):
-    pytest.importorskip("distributed")
+    pytest.importorskip("distributed", reason="needs the dask extra: pip install 'mcrecon[dask]'")
     from mcrecon import distributed as D
     from mcrecon.distributed import batch as D_batch
     from mcrecon.distributed import cluster as D_cluster
@@ -74,7 +74,7 @@ def test_batch_workers_capped_at_frames_and_cores(shots, tmp_path, capsys, monke
 
 
 def test_batch_existing_name_is_literal_not_a_pattern(shots):
-    pytest.importorskip("distributed")
+    pytest.importorskip("distributed", reason="needs the dask extra: pip install 'mcrecon[dask]'")
     from mcrecon import distributed as D
     from mcrecon.distributed import batch as D_batch
     from mcrecon.distributed import cluster as D_cluster

@@ -53,7 +53,7 @@ def c_tools(tmp_path_factory) -> dict[str, Path]:
     """The two C programs, compiled once into a directory whose name holds a space."""
     cc = shutil.which("gcc") or shutil.which("cc")
     if cc is None:
-        pytest.skip("no C compiler (gcc) on this machine")
+        pytest.skip("no C compiler (gcc) on this machine: apt-get install gcc")
     flags, why = _hdf5_flags()
     if flags is None:
         pytest.skip(why)
@@ -65,7 +65,8 @@ def c_tools(tmp_path_factory) -> dict[str, Path]:
         proc = subprocess.run([cc, "-O2", "-Wall", "-Wextra", "-Werror", "-o", str(exe), str(C_DIR / f"{name}.c"),
                                *flags, "-lm"], capture_output=True, text=True)
         if proc.returncode != 0 and "hdf5.h" in proc.stderr and "No such file" in proc.stderr:
-            pytest.skip(f"the HDF5 C headers are missing ({proc.stderr.strip().splitlines()[0]})")
+            pytest.skip(f"the HDF5 C headers are missing ({proc.stderr.strip().splitlines()[0]}): "
+                        "apt-get install libhdf5-dev pkg-config")
         assert proc.returncode == 0, f"{name}.c does not compile:\n{proc.stderr}"
         built[name] = exe
     return built

@@ -245,7 +245,7 @@ def test_tiled_gem_default_halo(tmp_path):
 
 def test_tiling_is_dask_map_overlap(client):
     """Our tiles (boxes, halos clipped at the film's edges, trimming, assembly) are map_overlap's, bit for bit."""
-    da = pytest.importorskip("dask.array")
+    da = pytest.importorskip("dask.array", reason="needs the dask extra: pip install 'mcrecon[dask]'")
     from scipy import ndimage
 
     rng = np.random.default_rng(5)

@@ -271,3 +271,19 @@ def test_screenshot_shows_pixelated_image(page, report):
     full = _png(page.screenshot(full_page=True))
     assert full.var() > 0
     assert not page.errors, page.errors
+
+
+@pytest.mark.parametrize("height", [1000, 700])
+def test_opened_page_shows_the_whole_image_and_its_caption_in_the_window(browser, report, height):
+    """No scrolling to see the picture: the viewer comes before the tables, and its viewport takes the
+    window's height below it (at most 512 px), the fitted image inside it."""
+    out, _ = report
+    pg = browser.new_page(viewport={"width": 1280, "height": height})
+    pg.goto((out / "report.html").as_uri())
+    pg.wait_for_selector("body[data-ready='1']", timeout=10_000)
+    vp, img = pg.locator("#viewport").bounding_box(), pg.locator("#view").bounding_box()
+    caption = pg.locator("#caption").bounding_box()
+    assert vp["y"] + vp["height"] <= caption["y"] + 1 and caption["y"] + caption["height"] <= height
+    assert vp["y"] - 1 <= img["y"] and img["y"] + img["height"] <= vp["y"] + vp["height"] + 1
+    assert img["height"] >= 16 * 8  # still a useful zoom (8x) of the 24x16 film
+    pg.close()

@@ -403,7 +403,8 @@ def test_probe_survives_an_aborting_llvm(monkeypatch):
 
     old = sorted(glob.glob("/usr/lib/*/libLLVM-15.so*") + glob.glob("/usr/lib/*/libLLVM-16.so*"))
     if not _OK or not old:
-        pytest.skip("needs a working bridge and a libLLVM 15/16 on this machine to reproduce the abort")
+        pytest.skip("reproduces the abort of an old libLLVM: needs a working bridge and libLLVM 15 or 16 installed "
+                    "beside it (apt-get install libllvm15)")
     monkeypatch.setattr(mb, "_PROBE_CACHE", {})
     monkeypatch.setenv("DRJIT_LIBLLVM_PATH", old[0])
     ok, reason = mb.mitsuba_available(refresh=True)

@@ -107,6 +107,20 @@ class _Nowhere:
         return False
 
 
+def _how_to_continue(args) -> str:
+    """After Ctrl-C: for an adaptive run with a log on disk, the command that continues it (every committed
+    round is kept), else nothing."""
+    import shlex
+    from pathlib import Path
+
+    log = getattr(args, "resume", None) or getattr(args, "log", None)
+    if getattr(args, "command", None) != "adapt" or not log or not Path(log).is_file():
+        return ""
+    out = getattr(args, "output", None)
+    resume = f"mcrecon adapt --resume {shlex.quote(str(log))}" + (f" -o {shlex.quote(str(out))}" if out else "")
+    return f"; `{resume}` continues the run from its last committed round"
+
+
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     parser = build_parser(_command_of(argv) or "")  # "": no command, no method flags
@@ -142,7 +156,7 @@ def main(argv=None) -> int:
             sys.stderr.write(f"mcrecon: error: {where}: {exc.strerror or exc}\n")
             return 2
         except KeyboardInterrupt:
-            sys.stderr.write("mcrecon: interrupted\n")
+            sys.stderr.write(f"mcrecon: interrupted{_how_to_continue(args)}\n")
             return 130
         finally:
             sys.stdout.flush()

@@ -278,7 +278,7 @@ def write_outputs(image, out, *, channels, png, exposure, diagnostics=None, diag
             m = np.asarray(m)
             if m.ndim == 3 and m.shape[2] > 1:
                 m = m.mean(axis=2)
-            written.append(write_false_colour(d / f"{name}.png", m))
+            written.append(write_false_colour(d / f"{name}.png", m, title=name))  # with its colour bar
     return written
 
 

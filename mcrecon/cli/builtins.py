@@ -113,10 +113,13 @@ def _cmd_render_log(args):
                            features=getattr(args, "features", None))
     print(f"wrote {path}")
     if args.reference_exr is not None:
-        from ..io import read_log, write_exr
+        from ..io import read_log
 
         log = read_log(path)   # the reference exactly as stored in the log
-        print(f"wrote {write_exr(args.reference_exr, log.reference(), channels=log.channels)}")
+        # with its sRGB preview beside it (REF.png), as every other EXR the command line writes
+        for written in write_outputs(log.reference(), args.reference_exr, channels=log.channels, png=None,
+                                     exposure=0.0):
+            print(f"wrote {written}")
     return 0
 
 

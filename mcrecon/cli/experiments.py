@@ -6,6 +6,7 @@ and writes JSON/CSV numbers and PNG figures.
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
@@ -32,7 +33,8 @@ def _cmd_convergence(args):
                           modes=_csv_list(args.modes, str, "--modes"),
                           oidn=None if args.oidn == "auto" else args.oidn == "yes",
                           out=args.out if args.out is not None else f"convergence_{args.scene}",
-                          flip=None if args.flip == "auto" else args.flip == "yes", html=args.html)
+                          flip=None if args.flip == "auto" else args.flip == "yes", html=args.html,
+                          features=args.features)
     for r in res.rows:
         flip = f"  FLIP {r['flip']:.4g}" if "flip" in r else ""
         print(f"{r['method']:6s} {r['mode']:8s} spp {r['spp']:4d}  relMSE {r['relative_mse']:.5g}  "
@@ -174,6 +176,9 @@ def register(sub, command: str | None = None) -> None:
     s.add_argument("--oidn", default="auto", choices=("auto", "yes", "no"))
     s.add_argument("--flip", default="auto", choices=("auto", "yes", "no"),
                    help="HDR-FLIP per point (auto: when flip-evaluator is installed)")
+    s.add_argument("--features", action=argparse.BooleanOptionalAction, default=None,
+                   help="render per-sample albedo, normal and depth for the methods that read them (auto, nfor, "
+                        "splat; default: when the scene has them, as every built-in scene does)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", default=None, metavar="DIR",
                    help="folder of the tables, plots and report (default: convergence_SCENE)")

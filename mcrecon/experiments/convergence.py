@@ -184,7 +184,7 @@ def run_convergence(scene: str = "soft_shadow", *, methods: Sequence[str] | None
                     spp: Sequence[int] = (4, 8, 16, 32, 64, 128), size: tuple[int, int] = (128, 128),
                     seed: int = 0, modes: Sequence[str] = ("uniform", "adaptive"), oidn: bool | None = None,
                     out=None, eps: float = 0.01, report_spp: int | None = None, flip: bool | None = None,
-                    html: bool = False) -> ConvergenceResult:
+                    html: bool = False, features: bool | None = None) -> ConvergenceResult:
     """Run the convergence experiment; write CSV, JSON, plots and a report into ``out``.
 
     Parameters
@@ -192,7 +192,8 @@ def run_convergence(scene: str = "soft_shadow", *, methods: Sequence[str] | None
     scene : str
         A built-in scene name.
     methods : sequence of str, optional
-        Default: every available method.
+        Default: every available method (those that need per-sample
+        features left out, with a note, when the run renders none).
     spp : sequence of int
         Average samples per pixel of each point.
     modes : subset of {'uniform', 'adaptive'}
@@ -209,14 +210,42 @@ def run_convergence(scene: str = "soft_shadow", *, methods: Sequence[str] | None
     html : bool
         Also write ``report.html``, the interactive report
         (:mod:`mcrecon.experiments.html_report`), when ``out`` is given.
+    features : bool, optional
+        Render the per-sample features (albedo, normal, depth) with every
+        sample, for the methods that read them (``auto``, ``nfor``,
+        ``splat``).  Default: when the scene has them (every built-in
+        scene), so each method gets what ``reconstruct`` gives it on a
+        ``render-log --features`` log of the same scene and seed.  The
+        colour samples are the same either way.
+
+    Raises
+    ------
+    InputError
+        Before anything is rendered, for a method that needs features when
+        the run renders none.  The samples go through a temporary folder
+        that is removed on success and on failure.
     """
     from ..adaptive.run import adapt
     from ..renderers.scenes import SceneRenderer, get_scene, reference_image, render_uniform
 
     sc = get_scene(scene)
-    methods = list(methods) if methods else available_methods()
-    for m in methods:
-        method_class(m)  # clear error for an unknown name
+    if features is None:
+        features = bool(sc.feature_names)
+    # validated as the renderer does (True is refused for a scene without features)
+    features = SceneRenderer(sc, width=1, height=1, features=features).features
+    notes = []
+    if methods:
+        methods = list(methods)
+        for m in methods:
+            method_class(m)  # clear error for an unknown name
+        for m in methods:
+            _check_gets_features(m, sc, features)
+    else:
+        methods = available_methods()
+        left_out = [m for m in methods if not features and _needs_features(m)]
+        methods = [m for m in methods if m not in left_out]
+        if left_out:
+            notes.append(f"{', '.join(left_out)} left out: this run renders no per-sample features")
     bad = sorted(set(modes) - {"uniform", "adaptive"})
     if bad:
         raise InputError("convergence", "modes", f"unknown {bad}; valid: uniform, adaptive")
@@ -227,7 +256,6 @@ def run_convergence(scene: str = "soft_shadow", *, methods: Sequence[str] | None
     ref = reference_image(sc, w, h)
     if oidn is None:
         oidn = oidn_available()
-    notes = []
     if flip is None:
         flip = flip_available()
         if not flip:
@@ -240,70 +268,118 @@ def run_convergence(scene: str = "soft_shadow", *, methods: Sequence[str] | None
     if report_spp is None:
         report_spp = 32 if 32 in spp else spp[-1]
     rows, images, maps = [], {}, {}
-    tmpdir = Path(tempfile.mkdtemp(prefix="mcrecon-convergence-"))
-    for s in spp:
-        if "uniform" in modes:
-            t0 = time.perf_counter()
-            batch = render_uniform(sc, width=w, height=h, spp=s, seed=seed)
-            t_render = time.perf_counter() - t0
-            log = write_log(tmpdir / f"u{s}.h5", batch.positions, batch.values, width=w, height=h,
-                            channels=sc.channels, reference=ref)
-            box_img = None
-            for name in methods:
-                m = get_method(name)
-                t1 = time.perf_counter()
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore", McreconWarning)
-                    img = reconstruct(log, method=m)
-                dt = time.perf_counter() - t1
-                if name == "box":
-                    box_img = img
-                rows.append({"scene": scene, "method": name, "mode": "uniform", "spp": s,
-                             "samples": len(batch), "renderer_seconds": t_render, "toolkit_seconds": dt,
-                             "wall_seconds": t_render + dt, **_metrics(img, ref, eps, flip)})
-                if s == report_spp:
-                    images[(name, "uniform")] = img
-            if oidn:
-                if box_img is None:
-                    box_img = reconstruct(log, method="box")
-                t1 = time.perf_counter()
-                img = oidn_denoise(box_img)
-                dt = time.perf_counter() - t1
-                rows.append({"scene": scene, "method": "oidn", "mode": "uniform", "spp": s, "samples": len(batch),
-                             "renderer_seconds": t_render, "toolkit_seconds": dt, "wall_seconds": t_render + dt,
-                             **_metrics(img, ref, eps, flip)})
-                if s == report_spp:
-                    images[("oidn", "uniform")] = img
-            if s == report_spp:
-                images[("input", "uniform")] = box_img if box_img is not None else reconstruct(log, method="box")
-            log.unlink()
-        if "adaptive" in modes:
-            for name in methods:
-                m = get_method(name)
-                if not m.adaptive:
-                    continue
-                renderer = SceneRenderer(sc, width=w, height=h, seed=seed)
+    with tempfile.TemporaryDirectory(prefix="mcrecon-convergence-") as tmp:
+        tmpdir = Path(tmp)
+        # One-time costs (numba compiling a method's kernels) fall in the first run of each method:
+        # a run on a tiny film first keeps them out of every timed point.
+        _warm_up(sc, methods, modes, tmpdir, features=features, seed=seed)
+        for s in spp:
+            if "uniform" in modes:
                 t0 = time.perf_counter()
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore", McreconWarning)
-                    res = adapt(renderer, m, spp=s, seed=seed, reference=ref, track_error=False, progress=False)
-                wall = time.perf_counter() - t0
-                rows.append({"scene": scene, "method": name, "mode": "adaptive", "spp": s,
-                             "samples": res.stats.n_samples, "renderer_seconds": res.renderer_seconds,
-                             "toolkit_seconds": wall - res.renderer_seconds, "wall_seconds": wall,
-                             **_metrics(res.image, ref, eps, flip)})
+                batch = render_uniform(sc, width=w, height=h, spp=s, seed=seed, features=features)
+                t_render = time.perf_counter() - t0
+                log = write_log(tmpdir / f"u{s}.h5", batch.positions, batch.values, width=w, height=h,
+                                channels=sc.channels, features=batch.features or None, reference=ref)
+                box_img = None
+                for name in methods:
+                    m = get_method(name)
+                    t1 = time.perf_counter()
+                    img = _in_run(scene, s, "uniform", lambda: reconstruct(log, method=m))
+                    dt = time.perf_counter() - t1
+                    if name == "box":
+                        box_img = img
+                    rows.append({"scene": scene, "method": name, "mode": "uniform", "spp": s,
+                                 "samples": len(batch), "renderer_seconds": t_render, "toolkit_seconds": dt,
+                                 "wall_seconds": t_render + dt, **_metrics(img, ref, eps, flip)})
+                    if s == report_spp:
+                        images[(name, "uniform")] = img
+                if oidn:
+                    if box_img is None:
+                        box_img = reconstruct(log, method="box")
+                    t1 = time.perf_counter()
+                    img = oidn_denoise(box_img)
+                    dt = time.perf_counter() - t1
+                    rows.append({"scene": scene, "method": "oidn", "mode": "uniform", "spp": s,
+                                 "samples": len(batch), "renderer_seconds": t_render, "toolkit_seconds": dt,
+                                 "wall_seconds": t_render + dt, **_metrics(img, ref, eps, flip)})
+                    if s == report_spp:
+                        images[("oidn", "uniform")] = img
                 if s == report_spp:
-                    images[(name, "adaptive")] = res.image
-                    maps[(name, "adaptive")] = res.stats.count
-    try:
-        tmpdir.rmdir()
-    except OSError:
-        pass
+                    images[("input", "uniform")] = box_img if box_img is not None else reconstruct(log, method="box")
+                log.unlink()
+            if "adaptive" in modes:
+                for name in methods:
+                    m = get_method(name)
+                    if not m.adaptive:
+                        continue
+                    renderer = SceneRenderer(sc, width=w, height=h, seed=seed, features=features)
+                    t0 = time.perf_counter()
+                    res = _in_run(scene, s, "adaptive", lambda: adapt(renderer, m, spp=s, seed=seed, reference=ref,
+                                                                      track_error=False, progress=False))
+                    wall = time.perf_counter() - t0
+                    rows.append({"scene": scene, "method": name, "mode": "adaptive", "spp": s,
+                                 "samples": res.stats.n_samples, "renderer_seconds": res.renderer_seconds,
+                                 "toolkit_seconds": wall - res.renderer_seconds, "wall_seconds": wall,
+                                 **_metrics(res.image, ref, eps, flip)})
+                    if s == report_spp:
+                        images[(name, "adaptive")] = res.image
+                        maps[(name, "adaptive")] = res.stats.count
     result = ConvergenceResult(rows, images, maps, ref, report_spp, [], eps=eps, smape_eps=SMAPE_EPS,
                                flip=bool(flip), notes=notes)
     if out is not None:
         result.files = _write_convergence(result, out, scene=scene, html=html)
     return result
+
+
+def _needs_features(name: str) -> bool:
+    return get_method(name).requires.features == "required"
+
+
+def _check_gets_features(name: str, sc, features: bool) -> None:
+    """Refuse, before anything renders, a method that needs features in a run that renders none."""
+    if features or not _needs_features(name):
+        return
+    fix = "drop --no-features (features=False)" if sc.feature_names else f"scene {sc.name!r} has none"
+    raise InputError("convergence", "methods", f"{name} needs per-sample features (albedo, normal, depth) and "
+                     f"this run renders none: {fix}, or leave {name} out of --methods")
+
+
+def _in_run(scene: str, spp: int, mode: str, fn):
+    """``fn()`` with McreconWarnings silenced; an InputError about the run's temporary log is said of the
+    run instead (the log is gone when the user reads the message)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", McreconWarning)
+        try:
+            return fn()
+        except InputError as exc:
+            if "mcrecon-convergence-" not in exc.where:
+                raise
+            raise InputError(f"convergence {scene} {mode} {spp} spp", exc.field,
+                             exc.problem.replace(exc.where, "the run's samples")) from None
+
+
+def _warm_up(sc, methods, modes, tmpdir: Path, *, features: bool, seed: int) -> None:
+    """Run every method once on an 8x8, 2-spp film: numba compiles (or loads) its kernels here, not in
+    the first timed point."""
+    from ..adaptive.run import adapt
+    from ..renderers.scenes import SceneRenderer, render_uniform
+
+    batch = render_uniform(sc, width=8, height=8, spp=2, seed=seed, features=features)
+    log = write_log(tmpdir / "warm_up.h5", batch.positions, batch.values, width=8, height=8,
+                    channels=sc.channels, features=batch.features or None)
+    for name in methods:
+        m = get_method(name)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
+                if "uniform" in modes:
+                    reconstruct(log, method=m)
+                if "adaptive" in modes and m.adaptive:
+                    adapt(SceneRenderer(sc, width=8, height=8, seed=seed, features=features), m, spp=2, seed=seed,
+                          track_error=False, progress=False)
+            except (InputError, ValueError, RuntimeError):  # the timed run says what is wrong, on its own input
+                pass
+    log.unlink()
 
 
 def metrics_table(rows, *, flip: bool) -> list[str]:
@@ -328,6 +404,23 @@ def metrics_legend(result: ConvergenceResult) -> str:
     text += ("FLIP: NVIDIA's HDR-FLIP (flip-evaluator), mean over pixels; " if result.flip else
              "FLIP: not computed (" + ("; ".join(n for n in result.notes if "FLIP" in n) or "disabled") + "); ")
     return text + "lower is better for all."
+
+
+def plot_points(rows, method: str, mode: str, xkey: str) -> tuple[list, list]:
+    """The x and relative-MSE values of one method's line, in budget order.
+
+    Against ``spp`` x is the budget.  Against ``wall_seconds`` x is the
+    cumulative wall time of the method's runs up to each budget.  Each
+    budget is a run of its own, and on a shared machine a run's own time
+    jitters by more than the step between two budgets, so a line through
+    the runs' own times would run back and forth in time; the sum grows with
+    every budget, and the line reads left to right as the error falls.
+    """
+    pts = sorted((r["spp"], r[xkey], r["relative_mse"]) for r in rows if r["method"] == method and r["mode"] == mode)
+    xs = [p[1] for p in pts]
+    if xkey != "spp":
+        xs = np.cumsum(xs).tolist()
+    return xs, [p[2] for p in pts]
 
 
 def _write_convergence(result: ConvergenceResult, out, *, scene: str, html: bool = False) -> list:
@@ -355,13 +448,15 @@ def _write_convergence(result: ConvergenceResult, out, *, scene: str, html: bool
     files.append(out / RUN_FILE)
     lines = sorted({(r["method"], r["mode"]) for r in result.rows})
     for xkey, fname, xlabel in (("spp", "convergence_spp.png", "average samples per pixel"),
-                                ("wall_seconds", "convergence_time.png", "wall time [s] (renderer + toolkit)")):
+                                ("wall_seconds", "convergence_time.png",
+                                 "cumulative wall time [s] of the runs up to each budget")):
         fig, ax = plt.subplots(figsize=(6, 4.5), dpi=100)
+        # one colour per method (its uniform line solid, its adaptive one dashed): ten colours for up to ten
+        # methods, where one per line would repeat among a full run's 12 lines
+        colour = {m: f"C{i % 10}" for i, m in enumerate(sorted({m for m, _ in lines}))}
         for method, mode in lines:
-            pts = sorted((r[xkey], r["relative_mse"]) for r in result.rows
-                         if r["method"] == method and r["mode"] == mode)
-            ax.loglog([p[0] for p in pts], [p[1] for p in pts], "o-" if mode == "uniform" else "s--",
-                      label=f"{method} ({mode})")
+            xs, ys = plot_points(result.rows, method, mode, xkey)
+            ax.loglog(xs, ys, "o-" if mode == "uniform" else "s--", color=colour[method], label=f"{method} ({mode})")
         ax.set_xlabel(xlabel)
         ax.set_ylabel("relative MSE")
         ax.set_title(f"{scene}")
@@ -390,7 +485,9 @@ def _write_convergence(result: ConvergenceResult, out, *, scene: str, html: bool
         gallery.append((f"{method} ({mode})" if method != "input" else "noisy input (box)", f"images/{stem}.png",
                         (f"images/{stem}_error.png", dens)))
     md = [f"# Convergence: {scene}", "",
-          f"Relative MSE (ε = {result.eps:g}) against average spp and against wall time; images at "
+          f"Relative MSE (ε = {result.eps:g}) against average spp and against wall time (per method, the "
+          "cumulative time of its runs up to each budget; each method runs once on a tiny film first, so "
+          f"compiling its kernels is not timed); images at "
           f"{result.report_spp} spp." + (" Interactive viewer: [report.html](report.html)." if html else ""), "",
           "![relative MSE vs spp](convergence_spp.png) ![relative MSE vs time](convergence_time.png)", "",
           metrics_legend(result), ""]

@@ -289,6 +289,14 @@ _JS = r"""
     stage.dataset.scale = String(s);
     zoomOut.textContent = (s >= 1 ? s.toFixed(s < 10 ? 2 : 1) : s.toPrecision(2)) + "×";
   }
+  // The viewport takes the window's height below its top, at most 512 px, so that the whole image and
+  // its caption are in view in the opened page (a 1000-px-high window included).
+  function sizeViewport() {
+    const top = vp.getBoundingClientRect().top + window.scrollY;
+    const caption = document.getElementById("caption").offsetHeight || 20;
+    const room = window.innerHeight - top - caption - 16;
+    vp.style.height = Math.max(160, Math.min(512, Math.floor(room))) + "px";
+  }
   function fit() {
     const vw = vp.clientWidth, vh = vp.clientHeight;
     let f = Math.min(vw / W, vh / H);
@@ -441,7 +449,8 @@ _JS = r"""
     });
   });
 
-  window.addEventListener("resize", function () { if (fitted) fit(); });
+  window.addEventListener("resize", function () { sizeViewport(); if (fitted) fit(); });
+  sizeViewport();
   fit();
   show(0);
   document.body.dataset.ready = "1";
@@ -461,10 +470,8 @@ _PAGE = """<!DOCTYPE html>
 <body>
 <h1>{title}</h1>
 {info}
-<h2>Metrics</h2>
-{table}
 <h2>Viewer</h2>
-<p>Keys: 1…9, 0 (⇧ + digit for layers 11…20), ← → pick a layer at the same zoom and pan;
+<p class="keys">Keys: 1…9, 0 (⇧ + digit for layers 11…20), ← → pick a layer at the same zoom and pan;
 Space flips back to the previous one; wheel zooms about the cursor, drag pans, double-click or f fits;
 e error map, d sample density, i image; + / − exposure. Exposure is a CSS brightness of 2^(EV/2.2) on the
 8-bit sRGB previews (highlights clipped in the preview stay clipped).</p>
@@ -480,7 +487,9 @@ e error map, d sample density, i image; + / − exposure. Exposure is a CSS brig
   <span id="legend-text"></span></span>
 </div>
 <div id="viewport"><div id="stage"><img id="view" alt="" draggable="false"></div></div>
-<div><strong id="current"></strong> <span id="status"></span></div>
+<div id="caption"><strong id="current"></strong> <span id="status"></span></div>
+<h2>Metrics</h2>
+{table}
 {figures}
 <details><summary>every point of the run ({n_points})</summary>
 {all_table}

@@ -252,11 +252,17 @@ def write_png_preview(path, image, *, exposure: float = 0.0) -> Path:
 
 
 def write_false_colour(path, scalar, *, cmap: str = "viridis", vmin: float | None = None,
-                       vmax: float | None = None, log: bool = False) -> Path:
+                       vmax: float | None = None, log: bool = False, title: str | None = None) -> Path:
     """A false-colour PNG of a scalar map (sample density, selected scale...).
 
     ``vmin``/``vmax`` default to the finite data's range; ``log`` maps
     log10 of positive values.  Non-finite entries are drawn black.
+
+    Without ``title`` the PNG has one pixel per map pixel (a layer the HTML
+    viewer stacks on the image).  With it, the PNG is a figure to read on
+    its own: the map, the title with the value range (or the one value of
+    a constant map, drawn mid-scale, not at the bottom colour) and a colour
+    bar, since colour alone says nothing of the values.
     """
     from matplotlib import colormaps
 
@@ -266,6 +272,8 @@ def write_false_colour(path, scalar, *, cmap: str = "viridis", vmin: float | Non
         a = a[..., 0]
     if a.ndim != 2:
         raise InputError(str(path), "map", f"shape {a.shape}, expected (H, W)")
+    if title is not None:
+        return _false_colour_figure(path, a, title=str(title), cmap=cmap, vmin=vmin, vmax=vmax, log=log)
     if log:
         with np.errstate(divide="ignore", invalid="ignore"):
             a = np.where(a > 0, np.log10(a), np.nan)
@@ -280,3 +288,47 @@ def write_false_colour(path, scalar, *, cmap: str = "viridis", vmin: float | Non
     rgb = colormaps[cmap](t)[..., :3]
     rgb[~finite] = 0.0
     return _save_png(path, np.round(rgb * 255).astype(np.uint8))
+
+
+def _false_colour_figure(path: Path, a: np.ndarray, *, title: str, cmap: str, vmin, vmax, log: bool) -> Path:
+    """The titled figure of :func:`write_false_colour`: map, colour bar, value range."""
+    from matplotlib import colormaps, colors
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    shown = np.where(a > 0, a, np.nan) if log else a
+    finite = np.isfinite(shown)
+    data_lo = float(np.min(shown[finite])) if finite.any() else None
+    data_hi = float(np.max(shown[finite])) if finite.any() else None
+    lo = float(vmin) if vmin is not None else (data_lo if data_lo is not None else (1e-3 if log else 0.0))
+    hi = float(vmax) if vmax is not None else (data_hi if data_hi is not None else 1.0)
+    if data_lo is None:
+        what = "no finite value"
+    elif data_lo == data_hi:
+        what = f"every pixel {data_lo:.6g}"
+    else:
+        what = f"{data_lo:.4g} to {data_hi:.4g}"
+    if not hi > lo:  # a constant map: mid-scale, on a bar around its value
+        pad = 0.5 * max(abs(lo), 1.0)
+        lo, hi = (lo / 10.0, hi * 10.0) if log and lo > 0 else (lo - pad, hi + pad)
+    bad = int((~np.isfinite(a)).sum() + (int((a <= 0).sum()) if log else 0))
+    if bad:
+        what += f"; {bad} pixel(s) " + ("not positive or not finite" if log else "not finite") + " (black)"
+    h, w = a.shape
+    width_in = 6.0
+    map_h = min(max(width_in * 0.82 * h / w, 1.5), 9.0)
+    fig = Figure(figsize=(width_in, map_h + 0.9), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    cm = colormaps[cmap].with_extremes(bad="black")
+    norm = colors.LogNorm(lo, hi) if log else colors.Normalize(lo, hi)
+    im = ax.imshow(np.ma.masked_invalid(shown), cmap=cm, norm=norm, interpolation="nearest")
+    ax.set_title(f"{title}: {what}", fontsize=10)
+    ax.set_xlabel(f"x (pixels, {w} wide)", fontsize=8)
+    ax.set_ylabel(f"y (pixels, {h} high)", fontsize=8)
+    ax.tick_params(labelsize=7)
+    fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04).ax.tick_params(labelsize=7)  # as high as the map
+    fig.tight_layout()
+    with atomic_path(path, suffix=path.suffix) as tmp:
+        fig.savefig(tmp, format="png")
+    return path

@@ -138,7 +138,8 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
         A sample log (streamed in chunks), samples in memory, statistics
         already built, or a half-buffer pair: statistics of two independent
         halves of the samples (dual buffers a renderer wrote), for methods
-        that declare ``requires.half_buffers`` (``auto``).  The pair must
+        that declare ``requires.half_buffers`` (``auto``, and ``nfor``
+        with the features in both halves).  The pair must
         agree in size, channels and subpixel grid; each pixel's counts may
         differ.  The statistics of all the samples are their Chan merge.
     method : str or Method
