@@ -20,7 +20,7 @@ from mcrecon.methods.nfor.method import feature_planes
 from mcrecon.filters.nlmeans import DISTANCE_CLAMP, MIN_CENTER_WEIGHT, NLM_EPS, nlmeans_filter
 from mcrecon.methods.nfor.pipeline import cross_regression, estimate_mse, nfor_denoise, prefilter_features
 from mcrecon.filters.nlmeans import exp_neg
-from mcrecon.methods.nfor.reference import collaborative_regression_reference, nlmeans_filter_reference
+from nfor_reference import collaborative_regression_reference, nlmeans_filter_reference
 from mcrecon.filters.regression import RIDGE, collaborative_regression, standardise
 
 from nfor_scene import scene_reference, scene_samples, scene_values
@@ -139,7 +139,7 @@ def test_exp_neg_is_exp_to_1e_9_and_zero_beyond_80():
 def test_fast_kernels_equal_the_reference_kernels_to_1e_6(r, f):
     """The vectorised kernels (direct patch sums, offset-major normal equations, polynomial exp) against
     the first implementation (summed-area tables, per-window dot products, math.exp), kept in
-    nfor/reference.py: they differ by rounding only (a float32 patch distance one ulp apart: measured 1.3e-7
+    tests/nfor_reference.py: they differ by rounding only (a float32 patch distance one ulp apart: measured 1.3e-7
     at most at 128^2); weights with bimodal
     distances, features with a gradient and noise, and a border wider than the window on a 37 x 41 image."""
     rng = np.random.default_rng(7)
