@@ -56,12 +56,11 @@ def _scene_edges(w=44, h=37):
     return ref, 0.3 * np.sqrt(ref) + 0.05
 
 
-@pytest.mark.parametrize("scene", [_scene_blobs, _scene_edges])
-def test_auto_is_not_worse_than_the_pixel_mean_on_procedural_scenes(scene):
-    """Mean over 4 seeds of relMSE(auto) / relMSE(box) <= 1.
-
-    Measured (8 spp, 4 seeds, after the safeguard and the speed work): mean blobs 0.079, edges 0.333
-    (earlier per-seed spread <= 0.06): the bound 1 is many standard deviations away."""
+@pytest.mark.parametrize("scene, measured", [(_scene_blobs, 0.0272), (_scene_edges, 0.322)])
+def test_auto_is_not_worse_than_the_pixel_mean_on_procedural_scenes(scene, measured):
+    """Mean over 4 seeds of relMSE(auto) / relMSE(box), 8 spp: measured blobs 0.0272 (seeds 0.024-0.029),
+    edges 0.322 (0.30-0.33).  Bound: the measured mean + 15 % (the seeds are fixed, so the mean is
+    deterministic; 15 % lets rounding-level changes pass and fails a 20 % regression)."""
     ref, sigma = scene()
     m = get_method("auto")
     ratios = []
@@ -69,7 +68,7 @@ def test_auto_is_not_worse_than_the_pixel_mean_on_procedural_scenes(scene):
         ss = _samples(ref, sigma, 8, seed)
         img = _quiet(lambda: mcrecon.reconstruct(ss, method=m))
         ratios.append(relative_mse(img, ref) / relative_mse(PixelStats.from_source(ss).mean, ref))
-    assert np.mean(ratios) <= 1.0, ratios
+    assert np.mean(ratios) <= 1.15 * measured, ratios
 
 
 def _caustic_ring_samples(seed, w=40, h=36, spp=16):
@@ -90,8 +89,9 @@ def test_safeguard_keeps_light_out_of_exact_dark_pixels_and_auto_below_the_pixel
     """Rare huge samples beside exact zeros (the caustic row of issue 12, where auto without the
     clamp measured 1.6x the pixel mean): with the default safeguard, pixels whose 3x3 neighbourhood
     holds only zero samples stay exactly 0, and the mean ratio to the pixel mean over 4 seeds is
-    below 1 (measured per seed 0.39-0.45 with the clamp; 147-223 with safeguard=None: the noisy
-    error estimates beside the ring vote wide filters that carry its light into the dark)."""
+    at most 0.40: measured 0.348 (per seed 0.28-0.39) with the clamp, 15 % margin; 147-223 per seed
+    with safeguard=None (the noisy error estimates beside the ring vote wide filters that carry its
+    light into the dark)."""
     m = get_method("auto")
     ratios = []
     for seed in range(4):
@@ -102,7 +102,7 @@ def test_safeguard_keeps_light_out_of_exact_dark_pixels_and_auto_below_the_pixel
         dark = ndimage.maximum_filter(st.max.max(axis=2), size=3, mode="nearest") == 0
         assert dark.any() and np.all(img[dark] == 0.0)
         ratios.append(relative_mse(img, ref) / relative_mse(st.mean, ref))
-    assert np.mean(ratios) < 1.0, ratios
+    assert np.mean(ratios) <= 0.40, ratios  # measured 0.348; 15 % margin
     assert get_method("auto", safeguard=None).params["safeguard"] is None
 
 
@@ -134,9 +134,8 @@ def test_default_safeguard_costs_nothing_on_a_flat_field():
 def test_default_safeguard_still_protects_the_built_in_caustic():
     """The other side of the width: a clamp so wide that only the zero-variance pins and the sample
     range are left (``safeguard=1e6``) lets the caustic's light into its dark pixels.  Built-in
-    caustic, 48x48, 32 spp, seeds 0-2, relative MSE / box: default 0.393, 0.340, 0.326; 1e6 0.488,
-    0.393, 0.369 (measured; each seed 12-19 % lower with the default).  Bound: the default's mean at
-    most 0.95x the unclamped one's (measured 0.85x)."""
+    caustic, 48x48, 32 spp, seeds 0-2: the default's mean relative MSE is 0.736x the unclamped one's
+    (measured).  Bound: 0.85x, the measured ratio + 15 %."""
     from mcrecon.renderers import scenes
 
     sc = scenes.get_scene("caustic")
@@ -148,7 +147,7 @@ def test_default_safeguard_still_protects_the_built_in_caustic():
         for k in err:
             m = get_method("auto") if k == "default" else get_method("auto", safeguard=k)
             err[k].append(relative_mse(_quiet(lambda: mcrecon.reconstruct(ss, method=m)), ref))
-    assert np.mean(err["default"]) <= 0.95 * np.mean(err[1e6]), err
+    assert np.mean(err["default"]) <= 0.85 * np.mean(err[1e6]), err  # measured 0.736; 15 % margin
 
 
 def test_diagnostics_are_present_finite_and_name_the_choice():
@@ -188,7 +187,8 @@ def test_statistics_only_falls_back_to_sure_candidates():
     ss = _samples(ref, sigma, 8, 1)
     st = PixelStats.from_source(ss)
     img = mcrecon.restoration.auto(st, candidates="box,gauss")
-    assert np.isfinite(img).all() and relative_mse(img, ref) < relative_mse(st.mean, ref)
+    assert np.isfinite(img).all()
+    assert relative_mse(img, ref) < 0.032 * relative_mse(st.mean, ref)  # measured 0.0278; 15 % margin
     m = get_method("auto")
     with pytest.raises(InputError, match="individual samples"):  # the reader refuses statistics up front
         mcrecon.reconstruct(st, method=m)
@@ -982,14 +982,14 @@ def test_without_features_auto_is_the_colour_only_auto_bit_for_bit():
 
 def test_feature_guided_auto_beats_colour_only_auto_on_a_textured_scene():
     """On the built-in checker_spot (a textured wall lit by a light one sample in 20 finds; 64^2, 16 spp,
-    seeds 0-2) the feature-guided candidates lower auto's error: measured 0.77-0.93 of the colour-only
-    auto's per seed.  Bound: the mean below 0.95 (the colour-only auto is the other side)."""
+    seeds 0-2) the feature-guided candidates lower auto's error: the mean relative MSE is 0.441 of the
+    colour-only auto's (measured).  Bound: 0.51, the measured ratio + 15 %."""
     r_f, r_c = [], []
     for seed in range(3):
         ss, ref = _textured(seed, scene="checker_spot", size=64)
         r_f.append(relative_mse(_quiet(lambda: mcrecon.reconstruct(ss, method="auto")), ref))
         r_c.append(relative_mse(_quiet(lambda: mcrecon.reconstruct(ss, method=get_method("auto", feature_candidates="none"))), ref))
-    assert np.mean(r_f) < 0.95 * np.mean(r_c), (r_f, r_c)
+    assert np.mean(r_f) < 0.51 * np.mean(r_c), (r_f, r_c)  # measured 0.441; 15 % margin
 
 
 def test_heavy_tail_rule_leaves_feature_guided_values_where_the_light_is_rarely_found():

@@ -368,8 +368,9 @@ def test_gem_two_box_experiment(full_run):
     Full run (200 runs, like GEM): range variance 5.7e-3, sample variance
     4.4e-3; squared bias of the mean reconstruction 4.4e-3 / 5.3e-4.
 
-    Asserted: thresholding beats the pixel means (range: MSE < 0.75 x box;
-    the run-to-run sd of the mean MSE is < 2 % at 50 runs: each run's MSE
+    Asserted: thresholding beats the pixel means by the measured margin
+    (MSE / box: range 0.542, sample 0.426 at 50 runs; bounds + 15 %, wider
+    than the run-to-run sd of the mean MSE, < 2 % at 50 runs: each run's MSE
     averages 250 pixels of variance ~1e-2); and with the range estimator
     most of the error is bias (GEM's point: (Imax-Imin)^2 over-smooths and
     rings), i.e. squared bias of the average reconstruction > 1/2 MSE.
@@ -392,8 +393,8 @@ def test_gem_two_box_experiment(full_run):
     print(f"\nGEM Fig. 6 two boxes ({runs} runs): box {box:.3g}, AWR range {out['range'][0]:.3g} "
           f"(bias^2 {out['range'][1]:.3g}), AWR sample {out['sample'][0]:.3g} (bias^2 {out['sample'][1]:.3g}); "
           "GEM paper: AWR 7.6e-3")
-    assert out["range"][0] < 0.75 * box
-    assert out["sample"][0] < 0.75 * box
+    assert out["range"][0] < 0.63 * box    # measured 0.542 (50 runs), 0.547 (200); 15 % margin
+    assert out["sample"][0] < 0.49 * box   # measured 0.426 (50 runs), 0.42 (200)
     assert out["range"][1] > 0.5 * out["range"][0]
 
 
@@ -622,15 +623,18 @@ def _scene_stats(scene, size, spp, seed):
 # pixels: soft_shadow/range, caustic, hdr) are measured limits, not tests:
 # ``python benchmarks/bench_awr.py --limits`` prints them against box, and
 # docs/methods/awr.md ("Measured limits") quotes the numbers.
-_AWR_WINS = [("soft_shadow", "sample"), ("depth_of_field", "range"), ("depth_of_field", "sample"),
-             ("motion_blur", "range"), ("motion_blur", "sample"), ("flat", "range"), ("flat", "sample")]
+# The third field is the measured relative MSE ratio AWR / box of the test's seed.
+_AWR_WINS = [("soft_shadow", "sample", 0.709), ("depth_of_field", "range", 0.943),
+             ("depth_of_field", "sample", 0.580), ("motion_blur", "range", 0.824), ("motion_blur", "sample", 0.559),
+             ("flat", "range", 0.0234), ("flat", "sample", 0.336)]
 
 
-@pytest.mark.parametrize("scene, variance", _AWR_WINS)
-def test_awr_vs_box_on_scenes(scene, variance):
+@pytest.mark.parametrize("scene, variance, measured", _AWR_WINS)
+def test_awr_vs_box_on_scenes(scene, variance, measured):
     """Offline AWR beats box at 32 spp, 128x128 (relative MSE, eps 0.01) where measured to.
 
-    Margins: >= 4 % (depth_of_field, range), run-to-run sd < 0.5 %.
+    Bound: the measured ratio to box + 15 % (the seed is fixed), and never above box (the
+    smallest win, depth_of_field with the range estimator, is 5.7 %).
     """
     from mcrecon.core.metrics import relative_mse
     from mcrecon.renderers.scenes import reference_image
@@ -639,14 +643,14 @@ def test_awr_vs_box_on_scenes(scene, variance):
     st = _scene_stats(scene, size, 32, seed=1)
     box = relative_mse(mcrecon.reconstruct(st, method="box"), ref)
     awr = relative_mse(mcrecon.reconstruct(st, method="awr", variant="paper", variance=variance), ref)
-    assert awr < box, (awr, box)
+    assert awr < min(1.0, 1.15 * measured) * box, (awr / box, measured)
 
 
-@pytest.mark.parametrize("scene", ["motion_blur", "caustic", "flat"])
-def test_adaptive_awr_vs_box_on_scenes(scene):
+@pytest.mark.parametrize("scene, measured", [("motion_blur", 0.550), ("caustic", 0.848), ("flat", 0.223)])
+def test_adaptive_awr_vs_box_on_scenes(scene, measured):
     """The full method (AWR sampling + AWR reconstruction, paper defaults) beats
-    uniform box at 32 spp, 128x128 where measured to (2 seeds): motion_blur
-    1.0e-3 vs 1.9e-3, caustic 7.0e-2 vs 8.5e-2, flat 2.1e-3 vs 9.9e-3.  On
+    uniform box at 32 spp, 128x128 where measured to: ``measured`` is the ratio
+    of relative MSEs to box of the test's seed; bound it + 15 %, below box.  On
     soft_shadow it ties (0.90-1.00x over 4 seeds, docs/methods/awr.md): a
     benchmark row, not an assertion.  It loses on depth_of_field and hdr: measured
     limits (``python benchmarks/bench_awr.py --limits``, docs/methods/awr.md)."""
@@ -659,7 +663,7 @@ def test_adaptive_awr_vs_box_on_scenes(scene):
     res = adapt(SceneRenderer(scene, width=size, height=size, seed=1), get_method("awr", variant="paper"), spp=32, seed=1,
                 progress=False, track_error=False)
     adaptive = relative_mse(res.image, ref)
-    assert adaptive < box, (adaptive, box)
+    assert adaptive < min(1.0, 1.15 * measured) * box, (adaptive / box, measured)
 
 
 @pytest.mark.parametrize("scene", ["soft_shadow", "depth_of_field"])

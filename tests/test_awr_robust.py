@@ -32,8 +32,9 @@ from mcrecon.methods.awr import AWRMethod
 from mcrecon.methods.awr.reconstruction import awr_reconstruct, log_domain_reconstruct, pixel_variance
 from mcrecon.core.safeguard import confidence_clamp, sample_range_bounds
 from mcrecon.core.metrics import output_sanity, relative_mse
-from mcrecon.core.requests import SampleBatch, jittered_positions
 from mcrecon.core.stats import PixelStats
+
+from helpers import jittered_renderer
 
 SIZE = 48
 FIREFLY_P, FIREFLY_L = 1e-3, 200.0
@@ -63,33 +64,20 @@ def _reference(scene):
     return r
 
 
-class _Renderer:
+def _renderer(scene, seed):
     """A procedural scene behind the renderer protocol (counts, then positions)."""
-
-    channels = ("R", "G", "B")
-
-    def __init__(self, scene, seed):
-        self.scene, self.seed = scene, seed
-        self.width = self.height = SIZE
-        self.name = f"test:{scene}"
-
-    def render(self, request):
-        rng = np.random.default_rng([self.seed, request.round_index])
-        parts = []
-        if request.counts is not None:
-            parts.append(jittered_positions(request.counts, rng))
-        if request.positions is not None:
-            parts.append(np.asarray(request.positions, dtype=np.float64))
-        pos = np.concatenate(parts) if len(parts) > 1 else parts[0]
-        val = _radiance(self.scene, pos[:, 0], pos[:, 1]) * (0.5 + rng.random((len(pos), 1)))
-        if self.scene == "fireflies":
+    def shade(pos, rng, req):
+        val = _radiance(scene, pos[:, 0], pos[:, 1]) * (0.5 + rng.random((len(pos), 1)))
+        if scene == "fireflies":
             hit = rng.random(len(pos)) < FIREFLY_P
             val[hit] = FIREFLY_L * np.array([1.0, 0.8, 0.6])   # a firefly replaces the sample
-        return SampleBatch(pos, val)
+        return val
+    return jittered_renderer(shade, width=SIZE, height=SIZE, name=f"test:{scene}",
+                             stream=lambda req: [seed, req.round_index])
 
 
 def _uniform_stats(scene, spp, seed):
-    r = _Renderer(scene, seed)
+    r = _renderer(scene, seed)
     from mcrecon.core.requests import SampleRequest
     b = r.render(SampleRequest(SIZE, SIZE, counts=np.full((SIZE, SIZE), spp, np.int64), round_index=0))
     return PixelStats.from_samples(b.positions, b.values, width=SIZE, height=SIZE)
@@ -204,17 +192,19 @@ def test_robust_offline_never_worse_than_box_and_no_negative_pixels(scene):
     assert r.mean() + 2 * r.std(ddof=1) / math.sqrt(len(r)) < 1.0, r
 
 
-@pytest.mark.parametrize("scene", SCENES)
-def test_robust_adaptive_never_worse_than_uniform_box(scene):
+@pytest.mark.parametrize("scene, measured", [("emitter", 0.853), ("step", 0.685), ("fireflies", 0.076)])
+def test_robust_adaptive_never_worse_than_uniform_box(scene, measured):
     """Adaptive robust AWR (its sampler + reconstruction) vs uniform box at equal
-    spp (48^2, 32 spp), 2 seeds, each must be < 1 (one adaptive run costs
-    ~1 s; the offline test above carries the seed statistics)."""
+    spp (48^2, 32 spp), 2 seeds (one adaptive run costs ~1 s; the offline test
+    above carries the seed statistics).  ``measured``: the larger ratio to box
+    of the two seeds (emitter 0.853 and 0.701, step 0.685 and 0.565, fireflies
+    0.064 and 0.076); each seed must stay below it + 15 % and below box."""
     ref = _reference(scene)
     for seed in SEEDS[:2]:
         box = relative_mse(_uniform_stats(scene, 32, seed).mean, ref)
-        res = adapt(_Renderer(scene, seed), get_method("awr"), spp=32, seed=seed, progress=False, track_error=False)
+        res = adapt(_renderer(scene, seed), get_method("awr"), spp=32, seed=seed, progress=False, track_error=False)
         assert int(res.counts.sum()) == 32 * SIZE * SIZE
         err = relative_mse(res.image, ref)
         print(f"\n{scene} seed {seed}: adaptive robust {err:.4g} vs uniform box {box:.4g} ({err / box:.3f})")
-        assert err < box
+        assert err < min(1.0, 1.15 * measured) * box
         assert output_sanity(res.image, res.stats)["negative_pixels"] == 0

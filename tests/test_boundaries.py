@@ -17,11 +17,7 @@ from mcrecon import InputError
 from mcrecon.cli import main
 from mcrecon.io import read_log, write_exr, write_log
 
-
-def _cli(argv, capsys):
-    code = main([str(a) for a in argv])
-    out = capsys.readouterr()
-    return code, out.out, out.err
+from helpers import run_cli
 
 
 def _one_line(code, err, match):
@@ -53,7 +49,7 @@ def test_integer_attributes_of_another_type_are_refused(tmp_path, capsys, key, v
         f.attrs[key] = value
     with pytest.raises(InputError, match=match):
         read_log(path)
-    code, _, err = _cli(["info", path], capsys)
+    code, _, err = run_cli(["info", path], capsys)
     _one_line(code, err, match)
 
 
@@ -78,7 +74,7 @@ def test_a_film_larger_than_memory_is_refused_by_info_and_denoise(tmp_path, caps
         f.attrs["width"], f.attrs["height"] = 4096, 4096
     _small_memory(monkeypatch, 64 << 20)
     for argv in (["info", path], ["denoise", path, "-o", tmp_path / "o.exr"]):
-        code, _, err = _cli(argv, capsys)
+        code, _, err = run_cli(argv, capsys)
         _one_line(code, err, "4096x4096")
         assert "memory" in err
     assert not (tmp_path / "o.exr").exists()
@@ -90,7 +86,7 @@ def test_a_film_within_the_pixel_limit_but_not_in_memory_is_refused(tmp_path, ca
     path = _log(tmp_path)
     with h5py.File(path, "r+") as f:
         f.attrs["width"], f.attrs["height"] = 65536, 32768
-    code, _, err = _cli(["denoise", path, "-o", tmp_path / "o.exr"], capsys)
+    code, _, err = run_cli(["denoise", path, "-o", tmp_path / "o.exr"], capsys)
     _one_line(code, err, "65536x32768")
 
 
@@ -100,7 +96,7 @@ def test_a_film_within_the_pixel_limit_but_not_in_memory_is_refused(tmp_path, ca
     (["adapt", "--scene", "flat", "--spp", "2", "--size", "100000x100000", "-o", "{tmp}/a.exr"], "100000x100000"),
 ])
 def test_a_size_beyond_the_pixel_limit_is_refused_at_the_flag(tmp_path, capsys, argv, match):
-    code, _, err = _cli([a.replace("{tmp}", str(tmp_path)) for a in argv], capsys)
+    code, _, err = run_cli([a.replace("{tmp}", str(tmp_path)) for a in argv], capsys)
     _one_line(code, err, match)
     assert "--size" in err
 
@@ -113,7 +109,7 @@ def test_a_size_beyond_the_pixel_limit_is_refused_at_the_flag(tmp_path, capsys, 
 ])
 def test_a_round_larger_than_memory_is_refused_before_rendering(tmp_path, capsys, monkeypatch, argv):
     _small_memory(monkeypatch, 1 << 30)
-    code, _, err = _cli([a.replace("{tmp}", str(tmp_path)) for a in argv], capsys)
+    code, _, err = run_cli([a.replace("{tmp}", str(tmp_path)) for a in argv], capsys)
     _one_line(code, err, "memory")
     assert "samples" in err
 
@@ -125,7 +121,7 @@ def test_a_non_finite_reference_in_a_log_is_refused_naming_the_dataset_before_an
     path = _log(tmp_path, reference=np.ones((6, 8, 3)))
     with h5py.File(path, "r+") as f:
         f["reference"][...] = ref
-    code, _, err = _cli(["denoise", path, "-o", tmp_path / "o.exr"], capsys)
+    code, _, err = run_cli(["denoise", path, "-o", tmp_path / "o.exr"], capsys)
     _one_line(code, err, "dataset /reference")
     assert str(path) in err
     assert not (tmp_path / "o.exr").exists()
@@ -136,7 +132,7 @@ def test_a_negative_round_end_is_named_not_read_as_rows(tmp_path, capsys):
     path = _log(tmp_path, rounds=np.repeat([0, 1], 100))
     with h5py.File(path, "r+") as f:
         f["rounds/end"][0] = -5
-    code, _, err = _cli(["info", path], capsys)
+    code, _, err = run_cli(["info", path], capsys)
     _one_line(code, err, "dataset /rounds/end")
     assert "rows -5" not in err and "-5" in err
 
@@ -161,9 +157,9 @@ def test_a_half_buffer_pair_of_one_file_twice_is_refused(tmp_path, capsys):
     link = tmp_path / "h2.exr"
     link.symlink_to(path)
     for other in (path, link):
-        code, _, err = _cli(["denoise", path, "-o", tmp_path / "o.exr", "--method", "auto", "--mean", "R,G,B",
-                             "--variance-channels", "Variance.R,Variance.G,Variance.B", "--spp", "4",
-                             "--half-buffer", other], capsys)
+        code, _, err = run_cli(["denoise", path, "-o", tmp_path / "o.exr", "--method", "auto", "--mean", "R,G,B",
+                                "--variance-channels", "Variance.R,Variance.G,Variance.B", "--spp", "4",
+                                "--half-buffer", other], capsys)
         errors = [ln for ln in err.splitlines() if "error" in ln]
         assert code == 2 and len(errors) == 1 and "same file" in errors[0], err
 
@@ -196,8 +192,8 @@ def test_a_channel_named_twice_in_a_mapping_is_refused_at_the_flag(tmp_path, cap
     rng = np.random.default_rng(1)
     img = rng.random((6, 8, 6)).astype(np.float32)
     path = write_exr(tmp_path / "p.exr", img, channels=("R", "G", "B", "Variance.R", "Variance.G", "Variance.B"))
-    code, _, err = _cli(["denoise", path, "-o", tmp_path / "o.exr", "--mean", "R,R,B",
-                         "--variance-channels", "Variance.R,Variance.G,Variance.B", "--spp", "4"], capsys)
+    code, _, err = run_cli(["denoise", path, "-o", tmp_path / "o.exr", "--mean", "R,R,B",
+                            "--variance-channels", "Variance.R,Variance.G,Variance.B", "--spp", "4"], capsys)
     _one_line(code, err, "--mean")
     assert "'R' twice" in err
     assert not (tmp_path / "o.exr").exists()
@@ -208,9 +204,9 @@ def test_a_sample_count_beyond_int64_is_refused_as_a_count(tmp_path, capsys):
     rng = np.random.default_rng(1)
     img = rng.random((6, 8, 6)).astype(np.float32)
     path = write_exr(tmp_path / "p.exr", img, channels=("R", "G", "B", "Variance.R", "Variance.G", "Variance.B"))
-    code, _, err = _cli(["denoise", path, "-o", tmp_path / "o.exr", "--mean", "R,G,B",
-                         "--variance-channels", "Variance.R,Variance.G,Variance.B",
-                         "--spp", "99999999999999999999999"], capsys)
+    code, _, err = run_cli(["denoise", path, "-o", tmp_path / "o.exr", "--mean", "R,G,B",
+                            "--variance-channels", "Variance.R,Variance.G,Variance.B",
+                            "--spp", "99999999999999999999999"], capsys)
     _one_line(code, err, "--spp")
     assert "positive whole number" in err
 
@@ -222,8 +218,8 @@ def test_a_planned_round_larger_than_memory_is_refused_before_its_positions_are_
     43.7 TiB (a MemoryError traceback) before the driver's round check could run (awr's rounds are
     ``round_spp`` per pixel: its bomb needs that option too)."""
     _small_memory(monkeypatch, 1 << 30)
-    code, _, err = _cli(["adapt", "--scene", "flat", "--spp", "1e12", "--size", "8x8", "--method", method, *extra,
-                         "-o", tmp_path / "a.exr", "--log", tmp_path / "a.h5", "--quiet"], capsys)
+    code, _, err = run_cli(["adapt", "--scene", "flat", "--spp", "1e12", "--size", "8x8", "--method", method, *extra,
+                            "-o", tmp_path / "a.exr", "--log", tmp_path / "a.h5", "--quiet"], capsys)
     _one_line(code, err, "memory")
     assert f"method {method}" in err and "sample positions" in err
 
@@ -233,7 +229,7 @@ def test_gem_scale_counts_are_bounded(tmp_path, capsys, flag, value):
     """``--final-scales 1000`` ran for minutes (Gaussians of 2^500 px); 16 final scales reach 256 px,
     10 adaptive (dyadic) scales 512 px."""
     path = _log(tmp_path)
-    code, _, err = _cli(["denoise", path, "-o", tmp_path / "o.exr", "--method", "gem", flag, value], capsys)
+    code, _, err = run_cli(["denoise", path, "-o", tmp_path / "o.exr", "--method", "gem", flag, value], capsys)
     _one_line(code, err, flag.lstrip("-").replace("-", "_"))
 
 

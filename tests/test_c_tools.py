@@ -12,11 +12,9 @@ they need no compiler.
 from __future__ import annotations
 
 import json
-import os
 import shlex
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import h5py
@@ -28,6 +26,8 @@ from mcrecon.io import append_log, read_exr, read_log
 from mcrecon.io.logformat import cast_positions
 from mcrecon.renderers.command import read_request, write_request
 from mcrecon.core.requests import SampleRequest, validate_reply
+
+from helpers import run_cli_process
 
 REPO = Path(__file__).parents[1]
 C_DIR = REPO / "data_tools" / "c"
@@ -76,14 +76,6 @@ def _run(*args, **kw):
     return subprocess.run([str(a) for a in args], check=True, capture_output=True, text=True, **kw)
 
 
-def _mcrecon(*args, check=True):
-    proc = subprocess.run([sys.executable, "-m", "mcrecon", *map(str, args)], capture_output=True, text=True,
-                          cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
-    if check:
-        assert proc.returncode == 0, proc.stderr
-    return proc
-
-
 # ------------------------------------------------------------------ the C sample-log writer
 W, H = 24, 16
 
@@ -91,7 +83,7 @@ W, H = 24, 16
 def test_c_writer_log_passes_info_and_denoise(c_tools, tmp_path):
     log = tmp_path / "c.h5"
     _run(c_tools["mcrecon_log_writer"], log, W, H, 4, 7)
-    info = json.loads(_mcrecon("info", "--json", log).stdout)
+    info = json.loads(run_cli_process(["info", "--json", log], check=True, cwd=REPO).stdout)
     assert (info["width"], info["height"], info["channels"]) == (W, H, ["R", "G", "B"])
     assert info["samples"] == info["finite_samples"] == W * H * 4 and info["rounds"] == 1
     assert info["spp_min"] == info["spp_max"] == 4 and info["features"] == ["depth"]
@@ -104,7 +96,7 @@ def test_c_writer_log_passes_info_and_denoise(c_tools, tmp_path):
         assert h5py.check_string_dtype(f.attrs.get_id("channels").dtype).encoding == "utf-8"
     for method in ("box", "gem"):
         out = tmp_path / f"{method}.exr"
-        proc = _mcrecon("denoise", log, "-o", out, "--method", method)
+        proc = run_cli_process(["denoise", log, "-o", out, "--method", method], check=True, cwd=REPO)
         assert f"{W * H * 4} samples" in proc.stdout
         img, channels = read_exr(out)
         assert img.shape == (H, W, 3) and channels == ("R", "G", "B") and np.isfinite(img).all()
@@ -146,7 +138,7 @@ def test_c_writer_appends_rounds_extending_features_and_discarding_uncommitted_r
     got = read_log(log)
     assert got.n_rounds == 4 and got.n_samples == n + m + 4 + W * H
     assert got.read_all().round[-1] == 3
-    assert _mcrecon("denoise", got.path, "-o", tmp_path / "g.exr", "--method", "box").returncode == 0
+    run_cli_process(["denoise", got.path, "-o", tmp_path / "g.exr", "--method", "box"], check=True, cwd=REPO)
 
 
 # ------------------------------------------------------------------ the C renderer
@@ -172,8 +164,9 @@ def _adapt(c_tools, tmp_path, method, *extra, w=16, h=12, spp=6):
     log = tmp_path / f"{method}.h5"
     # The binary's path holds a space: quoted for shlex, never through a shell.
     cmd = f"{shlex.quote(str(c_tools['mcrecon_c_renderer']))} {{request}} {{reply}}"
-    proc = _mcrecon("adapt", "--renderer-cmd", cmd, "--size", f"{w}x{h}", "--spp", spp, "--method", method,
-                    "--seed", 5, "-o", tmp_path / f"{method}.exr", "--log", log, "--quiet", *extra)
+    proc = run_cli_process(["adapt", "--renderer-cmd", cmd, "--size", f"{w}x{h}", "--spp", spp, "--method", method,
+                            "--seed", 5, "-o", tmp_path / f"{method}.exr", "--log", log, "--quiet", *extra],
+                           check=True, cwd=REPO)
     return proc, log
 
 
@@ -282,7 +275,7 @@ def test_round_and_rounds_end_must_agree(tmp_path):
         msg = str(exc.value)
         assert msg.startswith(f"{path}: dataset /rounds/end: {where} contradicts /round") and "\n" not in msg
         assert "rewrite /rounds/end" in msg and "or delete it" in msg
-        proc = _mcrecon("info", path, check=False)
+        proc = run_cli_process(["info", path], cwd=REPO)
         assert proc.returncode == 2 and "contradicts /round" in proc.stderr
     # An interrupted append: rows past n_committed in every dataset, /rounds/end rows past it or
     # a fill-value 0 a full disk left.
@@ -316,12 +309,12 @@ def test_positions_on_pixel_edges(tmp_path):
     largest float32 below the edge is inside; a counted sample on i + 1 belongs to the next pixel."""
     edge = np.float32(3.0)
     below = np.nextafter(edge, np.float32(0))
-    proc = _mcrecon("info", _log(tmp_path / "edge.h5", positions=np.array([[0.5, 0.5], [edge, 1.5]], np.float32)),
-                    check=False)
+    proc = run_cli_process(["info", _log(tmp_path / "edge.h5", positions=np.array([[0.5, 0.5], [edge, 1.5]],
+                                                                                  np.float32))], cwd=REPO)
     assert proc.returncode == 2 and "first at row 1: [3.0, 1.5]" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
     ok = read_log(_log(tmp_path / "in.h5", positions=np.array([[0.5, 0.5], [below, 1.5]], np.float32)))
-    assert ok.n_samples == 2 and _mcrecon("info", ok.path).returncode == 0
+    assert ok.n_samples == 2 and run_cli_process(["info", ok.path], cwd=REPO).returncode == 0
     req = SampleRequest(3, 2, counts=np.array([[1, 0, 0], [0, 0, 0]]))
     with pytest.raises(RendererError, match="per-pixel sample counts differ"):
         validate_reply(req, (np.array([[1.0, 0.5]], np.float32), np.ones((1, 3))), n_channels=3)

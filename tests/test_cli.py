@@ -19,44 +19,41 @@ from mcrecon.io import read_exr, read_log, set_run_settings, summarize_log, writ
 from mcrecon.methods import available_methods, method_class
 from mcrecon.renderers import command_spec, renderer_from_spec, scene_spec
 
+from helpers import MCRECON, run_cli, run_cli_process
+
 ROOT = Path(__file__).parents[1]
 EXAMPLE = str(ROOT / "data_tools" / "example_renderer.py")
-
-
-def run(args, capsys):
-    code = main([str(a) for a in args])
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 @pytest.fixture
 def scene_log(tmp_path, capsys):
     path = tmp_path / "flat.h5"
-    code, out, err = run(["render-log", "--scene", "soft_shadow", "--spp", "4", "--size", "24x16", "-o", path], capsys)
+    code, out, err = run_cli(["render-log", "--scene", "soft_shadow", "--spp", "4", "--size", "24x16", "-o", path],
+                             capsys)
     assert code == 0, err
     return path
 
 
 def test_scenes_and_methods(capsys):
-    code, out, _ = run(["scenes"], capsys)
+    code, out, _ = run_cli(["scenes"], capsys)
     assert code == 0 and "soft_shadow" in out and "caustic" in out
-    code, out, _ = run(["methods"], capsys)
+    code, out, _ = run_cli(["methods"], capsys)
     assert code == 0 and out.startswith("box")
 
 
 def test_info(scene_log, capsys):
-    code, out, _ = run(["info", scene_log, "--json"], capsys)
+    code, out, _ = run_cli(["info", scene_log, "--json"], capsys)
     info = json.loads(out)
     assert code == 0 and info["width"] == 24 and info["samples"] == 24 * 16 * 4
     assert info["spp_min"] == info["spp_max"] == 4 and info["reference"] is True
-    code, out, _ = run(["info", scene_log], capsys)
+    code, out, _ = run_cli(["info", scene_log], capsys)
     assert "spp_mean" in out and "4.000" in out
 
 
 def test_info_counts_nonfinite_and_negative(tmp_path, capsys):
     val = np.array([[1.0], [np.nan], [-2.0], [np.inf]])
     write_log(tmp_path / "x.h5", np.array([[0.5, 0.5]] * 4), val, width=2, height=1, channels=["Y"])
-    code, out, err = run(["info", tmp_path / "x.h5", "--json"], capsys)
+    code, out, err = run_cli(["info", tmp_path / "x.h5", "--json"], capsys)
     info = json.loads(out)
     assert info["nonfinite_samples"] == 2 and info["negative_samples"] == 1 and info["empty_pixels"] == 1
 
@@ -64,8 +61,8 @@ def test_info_counts_nonfinite_and_negative(tmp_path, capsys):
 def test_reconstruct_is_the_verb_and_denoise_its_alias(scene_log, tmp_path, capsys):
     """One verb (issue 23): `mcrecon reconstruct`, as mcrecon.reconstruct; `denoise` stays an alias."""
     a, b = tmp_path / "a.exr", tmp_path / "b.exr"
-    assert run(["reconstruct", scene_log, "-o", a, "--method", "gem"], capsys)[0] == 0
-    assert run(["denoise", scene_log, "-o", b, "--method", "gem"], capsys)[0] == 0
+    assert run_cli(["reconstruct", scene_log, "-o", a, "--method", "gem"], capsys)[0] == 0
+    assert run_cli(["denoise", scene_log, "-o", b, "--method", "gem"], capsys)[0] == 0
     np.testing.assert_array_equal(read_exr(a)[0], read_exr(b)[0])
     np.testing.assert_array_equal(read_exr(a)[0], mcrecon.reconstruct(scene_log, method="gem").astype(np.float32))
     from mcrecon.cli import build_parser
@@ -75,8 +72,8 @@ def test_reconstruct_is_the_verb_and_denoise_its_alias(scene_log, tmp_path, caps
 
 def test_denoise_writes_exr_png_and_diagnostics(scene_log, tmp_path, capsys):
     out_exr = tmp_path / "o.exr"
-    code, out, err = run(["denoise", scene_log, "-o", out_exr, "--method", "box", "--diagnostics", tmp_path / "d"],
-                         capsys)
+    code, out, err = run_cli(["denoise", scene_log, "-o", out_exr, "--method", "box", "--diagnostics", tmp_path / "d"],
+                             capsys)
     assert code == 0, err
     assert "relative MSE" in out
     img, ch = read_exr(out_exr)
@@ -90,23 +87,23 @@ def test_denoise_writes_exr_png_and_diagnostics(scene_log, tmp_path, capsys):
 
 
 def test_adapt_on_a_scene_and_compare(tmp_path, capsys):
-    code, out, err = run(["adapt", "--scene", "flat", "--size", "16x16", "--spp", "4", "--method", "box",
-                          "-o", tmp_path / "a.exr", "--log", tmp_path / "a.h5", "--quiet"], capsys)
+    code, out, err = run_cli(["adapt", "--scene", "flat", "--size", "16x16", "--spp", "4", "--method", "box",
+                              "-o", tmp_path / "a.exr", "--log", tmp_path / "a.h5", "--quiet"], capsys)
     assert code == 0, err
     assert "stopped: budget" in out and "renderer" in out and "toolkit" in out and "relative MSE" in out
     assert read_log(tmp_path / "a.h5").n_samples == 16 * 16 * 4
-    code, out, err = run(["adapt", "--scene", "flat", "--size", "16x16", "--spp", "8", "--method", "box",
-                          "-o", tmp_path / "b.exr", "--rounds-json", tmp_path / "r.json", "--quiet"], capsys)
+    code, out, err = run_cli(["adapt", "--scene", "flat", "--size", "16x16", "--spp", "8", "--method", "box",
+                              "-o", tmp_path / "b.exr", "--rounds-json", tmp_path / "r.json", "--quiet"], capsys)
     rounds = json.loads((tmp_path / "r.json").read_text())
     assert code == 0 and [r["samples_total"] for r in rounds] == [256, 512, 1024, 2048]
     assert rounds[-1]["error"] < rounds[0]["error"] and all(r["toolkit_seconds"] >= 0 for r in rounds)
-    code, out, err = run(["adapt", "--scene", "flat", "--size", "8x8", "--spp", "2", "--method", "box",
-                          "-o", tmp_path / "c.exr", "--log", tmp_path / "c.h5", "--storage-dtype", "float64",
-                          "--quiet"], capsys)
+    code, out, err = run_cli(["adapt", "--scene", "flat", "--size", "8x8", "--spp", "2", "--method", "box",
+                              "-o", tmp_path / "c.exr", "--log", tmp_path / "c.h5", "--storage-dtype", "float64",
+                              "--quiet"], capsys)
     assert code == 0 and read_log(tmp_path / "c.h5").value_dtype == np.float64
     img, _ = read_exr(tmp_path / "a.exr")
     write_exr(tmp_path / "ref.exr", np.full_like(img, 0.5))
-    code, out, err = run(["compare", tmp_path / "a.exr", tmp_path / "ref.exr", "--json"], capsys)
+    code, out, err = run_cli(["compare", tmp_path / "a.exr", tmp_path / "ref.exr", "--json"], capsys)
     m = json.loads(out)
     assert code == 0 and 0 < m["relative_mse"] < 1 and np.isfinite(m["ssim"])
 
@@ -129,50 +126,37 @@ def test_adapt_on_a_scene_and_compare(tmp_path, capsys):
 def test_bad_input_exits_2_with_one_line(tmp_path, scene_log, capsys, args, match):
     (tmp_path / "text.h5").write_text("not hdf5")
     args = [a.replace("{tmp}", str(tmp_path)).replace("{log}", str(scene_log)) for a in args]
-    with pytest.raises(SystemExit) if args == ["info"] or "keep" in args else _nullcontext():
-        code, out, err = run(args, capsys)
-        assert code == 2
-        lines = err.strip().splitlines()
-        assert len(lines) == 1 and match in lines[0], err
-        assert "Traceback" not in err
-    if args == ["info"] or "keep" in args:
-        err = capsys.readouterr().err
-        assert match in err and len(err.strip().splitlines()) == 1
-
-
-class _nullcontext:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *a):
-        return False
+    code, out, err = run_cli(args, capsys)   # the parser's refusals included (its SystemExit)
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and match in lines[0], err
+    assert "Traceback" not in err
 
 
 def test_positions_off_film_in_a_log(tmp_path, capsys):
     write_log(tmp_path / "x.h5", np.array([[0.5, 0.5]]), np.ones((1, 3)), width=2, height=2)
     with h5py.File(tmp_path / "x.h5", "r+") as f:
         f["positions"][0] = [5.0, 0.5]
-    code, out, err = run(["denoise", tmp_path / "x.h5", "-o", tmp_path / "o.exr"], capsys)
+    code, out, err = run_cli(["denoise", tmp_path / "x.h5", "-o", tmp_path / "o.exr"], capsys)
     assert code == 2 and "x.h5: positions: 1 sample(s) off the film" in err
 
 
 def test_empty_pixels_are_filled_with_a_warning(tmp_path, capsys):
     write_log(tmp_path / "x.h5", np.array([[0.5, 0.5]]), np.array([[2.0, 1.0, 0.5]]), width=3, height=1)
-    code, out, err = run(["denoise", tmp_path / "x.h5", "-o", tmp_path / "o.exr"], capsys)
+    code, out, err = run_cli(["denoise", tmp_path / "x.h5", "-o", tmp_path / "o.exr"], capsys)
     assert code == 0 and "mcrecon: warning: " in err and "2 pixel(s) without samples" in err
     img, _ = read_exr(tmp_path / "o.exr")
     np.testing.assert_array_equal(img[0], [[2.0, 1.0, 0.5]] * 3)
 
 
 def test_module_entry_point_runs_in_a_subprocess(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "mcrecon", "info", str(tmp_path / "none.h5")],
-                       capture_output=True, text=True)
+    r = run_cli_process(["info", tmp_path / "none.h5"])
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "does not exist" in r.stderr
 
 
 # ------------------------------------------------------------------ info
 def test_info_prints_summarize_log(scene_log, capsys):
-    code, out, _ = run(["info", scene_log, "--json"], capsys)
+    code, out, _ = run_cli(["info", scene_log, "--json"], capsys)
     got = json.loads(out)
     assert code == 0 and got.pop("feature_details") == [] and got == json.loads(json.dumps(summarize_log(scene_log)))
 
@@ -185,13 +169,13 @@ def test_info_on_a_malformed_log_is_one_line(tmp_path, capsys, breakage, match):
     path = write_log(tmp_path / "m.h5", np.full((4, 2), 0.5), np.ones((4, 3)), width=2, height=2)
     with h5py.File(path, "r+") as f:
         breakage(f)
-    code, out, err = run(["info", path], capsys)
+    code, out, err = run_cli(["info", path], capsys)
     assert code == 2 and len(err.strip().splitlines()) == 1 and match in err
 
 
 def test_info_into_a_closed_pipe_exits_0(scene_log):
     # `mcrecon info LOG | head -1`: the reader is gone before mcrecon writes.
-    proc = subprocess.Popen([sys.executable, "-m", "mcrecon", "info", str(scene_log)],
+    proc = subprocess.Popen([*MCRECON, "info", str(scene_log)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     proc.stdout.close()
     err = proc.stderr.read().decode()
@@ -207,20 +191,20 @@ def test_log_outputs_are_logs_and_are_not_replaced_silently(tmp_path, capsys):
     # every later command then refused as "not an OpenEXR file")
     log = tmp_path / "keep.h5"
     args = ["render-log", "--scene", "flat", "--spp", "1", "--size", "4x4", "-o"]
-    code, _, err = run(args + [str(log)], capsys)
+    code, _, err = run_cli(args + [str(log)], capsys)
     assert code == 0 and log.is_file()
     before = log.read_bytes()
-    code, _, err = run(args + [str(log)], capsys)
+    code, _, err = run_cli(args + [str(log)], capsys)
     assert code == 2 and "exists" in err and "--overwrite" in err and len(err.strip().splitlines()) == 1
     assert log.read_bytes() == before
-    code, _, err = run(["render-log", "--scene", "flat", "--spp", "2", "--size", "4x4", "-o", str(log),
-                        "--overwrite"], capsys)
+    code, _, err = run_cli(["render-log", "--scene", "flat", "--spp", "2", "--size", "4x4", "-o", str(log),
+                            "--overwrite"], capsys)
     assert code == 0 and log.read_bytes() != before
     for bad in (["render-log", "--scene", "flat", "--spp", "1", "--size", "4x4", "-o", str(tmp_path / "x.exr")],
                 ["adapt", "--scene", "flat", "--spp", "2", "--size", "4x4", "--log", str(tmp_path / "x.exr"),
                  "-o", str(tmp_path / "y.exr")],
                 ["mitsuba", "reference", "--spp", "1", "-o", str(tmp_path / "r.h5")]):
-        code, _, err = run(bad, capsys)
+        code, _, err = run_cli(bad, capsys)
         assert code == 2 and "expected a path ending in" in err and len(err.strip().splitlines()) == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.h5"]
 
@@ -229,12 +213,31 @@ def test_a_closed_pipe_does_not_stop_the_command(tmp_path):
     # `mcrecon render-log ... | head -1`: the reader leaves after the first line, and the files printed
     # after it (here the reference EXR) must still be written
     log, exr = tmp_path / "r.h5", tmp_path / "ref.exr"
-    proc = subprocess.Popen([sys.executable, "-m", "mcrecon", "render-log", "--scene", "soft_shadow", "--size",
-                             "8x8", "--spp", "2", "-o", str(log), "--reference-exr", str(exr)],
+    proc = subprocess.Popen([*MCRECON, "render-log", "--scene", "soft_shadow", "--size", "8x8", "--spp", "2", "-o",
+                             str(log), "--reference-exr", str(exr)],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     proc.stdout.close()
     assert proc.wait() == 0
     assert log.is_file() and exr.is_file()
+
+
+def test_render_log_writes_the_stored_reference_as_exr(tmp_path, capsys):
+    log, ref = tmp_path / "c.h5", tmp_path / "ref.exr"
+    assert main(["render-log", "--scene", "caustic", "--spp", "2", "--size", "12x8", "-o", str(log),
+                 "--reference-exr", str(ref)]) == 0
+    assert f"wrote {ref}" in capsys.readouterr().out
+    img, channels = read_exr(ref)
+    stored = read_log(log)
+    assert channels == stored.channels
+    assert np.array_equal(img, stored.reference().astype(np.float32))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.h5", "ref.exr"]   # no temporary left
+
+    other = tmp_path / "d.h5"
+    for bad, text in ((str(other), "is the -o sample log"), (str(tmp_path / "r.png"), ".exr")):
+        code, _, err = run_cli(["render-log", "--scene", "caustic", "--spp", "2", "--size", "12x8", "-o", other,
+                                "--reference-exr", bad], capsys)
+        assert code == 2 and err.count("\n") == 1 and text in err, err
+    assert not other.exists()                            # refused before any work
 
 
 def test_closed_descriptors_do_not_stop_the_command(tmp_path):
@@ -282,7 +285,7 @@ def test_help_groups_the_options_per_method(command, capsys):
 
 
 def test_methods_describes_one_method(capsys):
-    code, out, err = run(["methods", "gem"], capsys)
+    code, out, err = run_cli(["methods", "gem"], capsys)
     assert code == 0, err
     for o in method_class("gem").options:
         line = next(ln for ln in out.splitlines() if ln.split()[:1] == [o.flag])
@@ -290,11 +293,11 @@ def test_methods_describes_one_method(capsys):
         assert o.expectation().split("(")[0].strip() in " ".join(out.split())
     assert "inputs (method.requires" in out and "pixel statistics" in out and "reference image" in out
     assert "per-sample features      not read" in out
-    code, out, err = run(["methods", "nfor"], capsys)
+    code, out, err = run_cli(["methods", "nfor"], capsys)
     assert code == 0 and "per-sample features      required" in out
-    code, out, err = run(["methods", "ci"], capsys)
+    code, out, err = run_cli(["methods", "ci"], capsys)
     assert code == 0 and "--method-exposure" in out  # ci's exposure on denoise/adapt (which have --exposure)
-    code, out, err = run(["methods", "nope"], capsys)
+    code, out, err = run_cli(["methods", "nope"], capsys)
     assert code == 2 and "unknown method 'nope'" in err and len(err.strip().splitlines()) == 1
 
 
@@ -308,20 +311,20 @@ def test_methods_describes_one_method(capsys):
     (["--method", "ci", "--method-exposure", "x"], "method ci: --method-exposure: 'x', expected a finite number"),
 ])
 def test_method_flags_are_checked_against_the_chosen_method(scene_log, tmp_path, capsys, args, match):
-    code, out, err = run(["denoise", scene_log, "-o", tmp_path / "o.exr", *args], capsys)
+    code, out, err = run_cli(["denoise", scene_log, "-o", tmp_path / "o.exr", *args], capsys)
     assert code == 2 and len(err.strip().splitlines()) == 1 and match in err, err
     assert not (tmp_path / "o.exr").exists()
 
 
 def test_shared_flag_goes_to_the_chosen_method(scene_log, tmp_path, capsys):
-    code, out, err = run(["denoise", scene_log, "-o", tmp_path / "o.exr", "--method", "ci", "--gamma", "1.8",
-                          "--alpha", "0.1"], capsys)
+    code, out, err = run_cli(["denoise", scene_log, "-o", tmp_path / "o.exr", "--method", "ci", "--gamma", "1.8",
+                              "--alpha", "0.1"], capsys)
     assert code == 0, err
 
 
 def test_bias_takes_the_stopping_rule_of_method_ci(tmp_path, capsys):
-    code, out, err = run(["bias", "--scene", "flat", "--size", "4x4", "--spp", "8", "--B", "5", "--tolerance", "wide",
-                          "--out", tmp_path], capsys)
+    code, out, err = run_cli(["bias", "--scene", "flat", "--size", "4x4", "--spp", "8", "--B", "5", "--tolerance",
+                              "wide", "--out", tmp_path], capsys)
     assert code == 2 and "method ci: --tolerance: 'wide'" in err and len(err.strip().splitlines()) == 1
 
 
@@ -366,7 +369,7 @@ def test_a_bad_recorded_renderer_spec_names_the_field(tmp_path, capsys, change, 
     with pytest.raises(InputError) as exc:
         resume(log)
     assert (exc.value.where, exc.value.field) == (str(log), field)
-    code, out, err = run(["adapt", "--resume", log, "-o", tmp_path / "o.exr", "--quiet"], capsys)
+    code, out, err = run_cli(["adapt", "--resume", log, "-o", tmp_path / "o.exr", "--quiet"], capsys)
     assert code == 2 and len(err.strip().splitlines()) == 1 and f"r.h5: {field}" in err
 
 
@@ -432,7 +435,7 @@ def test_demo_writes_every_method_and_reports_its_error(tmp_path, capsys):
     import re
     import mcrecon
     out = tmp_path / "demo"
-    code, text, err = run(["demo", "--size", "24x20", "--spp", "4", "--out", str(out)], capsys)
+    code, text, err = run_cli(["demo", "--size", "24x20", "--spp", "4", "--out", str(out)], capsys)
     assert code == 0, err
     # the default list leaves out the methods that need per-sample features (the scene's log has none)
     methods = [n for n in mcrecon.available_methods() if mcrecon.get_method(n).requires.features != "required"]
@@ -450,13 +453,13 @@ def test_demo_writes_every_method_and_reports_its_error(tmp_path, capsys):
 def test_adapt_names_where_its_time_went(tmp_path, capsys):
     # with --rounds-json the error after each round took 1.45 s of a 1.82 s run and the line named only
     # the renderer's 0.02 s and the toolkit's 0.08 s
-    code, out, err = run(["adapt", "--scene", "flat", "--size", "8x8", "--spp", "8", "--method", "gem", "-o",
-                          str(tmp_path / "a.exr"), "--rounds-json", str(tmp_path / "r.json")], capsys)
+    code, out, err = run_cli(["adapt", "--scene", "flat", "--size", "8x8", "--spp", "8", "--method", "gem", "-o",
+                              str(tmp_path / "a.exr"), "--rounds-json", str(tmp_path / "r.json")], capsys)
     assert code == 0
     line = out.splitlines()[0]
     assert "final image" in line and "error after each round" in line
-    code, out, err = run(["adapt", "--scene", "flat", "--size", "8x8", "--spp", "8", "--method", "gem", "-o",
-                          str(tmp_path / "b.exr")], capsys)
+    code, out, err = run_cli(["adapt", "--scene", "flat", "--size", "8x8", "--spp", "8", "--method", "gem", "-o",
+                              str(tmp_path / "b.exr")], capsys)
     assert code == 0 and "final image" in out and "error after each round" not in out
 
 
@@ -465,11 +468,11 @@ def test_adapt_scene_features_opt_in(tmp_path, capsys):
     from mcrecon.io import read_log
 
     log = tmp_path / "f.h5"
-    code, out, err = run(["adapt", "--scene", "soft_shadow", "--features", "all", "--size", "8x8", "--spp", "4",
-                          "--method", "nfor", "--log", str(log), "-o", str(tmp_path / "f.exr")], capsys)
+    code, out, err = run_cli(["adapt", "--scene", "soft_shadow", "--features", "all", "--size", "8x8", "--spp", "4",
+                              "--method", "nfor", "--log", str(log), "-o", str(tmp_path / "f.exr")], capsys)
     assert code == 0, err
     assert set(read_log(log).feature_names) == {"albedo", "normal", "depth"}
     assert read_log(log).run_settings["renderer_spec"]["features"] is True   # a resume sends them again
-    code, _, err = run(["adapt", "--scene", "checker_wall", "--features", "albedo", "--size", "8x8", "--spp", "2",
-                        "-o", str(tmp_path / "g.exr")], capsys)
+    code, _, err = run_cli(["adapt", "--scene", "checker_wall", "--features", "albedo", "--size", "8x8", "--spp", "2",
+                            "-o", str(tmp_path / "g.exr")], capsys)
     assert code == 2 and "with --scene, all" in err and len(err.strip().splitlines()) == 1

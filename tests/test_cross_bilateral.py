@@ -65,7 +65,7 @@ def test_a_noise_free_feature_edge_keeps_the_colour_edge():
     out = cross_bilateral(noisy, np.full(truth.shape, 0.09), albedo, np.zeros_like(albedo), radius=4,
                           k_colour=None)
     assert np.abs(out - truth).max() < 0.25  # no pixel pulled across the 1.6 step
-    assert np.mean((out - truth) ** 2) < 0.1 * np.mean((noisy - truth) ** 2)
+    assert np.mean((out - truth) ** 2) < 0.030 * np.mean((noisy - truth) ** 2)  # measured 0.0258; 15 % margin
 
 
 def test_bad_parameters_are_refused():

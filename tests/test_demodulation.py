@@ -48,8 +48,8 @@ def test_a_checkerboard_under_smooth_light_keeps_its_edges():
     e_mean = np.mean((y - truth) ** 2)
     e_demod = np.mean((demodulated_nlmeans(y, v, alb, **OPTS) - truth) ** 2)
     e_colour = np.mean((nlmeans_filter(y, y, v, **OPTS) - truth) ** 2)
-    assert e_demod < 0.15 * e_mean, e_demod / e_mean
-    assert e_demod < 0.3 * e_colour, (e_demod / e_mean, e_colour / e_mean)
+    assert e_demod < 0.095 * e_mean, e_demod / e_mean  # measured 0.082; 15 % margin
+    assert e_demod < 0.24 * e_colour, (e_demod / e_mean, e_colour / e_mean)  # measured 0.210
 
 
 def test_the_filter_is_scale_free():

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import pytest
 
-from mcrecon.cli import main
+from helpers import run_cli
 
 ROOT = Path(__file__).parents[1]
 FILES = [ROOT / "README.md"] + sorted((ROOT / "docs").rglob("*.md"))
@@ -97,12 +97,8 @@ def _run(argv, cwd: Path, capsys, where: str) -> None:
     if _not_run(argv):
         return
     if argv[0] == "mcrecon":
-        try:
-            code = main(argv[1:])
-        except SystemExit as exc:  # argparse refused the command line
-            code = exc.code
-        out = capsys.readouterr()
-        assert code == 0 and "mcrecon: error" not in out.err, f"{where} exited {code}: {out.err.strip()}"
+        code, _, err = run_cli(argv[1:], capsys)
+        assert code == 0 and "mcrecon: error" not in err, f"{where} exited {code}: {err.strip()}"
         return
     proc = subprocess.run(argv, cwd=cwd, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, f"{where} exited {proc.returncode}: {proc.stderr.strip()[-2000:]}"
@@ -167,3 +163,10 @@ def test_ci_runs_the_readme_set_up_and_ends_with_its_test_command():
     assert ci[-1] == shlex.join(test_cmd)
     assert '"$PYTHON" -m venv .venv' in ci and 'PYTHON="${PYTHON:-python3}"' in ci
     assert not [line for line in ci if re.search(r'"\$PYTHON" -m pip', line)]  # never outside the venv
+
+
+def test_docs_index_links_every_page():
+    index = (ROOT / "docs" / "index.md").read_text()
+    linked = set(re.findall(r"\]\(([^)#]+\.md)\)", index))
+    pages = {str(p.relative_to(ROOT / "docs")) for p in (ROOT / "docs").rglob("*.md")} - {"index.md"}
+    assert pages - linked == set()

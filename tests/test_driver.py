@@ -11,6 +11,8 @@ from mcrecon.methods import Method
 from mcrecon.renderers import CallableRenderer
 from mcrecon.core.requests import SampleBatch, SampleRequest, jittered_positions, validate_reply
 
+from helpers import jittered_renderer
+
 
 def _shade(pos, seed):
     rng = np.random.default_rng(seed)
@@ -19,16 +21,10 @@ def _shade(pos, seed):
 
 
 def _renderer(w=16, h=8, fault=None):
-    def fn(req):
-        rng = np.random.default_rng(req.seed)
-        pos = jittered_positions(req.counts, rng) if req.counts is not None else np.zeros((0, 2))
-        if req.positions is not None:
-            pos = np.concatenate([pos, req.positions])
+    def shade(pos, rng, req):
         val = _shade(pos, req.seed)
-        if fault and req.round_index == fault[0]:
-            return fault[1](pos, val)
-        return SampleBatch(pos, val)
-    return CallableRenderer(fn, width=w, height=h, name="test renderer")
+        return fault[1](pos, val) if fault and req.round_index == fault[0] else val
+    return jittered_renderer(shade, width=w, height=h, name="test renderer")
 
 
 def test_uniform_rounds_fill_budget_exactly():
@@ -164,14 +160,9 @@ def test_request_and_reply_validation():
 # ------------------------------------------------------------------ precision
 def _offset_renderer(base, spread, dtype, w=6, h=4):
     """Values base + spread * u, u uniform in [-1, 1], in the given dtype."""
-    def fn(req):
-        rng = np.random.default_rng(req.seed)
-        pos = jittered_positions(req.counts, rng) if req.counts is not None else np.zeros((0, 2))
-        if req.positions is not None:
-            pos = np.concatenate([pos, req.positions])
-        val = base + spread * rng.uniform(-1, 1, (len(pos), 1)) * np.ones(3)
-        return SampleBatch(pos, val.astype(dtype))
-    return CallableRenderer(fn, width=w, height=h, name="offset renderer")
+    def shade(pos, rng, req):
+        return (base + spread * rng.uniform(-1, 1, (len(pos), 1)) * np.ones(3)).astype(dtype)
+    return jittered_renderer(shade, width=w, height=h, name="offset renderer")
 
 
 def test_float64_replies_keep_their_precision_end_to_end(tmp_path):
@@ -241,17 +232,13 @@ def test_on_round_sees_every_committed_round_as_recorded(tmp_path):
 
 # ------------------------------------------------------------------ found in review (each failed before its fix)
 def _review_renderer(w=8, h=6, nan_pixel=False, features=False):
-    def fn(req):
-        rng = np.random.default_rng(req.seed)
-        pos = jittered_positions(req.counts, rng) if req.counts is not None else np.zeros((0, 2))
-        if req.positions is not None:
-            pos = np.concatenate([pos, req.positions])
+    def shade(pos, rng, req):
         val = rng.random((len(pos), 3))
         if nan_pixel:
             val[(pos[:, 0] < 1) & (pos[:, 1] < 1), 0] = np.nan  # pixel (0, 0) is always NaN
         feats = {"depth": rng.random(len(pos)).astype(np.float32)} if features else {}
         return SampleBatch(pos, val, feats)
-    return CallableRenderer(fn, width=w, height=h)
+    return jittered_renderer(shade, width=w, height=h)
 
 
 @pytest.mark.parametrize("method", ["box", "ci", "gem"])
@@ -327,13 +314,11 @@ def test_adaptive_splat_applies_the_runs_nonfinite_policy(tmp_path):
     image differed from the offline reconstruction of the same log (by 0.31)."""
     import mcrecon
 
-    def fn(req):
-        rng = np.random.default_rng(req.seed)
-        pos = jittered_positions(req.counts, rng)
+    def shade(pos, rng, req):
         val = rng.random((len(pos), 3))
         val[::7, 1] = np.nan
-        return SampleBatch(pos, val)
-    r = CallableRenderer(fn, width=8, height=6)
+        return val
+    r = jittered_renderer(shade, width=8, height=6)
     for policy in ("zero", "drop"):
         with pytest.warns(Warning):
             res = adapt(r, "splat", spp=8, seed=1, log=tmp_path / f"{policy}.h5", nonfinite=policy)

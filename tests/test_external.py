@@ -17,6 +17,8 @@ from mcrecon.io import read_exr, read_log
 from mcrecon.renderers.command import CommandRenderer, read_request, write_request
 from mcrecon.core.requests import SampleRequest
 
+from helpers import MCRECON, cli_env, request_positions, run_cli_process
+
 FAULT = str(Path(__file__).parent / "renderers" / "fault_renderer.py")
 FEATURES = str(Path(__file__).parent / "renderers" / "feature_renderer.py")
 EXAMPLE = str(Path(__file__).parents[1] / "data_tools" / "example_renderer.py")
@@ -155,10 +157,6 @@ def test_command_validation():
         adapt(CommandRenderer(["/no/such/renderer", "{request}", "{reply}"], width=2, height=2), "box", spp=1)
 
 
-def _run_cli(args, **kw):
-    return subprocess.run([sys.executable, "-m", "mcrecon", *args], capture_output=True, text=True, **kw)
-
-
 def _wait_for_round(marker: Path, k: int, proc, timeout: float = 120.0) -> list[int]:
     """Wait until the fault renderer reports a call for round >= k; return the renderer PIDs seen.
 
@@ -194,10 +192,9 @@ def test_sigkill_mid_run_then_resume_matches_uninterrupted(tmp_path):
     # The renderer reports every call and holds round 3 until killed: the driver commits
     # round k before it requests round k + 1, so rounds 0-2 are in the log by then and the
     # driver is blocked in the renderer call (6 rounds in all for this run).
-    env = {**os.environ, "FAULT_RENDERER_MARKER": str(marker), "FAULT_RENDERER_HOLD": "3"}
-    proc = subprocess.Popen([sys.executable, "-m", "mcrecon", *common, "--log", str(log), "-o",
-                             str(tmp_path / "killed.exr")], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            env=env)
+    env = cli_env({"FAULT_RENDERER_MARKER": str(marker), "FAULT_RENDERER_HOLD": "3"})
+    proc = subprocess.Popen([*MCRECON, *common, "--log", str(log), "-o", str(tmp_path / "killed.exr")],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
     pids = []
     try:
         pids = _wait_for_round(marker, 3, proc)
@@ -210,9 +207,9 @@ def test_sigkill_mid_run_then_resume_matches_uninterrupted(tmp_path):
     killed = read_log(log)  # only now: the writer is dead
     assert killed.n_rounds == 3 and len(killed.round_records) == 3
     assert 0 < killed.n_samples < 12 * 8 * 32
-    out = _run_cli(["adapt", "--resume", str(log), "-o", str(tmp_path / "resumed.exr"), "--quiet"])
+    out = run_cli_process(["adapt", "--resume", str(log), "-o", str(tmp_path / "resumed.exr"), "--quiet"])
     assert out.returncode == 0, out.stderr
-    ref = _run_cli([*common, "--log", str(tmp_path / "full.h5"), "-o", str(tmp_path / "full.exr")])
+    ref = run_cli_process([*common, "--log", str(tmp_path / "full.h5"), "-o", str(tmp_path / "full.exr")])
     assert ref.returncode == 0, ref.stderr
     assert read_log(log).n_samples == read_log(tmp_path / "full.h5").n_samples == 12 * 8 * 32
     a, _ = read_exr(tmp_path / "resumed.exr")
@@ -229,14 +226,12 @@ class _Recorder:
         self.kinds = []
 
     def render(self, req):
-        from mcrecon.core.requests import SampleBatch, jittered_positions
+        from mcrecon.core.requests import SampleBatch
 
         self.kinds.append(("counts" if req.counts is not None else "") + ("positions" if req.positions is not None
                                                                             else ""))
         rng = np.random.default_rng(req.seed)
-        parts = ([jittered_positions(req.counts, rng)] if req.counts is not None else []) + \
-            ([req.positions] if req.positions is not None else [])
-        pos = np.concatenate(parts)
+        pos = request_positions(req, rng)
         return SampleBatch(pos, 0.5 + pos[:, :1] / self.width + 0.2 * rng.random((len(pos), 3)))
 
 
@@ -298,16 +293,16 @@ assert sys.argv[3:] == ["$HOME", ";", "two words"], sys.argv
 main(sys.argv[1], sys.argv[2].split("=", 1)[1])
 """)
     cmd = f"{sys.executable} '{script}' {{request}} --out={{reply}} '$HOME' ';' \"two words\""
-    out = _run_cli(["adapt", "--renderer-cmd", cmd, "--size", "8x6", "--spp", "2", "--method", "box", "--quiet",
-                    "--log", str(tmp_path / "run.h5"), "-o", str(tmp_path / "o.exr")])
+    out = run_cli_process(["adapt", "--renderer-cmd", cmd, "--size", "8x6", "--spp", "2", "--method", "box",
+                           "--quiet", "--log", str(tmp_path / "run.h5"), "-o", str(tmp_path / "o.exr")])
     assert out.returncode == 0, out.stderr
     assert read_log(tmp_path / "run.h5").run_settings["renderer_spec"]["argv"][1:3] == [str(script), "{request}"]
 
 
 @pytest.mark.parametrize("channels", ["R, G, B", "R,,B", "R,R"])
 def test_channels_flag_syntax(tmp_path, channels):
-    out = _run_cli(["adapt", "--renderer-cmd", f"{sys.executable} {EXAMPLE} {{request}} {{reply}}", "--channels",
-                    channels, "--size", "4x4", "--spp", "1", "-o", str(tmp_path / "o.exr")])
+    out = run_cli_process(["adapt", "--renderer-cmd", f"{sys.executable} {EXAMPLE} {{request}} {{reply}}",
+                           "--channels", channels, "--size", "4x4", "--spp", "1", "-o", str(tmp_path / "o.exr")])
     assert out.returncode == 2 and "channels" in out.stderr and "--channels R,G,B" in out.stderr
     assert len(out.stderr.strip().splitlines()) == 1
 

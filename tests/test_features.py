@@ -15,6 +15,8 @@ from mcrecon.core.samples import SampleSet
 from mcrecon.core.stats import PixelStats
 from mcrecon.errors import InputError, McreconWarning
 
+from helpers import jittered_renderer
+
 W, H = 7, 5
 
 
@@ -375,20 +377,18 @@ def test_a_reply_sentinel_is_zeroed_once_and_stored_as_zero(tmp_path):
     import warnings
 
     from mcrecon.adaptive.run import adapt
-    from mcrecon.core.requests import SampleBatch, jittered_positions
+    from mcrecon.core.requests import SampleBatch
     from mcrecon.io import read_log
-    from mcrecon.renderers import CallableRenderer
 
-    def render(req):
-        pos = jittered_positions(req.counts, np.random.default_rng(req.round_index))
+    def shade(pos, rng, req):
         depth = np.ones(pos.shape[0])
         depth[::3] = np.finfo(np.float64).max
         return SampleBatch(pos, np.ones((pos.shape[0], 3)), {"depth": depth})
 
+    r = jittered_renderer(shade, width=4, height=4, stream=lambda req: req.round_index)
     with warnings.catch_warnings(record=True) as rec:
         warnings.simplefilter("always")
-        res = adapt(CallableRenderer(render, width=4, height=4), "box", spp=4, log=str(tmp_path / "s.h5"),
-                    progress=False, pipeline=False)
+        res = adapt(r, "box", spp=4, log=str(tmp_path / "s.h5"), progress=False, pipeline=False)
     zeroed = [w for w in rec if "feature values set to 0" in str(w.message)]
     assert len(zeroed) == len(res.rounds)
     depth = read_log(tmp_path / "s.h5").read_feature("depth")

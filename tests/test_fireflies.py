@@ -102,8 +102,8 @@ def test_rare_bright_samples_are_spread_and_the_estimate_is_consistent():
         errors.append(np.mean(e))
         box_errors.append(np.mean(eb))
         moved.append(np.mean(m))
-    # spreading isolated fireflies beats the pixel mean where they are rare ...
-    assert errors[0] < 0.5 * box_errors[0]
+    # spreading isolated fireflies beats the pixel mean where they are rare (measured 0.241; 15 % margin) ...
+    assert errors[0] < 0.28 * box_errors[0]
     # ... and the estimate converges: error falls with spp at least as fast as 1/spp's half
     # (unbiased part 1/spp; the spreading's bias shrinks as fewer samples are rare), less moves
     assert errors[1] < errors[0] / 2 and errors[2] < errors[1] / 2

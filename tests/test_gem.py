@@ -364,11 +364,11 @@ def test_relative_channel_weights_keep_a_dim_channels_edge():
     0.05 | 0.3 (sd 0.1), 48 x 48, 32 spp.  Summing absolute squared errors
     (the paper), the bright channels' variance reduction outweighs the dim
     edge's bias and the edge is blurred: worse than the pixel mean.  The
-    relative sum keeps it.  Measured over 8 seeds: relative / absolute =
-    0.060 (sd 0.009), absolute / box 1.7-2.4, relative / box 0.11-0.13; the
-    bounds (0.25, box) sit > 20 sd away.  The oracle (true bias) with the
-    same weights: oracle / gem 0.77-0.87 (6 seeds), relative / absolute
-    oracle 0.045-0.057; bounds 1 and 0.5.
+    relative sum keeps it.  Measured on the test's seeds 0-2: relative /
+    absolute 0.053-0.064, relative / box 0.113-0.125, absolute / box
+    1.7-2.4.  The oracle (true bias) with the same weights: oracle / gem
+    0.77-0.87, relative / absolute oracle 0.045-0.057.  Bounds: the largest
+    measured ratio + 15 % (deterministic seeds), 1 for oracle / gem.
     """
     from mcrecon.core.metrics import relative_mse
     h = w = 48
@@ -386,12 +386,12 @@ def test_relative_channel_weights_keep_a_dim_channels_edge():
                                              **opts).image, ref)
                for cw, opts in (("relative", {}), ("absolute", {"channel_weights": "absolute"}))}
         box = relative_mse(base, ref)
-        assert err["relative"] < 0.25 * err["absolute"]
-        assert err["relative"] < box < err["absolute"]
+        assert err["relative"] < 0.074 * err["absolute"]  # measured 0.053-0.064 per seed; 15 % margin
+        assert err["relative"] < 0.15 * box and box < err["absolute"]  # measured 0.113-0.125
         # the oracle (true bias) chooses on the same objective: relative wins there too
         orc = {cw: relative_mse(G.oracle_select(base, mv, cnt, G.final_sigmas(8), ref, channel_weights=cw).image, ref)
                for cw in ("relative", "absolute")}
-        assert orc["relative"] <= err["relative"] and orc["relative"] < 0.5 * orc["absolute"]
+        assert orc["relative"] <= err["relative"] and orc["relative"] < 0.066 * orc["absolute"]  # 0.045-0.057
     # the method's default is the relative sum; the paper's variant the absolute one
     assert get_method("gem").params["channel_weights"] == "relative"
     assert get_method("gem", variant="paper").params["channel_weights"] == "absolute"
@@ -407,8 +407,8 @@ def test_confirmed_stops_remove_false_stops_on_a_flat_field_and_keep_an_edge():
     its inputs and confirmation only removes raw stops, so no pixel may
     select a finer scale with it (exact).  Measured over 10 seeds: pixels
     below the widest scale 7.7 % -> 4.1 %, relative MSE ratio (confirmed /
-    not) 0.60 per seed (sd 0.14, so the mean over 10 seeds has sd 0.045):
-    bound 0.8.  A step 0 | 1 (per-sample sd 0.3): ratio 0.987 (5 seeds,
+    not) 0.597 as the mean over the 10 seeds (per seed sd 0.14): bound 0.69,
+    the measured mean + 15 %.  A step 0 | 1 (per-sample sd 0.3): ratio 0.987 (5 seeds,
     each 0.98-1.0): bound 1.05.
     """
     from mcrecon.core.metrics import relative_mse
@@ -425,7 +425,7 @@ def test_confirmed_stops_remove_false_stops_on_a_flat_field_and_keep_an_edge():
         assert np.all(sel[1].selected >= sel[0].selected)
         ratios.append(relative_mse(sel[1].image, np.full_like(base, 0.5)) /
                       relative_mse(sel[0].image, np.full_like(base, 0.5)))
-    assert np.mean(ratios) < 0.8
+    assert np.mean(ratios) < 0.69  # measured 0.597; 15 % margin
     ref = np.zeros((h, w, 3))
     ref[:, w // 2:] = 1.0
     edge = []

@@ -24,7 +24,6 @@ import pytest
 
 import mcrecon
 from mcrecon import InputError, PixelStats, SampleSet
-from mcrecon.cli import main
 from mcrecon.core.halves import split_halves
 from mcrecon.io import read_exr
 from mcrecon.io.pixel_exr import read_half_buffer_exrs, xyz_from_rgb_matrix
@@ -32,19 +31,15 @@ from mcrecon.methods import get_method
 from mcrecon.methods.base import MethodInputs
 from mcrecon.core.halves import merge_halves
 
+from helpers import run_cli
+
 H, W = 20, 28
 EPS64 = np.finfo(np.float64).eps
 EPS32 = float(np.finfo(np.float32).eps)
 
 
-def run(args, capsys):
-    code = main([str(a) for a in args])
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
 def one_line_error(capsys, args):
-    code, _, err = run(args, capsys)
+    code, _, err = run_cli(args, capsys)
     assert code == 2 and err.count("\n") == 1 and err.startswith("mcrecon: error:"), err
     return err
 
@@ -187,8 +182,8 @@ def test_exr_pair_through_cli_and_python_gives_autos_image_of_the_samples(tmp_pa
         opts = {} if safeguard is None else {"safeguard": None}
         flag = [] if safeguard is None else ["--safeguard", "none"]
         out = tmp_path / f"out_{safeguard}.exr"
-        code, stdout, err = run(["denoise", a, "--half-buffer", b, "-o", out, "--method", "auto", *flags, *flag],
-                                capsys)
+        code, stdout, err = run_cli(["denoise", a, "--half-buffer", b, "-o", out, "--method", "auto", *flags, *flag],
+                                    capsys)
         assert code == 0, err
         assert "half-buffer pair" in err and "half-buffer pair" in stdout and f"{ss.n_samples} samples" in stdout
         img, names = read_exr(out)
@@ -229,7 +224,7 @@ def test_auto_on_one_exr_uses_its_sure_candidates_and_suggests_the_pair(tmp_path
     st = PixelStats.from_source(ss)
     a = pbrt_half(tmp_path / "all.exr", st)
     out = tmp_path / "o.exr"
-    code, _, err = run(["denoise", a, "-o", out, "--method", "auto"], capsys)
+    code, _, err = run_cli(["denoise", a, "-o", out, "--method", "auto"], capsys)
     assert code == 0, err
     assert "--candidates box,gauss" in err and "--half-buffer" in err  # chosen for the user, and said so
     pix = mcrecon.io.read_pixel_stats_exr(a)
@@ -262,8 +257,8 @@ def test_methods_without_half_buffers_refuse_the_pair(tmp_path, capsys):
         with pytest.raises(InputError, match="does not use half buffers.*auto"):
             call()
     # a sample log holds the samples: --half-buffer does not apply
-    code, _, err = run(["render-log", "--scene", "soft_shadow", "--spp", "2", "--size", "8x8", "-o",
-                        tmp_path / "l.h5"], capsys)
+    code, _, err = run_cli(["render-log", "--scene", "soft_shadow", "--spp", "2", "--size", "8x8", "-o",
+                            tmp_path / "l.h5"], capsys)
     assert code == 0, err
     err = one_line_error(capsys, ["denoise", tmp_path / "l.h5", "--half-buffer", b, "-o", tmp_path / "o.exr",
                                   "--method", "auto"])
@@ -322,9 +317,9 @@ def test_method_inputs_contract():
 
 
 def test_methods_command_lists_the_half_buffer_input(capsys):
-    code, out, _ = run(["methods", "auto"], capsys)
+    code, out, _ = run_cli(["methods", "auto"], capsys)
     assert code == 0 and "half-buffer pair" in out and "in place of the samples" in out
-    code, out, _ = run(["methods", "box"], capsys)
+    code, out, _ = run_cli(["methods", "box"], capsys)
     assert code == 0 and "half-buffer pair" in out
 
 

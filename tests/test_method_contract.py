@@ -232,7 +232,7 @@ def test_the_contract_documents_example_method_runs(tmp_path):
     flat = write_scene_log("flat", tmp_path / "flat.h5", width=16, height=16, spp=4, seed=2)
     fref = reference_image("flat", 16, 16)
     assert relative_mse(mcrecon.reconstruct(flat, method=m), fref) < \
-        relative_mse(mcrecon.reconstruct(flat, method="box"), fref)
+        0.16 * relative_mse(mcrecon.reconstruct(flat, method="box"), fref)  # measured 0.135; 15 % margin
     # registered, a stopped run resumes from its log alone and ends as the uninterrupted one
     from mcrecon import methods as registry
 

@@ -1,4 +1,6 @@
-"""Metrics against hand-computed values."""
+"""Metrics against hand-computed values, and the compare command that prints them."""
+
+import json
 
 import numpy as np
 import pytest
@@ -6,6 +8,9 @@ import pytest
 from mcrecon import InputError
 from mcrecon.core.metrics import (compare, flip, flip_available, mse, psnr, relative_mse, relative_mse_map, rmse,
     smape, ssim)
+from mcrecon.io import write_exr, write_log
+
+from helpers import run_cli
 
 
 def test_relative_mse_by_hand():
@@ -91,22 +96,16 @@ def test_flip_without_flip_evaluator_says_how_to_install(monkeypatch, rng):
 
 
 def _compare_json(tmp_path, capsys, *extra):
-    from mcrecon.cli import main
-    from mcrecon.io import write_exr
-
     rng = np.random.default_rng(3)
     ref = (rng.random((16, 16, 3)) * 2).astype(np.float32)
     write_exr(tmp_path / "ref.exr", ref)
     write_exr(tmp_path / "img.exr", ref * 1.1)
-    code = main(["compare", str(tmp_path / "img.exr"), str(tmp_path / "ref.exr"), *extra])
-    out = capsys.readouterr()
-    assert code == 0, out.err
-    return out.out, ref
+    code, out, err = run_cli(["compare", tmp_path / "img.exr", tmp_path / "ref.exr", *extra], capsys)
+    assert code == 0, err
+    return out, ref
 
 
 def test_compare_json_fields(tmp_path, capsys):
-    import json
-
     text, ref = _compare_json(tmp_path, capsys, "--json", "--eps", "0.001", "--smape-eps", "0.1")
     m = json.loads(text)
     assert m["relative_mse_eps"] == 0.001 and m["smape_eps"] == 0.1
@@ -121,11 +120,27 @@ def test_compare_json_fields(tmp_path, capsys):
 
 @needs_flip
 def test_compare_ldr_flip_and_text_output(tmp_path, capsys):
-    import json
-
     m = json.loads(_compare_json(tmp_path, capsys, "--json", "--ldr-flip")[0])
     assert m["flip_mode"] == "ldr" and 0 < m["flip"] < 1
     text = _compare_json(tmp_path, capsys)[0]
     assert "relMSE (eps=0.01)" in text and "SMAPE (eps=0.01)" in text and "1-SSIM" in text and "HDR-FLIP" in text
     m = json.loads(_compare_json(tmp_path, capsys, "--json", "--no-flip")[0])
     assert "flip" not in m and "notes" not in m
+
+
+def test_compare_takes_the_reference_stored_in_a_sample_log(tmp_path, capsys):
+    rng = np.random.default_rng(1)
+    ref = rng.random((6, 8, 3)).astype(np.float32).astype(np.float64)
+    log = write_log(tmp_path / "l.h5", rng.random((40, 2)) * [8, 6], rng.random((40, 3)), width=8, height=6,
+                    reference=ref)
+    img = ref + 0.01
+    a = write_exr(tmp_path / "a.exr", img)
+    r = write_exr(tmp_path / "r.exr", ref)
+    code, out, err = run_cli(["compare", a, log, "--json", "--no-flip"], capsys)
+    assert code == 0, err
+    code2, out2, _ = run_cli(["compare", a, r, "--json", "--no-flip"], capsys)
+    assert json.loads(out) == json.loads(out2)
+    bare = write_log(tmp_path / "bare.h5", rng.random((40, 2)) * [8, 6], rng.random((40, 3)), width=8, height=6)
+    code, out, err = run_cli(["compare", a, bare], capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    assert str(bare) in err and "no reference" in err and "render-log" in err, err

@@ -10,9 +10,8 @@ import mcrecon
 from mcrecon.core.fill import mean_variance_policy
 from mcrecon.core.halves import split_halves
 from mcrecon.core.metrics import relative_mse
-from mcrecon.core.requests import SampleBatch, jittered_positions
+from mcrecon.core.requests import SampleBatch
 from mcrecon.core.samples import SampleSet
-from mcrecon.renderers.callable import CallableRenderer
 from mcrecon.errors import InputError
 from mcrecon.filters.cross_bilateral import cross_bilateral
 from mcrecon.methods.auto.nlmeans import nlmeans_cross
@@ -20,9 +19,10 @@ from mcrecon.methods.nfor.method import feature_planes
 from mcrecon.filters.nlmeans import DISTANCE_CLAMP, MIN_CENTER_WEIGHT, NLM_EPS, nlmeans_filter
 from mcrecon.methods.nfor.pipeline import cross_regression, estimate_mse, nfor_denoise, prefilter_features
 from mcrecon.filters.nlmeans import exp_neg
-from mcrecon.methods.nfor.reference import collaborative_regression_reference, nlmeans_filter_reference
 from mcrecon.filters.regression import RIDGE, collaborative_regression, standardise
 
+from helpers import jittered_renderer
+from nfor_reference import collaborative_regression_reference, nlmeans_filter_reference
 from nfor_scene import scene_reference, scene_samples, scene_values
 
 
@@ -139,7 +139,7 @@ def test_exp_neg_is_exp_to_1e_9_and_zero_beyond_80():
 def test_fast_kernels_equal_the_reference_kernels_to_1e_6(r, f):
     """The vectorised kernels (direct patch sums, offset-major normal equations, polynomial exp) against
     the first implementation (summed-area tables, per-window dot products, math.exp), kept in
-    nfor/reference.py: they differ by rounding only (a float32 patch distance one ulp apart: measured 1.3e-7
+    tests/nfor_reference.py: they differ by rounding only (a float32 patch distance one ulp apart: measured 1.3e-7
     at most at 128^2); weights with bimodal
     distances, features with a gradient and noise, and a border wider than the window on a 37 x 41 image."""
     rng = np.random.default_rng(7)
@@ -240,9 +240,10 @@ def textured():
 
 
 def test_nfor_beats_cross_bilateral_colour_nlmeans_and_the_pixel_mean_on_a_textured_scene(textured):
-    """Checkerboard albedo x smooth shading, a defocused band with noisy features, 16 spp: measured (seeds
-    0-2) relMSE nfor 0.0087-0.0096, cross-bilateral 0.043-0.045, colour NL-means 0.033-0.037, box 0.067-0.070;
-    the margins asserted (x2, x2, x4) are far outside that spread."""
+    """Checkerboard albedo x smooth shading, a defocused band with noisy features, 16 spp: measured
+    relative MSE ratios nfor / cross-bilateral 0.211, nfor / colour NL-means 0.256, nfor / box 0.137,
+    cross-bilateral / box 0.647, NL-means / box 0.534.  Bounds: each measured ratio + 15 % (fixed seeds:
+    deterministic), so a 20 % regression of nfor or of a baseline fails."""
     ref, ss = textured
     img = mcrecon.reconstruct(ss, method="nfor", variant="paper")
     h = split_halves(ss, features="all")
@@ -254,10 +255,10 @@ def test_nfor_beats_cross_bilateral_colour_nlmeans_and_the_pixel_mean_on_a_textu
                                  mean_variance_policy(h.b), h.b.count, radius=7, patch=3)
     e = {name: relative_mse(im, ref) for name, im in
          (("nfor", img), ("cb", cb), ("nlm", 0.5 * (na + nb)), ("box", st.mean))}
-    assert e["nfor"] < 0.5 * e["cb"], e
-    assert e["nfor"] < 0.5 * e["nlm"], e
-    assert e["nfor"] < 0.25 * e["box"], e
-    assert e["cb"] < e["box"] and e["nlm"] < e["box"], e  # the baselines do denoise
+    assert e["nfor"] < 0.25 * e["cb"], e   # measured 0.211; 15 % margin
+    assert e["nfor"] < 0.30 * e["nlm"], e  # measured 0.256
+    assert e["nfor"] < 0.16 * e["box"], e  # measured 0.137
+    assert e["cb"] < 0.75 * e["box"] and e["nlm"] < 0.62 * e["box"], e  # measured 0.647, 0.534
 
 
 # ------------------------------------------------------------------ end to end
@@ -325,12 +326,10 @@ def test_demo_runs_nfor_by_default_on_the_textured_scenes_only(tmp_path, monkeyp
 
 
 def _renderer(features=True, w=20, h=16):
-    def render(request):
-        rng = np.random.default_rng(request.seed)
-        pos = jittered_positions(request.counts, rng) if request.positions is None else request.positions
+    def shade(pos, rng, request):
         val, feats = scene_values(pos, rng, w, h)
         return SampleBatch(pos, val, feats if features else {})
-    return CallableRenderer(render, width=w, height=h, name="textured")
+    return jittered_renderer(shade, width=w, height=h, name="textured")
 
 
 def test_adaptive_runs_observe_the_halves_reuse_the_object_and_match_their_log(tmp_path):
@@ -385,7 +384,8 @@ def test_robust_is_the_paper_image_clamped_into_each_pixels_interval_bit_for_bit
 def test_robust_default_stays_below_the_pixel_mean_under_a_caustic_where_the_paper_does_not():
     """The built-in caustic (rare huge samples), 32^2, 16 spp, seed 0. Measured over seeds 0-2: the paper's
     algorithm 2.4-3.2x the pixel mean's relMSE (its colour weights spread one pixel's caustic sample over exact
-    dim neighbours), the robust default 0.12-0.41x; asserted > 1.5 and < 0.6."""
+    dim neighbours), the robust default 0.12-0.41x.  Seed 0: paper 2.42x, robust 0.298x; asserted > 1.5
+    (the paper's failure) and < 0.34 (the robust default's measured ratio + 15 %)."""
     from mcrecon.renderers import scenes
 
     ref = scenes.reference_image("caustic", 32, 32)
@@ -396,7 +396,7 @@ def test_robust_default_stays_below_the_pixel_mean_under_a_caustic_where_the_pap
         e = {v: relative_mse(mcrecon.reconstruct(ss, method="nfor", variant=v), ref) for v in ("paper", "robust")}
     e_box = relative_mse(mcrecon.reconstruct(ss, method="box"), ref)
     assert e["paper"] > 1.5 * e_box, (e, e_box)
-    assert e["robust"] < 0.6 * e_box, (e, e_box)
+    assert e["robust"] < 0.34 * e_box, (e, e_box)  # measured 0.298; 15 % margin
 
 
 def test_a_pixel_without_samples_keeps_its_filled_value_under_the_safeguard():

@@ -26,7 +26,7 @@ def test_flat_noise_goes_to_the_widest_scale():
     assert o.best_global_sigma == np.sqrt(2) ** 8          # no bias anywhere: the widest scale
     assert np.median(o.choice) == 8
     box = relative_mse(mean, ref)
-    assert o.ceiling < box / 20                              # a 16 px Gaussian averages hundreds of pixels
+    assert o.ceiling < 0.001 * box  # a 16 px Gaussian averages hundreds of pixels: measured 0.00086; 15 % margin
 
 
 def test_ceiling_is_never_above_the_pixel_mean_and_run_oracle_reports_ratios():

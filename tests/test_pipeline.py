@@ -27,24 +27,20 @@ from mcrecon.adaptive.schedule import _with_seed, method_pipelines
 from mcrecon.adaptive.run import adapt, resume
 from mcrecon.io import read_log
 from mcrecon.methods import Method
-from mcrecon.renderers import CallableRenderer
 from mcrecon.renderers.command import CommandRenderer
-from mcrecon.core.requests import SampleBatch, SampleRequest, jittered_positions
+from mcrecon.core.requests import SampleBatch, SampleRequest
 from mcrecon.core.stats import PixelStats
+
+from helpers import jittered_renderer
 
 FAULT = str(Path(__file__).parent / "renderers" / "fault_renderer.py")
 
 
 def _renderer(w=16, h=12):
-    def fn(req):
-        rng = np.random.default_rng(req.seed)
-        pos = jittered_positions(req.counts, rng) if req.counts is not None else np.zeros((0, 2))
-        if req.positions is not None:
-            pos = np.concatenate([pos, req.positions])
+    def shade(pos, rng, req):
         base = 0.2 + 0.6 * (pos[:, :1] > w / 2) + 0.1 * np.sin(pos[:, 1:2])
-        val = np.repeat(base, 3, axis=1) * rng.uniform(0.5, 1.5, (len(pos), 1))
-        return SampleBatch(pos, val)
-    return CallableRenderer(fn, width=w, height=h, name="pipeline test renderer")
+        return np.repeat(base, 3, axis=1) * rng.uniform(0.5, 1.5, (len(pos), 1))
+    return jittered_renderer(shade, width=w, height=h, name="pipeline test renderer")
 
 
 # splat: N_0 = 1 (the paper's), so its initial pass is one round pipelined or not (the default's 16 is split)
@@ -142,13 +138,10 @@ def test_a_plan_asking_for_nothing_waits_for_the_round_in_flight(tmp_path):
 
 def _half_constant_renderer(w, h):
     """Rows above the middle: the constant 0.5 (converged on the first samples); below: noise."""
-    def fn(req):
-        rng = np.random.default_rng(req.seed)
-        pos = jittered_positions(req.counts, rng) if req.counts is not None else np.zeros((0, 2))
+    def shade(pos, rng, req):
         noisy = pos[:, 1:2] >= h / 2
-        val = np.where(noisy, rng.uniform(0.0, 1.0, (len(pos), 1)), 0.5)
-        return SampleBatch(pos, np.repeat(val, 3, axis=1))
-    return CallableRenderer(fn, width=w, height=h, name="half constant")
+        return np.repeat(np.where(noisy, rng.uniform(0.0, 1.0, (len(pos), 1)), 0.5), 3, axis=1)
+    return jittered_renderer(shade, width=w, height=h, name="half constant")
 
 
 @pytest.mark.parametrize("stop_after", [1, 2, 3, 5])
@@ -385,22 +378,16 @@ def test_stopped_pipelined_run_resumes_bit_identically(tmp_path, method, stop_af
 def test_faulty_reply_mid_pipeline_keeps_the_rounds_before_and_resumes(tmp_path):
     bad_round = 3
 
-    def fn(req):
-        rng = np.random.default_rng(req.seed)
-        pos = jittered_positions(req.counts, rng) if req.counts is not None else np.zeros((0, 2))
-        if req.positions is not None:
-            pos = np.concatenate([pos, req.positions])
+    def shade(pos, rng, req):
         val = rng.random((len(pos), 3))
-        if req.round_index == bad_round:
-            val = val[:-1]
-        return SampleBatch(pos, val)
+        return val[:-1] if req.round_index == bad_round else val
 
     from mcrecon import RendererError
 
     m = get_method("gem", **OPTS["gem"])
     log = tmp_path / "run.h5"
     with pytest.raises(RendererError, match="rows but"):
-        adapt(CallableRenderer(fn, width=16, height=12), m, spp=12, seed=2, log=log, pipeline=True)
+        adapt(jittered_renderer(shade, width=16, height=12), m, spp=12, seed=2, log=log, pipeline=True)
     assert read_log(log).n_rounds == bad_round  # every round before the bad reply is committed
 
 

@@ -1,20 +1,19 @@
 """Pixel-statistics EXRs (pbrt-v4 GBufferFilm, Mitsuba 3 moment integrator, explicit mapping) -> denoise."""
 
-import os
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 import mcrecon
 from mcrecon import InputError, PixelStats
-from mcrecon.cli import main
 from mcrecon.io import read_exr, read_pixel_stats_exr
 from mcrecon.errors import McreconWarning
 from mcrecon.io.pixel_exr import MITSUBA_XYZ_TO_SRGB, read_half_buffer_exrs, xyz_from_rgb_matrix
+
+from helpers import run_cli
 
 H, W, SPP = 12, 16, 8
 
@@ -22,12 +21,6 @@ H, W, SPP = 12, 16, 8
 PBRT_CHANNELS = ("R", "G", "B", "Albedo.R", "Albedo.G", "Albedo.B", "P.X", "P.Y", "P.Z", "dzdx", "dzdy",
                  "N.X", "N.Y", "N.Z", "Ns.X", "Ns.Y", "Ns.Z", "u", "v", "Variance.R", "Variance.G", "Variance.B",
                  "RelativeVariance.R", "RelativeVariance.G", "RelativeVariance.B")
-
-
-def run(args, capsys):
-    code = main([str(a) for a in args])
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 def write_channels(path, channels: dict, dtype=np.float32, **attrs):
@@ -147,7 +140,7 @@ def test_denoise_command_equals_reconstruct(tmp_path, capsys, layout, method):
         mitsuba_exr(path, s)
         extra = ["--spp", s.shape[2]]
     out = tmp_path / "out.exr"
-    code, stdout, err = run(["denoise", path, "-o", out, "--method", method, "--layout", layout, *extra], capsys)
+    code, stdout, err = run_cli(["denoise", path, "-o", out, "--method", method, "--layout", layout, *extra], capsys)
     assert code == 0, err
     assert f"layout {layout}" in err and "wrote" in stdout
     if method == "awr":
@@ -167,8 +160,8 @@ def test_denoise_explicit_mapping(tmp_path, capsys):
     v = s.var(axis=2, ddof=1)
     ch.update({"V.r": v[..., 0], "V.g": v[..., 1], "V.b": v[..., 2]})
     write_channels(tmp_path / "e.exr", ch, spp=SPP)
-    code, _, err = run(["denoise", tmp_path / "e.exr", "-o", tmp_path / "o.exr", "--method", "gem",
-                        "--mean", "C.r,C.g,C.b", "--variance-channels", "V.r,V.g,V.b"], capsys)
+    code, _, err = run_cli(["denoise", tmp_path / "e.exr", "-o", tmp_path / "o.exr", "--method", "gem",
+                            "--mean", "C.r,C.g,C.b", "--variance-channels", "V.r,V.g,V.b"], capsys)
     assert code == 0, err
     assert "header attribute spp" in err
     img, names = read_exr(tmp_path / "o.exr")
@@ -179,7 +172,7 @@ def test_denoise_explicit_mapping(tmp_path, capsys):
 
 # ------------------------------------------------------------------ errors
 def one_line_error(capsys, args):
-    code, _, err = run(args, capsys)
+    code, _, err = run_cli(args, capsys)
     assert code == 2 and err.count("\n") == 1 and err.startswith("mcrecon: error:"), err
     return err
 
@@ -230,7 +223,7 @@ def test_half_float_saturation_warns_and_half_inf_variance_explains(tmp_path, ca
     ch = {k: np.array(v.pixels) for k, v in f.channels().items()}
     ch["R"][0, 0] = 65504.0  # pbrt's clamp with savefp16
     write_channels(tmp_path / "sat.exr", ch, dtype=np.float16, samplesPerPixel=SPP)
-    code, _, err = run(["denoise", tmp_path / "sat.exr", "-o", tmp_path / "o.exr"], capsys)
+    code, _, err = run_cli(["denoise", tmp_path / "sat.exr", "-o", tmp_path / "o.exr"], capsys)
     assert code == 0 and "warning" in err and "65504" in err and "savefp16" in err
     ch["R"][0, 0] = 1.0
     ch["Variance.B"][1, 1] = np.inf  # a variance above 65504 overflows in half
@@ -258,8 +251,8 @@ def test_unrecognised_layout_and_flags_on_a_log(tmp_path, capsys):
     write_channels(tmp_path / "plain.exr", {"R": np.ones((4, 4)), "G": np.ones((4, 4)), "B": np.ones((4, 4))})
     err = one_line_error(capsys, ["denoise", tmp_path / "plain.exr", "-o", tmp_path / "o.exr", "--spp", "4"])
     assert "not recognised" in err and "--mean" in err
-    code, _, err = run(["render-log", "--scene", "soft_shadow", "--spp", "2", "--size", "8x8", "-o",
-                        tmp_path / "l.h5"], capsys)
+    code, _, err = run_cli(["render-log", "--scene", "soft_shadow", "--spp", "2", "--size", "8x8", "-o",
+                            tmp_path / "l.h5"], capsys)
     err = one_line_error(capsys, ["denoise", tmp_path / "l.h5", "-o", tmp_path / "o.exr", "--spp", "4"])
     assert "--spp" in err and ".exr" in err
 
@@ -323,7 +316,7 @@ def test_real_mitsuba_moment_output(mitsuba_moment_exrs, capsys):
     np.testing.assert_array_equal(tensor.stats.m2, film.stats.m2)
     for method in ("gem", "awr", "box"):
         out = d / f"{method}.exr"
-        code, _, err = run(["denoise", d / "film.exr", "-o", out, "--method", method, "--spp", "16"], capsys)
+        code, _, err = run_cli(["denoise", d / "film.exr", "-o", out, "--method", method, "--spp", "16"], capsys)
         assert code == 0, err
         opts = {"variance": "sample"} if method == "awr" else {}
         expect = film.output_image(mcrecon.reconstruct(film.stats, method=method, **opts))
@@ -504,7 +497,7 @@ def test_denoise_command_reads_pbrt_features(tmp_path, capsys):
     s = samples(12)
     path = tmp_path / "g.exr"
     pbrt_exr(path, s, extra=True)  # Albedo, N, Ns, P among the channels
-    code, _, err = run(["denoise", path, "-o", tmp_path / "o.exr", "--method", "box"], capsys)
+    code, _, err = run_cli(["denoise", path, "-o", tmp_path / "o.exr", "--method", "box"], capsys)
     assert code == 0, err
     assert "features albedo (Albedo.R,Albedo.G,Albedo.B), normal (Ns.X,Ns.Y,Ns.Z), depth (P.Z)" in err
 
@@ -521,20 +514,20 @@ def test_info_lists_the_features_of_an_exr(tmp_path, capsys):
         ch[f"nested.albedo.{c}"] = ch[f"m2_nested.albedo.{c}"] = np.full((H, W), 0.5)
     ch["nested.dd.T"] = ch["m2_nested.dd.T"] = np.ones((H, W))
     write_channels(path, ch)
-    code, out, err = run(["info", path], capsys)
+    code, out, err = run_cli(["info", path], capsys)
     assert code == 0, err
     assert "layout                   mitsuba-moment" in out
     assert "count                    none in the file (pass --spp N)" in out
     assert ("feature albedo           nested.albedo.R,nested.albedo.G,nested.albedo.B (variance from "
             "m2_nested.albedo.R,m2_nested.albedo.G,m2_nested.albedo.B)") in out
     assert "feature depth            nested.dd.T (variance from m2_nested.dd.T)" in out
-    code, out, _ = run(["info", "--json", path], capsys)
+    code, out, _ = run_cli(["info", "--json", path], capsys)
     info = json.loads(out)
     assert [f["name"] for f in info["features"]] == ["albedo", "depth"]
     assert (info["width"], info["height"]) == (W, H)
     # pbrt: its names, its count attribute, no feature variances
     pbrt_exr(tmp_path / "p.exr", s)
-    code, out, _ = run(["info", tmp_path / "p.exr"], capsys)
+    code, out, _ = run_cli(["info", tmp_path / "p.exr"], capsys)
     assert "layout                   pbrt-v4" in out and f"samplesPerPixel = {SPP}" in out
     assert "feature normal           Ns.X,Ns.Y,Ns.Z (no variance)" in out
     assert "feature depth            P.Z (no variance)" in out
@@ -557,7 +550,7 @@ def test_real_mitsuba_moment_of_aov_features(mitsuba_moment_exrs, capsys):
     length = np.linalg.norm(st.features["normal"].mean, axis=-1)
     assert length.max() <= 1 + 1e-5 and np.median(length[depth > 0]) > 0.98  # 24x16: many edge pixels
     assert (st.features["albedo"].sample_variance() >= 0).all()
-    code, _, err = run(["denoise", d / "aov.exr", "-o", d / "aov_box.exr", "--spp", "16"], capsys)
+    code, _, err = run_cli(["denoise", d / "aov.exr", "-o", d / "aov_box.exr", "--spp", "16"], capsys)
     assert code == 0 and "features albedo (nested.albedo.R" in err, err
 
 

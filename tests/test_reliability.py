@@ -16,7 +16,6 @@ import pytest
 
 import mcrecon
 from mcrecon import InputError
-from mcrecon.cli import main
 from mcrecon.adaptive.run import adapt, resume
 from mcrecon.io import append_log, read_log, summarize_log, write_log
 from mcrecon.io import reader as samplelog
@@ -26,6 +25,8 @@ from mcrecon.core.metrics import output_sanity
 from mcrecon.renderers.command import CommandRenderer
 from mcrecon.core.stats import PixelStats
 
+from helpers import MCRECON, cli_env, run_cli, run_cli_process
+
 FAULT = str(Path(__file__).parent / "renderers" / "fault_renderer.py")
 
 
@@ -34,12 +35,6 @@ def _log(path, rng, n=200_000, w=64, h=48, **kw):
     val = rng.random((n, 3)).astype(np.float32)
     write_log(path, pos, val, width=w, height=h, **kw)
     return pos, val
-
-
-def _cli(argv, capsys):
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def _damage(path, dataset, chunk=1, nbytes=64, seed=0):
@@ -78,7 +73,7 @@ def test_random_bytes_in_sample_data_exit_2_with_one_line(tmp_path, rng, capsys)
     _damage(path, "values", chunk=1)
     for argv in (["info", path], ["info", path, "--json"], ["denoise", path, "-o", tmp_path / "out.exr"],
                  ["denoise", path, "-o", tmp_path / "out.exr", "--method", "splat"]):
-        code, out, err = _cli(argv, capsys)
+        code, out, err = run_cli(argv, capsys)
         assert code == 2, (argv, out)
         assert err.count("\n") == 1, err
         assert f"{path}: dataset /values: rows 65536-131071: checksum mismatch" in err
@@ -118,12 +113,11 @@ def test_logs_without_checksums_still_read(tmp_path, rng):
 def _held_run(tmp_path, log, hold=3, extra_env=None):
     """An adaptive run in a subprocess whose renderer holds round ``hold`` until killed."""
     marker = tmp_path / "rounds.txt"
-    env = {**os.environ, "FAULT_RENDERER_MARKER": str(marker), "FAULT_RENDERER_HOLD": str(hold), **(extra_env or {})}
+    env = cli_env({"FAULT_RENDERER_MARKER": str(marker), "FAULT_RENDERER_HOLD": str(hold), **(extra_env or {})})
     cmd = f"{sys.executable} {FAULT} ok -1 {{request}} {{reply}}"
-    proc = subprocess.Popen([sys.executable, "-m", "mcrecon", "adapt", "--renderer-cmd", cmd, "--size", "12x8",
-                             "--spp", "32", "--method", "box", "--seed", "9", "--quiet", "--log", str(log),
-                             "-o", str(tmp_path / "held.exr")], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            env=env)
+    proc = subprocess.Popen([*MCRECON, "adapt", "--renderer-cmd", cmd, "--size", "12x8", "--spp", "32",
+                             "--method", "box", "--seed", "9", "--quiet", "--log", str(log), "-o",
+                             str(tmp_path / "held.exr")], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
     return proc, marker
 
 
@@ -167,7 +161,7 @@ def test_second_run_refused_while_a_run_holds_its_log_then_stale_lock_taken_over
         for argv in (["adapt", "--resume", str(log), "-o", str(tmp_path / "x.exr"), "--quiet"],
                      ["adapt", "--scene", "soft_shadow", "--size", "12x8", "--spp", "2", "--log", str(log),
                       "-o", str(tmp_path / "y.exr"), "--quiet"]):
-            out = subprocess.run([sys.executable, "-m", "mcrecon", *argv], capture_output=True, text=True)
+            out = run_cli_process(argv)
             assert out.returncode == 2, out
             assert out.stderr.count("\n") == 1, out.stderr
             assert f"being written by process {proc.pid}" in out.stderr
@@ -277,8 +271,8 @@ def test_samples_counted_one_way_by_adapt_info_and_records(tmp_path, capsys):
     # the CLI prints the same count as `info`
     cmd = f"{sys.executable} {FAULT} nan 0 {{request}} {{reply}}"
     log2 = tmp_path / "cli.h5"
-    code, out, _ = _cli(["adapt", "--renderer-cmd", cmd, "--size", "12x8", "--spp", "4", "--log", log2,
-                         "-o", tmp_path / "o.exr", "--quiet"], capsys)
+    code, out, _ = run_cli(["adapt", "--renderer-cmd", cmd, "--size", "12x8", "--spp", "4", "--log", log2,
+                            "-o", tmp_path / "o.exr", "--quiet"], capsys)
     assert code == 0 and "384 samples (4.00 spp, 2 non-finite dropped)" in out
     assert summarize_log(log2)["samples"] == 384 and summarize_log(log2)["finite_samples"] == 382
 
@@ -309,7 +303,7 @@ def test_every_reconstruction_reports_its_sanity(tmp_path, rng, method, capsys):
                       "nonfinite_pixels"}
     if method == "box":  # the pixel mean never leaves its samples' range
         assert s["negative_pixels"] == s["overshoot_pixels"] == 0
-    code, out, _ = _cli(["denoise", path, "-o", tmp_path / "o.exr", "--method", method], capsys)
+    code, out, _ = run_cli(["denoise", path, "-o", tmp_path / "o.exr", "--method", method], capsys)
     assert code == 0 and f"output: {s['negative_pixels']} negative pixel(s)" in out
 
 
@@ -360,7 +354,7 @@ def test_huge_film_refused_before_any_allocation(tmp_path, capsys):
         f["positions"] = np.zeros((1, 2))
         f["values"] = np.zeros((1, 1))
     for argv in (["info", path], ["denoise", path, "-o", tmp_path / "o.exr"]):
-        code, _, err = _cli(argv, capsys)
+        code, _, err = run_cli(argv, capsys)
         assert code == 2 and err.count("\n") == 1 and "1000000000x1000000000" in err
     with pytest.raises(InputError, match="beyond"):
         write_log(tmp_path / "w.h5", np.zeros((0, 2)), np.zeros((0, 3)), width=10**9, height=10**9)
@@ -421,17 +415,11 @@ def tmpfs(tmp_path):
 def test_read_only_directory_mid_run_one_line_then_resume_matches(tmp_path, tmpfs):
     from mcrecon.io import read_exr
 
-    def adapt_cli(log, out, extra_env=None):
-        argv = ["adapt", "--renderer-cmd", f"{sys.executable} {FAULT} ok -1 {{request}} {{reply}}", "--size",
-                "32x16", "--spp", "32", "--method", "box", "--seed", "9", "--quiet", "--log", str(log), "-o", str(out)]
-        return subprocess.run([sys.executable, "-m", "mcrecon", *argv], capture_output=True, text=True,
-                              env={**os.environ, **(extra_env or {})})
-
-    full = adapt_cli(tmp_path / "full.h5", tmp_path / "full.exr")
+    full = _adapt_cli(tmp_path / "full.h5", tmp_path / "full.exr")
     assert full.returncode == 0, full.stderr
     log = tmpfs / "run.h5"
     # at round 2 the renderer mounts the log's directory read-only over itself
-    out = adapt_cli(log, tmp_path / "ro.exr", {"FAULT_RENDERER_DISK": f"ro:{tmpfs}", "FAULT_RENDERER_DISK_ROUND": "2"})
+    out = _adapt_cli(log, tmp_path / "ro.exr", {"FAULT_RENDERER_DISK": f"ro:{tmpfs}", "FAULT_RENDERER_DISK_ROUND": "2"})
     assert out.returncode == 2, out
     assert out.stderr.count("\n") == 1 and out.stderr.startswith("mcrecon: error: "), out.stderr
     assert "cannot be opened for writing" in out.stderr and "Read-only file system" in out.stderr
@@ -440,8 +428,7 @@ def test_read_only_directory_mid_run_one_line_then_resume_matches(tmp_path, tmpf
     assert sl.n_rounds == 2 and list(sl.round_ends) == [512, 1024]
     assert live_writer(log) is None  # the lock left behind (it could not be removed) is stale
     assert subprocess.run(["umount", str(tmpfs)]).returncode == 0  # writable again
-    res = subprocess.run([sys.executable, "-m", "mcrecon", "adapt", "--resume", str(log), "-o",
-                          str(tmp_path / "resumed.exr"), "--quiet"], capture_output=True, text=True)
+    res = run_cli_process(["adapt", "--resume", log, "-o", tmp_path / "resumed.exr", "--quiet"])
     assert res.returncode == 0, res.stderr
     assert read_log(log).n_samples == read_log(tmp_path / "full.h5").n_samples == 32 * 16 * 32
     np.testing.assert_array_equal(read_exr(tmp_path / "resumed.exr")[0], read_exr(tmp_path / "full.exr")[0])
@@ -452,11 +439,7 @@ def test_read_only_directory_mid_run_one_line_then_resume_matches(tmp_path, tmpf
 def _adapt_cli(log, out, extra_env=None, *, prelude=None):
     argv = ["adapt", "--renderer-cmd", f"{sys.executable} {FAULT} ok -1 {{request}} {{reply}}", "--size",
             "32x16", "--spp", "32", "--method", "box", "--seed", "9", "--quiet", "--log", str(log), "-o", str(out)]
-    env = {**os.environ, **(extra_env or {})}
-    if prelude is None:
-        return subprocess.run([sys.executable, "-m", "mcrecon", *argv], capture_output=True, text=True, env=env)
-    script = f"{prelude}\nimport sys\nfrom mcrecon.cli import run\nsys.argv[1:] = {argv!r}\nrun()"
-    return subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env)
+    return run_cli_process(argv, extra_env=extra_env, prelude=prelude)
 
 
 @pytest.mark.parametrize("path", ["checked", "inside_hdf5"])
@@ -491,8 +474,7 @@ def test_full_disk_mid_run_one_line_then_resume_matches(tmp_path, tmpfs, path):
         assert 2 <= sl.n_rounds < read_log(tmp_path / "full.h5").n_rounds
         assert list(sl.round_ends) == list(read_log(tmp_path / "full.h5").round_ends[:sl.n_rounds])
     filler.unlink()
-    res = subprocess.run([sys.executable, "-m", "mcrecon", "adapt", "--resume", str(log), "-o",
-                          str(tmp_path / "resumed.exr"), "--quiet"], capture_output=True, text=True)
+    res = run_cli_process(["adapt", "--resume", log, "-o", tmp_path / "resumed.exr", "--quiet"])
     assert res.returncode == 0, res.stderr
     assert read_log(log).n_samples == read_log(tmp_path / "full.h5").n_samples == 32 * 16 * 32
     np.testing.assert_array_equal(read_exr(tmp_path / "resumed.exr")[0], read_exr(tmp_path / "full.exr")[0])

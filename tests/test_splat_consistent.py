@@ -15,12 +15,12 @@ import mcrecon
 from mcrecon.adaptive.run import adapt
 from mcrecon.core.metrics import relative_mse
 from mcrecon.core.requests import SampleBatch, jittered_positions
-from mcrecon.renderers.callable import CallableRenderer
 from mcrecon.core.stats import PixelStats
 from mcrecon.methods.splat import SplatMethod
 from mcrecon.methods.splat.consistent import edge_radius, gate_k, pixel_moments
 from mcrecon.methods.splat.kernels import _same_pixel_stats
 
+from helpers import jittered_renderer
 from test_splat_robust import W, scene_reference, uniform_samples
 
 COLOUR = np.array([1.0, 0.8, 0.6])
@@ -115,11 +115,12 @@ def test_equal_pixels_keep_their_values_exactly():
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_default_filters_smooth_noise(seed):
-    """On a smooth noisy gradient the default removes noise: < 0.4x the pixel mean's relative MSE at
-    16 spp (measured 0.19-0.22); ``variant="outliers"`` (the previous default) is the pixel mean there."""
+    """On a smooth noisy gradient the default removes noise: < 0.25x the pixel mean's relative MSE at
+    16 spp (measured 0.192, 0.218, 0.213 for seeds 0-2: the largest + 15 %); ``variant="outliers"``
+    is the pixel mean there."""
     pos, val = smooth_samples(16, seed)
     e, e_box, _, _ = _errors(pos, val, smooth_reference())
-    assert e < 0.4 * e_box, e / e_box
+    assert e < 0.25 * e_box, e / e_box
     e_out, _, _, _ = _errors(pos, val, smooth_reference(), variant="outliers")
     assert e_out == pytest.approx(e_box, rel=1e-9)
 
@@ -144,8 +145,8 @@ def test_consistent_error_falls_to_zero_with_spp():
     128, 512 spp), never above the pixel mean's, and the filter hands over to the pixel mean as N
     grows: the kernels narrow (Eq. 8) until they reach no neighbour (diameter <= 2 on the pixel grid).
     Measured: errors 0.0077, 0.0024, 0.0011, 0.00058 (successive ratios 3.2, 2.2, 1.9; asserted
-    > 1.5, the seed spread of a 3-seed mean is <= 12 %); ratio to box 0.20, 0.24, 0.47, 1.000;
-    mean kernel diameter 4.1, 2.7, 1.8, 1.3."""
+    > 1.5, the seed spread of a 3-seed mean is <= 12 %); ratio to box 0.202, 0.24, 0.47, 1.000
+    (asserted at 8 spp: below 0.23, the measured ratio + 15 %); mean kernel diameter 4.1, 2.7, 1.8, 1.3."""
     ref = smooth_reference()
     errs, boxes, widths = [], [], []
     for spp in (8, 32, 128, 512):
@@ -163,7 +164,7 @@ def test_consistent_error_falls_to_zero_with_spp():
         boxes.append(np.mean(bx))
     assert all(b < a / 1.5 for a, b in zip(errs, errs[1:])), errs
     assert all(e <= b for e, b in zip(errs, boxes)), (errs, boxes)
-    assert errs[0] < 0.4 * boxes[0] and errs[-1] > 0.9 * boxes[-1], (errs, boxes)
+    assert errs[0] < 0.23 * boxes[0] and errs[-1] > 0.9 * boxes[-1], (errs, boxes)
     assert all(b < a for a, b in zip(widths, widths[1:])), widths
 
 
@@ -186,14 +187,13 @@ def flat_samples(spp, seed, size=W):
 
 
 def test_default_filters_flat_noise():
-    """Flat noise, 32 spp: the default's relative MSE is < 0.6x the pixel mean's (issue 26's target) on
-    each of three seeds; measured 0.44-0.46 (at 128^2: 0.437).  The pixel mean's relative MSE of 32^2 x 3
-    values has a relative standard deviation of about sqrt(2 / 3072) = 2.6 %, so an image that regressed
-    to the pixel mean (ratio 1) cannot pass, nor one that filtered half as much (about 0.7)."""
+    """Flat noise, 32 spp: the default's relative MSE is < 0.53x the pixel mean's on each of three
+    seeds; measured 0.461, 0.443, 0.452 (at 128^2: 0.437): the largest + 15 %.  The seeds are fixed, so
+    the ratios are deterministic; a default that filtered 20 % less (about 0.55) fails."""
     for seed in range(3):
         pos, val = flat_samples(32, seed)
         e, e_box, _, _ = _errors(pos, val, np.full((W, W, 3), 0.5))
-        assert e < 0.6 * e_box, (seed, e / e_box)
+        assert e < 0.53 * e_box, (seed, e / e_box)
 
 
 def step_samples(spp, seed, lo=0.2, hi=1.0, features=False):
@@ -249,14 +249,12 @@ def test_features_without_information_change_nothing():
     assert not np.array_equal(on, base)  # the informative features do act
 
     def renderer(with_features):
-        def fn(req):
-            rng = np.random.default_rng([7, req.round_index])
-            p = jittered_positions(req.counts, rng)
+        def shade(p, rng, req):
             left = p[:, 0] < W // 2
             v = (np.where(left, 0.6, 0.45) * 2 * rng.random(len(p)))[:, None] * COLOUR
             f = {"albedo": np.full((len(p), 3), 0.5), "depth": np.full(len(p), 4.0)}
             return SampleBatch(p, v, f if with_features else {})
-        return CallableRenderer(fn, width=W, height=W)
+        return jittered_renderer(shade, width=W, height=W, stream=lambda req: [7, req.round_index])
 
     runs = [adapt(renderer(w), "splat", spp=16, seed=0, track_error=False, progress=False).image for w in (0, 1)]
     np.testing.assert_array_equal(runs[1], runs[0])
@@ -282,17 +280,16 @@ def test_features_keep_an_edge_the_colour_noise_hides():
         assert relative_mse(with_f, ref) < relative_mse(colour, ref) < relative_mse(st.mean, ref)
         np.testing.assert_allclose(with_f.sum(axis=(0, 1)), st.mean.sum(axis=(0, 1)), rtol=1e-9)  # energy
 
-    def fn(req, features=True):  # the adaptive driver hands the round's features to observe
-        rng = np.random.default_rng([7, req.round_index])
-        p = jittered_positions(req.counts, rng)
+    def shade(p, rng, req, features=True):  # the adaptive driver hands the round's features to observe
         left = p[:, 0] < W // 2
         v = (np.where(left, 0.6, 0.45) * 2 * rng.random(len(p)))[:, None] * COLOUR
         return SampleBatch(p, v, {"albedo": np.where(left[:, None], 0.8, 0.3) * np.ones((len(p), 3))}
                            if features else {})
 
     def left_share(features):
-        res = adapt(CallableRenderer(lambda req: fn(req, features), width=W, height=W), "splat", spp=16, seed=0,
-                    track_error=False, progress=False)
+        r = jittered_renderer(lambda p, rng, req: shade(p, rng, req, features), width=W, height=W,
+                              stream=lambda req: [7, req.round_index])
+        res = adapt(r, "splat", spp=16, seed=0, track_error=False, progress=False)
         return res.image[:, :W // 2].sum(axis=(0, 1)) / res.stats.mean[:, :W // 2].sum(axis=(0, 1)) - 1
 
     np.testing.assert_allclose(left_share(True), 0.0, atol=1e-9)
@@ -342,7 +339,8 @@ def test_consistent_with_features():
     """Consistency with the feature gate on: on the hidden step with its albedo the error falls with
     every 4x spp (8, 32, 128, 512, mean of 2 seeds; successive ratios measured 3.1, 1.9, 2.0, asserted
     > 1.5) and the image hands over to the pixel mean: measured errors 0.0073, 0.0024, 0.0012, 0.00062,
-    ratio to box 0.19, 0.23, 0.48, 1.000 (the kernels no longer reach a neighbour)."""
+    ratio to box 0.192, 0.23, 0.48, 1.000 (the kernels no longer reach a neighbour; asserted at 8 spp:
+    below 0.22, the measured ratio + 15 %)."""
     ref = np.where(np.arange(W) < W // 2, 0.6, 0.45)[None, :, None] * COLOUR * np.ones((W, 1, 1))
     errs, ratios = [], []
     for spp in (8, 32, 128, 512):
@@ -357,7 +355,7 @@ def test_consistent_with_features():
         errs.append(np.mean(e))
         ratios.append(np.mean(r))
     assert all(b < a / 1.5 for a, b in zip(errs, errs[1:])), errs
-    assert all(r <= 1.0 + 1e-12 for r in ratios) and ratios[0] < 0.4 and ratios[-1] > 0.9, ratios
+    assert all(r <= 1.0 + 1e-12 for r in ratios) and ratios[0] < 0.22 and ratios[-1] > 0.9, ratios
 
 
 def test_tiled_with_features_equals_untiled_bit_for_bit():
@@ -579,9 +577,7 @@ def test_adaptive_and_offline_splat_do_not_depend_on_the_thread_count(monkeypatc
     monkeypatch.setattr(B, "BAND_MIN", 0)
     w, h = 40, 28
 
-    def fn(req):  # the noisy gradient of _band_rounds, with an albedo edge across the bands of rows
-        rng = np.random.default_rng([3, req.round_index])
-        p = jittered_positions(req.counts, rng)
+    def shade(p, rng, req):  # the noisy gradient of _band_rounds, with an albedo edge across the bands of rows
         v = ((0.3 + 0.4 * p[:, 0] / w) * 2 * rng.random(len(p)))[:, None] * COLOUR
         v[rng.random(len(p)) < 0.003] *= 40.0
         return SampleBatch(p.astype(np.float32), v.astype(np.float32),
@@ -593,8 +589,8 @@ def test_adaptive_and_offline_splat_do_not_depend_on_the_thread_count(monkeypatc
     got = {}
     for threads in ("1", "2"):
         monkeypatch.setenv("MCRECON_THREADS", threads)
-        res = adapt(CallableRenderer(fn, width=w, height=h), "splat", spp=32, seed=0, track_error=False,
-                    progress=False)
+        r = jittered_renderer(shade, width=w, height=h, stream=lambda req: [3, req.round_index])
+        res = adapt(r, "splat", spp=32, seed=0, track_error=False, progress=False)
         off = mcrecon.reconstruct(mcrecon.SampleSet(pos, val, width=w, height=h, features={"albedo": feats}),
                                   method="splat", full=True)
         got[threads] = (res.image, res.run.diagnostics["kernel_width"], res.run.splatter.rounds, off.image,

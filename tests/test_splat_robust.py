@@ -97,9 +97,14 @@ SCENES = ("emitter", "step", "fireflies")
 # never worse than the pixel mean of the same samples
 # ----------------------------------------------------------------------------
 
+# The largest ratio of the robust default's relative MSE to the pixel mean's over seeds 0-2 (measured).
+_OFFLINE_MEASURED = {"emitter": 0.9997, "step": 0.507, "fireflies": 0.319}
+
+
 @pytest.mark.parametrize("name", SCENES)
 def test_robust_never_worse_than_pixel_mean_offline(name):
-    """Relative MSE of the robust default <= that of the pixel mean of the same samples, 3 seeds.
+    """Relative MSE of the robust default <= that of the pixel mean of the same samples, 3 seeds, and
+    within 15 % of the measured ratio (``_OFFLINE_MEASURED``) where that stays below the pixel mean.
 
     Measured ratios (seeds 0-2, 16 spp): emitter 0.9994-0.9997 (its partly
     covered pixels are told apart from their neighbours: little is spread),
@@ -118,9 +123,7 @@ def test_robust_never_worse_than_pixel_mean_offline(name):
         st.add(pos, val)
         e_box = relative_mse(st.mean, ref)
         e_rob = relative_mse(mcrecon.reconstruct(ss, method="splat"), ref)
-        assert e_rob <= e_box * (1 + 1e-9), (name, seed, e_rob / e_box)
-        if name == "fireflies":
-            assert e_rob < 0.8 * e_box, (seed, e_rob / e_box)  # the spike gain is kept
+        assert e_rob <= e_box * min(1 + 1e-9, 1.15 * _OFFLINE_MEASURED[name]), (name, seed, e_rob / e_box)
         if name != "fireflies" and seed == 0:
             e_pap = relative_mse(mcrecon.reconstruct(ss, method=SplatMethod(variant="paper")), ref)
             assert e_pap > 10 * e_box

@@ -20,9 +20,11 @@ import pytest
 import mcrecon.adaptive.rounds as rounds_mod
 from mcrecon import InputError, RendererError, get_method
 from mcrecon.adaptive.run import adapt, resume
-from mcrecon.core.requests import SampleBatch, jittered_positions
+from mcrecon.core.requests import SampleBatch
 from mcrecon.io import read_log
 from mcrecon.renderers import CallableRenderer
+
+from helpers import request_positions
 
 FAULT = str(Path(__file__).parent / "renderers" / "fault_renderer.py")
 W, H = 16, 12
@@ -32,9 +34,7 @@ def _fn(req, bad_round=None):
     if req.round_index == bad_round:
         raise RuntimeError("the renderer's own failure")
     rng = np.random.default_rng(req.seed)
-    pos = jittered_positions(req.counts, rng) if req.counts is not None else np.zeros((0, 2))
-    if req.positions is not None:
-        pos = np.concatenate([pos, req.positions])
+    pos = request_positions(req, rng)
     return SampleBatch(pos, rng.random((len(pos), 3)) * (1 + (pos[:, :1] > W / 2)))
 
 

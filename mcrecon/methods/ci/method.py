@@ -320,7 +320,7 @@ class CIMethod(Method):
     #: One round of lag (``adapt(..., pipeline=True)``) only when asked: a pixel then gets
     #: its next step before the previous one is seen, so the rule's per-pixel counts
     #: differ from the paper's (the share of emitter pixels stopping at min_spp is 0.898 with
-    #: the lag against 0.90 without it, on the hdr run of tests/test_tamstorf.py); pending samples count toward max_spp.
+    #: the lag against 0.90 without it, on the hdr run of tests/test_ci.py); pending samples count toward max_spp.
     #: A pixel whose initial pass is still in flight waits for it (see plan).
     pipeline = False
     #: The paper's rule (``variant="paper"``) against the measured default

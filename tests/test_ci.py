@@ -272,9 +272,9 @@ def test_robust_default_does_not_stop_a_caustic_early_and_beats_the_paper_rule()
     ends with ~160 spp used; the default keeps sampling them.
 
     Measured at 64 px, 3 seeds (docs/methods/ci.md): paper 0.064 relative MSE
-    at 160 spp used, default 0.011 at 256.  The assertion asks only for the
-    direction with a factor-2 margin: the per-seed spread of the paper
-    rule's error is dominated by a few pixels that stopped (about 30 %).
+    at 160 spp used, default 0.011 at 256.  Here (48 px, seeds 0-1) the
+    default's mean error is 0.345 of the paper rule's (measured); asserted
+    below 0.40, the measured ratio + 15 %.
     """
     from mcrecon.adaptive.run import adapt
     from mcrecon.core.metrics import relative_mse
@@ -292,7 +292,7 @@ def test_robust_default_does_not_stop_a_caustic_early_and_beats_the_paper_rule()
             u.append(res.stats.n_samples)
         err[v], used[v] = np.mean(e), np.mean(u)
     assert used["paper"] < used["robust"]
-    assert 2.0 * err["robust"] < err["paper"], err
+    assert err["robust"] < 0.40 * err["paper"], err  # measured 0.345; 15 % margin
 
 
 def test_plan_budget_below_initial_pass_and_cap():

@@ -1,13 +1,14 @@
-"""The first implementation of nfor's kernels, kept as the reference the fast kernels are tested against.
+"""Reference kernels for nfor's filters: the tests check the fast kernels against them.
 
-These are the kernels nfor shipped with (pixel distances summed per offset
-through a summed-area table, the normal equations as dot products over each
-window's gathered rows, ``math.exp`` per weight).  They compute the same
-formulas as :mod:`.nlmeans` and :mod:`.regression` (docstrings there); the
-fast kernels differ from them only by rounding: the order of the patch and
-accumulation sums and a polynomial ``exp``.  ``tests/test_nfor.py`` checks
-the two agree (docs/methods/nfor.md states the tolerance); nothing else uses
-this module.
+These kernels sum pixel distances per offset through a summed-area table,
+form the normal equations as dot products over each window's gathered rows
+and call ``math.exp`` per weight.  They compute the same formulas as
+:mod:`mcrecon.filters.nlmeans` and :mod:`mcrecon.filters.regression`
+(docstrings there) in a plainer order, so the fast kernels differ from them
+only by rounding: the order of the patch and accumulation sums and a
+polynomial ``exp``.  ``tests/test_nfor.py`` checks the two agree
+(docs/methods/nfor.md states the tolerance); the package does not use this
+module, so it lives with the tests.
 """
 
 from __future__ import annotations
@@ -17,8 +18,8 @@ import math
 import numba
 import numpy as np
 
-from ...filters.engine import numba_threads
-from ...filters.nlmeans import DISTANCE_CLAMP, MIN_CENTER_WEIGHT, NLM_EPS, as_planes
+from mcrecon.filters.engine import numba_threads
+from mcrecon.filters.nlmeans import DISTANCE_CLAMP, MIN_CENTER_WEIGHT, NLM_EPS, as_planes
 
 __all__ = ["nlmeans_filter_reference", "collaborative_regression_reference"]
 
@@ -290,7 +291,7 @@ def collaborative_regression_reference(image, guide, variance, features, *, radi
                                        variance_scale=2.0, ridge=1e-10, threads=None, return_weights=False):
     """:func:`.regression.collaborative_regression` by the reference kernels (same arguments and result
     to rounding)."""
-    from ...filters.regression import standardise
+    from mcrecon.filters.regression import standardise
 
     y = as_planes(image)
     g = as_planes(guide, np.float32)
