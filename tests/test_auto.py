@@ -504,7 +504,7 @@ def _best_single_candidate(ss, ref):
     auto = get_method("auto")
     h = split_halves(ss)
     st = merge_halves(h.a, h.b)
-    cands, y, v, count = auto._candidates(st, h, ss, "drop")
+    cands, y, v, count = auto._candidates(st, h, "drop")  # h.source is ss
     lo, hi = sample_range_bounds(st)
     vs = pooled_mean_variance(v, count)
     return min(relative_mse(_no_push_in_heavy_tails(confidence_clamp(c.image, y, vs, 4.0, lo, hi), y, hi), ref)

@@ -122,106 +122,72 @@ def _refuse_pixel_stats_flags(args) -> None:
                             if getattr(args, "half_buffer", None) is not None else ""))
 
 
-class _PixelStatsInput:
-    """What the denoise report reads from a sample log, for statistics read from an EXR (or a half-buffer pair)."""
-
-    def __init__(self, pix, other=None):
-        self.pix = pix
-        self.width, self.height = pix.stats.width, pix.stats.height
-        self.n_samples = int(pix.stats.count.sum()) + (int(other.stats.count.sum()) if other is not None else 0)
-        self.channels = pix.output_channels
-        self.output_image = pix.output_image
-        self.pair = other is not None
-
-    def reference(self):
-        return None
-
-
-def _read_pixel_stats_input(args):
-    """(method, log-like description, source) of a pixel-statistics EXR input; notes go to stderr.
-
-    The source is the file's PixelStats, or with ``--half-buffer`` the pair
-    (PixelStats of A, PixelStats of B) that :func:`mcrecon.reconstruct` takes.
-    """
-    import sys
-
-    from ..offline.inputs import check_method, pixel_stats_options
-    from ..io.pixel_exr import read_half_buffer_exrs, read_pixel_stats_exr
-    from ..methods import get_method
-
-    pair = args.half_buffer is not None
-    method = make_method(args.method, args, args.method_flags)  # validates the flags given
-    if pair and not str(args.half_buffer).lower().endswith(".exr"):
-        raise InputError(str(args.half_buffer), "--half-buffer", "expected an EXR of the other half of the "
-                         "samples (a path ending in .exr)")
-    where = f"{args.log} (with --half-buffer {args.half_buffer})" if pair else str(args.log)
-    opts, note = pixel_stats_options(method.name, given_method_options(args), half_buffers=pair)
-    if note is not None:
-        method = get_method(method.name, **opts)
-    check_method(method, where, half_buffers=pair)
-    read = dict(layout=args.layout, mean=args.mean, variance=args.variance_channels,
+def _exr_options(args) -> dict:
+    """The read options of ``mcrecon.io.read_pixel_stats_exr`` the flags give."""
+    return dict(layout=args.layout, mean=args.mean, variance=args.variance_channels,
                 second_moment=args.second_moment, variance_of=args.variance_of, count=args.count, spp=args.spp)
-    if pair:
-        pix, other = read_half_buffer_exrs(args.log, args.half_buffer, **read)
-        count_source = (pix.count_source if pix.count_source == other.count_source
-                        else f"{pix.count_source} / {other.count_source}")
-        name = f"{args.log} + {args.half_buffer} (half-buffer pair)"
+
+
+def _exr_note(rec) -> str:
+    """What was read from the pixel-statistics EXR(s) of a reconstruction, for the note line."""
+    first = rec.files[0]
+    if len(rec.files) == 2:
+        other = rec.files[1]
+        count_source = (first.count_source if first.count_source == other.count_source
+                        else f"{first.count_source} / {other.count_source}")
+        name = f"{first.path} + {other.path} (half-buffer pair)"
     else:
-        pix, other = read_pixel_stats_exr(args.log, **read), None
-        count_source, name = pix.count_source, str(args.log)
-    if note is not None:  # after the input is read: a refused input gets its one error line only
-        sys.stderr.write(f"mcrecon: note: {note}\n")
-    what = ", ".join(f"{k} {','.join(v)}" for k, v in pix.sources.items() if k != "features")
-    if pix.sources.get("features"):
-        what += ", features " + ", ".join(f"{f} ({','.join(c)})" for f, c in pix.sources["features"].items())
-    space = f"; reconstructed in {','.join(pix.stats.channels)}, written as {','.join(pix.output_channels)}" \
-        if pix.output_matrix is not None else ""
-    sys.stderr.write(f"mcrecon: note: {name}: layout {pix.layout}: {what}; count from {count_source}"
-                     f"{space}\n")
-    source = (pix.stats, other.stats) if pair else pix.stats
-    return method, _PixelStatsInput(pix, other), source
-
-
-def _input_features(source) -> tuple:
-    """The feature names a reconstruction's input carries (a log, pixel statistics, or a pair of them)."""
-    first = source[0] if isinstance(source, tuple) else source
-    names = getattr(first, "feature_names", None)
-    if names is None:
-        names = tuple(getattr(first, "features", None) or ())
-    return tuple(names)
+        count_source, name = first.count_source, str(first.path)
+    what = ", ".join(f"{k} {','.join(v)}" for k, v in first.sources.items() if k != "features")
+    if first.sources.get("features"):
+        what += ", features " + ", ".join(f"{f} ({','.join(c)})" for f, c in first.sources["features"].items())
+    space = f"; reconstructed in {','.join(first.stats.channels)}, written as {','.join(first.output_channels)}" \
+        if first.output_matrix is not None else ""
+    return f"{name}: layout {first.layout}: {what}; count from {count_source}{space}"
 
 
 def _cmd_reconstruct(args):
-    from ..io import read_log
+    import sys
+
+    from .. import reconstruct
     from ..core.metrics import relative_mse
-    from ..offline.reconstruction import reconstruct
     from ..core.stats import PixelStats
+    from ..io import read_log
 
     check_output(args.output, args.png, command=args.command)
-    if str(args.log).lower().endswith(".exr"):  # per-pixel statistics a renderer wrote (pbrt-v4, Mitsuba...)
-        method, log, source = _read_pixel_stats_input(args)
-    else:
+    exr = str(args.log).lower().endswith(".exr")  # per-pixel statistics a renderer wrote (pbrt-v4, Mitsuba...)
+    if not exr:
         _refuse_pixel_stats_flags(args)
-        method = make_method(args.method, args, args.method_flags)
-        log = source = read_log(args.log)
-    ref = log.reference()  # a bad reference is refused before the work, not after the output is written
-    jit_notice(method_kernels(method, features=bool(_input_features(source))))
+    method = make_method(args.method, args, args.method_flags)  # validates the flags given
+    if exr:
+        if args.half_buffer is not None and not str(args.half_buffer).lower().endswith(".exr"):
+            raise InputError(str(args.half_buffer), "--half-buffer", "expected an EXR of the other half of the "
+                             "samples (a path ending in .exr)")
+        source = (args.log, args.half_buffer) if args.half_buffer is not None else args.log
+        log = ref = None
+        features = False
+    else:
+        source = log = read_log(args.log)
+        ref = log.reference()  # a bad reference is refused before the work, not after the output is written
+        features = bool(log.feature_names)
+    jit_notice(method_kernels(method, features=features))
     t0 = time.perf_counter()
-    rec = reconstruct(source, method=method, nonfinite=args.nonfinite, full=True, fireflies=args.fireflies)
-    if source is not log:  # statistics in the file's working space (XYZ for the presets): to its RGB
-        import dataclasses
-
-        rec = dataclasses.replace(rec, image=log.output_image(rec.image))
+    rec = reconstruct(source, method=method, nonfinite=args.nonfinite, full=True, fireflies=args.fireflies,
+                      **({"exr_options": _exr_options(args)} if exr else {}))
     dt = time.perf_counter() - t0
+    if exr:
+        sys.stderr.write(f"mcrecon: note: {_exr_note(rec)}\n")
+    stats = rec.inputs.stats
     counts = None
     if args.diagnostics:
-        counts = rec.inputs.stats.count if rec.inputs.stats is not None else \
-            PixelStats.from_log(read_log(log), nonfinite=args.nonfinite).count
-    written = write_outputs(rec.image, args.output, channels=log.channels, png=args.png, exposure=args.exposure,
+        counts = stats.count if stats is not None else PixelStats.from_log(log, nonfinite=args.nonfinite).count
+    written = write_outputs(rec.image, args.output, channels=rec.channels, png=args.png, exposure=args.exposure,
                             diagnostics=rec.diagnostics(), diag_dir=args.diagnostics, counts=counts)
-    msg = (f"{method.name}: {log.width}x{log.height}, {log.n_samples} samples"
-           + (" (a half-buffer pair)" if getattr(log, "pair", False) else "") + f", reconstructed in {dt:.3f} s")
-    dropped = rec.inputs.stats.n_dropped if rec.inputs.stats is not None else 0
+    h, w, _ = rec.image.shape
+    n_samples = log.n_samples if log is not None else int(stats.count.sum())
+    msg = (f"{rec.method.name}: {w}x{h}, {n_samples} samples"
+           + (" (a half-buffer pair)" if len(rec.files) == 2 else "") + f", reconstructed in {dt:.3f} s")
+    dropped = stats.n_dropped if stats is not None else 0
     if rec.fireflies is not None and args.nonfinite == "drop":
         dropped = rec.fireflies.n_nonfinite  # removed before the split, so the base's statistics never saw them
     if dropped:

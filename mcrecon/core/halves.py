@@ -1,8 +1,9 @@
 """Half buffers: two independent halves of every pixel's samples.
 
-A renderer's dual buffers arrive as a pair of :class:`~mcrecon.core.stats.PixelStats`
-(:func:`check_half_buffers`, merged by :func:`merge_halves`); a sample source is split in
-one pass (:func:`split_halves`, by each pixel's own sample order).
+:class:`Halves` is the one half-buffer type.  A renderer's dual buffers arrive as a pair of
+:class:`~mcrecon.core.stats.PixelStats` (:func:`as_halves`, checked by :func:`check_half_buffers`,
+merged by :func:`merge_halves`); a sample source is split in one pass (:func:`split_halves`, by each
+pixel's own sample order).
 """
 
 from __future__ import annotations
@@ -20,13 +21,13 @@ from ..filters.engine import n_threads, parallel_calls
 from .features import check_features, layout_of, take_rows, warn_feature_zeroed
 from .samples import apply_nonfinite, check_policy, check_samples, warn_nonfinite
 
-__all__ = ['check_half_buffers', 'merge_halves', 'SplitHalves', 'is_half_buffer_pair', 'split_labels',
-           'split_halves', 'Halves']
+__all__ = ['check_half_buffers', 'merge_halves', 'is_half_buffer_pair', 'split_labels', 'split_halves', 'Halves',
+           'as_halves']
 
 def is_half_buffer_pair(source) -> bool:
-    """Whether ``source`` is meant as a half-buffer pair: a tuple or a list (:func:`check_half_buffers`
-    then says what is wrong with one that is not two :class:`PixelStats`)."""
-    return isinstance(source, (tuple, list))
+    """Whether ``source`` is meant as a half-buffer pair: :class:`Halves`, a tuple or a list
+    (:func:`as_halves` then says what is wrong with one that is not two :class:`PixelStats`)."""
+    return isinstance(source, (Halves, tuple, list))
 
 
 def check_half_buffers(pair, where: str = "halves") -> tuple[PixelStats, PixelStats]:
@@ -58,23 +59,6 @@ def check_half_buffers(pair, where: str = "halves") -> tuple[PixelStats, PixelSt
         raise InputError(where, "subpixels", f"the halves differ in subpixel grid: {a.subpixels} vs "
                          f"{b.subpixels}")
     return a, b
-
-
-class SplitHalves(tuple):
-    """A half-buffer pair (a, b) that a reader split from ``samples``, travelling with them.
-
-    A method declaring both ``requires.samples`` and ``requires.half_buffers``
-    splits the samples into halves itself; a reader that already made that
-    split in its one pass over the samples (:func:`mcrecon.offline.inputs.statistics_for`)
-    hands it over as ``MethodInputs(stats=merge, samples=samples, halves=SplitHalves(a, b, samples))``.
-    Only a pair marked so may accompany samples: any other pair with samples
-    is refused (which samples would the halves be of?).
-    """
-
-    def __new__(cls, a: PixelStats, b: PixelStats, samples):
-        pair = super().__new__(cls, (a, b))
-        pair.samples = samples
-        return pair
 
 
 def merge_halves(a: PixelStats, b: PixelStats) -> PixelStats:
@@ -262,11 +246,98 @@ def split_labels(positions: np.ndarray, width: int, height: int, counter: np.nda
 
 @dataclasses.dataclass(eq=False)
 class Halves:
-    """Statistics of the two halves of every pixel's samples (:func:`split_halves`)."""
+    """Two independent half buffers: statistics of disjoint halves of every pixel's samples.
+
+    The one half-buffer type every method reads (``MethodInputs.halves``).
+    It comes from one of three places, each building it once: the offline
+    dispatcher splits a sample source in one pass (:func:`split_halves`,
+    ``source`` then names that source), a caller's pair of
+    :class:`PixelStats` (two buffers a renderer wrote) is taken as it is
+    (:func:`as_halves`), and an adaptive run adds each committed round
+    (:meth:`add`).  It unpacks as the pair ``a, b = halves``.
+
+    Attributes
+    ----------
+    a, b : PixelStats
+        Same size, channels, subpixel grid and features; each pixel's counts
+        may differ by the samples of a pixel that one half got more of.
+    counter : ndarray (H*W,) int64
+        Samples each pixel has had so far: the labels of the next batch
+        :meth:`add` splits continue from it.
+    source : sample source or None
+        The samples the halves were split from (:func:`split_halves`);
+        None for a pair given as statistics and for an adaptive run's.
+    """
 
     a: PixelStats
     b: PixelStats
     counter: np.ndarray
+    source: object = None
+
+    def __iter__(self):
+        return iter((self.a, self.b))
+
+    def __len__(self) -> int:
+        return 2
+
+    def __getitem__(self, i):
+        return (self.a, self.b)[i]
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return self.a.shape
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.a.count.sum()) + int(self.b.count.sum())
+
+    def merged(self) -> PixelStats:
+        """The statistics of all the samples of both halves (:func:`merge_halves`)."""
+        return merge_halves(self.a, self.b)
+
+    def without_features(self) -> "Halves":
+        """The same halves without per-pixel features (for a method that reads none)."""
+        if not self.a.features and not self.b.features:
+            return self
+        return dataclasses.replace(self, a=self.a.without_features(), b=self.b.without_features())
+
+    def sample_sets(self):
+        """The samples of each half as two :class:`~mcrecon.core.samples.SampleSet` (rounds dropped).
+
+        Labelled as :func:`split_halves` labels them (:func:`split_labels`
+        in stream order), so each set holds exactly the samples its half's
+        statistics were built from; values are kept as they are (NaN/Inf
+        too: a method reading the sets applies its policy).  Only for halves
+        split from a sample source (``source``); the samples are held in
+        memory.
+        """
+        from .samples import SampleSet
+
+        src = self.source
+        if src is None:
+            raise InputError("halves", "source", "these halves were not split from samples (a pair of "
+                             "statistics holds no individual samples); give the samples themselves")
+        w, h = src.width, src.height
+        counter = np.zeros(w * h, np.int64)
+        parts = ([], []), ([], [])
+        for ch in src.iter_chunks(with_round=False):
+            pos, val = np.asarray(ch.positions), np.asarray(ch.values)
+            lab = split_labels(pos, w, h, counter)
+            for half in (0, 1):
+                sel = lab == half
+                parts[half][0].append(pos[sel])
+                parts[half][1].append(val[sel])
+        out = []
+        for half in (0, 1):
+            pos = np.concatenate(parts[half][0]) if parts[half][0] else np.zeros((0, 2))
+            val = np.concatenate(parts[half][1]) if parts[half][1] else np.zeros((0, len(src.channels)))
+            out.append(SampleSet(pos, val, width=w, height=h, channels=tuple(src.channels)))
+        return out[0], out[1]
+
+    @classmethod
+    def from_pair(cls, a: PixelStats, b: PixelStats) -> "Halves":
+        """Halves of two validated :class:`PixelStats` (:func:`check_half_buffers`), taken as they are."""
+        return cls(a, b, (a.count + b.count).ravel().astype(np.int64))
 
     def add(self, positions, values, *, features=None, nonfinite: str = "drop", source: str = "samples",
             _checked: bool = False) -> None:
@@ -369,6 +440,18 @@ class Halves:
                    np.zeros(int(width) * int(height), np.int64))
 
 
+def as_halves(pair, where: str = "halves") -> Halves:
+    """A caller's half-buffer pair as :class:`Halves`: the one conversion at the public boundary.
+
+    ``pair`` is :class:`Halves` (returned as it is) or a tuple or list
+    ``(stats_a, stats_b)``, validated by :func:`check_half_buffers` (a
+    one-line :class:`InputError` naming ``where`` and the field).
+    """
+    if isinstance(pair, Halves):
+        return pair
+    return Halves.from_pair(*check_half_buffers(pair, where))
+
+
 def split_halves(source, *, nonfinite: str = "drop", features=()) -> Halves:
     """Two independent halves of a sample source (log or SampleSet), rounds in order.
 
@@ -388,4 +471,5 @@ def split_halves(source, *, nonfinite: str = "drop", features=()) -> Halves:
     for ch in chunks:
         h.add(ch.positions, ch.values, features=ch.features if names else None, nonfinite=nonfinite, source=name,
               _checked=checked)
+    h.source = source
     return h

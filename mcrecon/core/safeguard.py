@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import contextlib
 
 import numba
 import numpy as np
@@ -12,7 +13,7 @@ from ..filters.order import median9
 from .stats import PixelStats
 
 __all__ = ['sample_range_bounds', 'confidence_clamp', 'pooled_mean_variance', 'albedo_divisor',
-           'safeguard_variance']
+           'safeguard_variance', 'empty_pixels_kept']
 
 # --------------------------------------------------------------------------
 # Safeguard of the robust default (not in the paper)
@@ -160,6 +161,23 @@ def confidence_clamp(image: np.ndarray, mean: np.ndarray, var_mean: np.ndarray, 
         raise ValueError("confidence_clamp: out must be a C-contiguous float64 array of the result's shape")
     parallel_rows(_clamp_rows, (flat[0], flat[1], flat[2], float(k), lo_f, hi_f, out.reshape(rows, -1)), rows)
     return out
+
+
+@contextlib.contextmanager
+def empty_pixels_kept(image: np.ndarray, count: np.ndarray):
+    """Within the block, clamp ``image`` in place; every pixel without a sample leaves it with its value on entry.
+
+    A pixel without samples has no confidence interval (its mean 0, its
+    variance 0): :func:`confidence_clamp` and the rules that follow it would
+    set it to 0, while its value, filled in from its sampled neighbours
+    (:func:`mcrecon.core.fill.fill_empty_pixels`), is the reconstruction's
+    best guess there.  ``image`` (H, W, C) and ``count`` (H, W).
+    """
+    empty = np.asarray(count) == 0
+    filled = image[empty] if empty.any() else None
+    yield image
+    if filled is not None:
+        image[empty] = filled
 
 
 @numba.njit(cache=True, nogil=True, inline="always")

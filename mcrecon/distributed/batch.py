@@ -3,9 +3,9 @@
 Three entry points, each identical in result to the one-process path:
 
 :func:`reconstruct_many`
-    Many sample logs -> one EXR each (``mcrecon batch``): one task per
-    frame, run with :func:`mcrecon.reconstruct` exactly as ``mcrecon
-    denoise`` runs it, so the images are bit-identical.  Outputs are
+    Many sample logs or pixel-statistics EXRs -> one EXR each (``mcrecon
+    batch``): one task per frame, run with :func:`mcrecon.reconstruct`
+    exactly as ``mcrecon denoise`` runs it, so the images are bit-identical.  Outputs are
     written atomically; a rerun skips frames whose output is newer than
     their log (and was made by the same method and options); a failing
     frame is reported with its one-line error and the others complete; a
@@ -71,29 +71,32 @@ def reconstruct_frame(log_path, out_path, method: str, options: dict, *, nonfini
                   png: bool = False, exposure: float = 0.0) -> dict:
     """Reconstruct one frame exactly as ``mcrecon reconstruct`` does and write its EXR atomically.
 
-    Runs on a worker; never raises: a failure comes back as
-    ``status='failed'`` with the one-line error.
+    ``log_path``: a sample log, or a pixel-statistics EXR (read with the
+    layout its channel names say, written in its output colours).  Runs
+    on a worker; never raises: a failure comes back as ``status='failed'``
+    with the one-line error.
     """
     from ..io import read_log, write_exr, write_png_preview
     from ..core.metrics import relative_mse
     from ..offline.reconstruction import reconstruct
 
     log_path, out_path = Path(log_path), Path(out_path)
+    exr = _is_exr(log_path)
     rec = {"frame": log_path.stem, "log": str(log_path), "output": str(out_path), "method": method,
            "rel_mse": None, "seconds": None, "worker": _worker_name(), "samples": None, "error": None}
     t0 = time.perf_counter()
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", McreconWarning)
-            log = read_log(log_path)
-            r = reconstruct(log, method=method, nonfinite=nonfinite, full=True, **options)
+            log = None if exr else read_log(log_path)
+            r = reconstruct(log_path if exr else log, method=method, nonfinite=nonfinite, full=True, **options)
             if png:  # the preview first: the EXR (atomic) marks a complete frame
                 write_png_preview(out_path.with_suffix(".png"), r.image, exposure=exposure)
-            write_exr(out_path, r.image, channels=log.channels)
-            ref = log.reference()
+            write_exr(out_path, r.image, channels=r.channels)
+            ref = log.reference() if log is not None else None
             if ref is not None:
                 rec["rel_mse"] = relative_mse(r.image, ref)
-            rec["samples"] = int(log.n_samples)
+            rec["samples"] = int(log.n_samples) if log is not None else int(r.inputs.stats.count.sum())
         rec["warnings"] = [" ".join(str(w.message).split()) for w in caught
                            if issubclass(w.category, McreconWarning)]
         rec["status"] = "done"
@@ -120,6 +123,11 @@ class BatchResult:
     @property
     def ok(self) -> bool:
         return not self.failed
+
+
+def _is_exr(path) -> bool:
+    """Whether a frame is a pixel-statistics EXR (else a sample log)."""
+    return str(path).lower().endswith(".exr")
 
 
 def _expand(paths) -> list[Path]:
@@ -179,6 +187,14 @@ def _damaged_output(log: Path, out: Path) -> str | None:
         image, channels = read_exr(out)
     except InputError as exc:
         return f"not a readable EXR ({exc.problem})"
+    if _is_exr(log):  # a pixel-statistics EXR: its output colours are not its channels; the size must fit
+        try:
+            src = read_exr(log)[0]
+        except InputError:
+            return None   # the frame fails on its own, with the file's error
+        if src.shape[:2] != image.shape[:2]:
+            return f"{image.shape[1]}x{image.shape[0]}, the input is {src.shape[1]}x{src.shape[0]}"
+        return None
     try:
         log = read_log(log)
     except InputError:
@@ -251,12 +267,13 @@ def reconstruct_many(paths, *, method="box", out_dir, client=None, scheduler: st
                  workers: int | None = None, nonfinite: str = "drop", force: bool = False, png: bool = False,
                  exposure: float = 0.0, progress: bool | None = None, summary: bool = True,
                  **options) -> BatchResult:
-    """Reconstruct every sample log in ``paths`` into ``out_dir/<log stem>.exr`` on a Dask cluster.
+    """Reconstruct every frame in ``paths`` into ``out_dir/<frame stem>.exr`` on a Dask cluster.
 
     Parameters
     ----------
     paths : path, glob pattern or sequence of them
-        Sample logs (patterns like ``'frames/*.h5'`` are expanded here).
+        Sample logs or pixel-statistics EXRs (patterns like ``'frames/*.h5'``
+        or ``'frames/*.exr'`` are expanded here).
     method : str or Method
         A registered method with its ``options`` as keywords (validated
         here, before any work), or a method object.
@@ -292,6 +309,10 @@ def reconstruct_many(paths, *, method="box", out_dir, client=None, scheduler: st
             raise InputError(str(p), "frame", f"same name as {stems[p.stem]}: both would write {p.stem}.exr")
         stems[p.stem] = p
     out_dir = Path(out_dir)
+    for p in logs:  # an EXR frame in the output directory would be replaced by its own image
+        if os.path.abspath(out_dir / f"{p.stem}.exr") == os.path.abspath(p):
+            raise InputError(str(p), "out_dir", "the frame's output would replace the frame itself; give "
+                             "another output directory")
     out_dir.mkdir(parents=True, exist_ok=True)
     config = _config(method, options, nonfinite)
     prev = _previous(out_dir / f"{SUMMARY_NAME}.json")

@@ -52,11 +52,11 @@ header attributes ``samplesPerPixel`` (pbrt-v4) or ``spp``.  A given
 
 Statistics from moments carry no per-pixel sample range
 (``stats.has_range`` False) and no subpixel grid nor samples, so methods
-that need those refuse them (:func:`check_method`); AWR's default
-``variance='range'`` needs the range, :func:`pixel_stats_options` switches
-it to ``'sample'`` when the user did not choose, and ``auto``'s default
-candidates need two halves of the samples, so it keeps only its SURE
-candidates (``box,gauss``) unless given a half-buffer pair.
+that need those refuse them (:func:`mcrecon.methods.supply.check_supply`),
+unless the options they declare for pixel statistics
+(``Requirements.statistics_options``) do without, and the caller did not
+choose otherwise: ``mcrecon.reconstruct("frame.exr")`` then uses those
+(:mod:`mcrecon.offline.pixel_files`).
 
 Features
 --------

@@ -16,8 +16,9 @@ import warnings
 from ..errors import InputError, McreconWarning
 from .base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, uniform_counts, variant_option
 
-__all__ = ["METHODS", "get_method", "method_class", "available_methods", "register_method", "Method", "AdaptiveState",
-           "Option", "Requirements", "MethodInputs", "RunState", "uniform_counts", "variant_option"]
+__all__ = ["METHODS", "get_method", "method_class", "available_methods", "register_method", "half_buffer_methods",
+           "statistics_methods", "Method", "AdaptiveState", "Option", "Requirements", "MethodInputs", "RunState",
+           "uniform_counts", "variant_option"]
 
 #: Registry: method name -> "module:Class".
 METHODS = {
@@ -136,6 +137,28 @@ def method_class(name: str) -> type[Method]:
 def get_method(name: str, **options) -> Method:
     """Instantiate a registered method with keyword options."""
     return method_class(name)(**options)
+
+
+def _defaults_declaring(test) -> list[str]:
+    out = []
+    for name in available_methods():
+        try:
+            if test(get_method(name).requires):
+                out.append(name)
+        except Exception:  # a method that cannot be built with its defaults here (missing extra)
+            continue
+    return out
+
+
+def half_buffer_methods() -> list[str]:
+    """Names of the registered methods whose default configuration declares ``requires.half_buffers``."""
+    return _defaults_declaring(lambda req: req.half_buffers)
+
+
+def statistics_methods() -> list[str]:
+    """Names of the registered methods whose default configuration takes pixel statistics alone."""
+    return _defaults_declaring(lambda req: req.statistics and not req.samples and not req.subpixels
+                               and not req.range and req.features != "required")
 
 
 from .._lazy import public_dir as _public_dir  # noqa: E402

@@ -42,10 +42,12 @@ import numpy as np
 from ..errors import InputError
 from ..core.requests import SampleBatch, SampleRequest
 from ..core.stats import PixelStats
-from ..core.halves import SplitHalves, check_half_buffers, merge_halves
+from ..core.features import usable_layout, usable_names
+from ..core.halves import Halves, as_halves, split_halves
+from .supply import Supply, check_supply
 
 __all__ = ['Method', 'AdaptiveState', 'Option', 'Requirements', 'MethodInputs', 'RunState', 'uniform_counts',
-           'variant_option', 'half_buffer_methods']
+           'variant_option']
 
 _MISSING = object()
 
@@ -206,15 +208,29 @@ class Requirements:
         of the individual samples.  With ``samples`` also True, offline
         reconstruction accepts either (:meth:`Method.reconstruct`); the
         statistics are then the Chan merge of the two halves
-        (:func:`merge_halves`).  Readers refuse a half-buffer pair for a
-        method that does not declare it.  Offline only: adaptive runs
-        still hand over every committed round through ``observe``.
+        (:func:`~mcrecon.core.halves.merge_halves`).  A half-buffer pair
+        is refused for a method that does not declare it.  In adaptive
+        runs :meth:`Method.observe` splits every committed round into the
+        run's halves (``RunState.halves``), which :meth:`Method.finish`
+        hands over as ``inputs.halves``.
     features : {'none', 'optional', 'required'}
         Whether the method reads per-sample features (albedo, normal,
         depth, ...; :mod:`mcrecon.core.features`).  With 'optional' or
         'required' the statistics and half buffers carry every feature
         the source has (``stats.features``); 'required' refuses a source
         without any.  With 'none' they carry none (and cost nothing).
+    range : bool
+        Whether the method reads each pixel's sample minimum and maximum
+        (``stats.has_range``), which statistics from moments (an EXR) lack.
+    statistics_options : tuple of (name, value)
+        The option values under which the method takes pixel statistics
+        alone (no samples, no half buffers, no sample range): the hook by
+        which pixel-statistics files run a method whose default needs more,
+        when the caller did not choose those options
+        (:func:`mcrecon.methods.supply.statistics_fallback`); the messages
+        that refuse such statistics suggest them.
+
+    What a source cannot supply is refused by :func:`mcrecon.methods.supply.check_supply`.
     """
 
     subpixels: int = 0
@@ -223,8 +239,11 @@ class Requirements:
     statistics: bool = True
     half_buffers: bool = False
     features: str = "none"
+    range: bool = False
+    statistics_options: tuple = ()
 
     def __post_init__(self):
+        object.__setattr__(self, "statistics_options", tuple(dict(self.statistics_options).items()))
         if self.reference not in ("none", "optional", "required"):
             raise ValueError(f"Requirements.reference: {self.reference!r}; valid: none, optional, required")
         if self.features not in ("none", "optional", "required"):
@@ -243,15 +262,11 @@ class MethodInputs:
     samples : sample source or None
         The individual samples (:mod:`mcrecon.core.samples`), for methods with
         ``requires.samples``.
-    halves : tuple (PixelStats, PixelStats) or None
-        Two independent half buffers (statistics of disjoint halves of
-        every pixel's samples; same size, channels and subpixel grid, each
-        pixel's counts may differ), for methods with
-        ``requires.half_buffers``: in place of ``samples``, or with them
-        only as a :class:`SplitHalves` of those very samples (a reader's
-        one pass for methods that need both).  ``stats`` is then their Chan
-        merge (:func:`merge_halves`; :meth:`Method.reconstruct` fills it in
-        when None).
+    halves : Halves or None
+        Two independent half buffers (:class:`~mcrecon.core.halves.Halves`), for methods with
+        ``requires.half_buffers``: in place of ``samples``, or with them only when split from those
+        very samples (``halves.source``).  ``stats`` is then their Chan merge (filled in by
+        :meth:`Method.reconstruct` when None, which also converts a pair ``(stats_a, stats_b)`` once).
     reference : ndarray (H, W, C) float64 or None
         The reference image, for methods that read one.
     nonfinite : {'drop', 'zero', 'raise'}
@@ -263,7 +278,7 @@ class MethodInputs:
     samples: Any = None
     reference: np.ndarray | None = None
     nonfinite: str = "drop"
-    halves: tuple[PixelStats, PixelStats] | None = None
+    halves: Halves | None = None
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -287,7 +302,9 @@ class RunState:
     """What one run of a method accumulates (created by :meth:`Method.start`).
 
     Subclasses add fields (a progressive image, the last selection).
-    ``diagnostics`` holds the maps :meth:`Method.diagnostics` returns.
+    ``diagnostics`` holds the maps :meth:`Method.diagnostics` returns;
+    ``halves`` the two halves of the committed samples, for a method with
+    ``requires.half_buffers`` that observes samples (:meth:`Method.observe`).
     """
 
     width: int
@@ -295,6 +312,7 @@ class RunState:
     channels: tuple[str, ...]
     reference: np.ndarray | None = None
     diagnostics: dict = dataclasses.field(default_factory=dict)
+    halves: Halves | None = None
 
 
 @dataclasses.dataclass(eq=False)
@@ -373,20 +391,6 @@ def uniform_counts(width: int, height: int, n: int, rng: np.random.Generator) ->
     if extra:
         counts[rng.choice(p, size=extra, replace=False)] += 1
     return counts.reshape(height, width)
-
-
-def half_buffer_methods() -> list[str]:
-    """Names of the registered methods whose default configuration declares ``requires.half_buffers``."""
-    from . import available_methods, get_method
-
-    out = []
-    for name in available_methods():
-        try:
-            if get_method(name).requires.half_buffers:
-                out.append(name)
-        except Exception:  # a method that cannot be built with its defaults here (missing extra)
-            continue
-    return out
 
 
 class Method:
@@ -527,62 +531,51 @@ class Method:
 
         A method with ``requires.samples`` and ``requires.half_buffers``
         takes ``inputs.samples`` or ``inputs.halves`` (both only when the
-        halves are a :class:`SplitHalves` of those samples); with halves and
-        no ``inputs.stats``, the statistics are their merge.
+        halves were split from those samples, ``halves.source``); with halves
+        and no ``inputs.stats``, the statistics are their merge.  What the
+        inputs cannot supply is refused by
+        :func:`~mcrecon.methods.supply.check_supply`.
         """
         if not isinstance(inputs, MethodInputs):
             raise InputError(self.where, "inputs", f"got {type(inputs).__name__}, expected MethodInputs; wrap "
                              "pixel statistics as MethodInputs(stats) (a half-buffer pair as "
                              "MethodInputs(None, halves=(a, b))), or use mcrecon.reconstruct(source, "
                              f"method={self.name!r}) for files, samples, statistics and half-buffer pairs")
-        req = self.requires
+        halves, req = None, self.requires
         if inputs.halves is not None:
-            inputs = self._with_halves(inputs)
+            halves = as_halves(inputs.halves, self.where)
+            if inputs.samples is not None and halves.source is not inputs.samples:
+                # both only as the dispatcher builds them: the halves split from exactly those samples
+                raise InputError(self.where, "halves", "give the samples or a half-buffer pair, not both "
+                                 "(halves split from other samples, or statistics of two buffers)")
+        elif inputs.samples is not None and req.half_buffers:  # the dispatcher's split, for samples given here
+            halves = split_halves(inputs.samples, nonfinite=inputs.nonfinite,
+                                  features=usable_names(inputs.samples) if req.features != "none" else ())
+        st = inputs.stats if inputs.stats is not None else halves.a if halves is not None else None
+        feats = (halves.a if halves is not None else inputs.stats if inputs.stats is not None else None)
+        features = tuple(feats.feature_names) if feats is not None else \
+            tuple(getattr(inputs.samples, "feature_names", ()) or ())
+        n = halves.n_samples if halves is not None else int(inputs.stats.count.sum()) \
+            if inputs.stats is not None and inputs.samples is None else None
+        check_supply(self, Supply("these pixel statistics", samples=inputs.samples is not None,
+                                  halves=halves is not None, subpixels=st.subpixels if st is not None else -1,
+                                  has_range=st.has_range if st is not None else True, features=features,
+                                  n_samples=n, surface="inputs"))
+        if halves is not None:
+            stats = inputs.stats
+            if stats is None:
+                stats = halves.merged()
+            elif stats.shape != halves.shape or not np.array_equal(stats.count, halves.a.count + halves.b.count):
+                raise InputError(self.where, "stats", "with a half-buffer pair the statistics must be the merge "
+                                 "of the two halves (counts differ); leave MethodInputs.stats None to have them "
+                                 "merged")
+            inputs = dataclasses.replace(inputs, stats=stats, halves=halves)
         if req.statistics and inputs.stats is None:
             raise InputError(self.where, "input", "needs pixel statistics (MethodInputs.stats)")
-        if req.samples and inputs.samples is None and inputs.halves is None:
-            if req.half_buffers:
-                raise InputError(self.where, "input", f"{self.name} needs the individual samples or two "
-                                 "independent half buffers, which one set of pixel statistics does not hold; give "
-                                 f"it samples (mcrecon.reconstruct(log_or_samples, method={self.name!r}), "
-                                 f"MethodInputs.samples) or a half-buffer pair (mcrecon.reconstruct((stats_a, "
-                                 f"stats_b), method={self.name!r}), MethodInputs.halves, `mcrecon reconstruct A.exr "
-                                 f"--half-buffer B.exr --method {self.name}`)")
-            raise InputError(self.where, "input", f"{self.name} filters individual samples, which pixel "
-                             "statistics no longer hold; give it samples (mcrecon.reconstruct(log_or_samples, "
-                             f"method={self.name!r}) or `mcrecon reconstruct LOG --method {self.name}`)")
-        if req.subpixels and inputs.stats is not None and inputs.stats.subpixels != req.subpixels:
-            raise InputError(self.where, "statistics", f"need a {req.subpixels}x{req.subpixels} subpixel grid, "
-                             f"got subpixels={inputs.stats.subpixels}; build them with "
-                             f"subpixels={req.subpixels} (method.requires.subpixels)")
         if run is None:
             h, w, _ = inputs.shape
             run = self.start(w, h, inputs.channels, reference=inputs.reference)
         return self.reconstruct_run(run, inputs)
-
-    def _with_halves(self, inputs: MethodInputs) -> MethodInputs:
-        """``inputs`` with its half-buffer pair validated and ``stats`` their merge when not given."""
-        req = self.requires
-        if not req.half_buffers:
-            raise InputError(self.where, "halves", f"{self.name} does not use half buffers (methods that do "
-                             "declare requires.half_buffers: " + (", ".join(half_buffer_methods()) or "none")
-                             + "); give it the statistics of all the samples (merge_halves(a, b))")
-        if inputs.samples is not None and getattr(inputs.halves, "samples", None) is not inputs.samples:
-            # both only as a reader builds them: the halves split from exactly those samples
-            raise InputError(self.where, "halves", "give the samples or a half-buffer pair, not both "
-                             "(the method splits samples itself)")
-        a, b = check_half_buffers(inputs.halves, self.where)
-        if req.subpixels and a.subpixels != req.subpixels:
-            raise InputError(self.where, "halves", f"need a {req.subpixels}x{req.subpixels} subpixel grid, "
-                             f"got subpixels={a.subpixels}")
-        stats = inputs.stats
-        if stats is None:
-            stats = merge_halves(a, b)
-        elif stats.shape != a.shape or not np.array_equal(stats.count, a.count + b.count):
-            raise InputError(self.where, "stats", "with a half-buffer pair the statistics must be the merge of "
-                             "the two halves (counts differ); leave MethodInputs.stats None to have them merged")
-        pair = inputs.halves if isinstance(inputs.halves, SplitHalves) else (a, b)
-        return dataclasses.replace(inputs, stats=stats, halves=pair)
 
     def reconstruct_run(self, run: RunState, inputs: MethodInputs) -> np.ndarray:
         """The method's reconstruction (the hook subclasses implement)."""
@@ -655,11 +648,47 @@ class Method:
         return uniform_counts(state.width, state.height, n, state.rng)
 
     def observe(self, run: RunState, batch: SampleBatch, round_index: int) -> None:
-        """See a committed round's samples (only called when ``requires.samples``)."""
+        """See a committed round's samples (only called when ``requires.samples``).
+
+        For a method with ``requires.half_buffers`` the round is split into
+        the run's two halves (``run.halves``, with the features the method
+        reads; replayed in order on resume), which :meth:`finish` hands
+        over as ``inputs.halves``: the method never splits samples itself
+        (one that overrides ``observe`` and takes half buffers calls this one).
+        """
+        req = self.requires
+        if not req.half_buffers:
+            return
+        if run.halves is None:
+            if req.features == "required" and not batch.features:
+                # refused on the first round, not after the whole budget is rendered
+                raise InputError(self.where, "features", f"{self.name} needs per-sample features (albedo, normal, "
+                                 "depth) and the renderer's replies have none: the built-in scenes send them with "
+                                 "--features all (`mcrecon scenes`), the Mitsuba bridge by default, a renderer "
+                                 "of your own in its replies (SampleBatch.features; /features/NAME of a "
+                                 "command's reply); or pick another method")
+            # the renderer's first round says which features it sends (every later round sends the same)
+            layout = usable_layout(batch.features) if req.features != "none" and batch.features else None
+            run.halves = Halves.empty(run.width, run.height, run.channels, features=layout)
+        run.halves.add(batch.positions, batch.values, features=batch.features if run.halves.a.features else None,
+                       nonfinite="drop", source=self.where)
+
+    def run_inputs(self, run: RunState, state: AdaptiveState) -> MethodInputs:
+        """An adaptive run's reconstruction inputs: its statistics, and its halves when they hold them all.
+
+        With the run's halves (:meth:`observe`) holding every committed
+        sample, the statistics are their merge, as the offline dispatcher
+        builds them from the run's log: the run's image is then the image
+        of its log, bit for bit.
+        """
+        h = run.halves
+        if h is not None and h.n_samples == int(state.stats.count.sum()):
+            return MethodInputs(h.merged(), None, state.reference, halves=h)
+        return state.inputs()
 
     def finish(self, run: RunState, state: AdaptiveState) -> np.ndarray:
-        """Final image of an adaptive run (default: :meth:`reconstruct_run` of the run's statistics)."""
-        return self.reconstruct_run(run, state.inputs())
+        """Final image of an adaptive run (default: :meth:`reconstruct_run` of :meth:`run_inputs`)."""
+        return self.reconstruct_run(run, self.run_inputs(run, state))
 
     def diagnostics(self, run: RunState) -> Mapping[str, np.ndarray]:
         """Scalar (H, W) maps from the run's last reconstruction or planning step."""

@@ -23,6 +23,7 @@ from ..core.stats import PixelStats
 
 from .._lazy import public_dir as _public_dir
 from .inputs import gather_inputs
+from .pixel_files import is_pixel_file_source, read_pixel_file_source
 
 __all__ = ['reconstruct', 'split_source_fireflies', 'Reconstruction']
 
@@ -39,6 +40,13 @@ class Reconstruction:
     fireflies : FireflySplit or None
         With ``fireflies="cascade"``: the split (the method saw the base
         samples; ``fireflies.excess`` is part of ``image``).
+    channels : tuple of str
+        The image's channel names: the file's output colours for a
+        pixel-statistics EXR (whose statistics may be in another space,
+        ``inputs.channels``), else the source's.
+    files : tuple of PixelStatsEXR
+        The pixel-statistics EXRs read (one, or a half-buffer pair's two);
+        empty for other sources.
     """
 
     image: np.ndarray
@@ -46,6 +54,8 @@ class Reconstruction:
     run: RunState
     inputs: MethodInputs
     fireflies: object = None
+    channels: tuple = ()
+    files: tuple = ()
     _sanity: list | None = dataclasses.field(default=None, repr=False)
     #: With ``fireflies``: the samples before the split (the base's range is clipped; the image is not).
     _sanity_source: object = dataclasses.field(default=None, repr=False)
@@ -129,19 +139,26 @@ def split_source_fireflies(source, *, nonfinite: str = "drop", **split_options):
 
 
 def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None, full: bool = False,
-                fireflies: str = "none", **options):
+                fireflies: str = "none", exr_options: dict | None = None, **options):
     """Reconstruct an (H, W, C) float64 image offline.
 
     Parameters
     ----------
-    source : path-like, SampleLog, SampleSet, PixelStats or (PixelStats, PixelStats)
+    source : path-like, SampleLog, SampleSet, PixelStats, Halves or a pair
         A sample log (streamed in chunks), samples in memory, statistics
-        already built, or a half-buffer pair: statistics of two independent
-        halves of the samples (dual buffers a renderer wrote), for methods
-        that declare ``requires.half_buffers`` (``auto``, and ``nfor``
-        with the features in both halves).  The pair must
-        agree in size, channels and subpixel grid; each pixel's counts may
-        differ.  The statistics of all the samples are their Chan merge.
+        already built, a pixel-statistics EXR (a path ending in ``.exr`` or
+        a :class:`~mcrecon.io.pixel_exr.PixelStatsEXR`; the image comes back
+        in the file's output colours), or a half-buffer pair: statistics of
+        two independent halves of the samples (dual buffers a renderer
+        wrote: ``(stats_a, stats_b)``, :class:`~mcrecon.core.halves.Halves`
+        or two EXR paths ``("a.exr", "b.exr")``), for methods that declare
+        ``requires.half_buffers`` (``mcrecon.methods.half_buffer_methods()``).
+        The pair must agree in size, channels and subpixel grid; each
+        pixel's counts may differ.  The statistics of all the samples are
+        their Chan merge.  On pixel-statistics files a method whose options
+        need what they lack (the samples, a sample range) runs with the
+        options it declares for them when those were not given, with a
+        warning (``Requirements.statistics_options``).
     method : str or Method
         A registered method name (``mcrecon.available_methods()``) with
         its keyword ``options``, or a method object.
@@ -159,6 +176,11 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
         sample density needs (energy kept, consistent).  Any method; needs
         the individual samples (a log or a SampleSet) and holds them in
         memory.  Measured in ``docs/fireflies.md``.
+    exr_options : dict, optional
+        How to read pixel-statistics EXRs (the keywords of
+        :func:`mcrecon.io.read_pixel_stats_exr`: ``layout``, ``mean``,
+        ``variance``, ``count``, ``spp``, ...); by default the layout is
+        detected from the channel names.
 
     Examples
     --------
@@ -182,7 +204,17 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
     from ..filters.fireflies import FIREFLY_MODES
     if fireflies not in FIREFLY_MODES:
         raise InputError("reconstruct", "fireflies", f"unknown mode {fireflies!r}; valid: {', '.join(FIREFLY_MODES)}")
-    split = None
+    split = files = None
+    if is_pixel_file_source(source):
+        if fireflies == "cascade":
+            raise InputError("reconstruct", "fireflies", "fireflies='cascade' splits individual samples, which "
+                             "pixel statistics no longer hold; give a sample log or a SampleSet, or "
+                             "fireflies='none'")
+        files = read_pixel_file_source(source, m, options=exr_options)
+        m, source = files.method, files.source
+    elif exr_options:
+        raise InputError("reconstruct", "exr_options", "applies to pixel-statistics EXR inputs (paths ending in "
+                         ".exr), not to this source")
     if fireflies == "cascade":
         if isinstance(source, (str, Path)):
             from ..io import read_log
@@ -191,15 +223,20 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
             reference = source.reference()  # the base SampleSet carries no stored reference
         original = source
         source, split = split_source_fireflies(source, nonfinite=nonfinite)
-    inputs = gather_inputs(source, m, nonfinite=nonfinite, reference=reference)
+    inputs = gather_inputs(source, m, nonfinite=nonfinite, reference=reference,
+                           **({"what": files.what, "surface": "files"} if files is not None else {}))
     h, w, _ = inputs.shape
     run = m.start(w, h, inputs.channels, reference=inputs.reference)
     image = np.asarray(m.reconstruct(inputs, run=run), dtype=np.float64)
     if split is not None:
         image = image + split.excess
+    if files is not None:  # statistics in the file's working space (XYZ for the presets): to its colours
+        image = files.output_image(image)
     if not full:
         return image
     return Reconstruction(image, m, run, inputs, fireflies=split,
-                          _sanity_source=original if split is not None else None)
+                          _sanity_source=original if split is not None else None,
+                          channels=files.channels if files is not None else tuple(inputs.channels),
+                          files=files.files if files is not None else ())
 
 __dir__ = _public_dir(__name__)

@@ -22,15 +22,12 @@ import numpy as np
 
 from ...errors import InputError, McreconWarning
 from ...core.metrics import DEFAULT_EPS
-from ...core.features import usable_layout, usable_names
-from ...core.halves import Halves, split_halves
+from ...core.halves import Halves
 from .estimates import (cross_validation_mse, relative_denominator,
     sure, sure_filter_bank)
-from ...core.requests import SampleBatch
 from ...core.stats import PixelStats
 from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, uniform_counts
-from ...core.halves import merge_halves
-from ...core.safeguard import albedo_divisor, confidence_clamp, safeguard_variance, sample_range_bounds
+from ...core.safeguard import albedo_divisor, confidence_clamp, empty_pixels_kept, safeguard_variance, sample_range_bounds
 from ...core.fill import fill_empty_pixels
 from ...filters.gaussian import final_sigmas
 from ...core.fill import mean_variance_policy
@@ -70,9 +67,8 @@ def _oidn_available() -> bool:
 
 @dataclasses.dataclass(eq=False)
 class AutoRun(RunState):
-    """Per-run state of :class:`AutoMethod`: the two halves of the committed samples (built by ``observe``)."""
+    """Per-run state of :class:`AutoMethod` (``halves``: those of the committed samples, :meth:`Method.observe`)."""
 
-    halves: Halves | None = None
     #: Names of the last reconstruction's candidates in ``choice`` order (the feature-guided ones
     #: included: which of them run depends on the features the samples carry).
     candidate_names: list | None = None
@@ -172,8 +168,10 @@ class AutoMethod(Method):
         # features: read when the source has them and a feature candidate is on (nfor/xbil/dnlm on the
         # halves, fbil without them; OIDN takes each half's albedo and normal then); a source without
         # features gives exactly the colour-only run
+        # statistics_options: on pixel statistics alone (one EXR) the SURE candidates need neither
         return Requirements(samples=any(c in DUAL_BUFFER for c in self._names), half_buffers=True,
-                            features="optional" if self._feature_names else "none")
+                            features="optional" if self._feature_names else "none",
+                            statistics_options={"candidates": "box,gauss"})
 
     def halo(self, width, height):
         # the split into halves hashes the absolute pixel index, and awr/oidn
@@ -193,19 +191,8 @@ class AutoMethod(Method):
                 out.append(c)
         return out
 
-    # ---------------------------------------------------------------- runs
-    def observe(self, run: "AutoRun", batch: SampleBatch, round_index: int) -> None:
-        """Split each committed round into the two halves (replayed in order on resume)."""
-        keep = self.requires.features != "none" and bool(batch.features)
-        if run.halves is None:
-            # the renderer's first round says which features it sends (every later round sends the same)
-            layout = usable_layout(batch.features) if keep else None
-            run.halves = Halves.empty(run.width, run.height, run.channels, features=layout)
-        run.halves.add(batch.positions, batch.values, features=batch.features if run.halves.a.features else None,
-                       nonfinite="drop", source=_WHERE)
-
     # ------------------------------------------------------------ candidates
-    def _candidates(self, stats: PixelStats, halves: Halves | None, samples_source, nonfinite: str):
+    def _candidates(self, stats: PixelStats, halves: Halves | None, nonfinite: str):
         p = self.params
         y = stats.mean
         count = stats.count
@@ -241,12 +228,12 @@ class AutoMethod(Method):
             for name in ("awr", "oidn", "splat"):
                 if name not in dual:
                     continue
-                if name == "splat" and samples_source is None:
+                if name == "splat" and halves.source is None:
                     warnings.warn(f"{_WHERE}: the splat candidate needs the samples themselves (offline "
                                   "reconstruction of a log or SampleSet); left out of this run",
                                   McreconWarning, stacklevel=4)
                     continue
-                a, b = self._black_box(name, ha, hb, samples_source, nonfinite)
+                a, b = self._black_box(name, halves, nonfinite)
                 out.append(self._dual(name, a, b, cross_validation_mse(a, yb, vb), cross_validation_mse(b, ya, va),
                                       ha.count, hb.count))
         if self._feature_names and halves is not None and halves.a.features:
@@ -277,8 +264,9 @@ class AutoMethod(Method):
             aux.append(np.ascontiguousarray(_filled(f.mean, f.count), dtype=np.float32))
         return tuple(aux)
 
-    def _black_box(self, name, ha: PixelStats, hb: PixelStats, source, nonfinite):
+    def _black_box(self, name, halves: Halves, nonfinite):
         from .. import get_method
+        ha, hb = halves
         if name == "awr":
             m = get_method("awr")
             with warnings.catch_warnings():
@@ -301,32 +289,18 @@ class AutoMethod(Method):
                 full[..., :min(c, 3)] = den[..., :min(c, 3)]
                 res.append(full)
             return res[0], res[1]
-        # splat: the two halves as sample sets (rounds dropped: single-round replay)
-        from ...core.samples import SampleSet
-        from ...core.halves import split_labels
-        w, h = source.width, source.height
-        counter = np.zeros(w * h, np.int64)
-        parts = ([], []), ([], [])
-        for ch in source.iter_chunks(with_round=False):
-            pos, val = np.asarray(ch.positions), np.asarray(ch.values)
-            lab = split_labels(pos, w, h, counter)
-            for half in (0, 1):
-                sel = lab == half
-                parts[half][0].append(pos[sel])
-                parts[half][1].append(val[sel])
+        # splat: the samples of each half (rounds dropped: single-round replay)
         m = get_method("splat")
         out = []
-        for half in (0, 1):
-            ss = SampleSet(np.concatenate(parts[half][0]), np.concatenate(parts[half][1]), width=w, height=h,
-                           channels=tuple(source.channels))
+        for ss in halves.sample_sets():
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", McreconWarning)
                 out.append(np.asarray(m.reconstruct(MethodInputs(None, ss, None, nonfinite)), dtype=np.float64))
         return out[0], out[1]
 
     # -------------------------------------------------------------- choice
-    def _select(self, run: "AutoRun", stats: PixelStats, halves, samples_source, nonfinite="drop"):
-        cands, y, v, count = self._candidates(stats, halves, samples_source, nonfinite)
+    def _select(self, run: "AutoRun", stats: PixelStats, halves, nonfinite="drop"):
+        cands, y, v, count = self._candidates(stats, halves, nonfinite)
         run.candidate_names = [c.name for c in cands]
         for c in cands:  # the selection's passes read C order: one copy of a planar image, not one per pass
             c.image = np.ascontiguousarray(c.image, dtype=np.float64)
@@ -381,27 +355,23 @@ class AutoMethod(Method):
             # an interval that holds the true value with high probability never moves
             # an estimate away from it (the same safeguard as awr's robust default).
             lo, hi = sample_range_bounds(stats) if bounds is None else bounds
-            # a pixel without samples has no interval (its mean 0, its variance 0): it keeps the value
-            # filled in from its neighbours above, which the clamp would set to 0
-            empty = count == 0
-            filled = img[empty] if empty.any() else None
-            confidence_clamp(img, y, v_safe, self.params["safeguard"], lo, hi, out=img)
-            # The heavy-tail rule judges a push by the median of the neighbours' means, which under
-            # a rarely found light lies below the truth (the pixel means are right-skewed): a
-            # feature-guided value at the truth of a pixel whose samples missed the light is then
-            # "further from the median" than its dark mean, and the rule put the hole back.  Pixels
-            # that chose a feature-guided candidate keep its clamped value (128^2, 32 spp, 3 seeds
-            # or logs, / box: checker_spot 0.071 -> 0.057, Cornell logs 0.103 -> 0.097 and 0.106 ->
-            # 0.100, a textured corridor 0.072 -> 0.066; the Mitsuba spheres behind glass 0.116 ->
-            # 0.119, bitmap texels 0.104 -> 0.106; untextured scenes within 0.5 %).
-            guided = [k for k, c in enumerate(cands) if c.feature]
-            keep = np.isin(choice, guided) if guided else None
-            kept = img[keep] if keep is not None and keep.any() else None
-            _no_push_in_heavy_tails(img, y, hi, out=img, scale=divisor)
-            if kept is not None:
-                img[keep] = kept
-            if filled is not None:
-                img[empty] = filled
+            # a pixel without samples has no interval: it keeps the value filled in from its neighbours
+            with empty_pixels_kept(img, count):
+                confidence_clamp(img, y, v_safe, self.params["safeguard"], lo, hi, out=img)
+                # The heavy-tail rule judges a push by the median of the neighbours' means, which under
+                # a rarely found light lies below the truth (the pixel means are right-skewed): a
+                # feature-guided value at the truth of a pixel whose samples missed the light is then
+                # "further from the median" than its dark mean, and the rule put the hole back.  Pixels
+                # that chose a feature-guided candidate keep its clamped value (128^2, 32 spp, 3 seeds
+                # or logs, / box: checker_spot 0.071 -> 0.057, Cornell logs 0.103 -> 0.097 and 0.106 ->
+                # 0.100, a textured corridor 0.072 -> 0.066; the Mitsuba spheres behind glass 0.116 ->
+                # 0.119, bitmap texels 0.104 -> 0.106; untextured scenes within 0.5 %).
+                guided = [k for k, c in enumerate(cands) if c.feature]
+                keep = np.isin(choice, guided) if guided else None
+                kept = img[keep] if keep is not None and keep.any() else None
+                _no_push_in_heavy_tails(img, y, hi, out=img, scale=divisor)
+                if kept is not None:
+                    img[keep] = kept
         # the raw estimate is undefined at empty pixels: the smoothed absolute one there
         fin = np.isfinite(raw_abs)
         if not fin.all():
@@ -418,38 +388,16 @@ class AutoMethod(Method):
     def reconstruct_run(self, run: "AutoRun", inputs: MethodInputs) -> np.ndarray:
         """The per-pixel choice: (H, W, C) float64.
 
-        With samples (``inputs.samples``) the dual-buffer candidates split
-        them into halves; with a half-buffer pair (``inputs.halves``: two
-        independent halves a renderer wrote) they use that pair as the
-        dual buffers; without either (statistics only, e.g. the end of an
-        adaptive run whose halves ``observe`` built) the run's halves are
-        used, else only the SURE candidates (a warning says so).  With a
-        pair, the SURE candidates see the merge of the two halves.
+        The dual-buffer candidates read the two halves ``inputs.halves``
+        (split from the samples by the dispatcher, a pair a renderer wrote,
+        or an adaptive run's own, :meth:`Method.run_inputs`); without them
+        (statistics only) only the SURE candidates run (a warning says so).
+        The SURE candidates see ``inputs.stats``: with halves, their merge.
         """
-        stats = inputs.stats
-        halves = None
-        pair = getattr(inputs, "halves", None)
-        if pair is not None and stats is None:
-            stats = merge_halves(pair[0], pair[1])
-        if any(c in DUAL_BUFFER for c in self._names):
-            if pair is not None:
-                ha, hb = pair
-                halves = Halves(ha, hb, (ha.count + hb.count).ravel().astype(np.int64))
-            elif inputs.samples is not None:
-                halves = split_halves(inputs.samples, nonfinite=inputs.nonfinite,
-                                      features=usable_names(inputs.samples) if self.requires.features != "none"
-                                      else ())
-            elif run.halves is not None and int(run.halves.a.count.sum() + run.halves.b.count.sum()) == \
-                    int(stats.count.sum()):
-                halves = run.halves
-                # the statistics as a reader gives them with the split (their merge): an
-                # adaptive run's image is then the image of its log, bit for bit
-                stats = merge_halves(halves.a, halves.b)
-        img, _ = self._select(run, stats, halves, inputs.samples, inputs.nonfinite)
+        stats = inputs.stats if inputs.stats is not None else inputs.halves.merged()
+        halves = inputs.halves if any(c in DUAL_BUFFER for c in self._names) else None
+        img, _ = self._select(run, stats, halves, inputs.nonfinite)
         return img
-
-    def finish(self, run: "AutoRun", state: AdaptiveState) -> np.ndarray:
-        return self.reconstruct_run(run, state.inputs())
 
     # ------------------------------------------------------------ adaptive
     def plan(self, run: "AutoRun", state: AdaptiveState):
@@ -487,7 +435,7 @@ class AutoMethod(Method):
         halves = run.halves if any(c in DUAL_BUFFER for c in self._names) else None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", McreconWarning)
-            _, est = self._select(run, state.stats, halves, None)
+            _, est = self._select(run, state.stats, halves)
         n = state.stats.count.astype(np.float64)
         d = n_round / npix
         pri = np.where(np.isfinite(est), np.maximum(est, 0.0), 0.0) * (d / (n + d))

@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 
-from ..base import AdaptiveState, Method, MethodInputs, Option, RunState, uniform_counts, variant_option
+from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, uniform_counts, variant_option
 from ...core.fill import fill_empty_pixels
 from .reconstruction import DOMAINS, VARIANCE_ESTIMATORS, awr_reconstruct, log_domain_reconstruct, pixel_variance
 from ...core.safeguard import confidence_clamp, sample_range_bounds
@@ -69,6 +69,11 @@ class AWRMethod(Method):
             "initial_spp": 4,                # Fig. 4 Step 1
         },
     }
+    @property
+    def requires(self) -> Requirements:
+        # the 'range' estimator reads each pixel's sample minimum and maximum; 'sample' takes statistics alone
+        return Requirements(range=self.params["variance"] == "range", statistics_options={"variance": "sample"})
+
     options = (
         variant_option(variants),
         Option("wavelet", str, "cdf97", "wavelet basis", tuple(WAVELETS)),

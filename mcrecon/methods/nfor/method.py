@@ -7,14 +7,12 @@ import warnings
 
 import numpy as np
 
-from ...core.features import usable_layout, usable_names
 from ...core.fill import fill_empty_pixels, mean_variance_policy
-from ...core.halves import Halves, merge_halves, split_halves
-from ...core.requests import SampleBatch
-from ...core.safeguard import albedo_divisor, confidence_clamp, safeguard_variance, sample_range_bounds
+from ...core.safeguard import (albedo_divisor, confidence_clamp, empty_pixels_kept, safeguard_variance,
+                               sample_range_bounds)
 from ...core.stats import PixelStats
 from ...errors import InputError, McreconWarning
-from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, variant_option
+from ..base import Method, MethodInputs, Option, Requirements, RunState, variant_option
 from .pipeline import PAPER, nfor_denoise
 from ...filters.regression import RIDGE
 
@@ -25,9 +23,7 @@ _WHERE = "method nfor"
 
 @dataclasses.dataclass(eq=False)
 class NFORRun(RunState):
-    """Per-run state: the two halves of the committed samples with their features (built by ``observe``)."""
-
-    halves: Halves | None = None
+    """Per-run state (``halves``: those of the committed samples with their features, :meth:`Method.observe`)."""
 
 
 def _parse_bandwidths(text: str) -> tuple[float, ...]:
@@ -41,21 +37,34 @@ def _parse_bandwidths(text: str) -> tuple[float, ...]:
     return ks
 
 
+def _filled(half: PixelStats, other: PixelStats) -> np.ndarray:
+    """A half's pixel means, a pixel without a sample in it taking its nearest sampled neighbour's value there.
+
+    A half without any sample (one sampled pixel whose one sample went to
+    the other half) has no neighbour to fill from: it takes the other
+    half's filled means, so the regression sees two equal halves instead of
+    a black one (which would halve the image).
+    """
+    if (half.count == 0).all() and (other.count > 0).any():
+        half = other
+    return fill_empty_pixels(half.mean.copy(), half.count, source=_WHERE)
+
+
 def feature_planes(a: PixelStats, b: PixelStats, stats: PixelStats) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every feature component of the halves as (H, W, D) means, and the variance of the full mean.
 
     Pixels without a sample in a half take their nearest sampled
-    neighbour's value there (:func:`mcrecon.core.fill.fill_empty_pixels`);
-    the variance follows the one fill-in policy for pixels with fewer
-    than two samples (:func:`mcrecon.core.fill.mean_variance_policy`).
+    neighbour's value there (:func:`_filled`); the variance follows the one
+    fill-in policy for pixels with fewer than two samples
+    (:func:`mcrecon.core.fill.mean_variance_policy`).
     """
     fa, fb, fv = [], [], []
     for name in a.feature_names:
         ha, hb = a.features[name], b.features[name]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", McreconWarning)  # the colour's fill warns once for the pixel
-            fa.append(fill_empty_pixels(ha.mean.copy(), ha.count, source=_WHERE))
-            fb.append(fill_empty_pixels(hb.mean.copy(), hb.count, source=_WHERE))
+            fa.append(_filled(ha, hb))
+            fb.append(_filled(hb, ha))
         fv.append(mean_variance_policy(stats.features[name]))
     h, w = a.count.shape
     if not fa:
@@ -71,7 +80,7 @@ class NFORMethod(Method):
     Novak 2016, "Nonlinearly weighted first-order regression for denoising
     Monte Carlo renderings", CGF 35(4).
 
-    Needs the samples (split into two halves here) or a half-buffer pair,
+    Needs the samples (split into two halves by the dispatcher) or a half-buffer pair,
     and features (albedo, normal, depth or any other); refuses sources
     without features.  Uniform sampling in doubling rounds when run
     adaptively.
@@ -124,49 +133,20 @@ class NFORMethod(Method):
     def _configure(self, params: dict) -> None:
         object.__setattr__(self, "_bandwidths", _parse_bandwidths(params["bandwidths"]))
 
-    # ---------------------------------------------------------------- runs
-    def observe(self, run: NFORRun, batch: SampleBatch, round_index: int) -> None:
-        """Split each committed round, features with it, into the two halves (replayed in order on resume)."""
-        if run.halves is None:
-            if not batch.features:  # refuse on the first round, not after the whole budget is rendered
-                raise InputError(_WHERE, "features", "nfor needs per-sample features (albedo, normal, depth) and the "
-                                 "renderer's replies have none: the built-in scenes send them with "
-                                 "--features all (`mcrecon scenes`), the Mitsuba bridge by default, a renderer "
-                                 "of your own in its replies (SampleBatch.features; /features/NAME of a "
-                                 "command's reply); or pick another method")
-            layout = usable_layout(batch.features or {})
-            run.halves = Halves.empty(run.width, run.height, run.channels, features=layout)
-        run.halves.add(batch.positions, batch.values, features=batch.features or None, nonfinite="drop",
-                       source=_WHERE)
-
-    def finish(self, run: NFORRun, state: AdaptiveState) -> np.ndarray:
-        return self.reconstruct_run(run, state.inputs())
-
-    def _pair(self, run: NFORRun, inputs: MethodInputs):
-        if inputs.halves is not None:
-            return inputs.halves[0], inputs.halves[1]
-        if inputs.samples is not None:
-            split = split_halves(inputs.samples, nonfinite=inputs.nonfinite, features=usable_names(inputs.samples))
-            return split.a, split.b
-        if run.halves is not None:
-            return run.halves.a, run.halves.b
-        raise InputError(_WHERE, "input", "nfor needs the samples or two independent half buffers with features; "
-                         "give it a sample log, a SampleSet(features=...) or a half-buffer pair")
-
     def reconstruct_run(self, run: NFORRun, inputs: MethodInputs) -> np.ndarray:
-        """The NFOR image (H, W, C) float64 (:func:`mcrecon.methods.nfor.pipeline.nfor_denoise`)."""
-        a, b = self._pair(run, inputs)
-        if not a.feature_names:
-            raise InputError(_WHERE, "features", "nfor needs per-sample features (albedo, normal, depth) and the "
-                             "samples have none; render them with the samples (SampleBatch.features, "
-                             "/features/NAME in a log), or pick another method")
-        stats = merge_halves(a, b)
-        if (stats.count == 0).all():
-            raise InputError(_WHERE, "input", "no pixel has a sample: there is nothing to reconstruct")
-        ya = fill_empty_pixels(a.mean.copy(), a.count, source=_WHERE)
+        """The NFOR image (H, W, C) float64 (:func:`mcrecon.methods.nfor.pipeline.nfor_denoise`) of ``inputs.halves``.
+
+        The halves come split from the samples by the dispatcher, as a pair
+        a renderer wrote, or from an adaptive run (:meth:`Method.run_inputs`);
+        what the inputs cannot supply (no halves, no features, no sample) is
+        refused before (:func:`mcrecon.methods.supply.check_supply`).
+        """
+        a, b = inputs.halves
+        stats = inputs.stats if inputs.stats is not None else inputs.halves.merged()
+        ya = _filled(a, b)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", McreconWarning)  # one warning for the empty pixels is enough
-            yb = fill_empty_pixels(b.mean.copy(), b.count, source=_WHERE)
+            yb = _filled(b, a)
         var = mean_variance_policy(stats)
         fa, fb, fv = feature_planes(a, b, stats)
         p = self.params
@@ -179,12 +159,9 @@ class NFORMethod(Method):
         if p["safeguard"] is not None:
             img = np.ascontiguousarray(img)
             lo, hi = sample_range_bounds(stats)
-            empty = stats.count == 0
-            filled = img[empty] if empty.any() else None
-            confidence_clamp(img, stats.mean, safeguard_variance(var, stats.count, albedo_divisor(stats)),
-                             p["safeguard"], lo, hi, out=img)
-            if filled is not None:  # no interval without a sample: the neighbours' fill-in stands
-                img[empty] = filled
+            with empty_pixels_kept(img, stats.count):  # no interval without a sample: the fill-in stands
+                confidence_clamp(img, stats.mean, safeguard_variance(var, stats.count, albedo_divisor(stats)),
+                                 p["safeguard"], lo, hi, out=img)
         run.diagnostics = {"selection": diag["selection"], "estimated_mse": np.maximum(diag["estimated_mse"], 0.0),
                            "sample_density": stats.count.astype(np.float64)}
         return img
