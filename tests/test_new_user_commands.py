@@ -198,6 +198,30 @@ def test_readme_command_block_runs_as_written_outside_the_repository(scratch, mo
     assert proc.returncode == 2 and proc.stderr.startswith("usage: python -m mcrecon.renderers.example")
 
 
+def test_packaged_example_renderer_answers_as_the_script_in_the_clone(tmp_path):
+    """`python -m mcrecon.renderers.example` (the README's) and data_tools/example_renderer.py (h5py alone,
+    the protocol spelled out) are one renderer: the same reply to the same request."""
+    import importlib.util
+
+    from mcrecon.core.requests import SampleRequest
+    from mcrecon.io import read_log
+    from mcrecon.renderers import example
+    from mcrecon.renderers.command import write_request
+
+    counts = np.arange(12, dtype=np.int64).reshape(3, 4) % 3
+    req = SampleRequest(4, 3, counts=counts, positions=np.array([[0.5, 0.5], [3.25, 2.75]]), round_index=2, seed=7)
+    write_request(tmp_path / "req.h5", req, channels=("R", "G", "B"))
+    spec = importlib.util.spec_from_file_location("example_script", ROOT / "data_tools" / "example_renderer.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    script.main(tmp_path / "req.h5", tmp_path / "a.h5")
+    example.main(tmp_path / "req.h5", tmp_path / "b.h5")
+    a, b = read_log(tmp_path / "a.h5"), read_log(tmp_path / "b.h5")
+    assert a.channels == b.channels == ("R", "G", "B") and a.n_samples == b.n_samples == counts.sum() + 2
+    np.testing.assert_array_equal(a.read_all().positions, b.read_all().positions)
+    np.testing.assert_array_equal(a.read_all().values, b.read_all().values)
+
+
 # ---- Ctrl-C ---------------------------------------------------------------------------------------------------------
 
 def test_ctrl_c_in_adapt_with_a_log_says_how_to_continue_and_that_command_does(scratch):

@@ -5,18 +5,18 @@ Run it from any directory (mcrecon fills in the two paths)::
     mcrecon adapt --renderer-cmd "python -m mcrecon.renderers.example {request} {reply}" \
         --size 64x64 --spp 16 --method box -o out.exr --log run.h5
 
-It renders a soft disc over a gradient with per-sample noise.  It reads
-and writes the two HDF5 files with h5py alone, as a renderer of your own
-would: a C++ renderer does the same with the HDF5 C API -- read ``counts``
-and/or ``positions`` from the request, write ``positions``/``values`` and
-the attributes of docs/renderer-protocol.md to the reply.
+It renders a soft disc over a gradient with per-sample noise: the picture
+and the samples of ``data_tools/example_renderer.py``, which does the same
+with h5py alone, as a renderer in another language does with the HDF5
+library (docs/renderer-protocol.md).  This one reads the request with
+:func:`mcrecon.renderers.command.read_request`, which checks it, and
+writes the reply with :func:`mcrecon.io.write_log`.
 """
 
 from __future__ import annotations
 
 import sys
 
-import h5py
 import numpy as np
 
 __all__ = ["main", "shade"]
@@ -31,19 +31,18 @@ def shade(x, y, w, h, rng):
 
 def main(request_path, reply_path) -> None:
     """Answer the request file at ``request_path`` with a reply file at ``reply_path``."""
-    with h5py.File(request_path, "r") as f:
-        w, h, seed = int(f.attrs["width"]), int(f.attrs["height"]), int(f.attrs["seed"])
-        channels = f.attrs["channels"]
-        counts = f["counts"][...] if "counts" in f else np.zeros((h, w), np.int64)
-        extra = f["positions"][...] if "positions" in f else np.zeros((0, 2))
-    rng = np.random.default_rng(seed)
+    from ..io import write_log
+    from .command import read_request, request_channels
+
+    req = read_request(request_path)
+    w, h = req.width, req.height
+    counts = req.counts if req.counts is not None else np.zeros((h, w), np.int64)
+    extra = req.positions if req.positions is not None else np.zeros((0, 2))
+    rng = np.random.default_rng(req.seed)
     pix = np.repeat(np.arange(w * h), counts.ravel())  # counted samples first, inside their pixels
     pos = np.concatenate([np.stack([pix % w, pix // w], 1) + rng.random((pix.size, 2)), extra])
     values = shade(pos[:, 0], pos[:, 1], w, h, rng)
-    with h5py.File(reply_path, "w") as f:  # the reply is a sample log (format version 1)
-        f.attrs.update(format="mcrecon-sample-log", format_version=1, width=w, height=h, channels=channels)
-        f["positions"] = pos
-        f["values"] = values
+    write_log(reply_path, pos, values, width=w, height=h, channels=request_channels(request_path))
 
 
 def _cli(argv) -> int:
