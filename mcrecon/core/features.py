@@ -201,7 +201,6 @@ def usable_names(source) -> tuple[str, ...]:
 def _check_width(source, name, shape) -> None:
     """Refuse a feature of more than :data:`MAX_COMPONENTS` components per sample, naming it."""
     if shape and shape[0] > MAX_COMPONENTS:
-        from .samples import source_name
         raise InputError(source_name(source), f"features/{name}", f"per-sample shape {shape}: {shape[0]} "
                          f"components, at most {MAX_COMPONENTS} (one row per sample of (N,) or (N, k); an (N, N) "
                          "array is usually a broadcasting slip): rewrite or delete it (methods that read no "
