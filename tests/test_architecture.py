@@ -131,15 +131,6 @@ def test_only_io_opens_hdf5_and_exr_files():
     assert not bad, "\n".join(bad)
 
 
-#: Import circles known to be removed on other branches, tolerated until they are merged: each an exact
-#: set of modules.  Empty this list once those branches are in (a circle listed here that no longer exists
-#: is harmless; any other circle fails the test).
-KNOWN_CIRCLES = [
-    {"mcrecon.methods", "mcrecon.methods.base"},                    # the registry and the method contract
-    {"mcrecon.io.pixel_exr", "mcrecon.io.pixel_exr_features"},      # pixel EXR inputs and their features
-]
-
-
 def _import_graph(*, top_only: bool = False, sources: dict | None = None) -> dict[str, set[str]]:
     """``{module: the mcrecon modules it imports}``, module level and, unless ``top_only``, inside functions
     (``sources``: ``{module: text}`` read in place of those modules' files)."""
@@ -193,10 +184,7 @@ def test_no_import_circle():
     functions: a lazy import defers a circle to run time, it does not remove it.  (A package's
     ``__init__`` importing its sub-modules is a circle only where a sub-module imports the package back.)"""
     circles = _import_circles(_import_graph())
-    unknown = [c for c in circles if set(c) not in KNOWN_CIRCLES]
-    known = [c for c in circles if set(c) in KNOWN_CIRCLES]
-    assert not unknown, (f"import circles (module level and inside functions): {unknown}"
-                         + (f"; tolerated until merged (KNOWN_CIRCLES): {known}" if known else ""))
+    assert not circles, f"import circles (module level and inside functions): {circles}"
 
 
 def test_the_circle_check_reads_imports_inside_functions():
