@@ -369,7 +369,7 @@ def test_compiled_selection_helpers_are_bit_identical_to_their_numpy_definitions
     from mcrecon.methods.auto.passes import _FirstLeast, _arrays, _floor_and_choose, _mean_c, _means, _picked
     from mcrecon.methods.auto.selection import (_biased, _compress, _difference_rows, _guard_rows,
                                                 _neighbourhood_mean, _passed_rows)
-    from mcrecon.filters.masked import MaskedSmoothing, _smooth_masked
+    from mcrecon.filters.masked import MaskedSmoothing, smooth_masked
     from mcrecon.core.safeguard import sample_range_bounds
     rng = np.random.default_rng(2)
     a = rng.random((37, 44)) ** 3
@@ -378,11 +378,11 @@ def test_compiled_selection_helpers_are_bit_identical_to_their_numpy_definitions
     b[5, 5] = np.inf
     for sigma in (0.7, 2.0, 4.0):
         for x, y in zip((a, b, a * 2 + 1), MaskedSmoothing(sigma)([a, b, a * 2 + 1])):
-            np.testing.assert_array_equal(_smooth_masked(x, sigma), y)
-    # one MaskedSmoothing for several calls (the weight sum of full maps filtered once) is _smooth_masked
+            np.testing.assert_array_equal(smooth_masked(x, sigma), y)
+    # one MaskedSmoothing for several calls (the weight sum of full maps filtered once) is smooth_masked
     sm = MaskedSmoothing(2.0)
     for x in (a, b, a * 2 + 1, a):
-        np.testing.assert_array_equal(sm([x])[0], _smooth_masked(x, 2.0))
+        np.testing.assert_array_equal(sm([x])[0], smooth_masked(x, 2.0))
     # channel means of every candidate's estimate at once: numpy's (pairwise from 8 channels)
     for c in (1, 3, 9):
         ms = [rng.random((70, 8, c)) - 0.1 for _ in range(3)]
@@ -601,7 +601,7 @@ def test_albedo_divisor_fills_empty_pixels_floors_dark_albedo_and_is_none_withou
 
 
 def test_effective_counts_match_the_variance_of_the_masked_smoothing_by_brute_force():
-    """n_p = (sum_j w_j m_j)^2 / sum_j w_j^2 m_j is s^2 over the variance of _smooth_masked's output at p
+    """n_p = (sum_j w_j m_j)^2 / sum_j w_j^2 m_j is s^2 over the variance of smooth_masked's output at p
     for independent unit-variance pixels (brute force over the explicit weights), ~4 pi sigma^2 inside,
     a little over half of that on an edge and a quarter in a corner."""
     from mcrecon.filters.masked import _gauss_kernel, effective_counts

@@ -332,16 +332,16 @@ def test_adaptive_splat_applies_the_runs_nonfinite_policy(tmp_path):
 def test_validation_counts_the_nonfinite_rows_of_a_reply_in_its_one_pass(n, dtype):
     """The driver takes the count of rows with a NaN or Inf value from validate_reply's pass:
     the same count as a separate scan of the values (rows, not values)."""
-    from mcrecon.core.requests import _validate_reply
+    from mcrecon.core.requests import validate_reply_counted
 
     rng = np.random.default_rng(n)
     req = SampleRequest(16, 12, positions=rng.random((n, 2)) * [16, 12])
     val = rng.random((n, 3)).astype(dtype)
     for k, c, v in ((3, 0, np.nan), (3, 2, np.inf), (7, 1, -np.inf), (n - 1, 2, np.nan)):
         val[k, c] = v
-    batch, n_bad = _validate_reply(req, (req.positions, val), n_channels=3)
+    batch, n_bad = validate_reply_counted(req, (req.positions, val), n_channels=3)
     assert n_bad == int(np.count_nonzero(~np.isfinite(val).all(axis=1))) == 3
-    clean, none = _validate_reply(req, (req.positions, rng.random((n, 3)).astype(dtype)), n_channels=3)
+    clean, none = validate_reply_counted(req, (req.positions, rng.random((n, 3)).astype(dtype)), n_channels=3)
     assert none == 0
     np.testing.assert_array_equal(validate_reply(req, (req.positions, val), n_channels=3).values, batch.values)
 

@@ -817,7 +817,7 @@ def test_non_finite_inputs_are_refused_naming_the_argument_and_the_bad_pixels(mo
     flat_args = (flat_nan, np.full((h, w, 3), 0.01), np.full((h, w), 8), sig)
     with monkeypatch.context() as m:
         for mod in (gem_kernels, gem_selection):
-            m.setattr(mod, "_check_inputs", lambda *a, **k: None)
+            m.setattr(mod, "check_filter_inputs", lambda *a, **k: None)
         unchecked = run()
         spread = G.gem_select(*flat_args, gamma=0.2, final=True).image
     assert len(checked) == len(unchecked)

@@ -1,6 +1,6 @@
 """A reply's samples on their way to the log and the statistics: validated once, converted at most once.
 
-The adaptive driver validates a reply (``_validate_reply``: one pass) and
+The adaptive driver validates a reply (``validate_reply_counted``: one pass) and
 casts it to the log's dtype; the log append and the statistics take the
 result as it is (``checked``).  The files and images are the same as the
 long way round gave.
@@ -45,13 +45,13 @@ def _run(tmp_path, name, method="box"):
 def test_float32_positions_go_to_the_log_unconverted_and_the_same(tmp_path, monkeypatch):
     r, res, pos, val = _run(tmp_path, "short")
     assert pos.dtype == np.float32 and np.array_equal(pos, np.concatenate(r.sent))  # bit for bit what was sent
-    real = core_requests._validate_reply
+    real = core_requests.validate_reply_counted
 
     def long_way(*a, **kw):  # the previous path: positions through float64 first
         kw["keep_float32"] = False
         return real(*a, **kw)
 
-    monkeypatch.setattr("mcrecon.adaptive.rounds._validate_reply", long_way)
+    monkeypatch.setattr("mcrecon.adaptive.rounds.validate_reply_counted", long_way)
     _, res2, pos2, val2 = _run(tmp_path, "long")
     assert np.array_equal(pos, pos2) and np.array_equal(val, val2)
     assert np.array_equal(res.image, res2.image)

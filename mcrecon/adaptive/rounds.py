@@ -17,7 +17,7 @@ from ..errors import InputError, McreconWarning, RendererError
 from ..io.logformat import cast_positions
 from ..io.writer import append_log, set_run_settings, update_round_record, write_log
 from ..io.reader import read_log
-from ..core.requests import SampleBatch, _validate_reply
+from ..core.requests import SampleBatch, validate_reply_counted
 from ..core.features import check_features, layout_of, take_rows, usable_layout
 from ..core.samples import (FLOAT32_MAX, apply_nonfinite, check_memory, float32_loses_spread)
 from .schedule import _adaptive_state, _committed, _request_counts, round_seeds
@@ -136,8 +136,8 @@ class _Round:
         # the rows with a NaN or Inf value are counted in the validation's one pass; the cast to
         # the log's dtype keeps them (finite values beyond float32's range are refused there)
         # with a log, float32 positions go to its dtype once (in _to_storage), not through float64 first
-        batch, n_bad = _validate_reply(req, reply, n_channels=self.c, renderer=self.name,
-                                       keep_float32=self.log_path is not None)
+        batch, n_bad = validate_reply_counted(req, reply, n_channels=self.c, renderer=self.name,
+                                              keep_float32=self.log_path is not None)
         if self.storage_dtype == "auto":
             self.storage_dtype = _resolve_storage(self.log_path, np.asarray(batch.values).dtype)
         if self.log_path is not None:

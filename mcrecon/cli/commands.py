@@ -43,30 +43,11 @@ def _log_feature_details(path) -> list[dict]:
     return out
 
 
-def _exr_info(path) -> dict:
-    """What ``mcrecon denoise`` would find in a pixel-statistics EXR, without needing its sample count."""
-    from ..io.pixel_exr import (COUNT_ATTRIBUTES, _EXR, _detect_layout, _mitsuba_prefixes,
-                                find_feature_channels)
-
-    exr = _EXR(Path(path))
-    shapes = {a.shape for a in exr.arrays.values()}
-    h, w = next(iter(shapes)) if len(shapes) == 1 else (None, None)
-    layout = _detect_layout(exr)
-    prefixes = _mitsuba_prefixes(exr.names) if layout == "mitsuba-moment" else []
-    feats = find_feature_channels(exr.names, layout or "explicit", where=str(path),
-                                  prefix=prefixes[0] if len(prefixes) == 1 else None)
-    count = next((f"{a} = {exr.header[a]}" for a in COUNT_ATTRIBUTES if a in exr.header), None)
-    return {"file": str(path), "width": w, "height": h, "channels": list(exr.names),
-            "layout": layout,
-            "count": count or "none in the file (pass --spp N)",
-            "features": [{"name": f, "channels": list(m), "second_moments": list(m2) if m2 else None}
-                         for f, (m, m2) in feats.items()]}
-
-
 def _cmd_info(args):
     from ..io import summarize_log
+    from ..io.pixel_exr import describe_pixel_exr
 
-    info = _exr_info(args.log) if str(args.log).lower().endswith(".exr") else None
+    info = describe_pixel_exr(args.log) if str(args.log).lower().endswith(".exr") else None
     if info is not None and (info["layout"] is None and not info["features"]):
         info = None  # a plain image: the log reader says what it is and what is accepted
     if info is not None:

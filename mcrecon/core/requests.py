@@ -17,7 +17,7 @@ import numpy as np
 from ..errors import RendererError
 from .samples import check_samples
 
-__all__ = ['SampleRequest', 'SampleBatch', 'validate_reply', 'jittered_positions']
+__all__ = ['SampleRequest', 'SampleBatch', 'validate_reply', 'validate_reply_counted', 'jittered_positions', 'place_in_pixels']
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class SampleRequest:
@@ -115,7 +115,7 @@ def _pixel_counts(pos, width, height):
 
 
 @numba.njit(cache=True, nogil=True)
-def _place_in_pixels(u, counts, width):
+def place_in_pixels(u, counts, width):
     """Shift uniform [0, 1)^2 numbers into their pixels, in row-major pixel order (in place)."""
     k = 0
     for p in range(counts.shape[0]):
@@ -150,7 +150,7 @@ def jittered_positions(counts: np.ndarray, rng: np.random.Generator) -> np.ndarr
     """
     counts = np.ascontiguousarray(counts, dtype=np.int64)
     u = rng.random((int(counts.sum()), 2))
-    return _place_in_pixels(u, counts.ravel(), counts.shape[1])
+    return place_in_pixels(u, counts.ravel(), counts.shape[1])
 
 
 def validate_reply(request: SampleRequest, batch, *, n_channels: int,
@@ -164,12 +164,12 @@ def validate_reply(request: SampleRequest, batch, *, n_channels: int,
     Non-finite *values* are allowed here; the sample log's ingestion
     policy (``nonfinite=``) decides what happens to them.
     """
-    return _validate_reply(request, batch, n_channels=n_channels, renderer=renderer,
-                           position_tolerance=position_tolerance)[0]
+    return validate_reply_counted(request, batch, n_channels=n_channels, renderer=renderer,
+                                  position_tolerance=position_tolerance)[0]
 
 
-def _validate_reply(request: SampleRequest, batch, *, n_channels: int, renderer: str = "renderer",
-                    position_tolerance: float = 1e-4, keep_float32: bool = False):
+def validate_reply_counted(request: SampleRequest, batch, *, n_channels: int, renderer: str = "renderer",
+                           position_tolerance: float = 1e-4, keep_float32: bool = False):
     """:func:`validate_reply` and the number of rows with a NaN or Inf value, counted in the same
     pass over the reply (:func:`~mcrecon.core.samples.check_samples`).
 

@@ -10,7 +10,8 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ['TRUNCATE', 'adaptive_sigmas', 'final_sigmas', 'gaussian_kernel', 'pixel_kernel', 'kernel_radius']
+__all__ = ['TRUNCATE', 'adaptive_sigmas', 'final_sigmas', 'gaussian_kernel', 'pixel_kernel', 'kernel_radius', 'phase_kernels',
+           'check_filter_inputs']
 
 #: Gaussian kernels are truncated at this many standard deviations (the
 #: tails hold 0.27 % of the weight) and renormalised.
@@ -84,7 +85,7 @@ def _pixel_kernel_cached(sigma: float, s: int, truncate: float) -> np.ndarray:
     return k / k.sum()
 
 
-def _phase_kernels(sigma: float, s: int, truncate: float = TRUNCATE):
+def phase_kernels(sigma: float, s: int, truncate: float = TRUNCATE):
     """Polyphase pieces h_beta(d) = (1/s) sum_a g_sub(s d + beta - a), beta in [0, s)."""
     g = gaussian_kernel(sigma * s, truncate=truncate)
     rs = (g.size - 1) // 2
@@ -118,7 +119,7 @@ def _kernel_radius_cached(sigma: float, s: int, truncate: float) -> float:
     return float(np.sqrt(np.sum(k * x * x) / np.sum(k)))
 
 
-def _check_inputs(where: str, base, mean_var, count: np.ndarray, *, sub=None, reference=None) -> None:
+def check_filter_inputs(where: str, base, mean_var, count: np.ndarray, *, sub=None, reference=None) -> None:
     """Refuse mismatched shapes, NaN or Inf in the value arrays and negative counts."""
     if count.ndim != 2:
         raise InputError(where, "count", f"shape {count.shape}, expected (H, W): samples per pixel")

@@ -11,7 +11,7 @@ from scipy import ndimage
 from .engine import correlate_jobs, parallel_rows
 
 
-def _smooth_masked(a: np.ndarray, sigma: float) -> np.ndarray:
+def smooth_masked(a: np.ndarray, sigma: float) -> np.ndarray:
     """Normalised Gaussian smoothing of an (H, W) map over its finite entries.
 
     NaN entries (no estimate) take their neighbours' average; +inf entries
@@ -39,7 +39,7 @@ def _gauss_kernel(sigma: float, truncate: float = 3.0) -> np.ndarray:
 
 
 class MaskedSmoothing:
-    """:func:`_smooth_masked` of (H, W) float64 maps of one film at one ``sigma``, on the threaded filter engine.
+    """:func:`smooth_masked` of (H, W) float64 maps of one film at one ``sigma``, on the threaded filter engine.
 
     Bit-identical to it (:mod:`mcrecon.filters.engine` reproduces
     ``scipy.ndimage``'s arithmetic term for term).  A map finite everywhere is
@@ -57,7 +57,7 @@ class MaskedSmoothing:
 
     def __call__(self, maps: list, out: list | None = None) -> list:
         if self.sigma <= 0:
-            res = [_smooth_masked(a, self.sigma) for a in maps]
+            res = [smooth_masked(a, self.sigma) for a in maps]
             if out is None:
                 return res
             for o, r in zip(out, res):
@@ -122,7 +122,7 @@ def _normalise_rows(num, den, a, dst, i0, i1):
 
 
 def effective_counts(masks: list, sigma: float) -> list:
-    """Per pixel, how many independent pixels :func:`_smooth_masked` of a map defined on each mask averages.
+    """Per pixel, how many independent pixels :func:`smooth_masked` of a map defined on each mask averages.
 
     The smoothed value at p is ``sum_j w_j m_j x_j / sum_j w_j m_j`` (w the
     Gaussian of ``sigma``, m the mask); for independent x_j of equal

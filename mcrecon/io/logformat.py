@@ -18,7 +18,7 @@ from ..core.samples import lazy_njit
 from .lock import _err, live_writer
 
 __all__ = ['cast_positions', 'FORMAT_NAME', 'FORMAT_VERSION', 'FORMAT_MINOR', 'LogChunk', 'DEFAULT_CHUNK_ROWS',
-           'MAX_PIXELS']
+           'MAX_PIXELS', 'declared_samples']
 
 FORMAT_NAME = "mcrecon-sample-log"
 FORMAT_VERSION = 1
@@ -231,6 +231,20 @@ class _Header:
     format_minor: int
     positions: h5py.Dataset
     values: h5py.Dataset
+
+
+def declared_samples(path) -> int:
+    """The number of samples a file in the sample-log format declares, from its metadata alone.
+
+    A renderer's reply is checked with this before it is read: a reply declaring 200 M rows
+    (unwritten chunks cost no disk) is refused without reading it.  Raises :class:`InputError`
+    naming the file where it is not such a file.
+    """
+    try:
+        with _open(path) as f:
+            return _read_header(path, f).n
+    except _H5_ERRORS as exc:
+        raise _err(Path(path), "file", f"malformed: {' '.join(str(exc).split())}") from None
 
 
 def _read_header(path, f) -> _Header:

@@ -115,7 +115,8 @@ from .images import subsampled
 from .pixel_exr_features import FEATURE_CHANNELS, _read_features, find_feature_channels  # noqa: F401 (re-exported)
 
 __all__ = ['LAYOUTS', 'PixelStatsEXR', 'read_pixel_stats_exr', 'read_half_buffer_exrs', 'HALF_MAX',
-           'MITSUBA_XYZ_TO_SRGB', 'xyz_from_rgb_matrix', 'FEATURE_CHANNELS', 'find_feature_channels']
+           'MITSUBA_XYZ_TO_SRGB', 'xyz_from_rgb_matrix', 'FEATURE_CHANNELS', 'find_feature_channels',
+           'describe_pixel_exr']
 
 #: The layout presets (besides the explicit mapping).
 LAYOUTS = ("pbrt-v4", "mitsuba-moment")
@@ -612,3 +613,21 @@ def read_half_buffer_exrs(path_a, path_b, **options) -> tuple[PixelStatsEXR, Pix
         raise InputError(where, "chromaticities", "the halves have different colour spaces (their "
                          "chromaticities header attributes differ)")
     return a, b
+
+
+def describe_pixel_exr(path) -> dict:
+    """What a pixel-statistics EXR holds (size, channels, layout, count, features), for ``mcrecon info``:
+    read without needing its sample count, so it also describes a file that cannot be reconstructed yet."""
+    exr = _EXR(Path(path))
+    shapes = {a.shape for a in exr.arrays.values()}
+    h, w = next(iter(shapes)) if len(shapes) == 1 else (None, None)
+    layout = _detect_layout(exr)
+    prefixes = _mitsuba_prefixes(exr.names) if layout == "mitsuba-moment" else []
+    feats = find_feature_channels(exr.names, layout or "explicit", where=str(path),
+                                  prefix=prefixes[0] if len(prefixes) == 1 else None)
+    count = next((f"{a} = {exr.header[a]}" for a in COUNT_ATTRIBUTES if a in exr.header), None)
+    return {"file": str(path), "width": w, "height": h, "channels": list(exr.names),
+            "layout": layout,
+            "count": count or "none in the file (pass --spp N)",
+            "features": [{"name": f, "channels": list(m), "second_moments": list(m2) if m2 else None}
+                         for f, (m, m2) in feats.items()]}

@@ -61,7 +61,7 @@ import numba
 import numpy as np
 
 from ..errors import InputError, RendererError
-from ..core.requests import SampleBatch, SampleRequest, _place_in_pixels
+from ..core.requests import SampleBatch, SampleRequest, place_in_pixels
 # the feature names are part of the spec format (a spec records them): defined there, part of this interface
 from .spec_format import MITSUBA_FEATURES, check_mitsuba_features, mitsuba_spec
 from . import mitsuba_logs as _logs
@@ -561,7 +561,7 @@ class MitsubaRenderer:
             rng = np.random.default_rng([seed & 0xFFFFFFFFFFFFFFFF, rnd & 0xFFFFFFFFFFFFFFFF])
             # the numbers of jittered_positions(request.counts, rng), drawn into place
             rng.random(out=pos[:nc])
-            _place_in_pixels(pos[:nc], np.ascontiguousarray(request.counts, np.int64).ravel(), self.width)
+            place_in_pixels(pos[:nc], np.ascontiguousarray(request.counts, np.int64).ravel(), self.width)
         if npos:
             pos[nc:] = request.positions
         return pos, _normalised(pos, self.width, self.height)

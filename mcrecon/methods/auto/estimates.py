@@ -172,7 +172,7 @@ def sure_filter_bank(y: np.ndarray, v: np.ndarray, count: np.ndarray, sigmas, *,
     """
     from ...filters.engine import correlate_jobs, separable_weights
     from ...filters.gaussian import pixel_kernel
-    from ...filters.gaussian import _check_inputs
+    from ...filters.gaussian import check_filter_inputs
 
     # GEM's filter bank (mcrecon.methods.gem.filter_bank) restricted to what SURE
     # needs -- the filtered values and the weight sums, by the same jobs on the
@@ -181,7 +181,7 @@ def sure_filter_bank(y: np.ndarray, v: np.ndarray, count: np.ndarray, sigmas, *,
     count = np.asarray(count)
     y = np.asarray(y, dtype=np.float64)
     v = np.asarray(v, dtype=np.float64)
-    _check_inputs("sure_filter_bank", y, v, count)
+    check_filter_inputs("sure_filter_bank", y, v, count)
     sig = np.asarray(sigmas, dtype=np.float64)
     mask = count > 0
     full = bool(mask.all())

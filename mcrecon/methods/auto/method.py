@@ -34,7 +34,7 @@ from ...core.fill import mean_variance_policy
 from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGHTS, Candidate,
     _feature_bilateral, _filled, dual_candidate, feature_candidates)
 from .nlmeans import nlmeans_cross
-from ...filters.masked import MaskedSmoothing, _smooth_masked
+from ...filters.masked import MaskedSmoothing, smooth_masked
 from .passes import _mean_c, _picked
 from .selection import _global_prior, _largest_remainder, _no_push_in_heavy_tails, _region_guard, _relative_choice
 
@@ -375,7 +375,7 @@ class AutoMethod(Method):
         # the raw estimate is undefined at empty pixels: the smoothed absolute one there
         fin = np.isfinite(raw_abs)
         if not fin.all():
-            raw_abs = np.where(fin, raw_abs, _smooth_masked(raw_abs, max(smooth, 1.0)))
+            raw_abs = np.where(fin, raw_abs, smooth_masked(raw_abs, max(smooth, 1.0)))
         run.diagnostics = {
             "choice": choice.astype(np.float64),
             "estimated_mse": np.where(np.isfinite(raw_abs), raw_abs, 0.0),

@@ -22,7 +22,7 @@ from scipy import ndimage
 from ...filters.engine import correlate_jobs, mask_weights, safe_div, separable_weights
 from ...errors import InputError
 from ...core.stats import PixelStats
-from ...filters.gaussian import TRUNCATE, _check_inputs, _phase_kernels, kernel_radius, pixel_kernel
+from ...filters.gaussian import TRUNCATE, check_filter_inputs, phase_kernels, kernel_radius, pixel_kernel
 
 __all__ = ['filled_subpixels', 'subpixel_gaussian_exact', 'FilterBank', 'filter_bank', 'pending_n_eff']
 
@@ -67,7 +67,7 @@ def subpixel_gaussian_exact(sub: np.ndarray, count: np.ndarray, sigma: float, *,
     h, w = count.shape
     s = sub.shape[0] // h
     mask = count > 0
-    ph = _phase_kernels(sigma, s, truncate)
+    ph = phase_kernels(sigma, s, truncate)
     # x: (sH, sW, C) -> (sH, W, C)
     tx = ndimage.correlate1d(sub[:, 0::s], ph[0], axis=1, mode="constant", cval=0.0)
     for b in range(1, s):
@@ -170,7 +170,7 @@ def filter_bank(base: np.ndarray, mean_var: np.ndarray, count: np.ndarray, sigma
         the number of bad pixels).
     """
     count = np.asarray(count)
-    _check_inputs("filter_bank", base, mean_var, count, sub=sub if _uses_sub(sub, sigmas, exact_below) else None)
+    check_filter_inputs("filter_bank", base, mean_var, count, sub=sub if _uses_sub(sub, sigmas, exact_below) else None)
     return _filter_bank(base, mean_var, count, sigmas, subpixels=subpixels, per_channel=per_channel,
                         with_n_eff=with_n_eff, sub=sub, exact_below=exact_below, truncate=truncate,
                         threads=threads)

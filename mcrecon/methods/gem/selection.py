@@ -21,7 +21,7 @@ import numpy as np
 from ...filters.engine import correlate_jobs, parallel_calls, separable_weights
 from ...errors import InputError
 from ...core.metrics import DEFAULT_EPS
-from ...filters.gaussian import TRUNCATE, _check_inputs, gaussian_kernel
+from ...filters.gaussian import TRUNCATE, check_filter_inputs, gaussian_kernel
 from .kernels import FilterBank, _chan_sum, _filter_bank, _uses_sub
 
 __all__ = ['GAMMA_MAX', 'OUTLIER_RULES', 'CHANNEL_WEIGHTS', 'CHANNEL_EPS', 'check_gamma', 'confirm_pair_stops',
@@ -485,7 +485,7 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
         raise InputError("gem_select", "confirm_stops", f"{confirm_stops!r}; valid: 0, 1, 2")
     _check_channel_weights("gem_select", channel_weights)
     relative = channel_weights == "relative" and np.ndim(base) == 3 and np.shape(base)[2] > 1
-    _check_inputs("gem_select", base, mean_var, count, sub=sub if _uses_sub(sub, sigmas, exact_below) else None)
+    check_filter_inputs("gem_select", base, mean_var, count, sub=sub if _uses_sub(sub, sigmas, exact_below) else None)
     bank = _filter_bank(base, mean_var, count, sigmas, subpixels=subpixels, per_channel=want_mse or relative,
                         with_n_eff=want_mse, sub=sub, exact_below=exact_below, truncate=TRUNCATE)
     stops_raw, _ = stopping_maps(bank, count, gamma, channel_eps=CHANNEL_EPS if relative else None)
@@ -533,7 +533,7 @@ def oracle_select(base, mean_var, count, sigmas, reference, *, subpixels: int = 
     ref = np.asarray(reference, dtype=np.float64)
     count = np.asarray(count)
     _check_channel_weights("oracle_select", channel_weights)
-    _check_inputs("oracle_select", base, mean_var, count, reference=ref,
+    check_filter_inputs("oracle_select", base, mean_var, count, reference=ref,
                   sub=sub if _uses_sub(sub, sigmas, exact_below) else None)
     bank = _filter_bank(base, mean_var, count, sigmas, subpixels=subpixels, per_channel=True, with_n_eff=True,
                         sub=sub, exact_below=exact_below, truncate=TRUNCATE)
