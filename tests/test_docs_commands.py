@@ -1,4 +1,4 @@
-"""The shell commands of README.md and docs/**/*.md run as written (issue 27), so the docs cannot drift.
+"""The shell commands of README.md and docs/**/*.md run as written, so the docs cannot drift.
 
 Every ```sh block is run, its lines in order, one temporary directory per
 file (not the repository root), with a copy of data_tools/ in it as the

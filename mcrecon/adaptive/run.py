@@ -322,7 +322,7 @@ def _current_options(settings: Mapping) -> dict:
     """The recorded method options as today's options mean them (a log of an older run is resumed alike)."""
     opts = dict(settings["method_options"])
     if int(settings.get("options_version", 1)) < 2 and settings["method"] == "ci" and "exposure" in opts:
-        opts["exposure"] = math.log2(float(opts["exposure"]))  # a linear factor then, stops now: 1.0 -> 0.0
+        opts["exposure"] = math.log2(float(opts["exposure"]))  # options_version 1 stored a linear factor; stops since
     return opts
 
 

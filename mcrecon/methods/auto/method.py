@@ -315,11 +315,11 @@ class AutoMethod(Method):
         # The clamp's interval and the bias floor use each pixel's variance floored by its
         # neighbourhood's (pooled_mean_variance): a pixel whose samples missed a rare bright
         # component has a small variance of its own and a true value far outside its mean +- 4 sd
-        # (the built-in checker_spot: the clamp on the own variance took nfor's 0.08 of the pixel
-        # mean's error to 0.32).  The unbiased estimates themselves keep v.
+        # (a small light on a texture: a clamp on the pixel's own variance puts the hole back).
+        # The unbiased estimates themselves keep v.
         # With an albedo the neighbourhood is pooled, and the heavy-tail rule's median taken, in units
-        # of each pixel's albedo (albedo_divisor): a light square beside dark ones had its interval
-        # narrowed by theirs (checker_spot 0.119 -> 0.107 of the mean's error with it).
+        # of each pixel's albedo (albedo_divisor): a light square beside dark ones would otherwise have
+        # its interval narrowed by theirs.
         divisor = albedo_divisor(stats) if self.params["safeguard"] is not None else None
         v_safe = v if self.params["safeguard"] is None else safeguard_variance(v, count, divisor)
         sd = np.sqrt(v_safe)
@@ -341,9 +341,7 @@ class AutoMethod(Method):
             # summed over a neighbourhood (relative, as the metric sums them),
             # exceed the pixel mean's, the region keeps the pixel mean.  Not where the pixel holds
             # the global prior's default: its sum over the whole image beat the mean's, a far less
-            # noisy test than a neighbourhood's (measured, 128^2, 32 spp, 3 seeds: soft shadow
-            # 0.445 -> 0.430 of the mean's error, motion blur 0.362 -> 0.359, hdr 0.682 -> 0.675;
-            # a textured Mitsuba scene with caustics through glass 0.101 -> 0.104).
+            # noisy test than a neighbourhood's (docs/methods/auto.md, "Selection rule").
             choice = _region_guard(cands, den, choice, on_default, GUARD * smooth)
         img, raw_abs, est_rel = _picked(cands, rel, choice)
         img = fill_empty_pixels(img, count, source=_WHERE) if (count == 0).any() else img
@@ -361,11 +359,9 @@ class AutoMethod(Method):
                 # The heavy-tail rule judges a push by the median of the neighbours' means, which under
                 # a rarely found light lies below the truth (the pixel means are right-skewed): a
                 # feature-guided value at the truth of a pixel whose samples missed the light is then
-                # "further from the median" than its dark mean, and the rule put the hole back.  Pixels
-                # that chose a feature-guided candidate keep its clamped value (128^2, 32 spp, 3 seeds
-                # or logs, / box: checker_spot 0.071 -> 0.057, Cornell logs 0.103 -> 0.097 and 0.106 ->
-                # 0.100, a textured corridor 0.072 -> 0.066; the Mitsuba spheres behind glass 0.116 ->
-                # 0.119, bitmap texels 0.104 -> 0.106; untextured scenes within 0.5 %).
+                # "further from the median" than its dark mean, and the rule would put the hole back.
+                # Pixels that chose a feature-guided candidate keep its clamped value (its cost and gain
+                # per scene: docs/methods/auto.md, "Limits").
                 guided = [k for k, c in enumerate(cands) if c.feature]
                 keep = np.isin(choice, guided) if guided else None
                 kept = img[keep] if keep is not None and keep.any() else None

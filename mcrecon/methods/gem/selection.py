@@ -281,8 +281,8 @@ def remove_outliers(stops: np.ndarray, sigmas, *, final: bool = False, size_fact
     coarse scale's sigma (``final``: twice that, Sec. 6) with the centre
     pixel's weight set to 0 ("we ignore the center pixel", Sec. 4.4),
     renormalised over the pixels that vote; the result is rounded
-    (>= 0.5 -> 1).  With ``final`` only changes towards the coarser scale
-    (1 -> 0) are accepted.  A pixel without voting neighbours in the
+    (1 from 0.5 up).  With ``final`` only changes towards the coarser scale
+    (from 1 to 0) are accepted.  A pixel without voting neighbours in the
     support keeps its value.
 
     Parameters
