@@ -1,0 +1,139 @@
+"""A production frame: ``auto`` and ``nfor`` with features against ``gem`` and OIDN + albedo + normal, one run.
+
+On one log of a built-in textured scene with per-sample features (default
+checker_wall, 1920x1080, 32 spp), every number comes from the same run on
+the same input:
+
+* ``reconstruct --method gem``, ``auto`` and ``nfor`` as whole commands
+  (child processes): wall seconds, CPU seconds (user + system of the
+  child), peak RSS (``os.wait4``'s rusage of that child), and the
+  reconstruction seconds the command prints;
+* OIDN (``pyoidn.denoise(colour, albedo, normal, hdr=True,
+  quality="high")``) on the same pixel means: the denoise call only,
+  after a warm-up call on a small image;
+* the ratios the targets are stated in: auto / OIDN and nfor / OIDN
+  (reconstruction seconds against the denoise call), auto's whole command
+  / gem's whole command;
+* the machine's load average before and after, so a number measured on a
+  busy machine says so.
+
+Each method first reconstructs a tiny log of the same scene (not timed),
+so kernel compilation of a first run is not counted.
+
+    python benchmarks/bench_frame.py [--size 1920x1080] [--spp 32] [--scene checker_wall]
+                                     [--log LOG.h5] [--workdir DIR] [--methods gem,auto,nfor]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+_RECON = re.compile(r"reconstructed in ([0-9.]+) s")
+
+
+def _env() -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    return env
+
+
+def run_command(args: list[str]) -> dict:
+    """Run ``python -m mcrecon ARGS``: its wall and CPU seconds, peak RSS (this child's own rusage, ``os.wait4``)
+    and the reconstruction seconds it prints."""
+    t0 = time.perf_counter()
+    errf = tempfile.TemporaryFile("w+")
+    p = subprocess.Popen([sys.executable, "-m", "mcrecon", *args], stdout=subprocess.PIPE, stderr=errf,
+                         env=_env(), text=True)
+    # stderr goes to a file (no pipe to fill while stdout is read); then wait4 reaps the child with its own rusage
+    out = p.stdout.read()
+    _, status, ru = os.wait4(p.pid, 0)
+    errf.seek(0)
+    err = errf.read()
+    errf.close()
+    p.returncode = os.waitstatus_to_exitcode(status)
+    wall = time.perf_counter() - t0
+    if p.returncode != 0:
+        raise SystemExit(f"mcrecon {' '.join(args)} failed ({p.returncode}):\n{err[-2000:]}")
+    m = _RECON.search(out)
+    return {"wall": wall, "cpu": ru.ru_utime + ru.ru_stime, "rss_gb": ru.ru_maxrss * 1024 / 1e9,
+            "recon": float(m.group(1)) if m else float("nan")}
+
+
+def oidn_seconds(log: str) -> float:
+    """Seconds of one ``pyoidn.denoise`` call (colour, albedo, normal; hdr, quality high) on the log's pixel
+    means, after a warm-up call on a small crop."""
+    import pyoidn
+
+    from mcrecon.core.stats import PixelStats
+    from mcrecon.io.reader import read_log
+
+    st = PixelStats.from_source(read_log(log), features=("albedo", "normal"))
+    f32 = lambda a: np.ascontiguousarray(a, dtype=np.float32)  # noqa: E731
+    colour = f32(st.mean)
+    albedo, normal = f32(np.clip(st.features["albedo"].mean, 0, 1)), f32(st.features["normal"].mean)
+    pyoidn.denoise(colour[:64, :64].copy(), albedo[:64, :64].copy(), normal[:64, :64].copy(), hdr=True, quality="high")
+    t0 = time.perf_counter()
+    pyoidn.denoise(colour, albedo, normal, hdr=True, quality="high")
+    return time.perf_counter() - t0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--size", default="1920x1080", help="WIDTHxHEIGHT (default 1920x1080)")
+    ap.add_argument("--spp", type=int, default=32)
+    ap.add_argument("--scene", default="checker_wall")
+    ap.add_argument("--log", help="an existing log with features (else one is rendered into --workdir)")
+    ap.add_argument("--workdir", help="where the log and the outputs go (default: a temporary folder)")
+    ap.add_argument("--methods", default="gem,auto,nfor")
+    args = ap.parse_args(argv)
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    work = Path(args.workdir or tempfile.mkdtemp(prefix="bench_frame_"))
+    work.mkdir(parents=True, exist_ok=True)
+    load0 = os.getloadavg()
+    log = args.log
+    if log is None:
+        log = str(work / f"{args.scene}_{args.size}_{args.spp}.h5")
+        if not Path(log).exists():
+            run_command(["render-log", "--scene", args.scene, "--spp", str(args.spp), "--size", args.size, "--features",
+                         "-o", log])
+    tiny = str(work / f"{args.scene}_tiny.h5")
+    if not Path(tiny).exists():
+        run_command(["render-log", "--scene", args.scene, "--spp", "4", "--size", "48x40", "--features", "-o", tiny])
+    res = {}
+    for m in methods:
+        run_command(["reconstruct", tiny, "--method", m, "-o", str(work / f"tiny_{m}.exr")])  # compile, not timed
+        res[m] = run_command(["reconstruct", log, "--method", m, "-o", str(work / f"{m}.exr")])
+    try:
+        t_oidn = oidn_seconds(log)
+    except ImportError:
+        t_oidn = float("nan")
+    load1 = os.getloadavg()
+    print(f"bench_frame: {args.scene} {args.size}, {args.spp} spp, features; {os.cpu_count()} CPUs; load average "
+          f"{load0[0]:.2f} before, {load1[0]:.2f} after")
+    print(f"{'':8s} {'reconstruction s':>17s} {'command wall s':>15s} {'command CPU s':>14s} {'peak RSS GB':>12s}")
+    for m in methods:
+        r = res[m]
+        print(f"{m:8s} {r['recon']:17.2f} {r['wall']:15.2f} {r['cpu']:14.2f} {r['rss_gb']:12.2f}")
+    print(f"{'OIDN':8s} {t_oidn:17.2f}   (denoise call only: colour + albedo + normal, hdr, quality high)")
+    for m in ("auto", "nfor"):
+        if m in res:
+            print(f"{m} / OIDN (reconstruction): {res[m]['recon'] / t_oidn:.1f}")
+    if "auto" in res and "gem" in res:
+        print(f"auto / gem (whole command, wall): {res['auto']['wall'] / res['gem']['wall']:.1f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
