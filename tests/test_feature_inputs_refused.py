@@ -338,3 +338,24 @@ def test_bool_reply_features_of_the_feature_renderer_are_taken_as_0_1(tmp_path):
     log = read_log(tmp_path / "run.h5")
     pos = np.asarray(log.read_all().positions, np.float64)
     np.testing.assert_array_equal(log.read_feature("depth"), (pos[:, 0] + 1000 * pos[:, 1] > 500).astype(np.uint8))
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, np.finfo(np.float64).max])
+def test_a_python_renderers_zeroed_features_are_warned_once_per_run(bad):
+    """The reply check warned a callable renderer's NaN/Inf/DBL_MAX feature entries every round."""
+    from mcrecon.adaptive.run import adapt
+    from mcrecon.core.requests import SampleBatch, jittered_positions
+    from mcrecon.renderers.callable import CallableRenderer
+
+    def render(req):
+        rng = np.random.default_rng(req.seed)
+        pos = jittered_positions(req.counts, rng)
+        depth = np.ones(len(pos))
+        depth[::7] = bad
+        return SampleBatch(pos, rng.random((len(pos), 3)), {"depth": depth})
+
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        result = adapt(CallableRenderer(render, width=8, height=6), "box", spp=8, seed=3)
+    said = [str(w.message) for w in rec if "feature values set to 0" in str(w.message)]
+    assert len(result.rounds) > 1 and len(said) == 1, said

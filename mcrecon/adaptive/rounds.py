@@ -137,7 +137,7 @@ class _Round:
         # the log's dtype keeps them (finite values beyond float32's range are refused there)
         # with a log, float32 positions go to its dtype once (in _to_storage), not through float64 first
         batch, n_bad = validate_reply_counted(req, reply, n_channels=self.c, renderer=self.name,
-                                              keep_float32=self.log_path is not None)
+                                              keep_float32=self.log_path is not None, warned=self.warned)
         if self.storage_dtype == "auto":
             self.storage_dtype = _resolve_storage(self.log_path, np.asarray(batch.values).dtype)
         if self.log_path is not None:

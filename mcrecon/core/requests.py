@@ -169,9 +169,13 @@ def validate_reply(request: SampleRequest, batch, *, n_channels: int,
 
 
 def validate_reply_counted(request: SampleRequest, batch, *, n_channels: int, renderer: str = "renderer",
-                           position_tolerance: float = 1e-4, keep_float32: bool = False):
+                           position_tolerance: float = 1e-4, keep_float32: bool = False,
+                           warned: set | None = None):
     """:func:`validate_reply` and the number of rows with a NaN or Inf value, counted in the same
     pass over the reply (:func:`~mcrecon.core.samples.check_samples`).
+
+    ``warned``: the warnings already given for this renderer (the driver keeps one set per run); the
+    warning for zeroed feature entries is given once per renderer, not once per reply.
 
     ``keep_float32``: float32 positions of a reply without explicit positions stay float32 (the driver
     storing a log casts them to the log's dtype next: float32 -> float64 -> float32 is exact, so the
@@ -238,6 +242,8 @@ def validate_reply_counted(request: SampleRequest, batch, *, n_channels: int, re
             fixed = checked[str(name)]
             zeroed = n_fz and not within_feature_limit(np.asarray(given, dtype=fixed.dtype)).all()
             feats[str(name)] = (fixed[:, 0] if given.ndim == 1 else fixed) if zeroed else given
-        if n_fz:
+        if n_fz and (warned is None or "zeroed features" not in warned):
             warn_feature_zeroed(renderer, n_fz, stacklevel=3)
+            if warned is not None:
+                warned.add("zeroed features")
     return SampleBatch(pos, val, feats), int(n_nonfinite)
