@@ -230,7 +230,7 @@ def test_render_log_writes_the_stored_reference_as_exr(tmp_path, capsys):
     stored = read_log(log)
     assert channels == stored.channels
     assert np.array_equal(img, stored.reference().astype(np.float32))
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.h5", "ref.exr"]   # no temporary left
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.h5", "ref.exr", "ref.png"]   # and its preview; no temporary left
 
     other = tmp_path / "d.h5"
     for bad, text in ((str(other), "is the -o sample log"), (str(tmp_path / "r.png"), ".exr")):
