@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import _TINY_WIDTH, _checker, _njit, _overlap_fraction, _square_wave, _triangle
+from .base import _TINY_WIDTH, _box_cover, _box_hit, _checker, _njit, _square_wave, _triangle
 
 # --- checker_wall ------------------------------------------------------------
 
@@ -51,10 +51,7 @@ def _cw_albedo(x, y, f):
 
 @_njit
 def _cw_radiance(x, y, u, out):
-    w = _cw_width(x)
-    sx = x + w * (u[0] - 0.5)
-    sy = y + w * (u[1] - 0.5)
-    vis = 0.0 if (_CW_OCC[0] <= sx <= _CW_OCC[1] and _CW_OCC[2] <= sy <= _CW_OCC[3]) else 1.0
+    vis = 0.0 if _box_hit(x, y, _cw_width(x), u[0], u[1], _CW_OCC) else 1.0
     sky = _CW_SKY * 2.0 * u[2]
     _cw_albedo(x, y, out)
     for c in range(3):
@@ -63,9 +60,7 @@ def _cw_radiance(x, y, u, out):
 
 @_njit
 def _cw_expected(x, y, out):
-    w = _cw_width(x)
-    vis = 1.0 - (_overlap_fraction(x - 0.5 * w, x + 0.5 * w, _CW_OCC[0], _CW_OCC[1])
-                 * _overlap_fraction(y - 0.5 * w, y + 0.5 * w, _CW_OCC[2], _CW_OCC[3]))
+    vis = 1.0 - _box_cover(x, y, _cw_width(x), _CW_OCC)
     _cw_albedo(x, y, out)
     for c in range(3):
         out[c] *= _CW_SKY + _CW_LIGHT[c] * vis
@@ -113,10 +108,7 @@ def _cs_falloff(x, y):
 def _cs_radiance(x, y, u, out):
     vis = 0.0
     if u[0] < _CS_P:
-        w = _cs_width(x)
-        sx = x + w * (u[1] - 0.5)
-        sy = y + w * (u[2] - 0.5)
-        vis = 0.0 if (_CS_OCC[0] <= sx <= _CS_OCC[1] and _CS_OCC[2] <= sy <= _CS_OCC[3]) else 1.0 / _CS_P
+        vis = 0.0 if _box_hit(x, y, _cs_width(x), u[1], u[2], _CS_OCC) else 1.0 / _CS_P
     light = _cs_falloff(x, y) * vis
     sky = _CS_SKY * 2.0 * u[3]
     _cw_albedo(x, y, out)
@@ -126,9 +118,7 @@ def _cs_radiance(x, y, u, out):
 
 @_njit
 def _cs_expected(x, y, out):
-    w = _cs_width(x)
-    vis = 1.0 - (_overlap_fraction(x - 0.5 * w, x + 0.5 * w, _CS_OCC[0], _CS_OCC[1])
-                 * _overlap_fraction(y - 0.5 * w, y + 0.5 * w, _CS_OCC[2], _CS_OCC[3]))
+    vis = 1.0 - _box_cover(x, y, _cs_width(x), _CS_OCC)
     light = _cs_falloff(x, y) * vis
     _cw_albedo(x, y, out)
     for c in range(3):
