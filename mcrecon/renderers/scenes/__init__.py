@@ -171,12 +171,8 @@ def feature_reference(scene, width: int, height: int, *, quadrature: int = 32) -
 
     Parameters
     ----------
-    scene : str or Scene
-        A built-in scene name or a Scene with ``feature_names``.
-    width, height : int
-        Film size in pixels (>= 1).
-    quadrature : int
-        Midpoint-rule points per pixel and axis (>= 1).
+    scene, width, height, quadrature
+        As for :func:`reference_image`; the scene needs ``feature_names``.
 
     Returns
     -------

@@ -8,6 +8,7 @@ the formulas' documentation are in :mod:`.catalog` and ``docs/scenes.md``.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from .base import _TINY_WIDTH, _box_cover, _box_hit, _checker, _njit, _square_wave, _triangle
@@ -49,21 +50,25 @@ def _cw_albedo(x, y, f):
             f[c] = _CW_COARSE_ALBEDO[0, c] + (_CW_COARSE_ALBEDO[1, c] - _CW_COARSE_ALBEDO[0, c]) * chk
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _lit_wall(x, y, sky, light, amount, out):
+    """The textured wall's colour at one point into out[0:3]: albedo times (sky + light * amount)."""
+    _cw_albedo(x, y, out)
+    for c in range(3):
+        out[c] *= sky + light[c] * amount
+
+
 @_njit
 def _cw_radiance(x, y, u, out):
     vis = 0.0 if _box_hit(x, y, _cw_width(x), u[0], u[1], _CW_OCC) else 1.0
     sky = _CW_SKY * 2.0 * u[2]
-    _cw_albedo(x, y, out)
-    for c in range(3):
-        out[c] *= sky + _CW_LIGHT[c] * vis
+    _lit_wall(x, y, sky, _CW_LIGHT, vis, out)
 
 
 @_njit
 def _cw_expected(x, y, out):
     vis = 1.0 - _box_cover(x, y, _cw_width(x), _CW_OCC)
-    _cw_albedo(x, y, out)
-    for c in range(3):
-        out[c] *= _CW_SKY + _CW_LIGHT[c] * vis
+    _lit_wall(x, y, _CW_SKY, _CW_LIGHT, vis, out)
 
 
 @_njit
@@ -111,18 +116,14 @@ def _cs_radiance(x, y, u, out):
         vis = 0.0 if _box_hit(x, y, _cs_width(x), u[1], u[2], _CS_OCC) else 1.0 / _CS_P
     light = _cs_falloff(x, y) * vis
     sky = _CS_SKY * 2.0 * u[3]
-    _cw_albedo(x, y, out)
-    for c in range(3):
-        out[c] *= sky + _CS_LIGHT[c] * light
+    _lit_wall(x, y, sky, _CS_LIGHT, light, out)
 
 
 @_njit
 def _cs_expected(x, y, out):
     vis = 1.0 - _box_cover(x, y, _cs_width(x), _CS_OCC)
     light = _cs_falloff(x, y) * vis
-    _cw_albedo(x, y, out)
-    for c in range(3):
-        out[c] *= _CS_SKY + _CS_LIGHT[c] * light
+    _lit_wall(x, y, _CS_SKY, _CS_LIGHT, light, out)
 
 
 @_njit
