@@ -16,7 +16,8 @@ is :func:`box`; its stopping rule is adaptive: :func:`mcrecon.adapt`).  Each is 
 what is its own (the input, the notes, the references, an example); its options are the method's
 :class:`~mcrecon.methods.Option` list, written once there: :func:`_method_function` builds each
 function's signature (keyword-only, with the real defaults and types) and the options' entries of its
-docstring from them, as the command line builds its flags and ``mcrecon methods`` its listing.
+docstring from them, as the command line builds its flags and ``mcrecon methods`` its listing, and
+writes in the docstring entries every function shares (``nonfinite``, Returns, Raises).
 """
 
 from __future__ import annotations
@@ -93,22 +94,52 @@ def _option_entry(opt, cls, indent: str = "    ") -> str:
     return f"{indent}{opt.name} : {kind}, optional\n{body}\n"
 
 
-def _with_option_entries(doc: str, cls, own: list[str]) -> str:
-    """``doc`` with the entries of ``cls``'s options inserted in its Parameters section, before the entry of
-    the first of the function's own keyword-only parameters ``own`` (reference, nonfinite)."""
+#: The docstring parts every function shares, written in by :func:`_method_function` (unindented).
+_NONFINITE_ENTRY = """\
+nonfinite : {'drop', 'zero', 'raise'}, optional
+    Policy for NaN/Inf sample values of a SampleSet (default 'drop').
+"""
+_RETURNS = """
+Returns
+-------
+image : ndarray (H, W, C)
+    float32 when the input values were float32, else float64.
+"""
+_RAISES = """
+Raises
+------
+InputError
+    Invalid or unknown options (the message lists the valid values), NaN/Inf in the
+    statistics, an input without any sample, the wrong kind of input.
+"""
+
+
+def _built_doc(doc: str, cls, own: list[str]) -> str:
+    """``doc`` with what the functions share written in: the entries of ``cls``'s options in its Parameters
+    section, before the entry of the first of the function's own keyword-only parameters ``own``
+    (reference) or else at its end; the ``nonfinite`` entry at its end; the Returns section after it, and
+    the Raises section unless ``doc`` has its own."""
     lines = doc.splitlines(keepends=True)
-    at = next(i for i, line in enumerate(lines) if line.strip().split(" : ")[0] in own and " : " in line)
-    indent = lines[at][:len(lines[at]) - len(lines[at].lstrip())]
-    return "".join(lines[:at]) + "".join(_option_entry(o, cls, indent) for o in cls.options) + "".join(lines[at:])
+    underlines = [i for i in range(1, len(lines)) if lines[i].strip() and set(lines[i].strip()) == {"-"}]
+    headers = [lines[i - 1].strip() for i in underlines]
+    start, end = underlines[0] + 1, underlines[1] - 2  # the Parameters entries; end: the blank line after them
+    indent = lines[underlines[0]][:len(lines[underlines[0]]) - len(lines[underlines[0]].lstrip())]
+    at = next((i for i in range(start, end) if " : " in lines[i] and lines[i].strip().split(" : ")[0] in own), end)
+    options = "".join(_option_entry(o, cls, indent) for o in cls.options)
+    shared = _NONFINITE_ENTRY + _RETURNS + ("" if "Raises" in headers else _RAISES)
+    return ("".join(lines[:at]) + options + "".join(lines[at:end])
+            + textwrap.indent(shared, indent) + "".join(lines[end:]))
 
 
 def _method_function(fn):
     """The array-level function of the method named ``fn.__name__``, built from ``fn`` and the method's options.
 
     ``fn`` is written out with the input (``source``, positional-only), its own keyword-only parameters
-    (``reference``, ``nonfinite``), ``**options`` and a docstring whose Parameters section holds those;
-    the function returned takes every option of the method as a keyword-only parameter with its default
-    (its ``__signature__``, which ``help`` and ``inspect.signature`` show) and lists them in its docstring.
+    (``reference``, ``nonfinite``), ``**options`` and a docstring with what is its own (the entries of
+    ``source`` and ``reference``, the notes, the references, an example); the function returned takes
+    every option of the method as a keyword-only parameter with its default (its ``__signature__``, which
+    ``help`` and ``inspect.signature`` show) and its docstring adds what every function shares
+    (:func:`_built_doc`).
     The call sees only the options given, so that an option left out takes the chosen variant's preset
     while a value given explicitly always wins -- also one equal to the default shown.
     """
@@ -133,7 +164,7 @@ def _method_function(fn):
         return _run(name, source, fixed.get("reference"), fixed["nonfinite"], options, unknown)
 
     call.__signature__ = written.replace(parameters=[source_param, *option_params, *own])
-    call.__doc__ = _with_option_entries(fn.__doc__, cls, [p.name for p in own])
+    call.__doc__ = _built_doc(fn.__doc__, cls, [p.name for p in own])
     del call.__wrapped__  # the signature is the one built here, not the written-out one's
     return call
 
@@ -147,19 +178,6 @@ def box(source, /, *, nonfinite="drop", **options) -> np.ndarray:
     source : PixelStats
         Pixel statistics, e.g. ``PixelStats.from_moments(mean, variance, count)`` or
         ``PixelStats.from_samples(...)``; a SampleSet is accepted too.
-    nonfinite : {'drop', 'zero', 'raise'}, optional
-        Policy for NaN/Inf sample values of a SampleSet (default 'drop').
-
-    Returns
-    -------
-    image : ndarray (H, W, C)
-        float32 when the input values were float32, else float64.
-
-    Raises
-    ------
-    InputError
-        Invalid or unknown options (the message lists the valid values), NaN/Inf in the
-        statistics, an input without any sample, the wrong kind of input.
 
     Notes
     -----
@@ -191,19 +209,6 @@ def gem(source, /, *, reference=None, nonfinite="drop", **options) -> np.ndarray
         ``PixelStats.from_samples(...)``; a SampleSet is accepted too.
     reference : ndarray (H, W, C), optional
         The reference image (for ``oracle=1``).
-    nonfinite : {'drop', 'zero', 'raise'}, optional
-        Policy for NaN/Inf sample values of a SampleSet (default 'drop').
-
-    Returns
-    -------
-    image : ndarray (H, W, C)
-        float32 when the input values were float32, else float64.
-
-    Raises
-    ------
-    InputError
-        Invalid or unknown options (the message lists the valid values), NaN/Inf in the
-        statistics, an input without any sample, the wrong kind of input.
 
     Notes
     -----
@@ -238,19 +243,6 @@ def awr(source, /, *, nonfinite="drop", **options) -> np.ndarray:
     source : PixelStats
         Pixel statistics, e.g. ``PixelStats.from_moments(mean, variance, count)`` or
         ``PixelStats.from_samples(...)``; a SampleSet is accepted too.
-    nonfinite : {'drop', 'zero', 'raise'}, optional
-        Policy for NaN/Inf sample values of a SampleSet (default 'drop').
-
-    Returns
-    -------
-    image : ndarray (H, W, C)
-        float32 when the input values were float32, else float64.
-
-    Raises
-    ------
-    InputError
-        Invalid or unknown options (the message lists the valid values), NaN/Inf in the
-        statistics, an input without any sample, the wrong kind of input.
 
     Notes
     -----
@@ -286,19 +278,6 @@ def splat(source, /, *, nonfinite="drop", **options) -> np.ndarray:
     source : SampleSet
         The samples (rounds are replayed in order; a single round is split into doubling pseudo-rounds per
         pixel).
-    nonfinite : {'drop', 'zero', 'raise'}, optional
-        Policy for NaN/Inf sample values of a SampleSet (default 'drop').
-
-    Returns
-    -------
-    image : ndarray (H, W, C)
-        float32 when the input values were float32, else float64.
-
-    Raises
-    ------
-    InputError
-        Invalid or unknown options (the message lists the valid values), NaN/Inf in the
-        statistics, an input without any sample, the wrong kind of input.
 
     Notes
     -----
@@ -333,19 +312,6 @@ def auto(source, /, *, nonfinite="drop", **options) -> np.ndarray:
         ``(stats_a, stats_b)``: statistics of two independent halves of the samples (dual buffers a renderer
         wrote; same size and channels, counts may differ), used as the two halves and merged for the SURE
         candidates.  With one set of pixel statistics pass ``candidates='box,gauss'`` (the SURE candidates).
-    nonfinite : {'drop', 'zero', 'raise'}, optional
-        Policy for NaN/Inf sample values of a SampleSet (default 'drop').
-
-    Returns
-    -------
-    image : ndarray (H, W, C)
-        float32 when the input values were float32, else float64.
-
-    Raises
-    ------
-    InputError
-        Invalid or unknown options (the message lists the valid values), NaN/Inf in the
-        statistics, an input without any sample, the wrong kind of input.
 
     Notes
     -----
@@ -386,13 +352,6 @@ def nfor(source, /, *, nonfinite="drop", **options) -> np.ndarray:
         Samples with per-sample features (``SampleSet(features=...)``: split into two halves here), or a
         half-buffer pair ``(stats_a, stats_b)`` of two independent halves with features
         (``PixelStats(features=...)``).  Sources without features are refused.
-    nonfinite : {'drop', 'zero', 'raise'}, optional
-        Policy for NaN/Inf sample values of a SampleSet (default 'drop').
-
-    Returns
-    -------
-    image : ndarray (H, W, C)
-        float32 when the input values were float32, else float64.
 
     Raises
     ------

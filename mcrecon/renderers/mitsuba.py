@@ -223,36 +223,6 @@ def mitsuba_available(variant: str = "llvm_ad_rgb", *, timeout: float = PROBE_TI
 
 # ------------------------------------------------------------- the renderer
 
-def check_mitsuba_features(features, *, where: str = _WHERE) -> tuple[str, ...]:
-    """The feature names an option value asks for, in :data:`MITSUBA_FEATURES` order.
-
-    ``"all"`` (every feature), ``"none"``, ``None`` or an empty sequence (no
-    features), a comma-separated string (``"albedo,depth"``, as the CLI's
-    ``--features``) or a sequence of names.
-    """
-    valid = ", ".join(MITSUBA_FEATURES)
-    if features is None:
-        return ()
-    if isinstance(features, str):
-        if features == "all":
-            return tuple(MITSUBA_FEATURES)
-        if features == "none":
-            return ()
-        features = [f.strip() for f in features.split(",")]
-    try:
-        names = list(features)
-    except TypeError:
-        raise InputError(where, "features", f"got {type(features).__name__}, expected 'all', 'none' or names "
-                         f"from {valid}") from None
-    bad = [f for f in names if not isinstance(f, str) or f not in MITSUBA_FEATURES]
-    if bad:
-        raise InputError(where, "features", f"unknown feature {bad[0]!r}; valid: 'all', 'none', or a "
-                         f"comma-separated list of {valid}")
-    if len(set(names)) != len(names):
-        raise InputError(where, "features", f"{','.join(names)} names a feature twice")
-    return tuple(f for f in MITSUBA_FEATURES if f in names)
-
-
 def _resize_scene_dict(d: Mapping, width: int | None, height: int | None) -> dict:
     """Copy of a Mitsuba scene dict with every sensor's film resized."""
     def copy_dicts(x):

@@ -111,11 +111,24 @@ def _check_int(where, field, value, minimum):
     return int(value)
 
 
-@functools.lru_cache(maxsize=32)
-def _reference_cached(name: str, width: int, height: int, quadrature: int) -> np.ndarray:
-    out = get_scene(name)._reference(width, height, quadrature)
+@functools.lru_cache(maxsize=48)
+def _reference_cached(name: str, width: int, height: int, quadrature: int, features: bool) -> np.ndarray:
+    sc = get_scene(name)
+    out = (sc._feature_reference if features else sc._reference)(width, height, quadrature)
     out.setflags(write=False)  # shared between callers: they get copies
     return out
+
+
+def _pixel_average(sc, where: str, width, height, quadrature, *, features: bool) -> np.ndarray:
+    """The pixel-area average of ``sc``'s expected colour (or features) at checked sizes; read-only when it
+    comes from the cache of the built-in scenes."""
+    width = _check_int(where, "width", width, 1)
+    height = _check_int(where, "height", height, 1)
+    quadrature = _check_int(where, "quadrature", quadrature, 1)
+    if sc.name in SCENES and type(sc) is SCENES[sc.name]:
+        return _reference_cached(sc.name, width, height, quadrature, features)
+    # A user's own Scene: not cached (its name need not be unique).
+    return (sc._feature_reference if features else sc._reference)(width, height, quadrature)
 
 
 def reference_image(scene, width: int, height: int, *, quadrature: int = 32) -> np.ndarray:
@@ -143,21 +156,7 @@ def reference_image(scene, width: int, height: int, *, quadrature: int = 32) -> 
     ndarray (height, width, 3) float64
         A fresh, writable copy.
     """
-    sc = get_scene(scene)
-    width = _check_int("reference_image", "width", width, 1)
-    height = _check_int("reference_image", "height", height, 1)
-    quadrature = _check_int("reference_image", "quadrature", quadrature, 1)
-    if sc.name in SCENES and type(sc) is SCENES[sc.name]:
-        return _reference_cached(sc.name, width, height, quadrature).copy()
-    # A user's own Scene: not cached (its name need not be unique).
-    return sc._reference(width, height, quadrature)
-
-
-@functools.lru_cache(maxsize=16)
-def _feature_reference_cached(name: str, width: int, height: int, quadrature: int) -> np.ndarray:
-    out = get_scene(name)._feature_reference(width, height, quadrature)
-    out.setflags(write=False)
-    return out
+    return _pixel_average(get_scene(scene), "reference_image", width, height, quadrature, features=False).copy()
 
 
 def feature_reference(scene, width: int, height: int, *, quadrature: int = 32) -> dict:
@@ -172,12 +171,8 @@ def feature_reference(scene, width: int, height: int, *, quadrature: int = 32) -
 
     Parameters
     ----------
-    scene : str or Scene
-        A built-in scene name or a Scene with ``feature_names``.
-    width, height : int
-        Film size in pixels (>= 1).
-    quadrature : int
-        Midpoint-rule points per pixel and axis (>= 1).
+    scene, width, height, quadrature
+        As for :func:`reference_image`; the scene needs ``feature_names``.
 
     Returns
     -------
@@ -192,13 +187,7 @@ def feature_reference(scene, width: int, height: int, *, quadrature: int = 32) -
     """
     sc = get_scene(scene)
     sc._check_has_features("feature_reference")
-    width = _check_int("feature_reference", "width", width, 1)
-    height = _check_int("feature_reference", "height", height, 1)
-    quadrature = _check_int("feature_reference", "quadrature", quadrature, 1)
-    if sc.name in SCENES and type(sc) is SCENES[sc.name]:
-        arr = _feature_reference_cached(sc.name, width, height, quadrature)
-    else:
-        arr = sc._feature_reference(width, height, quadrature)
+    arr = _pixel_average(sc, "feature_reference", width, height, quadrature, features=True)
     return {name: np.array(a) for name, a in split_features(arr).items()}
 
 

@@ -28,6 +28,22 @@ def _overlap_fraction(lo, hi, a, b):
 
 
 @_njit
+def _box_cover(x, y, w, o):
+    """Fraction of the w x w square centred on (x, y) inside the box o = [a, b] x [c, d]: the share of an
+    area light (the square) that the occluder with shadow core o hides from the point."""
+    return (_overlap_fraction(x - 0.5 * w, x + 0.5 * w, o[0], o[1])
+            * _overlap_fraction(y - 0.5 * w, y + 0.5 * w, o[2], o[3]))
+
+
+@_njit
+def _box_hit(x, y, w, u1, u2, o):
+    """Whether the light sample (u1, u2) of that square, (x + w (u1 - 1/2), y + w (u2 - 1/2)), is in box o."""
+    sx = x + w * (u1 - 0.5)
+    sy = y + w * (u2 - 0.5)
+    return o[0] <= sx <= o[1] and o[2] <= sy <= o[3]
+
+
+@_njit
 def _checker(x, y, n):
     """0/1 checkerboard with n squares per unit: (floor(n x) + floor(n y)) mod 2."""
     return float((int(np.floor(n * x)) + int(np.floor(n * y))) & 1)

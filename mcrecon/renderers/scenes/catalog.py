@@ -92,17 +92,18 @@ class Scene:
         return self._expected(x, y)
 
     def _radiance(self, x, y, u):
-        if not self._kernel:
-            raise NotImplementedError(f"{type(self).__name__} must override _radiance(x, y, u) or set _kernel")
-        out = np.empty((x.size, len(self.channels)))
-        _radiance_loop(self._kernel, x, y, u, out)
-        return out
+        return self._run_kernel(_radiance_loop, "_radiance(x, y, u)", len(self.channels), x, y, u)
 
     def _expected(self, x, y):
+        return self._run_kernel(_expected_loop, "_expected(x, y)", len(self.channels), x, y)
+
+    def _run_kernel(self, loop, method: str, columns: int, x, *args):
+        """``loop`` over the points of this scene's compiled kernel into a fresh (N, columns) array; a scene
+        without one (``_kernel = 0``) must override ``method``."""
         if not self._kernel:
-            raise NotImplementedError(f"{type(self).__name__} must override _expected(x, y) or set _kernel")
-        out = np.empty((x.size, len(self.channels)))
-        _expected_loop(self._kernel, x, y, out)
+            raise NotImplementedError(f"{type(self).__name__} must override {method} or set _kernel")
+        out = np.empty((x.size, columns))
+        loop(self._kernel, x, *args, out)
         return out
 
     def features(self, x, y, u) -> dict:
@@ -143,19 +144,10 @@ class Scene:
         return np.ascontiguousarray(u)
 
     def _features(self, x, y, u):
-        if not self._kernel:
-            raise NotImplementedError(f"{type(self).__name__} must override _features(x, y, u) or set _kernel")
-        out = np.empty((x.size, _N_FEATURES))
-        _features_loop(self._kernel, x, y, u, out)
-        return out
+        return self._run_kernel(_features_loop, "_features(x, y, u)", _N_FEATURES, x, y, u)
 
     def _expected_features(self, x, y):
-        if not self._kernel:
-            raise NotImplementedError(f"{type(self).__name__} must override _expected_features(x, y) or set "
-                                      "_kernel")
-        out = np.empty((x.size, _N_FEATURES))
-        _feature_expected_loop(self._kernel, x, y, out)
-        return out
+        return self._run_kernel(_feature_expected_loop, "_expected_features(x, y)", _N_FEATURES, x, y)
 
     def _reference(self, width, height, quadrature):
         out = np.empty((height, width, len(self.channels)))

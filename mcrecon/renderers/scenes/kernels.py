@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import _box_square_wave, _box_wave, _checker, _njit, _overlap_fraction, _square_wave, _wave
+from .base import _box_cover, _box_hit, _box_square_wave, _box_wave, _checker, _njit, _square_wave, _wave
 from .textured import (_cd_expected, _cd_feature_expected, _cd_features, _cd_radiance, _cs_expected,
                        _cs_feature_expected, _cs_features, _cs_radiance, _cw_expected, _cw_feature_expected,
                        _cw_features, _cw_radiance)
@@ -40,12 +40,9 @@ def _ss_shade(x, y, vis, out):
 @_njit
 def _ss_radiance(x, y, u, out):
     w = _ss_width(x, y)
-    sx = x + w * (u[0] - 0.5)
-    sy = y + w * (u[1] - 0.5)
     vis = 1.0
     for k in range(_SS_OCCLUDERS.shape[0]):
-        o = _SS_OCCLUDERS[k]
-        if o[0] <= sx <= o[1] and o[2] <= sy <= o[3]:
+        if _box_hit(x, y, w, u[0], u[1], _SS_OCCLUDERS[k]):
             vis = 0.0
     _ss_shade(x, y, vis, out)
 
@@ -55,9 +52,7 @@ def _ss_expected(x, y, out):
     w = _ss_width(x, y)
     vis = 1.0
     for k in range(_SS_OCCLUDERS.shape[0]):
-        o = _SS_OCCLUDERS[k]
-        vis -= (_overlap_fraction(x - 0.5 * w, x + 0.5 * w, o[0], o[1])
-                * _overlap_fraction(y - 0.5 * w, y + 0.5 * w, o[2], o[3]))
+        vis -= _box_cover(x, y, w, _SS_OCCLUDERS[k])
     _ss_shade(x, y, vis, out)
 
 
@@ -262,19 +257,14 @@ def _hd_write(region, base, scale, vis, out):
 @_njit
 def _hd_radiance(x, y, u, out):
     region, base = _hd_base(x, y)
-    w = 0.02 + 0.1 * x
-    sx = x + w * (u[1] - 0.5)
-    sy = y + w * (u[2] - 0.5)
-    blocked = _HD_OCC[0] <= sx <= _HD_OCC[1] and _HD_OCC[2] <= sy <= _HD_OCC[3]
+    blocked = _box_hit(x, y, 0.02 + 0.1 * x, u[1], u[2], _HD_OCC)
     _hd_write(region, base, 0.5 + u[0], 0.0 if blocked else 1.0, out)
 
 
 @_njit
 def _hd_expected(x, y, out):
     region, base = _hd_base(x, y)
-    w = 0.02 + 0.1 * x
-    vis = 1.0 - (_overlap_fraction(x - 0.5 * w, x + 0.5 * w, _HD_OCC[0], _HD_OCC[1])
-                 * _overlap_fraction(y - 0.5 * w, y + 0.5 * w, _HD_OCC[2], _HD_OCC[3]))
+    vis = 1.0 - _box_cover(x, y, 0.02 + 0.1 * x, _HD_OCC)
     _hd_write(region, base, 1.0, vis, out)
 
 

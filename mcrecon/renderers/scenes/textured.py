@@ -8,9 +8,10 @@ the formulas' documentation are in :mod:`.catalog` and ``docs/scenes.md``.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
-from .base import _TINY_WIDTH, _checker, _njit, _overlap_fraction, _square_wave, _triangle
+from .base import _TINY_WIDTH, _box_cover, _box_hit, _checker, _njit, _square_wave, _triangle
 
 # --- checker_wall ------------------------------------------------------------
 
@@ -49,26 +50,25 @@ def _cw_albedo(x, y, f):
             f[c] = _CW_COARSE_ALBEDO[0, c] + (_CW_COARSE_ALBEDO[1, c] - _CW_COARSE_ALBEDO[0, c]) * chk
 
 
-@_njit
-def _cw_radiance(x, y, u, out):
-    w = _cw_width(x)
-    sx = x + w * (u[0] - 0.5)
-    sy = y + w * (u[1] - 0.5)
-    vis = 0.0 if (_CW_OCC[0] <= sx <= _CW_OCC[1] and _CW_OCC[2] <= sy <= _CW_OCC[3]) else 1.0
-    sky = _CW_SKY * 2.0 * u[2]
+@numba.njit(cache=True, nogil=True, inline="always")
+def _lit_wall(x, y, sky, light, amount, out):
+    """The textured wall's colour at one point into out[0:3]: albedo times (sky + light * amount)."""
     _cw_albedo(x, y, out)
     for c in range(3):
-        out[c] *= sky + _CW_LIGHT[c] * vis
+        out[c] *= sky + light[c] * amount
+
+
+@_njit
+def _cw_radiance(x, y, u, out):
+    vis = 0.0 if _box_hit(x, y, _cw_width(x), u[0], u[1], _CW_OCC) else 1.0
+    sky = _CW_SKY * 2.0 * u[2]
+    _lit_wall(x, y, sky, _CW_LIGHT, vis, out)
 
 
 @_njit
 def _cw_expected(x, y, out):
-    w = _cw_width(x)
-    vis = 1.0 - (_overlap_fraction(x - 0.5 * w, x + 0.5 * w, _CW_OCC[0], _CW_OCC[1])
-                 * _overlap_fraction(y - 0.5 * w, y + 0.5 * w, _CW_OCC[2], _CW_OCC[3]))
-    _cw_albedo(x, y, out)
-    for c in range(3):
-        out[c] *= _CW_SKY + _CW_LIGHT[c] * vis
+    vis = 1.0 - _box_cover(x, y, _cw_width(x), _CW_OCC)
+    _lit_wall(x, y, _CW_SKY, _CW_LIGHT, vis, out)
 
 
 @_njit
@@ -113,26 +113,17 @@ def _cs_falloff(x, y):
 def _cs_radiance(x, y, u, out):
     vis = 0.0
     if u[0] < _CS_P:
-        w = _cs_width(x)
-        sx = x + w * (u[1] - 0.5)
-        sy = y + w * (u[2] - 0.5)
-        vis = 0.0 if (_CS_OCC[0] <= sx <= _CS_OCC[1] and _CS_OCC[2] <= sy <= _CS_OCC[3]) else 1.0 / _CS_P
+        vis = 0.0 if _box_hit(x, y, _cs_width(x), u[1], u[2], _CS_OCC) else 1.0 / _CS_P
     light = _cs_falloff(x, y) * vis
     sky = _CS_SKY * 2.0 * u[3]
-    _cw_albedo(x, y, out)
-    for c in range(3):
-        out[c] *= sky + _CS_LIGHT[c] * light
+    _lit_wall(x, y, sky, _CS_LIGHT, light, out)
 
 
 @_njit
 def _cs_expected(x, y, out):
-    w = _cs_width(x)
-    vis = 1.0 - (_overlap_fraction(x - 0.5 * w, x + 0.5 * w, _CS_OCC[0], _CS_OCC[1])
-                 * _overlap_fraction(y - 0.5 * w, y + 0.5 * w, _CS_OCC[2], _CS_OCC[3]))
+    vis = 1.0 - _box_cover(x, y, _cs_width(x), _CS_OCC)
     light = _cs_falloff(x, y) * vis
-    _cw_albedo(x, y, out)
-    for c in range(3):
-        out[c] *= _CS_SKY + _CS_LIGHT[c] * light
+    _lit_wall(x, y, _CS_SKY, _CS_LIGHT, light, out)
 
 
 @_njit
