@@ -174,7 +174,7 @@ def test_cli_external_renderer_failing_in_round_0_then_corrected(tmp_path, capsy
     assert read_log(tmp_path / "ext.h5").n_samples == 16 * 12 * 4
 
 
-@pytest.mark.skipif(not __import__("importlib").util.find_spec("mitsuba"), reason="needs mitsuba")
+@pytest.mark.skipif(not __import__("importlib").util.find_spec("mitsuba"), reason="needs Mitsuba 3: PYTHON=.venv/bin/python bash data_tools/install_mitsuba.sh")
 def test_cli_mitsuba_without_features_leaves_no_log(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     code, _, err = _cli(["adapt", "--mitsuba", "cornell-box", "--features", "none", "--size", "8x8", "--spp", "4",

@@ -142,7 +142,7 @@ def test_exr_refusals_come_before_reading(files, tmp_path):
 # ------------------------------------------------------------------ batch over EXR frames
 @pytest.fixture(scope="module")
 def client():
-    pytest.importorskip("distributed")
+    pytest.importorskip("distributed", reason="needs the dask extra: pip install 'mcrecon[dask]'")
     from mcrecon.distributed import cluster
 
     with cluster.local_client(1, threads=1) as c:

@@ -345,7 +345,7 @@ def test_help_of_adapt_documents_every_parameter_and_its_example_runs():
 
 def test_help_of_reconstruct_names_every_method_that_takes_half_buffers():
     import mcrecon
-    from mcrecon.methods.base import half_buffer_methods
+    from mcrecon.methods import half_buffer_methods
 
     doc = " ".join(mcrecon.reconstruct.__doc__.split())
     assert half_buffer_methods() == ["auto", "nfor"]
