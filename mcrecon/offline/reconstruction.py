@@ -152,7 +152,8 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
         two independent halves of the samples (dual buffers a renderer
         wrote: ``(stats_a, stats_b)``, :class:`~mcrecon.core.halves.Halves`
         or two EXR paths ``("a.exr", "b.exr")``), for methods that declare
-        ``requires.half_buffers`` (``mcrecon.methods.half_buffer_methods()``).
+        ``requires.half_buffers`` (``auto`` and ``nfor`` of the built-in methods;
+        ``mcrecon.methods.half_buffer_methods()`` lists them all).
         The pair must agree in size, channels and subpixel grid; each
         pixel's counts may differ.  The statistics of all the samples are
         their Chan merge.  On pixel-statistics files a method whose options
