@@ -417,12 +417,9 @@ class AutoMethod(Method):
         if remaining <= 0:
             return None
         if p["sampling"] == "uniform":
-            # Measured (128^2, 32 spp, 3 seeds, ratio to uniform box): greedy placement
-            # 0.705 / 0.857 / 0.563 / 1.38 / 0.506 on soft_shadow / depth_of_field /
-            # motion_blur / caustic / hdr, against uniform auto's 0.489 / 0.567 / 0.435 /
-            # 0.719 / 0.703: the estimates that pick a filter well are too noisy per pixel
-            # to place samples.  Uniform rounds doubling the total after the initial_spp
-            # pass, like box.
+            # The estimates that pick a filter well are too noisy per pixel to place samples
+            # (docs/methods/auto.md, "Adaptive sampling"): uniform rounds doubling the total
+            # after the initial_spp pass, like box.
             n = self.doubling_round(state)
             return state.request(counts=uniform_counts(state.width, state.height, n, state.rng))
         npix = state.width * state.height
@@ -451,11 +448,10 @@ class AutoMethod(Method):
         share of samples at least ``uniform_share`` of a uniform run's, so
         a pixel whose GEM estimate misleads is never starved.
 
-        Measured (128^2, 32 spp, ratio to box of uniform samples, 3 seeds):
-        auto's own greedy placement and GEM's placement alone lost to uniform
-        sampling on depth of field (0.857 and 0.879 against 0.567); with half
-        of each round uniform, auto beat uniform sampling on every built-in
-        scene (docs/methods/auto.md).
+        Why the uniform part: auto's own greedy placement and GEM's placement
+        alone lose to uniform sampling on depth of field; with half of each
+        round uniform, auto beats uniform sampling on every built-in scene
+        (docs/methods/auto.md, "Adaptive sampling", has the table).
         """
         if n <= 0:
             return np.zeros((0, 2))
