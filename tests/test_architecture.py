@@ -42,6 +42,15 @@ def _modules():
         yield ".".join(parts), path, is_pkg
 
 
+def _from_target(mod: str, is_pkg: bool, node: ast.ImportFrom) -> str:
+    """The module a ``from ... import`` in module ``mod`` reads from, relative levels resolved."""
+    if not node.level:
+        return node.module or ""
+    base = mod.split(".") if is_pkg else mod.split(".")[:-1]
+    base = base[:len(base) - (node.level - 1)] if node.level > 1 else base
+    return ".".join(base + ([node.module] if node.module else []))
+
+
 def _imports(mod: str, path: Path, is_pkg: bool, *, top_only: bool = False, source: str | None = None):
     """(target module, line) of every mcrecon import in a file (targets resolved to modules where they are);
     ``source``: the text to read in place of the file's."""
@@ -49,12 +58,7 @@ def _imports(mod: str, path: Path, is_pkg: bool, *, top_only: bool = False, sour
     nodes = tree.body if top_only else ast.walk(tree)
     for node in nodes:
         if isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = mod.split(".") if is_pkg else mod.split(".")[:-1]
-                base = base[:len(base) - (node.level - 1)] if node.level > 1 else base
-                target = ".".join(base + ([node.module] if node.module else []))
-            else:
-                target = node.module or ""
+            target = _from_target(mod, is_pkg, node)
             if not target.startswith("mcrecon"):
                 continue
             for a in node.names:
@@ -216,12 +220,7 @@ def _private_imports_across_packages(sources: dict | None = None) -> list[str]:
         for node in ast.walk(ast.parse(path.read_text() if text is None else text)):
             if not isinstance(node, ast.ImportFrom):
                 continue
-            if node.level:
-                base = mod.split(".") if is_pkg else mod.split(".")[:-1]
-                base = base[:len(base) - (node.level - 1)] if node.level > 1 else base
-                target = ".".join(base + ([node.module] if node.module else []))
-            else:
-                target = node.module or ""
+            target = _from_target(mod, is_pkg, node)
             if not target.startswith("mcrecon") or _part(target) == _part(mod):
                 continue
             out += [f"{path.relative_to(PACKAGE.parent)}:{node.lineno}: {target}.{a.name}" for a in node.names
