@@ -19,7 +19,7 @@ import sys
 import warnings
 
 from ..errors import InputError, McreconWarning, RendererError
-from . import batch, commands, experiments
+from . import batch, blender, commands, experiments
 from ._common import OneLineParser
 
 __all__ = ["main", "run", "build_parser"]
@@ -41,6 +41,7 @@ def build_parser(command: str | None = None) -> OneLineParser:
     commands.register(sub, command)
     experiments.register(sub, command)
     batch.register(sub, command)
+    blender.register(sub, command)
     return p
 
 
