@@ -369,8 +369,7 @@ def test_python_runs_record_their_renderer_and_resume_from_the_log_alone(tmp_pat
     assert read_log(plain).feature_names == ()
     # a renderer without spec() records none: resume(log, renderer) then
     other = tmp_path / "other.h5"
-    r = CallableRenderer(lambda req: SampleBatch(jittered_positions(req.counts, np.random.default_rng(0)),
-                                                 np.ones((int(req.counts.sum()), 3))), width=4, height=4)
+    r = jittered_renderer(lambda pos, rng, req: np.ones((len(pos), 3)), width=4, height=4, stream=lambda req: 0)
     adapt(r, "box", spp=2, log=str(other), progress=False)
     with pytest.raises(InputError, match="none recorded"):
         resume(str(other), progress=False)

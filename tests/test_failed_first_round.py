@@ -8,8 +8,6 @@ user gave (``resume``, or an existing file the run refused) is never removed.
 
 from __future__ import annotations
 
-import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -18,26 +16,21 @@ import pytest
 
 from mcrecon import InputError, RendererError
 from mcrecon.adaptive.run import adapt, resume
-from mcrecon.cli import main
-from mcrecon.core.requests import SampleBatch, jittered_positions
+from mcrecon.core.requests import SampleBatch
 from mcrecon.io import read_log
 from mcrecon.io.lock import lock_path
-from mcrecon.renderers import CallableRenderer
 
-ROOT = Path(__file__).resolve().parents[1]
+from helpers import ROOT, jittered_renderer, run_cli, run_cli_process
+
 W, H = 12, 8
 
 
 def _renderer(*, features=True, fail_round=None, error=RendererError):
     """Noisy samples with albedo, normal and depth (``features``); raises ``error`` in ``fail_round``."""
 
-    def fn(req):
+    def shade(pos, rng, req):
         if req.round_index == fail_round:
             raise RendererError("test renderer", "render", "fails on purpose") if error is RendererError else error
-        rng = np.random.default_rng(req.seed)
-        pos = jittered_positions(req.counts, rng) if req.counts is not None else np.zeros((0, 2))
-        if req.positions is not None:
-            pos = np.concatenate([pos, req.positions])
         val = np.repeat(0.2 + 0.6 * (pos[:, :1] > W / 2), 3, axis=1) * rng.uniform(0.5, 1.5, (len(pos), 1))
         feats = {}
         if features:
@@ -45,7 +38,7 @@ def _renderer(*, features=True, fail_round=None, error=RendererError):
                      "normal": np.tile([0.0, 0.0, 1.0], (len(pos), 1)), "depth": 1.0 + 0 * pos[:, 0]}
         return SampleBatch(pos, val, feats)
 
-    return CallableRenderer(fn, width=W, height=H, name="test renderer")
+    return jittered_renderer(shade, width=W, height=H, name="test renderer")
 
 
 def _left_behind(log: Path) -> list[str]:
@@ -121,12 +114,6 @@ def test_an_interrupted_first_round_keeps_its_log_for_resume(tmp_path):
 
 
 # ------------------------------------------------------------------ through the command line
-def _cli(argv, capsys):
-    code = main([str(a) for a in argv])
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
 def _one_line(code, err, *matches):
     assert code == 2, err
     assert err.count("\n") == 1 and err.startswith("mcrecon: error: ") and "Traceback" not in err, err
@@ -136,14 +123,12 @@ def _one_line(code, err, *matches):
 
 def test_cli_nfor_without_features_leaves_nothing_and_the_retry_with_features_runs(tmp_path):
     """As a user types it, in a separate process: refused, nothing left, the corrected command runs."""
-    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    base = [sys.executable, "-m", "mcrecon", "adapt", "--scene", "checker_wall", "--size", "16x12", "--spp", "8",
+    base = ["adapt", "--scene", "checker_wall", "--size", "16x12", "--spp", "8",
             "--method", "nfor", "--log", "run.h5", "-o", "out.exr", "--quiet"]
-    bad = subprocess.run(base + ["--features", "none"], cwd=tmp_path, env=env, capture_output=True, text=True,
-                         timeout=300)
+    bad = run_cli_process(base + ["--features", "none"], cwd=tmp_path, timeout=300)
     _one_line(bad.returncode, bad.stderr, "nfor needs per-sample features")
     assert sorted(p.name for p in tmp_path.iterdir()) == []
-    good = subprocess.run(base, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    good = run_cli_process(base, cwd=tmp_path, timeout=300)
     assert good.returncode == 0, good.stderr
     assert read_log(tmp_path / "run.h5").n_samples == 16 * 12 * 8 and (tmp_path / "out.exr").exists()
 
@@ -152,9 +137,9 @@ def test_cli_scene_without_its_features_then_with_them(tmp_path, capsys, monkeyp
     monkeypatch.chdir(tmp_path)
     base = ["adapt", "--scene", "soft_shadow", "--size", "16x12", "--spp", "8", "--method", "nfor",
             "--log", "run.h5", "-o", "out.exr", "--quiet"]
-    _one_line(*_cli(base, capsys)[::2], "nfor needs per-sample features")
+    _one_line(*run_cli(base, capsys)[::2], "nfor needs per-sample features")
     assert not (tmp_path / "run.h5").exists() and not (tmp_path / "out.exr").exists()
-    code, _, err = _cli(base + ["--features", "all"], capsys)
+    code, _, err = run_cli(base + ["--features", "all"], capsys)
     assert code == 0, err
 
 
@@ -165,11 +150,11 @@ def test_cli_external_renderer_failing_in_round_0_then_corrected(tmp_path, capsy
     cmd = "{} data_tools/example_renderer.py {{request}} {{reply}}"
     base = ["adapt", "--size", "16x12", "--spp", "4", "--method", "box", "--log", "ext.h5", "-o", "out.exr",
             "--quiet"]
-    code, _, err = _cli(base + ["--renderer-cmd", cmd.format(sys.executable)], capsys)
+    code, _, err = run_cli(base + ["--renderer-cmd", cmd.format(sys.executable)], capsys)
     _one_line(code, err, "round 0")
     assert not (tmp_path / "ext.h5").exists() and not (tmp_path / "out.exr").exists()
     fixed = f"{sys.executable} {ROOT / 'data_tools' / 'example_renderer.py'} {{request}} {{reply}}"
-    code, _, err = _cli(base + ["--renderer-cmd", fixed], capsys)
+    code, _, err = run_cli(base + ["--renderer-cmd", fixed], capsys)
     assert code == 0, err
     assert read_log(tmp_path / "ext.h5").n_samples == 16 * 12 * 4
 
@@ -177,8 +162,8 @@ def test_cli_external_renderer_failing_in_round_0_then_corrected(tmp_path, capsy
 @pytest.mark.skipif(not __import__("importlib").util.find_spec("mitsuba"), reason="needs Mitsuba 3: PYTHON=.venv/bin/python bash data_tools/install_mitsuba.sh")
 def test_cli_mitsuba_without_features_leaves_no_log(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    code, _, err = _cli(["adapt", "--mitsuba", "cornell-box", "--features", "none", "--size", "8x8", "--spp", "4",
-                         "--method", "nfor", "--log", "m.h5", "-o", "out.exr", "--quiet"], capsys)
+    code, _, err = run_cli(["adapt", "--mitsuba", "cornell-box", "--features", "none", "--size", "8x8", "--spp", "4",
+                            "--method", "nfor", "--log", "m.h5", "-o", "out.exr", "--quiet"], capsys)
     _one_line(code, err, "nfor needs per-sample features")
     assert not (tmp_path / "m.h5").exists()
 
@@ -188,7 +173,7 @@ def test_cli_reference_of_another_size_names_the_file(tmp_path, capsys, monkeypa
 
     monkeypatch.chdir(tmp_path)
     write_exr(tmp_path / "ref.exr", np.ones((8, 8, 3), np.float32))
-    code, _, err = _cli(["adapt", "--scene", "flat", "--size", "16x12", "--spp", "2", "--method", "box",
-                         "--reference", "ref.exr", "--log", "l.h5", "-o", "out.exr"], capsys)
+    code, _, err = run_cli(["adapt", "--scene", "flat", "--size", "16x12", "--spp", "2", "--method", "box",
+                            "--reference", "ref.exr", "--log", "l.h5", "-o", "out.exr"], capsys)
     _one_line(code, err, "ref.exr: shape: (8, 8, 3)", "(12, 16, 3)")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ref.exr"]

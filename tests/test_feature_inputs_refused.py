@@ -13,24 +13,17 @@ import subprocess
 import sys
 import textwrap
 import warnings
-from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
 
 from mcrecon import InputError, McreconWarning
-from mcrecon.cli import main
 from mcrecon.io import append_log, read_log, write_exr, write_log
 
-ROOT = Path(__file__).resolve().parents[1]
+from helpers import ROOT, cli_env, jittered_renderer, run_cli
+
 W, H, SPP = 12, 10, 4
-
-
-def _cli(argv, capsys):
-    code = main([str(a) for a in argv])
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 def _one_line(code, err, *matches):
@@ -80,9 +73,8 @@ def test_a_feature_declared_billions_wide_is_named_from_its_metadata_not_read(tm
     out = tmp_path / "o.exr"
     runs = [["info", path]] + [["reconstruct", path, "--method", m, "-o", out] for m in ("splat", "nfor", "auto",
                                                                                          "box")]
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     p = subprocess.run([sys.executable, "-c", _BOUNDED, json.dumps([[str(a) for a in r] for r in runs])],
-                       capture_output=True, text=True, env=env, timeout=300)
+                       capture_output=True, text=True, env=cli_env(), timeout=300)
     assert p.returncode == 0, p.stderr[-3000:]
     info, *recs, box = json.loads(p.stdout)
     assert info["code"] == 0, info["err"]
@@ -137,7 +129,7 @@ def test_a_mitsuba_film_no_log_can_hold_is_refused_first(tmp_path, capsys, size)
     if not ok:
         pytest.skip(f"Mitsuba bridge unavailable: {reason}")
     xml = _scene(tmp_path / "s.xml", *size)
-    code, _, err = _cli(["mitsuba", "log", "--scene", xml, "--spp", "1", "-o", tmp_path / "s.h5"], capsys)
+    code, _, err = run_cli(["mitsuba", "log", "--scene", xml, "--spp", "1", "-o", tmp_path / "s.h5"], capsys)
     _one_line(code, err, str(xml), "film width/height", f"{size[0]}x{size[1]}", "set the film's width and height "
               "in the scene")
     assert not (tmp_path / "s.h5").exists()
@@ -166,7 +158,7 @@ def test_a_reference_group_is_refused_in_one_line(tmp_path, capsys):
         f.create_group("reference")
     img = write_exr(tmp_path / "img.exr", np.ones((H, W, 3), np.float32))
     for argv in (["info", path], ["compare", img, path], ["reconstruct", path, "-o", tmp_path / "o.exr"]):
-        code, out, err = _cli(argv, capsys)
+        code, out, err = run_cli(argv, capsys)
         _one_line(code, err, str(path), "dataset /reference", "a group, expected a dataset")
         assert not out
     assert not (tmp_path / "o.exr").exists()
@@ -181,11 +173,11 @@ def test_links_that_lead_nowhere_name_the_feature(tmp_path, capsys, kind):
                              "external": h5py.ExternalLink("missing.h5", "/x")}[kind]
         f["reference"] = h5py.SoftLink("/nowhere")
     for argv in (["info", path], ["reconstruct", path, "--method", "nfor", "-o", tmp_path / "o.exr"]):
-        code, _, err = _cli(argv, capsys)
+        code, _, err = run_cli(argv, capsys)
         _one_line(code, err, str(path), "/features/bad", "store the data itself there, or delete it")
     with h5py.File(path, "r+") as f:
         del f["features/bad"]
-    code, _, err = _cli(["info", path], capsys)
+    code, _, err = run_cli(["info", path], capsys)
     _one_line(code, err, "/reference: a soft link to /nowhere")
 
 
@@ -194,7 +186,7 @@ def test_a_name_with_a_newline_keeps_the_error_on_one_line(tmp_path, capsys):
     path = _log(tmp_path / "nl.h5")
     with h5py.File(path, "r+") as f:
         f["features"].create_dataset("a\nb\x1b[2J", data=np.full(W * H * SPP, b"x"))
-    code, _, err = _cli(["info", path], capsys)
+    code, _, err = run_cli(["info", path], capsys)
     _one_line(code, err, "/features/a\\nb\\x1b[2J", "expected a numeric dtype")
     exc = InputError("p\nq", "f", "x")
     assert exc.where == "p\nq" and str(exc) == "p\\nq: f: x"  # kept as given, shown on one line
@@ -256,9 +248,9 @@ def test_a_refused_multi_part_exr_says_its_parts_in_its_one_line(tmp_path, capsy
     head = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     OpenEXR.File([OpenEXR.Part({**head, "name": "beauty"}, {"RGB": np.ones((4, 5, 3), np.float32)}),
                   OpenEXR.Part({**head, "name": "aux"}, {"Albedo": np.ones((4, 5, 3), np.float32)})]).write(str(path))
-    code, _, err = _cli(["reconstruct", path, "--spp", "4", "-o", tmp_path / "o.exr"], capsys)
+    code, _, err = run_cli(["reconstruct", path, "--spp", "4", "-o", tmp_path / "o.exr"], capsys)
     _one_line(code, err, "layout: not recognised", "2 parts; only the first is read", "Albedo.B")
-    code, _, err = _cli(["info", path], capsys)
+    code, _, err = run_cli(["info", path], capsys)
     assert code == 2 and err.count("\n") == 1, err
 
 
@@ -269,8 +261,8 @@ def test_an_all_zero_count_channel_is_refused_before_any_note(tmp_path, capsys):
     ch["N"] = np.zeros((H, W))
     path = _channels_exr(tmp_path / "z.exr", ch)
     for method in ("box", "awr"):  # awr: a note on its variance estimator came first
-        code, _, err = _cli(["reconstruct", path, "--count", "N", "--method", method, "-o", tmp_path / "o.exr"],
-                            capsys)
+        code, _, err = run_cli(["reconstruct", path, "--count", "N", "--method", method, "-o", tmp_path / "o.exr"],
+                               capsys)
         _one_line(code, err, str(path), "count channel N: no pixel has a positive count")
 
 
@@ -344,18 +336,15 @@ def test_bool_reply_features_of_the_feature_renderer_are_taken_as_0_1(tmp_path):
 def test_a_python_renderers_zeroed_features_are_warned_once_per_run(bad):
     """The reply check warned a callable renderer's NaN/Inf/DBL_MAX feature entries every round."""
     from mcrecon.adaptive.run import adapt
-    from mcrecon.core.requests import SampleBatch, jittered_positions
-    from mcrecon.renderers.callable import CallableRenderer
+    from mcrecon.core.requests import SampleBatch
 
-    def render(req):
-        rng = np.random.default_rng(req.seed)
-        pos = jittered_positions(req.counts, rng)
+    def shade(pos, rng, req):
         depth = np.ones(len(pos))
         depth[::7] = bad
         return SampleBatch(pos, rng.random((len(pos), 3)), {"depth": depth})
 
     with warnings.catch_warnings(record=True) as rec:
         warnings.simplefilter("always")
-        result = adapt(CallableRenderer(render, width=8, height=6), "box", spp=8, seed=3)
+        result = adapt(jittered_renderer(shade, width=8, height=6), "box", spp=8, seed=3)
     said = [str(w.message) for w in rec if "feature values set to 0" in str(w.message)]
     assert len(result.rounds) > 1 and len(said) == 1, said

@@ -17,18 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mcrecon.cli import main
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def run(args, capsys):
-    try:
-        code = main([str(a) for a in args])
-    except SystemExit as exc:  # argparse's errors
-        code = exc.code
-    out = capsys.readouterr()
-    return code, out.out, out.err
+from helpers import MCRECON, ROOT, cli_env, run_cli, run_cli_process
 
 
 @pytest.fixture
@@ -50,7 +39,7 @@ def test_convergence_as_advertised_runs_every_method_and_leaves_nothing_in_tmp(s
     """`mcrecon experiment convergence --scene S --html` (README, docs/index.md): its default methods
     include nfor, which needs the features the experiment renders when the scene has them."""
     work, tmp = scratch
-    code, out, err = run(["experiment", "convergence", "--scene", scene, "--html", "--size", "12x8", "--spp", "2",
+    code, out, err = run_cli(["experiment", "convergence", "--scene", scene, "--html", "--size", "12x8", "--spp", "2",
                           "--oidn", "no", "--flip", "no"], capsys)
     assert code == 0, err
     assert re.search(r"^nfor +uniform", out, re.M) and re.search(r"^auto +adaptive", out, re.M)
@@ -78,7 +67,7 @@ def test_convergence_auto_and_nfor_see_what_reconstruct_sees_on_a_log_of_the_sce
 
 def test_convergence_without_features_refuses_nfor_in_one_line_before_rendering(scratch, capsys):
     work, tmp = scratch
-    code, out, err = run(["experiment", "convergence", "--scene", "checker_wall", "--no-features", "--methods",
+    code, out, err = run_cli(["experiment", "convergence", "--scene", "checker_wall", "--no-features", "--methods",
                           "box,nfor", "--size", "12x8", "--spp", "2"], capsys)
     assert code == 2 and out == "" and err.count("\n") == 1
     assert err.startswith("mcrecon: error: convergence: methods: nfor needs per-sample features")
@@ -87,7 +76,7 @@ def test_convergence_without_features_refuses_nfor_in_one_line_before_rendering(
 
 
 def test_convergence_without_features_leaves_nfor_out_of_the_default_methods(scratch, capsys):
-    code, out, err = run(["experiment", "convergence", "--scene", "flat", "--no-features", "--size", "8x8",
+    code, out, err = run_cli(["experiment", "convergence", "--scene", "flat", "--no-features", "--size", "8x8",
                           "--spp", "2", "--modes", "uniform", "--oidn", "no", "--flip", "no"], capsys)
     assert code == 0, err
     assert not re.search(r"^nfor ", out, re.M) and re.search(r"^auto +uniform", out, re.M)
@@ -187,7 +176,7 @@ def test_readme_command_block_runs_as_written_outside_the_repository(scratch, mo
                                                                      .split(os.pathsep) if p]))
     for argv in _shell_commands(_readme_block("Command line")):
         assert argv[0] == "mcrecon", argv
-        code, out, err = run(argv[1:], capsys)
+        code, out, err = run_cli(argv[1:], capsys)
         assert code == 0, f"{' '.join(argv)}: {err.strip()}"
     for name in ("caustic_reference.exr", "caustic_reference.png", "caustic_gem.exr", "diag/sample_density.png",
                  "adapt_gem.exr", "ext.exr"):
@@ -225,16 +214,13 @@ def test_packaged_example_renderer_answers_as_the_script_in_the_clone(tmp_path):
 # ---- Ctrl-C ---------------------------------------------------------------------------------------------------------
 
 def test_ctrl_c_in_adapt_with_a_log_says_how_to_continue_and_that_command_does(scratch):
-    import os
     import signal
     import subprocess
-    import sys
     import time
 
     work, _ = scratch
-    env = dict(os.environ, MCRECON_SCENE_RATE="2000")  # a renderer slow enough to be interrupted half-way
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
-    argv = [sys.executable, "-m", "mcrecon", "adapt", "--scene", "soft_shadow", "--size", "16x16", "--spp", "64",
+    env = cli_env({"MCRECON_SCENE_RATE": "2000"})  # a renderer slow enough to be interrupted half-way
+    argv = [*MCRECON, "adapt", "--scene", "soft_shadow", "--size", "16x16", "--spp", "64",
             "--method", "box", "--log", "my run.h5", "-o", "o.exr", "--quiet"]
     proc = subprocess.Popen(argv, cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     t0 = time.monotonic()
@@ -249,9 +235,7 @@ def test_ctrl_c_in_adapt_with_a_log_says_how_to_continue_and_that_command_does(s
     resume = re.search(r"`mcrecon (.*?)`", err).group(1)
     import shlex
 
-    env["MCRECON_SCENE_RATE"] = ""
-    done = subprocess.run([sys.executable, "-m", "mcrecon", *shlex.split(resume)], cwd=work, env=env,
-                          capture_output=True, text=True, timeout=300)
+    done = run_cli_process(shlex.split(resume), cwd=work, extra_env={"MCRECON_SCENE_RATE": ""}, timeout=300)
     assert done.returncode == 0 and "stopped: budget" in done.stdout, done.stderr
     assert "before this resume" in done.stdout
 
@@ -269,7 +253,7 @@ def test_ctrl_c_without_a_log_on_disk_says_only_interrupted(argv, scratch, monke
 
     monkeypatch.setattr(commands, "_cmd_adapt", interrupted)
     monkeypatch.setattr(commands, "_cmd_reconstruct", interrupted)
-    code, out, err = run(argv, capsys)
+    code, out, err = run_cli(argv, capsys)
     assert code == 130 and err == "mcrecon: interrupted\n"
 
 
@@ -279,7 +263,7 @@ def test_render_log_reference_exr_gets_its_png_preview_beside_it(scratch, capsys
     from PIL import Image
 
     work, _ = scratch
-    code, out, err = run(["render-log", "--scene", "soft_shadow", "--spp", "2", "--size", "24x16", "-o", "s.h5",
+    code, out, err = run_cli(["render-log", "--scene", "soft_shadow", "--spp", "2", "--size", "24x16", "-o", "s.h5",
                           "--reference-exr", "ref.exr"], capsys)
     assert code == 0, err
     assert "wrote ref.exr" in out and "wrote ref.png" in out
@@ -292,7 +276,6 @@ def test_render_log_reference_exr_gets_its_png_preview_beside_it(scratch, capsys
 def test_readme_python_block_runs_as_written(scratch):
     """Extracted and run in a fresh interpreter in a scratch folder: the renderer it passes to adapt is a
     mcrecon.CallableRenderer, and every name it uses is defined in it."""
-    import os
     import subprocess
     import sys
 
@@ -300,9 +283,7 @@ def test_readme_python_block_runs_as_written(scratch):
     block = _readme_block("Python")
     assert "mcrecon.CallableRenderer(" in block and "mcrecon.adapt(renderer" in block
     (work / "example.py").write_text(block)
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
-    proc = subprocess.run([sys.executable, "-W", "error", "example.py"], cwd=work, env=env, capture_output=True,
+    proc = subprocess.run([sys.executable, "-W", "error", "example.py"], cwd=work, env=cli_env(), capture_output=True,
                           text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert (work / "log.h5").exists() and (work / "run.h5").exists()
@@ -369,9 +350,10 @@ def test_diagnostics_pngs_have_a_title_with_the_values_and_a_colour_bar(scratch,
         return real(self, fname, *a, **k)
 
     monkeypatch.setattr(Figure, "savefig", recording)
-    code, _, err = run(["render-log", "--scene", "flat", "--spp", "4", "--size", "24x16", "-o", "u.h5"], capsys)
+    code, _, err = run_cli(["render-log", "--scene", "flat", "--spp", "4", "--size", "24x16", "-o", "u.h5"], capsys)
     assert code == 0, err
-    code, out, err = run(["reconstruct", "u.h5", "-o", "u.exr", "--method", "gem", "--diagnostics", "diag"], capsys)
+    code, out, err = run_cli(["reconstruct", "u.h5", "-o", "u.exr", "--method", "gem", "--diagnostics", "diag"],
+                             capsys)
     assert code == 0, err
     titles = {t.split(":")[0]: (t, lim) for t, lim in seen.values()}
     assert {"sample_density", "selected_scale"} <= set(titles)

@@ -21,6 +21,8 @@ from mcrecon import restoration
 from mcrecon.cli import build_parser, main
 from mcrecon.methods import Method, Option, available_methods, method_class, register_method, variant_option
 
+from helpers import run_cli
+
 #: The registered methods without an array-level function: ci's offline image is box's (its stopping
 #: rule is adaptive).
 NO_FUNCTION = {"ci"}
@@ -103,9 +105,9 @@ def test_the_class_docstring_leaves_the_options_to_them(name):
 
 
 def _help(command: str, capsys) -> str:
-    with pytest.raises(SystemExit):
-        main([command, "--help"])
-    return capsys.readouterr().out
+    code, out, err = run_cli([command, "--help"], capsys)
+    assert code == 0, err
+    return out
 
 
 @pytest.mark.parametrize("command", ["reconstruct", "adapt"])

@@ -13,8 +13,8 @@ import pytest
 from mcrecon.adaptive import context as context_mod
 from mcrecon.adaptive.context import RunClock, RunContext
 from mcrecon.adaptive.run import adapt, resume
-from mcrecon.core.requests import SampleBatch, jittered_positions
-from mcrecon.renderers import CallableRenderer
+
+from helpers import jittered_renderer
 
 ADAPTIVE = Path(__file__).resolve().parents[1] / "mcrecon" / "adaptive"
 #: The most parameters a function of mcrecon/adaptive/ may take (``self``/``cls`` not counted).
@@ -66,15 +66,10 @@ W, H = 12, 8
 
 
 def _renderer():
-    def fn(req):
-        rng = np.random.default_rng(req.seed)
-        pos = jittered_positions(req.counts, rng) if req.counts is not None else np.zeros((0, 2))
-        if req.positions is not None:
-            pos = np.concatenate([pos, req.positions])
-        val = np.repeat(0.2 + 0.6 * (pos[:, :1] > W / 2), 3, axis=1) * rng.uniform(0.5, 1.5, (len(pos), 1))
-        return SampleBatch(pos, val)
+    def shade(pos, rng, req):
+        return np.repeat(0.2 + 0.6 * (pos[:, :1] > W / 2), 3, axis=1) * rng.uniform(0.5, 1.5, (len(pos), 1))
 
-    return CallableRenderer(fn, width=W, height=H, name="context test")
+    return jittered_renderer(shade, width=W, height=H, name="context test")
 
 
 @pytest.fixture

@@ -26,9 +26,10 @@ from mcrecon.adaptive.run import adapt
 from mcrecon.methods.splat import ProgressiveSplatter, SplatMethod, doubling_schedule, splat
 from mcrecon.methods.splat.kernels import _splat_guided_loop
 from mcrecon.core.metrics import relative_mse
-from mcrecon.renderers.callable import CallableRenderer
 from mcrecon.core.requests import jittered_positions
 from mcrecon.core.stats import PixelStats
+
+from helpers import jittered_renderer
 
 W = 32
 P_FIREFLY = 1 / 200
@@ -83,11 +84,8 @@ def uniform_samples(name, spp, seed):
 
 
 def renderer(name, seed):
-    def f(request):
-        rng = np.random.default_rng([seed, int(request.seed or 0), int(request.round_index)])
-        pos = jittered_positions(np.asarray(request.counts), rng)
-        return pos, scene_values(name, pos, rng)
-    return CallableRenderer(f, width=W, height=W, name=name)
+    return jittered_renderer(lambda pos, rng, request: scene_values(name, pos, rng), width=W, height=W, name=name,
+                             stream=lambda request: [seed, int(request.seed or 0), int(request.round_index)])
 
 
 SCENES = ("emitter", "step", "fireflies")
