@@ -7,9 +7,12 @@ run_cli``), as pytest puts ``tests/`` on the path.
 
 from __future__ import annotations
 
+import json
 import os
+import select
 import subprocess
 import sys
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -101,3 +104,65 @@ def jittered_renderer(shade, *, width, height, name=None, stream=None):
         return SampleBatch(pos, out) if isinstance(out, np.ndarray) else out
 
     return CallableRenderer(render, width=width, height=height, name=name)
+
+
+#: One CLI command per line of stdin (a JSON list), its exit code and stderr per line of stdout; an address-space
+#: limit (bytes, formatted in) turns an allocation bomb into a failure instead of the test run's death.
+_WORKER = textwrap.dedent("""
+    import contextlib, io, json, resource, sys, traceback
+    limit = {limit}
+    if limit:
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+    from mcrecon.cli import main
+    for line in sys.stdin:
+        argv = json.loads(line)
+        out, err = io.StringIO(), io.StringIO()
+        try:
+            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+                code = main(argv)
+        except SystemExit as exc:
+            code = exc.code
+        except BaseException:
+            code = "traceback"
+            err.write(traceback.format_exc())
+        print(json.dumps({{"code": code, "err": err.getvalue()}}), flush=True)
+""")
+
+
+class CliWorker:
+    """A persistent ``mcrecon`` process running one CLI command per request (no start-up per command), so
+    a crash of a library shows as a failure (``"crash"``) and a hang as ``"hang"`` instead of killing the run.
+
+    ``memory_limit``: bytes of address space the worker may map (0: no limit)."""
+
+    def __init__(self, *, memory_limit: int = 0, timeout: float = 60.0):
+        self.script = _WORKER.format(limit=int(memory_limit))
+        self.timeout = timeout
+        self.proc = None
+
+    def run(self, argv, timeout: float | None = None) -> dict:
+        """``{"code": exit code | "traceback" | "hang" | "crash", "err": stderr}`` of one command."""
+        if self.proc is None or self.proc.poll() is not None:
+            self.proc = subprocess.Popen([sys.executable, "-c", self.script], stdin=subprocess.PIPE,
+                                         stdout=subprocess.PIPE, text=True, env=cli_env())
+        self.proc.stdin.write(json.dumps([str(a) for a in argv]) + "\n")
+        self.proc.stdin.flush()
+        wait = self.timeout if timeout is None else timeout
+        ready, _, _ = select.select([self.proc.stdout], [], [], wait)
+        if not ready:
+            self.close()
+            return {"code": "hang", "err": f"no answer within {wait} s"}
+        line = self.proc.stdout.readline()
+        if not line:
+            code = self.proc.wait()
+            self.proc = None
+            return {"code": "crash", "err": f"the worker died (status {code})"}
+        return json.loads(line)
+
+    def close(self):
+        if self.proc is not None:
+            self.proc.kill()
+            self.proc.wait()
+            self.proc.stdin.close()
+            self.proc.stdout.close()
+            self.proc = None

@@ -8,8 +8,6 @@ says on which side of x = 20.3 it was traced.
 
 from __future__ import annotations
 
-import json
-import os
 import subprocess
 import sys
 import textwrap
@@ -18,12 +16,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from helpers import cli_env, run_cli_process
 from mcrecon.cli import main
 from mcrecon.io import read_exr, read_log
 from mcrecon.renderers import blender as bl
 
 NEEDS_BPY = pytest.mark.skipif(not bl.bpy_available(), reason=bl.BPY_MISSING)
-ROOT = Path(__file__).resolve().parents[1]
 W, H, EDGE, SPP = 64, 48, 20.3, 8
 EMIT = (4.0, 2.0, 1.0)
 
@@ -57,13 +55,8 @@ SCENE = textwrap.dedent("""
 """)
 
 
-def _env():
-    return {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-
-
 def _mcrecon(*args):
-    return subprocess.run([sys.executable, "-m", "mcrecon", *map(str, args)], capture_output=True, text=True,
-                          env=_env(), timeout=600)
+    return run_cli_process(args, timeout=600)
 
 
 @pytest.fixture(scope="module")
@@ -72,7 +65,7 @@ def cycles(tmp_path_factory):
     d = tmp_path_factory.mktemp("cycles")
     blend = d / "edge.blend"
     subprocess.run([sys.executable, "-c", SCENE, str(W), str(H), str(EDGE), str(blend)], check=True,
-                   capture_output=True, env=_env(), timeout=300)
+                   capture_output=True, env=cli_env(), timeout=300)
     r = _mcrecon("blender", "log", blend, "--spp", SPP, "--threads", 2, "-o", d / "log.h5")
     assert r.returncode == 0, r.stderr
     r = _mcrecon("blender", "reference", blend, "--spp", SPP, "--threads", 2, "-o", d / "ref.exr")

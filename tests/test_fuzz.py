@@ -11,14 +11,10 @@ A fixed seed (derandomized) and a small example budget by default; set
 ``MCRECON_FULL=1`` for a larger budget (the ``slow`` test).
 """
 
-import json
 import os
-import select
 import shutil
-import subprocess
 import sys
 import tempfile
-import textwrap
 import warnings
 from pathlib import Path
 
@@ -31,62 +27,13 @@ from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 from mcrecon.io import append_log, read_exr, write_log  # noqa: E402
+from helpers import CliWorker  # noqa: E402
 
 FULL = os.environ.get("MCRECON_FULL", "") not in ("", "0")
 
-WORKER = textwrap.dedent("""
-    import contextlib, io, json, sys, traceback
-    from mcrecon.cli import main
-    for line in sys.stdin:
-        argv = json.loads(line)
-        out, err = io.StringIO(), io.StringIO()
-        try:
-            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-                code = main(argv)
-        except SystemExit as exc:
-            code = exc.code
-        except BaseException:
-            code = "traceback"
-            err.write(traceback.format_exc())
-        print(json.dumps({"code": code, "err": err.getvalue()}), flush=True)
-""")
-
-
-class Worker:
-    """A persistent ``mcrecon`` process running one CLI command per request."""
-
-    def __init__(self):
-        self.proc = None
-
-    def run(self, argv, timeout=60.0):
-        if self.proc is None or self.proc.poll() is not None:
-            self.proc = subprocess.Popen([sys.executable, "-c", WORKER], stdin=subprocess.PIPE,
-                                         stdout=subprocess.PIPE, text=True)
-        self.proc.stdin.write(json.dumps([str(a) for a in argv]) + "\n")
-        self.proc.stdin.flush()
-        ready, _, _ = select.select([self.proc.stdout], [], [], timeout)
-        if not ready:
-            self.close()
-            return {"code": "hang", "err": f"no answer within {timeout} s"}
-        line = self.proc.stdout.readline()
-        if not line:
-            code = self.proc.wait()
-            self.proc = None
-            return {"code": "crash", "err": f"the worker died (status {code})"}
-        return json.loads(line)
-
-    def close(self):
-        if self.proc is not None:
-            self.proc.kill()
-            self.proc.wait()
-            self.proc.stdin.close()
-            self.proc.stdout.close()
-            self.proc = None
-
-
 @pytest.fixture(scope="module")
 def worker():
-    w = Worker()
+    w = CliWorker()
     yield w
     w.close()
 

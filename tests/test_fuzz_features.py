@@ -12,14 +12,9 @@ A fixed seed (derandomized), small logs and a small example budget keep it to se
 kernels are cached; set ``MCRECON_FULL=1`` for a larger budget.
 """
 
-import json
 import os
-import select
 import shutil
-import subprocess
-import sys
 import tempfile
-import textwrap
 from pathlib import Path
 
 import h5py
@@ -31,69 +26,16 @@ from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 from mcrecon.io import append_log, read_exr, write_log  # noqa: E402
+from helpers import CliWorker  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 FULL = os.environ.get("MCRECON_FULL", "") not in ("", "0")
 METHODS = ("box", "gem", "awr", "splat", "ci", "auto", "nfor")
 W, H = 6, 5
 
-# The worker runs under an address-space limit far below what reading a declared-huge feature needs.
-WORKER = textwrap.dedent("""
-    import contextlib, io, json, resource, sys, traceback
-    limit = 16 << 30
-    resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
-    from mcrecon.cli import main
-    for line in sys.stdin:
-        argv = json.loads(line)
-        out, err = io.StringIO(), io.StringIO()
-        try:
-            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-                code = main(argv)
-        except SystemExit as exc:
-            code = exc.code
-        except BaseException:
-            code = "traceback"
-            err.write(traceback.format_exc())
-        print(json.dumps({"code": code, "err": err.getvalue()}), flush=True)
-""")
-
-
-class Worker:
-    """A persistent ``mcrecon`` process running one CLI command per request."""
-
-    def __init__(self):
-        self.proc = None
-
-    def run(self, argv, timeout=120.0):
-        if self.proc is None or self.proc.poll() is not None:
-            env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-            self.proc = subprocess.Popen([sys.executable, "-c", WORKER], stdin=subprocess.PIPE,
-                                         stdout=subprocess.PIPE, text=True, env=env)
-        self.proc.stdin.write(json.dumps([str(a) for a in argv]) + "\n")
-        self.proc.stdin.flush()
-        ready, _, _ = select.select([self.proc.stdout], [], [], timeout)
-        if not ready:
-            self.close()
-            return {"code": "hang", "err": f"no answer within {timeout} s"}
-        line = self.proc.stdout.readline()
-        if not line:
-            code = self.proc.wait()
-            self.proc = None
-            return {"code": "crash", "err": f"the worker died (status {code})"}
-        return json.loads(line)
-
-    def close(self):
-        if self.proc is not None:
-            self.proc.kill()
-            self.proc.wait()
-            self.proc.stdin.close()
-            self.proc.stdout.close()
-            self.proc = None
-
-
 @pytest.fixture(scope="module")
 def worker():
-    w = Worker()
+    w = CliWorker(memory_limit=16 << 30, timeout=120.0)
     yield w
     w.close()
 
