@@ -36,6 +36,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
+import os
 import time
 import warnings
 from pathlib import Path
@@ -270,23 +271,88 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
     if log is None:
         return _drive(RunContext.assemble(renderer, method, settings, reference=ref, log_path=None, session=session))
     log_path = Path(log)
-    # The run holds its log's writer lock from creation to the end: a second run or
-    # a resume on the same log is refused (naming this process), see log_lock.
-    with log_lock(log_path):
-        if log_path.exists() and not overwrite:
-            raise InputError(str(log_path), "file", "exists; resume it with --resume / mcrecon.adaptive.run.resume, "
-                             "or choose another path")
-        _create_log(log_path, settings, reference=ref, metadata=metadata)
-        ctx = None
-        try:
-            ctx = RunContext.assemble(renderer, method, settings, reference=ref, log_path=log_path, session=session)
-            return _drive(ctx)
-        except Exception:
-            if ctx is None or not ctx.rounds:
-                # refused or failed before its first round was committed: the log holds nothing to resume,
-                # and left behind it would refuse the retry ("exists")
-                _remove_log(log_path)
-            raise
+    made = _missing_dirs(log_path.parent)
+    try:
+        # The run holds its log's writer lock from creation to the end: a second run or
+        # a resume on the same log is refused (naming this process), see log_lock.
+        with log_lock(log_path):
+            if log_path.exists() and not overwrite:
+                raise InputError(str(log_path), "file", "exists; resume it with --resume / "
+                                 "mcrecon.adaptive.run.resume, or choose another path")
+            first = _FirstCommit(log_path)
+            _create_log(first.path, settings, reference=ref, metadata=metadata)
+            try:
+                ctx = RunContext.assemble(renderer, method, settings, reference=ref, log_path=first.path,
+                                          session=session)
+                result = _drive(ctx, first)
+            except BaseException as exc:
+                first.abandon(interrupted=not isinstance(exc, Exception))
+                raise
+            first.publish(ctx)  # a run that ends without a round (max_rounds=0) still replaces the old log
+            result.log = log_path
+            return result
+    finally:
+        for d in made:  # a refused run leaves no empty directory it created (a kept log keeps its own)
+            with contextlib.suppress(OSError):
+                d.rmdir()
+
+
+class _FirstCommit:
+    """Where a new run writes its log, and what becomes of it at the first committed round or a failure.
+
+    A new path is written in place.  An existing log the run replaces
+    (``overwrite``) stays as it is until the new run commits its first
+    round: the new log is written beside it (``.NAME.new``, under the
+    old log's lock) and renamed over it right after that round's append
+    returns.  A run that fails or is interrupted before then leaves the
+    old log bit-identical, and a process killed then leaves it too.
+    """
+
+    def __init__(self, final: Path):
+        self.final = final
+        self.path = final.with_name(f".{final.name}.new") if final.exists() else final
+        self.committed = False  # set once an append has returned: a round is on disk
+
+    def appended(self, ctx, rnd) -> None:
+        """Called after each append: the first one publishes the new log (from the writing thread,
+        before the round counts as committed, so every later write goes to the published path)."""
+        if not self.committed:
+            self.committed = True
+            self.publish(ctx)
+            rnd.log_path = self.path
+
+    def publish(self, ctx) -> None:
+        if self.path != self.final:
+            os.replace(self.path, self.final)
+            self.path = ctx.log_path = self.final
+
+    def abandon(self, *, interrupted: bool) -> None:
+        """The run raised.  A round that reached the disk keeps the log, whatever the records in memory
+        say (an append is committed before the round's record is finished).  Without one, a log the run
+        wrote beside an old one is removed (the old one stays); a log at a new path is removed unless
+        the run was interrupted (Ctrl-C: it stays resumable, from its first round)."""
+        if self.committed or _rounds_on_disk(self.path) != 0:
+            return
+        if self.path != self.final or not interrupted:
+            _remove_log(self.path)
+
+
+def _rounds_on_disk(path) -> int | None:
+    """The committed rounds of the log at ``path`` as the reader sees them (None: none readable)."""
+    try:
+        return read_log(path).n_rounds
+    except Exception:  # noqa: BLE001 -- a log that cannot be read is kept as it is
+        return None
+
+
+def _missing_dirs(folder: Path) -> list[Path]:
+    """The directories of ``folder``'s path that do not exist yet, deepest first."""
+    out = []
+    for d in (folder, *folder.parents):
+        if d.exists():
+            break
+        out.append(d)
+    return out
 
 
 def _create_log(log_path, settings, *, reference, metadata):
@@ -297,7 +363,7 @@ def _create_log(log_path, settings, *, reference, metadata):
     # (the log is still empty then, see _resolve_storage).
     placeholder = "float32" if settings["storage_dtype"] == "auto" else settings["storage_dtype"]
     c = len(settings["channels"])
-    # written atomically: a failure leaves the path as it was (a file ``overwrite`` would replace included)
+    # written atomically: a failure leaves the path as it was
     write_log(log_path, np.zeros((0, 2), placeholder), np.zeros((0, c), placeholder), width=settings["width"],
               height=settings["height"], channels=tuple(settings["channels"]), reference=reference, metadata=meta)
     try:
@@ -405,10 +471,30 @@ def _replay(ctx, sl):
     return planned
 
 
-def _drive(ctx) -> AdaptiveResult:
-    """This session of the run: its loop, then the final image."""
+class _PublishingRound(_Round):
+    """A new run's rounds: the first append publishes its log (see :class:`_FirstCommit`)."""
+
+    def __init__(self, ctx, first):
+        super().__init__(ctx)
+        self.first = first
+
+    def receive(self, req, reply, round_index):
+        # a method that cannot take the replies (nfor without features) refuses the first one before it
+        # is committed: a refused run leaves no log, and its retry is not refused
+        batch, n_bad = super().receive(req, reply, round_index)
+        if not self.first.committed:
+            self.ctx.method.refuse_reply(batch)
+        return batch, n_bad
+
+    def _append(self, *args, **kwargs):
+        super()._append(*args, **kwargs)
+        self.first.appended(self.ctx, self)
+
+
+def _drive(ctx, first=None) -> AdaptiveResult:
+    """This session of the run: its loop, then the final image (``first``: a new run's :class:`_FirstCommit`)."""
     ctx.start()
-    rnd, writes = _Round(ctx), _LogWrites(ctx)
+    rnd, writes = (_Round(ctx) if first is None else _PublishingRound(ctx, first)), _LogWrites(ctx)
     n_before = len(ctx.rounds)
     loop_t0 = time.perf_counter()
     try:
