@@ -286,3 +286,21 @@ def test_ctrl_c_says_what_the_log_on_disk_lets_the_user_do(tmp_path, cli, monkey
     code, _, err = cli(argv + ["none.h5"])
     assert code == 130 and err.splitlines(keepends=True)[-1] == "mcrecon: interrupted before any round was committed; `mcrecon adapt --resume " \
                                   "none.h5 -o o.exr` starts the run from its first round\n"
+
+
+def test_mcrecon_adapt_is_the_driver_itself_refusing_a_plain_function_before_anything(tmp_path):
+    import inspect
+
+    import mcrecon
+    from mcrecon.adaptive import run as driver
+
+    assert mcrecon.adapt is driver.adapt
+    assert {"seed", "log", "overwrite", "pipeline", "on_round"} <= set(inspect.signature(mcrecon.adapt).parameters)
+
+    def shade(request):
+        return None
+
+    with pytest.raises(InputError, match=r"shade is a plain function.*mcrecon.CallableRenderer\(fn, width=W, "
+                                         r"height=H\)"):
+        driver.adapt(shade, "gem", spp=4, log=tmp_path / "run.h5")
+    assert _files(tmp_path) == []

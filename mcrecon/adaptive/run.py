@@ -170,73 +170,157 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
           metadata: Mapping | None = None, renderer_spec: Mapping | None = None,
           overwrite: bool = False, storage_dtype: str = "auto",
           on_round: Callable[[dict], Any] | None = None, pipeline: bool | None = None) -> AdaptiveResult:
-    """Run adaptive rounds until the budget, the method's target or a time limit.
+    """Run adaptive rounds: ask a renderer for samples where they pay off, until the budget is spent.
+
+    Each round the method plans a request (samples per pixel, or at film
+    positions), the renderer answers it, the reply is validated and (with
+    ``log``) committed to the sample log before the method sees it; at the
+    end the method reconstructs the image.  A run with a log survives a
+    kill: :func:`resume` (``mcrecon adapt --resume LOG``) continues it with
+    the same decisions.  It stops at the budget, the method's target, a
+    time limit or ``max_rounds``.  This is ``mcrecon.adapt``.
 
     Parameters
     ----------
     renderer : Renderer
-        Answers :class:`~mcrecon.core.requests.SampleRequest` s.
+        An object with ``width``, ``height``, ``channels`` and
+        ``render(request) -> SampleBatch`` (:class:`mcrecon.renderers.Renderer`),
+        answering :class:`~mcrecon.core.requests.SampleRequest` s.
+        A Python function ``fn(request) -> (positions, values)`` becomes
+        one with ``mcrecon.CallableRenderer(fn, width=W, height=H)``; the
+        package's others are ``mcrecon.renderers.command.CommandRenderer``
+        (an external program exchanging HDF5 files),
+        ``mcrecon.renderers.scenes.SceneRenderer`` (a built-in scene) and
+        ``mcrecon.renderers.mitsuba.MitsubaRenderer`` (Mitsuba 3).
     method : str or Method
-        A registered method name or an instance.
+        A registered method name (``mcrecon.available_methods()``: ``gem``,
+        ``awr``, ``ci`` and ``auto`` place their samples, the others take
+        them uniformly; ``nfor`` needs a renderer that sends features) or
+        a method object (``mcrecon.get_method("gem", gamma=0.1)``).
     spp : float
-        Sample budget as average samples per pixel (total = round(spp * W * H)).
-    seed : int
+        The sample budget as average samples per pixel (in all
+        ``round(spp * width * height)`` samples).
+    seed : int, default 0
         Run seed: the whole run is reproducible from it.
     log : path-like, optional
-        Sample log to create; every round is committed to it before the
-        next request.  Refused if it exists, unless ``overwrite``.  A run
-        that raises before its first round is committed (a renderer that
-        fails in round 0, a method that refuses the first reply) removes
-        the log it created: there is nothing to resume, and the retry is
-        not refused.  Once a round is committed, the log stays resumable.
+        The sample log to create (``.h5``); every round is committed to it
+        before the next request.  Refused if it exists, unless
+        ``overwrite``.  Without it nothing is written and the run cannot
+        be resumed.  A run that raises before its first round reaches the
+        log (a renderer that fails in round 0, a method that refuses the
+        first reply) removes the log and the empty directories it created:
+        there is nothing to resume, and the retry is not refused.  Once a
+        round is committed, the log stays resumable.  A run interrupted
+        (Ctrl-C) before then keeps its log, which :func:`resume` starts
+        from the first round.
     reference : ndarray (H, W, C), optional
-        Ground truth for the per-round error (and oracle modes).
+        The exact image, for the per-round error (``track_error``) and the
+        methods that read one; stored in the log.
     time_limit : float, optional
-        Wall seconds; no new round starts after it.
+        Wall seconds; no new round starts after them (the run stops with
+        ``stopped == "time_limit"`` and can be resumed).
     progress : bool, optional
-        Progress bar on stderr; default: only on a terminal.
-    nonfinite : {'drop', 'zero', 'raise'}
-        Policy for NaN/Inf sample values (see :mod:`mcrecon.core.stats`); with
-        ``raise`` a reply holding one is refused before it is committed.
-    track_error : bool
-        Reconstruct after every round to record its error (needs a
-        reference; excluded from the toolkit time).
+        A progress bar on stderr; default: only on a terminal.
+    nonfinite : {'drop', 'zero', 'raise'}, default 'drop'
+        What happens to NaN/Inf sample values (see :mod:`mcrecon.core.stats`):
+        left out of the statistics (and counted), taken as 0, or refused
+        (a reply holding one) before they are committed.
+    max_rounds : int, default 10000
+        Rounds at most.
+    track_error : bool, default True
+        With a ``reference``: reconstruct after every round and record its
+        relative MSE (not counted in the toolkit time).
+    eps : float, default 0.01
+        The ε of that relative MSE, (img - ref)² / (ref² + ε).
+    metadata : mapping, optional
+        Extra JSON metadata stored in the log.
     renderer_spec : mapping, optional
-        How to recreate the renderer (stored with the run for ``--resume``).
-        Default: the renderer's own ``spec()`` when it has one (the built-in
-        scenes, the command renderer and the Mitsuba bridge do, for what a
-        spec can say), so ``resume(log)`` rebuilds it without being told.
-    storage_dtype : {'auto', 'float32', 'float64'}
-        Precision of the stored positions and values.  ``auto`` (default)
-        stores what the renderer sends: float32 replies as float32,
-        float64 (and integer) replies as float64, decided on the first
-        reply.  The statistics ingest exactly the stored numbers, so a
-        resumed run sees what the uninterrupted one saw; without a log
-        they ingest the replies in their own precision.  With ``float32``
-        and float64 replies, a round whose values exceed float32's range is
-        refused before it is stored, and a warning (once per run) counts
-        pixels whose spread float32 cannot hold (1e6 +- 1e-3).
+        How to build the renderer again on resume, stored with the run
+        (:mod:`mcrecon.renderers.spec`).  Default: the renderer's own
+        ``spec()`` when it has one (the built-in scenes, the command
+        renderer and the Mitsuba bridge do, for what a spec can say), so
+        ``resume(log)`` rebuilds it without being told.  A
+        :class:`~mcrecon.renderers.CallableRenderer` has none: resume it
+        with ``resume(log, renderer)``.
+    overwrite : bool, default False
+        Replace an existing ``log``.  The old log stays as it is until the
+        new run commits its first round (the new one is written beside it
+        and renamed over it then): a run that fails or is interrupted
+        before then leaves it bit-identical.
+    storage_dtype : {'auto', 'float32', 'float64'}, default 'auto'
+        Precision of the stored positions and values.  ``auto`` stores
+        what the renderer sends: float32 replies as float32, float64 (and
+        integer) replies as float64, decided on the first reply.  The
+        statistics ingest exactly the stored numbers, so a resumed run sees
+        what the uninterrupted one saw; without a log they ingest the
+        replies in their own precision.  With ``float32`` and float64
+        replies, a round whose values exceed float32's range is refused
+        before it is stored, and a warning (once per run) counts pixels
+        whose spread float32 cannot hold (1e6 +- 1e-3).
+    on_round : callable, optional
+        Called with each round's record (a dict, as in
+        ``AdaptiveResult.rounds``) once the round is committed.
     pipeline : bool, optional
         Pipelined rounds: the renderer renders round k+1 while a toolkit
         thread commits round k and plans round k+2 from the rounds <= k
         (one round of lag, the same in every run: reproducible and
         resumable).  Default: what the method declares
         (:func:`method_pipelines`).  Recorded in the run settings.
-        A pipelined run hands each reply to the toolkit thread while the
-        renderer answers the next request: a renderer must not modify a
-        reply's arrays after ``render`` returned them.  A renderer with a
-        ``prepare(request)`` method (optional; the Mitsuba bridge computes
-        its jittered positions there) has it called from the toolkit thread
-        right after a round is planned there, while it renders the round
-        before (rounds planned in the caller's thread -- round 0, a re-plan
-        after a plan that waited -- and a resume's first round are not
-        prepared); ``render(request)`` must return the same reply with or
-        without it.
+        A renderer must then not modify a reply's arrays after ``render``
+        returned them.  A renderer with a ``prepare(request)`` method
+        (optional; the Mitsuba bridge computes its jittered positions
+        there) has it called from the toolkit thread right after a round
+        is planned there, while it renders the round before (rounds
+        planned in the caller's thread -- round 0, a re-plan after a plan
+        that waited -- and a resume's first round are not prepared);
+        ``render(request)`` must return the same reply with or without it.
 
     Returns
     -------
     AdaptiveResult
+        ``image`` (H, W, C) float64, ``stats`` (the statistics of every
+        committed sample), ``rounds`` (per round: samples, renderer,
+        toolkit and wall seconds, error), ``stopped`` (``budget``,
+        ``converged``, ``time_limit`` or ``max_rounds``), ``log``;
+        ``diagnostics()`` gives the method's per-pixel maps.
+
+    Raises
+    ------
+    InputError
+        Bad arguments (a plain function as the renderer, an unknown
+        method, a budget that is not a positive number, an existing
+        ``log``), each naming the argument and the fix, before anything is
+        rendered.
+    RendererError
+        The renderer failed or answered wrongly; every earlier round is
+        committed, so a run with a log can be resumed.
+
+    See Also
+    --------
+    resume : continue a run from its log.
+    mcrecon.reconstruct : an image from samples already taken.
+
+    Examples
+    --------
+    >>> import numpy as np, mcrecon
+    >>> from mcrecon.core.requests import jittered_positions
+    >>> def render(request):
+    ...     g = np.random.default_rng(request.round_index)
+    ...     pos = np.zeros((0, 2))
+    ...     if request.counts is not None:
+    ...         pos = jittered_positions(request.counts, g)
+    ...     if request.positions is not None:
+    ...         pos = np.concatenate([pos, request.positions])
+    ...     return pos, 0.5 + g.normal(0, 0.1, (len(pos), 3))
+    >>> renderer = mcrecon.CallableRenderer(render, width=16, height=12)
+    >>> result = mcrecon.adapt(renderer, "gem", spp=8)
+    >>> result.image.shape, result.stopped
+    ((12, 16, 3), 'budget')
     """
+    if callable(renderer) and not hasattr(renderer, "render"):
+        raise InputError("adapt", "renderer", f"{getattr(renderer, '__name__', type(renderer).__name__)} is a plain "
+                         "function; wrap it: mcrecon.CallableRenderer(fn, width=W, height=H), so the run knows "
+                         "the film size and the channels")
     if not isinstance(method, Method):
         method = get_method(str(method))
     w, h, channels = _check_renderer(renderer)
