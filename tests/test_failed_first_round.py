@@ -71,11 +71,11 @@ def test_a_renderer_failing_in_round_0_leaves_no_log(tmp_path, pipeline):
     with pytest.raises(ValueError, match="bad"):  # any error of the run, not only the toolkit's own
         adapt(Raw(), "box", spp=8, log=log, pipeline=pipeline, progress=False)
     assert _left_behind(log) == []
-    # overwrite=True: the file the run replaced is the run's own too
+    # overwrite=True: the file the run would replace stays as it was
     log.write_bytes(b"an older file")
     with pytest.raises(RendererError):
         adapt(_renderer(fail_round=0), "box", spp=8, log=log, overwrite=True, progress=False)
-    assert _left_behind(log) == []
+    assert _left_behind(log) == ["run.h5"] and log.read_bytes() == b"an older file"
 
 
 @pytest.mark.parametrize("pipeline", [False, True])
@@ -177,3 +177,115 @@ def test_cli_reference_of_another_size_names_the_file(tmp_path, capsys, monkeypa
                             "--reference", "ref.exr", "--log", "l.h5", "-o", "out.exr"], capsys)
     _one_line(code, err, "ref.exr: shape: (8, 8, 3)", "(12, 16, 3)")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ref.exr"]
+
+
+# ------------------------------------------------------------------ what reached the disk decides, and nothing is lost
+def _shared_renderer(*, fail_round=None, error=None):
+    """``helpers.jittered_renderer`` of a two-tone film; raises ``error`` (default: a RendererError) in ``fail_round``."""
+    from helpers import jittered_renderer
+
+    def shade(pos, rng, req):
+        if req.round_index == fail_round:
+            raise error if error is not None else RendererError("test renderer", "render", "fails on purpose")
+        return np.repeat(0.2 + 0.6 * (pos[:, :1] > W / 2), 3, axis=1) * rng.uniform(0.5, 1.5, (len(pos), 1))
+
+    return jittered_renderer(shade, width=W, height=H, name="test renderer")
+
+
+def _files(folder: Path) -> list[str]:
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
+
+
+@pytest.mark.parametrize("pipeline", [False, True])
+def test_a_round_on_disk_is_kept_when_the_error_comes_after_its_append(tmp_path, pipeline):
+    """The per-round error (``finish`` with a reference) raises after round 0 was appended: its samples stay."""
+    from mcrecon.methods.box import BoxMethod
+
+    class FinishFails(BoxMethod):
+        def reconstruct_run(self, run, inputs):
+            raise RuntimeError("finish fails on purpose")
+
+    log = tmp_path / "run.h5"
+    ref = np.full((H, W, 3), 0.5)
+    with pytest.raises(RuntimeError, match="finish fails on purpose"):
+        adapt(_shared_renderer(), FinishFails(), spp=8, seed=1, log=log, reference=ref, pipeline=pipeline,
+              progress=False)
+    assert read_log(log).n_rounds >= 1
+    res = resume(log, _shared_renderer(), progress=False)
+    assert res.samples == W * H * 8
+
+
+@pytest.mark.parametrize("pipeline", [False, True])
+def test_overwrite_keeps_the_old_log_bit_identical_until_the_new_run_commits_a_round(tmp_path, pipeline):
+    log = tmp_path / "run.h5"
+    adapt(_shared_renderer(), "gem", spp=4, seed=3, log=log, progress=False)
+    old = log.read_bytes()
+    for error, raised in ((None, RendererError), (ValueError("bad"), RendererError),
+                          (KeyboardInterrupt(), KeyboardInterrupt)):  # the renderer's refusal, any error, Ctrl-C
+        with pytest.raises(raised):
+            adapt(_shared_renderer(fail_round=0, error=error), "box", spp=8, log=log, overwrite=True,
+                  pipeline=pipeline, progress=False)
+        assert log.read_bytes() == old
+        assert _files(tmp_path) == ["run.h5"]  # no temporary log, no lock
+    # a failure after round 0: the new run's log has replaced the old one and resumes
+    with pytest.raises(RendererError):
+        adapt(_shared_renderer(fail_round=2), "box", spp=8, seed=1, log=log, overwrite=True, pipeline=pipeline,
+              progress=False)
+    assert _files(tmp_path) == ["run.h5"]
+    sl = read_log(log)
+    assert sl.run_settings["method"] == "box" and sl.n_rounds == 2
+    assert resume(log, _shared_renderer(), progress=False).samples == W * H * 8
+    # a run that succeeds replaces it, and its result names the log
+    res = adapt(_shared_renderer(), "box", spp=4, seed=2, log=log, overwrite=True, pipeline=pipeline,
+                progress=False)
+    assert res.log == log and _files(tmp_path) == ["run.h5"]
+    assert read_log(log).n_samples == res.samples == W * H * 4 and read_log(log).run_settings["seed"] == 2
+
+
+def test_a_refused_first_round_removes_the_directories_it_created(tmp_path):
+    (tmp_path / "kept").mkdir()
+    for log in (tmp_path / "nd" / "sub" / "run.h5", tmp_path / "kept" / "new" / "run.h5"):
+        with pytest.raises(RendererError):
+            adapt(_shared_renderer(fail_round=0), "box", spp=4, log=log, progress=False)
+    assert _files(tmp_path) == ["kept"]  # a directory that was there before stays
+
+
+def test_ctrl_c_says_what_the_log_on_disk_lets_the_user_do(tmp_path, cli, monkeypatch):
+    from mcrecon.cli import commands
+
+    monkeypatch.chdir(tmp_path)
+
+    def interrupted_after(rounds):
+        def cmd(args):
+            adapt(_shared_renderer(), "box", spp=4, log=args.log, max_rounds=rounds, progress=False)
+            raise KeyboardInterrupt
+
+        return cmd
+
+    argv = ["adapt", "--scene", "flat", "--size", "8x8", "--spp", "4", "-o", "o.exr", "--log"]
+    monkeypatch.setattr(commands, "_cmd_adapt", interrupted_after(1))
+    code, _, err = cli(argv + ["one.h5"])
+    assert code == 130 and err == "mcrecon: interrupted; `mcrecon adapt --resume one.h5 -o o.exr` continues the " \
+                                  "run from its last committed round\n"
+    monkeypatch.setattr(commands, "_cmd_adapt", interrupted_after(0))
+    code, _, err = cli(argv + ["none.h5"])
+    assert code == 130 and err.splitlines(keepends=True)[-1] == "mcrecon: interrupted before any round was committed; `mcrecon adapt --resume " \
+                                  "none.h5 -o o.exr` starts the run from its first round\n"
+
+
+def test_mcrecon_adapt_is_the_driver_itself_refusing_a_plain_function_before_anything(tmp_path):
+    import inspect
+
+    import mcrecon
+    from mcrecon.adaptive import run as driver
+
+    assert mcrecon.adapt is driver.adapt
+    assert {"seed", "log", "overwrite", "pipeline", "on_round"} <= set(inspect.signature(mcrecon.adapt).parameters)
+
+    def shade(request):
+        return None
+
+    with pytest.raises(InputError, match=r"shade is a plain function.*mcrecon.CallableRenderer\(fn, width=W, "
+                                         r"height=H\)"):
+        driver.adapt(shade, "gem", spp=4, log=tmp_path / "run.h5")
+    assert _files(tmp_path) == []

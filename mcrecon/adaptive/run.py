@@ -36,6 +36,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
+import os
 import time
 import warnings
 from pathlib import Path
@@ -169,73 +170,157 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
           metadata: Mapping | None = None, renderer_spec: Mapping | None = None,
           overwrite: bool = False, storage_dtype: str = "auto",
           on_round: Callable[[dict], Any] | None = None, pipeline: bool | None = None) -> AdaptiveResult:
-    """Run adaptive rounds until the budget, the method's target or a time limit.
+    """Run adaptive rounds: ask a renderer for samples where they pay off, until the budget is spent.
+
+    Each round the method plans a request (samples per pixel, or at film
+    positions), the renderer answers it, the reply is validated and (with
+    ``log``) committed to the sample log before the method sees it; at the
+    end the method reconstructs the image.  A run with a log survives a
+    kill: :func:`resume` (``mcrecon adapt --resume LOG``) continues it with
+    the same decisions.  It stops at the budget, the method's target, a
+    time limit or ``max_rounds``.  This is ``mcrecon.adapt``.
 
     Parameters
     ----------
     renderer : Renderer
-        Answers :class:`~mcrecon.core.requests.SampleRequest` s.
+        An object with ``width``, ``height``, ``channels`` and
+        ``render(request) -> SampleBatch`` (:class:`mcrecon.renderers.Renderer`),
+        answering :class:`~mcrecon.core.requests.SampleRequest` s.
+        A Python function ``fn(request) -> (positions, values)`` becomes
+        one with ``mcrecon.CallableRenderer(fn, width=W, height=H)``; the
+        package's others are ``mcrecon.renderers.command.CommandRenderer``
+        (an external program exchanging HDF5 files),
+        ``mcrecon.renderers.scenes.SceneRenderer`` (a built-in scene) and
+        ``mcrecon.renderers.mitsuba.MitsubaRenderer`` (Mitsuba 3).
     method : str or Method
-        A registered method name or an instance.
+        A registered method name (``mcrecon.available_methods()``: ``gem``,
+        ``awr``, ``ci`` and ``auto`` place their samples, the others take
+        them uniformly; ``nfor`` needs a renderer that sends features) or
+        a method object (``mcrecon.get_method("gem", gamma=0.1)``).
     spp : float
-        Sample budget as average samples per pixel (total = round(spp * W * H)).
-    seed : int
+        The sample budget as average samples per pixel (in all
+        ``round(spp * width * height)`` samples).
+    seed : int, default 0
         Run seed: the whole run is reproducible from it.
     log : path-like, optional
-        Sample log to create; every round is committed to it before the
-        next request.  Refused if it exists, unless ``overwrite``.  A run
-        that raises before its first round is committed (a renderer that
-        fails in round 0, a method that refuses the first reply) removes
-        the log it created: there is nothing to resume, and the retry is
-        not refused.  Once a round is committed, the log stays resumable.
+        The sample log to create (``.h5``); every round is committed to it
+        before the next request.  Refused if it exists, unless
+        ``overwrite``.  Without it nothing is written and the run cannot
+        be resumed.  A run that raises before its first round reaches the
+        log (a renderer that fails in round 0, a method that refuses the
+        first reply) removes the log and the empty directories it created:
+        there is nothing to resume, and the retry is not refused.  Once a
+        round is committed, the log stays resumable.  A run interrupted
+        (Ctrl-C) before then keeps its log, which :func:`resume` starts
+        from the first round.
     reference : ndarray (H, W, C), optional
-        Ground truth for the per-round error (and oracle modes).
+        The exact image, for the per-round error (``track_error``) and the
+        methods that read one; stored in the log.
     time_limit : float, optional
-        Wall seconds; no new round starts after it.
+        Wall seconds; no new round starts after them (the run stops with
+        ``stopped == "time_limit"`` and can be resumed).
     progress : bool, optional
-        Progress bar on stderr; default: only on a terminal.
-    nonfinite : {'drop', 'zero', 'raise'}
-        Policy for NaN/Inf sample values (see :mod:`mcrecon.core.stats`); with
-        ``raise`` a reply holding one is refused before it is committed.
-    track_error : bool
-        Reconstruct after every round to record its error (needs a
-        reference; excluded from the toolkit time).
+        A progress bar on stderr; default: only on a terminal.
+    nonfinite : {'drop', 'zero', 'raise'}, default 'drop'
+        What happens to NaN/Inf sample values (see :mod:`mcrecon.core.stats`):
+        left out of the statistics (and counted), taken as 0, or refused
+        (a reply holding one) before they are committed.
+    max_rounds : int, default 10000
+        Rounds at most.
+    track_error : bool, default True
+        With a ``reference``: reconstruct after every round and record its
+        relative MSE (not counted in the toolkit time).
+    eps : float, default 0.01
+        The ε of that relative MSE, (img - ref)² / (ref² + ε).
+    metadata : mapping, optional
+        Extra JSON metadata stored in the log.
     renderer_spec : mapping, optional
-        How to recreate the renderer (stored with the run for ``--resume``).
-        Default: the renderer's own ``spec()`` when it has one (the built-in
-        scenes, the command renderer and the Mitsuba bridge do, for what a
-        spec can say), so ``resume(log)`` rebuilds it without being told.
-    storage_dtype : {'auto', 'float32', 'float64'}
-        Precision of the stored positions and values.  ``auto`` (default)
-        stores what the renderer sends: float32 replies as float32,
-        float64 (and integer) replies as float64, decided on the first
-        reply.  The statistics ingest exactly the stored numbers, so a
-        resumed run sees what the uninterrupted one saw; without a log
-        they ingest the replies in their own precision.  With ``float32``
-        and float64 replies, a round whose values exceed float32's range is
-        refused before it is stored, and a warning (once per run) counts
-        pixels whose spread float32 cannot hold (1e6 +- 1e-3).
+        How to build the renderer again on resume, stored with the run
+        (:mod:`mcrecon.renderers.spec`).  Default: the renderer's own
+        ``spec()`` when it has one (the built-in scenes, the command
+        renderer and the Mitsuba bridge do, for what a spec can say), so
+        ``resume(log)`` rebuilds it without being told.  A
+        :class:`~mcrecon.renderers.CallableRenderer` has none: resume it
+        with ``resume(log, renderer)``.
+    overwrite : bool, default False
+        Replace an existing ``log``.  The old log stays as it is until the
+        new run commits its first round (the new one is written beside it
+        and renamed over it then): a run that fails or is interrupted
+        before then leaves it bit-identical.
+    storage_dtype : {'auto', 'float32', 'float64'}, default 'auto'
+        Precision of the stored positions and values.  ``auto`` stores
+        what the renderer sends: float32 replies as float32, float64 (and
+        integer) replies as float64, decided on the first reply.  The
+        statistics ingest exactly the stored numbers, so a resumed run sees
+        what the uninterrupted one saw; without a log they ingest the
+        replies in their own precision.  With ``float32`` and float64
+        replies, a round whose values exceed float32's range is refused
+        before it is stored, and a warning (once per run) counts pixels
+        whose spread float32 cannot hold (1e6 +- 1e-3).
+    on_round : callable, optional
+        Called with each round's record (a dict, as in
+        ``AdaptiveResult.rounds``) once the round is committed.
     pipeline : bool, optional
         Pipelined rounds: the renderer renders round k+1 while a toolkit
         thread commits round k and plans round k+2 from the rounds <= k
         (one round of lag, the same in every run: reproducible and
         resumable).  Default: what the method declares
         (:func:`method_pipelines`).  Recorded in the run settings.
-        A pipelined run hands each reply to the toolkit thread while the
-        renderer answers the next request: a renderer must not modify a
-        reply's arrays after ``render`` returned them.  A renderer with a
-        ``prepare(request)`` method (optional; the Mitsuba bridge computes
-        its jittered positions there) has it called from the toolkit thread
-        right after a round is planned there, while it renders the round
-        before (rounds planned in the caller's thread -- round 0, a re-plan
-        after a plan that waited -- and a resume's first round are not
-        prepared); ``render(request)`` must return the same reply with or
-        without it.
+        A renderer must then not modify a reply's arrays after ``render``
+        returned them.  A renderer with a ``prepare(request)`` method
+        (optional; the Mitsuba bridge computes its jittered positions
+        there) has it called from the toolkit thread right after a round
+        is planned there, while it renders the round before (rounds
+        planned in the caller's thread -- round 0, a re-plan after a plan
+        that waited -- and a resume's first round are not prepared);
+        ``render(request)`` must return the same reply with or without it.
 
     Returns
     -------
     AdaptiveResult
+        ``image`` (H, W, C) float64, ``stats`` (the statistics of every
+        committed sample), ``rounds`` (per round: samples, renderer,
+        toolkit and wall seconds, error), ``stopped`` (``budget``,
+        ``converged``, ``time_limit`` or ``max_rounds``), ``log``;
+        ``diagnostics()`` gives the method's per-pixel maps.
+
+    Raises
+    ------
+    InputError
+        Bad arguments (a plain function as the renderer, an unknown
+        method, a budget that is not a positive number, an existing
+        ``log``), each naming the argument and the fix, before anything is
+        rendered.
+    RendererError
+        The renderer failed or answered wrongly; every earlier round is
+        committed, so a run with a log can be resumed.
+
+    See Also
+    --------
+    resume : continue a run from its log.
+    mcrecon.reconstruct : an image from samples already taken.
+
+    Examples
+    --------
+    >>> import numpy as np, mcrecon
+    >>> from mcrecon.core.requests import jittered_positions
+    >>> def render(request):
+    ...     g = np.random.default_rng(request.round_index)
+    ...     pos = np.zeros((0, 2))
+    ...     if request.counts is not None:
+    ...         pos = jittered_positions(request.counts, g)
+    ...     if request.positions is not None:
+    ...         pos = np.concatenate([pos, request.positions])
+    ...     return pos, 0.5 + g.normal(0, 0.1, (len(pos), 3))
+    >>> renderer = mcrecon.CallableRenderer(render, width=16, height=12)
+    >>> result = mcrecon.adapt(renderer, "gem", spp=8)
+    >>> result.image.shape, result.stopped
+    ((12, 16, 3), 'budget')
     """
+    if callable(renderer) and not hasattr(renderer, "render"):
+        raise InputError("adapt", "renderer", f"{getattr(renderer, '__name__', type(renderer).__name__)} is a plain "
+                         "function; wrap it: mcrecon.CallableRenderer(fn, width=W, height=H), so the run knows "
+                         "the film size and the channels")
     if not isinstance(method, Method):
         method = get_method(str(method))
     w, h, channels = _check_renderer(renderer)
@@ -270,23 +355,88 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
     if log is None:
         return _drive(RunContext.assemble(renderer, method, settings, reference=ref, log_path=None, session=session))
     log_path = Path(log)
-    # The run holds its log's writer lock from creation to the end: a second run or
-    # a resume on the same log is refused (naming this process), see log_lock.
-    with log_lock(log_path):
-        if log_path.exists() and not overwrite:
-            raise InputError(str(log_path), "file", "exists; resume it with --resume / mcrecon.adaptive.run.resume, "
-                             "or choose another path")
-        _create_log(log_path, settings, reference=ref, metadata=metadata)
-        ctx = None
-        try:
-            ctx = RunContext.assemble(renderer, method, settings, reference=ref, log_path=log_path, session=session)
-            return _drive(ctx)
-        except Exception:
-            if ctx is None or not ctx.rounds:
-                # refused or failed before its first round was committed: the log holds nothing to resume,
-                # and left behind it would refuse the retry ("exists")
-                _remove_log(log_path)
-            raise
+    made = _missing_dirs(log_path.parent)
+    try:
+        # The run holds its log's writer lock from creation to the end: a second run or
+        # a resume on the same log is refused (naming this process), see log_lock.
+        with log_lock(log_path):
+            if log_path.exists() and not overwrite:
+                raise InputError(str(log_path), "file", "exists; resume it with --resume / "
+                                 "mcrecon.adaptive.run.resume, or choose another path")
+            first = _FirstCommit(log_path)
+            _create_log(first.path, settings, reference=ref, metadata=metadata)
+            try:
+                ctx = RunContext.assemble(renderer, method, settings, reference=ref, log_path=first.path,
+                                          session=session)
+                result = _drive(ctx, first)
+            except BaseException as exc:
+                first.abandon(interrupted=not isinstance(exc, Exception))
+                raise
+            first.publish(ctx)  # a run that ends without a round (max_rounds=0) still replaces the old log
+            result.log = log_path
+            return result
+    finally:
+        for d in made:  # a refused run leaves no empty directory it created (a kept log keeps its own)
+            with contextlib.suppress(OSError):
+                d.rmdir()
+
+
+class _FirstCommit:
+    """Where a new run writes its log, and what becomes of it at the first committed round or a failure.
+
+    A new path is written in place.  An existing log the run replaces
+    (``overwrite``) stays as it is until the new run commits its first
+    round: the new log is written beside it (``.NAME.new``, under the
+    old log's lock) and renamed over it right after that round's append
+    returns.  A run that fails or is interrupted before then leaves the
+    old log bit-identical, and a process killed then leaves it too.
+    """
+
+    def __init__(self, final: Path):
+        self.final = final
+        self.path = final.with_name(f".{final.name}.new") if final.exists() else final
+        self.committed = False  # set once an append has returned: a round is on disk
+
+    def appended(self, ctx, rnd) -> None:
+        """Called after each append: the first one publishes the new log (from the writing thread,
+        before the round counts as committed, so every later write goes to the published path)."""
+        if not self.committed:
+            self.committed = True
+            self.publish(ctx)
+            rnd.log_path = self.path
+
+    def publish(self, ctx) -> None:
+        if self.path != self.final:
+            os.replace(self.path, self.final)
+            self.path = ctx.log_path = self.final
+
+    def abandon(self, *, interrupted: bool) -> None:
+        """The run raised.  A round that reached the disk keeps the log, whatever the records in memory
+        say (an append is committed before the round's record is finished).  Without one, a log the run
+        wrote beside an old one is removed (the old one stays); a log at a new path is removed unless
+        the run was interrupted (Ctrl-C: it stays resumable, from its first round)."""
+        if self.committed or _rounds_on_disk(self.path) != 0:
+            return
+        if self.path != self.final or not interrupted:
+            _remove_log(self.path)
+
+
+def _rounds_on_disk(path) -> int | None:
+    """The committed rounds of the log at ``path`` as the reader sees them (None: none readable)."""
+    try:
+        return read_log(path).n_rounds
+    except Exception:  # noqa: BLE001 -- a log that cannot be read is kept as it is
+        return None
+
+
+def _missing_dirs(folder: Path) -> list[Path]:
+    """The directories of ``folder``'s path that do not exist yet, deepest first."""
+    out = []
+    for d in (folder, *folder.parents):
+        if d.exists():
+            break
+        out.append(d)
+    return out
 
 
 def _create_log(log_path, settings, *, reference, metadata):
@@ -297,7 +447,7 @@ def _create_log(log_path, settings, *, reference, metadata):
     # (the log is still empty then, see _resolve_storage).
     placeholder = "float32" if settings["storage_dtype"] == "auto" else settings["storage_dtype"]
     c = len(settings["channels"])
-    # written atomically: a failure leaves the path as it was (a file ``overwrite`` would replace included)
+    # written atomically: a failure leaves the path as it was
     write_log(log_path, np.zeros((0, 2), placeholder), np.zeros((0, c), placeholder), width=settings["width"],
               height=settings["height"], channels=tuple(settings["channels"]), reference=reference, metadata=meta)
     try:
@@ -405,10 +555,30 @@ def _replay(ctx, sl):
     return planned
 
 
-def _drive(ctx) -> AdaptiveResult:
-    """This session of the run: its loop, then the final image."""
+class _PublishingRound(_Round):
+    """A new run's rounds: the first append publishes its log (see :class:`_FirstCommit`)."""
+
+    def __init__(self, ctx, first):
+        super().__init__(ctx)
+        self.first = first
+
+    def receive(self, req, reply, round_index):
+        # a method that cannot take the replies (nfor without features) refuses the first one before it
+        # is committed: a refused run leaves no log, and its retry is not refused
+        batch, n_bad = super().receive(req, reply, round_index)
+        if not self.first.committed:
+            self.ctx.method.refuse_reply(batch)
+        return batch, n_bad
+
+    def _append(self, *args, **kwargs):
+        super()._append(*args, **kwargs)
+        self.first.appended(self.ctx, self)
+
+
+def _drive(ctx, first=None) -> AdaptiveResult:
+    """This session of the run: its loop, then the final image (``first``: a new run's :class:`_FirstCommit`)."""
     ctx.start()
-    rnd, writes = _Round(ctx), _LogWrites(ctx)
+    rnd, writes = (_Round(ctx) if first is None else _PublishingRound(ctx, first)), _LogWrites(ctx)
     n_before = len(ctx.rounds)
     loop_t0 = time.perf_counter()
     try:

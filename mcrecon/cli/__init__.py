@@ -110,15 +110,23 @@ class _Nowhere:
 
 def _how_to_continue(args) -> str:
     """After Ctrl-C: for an adaptive run with a log on disk, the command that continues it (every committed
-    round is kept), else nothing."""
+    round is kept; a log without one holds the run's settings, and the command starts the run), else nothing."""
     import shlex
     from pathlib import Path
 
     log = getattr(args, "resume", None) or getattr(args, "log", None)
     if getattr(args, "command", None) != "adapt" or not log or not Path(log).is_file():
         return ""
+    try:
+        from ..io import read_log
+
+        rounds = read_log(log).n_rounds
+    except Exception:  # noqa: BLE001 -- a log that cannot be read: no command to offer
+        return ""
     out = getattr(args, "output", None)
     resume = f"mcrecon adapt --resume {shlex.quote(str(log))}" + (f" -o {shlex.quote(str(out))}" if out else "")
+    if rounds == 0:
+        return f" before any round was committed; `{resume}` starts the run from its first round"
     return f"; `{resume}` continues the run from its last committed round"
 
 

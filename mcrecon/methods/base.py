@@ -660,18 +660,20 @@ class Method:
         if not req.half_buffers:
             return
         if run.halves is None:
-            if req.features == "required" and not batch.features:
-                # refused on the first round, not after the whole budget is rendered
-                raise InputError(self.where, "features", f"{self.name} needs per-sample features (albedo, normal, "
-                                 "depth) and the renderer's replies have none: the built-in scenes send them with "
-                                 "--features all (`mcrecon scenes`), the Mitsuba bridge by default, a renderer "
-                                 "of your own in its replies (SampleBatch.features; /features/NAME of a "
-                                 "command's reply); or pick another method")
+            self.refuse_reply(batch)  # on the first round, not after the whole budget is rendered
             # the renderer's first round says which features it sends (every later round sends the same)
             layout = usable_layout(batch.features) if req.features != "none" and batch.features else None
             run.halves = Halves.empty(run.width, run.height, run.channels, features=layout)
         run.halves.add(batch.positions, batch.values, features=batch.features if run.halves.a.features else None,
                        nonfinite="drop", source=self.where)
+
+    def refuse_reply(self, batch: SampleBatch) -> None:
+        """Refuse a reply without the features the method requires (an adaptive run asks before the commit)."""
+        if self.requires.half_buffers and self.requires.features == "required" and not batch.features:
+            raise InputError(self.where, "features", f"{self.name} needs per-sample features (albedo, normal, depth) "
+                             "and the renderer's replies have none: the built-in scenes send them with --features all "
+                             "(`mcrecon scenes`), the Mitsuba bridge by default, a renderer of your own in its replies "
+                             "(SampleBatch.features; /features/NAME of a command's reply); or pick another method")
 
     def run_inputs(self, run: RunState, state: AdaptiveState) -> MethodInputs:
         """An adaptive run's reconstruction inputs: its statistics, and its halves when they hold them all.
