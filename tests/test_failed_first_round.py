@@ -18,7 +18,6 @@ from mcrecon import InputError, RendererError
 from mcrecon.adaptive.run import adapt, resume
 from mcrecon.core.requests import SampleBatch
 from mcrecon.io import read_log
-from mcrecon.io.lock import lock_path
 
 from helpers import ROOT, jittered_renderer, run_cli, run_cli_process
 
