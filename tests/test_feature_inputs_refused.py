@@ -8,7 +8,6 @@ one line naming the file and the field, with the fix; legitimate input gives its
 import ast
 import json
 import os
-import shutil
 import subprocess
 import sys
 import textwrap
@@ -18,7 +17,7 @@ import h5py
 import numpy as np
 import pytest
 
-from mcrecon import InputError, McreconWarning
+from mcrecon import InputError
 from mcrecon.io import append_log, read_log, write_exr, write_log
 
 from helpers import ROOT, cli_env, jittered_renderer, run_cli

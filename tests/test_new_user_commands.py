@@ -12,7 +12,6 @@ import ast
 import re
 import tempfile
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
