@@ -56,10 +56,13 @@ def _is_exr(x) -> bool:
 
 def is_pixel_file_source(source) -> bool:
     """Whether ``source`` is meant as pixel-statistics EXRs: a path ending in ``.exr``, a read
-    :class:`PixelStatsEXR`, or a tuple or list holding one (:func:`read_pixel_file_source` then
-    refuses one that is not a pair of two)."""
+    :class:`PixelStatsEXR`, or a tuple or list holding one and no :class:`PixelStats`
+    (:func:`read_pixel_file_source` then refuses one that is not a pair of two EXRs; with
+    statistics in it, it is meant as statistics, and the half-buffer check blames what is not)."""
     if isinstance(source, (tuple, list)):
-        return any(_is_exr(x) for x in source)
+        from ..core.stats import PixelStats
+
+        return any(_is_exr(x) for x in source) and not any(isinstance(x, PixelStats) for x in source)
     return _is_exr(source)
 
 
