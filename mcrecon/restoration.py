@@ -5,8 +5,8 @@ e.g. from :meth:`~mcrecon.core.stats.PixelStats.from_moments` on a renderer's
 mean / variance / count images, or from samples in memory with
 :meth:`~mcrecon.core.stats.PixelStats.from_samples`) or, for methods that
 filter individual samples, a :class:`~mcrecon.core.samples.SampleSet`; :func:`auto`
-also takes a half-buffer pair ``(stats_a, stats_b)`` (two independent halves
-of the samples, as renderers write dual buffers); its
+and :func:`nfor` also take a half-buffer pair ``(stats_a, stats_b)`` (two
+independent halves of the samples, as renderers write dual buffers); its
 keyword-only options are the method's options, validated by the one
 option path of :mod:`mcrecon.methods`.  The image comes back in the
 precision of the input values: float32 in, float32 out.

@@ -105,18 +105,18 @@ def test_the_command_line_writes_what_python_returns(files, capsys):
 def test_a_method_adapts_to_one_exr_by_its_declared_options(files):
     """auto's default candidates need two halves: on one EXR it takes the options its Requirements declare."""
     assert dict(get_method("auto").requires.statistics_options) == {"candidates": "box,gauss"}
-    with pytest.warns(McreconWarning, match="--candidates box,gauss.*--half-buffer"):
+    with pytest.warns(McreconWarning, match=r"candidates='box,gauss'.*a pair of two EXR paths"):
         img = mcrecon.reconstruct(files["all"], method="auto")
     pix = read_pixel_stats_exr(files["all"])
     np.testing.assert_array_equal(img, pix.output_image(mcrecon.reconstruct(pix.stats, method="auto",
                                                                             candidates="box,gauss")))
     # options the caller chose are never changed: refused in one line, naming the fix
-    with pytest.raises(InputError, match="--candidates box,gauss"):
+    with pytest.raises(InputError, match="candidates='box,gauss'"):
         mcrecon.reconstruct(files["all"], method="auto", candidates="box,nlm")
     # awr: the paper's 'range' estimator needs sample ranges, which statistics from moments lack
-    with pytest.warns(McreconWarning, match="--variance sample"):
+    with pytest.warns(McreconWarning, match="variance='sample'"):
         mcrecon.reconstruct(files["all"], method="awr", variant="paper")
-    with pytest.raises(InputError, match="minimum and maximum.*--variance sample"):
+    with pytest.raises(InputError, match="minimum and maximum.*variance='sample'"):
         mcrecon.reconstruct(files["all"], method="awr", variance="range")
     # in-memory statistics: the caller chooses (no silent change), the message suggests the option
     with pytest.raises(InputError, match="variance='sample'"):
@@ -204,3 +204,98 @@ def test_the_cli_composes_public_calls_and_the_registry_circle_is_gone():
     tree = ast.parse((PACKAGE / "methods" / "base.py").read_text())
     targets = {(n.level, n.module) for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
     assert (1, None) not in targets  # `from . import ...`: the registry
+
+
+# ------------------------------------------------------------------ options given are kept; errors in the caller's terms
+def test_an_option_given_equal_to_its_default_is_not_replaced(files, cli, tmp_path):
+    """Given, not "different from the default": auto's default candidates given explicitly are refused on
+    one EXR (naming the option), never silently swapped for the statistics options."""
+    default = get_method("auto").params["candidates"]
+    assert get_method("auto", candidates=default).given_options == {"candidates"}
+    with pytest.raises(InputError, match=r"candidates.*given.*pair of two EXR paths") as exc:
+        mcrecon.reconstruct(files["all"], method="auto", candidates=default)
+    assert exc.value.field == "candidates"
+    code, out, err = cli(["reconstruct", files["all"], "-o", tmp_path / "o.exr", "--method", "auto",
+                          "--candidates", default])
+    assert code == 2 and len(err.strip().splitlines()) == 1 and not (tmp_path / "o.exr").exists()
+    assert "--candidates" in err and "--half-buffer B.exr" in err and "candidates=" not in err
+
+
+def test_python_errors_on_exr_inputs_name_keywords_and_the_cli_names_flags(files, cli, tmp_path):
+    with pytest.warns(McreconWarning) as rec:
+        mcrecon.reconstruct(files["all"], method="auto")
+    text = str(rec[0].message)
+    assert "--" not in text and "candidates='box,gauss'" in text
+    with pytest.raises(InputError) as exc:
+        mcrecon.reconstruct((files["a"], files["b"]), method="gem")
+    assert exc.value.field == "source" and "--" not in str(exc.value)
+    with pytest.raises(InputError, match=r"fireflies='cascade'") as exc:
+        mcrecon.reconstruct(files["all"], method="box", fireflies="cascade")
+    assert exc.value.where == str(files["all"])
+    code, _, err = cli(["reconstruct", files["all"], "-o", tmp_path / "o.exr", "--fireflies", "cascade"])
+    assert code == 2 and str(files["all"]) in err and "--fireflies cascade" in err and "fireflies=" not in err
+    code, _, err = cli(["reconstruct", files["a"], "--half-buffer", files["b"], "-o", tmp_path / "o.exr",
+                        "--method", "gem"])
+    assert code == 2 and "--half-buffer" in err
+
+
+@pytest.mark.parametrize("n", [1, 3])
+def test_a_tuple_of_exr_paths_that_is_no_pair_says_what_a_pair_is(files, n):
+    with pytest.raises(InputError, match=rf"got {n} item\(s\); a half-buffer pair is two EXR paths"):
+        mcrecon.reconstruct(tuple([files["a"], files["b"], files["all"]][:n]), method="auto")
+
+
+def test_a_pair_with_one_non_exr_item_blames_that_item(files):
+    with pytest.raises(InputError, match=r"x\.h5 is not an EXR") as exc:
+        mcrecon.reconstruct((files["a"], "x.h5"), method="auto")
+    assert exc.value.field == "source[1]"
+
+
+@pytest.mark.parametrize("bad, said", [({"bogus": 1}, "unknown key 'bogus'"), ("x", "got str")])
+def test_bad_exr_options_are_one_line_naming_the_valid_keys(files, bad, said):
+    with pytest.raises(InputError, match=said) as exc:
+        mcrecon.reconstruct(files["all"], method="box", exr_options=bad)
+    assert exc.value.field == "exr_options" and "layout" in str(exc.value) and "spp" in str(exc.value)
+
+
+def test_one_helper_says_what_an_exr_input_is():
+    """The "is this an EXR" test is offline.pixel_files.is_pixel_file_source alone."""
+    for rel in ("cli/commands.py", "cli/batch.py", "distributed/batch.py"):
+        assert '.endswith(".exr")' not in (PACKAGE / rel).read_text(), rel
+
+
+def test_batch_reads_mitsuba_moment_frames_with_the_read_flags(client, tmp_path, cli):
+    """A Mitsuba moment EXR carries no sample count: batch takes --spp like reconstruct does."""
+    from test_pixel_exr import mitsuba_exr, samples
+
+    from mcrecon.distributed.batch import reconstruct_many
+
+    frames = tmp_path / "mframes"
+    frames.mkdir()
+    for i in range(2):
+        mitsuba_exr(frames / f"m{i}.exr", samples(seed=i))
+    out = tmp_path / "o"
+    code, stdout, err = cli(["batch", frames / "*.exr", "--out-dir", out, "--method", "gem", "--spp", 8,
+                             "--scheduler", client.scheduler.address, "--quiet"])
+    assert code == 0, err
+    assert "2 reconstructed" in stdout
+    for i in range(2):
+        expect = mcrecon.reconstruct(frames / f"m{i}.exr", method="gem", exr_options={"spp": 8})
+        np.testing.assert_array_equal(read_exr(out / f"m{i}.exr")[0], expect.astype(np.float32))
+    # auto's fallback on one EXR is kept in a batch (the options given travel, not every option's value)
+    res = reconstruct_many(str(frames / "*.exr"), method="auto", out_dir=tmp_path / "oa", client=client,
+                           progress=False, exr_options={"spp": 8})
+    assert res.ok, res.failed
+    # read options with a sample log among the frames: refused before any work
+    from mcrecon.io import write_log
+
+    rng = np.random.default_rng(1)
+    log = write_log(tmp_path / "l.h5", rng.random((64, 2)) * [W, H], rng.random((64, 3)), width=W, height=H)
+    with pytest.raises(InputError, match="exr_options"):
+        reconstruct_many([str(frames / "m0.exr"), str(log)], method="gem", out_dir=tmp_path / "ob",
+                         client=client, exr_options={"spp": 8})
+
+
+def test_batch_help_says_exr_frames_are_taken(cli):
+    code, out, _ = cli(["batch", "--help"])
+    assert code == 0 and ".exr" in out and "--spp" in out and "--layout" in out

@@ -20,7 +20,8 @@ from pathlib import Path
 from ..errors import InputError
 
 __all__ = ["OneLineParser", "HelpFormatter", "parse_size", "finite_float", "add_scene_flags", "method_flags", "add_method_options",
-           "given_method_options", "make_method", "check_output", "write_outputs", "jit_notice",
+           "given_method_options", "make_method", "add_exr_read_flags", "exr_read_options",
+           "exr_read_flags_given", "check_output", "write_outputs", "jit_notice",
            "compile_notice"]
 
 _DEST = "mopt_"  # argparse dest of a method option: mopt_NAME
@@ -197,6 +198,49 @@ def make_method(name: str, args, flags: dict):
         if exc.field in flags:
             raise InputError(exc.where, flags[exc.field], exc.problem) from None
         raise
+
+
+# ----------------------------------------------------------------- pixel-statistics EXR inputs
+#: ``(argparse dest, flag)`` of the EXR read flags (:func:`add_exr_read_flags`) that default to None.
+EXR_READ_FLAGS = (("layout", "--layout"), ("mean", "--mean"), ("variance_channels", "--variance-channels"),
+                  ("second_moment", "--second-moment"), ("count", "--count"), ("spp", "--spp"))
+
+
+def add_exr_read_flags(parser, title: str, description: str):
+    """The flags that say how to read a pixel-statistics EXR (``mcrecon.io.read_pixel_stats_exr``'s
+    options), in a ``--help`` group ``title``; returns the group (a command adds its own flags to it)."""
+    px = parser.add_argument_group(title, description)
+    px.add_argument("--layout", default=None, choices=("pbrt-v4", "mitsuba-moment"),  # pixel_exr.LAYOUTS
+                    help="pbrt-v4 GBufferFilm (R,G,B + Variance.R/G/B) or Mitsuba 3's moment integrator "
+                         "(P.X/Y/Z + m2_P.X/Y/Z); default: detected from the channel names, or the explicit mapping")
+    px.add_argument("--mean", default=None, metavar="CHANNELS", help="mean channels, comma-separated (e.g. R,G,B)")
+    px.add_argument("--variance-channels", default=None, metavar="CHANNELS",
+                    help="variance channels, comma-separated (e.g. Variance.R,Variance.G,Variance.B); "
+                         "(--variance is AWR's estimator option)")
+    px.add_argument("--variance-of", default="samples", choices=("samples", "mean"),
+                    help="what --variance-channels hold: the variance of the samples (default) or of the pixel mean")
+    px.add_argument("--second-moment", default=None, metavar="CHANNELS",
+                    help="second-moment (E[x^2]) channels instead of variances; variance = n/(n-1) (m2 - mean^2)")
+    px.add_argument("--count", default=None, metavar="N|CHANNEL|ATTRIBUTE",
+                    help="samples per pixel: a number, a channel of per-pixel counts, or a header attribute")
+    px.add_argument("--spp", default=None, metavar="N", help="samples per pixel (a number; same as --count N)")
+    return px
+
+
+def exr_read_options(args, *, given_only: bool = False) -> dict:
+    """The read options of ``mcrecon.io.read_pixel_stats_exr`` the flags of :func:`add_exr_read_flags`
+    give (``given_only``: only those given on the command line)."""
+    opts = dict(layout=args.layout, mean=args.mean, variance=args.variance_channels,
+                second_moment=args.second_moment, variance_of=args.variance_of, count=args.count, spp=args.spp)
+    if given_only:
+        opts = {k: v for k, v in opts.items() if v is not None and not (k == "variance_of" and v == "samples")}
+    return opts
+
+
+def exr_read_flags_given(args) -> list[str]:
+    """The EXR read flags given on the command line."""
+    given = [flag for dest, flag in EXR_READ_FLAGS if getattr(args, dest, None) is not None]
+    return given + (["--variance-of"] if getattr(args, "variance_of", "samples") != "samples" else [])
 
 
 # ----------------------------------------------------------------- outputs

@@ -1,11 +1,13 @@
-"""``mcrecon batch``: many sample logs -> one EXR each, on a Dask cluster (:mod:`mcrecon.distributed`)."""
+"""``mcrecon batch``: many sample logs or pixel-statistics EXRs -> one EXR each, on a Dask cluster
+(:mod:`mcrecon.distributed`)."""
 
 from __future__ import annotations
 
 import argparse
 import sys
 
-from ._common import HelpFormatter, add_method_options, finite_float, make_method, method_flags
+from ._common import (HelpFormatter, add_exr_read_flags, add_method_options, exr_read_options, finite_float,
+                      make_method, method_flags)
 
 __all__ = ["register"]
 
@@ -19,8 +21,9 @@ def _cmd_batch(args):
                          "--scheduler ADDRESS uses a running one")
     method = make_method(args.method, args, args.method_flags)
     res = reconstruct_many(args.logs, method=method, out_dir=args.out_dir, scheduler=args.scheduler,
-                       workers=args.workers, nonfinite=args.nonfinite, force=args.force, png=args.png,
-                       exposure=args.exposure, progress=False if args.quiet else None)
+                           workers=args.workers, nonfinite=args.nonfinite, force=args.force, png=args.png,
+                           exposure=args.exposure, progress=False if args.quiet else None,
+                           exr_options=exr_read_options(args, given_only=True) or None)
     done = sum(r["status"] == "done" for r in res.records)
     skipped = sum(r["status"] == "skipped" for r in res.records)
     for r in res.failed:
@@ -46,17 +49,20 @@ def _positive_int(text: str) -> int:
 def register(sub, command: str | None = None) -> None:
     """Add ``mcrecon batch`` to the ``mcrecon`` sub-command parser (its method flags only when
     ``command`` is ``batch`` or None: they need every method class)."""
-    s = sub.add_parser("batch", help="reconstruct many sample logs on a Dask cluster (one EXR per log)",
+    s = sub.add_parser("batch", help="reconstruct many sample logs or pixel-statistics EXRs on a Dask cluster "
+                                     "(one EXR per frame)",
                        formatter_class=HelpFormatter,
-                       description="Reconstruct every log into OUT_DIR/<log name>.exr exactly as `mcrecon reconstruct` "
-                                   "would, on a local Dask cluster (--workers) or a running scheduler "
-                                   "(--scheduler). A rerun skips frames whose EXR is newer than the log and readable (its header "
-                                   "fits the log); a failing "
+                       description="Reconstruct every frame (a sample log, or a pixel-statistics EXR as "
+                                   "`mcrecon reconstruct` reads one) into OUT_DIR/<frame name>.exr exactly as "
+                                   "`mcrecon reconstruct` would, on a local Dask cluster (--workers) or a running "
+                                   "scheduler (--scheduler). A rerun skips frames whose EXR is newer than the "
+                                   "frame and readable (its header fits the frame); a failing "
                                    "frame is reported and the others complete (exit status 2). Writes "
                                    "OUT_DIR/batch_summary.csv and .json. Needs the dask extra: "
                                    "pip install 'mcrecon[dask]'.")
-    s.add_argument("logs", nargs="+", metavar="LOG", help="sample logs or glob patterns (quote them: 'frames/*.h5'); a name that "
-                        "exists is that file, literally")
+    s.add_argument("logs", nargs="+", metavar="FRAME", help="sample logs (.h5) or pixel-statistics EXRs (.exr), or "
+                        "glob patterns (quote them: 'frames/*.h5', 'frames/*.exr'); a name that exists is that "
+                        "file, literally")
     s.add_argument("--out-dir", required=True, metavar="DIR", help="output directory (shared with the workers)")
     s.add_argument("--workers", type=_positive_int, default=None, metavar="N",
                    help="worker processes of the local cluster (default and at most: the cores, "
@@ -69,6 +75,11 @@ def register(sub, command: str | None = None) -> None:
     s.add_argument("--nonfinite", default="drop", choices=("drop", "zero", "raise"),
                    help="policy for NaN/Inf sample values (default drop)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_exr_read_flags(s, "pixel-statistics EXR frames (FRAME ending in .exr)",
+                       "How every EXR frame is read, as `mcrecon reconstruct` reads one: layout presets, or an "
+                       "explicit mapping; the count from --spp, --count or the file's samplesPerPixel/spp "
+                       "attribute (Mitsuba's moment EXRs carry none: give --spp N). Refused when a frame is a "
+                       "sample log.")
     s.set_defaults(func=_cmd_batch)
     if command not in (None, "batch"):
         return

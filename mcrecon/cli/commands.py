@@ -13,9 +13,10 @@ import time
 from pathlib import Path
 
 from ..errors import InputError
-from ._common import (HelpFormatter, OneLineParser, add_method_options, add_scene_flags, check_log_output,
-                      check_output, film_size_flag, finite_float, given_method_options, jit_notice, make_method,
-                      method_flags, method_kernels, parse_size, write_outputs)
+from ._common import (HelpFormatter, OneLineParser, add_exr_read_flags, add_method_options, add_scene_flags,
+                      check_log_output, check_output, exr_read_flags_given, exr_read_options, film_size_flag,
+                      finite_float, given_method_options, jit_notice, make_method, method_flags, method_kernels,
+                      parse_size, write_outputs)
 from .builtins import _cmd_demo, _cmd_methods, _cmd_mitsuba, _cmd_render_log, _cmd_scenes
 
 __all__ = ['register']
@@ -46,8 +47,9 @@ def _log_feature_details(path) -> list[dict]:
 def _cmd_info(args):
     from ..io import summarize_log
     from ..io.pixel_exr import describe_pixel_exr
+    from ..offline.pixel_files import is_pixel_file_source
 
-    info = describe_pixel_exr(args.log) if str(args.log).lower().endswith(".exr") else None
+    info = describe_pixel_exr(args.log) if is_pixel_file_source(args.log) else None
     if info is not None and (info["layout"] is None and not info["features"]):
         info = None  # a plain image: the log reader says what it is and what is accepted
     if info is not None:
@@ -89,24 +91,14 @@ def _cmd_info(args):
 
 
 # ----------------------------------------------------------------- denoise
-_PIXEL_STATS_FLAGS = (("layout", "--layout"), ("mean", "--mean"), ("variance_channels", "--variance-channels"),
-                      ("second_moment", "--second-moment"), ("count", "--count"), ("spp", "--spp"),
-                      ("half_buffer", "--half-buffer"))
-
-
 def _refuse_pixel_stats_flags(args) -> None:
-    given = [flag for dest, flag in _PIXEL_STATS_FLAGS if getattr(args, dest, None) is not None]
-    if given or args.variance_of != "samples":
+    flags = exr_read_flags_given(args)
+    given = [f for f in flags if f != "--variance-of"] + (["--half-buffer"] if args.half_buffer is not None else [])
+    if given or flags:
         raise InputError(str(args.log), ", ".join(given) or "--variance-of",
                          "applies to a pixel-statistics EXR input (a path ending in .exr), not to a sample log"
                          + (" (a log holds the samples: methods that use halves split them themselves)"
-                            if getattr(args, "half_buffer", None) is not None else ""))
-
-
-def _exr_options(args) -> dict:
-    """The read options of ``mcrecon.io.read_pixel_stats_exr`` the flags give."""
-    return dict(layout=args.layout, mean=args.mean, variance=args.variance_channels,
-                second_moment=args.second_moment, variance_of=args.variance_of, count=args.count, spp=args.spp)
+                            if args.half_buffer is not None else ""))
 
 
 def _exr_note(rec) -> str:
@@ -134,14 +126,15 @@ def _cmd_reconstruct(args):
     from ..core.metrics import relative_mse
     from ..core.stats import PixelStats
     from ..io import read_log
+    from ..offline.pixel_files import command_line, is_pixel_file_source
 
     check_output(args.output, args.png, command=args.command)
-    exr = str(args.log).lower().endswith(".exr")  # per-pixel statistics a renderer wrote (pbrt-v4, Mitsuba...)
+    exr = is_pixel_file_source(args.log)  # per-pixel statistics a renderer wrote (pbrt-v4, Mitsuba...)
     if not exr:
         _refuse_pixel_stats_flags(args)
     method = make_method(args.method, args, args.method_flags)  # validates the flags given
     if exr:
-        if args.half_buffer is not None and not str(args.half_buffer).lower().endswith(".exr"):
+        if args.half_buffer is not None and not is_pixel_file_source(args.half_buffer):
             raise InputError(str(args.half_buffer), "--half-buffer", "expected an EXR of the other half of the "
                              "samples (a path ending in .exr)")
         source = (args.log, args.half_buffer) if args.half_buffer is not None else args.log
@@ -153,8 +146,9 @@ def _cmd_reconstruct(args):
         features = bool(log.feature_names)
     jit_notice(method_kernels(method, features=features))
     t0 = time.perf_counter()
-    rec = reconstruct(source, method=method, nonfinite=args.nonfinite, full=True, fireflies=args.fireflies,
-                      **({"exr_options": _exr_options(args)} if exr else {}))
+    with command_line():  # refusals name this command's flags
+        rec = reconstruct(source, method=method, nonfinite=args.nonfinite, full=True, fireflies=args.fireflies,
+                          **({"exr_options": exr_read_options(args)} if exr else {}))
     dt = time.perf_counter() - t0
     if exr:
         sys.stderr.write(f"mcrecon: note: {_exr_note(rec)}\n")
@@ -449,29 +443,15 @@ def register(sub, command: str | None = None) -> None:
                          help="cascade: split the samples into luminance cascades first; the method reconstructs "
                               "the base and rare bright parts are spread with the support their density needs "
                               "(energy kept; any method; needs a sample log, held in memory)")
-    px = denoise.add_argument_group(
-        "pixel-statistics EXR input (a LOG ending in .exr)",
+    px = add_exr_read_flags(
+        denoise, "pixel-statistics EXR input (a LOG ending in .exr)",
         "Layout presets, or an explicit mapping; the count from --spp, --count or the file's samplesPerPixel/spp "
         "attribute. Methods that need individual samples (splat, gem with --subpixel-exact-below > 0) refuse it; "
-        "auto takes a half-buffer pair (--half-buffer), and on one EXR its SURE candidates (box,gauss).")
-    px.add_argument("--layout", default=None, choices=("pbrt-v4", "mitsuba-moment"),  # pixel_exr.LAYOUTS
-                    help="pbrt-v4 GBufferFilm (R,G,B + Variance.R/G/B) or Mitsuba 3's moment integrator "
-                         "(P.X/Y/Z + m2_P.X/Y/Z); default: detected from the channel names, or the explicit mapping")
-    px.add_argument("--mean", default=None, metavar="CHANNELS", help="mean channels, comma-separated (e.g. R,G,B)")
-    px.add_argument("--variance-channels", default=None, metavar="CHANNELS",
-                    help="variance channels, comma-separated (e.g. Variance.R,Variance.G,Variance.B); "
-                         "(--variance is AWR's estimator option)")
-    px.add_argument("--variance-of", default="samples", choices=("samples", "mean"),
-                    help="what --variance-channels hold: the variance of the samples (default) or of the pixel mean")
-    px.add_argument("--second-moment", default=None, metavar="CHANNELS",
-                    help="second-moment (E[x^2]) channels instead of variances; variance = n/(n-1) (m2 - mean^2)")
-    px.add_argument("--count", default=None, metavar="N|CHANNEL|ATTRIBUTE",
-                    help="samples per pixel: a number, a channel of per-pixel counts, or a header attribute")
-    px.add_argument("--spp", default=None, metavar="N", help="samples per pixel (a number; same as --count N)")
+        "auto and nfor take a half-buffer pair (--half-buffer), and auto on one EXR its SURE candidates (box,gauss).")
     px.add_argument("--half-buffer", default=None, metavar="B.exr",
                     help="the other half of a half-buffer pair: an EXR of samples independent of LOG's (dual "
                          "buffers), read with the same layout flags (--spp/--count: each half's own); for methods "
-                         "that use half buffers (auto)")
+                         "that use half buffers (auto, nfor)")
     denoise.set_defaults(func=_cmd_reconstruct)
 
     s = adapt = sub.add_parser("adapt", help="run adaptive rounds against a renderer", formatter_class=HelpFormatter)

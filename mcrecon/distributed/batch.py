@@ -68,20 +68,23 @@ SUMMARY_FIELDS = ("frame", "log", "output", "status", "method", "rel_mse", "seco
 # ----------------------------------------------------------------------------
 
 def reconstruct_frame(log_path, out_path, method: str, options: dict, *, nonfinite: str = "drop",
-                  png: bool = False, exposure: float = 0.0) -> dict:
+                      png: bool = False, exposure: float = 0.0, exr_options: dict | None = None) -> dict:
     """Reconstruct one frame exactly as ``mcrecon reconstruct`` does and write its EXR atomically.
 
-    ``log_path``: a sample log, or a pixel-statistics EXR (read with the
-    layout its channel names say, written in its output colours).  Runs
-    on a worker; never raises: a failure comes back as ``status='failed'``
-    with the one-line error.
+    ``log_path``: a sample log, or a pixel-statistics EXR (read with
+    ``exr_options``, :func:`mcrecon.io.read_pixel_stats_exr`'s keywords;
+    by default with the layout its channel names say; written in its
+    output colours).  ``options``: the method options the caller gave.
+    Runs on a worker; never raises: a failure comes back as
+    ``status='failed'`` with the one-line error.
     """
     from ..io import read_log, write_exr, write_png_preview
     from ..core.metrics import relative_mse
+    from ..offline.pixel_files import is_pixel_file_source
     from ..offline.reconstruction import reconstruct
 
     log_path, out_path = Path(log_path), Path(out_path)
-    exr = _is_exr(log_path)
+    exr = is_pixel_file_source(log_path)
     rec = {"frame": log_path.stem, "log": str(log_path), "output": str(out_path), "method": method,
            "rel_mse": None, "seconds": None, "worker": _worker_name(), "samples": None, "error": None}
     t0 = time.perf_counter()
@@ -89,7 +92,8 @@ def reconstruct_frame(log_path, out_path, method: str, options: dict, *, nonfini
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", McreconWarning)
             log = None if exr else read_log(log_path)
-            r = reconstruct(log_path if exr else log, method=method, nonfinite=nonfinite, full=True, **options)
+            r = reconstruct(log_path if exr else log, method=method, nonfinite=nonfinite, full=True,
+                            **({"exr_options": exr_options} if exr and exr_options else {}), **options)
             if png:  # the preview first: the EXR (atomic) marks a complete frame
                 write_png_preview(out_path.with_suffix(".png"), r.image, exposure=exposure)
             write_exr(out_path, r.image, channels=r.channels)
@@ -125,11 +129,6 @@ class BatchResult:
         return not self.failed
 
 
-def _is_exr(path) -> bool:
-    """Whether a frame is a pixel-statistics EXR (else a sample log)."""
-    return str(path).lower().endswith(".exr")
-
-
 def _expand(paths) -> list[Path]:
     import glob
 
@@ -152,7 +151,10 @@ def _expand(paths) -> list[Path]:
     return out
 
 
-def _config(method, options: dict, nonfinite: str) -> dict:
+def _config(method, options: dict, nonfinite: str, exr_options: dict) -> tuple[dict, dict]:
+    """(the configuration a frame's output is made by, as the summary records it; the options the caller
+    gave, which the workers build the method from: an option not given keeps the freedom
+    ``statistics_fallback`` has on an EXR frame)."""
     from ..methods.base import Method
     from ..methods import get_method
 
@@ -162,7 +164,10 @@ def _config(method, options: dict, nonfinite: str) -> dict:
         m = method
     else:
         m = get_method(str(method), **options)   # validate once, here, before any work
-    return {"method": m.name, "options": dict(m.params), "nonfinite": nonfinite}
+    config = {"method": m.name, "options": dict(m.params), "nonfinite": nonfinite}
+    if exr_options:  # only then: summaries written without EXR read options still match
+        config["exr_options"] = {k: exr_options[k] for k in sorted(exr_options)}
+    return config, {k: m.params[k] for k in sorted(m.given_options)}
 
 
 def _previous(json_path: Path) -> dict:
@@ -182,12 +187,13 @@ def _damaged_output(log: Path, out: Path) -> str | None:
     reads no pixels) and its size and channel count checked against the log's.
     """
     from ..io import read_exr, read_log
+    from ..offline.pixel_files import is_pixel_file_source
 
     try:
         image, channels = read_exr(out)
     except InputError as exc:
         return f"not a readable EXR ({exc.problem})"
-    if _is_exr(log):  # a pixel-statistics EXR: its output colours are not its channels; the size must fit
+    if is_pixel_file_source(log):  # a pixel-statistics EXR: its output colours are not its channels; the size must fit
         try:
             src = read_exr(log)[0]
         except InputError:
@@ -266,7 +272,7 @@ def _write_summary(out_dir: Path, records: list, config: dict, seconds: float) -
 def reconstruct_many(paths, *, method="box", out_dir, client=None, scheduler: str | None = None,
                  workers: int | None = None, nonfinite: str = "drop", force: bool = False, png: bool = False,
                  exposure: float = 0.0, progress: bool | None = None, summary: bool = True,
-                 **options) -> BatchResult:
+                 exr_options: dict | None = None, **options) -> BatchResult:
     """Reconstruct every frame in ``paths`` into ``out_dir/<frame stem>.exr`` on a Dask cluster.
 
     Parameters
@@ -292,6 +298,12 @@ def reconstruct_many(paths, *, method="box", out_dir, client=None, scheduler: st
         A progress bar on stderr (default: when stderr is a terminal).
     summary : bool
         Write ``out_dir/batch_summary.csv`` and ``.json``.
+    exr_options : dict, optional
+        How every pixel-statistics EXR frame is read (the keywords of
+        :func:`mcrecon.io.read_pixel_stats_exr`, as
+        :func:`mcrecon.reconstruct` takes them): a Mitsuba moment EXR, which
+        carries no sample count, needs ``{"spp": N}``.  Refused when a frame
+        is a sample log.
 
     Returns
     -------
@@ -300,9 +312,17 @@ def reconstruct_many(paths, *, method="box", out_dir, client=None, scheduler: st
         (up to date) or ``failed`` (with ``error``, one line).
     """
     from ..core.samples import check_policy
+    from ..offline.pixel_files import check_exr_options, is_pixel_file_source
 
     check_policy(nonfinite, "batch")
+    exr_options = check_exr_options(exr_options, "batch")
     logs = _expand(paths)
+    if exr_options:
+        for p in logs:
+            if not is_pixel_file_source(p):
+                raise InputError(str(p), "exr_options", f"{', '.join(sorted(exr_options))}: read options of "
+                                 "pixel-statistics EXR frames (paths ending in .exr), and this frame is a sample "
+                                 "log; give the logs and the EXRs in separate batches")
     stems = {}
     for p in logs:
         if p.stem in stems and stems[p.stem] != p:
@@ -314,7 +334,7 @@ def reconstruct_many(paths, *, method="box", out_dir, client=None, scheduler: st
             raise InputError(str(p), "out_dir", "the frame's output would replace the frame itself; give "
                              "another output directory")
     out_dir.mkdir(parents=True, exist_ok=True)
-    config = _config(method, options, nonfinite)
+    config, given = _config(method, options, nonfinite, exr_options)
     prev = _previous(out_dir / f"{SUMMARY_NAME}.json")
     t0 = time.perf_counter()
     records: dict[int, dict] = {}
@@ -336,8 +356,8 @@ def reconstruct_many(paths, *, method="box", out_dir, client=None, scheduler: st
         with _client_for(client, scheduler, workers) as c:
             futures = {}
             for i, p, out in todo:
-                f = c.submit(reconstruct_frame, str(p), str(out), config["method"], config["options"],
-                             nonfinite=nonfinite, png=png, exposure=exposure, pure=False,
+                f = c.submit(reconstruct_frame, str(p), str(out), config["method"], given,
+                             nonfinite=nonfinite, png=png, exposure=exposure, exr_options=exr_options, pure=False,
                              key=f"mcrecon-frame-{i}-{p.stem}-{os.urandom(4).hex()}")
                 futures[f] = i
             for f in distributed.as_completed(futures):

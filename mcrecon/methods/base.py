@@ -462,6 +462,7 @@ class Method:
         object.__setattr__(self, "_params", params)
         self._configure(params)
         object.__setattr__(self, "params", types.MappingProxyType(params))
+        object.__setattr__(self, "given_options", frozenset(options))  # chosen, not defaults: never replaced
         object.__setattr__(self, "_frozen", True)
 
     def _configure(self, params: dict) -> None:

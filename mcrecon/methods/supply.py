@@ -12,7 +12,10 @@ both call it, so every method is refused the same way, and no method is
 named here.  :func:`statistics_fallback` is the hook for pixel-statistics
 files: the options a method declares it takes them with
 (``Requirements.statistics_options``), used when the caller did not
-choose those options.
+give those options (``Method.given_options``: a value given explicitly
+is never replaced, also one equal to the default).  Messages speak the
+caller's language: ``--flag value`` on the command line
+(``Supply.cli``), ``name=value`` in Python.
 """
 
 from __future__ import annotations
@@ -51,6 +54,9 @@ class Supply:
         How the caller gave it (:data:`SURFACES`): the messages' wording.
     logs : bool
         Python surface: whether sample log paths are accepted (wording only).
+    cli : bool
+        Given on the command line: options are named as flags (``--candidates
+        box,gauss``), else as keywords (``candidates='box,gauss'``).
     """
 
     what: str
@@ -62,16 +68,28 @@ class Supply:
     n_samples: int | None = None
     surface: str = "python"
     logs: bool = True
+    cli: bool = False
 
 
 def _flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
-def _options_text(opts: dict, surface: str) -> str:
-    if surface == "files":
+def _option_name(name: str, cli: bool) -> str:
+    """An option as the caller names it: ``--flag`` on the command line, the keyword in Python."""
+    return _flag(name) if cli else name
+
+
+def _options_text(opts: dict, cli: bool) -> str:
+    if cli:
         return ", ".join(f"{_flag(k)} {v}" for k, v in opts.items())
     return ", ".join(f"{k}={v!r}" for k, v in opts.items())
+
+
+def _other_half(supply: Supply) -> str:
+    """How the caller gives the other half of a pixel-statistics file."""
+    return ("give the other half with --half-buffer B.exr" if supply.cli else
+            "give the other half too, as a pair of two EXR paths (\"a.exr\", \"b.exr\")")
 
 
 def _unmet(req, supply: Supply) -> list[str]:
@@ -85,9 +103,13 @@ def _unmet(req, supply: Supply) -> list[str]:
 
 
 def _given(method) -> dict:
-    """The options of ``method`` that differ from what they take when not given (its variant's presets)."""
-    variant = method.params.get("variant")
-    return {k: v for k, v in method.params.items() if v != type(method).option_default(k, variant)}
+    """The options the caller gave ``method`` (``Method.given_options``), with their values.
+
+    Given, not "different from the default": a value given explicitly is
+    the caller's choice even when it equals what the option takes
+    otherwise, and is never replaced.
+    """
+    return {k: method.params[k] for k in getattr(method, "given_options", ()) if k in method.params}
 
 
 def statistics_fallback(method, supply: Supply):
@@ -96,9 +118,9 @@ def statistics_fallback(method, supply: Supply):
     The hook of ``Requirements.statistics_options``: the option values
     under which the method takes pixel statistics alone (no samples, no
     halves, no sample range).  When ``supply`` lacks what the method's
-    requirements ask for and the caller chose none of those options (they
-    hold what they take when not given), the method is rebuilt with them
-    and the note says so; when the caller chose one, nothing changes and
+    requirements ask for and the caller gave none of those options
+    (``Method.given_options``), the method is rebuilt with them and the
+    note says so; when the caller gave one, nothing changes and
     :func:`check_supply` refuses, naming it.
     """
     req = method.requires
@@ -114,9 +136,8 @@ def statistics_fallback(method, supply: Supply):
         return None
     need = ("the individual samples or two independent half buffers" if req.half_buffers
             else "the individual samples") if "samples" in unmet else "each pixel's sample minimum and maximum"
-    more = ("; give the other half with --half-buffer B.exr (in Python a pair of paths) to keep them"
-            if "samples" in unmet and req.half_buffers else "")
-    return rebuilt, (f"{method.name}: using {_options_text(opts, supply.surface)}: the options it runs with by "
+    more = f"; {_other_half(supply)} to keep them" if "samples" in unmet and req.half_buffers else ""
+    return rebuilt, (f"{method.name}: using {_options_text(opts, supply.cli)}: the options it runs with by "
                      f"default need {need}, which {supply.what} does not hold{more}")
 
 
@@ -143,8 +164,8 @@ def check_supply(method, supply: Supply, *, where: str | None = None,
         names = ", ".join(half_buffer_methods()) if half_buffer_methods is not None else \
             "the registry's mcrecon.methods.half_buffer_methods()"
         if surface == "files":
-            raise InputError(m_where, "--half-buffer", f"{name} does not use half buffers; methods that do: "
-                             f"{names} (for {name}, give one EXR of all the samples)")
+            raise InputError(m_where, "--half-buffer" if supply.cli else "source", f"{name} does not use half "
+                             f"buffers; methods that do: {names} (for {name}, give one EXR of all the samples)")
         if surface == "inputs":
             raise InputError(m_where, "halves", f"{name} does not use half buffers (methods that do declare "
                              f"requires.half_buffers: {names}); give it the statistics of all the samples "
@@ -170,10 +191,13 @@ def check_supply(method, supply: Supply, *, where: str | None = None,
                              f"or `mcrecon reconstruct LOG --method {name}`)")
         if surface == "files":
             if req.half_buffers:
-                raise InputError(m_where, "input", f"{name} (these options) needs the individual samples or two "
-                                 f"independent half buffers, which {what} does not hold; give the other half with "
-                                 "--half-buffer B.exr (in Python a pair of paths), or a sample log"
-                                 + (f", or use {_options_text(opts, surface)}" if opts else ""))
+                chosen = [k for k in opts if k in _given(method)]
+                head = (f"{_options_text({chosen[0]: method.params[chosen[0]]}, supply.cli)} (given) needs"
+                        if chosen else f"{name} (these options) needs")
+                raise InputError(m_where, _option_name(chosen[0], supply.cli) if chosen else "input",
+                                 f"{head} the individual samples or two independent half buffers, which {what} "
+                                 f"does not hold; {_other_half(supply)}, or a sample log"
+                                 + (f", or use {_options_text(opts, supply.cli)}" if opts else ""))
             others = ", ".join(statistics_methods()) if statistics_methods is not None else ""
             raise InputError(m_where, "input", f"{name} filters individual samples (their film positions and "
                              f"values), which {what} does not hold; give it a sample log"
@@ -183,22 +207,24 @@ def check_supply(method, supply: Supply, *, where: str | None = None,
             raise InputError(m_where, "input", f"{name} (these options) needs the individual samples or two "
                              f"independent half buffers, which {what} does not hold; give it {samples_from}, or "
                              "a half-buffer pair (stats_a, stats_b)"
-                             + (f"; or {_options_text(opts, surface)} (which needs neither)" if opts else ""))
+                             + (f"; or {_options_text(opts, supply.cli)} (which needs neither)" if opts else ""))
         raise InputError(m_where, "input", f"{name} filters individual samples, which {what} does not hold; "
                          f"give it {samples_from}")
     if not supply.samples and req.subpixels and supply.subpixels != req.subpixels:
         if surface == "files":
             raise InputError(m_where, "input", f"this {name} configuration needs per-subpixel sums on a "
                              f"{req.subpixels}x{req.subpixels} grid, which {what} does not hold; give a sample "
-                             "log, or options without a subpixel grid (`mcrecon methods " + name + "`)")
+                             "log, or options without a subpixel grid ("
+                             + (f"`mcrecon methods {name}`)" if supply.cli else f"mcrecon.methods.method_class("
+                                f"{name!r}).options)"))
         raise InputError(m_where, "statistics", f"need a {req.subpixels}x{req.subpixels} subpixel grid, got "
                          f"subpixels={supply.subpixels}; build them with subpixels={req.subpixels} "
                          "(method.requires.subpixels)")
     if "range" in unmet:
         chosen = [k for k in opts if k in _given(method)] or list(opts)
-        field = (_flag(chosen[0]) if surface == "files" else chosen[0]) if chosen else "input"
+        field = _option_name(chosen[0], supply.cli) if chosen else "input"
         value = f"{method.params[chosen[0]]!r} " if chosen else ""
-        fix = f"; use {_options_text(opts, surface)}" if opts else "; give a sample log"
+        fix = f"; use {_options_text(opts, supply.cli)}" if opts else "; give a sample log"
         raise InputError(m_where, field, f"{value}needs each pixel's sample minimum and maximum, which {what} "
                          f"does not hold{fix}")
     if req.features == "required" and not supply.features:

@@ -2,27 +2,49 @@
 
 ``mcrecon.reconstruct("frame.exr", method=...)`` and
 ``mcrecon.reconstruct(("a.exr", "b.exr"), method=...)`` read the files
-(:func:`mcrecon.io.read_pixel_stats_exr`, :func:`mcrecon.io.read_half_buffer_exrs`)
-into pixel statistics or :class:`~mcrecon.core.halves.Halves`, and the
-image comes back in the file's output colours
+(:func:`mcrecon.io.read_pixel_stats_exr`,
+:func:`mcrecon.io.pixel_exr.read_half_buffer_exrs`) into pixel statistics
+or :class:`~mcrecon.core.halves.Halves`, and the image comes back in the
+file's output colours
 (:meth:`~mcrecon.io.pixel_exr.PixelStatsEXR.output_image`).  A method whose
 options need what such statistics lack (the samples, a sample range) runs
 with the options it declares for them
 (:func:`mcrecon.methods.supply.statistics_fallback`), with a warning,
-when the caller did not choose those options.
+when the caller did not give those options.  :func:`is_pixel_file_source`
+is the one test of "is this an EXR input" (the command line and the batch
+ask it too); :func:`command_line` makes the messages name flags.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
+import inspect
 import os
 import warnings
+from collections.abc import Mapping
 
 from ..errors import InputError, McreconWarning
 from ..methods.supply import Supply, statistics_fallback
 from .inputs import check_method_supply
 
-__all__ = ["is_pixel_file_source", "PixelFileSource", "read_pixel_file_source"]
+__all__ = ["is_pixel_file_source", "PixelFileSource", "read_pixel_file_source", "command_line",
+           "check_exr_options"]
+
+#: Whether the reconstruction was asked for on the command line: its messages then name flags
+#: (``--candidates``), not keywords (``candidates=``); set by :func:`command_line`.
+_CLI = contextvars.ContextVar("mcrecon_pixel_files_cli", default=False)
+
+
+@contextlib.contextmanager
+def command_line():
+    """Within it, refusals of pixel-statistics sources name the command line's flags (``mcrecon reconstruct``)."""
+    token = _CLI.set(True)
+    try:
+        yield
+    finally:
+        _CLI.reset(token)
 
 
 def _is_exr(x) -> bool:
@@ -33,10 +55,53 @@ def _is_exr(x) -> bool:
 
 
 def is_pixel_file_source(source) -> bool:
-    """Whether ``source`` is a pixel-statistics EXR (a path or a read :class:`PixelStatsEXR`) or a pair of them."""
+    """Whether ``source`` is meant as pixel-statistics EXRs: a path ending in ``.exr``, a read
+    :class:`PixelStatsEXR`, or a tuple or list holding one and no :class:`PixelStats`
+    (:func:`read_pixel_file_source` then refuses one that is not a pair of two EXRs; with
+    statistics in it, it is meant as statistics, and the half-buffer check blames what is not)."""
     if isinstance(source, (tuple, list)):
-        return len(source) == 2 and all(_is_exr(x) for x in source)
+        from ..core.stats import PixelStats
+
+        return any(_is_exr(x) for x in source) and not any(isinstance(x, PixelStats) for x in source)
     return _is_exr(source)
+
+
+def _read_option_names() -> tuple:
+    from ..io.pixel_exr import read_pixel_stats_exr
+
+    return tuple(p.name for p in inspect.signature(read_pixel_stats_exr).parameters.values()
+                 if p.kind is inspect.Parameter.KEYWORD_ONLY)
+
+
+def check_exr_options(options, where: str = "reconstruct") -> dict:
+    """``options`` as a dict of :func:`mcrecon.io.read_pixel_stats_exr`'s keywords, or one
+    :class:`InputError` line naming ``exr_options`` and the valid keys."""
+    valid = _read_option_names()
+    if options is None:
+        return {}
+    if not isinstance(options, Mapping):
+        raise InputError(where, "exr_options", f"got {type(options).__name__}; expected a dict of read "
+                         f"options, keys among {', '.join(valid)}")
+    unknown = sorted(str(k) for k in options if k not in valid)
+    if unknown:
+        raise InputError(where, "exr_options", f"unknown key {unknown[0]!r}; valid: {', '.join(valid)}")
+    return dict(options)
+
+
+def _check_pair(source, cli: bool) -> tuple:
+    """The items of a pair of pixel-statistics files, or one line saying what a pair is."""
+    items = tuple(source)
+    field = "--half-buffer" if cli else "source"
+    accepted = ("a half-buffer pair is two EXR paths (\"a.exr\", \"b.exr\") or two PixelStats "
+                "(stats_a, stats_b)")
+    if len(items) != 2:
+        raise InputError("reconstruct", field, f"got {len(items)} item(s); {accepted}")
+    for i, x in enumerate(items):
+        if not _is_exr(x):
+            shown = os.fspath(x) if isinstance(x, (str, os.PathLike)) else type(x).__name__
+            raise InputError("reconstruct", f"{field}[{i}]" if not cli else field, f"{shown} is not an EXR (a "
+                             f"path ending in .exr) while the other item is; {accepted}")
+    return items
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -73,23 +138,33 @@ class PixelFileSource:
         return self.files[0].output_image(image)
 
 
-def read_pixel_file_source(source, method, *, options: dict | None = None) -> PixelFileSource:
+def read_pixel_file_source(source, method, *, options: dict | None = None,
+                           fireflies: str = "none") -> PixelFileSource:
     """Read a pixel-statistics EXR or a pair of them for ``method``; refuse, before reading, what it cannot take.
 
     ``options`` are those of :func:`mcrecon.io.read_pixel_stats_exr`
     (``layout``, ``mean``, ``variance``, ``second_moment``, ``variance_of``,
     ``count``, ``spp``, ``features``), for both files of a pair.
+    ``fireflies``: :func:`mcrecon.reconstruct`'s mode; ``'cascade'``
+    splits individual samples, which the files do not hold.  Messages name
+    the options as :func:`command_line` says the caller gave them.
     """
     from ..core.halves import as_halves
     from ..io.pixel_exr import PixelStatsEXR, read_half_buffer_exrs, read_pixel_stats_exr
 
-    options = dict(options or {})
+    cli = _CLI.get()
+    options = check_exr_options(options)
     pair = isinstance(source, (tuple, list))
-    items = tuple(source) if pair else (source,)
+    items = _check_pair(source, cli) if pair else (source,)
     names = [str(x.path) if isinstance(x, PixelStatsEXR) else os.fspath(x) for x in items]
     what = f"this half-buffer pair ({names[0]} / {names[1]})" if pair else f"a pixel-statistics EXR ({names[0]})"
+    if fireflies == "cascade":
+        raise InputError(names[0], "--fireflies" if cli else "fireflies",
+                         ("--fireflies cascade" if cli else "fireflies='cascade'") + " splits individual samples, "
+                         "which pixel statistics no longer hold; give a sample log"
+                         + (" or --fireflies none" if cli else " or a SampleSet, or fireflies='none'"))
     # what the method cannot take is refused before the files are read
-    before = Supply(what, halves=pair, has_range=False, features=("?",), surface="files")
+    before = Supply(what, halves=pair, has_range=False, features=("?",), surface="files", cli=cli)
     fallback = statistics_fallback(method, before)
     if fallback is not None:
         method, note = fallback

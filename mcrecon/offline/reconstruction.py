@@ -181,7 +181,8 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
         How to read pixel-statistics EXRs (the keywords of
         :func:`mcrecon.io.read_pixel_stats_exr`: ``layout``, ``mean``,
         ``variance``, ``count``, ``spp``, ...); by default the layout is
-        detected from the channel names.
+        detected from the channel names.  A file without a sample count
+        (Mitsuba's moment integrator writes none) needs ``count`` or ``spp``.
 
     Examples
     --------
@@ -207,11 +208,7 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
         raise InputError("reconstruct", "fireflies", f"unknown mode {fireflies!r}; valid: {', '.join(FIREFLY_MODES)}")
     split = files = None
     if is_pixel_file_source(source):
-        if fireflies == "cascade":
-            raise InputError("reconstruct", "fireflies", "fireflies='cascade' splits individual samples, which "
-                             "pixel statistics no longer hold; give a sample log or a SampleSet, or "
-                             "fireflies='none'")
-        files = read_pixel_file_source(source, m, options=exr_options)
+        files = read_pixel_file_source(source, m, options=exr_options, fireflies=fireflies)
         m, source = files.method, files.source
     elif exr_options:
         raise InputError("reconstruct", "exr_options", "applies to pixel-statistics EXR inputs (paths ending in "
