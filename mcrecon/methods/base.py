@@ -677,13 +677,9 @@ class Method:
                              "(SampleBatch.features; /features/NAME of a command's reply); or pick another method")
 
     def run_inputs(self, run: RunState, state: AdaptiveState) -> MethodInputs:
-        """An adaptive run's reconstruction inputs: its statistics, and its halves when they hold them all.
-
-        With the run's halves (:meth:`observe`) holding every committed
-        sample, the statistics are their merge, as the offline dispatcher
-        builds them from the run's log: the run's image is then the image
-        of its log, bit for bit.
-        """
+        """An adaptive run's reconstruction inputs: its statistics, and its halves (:meth:`observe`) when they
+        hold every committed sample; the statistics are then their merge, as the offline dispatcher builds them
+        from the run's log, so the run's image is its log's image, bit for bit."""
         h = run.halves
         if h is not None and h.n_samples == int(state.stats.count.sum()):
             return MethodInputs(h.merged(), None, state.reference, halves=h)
