@@ -247,7 +247,6 @@ def _footprint_loop(pos, val, scale, radius, guide, guided, mode, out):
     """
     h, w, nc = out.shape
     wbuf, ibuf, jbuf = _scratch(radius)
-    vv = np.empty(nc)
     # the gate's inputs, unused by an ungated footprint
     no_stats = np.zeros((1, 1, 1, 4))
     no_feats = np.zeros((1, 1, 0, 2))
@@ -260,8 +259,6 @@ def _footprint_loop(pos, val, scale, radius, guide, guided, mode, out):
             continue
         x = np.float64(pos[k, 0])
         y = np.float64(pos[k, 1])
-        for c in range(nc):
-            vv[c] = val[k, c]
         s, m = _footprint(x, y, r, h, w, mode, guide, guided, wbuf, ibuf, jbuf, no_stats, no_feats, 0, 0,
                           0.0, False, no_seen, no_pass, 0, 0)
         if not s > 0.0:
@@ -272,14 +269,14 @@ def _footprint_loop(pos, val, scale, radius, guide, guided, mode, out):
             py = min(max(int(math.floor(y)), 0), h - 1)
             e = scale[k]
             for c in range(nc):
-                out[py, px, c] += vv[c] * e
+                out[py, px, c] += val[k, c] * e
             continue
         e = scale[k] / s
         if nc == 3 and not guided:
             # the common RGB case, unrolled (about 1.3x faster)
-            v0 = vv[0] * e
-            v1 = vv[1] * e
-            v2 = vv[2] * e
+            v0 = val[k, 0] * e
+            v1 = val[k, 1] * e
+            v2 = val[k, 2] * e
             for t in range(m):
                 ii = ibuf[t]
                 jj = jbuf[t]
@@ -290,7 +287,7 @@ def _footprint_loop(pos, val, scale, radius, guide, guided, mode, out):
                 out[jj, ii, 1] += v1 * wt
                 out[jj, ii, 2] += v2 * wt
             continue
-        _deposit_weights(out, vv, e, wbuf, ibuf, jbuf, m, 0, h)
+        _deposit_weights(out, val[k], e, wbuf, ibuf, jbuf, m, 0, h)
     return n_fallback
 
 
