@@ -8,6 +8,10 @@ once, without the temporaries (several the size of the mean) those
 expressions allocated, and :meth:`PixelStats.merged` writes new statistics
 without copying the first input first.  The output may be the first input
 (a merge in place): each element is read before it is written.
+
+The merge of one run of samples into a pixel (:func:`_run_add`, :func:`_merge_run`) is written here
+once for :meth:`PixelStats.add` and the half buffers' split (:mod:`mcrecon.core.halves`), whose
+statistics of a half are then bit for bit those of its samples added alone.
 """
 
 from __future__ import annotations
@@ -15,6 +19,26 @@ from __future__ import annotations
 from .samples import lazy_njit
 
 __all__ = ["merge_moments"]
+
+@lazy_njit(cache=True, nogil=True, inline="always")
+def _run_add(acc, lo, hi, v):
+    """The sum and the extremes of a run of samples, with the value ``v`` added."""
+    return acc + v, min(lo, v), max(hi, v)
+
+
+@lazy_njit(cache=True, nogil=True, inline="always")
+def _merge_run(mean, m2, vmin, vmax, iy, ix, c, na, wb, mu, q, lo, hi):
+    """Chan et al.'s merge of a run of samples into channel ``c`` of pixel (iy, ix) (in place).
+
+    The run's mean ``mu``, sum of squared deviations ``q`` and extremes ``lo``, ``hi``; the pixel held
+    ``na`` samples before it, and ``wb`` is the run's share of all of them, m / (na + m).
+    """
+    delta = mu - mean[iy, ix, c]
+    mean[iy, ix, c] += delta * wb
+    m2[iy, ix, c] += q + delta * delta * na * wb
+    vmin[iy, ix, c] = min(vmin[iy, ix, c], lo)
+    vmax[iy, ix, c] = max(vmax[iy, ix, c], hi)
+
 
 #: Rows merged by one task of the filters' thread pool (a task costs ~20 us).
 _ROWS_PER_TASK = 64

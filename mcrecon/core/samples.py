@@ -66,7 +66,9 @@ class _LazyKernel:
     the kernel in its module's namespace, so later calls through the
     module go straight to it; numba's on-disk cache (``cache=True``) is
     keyed by the function's file and name, exactly as with a decorator.
-    A lazy kernel cannot be called from other numba code.
+    A lazy kernel may call other lazy kernels by their global names:
+    :meth:`compile` makes their dispatchers first.  Other numba code
+    calls a lazy kernel through its :func:`dispatcher`.
     """
 
     def __init__(self, func, options):
@@ -81,7 +83,16 @@ class _LazyKernel:
         return d(*args)
 
     def compile(self):
-        """The numba dispatcher (made once; it compiles, or loads from the cache, per signature)."""
+        """The numba dispatcher (made once; it compiles, or loads from the cache, per signature).
+
+        The lazy kernels the function names as globals become their dispatchers in its namespace first,
+        so that numba, compiling it, finds callees it can type.
+        """
+        func = self.__wrapped__
+        for name in func.__code__.co_names:
+            callee = func.__globals__.get(name)
+            if isinstance(callee, _LazyKernel) and callee is not self:
+                func.__globals__[name] = callee.compile()
         with _LAZY_KERNEL_LOCK:  # threads calling a kernel for the first time make one dispatcher
             if self._dispatcher is None:
                 import numba
@@ -97,11 +108,17 @@ class _LazyKernel:
         return f"<lazy numba kernel {self.__module__}.{self.__qualname__}>"
 
 
+def dispatcher(kernel):
+    """The numba dispatcher of a lazy kernel (made now, numba imported) or of one whose module already holds
+    it: what other numba code calls."""
+    return kernel.compile() if isinstance(kernel, _LazyKernel) else kernel
+
+
 def lazy_njit(func=None, **options):
     """A numba ``njit(**options)`` decorator that imports numba and makes the dispatcher at the first call.
 
-    For kernels called from Python only (a lazy kernel cannot be called
-    from another numba function): ``@lazy_njit(cache=True, nogil=True)``.
+    ``@lazy_njit(cache=True, nogil=True)``; another lazy kernel calls it
+    by name, other numba code through its :func:`dispatcher`.
     """
     if func is None:
         return lambda f: _LazyKernel(f, options)

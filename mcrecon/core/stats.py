@@ -34,6 +34,7 @@ import numpy as np
 from ..errors import InputError
 from .features import (check_features, feature_components, feature_layout, layout_of, source_features, source_layout,
     warn_feature_zeroed)
+from .merge import _merge_run, _run_add
 from .samples import (as_hwc, apply_nonfinite, check_memory, check_policy, check_samples, lazy_njit,
     warn_nonfinite)
 
@@ -73,20 +74,13 @@ def _accumulate(pos, val, s, count, mean, m2, vmin, vmax, sub_sum, sub_count):
             lo = np.inf
             hi = -np.inf
             for j in range(k, end):
-                v = float(val[j, c])
-                acc += v
-                lo = min(lo, v)
-                hi = max(hi, v)
+                acc, lo, hi = _run_add(acc, lo, hi, float(val[j, c]))
             mu = acc / m
             q = 0.0
             for j in range(k, end):
                 d = float(val[j, c]) - mu
                 q += d * d
-            delta = mu - mean[iy, ix, c]
-            mean[iy, ix, c] += delta * wb
-            m2[iy, ix, c] += q + delta * delta * na * wb
-            vmin[iy, ix, c] = min(vmin[iy, ix, c], lo)
-            vmax[iy, ix, c] = max(vmax[iy, ix, c], hi)
+            _merge_run(mean, m2, vmin, vmax, iy, ix, c, na, wb, mu, q, lo, hi)
         if s > 0:
             last = s - 1
             for j in range(k, end):
