@@ -301,3 +301,10 @@ def test_the_example_renderers_continue_each_pixels_stratified_sequence(tmp_path
     write_request(tmp_path / "q.h5", SampleRequest(w, h, counts=np.full((h, w), 4)), channels=("R", "G", "B"))
     mod.main(str(tmp_path / "q.h5"), str(tmp_path / "r.h5"))
     assert read_log(tmp_path / "r.h5").n_samples == 4 * w * h
+
+
+def test_the_cli_lists_the_scene_samplers():
+    from mcrecon.cli._common import SCENE_SAMPLERS
+    from mcrecon.renderers.spec_format import SAMPLERS
+
+    assert SCENE_SAMPLERS == SAMPLERS

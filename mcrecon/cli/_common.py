@@ -104,14 +104,17 @@ def add_scene_flags(parser, *, spp: int = 16, size: str = "128x128", scene: str 
         add_sampler_flag(parser, default="independent")
 
 
+#: ``mcrecon.renderers.spec_format.SAMPLERS``, spelled out: importing the renderers package loads numba,
+#: which ``--help`` must not (tests/test_sample_index.py checks the two agree).
+SCENE_SAMPLERS = ("independent", "sobol")
+
+
 def add_sampler_flag(parser, *, default=None) -> None:
     """--sampler independent|sobol: the built-in scenes' sampler (``SceneRenderer(sampler=)``).
 
     ``default`` None: the command tells "not given" apart (``adapt`` refuses it without --scene and on a resume,
     whose recorded spec decides)."""
-    from ..renderers.scenes.sobol import SAMPLERS
-
-    parser.add_argument("--sampler", choices=SAMPLERS, default=default,
+    parser.add_argument("--sampler", choices=SCENE_SAMPLERS, default=default,
                         help="the built-in scene's sampler: independent uniform random numbers (default), or "
                              "each pixel's Owen-scrambled Sobol sequence over all dimensions, continued round "
                              "after round from the request's per-pixel sample index (docs/scenes.md#samplers)")

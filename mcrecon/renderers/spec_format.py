@@ -23,6 +23,10 @@ __all__ = ["KINDS", "MITSUBA_FEATURES", "check_mitsuba_features", "scene_spec", 
 MITSUBA_FEATURES: dict[str, int] = {"albedo": 3, "normal": 3, "depth": 1}
 
 
+#: The built-in scenes' samplers (``SceneRenderer(sampler=)``, a scene spec's ``sampler``, ``--sampler``): here,
+#: where the command line can read them without importing the scenes' compiled kernels.
+SAMPLERS = ("independent", "sobol")
+
 #: The renderer kinds a spec can name, with their required and optional keys.
 KINDS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "scene": (("scene", "width", "height"), ("seed", "features", "sampler")),
@@ -138,8 +142,6 @@ def check_spec(spec: Any, *, where: str = "renderer spec", field: str = "rendere
                 raise bad("features", "true or false (absent: the scene's default)")
             out["features"] = spec["features"]
         if "sampler" in spec:  # absent: independent (what every spec before samplers rendered)
-            from .scenes.sobol import SAMPLERS
-
             if spec["sampler"] not in SAMPLERS:
                 raise bad("sampler", f"one of {', '.join(SAMPLERS)} (absent: independent)")
             out["sampler"] = spec["sampler"]

@@ -34,10 +34,9 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["sobol_points", "SAMPLERS"]
+from ..spec_format import SAMPLERS
 
-#: The built-in scenes' samplers (:class:`~mcrecon.renderers.scenes.SceneRenderer`'s ``sampler``).
-SAMPLERS = ("independent", "sobol")
+__all__ = ["sobol_points", "SAMPLERS"]
 
 _njit = numba.njit(cache=True, nogil=True)
 
