@@ -7,6 +7,7 @@
      |- schedule   Schedule: budget, seed, initial pass, reference, max_rounds, time limit, pipeline
      |- log_path, nonfinite, storage_dtype          where and how rounds are committed
      |- rounds, round_index, planned                 what the run holds before this session
+     |- rendered   per pixel, the samples committed (NaN/Inf included): each request's first_index
      |- track_error, eps, on_round, bar             what this session's caller asked for
      `- clock      RunClock: wall time over sessions, renderer seconds, toolkit CPU,
                    rounds finished this session, the timeline of phases
@@ -205,6 +206,11 @@ class RunContext:
     bar: _Progress
     clock: RunClock
     planned: tuple | None = None
+    rendered: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.rendered is None:
+            self.rendered = np.zeros((self.stats.height, self.stats.width), np.int64)
 
     @classmethod
     def assemble(cls, renderer, method, settings: Mapping, *, reference, log_path, session: SessionOptions,
@@ -265,9 +271,14 @@ class RunContext:
 
     def plan(self, round_index: int, *, in_flight: int = 0, pending=None):
         """The plan of round ``round_index`` from what is committed, with ``in_flight`` samples (``pending``,
-        per pixel) requested and not committed yet: see :meth:`Schedule.plan`."""
+        per pixel) requested and not committed yet: see :meth:`Schedule.plan`.
+
+        The request's ``first_index`` is each pixel's committed samples plus those in flight: the
+        renderer's sequence of a pixel goes on where the rounds before it (committed or rendering) end,
+        the same in a resume (its replay counts the log's rounds) as in the live run."""
+        first = self.rendered if pending is None else self.rendered + pending
         return self.schedule.plan(self.method, self.run, self.stats, round_index, _committed(self.stats) + in_flight,
-                                  pending=pending)
+                                  pending=pending, first_index=first)
 
 
 __dir__ = _public_dir(__name__)

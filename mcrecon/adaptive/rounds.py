@@ -20,7 +20,7 @@ from ..io.reader import read_log
 from ..core.requests import SampleBatch, validate_reply_counted
 from ..core.features import check_features, layout_of, take_rows, usable_layout
 from ..core.samples import (FLOAT32_MAX, apply_nonfinite, check_memory, float32_loses_spread)
-from .schedule import _adaptive_state, _committed, _request_counts, round_seeds
+from .schedule import _adaptive_state, _committed, _pixel_counts_of, _request_counts, round_seeds
 
 
 def _take_round(ctx, batch, round_index, *, source, n_nonfinite=None, timeline=None, helper=None) -> None:
@@ -41,6 +41,11 @@ def _take_round(ctx, batch, round_index, *, source, n_nonfinite=None, timeline=N
     the GIL -- and both are done when this returns.
     """
     method, stats, nonfinite = ctx.method, ctx.stats, ctx.nonfinite
+    # every row the renderer delivered (NaN/Inf included) took an index of its pixel's sequence
+    # (a context without the count, a test's stand-in, only ingests)
+    rendered = getattr(ctx, "rendered", None)
+    if rendered is not None:
+        rendered += _pixel_counts_of(batch.positions, stats.width, stats.height)
     if method.requires.features != "none" and batch.features and not stats.features and stats.n_samples == 0:
         # the renderer's first round says which features it sends; every later round sends the same
         stats.keep_features(usable_layout(batch.features))

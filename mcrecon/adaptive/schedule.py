@@ -76,8 +76,9 @@ def _initial_request(method, state: AdaptiveState, initial_rounds: int):
     return state.request(counts=uniform_counts(w, h, max(n, 0), state.rng))
 
 
-def _with_seed(req, round_index, seed):
-    """``req`` with its round index and renderer seed, without validating it again.
+def _with_seed(req, round_index, seed, first_index=None):
+    """``req`` with its round index, renderer seed and per-pixel first sample index, without validating it
+    again (``first_index`` is the driver's own count, (H, W) int64).
 
     (``dataclasses.replace`` would re-run ``SampleRequest.__post_init__``: the
     method built the request through its constructor, which checked it.)
@@ -85,6 +86,8 @@ def _with_seed(req, round_index, seed):
     out = copy.copy(req)
     object.__setattr__(out, "round_index", int(round_index))
     object.__setattr__(out, "seed", int(seed))
+    if first_index is not None:
+        object.__setattr__(out, "first_index", np.array(first_index, np.int64))  # a copy: the count goes on
     return out
 
 
@@ -128,10 +131,11 @@ class Schedule:
     time_limit: float | None = None
     pipeline: bool = False
 
-    def plan(self, method, run, stats, round_index, n_total, *, pending=None):
+    def plan(self, method, run, stats, round_index, n_total, *, pending=None, first_index=None):
         """(request with its seeds, None) or (None, why the run stops) for round ``round_index``.
 
         ``n_total``: samples committed plus in flight (``pending``, per pixel).
+        ``first_index`` (H, W): the request's per-pixel first sample index (committed plus in flight).
         The rounds of the initial pass are the driver's own; later ones the
         method's plan.  Depends only on its arguments: the same in a live run
         and in a resume.  ``(None, "wait")``: with a round in flight the plan
@@ -154,7 +158,7 @@ class Schedule:
         if req.total > state.remaining:
             raise RuntimeError(f"method {method.name} planned {req.total} samples with only "
                                f"{state.remaining} left in the budget (a bug in the method)")
-        return _with_seed(req, round_index, rseed), None
+        return _with_seed(req, round_index, rseed, first_index), None
 
     def final_state(self, stats, round_index, rng) -> AdaptiveState:
         """The state the image after round ``round_index - 1`` is made from (``method.finish``)."""

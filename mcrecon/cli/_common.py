@@ -19,9 +19,9 @@ from pathlib import Path
 
 from ..errors import InputError
 
-__all__ = ["OneLineParser", "HelpFormatter", "parse_size", "finite_float", "add_scene_flags", "method_flags", "add_method_options",
-           "given_method_options", "make_method", "add_exr_read_flags", "exr_read_options",
-           "exr_read_flags_given", "check_output", "write_outputs", "jit_notice",
+__all__ = ["OneLineParser", "HelpFormatter", "parse_size", "finite_float", "add_scene_flags", "add_sampler_flag",
+           "method_flags", "add_method_options", "given_method_options", "make_method", "add_exr_read_flags",
+           "exr_read_options", "exr_read_flags_given", "check_output", "write_outputs", "jit_notice",
            "compile_notice"]
 
 _DEST = "mopt_"  # argparse dest of a method option: mopt_NAME
@@ -93,12 +93,32 @@ def parse_size(text: str, where: str = "--size") -> tuple[int, int]:
     return w, h
 
 
-def add_scene_flags(parser, *, spp: int = 16, size: str = "128x128", scene: str = "soft_shadow") -> None:
-    """The flags of a command that renders a built-in scene: --scene, --spp, --size, --seed."""
+def add_scene_flags(parser, *, spp: int = 16, size: str = "128x128", scene: str = "soft_shadow",
+                    sampler: bool = False) -> None:
+    """The flags of a command that renders a built-in scene: --scene, --spp, --size, --seed (and ``sampler``:
+    --sampler, for a command that passes it to the scene renderer)."""
     parser.add_argument("--scene", default=scene, help="built-in scene (see `mcrecon scenes`)")
     parser.add_argument("--spp", type=int, default=spp)
     parser.add_argument("--size", default=size)
     parser.add_argument("--seed", type=int, default=0)
+    if sampler:
+        add_sampler_flag(parser, default="independent")
+
+
+#: ``mcrecon.renderers.spec_format.SAMPLERS``, spelled out: importing the renderers package loads numba,
+#: which ``--help`` must not (tests/test_sample_index.py checks the two agree).
+SCENE_SAMPLERS = ("independent", "sobol")
+
+
+def add_sampler_flag(parser, *, default=None) -> None:
+    """--sampler independent|sobol: the built-in scenes' sampler (``SceneRenderer(sampler=)``).
+
+    ``default`` None: the command tells "not given" apart (``adapt`` refuses it without --scene and on a resume,
+    whose recorded spec decides)."""
+    parser.add_argument("--sampler", choices=SCENE_SAMPLERS, default=default,
+                        help="the built-in scene's sampler: independent uniform random numbers (default), or "
+                             "each pixel's Owen-scrambled Sobol sequence over all dimensions, continued round "
+                             "after round from the request's per-pixel sample index (docs/scenes.md#samplers)")
 
 
 def finite_float(text: str) -> float:

@@ -110,7 +110,7 @@ def _cmd_render_log(args):
             raise InputError(str(args.reference_exr), "--reference-exr", "is the -o sample log: give another path")
         check_output(args.reference_exr)
     path = write_scene_log(get_scene(args.scene), args.output, width=w, height=h, spp=args.spp, seed=args.seed,
-                           features=getattr(args, "features", None))
+                           features=getattr(args, "features", None), sampler=args.sampler)
     print(f"wrote {path}")
     if args.reference_exr is not None:
         from ..io import read_log

@@ -13,10 +13,10 @@ import time
 from pathlib import Path
 
 from ..errors import InputError
-from ._common import (HelpFormatter, OneLineParser, add_exr_read_flags, add_method_options, add_scene_flags,
-                      check_log_output, check_output, exr_read_flags_given, exr_read_options, film_size_flag,
-                      finite_float, given_method_options, jit_notice, make_method, method_flags, method_kernels,
-                      parse_size, write_outputs)
+from ._common import (HelpFormatter, OneLineParser, add_exr_read_flags, add_method_options, add_sampler_flag,
+                      add_scene_flags, check_log_output, check_output, exr_read_flags_given, exr_read_options,
+                      film_size_flag, finite_float, given_method_options, jit_notice, make_method, method_flags,
+                      method_kernels, parse_size, write_outputs)
 from .builtins import _cmd_demo, _cmd_methods, _cmd_mitsuba, _cmd_render_log, _cmd_scenes
 
 __all__ = ['register']
@@ -213,6 +213,10 @@ def _renderer_spec(args) -> dict:
     if args.features is not None and args.mitsuba is None and args.scene is None:
         raise InputError("adapt", "--features", "chooses the per-sample features of the Mitsuba bridge "
                          "(--mitsuba) or of a built-in scene (--scene); an external renderer sends what it sends")
+    if args.sampler is not None and args.scene is None:
+        raise InputError("adapt", "--sampler", "chooses the sampler of a built-in scene (--scene); another "
+                         "renderer samples as it does (it may continue each pixel's sequence from the request's "
+                         "first_index, docs/renderer-protocol.md)")
     if args.scene is not None:
         from ..renderers.scenes import get_scene
 
@@ -226,7 +230,8 @@ def _renderer_spec(args) -> dict:
             if feats and not scene.feature_names:
                 raise InputError("adapt", "--features", f"scene {scene.name!r} has no per-sample features "
                                  "(`mcrecon scenes`)")
-        return scene_spec(scene.name, width=w, height=h, seed=args.seed, features=feats)
+        return scene_spec(scene.name, width=w, height=h, seed=args.seed, features=feats,
+                          sampler=None if args.sampler in (None, "independent") else args.sampler)
     if args.renderer_cmd is not None:
         try:
             argv = shlex.split(args.renderer_cmd)
@@ -243,7 +248,7 @@ def _renderer_spec(args) -> dict:
 def _refuse_run_flags(args) -> None:
     """A resumed run keeps its recorded settings: refuse flags that would change them."""
     ignored = [flag for flag, v in (("--scene", args.scene), ("--renderer-cmd", args.renderer_cmd),
-                                    ("--mitsuba", args.mitsuba), ("--features", args.features), ("--spp", args.spp),
+                                    ("--mitsuba", args.mitsuba), ("--features", args.features), ("--sampler", args.sampler), ("--spp", args.spp),
                                     ("--log", args.log),
                                     ("--reference", args.reference)) if v is not None]
     ignored += [args.method_flags[k] for k in given_method_options(args)]
@@ -465,6 +470,7 @@ def register(sub, command: str | None = None) -> None:
                    help="with --mitsuba: the per-sample features of the primary hit it sends and the log stores "
                         "(default all three; none to switch off); with --scene: all or none (default: the "
                         "scene's, see `mcrecon scenes`)")
+    add_sampler_flag(s)
     s.add_argument("--channels", default="R,G,B", help="channel names of an external renderer")
     s.add_argument("--timeout", type=float, default=600.0, help="seconds per round for an external renderer")
     s.add_argument("--size", default=None, help="film size WIDTHxHEIGHT (default 128x128; a --mitsuba scene "
@@ -546,6 +552,7 @@ def register(sub, command: str | None = None) -> None:
     s.add_argument("--features", action=argparse.BooleanOptionalAction, default=None,
                    help="store per-sample albedo, normal and depth in the log (default: the scene's, see "
                         "`mcrecon scenes`)")
+    add_sampler_flag(s, default="independent")
     s.add_argument("--reference-exr", default=None, metavar="REF.exr",
                    help="also write the scene's exact reference (the one stored in the log) as an EXR, "
                         "e.g. for `mcrecon compare`")

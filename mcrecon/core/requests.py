@@ -17,7 +17,8 @@ import numpy as np
 from ..errors import RendererError
 from .samples import check_samples
 
-__all__ = ['SampleRequest', 'SampleBatch', 'validate_reply', 'validate_reply_counted', 'jittered_positions', 'place_in_pixels']
+__all__ = ['SampleRequest', 'SampleBatch', 'validate_reply', 'validate_reply_counted', 'jittered_positions', 'place_in_pixels',
+           'sample_indices']
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class SampleRequest:
@@ -36,6 +37,17 @@ class SampleRequest:
     seed : int
         Seed for the renderer's random numbers in this round; the same
         request with the same seed must give the same samples.
+    first_index : ndarray of int64, shape (H, W), or None
+        Per pixel, the index of the first new sample in that pixel's own
+        sample sequence: the samples of the run already committed there
+        plus those in flight (requested in a round not committed yet).  A
+        renderer with a low-discrepancy sampler continues each pixel's
+        sequence from it, so rounds of 8 + 8 + 8 + 8 samples give the
+        points of one 32-sample render.  The new samples of pixel p take
+        the indices ``first_index[p] + 0, 1, ...``: its counted samples
+        first, then its explicit positions in request order
+        (:func:`sample_indices`).  None: nothing rendered before (all
+        zeros).  A renderer may ignore it (independent samples).
     """
 
     width: int
@@ -44,6 +56,7 @@ class SampleRequest:
     positions: np.ndarray | None = None
     round_index: int = 0
     seed: int = 0
+    first_index: np.ndarray | None = None
 
     def __post_init__(self):
         if self.counts is None and self.positions is None:
@@ -67,6 +80,14 @@ class SampleRequest:
                 raise ValueError("SampleRequest.positions must lie on the film "
                                  f"[0, {self.width}) x [0, {self.height})")
             object.__setattr__(self, "positions", pos)
+        if self.first_index is not None:
+            first = np.asarray(self.first_index)
+            if first.shape != (self.height, self.width):
+                raise ValueError(f"SampleRequest.first_index has shape {first.shape}, "
+                                 f"expected (height, width) = {(self.height, self.width)}")
+            if first.size and (not np.issubdtype(first.dtype, np.integer) or first.min() < 0):
+                raise ValueError("SampleRequest.first_index must be non-negative integers")
+            object.__setattr__(self, "first_index", first.astype(np.int64, copy=False))
 
     @property
     def n_from_counts(self) -> int:
@@ -151,6 +172,48 @@ def jittered_positions(counts: np.ndarray, rng: np.random.Generator) -> np.ndarr
     counts = np.ascontiguousarray(counts, dtype=np.int64)
     u = rng.random((int(counts.sum()), 2))
     return place_in_pixels(u, counts.ravel(), counts.shape[1])
+
+
+@numba.njit(cache=True, nogil=True)
+def _indices(counts, first, pix):
+    n_c = 0
+    for p in range(counts.shape[0]):
+        n_c += counts[p]
+    out = np.empty(n_c + pix.shape[0], np.int64)
+    nxt = first.copy()
+    k = 0
+    for p in range(counts.shape[0]):  # counted samples, row-major pixel order
+        for _ in range(counts[p]):
+            out[k] = nxt[p]
+            nxt[p] += 1
+            k += 1
+    for m in range(pix.shape[0]):  # explicit positions, request order
+        out[k] = nxt[pix[m]]
+        nxt[pix[m]] += 1
+        k += 1
+    return out
+
+
+def sample_indices(request: SampleRequest) -> np.ndarray:
+    """Each reply row's index in its pixel's sample sequence, (N,) int64.
+
+    Rows as a renderer that places counted samples pixel by pixel in
+    row-major order lists them (as :func:`jittered_positions` does), then
+    the explicit positions in request order: pixel p's counted samples
+    take ``first_index[p] + 0 .. counts[p] - 1``, its explicit positions
+    the indices after them, in request order.
+    """
+    w, h = request.width, request.height
+    counts = (np.zeros(w * h, np.int64) if request.counts is None
+              else np.ascontiguousarray(request.counts, np.int64).ravel())
+    first = (np.zeros(w * h, np.int64) if request.first_index is None
+             else np.ascontiguousarray(request.first_index, np.int64).ravel())
+    if request.positions is None:
+        pix = np.zeros(0, np.int64)
+    else:
+        pos = request.positions
+        pix = np.ascontiguousarray(pos[:, 1].astype(np.int64) * w + pos[:, 0].astype(np.int64))
+    return _indices(counts, first, pix)
 
 
 def validate_reply(request: SampleRequest, batch, *, n_channels: int,

@@ -104,6 +104,8 @@ def write_request(path, request: SampleRequest, *, channels: Sequence[str]) -> P
                 f.create_dataset("counts", data=request.counts.astype(np.int64))
             if request.positions is not None:
                 f.create_dataset("positions", data=request.positions.astype(np.float64))
+            if request.first_index is not None:
+                f.create_dataset("first_index", data=request.first_index.astype(np.int64))
     return path
 
 
@@ -124,7 +126,7 @@ def read_request(path) -> SampleRequest:
     """Read a request file (what a Python renderer does first).
 
     Any problem (not HDF5, another format, a missing or malformed attribute
-    or dataset, counts or positions that do not fit the film, ``n_total``
+    or dataset, counts, positions or first_index that do not fit the film, ``n_total``
     other than ``sum(counts) + M``) raises a one-line
     :class:`~mcrecon.errors.InputError` naming the file.  Strings may be
     variable-length UTF-8 or fixed-length ASCII, integers of any integer
@@ -162,12 +164,13 @@ def read_request(path) -> SampleRequest:
                 raise InputError(str(path), "attributes width/height/round/seed",
                                  f"got {ints}, expected width, height >= 1 and round, seed >= 0")
             arrays = {}
-            for key, shape in (("counts", (ints["height"], ints["width"])), ("positions", None)):
+            film = (ints["height"], ints["width"])
+            for key, shape in (("counts", film), ("positions", None), ("first_index", film)):
                 d = f.get(key)
                 if d is None:
                     arrays[key] = None
                     continue
-                ok = isinstance(d, h5py.Dataset) and d.dtype.kind in ("iu" if key == "counts" else "iuf")
+                ok = isinstance(d, h5py.Dataset) and d.dtype.kind in ("iuf" if key == "positions" else "iu")
                 ok = ok and (d.shape == shape if shape else (d.ndim == 2 and d.shape[1] == 2))
                 if not ok:
                     expect = f"{shape} integers" if shape else "(M, 2) numbers"
@@ -175,8 +178,13 @@ def read_request(path) -> SampleRequest:
                                      f"shape {getattr(d, 'shape', None)} dtype {getattr(d, 'dtype', None)}, "
                                      f"expected {expect}")
                 arrays[key] = d[...]
+            first = arrays["first_index"]
+            if first is not None and first.size and (first.dtype.kind == "u" and first.max() > np.iinfo(np.int64).max
+                                                     or first.dtype.kind == "i" and first.min() < 0):
+                raise InputError(str(path), "dataset /first_index", "expected sample indices >= 0 (int64)")
             req = SampleRequest(ints["width"], ints["height"], counts=arrays["counts"],
-                                positions=arrays["positions"], round_index=ints["round"], seed=ints["seed"])
+                                positions=arrays["positions"], round_index=ints["round"], seed=ints["seed"],
+                                first_index=None if first is None else first.astype(np.int64))
             total = f.attrs.get("n_total")
             total = total.item() if isinstance(total, np.ndarray) and total.size == 1 else total
             if total is not None and (isinstance(total, (bool, np.bool_)) or not isinstance(total, (int, np.integer))

@@ -6,7 +6,8 @@ and ``mcrecon adapt --resume LOG`` can rebuild the renderer and go on
 without being told what it was.  Three kinds exist::
 
     {"kind": "scene",   "scene": NAME, "width": W, "height": H, "seed": S,
-                        "features": true | false (optional; absent: the scene's default)}
+                        "features": true | false (optional; absent: the scene's default),
+                        "sampler": "independent" | "sobol" (optional; absent: independent)}
     {"kind": "command", "argv": [...], "width": W, "height": H,
                         "channels": [...], "timeout": SECONDS or None, "workdir": DIR or None,
                         "cwd": DIR or None}
@@ -49,7 +50,8 @@ def renderer_from_spec(spec, *, where: str = "renderer spec", field: str = "rend
     if kind == "scene":
         from .scenes import SceneRenderer
 
-        return SceneRenderer(spec["scene"], width=w, height=h, seed=spec["seed"], features=spec.get("features"))
+        return SceneRenderer(spec["scene"], width=w, height=h, seed=spec["seed"], features=spec.get("features"),
+                             sampler=spec.get("sampler", "independent"))
     if kind == "command":
         from .command import CommandRenderer
 

@@ -23,21 +23,29 @@ __all__ = ["KINDS", "MITSUBA_FEATURES", "check_mitsuba_features", "scene_spec", 
 MITSUBA_FEATURES: dict[str, int] = {"albedo": 3, "normal": 3, "depth": 1}
 
 
+#: The built-in scenes' samplers (``SceneRenderer(sampler=)``, a scene spec's ``sampler``, ``--sampler``): here,
+#: where the command line can read them without importing the scenes' compiled kernels.
+SAMPLERS = ("independent", "sobol")
+
 #: The renderer kinds a spec can name, with their required and optional keys.
 KINDS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
-    "scene": (("scene", "width", "height"), ("seed", "features")),
+    "scene": (("scene", "width", "height"), ("seed", "features", "sampler")),
     "command": (("argv", "width", "height"), ("channels", "timeout", "workdir", "cwd")),
     "mitsuba": (("width", "height"), ("scene", "features")),
 }
 
 
 # ---------------------------------------------------------------- writing
-def scene_spec(scene: str, *, width: int, height: int, seed: int = 0, features: bool | None = None) -> dict:
+def scene_spec(scene: str, *, width: int, height: int, seed: int = 0, features: bool | None = None,
+               sampler: str | None = None) -> dict:
     """The spec of a built-in scene (:class:`mcrecon.renderers.scenes.SceneRenderer`); ``features``: whether
-    it sends its per-sample features (None: the scene's default, recorded as no key)."""
+    it sends its per-sample features (None: the scene's default, recorded as no key); ``sampler``: its
+    sampler (None: ``independent``, recorded as no key, as in specs written before samplers existed)."""
     spec = {"kind": "scene", "scene": scene, "width": width, "height": height, "seed": seed}
     if features is not None:
         spec["features"] = features
+    if sampler is not None:
+        spec["sampler"] = sampler
     return check_spec(spec)
 
 
@@ -133,6 +141,10 @@ def check_spec(spec: Any, *, where: str = "renderer spec", field: str = "rendere
             if not isinstance(spec["features"], bool):
                 raise bad("features", "true or false (absent: the scene's default)")
             out["features"] = spec["features"]
+        if "sampler" in spec:  # absent: independent (what every spec before samplers rendered)
+            if spec["sampler"] not in SAMPLERS:
+                raise bad("sampler", f"one of {', '.join(SAMPLERS)} (absent: independent)")
+            out["sampler"] = spec["sampler"]
     elif kind == "command":
         argv = strings("argv")
         joined = " ".join(argv)

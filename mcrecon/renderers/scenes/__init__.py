@@ -70,15 +70,16 @@ import numpy as np
 
 from ...errors import InputError
 from ...core.samples import check_memory
-from ...core.requests import SampleBatch, SampleRequest, jittered_positions
+from ...core.requests import SampleBatch, SampleRequest, jittered_positions, place_in_pixels, sample_indices
 from ..spec_format import scene_spec
+from .sobol import SAMPLERS, sobol_points
 from .catalog import (FEATURE_LAYOUT, SCENES, CausticScene, CheckerDofScene, CheckerSpotScene, CheckerWallScene,
                       DepthOfFieldScene, FlatScene, HDRScene, MotionBlurScene, Scene, SoftShadowScene, split_features)
 
 __all__ = ["SCENES", "FEATURE_LAYOUT", "Scene", "SoftShadowScene", "DepthOfFieldScene", "MotionBlurScene",
            "CausticScene", "HDRScene", "FlatScene", "CheckerWallScene", "CheckerSpotScene", "CheckerDofScene",
            "scene_names", "get_scene", "reference_image", "feature_reference", "SceneRenderer", "render_uniform",
-           "write_scene_log"]
+           "write_scene_log", "SAMPLERS"]
 
 
 def scene_names() -> list[str]:
@@ -241,6 +242,14 @@ class SceneRenderer:
         the same).  Default: ``$MCRECON_SCENE_RATE`` when set (so that whole
         commands, ``mcrecon adapt --scene`` and ``render-log``, can stand in
         for a renderer of a realistic speed), else no limit.
+    sampler : {"independent", "sobol"}
+        ``"independent"`` (default): uniform random numbers from the round's
+        generator (above).  ``"sobol"``: each pixel's own Owen-scrambled Sobol
+        sequence over all dimensions (film x, y and the scene's random
+        numbers; :mod:`.sobol`), continued from ``request.first_index``: a
+        sample is a function of (pixel, its index there, ``seed``) alone, not
+        of the request's seed or round, so rounds of 8 + 8 + 8 + 8 samples are
+        the samples of one 32-sample request.
 
     Notes
     -----
@@ -257,7 +266,9 @@ class SceneRenderer:
     fresh_replies = True
 
     def __init__(self, scene, *, width: int = 128, height: int = 128, seed: int = 0, features=None,
-                 rate: float | None = None):
+                 rate: float | None = None, sampler: str = "independent"):
+        if sampler not in SAMPLERS:
+            raise InputError("SceneRenderer", "sampler", f"{sampler!r}, expected one of {', '.join(SAMPLERS)}")
         self.scene = get_scene(scene)
         self.width = _check_int("SceneRenderer", "width", width, 1)
         self.height = _check_int("SceneRenderer", "height", height, 1)
@@ -267,13 +278,16 @@ class SceneRenderer:
         self.channels = tuple(self.scene.channels)
         self.feature_names = tuple(self.scene.feature_names) if self.features else ()
         self.name = f"scene:{self.scene.name}"
+        self.sampler = sampler
 
     def spec(self) -> dict:
         """How to build this renderer again (:mod:`mcrecon.renderers.spec_format`); features other than the
-        scene's default are recorded.  ``rate`` changes no reply: not recorded."""
+        scene's default are recorded, and a sampler other than ``independent``.  ``rate`` changes no reply:
+        not recorded."""
         default = _check_features_flag(self.name, self.scene, None)
         return scene_spec(self.scene.name, width=self.width, height=self.height, seed=self.seed,
-                          features=None if self.features == default else self.features)
+                          features=None if self.features == default else self.features,
+                          sampler=None if self.sampler == "independent" else self.sampler)
 
     def render(self, request: SampleRequest) -> SampleBatch:
         """Answer a request (counts first, then explicit positions in order)."""
@@ -284,14 +298,17 @@ class SceneRenderer:
         seed = _check_int(self.name, "request.seed", request.seed, 0)
         rnd = _check_int(self.name, "request.round_index", request.round_index, 0)
         t0 = time.perf_counter()
-        rng = np.random.default_rng([self.seed, seed, rnd])
-        parts = []
-        if request.counts is not None:
-            parts.append(jittered_positions(request.counts, rng))
-        if request.positions is not None:
-            parts.append(np.asarray(request.positions, dtype=np.float64))
-        pos = np.concatenate(parts, axis=0) if len(parts) > 1 else parts[0]
-        u = rng.random((pos.shape[0], self.scene.n_dims))
+        if self.sampler == "sobol":
+            pos, u = self._sobol(request)
+        else:
+            rng = np.random.default_rng([self.seed, seed, rnd])
+            parts = []
+            if request.counts is not None:
+                parts.append(jittered_positions(request.counts, rng))
+            if request.positions is not None:
+                parts.append(np.asarray(request.positions, dtype=np.float64))
+            pos = np.concatenate(parts, axis=0) if len(parts) > 1 else parts[0]
+            u = rng.random((pos.shape[0], self.scene.n_dims))
         x, y = pos[:, 0] / self.width, pos[:, 1] / self.height
         values = self.scene.radiance(x, y, u)
         feats = self.scene.features(x, y, u) if self.features else None
@@ -300,6 +317,24 @@ class SceneRenderer:
             if rest > 0:
                 time.sleep(rest)
         return SampleBatch(pos, values) if feats is None else SampleBatch(pos, values, feats)
+
+    def _sobol(self, request):
+        """Positions (N, 2) and random numbers (N, n_dims) of a request from the pixels' Sobol sequences:
+        counted samples pixel by pixel in row-major order (as the independent sampler), then the explicit
+        positions, whose film dimensions are the requested ones (the rest of their point is used)."""
+        w, h = self.width, self.height
+        counts = (np.zeros(w * h, np.int64) if request.counts is None
+                  else np.ascontiguousarray(request.counts, np.int64).ravel())
+        pix = np.repeat(np.arange(w * h, dtype=np.int64), counts)
+        if request.positions is not None:
+            ep = np.asarray(request.positions, dtype=np.float64)
+            pix = np.concatenate([pix, ep[:, 1].astype(np.int64) * w + ep[:, 0].astype(np.int64)])
+        pts = sobol_points(pix, sample_indices(request), 2 + self.scene.n_dims, seed=self.seed)
+        nc = int(counts.sum())
+        pos = place_in_pixels(np.ascontiguousarray(pts[:, :2]), counts, w)  # in place; counted rows only
+        if request.positions is not None:
+            pos[nc:] = ep
+        return pos, np.ascontiguousarray(pts[:, 2:])
 
     def reference(self, *, quadrature: int = 32) -> np.ndarray:
         """:func:`reference_image` of this scene at this film size."""
@@ -311,6 +346,7 @@ class SceneRenderer:
 
     def __repr__(self) -> str:
         extra = "" if self.features == self.scene.features_default else f", features={self.features}"
+        extra += "" if self.sampler == "independent" else f", sampler={self.sampler!r}"
         return (f"SceneRenderer({self.scene.name!r}, width={self.width}, height={self.height}, seed={self.seed}"
                 f"{extra})")
 
@@ -328,12 +364,12 @@ def _check_features_flag(where, scene, features) -> bool:
 
 
 def render_uniform(scene, *, width: int = 128, height: int = 128, spp: int, seed: int = 0,
-                   features=None) -> SampleBatch:
+                   features=None, sampler: str = "independent") -> SampleBatch:
     """``spp`` jittered samples in every pixel of a scene (one request, round 0, request seed 0).
 
-    ``features``: as :class:`SceneRenderer` (None: the scene's default).
+    ``features``, ``sampler``: as :class:`SceneRenderer` (None: the scene's default features).
     """
-    r = SceneRenderer(scene, width=width, height=height, seed=seed, features=features)
+    r = SceneRenderer(scene, width=width, height=height, seed=seed, features=features, sampler=sampler)
     spp = _check_int("render_uniform", "spp", spp, 1)
     n = spp * r.width * r.height
     n_feat = sum(FEATURE_LAYOUT.values()) if r.features else 0
@@ -344,7 +380,8 @@ def render_uniform(scene, *, width: int = 128, height: int = 128, spp: int, seed
 
 
 def write_scene_log(scene, path, *, width: int = 128, height: int = 128, spp: int, seed: int = 0,
-                    reference: bool = True, quadrature: int = 32, features=None) -> Path:
+                    reference: bool = True, quadrature: int = 32, features=None,
+                    sampler: str = "independent") -> Path:
     """Render ``spp`` samples per pixel of a scene and write them as a sample log.
 
     The log's metadata is ``{"renderer": "mcrecon.scenes", "scene": name,
@@ -354,7 +391,8 @@ def write_scene_log(scene, path, *, width: int = 128, height: int = 128, spp: in
     whose ``features_default`` is on) the log holds ``/features/albedo``,
     ``/features/normal`` and ``/features/depth`` per sample and the
     settings say ``"features": [names]``; without them the log is exactly
-    what it was before scenes had features.
+    what it was before scenes had features.  ``sampler``: as :class:`SceneRenderer`; one other than
+    ``independent`` is recorded in the settings (``"sampler"``).
 
     Returns
     -------
@@ -364,12 +402,14 @@ def write_scene_log(scene, path, *, width: int = 128, height: int = 128, spp: in
     from ...io import write_log
 
     sc = get_scene(scene)
-    batch = render_uniform(sc, width=width, height=height, spp=spp, seed=seed, features=features)
+    batch = render_uniform(sc, width=width, height=height, spp=spp, seed=seed, features=features, sampler=sampler)
     ref = reference_image(sc, width, height, quadrature=quadrature) if reference else None
     meta = {"renderer": "mcrecon.scenes", "scene": sc.name, "seed": int(seed),
             "settings": {"width": int(width), "height": int(height), "spp": int(spp),
                          "quadrature": int(quadrature), "n_dims": int(sc.n_dims)}}
     if batch.features:
         meta["settings"]["features"] = list(batch.features)
+    if sampler != "independent":
+        meta["settings"]["sampler"] = sampler
     return write_log(path, batch.positions, batch.values, width=width, height=height,
                      channels=sc.channels, features=batch.features or None, reference=ref, metadata=meta)

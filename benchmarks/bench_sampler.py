@@ -1,0 +1,91 @@
+"""The built-in scenes' Owen-scrambled Sobol sampler against independent samples, and rounds against one render.
+
+Per built-in scene and run seed, the relative MSE (eps 0.01) of the pixel
+mean at ``--spp`` samples per pixel against the exact reference:
+
+* ``independent``: one request of spp samples per pixel, independent samples;
+* ``sobol``: the same with each pixel's Owen-scrambled Sobol sequence;
+* ``sobol 4 x spp/4``: four requests of spp/4 per pixel, each continuing
+  every pixel's sequence from the request's ``first_index`` (the adaptive
+  driver's counts): the same points as one render, so the same error;
+* ``sobol restarted``: the four requests without ``first_index`` (every
+  round starts each pixel's sequence again: the error of spp/4 samples),
+  what a renderer that ignores the index would give.
+
+Printed per scene: the sobol / independent ratio of the relMSE, mean and
+standard deviation over the seeds (the seed-to-seed spread), and the two
+round ratios against the one sobol render (means over the seeds).  The run
+seed is the renderer's seed (another scramble of every pixel for sobol,
+other random numbers for independent).
+
+usage: python benchmarks/bench_sampler.py [--size 128x128] [--spp 32] [--seeds 4] [--scenes a,b]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from mcrecon.core.metrics import relative_mse
+from mcrecon.core.requests import SampleRequest
+from mcrecon.renderers.scenes import SceneRenderer, reference_image, scene_names
+
+
+def _pixel_mean(batches, w, h):
+    """Pixel means of counted replies (each pixel's rows: ``pos`` floors to it)."""
+    s = np.zeros((h * w, 3))
+    n = np.zeros(h * w)
+    for b in batches:
+        p = np.floor(b.positions[:, 1]).astype(np.int64) * w + np.floor(b.positions[:, 0]).astype(np.int64)
+        for c in range(3):
+            s[:, c] += np.bincount(p, weights=b.values[:, c], minlength=h * w)
+        n += np.bincount(p, minlength=h * w)
+    return (s / n[:, None]).reshape(h, w, 3)
+
+
+def _rounds(r, w, h, spp, k, *, continued):
+    out, first = [], np.zeros((h, w), np.int64)
+    per = spp // k
+    for j in range(k):
+        out.append(r.render(SampleRequest(w, h, counts=np.full((h, w), per), round_index=j, seed=j,
+                                          first_index=first.copy() if continued else None)))
+        first += per
+    return out
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--size", default="128x128")
+    ap.add_argument("--spp", type=int, default=32)
+    ap.add_argument("--seeds", type=int, default=4)
+    ap.add_argument("--scenes", default=None)
+    args = ap.parse_args(argv)
+    w, h = (int(v) for v in args.size.lower().split("x"))
+    scenes = args.scenes.split(",") if args.scenes else scene_names()
+    t0 = time.perf_counter()
+    print(f"{w}x{h}, {args.spp} spp, {args.seeds} seeds: relMSE (eps 0.01) of the pixel mean")
+    print(f"{'scene':<15} {'indep relMSE':>12} {'sobol relMSE':>12} {'sobol/indep':>16} "
+          f"{'4x' + str(args.spp // 4) + '/one':>9} {'restarted/one':>13}")
+    for name in scenes:
+        ref = reference_image(name, w, h)
+        ind, sob, cont, rest = [], [], [], []
+        for seed in range(args.seeds):
+            counts = np.full((h, w), args.spp)
+            ri = SceneRenderer(name, width=w, height=h, seed=seed)
+            rs = SceneRenderer(name, width=w, height=h, seed=seed, sampler="sobol")
+            ind.append(relative_mse(_pixel_mean([ri.render(SampleRequest(w, h, counts=counts))], w, h), ref))
+            sob.append(relative_mse(_pixel_mean([rs.render(SampleRequest(w, h, counts=counts))], w, h), ref))
+            cont.append(relative_mse(_pixel_mean(_rounds(rs, w, h, args.spp, 4, continued=True), w, h), ref))
+            rest.append(relative_mse(_pixel_mean(_rounds(rs, w, h, args.spp, 4, continued=False), w, h), ref))
+        ind, sob, cont, rest = map(np.array, (ind, sob, cont, rest))
+        ratio = sob / ind
+        spread = ratio.std(ddof=1) if len(ratio) > 1 else 0.0
+        print(f"{name:<15} {ind.mean():12.3g} {sob.mean():12.3g} {ratio.mean():9.3g} ± {spread:<5.2g}"
+              f" {np.mean(cont / sob):9.3f} {np.mean(rest / sob):13.3g}")
+    print(f"({time.perf_counter() - t0:.0f} s)")
+
+
+if __name__ == "__main__":
+    main()
