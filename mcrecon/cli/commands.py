@@ -47,7 +47,7 @@ def _log_feature_details(path) -> list[dict]:
 def _cmd_info(args):
     from ..io import summarize_log
     from ..io.pixel_exr import describe_pixel_exr
-    from ..offline.pixel_files import is_pixel_file_source
+    from ..io.pixel_exr import is_pixel_file_source
 
     info = describe_pixel_exr(args.log) if is_pixel_file_source(args.log) else None
     if info is not None and (info["layout"] is None and not info["features"]):

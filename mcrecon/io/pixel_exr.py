@@ -116,7 +116,7 @@ from .pixel_exr_features import FEATURE_CHANNELS, _read_features, find_feature_c
 
 __all__ = ['LAYOUTS', 'PixelStatsEXR', 'read_pixel_stats_exr', 'read_half_buffer_exrs', 'HALF_MAX',
            'MITSUBA_XYZ_TO_SRGB', 'xyz_from_rgb_matrix', 'FEATURE_CHANNELS', 'find_feature_channels',
-           'describe_pixel_exr']
+           'describe_pixel_exr', 'is_pixel_exr', 'is_pixel_file_source']
 
 #: The layout presets (besides the explicit mapping).
 LAYOUTS = ("pbrt-v4", "mitsuba-moment")
@@ -631,3 +631,19 @@ def describe_pixel_exr(path) -> dict:
             "count": count or "none in the file (pass --spp N)",
             "features": [{"name": f, "channels": list(m), "second_moments": list(m2) if m2 else None}
                          for f, (m, m2) in feats.items()]}
+
+
+def is_pixel_exr(x) -> bool:
+    """Whether ``x`` is one pixel-statistics EXR: a path ending in ``.exr`` or a read :class:`PixelStatsEXR`."""
+    return isinstance(x, PixelStatsEXR) or (isinstance(x, (str, os.PathLike)) and
+                                             os.fspath(x).lower().endswith(".exr"))
+
+
+def is_pixel_file_source(source) -> bool:
+    """Whether ``source`` is meant as pixel-statistics EXRs: a path ending in ``.exr``, a read
+    :class:`PixelStatsEXR`, or a tuple or list holding one and no :class:`PixelStats`
+    (:func:`mcrecon.offline.pixel_files.read_pixel_file_source` then refuses one that is not a pair of two EXRs; with
+    statistics in it, it is meant as statistics, and the half-buffer check blames what is not)."""
+    if isinstance(source, (tuple, list)):
+        return any(is_pixel_exr(x) for x in source) and not any(isinstance(x, PixelStats) for x in source)
+    return is_pixel_exr(source)

@@ -26,6 +26,7 @@ import warnings
 from collections.abc import Mapping
 
 from ..errors import InputError, McreconWarning
+from ..io.pixel_exr import is_pixel_exr, is_pixel_file_source
 from ..methods.supply import Supply, statistics_fallback
 from .inputs import check_method_supply
 
@@ -47,23 +48,6 @@ def command_line():
         _CLI.reset(token)
 
 
-def _is_exr(x) -> bool:
-    from ..io.pixel_exr import PixelStatsEXR
-
-    return isinstance(x, PixelStatsEXR) or (isinstance(x, (str, os.PathLike)) and
-                                             os.fspath(x).lower().endswith(".exr"))
-
-
-def is_pixel_file_source(source) -> bool:
-    """Whether ``source`` is meant as pixel-statistics EXRs: a path ending in ``.exr``, a read
-    :class:`PixelStatsEXR`, or a tuple or list holding one and no :class:`PixelStats`
-    (:func:`read_pixel_file_source` then refuses one that is not a pair of two EXRs; with
-    statistics in it, it is meant as statistics, and the half-buffer check blames what is not)."""
-    if isinstance(source, (tuple, list)):
-        from ..core.stats import PixelStats
-
-        return any(_is_exr(x) for x in source) and not any(isinstance(x, PixelStats) for x in source)
-    return _is_exr(source)
 
 
 def _read_option_names() -> tuple:
@@ -97,7 +81,7 @@ def _check_pair(source, cli: bool) -> tuple:
     if len(items) != 2:
         raise InputError("reconstruct", field, f"got {len(items)} item(s); {accepted}")
     for i, x in enumerate(items):
-        if not _is_exr(x):
+        if not is_pixel_exr(x):
             shown = os.fspath(x) if isinstance(x, (str, os.PathLike)) else type(x).__name__
             raise InputError("reconstruct", f"{field}[{i}]" if not cli else field, f"{shown} is not an EXR (a "
                              f"path ending in .exr) while the other item is; {accepted}")
