@@ -11,11 +11,10 @@ from __future__ import annotations
 import dataclasses
 from typing import Mapping
 
-import numba
 import numpy as np
 
 from ..errors import RendererError
-from .samples import check_samples
+from .samples import check_samples, lazy_njit
 
 __all__ = ['SampleRequest', 'SampleBatch', 'validate_reply', 'validate_reply_counted', 'jittered_positions', 'place_in_pixels',
            'sample_indices']
@@ -120,7 +119,7 @@ class SampleBatch:
         return int(np.shape(self.positions)[0])
 
 
-@numba.njit(cache=True, nogil=True)
+@lazy_njit(cache=True, nogil=True)
 def _pixel_counts(pos, width, height):
     """Samples per pixel (H*W,) and the number of positions off the film, in one pass."""
     counts = np.zeros(width * height, np.int64)
@@ -135,7 +134,7 @@ def _pixel_counts(pos, width, height):
     return counts, off
 
 
-@numba.njit(cache=True, nogil=True)
+@lazy_njit(cache=True, nogil=True)
 def place_in_pixels(u, counts, width):
     """Shift uniform [0, 1)^2 numbers into their pixels, in row-major pixel order (in place)."""
     k = 0
@@ -152,7 +151,7 @@ def place_in_pixels(u, counts, width):
     return u
 
 
-@numba.njit(cache=True, nogil=True)
+@lazy_njit(cache=True, nogil=True)
 def _max_abs_diff(a, b):
     m = 0.0
     for k in range(a.shape[0]):
@@ -174,7 +173,7 @@ def jittered_positions(counts: np.ndarray, rng: np.random.Generator) -> np.ndarr
     return place_in_pixels(u, counts.ravel(), counts.shape[1])
 
 
-@numba.njit(cache=True, nogil=True)
+@lazy_njit(cache=True, nogil=True)
 def _indices(counts, first, pix):
     n_c = 0
     for p in range(counts.shape[0]):

@@ -137,7 +137,7 @@ def _kernel_offsets(cdf, r, ux, uy, todo, px, py, w, h, ox, oy):
 
 
 @numba.njit(cache=True, nogil=True)
-def place_in_pixels(pos, px, py, ox, oy):
+def _place_in_pixels(pos, px, py, ox, oy):
     # positions uniform in the (offset) pixel, kept strictly below its upper edge
     for i in range(pos.shape[0]):
         fx = np.float64(px[i] + ox[i])
@@ -232,5 +232,5 @@ def distribute_samples(priority: np.ndarray, selected: np.ndarray, sigmas, n_tot
         ox[todo] = 0  # (practically never) still off the film: keep them in their own pixel
         oy[todo] = 0
     pos = rng.random((n_all, 2))
-    place_in_pixels(pos, px, py, ox, oy)
+    _place_in_pixels(pos, px, py, ox, oy)
     return sort_by_row(pos, h)
