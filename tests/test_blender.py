@@ -20,7 +20,7 @@ from mcrecon.cli import main
 from mcrecon.io import read_exr, read_log
 from mcrecon.renderers import blender as bl
 
-NEEDS_BPY = pytest.mark.skipif(not bl.bpy_available(), reason=bl.BPY_MISSING)
+NEEDS_BPY = pytest.mark.skipif(not bl.bpy_available(), reason="needs bpy: pip install 'mcrecon[blender]'")
 W, H, EDGE, SPP = 64, 48, 20.3, 8
 EMIT = (4.0, 2.0, 1.0)
 
