@@ -119,10 +119,16 @@ def _resolve_storage(log_path, reply_dtype) -> str:
 
 
 class _Round:
-    """What the toolkit does with one reply: validate, store, count (shared by both loops)."""
+    """What the toolkit does with one reply: validate, store, count (shared by both loops).
 
-    def __init__(self, ctx):
+    ``first``: a new run's first commit (``adaptive.run._FirstCommit``): until a round is on disk the
+    method may refuse a reply it cannot take (nfor without features) before anything is stored, and the
+    first append publishes the new log.  A resumed run has none.
+    """
+
+    def __init__(self, ctx, first=None):
         self.ctx = ctx
+        self.first = first
         self.name, self.c, self.log_path = ctx.name, len(ctx.stats.channels), ctx.log_path
         self.storage_dtype = ctx.storage_dtype  # ``auto``: resolved on the first reply
         self.warned = set()
@@ -135,7 +141,11 @@ class _Round:
     def receive(self, req, reply, round_index):
         """The validated reply (stored precision) and its count of non-finite rows; nothing stored yet."""
         with self.timeline.phase("validate", round_index):
-            return self._receive(req, reply, round_index)
+            batch, n_bad = self._receive(req, reply, round_index)
+        if self.first is not None and not self.first.committed:
+            # a refused run leaves no log, so its retry is not refused
+            self.ctx.method.refuse_reply(batch)
+        return batch, n_bad
 
     def _receive(self, req, reply, round_index):
         # the rows with a NaN or Inf value are counted in the validation's one pass; the cast to
@@ -208,6 +218,8 @@ class _Round:
             # the commit does not scan it again
             append_log(self.log_path, batch.positions, batch.values, round_index=round_index,
                        features=batch.features if batch.features else None, checked=True, round_record=rec)
+        if self.first is not None:
+            self.first.appended(self.ctx, self)
 
     def evaluate(self, record, round_index):
         """The error of the image after the round (not part of the run's time)."""

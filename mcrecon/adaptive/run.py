@@ -555,30 +555,10 @@ def _replay(ctx, sl):
     return planned
 
 
-class _PublishingRound(_Round):
-    """A new run's rounds: the first append publishes its log (see :class:`_FirstCommit`)."""
-
-    def __init__(self, ctx, first):
-        super().__init__(ctx)
-        self.first = first
-
-    def receive(self, req, reply, round_index):
-        # a method that cannot take the replies (nfor without features) refuses the first one before it
-        # is committed: a refused run leaves no log, and its retry is not refused
-        batch, n_bad = super().receive(req, reply, round_index)
-        if not self.first.committed:
-            self.ctx.method.refuse_reply(batch)
-        return batch, n_bad
-
-    def _append(self, *args, **kwargs):
-        super()._append(*args, **kwargs)
-        self.first.appended(self.ctx, self)
-
-
 def _drive(ctx, first=None) -> AdaptiveResult:
     """This session of the run: its loop, then the final image (``first``: a new run's :class:`_FirstCommit`)."""
     ctx.start()
-    rnd, writes = (_Round(ctx) if first is None else _PublishingRound(ctx, first)), _LogWrites(ctx)
+    rnd, writes = _Round(ctx, first), _LogWrites(ctx)
     n_before = len(ctx.rounds)
     loop_t0 = time.perf_counter()
     try:
