@@ -230,10 +230,13 @@ def add_exr_read_flags(parser, title: str, description: str):
     """The flags that say how to read a pixel-statistics EXR (``mcrecon.io.read_pixel_stats_exr``'s
     options), in a ``--help`` group ``title``; returns the group (a command adds its own flags to it)."""
     px = parser.add_argument_group(title, description)
-    px.add_argument("--layout", default=None, choices=("pbrt-v4", "mitsuba-moment"),  # pixel_exr.LAYOUTS
-                    help="pbrt-v4 GBufferFilm (R,G,B + Variance.R/G/B) or Mitsuba 3's moment integrator "
-                         "(P.X/Y/Z + m2_P.X/Y/Z); default: detected from the channel names, or the explicit mapping")
-    px.add_argument("--mean", default=None, metavar="CHANNELS", help="mean channels, comma-separated (e.g. R,G,B)")
+    px.add_argument("--layout", default=None, choices=("pbrt-v4", "mitsuba-moment", "cycles"),  # pixel_exr.LAYOUTS
+                    help="pbrt-v4 GBufferFilm (R,G,B + Variance.R/G/B), Mitsuba 3's moment integrator "
+                         "(P.X/Y/Z + m2_P.X/Y/Z) or a Blender Cycles multilayer EXR (ViewLayer.Combined, or "
+                         "ViewLayer.Noisy Image when Cycles denoised; no variance: pass several renders with "
+                         "different seeds); default: detected from the channel names, or the explicit mapping")
+    px.add_argument("--mean", default=None, metavar="CHANNELS", help="mean channels, comma-separated (e.g. R,G,B); "
+                    "alone, without --variance-channels: means only, as one render of a seed set")
     px.add_argument("--variance-channels", default=None, metavar="CHANNELS",
                     help="variance channels, comma-separated (e.g. Variance.R,Variance.G,Variance.B); "
                          "(--variance is AWR's estimator option)")

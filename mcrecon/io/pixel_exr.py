@@ -41,9 +41,18 @@ Layouts
     Mitsuba writes no sample count: ``--spp`` is required.  Exact with a
     ``box`` reconstruction filter; other filters spread a sample over
     neighbouring pixels (moments become filter-weighted).
+``cycles``
+    Blender Cycles' multilayer EXR (:mod:`.pixel_exr_cycles`): the mean
+    is ``ViewLayer.Noisy Image.R/G/B`` when Cycles denoised (never the
+    denoised ``Combined``), else ``ViewLayer.Combined.R/G/B``; the count
+    the header attribute ``cycles.ViewLayer.samples``.  One render holds
+    no variance (``has_variance`` False): only methods that read the
+    means alone take it; several renders with different seeds give the
+    variance and half buffers (:func:`mcrecon.io.seed_sets.read_seed_set`).
 explicit
     ``mean=`` channels plus ``variance=`` channels (``variance_of``
-    'samples' or 'mean') or ``second_moment=`` channels, and a count.
+    'samples' or 'mean') or ``second_moment=`` channels, and a count;
+    ``mean=`` alone reads means without a variance, as ``cycles``.
 
 The count comes from ``spp`` (a number), or ``count`` (a number, a
 channel holding per-pixel counts, or a header attribute), or else the
@@ -74,6 +83,9 @@ per-pixel features (``PixelStats.from_moments(features=...)``; see
   the name Mitsuba's documentation gives the ``sh_normal`` AOV) and
   ``depth``, ``dd`` or ``dd.y`` (``.T``).  Mitsuba names the channels
   after the AOV's *name*, not its type: other names are not guessed.
+* Cycles (``cycles`` layout): ``Denoising Albedo.R/G/B``,
+  ``Denoising Normal.X/Y/Z`` and ``Denoising Depth.Z`` of the view layer
+  (``view_layer.cycles.denoising_store_passes``), noise-free as pbrt's.
 * Mitsuba's ``moment`` integrator wrapping an ``aov`` integrator named
   ``P`` (the prefix of the colour moments): the same AOV names prefixed
   ``P.``, with their second moments ``m2_P.*``, which give the features'
@@ -112,6 +124,7 @@ from ..errors import InputError, McreconWarning
 from ..core.stats import PixelStats
 from ._exr_moments import _split, _variance_from_moments
 from .images import subsampled
+from .pixel_exr_cycles import cycles_count_attributes, cycles_layers, cycles_mean_channels
 from .pixel_exr_features import FEATURE_CHANNELS, _read_features, find_feature_channels  # noqa: F401 (re-exported)
 
 __all__ = ['LAYOUTS', 'PixelStatsEXR', 'read_pixel_stats_exr', 'read_half_buffer_exrs', 'HALF_MAX',
@@ -119,7 +132,7 @@ __all__ = ['LAYOUTS', 'PixelStatsEXR', 'read_pixel_stats_exr', 'read_half_buffer
            'describe_pixel_exr', 'is_pixel_exr', 'is_pixel_file_source']
 
 #: The layout presets (besides the explicit mapping).
-LAYOUTS = ("pbrt-v4", "mitsuba-moment")
+LAYOUTS = ("pbrt-v4", "mitsuba-moment", "cycles")
 
 #: The largest finite half float; pbrt clamps its fp16 output here.
 HALF_MAX = 65504.0
@@ -175,7 +188,7 @@ class PixelStatsEXR:
         Built with :meth:`PixelStats.from_moments` (``has_range`` False).
     path : Path
     layout : str
-        'pbrt-v4', 'mitsuba-moment' or 'explicit'.
+        'pbrt-v4', 'mitsuba-moment', 'cycles' or 'explicit'.
     sources : dict
         The channels read: ``mean``, ``variance`` or ``second_moment``.
     count_source : str
@@ -185,6 +198,10 @@ class PixelStatsEXR:
     output_matrix : ndarray (C_out, C) or None
         Linear map from the statistics' channels to the output channels
         (XYZ to RGB for the presets); None: the identity.
+    has_variance : bool
+        False for means without a variance (one Cycles render, ``mean=``
+        alone): ``stats`` then holds a variance of 0 that no method may
+        take for noise-free (:mod:`mcrecon.offline.pixel_files` refuses).
     """
 
     stats: PixelStats
@@ -194,6 +211,7 @@ class PixelStatsEXR:
     count_source: str
     output_channels: tuple
     output_matrix: np.ndarray | None = None
+    has_variance: bool = True
 
     def output_image(self, image) -> np.ndarray:
         """A reconstruction of :attr:`stats` in the output channels (float64)."""
@@ -265,7 +283,7 @@ def _resolve_count(exr: _EXR, count, spp):
     if spp is not None and count is not None:
         raise InputError("--spp/--count", "count", "give one of them: --spp N, or --count N|CHANNEL|ATTRIBUTE")
     header_n, header_name = None, None
-    for name in COUNT_ATTRIBUTES:
+    for name in COUNT_ATTRIBUTES + cycles_count_attributes(exr.header):
         header_n = _attribute_count(exr, name)
         if header_n is not None:
             header_name = name
@@ -335,6 +353,8 @@ def _detect_layout(exr: _EXR) -> str | None:
         return "pbrt-v4"
     if _mitsuba_prefixes(names) or set(exr.names) == {f"ch{i}" for i in range(9)}:
         return "mitsuba-moment"
+    if cycles_layers(names):
+        return "cycles"
     return None
 
 
@@ -447,16 +467,33 @@ def _read_stats(exr: _EXR, layout, mean, variance, second_moment, variance_of, c
         layout = "explicit" if mean is not None else _detect_layout(exr)
         if layout is None:
             raise InputError(where, "layout", "not recognised (no pbrt-v4 Variance.R/G/B, no Mitsuba m2_* "
-                             f"moments); channels present: {exr.present()}; pass --layout pbrt-v4|mitsuba-moment "
-                             "or the mapping --mean R,G,B --variance ... --count N")
+                             f"moments, no Cycles ViewLayer.Combined); channels present: {exr.present()}; pass "
+                             "--layout pbrt-v4|mitsuba-moment|cycles or the mapping --mean R,G,B --variance ... "
+                             "--count N")
     if not (isinstance(features, Mapping) or features in ("auto", "none")):
         raise InputError(where, "features", f"{features!r}; valid: 'auto', 'none', or a mapping feature -> "
                          "comma-separated channels")
     n, count_source = _resolve_count(exr, count, spp)
     _check_total(exr, n, count_source, "--spp" if spp is not None else "--count")
     out_matrix, out_channels = None, None
-
-    if layout == "pbrt-v4":
+    feature_prefix = None
+    means_only = layout == "cycles" or (layout == "explicit" and variance is None and second_moment is None)
+    if means_only:  # one render's means: the variance comes from several renders (seed_sets)
+        if variance is not None or second_moment is not None:
+            raise InputError("--variance-channels" if variance is not None else "--second-moment", "variance",
+                             "Cycles writes no variance nor second moment: read one render's means, and pass "
+                             "several renders with different seeds for the variance")
+        if layout == "cycles":
+            feature_prefix, mean, _ = cycles_mean_channels(exr.names, where, mean)
+        if mean is None:
+            raise InputError("--mean", "mean", "the explicit mapping needs --mean CHANNELS (and --variance-channels "
+                             "CHANNELS or --second-moment CHANNELS for a variance)")
+        m, half = exr.get(mean, "mean")
+        _warn_half_saturation(exr, mean, m, half, layout)
+        _check_finite(exr, mean, m, n, "mean", half)
+        var, v_of, sources = np.zeros_like(m), "samples", {"mean": tuple(mean)}
+        channels = ("R", "G", "B") if layout == "cycles" and len(mean) == 3 else tuple(mean)
+    elif layout == "pbrt-v4":
         rgb_names = mean or ("R", "G", "B")
         m_rgb, half = exr.get(rgb_names, "mean")
         _warn_half_saturation(exr, rgb_names, m_rgb, half, layout)
@@ -510,12 +547,6 @@ def _read_stats(exr: _EXR, layout, mean, variance, second_moment, variance_of, c
         m_prefix = re.fullmatch(r"(.+)\.X", mean[0]) if len(mean) == 3 else None
         feature_prefix = m_prefix.group(1) if m_prefix else None
     else:  # explicit
-        if mean is None:
-            raise InputError("--mean", "mean", "the explicit mapping needs --mean CHANNELS and --variance CHANNELS "
-                             "(or --second-moment CHANNELS)")
-        if variance is None and second_moment is None:
-            raise InputError("--variance", "variance", "the explicit mapping needs --variance CHANNELS (or "
-                             "--second-moment CHANNELS) besides --mean")
         m, half = exr.get(mean, "mean")
         _warn_half_saturation(exr, mean, m, half, layout)
         _check_finite(exr, mean, m, n, "mean", half)
@@ -536,7 +567,7 @@ def _read_stats(exr: _EXR, layout, mean, variance, second_moment, variance_of, c
             v_of = "samples"
         channels = tuple(mean)
 
-    names_for_var = sources.get("variance", sources.get("second_moment"))
+    names_for_var = sources.get("variance", sources.get("second_moment", sources["mean"]))
     sampled = np.broadcast_to(np.asarray(n) > 0, var.shape[:2])[..., None]
     neg = sampled & (var < 0)
     if neg.any():
@@ -549,7 +580,7 @@ def _read_stats(exr: _EXR, layout, mean, variance, second_moment, variance_of, c
     else:
         var = np.where((n_arr <= 1)[..., None], 0.0, var)
     found = find_feature_channels(exr.names, layout, features=features, where=where,
-                                  prefix=feature_prefix if layout == "mitsuba-moment" else None)
+                                  prefix=feature_prefix if layout in ("mitsuba-moment", "cycles") else None)
     # a colour channel is no feature (a mapping --mean P.X,P.Y,P.Z of other data would be read twice)
     used = set(sources["mean"]) | set(sources.get("variance", ())) | set(sources.get("second_moment", ()))
     found = {f: c for f, c in found.items() if not set(c[0]) & used}
@@ -561,7 +592,8 @@ def _read_stats(exr: _EXR, layout, mean, variance, second_moment, variance_of, c
     sources["features"] = {f: c[0] for f, c in found.items()}
     stats = PixelStats.from_moments(m, var, n, channels=channels, variance_of=v_of, where=where, features=feats)
     return PixelStatsEXR(stats, path, layout, sources, count_source,
-                         tuple(out_channels) if out_channels is not None else tuple(channels), out_matrix)
+                         tuple(out_channels) if out_channels is not None else tuple(channels), out_matrix,
+                         has_variance=not means_only)
 
 
 def read_half_buffer_exrs(path_a, path_b, **options) -> tuple[PixelStatsEXR, PixelStatsEXR]:
@@ -622,10 +654,12 @@ def describe_pixel_exr(path) -> dict:
     shapes = {a.shape for a in exr.arrays.values()}
     h, w = next(iter(shapes)) if len(shapes) == 1 else (None, None)
     layout = _detect_layout(exr)
-    prefixes = _mitsuba_prefixes(exr.names) if layout == "mitsuba-moment" else []
+    prefixes = (_mitsuba_prefixes(exr.names) if layout == "mitsuba-moment" else
+                cycles_layers(exr.names) if layout == "cycles" else [])
     feats = find_feature_channels(exr.names, layout or "explicit", where=str(path),
                                   prefix=prefixes[0] if len(prefixes) == 1 else None)
-    count = next((f"{a} = {exr.header[a]}" for a in COUNT_ATTRIBUTES if a in exr.header), None)
+    count = next((f"{a} = {exr.header[a]}" for a in COUNT_ATTRIBUTES + cycles_count_attributes(exr.header)
+                  if a in exr.header), None)
     return {"file": str(path), "width": w, "height": h, "channels": list(exr.names),
             "layout": layout,
             "count": count or "none in the file (pass --spp N)",

@@ -20,17 +20,21 @@ from ._exr_moments import _split, _variance_from_moments
 __all__ = ["FEATURE_CHANNELS", "find_feature_channels"]
 
 #: Where each feature is found: ``{feature: (source, [channel names, ...] in order of preference)}``
-#: per source (pbrt-v4 names, Mitsuba aov names); a Mitsuba moment layout looks for the
-#: Mitsuba names behind its prefix ``P.`` with second moments ``m2_P.*`` (read without a
-#: variance, as pbrt's, when some of those are missing).
+#: per source (pbrt-v4 names, Mitsuba aov names, Cycles' denoising passes); a Mitsuba moment
+#: layout looks for the Mitsuba names behind its prefix ``P.`` with second moments ``m2_P.*``
+#: (read without a variance, as pbrt's, when some of those are missing); the cycles layout for
+#: Cycles' names behind the view layer ``ViewLayer.``.
 FEATURE_CHANNELS: dict[str, dict[str, tuple[tuple[str, ...], ...]]] = {
     "albedo": {"pbrt-v4": (("Albedo.R", "Albedo.G", "Albedo.B"),),
-               "mitsuba": (("albedo.R", "albedo.G", "albedo.B"),)},
+               "mitsuba": (("albedo.R", "albedo.G", "albedo.B"),),
+               "cycles": (("Denoising Albedo.R", "Denoising Albedo.G", "Denoising Albedo.B"),)},
     # pbrt: the shading normal first, the geometric one only without it (a preference, not ambiguity)
     "normal": {"pbrt-v4": (("Ns.X", "Ns.Y", "Ns.Z"), ("N.X", "N.Y", "N.Z")),
-               "mitsuba": (("sh_normal.X", "sh_normal.Y", "sh_normal.Z"), ("nn.X", "nn.Y", "nn.Z"))},
+               "mitsuba": (("sh_normal.X", "sh_normal.Y", "sh_normal.Z"), ("nn.X", "nn.Y", "nn.Z")),
+               "cycles": (("Denoising Normal.X", "Denoising Normal.Y", "Denoising Normal.Z"),)},
     "depth": {"pbrt-v4": (("P.Z",),),
-              "mitsuba": (("depth.T",), ("dd.T",), ("dd.y.T",))},
+              "mitsuba": (("depth.T",), ("dd.T",), ("dd.y.T",)),
+              "cycles": (("Denoising Depth.Z",),)},
 }
 #: Sources whose candidates are alternatives in order of preference; in the others two present
 #: candidates are ambiguous.
@@ -45,11 +49,14 @@ def find_feature_channels(names, layout: str, *, prefix: str | None = None, feat
     ----------
     names : iterable of str
         The file's channel names.
-    layout : {'pbrt-v4', 'mitsuba-moment', 'explicit'}
+    layout : {'pbrt-v4', 'mitsuba-moment', 'cycles', 'explicit'}
         pbrt-v4 looks for pbrt's names, mitsuba-moment for Mitsuba's behind
-        ``prefix`` (with ``m2_`` second moments), explicit for both.
+        ``prefix`` (with ``m2_`` second moments), cycles for Cycles'
+        denoising passes behind ``prefix`` (the view layer), explicit for
+        pbrt's and Mitsuba's.
     prefix : str, optional
-        The moment integrator's output the colour comes from (``nested``).
+        The moment integrator's output the colour comes from (``nested``),
+        or Cycles' view layer.
     features : 'auto', 'none' or mapping
         'auto': every feature of :data:`FEATURE_CHANNELS` found; 'none':
         none; a mapping ``{feature: "C1,C2,C3"}``: those channels (their
@@ -80,8 +87,8 @@ def find_feature_channels(names, layout: str, *, prefix: str | None = None, feat
     if not (isinstance(features, str) and features == "auto"):
         raise InputError(where, "features", f"{features!r}; valid: 'auto', 'none', or a mapping feature -> "
                          "comma-separated channels (e.g. {'normal': 'nn.X,nn.Y,nn.Z'})")
-    if layout == "mitsuba-moment" and prefix is None:
-        return {}  # positional ch0 ... ch8: no names, no features
+    if layout in ("mitsuba-moment", "cycles") and prefix is None:
+        return {}  # positional ch0 ... ch8 (or a Cycles layer not found): no names, no features
     out = {}
     for feat, by_source in FEATURE_CHANNELS.items():
         found = []  # (source, mean channels, m2 channels or None)
@@ -91,6 +98,8 @@ def find_feature_channels(names, layout: str, *, prefix: str | None = None, feat
                 continue
             if layout == "mitsuba-moment" and source != "mitsuba":
                 continue
+            if (layout == "cycles") != (source == "cycles"):
+                continue
             hits = []
             for cand in candidates:
                 if layout == "mitsuba-moment":
@@ -98,8 +107,11 @@ def find_feature_channels(names, layout: str, *, prefix: str | None = None, feat
                     m2 = tuple(f"m2_{c}" for c in cand)
                     if set(cand) <= names:  # without all its m2_ moments: means only, as pbrt's features
                         hits.append((source, cand, m2 if set(m2) <= names else None))
-                elif set(cand) <= names:
-                    hits.append((source, cand, None))
+                else:
+                    if layout == "cycles":
+                        cand = tuple(f"{prefix}.{c}" for c in cand)
+                    if set(cand) <= names:
+                        hits.append((source, cand, None))
                 if partial is None and 0 < len(names.intersection(cand)) < len(cand):
                     partial = cand
             if source in _PREFERENCE_SOURCES:

@@ -1,7 +1,10 @@
-"""Pixel-statistics files as reconstruction sources: one EXR, or a half-buffer pair of two.
+"""Pixel-statistics files as reconstruction sources: one EXR, a half-buffer pair of two, or a seed set.
 
-``mcrecon.reconstruct("frame.exr", method=...)`` and
-``mcrecon.reconstruct(("a.exr", "b.exr"), method=...)`` read the files
+``mcrecon.reconstruct("frame.exr", method=...)``,
+``mcrecon.reconstruct(("a.exr", "b.exr"), method=...)`` and
+``mcrecon.reconstruct("shot.seed*.exr", method=...)`` (a glob, or a list of
+three or more paths: K renders of one frame with different seeds,
+:func:`mcrecon.io.seed_sets.read_seed_set`) read the files
 (:func:`mcrecon.io.read_pixel_stats_exr`,
 :func:`mcrecon.io.pixel_exr.read_half_buffer_exrs`) into pixel statistics
 or :class:`~mcrecon.core.halves.Halves`, and the image comes back in the
@@ -10,7 +13,10 @@ file's output colours
 options need what such statistics lack (the samples, a sample range) runs
 with the options it declares for them
 (:func:`mcrecon.methods.supply.statistics_fallback`), with a warning,
-when the caller did not give those options.  :func:`is_pixel_file_source`
+when the caller did not give those options.  One file of means without a
+variance (a Cycles render) serves only the methods that read the means
+alone (:data:`MEAN_ONLY_METHODS`); two such files are a seed set of two,
+not a half-buffer pair.  :func:`is_pixel_file_source`
 is the one test of "is this an EXR input" (the command line and the batch
 ask it too); :func:`command_line` makes the messages name flags.
 """
@@ -32,6 +38,10 @@ from .inputs import check_method_supply
 
 __all__ = ["is_pixel_file_source", "PixelFileSource", "read_pixel_file_source", "command_line",
            "check_exr_options"]
+
+#: The methods that read a pixel's mean and nothing of its variance: the only ones one render of means
+#: (a Cycles EXR) can serve; every other weighs, selects or filters by the variance.
+MEAN_ONLY_METHODS = ("box",)
 
 #: Whether the reconstruction was asked for on the command line: its messages then name flags
 #: (``--candidates``), not keywords (``candidates=``); set by :func:`command_line`.
@@ -99,8 +109,8 @@ class PixelFileSource:
         statistics (``note`` then says so).
     source : PixelStats or Halves
         The file's statistics, or the pair's halves.
-    files : tuple of PixelStatsEXR
-        One, or the pair's two.
+    files : tuple of PixelStatsEXR or SeedSetEXR
+        One, the pair's two, or a seed set's one SeedSetEXR.
     what : str
         How messages name the files.
     note : str or None
@@ -135,9 +145,12 @@ def read_pixel_file_source(source, method, *, options: dict | None = None,
     """
     from ..core.halves import as_halves
     from ..io.pixel_exr import PixelStatsEXR, read_half_buffer_exrs, read_pixel_stats_exr
+    from ..io.seed_sets import seed_set_paths
 
     cli = _CLI.get()
     options = check_exr_options(options)
+    if seed_set_paths(source) is not None:
+        return _read_seed_set(source, method, options, fireflies, cli)
     pair = isinstance(source, (tuple, list))
     items = _check_pair(source, cli) if pair else (source,)
     names = [str(x.path) if isinstance(x, PixelStatsEXR) else os.fspath(x) for x in items]
@@ -164,6 +177,10 @@ def read_pixel_file_source(source, method, *, options: dict | None = None,
         files = read_half_buffer_exrs(items[0], items[1], **options)
     else:
         files = (read_pixel_stats_exr(items[0], **options),)
+    if pair and not (files[0].has_variance and files[1].has_variance):  # two renders' means: a seed set of two
+        return _read_seed_set(list(items), method, options, fireflies, cli)
+    if not files[0].has_variance:
+        _refuse_means_only(method, files[0], cli)
     if pair:
         got = as_halves((files[0].stats, files[1].stats), what)
         features = tuple(got.a.feature_names)
@@ -174,3 +191,41 @@ def read_pixel_file_source(source, method, *, options: dict | None = None,
     if note is not None:  # after the input is read: a refused input gets its one error line only
         warnings.warn(note, McreconWarning, stacklevel=3)
     return PixelFileSource(method, got, tuple(files), what, note)
+
+
+def _refuse_means_only(method, file, cli: bool) -> None:
+    """One render's means without a variance: refused, naming the fix, for a method that reads the variance."""
+    if method.name in MEAN_ONLY_METHODS:
+        return
+    seeds = "'shot.seed*.exr'" if cli else "mcrecon.reconstruct('shot.seed*.exr', ...)"
+    raise InputError(str(file.path), "variance", f"one {file.layout} render holds each pixel's mean and features "
+                     f"but no variance, which {method.name} needs; render the frame K >= 2 times with different "
+                     f"seeds and pass the set ({seeds}): their spread is the variance and their two groups the half "
+                     f"buffers (or use {' or '.join(MEAN_ONLY_METHODS)}, the pixel mean)")
+
+
+def _read_seed_set(source, method, options: dict, fireflies: str, cli: bool) -> PixelFileSource:
+    """:func:`read_pixel_file_source` of a seed set: its halves for a method that takes half buffers,
+    else the statistics of all the renders."""
+    from ..io.pixel_exr import PixelStatsEXR
+    from ..io.seed_sets import read_seed_set
+
+    if isinstance(source, (list, tuple)) and any(isinstance(x, PixelStatsEXR) for x in source):
+        raise InputError("reconstruct", "source", "a seed set is read from its files: give the paths (or a "
+                         "glob such as 'shot.seed*.exr'), not read PixelStatsEXR")
+    what = f"this seed set ({os.fspath(source) if isinstance(source, (str, os.PathLike)) else 'of renders'})"
+    if fireflies == "cascade":
+        raise InputError(what, "--fireflies" if cli else "fireflies", "cascade splits individual samples, which "
+                         "renders' pixel means no longer hold; give a sample log, or fireflies none")
+    halves = bool(method.requires.half_buffers)
+    before = Supply(what, halves=halves, has_range=False, features=("?",), surface="files", cli=cli)
+    fallback = statistics_fallback(method, before)
+    method, note = fallback if fallback is not None else (method, None)
+    check_method_supply(method, before)
+    seeds = read_seed_set(source, **options)
+    got = seeds.halves if halves else seeds.stats
+    check_method_supply(method, dataclasses.replace(before, what=f"this seed set ({seeds.path})",
+                                                    features=tuple(seeds.stats.feature_names)))
+    if note is not None:
+        warnings.warn(note, McreconWarning, stacklevel=4)
+    return PixelFileSource(method, got, (seeds,), f"this seed set ({seeds.path})", note)
