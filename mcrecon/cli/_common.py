@@ -39,7 +39,10 @@ class OneLineParser(argparse.ArgumentParser):
         # sub-command that was parsing it (`--methd` -> `--method`)
         ns, extras = self.parse_known_args(args, namespace)
         if extras:
-            self.error(f"unrecognized arguments: {' '.join(extras)}{_suggestions(self, ns, extras)}")
+            exrs = all(e.lower().endswith(".exr") and not e.startswith("-") for e in extras)
+            self.error(f"unrecognized arguments: {' '.join(extras)}{_suggestions(self, ns, extras)}"
+                       + (" (several EXRs: quote a seed set's glob, 'shot.seed*.exr', so that the shell leaves "
+                          "it to mcrecon)" if exrs else ""))
         return ns
 
 

@@ -162,12 +162,19 @@ def read_pixel_file_source(source, method, *, options: dict | None = None,
                          + (" or --fireflies none" if cli else " or a SampleSet, or fireflies='none'"))
     # what the method cannot take is refused before the files are read
     before = Supply(what, halves=pair, has_range=False, features=("?",), surface="files", cli=cli)
+    given = method
     fallback = statistics_fallback(method, before)
     if fallback is not None:
         method, note = fallback
     else:
         note = None
-    check_method_supply(method, before)
+    try:
+        check_method_supply(method, before)
+    except InputError:  # two renders' means (Cycles) are a seed set of two, for any method
+        if not pair or not all(isinstance(x, (str, os.PathLike)) for x in items) or \
+                read_pixel_stats_exr(items[0], **options).has_variance:
+            raise
+        return _read_seed_set(list(items), given, options, fireflies, cli)
     if options and any(isinstance(x, PixelStatsEXR) for x in items):
         raise InputError(names[0], "exr_options", "the files are read already: give the read options to "
                          "mcrecon.io.read_pixel_stats_exr, or give paths")
@@ -178,7 +185,7 @@ def read_pixel_file_source(source, method, *, options: dict | None = None,
     else:
         files = (read_pixel_stats_exr(items[0], **options),)
     if pair and not (files[0].has_variance and files[1].has_variance):  # two renders' means: a seed set of two
-        return _read_seed_set(list(items), method, options, fireflies, cli)
+        return _read_seed_set(list(items), given, options, fireflies, cli)
     if not files[0].has_variance:
         _refuse_means_only(method, files[0], cli)
     if pair:
