@@ -183,3 +183,44 @@ def test_eight_seed_renders_of_a_scene_reconstruct_better_than_their_mean(tmp_pa
     assert (rec.inputs.stats.count == 64).all()
     e_rec, e_mean = relative_mse(rec.image, ref), relative_mse(mean, ref)
     assert e_rec < ratio * e_mean, (e_rec, e_mean)
+
+
+# ------------------------------------------------------------------ batch: frames that are seed sets
+def test_seed_set_frames_group_renders_by_frame_number(tmp_path):
+    from mcrecon.io.seed_sets import seed_set_frames
+
+    for f in (1, 2, 10):
+        renders(tmp_path, 3 if f != 10 else 2, seed=f, name=f"shot.{f:04d}.seed{{}}.exr")
+    renders(tmp_path, 2, name="other.0001.seed{}.exr")
+    frames = seed_set_frames(str(tmp_path / "shot.####.seed*.exr"))
+    assert [fr.stem for fr in frames] == ["shot.0001", "shot.0002", "shot.0010"]
+    assert [len(fr.files) for fr in frames] == [3, 3, 2]
+    assert frames[0].pattern == str(tmp_path / "shot.0001.seed*.exr")
+    for bad, match in (("shot.seed*.exr", "mark the frame number"), ("shot.####.seed0.exr", "no glob for the seeds"),
+                       ("none.####.s*.exr", "no file matches")):
+        with pytest.raises(InputError, match=match):
+            seed_set_frames(str(tmp_path / bad))
+
+
+def test_batch_reconstructs_each_frame_as_its_seed_set_like_reconstruct(tmp_path, capsys):
+    pytest.importorskip("distributed", reason="needs the dask extra: pip install 'mcrecon[dask]'")
+    from mcrecon.distributed import cluster as D_cluster
+    from mcrecon.io import read_exr
+
+    for f in (1, 2):
+        renders(tmp_path, 3, seed=f, name=f"shot.{f:04d}.seed{{}}.exr")
+    renders(tmp_path, 1, seed=9, name="shot.0003.seed{}.exr")  # one render: that frame fails, the others not
+    out = tmp_path / "out"
+    with D_cluster.local_client(1, threads=1) as c:
+        argv = ["batch", "--seed-sets", tmp_path / "shot.####.seed*.exr", "--mean", "R,G,B", "--method", "gem",
+                "--out-dir", out, "--scheduler", c.scheduler.address, "--quiet"]
+        code, stdout, err = run_cli(argv, capsys)
+        assert code == 2 and "2 reconstructed" in stdout and "1 failed" in stdout
+        assert "one render: a seed set is K >= 2" in err
+        assert sorted(p.name for p in out.glob("*.exr")) == ["shot.0001.exr", "shot.0002.exr"]
+        one = mcrecon.reconstruct(str(tmp_path / "shot.0001.seed*.exr"), method="gem", exr_options={"mean": "R,G,B"})
+        np.testing.assert_array_equal(read_exr(out / "shot.0001.exr")[0], one.astype(np.float32))
+        code, stdout, _ = run_cli(argv, capsys)
+        assert "2 up to date" in stdout
+    code, _, err = run_cli(["batch", "--out-dir", out], capsys)
+    assert code == 2 and "no frame given" in err

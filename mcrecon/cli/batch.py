@@ -19,8 +19,10 @@ def _cmd_batch(args):
     if args.workers is not None and args.scheduler is not None:
         raise InputError("batch", "--workers/--scheduler", "give one: --workers N starts a local cluster, "
                          "--scheduler ADDRESS uses a running one")
+    if not args.logs and args.seed_sets is None:
+        raise InputError("batch", "FRAME", "no frame given: sample logs or EXRs, or --seed-sets PATTERN")
     method = make_method(args.method, args, args.method_flags)
-    res = reconstruct_many(args.logs, method=method, out_dir=args.out_dir, scheduler=args.scheduler,
+    res = reconstruct_many(args.logs, seed_sets=args.seed_sets, method=method, out_dir=args.out_dir, scheduler=args.scheduler,
                            workers=args.workers, nonfinite=args.nonfinite, force=args.force, png=args.png,
                            exposure=args.exposure, progress=False if args.quiet else None,
                            exr_options=exr_read_options(args, given_only=True) or None)
@@ -60,9 +62,14 @@ def register(sub, command: str | None = None) -> None:
                                    "frame is reported and the others complete (exit status 2). Writes "
                                    "OUT_DIR/batch_summary.csv and .json. Needs the dask extra: "
                                    "pip install 'mcrecon[dask]'.")
-    s.add_argument("logs", nargs="+", metavar="FRAME", help="sample logs (.h5) or pixel-statistics EXRs (.exr), or "
+    s.add_argument("logs", nargs="*", metavar="FRAME", help="sample logs (.h5) or pixel-statistics EXRs (.exr), or "
                         "glob patterns (quote them: 'frames/*.h5', 'frames/*.exr'); a name that exists is that "
                         "file, literally")
+    s.add_argument("--seed-sets", default=None, metavar="PATTERN",
+                   help="frames that are seed sets (K >= 2 renders of each frame with different seeds): "
+                        "'shot.####.seed*.exr' (quoted), # the frame number's digits, * the seed; each frame's "
+                        "renders give its mean, variance and half buffers, written as OUT_DIR/shot.0001.exr "
+                        "(docs/pixel-statistics-inputs.md#seed-sets)")
     s.add_argument("--out-dir", required=True, metavar="DIR", help="output directory (shared with the workers)")
     s.add_argument("--workers", type=_positive_int, default=None, metavar="N",
                    help="worker processes of the local cluster (default and at most: the cores, "

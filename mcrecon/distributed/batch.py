@@ -68,13 +68,15 @@ SUMMARY_FIELDS = ("frame", "log", "output", "status", "method", "rel_mse", "seco
 # ----------------------------------------------------------------------------
 
 def reconstruct_frame(log_path, out_path, method: str, options: dict, *, nonfinite: str = "drop",
-                      png: bool = False, exposure: float = 0.0, exr_options: dict | None = None) -> dict:
+                      png: bool = False, exposure: float = 0.0, exr_options: dict | None = None,
+                      frame: str | None = None) -> dict:
     """Reconstruct one frame exactly as ``mcrecon reconstruct`` does and write its EXR atomically.
 
     ``log_path``: a sample log, or a pixel-statistics EXR (read with
     ``exr_options``, :func:`mcrecon.io.read_pixel_stats_exr`'s keywords;
     by default with the layout its channel names say; written in its
-    output colours).  ``options``: the method options the caller gave.
+    output colours), or the glob of a seed set's renders (``frame``: its
+    name).  ``options``: the method options the caller gave.
     Runs on a worker; never raises: a failure comes back as
     ``status='failed'`` with the one-line error.
     """
@@ -85,7 +87,7 @@ def reconstruct_frame(log_path, out_path, method: str, options: dict, *, nonfini
 
     log_path, out_path = Path(log_path), Path(out_path)
     exr = is_pixel_file_source(log_path)
-    rec = {"frame": log_path.stem, "log": str(log_path), "output": str(out_path), "method": method,
+    rec = {"frame": frame or log_path.stem, "log": str(log_path), "output": str(out_path), "method": method,
            "rel_mse": None, "seconds": None, "worker": _worker_name(), "samples": None, "error": None}
     t0 = time.perf_counter()
     try:
@@ -272,7 +274,7 @@ def _write_summary(out_dir: Path, records: list, config: dict, seconds: float) -
 def reconstruct_many(paths, *, method="box", out_dir, client=None, scheduler: str | None = None,
                  workers: int | None = None, nonfinite: str = "drop", force: bool = False, png: bool = False,
                  exposure: float = 0.0, progress: bool | None = None, summary: bool = True,
-                 exr_options: dict | None = None, **options) -> BatchResult:
+                 exr_options: dict | None = None, seed_sets=None, **options) -> BatchResult:
     """Reconstruct every frame in ``paths`` into ``out_dir/<frame stem>.exr`` on a Dask cluster.
 
     Parameters
@@ -280,6 +282,10 @@ def reconstruct_many(paths, *, method="box", out_dir, client=None, scheduler: st
     paths : path, glob pattern or sequence of them
         Sample logs or pixel-statistics EXRs (patterns like ``'frames/*.h5'``
         or ``'frames/*.exr'`` are expanded here).
+    seed_sets : str, optional
+        Frames that are seed sets (:func:`mcrecon.io.seed_sets.seed_set_frames`):
+        ``'shot.####.seed*.exr'`` makes one frame per frame number, written
+        as ``out_dir/shot.0001.exr``; ``paths`` may then be empty.
     method : str or Method
         A registered method with its ``options`` as keywords (validated
         here, before any work), or a method object.
@@ -316,7 +322,10 @@ def reconstruct_many(paths, *, method="box", out_dir, client=None, scheduler: st
 
     check_policy(nonfinite, "batch")
     exr_options = check_exr_options(exr_options, "batch")
-    logs = _expand(paths)
+    logs = _expand(paths) if paths or seed_sets is None else []
+    if seed_sets is not None:
+        from ..io.seed_sets import seed_set_frames
+        logs += seed_set_frames(seed_sets)
     if exr_options:
         for p in logs:
             if not is_pixel_file_source(p):
@@ -357,7 +366,8 @@ def reconstruct_many(paths, *, method="box", out_dir, client=None, scheduler: st
             futures = {}
             for i, p, out in todo:
                 f = c.submit(reconstruct_frame, str(p), str(out), config["method"], given,
-                             nonfinite=nonfinite, png=png, exposure=exposure, exr_options=exr_options, pure=False,
+                             nonfinite=nonfinite, png=png, exposure=exposure, exr_options=exr_options,
+                             frame=p.stem, pure=False,
                              key=f"mcrecon-frame-{i}-{p.stem}-{os.urandom(4).hex()}")
                 futures[f] = i
             for f in distributed.as_completed(futures):

@@ -39,6 +39,7 @@ import dataclasses
 import glob
 import hashlib
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -46,7 +47,7 @@ import numpy as np
 from ..errors import InputError
 from ..core.stats import PixelStats
 
-__all__ = ["SeedSetEXR", "read_seed_set", "seed_set_paths", "is_glob_pattern"]
+__all__ = ["SeedSetEXR", "read_seed_set", "seed_set_paths", "is_glob_pattern", "SeedSetFrame", "seed_set_frames"]
 
 _GLOB_MAGIC = ("*", "?", "[")
 
@@ -260,3 +261,93 @@ def read_seed_set(source, **options) -> SeedSetEXR:
     sources = dict(first.sources)
     return SeedSetEXR(stats, as_halves(tuple(halves), name), paths, name, first.layout, sources,
                       f"{k} renders x {first.count_source}", tuple(first.output_channels), first.output_matrix, k)
+
+
+# ------------------------------------------------------------------ frames of seed sets (batch)
+@dataclasses.dataclass(frozen=True)
+class SeedSetFrame:
+    """One frame of :func:`seed_set_frames`: its name, the glob of its renders, and the files it matched.
+
+    Path-like (``os.fspath`` is the glob, which :func:`mcrecon.reconstruct`
+    reads as a seed set), with the ``stem`` a frame is named by and the
+    ``stat`` of its newest render (a batch redoes the frame when a render
+    is newer than its output).
+    """
+
+    stem: str
+    pattern: str
+    files: tuple
+
+    def __fspath__(self) -> str:
+        return self.pattern
+
+    def __str__(self) -> str:
+        return self.pattern
+
+    def stat(self):
+        return max((os.stat(f) for f in self.files), key=lambda st: st.st_mtime_ns)
+
+
+def _pattern_regex(base: str) -> str:
+    out = []
+    for tok in re.findall(r"#+|\*|\?|\[[^\]]*\]|[^#*?\[]+", base):
+        if tok.startswith("#"):
+            out.append(f"(?P<frame>\\d{{{len(tok)}}})")
+        elif tok == "*":
+            out.append(".*")
+        elif tok == "?":
+            out.append(".")
+        elif tok.startswith("["):
+            out.append("[^" + tok[2:] if tok.startswith("[!") else tok)
+        else:
+            out.append(re.escape(tok))
+    return "".join(out)
+
+
+def _frame_stem(base: str, digits: str) -> str:
+    """A frame's name: its file name without ``.exr`` and without the parts that match the seeds
+    (``shot.0001.seed*.exr`` -> ``shot.0001``; ``shot_0001_s*.exr`` -> ``shot_0001_s``), always with the
+    frame's digits (``s*_0001.exr`` -> ``s_0001``)."""
+    stem = base[:-4] if base.lower().endswith(".exr") else base
+    kept = [part for part in stem.split(".") if not any(c in part for c in _GLOB_MAGIC)]
+    if kept and len(kept) < len(stem.split(".")) and digits in ".".join(kept):
+        return ".".join(kept)
+    cut = min((stem.index(c) for c in _GLOB_MAGIC if c in stem), default=len(stem))
+    if digits in stem[:cut]:
+        return stem[:cut].rstrip("._-")
+    return re.sub(r"\*|\?|\[[^\]]*\]", "", stem).strip("._-")
+
+
+def seed_set_frames(pattern, *, where: str = "--seed-sets") -> list[SeedSetFrame]:
+    """The frames of a sequence of seed sets: ``'shot.####.seed*.exr'`` -> one :class:`SeedSetFrame` per
+    frame number (the ``#`` run, that many digits), holding that frame's renders (the rest of the glob).
+
+    Raises
+    ------
+    InputError
+        No ``#`` run or more than one, ``#`` outside the file name, no glob
+        for the seeds, no file matching.
+    """
+    s = os.fspath(pattern)
+    head, base = os.path.split(s)
+    runs = re.findall(r"#+", s)
+    if len(runs) != 1 or "#" in head:
+        raise InputError(s, where, f"{len(runs)} runs of '#' ({'in the directory' if '#' in head else 'expected one'}"
+                         "): mark the frame number with one run of '#' in the file name, one per digit, and the "
+                         "seed with a glob, e.g. 'shot.####.seed*.exr'")
+    if not any(c in base.replace("#", "") for c in _GLOB_MAGIC) or not base.lower().endswith(".exr"):
+        raise InputError(s, where, "no glob for the seeds, or not ending in .exr: e.g. 'shot.####.seed*.exr' "
+                         "(#: the frame number's digits, *: the seed)")
+    regex = re.compile(_pattern_regex(base))
+    frames: dict[str, list] = {}
+    for f in sorted(glob.glob(re.sub(r"#+", lambda m: "[0-9]" * len(m.group()), s))):
+        m = regex.fullmatch(os.path.basename(f))
+        if m:
+            frames.setdefault(m.group("frame"), []).append(Path(f))
+    if not frames:
+        raise InputError(s, where, "no file matches this pattern (#: the frame number's digits, *: the seed)")
+    out = []
+    for digits, files in sorted(frames.items()):
+        base_f = re.sub(r"#+", digits, base)
+        out.append(SeedSetFrame(_frame_stem(base_f, digits), os.path.join(head, base_f), tuple(files)))
+    return out
