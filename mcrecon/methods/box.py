@@ -15,6 +15,8 @@ class BoxMethod(Method):
 
     name = "box"
     pipeline = True  # uniform rounds that depend only on the sample count: bit-identical with one round of lag
+    #: The pixel means alone, no variance: one render of means (a Cycles EXR) serves it (offline.pixel_files).
+    reads_variance = False
 
     def halo(self, width, height):
         return 0  # the pixel's own mean (empty pixels aside: see Method.halo)

@@ -15,7 +15,7 @@ with the options it declares for them
 (:func:`mcrecon.methods.supply.statistics_fallback`), with a warning,
 when the caller did not give those options.  One file of means without a
 variance (a Cycles render) serves only the methods that read the means
-alone (:data:`MEAN_ONLY_METHODS`); two such files are a seed set of two,
+alone (a method class's ``reads_variance`` False); two such files are a seed set of two,
 not a half-buffer pair.  :func:`is_pixel_file_source`
 is the one test of "is this an EXR input" (the command line and the batch
 ask it too); :func:`command_line` makes the messages name flags.
@@ -38,10 +38,6 @@ from .inputs import check_method_supply
 
 __all__ = ["is_pixel_file_source", "PixelFileSource", "read_pixel_file_source", "command_line",
            "check_exr_options"]
-
-#: The methods that read a pixel's mean and nothing of its variance: the only ones one render of means
-#: (a Cycles EXR) can serve; every other weighs, selects or filters by the variance.
-MEAN_ONLY_METHODS = ("box",)
 
 #: Whether the reconstruction was asked for on the command line: its messages then name flags
 #: (``--candidates``), not keywords (``candidates=``); set by :func:`command_line`.
@@ -170,9 +166,14 @@ def read_pixel_file_source(source, method, *, options: dict | None = None,
         note = None
     try:
         check_method_supply(method, before)
-    except InputError:  # two renders' means (Cycles) are a seed set of two, for any method
-        if not pair or not all(isinstance(x, (str, os.PathLike)) for x in items) or \
-                read_pixel_stats_exr(items[0], **options).has_variance:
+    except InputError as refusal:  # two renders' means (Cycles) are a seed set of two, for any method
+        if not pair or not all(isinstance(x, (str, os.PathLike)) for x in items):
+            raise
+        try:
+            means_only = not read_pixel_stats_exr(items[0], **options).has_variance
+        except InputError:
+            raise refusal from None  # the method's refusal, not the unreadable file's
+        if not means_only:
             raise
         return _read_seed_set(list(items), given, options, fireflies, cli)
     if options and any(isinstance(x, PixelStatsEXR) for x in items):
@@ -202,13 +203,16 @@ def read_pixel_file_source(source, method, *, options: dict | None = None,
 
 def _refuse_means_only(method, file, cli: bool) -> None:
     """One render's means without a variance: refused, naming the fix, for a method that reads the variance."""
-    if method.name in MEAN_ONLY_METHODS:
+    if not getattr(method, "reads_variance", True):  # a method of the means alone (the pixel mean)
         return
+    from ..methods import available_methods, method_class
+
+    means = [n for n in available_methods() if not getattr(method_class(n), "reads_variance", True)]
     seeds = "'shot.seed*.exr'" if cli else "mcrecon.reconstruct('shot.seed*.exr', ...)"
     raise InputError(str(file.path), "variance", f"one {file.layout} render holds each pixel's mean and features "
                      f"but no variance, which {method.name} needs; render the frame K >= 2 times with different "
                      f"seeds and pass the set ({seeds}): their spread is the variance and their two groups the half "
-                     f"buffers (or use {' or '.join(MEAN_ONLY_METHODS)}, the pixel mean)")
+                     f"buffers" + (f" (or use {' or '.join(means)}, which read the means alone)" if means else ""))
 
 
 def _read_seed_set(source, method, options: dict, fireflies: str, cli: bool) -> PixelFileSource:
