@@ -173,3 +173,26 @@ def test_real_cycles_renders_are_read_and_reconstructed_as_a_seed_set(tmp_path):
     rec = mcrecon.reconstruct([tmp_path / "shot.seed0.exr", tmp_path / "shot.seed1.exr"], method="gem", full=True)
     assert rec.image.shape == (32, 32, 3) and np.isfinite(rec.image).all()
     assert int(rec.inputs.stats.count[0, 0]) == 8
+
+
+def test_two_renders_given_as_a_pair_are_a_seed_set_of_two(tmp_path, capsys):
+    x = np.stack([cycles_exr(tmp_path / f"s{i}.exr", seed=i) for i in range(2)]).astype(np.float32).astype(float)
+    for method in ("gem", "auto"):
+        rec = mcrecon.reconstruct((str(tmp_path / "s0.exr"), str(tmp_path / "s1.exr")), method=method, full=True)
+        assert rec.files[0].renders == 2 and (rec.inputs.stats.count == 16).all()
+        np.testing.assert_allclose(rec.inputs.stats.mean, x.mean(0), rtol=1e-12)
+    out = tmp_path / "out.exr"
+    code, _, err = run_cli(["reconstruct", tmp_path / "s0.exr", "--half-buffer", tmp_path / "s1.exr", "-o", out,
+                            "--method", "auto"], capsys)
+    assert code == 0 and out.exists() and "(2 renders)" in err
+
+
+def test_a_glob_with_a_half_buffer_and_an_unquoted_glob_are_one_line_each(tmp_path, capsys):
+    for i in range(3):
+        cycles_exr(tmp_path / f"s{i}.exr", seed=i)
+    out = tmp_path / "out.exr"
+    code, _, err = run_cli(["reconstruct", tmp_path / "s*.exr", "--half-buffer", tmp_path / "s0.exr", "-o", out,
+                            "--method", "auto"], capsys)
+    assert code == 2 and "a glob is a seed set, which gives its own half buffers" in err and not out.exists()
+    code, _, err = run_cli(["reconstruct", tmp_path / "s0.exr", tmp_path / "s1.exr", "-o", out], capsys)
+    assert code == 2 and "quote a seed set's glob" in err and err.count("\n") == 1

@@ -403,10 +403,10 @@ def read_pixel_stats_exr(path, *, layout: str | None = None, mean=None, variance
     Parameters
     ----------
     path : path-like
-    layout : {'pbrt-v4', 'mitsuba-moment'} or None
+    layout : {'pbrt-v4', 'mitsuba-moment', 'cycles'} or None
         None: the explicit mapping when ``mean`` is given, else detected
         from the channel names (pbrt-v4's ``Variance.R/G/B``, Mitsuba's
-        ``m2_*`` moments).
+        ``m2_*`` moments, Cycles' ``ViewLayer.Combined``).
     mean, variance, second_moment : str or sequence of str, optional
         Comma-separated channel names; override the preset's.  Give
         ``variance`` or ``second_moment`` (E[x^2]), not both.  Under

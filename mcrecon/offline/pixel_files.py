@@ -141,7 +141,7 @@ def read_pixel_file_source(source, method, *, options: dict | None = None,
     """
     from ..core.halves import as_halves
     from ..io.pixel_exr import PixelStatsEXR, read_half_buffer_exrs, read_pixel_stats_exr
-    from ..io.seed_sets import seed_set_paths
+    from ..io.seed_sets import is_glob_pattern, seed_set_paths
 
     cli = _CLI.get()
     options = check_exr_options(options)
@@ -149,6 +149,9 @@ def read_pixel_file_source(source, method, *, options: dict | None = None,
         return _read_seed_set(source, method, options, fireflies, cli)
     pair = isinstance(source, (tuple, list))
     items = _check_pair(source, cli) if pair else (source,)
+    if pair and any(is_glob_pattern(x) for x in items):
+        raise InputError(os.fspath(next(x for x in items if is_glob_pattern(x))), "--half-buffer" if cli else "source",
+                         "a glob is a seed set, which gives its own half buffers: give it alone")
     names = [str(x.path) if isinstance(x, PixelStatsEXR) else os.fspath(x) for x in items]
     what = f"this half-buffer pair ({names[0]} / {names[1]})" if pair else f"a pixel-statistics EXR ({names[0]})"
     if fireflies == "cascade":
