@@ -6,7 +6,7 @@ import pytest
 import mcrecon
 from mcrecon import InputError
 from mcrecon.core.metrics import relative_mse
-from mcrecon.io.seed_sets import read_seed_set
+from mcrecon.io import read_seed_set
 
 from helpers import run_cli
 
