@@ -174,8 +174,7 @@ def _compare(first, f, where_first) -> None:
         raise InputError(where, "shape", f"{b.width}x{b.height}, but {where_first} is {a.width}x{a.height} "
                          "(width x height): a seed set's renders are of one frame")
     if first.layout != f.layout or first.sources != f.sources or first.output_channels != f.output_channels:
-        show = lambda s: "; ".join(f"{k} {','.join(v) if not isinstance(v, dict) else ','.join(v) or '-'}"  # noqa: E731
-                                   for k, v in s.items())
+        show = lambda src: "; ".join(f"{k} {','.join(v) or '-'}" for k, v in src.items())  # noqa: E731 (dict: its keys)
         raise InputError(where, "channels", f"layout {f.layout}: {show(f.sources)}, but {where_first} has layout "
                          f"{first.layout}: {show(first.sources)}; write the same passes into every render")
     ma, mb = first.output_matrix, f.output_matrix
