@@ -224,3 +224,12 @@ def test_batch_reconstructs_each_frame_as_its_seed_set_like_reconstruct(tmp_path
         assert "2 up to date" in stdout
     code, _, err = run_cli(["batch", "--out-dir", out], capsys)
     assert code == 2 and "no frame given" in err
+
+
+def test_one_file_of_means_alone_serves_box_and_refuses_the_others(tmp_path):
+    x, _ = renders(tmp_path, 1)
+    one = str(tmp_path / "shot.seed0.exr")
+    np.testing.assert_allclose(mcrecon.reconstruct(one, method="box", exr_options={"mean": "R,G,B"}), x[0])
+    with pytest.raises(InputError, match="means alone \\(mean= without a variance\\) hold .* no variance, which "
+                                         "gem needs; render the frame K >= 2 times"):
+        mcrecon.reconstruct(one, method="gem", exr_options={"mean": "R,G,B"})

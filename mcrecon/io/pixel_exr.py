@@ -485,9 +485,6 @@ def _read_stats(exr: _EXR, layout, mean, variance, second_moment, variance_of, c
                              "several renders with different seeds for the variance")
         if layout == "cycles":
             feature_prefix, mean, _ = cycles_mean_channels(exr.names, where, mean)
-        if mean is None:
-            raise InputError("--mean", "mean", "the explicit mapping needs --mean CHANNELS (and --variance-channels "
-                             "CHANNELS or --second-moment CHANNELS for a variance)")
         m, half = exr.get(mean, "mean")
         _warn_half_saturation(exr, mean, m, half, layout)
         _check_finite(exr, mean, m, n, "mean", half)

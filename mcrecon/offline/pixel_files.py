@@ -212,7 +212,9 @@ def _refuse_means_only(method, file, cli: bool) -> None:
 
     means = [n for n in available_methods() if not getattr(method_class(n), "reads_variance", True)]
     seeds = "'shot.seed*.exr'" if cli else "mcrecon.reconstruct('shot.seed*.exr', ...)"
-    raise InputError(str(file.path), "variance", f"one {file.layout} render holds each pixel's mean and features "
+    held = "one cycles render holds" if file.layout == "cycles" else \
+        f"means alone ({'--mean' if cli else 'mean='} without a variance) hold"
+    raise InputError(str(file.path), "variance", f"{held} each pixel's mean and features "
                      f"but no variance, which {method.name} needs; render the frame K >= 2 times with different "
                      f"seeds and pass the set ({seeds}): their spread is the variance and their two groups the half "
                      f"buffers" + (f" (or use {' or '.join(means)}, which read the means alone)" if means else ""))
