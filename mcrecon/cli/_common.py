@@ -237,7 +237,9 @@ def add_exr_read_flags(parser, title: str, description: str):
                     help="pbrt-v4 GBufferFilm (R,G,B + Variance.R/G/B), Mitsuba 3's moment integrator "
                          "(P.X/Y/Z + m2_P.X/Y/Z) or a Blender Cycles multilayer EXR (ViewLayer.Combined, or "
                          "ViewLayer.Noisy Image when Cycles denoised; no variance: pass several renders with "
-                         "different seeds); default: detected from the channel names, or the explicit mapping")
+                         "different seeds, a quoted glob such as 'shot.seed*.exr', a seed set, see "
+                         "docs/pixel-statistics-inputs.md#seed-sets); default: detected from the channel names, or "
+                         "the explicit mapping")
     px.add_argument("--mean", default=None, metavar="CHANNELS", help="mean channels, comma-separated (e.g. R,G,B); "
                     "alone, without --variance-channels: means only, as one render of a seed set")
     px.add_argument("--variance-channels", default=None, metavar="CHANNELS",
