@@ -52,16 +52,32 @@ def _by_pixel(log):
     return pix[order], c.positions[order], c.values[order]
 
 
-# one request of every index at once, answered by the renderer in a subprocess
-ONE_REQUEST = textwrap.dedent("""
+# requests answered by the renderer in a subprocess: one of n samples per pixel, or two that split them
+REQUESTS = textwrap.dedent("""
     import sys, numpy as np
     from mcrecon.core.requests import SampleRequest
     from mcrecon.renderers.blender import BlenderRenderer
-    blend, w, h, n, out = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), sys.argv[5]
-    r = BlenderRenderer(blend, width=w, height=h, threads=2, features="none")
-    b = r.render(SampleRequest(w, h, counts=np.full((h, w), n, np.int64)))
-    np.savez(out, positions=b.positions, values=b.values, renders=r.renders)
+    blend, w, h, n, out, split = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), sys.argv[5], sys.argv[6]
+    r = BlenderRenderer(blend, width=w, height=h, threads=2, features="all")
+    if split == "no":
+        b = r.render(SampleRequest(w, h, counts=np.full((h, w), n, np.int64)))
+        np.savez(out, positions=b.positions, values=b.values, renders=r.renders)
+        raise SystemExit
+    # pixel p: 1 + p % 3 samples first (an uneven round), the rest of n in the second request
+    c1 = (1 + np.arange(w * h) % 3).reshape(h, w)
+    b1 = r.render(SampleRequest(w, h, counts=c1))
+    renders1, rendered1 = r.renders, r.samples_rendered
+    b2 = r.render(SampleRequest(w, h, counts=n - c1, first_index=c1, round_index=1, seed=7))
+    np.savez(out, p1=b1.positions, v1=b1.values, p2=b2.positions, v2=b2.values, c1=c1, renders1=renders1,
+             rendered1=rendered1, renders=r.renders, rendered=r.samples_rendered, delivered=r.samples_delivered)
 """)
+
+
+def _requests(blend, tmp_path, n, split):
+    out = tmp_path / f"{split}.npz"
+    subprocess.run([sys.executable, "-c", REQUESTS, str(blend), str(W), str(H), str(n), str(out), split],
+                   check=True, capture_output=True, env=cli_env(), timeout=300)
+    return np.load(out)
 
 
 @NEEDS_BPY
@@ -77,14 +93,32 @@ def test_rounds_continue_each_pixels_cycles_pattern(blend, tmp_path):
     spec = got.run_settings["renderer_spec"]
     assert spec["kind"] == "blender" and spec["scene"] == str(blend) and (spec["width"], spec["height"]) == (W, H)
     assert spec["features"] == "none" and spec["camera"] == "cam"
-    subprocess.run([sys.executable, "-c", ONE_REQUEST, str(blend), str(W), str(H), "8", str(tmp_path / "one.npz")],
-                   check=True, capture_output=True, env=cli_env(), timeout=300)
-    one = np.load(tmp_path / "one.npz")
+    one = _requests(blend, tmp_path, 8, "no")
     assert int(one["renders"]) == 16  # 8 colour renders and their 8 probes, nothing else
     pix, pos, val = _by_pixel(got)
     np.testing.assert_array_equal(pix, np.repeat(np.arange(W * H), 8))
     np.testing.assert_array_equal(pos, one["positions"])
     np.testing.assert_allclose(val, one["values"], atol=1e-3)
+
+
+@NEEDS_BPY
+def test_uneven_rounds_keep_what_a_box_renders_beyond_the_request(blend, tmp_path):
+    """A round of 1-3 samples per pixel renders indices 0-2 over the film: the samples a pixel needs
+    only in the next round are kept and given then (not rendered again), and the two rounds are,
+    pixel by pixel, one request of 6."""
+    one, two = _requests(blend, tmp_path, 6, "no"), _requests(blend, tmp_path, 6, "split")
+    c1 = two["c1"].ravel()
+    assert int(two["renders1"]) == 6 and int(two["rendered1"]) == 3 * W * H  # 3 colour + 3 probe renders
+    assert int(two["delivered"]) == 6 * W * H
+    # the second round renders indices 3-5 alone: indices 1 and 2 come from the first round's renders
+    assert int(two["renders"]) == 12 and int(two["rendered"]) == 6 * W * H
+    pos, val = [], []
+    for p in range(W * H):
+        a0, b0 = int(c1[:p].sum()), int((6 - c1[:p]).sum())
+        pos.append(np.concatenate([two["p1"][a0:a0 + c1[p]], two["p2"][b0:b0 + 6 - c1[p]]]))
+        val.append(np.concatenate([two["v1"][a0:a0 + c1[p]], two["v2"][b0:b0 + 6 - c1[p]]]))
+    np.testing.assert_array_equal(np.concatenate(pos), one["positions"])
+    np.testing.assert_allclose(np.concatenate(val), one["values"], atol=1e-3)
 
 
 @NEEDS_BPY

@@ -431,6 +431,9 @@ def dump_cycles_log(path, scene, *, spp: int, size=None, camera: str | None = No
 #: costs the same whatever it is.
 PATTERN_SPP = 65536
 
+#: The most memory the film positions of probe renders kept for later rounds take.
+PROBE_CACHE_BYTES = 256 << 20
+
 
 class BlenderRenderer:
     """A ``.blend`` scene as an in-process renderer of adaptive runs (``mcrecon adapt --blender``).
@@ -438,10 +441,11 @@ class BlenderRenderer:
     A request's pixel p gets Cycles' samples ``first_index[p] .. first_index[p] + counts[p] - 1`` of
     its own pattern, so the rounds of a run continue each pixel's stratified sequence.  Per sample
     index k, one render with a sample subset of length one covers the bounding box of the pixels
-    that still lack sample k (Cycles' render border); what it renders beyond the request (pixels of
-    the box that need k only in a later round) is kept for the rounds to come, and counted:
+    that still lack sample k (Cycles' render border); what it renders beyond the request for pixels
+    of the box that reach index k only in a later round is kept for them, and the rest is waste:
     :attr:`samples_rendered` against :attr:`samples_delivered`.  Film positions come from probe
-    renders of a second scene of the file (:meth:`_Scene.probe_scene`), one per sample index, kept.
+    renders of a second scene of the file (:meth:`_Scene.probe_scene`), one per sample index, kept
+    up to :data:`PROBE_CACHE_BYTES`.
 
     Cycles cannot evaluate film positions of the caller's choosing: a request with ``positions``
     (gem, awr, auto's adaptive rounds) is refused with a :class:`~mcrecon.errors.RendererError`.
@@ -479,7 +483,7 @@ class BlenderRenderer:
         self.name = f"blender:{Path(scene).name}"
         self._probe = self._sc.probe_scene()
         self._tmp = tempfile.TemporaryDirectory(prefix="mcrecon_cycles_")
-        self._cache: dict[int, dict] = {}   # sample index -> values, features, which pixels hold it
+        self._cache: dict[int, dict] = {}   # sample index -> pixels waiting for it, their values and features
         self._positions: dict[int, np.ndarray] = {}  # sample index -> (P, 2) film positions
         self.last_render_seconds = 0.0
         self.renders = 0
@@ -494,29 +498,69 @@ class BlenderRenderer:
                             features=",".join(self.feature_names) or "none", threads=self.threads,
                             pattern_spp=self.pattern_spp)
 
-    def _render_index(self, k: int, need: np.ndarray) -> None:
-        """Render sample ``k`` over the bounding box of the pixels ``need`` (P,) bool, into the cache."""
+    def _render_box(self, k: int, pixels: np.ndarray, *, probe: bool):
+        """Render sample ``k`` (or its probe) over the bounding box of ``pixels`` (flat indices): the box's
+        flat pixel indices and the full-film channels."""
         w, h = self.width, self.height
-        rows = np.flatnonzero(need.reshape(h, w).any(axis=1))
-        cols = np.flatnonzero(need.reshape(h, w).any(axis=0))
-        y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
-        full = (x0, y0, x1, y1) == (0, 0, w, h)
-        layer = self._sc.layer.name
-        ch = self._sc.render(Path(self._tmp.name) / "colour.exr", offset=k, features=self.features,
-                             region=None if full else (x0, x1, y0, y1))
-        box = np.zeros((h, w), bool)
-        box[y0:y1, x0:x1] = True
-        box = box.ravel()
-        entry = self._cache.setdefault(k, {"have": np.zeros(w * h, bool), "values": np.zeros((w * h, 3), np.float32),
-                                           **{f: np.zeros((w * h, BLENDER_FEATURES[f]), np.float32)
-                                              for f in self.feature_names}})
-        fresh = box & ~entry["have"]
-        entry["values"][fresh] = _pass(ch, layer, "Combined", "RGB", self.scene_path).reshape(w * h, 3)[fresh]
-        for f in self.feature_names:
-            entry[f][fresh] = _pass(ch, layer, *_FEATURE_PASSES[f], self.scene_path).reshape(w * h, -1)[fresh]
-        entry["have"] |= box
+        rows, cols = pixels // w, pixels % w
+        y0, y1, x0, x1 = int(rows.min()), int(rows.max()) + 1, int(cols.min()), int(cols.max()) + 1
+        region = None if (x0, y0, x1, y1) == (0, 0, w, h) else (x0, x1, y0, y1)
+        out = Path(self._tmp.name) / ("probe.exr" if probe else "colour.exr")
+        ch = self._sc.render(out, offset=k, features=self.features and not probe, region=region,
+                             scene=self._probe if probe else None)
         self.renders += 1
-        self.samples_rendered += int(box.sum())
+        box = (np.arange(y0, y1)[:, None] * w + np.arange(x0, x1)[None, :]).ravel()
+        return box, ch
+
+    def _colour(self, k: int, need: np.ndarray, end: np.ndarray) -> dict:
+        """Sample ``k`` of the pixels ``need`` (ascending flat indices): values and features, from the
+        samples kept from earlier renders, the rest rendered; what the render gives beyond ``need`` to
+        pixels that reach index k only later (``end <= k``) is kept for them."""
+        names, layer = ("values",) + self.feature_names, self._sc.layer.name
+        got = {f: np.empty((len(need), 3 if f == "values" else BLENDER_FEATURES[f]), np.float32) for f in names}
+        kept = self._cache.pop(k, None)
+        hit = np.zeros(len(need), bool)
+        if kept is not None:
+            at = np.clip(np.searchsorted(kept["pixels"], need), 0, len(kept["pixels"]) - 1)
+            hit = kept["pixels"][at] == need
+            for f in names:
+                got[f][hit] = kept[f][at[hit]]
+            later = end[kept["pixels"]] <= k  # kept pixels that still wait for index k
+            kept = {f: v[later] for f, v in kept.items()}
+        if not hit.all():
+            box, ch = self._render_box(k, need[~hit], probe=False)
+            self.samples_rendered += len(box)
+            full = {"values": _pass(ch, layer, "Combined", "RGB", self.scene_path).reshape(-1, 3)}
+            for f in self.feature_names:
+                full[f] = _pass(ch, layer, *_FEATURE_PASSES[f], self.scene_path).reshape(len(full["values"]), -1)
+            for f in names:
+                got[f][~hit] = full[f][need[~hit]]
+            extra = box[end[box] <= k]
+            if kept is not None:
+                extra = np.setdiff1d(extra, kept["pixels"])
+            if len(extra):
+                new = {"pixels": extra, **{f: full[f][extra] for f in names}}
+                if kept is not None:
+                    order = np.argsort(np.concatenate([kept["pixels"], extra]))
+                    new = {f: np.concatenate([kept[f], new[f]])[order] for f in new}
+                kept = new
+        if kept is not None and len(kept["pixels"]):
+            self._cache[k] = kept
+        return got
+
+    def _film_positions(self, k: int, need: np.ndarray) -> np.ndarray:
+        """Film positions (len(need), 2) of sample ``k`` of the pixels ``need``: a full-film probe render,
+        kept while the kept probes stay under :data:`PROBE_CACHE_BYTES` (the lowest indices go first:
+        ``first_index`` only grows)."""
+        pos = self._positions.get(k)
+        if pos is None:
+            p = self.width * self.height
+            _, ch = self._render_box(k, np.array([0, p - 1]), probe=True)
+            pos = _probe_positions(ch, self._sc.layer.name, self.width, self.height, self.scene_path).reshape(p, 2)
+            while self._positions and (len(self._positions) + 1) * pos.nbytes > PROBE_CACHE_BYTES:
+                del self._positions[min(self._positions)]
+            self._positions[k] = pos
+        return pos[need]
 
     def render(self, request):
         """Cycles' samples for a request's counts (see the class notes); a reply in row-major pixel
@@ -546,40 +590,27 @@ class BlenderRenderer:
             raise RendererError(self.name, "first_index", f"a pixel needs sample {int(end.max()) - 1}, past the "
                                 f"{self.pattern_spp} of the run's Cycles pattern (pattern_spp)")
         ks = range(int(first[busy].min()), int(end.max())) if busy.any() else range(0)
-        for k in ks:
-            need = (first <= k) & (k < end)
-            if k in self._cache:
-                need &= ~self._cache[k]["have"]
-            if need.any():
-                self._render_index(k, need)
-        for k in ks:
-            if k not in self._positions:
-                ch = self._sc.render(Path(self._tmp.name) / "probe.exr", offset=k, features=False, scene=self._probe)
-                self._positions[k] = _probe_positions(ch, self._sc.layer.name, self.width, self.height,
-                                                      self.scene_path).reshape(p, 2)
-                self.renders += 1
-        # the reply: pixel by pixel in row order, each pixel's samples in index order
+        # the reply: pixel by pixel in row order, each pixel's samples in index order; for one index k
+        # its rows are those of the pixels that need k, in pixel order
         total = int(n.sum())
         pix = np.repeat(np.arange(p), n)
         kk = first[pix] + np.arange(total) - np.repeat(np.cumsum(n) - n, n)
+        order = np.argsort(kk, kind="stable")
+        bounds = np.searchsorted(kk[order], np.arange(ks.start, ks.stop + 1))
         pos = np.empty((total, 2), np.float32)
         val = np.empty((total, 3), np.float32)
         feats = {f: np.empty((total, BLENDER_FEATURES[f]), np.float32) for f in self.feature_names}
-        order = np.argsort(kk, kind="stable")
-        bounds = np.searchsorted(kk[order], np.arange(ks.start, ks.stop + 1)) if total else []
-        for i, k in enumerate(ks):
+        colour = {}
+        for i, k in enumerate(ks):  # the colour renders first, then the probes: one switch of scene each
             rows = order[bounds[i]:bounds[i + 1]]
-            if not len(rows):
-                continue
-            px, entry = pix[rows], self._cache[k]
-            pos[rows] = self._positions[k][px]
-            val[rows] = entry["values"][px]
+            if len(rows):
+                colour[k] = (rows, self._colour(k, pix[rows], end))
+        for k, (rows, got) in colour.items():
+            pos[rows] = self._film_positions(k, pix[rows])
+            val[rows] = got["values"]
             for f in self.feature_names:
-                feats[f][rows] = entry[f][px]
+                feats[f][rows] = got[f]
         self.samples_delivered += total
-        # a cached index is dropped once every pixel that holds it has been given it
-        for k in [k for k, e in self._cache.items() if not np.any(e["have"] & (end <= k))]:
-            del self._cache[k]
         self.last_render_seconds = time.perf_counter() - t0
         out = {f: (v[:, 0] if v.shape[1] == 1 else v) for f, v in feats.items()}
         return SampleBatch(pos, val, out)
