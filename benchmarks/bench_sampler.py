@@ -69,13 +69,13 @@ def _adaptive_table(scenes, w, h, spp, seeds, methods) -> None:
     from mcrecon.core.samples import SampleSet
 
     print(f"\nadaptive vs uniform, both sobol, {spp} spp, {seeds} seed(s): relMSE ratio adapt / uniform "
-          "(the method reconstructing either), > 1: adaptive loses")
-    print(f"{'scene':<15} " + " ".join(f"{m:>18}" for m in methods))
+          "(the method reconstructing either), > 1: adaptive loses; in brackets adapt's relMSE")
+    print(f"{'scene':<15} " + " ".join(f"{m:>22}" for m in methods))
     for name in scenes:
         ref = reference_image(name, w, h)
         cells = []
         for m in methods:
-            ratios = []
+            ratios, errs = [], []
             for seed in range(seeds):
                 r = SceneRenderer(name, width=w, height=h, seed=seed, sampler="sobol")
                 b = r.render(SampleRequest(w, h, counts=np.full((h, w), spp)))
@@ -83,9 +83,11 @@ def _adaptive_table(scenes, w, h, spp, seeds, methods) -> None:
                                   method=m, reference=ref)
                 res = adapt(SceneRenderer(name, width=w, height=h, seed=seed, sampler="sobol"), m, spp=spp,
                             seed=seed, reference=ref, track_error=False, progress=False)
-                ratios.append(relative_mse(res.image, ref) / relative_mse(uni, ref))
-            cells.append(f"{np.mean(ratios):9.3f}" + (f" ± {np.std(ratios, ddof=1):<6.2g}" if seeds > 1 else " " * 9))
-        print(f"{name:<15} " + " ".join(f"{c:>18}" for c in cells), flush=True)
+                errs.append(relative_mse(res.image, ref))
+                ratios.append(errs[-1] / relative_mse(uni, ref))
+            cells.append(f"{np.mean(ratios):.3g}" + (f" ± {np.std(ratios, ddof=1):.2g}" if seeds > 1 else "")
+                         + f" ({np.mean(errs):.2g})")
+        print(f"{name:<15} " + " ".join(f"{c:>22}" for c in cells), flush=True)
 
 
 def main(argv=None) -> None:
