@@ -17,7 +17,7 @@ import time
 import numpy as np
 import pytest
 
-from helpers import cli_env, run_cli_process
+from helpers import MCRECON, cli_env, run_cli_process
 from mcrecon.cli import main
 from mcrecon.io import read_log
 from mcrecon.renderers import blender as bl
@@ -128,7 +128,7 @@ def test_a_killed_run_resumes_from_its_log(blend, tmp_path):
     log, full = tmp_path / "killed.h5", tmp_path / "full.h5"
     argv = ["--blender", str(blend), "--size", f"{W}x{H}", "--spp", "24", "--method", "box", "--features", "none",
             "--no-pipeline", "--quiet"]
-    proc = subprocess.Popen([sys.executable, "-m", "mcrecon", "adapt", *argv, "--log", str(log), "-o",
+    proc = subprocess.Popen([*MCRECON, "adapt", *argv, "--log", str(log), "-o",
                              str(tmp_path / "k.exr")], env=cli_env(), stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 120
