@@ -5,8 +5,8 @@
  *       --size 64x64 --spp 16 --method gem -o out.exr --log run.h5
  *
  * It reads the request file (root attributes width, height, round, seed, n_total,
- * channels; datasets /counts and/or /positions), renders a procedural image (a
- * bright disc over a gradient, per-sample noise from the request's seed) and
+ * channels; datasets /counts and/or /positions, and /first_index), renders a procedural image (a
+ * bright disc over a gradient, times a per-sample noise factor) and
  * writes the reply, a sample log: /positions (N, 2) float64, /values (N, C)
  * float32 and the three canonical per-sample features of the surface each
  * sample sees (docs/renderer-protocol.md, "Per-sample features"):
@@ -17,6 +17,21 @@
  * a plane (albedo 0.5 grey, normal +z, depth 1 + y / height).  The counted
  * samples come first, pixel by pixel, then one sample per requested position,
  * in request order.
+ *
+ * Sampling: every sample is a point of its pixel's own Owen-scrambled Sobol
+ * sequence over its three dimensions (film x, film y, the noise), exactly the
+ * sampler of mcrecon's built-in scenes (mcrecon/renderers/scenes/sobol.py,
+ * sampler="sobol"; Burley 2020): padded 2-D Sobol pairs (dimensions 0-1, then
+ * 2 with its unused partner), each pair at a hash-shuffled index, each
+ * coordinate nested-uniform scrambled, every seed a hash of (scramble seed,
+ * pixel, dimension).  The request's /first_index (optional; all zeros without
+ * it) says where each pixel's sequence goes on: pixel p's counted samples take
+ * the indices first_index[p], first_index[p] + 1, ..., then its requested
+ * positions the indices after them (their x and y are given; the noise is
+ * dimension 2 of that index).  The scramble seed is the renderer's own and the
+ * same in every round (0; the request's seed changes every round and would
+ * break the sequence): four rounds of 8 samples are sample for sample one
+ * request of 32, and as stratified.
  *
  * It reads string attributes of either HDF5 string type (variable-length UTF-8
  * as mcrecon writes them, or fixed-length ASCII) and integers of any width (HDF5
@@ -41,13 +56,68 @@ static void fail(const char *what) {
 }
 #define CHECK(expr, what) do { if ((expr) < 0) fail(what " failed"); } while (0)
 
-static uint64_t splitmix64(uint64_t *s) {
-    uint64_t z = (*s += 0x9E3779B97F4A7C15ull);
+/* ---------------------------------------------------------------- the per-pixel scrambled Sobol sequence */
+#define SCRAMBLE_SEED 0ull /* the renderer's own, fixed across rounds */
+#define N_DIMS 3           /* film x, film y, noise */
+
+static uint64_t reverse32(uint64_t x) {
+    x &= 0xFFFFFFFFull;
+    x = ((x >> 1) & 0x55555555ull) | ((x & 0x55555555ull) << 1);
+    x = ((x >> 2) & 0x33333333ull) | ((x & 0x33333333ull) << 2);
+    x = ((x >> 4) & 0x0F0F0F0Full) | ((x & 0x0F0F0F0Full) << 4);
+    x = ((x >> 8) & 0x00FF00FFull) | ((x & 0x00FF00FFull) << 8);
+    x = ((x >> 16) & 0x0000FFFFull) | ((x & 0x0000FFFFull) << 16);
+    return x & 0xFFFFFFFFull;
+}
+
+/* Burley's Laine-Karras-style permutation of 32 bits: output bit j depends on input bits <= j only. */
+static uint64_t laine_karras(uint64_t x, uint64_t seed) {
+    const uint64_t m = 0xFFFFFFFFull;
+    x = (x + seed) & m;
+    x ^= (x * 0x6C50B47Cull) & m;
+    x ^= (x * 0xB82F1E52ull) & m;
+    x ^= (x * 0xC7AFE638ull) & m;
+    x ^= (x * 0x8D22F6E6ull) & m;
+    return x;
+}
+
+/* Owen scramble of a 32-bit fraction (bit j from the top flipped by a hash of the bits above it); applied
+ * to an index, it maps every aligned block of 2^k indices onto an aligned block. */
+static uint64_t nested_uniform_scramble(uint64_t x, uint64_t seed) { return reverse32(laine_karras(reverse32(x), seed)); }
+
+/* The first two Sobol dimensions at index i (32-bit fractions): van der Corput and its Pascal partner. */
+static void sobol2(uint64_t i, uint64_t *x, uint64_t *y) {
+    uint64_t v = 0x80000000ull;
+    *x = reverse32(i);
+    *y = 0;
+    for (uint64_t k = i; k; k >>= 1, v ^= v >> 1)
+        if (k & 1) *y ^= v;
+}
+
+static uint64_t mix64(uint64_t z) { /* SplitMix64's finaliser */
     z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
     z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
     return z ^ (z >> 31);
 }
-static double uniform01(uint64_t *s) { return (double)(splitmix64(s) >> 11) * 0x1.0p-53; } /* [0, 1) */
+
+static uint64_t hash_seed(uint64_t pixel, uint64_t key) {
+    uint64_t h = mix64(SCRAMBLE_SEED + 0x9E3779B97F4A7C15ull);
+    h = mix64(h ^ pixel);
+    h = mix64(h ^ key);
+    return h & 0xFFFFFFFFull;
+}
+
+/* Sample `index` of pixel `pixel`: its N_DIMS coordinates in [0, 1). */
+static void sobol_point(uint64_t pixel, uint64_t index, double *out) {
+    const double inv = 1.0 / 4294967296.0;
+    index &= 0xFFFFFFFFull;
+    for (int g = 0; 2 * g < N_DIMS; g++) {
+        uint64_t x, y, d = 2 * (uint64_t)g;
+        sobol2(nested_uniform_scramble(index, hash_seed(pixel, 0x100000000ull + (uint64_t)g)), &x, &y);
+        out[d] = (double)nested_uniform_scramble(x, hash_seed(pixel, d)) * inv;
+        if (d + 1 < N_DIMS) out[d + 1] = (double)nested_uniform_scramble(y, hash_seed(pixel, d + 1)) * inv;
+    }
+}
 
 /* Channel c of the procedural image at film position (x, y), times the sample's noise. */
 static float shade(double x, double y, long long width, long long height, int c, double noise) {
@@ -189,7 +259,7 @@ int main(int argc, char **argv) {
     char **channels = string_attr(f, "channels", &nch);
     if (width < 1 || height < 1 || nch < 1) fail("bad width, height or channels");
 
-    long long *counts = NULL, m = 0, nc = 0;
+    long long *counts = NULL, *first = NULL, m = 0, nc = 0;
     double *req_pos = NULL;
     if (H5Lexists(f, "counts", H5P_DEFAULT) > 0) {
         counts = malloc(sizeof(long long) * (size_t)(width * height));
@@ -197,6 +267,15 @@ int main(int argc, char **argv) {
         CHECK(H5Dread(d, H5T_NATIVE_LLONG, H5S_ALL, H5S_ALL, H5P_DEFAULT, counts), "reading /counts");
         H5Dclose(d);
         for (long long p = 0; p < width * height; p++) nc += counts[p];
+    }
+    first = calloc((size_t)(width * height), sizeof(long long)); /* all zeros without /first_index */
+    if (H5Lexists(f, "first_index", H5P_DEFAULT) > 0) {
+        hid_t d = H5Dopen2(f, "first_index", H5P_DEFAULT);
+        hid_t sp = H5Dget_space(d);
+        if (H5Sget_simple_extent_npoints(sp) != width * height) fail("/first_index is not (height, width)");
+        CHECK(H5Dread(d, H5T_NATIVE_LLONG, H5S_ALL, H5S_ALL, H5P_DEFAULT, first), "reading /first_index");
+        H5Sclose(sp); H5Dclose(d);
+        for (long long p = 0; p < width * height; p++) if (first[p] < 0) fail("/first_index holds a negative index");
     }
     if (H5Lexists(f, "positions", H5P_DEFAULT) > 0) {
         hid_t d = H5Dopen2(f, "positions", H5P_DEFAULT);
@@ -216,21 +295,30 @@ int main(int argc, char **argv) {
     /* Render: counted samples pixel by pixel (row-major), then the requested positions in order. */
     double *pos = malloc(sizeof(double) * 2 * (size_t)(n ? n : 1));
     float *val = malloc(sizeof(float) * nch * (size_t)(n ? n : 1)), *depth = malloc(sizeof(float) * (size_t)(n ? n : 1));
+    double *noise = malloc(sizeof(double) * (size_t)(n ? n : 1));
     float *albedo = malloc(sizeof(float) * 3 * (size_t)(n ? n : 1)), *normal = malloc(sizeof(float) * 3 * (size_t)(n ? n : 1));
-    uint64_t s = seed ^ (0x5851F42D4C957F2Dull * (uint64_t)(round + 1));
+    (void)seed; (void)round; /* the scramble seed is the renderer's own: see the notes at the top */
+    double u[N_DIMS];
     long long k = 0;
     for (long long p = 0; counts && p < width * height; p++)
         for (long long c = 0; c < counts[p]; c++, k++) {
-            pos[2 * k] = coord_in_cell(p % width, uniform01(&s));
-            pos[2 * k + 1] = coord_in_cell(p / width, uniform01(&s));
+            sobol_point((uint64_t)p, (uint64_t)(first[p] + c), u);
+            pos[2 * k] = coord_in_cell(p % width, u[0]);
+            pos[2 * k + 1] = coord_in_cell(p / width, u[1]);
+            noise[k] = 0.5 + u[2];
         }
+    /* a requested position takes the next index of its pixel's sequence, after the counted samples */
+    for (long long p = 0; counts && p < width * height; p++) first[p] += counts[p];
     for (long long i = 0; i < m; i++, k++) {
         pos[2 * k] = req_pos[2 * i];
         pos[2 * k + 1] = req_pos[2 * i + 1];
+        long long px = (long long)floor(pos[2 * k]), py = (long long)floor(pos[2 * k + 1]);
+        if (px < 0 || px >= width || py < 0 || py >= height) fail("a requested position is off the film");
+        sobol_point((uint64_t)(py * width + px), (uint64_t)first[py * width + px]++, u);
+        noise[k] = 0.5 + u[2];
     }
     for (k = 0; k < n; k++) {
-        double noise = 0.5 + uniform01(&s);
-        for (size_t c = 0; c < nch; c++) val[k * nch + c] = shade(pos[2 * k], pos[2 * k + 1], width, height, (int)c, noise);
+        for (size_t c = 0; c < nch; c++) val[k * nch + c] = shade(pos[2 * k], pos[2 * k + 1], width, height, (int)c, noise[k]);
         surface(pos[2 * k], pos[2 * k + 1], width, height, albedo + 3 * k, normal + 3 * k, depth + k);
     }
 
@@ -250,6 +338,6 @@ int main(int argc, char **argv) {
     dataset_write(r, "features/normal", H5T_IEEE_F32LE, H5T_NATIVE_FLOAT, 2, fdims, normal);
     dataset_write(r, "features/depth", H5T_IEEE_F32LE, H5T_NATIVE_FLOAT, 1, ddims, depth);
     CHECK(H5Fclose(r), "closing the reply");
-    free(pos); free(val); free(depth); free(albedo); free(normal); free(counts); free(req_pos);
+    free(pos); free(val); free(depth); free(albedo); free(normal); free(counts); free(req_pos); free(first); free(noise);
     return 0;
 }

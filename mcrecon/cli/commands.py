@@ -190,10 +190,14 @@ def _renderer(args):
     loading the scene, and the spec records it."""
     from ..renderers.spec import renderer_from_spec
 
-    sources = [x for x in (args.scene, args.renderer_cmd, args.mitsuba) if x is not None]
+    sources = [x for x in (args.scene, args.renderer_cmd, args.mitsuba, args.blender) if x is not None]
     if len(sources) != 1:
         raise InputError("adapt", "renderer", "give exactly one of --scene NAME, --renderer-cmd CMD, "
-                         "--mitsuba [SCENE.xml|cornell-box], or --resume LOG")
+                         "--mitsuba [SCENE.xml|cornell-box], --blender SCENE.blend, or --resume LOG")
+    if args.camera is not None and args.blender is None:
+        raise InputError("adapt", "--camera", "chooses the camera of a Blender scene (--blender)")
+    if args.blender is not None:
+        return _blender_renderer(args)
     if args.mitsuba not in (None, "cornell-box") and args.size is None:
         from ..renderers.mitsuba import MitsubaRenderer
 
@@ -202,6 +206,33 @@ def _renderer(args):
     spec = _renderer_spec(args)
     with film_size_flag(args.size):
         return spec, renderer_from_spec(spec)
+
+
+def _blender_renderer(args):
+    """(spec, renderer) of ``--blender SCENE.blend``: the file opened in bpy (its film size unless --size),
+    after every flag is checked."""
+    from ..renderers import blender as bl
+
+    if args.sampler is not None:
+        raise InputError("adapt", "--sampler", "chooses the sampler of a built-in scene (--scene); Cycles "
+                         "continues each pixel's own pattern from the request's first_index")
+    features = "all" if args.features is None else args.features
+    bl.check_blender_features(features)
+    size = None if args.size is None else parse_size(args.size)
+    bl._check_blend(args.blender)
+    renderer = bl.BlenderRenderer(args.blender, width=None if size is None else size[0],
+                                  height=None if size is None else size[1], camera=args.camera, features=features)
+    return renderer.spec(), renderer
+
+
+def _refuse_position_methods(method) -> None:
+    """Cycles renders each pixel's own sample sequence, never a film position of the method's choosing:
+    refuse, before anything is rendered, a method whose adaptive rounds ask for positions."""
+    if method.name in ("gem", "awr") or (method.name == "auto" and getattr(method, "sampling", None) != "uniform"):
+        raise InputError("adapt", "--method", f"{method.name} asks for samples at film positions of its choosing, "
+                         "which Cycles cannot render (it renders each pixel's own sample sequence): with "
+                         "--blender use a method that asks for samples per pixel (box, ci, splat, nfor, "
+                         "auto --sampling uniform)")
 
 
 def _renderer_spec(args) -> dict:
@@ -248,7 +279,8 @@ def _renderer_spec(args) -> dict:
 def _refuse_run_flags(args) -> None:
     """A resumed run keeps its recorded settings: refuse flags that would change them."""
     ignored = [flag for flag, v in (("--scene", args.scene), ("--renderer-cmd", args.renderer_cmd),
-                                    ("--mitsuba", args.mitsuba), ("--features", args.features), ("--sampler", args.sampler), ("--spp", args.spp),
+                                    ("--mitsuba", args.mitsuba), ("--blender", args.blender),
+                                    ("--camera", args.camera), ("--features", args.features), ("--sampler", args.sampler), ("--spp", args.spp),
                                     ("--log", args.log),
                                     ("--reference", args.reference)) if v is not None]
     ignored += [args.method_flags[k] for k in given_method_options(args)]
@@ -342,6 +374,8 @@ def _cmd_adapt(args):
         else:
             ref = reference_from_spec(spec)
         method = make_method(args.method, args, args.method_flags)
+        if args.blender is not None:
+            _refuse_position_methods(method)
         # (a scene's flag, the Mitsuba bridge's names; a command renderer says nothing before its reply)
         sends = bool(getattr(renderer, "features", False))
         jit_notice(method_kernels(method, features=sends)
@@ -466,15 +500,20 @@ def register(sub, command: str | None = None) -> None:
                         "(split like a shell would, never run through one)")
     s.add_argument("--mitsuba", default=None, nargs="?", const="cornell-box", metavar="SCENE.xml",
                    help="Mitsuba 3 bridge (optional extra): a scene file, default the Cornell box")
+    s.add_argument("--blender", default=None, metavar="SCENE.blend",
+                   help="Blender Cycles (optional extra, bpy): a .blend file; each round continues every pixel's "
+                        "own Cycles sample pattern (methods that ask for samples per pixel: box, ci, splat, nfor)")
+    s.add_argument("--camera", default=None, metavar="NAME",
+                   help="with --blender: the camera object to render from (default: the scene's)")
     s.add_argument("--features", default=None, metavar="none|albedo,normal,depth",
-                   help="with --mitsuba: the per-sample features of the primary hit it sends and the log stores "
+                   help="with --mitsuba or --blender: the per-sample features of the primary hit it sends and the log stores "
                         "(default all three; none to switch off); with --scene: all or none (default: the "
                         "scene's, see `mcrecon scenes`)")
     add_sampler_flag(s)
     s.add_argument("--channels", default="R,G,B", help="channel names of an external renderer")
     s.add_argument("--timeout", type=float, default=600.0, help="seconds per round for an external renderer")
     s.add_argument("--size", default=None, help="film size WIDTHxHEIGHT (default 128x128; a --mitsuba scene "
-                                                   "file: its own film's)")
+                                                   "file or a --blender file: its own film's)")
     s.add_argument("--spp", type=float, default=None, help="sample budget, average samples per pixel")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--log", default=None, help="sample log to write (commits every round)")

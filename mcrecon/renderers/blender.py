@@ -198,14 +198,26 @@ class _Scene:
                 "seed": int(cy.seed), "sampling_pattern": str(cy.sampling_pattern), "max_bounces": int(cy.max_bounces),
                 "film_exposure": float(cy.film_exposure), **LINEAR_SETTINGS}
 
-    def render(self, out: Path, *, offset: int | None, features: bool) -> dict:
-        """Render to ``out`` (sample ``offset`` alone, or all N samples with None); its channels."""
-        sc, cy = self.scene, self.scene.cycles
+    def render(self, out: Path, *, offset: int | None, features: bool, region=None, scene=None) -> dict:
+        """Render to ``out`` (sample ``offset`` alone, or all N samples with None); its channels.
+
+        ``region`` ``(x0, x1, y0, y1)``: only the pixels of columns ``[x0, x1)`` and rows ``[y0, y1)``
+        from the top (Cycles' render border, not cropped: the image keeps the film's size and the pixels
+        outside are not rendered); ``scene``: another bpy scene of the file to render (the probe's)."""
+        sc = self.scene if scene is None else scene
+        cy, r = sc.cycles, sc.render
         cy.use_sample_subset = offset is not None
         if offset is not None:
             cy.sample_offset, cy.sample_subset_length = int(offset), 1
-        self.layer.cycles.denoising_store_passes = bool(features)
-        sc.render.filepath = str(out)
+        (self.layer if scene is None else sc.view_layers[self.layer.name]).cycles.denoising_store_passes = bool(features)
+        r.use_border = region is not None
+        if region is not None:
+            x0, x1, y0, y1 = region
+            r.use_crop_to_border = False
+            # the border in film fractions from the bottom left; whole pixels map to whole pixels
+            r.border_min_x, r.border_max_x = x0 / self.width, x1 / self.width
+            r.border_min_y, r.border_max_y = 1.0 - y1 / self.height, 1.0 - y0 / self.height
+        r.filepath = str(out)
         with _quiet() as tail:
             try:
                 self.bpy.ops.render.render(write_still=True, scene=sc.name)
@@ -214,6 +226,41 @@ class _Scene:
         if not out.is_file():
             raise RendererError("blender", "render", f"Cycles wrote no image for {self.path}")
         return _read_channels(out)
+
+    def probe_scene(self):
+        """A second scene of the file that is the film-position probe of this one (see :meth:`probe`):
+        a copy of its settings (seed, sampling pattern, samples, film) with nothing in it but a copy of
+        the camera without depth of field, and a world emitting the window coordinate.  The scene
+        itself stays as it is, so colour and probe renders can alternate."""
+        bpy, sc = self.bpy, self.scene
+        pr = sc.copy()
+        pr.name = "mcrecon_film_position_probe"
+        for child in list(pr.collection.children):
+            pr.collection.children.unlink(child)
+        for obj in list(pr.collection.objects):
+            pr.collection.objects.unlink(obj)
+        cam = sc.camera.copy()
+        cam.data = sc.camera.data.copy()
+        cam.data.dof.use_dof = False
+        cam.animation_data_clear()
+        pr.collection.objects.link(cam)
+        pr.camera = cam
+        pr.render.use_motion_blur = False
+        pr.cycles.film_exposure = 1.0
+        pr.world = self._probe_world()
+        return pr
+
+    def _probe_world(self):
+        w = self.bpy.data.worlds.new("mcrecon_film_position_probe")
+        w.use_nodes = True
+        nt = w.node_tree
+        bg = nt.nodes["Background"]
+        tc = nt.nodes.new("ShaderNodeTexCoord")
+        nt.links.new(tc.outputs["Window"], bg.inputs["Color"])
+        bg.inputs["Strength"].default_value = 1.0
+        with contextlib.suppress(AttributeError):
+            w.cycles.sampling_method = "NONE"  # no importance map of a world no light path samples
+        return w
 
     def probe(self):
         """Turn the scene into the film-position probe: every object hidden but the camera, a world
@@ -226,16 +273,7 @@ class _Scene:
         sc.camera.data.dof.use_dof = False
         sc.render.use_motion_blur = False
         sc.cycles.film_exposure = 1.0
-        w = bpy.data.worlds.new("mcrecon_film_position_probe")
-        w.use_nodes = True
-        nt = w.node_tree
-        bg = nt.nodes["Background"]
-        tc = nt.nodes.new("ShaderNodeTexCoord")
-        nt.links.new(tc.outputs["Window"], bg.inputs["Color"])
-        bg.inputs["Strength"].default_value = 1.0
-        with contextlib.suppress(AttributeError):
-            w.cycles.sampling_method = "NONE"  # no importance map of a world no light path samples
-        sc.world = w
+        sc.world = self._probe_world()
 
 
 def _read_channels(path: Path) -> dict:
@@ -385,3 +423,194 @@ def dump_cycles_log(path, scene, *, spp: int, size=None, camera: str | None = No
                 else:
                     append_log(out, pos, val, round_index=k, features=fk)
     return path
+
+
+#: Cycles' ``samples`` of an adaptive run: the length of every pixel's pattern, fixed for the whole run
+#: (sample k of a pattern depends on it) and the highest sample index + 1 any pixel can reach.  A prefix
+#: of a long pattern is as stratified as a short pattern (measured in ``docs/blender.md``), and a render
+#: costs the same whatever it is.
+PATTERN_SPP = 65536
+
+#: The most memory the film positions of probe renders kept for later rounds take.
+PROBE_CACHE_BYTES = 256 << 20
+
+
+class BlenderRenderer:
+    """A ``.blend`` scene as an in-process renderer of adaptive runs (``mcrecon adapt --blender``).
+
+    A request's pixel p gets Cycles' samples ``first_index[p] .. first_index[p] + counts[p] - 1`` of
+    its own pattern, so the rounds of a run continue each pixel's stratified sequence.  Per sample
+    index k, one render with a sample subset of length one covers the bounding box of the pixels
+    that still lack sample k (Cycles' render border); what it renders beyond the request for pixels
+    of the box that reach index k only in a later round is kept for them, and the rest is waste:
+    :attr:`samples_rendered` against :attr:`samples_delivered`.  Film positions come from probe
+    renders of a second scene of the file (:meth:`_Scene.probe_scene`), one per sample index, kept
+    up to :data:`PROBE_CACHE_BYTES`.
+
+    Cycles cannot evaluate film positions of the caller's choosing: a request with ``positions``
+    (gem, awr, auto's adaptive rounds) is refused with a :class:`~mcrecon.errors.RendererError`.
+
+    Parameters
+    ----------
+    scene : path-like
+        The ``.blend`` file.
+    width, height : int, optional
+        Film size, both or neither; default the file's.
+    camera : str, optional
+        A camera object of the scene; default its active camera.
+    features : "all", "none", str or sequence of str
+        Which of :data:`BLENDER_FEATURES` each reply carries (default all).
+    threads : int, optional
+        Cycles' render threads; default every core.
+    pattern_spp : int
+        Cycles' ``samples`` (:data:`PATTERN_SPP`), recorded in the spec.
+    """
+
+    channels = ("R", "G", "B")
+
+    def __init__(self, scene, *, width: int | None = None, height: int | None = None, camera: str | None = None,
+                 features="all", threads: int | None = None, pattern_spp: int = PATTERN_SPP):
+        names = check_blender_features(features, where="BlenderRenderer")
+        if (width is None) != (height is None):
+            raise InputError("BlenderRenderer", "width/height", "give both or neither")
+        self._sc = open_blend(scene, spp=pattern_spp, size=None if width is None else (width, height),
+                              camera=camera, threads=threads)
+        self.width, self.height = self._sc.width, self._sc.height
+        self.scene_path = os.path.abspath(scene)
+        self.camera, self.threads, self.pattern_spp = self._sc.scene.camera.name, threads, int(pattern_spp)
+        self.feature_names = names
+        self.features = bool(names)
+        self.name = f"blender:{Path(scene).name}"
+        self._probe = self._sc.probe_scene()
+        self._tmp = tempfile.TemporaryDirectory(prefix="mcrecon_cycles_")
+        self._cache: dict[int, dict] = {}   # sample index -> pixels waiting for it, their values and features
+        self._positions: dict[int, np.ndarray] = {}  # sample index -> (P, 2) film positions
+        self.last_render_seconds = 0.0
+        self.renders = 0
+        self.samples_rendered = 0
+        self.samples_delivered = 0
+
+    def spec(self) -> dict:
+        """The renderer spec that builds this renderer again (``resume`` re-opens the same file)."""
+        from .spec_format import blender_spec
+
+        return blender_spec(self.scene_path, width=self.width, height=self.height, camera=self.camera,
+                            features=",".join(self.feature_names) or "none", threads=self.threads,
+                            pattern_spp=self.pattern_spp)
+
+    def _render_box(self, k: int, pixels: np.ndarray, *, probe: bool):
+        """Render sample ``k`` (or its probe) over the bounding box of ``pixels`` (flat indices): the box's
+        flat pixel indices and the full-film channels."""
+        w, h = self.width, self.height
+        rows, cols = pixels // w, pixels % w
+        y0, y1, x0, x1 = int(rows.min()), int(rows.max()) + 1, int(cols.min()), int(cols.max()) + 1
+        region = None if (x0, y0, x1, y1) == (0, 0, w, h) else (x0, x1, y0, y1)
+        out = Path(self._tmp.name) / ("probe.exr" if probe else "colour.exr")
+        ch = self._sc.render(out, offset=k, features=self.features and not probe, region=region,
+                             scene=self._probe if probe else None)
+        self.renders += 1
+        box = (np.arange(y0, y1)[:, None] * w + np.arange(x0, x1)[None, :]).ravel()
+        return box, ch
+
+    def _colour(self, k: int, need: np.ndarray, end: np.ndarray) -> dict:
+        """Sample ``k`` of the pixels ``need`` (ascending flat indices): values and features, from the
+        samples kept from earlier renders, the rest rendered; what the render gives beyond ``need`` to
+        pixels that reach index k only later (``end <= k``) is kept for them."""
+        names, layer = ("values",) + self.feature_names, self._sc.layer.name
+        got = {f: np.empty((len(need), 3 if f == "values" else BLENDER_FEATURES[f]), np.float32) for f in names}
+        kept = self._cache.pop(k, None)
+        hit = np.zeros(len(need), bool)
+        if kept is not None:
+            at = np.clip(np.searchsorted(kept["pixels"], need), 0, len(kept["pixels"]) - 1)
+            hit = kept["pixels"][at] == need
+            for f in names:
+                got[f][hit] = kept[f][at[hit]]
+            later = end[kept["pixels"]] <= k  # kept pixels that still wait for index k
+            kept = {f: v[later] for f, v in kept.items()}
+        if not hit.all():
+            box, ch = self._render_box(k, need[~hit], probe=False)
+            self.samples_rendered += len(box)
+            full = {"values": _pass(ch, layer, "Combined", "RGB", self.scene_path).reshape(-1, 3)}
+            for f in self.feature_names:
+                full[f] = _pass(ch, layer, *_FEATURE_PASSES[f], self.scene_path).reshape(len(full["values"]), -1)
+            for f in names:
+                got[f][~hit] = full[f][need[~hit]]
+            extra = box[end[box] <= k]
+            if kept is not None:
+                extra = np.setdiff1d(extra, kept["pixels"])
+            if len(extra):
+                new = {"pixels": extra, **{f: full[f][extra] for f in names}}
+                if kept is not None:
+                    order = np.argsort(np.concatenate([kept["pixels"], extra]))
+                    new = {f: np.concatenate([kept[f], new[f]])[order] for f in new}
+                kept = new
+        if kept is not None and len(kept["pixels"]):
+            self._cache[k] = kept
+        return got
+
+    def _film_positions(self, k: int, need: np.ndarray) -> np.ndarray:
+        """Film positions (len(need), 2) of sample ``k`` of the pixels ``need``: a full-film probe render,
+        kept while the kept probes stay under :data:`PROBE_CACHE_BYTES` (the lowest indices go first:
+        ``first_index`` only grows)."""
+        pos = self._positions.get(k)
+        if pos is None:
+            p = self.width * self.height
+            _, ch = self._render_box(k, np.array([0, p - 1]), probe=True)
+            pos = _probe_positions(ch, self._sc.layer.name, self.width, self.height, self.scene_path).reshape(p, 2)
+            while self._positions and (len(self._positions) + 1) * pos.nbytes > PROBE_CACHE_BYTES:
+                del self._positions[min(self._positions)]
+            self._positions[k] = pos
+        return pos[need]
+
+    def render(self, request):
+        """Cycles' samples for a request's counts (see the class notes); a reply in row-major pixel
+        order, each pixel's samples in index order."""
+        import time
+
+        from ..core.requests import SampleBatch, SampleRequest
+
+        if not isinstance(request, SampleRequest):
+            raise InputError(self.name, "request", f"got {type(request).__name__}, expected a SampleRequest")
+        if (request.width, request.height) != (self.width, self.height):
+            raise InputError(self.name, "request width/height", f"{request.width}x{request.height}, expected "
+                             f"{self.width}x{self.height}")
+        if request.positions is not None and len(request.positions):
+            raise RendererError(self.name, "positions", "Cycles renders each pixel's own sample sequence and cannot "
+                                "evaluate film positions chosen by the method: use a method that asks for "
+                                "samples per pixel (box, ci, splat, nfor, auto --sampling uniform)")
+        t0 = time.perf_counter()
+        p = self.width * self.height
+        n = (np.zeros(p, np.int64) if request.counts is None
+             else np.ascontiguousarray(request.counts, np.int64).ravel())
+        first = (np.zeros(p, np.int64) if request.first_index is None
+                 else np.ascontiguousarray(request.first_index, np.int64).ravel())
+        end = first + n
+        busy = n > 0
+        if busy.any() and int(end.max()) > self.pattern_spp:
+            raise RendererError(self.name, "first_index", f"a pixel needs sample {int(end.max()) - 1}, past the "
+                                f"{self.pattern_spp} of the run's Cycles pattern (pattern_spp)")
+        ks = range(int(first[busy].min()), int(end.max())) if busy.any() else range(0)
+        # the reply: pixel by pixel in row order, each pixel's samples in index order; for one index k
+        # its rows are those of the pixels that need k, in pixel order
+        total = int(n.sum())
+        pix = np.repeat(np.arange(p), n)
+        kk = first[pix] + np.arange(total) - np.repeat(np.cumsum(n) - n, n)
+        order = np.argsort(kk, kind="stable")
+        bounds = np.searchsorted(kk[order], np.arange(ks.start, ks.stop + 1))
+        pos = np.empty((total, 2), np.float32)
+        val = np.empty((total, 3), np.float32)
+        feats = {f: np.empty((total, BLENDER_FEATURES[f]), np.float32) for f in self.feature_names}
+        colour = {}
+        for i, k in enumerate(ks):  # the colour renders first, then the probes: one switch of scene each
+            rows = order[bounds[i]:bounds[i + 1]]
+            if len(rows):
+                colour[k] = (rows, self._colour(k, pix[rows], end))
+        for k, (rows, got) in colour.items():
+            pos[rows] = self._film_positions(k, pix[rows])
+            val[rows] = got["values"]
+            for f in self.feature_names:
+                feats[f][rows] = got[f]
+        self.samples_delivered += total
+        self.last_render_seconds = time.perf_counter() - t0
+        out = {f: (v[:, 0] if v.shape[1] == 1 else v) for f, v in feats.items()}
+        return SampleBatch(pos, val, out)

@@ -3,7 +3,7 @@
 An adaptive run records the spec of its renderer in its log
 (``adapt(..., renderer_spec=spec)``), so that :func:`mcrecon.adaptive.run.resume`
 and ``mcrecon adapt --resume LOG`` can rebuild the renderer and go on
-without being told what it was.  Three kinds exist::
+without being told what it was.  Four kinds exist::
 
     {"kind": "scene",   "scene": NAME, "width": W, "height": H, "seed": S,
                         "features": true | false (optional; absent: the scene's default),
@@ -14,6 +14,8 @@ without being told what it was.  Three kinds exist::
                         "cwd": DIR or None}
     {"kind": "mitsuba", "scene": XML or None (the Cornell box), "width": W, "height": H,
                         "features": "albedo,normal,depth" | "none" | ... (default all)}
+    {"kind": "blender", "scene": .blend (absolute), "width": W, "height": H, "camera": NAME or None,
+                        "features": as mitsuba, "threads": N or None, "pattern_spp": N}
 
 :func:`scene_spec`, :func:`command_spec` and :func:`mitsuba_spec` write
 one; :func:`check_spec` validates one (a spec read back from a log is
@@ -62,6 +64,11 @@ def renderer_from_spec(spec, *, where: str = "renderer spec", field: str = "rend
                              "with resume(log, CommandRenderer(..., cwd=DIR))")
         return CommandRenderer(spec["argv"], width=w, height=h, channels=tuple(spec["channels"]),
                                timeout=spec["timeout"], workdir=spec["workdir"], cwd=spec["cwd"])
+    if kind == "blender":
+        from .blender import BlenderRenderer
+
+        return BlenderRenderer(spec["scene"], width=w, height=h, camera=spec["camera"], features=spec["features"],
+                               threads=spec["threads"], pattern_spp=spec["pattern_spp"])
     from .mitsuba import MitsubaRenderer
 
     return MitsubaRenderer(spec["scene"], width=w, height=h, features=spec["features"])

@@ -16,7 +16,7 @@ from typing import Any, Mapping, Sequence
 from ..errors import InputError
 
 __all__ = ["KINDS", "MITSUBA_FEATURES", "check_mitsuba_features", "scene_spec", "command_spec", "mitsuba_spec",
-           "check_spec"]
+           "blender_spec", "check_spec"]
 
 #: The per-sample features the Mitsuba bridge can write, and their components
 #: (``features="all"``, its default, is all of them).
@@ -32,6 +32,7 @@ KINDS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "scene": (("scene", "width", "height"), ("seed", "features", "sampler", "params")),
     "command": (("argv", "width", "height"), ("channels", "timeout", "workdir", "cwd")),
     "mitsuba": (("width", "height"), ("scene", "features")),
+    "blender": (("scene", "width", "height"), ("camera", "features", "threads", "pattern_spp")),
 }
 
 
@@ -76,6 +77,16 @@ def mitsuba_spec(scene=None, *, width: int, height: int, features="all") -> dict
     names = check_mitsuba_features(features, where="mitsuba_spec")
     return check_spec({"kind": "mitsuba", "scene": None if scene is None else os.path.abspath(scene),
                        "width": width, "height": height, "features": ",".join(names) or "none"})
+
+
+def blender_spec(scene, *, width: int, height: int, camera: str | None = None, features="all",
+                 threads: int | None = None, pattern_spp: int = 65536) -> dict:
+    """The spec of a Blender ``.blend`` scene (:class:`~mcrecon.renderers.blender.BlenderRenderer`), its
+    path recorded absolute; ``pattern_spp`` is the Cycles pattern length every round continues."""
+    names = check_mitsuba_features(features, where="blender_spec")  # the same three names
+    return check_spec({"kind": "blender", "scene": os.path.abspath(scene), "width": width, "height": height,
+                       "camera": camera, "features": ",".join(names) or "none", "threads": threads,
+                       "pattern_spp": pattern_spp})
 
 
 # ---------------------------------------------------------------- checking
@@ -173,6 +184,14 @@ def check_spec(spec: Any, *, where: str = "renderer spec", field: str = "rendere
         out["cwd"] = cwd = text_or_none("cwd")   # None (a spec without it): the current directory
         if cwd is not None and not os.path.isabs(cwd):
             raise bad("cwd", "an absolute directory (the one the run's command ran in) or null")
+    elif kind == "blender":
+        if not isinstance(spec["scene"], str) or not os.path.isabs(spec["scene"]):
+            raise bad("scene", "the absolute path of a .blend file")
+        out["scene"] = spec["scene"]
+        out["camera"] = text_or_none("camera")
+        out["features"] = ",".join(check_mitsuba_features(spec.get("features", "all"), where=where)) or "none"
+        out["threads"] = integer("threads", 1) if spec.get("threads") is not None else None
+        out["pattern_spp"] = integer("pattern_spp", 1) if "pattern_spp" in spec else 65536
     else:
         out["scene"] = text_or_none("scene")
         # a spec written before features existed rendered none: resume it without them
