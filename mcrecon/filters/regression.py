@@ -37,6 +37,8 @@ __all__ = ["RIDGE", "collaborative_regression", "standardise"]
 
 #: Default ridge on the non-constant columns, relative to the window's total weight.
 RIDGE = 1e-10
+#: Bands per thread whose accumulators :func:`collaborative_regression` holds at once.
+BANDS_PER_THREAD = 4
 #: Floats added to each offset's row of weights in :func:`_band` (one cache line: see there).
 WEIGHT_PAD = 16
 
@@ -301,27 +303,32 @@ def _predict(xt, beta, yp, d, n):
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _regression_kernel(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, leverage, band, accs):
+def _regression_kernel(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, leverage, band, b0, accs):
+    """Bands b0 .. b0 + len(accs) - 1 (those inside the image), band b0 + k into accs[k] (zeroed here)."""
     h = guide.shape[1]
-    n_bands = (h + band - 1) // band
-    for b in numba.prange(n_bands):
-        i0 = b * band
+    n_bands = min((h + band - 1) // band - b0, accs.shape[0])
+    for k in numba.prange(n_bands):
+        i0 = (b0 + k) * band
+        acc = accs[k]
+        acc[:] = 0.0
         _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, leverage, i0, min(h, i0 + band),
-              accs[b])
+              acc)
 
 
 @numba.njit(cache=True, nogil=True)
-def _gather(accs, r, band, out):
-    """Sum the bands' private accumulators into out (C + 1, H, W) (serial: bands overlap by 2r rows)."""
+def _gather(accs, r, band, b0, out):
+    """Add bands b0, b0 + 1, ... (accs[k]: band b0 + k) to out (C + 1, H, W), in band order, serially (bands
+    overlap by 2r rows): each pixel's sum is the same whichever bands are held at once."""
     h = out.shape[1]
-    for b in range(accs.shape[0]):
-        top = b * band - r
+    n_bands = min((h + band - 1) // band - b0, accs.shape[0])
+    for k in range(n_bands):
+        top = (b0 + k) * band - r
         for t in range(accs.shape[2]):
             i = top + t
             if 0 <= i < h:
                 for c in range(out.shape[0]):
                     for j in range(out.shape[2]):
-                        out[c, i, j] += accs[b, c, t, j + r]
+                        out[c, i, j] += accs[k, c, t, j + r]
 
 
 def standardise(features) -> np.ndarray:
@@ -392,14 +399,18 @@ def collaborative_regression(image, guide, variance, features, *, radius: int = 
     r = int(radius)
     n_bands = (h + BAND - 1) // BAND
     planes = nc + 1 + bool(return_centre_weight)
-    accs = np.zeros((n_bands, planes, BAND + 2 * r, w + 2 * r))
     pad = ((0, 0), (r, r), (r, r))
-    with numba_threads(threads):
-        _regression_kernel(np.pad(y, pad), g, v, np.pad(fp, pad), r, int(patch), np.float32(float(k) ** 2),
-                           float(ridge), np.float32(NLM_EPS), np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT,
-                           bool(return_centre_weight), BAND, accs)
+    ypad, fpad = np.pad(y, pad), np.pad(fp, pad)
     out = np.zeros((planes, h, w))
-    _gather(accs, r, BAND, out)
+    with numba_threads(threads) as nt:
+        # BANDS_PER_THREAD bands per thread at a time: the bands' private accumulators (each 1 + 2r / BAND
+        # times its rows) are a few megabytes whatever the image, not twice the output
+        accs = np.empty((min(n_bands, BANDS_PER_THREAD * nt), planes, BAND + 2 * r, w + 2 * r))
+        for b0 in range(0, n_bands, accs.shape[0]):
+            _regression_kernel(ypad, g, v, fpad, r, int(patch), np.float32(float(k) ** 2), float(ridge),
+                               np.float32(NLM_EPS), np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT,
+                               bool(return_centre_weight), BAND, b0, accs)
+            _gather(accs, r, BAND, b0, out)
     res = np.moveaxis(out[:nc] / out[nc], 0, 2)
     extra = ((out[nc],) if return_weights else ()) + ((out[nc + 1] / out[nc],) if return_centre_weight else ())
     return (res,) + extra if extra else res
