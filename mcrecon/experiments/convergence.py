@@ -226,6 +226,7 @@ def run_convergence(scene: str = "soft_shadow", *, methods: Sequence[str] | None
         that is removed on success and on failure.
     """
     from ..adaptive.run import adapt
+    from ..io.logformat import cast_positions
     from ..renderers.scenes import SceneRenderer, get_scene, reference_image, render_uniform
 
     sc = get_scene(scene)
@@ -278,8 +279,11 @@ def run_convergence(scene: str = "soft_shadow", *, methods: Sequence[str] | None
                 t0 = time.perf_counter()
                 batch = render_uniform(sc, width=w, height=h, spp=s, seed=seed, features=features)
                 t_render = time.perf_counter() - t0
-                log = write_log(tmpdir / f"u{s}.h5", batch.positions, batch.values, width=w, height=h,
-                                channels=sc.channels, features=batch.features or None, reference=ref)
+                # float32, as render-log writes the scene (the images are those of its log)
+                f32 = {k: np.asarray(v, np.float32) for k, v in batch.features.items()} if batch.features else None
+                log = write_log(tmpdir / f"u{s}.h5", cast_positions(batch.positions, np.float32),
+                                np.asarray(batch.values, np.float32), width=w, height=h, channels=sc.channels,
+                                features=f32, reference=ref)
                 box_img = None
                 for name in methods:
                     m = get_method(name)

@@ -37,6 +37,10 @@ __all__ = ["RIDGE", "collaborative_regression", "standardise"]
 
 #: Default ridge on the non-constant columns, relative to the window's total weight.
 RIDGE = 1e-10
+#: Bands per thread whose accumulators :func:`collaborative_regression` holds at once.
+BANDS_PER_THREAD = 4
+#: Floats added to each offset's row of weights in :func:`_band` (one cache line: see there).
+WEIGHT_PAD = 16
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -98,7 +102,10 @@ def _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, lever
     side = 2 * r + 1
     cg = guide.shape[0]
     # 1. the weights of every offset for the band's pixels (0 where q is outside the image)
-    wts = np.zeros((side * side, n_rows, w), np.float32)
+    # one row of ``wts`` per offset, pixel (rr, j) at rr * w + j; rows WEIGHT_PAD floats longer than the band
+    # so that consecutive offsets do not share cache sets (a band of 16 rows of a width multiple of 64 makes
+    # the plain stride a multiple of 4 KiB: each pixel's 361 weights would all map to one L1 set)
+    wts = np.zeros((side * side, n_rows * w + WEIGHT_PAD), np.float32)
     pd = np.zeros((cg, n_rows + 2 * f, w + 2 * f), np.float32)
     vs = np.zeros(w + 2 * f)
     hs = np.zeros(w + 2 * f)
@@ -118,7 +125,7 @@ def _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, lever
                 qi = i0 + rr + dy
                 if qi < 0 or qi >= h:
                     continue
-                dst = wts[o, rr, j0:j1]
+                dst = wts[o, rr * w + j0:rr * w + j1]
                 dmax[:j1 - j0] = dist[0, rr, j0:j1]
                 for ch in range(1, cg):  # the largest channel distance (slices: vectorised, see offset_distances)
                     dc = dist[ch, rr, j0:j1]
@@ -137,7 +144,7 @@ def _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, lever
     wv = np.zeros(n)
     a = np.zeros((de, de))
     bm = np.zeros((d, nc))
-    zt = np.zeros((de, n)) if leverage else np.zeros((0, n))
+    zt = np.zeros((de, LEVERAGE_BLOCK)) if leverage else np.zeros((0, LEVERAGE_BLOCK))
     lev = np.zeros(n) if leverage else np.zeros(0)
     inv_r = 1.0 / max(r, 1)
     for dy in range(-r, r + 1):  # the pixel-offset columns are the same for every window
@@ -150,7 +157,7 @@ def _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, lever
         i = i0 + rr
         for j in range(w):
             for t in range(n):
-                wv[t] = float(wts[t, rr, j])
+                wv[t] = float(wts[t, rr * w + j])
             for m in range(nf):
                 fc = fpad[m, i + r, j + r]
                 xm = xt[3 + m]
@@ -237,29 +244,40 @@ def _normal_equations(xt, wx, wv, yt, a, bm, d, de, n):
                 bm[p + 1, c] = s1
 
 
+#: Window positions per block of :func:`_leverages`: its scratch (d x this many float64) stays in L1.
+LEVERAGE_BLOCK = 48
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
 def _leverages(chol, xt, zt, lev, d, n):
     """lev[t] = x_t^T A^-1 x_t over the window, from the Cholesky factor L of A (lower triangle of ``chol``):
-    z = L^-1 x_t by forward substitution, for every t at once (loops along the window), lev = |z|^2.
+    z = L^-1 x_t by forward substitution, for a block of t at once (loops along the block), lev = |z|^2.
 
     The prediction of pixel t by this window moves by ``w_t lev[t]`` per unit of y_t (d beta = A^-1 x_t
     w_t dy_t), so summed over the windows covering a pixel, weighted as the collaborative average weighs
-    them, it is the filter's derivative at the pixel itself: Stein's estimate needs nothing else."""
-    for t in range(n):
-        lev[t] = 0.0
-    for i in range(d):
-        zi, xi = zt[i], xt[i]
-        for t in range(n):
-            zi[t] = xi[t]
-        for k in range(i):
-            lik = chol[i, k]
-            zk = zt[k]
-            for t in range(n):
-                zi[t] -= lik * zk[t]
-        inv = 1.0 / chol[i, i]
-        for t in range(n):
-            zi[t] *= inv
-            lev[t] += zi[t] * zi[t]
+    them, it is the filter's derivative at the pixel itself: Stein's estimate needs nothing else.
+    Blocks of :data:`LEVERAGE_BLOCK` positions keep the scratch ``zt`` (d, block) in L1 (the whole
+    window's would not be, and the pass would wait on memory); each lev[t] is the same arithmetic in the
+    same order whatever the block."""
+    nb = zt.shape[1]
+    for t0 in range(0, n, nb):
+        m = min(nb, n - t0)
+        lv = lev[t0:t0 + m]
+        for t in range(m):
+            lv[t] = 0.0
+        for i in range(d):
+            zi, xi = zt[i, :m], xt[i, t0:t0 + m]
+            for t in range(m):
+                zi[t] = xi[t]
+            for k in range(i):
+                lik = chol[i, k]
+                zk = zt[k, :m]
+                for t in range(m):
+                    zi[t] -= lik * zk[t]
+            inv = 1.0 / chol[i, i]
+            for t in range(m):
+                zi[t] *= inv
+                lv[t] += zi[t] * zi[t]
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
@@ -285,27 +303,32 @@ def _predict(xt, beta, yp, d, n):
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _regression_kernel(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, leverage, band, accs):
+def _regression_kernel(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, leverage, band, b0, accs):
+    """Bands b0 .. b0 + len(accs) - 1 (those inside the image), band b0 + k into accs[k] (zeroed here)."""
     h = guide.shape[1]
-    n_bands = (h + band - 1) // band
-    for b in numba.prange(n_bands):
-        i0 = b * band
+    n_bands = min((h + band - 1) // band - b0, accs.shape[0])
+    for k in numba.prange(n_bands):
+        i0 = (b0 + k) * band
+        acc = accs[k]
+        acc[:] = 0.0
         _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, leverage, i0, min(h, i0 + band),
-              accs[b])
+              acc)
 
 
 @numba.njit(cache=True, nogil=True)
-def _gather(accs, r, band, out):
-    """Sum the bands' private accumulators into out (C + 1, H, W) (serial: bands overlap by 2r rows)."""
+def _gather(accs, r, band, b0, out):
+    """Add bands b0, b0 + 1, ... (accs[k]: band b0 + k) to out (C + 1, H, W), in band order, serially (bands
+    overlap by 2r rows): each pixel's sum is the same whichever bands are held at once."""
     h = out.shape[1]
-    for b in range(accs.shape[0]):
-        top = b * band - r
+    n_bands = min((h + band - 1) // band - b0, accs.shape[0])
+    for k in range(n_bands):
+        top = (b0 + k) * band - r
         for t in range(accs.shape[2]):
             i = top + t
             if 0 <= i < h:
                 for c in range(out.shape[0]):
                     for j in range(out.shape[2]):
-                        out[c, i, j] += accs[b, c, t, j + r]
+                        out[c, i, j] += accs[k, c, t, j + r]
 
 
 def standardise(features) -> np.ndarray:
@@ -376,14 +399,18 @@ def collaborative_regression(image, guide, variance, features, *, radius: int = 
     r = int(radius)
     n_bands = (h + BAND - 1) // BAND
     planes = nc + 1 + bool(return_centre_weight)
-    accs = np.zeros((n_bands, planes, BAND + 2 * r, w + 2 * r))
     pad = ((0, 0), (r, r), (r, r))
-    with numba_threads(threads):
-        _regression_kernel(np.pad(y, pad), g, v, np.pad(fp, pad), r, int(patch), np.float32(float(k) ** 2),
-                           float(ridge), np.float32(NLM_EPS), np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT,
-                           bool(return_centre_weight), BAND, accs)
+    ypad, fpad = np.pad(y, pad), np.pad(fp, pad)
     out = np.zeros((planes, h, w))
-    _gather(accs, r, BAND, out)
+    with numba_threads(threads) as nt:
+        # BANDS_PER_THREAD bands per thread at a time: the bands' private accumulators (each 1 + 2r / BAND
+        # times its rows) are a few megabytes whatever the image, not twice the output
+        accs = np.empty((min(n_bands, BANDS_PER_THREAD * nt), planes, BAND + 2 * r, w + 2 * r))
+        for b0 in range(0, n_bands, accs.shape[0]):
+            _regression_kernel(ypad, g, v, fpad, r, int(patch), np.float32(float(k) ** 2), float(ridge),
+                               np.float32(NLM_EPS), np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT,
+                               bool(return_centre_weight), BAND, b0, accs)
+            _gather(accs, r, BAND, b0, out)
     res = np.moveaxis(out[:nc] / out[nc], 0, 2)
     extra = ((out[nc],) if return_weights else ()) + ((out[nc + 1] / out[nc],) if return_centre_weight else ())
     return (res,) + extra if extra else res

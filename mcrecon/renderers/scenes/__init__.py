@@ -438,5 +438,8 @@ def write_scene_log(scene, path, *, width: int = 128, height: int = 128, spp: in
         meta["settings"]["sampler"] = sampler
     if sc.params:
         meta["params"] = dict(sc.params)
-    return write_log(path, batch.positions, batch.values, width=width, height=height,
-                     channels=sc.channels, features=batch.features or None, reference=ref, metadata=meta)
+    # float32 like the renderer bridges write (half the bytes of float64; positions stay in their pixel)
+    from ...io.logformat import cast_positions
+    f32 = {k: np.asarray(v, np.float32) for k, v in batch.features.items()} if batch.features else None
+    return write_log(path, cast_positions(batch.positions, np.float32), np.asarray(batch.values, np.float32),
+                     width=width, height=height, channels=sc.channels, features=f32, reference=ref, metadata=meta)
