@@ -20,11 +20,13 @@ every filter the same samples with the rare bright parts moved:
   share is added to every one of its samples, so the cleaned samples'
   pixel means are the base's plus the spread excess, and their sum over
   the image is the raw pixel means' sum to round-off.
-* **Halves**: the cleaned samples keep their positions and order, so
-  :func:`mcrecon.core.halves.split_halves` deals them into the same two
-  halves as the raw ones (:meth:`CleanedSamples.halves`); each half's mean
-  moves by its pixel's excess and its spread (``m2``) is that of the base
-  samples.
+* **Halves**: each half is cleaned on its own samples
+  (:meth:`CleanedSamples.halves`), dealt as
+  :func:`mcrecon.core.halves.split_halves` deals the raw ones: a firefly of
+  half A moves within half A, so the halves stay independent (the
+  dual-buffer error estimates of nfor and auto rely on it) and each keeps
+  its own energy.  Cleaning all the samples together would add a half-A
+  firefly's energy to half B's samples.
 
 Nothing is clipped: the base keeps every sample below the threshold as it
 is, and nothing moves where the samples hold no firefly (the cleaned
@@ -93,14 +95,33 @@ class CleanedSamples:
     threshold: np.ndarray
     moved_fraction: float
 
-    def halves(self, *, features=()):
-        """The cleaned samples' two halves (:class:`~mcrecon.core.halves.Halves`), dealt as the raw ones are.
+    #: The options of the cleaning (``k_min``, ``neighbour_weight``, ``frac``, ``max_radius``), for :meth:`halves`.
+    options: dict = dataclasses.field(default_factory=dict)
+    #: The input samples after the ``nonfinite`` policy (values), for :meth:`halves`.
+    raw_values: np.ndarray | None = None
 
-        ``features``: names of the samples' features to keep in each half,
-        or ``"all"`` (:func:`mcrecon.core.halves.split_halves`).
+    def halves(self, *, features=()):
+        """Two independent cleaned halves (:class:`~mcrecon.core.halves.Halves`), each cleaned on its own.
+
+        The samples are dealt into halves as
+        :func:`mcrecon.core.halves.split_halves` deals the raw ones
+        (:func:`~mcrecon.core.halves.split_labels`, in stream order); each
+        half's samples are cleaned with this cleaning's options, so its
+        energy stays in it and no firefly of one half reaches the other.
+        ``features``: names of the samples' features to keep, or ``"all"``.
         """
-        from .halves import split_halves
-        return split_halves(self.samples, features=features)
+        from .halves import split_halves, split_labels
+        src = self.samples
+        w, h = src.width, src.height
+        labels = split_labels(src.positions, w, h, np.zeros(w * h, np.int64))
+        values = self.raw_values.copy()
+        for half in (0, 1):
+            sel = labels == half
+            if sel.any():
+                values[sel] = _cleaned_values(src.positions[sel], self.raw_values[sel], w, h, self.options)[0]
+        halves = SampleSet(src.positions, values, width=w, height=h, channels=src.channels,
+                           features=src.features or None, name=src.name)
+        return split_halves(halves, features=features)
 
 
 def _pixel_means(pix: np.ndarray, values: np.ndarray, count: np.ndarray, shape) -> np.ndarray:
@@ -164,9 +185,9 @@ def clean_samples(source, *, k_min: int = 4, neighbour_weight: float = 0.2, frac
     -------
     CleanedSamples
         ``mean`` is the cleaned per-pixel estimate to give a filter or a
-        denoiser in place of the pixel means; ``samples`` and
-        :meth:`CleanedSamples.halves` the same for methods that read samples
-        or half buffers.
+        denoiser in place of the pixel means; ``samples`` the same for
+        methods that read samples, :meth:`CleanedSamples.halves` for methods
+        that read two independent half buffers.
 
     Notes
     -----
@@ -197,21 +218,26 @@ def clean_samples(source, *, k_min: int = 4, neighbour_weight: float = 0.2, frac
     check_policy(nonfinite, _WHERE)
     w, h = int(source.width), int(source.height)
     pos, val, feats = _read_all(source, nonfinite)
-    # split_fireflies validates k_min, neighbour_weight, frac and max_radius (one-line errors naming them)
-    split = split_fireflies(pos, val, width=w, height=h, k_min=k_min, neighbour_weight=neighbour_weight,
-                            frac=frac, max_radius=max_radius, sampled_only=True)
+    options = dict(k_min=k_min, neighbour_weight=neighbour_weight, frac=frac, max_radius=max_radius)
+    values, moved, split = _cleaned_values(pos, val, w, h, options)
     pix = (np.floor(pos[:, 1]).astype(np.int64) * w + np.floor(pos[:, 0]).astype(np.int64)) if pos.size \
         else np.zeros(0, np.int64)
     count = np.bincount(pix, minlength=w * h).reshape(h, w).astype(np.int64)
-    moved = np.any(split.base_values != val, axis=1) if val.size else np.zeros(0, bool)
-    if moved.any():
-        values = split.base_values + split.excess.reshape(h * w, -1)[pix]
-    else:
-        values = val  # nothing moved: the samples as they came, bit for bit
     channels = tuple(source.channels)
     cleaned = SampleSet(pos, values, width=w, height=h, channels=channels, features=feats or None,
                         name=f"{source_name(source)} (cleaned)")
     raw_mean = _pixel_means(pix, val, count, (h, w))
     mean = _pixel_means(pix, values, count, (h, w)) if moved.any() else raw_mean.copy()
     return CleanedSamples(cleaned, mean, raw_mean, count, moved, split.excess, split.threshold,
-                          float(split.moved_fraction))
+                          float(split.moved_fraction), options, val)
+
+
+def _cleaned_values(pos, val, w, h, options):
+    """``(values, moved, split)``: each sample's base part plus its pixel's share of the moved energy."""
+    # split_fireflies validates k_min, neighbour_weight, frac and max_radius (one-line errors naming them)
+    split = split_fireflies(pos, val, width=w, height=h, sampled_only=True, **options)
+    moved = np.any(split.base_values != val, axis=1) if val.size else np.zeros(0, bool)
+    if not moved.any():
+        return val, moved, split  # nothing moved: the samples as they came, bit for bit
+    pix = np.floor(pos[:, 1]).astype(np.int64) * w + np.floor(pos[:, 0]).astype(np.int64)
+    return split.base_values + split.excess.reshape(h * w, -1)[pix], moved, split
