@@ -290,7 +290,7 @@ def _wall_log(tmp_path, name, convert=None, extra=None, size=16, spp=4):
 
 def test_check_features_gives_native_floats_and_zeroes_sentinels():
     n = 6
-    big = np.arange(n * 3, dtype=">f8").reshape(n, 3)
+    big = (np.arange(n * 3, dtype=">f8") / 32).reshape(n, 3)  # an albedo: reflectances in [0, 1]
     half = np.arange(n, dtype=np.float16)
     sentinel = np.array([1.0, 2.0, np.finfo(np.float64).max, -1e200, 3.0, 1e29])
     out, n_zeroed = check_features({"albedo": big, "depth": half, "z": sentinel}, n)

@@ -366,8 +366,10 @@ def test_sparse_pixels_and_a_firefly_stay_finite_and_unclipped():
 
 
 def test_robust_is_the_paper_image_clamped_into_each_pixels_interval_bit_for_bit():
-    """variant='robust' = confidence_clamp(paper image, mean, safeguard_variance(v, n, albedo), 4, 3x3 sample range)."""
+    """variant='robust' = confidence_clamp(paper image, mean, safeguard_variance(channel_floor(v, albedo), n, albedo),
+    4, 3x3 sample range)."""
     from mcrecon.core.safeguard import albedo_divisor, confidence_clamp, safeguard_variance, sample_range_bounds
+    from mcrecon.methods.nfor.method import channel_floor
 
     ss = scene_samples(24, 20, 8, seed=5)
     paper = mcrecon.reconstruct(ss, method="nfor", variant="paper")
@@ -375,7 +377,8 @@ def test_robust_is_the_paper_image_clamped_into_each_pixels_interval_bit_for_bit
     h = split_halves(ss, features="all")
     st = h.a.copy().merge(h.b)
     lo, hi = sample_range_bounds(st)
-    v = safeguard_variance(mean_variance_policy(st), st.count, albedo_divisor(st))
+    d = albedo_divisor(st)
+    v = safeguard_variance(channel_floor(mean_variance_policy(st), d), st.count, d)
     np.testing.assert_array_equal(robust, confidence_clamp(paper, st.mean, v, 4.0, lo, hi))
     assert not np.array_equal(robust, paper)  # the clamp acts on this scene
     np.testing.assert_array_equal(mcrecon.reconstruct(ss, method="nfor", safeguard=None), paper)
@@ -414,3 +417,36 @@ def test_a_pixel_without_samples_keeps_its_filled_value_under_the_safeguard():
         robust = mcrecon.reconstruct(ss, method="nfor")
     assert (paper[10, 15] > 0.05).all()
     np.testing.assert_array_equal(robust[10, 15], paper[10, 15])
+
+
+# ------------------------------------------------------------------ the safeguard keeps colours
+def _caustic_shadow(seed=3, w=24, h=24, spp=32):
+    """A sparse caustic's shadow (grey truth 0.18: 1 % of samples worth 18), one pixel holding a single red
+    path (6, 0, 0) and nothing else, one a firefly (125) alone; constant features."""
+    rng = np.random.default_rng(seed)
+    pos = np.repeat(np.stack(np.meshgrid(np.arange(w), np.arange(h)), -1).reshape(-1, 2), spp, axis=0) \
+        + rng.random((w * h * spp, 2))
+    n = pos.shape[0]
+    val = np.zeros((n, 3))
+    val[rng.random(n) < 0.01] = 18.0 * np.array([1.0, 0.9, 0.8])
+    pix = np.floor(pos[:, 1]).astype(int) * w + np.floor(pos[:, 0]).astype(int)
+    red = np.flatnonzero(pix == 12 * w + 13)
+    val[red] = 0.0
+    val[red[0]] = (6.0, 0.0, 0.0)
+    fly = np.flatnonzero(pix == 12 * w + 12)
+    val[fly] = 0.0
+    val[fly[0]] = 125.0
+    feats = {"albedo": np.full((n, 3), 0.7), "normal": np.tile([0.0, 0.0, -1.0], (n, 1)), "depth": np.ones((n, 1))}
+    return SampleSet(pos, val, width=w, height=h, features=feats)
+
+
+def test_a_channel_whose_samples_are_all_zero_is_not_pinned_to_zero_beside_a_varying_one():
+    # the per-channel clamp on the pixel's own variance gave (0.19, 0, 0): green and blue zeroed, a red dot
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        img = mcrecon.reconstruct(_caustic_shadow(), method="nfor")
+        paper = mcrecon.reconstruct(_caustic_shadow(), method=mcrecon.get_method("nfor", variant="paper"))
+    r, g, b = img[12, 13]
+    assert g > 0.5 * r and b > 0.5 * r
+    np.testing.assert_allclose(img[12, 13], paper[12, 13], rtol=1e-9)  # the clamp leaves it as the filter made it
+    assert img[12, 12].max() < 0.5  # the lone firefly (3.9 in the pixel mean) does not stay

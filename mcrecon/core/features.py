@@ -18,6 +18,14 @@ depth of +inf where a ray left the scene, a NaN normal) or beyond
 are set to 0 and counted, because a feature is a guide, not radiance:
 dropping the sample would lose its colour.  A sample the colour's NaN policy drops is dropped
 from its features too (:func:`take_rows`).
+
+An ``albedo`` is a reflectance and is read as one: :func:`check_features`
+clamps it into [0, 1] (:data:`GUIDE_RANGES`, :func:`as_guide`).  Cycles'
+"Denoising Albedo" carries an emitter's radiance (up to hundreds) where a
+mirror or glass path ends on a light; read as a guide, that value would
+make the demodulation divide by it, the feature prefilter and the
+regression treat the pixel as a texture edge, and OIDN see an albedo
+outside the range it is trained on.  The colour is never touched.
 """
 
 from __future__ import annotations
@@ -30,8 +38,8 @@ import numpy as np
 from .._lazy import public_dir as _public_dir
 from ..errors import InputError, McreconWarning
 
-__all__ = ["CANONICAL_FEATURES", "feature_components", "check_features", "feature_layout", "take_rows",
-           "usable_layout", "usable_names"]
+__all__ = ["CANONICAL_FEATURES", "GUIDE_RANGES", "as_guide", "feature_components", "check_features", "feature_layout",
+           "take_rows", "usable_layout", "usable_names"]
 
 #: The documented feature names and their components.  Any other name is
 #: kept and usable; its components are named "0", "1", ...
@@ -48,6 +56,10 @@ CANONICAL_FEATURES: dict[str, tuple[str, ...]] = {
 #: Any real albedo, normal or depth is far below it.
 FEATURE_LIMIT = 1e30
 
+#: Features that are reflectances, and the range every reader uses them in (guides, not radiance:
+#: :func:`as_guide`).
+GUIDE_RANGES: dict[str, tuple[float, float]] = {"albedo": (0.0, 1.0)}
+
 #: Most components one feature may have: a writer's broadcasting slip gives an (N, N) array, whose
 #: thousands of components the regression would solve for (a 32^2, 4-spp log ran for over 5 minutes).
 MAX_COMPONENTS = 64
@@ -59,6 +71,21 @@ def within_feature_limit(arr: np.ndarray) -> np.ndarray:
     if arr.dtype.itemsize < 4:  # half floats end below the limit
         return np.isfinite(arr)
     return np.abs(arr) <= arr.dtype.type(FEATURE_LIMIT)
+
+
+def as_guide(name: str, arr: np.ndarray) -> np.ndarray:
+    """``arr`` (a feature's values, any shape) clamped into the range of :data:`GUIDE_RANGES` for ``name``.
+
+    The array itself comes back when nothing is outside the range (or the
+    feature has none); otherwise a clamped copy of the same dtype.
+    """
+    rng = GUIDE_RANGES.get(str(name))
+    if rng is None:
+        return arr
+    lo, hi = rng
+    if arr.size and (arr.min() < lo or arr.max() > hi):
+        return np.clip(arr, arr.dtype.type(lo), arr.dtype.type(hi))
+    return arr
 
 
 def feature_components(name: str, k: int) -> tuple[str, ...]:
@@ -102,7 +129,8 @@ def check_features(features, n: int, *, where: str = "samples", error=InputError
     Each array comes back 2-D, C-contiguous, in a floating dtype (bool and
     float16 as float32, integers as float64).  Non-finite entries are set
     to 0 (in a copy) and counted in ``n_zeroed`` (samples with any such
-    entry).  ``layout`` (name -> components), when given, restricts the
+    entry); an ``albedo`` is clamped into [0, 1] (:func:`as_guide`; not
+    counted).  ``layout`` (name -> components), when given, restricts the
     result to those features, each of which must be present with that many
     components; features outside it are ignored.  Raises ``error(where,
     field, problem)`` naming ``features/NAME``.
@@ -146,7 +174,7 @@ def check_features(features, n: int, *, where: str = "samples", error=InputError
             bad = ~finite.all(axis=1)
             bad_rows = bad if bad_rows is None else bad_rows | bad
             arr = np.where(finite, arr, arr.dtype.type(0))
-        out[str(name)] = arr
+        out[str(name)] = as_guide(str(name), arr)  # a reflectance in [0, 1] (not counted: not an error)
     n_zeroed = 0 if bad_rows is None else int(bad_rows.sum())
     return out, n_zeroed
 

@@ -125,7 +125,7 @@ def _levels(lum: np.ndarray, ratio: float, max_levels: int) -> np.ndarray:
 
 def split_fireflies(positions, values, *, width: int, height: int, k_min: int = 4, neighbour_weight: float = 0.2,
                     frac: float = 0.25, ratio: float = 2.0, max_radius: int = 32,
-                    max_levels: int = 48) -> FireflySplit:
+                    max_levels: int = 48, sampled_only: bool = False) -> FireflySplit:
     """Split samples into a base for any method and a spread excess of their rare bright parts.
 
     Parameters
@@ -155,6 +155,11 @@ def split_fireflies(positions, values, *, width: int, height: int, k_min: int = 
         Largest spread radius in pixels.
     max_levels : int
         Most cascade levels (the top ones; the lowest level rises).
+    sampled_only : bool
+        Spread the excess only over pixels that hold a sample: a caller
+        that adds a pixel's excess to its samples
+        (:func:`mcrecon.core.cleaning.clean_samples`) then keeps all of it,
+        where an empty pixel could not hold its share.
 
     Returns
     -------
@@ -212,11 +217,13 @@ def split_fireflies(positions, values, *, width: int, height: int, k_min: int = 
         raise InputError(where, "positions", f"positions off the {w}x{h} film")
     pix = row * w + col
     lum = sample_luminance(val)
-    options = dict(frac=float(frac), ratio=float(ratio), max_radius=int(max_radius), max_levels=int(max_levels))
+    options = dict(frac=float(frac), ratio=float(ratio), max_radius=int(max_radius), max_levels=int(max_levels),
+                   sampled_only=bool(sampled_only))
     return _split(pix, lum, val, w, h, int(k_min), float(neighbour_weight), **options)
 
 
-def _split(pix, lum, val, w, h, k_min, neighbour_weight, *, frac, ratio, max_radius, max_levels):
+def _split(pix, lum, val, w, h, k_min, neighbour_weight, *, frac, ratio, max_radius, max_levels,
+           sampled_only=False):
     levels = _levels(lum, ratio, max_levels)
     n_pix = np.bincount(pix, minlength=w * h).astype(np.int64)
     excess = np.zeros((h, w, val.shape[1]))
@@ -234,7 +241,7 @@ def _split(pix, lum, val, w, h, k_min, neighbour_weight, *, frac, ratio, max_rad
     scale = np.where(lum > t_s, t_s / np.where(lum > 0, lum, 1.0), 1.0)
     base = val * scale[:, None]
     _spread_excess(pix[order], lum[order], val[order], starts, levels, kstar, n_pix, w, h, k_min, frac,
-                   max_radius, neighbour_weight, excess.reshape(h * w, -1))
+                   max_radius, neighbour_weight, bool(sampled_only), excess.reshape(h * w, -1))
     inv_n = 1.0 / n_pix[pix] if pix.size else np.zeros(0)
     total = float(np.sum(lum * inv_n))
     moved = float(np.sum((lum - np.minimum(lum, t_s)) * inv_n))
@@ -287,7 +294,7 @@ def _first_dense_level(pix, starts, n_pix, w, h, k_min, frac, kstar):
 
 @numba.njit(cache=True)
 def _spread_excess(pix, lum, val, starts, levels, kstar, n_pix, w, h, k_min, frac, max_radius,
-                   neighbour_weight, out):
+                   neighbour_weight, sampled_only, out):
     """Spread each pixel's band pieces above its threshold with density-adaptive Epanechnikov kernels."""
     n_levels = starts.shape[0] - 1
     n_ch = val.shape[1]
@@ -333,12 +340,12 @@ def _spread_excess(pix, lum, val, starts, levels, kstar, n_pix, w, h, k_min, fra
                 for yy in range(max(y - r, 0), min(y + r + 1, h)):
                     for xx in range(max(x - r, 0), min(x + r + 1, w)):
                         d2 = (xx - x) * (xx - x) + (yy - y) * (yy - y)
-                        if d2 < rr:
+                        if d2 < rr and not (sampled_only and n_pix[yy * w + xx] == 0):
                             wsum += (1.0 - d2 / rr) * (_window(sat, xx, yy, 0, w, h) + neighbour_weight * _window(sat, xx, yy, 1, w, h))
                 for yy in range(max(y - r, 0), min(y + r + 1, h)):
                     for xx in range(max(x - r, 0), min(x + r + 1, w)):
                         d2 = (xx - x) * (xx - x) + (yy - y) * (yy - y)
-                        if d2 < rr:
+                        if d2 < rr and not (sampled_only and n_pix[yy * w + xx] == 0):
                             wt = (1.0 - d2 / rr) * (_window(sat, xx, yy, 0, w, h) + neighbour_weight * _window(sat, xx, yy, 1, w, h)) / wsum * inv
                             q = yy * w + xx
                             for c in range(n_ch):

@@ -137,7 +137,7 @@ def find_feature_channels(names, layout: str, *, prefix: str | None = None, feat
 
 def _read_features(exr, found, n):
     """``{feature: (mean (H, W, k), variance of the samples or None)}`` of the channels ``found``."""
-    from ..core.features import warn_feature_zeroed, within_feature_limit
+    from ..core.features import as_guide, warn_feature_zeroed, within_feature_limit
 
     out = {}
     zeroed = 0
@@ -162,7 +162,7 @@ def _read_features(exr, found, n):
                 m = np.where(bad[..., None], 0.0, m)
         # an empty pixel's values are ignored by the statistics; keep them finite
         m = np.where(np.isfinite(m), m, 0.0)
-        out[feat] = (m, var)
+        out[feat] = (as_guide(feat, m), var)  # an albedo as a reflectance, as core.features reads samples
     if zeroed:
         warn_feature_zeroed(str(exr.path), zeroed, stacklevel=5, unit="pixel")
     return out

@@ -80,7 +80,7 @@ class GEMMethod(Method):
     variants = {
         "robust": {},
         "paper": {"gamma": 0.1, "final_outliers": "paper", "zero_variance_votes": 3, "uniform_share": 0.0,
-                  "channel_weights": "absolute", "confirm_stops": 0},
+                  "channel_weights": "absolute", "confirm_stops": 0, "variance_guard": 0},
     }
     options = (
         variant_option(variants),
@@ -112,6 +112,9 @@ class GEMMethod(Method):
         Option("confirm_stops", int, 1, "final reconstruction: a raw stop of pair k counts only if pair k+1 "
                "stops too (the widest pair has none: unconfirmed); 0 never (the paper), 1 Gaussian pairs (k >= 1), "
                "2 every pair", choices=(0, 1, 2)),
+        Option("variance_guard", int, 1, "final reconstruction: 1 keeps a pixel at the finer scale of a pair "
+               "wherever the coarser has no less estimated variance (no outlier vote sends it coarser: thin "
+               "geometry stays out of its dark neighbours); 0 the paper", choices=(0, 1)),
         Option("subpixel_exact_below", float, 0.0, "filter scales with sigma below this (px) on the 4x4 "
                "subpixel grid itself (slower; 0: pixel-level equivalent kernel)", min=0.0),
     )
@@ -171,7 +174,8 @@ class GEMMethod(Method):
                              want_mse=want_mse, sub=sub, exact_below=eb, outlier_rule=p["final_outliers"],
                              zero_variance_votes=bool(p["zero_variance_votes"] & (2 if final else 1)),
                              channel_weights=p["channel_weights"] if final else "absolute",
-                             confirm_stops=p["confirm_stops"] if final else 0)
+                             confirm_stops=p["confirm_stops"] if final else 0,
+                             variance_guard=bool(p["variance_guard"]) and final)
         # The maps are built when asked for (diagnostics()): a planning round
         # would otherwise spend ~5 % of its time on images nobody reads.
         run.diagnostics = {}

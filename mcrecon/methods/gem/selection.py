@@ -415,7 +415,8 @@ def confirm_pair_stops(stops_raw: np.ndarray, confirm_stops: int) -> np.ndarray:
 def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subpixels: int = 4,
                want_mse: bool = False, sub: np.ndarray | None = None, exact_below: float = 0.0,
                outlier_rule: str = "adaptive", zero_variance_votes: bool = False,
-               channel_weights: str = "relative", confirm_stops: int = 0) -> GEMSelection:
+               channel_weights: str = "relative", confirm_stops: int = 0,
+               variance_guard: bool = False) -> GEMSelection:
     """Filter selection of Secs. 4 and 6 on pixel arrays (works for 1-D signals as 1 x N images).
 
     Stopping maps from Eq. 1 weighted by rho z(gamma); pixels without samples
@@ -463,6 +464,14 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
         ``docs/methods/gem.md``); this function's default is 0.  The widest
         pair has no next pair and counts unconfirmed
         (:func:`confirm_pair_stops`).
+    variance_guard : bool
+        After the outlier removal, a pixel stops at pair (k, k+1) wherever
+        the coarse scale's estimated variance is not below the fine one's
+        (summed over channels, the weights of ``channel_weights``): going
+        coarser there adds bias and saves no variance, so no vote may send
+        it there.  Thin bright geometry (a fence's wires) otherwise bleeds
+        into the dark pixels between the wires, whose neighbours outvote
+        their stop (:func:`variance_guard_stops`).  Off: the paper.
 
     Raises
     ------
@@ -499,6 +508,8 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
     stops_in = confirm_pair_stops(stops_raw, confirm_stops)
     stops = remove_outliers(stops_in, bank.sigmas, final=final and outlier_rule == "paper",
                             voters=~empty if zero_variance_votes else ~(empty | zero_var))
+    if variance_guard:
+        stops |= variance_guard_stops(bank, channel_eps=CHANNEL_EPS if relative else None)
     for k in range(stops.shape[0]):
         stops[k] &= bank.weight[k] > 0
     stops[0] |= zero_var
@@ -506,6 +517,30 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
     image = _pick(bank.values, selected)
     mse = estimate_mse(bank, selected, count) if want_mse else None
     return GEMSelection(bank, selected, stops_raw, stops, mse, image)
+
+
+def variance_guard_stops(bank: FilterBank, *, channel_eps: float | None = None) -> np.ndarray:
+    """(K, H, W) bool: where the coarse scale of pair (k, k+1) has no less estimated variance than the fine.
+
+    The variance term of Eq. 1, ``Var[c] - Var[f]``, summed over channels
+    (each divided by ``c^2 + channel_eps`` with a number, as
+    :func:`stopping_maps` weighs them).  Where it is >= 0 the coarse scale
+    cannot have a lower MSE (its bias term is >= 0 too), whatever the
+    neighbours vote.
+    """
+    nk = bank.n_scales - 1
+    h, w = np.shape(bank.values[0])[:2]
+    out = np.zeros((nk, h, w), bool)
+    for k in range(nk):
+        vf, vc = np.asarray(bank.var[k], np.float64), np.asarray(bank.var[k + 1], np.float64)
+        dv = vc - vf
+        if dv.ndim == 3:
+            if channel_eps is not None:
+                c = np.asarray(bank.values[k + 1], np.float64)
+                dv = dv / (c * c + channel_eps)
+            dv = dv.sum(axis=2)
+        out[k] = dv >= 0.0
+    return out
 
 
 def oracle_select(base, mean_var, count, sigmas, reference, *, subpixels: int = 4,

@@ -16,7 +16,7 @@ from ..base import Method, MethodInputs, Option, Requirements, RunState, variant
 from .pipeline import PAPER, nfor_denoise
 from ...filters.regression import RIDGE
 
-__all__ = ["NFORMethod", "NFORRun", "feature_planes"]
+__all__ = ["NFORMethod", "NFORRun", "feature_planes", "channel_floor"]
 
 _WHERE = "method nfor"
 
@@ -71,6 +71,26 @@ def feature_planes(a: PixelStats, b: PixelStats, stats: PixelStats) -> tuple[np.
         z = np.zeros((h, w, 0))
         return z, z, z
     return np.concatenate(fa, axis=2), np.concatenate(fb, axis=2), np.concatenate(fv, axis=2)
+
+
+def channel_floor(var: np.ndarray, divisor: np.ndarray | None = None) -> np.ndarray:
+    """Each pixel's variance of its mean, per channel, floored by its largest channel's (in albedo units).
+
+    A pixel's channels share its samples' paths: where one channel's
+    samples vary and another's are all zero (a red path among empty ones
+    in a caustic's shadow), the zero channel drew none of what the other
+    drew, and its own variance (0) would pin a clamp onto its mean (0):
+    the pixel came out (0.19, 0, 0) where the truth is grey.  The floor
+    ``max_c v_c / d_c^2 * d_c^2`` (``d``: the albedo divisor) gives every
+    channel the interval its noisiest channel needs, measured in units of
+    the pixel's reflectance so that a coloured albedo does not widen the
+    dark channels beyond their own scale.  (H, W, C) in and out.
+    """
+    v = np.asarray(var, dtype=np.float64)
+    if divisor is None:
+        return np.maximum(v, v.max(axis=2, keepdims=True))
+    d2 = np.asarray(divisor, dtype=np.float64) ** 2
+    return np.maximum(v, (v / d2).max(axis=2, keepdims=True) * d2)
 
 
 class NFORMethod(Method):
@@ -159,8 +179,10 @@ class NFORMethod(Method):
         if p["safeguard"] is not None:
             img = np.ascontiguousarray(img)
             lo, hi = sample_range_bounds(stats)
+            divisor = albedo_divisor(stats)
             with empty_pixels_kept(img, stats.count):  # no interval without a sample: the fill-in stands
-                confidence_clamp(img, stats.mean, safeguard_variance(var, stats.count, albedo_divisor(stats)),
+                confidence_clamp(img, stats.mean, safeguard_variance(channel_floor(var, divisor), stats.count,
+                                                                     divisor),
                                  p["safeguard"], lo, hi, out=img)
         run.diagnostics = {"selection": diag["selection"], "estimated_mse": np.maximum(diag["estimated_mse"], 0.0),
                            "sample_density": stats.count.astype(np.float64)}
