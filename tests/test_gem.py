@@ -1335,9 +1335,9 @@ class _Fence(Scene):
         return self._expected(x, y) * (2.0 * u[:, :1])
 
 
-def test_thin_bright_geometry_does_not_bleed_into_the_dark_pixels_between_it():
-    # the outlier vote sent the dark pixels between the wires to coarse scales (their neighbours, the wires,
-    # stop): 1.9x the pixel mean's error, where the rule is never above it
+def test_the_variance_guard_keeps_thin_bright_geometry_out_of_the_dark_pixels_between_it():
+    # without the guard the outlier vote sends the dark pixels between the wires to coarse scales (their
+    # neighbours, the wires, stop): above the pixel mean's error
     from mcrecon.core.metrics import relative_mse
     from mcrecon.renderers.scenes import reference_image, render_uniform
     scene = _Fence()
@@ -1347,10 +1347,11 @@ def test_thin_bright_geometry_does_not_bleed_into_the_dark_pixels_between_it():
     box = relative_mse(mcrecon.reconstruct(samples), ref)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", McreconWarning)
-        gem = relative_mse(mcrecon.reconstruct(samples, method="gem"), ref) / box
-        unguarded = relative_mse(mcrecon.reconstruct(samples, method=get_method("gem", variance_guard=0)), ref) / box
+        guarded = relative_mse(mcrecon.reconstruct(samples, method=get_method("gem", variance_guard=1)), ref) / box
+        unguarded = relative_mse(mcrecon.reconstruct(samples, method="gem"), ref) / box
+    # measured 1.93 and 1.005; the default leaves the guard off (the corpus: docs/methods/gem.md)
     assert unguarded > 1.5
-    assert gem < 1.01
+    assert guarded < 1.01
 
 
 def test_the_variance_guard_keeps_a_stop_only_where_the_coarse_scale_saves_no_variance():

@@ -112,9 +112,10 @@ class GEMMethod(Method):
         Option("confirm_stops", int, 1, "final reconstruction: a raw stop of pair k counts only if pair k+1 "
                "stops too (the widest pair has none: unconfirmed); 0 never (the paper), 1 Gaussian pairs (k >= 1), "
                "2 every pair", choices=(0, 1, 2)),
-        Option("variance_guard", int, 1, "final reconstruction: 1 keeps a pixel at the finer scale of a pair "
+        Option("variance_guard", int, 0, "final reconstruction: 1 keeps a pixel at the finer scale of a pair "
                "wherever the coarser has no less estimated variance (no outlier vote sends it coarser: thin "
-               "geometry stays out of its dark neighbours); 0 the paper", choices=(0, 1)),
+               "bright geometry stays out of its dark neighbours; it costs more on the scene corpus than it "
+               "saves, so it is off by default); 0 the paper", choices=(0, 1)),
         Option("subpixel_exact_below", float, 0.0, "filter scales with sigma below this (px) on the 4x4 "
                "subpixel grid itself (slower; 0: pixel-level equivalent kernel)", min=0.0),
     )
