@@ -9,9 +9,13 @@ The suite runs on every CPU this process may use when pytest-xdist (the
 ``test`` extra) is installed: one worker per CPU, so the README's plain
 ``python -m pytest -q -rs`` is the parallel run.  ``-n 0`` (or ``-p
 no:xdist``, or a venv without xdist) runs it in one process; ``--pdb``,
-``--trace``, ``-s`` and ``--collect-only`` do too, as they need one.  The
-tests of a module that share a module-scoped fixture (a Dask cluster, a
-browser, compiled C tools) run on one worker, so the fixture is built once.
+``--trace``, ``-s`` and ``--collect-only`` do too, as they need one.  Each
+worker builds the module-scoped fixtures of the modules it runs tests of
+(a Dask cluster, a browser, compiled C tools) in its own temporary
+directory: no test shares a file, a port or a working directory with the
+other worker's.  xdist's ``loadgroup`` (one worker per group) is not used:
+with pytest 9 its groups are silently ignored (xdist 3.8 renames a test
+through ``Item._nodeid``, which pytest 9 no longer reads).
 """
 
 import os
@@ -47,19 +51,7 @@ def pytest_cmdline_main(config):
         return
     workers = _cpus()
     if workers > 1:
-        opt.numprocesses, opt.dist = workers, "loadgroup"
-
-
-@pytest.hookimpl(tryfirst=True)
-def pytest_collection_modifyitems(config, items):
-    """A test using a module-scoped fixture joins its module's xdist group: the fixture is built once.
-
-    ``--dist loadgroup`` sends a group to one worker; tests without a group go wherever a worker is free.
-    """
-    for item in items:
-        defs = item._fixtureinfo.name2fixturedefs
-        if any(defs[name][-1].scope == "module" for name in item.fixturenames if name in defs):
-            item.add_marker(pytest.mark.xdist_group(item.path.stem))
+        opt.numprocesses, opt.dist = workers, "load"
 
 
 @pytest.fixture
