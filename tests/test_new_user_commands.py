@@ -219,9 +219,7 @@ def test_ctrl_c_in_adapt_with_a_log_says_how_to_continue_and_that_command_does(s
     import time
 
     work, _ = scratch
-    # a renderer slow enough to be interrupted half-way: 16384 samples at 500/s take 33 s, so the run is still
-    # going a second after its log appears on a loaded machine (the interrupt ends it; the resume is unthrottled)
-    env = cli_env({"MCRECON_SCENE_RATE": "500"})
+    env = cli_env({"MCRECON_SCENE_RATE": "2000"})  # a renderer slow enough to be interrupted half-way
     argv = [*MCRECON, "adapt", "--scene", "soft_shadow", "--size", "16x16", "--spp", "64",
             "--method", "box", "--log", "my run.h5", "-o", "o.exr", "--quiet"]
     proc = subprocess.Popen(argv, cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
