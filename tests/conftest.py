@@ -4,6 +4,18 @@
 by default they run in a reduced form that keeps the whole suite within
 CI's time.  The command-line runners and the jittered test renderer live in
 ``tests/helpers.py``; ``cli`` and ``cli_process`` are them as fixtures.
+
+The suite runs on every CPU this process may use when pytest-xdist (the
+``test`` extra) is installed: one worker per CPU, so the README's plain
+``python -m pytest -q -rs`` is the parallel run.  ``-n 0`` (or ``-p
+no:xdist``, or a venv without xdist) runs it in one process; ``--pdb``,
+``--trace``, ``-s`` and ``--collect-only`` do too, as they need one.  Each
+worker builds the module-scoped fixtures of the modules it runs tests of
+(a Dask cluster, a browser, compiled C tools) in its own temporary
+directory: no test shares a file, a port or a working directory with the
+other worker's.  xdist's ``loadgroup`` (one worker per group) is not used:
+with pytest 9 its groups are silently ignored (xdist 3.8 renames a test
+through ``Item._nodeid``, which pytest 9 no longer reads).
 """
 
 import os
@@ -14,6 +26,32 @@ import pytest
 import helpers
 
 FULL = os.environ.get("MCRECON_FULL", "") not in ("", "0")
+
+
+def _cpus() -> int:
+    """The CPUs this process may run on (its affinity, not the machine's count: a container's share)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # no affinity API (macOS)
+        return os.cpu_count() or 1
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_cmdline_main(config):
+    """One xdist worker per CPU unless the command line chose (``-n``, ``--dist``) or needs one process.
+
+    Runs before xdist's own hook, which turns ``numprocesses`` into workers.
+    """
+    opt = config.option
+    if not config.pluginmanager.hasplugin("xdist") or os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    if opt.numprocesses is not None or opt.dist != "no" or opt.tx:
+        return
+    if opt.usepdb or opt.trace or opt.capture == "no" or opt.collectonly:
+        return
+    workers = _cpus()
+    if workers > 1:
+        opt.numprocesses, opt.dist = workers, "load"
 
 
 @pytest.fixture

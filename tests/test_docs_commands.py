@@ -10,6 +10,11 @@ which this test reports as a skip:
     <!-- docs-test skip: REASON -->     never run here (a cluster, your own files, minutes of benchmark)
     <!-- docs-test needs: hdf5 -->      run when pkg-config finds the HDF5 C library, else skipped, saying so
 
+README's "Command line" block is parsed here but run by
+tests/test_new_user_commands.py, which runs it as this test would (the same
+calls, the same checks) from a scratch folder without data_tools/, and
+checks the files it leaves: one run of the block checks both.
+
 The set-up line's install is not run (.ci/run and a Debian chroot prove
 it): `python3 -m venv` and `pip install` are skipped, `.venv/bin/NAME` runs
 NAME of this environment, and `python -m pytest` is this suite.  `mcrecon`
@@ -117,6 +122,16 @@ def _hdf5_dev() -> str | None:
     return None
 
 
+def _run_elsewhere(path: Path, block: str) -> bool:
+    """README's "Command line" block: tests/test_new_user_commands.py runs it (see the module docstring)."""
+    if path != ROOT / "README.md":
+        return False
+    text = path.read_text(encoding="utf-8")
+    section = text[text.index("\n## Command line\n"):]
+    m = _FENCE.search(section)
+    return m is not None and m.group(2) == block
+
+
 @pytest.mark.parametrize("path", RUN, ids=_name)
 def test_documented_commands_run_as_written(path, tmp_path, monkeypatch, capsys):
     shutil.copytree(ROOT / "data_tools", tmp_path / "data_tools",
@@ -134,7 +149,10 @@ def test_documented_commands_run_as_written(path, tmp_path, monkeypatch, capsys)
             if reason is not None:
                 skipped.append(f"{_name(path)}:{line}: {reason}")
                 continue
-        for argv, text in _commands(block):
+        commands = list(_commands(block))  # every block is parsed: shell syntax fails here
+        if _run_elsewhere(path, block):
+            continue
+        for argv, text in commands:
             _run(argv, tmp_path, capsys, f"{_name(path)}:{line}: {text.strip()}")
     if skipped:
         pytest.skip("; ".join(skipped))
@@ -143,6 +161,14 @@ def test_documented_commands_run_as_written(path, tmp_path, monkeypatch, capsys)
 @pytest.mark.parametrize("where, why", SKIPPED, ids=[w for w, _ in SKIPPED])
 def test_documented_commands_not_run_here(where, why):
     pytest.skip(f"{where}: {why}")
+
+
+def test_the_readme_block_run_elsewhere_is_the_one_the_new_user_test_runs():
+    from test_new_user_commands import _readme_block
+
+    blocks = [block for _, block, _, _ in _blocks(ROOT / "README.md")]
+    assert [b for b in blocks if _run_elsewhere(ROOT / "README.md", b)] == [_readme_block("Command line")]
+    assert all(not _run_elsewhere(p, b) for p in FILES[1:] for _, b, _, _ in _blocks(p))
 
 
 def test_every_mark_is_right_before_a_sh_block():

@@ -48,20 +48,12 @@ def _run(code: str, cache: Path) -> list[str]:
     return json.loads(r.stdout.strip().splitlines()[-1])
 
 
-def test_a_second_run_loads_every_kernel_from_the_cache(tmp_path):
-    code = ("import numpy as np\nfrom mcrecon.core.stats import PixelStats\n"
-            "rng = np.random.default_rng(0)\n"
-            "PixelStats.from_samples(rng.random((40, 2)) * 4, rng.random((40, 3)), width=4, height=4)\n")
-    first = _run(code, tmp_path / "cache")
-    assert "mcrecon.core.stats._accumulate" in first  # an empty cache: compiled
-    assert _run(code, tmp_path / "cache") == []       # the same cache: loaded, nothing compiled
-
-
 @pytest.mark.slow
 def test_a_second_demo_compiles_nothing(tmp_path, full_run):
-    """From a clean cache, the demo leaves every kernel the next demo runs in numba's cache.  Reduced form
-    (CI's, about 10 CPU s): box alone, one process.  MCRECON_FULL=1: every method, the last ones compiled
-    by the second process (about 40 CPU s)."""
+    """From a clean cache, the demo leaves every kernel the next demo runs in numba's cache: the first
+    run compiles (the scenes' kernels, the pixel statistics' ``_accumulate``), the second loads them all.
+    Reduced form (CI's, about 10 CPU s): box alone, one process.  MCRECON_FULL=1: every method, the last
+    ones compiled by the second process (about 40 CPU s)."""
     methods = ", '--methods', 'box'" if not full_run else ""
     code = ("import mcrecon.cli.builtins as b\n"
             + ("b._two_process_split = lambda costs, shared: len(costs) - 1\n" if full_run else "")
@@ -69,7 +61,8 @@ def test_a_second_demo_compiles_nothing(tmp_path, full_run):
             f"assert main(['demo', '--size', '24x20', '--spp', '2', '--out', {str(tmp_path / 'd')!r}{methods}]) == 0\n")
     first = _run(code, tmp_path / "cache")
     assert any(k.startswith("mcrecon.renderers.scenes") for k in first)
-    assert _run(code, tmp_path / "cache") == []
+    assert "mcrecon.core.stats._accumulate" in first  # an empty cache: compiled
+    assert _run(code, tmp_path / "cache") == []       # the same cache: loaded, nothing compiled
 
 
 def test_two_process_split_balances_and_keeps_the_order():

@@ -163,7 +163,8 @@ def test_readme_command_block_writes_each_output_once():
 
 def test_readme_command_block_runs_as_written_outside_the_repository(scratch, monkeypatch, capsys):
     """Copied into a terminal in any folder (the venv active: `python` and `mcrecon` are its own), every
-    line works: nothing relative to the clone."""
+    line works: nothing relative to the clone.  tests/test_docs_commands.py leaves this block to this test,
+    so the checks of its own runner are here too (exit 0, no `mcrecon: error` on stderr)."""
     import os
     import subprocess
     import sys
@@ -176,7 +177,7 @@ def test_readme_command_block_runs_as_written_outside_the_repository(scratch, mo
     for argv in _shell_commands(_readme_block("Command line")):
         assert argv[0] == "mcrecon", argv
         code, out, err = run_cli(argv[1:], capsys)
-        assert code == 0, f"{' '.join(argv)}: {err.strip()}"
+        assert code == 0 and "mcrecon: error" not in err, f"{' '.join(argv)} exited {code}: {err.strip()}"
     for name in ("caustic_reference.exr", "caustic_reference.png", "caustic_gem.exr", "diag/sample_density.png",
                  "adapt_gem.exr", "ext.exr"):
         assert (work / name).stat().st_size > 0, name
