@@ -222,7 +222,10 @@ def test_ctrl_c_in_adapt_with_a_log_says_how_to_continue_and_that_command_does(s
     env = cli_env({"MCRECON_SCENE_RATE": "2000"})  # a renderer slow enough to be interrupted half-way
     argv = [*MCRECON, "adapt", "--scene", "soft_shadow", "--size", "16x16", "--spp", "64",
             "--method", "box", "--log", "my run.h5", "-o", "o.exr", "--quiet"]
-    proc = subprocess.Popen(argv, cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # the child starts with Ctrl-C at its default disposition, as a shell starts a command: a test process
+    # (an xdist worker after other tests ran in it) may have SIGINT ignored, which exec would pass on
+    proc = subprocess.Popen(argv, cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     t0 = time.monotonic()
     while not (work / "my run.h5").exists() and time.monotonic() - t0 < 60:
         time.sleep(0.05)
