@@ -27,12 +27,14 @@ from .estimates import (cross_validation_mse, relative_denominator,
     sure, sure_filter_bank)
 from ...core.stats import PixelStats
 from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, uniform_counts
-from ...core.safeguard import albedo_divisor, confidence_clamp, empty_pixels_kept, safeguard_variance, sample_range_bounds
+from ...core.safeguard import (albedo_divisor, confidence_clamp, empty_pixels_kept, pooled_mean_variance,
+    safeguard_variance, sample_range_bounds)
 from ...core.fill import fill_empty_pixels
 from ...filters.gaussian import final_sigmas
 from ...core.fill import mean_variance_policy
 from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGHTS, Candidate,
     _feature_bilateral, _filled, dual_candidate, feature_candidates)
+from .blackbox import oidn_candidate
 from .nlmeans import nlmeans_cross
 from ...filters.masked import MaskedSmoothing, smooth_masked
 from .passes import _mean_c, _picked
@@ -44,17 +46,39 @@ __all__ = ['AutoMethod', 'AutoRun', 'CANDIDATES', 'DEFAULT_CANDIDATES', 'DEFAULT
 #: Every candidate name ``candidates`` accepts.
 CANDIDATES = ("box", "gauss", "nlm", "awr", "splat", "oidn")
 #: Candidates that need the samples split into two halves.
-DUAL_BUFFER = ("nlm", "awr", "splat", "oidn")
+DUAL_BUFFER = ("nlm", "awr", "splat")
 #: Placement of the adaptive rounds' samples (option ``sampling``).
 SAMPLINGS = ("gem", "uniform", "greedy")
 #: The measured default (docs/methods/auto.md, "Choosing the default candidates").
-DEFAULT_CANDIDATES = "box,gauss,nlm"
+DEFAULT_CANDIDATES = "box,gauss,nlm,oidn"
 
 _WHERE = "method auto"
 #: Standard errors of the pixel mean beyond which a candidate's departure from it counts as bias.
 Z_BIAS = 2.0
 #: The region guard's smoothing, in units of ``smooth``.
 GUARD = 2.0
+
+
+def agreeing_variance(v: np.ndarray, count: np.ndarray, pooled: np.ndarray | None = None,
+                      divisor: np.ndarray | None = None) -> np.ndarray:
+    """``pooled`` (default ``v``) where the samples of a pixel all agree (``v = 0``), floored there by the
+    typical variance of its 5 x 5 neighbourhood.
+
+    A pixel whose samples all missed a rare component its neighbours found (an indirectly lit wall at
+    32 spp: a sample in 25 carries the light) has ``v = 0``; so does its 3 x 3 median
+    (:func:`pooled_mean_variance`) when most of its 3 x 3 neighbours missed it too.  Its pixel mean's
+    error estimate is then 0 and the clamp's interval ``y +- k sd`` a point: the pixel stays black beside
+    lit ones whatever the candidates say.  The median over 5 x 5 pixels is 0 only where most of 25
+    pixels agree: an exactly black region, or a caustic's line a few pixels wide on black, keep their
+    zero interval.  ``divisor``: as :func:`safeguard_variance` (the pooling in units of the albedo).
+    """
+    base = v if pooled is None else pooled
+    zero = (v == 0) & (count > 0)[..., None]
+    if not zero.any():
+        return base
+    d2 = 1.0 if divisor is None else divisor * divisor
+    wide = pooled_mean_variance(v / d2, count, radius=2) * d2
+    return np.where(zero, np.maximum(base, wide), base)
 
 
 def _oidn_available() -> bool:
@@ -103,7 +127,8 @@ class AutoMethod(Method):
                "regression on the other half's weights and features, Bitterli et al. 2016; SURE), nfor_own (the "
                "same on the half's own), dnlm (NL-means of the colour divided by the albedo), mix (nfor_own and "
                "dnlm averaged 1:2, 1:1, 2:1), xbil (cross-bilateral, Rousselle et al. 2013); fbil (bilateral "
-               "with feature weights only, SURE) from pixel statistics without halves; none: colour only"),
+               "with feature weights only, SURE) from pixel statistics without halves; oidn_aux (OIDN on all the samples with "
+               "the prefiltered albedo and normal); none: colour only"),
         Option("scales", int, 8, "Gaussian scales of the gauss candidates (GEM's final bank)", min=1, max=16),
         Option("smooth", float, 2.0, "sigma (px) of the smoothing of the error maps before the choice "
                "(0: none)", min=0.0, max=32.0),
@@ -197,11 +222,12 @@ class AutoMethod(Method):
         y = stats.mean
         count = stats.count
         v = mean_variance_policy(stats)
+        v_sure = agreeing_variance(v, count)
         out: list[Candidate] = []
         names = self._names
         if "box" in names or "gauss" in names:
             sig = final_sigmas(p["scales"]) if "gauss" in names else np.zeros(0)
-            sb = sure_filter_bank(y, v, count, sig)
+            sb = sure_filter_bank(y, v_sure, count, sig)
             if "box" in names:
                 out.append(Candidate("box", sb.values[0], sb.sure[0]))
             for k in range(1, len(sb.values)):
@@ -213,7 +239,7 @@ class AutoMethod(Method):
                           "(box, gauss)", McreconWarning, stacklevel=4)
             dual = []
             if not out:
-                sb = sure_filter_bank(y, v, count, final_sigmas(p["scales"]))
+                sb = sure_filter_bank(y, v_sure, count, final_sigmas(p["scales"]))
                 out = [Candidate("box", sb.values[0], sb.sure[0])]
         if dual:
             ha, hb = halves.a, halves.b
@@ -225,7 +251,7 @@ class AutoMethod(Method):
                 sa = sure(ya, va, fa, wa)
                 sbb = sure(yb, vb, fb, wb)
                 out.append(self._dual("nlm", fa, fb, sa, sbb, ha.count, hb.count))
-            for name in ("awr", "oidn", "splat"):
+            for name in ("awr", "splat"):
                 if name not in dual:
                     continue
                 if name == "splat" and halves.source is None:
@@ -236,8 +262,12 @@ class AutoMethod(Method):
                 a, b = self._black_box(name, halves, nonfinite)
                 out.append(self._dual(name, a, b, cross_validation_mse(a, yb, vb), cross_validation_mse(b, ya, va),
                                       ha.count, hb.count))
+        if "oidn" in names:
+            out.append(oidn_candidate("oidn", stats, v, halves))
         if self._feature_names and halves is not None and halves.a.features:
             out += self._feature_candidates(stats, halves.a, halves.b)
+        if "oidn_aux" in self._feature_names and "albedo" in stats.features:
+            out.append(oidn_candidate("oidn_aux", stats, v, halves, aux=True))
         if "fbil" in self._feature_names and stats.features and halves is None:
             # only without halves: beside the halves' candidates its estimate, biased where the features
             # are noisy (defocus), cost auto 2.3x on the built-in checker_dof (docs/methods/auto.md)
@@ -250,20 +280,6 @@ class AutoMethod(Method):
 
     _dual = staticmethod(dual_candidate)
 
-    @staticmethod
-    def _oidn_aux(h: PixelStats) -> tuple:
-        """OIDN's auxiliary images from a half's own features: ``(albedo, normal)``, ``(albedo,)`` or ``()``.
-
-        The half's pixel means (noisy under defocus and at few samples, so OIDN prefilters them:
-        ``clean_aux`` stays off); OIDN takes a normal only beside an albedo."""
-        aux = []
-        for name in ("albedo", "normal"):
-            f = h.features.get(name)
-            if f is None or f.mean.shape[2] != 3:
-                break
-            aux.append(np.ascontiguousarray(_filled(f.mean, f.count), dtype=np.float32))
-        return tuple(aux)
-
     def _black_box(self, name, halves: Halves, nonfinite):
         from .. import get_method
         ha, hb = halves
@@ -273,22 +289,6 @@ class AutoMethod(Method):
                 warnings.simplefilter("ignore", McreconWarning)
                 return (np.asarray(m.reconstruct(MethodInputs(ha)), dtype=np.float64),
                         np.asarray(m.reconstruct(MethodInputs(hb)), dtype=np.float64))
-        if name == "oidn":
-            import pyoidn
-            res = []
-            for h in (ha, hb):
-                img = fill_empty_pixels(h.mean.copy(), h.count, source=_WHERE) if (h.count == 0).any() else h.mean
-                c = img.shape[2]
-                rgb = np.zeros(img.shape[:2] + (3,), np.float32)
-                rgb[..., :min(c, 3)] = img[..., :3]
-                if c == 1:
-                    rgb[..., 1] = rgb[..., 2] = rgb[..., 0]
-                aux = self._oidn_aux(h) if self._feature_names else ()  # feature_candidates='none': colour only
-                den = np.asarray(pyoidn.denoise(np.ascontiguousarray(rgb), *aux, hdr=True, quality="high"), np.float64)
-                full = img.astype(np.float64).copy()
-                full[..., :min(c, 3)] = den[..., :min(c, 3)]
-                res.append(full)
-            return res[0], res[1]
         # splat: the samples of each half (rounds dropped: single-round replay)
         m = get_method("splat")
         out = []
@@ -321,7 +321,8 @@ class AutoMethod(Method):
         # of each pixel's albedo (albedo_divisor): a light square beside dark ones would otherwise have
         # its interval narrowed by theirs.
         divisor = albedo_divisor(stats) if self.params["safeguard"] is not None else None
-        v_safe = v if self.params["safeguard"] is None else safeguard_variance(v, count, divisor)
+        v_safe = v if self.params["safeguard"] is None else agreeing_variance(
+            v, count, safeguard_variance(v, count, divisor), divisor)
         sd = np.sqrt(v_safe)
         smoothing = MaskedSmoothing(smooth)
         rel, choice = _relative_choice(cands, den, y, sd, count, smoothing, Z_BIAS)
