@@ -2,11 +2,14 @@
 
 Candidates (option ``candidates``): the pixel mean (``box``), every
 Gaussian scale of GEM's final filter bank (``gauss``), cross-filtered
-non-local means (``nlm``), and the black boxes ``awr``, ``splat`` and
-``oidn``.  Each comes with an unbiased per-pixel MSE estimate
+non-local means (``nlm``), OIDN on all the samples (``oidn``; with the
+albedo and normal ``oidn_aux``, a feature candidate) and the black boxes
+``awr`` and ``splat``.  Each comes with a per-pixel MSE estimate
 (:mod:`mcrecon.methods.auto.estimates`): Stein's estimate for the linear filters (box,
 Gaussians, and NL-means whose weights come from the other half of the
-samples), dual-buffer cross-validation for the black boxes.  The estimates,
+samples), dual-buffer cross-validation for the black boxes run on each
+half, and for OIDN the halves' cross-validation scaled to the full-sample
+filter (:mod:`.blackbox`).  The estimates,
 relative to a reference-free ``mu^2 + eps``, are smoothed (a normalised
 Gaussian of ``smooth`` pixels) and every pixel takes the candidate of least
 smoothed estimate.  ``docs/methods/auto.md`` derives every estimator.
@@ -33,7 +36,7 @@ from ...core.fill import fill_empty_pixels
 from ...filters.gaussian import final_sigmas
 from ...core.fill import mean_variance_policy
 from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGHTS, Candidate,
-    _feature_bilateral, _filled, dual_candidate, feature_candidates)
+    _feature_bilateral, dual_candidate, feature_candidates)
 from .blackbox import oidn_candidate
 from .nlmeans import nlmeans_cross
 from ...filters.masked import MaskedSmoothing, smooth_masked
@@ -55,6 +58,11 @@ DEFAULT_CANDIDATES = "box,gauss,nlm,oidn"
 _WHERE = "method auto"
 #: Standard errors of the pixel mean beyond which a candidate's departure from it counts as bias.
 Z_BIAS = 2.0
+#: Standard errors by which a black box scored by cross-validation (OIDN) must undercut the best plain
+#: candidate's summed estimate to become the global prior's default (:func:`_guards`).
+Z_BLACKBOX = 2.0
+#: The candidates :data:`Z_BLACKBOX` applies to.
+BLACK_BOXES = ("oidn", "oidn_aux")
 #: The region guard's smoothing, in units of ``smooth``.
 GUARD = 2.0
 
@@ -81,6 +89,24 @@ def agreeing_variance(v: np.ndarray, count: np.ndarray, pooled: np.ndarray | Non
     return np.where(zero, np.maximum(base, wide), base)
 
 
+def _guards(cands) -> dict:
+    """The global prior's guarded candidates: index -> the standard errors by which each must undercut.
+
+    Feature-guided ones :data:`~.selection.Z_GLOBAL`; the black boxes (:data:`BLACK_BOXES`) the larger
+    :data:`Z_BLACKBOX`: their cross-validated estimates carry noise independent of the Stein estimates
+    of the linear filters (which share the pixel means' noise, so their differences are far less
+    noisy).  Where every candidate's error is far below that noise (a flat field, 8 spp) a plain argmin
+    of the sums makes OIDN the default at random: 20x the widest Gaussian's error there."""
+    from .selection import Z_GLOBAL
+    out = {}
+    for k, c in enumerate(cands):
+        if c.name in BLACK_BOXES:
+            out[k] = max(Z_BLACKBOX, Z_GLOBAL if c.feature else 0.0)
+        elif c.feature:
+            out[k] = Z_GLOBAL
+    return out
+
+
 def _oidn_available() -> bool:
     try:
         import pyoidn  # noqa: F401
@@ -105,8 +131,8 @@ class AutoMethod(Method):
 
     Options (keyword-only; also the CLI flags and ``mcrecon methods auto``):
     :attr:`options`.  Without features a run is the colour-only one, bit
-    for bit; with ``oidn`` among the candidates OIDN gets each half's
-    albedo and normal.
+    for bit; with an albedo (and normal) OIDN runs a second time with them
+    (``oidn_aux``).
 
     Diagnostics: ``choice`` (candidate index per pixel, in the order of
     :meth:`candidate_names`), ``estimated_mse`` (mean over channels of the
@@ -120,15 +146,16 @@ class AutoMethod(Method):
     initial_spp = 4
     options = (
         Option("candidates", str, DEFAULT_CANDIDATES, "comma-separated candidate reconstructions: "
-               + ", ".join(CANDIDATES) + " (nlm/awr/splat/oidn split every pixel's samples into two halves: "
-               "they need the samples or a half-buffer pair; oidn needs pyoidn; splat only offline)"),
+               + ", ".join(CANDIDATES) + " (nlm/awr/splat split every pixel's samples into two halves: "
+               "they need the samples or a half-buffer pair; splat only offline; oidn runs on all the samples and is "
+               "scored from the halves when there are halves)"),
         Option("feature_candidates", str, DEFAULT_FEATURE_CANDIDATES, "when the statistics carry features: "
                "comma-separated feature-guided candidates added to candidates, on the halves: nfor (first-order "
                "regression on the other half's weights and features, Bitterli et al. 2016; SURE), nfor_own (the "
                "same on the half's own), dnlm (NL-means of the colour divided by the albedo), mix (nfor_own and "
                "dnlm averaged 1:2, 1:1, 2:1), xbil (cross-bilateral, Rousselle et al. 2013); fbil (bilateral "
-               "with feature weights only, SURE) from pixel statistics without halves; oidn_aux (OIDN on all the samples with "
-               "the prefiltered albedo and normal); none: colour only"),
+               "with feature weights only, SURE) from pixel statistics without halves; oidn_aux (OIDN on all the "
+               "samples with the prefiltered albedo and normal); none: colour only"),
         Option("scales", int, 8, "Gaussian scales of the gauss candidates (GEM's final bank)", min=1, max=16),
         Option("smooth", float, 2.0, "sigma (px) of the smoothing of the error maps before the choice "
                "(0: none)", min=0.0, max=32.0),
@@ -178,6 +205,9 @@ class AutoMethod(Method):
         if len(set(fnames)) != len(fnames):
             raise InputError(self.where, "feature_candidates", f"{params['feature_candidates']!r} names a candidate "
                              "twice")
+        if "oidn_aux" in fnames and not _oidn_available():
+            raise InputError(self.where, "feature_candidates", "'oidn_aux' needs the Python package pyoidn "
+                             "(pip install pyoidn); leave it out without it")
         fordered = tuple(c for c in FEATURE_CANDIDATES if c in fnames)
         params["feature_candidates"] = ",".join(fordered) or "none"
         object.__setattr__(self, "_feature_names", fordered)
@@ -191,7 +221,7 @@ class AutoMethod(Method):
         # renderer wrote (half_buffers: the pair stands in for the samples; with SURE
         # candidates alone the pair is merged into the statistics of all the samples)
         # features: read when the source has them and a feature candidate is on (nfor/xbil/dnlm on the
-        # halves, fbil without them; OIDN takes each half's albedo and normal then); a source without
+        # halves, fbil without them, oidn_aux with or without); a source without
         # features gives exactly the colour-only run
         # statistics_options: on pixel statistics alone (one EXR) the SURE candidates need neither
         return Requirements(samples=any(c in DUAL_BUFFER for c in self._names), half_buffers=True,
@@ -236,7 +266,7 @@ class AutoMethod(Method):
         if dual and halves is None:
             warnings.warn(f"{_WHERE}: candidates {', '.join(dual)} need the samples (two halves); only pixel "
                           "statistics are available, so auto falls back to the SURE candidates "
-                          "(box, gauss)", McreconWarning, stacklevel=4)
+                          "(box, gauss; and oidn, scored by Monte-Carlo SURE)", McreconWarning, stacklevel=4)
             dual = []
             if not out:
                 sb = sure_filter_bank(y, v_sure, count, final_sigmas(p["scales"]))
@@ -334,8 +364,7 @@ class AutoMethod(Method):
             # the default's smoothed estimate again, not every candidate's kept until the default is known
             choice, on_default = _global_prior(cands, lambda k: smoothing([_mean_c(cands[k].mse, den)])[0], rel,
                                                choice, y, v, count, bounds, smooth, self.params["global_prior"],
-                                               self.params["safeguard"], [k for k, c in enumerate(cands) if c.feature],
-                                               divisor)
+                                               self.params["safeguard"], _guards(cands), divisor)
         # ties (e.g. noise-free regions, where every ratio is undefined) go to the first candidate
         if cands[0].name == "box" and smooth > 0:
             # Region guard: where the chosen candidates' unbiased estimates,
