@@ -7,7 +7,8 @@ without being told what it was.  Three kinds exist::
 
     {"kind": "scene",   "scene": NAME, "width": W, "height": H, "seed": S,
                         "features": true | false (optional; absent: the scene's default),
-                        "sampler": "independent" | "sobol" (optional; absent: independent)}
+                        "sampler": "independent" | "sobol" (optional; absent: independent),
+                        "params": {NAME: VALUE} (optional; absent: the scene's defaults)}
     {"kind": "command", "argv": [...], "width": W, "height": H,
                         "channels": [...], "timeout": SECONDS or None, "workdir": DIR or None,
                         "cwd": DIR or None}
@@ -48,9 +49,9 @@ def renderer_from_spec(spec, *, where: str = "renderer spec", field: str = "rend
     spec = check_spec(spec, where=where, field=field)
     kind, w, h = spec["kind"], spec["width"], spec["height"]
     if kind == "scene":
-        from .scenes import SceneRenderer
+        from .scenes import SceneRenderer, get_scene
 
-        return SceneRenderer(spec["scene"], width=w, height=h, seed=spec["seed"], features=spec.get("features"),
+        return SceneRenderer(get_scene(spec["scene"], spec.get("params")), width=w, height=h, seed=spec["seed"], features=spec.get("features"),
                              sampler=spec.get("sampler", "independent"))
     if kind == "command":
         from .command import CommandRenderer
@@ -75,6 +76,6 @@ def reference_from_spec(spec, *, where: str = "renderer spec", field: str = "ren
     spec = check_spec(spec, where=where, field=field)
     if spec["kind"] != "scene":
         return None
-    from .scenes import reference_image
+    from .scenes import get_scene, reference_image
 
-    return reference_image(spec["scene"], spec["width"], spec["height"])
+    return reference_image(get_scene(spec["scene"], spec.get("params")), spec["width"], spec["height"])

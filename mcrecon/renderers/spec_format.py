@@ -29,7 +29,7 @@ SAMPLERS = ("independent", "sobol")
 
 #: The renderer kinds a spec can name, with their required and optional keys.
 KINDS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
-    "scene": (("scene", "width", "height"), ("seed", "features", "sampler")),
+    "scene": (("scene", "width", "height"), ("seed", "features", "sampler", "params")),
     "command": (("argv", "width", "height"), ("channels", "timeout", "workdir", "cwd")),
     "mitsuba": (("width", "height"), ("scene", "features")),
 }
@@ -37,7 +37,7 @@ KINDS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
 
 # ---------------------------------------------------------------- writing
 def scene_spec(scene: str, *, width: int, height: int, seed: int = 0, features: bool | None = None,
-               sampler: str | None = None) -> dict:
+               sampler: str | None = None, params: dict | None = None) -> dict:
     """The spec of a built-in scene (:class:`mcrecon.renderers.scenes.SceneRenderer`); ``features``: whether
     it sends its per-sample features (None: the scene's default, recorded as no key); ``sampler``: its
     sampler (None: ``independent``, recorded as no key, as in specs written before samplers existed)."""
@@ -46,6 +46,8 @@ def scene_spec(scene: str, *, width: int, height: int, seed: int = 0, features: 
         spec["features"] = features
     if sampler is not None:
         spec["sampler"] = sampler
+    if params:  # the scene's parameters other than its defaults (absent: the default scene)
+        spec["params"] = dict(params)
     return check_spec(spec)
 
 
@@ -145,6 +147,12 @@ def check_spec(spec: Any, *, where: str = "renderer spec", field: str = "rendere
             if spec["sampler"] not in SAMPLERS:
                 raise bad("sampler", f"one of {', '.join(SAMPLERS)} (absent: independent)")
             out["sampler"] = spec["sampler"]
+        if "params" in spec:  # absent: the scene's default parameters
+            from .scenes.params import check_params
+
+            if not isinstance(spec["params"], Mapping):
+                raise bad("params", "a mapping of parameter names to numbers (absent: the defaults)")
+            out["params"] = check_params(spec["scene"], dict(spec["params"]))
     elif kind == "command":
         argv = strings("argv")
         joined = " ".join(argv)

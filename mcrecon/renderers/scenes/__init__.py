@@ -73,13 +73,14 @@ from ...core.samples import check_memory
 from ...core.requests import SampleBatch, SampleRequest, jittered_positions, place_in_pixels, sample_indices
 from ..spec_format import scene_spec
 from .sobol import SAMPLERS, sobol_points
+from .params import PARAMS
 from .catalog import (FEATURE_LAYOUT, SCENES, CausticScene, CheckerDofScene, CheckerSpotScene, CheckerWallScene,
                       DepthOfFieldScene, FlatScene, HDRScene, MotionBlurScene, Scene, SoftShadowScene, split_features)
 
 __all__ = ["SCENES", "FEATURE_LAYOUT", "Scene", "SoftShadowScene", "DepthOfFieldScene", "MotionBlurScene",
            "CausticScene", "HDRScene", "FlatScene", "CheckerWallScene", "CheckerSpotScene", "CheckerDofScene",
            "scene_names", "get_scene", "reference_image", "feature_reference", "SceneRenderer", "render_uniform",
-           "write_scene_log", "SAMPLERS"]
+           "write_scene_log", "SAMPLERS", "PARAMS"]
 
 
 def scene_names() -> list[str]:
@@ -87,19 +88,31 @@ def scene_names() -> list[str]:
     return list(SCENES)
 
 
-def get_scene(name) -> Scene:
-    """A built-in scene by name (a :class:`Scene` is returned unchanged).
+def get_scene(name, params: dict | None = None, **kwargs) -> Scene:
+    """A built-in scene by name, with parameters (a :class:`Scene` is returned unchanged).
+
+    Parameters
+    ----------
+    name : str or Scene
+        A built-in scene name (:func:`scene_names`), or a scene (returned as it is).
+    params : dict, optional
+        Parameter values by name (:data:`PARAMS` lists each scene's, with
+        defaults and ranges); keywords add to them:
+        ``get_scene("caustic", power=4.0, hit_probability=0.01)``.
 
     Raises
     ------
     InputError
-        For an unknown name; the message lists the valid names.
+        For an unknown name (the message lists the valid names), an unknown
+        parameter, a value out of its range, or parameters given with a Scene.
     """
     if isinstance(name, Scene):
+        if params or kwargs:
+            raise InputError("scene", "params", f"given with the scene {name!r}: pass its name instead")
         return name
     if not isinstance(name, str) or name not in SCENES:
         raise InputError("scene", "name", f"unknown scene {name!r}; valid scenes: {', '.join(SCENES)}")
-    return SCENES[name]()
+    return SCENES[name](params, **kwargs)
 
 
 # ----------------------------------------------------------------------------
@@ -112,10 +125,17 @@ def _check_int(where, field, value, minimum):
     return int(value)
 
 
+def _averaged(sc, width, height, quadrature, features):
+    """The pixel averages of the expected features, or of the expected colour times ``exposure``."""
+    if features:
+        return sc._feature_reference(width, height, quadrature)
+    return sc._expose(sc._reference(width, height, quadrature))
+
+
 @functools.lru_cache(maxsize=48)
-def _reference_cached(name: str, width: int, height: int, quadrature: int, features: bool) -> np.ndarray:
-    sc = get_scene(name)
-    out = (sc._feature_reference if features else sc._reference)(width, height, quadrature)
+def _reference_cached(name: str, params: tuple, width: int, height: int, quadrature: int,
+                      features: bool) -> np.ndarray:
+    out = _averaged(get_scene(name, dict(params)), width, height, quadrature, features)
     out.setflags(write=False)  # shared between callers: they get copies
     return out
 
@@ -127,9 +147,9 @@ def _pixel_average(sc, where: str, width, height, quadrature, *, features: bool)
     height = _check_int(where, "height", height, 1)
     quadrature = _check_int(where, "quadrature", quadrature, 1)
     if sc.name in SCENES and type(sc) is SCENES[sc.name]:
-        return _reference_cached(sc.name, width, height, quadrature, features)
+        return _reference_cached(sc.name, sc.param_key, width, height, quadrature, features)
     # A user's own Scene: not cached (its name need not be unique).
-    return (sc._feature_reference if features else sc._reference)(width, height, quadrature)
+    return _averaged(sc, width, height, quadrature, features)
 
 
 def reference_image(scene, width: int, height: int, *, quadrature: int = 32) -> np.ndarray:
@@ -282,12 +302,14 @@ class SceneRenderer:
 
     def spec(self) -> dict:
         """How to build this renderer again (:mod:`mcrecon.renderers.spec_format`); features other than the
-        scene's default are recorded, and a sampler other than ``independent``.  ``rate`` changes no reply:
+        scene's default are recorded, a sampler other than ``independent``, and the scene's parameters that
+        differ from its defaults.  ``rate`` changes no reply:
         not recorded."""
         default = _check_features_flag(self.name, self.scene, None)
         return scene_spec(self.scene.name, width=self.width, height=self.height, seed=self.seed,
                           features=None if self.features == default else self.features,
-                          sampler=None if self.sampler == "independent" else self.sampler)
+                          sampler=None if self.sampler == "independent" else self.sampler,
+                          params=self.scene.params or None)
 
     def render(self, request: SampleRequest) -> SampleBatch:
         """Answer a request (counts first, then explicit positions in order)."""
@@ -346,6 +368,7 @@ class SceneRenderer:
 
     def __repr__(self) -> str:
         extra = "" if self.features == self.scene.features_default else f", features={self.features}"
+        extra += f", params={self.scene.params!r}" if self.scene.params else ""
         extra += "" if self.sampler == "independent" else f", sampler={self.sampler!r}"
         return (f"SceneRenderer({self.scene.name!r}, width={self.width}, height={self.height}, seed={self.seed}"
                 f"{extra})")
@@ -392,7 +415,8 @@ def write_scene_log(scene, path, *, width: int = 128, height: int = 128, spp: in
     ``/features/normal`` and ``/features/depth`` per sample and the
     settings say ``"features": [names]``; without them the log is exactly
     what it was before scenes had features.  ``sampler``: as :class:`SceneRenderer`; one other than
-    ``independent`` is recorded in the settings (``"sampler"``).
+    ``independent`` is recorded in the settings (``"sampler"``); a scene's parameters other than the
+    defaults under ``"params"``.
 
     Returns
     -------
@@ -411,5 +435,7 @@ def write_scene_log(scene, path, *, width: int = 128, height: int = 128, spp: in
         meta["settings"]["features"] = list(batch.features)
     if sampler != "independent":
         meta["settings"]["sampler"] = sampler
+    if sc.params:
+        meta["params"] = dict(sc.params)
     return write_log(path, batch.positions, batch.values, width=width, height=height,
                      channels=sc.channels, features=batch.features or None, reference=ref, metadata=meta)

@@ -15,6 +15,7 @@ from .kernels import (_CA_CX, _CA_CY, _CA_P, _CA_TABLE_TOP, _DOF_RMAX, _HD_CX, _
                       _expected_loop, _feature_expected_loop, _feature_reference_loop, _features_loop,
                       _mb_swept_boxes, _radiance_loop, _reference_loop)
 from .textured import _CD_APERTURE, _CD_FOCUS, _CD_PLANES, _CS_OCC, _CS_P, _CW_OCC
+from .params import PARAMS, check_params, pack
 
 __all__ = ['SCENES', 'FEATURE_LAYOUT', 'Scene', 'SoftShadowScene', 'DepthOfFieldScene', 'MotionBlurScene',
            'CausticScene', 'HDRScene', 'FlatScene', 'CheckerWallScene', 'CheckerSpotScene', 'CheckerDofScene']
@@ -61,6 +62,14 @@ class Scene:
     instead override ``_radiance(x, y, u)`` and ``_expected(x, y)`` with
     vectorised numpy code (``_kernel = 0``).
 
+    A built-in scene takes parameters (:data:`.params.PARAMS`: light size and
+    power, texture scale and contrast, the lens, the motion, ``exposure``...),
+    as keywords or a ``params`` dict; ``params`` holds those that differ
+    from the defaults, so a default scene has ``params == {}`` and renders
+    exactly as the constants say.  The class attributes that describe a
+    scene's geometry (``occluders``, ``emitter``, ``planes``...) and its
+    static helpers are those of the default parameters.
+
     Features (``feature_names``, the built-in scenes: ``albedo``, ``normal``,
     ``depth``, see :data:`FEATURE_LAYOUT` and ``docs/scenes.md``) are those
     of the primary hit of the same sample: a function of the same ``(x, y,
@@ -80,16 +89,46 @@ class Scene:
     #: Whether :class:`SceneRenderer` and :func:`write_scene_log` send the features unless told otherwise.
     features_default: bool = False
     _kernel: int = 0
+    #: The parameters that differ from the defaults (a user's subclass that skips ``__init__`` has none).
+    params: dict = {}
+    _prm = np.empty(0)
+    _exposure = 1.0
+
+    def __init__(self, params: dict | None = None, **kwargs):
+        where = f"scene {self.name!r}"
+        if params is not None and not isinstance(params, dict):
+            raise InputError(where, "params", f"{type(params).__name__}, expected a dict of parameter values")
+        given = {**(params or {}), **kwargs}
+        if self.name in PARAMS and type(self) is SCENES.get(self.name):
+            self.params = check_params(self.name, given)
+            self._prm = pack(self.name, self.params)
+        else:  # a user's own scene: no parameters
+            if given:
+                raise InputError(where, f"params.{sorted(given)[0]}", "this scene takes no parameters")
+            self.params = {}
+            self._prm = np.empty(0)
+        self._exposure = self.params.get("exposure", 1.0)
+
+    @property
+    def param_key(self) -> tuple:
+        """``params`` as a sorted tuple of (name, value) pairs (hashable: a cache key)."""
+        return tuple(sorted(self.params.items()))
+
+    def _expose(self, out):
+        """``out`` times the ``exposure`` parameter, in place (untouched at the default 1)."""
+        if self._exposure != 1.0:
+            out *= self._exposure
+        return out
 
     def radiance(self, x, y, u) -> np.ndarray:
         """Sample values (N, 3) float64 at normalised positions, ``u`` (N, n_dims) in [0, 1)."""
         x, y = _as_xy(self.name, x, y)
-        return self._radiance(x, y, self._check_u(x, u))
+        return self._expose(self._radiance(x, y, self._check_u(x, u)))
 
     def expected(self, x, y) -> np.ndarray:
         """E_u[radiance(x, y, u)] (N, 3) float64, in closed form."""
         x, y = _as_xy(self.name, x, y)
-        return self._expected(x, y)
+        return self._expose(self._expected(x, y))
 
     def _radiance(self, x, y, u):
         return self._run_kernel(_radiance_loop, "_radiance(x, y, u)", len(self.channels), x, y, u)
@@ -103,7 +142,7 @@ class Scene:
         if not self._kernel:
             raise NotImplementedError(f"{type(self).__name__} must override {method} or set _kernel")
         out = np.empty((x.size, columns))
-        loop(self._kernel, x, *args, out)
+        loop(self._kernel, self._prm, x, *args, out)
         return out
 
     def features(self, x, y, u) -> dict:
@@ -150,17 +189,19 @@ class Scene:
         return self._run_kernel(_feature_expected_loop, "_expected_features(x, y)", _N_FEATURES, x, y)
 
     def _reference(self, width, height, quadrature):
+        """(H, W, C) pixel averages of the expected colour before ``exposure`` (the caller applies it)."""
         out = np.empty((height, width, len(self.channels)))
         if self._kernel:
-            _reference_loop(self._kernel, width, height, quadrature, out)
+            _reference_loop(self._kernel, self._prm, width, height, quadrature, out)
             return out
-        return self._midpoint(self.expected, out, width, height, quadrature)
+        return self._midpoint(lambda x, y: self._expected(*_as_xy(self.name, x, y)), out, width, height,
+                              quadrature)
 
     def _feature_reference(self, width, height, quadrature):
         """(H, W, 7) pixel averages of :meth:`_expected_features` (midpoint rule, as :meth:`_reference`)."""
         out = np.empty((height, width, _N_FEATURES))
         if self._kernel:
-            _feature_reference_loop(self._kernel, width, height, quadrature, out)
+            _feature_reference_loop(self._kernel, self._prm, width, height, quadrature, out)
             return out
         return self._midpoint(lambda x, y: self._expected_features(*_as_xy(self.name, x, y)), out, width,
                               height, quadrature)
@@ -181,7 +222,7 @@ class Scene:
         return out
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}()"
+        return f"{type(self).__name__}({self.params!r})" if self.params else f"{type(self).__name__}()"
 
 
 class SoftShadowScene(Scene):

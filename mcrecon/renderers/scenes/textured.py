@@ -32,48 +32,56 @@ _CW_OCC = np.array([0.22, 0.70, 0.28, 0.68])
 _CW_DEPTH = 2.0
 
 
-@_njit
-def _cw_width(x):
-    return 0.02 + 0.10 * x
+#: Parameter layout shared by checker_wall and checker_spot: the albedo block 0:16 (coarse squares per unit
+#: 0, coarse albedos 1:7, fine squares per unit 7, fine quadrant corner 8, 9, fine albedos 10:16); then
+#: checker_wall: sky 16, light 17:20, occluder 20:24, penumbra W0 24, W1 25, depth 26;
+#: checker_spot: p 16, sky 17, light 18:21, spot centre 21, 22, s^2 23, occluder 24:28, W0 28, W1 29.
+_CW_W0, _CW_W1 = 0.02, 0.10
+_CS_W0, _CS_W1 = 0.004, 0.012
 
 
 @_njit
-def _cw_albedo(x, y, f):
+def _cw_width(p, x):
+    return p[24] + p[25] * x
+
+
+@_njit
+def _cw_albedo(p, x, y, f):
     """Albedo at one point into f[0:3] (deterministic: the wall faces the pinhole camera)."""
-    if x >= _CW_FINE_X and y >= _CW_FINE_Y:
-        chk = _checker(x, y, _CW_FINE)
+    if x >= p[8] and y >= p[9]:
+        chk = _checker(x, y, p[7])
         for c in range(3):
-            f[c] = _CW_FINE_ALBEDO[0, c] + (_CW_FINE_ALBEDO[1, c] - _CW_FINE_ALBEDO[0, c]) * chk
+            f[c] = p[10 + c] + (p[13 + c] - p[10 + c]) * chk
     else:
-        chk = _checker(x, y, _CW_COARSE)
+        chk = _checker(x, y, p[0])
         for c in range(3):
-            f[c] = _CW_COARSE_ALBEDO[0, c] + (_CW_COARSE_ALBEDO[1, c] - _CW_COARSE_ALBEDO[0, c]) * chk
+            f[c] = p[1 + c] + (p[4 + c] - p[1 + c]) * chk
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _lit_wall(x, y, sky, light, amount, out):
+def _lit_wall(p, x, y, sky, light, amount, out):
     """The textured wall's colour at one point into out[0:3]: albedo times (sky + light * amount)."""
-    _cw_albedo(x, y, out)
+    _cw_albedo(p, x, y, out)
     for c in range(3):
         out[c] *= sky + light[c] * amount
 
 
 @_njit
-def _cw_radiance(x, y, u, out):
-    vis = 0.0 if _box_hit(x, y, _cw_width(x), u[0], u[1], _CW_OCC) else 1.0
-    sky = _CW_SKY * 2.0 * u[2]
-    _lit_wall(x, y, sky, _CW_LIGHT, vis, out)
+def _cw_radiance(p, x, y, u, out):
+    vis = 0.0 if _box_hit(x, y, _cw_width(p, x), u[0], u[1], p[20:24]) else 1.0
+    sky = p[16] * 2.0 * u[2]
+    _lit_wall(p, x, y, sky, p[17:20], vis, out)
 
 
 @_njit
-def _cw_expected(x, y, out):
-    vis = 1.0 - _box_cover(x, y, _cw_width(x), _CW_OCC)
-    _lit_wall(x, y, _CW_SKY, _CW_LIGHT, vis, out)
+def _cw_expected(p, x, y, out):
+    vis = 1.0 - _box_cover(x, y, _cw_width(p, x), p[20:24])
+    _lit_wall(p, x, y, p[16], p[17:20], vis, out)
 
 
 @_njit
-def _cw_feature_expected(x, y, f):
-    _cw_albedo(x, y, f)
+def _cw_feature_expected(p, x, y, f):
+    _cw_albedo(p, x, y, f)
     f[3] = 0.0
     f[4] = 0.0
     f[5] = -1.0
@@ -81,9 +89,9 @@ def _cw_feature_expected(x, y, f):
 
 
 @_njit
-def _cw_features(x, y, u, f):
+def _cw_features(p, x, y, u, f):
     # The primary hit does not depend on the light or sky samples: the features are exact per point.
-    _cw_feature_expected(x, y, f)
+    _cw_feature_expected(p, x, y, f)
 
 
 # --- checker_spot ------------------------------------------------------------
@@ -100,40 +108,40 @@ _CS_OCC = np.array([0.30, 0.56, 0.46, 0.82])
 
 
 @_njit
-def _cs_width(x):
-    return 0.004 + 0.012 * x
+def _cs_width(p, x):
+    return p[28] + p[29] * x
 
 
 @_njit
-def _cs_falloff(x, y):
-    return 1.0 / (1.0 + ((x - _CS_CX) ** 2 + (y - _CS_CY) ** 2) / _CS_S2)
+def _cs_falloff(p, x, y):
+    return 1.0 / (1.0 + ((x - p[21]) ** 2 + (y - p[22]) ** 2) / p[23])
 
 
 @_njit
-def _cs_radiance(x, y, u, out):
+def _cs_radiance(p, x, y, u, out):
     vis = 0.0
-    if u[0] < _CS_P:
-        vis = 0.0 if _box_hit(x, y, _cs_width(x), u[1], u[2], _CS_OCC) else 1.0 / _CS_P
-    light = _cs_falloff(x, y) * vis
-    sky = _CS_SKY * 2.0 * u[3]
-    _lit_wall(x, y, sky, _CS_LIGHT, light, out)
+    if u[0] < p[16]:
+        vis = 0.0 if _box_hit(x, y, _cs_width(p, x), u[1], u[2], p[24:28]) else 1.0 / p[16]
+    light = _cs_falloff(p, x, y) * vis
+    sky = p[17] * 2.0 * u[3]
+    _lit_wall(p, x, y, sky, p[18:21], light, out)
 
 
 @_njit
-def _cs_expected(x, y, out):
-    vis = 1.0 - _box_cover(x, y, _cs_width(x), _CS_OCC)
-    light = _cs_falloff(x, y) * vis
-    _lit_wall(x, y, _CS_SKY, _CS_LIGHT, light, out)
+def _cs_expected(p, x, y, out):
+    vis = 1.0 - _box_cover(x, y, _cs_width(p, x), p[24:28])
+    light = _cs_falloff(p, x, y) * vis
+    _lit_wall(p, x, y, p[17], p[18:21], light, out)
 
 
 @_njit
-def _cs_feature_expected(x, y, f):
-    _cw_feature_expected(x, y, f)  # the same wall as checker_wall
+def _cs_feature_expected(p, x, y, f):
+    _cw_feature_expected(p, x, y, f)  # the same wall as checker_wall
 
 
 @_njit
-def _cs_features(x, y, u, f):
-    _cw_feature_expected(x, y, f)
+def _cs_features(p, x, y, u, f):
+    _cw_feature_expected(p, x, y, f)
 
 
 # --- checker_dof -------------------------------------------------------------
@@ -145,15 +153,17 @@ _CD_APERTURE = 1.0 / 8.0
 _CD_FOCUS = 2.0
 
 
-def _cd_blur(z):
-    return _CD_APERTURE * (1.0 / z - 1.0 / _CD_FOCUS)
+def _cd_blur(z, aperture=_CD_APERTURE, focus=_CD_FOCUS):
+    return aperture * (1.0 / z - 1.0 / focus)
 
 
-def _cd_planes():
+def _cd_planes(aperture=_CD_APERTURE, focus=_CD_FOCUS, texture_scale=1.0):
     """Columns: z, R, x0, x1, y0, y1, squares per unit n, A0 (3), A1 (3), irradiance E, normal (3).
 
     Front to back; the rectangle is in the plane's own pinhole-projected film
-    coordinates; the last plane (the wall) is unbounded.
+    coordinates; the last plane (the wall) is unbounded.  ``aperture`` and
+    ``focus`` set each plane's blur R (the scene's parameters), ``texture_scale``
+    multiplies the squares per unit.
     """
     inf = np.inf
     rows = [
@@ -168,51 +178,53 @@ def _cd_planes():
     ]
     out = np.empty((len(rows), 17))
     for k, (z, x0, x1, y0, y1, n, a0, a1, e, nrm) in enumerate(rows):
-        out[k] = (z, _cd_blur(z), x0, x1, y0, y1, n, *a0, *a1, e, *nrm)
+        out[k] = (z, _cd_blur(z, aperture, focus), x0, x1, y0, y1, n * texture_scale if texture_scale != 1.0 else n,
+                  *a0, *a1, e, *nrm)
     return out
 
 
 _CD_PLANES = _cd_planes()
 _CD_K = _CD_PLANES.shape[0]
+# parameter array: the planes' rows (17 numbers each, as _cd_planes) one after the other
 
 
 @_njit
-def _cd_hit(x, y, u):
+def _cd_hit(p, x, y, u):
     """(plane index, s, t): the first plane whose rectangle holds the lens ray's projected hit point."""
     for k in range(_CD_K):
-        p = _CD_PLANES[k]
-        s = x + p[1] * (u[0] - 0.5)
-        t = y + p[1] * (u[1] - 0.5)
-        if p[2] <= s < p[3] and p[4] <= t < p[5]:
+        q = p[17 * k:17 * k + 17]
+        s = x + q[1] * (u[0] - 0.5)
+        t = y + q[1] * (u[1] - 0.5)
+        if q[2] <= s < q[3] and q[4] <= t < q[5]:
             return k, s, t
     return _CD_K - 1, s, t  # not reached: the last plane is unbounded
 
 
 @_njit
-def _cd_albedo(k, s, t, f):
-    p = _CD_PLANES[k]
-    chk = _checker(s, t, p[6])
+def _cd_albedo(p, k, s, t, f):
+    q = p[17 * k:17 * k + 17]
+    chk = _checker(s, t, q[6])
     for c in range(3):
-        f[c] = p[7 + c] + (p[10 + c] - p[7 + c]) * chk
+        f[c] = q[7 + c] + (q[10 + c] - q[7 + c]) * chk
 
 
 @_njit
-def _cd_radiance(x, y, u, out):
-    k, s, t = _cd_hit(x, y, u)
-    _cd_albedo(k, s, t, out)
+def _cd_radiance(p, x, y, u, out):
+    k, s, t = _cd_hit(p, x, y, u)
+    _cd_albedo(p, k, s, t, out)
     # per-sample irradiance estimate with mean E_k (u3 independent of the lens sample)
-    e = _CD_PLANES[k, 13] * (0.5 + u[2])
+    e = p[17 * k + 13] * (0.5 + u[2])
     for c in range(3):
         out[c] *= e
 
 
 @_njit
-def _cd_features(x, y, u, f):
-    k, s, t = _cd_hit(x, y, u)
-    _cd_albedo(k, s, t, f)
+def _cd_features(p, x, y, u, f):
+    k, s, t = _cd_hit(p, x, y, u)
+    _cd_albedo(p, k, s, t, f)
     for c in range(3):
-        f[3 + c] = _CD_PLANES[k, 14 + c]
-    f[6] = _CD_PLANES[k, 0]
+        f[3 + c] = p[17 * k + 14 + c]
+    f[6] = p[17 * k]
 
 
 @_njit
@@ -239,7 +251,7 @@ def _cd_square_integral(z, r, m, lo, hi):
 
 
 @_njit
-def _cd_expect(x, y, out, features):
+def _cd_expect(pa, x, y, out, features):
     """E_u of the colour (out[0:3]) or, with ``features``, of the 7 features, at one film point.
 
     Plane k is hit when its rectangle holds its projected point and no plane
@@ -252,7 +264,7 @@ def _cd_expect(x, y, out, features):
     for c in range(n_out):
         out[c] = 0.0
     for k in range(_CD_K):
-        p = _CD_PLANES[k]
+        p = pa[17 * k:17 * k + 17]
         bx0, bx1 = _cd_interval(x, p[1], p[2], p[3])
         by0, by1 = _cd_interval(y, p[1], p[4], p[5])
         if bx1 <= bx0 or by1 <= by0:
@@ -263,7 +275,7 @@ def _cd_expect(x, y, out, features):
             sign = 1.0
             for j in range(k):
                 if (mask >> j) & 1:
-                    q = _CD_PLANES[j]
+                    q = pa[17 * j:17 * j + 17]
                     jx0, jx1 = _cd_interval(x, q[1], q[2], q[3])
                     jy0, jy1 = _cd_interval(y, q[1], q[4], q[5])
                     lx, hx = max(lx, jx0), min(hx, jx1)
@@ -285,10 +297,10 @@ def _cd_expect(x, y, out, features):
 
 
 @_njit
-def _cd_expected(x, y, out):
-    _cd_expect(x, y, out, False)
+def _cd_expected(p, x, y, out):
+    _cd_expect(p, x, y, out, False)
 
 
 @_njit
-def _cd_feature_expected(x, y, f):
-    _cd_expect(x, y, f, True)
+def _cd_feature_expected(p, x, y, f):
+    _cd_expect(p, x, y, f, True)
