@@ -60,7 +60,7 @@ _WHERE = "method auto"
 Z_BIAS = 2.0
 #: Standard errors by which a black box scored by cross-validation (OIDN) must undercut the best plain
 #: candidate's summed estimate to become the global prior's default (:func:`_guards`).
-Z_BLACKBOX = 2.0
+Z_BLACKBOX = 1.0
 #: The candidates :data:`Z_BLACKBOX` applies to.
 BLACK_BOXES = ("oidn", "oidn_aux")
 #: The region guard's smoothing, in units of ``smooth``.

@@ -181,9 +181,11 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     region guard already makes the mean the default of every region
     without evidence against it (a global box default costs the built-in
     caustic 15 %).  A ``guarded`` candidate (the feature-guided
-    ones) is ``g`` only if its sum undercuts the best other candidate's
-    significantly (:func:`_significantly_lower`): their estimates are the
-    noisiest where they differ most, at texture edges.  ``scale`` (the albedo)
+    ones, and OIDN) is ``g`` only if its sum undercuts the best plain candidate's
+    significantly (:func:`_significantly_lower`; ``guarded``: indices, each at
+    :data:`Z_GLOBAL` standard errors, or a dict index -> z): the feature-guided
+    estimates are the noisiest where they differ most, at texture edges, and a
+    cross-validated black box's noise is independent of the Stein estimates'.  ``scale`` (the albedo)
     divides the means and values of the median test (:func:`_nearer_the_neighbours`:
     on a texture a neighbour's colour is another square's).  Returns the new
     choice and the mask of pixels whose choice is ``g`` (all False when the
