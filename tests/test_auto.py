@@ -163,7 +163,7 @@ def test_diagnostics_are_present_finite_and_name_the_choice():
         assert a.shape == ref.shape[:2] and np.isfinite(a).all(), k
     m = get_method("auto")
     names = m.candidate_names()
-    assert names[0] == "box" and names[-2:] == ["nlm", "oidn"] and len(names) == 11
+    assert names[0] == "box" and names[-3:] == ["nlm", "oidn", "oidn_halves"] and len(names) == 12
     assert d["choice"].min() >= 0 and d["choice"].max() < len(names)
     assert np.array_equal(d["choice"], np.round(d["choice"]))
     # (the default's global prior gives NL-means nearly every pixel of this scene: 1627 of 1628 before
@@ -1072,8 +1072,8 @@ def test_the_run_names_every_candidate_of_its_choice():
     ss, _ = _textured(0)
     rec = _quiet(lambda: mcrecon.reconstruct(ss, method="auto", full=True))
     names = rec.run.candidate_names
-    assert names[:11] == get_method("auto").candidate_names()
-    assert names[11:] == ["nfor", "nfor_own", "dnlm", "mix33", "mix50", "mix67", "oidn_aux"]
+    assert names[:12] == get_method("auto").candidate_names()
+    assert names[12:] == ["nfor", "nfor_own", "dnlm", "mix33", "mix50", "mix67", "oidn_aux", "oidn_aux_halves"]
     assert rec.diagnostics()["choice"].max() < len(names)
     assert "dnlm" in [names[int(k)] for k in np.unique(rec.diagnostics()["choice"])]
 

@@ -49,14 +49,15 @@ def test_oidn_candidates_are_in_the_default():
         get_method("auto", feature_candidates="oidn_aux,bogus")
 
 
-def test_the_oidn_candidate_is_oidn_on_all_the_samples_not_on_the_halves():
+def test_the_oidn_candidate_is_oidn_on_all_the_samples_and_its_halves_average_comes_too():
     ss, hv, ref = _scene("soft_shadow")
     st = hv.merged()
-    c = blackbox.oidn_candidate("oidn", st, mean_variance_policy(st), hv)
-    np.testing.assert_array_equal(c.image, _oidn(st.mean))
-    halves_avg = 0.5 * (_oidn(hv.a.mean) + _oidn(hv.b.mean))
-    # OIDN on all the samples is the stronger filter (measured 0.70 of the mean's error against 0.95 here)
-    assert relative_mse(c.image, ref) < 0.85 * relative_mse(halves_avg, ref)
+    full, halves = blackbox.oidn_candidate("oidn", st, mean_variance_policy(st), hv)
+    assert (full.name, halves.name) == ("oidn", "oidn_halves")
+    np.testing.assert_array_equal(full.image, _oidn(st.mean))
+    np.testing.assert_array_equal(halves.image, 0.5 * (_oidn(hv.a.mean) + _oidn(hv.b.mean)))
+    # without halves: OIDN on all the samples alone
+    assert [c.name for c in blackbox.oidn_candidate("oidn", st, mean_variance_policy(st), None)] == ["oidn"]
 
 
 def test_the_halves_estimate_predicts_the_full_sample_error():
@@ -64,7 +65,7 @@ def test_the_halves_estimate_predicts_the_full_sample_error():
     soft_shadow 64^2, 32 spp, seed 0, measured 0.99; unscaled (the error of OIDN on a half) 1.65."""
     ss, hv, ref = _scene("soft_shadow")
     st = hv.merged()
-    c = blackbox.oidn_candidate("oidn", st, mean_variance_policy(st), hv)
+    c = blackbox.oidn_candidate("oidn", st, mean_variance_policy(st), hv)[0]
     ratio = float(np.nansum(c.mse) / np.sum((c.image - ref) ** 2))
     assert 0.8 <= ratio <= 1.2, ratio
 
@@ -72,7 +73,8 @@ def test_the_halves_estimate_predicts_the_full_sample_error():
 def test_oidn_aux_feeds_prefiltered_features_with_clean_aux():
     ss, hv, ref = _scene("soft_shadow", features=True)
     st = hv.merged()
-    c = blackbox.oidn_candidate("oidn_aux", st, mean_variance_policy(st), hv, aux=True)
+    c, h = blackbox.oidn_candidate("oidn_aux", st, mean_variance_policy(st), hv, aux=True)
+    assert h.name == "oidn_aux_halves" and h.feature
     assert c.feature
     alb, nrm = blackbox.oidn_aux(st)
     f32 = lambda a: np.ascontiguousarray(a, dtype=np.float32)  # noqa: E731
@@ -83,18 +85,18 @@ def test_oidn_aux_feeds_prefiltered_features_with_clean_aux():
 def test_without_halves_the_estimate_is_monte_carlo_sure():
     ss, hv, ref = _scene("soft_shadow")
     st = hv.merged()
-    c = blackbox.oidn_candidate("oidn", st, mean_variance_policy(st), None)
+    (c,) = blackbox.oidn_candidate("oidn", st, mean_variance_policy(st), None)
     assert np.isfinite(c.mse).all()
     ratio = float(np.sum(c.mse) / np.sum((c.image - ref) ** 2))
-    assert 0.5 <= ratio <= 1.5, ratio   # Stein's lemma holds for near-Gaussian noise: measured 0.69 at 128^2
+    assert 0.7 <= ratio <= 1.1, ratio   # Stein's lemma holds for near-Gaussian noise: measured 0.91
 
 
 @pytest.mark.parametrize("name,features,measured", [
-    ("soft_shadow", True, 0.567), ("caustic", False, 0.413), ("depth_of_field", False, 0.835)])
+    ("soft_shadow", True, 0.567), ("caustic", False, 0.421), ("depth_of_field", False, 0.734)])
 def test_auto_quality_with_oidn(name, features, measured):
     """auto's relative MSE over the pixel mean's (64^2, 32 spp, seed 0), within 15 % of the measured value;
     with features at least as good as OIDN given the pixel means of the albedo and normal (0.670 there), and
-    on depth of field within 5 % of colour-only OIDN (0.828)."""
+    on depth of field at least as good as colour-only OIDN (0.828)."""
     ss, hv, ref = _scene(name, features)
     st = hv.merged()
     e = relative_mse(_quiet(lambda: mcrecon.reconstruct(ss, method="auto")), ref) / relative_mse(st.mean, ref)
@@ -103,4 +105,4 @@ def test_auto_quality_with_oidn(name, features, measured):
         an = _oidn(st.mean, st.features["albedo"].mean, st.features["normal"].mean)
         assert e <= relative_mse(an, ref) / relative_mse(st.mean, ref), e
     if name == "depth_of_field":
-        assert e <= 1.05 * relative_mse(_oidn(st.mean), ref) / relative_mse(st.mean, ref), e
+        assert e <= relative_mse(_oidn(st.mean), ref) / relative_mse(st.mean, ref), e

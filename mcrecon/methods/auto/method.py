@@ -62,7 +62,7 @@ Z_BIAS = 2.0
 #: candidate's summed estimate to become the global prior's default (:func:`_guards`).
 Z_BLACKBOX = 1.0
 #: The candidates :data:`Z_BLACKBOX` applies to.
-BLACK_BOXES = ("oidn", "oidn_aux")
+BLACK_BOXES = ("oidn", "oidn_aux", "oidn_halves", "oidn_aux_halves")
 #: The region guard's smoothing, in units of ``smooth``.
 GUARD = 2.0
 
@@ -234,7 +234,8 @@ class AutoMethod(Method):
         return None
 
     def candidate_names(self) -> list[str]:
-        """Names of the colour candidates in ``choice`` order (``gauss`` expands to one per scale).
+        """Names of the colour candidates in ``choice`` order (``gauss`` expands to one per scale, ``oidn``
+        to ``oidn`` and ``oidn_halves``: the latter only where the run has halves).
 
         With features the feature-guided candidates follow them; a run's own list, those included,
         is :attr:`AutoRun.candidate_names` after its reconstruction."""
@@ -242,6 +243,8 @@ class AutoMethod(Method):
         for c in self._names:
             if c == "gauss":
                 out += [f"gauss{s:.3g}" for s in final_sigmas(self.params["scales"])]
+            elif c == "oidn":
+                out += ["oidn", "oidn_halves"]
             else:
                 out.append(c)
         return out
@@ -293,11 +296,11 @@ class AutoMethod(Method):
                 out.append(self._dual(name, a, b, cross_validation_mse(a, yb, vb), cross_validation_mse(b, ya, va),
                                       ha.count, hb.count))
         if "oidn" in names:
-            out.append(oidn_candidate("oidn", stats, v, halves))
+            out += oidn_candidate("oidn", stats, v, halves)
         if self._feature_names and halves is not None and halves.a.features:
             out += self._feature_candidates(stats, halves.a, halves.b)
         if "oidn_aux" in self._feature_names and "albedo" in stats.features:
-            out.append(oidn_candidate("oidn_aux", stats, v, halves, aux=True))
+            out += oidn_candidate("oidn_aux", stats, v, halves, aux=True)
         if "fbil" in self._feature_names and stats.features and halves is None:
             # only without halves: beside the halves' candidates its estimate, biased where the features
             # are noisy (defocus), cost auto 2.3x on the built-in checker_dof (docs/methods/auto.md)
