@@ -95,8 +95,10 @@ Z_GLOBAL = 0.5
 BLOCK = 8
 
 
-def _significantly_lower(d: np.ndarray, z: float = Z_GLOBAL) -> bool:
-    """Whether ``sum(d) < -z * se``, se from the spread of the sums over BLOCK x BLOCK tiles."""
+def _significantly_lower(d: np.ndarray, z: float | None = None) -> bool:
+    """Whether ``sum(d) < -z * se`` (z default :data:`Z_GLOBAL`), se from the spread of the sums over BLOCK x
+    BLOCK tiles."""
+    z = Z_GLOBAL if z is None else z
     h, w = d.shape
     hb, wb = -(-h // BLOCK), -(-w // BLOCK)
     pad = np.zeros((hb * BLOCK, wb * BLOCK))
