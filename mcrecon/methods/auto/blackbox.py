@@ -18,6 +18,10 @@ input itself), colour only (``oidn``) and with the albedo and normal
   (the measured ratio of OIDN-on-all to OIDN-on-half error; two more
   OIDN runs).
 
+With the halves the average of OIDN on each half is a candidate too
+(``NAME_halves``, scored by the dual identity): neither image is better on
+every scene.
+
 ``sure`` predicts the per-region error best where the noise is near
 Gaussian, but Stein's lemma for a nonlinear filter needs that: on the
 caustic its sum comes out negative, and with the albedo and normal it
@@ -25,9 +29,10 @@ under-estimates OIDN under defocus and motion blur, where auto then loses
 to its colour-only run.  ``halves`` is the default; ``sure`` serves pixel
 statistics without halves.
 
-The inputs are one per-pixel estimate (the pixel means and the variance of
-each mean) and, for ``halves``, two half estimates: a cleaned estimate of
-the samples can be fed in their place.
+The inputs are one per-pixel estimate (``stats``: the pixel means, and
+``v``, the variance of each mean) and, for ``halves``, two half estimates:
+a cleaned estimate of the samples (as :class:`PixelStats` and its halves)
+can be fed in their place.
 """
 
 from __future__ import annotations
