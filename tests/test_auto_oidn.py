@@ -15,7 +15,7 @@ from mcrecon.core.metrics import relative_mse
 from mcrecon.errors import InputError
 from mcrecon.renderers import scenes
 
-pyoidn = pytest.importorskip("pyoidn")
+pyoidn = pytest.importorskip("pyoidn", reason="needs pyoidn (Intel OIDN), a dependency of mcrecon: pip install -e .")
 
 from mcrecon.methods.auto import blackbox  # noqa: E402
 
