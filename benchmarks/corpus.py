@@ -24,9 +24,10 @@ external ones are rendered once by ``--build`` and cached under
     python benchmarks/corpus.py --build                      # logs (128^2, 32 spp) and references (1024 spp)
     python benchmarks/corpus.py --build --size 512 --only mitsuba-cbox
 
-``--build`` at 128^2, 32 spp and 1024-spp references costs about 12 CPU
-minutes on 2 cores (the Cycles references, 60-110 CPU s each, most of it;
-Mitsuba 10-40 s each; the logs 5-10 s each); 512^2 costs 16 times that.  A
+``--build`` at 128^2, 32 spp and 1024-spp references took 33 minutes of
+wall on 2 cores shared with other jobs, about 12 CPU minutes (the Cycles
+references 190-560 s of wall each, most of it; Mitsuba's 18-62 s; the logs
+8-28 s each); 512^2 costs 16 times that.  A
 1024-spp reference's own noise adds about 32/1024 of the pixel mean's
 relMSE to every measured 32-spp relMSE (``--ref-spp`` for more).
 

@@ -205,7 +205,7 @@ def build_cycles(name: str, path: Path, *, size: int, seed: int) -> None:
             _box(bpy, "table", (-1.0, -0.5, 0.4), (1.2, 0.8, 0.8), _principled(bpy, "t", color=(0.3, 0.5, 0.7))[0])
             sun = _light(bpy, sc, "SUN", 120.0, (8, 2, 6), size=math.radians(1.0))
             lo = bpy.data.objects["sun"]
-            lo.rotation_euler = (0.0, math.radians(-55), math.radians(10))
+            lo.rotation_euler = (0.0, math.radians(55), math.radians(10))  # travelling towards -x, into the room
             sun.angle = math.radians(1.0)
             # the camera inside, in the corner by the window, looking at the back wall the sun does not reach
             _camera(bpy, sc, (2.6, -2.5, 1.6), (math.radians(88), 0, math.radians(125)), lens=20.0)

@@ -83,13 +83,18 @@ def test_pixel_means_converge_to_the_parametrised_reference(name):
 
 
 def test_each_parameter_changes_its_scene():
+    # a sampling parameter (a hit probability) changes the samples, not the expectation
     rng = np.random.default_rng(5)
     x, y = _points(4000, rng)
     for name, table in PARAMS.items():
-        base = S.get_scene(name).expected(x, y)
+        sc = S.get_scene(name)
+        u = rng.random((x.size, sc.n_dims))
+        base = np.concatenate([sc.expected(x, y), sc.radiance(x, y, u)])
         for k, (d, lo, hi, _) in table.items():
-            v = d + 0.3 * (hi - d) if k != "speed" else 1.2
-            assert not np.array_equal(S.get_scene(name, {k: v}).expected(x, y), base), (name, k)
+            v = 1.2 if k == "speed" else (d + 0.3 * (hi - d) if hi > d else d - 0.3 * (d - lo))
+            other = S.get_scene(name, {k: v})
+            assert not np.array_equal(np.concatenate([other.expected(x, y), other.radiance(x, y, u)]), base), \
+                (name, k)
 
 
 def test_exposure_and_power_scale_what_they_should():

@@ -161,12 +161,13 @@ def reference_image(scene, width: int, height: int, *, quadrature: int = 32) -> 
     Where ``expected`` is smooth the rule errs by O(1/q^2); a pixel cut by
     a discontinuity of height J errs by at most J/(2q) per point row
     crossing it (1.6 % of the jump at q = 32).  Results are cached in
-    memory by (scene name, size, quadrature).
+    memory by (scene name, parameters, size, quadrature).
 
     Parameters
     ----------
     scene : str or Scene
-        A built-in scene name (or instance; cached by its name).
+        A built-in scene name (or instance, e.g. from :func:`get_scene` with parameters; cached by its
+        name and parameters).
     width, height : int
         Film size in pixels (>= 1).
     quadrature : int
