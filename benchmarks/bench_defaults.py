@@ -120,7 +120,8 @@ def measure(scene, methods, spp, seeds, variance_spp, adaptive=True, oidn=False)
             from mcrecon.experiments.convergence import oidn_denoise
             from mcrecon.methods.auto.method import DEFAULT_CANDIDATES
             rows.setdefault(("oidn", None, "offline"), []).append(relative_mse(oidn_denoise(stats.mean), ref))
-            m = get_method("auto", candidates=DEFAULT_CANDIDATES + ",oidn")
+            with_oidn = DEFAULT_CANDIDATES if "oidn" in DEFAULT_CANDIDATES.split(",") else DEFAULT_CANDIDATES + ",oidn"
+            m = get_method("auto", candidates=with_oidn)
             img = _quiet(lambda: reconstruct(ss, method=m))
             rows.setdefault(("auto+oidn", None, "offline"), []).append(relative_mse(img, ref))
         for name in methods:

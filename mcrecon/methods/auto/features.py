@@ -25,9 +25,9 @@ __all__ = ["Candidate", "DEFAULT_FEATURE_CANDIDATES", "FEATURE_CANDIDATES", "MIX
            "feature_candidates", "feature_guided_half"]
 
 #: Feature-guided candidates (option ``feature_candidates``), used when the samples carry features.
-FEATURE_CANDIDATES = ("nfor", "nfor_own", "dnlm", "mix", "xbil", "fbil")
+FEATURE_CANDIDATES = ("nfor", "nfor_own", "dnlm", "mix", "xbil", "fbil", "oidn_aux")
 #: The measured default of ``feature_candidates`` (docs/methods/auto.md, "With per-sample features").
-DEFAULT_FEATURE_CANDIDATES = "nfor,nfor_own,dnlm,mix,fbil"
+DEFAULT_FEATURE_CANDIDATES = "nfor,nfor_own,dnlm,mix,fbil,oidn_aux"
 #: Weights of ``nfor_own`` in the ``mix`` candidates (``w nfor_own + (1 - w) dnlm`` per half).
 MIX_WEIGHTS = (1 / 3, 1 / 2, 2 / 3)
 

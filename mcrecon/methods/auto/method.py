@@ -2,11 +2,14 @@
 
 Candidates (option ``candidates``): the pixel mean (``box``), every
 Gaussian scale of GEM's final filter bank (``gauss``), cross-filtered
-non-local means (``nlm``), and the black boxes ``awr``, ``splat`` and
-``oidn``.  Each comes with an unbiased per-pixel MSE estimate
+non-local means (``nlm``), OIDN on all the samples (``oidn``; with the
+albedo and normal ``oidn_aux``, a feature candidate) and the black boxes
+``awr`` and ``splat``.  Each comes with a per-pixel MSE estimate
 (:mod:`mcrecon.methods.auto.estimates`): Stein's estimate for the linear filters (box,
 Gaussians, and NL-means whose weights come from the other half of the
-samples), dual-buffer cross-validation for the black boxes.  The estimates,
+samples), dual-buffer cross-validation for the black boxes run on each
+half, and for OIDN the halves' cross-validation scaled to the full-sample
+filter (:mod:`.blackbox`).  The estimates,
 relative to a reference-free ``mu^2 + eps``, are smoothed (a normalised
 Gaussian of ``smooth`` pixels) and every pixel takes the candidate of least
 smoothed estimate.  ``docs/methods/auto.md`` derives every estimator.
@@ -27,12 +30,14 @@ from .estimates import (cross_validation_mse, relative_denominator,
     sure, sure_filter_bank)
 from ...core.stats import PixelStats
 from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, uniform_counts
-from ...core.safeguard import albedo_divisor, confidence_clamp, empty_pixels_kept, safeguard_variance, sample_range_bounds
+from ...core.safeguard import (albedo_divisor, confidence_clamp, empty_pixels_kept, pooled_mean_variance,
+    safeguard_variance, sample_range_bounds)
 from ...core.fill import fill_empty_pixels
 from ...filters.gaussian import final_sigmas
 from ...core.fill import mean_variance_policy
 from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGHTS, Candidate,
-    _feature_bilateral, _filled, dual_candidate, feature_candidates)
+    _feature_bilateral, dual_candidate, feature_candidates)
+from .blackbox import oidn_candidate
 from .nlmeans import nlmeans_cross
 from ...filters.masked import MaskedSmoothing, smooth_masked
 from .passes import _mean_c, _picked
@@ -44,17 +49,62 @@ __all__ = ['AutoMethod', 'AutoRun', 'CANDIDATES', 'DEFAULT_CANDIDATES', 'DEFAULT
 #: Every candidate name ``candidates`` accepts.
 CANDIDATES = ("box", "gauss", "nlm", "awr", "splat", "oidn")
 #: Candidates that need the samples split into two halves.
-DUAL_BUFFER = ("nlm", "awr", "splat", "oidn")
+DUAL_BUFFER = ("nlm", "awr", "splat")
 #: Placement of the adaptive rounds' samples (option ``sampling``).
 SAMPLINGS = ("gem", "uniform", "greedy")
 #: The measured default (docs/methods/auto.md, "Choosing the default candidates").
-DEFAULT_CANDIDATES = "box,gauss,nlm"
+DEFAULT_CANDIDATES = "box,gauss,nlm,oidn"
 
 _WHERE = "method auto"
 #: Standard errors of the pixel mean beyond which a candidate's departure from it counts as bias.
 Z_BIAS = 2.0
+#: Standard errors by which a black box scored by cross-validation (OIDN) must undercut the best plain
+#: candidate's summed estimate to become the global prior's default (:func:`_guards`).
+Z_BLACKBOX = 1.0
+#: The candidates :data:`Z_BLACKBOX` applies to.
+BLACK_BOXES = ("oidn", "oidn_aux", "oidn_halves", "oidn_aux_halves")
 #: The region guard's smoothing, in units of ``smooth``.
 GUARD = 2.0
+
+
+def agreeing_variance(v: np.ndarray, count: np.ndarray, pooled: np.ndarray | None = None,
+                      divisor: np.ndarray | None = None) -> np.ndarray:
+    """``pooled`` (default ``v``) where the samples of a pixel all agree (``v = 0``), floored there by the
+    typical variance of its 5 x 5 neighbourhood.
+
+    A pixel whose samples all missed a rare component its neighbours found (an indirectly lit wall at
+    32 spp: a sample in 25 carries the light) has ``v = 0``; so does its 3 x 3 median
+    (:func:`pooled_mean_variance`) when most of its 3 x 3 neighbours missed it too.  Its pixel mean's
+    error estimate is then 0 and the clamp's interval ``y +- k sd`` a point: the pixel stays black beside
+    lit ones whatever the candidates say.  The median over 5 x 5 pixels is 0 only where most of 25
+    pixels agree: an exactly black region, or a caustic's line a few pixels wide on black, keep their
+    zero interval.  ``divisor``: as :func:`safeguard_variance` (the pooling in units of the albedo).
+    """
+    base = v if pooled is None else pooled
+    zero = (v == 0) & (count > 0)[..., None]
+    if not zero.any():
+        return base
+    d2 = 1.0 if divisor is None else divisor * divisor
+    wide = pooled_mean_variance(v / d2, count, radius=2) * d2
+    return np.where(zero, np.maximum(base, wide), base)
+
+
+def _guards(cands) -> dict:
+    """The global prior's guarded candidates: index -> the standard errors by which each must undercut.
+
+    Feature-guided ones :data:`~.selection.Z_GLOBAL`; the black boxes (:data:`BLACK_BOXES`) the larger
+    :data:`Z_BLACKBOX`: their cross-validated estimates carry noise independent of the Stein estimates
+    of the linear filters (which share the pixel means' noise, so their differences are far less
+    noisy).  Where every candidate's error is far below that noise (a flat field, 8 spp) a plain argmin
+    of the sums makes OIDN the default at random: 20x the widest Gaussian's error there."""
+    from .selection import Z_GLOBAL
+    out = {}
+    for k, c in enumerate(cands):
+        if c.name in BLACK_BOXES:
+            out[k] = max(Z_BLACKBOX, Z_GLOBAL if c.feature else 0.0)
+        elif c.feature:
+            out[k] = Z_GLOBAL
+    return out
 
 
 def _oidn_available() -> bool:
@@ -81,8 +131,8 @@ class AutoMethod(Method):
 
     Options (keyword-only; also the CLI flags and ``mcrecon methods auto``):
     :attr:`options`.  Without features a run is the colour-only one, bit
-    for bit; with ``oidn`` among the candidates OIDN gets each half's
-    albedo and normal.
+    for bit; with an albedo (and normal) OIDN runs a second time with them
+    (``oidn_aux``).
 
     Diagnostics: ``choice`` (candidate index per pixel, in the order of
     :meth:`candidate_names`), ``estimated_mse`` (mean over channels of the
@@ -96,14 +146,16 @@ class AutoMethod(Method):
     initial_spp = 4
     options = (
         Option("candidates", str, DEFAULT_CANDIDATES, "comma-separated candidate reconstructions: "
-               + ", ".join(CANDIDATES) + " (nlm/awr/splat/oidn split every pixel's samples into two halves: "
-               "they need the samples or a half-buffer pair; oidn needs pyoidn; splat only offline)"),
+               + ", ".join(CANDIDATES) + " (nlm/awr/splat split every pixel's samples into two halves: "
+               "they need the samples or a half-buffer pair; splat only offline; oidn runs on all the samples and is "
+               "scored from the halves when there are halves)"),
         Option("feature_candidates", str, DEFAULT_FEATURE_CANDIDATES, "when the statistics carry features: "
                "comma-separated feature-guided candidates added to candidates, on the halves: nfor (first-order "
                "regression on the other half's weights and features, Bitterli et al. 2016; SURE), nfor_own (the "
                "same on the half's own), dnlm (NL-means of the colour divided by the albedo), mix (nfor_own and "
                "dnlm averaged 1:2, 1:1, 2:1), xbil (cross-bilateral, Rousselle et al. 2013); fbil (bilateral "
-               "with feature weights only, SURE) from pixel statistics without halves; none: colour only"),
+               "with feature weights only, SURE) from pixel statistics without halves; oidn_aux (OIDN on all the "
+               "samples with the prefiltered albedo and normal); none: colour only"),
         Option("scales", int, 8, "Gaussian scales of the gauss candidates (GEM's final bank)", min=1, max=16),
         Option("smooth", float, 2.0, "sigma (px) of the smoothing of the error maps before the choice "
                "(0: none)", min=0.0, max=32.0),
@@ -153,6 +205,9 @@ class AutoMethod(Method):
         if len(set(fnames)) != len(fnames):
             raise InputError(self.where, "feature_candidates", f"{params['feature_candidates']!r} names a candidate "
                              "twice")
+        if "oidn_aux" in fnames and not _oidn_available():
+            raise InputError(self.where, "feature_candidates", "'oidn_aux' needs the Python package pyoidn "
+                             "(pip install pyoidn); leave it out without it")
         fordered = tuple(c for c in FEATURE_CANDIDATES if c in fnames)
         params["feature_candidates"] = ",".join(fordered) or "none"
         object.__setattr__(self, "_feature_names", fordered)
@@ -166,7 +221,7 @@ class AutoMethod(Method):
         # renderer wrote (half_buffers: the pair stands in for the samples; with SURE
         # candidates alone the pair is merged into the statistics of all the samples)
         # features: read when the source has them and a feature candidate is on (nfor/xbil/dnlm on the
-        # halves, fbil without them; OIDN takes each half's albedo and normal then); a source without
+        # halves, fbil without them, oidn_aux with or without); a source without
         # features gives exactly the colour-only run
         # statistics_options: on pixel statistics alone (one EXR) the SURE candidates need neither
         return Requirements(samples=any(c in DUAL_BUFFER for c in self._names), half_buffers=True,
@@ -179,7 +234,8 @@ class AutoMethod(Method):
         return None
 
     def candidate_names(self) -> list[str]:
-        """Names of the colour candidates in ``choice`` order (``gauss`` expands to one per scale).
+        """Names of the colour candidates in ``choice`` order (``gauss`` expands to one per scale, ``oidn``
+        to ``oidn`` and ``oidn_halves``: the latter only where the run has halves).
 
         With features the feature-guided candidates follow them; a run's own list, those included,
         is :attr:`AutoRun.candidate_names` after its reconstruction."""
@@ -187,6 +243,8 @@ class AutoMethod(Method):
         for c in self._names:
             if c == "gauss":
                 out += [f"gauss{s:.3g}" for s in final_sigmas(self.params["scales"])]
+            elif c == "oidn":
+                out += ["oidn", "oidn_halves"]
             else:
                 out.append(c)
         return out
@@ -197,11 +255,12 @@ class AutoMethod(Method):
         y = stats.mean
         count = stats.count
         v = mean_variance_policy(stats)
+        v_sure = agreeing_variance(v, count)
         out: list[Candidate] = []
         names = self._names
         if "box" in names or "gauss" in names:
             sig = final_sigmas(p["scales"]) if "gauss" in names else np.zeros(0)
-            sb = sure_filter_bank(y, v, count, sig)
+            sb = sure_filter_bank(y, v_sure, count, sig)
             if "box" in names:
                 out.append(Candidate("box", sb.values[0], sb.sure[0]))
             for k in range(1, len(sb.values)):
@@ -210,10 +269,10 @@ class AutoMethod(Method):
         if dual and halves is None:
             warnings.warn(f"{_WHERE}: candidates {', '.join(dual)} need the samples (two halves); only pixel "
                           "statistics are available, so auto falls back to the SURE candidates "
-                          "(box, gauss)", McreconWarning, stacklevel=4)
+                          "(box, gauss; and oidn, scored by Monte-Carlo SURE)", McreconWarning, stacklevel=4)
             dual = []
             if not out:
-                sb = sure_filter_bank(y, v, count, final_sigmas(p["scales"]))
+                sb = sure_filter_bank(y, v_sure, count, final_sigmas(p["scales"]))
                 out = [Candidate("box", sb.values[0], sb.sure[0])]
         if dual:
             ha, hb = halves.a, halves.b
@@ -225,7 +284,7 @@ class AutoMethod(Method):
                 sa = sure(ya, va, fa, wa)
                 sbb = sure(yb, vb, fb, wb)
                 out.append(self._dual("nlm", fa, fb, sa, sbb, ha.count, hb.count))
-            for name in ("awr", "oidn", "splat"):
+            for name in ("awr", "splat"):
                 if name not in dual:
                     continue
                 if name == "splat" and halves.source is None:
@@ -236,8 +295,12 @@ class AutoMethod(Method):
                 a, b = self._black_box(name, halves, nonfinite)
                 out.append(self._dual(name, a, b, cross_validation_mse(a, yb, vb), cross_validation_mse(b, ya, va),
                                       ha.count, hb.count))
+        if "oidn" in names:
+            out += oidn_candidate("oidn", stats, v, halves)
         if self._feature_names and halves is not None and halves.a.features:
             out += self._feature_candidates(stats, halves.a, halves.b)
+        if "oidn_aux" in self._feature_names and "albedo" in stats.features:
+            out += oidn_candidate("oidn_aux", stats, v, halves, aux=True)
         if "fbil" in self._feature_names and stats.features and halves is None:
             # only without halves: beside the halves' candidates its estimate, biased where the features
             # are noisy (defocus), cost auto 2.3x on the built-in checker_dof (docs/methods/auto.md)
@@ -250,20 +313,6 @@ class AutoMethod(Method):
 
     _dual = staticmethod(dual_candidate)
 
-    @staticmethod
-    def _oidn_aux(h: PixelStats) -> tuple:
-        """OIDN's auxiliary images from a half's own features: ``(albedo, normal)``, ``(albedo,)`` or ``()``.
-
-        The half's pixel means (noisy under defocus and at few samples, so OIDN prefilters them:
-        ``clean_aux`` stays off); OIDN takes a normal only beside an albedo."""
-        aux = []
-        for name in ("albedo", "normal"):
-            f = h.features.get(name)
-            if f is None or f.mean.shape[2] != 3:
-                break
-            aux.append(np.ascontiguousarray(_filled(f.mean, f.count), dtype=np.float32))
-        return tuple(aux)
-
     def _black_box(self, name, halves: Halves, nonfinite):
         from .. import get_method
         ha, hb = halves
@@ -273,22 +322,6 @@ class AutoMethod(Method):
                 warnings.simplefilter("ignore", McreconWarning)
                 return (np.asarray(m.reconstruct(MethodInputs(ha)), dtype=np.float64),
                         np.asarray(m.reconstruct(MethodInputs(hb)), dtype=np.float64))
-        if name == "oidn":
-            import pyoidn
-            res = []
-            for h in (ha, hb):
-                img = fill_empty_pixels(h.mean.copy(), h.count, source=_WHERE) if (h.count == 0).any() else h.mean
-                c = img.shape[2]
-                rgb = np.zeros(img.shape[:2] + (3,), np.float32)
-                rgb[..., :min(c, 3)] = img[..., :3]
-                if c == 1:
-                    rgb[..., 1] = rgb[..., 2] = rgb[..., 0]
-                aux = self._oidn_aux(h) if self._feature_names else ()  # feature_candidates='none': colour only
-                den = np.asarray(pyoidn.denoise(np.ascontiguousarray(rgb), *aux, hdr=True, quality="high"), np.float64)
-                full = img.astype(np.float64).copy()
-                full[..., :min(c, 3)] = den[..., :min(c, 3)]
-                res.append(full)
-            return res[0], res[1]
         # splat: the samples of each half (rounds dropped: single-round replay)
         m = get_method("splat")
         out = []
@@ -321,7 +354,8 @@ class AutoMethod(Method):
         # of each pixel's albedo (albedo_divisor): a light square beside dark ones would otherwise have
         # its interval narrowed by theirs.
         divisor = albedo_divisor(stats) if self.params["safeguard"] is not None else None
-        v_safe = v if self.params["safeguard"] is None else safeguard_variance(v, count, divisor)
+        v_safe = v if self.params["safeguard"] is None else agreeing_variance(
+            v, count, safeguard_variance(v, count, divisor), divisor)
         sd = np.sqrt(v_safe)
         smoothing = MaskedSmoothing(smooth)
         rel, choice = _relative_choice(cands, den, y, sd, count, smoothing, Z_BIAS)
@@ -333,8 +367,7 @@ class AutoMethod(Method):
             # the default's smoothed estimate again, not every candidate's kept until the default is known
             choice, on_default = _global_prior(cands, lambda k: smoothing([_mean_c(cands[k].mse, den)])[0], rel,
                                                choice, y, v, count, bounds, smooth, self.params["global_prior"],
-                                               self.params["safeguard"], [k for k, c in enumerate(cands) if c.feature],
-                                               divisor)
+                                               self.params["safeguard"], _guards(cands), divisor)
         # ties (e.g. noise-free regions, where every ratio is undefined) go to the first candidate
         if cands[0].name == "box" and smooth > 0:
             # Region guard: where the chosen candidates' unbiased estimates,

@@ -95,8 +95,10 @@ Z_GLOBAL = 0.5
 BLOCK = 8
 
 
-def _significantly_lower(d: np.ndarray) -> bool:
-    """Whether ``sum(d) < -Z_GLOBAL * se``, se from the spread of the sums over BLOCK x BLOCK tiles."""
+def _significantly_lower(d: np.ndarray, z: float | None = None) -> bool:
+    """Whether ``sum(d) < -z * se`` (z default :data:`Z_GLOBAL`), se from the spread of the sums over BLOCK x
+    BLOCK tiles."""
+    z = Z_GLOBAL if z is None else z
     h, w = d.shape
     hb, wb = -(-h // BLOCK), -(-w // BLOCK)
     pad = np.zeros((hb * BLOCK, wb * BLOCK))
@@ -105,7 +107,7 @@ def _significantly_lower(d: np.ndarray) -> bool:
     if t.size < 2:
         return False
     se = float(np.sqrt(t.size) * np.std(t, ddof=1))
-    return float(t.sum()) < -Z_GLOBAL * se
+    return float(t.sum()) < -z * se
 
 
 def _nearer_the_neighbours(cands, g, choice, y, where, scale=None):
@@ -181,9 +183,11 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     region guard already makes the mean the default of every region
     without evidence against it (a global box default costs the built-in
     caustic 15 %).  A ``guarded`` candidate (the feature-guided
-    ones) is ``g`` only if its sum undercuts the best other candidate's
-    significantly (:func:`_significantly_lower`): their estimates are the
-    noisiest where they differ most, at texture edges.  ``scale`` (the albedo)
+    ones, and OIDN) is ``g`` only if its sum undercuts the best plain candidate's
+    significantly (:func:`_significantly_lower`; ``guarded``: indices, each at
+    :data:`Z_GLOBAL` standard errors, or a dict index -> z): the feature-guided
+    estimates are the noisiest where they differ most, at texture edges, and a
+    cross-validated black box's noise is independent of the Stein estimates'.  ``scale`` (the albedo)
     divides the means and values of the median test (:func:`_nearer_the_neighbours`:
     on a texture a neighbour's colour is another square's).  Returns the new
     choice and the mask of pixels whose choice is ``g`` (all False when the
@@ -214,13 +218,15 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     buf = np.empty(vote.size)
     sums = [float(np.sum(buf[:_compress(r.ravel(), vote.ravel(), buf)])) for r in loo]
     g = int(np.argmin(sums))
-    plain = [k for k in range(len(cands)) if k not in guarded]
-    if g in guarded and plain:
-        # a guarded (feature-guided) candidate is the default only where its lower sum is real: lower
-        # than the best other candidate's by Z_GLOBAL standard errors of the summed difference, from
-        # sums over BLOCK x BLOCK tiles (neighbouring pixels' estimates are correlated)
+    zs = guarded if isinstance(guarded, dict) else {k: Z_GLOBAL for k in guarded}
+    plain = [k for k in range(len(cands)) if k not in zs]
+    if g in zs and plain:
+        # a guarded candidate (feature-guided, or a black box scored by cross-validation) is the default
+        # only where its lower sum is real: lower than the best plain candidate's by its z standard errors
+        # of the summed difference, from sums over BLOCK x BLOCK tiles (neighbouring pixels' estimates
+        # are correlated)
         c = plain[int(np.argmin([sums[k] for k in plain]))]
-        if not _significantly_lower(np.where(vote, loo[g] - loo[c], 0.0)):
+        if not _significantly_lower(np.where(vote, loo[g] - loo[c], 0.0), zs[g]):
             g = c
     if g == 0 and cands[0].name == "box":
         return choice, none

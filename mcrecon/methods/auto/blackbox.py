@@ -1,0 +1,156 @@
+"""``auto``'s OIDN candidates: Intel Open Image Denoise on all the samples' pixel means, and its error estimate.
+
+OIDN run on half the samples is a weaker filter than OIDN on all of them
+(it sees twice the noise), so the halves' cross-validation scores the wrong
+image.  The candidates here are OIDN on the pixel means of *all* the
+samples (``hdr=True``; the radiance is passed as it is, OIDN scales its
+input itself), colour only (``oidn``) and with the albedo and normal
+(``oidn_aux``), scored by one of :data:`ESTIMATES` (docs/methods/auto.md,
+"OIDN candidates", measures each):
+
+* ``sure``: Monte-Carlo SURE for a black box (Ramani, Blu, Unser 2008):
+  ``(F(y) - y)^2 - v + 2 v div_i``, the divergence from one random probe,
+  ``div_i ~ b_i (F(y + e s b) - F(y))_i / (e s_i)`` with ``b`` Rademacher
+  and ``s = sqrt(v)`` the pixel's standard error (one more OIDN run);
+* ``halves`` (the default): the halves' cross-validation of OIDN run on
+  each half, ``((A - y_B)^2 - v_B + (B - y_A)^2 - v_A) / 2``, unbiased for
+  the error of OIDN on half the samples, scaled by :data:`HALF_TO_FULL`
+  (the measured ratio of OIDN-on-all to OIDN-on-half error; two more
+  OIDN runs).
+
+With the halves the average of OIDN on each half is a candidate too
+(``NAME_halves``, scored by the dual identity): neither image is better on
+every scene.
+
+``sure`` predicts the per-region error best where the noise is near
+Gaussian, but Stein's lemma for a nonlinear filter needs that: on the
+caustic its sum comes out negative, and with the albedo and normal it
+under-estimates OIDN under defocus and motion blur, where auto then loses
+to its colour-only run.  ``halves`` is the default; ``sure`` serves pixel
+statistics without halves.
+
+The inputs are one per-pixel estimate (``stats``: the pixel means, and
+``v``, the variance of each mean) and, for ``halves``, two half estimates:
+a cleaned estimate of the samples (as :class:`PixelStats` and its halves)
+can be fed in their place.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from ...core.fill import fill_empty_pixels, mean_variance_policy
+from ...core.stats import PixelStats
+from ...errors import McreconWarning
+from .estimates import cross_validation_mse
+from .features import Candidate, _filled, dual_candidate
+
+__all__ = ["ESTIMATES", "HALF_TO_FULL", "oidn_candidate", "oidn_denoise", "oidn_aux"]
+
+#: The error estimates :func:`oidn_candidate` knows.
+ESTIMATES = ("sure", "halves")
+#: The estimate auto uses when it has the halves.
+ESTIMATE = "halves"
+#: OIDN on all the samples over OIDN on one half, in summed relative squared error: 0.49-0.87 over the
+#: built-in scenes with and without features but ``hdr`` (1.0-1.09), median 0.6 (128^2, 32 spp).
+HALF_TO_FULL = 0.6
+#: The probe's step in standard errors of the pixel mean.
+PROBE_STEP = 0.5
+
+_WHERE = "method auto"
+
+
+def oidn_denoise(colour: np.ndarray, aux: tuple = (), *, clean_aux: bool = False) -> np.ndarray:
+    """``pyoidn.denoise`` of an (H, W, C) image, ``hdr=True``, quality high: (H, W, C) float64.
+
+    One channel is denoised as grey (copied to three); beyond three, the first three are denoised and
+    the rest kept.  ``aux``: ``(albedo,)`` or ``(albedo, normal)``, (H, W, 3) each."""
+    import pyoidn
+
+    c = colour.shape[2]
+    rgb = np.zeros(colour.shape[:2] + (3,), np.float32)
+    rgb[..., :min(c, 3)] = colour[..., :3]
+    if c == 1:
+        rgb[..., 1] = rgb[..., 2] = rgb[..., 0]
+    f32 = [np.ascontiguousarray(a, dtype=np.float32) for a in aux]
+    den = np.asarray(pyoidn.denoise(np.ascontiguousarray(rgb), *f32, hdr=True, quality="high",
+                                    clean_aux=bool(clean_aux and aux)), np.float64)
+    out = colour.astype(np.float64).copy()
+    out[..., :min(c, 3)] = den[..., :min(c, 3)]
+    return out
+
+
+def oidn_aux(st: PixelStats) -> tuple:
+    """OIDN's albedo and normal from a buffer's per-sample features, NL-means prefiltered.
+
+    The features' pixel means prefiltered with their own weights (NFOR's Sec. 5.1: window 11^2, patch
+    7^2, k = 0.5), then given to OIDN with ``clean_aux=True`` (docs/methods/auto.md measures the pixel
+    means raw, raw with ``clean_aux``, and prefiltered: this measures best).  ``(albedo, normal)``,
+    ``(albedo,)`` or ``()`` (OIDN takes a normal only beside an albedo)."""
+    from ...filters.nlmeans import nlmeans_filter
+
+    planes, var = [], []
+    for name in ("albedo", "normal"):
+        f = st.features.get(name)
+        if f is None or f.mean.shape[2] != 3:
+            break
+        planes.append(_filled(f.mean, f.count))
+        var.append(mean_variance_policy(f))
+    if not planes:
+        return ()
+    f = np.concatenate(planes, axis=2)
+    pf = nlmeans_filter(f, f, np.concatenate(var, axis=2), radius=5, patch=3, k=0.5)
+    return tuple(np.ascontiguousarray(pf[..., 3 * k:3 * k + 3]) for k in range(len(planes)))
+
+
+def _colour(st: PixelStats) -> np.ndarray:
+    if not (st.count == 0).any():
+        return st.mean
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", McreconWarning)
+        return fill_empty_pixels(st.mean.copy(), st.count, source=_WHERE)
+
+
+def oidn_candidate(name: str, stats: PixelStats, v: np.ndarray, halves=None, *, aux: bool = False,
+                   estimate: str | None = None) -> list[Candidate]:
+    """OIDN on all the samples' pixel means (``stats``) with its per-pixel MSE estimate, and with the
+    ``halves`` estimate also ``NAME_halves``: the average of OIDN on each half, with the halves'
+    dual-buffer estimate (:func:`~.features.dual_candidate`).
+
+    ``v``: the variance of each pixel mean.  ``aux``: with the albedo and normal (:func:`oidn_aux`).
+    ``estimate``: one of :data:`ESTIMATES` (default :data:`ESTIMATE`); ``halves`` needs ``halves``
+    (without them: ``sure``).  NaN where a pixel has no sample (or no sample in a half)."""
+    estimate = ESTIMATE if estimate is None else estimate
+    if estimate not in ESTIMATES:
+        raise ValueError(f"oidn_candidate: estimate {estimate!r}; valid: {', '.join(ESTIMATES)}")
+    if halves is None or (aux and "albedo" not in halves.a.features):
+        estimate = "sure"
+    extra = []
+    y = _colour(stats)
+    a_full = oidn_aux(stats) if aux else ()
+    img = oidn_denoise(y, a_full, clean_aux=aux)
+    has = (stats.count > 0)[..., None]
+    if estimate == "sure":
+        s = np.sqrt(np.where(np.isfinite(v), np.maximum(v, 0.0), 0.0))
+        # a fixed probe: the same samples give the same image (pinned outputs, resumed runs)
+        b = np.random.default_rng(0x0DE).choice(np.array([-1.0, 1.0]), size=y.shape)
+        moved = oidn_denoise(y + PROBE_STEP * s * b, a_full, clean_aux=aux)
+        d = img - y
+        mse = d * d - v + 2.0 * s * b * (moved - img) / PROBE_STEP
+    else:
+        ha, hb = halves.a, halves.b
+        fa = oidn_denoise(_colour(ha), oidn_aux(ha) if aux else (), clean_aux=aux)
+        fb = oidn_denoise(_colour(hb), oidn_aux(hb) if aux else (), clean_aux=aux)
+        cva = cross_validation_mse(fa, hb.mean, mean_variance_policy(hb))
+        cvb = cross_validation_mse(fb, ha.mean, mean_variance_policy(ha))
+        cv = 0.5 * (cva + cvb)
+        # the average of the two halves' OIDN, scored without bias by the dual identity: computed for the
+        # estimate anyway, and better than OIDN on all the samples on some scenes (soft shadows, depth of
+        # field: docs/methods/auto.md)
+        extra.append(dual_candidate(name + "_halves", fa, fb, cva, cvb, ha.count, hb.count, feature=aux))
+        both = ((ha.count > 0) & (hb.count > 0))[..., None]
+        cv = np.where(both, HALF_TO_FULL * cv, np.nan)
+        mse = cv
+    return [Candidate(name, np.where(np.isfinite(img), img, 0.0), np.where(has, mse, np.nan), feature=aux)] + extra
