@@ -15,6 +15,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from bench_blender import _material  # noqa: E402  (the glass material of the Blender bench's scenes)
+
 #: Cycles scenes: name -> one line.
 CYCLES_SCENES = {
     "studio": "a small bright light over glass and metal spheres on a textured floor: caustics, glossy paths",
@@ -75,18 +77,6 @@ def _brick(bpy, name):
     b.inputs["Color2"].default_value = (0.35, 0.15, 0.10, 1)
     b.inputs["Mortar"].default_value = (0.75, 0.73, 0.70, 1)
     nt.links.new(b.outputs["Color"], p.inputs["Base Color"])
-    return m
-
-
-def _glass(bpy, name):
-    m = bpy.data.materials.new(name)
-    m.use_nodes = True
-    nt = m.node_tree
-    nt.nodes.clear()
-    g = nt.nodes.new("ShaderNodeBsdfGlass")
-    g.inputs["IOR"].default_value = 1.5
-    out = nt.nodes.new("ShaderNodeOutputMaterial")
-    nt.links.new(g.outputs[0], out.inputs[0])
     return m
 
 
@@ -163,7 +153,7 @@ def build_cycles(name: str, path: Path, *, size: int, seed: int) -> None:
             _light(bpy, sc, "POINT", 900, (1.5, -1.0, 4.0), size=0.05)
             bpy.ops.mesh.primitive_uv_sphere_add(radius=0.9, location=(-1.0, 0, 0.9), segments=48, ring_count=24)
             bpy.ops.object.shade_smooth()
-            bpy.context.object.data.materials.append(_glass(bpy, "glass"))
+            bpy.context.object.data.materials.append(_material(bpy, "glass", glass=True))
             bpy.ops.mesh.primitive_uv_sphere_add(radius=0.8, location=(1.2, 0.8, 0.8), segments=48, ring_count=24)
             bpy.ops.object.shade_smooth()
             bpy.context.object.data.materials.append(
