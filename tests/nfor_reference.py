@@ -23,7 +23,8 @@ from mcrecon.filters.nlmeans import DISTANCE_CLAMP, MIN_CENTER_WEIGHT, NLM_EPS, 
 
 __all__ = ["nlmeans_filter_reference", "collaborative_regression_reference"]
 
-#: Rows per band of the parallel kernels; results do not depend on it.
+#: Rows per band of the reference kernels (serial: a test-size image needs no threads, and a
+#: ``parallel=True`` kernel costs twice the compilation); results do not depend on it.
 BAND = 16
 
 
@@ -100,11 +101,11 @@ def _nlm_band(img, guide, var, r, f, k2, eps, clamp, min_centre, i0, i1, num, de
                         den[ch, i, j] += wt
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def _nlm_kernel(img, guide, var, r, f, k2, eps, clamp, min_centre, band, num, den):
     h = img.shape[1]
     n_bands = (h + band - 1) // band
-    for b in numba.prange(n_bands):
+    for b in range(n_bands):
         i0 = b * band
         _nlm_band(img, guide, var, r, f, k2, eps, clamp, min_centre, i0, min(h, i0 + band), num, den)
 
@@ -250,11 +251,11 @@ def _band(y, guide, var, feats, r, f, k2, ridge, eps, clamp, min_centre, i0, i1,
                 acc[nc, row, col] += wt
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def _regression_kernel(y, guide, var, feats, r, f, k2, ridge, eps, clamp, min_centre, band, accs):
     h = y.shape[1]
     n_bands = (h + band - 1) // band
-    for b in numba.prange(n_bands):
+    for b in range(n_bands):
         i0 = b * band
         _band(y, guide, var, feats, r, f, k2, ridge, eps, clamp, min_centre, i0, min(h, i0 + band), accs[b])
 

@@ -32,10 +32,9 @@ from typing import Sequence
 
 import numba
 import numpy as np
-from numba import prange
 from scipy import stats as sps
 
-from ....filters.engine import numba_threads
+from ....filters.engine import n_threads, parallel_calls
 from ....errors import InputError
 from ..method import StoppingRule
 from ..tone import get_tone_operator, tone_map
@@ -214,12 +213,12 @@ def _rule_ok(s1, s2, k, theta, p, tq, two_d, code, inv_gamma, scale, tab):
     return True
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def _bootstrap_kernel(vals, offsets, theta, base, B, n0, step, max_n, tq, two_d, code, inv_gamma,
-                      scale, tab, dev_mean, dev_m2, disp_mean, disp_m2, spp_mean, capped):
-    P = offsets.size - 1
+                      scale, tab, dev_mean, dev_m2, disp_mean, disp_m2, spp_mean, capped, p0, p1):
+    """Pixels ``[p0, p1)``: each pixel writes only its own outputs, so blocks run on separate threads."""
     C = vals.shape[1]
-    for p in prange(P):
+    for p in range(p0, p1):
         lo = offsets[p]
         n = offsets[p + 1] - lo
         if n == 0:
@@ -285,20 +284,35 @@ def _bootstrap_kernel(vals, offsets, theta, base, B, n0, step, max_n, tq, two_d,
         capped[p] = ncap / B
 
 
-@numba.njit(cache=True, parallel=True)
-def _init_states(base, pix, bidx, B, states):
-    for i in prange(pix.size):
+@numba.njit(cache=True, nogil=True)
+def _init_states(base, pix, bidx, B, states, i0, i1):
+    for i in range(i0, i1):
         states[i] = _stream_start(base, pix[i], B, bidx[i])
 
 
-@numba.njit(cache=True, parallel=True)
-def _draw_pairs(vals, offsets, pix, active, states, ks, targets, s1, s2):
-    for i in prange(pix.size):
+@numba.njit(cache=True, nogil=True)
+def _draw_pairs(vals, offsets, pix, active, states, ks, targets, s1, s2, i0, i1):
+    for i in range(i0, i1):
         if not active[i]:
             continue
         p = pix[i]
         lo = offsets[p]
         states[i], ks[i] = _draw(vals, lo, offsets[p + 1] - lo, states[i], ks[i], targets[i], s1[i], s2[i])
+
+
+def _in_blocks(kernel, args: tuple, n: int) -> None:
+    """``kernel(*args, i0, i1)`` over ``[0, n)`` in blocks on the filters' thread pool.
+
+    Every item (a pixel, or a pixel's resample) has its own random stream and
+    writes only its own outputs, so the result does not depend on the blocks
+    or the threads.  Sixteen blocks per thread balance pixels of unequal cost;
+    a ``nogil`` kernel over a range compiles in a fraction of the time of a
+    ``parallel=True`` one.
+    """
+    if n == 0:
+        return
+    size = max(1, -(-n // (16 * n_threads())))
+    parallel_calls(kernel, [(*args, i0, min(i0 + size, n)) for i0 in range(0, n, size)])
 
 
 def _bootstrap_generic(vals, offsets, theta, base, B, rule, tq, op, out):
@@ -316,14 +330,14 @@ def _bootstrap_generic(vals, offsets, theta, base, B, rule, tq, op, out):
         pix = np.repeat(pixels, B)
         bidx = np.tile(np.arange(B, dtype=np.int64), pixels.size)
         states = np.empty(pix.size, np.uint64)
-        _init_states(base, pix, bidx, B, states)
+        _in_blocks(_init_states, (base, pix, bidx, B, states), pix.size)
         ks = np.zeros(pix.size, np.int64)
         targets = np.full(pix.size, rule.min_spp, np.int64)
         s1 = np.zeros((pix.size, C))
         s2 = np.zeros((pix.size, C))
         active = np.ones(pix.size, np.bool_)
         while active.any():
-            _draw_pairs(vals, offsets, pix, active, states, ks, targets, s1, s2)
+            _in_blocks(_draw_pairs, (vals, offsets, pix, active, states, ks, targets, s1, s2), pix.size)
             idx = np.flatnonzero(active)
             k = ks[idx].astype(np.float64)[:, None]
             m = s1[idx] / k
@@ -570,13 +584,12 @@ def bootstrap_bias_samples(samples: PixelSamples, *, B: int = 1000, seed: int = 
     tq[2:] = sps.t.ppf(1.0 - rule.alpha / 2.0, np.arange(1, rule.max_spp))
     out = (np.zeros((P, C)), np.zeros((P, C)), np.zeros((P, C)), np.zeros((P, C)), np.zeros(P), np.zeros(P))
     base = _seed_base(seed)
-    with numba_threads():
-        if op.code >= 0:
-            _bootstrap_kernel(vals, samples.offsets, theta, base, B, int(rule.min_spp), int(rule.step),
-                              int(rule.max_spp), tq, 2.0 * rule.tolerance, op.code, 1.0 / rule.gamma,
-                              rule.scale, _slope_table(1.0 / rule.gamma), *out)
-        else:
-            _bootstrap_generic(vals, samples.offsets, theta, base, B, rule, tq, op, out)
+    if op.code >= 0:
+        _in_blocks(_bootstrap_kernel, (vals, samples.offsets, theta, base, B, int(rule.min_spp), int(rule.step),
+                                       int(rule.max_spp), tq, 2.0 * rule.tolerance, op.code, 1.0 / rule.gamma,
+                                       rule.scale, _slope_table(1.0 / rule.gamma), *out), P)
+    else:
+        _bootstrap_generic(vals, samples.offsets, theta, base, B, rule, tq, op, out)
     dev_mean, dev_m2, disp_mean, disp_m2, spp_mean, capped = out
     z = float(sps.norm.ppf(0.5 + level / 2.0))
     shape = (H, W, C)
