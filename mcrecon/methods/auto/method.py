@@ -63,8 +63,6 @@ Z_BIAS = 2.0
 Z_BLACKBOX = 1.0
 #: The candidates :data:`Z_BLACKBOX` applies to.
 BLACK_BOXES = ("oidn", "oidn_aux", "oidn_halves", "oidn_aux_halves")
-#: Candidates whose value the safeguard leaves alone where they hold the global prior's default.
-UNCLAMPED_DEFAULTS = ("oidn", "oidn_aux")
 #: The region guard's smoothing, in units of ``smooth``.
 GUARD = 2.0
 
@@ -388,13 +386,6 @@ class AutoMethod(Method):
             # an interval that holds the true value with high probability never moves
             # an estimate away from it (the same safeguard as awr's robust default).
             lo, hi = sample_range_bounds(stats) if bounds is None else bounds
-            # Where OIDN on all the samples holds the global default (its summed estimate beat every plain
-            # candidate's by Z_BLACKBOX standard errors) its value stands: the light it spreads onto pixels
-            # none of whose samples saw it lies outside both bounds (a checker under a spot light: OIDN with
-            # the features alone 0.008 of the mean's error, through the clamp 0.197; docs/methods/auto.md).
-            bb = [k for k, c in enumerate(cands) if c.name in UNCLAMPED_DEFAULTS]
-            free = (np.isin(choice, bb) & on_default) if bb else None
-            unclamped = img[free] if free is not None and free.any() else None
             # a pixel without samples has no interval: it keeps the value filled in from its neighbours
             with empty_pixels_kept(img, count):
                 confidence_clamp(img, y, v_safe, self.params["safeguard"], lo, hi, out=img)
@@ -410,8 +401,6 @@ class AutoMethod(Method):
                 _no_push_in_heavy_tails(img, y, hi, out=img, scale=divisor)
                 if kept is not None:
                     img[keep] = kept
-                if unclamped is not None:
-                    img[free] = unclamped
         # the raw estimate is undefined at empty pixels: the smoothed absolute one there
         fin = np.isfinite(raw_abs)
         if not fin.all():
