@@ -125,6 +125,39 @@ def _nearer_the_neighbours(cands, g, choice, y, where, scale=None):
     return out
 
 
+#: A pixel's mean counts as carried by one sample where its standard error is at least this fraction of it
+#: (one non-zero sample among n: exactly 1; two equal ones: 0.71).
+ONE_SAMPLE = 0.9
+
+
+def _lifted(cands, g, choice, y, v, where):
+    """Per pixel of ``where``: candidate ``g`` above both the pixel mean ``y`` and the chosen candidate's
+    value in some channel (False elsewhere, and where a value is NaN).
+
+    Under rare huge samples a pixel's mean is right-skewed: a pixel that caught one of them (at an
+    emitter's rim, one sample in 32 on the emitter) has a mean above its truth, often far above, and a
+    default that lifts it further adds its neighbours' light to a pixel that already over-counts its
+    own.  The median of its 8 neighbours' means (:func:`_nearer_the_neighbours`) cannot see this when
+    those neighbours lie on the emitter: the lifted value is then "nearer the neighbours".  A pixel
+    whose samples missed a light its neighbours found keeps the plain choice when that lifts it at
+    least as far (``y`` low, the chosen value the larger bound)."""
+    out = np.zeros(y.shape[:2], bool)
+    if not where.any():
+        return out
+    ii, jj = np.nonzero(where)
+    xg = cands[g].image[ii, jj]
+    xc = np.empty_like(xg)
+    ks = choice[ii, jj]
+    for k in np.unique(ks):
+        sel = ks == k
+        xc[sel] = cands[k].image[ii[sel], jj[sel]]
+    yw = y[ii, jj]
+    with np.errstate(invalid="ignore"):
+        one = (yw > 0) & (np.sqrt(v[ii, jj]) >= ONE_SAMPLE * yw)
+        out[ii, jj] = ((xg > np.maximum(yw, xc)) & one).any(axis=-1)
+    return out
+
+
 @numba.njit(cache=True, nogil=True)
 def _nearer_rows(y, scale, images, g, choice, where, out, i0, i1):
     """``y``: the means, already divided by ``scale`` where ``scale`` is not empty (then each value is too)."""
@@ -267,7 +300,10 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     # candidate passed the local test there, where it lies no farther than the plain choice from the
     # median of the 8 neighbours' means: a robust reference that a firefly kept by g (NFOR's
     # own-patch weights keep one) lies far from
+    # At such a pixel that g would lift above both its own mean and the plain choice, the plain choice
+    # stands (:func:`_lifted`): at an emitter's rim the median of the neighbours lies on the emitter.
     at_g = apart & (c2 == g)
+    at_g &= ~_lifted(cands, g, choice, y, v, at_g)
     default = np.isfinite(rel[g]) & ~biased & (~apart | _nearer_the_neighbours(cands, g, choice, y, at_g, scale))
     out = np.where(default, c2, choice)
     return out, default & (c2 == g)
