@@ -267,7 +267,9 @@ class GEMMethod(Method):
         if state.pending is not None and np.any(state.pending):
             mse, n_eff = _with_pending(sel, state.stats.count, state.pending, n_eff, self.grid)
         _, pri = sample_priority(mse, value, n_eff, n_pick)
-        return distribute_samples(pri, sel.selected, sel.bank.sigmas, n, n_pick, state.rng, subpixels=self.grid)
+        # counts, not positions: the renderer places them, continuing each pixel's own sequence
+        return distribute_samples(pri, sel.selected, sel.bank.sigmas, n, n_pick, state.rng, subpixels=self.grid,
+                                  as_counts=True)
 
 
 def _with_pending(sel, count, pending, n_eff, subpixels):
