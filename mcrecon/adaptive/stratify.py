@@ -10,18 +10,25 @@ adaptive round that adds a few samples to many pixels spends its budget
 where it buys nothing.  :func:`power_of_two_counts` moves a round's counts
 so that each pixel it serves reaches the next power of two (or several
 doublings), the pixels whose wanted total is the largest multiple of their
-current one first, spending exactly the round's samples.
+current one first, spending exactly the round's samples.  Pixels with fewer
+than :data:`MIN_BLOCK` samples get the method's counts as they are: there a
+partial block still lowers the error (checker_spot: 0.50 at 8 spp, 0.23 at
+12), and a method's small uniform share per round must accumulate there
+(moved to powers of two it left most of gem's pixels at 4 or 8 samples).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["power_of_two_counts"]
+__all__ = ["power_of_two_counts", "MIN_BLOCK"]
 
 #: Doublings a pixel may get in one round beyond its wanted total (steps of score below
 #: 2^-_SLACK are never needed to spend the round: every wanted sample has a step above it).
 _SLACK = 2
+
+#: Pixels with fewer samples than this get the method's counts as they are (see power_of_two_counts).
+MIN_BLOCK = 16
 
 
 def power_of_two_counts(counts: np.ndarray, first_index: np.ndarray) -> np.ndarray:
@@ -45,7 +52,8 @@ def power_of_two_counts(counts: np.ndarray, first_index: np.ndarray) -> np.ndarr
         steps are taken in decreasing score (ties: lower pixel index first)
         until the round's samples are spent; the one step that does not fit
         whole gets what is left (one pixel per round ends between two powers
-        of two).  Pixels with ``counts == 0`` take no step.
+        of two).  Pixels with ``counts == 0`` take no step; pixels with fewer
+        than :data:`MIN_BLOCK` samples get ``counts`` unchanged.
     """
     counts = np.asarray(counts, np.int64)
     first = np.asarray(first_index, np.int64)
@@ -56,7 +64,14 @@ def power_of_two_counts(counts: np.ndarray, first_index: np.ndarray) -> np.ndarr
     if n <= 0:
         return out
     flat_c, flat_f = counts.ravel(), first.ravel()
-    pix = np.flatnonzero(flat_c > 0)
+    # below MIN_BLOCK samples a partial block still lowers the error (8 + 4 Sobol samples beat 8): those
+    # pixels get what the method asks for, so that a small per-round share (a uniform part) accumulates
+    few = flat_f < MIN_BLOCK
+    out.ravel()[few] = flat_c[few]
+    n -= int(flat_c[few].sum())
+    if n <= 0:
+        return out
+    pix = np.flatnonzero((flat_c > 0) & ~few)
     c, f = flat_c[pix], flat_f[pix]
     want = (c + f).astype(np.float64)
     # the first target: the next power of two above the pixel's samples (1 for an empty pixel)
