@@ -239,7 +239,7 @@ class RunContext:
                             max_rounds=session.max_rounds,
                             time_limit=(session.time_limit if session.time_limit is not None
                                         else settings.get("time_limit")),
-                            pipeline=pipeline, stratified=bool(settings.get("stratified", False)))
+                            pipeline=pipeline)
         storage_dtype = settings.get("storage_dtype", "float32")
         rounds = []
         if resumed is not None:

@@ -350,10 +350,6 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
         "renderer_spec": dict(renderer_spec or {}), "storage_dtype": storage_dtype,
         "pipeline": bool(pipeline), "options_version": OPTIONS_VERSION,
     }
-    if getattr(renderer, "stratified", False) is True:
-        # rounds in whole power-of-two blocks per pixel (schedule.Schedule.stratified); recorded only when
-        # set, so a resume plans the same rounds and other runs' settings stay as they were
-        settings["stratified"] = True
     session = SessionOptions(progress=progress, time_limit=time_limit, track_error=track_error, eps=eps,
                              max_rounds=max_rounds, on_round=on_round)
     if log is None:

@@ -10,7 +10,6 @@ import numpy as np
 
 from ..errors import InputError
 from ..methods.base import AdaptiveState, uniform_counts
-from .stratify import power_of_two_counts
 
 
 
@@ -122,11 +121,6 @@ class Schedule:
         Wall seconds of the run (over its sessions); no round starts after it.
     pipeline : bool
         Pipelined rounds (see :func:`mcrecon.adaptive.adapt`).
-    stratified : bool
-        The renderer continues each pixel's stratified sequence (its
-        ``stratified`` attribute, recorded in the run settings): the counts of
-        the method's rounds are moved to whole power-of-two blocks per pixel
-        (:func:`~mcrecon.adaptive.stratify.power_of_two_counts`), the same total.
     """
 
     budget: int
@@ -136,7 +130,6 @@ class Schedule:
     max_rounds: int = 10_000
     time_limit: float | None = None
     pipeline: bool = False
-    stratified: bool = False
 
     def plan(self, method, run, stats, round_index, n_total, *, pending=None, first_index=None):
         """(request with its seeds, None) or (None, why the run stops) for round ``round_index``.
@@ -165,10 +158,6 @@ class Schedule:
         if req.total > state.remaining:
             raise RuntimeError(f"method {method.name} planned {req.total} samples with only "
                                f"{state.remaining} left in the budget (a bug in the method)")
-        if self.stratified and round_index >= self.initial_rounds and req.counts is not None:
-            req = copy.copy(req)
-            object.__setattr__(req, "counts", power_of_two_counts(
-                req.counts, np.zeros_like(req.counts) if first_index is None else first_index))
         return _with_seed(req, round_index, rseed, first_index), None
 
     def final_state(self, stats, round_index, rng) -> AdaptiveState:

@@ -300,9 +300,6 @@ class SceneRenderer:
         self.feature_names = tuple(self.scene.feature_names) if self.features else ()
         self.name = f"scene:{self.scene.name}"
         self.sampler = sampler
-        #: Counted samples continue each pixel's stratified sequence (the protocol's ``stratified``):
-        #: an adaptive run then asks for whole power-of-two blocks per pixel.
-        self.stratified = sampler == "sobol"
 
     def spec(self) -> dict:
         """How to build this renderer again (:mod:`mcrecon.renderers.spec_format`); features other than the
