@@ -142,7 +142,7 @@ class AWRMethod(Method):
 
     # ------------------------------------------------------------- adaptive
     def place(self, run: "AWRRun", state: AdaptiveState, n: int):
-        """Positions of the wavelet sampler's next batch of ``n`` samples (§4.1), or None when it has none.
+        """Samples per pixel of the wavelet sampler's next batch of ``n`` (§4.1), or None when it has none.
 
         :meth:`Method.plan` sizes the batch (``round_spp`` per pixel).
         Pipelined, the variance of each coefficient counts the samples in
