@@ -533,7 +533,7 @@ def test_method_plan_respects_remaining_and_returns_none():
     st2 = _noisy_stats(20, 30, 4, 2)
     state = AdaptiveState(st2, 1, budget=st2.n_samples + 17, n_samples=st2.n_samples, rng=np.random.default_rng(1))
     req = m.plan(run, state)
-    assert req.positions is not None and req.total == 17              # never more than remaining
+    assert req.counts is not None and req.positions is None and req.total == 17  # never more than remaining
     state = AdaptiveState(st2, 2, budget=st2.n_samples, n_samples=st2.n_samples, rng=np.random.default_rng(1))
     assert m.plan(run, state) is None
     m2 = AWRMethod(variant="paper", priority_threshold=1e6)

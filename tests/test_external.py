@@ -236,8 +236,7 @@ class _Recorder:
 
 
 @pytest.mark.parametrize("method, later", [("box", "counts"), ("ci", "counts"), ("splat", "counts"),
-                                           ("gem", "countspositions"), ("awr", "positions"),
-                                           ("auto", "countspositions")])
+                                           ("gem", "counts"), ("awr", "counts"), ("auto", "counts")])
 def test_which_methods_send_counts_and_which_positions(method, later):
     """docs/renderer-protocol.md's table: round 0 is counts for every method; then counts or positions."""
     r = _Recorder()

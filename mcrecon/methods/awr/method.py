@@ -142,7 +142,7 @@ class AWRMethod(Method):
 
     # ------------------------------------------------------------- adaptive
     def place(self, run: "AWRRun", state: AdaptiveState, n: int):
-        """Positions of the wavelet sampler's next batch of ``n`` samples (§4.1), or None when it has none.
+        """Samples per pixel of the wavelet sampler's next batch of ``n`` (§4.1), or None when it has none.
 
         :meth:`Method.plan` sizes the batch (``round_spp`` per pixel).
         Pipelined, the variance of each coefficient counts the samples in
@@ -155,7 +155,7 @@ class AWRMethod(Method):
             state.stats, n, state.rng, wavelet=p["wavelet"], levels=p["sampling_levels"], mode=p["boundary"],
             per_coefficient=p["per_coefficient"], renorm=p["sampling_renorm"], propagation=p["propagation"],
             priority_threshold=p["priority_threshold"], estimator=p["sampling_variance"],
-            pending=state.pending)
+            pending=state.pending, as_counts=True)  # counts: the renderer continues each pixel's sequence
         run.last_plan_info = info
         if pos is None or len(pos) == 0:
             return None

@@ -233,7 +233,7 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
                        levels: int = 5, mode: str = "symmetric", per_coefficient: int = 64,
                        renorm: float = SAMPLING_RENORM, propagation: str = "exact",
                        priority_threshold: float | None = None, estimator: str = "contrast",
-                       pending: np.ndarray | None = None):
+                       pending: np.ndarray | None = None, as_counts: bool = False):
     """One batch of the adaptive wavelet sampler (§4.1 Steps 2-3).
 
     Ranks all scale coefficients of levels 0..``levels`` by Eq. 8 and
@@ -252,9 +252,16 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
     serves.  The wavelet coefficients (the committed means) are unchanged:
     the pending samples' expected mean is the current one.
 
+    ``as_counts``: return the samples per pixel instead of positions.  The
+    position inside the chosen pixel is uniform and carries no decision, so
+    a request for counts has the same distribution and lets the renderer
+    place them: a renderer with a per-pixel low-discrepancy sampler
+    continues each pixel's sequence (stratified), which film positions
+    chosen here would break (their film dimensions are independent uniforms).
+
     Returns
     -------
-    positions : ndarray (M, 2) or None
+    positions : ndarray (M, 2), (H, W) int64 with ``as_counts``, or None
         None when no coefficient's priority exceeds ``priority_threshold``
         (or ``n_samples <= 0``).
     info : dict
@@ -327,6 +334,10 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
     cover = np.cumsum(np.cumsum(diff, axis=0), axis=1)[:h, :w] > 0
     info["affected_fraction"] = float(cover.mean())
     pos = np.concatenate(parts, axis=0) if parts else np.zeros((0, 2))
+    if as_counts:
+        # positions lie strictly inside their pixel (x + u * _JIT < x + 1): the floor is the pixel
+        pix = pos[:, 1].astype(np.int64) * w + pos[:, 0].astype(np.int64)
+        return np.bincount(pix, minlength=h * w).astype(np.int64).reshape(h, w), info
     # by row: the statistics take the reply several times faster (see sort_by_row)
     from ...core.samples import sort_by_row
 

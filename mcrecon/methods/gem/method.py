@@ -226,7 +226,7 @@ class GEMMethod(Method):
 
     # ------------------------------------------------------------ adaptive
     def place(self, run: "GEMRun", state: AdaptiveState, n: int):
-        """One adaptive iteration (Secs. 5, 6): positions of ``n`` samples, or None at ``target_rel_mse``.
+        """One adaptive iteration (Secs. 5, 6): ``n`` samples as counts per pixel, or None at ``target_rel_mse``.
 
         :meth:`Method.plan` sizes the round (iteration i sends
         ``remaining // (iterations - i)``, the last everything left) and
@@ -256,7 +256,7 @@ class GEMMethod(Method):
 
     def place_greedy(self, sel: GEMSelection, value: np.ndarray, state: AdaptiveState, n: int,
                      n_pick: int) -> np.ndarray:
-        """Positions of ``n`` samples by Sec. 5's greedy distribution over the selection ``sel``.
+        """Samples per pixel (H, W) of ``n`` samples by Sec. 5's greedy distribution over the selection ``sel``.
 
         Priorities from the selected filters' estimated MSE relative to
         ``value`` (the selection's image, or the reference for the oracle);
@@ -267,7 +267,9 @@ class GEMMethod(Method):
         if state.pending is not None and np.any(state.pending):
             mse, n_eff = _with_pending(sel, state.stats.count, state.pending, n_eff, self.grid)
         _, pri = sample_priority(mse, value, n_eff, n_pick)
-        return distribute_samples(pri, sel.selected, sel.bank.sigmas, n, n_pick, state.rng, subpixels=self.grid)
+        # counts, not positions: the renderer places them, continuing each pixel's own sequence
+        return distribute_samples(pri, sel.selected, sel.bank.sigmas, n, n_pick, state.rng, subpixels=self.grid,
+                                  as_counts=True)
 
 
 def _with_pending(sel, count, pending, n_eff, subpixels):

@@ -155,8 +155,9 @@ def _place_in_pixels(pos, px, py, ox, oy):
 
 
 def distribute_samples(priority: np.ndarray, selected: np.ndarray, sigmas, n_total: int,
-                       n_per_pick: int, rng: np.random.Generator, *, subpixels: int = 4) -> np.ndarray:
-    """Positions of ``n_total`` new samples (Sec. 5).
+                       n_per_pick: int, rng: np.random.Generator, *, subpixels: int = 4,
+                       as_counts: bool = False) -> np.ndarray:
+    """Positions (or per-pixel counts) of ``n_total`` new samples (Sec. 5).
 
     The ``m = n_total // n_per_pick`` pixels of highest priority each get
     ``n_per_pick`` samples (the next one the remainder), placed in pixels
@@ -166,17 +167,27 @@ def distribute_samples(priority: np.ndarray, selected: np.ndarray, sigmas, n_tot
     off the film are redrawn (the filter is renormalised there too).  Each
     sample lies uniformly at random inside its pixel.
 
+    Parameters
+    ----------
+    as_counts : bool
+        Return the samples per pixel instead of positions.  The position
+        inside a pixel is uniform and carries no decision, so a request for
+        counts has the same distribution and lets the renderer place them:
+        a renderer with a per-pixel low-discrepancy sampler continues each
+        pixel's sequence (stratified), which film positions chosen here
+        would break (their film dimensions are independent uniforms).
+
     Returns
     -------
-    ndarray (n_total, 2) float64
+    ndarray (n_total, 2) float64, or (H, W) int64 with ``as_counts``
         Film positions (x = column, y = row), ordered by row
-        (:func:`sort_by_row`).
+        (:func:`sort_by_row`); or the samples per pixel (summing to ``n_total``).
     """
     h, w = selected.shape
     n_total = int(n_total)
     n_per_pick = max(1, int(n_per_pick))
     if n_total <= 0:
-        return np.zeros((0, 2))
+        return np.zeros((h, w), np.int64) if as_counts else np.zeros((0, 2))
     # the positions and their per-sample temporaries (pixel, offset, order): refused in one
     # line before a budget the machine cannot hold is allocated
     check_memory("method gem", "spp", _BYTES_PER_PLANNED_SAMPLE * n_total,
@@ -231,6 +242,8 @@ def distribute_samples(priority: np.ndarray, selected: np.ndarray, sigmas, n_tot
             todo = _kernel_offsets(cdf, r, ux, uy, todo, px, py, w, h, ox, oy)
         ox[todo] = 0  # (practically never) still off the film: keep them in their own pixel
         oy[todo] = 0
+    if as_counts:
+        return np.bincount((py + oy) * w + (px + ox), minlength=h * w).astype(np.int64).reshape(h, w)
     pos = rng.random((n_all, 2))
     _place_in_pixels(pos, px, py, ox, oy)
     return sort_by_row(pos, h)
