@@ -19,7 +19,8 @@ from .lock import _err, log_lock
 from .logformat import (APPEND_CHUNK_ROWS, DEFAULT_CHUNK_ROWS, FORMAT_MINOR, FORMAT_NAME, FORMAT_VERSION,
                         MAX_PIXELS, RECORD_CHUNK_ROWS, ROUND_RECORD_CHUNK_ROWS, ROUND_RECORD_DTYPE, _CHECKSUM,
                         _CONVERT, _H5_ERRORS, _HAS_RECORD, _NO_RECORD, _checksum_for, _committed_rows, _detail,
-                        _open, _read_header, _read_slice, _record_columns, _row_type, _strings, cast_positions)
+                        _json_default, _labels_are_indices, _open, _read_header, _read_slice, _record_columns,
+                        _row_type, _strings, cast_positions)
 from .reader import SampleLog, _read_rows
 from ._tail import _save_tail
 
@@ -160,12 +161,6 @@ def write_log(path, positions, values, *, width: int, height: int,
     return path
 
 
-def _labels_are_indices(rnd) -> bool:
-    """Whether non-decreasing round labels are 0, 1, 2, ... (each sample's label its round's index), which
-    readers derive from /rounds/end: /round would repeat it in 4 bytes per sample."""
-    return not rnd.size or (int(rnd[0]) == 0 and bool(np.all(np.diff(rnd) <= 1)))
-
-
 def _feature_array(path, name, arr) -> np.ndarray:
     """A feature as an array of a dtype the reader takes (integer, float, bool), else refused naming it."""
     arr = np.asarray(arr)
@@ -173,16 +168,6 @@ def _feature_array(path, name, arr) -> np.ndarray:
         raise _err(path, f"features/{name}", f"dtype {arr.dtype}, expected a numeric dtype (integer, float or "
                    "bool): one number per component and sample")
     return arr
-
-
-def _json_default(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"{type(o).__name__} is not JSON serialisable")
 
 
 def _committed_rounds(path, f, n: int) -> tuple[int, list[int]]:
