@@ -5,8 +5,8 @@ record then rewritten with ``update_round_record``, exactly as
 ``mcrecon.adaptive.run._run`` does, into a log created like the driver's (an empty
 float32 RGB log plus run settings).  Prints, all measured in this run:
 
-* the log size against the bytes of the samples (positions + values + round
-  indices, 24 B per float32 RGB sample) and against samples + stored
+* the log size against the bytes of the samples (positions + values, 20 B
+  per float32 RGB sample; the rounds are rows of ``/rounds/end``) and against samples + stored
   records (the JSON strings of ``/run/records``, or the rows of
   ``/run/round_records`` plus the JSON of ``/run/round_records_extra``),
   with a breakdown of where the bytes are (sample chunks, per-round
@@ -49,7 +49,7 @@ import numpy as np
 from mcrecon.io import writer as samplelog  # the log writer: write_log, append_log, its chunk constants
 
 W, H = 64, 64
-SAMPLE_BYTES = 2 * 4 + 3 * 4 + 4  # float32 positions, float32 RGB values, int32 round index
+SAMPLE_BYTES = 2 * 4 + 3 * 4  # float32 positions, float32 RGB values (the rounds: /rounds/end, one row per round)
 PER_ROUND = ("rounds/end", "run/records", "run/round_records", "run/round_records_extra")
 
 

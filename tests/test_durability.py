@@ -109,11 +109,15 @@ def _tear(path, name, row, *, where="rows"):
         fh.write(bytes(x ^ 0x5A for x in old))
 
 
-def _committed_log(path, rng, features=False):
-    """A log of 1000 + 2 appended rounds (4096-row chunks, a record per round): the last chunk partly full."""
+def _committed_log(path, rng, features=False, round_labels=False):
+    """A log of 1000 + 2 appended rounds (4096-row chunks, a record per round): the last chunk partly full.
+    ``round_labels``: with a per-sample /round, as older mcrecon wrote (appends extend it)."""
     feats = lambda m: {"depth": rng.random(m).astype(np.float32)} if features else None  # noqa: E731
     write_log(path, rng.random((1000, 2)) * 64, rng.random((1000, 3)), width=64, height=64,
               features=feats(1000))
+    if round_labels:
+        with h5py.File(path, "r+") as f:
+            f.create_dataset("round", data=np.zeros(1000, np.int32), maxshape=(None,), chunks=(4096,), fletcher32=True)
     for m in (3000, 2500):  # the committed rows end at 6500, inside the chunk of rows 4096-8191
         append_log(path, rng.random((m, 2)) * 64, rng.random((m, 3)), round_record={"samples": m},
                    features=feats(m))
@@ -127,7 +131,7 @@ def _committed_log(path, rng, features=False):
 def test_torn_last_chunk_keeps_committed_rows_and_the_next_append_repairs_it(tmp_path, rng, monkeypatch,
                                                                              name, where):
     path = tmp_path / "torn.h5"
-    before, ends, records = _committed_log(path, rng, features=True)
+    before, ends, records = _committed_log(path, rng, features=True, round_labels=name == "round")
     _killed_before_commit(monkeypatch, path, rng, 700, round_record={"samples": 700},
                           features={"depth": np.ones(700, np.float32)})
     last = {"rounds/end": len(ends) - 1, "run/round_records": len(ends) - 1}.get(name, ends[-1] - 1)

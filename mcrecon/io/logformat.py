@@ -479,3 +479,19 @@ _SIGNATURES = ((b"\x89HDF\r\n\x1a\n", "hdf5"), (b"v/1\x01", "an OpenEXR image"),
                (b"\x89PNG\r\n\x1a\n", "a PNG image"), (b"\xff\xd8\xff", "a JPEG image"),
                (b"#?RADIANCE", "a Radiance HDR image"), (b"#?RGBE", "a Radiance HDR image"),
                (b"II*\x00", "a TIFF image"), (b"MM\x00*", "a TIFF image"), (b"PK\x03\x04", "a zip archive"))
+
+
+def _labels_are_indices(rnd) -> bool:
+    """Whether non-decreasing round labels are 0, 1, 2, ... (each sample's label its round's index), which
+    readers derive from /rounds/end: /round would repeat it in 4 bytes per sample."""
+    return not rnd.size or (int(rnd[0]) == 0 and bool(np.all(np.diff(rnd) <= 1)))
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"{type(o).__name__} is not JSON serialisable")

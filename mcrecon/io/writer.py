@@ -19,7 +19,8 @@ from .lock import _err, log_lock
 from .logformat import (APPEND_CHUNK_ROWS, DEFAULT_CHUNK_ROWS, FORMAT_MINOR, FORMAT_NAME, FORMAT_VERSION,
                         MAX_PIXELS, RECORD_CHUNK_ROWS, ROUND_RECORD_CHUNK_ROWS, ROUND_RECORD_DTYPE, _CHECKSUM,
                         _CONVERT, _H5_ERRORS, _HAS_RECORD, _NO_RECORD, _checksum_for, _committed_rows, _detail,
-                        _open, _read_header, _read_slice, _record_columns, _row_type, _strings, cast_positions)
+                        _json_default, _labels_are_indices, _open, _read_header, _read_slice, _record_columns,
+                        _row_type, _strings, cast_positions)
 from .reader import SampleLog, _read_rows
 from ._tail import _save_tail
 
@@ -84,7 +85,10 @@ def write_log(path, positions, values, *, width: int, height: int,
     width, height : int
     channels : sequence of str
     rounds : array_like of int, shape (N,), optional
-        Round index per sample, non-decreasing.  Default: all round 0.
+        Round label per sample, non-decreasing.  Default: all round 0.  Labels
+        0, 1, 2, ... are what ``/rounds/end`` already gives, and are not
+        stored per sample; other labels (gaps, a first label above 0) are
+        kept in ``/round``.
     features : mapping of str to array_like (N, ...), optional
         Extra per-sample features (e.g. normals, depth).
     reference : array_like (H, W, C), optional
@@ -139,8 +143,9 @@ def write_log(path, positions, values, *, width: int, height: int,
             f.create_dataset("positions", data=pos, maxshape=(None, 2), chunks=_chunks_for(n, 2), **_CHECKSUM)
             f.create_dataset("values", data=val, maxshape=(None, val.shape[1]), chunks=_chunks_for(n, val.shape[1]),
                              **_CHECKSUM)
-            f.create_dataset("round", data=rnd, maxshape=(None,), chunks=_chunks_for(n, None), **_CHECKSUM)
             ends = round_ends_of(rnd)
+            if not _labels_are_indices(rnd):  # else /rounds/end gives every sample's round: no per-sample copy
+                f.create_dataset("round", data=rnd, maxshape=(None,), chunks=_chunks_for(n, None), **_CHECKSUM)
             f.create_dataset("rounds/end", data=np.asarray(ends, np.int64), maxshape=(None,),
                              chunks=(RECORD_CHUNK_ROWS,), **_CHECKSUM)
             for name, arr in dict(features or {}).items():
@@ -163,16 +168,6 @@ def _feature_array(path, name, arr) -> np.ndarray:
         raise _err(path, f"features/{name}", f"dtype {arr.dtype}, expected a numeric dtype (integer, float or "
                    "bool): one number per component and sample")
     return arr
-
-
-def _json_default(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"{type(o).__name__} is not JSON serialisable")
 
 
 def _committed_rounds(path, f, n: int) -> tuple[int, list[int]]:
@@ -370,8 +365,10 @@ def append_log(path, positions, values, *, round_index: int | None = None,
     """Append one round of samples to an existing log and commit it.
 
     Rows beyond the committed count (left by an interrupted append) are
-    discarded first, in every dataset.  The new rows, their round index,
-    the round's end in ``/rounds/end`` and the optional ``round_record``
+    discarded first, in every dataset.  The new rows, the round's end in
+    ``/rounds/end`` (its label ``round_index``, by default the next index,
+    goes to ``/round`` only when the log has one or the label is not the
+    round's index), and the optional ``round_record``
     (a JSON-serialisable mapping, e.g. times of an adaptive round) are
     written and flushed before ``n_committed`` is updated, so a crash loses
     at most this round.
@@ -530,12 +527,18 @@ def _append(path, *, pos_in, val_in, round_index, feats, rec, round_record, chec
         n_rounds = keep + len(extra)
         # The round's label in /round must exceed the last committed one (readers refuse a /round
         # that contradicts /rounds/end): by default the number of committed rounds, or more.
+        # Without /round the labels are the rounds' indices (/rounds/end gives them): the new round's is n_rounds.
         last = int(_read_rows(path, f["round"], "round", np.array([n - 1]))[0]) if n and "round" in f else None
         if round_index is None:
             round_index = n_rounds if last is None else max(n_rounds, last + 1)
         elif last is not None and int(round_index) <= last:
             raise _err(path, "round_index", f"{round_index}, but the last committed round's label in /round is "
                        f"{last}: a new round needs a larger one (leave it out to get {max(n_rounds, last + 1)})")
+        elif "round" not in f and int(round_index) < n_rounds:
+            raise _err(path, "round_index", f"{round_index}, but the log holds {n_rounds} committed round(s) "
+                       f"labelled 0-{n_rounds - 1}: a new round needs a larger label (leave it out to get {n_rounds})")
+        # /round is written only where the labels are not the indices (another writer's labels, a gap)
+        labels = "round" in f or int(round_index) != n_rounds
         run = f.get("run")
         rows = run.get("round_records") if run is not None else None
         recs = run.get("records") if run is not None and rows is None else None  # the JSON layout (minor < 2)
@@ -550,10 +553,10 @@ def _append(path, *, pos_in, val_in, round_index, feats, rec, round_record, chec
 
         # ---- samples: truncate to n, extend by m
         chunk = h.positions.chunks[0] if h.positions.chunks else _chunk_rows(n)
-        _check_free_space(path, n, m, chunk, pos.dtype.itemsize * 2 + h.values.dtype.itemsize * val.shape[1] + 4
-                          + sum(a.dtype.itemsize * int(np.prod(a.shape[1:])) for a in feats.values()))
+        _check_free_space(path, n, m, chunk, pos.dtype.itemsize * 2 + h.values.dtype.itemsize * val.shape[1]
+                          + 4 * labels + sum(a.dtype.itemsize * int(np.prod(a.shape[1:])) for a in feats.values()))
         pos = cast_positions(pos, h.position_dtype)
-        if "round" not in f:  # reads as round 0 for the committed samples (fill value, no data written)
+        if labels and "round" not in f:  # reads as round 0 for the committed samples (fill value, no data written)
             rd = f.create_dataset("round", shape=(n,), dtype=np.int32, maxshape=(None,), chunks=(chunk,),
                                   fillvalue=0, **_CHECKSUM)
             if n_rounds > 1:  # label the rounds /rounds/end gives, or /round would contradict it (written once)
@@ -562,7 +565,8 @@ def _append(path, *, pos_in, val_in, round_index, feats, rec, round_record, chec
                 for k, (a, b) in enumerate(round_slices(ends)):
                     for c in range(a, b if k else a, DEFAULT_READ_ROWS):
                         rd[c:min(b, c + DEFAULT_READ_ROWS)] = k
-        columns = [("positions", pos), ("values", val), ("round", np.full(m, round_index, np.int32))]
+        columns = [("positions", pos), ("values", val)] + ([("round", np.full(m, round_index, np.int32))] if labels
+                                                           else [])
         if new_features:
             for name, arr in feats.items():
                 f.create_dataset(f"features/{name}", shape=(0,) + arr.shape[1:], dtype=arr.dtype,

@@ -294,24 +294,39 @@ def edge_radius(stats, k):
 
 
 @numba.njit(cache=True, nogil=True)
-def _consistent_radii(pos, val, norm_code, weights, frac, tau, fref, nmap, r_edge, c, alpha, min_w, max_w, radius,
-                      k0, k1):
-    """Support radius of each consistent sample ``k0 <= k < k1`` (``frac = 0`` under a finite threshold ``tau``:
-    the outlier test ran and passed it): Eq. 8 against the window mean ``fref``; -1 for outliers, for samples
-    no test could judge yet, and where the diameter, or the pixel's ``2 r_edge``, is at most ``min_w``."""
+def _split_and_radii(pos, val, norm_code, weights, tau, fref, nmap, c, alpha, spread_c, spread_alpha, min_w, max_w,
+                     r_edge, frac, radius, krad, k0, k1):
+    """The outlier split of :func:`.outliers._split_outliers` (``frac``, ``radius``; returns (outliers, capped))
+    and, in the same pass over the samples ``k0 <= k < k1``, the support radius ``krad`` of each consistent
+    sample (``frac = 0`` under a finite threshold ``tau``: the outlier test ran and passed it): Eq. 8 with
+    ``spread_c``, ``spread_alpha`` against the window mean ``fref``; -1 for outliers, for samples no test
+    could judge yet, and where the diameter, or the pixel's ``2 r_edge``, is at most ``min_w``.  One pass:
+    the sample's G and pixel are found once for both."""
     h = nmap.shape[0]
     w = nmap.shape[1]
+    n_out = 0
+    n_capped = 0
     for k in range(k0, k1):
+        frac[k] = 0.0
         radius[k] = -1.0
-        if frac[k] > 0.0:
-            continue  # an outlier: its excess is spread by the outlier rule, the rest stays
+        krad[k] = -1.0
         g = _norm_of(val, k, norm_code, weights)
         if not g > 0.0:
             continue
         px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
         py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
-        if not tau[py, px] < np.inf:
+        t = tau[py, px]
+        if g > t:
+            d, cap = _excess_width(g, t, fref[py, px], nmap[py, px], c, alpha, min_w, max_w)
+            n_capped += cap
+            if d > min_w:  # an outlier: its excess is spread by the outlier rule, the rest stays
+                n_out += 1
+                frac[k] = (g - t) / g
+                radius[k] = 0.5 * d
+                continue
+        if not t < np.inf:
             continue  # too few samples around for the outlier test: not known to be consistent
-        d, _ = _excess_width(g, 0.0, fref[py, px], nmap[py, px], c, alpha, min_w, max_w)
+        d, _ = _excess_width(g, 0.0, fref[py, px], nmap[py, px], spread_c, spread_alpha, min_w, max_w)
         if min(d, 2.0 * r_edge[py, px]) > min_w:  # else nothing would leave the pixel
-            radius[k] = 0.5 * d
+            krad[k] = 0.5 * d
+    return n_out, n_capped

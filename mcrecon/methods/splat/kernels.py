@@ -134,20 +134,12 @@ def _same_pixel_stats(gs, fs, pj, pi, qj, qi, k2):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _footprint(x, y, r, h, w, mode, guide, guided, wbuf, ibuf, jbuf, gs, fs, pj, pi, k2, gated, gate_seen, gate_pass,
-               gate_key, gate_r):
+def _footprint(x, y, r, h, w, mode, guide, guided, wbuf, ibuf, jbuf):
     """The pixel centres strictly inside the support of radius ``r`` around (x, y) and their weights.
 
     The weight of centre q is ``1 - |q - (x, y)|^2 / r^2``, times ``guide[q]`` when ``guided`` (then
     centres of weight <= 0 are left out; off-film centres use the guide of their mirror image).
-    ``gated`` (the sample's pixel (pj, pi) at the centre, ``guide`` a radius per pixel): the weights
-    still sum over the whole support, but a centre q receives ``1 - d^2 / min(r, guide[p], guide[q])^2``
-    only if its pixel passes :func:`_same_pixel_stats` against p (colour ``gs``, features ``fs``); the rest of its weight goes to p,
-    as one last entry.  Pair-symmetric: p sends q what q would send p.
     Film indices after the boundary mode go to ``ibuf``/``jbuf`` (-1: mode none, off the film).
-    ``gated``: the gate's answer for the offset (j - pj, i - pi) is kept in ``gate_pass`` where
-    ``gate_seen`` holds ``gate_key`` (offsets within ``gate_r``), so the samples of one pixel test each
-    neighbour once (the caller changes ``gate_key`` with the pixel).
     Returns (sum of the weights, number of entries).
     """
     r2 = r * r
@@ -160,13 +152,12 @@ def _footprint(x, y, r, h, w, mode, guide, guided, wbuf, ibuf, jbuf, gs, fs, pj,
         jhi = min(jhi, h - 1)
     s = 0.0
     m = 0
-    home = 0.0
     for j in range(jlo, jhi + 1):
         dy = j + 0.5 - y
         rem = r2 - dy * dy
         if rem <= 0.0:
             continue
-        jj, jg = _film_index(j, h, mode, guided or gated)
+        jj, jg = _film_index(j, h, mode, guided)
         half = math.sqrt(rem)
         ilo = int(math.floor(x - 0.5 - half)) + 1
         ihi = int(math.ceil(x - 0.5 + half)) - 1
@@ -179,27 +170,7 @@ def _footprint(x, y, r, h, w, mode, guide, guided, wbuf, ibuf, jbuf, gs, fs, pj,
             q = dx * dx * inv_r2 + dy2
             if q < 1.0:
                 wt = 1.0 - q
-                ii, ig = _film_index(i, w, mode, guided or gated)
-                if gated:
-                    s += wt
-                    sent = 0.0
-                    t = (j - pj + gate_r) * (2 * gate_r + 1) + (i - pi + gate_r)
-                    if gate_seen[t] != gate_key:
-                        gate_seen[t] = gate_key
-                        gate_pass[t] = _same_pixel_stats(gs, fs, pj, pi, jg, ig, k2)
-                    if gate_pass[t]:
-                        re = min(guide[pj, pi], guide[jg, ig])
-                        d2 = q * r2
-                        if d2 < re * re:
-                            sent = wt if re >= r else 1.0 - d2 / (re * re)
-                    home += wt - sent
-                    if not sent > 0.0:
-                        continue
-                    wbuf[m] = sent
-                    ibuf[m] = ii
-                    jbuf[m] = jj
-                    m += 1
-                    continue
+                ii, ig = _film_index(i, w, mode, guided)
                 if guided:
                     wt = wt * guide[jg, ig]
                     if not wt > 0.0:
@@ -209,6 +180,74 @@ def _footprint(x, y, r, h, w, mode, guide, guided, wbuf, ibuf, jbuf, gs, fs, pj,
                 ibuf[m] = ii
                 jbuf[m] = jj
                 m += 1
+    return s, m
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _gated_footprint(x, y, r, h, w, mode, r_edge, wbuf, ibuf, jbuf, gs, fs, pj, pi, k2, seen, reach, key, gate_r):
+    """The footprint of :func:`_footprint` (plain Epanechnikov weights, centred on the pixel (pj, pi)),
+    gated: the weights still sum over the whole support, but a centre q receives
+    ``1 - d^2 / min(r, r_edge[p], r_edge[q])^2`` only if its pixel passes :func:`_same_pixel_stats`
+    against p (colour ``gs``, features ``fs``); the rest of its weight goes to p, as one last entry.
+    Pair-symmetric: p sends q what q would send p.
+
+    ``reach[t]`` holds, for the offset t = (j - pj, i - pi) within ``gate_r``, ``min(r_edge[p], r_edge[q])``
+    where the gate passes and -1 where it refuses; it is valid where ``seen[t]`` holds ``key``, else it is
+    computed here: the samples of one pixel (one ``key``, changed by the caller with the pixel) test each
+    neighbour once.  Returns (sum of the weights, number of entries).
+    """
+    r2 = r * r
+    inv_r2 = 1.0 / r2
+    jlo = int(math.floor(y - 0.5 - r)) + 1
+    jhi = int(math.ceil(y - 0.5 + r)) - 1
+    if mode == 1:
+        jlo = max(jlo, 0)
+        jhi = min(jhi, h - 1)
+    side = 2 * gate_r + 1
+    rp = r_edge[pj, pi]
+    s = 0.0
+    m = 0
+    home = 0.0
+    for j in range(jlo, jhi + 1):
+        dy = j + 0.5 - y
+        rem = r2 - dy * dy
+        if rem <= 0.0:
+            continue
+        jj, jg = _film_index(j, h, mode, True)
+        half = math.sqrt(rem)
+        ilo = int(math.floor(x - 0.5 - half)) + 1
+        ihi = int(math.ceil(x - 0.5 + half)) - 1
+        if mode == 1:
+            ilo = max(ilo, 0)
+            ihi = min(ihi, w - 1)
+        dy2 = dy * dy * inv_r2
+        trow = (j - pj + gate_r) * side + gate_r - pi
+        for i in range(ilo, ihi + 1):
+            dx = i + 0.5 - x
+            q = dx * dx * inv_r2 + dy2
+            if not q < 1.0:
+                continue
+            wt = 1.0 - q
+            s += wt
+            t = trow + i
+            if seen[t] != key:
+                seen[t] = key
+                ig = i if 0 <= i < w else _reflect(i, w)
+                reach[t] = min(rp, r_edge[jg, ig]) if _same_pixel_stats(gs, fs, pj, pi, jg, ig, k2) else -1.0
+            re = reach[t]
+            sent = 0.0
+            if re > 0.0:
+                d2 = q * r2
+                if d2 < re * re:
+                    sent = wt if re >= r else 1.0 - d2 / (re * re)
+            home += wt - sent
+            if not sent > 0.0:
+                continue
+            ii, _ = _film_index(i, w, mode, False)
+            wbuf[m] = sent
+            ibuf[m] = ii
+            jbuf[m] = jj
+            m += 1
     if home > 0.0:
         wbuf[m] = home
         ibuf[m] = pi
@@ -247,11 +286,6 @@ def _footprint_loop(pos, val, scale, radius, guide, guided, mode, out):
     """
     h, w, nc = out.shape
     wbuf, ibuf, jbuf = _scratch(radius)
-    # the gate's inputs, unused by an ungated footprint
-    no_stats = np.zeros((1, 1, 1, 4))
-    no_feats = np.zeros((1, 1, 0, 2))
-    no_seen = np.zeros(1, np.int64)
-    no_pass = np.zeros(1, np.bool_)
     n_fallback = 0
     for k in range(pos.shape[0]):
         r = radius[k]
@@ -259,8 +293,7 @@ def _footprint_loop(pos, val, scale, radius, guide, guided, mode, out):
             continue
         x = np.float64(pos[k, 0])
         y = np.float64(pos[k, 1])
-        s, m = _footprint(x, y, r, h, w, mode, guide, guided, wbuf, ibuf, jbuf, no_stats, no_feats, 0, 0,
-                          0.0, False, no_seen, no_pass, 0, 0)
+        s, m = _footprint(x, y, r, h, w, mode, guide, guided, wbuf, ibuf, jbuf)
         if not s > 0.0:
             # No pixel centre inside the support (or none the guide lets in): the whole sample goes to
             # its own pixel (whose centre is the nearest one).
@@ -446,7 +479,7 @@ def _splat_gated_loop(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
     wbuf, ibuf, jbuf = _scratch(radius)
     gate_r = int(math.ceil(_max_radius(radius))) + 1
     gate_seen = np.full((2 * gate_r + 1) ** 2, -1, np.int64)
-    gate_pass = np.zeros((2 * gate_r + 1) ** 2, np.bool_)
+    gate_reach = np.empty((2 * gate_r + 1) ** 2)
     gate_key = -1
     last = -1
     n_fallback = 0
@@ -473,8 +506,8 @@ def _splat_gated_loop(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
             if py * w + px != last:
                 last = py * w + px
                 gate_key += 1
-            s, m = _footprint(x, y, r, h, w, mode, r_edge, False, wbuf, ibuf, jbuf, gs, fs, py, px, k2, True,
-                              gate_seen, gate_pass, gate_key, gate_r)
+            s, m = _gated_footprint(x, y, r, h, w, mode, r_edge, wbuf, ibuf, jbuf, gs, fs, py, px, k2, gate_seen,
+                                    gate_reach, gate_key, gate_r)
         if not s > 0.0:
             if d <= 0:
                 n_fallback += r > 0.0

@@ -36,7 +36,7 @@ from ...core.features import check_features, usable_layout
 from ...core.samples import apply_nonfinite, check_policy, check_samples
 from .kernels import BOUNDARY_MODES, _BOUNDARY_CODE, _deposit_own_pixel, _scatter, _splat_guided_loop
 from ...filters.luminance import LUMINANCE_WEIGHTS
-from .consistent import (FeatureSums, _consistent_radii, channel_sums, edge_radius, feature_moments, gate_k,
+from .consistent import (FeatureSums, _split_and_radii, channel_sums, edge_radius, feature_moments, gate_k,
                          pixel_moments)
 from .kernels import _add_widths, _splat_gated_loop
 from .bands import in_bands, in_ranges, rows_sorted
@@ -595,16 +595,18 @@ class ProgressiveSplatter:
                 srt = rows_sorted(p, self.height)
             frac = np.empty(p.shape[0])
             rad = np.empty(p.shape[0])
-            for n_out, n_cap in in_ranges(_split_outliers, (p, v, self._norm_code, self._weights, tau, fref, nmap,
-                                                            self.c, self.alpha, self.min_width, self.max_width, frac,
-                                                            rad), p.shape[0]):
+            krad = np.empty(p.shape[0]) if consistent else rad
+            if consistent:  # the split and the consistent samples' radii in one pass
+                split = in_ranges(_split_and_radii, (p, v, self._norm_code, self._weights, tau, fref, nmap, self.c,
+                                                     self.alpha, self.spread_c, self.spread_alpha, self.min_width,
+                                                     self.max_width, r_edge, frac, rad, krad), p.shape[0])
+            else:
+                split = in_ranges(_split_outliers, (p, v, self._norm_code, self._weights, tau, fref, nmap, self.c,
+                                                    self.alpha, self.min_width, self.max_width, frac, rad), p.shape[0])
+            for n_out, n_cap in split:
                 outliers += n_out
                 capped += n_cap
             if consistent:
-                krad = np.empty(p.shape[0])
-                in_ranges(_consistent_radii, (p, v, self._norm_code, self._weights, frac, tau, fref, nmap, r_edge,
-                                              self.spread_c, self.spread_alpha, self.min_width, self.max_width, krad),
-                          p.shape[0])
                 # in bands of rows of about equal samples, one per thread; a sample near a band's edge
                 # costs both threads its footprint (reach: a radius is at most max_width / 2)
                 fallback += sum(in_bands(_splat_gated_loop, (p, v, w_round, inv_counts, frac, krad, r_edge, gstats,
@@ -612,7 +614,6 @@ class ProgressiveSplatter:
                                          p, self.height, row_work=row_work, sorted_rows=srt,
                                          reach=int(math.ceil(0.5 * self.max_width)) + 1))
             else:
-                krad = rad
                 _deposit_own_pixel(p, v, w_round * inv_counts[self._pixel_of(p)] * (1.0 - frac), img)
             sel = np.flatnonzero(rad > 0)
             if sel.size:
