@@ -22,7 +22,7 @@ import numba
 import numpy as np
 
 from ...errors import InputError
-from ...filters.engine import numba_threads
+from ...filters.engine import parallel_calls
 from ...core.samples import check_samples
 
 __all__ = ["BOUNDARY_MODES", "epanechnikov", "splat"]
@@ -338,27 +338,23 @@ _PARALLEL_MIN = 1 << 17
 _N_BLOCKS = 2
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _splat_blocks(pos, val, scale, radius, mode, out, n_blocks):
-    n = pos.shape[0]
-    h, w, nc = out.shape
-    bufs = np.zeros((n_blocks, h, w, nc))
-    fb = np.zeros(n_blocks, np.int64)
-    for b in numba.prange(n_blocks):
-        a = n * b // n_blocks
-        e = n * (b + 1) // n_blocks
-        fb[b] = _splat_loop(pos[a:e], val[a:e], scale[a:e], radius[a:e], mode, bufs[b])
-    for b in range(n_blocks):
-        out += bufs[b]
-    return fb.sum()
-
-
 def _scatter(pos, val, scale, radius, mode, out) -> int:
-    """The scatter loop, on two cores for large batches (deterministic block split)."""
-    if pos.shape[0] >= _PARALLEL_MIN:
-        with numba_threads():
-            return int(_splat_blocks(pos, val, scale, radius, mode, out, _N_BLOCKS))
-    return int(_splat_loop(pos, val, scale, radius, mode, out))
+    """The scatter loop, on two cores for large batches (deterministic block split).
+
+    Each block splats into its own buffer on the filters' thread pool (the
+    loop is a ``nogil`` kernel; a ``parallel=True`` wrapper would cost a
+    second compilation of it), and the buffers are added in block order.
+    """
+    n = pos.shape[0]
+    if n < _PARALLEL_MIN:
+        return int(_splat_loop(pos, val, scale, radius, mode, out))
+    bufs = np.zeros((_N_BLOCKS,) + out.shape)
+    cuts = [n * b // _N_BLOCKS for b in range(_N_BLOCKS + 1)]
+    fb = parallel_calls(_splat_loop, [(pos[a:e], val[a:e], scale[a:e], radius[a:e], mode, bufs[b])
+                                      for b, (a, e) in enumerate(zip(cuts[:-1], cuts[1:]))])
+    for b in range(_N_BLOCKS):
+        out += bufs[b]
+    return int(sum(fb))
 
 
 def splat(positions, values, widths, *, width: int, height: int, scale=1.0, boundary: str = "mirror",
