@@ -15,13 +15,20 @@ the same input:
   (reconstruction seconds against the denoise call), auto's whole command
   / gem's whole command;
 * the machine's load average before and after, so a number measured on a
-  busy machine says so.
+  busy machine says so;
+* with ``--before ROOT`` (another checkout of mcrecon, e.g. ``git worktree``
+  or ``git archive`` of an earlier commit), every command also runs on that
+  checkout, interleaved with this one's (before, after, before, after ...
+  ``--repeat`` times), and the after / before ratios of reconstruction and
+  CPU seconds and of peak RSS are printed: on a shared machine only such
+  ratios, measured side by side, compare two versions.
 
 Each method first reconstructs a tiny log of the same scene (not timed),
 so kernel compilation of a first run is not counted.
 
     python benchmarks/bench_frame.py [--size 1920x1080] [--spp 32] [--scene checker_wall]
                                      [--log LOG.h5] [--workdir DIR] [--methods gem,auto,nfor]
+                                     [--before ROOT [--repeat N]]
 """
 
 from __future__ import annotations
@@ -43,19 +50,19 @@ sys.path.insert(0, str(ROOT))
 _RECON = re.compile(r"reconstructed in ([0-9.]+) s")
 
 
-def _env() -> dict:
+def _env(root: Path = ROOT) -> dict:
     env = dict(os.environ)
-    env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env["PYTHONPATH"] = str(root) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     return env
 
 
-def run_command(args: list[str]) -> dict:
-    """Run ``python -m mcrecon ARGS``: its wall and CPU seconds, peak RSS (this child's own rusage, ``os.wait4``)
-    and the reconstruction seconds it prints."""
+def run_command(args: list[str], *, root: Path = ROOT) -> dict:
+    """Run ``python -m mcrecon ARGS`` from the checkout ``root``: its wall and CPU seconds, peak RSS (this
+    child's own rusage, ``os.wait4``) and the reconstruction seconds it prints."""
     t0 = time.perf_counter()
     errf = tempfile.TemporaryFile("w+")
     p = subprocess.Popen([sys.executable, "-m", "mcrecon", *args], stdout=subprocess.PIPE, stderr=errf,
-                         env=_env(), text=True)
+                         env=_env(root), text=True)
     # stderr goes to a file (no pipe to fill while stdout is read); then wait4 reaps the child with its own rusage
     out = p.stdout.read()
     _, status, ru = os.wait4(p.pid, 0)
@@ -97,8 +104,16 @@ def main(argv=None) -> int:
     ap.add_argument("--log", help="an existing log with features (else one is rendered into --workdir)")
     ap.add_argument("--workdir", help="where the log and the outputs go (default: a temporary folder)")
     ap.add_argument("--methods", default="gem,auto,nfor")
+    ap.add_argument("--before", help="another mcrecon checkout: every command also runs there, interleaved, "
+                                     "and the after / before ratios are printed")
+    ap.add_argument("--repeat", type=int, default=1, help="before/after pairs per method with --before (default 1)")
     args = ap.parse_args(argv)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    before = Path(args.before).resolve() if args.before else None
+    if before is not None and not (before / "mcrecon" / "__init__.py").is_file():
+        raise SystemExit(f"bench_frame: --before {args.before}: no mcrecon package there (give a checkout's root)")
+    if args.repeat < 1:
+        raise SystemExit(f"bench_frame: --repeat {args.repeat}: give 1 or more")
     work = Path(args.workdir or tempfile.mkdtemp(prefix="bench_frame_"))
     work.mkdir(parents=True, exist_ok=True)
     load0 = os.getloadavg()
@@ -111,10 +126,21 @@ def main(argv=None) -> int:
     tiny = str(work / f"{args.scene}_tiny.h5")
     if not Path(tiny).exists():
         run_command(["render-log", "--scene", args.scene, "--spp", "4", "--size", "48x40", "--features", "-o", tiny])
-    res = {}
+    res, old = {}, {}
     for m in methods:
         run_command(["reconstruct", tiny, "--method", m, "-o", str(work / f"tiny_{m}.exr")])  # compile, not timed
-        res[m] = run_command(["reconstruct", log, "--method", m, "-o", str(work / f"{m}.exr")])
+        if before is not None:
+            run_command(["reconstruct", tiny, "--method", m, "-o", str(work / f"tiny_{m}_before.exr")], root=before)
+            pairs = []
+            for _ in range(args.repeat):
+                b = run_command(["reconstruct", log, "--method", m, "-o", str(work / f"{m}_before.exr")], root=before)
+                a = run_command(["reconstruct", log, "--method", m, "-o", str(work / f"{m}.exr")])
+                pairs.append((b, a))
+            # the pair with the median CPU ratio: one pair's two runs saw the same load
+            pairs.sort(key=lambda ba: ba[1]["cpu"] / ba[0]["cpu"])
+            old[m], res[m] = pairs[len(pairs) // 2]
+        else:
+            res[m] = run_command(["reconstruct", log, "--method", m, "-o", str(work / f"{m}.exr")])
     try:
         t_oidn = oidn_seconds(log)
     except ImportError:
@@ -137,6 +163,13 @@ def main(argv=None) -> int:
     mpix = np.prod([int(v) for v in args.size.split("x")]) / 1e6
     for m in methods:
         print(f"{m}: {res[m]['cpu'] / mpix:.1f} CPU s per megapixel (whole command)")
+    if old:
+        print(f"after / before ({before}; median pair of {args.repeat}):")
+        print(f"{'':8s} {'reconstruction':>15s} {'command CPU':>12s} {'peak RSS':>9s}   (before: recon s, CPU s, GB)")
+        for m in methods:
+            a, b = res[m], old[m]
+            print(f"{m:8s} {a['recon'] / b['recon']:15.3f} {a['cpu'] / b['cpu']:12.3f} {a['rss_gb'] / b['rss_gb']:9.3f}"
+                  f"   ({b['recon']:.2f}, {b['cpu']:.2f}, {b['rss_gb']:.2f})")
     return 0
 
 

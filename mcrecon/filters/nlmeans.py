@@ -66,7 +66,8 @@ def exp_neg(t):
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _box_rows(pd, r0, f, vs):
-    """vs[j] = sum of pd[r0 .. r0 + 2f, j] in float64, left to right (as a sequential sum).
+    """vs[j] = sum of pd[r0 .. r0 + 2f, j] in float64, left to right (as a sequential sum): the first row of a
+    band; :func:`_slide` moves it down a row.
 
     The sum written as one expression per element for the usual patch radii: LLVM vectorises a loop,
     not a runtime-length inner loop, and one pass is 3x faster than adding row after row (measured)."""
@@ -74,27 +75,39 @@ def _box_rows(pd, r0, f, vs):
     if f == 0:
         p0 = pd[r0]
         for j in range(wp):
-            vs[j] = float(p0[j])
+            vs[j] = np.float64(p0[j])
     elif f == 1:
         p0, p1, p2 = pd[r0], pd[r0 + 1], pd[r0 + 2]
         for j in range(wp):
-            vs[j] = float(p0[j]) + float(p1[j]) + float(p2[j])
+            vs[j] = np.float64(p0[j]) + np.float64(p1[j]) + np.float64(p2[j])
     elif f == 2:
         p0, p1, p2, p3, p4 = pd[r0], pd[r0 + 1], pd[r0 + 2], pd[r0 + 3], pd[r0 + 4]
         for j in range(wp):
-            vs[j] = float(p0[j]) + float(p1[j]) + float(p2[j]) + float(p3[j]) + float(p4[j])
+            vs[j] = np.float64(p0[j]) + np.float64(p1[j]) + np.float64(p2[j]) + np.float64(p3[j]) + np.float64(p4[j])
     elif f == 3:
         p0, p1, p2, p3, p4, p5, p6 = pd[r0], pd[r0 + 1], pd[r0 + 2], pd[r0 + 3], pd[r0 + 4], pd[r0 + 5], pd[r0 + 6]
         for j in range(wp):
-            vs[j] = (float(p0[j]) + float(p1[j]) + float(p2[j]) + float(p3[j]) + float(p4[j]) + float(p5[j])
-                     + float(p6[j]))
+            vs[j] = (np.float64(p0[j]) + np.float64(p1[j]) + np.float64(p2[j]) + np.float64(p3[j]) + np.float64(p4[j]) + np.float64(p5[j])
+                     + np.float64(p6[j]))
     else:
         for j in range(wp):
             vs[j] = 0.0
         for b in range(2 * f + 1):
             src = pd[r0 + b]
             for j in range(wp):
-                vs[j] += src[j]
+                vs[j] += np.float64(src[j])
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _slide(vs, enter, leave, n):
+    """vs[j] += enter[j] - leave[j] in float64 (the float32 rows exactly converted); the number of NaN
+    sums (a NaN that left the patch stays in a running sum: the caller then sums the row afresh)."""
+    bad = 0
+    for j in range(n):
+        v = vs[j] + (np.float64(enter[j]) - np.float64(leave[j]))
+        vs[j] = v
+        bad += v != v
+    return bad
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -163,15 +176,20 @@ def offset_distances(guide, var, dy, dx, i0, i1, f, k2, eps, clamp, pd, vs, hs, 
     for t2 in range(j1 - j0):  # 1 / the patch's columns s with s and s + dx inside the image
         j = j0 + t2
         inv_cols[t2] = 1.0 / (min(j + f + 1, j1) - max(j - f, j0))
-    for rr in range(i1 - i0):
-        i = i0 + rr
-        # rows s of the patch with s and s + dy inside the image
-        nr = min(i + f + 1, h, h - dy) - max(i - f, 0, -dy)
-        if nr <= 0:
-            continue
-        for ch in range(c):
-            _box_rows(pd[ch], rr, f, vs)
-            n = j1 - j0
+    n = j1 - j0
+    last = 2 * f + 1
+    for ch in range(c):
+        pc = pd[ch]
+        for rr in range(i1 - i0):
+            # the patch's column sums: the first row's directly, then running (the row entering the patch
+            # added, the one leaving it subtracted: two operations per pixel whatever f)
+            if rr == 0 or _slide(vs, pc[rr - 1 + last], pc[rr - 1], wp):
+                _box_rows(pc, rr, f, vs)
+            i = i0 + rr
+            # rows s of the patch with s and s + dy inside the image
+            nr = min(i + f + 1, h, h - dy) - max(i - f, 0, -dy)
+            if nr <= 0:
+                continue
             _box_cols(vs[j0:], n, f, hs)
             dst2 = out[ch, rr, j0:j1]
             inv_r = 1.0 / nr

@@ -42,7 +42,7 @@ import numpy as np
 from ...core.fill import mean_variance_policy
 from ...core.stats import PixelStats
 from .estimates import cross_validation_mse
-from .features import Candidate, _filled, dual_candidate
+from .features import Candidate, _filled, dual_candidate, feature_slices, prefiltered_features
 
 __all__ = ["ESTIMATES", "HALF_TO_FULL", "oidn_candidate", "oidn_denoise", "oidn_aux"]
 
@@ -83,21 +83,27 @@ def oidn_aux(st: PixelStats) -> tuple:
     The features' pixel means prefiltered with their own weights (NFOR's Sec. 5.1: window 11^2, patch
     7^2, k = 0.5), then given to OIDN with ``clean_aux=True`` (docs/methods/auto.md measures the pixel
     means raw, raw with ``clean_aux``, and prefiltered: this measures best).  ``(albedo, normal)``,
-    ``(albedo,)`` or ``()`` (OIDN takes a normal only beside an albedo)."""
+    ``(albedo,)`` or ``()`` (OIDN takes a normal only beside an albedo).  A half whose features the
+    feature candidates prefiltered already (:func:`~.features.prefiltered_features`) takes those planes:
+    the same values, computed once."""
     from ...filters.nlmeans import nlmeans_filter
 
-    planes, var = [], []
+    names = []
     for name in ("albedo", "normal"):
         f = st.features.get(name)
         if f is None or f.mean.shape[2] != 3:
             break
-        planes.append(_filled(f.mean, f.count))
-        var.append(mean_variance_policy(f))
-    if not planes:
+        names.append(name)
+    if not names:
         return ()
-    f = np.concatenate(planes, axis=2)
-    pf = nlmeans_filter(f, f, np.concatenate(var, axis=2), radius=5, patch=3, k=0.5)
-    return tuple(np.ascontiguousarray(pf[..., 3 * k:3 * k + 3]) for k in range(len(planes)))
+    stored = prefiltered_features(st, stored_only=True)   # a half's: the feature candidates' prefilter
+    if stored is not None:
+        sl = feature_slices(st)
+        return tuple(np.ascontiguousarray(stored[..., sl[n]]) for n in names)
+    f = np.concatenate([_filled(st.features[n].mean, st.features[n].count) for n in names], axis=2)
+    var = np.concatenate([mean_variance_policy(st.features[n]) for n in names], axis=2)
+    pf = nlmeans_filter(f, f, var, radius=5, patch=3, k=0.5)
+    return tuple(np.ascontiguousarray(pf[..., 3 * k:3 * k + 3]) for k in range(len(names)))
 
 
 def _colour(st: PixelStats) -> np.ndarray:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import warnings
+import weakref
 
 import numpy as np
 
@@ -100,10 +101,51 @@ class _HalfPlanes:
 
     @functools.cached_property
     def prefiltered(self) -> np.ndarray:
-        from ...filters.nlmeans import nlmeans_filter
+        return prefiltered_features(self.half, planes=self.features)
 
-        f, fv = self.features
-        return nlmeans_filter(f, f, fv, radius=5, patch=3, k=0.5)
+
+#: Each buffer's prefiltered feature planes (:func:`prefiltered_features`), kept while the buffer lives,
+#: with the sample counts they were computed from.
+_PREFILTERED: "weakref.WeakKeyDictionary[PixelStats, tuple]" = weakref.WeakKeyDictionary()
+
+
+def _stamp(st: PixelStats) -> tuple:
+    # samples added to the buffer after the prefilter change its counts: the stored planes are then stale
+    return (int(st.count.sum()),) + tuple(int(st.features[n].count.sum()) for n in st.feature_names)
+
+
+def feature_slices(st: PixelStats) -> dict:
+    """Where each feature's components lie among the planes of :func:`prefiltered_features`."""
+    out, k = {}, 0
+    for n in st.feature_names:
+        c = st.features[n].mean.shape[2]
+        out[n] = slice(k, k + c)
+        k += c
+    return out
+
+
+def prefiltered_features(st: PixelStats, *, planes=None, stored_only: bool = False) -> np.ndarray | None:
+    """Every feature component of ``st`` (:func:`_feature_planes`) NL-means prefiltered with its own weights
+    (NFOR's Sec. 5.1 with one buffer: window 11^2, patch 7^2, k = 0.5), (H, W, D).
+
+    Computed once per buffer: the regression candidates and OIDN's albedo and normal of the same half
+    (:func:`~.blackbox.oidn_aux`) read the same planes.  The filter weighs each channel by that channel
+    alone, so a subset of the planes is bit-identical to prefiltering that subset by itself.
+    ``planes``: ``_feature_planes(st)`` if already at hand.  ``stored_only``: None unless already
+    computed for these samples.
+    """
+    from ...filters.nlmeans import nlmeans_filter
+
+    stamp = _stamp(st)
+    got = _PREFILTERED.get(st)
+    if got is not None and got[0] == stamp:
+        return got[1]
+    if stored_only:
+        return None
+    f, fv = _feature_planes(st) if planes is None else planes
+    pf = nlmeans_filter(f, f, fv, radius=5, patch=3, k=0.5)
+    _PREFILTERED[st] = (stamp, pf)
+    return pf
 
 
 def feature_guided_half(name: str, half: PixelStats | _HalfPlanes) -> np.ndarray | None:
