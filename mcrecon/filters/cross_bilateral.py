@@ -27,7 +27,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from .engine import numba_threads
+from .engine import parallel_rows
 from .nlmeans import exp_neg
 
 __all__ = ["cross_bilateral", "feature_gradient2"]
@@ -87,9 +87,10 @@ def _row(img, var, feat, fvar, fden, r, kc2, kf2, use_colour, i, num, den):
                     nu[t] += d[t] * src[t]
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _kernel(img, var, feat, fvar, fden, r, kc2, kf2, use_colour, num, den):
-    for i in numba.prange(img.shape[1]):
+@numba.njit(cache=True, nogil=True)
+def _rows(img, var, feat, fvar, fden, r, kc2, kf2, use_colour, num, den, i0, i1):
+    """Rows ``[i0, i1)``: each row writes only its own outputs, so blocks of rows run on separate threads."""
+    for i in range(i0, i1):
         _row(img, var, feat, fvar, fden, r, kc2, kf2, use_colour, i, num, den)
 
 
@@ -156,7 +157,7 @@ def cross_bilateral(image, variance, features, feature_variance, *, radius: int 
     num = np.zeros((c, h, w))
     den = np.zeros((h, w))
     kc = 1.0 if k_colour is None else float(k_colour)
-    with numba_threads(threads):
-        _kernel(*planes, int(radius), kc * kc, float(k_feature) ** 2, k_colour is not None, num, den)
+    parallel_rows(_rows, (*planes, int(radius), kc * kc, float(k_feature) ** 2, k_colour is not None, num, den),
+                  h, threads)
     out = np.moveaxis(num / den, 0, 2)
     return (out, den) if return_weights else out

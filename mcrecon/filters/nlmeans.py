@@ -29,7 +29,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from .engine import numba_threads
+from .engine import parallel_calls
 
 __all__ = ["NLM_EPS", "DISTANCE_CLAMP", "MIN_CENTER_WEIGHT", "nlmeans_filter", "as_planes", "exp_neg",
            "offset_distances"]
@@ -226,15 +226,6 @@ def _nlm_band(img, guide, var, r, f, k2, eps, clamp, min_centre, i0, i1, num, de
                         de[t2] += wt
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _nlm_kernel(img, guide, var, r, f, k2, eps, clamp, min_centre, band, num, den):
-    h = img.shape[1]
-    n_bands = (h + band - 1) // band
-    for b in numba.prange(n_bands):
-        i0 = b * band
-        _nlm_band(img, guide, var, r, f, k2, eps, clamp, min_centre, i0, min(h, i0 + band), num, den)
-
-
 def as_planes(a, dtype=np.float64) -> np.ndarray:
     """(H, W, C) or (H, W) -> contiguous (C, H, W) planes (the kernels' inner loops run along rows)."""
     a = np.asarray(a, dtype=np.float64)
@@ -275,8 +266,10 @@ def nlmeans_filter(image, guide, variance, *, radius: int, patch: int, k: float,
         raise ValueError(f"nlmeans_filter: image {img.shape}, guide {g.shape}, variance {v.shape} (C, H, W) differ")
     num = np.zeros(img.shape)
     den = np.zeros(img.shape)
-    with numba_threads(threads):
-        _nlm_kernel(img, g, v, int(radius), int(patch), np.float32(float(k) ** 2), np.float32(NLM_EPS),
-                    np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT, BAND, num, den)
+    # bands of rows on the thread pool: each band writes its own rows of num and den
+    h = img.shape[1]
+    args = (img, g, v, int(radius), int(patch), np.float32(float(k) ** 2), np.float32(NLM_EPS),
+            np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT)
+    parallel_calls(_nlm_band, [(*args, i0, min(h, i0 + BAND), num, den) for i0 in range(0, h, BAND)], threads)
     out = np.moveaxis(num / den, 0, 2)
     return out[..., 0] if np.ndim(image) == 2 else out

@@ -30,7 +30,7 @@ import math
 import numba
 import numpy as np
 
-from .engine import numba_threads
+from .engine import n_threads, parallel_calls
 from .nlmeans import BAND, DISTANCE_CLAMP, MIN_CENTER_WEIGHT, NLM_EPS, as_planes, exp_neg, offset_distances
 
 __all__ = ["RIDGE", "collaborative_regression", "standardise"]
@@ -302,17 +302,13 @@ def _predict(xt, beta, yp, d, n):
                 yc[t] += b0 * x0[t]
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _regression_kernel(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, leverage, band, b0, accs):
-    """Bands b0 .. b0 + len(accs) - 1 (those inside the image), band b0 + k into accs[k] (zeroed here)."""
+@numba.njit(cache=True, nogil=True)
+def _one_band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, leverage, band, b, acc):
+    """Band ``b`` into its private accumulator ``acc`` (zeroed here): bands run on separate threads."""
     h = guide.shape[1]
-    n_bands = min((h + band - 1) // band - b0, accs.shape[0])
-    for k in numba.prange(n_bands):
-        i0 = (b0 + k) * band
-        acc = accs[k]
-        acc[:] = 0.0
-        _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, leverage, i0, min(h, i0 + band),
-              acc)
+    i0 = b * band
+    acc[:] = 0.0
+    _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, leverage, i0, min(h, i0 + band), acc)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -402,15 +398,16 @@ def collaborative_regression(image, guide, variance, features, *, radius: int = 
     pad = ((0, 0), (r, r), (r, r))
     ypad, fpad = np.pad(y, pad), np.pad(fp, pad)
     out = np.zeros((planes, h, w))
-    with numba_threads(threads) as nt:
-        # BANDS_PER_THREAD bands per thread at a time: the bands' private accumulators (each 1 + 2r / BAND
-        # times its rows) are a few megabytes whatever the image, not twice the output
-        accs = np.empty((min(n_bands, BANDS_PER_THREAD * nt), planes, BAND + 2 * r, w + 2 * r))
-        for b0 in range(0, n_bands, accs.shape[0]):
-            _regression_kernel(ypad, g, v, fpad, r, int(patch), np.float32(float(k) ** 2), float(ridge),
-                               np.float32(NLM_EPS), np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT,
-                               bool(return_centre_weight), BAND, b0, accs)
-            _gather(accs, r, BAND, b0, out)
+    nt = n_threads(threads)
+    # BANDS_PER_THREAD bands per thread at a time, on the thread pool: the bands' private accumulators
+    # (each 1 + 2r / BAND times its rows) are a few megabytes whatever the image, not twice the output
+    accs = np.empty((min(n_bands, BANDS_PER_THREAD * nt), planes, BAND + 2 * r, w + 2 * r))
+    args = (ypad, g, v, fpad, r, int(patch), np.float32(float(k) ** 2), float(ridge), np.float32(NLM_EPS),
+            np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT, bool(return_centre_weight), BAND)
+    for b0 in range(0, n_bands, accs.shape[0]):
+        parallel_calls(_one_band, [(*args, b0 + k, accs[k]) for k in range(min(accs.shape[0], n_bands - b0))],
+                       threads)
+        _gather(accs, r, BAND, b0, out)
     res = np.moveaxis(out[:nc] / out[nc], 0, 2)
     extra = ((out[nc],) if return_weights else ()) + ((out[nc + 1] / out[nc],) if return_centre_weight else ())
     return (res,) + extra if extra else res
