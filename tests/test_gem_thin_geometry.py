@@ -117,3 +117,13 @@ def test_the_risk_guard_is_off_in_the_papers_variant_and_its_radius_is_checked()
         gem_select(z, z, np.ones((4, 4)), final_sigmas(2), gamma=0.2, final=True, risk_radius=float("nan"))
     with pytest.raises(InputError):
         get_method("gem", risk_guard=-1.0)
+
+
+def test_the_risk_guard_refuses_a_radius_or_tolerance_it_cannot_use():
+    base = np.zeros((6, 6, 1))
+    count = np.ones((6, 6))
+    bank = filter_bank(base, base, count, final_sigmas(2), per_channel=True)
+    sel = np.zeros((6, 6), int)
+    for kw in ({"radius": 0.0}, {"radius": float("inf")}, {"tolerance": -0.1}):
+        with pytest.raises(InputError):
+            gem_guard.risk_guard(bank, sel, base, count, **kw)

@@ -23,7 +23,8 @@ neighbourhood of ``radius`` pixels are not: :func:`risk_guard` compares,
 per pixel, the neighbourhood's summed estimate for GEM's selection clamped
 to at most scale m, for every m from the pixel filter (m = 0: the pixel
 means) to the coarsest (GEM's selection itself), and keeps the clamp of
-least estimated error.  Channels are weighed as the selection weighs them
+least estimated error where it saves at least 1 % of the pixel means'
+(:data:`RISK_TOLERANCE`).  Channels are weighed as the selection weighs them
 (``1 / (value^2 + eps)``, the relative MSE; or a plain sum).
 """
 
@@ -32,15 +33,19 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ...errors import InputError
 from ...filters.engine import correlate_jobs
 from ...filters.gaussian import TRUNCATE, gaussian_kernel, pixel_kernel
 from .kernels import FilterBank
 
-__all__ = ["RISK_RADIUS", "scale_risks", "risk_guard"]
+__all__ = ["RISK_RADIUS", "RISK_TOLERANCE", "scale_risks", "risk_guard"]
 
 #: Default radius (Gaussian sigma, pixels) of the neighbourhoods whose
 #: estimated errors :func:`risk_guard` compares (``GEMMethod``'s ``risk_guard``).
 RISK_RADIUS = 8.0
+#: Least saving (a share of the pixel means' estimated error in the
+#: neighbourhood) for which :func:`risk_guard` clamps a pixel.
+RISK_TOLERANCE = 0.01
 
 
 def _centre_weights(bank: FilterBank, subpixels: int, truncate: float) -> list:
@@ -102,17 +107,19 @@ def _clamped_risk(risks, selected, m, out):
 
 
 def risk_guard(bank: FilterBank, selected: np.ndarray, image: np.ndarray, count: np.ndarray, *,
-               radius: float = RISK_RADIUS, tolerance: float = 0.01, channel_eps: float | None = None,
-               subpixels: int = 4,
-               truncate: float = TRUNCATE, threads: int | None = None) -> np.ndarray:
+               radius: float = RISK_RADIUS, tolerance: float = RISK_TOLERANCE, channel_eps: float | None = None,
+               subpixels: int = 4, truncate: float = TRUNCATE, threads: int | None = None) -> np.ndarray:
     """GEM's selection clamped, per pixel, to the maximum scale of least estimated neighbourhood error.
 
     For m = 0 .. K-1 the candidate ``min(selected, m)`` (m = K-1: the
     selection itself, m = 0: the pixel means); each candidate's
     :func:`scale_risks` summed with a Gaussian of ``radius`` pixels; per
-    pixel the candidate with the least sum (ties: the larger m).  Pixels
-    without samples keep their selection (their mean carries no data) and
-    add nothing to the sums.
+    pixel the candidate with the least sum, if it saves at least
+    ``tolerance`` times the pixel means' summed estimate (ties and smaller
+    savings: the larger m; without the tolerance the noise of the sums
+    picks among near-equal coarse scales).  Pixels without samples keep
+    their selection (their mean carries no data) and add nothing to the
+    sums.
 
     Parameters
     ----------
@@ -128,12 +135,19 @@ def risk_guard(bank: FilterBank, selected: np.ndarray, image: np.ndarray, count:
         Samples per pixel.
     radius : float
         Gaussian sigma (pixels) of the neighbourhoods; > 0.
+    tolerance : float
+        Least saving, as a share of the pixel means' estimated error summed
+        over the neighbourhood, for which a pixel is clamped.
 
     Returns
     -------
     ndarray (H, W) int
         The guarded selection (never coarser than ``selected``).
     """
+    if not (np.isfinite(radius) and radius > 0):
+        raise InputError("risk_guard", "radius", f"{radius!r}; expected a finite number > 0 (pixels)")
+    if not (np.isfinite(tolerance) and tolerance >= 0):
+        raise InputError("risk_guard", "tolerance", f"{tolerance!r}; expected a finite number >= 0")
     img = np.asarray(image, dtype=np.float64)
     if channel_eps is None:
         cw = np.ones_like(img)
