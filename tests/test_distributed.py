@@ -219,8 +219,8 @@ def big_stats(tmp_path_factory):
 @pytest.mark.parametrize("method, options, tile, on_cluster", [
     ("box", {}, 24, True),
     ("ci", {}, 40, False),
-    ("gem", {"final_scales": 4}, 32, True),                             # halo 27: interior tiles
-    ("gem", {"final_scales": 4, "final_outliers": "paper"}, 16, False),  # halo 39
+    ("gem", {"final_scales": 4, "risk_guard": 2.0}, 32, True),          # halo 27 + 6: interior tiles
+    ("gem", {"final_scales": 4, "final_outliers": "paper", "risk_guard": 1.0}, 16, False),  # halo 39 + 3
 ])
 def test_tiled_equals_untiled_bit_for_bit(client, big_stats, method, options, tile, on_cluster):
     m = mcrecon.get_method(method, **options)
@@ -234,12 +234,12 @@ def test_tiled_equals_untiled_bit_for_bit(client, big_stats, method, options, ti
 
 def test_tiled_gem_default_halo(tmp_path):
     m = mcrecon.get_method("gem")
-    assert m.halo(1, 1) == 99                       # 49 (sigma 16 pixel kernel) + 49 (outlier vote) + 1
-    assert mcrecon.get_method("gem", final_outliers="paper").halo(1, 1) == 147
+    assert m.halo(1, 1) == 123                      # 49 (sigma 16 pixel kernel) + 49 (outlier vote) + 1 + 24 (risk guard)
+    assert mcrecon.get_method("gem", final_outliers="paper").halo(1, 1) == 171
     path = write_scene_log(get_scene("soft_shadow"), tmp_path / "wide.h5", width=240, height=48, spp=4, seed=5)
     st = PixelStats.from_log(read_log(path))
     full = mcrecon.reconstruct(st, method=m)
-    # tiles [0, 80) [80, 160) [160, 240): the outer ones see x < 179 and x >= 61 only
+    # tiles [0, 80) [80, 160) [160, 240): the outer ones see x < 203 and x >= 37 only
     assert np.array_equal(D_tiles.reconstruct_tiled(st, method=m, tile=80), full)
 
 

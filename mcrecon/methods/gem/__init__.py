@@ -16,6 +16,8 @@ Modules (each name below is re-exported here):
 * :mod:`.selection` -- gamma, the fill-in variance, the scale selector
   (Eq. 1), stopping maps, outlier removal, :func:`gem_select`,
   :func:`oracle_select`, :func:`estimate_mse` (Secs. 4-6);
+* :mod:`.guard` -- the final reconstruction's regional risk guard (no
+  neighbourhood above its pixel means' estimated error; not in the paper);
 * :mod:`.sampling` -- sample priorities and their distribution (Sec. 5);
 * :mod:`.experiment` -- the error-rate experiment of Sec. 4.3;
 * :mod:`.method` -- :class:`GEMMethod`, the method of the registry.
@@ -43,7 +45,9 @@ Pipeline (one call of :func:`gem_select`):
    (:func:`confirm_pair_stops`; docs/methods/gem.md, "Default vs paper").
 4. **Outlier removal** (Sec. 4.4, Sec. 6) on each stopping map,
    :func:`remove_outliers`; the selected scale is the finest with stop = 1
-   (:func:`select_from_stops`).
+   (:func:`select_from_stops`).  The default's final reconstruction then
+   clamps each pixel's scale where its neighbourhood's unbiased error
+   estimate says a finer maximum scale does better (:func:`risk_guard`).
 5. **Sample distribution** (Sec. 5): accumulated MSE estimates, relative
    MSE with eps = 0.001, priority relMSE * n / (n + n_s); the m best pixels
    each get n samples importance-sampled over their filter,
@@ -68,6 +72,7 @@ References
 from __future__ import annotations
 
 from .experiment import error_rate_experiment
+from .guard import RISK_RADIUS, risk_guard, scale_risks
 from .kernels import FilterBank, filled_subpixels, filter_bank, subpixel_gaussian_exact
 from ...filters.gaussian import adaptive_sigmas, final_sigmas, gaussian_kernel, kernel_radius, pixel_kernel
 from .method import GEMMethod
@@ -105,6 +110,9 @@ __all__ = [
     "gem_select",
     "oracle_select",
     "estimate_mse",
+    "RISK_RADIUS",
+    "scale_risks",
+    "risk_guard",
     "sample_priority",
     "distribute_samples",
     "error_rate_experiment",

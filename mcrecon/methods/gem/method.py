@@ -17,6 +17,7 @@ from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, Ru
 from ...filters.gaussian import adaptive_sigmas, final_sigmas
 from .kernels import filled_subpixels, pending_n_eff
 from .sampling import distribute_samples, sample_priority
+from .guard import RISK_RADIUS
 from .selection import CHANNEL_WEIGHTS, GAMMA_MAX, OUTLIER_RULES, GEMSelection, _pick, gem_select, oracle_select
 from ...core.fill import mean_variance_policy
 
@@ -80,7 +81,7 @@ class GEMMethod(Method):
     variants = {
         "robust": {},
         "paper": {"gamma": 0.1, "final_outliers": "paper", "zero_variance_votes": 3, "uniform_share": 0.0,
-                  "channel_weights": "absolute", "confirm_stops": 0, "variance_guard": 0},
+                  "channel_weights": "absolute", "confirm_stops": 0, "variance_guard": 0, "risk_guard": 0.0},
     }
     options = (
         variant_option(variants),
@@ -116,6 +117,10 @@ class GEMMethod(Method):
                "wherever the coarser has no less estimated variance (no outlier vote sends it coarser: thin "
                "bright geometry stays out of its dark neighbours; it costs more on the scene corpus than it "
                "saves, so it is off by default); 0 the paper", choices=(0, 1)),
+        Option("risk_guard", float, RISK_RADIUS, "final reconstruction: sigma (px) of the neighbourhoods in "
+               "which each pixel's scale is clamped to the maximum scale of least estimated error (the "
+               "unbiased per-pixel estimates, summed): no neighbourhood ends above its pixel means' "
+               "estimated error, thin geometry included; 0 off (the paper)", min=0.0),
         Option("subpixel_exact_below", float, 0.0, "filter scales with sigma below this (px) on the 4x4 "
                "subpixel grid itself (slower; 0: pixel-level equivalent kernel)", min=0.0),
     )
@@ -130,13 +135,16 @@ class GEMMethod(Method):
     def halo(self, width, height):
         # largest final filter's pixel-kernel radius + the largest outlier-removal
         # kernel's radius (twice the scale under the paper's rule) + 1 for the 3x3
-        # variance fill-in: 49 + 49 + 1 = 99 px by default, 147 px with 'paper'
+        # variance fill-in + the risk guard's neighbourhood (its selections and
+        # estimates): 49 + 49 + 1 + 24 = 123 px by default, 147 px with 'paper'
         from ...filters.gaussian import TRUNCATE, gaussian_kernel, pixel_kernel
         sig = final_sigmas(self.params["final_scales"])
         factor = 2.0 if self.params["final_outliers"] == "paper" else 1.0
         r_filter = max((pixel_kernel(s_, self.grid).size - 1) // 2 for s_ in sig)
         r_vote = max((gaussian_kernel(factor * s_, truncate=TRUNCATE).size - 1) // 2 for s_ in sig)
-        return int(r_filter + r_vote + 1)
+        rg = self.params["risk_guard"]
+        r_guard = (gaussian_kernel(rg, truncate=TRUNCATE).size - 1) // 2 if rg > 0 else 0
+        return int(r_filter + r_vote + 1 + r_guard)
 
     # ---------------------------------------------------------------- core
     def start(self, width, height, channels=("R", "G", "B"), *, reference=None) -> "GEMRun":
@@ -176,7 +184,8 @@ class GEMMethod(Method):
                              zero_variance_votes=bool(p["zero_variance_votes"] & (2 if final else 1)),
                              channel_weights=p["channel_weights"] if final else "absolute",
                              confirm_stops=p["confirm_stops"] if final else 0,
-                             variance_guard=bool(p["variance_guard"]) and final)
+                             variance_guard=bool(p["variance_guard"]) and final,
+                             risk_radius=p["risk_guard"] if final else 0.0)
         # The maps are built when asked for (diagnostics()): a planning round
         # would otherwise spend ~5 % of its time on images nobody reads.
         run.diagnostics = {}

@@ -416,7 +416,7 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
                want_mse: bool = False, sub: np.ndarray | None = None, exact_below: float = 0.0,
                outlier_rule: str = "adaptive", zero_variance_votes: bool = False,
                channel_weights: str = "relative", confirm_stops: int = 0,
-               variance_guard: bool = False) -> GEMSelection:
+               variance_guard: bool = False, risk_radius: float = 0.0) -> GEMSelection:
     """Filter selection of Secs. 4 and 6 on pixel arrays (works for 1-D signals as 1 x N images).
 
     Stopping maps from Eq. 1 weighted by rho z(gamma); pixels without samples
@@ -472,6 +472,12 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
         it there.  Thin bright geometry (a fence's wires) otherwise bleeds
         into the dark pixels between the wires, whose neighbours outvote
         their stop (:func:`variance_guard_stops`).  Off: the paper.
+    risk_radius : float
+        > 0: after the selection, clamp each pixel's scale to the maximum
+        scale whose estimated error, summed over a Gaussian neighbourhood
+        of this sigma (pixels), is least (:func:`.guard.risk_guard`): no
+        neighbourhood ends above its pixel means' estimated error.  0: off
+        (the paper).
 
     Raises
     ------
@@ -495,7 +501,10 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
     _check_channel_weights("gem_select", channel_weights)
     relative = channel_weights == "relative" and np.ndim(base) == 3 and np.shape(base)[2] > 1
     check_filter_inputs("gem_select", base, mean_var, count, sub=sub if _uses_sub(sub, sigmas, exact_below) else None)
-    bank = _filter_bank(base, mean_var, count, sigmas, subpixels=subpixels, per_channel=want_mse or relative,
+    if not (risk_radius >= 0 and math.isfinite(risk_radius)):
+        raise InputError("gem_select", "risk_radius", f"{risk_radius!r}; expected a finite number >= 0 (0: off)")
+    guard = risk_radius > 0 and np.ndim(base) == 3
+    bank = _filter_bank(base, mean_var, count, sigmas, subpixels=subpixels, per_channel=want_mse or relative or guard,
                         with_n_eff=want_mse, sub=sub, exact_below=exact_below, truncate=TRUNCATE)
     stops_raw, _ = stopping_maps(bank, count, gamma, channel_eps=CHANNEL_EPS if relative else None)
     empty = count == 0
@@ -515,6 +524,11 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
     stops[0] |= zero_var
     selected = select_from_stops(stops)
     image = _pick(bank.values, selected)
+    if guard:
+        from .guard import risk_guard
+        selected = risk_guard(bank, selected, image, count, radius=risk_radius, subpixels=subpixels,
+                              channel_eps=CHANNEL_EPS if channel_weights == "relative" else None)
+        image = _pick(bank.values, selected)
     mse = estimate_mse(bank, selected, count) if want_mse else None
     return GEMSelection(bank, selected, stops_raw, stops, mse, image)
 
