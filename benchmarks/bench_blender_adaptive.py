@@ -7,7 +7,9 @@ one subset render per sample index plus its probe render) and of an adaptive run
 that continue each pixel's pattern) and ci (samples where the confidence interval is wide), their
 ratio, the renders and pixel-samples Cycles rendered against the samples delivered (the rest is waste,
 or kept for a later round), and the relative MSE of each image against a Cycles reference.  gem, awr and
-auto's adaptive rounds ask for film positions, which Cycles cannot render: they are refused.
+auto run through the Python API (``--methods box,ci,gem,awr,auto``): their rounds ask for counts that
+differ from pixel to pixel, which Cycles renders one sample index at a time over rectangles; the CLI
+refuses them with --blender for what that costs.
 Times are the fastest of --repeat runs (the machine is shared); the adaptive runs write their log.
 
     python benchmarks/bench_blender_adaptive.py [--size 128] [--spp 32] [--ref-spp 1024] [--threads 2]

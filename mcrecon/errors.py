@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import re
 
-__all__ = ["InputError", "RendererError", "McreconWarning"]
+__all__ = ["InputError", "RendererError", "McreconWarning", "the_one"]
 
 
 #: Characters that would break the one line of a message: line and paragraph breaks, other C0/C1
@@ -56,6 +56,21 @@ class InputError(_Located, ValueError):
         What is wrong and what was expected (the fix).
     """
 
+
+
+def the_one(where: str, field: str, found, *, none: str, several: str):
+    """The one item of ``found``, or an :class:`InputError` that names the fix.
+
+    ``none`` is the problem when ``found`` is empty; ``several`` when it
+    holds more than one, formatted with ``{found}`` (the items, comma
+    separated) and ``{first}`` (the first of them, for an example).
+    """
+    found = list(found)
+    if not found:
+        raise InputError(where, field, none)
+    if len(found) > 1:
+        raise InputError(where, field, several.format(found=", ".join(map(str, found)), first=found[0]))
+    return found[0]
 
 
 class RendererError(_Located, RuntimeError):

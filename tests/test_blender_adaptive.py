@@ -155,11 +155,11 @@ def test_a_killed_run_resumes_from_its_log(blend, tmp_path):
 
 
 @NEEDS_BPY
-def test_methods_that_choose_positions_are_refused_before_rendering(blend, tmp_path):
+def test_methods_with_spread_counts_are_refused_before_rendering(blend, tmp_path):
     for method in ("gem", "awr", "auto"):
         r = _adapt("--blender", blend, "--size", f"{W}x{H}", "--spp", 4, "--method", method, "--log",
                    tmp_path / f"{method}.h5", "-o", tmp_path / "o.exr", check=False)
-        assert r.returncode == 2 and "film positions" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+        assert r.returncode == 2 and "a uniform log" in r.stderr and len(r.stderr.strip().splitlines()) == 1
         assert not (tmp_path / f"{method}.h5").exists() and not (tmp_path / "o.exr").exists()
 
 

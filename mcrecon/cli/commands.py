@@ -225,14 +225,15 @@ def _blender_renderer(args):
     return renderer.spec(), renderer
 
 
-def _refuse_position_methods(method) -> None:
-    """Cycles renders each pixel's own sample sequence, never a film position of the method's choosing:
-    refuse, before anything is rendered, a method whose adaptive rounds ask for positions."""
+def _refuse_spread_methods(method) -> None:
+    """Refuse, before anything is rendered, a method whose rounds ask Cycles for counts that differ from
+    pixel to pixel: Cycles renders one sample index over a rectangle, so such rounds render several times
+    the samples they deliver (docs/blender.md, "What it costs")."""
     if method.name in ("gem", "awr") or (method.name == "auto" and getattr(method, "sampling", None) != "uniform"):
-        raise InputError("adapt", "--method", f"{method.name} asks for samples at film positions of its choosing, "
-                         "which Cycles cannot render (it renders each pixel's own sample sequence): with "
-                         "--blender use a method that asks for samples per pixel (box, ci, splat, nfor, "
-                         "auto --sampling uniform)")
+        raise InputError("adapt", "--method", f"{method.name}'s rounds ask for a different number of samples in "
+                         "each pixel, which Cycles renders one sample index at a time over whole rectangles "
+                         "(7-21x the time of a uniform log, docs/blender.md): with --blender use box, ci, splat, "
+                         "nfor or auto --sampling uniform")
 
 
 def _renderer_spec(args) -> dict:
@@ -375,7 +376,7 @@ def _cmd_adapt(args):
             ref = reference_from_spec(spec)
         method = make_method(args.method, args, args.method_flags)
         if args.blender is not None:
-            _refuse_position_methods(method)
+            _refuse_spread_methods(method)
         # (a scene's flag, the Mitsuba bridge's names; a command renderer says nothing before its reply)
         sends = bool(getattr(renderer, "features", False))
         jit_notice(method_kernels(method, features=sends)

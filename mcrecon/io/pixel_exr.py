@@ -120,7 +120,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from ..errors import InputError, McreconWarning
+from ..errors import InputError, McreconWarning, the_one
 from ..core.stats import PixelStats
 from ._exr_moments import _split, _variance_from_moments
 from .images import subsampled
@@ -517,14 +517,11 @@ def _read_stats(exr: _EXR, layout, mean, variance, second_moment, variance_of, c
         if mean is None and set(exr.names) == {f"ch{i}" for i in range(9)}:
             mean, second_moment = ("ch3", "ch4", "ch5"), ("ch6", "ch7", "ch8")
         if mean is None:
-            prefixes = _mitsuba_prefixes(exr.names)
-            if not prefixes:
-                raise InputError(where, "mean", "no moment-integrator channels (P.X,P.Y,P.Z with m2_P.X,m2_P.Y,"
-                                 f"m2_P.Z); channels present: {exr.present()}")
-            if len(prefixes) > 1:
-                raise InputError(where, "mean", f"several moment-integrator outputs ({', '.join(prefixes)}): "
-                                 f"choose one with --mean P.X,P.Y,P.Z")
-            mean = tuple(f"{prefixes[0]}.{a}" for a in "XYZ")
+            prefix = the_one(where, "mean", _mitsuba_prefixes(exr.names),
+                             none="no moment-integrator channels (P.X,P.Y,P.Z with m2_P.X,m2_P.Y,m2_P.Z); "
+                                  f"channels present: {exr.present()}",
+                             several="several moment-integrator outputs ({found}): choose one with --mean P.X,P.Y,P.Z")
+            mean = tuple(f"{prefix}.{a}" for a in "XYZ")
         if second_moment is None:
             second_moment = tuple(f"m2_{c}" for c in mean)
         if len(second_moment) != len(mean):

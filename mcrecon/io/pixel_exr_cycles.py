@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import re
 
-from ..errors import InputError
+from ..errors import InputError, the_one
 
 __all__ = ["cycles_layers", "cycles_mean_channels", "cycles_count_attributes", "COMBINED", "NOISY"]
 
@@ -56,13 +56,11 @@ def cycles_mean_channels(names, where: str, mean=None) -> tuple[str, tuple[str, 
             raise InputError(where, "mean", f"{','.join(mean)} is the image Cycles denoised; the raw image is "
                              f"{','.join(noisy)} (the input: a denoised image has no noise left to estimate)")
         return layer or "", tuple(mean), set(noisy) <= names
-    if not layers:
-        raise InputError(where, "mean", "no Cycles image (VIEWLAYER.Combined.R/G/B, from an OPEN_EXR_MULTILAYER "
-                         f"render); channels present: {', '.join(sorted(names)[:40])}")
-    if len(layers) > 1:
-        raise InputError(where, "mean", f"several view layers ({', '.join(layers)}): choose one with --mean "
-                         f"'{layers[0]}.Combined.R,{layers[0]}.Combined.G,{layers[0]}.Combined.B'")
-    layer = layers[0]
+    layer = the_one(where, "mean", layers,
+                    none="no Cycles image (VIEWLAYER.Combined.R/G/B, from an OPEN_EXR_MULTILAYER render); channels "
+                         f"present: {', '.join(sorted(names)[:40])}",
+                    several="several view layers ({found}): choose one with --mean "
+                            "'{first}.Combined.R,{first}.Combined.G,{first}.Combined.B'")
     noisy = tuple(f"{layer}.{NOISY}.{c}" for c in "RGB")
     if set(noisy) <= names:
         return layer, noisy, True

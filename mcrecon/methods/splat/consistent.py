@@ -48,7 +48,7 @@ import numpy as np
 from scipy.special import ndtri
 
 from .bands import in_bands
-from .outliers import _excess_width, _norm_of
+from .outliers import _excess_width, _judge
 
 
 def gate_k(rate: float, n_channels: int) -> float:
@@ -302,22 +302,16 @@ def _split_and_radii(pos, val, norm_code, weights, tau, fref, nmap, c, alpha, sp
     ``spread_c``, ``spread_alpha`` against the window mean ``fref``; -1 for outliers, for samples no test
     could judge yet, and where the diameter, or the pixel's ``2 r_edge``, is at most ``min_w``.  One pass:
     the sample's G and pixel are found once for both."""
-    h = nmap.shape[0]
-    w = nmap.shape[1]
     n_out = 0
     n_capped = 0
     for k in range(k0, k1):
         frac[k] = 0.0
         radius[k] = -1.0
         krad[k] = -1.0
-        g = _norm_of(val, k, norm_code, weights)
+        g, py, px, t, d, cap = _judge(pos, val, k, norm_code, weights, tau, fref, nmap, c, alpha, min_w, max_w)
         if not g > 0.0:
             continue
-        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
-        py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
-        t = tau[py, px]
         if g > t:
-            d, cap = _excess_width(g, t, fref[py, px], nmap[py, px], c, alpha, min_w, max_w)
             n_capped += cap
             if d > min_w:  # an outlier: its excess is spread by the outlier rule, the rest stays
                 n_out += 1

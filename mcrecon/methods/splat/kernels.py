@@ -134,6 +134,18 @@ def _same_pixel_stats(gs, fs, pj, pi, qj, qi, k2):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
+def _centres(c, half, n, mode):
+    """The indices j of the pixel centres j + 1/2 strictly within ``half`` of ``c`` (|j + 1/2 - c| < half
+    <=> c - 1/2 - half < j < c - 1/2 + half), kept on the film (0 .. n - 1) under mode 1."""
+    lo = int(math.floor(c - 0.5 - half)) + 1
+    hi = int(math.ceil(c - 0.5 + half)) - 1
+    if mode == 1:
+        lo = max(lo, 0)
+        hi = min(hi, n - 1)
+    return lo, hi
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
 def _footprint(x, y, r, h, w, mode, guide, guided, wbuf, ibuf, jbuf):
     """The pixel centres strictly inside the support of radius ``r`` around (x, y) and their weights.
 
@@ -144,12 +156,7 @@ def _footprint(x, y, r, h, w, mode, guide, guided, wbuf, ibuf, jbuf):
     """
     r2 = r * r
     inv_r2 = 1.0 / r2
-    # centres c = j + 1/2 with |c - y| < r  <=>  y - 1/2 - r < j < y - 1/2 + r
-    jlo = int(math.floor(y - 0.5 - r)) + 1
-    jhi = int(math.ceil(y - 0.5 + r)) - 1
-    if mode == 1:
-        jlo = max(jlo, 0)
-        jhi = min(jhi, h - 1)
+    jlo, jhi = _centres(y, r, h, mode)
     s = 0.0
     m = 0
     for j in range(jlo, jhi + 1):
@@ -159,11 +166,7 @@ def _footprint(x, y, r, h, w, mode, guide, guided, wbuf, ibuf, jbuf):
             continue
         jj, jg = _film_index(j, h, mode, guided)
         half = math.sqrt(rem)
-        ilo = int(math.floor(x - 0.5 - half)) + 1
-        ihi = int(math.ceil(x - 0.5 + half)) - 1
-        if mode == 1:
-            ilo = max(ilo, 0)
-            ihi = min(ihi, w - 1)
+        ilo, ihi = _centres(x, half, w, mode)
         dy2 = dy * dy * inv_r2
         for i in range(ilo, ihi + 1):
             dx = i + 0.5 - x
@@ -198,11 +201,7 @@ def _gated_footprint(x, y, r, h, w, mode, r_edge, wbuf, ibuf, jbuf, gs, fs, pj, 
     """
     r2 = r * r
     inv_r2 = 1.0 / r2
-    jlo = int(math.floor(y - 0.5 - r)) + 1
-    jhi = int(math.ceil(y - 0.5 + r)) - 1
-    if mode == 1:
-        jlo = max(jlo, 0)
-        jhi = min(jhi, h - 1)
+    jlo, jhi = _centres(y, r, h, mode)
     side = 2 * gate_r + 1
     rp = r_edge[pj, pi]
     s = 0.0
@@ -215,11 +214,7 @@ def _gated_footprint(x, y, r, h, w, mode, r_edge, wbuf, ibuf, jbuf, gs, fs, pj, 
             continue
         jj, jg = _film_index(j, h, mode, True)
         half = math.sqrt(rem)
-        ilo = int(math.floor(x - 0.5 - half)) + 1
-        ihi = int(math.ceil(x - 0.5 + half)) - 1
-        if mode == 1:
-            ilo = max(ilo, 0)
-            ihi = min(ihi, w - 1)
+        ilo, ihi = _centres(x, half, w, mode)
         dy2 = dy * dy * inv_r2
         trow = (j - pj + gate_r) * side + gate_r - pi
         for i in range(ilo, ihi + 1):

@@ -42,29 +42,38 @@ def _split_outliers(pos, val, norm_code, weights, tau, fref, nmap, c, alpha, min
     smooth firefly scene little and made the thin caustic ring at 64^2,
     8-16 spp lose to box by up to 9 %.)
     """
-    h = nmap.shape[0]
-    w = nmap.shape[1]
     n_out = 0
     n_capped = 0
     for k in range(k0, k1):
         frac[k] = 0.0
         radius[k] = -1.0
-        g = _norm_of(val, k, norm_code, weights)
-        if not g > 0.0:
-            continue
-        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
-        py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
-        t = tau[py, px]
-        if not g > t:
-            continue
-        d, cap = _excess_width(g, t, fref[py, px], nmap[py, px], c, alpha, min_w, max_w)
+        g, py, px, t, d, cap = _judge(pos, val, k, norm_code, weights, tau, fref, nmap, c, alpha, min_w, max_w)
         n_capped += cap
-        if d <= min_w:
-            continue  # the excess would stay in the pixel anyway
-        n_out += 1
-        frac[k] = (g - t) / g
-        radius[k] = 0.5 * d
+        if g > 0.0 and g > t and d > min_w:  # else the excess would stay in the pixel anyway
+            n_out += 1
+            frac[k] = (g - t) / g
+            radius[k] = 0.5 * d
     return n_out, n_capped
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _judge(pos, val, k, norm_code, weights, tau, fref, nmap, c, alpha, min_w, max_w):
+    """Sample ``k``'s G, its pixel (py, px), that pixel's threshold t and, where G > t, the width d of
+    Eq. 8 for the excess G - t and whether it was capped: (g, py, px, t, d, capped).  d = 0 and
+    capped = 0 where G <= t; everything but g is 0 where G <= 0 (or NaN).  The split and the consistent
+    samples' radii (consistent.py) judge a sample alike."""
+    g = _norm_of(val, k, norm_code, weights)
+    if not g > 0.0:
+        return g, 0, 0, 0.0, 0.0, 0
+    h = nmap.shape[0]
+    w = nmap.shape[1]
+    px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
+    py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+    t = tau[py, px]
+    if not g > t:
+        return g, py, px, t, 0.0, 0
+    d, cap = _excess_width(g, t, fref[py, px], nmap[py, px], c, alpha, min_w, max_w)
+    return g, py, px, t, d, cap
 
 
 @numba.njit(cache=True, nogil=True)
