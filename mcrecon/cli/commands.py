@@ -232,7 +232,7 @@ def _refuse_spread_methods(method) -> None:
     if method.name in ("gem", "awr") or (method.name == "auto" and getattr(method, "sampling", None) != "uniform"):
         raise InputError("adapt", "--method", f"{method.name}'s rounds ask for a different number of samples in "
                          "each pixel, which Cycles renders one sample index at a time over whole rectangles "
-                         "(7-21x the time of a uniform log, docs/blender.md): with --blender use box, ci, splat, "
+                         "(3.5-14x the time of a uniform log, docs/blender.md): with --blender use box, ci, splat, "
                          "nfor or auto --sampling uniform")
 
 
