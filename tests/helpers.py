@@ -1,4 +1,5 @@
-"""What many test files share: one way to run the command line and one jittered test renderer.
+"""What many test files share: one way to run the command line, one jittered test renderer and a built-in
+scene that records its requests.
 
 ``tests/conftest.py`` imports this module and wraps :func:`run_cli` in the
 ``cli`` fixture; a test file imports from it by name (``from helpers import
@@ -16,6 +17,8 @@ import textwrap
 from pathlib import Path
 
 import numpy as np
+
+from mcrecon.renderers.scenes import SceneRenderer
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -166,3 +169,15 @@ class CliWorker:
             self.proc.stdin.close()
             self.proc.stdout.close()
             self.proc = None
+
+
+class RecordingScene(SceneRenderer):
+    """A built-in scene that keeps every request it answers (``seen``)."""
+
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        self.seen = []
+
+    def render(self, request):
+        self.seen.append(request)
+        return super().render(request)

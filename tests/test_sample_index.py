@@ -19,24 +19,14 @@ from mcrecon.methods import get_method
 from mcrecon.renderers.command import read_request, write_request
 from mcrecon.renderers.scenes import SceneRenderer
 
+from helpers import RecordingScene
+
 OPTS = {"gem": {"initial_spp": 4, "iterations": 4}, "awr": {"initial_spp": 2}, "ci": {"min_spp": 2}, "box": {},
         "splat": {"initial_spp": 1}}
 
 
-class _Recorder(SceneRenderer):
-    """A built-in scene that keeps every request it answers."""
-
-    def __init__(self, *a, **kw):
-        super().__init__(*a, **kw)
-        self.seen = []
-
-    def render(self, request):
-        self.seen.append(request)
-        return super().render(request)
-
-
 def _rec(**kw):
-    return _Recorder("soft_shadow", width=16, height=12, **kw)
+    return RecordingScene("soft_shadow", width=16, height=12, **kw)
 
 
 def _check_running_count(requests, start=None):
@@ -63,7 +53,7 @@ def test_first_index_counts_the_samples_committed_and_in_flight(method, pipeline
 @pytest.mark.filterwarnings("ignore::mcrecon.errors.McreconWarning")
 def test_first_index_counts_dropped_nonfinite_samples():
     """A sample dropped by the NaN policy was rendered: it took its index in the pixel's sequence."""
-    class NaNs(_Recorder):
+    class NaNs(RecordingScene):
         def render(self, request):
             b = super().render(request)
             b.values[::7] = np.nan

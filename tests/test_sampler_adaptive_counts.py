@@ -20,17 +20,7 @@ from mcrecon.methods import get_method
 from mcrecon import reconstruct
 from mcrecon.renderers.scenes import SceneRenderer, reference_image
 
-
-class _Recorder(SceneRenderer):
-    """A built-in scene that keeps every request it answers."""
-
-    def __init__(self, *a, **kw):
-        super().__init__(*a, **kw)
-        self.seen = []
-
-    def render(self, request):
-        self.seen.append(request)
-        return super().render(request)
+from helpers import RecordingScene
 
 
 @pytest.mark.parametrize("method, opts", [("gem", {"initial_spp": 4, "iterations": 4}),
@@ -38,7 +28,7 @@ class _Recorder(SceneRenderer):
                                           ("awr", {"initial_spp": 4}), ("auto", {"initial_spp": 4})])
 @pytest.mark.parametrize("pipeline", [False, True])
 def test_adaptive_methods_ask_for_counts_not_positions(method, opts, pipeline):
-    r = _Recorder("soft_shadow", width=16, height=12, sampler="sobol")
+    r = RecordingScene("soft_shadow", width=16, height=12, sampler="sobol")
     res = adapt(r, get_method(method, **opts), spp=16, seed=2, track_error=False, progress=False,
                 pipeline=pipeline)
     assert len(r.seen) >= 3 and res.samples == 16 * 16 * 12
@@ -47,9 +37,9 @@ def test_adaptive_methods_ask_for_counts_not_positions(method, opts, pipeline):
 
 def test_a_resumed_sobol_run_ends_as_an_uninterrupted_one(tmp_path):
     m = get_method("gem", initial_spp=4, iterations=4)
-    a = adapt(_Recorder("soft_shadow", width=16, height=12, sampler="sobol"), m, spp=16, seed=4,
+    a = adapt(RecordingScene("soft_shadow", width=16, height=12, sampler="sobol"), m, spp=16, seed=4,
               log=tmp_path / "full.h5", track_error=False, progress=False)
-    adapt(_Recorder("soft_shadow", width=16, height=12, sampler="sobol"), m, spp=16, seed=4,
+    adapt(RecordingScene("soft_shadow", width=16, height=12, sampler="sobol"), m, spp=16, seed=4,
           log=tmp_path / "part.h5", track_error=False, progress=False, max_rounds=2)
     b = resume(tmp_path / "part.h5", track_error=False)      # the renderer rebuilt from the log's spec
     np.testing.assert_array_equal(a.image, b.image)
