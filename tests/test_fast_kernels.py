@@ -3,8 +3,10 @@
 ``offset_distances`` serves every NL-means filter and the regression's
 weights, so a faster rewrite of it must keep these: the patch mean over the
 pairs inside the image for every patch radius (the unrolled radii 0..3 and
-the general loop), zero pairs where the offset leaves the film, and a NaN
-distance confined to the patches that contain it.
+the general loop), zero pairs where the offset leaves the film, a NaN
+distance confined to the patches that contain it, and column sums that run
+down a long band (one row in, one out) equal to the patch sums taken afresh,
+beside clamped outliers and after a NaN has left the patch.
 """
 
 import numpy as np
@@ -13,14 +15,15 @@ import pytest
 from mcrecon.filters.nlmeans import DISTANCE_CLAMP, NLM_EPS, offset_distances
 
 
-def _distances(guide, var, dy, dx, i0, i1, f, k):
+def _distances(guide, var, dy, dx, i0, i1, f, k=0.7):
+    """The kernel's patch means and the pixel distances ``pd`` they were summed from."""
     c, h, w = guide.shape
     pd = np.zeros((c, i1 - i0 + 2 * f, w + 2 * f), np.float32)
     vs, hs, ic = (np.zeros(w + 2 * f) for _ in range(3))
     out = np.full((c, i1 - i0, w), np.float32(-7.0))
     offset_distances(guide, var, dy, dx, i0, i1, f, np.float32(k * k), np.float32(NLM_EPS),
                      np.float32(DISTANCE_CLAMP), pd, vs, hs, ic, out)
-    return out
+    return out, pd
 
 
 def _brute(guide, var, dy, dx, i0, i1, f, k):
@@ -59,7 +62,7 @@ def test_patch_distances_match_brute_force(f, dy, dx, i0, i1):
     """rtol 1e-5 of the patch's sum of |d|: the pixel distances are float32, and so are their patch sums
     (numba keeps ``float(x)`` of a float32 in float32), each rounding ~6e-8 of the running sum."""
     guide, var = _data(100 + f + 10 * dy + dx)
-    got = _distances(guide, var, dy, dx, i0, i1, f, 0.7)
+    got, _ = _distances(guide, var, dy, dx, i0, i1, f, 0.7)
     want = _brute(guide, var, dy, dx, i0, i1, f, 0.7)
     inside = np.isfinite(want)
     assert inside.any()
@@ -69,7 +72,7 @@ def test_patch_distances_match_brute_force(f, dy, dx, i0, i1):
 
 def test_an_offset_wider_than_the_film_compares_no_pair():
     guide, var = _data(3, w=5)
-    got = _distances(guide, var, 1, 6, 0, 13, 1, 1.0)
+    got, _ = _distances(guide, var, 1, 6, 0, 13, 1, 1.0)
     assert (got == np.float32(-7.0)).all()  # nothing written: the callers skip those pairs
 
 
@@ -77,9 +80,59 @@ def test_a_nan_distance_stays_in_the_patches_that_contain_it():
     guide, var = _data(4)
     var[1, 6, 8] = np.inf  # inf / inf: a NaN pixel distance at (6, 8) and at the pairs reaching it
     f = 1
-    got = _distances(guide, var, 0, 2, 0, 13, f, 0.7)
+    got, _ = _distances(guide, var, 0, 2, 0, 13, f, 0.7)
     bad = np.argwhere(np.isnan(got[1]))
     assert len(bad) and np.isfinite(got[[0, 2]]).all()
     # a NaN only where the patch covers (6, 8) or (6, 8) - o
     for i, j in bad:
         assert abs(i - 6) <= f and (abs(j - 8) <= f or abs(j + 2 - 8) <= f)
+
+
+# ------------------------------------------------------------------ the running column sums down a band
+def _fresh(pd, guide, dy, dx, i0, i1, f):
+    """The patch means from the kernel's own pixel distances ``pd``, each patch summed directly in float64."""
+    c, h, w = guide.shape
+    out = np.full((c, i1 - i0, w), np.nan)
+    p = pd.astype(np.float64)
+    for rr in range(i1 - i0):
+        i = i0 + rr
+        nr = min(i + f + 1, h, h - dy) - max(i - f, 0, -dy)
+        for j in range(max(0, -dx), min(w, w - dx)):
+            nc = min(j + f + 1, min(w, w - dx)) - max(j - f, max(0, -dx))
+            if nr > 0:
+                out[:, rr, j] = p[:, rr:rr + 2 * f + 1, j:j + 2 * f + 1].sum(axis=(1, 2)) / (nr * nc)
+    return out
+
+
+def _band_data(seed, c=2, h=70, w=23):
+    rng = np.random.default_rng(seed)
+    guide = rng.gamma(2.0, 1.0, size=(c, h, w))
+    guide[:, 10:14] *= 1e6            # distances clamped at 1e4 ...
+    var = rng.uniform(0.01, 0.5, size=(c, h, w))
+    var[:, 30:40] *= 1e-9             # ... and rows of near-noise-free pixels further down
+    return guide.astype(np.float32), var.astype(np.float32)
+
+
+@pytest.mark.parametrize("f", [1, 3, 5])
+@pytest.mark.parametrize("dy, dx", [(0, 0), (3, -2), (-5, 4)])
+def test_running_column_sums_equal_fresh_patch_sums_down_a_long_band(f, dy, dx):
+    guide, var = _band_data(100 + f + 7 * dy + dx)
+    got, pd = _distances(guide, var, dy, dx, 0, 70, f)
+    want = _fresh(pd, guide, dy, dx, 0, 70, f)
+    ok = np.isfinite(want)
+    assert ok.sum() > 1000
+    # one float32 rounding of the patch mean (the sums themselves are float64: no residue of the clamped rows)
+    np.testing.assert_allclose(got[ok], want[ok], rtol=2e-7, atol=1e-12 * DISTANCE_CLAMP)
+
+
+def test_a_nan_that_leaves_the_patch_leaves_the_running_sum():
+    guide, var = _band_data(5)
+    guide[1, 20, 7] = np.nan
+    f = 2
+    got, pd = _distances(guide, var, 0, 0, 0, 70, f)
+    bad = np.argwhere(np.isnan(got[1]))
+    assert len(bad) and np.isfinite(got[0]).all()
+    assert all(abs(i - 20) <= f and abs(j - 7) <= f for i, j in bad)
+    want = _fresh(pd, guide, 0, 0, 0, 70, f)
+    ok = np.isfinite(want)
+    np.testing.assert_allclose(got[ok], want[ok], rtol=2e-7, atol=1e-12 * DISTANCE_CLAMP)
