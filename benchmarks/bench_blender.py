@@ -110,12 +110,17 @@ def log_stats(path):
     return s1.reshape(shape), (np.maximum(s2 - s1 ** 2, 0) * n / np.maximum(n - 1, 1)).reshape(shape)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def render_args(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The film, budget, reference and Cycles threads every Blender benchmark takes."""
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--spp", type=int, default=32)
     ap.add_argument("--ref-spp", type=int, default=1024)
     ap.add_argument("--threads", type=int, default=2)
+    return ap
+
+
+def main() -> None:
+    ap = render_args(argparse.ArgumentParser(description=__doc__.splitlines()[0]))
     a = ap.parse_args()
     if not bl.bpy_available():
         raise SystemExit(bl.BPY_MISSING)

@@ -29,7 +29,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_blender import build, log_stats, rel_mse  # noqa: E402
+from bench_blender import build, log_stats, rel_mse, render_args  # noqa: E402
 
 from mcrecon import CallableRenderer, adapt  # noqa: E402
 from mcrecon.core.requests import jittered_positions  # noqa: E402
@@ -46,11 +46,7 @@ def _flat(request):
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--size", type=int, default=128)
-    ap.add_argument("--spp", type=int, default=32)
-    ap.add_argument("--ref-spp", type=int, default=1024)
-    ap.add_argument("--threads", type=int, default=2)
+    ap = render_args(argparse.ArgumentParser(description=__doc__.splitlines()[0]))
     ap.add_argument("--scenes", default="textures,glass,dof")
     ap.add_argument("--methods", default="box,ci,gem")
     ap.add_argument("--repeat", type=int, default=2, help="timed runs of each; the fastest is reported")
