@@ -18,7 +18,6 @@ import math
 import numba
 import numpy as np
 
-from mcrecon.filters.engine import numba_threads
 from mcrecon.filters.nlmeans import DISTANCE_CLAMP, MIN_CENTER_WEIGHT, NLM_EPS, as_planes
 
 __all__ = ["nlmeans_filter_reference", "collaborative_regression_reference"]
@@ -274,24 +273,24 @@ def _gather(accs, r, band, out):
                         out[c, i, j] += accs[b, c, t, j]
 
 
-def nlmeans_filter_reference(image, guide, variance, *, radius, patch, k, variance_scale=1.0, threads=None):
-    """:func:`.nlmeans.nlmeans_filter` by the reference kernels (same arguments, same result to rounding)."""
+def nlmeans_filter_reference(image, guide, variance, *, radius, patch, k, variance_scale=1.0):
+    """:func:`.nlmeans.nlmeans_filter` by the reference kernels (its arguments but ``threads``: the reference
+    is serial; the same result to rounding)."""
     img = as_planes(image)
     g = as_planes(guide, np.float32)
     v = np.ascontiguousarray(as_planes(variance) * float(variance_scale), dtype=np.float32)
     num = np.zeros(img.shape)
     den = np.zeros(img.shape)
-    with numba_threads(threads):
-        _nlm_kernel(img, g, v, int(radius), int(patch), np.float32(float(k) ** 2), np.float32(NLM_EPS),
-                    np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT, BAND, num, den)
+    _nlm_kernel(img, g, v, int(radius), int(patch), np.float32(float(k) ** 2), np.float32(NLM_EPS),
+                np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT, BAND, num, den)
     out = np.moveaxis(num / den, 0, 2)
     return out[..., 0] if np.ndim(image) == 2 else out
 
 
 def collaborative_regression_reference(image, guide, variance, features, *, radius=9, patch=3, k=1.0,
-                                       variance_scale=2.0, ridge=1e-10, threads=None, return_weights=False):
-    """:func:`.regression.collaborative_regression` by the reference kernels (same arguments and result
-    to rounding)."""
+                                       variance_scale=2.0, ridge=1e-10, return_weights=False):
+    """:func:`.regression.collaborative_regression` by the reference kernels (its arguments but ``threads``:
+    the reference is serial; the same result to rounding)."""
     from mcrecon.filters.regression import standardise
 
     y = as_planes(image)
@@ -306,9 +305,8 @@ def collaborative_regression_reference(image, guide, variance, features, *, radi
     r = int(radius)
     n_bands = (h + BAND - 1) // BAND
     accs = np.zeros((n_bands, nc + 1, BAND + 2 * r, w))
-    with numba_threads(threads):
-        _regression_kernel(y, g, v, fp, r, int(patch), np.float32(float(k) ** 2), float(ridge), np.float32(NLM_EPS),
-                           np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT, BAND, accs)
+    _regression_kernel(y, g, v, fp, r, int(patch), np.float32(float(k) ** 2), float(ridge), np.float32(NLM_EPS),
+                       np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT, BAND, accs)
     out = np.zeros((nc + 1, h, w))
     _gather(accs, r, BAND, out)
     res = np.moveaxis(out[:nc] / out[nc], 0, 2)

@@ -35,6 +35,9 @@ def test_parallel_results_do_not_depend_on_the_thread_count(monkeypatch):
     pos = np.column_stack([np.repeat(np.arange(6) + 0.5, 40), np.full(240, 0.5)])
     val = rng.exponential(1.0, (240, 3))
     rule = StoppingRule(tolerance=0.05, min_spp=4, max_spp=40)
+    # blocks of one pixel on the pool at this size (a small image otherwise stays on the calling thread)
+    monkeypatch.setattr("mcrecon.filters.engine._PARALLEL_MIN", 0)
+    monkeypatch.setattr("mcrecon.filters.engine.ROW_BLOCK", 1)
     out = []
     for t in ("1", "2"):
         monkeypatch.setenv("MCRECON_THREADS", t)

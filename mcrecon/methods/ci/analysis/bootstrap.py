@@ -34,7 +34,7 @@ import numba
 import numpy as np
 from scipy import stats as sps
 
-from ....filters.engine import n_threads, parallel_calls
+from ....filters.engine import parallel_rows
 from ....errors import InputError
 from ..method import StoppingRule
 from ..tone import get_tone_operator, tone_map
@@ -300,21 +300,6 @@ def _draw_pairs(vals, offsets, pix, active, states, ks, targets, s1, s2, i0, i1)
         states[i], ks[i] = _draw(vals, lo, offsets[p + 1] - lo, states[i], ks[i], targets[i], s1[i], s2[i])
 
 
-def _in_blocks(kernel, args: tuple, n: int) -> None:
-    """``kernel(*args, i0, i1)`` over ``[0, n)`` in blocks on the filters' thread pool.
-
-    Every item (a pixel, or a pixel's resample) has its own random stream and
-    writes only its own outputs, so the result does not depend on the blocks
-    or the threads.  Sixteen blocks per thread balance pixels of unequal cost;
-    a ``nogil`` kernel over a range compiles in a fraction of the time of a
-    ``parallel=True`` one.
-    """
-    if n == 0:
-        return
-    size = max(1, -(-n // (16 * n_threads())))
-    parallel_calls(kernel, [(*args, i0, min(i0 + size, n)) for i0 in range(0, n, size)])
-
-
 def _bootstrap_generic(vals, offsets, theta, base, B, rule, tq, op, out):
     """The same algorithm for a tone operator without a native code: numba
     draws (the very same random streams as the kernel), numpy decides."""
@@ -330,14 +315,14 @@ def _bootstrap_generic(vals, offsets, theta, base, B, rule, tq, op, out):
         pix = np.repeat(pixels, B)
         bidx = np.tile(np.arange(B, dtype=np.int64), pixels.size)
         states = np.empty(pix.size, np.uint64)
-        _in_blocks(_init_states, (base, pix, bidx, B, states), pix.size)
+        parallel_rows(_init_states, (base, pix, bidx, B, states), pix.size)
         ks = np.zeros(pix.size, np.int64)
         targets = np.full(pix.size, rule.min_spp, np.int64)
         s1 = np.zeros((pix.size, C))
         s2 = np.zeros((pix.size, C))
         active = np.ones(pix.size, np.bool_)
         while active.any():
-            _in_blocks(_draw_pairs, (vals, offsets, pix, active, states, ks, targets, s1, s2), pix.size)
+            parallel_rows(_draw_pairs, (vals, offsets, pix, active, states, ks, targets, s1, s2), pix.size)
             idx = np.flatnonzero(active)
             k = ks[idx].astype(np.float64)[:, None]
             m = s1[idx] / k
@@ -585,9 +570,11 @@ def bootstrap_bias_samples(samples: PixelSamples, *, B: int = 1000, seed: int = 
     out = (np.zeros((P, C)), np.zeros((P, C)), np.zeros((P, C)), np.zeros((P, C)), np.zeros(P), np.zeros(P))
     base = _seed_base(seed)
     if op.code >= 0:
-        _in_blocks(_bootstrap_kernel, (vals, samples.offsets, theta, base, B, int(rule.min_spp), int(rule.step),
-                                       int(rule.max_spp), tq, 2.0 * rule.tolerance, op.code, 1.0 / rule.gamma,
-                                       rule.scale, _slope_table(1.0 / rule.gamma), *out), P)
+        # pixel blocks on the filters' thread pool: each pixel has its own random streams and writes only its
+        # own outputs, so the result does not depend on the blocks or the threads
+        parallel_rows(_bootstrap_kernel, (vals, samples.offsets, theta, base, B, int(rule.min_spp), int(rule.step),
+                                          int(rule.max_spp), tq, 2.0 * rule.tolerance, op.code, 1.0 / rule.gamma,
+                                          rule.scale, _slope_table(1.0 / rule.gamma), *out), P)
     else:
         _bootstrap_generic(vals, samples.offsets, theta, base, B, rule, tq, op, out)
     dev_mean, dev_m2, disp_mean, disp_m2, spp_mean, capped = out
