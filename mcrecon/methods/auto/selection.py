@@ -185,7 +185,7 @@ def _nearer_rows(y, scale, images, g, choice, where, out, i0, i1):
 
 
 def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, safeguard, guarded=(), scale=None,
-                  steady=()):
+                  steady=(), steady_var=None):
     """The per-pixel choice with the best single candidate over the image as the default.
 
     ``g`` = the candidate of least summed leave-one-out relative estimate
@@ -227,7 +227,8 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     OIDN candidates, which become ``g`` only through a significant whole-image test) stays ``g`` at the
     pixels with rare huge samples around too: there the plain per-pixel choice rests on the least
     reliable estimates of all, and a whole-image winner's sum is the better evidence (a spotlit
-    texture: 85 % of its pixels have rare huge samples around).  Returns the new
+    texture: 85 % of its pixels have rare huge samples around), and its bias test reads ``steady_var``
+    (default ``v``): the variance its pixels are clamped on.  Returns the new
     choice and the mask of pixels whose choice is ``g`` (all False when the
     prior does not apply).
 
@@ -300,7 +301,8 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     # (a pixel's own sample variance is often far too small under skewed noise: with exponential
     # samples at 32 spp its own alone flagged 1.7 % of a flat field at 4 sd)
     biased = np.empty(choice.shape, bool)
-    _biased(_c64(cands[g].image), _c64(y), _c64(v), Z_BIAS_PRIOR, np.ascontiguousarray(count > 0), biased)
+    vb = steady_var if g in steady and steady_var is not None else v
+    _biased(_c64(cands[g].image), _c64(y), _c64(vb), Z_BIAS_PRIOR, np.ascontiguousarray(count > 0), biased)
     # where the estimates are least reliable (rare huge samples around) g still stands, if no other
     # candidate passed the local test there, where it lies no farther than the plain choice from the
     # median of the 8 neighbours' means: a robust reference that a firefly kept by g (NFOR's
