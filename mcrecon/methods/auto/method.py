@@ -30,8 +30,8 @@ from .estimates import (cross_validation_mse, relative_denominator,
     sure, sure_filter_bank)
 from ...core.stats import PixelStats
 from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, uniform_counts
-from ...core.safeguard import (albedo_divisor, confidence_clamp, empty_pixels_kept, pooled_mean_variance,
-    safeguard_variance, sample_range_bounds)
+from ...core.safeguard import (albedo_divisor, confidence_clamp, empty_pixels_kept, neighbourhood_mean_variance,
+    pooled_mean_variance, safeguard_variance, sample_range_bounds)
 from ...core.fill import fill_empty_pixels
 from ...filters.gaussian import final_sigmas
 from ...core.fill import mean_variance_policy
@@ -63,6 +63,10 @@ Z_BIAS = 2.0
 Z_BLACKBOX = 1.0
 #: The candidates :data:`Z_BLACKBOX` applies to.
 BLACK_BOXES = ("oidn", "oidn_aux", "oidn_halves", "oidn_aux_halves")
+#: Where the global default is one of :data:`BLACK_BOXES`, the clamp's standard error at the pixels that
+#: take it is at least this fraction of the one from the mean per-sample variance of the 5 x 5
+#: neighbourhood (:func:`~mcrecon.core.safeguard.neighbourhood_mean_variance`).
+WIDE_SD = 0.5
 #: The region guard's smoothing, in units of ``smooth``.
 GUARD = 2.0
 
@@ -360,14 +364,26 @@ class AutoMethod(Method):
         smoothing = MaskedSmoothing(smooth)
         rel, choice = _relative_choice(cands, den, y, sd, count, smoothing, Z_BIAS)
         h, w = count.shape
-        bounds = None
+        bounds = v_wide = None
         on_default = np.zeros((h, w), bool)
         if self.params["global_prior"] is not None and len(cands) > 1 and smooth > 0:
             bounds = sample_range_bounds(stats)
+            steady = [k for k, c in enumerate(cands) if c.name in BLACK_BOXES]
+            if steady and self.params["safeguard"] is not None:
+                # A black box is the default only after a significant whole-image test; at its pixels
+                # the interval comes from the neighbourhood's mean per-sample variance too: under rare
+                # huge samples the median's interval excludes the truth at most pixels whose samples
+                # missed them (the reference itself, clamped so, keeps 0.19 of the pixel mean's error
+                # on the corpus' tuning caustic and spotlit texture), and OIDN's value there would be
+                # pulled back onto the noise.  Elsewhere (other defaults: NL-means smears an HDR
+                # emitter's rim through a wide interval) the median's stands.
+                v_wide = np.maximum(v_safe, (WIDE_SD * WIDE_SD) * agreeing_variance(
+                    v, count, neighbourhood_mean_variance(v, count, divisor=divisor), divisor))
             # the default's smoothed estimate again, not every candidate's kept until the default is known
             choice, on_default = _global_prior(cands, lambda k: smoothing([_mean_c(cands[k].mse, den)])[0], rel,
                                                choice, y, v, count, bounds, smooth, self.params["global_prior"],
-                                               self.params["safeguard"], _guards(cands), divisor)
+                                               self.params["safeguard"], _guards(cands), divisor,
+                                               steady=steady, steady_var=v_wide)
         # ties (e.g. noise-free regions, where every ratio is undefined) go to the first candidate
         if cands[0].name == "box" and smooth > 0:
             # Region guard: where the chosen candidates' unbiased estimates,
@@ -387,8 +403,12 @@ class AutoMethod(Method):
             # an estimate away from it (the same safeguard as awr's robust default).
             lo, hi = sample_range_bounds(stats) if bounds is None else bounds
             # a pixel without samples has no interval: it keeps the value filled in from its neighbours
+            v_clamp = v_safe
+            g = int(choice[on_default][0]) if on_default.any() else -1
+            if g >= 0 and cands[g].name in BLACK_BOXES:  # the wide interval at the black-box default's pixels
+                v_clamp = np.where(on_default[..., None], v_wide, v_safe)
             with empty_pixels_kept(img, count):
-                confidence_clamp(img, y, v_safe, self.params["safeguard"], lo, hi, out=img)
+                confidence_clamp(img, y, v_clamp, self.params["safeguard"], lo, hi, out=img)
                 # The heavy-tail rule judges a push by the median of the neighbours' means, which under
                 # a rarely found light lies below the truth (the pixel means are right-skewed): a
                 # feature-guided value at the truth of a pixel whose samples missed the light is then

@@ -184,7 +184,8 @@ def _nearer_rows(y, scale, images, g, choice, where, out, i0, i1):
                 out[i, j] = dg <= dc  # False when any is NaN
 
 
-def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, safeguard, guarded=(), scale=None):
+def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, safeguard, guarded=(), scale=None,
+                  steady=(), steady_var=None):
     """The per-pixel choice with the best single candidate over the image as the default.
 
     ``g`` = the candidate of least summed leave-one-out relative estimate
@@ -222,7 +223,12 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     estimates are the noisiest where they differ most, at texture edges, and a
     cross-validated black box's noise is independent of the Stein estimates'.  ``scale`` (the albedo)
     divides the means and values of the median test (:func:`_nearer_the_neighbours`:
-    on a texture a neighbour's colour is another square's).  Returns the new
+    on a texture a neighbour's colour is another square's).  A ``steady`` candidate (indices: auto's
+    OIDN candidates, which become ``g`` only through a significant whole-image test) stays ``g`` at the
+    pixels with rare huge samples around too: there the plain per-pixel choice rests on the least
+    reliable estimates of all, and a whole-image winner's sum is the better evidence (a spotlit
+    texture: 85 % of its pixels have rare huge samples around), and its bias test reads ``steady_var``
+    (default ``v``): the variance its pixels are clamped on.  Returns the new
     choice and the mask of pixels whose choice is ``g`` (all False when the
     prior does not apply).
 
@@ -295,16 +301,20 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     # (a pixel's own sample variance is often far too small under skewed noise: with exponential
     # samples at 32 spp its own alone flagged 1.7 % of a flat field at 4 sd)
     biased = np.empty(choice.shape, bool)
-    _biased(_c64(cands[g].image), _c64(y), _c64(v), Z_BIAS_PRIOR, np.ascontiguousarray(count > 0), biased)
+    vb = steady_var if g in steady and steady_var is not None else v
+    _biased(_c64(cands[g].image), _c64(y), _c64(vb), Z_BIAS_PRIOR, np.ascontiguousarray(count > 0), biased)
     # where the estimates are least reliable (rare huge samples around) g still stands, if no other
     # candidate passed the local test there, where it lies no farther than the plain choice from the
     # median of the 8 neighbours' means: a robust reference that a firefly kept by g (NFOR's
     # own-patch weights keep one) lies far from
     # At such a pixel that g would lift above both its own mean and the plain choice, the plain choice
     # stands (:func:`_lifted`): at an emitter's rim the median of the neighbours lies on the emitter.
-    at_g = apart & (c2 == g)
-    at_g &= ~_lifted(cands, g, choice, y, v, at_g)
-    default = np.isfinite(rel[g]) & ~biased & (~apart | _nearer_the_neighbours(cands, g, choice, y, at_g, scale))
+    if g in steady:
+        default = np.isfinite(rel[g]) & ~biased
+    else:
+        at_g = apart & (c2 == g)
+        at_g &= ~_lifted(cands, g, choice, y, v, at_g)
+        default = np.isfinite(rel[g]) & ~biased & (~apart | _nearer_the_neighbours(cands, g, choice, y, at_g, scale))
     out = np.where(default, c2, choice)
     return out, default & (c2 == g)
 
