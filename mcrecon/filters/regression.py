@@ -45,11 +45,16 @@ WEIGHT_PAD = 16
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _solve_spd(a, b, d, nc):
+def _solve_spd(a, b, d, nc, tmp):
     """Solve a x = b in place (b (d, nc) becomes x) by Cholesky of the SPD a (d, d); a is overwritten.
 
     A non-positive pivot (a column with no weight left after the ridge: only
-    when every weight is 0) drops that column (its coefficients 0)."""
+    when every weight is 0) drops that column (its coefficients 0).  Each
+    entry is the same sequence of operations as a textbook loop (its k terms
+    in order); the loops run over the independent entries innermost (the rows
+    of a column of L, the columns of b), so their chains of dependent
+    operations overlap instead of waiting on each other.  ``tmp``: scratch of
+    at least max(d, nc) floats."""
     for j in range(d):
         s = a[j, j]
         for k in range(j):
@@ -64,21 +69,33 @@ def _solve_spd(a, b, d, nc):
         l = math.sqrt(s)
         a[j, j] = l
         for i in range(j + 1, d):
-            t = a[i, j]
-            for k in range(j):
-                t -= a[i, k] * a[j, k]
-            a[i, j] = t / l
-    for c in range(nc):  # forward: L z = b, then back: L^T x = z
-        for i in range(d):
-            t = b[i, c]
-            for k in range(i):
-                t -= a[i, k] * b[k, c]
-            b[i, c] = t / a[i, i]
-        for i in range(d - 1, -1, -1):
-            t = b[i, c]
-            for k in range(i + 1, d):
-                t -= a[k, i] * b[k, c]
-            b[i, c] = t / a[i, i]
+            tmp[i] = a[i, j]
+        for k in range(j):
+            ajk = a[j, k]
+            for i in range(j + 1, d):
+                tmp[i] -= a[i, k] * ajk
+        for i in range(j + 1, d):
+            a[i, j] = tmp[i] / l
+    for i in range(d):  # forward: L z = b, then back: L^T x = z (every column of b at once)
+        for c in range(nc):
+            tmp[c] = b[i, c]
+        for k in range(i):
+            aik = a[i, k]
+            for c in range(nc):
+                tmp[c] -= aik * b[k, c]
+        aii = a[i, i]
+        for c in range(nc):
+            b[i, c] = tmp[c] / aii
+    for i in range(d - 1, -1, -1):
+        for c in range(nc):
+            tmp[c] = b[i, c]
+        for k in range(i + 1, d):
+            aki = a[k, i]
+            for c in range(nc):
+                tmp[c] -= aki * b[k, c]
+        aii = a[i, i]
+        for c in range(nc):
+            b[i, c] = tmp[c] / aii
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -145,6 +162,7 @@ def _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, lever
     wv = np.zeros(n)
     a = np.zeros((de, de))
     bm = np.zeros((d, nc))
+    tsol = np.zeros(max(d, nc))
     zt = np.zeros((de, LEVERAGE_BLOCK)) if leverage else np.zeros((0, LEVERAGE_BLOCK))
     lev = np.zeros(n) if leverage else np.zeros(0)
     inv_r = 1.0 / max(r, 1)
@@ -178,7 +196,7 @@ def _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, lever
             s0 = a[0, 0]
             for p in range(1, d):
                 a[p, p] += ridge * s0
-            _solve_spd(a, bm, d, nc)
+            _solve_spd(a, bm, d, nc, tsol)
             _predict(xt, bm, yp, d, n)
             if leverage:
                 _leverages(a, xt, zt, lev, d, n)

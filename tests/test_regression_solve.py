@@ -1,5 +1,8 @@
-"""The regression's leverages x_t^T A^-1 x_t, from the Cholesky factor, for every design width.
+"""The regression's per-window solve and leverages x_t^T A^-1 x_t, for every design width.
 
+``_solve_spd`` runs its loops over the independent entries innermost: the
+coefficients must be those of A^-1 b for every number of columns and of
+right-hand sides, and a column without weight must still be dropped.
 ``_leverages`` runs the forward substitution four earlier rows per pass and
 the window in blocks of positions: the value must be x_t^T A^-1 x_t for every
 number of columns d (the four-row passes and the rows left over) and every
@@ -10,7 +13,7 @@ not depend on the block it was computed in.
 import numpy as np
 import pytest
 
-from mcrecon.filters.regression import LEVERAGE_BLOCK, _leverages
+from mcrecon.filters.regression import LEVERAGE_BLOCK, _leverages, _solve_spd
 
 
 def _system(d, n, seed):
@@ -45,3 +48,25 @@ def test_leverages_do_not_depend_on_the_block(d):
         levs.append(lev)
     for lev in levs[1:]:
         assert np.array_equal(lev, levs[0])
+
+
+@pytest.mark.parametrize("d", [1, 2, 3, 5, 8, 11, 14])
+@pytest.mark.parametrize("nc", [1, 3, 6])
+def test_solve_is_the_inverse_times_the_right_hand_sides(d, nc):
+    a, _, _ = _system(d, 50, seed=7 * d + nc)
+    b = np.random.default_rng(d).standard_normal((d, nc))
+    x = b.copy()
+    _solve_spd(a.copy(), x, d, nc, np.zeros(max(d, nc)))
+    np.testing.assert_allclose(x, np.linalg.solve(a, b), rtol=1e-9, atol=1e-12)
+
+
+def test_solve_drops_a_column_without_weight():
+    a, _, _ = _system(6, 50, seed=3)
+    a[2, :] = 0.0
+    a[:, 2] = 0.0
+    b = np.random.default_rng(3).standard_normal((6, 3))
+    x = b.copy()
+    _solve_spd(a.copy(), x, 6, 3, np.zeros(6))
+    keep = [0, 1, 3, 4, 5]
+    assert np.all(x[2] == 0.0)
+    np.testing.assert_allclose(x[keep], np.linalg.solve(a[np.ix_(keep, keep)], b[keep]), rtol=1e-9, atol=1e-12)
