@@ -32,7 +32,7 @@ import numpy as np
 from .engine import parallel_calls
 
 __all__ = ["NLM_EPS", "DISTANCE_CLAMP", "MIN_CENTER_WEIGHT", "nlmeans_filter", "as_planes", "exp_neg",
-           "offset_distances"]
+           "offset_distances", "scaled_planes"]
 
 #: eps of the distance's denominator (0 / 0 on noise-free pixels); the reference implementation's value.
 NLM_EPS = 1e-7
@@ -234,6 +234,17 @@ def as_planes(a, dtype=np.float64) -> np.ndarray:
     return np.ascontiguousarray(np.moveaxis(a, 2, 0), dtype=dtype)
 
 
+def scaled_planes(variance, scale) -> np.ndarray:
+    """``variance`` (H, W, C) or (H, W) times ``scale``, as contiguous float32 planes (C, H, W): the product
+    in float64, then rounded, one plane at a time (no float64 copy of the whole image)."""
+    a = np.asarray(variance, dtype=np.float64)
+    a = a[..., None] if a.ndim == 2 else a
+    out = np.empty((a.shape[2],) + a.shape[:2], np.float32)
+    for c in range(a.shape[2]):
+        out[c] = a[..., c] * float(scale)
+    return out
+
+
 def nlmeans_filter(image, guide, variance, *, radius: int, patch: int, k: float, variance_scale: float = 1.0,
                    threads: int | None = None) -> np.ndarray:
     """NL-means of ``image`` with per-channel weights from ``guide``.
@@ -261,7 +272,7 @@ def nlmeans_filter(image, guide, variance, *, radius: int, patch: int, k: float,
     """
     img = as_planes(image)
     g = as_planes(guide, np.float32)
-    v = np.ascontiguousarray(as_planes(variance) * float(variance_scale), dtype=np.float32)
+    v = scaled_planes(variance, variance_scale)
     if g.shape != img.shape or v.shape != img.shape:
         raise ValueError(f"nlmeans_filter: image {img.shape}, guide {g.shape}, variance {v.shape} (C, H, W) differ")
     num = np.zeros(img.shape)
@@ -271,5 +282,7 @@ def nlmeans_filter(image, guide, variance, *, radius: int, patch: int, k: float,
     args = (img, g, v, int(radius), int(patch), np.float32(float(k) ** 2), np.float32(NLM_EPS),
             np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT)
     parallel_calls(_nlm_band, [(*args, i0, min(h, i0 + BAND), num, den) for i0 in range(0, h, BAND)], threads)
-    out = np.moveaxis(num / den, 0, 2)
+    num /= den  # in place: no third image beside the sums
+    del den
+    out = np.moveaxis(num, 0, 2)
     return out[..., 0] if np.ndim(image) == 2 else out

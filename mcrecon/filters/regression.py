@@ -31,7 +31,8 @@ import numba
 import numpy as np
 
 from .engine import n_threads, parallel_calls
-from .nlmeans import BAND, DISTANCE_CLAMP, MIN_CENTER_WEIGHT, NLM_EPS, as_planes, exp_neg, offset_distances
+from .nlmeans import (BAND, DISTANCE_CLAMP, MIN_CENTER_WEIGHT, NLM_EPS, as_planes, exp_neg, offset_distances,
+                      scaled_planes)
 
 __all__ = ["RIDGE", "collaborative_regression", "standardise"]
 
@@ -44,11 +45,16 @@ WEIGHT_PAD = 16
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _solve_spd(a, b, d, nc):
+def _solve_spd(a, b, d, nc, tmp):
     """Solve a x = b in place (b (d, nc) becomes x) by Cholesky of the SPD a (d, d); a is overwritten.
 
     A non-positive pivot (a column with no weight left after the ridge: only
-    when every weight is 0) drops that column (its coefficients 0)."""
+    when every weight is 0) drops that column (its coefficients 0).  Each
+    entry is the same sequence of operations as a textbook loop (its k terms
+    in order); the loops run over the independent entries innermost (the rows
+    of a column of L, the columns of b), so their chains of dependent
+    operations overlap instead of waiting on each other.  ``tmp``: scratch of
+    at least max(d, nc) floats."""
     for j in range(d):
         s = a[j, j]
         for k in range(j):
@@ -63,21 +69,33 @@ def _solve_spd(a, b, d, nc):
         l = math.sqrt(s)
         a[j, j] = l
         for i in range(j + 1, d):
-            t = a[i, j]
-            for k in range(j):
-                t -= a[i, k] * a[j, k]
-            a[i, j] = t / l
-    for c in range(nc):  # forward: L z = b, then back: L^T x = z
-        for i in range(d):
-            t = b[i, c]
-            for k in range(i):
-                t -= a[i, k] * b[k, c]
-            b[i, c] = t / a[i, i]
-        for i in range(d - 1, -1, -1):
-            t = b[i, c]
-            for k in range(i + 1, d):
-                t -= a[k, i] * b[k, c]
-            b[i, c] = t / a[i, i]
+            tmp[i] = a[i, j]
+        for k in range(j):
+            ajk = a[j, k]
+            for i in range(j + 1, d):
+                tmp[i] -= a[i, k] * ajk
+        for i in range(j + 1, d):
+            a[i, j] = tmp[i] / l
+    for i in range(d):  # forward: L z = b, then back: L^T x = z (every column of b at once)
+        for c in range(nc):
+            tmp[c] = b[i, c]
+        for k in range(i):
+            aik = a[i, k]
+            for c in range(nc):
+                tmp[c] -= aik * b[k, c]
+        aii = a[i, i]
+        for c in range(nc):
+            b[i, c] = tmp[c] / aii
+    for i in range(d - 1, -1, -1):
+        for c in range(nc):
+            tmp[c] = b[i, c]
+        for k in range(i + 1, d):
+            aki = a[k, i]
+            for c in range(nc):
+                tmp[c] -= aki * b[k, c]
+        aii = a[i, i]
+        for c in range(nc):
+            b[i, c] = tmp[c] / aii
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -144,6 +162,7 @@ def _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, lever
     wv = np.zeros(n)
     a = np.zeros((de, de))
     bm = np.zeros((d, nc))
+    tsol = np.zeros(max(d, nc))
     zt = np.zeros((de, LEVERAGE_BLOCK)) if leverage else np.zeros((0, LEVERAGE_BLOCK))
     lev = np.zeros(n) if leverage else np.zeros(0)
     inv_r = 1.0 / max(r, 1)
@@ -177,7 +196,7 @@ def _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, lever
             s0 = a[0, 0]
             for p in range(1, d):
                 a[p, p] += ridge * s0
-            _solve_spd(a, bm, d, nc)
+            _solve_spd(a, bm, d, nc, tsol)
             _predict(xt, bm, yp, d, n)
             if leverage:
                 _leverages(a, xt, zt, lev, d, n)
@@ -244,8 +263,9 @@ def _normal_equations(xt, wx, wv, yt, a, bm, d, de, n):
                 bm[p + 1, c] = s1
 
 
-#: Window positions per block of :func:`_leverages`: its scratch (d x this many float64) stays in L1.
-LEVERAGE_BLOCK = 48
+#: Window positions per block of :func:`_leverages`: its scratch (d x this many float64, 12 KiB at d = 12)
+#: stays in L1 beside the window's design, and a pass over the block is long enough to run at full speed.
+LEVERAGE_BLOCK = 128
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
@@ -258,7 +278,9 @@ def _leverages(chol, xt, zt, lev, d, n):
     them, it is the filter's derivative at the pixel itself: Stein's estimate needs nothing else.
     Blocks of :data:`LEVERAGE_BLOCK` positions keep the scratch ``zt`` (d, block) in L1 (the whole
     window's would not be, and the pass would wait on memory); each lev[t] is the same arithmetic in the
-    same order whatever the block."""
+    same order whatever the block.  The substitution subtracts four earlier rows per pass over the block
+    (the same subtractions in the same order as one row per pass): the running z_i[t] then stays in a
+    register for four products instead of a load and a store per product."""
     nb = zt.shape[1]
     for t0 in range(0, n, nb):
         m = min(nb, n - t0)
@@ -269,11 +291,19 @@ def _leverages(chol, xt, zt, lev, d, n):
             zi, xi = zt[i, :m], xt[i, t0:t0 + m]
             for t in range(m):
                 zi[t] = xi[t]
-            for k in range(i):
+            k = 0
+            while k + 3 < i:  # four earlier rows per pass: z_i[t] is loaded and stored once for four products
+                l0, l1, l2, l3 = chol[i, k], chol[i, k + 1], chol[i, k + 2], chol[i, k + 3]
+                z0, z1, z2, z3 = zt[k, :m], zt[k + 1, :m], zt[k + 2, :m], zt[k + 3, :m]
+                for t in range(m):
+                    zi[t] = (((zi[t] - l0 * z0[t]) - l1 * z1[t]) - l2 * z2[t]) - l3 * z3[t]
+                k += 4
+            while k < i:
                 lik = chol[i, k]
                 zk = zt[k, :m]
                 for t in range(m):
                     zi[t] -= lik * zk[t]
+                k += 1
             inv = 1.0 / chol[i, i]
             for t in range(m):
                 zi[t] *= inv
@@ -327,16 +357,26 @@ def _gather(accs, r, band, b0, out):
                         out[c, i, j] += accs[k, c, t, j + r]
 
 
+def _standard_plane(plane) -> np.ndarray:
+    """One feature plane (H, W) as a contiguous float64 copy shifted and scaled to mean 0 and standard
+    deviation 1 (a constant plane: shifted only).  The mean and deviation of the contiguous copy: a
+    strided view sums in another order."""
+    f = np.array(plane, dtype=np.float64, order="C", copy=True)
+    f -= f.mean()
+    sd = f.std()
+    if sd > 0:
+        f /= sd
+    return f
+
+
 def standardise(features) -> np.ndarray:
     """Feature planes (D, H, W) shifted and scaled to mean 0 and standard deviation 1 over the image
     (a constant plane: shifted only), so that one ridge suits every feature."""
     f = np.array(features, dtype=np.float64, copy=True)
     for m in range(f.shape[0]):
-        f[m] -= f[m].mean()
-        sd = f[m].std()
-        if sd > 0:
-            f[m] /= sd
+        f[m] = _standard_plane(f[m])
     return f
+
 
 
 def collaborative_regression(image, guide, variance, features, *, radius: int = 9, patch: int = 3, k: float = 1.0,
@@ -380,23 +420,29 @@ def collaborative_regression(image, guide, variance, features, *, radius: int = 
     ndarray (H, W, C) float64, then (H, W) weights with ``return_weights``
     and (H, W) centre weights with ``return_centre_weight``
     """
-    y = as_planes(image)
+    img = np.asarray(image, dtype=np.float64)
+    img = img[..., None] if img.ndim == 2 else img
     g = as_planes(guide, np.float32)
-    v = np.ascontiguousarray(as_planes(variance) * float(variance_scale), dtype=np.float32)
+    v = scaled_planes(variance, variance_scale)
     feats = np.asarray(features, dtype=np.float64)
     if feats.ndim == 2:
         feats = feats[..., None]
-    fp = standardise(np.moveaxis(feats, 2, 0)) if feats.shape[2] else np.zeros((0,) + y.shape[1:])
-    fp = np.ascontiguousarray(fp)
-    nc, h, w = y.shape
-    if g.shape[1:] != (h, w) or v.shape != g.shape or fp.shape[1:] != (h, w):
-        raise ValueError(f"collaborative_regression: shapes differ: image {y.shape}, guide {g.shape}, "
-                         f"variance {v.shape}, features {fp.shape} (planes)")
+    h, w, nc = img.shape
+    if g.shape[1:] != (h, w) or v.shape != g.shape or feats.shape[:2] != (h, w):
+        raise ValueError(f"collaborative_regression: shapes differ: image {img.shape}, guide {g.shape[1:]}, "
+                         f"variance {v.shape[1:]}, features {feats.shape} (H, W[, C])")
     r = int(radius)
     n_bands = (h + BAND - 1) // BAND
     planes = nc + 1 + bool(return_centre_weight)
-    pad = ((0, 0), (r, r), (r, r))
-    ypad, fpad = np.pad(y, pad), np.pad(fp, pad)
+    # the kernel's padded planes are filled in place, one plane at a time (no unpadded copy of the colour or
+    # of the standardised features beside them: 14 float64 values per pixel fewer at the peak with 6
+    # channels and 8 features)
+    ypad = np.zeros((nc, h + 2 * r, w + 2 * r))
+    for c in range(nc):
+        ypad[c, r:r + h, r:r + w] = img[..., c]
+    fpad = np.zeros((feats.shape[2], h + 2 * r, w + 2 * r))
+    for m in range(feats.shape[2]):
+        fpad[m, r:r + h, r:r + w] = _standard_plane(feats[..., m])
     out = np.zeros((planes, h, w))
     nt = n_threads(threads)
     # BANDS_PER_THREAD bands per thread at a time, on the thread pool: the bands' private accumulators
@@ -408,6 +454,11 @@ def collaborative_regression(image, guide, variance, features, *, radius: int = 
         parallel_calls(_one_band, [(*args, b0 + k, accs[k]) for k in range(min(accs.shape[0], n_bands - b0))],
                        threads)
         _gather(accs, r, BAND, b0, out)
-    res = np.moveaxis(out[:nc] / out[nc], 0, 2)
-    extra = ((out[nc],) if return_weights else ()) + ((out[nc + 1] / out[nc],) if return_centre_weight else ())
+    del accs, ypad, fpad
+    # the quotients in place: no second image beside the sums
+    if return_centre_weight:
+        out[nc + 1] /= out[nc]
+    out[:nc] /= out[nc]
+    res = np.moveaxis(out[:nc], 0, 2)
+    extra = ((out[nc],) if return_weights else ()) + ((out[nc + 1],) if return_centre_weight else ())
     return (res,) + extra if extra else res

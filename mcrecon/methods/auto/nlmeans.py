@@ -279,9 +279,11 @@ def nlmeans_cross(y_a, v_a, count_a, y_b, v_b, count_b, *, radius: int = 3, patc
     # bring large values into float32's range
     big = max(float(np.max(np.abs(ya), initial=0.0)), float(np.max(np.abs(yb), initial=0.0)))
     s = 1.0 if big < 1e15 else 1.0 / big
-    xa, xb = (ya * s).astype(np.float32), (yb * s).astype(np.float32)
-    ua = np.ascontiguousarray(va * (s * s), dtype=np.float32)
-    ub = np.ascontiguousarray(vb * (s * s), dtype=np.float32)
+    # (s = 1, the usual case: the values rounded as they are, without a scaled float64 copy first)
+    xa, xb = ((ya * s).astype(np.float32), (yb * s).astype(np.float32)) if s != 1.0 else (
+        ya.astype(np.float32), yb.astype(np.float32))
+    ua = np.ascontiguousarray(va * (s * s) if s != 1.0 else va, dtype=np.float32)
+    ub = np.ascontiguousarray(vb * (s * s) if s != 1.0 else vb, dtype=np.float32)
     bothf = (ma & mb).astype(np.float32)
     c, h, w = ya.shape
     num_a = np.zeros((c, h, w))
@@ -307,8 +309,9 @@ def nlmeans_cross(y_a, v_a, count_a, y_b, v_b, count_b, *, radius: int = 3, patc
         num[lone] = y[lone]
         den[lone] = 1.0
     with np.errstate(invalid="ignore", divide="ignore"):
-        fa = num_a / den_a[..., None]
-        fb = num_b / den_b[..., None]
+        # the quotients in place of the sums: no second pair of images beside them
+        num_a /= den_a[..., None]
+        num_b /= den_b[..., None]
         wa = np.where(den_a > 0, 1.0 / den_a, 0.0)
         wb = np.where(den_b > 0, 1.0 / den_b, 0.0)
-    return fa, wa, fb, wb
+    return num_a, wa, num_b, wb
