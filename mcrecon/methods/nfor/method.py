@@ -13,6 +13,7 @@ from ...core.safeguard import (albedo_divisor, confidence_clamp, empty_pixels_ke
 from ...core.stats import PixelStats
 from ...errors import InputError, McreconWarning
 from ..base import Method, MethodInputs, Option, Requirements, RunState, variant_option
+from .firefly import isolated_sample_bounds
 from .pipeline import PAPER, nfor_denoise
 from ...filters.regression import RIDGE
 
@@ -111,7 +112,10 @@ class NFORMethod(Method):
     neighbourhood's in units of the albedo,
     :func:`~mcrecon.core.safeguard.safeguard_variance`) and the range of
     the samples around it (:func:`~mcrecon.core.safeguard.confidence_clamp`,
-    auto's and awr's safeguard).  The regression's weights come from the
+    auto's and awr's safeguard), then into the interval the pixel's samples
+    give without their largest (smallest) one unless a neighbour's sample
+    was as far out (:func:`~mcrecon.methods.nfor.firefly.isolated_sample_bounds`:
+    a lone firefly finds no matching patch, so the regression keeps it).  The regression's weights come from the
     colour, and under rare huge samples (a caustic, an emitter's rim) they
     spread one pixel's light over exact dim neighbours: the paper's
     algorithm gave 12x the pixel mean's error on the built-in caustic and
@@ -184,6 +188,10 @@ class NFORMethod(Method):
                 confidence_clamp(img, stats.mean, safeguard_variance(channel_floor(var, divisor), stats.count,
                                                                      divisor),
                                  p["safeguard"], lo, hi, out=img)
+                # a brightness that rests on one sample no neighbour's sample confirms (a firefly the
+                # NL-means weights find no match for) is left out
+                iso_lo, iso_hi = isolated_sample_bounds(stats, p["safeguard"])
+                np.clip(img, iso_lo, iso_hi, out=img)
         run.diagnostics = {"selection": diag["selection"], "estimated_mse": np.maximum(diag["estimated_mse"], 0.0),
                            "sample_density": stats.count.astype(np.float64)}
         return img
