@@ -6,7 +6,7 @@ import numpy as np
 
 from ...core.stats import PixelStats
 
-__all__ = ["isolated_sample_bounds"]
+__all__ = ["isolated_sample_bounds", "leave_out_isolated"]
 
 
 def _neighbours_extreme(x: np.ndarray, has: np.ndarray, fill: float, take) -> np.ndarray:
@@ -71,3 +71,31 @@ def isolated_sample_bounds(stats: PixelStats, k: float) -> tuple[np.ndarray, np.
             bound = take(nb, own)
             out[...] = np.where(ok & np.isfinite(bound), bound, fill)
     return lo, hi
+
+
+def leave_out_isolated(image: np.ndarray, stats: PixelStats, k: float) -> np.ndarray:
+    """``image`` (H, W, C) clipped to the :func:`isolated_sample_bounds` interval's end where its pixel's mean
+    lies beyond that end and the result keeps more than half, and at most all, of the mean's excess (summed
+    over the channels; in place; returned).
+
+    A filter that gives the pixel no more weight than the rest of its window
+    together keeps at most half of what the pixel's mean holds beyond the
+    bound; a result that keeps more rests on the pixel's own samples (the
+    NL-means weights found no patch like it).  A result that pooled a wide
+    window whose 3 x 3 samples happened to miss a rare bright component
+    the window sees elsewhere (a light found by one sample in 80) keeps
+    less, or lies beyond the pixel's own mean, and stays.
+    """
+    lo, hi = isolated_sample_bounds(stats, k)
+    m = stats.mean
+    with np.errstate(invalid="ignore"):
+        for end, sign in ((hi, 1.0), (lo, -1.0)):
+            # judged per pixel on the channels' sums (one sample's colour moves them together; a decision
+            # per channel would keep some channels and cut others, a coloured dot)
+            ex_m = (sign * (m - end)).sum(axis=2)
+            ex_i = (sign * (image - end)).sum(axis=2)
+            act = np.isfinite(ex_m) & (ex_m > 0) & (ex_i > 0.5 * ex_m) & (ex_i <= ex_m)
+            if act.any():
+                sel = image[act]
+                image[act] = np.minimum(sel, end[act]) if sign > 0 else np.maximum(sel, end[act])
+    return image

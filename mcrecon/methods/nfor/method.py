@@ -13,7 +13,7 @@ from ...core.safeguard import (albedo_divisor, confidence_clamp, empty_pixels_ke
 from ...core.stats import PixelStats
 from ...errors import InputError, McreconWarning
 from ..base import Method, MethodInputs, Option, Requirements, RunState, variant_option
-from .firefly import isolated_sample_bounds
+from .firefly import leave_out_isolated
 from .pipeline import PAPER, nfor_denoise
 from ...filters.regression import RIDGE
 
@@ -114,7 +114,8 @@ class NFORMethod(Method):
     the samples around it (:func:`~mcrecon.core.safeguard.confidence_clamp`,
     auto's and awr's safeguard), then into the interval the pixel's samples
     give without their largest (smallest) one unless a neighbour's sample
-    was as far out (:func:`~mcrecon.methods.nfor.firefly.isolated_sample_bounds`:
+    was as far out, where the result keeps more than half of the pixel's
+    own excess beyond it (:func:`~mcrecon.methods.nfor.firefly.leave_out_isolated`:
     a lone firefly finds no matching patch, so the regression keeps it).  The regression's weights come from the
     colour, and under rare huge samples (a caustic, an emitter's rim) they
     spread one pixel's light over exact dim neighbours: the paper's
@@ -188,10 +189,9 @@ class NFORMethod(Method):
                 confidence_clamp(img, stats.mean, safeguard_variance(channel_floor(var, divisor), stats.count,
                                                                      divisor),
                                  p["safeguard"], lo, hi, out=img)
-                # a brightness that rests on one sample no neighbour's sample confirms (a firefly the
-                # NL-means weights find no match for) is left out
-                iso_lo, iso_hi = isolated_sample_bounds(stats, p["safeguard"])
-                np.clip(img, iso_lo, iso_hi, out=img)
+                # a brightness that rests on one sample no neighbour's sample confirms, kept where the
+                # NL-means weights find no patch like it, is left out
+                leave_out_isolated(img, stats, p["safeguard"])
         run.diagnostics = {"selection": diag["selection"], "estimated_mse": np.maximum(diag["estimated_mse"], 0.0),
                            "sample_density": stats.count.astype(np.float64)}
         return img
