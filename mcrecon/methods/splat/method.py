@@ -146,7 +146,8 @@ class SplatMethod(Method):
         return int(np.ceil(self.params["max_width"])) + ProgressiveSplatter.POOL_RADIUS + 1
 
     def reconstruct_run(self, run: "SplatRun", inputs: MethodInputs) -> np.ndarray:
-        """Replay the sample source's rounds in order through the progressive algorithm.
+        """Replay the sample source's rounds in order through the progressive algorithm, its leading
+        rounds merged into the method's own first round (:meth:`_replay_rounds`).
 
         Robust variant (``spread='outliers'``): a source with a single round
         is one round.  Paper: a source with a single round (an offline render) is split into
