@@ -367,8 +367,9 @@ def test_sparse_pixels_and_a_firefly_stay_finite_and_unclipped():
 
 def test_robust_is_the_paper_image_clamped_into_each_pixels_interval_bit_for_bit():
     """variant='robust' = confidence_clamp(paper image, mean, safeguard_variance(channel_floor(v, albedo), n, albedo),
-    4, 3x3 sample range)."""
+    4, 3x3 sample range), then leave_out_isolated(., stats, 4)."""
     from mcrecon.core.safeguard import albedo_divisor, confidence_clamp, safeguard_variance, sample_range_bounds
+    from mcrecon.methods.nfor.firefly import leave_out_isolated
     from mcrecon.methods.nfor.method import channel_floor
 
     ss = scene_samples(24, 20, 8, seed=5)
@@ -379,7 +380,8 @@ def test_robust_is_the_paper_image_clamped_into_each_pixels_interval_bit_for_bit
     lo, hi = sample_range_bounds(st)
     d = albedo_divisor(st)
     v = safeguard_variance(channel_floor(mean_variance_policy(st), d), st.count, d)
-    np.testing.assert_array_equal(robust, confidence_clamp(paper, st.mean, v, 4.0, lo, hi))
+    np.testing.assert_array_equal(robust, leave_out_isolated(confidence_clamp(paper, st.mean, v, 4.0, lo, hi), st,
+                                                             4.0))
     assert not np.array_equal(robust, paper)  # the clamp acts on this scene
     np.testing.assert_array_equal(mcrecon.reconstruct(ss, method="nfor", safeguard=None), paper)
 

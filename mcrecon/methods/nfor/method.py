@@ -13,6 +13,7 @@ from ...core.safeguard import (albedo_divisor, confidence_clamp, empty_pixels_ke
 from ...core.stats import PixelStats
 from ...errors import InputError, McreconWarning
 from ..base import Method, MethodInputs, Option, Requirements, RunState, variant_option
+from .firefly import leave_out_isolated
 from .pipeline import PAPER, nfor_denoise
 from ...filters.regression import RIDGE
 
@@ -111,7 +112,11 @@ class NFORMethod(Method):
     neighbourhood's in units of the albedo,
     :func:`~mcrecon.core.safeguard.safeguard_variance`) and the range of
     the samples around it (:func:`~mcrecon.core.safeguard.confidence_clamp`,
-    auto's and awr's safeguard).  The regression's weights come from the
+    auto's and awr's safeguard), then into the interval the pixel's samples
+    give without their largest (smallest) one unless a neighbour's sample
+    was as far out, where the result keeps more than half of the pixel's
+    own excess beyond it (:func:`~mcrecon.methods.nfor.firefly.leave_out_isolated`:
+    a lone firefly finds no matching patch, so the regression keeps it).  The regression's weights come from the
     colour, and under rare huge samples (a caustic, an emitter's rim) they
     spread one pixel's light over exact dim neighbours: the paper's
     algorithm gave 12x the pixel mean's error on the built-in caustic and
@@ -184,6 +189,9 @@ class NFORMethod(Method):
                 confidence_clamp(img, stats.mean, safeguard_variance(channel_floor(var, divisor), stats.count,
                                                                      divisor),
                                  p["safeguard"], lo, hi, out=img)
+                # a brightness that rests on one sample no neighbour's sample confirms, kept where the
+                # NL-means weights find no patch like it, is left out
+                leave_out_isolated(img, stats, p["safeguard"])
         run.diagnostics = {"selection": diag["selection"], "estimated_mse": np.maximum(diag["estimated_mse"], 0.0),
                            "sample_density": stats.count.astype(np.float64)}
         return img

@@ -146,7 +146,8 @@ class SplatMethod(Method):
         return int(np.ceil(self.params["max_width"])) + ProgressiveSplatter.POOL_RADIUS + 1
 
     def reconstruct_run(self, run: "SplatRun", inputs: MethodInputs) -> np.ndarray:
-        """Replay the sample source's rounds in order through the progressive algorithm.
+        """Replay the sample source's rounds in order through the progressive algorithm, its leading
+        rounds merged into the method's own first round (:meth:`_replay_rounds`).
 
         Robust variant (``spread='outliers'``): a source with a single round
         is one round.  Paper: a source with a single round (an offline render) is split into
@@ -171,8 +172,8 @@ class SplatMethod(Method):
             if self.params["spread"] == "consistent" and self.params["feature_gate"] == "auto" else ()
         fkw = {"features": feats} if feats else {}
         if len(rounds) >= 2:
-            for r in rounds:
-                sp.add_round_stream(lambda r=r: _arrays(src.iter_chunks(rounds=[r], with_round=False, **fkw)),
+            for group in self._replay_rounds(src, rounds):
+                sp.add_round_stream(lambda g=group: _arrays(src.iter_chunks(rounds=g, with_round=False, **fkw)),
                                     nonfinite=nonfinite, where=where)
         elif rounds and self.params["spread"] != "all":
             # Robust variant: a single-round source is one round.  Every sample is judged
@@ -194,6 +195,33 @@ class SplatMethod(Method):
         if not rounds:
             warnings.warn(f"{where}: no samples at all; the image is 0", McreconWarning, stacklevel=2)
         return sp.image.copy()
+
+    def _replay_rounds(self, src, rounds: list[int]) -> list[list[int]]:
+        """The source's non-empty rounds grouped into the rounds to replay, in order.
+
+        The leading rounds are merged until they hold the first round of the
+        method's own adaptive run, ``(N_0 + 1) // 2`` samples per pixel with
+        ``N_0 = min(initial_spp, total spp)`` (the driver's split initial
+        pass); every later round is replayed as it is.  Fig. 3 never revisits
+        a round, and the outlier test judges a sample only once its 3x3
+        window holds ``MIN_POOL`` samples: a renderer that writes one round
+        per sample index (Cycles' sample subsets) would otherwise leave its
+        first rounds' fireflies unjudged in their pixels for good.  A log of
+        the method's own run starts with that round and replays as it ran.
+        """
+        sl = src.round_slices()
+        pixels = int(src.width) * int(src.height)
+        total = sum(int(sl[r][1] - sl[r][0]) for r in rounds)
+        n0 = min(int(self.params["initial_spp"]), total // pixels)
+        first = (n0 + 1) // 2 * pixels
+        groups: list[list[int]] = [[]]
+        held = 0
+        for r in rounds:
+            if held >= first:
+                groups.append([])
+            groups[-1].append(r)
+            held += int(sl[r][1] - sl[r][0])
+        return groups
 
     @staticmethod
     def _pixel_index(pos, width, height):
