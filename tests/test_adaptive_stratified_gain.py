@@ -8,6 +8,7 @@ import pytest
 from mcrecon import adapt
 from mcrecon.methods import get_method
 from mcrecon.methods.awr.method import AWRMethod
+from mcrecon.core.strata import stratified_gain
 from mcrecon.methods.gem.method import GEMMethod
 from mcrecon.renderers.scenes import SceneRenderer
 
@@ -19,7 +20,7 @@ def _states(monkeypatch, cls, sampler, **opts):
     place = cls.place
 
     def spy(self, run, state, n):
-        seen.append((state.stats.count.copy(), state.strata.counter.copy(), state.stratified_gain()))
+        seen.append((state.stats.count.copy(), state.strata.counter.copy(), stratified_gain(state)))
         return place(self, run, state, n)
 
     with monkeypatch.context() as m:

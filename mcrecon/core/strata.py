@@ -31,7 +31,7 @@ import numba
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["PrefixHalves", "GAIN_RADIUS", "GAIN_FLOOR"]
+__all__ = ["PrefixHalves", "stratified_gain", "GAIN_RADIUS", "GAIN_FLOOR"]
 
 #: Neighbourhood (box of 2 r + 1 pixels a side) over which the halves' squared difference and
 #: ``s^2 / n`` are summed before their ratio is taken: 25 pixels x the channels of one-degree
@@ -151,3 +151,14 @@ class PrefixHalves:
         known = den > 1e-300
         g = np.divide(num, den, out=np.ones_like(num), where=known)
         return np.clip(g, floor, 1.0)
+
+
+def stratified_gain(state) -> np.ndarray | None:
+    """The stratification gain (H, W) of an adaptive plan's committed samples, or None without prefix halves.
+
+    ``state`` is an :class:`~mcrecon.methods.base.AdaptiveState`: its
+    ``strata`` (:class:`PrefixHalves`) against its statistics' sample variance.
+    """
+    if getattr(state, "strata", None) is None:
+        return None
+    return state.strata.gain(state.stats.sample_variance(undefined=0.0))

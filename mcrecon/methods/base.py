@@ -345,9 +345,7 @@ class AdaptiveState:
         Index of this plan among the method's own (0: the first after the
         initial pass).
     strata : PrefixHalves or None
-        The committed samples' prefix halves (:class:`mcrecon.core.strata.PrefixHalves`):
-        a method's allocation reads the stratification gain from it
-        (:meth:`stratified_gain`); None outside an adaptive run.
+        The committed samples' prefix halves (:func:`mcrecon.core.strata.stratified_gain`).
     """
 
     stats: PixelStats
@@ -359,12 +357,6 @@ class AdaptiveState:
     pending: np.ndarray | None = None
     iteration: int = 0
     strata: object = None
-
-    def stratified_gain(self) -> np.ndarray | None:
-        """Each pixel mean's variance over ``s^2 / n`` (H, W), from :attr:`strata`; None without it."""
-        if self.strata is None:
-            return None
-        return self.strata.gain(self.stats.sample_variance(undefined=0.0))
 
     @property
     def remaining(self) -> int:

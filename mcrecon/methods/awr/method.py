@@ -10,6 +10,7 @@ from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, Ru
 from ...core.fill import fill_empty_pixels
 from .reconstruction import DOMAINS, VARIANCE_ESTIMATORS, awr_reconstruct, log_domain_reconstruct, pixel_variance
 from ...core.safeguard import confidence_clamp, sample_range_bounds
+from ...core.strata import stratified_gain
 from .sampling import plan_awr_positions
 from .wavelets import BOUNDARY_MODES, PROPAGATIONS, RECONSTRUCTION_RENORM, SAMPLING_RENORM, WAVELETS, default_levels
 
@@ -160,7 +161,7 @@ class AWRMethod(Method):
             per_coefficient=p["per_coefficient"], renorm=p["sampling_renorm"], propagation=p["propagation"],
             priority_threshold=p["priority_threshold"], estimator=p["sampling_variance"],
             pending=state.pending, as_counts=True,  # counts: the renderer continues each pixel's sequence
-            gain=state.stratified_gain() if p["stratified_gain"] else None)
+            gain=stratified_gain(state) if p["stratified_gain"] else None)
         run.last_plan_info = info
         if pos is None or len(pos) == 0:
             return None

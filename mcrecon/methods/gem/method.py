@@ -20,6 +20,7 @@ from .sampling import distribute_samples, sample_priority
 from .guard import RISK_RADIUS
 from .selection import CHANNEL_WEIGHTS, GAMMA_MAX, OUTLIER_RULES, GEMSelection, _pick, gem_select, oracle_select
 from ...core.fill import mean_variance_policy
+from ...core.strata import stratified_gain
 
 __all__ = ["GEMMethod", "GEMRun", "TARGET_EPS"]
 
@@ -262,7 +263,7 @@ class GEMMethod(Method):
         npix = state.width * state.height
         n_pick = p["samples_per_pick"] or max(1, int(round(state.budget / npix)))
         sel = self.select(run, state.stats, final=False, want_mse=True,
-                          gain=state.stratified_gain() if p["stratified_gain"] else None)
+                          gain=stratified_gain(state) if p["stratified_gain"] else None)
         value = run.reference if p["oracle"] else sel.image
         if p["target_rel_mse"] is not None and np.isfinite(sel.mse).all():
             est = float(np.mean(sel.mse / (value * value + TARGET_EPS)))
