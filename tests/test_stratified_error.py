@@ -119,5 +119,6 @@ def test_gain_low_for_a_stratified_smooth_film_and_one_for_independent_samples()
     ph = PrefixHalves(w, h, 1)
     ph.add(pos, noise)
     g = ph.gain(noise.reshape(w * h, n).var(axis=1, ddof=1).reshape(h, w, 1))
-    assert np.median(g) > 0.7 and g.max() <= 1.0
+    # chance dips of the ratio below 1 are no gain: independent samples keep s^2 / n almost everywhere
+    assert np.mean(g == 1.0) > 0.9 and g.max() <= 1.0
     assert np.all(PrefixHalves(w, h, 1).gain(np.zeros((h, w, 1))) == 1.0)  # nothing known: s^2 / n

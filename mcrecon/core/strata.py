@@ -37,6 +37,9 @@ __all__ = ["PrefixHalves", "stratified_gain", "GAIN_RADIUS", "GAIN_FLOOR"]
 #: ``s^2 / n`` are summed before their ratio is taken: 25 pixels x the channels of one-degree
 #: estimates keep the ratio's noise near 15 %, small next to the gains it measures (5-50x).
 GAIN_RADIUS = 2
+#: Standard deviations (of the ratio, were the samples independent) added to the pooled ratio:
+#: a neighbourhood's gain below 1 is taken only where it is more than chance.
+UCB_SIGMAS = 2.0
 #: Smallest gain: a neighbourhood whose halves agree by chance does not stop its pixels' sampling.
 GAIN_FLOOR = 1.0 / 32.0
 
@@ -137,8 +140,9 @@ class PrefixHalves:
         (H, W, C) the pixels' ``s^2`` over all their samples.  Pixels whose
         neighbourhood has no pixel with both halves (fewer than two samples)
         or no sample variance get 1 (nothing known: ``s^2 / n`` as it is).
-        Capped at 1: for independent samples the expectation is 1, and more
-        is noise.
+        The ratio's upper two-sigma bound is taken, capped at 1: for
+        independent samples the ratio's expectation is 1, and its chance
+        dips below 1 are noise, not a gain.
         """
         mean_a, mean_b, n_a, n_b = self.halves()
         ok = (n_a > 0) & (n_b > 0)
@@ -148,9 +152,15 @@ class PrefixHalves:
         size = 2 * int(radius) + 1
         num = ndimage.uniform_filter(d2, size=size, mode="constant")
         den = ndimage.uniform_filter(ref, size=size, mode="constant")
+        den2 = ndimage.uniform_filter(ref * ref, size=size, mode="constant")
         known = den > 1e-300
         g = np.divide(num, den, out=np.ones_like(num), where=known)
-        return np.clip(g, floor, 1.0)
+        # the ratio's relative standard deviation were the samples independent (a sum of one-degree
+        # terms of expectations ref: sqrt(2 sum ref^2) / sum ref): the gain taken is the ratio's upper
+        # two-sigma bound, so independent samples keep s^2 / n (their ratio's noise is no gain)
+        rel_sd = np.divide(np.sqrt(2.0 * np.maximum(den2, 0.0) / (size * size)), den, out=np.zeros_like(den),
+                           where=known)
+        return np.clip(g * (1.0 + UCB_SIGMAS * rel_sd), floor, 1.0)
 
 
 def stratified_gain(state) -> np.ndarray | None:
