@@ -7,7 +7,6 @@ import pytest
 
 from mcrecon import adapt
 from mcrecon.methods import get_method
-from mcrecon.methods.awr.method import AWRMethod
 from mcrecon.core.strata import stratified_gain
 from mcrecon.methods.gem.method import GEMMethod
 from mcrecon.renderers.scenes import SceneRenderer
@@ -46,7 +45,7 @@ def test_gain_tells_stratified_from_independent_samples(monkeypatch):
     assert np.median(ind[-1][2]) > 0.7
 
 
-@pytest.mark.parametrize("cls", [GEMMethod, AWRMethod])
+@pytest.mark.parametrize("cls", [GEMMethod])
 def test_allocation_uses_the_gain_and_the_paper_does_not(monkeypatch, cls):
     _, on = _states(monkeypatch, cls, "sobol")
     _, off = _states(monkeypatch, cls, "sobol", stratified_gain=0)

@@ -10,7 +10,6 @@ from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, Ru
 from ...core.fill import fill_empty_pixels
 from .reconstruction import DOMAINS, VARIANCE_ESTIMATORS, awr_reconstruct, log_domain_reconstruct, pixel_variance
 from ...core.safeguard import confidence_clamp, sample_range_bounds
-from ...core.strata import stratified_gain
 from .sampling import plan_awr_positions
 from .wavelets import BOUNDARY_MODES, PROPAGATIONS, RECONSTRUCTION_RENORM, SAMPLING_RENORM, WAVELETS, default_levels
 
@@ -68,7 +67,6 @@ class AWRMethod(Method):
             "sampling_variance": "contrast",  # Eq. 5, Mitchell's contrast
             "per_coefficient": 64,           # Fig. 4: 64 x 2^k samples per popped coefficient
             "initial_spp": 4,                # Fig. 4 Step 1
-            "stratified_gain": 0,            # sigma^2(B) = sigma^2(F) / N, Eq. 6
         },
     }
     @property
@@ -106,9 +104,6 @@ class AWRMethod(Method):
                min=0.0, min_open=True),
         Option("initial_spp", int, 16, "uniform samples per pixel of the first round (paper 4; capped by the budget)",
                min=1),
-        Option("stratified_gain", int, 1, "sampler: 1 scales each pixel's variance by its measured "
-               "stratification gain (the halves of its sample sequence; a stratified renderer's pixel means "
-               "err far less than s^2 / n), 0 the paper's sigma^2(F) / N", choices=(0, 1)),
         Option("priority_threshold", float, None, "stop sampling when no priority exceeds this"),
         Option("reconstruction", str, "awr", "final image of an adaptive run: awr, or box (AWR sampling only)",
                ("awr", "box")),
@@ -160,8 +155,7 @@ class AWRMethod(Method):
             state.stats, n, state.rng, wavelet=p["wavelet"], levels=p["sampling_levels"], mode=p["boundary"],
             per_coefficient=p["per_coefficient"], renorm=p["sampling_renorm"], propagation=p["propagation"],
             priority_threshold=p["priority_threshold"], estimator=p["sampling_variance"],
-            pending=state.pending, as_counts=True,  # counts: the renderer continues each pixel's sequence
-            gain=stratified_gain(state) if p["stratified_gain"] else None)
+            pending=state.pending, as_counts=True)  # counts: the renderer continues each pixel's sequence
         run.last_plan_info = info
         if pos is None or len(pos) == 0:
             return None

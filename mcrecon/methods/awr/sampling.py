@@ -233,8 +233,7 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
                        levels: int = 5, mode: str = "symmetric", per_coefficient: int = 64,
                        renorm: float = SAMPLING_RENORM, propagation: str = "exact",
                        priority_threshold: float | None = None, estimator: str = "contrast",
-                       pending: np.ndarray | None = None, as_counts: bool = False,
-                       gain: np.ndarray | None = None):
+                       pending: np.ndarray | None = None, as_counts: bool = False):
     """One batch of the adaptive wavelet sampler (§4.1 Steps 2-3).
 
     Ranks all scale coefficients of levels 0..``levels`` by Eq. 8 and
@@ -252,11 +251,6 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
     batch does not rank first the coefficients the round in flight already
     serves.  The wavelet coefficients (the committed means) are unchanged:
     the pending samples' expected mean is the current one.
-
-    ``gain`` (H, W), optional: each pixel mean's variance over the
-    independent-sample one (the stratification gain,
-    :meth:`mcrecon.core.strata.PrefixHalves.gain`); sigma^2(B) is scaled by
-    it, so a stratified sampler's well-resolved edges do not rank first.
 
     ``as_counts``: return the samples per pixel instead of positions.  The
     position inside the chosen pixel is uniform and carries no decision, so
@@ -291,8 +285,6 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
         var = functional_variance(stats, estimator) / np.maximum(stats.count + np.asarray(pending), 1)[..., None]
     else:
         var = pixel_variance(stats, estimator)
-    if gain is not None:
-        var = var * np.asarray(gain, dtype=np.float64)[..., None]
     pri = scale_priorities(mean, var, wavelet=wavelet, levels=levels, mode=mode, renorm=renorm,
                            propagation=propagation)
     for k in range(1, levels + 1):
