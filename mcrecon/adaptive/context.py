@@ -8,7 +8,7 @@
      |- log_path, nonfinite, storage_dtype          where and how rounds are committed
      |- rounds, round_index, planned                 what the run holds before this session
      |- rendered   per pixel, the samples committed (NaN/Inf included): each request's first_index
-     |- strata     PrefixHalves of the committed samples: the plans' stratification gain
+     |- strata     PrefixHalves of the committed samples (methods with stratified_gain on): the plans' gain
      |- track_error, eps, on_round, bar             what this session's caller asked for
      `- clock      RunClock: wall time over sessions, renderer seconds, toolkit CPU,
                    rounds finished this session, the timeline of phases
@@ -214,7 +214,8 @@ class RunContext:
     def __post_init__(self):
         if self.rendered is None:
             self.rendered = np.zeros((self.stats.height, self.stats.width), np.int64)
-        if self.strata is None:
+        # only for a method whose allocation reads the gain: the sums cost 3 x 8 bytes per pixel and channel
+        if self.strata is None and getattr(self.method, "params", {}).get("stratified_gain"):
             self.strata = PrefixHalves(self.stats.width, self.stats.height, len(self.stats.channels))
 
     @classmethod
