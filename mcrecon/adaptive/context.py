@@ -8,6 +8,7 @@
      |- log_path, nonfinite, storage_dtype          where and how rounds are committed
      |- rounds, round_index, planned                 what the run holds before this session
      |- rendered   per pixel, the samples committed (NaN/Inf included): each request's first_index
+     |- strata     PrefixHalves of the committed samples (methods with stratified_gain on): the plans' gain
      |- track_error, eps, on_round, bar             what this session's caller asked for
      `- clock      RunClock: wall time over sessions, renderer seconds, toolkit CPU,
                    rounds finished this session, the timeline of phases
@@ -33,6 +34,7 @@ import numpy as np
 
 from .._lazy import public_dir as _public_dir
 from ..core.stats import PixelStats
+from ..core.strata import PrefixHalves
 from ..errors import InputError
 from ..io.logformat import MAX_PIXELS
 from ..methods.base import Method, RunState
@@ -207,10 +209,14 @@ class RunContext:
     clock: RunClock
     planned: tuple | None = None
     rendered: np.ndarray | None = None
+    strata: PrefixHalves | None = None
 
     def __post_init__(self):
         if self.rendered is None:
             self.rendered = np.zeros((self.stats.height, self.stats.width), np.int64)
+        # only for a method whose allocation reads the gain: the sums cost 3 x 8 bytes per pixel and channel
+        if self.strata is None and getattr(self.method, "params", {}).get("stratified_gain"):
+            self.strata = PrefixHalves(self.stats.width, self.stats.height, len(self.stats.channels))
 
     @classmethod
     def assemble(cls, renderer, method, settings: Mapping, *, reference, log_path, session: SessionOptions,
@@ -278,7 +284,7 @@ class RunContext:
         the same in a resume (its replay counts the log's rounds) as in the live run."""
         first = self.rendered if pending is None else self.rendered + pending
         return self.schedule.plan(self.method, self.run, self.stats, round_index, _committed(self.stats) + in_flight,
-                                  pending=pending, first_index=first)
+                                  pending=pending, first_index=first, strata=self.strata)
 
 
 __dir__ = _public_dir(__name__)

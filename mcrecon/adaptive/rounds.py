@@ -46,6 +46,9 @@ def _take_round(ctx, batch, round_index, *, source, n_nonfinite=None, timeline=N
     rendered = getattr(ctx, "rendered", None)
     if rendered is not None:
         rendered += _pixel_counts_of(batch.positions, stats.width, stats.height)
+    strata = getattr(ctx, "strata", None)
+    if strata is not None:  # every row, NaN/Inf included, in its pixel's sequence order
+        strata.add(batch.positions, batch.values)
     if method.requires.features != "none" and batch.features and not stats.features and stats.n_samples == 0:
         # the renderer's first round says which features it sends; every later round sends the same
         stats.keep_features(usable_layout(batch.features))

@@ -344,6 +344,8 @@ class AdaptiveState:
     iteration : int
         Index of this plan among the method's own (0: the first after the
         initial pass).
+    strata : PrefixHalves or None
+        The committed samples' prefix halves (:func:`mcrecon.core.strata.stratified_gain`).
     """
 
     stats: PixelStats
@@ -354,6 +356,7 @@ class AdaptiveState:
     reference: np.ndarray | None = None
     pending: np.ndarray | None = None
     iteration: int = 0
+    strata: object = None
 
     @property
     def remaining(self) -> int:

@@ -20,6 +20,7 @@ from .sampling import distribute_samples, sample_priority
 from .guard import RISK_RADIUS
 from .selection import CHANNEL_WEIGHTS, GAMMA_MAX, OUTLIER_RULES, GEMSelection, _pick, gem_select, oracle_select
 from ...core.fill import mean_variance_policy
+from ...core.strata import stratified_gain
 
 __all__ = ["GEMMethod", "GEMRun", "TARGET_EPS"]
 
@@ -81,7 +82,8 @@ class GEMMethod(Method):
     variants = {
         "robust": {},
         "paper": {"gamma": 0.1, "final_outliers": "paper", "zero_variance_votes": 3, "uniform_share": 0.0,
-                  "channel_weights": "absolute", "confirm_stops": 0, "variance_guard": 0, "risk_guard": 0.0},
+                  "channel_weights": "absolute", "confirm_stops": 0, "variance_guard": 0, "risk_guard": 0.0,
+                  "stratified_gain": 0},
     }
     options = (
         variant_option(variants),
@@ -121,6 +123,10 @@ class GEMMethod(Method):
                "which each pixel's scale is clamped to the maximum scale of least estimated error (the "
                "unbiased per-pixel estimates, summed): no neighbourhood ends above its pixel means' "
                "estimated error, thin geometry included; 0 off (the paper)", min=0.0),
+        Option("stratified_gain", int, 1, "adaptive phase: 1 scales each pixel mean's variance s^2 / n by its "
+               "measured stratification gain (the halves of its sample sequence: a stratified renderer's pixel "
+               "means err far less than s^2 / n), so samples go where the error is; 0 s^2 / n (the paper)",
+               choices=(0, 1)),
         Option("subpixel_exact_below", float, 0.0, "filter scales with sigma below this (px) on the 4x4 "
                "subpixel grid itself (slower; 0: pixel-level equivalent kernel)", min=0.0),
     )
@@ -159,12 +165,18 @@ class GEMMethod(Method):
             run.reference = ref
         return run
 
-    def select(self, run: "GEMRun", stats: PixelStats, *, final: bool, want_mse: bool = False) -> GEMSelection:
-        """GEM's scale selection on ``stats``: the final reconstruction's (``final``) or the sampling phase's."""
+    def select(self, run: "GEMRun", stats: PixelStats, *, final: bool, want_mse: bool = False,
+               gain: np.ndarray | None = None) -> GEMSelection:
+        """GEM's scale selection on ``stats``: the final reconstruction's (``final``) or the sampling phase's.
+
+        ``gain`` (H, W), optional: the pixel means' stratification gain, which scales their variance.
+        """
         p = self.params
         sig = final_sigmas(p["final_scales"]) if final else adaptive_sigmas(p["adaptive_scales"])
         base = stats.mean
         mv = mean_variance_policy(stats)
+        if gain is not None:
+            mv = mv * gain[..., None]
         count = stats.count
         s = self.grid
         eb = p["subpixel_exact_below"]
@@ -250,7 +262,8 @@ class GEMMethod(Method):
         p = self.params
         npix = state.width * state.height
         n_pick = p["samples_per_pick"] or max(1, int(round(state.budget / npix)))
-        sel = self.select(run, state.stats, final=False, want_mse=True)
+        sel = self.select(run, state.stats, final=False, want_mse=True,
+                          gain=stratified_gain(state) if p["stratified_gain"] else None)
         value = run.reference if p["oracle"] else sel.image
         if p["target_rel_mse"] is not None and np.isfinite(sel.mse).all():
             est = float(np.mean(sel.mse / (value * value + TARGET_EPS)))
