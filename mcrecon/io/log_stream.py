@@ -22,10 +22,28 @@ import numpy as np
 
 from ._atomic import atomic_path
 from .lock import _err, log_lock
-from .logformat import (DEFAULT_CHUNK_ROWS, FORMAT_MINOR, FORMAT_NAME, FORMAT_VERSION, MAX_PIXELS,
+from ..core.samples import check_samples
+from .logformat import (APPEND_CHUNK_ROWS, DEFAULT_CHUNK_ROWS, FORMAT_MINOR, FORMAT_NAME, FORMAT_VERSION, MAX_PIXELS,
                         RECORD_CHUNK_ROWS, _CHECKSUM, _checksum_for, _json_default, cast_positions)
 
 __all__ = ["LogStream", "stream_log"]
+
+
+def _check_arrays(where, positions, values, width, height, n_channels):
+    """Samples as the log stores them: the shared validation (NaN/Inf values are stored, readers apply their policy)."""
+    pos, val, _ = check_samples(positions, values, width=width, height=height, n_channels=n_channels,
+                                where=str(where))
+    return pos, val
+
+
+def _chunk_rows(n: int) -> int:
+    """Chunk rows for sample datasets starting with ``n`` rows.
+
+    A log written whole gets large chunks (fast streaming); one that starts
+    small, like the adaptive driver's empty log, grows by appended rounds
+    and gets small chunks, since HDF5 allocates every chunk in full.
+    """
+    return DEFAULT_CHUNK_ROWS if n >= DEFAULT_CHUNK_ROWS else APPEND_CHUNK_ROWS
 
 
 def check_header(path: Path, width, height, channels, metadata) -> tuple[int, int, tuple, str]:
@@ -59,8 +77,6 @@ def write_header(f, width: int, height: int, channels: tuple, meta_json: str) ->
 
 def sample_chunks(n: int, cols) -> tuple:
     """HDF5 chunk shape of a per-sample dataset of a new ``n``-row log (``cols``: its other axes)."""
-    from .writer import _chunk_rows
-
     return (_chunk_rows(n),) + tuple(cols)
 
 
@@ -107,8 +123,6 @@ class LogStream:
         (positions on the film, the shapes); positions are stored in the
         dtype declared, without moving any into the next pixel.
         """
-        from .writer import _check_arrays
-
         f, path = self._f, self.path
         pos, val = _check_arrays(path, positions, values, self.width, self.height, self.n_channels)
         m, a = pos.shape[0], self.written
@@ -195,6 +209,3 @@ def stream_log(path, n: int, *, width: int, height: int, channels: Sequence[str]
                 raise _err(path, "rows", f"{stream.written} written, {n} declared")
             f.attrs["n_committed"] = np.int64(n)
 
-
-#: Rows of one piece a writer should give (a multiple of the HDF5 chunk rows; see :func:`stream_log`).
-PIECE_ROWS = 16 * DEFAULT_CHUNK_ROWS

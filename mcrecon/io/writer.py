@@ -12,27 +12,20 @@ import h5py
 import numpy as np
 
 from ..errors import InputError
-from ..core.samples import check_samples, round_ends_of, round_slices
+from ..core.samples import round_ends_of, round_slices
 from ._atomic import atomic_path
 from ..core.samples import DEFAULT_READ_ROWS
 from .lock import _err, log_lock
-from .logformat import (APPEND_CHUNK_ROWS, DEFAULT_CHUNK_ROWS, FORMAT_MINOR,
+from .logformat import (FORMAT_MINOR,
                         RECORD_CHUNK_ROWS, ROUND_RECORD_CHUNK_ROWS, ROUND_RECORD_DTYPE, _CHECKSUM,
                         _CONVERT, _H5_ERRORS, _HAS_RECORD, _NO_RECORD, _checksum_for, _committed_rows, _detail,
                         _json_default, _labels_are_indices, _open, _read_header, _read_slice, _record_columns,
                         _row_type, _strings, cast_positions)
 from .reader import SampleLog, _read_rows
 from ._tail import _save_tail
-from .log_stream import check_header, check_reference, write_header, write_reference
+from .log_stream import _check_arrays, _chunk_rows, check_header, check_reference, write_header, write_reference
 
 __all__ = ['write_log', 'append_log', 'update_round_record', 'set_run_settings']
-
-def _check_arrays(where, positions, values, width, height, n_channels):
-    """Samples as the log stores them: the shared validation (NaN/Inf values are stored, readers apply their policy)."""
-    pos, val, _ = check_samples(positions, values, width=width, height=height, n_channels=n_channels,
-                                where=str(where))
-    return pos, val
-
 
 def _checked_arrays(where, positions, values, width, height, n_channels):
     """Arrays the caller validated (``append_log(..., checked=True)``): shapes and dtypes only, O(1).
@@ -50,16 +43,6 @@ def _checked_arrays(where, positions, values, width, height, n_channels):
     if not ok:
         return _check_arrays(where, positions, values, width, height, n_channels)
     return pos, val
-
-
-def _chunk_rows(n: int) -> int:
-    """Chunk rows for sample datasets starting with ``n`` rows.
-
-    A log written whole gets large chunks (fast streaming); one that starts
-    small, like the adaptive driver's empty log, grows by appended rounds
-    and gets small chunks, since HDF5 allocates every chunk in full.
-    """
-    return DEFAULT_CHUNK_ROWS if n >= DEFAULT_CHUNK_ROWS else APPEND_CHUNK_ROWS
 
 
 def _chunks_for(rows, cols):
