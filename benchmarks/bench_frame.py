@@ -14,6 +14,9 @@ the same input:
 * the ratios the targets are stated in: auto / OIDN and nfor / OIDN
   (reconstruction seconds against the denoise call), auto's whole command
   / gem's whole command;
+* ``render-log`` of that log as a whole command (wall, CPU, peak RSS) when
+  the benchmark renders it (no ``--log``, no log left in ``--workdir``): it
+  streams blocks of samples, so its peak RSS follows the image, not the log;
 * the machine's load average before and after, so a number measured on a
   busy machine says so;
 * with ``--before ROOT`` (another checkout of mcrecon, e.g. ``git worktree``
@@ -118,11 +121,12 @@ def main(argv=None) -> int:
     work.mkdir(parents=True, exist_ok=True)
     load0 = os.getloadavg()
     log = args.log
+    rendered = None
     if log is None:
         log = str(work / f"{args.scene}_{args.size}_{args.spp}.h5")
         if not Path(log).exists():
-            run_command(["render-log", "--scene", args.scene, "--spp", str(args.spp), "--size", args.size, "--features",
-                         "-o", log])
+            rendered = run_command(["render-log", "--scene", args.scene, "--spp", str(args.spp), "--size", args.size,
+                                    "--features", "-o", log])
     tiny = str(work / f"{args.scene}_tiny.h5")
     if not Path(tiny).exists():
         run_command(["render-log", "--scene", args.scene, "--spp", "4", "--size", "48x40", "--features", "-o", tiny])
@@ -153,6 +157,9 @@ def main(argv=None) -> int:
         r = res[m]
         print(f"{m:8s} {r['recon']:17.2f} {r['wall']:15.2f} {r['cpu']:14.2f} {r['rss_gb']:12.2f}")
     print(f"{'OIDN':8s} {t_oidn:17.2f}   (denoise call only: colour + albedo + normal, hdr, quality high)")
+    if rendered is not None:  # the whole command; most of its wall is the exact reference (32x32 points a pixel)
+        print(f"{'render-log':10s} {'':15s} {rendered['wall']:15.2f} {rendered['cpu']:14.2f} {rendered['rss_gb']:12.2f}"
+              f"   (whole command, log {Path(log).stat().st_size / 1e9:.2f} GB)")
     for m in ("auto", "nfor"):
         if m in res:
             print(f"{m} / OIDN (reconstruction): {res[m]['recon'] / t_oidn:.1f}")

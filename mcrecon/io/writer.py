@@ -12,26 +12,20 @@ import h5py
 import numpy as np
 
 from ..errors import InputError
-from ..core.samples import check_samples, round_ends_of, round_slices
+from ..core.samples import round_ends_of, round_slices
 from ._atomic import atomic_path
 from ..core.samples import DEFAULT_READ_ROWS
 from .lock import _err, log_lock
-from .logformat import (APPEND_CHUNK_ROWS, DEFAULT_CHUNK_ROWS, FORMAT_MINOR, FORMAT_NAME, FORMAT_VERSION,
-                        MAX_PIXELS, RECORD_CHUNK_ROWS, ROUND_RECORD_CHUNK_ROWS, ROUND_RECORD_DTYPE, _CHECKSUM,
+from .logformat import (FORMAT_MINOR,
+                        RECORD_CHUNK_ROWS, ROUND_RECORD_CHUNK_ROWS, ROUND_RECORD_DTYPE, _CHECKSUM,
                         _CONVERT, _H5_ERRORS, _HAS_RECORD, _NO_RECORD, _checksum_for, _committed_rows, _detail,
                         _json_default, _labels_are_indices, _open, _read_header, _read_slice, _record_columns,
                         _row_type, _strings, cast_positions)
 from .reader import SampleLog, _read_rows
 from ._tail import _save_tail
+from .log_stream import _check_arrays, _chunk_rows, check_header, check_reference, write_header, write_reference
 
 __all__ = ['write_log', 'append_log', 'update_round_record', 'set_run_settings']
-
-def _check_arrays(where, positions, values, width, height, n_channels):
-    """Samples as the log stores them: the shared validation (NaN/Inf values are stored, readers apply their policy)."""
-    pos, val, _ = check_samples(positions, values, width=width, height=height, n_channels=n_channels,
-                                where=str(where))
-    return pos, val
-
 
 def _checked_arrays(where, positions, values, width, height, n_channels):
     """Arrays the caller validated (``append_log(..., checked=True)``): shapes and dtypes only, O(1).
@@ -49,16 +43,6 @@ def _checked_arrays(where, positions, values, width, height, n_channels):
     if not ok:
         return _check_arrays(where, positions, values, width, height, n_channels)
     return pos, val
-
-
-def _chunk_rows(n: int) -> int:
-    """Chunk rows for sample datasets starting with ``n`` rows.
-
-    A log written whole gets large chunks (fast streaming); one that starts
-    small, like the adaptive driver's empty log, grows by appended rounds
-    and gets small chunks, since HDF5 allocates every chunk in full.
-    """
-    return DEFAULT_CHUNK_ROWS if n >= DEFAULT_CHUNK_ROWS else APPEND_CHUNK_ROWS
 
 
 def _chunks_for(rows, cols):
@@ -101,15 +85,7 @@ def write_log(path, positions, values, *, width: int, height: int,
     Path
     """
     path = Path(path)
-    width, height = int(width), int(height)
-    channels = tuple(str(c) for c in channels)
-    if width < 1 or height < 1:
-        raise _err(path, "width/height", f"{width}x{height}, expected at least 1x1")
-    if width * height > MAX_PIXELS:
-        raise _err(path, "width/height", f"{width}x{height} = {width * height} pixels, beyond the {MAX_PIXELS} "
-                   "pixels mcrecon can hold images of")
-    if not channels or len(set(channels)) != len(channels):
-        raise _err(path, "channels", f"{channels}: expected distinct non-empty names")
+    width, height, channels, meta_json = check_header(path, width, height, channels, metadata)
     pos, val = _check_arrays(path, positions, values, width, height, len(channels))
     n = pos.shape[0]
     if rounds is None:
@@ -121,25 +97,10 @@ def write_log(path, positions, values, *, width: int, height: int,
         if n and np.any(np.diff(rnd) < 0):
             raise _err(path, "rounds", "must be non-decreasing (samples grouped by round in order)")
         rnd = rnd.astype(np.int32)
-    if reference is not None:
-        reference = np.asarray(reference)
-        if reference.ndim == 2 and len(channels) == 1:
-            reference = reference[..., None]
-        if reference.shape != (height, width, len(channels)):
-            raise _err(path, "reference", f"shape {reference.shape}, expected {(height, width, len(channels))}")
-    try:
-        meta_json = json.dumps(dict(metadata or {}), sort_keys=True, default=_json_default)
-    except TypeError as exc:
-        raise _err(path, "metadata", f"not JSON-serialisable: {exc}") from None
+    reference = check_reference(path, reference, width, height, len(channels))
     with log_lock(path), atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
-            f.attrs["format"] = FORMAT_NAME
-            f.attrs["format_version"] = FORMAT_VERSION
-            f.attrs["format_minor"] = FORMAT_MINOR
-            f.attrs["width"] = width
-            f.attrs["height"] = height
-            f.attrs["channels"] = np.array(channels, dtype=h5py.string_dtype())
-            f.attrs["metadata_json"] = meta_json
+            write_header(f, width, height, channels, meta_json)
             f.create_dataset("positions", data=pos, maxshape=(None, 2), chunks=_chunks_for(n, 2), **_CHECKSUM)
             f.create_dataset("values", data=val, maxshape=(None, val.shape[1]), chunks=_chunks_for(n, val.shape[1]),
                              **_CHECKSUM)
@@ -154,9 +115,7 @@ def write_log(path, positions, values, *, width: int, height: int,
                     raise _err(path, f"features/{name}", f"shape {arr.shape}, expected ({n}, ...)")
                 f.create_dataset(f"features/{name}", data=arr, maxshape=(None,) + arr.shape[1:],
                                  chunks=(_chunk_rows(n),) + arr.shape[1:], **_checksum_for(arr.dtype))
-            if reference is not None:
-                f.create_dataset("reference", data=reference.astype(np.float32 if reference.dtype != np.float64
-                                                                    else np.float64), **_CHECKSUM)
+            write_reference(f, reference)
             f.attrs["n_committed"] = np.int64(n)
     return path
 

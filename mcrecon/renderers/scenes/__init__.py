@@ -359,6 +359,49 @@ class SceneRenderer:
             pos[nc:] = ep
         return pos, np.ascontiguousarray(pts[:, 2:])
 
+    def uniform_rows(self, spp: int, start: int, stop: int) -> SampleBatch:
+        """Rows ``start:stop`` of :meth:`render`'s reply to a uniform request of ``spp`` samples per pixel.
+
+        The request :func:`render_uniform` makes (counts ``spp`` everywhere,
+        round 0, request seed 0), answered a block of rows at a time and bit
+        for bit: the independent sampler's generator jumps ahead to the
+        block's random numbers (``PCG64.advance``: one 64-bit draw per
+        float64, positions first, then the scene's numbers), the Sobol
+        sampler's points are functions of (pixel, index, seed).  Memory is
+        that of the block.
+        """
+        spp = _check_int(self.name, "spp", spp, 1)
+        n = spp * self.width * self.height
+        if not 0 <= start <= stop <= n:
+            raise InputError(self.name, "rows", f"{start}:{stop}, expected 0 <= start <= stop <= {n}")
+        t0 = time.perf_counter()
+        k = np.arange(start, stop, dtype=np.int64)
+        pix = k // spp
+        d = self.scene.n_dims
+        if self.sampler == "sobol":
+            pts = sobol_points(pix, k - pix * spp, 2 + d, seed=self.seed)
+            jitter, u = pts[:, :2], np.ascontiguousarray(pts[:, 2:])
+        else:
+            def draws(skip, shape):
+                bits = np.random.PCG64([self.seed, 0, 0])   # default_rng([seed, request seed, round])
+                bits.advance(skip)
+                return np.random.Generator(bits).random(shape)
+            jitter = draws(2 * start, (stop - start, 2))
+            u = draws(2 * n + d * start, (stop - start, d))
+        # as place_in_pixels: the pixel's corner plus the jitter, kept inside the pixel
+        cell = np.stack([pix % self.width, pix // self.width], 1).astype(np.float64)
+        pos = cell + jitter
+        edge = cell + 1.0
+        np.copyto(pos, np.nextafter(edge, 0.0), where=pos >= edge)
+        x, y = pos[:, 0] / self.width, pos[:, 1] / self.height
+        values = self.scene.radiance(x, y, u)
+        feats = self.scene.features(x, y, u) if self.features else None
+        if self.rate is not None:
+            rest = pos.shape[0] / self.rate - (time.perf_counter() - t0)
+            if rest > 0:
+                time.sleep(rest)
+        return SampleBatch(pos, values) if feats is None else SampleBatch(pos, values, feats)
+
     def reference(self, *, quadrature: int = 32) -> np.ndarray:
         """:func:`reference_image` of this scene at this film size."""
         return reference_image(self.scene, self.width, self.height, quadrature=quadrature)
@@ -403,9 +446,14 @@ def render_uniform(scene, *, width: int = 128, height: int = 128, spp: int, seed
     return r.render(SampleRequest(r.width, r.height, counts=counts, round_index=0, seed=0))
 
 
+#: Samples :func:`write_scene_log` renders and writes at a time (a multiple of the log's HDF5 chunk rows):
+#: about 100 bytes a sample while a block is in flight with features, so memory is this block plus the image.
+LOG_BLOCK_SAMPLES = 1 << 20
+
+
 def write_scene_log(scene, path, *, width: int = 128, height: int = 128, spp: int, seed: int = 0,
                     reference: bool = True, quadrature: int = 32, features=None,
-                    sampler: str = "independent") -> Path:
+                    sampler: str = "independent", block_samples: int = LOG_BLOCK_SAMPLES) -> Path:
     """Render ``spp`` samples per pixel of a scene and write them as a sample log.
 
     The log's metadata is ``{"renderer": "mcrecon.scenes", "scene": name,
@@ -419,27 +467,41 @@ def write_scene_log(scene, path, *, width: int = 128, height: int = 128, spp: in
     ``independent`` is recorded in the settings (``"sampler"``); a scene's parameters other than the
     defaults under ``"params"``.
 
+    The samples are those of :func:`render_uniform`, rendered and written
+    ``block_samples`` at a time (:meth:`SceneRenderer.uniform_rows`,
+    :func:`mcrecon.io.log_stream.stream_log`): the file holds the same rows
+    whatever the block, and memory is bounded by a block and the image,
+    not by the log.
+
     Returns
     -------
     Path
         The log written.
     """
-    from ...io import write_log
+    from ...io.log_stream import stream_log
 
-    sc = get_scene(scene)
-    batch = render_uniform(sc, width=width, height=height, spp=spp, seed=seed, features=features, sampler=sampler)
+    block = _check_int("write_scene_log", "block_samples", block_samples, 1)
+    r = SceneRenderer(scene, width=width, height=height, seed=seed, features=features, sampler=sampler)
+    sc = r.scene
+    spp = _check_int("write_scene_log", "spp", spp, 1)
+    n = spp * r.width * r.height
     ref = reference_image(sc, width, height, quadrature=quadrature) if reference else None
     meta = {"renderer": "mcrecon.scenes", "scene": sc.name, "seed": int(seed),
             "settings": {"width": int(width), "height": int(height), "spp": int(spp),
                          "quadrature": int(quadrature), "n_dims": int(sc.n_dims)}}
-    if batch.features:
-        meta["settings"]["features"] = list(batch.features)
+    names = list(FEATURE_LAYOUT) if r.features else []   # Scene.features gives every one of them
+    if names:
+        meta["settings"]["features"] = names
     if sampler != "independent":
         meta["settings"]["sampler"] = sampler
     if sc.params:
         meta["params"] = dict(sc.params)
     # float32 like the renderer bridges write (half the bytes of float64; positions stay in their pixel)
-    from ...io.logformat import cast_positions
-    f32 = {k: np.asarray(v, np.float32) for k, v in batch.features.items()} if batch.features else None
-    return write_log(path, cast_positions(batch.positions, np.float32), np.asarray(batch.values, np.float32),
-                     width=width, height=height, channels=sc.channels, features=f32, reference=ref, metadata=meta)
+    feats = {name: ((FEATURE_LAYOUT[name],), np.float32) for name in names}
+    with stream_log(path, n, width=width, height=height, channels=sc.channels, features=feats, reference=ref,
+                    metadata=meta) as out:
+        for a in range(0, n, block):
+            b = r.uniform_rows(spp, a, min(n, a + block))
+            out.write(b.positions, np.asarray(b.values, np.float32),
+                      features={k: np.asarray(v, np.float32) for k, v in (b.features or {}).items()})
+    return Path(path)
