@@ -101,8 +101,16 @@ def test_a_size_beyond_the_pixel_limit_is_refused_at_the_flag(tmp_path, capsys, 
     assert "--size" in err
 
 
+def test_a_log_larger_than_the_disk_is_refused_before_rendering(tmp_path, capsys):
+    # render-log streams its samples (memory bounded by a block), so 8e12 samples are bounded by the disk
+    code, _, err = run_cli(["render-log", "--scene", "flat", "--spp", "2000000000", "--size", "64x64",
+                            "-o", str(tmp_path / "r.h5")], capsys)
+    _one_line(code, err, "on disk")
+    assert "samples" in err and "r.h5" in err
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.parametrize("argv", [
-    ["render-log", "--scene", "flat", "--spp", "2000000000", "--size", "64x64", "-o", "{tmp}/r.h5"],
     # the whole budget is box's first round: this one was killed by the kernel's OOM killer at 24 GB
     ["adapt", "--scene", "flat", "--spp", "1e12", "--size", "8x8", "-o", "{tmp}/a.exr", "--log", "{tmp}/a.h5",
      "--quiet"],

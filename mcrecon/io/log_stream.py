@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import shutil
 from pathlib import Path
 from typing import Iterator, Mapping, Sequence
 
@@ -145,6 +146,22 @@ class LogStream:
         self.written = a + m
 
 
+def _check_disk(path: Path, n: int, dtypes: dict, c: int, feats: dict) -> None:
+    """Refuse, in one line and before anything is rendered or written, a log larger than the free space
+    of its folder: a streamed log's memory is bounded by a block, so its size is bounded only by the disk,
+    and a budget of 10^12 samples would otherwise write until the disk is full."""
+    per = 2 * dtypes["position_dtype"].itemsize + c * dtypes["value_dtype"].itemsize
+    per += sum(int(np.prod(shape, dtype=np.int64)) * dt.itemsize for shape, dt in feats.values())
+    need = float(n) * per
+    try:
+        free = shutil.disk_usage(path.parent if str(path.parent) else Path(".")).free
+    except OSError:
+        return  # the folder's own error comes from the write, naming it
+    if need > free:
+        raise _err(path, "samples", f"{n} samples need {need / 2**30:.3g} GiB on disk, more than the "
+                   f"{free / 2**30:.3g} GiB free in {path.parent}; lower --spp or --size, or write the log elsewhere")
+
+
 @contextlib.contextmanager
 def stream_log(path, n: int, *, width: int, height: int, channels: Sequence[str] = ("R", "G", "B"),
                position_dtype=np.float32, value_dtype=np.float32,
@@ -189,6 +206,7 @@ def stream_log(path, n: int, *, width: int, height: int, channels: Sequence[str]
             raise _err(path, f"features/{name}", f"dtype {dt}, expected a numeric dtype (integer, float or bool)")
         feats[str(name)] = (tuple(int(k) for k in shape), dt)
     reference = check_reference(path, reference, width, height, len(channels))
+    _check_disk(path, n, dtypes, len(channels), feats)
     with log_lock(path), atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
             write_header(f, width, height, channels, meta_json)
