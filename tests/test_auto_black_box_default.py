@@ -102,7 +102,7 @@ def test_an_exact_black_box_default_keeps_its_value_where_most_samples_missed_a_
     with a zero error estimate, is the whole-image default; through the median's interval auto keeps
     0.26 of the pixel mean's error, on the neighbourhood mean's (and standing at the heavy-tailed pixels)
     0.045."""
-    pytest.importorskip("pyoidn", reason="the oidn candidate needs pyoidn to be named")
+    pytest.importorskip("pyoidn", reason="needs pyoidn (Intel OIDN), a dependency of mcrecon: pip install -e .")
     import warnings
 
     import mcrecon

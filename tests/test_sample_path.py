@@ -68,7 +68,7 @@ def test_each_round_is_validated_once(tmp_path, monkeypatch):
         return real(positions, values, **kw)
 
     for mod in ("mcrecon.core.samples", "mcrecon.core.requests", "mcrecon.core.stats", "mcrecon.core.halves",
-                "mcrecon.io.writer"):
+                "mcrecon.io.log_stream"):
         monkeypatch.setattr(f"{mod}.check_samples", counting)
     _, res, pos, _ = _run(tmp_path, "count", method="gem")   # positions requested: the explicit-position path
     assert sum(calls) == pos.shape[0] == res.samples          # every sample checked once, in its reply
