@@ -332,14 +332,7 @@ class SceneRenderer:
                 parts.append(np.asarray(request.positions, dtype=np.float64))
             pos = np.concatenate(parts, axis=0) if len(parts) > 1 else parts[0]
             u = rng.random((pos.shape[0], self.scene.n_dims))
-        x, y = pos[:, 0] / self.width, pos[:, 1] / self.height
-        values = self.scene.radiance(x, y, u)
-        feats = self.scene.features(x, y, u) if self.features else None
-        if self.rate is not None:
-            rest = pos.shape[0] / self.rate - (time.perf_counter() - t0)
-            if rest > 0:
-                time.sleep(rest)
-        return SampleBatch(pos, values) if feats is None else SampleBatch(pos, values, feats)
+        return self._shade(pos, u, t0)
 
     def _sobol(self, request):
         """Positions (N, 2) and random numbers (N, n_dims) of a request from the pixels' Sobol sequences:
@@ -393,6 +386,11 @@ class SceneRenderer:
         pos = cell + jitter
         edge = cell + 1.0
         np.copyto(pos, np.nextafter(edge, 0.0), where=pos >= edge)
+        return self._shade(pos, u, t0)
+
+    def _shade(self, pos: np.ndarray, u: np.ndarray, t0: float) -> SampleBatch:
+        """The batch of samples at film positions ``pos`` with random numbers ``u``: radiance, features
+        when kept, and the wait that holds a ``rate`` (samples per second) counted from ``t0``."""
         x, y = pos[:, 0] / self.width, pos[:, 1] / self.height
         values = self.scene.radiance(x, y, u)
         feats = self.scene.features(x, y, u) if self.features else None
