@@ -67,6 +67,10 @@ def test_the_leading_one_spp_rounds_replay_as_the_first_round_of_the_methods_own
     short = SampleSet(src.positions[:8 * W * W], src.values[:8 * W * W], width=W, height=W,
                       rounds=np.repeat(np.arange(8), W * W))
     assert m._replay_rounds(short, list(range(8))) == [[0, 1, 2, 3], [4], [5], [6], [7]]
+    # under one sample per pixel (N_0 = 0) every round replays as it is, with no empty round before them
+    sparse = SampleSet(src.positions[:W * W // 2], src.values[:W * W // 2], width=W, height=W,
+                       rounds=np.repeat(np.arange(4), W * W // 8))
+    assert m._replay_rounds(sparse, list(range(4))) == [[0], [1], [2], [3]]
     # the replayed rounds: 25 of them, the first one judged (8 spp: 72 samples in a 3x3 window)
     run = m.start(W, W)
     m.reconstruct_run(run, mcrecon.methods.base.MethodInputs(stats=None, samples=src))

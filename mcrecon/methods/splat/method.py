@@ -217,7 +217,7 @@ class SplatMethod(Method):
         groups: list[list[int]] = [[]]
         held = 0
         for r in rounds:
-            if held >= first:
+            if held >= first and groups[-1]:  # under one sample per pixel (first = 0): no empty round
                 groups.append([])
             groups[-1].append(r)
             held += int(sl[r][1] - sl[r][0])
