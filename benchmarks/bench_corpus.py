@@ -171,7 +171,8 @@ def run_case(case, methods, *, oidn=True):
         t = time.process_time()
         try:
             with _CandidateRecorder() as rec:
-                img = mcrecon.reconstruct(case.source, method=_method(m))
+                res = mcrecon.reconstruct(case.source, method=_method(m), full=True)
+            img = res.image
         except Exception as exc:  # noqa: BLE001  (a method that cannot run on this input: say why, go on)
             out[m] = {"error": f"{type(exc).__name__}: {str(exc).splitlines()[0][:160]}"}
             continue
@@ -180,6 +181,11 @@ def run_case(case, methods, *, oidn=True):
             ob = _own_best(rec.seen[-1], ref, e_box, st.count)
             out[m]["own_best"] = ob
             out[m]["vs_own_best"] = out[m]["relmse"] / ob["relmse"] if ob["relmse"] > 0 else 1.0
+            names = getattr(res.run, "candidate_names", None)
+            choice = res.run.diagnostics.get("choice") if res.run.diagnostics else None
+            if names and choice is not None:   # the share of the pixels each candidate was chosen at
+                k = np.bincount(choice.astype(np.int64).ravel(), minlength=len(names)) / choice.size
+                out[m]["chosen"] = {n: float(f) for n, f in zip(names, k) if f > 0}
     if oidn:
         t = time.process_time()
         put("oidn", _oidn(st.mean), time.process_time() - t)
