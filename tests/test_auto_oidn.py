@@ -71,12 +71,15 @@ def test_the_halves_estimate_predicts_the_full_sample_error():
 
 
 def test_oidn_aux_feeds_prefiltered_features_with_clean_aux():
+    """OIDN on all the samples takes the halves' prefiltered albedo and normal merged by sample counts."""
     ss, hv, ref = _scene("soft_shadow", features=True)
     st = hv.merged()
     c, h = blackbox.oidn_candidate("oidn_aux", st, mean_variance_policy(st), hv, aux=True)
     assert h.name == "oidn_aux_halves" and h.feature
     assert c.feature
-    alb, nrm = blackbox.oidn_aux(st)
+    (aa, na), (ab, nb) = blackbox.oidn_aux(hv.a), blackbox.oidn_aux(hv.b)
+    wa = (hv.a.count / (hv.a.count + hv.b.count))[..., None]
+    alb, nrm = wa * aa + (1 - wa) * ab, wa * na + (1 - wa) * nb
     f32 = lambda a: np.ascontiguousarray(a, dtype=np.float32)  # noqa: E731
     want = np.asarray(pyoidn.denoise(f32(st.mean), f32(alb), f32(nrm), hdr=True, quality="high", clean_aux=True))
     np.testing.assert_array_equal(c.image, want.astype(np.float64))

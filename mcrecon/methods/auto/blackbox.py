@@ -16,7 +16,8 @@ input itself), colour only (``oidn``) and with the albedo and normal
   each half, ``((A - y_B)^2 - v_B + (B - y_A)^2 - v_A) / 2``, unbiased for
   the error of OIDN on half the samples, scaled by :data:`HALF_TO_FULL`
   (the measured ratio of OIDN-on-all to OIDN-on-half error; two more
-  OIDN runs).
+  OIDN runs).  With the aux, OIDN on all the samples takes the halves'
+  prefiltered albedo and normal merged (:func:`_merged_aux`).
 
 With the halves the average of OIDN on each half is a candidate too
 (``NAME_halves``, scored by the dual identity): neither image is better on
@@ -106,29 +107,56 @@ def oidn_aux(st: PixelStats) -> tuple:
     return tuple(np.ascontiguousarray(pf[..., 3 * k:3 * k + 3]) for k in range(len(names)))
 
 
+def _merged_aux(a_half: tuple, b_half: tuple, ca: np.ndarray, cb: np.ndarray) -> tuple:
+    """All the samples' albedo and normal from the two halves' prefiltered planes (:func:`oidn_aux`): their
+    average weighted by each pixel's sample counts, as the pixel means merge (a pixel without samples in
+    either half takes the plain average of the halves' filled planes).
+
+    The halves are prefiltered anyway (the feature candidates' regressions, OIDN on each half): merging
+    them costs one pass where prefiltering all the samples' features again costs an NL-means filter
+    (window 11^2, patch 7^2) of every plane.  OIDN on all the samples is given nearly the same guide
+    (the corpus: auto's error within 1 % on every feature scene, docs/methods/auto.md)."""
+    ca = np.asarray(ca, np.float64)[..., None]
+    cb = np.asarray(cb, np.float64)[..., None]
+    n = ca + cb
+    wa = np.where(n > 0, ca / np.where(n > 0, n, 1.0), 0.5)
+    return tuple(np.ascontiguousarray(wa * pa + (1.0 - wa) * pb) for pa, pb in zip(a_half, b_half))
+
+
 def _colour(st: PixelStats) -> np.ndarray:
     """A buffer's pixel means with its empty pixels filled (OIDN takes no holes)."""
     return _filled(st.mean, st.count)
 
 
 def oidn_candidate(name: str, stats: PixelStats, v: np.ndarray, halves=None, *, aux: bool = False,
-                   estimate: str | None = None) -> list[Candidate]:
+                   estimate: str | None = None, halves_only: bool = False) -> list[Candidate]:
     """OIDN on all the samples' pixel means (``stats``) with its per-pixel MSE estimate, and with the
     ``halves`` estimate also ``NAME_halves``: the average of OIDN on each half, with the halves'
     dual-buffer estimate (:func:`~.features.dual_candidate`).
 
     ``v``: the variance of each pixel mean.  ``aux``: with the albedo and normal (:func:`oidn_aux`).
     ``estimate``: one of :data:`ESTIMATES` (default :data:`ESTIMATE`); ``halves`` needs ``halves``
-    (without them: ``sure``).  NaN where a pixel has no sample (or no sample in a half)."""
+    (without them: ``sure``).  ``halves_only``: with the ``halves`` estimate, ``NAME_halves`` alone (two
+    denoiser runs, not three).  NaN where a pixel has no sample (or no sample in a half)."""
     estimate = ESTIMATE if estimate is None else estimate
     if estimate not in ESTIMATES:
         raise ValueError(f"oidn_candidate: estimate {estimate!r}; valid: {', '.join(ESTIMATES)}")
     if halves is None or (aux and "albedo" not in halves.a.features):
         estimate = "sure"
+    halves_only = halves_only and estimate == "halves"
     extra = []
     y = _colour(stats)
-    a_full = oidn_aux(stats) if aux else ()
-    img = oidn_denoise(y, a_full, clean_aux=aux)
+    a_half = b_half = ()
+    if aux and estimate == "halves":
+        a_half, b_half = oidn_aux(halves.a), oidn_aux(halves.b)
+    if halves_only:
+        img = None
+    elif len(a_half) == len(b_half) > 0:
+        # the halves' prefiltered planes, merged: no third prefilter of the same features
+        img = oidn_denoise(y, _merged_aux(a_half, b_half, halves.a.count, halves.b.count), clean_aux=aux)
+    else:
+        a_full = oidn_aux(stats) if aux else ()
+        img = oidn_denoise(y, a_full, clean_aux=aux)
     has = (stats.count > 0)[..., None]
     if estimate == "sure":
         s = np.sqrt(np.where(np.isfinite(v), np.maximum(v, 0.0), 0.0))
@@ -139,8 +167,8 @@ def oidn_candidate(name: str, stats: PixelStats, v: np.ndarray, halves=None, *, 
         mse = d * d - v + 2.0 * s * b * (moved - img) / PROBE_STEP
     else:
         ha, hb = halves.a, halves.b
-        fa = oidn_denoise(_colour(ha), oidn_aux(ha) if aux else (), clean_aux=aux)
-        fb = oidn_denoise(_colour(hb), oidn_aux(hb) if aux else (), clean_aux=aux)
+        fa = oidn_denoise(_colour(ha), a_half, clean_aux=aux)
+        fb = oidn_denoise(_colour(hb), b_half, clean_aux=aux)
         cva = cross_validation_mse(fa, hb.mean, mean_variance_policy(hb))
         cvb = cross_validation_mse(fb, ha.mean, mean_variance_policy(ha))
         cv = 0.5 * (cva + cvb)
@@ -148,6 +176,8 @@ def oidn_candidate(name: str, stats: PixelStats, v: np.ndarray, halves=None, *, 
         # estimate anyway, and better than OIDN on all the samples on some scenes (soft shadows, depth of
         # field: docs/methods/auto.md)
         extra.append(dual_candidate(name + "_halves", fa, fb, cva, cvb, ha.count, hb.count, feature=aux))
+        if halves_only:
+            return extra
         both = ((ha.count > 0) & (hb.count > 0))[..., None]
         cv = np.where(both, HALF_TO_FULL * cv, np.nan)
         mse = cv

@@ -3,7 +3,8 @@
 Candidates (option ``candidates``): the pixel mean (``box``), every
 Gaussian scale of GEM's final filter bank (``gauss``), cross-filtered
 non-local means (``nlm``), OIDN on all the samples (``oidn``; with the
-albedo and normal ``oidn_aux``, a feature candidate) and the black boxes
+albedo and normal ``oidn_aux``, a feature candidate that replaces it where
+the samples carry an albedo; ``oidn_halves`` stays) and the black boxes
 ``awr`` and ``splat``.  Each comes with a per-pixel MSE estimate
 (:mod:`mcrecon.methods.auto.estimates`): Stein's estimate for the linear filters (box,
 Gaussians, and NL-means whose weights come from the other half of the
@@ -135,8 +136,8 @@ class AutoMethod(Method):
 
     Options (keyword-only; also the CLI flags and ``mcrecon methods auto``):
     :attr:`options`.  Without features a run is the colour-only one, bit
-    for bit; with an albedo (and normal) OIDN runs a second time with them
-    (``oidn_aux``).
+    for bit; with an albedo (and normal) OIDN on all the samples runs with
+    them (``oidn_aux``) in place of the colour-only ``oidn``.
 
     Diagnostics: ``choice`` (candidate index per pixel, in the order of
     :meth:`candidate_names`), ``estimated_mse`` (mean over channels of the
@@ -152,7 +153,7 @@ class AutoMethod(Method):
         Option("candidates", str, DEFAULT_CANDIDATES, "comma-separated candidate reconstructions: "
                + ", ".join(CANDIDATES) + " (nlm/awr/splat split every pixel's samples into two halves: "
                "they need the samples or a half-buffer pair; splat only offline; oidn runs on all the samples and is "
-               "scored from the halves when there are halves)"),
+               "scored from the halves when there are halves; with halves and oidn_aux only their average oidn_halves)"),
         Option("feature_candidates", str, DEFAULT_FEATURE_CANDIDATES, "when the statistics carry features: "
                "comma-separated feature-guided candidates added to candidates, on the halves: nfor (first-order "
                "regression on the other half's weights and features, Bitterli et al. 2016; SURE), nfor_own (the "
@@ -239,7 +240,8 @@ class AutoMethod(Method):
 
     def candidate_names(self) -> list[str]:
         """Names of the colour candidates in ``choice`` order (``gauss`` expands to one per scale, ``oidn``
-        to ``oidn`` and ``oidn_halves``: the latter only where the run has halves).
+        to ``oidn`` and ``oidn_halves``: the latter only where the run has halves, the former left out where
+        ``oidn_aux`` replaces it, with an albedo in the samples and halves).
 
         With features the feature-guided candidates follow them; a run's own list, those included,
         is :attr:`AutoRun.candidate_names` after its reconstruction."""
@@ -300,7 +302,7 @@ class AutoMethod(Method):
                 out.append(self._dual(name, a, b, cross_validation_mse(a, yb, vb), cross_validation_mse(b, ya, va),
                                       ha.count, hb.count))
         if "oidn" in names:
-            out += oidn_candidate("oidn", stats, v, halves)
+            out += oidn_candidate("oidn", stats, v, halves, halves_only=self._aux_replaces_oidn(stats))
         if self._feature_names and halves is not None and halves.a.features:
             out += self._feature_candidates(stats, halves.a, halves.b)
         if "oidn_aux" in self._feature_names and "albedo" in stats.features:
@@ -310,6 +312,17 @@ class AutoMethod(Method):
             # are noisy (defocus), cost auto 2.3x on the built-in checker_dof (docs/methods/auto.md)
             out.append(_feature_bilateral(stats, y, v))
         return out, y, v, count
+
+    def _aux_replaces_oidn(self, stats: PixelStats) -> bool:
+        """Whether OIDN with the albedo and normal on all the samples (``oidn_aux``) replaces colour-only
+        OIDN on all the samples (``oidn``; its halves' average ``oidn_halves`` stays).
+
+        Where the samples carry an albedo, colour-only OIDN on all the samples adds nothing auto keeps
+        (the corpus' feature scenes: auto's error within 1 %, docs/methods/auto.md, "OIDN candidates")
+        and costs a denoiser run; the halves' average stays, as the halves' runs are its estimate: under
+        defocus the albedo misleads OIDN and colour-only OIDN on the halves is auto's best candidate
+        (without it auto's error rises 1.3x on the corpus' depth of field with features)."""
+        return "oidn_aux" in self._feature_names and "albedo" in stats.features
 
     def _feature_candidates(self, stats: PixelStats, ha: PixelStats, hb: PixelStats) -> list[Candidate]:
         """The feature-guided candidates on the two halves (:func:`.features.feature_candidates`)."""
