@@ -32,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...filters.nlmeans import nlmeans_filter, nlmeans_filter_shared
-from ...filters.regression import RIDGE, collaborative_regression
+from ...filters.regression import RIDGE, collaborative_regression, collaborative_regressions
 
 __all__ = ["nfor_denoise", "prefilter_features", "cross_regression", "estimate_mse", "PAPER"]
 
@@ -75,12 +75,15 @@ def cross_regression(y_a, y_b, variance, pf_a, pf_b, *, radius=9, patch=3, k=1.0
     """Sec. 5.2 for one bandwidth: half A regressed on half B's features with weights from B's colour, and
     B on A's.  ``F_A`` is then a linear function of ``y_A`` whose weights and design carry none of ``y_A``'s
     noise (nor of A's features), which the MSE estimate (:func:`estimate_mse`) relies on.
-    Returns ``(F_A, F_B)``."""
-    c_a = collaborative_regression(y_a, y_b, variance, pf_b, radius=radius, patch=patch, k=k, variance_scale=2.0,
-                                   ridge=ridge, threads=threads)
-    c_b = collaborative_regression(y_b, y_a, variance, pf_a, radius=radius, patch=patch, k=k, variance_scale=2.0,
-                                   ridge=ridge, threads=threads)
-    return c_a, c_b
+    Returns ``(F_A, F_B)``; with ``k`` a sequence of bandwidths, ``([F_A per k], [F_B per k])``, each
+    half's bandwidths in one pass (:func:`.regression.collaborative_regressions`, bit-identical to one
+    call per bandwidth)."""
+    ks = tuple(k) if np.ndim(k) else (k,)
+    c_a = collaborative_regressions(y_a, y_b, variance, pf_b, ks=ks, radius=radius, patch=patch,
+                                    variance_scale=2.0, ridge=ridge, threads=threads)
+    c_b = collaborative_regressions(y_b, y_a, variance, pf_a, ks=ks, radius=radius, patch=patch,
+                                    variance_scale=2.0, ridge=ridge, threads=threads)
+    return (c_a, c_b) if np.ndim(k) else (c_a[0], c_b[0])
 
 
 def nfor_denoise(y_a, y_b, variance, feat_a, feat_b, feat_variance, *, feature_radius=5, feature_patch=3,
@@ -131,8 +134,9 @@ def nfor_denoise(y_a, y_b, variance, feat_a, feat_b, feat_variance, *, feature_r
     pf_a, pf_b = prefilter_features(fa, fb, fv, radius=feature_radius, patch=feature_patch, k=feature_k,
                                     threads=threads)
     # 2. regression per bandwidth, cross-buffer (A's colour: B's weights and B's features)
-    halves = [cross_regression(y_a, y_b, var, pf_a, pf_b, radius=radius, patch=patch, k=k, ridge=ridge,
-                               threads=threads) for k in bandwidths]
+    # (every bandwidth of a half in one pass: they share its guide, design and colour)
+    halves = list(zip(*cross_regression(y_a, y_b, var, pf_a, pf_b, radius=radius, patch=patch, k=bandwidths,
+                                        ridge=ridge, threads=threads)))
     # the MSE estimates of every bandwidth share one guide and one set of parameters: one set of weights
     mses = nlmeans_filter_shared([estimate_mse(y_a, y_b, c_a, c_b, var) for c_a, c_b in halves], y, var,
                                  radius=mse_radius, patch=mse_patch, k=mse_k, threads=threads)
