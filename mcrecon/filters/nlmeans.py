@@ -31,7 +31,7 @@ import numpy as np
 
 from .engine import parallel_calls
 
-__all__ = ["NLM_EPS", "DISTANCE_CLAMP", "MIN_CENTER_WEIGHT", "nlmeans_filter", "as_planes", "exp_neg",
+__all__ = ["NLM_EPS", "DISTANCE_CLAMP", "MIN_CENTER_WEIGHT", "nlmeans_filter", "nlmeans_filter_shared", "as_planes", "exp_neg",
            "offset_distances", "scaled_planes"]
 
 #: eps of the distance's denominator (0 / 0 on noise-free pixels); the reference implementation's value.
@@ -198,14 +198,19 @@ def offset_distances(guide, var, dy, dx, i0, i1, f, k2, eps, clamp, pd, vs, hs, 
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _nlm_band(img, guide, var, r, f, k2, eps, clamp, min_centre, i0, i1, num, den):
-    c, h, w = img.shape
+def _nlm_band(imgs, guide, var, r, f, k2, eps, clamp, min_centre, i0, i1, num, den):
+    """Rows [i0, i1) of the NL-means sums of every image of ``imgs`` (M, C, H, W) with the one set of weights
+    of ``guide``: num (M, C, H, W) += w * image, den (C, H, W) += w.  The distances and each weight are
+    computed once for all M images (each image's sums are the same operations in the same order as with
+    M = 1)."""
+    m_img, c, h, w = imgs.shape
     cg = guide.shape[0]
     pd = np.zeros((cg, i1 - i0 + 2 * f, w + 2 * f), np.float32)
     vs = np.zeros(w + 2 * f)
     hs = np.zeros(w + 2 * f)
     ic = np.zeros(w + 2 * f)
     dist = np.zeros((cg, i1 - i0, w), np.float32)
+    wrow = np.zeros(w)
     for dy in range(-r, r + 1):
         for dx in range(-r, r + 1):
             offset_distances(guide, var, dy, dx, i0, i1, f, k2, eps, clamp, pd, vs, hs, ic, dist)
@@ -218,12 +223,18 @@ def _nlm_band(img, guide, var, r, f, k2, eps, clamp, min_centre, i0, i1, num, de
                 if qi < 0 or qi >= h:
                     continue
                 for ch in range(c):
-                    dd, src = dist[ch, rr, j0:j1], img[ch, qi, j0 + dx:j1 + dx]
-                    nu, de = num[ch, i, j0:j1], den[ch, i, j0:j1]
+                    dd = dist[ch, rr, j0:j1]
+                    wr = wrow[:j1 - j0]
+                    de = den[ch, i, j0:j1]
                     for t2 in range(j1 - j0):
                         wt = max(exp_neg(max(float(dd[t2]), 0.0)), floor)
-                        nu[t2] += wt * src[t2]
+                        wr[t2] = wt
                         de[t2] += wt
+                    for m in range(m_img):
+                        src = imgs[m, ch, qi, j0 + dx:j1 + dx]
+                        nu = num[m, ch, i, j0:j1]
+                        for t2 in range(j1 - j0):
+                            nu[t2] += wr[t2] * src[t2]
 
 
 def as_planes(a, dtype=np.float64) -> np.ndarray:
@@ -270,19 +281,59 @@ def nlmeans_filter(image, guide, variance, *, radius: int, patch: int, k: float,
     -------
     ndarray, the shape of ``image``, float64
     """
-    img = as_planes(image)
+    return nlmeans_filter_shared([image], guide, variance, radius=radius, patch=patch, k=k,
+                                 variance_scale=variance_scale, threads=threads)[0]
+
+
+def nlmeans_filter_shared(images, guide, variance, *, radius: int, patch: int, k: float,
+                          variance_scale: float = 1.0, threads: int | None = None) -> list:
+    """NL-means of several images with the one set of weights of ``guide``: the distances and weights are
+    computed once for all of them.
+
+    Each result is bit-identical to :func:`nlmeans_filter` of that image
+    alone (the same weights, summed in the same order); the cost is that
+    of one filter plus one multiply-add per image, pixel pair and channel.
+    NFOR filters its bandwidths' MSE estimates this way (same guide, same
+    parameters).
+
+    Parameters
+    ----------
+    images : sequence of ndarray (H, W, C) or (H, W)
+        The images filtered, each the shape of ``guide``.
+    guide, variance, radius, patch, k, variance_scale, threads
+        As :func:`nlmeans_filter`.
+
+    Returns
+    -------
+    list of ndarray, each the shape of its image, float64
+    """
+    images = list(images)
+    if not images:
+        raise ValueError("nlmeans_filter_shared: no image")
     g = as_planes(guide, np.float32)
+    imgs = np.empty((len(images),) + g.shape)
+    for m, image in enumerate(images):
+        a = np.asarray(image, dtype=np.float64)
+        a = a[..., None] if a.ndim == 2 else a
+        if a.shape[2:] + a.shape[:2] != g.shape:
+            raise ValueError(f"nlmeans_filter: image {a.shape}, guide {g.shape} (C, H, W) differ")
+        for c in range(a.shape[2]):
+            imgs[m, c] = a[..., c]
     v = scaled_planes(variance, variance_scale)
-    if g.shape != img.shape or v.shape != img.shape:
-        raise ValueError(f"nlmeans_filter: image {img.shape}, guide {g.shape}, variance {v.shape} (C, H, W) differ")
-    num = np.zeros(img.shape)
-    den = np.zeros(img.shape)
+    if v.shape != g.shape:
+        raise ValueError(f"nlmeans_filter: guide {g.shape}, variance {v.shape} (C, H, W) differ")
+    num = np.zeros(imgs.shape)
+    den = np.zeros(g.shape)
     # bands of rows on the thread pool: each band writes its own rows of num and den
-    h = img.shape[1]
-    args = (img, g, v, int(radius), int(patch), np.float32(float(k) ** 2), np.float32(NLM_EPS),
+    h = g.shape[1]
+    args = (imgs, g, v, int(radius), int(patch), np.float32(float(k) ** 2), np.float32(NLM_EPS),
             np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT)
     parallel_calls(_nlm_band, [(*args, i0, min(h, i0 + BAND), num, den) for i0 in range(0, h, BAND)], threads)
-    num /= den  # in place: no third image beside the sums
-    del den
-    out = np.moveaxis(num, 0, 2)
-    return out[..., 0] if np.ndim(image) == 2 else out
+    del imgs
+    out = []
+    for m, image in enumerate(images):
+        nm = num[m]
+        nm /= den  # in place: no third image beside the sums
+        res = np.moveaxis(nm, 0, 2)
+        out.append(res[..., 0] if np.ndim(image) == 2 else res)
+    return out

@@ -34,7 +34,7 @@ from .engine import n_threads, parallel_calls
 from .nlmeans import (BAND, DISTANCE_CLAMP, MIN_CENTER_WEIGHT, NLM_EPS, as_planes, exp_neg, offset_distances,
                       scaled_planes)
 
-__all__ = ["RIDGE", "collaborative_regression", "standardise"]
+__all__ = ["RIDGE", "collaborative_regression", "collaborative_regressions", "standardise"]
 
 #: Default ridge on the non-constant columns, relative to the window's total weight.
 RIDGE = 1e-10
@@ -99,10 +99,13 @@ def _solve_spd(a, b, d, nc, tmp):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, leverage, i0, i1, acc):
-    """Rows [i0, i1) as window centres; predictions accumulated into acc (C + 1 [+ 1], i1 - i0 + 2r, W + 2r),
-    whose (t, u) is image pixel (i0 - r + t, u - r) (plane C: the weights; with ``leverage``, plane C + 1:
+def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, i0, i1, acc):
+    """Rows [i0, i1) as window centres, for every bandwidth of ``k2s`` (K,) (the k^2 of the weights);
+    bandwidth b's predictions accumulated into acc[b] (C + 1 [+ 1], i1 - i0 + 2r, W + 2r), whose (t, u)
+    is image pixel (i0 - r + t, u - r) (plane C: the weights; with ``leverage``, plane C + 1:
     sum_p w_pq^2 x_q^T A_p^-1 x_q, the numerator of the filter's centre weight :func:`_leverages`).
+    The bandwidths share the window's design and colours (gathered once per pixel); each bandwidth's
+    arithmetic is that of a call with it alone, so its result is bit-identical to one.
 
     ypad (C, H + 2r, W + 2r), fpad (D, H + 2r, W + 2r): colour and features padded by r zeros, so that
     every window is whole (outside the image the weight is 0 and adds exactly nothing).  Offset-major:
@@ -123,7 +126,8 @@ def _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, lever
     # one row of ``wts`` per offset, pixel (rr, j) at rr * w + j; rows WEIGHT_PAD floats longer than the band
     # so that consecutive offsets do not share cache sets (a band of 16 rows of a width multiple of 64 makes
     # the plain stride a multiple of 4 KiB: each pixel's 361 weights would all map to one L1 set)
-    wts = np.zeros((side * side, n_rows * w + WEIGHT_PAD), np.float32)
+    nk = k2s.shape[0]
+    wts = np.zeros((nk, side * side, n_rows * w + WEIGHT_PAD), np.float32)
     pd = np.zeros((cg, n_rows + 2 * f, w + 2 * f), np.float32)
     vs = np.zeros(w + 2 * f)
     hs = np.zeros(w + 2 * f)
@@ -133,24 +137,25 @@ def _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, lever
     for dy in range(-r, r + 1):
         for dx in range(-r, r + 1):
             o = (dy + r) * side + (dx + r)
-            offset_distances(guide, var, dy, dx, i0, i1, f, k2, eps, clamp, pd, vs, hs, ic, dist)
             j0 = max(0, -dx)
             j1 = min(w, w - dx)
             if j1 <= j0:  # the offset leaves a film narrower than it: no pair (weights stay 0)
                 continue
             floor = min_centre if dy == 0 and dx == 0 else 0.0
-            for rr in range(n_rows):
-                qi = i0 + rr + dy
-                if qi < 0 or qi >= h:
-                    continue
-                dst = wts[o, rr * w + j0:rr * w + j1]
-                dmax[:j1 - j0] = dist[0, rr, j0:j1]
-                for ch in range(1, cg):  # the largest channel distance (slices: vectorised, see offset_distances)
-                    dc = dist[ch, rr, j0:j1]
+            for b in range(nk):
+                offset_distances(guide, var, dy, dx, i0, i1, f, k2s[b], eps, clamp, pd, vs, hs, ic, dist)
+                for rr in range(n_rows):
+                    qi = i0 + rr + dy
+                    if qi < 0 or qi >= h:
+                        continue
+                    dst = wts[b, o, rr * w + j0:rr * w + j1]
+                    dmax[:j1 - j0] = dist[0, rr, j0:j1]
+                    for ch in range(1, cg):  # the largest channel distance (slices: vectorised, see offset_distances)
+                        dc = dist[ch, rr, j0:j1]
+                        for t in range(j1 - j0):
+                            dmax[t] = max(dmax[t], dc[t])
                     for t in range(j1 - j0):
-                        dmax[t] = max(dmax[t], dc[t])
-                for t in range(j1 - j0):
-                    dst[t] = max(exp_neg(max(float(dmax[t]), 0.0)), floor)
+                        dst[t] = max(exp_neg(max(float(dmax[t]), 0.0)), floor)
     # 2. per pixel: the window's design, weights and colours as contiguous rows (d rounded up to even,
     # the extra row 0), the normal equations as 2 x 2 blocks of dot products over the window
     n = side * side
@@ -175,8 +180,6 @@ def _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, lever
     for rr in range(n_rows):
         i = i0 + rr
         for j in range(w):
-            for t in range(n):
-                wv[t] = float(wts[t, rr * w + j])
             for m in range(nf):
                 fc = fpad[m, i + r, j + r]
                 xm = xt[3 + m]
@@ -192,31 +195,35 @@ def _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, lever
                     dst = yc[dy * side:(dy + 1) * side]
                     for u in range(side):
                         dst[u] = src[u]
-            _normal_equations(xt, wx, wv, yt, a, bm, d, de, n)
-            s0 = a[0, 0]
-            for p in range(1, d):
-                a[p, p] += ridge * s0
-            _solve_spd(a, bm, d, nc, tsol)
-            _predict(xt, bm, yp, d, n)
-            if leverage:
-                _leverages(a, xt, zt, lev, d, n)
-            # 3. each fit predicts its window: acc(q) += w_pq x_q^T beta_p
-            for dy in range(side):
-                for c in range(nc):
-                    dst = acc[c, rr + dy, j:j + side]
-                    src = yp[c, dy * side:(dy + 1) * side]
+            for b in range(nk):
+                for t in range(n):
+                    wv[t] = float(wts[b, t, rr * w + j])
+                _normal_equations(xt, wx, wv, yt, a, bm, d, de, n)
+                s0 = a[0, 0]
+                for p in range(1, d):
+                    a[p, p] += ridge * s0
+                _solve_spd(a, bm, d, nc, tsol)
+                _predict(xt, bm, yp, d, n)
+                if leverage:
+                    _leverages(a, xt, zt, lev, d, n)
+                # 3. each fit predicts its window: acc(q) += w_pq x_q^T beta_p
+                ab = acc[b]
+                for dy in range(side):
+                    for c in range(nc):
+                        dst = ab[c, rr + dy, j:j + side]
+                        src = yp[c, dy * side:(dy + 1) * side]
+                        ws = wv[dy * side:(dy + 1) * side]
+                        for u in range(side):
+                            dst[u] += ws[u] * src[u]
+                    dst = ab[nc, rr + dy, j:j + side]
                     ws = wv[dy * side:(dy + 1) * side]
                     for u in range(side):
-                        dst[u] += ws[u] * src[u]
-                dst = acc[nc, rr + dy, j:j + side]
-                ws = wv[dy * side:(dy + 1) * side]
-                for u in range(side):
-                    dst[u] += ws[u]
-                if leverage:
-                    dst = acc[nc + 1, rr + dy, j:j + side]
-                    ls = lev[dy * side:(dy + 1) * side]
-                    for u in range(side):
-                        dst[u] += ws[u] * ws[u] * ls[u]
+                        dst[u] += ws[u]
+                    if leverage:
+                        dst = ab[nc + 1, rr + dy, j:j + side]
+                        ls = lev[dy * side:(dy + 1) * side]
+                        for u in range(side):
+                            dst[u] += ws[u] * ws[u] * ls[u]
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
@@ -333,28 +340,29 @@ def _predict(xt, beta, yp, d, n):
 
 
 @numba.njit(cache=True, nogil=True)
-def _one_band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, leverage, band, b, acc):
-    """Band ``b`` into its private accumulator ``acc`` (zeroed here): bands run on separate threads."""
+def _one_band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, band, b, acc):
+    """Band ``b`` into its private accumulators ``acc`` (K, ...) (zeroed here): bands run on separate threads."""
     h = guide.shape[1]
     i0 = b * band
     acc[:] = 0.0
-    _band(ypad, guide, var, fpad, r, f, k2, ridge, eps, clamp, min_centre, leverage, i0, min(h, i0 + band), acc)
+    _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, i0, min(h, i0 + band), acc)
 
 
 @numba.njit(cache=True, nogil=True)
-def _gather(accs, r, band, b0, out):
-    """Add bands b0, b0 + 1, ... (accs[k]: band b0 + k) to out (C + 1, H, W), in band order, serially (bands
-    overlap by 2r rows): each pixel's sum is the same whichever bands are held at once."""
+def _gather(accs, kb, r, band, b0, out):
+    """Add bandwidth ``kb``'s sums of bands b0, b0 + 1, ... (accs[k, kb]: band b0 + k) to out (C + 1, H, W),
+    in band order, serially (bands overlap by 2r rows): each pixel's sum is the same whichever bands are
+    held at once."""
     h = out.shape[1]
     n_bands = min((h + band - 1) // band - b0, accs.shape[0])
     for k in range(n_bands):
         top = (b0 + k) * band - r
-        for t in range(accs.shape[2]):
+        for t in range(accs.shape[3]):
             i = top + t
             if 0 <= i < h:
                 for c in range(out.shape[0]):
                     for j in range(out.shape[2]):
-                        out[c, i, j] += accs[k, c, t, j + r]
+                        out[c, i, j] += accs[k, kb, c, t, j + r]
 
 
 def _standard_plane(plane) -> np.ndarray:
@@ -420,6 +428,37 @@ def collaborative_regression(image, guide, variance, features, *, radius: int = 
     ndarray (H, W, C) float64, then (H, W) weights with ``return_weights``
     and (H, W) centre weights with ``return_centre_weight``
     """
+    return collaborative_regressions(image, guide, variance, features, ks=(k,), radius=radius, patch=patch,
+                                     variance_scale=variance_scale, ridge=ridge, threads=threads,
+                                     return_weights=return_weights, return_centre_weight=return_centre_weight)[0]
+
+
+def collaborative_regressions(image, guide, variance, features, *, ks, radius: int = 9, patch: int = 3,
+                              variance_scale: float = 2.0, ridge: float = RIDGE, threads: int | None = None,
+                              return_weights: bool = False, return_centre_weight: bool = False) -> list:
+    """:func:`collaborative_regression` of one image for several bandwidths ``ks`` in one pass.
+
+    The bandwidths share the guide, the design and the colour: each
+    pixel's window is gathered once for all of them, and each bandwidth's
+    result is bit-identical to :func:`collaborative_regression` with that
+    ``k`` alone (the same operations in the same order).  NFOR's candidates
+    (k = 0.5 and 1.0 for each half) are such a set.
+
+    Parameters
+    ----------
+    ks : sequence of float
+        The NL-means bandwidths, one result each (at least one).
+    image, guide, variance, features, radius, patch, variance_scale, ridge, threads, return_weights,
+    return_centre_weight
+        As :func:`collaborative_regression`.
+
+    Returns
+    -------
+    list, one entry per bandwidth, each what :func:`collaborative_regression` returns
+    """
+    ks = [float(k) for k in ks]
+    if not ks:
+        raise ValueError("collaborative_regressions: no bandwidth")
     img = np.asarray(image, dtype=np.float64)
     img = img[..., None] if img.ndim == 2 else img
     g = as_planes(guide, np.float32)
@@ -443,22 +482,28 @@ def collaborative_regression(image, guide, variance, features, *, radius: int = 
     fpad = np.zeros((feats.shape[2], h + 2 * r, w + 2 * r))
     for m in range(feats.shape[2]):
         fpad[m, r:r + h, r:r + w] = _standard_plane(feats[..., m])
-    out = np.zeros((planes, h, w))
+    nk = len(ks)
+    outs = [np.zeros((planes, h, w)) for _ in range(nk)]
     nt = n_threads(threads)
     # BANDS_PER_THREAD bands per thread at a time, on the thread pool: the bands' private accumulators
     # (each 1 + 2r / BAND times its rows) are a few megabytes whatever the image, not twice the output
-    accs = np.empty((min(n_bands, BANDS_PER_THREAD * nt), planes, BAND + 2 * r, w + 2 * r))
-    args = (ypad, g, v, fpad, r, int(patch), np.float32(float(k) ** 2), float(ridge), np.float32(NLM_EPS),
+    accs = np.empty((min(n_bands, BANDS_PER_THREAD * nt), nk, planes, BAND + 2 * r, w + 2 * r))
+    k2s = np.array([k ** 2 for k in ks], np.float32)  # each k^2 rounded to float32, as the distances use it
+    args = (ypad, g, v, fpad, r, int(patch), k2s, float(ridge), np.float32(NLM_EPS),
             np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT, bool(return_centre_weight), BAND)
     for b0 in range(0, n_bands, accs.shape[0]):
-        parallel_calls(_one_band, [(*args, b0 + k, accs[k]) for k in range(min(accs.shape[0], n_bands - b0))],
+        parallel_calls(_one_band, [(*args, b0 + t, accs[t]) for t in range(min(accs.shape[0], n_bands - b0))],
                        threads)
-        _gather(accs, r, BAND, b0, out)
+        for kb in range(nk):
+            _gather(accs, kb, r, BAND, b0, outs[kb])
     del accs, ypad, fpad
-    # the quotients in place: no second image beside the sums
-    if return_centre_weight:
-        out[nc + 1] /= out[nc]
-    out[:nc] /= out[nc]
-    res = np.moveaxis(out[:nc], 0, 2)
-    extra = ((out[nc],) if return_weights else ()) + ((out[nc + 1],) if return_centre_weight else ())
-    return (res,) + extra if extra else res
+    results = []
+    for out in outs:
+        # the quotients in place: no second image beside the sums
+        if return_centre_weight:
+            out[nc + 1] /= out[nc]
+        out[:nc] /= out[nc]
+        res = np.moveaxis(out[:nc], 0, 2)
+        extra = ((out[nc],) if return_weights else ()) + ((out[nc + 1],) if return_centre_weight else ())
+        results.append((res,) + extra if extra else res)
+    return results

@@ -31,8 +31,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...filters.nlmeans import nlmeans_filter
-from ...filters.regression import RIDGE, collaborative_regression
+from ...filters.nlmeans import nlmeans_filter, nlmeans_filter_shared
+from ...filters.regression import RIDGE, collaborative_regression, collaborative_regressions
 
 __all__ = ["nfor_denoise", "prefilter_features", "cross_regression", "estimate_mse", "PAPER"]
 
@@ -75,12 +75,15 @@ def cross_regression(y_a, y_b, variance, pf_a, pf_b, *, radius=9, patch=3, k=1.0
     """Sec. 5.2 for one bandwidth: half A regressed on half B's features with weights from B's colour, and
     B on A's.  ``F_A`` is then a linear function of ``y_A`` whose weights and design carry none of ``y_A``'s
     noise (nor of A's features), which the MSE estimate (:func:`estimate_mse`) relies on.
-    Returns ``(F_A, F_B)``."""
-    c_a = collaborative_regression(y_a, y_b, variance, pf_b, radius=radius, patch=patch, k=k, variance_scale=2.0,
-                                   ridge=ridge, threads=threads)
-    c_b = collaborative_regression(y_b, y_a, variance, pf_a, radius=radius, patch=patch, k=k, variance_scale=2.0,
-                                   ridge=ridge, threads=threads)
-    return c_a, c_b
+    Returns ``(F_A, F_B)``; with ``k`` a sequence of bandwidths, ``([F_A per k], [F_B per k])``, each
+    half's bandwidths in one pass (:func:`.regression.collaborative_regressions`, bit-identical to one
+    call per bandwidth)."""
+    ks = tuple(k) if np.ndim(k) else (k,)
+    c_a = collaborative_regressions(y_a, y_b, variance, pf_b, ks=ks, radius=radius, patch=patch,
+                                    variance_scale=2.0, ridge=ridge, threads=threads)
+    c_b = collaborative_regressions(y_b, y_a, variance, pf_a, ks=ks, radius=radius, patch=patch,
+                                    variance_scale=2.0, ridge=ridge, threads=threads)
+    return (c_a, c_b) if np.ndim(k) else (c_a[0], c_b[0])
 
 
 def nfor_denoise(y_a, y_b, variance, feat_a, feat_b, feat_variance, *, feature_radius=5, feature_patch=3,
@@ -131,24 +134,32 @@ def nfor_denoise(y_a, y_b, variance, feat_a, feat_b, feat_variance, *, feature_r
     pf_a, pf_b = prefilter_features(fa, fb, fv, radius=feature_radius, patch=feature_patch, k=feature_k,
                                     threads=threads)
     # 2. regression per bandwidth, cross-buffer (A's colour: B's weights and B's features)
-    cands = []
-    for k in bandwidths:
-        c_a, c_b = cross_regression(y_a, y_b, var, pf_a, pf_b, radius=radius, patch=patch, k=k, ridge=ridge,
-                                    threads=threads)
-        mse = nlmeans_filter(estimate_mse(y_a, y_b, c_a, c_b, var), y, var, radius=mse_radius, patch=mse_patch,
-                             k=mse_k, threads=threads)
-        cands.append((c_a, c_b, mse))
-    # 3. selection, per channel: the binary map "the second bandwidth's estimate is not larger", filtered
-    if len(cands) == 1:
-        r_a, r_b, mse_best = cands[0]
-        sel = np.zeros_like(y)
+    # (every bandwidth of a half in one pass: they share its guide, design and colour)
+    halves = list(zip(*cross_regression(y_a, y_b, var, pf_a, pf_b, radius=radius, patch=patch, k=bandwidths,
+                                        ridge=ridge, threads=threads)))
+    # the MSE estimates of every bandwidth share one guide and one set of parameters: one set of weights
+    mses = nlmeans_filter_shared([estimate_mse(y_a, y_b, c_a, c_b, var) for c_a, c_b in halves], y, var,
+                                 radius=mse_radius, patch=mse_patch, k=mse_k, threads=threads)
+    # 3. selection, per channel: the binary map "the second bandwidth's estimate is not larger", filtered.
+    # Each intermediate is dropped once used: at 1080p every (H, W, 3) plane set is 50 MB.
+    if len(halves) == 1:
+        (r_a, r_b), mse_best = halves[0], mses[0].mean(axis=2)
+        sel = np.zeros(y.shape[:2])
+        del halves, mses
     else:
-        (a0, b0, m0), (a1, b1, m1) = cands
-        sel = nlmeans_filter((m0 >= m1).astype(np.float64), y, var, radius=mse_radius, patch=mse_patch, k=mse_k,
-                             threads=threads)
-        r_a = a0 + sel * (a1 - a0)
-        r_b = b0 + sel * (b1 - b0)
-        mse_best = np.minimum(m0, m1)
+        ((a0, b0), (a1, b1)), (m0, m1) = halves, mses
+        del halves, mses
+        s = nlmeans_filter((m0 >= m1).astype(np.float64), y, var, radius=mse_radius, patch=mse_patch, k=mse_k,
+                           threads=threads)
+        mse_best = np.minimum(m0, m1).mean(axis=2)
+        del m0, m1
+        r_a = a0 + s * (a1 - a0)
+        del a0, a1
+        r_b = b0 + s * (b1 - b0)
+        del b0, b1
+        sel = s.mean(axis=2)
+        del s
+    del y
     # 4. second pass on the averages
     res = 0.5 * (r_a + r_b)
     if second_pass:
@@ -156,14 +167,16 @@ def nfor_denoise(y_a, y_b, variance, feat_a, feat_b, feat_variance, *, feature_r
         if fa.shape[2]:
             feat = 0.5 * (pf_a + pf_b)
             feat_var = 0.25 * (pf_b - pf_a) ** 2
+            del pf_a, pf_b
             feat = nlmeans_filter(feat, feat, feat_var, radius=final_feature_radius, patch=final_feature_patch,
                                   k=final_feature_k, threads=threads)
+            del feat_var
         else:
             feat = fa
         res = collaborative_regression(res, res, res_var, feat, radius=radius, patch=patch, k=final_k,
                                        variance_scale=2.0, ridge=ridge, threads=threads)
     if diagnostics is not None:
-        diagnostics["selection"] = sel.mean(axis=2)
-        diagnostics["estimated_mse"] = mse_best.mean(axis=2)
+        diagnostics["selection"] = sel
+        diagnostics["estimated_mse"] = mse_best
         diagnostics["half_results"] = (r_a, r_b)
     return res
