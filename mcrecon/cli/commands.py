@@ -148,6 +148,7 @@ def _cmd_reconstruct(args):
     t0 = time.perf_counter()
     with command_line():  # refusals name this command's flags
         rec = reconstruct(source, method=method, nonfinite=args.nonfinite, full=True, fireflies=args.fireflies,
+                          tile=args.tile,
                           **({"exr_options": exr_read_options(args)} if exr else {}))
     dt = time.perf_counter() - t0
     if exr:
@@ -483,6 +484,10 @@ def register(sub, command: str | None = None) -> None:
                          help="cascade: split the samples into luminance cascades first; the method reconstructs "
                               "the base and rare bright parts are spread with the support their density needs "
                               "(energy kept; any method; needs a sample log, held in memory)")
+    denoise.add_argument("--tile", type=int, default=None, metavar="N",
+                         help="reconstruct in tiles of at most NxN pixels, each grown by the method's halo: the "
+                              "untiled image with the method's working memory of one tile (methods with a finite "
+                              "halo: box, ci, gem; every pixel needs 2 samples; docs/performance.md)")
     px = add_exr_read_flags(
         denoise, "pixel-statistics EXR input (a LOG ending in .exr)",
         "Layout presets, or an explicit mapping; the count from --spp, --count or the file's samplesPerPixel/spp "
