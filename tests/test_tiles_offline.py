@@ -66,6 +66,9 @@ def test_statistics_methods_tiled_equal_untiled(scene_log, method, options, tile
     assert sorted(d_full) == sorted(d_tiled)
     for k in d_full:
         assert np.array_equal(d_tiled[k], d_full[k], equal_nan=True), k
+    # a caller that reads no maps holds none of the film's size
+    bare = mcrecon.reconstruct(scene_log, method=m, tile=tile, full=True, diagnostics=False)
+    assert np.array_equal(bare.image, full.image) and bare.diagnostics() == {}
 
 
 def test_half_buffer_method_tiled_equal_untiled(feature_log):

@@ -140,7 +140,8 @@ def split_source_fireflies(source, *, nonfinite: str = "drop", **split_options):
 
 
 def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None, full: bool = False,
-                fireflies: str = "none", exr_options: dict | None = None, tile: int | None = None, **options):
+                fireflies: str = "none", exr_options: dict | None = None, tile: int | None = None,
+                diagnostics: bool = True, **options):
     """Reconstruct an (H, W, C) float64 image offline.
 
     Parameters
@@ -191,6 +192,11 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
         (:func:`mcrecon.offline.tiles.reconstruct_tiles`; half buffers are
         merged tile by tile).  Refused for whole-image methods and for
         pixels with fewer than two samples.  Default: untiled.
+    diagnostics : bool
+        With ``tile`` and ``full``: assemble the tiles' diagnostic maps,
+        film-sized arrays beside the tiles' work; False leaves
+        ``Reconstruction.diagnostics()`` empty.  (Untiled, the method
+        builds its maps when they are asked for.)
 
     Examples
     --------
@@ -234,7 +240,7 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
                            **({"what": files.what, "surface": "files"} if files is not None else {}))
     h, w, _ = inputs.shape
     if tile is not None:
-        image, run = reconstruct_tiles(m, inputs, tile=tile)
+        image, run = reconstruct_tiles(m, inputs, tile=tile, diagnostics=full and diagnostics)
         if inputs.stats is None:  # the colour's merge for the caller (counts, range): a third of a featured one
             a, b = inputs.halves
             inputs = dataclasses.replace(inputs, stats=a.without_features().merged(b.without_features()))

@@ -95,7 +95,7 @@ def _tile_inputs(inputs: MethodInputs, outer) -> MethodInputs:
     return MethodInputs(inputs.stats.crop(y0, y1, x0, x1), None, ref, inputs.nonfinite)
 
 
-def reconstruct_tiles(method: Method, inputs: MethodInputs, *, tile: int,
+def reconstruct_tiles(method: Method, inputs: MethodInputs, *, tile: int, diagnostics: bool = True,
                       where: str = "reconstruct") -> tuple[np.ndarray, RunState]:
     """The untiled image of a local method, reconstructed tile by tile: ``(image (H, W, C) float64, run)``.
 
@@ -109,6 +109,11 @@ def reconstruct_tiles(method: Method, inputs: MethodInputs, *, tile: int,
         with ``halves``, ``stats`` may be None (each tile merges its own).
     tile : int
         Largest tile side in pixels; the halo comes on top of it.
+    diagnostics : bool
+        Assemble the tiles' diagnostic maps (:meth:`~mcrecon.methods.Method.diagnostics`)
+        into maps of the film.  Each map holds every pixel of the film beside
+        the tiles' work (gem's 18 maps: 144 bytes a pixel), so a caller that
+        reads none says False.
     where : str
         How refusals name the caller.
 
@@ -117,7 +122,7 @@ def reconstruct_tiles(method: Method, inputs: MethodInputs, *, tile: int,
     image : ndarray (H, W, C) float64
     run : RunState
         A run of the whole film whose ``diagnostics`` are the tiles' maps,
-        each tile's inner part in place.
+        each tile's inner part in place (empty with ``diagnostics=False``).
 
     Raises
     ------
@@ -145,7 +150,7 @@ def reconstruct_tiles(method: Method, inputs: MethodInputs, *, tile: int,
             said.setdefault((wn.category, str(wn.message)), wn)
         iy, ix = slice(y0 - oy0, y1 - oy0), slice(x0 - ox0, x1 - ox0)
         image[y0:y1, x0:x1] = np.asarray(img, dtype=np.float64)[iy, ix]
-        for name, m in method.diagnostics(run).items():
+        for name, m in (method.diagnostics(run) if diagnostics else {}).items():
             m = np.asarray(m)
             if m.shape[:2] != (oy1 - oy0, ox1 - ox0):
                 continue  # not a per-pixel map: no tile of it to place
