@@ -20,9 +20,9 @@ the same input:
 * the machine's load average before and after, so a number measured on a
   busy machine says so;
 * with ``--tile N`` every command reconstructs in tiles of N x N pixels
-  (``reconstruct --tile N``; methods without a finite halo, auto and nfor,
-  refuse it), and CPU seconds per megapixel compare a 4K log with a 1080p
-  one at the same tile size;
+  (``reconstruct --tile N``) where the method declares a finite halo
+  (auto and nfor, whole-image, run untiled), and CPU seconds per megapixel
+  compare a 4K log with a 1080p one at the same tile size;
 * with ``--before ROOT`` (another checkout of mcrecon, e.g. ``git worktree``
   or ``git archive`` of an earlier commit), every command also runs on that
   checkout, interleaved with this one's (before, after, before, after ...
@@ -136,8 +136,11 @@ def main(argv=None) -> int:
     if not Path(tiny).exists():
         run_command(["render-log", "--scene", args.scene, "--spp", "4", "--size", "48x40", "--features", "-o", tiny])
     res, old = {}, {}
-    tiled = ["--tile", str(args.tile)] if args.tile else []
+    from mcrecon.methods import get_method
+
     for m in methods:
+        # a whole-image method refuses tiles: it runs untiled beside the others
+        tiled = ["--tile", str(args.tile)] if args.tile and get_method(m).halo(1, 1) is not None else []
         run_command(["reconstruct", tiny, "--method", m, "-o", str(work / f"tiny_{m}.exr")])  # compile, not timed
         if before is not None:
             run_command(["reconstruct", tiny, "--method", m, "-o", str(work / f"tiny_{m}_before.exr")], root=before)
