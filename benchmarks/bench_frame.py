@@ -19,6 +19,10 @@ the same input:
   streams blocks of samples, so its peak RSS follows the image, not the log;
 * the machine's load average before and after, so a number measured on a
   busy machine says so;
+* with ``--tile N`` every command reconstructs in tiles of N x N pixels
+  (``reconstruct --tile N``) where the method declares a finite halo
+  (auto and nfor, whole-image, run untiled), and CPU seconds per megapixel
+  compare a 4K log with a 1080p one at the same tile size;
 * with ``--before ROOT`` (another checkout of mcrecon, e.g. ``git worktree``
   or ``git archive`` of an earlier commit), every command also runs on that
   checkout, interleaved with this one's (before, after, before, after ...
@@ -31,7 +35,7 @@ so kernel compilation of a first run is not counted.
 
     python benchmarks/bench_frame.py [--size 1920x1080] [--spp 32] [--scene checker_wall]
                                      [--log LOG.h5] [--workdir DIR] [--methods gem,auto,nfor]
-                                     [--before ROOT [--repeat N]]
+                                     [--before ROOT [--repeat N]] [--tile N]
 """
 
 from __future__ import annotations
@@ -110,6 +114,7 @@ def main(argv=None) -> int:
     ap.add_argument("--before", help="another mcrecon checkout: every command also runs there, interleaved, "
                                      "and the after / before ratios are printed")
     ap.add_argument("--repeat", type=int, default=1, help="before/after pairs per method with --before (default 1)")
+    ap.add_argument("--tile", type=int, default=None, help="reconstruct in tiles of N x N pixels (reconstruct --tile)")
     args = ap.parse_args(argv)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     before = Path(args.before).resolve() if args.before else None
@@ -131,26 +136,31 @@ def main(argv=None) -> int:
     if not Path(tiny).exists():
         run_command(["render-log", "--scene", args.scene, "--spp", "4", "--size", "48x40", "--features", "-o", tiny])
     res, old = {}, {}
+    from mcrecon.methods import get_method
+
     for m in methods:
+        # a whole-image method refuses tiles: it runs untiled beside the others
+        tiled = ["--tile", str(args.tile)] if args.tile and get_method(m).halo(1, 1) is not None else []
         run_command(["reconstruct", tiny, "--method", m, "-o", str(work / f"tiny_{m}.exr")])  # compile, not timed
         if before is not None:
             run_command(["reconstruct", tiny, "--method", m, "-o", str(work / f"tiny_{m}_before.exr")], root=before)
             pairs = []
             for _ in range(args.repeat):
                 b = run_command(["reconstruct", log, "--method", m, "-o", str(work / f"{m}_before.exr")], root=before)
-                a = run_command(["reconstruct", log, "--method", m, "-o", str(work / f"{m}.exr")])
+                a = run_command(["reconstruct", log, "--method", m, *tiled, "-o", str(work / f"{m}.exr")])
                 pairs.append((b, a))
             # the pair with the median CPU ratio: one pair's two runs saw the same load
             pairs.sort(key=lambda ba: ba[1]["cpu"] / ba[0]["cpu"])
             old[m], res[m] = pairs[len(pairs) // 2]
         else:
-            res[m] = run_command(["reconstruct", log, "--method", m, "-o", str(work / f"{m}.exr")])
+            res[m] = run_command(["reconstruct", log, "--method", m, *tiled, "-o", str(work / f"{m}.exr")])
     try:
         t_oidn = oidn_seconds(log)
     except ImportError:
         t_oidn = float("nan")
     load1 = os.getloadavg()
-    print(f"bench_frame: {args.scene} {args.size}, {args.spp} spp, features; {os.cpu_count()} CPUs; load average "
+    print(f"bench_frame: {args.scene} {args.size}, {args.spp} spp, features"
+          + (f", tiles of {args.tile} px" if args.tile else "") + f"; {os.cpu_count()} CPUs; load average "
           f"{load0[0]:.2f} before, {load1[0]:.2f} after")
     print(f"{'':8s} {'reconstruction s':>17s} {'command wall s':>15s} {'command CPU s':>14s} {'peak RSS GB':>12s}")
     for m in methods:

@@ -148,6 +148,7 @@ def _cmd_reconstruct(args):
     t0 = time.perf_counter()
     with command_line():  # refusals name this command's flags
         rec = reconstruct(source, method=method, nonfinite=args.nonfinite, full=True, fireflies=args.fireflies,
+                          tile=args.tile, diagnostics=args.diagnostics is not None,
                           **({"exr_options": exr_read_options(args)} if exr else {}))
     dt = time.perf_counter() - t0
     if exr:
@@ -157,7 +158,8 @@ def _cmd_reconstruct(args):
     if args.diagnostics:
         counts = stats.count if stats is not None else PixelStats.from_log(log, nonfinite=args.nonfinite).count
     written = write_outputs(rec.image, args.output, channels=rec.channels, png=args.png, exposure=args.exposure,
-                            diagnostics=rec.diagnostics(), diag_dir=args.diagnostics, counts=counts)
+                            diagnostics=rec.diagnostics() if args.diagnostics else None, diag_dir=args.diagnostics,
+                           counts=counts)
     h, w, _ = rec.image.shape
     n_samples = log.n_samples if log is not None else int(stats.count.sum())
     msg = (f"{rec.method.name}: {w}x{h}, {n_samples} samples"
@@ -483,6 +485,10 @@ def register(sub, command: str | None = None) -> None:
                          help="cascade: split the samples into luminance cascades first; the method reconstructs "
                               "the base and rare bright parts are spread with the support their density needs "
                               "(energy kept; any method; needs a sample log, held in memory)")
+    denoise.add_argument("--tile", type=int, default=None, metavar="N",
+                         help="reconstruct in tiles of at most NxN pixels, each grown by the method's halo: the "
+                              "untiled image with the method's working memory of one tile (methods with a finite "
+                              "halo: box, ci, gem; every pixel needs 2 samples; docs/performance.md)")
     px = add_exr_read_flags(
         denoise, "pixel-statistics EXR input (a LOG ending in .exr)",
         "Layout presets, or an explicit mapping; the count from --spp, --count or the file's samplesPerPixel/spp "

@@ -34,7 +34,7 @@ def check_method_supply(method: Method, supply: Supply, where: str | None = None
     check_supply(method, supply, where=where, **_LISTS)
 
 
-def statistics_for(source, req, *, nonfinite: str = "drop"):
+def statistics_for(source, req, *, nonfinite: str = "drop", merged: bool = True):
     """``(stats, halves)`` of a sample source for a method's requirements ``req``.
 
     A method that reads the samples *and* takes half buffers reads the
@@ -43,13 +43,15 @@ def statistics_for(source, req, *, nonfinite: str = "drop"):
     source), and the statistics of all the samples are their Chan merge
     (equal to accumulating every sample to a few ulps, at the cost of one
     pass instead of two).  Otherwise the statistics (if declared) and no
-    halves.
+    halves.  ``merged=False`` leaves the merge of halves to the caller
+    (``stats`` None): a tiled reconstruction merges tile by tile, so no
+    third set of the film's statistics sits beside the two halves.
     """
     # every feature the method can accumulate ((N,) or (N, k) per sample); others are ignored
     features = usable_names(source) if req.features != "none" else ()
     if req.samples and req.half_buffers and req.statistics and not req.subpixels:
         split = split_halves(source, nonfinite=nonfinite, features=features)
-        return split.merged(), split
+        return (split.merged() if merged else None), split
     stats = PixelStats.from_source(source, subpixels=req.subpixels, nonfinite=nonfinite, features=features) \
         if req.statistics else None
     return stats, None
@@ -101,7 +103,8 @@ def _given_halves(source, method: Method, src_where: str, m_where: str, what: st
 
 
 def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=None, where: str | None = None,
-                  logs: bool = True, what: str | None = None, surface: str = "python") -> MethodInputs:
+                  logs: bool = True, what: str | None = None, surface: str = "python",
+                  merged: bool = True) -> MethodInputs:
     """The inputs ``method`` declares, read from ``source``: the one place a source becomes MethodInputs.
 
     Parameters
@@ -132,6 +135,9 @@ def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=
     what, surface : str, optional
         How refusals name in-memory statistics read from files, and the
         wording of their fixes (:class:`~mcrecon.methods.supply.Supply`).
+    merged : bool
+        False: halves split from samples come without their merge
+        (``stats`` None; :func:`statistics_for`).
     """
     src_where = where or "reconstruct"
     m_where = where or method.where
@@ -163,10 +169,11 @@ def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=
                                            features=tuple(getattr(source, "feature_names", ())),
                                            n_samples=int(n) if n is not None else None, surface=surface,
                                            logs=logs), m_where)
-        stats, halves = statistics_for(source, req, nonfinite=nonfinite)
+        stats, halves = statistics_for(source, req, nonfinite=nonfinite, merged=merged)
         stored_ref = source.reference() if req.reference != "none" and hasattr(source, "reference") else None
         samples = source if req.samples else None
-    shape = stats.shape if stats is not None else (samples.height, samples.width, len(samples.channels))
+    shape = stats.shape if stats is not None else halves.shape if halves is not None else \
+        (samples.height, samples.width, len(samples.channels))
     ref = check_reference(reference if reference is not None else stored_ref, shape,
                           **({"where": f"{where}: reference"} if where else {}))
     return MethodInputs(stats, samples, ref if req.reference != "none" else None, nonfinite, halves)

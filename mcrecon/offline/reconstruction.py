@@ -24,6 +24,7 @@ from ..core.stats import PixelStats
 from .._lazy import public_dir as _public_dir
 from .inputs import gather_inputs
 from .pixel_files import is_pixel_file_source, read_pixel_file_source
+from .tiles import check_tile, reconstruct_tiles
 
 __all__ = ['reconstruct', 'split_source_fireflies', 'Reconstruction']
 
@@ -139,7 +140,8 @@ def split_source_fireflies(source, *, nonfinite: str = "drop", **split_options):
 
 
 def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None, full: bool = False,
-                fireflies: str = "none", exr_options: dict | None = None, **options):
+                fireflies: str = "none", exr_options: dict | None = None, tile: int | None = None,
+                diagnostics: bool = True, **options):
     """Reconstruct an (H, W, C) float64 image offline.
 
     Parameters
@@ -183,6 +185,18 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
         ``variance``, ``count``, ``spp``, ...); by default the layout is
         detected from the channel names.  A file without a sample count
         (Mitsuba's moment integrator writes none) needs ``count`` or ``spp``.
+    tile : int, optional
+        Reconstruct in tiles of at most ``tile`` x ``tile`` pixels, each
+        grown by the method's halo (:meth:`~mcrecon.methods.Method.halo`):
+        the untiled image, with the method's working memory of one tile
+        (:func:`mcrecon.offline.tiles.reconstruct_tiles`; half buffers are
+        merged tile by tile).  Refused for whole-image methods and for
+        pixels with fewer than two samples.  Default: untiled.
+    diagnostics : bool
+        With ``tile`` and ``full``: assemble the tiles' diagnostic maps,
+        film-sized arrays beside the tiles' work; False leaves
+        ``Reconstruction.diagnostics()`` empty.  (Untiled, the method
+        builds its maps when they are asked for.)
 
     Examples
     --------
@@ -196,6 +210,7 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
     >>> bool(abs(image.mean() - 1.0) < 0.01)
     True
     """
+    tile = check_tile(tile)
     if isinstance(method, Method):
         if options:
             raise InputError("reconstruct", sorted(options)[0], "options go to get_method(); a method object "
@@ -221,11 +236,17 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
             reference = source.reference()  # the base SampleSet carries no stored reference
         original = source
         source, split = split_source_fireflies(source, nonfinite=nonfinite)
-    inputs = gather_inputs(source, m, nonfinite=nonfinite, reference=reference,
+    inputs = gather_inputs(source, m, nonfinite=nonfinite, reference=reference, merged=tile is None,
                            **({"what": files.what, "surface": "files"} if files is not None else {}))
     h, w, _ = inputs.shape
-    run = m.start(w, h, inputs.channels, reference=inputs.reference)
-    image = np.asarray(m.reconstruct(inputs, run=run), dtype=np.float64)
+    if tile is not None:
+        image, run = reconstruct_tiles(m, inputs, tile=tile, diagnostics=full and diagnostics)
+        if inputs.stats is None:  # the colour's merge for the caller (counts, range): a third of a featured one
+            a, b = inputs.halves
+            inputs = dataclasses.replace(inputs, stats=a.without_features().merged(b.without_features()))
+    else:
+        run = m.start(w, h, inputs.channels, reference=inputs.reference)
+        image = np.asarray(m.reconstruct(inputs, run=run), dtype=np.float64)
     if split is not None:
         image = image + split.excess
     if files is not None:  # statistics in the file's working space (XYZ for the presets): to its colours

@@ -1,0 +1,166 @@
+"""Tiled offline reconstruction: a local method's untiled image, with the memory of one tile at a time.
+
+A method whose result at a pixel depends only on the inputs within
+``halo`` pixels of it (:meth:`~mcrecon.methods.Method.halo`) gives, on a
+tile grown by its halo (clipped at the film's edges), the untiled result
+inside the tile.  :func:`reconstruct_tiles` runs it tile after tile on
+crops of the statistics the dispatcher built once for the whole film
+(:func:`~mcrecon.offline.inputs.gather_inputs`); so the film's statistics
+stay (they are bounded by the image), while the method's own working
+arrays, most of a filter's peak, follow the tile.  For methods that read
+half buffers the Chan merge of the two halves is made tile by tile: the
+film's halves are the only statistics with their features held whole
+(no merged third copy beside them).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from ..core.halves import Halves
+from ..errors import InputError
+from ..methods.base import Method, MethodInputs, RunState
+
+__all__ = ["tile_windows", "check_tile", "reconstruct_tiles"]
+
+
+def check_tile(tile, where: str = "reconstruct") -> int | None:
+    """``tile`` as a positive int (None: untiled), or a one-line :class:`InputError` naming the option."""
+    if tile is None:
+        return None
+    if isinstance(tile, bool) or not isinstance(tile, (int, np.integer)) or int(tile) < 1:
+        raise InputError(where, "tile", f"{tile!r}, expected a tile side in pixels (a positive integer; "
+                         "the halo comes on top of it), or None for an untiled reconstruction")
+    return int(tile)
+
+
+def _splits(n: int, tile: int) -> list[tuple[int, int]]:
+    # ceil(n / tile) parts of equal size to a pixel, so that no thin last tile pays a whole halo
+    parts = -(-n // tile)
+    edges = [n * i // parts for i in range(parts + 1)]
+    return list(zip(edges[:-1], edges[1:]))
+
+
+def tile_windows(width: int, height: int, tile: int, halo: int):
+    """``(outer, inner)`` windows of the tiles of a film, each ``(y0, y1, x0, x1)`` in film pixels.
+
+    The film is cut into ``ceil(width / tile) x ceil(height / tile)`` tiles
+    of (nearly) equal size, each at most ``tile`` pixels a side; ``inner``
+    is a tile, ``outer`` the tile grown by ``halo`` on every side and
+    clipped to the film.
+    """
+    for y0, y1 in _splits(int(height), int(tile)):
+        for x0, x1 in _splits(int(width), int(tile)):
+            outer = (max(0, y0 - halo), min(height, y1 + halo), max(0, x0 - halo), min(width, x1 + halo))
+            yield outer, (y0, y1, x0, x1)
+
+
+def _tileable_halo(method: Method, inputs: MethodInputs, where: str) -> int:
+    """The method's halo on these inputs, or a one-line refusal saying why tiles would change the image."""
+    h, w, _ = inputs.shape
+    halo = method.halo(w, h)
+    if halo is None:
+        raise InputError(where, "tile", f"{method.name}'s result at a pixel depends on the whole image (it declares "
+                         "no finite halo: Method.halo), so tiles would change it; reconstruct it untiled "
+                         "(no tile option)")
+    req = method.requires
+    if req.samples and not (req.half_buffers and inputs.halves is not None):
+        raise InputError(where, "tile", f"{method.name} filters the individual samples, which the tiles of "
+                         "offline statistics do not hold; tile it with mcrecon.distributed.reconstruct_tiled "
+                         "(each tile streams its samples), or reconstruct untiled")
+    if inputs.halves is not None:
+        few = int(np.count_nonzero(np.minimum(inputs.halves.a.count, inputs.halves.b.count) < 1))
+        what = "without a sample in one of its halves"
+    else:
+        few = int(np.count_nonzero(inputs.stats.count < 2))
+        what = "with fewer than 2 samples"
+    if few:
+        raise InputError(where, "tile", f"{few} pixel(s) {what}: their fill-in may borrow from anywhere in the "
+                         "image, so tiles would not reproduce the untiled result; reconstruct untiled (no tile "
+                         "option), or give every pixel at least 2 samples")
+    return int(halo)
+
+
+def _tile_inputs(inputs: MethodInputs, outer) -> MethodInputs:
+    """The inputs of one grown tile: contiguous crops, and for half buffers their merge on the tile only."""
+    y0, y1, x0, x1 = outer
+    ref = None if inputs.reference is None else np.ascontiguousarray(inputs.reference[y0:y1, x0:x1])
+    if inputs.halves is not None:
+        a = inputs.halves.a.crop(y0, y1, x0, x1)
+        b = inputs.halves.b.crop(y0, y1, x0, x1)
+        # the merge is elementwise, so the tile's merge is the crop of the film's, bit for bit
+        return MethodInputs(a.merged(b), None, ref, inputs.nonfinite, Halves.from_pair(a, b))
+    return MethodInputs(inputs.stats.crop(y0, y1, x0, x1), None, ref, inputs.nonfinite)
+
+
+def reconstruct_tiles(method: Method, inputs: MethodInputs, *, tile: int, diagnostics: bool = True,
+                      where: str = "reconstruct") -> tuple[np.ndarray, RunState]:
+    """The untiled image of a local method, reconstructed tile by tile: ``(image (H, W, C) float64, run)``.
+
+    Parameters
+    ----------
+    method : Method
+        A method declaring a finite :meth:`~mcrecon.methods.Method.halo`
+        that reads pixel statistics or half buffers.
+    inputs : MethodInputs
+        The film's inputs (:func:`~mcrecon.offline.inputs.gather_inputs`);
+        with ``halves``, ``stats`` may be None (each tile merges its own).
+    tile : int
+        Largest tile side in pixels; the halo comes on top of it.
+    diagnostics : bool
+        Assemble the tiles' diagnostic maps (:meth:`~mcrecon.methods.Method.diagnostics`)
+        into maps of the film.  Each map holds every pixel of the film beside
+        the tiles' work (gem's 18 maps: 144 bytes a pixel), so a caller that
+        reads none says False.
+    where : str
+        How refusals name the caller.
+
+    Returns
+    -------
+    image : ndarray (H, W, C) float64
+    run : RunState
+        A run of the whole film whose ``diagnostics`` are the tiles' maps,
+        each tile's inner part in place (empty with ``diagnostics=False``).
+
+    Raises
+    ------
+    InputError
+        A whole-image method, a method that filters samples, or a pixel
+        with fewer than two samples (one in each half for half buffers):
+        the fill-in policies for those may borrow from the whole image.
+    """
+    tile = check_tile(tile, where)
+    halo = _tileable_halo(method, inputs, where)
+    h, w, c = inputs.shape
+    channels = inputs.channels
+    image = np.empty((h, w, c), np.float64)
+    maps: dict[str, np.ndarray] = {}
+    said: dict = {}
+    for outer, inner in tile_windows(w, h, tile, halo):
+        oy0, oy1, ox0, ox1 = outer
+        y0, y1, x0, x1 = inner
+        sub = _tile_inputs(inputs, outer)
+        run = method.start(ox1 - ox0, oy1 - oy0, channels, reference=sub.reference)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            img = method.reconstruct(sub, run=run)
+        for wn in caught:  # what a method says of its inputs, said once for the film, not once a tile
+            said.setdefault((wn.category, str(wn.message)), wn)
+        iy, ix = slice(y0 - oy0, y1 - oy0), slice(x0 - ox0, x1 - ox0)
+        image[y0:y1, x0:x1] = np.asarray(img, dtype=np.float64)[iy, ix]
+        for name, m in (method.diagnostics(run) if diagnostics else {}).items():
+            m = np.asarray(m)
+            if m.shape[:2] != (oy1 - oy0, ox1 - ox0):
+                continue  # not a per-pixel map: no tile of it to place
+            full = maps.get(name)
+            if full is None:
+                full = maps[name] = np.zeros((h, w) + m.shape[2:], m.dtype)
+            full[y0:y1, x0:x1] = m[iy, ix]
+        del sub, run, img
+    for wn in said.values():
+        warnings.warn_explicit(wn.message, wn.category, wn.filename, wn.lineno)
+    run = method.start(w, h, channels, reference=inputs.reference)
+    run.diagnostics = maps
+    return image, run
