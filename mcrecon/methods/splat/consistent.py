@@ -48,7 +48,7 @@ import numpy as np
 from scipy.special import ndtri
 
 from .bands import in_bands
-from .outliers import _excess_width, _judge
+from .outliers import _norm_of
 
 
 def gate_k(rate: float, n_channels: int) -> float:
@@ -293,25 +293,65 @@ def edge_radius(stats, k):
     return np.ascontiguousarray(r.min(axis=2))
 
 
+def width_coefs(fref, nmap, c, alpha):
+    """Per pixel the factors of Eq. 8's diameter ``d = C N^-alpha (G / f)^(1/2)`` that do not depend on the
+    sample: ``(C N^-alpha, sqrt(f))`` (:func:`_width_coefs`), for :func:`_split_and_radii`."""
+    coef = np.empty(fref.shape)
+    sf = np.empty(fref.shape)
+    _width_coefs(fref, nmap, float(c), float(alpha), coef, sf)
+    return coef, sf
+
+
 @numba.njit(cache=True, nogil=True)
-def _split_and_radii(pos, val, norm_code, weights, tau, fref, nmap, c, alpha, spread_c, spread_alpha, min_w, max_w,
-                     r_edge, frac, radius, krad, k0, k1):
+def _width_coefs(fref, nmap, c, alpha, coef, sf):
+    """``coef = C N^-alpha`` and ``sf = sqrt(f)`` of every pixel (``sf = 0`` where f is not positive and finite:
+    nothing is known there, the width is the cap), so that a sample's diameter
+    ``coef * (sqrt(G - t) / sf)`` costs a square root and a division, not a power: the expression of
+    :func:`.outliers._excess_width`, bit for bit."""
+    h, w = fref.shape
+    for y in range(h):
+        for x in range(w):
+            f = fref[y, x]
+            coef[y, x] = c * nmap[y, x] ** (-alpha)
+            sf[y, x] = math.sqrt(f) if f > 0.0 and f < np.inf else 0.0
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _width_of(ex, coef, sf, max_w):
+    """:func:`.outliers._excess_width` from the pixel's :func:`_width_coefs`: (diameter, capped)."""
+    d = coef * (math.sqrt(ex) / sf) if sf > 0.0 else np.inf
+    capped = d > max_w
+    if d >= max_w:
+        d = max_w
+    return d, capped
+
+
+@numba.njit(cache=True, nogil=True)
+def _split_and_radii(pos, val, norm_code, weights, tau, coef, spread_coef, sf, min_w, max_w, r_edge, frac, radius,
+                     krad, k0, k1):
     """The outlier split of :func:`.outliers._split_outliers` (``frac``, ``radius``; returns (outliers, capped))
     and, in the same pass over the samples ``k0 <= k < k1``, the support radius ``krad`` of each consistent
     sample (``frac = 0`` under a finite threshold ``tau``: the outlier test ran and passed it): Eq. 8 with
     ``spread_c``, ``spread_alpha`` against the window mean ``fref``; -1 for outliers, for samples no test
     could judge yet, and where the diameter, or the pixel's ``2 r_edge``, is at most ``min_w``.  One pass:
-    the sample's G and pixel are found once for both."""
+    the sample's G and pixel are found once for both.  ``coef``, ``spread_coef`` and ``sf``: the per-pixel
+    factors of the two widths (:func:`width_coefs` of ``c, alpha`` and of ``spread_c, spread_alpha``), the
+    same diameters as :func:`.outliers._excess_width` computes from ``fref`` and the counts."""
+    h, w = tau.shape
     n_out = 0
     n_capped = 0
     for k in range(k0, k1):
         frac[k] = 0.0
         radius[k] = -1.0
         krad[k] = -1.0
-        g, py, px, t, d, cap = _judge(pos, val, k, norm_code, weights, tau, fref, nmap, c, alpha, min_w, max_w)
+        g = _norm_of(val, k, norm_code, weights)
         if not g > 0.0:
             continue
+        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
+        py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+        t = tau[py, px]
         if g > t:
+            d, cap = _width_of(g - t, coef[py, px], sf[py, px], max_w)
             n_capped += cap
             if d > min_w:  # an outlier: its excess is spread by the outlier rule, the rest stays
                 n_out += 1
@@ -320,7 +360,7 @@ def _split_and_radii(pos, val, norm_code, weights, tau, fref, nmap, c, alpha, sp
                 continue
         if not t < np.inf:
             continue  # too few samples around for the outlier test: not known to be consistent
-        d, _ = _excess_width(g, 0.0, fref[py, px], nmap[py, px], spread_c, spread_alpha, min_w, max_w)
+        d, _ = _width_of(g - 0.0, spread_coef[py, px], sf[py, px], max_w)
         if min(d, 2.0 * r_edge[py, px]) > min_w:  # else nothing would leave the pixel
             krad[k] = 0.5 * d
     return n_out, n_capped

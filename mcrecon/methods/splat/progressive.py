@@ -36,7 +36,7 @@ from ...core.features import check_features, usable_layout
 from ...core.samples import apply_nonfinite, check_policy, check_samples
 from .kernels import BOUNDARY_MODES, _BOUNDARY_CODE, _deposit_own_pixel, _scatter, _splat_guided_loop
 from ...filters.luminance import LUMINANCE_WEIGHTS
-from .consistent import (FeatureSums, _split_and_radii, channel_sums, edge_radius, feature_moments, gate_k,
+from .consistent import (FeatureSums, _split_and_radii, channel_sums, width_coefs, edge_radius, feature_moments, gate_k,
                          pixel_moments)
 from .kernels import _add_widths, _splat_gated_loop
 from .bands import in_bands, in_ranges, rows_sorted
@@ -570,6 +570,9 @@ class ProgressiveSplatter:
             gstats = pixel_moments(self.cum_counts, self._cs1, self._cs2)
             r_edge = edge_radius(gstats, self._gate_k)
             fstats = feature_moments(self._fsum)  # (1, 1, 0, 2) without features: the gate tests none
+            # Eq. 8's per-pixel factors of the outliers' and the consistent samples' widths, once per pixel
+            coef, sqrt_f = width_coefs(fref, nmap, self.c, self.alpha)
+            spread_coef, _ = width_coefs(fref, nmap, self.spread_c, self.spread_alpha)
         if arrays is not None and not consistent:  # a round in memory (add_round): the fused pass
             p, v, _ = arrays
             idx = np.empty(p.shape[0], np.int64)
@@ -597,9 +600,9 @@ class ProgressiveSplatter:
             rad = np.empty(p.shape[0])
             krad = np.empty(p.shape[0]) if consistent else rad
             if consistent:  # the split and the consistent samples' radii in one pass
-                split = in_ranges(_split_and_radii, (p, v, self._norm_code, self._weights, tau, fref, nmap, self.c,
-                                                     self.alpha, self.spread_c, self.spread_alpha, self.min_width,
-                                                     self.max_width, r_edge, frac, rad, krad), p.shape[0])
+                split = in_ranges(_split_and_radii, (p, v, self._norm_code, self._weights, tau, coef, spread_coef,
+                                                     sqrt_f, self.min_width, self.max_width, r_edge, frac, rad,
+                                                     krad), p.shape[0])
             else:
                 split = in_ranges(_split_outliers, (p, v, self._norm_code, self._weights, tau, fref, nmap, self.c,
                                                     self.alpha, self.min_width, self.max_width, frac, rad), p.shape[0])
