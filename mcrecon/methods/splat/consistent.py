@@ -45,6 +45,7 @@ import math
 
 import numba
 import numpy as np
+from numba import literal_unroll
 from scipy.special import ndtri
 
 from .bands import in_bands
@@ -98,26 +99,9 @@ class FeatureSums:
     def add(self, pos, feats, where, sorted_rows=False):
         """Add the features (``{name: (N, k)}``, the rows of ``pos``) of one chunk (in bands of rows on the
         filters' threads, :func:`.bands.in_bands`)."""
-        from ...errors import InputError
-
-        names = tuple(feats)
-        if self.names is None:
-            self.names = names
-            self.sizes = tuple(int(np.shape(feats[k])[1]) if np.ndim(feats[k]) == 2 else 1 for k in names)
-        elif names != self.names:
-            raise InputError(where, "features", f"a round carries features {', '.join(names) or '(none)'}, "
-                             f"earlier rounds {', '.join(self.names) or '(none)'}: every round must carry the same")
-        if not names:
+        parts = self.parts(pos, feats, where)
+        if not parts:
             return
-        parts = [np.asarray(feats[k]) for k in names]
-        parts = [np.ascontiguousarray(x.reshape(len(pos), -1) if x.ndim != 2 else x) for x in parts]
-        nf = sum(x.shape[1] for x in parts)
-        if nf != sum(self.sizes):
-            raise InputError(where, "features", f"{nf} components, earlier rounds {sum(self.sizes)}")
-        if self.shift is None:
-            self.shift = np.zeros((self.height * self.width, nf))
-            self.s1 = np.zeros((self.height, self.width, nf))
-            self.s2 = np.zeros((self.height, self.width, nf))
         # each feature in its own precision (a renderer's float32 is widened exactly in the kernel),
         # not stacked: stacking the components was most of the cost
         pos = np.ascontiguousarray(pos)
@@ -128,6 +112,31 @@ class FeatureSums:
             in_bands(_add_feature_sums, (pos, x, col, first, self.shift, self.s1, self.s2), pos, self.height,
                      sorted_rows=sorted_rows)
             col += x.shape[1]
+
+    def parts(self, pos, feats, where) -> list:
+        """The features of a chunk checked against the earlier chunks' (names, components), each as an
+        (N, k) array in its own precision ([] for none); the sums are allocated with the first."""
+        from ...errors import InputError
+
+        names = tuple(feats)
+        if self.names is None:
+            self.names = names
+            self.sizes = tuple(int(np.shape(feats[k])[1]) if np.ndim(feats[k]) == 2 else 1 for k in names)
+        elif names != self.names:
+            raise InputError(where, "features", f"a round carries features {', '.join(names) or '(none)'}, "
+                             f"earlier rounds {', '.join(self.names) or '(none)'}: every round must carry the same")
+        if not names:
+            return []
+        parts = [np.asarray(feats[k]) for k in names]
+        parts = [np.ascontiguousarray(x.reshape(len(pos), -1) if x.ndim != 2 else x) for x in parts]
+        nf = sum(x.shape[1] for x in parts)
+        if nf != sum(self.sizes):
+            raise InputError(where, "features", f"{nf} components, earlier rounds {sum(self.sizes)}")
+        if self.shift is None:
+            self.shift = np.zeros((self.height * self.width, nf))
+            self.s1 = np.zeros((self.height, self.width, nf))
+            self.s2 = np.zeros((self.height, self.width, nf))
+        return parts
 
     @property
     def any(self) -> bool:
@@ -172,6 +181,78 @@ def _add_feature_sums(pos, f, col, first, shift, s1, s2, k0, k1, j0, j1):
             d = x - shift[q, col + c]
             s1[py, px, col + c] += d
             s2[py, px, col + c] += d * d
+
+
+def round_sums(pos, val, width, height, norm_code, weights, fsum, feats, where, sorted_rows=False):
+    """The per-pixel sums of a round held in memory, in one pass over its samples (in bands of rows on the
+    filters' threads, :func:`.bands.in_bands`): the round's counts and sums of G and G^2
+    (:func:`.outliers._count_and_moments`), of every channel's values and squares (:func:`channel_sums`),
+    and the features (``{name: (N, k)}``) added to ``fsum``'s cumulative sums (:meth:`FeatureSums.add`;
+    ``fsum`` None: none kept).  Each sum receives the terms of the separate passes in the same order: the
+    same bits, with a sample's pixel found once instead of once per pass and feature.
+
+    Returns
+    -------
+    counts : ndarray (H, W) int64
+    s1, s2 : ndarray (H, W)
+        The round's sums of G and G^2.
+    c1, c2 : ndarray (H, W, C)
+        The round's sums of the channels' values and squares.
+    """
+    counts = np.zeros((height, width), np.int64)
+    s1 = np.zeros((height, width))
+    s2 = np.zeros((height, width))
+    c1 = np.zeros((height, width, val.shape[1]))
+    c2 = np.zeros((height, width, val.shape[1]))
+    parts = tuple(fsum.parts(pos, feats, where)) if fsum is not None else ()
+    if parts:
+        ftail = (parts, fsum.n, fsum.shift, fsum.s1, fsum.s2)
+    else:  # no feature: one empty component, never read
+        ftail = ((np.zeros((1, 0)),), np.zeros((1, 1)), np.zeros((1, 0)), np.zeros((1, 1, 0)), np.zeros((1, 1, 0)))
+    in_bands(_add_round_sums, (pos, val, norm_code, weights, counts, s1, s2, c1, c2) + ftail, pos, height,
+             sorted_rows=sorted_rows)
+    return counts, s1, s2, c1, c2
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_round_sums(pos, val, norm_code, weights, counts, s1, s2, c1, c2, feats, fn, shift, fs1, fs2, k0, k1, j0,
+                    j1):
+    """:func:`round_sums`' pass over the samples ``k0 <= k < k1`` of the rows ``j0 <= j < j1``, in sample order:
+    the terms of :func:`.outliers._count_and_moments`, :func:`_add_channel_sums`, :func:`_first_samples` and
+    :func:`_add_feature_sums` (``feats`` a tuple of (N, k) arrays, columns stacked in their order; ``fs1``
+    with no column: no feature)."""
+    h, w = counts.shape
+    nc = c1.shape[2]
+    with_features = fs1.shape[2] > 0
+    for k in range(k0, k1):
+        py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+        if not j0 <= py < j1:
+            continue
+        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
+        g = _norm_of(val, k, norm_code, weights)
+        counts[py, px] += 1
+        s1[py, px] += g
+        s2[py, px] += g * g
+        for c in range(nc):
+            v = np.float64(val[k, c])
+            c1[py, px, c] += v
+            c2[py, px, c] += v * v
+        if with_features:
+            q = py * w + px
+            first = fn[py, px] == 0  # the pixel's first sample ever sets its shift
+            fn[py, px] += 1.0
+            col = 0
+            for f in literal_unroll(feats):
+                for c in range(f.shape[1]):
+                    x = np.float64(f[k, c])
+                    if not math.isfinite(x):
+                        x = 0.0
+                    if first:
+                        shift[q, col + c] = x
+                    d = x - shift[q, col + c]
+                    fs1[py, px, col + c] += d
+                    fs2[py, px, col + c] += d * d
+                col += f.shape[1]
 
 
 #: Relative floor of a feature's spread in the gate: means that agree to this many digits are equal

@@ -36,8 +36,8 @@ from ...core.features import check_features, usable_layout
 from ...core.samples import apply_nonfinite, check_policy, check_samples
 from .kernels import BOUNDARY_MODES, _BOUNDARY_CODE, _deposit_own_pixel, _scatter, _splat_guided_loop
 from ...filters.luminance import LUMINANCE_WEIGHTS
-from .consistent import (FeatureSums, _split_and_radii, channel_sums, width_coefs, edge_radius, feature_moments, gate_k,
-                         pixel_moments)
+from .consistent import (FeatureSums, _split_and_radii, channel_sums, edge_radius, feature_moments, gate_k,
+                         pixel_moments, round_sums, width_coefs)
 from .kernels import _add_widths, _splat_gated_loop
 from .bands import in_bands, in_ranges, rows_sorted
 from .outliers import _box_sum, _count_and_moments, _norm_of, _outlier_thresholds, _split_and_deposit, _split_outliers
@@ -365,18 +365,18 @@ class ProgressiveSplatter:
         dtype = None if self.spread == "consistent" else np.float64
         pos = np.ascontiguousarray(pos, dtype=dtype)
         val = np.ascontiguousarray(val, dtype=dtype)
-        counts = np.zeros((self.height, self.width), np.int64)
-        s1 = np.zeros((self.height, self.width))
-        s2 = np.zeros((self.height, self.width))
         srt = rows_sorted(pos, self.height)
-        if self.spread == "consistent":  # the pass of add_round_stream, on the arrays as given
-            if self._fsum is not None:
-                self._fsum.add(pos, features or {}, where, srt)
-            c1, c2 = channel_sums(pos, val, self.width, self.height, srt)
+        if self.spread == "consistent":  # the passes of add_round_stream in one, on the arrays as given
+            counts, s1, s2, c1, c2 = round_sums(pos, val, self.width, self.height, self._norm_code, self._weights,
+                                                self._fsum, features or {}, where, srt)
             self._cs1 += c1
             self._cs2 += c2
-        in_bands(_count_and_moments, (pos, val, self._norm_code, self._weights, counts, s1, s2), pos, self.height,
-                 sorted_rows=srt)
+        else:
+            counts = np.zeros((self.height, self.width), np.int64)
+            s1 = np.zeros((self.height, self.width))
+            s2 = np.zeros((self.height, self.width))
+            in_bands(_count_and_moments, (pos, val, self._norm_code, self._weights, counts, s1, s2), pos,
+                     self.height, sorted_rows=srt)
         if int(counts.sum()) == 0:
             return
         self._add_round_robust(None, counts, s1, s2, self.spp_total == 0.0, nonfinite, where, arrays=(pos, val, srt))
