@@ -335,16 +335,40 @@ def pixel_moments(counts, s1, s2):
     """Per pixel and channel (H, W, C, 4): the mean, the squared standard error of the mean, the log
     sample variance and its variance ``2 / (n - 1)`` (normal approximation).  Below two samples the
     standard error is infinite (nothing known); a variance of 0 has log -inf (only equal pixels match).
+    One compiled pass (:func:`_pixel_moments`) and numpy's log of the variances: bit for bit the array
+    expressions (tests/test_splat_stats_compiled.py).
     """
-    n = counts.astype(np.float64)[:, :, None]
+    h, w, nc = s1.shape
+    out = np.empty((h, w, nc, 4))
+    var = np.empty((h, w, nc))
+    _pixel_moments(np.ascontiguousarray(counts), np.ascontiguousarray(s1, dtype=np.float64),
+                   np.ascontiguousarray(s2, dtype=np.float64), out, var)
+    ok = (counts >= 2)[:, :, None]
     with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.where(n > 0, s1 / np.maximum(n, 1.0), 0.0)
-        var = np.maximum(s2 / np.maximum(n, 1.0) - mean * mean, 0.0) * n / np.maximum(n - 1.0, 1.0)
-        ok = n >= 2
-        se2 = np.where(ok, var / np.maximum(n, 1.0), np.inf)
-        lv = np.where(ok, np.log(var), 0.0)
-        tv = np.broadcast_to(np.where(ok, 2.0 / np.maximum(n - 1.0, 1.0), np.inf), mean.shape)
-    return np.ascontiguousarray(np.stack([mean, se2, lv, tv], axis=-1))
+        out[..., 2] = np.where(ok, np.log(var), 0.0)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _pixel_moments(counts, s1, s2, out, var):
+    """:func:`pixel_moments` but the log: ``out[..., 0, 1, 3]`` and the sample variances ``var`` (NaN kept as
+    ``np.maximum`` keeps it)."""
+    h, w, nc = s1.shape
+    for y in range(h):
+        for x in range(w):
+            n = np.float64(counts[y, x])
+            for c in range(nc):
+                mean = s1[y, x, c] / max(n, 1.0) if n > 0 else 0.0
+                d = s2[y, x, c] / max(n, 1.0) - mean * mean
+                v = (d if not d < 0.0 else 0.0) * n / max(n - 1.0, 1.0)
+                var[y, x, c] = v
+                out[y, x, c, 0] = mean
+                if n >= 2:
+                    out[y, x, c, 1] = v / max(n, 1.0)
+                    out[y, x, c, 3] = 2.0 / max(n - 1.0, 1.0)
+                else:
+                    out[y, x, c, 1] = np.inf
+                    out[y, x, c, 3] = np.inf
 
 
 def edge_radius(stats, k):
@@ -356,22 +380,58 @@ def edge_radius(stats, k):
     Sobel's (central differences smoothed 1-2-1 across, on the film mirrored at its borders), and
     its own noise is taken out: ``|g|^2 = max(0, gx^2 + gy^2 - var(gx) - var(gy))`` with the
     variances from the neighbours' standard errors, so pure noise does not pass for an edge.
-    0 where se is 0 (nothing to remove) or unknown (fewer than two samples).
+    0 where se is 0 (nothing to remove) or unknown (fewer than two samples).  One compiled pass
+    (:func:`_edge_radius`), bit for bit the array expressions (tests/test_splat_stats_compiled.py).
     """
-    mean, se2 = stats[..., 0], stats[..., 1]
-    m = np.pad(mean, ((1, 1), (1, 1), (0, 0)), mode="symmetric")
-    v = np.pad(np.where(np.isfinite(se2), se2, 0.0), ((1, 1), (1, 1), (0, 0)), mode="symmetric")
-    dx, vx = m[:, 2:] - m[:, :-2], v[:, 2:] + v[:, :-2]
-    dy, vy = m[2:] - m[:-2], v[2:] + v[:-2]
-    gx = (dx[:-2] + 2.0 * dx[1:-1] + dx[2:]) / 8.0
-    gy = (dy[:, :-2] + 2.0 * dy[:, 1:-1] + dy[:, 2:]) / 8.0
-    var_g = (vx[:-2] + 4.0 * vx[1:-1] + vx[2:] + vy[:, :-2] + 4.0 * vy[:, 1:-1] + vy[:, 2:]) / 64.0
-    se = np.sqrt(se2)
-    g = np.sqrt(np.maximum(gx * gx + gy * gy - var_g, 0.0))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        r = np.where(g > 0, k * se / g, np.inf)
-    r = np.where(np.isfinite(se) & (se > 0), r, 0.0)
-    return np.ascontiguousarray(r.min(axis=2))
+    h, w = stats.shape[0], stats.shape[1]
+    out = np.empty((h, w))
+    _edge_radius(np.ascontiguousarray(stats), float(k), out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _sobel(m, v, y, x, c, h, w):
+    """Sobel's gradient (gx, gy) of the means ``m`` at (y, x) on the film mirrored at its borders (an index
+    one off the film reads the border pixel) and its noise ``var gx + var gy`` from the squared standard
+    errors ``v``, with the additions in the order of the array expressions they replace."""
+    ym = max(y - 1, 0)
+    yp = min(y + 1, h - 1)
+    xm = max(x - 1, 0)
+    xp = min(x + 1, w - 1)
+    gx = ((m[ym, xp, c, 0] - m[ym, xm, c, 0]) + 2.0 * (m[y, xp, c, 0] - m[y, xm, c, 0])
+          + (m[yp, xp, c, 0] - m[yp, xm, c, 0])) / 8.0
+    gy = ((m[yp, xm, c, 0] - m[ym, xm, c, 0]) + 2.0 * (m[yp, x, c, 0] - m[ym, x, c, 0])
+          + (m[yp, xp, c, 0] - m[ym, xp, c, 0])) / 8.0
+    var_g = (((((_fin(v[ym, xp, c, 1]) + _fin(v[ym, xm, c, 1])) + 4.0 * (_fin(v[y, xp, c, 1]) + _fin(v[y, xm, c, 1])))
+               + (_fin(v[yp, xp, c, 1]) + _fin(v[yp, xm, c, 1])))
+              + (_fin(v[yp, xm, c, 1]) + _fin(v[ym, xm, c, 1]))) + 4.0 * (_fin(v[yp, x, c, 1]) + _fin(v[ym, x, c, 1]))
+             + (_fin(v[yp, xp, c, 1]) + _fin(v[ym, xp, c, 1]))) / 64.0
+    return gx, gy, var_g
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _fin(a):
+    """A squared standard error, 0 where it is not finite (fewer than two samples)."""
+    return a if math.isfinite(a) else 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _edge_radius(stats, k, out):
+    """:func:`edge_radius` pixel by pixel."""
+    h, w, nc = stats.shape[0], stats.shape[1], stats.shape[2]
+    for y in range(h):
+        for x in range(w):
+            rmin = np.inf
+            for c in range(nc):
+                gx, gy, var_g = _sobel(stats, stats, y, x, c, h, w)
+                se = math.sqrt(stats[y, x, c, 1])
+                g = math.sqrt(max(gx * gx + gy * gy - var_g, 0.0))
+                r = k * se / g if g > 0 else np.inf
+                if not (math.isfinite(se) and se > 0):
+                    r = 0.0
+                if c == 0 or r < rmin:
+                    rmin = r
+            out[y, x] = rmin
 
 
 def width_coefs(fref, nmap, c, alpha):
