@@ -87,3 +87,88 @@ def test_width_factors_give_eq8_widths_bit_for_bit():
                     ref = _excess_width(g, 0.0, f[y, x], n[y, x], c, alpha, 1.0, 32.0)
                     got = _width_of(g - 0.0, coef[y, x], sf[y, x], 32.0)
                     assert got == ref, (g, f[y, x], n[y, x])
+
+
+def test_round_sums_equal_the_separate_passes():
+    """The one pass over a round (counts, G moments, channel sums, every feature's sums) gives the bits of
+    the separate passes of the streamed path, over rounds whose first sets the features' shifts, with
+    float32 and float64 features, a NaN feature and one and two threads."""
+    from mcrecon.methods.splat.consistent import FeatureSums, channel_sums, round_sums
+    from mcrecon.methods.splat.bands import in_bands
+    from mcrecon.methods.splat.outliers import _count_and_moments
+    from mcrecon.filters.luminance import LUMINANCE_WEIGHTS
+
+    rng = np.random.default_rng(4)
+    w, h, n = 23, 19, 70000  # above bands.BAND_MIN: two bands on two threads
+    a, b = FeatureSums(w, h), FeatureSums(w, h)
+    for r in range(2):
+        pos = rng.uniform(0, 1, (n, 2)) * [w, h]
+        if r:
+            pos = pos[np.lexsort((pos[:, 0], np.floor(pos[:, 1])))]  # rows never decrease: bands visit their own
+        val = rng.exponential(1.0, (n, 3)).astype(np.float32)
+        feats = {"albedo": rng.uniform(0, 1, (n, 3)).astype(np.float32), "depth": 1000 + rng.normal(0, 0.01, n)}
+        feats["albedo"][5, 1] = np.nan
+        from mcrecon.methods.splat.bands import rows_sorted
+
+        srt = rows_sorted(pos, h)
+        for threads in ("1", "2"):
+            import os
+            os.environ["MCRECON_THREADS"] = threads
+            try:
+                got = round_sums(pos, val, w, h, 0, LUMINANCE_WEIGHTS.copy(), a if threads == "2" else None, feats,
+                                 "test", srt)
+            finally:
+                os.environ.pop("MCRECON_THREADS")
+            counts = np.zeros((h, w), np.int64)
+            s1, s2 = np.zeros((h, w)), np.zeros((h, w))
+            in_bands(_count_and_moments, (pos, val, 0, LUMINANCE_WEIGHTS.copy(), counts, s1, s2), pos, h)
+            c1, c2 = channel_sums(pos, val, w, h)
+            for x, y in zip(got, (counts, s1, s2, c1, c2)):
+                np.testing.assert_array_equal(x, y)
+        b.add(pos, feats, "test")
+        for x, y in ((a.n, b.n), (a.shift, b.shift), (a.s1, b.s1), (a.s2, b.s2)):
+            np.testing.assert_array_equal(x, y)
+
+
+def test_gate_answers_as_the_full_feature_test():
+    """The feature test's shortcut (means within the spreads pass without the slopes' term) answers as the
+    full expression, on random pixel pairs near and at the boundary, with infinite variances."""
+    import numba
+
+    from mcrecon.methods.splat.kernels import _same_pixel_stats
+
+    @numba.njit(cache=False)
+    def gate(gs, fs, k2, pairs, out):
+        for m in range(pairs.shape[0]):
+            out[m] = _same_pixel_stats(gs, fs, pairs[m, 0], pairs[m, 1], pairs[m, 2], pairs[m, 3], k2)
+
+    def full(fs, pairs, k2):  # the test without the shortcut, in array form: every pair, every component
+        p, q = fs[pairs[:, 0], pairs[:, 1]], fs[pairs[:, 2], pairs[:, 3]]
+        ax = np.abs(pairs[:, 3] - pairs[:, 1]).astype(float)[:, None]
+        ay = np.abs(pairs[:, 2] - pairs[:, 0]).astype(float)[:, None]
+        noise = k2 * (2.0 + 0.5 * (ax * ax + ay * ay))
+        d = q[..., 0] - p[..., 0]
+        t = ax * np.maximum(np.abs(p[..., 2]), np.abs(q[..., 2])) + ay * np.maximum(np.abs(p[..., 3]),
+                                                                                   np.abs(q[..., 3]))
+        t = t + np.sqrt(noise * np.maximum(p[..., 4], q[..., 4]))
+        same = (pairs[:, 0] == pairs[:, 2]) & (pairs[:, 1] == pairs[:, 3])
+        return same | (d * d <= k2 * (p[..., 1] + q[..., 1]) + t * t).all(axis=1)
+
+    rng = np.random.default_rng(6)
+    h, w, nf = 12, 14, 4
+    fs = np.empty((h, w, nf, 5))
+    fs[..., 0] = rng.normal(0, 1, (h, w, nf)) * rng.choice([0.0, 0.05, 1.0], (h, w, nf))
+    fs[..., 1] = rng.exponential(0.01, (h, w, nf))
+    fs[..., 2:4] = rng.normal(0, 0.1, (h, w, nf, 2))
+    fs[..., 4] = fs[..., 1] / rng.integers(2, 40, (h, w, nf))
+    fs[0, :4, 0, 1] = np.inf  # below two samples: nothing known
+    fs[0, :4, 0, 4] = np.inf
+    gs = np.zeros((h, w, 0, 4))  # the colour passes: only the features decide
+    jj, ii = np.mgrid[:h, :w]
+    pairs = np.array([(pj, pi, qj, qi) for pj, pi in zip(jj.ravel(), ii.ravel())
+                      for qj in range(max(pj - 2, 0), min(pj + 3, h)) for qi in range(max(pi - 2, 0), min(pi + 3, w))],
+                     np.int64)
+    out = np.zeros(len(pairs), np.bool_)
+    gate(gs, fs, 2.64 ** 2, pairs, out)
+    np.testing.assert_array_equal(out, full(fs, pairs, 2.64 ** 2))
+    assert 0.05 < out.mean() < 0.95  # both answers occur
