@@ -45,10 +45,11 @@ import math
 
 import numba
 import numpy as np
+from numba import literal_unroll
 from scipy.special import ndtri
 
 from .bands import in_bands
-from .outliers import _excess_width, _judge
+from .outliers import _norm_of
 
 
 def gate_k(rate: float, n_channels: int) -> float:
@@ -98,26 +99,9 @@ class FeatureSums:
     def add(self, pos, feats, where, sorted_rows=False):
         """Add the features (``{name: (N, k)}``, the rows of ``pos``) of one chunk (in bands of rows on the
         filters' threads, :func:`.bands.in_bands`)."""
-        from ...errors import InputError
-
-        names = tuple(feats)
-        if self.names is None:
-            self.names = names
-            self.sizes = tuple(int(np.shape(feats[k])[1]) if np.ndim(feats[k]) == 2 else 1 for k in names)
-        elif names != self.names:
-            raise InputError(where, "features", f"a round carries features {', '.join(names) or '(none)'}, "
-                             f"earlier rounds {', '.join(self.names) or '(none)'}: every round must carry the same")
-        if not names:
+        parts = self.parts(pos, feats, where)
+        if not parts:
             return
-        parts = [np.asarray(feats[k]) for k in names]
-        parts = [np.ascontiguousarray(x.reshape(len(pos), -1) if x.ndim != 2 else x) for x in parts]
-        nf = sum(x.shape[1] for x in parts)
-        if nf != sum(self.sizes):
-            raise InputError(where, "features", f"{nf} components, earlier rounds {sum(self.sizes)}")
-        if self.shift is None:
-            self.shift = np.zeros((self.height * self.width, nf))
-            self.s1 = np.zeros((self.height, self.width, nf))
-            self.s2 = np.zeros((self.height, self.width, nf))
         # each feature in its own precision (a renderer's float32 is widened exactly in the kernel),
         # not stacked: stacking the components was most of the cost
         pos = np.ascontiguousarray(pos)
@@ -128,6 +112,31 @@ class FeatureSums:
             in_bands(_add_feature_sums, (pos, x, col, first, self.shift, self.s1, self.s2), pos, self.height,
                      sorted_rows=sorted_rows)
             col += x.shape[1]
+
+    def parts(self, pos, feats, where) -> list:
+        """The features of a chunk checked against the earlier chunks' (names, components), each as an
+        (N, k) array in its own precision ([] for none); the sums are allocated with the first."""
+        from ...errors import InputError
+
+        names = tuple(feats)
+        if self.names is None:
+            self.names = names
+            self.sizes = tuple(int(np.shape(feats[k])[1]) if np.ndim(feats[k]) == 2 else 1 for k in names)
+        elif names != self.names:
+            raise InputError(where, "features", f"a round carries features {', '.join(names) or '(none)'}, "
+                             f"earlier rounds {', '.join(self.names) or '(none)'}: every round must carry the same")
+        if not names:
+            return []
+        parts = [np.asarray(feats[k]) for k in names]
+        parts = [np.ascontiguousarray(x.reshape(len(pos), -1) if x.ndim != 2 else x) for x in parts]
+        nf = sum(x.shape[1] for x in parts)
+        if nf != sum(self.sizes):
+            raise InputError(where, "features", f"{nf} components, earlier rounds {sum(self.sizes)}")
+        if self.shift is None:
+            self.shift = np.zeros((self.height * self.width, nf))
+            self.s1 = np.zeros((self.height, self.width, nf))
+            self.s2 = np.zeros((self.height, self.width, nf))
+        return parts
 
     @property
     def any(self) -> bool:
@@ -172,6 +181,78 @@ def _add_feature_sums(pos, f, col, first, shift, s1, s2, k0, k1, j0, j1):
             d = x - shift[q, col + c]
             s1[py, px, col + c] += d
             s2[py, px, col + c] += d * d
+
+
+def round_sums(pos, val, width, height, norm_code, weights, fsum, feats, where, sorted_rows=False):
+    """The per-pixel sums of a round held in memory, in one pass over its samples (in bands of rows on the
+    filters' threads, :func:`.bands.in_bands`): the round's counts and sums of G and G^2
+    (:func:`.outliers._count_and_moments`), of every channel's values and squares (:func:`channel_sums`),
+    and the features (``{name: (N, k)}``) added to ``fsum``'s cumulative sums (:meth:`FeatureSums.add`;
+    ``fsum`` None: none kept).  Each sum receives the terms of the separate passes in the same order: the
+    same bits, with a sample's pixel found once instead of once per pass and feature.
+
+    Returns
+    -------
+    counts : ndarray (H, W) int64
+    s1, s2 : ndarray (H, W)
+        The round's sums of G and G^2.
+    c1, c2 : ndarray (H, W, C)
+        The round's sums of the channels' values and squares.
+    """
+    counts = np.zeros((height, width), np.int64)
+    s1 = np.zeros((height, width))
+    s2 = np.zeros((height, width))
+    c1 = np.zeros((height, width, val.shape[1]))
+    c2 = np.zeros((height, width, val.shape[1]))
+    parts = tuple(fsum.parts(pos, feats, where)) if fsum is not None else ()
+    if parts:
+        ftail = (parts, fsum.n, fsum.shift, fsum.s1, fsum.s2)
+    else:  # no feature: one empty component, never read
+        ftail = ((np.zeros((1, 0)),), np.zeros((1, 1)), np.zeros((1, 0)), np.zeros((1, 1, 0)), np.zeros((1, 1, 0)))
+    in_bands(_add_round_sums, (pos, val, norm_code, weights, counts, s1, s2, c1, c2) + ftail, pos, height,
+             sorted_rows=sorted_rows)
+    return counts, s1, s2, c1, c2
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_round_sums(pos, val, norm_code, weights, counts, s1, s2, c1, c2, feats, fn, shift, fs1, fs2, k0, k1, j0,
+                    j1):
+    """:func:`round_sums`' pass over the samples ``k0 <= k < k1`` of the rows ``j0 <= j < j1``, in sample order:
+    the terms of :func:`.outliers._count_and_moments`, :func:`_add_channel_sums`, :func:`_first_samples` and
+    :func:`_add_feature_sums` (``feats`` a tuple of (N, k) arrays, columns stacked in their order; ``fs1``
+    with no column: no feature)."""
+    h, w = counts.shape
+    nc = c1.shape[2]
+    with_features = fs1.shape[2] > 0
+    for k in range(k0, k1):
+        py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+        if not j0 <= py < j1:
+            continue
+        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
+        g = _norm_of(val, k, norm_code, weights)
+        counts[py, px] += 1
+        s1[py, px] += g
+        s2[py, px] += g * g
+        for c in range(nc):
+            v = np.float64(val[k, c])
+            c1[py, px, c] += v
+            c2[py, px, c] += v * v
+        if with_features:
+            q = py * w + px
+            first = fn[py, px] == 0  # the pixel's first sample ever sets its shift
+            fn[py, px] += 1.0
+            col = 0
+            for f in literal_unroll(feats):
+                for c in range(f.shape[1]):
+                    x = np.float64(f[k, c])
+                    if not math.isfinite(x):
+                        x = 0.0
+                    if first:
+                        shift[q, col + c] = x
+                    d = x - shift[q, col + c]
+                    fs1[py, px, col + c] += d
+                    fs2[py, px, col + c] += d * d
+                col += f.shape[1]
 
 
 #: Relative floor of a feature's spread in the gate: means that agree to this many digits are equal
@@ -254,16 +335,40 @@ def pixel_moments(counts, s1, s2):
     """Per pixel and channel (H, W, C, 4): the mean, the squared standard error of the mean, the log
     sample variance and its variance ``2 / (n - 1)`` (normal approximation).  Below two samples the
     standard error is infinite (nothing known); a variance of 0 has log -inf (only equal pixels match).
+    One compiled pass (:func:`_pixel_moments`) and numpy's log of the variances: bit for bit the array
+    expressions (tests/test_splat_stats_compiled.py).
     """
-    n = counts.astype(np.float64)[:, :, None]
+    h, w, nc = s1.shape
+    out = np.empty((h, w, nc, 4))
+    var = np.empty((h, w, nc))
+    _pixel_moments(np.ascontiguousarray(counts), np.ascontiguousarray(s1, dtype=np.float64),
+                   np.ascontiguousarray(s2, dtype=np.float64), out, var)
+    ok = (counts >= 2)[:, :, None]
     with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.where(n > 0, s1 / np.maximum(n, 1.0), 0.0)
-        var = np.maximum(s2 / np.maximum(n, 1.0) - mean * mean, 0.0) * n / np.maximum(n - 1.0, 1.0)
-        ok = n >= 2
-        se2 = np.where(ok, var / np.maximum(n, 1.0), np.inf)
-        lv = np.where(ok, np.log(var), 0.0)
-        tv = np.broadcast_to(np.where(ok, 2.0 / np.maximum(n - 1.0, 1.0), np.inf), mean.shape)
-    return np.ascontiguousarray(np.stack([mean, se2, lv, tv], axis=-1))
+        out[..., 2] = np.where(ok, np.log(var), 0.0)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _pixel_moments(counts, s1, s2, out, var):
+    """:func:`pixel_moments` but the log: ``out[..., 0, 1, 3]`` and the sample variances ``var`` (NaN kept as
+    ``np.maximum`` keeps it)."""
+    h, w, nc = s1.shape
+    for y in range(h):
+        for x in range(w):
+            n = np.float64(counts[y, x])
+            for c in range(nc):
+                mean = s1[y, x, c] / max(n, 1.0) if n > 0 else 0.0
+                d = s2[y, x, c] / max(n, 1.0) - mean * mean
+                v = (d if not d < 0.0 else 0.0) * n / max(n - 1.0, 1.0)
+                var[y, x, c] = v
+                out[y, x, c, 0] = mean
+                if n >= 2:
+                    out[y, x, c, 1] = v / max(n, 1.0)
+                    out[y, x, c, 3] = 2.0 / max(n - 1.0, 1.0)
+                else:
+                    out[y, x, c, 1] = np.inf
+                    out[y, x, c, 3] = np.inf
 
 
 def edge_radius(stats, k):
@@ -275,43 +380,119 @@ def edge_radius(stats, k):
     Sobel's (central differences smoothed 1-2-1 across, on the film mirrored at its borders), and
     its own noise is taken out: ``|g|^2 = max(0, gx^2 + gy^2 - var(gx) - var(gy))`` with the
     variances from the neighbours' standard errors, so pure noise does not pass for an edge.
-    0 where se is 0 (nothing to remove) or unknown (fewer than two samples).
+    0 where se is 0 (nothing to remove) or unknown (fewer than two samples).  One compiled pass
+    (:func:`_edge_radius`), bit for bit the array expressions (tests/test_splat_stats_compiled.py).
     """
-    mean, se2 = stats[..., 0], stats[..., 1]
-    m = np.pad(mean, ((1, 1), (1, 1), (0, 0)), mode="symmetric")
-    v = np.pad(np.where(np.isfinite(se2), se2, 0.0), ((1, 1), (1, 1), (0, 0)), mode="symmetric")
-    dx, vx = m[:, 2:] - m[:, :-2], v[:, 2:] + v[:, :-2]
-    dy, vy = m[2:] - m[:-2], v[2:] + v[:-2]
-    gx = (dx[:-2] + 2.0 * dx[1:-1] + dx[2:]) / 8.0
-    gy = (dy[:, :-2] + 2.0 * dy[:, 1:-1] + dy[:, 2:]) / 8.0
-    var_g = (vx[:-2] + 4.0 * vx[1:-1] + vx[2:] + vy[:, :-2] + 4.0 * vy[:, 1:-1] + vy[:, 2:]) / 64.0
-    se = np.sqrt(se2)
-    g = np.sqrt(np.maximum(gx * gx + gy * gy - var_g, 0.0))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        r = np.where(g > 0, k * se / g, np.inf)
-    r = np.where(np.isfinite(se) & (se > 0), r, 0.0)
-    return np.ascontiguousarray(r.min(axis=2))
+    h, w = stats.shape[0], stats.shape[1]
+    out = np.empty((h, w))
+    _edge_radius(np.ascontiguousarray(stats), float(k), out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _sobel(m, v, y, x, c, h, w):
+    """Sobel's gradient (gx, gy) of the means ``m`` at (y, x) on the film mirrored at its borders (an index
+    one off the film reads the border pixel) and its noise ``var gx + var gy`` from the squared standard
+    errors ``v``, with the additions in the order of the array expressions they replace."""
+    ym = max(y - 1, 0)
+    yp = min(y + 1, h - 1)
+    xm = max(x - 1, 0)
+    xp = min(x + 1, w - 1)
+    gx = ((m[ym, xp, c, 0] - m[ym, xm, c, 0]) + 2.0 * (m[y, xp, c, 0] - m[y, xm, c, 0])
+          + (m[yp, xp, c, 0] - m[yp, xm, c, 0])) / 8.0
+    gy = ((m[yp, xm, c, 0] - m[ym, xm, c, 0]) + 2.0 * (m[yp, x, c, 0] - m[ym, x, c, 0])
+          + (m[yp, xp, c, 0] - m[ym, xp, c, 0])) / 8.0
+    var_g = (((((_fin(v[ym, xp, c, 1]) + _fin(v[ym, xm, c, 1])) + 4.0 * (_fin(v[y, xp, c, 1]) + _fin(v[y, xm, c, 1])))
+               + (_fin(v[yp, xp, c, 1]) + _fin(v[yp, xm, c, 1])))
+              + (_fin(v[yp, xm, c, 1]) + _fin(v[ym, xm, c, 1]))) + 4.0 * (_fin(v[yp, x, c, 1]) + _fin(v[ym, x, c, 1]))
+             + (_fin(v[yp, xp, c, 1]) + _fin(v[ym, xp, c, 1]))) / 64.0
+    return gx, gy, var_g
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _fin(a):
+    """A squared standard error, 0 where it is not finite (fewer than two samples)."""
+    return a if math.isfinite(a) else 0.0
 
 
 @numba.njit(cache=True, nogil=True)
-def _split_and_radii(pos, val, norm_code, weights, tau, fref, nmap, c, alpha, spread_c, spread_alpha, min_w, max_w,
-                     r_edge, frac, radius, krad, k0, k1):
+def _edge_radius(stats, k, out):
+    """:func:`edge_radius` pixel by pixel."""
+    h, w, nc = stats.shape[0], stats.shape[1], stats.shape[2]
+    for y in range(h):
+        for x in range(w):
+            rmin = np.inf
+            for c in range(nc):
+                gx, gy, var_g = _sobel(stats, stats, y, x, c, h, w)
+                se = math.sqrt(stats[y, x, c, 1])
+                g = math.sqrt(max(gx * gx + gy * gy - var_g, 0.0))
+                r = k * se / g if g > 0 else np.inf
+                if not (math.isfinite(se) and se > 0):
+                    r = 0.0
+                if c == 0 or r < rmin:
+                    rmin = r
+            out[y, x] = rmin
+
+
+def width_coefs(fref, nmap, c, alpha):
+    """Per pixel the factors of Eq. 8's diameter ``d = C N^-alpha (G / f)^(1/2)`` that do not depend on the
+    sample: ``(C N^-alpha, sqrt(f))`` (:func:`_width_coefs`), for :func:`_split_and_radii`."""
+    coef = np.empty(fref.shape)
+    sf = np.empty(fref.shape)
+    _width_coefs(fref, nmap, float(c), float(alpha), coef, sf)
+    return coef, sf
+
+
+@numba.njit(cache=True, nogil=True)
+def _width_coefs(fref, nmap, c, alpha, coef, sf):
+    """``coef = C N^-alpha`` and ``sf = sqrt(f)`` of every pixel (``sf = 0`` where f is not positive and finite:
+    nothing is known there, the width is the cap), so that a sample's diameter
+    ``coef * (sqrt(G - t) / sf)`` costs a square root and a division, not a power: the expression of
+    :func:`.outliers._excess_width`, bit for bit."""
+    h, w = fref.shape
+    for y in range(h):
+        for x in range(w):
+            f = fref[y, x]
+            coef[y, x] = c * nmap[y, x] ** (-alpha)
+            sf[y, x] = math.sqrt(f) if f > 0.0 and f < np.inf else 0.0
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _width_of(ex, coef, sf, max_w):
+    """:func:`.outliers._excess_width` from the pixel's :func:`_width_coefs`: (diameter, capped)."""
+    d = coef * (math.sqrt(ex) / sf) if sf > 0.0 else np.inf
+    capped = d > max_w
+    if d >= max_w:
+        d = max_w
+    return d, capped
+
+
+@numba.njit(cache=True, nogil=True)
+def _split_and_radii(pos, val, norm_code, weights, tau, coef, spread_coef, sf, min_w, max_w, r_edge, frac, radius,
+                     krad, k0, k1):
     """The outlier split of :func:`.outliers._split_outliers` (``frac``, ``radius``; returns (outliers, capped))
     and, in the same pass over the samples ``k0 <= k < k1``, the support radius ``krad`` of each consistent
     sample (``frac = 0`` under a finite threshold ``tau``: the outlier test ran and passed it): Eq. 8 with
     ``spread_c``, ``spread_alpha`` against the window mean ``fref``; -1 for outliers, for samples no test
     could judge yet, and where the diameter, or the pixel's ``2 r_edge``, is at most ``min_w``.  One pass:
-    the sample's G and pixel are found once for both."""
+    the sample's G and pixel are found once for both.  ``coef``, ``spread_coef`` and ``sf``: the per-pixel
+    factors of the two widths (:func:`width_coefs` of ``c, alpha`` and of ``spread_c, spread_alpha``), the
+    same diameters as :func:`.outliers._excess_width` computes from ``fref`` and the counts."""
+    h, w = tau.shape
     n_out = 0
     n_capped = 0
     for k in range(k0, k1):
         frac[k] = 0.0
         radius[k] = -1.0
         krad[k] = -1.0
-        g, py, px, t, d, cap = _judge(pos, val, k, norm_code, weights, tau, fref, nmap, c, alpha, min_w, max_w)
+        g = _norm_of(val, k, norm_code, weights)
         if not g > 0.0:
             continue
+        px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
+        py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
+        t = tau[py, px]
         if g > t:
+            d, cap = _width_of(g - t, coef[py, px], sf[py, px], max_w)
             n_capped += cap
             if d > min_w:  # an outlier: its excess is spread by the outlier rule, the rest stays
                 n_out += 1
@@ -320,7 +501,7 @@ def _split_and_radii(pos, val, norm_code, weights, tau, fref, nmap, c, alpha, sp
                 continue
         if not t < np.inf:
             continue  # too few samples around for the outlier test: not known to be consistent
-        d, _ = _excess_width(g, 0.0, fref[py, px], nmap[py, px], spread_c, spread_alpha, min_w, max_w)
+        d, _ = _width_of(g - 0.0, spread_coef[py, px], sf[py, px], max_w)
         if min(d, 2.0 * r_edge[py, px]) > min_w:  # else nothing would leave the pixel
             krad[k] = 0.5 * d
     return n_out, n_capped

@@ -125,10 +125,14 @@ def _same_pixel_stats(gs, fs, pj, pi, qj, qi, k2):
     noise = k2 * (2.0 + 0.5 * (ax * ax + ay * ay))  # k^2 (variance of the difference and the slopes) / se^2
     for c in range(fs.shape[2]):
         d = fs[qj, qi, c, 0] - fs[pj, pi, c, 0]
+        d2 = d * d
+        spread = k2 * (fs[pj, pi, c, 1] + fs[qj, qi, c, 1])
+        if d2 <= spread:  # within the spreads alone: passes whatever the slopes add (t^2 >= 0, never NaN)
+            continue
         t = ax * max(abs(fs[pj, pi, c, 2]), abs(fs[qj, qi, c, 2])) + ay * max(abs(fs[pj, pi, c, 3]),
                                                                          abs(fs[qj, qi, c, 3]))
         t += math.sqrt(noise * max(fs[pj, pi, c, 4], fs[qj, qi, c, 4]))
-        if not d * d <= k2 * (fs[pj, pi, c, 1] + fs[qj, qi, c, 1]) + t * t:
+        if not d2 <= spread + t * t:
             return False
     return True
 

@@ -37,7 +37,7 @@ from ...core.samples import apply_nonfinite, check_policy, check_samples
 from .kernels import BOUNDARY_MODES, _BOUNDARY_CODE, _deposit_own_pixel, _scatter, _splat_guided_loop
 from ...filters.luminance import LUMINANCE_WEIGHTS
 from .consistent import (FeatureSums, _split_and_radii, channel_sums, edge_radius, feature_moments, gate_k,
-                         pixel_moments)
+                         pixel_moments, round_sums, width_coefs)
 from .kernels import _add_widths, _splat_gated_loop
 from .bands import in_bands, in_ranges, rows_sorted
 from .outliers import _box_sum, _count_and_moments, _norm_of, _outlier_thresholds, _split_and_deposit, _split_outliers
@@ -365,18 +365,18 @@ class ProgressiveSplatter:
         dtype = None if self.spread == "consistent" else np.float64
         pos = np.ascontiguousarray(pos, dtype=dtype)
         val = np.ascontiguousarray(val, dtype=dtype)
-        counts = np.zeros((self.height, self.width), np.int64)
-        s1 = np.zeros((self.height, self.width))
-        s2 = np.zeros((self.height, self.width))
         srt = rows_sorted(pos, self.height)
-        if self.spread == "consistent":  # the pass of add_round_stream, on the arrays as given
-            if self._fsum is not None:
-                self._fsum.add(pos, features or {}, where, srt)
-            c1, c2 = channel_sums(pos, val, self.width, self.height, srt)
+        if self.spread == "consistent":  # the passes of add_round_stream in one, on the arrays as given
+            counts, s1, s2, c1, c2 = round_sums(pos, val, self.width, self.height, self._norm_code, self._weights,
+                                                self._fsum, features or {}, where, srt)
             self._cs1 += c1
             self._cs2 += c2
-        in_bands(_count_and_moments, (pos, val, self._norm_code, self._weights, counts, s1, s2), pos, self.height,
-                 sorted_rows=srt)
+        else:
+            counts = np.zeros((self.height, self.width), np.int64)
+            s1 = np.zeros((self.height, self.width))
+            s2 = np.zeros((self.height, self.width))
+            in_bands(_count_and_moments, (pos, val, self._norm_code, self._weights, counts, s1, s2), pos,
+                     self.height, sorted_rows=srt)
         if int(counts.sum()) == 0:
             return
         self._add_round_robust(None, counts, s1, s2, self.spp_total == 0.0, nonfinite, where, arrays=(pos, val, srt))
@@ -570,6 +570,9 @@ class ProgressiveSplatter:
             gstats = pixel_moments(self.cum_counts, self._cs1, self._cs2)
             r_edge = edge_radius(gstats, self._gate_k)
             fstats = feature_moments(self._fsum)  # (1, 1, 0, 2) without features: the gate tests none
+            # Eq. 8's per-pixel factors of the outliers' and the consistent samples' widths, once per pixel
+            coef, sqrt_f = width_coefs(fref, nmap, self.c, self.alpha)
+            spread_coef, _ = width_coefs(fref, nmap, self.spread_c, self.spread_alpha)
         if arrays is not None and not consistent:  # a round in memory (add_round): the fused pass
             p, v, _ = arrays
             idx = np.empty(p.shape[0], np.int64)
@@ -597,9 +600,9 @@ class ProgressiveSplatter:
             rad = np.empty(p.shape[0])
             krad = np.empty(p.shape[0]) if consistent else rad
             if consistent:  # the split and the consistent samples' radii in one pass
-                split = in_ranges(_split_and_radii, (p, v, self._norm_code, self._weights, tau, fref, nmap, self.c,
-                                                     self.alpha, self.spread_c, self.spread_alpha, self.min_width,
-                                                     self.max_width, r_edge, frac, rad, krad), p.shape[0])
+                split = in_ranges(_split_and_radii, (p, v, self._norm_code, self._weights, tau, coef, spread_coef,
+                                                     sqrt_f, self.min_width, self.max_width, r_edge, frac, rad,
+                                                     krad), p.shape[0])
             else:
                 split = in_ranges(_split_outliers, (p, v, self._norm_code, self._weights, tau, fref, nmap, self.c,
                                                     self.alpha, self.min_width, self.max_width, frac, rad), p.shape[0])
