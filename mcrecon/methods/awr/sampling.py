@@ -17,7 +17,7 @@ import numba
 import numpy as np
 
 from ...core.samples import check_memory
-from ...core.safeguard import rare_component_variance
+from ...core.safeguard import neighbourhood_mean_variance, rare_component_mask
 from ...core.stats import PixelStats
 from ...core.fill import fill_empty_pixels
 from .reconstruction import functional_variance
@@ -291,8 +291,10 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
         else stats.mean
     fvar = functional_variance(stats, estimator)
     if rare_light_floor:
+        # the evidence is the samples' variance whatever sigma^2(F) estimator ranks the coefficients
         n = np.maximum(stats.count, 1)[..., None]
-        fvar = rare_component_variance(fvar / n, stats.mean, stats.count) * n
+        rare = rare_component_mask(stats.sample_variance(undefined=0.0) / n, stats.mean, stats.count)
+        fvar = np.where(rare, np.maximum(fvar, neighbourhood_mean_variance(fvar / n, stats.count) * n), fvar)
     taken = stats.count + np.asarray(pending) if pending is not None and np.any(pending) else stats.count
     var = fvar / np.maximum(taken, 1)[..., None]
     pri = scale_priorities(mean, var, wavelet=wavelet, levels=levels, mode=mode, renorm=renorm,
