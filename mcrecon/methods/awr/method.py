@@ -111,9 +111,9 @@ class AWRMethod(Method):
                "a caustic), so pixels whose samples all missed it keep their samples; 0 the pixel's own "
                "(the paper)",
                choices=(0, 1)),
-        Option("uniform_share", float, 0.25, "share of each adaptive round spread uniformly over the film: a "
-               "floor under every pixel's count where the sampler's estimates mislead (0: the wavelet sampler "
-               "alone, the paper)", min=0.0, max=1.0),
+        Option("uniform_share", float, 0.0, "share of each adaptive round spread uniformly over the film "
+               "(0: the wavelet sampler alone, the paper; a quarter costs the HDR step edge of "
+               "tests/test_awr_robust.py 3x its error, docs/methods/awr.md)", min=0.0, max=1.0),
         Option("priority_threshold", float, None, "stop sampling when no priority exceeds this"),
         Option("reconstruction", str, "awr", "final image of an adaptive run: awr, or box (AWR sampling only)",
                ("awr", "box")),
