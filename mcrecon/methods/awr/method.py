@@ -165,7 +165,8 @@ class AWRMethod(Method):
             state.stats, n, state.rng, wavelet=p["wavelet"], levels=p["sampling_levels"], mode=p["boundary"],
             per_coefficient=p["per_coefficient"], renorm=p["sampling_renorm"], propagation=p["propagation"],
             priority_threshold=p["priority_threshold"], estimator=p["sampling_variance"],
-            pending=state.pending, as_counts=True, rare_light_floor=bool(p["rare_light_floor"]))  # counts: the renderer continues each pixel's sequence
+            pending=state.pending, as_counts=True,  # counts: the renderer continues each pixel's sequence
+            rare_light_floor=bool(p["rare_light_floor"]))
         run.last_plan_info = info
         if pos is None or len(pos) == 0:
             return None

@@ -130,8 +130,9 @@ class GEMMethod(Method):
                "estimated error, thin geometry included; 0 off (the paper)", min=0.0),
         Option("guard_halves", int, 1, "final reconstruction: 1 has the risk guard read each pixel mean's "
                "variance as the average of s^2 / n and the estimate of its sample sequence's two prefix halves, "
-               "which the selection did not see, wherever the samples' order is known (an adaptive run; "
-               "MethodInputs with samples); 0 s^2 / n alone", choices=(0, 1)),
+               "which the selection did not see, wherever the samples' order is known (a sample log or "
+               "SampleSet, an adaptive run; pixel statistics alone keep s^2 / n); 0 s^2 / n alone",
+               choices=(0, 1)),
         Option("stratified_gain", int, 1, "adaptive phase: 1 scales each pixel mean's variance s^2 / n by its "
                "measured stratification gain (the halves of its sample sequence: a stratified renderer's pixel "
                "means err far less than s^2 / n), so samples go where the error is; 0 s^2 / n (the paper)",
@@ -254,7 +255,10 @@ class GEMMethod(Method):
         coarsest filter's support take their nearest sampled neighbour's
         value (:func:`mcrecon.core.fill.fill_empty_pixels`, with a warning).
         With ``oracle=1`` the run's reference (``inputs.reference`` or the
-        one given to :meth:`start`) gives the true bias.
+        one given to :meth:`start`) gives the true bias.  With
+        ``inputs.samples`` (the dispatcher hands gem the log or SampleSet the
+        statistics came from) the risk guard also reads their prefix halves
+        (option ``guard_halves``).
         """
         if run.reference is None and inputs.reference is not None:
             run.reference = self.start(run.width, run.height, run.channels, reference=inputs.reference).reference
