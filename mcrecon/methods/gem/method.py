@@ -76,10 +76,6 @@ class GEMMethod(Method):
     #: flat, 0.90-0.97 elsewhere (16 seeds, docs/pipelining.md); with the default's
     #: uniform quarter per round: caustic +42 %, flat +22 %, 0.73-1.04 elsewhere.
     pipeline = False
-    #: Offline, the dispatcher hands over a sample source it read the statistics from (a log, a
-    #: SampleSet) although the method does not require one: the final risk guard reads its prefix
-    #: halves (option ``guard_halves``); pixel statistics alone work as before.
-    reads_given_samples = True
     #: The paper's algorithm (``variant="paper"``) against the measured defaults
     #: (docs/methods/gem.md, "Default vs paper"): error rate 0.1 (Sec. 7), the
     #: Sec. 6 final outlier rule, every pixel voting in the stopping maps, the
@@ -144,6 +140,13 @@ class GEMMethod(Method):
         Option("subpixel_exact_below", float, 0.0, "filter scales with sigma below this (px) on the 4x4 "
                "subpixel grid itself (slower; 0: pixel-level equivalent kernel)", min=0.0),
     )
+
+    @property
+    def reads_given_samples(self) -> bool:
+        """Offline, whether the dispatcher hands over the sample source it read the statistics from (a log, a
+        SampleSet) although the method does not require one: the final risk guard reads its prefix halves
+        (``guard_halves``); pixel statistics alone work as before."""
+        return bool(self.params["guard_halves"]) and self.params["risk_guard"] > 0
 
     @property
     def requires(self) -> Requirements:
