@@ -214,8 +214,10 @@ class RunContext:
     def __post_init__(self):
         if self.rendered is None:
             self.rendered = np.zeros((self.stats.height, self.stats.width), np.int64)
-        # only for a method whose allocation reads the gain: the sums cost 3 x 8 bytes per pixel and channel
-        if self.strata is None and getattr(self.method, "params", {}).get("stratified_gain"):
+        # only for a method whose allocation reads the gain or whose final image reads the halves (gem's
+        # guard_halves): the sums cost 3 x 8 bytes per pixel and channel
+        params = getattr(self.method, "params", {})
+        if self.strata is None and (params.get("stratified_gain") or params.get("guard_halves")):
             self.strata = PrefixHalves(self.stats.width, self.stats.height, len(self.stats.channels))
 
     @classmethod

@@ -568,7 +568,8 @@ def _drive(ctx, first=None) -> AdaptiveResult:
             loop_s = time.perf_counter() - loop_t0
             tf = time.perf_counter()
             rng, _ = round_seeds(ctx.schedule.seed, round_index)
-            image = ctx.method.finish(ctx.run, ctx.schedule.final_state(ctx.stats, round_index, rng))
+            image = ctx.method.finish(ctx.run, ctx.schedule.final_state(ctx.stats, round_index, rng,
+                                                                        strata=ctx.strata))
         finally:
             # the last round's log write (a sequential loop leaves it running behind): committed before
             # the run returns, whatever the final image did

@@ -161,6 +161,6 @@ class Schedule:
                                f"{state.remaining} left in the budget (a bug in the method)")
         return _with_seed(req, round_index, rseed, first_index), None
 
-    def final_state(self, stats, round_index, rng) -> AdaptiveState:
+    def final_state(self, stats, round_index, rng, *, strata=None) -> AdaptiveState:
         """The state the image after round ``round_index - 1`` is made from (``method.finish``)."""
-        return _adaptive_state(stats, self, round_index, _committed(stats), rng)
+        return _adaptive_state(stats, self, round_index, _committed(stats), rng, strata=strata)

@@ -14,7 +14,7 @@ from .stats import PixelStats
 
 __all__ = ['sample_range_bounds', 'confidence_clamp', 'pooled_mean_variance', 'albedo_divisor',
            'safeguard_variance', 'empty_pixels_kept',
-           'neighbourhood_mean_variance']
+           'neighbourhood_mean_variance', 'rare_component_mask', 'rare_component_variance']
 
 # --------------------------------------------------------------------------
 # Safeguard of the robust default (not in the paper)
@@ -408,3 +408,71 @@ def neighbourhood_mean_variance(var_mean: np.ndarray, count: np.ndarray, *, radi
     with np.errstate(invalid="ignore", divide="ignore"):
         pooled = num / den * d2 / n
     return np.where(has & (den > 0), np.maximum(pooled, 0.0), v)
+
+
+#: Per-sample relative variance ``s^2 / (mean^2 + RARE_EPS)`` above which a pixel's samples show a rare
+#: bright component (:func:`rare_component_variance`): a component of relative size ``L`` found with
+#: probability ``p`` gives about ``1 / p``; an edge or a texture inside a pixel at most about 1.
+RARE_THRESHOLD = 5.0
+#: The ``eps`` of that ratio (radiance units squared): dark pixels with a little noise stay below it.
+RARE_EPS = 1e-4
+
+
+def rare_component_mask(var_mean: np.ndarray, mean: np.ndarray, count: np.ndarray, *, radius: int = 2,
+                        threshold: float = RARE_THRESHOLD) -> np.ndarray:
+    """(H, W, C) bool: where a pixel of the ``(2 radius + 1)^2`` neighbourhood shows a rare bright component.
+
+    A pixel's per-sample relative variance ``n v / (mean^2 + RARE_EPS)``
+    (``v`` the variance of its mean) above ``threshold``, per channel: one
+    sample of ``n`` carrying all of a pixel's value gives ``n``, a
+    component found with probability ``p`` about ``1 / p``, an edge or a
+    texture inside the pixel at most about 1.  Arguments as
+    :func:`rare_component_variance`.
+    """
+    from scipy.ndimage import maximum_filter
+
+    v = np.asarray(var_mean, dtype=np.float64)
+    m = np.asarray(mean, dtype=np.float64)
+    if v.ndim != 3 or m.shape != v.shape or count.shape != v.shape[:2]:
+        raise ValueError(f"rare_component_variance: var_mean and mean (H, W, C), count (H, W) expected, got "
+                         f"{v.shape}, {m.shape} and {count.shape}")
+    n = count.astype(np.float64)[..., None]
+    with np.errstate(invalid="ignore", over="ignore"):
+        rel = np.where((n > 0) & np.isfinite(v) & np.isfinite(m), v * n / (m * m + RARE_EPS), 0.0)
+    size = (2 * radius + 1, 2 * radius + 1, 1)
+    return maximum_filter(rel, size=size, mode="nearest") > threshold
+
+
+def rare_component_variance(var_mean: np.ndarray, mean: np.ndarray, count: np.ndarray, *, radius: int = 2,
+                            threshold: float = RARE_THRESHOLD) -> np.ndarray:
+    """Each pixel mean's variance, floored at its neighbourhood's mean where a neighbour shows a rare component.
+
+    Where most samples miss a rare bright component (a small light found by
+    one sample in 20, a caustic), the pixels whose few samples all missed it
+    have a variance near 0 and a low mean: an allocation that reads their
+    own variance sends them nothing, exactly where their means lack the
+    component.  A neighbour whose samples found it shows a per-sample
+    relative variance ``n v / (mean^2 + eps)`` of about ``1 / p``; wherever
+    one in the ``(2 radius + 1)^2`` neighbourhood exceeds ``threshold``
+    (per channel), the pixel takes ``max(v, neighbourhood mean)``
+    (:func:`neighbourhood_mean_variance`, unbiased for the shared rare
+    component's variance).  Elsewhere (edges, textures, a penumbra's lit
+    side, whose neighbourhood variance is another distribution's) each
+    pixel keeps its own.  Empty pixels keep ``var_mean``.
+
+    Parameters
+    ----------
+    var_mean : ndarray (H, W, C)
+        Variance of each pixel's mean.
+    mean : ndarray (H, W, C)
+        Pixel means.
+    count : ndarray (H, W)
+        Samples per pixel.
+    radius : int
+        Neighbourhood radius (2: 5 x 5).
+    threshold : float
+        Per-sample relative variance that marks a rare component.
+    """
+    v = np.asarray(var_mean, dtype=np.float64)
+    rare = rare_component_mask(v, mean, count, radius=radius, threshold=threshold)
+    return np.where(rare, np.maximum(v, neighbourhood_mean_variance(v, count, radius=radius)), v)

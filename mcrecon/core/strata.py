@@ -31,7 +31,7 @@ import numba
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["PrefixHalves", "stratified_gain", "GAIN_RADIUS", "GAIN_FLOOR"]
+__all__ = ["PrefixHalves", "stratified_gain", "prefix_halves_of", "GAIN_RADIUS", "GAIN_FLOOR"]
 
 #: Neighbourhood (box of 2 r + 1 pixels a side) over which the halves' squared difference and
 #: ``s^2 / n`` are summed before their ratio is taken: 25 pixels x the channels of one-degree
@@ -131,6 +131,24 @@ class PrefixHalves:
         return (mean_a.reshape(shape + (-1,)), mean_b.reshape(shape + (-1,)), n_a.reshape(shape),
                 n_b.reshape(shape))
 
+    def mean_variance(self, count: np.ndarray) -> np.ndarray:
+        """(H, W, C): each pixel mean's variance from its prefix halves alone, NaN where a half is empty.
+
+        ``((m_A - m_B) / 2)^2``, the variance of the prefix's mean, times
+        ``n_prefix / count``: the variance of a mean of ``count`` samples
+        were its samples independent (exact for them; for a net it errs
+        high, never low).  A one-degree-of-freedom estimate per pixel and
+        channel, but one that a selection driven by ``s^2 / n`` did not see:
+        the sample variance of all the samples carries the luck that made
+        the selection, the halves' difference far less of it.
+        """
+        mean_a, mean_b, n_a, n_b = self.halves()
+        n = np.asarray(count, dtype=np.float64).reshape(self.height, self.width)
+        ok = (n_a > 0) & (n_b > 0) & (n > 0)
+        scale = np.divide(n_a + n_b, n, out=np.zeros_like(n), where=ok)
+        out = (0.5 * (mean_a - mean_b)) ** 2 * scale[..., None]
+        return np.where(ok[..., None], out, np.nan)
+
     def gain(self, sample_variance: np.ndarray, *, radius: int = GAIN_RADIUS, floor: float = GAIN_FLOOR) -> np.ndarray:
         """Stratification gain (H, W) in ``[floor, 1]``: a pixel mean's variance is ``gain * s^2 / n``.
 
@@ -161,6 +179,21 @@ class PrefixHalves:
         rel_sd = np.divide(np.sqrt(2.0 * np.maximum(den2, 0.0) / (size * size)), den, out=np.zeros_like(den),
                            where=known)
         return np.clip(g * (1.0 + UCB_SIGMAS * rel_sd), floor, 1.0)
+
+
+def prefix_halves_of(source, *, chunk_size: int = 1 << 20) -> PrefixHalves:
+    """The :class:`PrefixHalves` of a sample source (a ``SampleSet`` or a sample log), its rows in stored order.
+
+    A log written by an adaptive run or a renderer bridge stores each
+    pixel's samples in its sequence order (round after round); rows in
+    another order make the halves random halves, whose estimate is that of
+    independent samples (high for a net, never low).  Non-finite values
+    take their index and no place, as in an adaptive run.
+    """
+    out = PrefixHalves(source.width, source.height, len(source.channels))
+    for chunk in source.iter_chunks(chunk_size=chunk_size, with_round=False):
+        out.add(chunk.positions, chunk.values)
+    return out
 
 
 def stratified_gain(state) -> np.ndarray | None:

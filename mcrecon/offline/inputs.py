@@ -171,7 +171,7 @@ def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=
                                            logs=logs), m_where)
         stats, halves = statistics_for(source, req, nonfinite=nonfinite, merged=merged)
         stored_ref = source.reference() if req.reference != "none" and hasattr(source, "reference") else None
-        samples = source if req.samples else None
+        samples = source if req.samples or getattr(method, "reads_given_samples", False) else None
     shape = stats.shape if stats is not None else halves.shape if halves is not None else \
         (samples.height, samples.width, len(samples.channels))
     ref = check_reference(reference if reference is not None else stored_ref, shape,

@@ -67,6 +67,8 @@ class AWRMethod(Method):
             "sampling_variance": "contrast",  # Eq. 5, Mitchell's contrast
             "per_coefficient": 64,           # Fig. 4: 64 x 2^k samples per popped coefficient
             "initial_spp": 4,                # Fig. 4 Step 1
+            "rare_light_floor": 0,           # each pixel's own sigma^2(F)
+            "uniform_share": 0.0,            # every sample by priority
         },
     }
     @property
@@ -104,6 +106,14 @@ class AWRMethod(Method):
                min=0.0, min_open=True),
         Option("initial_spp", int, 16, "uniform samples per pixel of the first round (paper 4; capped by the budget)",
                min=1),
+        Option("rare_light_floor", int, 1, "sampler: 1 floors each pixel's sigma^2(F) at its 5 x 5 "
+               "neighbourhood's mean where a neighbour's samples show a rare bright component (a spotlight, "
+               "a caustic), so pixels whose samples all missed it keep their samples; 0 the pixel's own "
+               "(the paper)",
+               choices=(0, 1)),
+        Option("uniform_share", float, 0.0, "share of each adaptive round spread uniformly over the film "
+               "(0: the wavelet sampler alone, the paper; a quarter costs the HDR step edge of "
+               "tests/test_awr_robust.py 3x its error, docs/methods/awr.md)", min=0.0, max=1.0),
         Option("priority_threshold", float, None, "stop sampling when no priority exceeds this"),
         Option("reconstruction", str, "awr", "final image of an adaptive run: awr, or box (AWR sampling only)",
                ("awr", "box")),
@@ -155,7 +165,8 @@ class AWRMethod(Method):
             state.stats, n, state.rng, wavelet=p["wavelet"], levels=p["sampling_levels"], mode=p["boundary"],
             per_coefficient=p["per_coefficient"], renorm=p["sampling_renorm"], propagation=p["propagation"],
             priority_threshold=p["priority_threshold"], estimator=p["sampling_variance"],
-            pending=state.pending, as_counts=True)  # counts: the renderer continues each pixel's sequence
+            pending=state.pending, as_counts=True,  # counts: the renderer continues each pixel's sequence
+            rare_light_floor=bool(p["rare_light_floor"]))
         run.last_plan_info = info
         if pos is None or len(pos) == 0:
             return None

@@ -17,9 +17,10 @@ import numba
 import numpy as np
 
 from ...core.samples import check_memory
+from ...core.safeguard import neighbourhood_mean_variance, rare_component_mask
 from ...core.stats import PixelStats
 from ...core.fill import fill_empty_pixels
-from .reconstruction import functional_variance, pixel_variance
+from .reconstruction import functional_variance
 from .wavelets import SAMPLING_RENORM, analysis_matrices, analyze, coefficient_variances, default_levels, get_wavelet
 
 __all__ = ["scale_priorities", "sample_scale_functions", "plan_awr_positions"]
@@ -233,7 +234,8 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
                        levels: int = 5, mode: str = "symmetric", per_coefficient: int = 64,
                        renorm: float = SAMPLING_RENORM, propagation: str = "exact",
                        priority_threshold: float | None = None, estimator: str = "contrast",
-                       pending: np.ndarray | None = None, as_counts: bool = False):
+                       pending: np.ndarray | None = None, as_counts: bool = False,
+                       rare_light_floor: bool = False):
     """One batch of the adaptive wavelet sampler (§4.1 Steps 2-3).
 
     Ranks all scale coefficients of levels 0..``levels`` by Eq. 8 and
@@ -251,6 +253,12 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
     batch does not rank first the coefficients the round in flight already
     serves.  The wavelet coefficients (the committed means) are unchanged:
     the pending samples' expected mean is the current one.
+
+    ``rare_light_floor``: floor each pixel's sigma^2(F) at the mean of its
+    5 x 5 neighbourhood's where a neighbour's samples show a rare bright
+    component (:func:`~mcrecon.core.safeguard.rare_component_variance`): a
+    pixel whose samples all missed a spotlight or a caustic its neighbours
+    found reads a variance near 0 and would get no coefficient's samples.
 
     ``as_counts``: return the samples per pixel instead of positions.  The
     position inside the chosen pixel is uniform and carries no decision, so
@@ -281,10 +289,14 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
     levels = int(min(levels, default_levels((h, w))))
     mean = fill_empty_pixels(stats.mean.copy(), stats.count, source="awr sampler") if (stats.count == 0).any() \
         else stats.mean
-    if pending is not None and np.any(pending):
-        var = functional_variance(stats, estimator) / np.maximum(stats.count + np.asarray(pending), 1)[..., None]
-    else:
-        var = pixel_variance(stats, estimator)
+    fvar = functional_variance(stats, estimator)
+    if rare_light_floor:
+        # the evidence is the samples' variance whatever sigma^2(F) estimator ranks the coefficients
+        n = np.maximum(stats.count, 1)[..., None]
+        rare = rare_component_mask(stats.sample_variance(undefined=0.0) / n, stats.mean, stats.count)
+        fvar = np.where(rare, np.maximum(fvar, neighbourhood_mean_variance(fvar / n, stats.count) * n), fvar)
+    taken = stats.count + np.asarray(pending) if pending is not None and np.any(pending) else stats.count
+    var = fvar / np.maximum(taken, 1)[..., None]
     pri = scale_priorities(mean, var, wavelet=wavelet, levels=levels, mode=mode, renorm=renorm,
                            propagation=propagation)
     for k in range(1, levels + 1):

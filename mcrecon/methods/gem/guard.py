@@ -75,17 +75,19 @@ def _risk_kernel(v, v0, var0, wc, is_pixel, cw, out):
 
 
 def scale_risks(bank: FilterBank, channel_weights: np.ndarray, *, subpixels: int = 4,
-                truncate: float = TRUNCATE) -> np.ndarray:
+                truncate: float = TRUNCATE, mean_variance: np.ndarray | None = None) -> np.ndarray:
     """(K, H, W): per scale and pixel, the unbiased estimate of the scale's squared error, summed over channels.
 
     Scale 0 (the pixel filter, unbiased) gets ``Var[v_0]``; scale k
     ``(v_k - v_0)^2 - Var[v_0] (1 - 2 w_k)`` with ``w_k`` the pixel's own
     normalised weight in the filter.  Each channel is multiplied by
     ``channel_weights`` (H, W, C) before the sum.  Needs per-channel
-    variances (``filter_bank(..., per_channel=True)``).
+    variances (``filter_bank(..., per_channel=True)``).  ``mean_variance``
+    (H, W, C), optional: ``Var[v_0]`` in place of the bank's (the one the
+    selection read).
     """
     v0 = np.ascontiguousarray(bank.values[0], dtype=np.float64)
-    var0 = np.ascontiguousarray(bank.var[0], dtype=np.float64)
+    var0 = np.ascontiguousarray(bank.var[0] if mean_variance is None else mean_variance, dtype=np.float64)
     cw = np.ascontiguousarray(channel_weights, dtype=np.float64)
     wcs = _centre_weights(bank, subpixels, truncate)
     h, w = v0.shape[:2]
@@ -108,7 +110,8 @@ def _clamped_risk(risks, selected, m, out):
 
 def risk_guard(bank: FilterBank, selected: np.ndarray, image: np.ndarray, count: np.ndarray, *,
                radius: float = RISK_RADIUS, tolerance: float = RISK_TOLERANCE, channel_eps: float | None = None,
-               subpixels: int = 4, truncate: float = TRUNCATE, threads: int | None = None) -> np.ndarray:
+               subpixels: int = 4, truncate: float = TRUNCATE, threads: int | None = None,
+               mean_variance: np.ndarray | None = None) -> np.ndarray:
     """GEM's selection clamped, per pixel, to the maximum scale of least estimated neighbourhood error.
 
     For m = 0 .. K-1 the candidate ``min(selected, m)`` (m = K-1: the
@@ -138,6 +141,11 @@ def risk_guard(bank: FilterBank, selected: np.ndarray, image: np.ndarray, count:
     tolerance : float
         Least saving, as a share of the pixel means' estimated error summed
         over the neighbourhood, for which a pixel is clamped.
+    mean_variance : ndarray (H, W, C), optional
+        The pixel means' variance ``Var[v_0]`` the estimates read; by default
+        the bank's, which the selection itself read.  An estimate the
+        selection did not see (:func:`guard_mean_variance`) keeps the
+        guard's check independent of the selection's luck.
 
     Returns
     -------
@@ -156,7 +164,12 @@ def risk_guard(bank: FilterBank, selected: np.ndarray, image: np.ndarray, count:
             cw = 1.0 / (img * img + float(channel_eps))
     has = np.asarray(count) > 0
     cw = cw * has[..., None]
-    risks = scale_risks(bank, cw, subpixels=subpixels, truncate=truncate)
+    if mean_variance is not None:
+        mv = np.asarray(mean_variance, dtype=np.float64)
+        if mv.shape != img.shape:
+            raise InputError("risk_guard", "mean_variance", f"shape {mv.shape}, expected {img.shape}")
+        mean_variance = np.where(np.isfinite(mv) & (mv >= 0), mv, np.asarray(bank.var[0], dtype=np.float64))
+    risks = scale_risks(bank, cw, subpixels=subpixels, truncate=truncate, mean_variance=mean_variance)
     sel = np.ascontiguousarray(selected, dtype=np.int64)
     nk = bank.n_scales
     g = gaussian_kernel(float(radius), truncate=truncate)

@@ -20,7 +20,8 @@ from .sampling import distribute_samples, sample_priority
 from .guard import RISK_RADIUS
 from .selection import CHANNEL_WEIGHTS, GAMMA_MAX, OUTLIER_RULES, GEMSelection, _pick, gem_select, oracle_select
 from ...core.fill import mean_variance_policy
-from ...core.strata import stratified_gain
+from ...core.safeguard import rare_component_variance
+from ...core.strata import prefix_halves_of, stratified_gain
 
 __all__ = ["GEMMethod", "GEMRun", "TARGET_EPS"]
 
@@ -83,7 +84,7 @@ class GEMMethod(Method):
         "robust": {},
         "paper": {"gamma": 0.1, "final_outliers": "paper", "zero_variance_votes": 3, "uniform_share": 0.0,
                   "channel_weights": "absolute", "confirm_stops": 0, "variance_guard": 0, "risk_guard": 0.0,
-                  "stratified_gain": 0},
+                  "stratified_gain": 0, "rare_light_floor": 0, "guard_halves": 0},
     }
     options = (
         variant_option(variants),
@@ -123,13 +124,29 @@ class GEMMethod(Method):
                "which each pixel's scale is clamped to the maximum scale of least estimated error (the "
                "unbiased per-pixel estimates, summed): no neighbourhood ends above its pixel means' "
                "estimated error, thin geometry included; 0 off (the paper)", min=0.0),
+        Option("guard_halves", int, 1, "final reconstruction: 1 has the risk guard read each pixel mean's "
+               "variance as the average of s^2 / n and the estimate of its sample sequence's two prefix halves, "
+               "which the selection did not see, wherever the samples' order is known (a sample log or "
+               "SampleSet, an adaptive run; pixel statistics alone keep s^2 / n); 0 s^2 / n alone",
+               choices=(0, 1)),
         Option("stratified_gain", int, 1, "adaptive phase: 1 scales each pixel mean's variance s^2 / n by its "
                "measured stratification gain (the halves of its sample sequence: a stratified renderer's pixel "
                "means err far less than s^2 / n), so samples go where the error is; 0 s^2 / n (the paper)",
                choices=(0, 1)),
+        Option("rare_light_floor", int, 1, "adaptive phase: 1 floors each pixel mean's variance at its 5 x 5 "
+               "neighbourhood's mean per-sample variance where a neighbour's samples show a rare bright "
+               "component (a spotlight, a caustic: relative variance above 5), so pixels whose samples all "
+               "missed it keep their share of samples; 0 the pixel's own variance (the paper)", choices=(0, 1)),
         Option("subpixel_exact_below", float, 0.0, "filter scales with sigma below this (px) on the 4x4 "
                "subpixel grid itself (slower; 0: pixel-level equivalent kernel)", min=0.0),
     )
+
+    @property
+    def reads_given_samples(self) -> bool:
+        """Offline, whether the dispatcher hands over the sample source it read the statistics from (a log, a
+        SampleSet) although the method does not require one: the final risk guard reads its prefix halves
+        (``guard_halves``); pixel statistics alone work as before."""
+        return bool(self.params["guard_halves"]) and self.params["risk_guard"] > 0
 
     @property
     def requires(self) -> Requirements:
@@ -166,18 +183,24 @@ class GEMMethod(Method):
         return run
 
     def select(self, run: "GEMRun", stats: PixelStats, *, final: bool, want_mse: bool = False,
-               gain: np.ndarray | None = None) -> GEMSelection:
+               gain: np.ndarray | None = None, strata=None) -> GEMSelection:
         """GEM's scale selection on ``stats``: the final reconstruction's (``final``) or the sampling phase's.
 
         ``gain`` (H, W), optional: the pixel means' stratification gain, which scales their variance.
+        ``strata`` (:class:`~mcrecon.core.strata.PrefixHalves` of the same samples), optional: the
+        final risk guard's second variance estimate (option ``guard_halves``).
         """
         p = self.params
         sig = final_sigmas(p["final_scales"]) if final else adaptive_sigmas(p["adaptive_scales"])
         base = stats.mean
         mv = mean_variance_policy(stats)
+        count = stats.count
+        if not final and p["rare_light_floor"]:
+            # pixels whose few samples all missed a rare bright component its neighbours found
+            # read a variance near 0 and would get no samples (rare_component_variance)
+            mv = rare_component_variance(mv, base, count)
         if gain is not None:
             mv = mv * gain[..., None]
-        count = stats.count
         s = self.grid
         eb = p["subpixel_exact_below"]
         sub = filled_subpixels(stats) if (eb > 0 and stats.subpixels and np.any(sig < eb)) else None
@@ -197,7 +220,9 @@ class GEMMethod(Method):
                              channel_weights=p["channel_weights"] if final else "absolute",
                              confirm_stops=p["confirm_stops"] if final else 0,
                              variance_guard=bool(p["variance_guard"]) and final,
-                             risk_radius=p["risk_guard"] if final else 0.0)
+                             risk_radius=p["risk_guard"] if final else 0.0,
+                             guard_variance=strata.mean_variance(count)
+                             if final and strata is not None and p["guard_halves"] else None)
         # The maps are built when asked for (diagnostics()): a planning round
         # would otherwise spend ~5 % of its time on images nobody reads.
         run.diagnostics = {}
@@ -233,11 +258,27 @@ class GEMMethod(Method):
         coarsest filter's support take their nearest sampled neighbour's
         value (:func:`mcrecon.core.fill.fill_empty_pixels`, with a warning).
         With ``oracle=1`` the run's reference (``inputs.reference`` or the
-        one given to :meth:`start`) gives the true bias.
+        one given to :meth:`start`) gives the true bias.  With
+        ``inputs.samples`` (the dispatcher hands gem the log or SampleSet the
+        statistics came from) the risk guard also reads their prefix halves
+        (option ``guard_halves``).
         """
         if run.reference is None and inputs.reference is not None:
             run.reference = self.start(run.width, run.height, run.channels, reference=inputs.reference).reference
-        sel = self.select(run, inputs.stats, final=True)
+        strata = None
+        if self.params["guard_halves"] and self.params["risk_guard"] > 0 and inputs.samples is not None:
+            strata = prefix_halves_of(inputs.samples)
+        return self._final(run, inputs.stats, strata)
+
+    def finish(self, run: "GEMRun", state: AdaptiveState) -> np.ndarray:
+        """The final reconstruction of an adaptive run's samples, its risk guard reading their prefix halves."""
+        inputs = self.run_inputs(run, state)
+        if run.reference is None and inputs.reference is not None:
+            run.reference = self.start(run.width, run.height, run.channels, reference=inputs.reference).reference
+        return self._final(run, inputs.stats, getattr(state, "strata", None) if self.params["guard_halves"] else None)
+
+    def _final(self, run: "GEMRun", stats: PixelStats, strata) -> np.ndarray:
+        sel = self.select(run, stats, final=True, strata=strata)
         img = sel.image
         no_data = sel.bank.weight[-1] <= 0
         if no_data.any():
@@ -262,8 +303,8 @@ class GEMMethod(Method):
         p = self.params
         npix = state.width * state.height
         n_pick = p["samples_per_pick"] or max(1, int(round(state.budget / npix)))
-        sel = self.select(run, state.stats, final=False, want_mse=True,
-                          gain=stratified_gain(state) if p["stratified_gain"] else None)
+        gain = stratified_gain(state) if p["stratified_gain"] else None
+        sel = self.select(run, state.stats, final=False, want_mse=True, gain=gain)
         value = run.reference if p["oracle"] else sel.image
         if p["target_rel_mse"] is not None and np.isfinite(sel.mse).all():
             est = float(np.mean(sel.mse / (value * value + TARGET_EPS)))

@@ -416,7 +416,8 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
                want_mse: bool = False, sub: np.ndarray | None = None, exact_below: float = 0.0,
                outlier_rule: str = "adaptive", zero_variance_votes: bool = False,
                channel_weights: str = "relative", confirm_stops: int = 0,
-               variance_guard: bool = False, risk_radius: float = 0.0) -> GEMSelection:
+               variance_guard: bool = False, risk_radius: float = 0.0,
+               guard_variance: np.ndarray | None = None) -> GEMSelection:
     """Filter selection of Secs. 4 and 6 on pixel arrays (works for 1-D signals as 1 x N images).
 
     Stopping maps from Eq. 1 weighted by rho z(gamma); pixels without samples
@@ -478,6 +479,12 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
         of this sigma (pixels), is least (:func:`.guard.risk_guard`): no
         neighbourhood ends above its pixel means' estimated error.  0: off
         (the paper).
+    guard_variance : ndarray (H, W, C), optional
+        A second estimate of the pixel means' variance that the selection
+        did not read (the prefix halves' :meth:`~mcrecon.core.strata.PrefixHalves.mean_variance`;
+        NaN where unknown): the risk guard reads the average of it and
+        ``mean_var``, so its check does not share all of the luck that
+        made the selection.
 
     Raises
     ------
@@ -526,8 +533,14 @@ def gem_select(base, mean_var, count, sigmas, *, gamma: float, final: bool, subp
     image = _pick(bank.values, selected)
     if guard:
         from .guard import risk_guard
+        gv = None
+        if guard_variance is not None:
+            v0 = np.asarray(bank.var[0], dtype=np.float64)
+            hv = np.asarray(guard_variance, dtype=np.float64)
+            gv = np.where(np.isfinite(hv), 0.5 * (hv + v0), v0)
         selected = risk_guard(bank, selected, image, count, radius=risk_radius, subpixels=subpixels,
-                              channel_eps=CHANNEL_EPS if channel_weights == "relative" else None)
+                              channel_eps=CHANNEL_EPS if channel_weights == "relative" else None,
+                              mean_variance=gv)
         image = _pick(bank.values, selected)
     mse = estimate_mse(bank, selected, count) if want_mse else None
     return GEMSelection(bank, selected, stops_raw, stops, mse, image)
