@@ -186,9 +186,12 @@ def test_declared_inputs_are_what_the_reader_supplies(tmp_path):
     assert get_method("gem", oracle=1).requires.reference == "required"
     path = write_scene_log("soft_shadow", tmp_path / "s.h5", width=10, height=8, spp=4)
     rec = mcrecon.reconstruct(path, method="gem", subpixel_exact_below=1.0, full=True)
-    # gem reads the log's prefix halves when given (guard_halves), without requiring samples
-    assert rec.inputs.stats.subpixels == 4 and rec.inputs.samples is not None and rec.inputs.reference is None
-    assert mcrecon.reconstruct(path, method="gem", guard_halves=0, full=True).inputs.samples is None
+    # gem reads the log's prefix halves (guard_halves, stratified_gain), not the samples
+    assert rec.inputs.stats.subpixels == 4 and rec.inputs.samples is None and rec.inputs.reference is None
+    assert rec.inputs.strata is not None and (rec.inputs.strata.height, rec.inputs.strata.width) == (8, 10)
+    assert get_method("gem").requires.prefix_halves and not get_method("gem", variant="paper").requires.prefix_halves
+    assert mcrecon.reconstruct(path, method="gem", variant="paper", full=True).inputs.strata is None
+    assert mcrecon.reconstruct(rec.inputs.stats, method="gem", full=True).inputs.strata is None
     rec = mcrecon.reconstruct(path, method="gem", oracle=1, full=True)
     np.testing.assert_array_equal(rec.inputs.reference, reference_image("soft_shadow", 10, 8))
     rec = mcrecon.reconstruct(path, method="splat", full=True)

@@ -61,7 +61,8 @@ def test_statistics_methods_tiled_equal_untiled(scene_log, method, options, tile
     full = mcrecon.reconstruct(scene_log, method=m, full=True)
     tiled = mcrecon.reconstruct(scene_log, method=m, tile=tile, full=True)
     assert np.array_equal(tiled.image, full.image)
-    assert np.array_equal(mcrecon.reconstruct(st, method=m, tile=tile), full.image)
+    # pixel statistics alone (no sample order, so gem's guard reads s^2 / n alone): tiled equals untiled too
+    assert np.array_equal(mcrecon.reconstruct(st, method=m, tile=tile), mcrecon.reconstruct(st, method=m))
     d_full, d_tiled = full.diagnostics(), tiled.diagnostics()
     assert sorted(d_full) == sorted(d_tiled)
     for k in d_full:
@@ -69,6 +70,29 @@ def test_statistics_methods_tiled_equal_untiled(scene_log, method, options, tile
     # a caller that reads no maps holds none of the film's size
     bare = mcrecon.reconstruct(scene_log, method=m, tile=tile, full=True, diagnostics=False)
     assert np.array_equal(bare.image, full.image) and bare.diagnostics() == {}
+
+
+def test_gem_tiles_read_the_crops_of_the_films_prefix_halves(scene_log):
+    """gem's guard reads the samples' prefix halves: every tiled path hands each tile the crop of the film's."""
+    from mcrecon.core.strata import prefix_halves_of
+    from mcrecon.distributed import tiles as D
+
+    m = mcrecon.get_method("gem", final_scales=4, risk_guard=2.0)
+    assert m.requires.prefix_halves
+    full = mcrecon.reconstruct(scene_log, method=m)
+    # the halves change this image: the comparisons below can fail
+    off = mcrecon.get_method("gem", final_scales=4, risk_guard=2.0, guard_halves=0)
+    assert not np.array_equal(full, mcrecon.reconstruct(scene_log, method=off))
+    assert np.array_equal(mcrecon.reconstruct(scene_log, method=m, tile=32), full)
+    assert np.array_equal(D.reconstruct_tiled(scene_log, method=m, tile=32), full)
+    ph = prefix_halves_of(read_log(scene_log))
+    st = PixelStats.from_log(read_log(scene_log))
+    crop = ph.crop(5, 40, 11, 60)
+    assert (crop.height, crop.width) == (35, 49)
+    assert np.array_equal(crop.mean_variance(st.count[5:40, 11:60]), ph.mean_variance(st.count)[5:40, 11:60],
+                          equal_nan=True)
+    for a, b in zip(crop.halves(), ph.halves()):
+        assert np.array_equal(a, b[5:40, 11:60])
 
 
 def test_half_buffer_method_tiled_equal_untiled(feature_log):

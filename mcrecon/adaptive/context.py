@@ -214,10 +214,9 @@ class RunContext:
     def __post_init__(self):
         if self.rendered is None:
             self.rendered = np.zeros((self.stats.height, self.stats.width), np.int64)
-        # only for a method whose allocation reads the gain or whose final image reads the halves (gem's
-        # guard_halves): the sums cost 3 x 8 bytes per pixel and channel
-        params = getattr(self.method, "params", {})
-        if self.strata is None and (params.get("stratified_gain") or params.get("guard_halves")):
+        # only for a method that reads them (requires.prefix_halves): the sums cost 3 x 8 bytes per pixel
+        # and channel
+        if self.strata is None and self.method.requires.prefix_halves:
             self.strata = PrefixHalves(self.stats.width, self.stats.height, len(self.stats.channels))
 
     @classmethod

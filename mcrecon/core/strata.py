@@ -110,6 +110,17 @@ class PrefixHalves:
         s, n = self._sums, self._counts
         _add_kernel(iy * self.width + ix, np.ascontiguousarray(val), self.counter, s[0], s[1], s[2], n[0], n[1], n[2])
 
+    def crop(self, y0: int, y1: int, x0: int, x1: int) -> "PrefixHalves":
+        """The prefix halves of the pixels ``[y0:y1, x0:x1]`` (copies): every estimate is per pixel, so a
+        crop's equals the crop of the film's, bit for bit (a tile of a tiled reconstruction)."""
+        h, w = y1 - y0, x1 - x0
+        out = PrefixHalves(w, h, self.n_channels)
+        grid = lambda a: a.reshape(a.shape[:-1] + (self.height, self.width))[..., y0:y1, x0:x1]  # noqa: E731
+        out.counter[:] = grid(self.counter).reshape(-1)
+        out._counts[:] = grid(self._counts).reshape(3, -1)
+        out._sums[:] = np.moveaxis(grid(np.moveaxis(self._sums, 2, 1)), 1, -1).reshape(3, -1, self.n_channels)
+        return out
+
     def halves(self):
         """``(mean_a, mean_b, n_a, n_b)``: the means (H, W, C) and counts (H, W) of the two halves.
 

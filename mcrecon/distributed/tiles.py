@@ -17,13 +17,13 @@ from .ingestion import _crop_stats, ingest
 
 __all__ = ['reconstruct_tiled', 'map_tiles', 'tile_boxes']
 
-def _reconstruct_tile(method, stats, reference, inner):
+def _reconstruct_tile(method, stats, reference, inner, strata=None):
     """Reconstruct one grown tile and trim it to its inner part (runs on a worker)."""
     from ..methods.base import MethodInputs
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", McreconWarning)
-        img = method.reconstruct(MethodInputs(stats, None, reference))
+        img = method.reconstruct(MethodInputs(stats, None, reference, strata=strata))
     (a, b), (c, d) = inner
     return np.asarray(img[a:b, c:d], dtype=np.float64)
 
@@ -262,12 +262,16 @@ def reconstruct_tiled(source, *, method="box", tile: int = 1024, client=None, re
         return _reconstruct_tiled_samples(m, source, tile, client, reference, nonfinite, where)
     if not m.requires.statistics:
         raise InputError(where, "method", f"{m.name} reads neither pixel statistics nor samples")
+    strata = None
     if isinstance(source, PixelStats):
         stats = source
     else:
         stats = ingest(source, client=client, subpixels=m.requires.subpixels, nonfinite=nonfinite) \
             if client is not None else PixelStats.from_log(_opened(source), subpixels=m.requires.subpixels,
                                                            nonfinite=nonfinite)
+        if m.requires.prefix_halves:   # as the untiled dispatcher builds them (each pixel's sequence order)
+            from ..core.strata import prefix_halves_of
+            strata = prefix_halves_of(_opened(source))
     h, w, c = stats.shape
     halo = _halo_or_refuse(m, w, h, where)
     few = int((stats.count < 2).sum())
@@ -284,10 +288,12 @@ def reconstruct_tiled(source, *, method="box", tile: int = 1024, client=None, re
     for (oy, ox), box, inner in tile_boxes(w, h, tile, halo):
         sub = _crop_stats(stats, oy[0], oy[1], ox[0], ox[1])
         r = None if ref is None else ref[oy[0]:oy[1], ox[0]:ox[1]]
+        st = None if strata is None else strata.crop(oy[0], oy[1], ox[0], ox[1])
         if client is not None:   # each grown tile goes to one worker, the film stays here
             sub = client.scatter(sub)
             r = None if r is None else client.scatter(r)
-        tasks.append((box, (mf, sub, r, inner)))
+            st = None if st is None else client.scatter(st)
+        tasks.append((box, (mf, sub, r, inner, st)))
     return _run_tiles(_reconstruct_tile, tasks, (h, w, c), client)
 
 

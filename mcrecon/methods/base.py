@@ -229,6 +229,9 @@ class Requirements:
         when the caller did not choose those options
         (:func:`mcrecon.methods.supply.statistics_fallback`); the messages
         that refuse such statistics suggest them.
+    prefix_halves : bool
+        Whether it reads the samples' :class:`~mcrecon.core.strata.PrefixHalves`: offline
+        ``inputs.strata`` from a log or SampleSet (None from statistics: no order); adaptive ``state.strata``.
 
     What a source cannot supply is refused by :func:`mcrecon.methods.supply.check_supply`.
     """
@@ -241,6 +244,7 @@ class Requirements:
     features: str = "none"
     range: bool = False
     statistics_options: tuple = ()
+    prefix_halves: bool = False
 
     def __post_init__(self):
         object.__setattr__(self, "statistics_options", tuple(dict(self.statistics_options).items()))
@@ -272,6 +276,8 @@ class MethodInputs:
     nonfinite : {'drop', 'zero', 'raise'}
         The policy for NaN/Inf values a method reading ``samples`` applies
         (the statistics have applied it already).
+    strata : PrefixHalves or None
+        The samples' prefix halves, for methods with ``requires.prefix_halves`` (a log or SampleSet source).
     """
 
     stats: PixelStats | None
@@ -279,6 +285,7 @@ class MethodInputs:
     reference: np.ndarray | None = None
     nonfinite: str = "drop"
     halves: Halves | None = None
+    strata: Any = None
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -386,8 +393,7 @@ class AdaptiveState:
 
 
 def uniform_counts(width: int, height: int, n: int, rng: np.random.Generator) -> np.ndarray:
-    """Spread ``n`` samples as evenly as possible: every pixel gets ``n // P``,
-    ``n % P`` random pixels one more."""
+    """Spread ``n`` samples as evenly as possible: every pixel gets ``n // P``, ``n % P`` random pixels one more."""
     p = width * height
     counts = np.full(p, n // p, np.int64)
     extra = n % p
@@ -401,14 +407,12 @@ class Method:
 
     Class attributes
     ----------------
-    name : str
-        Registry name.
+    name : str  (registry name)
     options : tuple of Option
         Keyword options (and CLI flags), validated by ``__init__``.
     variants : mapping
-        ``{variant name: {option: value}}`` for a method with a
-        ``variant`` option (:func:`variant_option`): the option values
-        each variant presets when they are not given explicitly.
+        ``{variant name: {option: value}}`` for a method with a ``variant`` option
+        (:func:`variant_option`): the option values each variant presets unless given.
     requires : Requirements
         The inputs the method reads (a property when they depend on the options).
     run_type : type
@@ -416,16 +420,13 @@ class Method:
     adaptive : bool
         Whether ``plan`` distributes samples by itself (else uniform).
     initial_spp : int
-        Samples per pixel of the uniform initial pass the driver takes
-        before the first plan; an ``initial_spp`` option overrides it
-        (:meth:`initial_pass`).
+        Samples per pixel of the uniform initial pass the driver takes before the first
+        plan; an ``initial_spp`` option overrides it (:meth:`initial_pass`).
     pipeline : bool
-        Whether ``plan`` is safe from statistics one round old (the round
-        in flight as ``state.pending``): adaptive runs then pipeline by
-        default (:func:`mcrecon.adaptive.adapt`, ``pipeline``).
+        Whether ``plan`` is safe from statistics one round old (the round in flight as
+        ``state.pending``): adaptive runs then pipeline by default (:func:`mcrecon.adaptive.adapt`).
 
-    Subclasses never override ``__init__``: cross-option checks and
-    derived configuration go into :meth:`_configure`.
+    Subclasses never override ``__init__``: cross-option checks and derived configuration go into :meth:`_configure`.
     """
 
     name: ClassVar[str] = "?"
@@ -436,11 +437,10 @@ class Method:
     adaptive: ClassVar[bool] = False
     initial_spp: ClassVar[int] = 1
     pipeline: ClassVar[bool] = False
-    #: Uniform doubling rounds are capped at 1 / max_round_parts of the budget (whole samples per
-    #: pixel), never below max_round_floor samples.  Plain doubling ends with a round of half the
-    #: budget, whose commit is the one step of a pipelined run nothing overlaps (the renderer has
-    #: finished); the cap bounds that tail at about 1/8 of the commit work (docs/pipelining.md).
-    #: Below the floor (~30 ms of commit) a cap would only add rounds, each with its fixed cost.
+    #: Uniform doubling rounds are capped at 1 / max_round_parts of the budget, never below max_round_floor
+    #: samples: plain doubling ends with a half-budget round whose commit nothing overlaps in a pipelined
+    #: run; the cap bounds that tail at ~1/8 of the commit work (docs/pipelining.md).  Below the floor
+    #: (~30 ms of commit) a cap would only add rounds, each with its fixed cost.
     max_round_parts: ClassVar[int] = 8
     max_round_floor: ClassVar[int] = 1 << 20
 

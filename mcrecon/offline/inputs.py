@@ -22,6 +22,7 @@ from ..core.features import layout_of, usable_names
 from ..core.halves import Halves, as_halves, is_half_buffer_pair, split_halves
 from ..core.samples import SampleSet, check_policy, check_reference, source_name
 from ..core.stats import PixelStats
+from ..core.strata import prefix_halves_of
 
 __all__ = ['gather_inputs', 'check_given_statistics', 'statistics_for', 'check_method_supply']
 
@@ -143,7 +144,7 @@ def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=
     m_where = where or method.where
     check_policy(nonfinite, src_where)
     req = method.requires
-    halves = None
+    halves = strata = None
     if is_half_buffer_pair(source):
         halves = _given_halves(source, method, src_where, m_where, what or "the half buffers", surface)
         stats, samples, stored_ref = halves.merged(), None, None
@@ -171,9 +172,11 @@ def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=
                                            logs=logs), m_where)
         stats, halves = statistics_for(source, req, nonfinite=nonfinite, merged=merged)
         stored_ref = source.reference() if req.reference != "none" and hasattr(source, "reference") else None
-        samples = source if req.samples or getattr(method, "reads_given_samples", False) else None
+        samples = source if req.samples else None
+        # a second pass over the samples, in their stored order (each pixel's sequence order)
+        strata = prefix_halves_of(source) if req.prefix_halves else None
     shape = stats.shape if stats is not None else halves.shape if halves is not None else \
         (samples.height, samples.width, len(samples.channels))
     ref = check_reference(reference if reference is not None else stored_ref, shape,
                           **({"where": f"{where}: reference"} if where else {}))
-    return MethodInputs(stats, samples, ref if req.reference != "none" else None, nonfinite, halves)
+    return MethodInputs(stats, samples, ref if req.reference != "none" else None, nonfinite, halves, strata)

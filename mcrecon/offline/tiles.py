@@ -92,7 +92,8 @@ def _tile_inputs(inputs: MethodInputs, outer) -> MethodInputs:
         b = inputs.halves.b.crop(y0, y1, x0, x1)
         # the merge is elementwise, so the tile's merge is the crop of the film's, bit for bit
         return MethodInputs(a.merged(b), None, ref, inputs.nonfinite, Halves.from_pair(a, b))
-    return MethodInputs(inputs.stats.crop(y0, y1, x0, x1), None, ref, inputs.nonfinite)
+    strata = inputs.strata.crop(y0, y1, x0, x1) if inputs.strata is not None else None
+    return MethodInputs(inputs.stats.crop(y0, y1, x0, x1), None, ref, inputs.nonfinite, strata=strata)
 
 
 def reconstruct_tiles(method: Method, inputs: MethodInputs, *, tile: int, diagnostics: bool = True,

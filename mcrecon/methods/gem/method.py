@@ -21,7 +21,7 @@ from .guard import RISK_RADIUS
 from .selection import CHANNEL_WEIGHTS, GAMMA_MAX, OUTLIER_RULES, GEMSelection, _pick, gem_select, oracle_select
 from ...core.fill import mean_variance_policy
 from ...core.safeguard import rare_component_variance
-from ...core.strata import prefix_halves_of, stratified_gain
+from ...core.strata import stratified_gain
 
 __all__ = ["GEMMethod", "GEMRun", "TARGET_EPS"]
 
@@ -142,18 +142,15 @@ class GEMMethod(Method):
     )
 
     @property
-    def reads_given_samples(self) -> bool:
-        """Offline, whether the dispatcher hands over the sample source it read the statistics from (a log, a
-        SampleSet) although the method does not require one: the final risk guard reads its prefix halves
-        (``guard_halves``); pixel statistics alone work as before."""
-        return bool(self.params["guard_halves"]) and self.params["risk_guard"] > 0
-
-    @property
     def requires(self) -> Requirements:
         # Work a run does not need is left out: 616 MB of subpixel sums at 1024^2
         # and the slowest ingestion path, unused by the pixel-level kernels.
-        return Requirements(subpixels=self.grid if self.params["subpixel_exact_below"] > 0 else 0,
-                            reference="required" if self.params["oracle"] else "none")
+        # the prefix halves: the final guard's second variance (offline from a log or SampleSet) and the
+        # adaptive phase's stratification gain
+        p = self.params
+        return Requirements(subpixels=self.grid if p["subpixel_exact_below"] > 0 else 0,
+                            reference="required" if p["oracle"] else "none",
+                            prefix_halves=bool(p["guard_halves"] and p["risk_guard"] > 0) or bool(p["stratified_gain"]))
 
     def halo(self, width, height):
         # largest final filter's pixel-kernel radius + the largest outlier-removal
@@ -265,10 +262,7 @@ class GEMMethod(Method):
         """
         if run.reference is None and inputs.reference is not None:
             run.reference = self.start(run.width, run.height, run.channels, reference=inputs.reference).reference
-        strata = None
-        if self.params["guard_halves"] and self.params["risk_guard"] > 0 and inputs.samples is not None:
-            strata = prefix_halves_of(inputs.samples)
-        return self._final(run, inputs.stats, strata)
+        return self._final(run, inputs.stats, inputs.strata if self.params["guard_halves"] else None)
 
     def finish(self, run: "GEMRun", state: AdaptiveState) -> np.ndarray:
         """The final reconstruction of an adaptive run's samples, its risk guard reading their prefix halves."""
