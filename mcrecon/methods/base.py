@@ -680,13 +680,13 @@ class Method:
                              "(SampleBatch.features; /features/NAME of a command's reply); or pick another method")
 
     def run_inputs(self, run: RunState, state: AdaptiveState) -> MethodInputs:
-        """An adaptive run's reconstruction inputs: its statistics, and its halves (:meth:`observe`) when they
-        hold every committed sample; the statistics are then their merge, as the offline dispatcher builds them
-        from the run's log, so the run's image is its log's image, bit for bit."""
-        h = run.halves
+        """An adaptive run's reconstruction inputs, as the offline dispatcher builds them from the run's log (so
+        the run's image is its log's, bit for bit): its statistics, its prefix halves if declared, and its halves
+        (:meth:`observe`) when they hold every committed sample, the statistics then being their merge."""
+        h, strata = run.halves, state.strata if self.requires.prefix_halves else None
         if h is not None and h.n_samples == int(state.stats.count.sum()):
-            return MethodInputs(h.merged(), None, state.reference, halves=h)
-        return state.inputs()
+            return MethodInputs(h.merged(), None, state.reference, halves=h, strata=strata)
+        return MethodInputs(state.stats, None, state.reference, strata=strata)
 
     def finish(self, run: RunState, state: AdaptiveState) -> np.ndarray:
         """Final image of an adaptive run (default: :meth:`reconstruct_run` of :meth:`run_inputs`)."""

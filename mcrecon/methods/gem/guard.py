@@ -144,8 +144,9 @@ def risk_guard(bank: FilterBank, selected: np.ndarray, image: np.ndarray, count:
     mean_variance : ndarray (H, W, C), optional
         The pixel means' variance ``Var[v_0]`` the estimates read; by default
         the bank's, which the selection itself read.  An estimate the
-        selection did not see (:func:`guard_mean_variance`) keeps the
-        guard's check independent of the selection's luck.
+        selection did not see (:func:`~.selection.gem_select`'s
+        ``guard_variance``) keeps the guard's check independent of the
+        selection's luck.
 
     Returns
     -------

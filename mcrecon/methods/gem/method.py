@@ -256,23 +256,14 @@ class GEMMethod(Method):
         value (:func:`mcrecon.core.fill.fill_empty_pixels`, with a warning).
         With ``oracle=1`` the run's reference (``inputs.reference`` or the
         one given to :meth:`start`) gives the true bias.  With
-        ``inputs.samples`` (the dispatcher hands gem the log or SampleSet the
-        statistics came from) the risk guard also reads their prefix halves
+        ``inputs.strata`` (the prefix halves of a log's or SampleSet's
+        samples, or of an adaptive run's) the risk guard also reads them
         (option ``guard_halves``).
         """
         if run.reference is None and inputs.reference is not None:
             run.reference = self.start(run.width, run.height, run.channels, reference=inputs.reference).reference
-        return self._final(run, inputs.stats, inputs.strata if self.params["guard_halves"] else None)
-
-    def finish(self, run: "GEMRun", state: AdaptiveState) -> np.ndarray:
-        """The final reconstruction of an adaptive run's samples, its risk guard reading their prefix halves."""
-        inputs = self.run_inputs(run, state)
-        if run.reference is None and inputs.reference is not None:
-            run.reference = self.start(run.width, run.height, run.channels, reference=inputs.reference).reference
-        return self._final(run, inputs.stats, getattr(state, "strata", None) if self.params["guard_halves"] else None)
-
-    def _final(self, run: "GEMRun", stats: PixelStats, strata) -> np.ndarray:
-        sel = self.select(run, stats, final=True, strata=strata)
+        strata = inputs.strata if self.params["guard_halves"] else None
+        sel = self.select(run, inputs.stats, final=True, strata=strata)
         img = sel.image
         no_data = sel.bank.weight[-1] <= 0
         if no_data.any():
