@@ -12,7 +12,7 @@ from ..filters.engine import parallel_rows
 from ..filters.order import median9
 from .stats import PixelStats
 
-__all__ = ['sample_range_bounds', 'confidence_clamp', 'pooled_mean_variance', 'albedo_divisor',
+__all__ = ['sample_range_bounds', 'widened_range_bounds', 'confidence_clamp', 'pooled_mean_variance', 'albedo_divisor',
            'safeguard_variance', 'empty_pixels_kept',
            'neighbourhood_mean_variance', 'rare_component_mask', 'rare_component_variance']
 
@@ -109,6 +109,41 @@ def sample_range_bounds(stats: PixelStats, radius: int = 1) -> tuple[np.ndarray,
                                          np.ascontiguousarray(src_hi, dtype=np.float64),
                                          np.ascontiguousarray(stats.count > 0), int(radius), lo, hi), lo.shape[0])
     return lo, hi
+
+
+#: The neighbourhood radius of :func:`widened_range_bounds` (2: 5 x 5, as
+#: :func:`neighbourhood_mean_variance`'s).
+WIDE_RANGE = 2
+
+
+def widened_range_bounds(stats: PixelStats, where: np.ndarray, lo: np.ndarray, hi: np.ndarray, *,
+                         radius: int = WIDE_RANGE) -> tuple[np.ndarray, np.ndarray]:
+    """``(lo, hi)`` with the :func:`sample_range_bounds` of a ``(2 radius + 1)^2`` neighbourhood at ``where``.
+
+    Why: under a rarely found bright component (a spotlight or caustic found by a sample in 30) every
+    sample of a 3 x 3 neighbourhood can miss it, and the 3 x 3 range's top then lies below the truth:
+    clamped into that range, the reference itself keeps half the pixel mean's error at such pixels.
+    Where the clamp's interval is built on the wider neighbourhood's mean variance (the pixels of a
+    black-box default, :func:`neighbourhood_mean_variance`), the range comes from the same wider
+    neighbourhood, whose samples find the component.  Elsewhere the 3 x 3 range stays: beside an
+    emitter's rim it keeps a blur from carrying the emitter into dim pixels.
+
+    Parameters
+    ----------
+    stats : PixelStats
+        The statistics ``lo`` and ``hi`` came from.
+    where : ndarray of bool (H, W)
+        The pixels that take the wider range.
+    lo, hi : ndarray (H, W, C)
+        The 3 x 3 bounds (:func:`sample_range_bounds`); not modified.
+    radius : int
+        The wider neighbourhood's radius (> 1).
+    """
+    if not np.any(where):
+        return lo, hi
+    lo_w, hi_w = sample_range_bounds(stats, radius)
+    at = np.asarray(where, dtype=bool)[..., None]
+    return np.where(at, lo_w, lo), np.where(at, hi_w, hi)
 
 
 def confidence_clamp(image: np.ndarray, mean: np.ndarray, var_mean: np.ndarray, k: float,

@@ -32,7 +32,8 @@ from .estimates import (cross_validation_mse, relative_denominator,
 from ...core.stats import PixelStats
 from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, uniform_counts
 from ...core.safeguard import (albedo_divisor, confidence_clamp, empty_pixels_kept, neighbourhood_mean_variance,
-    pooled_mean_variance, safeguard_variance, sample_range_bounds)
+    pooled_mean_variance, safeguard_variance, sample_range_bounds,
+    widened_range_bounds)
 from ...core.fill import fill_empty_pixels
 from ...filters.gaussian import final_sigmas
 from ...core.fill import mean_variance_policy
@@ -416,12 +417,13 @@ class AutoMethod(Method):
             # an estimate away from it (the same safeguard as awr's robust default).
             lo, hi = sample_range_bounds(stats) if bounds is None else bounds
             # a pixel without samples has no interval: it keeps the value filled in from its neighbours
-            v_clamp = v_safe
+            v_clamp, lo_c, hi_c = v_safe, lo, hi
             g = int(choice[on_default][0]) if on_default.any() else -1
-            if g >= 0 and cands[g].name in BLACK_BOXES:  # the wide interval at the black-box default's pixels
+            if g >= 0 and cands[g].name in BLACK_BOXES:  # the wide interval and range at the black box's pixels
                 v_clamp = np.where(on_default[..., None], v_wide, v_safe)
+                lo_c, hi_c = widened_range_bounds(stats, on_default, lo, hi)
             with empty_pixels_kept(img, count):
-                confidence_clamp(img, y, v_clamp, self.params["safeguard"], lo, hi, out=img)
+                confidence_clamp(img, y, v_clamp, self.params["safeguard"], lo_c, hi_c, out=img)
                 # The heavy-tail rule judges a push by the median of the neighbours' means, which under
                 # a rarely found light lies below the truth (the pixel means are right-skewed): a
                 # feature-guided value at the truth of a pixel whose samples missed the light is then
