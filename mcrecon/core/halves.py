@@ -451,11 +451,13 @@ def as_halves(pair, where: str = "halves") -> Halves:
     return Halves.from_pair(*check_half_buffers(pair, where))
 
 
-def split_halves(source, *, nonfinite: str = "drop", features=()) -> Halves:
+def split_halves(source, *, nonfinite: str = "drop", features=(), each_batch=None) -> Halves:
     """Two independent halves of a sample source (log or SampleSet), rounds in order.
 
     ``features``: the source's per-sample features to split with the
     samples (names, or ``"all"``; :meth:`PixelStats.from_log`).
+    ``each_batch``: a callable given every batch's positions and values as
+    read, in stream order (:meth:`PixelStats.from_batches`).
     Messages name the source (its file), as the statistics' reader does.
     """
     from .samples import SampleSet, source_name
@@ -468,6 +470,8 @@ def split_halves(source, *, nonfinite: str = "drop", features=()) -> Halves:
     checked = isinstance(source, SampleSet) and source.n_nonfinite == 0
     chunks = source.iter_chunks(with_round=False, features=names) if names else source.iter_chunks(with_round=False)
     for ch in chunks:
+        if each_batch is not None:
+            each_batch(ch.positions, ch.values)
         h.add(ch.positions, ch.values, features=ch.features if names else None, nonfinite=nonfinite, source=name,
               _checked=checked)
     h.source = source

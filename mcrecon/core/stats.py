@@ -35,6 +35,7 @@ from ..errors import InputError
 from .features import (check_features, feature_components, feature_layout, layout_of, source_features, source_layout,
     warn_feature_zeroed)
 from .merge import NO_RANGE, _merge_run, _run_add
+from .moments import check_moments
 from .samples import (as_hwc, apply_nonfinite, check_memory, check_policy, check_samples, lazy_njit,
     warn_nonfinite)
 
@@ -485,42 +486,8 @@ class PixelStats:
         >>> float(st.mean_variance()[0, 0, 0])
         0.0025
         """
-        if variance_of not in ("samples", "mean"):
-            raise InputError(where, "variance_of", f"{variance_of!r}; valid: samples, mean")
-        m, v = as_hwc(mean, where=where, field="mean"), as_hwc(variance, where=where, field="variance")
-        if m.ndim != 3 or m.shape[0] < 1 or m.shape[1] < 1 or m.shape[2] < 1:
-            raise InputError(where, "mean", f"shape {np.shape(mean)}, expected (height, width, channels)")
-        if v.shape != m.shape:
-            raise InputError(where, "variance", f"shape {np.shape(variance)}, expected {m.shape} like the mean")
+        m, v, n, sampled = check_moments(mean, variance, count, variance_of=variance_of, where=where)
         h, w, c = m.shape
-        n = np.asarray(count)
-        if n.ndim == 0:
-            n = np.full((h, w), n)
-        if n.shape != (h, w):
-            raise InputError(where, "count", f"shape {n.shape}, expected (height, width) = {(h, w)} or one number")
-        if n.dtype.kind == "f":
-            if not np.isfinite(n).all() or np.any(n != np.round(n)):
-                raise InputError(where, "count", "expected whole numbers of samples per pixel")
-        elif n.dtype.kind not in "iu":
-            raise InputError(where, "count", f"dtype {n.dtype}, expected integers")
-        n = n.astype(np.int64)
-        if (n < 0).any():
-            raise InputError(where, "count", f"{int((n < 0).sum())} negative count(s)")
-        sampled = np.broadcast_to((n > 0)[..., None], m.shape)
-        for name, a in (("mean", m), ("variance", v)):
-            bad = sampled & ~np.isfinite(a)
-            if bad.any():
-                raise InputError(where, name, f"{int(bad.any(axis=2).sum())} sampled pixel(s) with NaN or Inf; "
-                                 "fix the renderer output or set their count to 0")
-        if (sampled & (v < 0)).any():
-            raise InputError(where, "variance", f"{int((sampled & (v < 0)).any(axis=2).sum())} pixel(s) with a "
-                             "negative variance")
-        if variance_of == "mean":
-            v = v * n[..., None]
-        few = np.broadcast_to((n == 1)[..., None], m.shape)
-        if (few & (v > 0)).any():
-            raise InputError(where, "variance", f"{int((few & (v > 0)).any(axis=2).sum())} pixel(s) with one "
-                             "sample but a non-zero variance: a variance needs two samples (check count)")
         names = tuple(channels) if channels is not None else (
             ("R", "G", "B") if c == 3 else tuple(f"C{i}" for i in range(c)))
         if len(names) != c:
@@ -570,13 +537,18 @@ class PixelStats:
     @classmethod
     def from_batches(cls, batches: Iterable, *, width: int, height: int,
                      channels: Sequence[str] = ("R", "G", "B"), subpixels: int = 0,
-                     nonfinite: str = "drop", source: str = "samples", features=None) -> "PixelStats":
+                     nonfinite: str = "drop", source: str = "samples", features=None,
+                     each_batch=None) -> "PixelStats":
         """Stream (positions, values) batches into new statistics.
 
         With ``features`` (name -> components), each batch is
         ``(positions, values, {name: array})``.  The next batch is fetched
         while the previous one is accumulated (the accumulation releases the
-        GIL), so reading a file and accumulating overlap.
+        GIL), so reading a file and accumulating overlap.  ``each_batch``
+        (a callable of positions and values), when given, sees every batch
+        as read, NaN and Inf included, in stream order: another per-pixel
+        accumulator (:class:`~mcrecon.core.strata.PrefixHalves`) fed by the
+        same pass over the samples instead of a second one.
         """
         from concurrent.futures import ThreadPoolExecutor
 
@@ -590,6 +562,8 @@ class PixelStats:
                 # buffers get reused).  Validation errors surface before any
                 # statistics change for that batch.
                 batch = next(it, None)
+                if batch is not None and each_batch is not None:
+                    each_batch(batch[0], batch[1])
                 prepared = None if batch is None else \
                     stats._prepare(batch[0], batch[1], nonfinite=nonfinite, source=source,
                                    features=batch[2] if len(batch) > 2 else None)
@@ -603,11 +577,12 @@ class PixelStats:
 
     @classmethod
     def from_log(cls, log, *, subpixels: int = 0, nonfinite: str = "drop",
-                 rounds=None, chunk_size: int | None = None, features=()) -> "PixelStats":
+                 rounds=None, chunk_size: int | None = None, features=(), each_batch=None) -> "PixelStats":
         """Stream an opened sample log (:func:`mcrecon.read_log`, a :class:`~mcrecon.io.SampleLog`) in chunks.
 
         ``features``: names of the log's per-sample features to accumulate
         too (``"all"`` for every one it has; by default none).
+        ``each_batch``: as :meth:`from_batches`.
         """
         if isinstance(log, (str, os.PathLike)):
             raise InputError("PixelStats.from_log", "log", f"{os.fspath(log)!r} is a path: open it with "
@@ -619,7 +594,7 @@ class PixelStats:
                        log.iter_chunks(rounds=rounds, with_round=False, features=names, **kw))
             return cls.from_batches(batches, width=log.width, height=log.height, channels=log.channels,
                                     subpixels=subpixels, nonfinite=nonfinite, source=str(log.path),
-                                    features=source_layout(log, names))
+                                    features=source_layout(log, names), each_batch=each_batch)
         if rounds is None:
             # Two rotating buffers: one is filled while the other is accumulated.
             from .samples import DEFAULT_READ_ROWS
@@ -632,16 +607,18 @@ class PixelStats:
             kw = {} if chunk_size is None else {"chunk_size": chunk_size}
             batches = ((b.positions, b.values) for b in log.iter_chunks(rounds=rounds, with_round=False, **kw))
         return cls.from_batches(batches, width=log.width, height=log.height, channels=log.channels,
-                                subpixels=subpixels, nonfinite=nonfinite, source=str(log.path))
+                                subpixels=subpixels, nonfinite=nonfinite, source=str(log.path), each_batch=each_batch)
 
     @classmethod
-    def from_source(cls, source, *, subpixels: int = 0, nonfinite: str = "drop", features=()) -> "PixelStats":
+    def from_source(cls, source, *, subpixels: int = 0, nonfinite: str = "drop", features=(),
+                    each_batch=None) -> "PixelStats":
         """Stream any sample source: a sample log (its fast reader) or a
         :class:`~mcrecon.core.samples.SampleSet` (any object with ``width``,
         ``height``, ``channels`` and ``iter_chunks``).  ``features`` as
-        :meth:`from_log`."""
+        :meth:`from_log`, ``each_batch`` as :meth:`from_batches`."""
         if hasattr(source, "iter_into"):  # a SampleLog
-            return cls.from_log(source, subpixels=subpixels, nonfinite=nonfinite, features=features)
+            return cls.from_log(source, subpixels=subpixels, nonfinite=nonfinite, features=features,
+                                each_batch=each_batch)
         from .samples import source_name
 
         names = source_features(source, features)
@@ -652,7 +629,7 @@ class PixelStats:
             batches = ((c.positions, c.values) for c in source.iter_chunks(with_round=False))
         return cls.from_batches(batches, width=source.width, height=source.height, channels=source.channels,
                                 subpixels=subpixels, nonfinite=nonfinite, source=source_name(source),
-                                features=source_layout(source, names))
+                                features=source_layout(source, names), each_batch=each_batch)
 
     # -------------------------------------------------------------- derived
     def sample_variance(self, *, ddof: int = 1, undefined: float = np.nan) -> np.ndarray:
