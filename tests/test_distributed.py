@@ -313,7 +313,7 @@ def test_tiled_splat_rounds():
 
 
 def test_tiled_refusals(big_stats, splat_log, tmp_path):
-    with pytest.raises(InputError, match="whole-image"):
+    with pytest.raises(InputError, match="whole image"):
         D_tiles.reconstruct_tiled(big_stats, method="awr")
     assert mcrecon.get_method("awr").halo(64, 64) is None
     with pytest.raises(InputError, match="sample log or a SampleSet"):

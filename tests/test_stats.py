@@ -80,6 +80,8 @@ def _numpy_merge(a, b):
         wb = np.where(n > 0, nb / n, 0.0)
         m2 = a.m2 + (b.m2 + delta * delta * na * wb)
         mean = a.mean + delta * wb
+    if a.min is None:  # a feature's statistics keep no range
+        return a.count + b.count, mean, m2
     return a.count + b.count, mean, m2, np.minimum(a.min, b.min), np.maximum(a.max, b.max)
 
 
@@ -321,3 +323,29 @@ def test_crop_is_the_statistics_of_the_window_and_a_row_view_shares_memory():
         st.crop(0, 9)
     with pytest.raises(InputError, match="whole rows"):
         st.crop(0, 2, 1, 5, view=True)
+
+
+def test_features_keep_no_range_and_their_colour_keeps_its_own():
+    """A feature's statistics hold count, mean and m2 only (no method reads a feature's extremes: 16 bytes a
+    pixel and component saved in every copy, halves and merge included); the colour keeps its range, and
+    crops and merges of statistics with features work on what is kept."""
+    rng = np.random.default_rng(3)
+    pos = rng.random((500, 2)) * [6, 5]
+    val = rng.random((500, 3))
+    feats = {"albedo": rng.random((500, 3)), "depth": rng.random(500)}
+    st = PixelStats.from_samples(pos, val, width=6, height=5, features=feats)
+    whole = PixelStats.from_samples(pos, val, width=6, height=5)
+    np.testing.assert_array_equal(st.min, whole.min)
+    np.testing.assert_array_equal(st.max, whole.max)
+    for name in ("albedo", "depth"):
+        f = st.features[name]
+        assert f.min is None and f.max is None and not f.has_range
+        ref = PixelStats.from_samples(pos, feats[name].reshape(500, -1), width=6, height=5,
+                                      channels=f.channels)
+        for field in ("count", "mean", "m2"):
+            np.testing.assert_array_equal(getattr(f, field), getattr(ref, field))
+    crop = st.crop(1, 4, 2, 5)
+    assert crop.features["albedo"].min is None and crop.min.shape == (3, 3, 3)
+    both = st.merged(st)
+    assert both.features["depth"].min is None
+    np.testing.assert_array_equal(both.features["depth"].count, 2 * st.count)

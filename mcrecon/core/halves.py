@@ -150,7 +150,7 @@ def _end_run(open_runs, h, runs, n_runs):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _add_run(first, stop, p, m, h, step, lab, val, width, count, mean, m2, vmin, vmax):
+def _add_run(first, stop, p, m, h, step, lab, val, width, count, mean, m2, vmin, vmax, ranged):
     # the m samples of half h in [first, stop), all in pixel p: a two-pass mean and sum of squared
     # deviations over the run, then one Chan et al. merge (merge._merge_run) -- term for term the
     # arithmetic of mcrecon.core.stats._accumulate on the half's samples in stream order.  The run as a
@@ -187,12 +187,12 @@ def _add_run(first, stop, p, m, h, step, lab, val, width, count, mean, m2, vmin,
                 if lseg[j] == h:
                     d = float(seg[j, c]) - mu
                     q += d * d
-        _merge_run(mean, m2, vmin, vmax, iy, ix, c, na, wb, mu, q, lo, hi)
+        _merge_run(mean, m2, vmin, vmax, iy, ix, c, na, wb, mu, q, lo, hi, ranged)
 
 
 @numba.njit(cache=True, nogil=True)
 def _add_runs(runs, n_runs, lab, val, p_lo, p_hi, width, ca, mean_a, m2_a, min_a, max_a, cb, mean_b, m2_b,
-              min_b, max_b):
+              min_b, max_b, ranged):
     # the runs of pixels in [p_lo, p_hi), in order, each into its half's statistics
     for r in range(n_runs):
         p = runs[r, _PIXEL]
@@ -202,7 +202,7 @@ def _add_runs(runs, n_runs, lab, val, p_lo, p_hi, width, ca, mean_a, m2_a, min_a
         count, mean, m2, vmin, vmax = (ca, mean_a, m2_a, min_a, max_a) if h == 0 else \
             (cb, mean_b, m2_b, min_b, max_b)
         _add_run(runs[r, _FIRST], runs[r, _STOP], p, runs[r, _SIZE], h, runs[r, _STEP], lab, val, width, count,
-                 mean, m2, vmin, vmax)
+                 mean, m2, vmin, vmax, ranged)
 
 
 def _split_accumulate(runs, n_runs, lab, val, width, n_parts, a: PixelStats, b: PixelStats) -> None:
@@ -213,11 +213,14 @@ def _split_accumulate(runs, n_runs, lab, val, width, n_parts, a: PixelStats, b: 
     pixels are merged in parallel (the filters' thread pool: a
     ``parallel=True`` kernel cost 1.9 s of compilation on a first run),
     each by one thread going through the whole list of runs (the result
-    does not depend on ``n_parts``).  Values must be finite.
+    does not depend on ``n_parts``).  Values must be finite.  The range is
+    kept where the halves keep one (the colour's; a feature's keeps none).
     """
     n_pix = a.count.size
+    ranged = a.min is not None and b.min is not None
+    lo_a, hi_a, lo_b, hi_b = (a.min, a.max, b.min, b.max) if ranged else (_merge.NO_RANGE,) * 4
     parallel_calls(_add_runs, [(runs, n_runs, lab, val, n_pix * part // n_parts, n_pix * (part + 1) // n_parts,
-                                width, a.count, a.mean, a.m2, a.min, a.max, b.count, b.mean, b.m2, b.min, b.max)
+                                width, a.count, a.mean, a.m2, lo_a, hi_a, b.count, b.mean, b.m2, lo_b, hi_b, ranged)
                                for part in range(n_parts)], threads=n_parts)
 
 
@@ -448,11 +451,13 @@ def as_halves(pair, where: str = "halves") -> Halves:
     return Halves.from_pair(*check_half_buffers(pair, where))
 
 
-def split_halves(source, *, nonfinite: str = "drop", features=()) -> Halves:
+def split_halves(source, *, nonfinite: str = "drop", features=(), each_batch=None) -> Halves:
     """Two independent halves of a sample source (log or SampleSet), rounds in order.
 
     ``features``: the source's per-sample features to split with the
     samples (names, or ``"all"``; :meth:`PixelStats.from_log`).
+    ``each_batch``: a callable given every batch's positions and values as
+    read, in stream order (:meth:`PixelStats.from_batches`).
     Messages name the source (its file), as the statistics' reader does.
     """
     from .samples import SampleSet, source_name
@@ -465,6 +470,8 @@ def split_halves(source, *, nonfinite: str = "drop", features=()) -> Halves:
     checked = isinstance(source, SampleSet) and source.n_nonfinite == 0
     chunks = source.iter_chunks(with_round=False, features=names) if names else source.iter_chunks(with_round=False)
     for ch in chunks:
+        if each_batch is not None:
+            each_batch(ch.positions, ch.values)
         h.add(ch.positions, ch.values, features=ch.features if names else None, nonfinite=nonfinite, source=name,
               _checked=checked)
     h.source = source

@@ -16,9 +16,15 @@ statistics of a half are then bit for bit those of its samples added alone.
 
 from __future__ import annotations
 
+import numpy as np
+
 from .samples import lazy_njit
 
 __all__ = ["merge_moments"]
+
+#: What the kernels get for the ``min``/``max`` of statistics that keep no range (``ranged`` False):
+#: an empty array of the range's type, never indexed.
+NO_RANGE = np.empty((0, 0, 0))
 
 @lazy_njit(cache=True, nogil=True, inline="always")
 def _run_add(acc, lo, hi, v):
@@ -27,17 +33,19 @@ def _run_add(acc, lo, hi, v):
 
 
 @lazy_njit(cache=True, nogil=True, inline="always")
-def _merge_run(mean, m2, vmin, vmax, iy, ix, c, na, wb, mu, q, lo, hi):
+def _merge_run(mean, m2, vmin, vmax, iy, ix, c, na, wb, mu, q, lo, hi, ranged):
     """Chan et al.'s merge of a run of samples into channel ``c`` of pixel (iy, ix) (in place).
 
     The run's mean ``mu``, sum of squared deviations ``q`` and extremes ``lo``, ``hi``; the pixel held
-    ``na`` samples before it, and ``wb`` is the run's share of all of them, m / (na + m).
+    ``na`` samples before it, and ``wb`` is the run's share of all of them, m / (na + m).  ``ranged``
+    False: statistics without a range (a feature's: ``vmin``/``vmax`` are empty and not written).
     """
     delta = mu - mean[iy, ix, c]
     mean[iy, ix, c] += delta * wb
     m2[iy, ix, c] += q + delta * delta * na * wb
-    vmin[iy, ix, c] = min(vmin[iy, ix, c], lo)
-    vmax[iy, ix, c] = max(vmax[iy, ix, c], hi)
+    if ranged:
+        vmin[iy, ix, c] = min(vmin[iy, ix, c], lo)
+        vmax[iy, ix, c] = max(vmax[iy, ix, c], hi)
 
 
 #: Rows merged by one task of the filters' thread pool (a task costs ~20 us).
@@ -46,7 +54,7 @@ _ROWS_PER_TASK = 64
 
 @lazy_njit(cache=True, nogil=True)
 def _merge_rows(count_a, mean_a, m2_a, min_a, max_a, count_b, mean_b, m2_b, min_b, max_b, count, mean, m2, vmin,
-                vmax, i0, i1):
+                vmax, ranged, i0, i1):
     for i in range(i0, i1):
         for j in range(count_a.shape[1]):
             na = float(count_a[i, j])
@@ -58,6 +66,8 @@ def _merge_rows(count_a, mean_a, m2_a, min_a, max_a, count_b, mean_b, m2_b, min_
                 delta = mean_b[i, j, c] - mean_a[i, j, c]
                 m2[i, j, c] = m2_a[i, j, c] + (m2_b[i, j, c] + delta * delta * na * wb)
                 mean[i, j, c] = mean_a[i, j, c] + delta * wb
+                if not ranged:
+                    continue
                 lo, hi = min_a[i, j, c], min_b[i, j, c]
                 vmin[i, j, c] = lo if lo < hi or lo != lo else hi
                 lo, hi = max_a[i, j, c], max_b[i, j, c]
@@ -68,12 +78,16 @@ def merge_moments(a, b, out) -> None:
     """Write the Chan merge of ``a`` and ``b`` (count, mean, m2, min, max) into ``out``'s arrays.
 
     ``a``, ``b`` and ``out`` are :class:`~mcrecon.core.stats.PixelStats`
-    of one film and channels (``out`` may be ``a``).  Row blocks are merged
-    on the filters' thread pool (:func:`mcrecon.filters.engine.parallel_calls`).
+    of one film and channels (``out`` may be ``a``).  Statistics that keep
+    no range (a feature's, ``min`` None) merge count, mean and ``m2``.  Row
+    blocks are merged on the filters' thread pool
+    (:func:`mcrecon.filters.engine.parallel_calls`).
     """
     from ..filters.engine import parallel_calls
 
     h = a.count.shape[0]
-    arrays = (a.count, a.mean, a.m2, a.min, a.max, b.count, b.mean, b.m2, b.min, b.max,
-              out.count, out.mean, out.m2, out.min, out.max)
+    ranged = a.min is not None and b.min is not None and out.min is not None
+    lo_hi = lambda st: (st.min, st.max) if ranged else (NO_RANGE, NO_RANGE)  # noqa: E731
+    arrays = (a.count, a.mean, a.m2, *lo_hi(a), b.count, b.mean, b.m2, *lo_hi(b),
+              out.count, out.mean, out.m2, *lo_hi(out), ranged)
     parallel_calls(_merge_rows, [arrays + (i, min(i + _ROWS_PER_TASK, h)) for i in range(0, h, _ROWS_PER_TASK)])

@@ -34,7 +34,8 @@ import numpy as np
 from ..errors import InputError
 from .features import (check_features, feature_components, feature_layout, layout_of, source_features, source_layout,
     warn_feature_zeroed)
-from .merge import _merge_run, _run_add
+from .merge import NO_RANGE, _merge_run, _run_add
+from .moments import check_moments
 from .samples import (as_hwc, apply_nonfinite, check_memory, check_policy, check_samples, lazy_njit,
     warn_nonfinite)
 
@@ -45,8 +46,8 @@ __all__ = ['PixelStats']
 
 
 @lazy_njit(cache=True, nogil=True)
-def _accumulate(pos, val, s, count, mean, m2, vmin, vmax, sub_sum, sub_count):
-    """Add every sample into the per-pixel arrays (in place).
+def _accumulate(pos, val, s, count, mean, m2, vmin, vmax, ranged, sub_sum, sub_count):
+    """Add every sample into the per-pixel arrays (in place; ``vmin``/``vmax`` only when ``ranged``).
 
     Renderers usually emit the samples of a pixel one after another, so
     the loop takes *runs* of consecutive samples in the same pixel: a
@@ -80,7 +81,7 @@ def _accumulate(pos, val, s, count, mean, m2, vmin, vmax, sub_sum, sub_count):
             for j in range(k, end):
                 d = float(val[j, c]) - mu
                 q += d * d
-            _merge_run(mean, m2, vmin, vmax, iy, ix, c, na, wb, mu, q, lo, hi)
+            _merge_run(mean, m2, vmin, vmax, iy, ix, c, na, wb, mu, q, lo, hi, ranged)
         if s > 0:
             last = s - 1
             for j in range(k, end):
@@ -93,6 +94,12 @@ def _accumulate(pos, val, s, count, mean, m2, vmin, vmax, sub_sum, sub_count):
                 for c in range(nch):
                     sub_sum[sy, sx, c] += float(val[j, c])
         k = end
+
+
+def _feature_stats(width: int, height: int, name: str, k: int, where: str = "PixelStats") -> "PixelStats":
+    """Empty statistics of a feature of ``k`` components: count, mean and ``m2``, no range (no method reads a
+    feature's extremes)."""
+    return PixelStats(width, height, feature_components(name, k), where=where, keep_range=False)
 
 
 class PixelStats:
@@ -115,6 +122,10 @@ class PixelStats:
     where : str, optional
         The source named in the error when the film's arrays would need more
         memory than the machine has available (:func:`mcrecon.core.samples.check_memory`).
+    keep_range : bool
+        Keep each pixel's smallest and largest sample (``min``, ``max``);
+        False for a feature's statistics, whose extremes no method reads
+        (they would cost 16 bytes a pixel and component in every copy).
 
     Attributes
     ----------
@@ -123,8 +134,9 @@ class PixelStats:
         0 in empty pixels.
     m2 : ndarray of float64, shape (H, W, C)
         Sum of squared deviations from the mean.
-    min, max : ndarray of float64, shape (H, W, C)
-        +inf / -inf in empty pixels.
+    min, max : ndarray of float64, shape (H, W, C), or None
+        +inf / -inf in empty pixels; None without ``keep_range`` (then
+        ``has_range`` is False).
     sub_sum : ndarray of float64, shape (H*s, W*s, C), or None
     sub_count : ndarray of int64, shape (H*s, W*s), or None
     n_dropped : int
@@ -135,7 +147,8 @@ class PixelStats:
         Per feature, the statistics of its components (channels named by
         :func:`~mcrecon.core.features.feature_components`: ``albedo`` R,G,B,
         ``normal`` X,Y,Z, ``depth`` Z); same film and counts as the
-        colour.  Empty when none are kept.
+        colour; count, mean and ``m2`` only (no range: ``min`` None).
+        Empty when none are kept.
     n_feature_zeroed : int
         Samples whose non-finite feature entries were set to 0.
     has_range : bool
@@ -148,7 +161,7 @@ class PixelStats:
     """
 
     def __init__(self, width: int, height: int, channels: Sequence[str] = ("R", "G", "B"), *,
-                 subpixels: int = 0, features=None, where: str = "PixelStats"):
+                 subpixels: int = 0, features=None, where: str = "PixelStats", keep_range: bool = True):
         width, height = int(width), int(height)
         if width < 1 or height < 1:
             raise InputError("PixelStats", "width/height", f"got {width}x{height}, expected at least 1x1")
@@ -163,16 +176,17 @@ class PixelStats:
         self.subpixels = subpixels if subpixels > 1 else 0
         layout = feature_layout(features)
         n_feat = sum(layout.values())
-        # count, mean, m2, min, max (+ subpixels) (+ each feature's count, mean, m2, min, max)
-        per_pixel = 8 + 4 * 8 * c + self.subpixels ** 2 * 8 * (c + 1) + 8 * len(layout) + 4 * 8 * n_feat
+        # count, mean, m2, min, max (+ subpixels) (+ each feature's count, mean, m2)
+        per_pixel = 8 + (4 if keep_range else 2) * 8 * c + self.subpixels ** 2 * 8 * (c + 1) + 8 * len(layout) \
+            + 2 * 8 * n_feat
         check_memory(where, "width/height", float(width) * height * per_pixel,
                      f"the per-pixel statistics of a {width}x{height} film with {c} channel(s)",
                      "use a machine with more memory, or a smaller film")
         self.count = np.zeros((height, width), np.int64)
         self.mean = np.zeros((height, width, c), np.float64)
         self.m2 = np.zeros((height, width, c), np.float64)
-        self.min = np.full((height, width, c), np.inf)
-        self.max = np.full((height, width, c), -np.inf)
+        self.min = np.full((height, width, c), np.inf) if keep_range else None
+        self.max = np.full((height, width, c), -np.inf) if keep_range else None
         if self.subpixels:
             s = self.subpixels
             self.sub_sum = np.zeros((height * s, width * s, c), np.float64)
@@ -183,11 +197,10 @@ class PixelStats:
         self.n_dropped = 0
         self.n_zeroed = 0
         self.n_feature_zeroed = 0
-        self.features = {name: PixelStats(width, height, feature_components(name, k), where=where)
-                         for name, k in layout.items()}
+        self.features = {name: _feature_stats(width, height, name, k, where) for name, k in layout.items()}
         #: False for statistics built from moments (:meth:`from_moments`):
-        #: ``min`` / ``max`` are then unknown (NaN).
-        self.has_range = True
+        #: ``min`` / ``max`` are then unknown (NaN), or not kept (None).
+        self.has_range = bool(keep_range)
         self._value_dtype = None
 
     # ------------------------------------------------------------------ build
@@ -214,7 +227,7 @@ class PixelStats:
             raise InputError("PixelStats.keep_features", "features", "these statistics already hold samples "
                              "without those features; give features= when creating them")
         for name, k in feature_layout(features).items():
-            self.features[name] = PixelStats(self.width, self.height, feature_components(name, k))
+            self.features[name] = _feature_stats(self.width, self.height, name, k)
         return self
 
     @property
@@ -281,13 +294,15 @@ class PixelStats:
         s = self.subpixels
         sub_sum = self.sub_sum if s else np.zeros((1, 1, 1))
         sub_count = self.sub_count if s else np.zeros((1, 1), np.int64)
-        _accumulate(pos, val, s, self.count, self.mean, self.m2, self.min, self.max, sub_sum, sub_count)
+        ranged = self.min is not None
+        _accumulate(pos, val, s, self.count, self.mean, self.m2, self.min if ranged else NO_RANGE,
+                    self.max if ranged else NO_RANGE, ranged, sub_sum, sub_count)
         self._note_dtype(val.dtype)
         if feats:
             no_sub, no_sub_count = np.zeros((1, 1, 1)), np.zeros((1, 1), np.int64)
             for name, fst in self.features.items():
                 f = feats[name]
-                _accumulate(pos, f, 0, fst.count, fst.mean, fst.m2, fst.min, fst.max, no_sub, no_sub_count)
+                _accumulate(pos, f, 0, fst.count, fst.mean, fst.m2, NO_RANGE, NO_RANGE, False, no_sub, no_sub_count)
                 fst._note_dtype(f.dtype)
         if n_feature_zeroed:
             self.n_feature_zeroed += int(n_feature_zeroed)
@@ -378,7 +393,8 @@ class PixelStats:
         take = (lambda a: a) if view else np.ascontiguousarray
         d = dict(self.__dict__)
         for name in ("count", "mean", "m2", "min", "max"):
-            d[name] = take(getattr(self, name)[y0:y1, x0:x1])
+            if getattr(self, name) is not None:  # a feature's statistics keep no range
+                d[name] = take(getattr(self, name)[y0:y1, x0:x1])
         s = self.subpixels
         if s:
             d["sub_sum"] = take(self.sub_sum[y0 * s:y1 * s, x0 * s:x1 * s])
@@ -470,42 +486,8 @@ class PixelStats:
         >>> float(st.mean_variance()[0, 0, 0])
         0.0025
         """
-        if variance_of not in ("samples", "mean"):
-            raise InputError(where, "variance_of", f"{variance_of!r}; valid: samples, mean")
-        m, v = as_hwc(mean, where=where, field="mean"), as_hwc(variance, where=where, field="variance")
-        if m.ndim != 3 or m.shape[0] < 1 or m.shape[1] < 1 or m.shape[2] < 1:
-            raise InputError(where, "mean", f"shape {np.shape(mean)}, expected (height, width, channels)")
-        if v.shape != m.shape:
-            raise InputError(where, "variance", f"shape {np.shape(variance)}, expected {m.shape} like the mean")
+        m, v, n, sampled = check_moments(mean, variance, count, variance_of=variance_of, where=where)
         h, w, c = m.shape
-        n = np.asarray(count)
-        if n.ndim == 0:
-            n = np.full((h, w), n)
-        if n.shape != (h, w):
-            raise InputError(where, "count", f"shape {n.shape}, expected (height, width) = {(h, w)} or one number")
-        if n.dtype.kind == "f":
-            if not np.isfinite(n).all() or np.any(n != np.round(n)):
-                raise InputError(where, "count", "expected whole numbers of samples per pixel")
-        elif n.dtype.kind not in "iu":
-            raise InputError(where, "count", f"dtype {n.dtype}, expected integers")
-        n = n.astype(np.int64)
-        if (n < 0).any():
-            raise InputError(where, "count", f"{int((n < 0).sum())} negative count(s)")
-        sampled = np.broadcast_to((n > 0)[..., None], m.shape)
-        for name, a in (("mean", m), ("variance", v)):
-            bad = sampled & ~np.isfinite(a)
-            if bad.any():
-                raise InputError(where, name, f"{int(bad.any(axis=2).sum())} sampled pixel(s) with NaN or Inf; "
-                                 "fix the renderer output or set their count to 0")
-        if (sampled & (v < 0)).any():
-            raise InputError(where, "variance", f"{int((sampled & (v < 0)).any(axis=2).sum())} pixel(s) with a "
-                             "negative variance")
-        if variance_of == "mean":
-            v = v * n[..., None]
-        few = np.broadcast_to((n == 1)[..., None], m.shape)
-        if (few & (v > 0)).any():
-            raise InputError(where, "variance", f"{int((few & (v > 0)).any(axis=2).sum())} pixel(s) with one "
-                             "sample but a non-zero variance: a variance needs two samples (check count)")
         names = tuple(channels) if channels is not None else (
             ("R", "G", "B") if c == 3 else tuple(f"C{i}" for i in range(c)))
         if len(names) != c:
@@ -534,6 +516,7 @@ class PixelStats:
                                      f"({h}, {w}) or ({h}, {w}, k) like the colour")
                 fst = cls.from_moments(f_mean, f_var, n, channels=feature_components(str(name), f_mean.shape[2]),
                                        variance_of=variance_of, where=f"{where}: features/{name}")
+                fst.min = fst.max = None  # a feature's statistics keep no range (_feature_stats)
                 st.features[str(name)] = fst
         return st
 
@@ -554,13 +537,18 @@ class PixelStats:
     @classmethod
     def from_batches(cls, batches: Iterable, *, width: int, height: int,
                      channels: Sequence[str] = ("R", "G", "B"), subpixels: int = 0,
-                     nonfinite: str = "drop", source: str = "samples", features=None) -> "PixelStats":
+                     nonfinite: str = "drop", source: str = "samples", features=None,
+                     each_batch=None) -> "PixelStats":
         """Stream (positions, values) batches into new statistics.
 
         With ``features`` (name -> components), each batch is
         ``(positions, values, {name: array})``.  The next batch is fetched
         while the previous one is accumulated (the accumulation releases the
-        GIL), so reading a file and accumulating overlap.
+        GIL), so reading a file and accumulating overlap.  ``each_batch``
+        (a callable of positions and values), when given, sees every batch
+        as read, NaN and Inf included, in stream order: another per-pixel
+        accumulator (:class:`~mcrecon.core.strata.PrefixHalves`) fed by the
+        same pass over the samples instead of a second one.
         """
         from concurrent.futures import ThreadPoolExecutor
 
@@ -574,6 +562,8 @@ class PixelStats:
                 # buffers get reused).  Validation errors surface before any
                 # statistics change for that batch.
                 batch = next(it, None)
+                if batch is not None and each_batch is not None:
+                    each_batch(batch[0], batch[1])
                 prepared = None if batch is None else \
                     stats._prepare(batch[0], batch[1], nonfinite=nonfinite, source=source,
                                    features=batch[2] if len(batch) > 2 else None)
@@ -587,11 +577,12 @@ class PixelStats:
 
     @classmethod
     def from_log(cls, log, *, subpixels: int = 0, nonfinite: str = "drop",
-                 rounds=None, chunk_size: int | None = None, features=()) -> "PixelStats":
+                 rounds=None, chunk_size: int | None = None, features=(), each_batch=None) -> "PixelStats":
         """Stream an opened sample log (:func:`mcrecon.read_log`, a :class:`~mcrecon.io.SampleLog`) in chunks.
 
         ``features``: names of the log's per-sample features to accumulate
         too (``"all"`` for every one it has; by default none).
+        ``each_batch``: as :meth:`from_batches`.
         """
         if isinstance(log, (str, os.PathLike)):
             raise InputError("PixelStats.from_log", "log", f"{os.fspath(log)!r} is a path: open it with "
@@ -603,7 +594,7 @@ class PixelStats:
                        log.iter_chunks(rounds=rounds, with_round=False, features=names, **kw))
             return cls.from_batches(batches, width=log.width, height=log.height, channels=log.channels,
                                     subpixels=subpixels, nonfinite=nonfinite, source=str(log.path),
-                                    features=source_layout(log, names))
+                                    features=source_layout(log, names), each_batch=each_batch)
         if rounds is None:
             # Two rotating buffers: one is filled while the other is accumulated.
             from .samples import DEFAULT_READ_ROWS
@@ -616,16 +607,18 @@ class PixelStats:
             kw = {} if chunk_size is None else {"chunk_size": chunk_size}
             batches = ((b.positions, b.values) for b in log.iter_chunks(rounds=rounds, with_round=False, **kw))
         return cls.from_batches(batches, width=log.width, height=log.height, channels=log.channels,
-                                subpixels=subpixels, nonfinite=nonfinite, source=str(log.path))
+                                subpixels=subpixels, nonfinite=nonfinite, source=str(log.path), each_batch=each_batch)
 
     @classmethod
-    def from_source(cls, source, *, subpixels: int = 0, nonfinite: str = "drop", features=()) -> "PixelStats":
+    def from_source(cls, source, *, subpixels: int = 0, nonfinite: str = "drop", features=(),
+                    each_batch=None) -> "PixelStats":
         """Stream any sample source: a sample log (its fast reader) or a
         :class:`~mcrecon.core.samples.SampleSet` (any object with ``width``,
         ``height``, ``channels`` and ``iter_chunks``).  ``features`` as
-        :meth:`from_log`."""
+        :meth:`from_log`, ``each_batch`` as :meth:`from_batches`."""
         if hasattr(source, "iter_into"):  # a SampleLog
-            return cls.from_log(source, subpixels=subpixels, nonfinite=nonfinite, features=features)
+            return cls.from_log(source, subpixels=subpixels, nonfinite=nonfinite, features=features,
+                                each_batch=each_batch)
         from .samples import source_name
 
         names = source_features(source, features)
@@ -636,7 +629,7 @@ class PixelStats:
             batches = ((c.positions, c.values) for c in source.iter_chunks(with_round=False))
         return cls.from_batches(batches, width=source.width, height=source.height, channels=source.channels,
                                 subpixels=subpixels, nonfinite=nonfinite, source=source_name(source),
-                                features=source_layout(source, names))
+                                features=source_layout(source, names), each_batch=each_batch)
 
     # -------------------------------------------------------------- derived
     def sample_variance(self, *, ddof: int = 1, undefined: float = np.nan) -> np.ndarray:

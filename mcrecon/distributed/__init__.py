@@ -9,10 +9,10 @@
 from .cluster import local_client
 from .batch import BatchResult, SUMMARY_NAME, reconstruct_frame, reconstruct_many
 from .ingestion import ingest, row_ranges, tree_merge
-from .tiles import map_tiles, reconstruct_tiled, tile_boxes
+from .tiles import map_tiles, reconstruct_tiled, tile_windows
 
 __all__ = ['reconstruct_many', 'BatchResult', 'reconstruct_frame', 'SUMMARY_NAME', 'local_client', 'ingest',
-           'row_ranges', 'tree_merge', 'reconstruct_tiled', 'map_tiles', 'tile_boxes']
+           'row_ranges', 'tree_merge', 'reconstruct_tiled', 'map_tiles', 'tile_windows']
 
 from .._lazy import public_dir as _public_dir  # noqa: E402
 

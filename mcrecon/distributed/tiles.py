@@ -1,4 +1,10 @@
-"""Tiled reconstruction of one huge film with explicit halos.
+"""Tiled reconstruction of one huge film with explicit halos, on a Dask cluster or here.
+
+The tiles, their halos and the refusals are those of ``reconstruct --tile``
+(:mod:`mcrecon.offline.tiles`: :func:`~mcrecon.offline.tiles.tile_windows`,
+:func:`~mcrecon.offline.tiles.tileable_halo`, :func:`~mcrecon.offline.tiles.tile_inputs`);
+this module adds the cluster (each grown tile a task) and the tiles of a
+sample-filtering method, each of which reads its own samples.
 """
 
 from __future__ import annotations
@@ -12,34 +18,27 @@ import numpy as np
 from ..errors import InputError, McreconWarning
 
 
+from ..offline.tiles import check_tile, tile_inputs, tile_windows, tileable_halo
 from .cluster import _dask
-from .ingestion import _crop_stats, ingest
+from .ingestion import ingest
 
-__all__ = ['reconstruct_tiled', 'map_tiles', 'tile_boxes']
+__all__ = ['reconstruct_tiled', 'map_tiles', 'tile_windows']
 
-def _reconstruct_tile(method, stats, reference, inner, strata=None):
-    """Reconstruct one grown tile and trim it to its inner part (runs on a worker)."""
-    from ..methods.base import MethodInputs
 
+def _reconstruct_tile(method, inputs, inner):
+    """Reconstruct one grown tile's inputs and trim it to its inner part (runs on a worker)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", McreconWarning)
-        img = method.reconstruct(MethodInputs(stats, None, reference, strata=strata))
+        img = method.reconstruct(inputs)
     (a, b), (c, d) = inner
     return np.asarray(img[a:b, c:d], dtype=np.float64)
 
 
-def tile_boxes(width: int, height: int, tile: int, halo: int):
-    """``(outer, tile, inner)`` boxes of each tile, each box ((y0, y1), (x0, x1)).
-
-    outer = the tile grown by ``halo`` on every side and clipped to the
-    film (``dask.array.map_overlap`` with ``boundary="none"``); tile = the
-    tile in film coordinates; inner = the tile inside the outer box.
-    """
-    for ty in range(0, height, tile):
-        for tx in range(0, width, tile):
-            y0, y1, x0, x1 = ty, min(height, ty + tile), tx, min(width, tx + tile)
-            oy0, oy1, ox0, ox1 = max(0, y0 - halo), min(height, y1 + halo), max(0, x0 - halo), min(width, x1 + halo)
-            yield ((oy0, oy1), (ox0, ox1)), ((y0, y1), (x0, x1)), ((y0 - oy0, y1 - oy0), (x0 - ox0, x1 - ox0))
+def _boxes(width: int, height: int, tile: int, halo: int, *, even: bool = True):
+    """:func:`tile_windows` as ``(outer, tile, inner)`` boxes ``((y0, y1), (x0, x1))``: the grown tile and the
+    tile in film pixels, and the tile inside the grown one."""
+    for (oy0, oy1, ox0, ox1), (y0, y1, x0, x1) in tile_windows(width, height, tile, halo, even=even):
+        yield ((oy0, oy1), (ox0, ox1)), ((y0, y1), (x0, x1)), ((y0 - oy0, y1 - oy0), (x0 - ox0, x1 - ox0))
 
 
 def _run_tiles(func, tasks, shape, client=None) -> np.ndarray:
@@ -81,7 +80,7 @@ def map_tiles(func, image, *, tile: int, halo: int, client=None) -> np.ndarray:
     image = np.asarray(image)
     h, w = image.shape[:2]
     tasks = [(box, (func, np.ascontiguousarray(image[oy[0]:oy[1], ox[0]:ox[1]]), inner))
-             for (oy, ox), box, inner in tile_boxes(w, h, int(tile), int(halo))]
+             for (oy, ox), box, inner in _boxes(w, h, int(tile), int(halo), even=False)]
     probe = np.asarray(func(image[:1, :1]))
     return _run_tiles(_trim_apply, tasks, (h, w) + probe.shape[2:], client)
 
@@ -218,15 +217,20 @@ def reconstruct_tiled(source, *, method="box", tile: int = 1024, client=None, re
 
     Parameters
     ----------
-    source : PixelStats, a sample log (path or SampleLog) or a SampleSet
-        Methods of pixel statistics take statistics (a log is ingested
-        with :func:`ingest` when a ``client`` is given, else
-        :meth:`PixelStats.from_log`).  Sample-filtering methods (splat)
-        take a log or a SampleSet: each tile gets the samples whose pixel
-        lies in the tile grown by the halo.
+    source : PixelStats, a sample log (path or SampleLog), a SampleSet or a half-buffer pair
+        Without a ``client``, what ``reconstruct --tile`` reads
+        (:func:`mcrecon.offline.inputs.gather_inputs`, half buffers
+        included), reconstructed by its tiles
+        (:func:`mcrecon.offline.tiles.reconstruct_tiles`).  With one,
+        methods of pixel statistics take statistics (a log is ingested
+        with :func:`ingest`).  Sample-filtering methods (splat) take a log
+        or a SampleSet: each tile gets the samples whose pixel lies in the
+        tile grown by the halo.
     method : str or Method
         A method declaring a finite :meth:`~mcrecon.methods.Method.halo`;
-        whole-image methods (awr) are refused.
+        whole-image methods (awr) are refused
+        (:func:`mcrecon.offline.tiles.tileable_halo`, the one refusal of
+        every tiled path).
     tile : int
         Tile side in pixels (the halo comes on top of it).
     client : distributed.Client, optional
@@ -247,63 +251,48 @@ def reconstruct_tiled(source, *, method="box", tile: int = 1024, client=None, re
         and scatter depend on the whole film) or rounds whose density in a
         tile differs from the film's (adaptive logs).
     """
-    from ..methods.base import Method
+    from ..methods.base import Method, MethodInputs
     from ..methods import get_method
     from ..core.stats import PixelStats
+    from ..offline.inputs import gather_inputs
+    from ..offline.tiles import reconstruct_tiles
 
     m = method if isinstance(method, Method) else get_method(str(method), **options)
     if isinstance(method, Method) and options:
         raise InputError("reconstruct_tiled", sorted(options)[0], "a method object already carries its options")
     where = f"{m.where} (tiled)"
-    tile = int(tile)
-    if tile < 1:
-        raise InputError(where, "tile", f"{tile}, expected a positive number of pixels")
-    if m.requires.samples:
+    tile = check_tile(tile, where)
+    if m.requires.samples and not m.requires.half_buffers:
         return _reconstruct_tiled_samples(m, source, tile, client, reference, nonfinite, where)
-    if not m.requires.statistics:
-        raise InputError(where, "method", f"{m.name} reads neither pixel statistics nor samples")
+    if client is None:   # the tiles of reconstruct --tile, one after the other
+        inputs = gather_inputs(_opened(source), m, nonfinite=nonfinite, reference=reference, where=where,
+                               merged=False)
+        return reconstruct_tiles(m, inputs, tile=tile, diagnostics=False, where=where)[0]
+    if not m.requires.statistics or m.requires.half_buffers:
+        raise InputError(where, "client", f"{m.name} reads half buffers or no pixel statistics, which the "
+                         "cluster's ingestion does not build: tile it without a client, or reconstruct untiled")
     strata = None
     if isinstance(source, PixelStats):
         stats = source
     else:
-        stats = ingest(source, client=client, subpixels=m.requires.subpixels, nonfinite=nonfinite) \
-            if client is not None else PixelStats.from_log(_opened(source), subpixels=m.requires.subpixels,
-                                                           nonfinite=nonfinite)
+        stats = ingest(source, client=client, subpixels=m.requires.subpixels, nonfinite=nonfinite)
         if m.requires.prefix_halves:   # as the untiled dispatcher builds them (each pixel's sequence order)
             from ..core.strata import prefix_halves_of
             strata = prefix_halves_of(_opened(source))
-    h, w, c = stats.shape
-    halo = _halo_or_refuse(m, w, h, where)
-    few = int((stats.count < 2).sum())
-    if few:
-        raise InputError(where, "statistics", f"{few} pixel(s) with fewer than 2 samples: their fill-in may "
-                         "borrow from the whole image, so tiles would not reproduce the untiled result; "
-                         "reconstruct untiled, or give every pixel at least 2 samples")
     if m.requires.subpixels and stats.subpixels != m.requires.subpixels:
         raise InputError(where, "statistics", f"need a {m.requires.subpixels}x{m.requires.subpixels} subpixel "
                          f"grid, got subpixels={stats.subpixels}")
+    h, w, c = stats.shape
     ref = None if reference is None else np.asarray(reference, dtype=np.float64)
-    mf = m if client is None else client.scatter(m, broadcast=True)
+    inputs = MethodInputs(stats, None, ref, nonfinite, strata=strata)
+    halo = tileable_halo(m, w, h, where, inputs=inputs)
+    mf = client.scatter(m, broadcast=True)
     tasks = []
-    for (oy, ox), box, inner in tile_boxes(w, h, tile, halo):
-        sub = _crop_stats(stats, oy[0], oy[1], ox[0], ox[1])
-        r = None if ref is None else ref[oy[0]:oy[1], ox[0]:ox[1]]
-        st = None if strata is None else strata.crop(oy[0], oy[1], ox[0], ox[1])
-        if client is not None:   # each grown tile goes to one worker, the film stays here
-            sub = client.scatter(sub)
-            r = None if r is None else client.scatter(r)
-            st = None if st is None else client.scatter(st)
-        tasks.append((box, (mf, sub, r, inner, st)))
+    for (oy, ox), box, inner in _boxes(w, h, tile, halo):
+        # each grown tile goes to one worker, the film stays here
+        sub = client.scatter(tile_inputs(inputs, (oy[0], oy[1], ox[0], ox[1])))
+        tasks.append((box, (mf, sub, inner)))
     return _run_tiles(_reconstruct_tile, tasks, (h, w, c), client)
-
-
-def _halo_or_refuse(m, w, h, where) -> int:
-    halo = m.halo(w, h)
-    if halo is None:
-        raise InputError(where, "halo", f"{m.name} is a whole-image method (its result at a pixel depends on the "
-                         "whole film); it cannot be tiled: reconstruct it untiled on one worker with the memory "
-                         "for the film (mcrecon.reconstruct)")
-    return int(halo)
 
 
 def _reconstruct_tiled_samples(m, source, tile, client, reference, nonfinite, where):
@@ -326,11 +315,11 @@ def _reconstruct_tiled_samples(m, source, tile, client, reference, nonfinite, wh
     if not isinstance(source, (SampleLog, SampleSet)):
         raise InputError(where, "source", f"got {type(source).__name__}, expected a sample log or a SampleSet")
     w, h, c = source.width, source.height, len(source.channels)
-    halo = _halo_or_refuse(m, w, h, where)
+    halo = tileable_halo(m, w, h, where)   # each tile reads its own samples
     ref = None if reference is None else np.asarray(reference, dtype=np.float64)
     mf = m if client is None else client.scatter(m, broadcast=True)
     tasks = []
-    for outer, box, inner in tile_boxes(w, h, tile, halo):
+    for outer, box, inner in _boxes(w, h, tile, halo):
         (oy, ox) = outer
         r = None if ref is None else ref[oy[0]:oy[1], ox[0]:ox[1]]
         if isinstance(source, SampleLog):

@@ -22,7 +22,7 @@ from ..core.features import layout_of, usable_names
 from ..core.halves import Halves, as_halves, is_half_buffer_pair, split_halves
 from ..core.samples import SampleSet, check_policy, check_reference, source_name
 from ..core.stats import PixelStats
-from ..core.strata import prefix_halves_of
+from ..core.strata import PrefixHalves, prefix_halves_of
 
 __all__ = ['gather_inputs', 'check_given_statistics', 'statistics_for', 'check_method_supply']
 
@@ -35,7 +35,7 @@ def check_method_supply(method: Method, supply: Supply, where: str | None = None
     check_supply(method, supply, where=where, **_LISTS)
 
 
-def statistics_for(source, req, *, nonfinite: str = "drop", merged: bool = True):
+def statistics_for(source, req, *, nonfinite: str = "drop", merged: bool = True, strata=None):
     """``(stats, halves)`` of a sample source for a method's requirements ``req``.
 
     A method that reads the samples *and* takes half buffers reads the
@@ -47,14 +47,19 @@ def statistics_for(source, req, *, nonfinite: str = "drop", merged: bool = True)
     halves.  ``merged=False`` leaves the merge of halves to the caller
     (``stats`` None): a tiled reconstruction merges tile by tile, so no
     third set of the film's statistics sits beside the two halves.
+    ``strata`` (:class:`~mcrecon.core.strata.PrefixHalves`, empty), when
+    given, is filled by the same pass over the samples (bit for bit
+    :func:`~mcrecon.core.strata.prefix_halves_of`: every sample as stored,
+    in stored order); it stays empty when no statistics are built.
     """
     # every feature the method can accumulate ((N,) or (N, k) per sample); others are ignored
     features = usable_names(source) if req.features != "none" else ()
     if req.samples and req.half_buffers and req.statistics and not req.subpixels:
-        split = split_halves(source, nonfinite=nonfinite, features=features)
+        split = split_halves(source, nonfinite=nonfinite, features=features,
+                             each_batch=None if strata is None else strata.add)
         return (split.merged() if merged else None), split
-    stats = PixelStats.from_source(source, subpixels=req.subpixels, nonfinite=nonfinite, features=features) \
-        if req.statistics else None
+    stats = PixelStats.from_source(source, subpixels=req.subpixels, nonfinite=nonfinite, features=features,
+                                   each_batch=None if strata is None else strata.add) if req.statistics else None
     return stats, None
 
 
@@ -170,11 +175,14 @@ def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=
                                            features=tuple(getattr(source, "feature_names", ())),
                                            n_samples=int(n) if n is not None else None, surface=surface,
                                            logs=logs), m_where)
-        stats, halves = statistics_for(source, req, nonfinite=nonfinite, merged=merged)
+        # the prefix halves follow the samples in their stored order (each pixel's sequence order), filled by
+        # the statistics' pass over them (a pass of their own only for a method that reads no statistics)
+        strata = PrefixHalves(source.width, source.height, len(source.channels)) if req.prefix_halves else None
+        stats, halves = statistics_for(source, req, nonfinite=nonfinite, merged=merged, strata=strata)
+        if strata is not None and stats is None and halves is None:
+            strata = prefix_halves_of(source)
         stored_ref = source.reference() if req.reference != "none" and hasattr(source, "reference") else None
         samples = source if req.samples else None
-        # a second pass over the samples, in their stored order (each pixel's sequence order)
-        strata = prefix_halves_of(source) if req.prefix_halves else None
     shape = stats.shape if stats is not None else halves.shape if halves is not None else \
         (samples.height, samples.width, len(samples.channels))
     ref = check_reference(reference if reference is not None else stored_ref, shape,

@@ -23,7 +23,7 @@ from ..core.halves import Halves
 from ..errors import InputError
 from ..methods.base import Method, MethodInputs, RunState
 
-__all__ = ["tile_windows", "check_tile", "reconstruct_tiles"]
+__all__ = ["tile_windows", "check_tile", "tileable_halo", "tile_inputs", "reconstruct_tiles"]
 
 
 def check_tile(tile, where: str = "reconstruct") -> int | None:
@@ -36,35 +36,48 @@ def check_tile(tile, where: str = "reconstruct") -> int | None:
     return int(tile)
 
 
-def _splits(n: int, tile: int) -> list[tuple[int, int]]:
+def _splits(n: int, tile: int, even: bool) -> list[tuple[int, int]]:
+    if not even:  # dask.array's chunks of `tile`: the last one the remainder
+        return [(a, min(n, a + tile)) for a in range(0, n, tile)]
     # ceil(n / tile) parts of equal size to a pixel, so that no thin last tile pays a whole halo
     parts = -(-n // tile)
     edges = [n * i // parts for i in range(parts + 1)]
     return list(zip(edges[:-1], edges[1:]))
 
 
-def tile_windows(width: int, height: int, tile: int, halo: int):
+def tile_windows(width: int, height: int, tile: int, halo: int, *, even: bool = True):
     """``(outer, inner)`` windows of the tiles of a film, each ``(y0, y1, x0, x1)`` in film pixels.
 
-    The film is cut into ``ceil(width / tile) x ceil(height / tile)`` tiles
-    of (nearly) equal size, each at most ``tile`` pixels a side; ``inner``
+    The film is cut into ``ceil(width / tile) x ceil(height / tile)`` tiles,
+    each at most ``tile`` pixels a side: of (nearly) equal size, or with
+    ``even=False`` starting at multiples of ``tile`` (``dask.array``'s
+    chunks, which :func:`mcrecon.distributed.map_tiles` reproduces); ``inner``
     is a tile, ``outer`` the tile grown by ``halo`` on every side and
-    clipped to the film.
+    clipped to the film (``map_overlap``'s ``boundary="none"``).
     """
-    for y0, y1 in _splits(int(height), int(tile)):
-        for x0, x1 in _splits(int(width), int(tile)):
+    for y0, y1 in _splits(int(height), int(tile), even):
+        for x0, x1 in _splits(int(width), int(tile), even):
             outer = (max(0, y0 - halo), min(height, y1 + halo), max(0, x0 - halo), min(width, x1 + halo))
             yield outer, (y0, y1, x0, x1)
 
 
-def _tileable_halo(method: Method, inputs: MethodInputs, where: str) -> int:
-    """The method's halo on these inputs, or a one-line refusal saying why tiles would change the image."""
-    h, w, _ = inputs.shape
-    halo = method.halo(w, h)
+def tileable_halo(method: Method, width: int, height: int, where: str, *, inputs: MethodInputs | None = None) -> int:
+    """The method's halo on a ``width`` x ``height`` film, or a one-line refusal saying why tiles would change
+    the image: the one refusal of every tiled path (``reconstruct --tile``, :func:`reconstruct_tiles`,
+    :func:`mcrecon.distributed.reconstruct_tiled`).
+
+    Refused: a whole-image method (no finite :meth:`~mcrecon.methods.Method.halo`); with ``inputs`` (tiles
+    of statistics) a method that filters the individual samples, and pixels with fewer than two samples
+    (one in each half for half buffers), whose fill-in may borrow from anywhere in the image.  Without
+    ``inputs`` the caller gives each tile its own samples (a sample-filtering method's tiles).
+    """
+    halo = method.halo(int(width), int(height))
     if halo is None:
         raise InputError(where, "tile", f"{method.name}'s result at a pixel depends on the whole image (it declares "
                          "no finite halo: Method.halo), so tiles would change it; reconstruct it untiled "
                          "(no tile option)")
+    if inputs is None:
+        return int(halo)
     req = method.requires
     if req.samples and not (req.half_buffers and inputs.halves is not None):
         raise InputError(where, "tile", f"{method.name} filters the individual samples, which the tiles of "
@@ -83,16 +96,17 @@ def _tileable_halo(method: Method, inputs: MethodInputs, where: str) -> int:
     return int(halo)
 
 
-def _tile_inputs(inputs: MethodInputs, outer) -> MethodInputs:
-    """The inputs of one grown tile: contiguous crops, and for half buffers their merge on the tile only."""
+def tile_inputs(inputs: MethodInputs, outer) -> MethodInputs:
+    """The inputs of one grown tile ``outer`` (``(y0, y1, x0, x1)``): contiguous crops of the film's statistics,
+    reference and prefix halves, and for half buffers their merge on the tile only."""
     y0, y1, x0, x1 = outer
     ref = None if inputs.reference is None else np.ascontiguousarray(inputs.reference[y0:y1, x0:x1])
+    strata = inputs.strata.crop(y0, y1, x0, x1) if inputs.strata is not None else None
     if inputs.halves is not None:
         a = inputs.halves.a.crop(y0, y1, x0, x1)
         b = inputs.halves.b.crop(y0, y1, x0, x1)
         # the merge is elementwise, so the tile's merge is the crop of the film's, bit for bit
-        return MethodInputs(a.merged(b), None, ref, inputs.nonfinite, Halves.from_pair(a, b))
-    strata = inputs.strata.crop(y0, y1, x0, x1) if inputs.strata is not None else None
+        return MethodInputs(a.merged(b), None, ref, inputs.nonfinite, Halves.from_pair(a, b), strata)
     return MethodInputs(inputs.stats.crop(y0, y1, x0, x1), None, ref, inputs.nonfinite, strata=strata)
 
 
@@ -133,8 +147,8 @@ def reconstruct_tiles(method: Method, inputs: MethodInputs, *, tile: int, diagno
         the fill-in policies for those may borrow from the whole image.
     """
     tile = check_tile(tile, where)
-    halo = _tileable_halo(method, inputs, where)
     h, w, c = inputs.shape
+    halo = tileable_halo(method, w, h, where, inputs=inputs)
     channels = inputs.channels
     image = np.empty((h, w, c), np.float64)
     maps: dict[str, np.ndarray] = {}
@@ -142,7 +156,7 @@ def reconstruct_tiles(method: Method, inputs: MethodInputs, *, tile: int, diagno
     for outer, inner in tile_windows(w, h, tile, halo):
         oy0, oy1, ox0, ox1 = outer
         y0, y1, x0, x1 = inner
-        sub = _tile_inputs(inputs, outer)
+        sub = tile_inputs(inputs, outer)
         run = method.start(ox1 - ox0, oy1 - oy0, channels, reference=sub.reference)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
