@@ -37,7 +37,7 @@ from ...core.fill import fill_empty_pixels
 from ...filters.gaussian import final_sigmas
 from ...core.fill import mean_variance_policy
 from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGHTS, Candidate,
-    _feature_bilateral, dual_candidate, feature_candidates)
+    _feature_bilateral, dual_candidate, feature_candidates, release_prefiltered)
 from .blackbox import oidn_candidate
 from .nlmeans import nlmeans_cross
 from ...filters.masked import MaskedSmoothing, smooth_masked
@@ -307,6 +307,8 @@ class AutoMethod(Method):
             out += self._feature_candidates(stats, halves.a, halves.b)
         if "oidn_aux" in self._feature_names and "albedo" in stats.features:
             out += oidn_candidate("oidn_aux", stats, v, halves, aux=True)
+        if halves is not None:  # their last reader was oidn_aux: not held through the selection
+            release_prefiltered(halves.a, halves.b)
         if "fbil" in self._feature_names and stats.features and halves is None:
             # only without halves: beside the halves' candidates its estimate, biased where the features
             # are noisy (defocus), cost auto 2.3x on the built-in checker_dof (docs/methods/auto.md)
