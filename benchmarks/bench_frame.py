@@ -166,7 +166,7 @@ def auto_stages(log: str, *, memory: bool = False) -> None:
     mcrecon.reconstruct(log, method="auto")
     c1, w1 = time.process_time(), time.perf_counter()
     print(f"auto stages on {log}: reconstruct() CPU {c1 - c0:.1f} s, wall {w1 - w0:.1f} s, load {os.getloadavg()[0]:.1f}"
-          + (f", traced peak {tracemalloc.get_traced_memory()[1] / 1e9:.2f} GB" if memory else ""))
+          + (f", traced peak {max(peaks + [tracemalloc.get_traced_memory()[1]]) / 1e9:.2f} GB" if memory else ""))
     print(f"{'stage':28s} {'calls':>5s} {'CPU s':>7s} {'wall s':>7s}" + (f" {'held GB':>8s} {'peak GB':>8s}" if memory else ""))
     for name, r in sorted(rows.items(), key=lambda kv: -kv[1][1]):
         print(f"{name:28s} {r[0]:5d} {r[1]:7.2f} {r[2]:7.2f}" + (f" {r[3]:8.2f} {r[4]:8.2f}" if memory else ""))
