@@ -23,7 +23,8 @@ from ...errors import McreconWarning
 from .estimates import cross_validation_mse, dual_buffer_mse, sure
 
 __all__ = ["Candidate", "DEFAULT_FEATURE_CANDIDATES", "FEATURE_CANDIDATES", "MIX_WEIGHTS", "dual_candidate",
-           "feature_candidates", "feature_guided_half"]
+           "feature_candidates", "feature_guided_half",
+           "release_prefiltered"]
 
 #: Feature-guided candidates (option ``feature_candidates``), used when the samples carry features.
 FEATURE_CANDIDATES = ("nfor", "nfor_own", "dnlm", "mix", "xbil", "fbil", "oidn_aux")
@@ -148,6 +149,17 @@ def prefiltered_features(st: PixelStats, *, planes=None, stored_only: bool = Fal
     return pf
 
 
+def release_prefiltered(*buffers: PixelStats) -> None:
+    """Forget the buffers' stored prefiltered planes (:func:`prefiltered_features`).
+
+    auto's last reader of them is OIDN's albedo and normal (:func:`~.blackbox.oidn_aux`); the halves
+    themselves live on with the caller (the reader's inputs, an adaptive run's state), and the planes
+    with them: 7 planes a half with albedo, normal and depth, 0.23 GB for both halves at 1920 x 1080,
+    beside every candidate through the selection."""
+    for st in buffers:
+        _PREFILTERED.pop(st, None)
+
+
 def feature_guided_half(name: str, half: PixelStats | _HalfPlanes) -> np.ndarray | None:
     """A feature-guided filter of one half buffer from that half alone (its colour and its features).
 
@@ -247,19 +259,31 @@ def feature_candidates(names, ha: PixelStats, hb: PixelStats) -> list[Candidate]
         if "nfor" in names:
             out.append(dual_candidate("nfor", cross_a, cross_b, sure(ha.mean, pa.variance, cross_a, cw_a),
                                   sure(hb.mean, pb.variance, cross_b, cw_b), ha.count, hb.count, feature=True))
+        del own_a, own_b, cross_a, cross_b, cw_a, cw_b
+    if "xbil" not in names:
+        # the unfiltered feature planes and their variances (14 planes a half with albedo, normal and
+        # depth) serve the prefilter and xbil only: not held beside the candidates built below
+        pa.__dict__.pop("features", None)
+        pb.__dict__.pop("features", None)
     for name in ("dnlm", "xbil"):
         if name in names or (name == "dnlm" and "mix" in names):
             a, b = feature_guided_half(name, pa), feature_guided_half(name, pb)
             if a is not None and b is not None:   # None: a feature it needs is not in the samples
                 own[name] = (a, b)
-    if "mix" in names and "dnlm" in own and "nfor_own" in own:
-        (ra, rb), (da, db) = own["nfor_own"], own["dnlm"]
-        for w in MIX_WEIGHTS:
-            own[f"mix{round(100 * w)}"] = (w * ra + (1.0 - w) * da, w * rb + (1.0 - w) * db)
-    for name, (a, b) in own.items():
+    mixes = "mix" in names and "dnlm" in own and "nfor_own" in own
+    pairs = list(own.items()) + ([(f"mix{round(100 * w)}", w) for w in MIX_WEIGHTS] if mixes else [])
+    # each candidate is built and its halves' images let go one after the other (each mix from the two
+    # halves' images it averages, then those go too): at most one mix's halves beside the candidates
+    for name, ab in pairs:
+        if name.startswith("mix"):
+            (ra, rb), (da, db), w = own["nfor_own"], own["dnlm"], ab
+            a, b = w * ra + (1.0 - w) * da, w * rb + (1.0 - w) * db
+        else:
+            a, b = ab
         if name in names or name.startswith("mix"):
             out.append(dual_candidate(name, a, b, cross_validation_mse(a, hb.mean, pb.variance),
                                   cross_validation_mse(b, ha.mean, pa.variance), ha.count, hb.count,
                                   feature=True))
+        del a, b, ab
     return out
 

@@ -38,7 +38,7 @@ from ...core.fill import fill_empty_pixels
 from ...filters.gaussian import final_sigmas
 from ...core.fill import mean_variance_policy
 from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGHTS, Candidate,
-    _feature_bilateral, dual_candidate, feature_candidates)
+    _feature_bilateral, dual_candidate, feature_candidates, release_prefiltered)
 from .blackbox import oidn_candidate
 from .nlmeans import nlmeans_cross
 from ...filters.masked import MaskedSmoothing, smooth_masked
@@ -263,6 +263,11 @@ class AutoMethod(Method):
         count = stats.count
         v = mean_variance_policy(stats)
         v_sure = agreeing_variance(v, count)
+        # The feature-guided candidates first (listed after the colour ones all the same): the
+        # regressions' working arrays, the largest of a frame's, then meet only the statistics, not every
+        # colour candidate's image and estimate as well
+        guided = (self._feature_candidates(stats, halves.a, halves.b)
+                  if self._feature_names and halves is not None and halves.a.features else [])
         out: list[Candidate] = []
         names = self._names
         if "box" in names or "gauss" in names:
@@ -304,10 +309,12 @@ class AutoMethod(Method):
                                       ha.count, hb.count))
         if "oidn" in names:
             out += oidn_candidate("oidn", stats, v, halves, halves_only=self._aux_replaces_oidn(stats))
-        if self._feature_names and halves is not None and halves.a.features:
-            out += self._feature_candidates(stats, halves.a, halves.b)
+        out += guided
+        del guided
         if "oidn_aux" in self._feature_names and "albedo" in stats.features:
             out += oidn_candidate("oidn_aux", stats, v, halves, aux=True)
+        if halves is not None:  # their last reader was oidn_aux: not held through the selection
+            release_prefiltered(halves.a, halves.b)
         if "fbil" in self._feature_names and stats.features and halves is None:
             # only without halves: beside the halves' candidates its estimate, biased where the features
             # are noisy (defocus), cost auto 2.3x on the built-in checker_dof (docs/methods/auto.md)
