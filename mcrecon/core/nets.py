@@ -6,16 +6,20 @@ whose count is a power of two ``2^m`` a full net: its mean stands on
 ``2^m`` points stratified in every elementary interval.  A count between
 two powers of two is the net of ``2^m`` plus the first points of the next
 block, which are stratified among themselves far less: on a rare bright
-component or an edge such a pixel's mean errs about as much as its last
-complete net's (checker_spot's spotlight: pixels at 17 to 31 Sobol samples
-erred as much as at 16), so the samples past the net are spent for little.
+component such a pixel's mean errs about as much as its last complete
+net's (on checker_spot's spotlight, found by one sample in 20, the means
+of 17 to 31 Sobol samples err as much as those of their first 16), so the
+samples past the net are spent for little.
 An adaptive allocation that hands out arbitrary counts thus loses to a
 uniform render of the same budget, whose every pixel has a full net.
 
 :func:`net_counts` rounds an allocation so that each pixel's new total is
 its current count or a power of two above it: the allocation decides
-which pixels deserve samples, the rounding grants them whole nets.  With
-independent samples nothing is lost but the granularity.
+which pixels deserve samples, the rounding grants them whole nets.  The
+price is granularity: where the error falls smoothly with the count
+(independent samples, motion blur) the coarser steps cost more than the
+nets gain, so the methods that offer it (``net_counts``) keep it off by
+default (docs/adaptive.md).
 """
 
 from __future__ import annotations
