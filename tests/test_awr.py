@@ -89,7 +89,7 @@ def test_wavelet_registry_rejects_unknown_names():
 @pytest.mark.parametrize("opts, field", [
     (dict(cs=-1.0), "cs"), (dict(cs=float("nan")), "cs"), (dict(levels=-1), "levels"), (dict(levels=2.5), "levels"),
     (dict(renorm=0.0), "renorm"), (dict(round_spp=0), "round_spp"), (dict(initial_spp=0), "initial_spp"),
-    (dict(per_coefficient=0), "per_coefficient"), (dict(priority_threshold=float("inf")), "priority_threshold"),
+    (dict(per_coefficient=-1), "per_coefficient"), (dict(priority_threshold=float("inf")), "priority_threshold"),
     (dict(variance="mad"), "variance"), (dict(boundary="zero"), "boundary"), (dict(reconstruction="gem"), "reconstruction"),
     (dict(colour=1), "colour"),
 ])

@@ -10,11 +10,14 @@ from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, Ru
 from ...core.fill import fill_empty_pixels
 from .reconstruction import DOMAINS, VARIANCE_ESTIMATORS, awr_reconstruct, log_domain_reconstruct, pixel_variance
 from ...core.safeguard import confidence_clamp, sample_range_bounds
+from ...core.nets import net_plan
 from .sampling import plan_awr_positions
 from .wavelets import BOUNDARY_MODES, PROPAGATIONS, RECONSTRUCTION_RENORM, SAMPLING_RENORM, WAVELETS, default_levels
 
 __all__ = ["AWRMethod", "AWRRun"]
 
+#: Samples per popped level-0 coefficient in the paper (Fig. 4): what one batch may give a pixel.
+_PAPER_PER_COEFFICIENT = 64
 #: Deepest decomposition the ``levels`` option accepts.
 _MAX_LEVELS = 12
 
@@ -69,6 +72,7 @@ class AWRMethod(Method):
             "initial_spp": 4,                # Fig. 4 Step 1
             "rare_light_floor": 0,           # each pixel's own sigma^2(F)
             "uniform_share": 0.0,            # every sample by priority
+            "net_counts": 0,                 # the sampler's counts as they fall
         },
     }
     @property
@@ -100,8 +104,9 @@ class AWRMethod(Method):
         Option("sampling_levels", int, 5, "highest scale level the sampler ranks (paper 5)", min=0),
         Option("sampling_variance", str, "contrast", "sigma^2(F) estimator of the sampler (paper: contrast)",
                VARIANCE_ESTIMATORS),
-        Option("per_coefficient", int, 64, "samples per selected level-0 coefficient (x 2^k at level k; paper 64)",
-               min=1),
+        Option("per_coefficient", int, 0, "samples per selected level-0 coefficient (x 2^k at level k; paper 64; "
+               "0: a quarter of the run's average spp, at least 1, so that one pop of a noisy estimate puts a "
+               "fraction of a pixel's share into it, not twice the budget's average)", min=0),
         Option("round_spp", float, 4.0, "samples per pixel placed per adaptive round (priority update interval)",
                min=0.0, min_open=True),
         Option("initial_spp", int, 16, "uniform samples per pixel of the first round (paper 4; capped by the budget)",
@@ -114,6 +119,10 @@ class AWRMethod(Method):
         Option("uniform_share", float, 0.0, "share of each adaptive round spread uniformly over the film "
                "(0: the wavelet sampler alone, the paper; a quarter costs the HDR step edge of "
                "tests/test_awr_robust.py 3x its error, docs/methods/awr.md)", min=0.0, max=1.0),
+        Option("net_counts", int, 0, "adaptive rounds: 1 rounds each round's counts so that every pixel's total "
+               "is a power of two (a full net of a stratified sampler's sequence; mcrecon.core.nets), the "
+               "sampler's ranking deciding which pixels step up; 0 the counts as the sampler draws them (the paper)",
+               choices=(0, 1)),
         Option("priority_threshold", float, None, "stop sampling when no priority exceeds this"),
         Option("reconstruction", str, "awr", "final image of an adaptive run: awr, or box (AWR sampling only)",
                ("awr", "box")),
@@ -151,6 +160,29 @@ class AWRMethod(Method):
         return img
 
     # ------------------------------------------------------------- adaptive
+    def plan(self, run: "AWRRun", state: AdaptiveState):
+        """A round of ``round_spp`` samples per pixel; with ``net_counts`` in whole nets (``net_plan``).
+
+        With ``net_counts=1`` the ``uniform_share`` of the round goes
+        breadth-first (the pixels of fewest samples step up to their next
+        power of two) and the sampler's counts are rounded to complete nets;
+        with 0, :meth:`Method.plan` (the share spread uniformly).
+        """
+        if not self.params["net_counts"]:
+            return super().plan(run, state)
+        return net_plan(self, run, state)
+
+    @staticmethod
+    def default_per_coefficient(state: AdaptiveState) -> int:
+        """Samples per popped level-0 coefficient when ``per_coefficient=0``: a quarter of the run's average spp.
+
+        The paper's 64 at 32 spp puts twice the budget's average into one pixel per pop, chosen from
+        one noisy estimate and not re-ranked within the round: the counts turn bimodal and the pixels
+        the estimate missed keep their initial samples (docs/adaptive.md).  A quarter of the average
+        is the paper's 64 at 256 spp.
+        """
+        return max(1, int(round(state.budget / (4.0 * state.width * state.height))))
+
     def place(self, run: "AWRRun", state: AdaptiveState, n: int):
         """Samples per pixel of the wavelet sampler's next batch of ``n`` (§4.1), or None when it has none.
 
@@ -161,12 +193,15 @@ class AWRMethod(Method):
         p = self.params
         if int(state.stats.count.sum()) == 0:  # nothing committed to place by (every sample dropped as NaN)
             return uniform_counts(state.width, state.height, n, state.rng)
+        pc = p["per_coefficient"] or self.default_per_coefficient(state)
         pos, info = plan_awr_positions(
             state.stats, n, state.rng, wavelet=p["wavelet"], levels=p["sampling_levels"], mode=p["boundary"],
-            per_coefficient=p["per_coefficient"], renorm=p["sampling_renorm"], propagation=p["propagation"],
+            per_coefficient=pc, renorm=p["sampling_renorm"], propagation=p["propagation"],
             priority_threshold=p["priority_threshold"], estimator=p["sampling_variance"],
             pending=state.pending, as_counts=True,  # counts: the renderer continues each pixel's sequence
-            rare_light_floor=bool(p["rare_light_floor"]))
+            rare_light_floor=bool(p["rare_light_floor"]),
+            # the budget's per_coefficient may pop a pixel until it has the paper's 64 of the round
+            pixel_pops=1 if p["per_coefficient"] else -(-_PAPER_PER_COEFFICIENT // pc))
         run.last_plan_info = info
         if pos is None or len(pos) == 0:
             return None

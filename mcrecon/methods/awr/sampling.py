@@ -235,7 +235,7 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
                        renorm: float = SAMPLING_RENORM, propagation: str = "exact",
                        priority_threshold: float | None = None, estimator: str = "contrast",
                        pending: np.ndarray | None = None, as_counts: bool = False,
-                       rare_light_floor: bool = False):
+                       rare_light_floor: bool = False, pixel_pops: int = 1):
     """One batch of the adaptive wavelet sampler (§4.1 Steps 2-3).
 
     Ranks all scale coefficients of levels 0..``levels`` by Eq. 8 and
@@ -259,6 +259,14 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
     component (:func:`~mcrecon.core.safeguard.rare_component_variance`): a
     pixel whose samples all missed a spotlight or a caustic its neighbours
     found reads a variance near 0 and would get no coefficient's samples.
+
+    ``pixel_pops``: how often one batch may pop a pixel's (level-0)
+    coefficient, its priority after ``m`` pops ``sigma^2(F) / (N + m
+    per_coefficient)`` (the variance its mean then has).  1: once, the
+    paper's queue without updates inside a batch.  With a small
+    ``per_coefficient`` a pixel of huge variance (an HDR edge) still gets
+    what a large one would give it, while the pixels one noisy estimate
+    ranks high get a fraction of the round each, not all of it.
 
     ``as_counts``: return the samples per pixel instead of positions.  The
     position inside the chosen pixel is uniform and carries no decision, so
@@ -303,6 +311,11 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
         on = (_rows_on_film(h, wavelet, mode, levels, k)[:, None]
               & _rows_on_film(w, wavelet, mode, levels, k)[None, :])
         pri[k] = np.where(on, pri[k], -np.inf)
+    pops = max(1, int(pixel_pops))
+    if pops > 1:
+        # the m-th pop of a pixel: the variance of its mean with m * per_coefficient more samples
+        t = np.maximum(taken, 1).astype(np.float64)
+        pri[0] = np.concatenate([pri[0] * (t / (t + m * per_coefficient)) for m in range(pops)], axis=0)
     flat = np.concatenate([p.ravel() for p in pri])
     lev_of = np.concatenate([np.full(p.size, k, np.int64) for k, p in enumerate(pri)])
     off = np.concatenate([[0], np.cumsum([p.size for p in pri])])
@@ -332,6 +345,8 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
             continue
         local = cand[sel] - off[k]
         ny, nx = pri[k].shape
+        if k == 0:
+            local, ny = local % (h * w), h  # the pops of one pixel are the same coefficient
         iy, ix = local // nx, local % nx
         parts.append(sample_scale_functions(k, iy, ix, cost[sel], width=w, height=h, rng=rng, wavelet=wavelet,
                                             mode=mode, levels=levels))

@@ -22,6 +22,7 @@ from .selection import CHANNEL_WEIGHTS, GAMMA_MAX, OUTLIER_RULES, GEMSelection, 
 from ...core.fill import mean_variance_policy
 from ...core.safeguard import rare_component_variance
 from ...core.strata import stratified_gain
+from ...core.nets import net_plan
 
 __all__ = ["GEMMethod", "GEMRun", "TARGET_EPS"]
 
@@ -84,7 +85,7 @@ class GEMMethod(Method):
         "robust": {},
         "paper": {"gamma": 0.1, "final_outliers": "paper", "zero_variance_votes": 3, "uniform_share": 0.0,
                   "channel_weights": "absolute", "confirm_stops": 0, "variance_guard": 0, "risk_guard": 0.0,
-                  "stratified_gain": 0, "rare_light_floor": 0, "guard_halves": 0},
+                  "stratified_gain": 0, "rare_light_floor": 0, "guard_halves": 0, "net_counts": 0},
     }
     options = (
         variant_option(variants),
@@ -137,6 +138,11 @@ class GEMMethod(Method):
                "neighbourhood's mean per-sample variance where a neighbour's samples show a rare bright "
                "component (a spotlight, a caustic: relative variance above 5), so pixels whose samples all "
                "missed it keep their share of samples; 0 the pixel's own variance (the paper)", choices=(0, 1)),
+        Option("net_counts", int, 0, "adaptive phase: 1 spends each round in whole nets: the uniform share "
+               "breadth-first (the pixels of fewest samples step up to their next power of two) and the greedy "
+               "counts rounded so that every pixel's total is a power of two (a full net of a stratified "
+               "sampler's sequence; mcrecon.core.nets); 0 the greedy counts as they fall and the share spread "
+               "uniformly (the paper: no share)", choices=(0, 1)),
         Option("subpixel_exact_below", float, 0.0, "filter scales with sigma below this (px) on the 4x4 "
                "subpixel grid itself (slower; 0: pixel-level equivalent kernel)", min=0.0),
     )
@@ -272,6 +278,12 @@ class GEMMethod(Method):
         return np.asarray(img, dtype=np.float64)
 
     # ------------------------------------------------------------ adaptive
+    def plan(self, run: "GEMRun", state: AdaptiveState):
+        """:meth:`Method.plan`'s rounds; with ``net_counts`` in whole nets (:func:`~mcrecon.core.nets.net_round`)."""
+        if not self.params["net_counts"]:
+            return super().plan(run, state)
+        return net_plan(self, run, state)
+
     def place(self, run: "GEMRun", state: AdaptiveState, n: int):
         """One adaptive iteration (Secs. 5, 6): ``n`` samples as counts per pixel, or None at ``target_rel_mse``.
 

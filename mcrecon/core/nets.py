@@ -1,0 +1,180 @@
+"""Adaptive counts that complete each pixel's nets: every pixel's total a power of two.
+
+A renderer with a per-pixel low-discrepancy sampler (an Owen-scrambled
+Sobol sequence continued from the request's ``first_index``) gives a pixel
+whose count is a power of two ``2^m`` a full net: its mean stands on
+``2^m`` points stratified in every elementary interval.  A count between
+two powers of two is the net of ``2^m`` plus the first points of the next
+block, which are stratified among themselves far less: on a rare bright
+component such a pixel's mean errs about as much as its last complete
+net's (on checker_spot's spotlight, found by one sample in 20, the means
+of 17 to 31 Sobol samples err as much as those of their first 16), so the
+samples past the net are spent for little.
+An adaptive allocation that hands out arbitrary counts thus loses to a
+uniform render of the same budget, whose every pixel has a full net.
+
+:func:`net_counts` rounds an allocation so that each pixel's new total is
+its current count or a power of two above it: the allocation decides
+which pixels deserve samples, the rounding grants them whole nets.  The
+price is granularity: where the error falls smoothly with the count
+(independent samples, motion blur) the coarser steps cost more than the
+nets gain, so the methods that offer it (``net_counts``) keep it off by
+default (docs/adaptive.md).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+__all__ = ["net_counts"]
+
+
+def _pow2_floor(x: np.ndarray) -> np.ndarray:
+    """Largest power of two <= x (x >= 1), int64."""
+    out = np.ones_like(x)
+    pos = x >= 1
+    out[pos] = np.left_shift(1, np.floor(np.log2(x[pos].astype(np.float64))).astype(np.int64))
+    # log2 of an int64 near a power of two may round either way: fix by one step
+    out = np.where(out * 2 <= x, out * 2, out)
+    return np.where(out > x, out // 2, out)
+
+
+@numba.njit(cache=True, nogil=True)
+def _grant(order, cost, left, extra):
+    # whole upgrades in ``order`` while they fit; then the rest, part of an upgrade each
+    for i in range(order.size):
+        p = order[i]
+        if cost[p] <= left:
+            extra[p] += cost[p]
+            left -= cost[p]
+    for i in range(order.size):
+        if left <= 0:
+            break
+        p = order[i]
+        if extra[p] == 0:
+            k = min(cost[p] - 1, left)
+            extra[p] += k
+            left -= k
+    return left
+
+
+def net_counts(desired: np.ndarray, current: np.ndarray) -> np.ndarray:
+    """New samples per pixel (H, W) int64 summing to ``desired.sum()``, each pixel's total a power of two.
+
+    Parameters
+    ----------
+    desired : ndarray (H, W) of int
+        The allocation's new samples per pixel (>= 0).
+    current : ndarray (H, W) of int
+        Samples each pixel already has or has in flight (the index of its
+        first new sample).
+
+    Returns
+    -------
+    ndarray (H, W) int64
+        New samples: each pixel's desired total ``T = current + desired``
+        rounds down to the largest power of two ``<= T`` above ``current``
+        (or ``current`` itself); the samples this frees raise the pixels
+        of largest fraction ``(T - floor) / (ceil - floor)`` to their next
+        power of two, in that order, while a whole step fits.  What is left
+        then (less than any remaining step) goes to the next pixels in that
+        order as part of their step, so the round keeps its size exactly.
+        Pixels the allocation gave nothing keep nothing.
+    """
+    d = np.asarray(desired, dtype=np.int64)
+    c = np.asarray(current, dtype=np.int64)
+    if d.shape != c.shape:
+        raise ValueError(f"net_counts: desired {d.shape} and current {c.shape} differ")
+    n = int(d.sum())
+    if n <= 0:
+        return np.zeros_like(d)
+    t = c + d
+    # next power of two strictly above the current count (1 for an empty pixel)
+    nxt = np.where(c > 0, _pow2_floor(np.maximum(c, 1)) * 2, 1)
+    lo = np.where(t >= nxt, _pow2_floor(np.maximum(t, 1)), c)
+    hi = np.where(lo == c, nxt, lo * 2)
+    extra = (lo - c).ravel().copy()
+    frac = np.where(d > 0, (t - lo) / (hi - lo), 0.0).ravel()
+    order = np.flatnonzero(frac > 0)
+    order = order[np.argsort(-frac[order], kind="stable")]
+    left = _grant(order, (hi - lo).ravel(), n - int(extra.sum()), extra)
+    if left > 0:  # every pixel with a wish is at its ceiling: the rest where it was wished most
+        order = np.argsort(-d.ravel(), kind="stable")
+        extra[order[: left % order.size]] += 1
+        extra += left // order.size
+    return extra.reshape(d.shape)
+
+
+def net_round(desired: np.ndarray, current: np.ndarray, defensive: int, rng: np.random.Generator) -> np.ndarray:
+    """A round's new samples per pixel: ``defensive`` samples breadth-first, then ``desired`` by :func:`net_counts`.
+
+    The defensive part is the uniform share of a mixture in whole nets: the
+    pixels of fewest samples step up to their next power of two first (ties:
+    the allocation's wish, then at random), so no pixel falls a net behind
+    the others while samples go where the allocation wants them.  A uniform
+    spread of a share below one sample per pixel adds one sample to random
+    pixels, which completes no net.
+
+    Parameters
+    ----------
+    desired : ndarray (H, W) of int
+        The allocation's new samples per pixel.
+    current : ndarray (H, W) of int
+        Samples each pixel already has or has in flight.
+    defensive : int
+        Samples of the round spread breadth-first.
+    rng : numpy.random.Generator
+        Breaks ties among pixels of equal count and wish.
+
+    Returns
+    -------
+    ndarray (H, W) int64 summing to ``desired.sum() + defensive``.
+    """
+    d = np.asarray(desired, dtype=np.int64)
+    c = np.asarray(current, dtype=np.int64)
+    defensive = int(defensive)
+    extra = np.zeros(d.size, np.int64)
+    if defensive > 0:
+        cf = c.ravel()
+        nxt = np.where(cf > 0, _pow2_floor(np.maximum(cf, 1)) * 2, 1)
+        # lexicographic: fewest samples, then most wished, then a random key
+        order = np.lexsort((rng.random(cf.size), -d.ravel(), cf))
+        left = _grant(order, nxt - cf, defensive, extra)
+        if left > 0:  # a step for every pixel fitted: the rest goes to the allocation
+            d = d.copy()
+            d.ravel()[np.argmax(d.ravel()) if d.any() else 0] += left
+    return extra.reshape(d.shape) + net_counts(d, c + extra.reshape(d.shape))
+
+
+def net_plan(method, run, state):
+    """A method's adaptive round in whole nets: :meth:`~mcrecon.methods.base.Method.plan`'s sizing, its
+    ``uniform_share`` breadth-first and :meth:`place`'s counts rounded (:func:`net_round`).
+
+    The round's size follows the method's options as :meth:`Method.plan`
+    does (``iterations``: what is left over the iterations to come;
+    ``round_spp``: that many samples per pixel).  ``place`` must return
+    counts per pixel (H, W), or None to stop the run.
+    """
+    remaining = state.remaining
+    if remaining <= 0:
+        return None
+    p = method.params
+    npix = state.width * state.height
+    if "iterations" in p:
+        left = p["iterations"] - state.iteration
+        n = remaining if left <= 1 else max(1, remaining // left)
+    elif "round_spp" in p:
+        n = min(remaining, max(1, int(round(p["round_spp"] * npix))))
+    else:
+        n = method.doubling_round(state)
+    n_def = int(round(p.get("uniform_share", 0.0) * n))
+    zeros = np.zeros((state.height, state.width), np.int64)
+    placed = method.place(run, state, n - n_def) if n > n_def else zeros
+    if placed is None:
+        return None
+    placed = np.asarray(placed)
+    if placed.shape != zeros.shape:  # nothing placed (an empty position list)
+        placed = zeros
+    current = state.stats.count if state.pending is None else state.stats.count + state.pending
+    return state.request(counts=net_round(placed, current, n_def, state.rng))
