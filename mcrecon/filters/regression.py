@@ -38,6 +38,9 @@ __all__ = ["RIDGE", "collaborative_regression", "collaborative_regressions", "st
 
 #: Default ridge on the non-constant columns, relative to the window's total weight.
 RIDGE = 1e-10
+#: Covering weight below which a pixel of a strided regression fits its own window too
+#: (:func:`collaborative_regression`'s ``min_weight``): its own window would give it weight 1.
+MIN_COVER_WEIGHT = 1.0
 #: Bands per thread whose accumulators :func:`collaborative_regression` holds at once.
 BANDS_PER_THREAD = 4
 #: Floats added to each offset's row of weights in :func:`_band` (one cache line: see there).
@@ -99,12 +102,15 @@ def _solve_spd(a, b, d, nc, tmp):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, i0, i1, acc):
+def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, centres, masked, i0, i1,
+          acc):
     """Rows [i0, i1) as window centres, for every bandwidth of ``k2s`` (K,) (the k^2 of the weights);
     bandwidth b's predictions accumulated into acc[b] (C + 1 [+ 1], i1 - i0 + 2r, W + 2r), whose (t, u)
     is image pixel (i0 - r + t, u - r) (plane C: the weights; with ``leverage``, plane C + 1:
     sum_p w_pq^2 x_q^T A_p^-1 x_q, the numerator of the filter's centre weight :func:`_leverages`).
-    The bandwidths share the window's design and colours (gathered once per pixel); each bandwidth's
+    With ``masked``, only the pixels p with ``centres[b, p]`` (uint8 (K, H, W)) fit a window for bandwidth b
+    (the weights of a row without any centre are not computed); every fit is the same arithmetic as
+    unmasked.  The bandwidths share the window's design and colours (gathered once per pixel); each bandwidth's
     arithmetic is that of a call with it alone, so its result is bit-identical to one.
 
     ypad (C, H + 2r, W + 2r), fpad (D, H + 2r, W + 2r): colour and features padded by r zeros, so that
@@ -134,6 +140,14 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
     ic = np.zeros(w + 2 * f)
     dist = np.zeros((cg, n_rows, w), np.float32)
     dmax = np.zeros(w, np.float32)
+    rowhas = np.ones(n_rows, np.bool_)
+    if masked:
+        for rr in range(n_rows):
+            rowhas[rr] = False
+            for b in range(nk):
+                for j in range(w):
+                    if centres[b, i0 + rr, j]:
+                        rowhas[rr] = True
     for dy in range(-r, r + 1):
         for dx in range(-r, r + 1):
             o = (dy + r) * side + (dx + r)
@@ -146,7 +160,7 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
                 offset_distances(guide, var, dy, dx, i0, i1, f, k2s[b], eps, clamp, pd, vs, hs, ic, dist)
                 for rr in range(n_rows):
                     qi = i0 + rr + dy
-                    if qi < 0 or qi >= h:
+                    if qi < 0 or qi >= h or not rowhas[rr]:
                         continue
                     dst = wts[b, o, rr * w + j0:rr * w + j1]
                     dmax[:j1 - j0] = dist[0, rr, j0:j1]
@@ -179,7 +193,16 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
             xt[2, t] = dy * inv_r
     for rr in range(n_rows):
         i = i0 + rr
+        if not rowhas[rr]:
+            continue
         for j in range(w):
+            if masked:
+                fit = False
+                for b in range(nk):
+                    if centres[b, i, j]:
+                        fit = True
+                if not fit:
+                    continue
             for m in range(nf):
                 fc = fpad[m, i + r, j + r]
                 xm = xt[3 + m]
@@ -196,6 +219,8 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
                     for u in range(side):
                         dst[u] = src[u]
             for b in range(nk):
+                if masked and not centres[b, i, j]:
+                    continue
                 for t in range(n):
                     wv[t] = float(wts[b, t, rr * w + j])
                 _normal_equations(xt, wx, wv, yt, a, bm, d, de, n)
@@ -340,12 +365,14 @@ def _predict(xt, beta, yp, d, n):
 
 
 @numba.njit(cache=True, nogil=True)
-def _one_band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, band, b, acc):
+def _one_band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, centres, masked, band, b,
+              acc):
     """Band ``b`` into its private accumulators ``acc`` (K, ...) (zeroed here): bands run on separate threads."""
     h = guide.shape[1]
     i0 = b * band
     acc[:] = 0.0
-    _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, i0, min(h, i0 + band), acc)
+    _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, centres, masked, i0,
+          min(h, i0 + band), acc)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -363,6 +390,16 @@ def _gather(accs, kb, r, band, b0, out):
                 for c in range(out.shape[0]):
                     for j in range(out.shape[2]):
                         out[c, i, j] += accs[k, kb, c, t, j + r]
+
+
+def _accumulate(args, accs, outs, r, n_bands, threads) -> None:
+    """Every band's windows (:func:`_one_band` with ``args``), BANDS_PER_THREAD bands per thread at a time on the
+    thread pool, added to ``outs`` (one (C + 1 [+ 1], H, W) per bandwidth) in band order."""
+    for b0 in range(0, n_bands, accs.shape[0]):
+        parallel_calls(_one_band, [(*args, BAND, b0 + t, accs[t]) for t in range(min(accs.shape[0], n_bands - b0))],
+                       threads)
+        for kb in range(len(outs)):
+            _gather(accs, kb, r, BAND, b0, outs[kb])
 
 
 def _standard_plane(plane) -> np.ndarray:
@@ -389,7 +426,8 @@ def standardise(features) -> np.ndarray:
 
 def collaborative_regression(image, guide, variance, features, *, radius: int = 9, patch: int = 3, k: float = 1.0,
                              variance_scale: float = 2.0, ridge: float = RIDGE, threads: int | None = None,
-                             return_weights: bool = False, return_centre_weight: bool = False):
+                             return_weights: bool = False, return_centre_weight: bool = False, stride: int = 1,
+                             min_weight: float = MIN_COVER_WEIGHT):
     """Collaborative first-order regression of ``image`` on ``features``, weighted by NL-means of ``guide``.
 
     Parameters
@@ -422,6 +460,18 @@ def collaborative_regression(image, guide, variance, features, *, radius: int = 
         exact with this ``w_ii``
         (:func:`mcrecon.methods.auto.estimates.sure`).  Costs about half
         the regression again.
+    stride : int
+        Fit a window at every ``stride``-th pixel of every ``stride``-th
+        row only (1: every pixel, the paper); each fit still predicts its
+        whole window, and each pixel averages the windows that cover it.
+        A pixel whose covering windows' weights sum below ``min_weight``
+        (its patch is alike in none of theirs: a thin edge, a firefly) fits
+        its own window too, as with stride 1.  About ``stride**2`` times
+        fewer normal equations, solves and scatters.
+    min_weight : float
+        With ``stride`` > 1: the covering weight below which a pixel fits
+        its own window (its own weight in it is 1 but for a pixel whose
+        variance is 0).
 
     Returns
     -------
@@ -430,12 +480,14 @@ def collaborative_regression(image, guide, variance, features, *, radius: int = 
     """
     return collaborative_regressions(image, guide, variance, features, ks=(k,), radius=radius, patch=patch,
                                      variance_scale=variance_scale, ridge=ridge, threads=threads,
-                                     return_weights=return_weights, return_centre_weight=return_centre_weight)[0]
+                                     return_weights=return_weights, return_centre_weight=return_centre_weight,
+                                     stride=stride, min_weight=min_weight)[0]
 
 
 def collaborative_regressions(image, guide, variance, features, *, ks, radius: int = 9, patch: int = 3,
                               variance_scale: float = 2.0, ridge: float = RIDGE, threads: int | None = None,
-                              return_weights: bool = False, return_centre_weight: bool = False) -> list:
+                              return_weights: bool = False, return_centre_weight: bool = False, stride: int = 1,
+                              min_weight: float = MIN_COVER_WEIGHT) -> list:
     """:func:`collaborative_regression` of one image for several bandwidths ``ks`` in one pass.
 
     The bandwidths share the guide, the design and the colour: each
@@ -449,8 +501,10 @@ def collaborative_regressions(image, guide, variance, features, *, ks, radius: i
     ks : sequence of float
         The NL-means bandwidths, one result each (at least one).
     image, guide, variance, features, radius, patch, variance_scale, ridge, threads, return_weights,
-    return_centre_weight
-        As :func:`collaborative_regression`.
+    return_centre_weight, stride, min_weight
+        As :func:`collaborative_regression` (with a stride, each bandwidth's
+        own pixels below ``min_weight`` fit their windows: still bit-identical
+        to a call with that bandwidth alone).
 
     Returns
     -------
@@ -471,6 +525,10 @@ def collaborative_regressions(image, guide, variance, features, *, ks, radius: i
         raise ValueError(f"collaborative_regression: shapes differ: image {img.shape}, guide {g.shape[1:]}, "
                          f"variance {v.shape[1:]}, features {feats.shape} (H, W[, C])")
     r = int(radius)
+    s = int(stride)
+    if s < 1 or s > r + 1:
+        raise ValueError(f"collaborative_regression: stride {stride!r}: 1 to radius + 1 = {r + 1} (every pixel "
+                         "then lies in a fitted window)")
     n_bands = (h + BAND - 1) // BAND
     planes = nc + 1 + bool(return_centre_weight)
     # the kernel's padded planes are filled in place, one plane at a time (no unpadded copy of the colour or
@@ -489,13 +547,22 @@ def collaborative_regressions(image, guide, variance, features, *, ks, radius: i
     # (each 1 + 2r / BAND times its rows) are a few megabytes whatever the image, not twice the output
     accs = np.empty((min(n_bands, BANDS_PER_THREAD * nt), nk, planes, BAND + 2 * r, w + 2 * r))
     k2s = np.array([k ** 2 for k in ks], np.float32)  # each k^2 rounded to float32, as the distances use it
-    args = (ypad, g, v, fpad, r, int(patch), k2s, float(ridge), np.float32(NLM_EPS),
-            np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT, bool(return_centre_weight), BAND)
-    for b0 in range(0, n_bands, accs.shape[0]):
-        parallel_calls(_one_band, [(*args, b0 + t, accs[t]) for t in range(min(accs.shape[0], n_bands - b0))],
-                       threads)
+    common = (ypad, g, v, fpad, r, int(patch), k2s, float(ridge), np.float32(NLM_EPS),
+              np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT, bool(return_centre_weight))
+    if s == 1:
+        _accumulate(common + (np.zeros((nk, 1, 1), np.uint8), False), accs, outs, r, n_bands, threads)
+    else:
+        # the grid's windows, then the windows of the pixels they leave (nearly) unweighted, added to the
+        # same sums: every pixel lies in windows of total weight at least min_weight, or in its own
+        centres = np.zeros((nk, h, w), np.uint8)
+        centres[:, ::s, ::s] = 1
+        _accumulate(common + (centres, True), accs, outs, r, n_bands, threads)
         for kb in range(nk):
-            _gather(accs, kb, r, BAND, b0, outs[kb])
+            np.less(outs[kb][nc], min_weight, out=centres[kb].view(np.bool_))
+            centres[kb, ::s, ::s] = 0
+        if centres.any():
+            _accumulate(common + (centres, True), accs, outs, r, n_bands, threads)
+        del centres
     del accs, ypad, fpad
     results = []
     for out in outs:
