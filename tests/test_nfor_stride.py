@@ -23,10 +23,10 @@ def _fit_window(y, fs, wts, r, i, j):
     return win, wv, x @ beta
 
 
-@pytest.mark.parametrize("stride,min_weight", [(2, 1.0), (3, 1.0), (2, 0.0)])
+@pytest.mark.parametrize("stride,min_weight", [(2, "median"), (3, "median"), (2, 0.0)])
 def test_strided_regression_matches_brute_force_grid_and_fallback_windows(stride, min_weight):
-    """Windows at every stride-th pixel and row; then every pixel those windows cover with a total weight
-    below ``min_weight`` fits its own window too; each pixel averages the windows covering it."""
+    """Windows at every stride-th pixel and row, and at every pixel whose own weights of the grid pixels in
+    its window sum below ``min_weight``; each pixel averages the windows covering it."""
     y, guide, var, feats = _tiny(3, h=11, w=10)
     r, f, k = 2, 1, 0.8
     h, w, _ = y.shape
@@ -41,11 +41,14 @@ def test_strided_regression_matches_brute_force_grid_and_fallback_windows(stride
             num[qi, qj] += wt * p
             den[qi, qj] += wt
 
-    grid = [(i, j) for i in range(0, h, stride) for j in range(0, w, stride)]
-    for i, j in grid:
-        add(i, j)
-    fallback = [(i, j) for i in range(h) for j in range(w) if den[i, j] < min_weight and (i, j) not in grid]
-    for i, j in fallback:
+    grid = {(i, j) for i in range(0, h, stride) for j in range(0, w, stride)}
+    own = {(i, j): sum(wt for (pi, pj, qi, qj), wt in wts.items() if (pi, pj) == (i, j) and (qi, qj) in grid)
+           for i in range(h) for j in range(w)}
+    if min_weight == "median":  # half the pixels off the grid fit their own windows
+        min_weight = float(np.median([v for q, v in own.items() if q not in grid]))
+    fits = [(i, j) for i in range(h) for j in range(w) if (i, j) in grid or own[i, j] < min_weight]
+    assert len(grid) < len(fits) < h * w or min_weight == 0.0
+    for i, j in fits:
         add(i, j)
     got, got_den = collaborative_regression(y, guide, var, feats, radius=r, patch=f, k=k, return_weights=True,
                                             stride=stride, min_weight=min_weight)

@@ -38,7 +38,7 @@ __all__ = ["RIDGE", "collaborative_regression", "collaborative_regressions", "st
 
 #: Default ridge on the non-constant columns, relative to the window's total weight.
 RIDGE = 1e-10
-#: Covering weight below which a pixel of a strided regression fits its own window too
+#: Weight of the grid's pixels below which a pixel of a strided regression fits its own window too
 #: (:func:`collaborative_regression`'s ``min_weight``): its own window would give it weight 1.
 MIN_COVER_WEIGHT = 1.0
 #: Bands per thread whose accumulators :func:`collaborative_regression` holds at once.
@@ -102,15 +102,16 @@ def _solve_spd(a, b, d, nc, tmp):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, centres, masked, i0, i1,
+def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, stride, min_weight, i0, i1,
           acc):
     """Rows [i0, i1) as window centres, for every bandwidth of ``k2s`` (K,) (the k^2 of the weights);
     bandwidth b's predictions accumulated into acc[b] (C + 1 [+ 1], i1 - i0 + 2r, W + 2r), whose (t, u)
     is image pixel (i0 - r + t, u - r) (plane C: the weights; with ``leverage``, plane C + 1:
     sum_p w_pq^2 x_q^T A_p^-1 x_q, the numerator of the filter's centre weight :func:`_leverages`).
-    With ``masked``, only the pixels p with ``centres[b, p]`` (uint8 (K, H, W)) fit a window for bandwidth b
-    (the weights of a row without any centre are not computed); every fit is the same arithmetic as
-    unmasked.  The bandwidths share the window's design and colours (gathered once per pixel); each bandwidth's
+    With ``stride`` s > 1, a pixel fits a window for bandwidth b only where its row and column are multiples
+    of s (the grid), or where its own weights of the grid pixels in its window sum below ``min_weight`` (its
+    patch is alike in too few of theirs: the windows of the grid would leave it nearly unweighted); every
+    fit is the same arithmetic as with s = 1.  The bandwidths share the window's design and colours (gathered once per pixel); each bandwidth's
     arithmetic is that of a call with it alone, so its result is bit-identical to one.
 
     ypad (C, H + 2r, W + 2r), fpad (D, H + 2r, W + 2r): colour and features padded by r zeros, so that
@@ -140,14 +141,6 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
     ic = np.zeros(w + 2 * f)
     dist = np.zeros((cg, n_rows, w), np.float32)
     dmax = np.zeros(w, np.float32)
-    rowhas = np.ones(n_rows, np.bool_)
-    if masked:
-        for rr in range(n_rows):
-            rowhas[rr] = False
-            for b in range(nk):
-                for j in range(w):
-                    if centres[b, i0 + rr, j]:
-                        rowhas[rr] = True
     for dy in range(-r, r + 1):
         for dx in range(-r, r + 1):
             o = (dy + r) * side + (dx + r)
@@ -160,7 +153,7 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
                 offset_distances(guide, var, dy, dx, i0, i1, f, k2s[b], eps, clamp, pd, vs, hs, ic, dist)
                 for rr in range(n_rows):
                     qi = i0 + rr + dy
-                    if qi < 0 or qi >= h or not rowhas[rr]:
+                    if qi < 0 or qi >= h:
                         continue
                     dst = wts[b, o, rr * w + j0:rr * w + j1]
                     dmax[:j1 - j0] = dist[0, rr, j0:j1]
@@ -184,6 +177,7 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
     tsol = np.zeros(max(d, nc))
     zt = np.zeros((de, LEVERAGE_BLOCK)) if leverage else np.zeros((0, LEVERAGE_BLOCK))
     lev = np.zeros(n) if leverage else np.zeros(0)
+    fit = np.zeros(nk, np.bool_)
     inv_r = 1.0 / max(r, 1)
     for dy in range(-r, r + 1):  # the pixel-offset columns are the same for every window
         for dx in range(-r, r + 1):
@@ -193,15 +187,10 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
             xt[2, t] = dy * inv_r
     for rr in range(n_rows):
         i = i0 + rr
-        if not rowhas[rr]:
-            continue
         for j in range(w):
-            if masked:
-                fit = False
-                for b in range(nk):
-                    if centres[b, i, j]:
-                        fit = True
-                if not fit:
+            if stride > 1:
+                _fits(wts, fit, i, j, rr * w + j, r, stride, h, w, min_weight)
+                if not fit.any():
                     continue
             for m in range(nf):
                 fc = fpad[m, i + r, j + r]
@@ -219,7 +208,7 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
                     for u in range(side):
                         dst[u] = src[u]
             for b in range(nk):
-                if masked and not centres[b, i, j]:
+                if stride > 1 and not fit[b]:
                     continue
                 for t in range(n):
                     wv[t] = float(wts[b, t, rr * w + j])
@@ -249,6 +238,27 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
                         ls = lev[dy * side:(dy + 1) * side]
                         for u in range(side):
                             dst[u] += ws[u] * ws[u] * ls[u]
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _fits(wts, fit, i, j, col, r, s, h, w, min_weight):
+    """fit[b]: pixel (i, j) fits a window for bandwidth b (see :func:`_band`'s ``stride``); ``wts[b, o, col]``
+    is its weight of the window position o.  The weights of the grid pixels p in its window approximate
+    those the grid's windows give it (w_qp for w_pq: the same patch pairs, the variance terms swapped), and
+    need nothing from other bands."""
+    on_grid = i % s == 0 and j % s == 0
+    side = 2 * r + 1
+    dy0 = (-((i - r) % s)) % s - r  # the first dy >= -r with (i + dy) a multiple of s
+    dx0 = (-((j - r) % s)) % s - r
+    for b in range(fit.shape[0]):
+        if on_grid:
+            fit[b] = True
+            continue
+        cover = 0.0
+        for dy in range(dy0, r + 1, s):
+            for dx in range(dx0, r + 1, s):
+                cover += wts[b, (dy + r) * side + (dx + r), col]
+        fit[b] = cover < min_weight
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
@@ -365,13 +375,13 @@ def _predict(xt, beta, yp, d, n):
 
 
 @numba.njit(cache=True, nogil=True)
-def _one_band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, centres, masked, band, b,
+def _one_band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, stride, min_weight, band, b,
               acc):
     """Band ``b`` into its private accumulators ``acc`` (K, ...) (zeroed here): bands run on separate threads."""
     h = guide.shape[1]
     i0 = b * band
     acc[:] = 0.0
-    _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, centres, masked, i0,
+    _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, stride, min_weight, i0,
           min(h, i0 + band), acc)
 
 
@@ -464,14 +474,15 @@ def collaborative_regression(image, guide, variance, features, *, radius: int = 
         Fit a window at every ``stride``-th pixel of every ``stride``-th
         row only (1: every pixel, the paper); each fit still predicts its
         whole window, and each pixel averages the windows that cover it.
-        A pixel whose covering windows' weights sum below ``min_weight``
-        (its patch is alike in none of theirs: a thin edge, a firefly) fits
-        its own window too, as with stride 1.  About ``stride**2`` times
-        fewer normal equations, solves and scatters.
+        A pixel whose own weights of the grid pixels in its window sum
+        below ``min_weight`` (its patch is alike in few of theirs: a thin
+        edge, a firefly, the grid's windows would leave it nearly
+        unweighted) fits its own window too, as with stride 1.  Every
+        weight is still computed; the normal equations, solves and scatters
+        drop to the grid's pixels and those.
     min_weight : float
-        With ``stride`` > 1: the covering weight below which a pixel fits
-        its own window (its own weight in it is 1 but for a pixel whose
-        variance is 0).
+        With ``stride`` > 1: the grid weight below which a pixel fits its
+        own window (where its own window would give it weight 1).
 
     Returns
     -------
@@ -503,8 +514,8 @@ def collaborative_regressions(image, guide, variance, features, *, ks, radius: i
     image, guide, variance, features, radius, patch, variance_scale, ridge, threads, return_weights,
     return_centre_weight, stride, min_weight
         As :func:`collaborative_regression` (with a stride, each bandwidth's
-        own pixels below ``min_weight`` fit their windows: still bit-identical
-        to a call with that bandwidth alone).
+        own weights choose its fallback windows: still bit-identical to a
+        call with that bandwidth alone).
 
     Returns
     -------
@@ -549,20 +560,7 @@ def collaborative_regressions(image, guide, variance, features, *, ks, radius: i
     k2s = np.array([k ** 2 for k in ks], np.float32)  # each k^2 rounded to float32, as the distances use it
     common = (ypad, g, v, fpad, r, int(patch), k2s, float(ridge), np.float32(NLM_EPS),
               np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT, bool(return_centre_weight))
-    if s == 1:
-        _accumulate(common + (np.zeros((nk, 1, 1), np.uint8), False), accs, outs, r, n_bands, threads)
-    else:
-        # the grid's windows, then the windows of the pixels they leave (nearly) unweighted, added to the
-        # same sums: every pixel lies in windows of total weight at least min_weight, or in its own
-        centres = np.zeros((nk, h, w), np.uint8)
-        centres[:, ::s, ::s] = 1
-        _accumulate(common + (centres, True), accs, outs, r, n_bands, threads)
-        for kb in range(nk):
-            np.less(outs[kb][nc], min_weight, out=centres[kb].view(np.bool_))
-            centres[kb, ::s, ::s] = 0
-        if centres.any():
-            _accumulate(common + (centres, True), accs, outs, r, n_bands, threads)
-        del centres
+    _accumulate(common + (s, float(min_weight)), accs, outs, r, n_bands, threads)
     del accs, ypad, fpad
     results = []
     for out in outs:
