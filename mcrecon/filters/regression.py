@@ -38,6 +38,9 @@ __all__ = ["RIDGE", "collaborative_regression", "collaborative_regressions", "st
 
 #: Default ridge on the non-constant columns, relative to the window's total weight.
 RIDGE = 1e-10
+#: Weight of the grid's pixels below which a pixel of a strided regression fits its own window too
+#: (:func:`collaborative_regression`'s ``min_weight``): its own window would give it weight 1.
+MIN_COVER_WEIGHT = 1.0
 #: Bands per thread whose accumulators :func:`collaborative_regression` holds at once.
 BANDS_PER_THREAD = 4
 #: Floats added to each offset's row of weights in :func:`_band` (one cache line: see there).
@@ -99,12 +102,16 @@ def _solve_spd(a, b, d, nc, tmp):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, i0, i1, acc):
+def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, stride, min_weight, i0, i1,
+          acc):
     """Rows [i0, i1) as window centres, for every bandwidth of ``k2s`` (K,) (the k^2 of the weights);
     bandwidth b's predictions accumulated into acc[b] (C + 1 [+ 1], i1 - i0 + 2r, W + 2r), whose (t, u)
     is image pixel (i0 - r + t, u - r) (plane C: the weights; with ``leverage``, plane C + 1:
     sum_p w_pq^2 x_q^T A_p^-1 x_q, the numerator of the filter's centre weight :func:`_leverages`).
-    The bandwidths share the window's design and colours (gathered once per pixel); each bandwidth's
+    With ``stride`` s > 1, a pixel fits a window for bandwidth b only where its row and column are multiples
+    of s (the grid), or where its own weights of the grid pixels in its window sum below ``min_weight`` (its
+    patch is alike in too few of theirs: the windows of the grid would leave it nearly unweighted); every
+    fit is the same arithmetic as with s = 1.  The bandwidths share the window's design and colours (gathered once per pixel); each bandwidth's
     arithmetic is that of a call with it alone, so its result is bit-identical to one.
 
     ypad (C, H + 2r, W + 2r), fpad (D, H + 2r, W + 2r): colour and features padded by r zeros, so that
@@ -170,6 +177,7 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
     tsol = np.zeros(max(d, nc))
     zt = np.zeros((de, LEVERAGE_BLOCK)) if leverage else np.zeros((0, LEVERAGE_BLOCK))
     lev = np.zeros(n) if leverage else np.zeros(0)
+    fit = np.zeros(nk, np.bool_)
     inv_r = 1.0 / max(r, 1)
     for dy in range(-r, r + 1):  # the pixel-offset columns are the same for every window
         for dx in range(-r, r + 1):
@@ -180,6 +188,10 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
     for rr in range(n_rows):
         i = i0 + rr
         for j in range(w):
+            if stride > 1:
+                _fits(wts, fit, i, j, rr * w + j, r, stride, h, w, min_weight)
+                if not fit.any():
+                    continue
             for m in range(nf):
                 fc = fpad[m, i + r, j + r]
                 xm = xt[3 + m]
@@ -196,6 +208,8 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
                     for u in range(side):
                         dst[u] = src[u]
             for b in range(nk):
+                if stride > 1 and not fit[b]:
+                    continue
                 for t in range(n):
                     wv[t] = float(wts[b, t, rr * w + j])
                 _normal_equations(xt, wx, wv, yt, a, bm, d, de, n)
@@ -224,6 +238,27 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
                         ls = lev[dy * side:(dy + 1) * side]
                         for u in range(side):
                             dst[u] += ws[u] * ws[u] * ls[u]
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _fits(wts, fit, i, j, col, r, s, h, w, min_weight):
+    """fit[b]: pixel (i, j) fits a window for bandwidth b (see :func:`_band`'s ``stride``); ``wts[b, o, col]``
+    is its weight of the window position o.  The weights of the grid pixels p in its window approximate
+    those the grid's windows give it (w_qp for w_pq: the same patch pairs, the variance terms swapped), and
+    need nothing from other bands."""
+    on_grid = i % s == 0 and j % s == 0
+    side = 2 * r + 1
+    dy0 = (-((i - r) % s)) % s - r  # the first dy >= -r with (i + dy) a multiple of s
+    dx0 = (-((j - r) % s)) % s - r
+    for b in range(fit.shape[0]):
+        if on_grid:
+            fit[b] = True
+            continue
+        cover = 0.0
+        for dy in range(dy0, r + 1, s):
+            for dx in range(dx0, r + 1, s):
+                cover += wts[b, (dy + r) * side + (dx + r), col]
+        fit[b] = cover < min_weight
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
@@ -340,12 +375,14 @@ def _predict(xt, beta, yp, d, n):
 
 
 @numba.njit(cache=True, nogil=True)
-def _one_band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, band, b, acc):
+def _one_band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, stride, min_weight, band, b,
+              acc):
     """Band ``b`` into its private accumulators ``acc`` (K, ...) (zeroed here): bands run on separate threads."""
     h = guide.shape[1]
     i0 = b * band
     acc[:] = 0.0
-    _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, i0, min(h, i0 + band), acc)
+    _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, stride, min_weight, i0,
+          min(h, i0 + band), acc)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -363,6 +400,16 @@ def _gather(accs, kb, r, band, b0, out):
                 for c in range(out.shape[0]):
                     for j in range(out.shape[2]):
                         out[c, i, j] += accs[k, kb, c, t, j + r]
+
+
+def _accumulate(args, accs, outs, r, n_bands, threads) -> None:
+    """Every band's windows (:func:`_one_band` with ``args``), BANDS_PER_THREAD bands per thread at a time on the
+    thread pool, added to ``outs`` (one (C + 1 [+ 1], H, W) per bandwidth) in band order."""
+    for b0 in range(0, n_bands, accs.shape[0]):
+        parallel_calls(_one_band, [(*args, BAND, b0 + t, accs[t]) for t in range(min(accs.shape[0], n_bands - b0))],
+                       threads)
+        for kb in range(len(outs)):
+            _gather(accs, kb, r, BAND, b0, outs[kb])
 
 
 def _standard_plane(plane) -> np.ndarray:
@@ -389,7 +436,8 @@ def standardise(features) -> np.ndarray:
 
 def collaborative_regression(image, guide, variance, features, *, radius: int = 9, patch: int = 3, k: float = 1.0,
                              variance_scale: float = 2.0, ridge: float = RIDGE, threads: int | None = None,
-                             return_weights: bool = False, return_centre_weight: bool = False):
+                             return_weights: bool = False, return_centre_weight: bool = False, stride: int = 1,
+                             min_weight: float = MIN_COVER_WEIGHT):
     """Collaborative first-order regression of ``image`` on ``features``, weighted by NL-means of ``guide``.
 
     Parameters
@@ -422,6 +470,19 @@ def collaborative_regression(image, guide, variance, features, *, radius: int = 
         exact with this ``w_ii``
         (:func:`mcrecon.methods.auto.estimates.sure`).  Costs about half
         the regression again.
+    stride : int
+        Fit a window at every ``stride``-th pixel of every ``stride``-th
+        row only (1: every pixel, the paper); each fit still predicts its
+        whole window, and each pixel averages the windows that cover it.
+        A pixel whose own weights of the grid pixels in its window sum
+        below ``min_weight`` (its patch is alike in few of theirs: a thin
+        edge, a firefly, the grid's windows would leave it nearly
+        unweighted) fits its own window too, as with stride 1.  Every
+        weight is still computed; the normal equations, solves and scatters
+        drop to the grid's pixels and those.
+    min_weight : float
+        With ``stride`` > 1: the grid weight below which a pixel fits its
+        own window (where its own window would give it weight 1).
 
     Returns
     -------
@@ -430,12 +491,14 @@ def collaborative_regression(image, guide, variance, features, *, radius: int = 
     """
     return collaborative_regressions(image, guide, variance, features, ks=(k,), radius=radius, patch=patch,
                                      variance_scale=variance_scale, ridge=ridge, threads=threads,
-                                     return_weights=return_weights, return_centre_weight=return_centre_weight)[0]
+                                     return_weights=return_weights, return_centre_weight=return_centre_weight,
+                                     stride=stride, min_weight=min_weight)[0]
 
 
 def collaborative_regressions(image, guide, variance, features, *, ks, radius: int = 9, patch: int = 3,
                               variance_scale: float = 2.0, ridge: float = RIDGE, threads: int | None = None,
-                              return_weights: bool = False, return_centre_weight: bool = False) -> list:
+                              return_weights: bool = False, return_centre_weight: bool = False, stride: int = 1,
+                              min_weight: float = MIN_COVER_WEIGHT) -> list:
     """:func:`collaborative_regression` of one image for several bandwidths ``ks`` in one pass.
 
     The bandwidths share the guide, the design and the colour: each
@@ -449,8 +512,10 @@ def collaborative_regressions(image, guide, variance, features, *, ks, radius: i
     ks : sequence of float
         The NL-means bandwidths, one result each (at least one).
     image, guide, variance, features, radius, patch, variance_scale, ridge, threads, return_weights,
-    return_centre_weight
-        As :func:`collaborative_regression`.
+    return_centre_weight, stride, min_weight
+        As :func:`collaborative_regression` (with a stride, each bandwidth's
+        own weights choose its fallback windows: still bit-identical to a
+        call with that bandwidth alone).
 
     Returns
     -------
@@ -471,6 +536,10 @@ def collaborative_regressions(image, guide, variance, features, *, ks, radius: i
         raise ValueError(f"collaborative_regression: shapes differ: image {img.shape}, guide {g.shape[1:]}, "
                          f"variance {v.shape[1:]}, features {feats.shape} (H, W[, C])")
     r = int(radius)
+    s = int(stride)
+    if s < 1 or s > r + 1:
+        raise ValueError(f"collaborative_regression: stride {stride!r}: 1 to radius + 1 = {r + 1} (every pixel "
+                         "then lies in a fitted window)")
     n_bands = (h + BAND - 1) // BAND
     planes = nc + 1 + bool(return_centre_weight)
     # the kernel's padded planes are filled in place, one plane at a time (no unpadded copy of the colour or
@@ -489,13 +558,9 @@ def collaborative_regressions(image, guide, variance, features, *, ks, radius: i
     # (each 1 + 2r / BAND times its rows) are a few megabytes whatever the image, not twice the output
     accs = np.empty((min(n_bands, BANDS_PER_THREAD * nt), nk, planes, BAND + 2 * r, w + 2 * r))
     k2s = np.array([k ** 2 for k in ks], np.float32)  # each k^2 rounded to float32, as the distances use it
-    args = (ypad, g, v, fpad, r, int(patch), k2s, float(ridge), np.float32(NLM_EPS),
-            np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT, bool(return_centre_weight), BAND)
-    for b0 in range(0, n_bands, accs.shape[0]):
-        parallel_calls(_one_band, [(*args, b0 + t, accs[t]) for t in range(min(accs.shape[0], n_bands - b0))],
-                       threads)
-        for kb in range(nk):
-            _gather(accs, kb, r, BAND, b0, outs[kb])
+    common = (ypad, g, v, fpad, r, int(patch), k2s, float(ridge), np.float32(NLM_EPS),
+              np.float32(DISTANCE_CLAMP), MIN_CENTER_WEIGHT, bool(return_centre_weight))
+    _accumulate(common + (s, float(min_weight)), accs, outs, r, n_bands, threads)
     del accs, ypad, fpad
     results = []
     for out in outs:

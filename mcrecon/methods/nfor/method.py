@@ -142,6 +142,9 @@ class NFORMethod(Method):
                min=0, max=10),
         Option("feature_k", float, PAPER["feature_k"], "bandwidth of the feature prefilter (paper: 0.5)",
                min=0.0, min_open=True),
+        Option("stride", int, 1, "fit a regression window at every stride-th pixel and row only, and at the "
+               "pixels those windows leave (nearly) unweighted; each pixel averages the windows covering it "
+               "(1: every pixel, the paper)", min=1, max=10),
         Option("second_pass", bool, PAPER["second_pass"], "Sec. 5.4's second regression of the averaged halves"),
         Option("ridge", float, RIDGE, "ridge on the regression's non-constant columns (standardised features), "
                "times the window's total weight: makes flat or collinear features solvable", min=0.0, max=1.0),
@@ -157,6 +160,9 @@ class NFORMethod(Method):
 
     def _configure(self, params: dict) -> None:
         object.__setattr__(self, "_bandwidths", _parse_bandwidths(params["bandwidths"]))
+        if params["stride"] > params["radius"] + 1:
+            raise InputError(_WHERE, "stride", f"{params['stride']} leaves pixels outside every fitted window of "
+                             f"radius {params['radius']}: use a stride of at most radius + 1 = {params['radius'] + 1}")
 
     def reconstruct_run(self, run: NFORRun, inputs: MethodInputs) -> np.ndarray:
         """The NFOR image (H, W, C) float64 (:func:`mcrecon.methods.nfor.pipeline.nfor_denoise`) of ``inputs.halves``.
@@ -179,7 +185,7 @@ class NFORMethod(Method):
         img = nfor_denoise(ya, yb, var, fa, fb, fv, bandwidths=self._bandwidths, radius=p["radius"],
                            patch=p["patch"], feature_radius=p["feature_radius"], feature_patch=p["feature_patch"],
                            feature_k=p["feature_k"], second_pass=p["second_pass"], ridge=p["ridge"],
-                           threads=p["threads"], diagnostics=diag)
+                           threads=p["threads"], stride=p["stride"], diagnostics=diag)
         img = np.asarray(img, dtype=np.float64)
         if p["safeguard"] is not None:
             img = np.ascontiguousarray(img)

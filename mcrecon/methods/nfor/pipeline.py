@@ -32,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...filters.nlmeans import nlmeans_filter, nlmeans_filter_shared
-from ...filters.regression import RIDGE, collaborative_regression, collaborative_regressions
+from ...filters.regression import MIN_COVER_WEIGHT, RIDGE, collaborative_regression, collaborative_regressions
 
 __all__ = ["nfor_denoise", "prefilter_features", "cross_regression", "estimate_mse", "PAPER"]
 
@@ -71,25 +71,30 @@ def prefilter_features(feat_a, feat_b, feat_variance, *, radius=5, patch=3, k=0.
     return pf_a, pf_b
 
 
-def cross_regression(y_a, y_b, variance, pf_a, pf_b, *, radius=9, patch=3, k=1.0, ridge=RIDGE, threads=None):
+def cross_regression(y_a, y_b, variance, pf_a, pf_b, *, radius=9, patch=3, k=1.0, ridge=RIDGE, threads=None,
+                     stride=1, min_weight=MIN_COVER_WEIGHT):
     """Sec. 5.2 for one bandwidth: half A regressed on half B's features with weights from B's colour, and
     B on A's.  ``F_A`` is then a linear function of ``y_A`` whose weights and design carry none of ``y_A``'s
     noise (nor of A's features), which the MSE estimate (:func:`estimate_mse`) relies on.
     Returns ``(F_A, F_B)``; with ``k`` a sequence of bandwidths, ``([F_A per k], [F_B per k])``, each
     half's bandwidths in one pass (:func:`.regression.collaborative_regressions`, bit-identical to one
-    call per bandwidth)."""
+    call per bandwidth).  ``stride``, ``min_weight``: windows fitted on a grid only
+    (:func:`.regression.collaborative_regression`)."""
     ks = tuple(k) if np.ndim(k) else (k,)
     c_a = collaborative_regressions(y_a, y_b, variance, pf_b, ks=ks, radius=radius, patch=patch,
-                                    variance_scale=2.0, ridge=ridge, threads=threads)
+                                    variance_scale=2.0, ridge=ridge, threads=threads, stride=stride,
+                                    min_weight=min_weight)
     c_b = collaborative_regressions(y_b, y_a, variance, pf_a, ks=ks, radius=radius, patch=patch,
-                                    variance_scale=2.0, ridge=ridge, threads=threads)
+                                    variance_scale=2.0, ridge=ridge, threads=threads, stride=stride,
+                                    min_weight=min_weight)
     return (c_a, c_b) if np.ndim(k) else (c_a[0], c_b[0])
 
 
 def nfor_denoise(y_a, y_b, variance, feat_a, feat_b, feat_variance, *, feature_radius=5, feature_patch=3,
                  feature_k=0.5, radius=9, patch=3, bandwidths=(0.5, 1.0), mse_radius=9, mse_patch=1, mse_k=1.0,
                  final_feature_radius=2, final_feature_patch=3, final_feature_k=0.5, final_k=1.0,
-                 second_pass=True, ridge=RIDGE, threads=None, diagnostics=None) -> np.ndarray:
+                 second_pass=True, ridge=RIDGE, threads=None, stride=1, min_weight=MIN_COVER_WEIGHT,
+                 diagnostics=None) -> np.ndarray:
     """NFOR on two half buffers with per-pixel features.
 
     Parameters
@@ -108,6 +113,11 @@ def nfor_denoise(y_a, y_b, variance, feat_a, feat_b, feat_variance, *, feature_r
     second_pass : bool
         Sec. 5.4's second regression of the averaged result; without it the
         image is the average of the two halves' results.
+    stride, min_weight : int, float
+        Every regression fits windows at every ``stride``-th pixel and row
+        only, and at the pixels those windows leave with a total weight
+        below ``min_weight`` (1: every pixel, the paper;
+        :func:`mcrecon.filters.regression.collaborative_regression`).
     diagnostics : dict, optional
         Receives ``selection`` (H, W): the filtered selection map averaged
         over channels (0: the first bandwidth), ``estimated_mse`` (H, W)
@@ -136,7 +146,7 @@ def nfor_denoise(y_a, y_b, variance, feat_a, feat_b, feat_variance, *, feature_r
     # 2. regression per bandwidth, cross-buffer (A's colour: B's weights and B's features)
     # (every bandwidth of a half in one pass: they share its guide, design and colour)
     halves = list(zip(*cross_regression(y_a, y_b, var, pf_a, pf_b, radius=radius, patch=patch, k=bandwidths,
-                                        ridge=ridge, threads=threads)))
+                                        ridge=ridge, threads=threads, stride=stride, min_weight=min_weight)))
     # the MSE estimates of every bandwidth share one guide and one set of parameters: one set of weights
     mses = nlmeans_filter_shared([estimate_mse(y_a, y_b, c_a, c_b, var) for c_a, c_b in halves], y, var,
                                  radius=mse_radius, patch=mse_patch, k=mse_k, threads=threads)
@@ -174,7 +184,8 @@ def nfor_denoise(y_a, y_b, variance, feat_a, feat_b, feat_variance, *, feature_r
         else:
             feat = fa
         res = collaborative_regression(res, res, res_var, feat, radius=radius, patch=patch, k=final_k,
-                                       variance_scale=2.0, ridge=ridge, threads=threads)
+                                       variance_scale=2.0, ridge=ridge, threads=threads, stride=stride,
+                                       min_weight=min_weight)
     if diagnostics is not None:
         diagnostics["selection"] = sel
         diagnostics["estimated_mse"] = mse_best
