@@ -24,7 +24,7 @@ def _halves(seed=5):
 
 
 def test_the_halves_prefiltered_planes_are_not_held_after_the_candidates():
-    pytest.importorskip("pyoidn")
+    pytest.importorskip("pyoidn", reason="needs pyoidn (Intel OIDN), a dependency of mcrecon: pip install -e .")
     hv = _halves()
     m = get_method("auto")
     with warnings.catch_warnings():
