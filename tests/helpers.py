@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mcrecon import SampleSet
 from mcrecon.renderers.scenes import SceneRenderer
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -181,3 +182,16 @@ class RecordingScene(SceneRenderer):
     def render(self, request):
         self.seen.append(request)
         return super().render(request)
+
+
+def spotlit_checker(h=48, w=48, n=32, p=1 / 60, seed=0):
+    """A 4-pixel checker whose samples are the truth times (1 + B / p) / 2, B ~ Bernoulli(p): most samples
+    miss the light that carries half of every pixel's value."""
+    rng = np.random.default_rng(seed)
+    pix = np.repeat(np.arange(h * w), n)
+    pos = np.stack([pix % w, pix // w], 1) + rng.uniform(size=(pix.size, 2))
+    yy, xx = np.mgrid[0:h, 0:w]
+    truth = np.where(((yy // 4) + (xx // 4)) % 2 == 0, 0.5, 2.0)
+    vals = truth.ravel()[pix][:, None] * (1.0 + (rng.random((pix.size, 1)) < p) / p) / 2
+    ss = SampleSet(pos, np.repeat(vals, 3, axis=1), width=w, height=h)
+    return ss, np.repeat(truth[..., None], 3, axis=2)

@@ -10,6 +10,8 @@ from mcrecon.core.safeguard import neighbourhood_mean_variance, pooled_mean_vari
 from mcrecon.methods.auto.features import Candidate
 from mcrecon.methods.auto.selection import _global_prior
 
+from helpers import spotlit_checker
+
 
 def _rare(h=64, w=64, n=32, p=1 / 60, seed=0):
     """Samples 1 + B / p, B ~ Bernoulli(p): true mean 2; (1 - p)^32 = 58 % of pixels draw no spike."""
@@ -109,16 +111,7 @@ def test_an_exact_black_box_default_keeps_its_value_where_most_samples_missed_a_
     from mcrecon.core.metrics import relative_mse
     from mcrecon.methods.auto import method as auto_method
 
-    h = w = 48
-    n, p = 32, 1 / 60
-    rng = np.random.default_rng(0)
-    pix = np.repeat(np.arange(h * w), n)
-    pos = np.stack([pix % w, pix // w], 1) + rng.uniform(size=(pix.size, 2))
-    yy, xx = np.mgrid[0:h, 0:w]
-    truth = np.where(((yy // 4) + (xx // 4)) % 2 == 0, 0.5, 2.0)
-    vals = truth.ravel()[pix][:, None] * (1.0 + (rng.random((pix.size, 1)) < p) / p) / 2
-    ss = mcrecon.SampleSet(pos, np.repeat(vals, 3, axis=1), width=w, height=h)
-    ref = np.repeat(truth[..., None], 3, axis=2)
+    ss, ref = spotlit_checker()
     monkeypatch.setattr(auto_method, "oidn_candidate",
                         lambda name, *a, **kw: [Candidate(name, ref.copy(), np.zeros_like(ref))])
     with warnings.catch_warnings():

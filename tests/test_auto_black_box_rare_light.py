@@ -16,22 +16,11 @@ from mcrecon.core.stats import PixelStats
 from mcrecon.methods.auto import method as auto_method
 from mcrecon.methods.auto.features import Candidate
 
-
-def _spotlit(h=48, w=48, n=32, p=1 / 60, seed=0):
-    """A 4-pixel checker whose samples are the truth times (1 + B / p) / 2, B ~ Bernoulli(p): most samples
-    miss the light that carries half of every pixel's value."""
-    rng = np.random.default_rng(seed)
-    pix = np.repeat(np.arange(h * w), n)
-    pos = np.stack([pix % w, pix // w], 1) + rng.uniform(size=(pix.size, 2))
-    yy, xx = np.mgrid[0:h, 0:w]
-    truth = np.where(((yy // 4) + (xx // 4)) % 2 == 0, 0.5, 2.0)
-    vals = truth.ravel()[pix][:, None] * (1.0 + (rng.random((pix.size, 1)) < p) / p) / 2
-    ss = mcrecon.SampleSet(pos, np.repeat(vals, 3, axis=1), width=w, height=h)
-    return ss, np.repeat(truth[..., None], 3, axis=2)
+from helpers import spotlit_checker
 
 
 def test_widened_range_bounds_take_the_5x5_range_where_asked():
-    ss, _ = _spotlit(h=12, w=14)
+    ss, _ = spotlit_checker(h=12, w=14)
     st = PixelStats.from_samples(ss.positions, ss.values, width=14, height=12)
     lo, hi = sample_range_bounds(st)
     lo5, hi5 = sample_range_bounds(st, 2)
@@ -55,7 +44,7 @@ def _auto(monkeypatch, ss, ref, mse):
 def test_an_exact_black_box_default_keeps_the_truth_where_the_3x3_samples_all_missed_the_light(monkeypatch):
     """Where every sample of a pixel's 3 x 3 neighbourhood missed the light, the 3 x 3 range's top lies
     below the truth; the exact default keeps the truth there (the 5 x 5 range's samples found it)."""
-    ss, ref = _spotlit()
+    ss, ref = spotlit_checker()
     img = _auto(monkeypatch, ss, ref, np.zeros_like(ref))
     st = PixelStats.from_samples(ss.positions, ss.values, width=48, height=48)
     _, hi = sample_range_bounds(st)
@@ -73,7 +62,7 @@ def test_a_black_box_that_returns_the_truth_keeps_it_under_a_light_a_sample_in_1
     pytest.importorskip("pyoidn", reason="needs pyoidn (Intel OIDN), a dependency of mcrecon: pip install -e .")
     from mcrecon.methods.auto import blackbox
 
-    ss, ref = _spotlit(p=1 / 100)
+    ss, ref = spotlit_checker(p=1 / 100)
     monkeypatch.setattr(blackbox, "oidn_denoise", lambda colour, aux=(), **kw: ref.copy())
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -79,22 +79,32 @@ def test_nlmeans_filter_matches_brute_force_weights():
     np.testing.assert_allclose(got, want_num / want_den, rtol=2e-5)
 
 
+def _brute_weights_and_features(y, guide, var, feats, r, f, k):
+    """The regression's NL-means weights by brute force and its standardised features."""
+    wts = _weights_brute(guide, 2.0 * var, r, f, k, per_channel=False)
+    return wts, np.moveaxis(standardise(np.moveaxis(feats, 2, 0)), 0, 2)
+
+
+def _fit_window(y, fs, wts, r, i, j):
+    """The weighted ridge fit of the window centred on (i, j): its pixels, their weights, its predictions."""
+    win = [(qi, qj) for (pi, pj, qi, qj) in wts if (pi, pj) == (i, j)]
+    wv = np.array([wts[(i, j, qi, qj)] for qi, qj in win])
+    x = np.array([[1.0, (qj - j) / r, (qi - i) / r, *(fs[qi, qj] - fs[i, j])] for qi, qj in win])
+    a = x.T @ (wv[:, None] * x) + RIDGE * wv.sum() * np.diag([0.0] + [1.0] * (x.shape[1] - 1))
+    beta = np.linalg.solve(a, x.T @ (wv[:, None] * np.array([y[q] for q in win])))
+    return win, wv, x @ beta
+
+
 def test_collaborative_regression_matches_brute_force_fits_and_averaging():
     y, guide, var, feats = _tiny(1)
     r, f, k = 2, 1, 0.8
     h, w, _ = y.shape
-    wts = _weights_brute(guide, 2.0 * var, r, f, k, per_channel=False)
-    fs = np.moveaxis(standardise(np.moveaxis(feats, 2, 0)), 0, 2)
-    num = np.zeros_like(y)
-    den = np.zeros((h, w))
+    wts, fs = _brute_weights_and_features(y, guide, var, feats, r, f, k)
+    num, den = np.zeros_like(y), np.zeros((h, w))
     for i in range(h):
         for j in range(w):
-            win = [(qi, qj) for (pi, pj, qi, qj) in wts if (pi, pj) == (i, j)]
-            wv = np.array([wts[(i, j, qi, qj)] for qi, qj in win])
-            x = np.array([[1.0, (qj - j) / r, (qi - i) / r, *(fs[qi, qj] - fs[i, j])] for qi, qj in win])
-            a = x.T @ (wv[:, None] * x) + RIDGE * wv.sum() * np.diag([0.0] + [1.0] * (x.shape[1] - 1))
-            beta = np.linalg.solve(a, x.T @ (wv[:, None] * np.array([y[q] for q in win])))
-            for (qi, qj), wt, pred in zip(win, wv, x @ beta):  # each fit predicts its whole window
+            win, wv, preds = _fit_window(y, fs, wts, r, i, j)
+            for (qi, qj), wt, pred in zip(win, wv, preds):  # each fit predicts its whole window
                 num[qi, qj] += wt * pred
                 den[qi, qj] += wt
     got, got_den = collaborative_regression(y, guide, var, feats, radius=r, patch=f, k=k, return_weights=True)

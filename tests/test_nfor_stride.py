@@ -10,17 +10,8 @@ sys.path.insert(0, os.path.dirname(__file__))
 
 import mcrecon  # noqa: E402
 from mcrecon.errors import InputError  # noqa: E402
-from mcrecon.filters.regression import RIDGE, collaborative_regression, collaborative_regressions, standardise  # noqa: E402
-from test_nfor import _tiny, _weights_brute  # noqa: E402
-
-
-def _fit_window(y, fs, wts, r, i, j):
-    win = [(qi, qj) for (pi, pj, qi, qj) in wts if (pi, pj) == (i, j)]
-    wv = np.array([wts[(i, j, qi, qj)] for qi, qj in win])
-    x = np.array([[1.0, (qj - j) / r, (qi - i) / r, *(fs[qi, qj] - fs[i, j])] for qi, qj in win])
-    a = x.T @ (wv[:, None] * x) + RIDGE * wv.sum() * np.diag([0.0] + [1.0] * (x.shape[1] - 1))
-    beta = np.linalg.solve(a, x.T @ (wv[:, None] * np.array([y[q] for q in win])))
-    return win, wv, x @ beta
+from mcrecon.filters.regression import collaborative_regression, collaborative_regressions  # noqa: E402
+from test_nfor import _brute_weights_and_features, _fit_window, _tiny  # noqa: E402
 
 
 @pytest.mark.parametrize("stride,min_weight", [(2, "median"), (3, "median"), (2, 0.0)])
@@ -30,10 +21,8 @@ def test_strided_regression_matches_brute_force_grid_and_fallback_windows(stride
     y, guide, var, feats = _tiny(3, h=11, w=10)
     r, f, k = 2, 1, 0.8
     h, w, _ = y.shape
-    wts = _weights_brute(guide, 2.0 * var, r, f, k, per_channel=False)
-    fs = np.moveaxis(standardise(np.moveaxis(feats, 2, 0)), 0, 2)
-    num = np.zeros_like(y)
-    den = np.zeros((h, w))
+    wts, fs = _brute_weights_and_features(y, guide, var, feats, r, f, k)
+    num, den = np.zeros_like(y), np.zeros((h, w))
 
     def add(i, j):
         win, wv, pred = _fit_window(y, fs, wts, r, i, j)

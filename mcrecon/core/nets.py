@@ -148,27 +148,15 @@ def net_round(desired: np.ndarray, current: np.ndarray, defensive: int, rng: np.
 
 
 def net_plan(method, run, state):
-    """A method's adaptive round in whole nets: :meth:`~mcrecon.methods.base.Method.plan`'s sizing, its
-    ``uniform_share`` breadth-first and :meth:`place`'s counts rounded (:func:`net_round`).
+    """A method's adaptive round in whole nets: :meth:`~mcrecon.methods.base.Method.round_size`'s samples,
+    its ``uniform_share`` breadth-first and :meth:`place`'s counts rounded (:func:`net_round`).
 
-    The round's size follows the method's options as :meth:`Method.plan`
-    does (``iterations``: what is left over the iterations to come;
-    ``round_spp``: that many samples per pixel).  ``place`` must return
-    counts per pixel (H, W), or None to stop the run.
+    ``place`` must return counts per pixel (H, W), or None to stop the run.
     """
-    remaining = state.remaining
-    if remaining <= 0:
+    n = method.round_size(state)
+    if n is None:
         return None
-    p = method.params
-    npix = state.width * state.height
-    if "iterations" in p:
-        left = p["iterations"] - state.iteration
-        n = remaining if left <= 1 else max(1, remaining // left)
-    elif "round_spp" in p:
-        n = min(remaining, max(1, int(round(p["round_spp"] * npix))))
-    else:
-        n = method.doubling_round(state)
-    n_def = int(round(p.get("uniform_share", 0.0) * n))
+    n_def = int(round(method.params.get("uniform_share", 0.0) * n))
     zeros = np.zeros((state.height, state.width), np.int64)
     placed = method.place(run, state, n - n_def) if n > n_def else zeros
     if placed is None:

@@ -306,12 +306,10 @@ class MethodInputs:
 
 @dataclasses.dataclass(eq=False)
 class RunState:
-    """What one run of a method accumulates (created by :meth:`Method.start`).
+    """What one run of a method accumulates (created by :meth:`Method.start`); subclasses add fields.
 
-    Subclasses add fields (a progressive image, the last selection).
-    ``diagnostics`` holds the maps :meth:`Method.diagnostics` returns;
-    ``halves`` the two halves of the committed samples, for a method with
-    ``requires.half_buffers`` that observes samples (:meth:`Method.observe`).
+    ``diagnostics`` holds the maps :meth:`Method.diagnostics` returns; ``halves`` the committed samples'
+    two halves, for a method with ``requires.half_buffers`` that observes samples (:meth:`Method.observe`).
     """
 
     width: int
@@ -411,8 +409,7 @@ class Method:
     options : tuple of Option
         Keyword options (and CLI flags), validated by ``__init__``.
     variants : mapping
-        ``{variant name: {option: value}}`` for a method with a ``variant`` option
-        (:func:`variant_option`): the option values each variant presets unless given.
+        ``{variant: {option: value}}`` that a ``variant`` option presets unless given (:func:`variant_option`).
     requires : Requirements
         The inputs the method reads (a property when they depend on the options).
     run_type : type
@@ -420,8 +417,7 @@ class Method:
     adaptive : bool
         Whether ``plan`` distributes samples by itself (else uniform).
     initial_spp : int
-        Samples per pixel of the uniform initial pass the driver takes before the first
-        plan; an ``initial_spp`` option overrides it (:meth:`initial_pass`).
+        Samples per pixel of the driver's uniform initial pass (:meth:`initial_pass`; an option overrides it).
     pipeline : bool
         Whether ``plan`` is safe from statistics one round old (the round in flight as
         ``state.pending``): adaptive runs then pipeline by default (:func:`mcrecon.adaptive.adapt`).
@@ -437,10 +433,8 @@ class Method:
     adaptive: ClassVar[bool] = False
     initial_spp: ClassVar[int] = 1
     pipeline: ClassVar[bool] = False
-    #: Uniform doubling rounds are capped at 1 / max_round_parts of the budget, never below max_round_floor
-    #: samples: plain doubling ends with a half-budget round whose commit nothing overlaps in a pipelined
-    #: run; the cap bounds that tail at ~1/8 of the commit work (docs/pipelining.md).  Below the floor
-    #: (~30 ms of commit) a cap would only add rounds, each with its fixed cost.
+    #: Doubling rounds are capped at 1/max_round_parts of the budget (a pipelined run's last commit overlaps
+    #: nothing: docs/pipelining.md), never below max_round_floor samples (below it a cap only adds rounds).
     max_round_parts: ClassVar[int] = 8
     max_round_floor: ClassVar[int] = 1 << 20
 
@@ -602,28 +596,15 @@ class Method:
     def plan(self, run: RunState, state: AdaptiveState) -> SampleRequest | None:
         """The next round's request after the initial pass, or None when the method's target is met.
 
-        The round's size: with an ``iterations`` option, what is left spread
-        over the iterations still to come (the last takes everything);
-        with a ``round_spp`` option, that many samples per pixel; else the
-        total doubles, each round capped (``max_round_parts``).  A share
-        ``uniform_share`` (an option, default 0) of the round is spread
-        uniformly; :meth:`place` places the rest.  An empty request in a
-        pipelined run asks the driver to commit the round in flight and
-        plan again from it.
+        The round's size is :meth:`round_size`'s.  A share ``uniform_share``
+        (an option, default 0) of the round is spread uniformly;
+        :meth:`place` places the rest.  An empty request in a pipelined run
+        asks the driver to commit the round in flight and plan again from it.
         """
-        remaining = state.remaining
-        if remaining <= 0:
+        n = self.round_size(state)
+        if n is None:
             return None
-        p = self.params
-        npix = state.width * state.height
-        if "iterations" in p:
-            left = p["iterations"] - state.iteration
-            n = remaining if left <= 1 else max(1, remaining // left)
-        elif "round_spp" in p:
-            n = min(remaining, max(1, int(round(p["round_spp"] * npix))))
-        else:
-            n = self.doubling_round(state)
-        n_uniform = int(round(p.get("uniform_share", 0.0) * n))
+        n_uniform = int(round(self.params.get("uniform_share", 0.0) * n))
         placed = self.place(run, state, n - n_uniform)
         if placed is None:
             return None
@@ -635,6 +616,25 @@ class Method:
         if not len(placed) and counts is None:  # nothing placed, nothing uniform: ask for nothing
             counts = np.zeros((state.height, state.width), np.int64)
         return state.request(positions=placed if len(placed) else None, counts=counts)
+
+    def round_size(self, state: AdaptiveState) -> int | None:
+        """Samples of the next round after the initial pass, None when the budget is spent.
+
+        With an ``iterations`` option, what is left spread over the
+        iterations still to come (the last takes everything); with a
+        ``round_spp`` option, that many samples per pixel; else the total
+        doubles, each round capped (``max_round_parts``).
+        """
+        remaining = state.remaining
+        if remaining <= 0:
+            return None
+        p = self.params
+        if "iterations" in p:
+            left = p["iterations"] - state.iteration
+            return remaining if left <= 1 else max(1, remaining // left)
+        if "round_spp" in p:
+            return min(remaining, max(1, int(round(p["round_spp"] * state.width * state.height))))
+        return self.doubling_round(state)
 
     def doubling_round(self, state: AdaptiveState) -> int:
         """Samples of a round that doubles the total, capped at 1 / ``max_round_parts`` of the budget."""
