@@ -236,7 +236,9 @@ def _check_width(source, name, shape) -> None:
 
 
 def layout_of(stats_features: Mapping) -> dict[str, int]:
-    """``{name: components}`` of a statistics' ``features`` dict."""
+    """``{name: components}`` of a statistics' ``features`` dict (features merged on read: without a merge)."""
+    if isinstance(getattr(stats_features, "layout", None), dict):
+        return dict(stats_features.layout)
     return {name: len(st.channels) for name, st in stats_features.items()}
 
 

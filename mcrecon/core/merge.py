@@ -16,11 +16,13 @@ statistics of a half are then bit for bit those of its samples added alone.
 
 from __future__ import annotations
 
+from collections.abc import MutableMapping
+
 import numpy as np
 
 from .samples import lazy_njit
 
-__all__ = ["merge_moments"]
+__all__ = ["merge_moments", "MergedOnRead"]
 
 #: What the kernels get for the ``min``/``max`` of statistics that keep no range (``ranged`` False):
 #: an empty array of the range's type, never indexed.
@@ -91,3 +93,44 @@ def merge_moments(a, b, out) -> None:
     arrays = (a.count, a.mean, a.m2, *lo_hi(a), b.count, b.mean, b.m2, *lo_hi(b),
               out.count, out.mean, out.m2, *lo_hi(out), ranged)
     parallel_calls(_merge_rows, [arrays + (i, min(i + _ROWS_PER_TASK, h)) for i in range(0, h, _ROWS_PER_TASK)])
+
+
+class MergedOnRead(MutableMapping):
+    """The features of the merge of two statistics, each merged from the two inputs' features when read.
+
+    The dispatcher's merge of the halves it splits (:func:`mcrecon.offline.inputs.statistics_for`)
+    keeps its features this way: a method reads the merged colour throughout and a feature's merge
+    once or twice (nfor: the features' variance before its filter, the albedo after it), so the
+    merged features are never held all at once beside the filter's buffers (at 1920 x 1080 with
+    albedo, normal and depth: 0.28 GB).  Each read merges anew (the same bits each time): a write
+    into a feature read from here does not persist; :meth:`PixelStats.merge` into such statistics
+    first makes their features a plain dict.  ``layout`` is ``{name: components}`` without a merge.
+    """
+
+    def __init__(self, a, b):
+        self._a, self._b = a, b
+        self._set = {}
+        self.layout = {name: len(st.channels) for name, st in a.items()}
+
+    def __getitem__(self, name):
+        if name in self._set:
+            return self._set[name]
+        if name not in self.layout:
+            raise KeyError(name)
+        return self._a[name].merged(self._b[name])
+
+    def __setitem__(self, name, value):
+        self._set[name] = value
+        self.layout[name] = len(value.channels)
+
+    def __delitem__(self, name):
+        if name not in self.layout:
+            raise KeyError(name)
+        del self.layout[name]
+        self._set.pop(name, None)
+
+    def __iter__(self):
+        return iter(tuple(self.layout))
+
+    def __len__(self):
+        return len(self.layout)

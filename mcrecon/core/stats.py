@@ -34,7 +34,7 @@ import numpy as np
 from ..errors import InputError
 from .features import (check_features, feature_components, feature_layout, layout_of, source_features, source_layout,
     warn_feature_zeroed)
-from .merge import NO_RANGE, _merge_run, _run_add
+from .merge import NO_RANGE, MergedOnRead, _merge_run, _run_add
 from .moments import check_moments
 from .samples import (as_hwc, apply_nonfinite, check_memory, check_policy, check_samples, lazy_njit,
     warn_nonfinite)
@@ -319,14 +319,21 @@ class PixelStats:
         self._check_mergeable(other)
         return self._merge_from(self, other)
 
-    def merged(self, other: "PixelStats") -> "PixelStats":
+    def merged(self, other: "PixelStats", *, features_on_read: bool = False) -> "PixelStats":
         """The merge of these statistics and ``other`` (:meth:`merge`) as new statistics; neither changes.
 
         Bit-identical to ``self.copy().merge(other)``, with each array written
-        once instead of copied and then rewritten.
+        once instead of copied and then rewritten.  ``features_on_read``: each
+        feature is merged when read (:class:`~mcrecon.core.merge.MergedOnRead`,
+        which holds both inputs' features), not now.
         """
         self._check_mergeable(other)
-        return self._with_arrays(np.empty_like)._merge_from(self, other)
+        if not (features_on_read and self.features):
+            return self._with_arrays(np.empty_like)._merge_from(self, other)
+        out = self.without_features().merged(other.without_features())
+        out.features = MergedOnRead(self.features, other.features)
+        out.n_feature_zeroed = self.n_feature_zeroed + other.n_feature_zeroed
+        return out
 
     def _check_mergeable(self, other: "PixelStats") -> None:
         if (other.width, other.height, other.channels, other.subpixels) != (
@@ -343,6 +350,8 @@ class PixelStats:
         """Make these statistics (``a`` itself, or arrays shaped as ``a``'s) the merge of ``a`` and ``b``."""
         from .merge import merge_moments
 
+        if isinstance(self.features, MergedOnRead):  # merged into: each feature held, to be written
+            self.features = dict(self.features.items())
         for name, fst in self.features.items():
             fst._merge_from(a.features[name], b.features[name])
         self.n_feature_zeroed = a.n_feature_zeroed + b.n_feature_zeroed

@@ -14,12 +14,15 @@ from ...core.stats import PixelStats
 from ...errors import InputError, McreconWarning
 from ..base import Method, MethodInputs, Option, Requirements, RunState, variant_option
 from .firefly import leave_out_isolated
-from .pipeline import PAPER, nfor_denoise
-from ...filters.regression import RIDGE
+from .pipeline import PAPER, denoise_planes
+from ...filters.regression import MIN_COVER_WEIGHT, RIDGE
 
 __all__ = ["NFORMethod", "NFORRun", "feature_planes", "channel_floor"]
 
 _WHERE = "method nfor"
+#: The pipeline's parameters that are no option: the paper's (nfor_denoise's defaults).
+_FIXED = ("mse_radius", "mse_patch", "mse_k", "final_feature_radius", "final_feature_patch", "final_feature_k",
+          "final_k")
 
 
 @dataclasses.dataclass(eq=False)
@@ -179,13 +182,16 @@ class NFORMethod(Method):
             warnings.simplefilter("ignore", McreconWarning)  # one warning for the empty pixels is enough
             yb = _filled(b, a)
         var = mean_variance_policy(stats)
-        fa, fb, fv = feature_planes(a, b, stats)
+        # the planes go in a list the pipeline empties (denoise_planes): none is held here past its stage
+        planes = [ya, yb, var, *feature_planes(a, b, stats)]
+        del ya, yb
         p = self.params
         diag: dict = {}
-        img = nfor_denoise(ya, yb, var, fa, fb, fv, bandwidths=self._bandwidths, radius=p["radius"],
-                           patch=p["patch"], feature_radius=p["feature_radius"], feature_patch=p["feature_patch"],
-                           feature_k=p["feature_k"], second_pass=p["second_pass"], ridge=p["ridge"],
-                           threads=p["threads"], stride=p["stride"], diagnostics=diag)
+        img = denoise_planes(planes, bandwidths=self._bandwidths, radius=p["radius"], patch=p["patch"],
+                             feature_radius=p["feature_radius"], feature_patch=p["feature_patch"],
+                             feature_k=p["feature_k"], second_pass=p["second_pass"], ridge=p["ridge"],
+                             threads=p["threads"], stride=p["stride"], diagnostics=diag,
+                             min_weight=MIN_COVER_WEIGHT, **{k: PAPER[k] for k in _FIXED})
         img = np.asarray(img, dtype=np.float64)
         if p["safeguard"] is not None:
             img = np.ascontiguousarray(img)
