@@ -38,7 +38,8 @@ from ...core.fill import fill_empty_pixels
 from ...filters.gaussian import final_sigmas
 from ...core.fill import mean_variance_policy
 from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGHTS, Candidate,
-    _feature_bilateral, dual_candidate, feature_candidates, release_prefiltered)
+    _feature_bilateral, dual_candidate, feature_candidates, prefiltered_features,
+    release_prefiltered)
 from .blackbox import oidn_candidate
 from .nlmeans import nlmeans_cross
 from ...filters.masked import MaskedSmoothing, smooth_masked
@@ -262,12 +263,23 @@ class AutoMethod(Method):
         y = stats.mean
         count = stats.count
         v = mean_variance_policy(stats)
-        v_sure = agreeing_variance(v, count)
-        # The feature-guided candidates first (listed after the colour ones all the same): the
-        # regressions' working arrays, the largest of a frame's, then meet only the statistics, not every
-        # colour candidate's image and estimate as well
+        # The OIDN runs first, then the feature-guided candidates, then the rest (listed in choice order
+        # all the same): OIDN's scratch memory (about 1.4 GB at 1920 x 1080) then meets only the
+        # statistics, and the regressions' working arrays, the largest of a frame's, only OIDN's three
+        # candidates besides, not every colour candidate's image and estimate as well
+        aux = "oidn_aux" in self._feature_names and "albedo" in stats.features
+        regress = {"nfor", "nfor_own", "mix"} & set(self._feature_names)
+        if aux and regress and halves is not None and "albedo" in halves.a.features:
+            # the halves' prefiltered features, computed once for OIDN's albedo and normal and the
+            # regressions after it (the same planes either way)
+            prefiltered_features(halves.a)
+            prefiltered_features(halves.b)
+        black = (oidn_candidate("oidn", stats, v, halves, halves_only=self._aux_replaces_oidn(stats))
+                 if "oidn" in self._names else [])
+        black_aux = oidn_candidate("oidn_aux", stats, v, halves, aux=True) if aux else []
         guided = (self._feature_candidates(stats, halves.a, halves.b)
                   if self._feature_names and halves is not None and halves.a.features else [])
+        v_sure = agreeing_variance(v, count)
         out: list[Candidate] = []
         names = self._names
         if "box" in names or "gauss" in names:
@@ -307,13 +319,9 @@ class AutoMethod(Method):
                 a, b = self._black_box(name, halves, nonfinite)
                 out.append(self._dual(name, a, b, cross_validation_mse(a, yb, vb), cross_validation_mse(b, ya, va),
                                       ha.count, hb.count))
-        if "oidn" in names:
-            out += oidn_candidate("oidn", stats, v, halves, halves_only=self._aux_replaces_oidn(stats))
-        out += guided
-        del guided
-        if "oidn_aux" in self._feature_names and "albedo" in stats.features:
-            out += oidn_candidate("oidn_aux", stats, v, halves, aux=True)
-        if halves is not None:  # their last reader was oidn_aux: not held through the selection
+        out += black + guided + black_aux
+        del black, guided, black_aux
+        if halves is not None:  # their last readers were the regressions: not held through the selection
             release_prefiltered(halves.a, halves.b)
         if "fbil" in self._feature_names and stats.features and halves is None:
             # only without halves: beside the halves' candidates its estimate, biased where the features

@@ -239,7 +239,13 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     once cost more in fresh memory than their arithmetic).
     """
     den_loo = relative_denominator_loo(y, v, count, eps=DEFAULT_EPS)
-    loo = _means([c.mse for c in cands], den_loo, v, None if safeguard is None else (safeguard + 1.0) ** 2)
+    cap = None if safeguard is None else (safeguard + 1.0) ** 2
+
+    def loo(k):
+        # candidate k's capped leave-one-out relative estimate, computed where it is read (three times
+        # a candidate) rather than every candidate's kept at once: K maps of H x W (0.3 GB at 1080p)
+        return _means([cands[k].mse], den_loo, v, cap)[0]
+
     # rare huge samples: the 3 x 3 maximum far above the pixel's mean and its neighbourhood's median
     # (so that one pixel whose mean fell near 0 by chance does not count; a median, not a mean,
     # which a bright emitter beside dim pixels would dominate); and pixels far brighter than their
@@ -247,26 +253,29 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     # reach ~1e4 where the typical is ~1 (a Cornell box with a small bright light: two such pixels
     # made a 1.41 px Gaussian the whole image's default)
     apart = _apart(y, v, bounds[1], den_loo, safeguard is not None)
-    vote = np.empty(apart.shape, bool)
-    parallel_rows(_voters_rows, (loo, apart, vote), vote.shape[0])
+    vote = ~apart  # and every candidate's estimate finite
+    for k in range(len(cands)):
+        vote &= np.isfinite(loo(k))
     none = np.zeros(choice.shape, bool)
     if not vote.any():
         return choice, none
     # np.sum(r[vote]) of each, the voters gathered into one buffer (numpy's pairwise sum of the same
     # contiguous values: the same bits)
     buf = np.empty(vote.size)
-    sums = [float(np.sum(buf[:_compress(r.ravel(), vote.ravel(), buf)])) for r in loo]
+    sums = [float(np.sum(buf[:_compress(loo(k).ravel(), vote.ravel(), buf)])) for k in range(len(cands))]
     g = int(np.argmin(sums))
     zs = guarded if isinstance(guarded, dict) else {k: Z_GLOBAL for k in guarded}
     plain = [k for k in range(len(cands)) if k not in zs]
+    loo_g = loo(g)
     if g in zs and plain:
         # a guarded candidate (feature-guided, or a black box scored by cross-validation) is the default
         # only where its lower sum is real: lower than the best plain candidate's by its z standard errors
         # of the summed difference, from sums over BLOCK x BLOCK tiles (neighbouring pixels' estimates
         # are correlated)
         c = plain[int(np.argmin([sums[k] for k in plain]))]
-        if not _significantly_lower(np.where(vote, loo[g] - loo[c], 0.0), zs[g]):
+        if not _significantly_lower(np.where(vote, loo_g - loo(c), 0.0), zs[g]):
             g = c
+            loo_g = loo(g)
     if g == 0 and cands[0].name == "box":
         return choice, none
     smoothing = MaskedSmoothing(sigma)
@@ -281,7 +290,7 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
             least.offer(g, np.where(np.isfinite(sg), sg, rel[g]))
             continue
         d, d2, mask = np.empty(choice.shape), np.empty(choice.shape), np.empty(choice.shape, bool)
-        parallel_rows(_difference_rows, (loo[k], loo[g], d, d2, mask), h)
+        parallel_rows(_difference_rows, (loo(k), loo_g, d, d2, mask), h)
         m, q = smoothing([d, d2])
         # the smoothing's effective number of pixels, per pixel: about half of 4 pi sigma^2 along the
         # image's edges, a quarter in its corners (with 4 pi sigma^2 everywhere, 9 of the 16 regions of
@@ -321,17 +330,6 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
         default = np.isfinite(rel[g]) & ~biased & (~apart | _nearer_the_neighbours(cands, g, choice, y, at_g, scale))
     out = np.where(default, c2, choice)
     return out, default & (c2 == g)
-
-
-@numba.njit(cache=True, nogil=True)
-def _voters_rows(loo, apart, vote, i0, i1):
-    # vote = not apart and every candidate's estimate finite
-    for i in range(i0, i1):
-        for j in range(apart.shape[1]):
-            ok = not apart[i, j]
-            for k in range(loo.shape[0]):
-                ok = ok and np.isfinite(loo[k, i, j])
-            vote[i, j] = ok
 
 
 @numba.njit(cache=True, nogil=True)
