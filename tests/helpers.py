@@ -195,3 +195,13 @@ def spotlit_checker(h=48, w=48, n=32, p=1 / 60, seed=0):
     vals = truth.ravel()[pix][:, None] * (1.0 + (rng.random((pix.size, 1)) < p) / p) / 2
     ss = SampleSet(pos, np.repeat(vals, 3, axis=1), width=w, height=h)
     return ss, np.repeat(truth[..., None], 3, axis=2)
+
+
+def checker_wall_halves(n, seed, spp=8):
+    """The built-in checker_wall at n x n with its features, split into the two half buffers."""
+    from mcrecon.core.halves import split_halves
+    from mcrecon.renderers import scenes
+
+    b = scenes.render_uniform("checker_wall", width=n, height=n, spp=spp, seed=seed, features=True)
+    ss = SampleSet(b.positions, b.values, width=n, height=n, features=b.features)
+    return split_halves(ss, features=tuple(ss.features))

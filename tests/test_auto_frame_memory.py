@@ -7,20 +7,17 @@ import warnings
 import numpy as np
 import pytest
 
-import mcrecon
-from mcrecon.core.halves import split_halves
 from mcrecon.methods import get_method
 from mcrecon.methods.auto import features
 from mcrecon.methods.auto.estimates import cross_validation_mse
-from mcrecon.renderers import scenes
+
+from helpers import checker_wall_halves
 
 N = 24
 
 
 def _halves(seed=5):
-    b = scenes.render_uniform("checker_wall", width=N, height=N, spp=8, seed=seed, features=True)
-    ss = mcrecon.SampleSet(b.positions, b.values, width=N, height=N, features=b.features)
-    return split_halves(ss, features=tuple(ss.features))
+    return checker_wall_halves(N, seed)
 
 
 def test_the_halves_prefiltered_planes_are_not_held_after_the_candidates():

@@ -8,12 +8,11 @@ import warnings
 import numpy as np
 import pytest
 
-import mcrecon
-from mcrecon.core.halves import split_halves
 from mcrecon.filters import regression
 from mcrecon.methods import get_method
 from mcrecon.methods.auto import blackbox, features
-from mcrecon.renderers import scenes
+
+from helpers import checker_wall_halves
 
 pytest.importorskip("pyoidn", reason="needs pyoidn (Intel OIDN), a dependency of mcrecon: pip install -e .")
 
@@ -21,9 +20,7 @@ N = 24
 
 
 def _halves(seed=7):
-    b = scenes.render_uniform("checker_wall", width=N, height=N, spp=8, seed=seed, features=True)
-    ss = mcrecon.SampleSet(b.positions, b.values, width=N, height=N, features=b.features)
-    return split_halves(ss, features=tuple(ss.features))
+    return checker_wall_halves(N, seed)
 
 
 def _candidates(hv):

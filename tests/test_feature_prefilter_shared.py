@@ -3,20 +3,18 @@
 from __future__ import annotations
 
 import numpy as np
-import mcrecon
 from mcrecon.core.fill import mean_variance_policy
-from mcrecon.core.halves import split_halves
 from mcrecon.filters import nlmeans as nlm
 from mcrecon.methods.auto import blackbox, features
 from mcrecon.renderers import scenes
+
+from helpers import checker_wall_halves
 
 N = 40
 
 
 def _halves(seed=0):
-    b = scenes.render_uniform("checker_wall", width=N, height=N, spp=8, seed=seed, features=True)
-    ss = mcrecon.SampleSet(b.positions, b.values, width=N, height=N, features=b.features)
-    return split_halves(ss, features=tuple(b.features))
+    return checker_wall_halves(N, seed)
 
 
 def _own_aux(st):
