@@ -44,6 +44,7 @@ from ..core.requests import SampleBatch, SampleRequest
 from ..core.stats import PixelStats
 from ..core.features import usable_layout, usable_names
 from ..core.halves import Halves, as_halves, split_halves
+from ..core.nets import net_plan
 from .supply import Supply, check_supply
 
 __all__ = ['Method', 'AdaptiveState', 'Option', 'Requirements', 'MethodInputs', 'RunState', 'uniform_counts',
@@ -583,12 +584,10 @@ class Method:
     def initial_pass(self, budget: int, pixels: int) -> int:
         """Samples per pixel of the uniform initial pass the driver takes before the first plan.
 
-        The ``initial_spp`` option when the method has one, else the class
-        attribute; the driver caps the pass at the run's ``budget`` (samples
-        on ``pixels`` pixels).  A method that cannot run on that budget
-        raises :class:`InputError` here, before anything is rendered.
-        Pipelined, the driver splits a pass of two or more samples per
-        pixel into two rounds (half, then the rest), so that the first plan
+        The ``initial_spp`` option when the method has one, else the class attribute; the driver caps
+        the pass at the run's ``budget``.  A method that cannot run on that budget raises
+        :class:`InputError` here, before anything is rendered.  Pipelined, the driver splits a pass of
+        two or more samples per pixel into two rounds (half, then the rest), so that the first plan
         sees the first half while the second renders.
         """
         return max(1, int(self.params.get("initial_spp", self.initial_spp)))
@@ -597,10 +596,13 @@ class Method:
         """The next round's request after the initial pass, or None when the method's target is met.
 
         The round's size is :meth:`round_size`'s.  A share ``uniform_share``
-        (an option, default 0) of the round is spread uniformly;
-        :meth:`place` places the rest.  An empty request in a pipelined run
-        asks the driver to commit the round in flight and plan again from it.
+        (an option, default 0) of the round is spread uniformly; :meth:`place`
+        places the rest; with a ``net_counts`` option on, in whole nets
+        (:func:`~mcrecon.core.nets.net_plan`).  An empty request in a pipelined
+        run asks the driver to commit the round in flight and plan again from it.
         """
+        if self.params.get("net_counts"):
+            return net_plan(self, run, state)
         n = self.round_size(state)
         if n is None:
             return None
@@ -645,19 +647,17 @@ class Method:
     def place(self, run: RunState, state: AdaptiveState, n: int):
         """Where ``n`` samples of the round go: film positions (n, 2), or counts per pixel (H, W) of int.
 
-        Default: spread uniformly.  None stops the run (the method's target
-        is met).  Called with ``n`` = 0 too (it must then use no random
-        numbers): a method that stops on a target checks it here.
+        Default: spread uniformly.  None stops the run (the method's target is met).  Called with
+        ``n`` = 0 too (it must then use no random numbers): a method that stops on a target checks it here.
         """
         return uniform_counts(state.width, state.height, n, state.rng)
 
     def observe(self, run: RunState, batch: SampleBatch, round_index: int) -> None:
         """See a committed round's samples (only called when ``requires.samples``).
 
-        For a method with ``requires.half_buffers`` the round is split into
-        the run's two halves (``run.halves``, with the features the method
-        reads; replayed in order on resume), which :meth:`finish` hands
-        over as ``inputs.halves``: the method never splits samples itself
+        For a method with ``requires.half_buffers`` the round is split into the run's two halves
+        (``run.halves``, with the features the method reads; replayed in order on resume), which
+        :meth:`finish` hands over as ``inputs.halves``: the method never splits samples itself
         (one that overrides ``observe`` and takes half buffers calls this one).
         """
         req = self.requires

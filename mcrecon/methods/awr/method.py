@@ -10,7 +10,6 @@ from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, Ru
 from ...core.fill import fill_empty_pixels
 from .reconstruction import DOMAINS, VARIANCE_ESTIMATORS, awr_reconstruct, log_domain_reconstruct, pixel_variance
 from ...core.safeguard import confidence_clamp, sample_range_bounds
-from ...core.nets import net_plan
 from .sampling import plan_awr_positions
 from .wavelets import BOUNDARY_MODES, PROPAGATIONS, RECONSTRUCTION_RENORM, SAMPLING_RENORM, WAVELETS, default_levels
 
@@ -160,18 +159,6 @@ class AWRMethod(Method):
         return img
 
     # ------------------------------------------------------------- adaptive
-    def plan(self, run: "AWRRun", state: AdaptiveState):
-        """A round of ``round_spp`` samples per pixel; with ``net_counts`` in whole nets (``net_plan``).
-
-        With ``net_counts=1`` the ``uniform_share`` of the round goes
-        breadth-first (the pixels of fewest samples step up to their next
-        power of two) and the sampler's counts are rounded to complete nets;
-        with 0, :meth:`Method.plan` (the share spread uniformly).
-        """
-        if not self.params["net_counts"]:
-            return super().plan(run, state)
-        return net_plan(self, run, state)
-
     @staticmethod
     def default_per_coefficient(state: AdaptiveState) -> int:
         """Samples per popped level-0 coefficient when ``per_coefficient=0``: a quarter of the run's average spp.

@@ -22,7 +22,6 @@ from .selection import CHANNEL_WEIGHTS, GAMMA_MAX, OUTLIER_RULES, GEMSelection, 
 from ...core.fill import mean_variance_policy
 from ...core.safeguard import rare_component_variance
 from ...core.strata import stratified_gain
-from ...core.nets import net_plan
 
 __all__ = ["GEMMethod", "GEMRun", "TARGET_EPS"]
 
@@ -278,12 +277,6 @@ class GEMMethod(Method):
         return np.asarray(img, dtype=np.float64)
 
     # ------------------------------------------------------------ adaptive
-    def plan(self, run: "GEMRun", state: AdaptiveState):
-        """:meth:`Method.plan`'s rounds; with ``net_counts`` in whole nets (:func:`~mcrecon.core.nets.net_round`)."""
-        if not self.params["net_counts"]:
-            return super().plan(run, state)
-        return net_plan(self, run, state)
-
     def place(self, run: "GEMRun", state: AdaptiveState, n: int):
         """One adaptive iteration (Secs. 5, 6): ``n`` samples as counts per pixel, or None at ``target_rel_mse``.
 
