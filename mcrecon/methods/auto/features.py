@@ -152,8 +152,8 @@ def prefiltered_features(st: PixelStats, *, planes=None, stored_only: bool = Fal
 def release_prefiltered(*buffers: PixelStats) -> None:
     """Forget the buffers' stored prefiltered planes (:func:`prefiltered_features`).
 
-    auto's last reader of them is OIDN's albedo and normal (:func:`~.blackbox.oidn_aux`); the halves
-    themselves live on with the caller (the reader's inputs, an adaptive run's state), and the planes
+    auto's last readers of them are the regressions (OIDN's albedo and normal, :func:`~.blackbox.oidn_aux`,
+    read them before); the halves themselves live on with the caller (the reader's inputs, an adaptive run's state), and the planes
     with them: 7 planes a half with albedo, normal and depth, 0.23 GB for both halves at 1920 x 1080,
     beside every candidate through the selection."""
     for st in buffers:

@@ -267,14 +267,14 @@ class AutoMethod(Method):
         # all the same): OIDN's scratch memory (about 1.4 GB at 1920 x 1080) then meets only the
         # statistics, and the regressions' working arrays, the largest of a frame's, only OIDN's three
         # candidates besides, not every colour candidate's image and estimate as well
-        aux = "oidn_aux" in self._feature_names and "albedo" in stats.features
+        aux = self._aux_replaces_oidn(stats)
         regress = {"nfor", "nfor_own", "mix"} & set(self._feature_names)
         if aux and regress and halves is not None and "albedo" in halves.a.features:
             # the halves' prefiltered features, computed once for OIDN's albedo and normal and the
             # regressions after it (the same planes either way)
             prefiltered_features(halves.a)
             prefiltered_features(halves.b)
-        black = (oidn_candidate("oidn", stats, v, halves, halves_only=self._aux_replaces_oidn(stats))
+        black = (oidn_candidate("oidn", stats, v, halves, halves_only=aux)
                  if "oidn" in self._names else [])
         black_aux = oidn_candidate("oidn_aux", stats, v, halves, aux=True) if aux else []
         guided = (self._feature_candidates(stats, halves.a, halves.b)
