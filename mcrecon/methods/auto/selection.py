@@ -294,7 +294,8 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
         # either (:mod:`.blend`): cands[g] is replaced, so every later reader (the local tests, the
         # region guard, the picked image) sees the blend
         b, _, _ = blend_default(cands, g, sums, vote, den_loo, zs,
-                                lambda k: _summed(np.where(vote, loo(k) - loo_g, 0.0))[1])
+                                lambda k: _summed(np.where(vote, loo(k) - loo_g, 0.0))[1], v, cap,
+                                among=steady if g in steady else None)
         mixed = b is not None
         if mixed:
             cands[g] = b
