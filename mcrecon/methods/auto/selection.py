@@ -241,6 +241,10 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     choice and the mask of pixels whose choice is ``g`` (all False when the
     prior does not apply).
 
+    With ``blend`` (default :data:`BLEND`) ``g`` is first blended with its runner-up
+    (:func:`~.blend.blend_default`, partners among ``steady`` where ``g`` is one of them): ``cands[g]``
+    is replaced by the blend, under ``g``'s name, so that every later reader sees it.
+
     ``smoothed(k)``: candidate k's smoothed relative estimate (asked for
     ``g``'s only); ``rel`` (K, H, W): the floored ones ``choice`` minimised
     (NaN: undefined, never the least).  Each other candidate's test runs on
