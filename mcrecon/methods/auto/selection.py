@@ -10,6 +10,7 @@ import numpy as np
 
 from ...filters.engine import parallel_rows
 
+from .blend import blend_default
 from .estimates import relative_denominator_loo
 from .passes import _FirstLeast, _arrays, _c64, _channel_mean, _floor_and_choose, _means, _nanmax
 from ...core.metrics import DEFAULT_EPS
@@ -93,21 +94,29 @@ def _apart(y: np.ndarray, v: np.ndarray, hi: np.ndarray, den_loo: np.ndarray, ne
 #: keeps the colour default where a feature candidate's lower sum is noise (docs/methods/auto.md).
 Z_GLOBAL = 0.5
 BLOCK = 8
+#: Whether the global prior's default is blended with its runner-up (:mod:`.blend`; ``_global_prior(blend=)``).
+BLEND = True
 
 
 def _significantly_lower(d: np.ndarray, z: float | None = None) -> bool:
     """Whether ``sum(d) < -z * se`` (z default :data:`Z_GLOBAL`), se from the spread of the sums over BLOCK x
     BLOCK tiles."""
     z = Z_GLOBAL if z is None else z
+    total, se = _summed(d)
+    return bool(np.isfinite(se)) and total < -z * se
+
+
+def _summed(d: np.ndarray) -> tuple:
+    """``(sum(d), se)``: se from the spread of the sums over BLOCK x BLOCK tiles (neighbouring pixels'
+    estimates are correlated); NaN with fewer than two tiles."""
     h, w = d.shape
     hb, wb = -(-h // BLOCK), -(-w // BLOCK)
     pad = np.zeros((hb * BLOCK, wb * BLOCK))
     pad[:h, :w] = d
     t = pad.reshape(hb, BLOCK, wb, BLOCK).sum(axis=(1, 3)).ravel()
     if t.size < 2:
-        return False
-    se = float(np.sqrt(t.size) * np.std(t, ddof=1))
-    return float(t.sum()) < -z * se
+        return float(t.sum()), np.nan
+    return float(t.sum()), float(np.sqrt(t.size) * np.std(t, ddof=1))
 
 
 def _nearer_the_neighbours(cands, g, choice, y, where, scale=None):
@@ -185,7 +194,7 @@ def _nearer_rows(y, scale, images, g, choice, where, out, i0, i1):
 
 
 def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, safeguard, guarded=(), scale=None,
-                  steady=(), steady_var=None):
+                  steady=(), steady_var=None, blend=None):
     """The per-pixel choice with the best single candidate over the image as the default.
 
     ``g`` = the candidate of least summed leave-one-out relative estimate
@@ -232,12 +241,17 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     choice and the mask of pixels whose choice is ``g`` (all False when the
     prior does not apply).
 
+    With ``blend`` (default :data:`BLEND`) ``g`` is first blended with its runner-up
+    (:func:`~.blend.blend_default`, partners among ``steady`` where ``g`` is one of them): ``cands[g]``
+    is replaced by the blend, under ``g``'s name, so that every later reader sees it.
+
     ``smoothed(k)``: candidate k's smoothed relative estimate (asked for
     ``g``'s only); ``rel`` (K, H, W): the floored ones ``choice`` minimised
     (NaN: undefined, never the least).  Each other candidate's test runs on
     its own, one after the other (the difference maps of all of them at
     once cost more in fresh memory than their arithmetic).
     """
+    blend = BLEND if blend is None else blend
     den_loo = relative_denominator_loo(y, v, count, eps=DEFAULT_EPS)
     cap = None if safeguard is None else (safeguard + 1.0) ** 2
 
@@ -278,6 +292,18 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
             loo_g = loo(g)
     if g == 0 and cands[0].name == "box":
         return choice, none
+    mixed = False
+    if blend:
+        # the default blended with the runner-up where their summed estimates say a mix is better than
+        # either (:mod:`.blend`): cands[g] is replaced, so every later reader (the local tests, the
+        # region guard, the picked image) sees the blend
+        b, _, _ = blend_default(cands, g, sums, vote, den_loo, zs,
+                                lambda k: _summed(np.where(vote, loo(k) - loo_g, 0.0))[1], v, cap,
+                                among=steady if g in steady else None)
+        mixed = b is not None
+        if mixed:
+            cands[g] = b
+            loo_g = loo(g)
     smoothing = MaskedSmoothing(sigma)
     least = _FirstLeast(choice.shape)
     masks, n_eff = [], []
@@ -287,7 +313,10 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
             # g's own unfloored estimate: its bias is the test below; its floor at Z_BIAS (4.6 % of
             # pure-noise pixels) would hand the pixel to any alternative that passed the z test by chance
             sg = smoothed(g)
-            least.offer(g, np.where(np.isfinite(sg), sg, rel[g]))
+            sg = np.where(np.isfinite(sg), sg, rel[g])
+            if mixed:  # the choice's estimate of a blended default is the blend's
+                rel[g] = sg
+            least.offer(g, sg)
             continue
         d, d2, mask = np.empty(choice.shape), np.empty(choice.shape), np.empty(choice.shape, bool)
         parallel_rows(_difference_rows, (loo(k), loo_g, d, d2, mask), h)
