@@ -11,7 +11,8 @@ with h5py alone, as a renderer in another language does with the HDF5
 library (docs/renderer-protocol.md).  Where the request carries each
 pixel's ``first_index`` (every adaptive run sends it), the film positions
 continue each pixel's stratified sequence (:func:`stratified`) round after
-round.  This one reads the request with
+round, and the reply declares it (root attribute ``sampler = "sobol"``), so the methods complete
+whole nets.  This one reads the request with
 :func:`mcrecon.renderers.command.read_request`, which checks it, and
 writes the reply with :func:`mcrecon.io.write_log`.
 """
@@ -76,6 +77,11 @@ def main(request_path, reply_path) -> None:
     pos = np.concatenate([np.minimum(cell + offsets, np.nextafter(cell + 1.0, 0.0)), extra])
     values = shade(pos[:, 0], pos[:, 1], w, h, rng)
     write_log(reply_path, pos, values, width=w, height=h, channels=request_channels(request_path))
+    if req.first_index is not None:  # the film positions continue each pixel's stratified sequence: say so
+        import h5py
+
+        with h5py.File(reply_path, "a") as f:
+            f.attrs["sampler"] = "sobol"
 
 
 def _cli(argv) -> int:
