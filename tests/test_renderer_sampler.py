@@ -44,6 +44,7 @@ def _pow2_share(counts):
 
 
 def _run(renderer, method="awr", **opts):
+    opts = {"net_counts": -1, **opts} if method == "gem" else opts  # gem follows the renderer when asked
     return mcrecon.adapt(renderer, get_method(method, **opts), spp=24, seed=1, progress=False, track_error=False)
 
 

@@ -33,7 +33,7 @@ from ..io._atomic import atomic_path
 from ..core.requests import SampleBatch, SampleRequest, check_sampler
 from .spec_format import command_spec
 
-__all__ = ["CommandRenderer", "write_request", "read_request", "request_channels", "REQUEST_FORMAT",
+__all__ = ["CommandRenderer", "write_request", "write_reply", "read_request", "request_channels", "REQUEST_FORMAT",
            "remove_stale_workdirs"]
 
 WORKDIR_PREFIX = "mcrecon-renderer-"
@@ -114,6 +114,19 @@ def _text(v):
     if isinstance(v, np.ndarray) and v.shape == () or isinstance(v, np.generic):
         v = v.item()
     return v.decode("utf-8") if isinstance(v, bytes) else v
+
+
+def write_reply(path, positions, values, *, width: int, height: int, channels: Sequence[str],
+                sampler: str | None = None, features=None) -> Path:
+    """A reply file (a sample log, :func:`mcrecon.io.write_log`) for a Python renderer, declaring its
+    ``sampler`` (root attribute; None: none, which reads as ``independent``; docs/renderer-protocol.md)."""
+    from ..io import write_log
+
+    path = write_log(path, positions, values, width=width, height=height, channels=channels, features=features)
+    if sampler is not None:
+        with h5py.File(path, "a") as f:
+            f.attrs["sampler"] = check_sampler(sampler, where=str(path))
+    return Path(path)
 
 
 def request_channels(path) -> tuple[str, ...]:
