@@ -124,3 +124,18 @@ def test_command_reply_declares_its_sampler(tmp_path, declared, expect):
     else:
         r.render(req)
         assert r.sampler == expect
+
+
+def test_a_log_without_the_record_resumes_with_independent_plans(tmp_path):
+    """A run's log from before renderers declared a sampler holds no record: its resume keeps the plans it had
+    (independent), whatever the renderer declares now, and is not refused."""
+    from mcrecon.io.writer import set_run_settings
+
+    log = tmp_path / "old.h5"
+    mcrecon.adapt(_Film(None), get_method("awr"), spp=24, seed=1, progress=False, track_error=False, log=log,
+                  max_rounds=3)
+    settings = dict(read_log(log).run_settings)
+    settings.pop("sampler")
+    set_run_settings(log, settings)
+    resumed = mcrecon.adaptive.run.resume(log, _Film("sobol"), progress=False, track_error=False)
+    assert np.array_equal(resumed.stats.count, _run(_Film(None)).stats.count)

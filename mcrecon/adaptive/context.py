@@ -9,7 +9,7 @@
      |- rounds, round_index, planned                 what the run holds before this session
      |- rendered   per pixel, the samples committed (NaN/Inf included): each request's first_index
      |- strata     PrefixHalves of the committed samples (methods with stratified_gain on): the plans' gain
- |- sampler    what the renderer's samples of a pixel are (Renderer.sampler): the plans' AdaptiveState.sampler
+     |- sampler    what the renderer's samples of a pixel are (Renderer.sampler): the plans' AdaptiveState.sampler
      |- track_error, eps, on_round, bar             what this session's caller asked for
      `- clock      RunClock: wall time over sessions, renderer seconds, toolkit CPU,
                    rounds finished this session, the timeline of phases
