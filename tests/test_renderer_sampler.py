@@ -139,3 +139,16 @@ def test_a_log_without_the_record_resumes_with_independent_plans(tmp_path):
     set_run_settings(log, settings)
     resumed = mcrecon.adaptive.run.resume(log, _Film("sobol"), progress=False, track_error=False)
     assert np.array_equal(resumed.stats.count, _run(_Film(None)).stats.count)
+
+
+def test_example_renderer_declares_sobol_when_it_continues_the_sequences(tmp_path):
+    from mcrecon.renderers import example
+    from mcrecon.renderers.command import write_request
+
+    for first, expect in ((None, None), (np.full((2, 4), 3), "sobol")):
+        req = mcrecon.core.requests.SampleRequest(4, 2, counts=np.full((2, 4), 2), first_index=first)
+        write_request(tmp_path / "q.h5", req, channels=("R", "G", "B"))
+        example.main(tmp_path / "q.h5", tmp_path / "r.h5")
+        with h5py.File(tmp_path / "r.h5", "r") as f:
+            got = f.attrs.get("sampler")
+        assert (got if got is None else check_sampler(got, where="r.h5")) == expect
