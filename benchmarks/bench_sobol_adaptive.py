@@ -4,7 +4,12 @@ Per scene, method spec and run seed: the relMSE (eps 0.01) of ``adapt``
 with the method on the scene renderer's sampler (``--sampler sobol``: each
 pixel's Owen-scrambled Sobol sequence continued round after round;
 ``independent``) at ``--spp``, over the same method reconstructing a
-uniform render of the same budget and sampler.  Printed: the ratio's mean
+uniform render of the same budget and sampler.  The scene renderer declares
+its sampler (``SceneRenderer.sampler``, docs/renderer-protocol.md), so a
+method whose ``net_counts`` follows the renderer (awr's default -1) hands
+out whole nets with ``--sampler sobol`` and free counts with
+``independent``; ``name:net_counts=0`` or ``=1`` decides it instead.
+``--sampler both`` runs the two in turn.  Printed: the ratio's mean
 over the seeds, its seed-to-seed standard deviation, and adapt's relMSE.
 > 1: adaptive loses to uniform.
 
@@ -13,7 +18,7 @@ A method spec is ``name`` or ``name:key=val[:key=val]`` (e.g.
 options reconstruct the uniform render.
 
 usage: python benchmarks/bench_sobol_adaptive.py [--size 128x128] [--spp 32] [--seeds 2]
-           [--sampler sobol|independent] [--scenes a,b] [--methods gem,awr] [--json out.json]
+           [--sampler sobol|independent|both] [--scenes a,b] [--methods gem,awr] [--json out.json]
 """
 
 from __future__ import annotations
@@ -66,11 +71,18 @@ def main(argv=None) -> None:
     ap.add_argument("--size", default="128x128")
     ap.add_argument("--spp", type=int, default=32)
     ap.add_argument("--seeds", type=int, default=2)
-    ap.add_argument("--sampler", default="sobol", choices=("sobol", "independent"))
+    ap.add_argument("--sampler", default="sobol", choices=("sobol", "independent", "both"))
     ap.add_argument("--scenes", default=None)
     ap.add_argument("--methods", default="gem,awr")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
+    if args.sampler == "both":
+        for sampler in ("sobol", "independent"):
+            rest = ["--sampler", sampler, "--size", args.size, "--spp", str(args.spp), "--seeds", str(args.seeds),
+                    "--methods", args.methods] + (["--scenes", args.scenes] if args.scenes else []) + \
+                (["--json", args.json.replace(".json", f"_{sampler}.json")] if args.json else [])
+            main(rest)
+        return
     w, h = (int(v) for v in args.size.lower().split("x"))
     scenes = args.scenes.split(",") if args.scenes else scene_names()
     specs = args.methods.split(",")

@@ -112,3 +112,10 @@ def test_awr_sobol_caustic_adaptive_within_reach_of_uniform():
     res = adapt(SceneRenderer("caustic", width=w, height=h, seed=0, sampler="sobol"), get_method("awr"), spp=32,
                 seed=0, progress=False, track_error=False)
     assert relative_mse(res.image, ref) / uni < 1.5
+
+
+def test_net_counts_complete_the_lowest_nets_first():
+    """A step from 16 to 32 stratified samples pays more than one from 32 to 64: the pixel wished at 16
+    steps up first, though the one at 32 wishes a larger fraction of its step."""
+    new = net_counts(np.array([[8, 0, 24]]), np.array([[16, 16, 32]]))
+    assert new.tolist() == [[16, 0, 16]]                     # by the fraction alone: [[0, 0, 32]]

@@ -177,6 +177,7 @@ def test_c_renderer_drives_an_adaptive_run(c_tools, tmp_path, method):
     got = read_log(log)
     assert got.n_samples == 16 * 12 * 6 and got.n_rounds >= 2
     assert got.run_settings["renderer_spec"]["argv"][0] == str(c_tools["mcrecon_c_renderer"])
+    assert got.run_settings["sampler"] == "sobol"  # its replies declare the per-pixel Sobol sequence
     # the reply's features reach the log, every round (HDF5 lists them by name)
     assert got.feature_names == ("albedo", "depth", "normal")
     _check_c_features(got, 16, 12)

@@ -31,7 +31,9 @@
  * dimension 2 of that index).  The scramble seed is the renderer's own and the
  * same in every round (0; the request's seed changes every round and would
  * break the sequence): four rounds of 8 samples are sample for sample one
- * request of 32, and as stratified.
+ * request of 32, and as stratified.  The reply says so (root attribute
+ * sampler = "sobol", docs/renderer-protocol.md), so the adaptive methods hand
+ * out each pixel's samples in whole nets.
  *
  * It reads string attributes of either HDF5 string type (variable-length UTF-8
  * as mcrecon writes them, or fixed-length ASCII) and integers of any width (HDF5
@@ -331,6 +333,8 @@ int main(int argc, char **argv) {
     int_attr_write(r, "width", width);
     int_attr_write(r, "height", height);
     ascii_attr_write(r, "channels", channels, nch);
+    char *sampler[1] = {"sobol"};  /* each pixel's Sobol sequence, continued from first_index: whole nets pay */
+    ascii_attr_write(r, "sampler", sampler, 0);
     hsize_t pdims[2] = {(hsize_t)n, 2}, vdims[2] = {(hsize_t)n, nch}, ddims[1] = {(hsize_t)n}, fdims[2] = {(hsize_t)n, 3};
     dataset_write(r, "positions", H5T_IEEE_F64LE, H5T_NATIVE_DOUBLE, 2, pdims, pos);
     dataset_write(r, "values", H5T_IEEE_F32LE, H5T_NATIVE_FLOAT, 2, vdims, val);

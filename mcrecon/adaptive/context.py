@@ -9,6 +9,7 @@
      |- rounds, round_index, planned                 what the run holds before this session
      |- rendered   per pixel, the samples committed (NaN/Inf included): each request's first_index
      |- strata     PrefixHalves of the committed samples (methods with stratified_gain on): the plans' gain
+     |- sampler    what the renderer's samples of a pixel are (Renderer.sampler): the plans' AdaptiveState.sampler
      |- track_error, eps, on_round, bar             what this session's caller asked for
      `- clock      RunClock: wall time over sessions, renderer seconds, toolkit CPU,
                    rounds finished this session, the timeline of phases
@@ -34,8 +35,9 @@ import numpy as np
 
 from .._lazy import public_dir as _public_dir
 from ..core.stats import PixelStats
+from ..core.requests import check_sampler
 from ..core.strata import PrefixHalves
-from ..errors import InputError
+from ..errors import InputError, RendererError
 from ..io.logformat import MAX_PIXELS
 from ..methods.base import Method, RunState
 from .schedule import Schedule, _committed, _initial_rounds
@@ -59,6 +61,8 @@ def _check_renderer(renderer):
     if w * h > MAX_PIXELS:
         raise InputError("renderer", "width/height", f"{w}x{h} = {w * h} pixels, beyond the {MAX_PIXELS} pixels "
                          "mcrecon can hold images of")
+    if getattr(renderer, "sampler", None) is not None:  # declared up front: refused before anything renders
+        check_sampler(renderer.sampler, where=f"renderer {_renderer_name(renderer)}")
     return w, h, tuple(str(c) for c in renderer.channels)
 
 
@@ -210,6 +214,11 @@ class RunContext:
     planned: tuple | None = None
     rendered: np.ndarray | None = None
     strata: PrefixHalves | None = None
+    #: The renderer's sampler (:data:`~mcrecon.core.requests.SAMPLERS`) every plan sees; ``sampler_known``:
+    #: decided (recorded in the run settings, or a reply came), ``sampler_checked``: later replies must agree.
+    sampler: str = "independent"
+    sampler_known: bool = False
+    sampler_checked: bool = True
 
     def __post_init__(self):
         if self.rendered is None:
@@ -255,12 +264,17 @@ class RunContext:
                 storage_dtype = str(resumed.value_dtype)
         stats = PixelStats(w, h, channels, subpixels=method.requires.subpixels)
         run = method.start(w, h, channels, reference=reference)
+        # the sampler decided by the run's first reply, or its log's record; a log of a run before renderers
+        # declared one had independent plans: it keeps them whatever its renderer declares now
+        recorded, legacy = settings.get("sampler"), resumed is not None and resumed.n_rounds > 0
+        sampler = dict(sampler=check_sampler(recorded, where=str(log_path), field="run settings sampler"),
+                       sampler_known=recorded is not None or legacy, sampler_checked=not legacy or recorded is not None)
         return cls(renderer=renderer, method=method, run=run, stats=stats, schedule=schedule, log_path=log_path,
                    nonfinite=settings["nonfinite"], storage_dtype=storage_dtype, rounds=rounds,
                    round_index=0 if resumed is None else resumed.n_rounds,
                    track_error=session.track_error, eps=session.eps, on_round=session.on_round,
                    bar=_Progress(session.progress, budget),
-                   clock=RunClock(float(rounds[-1]["wall_seconds"]) if rounds else 0.0))
+                   clock=RunClock(float(rounds[-1]["wall_seconds"]) if rounds else 0.0), **sampler)
 
     @property
     def name(self) -> str:
@@ -276,6 +290,19 @@ class RunContext:
         self.clock.start()
         self.bar.n, self.bar.wall = _committed(self.stats), self.clock.elapsed
 
+    def note_sampler(self, round_index: int) -> str | None:
+        """The renderer's sampler after a reply (its ``sampler`` attribute, which a command renderer takes from
+        its reply files): the first reply of a run decides it (returned then, for the run settings: None
+        otherwise), every later one must declare the same (a :class:`RendererError` names the round)."""
+        own = check_sampler(getattr(self.renderer, "sampler", None), where=self.name)
+        if not self.sampler_known:
+            self.sampler, self.sampler_known = own, True
+            return own
+        if self.sampler_checked and own != self.sampler:
+            raise RendererError(self.name, "sampler", f"declares {own!r} in round {round_index}, the run's first "
+                                f"reply {self.sampler!r}: a run keeps one sampler (resume it with the same renderer)")
+        return None
+
     def plan(self, round_index: int, *, in_flight: int = 0, pending=None):
         """The plan of round ``round_index`` from what is committed, with ``in_flight`` samples (``pending``,
         per pixel) requested and not committed yet: see :meth:`Schedule.plan`.
@@ -285,7 +312,7 @@ class RunContext:
         the same in a resume (its replay counts the log's rounds) as in the live run."""
         first = self.rendered if pending is None else self.rendered + pending
         return self.schedule.plan(self.method, self.run, self.stats, round_index, _committed(self.stats) + in_flight,
-                                  pending=pending, first_index=first, strata=self.strata)
+                                  pending=pending, first_index=first, strata=self.strata, sampler=self.sampler)
 
 
 __dir__ = _public_dir(__name__)

@@ -145,6 +145,10 @@ class _Round:
         """The validated reply (stored precision) and its count of non-finite rows; nothing stored yet."""
         with self.timeline.phase("validate", round_index):
             batch, n_bad = self._receive(req, reply, round_index)
+            decided = self.ctx.note_sampler(round_index)
+            if decided is not None and self.log_path is not None:
+                # the run's first reply, nothing appended yet: a resume plans with the same sampler
+                set_run_settings(self.log_path, {**(read_log(self.log_path).run_settings or {}), "sampler": decided})
         if self.first is not None and not self.first.committed:
             # a refused run leaves no log, so its retry is not refused
             self.ctx.method.refuse_reply(batch)

@@ -92,10 +92,10 @@ def _with_seed(req, round_index, seed, first_index=None):
 
 
 def _adaptive_state(stats, schedule, round_index, n_samples, rng, *, pending=None,
-                    initial_rounds=1, strata=None) -> AdaptiveState:
+                    initial_rounds=1, strata=None, sampler="independent") -> AdaptiveState:
     """The state a plan (or the final image) sees; ``iteration`` counts from the end of ``initial_rounds``."""
     return AdaptiveState(stats, round_index, schedule.budget, n_samples, rng, schedule.reference, pending=pending,
-                         iteration=max(int(round_index) - int(initial_rounds), 0), strata=strata)
+                         iteration=max(int(round_index) - int(initial_rounds), 0), strata=strata, sampler=sampler)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -131,12 +131,14 @@ class Schedule:
     time_limit: float | None = None
     pipeline: bool = False
 
-    def plan(self, method, run, stats, round_index, n_total, *, pending=None, first_index=None, strata=None):
+    def plan(self, method, run, stats, round_index, n_total, *, pending=None, first_index=None, strata=None,
+             sampler="independent"):
         """(request with its seeds, None) or (None, why the run stops) for round ``round_index``.
 
         ``n_total``: samples committed plus in flight (``pending``, per pixel).
         ``first_index`` (H, W): the request's per-pixel first sample index (committed plus in flight).
         ``strata``: the committed samples' prefix halves (:class:`~mcrecon.core.strata.PrefixHalves`).
+        ``sampler``: the renderer's (:data:`~mcrecon.core.requests.SAMPLERS`).
         The rounds of the initial pass are the driver's own; later ones the
         method's plan.  Depends only on its arguments: the same in a live run
         and in a resume.  ``(None, "wait")``: with a round in flight the plan
@@ -147,7 +149,7 @@ class Schedule:
             return None, "budget"
         rng, rseed = round_seeds(self.seed, round_index)
         state = _adaptive_state(stats, self, round_index, n_total, rng, pending=pending,
-                                initial_rounds=self.initial_rounds, strata=strata)
+                                initial_rounds=self.initial_rounds, strata=strata, sampler=sampler)
         if round_index < self.initial_rounds:
             req = _initial_request(method, state, self.initial_rounds)
         else:

@@ -194,9 +194,8 @@ class Requirements:
     subpixels : int
         Subpixel grid per pixel axis the pixel statistics must keep (0: none).
     samples : bool
-        The individual samples: offline a :class:`~mcrecon.core.samples.SampleSource`
-        in ``inputs.samples``; in adaptive runs every committed round
-        through ``observe`` (and replayed on resume).
+        The individual samples: offline a :class:`~mcrecon.core.samples.SampleSource` in ``inputs.samples``;
+        in adaptive runs every committed round through ``observe`` (and replayed on resume).
     reference : {'none', 'optional', 'required'}
         Whether the method reads the reference image (oracle modes).
     statistics : bool
@@ -352,6 +351,8 @@ class AdaptiveState:
         initial pass).
     strata : PrefixHalves or None
         The committed samples' prefix halves (:func:`mcrecon.core.strata.stratified_gain`).
+    sampler : str
+        What the renderer's samples of a pixel are (:data:`mcrecon.core.requests.SAMPLERS`; its declaration).
     """
 
     stats: PixelStats
@@ -363,6 +364,7 @@ class AdaptiveState:
     pending: np.ndarray | None = None
     iteration: int = 0
     strata: object = None
+    sampler: str = "independent"
 
     @property
     def remaining(self) -> int:
@@ -492,14 +494,11 @@ class Method:
     def halo(self, width: int, height: int) -> int | None:
         """Pixels of context the offline result at a pixel needs: an int, or None for the whole image.
 
-        A reconstruction of a tile extended by ``halo`` pixels on every
-        side (clipped at the film's edges) gives the untiled result inside
-        the tile (:func:`mcrecon.distributed.tiles.reconstruct_tiled`), provided
-        every pixel has at least two samples: the fill-in policies for
-        pixels with fewer (:func:`mcrecon.core.fill.fill_from_neighbours`,
-        :func:`mcrecon.core.fill.fill_empty_pixels`) may borrow from the
-        whole image.  Default None: a method that declares nothing is
-        whole-image.
+        A reconstruction of a tile extended by ``halo`` pixels on every side (clipped at the film's edges)
+        gives the untiled result inside the tile (:func:`mcrecon.distributed.tiles.reconstruct_tiled`),
+        provided every pixel has at least two samples: the fill-in policies for pixels with fewer
+        (:func:`mcrecon.core.fill.fill_from_neighbours`, :func:`mcrecon.core.fill.fill_empty_pixels`) may
+        borrow from the whole image.  Default None: a method that declares nothing is whole-image.
         """
         return None
 
@@ -536,10 +535,10 @@ class Method:
         :func:`~mcrecon.methods.supply.check_supply`.
         """
         if not isinstance(inputs, MethodInputs):
-            raise InputError(self.where, "inputs", f"got {type(inputs).__name__}, expected MethodInputs; wrap "
-                             "pixel statistics as MethodInputs(stats) (a half-buffer pair as "
-                             "MethodInputs(None, halves=(a, b))), or use mcrecon.reconstruct(source, "
-                             f"method={self.name!r}) for files, samples, statistics and half-buffer pairs")
+            raise InputError(self.where, "inputs", f"got {type(inputs).__name__}, expected MethodInputs; wrap pixel "
+                             "statistics as MethodInputs(stats) (a half-buffer pair as MethodInputs(None, halves=(a, "
+                             f"b))), or use mcrecon.reconstruct(source, method={self.name!r}) for files, samples, "
+                             "statistics and half-buffer pairs")
         halves, req = None, self.requires
         if inputs.halves is not None:
             halves = as_halves(inputs.halves, self.where)
@@ -595,13 +594,14 @@ class Method:
     def plan(self, run: RunState, state: AdaptiveState) -> SampleRequest | None:
         """The next round's request after the initial pass, or None when the method's target is met.
 
-        The round's size is :meth:`round_size`'s.  A share ``uniform_share``
-        (an option, default 0) of the round is spread uniformly; :meth:`place`
-        places the rest; with a ``net_counts`` option on, in whole nets
-        (:func:`~mcrecon.core.nets.net_plan`).  An empty request in a pipelined
-        run asks the driver to commit the round in flight and plan again from it.
+        The round's size is :meth:`round_size`'s.  A share ``uniform_share`` (an option, default 0) of the
+        round is spread uniformly; :meth:`place` places the rest; in whole nets (:func:`~mcrecon.core.nets.net_plan`)
+        with a ``net_counts`` option of 1, or of -1 where the renderer declares a stratified sampler
+        (``state.sampler``).  An empty request in a pipelined run asks the driver to commit the round in flight
+        and plan again from it.
         """
-        if self.params.get("net_counts"):
+        nets = self.params.get("net_counts")
+        if nets == 1 or (nets == -1 and state.sampler != "independent"):
             return net_plan(self, run, state)
         n = self.round_size(state)
         if n is None:

@@ -467,6 +467,9 @@ class BlenderRenderer:
     """
 
     channels = ("R", "G", "B")
+    #: What a pixel's samples are (docs/renderer-protocol.md): Cycles' own per-pixel pattern continued from
+    #: ``first_index``, stratified over aligned blocks of 2^k samples, so adaptive rounds go in whole nets.
+    sampler = "sobol"
 
     def __init__(self, scene, *, width: int | None = None, height: int | None = None, camera: str | None = None,
                  features="all", threads: int | None = None, pattern_spp: int = PATTERN_SPP):

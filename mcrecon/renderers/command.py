@@ -30,10 +30,10 @@ import numpy as np
 
 from ..errors import InputError, RendererError
 from ..io._atomic import atomic_path
-from ..core.requests import SampleBatch, SampleRequest
+from ..core.requests import SampleBatch, SampleRequest, check_sampler
 from .spec_format import command_spec
 
-__all__ = ["CommandRenderer", "write_request", "read_request", "request_channels", "REQUEST_FORMAT",
+__all__ = ["CommandRenderer", "write_request", "write_reply", "read_request", "request_channels", "REQUEST_FORMAT",
            "remove_stale_workdirs"]
 
 WORKDIR_PREFIX = "mcrecon-renderer-"
@@ -114,6 +114,19 @@ def _text(v):
     if isinstance(v, np.ndarray) and v.shape == () or isinstance(v, np.generic):
         v = v.item()
     return v.decode("utf-8") if isinstance(v, bytes) else v
+
+
+def write_reply(path, positions, values, *, width: int, height: int, channels: Sequence[str],
+                sampler: str | None = None, features=None) -> Path:
+    """A reply file (a sample log, :func:`mcrecon.io.write_log`) for a Python renderer, declaring its
+    ``sampler`` (root attribute; None: none, which reads as ``independent``; docs/renderer-protocol.md)."""
+    from ..io import write_log
+
+    path = write_log(path, positions, values, width=width, height=height, channels=channels, features=features)
+    if sampler is not None:
+        with h5py.File(path, "a") as f:
+            f.attrs["sampler"] = check_sampler(sampler, where=str(path))
+    return Path(path)
 
 
 def request_channels(path) -> tuple[str, ...]:
@@ -219,6 +232,13 @@ class CommandRenderer:
         next CommandRenderer).  They are removed after each successful round.
     cwd : path-like, optional
         The directory the command runs in (default: the current one).
+
+    Attributes
+    ----------
+    sampler : str or None
+        What the command's samples of a pixel are, as its last reply file declared it (root attribute
+        ``sampler``: ``independent``, the default when absent, or ``sobol``; docs/renderer-protocol.md);
+        None before the first reply.
     """
 
     #: Every reply's arrays are new (never a buffer the renderer fills again): the driver keeps them
@@ -253,6 +273,7 @@ class CommandRenderer:
         # {name: per-sample shape} of the first reply: every later reply must send the same
         self._feature_layout: dict[str, tuple[int, ...]] | None = None
         self._warned_zeroed = False
+        self.sampler: str | None = None
 
     def spec(self) -> dict:
         """How to build this renderer again (:func:`mcrecon.renderers.spec_format.command_spec`): a work
@@ -308,6 +329,8 @@ class CommandRenderer:
             raise RendererError(self.name, "reply channels", f"{','.join(reply.channels)}, "
                                 f"expected {','.join(self.channels)}")
         features = self._read_features(reply, reply_path, request.round_index)
+        with h5py.File(reply_path, "r") as f:  # the renderer's declaration, absent: independent samples
+            self.sampler = check_sampler(f.attrs.get("sampler"), where=str(reply_path), field="attribute sampler")
         for p in (req_path, reply_path):
             p.unlink(missing_ok=True)
         return SampleBatch(np.asarray(data.positions, np.float64), data.values, features)

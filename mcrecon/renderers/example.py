@@ -11,9 +11,10 @@ with h5py alone, as a renderer in another language does with the HDF5
 library (docs/renderer-protocol.md).  Where the request carries each
 pixel's ``first_index`` (every adaptive run sends it), the film positions
 continue each pixel's stratified sequence (:func:`stratified`) round after
-round.  This one reads the request with
+round, and the reply declares it (root attribute ``sampler = "sobol"``), so the methods complete
+whole nets.  This one reads the request with
 :func:`mcrecon.renderers.command.read_request`, which checks it, and
-writes the reply with :func:`mcrecon.io.write_log`.
+writes the reply with :func:`mcrecon.renderers.command.write_reply`.
 """
 
 from __future__ import annotations
@@ -57,9 +58,8 @@ def stratified(pix, index):
 
 def main(request_path, reply_path) -> None:
     """Answer the request file at ``request_path`` with a reply file at ``reply_path``."""
-    from ..io import write_log
     from ..core.requests import sample_indices
-    from .command import read_request, request_channels
+    from .command import read_request, request_channels, write_reply
 
     req = read_request(request_path)
     w, h = req.width, req.height
@@ -75,7 +75,9 @@ def main(request_path, reply_path) -> None:
     cell = np.stack([pix % w, pix // w], 1).astype(np.float64)
     pos = np.concatenate([np.minimum(cell + offsets, np.nextafter(cell + 1.0, 0.0)), extra])
     values = shade(pos[:, 0], pos[:, 1], w, h, rng)
-    write_log(reply_path, pos, values, width=w, height=h, channels=request_channels(request_path))
+    # with first_index the film positions continue each pixel's stratified sequence: the reply says so
+    write_reply(reply_path, pos, values, width=w, height=h, channels=request_channels(request_path),
+                sampler=None if req.first_index is None else "sobol")
 
 
 def _cli(argv) -> int:

@@ -308,7 +308,10 @@ class MitsubaRenderer:
       batch size reuses the compiled kernel.
     * Paths use an ``independent`` sampler whatever the scene's sampler:
       stratified/low-discrepancy samplers assume every pixel gets the same
-      sample count in one wavefront, which adaptive requests break.
+      sample count in one wavefront, which adaptive requests break.  The
+      bridge declares it (``sampler = "independent"``,
+      docs/renderer-protocol.md): it does not continue a pixel's sequence
+      from ``first_index``.
     * Ray differentials are switched off, so a sample is the radiance
       through its point (the limit ``mi.render`` converges to as spp grows,
       where it scales differentials by 1/sqrt(spp)); with differentials a
@@ -337,6 +340,9 @@ class MitsubaRenderer:
     .. [1] W. Jakob et al., "Mitsuba 3 renderer", 2022,
        https://mitsuba-renderer.org.
     """
+
+    #: What a pixel's samples are (docs/renderer-protocol.md): Mitsuba's independent sampler (class notes).
+    sampler = "independent"
 
     #: Every reply's arrays are new (never a buffer the renderer fills again): the driver keeps them
     #: for the log while the next round renders, without a copy (renderers without it are copied).

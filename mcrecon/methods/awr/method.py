@@ -118,10 +118,11 @@ class AWRMethod(Method):
         Option("uniform_share", float, 0.0, "share of each adaptive round spread uniformly over the film "
                "(0: the wavelet sampler alone, the paper; a quarter costs the HDR step edge of "
                "tests/test_awr_robust.py 3x its error, docs/methods/awr.md)", min=0.0, max=1.0),
-        Option("net_counts", int, 0, "adaptive rounds: 1 rounds each round's counts so that every pixel's total "
+        Option("net_counts", int, -1, "adaptive rounds: 1 rounds each round's counts so that every pixel's total "
                "is a power of two (a full net of a stratified sampler's sequence; mcrecon.core.nets), the "
-               "sampler's ranking deciding which pixels step up; 0 the counts as the sampler draws them (the paper)",
-               choices=(0, 1)),
+               "sampler's ranking deciding which pixels step up; 0 the counts as the sampler draws them (the "
+               "paper); -1 (default) follows the renderer: 1 where it declares a stratified sampler "
+               "(Renderer.sampler 'sobol'), 0 for independent samples", choices=(-1, 0, 1)),
         Option("priority_threshold", float, None, "stop sampling when no priority exceeds this"),
         Option("reconstruction", str, "awr", "final image of an adaptive run: awr, or box (AWR sampling only)",
                ("awr", "box")),

@@ -140,8 +140,10 @@ class GEMMethod(Method):
         Option("net_counts", int, 0, "adaptive phase: 1 spends each round in whole nets: the uniform share "
                "breadth-first (the pixels of fewest samples step up to their next power of two) and the greedy "
                "counts rounded so that every pixel's total is a power of two (a full net of a stratified "
-               "sampler's sequence; mcrecon.core.nets); 0 the greedy counts as they fall and the share spread "
-               "uniformly (the paper: no share)", choices=(0, 1)),
+               "sampler's sequence; mcrecon.core.nets); 0 (default) the greedy counts as they fall and the share "
+               "spread uniformly (the paper: no share); -1 follows the renderer: 1 where it declares a stratified "
+               "sampler (Renderer.sampler 'sobol'), 0 for independent samples (with Sobol samples whole nets cost "
+               "gem more than they gain: docs/adaptive.md)", choices=(-1, 0, 1)),
         Option("subpixel_exact_below", float, 0.0, "filter scales with sigma below this (px) on the 4x4 "
                "subpixel grid itself (slower; 0: pixel-level equivalent kernel)", min=0.0),
     )

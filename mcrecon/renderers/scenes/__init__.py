@@ -270,7 +270,9 @@ class SceneRenderer:
         numbers; :mod:`.sobol`), continued from ``request.first_index``: a
         sample is a function of (pixel, its index there, ``seed``) alone, not
         of the request's seed or round, so rounds of 8 + 8 + 8 + 8 samples are
-        the samples of one 32-sample request.
+        the samples of one 32-sample request.  It is the renderer's declared
+        sampler too (``Renderer.sampler``, docs/renderer-protocol.md): an
+        adaptive run's methods follow it (``net_counts=-1``).
 
     Notes
     -----
