@@ -39,6 +39,7 @@ from ...filters.luminance import LUMINANCE_WEIGHTS
 from .consistent import (FeatureSums, _split_and_radii, channel_sums, edge_radius, feature_moments, gate_k,
                          pixel_moments, round_sums, width_coefs)
 from .kernels import _add_widths, _splat_gated_loop
+from .gated import _splat_gated_runs
 from .bands import in_bands, in_ranges, rows_sorted
 from .outliers import _box_sum, _count_and_moments, _norm_of, _outlier_thresholds, _split_and_deposit, _split_outliers
 
@@ -612,7 +613,8 @@ class ProgressiveSplatter:
             if consistent:
                 # in bands of rows of about equal samples, one per thread; a sample near a band's edge
                 # costs both threads its footprint (reach: a radius is at most max_width / 2)
-                fallback += sum(in_bands(_splat_gated_loop, (p, v, w_round, inv_counts, frac, krad, r_edge, gstats,
+                gated = _splat_gated_loop if mode == 1 else _splat_gated_runs  # renormalise: footprints clipped per sample
+                fallback += sum(in_bands(gated, (p, v, w_round, inv_counts, frac, krad, r_edge, gstats,
                                                              fstats, self._gate_k ** 2, mode, img),
                                          p, self.height, row_work=row_work, sorted_rows=srt,
                                          reach=int(math.ceil(0.5 * self.max_width)) + 1))
