@@ -7,7 +7,7 @@ import pytest
 
 from mcrecon.core.requests import jittered_positions
 from mcrecon.methods.splat.consistent import edge_radius, gate_k, pixel_moments
-from mcrecon.methods.splat.gated import _splat_gated_runs, lattice_tables
+from mcrecon.methods.splat.gated import GATE_SIDE, _splat_gated_runs, lattice_tables
 from mcrecon.methods.splat.kernels import _splat_gated_loop
 
 
@@ -40,22 +40,27 @@ def _case(w, h, spp, seed, shuffle):
     return pos, val, 0.5, inv, frac, radius, r_edge, gs, fs, k * k
 
 
+def _memo(w, h):
+    return np.zeros((w * h, GATE_SIDE * GATE_SIDE), np.int8)
+
+
 @pytest.mark.parametrize("w, h, mode, shuffle", [(12, 10, 0, False), (12, 10, 0, True), (12, 10, 2, False),
                                                   (3, 9, 0, False), (9, 2, 2, True)])
 def test_runs_equal_the_per_sample_loop(w, h, mode, shuffle):
-    """The same deposits to rounding, in bands of rows too (the samples of every band's reach), films narrower
-    than the footprints (mirrored more than once), samples shuffled (runs of one sample), the none boundary
-    (energy lost off the film alike)."""
+    """The same deposits to rounding, in bands of rows too (the samples of every band's reach, the gate's
+    answers shared between the bands), films narrower than the footprints (mirrored more than once),
+    samples shuffled (runs of one sample), the none boundary (energy lost off the film alike)."""
     args = _case(w, h, 8, 3, shuffle)
     n = len(args[0])
     ref = np.zeros((h, w, 3))
     _splat_gated_loop(*args, mode, ref, 0, n, 0, h)
     got = np.zeros((h, w, 3))
-    assert _splat_gated_runs(*args, mode, got, 0, n, 0, h) == 0
+    assert _splat_gated_runs(*args, mode, got, _memo(w, h), 0, n, 0, h) == 0
     np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-15)
     banded = np.zeros((h, w, 3))
+    memo = _memo(w, h)
     for j0, j1 in ((0, 1), (1, h // 2), (h // 2, h)):
-        _splat_gated_runs(*args, mode, banded, 0, n, j0, j1)
+        _splat_gated_runs(*args, mode, banded, memo, 0, n, j0, j1)
     np.testing.assert_array_equal(banded, got)
     total = (args[1] * (args[2] * args[3][np.floor(args[0][:, 1]).astype(int), np.floor(args[0][:, 0]).astype(int)]
                         * (1 - args[4]))[:, None]).sum(axis=0)

@@ -31,6 +31,10 @@ from .kernels import _reflect, _same_pixel_stats
 
 __all__: list[str] = []
 
+#: The gate's answers kept per pixel: the neighbours at most GATE_HALF rows and columns away.
+GATE_HALF = 2
+GATE_SIDE = 2 * GATE_HALF + 1
+
 
 @numba.njit(cache=True, nogil=True)
 def lattice_tables(n2_max):
@@ -74,10 +78,15 @@ def _first_above(r2s, n, x):
 
 
 @numba.njit(cache=True, nogil=True)
-def _splat_gated_runs(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, fs, k2, mode, out, k0, k1, j0, j1):
+def _splat_gated_runs(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, fs, k2, mode, out, gate, k0, k1,
+                      j0, j1):
     """:func:`.kernels._splat_gated_loop` (same arguments; ``mode`` 0 mirror or 2 none), one run of
-    consecutive samples of a pixel at a time (the module's docstring).  Returns 0: a footprint on the
-    pixel grid always covers its own centre, so no sample falls back."""
+    consecutive samples of a pixel at a time (the module's docstring).  ``gate`` (H W, :data:`GATE_SIDE` ^ 2)
+    int8, zero before a round's first band: the gate's answers between on-film neighbours at most
+    :data:`GATE_HALF` apart along each axis (1 passes, 2 refuses, 0 not asked yet), stored for both pixels
+    of a pair when one asks: the test is symmetric in p and q, so the other reads it (bands on separate
+    threads may both ask: they store the same answer).  Returns 0: a footprint on the pixel grid always
+    covers its own centre, so no sample falls back."""
     h = out.shape[0]
     w = out.shape[1]
     nc = out.shape[2]
@@ -164,7 +173,17 @@ def _splat_gated_runs(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
                     i_d = _first_above(r2s, n, n2)
                     i = px + dx
                     ii = i if 0 <= i < w else _reflect(i, w)
-                    re = min(rp, r_edge[jj, ii]) if _same_pixel_stats(gs, fs, py, px, jj, ii, k2) else -1.0
+                    if jj == j and ii == i and -GATE_HALF <= dx <= GATE_HALF and -GATE_HALF <= dy <= GATE_HALF:
+                        t = (dy + GATE_HALF) * GATE_SIDE + dx + GATE_HALF
+                        ans = gate[py * w + px, t]
+                        if ans == 0:
+                            ans = 1 if _same_pixel_stats(gs, fs, py, px, jj, ii, k2) else 2
+                            gate[py * w + px, t] = ans
+                            gate[jj * w + ii, GATE_SIDE * GATE_SIDE - 1 - t] = ans
+                        passes = ans == 1
+                    else:
+                        passes = _same_pixel_stats(gs, fs, py, px, jj, ii, k2)
+                    re = min(rp, r_edge[jj, ii]) if passes else -1.0
                     re2 = re * re
                     if re > 0.0 and n2 < re2:
                         i_re = _first_above(r2s, n, re2)
