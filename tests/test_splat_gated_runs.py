@@ -44,13 +44,14 @@ def _memo(w, h):
     return np.zeros((w * h, GATE_SIDE * GATE_SIDE), np.int8)
 
 
-@pytest.mark.parametrize("w, h, mode, shuffle", [(12, 10, 0, False), (12, 10, 0, True), (12, 10, 2, False),
-                                                  (3, 9, 0, False), (9, 2, 2, True)])
-def test_runs_equal_the_per_sample_loop(w, h, mode, shuffle):
+@pytest.mark.parametrize("w, h, spp, mode, shuffle", [(12, 10, 8, 0, False), (12, 10, 8, 0, True), (12, 10, 8, 2, False),
+                                                       (3, 9, 8, 0, False), (9, 2, 8, 2, True), (4, 3, 150, 0, False)])
+def test_runs_equal_the_per_sample_loop(w, h, spp, mode, shuffle):
     """The same deposits to rounding, in bands of rows too (the samples of every band's reach, the gate's
     answers shared between the bands), films narrower than the footprints (mirrored more than once),
-    samples shuffled (runs of one sample), the none boundary (energy lost off the film alike)."""
-    args = _case(w, h, 8, 3, shuffle)
+    samples shuffled (runs of one sample), the none boundary (energy lost off the film alike), runs longer
+    than the kernel's first buffers."""
+    args = _case(w, h, spp, 3, shuffle)
     n = len(args[0])
     ref = np.zeros((h, w, 3))
     _splat_gated_loop(*args, mode, ref, 0, n, 0, h)

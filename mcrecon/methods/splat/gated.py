@@ -14,10 +14,13 @@ over its widest footprint instead of n footprints, and writes each covered
 pixel once.  ``s(r)`` comes from a table of the lattice points by ``|o|^2``
 (the mirror and none boundaries normalise over the unbounded grid, so it
 depends on r only).  What the gate keeps from the footprints goes home,
-as in the per-sample loop.  The image is the per-sample loop's to rounding
-(the terms of a pixel are added in another order): energy stays exact, and
-each pixel receives the deposits of the runs in sample order, so bands of
-rows give one thread's bits (:mod:`.bands`).
+as in the per-sample loop.  A sample whose footprint covers its own centre
+only (``r <= 1``) is deposited as the loop deposits it, so where every
+footprint has narrowed to one pixel the image is the loop's (the pixel
+mean) bit for bit; elsewhere it is the loop's to rounding (a pixel's terms
+are added in another order; energy stays exact).  Each pixel receives the
+deposits of the runs in sample order, so bands of rows give one thread's
+bits (:mod:`.bands`).
 """
 
 from __future__ import annotations
