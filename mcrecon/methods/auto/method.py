@@ -42,7 +42,7 @@ from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGH
     release_prefiltered)
 from .blackbox import oidn_candidate
 from .nlmeans import nlmeans_cross
-from .proxy import REGRESSION_SHARE, REGRESSIONS, regression_share
+from .proxy import REGRESSIONS, regression_share
 from ...filters.masked import MaskedSmoothing, smooth_masked
 from .passes import _mean_c, _picked
 from .selection import _global_prior, _largest_remainder, _no_push_in_heavy_tails, _region_guard, _relative_choice
@@ -167,10 +167,10 @@ class AutoMethod(Method):
                "dnlm averaged 1:2, 1:1, 2:1), xbil (cross-bilateral, Rousselle et al. 2013); fbil (bilateral "
                "with feature weights only, SURE) from pixel statistics without halves; oidn_aux (OIDN on all the "
                "samples with the prefiltered albedo and normal); none: colour only"),
-        Option("regression_proxy", float, REGRESSION_SHARE, nullable=True, help="with features: compute the "
-               "regression candidates (nfor, nfor_own, mix) over the whole image only where auto's choice gives "
-               "them at least this share of the pixels of a few tiles (a tile proxy, run on frames of about "
-               "424^2 and more); None: always compute them (docs/methods/auto.md, Cost)", min=0.0, max=1.0),
+        Option("regression_proxy", float, None, nullable=True, help="with features: compute the regression "
+               "candidates (nfor, nfor_own, mix) over the whole image only where auto's choice gives them at "
+               "least this share of the pixels of a few tiles (a tile proxy, run on frames of about 424^2 and "
+               "more; 0.1 measured, docs/methods/auto.md, Cost); None: always compute them", min=0.0, max=1.0),
         Option("scales", int, 8, "Gaussian scales of the gauss candidates (GEM's final bank)", min=1, max=16),
         Option("smooth", float, 2.0, "sigma (px) of the smoothing of the error maps before the choice "
                "(0: none)", min=0.0, max=32.0),
