@@ -175,6 +175,8 @@ class NFORMethod(Method):
     )
     requires = Requirements(samples=True, half_buffers=True, features="required")
     run_type = NFORRun
+    #: The film's feature scales a tile standardises by (:meth:`for_tiles`); None: the image's own.
+    _film_scales = None
     initial_spp = 4  # two samples in each half: a pixel's half needs one, its variance two in all
     pipeline = True  # uniform rounds: the plan reads only the sample count
 
@@ -212,7 +214,7 @@ class NFORMethod(Method):
         return int(max(image, mse, 1 if p["safeguard"] is not None else 0))
 
     def tile_grid(self) -> tuple[int, int]:
-        """Rows and columns a grown tile's first pixel is a multiple of (:func:`mcrecon.offline.tiles.tile_windows`).
+        """Rows and columns a grown tile's first pixel is a multiple of (:func:`~mcrecon.offline.tiles.tile_windows`).
 
         The NL-means and regression kernels work in bands of :data:`~mcrecon.filters.nlmeans.BAND` rows
         from the array's first row (a patch's running sums restart at each band, a pixel's collaborative
@@ -262,7 +264,7 @@ class NFORMethod(Method):
                              feature_radius=p["feature_radius"], feature_patch=p["feature_patch"],
                              feature_k=p["feature_k"], second_pass=p["second_pass"], ridge=p["ridge"],
                              threads=p["threads"], stride=p["stride"], diagnostics=diag,
-                             min_weight=MIN_COVER_WEIGHT, feature_scales=getattr(self, "_film_scales", None),
+                             min_weight=MIN_COVER_WEIGHT, feature_scales=self._film_scales,
                              **{k: PAPER[k] for k in _FIXED})
         img = np.asarray(img, dtype=np.float64)
         if p["safeguard"] is not None:
