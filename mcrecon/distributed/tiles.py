@@ -18,7 +18,7 @@ import numpy as np
 from ..errors import InputError, McreconWarning
 
 
-from ..offline.tiles import check_tile, tile_grid, tile_inputs, tile_windows, tileable_halo, tiles_method
+from ..offline.tiles import check_tile, tile_inputs, tile_windows, tileable_halo
 from .cluster import _dask
 from .ingestion import ingest
 
@@ -286,8 +286,8 @@ def reconstruct_tiled(source, *, method="box", tile: int = 1024, client=None, re
     ref = None if reference is None else np.asarray(reference, dtype=np.float64)
     inputs = MethodInputs(stats, None, ref, nonfinite, strata=strata)
     halo = tileable_halo(m, w, h, where, inputs=inputs)
-    grid = tile_grid(m)
-    mf = client.scatter(tiles_method(m, inputs), broadcast=True)   # the film's whole-image decisions made here
+    grid = m.tile_grid()
+    mf = client.scatter(m.for_tiles(inputs), broadcast=True)   # the film's whole-image decisions made here
     tasks = []
     for (oy, ox), box, inner in _boxes(w, h, tile, halo, grid=grid):
         # each grown tile goes to one worker, the film stays here
@@ -320,7 +320,7 @@ def _reconstruct_tiled_samples(m, source, tile, client, reference, nonfinite, wh
     ref = None if reference is None else np.asarray(reference, dtype=np.float64)
     mf = m if client is None else client.scatter(m, broadcast=True)
     tasks = []
-    for outer, box, inner in _boxes(w, h, tile, halo, grid=tile_grid(m)):
+    for outer, box, inner in _boxes(w, h, tile, halo, grid=m.tile_grid()):
         (oy, ox) = outer
         r = None if ref is None else ref[oy[0]:oy[1], ox[0]:ox[1]]
         if isinstance(source, SampleLog):

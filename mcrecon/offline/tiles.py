@@ -12,13 +12,14 @@ half buffers the Chan merge of the two halves is made tile by tile: the
 film's halves are the only statistics with their features held whole
 (no merged third copy beside them).
 
-Two optional hooks of a method tile it (a method without them needs
-neither): ``tile_grid()``, ``(rows, columns)`` that a grown tile's first
-pixel is a multiple of (kernels that work in bands of rows from the
-array's first row sum in the film's order only on the film's bands), and
-``for_tiles(inputs)``, the method the tiles run, given the film's inputs:
-the whole-image decisions it makes (nfor: the scale of its features)
-computed once for the film and fixed in it (:func:`tiles_method`).
+Two methods of :class:`~mcrecon.methods.Method` tile it besides its halo:
+:meth:`~mcrecon.methods.Method.tile_grid`, ``(rows, columns)`` that a
+grown tile's first pixel is a multiple of (kernels that work in bands of
+rows from the array's first row sum in the film's order only on the
+film's bands), and :meth:`~mcrecon.methods.Method.for_tiles`, the method
+the tiles run, given the film's inputs: the whole-image decisions it
+makes (nfor: the scale of its features) computed once for the film and
+fixed in it.
 """
 
 from __future__ import annotations
@@ -31,8 +32,7 @@ from ..core.halves import Halves
 from ..errors import InputError
 from ..methods.base import Method, MethodInputs, RunState
 
-__all__ = ["tile_windows", "check_tile", "tileable_halo", "tile_grid", "tiles_method", "tile_inputs",
-           "reconstruct_tiles"]
+__all__ = ["tile_windows", "check_tile", "tileable_halo", "tile_inputs", "reconstruct_tiles"]
 
 
 def check_tile(tile, where: str = "reconstruct") -> int | None:
@@ -64,7 +64,7 @@ def tile_windows(width: int, height: int, tile: int, halo: int, *, even: bool = 
     is a tile, ``outer`` the tile grown by ``halo`` on every side and
     clipped to the film (``map_overlap``'s ``boundary="none"``), its first
     row and column then moved back to multiples of ``grid`` ``(rows,
-    columns)`` (the method's :func:`tile_grid`).
+    columns)`` (:meth:`~mcrecon.methods.Method.tile_grid`).
     """
     gy, gx = (int(g) for g in grid)
     for y0, y1 in _splits(int(height), int(tile), even):
@@ -72,20 +72,6 @@ def tile_windows(width: int, height: int, tile: int, halo: int, *, even: bool = 
             outer = (max(0, (y0 - halo) // gy * gy), min(height, y1 + halo),
                      max(0, (x0 - halo) // gx * gx), min(width, x1 + halo))
             yield outer, (y0, y1, x0, x1)
-
-
-def tile_grid(method: Method) -> tuple[int, int]:
-    """``(rows, columns)`` a grown tile of ``method`` starts at multiples of: its ``tile_grid()``, else (1, 1)."""
-    hook = getattr(method, "tile_grid", None)
-    return (1, 1) if hook is None else tuple(int(g) for g in hook())
-
-
-def tiles_method(method: Method, inputs: MethodInputs) -> Method:
-    """The method that reconstructs the tiles of the film ``inputs``: ``method.for_tiles(inputs)`` (the
-    whole-image decisions made once on the film and fixed in a copy) where the method defines it, else
-    the method itself."""
-    hook = getattr(method, "for_tiles", None)
-    return method if hook is None else hook(inputs)
 
 
 def tileable_halo(method: Method, width: int, height: int, where: str, *, inputs: MethodInputs | None = None) -> int:
@@ -177,8 +163,8 @@ def reconstruct_tiles(method: Method, inputs: MethodInputs, *, tile: int, diagno
     h, w, c = inputs.shape
     halo = tileable_halo(method, w, h, where, inputs=inputs)
     channels = inputs.channels
-    windows = list(tile_windows(w, h, tile, halo, grid=tile_grid(method)))
-    runner = method if len(windows) == 1 else tiles_method(method, inputs)  # one tile: the untiled run
+    windows = list(tile_windows(w, h, tile, halo, grid=method.tile_grid()))
+    runner = method if len(windows) == 1 else method.for_tiles(inputs)  # one tile: the untiled run
     image = np.empty((h, w, c), np.float64)
     maps: dict[str, np.ndarray] = {}
     said: dict = {}
