@@ -11,31 +11,27 @@ import numpy as np
 import pytest
 
 import mcrecon
-from mcrecon.core.requests import SampleBatch, check_sampler, jittered_positions
+from mcrecon.core.requests import check_sampler
 from mcrecon.errors import InputError, RendererError
 from mcrecon.io import read_log
 from mcrecon.methods import get_method
 from mcrecon.renderers.command import CommandRenderer
 
+from helpers import jittered_renderer
+
 W = H = 16
 
 
-class _Film:
-    """A cheap renderer: an edge and noise, the declared ``sampler`` (None: says nothing)."""
+def _film(sampler=None, *, late=False, then=None):
+    """A cheap renderer: an edge and noise, the declared ``sampler`` (None: says nothing); ``late``: declared
+    by the first reply, as a command renderer does; ``then``: the declaration of every round after the first."""
+    def shade(pos, rng, req):
+        film.sampler = sampler if then is None or req.round_index == 0 else then
+        return np.where(pos[:, :1] < W / 2, 0.2, 1.0) * rng.uniform(0.5, 1.5, (len(pos), 3))
 
-    channels = ("R", "G", "B")
-
-    def __init__(self, sampler=None, *, late=False):
-        self.width, self.height = W, H
-        self.sampler = None if late else sampler
-        self._declare = sampler   # late: declared by the first reply, as a command renderer does
-
-    def render(self, req):
-        g = np.random.default_rng([req.seed & 0xFFFFFFFF, req.round_index])
-        pos = jittered_positions(req.counts, g)
-        val = np.where(pos[:, :1] < W / 2, 0.2, 1.0) * g.uniform(0.5, 1.5, (len(pos), 3))
-        self.sampler = self._declare
-        return SampleBatch(pos, val)
+    film = jittered_renderer(shade, width=W, height=H)
+    film.sampler = None if late else sampler
+    return film
 
 
 def _pow2_share(counts):
@@ -60,41 +56,35 @@ def test_check_sampler_values_and_one_line_refusal():
 
 def test_bad_declaration_refused_before_rendering():
     with pytest.raises(InputError, match="sampler"):
-        _run(_Film("stratified"))
+        _run(_film("stratified"))
 
 
 @pytest.mark.parametrize("method", ["awr", "gem"])
 def test_stratified_renderer_switches_whole_nets_on(method):
-    sobol = _run(_Film("sobol"), method).stats.count
-    indep = _run(_Film(None), method).stats.count
+    sobol = _run(_film("sobol"), method).stats.count
+    indep = _run(_film(None), method).stats.count
     assert _pow2_share(sobol) > 0.9
     assert _pow2_share(indep) < 0.7
     # the explicit option wins either way
-    assert np.array_equal(_run(_Film("sobol"), method, net_counts=0).stats.count, indep)
-    assert np.array_equal(_run(_Film(None), method, net_counts=1).stats.count, sobol)
+    assert np.array_equal(_run(_film("sobol"), method, net_counts=0).stats.count, indep)
+    assert np.array_equal(_run(_film(None), method, net_counts=1).stats.count, sobol)
 
 
 def test_sampler_recorded_and_resume_plans_alike(tmp_path):
     """A declaration that comes with the first reply (a command renderer's) is recorded in the run settings,
     and a resume, whose fresh renderer has declared nothing yet, plans with it: the same counts."""
-    full = _run(_Film("sobol", late=True)).stats.count
+    full = _run(_film("sobol", late=True)).stats.count
     log = tmp_path / "run.h5"
-    mcrecon.adapt(_Film("sobol", late=True), get_method("awr"), spp=24, seed=1, progress=False,
+    mcrecon.adapt(_film("sobol", late=True), get_method("awr"), spp=24, seed=1, progress=False,
                   track_error=False, log=log, max_rounds=3)
     assert read_log(log).run_settings["sampler"] == "sobol"
-    resumed = mcrecon.adaptive.run.resume(log, _Film("sobol", late=True), progress=False, track_error=False)
+    resumed = mcrecon.adaptive.run.resume(log, _film("sobol", late=True), progress=False, track_error=False)
     assert np.array_equal(resumed.stats.count, full) and _pow2_share(full) > 0.9
 
 
 def test_a_changed_declaration_is_refused():
-    class Flip(_Film):
-        def render(self, req):
-            out = super().render(req)
-            self.sampler = "sobol" if req.round_index == 0 else "independent"
-            return out
-
     with pytest.raises(RendererError, match="round 1"):
-        _run(Flip())
+        _run(_film("sobol", then="independent"))
 
 
 _REPLY = """import sys, h5py, numpy as np
@@ -132,13 +122,13 @@ def test_a_log_without_the_record_resumes_with_independent_plans(tmp_path):
     from mcrecon.io.writer import set_run_settings
 
     log = tmp_path / "old.h5"
-    mcrecon.adapt(_Film(None), get_method("awr"), spp=24, seed=1, progress=False, track_error=False, log=log,
+    mcrecon.adapt(_film(None), get_method("awr"), spp=24, seed=1, progress=False, track_error=False, log=log,
                   max_rounds=3)
     settings = dict(read_log(log).run_settings)
     settings.pop("sampler")
     set_run_settings(log, settings)
-    resumed = mcrecon.adaptive.run.resume(log, _Film("sobol"), progress=False, track_error=False)
-    assert np.array_equal(resumed.stats.count, _run(_Film(None)).stats.count)
+    resumed = mcrecon.adaptive.run.resume(log, _film("sobol"), progress=False, track_error=False)
+    assert np.array_equal(resumed.stats.count, _run(_film(None)).stats.count)
 
 
 def test_example_renderer_declares_sobol_when_it_continues_the_sequences(tmp_path):

@@ -10,6 +10,7 @@
      |- rendered   per pixel, the samples committed (NaN/Inf included): each request's first_index
      |- strata     PrefixHalves of the committed samples (methods with stratified_gain on): the plans' gain
      |- sampler    what the renderer's samples of a pixel are (Renderer.sampler): the plans' AdaptiveState.sampler
+     |- sampler_known, sampler_checked              whether a reply or the log decided it; whether replies must agree
      |- track_error, eps, on_round, bar             what this session's caller asked for
      `- clock      RunClock: wall time over sessions, renderer seconds, toolkit CPU,
                    rounds finished this session, the timeline of phases
@@ -40,7 +41,7 @@ from ..core.strata import PrefixHalves
 from ..errors import InputError, RendererError
 from ..io.logformat import MAX_PIXELS
 from ..methods.base import Method, RunState
-from .schedule import Schedule, _committed, _initial_rounds
+from .schedule import Committed, Schedule, _committed, _initial_rounds
 
 __all__ = ["RunContext", "RunClock", "SessionOptions"]
 
@@ -277,6 +278,11 @@ class RunContext:
                    clock=RunClock(float(rounds[-1]["wall_seconds"]) if rounds else 0.0), **sampler)
 
     @property
+    def committed(self) -> Committed:
+        """The committed samples' prefix halves and the renderer's sampler, as the plans see them."""
+        return Committed(self.strata, self.sampler)
+
+    @property
     def name(self) -> str:
         """The renderer's name (in errors and warnings about its replies)."""
         return _renderer_name(self.renderer)
@@ -312,7 +318,7 @@ class RunContext:
         the same in a resume (its replay counts the log's rounds) as in the live run."""
         first = self.rendered if pending is None else self.rendered + pending
         return self.schedule.plan(self.method, self.run, self.stats, round_index, _committed(self.stats) + in_flight,
-                                  pending=pending, first_index=first, strata=self.strata, sampler=self.sampler)
+                                  pending=pending, first_index=first, committed=self.committed)
 
 
 __dir__ = _public_dir(__name__)

@@ -237,7 +237,7 @@ class _Round:
             return 0.0
         te = time.perf_counter()
         rng, _ = round_seeds(0, 0)
-        st = _adaptive_state(ctx.stats, ctx.schedule, round_index, _committed(ctx.stats), rng, strata=ctx.strata)
+        st = _adaptive_state(ctx.stats, ctx.schedule, round_index, _committed(ctx.stats), rng, committed=ctx.committed)
         with self.timeline.phase("evaluate", round_index):
             record["error"] = relative_mse(ctx.method.finish(ctx.run, st), ctx.reference, eps=ctx.eps)
         record["eval_seconds"] = time.perf_counter() - te

@@ -569,7 +569,7 @@ def _drive(ctx, first=None) -> AdaptiveResult:
             tf = time.perf_counter()
             rng, _ = round_seeds(ctx.schedule.seed, round_index)
             image = ctx.method.finish(ctx.run, ctx.schedule.final_state(ctx.stats, round_index, rng,
-                                                                        strata=ctx.strata))
+                                                                        committed=ctx.committed))
         finally:
             # the last round's log write (a sequential loop leaves it running behind): committed before
             # the run returns, whatever the final image did

@@ -91,11 +91,22 @@ def _with_seed(req, round_index, seed, first_index=None):
     return out
 
 
+@dataclasses.dataclass(frozen=True)
+class Committed:
+    """What a plan knows of the committed samples beyond their statistics: their prefix halves
+    (:class:`~mcrecon.core.strata.PrefixHalves`, methods with ``stratified_gain`` on) and the renderer's
+    sampler (:data:`~mcrecon.core.requests.SAMPLERS`, its declaration)."""
+
+    strata: object = None
+    sampler: str = "independent"
+
+
 def _adaptive_state(stats, schedule, round_index, n_samples, rng, *, pending=None,
-                    initial_rounds=1, strata=None, sampler="independent") -> AdaptiveState:
+                    initial_rounds=1, committed: Committed = Committed()) -> AdaptiveState:
     """The state a plan (or the final image) sees; ``iteration`` counts from the end of ``initial_rounds``."""
     return AdaptiveState(stats, round_index, schedule.budget, n_samples, rng, schedule.reference, pending=pending,
-                         iteration=max(int(round_index) - int(initial_rounds), 0), strata=strata, sampler=sampler)
+                         iteration=max(int(round_index) - int(initial_rounds), 0), strata=committed.strata,
+                         sampler=committed.sampler)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -131,14 +142,13 @@ class Schedule:
     time_limit: float | None = None
     pipeline: bool = False
 
-    def plan(self, method, run, stats, round_index, n_total, *, pending=None, first_index=None, strata=None,
-             sampler="independent"):
+    def plan(self, method, run, stats, round_index, n_total, *, pending=None, first_index=None,
+             committed: Committed = Committed()):
         """(request with its seeds, None) or (None, why the run stops) for round ``round_index``.
 
         ``n_total``: samples committed plus in flight (``pending``, per pixel).
         ``first_index`` (H, W): the request's per-pixel first sample index (committed plus in flight).
-        ``strata``: the committed samples' prefix halves (:class:`~mcrecon.core.strata.PrefixHalves`).
-        ``sampler``: the renderer's (:data:`~mcrecon.core.requests.SAMPLERS`).
+        ``committed``: the committed samples' prefix halves and the renderer's sampler (:class:`Committed`).
         The rounds of the initial pass are the driver's own; later ones the
         method's plan.  Depends only on its arguments: the same in a live run
         and in a resume.  ``(None, "wait")``: with a round in flight the plan
@@ -149,7 +159,7 @@ class Schedule:
             return None, "budget"
         rng, rseed = round_seeds(self.seed, round_index)
         state = _adaptive_state(stats, self, round_index, n_total, rng, pending=pending,
-                                initial_rounds=self.initial_rounds, strata=strata, sampler=sampler)
+                                initial_rounds=self.initial_rounds, committed=committed)
         if round_index < self.initial_rounds:
             req = _initial_request(method, state, self.initial_rounds)
         else:
@@ -163,6 +173,6 @@ class Schedule:
                                f"{state.remaining} left in the budget (a bug in the method)")
         return _with_seed(req, round_index, rseed, first_index), None
 
-    def final_state(self, stats, round_index, rng, *, strata=None) -> AdaptiveState:
+    def final_state(self, stats, round_index, rng, *, committed: Committed = Committed()) -> AdaptiveState:
         """The state the image after round ``round_index - 1`` is made from (``method.finish``)."""
-        return _adaptive_state(stats, self, round_index, _committed(stats), rng, strata=strata)
+        return _adaptive_state(stats, self, round_index, _committed(stats), rng, committed=committed)
