@@ -291,6 +291,18 @@ class GEMMethod(Method):
         return np.asarray(img, dtype=np.float64)
 
     # ------------------------------------------------------------ adaptive
+    def rare_gate(self, state: AdaptiveState) -> float:
+        """The adaptive floor's rare-component gate: the ``rare_threshold`` option, or with None the sampler's.
+
+        One hit in a pixel's 4 initial independent samples reads a relative variance of 4, which a gate
+        of 5 misses; with stratified samples a gate of 3 costs checker_spot more than it gains
+        (docs/adaptive.md).
+        """
+        thr = self.params["rare_threshold"]
+        if thr is not None:
+            return float(thr)
+        return RARE_THRESHOLD if state.sampler != "independent" else RARE_THRESHOLD_INDEPENDENT
+
     def place(self, run: "GEMRun", state: AdaptiveState, n: int):
         """One adaptive iteration (Secs. 5, 6): ``n`` samples as counts per pixel, or None at ``target_rel_mse``.
 
@@ -308,12 +320,7 @@ class GEMMethod(Method):
         npix = state.width * state.height
         n_pick = p["samples_per_pick"] or max(1, int(round(state.budget / npix)))
         gain = stratified_gain(state) if p["stratified_gain"] else None
-        thr = p["rare_threshold"]
-        if thr is None:
-            # one hit in a pixel's 4 initial independent samples reads a relative variance of 4; with
-            # stratified samples flooring there costs checker_spot more than it gains (docs/adaptive.md)
-            thr = RARE_THRESHOLD if state.sampler != "independent" else RARE_THRESHOLD_INDEPENDENT
-        sel = self.select(run, state.stats, final=False, want_mse=True, gain=gain, rare_threshold=thr)
+        sel = self.select(run, state.stats, final=False, want_mse=True, gain=gain, rare_threshold=self.rare_gate(state))
         value = run.reference if p["oracle"] else sel.image
         if p["target_rel_mse"] is not None and np.isfinite(sel.mse).all():
             est = float(np.mean(sel.mse / (value * value + TARGET_EPS)))
