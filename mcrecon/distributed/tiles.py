@@ -34,10 +34,10 @@ def _reconstruct_tile(method, inputs, inner):
     return np.asarray(img[a:b, c:d], dtype=np.float64)
 
 
-def _boxes(width: int, height: int, tile: int, halo: int, *, even: bool = True):
+def _boxes(width: int, height: int, tile: int, halo: int, *, even: bool = True, grid=(1, 1)):
     """:func:`tile_windows` as ``(outer, tile, inner)`` boxes ``((y0, y1), (x0, x1))``: the grown tile and the
     tile in film pixels, and the tile inside the grown one."""
-    for (oy0, oy1, ox0, ox1), (y0, y1, x0, x1) in tile_windows(width, height, tile, halo, even=even):
+    for (oy0, oy1, ox0, ox1), (y0, y1, x0, x1) in tile_windows(width, height, tile, halo, even=even, grid=grid):
         yield ((oy0, oy1), (ox0, ox1)), ((y0, y1), (x0, x1)), ((y0 - oy0, y1 - oy0), (x0 - ox0, x1 - ox0))
 
 
@@ -286,9 +286,10 @@ def reconstruct_tiled(source, *, method="box", tile: int = 1024, client=None, re
     ref = None if reference is None else np.asarray(reference, dtype=np.float64)
     inputs = MethodInputs(stats, None, ref, nonfinite, strata=strata)
     halo = tileable_halo(m, w, h, where, inputs=inputs)
-    mf = client.scatter(m, broadcast=True)
+    grid = m.tile_grid()
+    mf = client.scatter(m.for_tiles(inputs), broadcast=True)   # the film's whole-image decisions made here
     tasks = []
-    for (oy, ox), box, inner in _boxes(w, h, tile, halo):
+    for (oy, ox), box, inner in _boxes(w, h, tile, halo, grid=grid):
         # each grown tile goes to one worker, the film stays here
         sub = client.scatter(tile_inputs(inputs, (oy[0], oy[1], ox[0], ox[1])))
         tasks.append((box, (mf, sub, inner)))
@@ -319,7 +320,7 @@ def _reconstruct_tiled_samples(m, source, tile, client, reference, nonfinite, wh
     ref = None if reference is None else np.asarray(reference, dtype=np.float64)
     mf = m if client is None else client.scatter(m, broadcast=True)
     tasks = []
-    for outer, box, inner in _boxes(w, h, tile, halo):
+    for outer, box, inner in _boxes(w, h, tile, halo, grid=m.tile_grid()):
         (oy, ox) = outer
         r = None if ref is None else ref[oy[0]:oy[1], ox[0]:ox[1]]
         if isinstance(source, SampleLog):

@@ -34,7 +34,7 @@ from .engine import n_threads, parallel_calls
 from .nlmeans import (BAND, DISTANCE_CLAMP, MIN_CENTER_WEIGHT, NLM_EPS, as_planes, exp_neg, offset_distances,
                       scaled_planes)
 
-__all__ = ["RIDGE", "collaborative_regression", "collaborative_regressions", "standardise"]
+__all__ = ["RIDGE", "collaborative_regression", "collaborative_regressions", "feature_scale", "standardise"]
 
 #: Default ridge on the non-constant columns, relative to the window's total weight.
 RIDGE = 1e-10
@@ -412,32 +412,51 @@ def _accumulate(args, accs, outs, r, n_bands, threads) -> None:
             _gather(accs, kb, r, BAND, b0, outs[kb])
 
 
-def _standard_plane(plane) -> np.ndarray:
-    """One feature plane (H, W) as a contiguous float64 copy shifted and scaled to mean 0 and standard
-    deviation 1 (a constant plane: shifted only).  The mean and deviation of the contiguous copy: a
+def feature_scale(plane) -> tuple[float, float]:
+    """The mean and standard deviation by which :func:`standardise` scales one feature plane (H, W):
+    ``(mean, deviation of the plane less its mean)``, both over the plane.
+
+    A tiled reconstruction computes them once on the film's plane and hands them to every tile
+    (``feature_scales`` of :func:`collaborative_regression`): a tile's own would scale its ridge
+    differently.  Taken of a contiguous float64 copy, as the untiled regression takes them: a
     strided view sums in another order."""
     f = np.array(plane, dtype=np.float64, order="C", copy=True)
-    f -= f.mean()
-    sd = f.std()
+    mean = f.mean()
+    f -= mean
+    return float(mean), float(f.std())
+
+
+def _standard_plane(plane, scale=None) -> np.ndarray:
+    """One feature plane (H, W) as a contiguous float64 copy shifted and scaled to mean 0 and standard
+    deviation 1 (a constant plane: shifted only); ``scale``: the ``(mean, deviation)`` to use instead of
+    the plane's own (:func:`feature_scale`).  The mean and deviation of the contiguous copy: a strided
+    view sums in another order."""
+    f = np.array(plane, dtype=np.float64, order="C", copy=True)
+    if scale is None:
+        f -= f.mean()
+        sd = f.std()
+    else:
+        mean, sd = scale
+        f -= mean
     if sd > 0:
         f /= sd
     return f
 
 
-def standardise(features) -> np.ndarray:
+def standardise(features, scales=None) -> np.ndarray:
     """Feature planes (D, H, W) shifted and scaled to mean 0 and standard deviation 1 over the image
-    (a constant plane: shifted only), so that one ridge suits every feature."""
+    (a constant plane: shifted only), so that one ridge suits every feature; ``scales``: D
+    ``(mean, deviation)`` pairs to use instead of the planes' own (:func:`feature_scale`)."""
     f = np.array(features, dtype=np.float64, copy=True)
     for m in range(f.shape[0]):
-        f[m] = _standard_plane(f[m])
+        f[m] = _standard_plane(f[m], None if scales is None else scales[m])
     return f
-
 
 
 def collaborative_regression(image, guide, variance, features, *, radius: int = 9, patch: int = 3, k: float = 1.0,
                              variance_scale: float = 2.0, ridge: float = RIDGE, threads: int | None = None,
                              return_weights: bool = False, return_centre_weight: bool = False, stride: int = 1,
-                             min_weight: float = MIN_COVER_WEIGHT):
+                             min_weight: float = MIN_COVER_WEIGHT, feature_scales=None):
     """Collaborative first-order regression of ``image`` on ``features``, weighted by NL-means of ``guide``.
 
     Parameters
@@ -483,6 +502,10 @@ def collaborative_regression(image, guide, variance, features, *, radius: int = 
     min_weight : float
         With ``stride`` > 1: the grid weight below which a pixel fits its
         own window (where its own window would give it weight 1).
+    feature_scales : sequence of D (mean, deviation) pairs, optional
+        Standardise the features by these (:func:`feature_scale` of a
+        larger image's planes: a tile of a film takes the film's) instead
+        of their own mean and deviation over ``features``.
 
     Returns
     -------
@@ -492,13 +515,13 @@ def collaborative_regression(image, guide, variance, features, *, radius: int = 
     return collaborative_regressions(image, guide, variance, features, ks=(k,), radius=radius, patch=patch,
                                      variance_scale=variance_scale, ridge=ridge, threads=threads,
                                      return_weights=return_weights, return_centre_weight=return_centre_weight,
-                                     stride=stride, min_weight=min_weight)[0]
+                                     stride=stride, min_weight=min_weight, feature_scales=feature_scales)[0]
 
 
 def collaborative_regressions(image, guide, variance, features, *, ks, radius: int = 9, patch: int = 3,
                               variance_scale: float = 2.0, ridge: float = RIDGE, threads: int | None = None,
                               return_weights: bool = False, return_centre_weight: bool = False, stride: int = 1,
-                              min_weight: float = MIN_COVER_WEIGHT) -> list:
+                              min_weight: float = MIN_COVER_WEIGHT, feature_scales=None) -> list:
     """:func:`collaborative_regression` of one image for several bandwidths ``ks`` in one pass.
 
     The bandwidths share the guide, the design and the colour: each
@@ -512,7 +535,7 @@ def collaborative_regressions(image, guide, variance, features, *, ks, radius: i
     ks : sequence of float
         The NL-means bandwidths, one result each (at least one).
     image, guide, variance, features, radius, patch, variance_scale, ridge, threads, return_weights,
-    return_centre_weight, stride, min_weight
+    return_centre_weight, stride, min_weight, feature_scales
         As :func:`collaborative_regression` (with a stride, each bandwidth's
         own weights choose its fallback windows: still bit-identical to a
         call with that bandwidth alone).
@@ -535,6 +558,9 @@ def collaborative_regressions(image, guide, variance, features, *, ks, radius: i
     if g.shape[1:] != (h, w) or v.shape != g.shape or feats.shape[:2] != (h, w):
         raise ValueError(f"collaborative_regression: shapes differ: image {img.shape}, guide {g.shape[1:]}, "
                          f"variance {v.shape[1:]}, features {feats.shape} (H, W[, C])")
+    if feature_scales is not None and len(feature_scales) != feats.shape[2]:
+        raise ValueError(f"collaborative_regression: {len(feature_scales)} feature scales for "
+                         f"{feats.shape[2]} feature planes")
     r = int(radius)
     s = int(stride)
     if s < 1 or s > r + 1:
@@ -550,7 +576,8 @@ def collaborative_regressions(image, guide, variance, features, *, ks, radius: i
         ypad[c, r:r + h, r:r + w] = img[..., c]
     fpad = np.zeros((feats.shape[2], h + 2 * r, w + 2 * r))
     for m in range(feats.shape[2]):
-        fpad[m, r:r + h, r:r + w] = _standard_plane(feats[..., m])
+        fpad[m, r:r + h, r:r + w] = _standard_plane(feats[..., m], None if feature_scales is None
+                                                    else feature_scales[m])
     nk = len(ks)
     outs = [np.zeros((planes, h, w)) for _ in range(nk)]
     nt = n_threads(threads)

@@ -1,34 +1,27 @@
 """The contract every reconstruction / adaptive-sampling method implements.
 
-A method is configuration plus a per-run state, taught as eight concepts
-in ``docs/methods/writing-a-method.md``:
+A method is configuration plus a per-run state, taught as eight concepts in
+``docs/methods/writing-a-method.md``:
 
-1. **Options** -- :class:`Option` descriptions, validated once here; the
-   object is immutable afterwards (variants: :func:`variant_option`).
-2. **Inputs** -- :attr:`Method.requires`, a :class:`Requirements`; the
-   reader or the driver supplies them as :class:`MethodInputs`.  A method
-   never opens a file (no module in ``mcrecon.methods`` imports the I/O
-   layer).
-3. **Run state** -- :attr:`Method.run_type`, a :class:`RunState`
-   subclass created once per run by :meth:`Method.start`.
+1. **Options** -- :class:`Option` descriptions, validated once here; the object is immutable afterwards
+   (variants: :func:`variant_option`).
+2. **Inputs** -- :attr:`Method.requires`, a :class:`Requirements`; the reader or the driver supplies them as
+   :class:`MethodInputs`.  A method never opens a file (no module in ``mcrecon.methods`` imports the I/O layer).
+3. **Run state** -- :attr:`Method.run_type`, a :class:`RunState` subclass created once per run by
+   :meth:`Method.start`.
 4. **Reconstruction** -- :meth:`Method.reconstruct_run`.
-5. **Placement** -- :meth:`Method.place` (the round sized by
-   :meth:`Method.plan`, which a method may replace).
-6. **Initial pass** -- :meth:`Method.initial_pass`: the driver takes it,
-   so a plan never sees empty statistics.
-7. **Pipelining** -- :attr:`Method.pipeline`: plans safe from statistics
-   one round old (``AdaptiveState.pending``: the round in flight).
-8. **Samples as they come** -- :meth:`Method.observe` (methods that
-   declare ``requires.samples``) and :meth:`Method.finish`.
+5. **Placement** -- :meth:`Method.place` (the round sized by :meth:`Method.plan`, which a method may replace).
+6. **Initial pass** -- :meth:`Method.initial_pass`: the driver takes it, so a plan never sees empty statistics.
+7. **Pipelining** -- :attr:`Method.pipeline`: plans safe from statistics one round old
+   (``AdaptiveState.pending``: the round in flight).
+8. **Samples as they come** -- :meth:`Method.observe` (methods that declare ``requires.samples``) and
+   :meth:`Method.finish`.
 
-Resume contract: a plan may depend only on the options, the run state
-and the :class:`AdaptiveState` (statistics of every committed sample,
-round index, budget, the round's RNG).  A resumed run rebuilds the
-statistics from the log and, for methods that observe samples, replays
-``observe`` for each committed round in order, so it continues exactly
-where the killed run stopped.
+Resume contract: a plan may depend only on the options, the run state and the :class:`AdaptiveState`
+(statistics of every committed sample, round index, budget, the round's RNG).  A resumed run rebuilds the
+statistics from the log and, for methods that observe samples, replays ``observe`` for each committed round
+in order, so it continues exactly where the killed run stopped.
 """
-
 from __future__ import annotations
 
 import dataclasses
@@ -502,9 +495,18 @@ class Method:
         """
         return None
 
+    def tile_grid(self) -> tuple[int, int]:
+        """``(rows, columns)`` a grown tile's first pixel is a multiple of: kernels that work in bands of rows
+        from the array's first row sum in the film's order only on the film's bands.  Default (1, 1)."""
+        return (1, 1)
+
+    def for_tiles(self, inputs: "MethodInputs") -> "Method":
+        """The method the tiles of the film ``inputs`` run: the whole-image decisions it makes (nfor: its
+        features' scale) made once on the film and fixed in a copy.  Default: itself."""
+        return self
+
     # ------------------------------------------------------------- per run
-    def start(self, width: int, height: int, channels: Sequence[str] = ("R", "G", "B"), *,
-              reference: np.ndarray | None = None) -> RunState:
+    def start(self, width: int, height: int, channels: Sequence[str] = ("R", "G", "B"), *, reference=None) -> RunState:
         """A fresh per-run state for a ``width`` x ``height`` film."""
         if self.requires.reference == "required" and reference is None:
             raise InputError(self.where, "reference", "this configuration needs a reference image "
@@ -622,11 +624,9 @@ class Method:
     def round_size(self, state: AdaptiveState) -> int | None:
         """Samples of the next round after the initial pass, None when the budget is spent.
 
-        With an ``iterations`` option, what is left spread over the
-        iterations still to come (the last takes everything); with a
-        ``round_spp`` option, that many samples per pixel; else the total
-        doubles, each round capped (``max_round_parts``).
-        """
+        With an ``iterations`` option, what is left spread over the iterations still to come (the last takes
+        everything); with a ``round_spp`` option, that many samples per pixel; else the total doubles, each
+        round capped (``max_round_parts``)."""
         remaining = state.remaining
         if remaining <= 0:
             return None

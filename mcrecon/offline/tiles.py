@@ -11,6 +11,15 @@ arrays, most of a filter's peak, follow the tile.  For methods that read
 half buffers the Chan merge of the two halves is made tile by tile: the
 film's halves are the only statistics with their features held whole
 (no merged third copy beside them).
+
+Two methods of :class:`~mcrecon.methods.Method` tile it besides its halo:
+:meth:`~mcrecon.methods.Method.tile_grid`, ``(rows, columns)`` that a
+grown tile's first pixel is a multiple of (kernels that work in bands of
+rows from the array's first row sum in the film's order only on the
+film's bands), and :meth:`~mcrecon.methods.Method.for_tiles`, the method
+the tiles run, given the film's inputs: the whole-image decisions it
+makes (nfor: the scale of its features) computed once for the film and
+fixed in it.
 """
 
 from __future__ import annotations
@@ -45,7 +54,7 @@ def _splits(n: int, tile: int, even: bool) -> list[tuple[int, int]]:
     return list(zip(edges[:-1], edges[1:]))
 
 
-def tile_windows(width: int, height: int, tile: int, halo: int, *, even: bool = True):
+def tile_windows(width: int, height: int, tile: int, halo: int, *, even: bool = True, grid=(1, 1)):
     """``(outer, inner)`` windows of the tiles of a film, each ``(y0, y1, x0, x1)`` in film pixels.
 
     The film is cut into ``ceil(width / tile) x ceil(height / tile)`` tiles,
@@ -53,11 +62,15 @@ def tile_windows(width: int, height: int, tile: int, halo: int, *, even: bool = 
     ``even=False`` starting at multiples of ``tile`` (``dask.array``'s
     chunks, which :func:`mcrecon.distributed.map_tiles` reproduces); ``inner``
     is a tile, ``outer`` the tile grown by ``halo`` on every side and
-    clipped to the film (``map_overlap``'s ``boundary="none"``).
+    clipped to the film (``map_overlap``'s ``boundary="none"``), its first
+    row and column then moved back to multiples of ``grid`` ``(rows,
+    columns)`` (:meth:`~mcrecon.methods.Method.tile_grid`).
     """
+    gy, gx = (int(g) for g in grid)
     for y0, y1 in _splits(int(height), int(tile), even):
         for x0, x1 in _splits(int(width), int(tile), even):
-            outer = (max(0, y0 - halo), min(height, y1 + halo), max(0, x0 - halo), min(width, x1 + halo))
+            outer = (max(0, (y0 - halo) // gy * gy), min(height, y1 + halo),
+                     max(0, (x0 - halo) // gx * gx), min(width, x1 + halo))
             yield outer, (y0, y1, x0, x1)
 
 
@@ -150,22 +163,24 @@ def reconstruct_tiles(method: Method, inputs: MethodInputs, *, tile: int, diagno
     h, w, c = inputs.shape
     halo = tileable_halo(method, w, h, where, inputs=inputs)
     channels = inputs.channels
+    windows = list(tile_windows(w, h, tile, halo, grid=method.tile_grid()))
+    runner = method if len(windows) == 1 else method.for_tiles(inputs)  # one tile: the untiled run
     image = np.empty((h, w, c), np.float64)
     maps: dict[str, np.ndarray] = {}
     said: dict = {}
-    for outer, inner in tile_windows(w, h, tile, halo):
+    for outer, inner in windows:
         oy0, oy1, ox0, ox1 = outer
         y0, y1, x0, x1 = inner
         sub = tile_inputs(inputs, outer)
-        run = method.start(ox1 - ox0, oy1 - oy0, channels, reference=sub.reference)
+        run = runner.start(ox1 - ox0, oy1 - oy0, channels, reference=sub.reference)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            img = method.reconstruct(sub, run=run)
+            img = runner.reconstruct(sub, run=run)
         for wn in caught:  # what a method says of its inputs, said once for the film, not once a tile
             said.setdefault((wn.category, str(wn.message)), wn)
         iy, ix = slice(y0 - oy0, y1 - oy0), slice(x0 - ox0, x1 - ox0)
         image[y0:y1, x0:x1] = np.asarray(img, dtype=np.float64)[iy, ix]
-        for name, m in (method.diagnostics(run) if diagnostics else {}).items():
+        for name, m in (runner.diagnostics(run) if diagnostics else {}).items():
             m = np.asarray(m)
             if m.shape[:2] != (oy1 - oy0, ox1 - ox0):
                 continue  # not a per-pixel map: no tile of it to place

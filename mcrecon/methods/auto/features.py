@@ -24,7 +24,7 @@ from .estimates import cross_validation_mse, dual_buffer_mse, sure
 
 __all__ = ["Candidate", "DEFAULT_FEATURE_CANDIDATES", "FEATURE_CANDIDATES", "MIX_WEIGHTS", "dual_candidate",
            "feature_candidates", "feature_guided_half",
-           "release_prefiltered"]
+           "release_prefiltered", "seed_prefiltered"]
 
 #: Feature-guided candidates (option ``feature_candidates``), used when the samples carry features.
 FEATURE_CANDIDATES = ("nfor", "nfor_own", "dnlm", "mix", "xbil", "fbil", "oidn_aux")
@@ -147,6 +147,12 @@ def prefiltered_features(st: PixelStats, *, planes=None, stored_only: bool = Fal
     pf = nlmeans_filter(f, f, fv, radius=5, patch=3, k=0.5)
     _PREFILTERED[st] = (stamp, pf)
     return pf
+
+
+def seed_prefiltered(st: PixelStats, planes: np.ndarray) -> None:
+    """Store ``planes`` as ``st``'s prefiltered features (:func:`prefiltered_features`): a crop of a buffer
+    whose planes are computed takes the crop of them (the whole image's values, not a crop's edge effects)."""
+    _PREFILTERED[st] = (_stamp(st), planes)
 
 
 def release_prefiltered(*buffers: PixelStats) -> None:

@@ -42,6 +42,7 @@ from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGH
     release_prefiltered)
 from .blackbox import oidn_candidate
 from .nlmeans import nlmeans_cross
+from .proxy import REGRESSIONS, regression_share
 from ...filters.masked import MaskedSmoothing, smooth_masked
 from .passes import _mean_c, _picked
 from .selection import _global_prior, _largest_remainder, _no_push_in_heavy_tails, _region_guard, _relative_choice
@@ -131,6 +132,9 @@ class AutoRun(RunState):
     candidate_names: list | None = None
     #: GEM's run state for ``sampling="gem"`` (its selection's diagnostics only; planning reads the statistics).
     gem_run: object = None
+    #: The last reconstruction's tile proxy: the share of its tiles' pixels the regression candidates took
+    #: (:func:`.proxy.regression_share`; None where it did not run).
+    regression_share: float | None = None
 
 
 class AutoMethod(Method):
@@ -163,6 +167,10 @@ class AutoMethod(Method):
                "dnlm averaged 1:2, 1:1, 2:1), xbil (cross-bilateral, Rousselle et al. 2013); fbil (bilateral "
                "with feature weights only, SURE) from pixel statistics without halves; oidn_aux (OIDN on all the "
                "samples with the prefiltered albedo and normal); none: colour only"),
+        Option("regression_proxy", float, None, nullable=True, help="with features: compute the regression "
+               "candidates (nfor, nfor_own, mix) over the whole image only where auto's choice gives them at "
+               "least this share of the pixels of a few tiles (a tile proxy, run on frames of about 424^2 and "
+               "more; 0.1 measured, docs/methods/auto.md, Cost); None: always compute them", min=0.0, max=1.0),
         Option("scales", int, 8, "Gaussian scales of the gauss candidates (GEM's final bank)", min=1, max=16),
         Option("smooth", float, 2.0, "sigma (px) of the smoothing of the error maps before the choice "
                "(0: none)", min=0.0, max=32.0),
@@ -263,7 +271,12 @@ class AutoMethod(Method):
         return out
 
     # ------------------------------------------------------------ candidates
-    def _candidates(self, stats: PixelStats, halves: Halves | None, nonfinite: str):
+    def _candidates(self, stats: PixelStats, halves: Halves | None, nonfinite: str, *, given=None, run=None):
+        """Every candidate (choice order), the pixel means, their variance and the counts.
+
+        ``given``: the OIDN candidates, already computed (the proxy's mosaic takes crops of the whole
+        image's).  ``run``: where given, the regressions may be left out by the tile proxy
+        (``regression_proxy``, :func:`.proxy.regression_share`), whose share is stored on it."""
         p = self.params
         y = stats.mean
         count = stats.count
@@ -273,17 +286,32 @@ class AutoMethod(Method):
         # statistics, and the regressions' working arrays, the largest of a frame's, only OIDN's three
         # candidates besides, not every colour candidate's image and estimate as well
         aux = self._aux_replaces_oidn(stats)
-        regress = {"nfor", "nfor_own", "mix"} & set(self._feature_names)
+        regress = set(REGRESSIONS) & set(self._feature_names)
         if aux and regress and halves is not None and "albedo" in halves.a.features:
             # the halves' prefiltered features, computed once for OIDN's albedo and normal and the
             # regressions after it (the same planes either way)
             prefiltered_features(halves.a)
             prefiltered_features(halves.b)
-        black = (oidn_candidate("oidn", stats, v, halves, halves_only=aux)
-                 if "oidn" in self._names else [])
-        black_aux = oidn_candidate("oidn_aux", stats, v, halves, aux=True) if aux else []
-        guided = (self._feature_candidates(stats, halves.a, halves.b)
-                  if self._feature_names and halves is not None and halves.a.features else [])
+        if given is None:
+            black = (oidn_candidate("oidn", stats, v, halves, halves_only=aux)
+                     if "oidn" in self._names else [])
+            black_aux = oidn_candidate("oidn_aux", stats, v, halves, aux=True) if aux else []
+        else:
+            black = [c for c in given if c.name != "oidn_aux"]
+            black_aux = [c for c in given if c.name == "oidn_aux"]
+        fnames = self._feature_names
+        with_features = bool(fnames) and halves is not None and bool(halves.a.features)
+        if run is not None:
+            run.regression_share = None
+        if run is not None and with_features and regress and p["regression_proxy"] is not None:
+            # the regressions are half of a frame's time with features and most frames give them no
+            # pixel: judged on a few tiles first (docs/methods/auto.md, "Cost")
+            pf = [prefiltered_features(hf, stored_only=True) for hf in (halves.a, halves.b)]
+            share = regression_share(self, stats, halves, nonfinite, black + black_aux, pf)
+            run.regression_share = share
+            if share is not None and share < p["regression_proxy"]:
+                fnames = tuple(n for n in fnames if n not in REGRESSIONS)
+        guided = feature_candidates(fnames, halves.a, halves.b) if with_features else []
         v_sure = agreeing_variance(v, count)
         out: list[Candidate] = []
         names = self._names
@@ -370,8 +398,10 @@ class AutoMethod(Method):
         return out[0], out[1]
 
     # -------------------------------------------------------------- choice
-    def _select(self, run: "AutoRun", stats: PixelStats, halves, nonfinite="drop"):
-        cands, y, v, count = self._candidates(stats, halves, nonfinite)
+    def _select(self, run: "AutoRun", stats: PixelStats, halves, nonfinite="drop", *, given=None):
+        # given: the proxy's mosaic (its OIDN candidates cropped from the whole image's); no proxy inside it
+        cands, y, v, count = self._candidates(stats, halves, nonfinite, given=given,
+                                              run=run if given is None else None)
         run.candidate_names = [c.name for c in cands]
         for c in cands:  # the selection's passes read C order: one copy of a planar image, not one per pass
             c.image = np.ascontiguousarray(c.image, dtype=np.float64)

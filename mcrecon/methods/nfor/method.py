@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import math
 import warnings
 
 import numpy as np
@@ -14,10 +16,11 @@ from ...core.stats import PixelStats
 from ...errors import InputError, McreconWarning
 from ..base import Method, MethodInputs, Option, Requirements, RunState, variant_option
 from .firefly import leave_out_isolated
-from .pipeline import PAPER, denoise_planes
+from .pipeline import PAPER, denoise_planes, film_feature_scales
+from ...filters.nlmeans import BAND
 from ...filters.regression import MIN_COVER_WEIGHT, RIDGE
 
-__all__ = ["NFORMethod", "NFORRun", "feature_planes", "channel_floor"]
+__all__ = ["NFORMethod", "NFORRun", "feature_planes", "feature_components", "channel_floor"]
 
 _WHERE = "method nfor"
 #: The pipeline's parameters that are no option: the paper's (nfor_denoise's defaults).
@@ -75,6 +78,20 @@ def feature_planes(a: PixelStats, b: PixelStats, stats: PixelStats) -> tuple[np.
         z = np.zeros((h, w, 0))
         return z, z, z
     return np.concatenate(fa, axis=2), np.concatenate(fb, axis=2), np.concatenate(fv, axis=2)
+
+
+def feature_components(a: PixelStats, b: PixelStats):
+    """:func:`feature_planes` one component at a time: ``(feat_a, feat_b, feat_variance)`` (H, W) each, in the
+    order of :func:`feature_planes`' planes and bit-identical to them, with one feature's merge at a time
+    (the film's merged features are never held whole)."""
+    for name in a.feature_names:
+        ha, hb = a.features[name], b.features[name]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", McreconWarning)
+            fa, fb = _filled(ha, hb), _filled(hb, ha)
+        fv = mean_variance_policy(ha.merged(hb))
+        for m in range(fa.shape[2]):
+            yield fa[..., m], fb[..., m], fv[..., m]
 
 
 def channel_floor(var: np.ndarray, divisor: np.ndarray | None = None) -> np.ndarray:
@@ -158,6 +175,8 @@ class NFORMethod(Method):
     )
     requires = Requirements(samples=True, half_buffers=True, features="required")
     run_type = NFORRun
+    #: The film's feature scales a tile standardises by (:meth:`for_tiles`); None: the image's own.
+    _film_scales = None
     initial_spp = 4  # two samples in each half: a pixel's half needs one, its variance two in all
     pipeline = True  # uniform rounds: the plan reads only the sample count
 
@@ -166,6 +185,60 @@ class NFORMethod(Method):
         if params["stride"] > params["radius"] + 1:
             raise InputError(_WHERE, "stride", f"{params['stride']} leaves pixels outside every fitted window of "
                              f"radius {params['radius']}: use a stride of at most radius + 1 = {params['radius'] + 1}")
+
+    def halo(self, width, height):
+        # The reach of each stage, composed (a window of radius r with patches of radius f reads the
+        # guide up to r + f away; a regression's result at q averages the fits of the windows centred
+        # within r of q, each fitted on its whole window: 2r from the colour and features, 2r + f from
+        # its guide):
+        p = self.params
+        r, f = p["radius"], p["patch"]
+        # the prefiltered features: the other half's features as the guide of a (feature_radius,
+        # feature_patch) NL-means
+        pf = p["feature_radius"] + p["feature_patch"]
+        # each half's candidates: the other half's colour as the guide, the prefiltered features
+        first = max(2 * r + f, 2 * r + pf)
+        # the MSE estimates: the candidates' squared errors (pointwise) NL-means filtered, guided by the
+        # halves' mean (statistics: its own reach mse_radius + mse_patch)
+        rm, fm = PAPER["mse_radius"], PAPER["mse_patch"]
+        mse = max(first + rm, rm + fm)
+        # the selection: the binary map of the estimates, filtered the same way (one bandwidth: none)
+        sel = max(mse + rm, rm + fm) if len(self._bandwidths) == 2 else first
+        image = sel
+        if p["second_pass"]:
+            # the averaged features filtered again, then one regression guided by the first pass's result
+            final_feature = pf + PAPER["final_feature_radius"] + PAPER["final_feature_patch"]
+            image = max(2 * r + f + sel, 2 * r + final_feature)
+        # the clamp: the 3 x 3 sample range and pooled variance, the firefly rule's 8 neighbours (of the
+        # statistics); the diagnostics: the selection map and the MSE estimate
+        return int(max(image, mse, 1 if p["safeguard"] is not None else 0))
+
+    def tile_grid(self) -> tuple[int, int]:
+        """Rows and columns a grown tile's first pixel is a multiple of (:func:`~mcrecon.offline.tiles.tile_windows`).
+
+        The NL-means and regression kernels work in bands of :data:`~mcrecon.filters.nlmeans.BAND` rows
+        from the array's first row (a patch's running sums restart at each band, a pixel's collaborative
+        sums add up band by band), and a stride fits windows on a grid from the array's first pixel: a
+        tile anchored on the film's bands and grid makes every sum in the same order as the film's."""
+        s = self.params["stride"]
+        return BAND * s // math.gcd(BAND, s), s
+
+    def for_tiles(self, inputs: MethodInputs) -> "NFORMethod":
+        """This method for the tiles of the film ``inputs`` (its half buffers with features): a copy that
+        standardises every tile's features by the film's means and deviations
+        (:func:`~mcrecon.methods.nfor.pipeline.film_feature_scales`), the one whole-image decision of the
+        pipeline (the ridge's scale), made here once."""
+        a, b = inputs.halves
+        p = self.params
+        scales = film_feature_scales(feature_components(a, b), feature_radius=p["feature_radius"],
+                                     feature_patch=p["feature_patch"], feature_k=p["feature_k"],
+                                     final_feature_radius=PAPER["final_feature_radius"],
+                                     final_feature_patch=PAPER["final_feature_patch"],
+                                     final_feature_k=PAPER["final_feature_k"], second_pass=p["second_pass"],
+                                     threads=p["threads"])
+        tiled = copy.copy(self)
+        object.__setattr__(tiled, "_film_scales", scales)
+        return tiled
 
     def reconstruct_run(self, run: NFORRun, inputs: MethodInputs) -> np.ndarray:
         """The NFOR image (H, W, C) float64 (:func:`mcrecon.methods.nfor.pipeline.nfor_denoise`) of ``inputs.halves``.
@@ -191,7 +264,8 @@ class NFORMethod(Method):
                              feature_radius=p["feature_radius"], feature_patch=p["feature_patch"],
                              feature_k=p["feature_k"], second_pass=p["second_pass"], ridge=p["ridge"],
                              threads=p["threads"], stride=p["stride"], diagnostics=diag,
-                             min_weight=MIN_COVER_WEIGHT, **{k: PAPER[k] for k in _FIXED})
+                             min_weight=MIN_COVER_WEIGHT, feature_scales=self._film_scales,
+                             **{k: PAPER[k] for k in _FIXED})
         img = np.asarray(img, dtype=np.float64)
         if p["safeguard"] is not None:
             img = np.ascontiguousarray(img)

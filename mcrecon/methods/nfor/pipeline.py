@@ -32,9 +32,11 @@ from __future__ import annotations
 import numpy as np
 
 from ...filters.nlmeans import nlmeans_filter, nlmeans_filter_shared
-from ...filters.regression import MIN_COVER_WEIGHT, RIDGE, collaborative_regression, collaborative_regressions
+from ...filters.regression import (MIN_COVER_WEIGHT, RIDGE, collaborative_regression, collaborative_regressions,
+                                   feature_scale)
 
-__all__ = ["nfor_denoise", "denoise_planes", "prefilter_features", "cross_regression", "estimate_mse", "PAPER"]
+__all__ = ["nfor_denoise", "denoise_planes", "prefilter_features", "cross_regression", "estimate_mse",
+           "film_feature_scales", "PAPER"]
 
 #: The reference implementation's parameters.
 PAPER = dict(feature_radius=5, feature_patch=3, feature_k=0.5, radius=9, patch=3, bandwidths=(0.5, 1.0),
@@ -72,21 +74,22 @@ def prefilter_features(feat_a, feat_b, feat_variance, *, radius=5, patch=3, k=0.
 
 
 def cross_regression(y_a, y_b, variance, pf_a, pf_b, *, radius=9, patch=3, k=1.0, ridge=RIDGE, threads=None,
-                     stride=1, min_weight=MIN_COVER_WEIGHT):
+                     stride=1, min_weight=MIN_COVER_WEIGHT, scales_a=None, scales_b=None):
     """Sec. 5.2 for one bandwidth: half A regressed on half B's features with weights from B's colour, and
     B on A's.  ``F_A`` is then a linear function of ``y_A`` whose weights and design carry none of ``y_A``'s
     noise (nor of A's features), which the MSE estimate (:func:`estimate_mse`) relies on.
     Returns ``(F_A, F_B)``; with ``k`` a sequence of bandwidths, ``([F_A per k], [F_B per k])``, each
     half's bandwidths in one pass (:func:`.regression.collaborative_regressions`, bit-identical to one
     call per bandwidth).  ``stride``, ``min_weight``: windows fitted on a grid only
-    (:func:`.regression.collaborative_regression`)."""
+    (:func:`.regression.collaborative_regression`); ``scales_a``, ``scales_b``: the standardisation of
+    ``pf_a``'s and ``pf_b``'s planes when not their own (a tile's: the film's, :func:`film_feature_scales`)."""
     ks = tuple(k) if np.ndim(k) else (k,)
     c_a = collaborative_regressions(y_a, y_b, variance, pf_b, ks=ks, radius=radius, patch=patch,
                                     variance_scale=2.0, ridge=ridge, threads=threads, stride=stride,
-                                    min_weight=min_weight)
+                                    min_weight=min_weight, feature_scales=scales_b)
     c_b = collaborative_regressions(y_b, y_a, variance, pf_a, ks=ks, radius=radius, patch=patch,
                                     variance_scale=2.0, ridge=ridge, threads=threads, stride=stride,
-                                    min_weight=min_weight)
+                                    min_weight=min_weight, feature_scales=scales_a)
     return (c_a, c_b) if np.ndim(k) else (c_a[0], c_b[0])
 
 
@@ -143,11 +146,16 @@ def nfor_denoise(y_a, y_b, variance, feat_a, feat_b, feat_variance, *, feature_r
 
 def denoise_planes(planes: list, *, feature_radius, feature_patch, feature_k, radius, patch, bandwidths, mse_radius,
                    mse_patch, mse_k, final_feature_radius, final_feature_patch, final_feature_k, final_k, second_pass,
-                   ridge, threads, stride, min_weight, diagnostics) -> np.ndarray:
+                   ridge, threads, stride, min_weight, diagnostics, feature_scales=None) -> np.ndarray:
     """:func:`nfor_denoise` of ``planes`` = ``[y_a, y_b, variance, feat_a, feat_b, feat_variance]``, a list it
     empties: a caller that keeps no other reference to a plane lets it go once its stage is done (the
     unfiltered features after the prefilter, the halves' colours after the MSE estimate; at 1920 x 1080
-    with seven feature components, 0.35 and 0.1 GB that the later stages' buffers do not sit beside)."""
+    with seven feature components, 0.35 and 0.1 GB that the later stages' buffers do not sit beside).
+
+    ``feature_scales``: ``(scales_a, scales_b, scales_final)`` (:func:`film_feature_scales`), by which the
+    regressions standardise the prefiltered features of each half and the second pass's features,
+    instead of these planes' own means and deviations: the one decision of NFOR that reads the whole
+    image, made once for a film and handed to its tiles."""
     y_a, y_b, var, fa, fb, fv = (np.asarray(x, dtype=np.float64) for x in planes)
     planes.clear()
     y = 0.5 * (y_a + y_b)
@@ -158,8 +166,10 @@ def denoise_planes(planes: list, *, feature_radius, feature_patch, feature_k, ra
     del fa, fb, fv
     # 2. regression per bandwidth, cross-buffer (A's colour: B's weights and B's features)
     # (every bandwidth of a half in one pass: they share its guide, design and colour)
+    sc_a, sc_b, sc_final = (None, None, None) if feature_scales is None else feature_scales
     halves = list(zip(*cross_regression(y_a, y_b, var, pf_a, pf_b, radius=radius, patch=patch, k=bandwidths,
-                                        ridge=ridge, threads=threads, stride=stride, min_weight=min_weight)))
+                                        ridge=ridge, threads=threads, stride=stride, min_weight=min_weight,
+                                        scales_a=sc_a, scales_b=sc_b)))
     # the MSE estimates of every bandwidth share one guide and one set of parameters: one set of weights
     mses = nlmeans_filter_shared([estimate_mse(y_a, y_b, c_a, c_b, var) for c_a, c_b in halves], y, var,
                                  radius=mse_radius, patch=mse_patch, k=mse_k, threads=threads)
@@ -199,9 +209,39 @@ def denoise_planes(planes: list, *, feature_radius, feature_patch, feature_k, ra
             feat = pf_a  # (H, W, 0): no feature
         res = collaborative_regression(res, res, res_var, feat, radius=radius, patch=patch, k=final_k,
                                        variance_scale=2.0, ridge=ridge, threads=threads, stride=stride,
-                                       min_weight=min_weight)
+                                       min_weight=min_weight, feature_scales=sc_final)
     if diagnostics is not None:
         diagnostics["selection"] = sel
         diagnostics["estimated_mse"] = mse_best
         diagnostics["half_results"] = (r_a, r_b)
     return res
+
+
+def film_feature_scales(components, *, feature_radius, feature_patch, feature_k, final_feature_radius,
+                        final_feature_patch, final_feature_k, second_pass, threads=None) -> tuple:
+    """The means and deviations by which :func:`denoise_planes` standardises the features of a whole film:
+    ``(scales_a, scales_b, scales_final)``, each a tuple of ``(mean, deviation)`` per feature component
+    (:func:`mcrecon.filters.regression.feature_scale`; ``scales_final`` empty without the second pass).
+
+    ``components`` yields each feature component's film planes ``(feat_a, feat_b, feat_variance)`` (H, W)
+    in :func:`denoise_planes`'s order.  Each is prefiltered (and averaged and filtered for the second
+    pass) on its own: the NL-means filters weigh every channel by its own distances, so a component's
+    planes are those the untiled pipeline makes of all of them at once, bit for bit, and their means
+    and deviations are the untiled regression's.  A handful of planes of the film at a time, not the
+    features' (H, W, D) arrays; the cost is the untiled prefilter's once more.
+    """
+    sc_a, sc_b, sc_final = [], [], []
+    for fa, fb, fv in components:
+        pf_a, pf_b = prefilter_features(fa[..., None], fb[..., None], fv[..., None], radius=feature_radius,
+                                        patch=feature_patch, k=feature_k, threads=threads)
+        del fa, fb, fv
+        sc_a.append(feature_scale(pf_a[..., 0]))
+        sc_b.append(feature_scale(pf_b[..., 0]))
+        if second_pass:  # as denoise_planes' step 4
+            feat = 0.5 * (pf_a + pf_b)
+            feat_var = 0.25 * (pf_b - pf_a) ** 2
+            del pf_a, pf_b
+            feat = nlmeans_filter(feat, feat, feat_var, radius=final_feature_radius, patch=final_feature_patch,
+                                  k=final_feature_k, threads=threads)
+            sc_final.append(feature_scale(feat[..., 0]))
+    return tuple(sc_a), tuple(sc_b), tuple(sc_final)

@@ -220,39 +220,68 @@ def _add_round_sums(pos, val, norm_code, weights, counts, s1, s2, c1, c2, feats,
     """:func:`round_sums`' pass over the samples ``k0 <= k < k1`` of the rows ``j0 <= j < j1``, in sample order:
     the terms of :func:`.outliers._count_and_moments`, :func:`_add_channel_sums`, :func:`_first_samples` and
     :func:`_add_feature_sums` (``feats`` a tuple of (N, k) arrays, columns stacked in their order; ``fs1``
-    with no column: no feature)."""
+    with no column: no feature).  A run of consecutive samples of one pixel (a renderer lists a pixel's
+    samples together) is summed into locals, one sum at a time, and stored once: each sum receives the
+    same terms in the same order, with the pixel found once per sample and each sum read and written
+    once per run."""
     h, w = counts.shape
     nc = c1.shape[2]
     with_features = fs1.shape[2] > 0
-    for k in range(k0, k1):
+    k = k0
+    while k < k1:
         py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
         if not j0 <= py < j1:
+            k += 1
             continue
         px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
-        g = _norm_of(val, k, norm_code, weights)
-        counts[py, px] += 1
-        s1[py, px] += g
-        s2[py, px] += g * g
+        end = k + 1
+        while end < k1 and min(max(int(math.floor(pos[end, 1])), 0), h - 1) == py \
+                and min(max(int(math.floor(pos[end, 0])), 0), w - 1) == px:
+            end += 1
+        n = counts[py, px]
+        a1 = s1[py, px]
+        a2 = s2[py, px]
+        for t in range(k, end):
+            g = _norm_of(val, t, norm_code, weights)
+            n += 1
+            a1 += g
+            a2 += g * g
+        counts[py, px] = n
+        s1[py, px] = a1
+        s2[py, px] = a2
         for c in range(nc):
-            v = np.float64(val[k, c])
-            c1[py, px, c] += v
-            c2[py, px, c] += v * v
+            a1 = c1[py, px, c]
+            a2 = c2[py, px, c]
+            for t in range(k, end):
+                v = np.float64(val[t, c])
+                a1 += v
+                a2 += v * v
+            c1[py, px, c] = a1
+            c2[py, px, c] = a2
         if with_features:
             q = py * w + px
             first = fn[py, px] == 0  # the pixel's first sample ever sets its shift
-            fn[py, px] += 1.0
+            fn[py, px] += end - k
             col = 0
             for f in literal_unroll(feats):
                 for c in range(f.shape[1]):
-                    x = np.float64(f[k, c])
-                    if not math.isfinite(x):
-                        x = 0.0
                     if first:
-                        shift[q, col + c] = x
-                    d = x - shift[q, col + c]
-                    fs1[py, px, col + c] += d
-                    fs2[py, px, col + c] += d * d
+                        x = np.float64(f[k, c])
+                        shift[q, col + c] = x if math.isfinite(x) else 0.0
+                    sh = shift[q, col + c]
+                    a1 = fs1[py, px, col + c]
+                    a2 = fs2[py, px, col + c]
+                    for t in range(k, end):
+                        x = np.float64(f[t, c])
+                        if not math.isfinite(x):
+                            x = 0.0
+                        d = x - sh
+                        a1 += d
+                        a2 += d * d
+                    fs1[py, px, col + c] = a1
+                    fs2[py, px, col + c] = a2
                 col += f.shape[1]
+        k = end
 
 
 #: Relative floor of a feature's spread in the gate: means that agree to this many digits are equal

@@ -39,6 +39,7 @@ from ...filters.luminance import LUMINANCE_WEIGHTS
 from .consistent import (FeatureSums, _split_and_radii, channel_sums, edge_radius, feature_moments, gate_k,
                          pixel_moments, round_sums, width_coefs)
 from .kernels import _add_widths, _splat_gated_loop
+from .gated import GATE_SIDE, _splat_gated_runs
 from .bands import in_bands, in_ranges, rows_sorted
 from .outliers import _box_sum, _count_and_moments, _norm_of, _outlier_thresholds, _split_and_deposit, _split_outliers
 
@@ -591,6 +592,7 @@ class ProgressiveSplatter:
             rounds = [arrays] if consistent else []
         w2 = self._width_sum.reshape(self.height, self.width)
         n2 = self._width_n.reshape(self.height, self.width)
+        gate_memo = None
         for p, v, srt in rounds:  # second pass: split and deposit
             p = np.ascontiguousarray(p, dtype=None if consistent else np.float64)
             v = np.ascontiguousarray(v, dtype=None if consistent else np.float64)
@@ -612,8 +614,14 @@ class ProgressiveSplatter:
             if consistent:
                 # in bands of rows of about equal samples, one per thread; a sample near a band's edge
                 # costs both threads its footprint (reach: a radius is at most max_width / 2)
-                fallback += sum(in_bands(_splat_gated_loop, (p, v, w_round, inv_counts, frac, krad, r_edge, gstats,
-                                                             fstats, self._gate_k ** 2, mode, img),
+                if mode == 1:  # renormalise: each footprint clipped to the film, a sum per sample
+                    gated, tail = _splat_gated_loop, ()
+                else:  # the gate's answers, kept for the round (its statistics hold for the round)
+                    if gate_memo is None:
+                        gate_memo = np.zeros((p_film, GATE_SIDE * GATE_SIDE), np.int8)
+                    gated, tail = _splat_gated_runs, (gate_memo,)
+                fallback += sum(in_bands(gated, (p, v, w_round, inv_counts, frac, krad, r_edge, gstats,
+                                                 fstats, self._gate_k ** 2, mode, img) + tail,
                                          p, self.height, row_work=row_work, sorted_rows=srt,
                                          reach=int(math.ceil(0.5 * self.max_width)) + 1))
             else:

@@ -1,0 +1,93 @@
+"""auto's tile proxy: the regression candidates are computed over the whole image only where a few tiles say
+they can win (option ``regression_proxy``)."""
+
+import numpy as np
+import pytest
+
+from mcrecon.core.halves import split_halves
+from mcrecon.core.samples import SampleSet
+from mcrecon.methods import get_method
+from mcrecon.methods.auto import proxy
+from mcrecon.methods.base import MethodInputs
+
+N = 48
+SPP = 8
+
+
+def _scene(kind, seed=0):
+    """Halves of an N x N film with albedo and normal: ``linear``, the colour a linear function of a
+    textured albedo (the regressions fit it exactly); ``uncorrelated``, a flat colour whose features are
+    fresh noise at every sample (nothing for a regression to fit)."""
+    rng = np.random.default_rng(seed)
+    n = N * N * SPP
+    pix = np.repeat(np.arange(N * N), SPP)
+    pos = np.stack([pix % N + rng.random(n), pix // N + rng.random(n)], axis=1)
+    if kind == "linear":
+        texture = rng.random((N * N, 3)) * 0.8 + 0.1
+        albedo = texture[pix]
+        colour = 0.1 + 2.0 * albedo
+    else:
+        albedo = rng.random((n, 3))
+        colour = np.full((n, 3), 0.5)
+    normal = rng.normal(size=(n, 3)) if kind != "linear" else np.tile([0.0, 0.0, 1.0], (n, 1))
+    values = colour * rng.exponential(size=(n, 1))
+    ss = SampleSet(pos, values, width=N, height=N, features={"albedo": albedo, "normal": normal})
+    return split_halves(ss, features=("albedo", "normal"))
+
+
+@pytest.fixture
+def small_tiles(monkeypatch):
+    # four 8 x 8 tiles grown by 12 px on a 48^2 film: the proxy is normally kept to frames of ~400^2 and more
+    monkeypatch.setattr(proxy, "TILE", 8)
+    monkeypatch.setattr(proxy, "HALO", 12)
+    monkeypatch.setattr(proxy, "MAX_AREA", 100.0)
+
+
+def _run(hv, threshold):
+    m = get_method("auto", regression_proxy=threshold)
+    run = m.start(N, N)
+    img = m.reconstruct_run(run, MethodInputs(hv.merged(), None, None, halves=hv))
+    return img, run
+
+
+def _calls(monkeypatch):
+    from mcrecon.filters import regression
+
+    seen, orig = [], regression.collaborative_regression
+
+    def spy(img, *a, **kw):
+        seen.append(img.shape[:2])
+        return orig(img, *a, **kw)
+
+    monkeypatch.setattr(regression, "collaborative_regression", spy)
+    return seen
+
+
+def test_the_proxy_skips_the_regressions_where_the_features_say_nothing(small_tiles, monkeypatch):
+    seen = _calls(monkeypatch)
+    _, run = _run(_scene("uncorrelated"), 0.05)
+    assert run.regression_share is not None and run.regression_share < 0.05
+    assert not any(n.startswith(("nfor", "mix")) for n in run.candidate_names)
+    # the regression ran on the proxy's mosaic of grown tiles only, never on the whole film
+    side = proxy.TILE + 2 * proxy.HALO
+    assert seen and all(s[1] == side for s in seen)
+
+
+def test_the_proxy_computes_the_regressions_where_they_win_and_the_image_is_unchanged(small_tiles):
+    hv = _scene("linear")
+    img, run = _run(hv, 0.05)
+    assert run.regression_share > 0.5
+    assert "nfor" in run.candidate_names
+    ref, ref_run = _run(hv, None)
+    assert ref_run.regression_share is None
+    np.testing.assert_array_equal(img, ref)
+
+
+def test_proxy_windows_fit_the_image_and_are_left_out_on_small_ones():
+    assert proxy.proxy_windows(128, 128) is None   # four grown 64^2 tiles would cover more than the frame
+    w = proxy.proxy_windows(1080, 1920)
+    assert len(w) == len(set(w)) >= proxy.MIN_TILES
+    for y0, x0 in w:
+        assert proxy.HALO <= y0 <= 1080 - proxy.HALO - proxy.TILE
+        assert proxy.HALO <= x0 <= 1920 - proxy.HALO - proxy.TILE
+    assert w == proxy.proxy_windows(1080, 1920)
