@@ -6,7 +6,7 @@ pixel's Owen-scrambled Sobol sequence continued round after round;
 ``independent``) at ``--spp``, over the same method reconstructing a
 uniform render of the same budget and sampler.  The scene renderer declares
 its sampler (``SceneRenderer.sampler``, docs/renderer-protocol.md), so a
-method whose ``net_counts`` follows the renderer (awr's default -1) hands
+method whose ``net_counts`` follows the renderer (awr's and auto's default -1) hands
 out whole nets with ``--sampler sobol`` and free counts with
 ``independent``; ``name:net_counts=0`` or ``=1`` decides it instead.
 ``--sampler both`` runs the two in turn.  Printed: the ratio's mean

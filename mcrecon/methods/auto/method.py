@@ -186,6 +186,11 @@ class AutoMethod(Method):
                "by auto's own error estimates", SAMPLINGS),
         Option("uniform_share", float, 0.5, "sampling='gem': share of each adaptive round spread uniformly "
                "(a defence against GEM's estimates where they mislead)", min=0.0, max=1.0),
+        Option("net_counts", int, -1, "sampling='gem': 1 spends each round in whole nets (the uniform share "
+               "breadth-first, GEM's counts rounded so every pixel's total is a power of two: a full net of a "
+               "stratified sampler; mcrecon.core.nets), 0 the counts as they fall, -1 (default) follows the "
+               "renderer: 1 where it declares a stratified sampler (Renderer.sampler 'sobol'), 0 for independent "
+               "samples (docs/adaptive.md)", choices=(-1, 0, 1)),
         Option("safeguard", float, 4.0, nullable=True, help="clamp each pixel into mean +- k standard errors "
                "of its mean and into the range of the samples around it (k; None: no clamp)", min=0.0),
         Option("global_prior", float, 3.0, nullable=True, help="z: every pixel takes the candidate of least "
@@ -574,5 +579,7 @@ class AutoMethod(Method):
         npix = state.width * state.height
         if run.gem_run is None:
             run.gem_run = gem.start(state.width, state.height, state.stats.channels)
+        # the floor's gate of 5 whatever the sampler: gem's 3 for independent samples costs auto's
+        # checker_spot (1.00 against 0.818) and checker_wall (docs/adaptive.md)
         sel = gem.select(run.gem_run, state.stats, final=False, want_mse=True)
         return gem.place_greedy(sel, sel.image, state, n, max(1, int(round(state.budget / npix))))

@@ -20,7 +20,7 @@ from .sampling import distribute_samples, sample_priority
 from .guard import RISK_RADIUS
 from .selection import CHANNEL_WEIGHTS, GAMMA_MAX, OUTLIER_RULES, GEMSelection, _pick, gem_select, oracle_select
 from ...core.fill import mean_variance_policy
-from ...core.safeguard import rare_component_variance
+from ...core.safeguard import RARE_THRESHOLD, rare_component_variance
 from ...core.strata import stratified_gain
 
 __all__ = ["GEMMethod", "GEMRun", "TARGET_EPS"]
@@ -29,6 +29,10 @@ __all__ = ["GEMMethod", "GEMRun", "TARGET_EPS"]
 #: eps as :func:`mcrecon.core.metrics.relative_mse`, so the target means what the
 #: reported error means.
 TARGET_EPS = 1e-2
+#: The adaptive floor's rare-component gate with independent samples (option ``rare_threshold`` None):
+#: a light one sample in 4 finds reads a per-sample relative variance of 4 in the pixel that found it,
+#: so at the initial pass only a gate below 4 lets its neighbours keep their share.
+RARE_THRESHOLD_INDEPENDENT = 3.0
 
 _WHERE = "method gem"
 
@@ -137,6 +141,11 @@ class GEMMethod(Method):
                "neighbourhood's mean per-sample variance where a neighbour's samples show a rare bright "
                "component (a spotlight, a caustic: relative variance above 5), so pixels whose samples all "
                "missed it keep their share of samples; 0 the pixel's own variance (the paper)", choices=(0, 1)),
+        Option("rare_threshold", float, None, nullable=True, help="adaptive phase, rare_light_floor=1: the "
+               "per-sample relative variance above which a pixel's samples show a rare bright component; None "
+               "(default) follows the renderer: 3 for independent samples (one hit in 4 initial samples reads 4, "
+               "which 5 misses), 5 where it declares a stratified sampler (there 3 costs checker_spot: "
+               "docs/adaptive.md)", min=0.0),
         Option("net_counts", int, 0, "adaptive phase: 1 spends each round in whole nets: the uniform share "
                "breadth-first (the pixels of fewest samples step up to their next power of two) and the greedy "
                "counts rounded so that every pixel's total is a power of two (a full net of a stratified "
@@ -187,12 +196,14 @@ class GEMMethod(Method):
         return run
 
     def select(self, run: "GEMRun", stats: PixelStats, *, final: bool, want_mse: bool = False,
-               gain: np.ndarray | None = None, strata=None) -> GEMSelection:
+               gain: np.ndarray | None = None, strata=None, rare_threshold: float | None = None) -> GEMSelection:
         """GEM's scale selection on ``stats``: the final reconstruction's (``final``) or the sampling phase's.
 
         ``gain`` (H, W), optional: the pixel means' stratification gain, which scales their variance.
         ``strata`` (:class:`~mcrecon.core.strata.PrefixHalves` of the same samples), optional: the
         final risk guard's second variance estimate (option ``guard_halves``).
+        ``rare_threshold``: the rare-component gate of the adaptive phase's floor (None:
+        :data:`~mcrecon.core.safeguard.RARE_THRESHOLD`; :meth:`place` reads the option and the sampler).
         """
         p = self.params
         sig = final_sigmas(p["final_scales"]) if final else adaptive_sigmas(p["adaptive_scales"])
@@ -202,7 +213,8 @@ class GEMMethod(Method):
         if not final and p["rare_light_floor"]:
             # pixels whose few samples all missed a rare bright component its neighbours found
             # read a variance near 0 and would get no samples (rare_component_variance)
-            mv = rare_component_variance(mv, base, count)
+            mv = rare_component_variance(mv, base, count, threshold=RARE_THRESHOLD if rare_threshold is None
+                                         else rare_threshold)
         if gain is not None:
             mv = mv * gain[..., None]
         s = self.grid
@@ -279,6 +291,18 @@ class GEMMethod(Method):
         return np.asarray(img, dtype=np.float64)
 
     # ------------------------------------------------------------ adaptive
+    def rare_gate(self, state: AdaptiveState) -> float:
+        """The adaptive floor's rare-component gate: the ``rare_threshold`` option, or with None the sampler's.
+
+        One hit in a pixel's 4 initial independent samples reads a relative variance of 4, which a gate
+        of 5 misses; with stratified samples a gate of 3 costs checker_spot more than it gains
+        (docs/adaptive.md).
+        """
+        thr = self.params["rare_threshold"]
+        if thr is not None:
+            return float(thr)
+        return RARE_THRESHOLD if state.sampler != "independent" else RARE_THRESHOLD_INDEPENDENT
+
     def place(self, run: "GEMRun", state: AdaptiveState, n: int):
         """One adaptive iteration (Secs. 5, 6): ``n`` samples as counts per pixel, or None at ``target_rel_mse``.
 
@@ -296,7 +320,7 @@ class GEMMethod(Method):
         npix = state.width * state.height
         n_pick = p["samples_per_pick"] or max(1, int(round(state.budget / npix)))
         gain = stratified_gain(state) if p["stratified_gain"] else None
-        sel = self.select(run, state.stats, final=False, want_mse=True, gain=gain)
+        sel = self.select(run, state.stats, final=False, want_mse=True, gain=gain, rare_threshold=self.rare_gate(state))
         value = run.reference if p["oracle"] else sel.image
         if p["target_rel_mse"] is not None and np.isfinite(sel.mse).all():
             est = float(np.mean(sel.mse / (value * value + TARGET_EPS)))

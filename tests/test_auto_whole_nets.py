@@ -1,0 +1,47 @@
+"""auto's adaptive rounds (GEM's placement) follow the renderer's sampler as awr's do: whole nets where it
+declares a stratified sampler (``net_counts=-1``, the default), the counts as they fall for independent
+samples; an explicit ``net_counts`` wins."""
+
+from __future__ import annotations
+
+import numpy as np
+
+import mcrecon
+from mcrecon.core.requests import SampleBatch, jittered_positions
+from mcrecon.methods import get_method
+
+W = H = 16
+
+
+class _Film:
+    """A cheap renderer: an edge and noise, the declared ``sampler``."""
+
+    channels = ("R", "G", "B")
+
+    def __init__(self, sampler):
+        self.width, self.height, self.sampler = W, H, sampler
+
+    def render(self, req):
+        g = np.random.default_rng([req.seed & 0xFFFFFFFF, req.round_index])
+        pos = jittered_positions(req.counts, g)
+        val = np.where(pos[:, :1] < W / 2, 0.2, 1.0) * g.uniform(0.5, 1.5, (len(pos), 3))
+        return SampleBatch(pos, val)
+
+
+def _counts(sampler, **opts):
+    m = get_method("auto", candidates="box,gauss", **opts)
+    return mcrecon.adapt(_Film(sampler), m, spp=24, seed=1, progress=False, track_error=False).stats.count
+
+
+def _pow2_share(counts):
+    c = counts.ravel()
+    return float(((c & (c - 1)) == 0).mean())
+
+
+def test_auto_spends_whole_nets_for_a_stratified_renderer():
+    sobol, indep = _counts("sobol"), _counts("independent")
+    assert sobol.sum() == indep.sum() == 24 * W * H
+    assert _pow2_share(sobol) > 0.9
+    assert _pow2_share(indep) < 0.7
+    assert np.array_equal(_counts("sobol", net_counts=0), indep)
+    assert np.array_equal(_counts("independent", net_counts=1), sobol)
