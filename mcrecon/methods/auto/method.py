@@ -135,6 +135,8 @@ class AutoRun(RunState):
     #: The last reconstruction's tile proxy: the share of its tiles' pixels the regression candidates took
     #: (:func:`.proxy.regression_share`; None where it did not run).
     regression_share: float | None = None
+    #: The candidate of least summed estimate over the proxy's tiles (:class:`.proxy.Verdict`; None alike).
+    regression_least: str | None = None
 
 
 class AutoMethod(Method):
@@ -297,14 +299,15 @@ class AutoMethod(Method):
         fnames = self._feature_names
         with_features = bool(fnames) and halves is not None and bool(halves.a.features)
         if run is not None:
-            run.regression_share = None
+            run.regression_share = run.regression_least = None
         if run is not None and with_features and regress and p["regression_proxy"] is not None:
             # the regressions are half of a frame's time with features and most frames give them no
             # pixel: judged on a few tiles first (docs/methods/auto.md, "Cost")
             pf = [prefiltered_features(hf, stored_only=True) for hf in (halves.a, halves.b)]
-            share = regression_share(self, stats, halves, nonfinite, black + black_aux, pf)
-            run.regression_share = share
-            if share is not None and share < p["regression_proxy"]:
+            verdict = regression_share(self, stats, halves, nonfinite, black + black_aux, pf)
+            run.regression_share = None if verdict is None else verdict.share
+            run.regression_least = None if verdict is None else verdict.least
+            if verdict is not None and not verdict.computes(p["regression_proxy"]):
                 fnames = tuple(n for n in fnames if n not in REGRESSIONS)
         guided = feature_candidates(fnames, halves.a, halves.b) if with_features else []
         v_sure = agreeing_variance(v, count)
@@ -393,10 +396,11 @@ class AutoMethod(Method):
         return out[0], out[1]
 
     # -------------------------------------------------------------- choice
-    def _select(self, run: "AutoRun", stats: PixelStats, halves, nonfinite="drop", *, given=None):
-        # given: the proxy's mosaic (its OIDN candidates cropped from the whole image's); no proxy inside it
-        cands, y, v, count = self._candidates(stats, halves, nonfinite, given=given,
-                                              run=run if given is None else None)
+    def _select(self, run: "AutoRun", stats: PixelStats, halves, nonfinite="drop", *, given=None, candidates=None):
+        # given: the proxy's mosaic (its OIDN candidates cropped from the whole image's); no proxy inside it.
+        # candidates: _candidates' result, computed before (the proxy reads their sums on its tiles too)
+        cands, y, v, count = candidates if candidates is not None else self._candidates(
+            stats, halves, nonfinite, given=given, run=run if given is None else None)
         run.candidate_names = [c.name for c in cands]
         for c in cands:  # the selection's passes read C order: one copy of a planar image, not one per pass
             c.image = np.ascontiguousarray(c.image, dtype=np.float64)
