@@ -14,22 +14,26 @@ N = 48
 SPP = 8
 
 
-def _scene(kind, seed=0):
+def _scene(kind, seed=0, spp=SPP):
     """Halves of an N x N film with albedo and normal: ``linear``, the colour a linear function of a
     textured albedo (the regressions fit it exactly); ``uncorrelated``, a flat colour whose features are
-    fresh noise at every sample (nothing for a regression to fit)."""
+    fresh noise at every sample (nothing for a regression to fit); ``unexplained``, a colour texture under
+    a constant albedo (the regressions' windows blur what the features do not carry)."""
     rng = np.random.default_rng(seed)
-    n = N * N * SPP
-    pix = np.repeat(np.arange(N * N), SPP)
+    n = N * N * spp
+    pix = np.repeat(np.arange(N * N), spp)
     pos = np.stack([pix % N + rng.random(n), pix // N + rng.random(n)], axis=1)
     if kind == "linear":
         texture = rng.random((N * N, 3)) * 0.8 + 0.1
         albedo = texture[pix]
         colour = 0.1 + 2.0 * albedo
+    elif kind == "unexplained":
+        colour = (rng.random((N * N, 3)) * 0.8 + 0.1)[pix]
+        albedo = np.full((n, 3), 0.5)
     else:
         albedo = rng.random((n, 3))
         colour = np.full((n, 3), 0.5)
-    normal = rng.normal(size=(n, 3)) if kind != "linear" else np.tile([0.0, 0.0, 1.0], (n, 1))
+    normal = rng.normal(size=(n, 3)) if kind == "uncorrelated" else np.tile([0.0, 0.0, 1.0], (n, 1))
     values = colour * rng.exponential(size=(n, 1))
     ss = SampleSet(pos, values, width=N, height=N, features={"albedo": albedo, "normal": normal})
     return split_halves(ss, features=("albedo", "normal"))
@@ -65,8 +69,9 @@ def _calls(monkeypatch):
 
 def test_the_proxy_skips_the_regressions_where_the_features_say_nothing(small_tiles, monkeypatch):
     seen = _calls(monkeypatch)
-    _, run = _run(_scene("uncorrelated"), 0.05)
+    _, run = _run(_scene("unexplained", spp=32), 0.05)
     assert run.regression_share is not None and run.regression_share < 0.05
+    assert not proxy.is_regression(run.regression_least)
     assert not any(n.startswith(("nfor", "mix")) for n in run.candidate_names)
     # the regression ran on the proxy's mosaic of grown tiles only, never on the whole film
     side = proxy.TILE + 2 * proxy.HALO
@@ -91,3 +96,21 @@ def test_proxy_windows_fit_the_image_and_are_left_out_on_small_ones():
         assert proxy.HALO <= y0 <= 1080 - proxy.HALO - proxy.TILE
         assert proxy.HALO <= x0 <= 1920 - proxy.HALO - proxy.TILE
     assert w == proxy.proxy_windows(1080, 1920)
+
+
+def test_the_proxy_computes_the_regressions_where_one_has_the_least_summed_estimate_on_the_tiles(small_tiles):
+    # the tiles' choice gives the regressions no pixel, yet one of them has the least summed estimate
+    # there: the whole frame's global prior, whose margin a frame clears more easily than a few tiles,
+    # may make it the default, so they are computed (the image is the proxy-off one)
+    hv = _scene("uncorrelated")
+    img, run = _run(hv, 0.05)
+    assert run.regression_share < 0.05 and proxy.is_regression(run.regression_least)
+    assert "nfor" in run.candidate_names
+    ref, _ = _run(hv, None)
+    np.testing.assert_array_equal(img, ref)
+
+
+def test_the_verdict_computes_on_either_ground():
+    assert proxy.Verdict(0.2, "nlm").computes(0.1)
+    assert proxy.Verdict(0.0, "nfor_own").computes(0.1) and proxy.Verdict(0.0, "mix33").computes(0.1)
+    assert not proxy.Verdict(0.05, "oidn_aux").computes(0.1)
