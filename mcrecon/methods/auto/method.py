@@ -135,8 +135,9 @@ class AutoRun(RunState):
     #: The last reconstruction's tile proxy: the share of its tiles' pixels the regression candidates took
     #: (:func:`.proxy.regression_share`; None where it did not run).
     regression_share: float | None = None
-    #: The candidate of least summed estimate over the proxy's tiles (:class:`.proxy.Verdict`; None alike).
-    regression_least: str | None = None
+    #: The whole of the proxy's verdict (:class:`.proxy.Verdict`: the share, the tiles' two least summed
+    #: estimates); None alike.
+    regression_verdict: object = None
 
 
 class AutoMethod(Method):
@@ -299,14 +300,14 @@ class AutoMethod(Method):
         fnames = self._feature_names
         with_features = bool(fnames) and halves is not None and bool(halves.a.features)
         if run is not None:
-            run.regression_share = run.regression_least = None
+            run.regression_share = run.regression_verdict = None
         if run is not None and with_features and regress and p["regression_proxy"] is not None:
             # the regressions are half of a frame's time with features and most frames give them no
             # pixel: judged on a few tiles first (docs/methods/auto.md, "Cost")
             pf = [prefiltered_features(hf, stored_only=True) for hf in (halves.a, halves.b)]
-            verdict = regression_share(self, stats, halves, nonfinite, black + black_aux, pf)
+            verdict = regression_share(self, stats, halves, nonfinite, black + black_aux, pf, steady=BLACK_BOXES)
             run.regression_share = None if verdict is None else verdict.share
-            run.regression_least = None if verdict is None else verdict.least
+            run.regression_verdict = verdict
             if verdict is not None and not verdict.computes(p["regression_proxy"]):
                 fnames = tuple(n for n in fnames if n not in REGRESSIONS)
         guided = feature_candidates(fnames, halves.a, halves.b) if with_features else []

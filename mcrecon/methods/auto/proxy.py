@@ -61,24 +61,36 @@ _STEP = (1.0 / _PHI2, 1.0 / (_PHI2 * _PHI2))
 
 
 class Verdict(NamedTuple):
-    """What the proxy's tiles say of the regressions: ``share``, the share of the interiors' pixels auto's
-    choice gives a regression candidate, and ``least``, the candidate of least summed estimate over the
-    interiors (the global prior's statistic: capped leave-one-out relative estimates, summed over the
-    pixels that vote)."""
+    """What the proxy's tiles say of the regressions.
+
+    ``share``: the share of the interiors' pixels auto's choice gives a regression candidate.  ``least``,
+    ``runner_up``: the two candidates of least summed estimate over the interiors, the pixel mean left
+    out (the global prior's statistic: capped leave-one-out relative estimates summed over the pixels
+    that vote); ``steady``: whether ``least`` is a black box, whose blend partner is another black box.
+    """
 
     share: float
     least: str
+    runner_up: str
+    steady: bool
 
     def computes(self, threshold: float) -> bool:
         """Whether the regressions are computed over the whole image: where their share reaches
-        ``threshold``, or where one of them has the least summed estimate.  The whole image's global prior
-        makes a regression its default where its sum undercuts the best colour candidate's by
-        ``Z_GLOBAL`` standard errors of the summed difference; the difference grows with the pixels
-        summed and its error only with their square root, so the margin a whole frame clears can fall
-        short on the tiles' few pixels, whose choice then gives the regressions almost nothing (a
-        defocused checkerboard at 512^2: 0.15 % on the tiles, 99.5 % on the frame).  The least sum on the
-        tiles, without the margin, is the test the frame can pass."""
-        return self.share >= threshold or is_regression(self.least)
+        ``threshold``, or where the tiles' sums make one of them the whole image's global default or its
+        blend partner.
+
+        The whole image's global prior makes a regression its default where its sum is the least and
+        undercuts the best colour candidate's by ``Z_GLOBAL`` standard errors of the summed difference;
+        the difference grows with the pixels summed and its error only with their square root, so a
+        frame clears the margin that its few tiles may not, and the tiles' choice then gives the
+        regressions almost nothing (a defocused checkerboard at 512^2: 0.15 % of the tiles, 99.5 % of the
+        frame).  The default is blended with the runner-up (:mod:`.blend`), which a regression can be
+        while it takes no pixel of its own (a defocused Cycles scene at 128^2: 2.5 % of the choice, 12 %
+        of the error).  So the least sum is read without the margin, and the runner-up as the blend reads
+        it (among black boxes where the default is one)."""
+        if self.share >= threshold or is_regression(self.least):
+            return True
+        return not self.steady and is_regression(self.runner_up)
 
 
 def is_regression(name: str) -> bool:
@@ -135,19 +147,20 @@ def _mosaic(a: np.ndarray, outer: list[tuple[int, int, int, int]]) -> np.ndarray
     return np.concatenate([a[y0:y1, x0:x1] for y0, y1, x0, x1 in outer], axis=0)
 
 
-def _least_summed(cands: list[Candidate], y, v, count, hi, inner, safeguard) -> str:
-    """The candidate of least summed estimate over the pixels ``inner`` that vote: the global prior's
-    statistic (:func:`.selection._global_prior`, without its significance test) on the interiors."""
+def _least_summed(cands: list[Candidate], y, v, count, hi, inner, safeguard) -> list[str]:
+    """The candidates' names by summed estimate over the pixels ``inner`` that vote, least first, the
+    pixel mean left out: the global prior's statistic (:func:`.selection._global_prior`, without its
+    significance test) on the interiors."""
     den_loo = relative_denominator_loo(y, v, count, eps=DEFAULT_EPS)
     cap = None if safeguard is None else (safeguard + 1.0) ** 2
     loo = _means([c.mse for c in cands], den_loo, v, cap)
     vote = inner & ~_apart(y, v, hi, den_loo, safeguard is not None) & np.isfinite(loo).all(axis=0)
-    sums = [float(np.sum(r[vote])) for r in loo]
-    return cands[int(np.argmin(sums))].name
+    sums = {c.name: float(np.sum(r[vote])) for r, c in zip(loo, cands) if c.name != "box"}
+    return sorted(sums, key=lambda n: (sums[n], list(sums).index(n)))
 
 
 def regression_share(method, stats: PixelStats, halves: Halves, nonfinite: str, given: list[Candidate],
-                     prefiltered=None, *, windows=None, tile: int | None = None,
+                     prefiltered=None, *, steady=(), windows=None, tile: int | None = None,
                      halo: int | None = None) -> Verdict | None:
     """What auto's choice on a few tiles says of the regression candidates (None: no proxy).
 
@@ -157,8 +170,10 @@ def regression_share(method, stats: PixelStats, halves: Halves, nonfinite: str, 
     it, and the halves' prefiltered feature planes ``prefiltered`` (a pair, whole-image ones) cropped into
     it where computed, so the regressions' values on the interiors are the whole image's.  The selection
     itself (the global prior's sums, the region guard) sees only the mosaic: its decisions there are
-    the proxy's, not the whole image's.  Returns the share of the interiors' pixels the choice gives a
-    regression candidate and the candidate of least summed estimate over them (:class:`Verdict`).
+    the proxy's, not the whole image's.  ``steady``: the names of the candidates the global prior blends
+    only with each other (auto's black boxes).  Returns the share of the interiors' pixels the choice
+    gives a regression candidate and the two candidates of least summed estimate over them
+    (:class:`Verdict`).
     """
     h, w = stats.count.shape
     tile = TILE if tile is None else int(tile)
@@ -186,9 +201,10 @@ def regression_share(method, stats: PixelStats, halves: Halves, nonfinite: str, 
         warnings.simplefilter("ignore", McreconWarning)
         computed = method._candidates(ms, mh, nonfinite, given=black)
         cands = list(computed[0])  # the selection replaces its default by a blend in its own list
-        least = _least_summed(cands, *computed[1:], sample_range_bounds(ms)[1], inner,
+        order = _least_summed(cands, *computed[1:], sample_range_bounds(ms)[1], inner,
                               method.params["safeguard"])
         method._select(run, ms, mh, nonfinite, candidates=computed)
     choice = run.diagnostics["choice"].astype(np.int64)
     regress = np.array([is_regression(n) for n in run.candidate_names])
-    return Verdict(float(regress[choice[inner]].mean()), least)
+    order += ["", ""]
+    return Verdict(float(regress[choice[inner]].mean()), order[0], order[1], order[0] in steady)
