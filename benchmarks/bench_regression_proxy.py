@@ -5,7 +5,9 @@ proxy's share and the two candidates of least summed estimate on its tiles (the 
 regressions where the share reaches the threshold or one of those is a regression the whole image's global
 prior would default to or blend with: :meth:`proxy.Verdict.computes`).  Variants: ``full`` (auto with the proxy off), ``skip`` (the regressions never computed),
 ``proxy`` (``regression_proxy=0``: the proxy runs and records its share, the regressions are always
-computed, so its image is ``full``'s and its extra CPU seconds are the proxy's).  ``--tile 32`` forces
+computed, so its image is ``full``'s and its extra CPU seconds are the proxy's), ``on`` (the proxy deciding at
+:data:`proxy.REGRESSION_SHARE`: its image is ``full``'s where it computes the regressions, ``skip``'s where
+not).  ``--tile 32`` forces
 the proxy at 128^2 (four 32^2 tiles), where it does not run by default.  ``--out``: JSON, resumed.
 
     MCRECON_CORPUS_DIR=/tmp/corpus_cache python benchmarks/bench_regression_proxy.py --half tuning \
@@ -23,7 +25,7 @@ from mcrecon.methods.auto import proxy  # noqa: E402
 from mcrecon.core.metrics import relative_mse  # noqa: E402
 
 VAR = {"full": {"regression_proxy": None}, "skip": {"feature_candidates": "dnlm,fbil,oidn_aux"},
-       "proxy": {"regression_proxy": 0.0}}
+       "proxy": {"regression_proxy": 0.0}, "on": {"regression_proxy": proxy.REGRESSION_SHARE}}
 
 
 def main():
