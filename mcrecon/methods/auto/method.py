@@ -172,8 +172,9 @@ class AutoMethod(Method):
                "samples with the prefiltered albedo and normal); none: colour only"),
         Option("regression_proxy", float, None, nullable=True, help="with features: compute the regression "
                "candidates (nfor, nfor_own, mix) over the whole image only where auto's choice gives them at "
-               "least this share of the pixels of a few tiles (a tile proxy, run on frames of about 424^2 and "
-               "more; 0.1 measured, docs/methods/auto.md, Cost); None: always compute them", min=0.0, max=1.0),
+               "least this share of the pixels of a few tiles, or the tiles' summed estimates make one of them "
+               "the global default or its blend partner (a tile proxy, run on frames of about 424^2 and more; "
+               "0.1 measured, docs/methods/auto.md, Cost); None: always compute them", min=0.0, max=1.0),
         Option("scales", int, 8, "Gaussian scales of the gauss candidates (GEM's final bank)", min=1, max=16),
         Option("smooth", float, 2.0, "sigma (px) of the smoothing of the error maps before the choice "
                "(0: none)", min=0.0, max=32.0),
