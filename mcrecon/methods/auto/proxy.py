@@ -36,10 +36,11 @@ __all__ = ["HALO", "MAX_AREA", "MIN_TILES", "REGRESSION_SHARE", "REGRESSIONS", "
 #: the mixes built from them.
 REGRESSIONS = ("nfor", "nfor_own", "mix")
 #: The share of the tiles' pixels the regression candidates must take for the regressions to be computed
-#: over the whole image (``regression_proxy=REGRESSION_SHARE``), unless a regression's summed estimate
-#: over the tiles is the least (:meth:`Verdict.computes`).  On the corpus's 22 feature scenes (128^2,
-#: 32 spp, four 32^2 tiles) the tiles gave them at least 0.73 on the five where they matter and at most
-#: 0.062 on the other 17 (docs/methods/auto.md, "Cost").
+#: over the whole image (``regression_proxy=REGRESSION_SHARE``) where the tiles' summed estimates do not
+#: make one of them the default or its blend partner (:meth:`Verdict.computes`).  On the corpus's 22
+#: feature scenes (128^2, 32 spp, four 32^2 tiles) the tiles gave them at least 0.73 on the five where
+#: they matter and at most 0.066 on the other 17; the option is off by default (docs/methods/auto.md,
+#: "Cost").
 REGRESSION_SHARE = 0.1
 #: Side of a tile's interior (pixels).
 TILE = 64
@@ -83,11 +84,11 @@ class Verdict(NamedTuple):
         undercuts the best colour candidate's by ``Z_GLOBAL`` standard errors of the summed difference;
         the difference grows with the pixels summed and its error only with their square root, so a
         frame clears the margin that its few tiles may not, and the tiles' choice then gives the
-        regressions almost nothing (a defocused checkerboard at 512^2: 0.15 % of the tiles, 99.5 % of the
+        regressions almost nothing (a defocused checkerboard at 512^2: 0.14 % of the tiles, 99.7 % of the
         frame).  The default is blended with the runner-up (:mod:`.blend`), which a regression can be
-        while it takes no pixel of its own (a defocused Cycles scene at 128^2: 2.5 % of the choice, 12 %
-        of the error).  So the least sum is read without the margin, and the runner-up as the blend reads
-        it (among black boxes where the default is one)."""
+        while it takes no pixel of its own (a defocused Cycles scene at 128^2: 2.5 % of the frame's
+        choice, 12 % of its error).  So the least sum is read without the margin, and the runner-up as
+        the blend reads it (among black boxes where the default is one)."""
         if self.share >= threshold or is_regression(self.least):
             return True
         return not self.steady and is_regression(self.runner_up)
