@@ -14,13 +14,13 @@ N = 48
 SPP = 8
 
 
-def _scene(kind, seed=0):
+def _scene(kind, seed=0, spp=SPP):
     """Halves of an N x N film with albedo and normal: ``linear``, the colour a linear function of a
     textured albedo (the regressions fit it exactly); ``uncorrelated``, a flat colour whose features are
     fresh noise at every sample (nothing for a regression to fit)."""
     rng = np.random.default_rng(seed)
-    n = N * N * SPP
-    pix = np.repeat(np.arange(N * N), SPP)
+    n = N * N * spp
+    pix = np.repeat(np.arange(N * N), spp)
     pos = np.stack([pix % N + rng.random(n), pix // N + rng.random(n)], axis=1)
     if kind == "linear":
         texture = rng.random((N * N, 3)) * 0.8 + 0.1
@@ -65,8 +65,11 @@ def _calls(monkeypatch):
 
 def test_the_proxy_skips_the_regressions_where_the_features_say_nothing(small_tiles, monkeypatch):
     seen = _calls(monkeypatch)
-    _, run = _run(_scene("uncorrelated"), 0.05)
+    # at 32 spp the widest Gaussians have the tiles' least summed estimates: no regression is the
+    # default's or its blend partner's candidate
+    _, run = _run(_scene("uncorrelated", seed=2, spp=32), 0.05)
     assert run.regression_share is not None and run.regression_share < 0.05
+    assert not run.regression_verdict.computes(0.05)
     assert not any(n.startswith(("nfor", "mix")) for n in run.candidate_names)
     # the regression ran on the proxy's mosaic of grown tiles only, never on the whole film
     side = proxy.TILE + 2 * proxy.HALO
@@ -91,3 +94,25 @@ def test_proxy_windows_fit_the_image_and_are_left_out_on_small_ones():
         assert proxy.HALO <= y0 <= 1080 - proxy.HALO - proxy.TILE
         assert proxy.HALO <= x0 <= 1920 - proxy.HALO - proxy.TILE
     assert w == proxy.proxy_windows(1080, 1920)
+
+
+def test_the_proxy_computes_the_regressions_where_one_has_the_least_summed_estimate_on_the_tiles(small_tiles):
+    # the tiles' choice gives the regressions no pixel, yet one of them has the least summed estimate
+    # there: the whole frame's global prior, whose margin a frame clears more easily than a few tiles,
+    # may make it the default, so they are computed (the image is the proxy-off one)
+    hv = _scene("uncorrelated")
+    img, run = _run(hv, 0.05)
+    assert run.regression_share < 0.05 and proxy.is_regression(run.regression_verdict.least)
+    assert "nfor" in run.candidate_names
+    ref, _ = _run(hv, None)
+    np.testing.assert_array_equal(img, ref)
+
+
+def test_the_verdict_computes_where_a_regression_may_be_the_default_or_its_blend_partner():
+    V = proxy.Verdict
+    assert V(0.2, "nlm", "gauss8", False).computes(0.1)
+    assert V(0.0, "nfor_own", "nlm", False).computes(0.1) and V(0.0, "mix33", "oidn_aux", False).computes(0.1)
+    # the runner-up is the default's blend partner, unless the default is a black box (its partner is one)
+    assert V(0.0, "nlm", "nfor", False).computes(0.1)
+    assert not V(0.0, "oidn_aux_halves", "nfor", True).computes(0.1)
+    assert not V(0.05, "oidn_aux", "dnlm", True).computes(0.1)

@@ -135,6 +135,9 @@ class AutoRun(RunState):
     #: The last reconstruction's tile proxy: the share of its tiles' pixels the regression candidates took
     #: (:func:`.proxy.regression_share`; None where it did not run).
     regression_share: float | None = None
+    #: The whole of the proxy's verdict (:class:`.proxy.Verdict`: the share, the tiles' two least summed
+    #: estimates); None alike.
+    regression_verdict: object = None
 
 
 class AutoMethod(Method):
@@ -169,8 +172,9 @@ class AutoMethod(Method):
                "samples with the prefiltered albedo and normal); none: colour only"),
         Option("regression_proxy", float, None, nullable=True, help="with features: compute the regression "
                "candidates (nfor, nfor_own, mix) over the whole image only where auto's choice gives them at "
-               "least this share of the pixels of a few tiles (a tile proxy, run on frames of about 424^2 and "
-               "more; 0.1 measured, docs/methods/auto.md, Cost); None: always compute them", min=0.0, max=1.0),
+               "least this share of the pixels of a few tiles, or the tiles' summed estimates make one of them "
+               "the global default or its blend partner (a tile proxy, run on frames of about 424^2 and more; "
+               "0.1 measured, docs/methods/auto.md, Cost); None: always compute them", min=0.0, max=1.0),
         Option("scales", int, 8, "Gaussian scales of the gauss candidates (GEM's final bank)", min=1, max=16),
         Option("smooth", float, 2.0, "sigma (px) of the smoothing of the error maps before the choice "
                "(0: none)", min=0.0, max=32.0),
@@ -302,14 +306,15 @@ class AutoMethod(Method):
         fnames = self._feature_names
         with_features = bool(fnames) and halves is not None and bool(halves.a.features)
         if run is not None:
-            run.regression_share = None
+            run.regression_share = run.regression_verdict = None
         if run is not None and with_features and regress and p["regression_proxy"] is not None:
             # the regressions are half of a frame's time with features and most frames give them no
             # pixel: judged on a few tiles first (docs/methods/auto.md, "Cost")
             pf = [prefiltered_features(hf, stored_only=True) for hf in (halves.a, halves.b)]
-            share = regression_share(self, stats, halves, nonfinite, black + black_aux, pf)
-            run.regression_share = share
-            if share is not None and share < p["regression_proxy"]:
+            verdict = regression_share(self, stats, halves, nonfinite, black + black_aux, pf, steady=BLACK_BOXES)
+            run.regression_share = None if verdict is None else verdict.share
+            run.regression_verdict = verdict
+            if verdict is not None and not verdict.computes(p["regression_proxy"]):
                 fnames = tuple(n for n in fnames if n not in REGRESSIONS)
         guided = feature_candidates(fnames, halves.a, halves.b) if with_features else []
         v_sure = agreeing_variance(v, count)
@@ -398,10 +403,11 @@ class AutoMethod(Method):
         return out[0], out[1]
 
     # -------------------------------------------------------------- choice
-    def _select(self, run: "AutoRun", stats: PixelStats, halves, nonfinite="drop", *, given=None):
-        # given: the proxy's mosaic (its OIDN candidates cropped from the whole image's); no proxy inside it
-        cands, y, v, count = self._candidates(stats, halves, nonfinite, given=given,
-                                              run=run if given is None else None)
+    def _select(self, run: "AutoRun", stats: PixelStats, halves, nonfinite="drop", *, given=None, candidates=None):
+        # given: the proxy's mosaic (its OIDN candidates cropped from the whole image's); no proxy inside it.
+        # candidates: _candidates' result, computed before (the proxy reads their sums on its tiles too)
+        cands, y, v, count = candidates if candidates is not None else self._candidates(
+            stats, halves, nonfinite, given=given, run=run if given is None else None)
         run.candidate_names = [c.name for c in cands]
         for c in cands:  # the selection's passes read C order: one copy of a planar image, not one per pass
             c.image = np.ascontiguousarray(c.image, dtype=np.float64)

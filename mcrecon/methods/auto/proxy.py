@@ -5,8 +5,9 @@ about half of auto's time with features, yet on most scenes the selection gives 
 (docs/methods/auto.md, "Cost").  :func:`regression_share` runs auto's candidates and its whole choice on
 a mosaic of a few deterministic tiles, each grown by the regressions' reach so that their values at the
 tile's interior are the whole image's, and returns the share of the interiors' pixels a regression
-candidate takes.  The caller computes the regressions over the whole image only where that share is
-meaningful.  On images too small for a few tiles to cost well under the regressions themselves the
+candidate takes, with the candidate of least summed estimate over the interiors.  The caller computes the
+regressions over the whole image where that share is meaningful or a regression's sum is the least
+(:meth:`Verdict.computes`).  On images too small for a few tiles to cost well under the regressions themselves the
 proxy does not run (None) and the regressions are computed.
 """
 
@@ -14,26 +15,32 @@ from __future__ import annotations
 
 import math
 import warnings
+from typing import NamedTuple
 
 import numpy as np
 
 from ...core.halves import Halves
+from ...core.metrics import DEFAULT_EPS
+from ...core.safeguard import sample_range_bounds
 from ...core.stats import PixelStats
 from ...errors import McreconWarning
+from .estimates import relative_denominator_loo
 from .features import Candidate, seed_prefiltered
+from .passes import _means
+from .selection import _apart
 
-__all__ = ["HALO", "MAX_AREA", "MIN_TILES", "REGRESSION_SHARE", "REGRESSIONS", "TILE", "TILE_SHARE", "is_regression",
-           "proxy_windows", "regression_share"]
+__all__ = ["HALO", "MAX_AREA", "MIN_TILES", "REGRESSION_SHARE", "REGRESSIONS", "TILE", "TILE_SHARE", "Verdict",
+           "is_regression", "proxy_windows", "regression_share"]
 
 #: The feature candidates the proxy decides on: the two regressions of :func:`.features._regressions` and
 #: the mixes built from them.
 REGRESSIONS = ("nfor", "nfor_own", "mix")
 #: The share of the tiles' pixels the regression candidates must take for the regressions to be computed
-#: over the whole image (``regression_proxy=REGRESSION_SHARE``; the option is off by default).  On the
-#: corpus's 22 feature scenes (128^2, 32 spp, four 32^2 tiles) the tiles gave them at least 0.73 on the five
-#: where they matter and at most 0.062 on the other 17; at 512^2 the proxy misses the held-out checker_dof-1
-#: (0.0015 on the tiles, 0.995 of the whole image's choice: auto 1.17x without them), so it is an option
-#: (docs/methods/auto.md, "Cost").
+#: over the whole image (``regression_proxy=REGRESSION_SHARE``) where the tiles' summed estimates do not
+#: make one of them the default or its blend partner (:meth:`Verdict.computes`).  On the corpus's 22
+#: feature scenes (128^2, 32 spp, four 32^2 tiles) the tiles gave them at least 0.73 on the five where
+#: they matter and at most 0.066 on the other 17; the option is off by default (docs/methods/auto.md,
+#: "Cost").
 REGRESSION_SHARE = 0.1
 #: Side of a tile's interior (pixels).
 TILE = 64
@@ -52,6 +59,39 @@ MAX_AREA = 0.25
 #: The R2 sequence's steps (Roberts 2018): the k-th tile's centre, a low-discrepancy spread over the image.
 _PHI2 = 1.324717957244746
 _STEP = (1.0 / _PHI2, 1.0 / (_PHI2 * _PHI2))
+
+
+class Verdict(NamedTuple):
+    """What the proxy's tiles say of the regressions.
+
+    ``share``: the share of the interiors' pixels auto's choice gives a regression candidate.  ``least``,
+    ``runner_up``: the two candidates of least summed estimate over the interiors, the pixel mean left
+    out (the global prior's statistic: capped leave-one-out relative estimates summed over the pixels
+    that vote); ``steady``: whether ``least`` is a black box, whose blend partner is another black box.
+    """
+
+    share: float
+    least: str
+    runner_up: str
+    steady: bool
+
+    def computes(self, threshold: float) -> bool:
+        """Whether the regressions are computed over the whole image: where their share reaches
+        ``threshold``, or where the tiles' sums make one of them the whole image's global default or its
+        blend partner.
+
+        The whole image's global prior makes a regression its default where its sum is the least and
+        undercuts the best colour candidate's by ``Z_GLOBAL`` standard errors of the summed difference;
+        the difference grows with the pixels summed and its error only with their square root, so a
+        frame clears the margin that its few tiles may not, and the tiles' choice then gives the
+        regressions almost nothing (a defocused checkerboard at 512^2: 0.14 % of the tiles, 99.7 % of the
+        frame).  The default is blended with the runner-up (:mod:`.blend`), which a regression can be
+        while it takes no pixel of its own (a defocused Cycles scene at 128^2: 2.5 % of the frame's
+        choice, 12 % of its error).  So the least sum is read without the margin, and the runner-up as
+        the blend reads it (among black boxes where the default is one)."""
+        if self.share >= threshold or is_regression(self.least):
+            return True
+        return not self.steady and is_regression(self.runner_up)
 
 
 def is_regression(name: str) -> bool:
@@ -108,10 +148,22 @@ def _mosaic(a: np.ndarray, outer: list[tuple[int, int, int, int]]) -> np.ndarray
     return np.concatenate([a[y0:y1, x0:x1] for y0, y1, x0, x1 in outer], axis=0)
 
 
+def _least_summed(cands: list[Candidate], y, v, count, hi, inner, safeguard) -> list[str]:
+    """The candidates' names by summed estimate over the pixels ``inner`` that vote, least first, the
+    pixel mean left out: the global prior's statistic (:func:`.selection._global_prior`, without its
+    significance test) on the interiors."""
+    den_loo = relative_denominator_loo(y, v, count, eps=DEFAULT_EPS)
+    cap = None if safeguard is None else (safeguard + 1.0) ** 2
+    loo = _means([c.mse for c in cands], den_loo, v, cap)
+    vote = inner & ~_apart(y, v, hi, den_loo, safeguard is not None) & np.isfinite(loo).all(axis=0)
+    sums = {c.name: float(np.sum(r[vote])) for r, c in zip(loo, cands) if c.name != "box"}
+    return sorted(sums, key=lambda n: (sums[n], list(sums).index(n)))
+
+
 def regression_share(method, stats: PixelStats, halves: Halves, nonfinite: str, given: list[Candidate],
-                     prefiltered=None, *, windows=None, tile: int | None = None,
-                     halo: int | None = None) -> float | None:
-    """The share of the tile interiors' pixels auto's choice gives a regression candidate (None: no proxy).
+                     prefiltered=None, *, steady=(), windows=None, tile: int | None = None,
+                     halo: int | None = None) -> Verdict | None:
+    """What auto's choice on a few tiles says of the regression candidates (None: no proxy).
 
     ``method``: the :class:`~.method.AutoMethod`; its candidates and choice run on the mosaic of the grown
     tiles (``windows`` default :func:`proxy_windows`) as on a frame of its own, with the OIDN candidates
@@ -119,7 +171,10 @@ def regression_share(method, stats: PixelStats, halves: Halves, nonfinite: str, 
     it, and the halves' prefiltered feature planes ``prefiltered`` (a pair, whole-image ones) cropped into
     it where computed, so the regressions' values on the interiors are the whole image's.  The selection
     itself (the global prior's sums, the region guard) sees only the mosaic: its decisions there are
-    the proxy's, not the whole image's.
+    the proxy's, not the whole image's.  ``steady``: the names of the candidates the global prior blends
+    only with each other (auto's black boxes).  Returns the share of the interiors' pixels the choice
+    gives a regression candidate and the two candidates of least summed estimate over them
+    (:class:`Verdict`).
     """
     h, w = stats.count.shape
     tile = TILE if tile is None else int(tile)
@@ -138,12 +193,19 @@ def regression_share(method, stats: PixelStats, halves: Halves, nonfinite: str, 
                 seed_prefiltered(st, _mosaic(pf, outer))
     black = [Candidate(c.name, _mosaic(c.image, outer), _mosaic(c.mse, outer), c.feature) for c in given]
     side = tile + 2 * halo
+    ms = crop(stats)
     run = method.start(side, len(outer) * side, stats.channels)
+    inner = np.zeros((len(outer) * side, side), bool)
+    for i in range(len(outer)):
+        inner[i * side + halo:i * side + halo + tile, halo:halo + tile] = True
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", McreconWarning)
-        method._select(run, crop(stats), mh, nonfinite, given=black)
+        computed = method._candidates(ms, mh, nonfinite, given=black)
+        cands = list(computed[0])  # the selection replaces its default by a blend in its own list
+        order = _least_summed(cands, *computed[1:], sample_range_bounds(ms)[1], inner,
+                              method.params["safeguard"])
+        method._select(run, ms, mh, nonfinite, candidates=computed)
     choice = run.diagnostics["choice"].astype(np.int64)
     regress = np.array([is_regression(n) for n in run.candidate_names])
-    inner = np.concatenate([choice[i * side + halo:i * side + halo + tile, halo:halo + tile]
-                            for i in range(len(outer))], axis=0)
-    return float(regress[inner].mean())
+    order += ["", ""]
+    return Verdict(float(regress[choice[inner]].mean()), order[0], order[1], order[0] in steady)
