@@ -768,7 +768,10 @@ def test_global_prior_changes_nothing_when_the_pixel_mean_is_the_best_single_can
 
 
 def test_gem_sampling_places_the_non_uniform_share_where_gem_does():
-    """uniform_share=0 is GEM's own placement: the same counts as GEM's plan on the same statistics."""
+    """uniform_share=0 is GEM's own placement: the same counts as GEM's plan on the same statistics, with GEM's
+    rare-light gate at auto's (:data:`~mcrecon.core.safeguard.RARE_THRESHOLD`; GEM's own default gate for
+    independent samples is lower)."""
+    from mcrecon.core.safeguard import RARE_THRESHOLD
     from mcrecon.methods.base import AdaptiveState
     from mcrecon.renderers import scenes
     from mcrecon.core.stats import PixelStats
@@ -783,7 +786,7 @@ def test_gem_sampling_places_the_non_uniform_share_where_gem_does():
         return method.plan(method.start(w, h), state)
 
     req_auto = plan(get_method("auto", uniform_share=0.0, iterations=8))
-    req_gem = plan(get_method("gem", uniform_share=0.0))
+    req_gem = plan(get_method("gem", uniform_share=0.0, rare_threshold=RARE_THRESHOLD))
     assert req_auto.positions is None and req_gem.positions is None
     np.testing.assert_array_equal(req_auto.counts, req_gem.counts)
     # with a uniform share, that share is spread evenly over the pixels on top of GEM's counts

@@ -7,30 +7,24 @@ from __future__ import annotations
 import numpy as np
 
 import mcrecon
-from mcrecon.core.requests import SampleBatch, jittered_positions
 from mcrecon.methods import get_method
+
+from helpers import jittered_renderer
 
 W = H = 16
 
 
-class _Film:
+def _film(sampler):
     """A cheap renderer: an edge and noise, the declared ``sampler``."""
-
-    channels = ("R", "G", "B")
-
-    def __init__(self, sampler):
-        self.width, self.height, self.sampler = W, H, sampler
-
-    def render(self, req):
-        g = np.random.default_rng([req.seed & 0xFFFFFFFF, req.round_index])
-        pos = jittered_positions(req.counts, g)
-        val = np.where(pos[:, :1] < W / 2, 0.2, 1.0) * g.uniform(0.5, 1.5, (len(pos), 3))
-        return SampleBatch(pos, val)
+    film = jittered_renderer(lambda pos, rng, req: np.where(pos[:, :1] < W / 2, 0.2, 1.0)
+                             * rng.uniform(0.5, 1.5, (len(pos), 3)), width=W, height=H)
+    film.sampler = sampler
+    return film
 
 
 def _counts(sampler, **opts):
     m = get_method("auto", candidates="box,gauss", **opts)
-    return mcrecon.adapt(_Film(sampler), m, spp=24, seed=1, progress=False, track_error=False).stats.count
+    return mcrecon.adapt(_film(sampler), m, spp=24, seed=1, progress=False, track_error=False).stats.count
 
 
 def _pow2_share(counts):

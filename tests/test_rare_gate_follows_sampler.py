@@ -7,9 +7,10 @@ from __future__ import annotations
 import numpy as np
 
 import mcrecon
-from mcrecon.core.requests import SampleBatch, jittered_positions
 from mcrecon.core.stats import PixelStats
 from mcrecon.methods import get_method
+
+from helpers import jittered_renderer
 
 
 def _spot_stats(w=24, h=20, spp=4, p=0.15, light=40.0, seed=3):
@@ -37,24 +38,20 @@ def test_a_gate_of_3_reaches_pixels_next_to_one_hit_in_4():
     assert share[5.0] < 0.01 and share[3.0] > 0.05
 
 
-class _Spot:
+def _spot(sampler):
     """A renderer of a light found by 15 % of the samples inside a disc, declaring ``sampler``."""
-
-    channels = ("R", "G", "B")
-
-    def __init__(self, sampler):
-        self.width, self.height, self.sampler = 24, 20, sampler
-
-    def render(self, req):
-        g = np.random.default_rng([req.seed & 0xFFFFFFFF, req.round_index])
-        pos = jittered_positions(req.counts, g)
+    def shade(pos, rng, req):
         inside = (pos[:, 0] - 12) ** 2 + (pos[:, 1] - 10) ** 2 < 8 ** 2
-        v = 0.5 + 0.02 * g.standard_normal(len(pos)) + np.where(inside & (g.random(len(pos)) < 0.15), 40.0, 0.0)
-        return SampleBatch(pos, np.repeat(v[:, None], 3, axis=1))
+        v = 0.5 + 0.02 * rng.standard_normal(len(pos)) + np.where(inside & (rng.random(len(pos)) < 0.15), 40.0, 0.0)
+        return np.repeat(v[:, None], 3, axis=1)
+
+    film = jittered_renderer(shade, width=24, height=20)
+    film.sampler = sampler
+    return film
 
 
 def _counts(sampler, **opts):
-    return mcrecon.adapt(_Spot(sampler), get_method("gem", **opts), spp=16, seed=2, progress=False,
+    return mcrecon.adapt(_spot(sampler), get_method("gem", **opts), spp=16, seed=2, progress=False,
                          track_error=False).stats.count
 
 
