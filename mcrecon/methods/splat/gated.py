@@ -66,20 +66,6 @@ def _footprint_sum(r2, cnt, sq):
     return cnt[lim] - sq[lim] / r2
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _first_above(r2s, n, x):
-    """The first index t < n of the ascending ``r2s`` with ``r2s[t] > x`` (n: none)."""
-    lo = 0
-    hi = n
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if r2s[mid] > x:
-            hi = mid
-        else:
-            lo = mid + 1
-    return lo
-
-
 @numba.njit(cache=True, nogil=True)
 def _splat_gated_runs(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, fs, k2, mode, out, gate, k0, k1,
                       j0, j1):
@@ -173,7 +159,7 @@ def _splat_gated_runs(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
                     n2 = dx * dx + dy * dy
                     if not n2 < rmax2:
                         continue
-                    i_d = _first_above(r2s, n, n2)
+                    i_d = np.searchsorted(r2s[:n], n2, side="right")   # the first radius beyond n2 (n: none)
                     i = px + dx
                     ii = i if 0 <= i < w else _reflect(i, w)
                     if jj == j and ii == i and -GATE_HALF <= dx <= GATE_HALF and -GATE_HALF <= dy <= GATE_HALF:
@@ -189,7 +175,7 @@ def _splat_gated_runs(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
                     re = min(rp, r_edge[jj, ii]) if passes else -1.0
                     re2 = re * re
                     if re > 0.0 and n2 < re2:
-                        i_re = _first_above(r2s, n, re2)
+                        i_re = np.searchsorted(r2s[:n], re2, side="right")
                         g = 1.0 - n2 / re2
                         for c in range(nc):
                             dep[c] = (sa[i_d, c] - sa[i_re, c]) - n2 * (sb[i_d, c] - sb[i_re, c]) + sa[i_re, c] * g
