@@ -184,6 +184,17 @@ class RecordingScene(SceneRenderer):
         return super().render(request)
 
 
+def feature_samples(n, seed, *, width, height):
+    """``(positions, values, features)`` of ``n`` random samples on a ``width`` x ``height`` film: gamma
+    values and an albedo, normal and depth per sample, drawn in that order from ``seed``."""
+    rng = np.random.default_rng(seed)
+    pos = rng.uniform(0, [width, height], size=(n, 2))
+    val = rng.gamma(2.0, 1.0, size=(n, 3))
+    feats = {"albedo": rng.uniform(0, 1, size=(n, 3)), "normal": rng.normal(size=(n, 3)),
+             "depth": rng.exponential(4.0, size=n)}
+    return pos, val, feats
+
+
 def spotlit_checker(h=48, w=48, n=32, p=1 / 60, seed=0):
     """A 4-pixel checker whose samples are the truth times (1 + B / p) / 2, B ~ Bernoulli(p): most samples
     miss the light that carries half of every pixel's value."""

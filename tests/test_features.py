@@ -15,18 +15,13 @@ from mcrecon.core.samples import SampleSet
 from mcrecon.core.stats import PixelStats
 from mcrecon.errors import InputError, McreconWarning
 
-from helpers import jittered_renderer
+from helpers import feature_samples, jittered_renderer
 
 W, H = 7, 5
 
 
 def _samples(n=3000, seed=3):
-    rng = np.random.default_rng(seed)
-    pos = rng.uniform(0, [W, H], size=(n, 2))
-    val = rng.gamma(2.0, 1.0, size=(n, 3))
-    feats = {"albedo": rng.uniform(0, 1, size=(n, 3)), "normal": rng.normal(size=(n, 3)),
-             "depth": rng.exponential(4.0, size=n)}
-    return pos, val, feats
+    return feature_samples(n, seed, width=W, height=H)
 
 
 def _brute(pos, f):

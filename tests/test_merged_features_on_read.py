@@ -11,15 +11,13 @@ from mcrecon.core.stats import PixelStats
 from mcrecon.methods import get_method
 from mcrecon.offline.inputs import gather_inputs
 
+from helpers import feature_samples
+
 W, H = 9, 6
 
 
 def _set(n=1500, seed=5):
-    rng = np.random.default_rng(seed)
-    pos = rng.uniform(0, [W, H], size=(n, 2))
-    val = rng.gamma(2.0, 1.0, size=(n, 3))
-    feats = {"albedo": rng.uniform(0, 1, size=(n, 3)), "normal": rng.normal(size=(n, 3)),
-             "depth": rng.exponential(4.0, size=n)}
+    pos, val, feats = feature_samples(n, seed, width=W, height=H)
     return SampleSet(pos, val, width=W, height=H, features=feats)
 
 
