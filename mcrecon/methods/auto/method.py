@@ -132,12 +132,15 @@ class AutoRun(RunState):
     candidate_names: list | None = None
     #: GEM's run state for ``sampling="gem"`` (its selection's diagnostics only; planning reads the statistics).
     gem_run: object = None
-    #: The last reconstruction's tile proxy: the share of its tiles' pixels the regression candidates took
-    #: (:func:`.proxy.regression_share`; None where it did not run).
-    regression_share: float | None = None
-    #: The whole of the proxy's verdict (:class:`.proxy.Verdict`: the share, the tiles' two least summed
-    #: estimates); None alike.
+    #: The last reconstruction's tile proxy verdict (:func:`.proxy.regression_share`, a :class:`.proxy.Verdict`:
+    #: the share of its tiles' pixels the regression candidates took, the tiles' two least summed estimates);
+    #: None where it did not run.
     regression_verdict: object = None
+
+    @property
+    def regression_share(self) -> float | None:
+        """The share of the proxy's tiles' pixels the regression candidates took (None: no proxy ran)."""
+        return None if self.regression_verdict is None else self.regression_verdict.share
 
 
 class AutoMethod(Method):
@@ -306,13 +309,12 @@ class AutoMethod(Method):
         fnames = self._feature_names
         with_features = bool(fnames) and halves is not None and bool(halves.a.features)
         if run is not None:
-            run.regression_share = run.regression_verdict = None
+            run.regression_verdict = None
         if run is not None and with_features and regress and p["regression_proxy"] is not None:
             # the regressions are half of a frame's time with features and most frames give them no
             # pixel: judged on a few tiles first (docs/methods/auto.md, "Cost")
             pf = [prefiltered_features(hf, stored_only=True) for hf in (halves.a, halves.b)]
             verdict = regression_share(self, stats, halves, nonfinite, black + black_aux, pf, steady=BLACK_BOXES)
-            run.regression_share = None if verdict is None else verdict.share
             run.regression_verdict = verdict
             if verdict is not None and not verdict.computes(p["regression_proxy"]):
                 fnames = tuple(n for n in fnames if n not in REGRESSIONS)
