@@ -20,14 +20,11 @@ from typing import NamedTuple
 import numpy as np
 
 from ...core.halves import Halves
-from ...core.metrics import DEFAULT_EPS
 from ...core.safeguard import sample_range_bounds
 from ...core.stats import PixelStats
 from ...errors import McreconWarning
-from .estimates import relative_denominator_loo
 from .features import Candidate, seed_prefiltered
-from .passes import _means
-from .selection import _apart
+from .selection import summed_estimates
 
 __all__ = ["HALO", "MAX_AREA", "MIN_TILES", "REGRESSION_SHARE", "REGRESSIONS", "TILE", "TILE_SHARE", "Verdict",
            "is_regression", "proxy_windows", "regression_share"]
@@ -150,14 +147,13 @@ def _mosaic(a: np.ndarray, outer: list[tuple[int, int, int, int]]) -> np.ndarray
 
 def _least_summed(cands: list[Candidate], y, v, count, hi, inner, safeguard) -> list[str]:
     """The candidates' names by summed estimate over the pixels ``inner`` that vote, least first, the
-    pixel mean left out: the global prior's statistic (:func:`.selection._global_prior`, without its
+    pixel mean left out: the global prior's statistic (:func:`.selection.summed_estimates`, without its
     significance test) on the interiors."""
-    den_loo = relative_denominator_loo(y, v, count, eps=DEFAULT_EPS)
-    cap = None if safeguard is None else (safeguard + 1.0) ** 2
-    loo = _means([c.mse for c in cands], den_loo, v, cap)
-    vote = inner & ~_apart(y, v, hi, den_loo, safeguard is not None) & np.isfinite(loo).all(axis=0)
-    sums = {c.name: float(np.sum(r[vote])) for r, c in zip(loo, cands) if c.name != "box"}
-    return sorted(sums, key=lambda n: (sums[n], list(sums).index(n)))
+    sums = summed_estimates(cands, y, v, count, hi, safeguard, within=inner)[-1]
+    if sums is None:
+        sums = [0.0] * len(cands)
+    named = {c.name: s for s, c in zip(sums, cands) if c.name != "box"}
+    return sorted(named, key=lambda n: (named[n], list(named).index(n)))
 
 
 def regression_share(method, stats: PixelStats, halves: Halves, nonfinite: str, given: list[Candidate],

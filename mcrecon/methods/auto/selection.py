@@ -193,6 +193,43 @@ def _nearer_rows(y, scale, images, g, choice, where, out, i0, i1):
                 out[i, j] = dg <= dc  # False when any is NaN
 
 
+def summed_estimates(cands, y, v, count, hi, safeguard, within=None):
+    """The global prior's statistic: ``(den_loo, cap, loo, apart, vote, sums)``.
+
+    ``apart``: the pixels of rare huge samples or far brighter than their neighbourhood (:func:`_apart`);
+    ``loo(k)``: candidate k's capped leave-one-out relative estimate, computed where it is read (three
+    times a candidate) rather than every candidate's kept at once: K maps of H x W (0.3 GB at 1080p);
+    ``vote``: the pixels (within ``within`` where given) that are not :func:`_apart` and where every
+    candidate's estimate is finite; ``sums``: each candidate's ``np.sum(loo(k)[vote])``, None where no pixel
+    votes.  ``hi``: the top of the pixels' sample range (:func:`~mcrecon.core.safeguard.sample_range_bounds`).
+    """
+    den_loo = relative_denominator_loo(y, v, count, eps=DEFAULT_EPS)
+    cap = None if safeguard is None else (safeguard + 1.0) ** 2
+
+    def loo(k):
+        return _means([cands[k].mse], den_loo, v, cap)[0]
+
+    # rare huge samples: the 3 x 3 maximum far above the pixel's mean and its neighbourhood's median
+    # (so that one pixel whose mean fell near 0 by chance does not count; a median, not a mean,
+    # which a bright emitter beside dim pixels would dominate); and pixels far brighter than their
+    # neighbourhood (an emitter's edge): their relative estimates, divided by the neighbours' mu^2,
+    # reach ~1e4 where the typical is ~1 (a Cornell box with a small bright light: two such pixels
+    # made a 1.41 px Gaussian the whole image's default)
+    apart = _apart(y, v, hi, den_loo, safeguard is not None)
+    vote = ~apart  # and every candidate's estimate finite
+    if within is not None:
+        vote &= within
+    for k in range(len(cands)):
+        vote &= np.isfinite(loo(k))
+    if not vote.any():
+        return den_loo, cap, loo, apart, vote, None
+    # np.sum(r[vote]) of each, the voters gathered into one buffer (numpy's pairwise sum of the same
+    # contiguous values: the same bits)
+    buf = np.empty(vote.size)
+    sums = [float(np.sum(buf[:_compress(loo(k).ravel(), vote.ravel(), buf)])) for k in range(len(cands))]
+    return den_loo, cap, loo, apart, vote, sums
+
+
 def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, safeguard, guarded=(), scale=None,
                   steady=(), steady_var=None, blend=None):
     """The per-pixel choice with the best single candidate over the image as the default.
@@ -252,31 +289,10 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     once cost more in fresh memory than their arithmetic).
     """
     blend = BLEND if blend is None else blend
-    den_loo = relative_denominator_loo(y, v, count, eps=DEFAULT_EPS)
-    cap = None if safeguard is None else (safeguard + 1.0) ** 2
-
-    def loo(k):
-        # candidate k's capped leave-one-out relative estimate, computed where it is read (three times
-        # a candidate) rather than every candidate's kept at once: K maps of H x W (0.3 GB at 1080p)
-        return _means([cands[k].mse], den_loo, v, cap)[0]
-
-    # rare huge samples: the 3 x 3 maximum far above the pixel's mean and its neighbourhood's median
-    # (so that one pixel whose mean fell near 0 by chance does not count; a median, not a mean,
-    # which a bright emitter beside dim pixels would dominate); and pixels far brighter than their
-    # neighbourhood (an emitter's edge): their relative estimates, divided by the neighbours' mu^2,
-    # reach ~1e4 where the typical is ~1 (a Cornell box with a small bright light: two such pixels
-    # made a 1.41 px Gaussian the whole image's default)
-    apart = _apart(y, v, bounds[1], den_loo, safeguard is not None)
-    vote = ~apart  # and every candidate's estimate finite
-    for k in range(len(cands)):
-        vote &= np.isfinite(loo(k))
+    den_loo, cap, loo, apart, vote, sums = summed_estimates(cands, y, v, count, bounds[1], safeguard)
     none = np.zeros(choice.shape, bool)
-    if not vote.any():
+    if sums is None:
         return choice, none
-    # np.sum(r[vote]) of each, the voters gathered into one buffer (numpy's pairwise sum of the same
-    # contiguous values: the same bits)
-    buf = np.empty(vote.size)
-    sums = [float(np.sum(buf[:_compress(loo(k).ravel(), vote.ravel(), buf)])) for k in range(len(cands))]
     g = int(np.argmin(sums))
     zs = guarded if isinstance(guarded, dict) else {k: Z_GLOBAL for k in guarded}
     plain = [k for k in range(len(cands)) if k not in zs]
