@@ -251,11 +251,17 @@ def split_labels(positions: np.ndarray, width: int, height: int, counter: np.nda
     pos = np.asarray(positions)
     if pos.shape[0] == 0:
         return np.zeros(0, np.int8)
+    out = np.empty(pos.shape[0], np.int8)
+    _labels_kernel(_pixels(pos, width, height), counter, _NO_TOTALS if totals is None else totals, out)
+    return out
+
+
+def _pixels(positions, width: int, height: int) -> np.ndarray:
+    """Each position's pixel index (row-major), a position off the film in the nearest border pixel."""
+    pos = np.asarray(positions)
     ix = np.clip(np.floor(np.nan_to_num(pos[:, 0], nan=0.0)), 0, width - 1).astype(np.int64)
     iy = np.clip(np.floor(np.nan_to_num(pos[:, 1], nan=0.0)), 0, height - 1).astype(np.int64)
-    out = np.empty(pos.shape[0], np.int8)
-    _labels_kernel(iy * width + ix, counter, _NO_TOTALS if totals is None else totals, out)
-    return out
+    return iy * width + ix
 
 
 @dataclasses.dataclass(eq=False)
@@ -489,12 +495,8 @@ def pixel_counts(source, *, chunk_size: int = 1 << 20) -> np.ndarray:
     w, h = int(source.width), int(source.height)
     out = np.zeros(w * h, np.int64)
     for ch in source.iter_chunks(chunk_size=chunk_size, with_round=False):
-        pos = np.asarray(ch.positions)
-        if pos.shape[0] == 0:
-            continue
-        ix = np.clip(np.floor(np.nan_to_num(pos[:, 0], nan=0.0)), 0, w - 1).astype(np.int64)
-        iy = np.clip(np.floor(np.nan_to_num(pos[:, 1], nan=0.0)), 0, h - 1).astype(np.int64)
-        out += np.bincount(iy * w + ix, minlength=w * h)
+        if len(ch.positions):
+            out += np.bincount(_pixels(ch.positions, w, h), minlength=w * h)
     return out
 
 
@@ -533,7 +535,8 @@ def split_halves(source, *, nonfinite: str = "drop", features=(), each_batch=Non
     return h
 
 
-def mean_variances(stats: PixelStats, halves: Halves | None) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+def mean_variances(stats: PixelStats, halves: Halves | None, *,
+                   pooled: bool = False) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """``(v, v_a, v_b)``: the variance of each pixel mean of ``stats`` and of each half's mean (H, W, C).
 
     Independent samples (or no halves): ``s^2 / n`` of each
@@ -547,6 +550,13 @@ def mean_variances(stats: PixelStats, halves: Halves | None) -> tuple[np.ndarray
     to all of them, never low).  Linear in ``d^2``, so SURE and the
     cross-validated estimates built on them stay unbiased.  A pixel
     without a sample in each half keeps ``s^2 / n``.
+
+    ``pooled``: instead ``g s^2 / n`` of each, ``g`` the stratification gain
+    of the pixel's 5 x 5 neighbourhood (:func:`~mcrecon.core.strata.halves_gain`,
+    the upper bound of the halves' pooled ratio to ``s^2 / n``, in
+    ``[1/32, 1]``): smooth and many-degree like ``s^2 / n`` (what a
+    confidence interval or a median of neighbours wants), but not linear in
+    the halves' difference.
     """
     from .fill import mean_variance_policy
 
@@ -557,6 +567,11 @@ def mean_variances(stats: PixelStats, halves: Halves | None) -> tuple[np.ndarray
     va, vb = mean_variance_policy(a), mean_variance_policy(b)
     if halves.sampler == "independent":
         return v, va, vb
+    if pooled:
+        from .strata import halves_gain
+
+        g = halves_gain(a.mean, b.mean, a.count, b.count, stats.sample_variance(undefined=0.0))[..., None]
+        return v * g, va * g, vb * g
     na, nb = a.count.astype(np.float64), b.count.astype(np.float64)
     n = na + nb
     ok = ((na > 0) & (nb > 0))[..., None]

@@ -288,6 +288,11 @@ class AutoMethod(Method):
         count = stats.count
         # s^2 / n, or for a stratified sampler's prefix-block halves their difference (core.halves)
         v, va, vb = mean_variances(stats, halves)
+        # the selection's variance (its relative denominators, the clamp, the bias floor, the global prior) is
+        # a many-degree one: for prefix-block halves g s^2 / n with their pooled gain, since a median of
+        # neighbours or an interval on a one-degree square is narrow where the square is small by chance
+        v_sel = mean_variances(stats, halves, pooled=True)[0] if halves is not None and \
+            halves.sampler != "independent" else v
         # The OIDN runs first, then the feature-guided candidates, then the rest (listed in choice order
         # all the same): OIDN's scratch memory (about 1.4 GB at 1920 x 1080) then meets only the
         # statistics, and the regressions' working arrays, the largest of a frame's, only OIDN's three
@@ -366,7 +371,7 @@ class AutoMethod(Method):
             # only without halves: beside the halves' candidates its estimate, biased where the features
             # are noisy (defocus), cost auto 2.3x on the built-in checker_dof (docs/methods/auto.md)
             out.append(_feature_bilateral(stats, y, v))
-        return out, y, v, count
+        return out, y, v_sel, count
 
     def _aux_replaces_oidn(self, stats: PixelStats) -> bool:
         """Whether OIDN with the albedo and normal on all the samples (``oidn_aux``) replaces colour-only
