@@ -14,7 +14,6 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..core.requests import check_sampler
 from ..core.samples import lazy_njit
 from .lock import _err, live_writer
 
@@ -232,8 +231,6 @@ class _Header:
     format_minor: int
     positions: h5py.Dataset
     values: h5py.Dataset
-    #: the root attribute ``sampler`` (:data:`~mcrecon.core.requests.SAMPLERS`), None where absent
-    sampler: str | None = None
 
 
 def declared_samples(path) -> int:
@@ -259,7 +256,7 @@ def _read_header(path, f) -> _Header:
     attrs = f.attrs
     have = set(attrs.keys())  # one listing; then read only what is there
     a = {k: attrs[k] for k in ("format", "format_version", "format_minor", "width", "height", "channels",
-                               "n_committed", "sampler") if k in have}
+                               "n_committed") if k in have}
     fmt = a.get("format")
     if fmt is not None and (fmt.decode() if isinstance(fmt, bytes) else str(fmt)) != FORMAT_NAME:
         raise _err(path, "attribute format", f"is {fmt!r}, expected {FORMAT_NAME!r}")
@@ -318,11 +315,7 @@ def _read_header(path, f) -> _Header:
     if n < 0 or n > rows:
         raise _err(path, "attribute n_committed", f"is {n} but the datasets hold {rows} rows: "
                    "the file is truncated")
-    sampler = a.get("sampler")
-    if sampler is not None:
-        sampler = check_sampler(sampler.decode() if isinstance(sampler, bytes) else sampler, where=str(path),
-                                field="attribute sampler")
-    return _Header(width, height, channels, n, rows, pos.dtype, val.dtype, minor, pos, val, sampler)
+    return _Header(width, height, channels, n, rows, pos.dtype, val.dtype, minor, pos, val)
 
 
 def _strings(arr) -> list[str]:

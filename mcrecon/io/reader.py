@@ -330,7 +330,6 @@ class SampleLog:
         h = _read_header(path, f)
         self.width, self.height, self.channels = h.width, h.height, h.channels
         self.format_minor = h.format_minor
-        self.sampler = h.sampler
         n = h.n
         self.n_samples = n
         self.value_dtype = h.value_dtype
@@ -400,8 +399,10 @@ class SampleLog:
             if s is not None:
                 self.run_settings = _json_attr(path, "attribute run/settings_json", s)
             self.round_records = _read_round_records(path, run, len(self.round_ends))
-        if self.sampler is None:  # an adaptive run records its renderer's sampler in its settings
-            recorded = (self.run_settings or {}).get("sampler") if isinstance(self.run_settings, dict) else None
+        if "sampler" in a:
+            self.sampler = check_sampler(a["sampler"], where=str(path), field="attribute sampler")
+        else:  # an adaptive run records its renderer's sampler in its settings
+            recorded = self.run_settings.get("sampler") if isinstance(self.run_settings, dict) else None
             self.sampler = check_sampler(recorded, where=str(path), field="run settings sampler")
 
     @staticmethod
