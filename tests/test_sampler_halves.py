@@ -33,6 +33,19 @@ def test_the_sampler_attribute_round_trips_and_old_logs_read_as_independent(tmp_
     assert read_log(tmp_path / "st.h5").sampler == "sobol"
 
 
+def test_a_scene_log_and_an_adaptive_runs_record_declare_the_sampler(tmp_path):
+    from mcrecon.io.writer import set_run_settings
+    from mcrecon.renderers import scenes as S
+
+    p = S.write_scene_log("flat", tmp_path / "sobol.h5", width=4, height=4, spp=2, sampler="sobol", reference=False)
+    assert read_log(p).sampler == "sobol"
+    p = S.write_scene_log("flat", tmp_path / "indep.h5", width=4, height=4, spp=2, reference=False)
+    assert read_log(p).sampler == "independent"
+    run = _log(tmp_path / "run.h5")   # no attribute: an adaptive run's recorded setting stands in
+    set_run_settings(run, {"sampler": "sobol"})
+    assert read_log(run).sampler == "sobol"
+
+
 def test_a_bad_sampler_is_refused_naming_the_file_and_field(tmp_path):
     with pytest.raises(InputError, match="sampler"):
         _log(tmp_path / "bad.h5", sampler="halton")
@@ -128,15 +141,18 @@ def test_the_halves_variance_errs_high_on_a_sobol_net_and_below_s2_over_n():
     assert s2n >= 2.5 * v.mean()
 
 
-def test_auto_on_a_sobol_scene_with_prefix_halves_is_no_worse():
+def test_auto_on_a_sobol_scene_reads_its_halves_and_does_better():
+    # the built-in Sobol sampler's soft shadow, 32^2 at 16 spp: auto with the samples declared sobol (prefix
+    # halves, their variance) against the same samples read as independent (alternating halves, s^2 / n):
+    # measured 0.48x the error (0.00046 against 0.00096); the bound leaves room for the selection's noise
     from mcrecon.renderers import scenes as S
 
     sc = S.get_scene("soft_shadow")
-    b = S.render_uniform(sc, width=48, height=48, spp=16, seed=2, sampler="sobol", features=False)
-    ref = S.reference_image(sc, 48, 48)
+    b = S.render_uniform(sc, width=32, height=32, spp=16, seed=2, sampler="sobol", features=False)
+    ref = S.reference_image(sc, 32, 32)
     err = {}
     for tag in ("independent", "sobol"):
-        src = SampleSet(b.positions, b.values, width=48, height=48, sampler=tag)
+        src = SampleSet(b.positions, b.values, width=32, height=32, sampler=tag)
         img = mcrecon.reconstruct(src, method="auto", candidates="box,gauss,nlm")
         err[tag] = float(np.mean((img - ref) ** 2))
-    assert err["sobol"] <= 1.0 * err["independent"], err
+    assert err["sobol"] <= 0.7 * err["independent"], err

@@ -13,8 +13,9 @@ from typing import Mapping
 
 import numpy as np
 
-from ..errors import InputError, RendererError
-from .samples import SAMPLERS, check_sampler, check_samples, lazy_njit  # noqa: F401 (re-exported: a request and a reply declare the sampler)
+from ..errors import RendererError
+# SAMPLERS and check_sampler are re-exported: a request's renderer and a reply declare the sampler
+from .samples import SAMPLERS, check_sampler, check_samples, lazy_njit  # noqa: F401
 
 __all__ = ['SampleRequest', 'SampleBatch', 'validate_reply', 'validate_reply_counted', 'jittered_positions', 'place_in_pixels',
            'sample_indices', 'SAMPLERS', 'check_sampler']
