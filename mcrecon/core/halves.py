@@ -20,7 +20,7 @@ import numba
 
 from ..filters.engine import n_threads, parallel_calls
 from .features import check_features, layout_of, take_rows, warn_feature_zeroed
-from .samples import apply_nonfinite, check_policy, check_samples, dispatcher, warn_nonfinite
+from .samples import apply_nonfinite, check_policy, check_sampler, check_samples, dispatcher, warn_nonfinite
 
 #: the arithmetic of a run of samples that PixelStats adds, which a half's runs repeat bit for bit (as numba
 #: dispatchers: this module loads numba anyway)
@@ -28,7 +28,7 @@ _run_add = dispatcher(_merge._run_add)
 _merge_run = dispatcher(_merge._merge_run)
 
 __all__ = ['check_half_buffers', 'merge_halves', 'is_half_buffer_pair', 'split_labels', 'split_halves', 'Halves',
-           'as_halves']
+           'as_halves', 'pixel_counts', 'mean_variances']
 
 def is_half_buffer_pair(source) -> bool:
     """Whether ``source`` is meant as a half-buffer pair: :class:`Halves`, a tuple or a list
@@ -81,19 +81,23 @@ def merge_halves(a: PixelStats, b: PixelStats) -> PixelStats:
 # ----------------------------------------------------------------------------
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _next_half(p, counter):
-    # the k-th sample of pixel p goes to half (k + salt(p)) & 1; salt from a
-    # multiplicative hash of p, so which half gets a pixel's odd sample varies
+def _next_half(p, counter, totals):
+    # independent samples (totals empty): the k-th sample of pixel p goes to half (k + salt(p)) & 1; salt
+    # from a multiplicative hash of p, so which half gets a pixel's odd sample varies.  A stratified
+    # sampler (totals[p]: the pixel's samples in the whole stream): its first ceil(n / 2) to half 0, the
+    # rest to half 1 -- prefix blocks, each made of aligned blocks of the pixel's sequence
     k = counter[p]
     counter[p] = k + 1
+    if totals.size:
+        return 0 if 2 * k < totals[p] else 1
     salt = ((p * 2654435761) >> 16) & 1
     return (k + salt) & 1
 
 
 @numba.njit(cache=True, nogil=True)
-def _labels_kernel(pix, counter, out):
+def _labels_kernel(pix, counter, totals, out):
     for i in range(pix.size):
-        out[i] = _next_half(pix[i], counter)
+        out[i] = _next_half(pix[i], counter, totals)
 
 
 # Columns of a run record (:func:`_split_runs`): its first sample, one past its last, its pixel, its
@@ -102,6 +106,8 @@ def _labels_kernel(pix, counter, out):
 # labels then picking the half's samples).
 _FIRST, _STOP, _PIXEL, _SIZE, _HALF, _STEP = 0, 1, 2, 3, 4, 5
 _RUN_FIELDS = 6
+#: The ``totals`` of independent samples: none (the halves alternate).
+_NO_TOTALS = np.zeros(0, np.int64)
 #: Runs found, then accumulated, at a time: the list of runs stays small (3 MB) and in cache for the
 #: colour's and every feature's pass, whatever the batch's size and order.
 _RUN_BLOCK = 1 << 16
@@ -110,7 +116,7 @@ _PARALLEL_MIN_SAMPLES = 1 << 16
 
 
 @numba.njit(cache=True, nogil=True)
-def _split_runs(pos, width, counter, lab, k, open_runs, runs):
+def _split_runs(pos, width, counter, totals, lab, k, open_runs, runs):
     # from sample k on, the half of every sample (into lab) and the runs of each half -- consecutive
     # samples of the half's own sub-stream in one pixel -- into runs, in the order they end, until runs
     # is full; open_runs holds each half's unfinished run between calls, and the batch's end finishes
@@ -120,7 +126,7 @@ def _split_runs(pos, width, counter, lab, k, open_runs, runs):
     n = pos.shape[0]
     while k < n and n_runs < runs.shape[0]:  # a sample finishes at most one run
         p = int(pos[k, 1]) * width + int(pos[k, 0])
-        h = _next_half(p, counter)
+        h = _next_half(p, counter, totals)
         lab[k] = h
         n_a += 1 - h
         if open_runs[h, _SIZE] > 0 and open_runs[h, _PIXEL] != p:
@@ -224,8 +230,17 @@ def _split_accumulate(runs, n_runs, lab, val, width, n_parts, a: PixelStats, b: 
                                for part in range(n_parts)], threads=n_parts)
 
 
-def split_labels(positions: np.ndarray, width: int, height: int, counter: np.ndarray) -> np.ndarray:
-    """Half (0 or 1) of each sample: alternating within each pixel, by (pixel, index within pixel).
+def split_labels(positions: np.ndarray, width: int, height: int, counter: np.ndarray, *,
+                 totals: np.ndarray | None = None) -> np.ndarray:
+    """Half (0 or 1) of each sample, by (pixel, index within pixel).
+
+    Without ``totals`` (independent samples) the halves alternate within
+    each pixel.  With ``totals`` (H*W int64: each pixel's samples in the
+    whole stream, :func:`pixel_counts`; a stratified sampler's) a pixel's
+    first ``ceil(n / 2)`` samples go to half 0 and the rest to half 1:
+    prefix blocks, whose means differ by the net's error and not by the
+    integrand's left-right difference, as alternate samples of a Sobol
+    sequence do (:mod:`mcrecon.core.strata`).
 
     ``counter`` (H*W int64, updated in place) holds how many samples each
     pixel has had so far, so a stream split chunk by chunk or round by
@@ -236,11 +251,17 @@ def split_labels(positions: np.ndarray, width: int, height: int, counter: np.nda
     pos = np.asarray(positions)
     if pos.shape[0] == 0:
         return np.zeros(0, np.int8)
+    out = np.empty(pos.shape[0], np.int8)
+    _labels_kernel(_pixels(pos, width, height), counter, _NO_TOTALS if totals is None else totals, out)
+    return out
+
+
+def _pixels(positions, width: int, height: int) -> np.ndarray:
+    """Each position's pixel index (row-major), a position off the film in the nearest border pixel."""
+    pos = np.asarray(positions)
     ix = np.clip(np.floor(np.nan_to_num(pos[:, 0], nan=0.0)), 0, width - 1).astype(np.int64)
     iy = np.clip(np.floor(np.nan_to_num(pos[:, 1], nan=0.0)), 0, height - 1).astype(np.int64)
-    out = np.empty(pos.shape[0], np.int8)
-    _labels_kernel(iy * width + ix, counter, out)
-    return out
+    return iy * width + ix
 
 
 @dataclasses.dataclass(eq=False)
@@ -266,12 +287,21 @@ class Halves:
     source : sample source or None
         The samples the halves were split from (:func:`split_halves`);
         None for a pair given as statistics and for an adaptive run's.
+    totals : ndarray (H*W,) int64 or None
+        Each pixel's samples in the whole stream, where the halves are prefix
+        blocks (:func:`split_labels`); None where they alternate.
+    sampler : str
+        The samples' sampler (:data:`~mcrecon.core.requests.SAMPLERS`):
+        ``sobol`` halves are prefix blocks and :func:`mean_variances` reads
+        the variance of a pixel mean from their difference.
     """
 
     a: PixelStats
     b: PixelStats
     counter: np.ndarray
     source: object = None
+    totals: np.ndarray | None = None
+    sampler: str = "independent"
 
     def __iter__(self):
         return iter((self.a, self.b))
@@ -321,7 +351,7 @@ class Halves:
         parts = ([], []), ([], [])
         for ch in src.iter_chunks(with_round=False):
             pos, val = np.asarray(ch.positions), np.asarray(ch.values)
-            lab = split_labels(pos, w, h, counter)
+            lab = split_labels(pos, w, h, counter, totals=self.totals)
             for half in (0, 1):
                 sel = lab == half
                 parts[half][0].append(pos[sel])
@@ -334,9 +364,10 @@ class Halves:
         return out[0], out[1]
 
     @classmethod
-    def from_pair(cls, a: PixelStats, b: PixelStats) -> "Halves":
-        """Halves of two validated :class:`PixelStats` (:func:`check_half_buffers`), taken as they are."""
-        return cls(a, b, (a.count + b.count).ravel().astype(np.int64))
+    def from_pair(cls, a: PixelStats, b: PixelStats, *, sampler: str = "independent") -> "Halves":
+        """Halves of two validated :class:`PixelStats` (:func:`check_half_buffers`), taken as they are
+        (``sampler``: as the attribute; a crop of prefix-block halves keeps ``sobol``)."""
+        return cls(a, b, (a.count + b.count).ravel().astype(np.int64), sampler=sampler)
 
     def add(self, positions, values, *, features=None, nonfinite: str = "drop", source: str = "samples",
             _checked: bool = False) -> None:
@@ -381,7 +412,8 @@ class Halves:
         open_runs = np.zeros((2, _RUN_FIELDS), np.int64)
         k = n_a = 0
         while k < n or open_runs[:, _SIZE].any():
-            k, n_runs, n_a_block = _split_runs(pos, a.width, self.counter, lab, k, open_runs, runs)
+            k, n_runs, n_a_block = _split_runs(pos, a.width, self.counter, _NO_TOTALS if self.totals is None else
+                                               self.totals, lab, k, open_runs, runs)
             n_a += n_a_block
             _split_accumulate(runs, n_runs, lab, val, a.width, n_parts, a, b)
             for name, f in feats.items():
@@ -411,7 +443,7 @@ class Halves:
             val = val[:, None]
         if n_nonfinite and nonfinite == "raise":
             apply_nonfinite(pos, val, n_nonfinite, nonfinite, where=source)  # raises, nothing changed
-        lab = split_labels(pos, self.a.width, self.a.height, self.counter)
+        lab = split_labels(pos, self.a.width, self.a.height, self.counter, totals=self.totals)
         if n_nonfinite:
             bad = ~np.isfinite(val).all(axis=1)
             for half, st in ((0, self.a), (1, self.b)):
@@ -451,8 +483,30 @@ def as_halves(pair, where: str = "halves") -> Halves:
     return Halves.from_pair(*check_half_buffers(pair, where))
 
 
+def pixel_counts(source, *, chunk_size: int = 1 << 20) -> np.ndarray:
+    """(H*W,) int64: each pixel's samples in a sample source (a log or SampleSet), non-finite ones included.
+
+    The counting pass the prefix-block halves of a stratified sampler need
+    before their split (:func:`split_labels`): one streamed read of the
+    positions (a log's values come with them), one ``bincount`` a chunk.
+    Positions off the film count in the nearest border pixel, as
+    :func:`split_labels` counts them.
+    """
+    w, h = int(source.width), int(source.height)
+    out = np.zeros(w * h, np.int64)
+    for ch in source.iter_chunks(chunk_size=chunk_size, with_round=False):
+        if len(ch.positions):
+            out += np.bincount(_pixels(ch.positions, w, h), minlength=w * h)
+    return out
+
+
 def split_halves(source, *, nonfinite: str = "drop", features=(), each_batch=None) -> Halves:
     """Two independent halves of a sample source (log or SampleSet), rounds in order.
+
+    A source whose ``sampler`` is ``sobol`` (a log's attribute, a
+    :class:`~mcrecon.core.samples.SampleSet`'s keyword) is split by prefix
+    blocks after a counting pass (:func:`pixel_counts`, :func:`split_labels`);
+    independent samples alternate.
 
     ``features``: the source's per-sample features to split with the
     samples (names, or ``"all"``; :meth:`PixelStats.from_log`).
@@ -465,6 +519,9 @@ def split_halves(source, *, nonfinite: str = "drop", features=(), each_batch=Non
     name = source_name(source)
     names = source_features(source, features)
     h = Halves.empty(source.width, source.height, tuple(source.channels), features=source_layout(source, names))
+    h.sampler = check_sampler(getattr(source, "sampler", None), where=name)
+    if h.sampler != "independent":
+        h.totals = pixel_counts(source)
     # a SampleSet validated its arrays when it was built (contiguous, on the film); if
     # none of its values is NaN/Inf the policy has nothing to do: skip the re-check
     checked = isinstance(source, SampleSet) and source.n_nonfinite == 0
@@ -476,3 +533,51 @@ def split_halves(source, *, nonfinite: str = "drop", features=(), each_batch=Non
               _checked=checked)
     h.source = source
     return h
+
+
+def mean_variances(stats: PixelStats, halves: Halves | None, *,
+                   pooled: bool = False) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """``(v, v_a, v_b)``: the variance of each pixel mean of ``stats`` and of each half's mean (H, W, C).
+
+    Independent samples (or no halves): ``s^2 / n`` of each
+    (:func:`~mcrecon.core.fill.mean_variance_policy`).  Prefix-block halves
+    of a stratified sampler (``halves.sampler`` ``sobol``): ``s^2 / n``
+    counts the integrand's spread over the pixel, which the net cancels,
+    so the variances come from the halves' difference ``d = m_A - m_B``:
+    ``v = d^2 n_A n_B / n^2``, ``v_A = d^2 n_B / n``, ``v_B = d^2 n_A / n``
+    (for independent samples ``E[d^2] = sigma^2 n / (n_A n_B)``, so each is
+    unbiased; for a net each errs high, by the gain from a half's samples
+    to all of them, never low).  Linear in ``d^2``, so SURE and the
+    cross-validated estimates built on them stay unbiased.  A pixel
+    without a sample in each half keeps ``s^2 / n``.
+
+    ``pooled``: instead ``g s^2 / n`` of each, ``g`` the stratification gain
+    of the pixel's 5 x 5 neighbourhood (:func:`~mcrecon.core.strata.halves_gain`,
+    the upper bound of the halves' pooled ratio to ``s^2 / n``, in
+    ``[1/32, 1]``): smooth and many-degree like ``s^2 / n`` (what a
+    confidence interval or a median of neighbours wants), but not linear in
+    the halves' difference.
+    """
+    from .fill import mean_variance_policy
+
+    v = mean_variance_policy(stats)
+    if halves is None:
+        return v, None, None
+    a, b = halves
+    va, vb = mean_variance_policy(a), mean_variance_policy(b)
+    if halves.sampler == "independent":
+        return v, va, vb
+    if pooled:
+        from .strata import halves_gain
+
+        g = halves_gain(a.mean, b.mean, a.count, b.count, stats.sample_variance(undefined=0.0))[..., None]
+        return v * g, va * g, vb * g
+    na, nb = a.count.astype(np.float64), b.count.astype(np.float64)
+    n = na + nb
+    ok = ((na > 0) & (nb > 0))[..., None]
+    d2 = (a.mean - b.mean) ** 2
+    inv = np.divide(1.0, n, out=np.zeros_like(n), where=n > 0)[..., None]
+    v = np.where(ok, d2 * (na * nb)[..., None] * inv * inv, v)
+    va = np.where(ok, d2 * nb[..., None] * inv, va)
+    vb = np.where(ok, d2 * na[..., None] * inv, vb)
+    return v, va, vb

@@ -13,35 +13,12 @@ from typing import Mapping
 
 import numpy as np
 
-from ..errors import InputError, RendererError
-from .samples import check_samples, lazy_njit
+from ..errors import RendererError
+# SAMPLERS and check_sampler are re-exported: a request's renderer and a reply declare the sampler
+from .samples import SAMPLERS, check_sampler, check_samples, lazy_njit  # noqa: F401
 
 __all__ = ['SampleRequest', 'SampleBatch', 'validate_reply', 'validate_reply_counted', 'jittered_positions', 'place_in_pixels',
            'sample_indices', 'SAMPLERS', 'check_sampler']
-
-#: What a renderer's samples of a pixel are (``Renderer.sampler``; a reply file's ``sampler`` attribute):
-#: ``independent``, each sample drawn on its own (what a renderer that says nothing draws); ``sobol``, each
-#: pixel's own low-discrepancy sequence in base 2 continued from the request's ``first_index`` (an
-#: Owen-scrambled Sobol sequence, a (0, 2)-sequence, Cycles' per-pixel patterns), whose aligned blocks of
-#: ``2^k`` samples are stratified: a pixel's mean pays most on a whole block (``mcrecon.core.nets``).
-SAMPLERS = ("independent", "sobol")
-
-
-def check_sampler(value, *, where: str, field: str = "sampler") -> str:
-    """A renderer's declared sampler, one of :data:`SAMPLERS` (None, or nothing said: ``independent``).
-
-    Raises :class:`~mcrecon.errors.InputError` naming ``where`` and ``field`` for anything else.
-    """
-    if value is None:
-        return "independent"
-    if isinstance(value, np.ndarray) and value.ndim == 0:
-        value = value.item()
-    if isinstance(value, bytes):
-        value = value.decode("utf-8", "replace")
-    if isinstance(value, str) and value.strip().lower() in SAMPLERS:
-        return value.strip().lower()
-    raise InputError(where, field, f"{value!r}; declare 'sobol' where each pixel's samples continue one stratified "
-                     "base-2 sequence from the request's first_index, 'independent' (or nothing) otherwise")
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class SampleRequest:

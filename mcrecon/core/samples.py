@@ -36,7 +36,8 @@ from .features import check_features, source_name, warn_feature_zeroed  # noqa: 
 
 #: The public surface; the other names here (round helpers, the float32 spread
 #: check, pixel_index, source_name) serve the readers, the driver and the renderers.
-__all__ = ["NONFINITE_POLICIES", "check_policy", "check_samples", "apply_nonfinite", "SampleSet", "SampleChunk"]
+__all__ = ["NONFINITE_POLICIES", "check_policy", "check_samples", "apply_nonfinite", "SampleSet", "SampleChunk",
+           "SAMPLERS", "check_sampler"]
 
 #: What happens to samples whose value is NaN or +-Inf:
 #: ``drop`` skips the whole sample and counts it (default, with a warning),
@@ -392,6 +393,31 @@ class SampleChunk:
         return int(self.positions.shape[0])
 
 
+#: What a renderer's samples of a pixel are (``Renderer.sampler``; a reply file's ``sampler`` attribute):
+#: ``independent``, each sample drawn on its own (what a renderer that says nothing draws); ``sobol``, each
+#: pixel's own low-discrepancy sequence in base 2 continued from the request's ``first_index`` (an
+#: Owen-scrambled Sobol sequence, a (0, 2)-sequence, Cycles' per-pixel patterns), whose aligned blocks of
+#: ``2^k`` samples are stratified: a pixel's mean pays most on a whole block (``mcrecon.core.nets``).
+SAMPLERS = ("independent", "sobol")
+
+
+def check_sampler(value, *, where: str, field: str = "sampler") -> str:
+    """A renderer's declared sampler, one of :data:`SAMPLERS` (None, or nothing said: ``independent``).
+
+    Raises :class:`~mcrecon.errors.InputError` naming ``where`` and ``field`` for anything else.
+    """
+    if value is None:
+        return "independent"
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        value = value.item()
+    if isinstance(value, bytes):
+        value = value.decode("utf-8", "replace")
+    if isinstance(value, str) and value.strip().lower() in SAMPLERS:
+        return value.strip().lower()
+    raise InputError(where, field, f"{value!r}; declare 'sobol' where each pixel's samples continue one stratified "
+                     "base-2 sequence from the request's first_index, 'independent' (or nothing) otherwise")
+
+
 class SampleSet:
     """Samples held in memory, as a sample source (the in-memory twin of a sample log).
 
@@ -410,6 +436,11 @@ class SampleSet:
         Per-sample features (``albedo``, ``normal``, ``depth``, any
         others; :mod:`mcrecon.core.features`), validated once here;
         non-finite entries are set to 0 and counted (``n_feature_zeroed``).
+    sampler : {"independent", "sobol"}, optional
+        What each pixel's samples are (:data:`mcrecon.core.requests.SAMPLERS`): ``sobol`` where sample
+        k of a pixel (in stream order) is sample k of its stratified sequence, as a sample log's
+        ``sampler`` attribute says (:func:`~mcrecon.core.halves.split_halves` then splits each pixel
+        by prefix blocks).  None: ``independent``.
 
     Raises
     ------
@@ -432,8 +463,9 @@ class SampleSet:
     """
 
     def __init__(self, positions, values, *, width: int, height: int, channels: Sequence[str] | None = None,
-                 rounds=None, features=None, name: str = "samples"):
+                 rounds=None, features=None, name: str = "samples", sampler: str | None = None):
         self.name = str(name)
+        self.sampler = check_sampler(sampler, where=self.name)
         self.width, self.height = int(width), int(height)
         if self.width < 1 or self.height < 1:
             raise InputError(self.name, "width/height", f"{self.width}x{self.height}, expected at least 1x1")

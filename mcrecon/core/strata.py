@@ -31,7 +31,7 @@ import numba
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["PrefixHalves", "stratified_gain", "prefix_halves_of", "GAIN_RADIUS", "GAIN_FLOOR"]
+__all__ = ["PrefixHalves", "stratified_gain", "prefix_halves_of", "halves_gain", "GAIN_RADIUS", "GAIN_FLOOR"]
 
 #: Neighbourhood (box of 2 r + 1 pixels a side) over which the halves' squared difference and
 #: ``s^2 / n`` are summed before their ratio is taken: 25 pixels x the channels of one-degree
@@ -174,22 +174,32 @@ class PrefixHalves:
         dips below 1 are noise, not a gain.
         """
         mean_a, mean_b, n_a, n_b = self.halves()
-        ok = (n_a > 0) & (n_b > 0)
-        inv = np.where(ok, 1.0 / np.maximum(n_a, 1) + 1.0 / np.maximum(n_b, 1), 0.0)
-        d2 = np.where(ok, np.sum((0.5 * (mean_a - mean_b)) ** 2, axis=2), 0.0)
-        ref = np.sum(np.asarray(sample_variance, dtype=np.float64), axis=2) * inv * 0.25
-        size = 2 * int(radius) + 1
-        num = ndimage.uniform_filter(d2, size=size, mode="constant")
-        den = ndimage.uniform_filter(ref, size=size, mode="constant")
-        den2 = ndimage.uniform_filter(ref * ref, size=size, mode="constant")
-        known = den > 1e-300
-        g = np.divide(num, den, out=np.ones_like(num), where=known)
-        # the ratio's relative standard deviation were the samples independent (a sum of one-degree
-        # terms of expectations ref: sqrt(2 sum ref^2) / sum ref): the gain taken is the ratio's upper
-        # two-sigma bound, so independent samples keep s^2 / n (their ratio's noise is no gain)
-        rel_sd = np.divide(np.sqrt(2.0 * np.maximum(den2, 0.0) / (size * size)), den, out=np.zeros_like(den),
-                           where=known)
-        return np.clip(g * (1.0 + UCB_SIGMAS * rel_sd), floor, 1.0)
+        return halves_gain(mean_a, mean_b, n_a, n_b, sample_variance, radius=radius, floor=floor)
+
+
+def halves_gain(mean_a, mean_b, n_a, n_b, sample_variance, *, radius: int = GAIN_RADIUS,
+                floor: float = GAIN_FLOOR) -> np.ndarray:
+    """Stratification gain (H, W) in ``[floor, 1]`` from two halves' means (H, W, C) and counts (H, W).
+
+    :meth:`PrefixHalves.gain` of any two halves of each pixel's samples (the prefix-block halves of
+    :func:`mcrecon.core.halves.split_halves` too); ``sample_variance`` (H, W, C): ``s^2`` of all of them.
+    """
+    ok = (n_a > 0) & (n_b > 0)
+    inv = np.where(ok, 1.0 / np.maximum(n_a, 1) + 1.0 / np.maximum(n_b, 1), 0.0)
+    d2 = np.where(ok, np.sum((0.5 * (mean_a - mean_b)) ** 2, axis=2), 0.0)
+    ref = np.sum(np.asarray(sample_variance, dtype=np.float64), axis=2) * inv * 0.25
+    size = 2 * int(radius) + 1
+    num = ndimage.uniform_filter(d2, size=size, mode="constant")
+    den = ndimage.uniform_filter(ref, size=size, mode="constant")
+    den2 = ndimage.uniform_filter(ref * ref, size=size, mode="constant")
+    known = den > 1e-300
+    g = np.divide(num, den, out=np.ones_like(num), where=known)
+    # the ratio's relative standard deviation were the samples independent (a sum of one-degree
+    # terms of expectations ref: sqrt(2 sum ref^2) / sum ref): the gain taken is the ratio's upper
+    # two-sigma bound, so independent samples keep s^2 / n (their ratio's noise is no gain)
+    rel_sd = np.divide(np.sqrt(2.0 * np.maximum(den2, 0.0) / (size * size)), den, out=np.zeros_like(den),
+                       where=known)
+    return np.clip(g * (1.0 + UCB_SIGMAS * rel_sd), floor, 1.0)
 
 
 def prefix_halves_of(source, *, chunk_size: int = 1 << 20) -> PrefixHalves:

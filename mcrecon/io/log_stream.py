@@ -23,6 +23,7 @@ import numpy as np
 
 from ._atomic import atomic_path
 from .lock import _err, log_lock
+from ..core.requests import check_sampler
 from ..core.samples import check_samples
 from .logformat import (APPEND_CHUNK_ROWS, DEFAULT_CHUNK_ROWS, FORMAT_MINOR, FORMAT_NAME, FORMAT_VERSION, MAX_PIXELS,
                         RECORD_CHUNK_ROWS, _CHECKSUM, _checksum_for, _json_default, cast_positions)
@@ -65,8 +66,11 @@ def check_header(path: Path, width, height, channels, metadata) -> tuple[int, in
     return width, height, channels, meta_json
 
 
-def write_header(f, width: int, height: int, channels: tuple, meta_json: str) -> None:
-    """The root attributes of a new log, before its datasets (``n_committed`` comes last, when complete)."""
+def write_header(f, width: int, height: int, channels: tuple, meta_json: str, sampler: str | None = None) -> None:
+    """The root attributes of a new log, before its datasets (``n_committed`` comes last, when complete).
+
+    ``sampler`` (checked by :func:`~mcrecon.core.requests.check_sampler`): written as the attribute
+    ``sampler`` where given; a log without it reads as ``independent``."""
     f.attrs["format"] = FORMAT_NAME
     f.attrs["format_version"] = FORMAT_VERSION
     f.attrs["format_minor"] = FORMAT_MINOR
@@ -74,6 +78,8 @@ def write_header(f, width: int, height: int, channels: tuple, meta_json: str) ->
     f.attrs["height"] = height
     f.attrs["channels"] = np.array(channels, dtype=h5py.string_dtype())
     f.attrs["metadata_json"] = meta_json
+    if sampler is not None:
+        f.attrs["sampler"] = sampler
 
 
 def sample_chunks(n: int, cols) -> tuple:
@@ -166,7 +172,7 @@ def _check_disk(path: Path, n: int, dtypes: dict, c: int, feats: dict) -> None:
 def stream_log(path, n: int, *, width: int, height: int, channels: Sequence[str] = ("R", "G", "B"),
                position_dtype=np.float32, value_dtype=np.float32,
                features: Mapping[str, tuple] | None = None, reference=None,
-               metadata: Mapping | None = None) -> Iterator[LogStream]:
+               metadata: Mapping | None = None, sampler: str | None = None) -> Iterator[LogStream]:
     """Create a log of ``n`` samples (all round 0) and yield a :class:`LogStream` to write its rows.
 
     Parameters
@@ -174,7 +180,7 @@ def stream_log(path, n: int, *, width: int, height: int, channels: Sequence[str]
     path : path-like
     n : int
         Samples the log holds; the block must write exactly that many.
-    width, height, channels, reference, metadata
+    width, height, channels, reference, metadata, sampler
         As :func:`mcrecon.io.write_log`.
     position_dtype, value_dtype : float32 or float64
         Stored dtypes of the positions and values.
@@ -190,6 +196,7 @@ def stream_log(path, n: int, *, width: int, height: int, channels: Sequence[str]
     """
     path = Path(path)
     width, height, channels, meta_json = check_header(path, width, height, channels, metadata)
+    sampler = None if sampler is None else check_sampler(sampler, where=str(path))
     n = int(n)
     if n < 0:
         raise _err(path, "n", f"{n}, expected 0 or more samples")
@@ -209,7 +216,7 @@ def stream_log(path, n: int, *, width: int, height: int, channels: Sequence[str]
     _check_disk(path, n, dtypes, len(channels), feats)
     with log_lock(path), atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
-            write_header(f, width, height, channels, meta_json)
+            write_header(f, width, height, channels, meta_json, sampler)
             f.create_dataset("positions", shape=(n, 2), dtype=dtypes["position_dtype"], maxshape=(None, 2),
                              chunks=sample_chunks(n, (2,)), **_CHECKSUM)
             c = len(channels)

@@ -32,6 +32,7 @@ import h5py
 import numpy as np
 
 from ..errors import InputError
+from ..core.requests import check_sampler
 from ..core.samples import check_reference, round_slices
 from ..core.samples import DEFAULT_READ_ROWS
 from .lock import _err, live_writer
@@ -301,6 +302,9 @@ class SampleLog:
         (JSON types: ints stay ints, floats are exact float64).
     format_minor : int
         Compatible revision of format version 1 (0 when not recorded).
+    sampler : str
+        What each pixel's samples are (:data:`~mcrecon.core.requests.SAMPLERS`): the root attribute
+        ``sampler``, else an adaptive run's recorded ``sampler`` setting, else ``independent``.
     """
 
     def __init__(self, path):
@@ -395,6 +399,11 @@ class SampleLog:
             if s is not None:
                 self.run_settings = _json_attr(path, "attribute run/settings_json", s)
             self.round_records = _read_round_records(path, run, len(self.round_ends))
+        if "sampler" in a:
+            self.sampler = check_sampler(a["sampler"], where=str(path), field="attribute sampler")
+        else:  # an adaptive run records its renderer's sampler in its settings
+            recorded = self.run_settings.get("sampler") if isinstance(self.run_settings, dict) else None
+            self.sampler = check_sampler(recorded, where=str(path), field="run settings sampler")
 
     @staticmethod
     def _scan_round_ends(rds, n):

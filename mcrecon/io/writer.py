@@ -12,6 +12,7 @@ import h5py
 import numpy as np
 
 from ..errors import InputError
+from ..core.requests import check_sampler
 from ..core.samples import round_ends_of, round_slices
 from ._atomic import atomic_path
 from ..core.samples import DEFAULT_READ_ROWS
@@ -53,7 +54,7 @@ def _chunks_for(rows, cols):
 def write_log(path, positions, values, *, width: int, height: int,
               channels: Sequence[str] = ("R", "G", "B"), rounds=None,
               features: Mapping[str, np.ndarray] | None = None, reference=None,
-              metadata: Mapping | None = None) -> Path:
+              metadata: Mapping | None = None, sampler: str | None = None) -> Path:
     """Write a new sample log atomically (temporary file, then rename).
 
     Parameters
@@ -79,6 +80,11 @@ def write_log(path, positions, values, *, width: int, height: int,
         A reference image stored beside the samples.
     metadata : mapping, optional
         JSON-serialisable: renderer, scene, seed, settings.
+    sampler : {"independent", "sobol"}, optional
+        What each pixel's samples are (:data:`~mcrecon.core.requests.SAMPLERS`), stored as the root
+        attribute ``sampler``: ``sobol`` where sample k of a pixel is sample k of its stratified
+        sequence, in stream order (the halves then split by prefix blocks,
+        :func:`~mcrecon.core.halves.split_halves`).  None writes no attribute (read as ``independent``).
 
     Returns
     -------
@@ -86,6 +92,7 @@ def write_log(path, positions, values, *, width: int, height: int,
     """
     path = Path(path)
     width, height, channels, meta_json = check_header(path, width, height, channels, metadata)
+    sampler = None if sampler is None else check_sampler(sampler, where=str(path))
     pos, val = _check_arrays(path, positions, values, width, height, len(channels))
     n = pos.shape[0]
     if rounds is None:
@@ -100,7 +107,7 @@ def write_log(path, positions, values, *, width: int, height: int,
     reference = check_reference(path, reference, width, height, len(channels))
     with log_lock(path), atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
-            write_header(f, width, height, channels, meta_json)
+            write_header(f, width, height, channels, meta_json, sampler)
             f.create_dataset("positions", data=pos, maxshape=(None, 2), chunks=_chunks_for(n, 2), **_CHECKSUM)
             f.create_dataset("values", data=val, maxshape=(None, val.shape[1]), chunks=_chunks_for(n, val.shape[1]),
                              **_CHECKSUM)

@@ -119,7 +119,9 @@ def tile_inputs(inputs: MethodInputs, outer) -> MethodInputs:
         a = inputs.halves.a.crop(y0, y1, x0, x1)
         b = inputs.halves.b.crop(y0, y1, x0, x1)
         # the merge is elementwise, so the tile's merge is the crop of the film's, bit for bit
-        return MethodInputs(a.merged(b), None, ref, inputs.nonfinite, Halves.from_pair(a, b), strata)
+        return MethodInputs(a.merged(b), None, ref, inputs.nonfinite,
+                            Halves.from_pair(a, b, sampler=inputs.halves.sampler),
+                            strata)
     return MethodInputs(inputs.stats.crop(y0, y1, x0, x1), None, ref, inputs.nonfinite, strata=strata)
 
 

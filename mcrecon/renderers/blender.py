@@ -419,7 +419,8 @@ def dump_cycles_log(path, scene, *, spp: int, size=None, camera: str | None = No
                     fk = {f: z[f] for f in names} or None
                 if k == 0:
                     write_log(out, pos, val, width=w, height=h, channels=("R", "G", "B"),
-                              rounds=np.zeros(n_pix, np.int32), metadata=metadata, features=fk)
+                              rounds=np.zeros(n_pix, np.int32), metadata=metadata, features=fk,
+                              sampler="sobol")  # round k: every pixel's sample k of its own pattern
                 else:
                     append_log(out, pos, val, round_index=k, features=fk)
     return path

@@ -319,6 +319,8 @@ class CommandRenderer:
             reply = read_log(reply_path)
             data = reply.read_all()
         except InputError as exc:
+            if exc.field == "attribute sampler":  # the renderer's declaration, refused as it names it
+                raise
             if exc.field.startswith("dataset /features/"):
                 raise RendererError(self.name, f"reply {reply_path} {exc.field}", exc.problem) from None
             raise RendererError(self.name, "reply", f"malformed: {exc}") from None

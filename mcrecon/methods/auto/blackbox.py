@@ -41,6 +41,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...core.fill import mean_variance_policy
+from ...core.halves import mean_variances
 from ...core.stats import PixelStats
 from .estimates import cross_validation_mse
 from .features import Candidate, _filled, dual_candidate, feature_slices, prefiltered_features
@@ -189,8 +190,9 @@ def oidn_candidate(name: str, stats: PixelStats, v: np.ndarray, halves=None, *, 
         ha, hb = halves.a, halves.b
         fa = oidn_denoise(_colour(ha), a_half, clean_aux=aux)
         fb = oidn_denoise(_colour(hb), b_half, clean_aux=aux)
-        cva = cross_validation_mse(fa, hb.mean, mean_variance_policy(hb))
-        cvb = cross_validation_mse(fb, ha.mean, mean_variance_policy(ha))
+        _, va, vb = mean_variances(stats, halves)  # a stratified sampler's from its halves' difference
+        cva = cross_validation_mse(fa, hb.mean, vb)
+        cvb = cross_validation_mse(fb, ha.mean, va)
         cv = 0.5 * (cva + cvb)
         # the average of the two halves' OIDN, scored without bias by the dual identity: computed for the
         # estimate anyway, and better than OIDN on all the samples on some scenes (soft shadows, depth of

@@ -241,7 +241,7 @@ def _feature_bilateral(stats: PixelStats, y: np.ndarray, v: np.ndarray) -> "Cand
     return Candidate("fbil", img, np.where((stats.count > 0)[..., None], mse, np.nan), feature=True)
 
 
-def feature_candidates(names, ha: PixelStats, hb: PixelStats) -> list[Candidate]:
+def feature_candidates(names, ha: PixelStats, hb: PixelStats, *, variances=None) -> list[Candidate]:
     """The feature-guided candidates ``names`` (of :data:`FEATURE_CANDIDATES`) on the two halves.
 
     ``nfor_own``, ``dnlm``, ``xbil`` and the ``mix`` of the first two filter each half with its own
@@ -249,10 +249,13 @@ def feature_candidates(names, ha: PixelStats, hb: PixelStats) -> list[Candidate]
     other half and its cross-validation against it unbiased (as for the black boxes).  ``nfor``
     filters each half with the other's weights and features (:func:`_regressions`), so it is
     scored by Stein's estimate instead, exact for a filter linear in the half it filters.
+    ``variances``: the halves' means' variances ``(v_A, v_B)`` the estimates read
+    (:func:`~mcrecon.core.halves.mean_variances`; None: each half's ``s^2 / n``).
     """
     from .estimates import sure
 
     pa, pb = _HalfPlanes(ha), _HalfPlanes(hb)
+    va, vb = (pa.variance, pb.variance) if variances is None else variances
     own = {}
     out = []
     want_own = "nfor_own" in names or ("mix" in names and "albedo" in ha.features)
@@ -263,8 +266,8 @@ def feature_candidates(names, ha: PixelStats, hb: PixelStats) -> list[Candidate]
         if want_own:
             own["nfor_own"] = (own_a, own_b)
         if "nfor" in names:
-            out.append(dual_candidate("nfor", cross_a, cross_b, sure(ha.mean, pa.variance, cross_a, cw_a),
-                                  sure(hb.mean, pb.variance, cross_b, cw_b), ha.count, hb.count, feature=True))
+            out.append(dual_candidate("nfor", cross_a, cross_b, sure(ha.mean, va, cross_a, cw_a),
+                                  sure(hb.mean, vb, cross_b, cw_b), ha.count, hb.count, feature=True))
         del own_a, own_b, cross_a, cross_b, cw_a, cw_b
     if "xbil" not in names:
         # the unfiltered feature planes and their variances (14 planes a half with albedo, normal and
@@ -287,8 +290,8 @@ def feature_candidates(names, ha: PixelStats, hb: PixelStats) -> list[Candidate]
         else:
             a, b = ab
         if name in names or name.startswith("mix"):
-            out.append(dual_candidate(name, a, b, cross_validation_mse(a, hb.mean, pb.variance),
-                                  cross_validation_mse(b, ha.mean, pa.variance), ha.count, hb.count,
+            out.append(dual_candidate(name, a, b, cross_validation_mse(a, hb.mean, vb),
+                                  cross_validation_mse(b, ha.mean, va), ha.count, hb.count,
                                   feature=True))
         del a, b, ab
     return out

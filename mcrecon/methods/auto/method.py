@@ -26,7 +26,7 @@ import numpy as np
 
 from ...errors import InputError, McreconWarning
 from ...core.metrics import DEFAULT_EPS
-from ...core.halves import Halves
+from ...core.halves import Halves, mean_variances
 from .estimates import (cross_validation_mse, relative_denominator,
     sure, sure_filter_bank)
 from ...core.stats import PixelStats
@@ -36,7 +36,6 @@ from ...core.safeguard import (albedo_divisor, confidence_clamp, empty_pixels_ke
     widened_range_bounds)
 from ...core.fill import fill_empty_pixels
 from ...filters.gaussian import final_sigmas
-from ...core.fill import mean_variance_policy
 from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGHTS, Candidate,
     _feature_bilateral, dual_candidate, feature_candidates, prefiltered_features,
     release_prefiltered)
@@ -287,7 +286,13 @@ class AutoMethod(Method):
         p = self.params
         y = stats.mean
         count = stats.count
-        v = mean_variance_policy(stats)
+        # s^2 / n, or for a stratified sampler's prefix-block halves their difference (core.halves)
+        v, va, vb = mean_variances(stats, halves)
+        # the selection's variance (its relative denominators, the clamp, the bias floor, the global prior) is
+        # a many-degree one: for prefix-block halves g s^2 / n with their pooled gain, since a median of
+        # neighbours or an interval on a one-degree square is narrow where the square is small by chance
+        v_sel = mean_variances(stats, halves, pooled=True)[0] if halves is not None and \
+            halves.sampler != "independent" else v
         # The OIDN runs first, then the feature-guided candidates, then the rest (listed in choice order
         # all the same): OIDN's scratch memory (about 1.4 GB at 1920 x 1080) then meets only the
         # statistics, and the regressions' working arrays, the largest of a frame's, only OIDN's three
@@ -318,7 +323,7 @@ class AutoMethod(Method):
             run.regression_verdict = verdict
             if verdict is not None and not verdict.computes(p["regression_proxy"]):
                 fnames = tuple(n for n in fnames if n not in REGRESSIONS)
-        guided = feature_candidates(fnames, halves.a, halves.b) if with_features else []
+        guided = feature_candidates(fnames, halves.a, halves.b, variances=(va, vb)) if with_features else []
         v_sure = agreeing_variance(v, count)
         out: list[Candidate] = []
         names = self._names
@@ -341,7 +346,6 @@ class AutoMethod(Method):
         if dual:
             ha, hb = halves.a, halves.b
             ya, yb = ha.mean, hb.mean
-            va, vb = mean_variance_policy(ha), mean_variance_policy(hb)
             if "nlm" in dual:
                 fa, wa, fb, wb = nlmeans_cross(ya, va, ha.count, yb, vb, hb.count, radius=p["nlm_radius"],
                                                patch=p["nlm_patch"], k=p["nlm_k"])
@@ -367,7 +371,7 @@ class AutoMethod(Method):
             # only without halves: beside the halves' candidates its estimate, biased where the features
             # are noisy (defocus), cost auto 2.3x on the built-in checker_dof (docs/methods/auto.md)
             out.append(_feature_bilateral(stats, y, v))
-        return out, y, v, count
+        return out, y, v_sel, count
 
     def _aux_replaces_oidn(self, stats: PixelStats) -> bool:
         """Whether OIDN with the albedo and normal on all the samples (``oidn_aux``) replaces colour-only

@@ -182,7 +182,7 @@ def regression_share(method, stats: PixelStats, halves: Halves, nonfinite: str, 
     outer = [(y0 - halo, y0 + tile + halo, x0 - halo, x0 + tile + halo) for y0, x0 in windows]
     crop = lambda st: _stack([st.crop(*o) for o in outer])  # noqa: E731
     ma, mb = crop(halves.a), crop(halves.b)
-    mh = Halves.from_pair(ma, mb)
+    mh = Halves.from_pair(ma, mb, sampler=halves.sampler)
     if prefiltered is not None:
         for st, pf in zip((ma, mb), prefiltered):
             if pf is not None:

@@ -498,8 +498,10 @@ def write_scene_log(scene, path, *, width: int = 128, height: int = 128, spp: in
         meta["params"] = dict(sc.params)
     # float32 like the renderer bridges write (half the bytes of float64; positions stay in their pixel)
     feats = {name: ((FEATURE_LAYOUT[name],), np.float32) for name in names}
+    # a stratified sampler is declared as the log's sampler attribute too (its halves then split by prefix
+    # blocks); the independent sampler's log stays without it, as before scenes had samplers
     with stream_log(path, n, width=width, height=height, channels=sc.channels, features=feats, reference=ref,
-                    metadata=meta) as out:
+                    metadata=meta, sampler=None if sampler == "independent" else sampler) as out:
         for a in range(0, n, block):
             b = r.uniform_rows(spp, a, min(n, a + block))
             out.write(b.positions, np.asarray(b.values, np.float32),
