@@ -31,7 +31,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["net_counts"]
+__all__ = ["net_counts", "rare_net_floor"]
 
 
 def _pow2_floor(x: np.ndarray) -> np.ndarray:
@@ -152,6 +152,54 @@ def net_round(desired: np.ndarray, current: np.ndarray, defensive: int, rng: np.
             d = d.copy()
             d.ravel()[np.argmax(d.ravel()) if d.any() else 0] += left
     return extra.reshape(d.shape) + net_counts(d, c + extra.reshape(d.shape))
+
+
+def rare_net_floor(var_mean: np.ndarray, mean: np.ndarray, count: np.ndarray, *, cap: int,
+                   threshold: float) -> np.ndarray:
+    """Samples per pixel (H, W) int64 a stratified pixel needs to hold a rare bright component: 0 where none shows.
+
+    A component found with probability ``p`` (checker_spot's small light, a
+    caustic) is in a pixel's net of ``2^m`` stratified samples about
+    ``2^m p`` times, so below about ``1 / p`` samples a net holds it once
+    or not at all and the pixel mean errs by the whole component; from a
+    few times ``1 / p`` on its share is nearly exact, where independent
+    samples would still err as ``s^2 / n``.  The neighbourhood's mean
+    per-sample relative variance ``r`` (:func:`~mcrecon.core.safeguard.neighbourhood_mean_variance`
+    over the squared 5 x 5 mean, the largest channel) reads about ``1 / p``
+    where the component carries the pixel and less where other light
+    dilutes it, so the floor is the power of two at or above ``2 r``,
+    at most ``cap``; it applies wherever
+    :func:`~mcrecon.core.safeguard.rare_component_mask` marks the
+    neighbourhood (``threshold``).
+
+    Parameters
+    ----------
+    var_mean, mean : ndarray (H, W, C)
+        Variance of each pixel's mean and the pixel means.
+    count : ndarray (H, W)
+        Samples per pixel.
+    cap : int
+        Largest floor (a power of two: the budget's whole net per pixel).
+    threshold : float
+        The rare-component gate (per-sample relative variance).
+    """
+    from scipy.ndimage import uniform_filter
+    from .safeguard import RARE_EPS, neighbourhood_mean_variance, rare_component_mask
+
+    v = np.asarray(var_mean, dtype=np.float64)
+    m = np.asarray(mean, dtype=np.float64)
+    c = np.asarray(count)
+    rare = rare_component_mask(v, m, c, threshold=threshold).any(axis=2)
+    if not rare.any():
+        return np.zeros(c.shape, np.int64)
+    per_sample = neighbourhood_mean_variance(v, c) * c[..., None]
+    mu = uniform_filter(m, size=(5, 5, 1), mode="nearest")
+    with np.errstate(invalid="ignore", over="ignore"):
+        r = np.max(np.where(np.isfinite(per_sample), per_sample / (mu * mu + RARE_EPS), 0.0), axis=2)
+    want = np.ceil(np.clip(2.0 * r, 1.0, float(cap))).astype(np.int64)
+    floor = _pow2_floor(want)
+    floor = np.where(floor < want, floor * 2, floor)          # the power of two at or above 2 r
+    return np.where(rare, np.minimum(floor, int(cap)), 0).astype(np.int64)
 
 
 def net_plan(method, run, state):
