@@ -35,7 +35,7 @@ def test_fill_lowest_tops_up_before_it_spreads():
     np.testing.assert_array_equal(fill_lowest(cur, 40, np.random.default_rng(0)) + cur, [[22, 22, 22, 22]])
 
 
-def _state(per_pixel):
+def _state(per_pixel, sampler="independent"):
     """Statistics of constant samples, ``per_pixel[y, x]`` of them in each pixel, and a round's state."""
     h, w = per_pixel.shape
     ys, xs = np.nonzero(per_pixel >= 0)
@@ -44,19 +44,21 @@ def _state(per_pixel):
     st = PixelStats(w, h, subpixels=0)
     st.add(pos, np.full((pos.shape[0], 3), 0.5))
     budget = int(per_pixel.sum()) + 8 * w * h
-    return AdaptiveState(st, 1, budget, st.n_samples, np.random.default_rng(0), iteration=7)
+    return AdaptiveState(st, 1, budget, st.n_samples, np.random.default_rng(0), iteration=7, sampler=sampler)
 
 
 def test_gem_share_goes_to_the_pixels_left_behind():
     per_pixel = np.full((8, 8), 20)
     per_pixel[:, :4] = 4                        # the left half fell behind
-    m = get_method("gem", uniform_share=1.0)    # the whole round is the share
+    m = get_method("gem", uniform_share=1.0)    # the whole round is the share (independent: from the bottom)
     counts = m.plan(m.start(8, 8), _state(per_pixel)).counts
     assert counts.sum() == 8 * 64
     assert counts[:, 4:].sum() == 0 and (counts[:, :4] == 16).all()
     # spread evenly, the share gives every pixel the same and leaves the left half behind
     even = get_method("gem", uniform_share=1.0, uniform_fill="even")
     assert (even.plan(even.start(8, 8), _state(per_pixel)).counts == 8).all()
+    # a stratified sampler's share stays even by default: a level between two nets buys little
+    assert (m.plan(m.start(8, 8), _state(per_pixel, "sobol")).counts == 8).all()
 
 
 def test_uniform_fill_is_validated():

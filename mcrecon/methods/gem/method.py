@@ -107,10 +107,12 @@ class GEMMethod(Method):
         Option("iterations", int, 8, "adaptive iterations after the initial pass", min=1),
         Option("uniform_share", float, 0.25, "share of each adaptive round spread uniformly over the film "
                "(0: the paper's greedy distribution alone)", min=0.0, max=1.0),
-        Option("uniform_fill", str, "lowest", "where the uniform share goes: lowest (the pixels of fewest "
-               "samples first, raised to a common level: the pixels the greedy distribution leaves behind catch "
-               "up) or even (the same to every pixel); in whole nets (net_counts) the share always goes to the "
-               "lowest nets first", choices=("lowest", "even")),
+        Option("uniform_fill", str, None, nullable=True, help="where the uniform share goes: lowest (the pixels "
+               "of fewest samples first, raised to a common level: the pixels the greedy distribution leaves "
+               "behind catch up) or even (the same to every pixel); None (default) follows the renderer: lowest "
+               "for independent samples, even where it declares a stratified sampler (there a level between "
+               "two nets buys little: docs/adaptive.md); in whole nets (net_counts) the share always goes to "
+               "the lowest nets first", choices=("lowest", "even")),
         Option("samples_per_pick", int, 0, "samples each selected pixel spreads over its filter "
                "(0: the average spp of the budget, as in the paper)", min=0),
         Option("adaptive_scales", int, 4, "dyadic Gaussian scales from 1 px used while sampling", min=1, max=10),
@@ -304,22 +306,25 @@ class GEMMethod(Method):
     # ------------------------------------------------------------ adaptive
     def plan(self, run: "GEMRun", state: AdaptiveState):
         """The next round (:meth:`Method.plan`): a stratified pixel's rare-component floor first, then the greedy
-        distribution and the uniform share, filled from the lowest counts up (``uniform_fill``).
+        distribution and the uniform share, for independent samples filled from the lowest counts up
+        (``uniform_fill``).
 
         The greedy distribution ranks a pixel by its selected filter's expected MSE reduction, which is
         small where a few noisy samples selected a coarse filter, however large the pixel's error (the
         fine checker under checker_spot's rare light): such pixels fall behind round after round, and
         an even share leaves them behind; filled from the bottom, the share raises them first.  With a
-        stratified sampler (``rare_nets``), a pixel whose neighbourhood shows a rare component is first
-        raised to the net that holds it (:func:`~mcrecon.core.nets.rare_net_floor`): below it the
-        pixel mean misses or doubles the component whatever its variance reads.  The floor's samples
+        stratified sampler a level between two nets buys little and the share stays even; there
+        (``rare_nets``) a pixel whose neighbourhood shows a rare component is first raised to the net
+        that holds it (:func:`~mcrecon.core.nets.rare_net_floor`): below it the pixel mean misses or
+        doubles the component whatever its variance reads.  The floor's samples
         count against the round's uniform share; a round the floors exceed goes to them alone.
         """
         p = self.params
         nets = p["net_counts"]
         stratified = state.sampler != "independent"
         floors = p["rare_nets"] == 1 or (p["rare_nets"] == -1 and stratified)
-        if nets == 1 or (nets == -1 and stratified) or (p["uniform_fill"] == "even" and not floors):
+        fill = p["uniform_fill"] or ("even" if stratified else "lowest")
+        if nets == 1 or (nets == -1 and stratified) or (fill == "even" and not floors):
             return super().plan(run, state)
         n = self.round_size(state)
         if n is None:
@@ -342,7 +347,7 @@ class GEMMethod(Method):
         placed = np.asarray(placed)
         if placed.shape != current.shape:                   # nothing placed (an empty position list)
             placed = np.zeros(current.shape, np.int64)
-        if p["uniform_fill"] == "lowest":
+        if fill == "lowest":
             share = fill_lowest(current + deficit, n_share, state.rng)
         else:
             share = uniform_counts(state.width, state.height, n_share, state.rng)
