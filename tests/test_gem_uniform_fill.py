@@ -9,7 +9,7 @@ from mcrecon.core.stats import PixelStats
 from mcrecon.errors import InputError
 from mcrecon.methods import get_method
 from mcrecon.methods.base import AdaptiveState
-from mcrecon.methods.gem.sampling import fill_lowest
+from mcrecon.core.nets import fill_lowest
 
 
 @pytest.mark.parametrize("seed", range(20))

@@ -31,7 +31,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["net_counts", "rare_net_floor"]
+__all__ = ["net_counts", "fill_lowest", "rare_net_floor", "rare_net_deficit"]
 
 
 def _pow2_floor(x: np.ndarray) -> np.ndarray:
@@ -200,6 +200,75 @@ def rare_net_floor(var_mean: np.ndarray, mean: np.ndarray, count: np.ndarray, *,
     floor = _pow2_floor(want)
     floor = np.where(floor < want, floor * 2, floor)          # the power of two at or above 2 r
     return np.where(rare, np.minimum(floor, int(cap)), 0).astype(np.int64)
+
+
+def fill_lowest(current: np.ndarray, n: int, rng: np.random.Generator, *,
+                cap: np.ndarray | None = None) -> np.ndarray:
+    """``n`` new samples per pixel (H, W) int64 that raise the pixels of fewest samples to a common level.
+
+    The defensive share of a round: where the greedy distribution leaves
+    pixels behind (a coarse filter selected from a few noisy samples reads
+    a small expected reduction, however large its error), an even spread
+    adds the same to every pixel and leaves them behind; filling from the
+    bottom (water-filling) raises exactly those.  The level ``t`` is the
+    highest with ``sum(clip(t - current, 0, cap - current)) <= n``; the
+    samples left (fewer than the pixels that could rise past ``t``) go one
+    each to such pixels drawn at random.
+
+    Parameters
+    ----------
+    current : ndarray (H, W) of int
+        Samples each pixel has (and has in flight).
+    n : int
+        Samples to hand out (>= 0); with ``cap``, at most ``sum(cap - current)``.
+    rng : numpy.random.Generator
+        Draws the pixels that take the last samples.
+    cap : ndarray (H, W) of int, optional
+        No pixel rises above it (a pixel at or above its cap takes nothing).
+    """
+    c = np.asarray(current, dtype=np.int64).ravel()
+    n = int(n)
+    shape = np.shape(current)
+    if n <= 0 or c.size == 0:
+        return np.zeros(shape, np.int64)
+    top = np.full(c.size, np.iinfo(np.int64).max // 4) if cap is None else np.asarray(cap, np.int64).ravel()
+    room = np.maximum(top - c, 0)
+    if cap is not None and int(room.sum()) < n:
+        raise ValueError(f"fill_lowest: {n} samples, room for {int(room.sum())} under the cap")
+
+    def given(t):
+        return np.minimum(np.maximum(t - c, 0), room)
+
+    lo, hi = int(c.min()), int(c.max()) + n        # given(lo) sums to 0 <= n; given(hi) to at least n
+    while lo < hi:                                  # the highest level whose fill fits
+        t = (lo + hi + 1) // 2
+        if int(given(t).sum()) <= n:
+            lo = t
+        else:
+            hi = t - 1
+    out = given(lo)
+    left = n - int(out.sum())
+    if left > 0:
+        at = np.flatnonzero((c + out == lo) & (out < room))
+        out[rng.choice(at, size=left, replace=False)] += 1
+    return out.reshape(shape)
+
+
+def rare_net_deficit(state, *, threshold: float) -> np.ndarray:
+    """Samples per pixel (H, W) int64 an adaptive round owes a stratified pixel to reach its :func:`rare_net_floor`.
+
+    ``state`` is an :class:`~mcrecon.methods.base.AdaptiveState`: the floor reads its committed
+    statistics, is at most the budget's whole net per pixel (the largest power of two at most its
+    average spp), and counts the samples in flight as taken.
+    """
+    from .fill import mean_variance_policy
+
+    st = state.stats
+    current = st.count if state.pending is None else st.count + state.pending
+    spp = max(1, int(state.budget) // (state.width * state.height))
+    floor = rare_net_floor(mean_variance_policy(st), st.mean, st.count, cap=1 << (spp.bit_length() - 1),
+                           threshold=threshold)
+    return np.maximum(floor - current, 0).astype(np.int64)
 
 
 def net_plan(method, run, state):

@@ -16,13 +16,13 @@ from ...core.stats import PixelStats
 from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, uniform_counts, variant_option
 from ...filters.gaussian import adaptive_sigmas, final_sigmas
 from .kernels import filled_subpixels, pending_n_eff
-from .sampling import distribute_samples, fill_lowest, sample_priority
+from .sampling import distribute_samples, sample_priority
 from .guard import RISK_RADIUS
 from .selection import CHANNEL_WEIGHTS, GAMMA_MAX, OUTLIER_RULES, GEMSelection, _pick, gem_select, oracle_select
 from ...core.fill import mean_variance_policy
 from ...core.safeguard import RARE_THRESHOLD, rare_component_variance
 from ...core.strata import stratified_gain
-from ...core.nets import rare_net_floor
+from ...core.nets import fill_lowest, rare_net_deficit
 
 __all__ = ["GEMMethod", "GEMRun", "TARGET_EPS"]
 
@@ -329,14 +329,10 @@ class GEMMethod(Method):
         n = self.round_size(state)
         if n is None:
             return None
-        st = state.stats
-        current = st.count if state.pending is None else st.count + state.pending
+        current = state.stats.count if state.pending is None else state.stats.count + state.pending
         deficit = np.zeros(current.shape, np.int64)
         if floors and p["rare_light_floor"]:
-            spp = max(1, state.budget // (state.width * state.height))
-            floor = rare_net_floor(mean_variance_policy(st), st.mean, st.count, cap=1 << (spp.bit_length() - 1),
-                                   threshold=self.rare_gate(state))
-            deficit = np.maximum(floor - current, 0)
+            deficit = rare_net_deficit(state, threshold=self.rare_gate(state))
         d = int(deficit.sum())
         if d >= n:
             return state.request(counts=fill_lowest(current, n, state.rng, cap=current + deficit))

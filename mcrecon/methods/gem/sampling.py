@@ -3,8 +3,7 @@
 :func:`sample_priority`: relative MSE of each pixel's selected filter and
 its expected reduction from n new samples; :func:`distribute_samples`:
 the pixels of highest priority each get n samples, importance-sampled
-over their selected filter; :func:`fill_lowest`: a round's uniform share
-to the pixels of fewest samples.
+over their selected filter.
 """
 
 from __future__ import annotations
@@ -17,7 +16,7 @@ from ...core.samples import check_memory
 from ...filters.gaussian import pixel_kernel
 from ...core.samples import sort_by_row
 
-__all__ = ['SAMPLING_EPS', 'sample_priority', 'distribute_samples', 'fill_lowest']
+__all__ = ['SAMPLING_EPS', 'sample_priority', 'distribute_samples']
 
 #: Bytes a planned sample takes while its position is drawn: pixel and offset (4 int64),
 #: the position (2 float64) and the row sort's order and copy.
@@ -249,54 +248,3 @@ def distribute_samples(priority: np.ndarray, selected: np.ndarray, sigmas, n_tot
     _place_in_pixels(pos, px, py, ox, oy)
     return sort_by_row(pos, h)
 
-
-def fill_lowest(current: np.ndarray, n: int, rng: np.random.Generator, *,
-                cap: np.ndarray | None = None) -> np.ndarray:
-    """``n`` new samples per pixel (H, W) int64 that raise the pixels of fewest samples to a common level.
-
-    The defensive share of a round: where the greedy distribution leaves
-    pixels behind (a coarse filter selected from a few noisy samples reads
-    a small expected reduction, however large its error), an even spread
-    adds the same to every pixel and leaves them behind; filling from the
-    bottom (water-filling) raises exactly those.  The level ``t`` is the
-    highest with ``sum(clip(t - current, 0, cap - current)) <= n``; the
-    samples left (fewer than the pixels that could rise past ``t``) go one
-    each to such pixels drawn at random.
-
-    Parameters
-    ----------
-    current : ndarray (H, W) of int
-        Samples each pixel has (and has in flight).
-    n : int
-        Samples to hand out (>= 0); with ``cap``, at most ``sum(cap - current)``.
-    rng : numpy.random.Generator
-        Draws the pixels that take the last samples.
-    cap : ndarray (H, W) of int, optional
-        No pixel rises above it (a pixel at or above its cap takes nothing).
-    """
-    c = np.asarray(current, dtype=np.int64).ravel()
-    n = int(n)
-    shape = np.shape(current)
-    if n <= 0 or c.size == 0:
-        return np.zeros(shape, np.int64)
-    top = np.full(c.size, np.iinfo(np.int64).max // 4) if cap is None else np.asarray(cap, np.int64).ravel()
-    room = np.maximum(top - c, 0)
-    if cap is not None and int(room.sum()) < n:
-        raise ValueError(f"fill_lowest: {n} samples, room for {int(room.sum())} under the cap")
-
-    def given(t):
-        return np.minimum(np.maximum(t - c, 0), room)
-
-    lo, hi = int(c.min()), int(c.max()) + n        # given(lo) sums to 0 <= n; given(hi) to at least n
-    while lo < hi:                                  # the highest level whose fill fits
-        t = (lo + hi + 1) // 2
-        if int(given(t).sum()) <= n:
-            lo = t
-        else:
-            hi = t - 1
-    out = given(lo)
-    left = n - int(out.sum())
-    if left > 0:
-        at = np.flatnonzero((c + out == lo) & (out < room))
-        out[rng.choice(at, size=left, replace=False)] += 1
-    return out.reshape(shape)
