@@ -110,3 +110,34 @@ def test_stratified_pixels_are_raised_to_the_rare_components_net_first():
     assert counts.sum() == 32 * 64 - 8 * 64 and counts.min() >= 8
     off = get_method("gem", rare_nets=0)
     assert np.ptp(off.plan(off.start(8, 8), _rare_state("sobol", 0)).counts) > 3
+
+
+def test_awr_batch_gives_what_is_owed_first():
+    from mcrecon.methods.awr.sampling import plan_awr_positions
+    st = _rare_state("sobol", 0).stats
+    owed = np.full((8, 8), 8)
+    owed[0, 0] = 0
+    small, _ = plan_awr_positions(st, 100, np.random.default_rng(0), per_coefficient=4, as_counts=True, owed=owed)
+    assert small.sum() == 100 and small[0, 0] == 0 and small.max() <= 2     # from the bottom, within what is owed
+    big, _ = plan_awr_positions(st, 1000, np.random.default_rng(0), per_coefficient=4, as_counts=True, owed=owed)
+    assert big.sum() == 1000 and (big >= owed).all()
+
+
+def test_awr_stratified_round_raises_the_rare_components_net_first():
+    # left: a rare light (one sample in 8); right: pixels of larger variance without a rare component
+    h, w = 8, 16
+    xs, ys = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    pos = np.repeat(np.stack([xs.ravel(), ys.ravel()], axis=1), 8, axis=0)
+    val = np.zeros((pos.shape[0], 3))
+    left = pos[:, 0] < 8
+    val[left & (np.arange(pos.shape[0]) % 8 == 0)] = 1.0
+    val[~left] = np.where(np.arange(pos.shape[0])[~left] % 2 == 0, 0.0, 2.0)[:, None]
+    st = PixelStats(w, h, subpixels=0)
+    st.add(pos, val)
+    counts = {}
+    for floor in (1, 0):
+        m = get_method("awr", rare_light_floor=floor)
+        state = AdaptiveState(st, 1, 32 * w * h, st.n_samples, np.random.default_rng(0), sampler="sobol")
+        counts[floor] = m.plan(m.start(w, h), state).counts
+    assert (counts[1][:, :6] >= 8).all()         # the net of 16 that holds the light, first
+    assert (counts[0][:, :6] == 0).any()         # without it the larger variance on the right comes first
