@@ -316,8 +316,8 @@ class GEMMethod(Method):
         stratified sampler a level between two nets buys little and the share stays even; there
         (``rare_nets``) a pixel whose neighbourhood shows a rare component is first raised to the net
         that holds it (:func:`~mcrecon.core.nets.rare_net_floor`): below it the pixel mean misses or
-        doubles the component whatever its variance reads.  The floor's samples
-        count against the round's uniform share; a round the floors exceed goes to them alone.
+        doubles the component whatever its variance reads.  The floors' samples count against the
+        round's uniform share; a round the floors exceed goes to them alone, from the bottom.
         """
         p = self.params
         nets = p["net_counts"]

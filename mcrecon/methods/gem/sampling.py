@@ -247,4 +247,3 @@ def distribute_samples(priority: np.ndarray, selected: np.ndarray, sigmas, n_tot
     pos = rng.random((n_all, 2))
     _place_in_pixels(pos, px, py, ox, oy)
     return sort_by_row(pos, h)
-
