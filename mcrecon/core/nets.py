@@ -24,6 +24,12 @@ becomes uniform, and a pixel steps to 64 only once the pixels wished at 16
 have their 32.  With independent samples the coarser steps cost more than
 they gain, so the methods apply it where the renderer declares a
 stratified sampler (``net_counts=-1``, awr's default; docs/adaptive.md).
+
+:func:`rare_net_floor` is the net a stratified pixel needs to hold a rare
+bright component its neighbourhood shows, which gem's and awr's rounds pay
+first (:func:`rare_net_deficit`); :func:`fill_lowest` hands out samples
+from the pixels of fewest samples up (gem's uniform share with
+independent samples, and a round smaller than the floors it owes).
 """
 
 from __future__ import annotations
