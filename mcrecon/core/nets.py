@@ -27,7 +27,8 @@ stratified sampler (``net_counts=-1``, awr's default; docs/adaptive.md).
 
 :func:`rare_net_floor` is the net a stratified pixel needs to hold a rare
 bright component its neighbourhood shows, which gem's and awr's rounds pay
-first (:func:`rare_net_deficit`); :func:`fill_lowest` hands out samples
+first (:func:`rare_net_deficit`), and gem's greedy counts there go in whole
+nets; :func:`fill_lowest` hands out samples
 from the pixels of fewest samples up (gem's uniform share with
 independent samples, and a round smaller than the floors it owes).
 """
@@ -37,7 +38,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["net_counts", "fill_lowest", "rare_net_floor", "rare_net_deficit"]
+__all__ = ["net_counts", "fill_lowest", "rare_net_floor", "state_rare_net_floor", "rare_net_deficit"]
 
 
 def _pow2_floor(x: np.ndarray) -> np.ndarray:
@@ -260,21 +261,26 @@ def fill_lowest(current: np.ndarray, n: int, rng: np.random.Generator, *,
     return out.reshape(shape)
 
 
-def rare_net_deficit(state, *, threshold: float) -> np.ndarray:
-    """Samples per pixel (H, W) int64 an adaptive round owes a stratified pixel to reach its :func:`rare_net_floor`.
+def state_rare_net_floor(state, *, threshold: float) -> np.ndarray:
+    """:func:`rare_net_floor` (H, W) of an adaptive round's committed statistics, at most the budget's net per pixel.
 
-    ``state`` is an :class:`~mcrecon.methods.base.AdaptiveState`: the floor reads its committed
-    statistics, is at most the budget's whole net per pixel (the largest power of two at most its
-    average spp), and counts the samples in flight as taken.
+    ``state`` is an :class:`~mcrecon.methods.base.AdaptiveState`; the cap is the largest power of two
+    at most its average spp.
     """
     from .fill import mean_variance_policy
 
     st = state.stats
-    current = st.count if state.pending is None else st.count + state.pending
     spp = max(1, int(state.budget) // (state.width * state.height))
-    floor = rare_net_floor(mean_variance_policy(st), st.mean, st.count, cap=1 << (spp.bit_length() - 1),
-                           threshold=threshold)
-    return np.maximum(floor - current, 0).astype(np.int64)
+    return rare_net_floor(mean_variance_policy(st), st.mean, st.count, cap=1 << (spp.bit_length() - 1),
+                          threshold=threshold)
+
+
+def rare_net_deficit(state, *, threshold: float) -> np.ndarray:
+    """Samples per pixel (H, W) int64 an adaptive round owes a stratified pixel to reach its
+    :func:`state_rare_net_floor`, the samples in flight counted as taken."""
+    st = state.stats
+    current = st.count if state.pending is None else st.count + state.pending
+    return np.maximum(state_rare_net_floor(state, threshold=threshold) - current, 0).astype(np.int64)
 
 
 def net_plan(method, run, state):

@@ -22,7 +22,7 @@ from .selection import CHANNEL_WEIGHTS, GAMMA_MAX, OUTLIER_RULES, GEMSelection, 
 from ...core.fill import mean_variance_policy
 from ...core.safeguard import RARE_THRESHOLD, rare_component_variance
 from ...core.strata import stratified_gain
-from ...core.nets import fill_lowest, rare_net_deficit
+from ...core.nets import fill_lowest, net_counts, state_rare_net_floor
 
 __all__ = ["GEMMethod", "GEMRun", "TARGET_EPS"]
 
@@ -164,8 +164,9 @@ class GEMMethod(Method):
         Option("rare_nets", int, -1, "adaptive phase, rare_light_floor=1: 1 first raises each pixel whose "
                "neighbourhood shows a rare bright component to the power of two at or above twice its per-sample "
                "relative variance (a stratified sampler's net that holds a component found by one sample in "
-               "1/p; at most the budget's net per pixel), out of the round's uniform share; 0 off; -1 (default) "
-               "follows the renderer: 1 where it declares a stratified sampler", choices=(-1, 0, 1)),
+               "1/p; at most the budget's net per pixel), out of the round's uniform share, and rounds the greedy "
+               "counts there to whole nets; 0 off; -1 (default) follows the renderer: 1 where it declares a "
+               "stratified sampler", choices=(-1, 0, 1)),
         Option("subpixel_exact_below", float, 0.0, "filter scales with sigma below this (px) on the 4x4 "
                "subpixel grid itself (slower; 0: pixel-level equivalent kernel)", min=0.0),
     )
@@ -316,8 +317,9 @@ class GEMMethod(Method):
         stratified sampler a level between two nets buys little and the share stays even; there
         (``rare_nets``) a pixel whose neighbourhood shows a rare component is first raised to the net
         that holds it (:func:`~mcrecon.core.nets.rare_net_floor`): below it the pixel mean misses or
-        doubles the component whatever its variance reads.  The floors' samples count against the
-        round's uniform share; a round the floors exceed goes to them alone, from the bottom.
+        doubles the component whatever its variance reads, and past it the greedy counts go in whole
+        nets (the samples past a net buy little until the next).  The floors' samples count against
+        the round's uniform share; a round the floors exceed goes to them alone, from the bottom.
         """
         p = self.params
         nets = p["net_counts"]
@@ -330,9 +332,10 @@ class GEMMethod(Method):
         if n is None:
             return None
         current = state.stats.count if state.pending is None else state.stats.count + state.pending
-        deficit = np.zeros(current.shape, np.int64)
+        floor = np.zeros(current.shape, np.int64)
         if floors and p["rare_light_floor"]:
-            deficit = rare_net_deficit(state, threshold=self.rare_gate(state))
+            floor = state_rare_net_floor(state, threshold=self.rare_gate(state))
+        deficit = np.maximum(floor - current, 0)
         d = int(deficit.sum())
         if d >= n:
             return state.request(counts=fill_lowest(current, n, state.rng, cap=current + deficit))
@@ -343,6 +346,10 @@ class GEMMethod(Method):
         placed = np.asarray(placed)
         if placed.shape != current.shape:                   # nothing placed (an empty position list)
             placed = np.zeros(current.shape, np.int64)
+        held = floor > 0
+        if held.any():
+            # past a rare component's net a pixel's samples buy little until the next net: whole nets there
+            placed = np.where(held, 0, placed) + net_counts(np.where(held, placed, 0), current + deficit)
         if fill == "lowest":
             share = fill_lowest(current + deficit, n_share, state.rng)
         else:
