@@ -40,7 +40,8 @@ def _pow2_share(counts):
 
 
 def _run(renderer, method="awr", **opts):
-    opts = {"net_counts": -1, **opts} if method == "gem" else opts  # gem follows the renderer when asked
+    # gem follows the renderer when asked; its share's fill and rare nets follow it too, held fixed here
+    opts = {"net_counts": -1, "uniform_fill": "lowest", "rare_nets": 0, **opts} if method == "gem" else opts
     return mcrecon.adapt(renderer, get_method(method, **opts), spp=24, seed=1, progress=False, track_error=False)
 
 

@@ -24,6 +24,13 @@ becomes uniform, and a pixel steps to 64 only once the pixels wished at 16
 have their 32.  With independent samples the coarser steps cost more than
 they gain, so the methods apply it where the renderer declares a
 stratified sampler (``net_counts=-1``, awr's default; docs/adaptive.md).
+
+:func:`rare_net_floor` is the net a stratified pixel needs to hold a rare
+bright component its neighbourhood shows, which gem's and awr's rounds pay
+first (:func:`rare_net_deficit`), and gem's greedy counts there go in whole
+nets; :func:`fill_lowest` hands out samples
+from the pixels of fewest samples up (gem's uniform share with
+independent samples, and a round smaller than the floors it owes).
 """
 
 from __future__ import annotations
@@ -31,7 +38,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["net_counts"]
+__all__ = ["net_counts", "fill_lowest", "rare_net_floor", "state_rare_net_floor", "rare_net_deficit"]
 
 
 def _pow2_floor(x: np.ndarray) -> np.ndarray:
@@ -152,6 +159,128 @@ def net_round(desired: np.ndarray, current: np.ndarray, defensive: int, rng: np.
             d = d.copy()
             d.ravel()[np.argmax(d.ravel()) if d.any() else 0] += left
     return extra.reshape(d.shape) + net_counts(d, c + extra.reshape(d.shape))
+
+
+def rare_net_floor(var_mean: np.ndarray, mean: np.ndarray, count: np.ndarray, *, cap: int,
+                   threshold: float) -> np.ndarray:
+    """Samples per pixel (H, W) int64 a stratified pixel needs to hold a rare bright component: 0 where none shows.
+
+    A component found with probability ``p`` (checker_spot's small light, a
+    caustic) is in a pixel's net of ``2^m`` stratified samples about
+    ``2^m p`` times, so below about ``1 / p`` samples a net holds it once
+    or not at all and the pixel mean errs by the whole component; from a
+    few times ``1 / p`` on its share is nearly exact, where independent
+    samples would still err as ``s^2 / n``.  The neighbourhood's mean
+    per-sample relative variance ``r`` (:func:`~mcrecon.core.safeguard.neighbourhood_mean_variance`
+    over the squared 5 x 5 mean, the largest channel) reads about ``1 / p``
+    where the component carries the pixel and less where other light
+    dilutes it, so the floor is the power of two at or above ``2 r``,
+    at most ``cap``; it applies wherever
+    :func:`~mcrecon.core.safeguard.rare_component_mask` marks the
+    neighbourhood (``threshold``).
+
+    Parameters
+    ----------
+    var_mean, mean : ndarray (H, W, C)
+        Variance of each pixel's mean and the pixel means.
+    count : ndarray (H, W)
+        Samples per pixel.
+    cap : int
+        Largest floor (a power of two: the budget's whole net per pixel).
+    threshold : float
+        The rare-component gate (per-sample relative variance).
+    """
+    from scipy.ndimage import uniform_filter
+    from .safeguard import RARE_EPS, neighbourhood_mean_variance, rare_component_mask
+
+    v = np.asarray(var_mean, dtype=np.float64)
+    m = np.asarray(mean, dtype=np.float64)
+    c = np.asarray(count)
+    rare = rare_component_mask(v, m, c, threshold=threshold).any(axis=2)
+    if not rare.any():
+        return np.zeros(c.shape, np.int64)
+    per_sample = neighbourhood_mean_variance(v, c) * c[..., None]
+    mu = uniform_filter(m, size=(5, 5, 1), mode="nearest")
+    with np.errstate(invalid="ignore", over="ignore"):
+        r = np.max(np.where(np.isfinite(per_sample), per_sample / (mu * mu + RARE_EPS), 0.0), axis=2)
+    want = np.ceil(np.clip(2.0 * r, 1.0, float(cap))).astype(np.int64)
+    floor = _pow2_floor(want)
+    floor = np.where(floor < want, floor * 2, floor)          # the power of two at or above 2 r
+    return np.where(rare, np.minimum(floor, int(cap)), 0).astype(np.int64)
+
+
+def fill_lowest(current: np.ndarray, n: int, rng: np.random.Generator, *,
+                cap: np.ndarray | None = None) -> np.ndarray:
+    """``n`` new samples per pixel (H, W) int64 that raise the pixels of fewest samples to a common level.
+
+    The defensive share of a round: where the greedy distribution leaves
+    pixels behind (a coarse filter selected from a few noisy samples reads
+    a small expected reduction, however large its error), an even spread
+    adds the same to every pixel and leaves them behind; filling from the
+    bottom (water-filling) raises exactly those.  The level ``t`` is the
+    highest with ``sum(clip(t - current, 0, cap - current)) <= n``; the
+    samples left (fewer than the pixels that could rise past ``t``) go one
+    each to such pixels drawn at random.
+
+    Parameters
+    ----------
+    current : ndarray (H, W) of int
+        Samples each pixel has (and has in flight).
+    n : int
+        Samples to hand out (>= 0); with ``cap``, at most ``sum(cap - current)``.
+    rng : numpy.random.Generator
+        Draws the pixels that take the last samples.
+    cap : ndarray (H, W) of int, optional
+        No pixel rises above it (a pixel at or above its cap takes nothing).
+    """
+    c = np.asarray(current, dtype=np.int64).ravel()
+    n = int(n)
+    shape = np.shape(current)
+    if n <= 0 or c.size == 0:
+        return np.zeros(shape, np.int64)
+    top = np.full(c.size, np.iinfo(np.int64).max // 4) if cap is None else np.asarray(cap, np.int64).ravel()
+    room = np.maximum(top - c, 0)
+    if cap is not None and int(room.sum()) < n:
+        raise ValueError(f"fill_lowest: {n} samples, room for {int(room.sum())} under the cap")
+
+    def given(t):
+        return np.minimum(np.maximum(t - c, 0), room)
+
+    lo, hi = int(c.min()), int(c.max()) + n        # given(lo) sums to 0 <= n; given(hi) to at least n
+    while lo < hi:                                  # the highest level whose fill fits
+        t = (lo + hi + 1) // 2
+        if int(given(t).sum()) <= n:
+            lo = t
+        else:
+            hi = t - 1
+    out = given(lo)
+    left = n - int(out.sum())
+    if left > 0:
+        at = np.flatnonzero((c + out == lo) & (out < room))
+        out[rng.choice(at, size=left, replace=False)] += 1
+    return out.reshape(shape)
+
+
+def state_rare_net_floor(state, *, threshold: float) -> np.ndarray:
+    """:func:`rare_net_floor` (H, W) of an adaptive round's committed statistics, at most the budget's net per pixel.
+
+    ``state`` is an :class:`~mcrecon.methods.base.AdaptiveState`; the cap is the largest power of two
+    at most its average spp.
+    """
+    from .fill import mean_variance_policy
+
+    st = state.stats
+    spp = max(1, int(state.budget) // (state.width * state.height))
+    return rare_net_floor(mean_variance_policy(st), st.mean, st.count, cap=1 << (spp.bit_length() - 1),
+                          threshold=threshold)
+
+
+def rare_net_deficit(state, *, threshold: float) -> np.ndarray:
+    """Samples per pixel (H, W) int64 an adaptive round owes a stratified pixel to reach its
+    :func:`state_rare_net_floor`, the samples in flight counted as taken."""
+    st = state.stats
+    current = st.count if state.pending is None else st.count + state.pending
+    return np.maximum(state_rare_net_floor(state, threshold=threshold) - current, 0).astype(np.int64)
 
 
 def net_plan(method, run, state):

@@ -17,6 +17,7 @@ import numba
 import numpy as np
 
 from ...core.samples import check_memory
+from ...core.nets import fill_lowest
 from ...core.safeguard import neighbourhood_mean_variance, rare_component_mask
 from ...core.stats import PixelStats
 from ...core.fill import fill_empty_pixels
@@ -235,7 +236,7 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
                        renorm: float = SAMPLING_RENORM, propagation: str = "exact",
                        priority_threshold: float | None = None, estimator: str = "contrast",
                        pending: np.ndarray | None = None, as_counts: bool = False,
-                       rare_light_floor: bool = False, pixel_pops: int = 1):
+                       rare_light_floor: bool = False, pixel_pops: int = 1, owed: np.ndarray | None = None):
     """One batch of the adaptive wavelet sampler (§4.1 Steps 2-3).
 
     Ranks all scale coefficients of levels 0..``levels`` by Eq. 8 and
@@ -268,6 +269,12 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
     what a large one would give it, while the pixels one noisy estimate
     ranks high get a fraction of the round each, not all of it.
 
+    ``owed`` (H, W), optional, with ``as_counts``: samples per pixel the
+    batch gives first (a stratified pixel's rare-component net,
+    :func:`~mcrecon.core.nets.rare_net_deficit`); the coefficients share
+    the rest.  A batch smaller than what is owed raises the pixels owed
+    from the fewest samples up (:func:`~mcrecon.core.nets.fill_lowest`).
+
     ``as_counts``: return the samples per pixel instead of positions.  The
     position inside the chosen pixel is uniform and carries no decision, so
     a request for counts has the same distribution and lets the renderer
@@ -289,6 +296,17 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
     info = {"max_priority": float("nan"), "levels_used": {}, "affected_fraction": 0.0}
     if n_samples <= 0:
         return None, info
+    if owed is not None and as_counts and np.any(owed):
+        taken = stats.count + np.asarray(pending) if pending is not None else stats.count
+        owed = np.asarray(owed, dtype=np.int64)
+        if int(owed.sum()) >= n_samples:
+            return fill_lowest(taken, n_samples, rng, cap=taken + owed), info
+        rest, info = plan_awr_positions(
+            stats, n_samples - int(owed.sum()), rng, wavelet=wavelet, levels=levels, mode=mode,
+            per_coefficient=per_coefficient, renorm=renorm, propagation=propagation,
+            priority_threshold=priority_threshold, estimator=estimator, pending=pending, as_counts=True,
+            rare_light_floor=rare_light_floor, pixel_pops=pixel_pops)
+        return owed if rest is None else owed + rest, info
     # the positions and their per-sample temporaries: refused in one line before a budget the
     # machine cannot hold is allocated
     check_memory("method awr", "spp", 64.0 * n_samples, f"a round of {n_samples} sample positions",

@@ -13,7 +13,7 @@ import numpy as np
 
 from ...errors import InputError
 from ...core.stats import PixelStats
-from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, variant_option
+from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, uniform_counts, variant_option
 from ...filters.gaussian import adaptive_sigmas, final_sigmas
 from .kernels import filled_subpixels, pending_n_eff
 from .sampling import distribute_samples, sample_priority
@@ -22,6 +22,7 @@ from .selection import CHANNEL_WEIGHTS, GAMMA_MAX, OUTLIER_RULES, GEMSelection, 
 from ...core.fill import mean_variance_policy
 from ...core.safeguard import RARE_THRESHOLD, rare_component_variance
 from ...core.strata import stratified_gain
+from ...core.nets import fill_lowest, net_counts, state_rare_net_floor
 
 __all__ = ["GEMMethod", "GEMRun", "TARGET_EPS"]
 
@@ -88,7 +89,8 @@ class GEMMethod(Method):
         "robust": {},
         "paper": {"gamma": 0.1, "final_outliers": "paper", "zero_variance_votes": 3, "uniform_share": 0.0,
                   "channel_weights": "absolute", "confirm_stops": 0, "variance_guard": 0, "risk_guard": 0.0,
-                  "stratified_gain": 0, "rare_light_floor": 0, "guard_halves": 0, "net_counts": 0},
+                  "stratified_gain": 0, "rare_light_floor": 0, "guard_halves": 0, "net_counts": 0,
+                  "rare_nets": 0},
     }
     options = (
         variant_option(variants),
@@ -105,6 +107,12 @@ class GEMMethod(Method):
         Option("iterations", int, 8, "adaptive iterations after the initial pass", min=1),
         Option("uniform_share", float, 0.25, "share of each adaptive round spread uniformly over the film "
                "(0: the paper's greedy distribution alone)", min=0.0, max=1.0),
+        Option("uniform_fill", str, None, nullable=True, help="where the uniform share goes: lowest (the pixels "
+               "of fewest samples first, raised to a common level: the pixels the greedy distribution leaves "
+               "behind catch up) or even (the same to every pixel); None (default) follows the renderer: lowest "
+               "for independent samples, even where it declares a stratified sampler (there a level between "
+               "two nets buys little: docs/adaptive.md); in whole nets (net_counts) the share always goes to "
+               "the lowest nets first", choices=("lowest", "even")),
         Option("samples_per_pick", int, 0, "samples each selected pixel spreads over its filter "
                "(0: the average spp of the budget, as in the paper)", min=0),
         Option("adaptive_scales", int, 4, "dyadic Gaussian scales from 1 px used while sampling", min=1, max=10),
@@ -153,6 +161,12 @@ class GEMMethod(Method):
                "spread uniformly (the paper: no share); -1 follows the renderer: 1 where it declares a stratified "
                "sampler (Renderer.sampler 'sobol'), 0 for independent samples (with Sobol samples whole nets cost "
                "gem more than they gain: docs/adaptive.md)", choices=(-1, 0, 1)),
+        Option("rare_nets", int, -1, "adaptive phase, rare_light_floor=1: 1 first raises each pixel whose "
+               "neighbourhood shows a rare bright component to the power of two at or above twice its per-sample "
+               "relative variance (a stratified sampler's net that holds a component found by one sample in "
+               "1/p; at most the budget's net per pixel), out of the round's uniform share, and rounds the greedy "
+               "counts there to whole nets; 0 off; -1 (default) follows the renderer: 1 where it declares a "
+               "stratified sampler", choices=(-1, 0, 1)),
         Option("subpixel_exact_below", float, 0.0, "filter scales with sigma below this (px) on the 4x4 "
                "subpixel grid itself (slower; 0: pixel-level equivalent kernel)", min=0.0),
     )
@@ -291,6 +305,57 @@ class GEMMethod(Method):
         return np.asarray(img, dtype=np.float64)
 
     # ------------------------------------------------------------ adaptive
+    def plan(self, run: "GEMRun", state: AdaptiveState):
+        """The next round (:meth:`Method.plan`): a stratified pixel's rare-component floor first, then the greedy
+        distribution and the uniform share, for independent samples filled from the lowest counts up
+        (``uniform_fill``).
+
+        The greedy distribution ranks a pixel by its selected filter's expected MSE reduction, which is
+        small where a few noisy samples selected a coarse filter, however large the pixel's error (the
+        fine checker under checker_spot's rare light): such pixels fall behind round after round, and
+        an even share leaves them behind; filled from the bottom, the share raises them first.  With a
+        stratified sampler a level between two nets buys little and the share stays even; there
+        (``rare_nets``) a pixel whose neighbourhood shows a rare component is first raised to the net
+        that holds it (:func:`~mcrecon.core.nets.rare_net_floor`): below it the pixel mean misses or
+        doubles the component whatever its variance reads, and past it the greedy counts go in whole
+        nets (the samples past a net buy little until the next).  The floors' samples count against
+        the round's uniform share; a round the floors exceed goes to them alone, from the bottom.
+        """
+        p = self.params
+        nets = p["net_counts"]
+        stratified = state.sampler != "independent"
+        floors = p["rare_nets"] == 1 or (p["rare_nets"] == -1 and stratified)
+        fill = p["uniform_fill"] or ("even" if stratified else "lowest")
+        if nets == 1 or (nets == -1 and stratified) or (fill == "even" and not floors):
+            return super().plan(run, state)
+        n = self.round_size(state)
+        if n is None:
+            return None
+        current = state.stats.count if state.pending is None else state.stats.count + state.pending
+        floor = np.zeros(current.shape, np.int64)
+        if floors and p["rare_light_floor"]:
+            floor = state_rare_net_floor(state, threshold=self.rare_gate(state))
+        deficit = np.maximum(floor - current, 0)
+        d = int(deficit.sum())
+        if d >= n:
+            return state.request(counts=fill_lowest(current, n, state.rng, cap=current + deficit))
+        n_share = max(int(round(p["uniform_share"] * n)) - d, 0)
+        placed = self.place(run, state, n - d - n_share)
+        if placed is None:
+            return None
+        placed = np.asarray(placed)
+        if placed.shape != current.shape:                   # nothing placed (an empty position list)
+            placed = np.zeros(current.shape, np.int64)
+        held = floor > 0
+        if held.any():
+            # past a rare component's net a pixel's samples buy little until the next net: whole nets there
+            placed = np.where(held, 0, placed) + net_counts(np.where(held, placed, 0), current + deficit)
+        if fill == "lowest":
+            share = fill_lowest(current + deficit, n_share, state.rng)
+        else:
+            share = uniform_counts(state.width, state.height, n_share, state.rng)
+        return state.request(counts=deficit + placed + share)
+
     def rare_gate(self, state: AdaptiveState) -> float:
         """The adaptive floor's rare-component gate: the ``rare_threshold`` option, or with None the sampler's.
 

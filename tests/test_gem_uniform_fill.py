@@ -1,0 +1,145 @@
+"""gem's uniform share fills the pixels of fewest samples first (option ``uniform_fill``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mcrecon.core.stats import PixelStats
+from mcrecon.errors import InputError
+from mcrecon.methods import get_method
+from mcrecon.methods.base import AdaptiveState
+from mcrecon.core.nets import fill_lowest
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_fill_lowest_raises_the_lowest_pixels_to_a_common_level(seed):
+    rng = np.random.default_rng(seed)
+    cur = rng.integers(0, 12, size=(int(rng.integers(1, 7)), int(rng.integers(1, 7))))
+    n = int(rng.integers(0, 150))
+    add = fill_lowest(cur, n, rng)
+    assert add.shape == cur.shape and add.dtype == np.int64
+    assert add.sum() == n and (add >= 0).all()
+    raised = add > 0
+    if raised.any():
+        new = cur + add
+        # the raised pixels end within one sample of each other, and no pixel left alone lies below them
+        assert new[raised].max() - new[raised].min() <= 1
+        assert (cur[~raised] >= new[raised].max() - 1).all()
+
+
+def test_fill_lowest_tops_up_before_it_spreads():
+    cur = np.array([[4, 4, 20, 20]])
+    np.testing.assert_array_equal(fill_lowest(cur, 10, np.random.default_rng(0)), [[5, 5, 0, 0]])
+    # enough for everyone: a common level everywhere
+    np.testing.assert_array_equal(fill_lowest(cur, 40, np.random.default_rng(0)) + cur, [[22, 22, 22, 22]])
+
+
+def _state(per_pixel, sampler="independent"):
+    """Statistics of constant samples, ``per_pixel[y, x]`` of them in each pixel, and a round's state."""
+    h, w = per_pixel.shape
+    ys, xs = np.nonzero(per_pixel >= 0)
+    reps = per_pixel[ys, xs]
+    pos = np.stack([np.repeat(xs + 0.5, reps), np.repeat(ys + 0.5, reps)], axis=1)
+    st = PixelStats(w, h, subpixels=0)
+    st.add(pos, np.full((pos.shape[0], 3), 0.5))
+    budget = int(per_pixel.sum()) + 8 * w * h
+    return AdaptiveState(st, 1, budget, st.n_samples, np.random.default_rng(0), iteration=7, sampler=sampler)
+
+
+def test_gem_share_goes_to_the_pixels_left_behind():
+    per_pixel = np.full((8, 8), 20)
+    per_pixel[:, :4] = 4                        # the left half fell behind
+    m = get_method("gem", uniform_share=1.0)    # the whole round is the share (independent: from the bottom)
+    counts = m.plan(m.start(8, 8), _state(per_pixel)).counts
+    assert counts.sum() == 8 * 64
+    assert counts[:, 4:].sum() == 0 and (counts[:, :4] == 16).all()
+    # spread evenly, the share gives every pixel the same and leaves the left half behind
+    even = get_method("gem", uniform_share=1.0, uniform_fill="even")
+    assert (even.plan(even.start(8, 8), _state(per_pixel)).counts == 8).all()
+    # a stratified sampler's share stays even by default: a level between two nets buys little
+    assert (m.plan(m.start(8, 8), _state(per_pixel, "sobol")).counts == 8).all()
+
+
+def test_uniform_fill_is_validated():
+    with pytest.raises(InputError, match="uniform_fill"):
+        get_method("gem", uniform_fill="top")
+
+
+# ----------------------------------------------------------------------------
+# a stratified pixel's rare-component floor (option rare_nets)
+# ----------------------------------------------------------------------------
+
+def test_rare_net_floor_is_the_net_that_holds_the_component():
+    from mcrecon.core.nets import rare_net_floor
+    h, w = 12, 24
+    count = np.full((h, w), 4)
+    mean = np.full((h, w, 3), 0.05)
+    var = np.full((h, w, 3), 1e-6)               # edges and texture: a relative variance far below the gate
+    var[:, :8] = 10.0 * 0.05 ** 2 / 4            # a rare component: per-sample relative variance ~ 10
+    fl = rare_net_floor(var, mean, count, cap=32, threshold=5.0)
+    assert (fl[:, :6] == 32).all()               # 2 r = 20: the net of 32
+    assert (fl[:, 11:] == 0).all()               # no neighbour shows the component
+    assert (rare_net_floor(var, mean, count, cap=16, threshold=5.0)[:, :6] == 16).all()
+    assert not rare_net_floor(var, mean, count, cap=32, threshold=20.0).any()
+
+
+def _rare_state(sampler, iteration):
+    """8 x 8 pixels of 8 samples, one of which found a rare light (relative variance 8), budget 32 spp."""
+    h = w = 8
+    xs, ys = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    pos = np.repeat(np.stack([xs.ravel(), ys.ravel()], axis=1), 8, axis=0)
+    val = np.zeros((pos.shape[0], 3))
+    val[::8] = 1.0
+    st = PixelStats(w, h, subpixels=0)
+    st.add(pos, val)
+    return AdaptiveState(st, 1, 32 * w * h, st.n_samples, np.random.default_rng(0), iteration=iteration,
+                         sampler=sampler)
+
+
+def test_stratified_pixels_are_raised_to_the_rare_components_net_first():
+    m = get_method("gem")
+    # the round (192 samples) is smaller than the floors' 8 more per pixel: it goes to them, evenly
+    counts = m.plan(m.start(8, 8), _rare_state("sobol", 0)).counts
+    assert counts.sum() == 192 and (counts == 3).all()
+    # independent samples have no floor: the greedy distribution places the round by its filters' error
+    counts = m.plan(m.start(8, 8), _rare_state("independent", 0)).counts
+    assert counts.sum() == 192 and np.ptp(counts) > 3
+    # the last round: every pixel reaches its floor of 16, and the greedy counts past it go in whole nets
+    counts = m.plan(m.start(8, 8), _rare_state("sobol", 7)).counts
+    total = 8 + counts
+    assert counts.sum() == 32 * 64 - 8 * 64 and total.min() >= 16
+    assert np.mean((total & (total - 1)) == 0) > 0.95
+    off = get_method("gem", rare_nets=0)
+    assert np.ptp(off.plan(off.start(8, 8), _rare_state("sobol", 0)).counts) > 3
+
+
+def test_awr_batch_gives_what_is_owed_first():
+    from mcrecon.methods.awr.sampling import plan_awr_positions
+    st = _rare_state("sobol", 0).stats
+    owed = np.full((8, 8), 8)
+    owed[0, 0] = 0
+    small, _ = plan_awr_positions(st, 100, np.random.default_rng(0), per_coefficient=4, as_counts=True, owed=owed)
+    assert small.sum() == 100 and small[0, 0] == 0 and small.max() <= 2     # from the bottom, within what is owed
+    big, _ = plan_awr_positions(st, 1000, np.random.default_rng(0), per_coefficient=4, as_counts=True, owed=owed)
+    assert big.sum() == 1000 and (big >= owed).all()
+
+
+def test_awr_stratified_round_raises_the_rare_components_net_first():
+    # left: a rare light (one sample in 8); right: pixels of larger variance without a rare component
+    h, w = 8, 16
+    xs, ys = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    pos = np.repeat(np.stack([xs.ravel(), ys.ravel()], axis=1), 8, axis=0)
+    val = np.zeros((pos.shape[0], 3))
+    left = pos[:, 0] < 8
+    val[left & (np.arange(pos.shape[0]) % 8 == 0)] = 1.0
+    val[~left] = np.where(np.arange(pos.shape[0])[~left] % 2 == 0, 0.0, 2.0)[:, None]
+    st = PixelStats(w, h, subpixels=0)
+    st.add(pos, val)
+    counts = {}
+    for floor in (1, 0):
+        m = get_method("awr", rare_light_floor=floor)
+        state = AdaptiveState(st, 1, 32 * w * h, st.n_samples, np.random.default_rng(0), sampler="sobol")
+        counts[floor] = m.plan(m.start(w, h), state).counts
+    assert (counts[1][:, :6] >= 8).all()         # the net of 16 that holds the light, first
+    assert (counts[0][:, :6] == 0).any()         # without it the larger variance on the right comes first
