@@ -30,7 +30,8 @@ STORE = np.float32
 def _stored(a: np.ndarray) -> np.ndarray:
     """``a`` as held through the selection: :data:`STORE`, C order; ``a`` in float64 where a finite value
     lies beyond float32's range (it would become infinite: "impossible" to the choice)."""
-    s = np.ascontiguousarray(a, dtype=STORE)
+    with np.errstate(over="ignore"):   # the overflow is what the test below looks for
+        s = np.ascontiguousarray(a, dtype=STORE)
     if s.dtype != a.dtype and not _representable(np.ascontiguousarray(a, dtype=np.float64).reshape(-1),
                                                  s.reshape(-1)):
         return np.ascontiguousarray(a, dtype=np.float64)
