@@ -102,3 +102,27 @@ def test_the_kernels_read_stored_arrays_without_a_float64_copy_of_them(monkeypat
     monkeypatch.setattr(passes.np, "ascontiguousarray", spy)
     out = passes._means(arrays, np.full((6, 5, 3), 2.0))
     assert np.all(out == 0.5) and not seen
+
+
+def test_the_floored_estimates_read_one_candidate_at_a_time_are_the_stacked_ones():
+    from mcrecon.filters.masked import MaskedSmoothing
+    from mcrecon.methods.auto.selection import _relative_choice
+
+    rng = np.random.default_rng(1)
+    y = rng.uniform(0.2, 0.8, (12, 14, 3))
+    sd = rng.uniform(0.01, 0.05, y.shape)
+    den = y * y + 0.01
+    count = np.full(y.shape[:2], 8)
+    count[3, 4] = 0
+    cands = [Candidate(f"c{k}", (y + rng.normal(0, 0.05, y.shape)).astype(np.float32),
+                       rng.uniform(0, 0.01, y.shape).astype(np.float32)) for k in range(4)]
+    cands[2].mse[5, 6, 1] = np.nan
+    smoothing = MaskedSmoothing(2.0)
+    stack = passes._means([c.mse for c in cands], den)
+    for k in range(len(cands)):
+        smoothing([stack[k]], out=[stack[k]])
+    want = passes._floor_and_choose(stack, [c.image for c in cands], y, sd, den, count > 0, 2.0)
+    rel, choice = _relative_choice(cands, den, y, sd, count, smoothing, 2.0)
+    assert np.array_equal(choice, want)
+    for k in range(len(cands)):
+        assert np.array_equal(rel[k], stack[k], equal_nan=True)

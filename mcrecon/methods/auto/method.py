@@ -455,9 +455,8 @@ class AutoMethod(Method):
         divisor = albedo_divisor(stats) if self.params["safeguard"] is not None else None
         v_safe = v if self.params["safeguard"] is None else agreeing_variance(
             v, count, safeguard_variance(v, count, divisor), divisor)
-        sd = np.sqrt(v_safe)
         smoothing = MaskedSmoothing(smooth)
-        rel, choice = _relative_choice(cands, den, y, sd, count, smoothing, Z_BIAS)
+        rel, choice = _relative_choice(cands, den, y, np.sqrt(v_safe), count, smoothing, Z_BIAS)
         h, w = count.shape
         bounds = v_wide = None
         on_default = np.zeros((h, w), bool)

@@ -289,18 +289,22 @@ class _FirstLeast:
 
 def _picked(cands, rel, choice):
     """Per pixel, the chosen candidate's image, the channel mean of its unbiased estimate and its
-    relative estimate (``rel[choice]``)."""
+    relative estimate (``rel[k]`` where ``k`` is chosen; ``rel`` indexed by candidate, read once for each
+    candidate chosen somewhere)."""
     h, w = choice.shape
     img = np.empty(cands[0].image.shape)
     raw_abs = np.empty((h, w))
     est = np.empty((h, w))
-    parallel_rows(_pick_rows, (_arrays([c.image for c in cands]), _arrays([c.mse for c in cands]), rel,
-                               np.ascontiguousarray(choice), img, raw_abs, est), h)
+    parallel_rows(_pick_rows, (_arrays([c.image for c in cands]), _arrays([c.mse for c in cands]),
+                               np.ascontiguousarray(choice), img, raw_abs), h)
+    for k in np.unique(choice):
+        at = choice == k
+        est[at] = rel[int(k)][at]
     return img, raw_abs, est
 
 
 @numba.njit(cache=True, nogil=True)
-def _pick_rows(images, mses, rel, choice, img, raw_abs, est, i0, i1):
+def _pick_rows(images, mses, choice, img, raw_abs, i0, i1):
     h, w, c = img.shape
     a = np.empty(w * c)
     for i in range(i0, i1):
@@ -314,4 +318,3 @@ def _pick_rows(images, mses, rel, choice, img, raw_abs, est, i0, i1):
                     img[i, j, ch] = xk[i, j, ch]
                     a[o + ch] = mk[i, j, ch]
                 raw_abs[i, j] = _channel_mean(a, o, c)
-                est[i, j] = rel[k, i, j]
