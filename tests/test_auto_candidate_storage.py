@@ -126,3 +126,23 @@ def test_the_floored_estimates_read_one_candidate_at_a_time_are_the_stacked_ones
     assert np.array_equal(choice, want)
     for k in range(len(cands)):
         assert np.array_equal(rel[k], stack[k], equal_nan=True)
+
+
+def test_the_selection_reads_one_candidates_estimates_at_a_time(monkeypatch):
+    from mcrecon.methods.auto import selection
+
+    shapes = []
+    for mod in (selection, passes):
+        real = mod._means
+
+        def recording(arrays, *a, _real=real, **kw):
+            out = _real(arrays, *a, **kw)
+            shapes.append(out.shape)
+            return out
+
+        monkeypatch.setattr(mod, "_means", recording)
+    monkeypatch.setattr(auto_method, "_mean_c", lambda a, den=None: passes._means([a], den)[0])
+    hv = checker_wall_halves(16, 7)
+    img, _, _ = _select(hv, np.float32, monkeypatch)
+    assert np.isfinite(img).all()
+    assert shapes and all(s[0] == 1 for s in shapes)   # no (K, H, W) stack of every candidate's map
