@@ -308,8 +308,8 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     is replaced by the blend, under ``g``'s name, so that every later reader sees it.
 
     ``smoothed(k)``: candidate k's smoothed relative estimate (asked for
-    ``g``'s only); ``rel`` (K, H, W): the floored ones ``choice`` minimised
-    (NaN: undefined, never the least).  Each other candidate's test runs on
+    ``g``'s only); ``rel``: the floored ones ``choice`` minimised, ``rel[k]`` an (H, W) map
+    (:class:`_Floored`, or a (K, H, W) array; NaN: undefined, never the least).  Each other candidate's test runs on
     its own, one after the other (the difference maps of all of them at
     once cost more in fresh memory than their arithmetic).
     """
