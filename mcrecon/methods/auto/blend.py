@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from .features import Candidate
-from .passes import _means
+from .passes import _means, _stored
 
 #: The least weight worth a blend: below it the default stays the candidate itself (bit for bit).
 MIN_WEIGHT = 0.02
@@ -40,16 +40,20 @@ def blended(a: Candidate, b: Candidate, w: float) -> Candidate:
     channel); where ``b``'s value or estimate is undefined the pixel keeps ``a``'s.  Named and flagged as
     ``a`` (the selection's rules for ``a``, a black box's wide interval among them, apply to it)."""
     # in place, one image-sized temporary at a time (the global prior is auto's peak stage at 1080p);
-    # the same operations, in the same order, as the three expressions written out
-    img = a.image * w
-    img += (1.0 - w) * b.image
-    mse = a.mse * w
-    mse += (1.0 - w) * b.mse
-    d2 = a.image - b.image
+    # the same operations, in the same order, as the three expressions written out, in float64 whatever
+    # the candidates are stored in (the result is stored as they are: .passes._stored)
+    f64 = np.float64
+    img = np.multiply(a.image, w, dtype=f64)
+    img += np.multiply(b.image, 1.0 - w, dtype=f64)
+    img = _stored(img)
+    mse = np.multiply(a.mse, w, dtype=f64)
+    mse += np.multiply(b.mse, 1.0 - w, dtype=f64)
+    d2 = np.subtract(a.image, b.image, dtype=f64)
     d2 *= d2
     d2 *= w * (1.0 - w)
     mse -= d2
     del d2
+    mse = _stored(mse)
     bad = ~(np.isfinite(b.image) & np.isfinite(b.mse))
     if bad.any():
         img = np.where(bad, a.image, img)
@@ -82,7 +86,9 @@ def blend_default(cands, g: int, sums, vote: np.ndarray, den_loo: np.ndarray, gu
     penalty = z * se_of(r) if z > 0 else 0.0
     # the squared differences capped as the estimates were (``cap`` times ``v``): against estimates capped
     # where a candidate is wild, an uncapped D would credit the blend with a spread the sums never charged
-    d = _means([(cands[g].image - cands[r].image) ** 2], den_loo, v, cap)[0]
+    d = np.subtract(cands[g].image, cands[r].image, dtype=np.float64)
+    d *= d
+    d = _means([d], den_loo, v, cap)[0]
     d = float(np.sum(np.where(vote & np.isfinite(d), d, 0.0)))
     w = blend_weight(sums[g], sums[r], d, penalty if np.isfinite(penalty) else np.inf)
     if w > 1.0 - MIN_WEIGHT:

@@ -43,7 +43,7 @@ from .blackbox import oidn_candidate
 from .nlmeans import nlmeans_cross
 from .proxy import REGRESSIONS, regression_share
 from ...filters.masked import MaskedSmoothing, smooth_masked
-from .passes import _mean_c, _picked
+from .passes import _mean_c, _picked, _stored
 from .selection import _global_prior, _largest_remainder, _no_push_in_heavy_tails, _region_guard, _relative_choice
 
 __all__ = ['AutoMethod', 'AutoRun', 'CANDIDATES', 'DEFAULT_CANDIDATES', 'DEFAULT_FEATURE_CANDIDATES', 'DUAL_BUFFER',
@@ -111,6 +111,30 @@ def _guards(cands) -> dict:
             out[k] = max(Z_BLACKBOX, Z_GLOBAL if c.feature else 0.0)
         elif c.feature:
             out[k] = Z_GLOBAL
+    return out
+
+
+def _store(cands: list) -> list:
+    """``cands`` with each image and estimate held as the selection reads them (:func:`.passes._stored`:
+    float32, C order), in place."""
+    for c in cands:
+        c.image, c.mse = _stored(c.image), _stored(c.mse)
+    return cands
+
+
+def _bank(y, v, count, sigmas, *, box: bool) -> list:
+    """The SURE candidates (``box`` first where asked, then one Gaussian per ``sigmas``), stored.
+
+    One scale at a time (:func:`sure_filter_bank` of that scale alone, the same values and SURE maps as
+    the whole bank's): the bank of all scales in float64 beside their stored copies is 1.3 GB at
+    1920 x 1080."""
+    out = []
+    for i, s in enumerate([sigmas[k:k + 1] for k in range(len(sigmas))] or [sigmas]):
+        sb = sure_filter_bank(y, v, count, s)
+        if i == 0 and box:
+            out += _store([Candidate("box", sb.values[0], sb.sure[0])])
+        out += _store([Candidate(f"gauss{x:.3g}", sb.values[k + 1], sb.sure[k + 1]) for k, x in enumerate(sb.sigmas)])
+        del sb
     return out
 
 
@@ -305,9 +329,11 @@ class AutoMethod(Method):
             prefiltered_features(halves.a)
             prefiltered_features(halves.b)
         if given is None:
-            black = (oidn_candidate("oidn", stats, v, halves, halves_only=aux)
+            # each candidate held in the selection's dtype from its creation on (_stored: float32; the
+            # next one's working memory then meets half the bytes)
+            black = (_store(oidn_candidate("oidn", stats, v, halves, halves_only=aux))
                      if "oidn" in self._names else [])
-            black_aux = oidn_candidate("oidn_aux", stats, v, halves, aux=True) if aux else []
+            black_aux = _store(oidn_candidate("oidn_aux", stats, v, halves, aux=True)) if aux else []
         else:
             black = [c for c in given if c.name != "oidn_aux"]
             black_aux = [c for c in given if c.name == "oidn_aux"]
@@ -323,17 +349,13 @@ class AutoMethod(Method):
             run.regression_verdict = verdict
             if verdict is not None and not verdict.computes(p["regression_proxy"]):
                 fnames = tuple(n for n in fnames if n not in REGRESSIONS)
-        guided = feature_candidates(fnames, halves.a, halves.b, variances=(va, vb)) if with_features else []
+        guided = _store(feature_candidates(fnames, halves.a, halves.b, variances=(va, vb))) if with_features else []
         v_sure = agreeing_variance(v, count)
         out: list[Candidate] = []
         names = self._names
         if "box" in names or "gauss" in names:
             sig = final_sigmas(p["scales"]) if "gauss" in names else np.zeros(0)
-            sb = sure_filter_bank(y, v_sure, count, sig)
-            if "box" in names:
-                out.append(Candidate("box", sb.values[0], sb.sure[0]))
-            for k in range(1, len(sb.values)):
-                out.append(Candidate(f"gauss{sb.sigmas[k - 1]:.3g}", sb.values[k], sb.sure[k]))
+            out += _bank(y, v_sure, count, sig, box="box" in names)
         dual = [c for c in names if c in DUAL_BUFFER]
         if dual and halves is None:
             warnings.warn(f"{_WHERE}: candidates {', '.join(dual)} need the samples (two halves); only pixel "
@@ -351,7 +373,8 @@ class AutoMethod(Method):
                                                patch=p["nlm_patch"], k=p["nlm_k"])
                 sa = sure(ya, va, fa, wa)
                 sbb = sure(yb, vb, fb, wb)
-                out.append(self._dual("nlm", fa, fb, sa, sbb, ha.count, hb.count))
+                out += _store([self._dual("nlm", fa, fb, sa, sbb, ha.count, hb.count)])
+                del fa, wa, fb, wb, sa, sbb
             for name in ("awr", "splat"):
                 if name not in dual:
                     continue
@@ -361,8 +384,9 @@ class AutoMethod(Method):
                                   McreconWarning, stacklevel=4)
                     continue
                 a, b = self._black_box(name, halves, nonfinite)
-                out.append(self._dual(name, a, b, cross_validation_mse(a, yb, vb), cross_validation_mse(b, ya, va),
-                                      ha.count, hb.count))
+                out += _store([self._dual(name, a, b, cross_validation_mse(a, yb, vb),
+                                          cross_validation_mse(b, ya, va), ha.count, hb.count)])
+                del a, b
         out += black + guided + black_aux
         del black, guided, black_aux
         if halves is not None:  # their last readers were the regressions: not held through the selection
@@ -370,7 +394,7 @@ class AutoMethod(Method):
         if "fbil" in self._feature_names and stats.features and halves is None:
             # only without halves: beside the halves' candidates its estimate, biased where the features
             # are noisy (defocus), cost auto 2.3x on the built-in checker_dof (docs/methods/auto.md)
-            out.append(_feature_bilateral(stats, y, v))
+            out += _store([_feature_bilateral(stats, y, v)])
         return out, y, v_sel, count
 
     def _aux_replaces_oidn(self, stats: PixelStats) -> bool:
@@ -415,8 +439,7 @@ class AutoMethod(Method):
         cands, y, v, count = candidates if candidates is not None else self._candidates(
             stats, halves, nonfinite, given=given, run=run if given is None else None)
         run.candidate_names = [c.name for c in cands]
-        for c in cands:  # the selection's passes read C order: one copy of a planar image, not one per pass
-            c.image = np.ascontiguousarray(c.image, dtype=np.float64)
+        _store(cands)  # the selection's passes read C order, as stored (a given list may not be yet)
         den = relative_denominator(y, v, count, eps=DEFAULT_EPS)
         smooth = self.params["smooth"]
         # Smoothed estimates, floored by each pixel's own evidence of bias: a
@@ -436,9 +459,8 @@ class AutoMethod(Method):
         divisor = albedo_divisor(stats) if self.params["safeguard"] is not None else None
         v_safe = v if self.params["safeguard"] is None else agreeing_variance(
             v, count, safeguard_variance(v, count, divisor), divisor)
-        sd = np.sqrt(v_safe)
         smoothing = MaskedSmoothing(smooth)
-        rel, choice = _relative_choice(cands, den, y, sd, count, smoothing, Z_BIAS)
+        rel, choice = _relative_choice(cands, den, y, np.sqrt(v_safe), count, smoothing, Z_BIAS)
         h, w = count.shape
         bounds = v_wide = None
         on_default = np.zeros((h, w), bool)
@@ -469,6 +491,9 @@ class AutoMethod(Method):
             # noisy test than a neighbourhood's (docs/methods/auto.md, "Selection rule").
             choice = _region_guard(cands, den, choice, on_default, GUARD * smooth)
         img, raw_abs, est_rel = _picked(cands, rel, choice)
+        if cands[0].name == "box":  # the pixel mean's own bits where it is chosen: its stored image is y rounded
+            at = choice == 0
+            img[at] = y[at]
         img = fill_empty_pixels(img, count, source=_WHERE) if (count == 0).any() else img
         img[~np.isfinite(img)] = 0.0
         if self.params["safeguard"] is not None:

@@ -21,11 +21,39 @@ def _c64(a):
     return None if a is None else np.ascontiguousarray(a, dtype=np.float64)
 
 
+#: The dtype the candidates' images and estimates are held in from their creation through the selection:
+#: float32 halves what the selection holds (19 candidates at 1920 x 1080: 0.95 GB, not 1.9 GB); every
+#: kernel reads them into float64 arithmetic (docs/methods/auto.md, "Cost").
+STORE = np.float32
+
+
+def _stored(a: np.ndarray) -> np.ndarray:
+    """``a`` as held through the selection: :data:`STORE`, C order; ``a`` in float64 where a finite value
+    lies beyond float32's range (it would become infinite: "impossible" to the choice)."""
+    with np.errstate(over="ignore"):   # the overflow is what the test below looks for
+        s = np.ascontiguousarray(a, dtype=STORE)
+    if s.dtype != a.dtype and not _representable(np.ascontiguousarray(a, dtype=np.float64).reshape(-1),
+                                                 s.reshape(-1)):
+        return np.ascontiguousarray(a, dtype=np.float64)
+    return s
+
+
+@numba.njit(cache=True, nogil=True)
+def _representable(a, s):
+    # every finite value of a finite in s (its float32 rounding)
+    for p in range(a.size):
+        if np.isfinite(a[p]) and not np.isfinite(s[p]):
+            return False
+    return True
+
+
 def _arrays(arrays) -> List:
     """The candidates' (H, W, C) arrays for the kernels that read all of them in one pass over the rows
-    (a typed list: one compiled kernel for any number of candidates).  Built by cached kernels: the
-    typed list's own Python methods compile anew in every process (0.2 s)."""
-    arrays = [np.ascontiguousarray(a, dtype=np.float64) for a in arrays]
+    (a typed list: one compiled kernel for any number of candidates, per dtype).  Held as stored
+    (:data:`STORE`; float64 where any of them is: a typed list holds one dtype).  Built by cached
+    kernels: the typed list's own Python methods compile anew in every process (0.2 s)."""
+    dt = np.result_type(*[a.dtype for a in arrays], STORE)
+    arrays = [np.ascontiguousarray(a, dtype=dt) for a in arrays]
     out = _list_start(arrays[0])
     for a in arrays[1:]:
         _list_push(out, a)
@@ -261,18 +289,22 @@ class _FirstLeast:
 
 def _picked(cands, rel, choice):
     """Per pixel, the chosen candidate's image, the channel mean of its unbiased estimate and its
-    relative estimate (``rel[choice]``)."""
+    relative estimate (``rel[k]`` where ``k`` is chosen; ``rel`` indexed by candidate, read once for each
+    candidate chosen somewhere)."""
     h, w = choice.shape
     img = np.empty(cands[0].image.shape)
     raw_abs = np.empty((h, w))
     est = np.empty((h, w))
-    parallel_rows(_pick_rows, (_arrays([c.image for c in cands]), _arrays([c.mse for c in cands]), rel,
-                               np.ascontiguousarray(choice), img, raw_abs, est), h)
+    parallel_rows(_pick_rows, (_arrays([c.image for c in cands]), _arrays([c.mse for c in cands]),
+                               np.ascontiguousarray(choice), img, raw_abs), h)
+    for k in np.unique(choice):
+        at = choice == k
+        est[at] = rel[int(k)][at]
     return img, raw_abs, est
 
 
 @numba.njit(cache=True, nogil=True)
-def _pick_rows(images, mses, rel, choice, img, raw_abs, est, i0, i1):
+def _pick_rows(images, mses, choice, img, raw_abs, i0, i1):
     h, w, c = img.shape
     a = np.empty(w * c)
     for i in range(i0, i1):
@@ -286,4 +318,3 @@ def _pick_rows(images, mses, rel, choice, img, raw_abs, est, i0, i1):
                     img[i, j, ch] = xk[i, j, ch]
                     a[o + ch] = mk[i, j, ch]
                 raw_abs[i, j] = _channel_mean(a, o, c)
-                est[i, j] = rel[k, i, j]
