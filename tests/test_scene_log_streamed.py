@@ -27,7 +27,8 @@ def _one_shot(path, scene, *, width, height, spp, seed, features, sampler):
     f32 = {k: np.asarray(v, np.float32) for k, v in b.features.items()} if b.features else None
     return write_log(path, cast_positions(b.positions, np.float32), np.asarray(b.values, np.float32), width=width,
                      height=height, channels=sc.channels, features=f32,
-                     reference=reference_image(sc, width, height), metadata=meta)
+                     reference=reference_image(sc, width, height), metadata=meta,
+                     sampler=None if sampler == "independent" else sampler)
 
 
 def _contents(path) -> dict:
