@@ -54,6 +54,40 @@ def pytest_cmdline_main(config):
         opt.numprocesses, opt.dist = workers, "load"
 
 
+#: Where the xdist workers of one run share the built-in scenes' reference images (set by the controller).
+_REFERENCES_ENV = "MCRECON_TEST_SHARED_REFERENCES"
+
+
+def pytest_configure(config):
+    """With xdist, the workers share each built-in scene's reference image through one temporary directory.
+
+    A 128^2 reference takes a few CPU seconds (32^2 quadrature points a pixel) and both workers need
+    most of the same ones; each process keeps its own in memory (``scenes._reference_cached``), so
+    without this every reference is computed once a worker.  The first worker to need a reference
+    computes it under a lock file and writes it; the other reads it (the same bits: ``np.save``).
+    """
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    if not worker:
+        if getattr(config.option, "numprocesses", None) and not os.environ.get(_REFERENCES_ENV):
+            import tempfile
+
+            config._shared_references = tempfile.mkdtemp(prefix="mcrecon-test-references-")
+            os.environ[_REFERENCES_ENV] = config._shared_references
+        return
+    root = os.environ.get(_REFERENCES_ENV)
+    if root and os.path.isdir(root):
+        helpers.share_references(root)
+
+
+def pytest_unconfigure(config):
+    root = getattr(config, "_shared_references", None)
+    if root:
+        import shutil
+
+        shutil.rmtree(root, ignore_errors=True)
+        os.environ.pop(_REFERENCES_ENV, None)
+
+
 @pytest.fixture
 def full_run() -> bool:
     """True when the full-size statistical experiments are requested."""

@@ -216,3 +216,37 @@ def checker_wall_halves(n, seed, spp=8):
     b = scenes.render_uniform("checker_wall", width=n, height=n, spp=spp, seed=seed, features=True)
     ss = SampleSet(b.positions, b.values, width=n, height=n, features=b.features)
     return split_halves(ss, features=tuple(ss.features))
+
+
+def share_references(root) -> None:
+    """Built-in scenes' reference images computed once for every process of a test run, through ``root``.
+
+    Wraps ``mcrecon.renderers.scenes._averaged`` (what the per-process cache ``_reference_cached`` calls)
+    for the registered built-in scenes only: the key is the scene's name, parameters, size, quadrature and
+    whether features are asked for, so a user's own Scene subclass is computed as before.  A lock file per
+    key lets one process compute while the others wait and then read its ``.npy`` (the same bits).
+    """
+    import fcntl
+    import hashlib
+
+    import mcrecon.renderers.scenes as S
+
+    inner = S._averaged
+
+    def averaged(sc, width, height, quadrature, features):
+        if S.SCENES.get(sc.name) is not type(sc):
+            return inner(sc, width, height, quadrature, features)
+        key = hashlib.sha1(repr((sc.name, sc.param_key, width, height, quadrature, bool(features)))
+                           .encode()).hexdigest()[:20]
+        path = Path(root) / f"{key}.npy"
+        with open(Path(root) / f"{key}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if path.exists():
+                return np.load(path)
+            out = inner(sc, width, height, quadrature, features)
+            tmp = path.with_suffix(f".{os.getpid()}.tmp.npy")
+            np.save(tmp, out)
+            os.replace(tmp, path)
+            return out
+
+    S._averaged = averaged
