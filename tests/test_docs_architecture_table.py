@@ -120,3 +120,12 @@ if __name__ == "__main__":  # the counts: python tests/test_docs_architecture_ta
         if "-v" in sys.argv:
             for f, n, kind, s in found:
                 print(f"  {f}:{n}: [{kind}] {s[:120]}")
+
+
+def test_docs_pages_name_no_scratch_file_of_the_machine_they_were_measured_on():
+    """A page's numbers come with the command that regenerates them, not a path to one machine's scratch runs
+    (``/work/...``), which a reader cannot open."""
+    scratch = re.compile(r"(?<![\w.])/work/")
+    found = [f"{p.relative_to(ROOT)}:{n}: {line.strip()}" for p in _docs_pages()
+             for n, line in enumerate(p.read_text(encoding="utf-8").splitlines(), 1) if scratch.search(line)]
+    assert not found, "\n".join(found)
