@@ -416,7 +416,7 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     held = default & (c2 == g)
     if rare is not None and rare != g:
         # the black box on all the samples where rare huge samples are around (docstring: ``rare``)
-        at = heavy & np.isfinite(rel[rare]) & np.isfinite(cands[rare].image).all(axis=2)
+        at = apart & np.isfinite(rel[rare]) & np.isfinite(cands[rare].image).all(axis=2)
         out = np.where(at, rare, out)
         held = np.where(at, True, held)
         if info is not None:
