@@ -100,10 +100,9 @@ def _all_samples_box(cands):
     """The index of colour-only OIDN on all the samples (``oidn``), None without it: the global prior's
     candidate where rare huge samples are around (``_global_prior(rare=)``).
 
-    Not ``oidn_aux`` on frames with features: the heavy-tail test reads colour units, and on a texture a
-    dark square beside light ones passes it without any rare light; there the feature-guided defaults
-    already place the light by the albedo (the corpus's tuning half with ``oidn_aux`` at those pixels:
-    checker_dof-0 1.012, floor_spheres 1.011, thin_lens 1.004 of the error without)."""
+    Not ``oidn_aux`` on frames with features: the tests for rare huge samples read colour units, and on a
+    texture a dark square beside light ones passes them without any rare light; there the feature-guided
+    defaults already place the light by the albedo (docs/methods/auto.md, step 3a)."""
     names = [c.name for c in cands]
     return names.index("oidn") if "oidn" in names else None
 

@@ -307,9 +307,10 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     (:func:`~.blend.blend_default`, partners among ``steady`` where ``g`` is one of them): ``cands[g]``
     is replaced by the blend, under ``g``'s name, so that every later reader sees it.
 
-    ``rare`` (an index: auto's black box run on all the samples) takes every pixel with rare huge samples
-    around (:func:`_apart`, or the 3 x 3 sample maximum above :data:`HEAVY_TAIL` times the pixel's mean in
-    any channel) whatever ``g`` is, where its estimate is defined: there every per-pixel estimate rests on
+    ``rare`` (an index: auto's black box run on all the samples) takes every pixel the vote leaves out for
+    rare huge samples or a bright emitter's edge (:func:`_apart`) whatever ``g`` is, where its estimate is
+    defined (not every pixel whose 3 x 3 maximum exceeds :data:`HEAVY_TAIL` times its mean: at 8 spp a
+    flat field's near-zero means pass that test): there every per-pixel estimate rests on
     the one sample that carries the light and the whole-image sums leave those pixels out, while a
     denoiser trained on such noise that sees every sample at once spreads that sample's light where it
     belongs (the average of it run on each half sees each rare sample at twice its weight).  Those pixels
