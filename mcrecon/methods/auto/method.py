@@ -96,6 +96,17 @@ def agreeing_variance(v: np.ndarray, count: np.ndarray, pooled: np.ndarray | Non
     return np.where(zero, np.maximum(base, wide), base)
 
 
+def _all_samples_box(cands):
+    """The index of colour-only OIDN on all the samples (``oidn``), None without it: the global prior's
+    candidate where rare huge samples are around (``_global_prior(rare=)``).
+
+    Not ``oidn_aux`` on frames with features: the tests for rare huge samples read colour units, and on a
+    texture a dark square beside light ones passes them without any rare light; there the feature-guided
+    defaults already place the light by the albedo (docs/methods/auto.md, step 3a)."""
+    names = [c.name for c in cands]
+    return names.index("oidn") if "oidn" in names else None
+
+
 def _guards(cands) -> dict:
     """The global prior's guarded candidates: index -> the standard errors by which each must undercut.
 
@@ -464,6 +475,7 @@ class AutoMethod(Method):
         h, w = count.shape
         bounds = v_wide = None
         on_default = np.zeros((h, w), bool)
+        prior = {}
         if self.params["global_prior"] is not None and len(cands) > 1 and smooth > 0:
             bounds = sample_range_bounds(stats)
             steady = [k for k, c in enumerate(cands) if c.name in BLACK_BOXES]
@@ -481,7 +493,8 @@ class AutoMethod(Method):
             choice, on_default = _global_prior(cands, lambda k: smoothing([_mean_c(cands[k].mse, den)])[0], rel,
                                                choice, y, v, count, bounds, smooth, self.params["global_prior"],
                                                self.params["safeguard"], _guards(cands), divisor,
-                                               steady=steady, steady_var=v_wide)
+                                               steady=steady, steady_var=v_wide, rare=_all_samples_box(cands),
+                                               info=prior)
         # ties (e.g. noise-free regions, where every ratio is undefined) go to the first candidate
         if cands[0].name == "box" and smooth > 0:
             # Region guard: where the chosen candidates' unbiased estimates,
@@ -505,8 +518,9 @@ class AutoMethod(Method):
             lo, hi = sample_range_bounds(stats) if bounds is None else bounds
             # a pixel without samples has no interval: it keeps the value filled in from its neighbours
             v_clamp, lo_c, hi_c = v_safe, lo, hi
-            g = int(choice[on_default][0]) if on_default.any() else -1
-            if g >= 0 and cands[g].name in BLACK_BOXES:  # the wide interval and range at the black box's pixels
+            g = prior.get("g", -1)
+            black = g >= 0 and on_default.any() and cands[g].name in BLACK_BOXES
+            if black:  # the wide interval and range at the black box's pixels
                 v_clamp = np.where(on_default[..., None], v_wide, v_safe)
                 lo_c, hi_c = widened_range_bounds(stats, on_default, lo, hi)
             with empty_pixels_kept(img, count):
@@ -519,6 +533,12 @@ class AutoMethod(Method):
                 # per scene: docs/methods/auto.md, "Limits").
                 guided = [k for k, c in enumerate(cands) if c.feature]
                 keep = np.isin(choice, guided) if guided else None
+                # So do the pixels with rare huge samples around that took the black box on all the samples
+                # under another default: on the median's interval, which the clamp already holds them to
+                # (under a black box default the wide interval leaves the rule to bound them)
+                rare = prior.get("rare")
+                if rare is not None and not black:
+                    keep = rare if keep is None else keep | rare
                 kept = img[keep] if keep is not None and keep.any() else None
                 _no_push_in_heavy_tails(img, y, hi, out=img, scale=divisor)
                 if kept is not None:

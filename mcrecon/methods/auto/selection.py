@@ -256,7 +256,7 @@ def summed_estimates(cands, y, v, count, hi, safeguard, within=None):
 
 
 def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, safeguard, guarded=(), scale=None,
-                  steady=(), steady_var=None, blend=None):
+                  steady=(), steady_var=None, blend=None, rare=None, info=None):
     """The per-pixel choice with the best single candidate over the image as the default.
 
     ``g`` = the candidate of least summed leave-one-out relative estimate
@@ -307,6 +307,17 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     (:func:`~.blend.blend_default`, partners among ``steady`` where ``g`` is one of them): ``cands[g]``
     is replaced by the blend, under ``g``'s name, so that every later reader sees it.
 
+    ``rare`` (an index: auto's black box run on all the samples) takes every pixel the vote leaves out for
+    rare huge samples or a bright emitter's edge (:func:`_apart`) whatever ``g`` is, where its estimate is
+    defined (not every pixel whose 3 x 3 maximum exceeds :data:`HEAVY_TAIL` times its mean: at 8 spp a
+    flat field's near-zero means pass that test): there every per-pixel estimate rests on
+    the one sample that carries the light and the whole-image sums leave those pixels out, while a
+    denoiser trained on such noise that sees every sample at once spreads that sample's light where it
+    belongs (the average of it run on each half sees each rare sample at twice its weight).  Those pixels
+    count as the default's (the returned mask): the region guard leaves them.  ``info`` (a dict), where
+    given, receives ``"g"`` (the default's index, -1 where the prior does not apply) and ``"rare"`` (the
+    mask of the pixels ``rare`` took).
+
     ``smoothed(k)``: candidate k's smoothed relative estimate (asked for
     ``g``'s only); ``rel``: the floored ones ``choice`` minimised, ``rel[k]`` an (H, W) map
     (:class:`_Floored`, or a (K, H, W) array; NaN: undefined, never the least).  Each other candidate's test runs on
@@ -331,6 +342,8 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
         if not _significantly_lower(np.where(vote, loo_g - loo(c), 0.0), zs[g]):
             g = c
             loo_g = loo(g)
+    if info is not None:
+        info["g"] = g
     if g == 0 and cands[0].name == "box":
         return choice, none
     mixed = False
@@ -389,18 +402,27 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     # own-patch weights keep one) lies far from
     # At such a pixel that g would lift above both its own mean and the plain choice, the plain choice
     # stands (:func:`_lifted`): at an emitter's rim the median of the neighbours lies on the emitter.
+    heavy = apart | (bounds[1] > HEAVY_TAIL * np.abs(y)).any(axis=2)
     if g in steady:
         default = np.isfinite(rel[g]) & ~biased
         # nor does another candidate's local test override it there: at a pixel with rare huge samples
         # around, every local estimate is dominated by the one sample that carries them (a
         # cross-validated black box's most of all), and a local "pass" is that sample's noise
-        c2 = np.where(apart | (bounds[1] > HEAVY_TAIL * np.abs(y)).any(axis=2), g, c2)
+        c2 = np.where(heavy, g, c2)
     else:
         at_g = apart & (c2 == g)
         at_g &= ~_lifted(cands, g, choice, y, v, at_g)
         default = np.isfinite(rel[g]) & ~biased & (~apart | _nearer_the_neighbours(cands, g, choice, y, at_g, scale))
     out = np.where(default, c2, choice)
-    return out, default & (c2 == g)
+    held = default & (c2 == g)
+    if rare is not None and rare != g:
+        # the black box on all the samples where rare huge samples are around (docstring: ``rare``)
+        at = apart & np.isfinite(rel[rare]) & np.isfinite(cands[rare].image).all(axis=2)
+        out = np.where(at, rare, out)
+        held = np.where(at, True, held)
+        if info is not None:
+            info["rare"] = at
+    return out, held
 
 
 @numba.njit(cache=True, nogil=True)
