@@ -102,7 +102,10 @@ class _HalfPlanes:
 
     @functools.cached_property
     def prefiltered(self) -> np.ndarray:
-        return prefiltered_features(self.half, planes=self.features)
+        # the stored planes when computed already (auto computes them before OIDN): the unfiltered
+        # planes, 14 float64 planes a half with albedo, normal and depth, are then never built
+        stored = prefiltered_features(self.half, stored_only=True)
+        return stored if stored is not None else prefiltered_features(self.half, planes=self.features)
 
 
 #: Each buffer's prefiltered feature planes (:func:`prefiltered_features`), kept while the buffer lives,
@@ -241,7 +244,7 @@ def _feature_bilateral(stats: PixelStats, y: np.ndarray, v: np.ndarray) -> "Cand
     return Candidate("fbil", img, np.where((stats.count > 0)[..., None], mse, np.nan), feature=True)
 
 
-def feature_candidates(names, ha: PixelStats, hb: PixelStats, *, variances=None) -> list[Candidate]:
+def feature_candidates(names, ha: PixelStats, hb: PixelStats, *, variances=None, store=None) -> list[Candidate]:
     """The feature-guided candidates ``names`` (of :data:`FEATURE_CANDIDATES`) on the two halves.
 
     ``nfor_own``, ``dnlm``, ``xbil`` and the ``mix`` of the first two filter each half with its own
@@ -250,9 +253,14 @@ def feature_candidates(names, ha: PixelStats, hb: PixelStats, *, variances=None)
     filters each half with the other's weights and features (:func:`_regressions`), so it is
     scored by Stein's estimate instead, exact for a filter linear in the half it filters.
     ``variances``: the halves' means' variances ``(v_A, v_B)`` the estimates read
-    (:func:`~mcrecon.core.halves.mean_variances`; None: each half's ``s^2 / n``).
+    (:func:`~mcrecon.core.halves.mean_variances`; None: each half's ``s^2 / n``).  ``store``: applied to
+    each candidate as soon as it is built (auto's float32 store), so its float64 image and estimate go
+    at once and the candidates built before meet the next one's working arrays in the stored dtype
+    (six candidates at 1920 x 1080: 0.3 GB, not 0.6 GB); None keeps them as built.
     """
     from .estimates import sure
+
+    keep = (lambda c: c) if store is None else store
 
     pa, pb = _HalfPlanes(ha), _HalfPlanes(hb)
     va, vb = (pa.variance, pb.variance) if variances is None else variances
@@ -264,10 +272,13 @@ def feature_candidates(names, ha: PixelStats, hb: PixelStats, *, variances=None)
         own_a, cross_b, cw_b = _regressions(pa, pb if "nfor" in names else None, own=want_own)
         own_b, cross_a, cw_a = _regressions(pb, pa if "nfor" in names else None, own=want_own)
         if want_own:
-            own["nfor_own"] = (own_a, own_b)
+            # compact copies: the regression's images are views of its whole (planes, H, W) output
+            # (both colours and the weights, 8 planes a half with the crossed image), which the mixes
+            # below would otherwise hold beside dnlm's working arrays
+            own["nfor_own"] = (np.ascontiguousarray(own_a), np.ascontiguousarray(own_b))
         if "nfor" in names:
-            out.append(dual_candidate("nfor", cross_a, cross_b, sure(ha.mean, va, cross_a, cw_a),
-                                  sure(hb.mean, vb, cross_b, cw_b), ha.count, hb.count, feature=True))
+            out.append(keep(dual_candidate("nfor", cross_a, cross_b, sure(ha.mean, va, cross_a, cw_a),
+                                           sure(hb.mean, vb, cross_b, cw_b), ha.count, hb.count, feature=True)))
         del own_a, own_b, cross_a, cross_b, cw_a, cw_b
     if "xbil" not in names:
         # the unfiltered feature planes and their variances (14 planes a half with albedo, normal and
@@ -290,9 +301,9 @@ def feature_candidates(names, ha: PixelStats, hb: PixelStats, *, variances=None)
         else:
             a, b = ab
         if name in names or name.startswith("mix"):
-            out.append(dual_candidate(name, a, b, cross_validation_mse(a, hb.mean, vb),
-                                  cross_validation_mse(b, ha.mean, va), ha.count, hb.count,
-                                  feature=True))
+            out.append(keep(dual_candidate(name, a, b, cross_validation_mse(a, hb.mean, vb),
+                                           cross_validation_mse(b, ha.mean, va), ha.count, hb.count,
+                                           feature=True)))
         del a, b, ab
     return out
 

@@ -38,7 +38,7 @@ from ...core.fill import fill_empty_pixels
 from ...filters.gaussian import final_sigmas
 from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGHTS, Candidate,
     _feature_bilateral, dual_candidate, feature_candidates, prefiltered_features,
-    release_prefiltered)
+    release_prefiltered, seed_prefiltered)
 from .blackbox import oidn_candidate
 from .nlmeans import nlmeans_cross
 from .proxy import REGRESSIONS, regression_share
@@ -120,6 +120,26 @@ def _store(cands: list) -> list:
     for c in cands:
         c.image, c.mse = _stored(c.image), _stored(c.mse)
     return cands
+
+
+def _release_features(halves: Halves, stats: PixelStats, fnames) -> bool:
+    """Drop the halves' feature statistics but the albedo once their last reader is done, before the
+    feature candidates where those read none of them (:meth:`~mcrecon.core.halves.Halves.release_features`:
+    transient halves only); returns whether they were dropped.
+
+    OIDN's albedo and normal and the regression proxy read them before; the regressions read the
+    halves' prefiltered planes (kept, stored again under the halves' new feature set), dnlm and the
+    selection's albedo divisor (merged from the halves' on read) the albedo alone.  Only xbil and a
+    prefilter not yet computed read the rest: then they go after the feature candidates."""
+    pf = [prefiltered_features(hf, stored_only=True) for hf in halves]
+    if any(p is None for p in pf) and set(fnames) & set(REGRESSIONS):
+        return False
+    if not halves.release_features(keep=("albedo",), merged=stats):
+        return False
+    for hf, planes in zip(halves, pf):
+        if planes is not None:
+            seed_prefiltered(hf, planes)
+    return True
 
 
 def _bank(y, v, count, sigmas, *, box: bool) -> list:
@@ -349,7 +369,12 @@ class AutoMethod(Method):
             run.regression_verdict = verdict
             if verdict is not None and not verdict.computes(p["regression_proxy"]):
                 fnames = tuple(n for n in fnames if n not in REGRESSIONS)
-        guided = _store(feature_candidates(fnames, halves.a, halves.b, variances=(va, vb))) if with_features else []
+        released = with_features and "xbil" not in fnames and _release_features(halves, stats, fnames)
+        # each stored as built: its float64 image and estimate go before the next one's working arrays
+        guided = feature_candidates(fnames, halves.a, halves.b, variances=(va, vb),
+                                    store=lambda c: _store([c])[0]) if with_features else []
+        if with_features and not released:
+            halves.release_features(keep=("albedo",), merged=stats)
         v_sure = agreeing_variance(v, count)
         out: list[Candidate] = []
         names = self._names
