@@ -93,3 +93,17 @@ def test_the_release_is_refused_for_halves_that_live_on():
     assert hv.release_features(keep=("albedo",), merged=merged) is True
     assert hv.a.feature_names == hv.b.feature_names == tuple(merged.features) == ("albedo",)
     assert np.array_equal(merged.features["albedo"].mean, hv.a.merged(hv.b).features["albedo"].mean)
+
+
+def test_the_regression_of_colours_given_apart_is_that_of_their_concatenation():
+    from mcrecon.filters.regression import collaborative_regression
+
+    rng = np.random.default_rng(3)
+    a, b = rng.gamma(2.0, 1.0, (12, 14, 3)), rng.gamma(2.0, 1.0, (12, 14, 3))
+    v, f = rng.uniform(0.1, 0.2, (12, 14, 3)), rng.uniform(0, 1, (12, 14, 4))
+    kw = dict(radius=3, patch=1, k=1.0, variance_scale=1.0, return_centre_weight=True)
+    want = collaborative_regression(np.concatenate([a, b], axis=2), a, v, f, **kw)
+    got = collaborative_regression([a, b], a, v, f, **kw)
+    assert all(np.array_equal(x, y) for x, y in zip(got, want))
+    with pytest.raises(ValueError, match="shapes differ"):
+        collaborative_regression([a, b[:-1]], a, v, f, **kw)

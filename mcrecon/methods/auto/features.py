@@ -218,8 +218,8 @@ def _regressions(guide: _HalfPlanes, other: _HalfPlanes | None, *, own: bool = T
 
     parts = ([guide.colour] if own else []) + ([other.colour] if other is not None else [])
     c = guide.colour.shape[2]
-    img = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=2)
-    res = collaborative_regression(img, guide.colour, guide.variance, guide.prefiltered, radius=9, patch=3, k=1.0,
+    # the colours given apart: the regression writes them into its padded planes without their concatenation
+    res = collaborative_regression(parts, guide.colour, guide.variance, guide.prefiltered, radius=9, patch=3, k=1.0,
                                    variance_scale=1.0, return_centre_weight=other is not None)
     if other is None:
         return res, None, None
