@@ -62,8 +62,15 @@ def _sample_set(seed=4):
     return SampleSet(b.positions, b.values, width=N, height=N, features=b.features)
 
 
-def test_the_dispatchers_halves_keep_only_the_albedo_after_the_candidates_with_the_same_image():
+def test_the_dispatchers_halves_keep_only_the_albedo_from_oidn_on_with_the_same_image(monkeypatch):
     pytest.importorskip("pyoidn", reason="needs pyoidn (Intel OIDN), a dependency of mcrecon: pip install -e .")
+    from mcrecon.methods.auto import method as auto_method
+
+    seen = []
+    real = auto_method.oidn_candidate
+    monkeypatch.setattr(auto_method, "oidn_candidate",
+                        lambda name, stats, v, halves, **kw: seen.append(halves.a.feature_names) or
+                        real(name, stats, v, halves, **kw))
     m = get_method("auto")
     inputs = gather_inputs(_sample_set(), m)
     hv, stats = inputs.halves, inputs.stats
@@ -78,6 +85,8 @@ def test_the_dispatchers_halves_keep_only_the_albedo_after_the_candidates_with_t
     # the normal and depth went once their last reader was done; the image is the same bits, so
     # nothing read them after (their reads would find them missing)
     assert hv.a.feature_names == hv.b.feature_names == ("albedo",)
+    # OIDN (its albedo and normal from the stored prefiltered planes) already met the halves without them
+    assert seen[:2] == [("albedo",)] * 2 and seen[2:] == [("albedo", "normal", "depth")] * 2
     assert tuple(stats.features) == ("albedo",)
     assert set(kept.halves.a.feature_names) == {"albedo", "normal", "depth"}
     assert np.array_equal(img, ref)

@@ -17,6 +17,7 @@ import weakref
 
 import numpy as np
 
+from ...core.features import layout_of
 from ...core.fill import fill_empty_pixels, mean_variance_policy
 from ...core.stats import PixelStats
 from ...errors import McreconWarning
@@ -119,10 +120,15 @@ def _stamp(st: PixelStats) -> tuple:
 
 
 def feature_slices(st: PixelStats) -> dict:
-    """Where each feature's components lie among the planes of :func:`prefiltered_features`."""
+    """Where each feature's components lie among the planes of :func:`prefiltered_features`: as stored with
+    them where they are for these samples (auto releases the statistics of the features read for those
+    planes alone once they are computed, :func:`~.method._release_features`), else as ``st``'s features
+    (their layout: no merge of features merged on read)."""
+    got = _PREFILTERED.get(st)
+    if got is not None and got[0] == _stamp(st):
+        return dict(got[2])
     out, k = {}, 0
-    for n in st.feature_names:
-        c = st.features[n].mean.shape[2]
+    for n, c in layout_of(st.features).items():
         out[n] = slice(k, k + c)
         k += c
     return out
@@ -148,14 +154,15 @@ def prefiltered_features(st: PixelStats, *, planes=None, stored_only: bool = Fal
         return None
     f, fv = _feature_planes(st) if planes is None else planes
     pf = nlmeans_filter(f, f, fv, radius=5, patch=3, k=0.5)
-    _PREFILTERED[st] = (stamp, pf)
+    _PREFILTERED[st] = (stamp, pf, feature_slices(st))
     return pf
 
 
-def seed_prefiltered(st: PixelStats, planes: np.ndarray) -> None:
+def seed_prefiltered(st: PixelStats, planes: np.ndarray, *, slices: dict | None = None) -> None:
     """Store ``planes`` as ``st``'s prefiltered features (:func:`prefiltered_features`): a crop of a buffer
-    whose planes are computed takes the crop of them (the whole image's values, not a crop's edge effects)."""
-    _PREFILTERED[st] = (_stamp(st), planes)
+    whose planes are computed takes the crop of them (the whole image's values, not a crop's edge effects).
+    ``slices``: where each feature lies among them (:func:`feature_slices`; None: as ``st``'s features)."""
+    _PREFILTERED[st] = (_stamp(st), planes, dict(feature_slices(st) if slices is None else slices))
 
 
 def release_prefiltered(*buffers: PixelStats) -> None:
