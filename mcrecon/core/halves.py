@@ -294,6 +294,11 @@ class Halves:
         The samples' sampler (:data:`~mcrecon.core.requests.SAMPLERS`):
         ``sobol`` halves are prefix blocks and :func:`mean_variances` reads
         the variance of a pixel mean from their difference.
+    transient : bool
+        Made for one reconstruction alone (the offline dispatcher's split of
+        a source): the method may let go of what it has read for the last
+        time (:meth:`release_features`).  False for a caller's pair and an
+        adaptive run's halves, which live on.
     """
 
     a: PixelStats
@@ -302,6 +307,7 @@ class Halves:
     source: object = None
     totals: np.ndarray | None = None
     sampler: str = "independent"
+    transient: bool = False
 
     def __iter__(self):
         return iter((self.a, self.b))
@@ -329,6 +335,24 @@ class Halves:
         if not self.a.features and not self.b.features:
             return self
         return dataclasses.replace(self, a=self.a.without_features(), b=self.b.without_features())
+
+    def release_features(self, *, keep=(), merged: PixelStats | None = None) -> bool:
+        """Drop both halves' feature statistics but those named in ``keep``, in place, where the halves are
+        :attr:`transient`; returns whether they were dropped.
+
+        For a method past the last reader of those features: at 1920 x 1080 each half holds a mean,
+        a second moment and a count per feature (0.56 GB for both with albedo, normal and depth), all
+        of it otherwise alive beside the method's later arrays, since the caller holds the halves.
+        ``merged``: the dispatcher's merge of these halves (:meth:`merged` or ``features_on_read``),
+        whose features are dropped alike (read on demand, they would look for the halves' ones).
+        """
+        if not self.transient:
+            return False
+        keep = set(keep)
+        for st in (self.a, self.b) + ((merged,) if merged is not None else ()):
+            for name in [n for n in st.features if n not in keep]:
+                del st.features[name]
+        return True
 
     def sample_sets(self):
         """The samples of each half as two :class:`~mcrecon.core.samples.SampleSet` (rounds dropped).

@@ -461,8 +461,9 @@ def collaborative_regression(image, guide, variance, features, *, radius: int = 
 
     Parameters
     ----------
-    image : ndarray (H, W, C)
-        The colour regressed (HDR, never clipped).
+    image : ndarray (H, W, C), or a sequence of them
+        The colour regressed (HDR, never clipped); a sequence is regressed as
+        its arrays concatenated on the channel axis, without that copy.
     guide : ndarray (H, W, Cg)
         The image the NL-means weights compare (NFOR: the *other* half
         buffer's colour, so the weights do not correlate with the noise of
@@ -547,16 +548,22 @@ def collaborative_regressions(image, guide, variance, features, *, ks, radius: i
     ks = [float(k) for k in ks]
     if not ks:
         raise ValueError("collaborative_regressions: no bandwidth")
-    img = np.asarray(image, dtype=np.float64)
-    img = img[..., None] if img.ndim == 2 else img
+    # the colours as given (several: their planes written into the padded planes below one after the
+    # other, so no concatenated copy of them sits beside those)
+    parts = [np.asarray(a, dtype=np.float64) for a in (image if isinstance(image, (list, tuple)) else [image])]
+    parts = [a[..., None] if a.ndim == 2 else a for a in parts]
+    if not parts or any(a.shape[:2] != parts[0].shape[:2] for a in parts):
+        raise ValueError("collaborative_regression: the colours' shapes differ: "
+                         f"{[a.shape for a in parts]} (H, W[, C])")
     g = as_planes(guide, np.float32)
     v = scaled_planes(variance, variance_scale)
     feats = np.asarray(features, dtype=np.float64)
     if feats.ndim == 2:
         feats = feats[..., None]
-    h, w, nc = img.shape
+    h, w = parts[0].shape[:2]
+    nc = sum(a.shape[2] for a in parts)
     if g.shape[1:] != (h, w) or v.shape != g.shape or feats.shape[:2] != (h, w):
-        raise ValueError(f"collaborative_regression: shapes differ: image {img.shape}, guide {g.shape[1:]}, "
+        raise ValueError(f"collaborative_regression: shapes differ: image {(h, w, nc)}, guide {g.shape[1:]}, "
                          f"variance {v.shape[1:]}, features {feats.shape} (H, W[, C])")
     if feature_scales is not None and len(feature_scales) != feats.shape[2]:
         raise ValueError(f"collaborative_regression: {len(feature_scales)} feature scales for "
@@ -572,8 +579,12 @@ def collaborative_regressions(image, guide, variance, features, *, ks, radius: i
     # of the standardised features beside them: 14 float64 values per pixel fewer at the peak with 6
     # channels and 8 features)
     ypad = np.zeros((nc, h + 2 * r, w + 2 * r))
-    for c in range(nc):
-        ypad[c, r:r + h, r:r + w] = img[..., c]
+    c = 0
+    for a in parts:
+        for ca in range(a.shape[2]):
+            ypad[c, r:r + h, r:r + w] = a[..., ca]
+            c += 1
+    del parts
     fpad = np.zeros((feats.shape[2], h + 2 * r, w + 2 * r))
     for m in range(feats.shape[2]):
         fpad[m, r:r + h, r:r + w] = _standard_plane(feats[..., m], None if feature_scales is None

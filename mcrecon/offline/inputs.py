@@ -57,6 +57,7 @@ def statistics_for(source, req, *, nonfinite: str = "drop", merged: bool = True,
     if req.samples and req.half_buffers and req.statistics and not req.subpixels:
         split = split_halves(source, nonfinite=nonfinite, features=features,
                              each_batch=None if strata is None else strata.add)
+        split.transient = True   # this call's alone: a method may let go of features it has done with
         # the merge's features are merged when read: a method reads few of them, one at a time
         return (split.a.merged(split.b, features_on_read=True) if merged else None), split
     stats = PixelStats.from_source(source, subpixels=req.subpixels, nonfinite=nonfinite, features=features,

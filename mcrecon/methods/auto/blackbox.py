@@ -115,17 +115,18 @@ def oidn_aux(st: PixelStats) -> tuple:
     the same values, computed once."""
     from ...filters.nlmeans import nlmeans_filter
 
+    stored = prefiltered_features(st, stored_only=True)   # a half's: the feature candidates' prefilter
+    # each feature's components, as stored with those planes where they are (auto releases the normal's
+    # statistics once prefiltered)
+    sl = feature_slices(st)
     names = []
     for name in ("albedo", "normal"):
-        f = st.features.get(name)
-        if f is None or f.mean.shape[2] != 3:
+        if name not in sl or sl[name].stop - sl[name].start != 3:
             break
         names.append(name)
     if not names:
         return ()
-    stored = prefiltered_features(st, stored_only=True)   # a half's: the feature candidates' prefilter
     if stored is not None:
-        sl = feature_slices(st)
         return tuple(np.ascontiguousarray(stored[..., sl[n]]) for n in names)
     f = np.concatenate([_filled(st.features[n].mean, st.features[n].count) for n in names], axis=2)
     var = np.concatenate([mean_variance_policy(st.features[n]) for n in names], axis=2)

@@ -17,6 +17,7 @@ import weakref
 
 import numpy as np
 
+from ...core.features import layout_of
 from ...core.fill import fill_empty_pixels, mean_variance_policy
 from ...core.stats import PixelStats
 from ...errors import McreconWarning
@@ -102,7 +103,10 @@ class _HalfPlanes:
 
     @functools.cached_property
     def prefiltered(self) -> np.ndarray:
-        return prefiltered_features(self.half, planes=self.features)
+        # the stored planes when computed already (auto computes them before OIDN): the unfiltered
+        # planes, 14 float64 planes a half with albedo, normal and depth, are then never built
+        stored = prefiltered_features(self.half, stored_only=True)
+        return stored if stored is not None else prefiltered_features(self.half, planes=self.features)
 
 
 #: Each buffer's prefiltered feature planes (:func:`prefiltered_features`), kept while the buffer lives,
@@ -116,10 +120,15 @@ def _stamp(st: PixelStats) -> tuple:
 
 
 def feature_slices(st: PixelStats) -> dict:
-    """Where each feature's components lie among the planes of :func:`prefiltered_features`."""
+    """Where each feature's components lie among the planes of :func:`prefiltered_features`: as stored with
+    them where they are for these samples (auto releases the statistics of the features read for those
+    planes alone once they are computed, :func:`~.method._release_features`), else as ``st``'s features
+    (their layout: no merge of features merged on read)."""
+    got = _PREFILTERED.get(st)
+    if got is not None and got[0] == _stamp(st):
+        return dict(got[2])
     out, k = {}, 0
-    for n in st.feature_names:
-        c = st.features[n].mean.shape[2]
+    for n, c in layout_of(st.features).items():
         out[n] = slice(k, k + c)
         k += c
     return out
@@ -145,14 +154,15 @@ def prefiltered_features(st: PixelStats, *, planes=None, stored_only: bool = Fal
         return None
     f, fv = _feature_planes(st) if planes is None else planes
     pf = nlmeans_filter(f, f, fv, radius=5, patch=3, k=0.5)
-    _PREFILTERED[st] = (stamp, pf)
+    _PREFILTERED[st] = (stamp, pf, feature_slices(st))
     return pf
 
 
-def seed_prefiltered(st: PixelStats, planes: np.ndarray) -> None:
+def seed_prefiltered(st: PixelStats, planes: np.ndarray, *, slices: dict | None = None) -> None:
     """Store ``planes`` as ``st``'s prefiltered features (:func:`prefiltered_features`): a crop of a buffer
-    whose planes are computed takes the crop of them (the whole image's values, not a crop's edge effects)."""
-    _PREFILTERED[st] = (_stamp(st), planes)
+    whose planes are computed takes the crop of them (the whole image's values, not a crop's edge effects).
+    ``slices``: where each feature lies among them (:func:`feature_slices`; None: as ``st``'s features)."""
+    _PREFILTERED[st] = (_stamp(st), planes, dict(feature_slices(st) if slices is None else slices))
 
 
 def release_prefiltered(*buffers: PixelStats) -> None:
@@ -215,8 +225,8 @@ def _regressions(guide: _HalfPlanes, other: _HalfPlanes | None, *, own: bool = T
 
     parts = ([guide.colour] if own else []) + ([other.colour] if other is not None else [])
     c = guide.colour.shape[2]
-    img = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=2)
-    res = collaborative_regression(img, guide.colour, guide.variance, guide.prefiltered, radius=9, patch=3, k=1.0,
+    # the colours given apart: the regression writes them into its padded planes without their concatenation
+    res = collaborative_regression(parts, guide.colour, guide.variance, guide.prefiltered, radius=9, patch=3, k=1.0,
                                    variance_scale=1.0, return_centre_weight=other is not None)
     if other is None:
         return res, None, None
@@ -241,7 +251,7 @@ def _feature_bilateral(stats: PixelStats, y: np.ndarray, v: np.ndarray) -> "Cand
     return Candidate("fbil", img, np.where((stats.count > 0)[..., None], mse, np.nan), feature=True)
 
 
-def feature_candidates(names, ha: PixelStats, hb: PixelStats, *, variances=None) -> list[Candidate]:
+def feature_candidates(names, ha: PixelStats, hb: PixelStats, *, variances=None, store=None) -> list[Candidate]:
     """The feature-guided candidates ``names`` (of :data:`FEATURE_CANDIDATES`) on the two halves.
 
     ``nfor_own``, ``dnlm``, ``xbil`` and the ``mix`` of the first two filter each half with its own
@@ -250,9 +260,14 @@ def feature_candidates(names, ha: PixelStats, hb: PixelStats, *, variances=None)
     filters each half with the other's weights and features (:func:`_regressions`), so it is
     scored by Stein's estimate instead, exact for a filter linear in the half it filters.
     ``variances``: the halves' means' variances ``(v_A, v_B)`` the estimates read
-    (:func:`~mcrecon.core.halves.mean_variances`; None: each half's ``s^2 / n``).
+    (:func:`~mcrecon.core.halves.mean_variances`; None: each half's ``s^2 / n``).  ``store``: applied to
+    each candidate as soon as it is built (auto's float32 store), so its float64 image and estimate go
+    at once and the candidates built before meet the next one's working arrays in the stored dtype
+    (six candidates at 1920 x 1080: 0.3 GB, not 0.6 GB); None keeps them as built.
     """
     from .estimates import sure
+
+    keep = (lambda c: c) if store is None else store
 
     pa, pb = _HalfPlanes(ha), _HalfPlanes(hb)
     va, vb = (pa.variance, pb.variance) if variances is None else variances
@@ -264,10 +279,13 @@ def feature_candidates(names, ha: PixelStats, hb: PixelStats, *, variances=None)
         own_a, cross_b, cw_b = _regressions(pa, pb if "nfor" in names else None, own=want_own)
         own_b, cross_a, cw_a = _regressions(pb, pa if "nfor" in names else None, own=want_own)
         if want_own:
-            own["nfor_own"] = (own_a, own_b)
+            # compact copies: the regression's images are views of its whole (planes, H, W) output
+            # (both colours and the weights, 8 planes a half with the crossed image), which the mixes
+            # below would otherwise hold beside dnlm's working arrays
+            own["nfor_own"] = (np.ascontiguousarray(own_a), np.ascontiguousarray(own_b))
         if "nfor" in names:
-            out.append(dual_candidate("nfor", cross_a, cross_b, sure(ha.mean, va, cross_a, cw_a),
-                                  sure(hb.mean, vb, cross_b, cw_b), ha.count, hb.count, feature=True))
+            out.append(keep(dual_candidate("nfor", cross_a, cross_b, sure(ha.mean, va, cross_a, cw_a),
+                                           sure(hb.mean, vb, cross_b, cw_b), ha.count, hb.count, feature=True)))
         del own_a, own_b, cross_a, cross_b, cw_a, cw_b
     if "xbil" not in names:
         # the unfiltered feature planes and their variances (14 planes a half with albedo, normal and
@@ -290,9 +308,9 @@ def feature_candidates(names, ha: PixelStats, hb: PixelStats, *, variances=None)
         else:
             a, b = ab
         if name in names or name.startswith("mix"):
-            out.append(dual_candidate(name, a, b, cross_validation_mse(a, hb.mean, vb),
-                                  cross_validation_mse(b, ha.mean, va), ha.count, hb.count,
-                                  feature=True))
+            out.append(keep(dual_candidate(name, a, b, cross_validation_mse(a, hb.mean, vb),
+                                           cross_validation_mse(b, ha.mean, va), ha.count, hb.count,
+                                           feature=True)))
         del a, b, ab
     return out
 

@@ -38,7 +38,7 @@ from ...core.fill import fill_empty_pixels
 from ...filters.gaussian import final_sigmas
 from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGHTS, Candidate,
     _feature_bilateral, dual_candidate, feature_candidates, prefiltered_features,
-    release_prefiltered)
+    feature_slices, release_prefiltered, seed_prefiltered)
 from .blackbox import oidn_candidate
 from .nlmeans import nlmeans_cross
 from .proxy import REGRESSIONS, regression_share
@@ -131,6 +131,30 @@ def _store(cands: list) -> list:
     for c in cands:
         c.image, c.mse = _stored(c.image), _stored(c.mse)
     return cands
+
+
+def _release_features(halves: Halves | None, stats: PixelStats, fnames, *, oidn_after: bool) -> bool:
+    """Drop the halves' feature statistics but the albedo where no reader of them is left
+    (:meth:`~mcrecon.core.halves.Halves.release_features`: transient halves only); returns whether
+    they were dropped.
+
+    The prefiltered planes (kept, stored again with their layout under the halves' new feature set)
+    serve OIDN's albedo and normal and the regressions; dnlm and the selection's albedo divisor
+    (merged from the halves' on read) read the albedo alone.  Only xbil, the regression proxy (the
+    caller's to rule out) and a prefilter not computed yet (by OIDN with ``oidn_after``, or by the
+    regressions) read the rest."""
+    if halves is None or not halves.a.features or "xbil" in fnames:
+        return False
+    pf = [prefiltered_features(hf, stored_only=True) for hf in halves]
+    if any(p is None for p in pf) and ((oidn_after and "oidn_aux" in fnames) or set(fnames) & set(REGRESSIONS)):
+        return False
+    slices = [feature_slices(hf) for hf in halves]
+    if not halves.release_features(keep=("albedo",), merged=stats):
+        return False
+    for hf, planes, sl in zip(halves, pf, slices):
+        if planes is not None:
+            seed_prefiltered(hf, planes, slices=sl)
+    return True
 
 
 def _bank(y, v, count, sigmas, *, box: bool) -> list:
@@ -339,6 +363,9 @@ class AutoMethod(Method):
             # regressions after it (the same planes either way)
             prefiltered_features(halves.a)
             prefiltered_features(halves.b)
+        # the features' statistics past their last reader go before OIDN's scratch memory meets them
+        released = given is None and (run is None or p["regression_proxy"] is None) and \
+            _release_features(halves, stats, self._feature_names, oidn_after=True)
         if given is None:
             # each candidate held in the selection's dtype from its creation on (_stored: float32; the
             # next one's working memory then meets half the bytes)
@@ -360,7 +387,12 @@ class AutoMethod(Method):
             run.regression_verdict = verdict
             if verdict is not None and not verdict.computes(p["regression_proxy"]):
                 fnames = tuple(n for n in fnames if n not in REGRESSIONS)
-        guided = _store(feature_candidates(fnames, halves.a, halves.b, variances=(va, vb))) if with_features else []
+        released = released or (with_features and _release_features(halves, stats, fnames, oidn_after=False))
+        # each stored as built: its float64 image and estimate go before the next one's working arrays
+        guided = feature_candidates(fnames, halves.a, halves.b, variances=(va, vb),
+                                    store=lambda c: _store([c])[0]) if with_features else []
+        if with_features and not released:
+            halves.release_features(keep=("albedo",), merged=stats)
         v_sure = agreeing_variance(v, count)
         out: list[Candidate] = []
         names = self._names
