@@ -1126,15 +1126,14 @@ def test_feature_candidates_are_estimated_without_bias():
     squared error (48^2, 16 spp, seeds 0-3; measured per seed 0.80-1.47, pooled nfor 1.05, nfor_own
     1.14, dnlm 1.20, xbil 1.09, mixes 1.18-1.20; over 16 seeds 0.99-1.07).  Bounds 0.7-1.3: about three
     standard errors of a 4-seed pooled ratio (per-seed spread ~0.2)."""
-    from mcrecon.core.halves import merge_halves
+    from mcrecon.methods.auto.features import feature_candidates
 
     est, true = {}, {}
     auto = get_method("auto", feature_candidates="nfor,nfor_own,dnlm,mix,xbil")
     for seed in range(4):
         ss, ref = _textured(seed)
         h = split_halves(ss, features="all")
-        st = merge_halves(h.a, h.b)
-        for c in auto._feature_candidates(st, h.a, h.b):
+        for c in feature_candidates(auto._feature_names, h.a, h.b):
             ok = np.isfinite(c.mse)
             est[c.name] = est.get(c.name, 0.0) + float(np.sum(c.mse[ok]))
             true[c.name] = true.get(c.name, 0.0) + float(np.sum(((c.image - ref) ** 2)[ok]))

@@ -451,10 +451,6 @@ class AutoMethod(Method):
         (without it auto's error rises 1.3x on the corpus' depth of field with features)."""
         return "oidn_aux" in self._feature_names and "albedo" in stats.features
 
-    def _feature_candidates(self, stats: PixelStats, ha: PixelStats, hb: PixelStats) -> list[Candidate]:
-        """The feature-guided candidates on the two halves (:func:`.features.feature_candidates`)."""
-        return feature_candidates(self._feature_names, ha, hb)
-
     _dual = staticmethod(dual_candidate)
 
     def _black_box(self, name, halves: Halves, nonfinite):
