@@ -156,7 +156,7 @@ def _colour(st: PixelStats) -> np.ndarray:
 
 
 def oidn_candidate(name: str, stats: PixelStats, v: np.ndarray, halves=None, *, aux: bool = False,
-                   estimate: str | None = None, halves_only: bool = False) -> list[Candidate]:
+                   estimate: str | None = None, halves_only: bool = False, variances=None) -> list[Candidate]:
     """OIDN on all the samples' pixel means (``stats``) with its per-pixel MSE estimate, and with the
     ``halves`` estimate also ``NAME_halves``: the average of OIDN on each half, with the halves'
     dual-buffer estimate (:func:`~.features.dual_candidate`).
@@ -164,7 +164,9 @@ def oidn_candidate(name: str, stats: PixelStats, v: np.ndarray, halves=None, *, 
     ``v``: the variance of each pixel mean.  ``aux``: with the albedo and normal (:func:`oidn_aux`).
     ``estimate``: one of :data:`ESTIMATES` (default :data:`ESTIMATE`); ``halves`` needs ``halves``
     (without them: ``sure``).  ``halves_only``: with the ``halves`` estimate, ``NAME_halves`` alone (two
-    denoiser runs, not three).  NaN where a pixel has no sample (or no sample in a half)."""
+    denoiser runs, not three).  ``variances``: the halves' means' variances ``(v_A, v_B)`` their
+    cross-validation reads (None: :func:`~mcrecon.core.halves.mean_variances` of ``halves``).  NaN where a
+    pixel has no sample (or no sample in a half)."""
     estimate = ESTIMATE if estimate is None else estimate
     if estimate not in ESTIMATES:
         raise ValueError(f"oidn_candidate: estimate {estimate!r}; valid: {', '.join(ESTIMATES)}")
@@ -196,7 +198,8 @@ def oidn_candidate(name: str, stats: PixelStats, v: np.ndarray, halves=None, *, 
         ha, hb = halves.a, halves.b
         fa = oidn_denoise(_colour(ha), a_half, clean_aux=aux)
         fb = oidn_denoise(_colour(hb), b_half, clean_aux=aux)
-        _, va, vb = mean_variances(stats, halves)  # a stratified sampler's from its halves' difference
+        # a stratified sampler's from its halves' difference
+        va, vb = mean_variances(stats, halves)[1:] if variances is None else variances
         cva = cross_validation_mse(fa, hb.mean, vb)
         cvb = cross_validation_mse(fb, ha.mean, va)
         cv = 0.5 * (cva + cvb)

@@ -369,9 +369,10 @@ class AutoMethod(Method):
         if given is None:
             # each candidate held in the selection's dtype from its creation on (_stored: float32; the
             # next one's working memory then meets half the bytes)
-            black = (_store(oidn_candidate("oidn", stats, v, halves, halves_only=aux))
+            black = (_store(oidn_candidate("oidn", stats, v, halves, halves_only=aux, variances=(va, vb)))
                      if "oidn" in self._names else [])
-            black_aux = _store(oidn_candidate("oidn_aux", stats, v, halves, aux=True)) if aux else []
+            black_aux = (_store(oidn_candidate("oidn_aux", stats, v, halves, aux=True, variances=(va, vb)))
+                         if aux else [])
         else:
             black = [c for c in given if c.name != "oidn_aux"]
             black_aux = [c for c in given if c.name == "oidn_aux"]
