@@ -402,13 +402,12 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     # own-patch weights keep one) lies far from
     # At such a pixel that g would lift above both its own mean and the plain choice, the plain choice
     # stands (:func:`_lifted`): at an emitter's rim the median of the neighbours lies on the emitter.
-    heavy = apart | (bounds[1] > HEAVY_TAIL * np.abs(y)).any(axis=2)
     if g in steady:
         default = np.isfinite(rel[g]) & ~biased
         # nor does another candidate's local test override it there: at a pixel with rare huge samples
         # around, every local estimate is dominated by the one sample that carries them (a
         # cross-validated black box's most of all), and a local "pass" is that sample's noise
-        c2 = np.where(heavy, g, c2)
+        c2 = np.where(apart | (bounds[1] > HEAVY_TAIL * np.abs(y)).any(axis=2), g, c2)
     else:
         at_g = apart & (c2 == g)
         at_g &= ~_lifted(cands, g, choice, y, v, at_g)
