@@ -23,7 +23,8 @@ from ..core.samples import (FLOAT32_MAX, apply_nonfinite, check_memory, float32_
 from .schedule import _adaptive_state, _committed, _pixel_counts_of, _request_counts, round_seeds
 
 
-def _take_round(ctx, batch, round_index, *, source, n_nonfinite=None, timeline=None, helper=None) -> None:
+def _take_round(ctx, batch, round_index, *, source, n_nonfinite=None, timeline=None, helper=None,
+                counts=None) -> None:
     """A committed round into the run's statistics and, for methods that read samples, into ``observe``.
 
     The one path of the live run and of a resume's replay: the method, its
@@ -39,13 +40,16 @@ def _take_round(ctx, batch, round_index, *, source, n_nonfinite=None, timeline=N
     ingest the round there while ``observe`` runs here -- they read the
     same arrays and write disjoint state, both compiled kernels that release
     the GIL -- and both are done when this returns.
+    ``counts`` (H, W): the round's samples per pixel when the caller knows them (a live run: the
+    request's, which the validation has matched pixel by pixel), so that they are not counted again
+    from the positions (a bincount over every sample of the round); a resume's replay counts them.
     """
     method, stats, nonfinite = ctx.method, ctx.stats, ctx.nonfinite
     # every row the renderer delivered (NaN/Inf included) took an index of its pixel's sequence
     # (a context without the count, a test's stand-in, only ingests)
     rendered = getattr(ctx, "rendered", None)
     if rendered is not None:
-        rendered += _pixel_counts_of(batch.positions, stats.width, stats.height)
+        rendered += _pixel_counts_of(batch.positions, stats.width, stats.height) if counts is None else counts
     strata = getattr(ctx, "strata", None)
     if strata is not None:  # every row, NaN/Inf included, in its pixel's sequence order
         strata.add(batch.positions, batch.values)
@@ -192,7 +196,7 @@ class _Round:
                                   stacklevel=4)
         return SampleBatch(cast_positions(batch.positions, dtype), val.astype(dtype, copy=False), batch.features)
 
-    def commit(self, batch, n_bad, record, toolkit_s, *, helper=None, writer=None, writer_copy=None):
+    def commit(self, batch, n_bad, record, toolkit_s, *, helper=None, writer=None, writer_copy=None, counts=None):
         """Append to the log, then into the statistics (and ``observe``; with ``helper``, an idle
         one-thread executor, the two at once: see :func:`_take_round`).
 
@@ -200,6 +204,7 @@ class _Round:
         the statistics take the round meanwhile.  The round is committed when the future is done.
         ``writer_copy``: hand the writer a copy of the arrays (default: unless the renderer's replies
         are ``fresh_replies``); not needed when the caller waits for the write before the next render.
+        ``counts``: the round's samples per pixel, known from its validated request (:func:`_take_round`).
         """
         pending = None
         if self.log_path is not None:
@@ -215,7 +220,7 @@ class _Round:
                     {k: np.array(v) for k, v in batch.features.items()} if batch.features else batch.features)
                 pending = writer.submit(self._append, kept, record["round"], rec, True)
         _take_round(self.ctx, batch, record["round"], source=self.name, n_nonfinite=n_bad, timeline=self.timeline,
-                    helper=helper)
+                    helper=helper, counts=counts)
         return pending
 
     def _append(self, batch, round_index, rec, on_writer=False):
@@ -399,7 +404,8 @@ def _sequential_rounds(ctx, rnd, writes, helper):
                   "samples_total": _committed(stats) + len(batch), "renderer_seconds": render_s}
         t3 = time.perf_counter()
         writes.written(wait=True)  # one round on its way at a time
-        pending = rnd.commit(batch, n_bad, record, toolkit_s, helper=helper, writer=writes.executor)
+        pending = rnd.commit(batch, n_bad, record, toolkit_s, helper=helper, writer=writes.executor,
+                             counts=_request_counts(req))
         toolkit_s += time.perf_counter() - t3
         clock.toolkit_cpu += (cp - c0) + (time.thread_time() - c2)
         record["toolkit_seconds"] = toolkit_s
@@ -440,7 +446,8 @@ def _loop_pipelined(ctx, rnd, writes):
         # committed by this thread while nothing renders (``helper``): the log's append runs beside the
         # statistics and observe, and is done before the round counts as committed
         pending = rnd.commit(batch, n_bad, record, carry + extra_s + (time.perf_counter() - t0), helper=helper,
-                             writer=writer if helper is not None else None, writer_copy=False)
+                             writer=writer if helper is not None else None, writer_copy=False,
+                             counts=_request_counts(preq))
         if pending is not None:
             _wait_out(pending)
         # a round's toolkit time: its validation and commit, the beyond-renderer part
