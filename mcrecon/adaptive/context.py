@@ -9,6 +9,7 @@
      |- rounds, round_index, planned                 what the run holds before this session
      |- rendered   per pixel, the samples committed (NaN/Inf included): each request's first_index
      |- strata     PrefixHalves of the committed samples (methods with stratified_gain on): the plans' gain
+     |- feature_layout  the features of the rounds of a method that reads no statistics (they keep none)
      |- sampler    what the renderer's samples of a pixel are (Renderer.sampler): the plans' AdaptiveState.sampler
      |- sampler_known, sampler_checked              whether a reply or the log decided it; whether replies must agree
      |- track_error, eps, on_round, bar             what this session's caller asked for
@@ -215,6 +216,9 @@ class RunContext:
     planned: tuple | None = None
     rendered: np.ndarray | None = None
     strata: PrefixHalves | None = None
+    #: ``{name: components}`` of the features a method that reads no statistics gets with its rounds
+    #: (the statistics keep none for it); None until the first round says which the renderer sends.
+    feature_layout: dict | None = None
     #: The renderer's sampler (:data:`~mcrecon.core.requests.SAMPLERS`) every plan sees; ``sampler_known``:
     #: decided (recorded in the run settings, or a reply came), ``sampler_checked``: later replies must agree.
     sampler: str = "independent"

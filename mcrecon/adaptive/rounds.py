@@ -53,13 +53,25 @@ def _take_round(ctx, batch, round_index, *, source, n_nonfinite=None, timeline=N
     strata = getattr(ctx, "strata", None)
     if strata is not None:  # every row, NaN/Inf included, in its pixel's sequence order
         strata.add(batch.positions, batch.values)
-    if method.requires.features != "none" and batch.features and not stats.features and stats.n_samples == 0:
+    # A method that reads no pixel statistics (requires.statistics False) reads the features of its
+    # rounds in observe only: the statistics keep none (nothing would read their sums), and the context
+    # holds the layout that the rounds' features are checked against.
+    own_layout = not method.requires.statistics and hasattr(ctx, "feature_layout")
+    layout = ctx.feature_layout if own_layout else (layout_of(stats.features) if stats.features else None)
+    if method.requires.features != "none" and batch.features and not layout and stats.n_samples == 0:
         # the renderer's first round says which features it sends; every later round sends the same
-        stats.keep_features(usable_layout(batch.features))
-    feats, n_fz = (check_features(batch.features, len(batch.positions), where=source, layout=layout_of(stats.features))
-                   if stats.features else ({}, 0))
+        layout = usable_layout(batch.features)
+        if own_layout:
+            ctx.feature_layout = layout
+        else:
+            stats.keep_features(layout)
+    feats, n_fz = (check_features(batch.features, len(batch.positions), where=source, layout=layout)
+                   if layout else ({}, 0))
+    kept = feats if stats.features else {}  # what the statistics take
     if n_nonfinite is None:
-        stats.add(batch.positions, batch.values, features=feats, nonfinite=nonfinite, source=source)
+        stats.add(batch.positions, batch.values, features=kept, nonfinite=nonfinite, source=source)
+        if n_fz and not kept:  # counted as the statistics count them when they keep the features
+            stats.n_feature_zeroed += int(n_fz)
         pos, val = np.asarray(batch.positions), np.asarray(batch.values)
         if val.ndim == 1:
             val = val[:, None]
@@ -74,8 +86,8 @@ def _take_round(ctx, batch, round_index, *, source, n_nonfinite=None, timeline=N
         def ingest(**where):
             t, c = time.perf_counter(), time.thread_time()
             if pos.shape[0]:
-                f2 = take_rows(feats, np.isfinite(val).all(axis=1)) if (feats and n_bad and nonfinite == "drop") \
-                    else feats
+                f2 = take_rows(kept, np.isfinite(val).all(axis=1)) if (kept and n_bad and nonfinite == "drop") \
+                    else kept
                 p2, v2 = apply_nonfinite(pos, val, n_bad, nonfinite, where=source)
                 stats._ingest(p2, v2, n_bad, f2, n_fz, nonfinite=nonfinite, source=source)
             if timeline is not None:
