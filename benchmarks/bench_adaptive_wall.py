@@ -3,6 +3,7 @@
     python benchmarks/bench_adaptive_wall.py                              # Mitsuba and the throttled scene
     python benchmarks/bench_adaptive_wall.py --renderer mitsuba --repeat 7 --methods box,gem
     python benchmarks/bench_adaptive_wall.py --profile-only --methods gem   # the per-stage CPU table only
+    python benchmarks/bench_adaptive_wall.py --renderer mitsuba --stages --profile-only --methods splat,gem
 
 Per renderer, per repetition, per method: the uniform command, then the
 adaptive one, each a fresh ``python -m mcrecon`` process (interleaved pairs:
@@ -20,6 +21,13 @@ Prints, per method, the median and the spread (min - max) over the
 repetitions of the pair's wall ratio adaptive / uniform, and of the CPU
 ratio (user + sys of each process, from ``resource``: the other agents'
 load inflates it far less than the wall), with the medians in seconds.
+
+``--stages``: each command of a pair once more, in a fresh process under
+``cProfile`` on ``time.process_time`` (which counts every thread: Dr.Jit's,
+the filters' pool), with the driver's helper threads run inline so that
+each stage is counted once: the CPU seconds by stage of the uniform command
+and of each method's adaptive command side by side (docs/mitsuba.md,
+"Where an adaptive command's time goes").
 
 ``--profile``: one in-process adaptive run per method (the API, as the
 command runs it) and the toolkit's CPU seconds per million samples by
@@ -45,8 +53,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 METHODS = ("box", "gem", "awr", "splat", "ci", "auto")
-#: Issue 25's targets of the wall ratio adaptive / uniform (Mitsuba).
-TARGETS = {"box": 1.03, "ci": 1.08, "splat": 1.08, "awr": 1.10, "gem": 1.12}
+#: Targets of the wall ratio adaptive / uniform (Mitsuba, 512², 32 spp).
+TARGETS = {"box": 1.03, "ci": 1.08, "splat": 1.12, "awr": 1.10, "gem": 1.12}
 
 
 def _env(rate: float | None) -> dict:
@@ -160,6 +168,81 @@ def profile(renderer: str, methods, size: str, spp: int, scene: str, rate: float
     return lines
 
 
+#: (stage, ((file suffix, function), ...)): cumulative CPU of the functions, summed (none calls another).
+STAGE_FUNCS = (("Mitsuba: import, scene load", (("renderers/mitsuba.py", "__init__"),)),
+               ("Mitsuba: tracing (kernel launches, copies out)", (("renderers/mitsuba.py", "_trace"),)),
+               ("the bridge's film positions", (("renderers/mitsuba.py", "_film_positions"),)),
+               ("log writes (checksums)", (("io/writer.py", "write_log"), ("io/writer.py", "append_log"))),
+               ("reply validation", (("adaptive/rounds.py", "receive"),)),
+               ("statistics", (("core/stats.py", "_ingest"),)),
+               ("method: observe", (("adaptive/rounds.py", "_observe"),)),
+               ("method: plan", (("adaptive/context.py", "plan"),)),
+               ("EXR and PNG", (("io/images.py", "write_exr"), ("io/images.py", "write_png_preview"))))
+
+_STAGES_CHILD = """
+import cProfile, json, resource, sys, time
+from concurrent.futures import Future
+import mcrecon.adaptive.rounds as R
+
+class Inline:  # the driver's helper threads, run where they are submitted: each stage counted once
+    def __init__(self, *a, **k): pass
+    def submit(self, fn, *a, **k):
+        f = Future()
+        try: f.set_result(fn(*a, **k))
+        except BaseException as e: f.set_exception(e)
+        return f
+    def shutdown(self, wait=True): pass
+
+R.ThreadPoolExecutor = Inline
+from mcrecon.cli import main
+funcs = json.loads(sys.argv[1])
+pr = cProfile.Profile(time.process_time)
+c0 = time.process_time()
+pr.enable(); rc = main(sys.argv[2:]); pr.disable()
+total = time.process_time() - c0
+pr.create_stats()
+out = {name: 0.0 for name, _ in funcs}
+for (fn, _line, fname), (_cc, _nc, _tt, ct, _cal) in pr.stats.items():
+    for name, pairs in funcs:
+        if any(fn.replace(chr(92), "/").endswith(suf) and fname == f for suf, f in pairs):
+            out[name] += ct
+ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+out["whole process"] = total
+out["child processes (the availability probe)"] = ru.ru_utime + ru.ru_stime
+print("STAGES " + json.dumps(out))
+sys.exit(rc)
+"""
+
+
+def stages(renderer, methods, size, spp, scene, rate) -> list[str]:
+    """CPU seconds by stage of the uniform command and of each method's adaptive one (one process each)."""
+    env = _env(rate if renderer == "scene" else None)
+    cols = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        for m in methods:
+            uni, ada = commands(renderer, m, size, spp, scene, tmp)
+            for name, args in ((("uniform", uni),) if not cols else ()) + ((m, ada),):
+                timed(args, env)  # the command's caches warm (its Dr.Jit kernel, numba)
+                for i, a in enumerate(args):
+                    if i and args[i - 1] in ("--log", "-o") and a.endswith(".h5"):
+                        Path(a).unlink(missing_ok=True)
+                r = subprocess.run([sys.executable, "-c", _STAGES_CHILD,
+                                    json.dumps([[n, list(map(list, f))] for n, f in STAGE_FUNCS]), *args],
+                                   env=env, cwd=ROOT, capture_output=True, text=True)
+                got = [ln for ln in r.stdout.splitlines() if ln.startswith("STAGES ")]
+                if r.returncode != 0 or not got:
+                    sys.stderr.write(r.stdout[-2000:] + r.stderr[-2000:])
+                    raise SystemExit(f"profiling {name} failed ({r.returncode})")
+                cols[name] = json.loads(got[-1][len("STAGES "):])
+                print(f"  stages of {renderer} {name}: {cols[name]['whole process']:.2f} CPU s", flush=True)
+    names = [n for n, _ in STAGE_FUNCS] + ["whole process", "child processes (the availability probe)"]
+    lines = [f"| {renderer}: CPU s by stage | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|"]
+    for n in names:
+        lines.append(f"| {n} | " + " | ".join(f"{c[n]:.2f}" if c[n] else "-" for c in cols.values()) + " |")
+    return lines
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--renderer", choices=("mitsuba", "scene", "both"), default="both")
@@ -170,7 +253,9 @@ def main(argv=None) -> int:
     p.add_argument("--rate", type=float, default=2e6, help="the scene renderer's samples per second")
     p.add_argument("--repeat", type=int, default=5)
     p.add_argument("--profile", action="store_true", help="also the per-stage CPU table")
-    p.add_argument("--profile-only", action="store_true")
+    p.add_argument("--profile-only", action="store_true",
+                   help="no pairs: the per-stage tables asked for (--stages, --profile), else --profile's")
+    p.add_argument("--stages", action="store_true", help="also CPU seconds by stage of whole commands (cProfile)")
     p.add_argument("--json", default=None)
     a = p.parse_args(argv)
     methods = [m for m in a.methods.split(",") if m]
@@ -185,11 +270,13 @@ def main(argv=None) -> int:
             renderers = tuple(r for r in renderers if r != "mitsuba")
     out, text = {}, []
     for r in renderers:
+        if a.stages:
+            text += [""] + stages(r, methods, a.size, a.spp, a.scene, a.rate)
         if not a.profile_only:
             res = pairs(r, methods, a.size, a.spp, a.scene, a.rate, a.repeat)
             out[r] = res
             text += [""] + table(r if r == "mitsuba" else f"scene at {a.rate / 1e6:g} M samples/s", res)
-        if a.profile or a.profile_only:
+        if a.profile or (a.profile_only and not a.stages):
             text += [""] + profile(r, methods, a.size, a.spp, a.scene, a.rate)
     print(f"\n{a.size}, {a.spp} spp, {a.repeat} interleaved pairs per method, load average "
           f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the end")
