@@ -50,6 +50,7 @@ from ..io.lock import log_lock
 from ..io.reader import read_log
 from ..methods.base import Method, RunState
 from ..methods import get_method
+from ..core.halves import split_halves
 from ..core.requests import SampleBatch
 from ..renderers.spec import renderer_from_spec
 from ..core.samples import (NONFINITE_POLICIES, check_reference)
@@ -555,6 +556,25 @@ def _replay(ctx, sl):
     return planned
 
 
+def _prefix_block_halves(ctx, writes) -> None:
+    """A stratified run's final halves: its log split by prefix blocks, as the offline reconstruction of the log.
+
+    The rounds' halves alternate within each pixel (a round cannot know how many samples a pixel will
+    end with, which its prefix blocks need), and alternate samples of a Sobol sequence differ by the
+    integrand's left-right difference, not by the mean's error: auto's estimates read from them
+    are several times the error on a smooth pixel.  Once the last round is committed, the log holds
+    every sample in each pixel's sequence order, so one counting pass and one splitting pass
+    (:func:`~mcrecon.core.halves.split_halves`) give the halves an offline reconstruction of the same
+    log reads, and the run's image is that reconstruction's.  Independent samples, a method without
+    halves and a run without a log keep the rounds' halves."""
+    halves = ctx.run.halves
+    if halves is None or ctx.sampler == "independent" or ctx.log_path is None:
+        return
+    writes.written(wait=True)  # the last round on disk before the log is read
+    log = read_log(ctx.log_path)
+    ctx.run.halves = split_halves(log, nonfinite=ctx.nonfinite, features=tuple(halves.a.features))
+
+
 def _drive(ctx, first=None) -> AdaptiveResult:
     """This session of the run: its loop, then the final image (``first``: a new run's :class:`_FirstCommit`)."""
     ctx.start()
@@ -568,6 +588,7 @@ def _drive(ctx, first=None) -> AdaptiveResult:
             loop_s = time.perf_counter() - loop_t0
             tf = time.perf_counter()
             rng, _ = round_seeds(ctx.schedule.seed, round_index)
+            _prefix_block_halves(ctx, writes)
             image = ctx.method.finish(ctx.run, ctx.schedule.final_state(ctx.stats, round_index, rng,
                                                                         committed=ctx.committed))
         finally:
