@@ -25,3 +25,17 @@ def test_an_adaptive_runs_image_is_the_offline_reconstruction_of_its_log(tmp_pat
         halves = run.run.halves
         assert halves.sampler == "sobol"
         assert np.array_equal(halves.a.count, (run.stats.count + 1) // 2)
+
+
+def test_a_stratified_run_without_a_log_keeps_a_private_one_and_removes_it(tmp_path, monkeypatch):
+    """Without ``log`` a Sobol run of a half-buffer method reads prefix-block halves from a temporary
+    log (the image of the same run with a log), which is gone when the run returns."""
+    import tempfile
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    args = dict(spp=16, seed=2, progress=False, track_error=False)
+    scene = lambda: SceneRenderer(get_scene("soft_shadow"), width=24, height=24, seed=3, sampler="sobol")  # noqa: E731
+    private = mcrecon.adapt(scene(), get_method("auto"), **args)
+    logged = mcrecon.adapt(scene(), get_method("auto"), log=tmp_path / "kept" / "run.h5", **args)
+    assert private.log is None and np.array_equal(private.image, logged.image)
+    assert private.run.halves.sampler == "sobol"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kept"]

@@ -37,6 +37,7 @@ import contextlib
 import dataclasses
 import math
 import os
+import tempfile
 import time
 import warnings
 from pathlib import Path
@@ -206,8 +207,12 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
     log : path-like, optional
         The sample log to create (``.h5``); every round is committed to it
         before the next request.  Refused if it exists, unless
-        ``overwrite``.  Without it nothing is written and the run cannot
-        be resumed.  A run that raises before its first round reaches the
+        ``overwrite``.  Without it the run cannot be resumed, and nothing
+        is written but where a method that reads half buffers (``auto``,
+        ``nfor``) meets a renderer that declares a stratified sampler: the
+        run then keeps its samples in a temporary log, removed when it
+        returns, whose prefix-block halves its image reads (``result.log``
+        None).  A run that raises before its first round reaches the
         log (a renderer that fails in round 0, a method that refuses the
         first reply) removes the log and the empty directories it created:
         there is nothing to resume, and the retry is not refused.  Once a
@@ -353,6 +358,9 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
     }
     session = SessionOptions(progress=progress, time_limit=time_limit, track_error=track_error, eps=eps,
                              max_rounds=max_rounds, on_round=on_round)
+    private = _private_log(renderer, method) if log is None else None
+    if private is not None:
+        log = Path(private.name) / "run.h5"
     if log is None:
         return _drive(RunContext.assemble(renderer, method, settings, reference=ref, log_path=None, session=session))
     log_path = Path(log)
@@ -374,12 +382,26 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
                 first.abandon(interrupted=not isinstance(exc, Exception))
                 raise
             first.publish(ctx)  # a run that ends without a round (max_rounds=0) still replaces the old log
-            result.log = log_path
+            result.log = None if private is not None else log_path
             return result
     finally:
         for d in made:  # a refused run leaves no empty directory it created (a kept log keeps its own)
             with contextlib.suppress(OSError):
                 d.rmdir()
+        if private is not None:
+            private.cleanup()
+
+
+def _private_log(renderer, method):
+    """A temporary directory for the log of a run asked for without one, where its image needs the log: a
+    method that reads half buffers, with a renderer that declares a stratified sampler up front.  Its
+    final halves are the log's prefix blocks (:func:`_prefix_block_halves`), which the rounds' own
+    alternating halves cannot give; the directory goes when the run returns.  None otherwise (a
+    command renderer that declares its sampler with its first reply keeps the rounds' halves)."""
+    sampler = getattr(renderer, "sampler", None)
+    if not method.requires.half_buffers or sampler in (None, "independent"):
+        return None
+    return tempfile.TemporaryDirectory(prefix="mcrecon-run-")
 
 
 class _FirstCommit:
