@@ -37,6 +37,7 @@ import contextlib
 import dataclasses
 import math
 import os
+import tempfile
 import time
 import warnings
 from pathlib import Path
@@ -50,6 +51,7 @@ from ..io.lock import log_lock
 from ..io.reader import read_log
 from ..methods.base import Method, RunState
 from ..methods import get_method
+from ..core.halves import split_halves
 from ..core.requests import SampleBatch
 from ..renderers.spec import renderer_from_spec
 from ..core.samples import (NONFINITE_POLICIES, check_reference)
@@ -205,8 +207,12 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
     log : path-like, optional
         The sample log to create (``.h5``); every round is committed to it
         before the next request.  Refused if it exists, unless
-        ``overwrite``.  Without it nothing is written and the run cannot
-        be resumed.  A run that raises before its first round reaches the
+        ``overwrite``.  Without it the run cannot be resumed, and nothing
+        is written but where a method that reads half buffers (``auto``,
+        ``nfor``) meets a renderer that declares a stratified sampler: the
+        run then keeps its samples in a temporary log, removed when it
+        returns, whose prefix-block halves its image reads (``result.log``
+        None).  A run that raises before its first round reaches the
         log (a renderer that fails in round 0, a method that refuses the
         first reply) removes the log and the empty directories it created:
         there is nothing to resume, and the retry is not refused.  Once a
@@ -352,6 +358,9 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
     }
     session = SessionOptions(progress=progress, time_limit=time_limit, track_error=track_error, eps=eps,
                              max_rounds=max_rounds, on_round=on_round)
+    private = _private_log(renderer, method) if log is None else None
+    if private is not None:
+        log = Path(private.name) / "run.h5"
     if log is None:
         return _drive(RunContext.assemble(renderer, method, settings, reference=ref, log_path=None, session=session))
     log_path = Path(log)
@@ -373,12 +382,26 @@ def adapt(renderer, method, *, spp: float, seed: int = 0, log=None, reference=No
                 first.abandon(interrupted=not isinstance(exc, Exception))
                 raise
             first.publish(ctx)  # a run that ends without a round (max_rounds=0) still replaces the old log
-            result.log = log_path
+            result.log = None if private is not None else log_path
             return result
     finally:
         for d in made:  # a refused run leaves no empty directory it created (a kept log keeps its own)
             with contextlib.suppress(OSError):
                 d.rmdir()
+        if private is not None:
+            private.cleanup()
+
+
+def _private_log(renderer, method):
+    """A temporary directory for the log of a run asked for without one, where its image needs the log: a
+    method that reads half buffers, with a renderer that declares a stratified sampler up front.  Its
+    final halves are the log's prefix blocks (:func:`_prefix_block_halves`), which the rounds' own
+    alternating halves cannot give; the directory goes when the run returns.  None otherwise (a
+    command renderer that declares its sampler with its first reply keeps the rounds' halves)."""
+    sampler = getattr(renderer, "sampler", None)
+    if not method.requires.half_buffers or sampler in (None, "independent"):
+        return None
+    return tempfile.TemporaryDirectory(prefix="mcrecon-run-")
 
 
 class _FirstCommit:
@@ -555,6 +578,25 @@ def _replay(ctx, sl):
     return planned
 
 
+def _prefix_block_halves(ctx, writes) -> None:
+    """A stratified run's final halves: its log split by prefix blocks, as the offline reconstruction of the log.
+
+    The rounds' halves alternate within each pixel (a round cannot know how many samples a pixel will
+    end with, which its prefix blocks need), and alternate samples of a Sobol sequence differ by the
+    integrand's left-right difference, not by the mean's error: auto's estimates read from them
+    are several times the error on a smooth pixel.  Once the last round is committed, the log holds
+    every sample in each pixel's sequence order, so one counting pass and one splitting pass
+    (:func:`~mcrecon.core.halves.split_halves`) give the halves an offline reconstruction of the same
+    log reads, and the run's image is that reconstruction's.  Independent samples, a method without
+    halves and a run without a log keep the rounds' halves."""
+    halves = ctx.run.halves
+    if halves is None or ctx.sampler == "independent" or ctx.log_path is None:
+        return
+    writes.written(wait=True)  # the last round on disk before the log is read
+    log = read_log(ctx.log_path)
+    ctx.run.halves = split_halves(log, nonfinite=ctx.nonfinite, features=tuple(halves.a.features))
+
+
 def _drive(ctx, first=None) -> AdaptiveResult:
     """This session of the run: its loop, then the final image (``first``: a new run's :class:`_FirstCommit`)."""
     ctx.start()
@@ -568,6 +610,7 @@ def _drive(ctx, first=None) -> AdaptiveResult:
             loop_s = time.perf_counter() - loop_t0
             tf = time.perf_counter()
             rng, _ = round_seeds(ctx.schedule.seed, round_index)
+            _prefix_block_halves(ctx, writes)
             image = ctx.method.finish(ctx.run, ctx.schedule.final_state(ctx.stats, round_index, rng,
                                                                         committed=ctx.committed))
         finally:
