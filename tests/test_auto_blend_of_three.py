@@ -79,3 +79,11 @@ def test_a_pair_optimum_is_the_pair_blend_bit_for_bit():
     assert r == 2 and np.array_equal(b.image, ref.image) and np.array_equal(b.mse, ref.mse)
     m = mixed([cands[1], cands[2]], [w, 1 - w])
     assert np.allclose(m.image, ref.image) and np.allclose(m.mse, ref.mse, atol=1e-9)
+
+
+def test_the_proxy_computes_the_regressions_where_one_may_be_a_later_blend_partner():
+    from mcrecon.methods.auto import proxy
+    V = proxy.Verdict
+    assert V(0.0, "nlm", "oidn_halves", False, ("nfor",)).computes(0.1)
+    assert not V(0.0, "nlm", "oidn_halves", False, ("gauss8",)).computes(0.1)
+    assert not V(0.0, "oidn_aux", "oidn_aux_halves", True, ("nfor",)).computes(0.1)  # partners: black boxes
