@@ -183,7 +183,7 @@ def blend_default(cands, g: int, sums, vote: np.ndarray, den_loo: np.ndarray, gu
     on = [a for a in range(len(idx)) if a == 0 or w[a] > 0.0]
     if len(on) == 2:  # one partner: the pair's own weight and blend, as two candidates always had
         a = on[1]
-        wg = blend_weight(sums[g], sums[idx[a]], dm[0, a], s[a] - sums[idx[a]])
+        wg = blend_weight(sums[g], sums[idx[a]], dm[0, a], dict(zip(others, pen))[idx[a]])
         if wg > 1.0 - MIN_WEIGHT:
             return None, others[0], 1.0
         return blended(cands[g], cands[idx[a]], wg), others[0], wg
