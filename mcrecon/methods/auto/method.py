@@ -260,7 +260,8 @@ class AutoMethod(Method):
                "of its mean and into the range of the samples around it (k; None: no clamp)", min=0.0),
         Option("global_prior", float, 3.0, nullable=True, help="z: every pixel takes the candidate of least "
                "summed estimate over the image unless another's smoothed estimate is lower by more than z "
-               "standard errors (None: off, the plain per-pixel choice; docs/methods/auto.md)", min=0.0),
+               "standard errors for all the other candidates' tests together (None: off, the plain per-pixel "
+               "choice; docs/methods/auto.md)", min=0.0),
     )
 
     def _configure(self, params: dict) -> None:

@@ -23,6 +23,7 @@ from ...core.halves import Halves
 from ...core.safeguard import sample_range_bounds
 from ...core.stats import PixelStats
 from ...errors import McreconWarning
+from .blend import BLEND_SIZE
 from .features import Candidate, seed_prefiltered
 from .selection import summed_estimates
 
@@ -64,13 +65,16 @@ class Verdict(NamedTuple):
     ``share``: the share of the interiors' pixels auto's choice gives a regression candidate.  ``least``,
     ``runner_up``: the two candidates of least summed estimate over the interiors, the pixel mean left
     out (the global prior's statistic: capped leave-one-out relative estimates summed over the pixels
-    that vote); ``steady``: whether ``least`` is a black box, whose blend partner is another black box.
+    that vote); ``steady``: whether ``least`` is a black box, whose blend partners are other black boxes;
+    ``others``: the next candidates in that order the blend may also take (up to
+    :data:`~.blend.BLEND_SIZE` in all).
     """
 
     share: float
     least: str
     runner_up: str
     steady: bool
+    others: tuple = ()
 
     def computes(self, threshold: float) -> bool:
         """Whether the regressions are computed over the whole image: where their share reaches
@@ -82,13 +86,13 @@ class Verdict(NamedTuple):
         the difference grows with the pixels summed and its error only with their square root, so a
         frame clears the margin that its few tiles may not, and the tiles' choice then gives the
         regressions almost nothing (a defocused checkerboard at 512^2: 0.14 % of the tiles, 99.7 % of the
-        frame).  The default is blended with the runner-up (:mod:`.blend`), which a regression can be
+        frame).  The default is blended with the next candidates (:mod:`.blend`), which a regression can be
         while it takes no pixel of its own (a defocused Cycles scene at 128^2: 2.5 % of the frame's
-        choice, 12 % of its error).  So the least sum is read without the margin, and the runner-up as
-        the blend reads it (among black boxes where the default is one)."""
+        choice, 12 % of its error).  So the least sum is read without the margin, and the runner-up and
+        the next candidates as the blend reads them (among black boxes where the default is one)."""
         if self.share >= threshold or is_regression(self.least):
             return True
-        return not self.steady and is_regression(self.runner_up)
+        return not self.steady and any(is_regression(n) for n in (self.runner_up,) + tuple(self.others))
 
 
 def is_regression(name: str) -> bool:
@@ -204,4 +208,5 @@ def regression_share(method, stats: PixelStats, halves: Halves, nonfinite: str, 
     choice = run.diagnostics["choice"].astype(np.int64)
     regress = np.array([is_regression(n) for n in run.candidate_names])
     order += ["", ""]
-    return Verdict(float(regress[choice[inner]].mean()), order[0], order[1], order[0] in steady)
+    return Verdict(float(regress[choice[inner]].mean()), order[0], order[1], order[0] in steady,
+                   tuple(n for n in order[2:BLEND_SIZE] if n))
