@@ -27,7 +27,7 @@ for everything: the references and compiled kernels are shared.
 
 usage: python benchmarks/bench_sobol_adaptive.py [--size 128x128] [--spp 32] [--seeds 2]
            [--sampler sobol|independent|both] [--scenes a,b] [--methods gem,awr]
-           [--corpus tuning|held-out|all] [--json out.json]
+           [--corpus tuning|held-out|all] [--no-structure-test] [--json out.json]
 """
 
 from __future__ import annotations
@@ -90,13 +90,20 @@ def main(argv=None) -> None:
     ap.add_argument("--methods", default="gem,awr")
     ap.add_argument("--corpus", default=None, choices=("tuning", "held-out", "all"),
                     help="the scene corpus's built-in entries of this half instead of the default scenes")
+    ap.add_argument("--no-structure-test", action="store_true",
+                    help="plan from the estimates even where the samples show no structure (Method.structure_test)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
+    if args.no_structure_test:
+        from mcrecon.methods.base import Method
+
+        Method.structure_test = False
     if args.sampler == "both":
         for sampler in ("sobol", "independent"):
             rest = ["--sampler", sampler, "--size", args.size, "--spp", str(args.spp), "--seeds", str(args.seeds),
                     "--methods", args.methods] + (["--scenes", args.scenes] if args.scenes else []) + \
                 (["--corpus", args.corpus] if args.corpus else []) + \
+                (["--no-structure-test"] if args.no_structure_test else []) + \
                 (["--json", args.json.replace(".json", f"_{sampler}.json")] if args.json else [])
             main(rest)
         return
@@ -133,7 +140,7 @@ def main(argv=None) -> None:
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"sampler": args.sampler, "size": [w, h], "spp": args.spp, "seeds": args.seeds,
-                       "corpus": args.corpus, "scenes": out}, f, indent=1)
+                       "corpus": args.corpus, "structure_test": not args.no_structure_test, "scenes": out}, f, indent=1)
 
 
 if __name__ == "__main__":
