@@ -74,7 +74,8 @@ def ratio(name, spec, w, h, spp, seed, sampler, *, ref=None, features=None):
         return SceneRenderer(name, width=w, height=h, seed=seed, sampler=sampler, features=features)
 
     b = renderer().render(SampleRequest(w, h, counts=np.full((h, w), spp)))
-    uni = reconstruct(SampleSet(b.positions, b.values, width=w, height=h, features=b.features or None),
+    uni = reconstruct(SampleSet(b.positions, b.values, width=w, height=h, features=b.features or None,
+                                sampler=sampler),  # declared, as the adaptive run's renderer declares it
                       method=m, reference=ref, **opts)
     res = adapt(renderer(), get_method(m, **opts),
                 spp=spp, seed=seed, reference=ref, track_error=False, progress=False)
