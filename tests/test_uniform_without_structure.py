@@ -33,11 +33,17 @@ def test_homogeneous_noise_shows_no_structure(seed):
     assert not shows_structure(_stats(lambda pos, rng: 3.0 + rng.normal(0.0, 0.5, (len(pos), 3)), seed=seed))
 
 
+def _edge(pos, rng):
+    return np.where(pos[:, :1] < W / 2, 0.4, 0.6) + rng.uniform(-0.5, 0.5, (len(pos), 3))
+
+
+def _uneven_noise(pos, rng):
+    return 0.5 + np.where(pos[:, :1] < W / 2, 0.2, 0.5) * rng.uniform(-1, 1, (len(pos), 3))
+
+
 def test_an_edge_or_uneven_noise_is_structure():
-    edge = lambda pos, rng: np.where(pos[:, :1] < W / 2, 0.4, 0.6) + rng.uniform(-0.5, 0.5, (len(pos), 3))
-    noisy = lambda pos, rng: 0.5 + np.where(pos[:, :1] < W / 2, 0.2, 0.5) * rng.uniform(-1, 1, (len(pos), 3))
-    assert shows_structure(_stats(edge))
-    assert shows_structure(_stats(noisy))
+    assert shows_structure(_stats(_edge))
+    assert shows_structure(_stats(_uneven_noise))
 
 
 class _State:
