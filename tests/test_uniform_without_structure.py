@@ -80,3 +80,10 @@ def test_adaptive_run_without_structure_ends_uniform(name, sampler):
 def test_without_the_test_gem_spends_unevenly(monkeypatch):
     monkeypatch.setattr(Method, "structure_test", False)
     assert np.ptp(_counts("gem", "sobol")) > 0
+
+
+def test_the_paper_variants_plan_as_their_papers_do():
+    for name in ("gem", "awr"):
+        m = get_method(name, variant="paper")
+        c = mcrecon.adapt(_flat("sobol"), m, spp=32, seed=1, progress=False, track_error=False).stats.count
+        assert np.ptp(c) > 0, name

@@ -602,11 +602,12 @@ class Method:
         round is spread uniformly; :meth:`place` places the rest; in whole nets (:func:`~mcrecon.core.nets.net_plan`)
         with a ``net_counts`` option of 1, or of -1 where the renderer declares a stratified sampler
         (``state.sampler``).  While the samples show no structure beyond noise an adaptive method's round is
-        uniform (:func:`~mcrecon.core.nets.shows_structure`, ``structure_test``).  An empty request in a
-        pipelined run asks the driver to commit the round in flight and plan again from it.
+        uniform (:func:`~mcrecon.core.nets.shows_structure`, ``structure_test``; not a paper variant).  An empty
+        request in a pipelined run asks the driver to commit the round in flight and plan again from it.
         """
         nets = self.params.get("net_counts")
-        if self.adaptive and self.structure_test and not shows_structure(state.stats):
+        if self.adaptive and self.structure_test and self.params.get("variant") != "paper" and \
+                not shows_structure(state.stats):
             n = self.round_size(state)
             return None if n is None else state.request(counts=even_round(state, n))
         if nets == 1 or (nets == -1 and state.sampler != "independent"):
@@ -630,8 +631,7 @@ class Method:
         ``round_spp`` that many per pixel, else the total doubles, each round capped (``max_round_parts``)."""
         if (remaining := state.remaining) <= 0:
             return None
-        p = self.params
-        if "iterations" in p:
+        if "iterations" in (p := self.params):
             left = p["iterations"] - state.iteration
             return remaining if left <= 1 else max(1, remaining // left)
         if "round_spp" in p:

@@ -320,11 +320,12 @@ class GEMMethod(Method):
         doubles the component whatever its variance reads, and past it the greedy counts go in whole
         nets (the samples past a net buy little until the next).  The floors' samples count against
         the round's uniform share; a round the floors exceed goes to them alone, from the bottom.  While the
-        samples show no structure beyond noise (:func:`~mcrecon.core.nets.shows_structure`) and no
-        ``target_rel_mse`` is set, the round is uniform (:func:`~mcrecon.core.nets.even_round`).
+        samples show no structure beyond noise (:func:`~mcrecon.core.nets.shows_structure`), no
+        ``target_rel_mse`` is set and the variant is not the paper's, the round is uniform (:func:`~mcrecon.core.nets.even_round`).
         """
         p = self.params
-        if self.structure_test and p["target_rel_mse"] is None and not shows_structure(state.stats):
+        if self.structure_test and p["variant"] != "paper" and p["target_rel_mse"] is None and \
+                not shows_structure(state.stats):
             n = self.round_size(state)
             return None if n is None else state.request(counts=even_round(state, n))
         nets = p["net_counts"]
