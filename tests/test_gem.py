@@ -506,7 +506,9 @@ def test_gem_passes_its_final_options_to_the_final_selection_only(monkeypatch):
         return real(*args, **kw)
 
     import mcrecon.methods.gem.method as gem_method
+    from mcrecon.methods.base import Method
     monkeypatch.setattr(gem_method, "gem_select", spy)
+    monkeypatch.setattr(Method, "structure_test", False)  # noise alone would plan a uniform round, no selection
     rng = np.random.default_rng(0)
     h, w, n = 12, 10, 4
     pix = np.repeat(np.arange(h * w), n)

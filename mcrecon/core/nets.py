@@ -31,6 +31,14 @@ first (:func:`rare_net_deficit`), and gem's greedy counts there go in whole
 nets; :func:`fill_lowest` hands out samples
 from the pixels of fewest samples up (gem's uniform share with
 independent samples, and a round smaller than the floors it owes).
+
+:func:`shows_structure` is the planners' significance test: where the
+committed samples show no pixel whose expectation or noise differs from
+the others' beyond what noise alone gives (a constant image under
+homogeneous noise: the flat scene), any allocation ranks pixels by noise
+and can only lose to uniform counts, so the round is :func:`even_round`'s
+(whole nets lowest first for a stratified sampler, the fewest samples
+first for independent ones) and the run ends at a uniform render's counts.
 """
 
 from __future__ import annotations
@@ -38,7 +46,11 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["net_counts", "fill_lowest", "rare_net_floor", "state_rare_net_floor", "rare_net_deficit"]
+__all__ = ["net_counts", "fill_lowest", "rare_net_floor", "state_rare_net_floor", "rare_net_deficit",
+           "shows_structure", "even_round"]
+
+#: Standard deviations (under Gaussian noise) a dispersion statistic must exceed its noise-only value by.
+STRUCTURE_Z = 4.0
 
 
 def _pow2_floor(x: np.ndarray) -> np.ndarray:
@@ -302,3 +314,64 @@ def net_plan(method, run, state):
         placed = zeros
     current = state.stats.count if state.pending is None else state.stats.count + state.pending
     return state.request(counts=net_round(placed, current, n_def, state.rng))
+
+
+def shows_structure(stats, *, z: float = STRUCTURE_Z) -> bool:
+    """Whether the pixels' means or per-sample variances differ beyond what noise alone gives.
+
+    Two dispersion statistics per channel over the pixels with two samples
+    or more (``k = n - 1`` degrees of freedom, pooled variance ``σ²``):
+    the means' ``mean(n (m - m̄)² / σ²)`` and the variances'
+    ``mean(k (s²/σ² - 1)² / 2)``; each is about 1 for a constant
+    expectation under homogeneous Gaussian noise (less for lighter tails
+    and for stratified samples, whose means err less than ``σ²/n``), with a
+    standard deviation about ``sqrt((2 + 12/k) / N)`` over ``N`` pixels.
+    Structure: either exceeds ``1 + z`` of those in any channel.
+    Heavy-tailed noise (a rare component) reads as structure, so the test
+    only ever withholds an allocation where the noise is homogeneous.
+
+    Parameters
+    ----------
+    stats : PixelStats
+        The committed samples' per-pixel count, mean and ``m2``.
+    z : float
+        Margin in standard deviations.
+    """
+    n = stats.count.astype(np.float64)
+    ok = n >= 2
+    if ok.sum() < 2:
+        return True                                 # too few samples to tell: let the allocation decide
+    n = n[ok][:, None]
+    k = n - 1.0
+    mean, m2 = stats.mean[ok], stats.m2[ok]
+    sigma2 = m2.sum(axis=0) / k.sum()
+    live = sigma2 > 0
+    if not live.any():                              # noise-free: structure only if the means differ
+        return bool(np.ptp(mean, axis=0).max() > 0)
+    k, n, mean, m2, sigma2 = k, n, mean[:, live], m2[:, live], sigma2[live]
+    mbar = (n * mean).sum(axis=0) / n.sum()
+    t_mean = np.mean(n * (mean - mbar) ** 2 / sigma2, axis=0)
+    t_var = np.mean(k * (m2 / (k * sigma2) - 1.0) ** 2 / 2.0, axis=0)
+    limit = 1.0 + z * np.sqrt((2.0 + 12.0 / float(k.min())) / k.size)
+    return bool(max(t_mean.max(), t_var.max()) > limit)
+
+
+def even_round(state, n: int) -> np.ndarray:
+    """``n`` new samples per pixel (H, W) int64 toward a uniform render's counts, the samples in flight counted
+    as taken: for a stratified sampler whole nets breadth-first (the pixels of fewest samples step up to their
+    next power of two first, ties at random, over as many steps as the round holds), for independent samples
+    the fewest samples first (:func:`fill_lowest`)."""
+    st = state.stats
+    current = st.count if state.pending is None else st.count + state.pending
+    if state.sampler == "independent":
+        return fill_lowest(current, n, state.rng)
+    c = np.asarray(current, np.int64).ravel().copy()
+    out = np.zeros(c.size, np.int64)
+    left = int(n)
+    while left > 0:
+        extra = np.zeros(c.size, np.int64)
+        nxt = np.where(c > 0, _pow2_floor(np.maximum(c, 1)) * 2, 1)
+        left = _grant(np.lexsort((state.rng.random(c.size), c)), nxt - c, left, extra)
+        c += extra
+        out += extra
+    return out.reshape(np.shape(current))

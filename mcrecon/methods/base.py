@@ -37,7 +37,7 @@ from ..core.requests import SampleBatch, SampleRequest
 from ..core.stats import PixelStats
 from ..core.features import usable_layout, usable_names
 from ..core.halves import Halves, as_halves, split_halves
-from ..core.nets import net_plan
+from ..core.nets import even_round, net_plan, shows_structure
 from .supply import Supply, check_supply
 
 __all__ = ['Method', 'AdaptiveState', 'Option', 'Requirements', 'MethodInputs', 'RunState', 'uniform_counts',
@@ -433,6 +433,8 @@ class Method:
     #: nothing: docs/pipelining.md), never below max_round_floor samples (below it a cap only adds rounds).
     max_round_parts: ClassVar[int] = 8
     max_round_floor: ClassVar[int] = 1 << 20
+    #: ``plan`` hands out :func:`~mcrecon.core.nets.even_round` counts while the samples show no structure.
+    structure_test: ClassVar[bool] = True
 
     def __init__(self, **options):
         where = self.where
@@ -599,39 +601,37 @@ class Method:
         The round's size is :meth:`round_size`'s.  A share ``uniform_share`` (an option, default 0) of the
         round is spread uniformly; :meth:`place` places the rest; in whole nets (:func:`~mcrecon.core.nets.net_plan`)
         with a ``net_counts`` option of 1, or of -1 where the renderer declares a stratified sampler
-        (``state.sampler``).  An empty request in a pipelined run asks the driver to commit the round in flight
-        and plan again from it.
+        (``state.sampler``).  While the samples show no structure beyond noise an adaptive method's round is
+        uniform (:func:`~mcrecon.core.nets.shows_structure`, ``structure_test``; not a paper variant).  An empty
+        request in a pipelined run asks the driver to commit the round in flight and plan again from it.
         """
         nets = self.params.get("net_counts")
+        if self.adaptive and self.structure_test and self.params.get("variant") != "paper" and \
+                not shows_structure(state.stats):
+            n = self.round_size(state)
+            return None if n is None else state.request(counts=even_round(state, n))
         if nets == 1 or (nets == -1 and state.sampler != "independent"):
             return net_plan(self, run, state)
-        n = self.round_size(state)
-        if n is None:
+        if (n := self.round_size(state)) is None:
             return None
         n_uniform = int(round(self.params.get("uniform_share", 0.0) * n))
-        placed = self.place(run, state, n - n_uniform)
-        if placed is None:
+        if (placed := self.place(run, state, n - n_uniform)) is None:
             return None
         counts = uniform_counts(state.width, state.height, n_uniform, state.rng) if n_uniform > 0 else None
         placed = np.asarray(placed)
         if placed.ndim == 2 and placed.shape == (state.height, state.width) and placed.dtype.kind in "iu":
-            counts = placed if counts is None else counts + placed
-            return state.request(counts=counts)
+            return state.request(counts=placed if counts is None else counts + placed)
         if not len(placed) and counts is None:  # nothing placed, nothing uniform: ask for nothing
             counts = np.zeros((state.height, state.width), np.int64)
         return state.request(positions=placed if len(placed) else None, counts=counts)
 
     def round_size(self, state: AdaptiveState) -> int | None:
-        """Samples of the next round after the initial pass, None when the budget is spent.
-
-        With an ``iterations`` option, what is left spread over the iterations still to come (the last takes
-        everything); with a ``round_spp`` option, that many samples per pixel; else the total doubles, each
-        round capped (``max_round_parts``)."""
-        remaining = state.remaining
-        if remaining <= 0:
+        """Samples of the next round after the initial pass, None when the budget is spent: with an
+        ``iterations`` option what is left over the iterations to come (the last takes everything), with
+        ``round_spp`` that many per pixel, else the total doubles, each round capped (``max_round_parts``)."""
+        if (remaining := state.remaining) <= 0:
             return None
-        p = self.params
-        if "iterations" in p:
+        if "iterations" in (p := self.params):
             left = p["iterations"] - state.iteration
             return remaining if left <= 1 else max(1, remaining // left)
         if "round_spp" in p:

@@ -22,7 +22,7 @@ from .selection import CHANNEL_WEIGHTS, GAMMA_MAX, OUTLIER_RULES, GEMSelection, 
 from ...core.fill import mean_variance_policy
 from ...core.safeguard import RARE_THRESHOLD, rare_component_variance
 from ...core.strata import stratified_gain
-from ...core.nets import fill_lowest, net_counts, state_rare_net_floor
+from ...core.nets import even_round, fill_lowest, net_counts, shows_structure, state_rare_net_floor
 
 __all__ = ["GEMMethod", "GEMRun", "TARGET_EPS"]
 
@@ -319,9 +319,15 @@ class GEMMethod(Method):
         that holds it (:func:`~mcrecon.core.nets.rare_net_floor`): below it the pixel mean misses or
         doubles the component whatever its variance reads, and past it the greedy counts go in whole
         nets (the samples past a net buy little until the next).  The floors' samples count against
-        the round's uniform share; a round the floors exceed goes to them alone, from the bottom.
+        the round's uniform share; a round the floors exceed goes to them alone, from the bottom.  While the
+        samples show no structure beyond noise (:func:`~mcrecon.core.nets.shows_structure`), no
+        ``target_rel_mse`` is set and the variant is not the paper's, the round is uniform (:func:`~mcrecon.core.nets.even_round`).
         """
         p = self.params
+        if self.structure_test and p["variant"] != "paper" and p["target_rel_mse"] is None and \
+                not shows_structure(state.stats):
+            n = self.round_size(state)
+            return None if n is None else state.request(counts=even_round(state, n))
         nets = p["net_counts"]
         stratified = state.sampler != "independent"
         floors = p["rare_nets"] == 1 or (p["rare_nets"] == -1 and stratified)
