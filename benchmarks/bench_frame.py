@@ -37,7 +37,7 @@ so kernel compilation of a first run is not counted.
     python benchmarks/bench_frame.py [--size 1920x1080] [--spp 32] [--scene checker_wall]
                                      [--log LOG.h5] [--workdir DIR] [--methods gem,auto,nfor]
                                      [--before ROOT [--repeat N]] [--tile N]
-    python benchmarks/bench_frame.py --log LOG.h5 --stages time|memory   (auto's stages, one process)
+    python benchmarks/bench_frame.py --log LOG.h5 --stages time|memory|rss   (auto's stages, one process)
 """
 
 from __future__ import annotations
@@ -114,11 +114,43 @@ STAGES = (("method", "sure_filter_bank"), ("method", "nlmeans_cross"), ("method"
           ("method", "_no_push_in_heavy_tails"))
 
 
-def auto_stages(log: str, *, memory: bool = False) -> None:
+class _RssProbe:
+    """The process's resident set (``/proc/self/statm``) read every few milliseconds on a thread, with the
+    innermost stage running at its largest: tracemalloc sees only Python's allocations, not OIDN's
+    scratch memory nor the interpreter's libraries, so only the RSS says which stage holds a command's
+    peak."""
+
+    def __init__(self, stack: list):
+        import threading
+
+        self.stack, self.peak, self.at, self.by_stage = stack, 0, "-", {}
+        self._page = os.sysconf("SC_PAGE_SIZE")
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._poll, daemon=True)
+        self._thread.start()
+
+    def _poll(self):
+        with open("/proc/self/statm") as f:
+            while not self._stop.wait(0.005):
+                f.seek(0)
+                rss = int(f.read().split()[1]) * self._page
+                at = self.stack[-1] if self.stack else "-"
+                self.by_stage[at] = max(self.by_stage.get(at, 0), rss)
+                if rss > self.peak:
+                    self.peak, self.at = rss, at
+
+    def stop(self):
+        self._stop.set()
+        self._thread.join()
+
+
+def auto_stages(log: str, *, memory: bool = False, rss: bool = False) -> None:
     """One in-process ``reconstruct(log, method="auto")`` with its stages wrapped: calls, CPU seconds
     (``time.process_time``, every thread), wall seconds, and with ``memory`` (tracemalloc, which slows
     numpy's allocations) the traced bytes held at a stage's entry and the peak during it.  Nested stages
-    are counted in their callers too.  Kernels compile first on a tiny image (not counted)."""
+    are counted in their callers too.  With ``rss`` the largest resident set seen while each stage was
+    the innermost one running (:class:`_RssProbe`), and the stage at the process's peak.  Kernels
+    compile first on a tiny image (not counted)."""
     import functools
     import tracemalloc
     import warnings
@@ -128,7 +160,7 @@ def auto_stages(log: str, *, memory: bool = False) -> None:
     from mcrecon.methods.auto import blackbox, features, method
 
     mods = {"method": method, "features": features, "blackbox": blackbox, "regression": regression}
-    rows, peaks = {}, []
+    rows, peaks, stack = {}, [], []
 
     def wrap(mod, name):
         f = getattr(mod, name)
@@ -139,9 +171,11 @@ def auto_stages(log: str, *, memory: bool = False) -> None:
             held = tracemalloc.get_traced_memory()[0] if memory else 0
             if memory:
                 tracemalloc.reset_peak()
+            stack.append(name)
             try:
                 return f(*a, **k)
             finally:
+                stack.pop()
                 r = rows.setdefault(name, [0, 0.0, 0.0, 0.0, 0.0])
                 r[0] += 1
                 r[1] += time.process_time() - c0
@@ -162,9 +196,15 @@ def auto_stages(log: str, *, memory: bool = False) -> None:
     rows.clear()
     if memory:
         tracemalloc.start()
+    probe = _RssProbe(stack) if rss else None
     c0, w0 = time.process_time(), time.perf_counter()
     mcrecon.reconstruct(log, method="auto")
     c1, w1 = time.process_time(), time.perf_counter()
+    if probe is not None:
+        probe.stop()
+        print(f"auto on {log}: peak RSS {probe.peak / 1e9:.2f} GB while {probe.at} ran; largest RSS while each "
+              "stage was the innermost one running (GB): " + ", ".join(
+                  f"{k} {v / 1e9:.2f}" for k, v in sorted(probe.by_stage.items(), key=lambda kv: -kv[1])))
     print(f"auto stages on {log}: reconstruct() CPU {c1 - c0:.1f} s, wall {w1 - w0:.1f} s, load {os.getloadavg()[0]:.1f}"
           + (f", traced peak {max(peaks + [tracemalloc.get_traced_memory()[1]]) / 1e9:.2f} GB" if memory else ""))
     print(f"{'stage':28s} {'calls':>5s} {'CPU s':>7s} {'wall s':>7s}" + (f" {'held GB':>8s} {'peak GB':>8s}" if memory else ""))
@@ -184,13 +224,14 @@ def main(argv=None) -> int:
                                      "and the after / before ratios are printed")
     ap.add_argument("--repeat", type=int, default=1, help="before/after pairs per method with --before (default 1)")
     ap.add_argument("--tile", type=int, default=None, help="reconstruct in tiles of N x N pixels (reconstruct --tile)")
-    ap.add_argument("--stages", choices=("time", "memory"), help="with --log: only auto's stage breakdown of that "
-                    "log, in this process (memory: tracemalloc's held and peak bytes per stage too)")
+    ap.add_argument("--stages", choices=("time", "memory", "rss"), help="with --log: only auto's stage breakdown "
+                    "of that log, in this process (memory: tracemalloc's held and peak bytes per stage too; rss: "
+                    "the process's resident set per stage, OIDN's scratch memory included)")
     args = ap.parse_args(argv)
     if args.stages:
         if not args.log:
             raise SystemExit("bench_frame: --stages needs --log LOG.h5")
-        auto_stages(args.log, memory=args.stages == "memory")
+        auto_stages(args.log, memory=args.stages == "memory", rss=args.stages == "rss")
         return 0
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     before = Path(args.before).resolve() if args.before else None
