@@ -24,6 +24,10 @@ the same input:
   (``reconstruct --tile N``) where the method declares a finite halo
   (auto and nfor, whole-image, run untiled), and CPU seconds per megapixel
   compare a 4K log with a 1080p one at the same tile size;
+* with ``--log`` given several times (or ``--logs A,B``), every log runs in turn (its table as above)
+  and then one row per resolution: each method's CPU seconds per megapixel and peak RSS, each larger
+  film's CPU seconds per megapixel over the smallest's against the +-20 % target (tiled where the
+  method tiles with ``--tile``), and the peak-RSS targets (3 GB at 1080p; bounded by tiles above);
 * with ``--before ROOT`` (another checkout of mcrecon, e.g. ``git worktree``
   or ``git archive`` of an earlier commit), every command also runs on that
   checkout, interleaved with this one's (before, after, before, after ...
@@ -37,7 +41,8 @@ so kernel compilation of a first run is not counted.
     python benchmarks/bench_frame.py [--size 1920x1080] [--spp 32] [--scene checker_wall]
                                      [--log LOG.h5] [--workdir DIR] [--methods gem,auto,nfor]
                                      [--before ROOT [--repeat N]] [--tile N]
-    python benchmarks/bench_frame.py --log LOG.h5 --stages time|memory   (auto's stages, one process)
+    python benchmarks/bench_frame.py --log LOG1080.h5 --log LOG4K.h5 --tile 1024   (per-pixel cost by resolution)
+    python benchmarks/bench_frame.py --log LOG.h5 --stages time|memory|rss   (auto's stages, one process)
 """
 
 from __future__ import annotations
@@ -114,11 +119,43 @@ STAGES = (("method", "sure_filter_bank"), ("method", "nlmeans_cross"), ("method"
           ("method", "_no_push_in_heavy_tails"))
 
 
-def auto_stages(log: str, *, memory: bool = False) -> None:
+class _RssProbe:
+    """The process's resident set (``/proc/self/statm``) read every few milliseconds on a thread, with the
+    innermost stage running at its largest: tracemalloc sees only Python's allocations, not OIDN's
+    scratch memory nor the interpreter's libraries, so only the RSS says which stage holds a command's
+    peak."""
+
+    def __init__(self, stack: list):
+        import threading
+
+        self.stack, self.peak, self.at, self.by_stage = stack, 0, "-", {}
+        self._page = os.sysconf("SC_PAGE_SIZE")
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._poll, daemon=True)
+        self._thread.start()
+
+    def _poll(self):
+        with open("/proc/self/statm") as f:
+            while not self._stop.wait(0.005):
+                f.seek(0)
+                rss = int(f.read().split()[1]) * self._page
+                at = self.stack[-1] if self.stack else "-"
+                self.by_stage[at] = max(self.by_stage.get(at, 0), rss)
+                if rss > self.peak:
+                    self.peak, self.at = rss, at
+
+    def stop(self):
+        self._stop.set()
+        self._thread.join()
+
+
+def auto_stages(log: str, *, memory: bool = False, rss: bool = False) -> None:
     """One in-process ``reconstruct(log, method="auto")`` with its stages wrapped: calls, CPU seconds
     (``time.process_time``, every thread), wall seconds, and with ``memory`` (tracemalloc, which slows
     numpy's allocations) the traced bytes held at a stage's entry and the peak during it.  Nested stages
-    are counted in their callers too.  Kernels compile first on a tiny image (not counted)."""
+    are counted in their callers too.  With ``rss`` the largest resident set seen while each stage was
+    the innermost one running (:class:`_RssProbe`), and the stage at the process's peak.  Kernels
+    compile first on a tiny image (not counted)."""
     import functools
     import tracemalloc
     import warnings
@@ -128,7 +165,7 @@ def auto_stages(log: str, *, memory: bool = False) -> None:
     from mcrecon.methods.auto import blackbox, features, method
 
     mods = {"method": method, "features": features, "blackbox": blackbox, "regression": regression}
-    rows, peaks = {}, []
+    rows, peaks, stack = {}, [], []
 
     def wrap(mod, name):
         f = getattr(mod, name)
@@ -139,9 +176,11 @@ def auto_stages(log: str, *, memory: bool = False) -> None:
             held = tracemalloc.get_traced_memory()[0] if memory else 0
             if memory:
                 tracemalloc.reset_peak()
+            stack.append(name)
             try:
                 return f(*a, **k)
             finally:
+                stack.pop()
                 r = rows.setdefault(name, [0, 0.0, 0.0, 0.0, 0.0])
                 r[0] += 1
                 r[1] += time.process_time() - c0
@@ -162,9 +201,15 @@ def auto_stages(log: str, *, memory: bool = False) -> None:
     rows.clear()
     if memory:
         tracemalloc.start()
+    probe = _RssProbe(stack) if rss else None
     c0, w0 = time.process_time(), time.perf_counter()
     mcrecon.reconstruct(log, method="auto")
     c1, w1 = time.process_time(), time.perf_counter()
+    if probe is not None:
+        probe.stop()
+        print(f"auto on {log}: peak RSS {probe.peak / 1e9:.2f} GB while {probe.at} ran; largest RSS while each "
+              "stage was the innermost one running (GB): " + ", ".join(
+                  f"{k} {v / 1e9:.2f}" for k, v in sorted(probe.by_stage.items(), key=lambda kv: -kv[1])))
     print(f"auto stages on {log}: reconstruct() CPU {c1 - c0:.1f} s, wall {w1 - w0:.1f} s, load {os.getloadavg()[0]:.1f}"
           + (f", traced peak {max(peaks + [tracemalloc.get_traced_memory()[1]]) / 1e9:.2f} GB" if memory else ""))
     print(f"{'stage':28s} {'calls':>5s} {'CPU s':>7s} {'wall s':>7s}" + (f" {'held GB':>8s} {'peak GB':>8s}" if memory else ""))
@@ -172,42 +217,26 @@ def auto_stages(log: str, *, memory: bool = False) -> None:
         print(f"{name:28s} {r[0]:5d} {r[1]:7.2f} {r[2]:7.2f}" + (f" {r[3]:8.2f} {r[4]:8.2f}" if memory else ""))
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--size", default="1920x1080", help="WIDTHxHEIGHT (default 1920x1080)")
-    ap.add_argument("--spp", type=int, default=32)
-    ap.add_argument("--scene", default="checker_wall")
-    ap.add_argument("--log", help="an existing log with features (else one is rendered into --workdir)")
-    ap.add_argument("--workdir", help="where the log and the outputs go (default: a temporary folder)")
-    ap.add_argument("--methods", default="gem,auto,nfor")
-    ap.add_argument("--before", help="another mcrecon checkout: every command also runs there, interleaved, "
-                                     "and the after / before ratios are printed")
-    ap.add_argument("--repeat", type=int, default=1, help="before/after pairs per method with --before (default 1)")
-    ap.add_argument("--tile", type=int, default=None, help="reconstruct in tiles of N x N pixels (reconstruct --tile)")
-    ap.add_argument("--stages", choices=("time", "memory"), help="with --log: only auto's stage breakdown of that "
-                    "log, in this process (memory: tracemalloc's held and peak bytes per stage too)")
-    args = ap.parse_args(argv)
-    if args.stages:
-        if not args.log:
-            raise SystemExit("bench_frame: --stages needs --log LOG.h5")
-        auto_stages(args.log, memory=args.stages == "memory")
-        return 0
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    before = Path(args.before).resolve() if args.before else None
-    if before is not None and not (before / "mcrecon" / "__init__.py").is_file():
-        raise SystemExit(f"bench_frame: --before {args.before}: no mcrecon package there (give a checkout's root)")
-    if args.repeat < 1:
-        raise SystemExit(f"bench_frame: --repeat {args.repeat}: give 1 or more")
-    work = Path(args.workdir or tempfile.mkdtemp(prefix="bench_frame_"))
-    work.mkdir(parents=True, exist_ok=True)
+def _log_size(log: str) -> tuple[int, int]:
+    """A log's film, width and height."""
+    from mcrecon.io.reader import read_log
+
+    lg = read_log(log)
+    return int(lg.width), int(lg.height)
+
+
+def one_log(args, log: str | None, work: Path, methods: list, before: Path | None) -> dict:
+    """Every method's whole command on one log (rendered into ``work`` when None), OIDN on its pixel means,
+    and the table and the target ratios of that log printed; returns what the per-resolution rows read."""
     load0 = os.getloadavg()
-    log = args.log
     rendered = None
     if log is None:
         log = str(work / f"{args.scene}_{args.size}_{args.spp}.h5")
         if not Path(log).exists():
             rendered = run_command(["render-log", "--scene", args.scene, "--spp", str(args.spp), "--size", args.size,
                                     "--features", "-o", log])
+    width, height = _log_size(log)
+    size = f"{width}x{height}"
     tiny = str(work / f"{args.scene}_tiny.h5")
     if not Path(tiny).exists():
         run_command(["render-log", "--scene", args.scene, "--spp", "4", "--size", "48x40", "--features", "-o", tiny])
@@ -218,24 +247,27 @@ def main(argv=None) -> int:
         # a whole-image method refuses tiles: it runs untiled beside the others
         tiled = ["--tile", str(args.tile)] if args.tile and get_method(m).halo(1, 1) is not None else []
         run_command(["reconstruct", tiny, "--method", m, "-o", str(work / f"tiny_{m}.exr")])  # compile, not timed
+        out = str(work / f"{m}_{size}.exr")
         if before is not None:
             run_command(["reconstruct", tiny, "--method", m, "-o", str(work / f"tiny_{m}_before.exr")], root=before)
             pairs = []
             for _ in range(args.repeat):
-                b = run_command(["reconstruct", log, "--method", m, "-o", str(work / f"{m}_before.exr")], root=before)
-                a = run_command(["reconstruct", log, "--method", m, *tiled, "-o", str(work / f"{m}.exr")])
+                b = run_command(["reconstruct", log, "--method", m, "-o", str(work / f"{m}_{size}_before.exr")],
+                                root=before)
+                a = run_command(["reconstruct", log, "--method", m, *tiled, "-o", out])
                 pairs.append((b, a))
             # the pair with the median CPU ratio: one pair's two runs saw the same load
             pairs.sort(key=lambda ba: ba[1]["cpu"] / ba[0]["cpu"])
             old[m], res[m] = pairs[len(pairs) // 2]
         else:
-            res[m] = run_command(["reconstruct", log, "--method", m, *tiled, "-o", str(work / f"{m}.exr")])
+            res[m] = run_command(["reconstruct", log, "--method", m, *tiled, "-o", out])
+        res[m]["tiled"] = bool(tiled)
     try:
         t_oidn = oidn_seconds(log)
     except ImportError:
         t_oidn = float("nan")
     load1 = os.getloadavg()
-    print(f"bench_frame: {args.scene} {args.size}, {args.spp} spp, features"
+    print(f"bench_frame: {Path(log).name}, {size}, features"
           + (f", tiles of {args.tile} px" if args.tile else "") + f"; {os.cpu_count()} CPUs; load average "
           f"{load0[0]:.2f} before, {load1[0]:.2f} after")
     print(f"{'':8s} {'reconstruction s':>17s} {'command wall s':>15s} {'command CPU s':>14s} {'peak RSS GB':>12s}")
@@ -262,7 +294,7 @@ def main(argv=None) -> int:
     for m in ("auto", "nfor"):
         if m in res:
             print(f"{m} peak RSS: {res[m]['rss_gb']:.2f} GB   (target <= 3 GB)")
-    mpix = np.prod([int(v) for v in args.size.split("x")]) / 1e6
+    mpix = width * height / 1e6
     for m in methods:
         print(f"{m}: {res[m]['cpu'] / mpix:.1f} CPU s per megapixel (whole command)")
     if old:
@@ -272,6 +304,87 @@ def main(argv=None) -> int:
             a, b = res[m], old[m]
             print(f"{m:8s} {a['recon'] / b['recon']:15.3f} {a['cpu'] / b['cpu']:12.3f} {a['rss_gb'] / b['rss_gb']:9.3f}"
                   f"   ({b['recon']:.2f}, {b['cpu']:.2f}, {b['rss_gb']:.2f})")
+    return {"size": size, "mpix": mpix, "res": res, "load": (load0[0], load1[0])}
+
+
+#: Issue 42's per-pixel target: a larger film's CPU seconds per megapixel within 20 % of the smallest's.
+PER_PIXEL_TOLERANCE = 0.20
+#: Issue 42's memory target at 1920 x 1080 (decimal GB); larger films reconstruct in tiles.
+PEAK_RSS_1080P_GB = 3.0
+
+
+def per_resolution(runs: list, methods: list) -> None:
+    """One row per log (its film, each method's whole-command CPU seconds per megapixel and peak RSS), then
+    each larger film's per-megapixel CPU seconds over the smallest film's against the +-20 % target, and
+    the peak-RSS targets: every row from this one run, the loads beside them."""
+    runs = sorted(runs, key=lambda r: r["mpix"])
+    print("per resolution (whole command; CPU s per megapixel, peak RSS GB; t: tiled):")
+    print(f"{'film':>10s} {'MP':>6s} " + " ".join(f"{m + ' CPU s/MP':>16s} {m + ' GB':>9s}" for m in methods)
+          + "  load")
+    for r in runs:
+        cells = []
+        for m in methods:
+            x = r["res"][m]
+            cells.append(f"{x['cpu'] / r['mpix']:15.1f}{'t' if x['tiled'] else ' '} {x['rss_gb']:9.2f}")
+        print(f"{r['size']:>10s} {r['mpix']:6.2f} " + " ".join(cells) + f"  {r['load'][0]:.1f}-{r['load'][1]:.1f}")
+    base = runs[0]
+    for r in runs[1:]:
+        for m in methods:
+            a, b = r["res"][m], base["res"][m]
+            ratio = (a["cpu"] / r["mpix"]) / (b["cpu"] / base["mpix"])
+            ok = "within" if abs(ratio - 1.0) <= PER_PIXEL_TOLERANCE else "outside"
+            print(f"{m}: {r['size']} / {base['size']} CPU s per megapixel {ratio:.2f}   ({ok} the target 1 +- "
+                  f"{PER_PIXEL_TOLERANCE:g}; {'tiled' if a['tiled'] else 'untiled'} / "
+                  f"{'tiled' if b['tiled'] else 'untiled'})")
+    for r in runs:
+        for m in methods:
+            x = r["res"][m]
+            if r["size"] == "1920x1080":
+                print(f"{m} peak RSS at {r['size']}: {x['rss_gb']:.2f} GB   (target <= {PEAK_RSS_1080P_GB:g} GB)")
+            elif r["mpix"] > 1920 * 1080 / 1e6:
+                print(f"{m} peak RSS at {r['size']}: {x['rss_gb']:.2f} GB   ({'tiles' if x['tiled'] else 'untiled'}; "
+                      f"target: bounded by tiles, {x['rss_gb'] / base['res'][m]['rss_gb']:.2f} x the "
+                      f"{base['size']} run's)")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--size", default="1920x1080", help="WIDTHxHEIGHT (default 1920x1080)")
+    ap.add_argument("--spp", type=int, default=32)
+    ap.add_argument("--scene", default="checker_wall")
+    ap.add_argument("--log", action="append", help="an existing log with features (else one is rendered into "
+                    "--workdir); given several times, every log is run and one row per resolution printed")
+    ap.add_argument("--logs", help="comma-separated logs, as --log given for each")
+    ap.add_argument("--workdir", help="where the log and the outputs go (default: a temporary folder)")
+    ap.add_argument("--methods", default="gem,auto,nfor")
+    ap.add_argument("--before", help="another mcrecon checkout: every command also runs there, interleaved, "
+                                     "and the after / before ratios are printed")
+    ap.add_argument("--repeat", type=int, default=1, help="before/after pairs per method with --before (default 1)")
+    ap.add_argument("--tile", type=int, default=None, help="reconstruct in tiles of N x N pixels (reconstruct --tile)")
+    ap.add_argument("--stages", choices=("time", "memory", "rss"), help="with --log: only auto's stage breakdown "
+                    "of that log, in this process (memory: tracemalloc's held and peak bytes per stage too; rss: "
+                    "the process's resident set per stage, OIDN's scratch memory included)")
+    args = ap.parse_args(argv)
+    logs = list(args.log or []) + [x.strip() for x in (args.logs or "").split(",") if x.strip()]
+    if args.stages:
+        if len(logs) != 1:
+            raise SystemExit("bench_frame: --stages needs one --log LOG.h5")
+        auto_stages(logs[0], memory=args.stages == "memory", rss=args.stages == "rss")
+        return 0
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    before = Path(args.before).resolve() if args.before else None
+    if before is not None and not (before / "mcrecon" / "__init__.py").is_file():
+        raise SystemExit(f"bench_frame: --before {args.before}: no mcrecon package there (give a checkout's root)")
+    if args.repeat < 1:
+        raise SystemExit(f"bench_frame: --repeat {args.repeat}: give 1 or more")
+    for lg in logs:
+        if not Path(lg).is_file():
+            raise SystemExit(f"bench_frame: --log {lg}: no such file (give an existing log, or none to render one)")
+    work = Path(args.workdir or tempfile.mkdtemp(prefix="bench_frame_"))
+    work.mkdir(parents=True, exist_ok=True)
+    runs = [one_log(args, lg, work, methods, before) for lg in (logs or [None])]
+    if len(runs) > 1:
+        per_resolution(runs, methods)
     return 0
 
 

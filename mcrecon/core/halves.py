@@ -336,7 +336,7 @@ class Halves:
             return self
         return dataclasses.replace(self, a=self.a.without_features(), b=self.b.without_features())
 
-    def release_features(self, *, keep=(), merged: PixelStats | None = None) -> bool:
+    def release_features(self, *, keep=(), merged: PixelStats | None = None, merged_keep=()) -> bool:
         """Drop both halves' feature statistics but those named in ``keep``, in place, where the halves are
         :attr:`transient`; returns whether they were dropped.
 
@@ -345,12 +345,20 @@ class Halves:
         of it otherwise alive beside the method's later arrays, since the caller holds the halves.
         ``merged``: the dispatcher's merge of these halves (:meth:`merged` or ``features_on_read``),
         whose features are dropped alike (read on demand, they would look for the halves' ones).
+        ``merged_keep``: features whose merge is still read but no half's (auto's albedo divisor, after
+        its last half-buffer candidate): ``merged`` keeps them, merged now where it merges on read
+        (the same bits as a later read), and the halves drop theirs: one set of statistics held, not two.
         """
         if not self.transient:
             return False
         keep = set(keep)
+        kept_merge = set(merged_keep) - keep if merged is not None else set()
+        for name in kept_merge:
+            if name in merged.features and isinstance(merged.features, _merge.MergedOnRead):
+                merged.features[name] = merged.features[name]  # the merge, stored: read no longer from the halves
         for st in (self.a, self.b) + ((merged,) if merged is not None else ()):
-            for name in [n for n in st.features if n not in keep]:
+            held = keep | kept_merge if st is merged else keep
+            for name in [n for n in st.features if n not in held]:
                 del st.features[name]
         return True
 

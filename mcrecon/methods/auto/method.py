@@ -393,8 +393,8 @@ class AutoMethod(Method):
         # each stored as built: its float64 image and estimate go before the next one's working arrays
         guided = feature_candidates(fnames, halves.a, halves.b, variances=(va, vb),
                                     store=lambda c: _store([c])[0]) if with_features else []
-        if with_features and not released:
-            halves.release_features(keep=("albedo",), merged=stats)
+        if with_features:  # dnlm read the halves' albedo last; the selection's divisor reads its merge alone
+            halves.release_features(merged=stats, merged_keep=("albedo",))
         v_sure = agreeing_variance(v, count)
         out: list[Candidate] = []
         names = self._names
