@@ -17,11 +17,11 @@ standard deviations of 1 or above (marked ``*``).
 
 A method spec is ``name`` or ``name:key=val[:key=val]`` (e.g.
 ``gem:stratified_gain=0``, the allocation by ``s^2 / n``); the same
-options reconstruct the uniform render.  The uniform render's samples are
-handed over without their sampler declared, so their halves alternate
-sample by sample as an adaptive run's own do and the ratio measures the
-allocation; ``--declare-sampler`` declares it (a Sobol source's halves then
-split by prefix blocks, docs/adaptive.md).
+options reconstruct the uniform render.  The uniform render's samples
+declare their sampler, as the renderer does to the adaptive run: a Sobol
+source's halves are prefix blocks on both sides (an adaptive run's final
+image reads its log's, docs/adaptive.md), so the ratio is what a user of
+the same renderer gets from adapting instead of rendering uniformly.
 
 ``--corpus tuning|held-out|all`` runs the scene corpus's built-in entries
 (benchmarks/corpus.py: every family at its defaults and with randomised
@@ -34,7 +34,7 @@ for everything: the references and compiled kernels are shared.
 usage: python benchmarks/bench_sobol_adaptive.py [--size 128x128] [--spp 32] [--seeds 2]
            [--sampler sobol|independent|both] [--scenes a,b] [--methods gem,awr]
            [--corpus tuning|held-out|all] [--extend 4] [--no-structure-test]
-           [--declare-sampler] [--json out.json]
+           [--json out.json]
 """
 
 from __future__ import annotations
@@ -70,7 +70,7 @@ def _spec(text):
     return name, opts
 
 
-def ratio(name, spec, w, h, spp, seed, sampler, *, ref=None, features=None, declare=False):
+def ratio(name, spec, w, h, spp, seed, sampler, *, ref=None, features=None):
     """(adapt relMSE / uniform relMSE, adapt relMSE) of one scene (a name or a Scene), method spec and seed."""
     m, opts = _spec(spec)
     ref = reference_image(name, w, h) if ref is None else ref
@@ -79,9 +79,9 @@ def ratio(name, spec, w, h, spp, seed, sampler, *, ref=None, features=None, decl
         return SceneRenderer(name, width=w, height=h, seed=seed, sampler=sampler, features=features)
 
     b = renderer().render(SampleRequest(w, h, counts=np.full((h, w), spp)))
-    # undeclared, the uniform render's halves alternate as an adaptive run's own do: the ratio is the allocation's
+    # declared as the renderer declares it to the adaptive run: prefix-block halves of a Sobol source on both sides
     uni = reconstruct(SampleSet(b.positions, b.values, width=w, height=h, features=b.features or None,
-                                sampler=sampler if declare else None),
+                                sampler=sampler),
                       method=m, reference=ref, **opts)
     res = adapt(renderer(), get_method(m, **opts),
                 spp=spp, seed=seed, reference=ref, track_error=False, progress=False)
@@ -101,8 +101,6 @@ def main(argv=None) -> None:
                     help="the scene corpus's built-in entries of this half instead of the default scenes")
     ap.add_argument("--extend", type=int, default=0,
                     help="then this many seeds for every cell whose mean is within 2 seed-to-seed sd of 1 or above")
-    ap.add_argument("--declare-sampler", action="store_true",
-                    help="the uniform render's SampleSet declares its sampler (Sobol halves split by prefix blocks)")
     ap.add_argument("--no-structure-test", action="store_true",
                     help="plan from the estimates even where the samples show no structure (Method.structure_test)")
     ap.add_argument("--json", default=None)
@@ -118,7 +116,6 @@ def main(argv=None) -> None:
                 (["--scenes", args.scenes] if args.scenes else []) + \
                 (["--corpus", args.corpus] if args.corpus else []) + \
                 (["--no-structure-test"] if args.no_structure_test else []) + \
-                (["--declare-sampler"] if args.declare_sampler else []) + \
                 (["--json", args.json.replace(".json", f"_{sampler}.json")] if args.json else [])
             main(rest)
         return
@@ -144,13 +141,11 @@ def main(argv=None) -> None:
         cells = []
         ref = reference_image(scene, w, h) if ref is None else ref
         for spec in specs:
-            rs = [ratio(scene, spec, w, h, args.spp, seed0 + seed, args.sampler, ref=ref, features=features,
-                        declare=args.declare_sampler)
+            rs = [ratio(scene, spec, w, h, args.spp, seed0 + seed, args.sampler, ref=ref, features=features)
                   for seed in range(args.seeds)]
             r = np.array([x[0] for x in rs])
             if args.extend > len(rs) and r.mean() + 2 * (r.std(ddof=1) if len(r) > 1 else 0) >= 1:
-                rs += [ratio(scene, spec, w, h, args.spp, seed0 + seed, args.sampler, ref=ref, features=features,
-                        declare=args.declare_sampler)
+                rs += [ratio(scene, spec, w, h, args.spp, seed0 + seed, args.sampler, ref=ref, features=features)
                        for seed in range(len(rs), args.extend)]
                 r = np.array([x[0] for x in rs])
             e = np.array([x[1] for x in rs])
