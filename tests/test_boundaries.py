@@ -226,7 +226,9 @@ def test_a_planned_round_larger_than_memory_is_refused_before_its_positions_are_
     43.7 TiB (a MemoryError traceback) before the driver's round check could run (awr's rounds are
     ``round_spp`` per pixel: its bomb needs that option too)."""
     _small_memory(monkeypatch, 1 << 30)
-    code, _, err = run_cli(["adapt", "--scene", "flat", "--spp", "1e12", "--size", "8x8", "--method", method, *extra,
+    # a scene with structure: on flat the round is uniform (the structure test) and draws no positions
+    code, _, err = run_cli(["adapt", "--scene", "soft_shadow", "--spp", "1e12", "--size", "8x8", "--method", method,
+                            *extra,
                             "-o", tmp_path / "a.exr", "--log", tmp_path / "a.h5", "--quiet"], capsys)
     _one_line(code, err, "memory")
     assert f"method {method}" in err and "sample positions" in err

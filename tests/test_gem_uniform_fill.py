@@ -47,6 +47,14 @@ def _state(per_pixel, sampler="independent"):
     return AdaptiveState(st, 1, budget, st.n_samples, np.random.default_rng(0), iteration=7, sampler=sampler)
 
 
+@pytest.fixture(autouse=True)
+def _plans_read_the_estimates(monkeypatch):
+    # these states hold one value everywhere: the structure test would make every round uniform
+    # (tests/test_uniform_without_structure.py); here the share and the floors are under test
+    from mcrecon.methods.base import Method
+    monkeypatch.setattr(Method, "structure_test", False)
+
+
 def test_gem_share_goes_to_the_pixels_left_behind():
     per_pixel = np.full((8, 8), 20)
     per_pixel[:, :4] = 4                        # the left half fell behind
