@@ -47,7 +47,7 @@ import numba
 import numpy as np
 
 __all__ = ["net_counts", "fill_lowest", "rare_net_floor", "state_rare_net_floor", "rare_net_deficit",
-           "shows_structure", "even_round"]
+           "shows_structure", "even_round", "even_plan", "noise_only", "counts_with_pending"]
 
 #: Standard deviations (under Gaussian noise) a dispersion statistic must exceed its noise-only value by.
 STRUCTURE_Z = 4.0
@@ -273,6 +273,12 @@ def fill_lowest(current: np.ndarray, n: int, rng: np.random.Generator, *,
     return out.reshape(shape)
 
 
+def counts_with_pending(state) -> np.ndarray:
+    """Samples per pixel (H, W) of an :class:`~mcrecon.methods.base.AdaptiveState`, committed or in flight
+    (``pending``): what a round's counts add to."""
+    return state.stats.count if state.pending is None else state.stats.count + state.pending
+
+
 def state_rare_net_floor(state, *, threshold: float) -> np.ndarray:
     """:func:`rare_net_floor` (H, W) of an adaptive round's committed statistics, at most the budget's net per pixel.
 
@@ -290,9 +296,8 @@ def state_rare_net_floor(state, *, threshold: float) -> np.ndarray:
 def rare_net_deficit(state, *, threshold: float) -> np.ndarray:
     """Samples per pixel (H, W) int64 an adaptive round owes a stratified pixel to reach its
     :func:`state_rare_net_floor`, the samples in flight counted as taken."""
-    st = state.stats
-    current = st.count if state.pending is None else st.count + state.pending
-    return np.maximum(state_rare_net_floor(state, threshold=threshold) - current, 0).astype(np.int64)
+    deficit = state_rare_net_floor(state, threshold=threshold) - counts_with_pending(state)
+    return np.maximum(deficit, 0).astype(np.int64)
 
 
 def net_plan(method, run, state):
@@ -312,8 +317,7 @@ def net_plan(method, run, state):
     placed = np.asarray(placed)
     if placed.shape != zeros.shape:  # nothing placed (an empty position list)
         placed = zeros
-    current = state.stats.count if state.pending is None else state.stats.count + state.pending
-    return state.request(counts=net_round(placed, current, n_def, state.rng))
+    return state.request(counts=net_round(placed, counts_with_pending(state), n_def, state.rng))
 
 
 def shows_structure(stats, *, z: float = STRUCTURE_Z) -> bool:
@@ -361,8 +365,7 @@ def even_round(state, n: int) -> np.ndarray:
     as taken: for a stratified sampler whole nets breadth-first (the pixels of fewest samples step up to their
     next power of two first, ties at random, over as many steps as the round holds), for independent samples
     the fewest samples first (:func:`fill_lowest`)."""
-    st = state.stats
-    current = st.count if state.pending is None else st.count + state.pending
+    current = counts_with_pending(state)
     if state.sampler == "independent":
         return fill_lowest(current, n, state.rng)
     c = np.asarray(current, np.int64).ravel().copy()
@@ -375,3 +378,19 @@ def even_round(state, n: int) -> np.ndarray:
         c += extra
         out += extra
     return out.reshape(np.shape(current))
+
+
+def noise_only(method, state) -> bool:
+    """Whether an adaptive method's round is uniform (:func:`even_plan`): the committed samples show no
+    structure beyond noise (:func:`shows_structure`), the method's ``structure_test`` is on and it is not a
+    paper variant."""
+    return method.adaptive and method.structure_test and method.params.get("variant") != "paper" and \
+        not shows_structure(state.stats)
+
+
+def even_plan(method, state):
+    """The request of a round of :meth:`~mcrecon.methods.base.Method.round_size`'s samples in
+    :func:`even_round`'s counts (the plans' round where the samples show no structure), None when the
+    budget is spent."""
+    n = method.round_size(state)
+    return None if n is None else state.request(counts=even_round(state, n))

@@ -37,7 +37,7 @@ from ..core.requests import SampleBatch, SampleRequest
 from ..core.stats import PixelStats
 from ..core.features import usable_layout, usable_names
 from ..core.halves import Halves, as_halves, split_halves
-from ..core.nets import even_round, net_plan, shows_structure
+from ..core.nets import even_plan, net_plan, noise_only
 from .supply import Supply, check_supply
 
 __all__ = ['Method', 'AdaptiveState', 'Option', 'Requirements', 'MethodInputs', 'RunState', 'uniform_counts',
@@ -606,10 +606,8 @@ class Method:
         request in a pipelined run asks the driver to commit the round in flight and plan again from it.
         """
         nets = self.params.get("net_counts")
-        if self.adaptive and self.structure_test and self.params.get("variant") != "paper" and \
-                not shows_structure(state.stats):
-            n = self.round_size(state)
-            return None if n is None else state.request(counts=even_round(state, n))
+        if noise_only(self, state):
+            return even_plan(self, state)
         if nets == 1 or (nets == -1 and state.sampler != "independent"):
             return net_plan(self, run, state)
         if (n := self.round_size(state)) is None:

@@ -22,7 +22,8 @@ from .selection import CHANNEL_WEIGHTS, GAMMA_MAX, OUTLIER_RULES, GEMSelection, 
 from ...core.fill import mean_variance_policy
 from ...core.safeguard import RARE_THRESHOLD, rare_component_variance
 from ...core.strata import stratified_gain
-from ...core.nets import even_round, fill_lowest, net_counts, shows_structure, state_rare_net_floor
+from ...core.nets import (counts_with_pending, even_plan, fill_lowest, net_counts, noise_only,
+                          state_rare_net_floor)
 
 __all__ = ["GEMMethod", "GEMRun", "TARGET_EPS"]
 
@@ -324,10 +325,8 @@ class GEMMethod(Method):
         ``target_rel_mse`` is set and the variant is not the paper's, the round is uniform (:func:`~mcrecon.core.nets.even_round`).
         """
         p = self.params
-        if self.structure_test and p["variant"] != "paper" and p["target_rel_mse"] is None and \
-                not shows_structure(state.stats):
-            n = self.round_size(state)
-            return None if n is None else state.request(counts=even_round(state, n))
+        if p["target_rel_mse"] is None and noise_only(self, state):
+            return even_plan(self, state)
         nets = p["net_counts"]
         stratified = state.sampler != "independent"
         floors = p["rare_nets"] == 1 or (p["rare_nets"] == -1 and stratified)
@@ -337,7 +336,7 @@ class GEMMethod(Method):
         n = self.round_size(state)
         if n is None:
             return None
-        current = state.stats.count if state.pending is None else state.stats.count + state.pending
+        current = counts_with_pending(state)
         floor = np.zeros(current.shape, np.int64)
         if floors and p["rare_light_floor"]:
             floor = state_rare_net_floor(state, threshold=self.rare_gate(state))
