@@ -122,6 +122,10 @@ def _apart(y: np.ndarray, v: np.ndarray, hi: np.ndarray, den_loo: np.ndarray, ne
 #: keeps the colour default where a feature candidate's lower sum is noise (docs/methods/auto.md).
 Z_GLOBAL = 0.5
 BLOCK = 8
+#: The share of the pixels with samples below which the vote is thin: there a ``steady`` candidate (a black
+#: box) of least summed estimate is the default without its guard's margin (``_global_prior(thin_vote=)``;
+#: None: never).
+THIN_VOTE = 0.5
 #: Whether the global prior's default is blended with its runner-up (:mod:`.blend`; ``_global_prior(blend=)``).
 BLEND = True
 
@@ -272,7 +276,7 @@ def summed_estimates(cands, y, v, count, hi, safeguard, within=None):
 
 
 def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, safeguard, guarded=(), scale=None,
-                  steady=(), steady_var=None, blend=None, rare=None, info=None):
+                  steady=(), steady_var=None, blend=None, rare=None, info=None, thin_vote=-1.0):
     """The per-pixel choice with the best single candidate over the image as the default.
 
     ``g`` = the candidate of least summed leave-one-out relative estimate
@@ -341,6 +345,7 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     once cost more in fresh memory than their arithmetic).
     """
     blend = BLEND if blend is None else blend
+    thin_vote = THIN_VOTE if thin_vote == -1.0 else thin_vote
     den_loo, cap, loo, apart, vote, sums = summed_estimates(cands, y, v, count, bounds[1], safeguard)
     none = np.zeros(choice.shape, bool)
     if sums is None:
@@ -355,7 +360,12 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
         # of the summed difference, from sums over BLOCK x BLOCK tiles (neighbouring pixels' estimates
         # are correlated)
         c = plain[int(np.argmin([sums[k] for k in plain]))]
-        if not _significantly_lower(np.where(vote, loo_g - loo(c), 0.0), zs[g]):
+        zg = zs[g]
+        if g in steady and thin_vote is not None and vote.sum() < thin_vote * np.count_nonzero(count > 0):
+            zg = 0.0
+        if info is not None:
+            info["thin"] = zg != zs[g]
+        if not _significantly_lower(np.where(vote, loo_g - loo(c), 0.0), zg):
             g = c
             loo_g = loo(g)
     if info is not None:
