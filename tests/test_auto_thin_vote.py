@@ -61,18 +61,41 @@ def test_a_full_vote_keeps_the_black_box_guard():
 
 
 def test_without_the_rule_a_thin_vote_keeps_the_guard():
-    info = _default(True, thin_vote=None)
+    info = _default(True, thin_vote=0.0)
     assert info["g"] == 1 and not info["thin"]
     # the module default is the rule's switch
-    assert selection.THIN_VOTE == 0.5
+    assert selection.THIN_VOTE == 0.6
 
 
-def test_a_thin_vote_does_not_lift_a_black_box_that_is_not_least():
-    """Only a black box whose sum is already the least: raised above the Gaussian's it stays out."""
-    cands, raw, y, v, count, bounds = _inputs(True)
-    cands[2] = Candidate("oidn", cands[2].image, cands[2].mse + 0.0003)
-    raw[2] = cands[2].mse.mean(axis=2) / 0.26
+def _raised(thin, extra=0.0003):
+    """The black box's estimate raised above the Gaussian's (its sum no longer the least), and a second black box
+    whose estimate is higher still."""
+    cands, raw, y, v, count, bounds = _inputs(thin)
+    cands[2] = Candidate("oidn", cands[2].image, cands[2].mse + extra)
+    cands.append(Candidate("oidn_halves", cands[2].image + 0.001, cands[2].mse + 0.001))
+    raw = [c.mse.mean(axis=2) / 0.26 for c in cands]
     info = {}
     _global_prior(cands, raw.__getitem__, np.stack(raw), np.ones(y.shape[:2], np.int64), y, v, count, bounds, 2.0,
-                  3.0, None, guarded={2: 1.0}, steady=[2], blend=False, info=info)
-    assert info["g"] == 1
+                  3.0, None, guarded={2: 1.0, 3: 1.0}, steady=[2, 3], blend=False, info=info)
+    _, _, _, _, _, sums = summed_estimates(cands, y, v, count, bounds[1], None)
+    return info, sums
+
+
+def test_a_thin_vote_compares_the_black_boxes_among_themselves():
+    """In a thin vote the default is the black box of least sum even where a Gaussian's sum is lower (the
+    voters' selection flatters it); with a full vote the Gaussian stays."""
+    info, sums = _raised(True)
+    assert sums[1] < sums[2] < sums[3]
+    assert info["g"] == 2 and info["thin"]
+    info, sums = _raised(False)
+    assert sums[1] < sums[2]
+    assert info["g"] == 1 and not info["thin"]
+
+
+def test_a_thin_vote_without_a_black_box_keeps_the_least_sum():
+    """No steady candidate: the thin vote changes nothing (the plain argmin of the sums)."""
+    cands, raw, y, v, count, bounds = _inputs(True)
+    info = {}
+    _global_prior(cands[:2], raw.__getitem__, np.stack(raw[:2]), np.ones(y.shape[:2], np.int64), y, v, count,
+                  bounds, 2.0, 3.0, None, blend=False, info=info)
+    assert info["g"] == 1 and not info["thin"]
