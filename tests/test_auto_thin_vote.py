@@ -99,3 +99,24 @@ def test_a_thin_vote_without_a_black_box_keeps_the_least_sum():
     _global_prior(cands[:2], raw.__getitem__, np.stack(raw[:2]), np.ones(y.shape[:2], np.int64), y, v, count,
                   bounds, 2.0, 3.0, None, blend=False, info=info)
     assert info["g"] == 1 and not info["thin"]
+
+
+def test_exact_dark_pixels_do_not_make_a_vote_thin():
+    """Three quarters of the image exact zeros (every sample 0: no variance, left out of the vote by the
+    safeguard's pins, not by a rare light): the vote is not thin, the black box's guard stands; the pixels
+    that could vote are the quarter with variance."""
+    cands, raw, y, v, count, bounds = _inputs(False)
+    w = y.shape[1]
+    for arr in (y, v, bounds[0], bounds[1]):
+        arr[:, : 3 * w // 4] = 0.0
+    for c in cands:
+        c.image[:, : 3 * w // 4] = 0.0
+    assert selection._could_vote(v, count, 4.0) == v.shape[0] * (w // 4)
+    assert selection._could_vote(v, count, None) == v.shape[0] * w
+    info = {}
+    _global_prior(cands, raw.__getitem__, np.stack(raw), np.ones(y.shape[:2], np.int64), y, v, count, bounds, 2.0,
+                  3.0, 4.0, guarded={2: 1.0}, steady=[2], blend=False, info=info)
+    assert not info["thin"]
+    # counted over every pixel with samples (the zeros among them) the same vote would be thin
+    _, _, _, _, vote, _ = summed_estimates(cands, y, v, count, bounds[1], 4.0)
+    assert vote.sum() < selection.THIN_VOTE * np.count_nonzero(count > 0)

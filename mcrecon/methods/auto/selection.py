@@ -122,16 +122,17 @@ def _apart(y: np.ndarray, v: np.ndarray, hi: np.ndarray, den_loo: np.ndarray, ne
 #: keeps the colour default where a feature candidate's lower sum is noise (docs/methods/auto.md).
 Z_GLOBAL = 0.5
 BLOCK = 8
-#: The share of the pixels with samples below which the global prior's vote is thin: there the default is the
-#: ``steady`` candidate (a black box) of least summed estimate, without its guard and whatever the other
-#: candidates' sums (``_global_prior(thin_vote=)``; 0: never).  The voters are then the pixels whose
-#: neighbourhoods missed a rare light the rest of the image found, a selection by their own samples that
-#: biases the estimates in a known direction: a filter of those samples scored by Stein's estimate looks
-#: better than it is, a black box cross-validated against a half that missed the light worse (the tuning
-#: spotlit texture, 85 % of the pixels left out: the pixel mean's summed estimate 0.58 of its true error
-#: there, OIDN + albedo + normal's 4.7 times).  Among the black boxes, all cross-validated, the sums compare
-#: like with like.  0.6 from the tuning half's Cycles scenes: the window (half its pixels vote) 0.083 of the
-#: pixel mean's error at 0.5, 0.043 at 0.6; the glossy HDR scene (77 % vote) 0.0026 at 0.6, 0.0066 at 0.8.
+#: The share of the pixels that could vote (:func:`_could_vote`) below which the global prior's vote is thin:
+#: there the default is the ``steady`` candidate (a black box) of least summed estimate, without its guard
+#: and whatever the other candidates' sums (``_global_prior(thin_vote=)``; 0: never).  The voters are then
+#: the pixels whose neighbourhoods missed a rare light the rest of the image found, a selection by their
+#: own samples that biases the estimates: a filter of those samples scored by Stein's estimate looks better
+#: than it is, a black box cross-validated against a half that missed the light worse (the tuning spotlit
+#: texture, 85 % of the pixels left out: the pixel mean's summed estimate there 0.58 of its true error,
+#: OIDN + albedo + normal's 4.7 times).  The black boxes share one estimator, though the same bias still
+#: favours one that keeps the miss (docs/methods/auto.md, "Limits").  0.6 from the tuning half's Cycles
+#: scenes: the window (half its pixels vote) 0.083 of the pixel mean's error at 0.5, 0.043 at 0.6; the
+#: glossy HDR scene (77 % vote) 0.0026 at 0.6, 0.0066 at 0.8.
 THIN_VOTE = 0.6
 #: Whether the global prior's default is blended with its runner-up (:mod:`.blend`; ``_global_prior(blend=)``).
 BLEND = True
@@ -282,6 +283,16 @@ def summed_estimates(cands, y, v, count, hi, safeguard, within=None):
     return den_loo, cap, loo, apart, vote, sums
 
 
+def _could_vote(v, count, safeguard) -> int:
+    """The pixels the global prior's vote could hold but for rare huge samples: with samples and, where the
+    safeguard is on (its pins leave them out of the vote), some variance in a channel.  Exact dark pixels
+    (every sample 0) are not left out by a rare light and do not make a vote thin."""
+    has = count > 0
+    if safeguard is not None:
+        has &= (v > 0).any(axis=2)
+    return int(np.count_nonzero(has))
+
+
 def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, safeguard, guarded=(), scale=None,
                   steady=(), steady_var=None, blend=None, rare=None, info=None, thin_vote=None):
     """The per-pixel choice with the best single candidate over the image as the default.
@@ -330,7 +341,8 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     choice and the mask of pixels whose choice is ``g`` (all False when the
     prior does not apply).
 
-    Where fewer than ``thin_vote`` (default :data:`THIN_VOTE`) of the pixels with samples vote and there
+    Where fewer than ``thin_vote`` (default :data:`THIN_VOTE`) of the pixels that could vote
+    (:func:`_could_vote`: with samples and, with the safeguard, some variance) vote and there
     are ``steady`` candidates, ``g`` is the steady one of least sum, without its guard (``info["thin"]``:
     whether that applied): the voters are then the pixels whose neighbourhoods missed a rare light, a
     selection by their own samples that flatters the Stein-scored filters of those samples and charges
@@ -367,9 +379,10 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     g = int(np.argmin(sums))
     zs = guarded if isinstance(guarded, dict) else {k: Z_GLOBAL for k in guarded}
     plain = [k for k in range(len(cands)) if k not in zs]
-    thin = bool(steady) and vote.sum() < thin_vote * np.count_nonzero(count > 0)
+    thin = bool(steady) and vote.sum() < thin_vote * _could_vote(v, count, safeguard)
     if thin:
         # a thin vote: the steady candidate (black box) of least sum, compared with its own kind only
+        # (the voters' selection flatters the Stein-scored filters: THIN_VOTE)
         g = min(steady, key=lambda k: sums[k])
     if info is not None:
         info["thin"] = thin
