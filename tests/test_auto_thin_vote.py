@@ -120,3 +120,62 @@ def test_exact_dark_pixels_do_not_make_a_vote_thin():
     # counted over every pixel with samples (the zeros among them) the same vote would be thin
     _, _, _, _, vote, _ = summed_estimates(cands, y, v, count, bounds[1], 4.0)
     assert vote.sum() < selection.THIN_VOTE * np.count_nonzero(count > 0)
+
+
+def test_the_thin_default_takes_the_least_crossed_vote_then_the_least_sum():
+    """Two black boxes of one filter share a crossed vote; the family of least crossed vote is taken, the
+    least sum within it; without crossed votes the least sum of all."""
+    img = np.zeros((2, 2, 3))
+    cands = [Candidate("gauss1", img, img), Candidate("oidn_halves", img, img, crossed=5.0),
+             Candidate("oidn_aux", img, img, crossed=3.0), Candidate("oidn_aux_halves", img, img, crossed=3.0)]
+    sums = [0.0, 1.0, 9.0, 8.0]
+    assert selection._thin_default(cands, [1, 2, 3], sums) == 3
+    for c in cands:
+        c.crossed = None
+    assert selection._thin_default(cands, [1, 2, 3], sums) == 1
+
+
+def _rare_halves(seed, h=48, w=48, n=32, p=1 / 60):
+    """Samples 1 + B / p (B ~ Bernoulli(p): a rare light, true mean 2 everywhere), split into halves."""
+    from mcrecon.core.halves import mean_variances, split_halves
+    from mcrecon.core.samples import SampleSet
+    from mcrecon.core.stats import PixelStats
+
+    rng = np.random.default_rng(seed)
+    pix = np.repeat(np.arange(h * w), n)
+    val = 1.0 + (rng.random(pix.size) < p) / p
+    pos = np.stack([pix % w + rng.random(pix.size), pix // w + rng.random(pix.size)], axis=1)
+    src = SampleSet(pos, np.repeat(val[:, None], 3, axis=1), width=w, height=h)
+    st = PixelStats.from_source(src)
+    hv = split_halves(src)
+    return st, hv, mean_variances(st, hv)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_crossed_vote_ranks_a_filter_that_restores_the_rare_light_first(seed):
+    """A filter at the truth and one that keeps each half's miss (a 1 px Gaussian of the half's means): the
+    crossed vote (voters chosen by the half the filter read, scored against the other half) ranks the truth
+    first, and it is the sum over each half's voters of the channel mean of its cross-validation over the
+    relative denominator (recomputed here from the half's own rare-sample test)."""
+    from scipy.ndimage import gaussian_filter
+
+    from mcrecon.core.safeguard import sample_range_bounds
+    from mcrecon.methods.auto.estimates import cross_validation_mse, relative_denominator_loo
+
+    st, hv, (v, va, vb) = _rare_halves(seed)
+    ha, hb = hv.a, hv.b
+    den = relative_denominator_loo(st.mean, v, st.count, eps=0.01)
+    truth = np.full(st.mean.shape, 2.0)
+    filters = {"truth": (truth, truth), "miss": (gaussian_filter(ha.mean, (1, 1, 0)), gaussian_filter(hb.mean, (1, 1, 0)))}
+    crossed = {}
+    for k, (fa, fb) in filters.items():
+        cva, cvb = cross_validation_mse(fa, hb.mean, vb), cross_validation_mse(fb, ha.mean, va)
+        crossed[k] = selection.crossed_sum(cva, cvb, ha, hb, va, vb, den)
+        ref = 0.0
+        for cv, h, vh in ((cva, ha, va), (cvb, hb, vb)):
+            dh = relative_denominator_loo(h.mean, vh, h.count, eps=0.01)
+            votes = ~selection._apart(h.mean, vh, sample_range_bounds(h)[1], dh, True)
+            assert 0.05 < votes.mean() < 0.95  # the rare light leaves part of each half out
+            ref += float(np.nansum((cv / den).mean(axis=2)[votes]))
+        assert crossed[k] == pytest.approx(ref, rel=1e-12)
+    assert crossed["truth"] < crossed["miss"]
