@@ -43,11 +43,15 @@ import numpy as np
 from ...core.fill import mean_variance_policy
 from ...core.halves import mean_variances
 from ...core.stats import PixelStats
-from .estimates import cross_validation_mse
+from ...core.metrics import DEFAULT_EPS
+from .estimates import cross_validation_mse, relative_denominator_loo
 from .features import Candidate, _filled, dual_candidate, feature_slices, prefiltered_features
 
 __all__ = ["ESTIMATES", "HALF_TO_FULL", "oidn_candidate", "oidn_denoise", "oidn_aux"]
 
+#: Whether :func:`oidn_candidate` scores its halves' filter by the crossed vote (the global prior's default
+#: where its vote is thin: :func:`.selection._thin_default`).
+CROSSED = True
 #: The error estimates :func:`oidn_candidate` knows.
 ESTIMATES = ("sure", "halves")
 #: The estimate auto uses when it has the halves.
@@ -207,9 +211,15 @@ def oidn_candidate(name: str, stats: PixelStats, v: np.ndarray, halves=None, *, 
         # estimate anyway, and better than OIDN on all the samples on some scenes (soft shadows, depth of
         # field: docs/methods/auto.md)
         extra.append(dual_candidate(name + "_halves", fa, fb, cva, cvb, ha.count, hb.count, feature=aux))
+        if CROSSED:
+            from .selection import crossed_sum
+            den = relative_denominator_loo(_colour(stats), v, stats.count, eps=DEFAULT_EPS)
+            extra[-1].crossed = crossed_sum(cva, cvb, ha, hb, va, vb, den)
         if halves_only:
             return extra
         both = ((ha.count > 0) & (hb.count > 0))[..., None]
         cv = np.where(both, HALF_TO_FULL * cv, np.nan)
         mse = cv
-    return [Candidate(name, np.where(np.isfinite(img), img, 0.0), np.where(has, mse, np.nan), feature=aux)] + extra
+    crossed = extra[0].crossed if extra else None
+    return [Candidate(name, np.where(np.isfinite(img), img, 0.0), np.where(has, mse, np.nan), feature=aux,
+                      crossed=crossed)] + extra

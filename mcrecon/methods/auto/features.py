@@ -43,6 +43,9 @@ class Candidate:
     image: np.ndarray   # (H, W, C)
     mse: np.ndarray     # (H, W, C) unbiased estimate (NaN: undefined at that pixel, +inf: impossible)
     feature: bool = False   # guided by the features (the global prior's default test treats these apart)
+    #: a black box's crossed vote (:func:`.selection.crossed_sum`), shared by the two candidates of one
+    #: filter's halves; None where it was not computed
+    crossed: float | None = None
 
 
 def dual_candidate(name, a, b, est_a, est_b, ca, cb, feature=False) -> Candidate:

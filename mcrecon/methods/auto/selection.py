@@ -122,6 +122,20 @@ def _apart(y: np.ndarray, v: np.ndarray, hi: np.ndarray, den_loo: np.ndarray, ne
 #: keeps the colour default where a feature candidate's lower sum is noise (docs/methods/auto.md).
 Z_GLOBAL = 0.5
 BLOCK = 8
+#: The share of the pixels that could vote (:func:`_could_vote`) below which the global prior's vote is thin:
+#: there the default is a ``steady`` candidate (a black box) whatever the other candidates' sums, without its
+#: guard: the one of least crossed vote (:func:`crossed_sum`, :func:`_thin_default`), and it is not blended
+#: (``_global_prior(thin_vote=)``; 0: never).  The voters are then the pixels whose neighbourhoods missed a
+#: rare light the rest of the image found, a selection by their own samples that biases their estimates: a
+#: filter of those samples scored by Stein's estimate looks better than it is, a black box cross-validated
+#: against a half that missed the light worse (the tuning spotlit texture, 85 % of the pixels left out: the
+#: pixel mean's summed estimate there 0.58 of its true error, OIDN + albedo + normal's 4.7 times).  The
+#: tuning half's shares: the spotlit texture 0.15, cycles-window 0.52, caustic-0 0.59-0.62 (by seed), then
+#: caustic-2 0.89, cycles-glossy_hdr 0.93, mitsuba-floor_spheres 0.94, cycles-studio 0.95.  0.6, not 0.75
+#: (which takes every caustic-0 seed): a ring of rare samples on exact zeros (tests/test_auto.py) lies
+#: between the two, and an OIDN default's 5 x 5 sample range lights its pixels whose 3 x 3 neighbourhood
+#: holds only zeros.
+THIN_VOTE = 0.6
 #: Whether the global prior's default is blended with its runner-up (:mod:`.blend`; ``_global_prior(blend=)``).
 BLEND = True
 
@@ -271,8 +285,49 @@ def summed_estimates(cands, y, v, count, hi, safeguard, within=None):
     return den_loo, cap, loo, apart, vote, sums
 
 
+def crossed_sum(cva, cvb, ha, hb, va, vb, den) -> float:
+    """The crossed vote of a filter run on each half (its cross-validated estimates ``cva`` of half A's
+    output against half B's means, ``cvb`` the other way; (H, W, C)): the sum of ``cva / den`` (channel
+    mean) over the pixels half A's own samples let vote (not :func:`_apart` by half A's samples, means
+    ``ha.mean``, variances ``va``), plus the same for B.  A pixel's voting is then chosen by the half the
+    filter read, and the other half's means it is scored against are not selected by it: where most
+    pixels have rare huge samples around, the whole vote's voters are selected by every sample, and
+    their estimates charge a filter that restores a light those samples missed (docs/methods/auto.md,
+    "A thin vote").  ``den``: the relative denominator (the same for every candidate of a frame)."""
+    from ...core.safeguard import sample_range_bounds
+
+    total = 0.0
+    for cv, h, vh in ((cva, ha, va), (cvb, hb, vb)):
+        dh = relative_denominator_loo(h.mean, vh, h.count, eps=DEFAULT_EPS)
+        votes = ~_apart(h.mean, vh, sample_range_bounds(h)[1], dh, True)
+        r = np.mean(np.asarray(cv, np.float64) / den, axis=2)
+        total += float(np.sum(r[votes & np.isfinite(r)]))
+    return total
+
+
+def _thin_default(cands, steady, sums) -> int:
+    """A thin vote's default: among the steady candidates, those whose crossed vote (:func:`crossed_sum`) is
+    the least, then the least sum among them (the two candidates of one filter's halves share it); the
+    least sum of all where none has one."""
+    scored = [k for k in steady if cands[k].crossed is not None and np.isfinite(cands[k].crossed)]
+    if scored:
+        best = min(cands[k].crossed for k in scored)
+        steady = [k for k in scored if cands[k].crossed == best]
+    return min(steady, key=lambda k: sums[k])
+
+
+def _could_vote(v, count, safeguard) -> int:
+    """The pixels the global prior's vote could hold but for rare huge samples: with samples and, where the
+    safeguard is on (its pins leave them out of the vote), some variance in a channel.  Exact dark pixels
+    (every sample 0) are not left out by a rare light and do not make a vote thin."""
+    has = count > 0
+    if safeguard is not None:
+        has &= (v > 0).any(axis=2)
+    return int(np.count_nonzero(has))
+
+
 def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, safeguard, guarded=(), scale=None,
-                  steady=(), steady_var=None, blend=None, rare=None, info=None):
+                  steady=(), steady_var=None, blend=None, rare=None, info=None, thin_vote=None):
     """The per-pixel choice with the best single candidate over the image as the default.
 
     ``g`` = the candidate of least summed leave-one-out relative estimate
@@ -319,6 +374,14 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     choice and the mask of pixels whose choice is ``g`` (all False when the
     prior does not apply).
 
+    Where fewer than ``thin_vote`` (default :data:`THIN_VOTE`) of the pixels that could vote
+    (:func:`_could_vote`: with samples and, with the safeguard, some variance) vote and there
+    are ``steady`` candidates, ``g`` is the steady one of least sum, without its guard (``info["thin"]``:
+    whether that applied): the voters are then the pixels whose neighbourhoods missed a rare light, a
+    selection by their own samples that flatters the Stein-scored filters of those samples and charges
+    the cross-validated black boxes, and the pixels left out would keep the plain per-pixel choice,
+    which rests on the least reliable estimates of all, where a steady default takes them.
+
     With ``blend`` (default :data:`BLEND`) ``g`` is first blended with its runner-up
     (:func:`~.blend.blend_default`, partners among ``steady`` where ``g`` is one of them): ``cands[g]``
     is replaced by the blend, under ``g``'s name, so that every later reader sees it.
@@ -341,6 +404,7 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     once cost more in fresh memory than their arithmetic).
     """
     blend = BLEND if blend is None else blend
+    thin_vote = THIN_VOTE if thin_vote is None else thin_vote
     den_loo, cap, loo, apart, vote, sums = summed_estimates(cands, y, v, count, bounds[1], safeguard)
     none = np.zeros(choice.shape, bool)
     if sums is None:
@@ -348,8 +412,15 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     g = int(np.argmin(sums))
     zs = guarded if isinstance(guarded, dict) else {k: Z_GLOBAL for k in guarded}
     plain = [k for k in range(len(cands)) if k not in zs]
+    thin = bool(steady) and vote.sum() < thin_vote * _could_vote(v, count, safeguard)
+    if thin:
+        # a thin vote: the steady candidate (black box) of least sum, compared with its own kind only
+        # (the voters' selection flatters the Stein-scored filters: THIN_VOTE)
+        g = _thin_default(cands, steady, sums)
+    if info is not None:
+        info["thin"] = thin
     loo_g = loo(g)
-    if g in zs and plain:
+    if g in zs and plain and not thin:
         # a guarded candidate (feature-guided, or a black box scored by cross-validation) is the default
         # only where its lower sum is real: lower than the best plain candidate's by its z standard errors
         # of the summed difference, from sums over BLOCK x BLOCK tiles (neighbouring pixels' estimates
@@ -363,7 +434,7 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     if g == 0 and cands[0].name == "box":
         return choice, none
     mixed = False
-    if blend:
+    if blend and not thin:  # a thin vote's sums are what it does not trust
         rel[g] = rel[g]  # the plain default's floored map, read below, before its candidate is replaced
         # the default blended with the runner-up where their summed estimates say a mix is better than
         # either (:mod:`.blend`): cands[g] is replaced, so every later reader (the local tests, the
