@@ -327,12 +327,22 @@ def net_plan(method, run, state):
     current = counts_with_pending(state)
     counts = net_round(placed, current, n_def, state.rng)
     if method.net_gate and method.params.get("variant") != "paper" and state.strata is not None and \
-            state.sampler != "independent":
+            state.sampler != "independent" and not _shows_rare_component(state):
         # the even round's ties from a copy of the generator: a plan the gate keeps is the plan without it
         even = even_round(dataclasses.replace(state, rng=copy.deepcopy(state.rng)), n)
         if not beats_even(halves_error(method, run, state), current + counts, current + even):
             counts = even
     return state.request(counts=counts)
+
+
+def _shows_rare_component(state) -> bool:
+    """Whether a pixel's neighbourhood shows a rare bright component (:func:`~mcrecon.core.safeguard.rare_component_mask`):
+    there the prefix halves miss it as the pixel's samples do, and their error says nothing of it."""
+    from .fill import mean_variance_policy
+    from .safeguard import rare_component_mask
+
+    st = state.stats
+    return bool(rare_component_mask(mean_variance_policy(st), st.mean, st.count).any())
 
 
 def halves_error(method, run, state, *, size: int = 5) -> tuple[np.ndarray, np.ndarray]:
