@@ -39,6 +39,13 @@ homogeneous noise: the flat scene), any allocation ranks pixels by noise
 and can only lose to uniform counts, so the round is :func:`even_round`'s
 (whole nets lowest first for a stratified sampler, the fewest samples
 first for independent ones) and the run ends at a uniform render's counts.
+
+:func:`net_plan`'s net gate: a round in whole nets raises a pixel a net ahead at the price of two left a
+net behind, which pays only where the errors it serves exceed those it leaves by far (on a wide defocus
+blur they do not: awr's whole nets erred 1.12x a uniform render's).  Where the renderer declares a
+stratified sampler and no neighbourhood shows a rare component, the round is :func:`even_round`'s unless
+:func:`beats_even` predicts the planned totals to err less, from each pixel's error of the method's own
+reconstruction of its prefix halves (:func:`halves_error`).
 """
 
 from __future__ import annotations
@@ -311,7 +318,10 @@ def net_plan(method, run, state):
     """A method's adaptive round in whole nets: :meth:`~mcrecon.methods.base.Method.round_size`'s samples,
     its ``uniform_share`` breadth-first and :meth:`place`'s counts rounded (:func:`net_round`).
 
-    ``place`` must return counts per pixel (H, W), or None to stop the run.
+    ``place`` must return counts per pixel (H, W), or None to stop the run.  The net gate: with the method's
+    ``net_gate`` on (:class:`~mcrecon.methods.base.Method`), not a paper variant, a stratified sampler
+    declared and no rare bright component shown (:func:`~mcrecon.core.safeguard.rare_component_mask`: the
+    halves miss it), the round is :func:`even_round`'s unless :func:`beats_even` predicts the plan to err less.
     """
     n = method.round_size(state)
     if n is None:
