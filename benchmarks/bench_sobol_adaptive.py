@@ -33,7 +33,7 @@ for everything: the references and compiled kernels are shared.
 
 usage: python benchmarks/bench_sobol_adaptive.py [--size 128x128] [--spp 32] [--seeds 2]
            [--sampler sobol|independent|both] [--scenes a,b] [--methods gem,awr]
-           [--corpus tuning|held-out|all] [--extend 4] [--no-structure-test]
+           [--corpus tuning|held-out|all] [--extend 4] [--no-structure-test] [--no-net-gate]
            [--json out.json]
 """
 
@@ -103,12 +103,17 @@ def main(argv=None) -> None:
                     help="then this many seeds for every cell whose mean is within 2 seed-to-seed sd of 1 or above")
     ap.add_argument("--no-structure-test", action="store_true",
                     help="plan from the estimates even where the samples show no structure (Method.structure_test)")
+    ap.add_argument("--no-net-gate", action="store_true",
+                    help="spend whole-net rounds as planned even where the even round is predicted to err less "
+                         "(Method.net_gate)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
-    if args.no_structure_test:
-        from mcrecon.methods.base import Method
+    from mcrecon.methods.base import Method
 
+    if args.no_structure_test:
         Method.structure_test = False
+    if args.no_net_gate:
+        Method.net_gate = False
     if args.sampler == "both":
         for sampler in ("sobol", "independent"):
             rest = ["--sampler", sampler, "--size", args.size, "--spp", str(args.spp), "--seeds", str(args.seeds),
@@ -116,6 +121,7 @@ def main(argv=None) -> None:
                 (["--scenes", args.scenes] if args.scenes else []) + \
                 (["--corpus", args.corpus] if args.corpus else []) + \
                 (["--no-structure-test"] if args.no_structure_test else []) + \
+                (["--no-net-gate"] if args.no_net_gate else []) + \
                 (["--json", args.json.replace(".json", f"_{sampler}.json")] if args.json else [])
             main(rest)
         return
@@ -157,7 +163,8 @@ def main(argv=None) -> None:
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"sampler": args.sampler, "size": [w, h], "spp": args.spp, "seeds": args.seeds,
-                       "corpus": args.corpus, "structure_test": not args.no_structure_test, "scenes": out}, f, indent=1)
+                       "corpus": args.corpus, "structure_test": not args.no_structure_test,
+                       "net_gate": not args.no_net_gate, "scenes": out}, f, indent=1)
 
 
 if __name__ == "__main__":

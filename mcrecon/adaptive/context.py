@@ -228,9 +228,9 @@ class RunContext:
     def __post_init__(self):
         if self.rendered is None:
             self.rendered = np.zeros((self.stats.height, self.stats.width), np.int64)
-        # only for a method that reads them (requires.prefix_halves): the sums cost 3 x 8 bytes per pixel
-        # and channel
-        if self.strata is None and self.method.requires.prefix_halves:
+        # only for a method that reads them (requires.prefix_halves) or may plan in whole nets (net_counts:
+        # the net gate of mcrecon.core.nets.net_plan); the sums cost 3 x 8 bytes per pixel and channel
+        if self.strata is None and (self.method.requires.prefix_halves or self.method.params.get("net_counts", 0)):
             self.strata = PrefixHalves(self.stats.width, self.stats.height, len(self.stats.channels))
 
     @classmethod

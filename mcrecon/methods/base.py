@@ -435,6 +435,8 @@ class Method:
     max_round_floor: ClassVar[int] = 1 << 20
     #: ``plan`` hands out :func:`~mcrecon.core.nets.even_round` counts while the samples show no structure.
     structure_test: ClassVar[bool] = True
+    #: A round in whole nets is :func:`~mcrecon.core.nets.even_round`'s unless predicted to beat it (net_plan).
+    net_gate: ClassVar[bool] = True
 
     def __init__(self, **options):
         where = self.where
