@@ -109,3 +109,19 @@ def test_a_failing_observe_stops_the_run_and_commits_nothing_after_it(tmp_path):
     # round 2 reached the log before its observe (as when the plan follows observe); round 3, rendered
     # meanwhile, is not committed
     assert read_log(log).n_rounds == 3
+
+
+def test_the_log_holds_each_rounds_full_record_written_by_the_thread_that_observed_it(tmp_path):
+    """The full record of a round observed while the next one renders is written by the toolkit thread (one
+    thread writes the log at a time): the log's records are the run's, errors included."""
+    from mcrecon.renderers import scenes
+
+    ref = scenes.reference_image("soft_shadow", 24, 16)
+    res = adapt(scenes.SceneRenderer("soft_shadow", width=24, height=16, seed=0), SplatMethod(initial_spp=1),
+                spp=40, seed=1, log=tmp_path / "r.h5", reference=ref, pipeline=True)
+    logged = read_log(tmp_path / "r.h5").round_records
+    assert len(logged) == len(res.rounds) >= 5
+    for a, b in zip(logged, res.rounds):
+        assert "_logged" not in b and "_eval" not in b
+        for key in ("round", "samples", "samples_total", "error", "toolkit_seconds", "wall_seconds"):
+            assert a[key] == pytest.approx(b[key], rel=1e-12, abs=0), (key, a, b)

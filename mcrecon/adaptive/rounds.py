@@ -301,9 +301,12 @@ def _render(ctx, req):
     return reply, render_s, max((t2 - t1) - render_s, 0.0)
 
 
-def _finish_round(ctx, record):
-    """A committed round's full record: into the log, the run's records, ``on_round`` and the progress."""
-    if ctx.log_path is not None:
+def _finish_round(ctx, record, *, logged=False):
+    """A committed round's full record: into the log, the run's records, ``on_round`` and the progress.
+
+    ``logged``: the full record is in the log already (written by the toolkit thread that observed the
+    round while this thread rendered: one thread writes the log at a time)."""
+    if ctx.log_path is not None and not logged:
         # The commit stored the times known then; now the full round
         # (statistics, observe, error) is known: a resume reports these.
         update_round_record(ctx.log_path, record)
@@ -559,11 +562,16 @@ def _loop_pipelined(ctx, rnd, writes):
                 observe()
             if record is not None:
                 record["_eval"] = rnd.evaluate(record, record["round"])
+                if ctx.log_path is not None:
+                    # the full record, from this thread: the next round's append follows it here, while
+                    # the calling thread renders (it finishes the round without writing the log)
+                    update_round_record(ctx.log_path, {k: v for k, v in record.items() if k != "_eval"})
+                    record["_logged"] = True
         return record, planned
 
     def done(record):
         clock.exclude(record.pop("_eval", 0.0))  # evaluation is not part of the run's time
-        _finish_round(ctx, record)
+        _finish_round(ctx, record, logged=record.pop("_logged", False))
 
     blind = schedule.initial_rounds == 2  # round 1 is the second half of the driver's initial pass
     # plan, then observe (splat): the renderer goes on as soon as the next round is planned, and the
