@@ -39,7 +39,10 @@ class SplatMethod(Method):
     The method declares ``requires.samples``: it filters individual
     samples.  Adaptive runs: ``plan`` asks every pixel for the same count
     each round, N_j = 2 N_{j-1} from ``initial_spp``, the last round
-    absorbing the remainder; budgets below one sample per pixel are
+    absorbing the remainder, that last round split to leave 1/8 of the budget
+    (not below 2^20 samples) to a last round of its own (not the paper's
+    variant); a pipelined run plans
+    before it observes (:attr:`plans_before_observe`); budgets below one sample per pixel are
     refused and a remainder of fewer samples than pixels is left unspent
     (Eq. 3 assumes an even sample density).  ``observe`` splats each
     committed round.  Offline (``inputs.samples``, a sample source such as
@@ -290,14 +293,18 @@ class SplatMethod(Method):
         if rem < 1:
             return None
         n = _next_round(rem, prev, self.params["initial_spp"])
-        if self.params["spread"] != "all":
-            # the default and outliers: rounds capped as box's (Method.doubling_round: 1 / max_round_parts of
-            # the budget in whole spp, not below max_round_floor samples), each splatted as a round of
-            # Fig. 3, so that the last one, splatted after the renderer has finished, is not half the budget;
-            # the paper's doubling (spread="all") is uncapped
-            cap = max(-(-state.budget // (self.max_round_parts * p_film)), -(-self.max_round_floor // p_film))
-            n = min(n, cap)
+        if n == rem and self.params["spread"] != "all":
+            n = self._before_last(rem, state.budget, p_film)
         return state.request(counts=np.full((state.height, state.width), n, np.int64))
+
+    def _before_last(self, rem: int, budget: int, p_film: int) -> int:
+        """The default's and outliers' last doubling round: ``rem`` spp split into ``rem - cap`` and a last
+        round of ``cap``, box's cap (:meth:`Method.doubling_round`: 1 / ``max_round_parts`` of the budget in
+        whole spp, not below ``max_round_floor`` samples) when ``rem`` holds two of them, so that the
+        round splatted after the renderer has finished is not half the budget; one round more only (a
+        round costs the gated splat a pass per pixel).  The paper's doubling is not split."""
+        cap = max(-(-budget // (self.max_round_parts * p_film)), -(-self.max_round_floor // p_film))
+        return rem - cap if rem >= 2 * cap else rem
 
     def observe(self, run: "SplatRun", batch: SampleBatch, round_index: int) -> None:
         """Splat a committed round.
