@@ -78,7 +78,7 @@ def test_below_the_floor_the_rounds_double_as_before():
     assert int(m.plan(run, st).counts.max()) == 4
 
 
-def test_capped_rounds_are_the_same_pipelined_and_sequential_and_resume_bit_identically(tmp_path, monkeypatch):
+def test_split_rounds_are_the_same_pipelined_and_sequential_and_resume_bit_identically(tmp_path, monkeypatch):
     monkeypatch.setattr(SplatMethod, "max_round_floor", 1)  # the resume rebuilds SplatMethod from the log
     m = SplatMethod(initial_spp=1)  # N_0 = 1: the initial pass is one round either way
     seq = adapt(_renderer(), m, spp=40, seed=2, pipeline=False, track_error=False)
@@ -92,7 +92,7 @@ def test_capped_rounds_are_the_same_pipelined_and_sequential_and_resume_bit_iden
     np.testing.assert_array_equal(read_log(log).read_all().positions, read_log(tmp_path / "full.h5").read_all().positions)
 
 
-def test_capped_rounds_cost_no_quality_on_flat_noise():
+def test_the_split_last_round_costs_no_quality_on_flat_noise():
     """The default's ratio to the pixel mean of its own samples, doubling (8 + 8, 16) against split (8 + 8,
     12, 4), 128², 32 spp, seeds 0-1: the split rounds are not worse (the spread between seeds is 0.01)."""
     ref = scenes.reference_image("flat", 128, 128)
