@@ -9,7 +9,7 @@ from __future__ import annotations
 import contextlib
 import time
 import warnings
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 
@@ -24,7 +24,7 @@ from .schedule import _adaptive_state, _committed, _pixel_counts_of, _request_co
 
 
 def _take_round(ctx, batch, round_index, *, source, n_nonfinite=None, timeline=None, helper=None,
-                counts=None) -> None:
+                counts=None, defer_observe=False):
     """A committed round into the run's statistics and, for methods that read samples, into ``observe``.
 
     The one path of the live run and of a resume's replay: the method, its
@@ -43,6 +43,9 @@ def _take_round(ctx, batch, round_index, *, source, n_nonfinite=None, timeline=N
     ``counts`` (H, W): the round's samples per pixel when the caller knows them (a live run: the
     request's, which the validation has matched pixel by pixel), so that they are not counted again
     from the positions (a bincount over every sample of the round); a resume's replay counts them.
+    ``defer_observe`` (a live run's pipelined commit, for a method that plans before it observes:
+    :func:`plans_before_observe`): the statistics take the round here, and ``observe`` is returned as a
+    callable for the caller to run once it has planned (None when there is nothing to observe).
     """
     method, stats, nonfinite = ctx.method, ctx.stats, ctx.nonfinite
     # every row the renderer delivered (NaN/Inf included) took an index of its pixel's sequence
@@ -104,7 +107,20 @@ def _take_round(ctx, batch, round_index, *, source, n_nonfinite=None, timeline=N
             return
         ingest()
     if method.requires.samples:
+        if defer_observe:
+            return lambda: _observe(ctx, SampleBatch(pos, val, feats), n_bad, round_index, source=source,
+                                    timeline=timeline)
         _observe(ctx, SampleBatch(pos, val, feats), n_bad, round_index, source=source, timeline=timeline)
+    return None
+
+
+def plans_before_observe(method) -> bool:
+    """Whether a pipelined run may plan the next round before the method observes the round it commits:
+    the method reads samples (``requires.samples``) and declares ``plans_before_observe = True``, its plan
+    with a round in flight reading only the committed counts and ``state.pending`` (splat's doubling
+    rounds).  The plan is then the one made after ``observe`` (the same request), and the renderer
+    renders it while the toolkit thread observes."""
+    return bool(getattr(method, "plans_before_observe", False)) and bool(method.requires.samples)
 
 
 def _observe(ctx, batch, n_bad, round_index, *, source, timeline):
@@ -208,7 +224,8 @@ class _Round:
                                   stacklevel=4)
         return SampleBatch(cast_positions(batch.positions, dtype), val.astype(dtype, copy=False), batch.features)
 
-    def commit(self, batch, n_bad, record, toolkit_s, *, helper=None, writer=None, writer_copy=None, counts=None):
+    def commit(self, batch, n_bad, record, toolkit_s, *, helper=None, writer=None, writer_copy=None, counts=None,
+               defer_observe=False):
         """Append to the log, then into the statistics (and ``observe``; with ``helper``, an idle
         one-thread executor, the two at once: see :func:`_take_round`).
 
@@ -217,6 +234,7 @@ class _Round:
         ``writer_copy``: hand the writer a copy of the arrays (default: unless the renderer's replies
         are ``fresh_replies``); not needed when the caller waits for the write before the next render.
         ``counts``: the round's samples per pixel, known from its validated request (:func:`_take_round`).
+        ``defer_observe``: ``observe`` is not run but returned (:func:`_take_round`): (pending, observe).
         """
         pending = None
         if self.log_path is not None:
@@ -231,9 +249,9 @@ class _Round:
                     np.array(batch.positions), np.array(batch.values),
                     {k: np.array(v) for k, v in batch.features.items()} if batch.features else batch.features)
                 pending = writer.submit(self._append, kept, record["round"], rec, True)
-        _take_round(self.ctx, batch, record["round"], source=self.name, n_nonfinite=n_bad, timeline=self.timeline,
-                    helper=helper, counts=counts)
-        return pending
+        observe = _take_round(self.ctx, batch, record["round"], source=self.name, n_nonfinite=n_bad,
+                              timeline=self.timeline, helper=helper, counts=counts, defer_observe=defer_observe)
+        return (pending, observe) if defer_observe else pending
 
     def _append(self, batch, round_index, rec, on_writer=False):
         # on the writer thread: tagged as a helper's phase (its CPU counts in toolkit_cpu_seconds)
@@ -283,9 +301,12 @@ def _render(ctx, req):
     return reply, render_s, max((t2 - t1) - render_s, 0.0)
 
 
-def _finish_round(ctx, record):
-    """A committed round's full record: into the log, the run's records, ``on_round`` and the progress."""
-    if ctx.log_path is not None:
+def _finish_round(ctx, record, *, logged=False):
+    """A committed round's full record: into the log, the run's records, ``on_round`` and the progress.
+
+    ``logged``: the full record is in the log already (written by the toolkit thread that observed the
+    round while this thread rendered: one thread writes the log at a time)."""
+    if ctx.log_path is not None and not logged:
         # The commit stored the times known then; now the full round
         # (statistics, observe, error) is known: a resume reports these.
         update_round_record(ctx.log_path, record)
@@ -444,11 +465,13 @@ def _loop_pipelined(ctx, rnd, writes):
     stats, schedule, clock = ctx.stats, ctx.schedule, ctx.clock
     writer = writes.executor
 
-    def commit(prev, carry, helper=None):
+    def commit(prev, carry, helper=None, defer_observe=False):
         """Validate and commit ``prev`` = (round, request, reply, renderer s, extra s): its finished record.
 
         ``helper``: the toolkit thread when it is idle (round 0 and the last round, committed by
-        this thread while nothing renders), to ingest while ``observe`` runs.
+        this thread while nothing renders), to ingest while ``observe`` runs.  ``defer_observe``:
+        (record, observe), ``observe`` a callable that observes the round and completes the record's
+        times (:func:`plans_before_observe`), or None.
         """
         t0, c0 = time.perf_counter(), time.thread_time()
         k, preq, reply, render_s, extra_s = prev
@@ -459,15 +482,35 @@ def _loop_pipelined(ctx, rnd, writes):
         # statistics and observe, and is done before the round counts as committed
         pending = rnd.commit(batch, n_bad, record, carry + extra_s + (time.perf_counter() - t0), helper=helper,
                              writer=writer if helper is not None else None, writer_copy=False,
-                             counts=_request_counts(preq))
+                             counts=_request_counts(preq), defer_observe=defer_observe)
+        observe = None
+        if defer_observe:
+            pending, observe = pending
         if pending is not None:
             _wait_out(pending)
-        # a round's toolkit time: its validation and commit, the beyond-renderer part
-        # of its render call, and the plan that made its request
-        record["toolkit_seconds"] = carry + extra_s + (time.perf_counter() - t0)
-        record["wall_seconds"] = clock.wall()
+
+        def times(t_extra=0.0):
+            # a round's toolkit time: its validation and commit, the beyond-renderer part
+            # of its render call, and the plan that made its request
+            record["toolkit_seconds"] = carry + extra_s + (time.perf_counter() - t0) - t_extra
+            record["wall_seconds"] = clock.wall()
+
+        times()
         clock.toolkit_cpu += time.thread_time() - c0
-        return record
+        if not defer_observe:
+            return record
+        if observe is None:
+            return record, None
+
+        def observe_round():
+            t1, c1 = time.perf_counter(), time.thread_time()
+            observe()
+            # the commit's time and the observe's, without the plan made between them
+            record["toolkit_seconds"] += time.perf_counter() - t1
+            record["wall_seconds"] = clock.wall()
+            clock.toolkit_cpu += time.thread_time() - c1
+
+        return record, observe_round
 
     def plan(j, req_j):
         """The plan of round j+1 from what is committed, round j (``req_j``) in flight: ((req, why), seconds)."""
@@ -491,21 +534,60 @@ def _loop_pipelined(ctx, rnd, writes):
     prepare = getattr(ctx.renderer, "prepare", None)
     prepare = prepare if callable(prepare) else None
 
-    def job(prev, carry, j, req_j):
-        # the toolkit thread's work while round j renders
-        record = None
-        if prev is not None:
-            record = commit(prev, carry)
-            record["_eval"] = rnd.evaluate(record, record["round"])
-        out, secs = plan(j, req_j)
-        # round 1 planned blind (prev None): round 0's plan time goes with round 1's
-        return record, (out, secs + (carry if prev is None else 0.0))
+    def job(prev, carry, j, req_j, early=None, after=None):
+        # the toolkit thread's work while round j renders.  ``early`` (a Future; a method that plans
+        # before it observes): the plan is set there as soon as it is made, and the round's observe
+        # (and its evaluation) follow while the renderer goes on with the planned round; ``after``: the
+        # job before it (done, on this one thread), whose failure stops this one before it commits
+        try:
+            if after is not None and after.exception() is not None:
+                raise after.exception()
+            record = observe = None
+            if prev is not None:
+                if early is None:
+                    record = commit(prev, carry)
+                    record["_eval"] = rnd.evaluate(record, record["round"])
+                else:
+                    record, observe = commit(prev, carry, defer_observe=True)
+            out, secs = plan(j, req_j)
+            # round 1 planned blind (prev None): round 0's plan time goes with round 1's
+            planned = (out, secs + (carry if prev is None else 0.0))
+        except BaseException as exc:
+            if early is not None:
+                early.set_exception(exc)
+            raise
+        if early is not None:
+            early.set_result(planned)
+            if observe is not None:
+                observe()
+            if record is not None:
+                record["_eval"] = rnd.evaluate(record, record["round"])
+                if ctx.log_path is not None:
+                    # the full record, from this thread: the next round's append follows it here, while
+                    # the calling thread renders (it finishes the round without writing the log)
+                    update_round_record(ctx.log_path, {k: v for k, v in record.items() if k != "_eval"})
+                    record["_logged"] = True
+        return record, planned
 
     def done(record):
         clock.exclude(record.pop("_eval", 0.0))  # evaluation is not part of the run's time
-        _finish_round(ctx, record)
+        _finish_round(ctx, record, logged=record.pop("_logged", False))
 
     blind = schedule.initial_rounds == 2  # round 1 is the second half of the driver's initial pass
+    # plan, then observe (splat): the renderer goes on as soon as the next round is planned, and the
+    # job that observes (``behind``) is finished once the round after it has rendered
+    early_plans = plans_before_observe(ctx.method)
+    behind = None
+
+    def finish_behind():
+        """The job still observing (early plans): wait for it and finish its round."""
+        nonlocal behind
+        if behind is not None:
+            b, behind = behind, None
+            record = b.result()[0]
+            if record is not None:
+                done(record)
+
     j = ctx.round_index
     planned = ctx.planned
     if planned is None:
@@ -530,16 +612,19 @@ def _loop_pipelined(ctx, rnd, writes):
             # round 1 is planned from round 0, after it (no toolkit work to overlap), unless
             # it is the driver's second half of a split initial pass
             first = j == 0 and not blind
+            early = None
             if not first:
-                fut = pool.submit(job, uncommitted, carry, j, req)
+                early = Future() if early_plans else None
+                fut = pool.submit(job, uncommitted, carry, j, req, early, behind)
                 uncommitted = None
             try:
                 reply, render_s, extra_s = _render(ctx, req)
+                finish_behind()  # observed while this round rendered
             except BaseException:
-                if fut is not None:
-                    # the round before is committed first (nothing committed is lost);
-                    # a failure of that commit is the run's first error
-                    f, fut = fut, None
+                # the rounds before are committed first (nothing committed is lost);
+                # a failure of such a commit is the run's first error
+                for f in [b for b in (behind, fut) if b is not None]:
+                    behind = fut = None
                     exc = f.exception()
                     if exc is not None:
                         raise exc from None
@@ -554,10 +639,16 @@ def _loop_pipelined(ctx, rnd, writes):
                 (req, why), carry = plan(j, None)
             else:
                 f, fut = fut, None
-                record, ((req, why), carry) = f.result()
-                if record is not None:
-                    done(record)
+                if early is not None:
+                    (req, why), carry = early.result()
+                    behind = f  # still observing the round it committed
+                else:
+                    record, ((req, why), carry) = f.result()
+                    if record is not None:
+                        done(record)
                 uncommitted = rendered
+                if req is None:
+                    finish_behind()  # nothing renders next: the round before is committed first
                 if req is None and why == "wait":
                     # the method waits for the round just rendered (it asked for nothing):
                     # commit it here, then plan the next round from it, as round 1 after round 0
@@ -567,6 +658,7 @@ def _loop_pipelined(ctx, rnd, writes):
                     done(record)
                     (req, why), carry = plan(j, None)
             j += 1
+        finish_behind()  # a run stopped with a round in flight (max_rounds, time_limit) commits it below
         if uncommitted is not None:
             # the last round: commit it (nothing is left to plan)
             prev, uncommitted = uncommitted, None
@@ -575,7 +667,8 @@ def _loop_pipelined(ctx, rnd, writes):
             done(record)
         return stopped, j
     finally:
-        if fut is not None:
-            with contextlib.suppress(BaseException):
-                fut.result()
+        for f in (behind, fut):
+            if f is not None:
+                with contextlib.suppress(BaseException):
+                    f.result()
         pool.shutdown(wait=True)

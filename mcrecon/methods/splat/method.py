@@ -39,7 +39,10 @@ class SplatMethod(Method):
     The method declares ``requires.samples``: it filters individual
     samples.  Adaptive runs: ``plan`` asks every pixel for the same count
     each round, N_j = 2 N_{j-1} from ``initial_spp``, the last round
-    absorbing the remainder; budgets below one sample per pixel are
+    absorbing the remainder, that last round split to leave 1/8 of the budget
+    (not below 2^20 samples) to a last round of its own (not the paper's
+    variant); a pipelined run plans
+    before it observes (:attr:`plans_before_observe`); budgets below one sample per pixel are
     refused and a remainder of fewer samples than pixels is left unspent
     (Eq. 3 assumes an even sample density).  ``observe`` splats each
     committed round.  Offline (``inputs.samples``, a sample source such as
@@ -60,6 +63,10 @@ class SplatMethod(Method):
     #: a pipelined run asks for the same rounds and splats the same samples as a
     #: sequential one (bit-identical images, tested).
     pipeline = True
+    #: A pipelined run plans the next round before it observes the one it commits (the plan with a
+    #: round in flight reads only the counts: :func:`mcrecon.adaptive.rounds.plans_before_observe`), so
+    #: the renderer renders it while the round is splatted: the same requests and image.
+    plans_before_observe = True
     adaptive = False
     #: features='optional': the samples' features, when the source has them, reach the default's gate
     #: (offline in the sample chunks, adaptive in the committed rounds); no statistics are built for it.
@@ -268,21 +275,36 @@ class SplatMethod(Method):
         """Every pixel gets N_j samples: N_0 = initial_spp, N_j = 2 N_{j-1}, the last round absorbing the rest.
 
         Pipelined (``state.pending``): the round in flight (every pixel the
-        same count) is the previous round of the schedule; the rounds asked
-        for are those of a sequential run (unless NaN/Inf samples were
-        dropped: the schedule then counts the requested samples).
+        same count) is the previous round of the schedule, and what is left
+        is the budget less the samples committed and in flight; the rounds
+        asked for are those of a sequential run (unless NaN/Inf samples were
+        dropped: the schedule then counts the requested samples).  That plan
+        reads nothing ``observe`` keeps (:attr:`plans_before_observe`).
         """
         p_film = state.width * state.height
-        total_spp = state.budget // p_film
-        prev, done = run.prev_spp, run.spp_done
         if state.pending is not None:
             prev = int(state.pending.sum()) / p_film
-            done = done + prev
-        rem = min(total_spp - int(round(done)), state.remaining // p_film)
+            # every round samples every pixel alike: what the budget leaves in whole spp (the observed
+            # count of a sequential run, min(total - done, remaining), is never below it)
+            rem = state.remaining // p_film
+        else:
+            prev = run.prev_spp
+            rem = min(state.budget // p_film - int(round(run.spp_done)), state.remaining // p_film)
         if rem < 1:
             return None
         n = _next_round(rem, prev, self.params["initial_spp"])
+        if n == rem and self.params["spread"] != "all":
+            n = self._before_last(rem, state.budget, p_film)
         return state.request(counts=np.full((state.height, state.width), n, np.int64))
+
+    def _before_last(self, rem: int, budget: int, p_film: int) -> int:
+        """The default's and outliers' last doubling round: ``rem`` spp split into ``rem - cap`` and a last
+        round of ``cap``, box's cap (:meth:`Method.doubling_round`: 1 / ``max_round_parts`` of the budget in
+        whole spp, not below ``max_round_floor`` samples) when ``rem`` holds two of them, so that the
+        round splatted after the renderer has finished is not half the budget; one round more only (a
+        round costs the gated splat a pass per pixel).  The paper's doubling is not split."""
+        cap = max(-(-budget // (self.max_round_parts * p_film)), -(-self.max_round_floor // p_film))
+        return rem - cap if rem >= 2 * cap else rem
 
     def observe(self, run: "SplatRun", batch: SampleBatch, round_index: int) -> None:
         """Splat a committed round.
