@@ -87,3 +87,39 @@ def test_the_paper_variants_plan_as_their_papers_do():
         m = get_method(name, variant="paper")
         c = mcrecon.adapt(_flat("sobol"), m, spp=32, seed=1, progress=False, track_error=False).stats.count
         assert np.ptp(c) > 0, name
+
+
+def _dispersions_numpy(stats):
+    """The two dispersion statistics written out in numpy (the brute force the compiled passes must equal)."""
+    n = stats.count.astype(np.float64)
+    ok = n >= 2
+    n = n[ok][:, None]
+    k = n - 1.0
+    mean, m2 = stats.mean[ok], stats.m2[ok]
+    sigma2 = m2.sum(axis=0) / k.sum()
+    mbar = (n * mean).sum(axis=0) / n.sum()
+    t_mean = np.mean(n * (mean - mbar) ** 2 / sigma2, axis=0)
+    t_var = np.mean(k * (m2 / (k * sigma2) - 1.0) ** 2 / 2.0, axis=0)
+    return sigma2, mbar, t_mean, t_var, int(ok.sum()), float(k.min())
+
+
+@pytest.mark.parametrize("values_of", [_edge, _uneven_noise, lambda pos, rng: rng.normal(2.0, 0.5, (len(pos), 3))])
+def test_compiled_dispersions_equal_numpy(values_of):
+    from mcrecon.core.nets import _dispersions, _pooled_sums
+
+    st = _stats(values_of, spp=3, seed=4)
+    st.count[::7] = 1                                # pixels of one sample take no part
+    st.count[::11] = 0
+    sigma2, mbar, t_mean, t_var, n_ok, k_min = _dispersions_numpy(st)
+    c = st.mean.shape[-1]
+    args = (st.count.reshape(-1), st.mean.reshape(-1, c), st.m2.reshape(-1, c))
+    got_n, k_sum, got_kmin, n_sum, m2_sum, nm_sum, lo, hi = _pooled_sums(*args)
+    assert (got_n, got_kmin) == (n_ok, k_min)
+    np.testing.assert_allclose(m2_sum / k_sum, sigma2, rtol=1e-12)
+    np.testing.assert_allclose(nm_sum / n_sum, mbar, rtol=1e-12)
+    ok = st.count >= 2
+    np.testing.assert_array_equal(lo, st.mean[ok].min(axis=0))
+    np.testing.assert_array_equal(hi, st.mean[ok].max(axis=0))
+    tm, tv = _dispersions(*args, sigma2, mbar, np.ones(c, bool))
+    np.testing.assert_allclose(tm, t_mean, rtol=1e-10)
+    np.testing.assert_allclose(tv, t_var, rtol=1e-10)

@@ -426,23 +426,72 @@ def shows_structure(stats, *, z: float = STRUCTURE_Z) -> bool:
     z : float
         Margin in standard deviations.
     """
-    n = stats.count.astype(np.float64)
-    ok = n >= 2
-    if ok.sum() < 2:
+    count = np.ascontiguousarray(stats.count).reshape(-1)
+    c = stats.mean.shape[-1]
+    mean = np.ascontiguousarray(stats.mean, dtype=np.float64).reshape(-1, c)
+    m2 = np.ascontiguousarray(stats.m2, dtype=np.float64).reshape(-1, c)
+    n_ok, k_sum, k_min, n_sum, m2_sum, nm_sum, lo, hi = _pooled_sums(count, mean, m2)
+    if n_ok < 2:
         return True                                 # too few samples to tell: let the allocation decide
-    n = n[ok][:, None]
-    k = n - 1.0
-    mean, m2 = stats.mean[ok], stats.m2[ok]
-    sigma2 = m2.sum(axis=0) / k.sum()
+    sigma2 = m2_sum / k_sum
     live = sigma2 > 0
     if not live.any():                              # noise-free: structure only if the means differ
-        return bool(np.ptp(mean, axis=0).max() > 0)
-    k, n, mean, m2, sigma2 = k, n, mean[:, live], m2[:, live], sigma2[live]
-    mbar = (n * mean).sum(axis=0) / n.sum()
-    t_mean = np.mean(n * (mean - mbar) ** 2 / sigma2, axis=0)
-    t_var = np.mean(k * (m2 / (k * sigma2) - 1.0) ** 2 / 2.0, axis=0)
-    limit = 1.0 + z * np.sqrt((2.0 + 12.0 / float(k.min())) / k.size)
-    return bool(max(t_mean.max(), t_var.max()) > limit)
+        return bool((hi - lo).max() > 0)
+    t_mean, t_var = _dispersions(count, mean, m2, sigma2, nm_sum / n_sum, live)
+    limit = 1.0 + z * np.sqrt((2.0 + 12.0 / k_min) / n_ok)
+    return bool(max(t_mean[live].max(), t_var[live].max()) > limit)
+
+
+@numba.njit(cache=True, nogil=True)
+def _pooled_sums(count, mean, m2):
+    """Over the pixels with two samples or more: their number, the summed and least ``k = n - 1``, the
+    summed ``n``, and per channel the summed ``m2``, the summed ``n m`` and the means' least and greatest."""
+    c = mean.shape[1]
+    m2_sum = np.zeros(c)
+    nm_sum = np.zeros(c)
+    lo = np.full(c, np.inf)
+    hi = np.full(c, -np.inf)
+    n_ok = 0
+    k_sum = 0.0
+    n_sum = 0.0
+    k_min = np.inf
+    for i in range(count.shape[0]):
+        n = float(count[i])
+        if n < 2:
+            continue
+        n_ok += 1
+        k_sum += n - 1.0
+        n_sum += n
+        k_min = min(k_min, n - 1.0)
+        for j in range(c):
+            m2_sum[j] += m2[i, j]
+            nm_sum[j] += n * mean[i, j]
+            lo[j] = min(lo[j], mean[i, j])
+            hi[j] = max(hi[j], mean[i, j])
+    return n_ok, k_sum, k_min, n_sum, m2_sum, nm_sum, lo, hi
+
+
+@numba.njit(cache=True, nogil=True)
+def _dispersions(count, mean, m2, sigma2, mbar, live):
+    """Per channel (those ``live``), the means' ``mean(n (m - m̄)² / σ²)`` and the variances'
+    ``mean(k (s²/σ² - 1)² / 2)`` over the pixels with two samples or more."""
+    c = mean.shape[1]
+    t_mean = np.zeros(c)
+    t_var = np.zeros(c)
+    n_ok = 0
+    for i in range(count.shape[0]):
+        n = float(count[i])
+        if n < 2:
+            continue
+        n_ok += 1
+        k = n - 1.0
+        for j in range(c):
+            if live[j]:
+                d = mean[i, j] - mbar[j]
+                t_mean[j] += n * d * d / sigma2[j]
+                r = m2[i, j] / (k * sigma2[j]) - 1.0
+                t_var[j] += k * r * r / 2.0
+    return t_mean / n_ok, t_var / n_ok
 
 
 def even_round(state, n: int) -> np.ndarray:
