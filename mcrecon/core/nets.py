@@ -371,8 +371,6 @@ def halves_error(method, run, state, *, size: int = 5) -> tuple[np.ndarray, np.n
 
     from scipy.ndimage import uniform_filter
 
-    from ..methods.base import MethodInputs
-
     st = state.stats
     mean_a, mean_b, n_a, n_b = state.strata.halves()
     var = st.sample_variance(undefined=0.0)
@@ -382,7 +380,8 @@ def halves_error(method, run, state, *, size: int = 5) -> tuple[np.ndarray, np.n
         half.count, half.mean, half.m2 = k.astype(np.int64), m, var * np.maximum(k - 1, 0)[..., None]
         with warnings.catch_warnings():  # a half's statistics alone: a method may warn what it cannot run
             warnings.simplefilter("ignore")
-            images.append(method.reconstruct_run(run, MethodInputs(stats=half)))
+            inputs = dataclasses.replace(state.inputs(), stats=half, reference=None)
+            images.append(method.reconstruct_run(run, inputs))
     mu = uniform_filter(st.mean, size=(size, size, 1), mode="nearest")
     both = (n_a > 0) & (n_b > 0)
     err = np.where(both, ((0.5 * (images[0] - images[1])) ** 2 / (mu * mu + 0.01)).mean(axis=2), 0.0)

@@ -50,7 +50,7 @@ from .features import Candidate, _filled, dual_candidate, feature_slices, prefil
 __all__ = ["ESTIMATES", "HALF_TO_FULL", "oidn_candidate", "oidn_denoise", "oidn_aux"]
 
 #: Whether :func:`oidn_candidate` scores its halves' filter by the crossed vote (the global prior's default
-#: where its vote is thin: :func:`.selection._thin_default`).
+#: where its vote is thin: :func:`.thinvote._thin_default`).
 CROSSED = True
 #: The error estimates :func:`oidn_candidate` knows.
 ESTIMATES = ("sure", "halves")
