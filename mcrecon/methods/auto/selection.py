@@ -136,6 +136,9 @@ BLOCK = 8
 #: between the two, and an OIDN default's 5 x 5 sample range lights its pixels whose 3 x 3 neighbourhood
 #: holds only zeros.
 THIN_VOTE = 0.6
+#: Whether a pixel whose own mean is a firefly (:func:`_firefly`) keeps a non-steady default only where it is
+#: nearer its neighbours than the per-pixel choice, as the pixels the vote leaves out do.
+FIREFLY = True
 #: Whether the global prior's default is blended with its runner-up (:mod:`.blend`; ``_global_prior(blend=)``).
 BLEND = True
 
@@ -186,6 +189,49 @@ def _nearer_the_neighbours(cands, g, choice, y, where, scale=None):
         sc = np.ones((0, 0, 0)) if scale is None else scale
         parallel_rows(_nearer_rows, (_c64(yr), _c64(sc), _arrays([c.image for c in cands]), int(g),
                                      np.ascontiguousarray(choice), np.ascontiguousarray(where), out), y.shape[0])
+    return out
+
+
+#: Standard errors of its neighbours' means (the root of the median of their 8 variances) by which a
+#: firefly pixel's mean (:func:`_firefly`) lies above their median: under Gaussian noise practically never
+#: (at 8 spp, a dark background's means are 10x their neighbours' median at many pixels, 1-3 such errors
+#: above it: the procedural blobs of tests/test_auto.py cost 1.19x without this test).
+Z_FIREFLY = 10.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _firefly_rows(y, v, scale, hi, heavy, z, out, i0, i1):
+    """``y``, ``v``: the means and their variances, already divided by ``scale`` and its square where
+    ``scale`` is not empty (``hi`` is not: colour)."""
+    h, w, c = y.shape
+    scaled = scale.size > 0
+    for i in range(i0, i1):
+        for j in range(w):
+            hit = False
+            for ch in range(c):
+                yc = y[i, j, ch]
+                raw = yc * scale[i, j, ch] if scaled else yc
+                if not (yc > 0 and hi[i, j, ch] > heavy * raw):
+                    continue
+                med = neighbour_median8(y, i, j, ch)
+                if yc > heavy * med and yc - med > z * math.sqrt(max(neighbour_median8(v, i, j, ch), 0.0)):
+                    hit = True
+            out[i, j] = hit
+
+
+def _firefly(y, v, hi, scale=None) -> np.ndarray:
+    """The pixels whose own mean is a firefly, (H, W) bool: in some channel the 3 x 3 sample maximum ``hi``
+    above :data:`HEAVY_TAIL` times the pixel's mean, and that mean above :data:`HEAVY_TAIL` times the median
+    ``m`` of its 8 neighbours' means and above ``m`` by :data:`Z_FIREFLY` times the root of the median of
+    their variances ``v`` (means and variances divided by ``scale``, the albedo, and its square where given:
+    on a texture a neighbour's colour is another square's).  Such a pixel's mean is carried by a rare huge
+    sample of its own, and a default whose value there is its mean (NL-means: the pixel's patch is like no
+    other) keeps the firefly; the vote's own test (:data:`HEAVY_PRIOR`, 30x) misses it where the sample is
+    10-30x the mean.  False where a value is NaN."""
+    out = np.zeros(y.shape[:2], bool)
+    yr, vr = (y, v) if scale is None else (y / scale, v / (scale * scale))
+    sc = np.ones((0, 0, 0)) if scale is None else scale
+    parallel_rows(_firefly_rows, (_c64(yr), _c64(vr), _c64(sc), _c64(hi), HEAVY_TAIL, Z_FIREFLY, out), y.shape[0])
     return out
 
 
@@ -354,7 +400,8 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     candidate passed the local test (then they take ``g``); none of these
     vote.  (Not all of them take ``g``: where ``g`` keeps a firefly that the
     plain choice removes, as nfor does behind glass, one pixel can rule an
-    image's error.)  When ``g`` is the pixel mean (candidate 0 named ``box``) the
+    image's error.)  A pixel whose own mean is a firefly (:func:`_firefly`, with :data:`FIREFLY`) is
+    judged as these, but votes.  When ``g`` is the pixel mean (candidate 0 named ``box``) the
     plain choice stands everywhere: the
     region guard already makes the mean the default of every region
     without evidence against it (a global box default costs the built-in
@@ -497,9 +544,11 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
         # cross-validated black box's most of all), and a local "pass" is that sample's noise
         c2 = np.where(apart | (bounds[1] > HEAVY_TAIL * np.abs(y)).any(axis=2), g, c2)
     else:
-        at_g = apart & (c2 == g)
+        # a pixel whose own mean is a firefly is judged as one the vote left out (:func:`_firefly`)
+        loose = apart | _firefly(y, v, bounds[1], scale) if FIREFLY else apart
+        at_g = loose & (c2 == g)
         at_g &= ~_lifted(cands, g, choice, y, v, at_g)
-        default = np.isfinite(rel[g]) & ~biased & (~apart | _nearer_the_neighbours(cands, g, choice, y, at_g, scale))
+        default = np.isfinite(rel[g]) & ~biased & (~loose | _nearer_the_neighbours(cands, g, choice, y, at_g, scale))
     out = np.where(default, c2, choice)
     held = default & (c2 == g)
     if rare is not None and rare != g:
