@@ -14,6 +14,7 @@ from scipy.special import ndtr, ndtri
 from ...filters.engine import parallel_rows
 
 from .blend import blend_default
+from .firefly import FIREFLY, HEAVY_TAIL, Z_FIREFLY, _firefly  # noqa: F401 (Z_FIREFLY: the tests read it here)
 from .thinvote import THIN_VOTE, _could_vote, _thin_default
 from .estimates import relative_denominator_loo
 from .passes import _FirstLeast, _arrays, _c64, _channel_mean, _floor_and_choose, _means, _nanmax
@@ -320,7 +321,8 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     candidate passed the local test (then they take ``g``); none of these
     vote.  (Not all of them take ``g``: where ``g`` keeps a firefly that the
     plain choice removes, as nfor does behind glass, one pixel can rule an
-    image's error.)  When ``g`` is the pixel mean (candidate 0 named ``box``) the
+    image's error.)  A pixel whose own mean is a firefly (:func:`_firefly`, with :data:`FIREFLY`) is
+    judged as these, but votes.  When ``g`` is the pixel mean (candidate 0 named ``box``) the
     plain choice stands everywhere: the
     region guard already makes the mean the default of every region
     without evidence against it (a global box default costs the built-in
@@ -463,9 +465,11 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
         # cross-validated black box's most of all), and a local "pass" is that sample's noise
         c2 = np.where(apart | (bounds[1] > HEAVY_TAIL * np.abs(y)).any(axis=2), g, c2)
     else:
-        at_g = apart & (c2 == g)
+        # a pixel whose own mean is a firefly is judged as one the vote left out (:func:`_firefly`)
+        loose = apart | _firefly(y, v, bounds[1], scale) if FIREFLY else apart
+        at_g = loose & (c2 == g)
         at_g &= ~_lifted(cands, g, choice, y, v, at_g)
-        default = np.isfinite(rel[g]) & ~biased & (~apart | _nearer_the_neighbours(cands, g, choice, y, at_g, scale))
+        default = np.isfinite(rel[g]) & ~biased & (~loose | _nearer_the_neighbours(cands, g, choice, y, at_g, scale))
     out = np.where(default, c2, choice)
     held = default & (c2 == g)
     if rare is not None and rare != g:
@@ -601,8 +605,6 @@ def _guard_rows(mses, den, choice, out, i0, i1):
                 out[i, j] = (x if np.isfinite(x) else np.nan) - (y0 if np.isfinite(y0) else np.nan)
 
 
-#: A pixel's neighbourhood is heavy-tailed when the largest sample around it exceeds this many times its mean.
-HEAVY_TAIL = 10.0
 
 
 def _no_push_in_heavy_tails(img: np.ndarray, y: np.ndarray, hi: np.ndarray, out: np.ndarray | None = None, *,
