@@ -272,6 +272,16 @@ def check_samples(positions, values, *, width: int, height: int, n_channels: int
     return pos, val, int(n_nonfinite)
 
 
+def touches_window(positions, window) -> bool:
+    """Whether any position's pixel lies in ``window`` = ``(y0, y1, x0, x1)`` (positions on the film)."""
+    pos = np.asarray(positions)
+    if pos.shape[0] == 0:
+        return False
+    y0, y1, x0, x1 = window
+    y, x = pos[:, 1], pos[:, 0]
+    return bool(np.any((y >= y0) & (y < y1) & (x >= x0) & (x < x1)))
+
+
 def available_memory() -> int | None:
     """Bytes of memory this machine can still give a process (Linux ``MemAvailable``), or None if unknown."""
     try:

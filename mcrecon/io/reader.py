@@ -33,7 +33,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..core.requests import check_sampler
-from ..core.samples import check_reference, round_slices
+from ..core.samples import check_reference, round_slices, touches_window
 from ..core.samples import DEFAULT_READ_ROWS
 from .lock import _err, live_writer
 from .logformat import (LogChunk, _H5_ERRORS, _HAS_RECORD, _LIVE_RETRIES, _LIVE_RETRY_SECONDS, _committed_rows,
@@ -432,7 +432,7 @@ class SampleLog:
 
     def iter_chunks(self, *, chunk_size: int = DEFAULT_READ_ROWS, rounds=None,
                     start: int = 0, stop: int | None = None, with_round: bool = True,
-                    features=()) -> Iterator[LogChunk]:
+                    features=(), window=None) -> Iterator[LogChunk]:
         """Stream committed samples in chunks of at most ``chunk_size`` rows.
 
         Parameters
@@ -445,6 +445,11 @@ class SampleLog:
             Read the per-sample round index (``chunk.round``; else None).
         features : sequence of str
             Per-sample features to read with the samples (``chunk.features``).
+        window : (y0, y1, x0, x1), optional
+            Read the features only of chunks with a sample in those pixels
+            (``chunk.features`` None for the others): a reader of a window's
+            statistics passes every chunk's positions and values, but adds
+            the features of the window's pixels only.
         """
         for name in features:
             if name not in self.feature_names:
@@ -469,7 +474,8 @@ class SampleLog:
                         rnd = f.read("round", s, e).astype(np.int64, copy=False)
                     else:
                         rnd = (np.searchsorted(self.round_ends, np.arange(s, e), side="right")).astype(np.int64)
-                    feats = {name: f.read(f"features/{name}", s, e) for name in features}
+                    feats = {name: f.read(f"features/{name}", s, e) for name in features} \
+                        if window is None or touches_window(pos, window) else None
                     yield LogChunk(pos, val, rnd, s, feats)
 
     def iter_into(self, buffers, *, start: int = 0, stop: int | None = None):
