@@ -16,6 +16,7 @@ from mcrecon.core.stats import PixelStats
 from mcrecon.core.strata import PrefixHalves
 from mcrecon.errors import InputError
 from mcrecon.io import read_log, write_log
+from mcrecon.methods.base import Method, Requirements
 from mcrecon.offline import tiles as T
 from mcrecon.offline.inputs import gather_inputs
 from mcrecon.renderers.scenes import get_scene, write_scene_log
@@ -174,7 +175,7 @@ def test_tiles_read_bands_not_the_film(film_log, method, options, monkeypatch):
     tiles (its rows grown by the halo) at a time: no statistics of the whole film are built."""
     m = mcrecon.get_method(method, **options)
     assert m.halo(96, 64) <= 15
-    full = mcrecon.reconstruct(film_log, method=m)
+    full = mcrecon.reconstruct(film_log, method=m, full=True)
     built, reads = [], []
     real_init, real_read = PixelStats.__init__, T.FilmReader.read
 
@@ -188,15 +189,17 @@ def test_tiles_read_bands_not_the_film(film_log, method, options, monkeypatch):
 
     monkeypatch.setattr(PixelStats, "__init__", init)
     monkeypatch.setattr(T.FilmReader, "read", read)
-    tiled = mcrecon.reconstruct(film_log, method=m, tile=32)
-    assert np.array_equal(tiled, full)
+    tiled = mcrecon.reconstruct(film_log, method=m, tile=32, full=True)
+    assert np.array_equal(tiled.image, full.image)
+    # the sanity line, added band by band from the bands' statistics, is the film's
+    assert tiled.sanity() == full.sanity()
     halo = m.halo(96, 64)
     grid = m.tile_grid()[0]
     tile_reads = reads[-2:]   # the two bands of tiles (nfor first reads the film's feature planes band by band)
     for y0, y1, x0, x1 in tile_reads:
-        assert (x0, x1) == (0, 96) and y1 - y0 <= 32 + 2 * halo + grid - 1
+        assert (x0, x1) == (0, 96) and y1 - y0 <= 32 + 2 * max(halo, 1) + grid - 1
     assert len(reads) == (4 if method == "nfor" else 2)
-    assert (64, 96) not in built   # no statistics of the whole film, neither colour nor features
+    assert (64, 96) not in built   # no statistics of the whole film, neither colour nor features (nor sanity's)
     if method == "nfor":
         assert reads[:2] == [(0, 32, 0, 96), (32, 64, 0, 96)]   # the feature planes: the bands without halos
 
@@ -212,3 +215,33 @@ def test_streamed_tiles_refuse_thin_bands_and_whole_image_methods(tmp_path, film
     for name in ("auto", "awr"):
         with pytest.raises(InputError, match="whole image"):
             mcrecon.reconstruct(film_log, method=name, tile=32)
+
+
+class Sharpen(Method):
+    """Pixel means sharpened over 3 x 3 (halo 1): leaves the samples' range, below 0 too (the sanity line)."""
+
+    name = "sharpen"
+    requires = Requirements()
+
+    def halo(self, width, height):
+        return 1
+
+    def reconstruct_run(self, run, inputs):
+        from scipy import ndimage
+        mean = inputs.stats.mean
+        return 2.0 * mean - ndimage.correlate(mean, np.full((3, 3, 1), 1 / 9), mode="nearest")
+
+
+def test_sanity_line_added_band_by_band(tmp_path):
+    rng = np.random.default_rng(0)
+    pix = np.sort(np.concatenate([np.repeat(np.arange(48 * 40), 3), rng.integers(0, 48 * 40, 4000)]))
+    pos = np.stack([pix % 48 + rng.random(pix.size), pix // 48 + rng.random(pix.size)], axis=1)
+    val = rng.gamma(0.5, 1.0, (pix.size, 3)) * (1 + 3 * (pix[:, None] // 48 > 20))
+    path = write_log(tmp_path / "noise.h5", pos, val, width=48, height=40)
+    full = mcrecon.reconstruct(path, method=Sharpen(), full=True)
+    s = full.sanity()
+    assert s["overshoot_pixels"] > 0 and s["negative_pixels"] > 0 and s["max_overshoot"] > 0
+    for tile in (7, 16, 40):
+        tiled = mcrecon.reconstruct(path, method=Sharpen(), tile=tile, full=True)
+        assert np.array_equal(tiled.image, full.image)
+        assert tiled.sanity() == s

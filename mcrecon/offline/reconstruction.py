@@ -193,7 +193,7 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
         merged tile by tile).  A sample source is read one band of tiles at
         a time, so the film's statistics are never held: the
         :class:`Reconstruction`'s ``inputs`` then hold the samples, not
-        statistics (its sanity line streams them once more).  Refused for
+        statistics (its sanity line is added band by band).  Refused for
         whole-image methods and for pixels with fewer than two samples.
         Default: untiled.
     diagnostics : bool
@@ -215,6 +215,7 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
     True
     """
     tile = check_tile(tile)
+    sanity = None
     if isinstance(method, Method):
         if options:
             raise InputError("reconstruct", sorted(options)[0], "options go to get_method(); a method object "
@@ -248,7 +249,8 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
     h, w, _ = inputs.shape
     if tile is not None:
         image, run = reconstruct_tiles(m, inputs, tile=tile, diagnostics=full and diagnostics)
-        if isinstance(inputs, FilmReader):  # read band by band: the caller gets the samples (sanity, counts)
+        if isinstance(inputs, FilmReader):  # read band by band: the caller gets the samples and the sanity line
+            sanity = [inputs.sanity]
             inputs = MethodInputs(None, inputs.source, None, nonfinite)
         elif inputs.stats is None:  # the colour's merge for the caller (counts, range): a third of a featured one
             a, b = inputs.halves
@@ -262,7 +264,7 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
         image = files.output_image(image)
     if not full:
         return image
-    return Reconstruction(image, m, run, inputs, fireflies=split,
+    return Reconstruction(image, m, run, inputs, fireflies=split, _sanity=sanity if split is None else None,
                           _sanity_source=original if split is not None else None,
                           channels=files.channels if files is not None else tuple(inputs.channels),
                           files=files.files if files is not None else ())

@@ -95,6 +95,9 @@ class FilmReader:
         self.channels = tuple(source.channels)
         self.bands = [(0, self.height)]
         self.said: dict = {}   # the warnings of the reads, each said once (every read passes the whole source)
+        #: The image's sanity line (:func:`~mcrecon.core.metrics.output_sanity`), added band by band as the
+        #: tiles finish (:meth:`add_sanity`); None until then, or for statistics without a range.
+        self.sanity = None
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -109,6 +112,19 @@ class FilmReader:
         for wn in caught:
             self.said.setdefault((wn.category, str(wn.message)), wn)
         return out
+
+    def add_sanity(self, image: np.ndarray, band) -> None:
+        """Add the sanity line of a finished band ``((y0, y1), first row read, its inputs)`` of ``image``."""
+        from ..core.metrics import add_sanity, output_sanity
+
+        (y0, y1), by0, sub = band
+        if sub.halves is not None:   # the colour's range of all the samples: the halves' merged
+            a, b = sub.halves
+            st = a.without_features().merged(b.without_features())
+        else:
+            st = sub.stats
+        if st is not None and st.has_range:
+            self.sanity = add_sanity(self.sanity, output_sanity(image[y0:y1], st, rows=(y0 - by0, y1 - by0)))
 
     def planes(self, planes_of):
         """The film's planes that ``planes_of(inputs)`` makes pixel by pixel from a window's inputs.
@@ -289,9 +305,12 @@ def reconstruct_tiles(method: Method, inputs: MethodInputs | FilmReader, *, tile
             sub = tile_inputs(inputs, outer)
         else:
             if band is None or band[0] != (y0, y1):   # the band's statistics: its rows grown by the halo
+                if band is not None:
+                    inputs.add_sanity(image, band)
                 band = None
-                by0 = min(o[0] for o, _ in bands[y0, y1])
-                by1 = max(o[1] for o, _ in bands[y0, y1])
+                # one row more each side for the sanity line's 3 x 3 sample range
+                by0 = min([o[0] for o, _ in bands[y0, y1]] + [max(0, y0 - 1)])
+                by1 = max([o[1] for o, _ in bands[y0, y1]] + [min(h, y1 + 1)])
                 band = ((y0, y1), by0, inputs.read((by0, by1, 0, w)))
                 _check_counts(band[2], where, rows=(y0 - by0, y1 - by0))
             by0 = band[1]
@@ -313,6 +332,8 @@ def reconstruct_tiles(method: Method, inputs: MethodInputs | FilmReader, *, tile
                 full = maps[name] = np.zeros((h, w) + m.shape[2:], m.dtype)
             full[y0:y1, x0:x1] = m[iy, ix]
         del sub, run, img
+    if band is not None:
+        inputs.add_sanity(image, band)
     band = None
     if streamed:
         for key, wn in inputs.said.items():
