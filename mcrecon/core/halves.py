@@ -429,6 +429,11 @@ class Halves:
         """
         a, b = self.a, self.b
         fw, fh = self._film()
+        if values is None and a._window is not None:   # a reader's batch with no sample in the window
+            pos = np.asarray(positions)
+            if pos.shape[0]:   # each pixel's turns (the labels of later batches), as the labels count them
+                self.counter += np.bincount(_pixels(pos, fw, fh), minlength=fw * fh)
+            return
         if _checked:  # a SampleSet's arrays, validated when it was built, all values finite
             pos, val, n_nonfinite = positions, values, 0
             feats, n_fz = ({name: features[name] for name in a.features}, 0) if a.features else ({}, 0)

@@ -319,6 +319,8 @@ class PixelStats:
         previous one is accumulated.
         """
         check_policy(nonfinite, source)
+        if values is None and self._window is not None:   # a reader's batch with no sample in the window
+            return None
         fw, fh = (self.width, self.height) if self._window is None else self._window[2:]
         pos, val, n_nonfinite = check_samples(positions, values, width=fw, height=fh,
                                               n_channels=len(self.channels), where=source, channels=self.channels)
@@ -663,7 +665,7 @@ class PixelStats:
             return cls.from_batches(batches, width=log.width, height=log.height, channels=log.channels,
                                     subpixels=subpixels, nonfinite=nonfinite, source=str(log.path),
                                     features=source_layout(log, names), each_batch=each_batch, window=window)
-        if rounds is None:
+        if rounds is None and window is None:
             # Two rotating buffers: one is filled while the other is accumulated.
             from .samples import DEFAULT_READ_ROWS
 
@@ -673,7 +675,8 @@ class PixelStats:
             batches = log.iter_into(bufs)
         else:
             kw = {} if chunk_size is None else {"chunk_size": chunk_size}
-            batches = ((b.positions, b.values) for b in log.iter_chunks(rounds=rounds, with_round=False, **kw))
+            batches = ((b.positions, b.values) for b in log.iter_chunks(rounds=rounds, with_round=False,
+                                                                         window=window, **kw))
         return cls.from_batches(batches, width=log.width, height=log.height, channels=log.channels,
                                 subpixels=subpixels, nonfinite=nonfinite, source=str(log.path), each_batch=each_batch,
                                 window=window)

@@ -107,6 +107,8 @@ class PrefixHalves:
 
     def add(self, positions, values) -> None:
         """Add a batch of samples in stream order (each pixel's samples in its sequence order)."""
+        if values is None:
+            return   # a reader's batch with no sample of this window (mcrecon.io.SampleLog.iter_chunks)
         pos = np.asarray(positions, dtype=np.float64)
         val = np.asarray(values, dtype=np.float64)
         if val.ndim == 1:
