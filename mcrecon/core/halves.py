@@ -20,7 +20,8 @@ import numba
 
 from ..filters.engine import n_threads, parallel_calls
 from .features import check_features, layout_of, take_rows, warn_feature_zeroed
-from .samples import apply_nonfinite, check_policy, check_sampler, check_samples, dispatcher, warn_nonfinite
+from .samples import (apply_nonfinite, check_policy, check_sampler, check_samples, dispatcher, touches_window,
+    warn_nonfinite)
 
 #: the arithmetic of a run of samples that PixelStats adds, which a half's runs repeat bit for bit (as numba
 #: dispatchers: this module loads numba anyway)
@@ -156,15 +157,15 @@ def _end_run(open_runs, h, runs, n_runs):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _add_run(first, stop, p, m, h, step, lab, val, width, count, mean, m2, vmin, vmax, ranged):
+def _add_run(first, stop, p, m, h, step, lab, val, width, oy, ox, count, mean, m2, vmin, vmax, ranged):
     # the m samples of half h in [first, stop), all in pixel p: a two-pass mean and sum of squared
     # deviations over the run, then one Chan et al. merge (merge._merge_run) -- term for term the
     # arithmetic of mcrecon.core.stats._accumulate on the half's samples in stream order.  The run as a
     # 0-based slice (no negative-index wraparound check in the inner loops) and a stride-2 loop that reads no
     # label: 0.24 s of CPU for the colour of 33 M samples, where one strided loop testing every label
     # takes 0.42 s
-    iy = p // width
-    ix = p - iy * width
+    iy = p // width - oy  # the arrays hold the window whose first pixel is (oy, ox)
+    ix = p % width - ox
     na = count[iy, ix]
     n = na + m
     count[iy, ix] = n
@@ -197,18 +198,22 @@ def _add_run(first, stop, p, m, h, step, lab, val, width, count, mean, m2, vmin,
 
 
 @numba.njit(cache=True, nogil=True)
-def _add_runs(runs, n_runs, lab, val, p_lo, p_hi, width, ca, mean_a, m2_a, min_a, max_a, cb, mean_b, m2_b,
+def _add_runs(runs, n_runs, lab, val, p_lo, p_hi, width, oy, ox, ca, mean_a, m2_a, min_a, max_a, cb, mean_b, m2_b,
               min_b, max_b, ranged):
-    # the runs of pixels in [p_lo, p_hi), in order, each into its half's statistics
+    # the runs of pixels in [p_lo, p_hi) of the window (oy, ox, ca's shape), in order, each into its half's
+    # statistics
+    wx = ca.shape[1]
     for r in range(n_runs):
         p = runs[r, _PIXEL]
         if p < p_lo or p >= p_hi:
             continue
+        if not (0 <= p % width - ox < wx):
+            continue
         h = runs[r, _HALF]
         count, mean, m2, vmin, vmax = (ca, mean_a, m2_a, min_a, max_a) if h == 0 else \
             (cb, mean_b, m2_b, min_b, max_b)
-        _add_run(runs[r, _FIRST], runs[r, _STOP], p, runs[r, _SIZE], h, runs[r, _STEP], lab, val, width, count,
-                 mean, m2, vmin, vmax, ranged)
+        _add_run(runs[r, _FIRST], runs[r, _STOP], p, runs[r, _SIZE], h, runs[r, _STEP], lab, val, width, oy, ox,
+                 count, mean, m2, vmin, vmax, ranged)
 
 
 def _split_accumulate(runs, n_runs, lab, val, width, n_parts, a: PixelStats, b: PixelStats) -> None:
@@ -221,13 +226,19 @@ def _split_accumulate(runs, n_runs, lab, val, width, n_parts, a: PixelStats, b: 
     each by one thread going through the whole list of runs (the result
     does not depend on ``n_parts``).  Values must be finite.  The range is
     kept where the halves keep one (the colour's; a feature's keeps none).
+    ``width`` is the film's; the halves may hold a window of it
+    (:meth:`PixelStats.window_of`): the runs of other pixels are skipped.
     """
-    n_pix = a.count.size
+    oy, ox = (0, 0) if a._window is None else a._window[:2]
+    rows = a.height
     ranged = a.min is not None and b.min is not None
     lo_a, hi_a, lo_b, hi_b = (a.min, a.max, b.min, b.max) if ranged else (_merge.NO_RANGE,) * 4
-    parallel_calls(_add_runs, [(runs, n_runs, lab, val, n_pix * part // n_parts, n_pix * (part + 1) // n_parts,
-                                width, a.count, a.mean, a.m2, lo_a, hi_a, b.count, b.mean, b.m2, lo_b, hi_b, ranged)
-                               for part in range(n_parts)], threads=n_parts)
+    # each part: whole rows of the window, as film pixel indices
+    parts = [((oy + rows * part // n_parts) * width, (oy + rows * (part + 1) // n_parts) * width)
+             for part in range(n_parts)]
+    parallel_calls(_add_runs, [(runs, n_runs, lab, val, p_lo, p_hi, width, oy, ox, a.count, a.mean, a.m2, lo_a, hi_a,
+                                b.count, b.mean, b.m2, lo_b, hi_b, ranged)
+                               for p_lo, p_hi in parts], threads=n_parts)
 
 
 def split_labels(positions: np.ndarray, width: int, height: int, counter: np.ndarray, *,
@@ -417,12 +428,29 @@ class Halves:
         ``nonfinite`` policy.
         """
         a, b = self.a, self.b
+        fw, fh = self._film()
+        if values is None and a._window is not None:   # a reader's batch with no sample in the window
+            pos = np.asarray(positions)
+            if pos.shape[0]:   # each pixel's turns (the labels of later batches), as the labels count them
+                self.counter += np.bincount(_pixels(pos, fw, fh), minlength=fw * fh)
+            return
         if _checked:  # a SampleSet's arrays, validated when it was built, all values finite
             pos, val, n_nonfinite = positions, values, 0
             feats, n_fz = ({name: features[name] for name in a.features}, 0) if a.features else ({}, 0)
         else:
-            pos, val, n_nonfinite = check_samples(positions, values, width=a.width, height=a.height,
+            pos, val, n_nonfinite = check_samples(positions, values, width=fw, height=fh,
                                                   n_channels=len(a.channels), where=source, channels=a.channels)
+            if a._window is not None and not touches_window(pos, a.window_rows_columns()):
+                # halves of a window, no sample of it in the batch: only each pixel's turns are counted (the labels
+                # of the window's pixels and of those whose samples end its runs in later batches; a run ends with
+                # its batch), and the policy said, as the reference path says it
+                check_policy(nonfinite, source)
+                if n_nonfinite:
+                    apply_nonfinite(pos, val, n_nonfinite, nonfinite, where=source)   # raises under 'raise'
+                    warn_nonfinite(source, n_nonfinite, nonfinite, stacklevel=2)
+                if pos.shape[0]:
+                    self.counter += np.bincount(_pixels(pos, fw, fh), minlength=fw * fh)
+                return
             feats, n_fz = check_features(features, pos.shape[0], where=source, layout=layout_of(a.features)) \
                 if a.features else ({}, 0)
         if pos.shape[0] == 0:
@@ -444,12 +472,12 @@ class Halves:
         open_runs = np.zeros((2, _RUN_FIELDS), np.int64)
         k = n_a = 0
         while k < n or open_runs[:, _SIZE].any():
-            k, n_runs, n_a_block = _split_runs(pos, a.width, self.counter, _NO_TOTALS if self.totals is None else
+            k, n_runs, n_a_block = _split_runs(pos, fw, self.counter, _NO_TOTALS if self.totals is None else
                                                self.totals, lab, k, open_runs, runs)
             n_a += n_a_block
-            _split_accumulate(runs, n_runs, lab, val, a.width, n_parts, a, b)
+            _split_accumulate(runs, n_runs, lab, val, fw, n_parts, a, b)
             for name, f in feats.items():
-                _split_accumulate(runs, n_runs, lab, f, a.width, n_parts, a.features[name], b.features[name])
+                _split_accumulate(runs, n_runs, lab, f, fw, n_parts, a.features[name], b.features[name])
         for name, f in feats.items():
             a.features[name]._note_dtype(f.dtype)
             b.features[name]._note_dtype(f.dtype)
@@ -475,7 +503,7 @@ class Halves:
             val = val[:, None]
         if n_nonfinite and nonfinite == "raise":
             apply_nonfinite(pos, val, n_nonfinite, nonfinite, where=source)  # raises, nothing changed
-        lab = split_labels(pos, self.a.width, self.a.height, self.counter, totals=self.totals)
+        lab = split_labels(pos, *self._film(), self.counter, totals=self.totals)
         if n_nonfinite:
             bad = ~np.isfinite(val).all(axis=1)
             for half, st in ((0, self.a), (1, self.b)):
@@ -495,12 +523,23 @@ class Halves:
                 st.add(pos[sel], val[sel], features=take_rows(features or {}, sel), nonfinite=nonfinite,
                        source=source)
 
+    def _film(self) -> tuple[int, int]:
+        """``(width, height)`` of the film the batches :meth:`add` splits are of (the halves may hold a window)."""
+        w = self.a._window
+        return (self.a.width, self.a.height) if w is None else (w[2], w[3])
+
     @classmethod
-    def empty(cls, width: int, height: int, channels, *, features=None) -> "Halves":
-        """Empty halves of a ``width`` x ``height`` film, keeping ``features`` (as :class:`PixelStats`)."""
-        return cls(PixelStats(width, height, channels, features=features),
-                   PixelStats(width, height, channels, features=features),
-                   np.zeros(int(width) * int(height), np.int64))
+    def empty(cls, width: int, height: int, channels, *, features=None, window=None) -> "Halves":
+        """Empty halves of a ``width`` x ``height`` film, keeping ``features`` (as :class:`PixelStats`).
+
+        ``window`` ``(y0, y1, x0, x1)``: halves of those pixels only (:meth:`PixelStats.window_of`), to
+        which the film's batches are added: each pixel's labels and runs are the film's (``counter``
+        counts every pixel of the film), so the halves are the film's cropped to the window, bit for bit.
+        """
+        def half():
+            return PixelStats(width, height, channels, features=features) if window is None else \
+                PixelStats.window_of(width, height, window, channels, features=features)
+        return cls(half(), half(), np.zeros(int(width) * int(height), np.int64))
 
 
 def as_halves(pair, where: str = "halves") -> Halves:
@@ -532,7 +571,7 @@ def pixel_counts(source, *, chunk_size: int = 1 << 20) -> np.ndarray:
     return out
 
 
-def split_halves(source, *, nonfinite: str = "drop", features=(), each_batch=None) -> Halves:
+def split_halves(source, *, nonfinite: str = "drop", features=(), each_batch=None, window=None) -> Halves:
     """Two independent halves of a sample source (log or SampleSet), rounds in order.
 
     A source whose ``sampler`` is ``sobol`` (a log's attribute, a
@@ -544,20 +583,26 @@ def split_halves(source, *, nonfinite: str = "drop", features=(), each_batch=Non
     samples (names, or ``"all"``; :meth:`PixelStats.from_log`).
     ``each_batch``: a callable given every batch's positions and values as
     read, in stream order (:meth:`PixelStats.from_batches`).
+    ``window`` ``(y0, y1, x0, x1)``: the halves of those pixels only, the
+    film's cropped to them bit for bit (:meth:`Halves.empty`).
     Messages name the source (its file), as the statistics' reader does.
     """
     from .samples import SampleSet, source_name
     from .features import source_features, source_layout
     name = source_name(source)
     names = source_features(source, features)
-    h = Halves.empty(source.width, source.height, tuple(source.channels), features=source_layout(source, names))
+    h = Halves.empty(source.width, source.height, tuple(source.channels), features=source_layout(source, names),
+                     window=window)
     h.sampler = check_sampler(getattr(source, "sampler", None), where=name)
     if h.sampler != "independent":
         h.totals = pixel_counts(source)
     # a SampleSet validated its arrays when it was built (contiguous, on the film); if
     # none of its values is NaN/Inf the policy has nothing to do: skip the re-check
     checked = isinstance(source, SampleSet) and source.n_nonfinite == 0
-    chunks = source.iter_chunks(with_round=False, features=names) if names else source.iter_chunks(with_round=False)
+    # a log reads the features of the window's chunks only
+    kw = {"window": window} if window is not None and hasattr(source, "iter_into") else {}
+    chunks = source.iter_chunks(with_round=False, features=names, **kw) if names else \
+        source.iter_chunks(with_round=False)
     for ch in chunks:
         if each_batch is not None:
             each_batch(ch.positions, ch.values)

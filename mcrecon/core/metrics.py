@@ -28,7 +28,7 @@ from .._lazy import public_dir as _public_dir
 DEFAULT_EPS = 1e-2
 
 __all__ = ["relative_mse", "relative_mse_map", "mse", "rmse", "psnr", "ssim", "smape", "smape_map", "flip",
-           "flip_available", "error_map", "compare", "output_sanity"]
+           "flip_available", "error_map", "compare", "output_sanity", "add_sanity"]
 
 FLIP_INSTALL_HINT = "pip install flip-evaluator"
 
@@ -268,7 +268,7 @@ def compare(img, ref, *, eps: float = 0.01, data_range: float | None = None, sma
     return out
 
 
-def output_sanity(image, stats, *, radius: int = 1) -> dict | None:
+def output_sanity(image, stats, *, radius: int = 1, rows=None) -> dict | None:
     """How far a reconstruction leaves the range of the samples it was built from.
 
     For every pixel and channel the samples of the pixel's (2 radius + 1)^2
@@ -283,6 +283,12 @@ def output_sanity(image, stats, *, radius: int = 1) -> dict | None:
         The statistics of the samples (with their per-pixel range).
     radius : int
         Neighbourhood half-width in pixels.
+    rows : (r0, r1), optional
+        ``image`` holds rows ``r0:r1`` of the statistics' pixels only (a band
+        of a film whose statistics are read with ``radius`` rows around it,
+        or up to the film's edge): the band's counts, to be added with
+        :func:`add_sanity` over the film's bands.  A neighbourhood without
+        samples then counts as non-negative where the band's samples are.
 
     Returns
     -------
@@ -305,11 +311,13 @@ def output_sanity(image, stats, *, radius: int = 1) -> dict | None:
     img = np.asarray(image, dtype=np.float64)
     if img.ndim == 2:
         img = img[..., None]
-    if img.shape != stats.shape:
-        raise InputError("output_sanity", "image", f"shape {img.shape}, expected the statistics' {stats.shape}")
+    r0, r1 = (0, stats.shape[0]) if rows is None else (int(rows[0]), int(rows[1]))
+    if img.shape != (r1 - r0,) + tuple(stats.shape[1:]):
+        raise InputError("output_sanity", "image", f"shape {img.shape}, expected the statistics' {stats.shape}"
+                         + ("" if rows is None else f" in rows {r0}:{r1}"))
     size = (2 * int(radius) + 1, 2 * int(radius) + 1, 1)
-    lo = minimum_filter(stats.min, size=size, mode="nearest")  # +inf where no sample around
-    hi = maximum_filter(stats.max, size=size, mode="nearest")  # -inf where no sample around
+    lo = minimum_filter(stats.min, size=size, mode="nearest")[r0:r1]  # +inf where no sample around
+    hi = maximum_filter(stats.max, size=size, mode="nearest")[r0:r1]  # -inf where no sample around
     finite = np.isfinite(img)
     defined = np.isfinite(lo) & np.isfinite(hi) & finite
     any_sample = bool(np.isfinite(stats.min).any())
@@ -329,5 +337,16 @@ def output_sanity(image, stats, *, radius: int = 1) -> dict | None:
         "max_overshoot_relative": float(rel.flat[worst]) if over.size else 0.0,
         "nonfinite_pixels": int((~finite).any(axis=2).sum()),
     }
+
+
+def add_sanity(total: dict | None, band: dict | None) -> dict | None:
+    """The :func:`output_sanity` of a film from its bands' (``rows``), added band after band in row order: the
+    counts summed, the worst overshoot the first largest (the film's ``argmax``)."""
+    if total is None or band is None:
+        return band if total is None else total
+    out = {k: total[k] + band[k] for k in ("negative_pixels", "overshoot_pixels", "nonfinite_pixels")}
+    worst = band if band["max_overshoot"] > total["max_overshoot"] else total
+    out["max_overshoot"], out["max_overshoot_relative"] = worst["max_overshoot"], worst["max_overshoot_relative"]
+    return out
 
 __dir__ = _public_dir(__name__)

@@ -272,6 +272,27 @@ def check_samples(positions, values, *, width: int, height: int, n_channels: int
     return pos, val, int(n_nonfinite)
 
 
+def touches_window(positions, window) -> bool:
+    """Whether any position's pixel lies in ``window`` = ``(y0, y1, x0, x1)`` (positions on the film)."""
+    pos = np.asarray(positions)
+    if pos.shape[0] == 0:
+        return False
+    y0, y1, x0, x1 = window
+    y, x = pos[:, 1], pos[:, 0]
+    return bool(np.any((y >= y0) & (y < y1) & (x >= x0) & (x < x1)))
+
+
+def positions_on_film(positions, width: int, height: int) -> bool:
+    """Whether every position is finite and on the ``width`` x ``height`` film (what :func:`check_samples` asks of
+    them): a reader that skips a batch's values checks its positions still."""
+    pos = np.asarray(positions)
+    if pos.shape[0] == 0:
+        return True
+    x, y = pos[:, 0], pos[:, 1]
+    with np.errstate(invalid="ignore"):
+        return bool(np.all((x >= 0) & (x < width) & (y >= 0) & (y < height)))
+
+
 def available_memory() -> int | None:
     """Bytes of memory this machine can still give a process (Linux ``MemAvailable``), or None if unknown."""
     try:

@@ -37,7 +37,7 @@ from .features import (check_features, feature_components, feature_layout, layou
 from .merge import NO_RANGE, MergedOnRead, _merge_run, _run_add
 from .moments import check_moments
 from .samples import (as_hwc, apply_nonfinite, check_memory, check_policy, check_samples, lazy_njit,
-    warn_nonfinite)
+    touches_window, warn_nonfinite)
 
 
 from .._lazy import public_dir as _public_dir
@@ -46,7 +46,7 @@ __all__ = ['PixelStats']
 
 
 @lazy_njit(cache=True, nogil=True)
-def _accumulate(pos, val, s, count, mean, m2, vmin, vmax, ranged, sub_sum, sub_count):
+def _accumulate(pos, val, s, count, mean, m2, vmin, vmax, ranged, sub_sum, sub_count, oy, ox):
     """Add every sample into the per-pixel arrays (in place; ``vmin``/``vmax`` only when ``ranged``).
 
     Renderers usually emit the samples of a pixel one after another, so
@@ -55,9 +55,14 @@ def _accumulate(pos, val, s, count, mean, m2, vmin, vmax, ranged, sub_sum, sub_c
     stable, in cache), then one Chan et al. merge into the pixel.  A run
     of one sample is exactly Welford's update.  Values must be finite and
     positions valid (the caller applies the policies first, see ``_scan``).
+
+    The arrays hold the window of the film whose first pixel is (``oy``,
+    ``ox``) and whose size is ``count``'s: runs are found on every sample
+    (a window's runs are the film's) and those of other pixels skipped.
     """
     nch = val.shape[1]
     n_total = pos.shape[0]
+    hh, ww = count.shape
     k = 0
     while k < n_total:
         ix = int(pos[k, 0])
@@ -65,10 +70,15 @@ def _accumulate(pos, val, s, count, mean, m2, vmin, vmax, ranged, sub_sum, sub_c
         end = k + 1
         while end < n_total and int(pos[end, 0]) == ix and int(pos[end, 1]) == iy:
             end += 1
+        if not (0 <= iy - oy < hh and 0 <= ix - ox < ww):
+            k = end
+            continue
         m = end - k
-        na = count[iy, ix]
+        py = iy - oy
+        px = ix - ox
+        na = count[py, px]
         n = na + m
-        count[iy, ix] = n
+        count[py, px] = n
         wb = m / n
         for c in range(nch):
             acc = 0.0
@@ -81,15 +91,15 @@ def _accumulate(pos, val, s, count, mean, m2, vmin, vmax, ranged, sub_sum, sub_c
             for j in range(k, end):
                 d = float(val[j, c]) - mu
                 q += d * d
-            _merge_run(mean, m2, vmin, vmax, iy, ix, c, na, wb, mu, q, lo, hi, ranged)
+            _merge_run(mean, m2, vmin, vmax, py, px, c, na, wb, mu, q, lo, hi, ranged)
         if s > 0:
             last = s - 1
             for j in range(k, end):
                 sx = int(pos[j, 0] * s)
                 sy = int(pos[j, 1] * s)
                 # x * s can round up past the pixel's last subpixel; keep it inside.
-                sx = min(sx, ix * s + last)
-                sy = min(sy, iy * s + last)
+                sx = min(sx, ix * s + last) - ox * s
+                sy = min(sy, iy * s + last) - oy * s
                 sub_count[sy, sx] += 1
                 for c in range(nch):
                     sub_sum[sy, sx, c] += float(val[j, c])
@@ -160,6 +170,10 @@ class PixelStats:
         functions return images in this dtype.
     """
 
+    #: ``(y0, x0, film_width, film_height)`` for the statistics of a window of a film (:meth:`window_of`):
+    #: batches are then in film positions, and the samples of other pixels are skipped.  None: the film.
+    _window = None
+
     def __init__(self, width: int, height: int, channels: Sequence[str] = ("R", "G", "B"), *,
                  subpixels: int = 0, features=None, where: str = "PixelStats", keep_range: bool = True):
         width, height = int(width), int(height)
@@ -203,6 +217,35 @@ class PixelStats:
         self.has_range = bool(keep_range)
         self._value_dtype = None
 
+    @classmethod
+    def window_of(cls, film_width: int, film_height: int, window, channels: Sequence[str] = ("R", "G", "B"), *,
+                  subpixels: int = 0, features=None, where: str = "PixelStats") -> "PixelStats":
+        """Empty statistics of the pixels ``window`` = ``(y0, y1, x0, x1)`` of a ``film_width`` x ``film_height``
+        film, to which whole batches of the film's samples are added (:meth:`add`, in film positions).
+
+        Runs of a pixel's consecutive samples are found on the whole batch, as
+        the film's statistics find them, and only the window's are
+        accumulated: the result is the film's statistics cropped to the
+        window (:meth:`crop`), bit for bit, holding the window's pixels
+        only.  The counts of dropped, zeroed and feature-zeroed samples are
+        the whole batches' (the policy is applied to the film's samples).
+        """
+        y0, y1, x0, x1 = (int(v) for v in window)
+        fw, fh = int(film_width), int(film_height)
+        if not (0 <= y0 < y1 <= fh and 0 <= x0 < x1 <= fw):
+            raise InputError(where, "window", f"rows {y0}:{y1}, columns {x0}:{x1} of a {fw}x{fh} film")
+        st = cls(x1 - x0, y1 - y0, channels, subpixels=subpixels, features=features, where=where)
+        st._window = (y0, x0, fw, fh)
+        for fst in st.features.values():
+            fst._window = st._window
+        return st
+
+    def window_rows_columns(self) -> tuple[int, int, int, int]:
+        """``(y0, y1, x0, x1)``: the film's pixels these statistics hold (:meth:`window_of`; the whole film
+        otherwise)."""
+        y0, x0 = (0, 0) if self._window is None else self._window[:2]
+        return y0, y0 + self.height, x0, x0 + self.width
+
     # ------------------------------------------------------------------ build
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -228,6 +271,7 @@ class PixelStats:
                              "without those features; give features= when creating them")
         for name, k in feature_layout(features).items():
             self.features[name] = _feature_stats(self.width, self.height, name, k)
+            self.features[name]._window = self._window
         return self
 
     @property
@@ -275,8 +319,17 @@ class PixelStats:
         previous one is accumulated.
         """
         check_policy(nonfinite, source)
-        pos, val, n_nonfinite = check_samples(positions, values, width=self.width, height=self.height,
+        if values is None and self._window is not None:   # a reader's batch with no sample in the window
+            return None
+        fw, fh = (self.width, self.height) if self._window is None else self._window[2:]
+        pos, val, n_nonfinite = check_samples(positions, values, width=fw, height=fh,
                                               n_channels=len(self.channels), where=source, channels=self.channels)
+        if self._window is not None and not touches_window(pos, self.window_rows_columns()):
+            # no sample of the window: nothing to add (its features need not even be read), the policy still said
+            if n_nonfinite:
+                apply_nonfinite(pos, val, n_nonfinite, nonfinite, where=source)   # raises under 'raise'
+            return (pos[:0], val[:0], n_nonfinite,
+                    {name: np.zeros((0, fst.mean.shape[2])) for name, fst in self.features.items()}, 0)
         feats, n_fz = {}, 0
         if self.features:
             feats, n_fz = check_features(features, pos.shape[0], where=source, layout=layout_of(self.features))
@@ -295,14 +348,16 @@ class PixelStats:
         sub_sum = self.sub_sum if s else np.zeros((1, 1, 1))
         sub_count = self.sub_count if s else np.zeros((1, 1), np.int64)
         ranged = self.min is not None
+        oy, ox = (0, 0) if self._window is None else self._window[:2]
         _accumulate(pos, val, s, self.count, self.mean, self.m2, self.min if ranged else NO_RANGE,
-                    self.max if ranged else NO_RANGE, ranged, sub_sum, sub_count)
+                    self.max if ranged else NO_RANGE, ranged, sub_sum, sub_count, oy, ox)
         self._note_dtype(val.dtype)
         if feats:
             no_sub, no_sub_count = np.zeros((1, 1, 1)), np.zeros((1, 1), np.int64)
             for name, fst in self.features.items():
                 f = feats[name]
-                _accumulate(pos, f, 0, fst.count, fst.mean, fst.m2, NO_RANGE, NO_RANGE, False, no_sub, no_sub_count)
+                _accumulate(pos, f, 0, fst.count, fst.mean, fst.m2, NO_RANGE, NO_RANGE, False, no_sub, no_sub_count,
+                            oy, ox)
                 fst._note_dtype(f.dtype)
         if n_feature_zeroed:
             self.n_feature_zeroed += int(n_feature_zeroed)
@@ -410,6 +465,7 @@ class PixelStats:
             d["sub_count"] = take(self.sub_count[y0 * s:y1 * s, x0 * s:x1 * s])
         d["width"], d["height"] = x1 - x0, y1 - y0
         d["n_dropped"] = d["n_zeroed"] = d["n_feature_zeroed"] = 0
+        d.pop("_window", None)   # a crop is statistics of its own pixels
         d["features"] = {name: fst.crop(y0, y1, x0, x1, view=view) for name, fst in self.features.items()}
         out = PixelStats.__new__(PixelStats)
         out.__dict__.update(d)
@@ -547,7 +603,7 @@ class PixelStats:
     def from_batches(cls, batches: Iterable, *, width: int, height: int,
                      channels: Sequence[str] = ("R", "G", "B"), subpixels: int = 0,
                      nonfinite: str = "drop", source: str = "samples", features=None,
-                     each_batch=None) -> "PixelStats":
+                     each_batch=None, window=None) -> "PixelStats":
         """Stream (positions, values) batches into new statistics.
 
         With ``features`` (name -> components), each batch is
@@ -557,11 +613,15 @@ class PixelStats:
         (a callable of positions and values), when given, sees every batch
         as read, NaN and Inf included, in stream order: another per-pixel
         accumulator (:class:`~mcrecon.core.strata.PrefixHalves`) fed by the
-        same pass over the samples instead of a second one.
+        same pass over the samples instead of a second one.  ``window``
+        ``(y0, y1, x0, x1)``: the statistics of those pixels only
+        (:meth:`window_of`).
         """
         from concurrent.futures import ThreadPoolExecutor
 
-        stats = cls(width, height, channels, subpixels=subpixels, features=features, where=source)
+        stats = cls(width, height, channels, subpixels=subpixels, features=features, where=source) \
+            if window is None else cls.window_of(width, height, window, channels, subpixels=subpixels,
+                                                 features=features, where=source)
         it = iter(batches)
         with ThreadPoolExecutor(max_workers=1) as pool:
             pending = None
@@ -586,12 +646,13 @@ class PixelStats:
 
     @classmethod
     def from_log(cls, log, *, subpixels: int = 0, nonfinite: str = "drop",
-                 rounds=None, chunk_size: int | None = None, features=(), each_batch=None) -> "PixelStats":
+                 rounds=None, chunk_size: int | None = None, features=(), each_batch=None,
+                 window=None) -> "PixelStats":
         """Stream an opened sample log (:func:`mcrecon.read_log`, a :class:`~mcrecon.io.SampleLog`) in chunks.
 
         ``features``: names of the log's per-sample features to accumulate
         too (``"all"`` for every one it has; by default none).
-        ``each_batch``: as :meth:`from_batches`.
+        ``each_batch``, ``window``: as :meth:`from_batches`.
         """
         if isinstance(log, (str, os.PathLike)):
             raise InputError("PixelStats.from_log", "log", f"{os.fspath(log)!r} is a path: open it with "
@@ -600,11 +661,11 @@ class PixelStats:
         if names:
             kw = {} if chunk_size is None else {"chunk_size": chunk_size}
             batches = ((b.positions, b.values, b.features) for b in
-                       log.iter_chunks(rounds=rounds, with_round=False, features=names, **kw))
+                       log.iter_chunks(rounds=rounds, with_round=False, features=names, window=window, **kw))
             return cls.from_batches(batches, width=log.width, height=log.height, channels=log.channels,
                                     subpixels=subpixels, nonfinite=nonfinite, source=str(log.path),
-                                    features=source_layout(log, names), each_batch=each_batch)
-        if rounds is None:
+                                    features=source_layout(log, names), each_batch=each_batch, window=window)
+        if rounds is None and window is None:
             # Two rotating buffers: one is filled while the other is accumulated.
             from .samples import DEFAULT_READ_ROWS
 
@@ -614,20 +675,22 @@ class PixelStats:
             batches = log.iter_into(bufs)
         else:
             kw = {} if chunk_size is None else {"chunk_size": chunk_size}
-            batches = ((b.positions, b.values) for b in log.iter_chunks(rounds=rounds, with_round=False, **kw))
+            batches = ((b.positions, b.values) for b in log.iter_chunks(rounds=rounds, with_round=False,
+                                                                         window=window, **kw))
         return cls.from_batches(batches, width=log.width, height=log.height, channels=log.channels,
-                                subpixels=subpixels, nonfinite=nonfinite, source=str(log.path), each_batch=each_batch)
+                                subpixels=subpixels, nonfinite=nonfinite, source=str(log.path), each_batch=each_batch,
+                                window=window)
 
     @classmethod
     def from_source(cls, source, *, subpixels: int = 0, nonfinite: str = "drop", features=(),
-                    each_batch=None) -> "PixelStats":
+                    each_batch=None, window=None) -> "PixelStats":
         """Stream any sample source: a sample log (its fast reader) or a
         :class:`~mcrecon.core.samples.SampleSet` (any object with ``width``,
         ``height``, ``channels`` and ``iter_chunks``).  ``features`` as
-        :meth:`from_log`, ``each_batch`` as :meth:`from_batches`."""
+        :meth:`from_log`, ``each_batch`` and ``window`` as :meth:`from_batches`."""
         if hasattr(source, "iter_into"):  # a SampleLog
             return cls.from_log(source, subpixels=subpixels, nonfinite=nonfinite, features=features,
-                                each_batch=each_batch)
+                                each_batch=each_batch, window=window)
         from .samples import source_name
 
         names = source_features(source, features)
@@ -638,7 +701,7 @@ class PixelStats:
             batches = ((c.positions, c.values) for c in source.iter_chunks(with_round=False))
         return cls.from_batches(batches, width=source.width, height=source.height, channels=source.channels,
                                 subpixels=subpixels, nonfinite=nonfinite, source=source_name(source),
-                                features=source_layout(source, names), each_batch=each_batch)
+                                features=source_layout(source, names), each_batch=each_batch, window=window)
 
     # -------------------------------------------------------------- derived
     def sample_variance(self, *, ddof: int = 1, undefined: float = np.nan) -> np.ndarray:

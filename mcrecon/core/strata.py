@@ -90,7 +90,15 @@ class PrefixHalves:
     counts in the nearest border pixel (the statistics drop it).
     """
 
-    def __init__(self, width: int, height: int, n_channels: int):
+    def __init__(self, width: int, height: int, n_channels: int, *, window=None):
+        # window (y0, y1, x0, x1): the prefix halves of those pixels of the film only, fed the film's batches
+        # (every estimate is per pixel, in each pixel's order: the film's cropped to the window, bit for bit)
+        self._film = (int(width), int(height))
+        self._origin = (0, 0)
+        if window is not None:
+            y0, y1, x0, x1 = (int(v) for v in window)
+            self._origin = (y0, x0)
+            width, height = x1 - x0, y1 - y0
         self.width, self.height, self.n_channels = int(width), int(height), int(n_channels)
         npix = self.width * self.height
         self.counter = np.zeros(npix, np.int64)
@@ -99,14 +107,22 @@ class PrefixHalves:
 
     def add(self, positions, values) -> None:
         """Add a batch of samples in stream order (each pixel's samples in its sequence order)."""
+        if values is None:
+            return   # a reader's batch with no sample of this window (mcrecon.io.SampleLog.iter_chunks)
         pos = np.asarray(positions, dtype=np.float64)
         val = np.asarray(values, dtype=np.float64)
         if val.ndim == 1:
             val = val[:, None]
         if pos.shape[0] == 0:
             return
-        ix = np.clip(np.floor(np.nan_to_num(pos[:, 0], nan=0.0)), 0, self.width - 1).astype(np.int64)
-        iy = np.clip(np.floor(np.nan_to_num(pos[:, 1], nan=0.0)), 0, self.height - 1).astype(np.int64)
+        fw, fh = self._film
+        ix = np.clip(np.floor(np.nan_to_num(pos[:, 0], nan=0.0)), 0, fw - 1).astype(np.int64)
+        iy = np.clip(np.floor(np.nan_to_num(pos[:, 1], nan=0.0)), 0, fh - 1).astype(np.int64)
+        if (fw, fh) != (self.width, self.height):  # a window: its pixels' samples, each pixel's in order
+            oy, ox = self._origin
+            iy, ix = iy - oy, ix - ox
+            inside = (iy >= 0) & (iy < self.height) & (ix >= 0) & (ix < self.width)
+            iy, ix, val = iy[inside], ix[inside], val[inside]
         s, n = self._sums, self._counts
         _add_kernel(iy * self.width + ix, np.ascontiguousarray(val), self.counter, s[0], s[1], s[2], n[0], n[1], n[2])
 

@@ -219,7 +219,8 @@ def reconstruct_tiled(source, *, method="box", tile: int = 1024, client=None, re
     ----------
     source : PixelStats, a sample log (path or SampleLog), a SampleSet or a half-buffer pair
         Without a ``client``, what ``reconstruct --tile`` reads
-        (:func:`mcrecon.offline.inputs.gather_inputs`, half buffers
+        (:func:`mcrecon.offline.tiles.film_inputs`: a sample source band
+        by band, statistics given in memory as they are, half buffers
         included), reconstructed by its tiles
         (:func:`mcrecon.offline.tiles.reconstruct_tiles`).  With one,
         methods of pixel statistics take statistics (a log is ingested
@@ -235,7 +236,8 @@ def reconstruct_tiled(source, *, method="box", tile: int = 1024, client=None, re
         Tile side in pixels (the halo comes on top of it).
     client : distributed.Client, optional
         Tiles run as tasks on it; without one, in this process one after
-        the other (memory: one grown tile at a time besides the input).
+        the other (memory: one band of grown tiles' statistics and one
+        tile's work at a time, for a sample source).
         For a log and a sample-filtering method each task streams the log
         itself (the log must be on a file system the workers share).
     reference : ndarray (H, W, C), optional
@@ -254,8 +256,7 @@ def reconstruct_tiled(source, *, method="box", tile: int = 1024, client=None, re
     from ..methods.base import Method, MethodInputs
     from ..methods import get_method
     from ..core.stats import PixelStats
-    from ..offline.inputs import gather_inputs
-    from ..offline.tiles import reconstruct_tiles
+    from ..offline.tiles import film_inputs, reconstruct_tiles
 
     m = method if isinstance(method, Method) else get_method(str(method), **options)
     if isinstance(method, Method) and options:
@@ -265,8 +266,7 @@ def reconstruct_tiled(source, *, method="box", tile: int = 1024, client=None, re
     if m.requires.samples and not m.requires.half_buffers:
         return _reconstruct_tiled_samples(m, source, tile, client, reference, nonfinite, where)
     if client is None:   # the tiles of reconstruct --tile, one after the other
-        inputs = gather_inputs(_opened(source), m, nonfinite=nonfinite, reference=reference, where=where,
-                               merged=False)
+        inputs = film_inputs(_opened(source), m, nonfinite=nonfinite, reference=reference, where=where)
         return reconstruct_tiles(m, inputs, tile=tile, diagnostics=False, where=where)[0]
     if not m.requires.statistics or m.requires.half_buffers:
         raise InputError(where, "client", f"{m.name} reads half buffers or no pixel statistics, which the "

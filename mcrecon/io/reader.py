@@ -33,7 +33,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..core.requests import check_sampler
-from ..core.samples import check_reference, round_slices
+from ..core.samples import check_reference, positions_on_film, round_slices, touches_window
 from ..core.samples import DEFAULT_READ_ROWS
 from .lock import _err, live_writer
 from .logformat import (LogChunk, _H5_ERRORS, _HAS_RECORD, _LIVE_RETRIES, _LIVE_RETRY_SECONDS, _committed_rows,
@@ -432,7 +432,7 @@ class SampleLog:
 
     def iter_chunks(self, *, chunk_size: int = DEFAULT_READ_ROWS, rounds=None,
                     start: int = 0, stop: int | None = None, with_round: bool = True,
-                    features=()) -> Iterator[LogChunk]:
+                    features=(), window=None) -> Iterator[LogChunk]:
         """Stream committed samples in chunks of at most ``chunk_size`` rows.
 
         Parameters
@@ -445,6 +445,12 @@ class SampleLog:
             Read the per-sample round index (``chunk.round``; else None).
         features : sequence of str
             Per-sample features to read with the samples (``chunk.features``).
+        window : (y0, y1, x0, x1), optional
+            Read the values and features only of chunks with a sample in
+            those pixels (``chunk.values`` and ``chunk.features`` None for
+            the others, whose positions are all on the film): a reader of a
+            window's statistics needs every chunk's positions (each pixel's
+            turn in the half split), but adds the window's samples only.
         """
         for name in features:
             if name not in self.feature_names:
@@ -462,14 +468,18 @@ class SampleLog:
                 for s in range(a, b, chunk_size):
                     e = min(b, s + chunk_size)
                     pos = f.read("positions", s, e)
-                    val = f.read("values", s, e)
+                    inside = window is None or touches_window(pos, window)
+                    # a chunk without a sample in the window: its positions alone (valid ones; else the values
+                    # too, for the statistics to refuse them as they refuse them in a pass over the film)
+                    val = None if not inside and positions_on_film(pos, self.width, self.height) else \
+                        f.read("values", s, e)
                     if not with_round:
                         rnd = None
                     elif self._has_round:
                         rnd = f.read("round", s, e).astype(np.int64, copy=False)
                     else:
                         rnd = (np.searchsorted(self.round_ends, np.arange(s, e), side="right")).astype(np.int64)
-                    feats = {name: f.read(f"features/{name}", s, e) for name in features}
+                    feats = {name: f.read(f"features/{name}", s, e) for name in features} if inside else None
                     yield LogChunk(pos, val, rnd, s, feats)
 
     def iter_into(self, buffers, *, start: int = 0, stop: int | None = None):

@@ -35,7 +35,7 @@ def check_method_supply(method: Method, supply: Supply, where: str | None = None
     check_supply(method, supply, where=where, **_LISTS)
 
 
-def statistics_for(source, req, *, nonfinite: str = "drop", merged: bool = True, strata=None):
+def statistics_for(source, req, *, nonfinite: str = "drop", merged: bool = True, strata=None, window=None):
     """``(stats, halves)`` of a sample source for a method's requirements ``req``.
 
     A method that reads the samples *and* takes half buffers reads the
@@ -51,17 +51,21 @@ def statistics_for(source, req, *, nonfinite: str = "drop", merged: bool = True,
     given, is filled by the same pass over the samples (bit for bit
     :func:`~mcrecon.core.strata.prefix_halves_of`: every sample as stored,
     in stored order); it stays empty when no statistics are built.
+    ``window`` ``(y0, y1, x0, x1)``: the statistics of those pixels only,
+    read from the whole source (the film's cropped to them, bit for bit:
+    :meth:`~mcrecon.core.stats.PixelStats.window_of`).
     """
     # every feature the method can accumulate ((N,) or (N, k) per sample); others are ignored
     features = usable_names(source) if req.features != "none" else ()
     if req.samples and req.half_buffers and req.statistics and not req.subpixels:
         split = split_halves(source, nonfinite=nonfinite, features=features,
-                             each_batch=None if strata is None else strata.add)
+                             each_batch=None if strata is None else strata.add, window=window)
         split.transient = True   # this call's alone: a method may let go of features it has done with
         # the merge's features are merged when read: a method reads few of them, one at a time
         return (split.a.merged(split.b, features_on_read=True) if merged else None), split
     stats = PixelStats.from_source(source, subpixels=req.subpixels, nonfinite=nonfinite, features=features,
-                                   each_batch=None if strata is None else strata.add) if req.statistics else None
+                                   each_batch=None if strata is None else strata.add,
+                                   window=window) if req.statistics else None
     return stats, None
 
 
@@ -112,7 +116,7 @@ def _given_halves(source, method: Method, src_where: str, m_where: str, what: st
 
 def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=None, where: str | None = None,
                   logs: bool = True, what: str | None = None, surface: str = "python",
-                  merged: bool = True) -> MethodInputs:
+                  merged: bool = True, window=None) -> MethodInputs:
     """The inputs ``method`` declares, read from ``source``: the one place a source becomes MethodInputs.
 
     Parameters
@@ -146,6 +150,12 @@ def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=
     merged : bool
         False: halves split from samples come without their merge
         (``stats`` None; :func:`statistics_for`).
+    window : (y0, y1, x0, x1), optional
+        For a sample source: the inputs of those pixels of the film only
+        (statistics, halves, prefix halves and reference), each the film's
+        cropped to the window, bit for bit, from one pass over the whole
+        source (:func:`statistics_for`); the memory of the window.  The
+        samples handed to a method that reads them are the whole source's.
     """
     src_where = where or "reconstruct"
     m_where = where or method.where
@@ -179,14 +189,27 @@ def gather_inputs(source, method: Method, *, nonfinite: str = "drop", reference=
                                            logs=logs), m_where)
         # the prefix halves follow the samples in their stored order (each pixel's sequence order), filled by
         # the statistics' pass over them (a pass of their own only for a method that reads no statistics)
-        strata = PrefixHalves(source.width, source.height, len(source.channels)) if req.prefix_halves else None
-        stats, halves = statistics_for(source, req, nonfinite=nonfinite, merged=merged, strata=strata)
+        strata = PrefixHalves(source.width, source.height, len(source.channels), window=window) \
+            if req.prefix_halves else None
+        stats, halves = statistics_for(source, req, nonfinite=nonfinite, merged=merged, strata=strata, window=window)
         if strata is not None and stats is None and halves is None:
             strata = prefix_halves_of(source)
+            if window is not None:
+                strata = strata.crop(*window)
         stored_ref = source.reference() if req.reference != "none" and hasattr(source, "reference") else None
         samples = source if req.samples else None
     shape = stats.shape if stats is not None else halves.shape if halves is not None else \
         (samples.height, samples.width, len(samples.channels))
-    ref = check_reference(reference if reference is not None else stored_ref, shape,
-                          **({"where": f"{where}: reference"} if where else {}))
+    ref = reference if reference is not None else stored_ref
+    if window is not None:
+        if not hasattr(source, "iter_chunks"):
+            raise InputError(src_where, "window", "a window of the film is read from a sample source (a log or a "
+                             "SampleSet); crop statistics or half buffers given in memory instead")
+        y0, y1, x0, x1 = window
+        film = (source.height, source.width, len(source.channels))
+        if ref is not None:
+            ref = check_reference(ref, film, **({"where": f"{where}: reference"} if where else {}))[y0:y1, x0:x1]
+        if stats is None and halves is None:
+            shape = (y1 - y0, x1 - x0, film[2])
+    ref = check_reference(ref, shape, **({"where": f"{where}: reference"} if where else {}))
     return MethodInputs(stats, samples, ref if req.reference != "none" else None, nonfinite, halves, strata)

@@ -24,7 +24,7 @@ from ..core.stats import PixelStats
 from .._lazy import public_dir as _public_dir
 from .inputs import gather_inputs
 from .pixel_files import is_pixel_file_source, read_pixel_file_source
-from .tiles import check_tile, reconstruct_tiles
+from .tiles import FilmReader, check_tile, film_inputs, reconstruct_tiles
 
 __all__ = ['reconstruct', 'split_source_fireflies', 'Reconstruction']
 
@@ -190,8 +190,12 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
         grown by the method's halo (:meth:`~mcrecon.methods.Method.halo`):
         the untiled image, with the method's working memory of one tile
         (:func:`mcrecon.offline.tiles.reconstruct_tiles`; half buffers are
-        merged tile by tile).  Refused for whole-image methods and for
-        pixels with fewer than two samples.  Default: untiled.
+        merged tile by tile).  A sample source is read one band of tiles at
+        a time, so the film's statistics are never held: the
+        :class:`Reconstruction`'s ``inputs`` then hold the samples, not
+        statistics (its sanity line is added band by band).  Refused for
+        whole-image methods and for pixels with fewer than two samples.
+        Default: untiled.
     diagnostics : bool
         With ``tile`` and ``full``: assemble the tiles' diagnostic maps,
         film-sized arrays beside the tiles' work; False leaves
@@ -211,6 +215,7 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
     True
     """
     tile = check_tile(tile)
+    sanity = None
     if isinstance(method, Method):
         if options:
             raise InputError("reconstruct", sorted(options)[0], "options go to get_method(); a method object "
@@ -236,12 +241,18 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
             reference = source.reference()  # the base SampleSet carries no stored reference
         original = source
         source, split = split_source_fireflies(source, nonfinite=nonfinite)
-    inputs = gather_inputs(source, m, nonfinite=nonfinite, reference=reference, merged=tile is None,
-                           **({"what": files.what, "surface": "files"} if files is not None else {}))
+    if tile is not None and files is None:
+        inputs = film_inputs(source, m, nonfinite=nonfinite, reference=reference)
+    else:
+        inputs = gather_inputs(source, m, nonfinite=nonfinite, reference=reference, merged=tile is None,
+                               **({"what": files.what, "surface": "files"} if files is not None else {}))
     h, w, _ = inputs.shape
     if tile is not None:
         image, run = reconstruct_tiles(m, inputs, tile=tile, diagnostics=full and diagnostics)
-        if inputs.stats is None:  # the colour's merge for the caller (counts, range): a third of a featured one
+        if isinstance(inputs, FilmReader):  # read band by band: the caller gets the samples and the sanity line
+            sanity = [inputs.sanity]
+            inputs = MethodInputs(None, inputs.source, None, nonfinite)
+        elif inputs.stats is None:  # the colour's merge for the caller (counts, range): a third of a featured one
             a, b = inputs.halves
             inputs = dataclasses.replace(inputs, stats=a.without_features().merged(b.without_features()))
     else:
@@ -253,7 +264,7 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
         image = files.output_image(image)
     if not full:
         return image
-    return Reconstruction(image, m, run, inputs, fireflies=split,
+    return Reconstruction(image, m, run, inputs, fireflies=split, _sanity=sanity if split is None else None,
                           _sanity_source=original if split is not None else None,
                           channels=files.channels if files is not None else tuple(inputs.channels),
                           files=files.files if files is not None else ())

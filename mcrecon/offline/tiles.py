@@ -1,16 +1,18 @@
-"""Tiled offline reconstruction: a local method's untiled image, with the memory of one tile at a time.
+"""Tiled offline reconstruction: a local method's untiled image, with the memory of one band of tiles at a time.
 
 A method whose result at a pixel depends only on the inputs within
 ``halo`` pixels of it (:meth:`~mcrecon.methods.Method.halo`) gives, on a
 tile grown by its halo (clipped at the film's edges), the untiled result
-inside the tile.  :func:`reconstruct_tiles` runs it tile after tile on
-crops of the statistics the dispatcher built once for the whole film
-(:func:`~mcrecon.offline.inputs.gather_inputs`); so the film's statistics
-stay (they are bounded by the image), while the method's own working
-arrays, most of a filter's peak, follow the tile.  For methods that read
-half buffers the Chan merge of the two halves is made tile by tile: the
-film's halves are the only statistics with their features held whole
-(no merged third copy beside them).
+inside the tile.  :func:`reconstruct_tiles` runs it tile after tile.  From
+a sample source (a log, a SampleSet: :class:`FilmReader`) it reads the
+statistics of one band of tiles at a time, the band's rows grown by the
+halo, from a pass over the whole source
+(:func:`~mcrecon.offline.inputs.gather_inputs` with a ``window``: the
+film's statistics cropped to the band, bit for bit), and cuts each tile
+from them; so neither the film's statistics nor the method's working
+arrays are held whole.  From statistics given in memory (pixel
+statistics, a half-buffer pair) it crops them.  For methods that read
+half buffers the Chan merge of the two halves is made tile by tile.
 
 Two methods of :class:`~mcrecon.methods.Method` tile it besides its halo:
 :meth:`~mcrecon.methods.Method.tile_grid`, ``(rows, columns)`` that a
@@ -31,8 +33,10 @@ import numpy as np
 from ..core.halves import Halves
 from ..errors import InputError
 from ..methods.base import Method, MethodInputs, RunState
+from .inputs import gather_inputs
 
-__all__ = ["tile_windows", "check_tile", "tileable_halo", "tile_inputs", "reconstruct_tiles"]
+__all__ = ["tile_windows", "check_tile", "tileable_halo", "tile_inputs", "reconstruct_tiles", "FilmReader",
+           "film_inputs"]
 
 
 def check_tile(tile, where: str = "reconstruct") -> int | None:
@@ -74,6 +78,106 @@ def tile_windows(width: int, height: int, tile: int, halo: int, *, even: bool = 
             yield outer, (y0, y1, x0, x1)
 
 
+class FilmReader:
+    """A sample source (a log, a :class:`~mcrecon.core.samples.SampleSet`) whose inputs are read a window at a
+    time: :meth:`read` is :func:`~mcrecon.offline.inputs.gather_inputs` of the window (one pass over the
+    whole source, the memory of the window), the film's inputs cropped to it, bit for bit.
+
+    What :func:`reconstruct_tiles` and a method's :meth:`~mcrecon.methods.Method.for_tiles` read the
+    film through, in place of the film's :class:`~mcrecon.methods.MethodInputs`.  ``bands``: the row
+    ranges ``(y0, y1)`` of the tiles, set by the driver (:meth:`planes` reads the film by them).
+    """
+
+    def __init__(self, source, method: Method, *, nonfinite: str = "drop", reference=None, where: str | None = None):
+        self.source, self.method, self.nonfinite, self.reference, self.where = \
+            source, method, nonfinite, reference, where
+        self.width, self.height = int(source.width), int(source.height)
+        self.channels = tuple(source.channels)
+        self.bands = [(0, self.height)]
+        self.said: dict = {}   # the warnings of the reads, each said once (every read passes the whole source)
+        #: The image's sanity line (:func:`~mcrecon.core.metrics.output_sanity`), added band by band as the
+        #: tiles finish (:meth:`add_sanity`); None until then, or for statistics without a range.
+        self.sanity = None
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return self.height, self.width, len(self.channels)
+
+    def read(self, window) -> MethodInputs:
+        """The inputs of the pixels ``window`` = ``(y0, y1, x0, x1)``; half buffers come without their merge."""
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            out = gather_inputs(self.source, self.method, nonfinite=self.nonfinite, reference=self.reference,
+                                where=self.where, merged=False, window=tuple(int(v) for v in window))
+        for wn in caught:
+            self.said.setdefault((wn.category, str(wn.message)), wn)
+        return out
+
+    def add_sanity(self, image: np.ndarray, band) -> None:
+        """Add the sanity line of a finished band ``((y0, y1), first row read, its inputs)`` of ``image``."""
+        from ..core.metrics import add_sanity, output_sanity
+
+        (y0, y1), by0, sub = band
+        if sub.halves is not None:   # the colour's range of all the samples: the halves' merged
+            a, b = sub.halves
+            st = a.without_features().merged(b.without_features())
+        else:
+            st = sub.stats
+        if st is not None and st.has_range:
+            self.sanity = add_sanity(self.sanity, output_sanity(image[y0:y1], st, rows=(y0 - by0, y1 - by0)))
+
+    def planes(self, planes_of):
+        """The film's planes that ``planes_of(inputs)`` makes pixel by pixel from a window's inputs.
+
+        ``planes_of`` yields groups of (h, w) planes of the window it is
+        given, each plane's pixel a function of that pixel's inputs alone.
+        The film is read band by band (:attr:`bands`, without halos); the
+        groups' planes go to a temporary file each, and come back one group
+        at a time, as (H, W) float64 planes of the film: the memory of a
+        band's inputs while reading, then of one group's film planes.
+        """
+        import tempfile
+
+        with tempfile.TemporaryDirectory(prefix="mcrecon-planes-") as tmp:
+            files, sizes = [], []
+            for y0, y1 in self.bands:
+                sub = self.read((y0, y1, 0, self.width))
+                i = 0
+                for g, group in enumerate(planes_of(sub)):
+                    if len(sizes) <= g:
+                        sizes.append(len(group))
+                    for plane in group:
+                        if len(files) <= i:
+                            files.append(open(f"{tmp}/{i}.f64", "wb"))
+                        np.ascontiguousarray(plane, dtype=np.float64).tofile(files[i])
+                        i += 1
+                del sub
+            for f in files:
+                f.close()
+            i = 0
+            for k in sizes:
+                yield tuple(np.fromfile(f"{tmp}/{j}.f64", np.float64).reshape(self.height, self.width)
+                            for j in range(i, i + k))
+                i += k
+
+
+def film_inputs(source, method: Method, *, nonfinite: str = "drop", reference=None, where: str | None = None):
+    """What the tiles of ``source`` are read from: a :class:`FilmReader` for a sample source (a log path, a
+    SampleLog, a SampleSet), else the film's inputs (:func:`~mcrecon.offline.inputs.gather_inputs`, half buffers
+    without their merge) for statistics given in memory."""
+    from pathlib import Path
+
+    from ..core.halves import is_half_buffer_pair
+    from ..core.stats import PixelStats
+
+    if isinstance(source, (str, Path)):
+        from ..io import read_log
+        source = read_log(source)
+    if not (isinstance(source, PixelStats) or is_half_buffer_pair(source)) and hasattr(source, "iter_chunks"):
+        return FilmReader(source, method, nonfinite=nonfinite, reference=reference, where=where)
+    return gather_inputs(source, method, nonfinite=nonfinite, reference=reference, where=where, merged=False)
+
+
 def tileable_halo(method: Method, width: int, height: int, where: str, *, inputs: MethodInputs | None = None) -> int:
     """The method's halo on a ``width`` x ``height`` film, or a one-line refusal saying why tiles would change
     the image: the one refusal of every tiled path (``reconstruct --tile``, :func:`reconstruct_tiles`,
@@ -92,21 +196,32 @@ def tileable_halo(method: Method, width: int, height: int, where: str, *, inputs
     if inputs is None:
         return int(halo)
     req = method.requires
-    if req.samples and not (req.half_buffers and inputs.halves is not None):
+    halves = inputs.halves is not None if isinstance(inputs, MethodInputs) else req.half_buffers
+    if req.samples and not (req.half_buffers and halves):
         raise InputError(where, "tile", f"{method.name} filters the individual samples, which the tiles of "
                          "offline statistics do not hold; tile it with mcrecon.distributed.reconstruct_tiled "
                          "(each tile streams its samples), or reconstruct untiled")
+    if isinstance(inputs, FilmReader):   # the samples per pixel are counted band by band (_check_counts)
+        return int(halo)
+    _check_counts(inputs, where)
+    return int(halo)
+
+
+def _check_counts(inputs: MethodInputs, where: str, rows=None) -> None:
+    """Refuse pixels (of ``rows`` ``(y0, y1)`` of ``inputs``, or all) with fewer than two samples, or none in
+    one of the halves: their fill-in may borrow from anywhere in the image."""
+    cut = (lambda a: a) if rows is None else (lambda a: a[rows[0]:rows[1]])  # noqa: E731
     if inputs.halves is not None:
-        few = int(np.count_nonzero(np.minimum(inputs.halves.a.count, inputs.halves.b.count) < 1))
+        few = int(np.count_nonzero(np.minimum(cut(inputs.halves.a.count), cut(inputs.halves.b.count)) < 1))
         what = "without a sample in one of its halves"
     else:
-        few = int(np.count_nonzero(inputs.stats.count < 2))
+        few = int(np.count_nonzero(cut(inputs.stats.count) < 2))
         what = "with fewer than 2 samples"
     if few:
-        raise InputError(where, "tile", f"{few} pixel(s) {what}: their fill-in may borrow from anywhere in the "
-                         "image, so tiles would not reproduce the untiled result; reconstruct untiled (no tile "
+        band = "" if rows is None else " in a band of tiles"
+        raise InputError(where, "tile", f"{few} pixel(s){band} {what}: their fill-in may borrow from anywhere in "
+                         "the image, so tiles would not reproduce the untiled result; reconstruct untiled (no tile "
                          "option), or give every pixel at least 2 samples")
-    return int(halo)
 
 
 def tile_inputs(inputs: MethodInputs, outer) -> MethodInputs:
@@ -125,7 +240,7 @@ def tile_inputs(inputs: MethodInputs, outer) -> MethodInputs:
     return MethodInputs(inputs.stats.crop(y0, y1, x0, x1), None, ref, inputs.nonfinite, strata=strata)
 
 
-def reconstruct_tiles(method: Method, inputs: MethodInputs, *, tile: int, diagnostics: bool = True,
+def reconstruct_tiles(method: Method, inputs: MethodInputs | FilmReader, *, tile: int, diagnostics: bool = True,
                       where: str = "reconstruct") -> tuple[np.ndarray, RunState]:
     """The untiled image of a local method, reconstructed tile by tile: ``(image (H, W, C) float64, run)``.
 
@@ -134,9 +249,13 @@ def reconstruct_tiles(method: Method, inputs: MethodInputs, *, tile: int, diagno
     method : Method
         A method declaring a finite :meth:`~mcrecon.methods.Method.halo`
         that reads pixel statistics or half buffers.
-    inputs : MethodInputs
-        The film's inputs (:func:`~mcrecon.offline.inputs.gather_inputs`);
-        with ``halves``, ``stats`` may be None (each tile merges its own).
+    inputs : FilmReader or MethodInputs
+        Where the tiles' inputs come from (:func:`film_inputs`): a sample
+        source read one band of tiles at a time (the band's rows grown by
+        the halo and moved back onto the method's grid; the tiles of a band
+        are crops of its inputs), or the film's inputs in memory
+        (:func:`~mcrecon.offline.inputs.gather_inputs`; with ``halves``,
+        ``stats`` may be None: each tile merges its own).
     tile : int
         Largest tile side in pixels; the halo comes on top of it.
     diagnostics : bool
@@ -160,20 +279,42 @@ def reconstruct_tiles(method: Method, inputs: MethodInputs, *, tile: int, diagno
         A whole-image method, a method that filters samples, or a pixel
         with fewer than two samples (one in each half for half buffers):
         the fill-in policies for those may borrow from the whole image.
+        Read band by band, such pixels are refused when their band is read
+        (before its tiles run).
     """
     tile = check_tile(tile, where)
     h, w, c = inputs.shape
     halo = tileable_halo(method, w, h, where, inputs=inputs)
     channels = inputs.channels
     windows = list(tile_windows(w, h, tile, halo, grid=method.tile_grid()))
+    streamed = isinstance(inputs, FilmReader)
+    bands: dict = {}   # the tiles of each band of rows, in order
+    for outer, inner in windows:
+        bands.setdefault(inner[:2], []).append((outer, inner))
+    if streamed:
+        inputs.bands = list(bands)
     runner = method if len(windows) == 1 else method.for_tiles(inputs)  # one tile: the untiled run
     image = np.empty((h, w, c), np.float64)
     maps: dict[str, np.ndarray] = {}
     said: dict = {}
+    band = None
     for outer, inner in windows:
         oy0, oy1, ox0, ox1 = outer
         y0, y1, x0, x1 = inner
-        sub = tile_inputs(inputs, outer)
+        if not streamed:
+            sub = tile_inputs(inputs, outer)
+        else:
+            if band is None or band[0] != (y0, y1):   # the band's statistics: its rows grown by the halo
+                if band is not None:
+                    inputs.add_sanity(image, band)
+                band = None
+                # one row more each side for the sanity line's 3 x 3 sample range
+                by0 = min([o[0] for o, _ in bands[y0, y1]] + [max(0, y0 - 1)])
+                by1 = max([o[1] for o, _ in bands[y0, y1]] + [min(h, y1 + 1)])
+                band = ((y0, y1), by0, inputs.read((by0, by1, 0, w)))
+                _check_counts(band[2], where, rows=(y0 - by0, y1 - by0))
+            by0 = band[1]
+            sub = tile_inputs(band[2], (oy0 - by0, oy1 - by0, ox0, ox1))
         run = runner.start(ox1 - ox0, oy1 - oy0, channels, reference=sub.reference)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
@@ -191,8 +332,14 @@ def reconstruct_tiles(method: Method, inputs: MethodInputs, *, tile: int, diagno
                 full = maps[name] = np.zeros((h, w) + m.shape[2:], m.dtype)
             full[y0:y1, x0:x1] = m[iy, ix]
         del sub, run, img
+    if band is not None:
+        inputs.add_sanity(image, band)
+    band = None
+    if streamed:
+        for key, wn in inputs.said.items():
+            said.setdefault(key, wn)
     for wn in said.values():
         warnings.warn_explicit(wn.message, wn.category, wn.filename, wn.lineno)
-    run = method.start(w, h, channels, reference=inputs.reference)
+    run = method.start(w, h, channels, reference=None if streamed else inputs.reference)
     run.diagnostics = maps
     return image, run

@@ -227,10 +227,15 @@ class NFORMethod(Method):
         """This method for the tiles of the film ``inputs`` (its half buffers with features): a copy that
         standardises every tile's features by the film's means and deviations
         (:func:`~mcrecon.methods.nfor.pipeline.film_feature_scales`), the one whole-image decision of the
-        pipeline (the ridge's scale), made here once."""
-        a, b = inputs.halves
+        pipeline (the ridge's scale), made here once.  A film read band by band
+        (:class:`~mcrecon.offline.tiles.FilmReader`) gives each feature component's planes through
+        temporary files (``planes``): one pass over the samples more, a few planes of the film held."""
         p = self.params
-        scales = film_feature_scales(feature_components(a, b), feature_radius=p["feature_radius"],
+        if isinstance(inputs, MethodInputs):
+            components = feature_components(*inputs.halves)
+        else:   # a film read a band at a time (mcrecon.offline.tiles.FilmReader): its planes assembled on disk
+            components = inputs.planes(lambda sub: feature_components(*sub.halves))
+        scales = film_feature_scales(components, feature_radius=p["feature_radius"],
                                      feature_patch=p["feature_patch"], feature_k=p["feature_k"],
                                      final_feature_radius=PAPER["final_feature_radius"],
                                      final_feature_patch=PAPER["final_feature_patch"],
