@@ -324,7 +324,7 @@ def test_ingest_beside_observe_equals_one_after_the_other(rng, n_bad):
     with ThreadPoolExecutor(1) as helper:
         for run, st, h in zip(runs, stats, (None, helper)):
             with pytest.warns(McreconWarning) if n_bad else warnings.catch_warnings():
-                _take_round(_intake(m, run, st), SampleBatch(pos, val), 0, source="x", n_nonfinite=n_bad, helper=h)
+                _take_round(_intake(m, run, st), SampleBatch(pos, val), 0, source="x", n_nonfinite=n_bad, observe=h)
     for f in ("count", "mean", "m2", "min", "max"):
         np.testing.assert_array_equal(getattr(stats[0], f), getattr(stats[1], f))
     np.testing.assert_array_equal(runs[0].splatter.image, runs[1].splatter.image)

@@ -23,8 +23,11 @@ from ..core.samples import (FLOAT32_MAX, apply_nonfinite, check_memory, float32_
 from .schedule import _adaptive_state, _committed, _pixel_counts_of, _request_counts, round_seeds
 
 
-def _take_round(ctx, batch, round_index, *, source, n_nonfinite=None, timeline=None, helper=None,
-                counts=None, defer_observe=False):
+#: ``observe=`` of :func:`_take_round` and :meth:`Rounds.commit`: ``observe`` is returned, not run.
+DEFER = "defer"
+
+
+def _take_round(ctx, batch, round_index, *, source, n_nonfinite=None, timeline=None, counts=None, observe=None):
     """A committed round into the run's statistics and, for methods that read samples, into ``observe``.
 
     The one path of the live run and of a resume's replay: the method, its
@@ -36,17 +39,20 @@ def _take_round(ctx, batch, round_index, *, source, n_nonfinite=None, timeline=N
     positions on the film): the statistics then take the arrays without
     checking them again -- the same numbers as ``stats.add`` would ingest
     (``check_samples`` returns contiguous arrays of the given float dtype).
-    ``helper`` (an idle one-thread executor, live runs only): the statistics
+    ``observe`` says where and when the method's ``observe`` runs: None, here
+    after the statistics; an idle one-thread executor (live runs only): the statistics
     ingest the round there while ``observe`` runs here -- they read the
     same arrays and write disjoint state, both compiled kernels that release
     the GIL -- and both are done when this returns.
     ``counts`` (H, W): the round's samples per pixel when the caller knows them (a live run: the
     request's, which the validation has matched pixel by pixel), so that they are not counted again
     from the positions (a bincount over every sample of the round); a resume's replay counts them.
-    ``defer_observe`` (a live run's pipelined commit, for a method that plans before it observes:
+    :data:`DEFER` (a live run's pipelined commit, for a method that plans before it observes:
     :func:`plans_before_observe`): the statistics take the round here, and ``observe`` is returned as a
     callable for the caller to run once it has planned (None when there is nothing to observe).
     """
+    defer_observe = observe is DEFER
+    helper = None if (observe is None or defer_observe) else observe
     method, stats, nonfinite = ctx.method, ctx.stats, ctx.nonfinite
     # every row the renderer delivered (NaN/Inf included) took an index of its pixel's sequence
     # (a context without the count, a test's stand-in, only ingests)
@@ -224,9 +230,8 @@ class _Round:
                                   stacklevel=4)
         return SampleBatch(cast_positions(batch.positions, dtype), val.astype(dtype, copy=False), batch.features)
 
-    def commit(self, batch, n_bad, record, toolkit_s, *, helper=None, writer=None, writer_copy=None, counts=None,
-               defer_observe=False):
-        """Append to the log, then into the statistics (and ``observe``; with ``helper``, an idle
+    def commit(self, batch, n_bad, record, toolkit_s, *, writer=None, writer_copy=None, counts=None, observe=None):
+        """Append to the log, then into the statistics (and ``observe``; with ``observe`` an idle
         one-thread executor, the two at once: see :func:`_take_round`).
 
         ``writer`` (a one-thread executor): the append is submitted there and its future returned;
@@ -234,7 +239,7 @@ class _Round:
         ``writer_copy``: hand the writer a copy of the arrays (default: unless the renderer's replies
         are ``fresh_replies``); not needed when the caller waits for the write before the next render.
         ``counts``: the round's samples per pixel, known from its validated request (:func:`_take_round`).
-        ``defer_observe``: ``observe`` is not run but returned (:func:`_take_round`): (pending, observe).
+        ``observe`` :data:`DEFER`: ``observe`` is not run but returned (:func:`_take_round`): (pending, observe).
         """
         pending = None
         if self.log_path is not None:
@@ -249,9 +254,9 @@ class _Round:
                     np.array(batch.positions), np.array(batch.values),
                     {k: np.array(v) for k, v in batch.features.items()} if batch.features else batch.features)
                 pending = writer.submit(self._append, kept, record["round"], rec, True)
-        observe = _take_round(self.ctx, batch, record["round"], source=self.name, n_nonfinite=n_bad,
-                              timeline=self.timeline, helper=helper, counts=counts, defer_observe=defer_observe)
-        return (pending, observe) if defer_observe else pending
+        deferred = _take_round(self.ctx, batch, record["round"], source=self.name, n_nonfinite=n_bad,
+                               timeline=self.timeline, counts=counts, observe=observe)
+        return (pending, deferred) if observe is DEFER else pending
 
     def _append(self, batch, round_index, rec, on_writer=False):
         # on the writer thread: tagged as a helper's phase (its CPU counts in toolkit_cpu_seconds)
@@ -437,7 +442,7 @@ def _sequential_rounds(ctx, rnd, writes, helper):
                   "samples_total": _committed(stats) + len(batch), "renderer_seconds": render_s}
         t3 = time.perf_counter()
         writes.written(wait=True)  # one round on its way at a time
-        pending = rnd.commit(batch, n_bad, record, toolkit_s, helper=helper, writer=writes.executor,
+        pending = rnd.commit(batch, n_bad, record, toolkit_s, observe=helper, writer=writes.executor,
                              counts=_request_counts(req))
         toolkit_s += time.perf_counter() - t3
         clock.toolkit_cpu += (cp - c0) + (time.thread_time() - c2)
@@ -480,9 +485,9 @@ def _loop_pipelined(ctx, rnd, writes):
                   "renderer_seconds": render_s}
         # committed by this thread while nothing renders (``helper``): the log's append runs beside the
         # statistics and observe, and is done before the round counts as committed
-        pending = rnd.commit(batch, n_bad, record, carry + extra_s + (time.perf_counter() - t0), helper=helper,
+        pending = rnd.commit(batch, n_bad, record, carry + extra_s + (time.perf_counter() - t0),
                              writer=writer if helper is not None else None, writer_copy=False,
-                             counts=_request_counts(preq), defer_observe=defer_observe)
+                             counts=_request_counts(preq), observe=DEFER if defer_observe else helper)
         observe = None
         if defer_observe:
             pending, observe = pending
