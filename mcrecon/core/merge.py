@@ -10,8 +10,9 @@ without copying the first input first.  The output may be the first input
 (a merge in place): each element is read before it is written.
 
 The merge of one run of samples into a pixel (:func:`_run_add`, :func:`_merge_run`) is written here
-once for :meth:`PixelStats.add` and the half buffers' split (:mod:`mcrecon.core.halves`), whose
-statistics of a half are then bit for bit those of its samples added alone.
+once for :meth:`PixelStats.add` (:func:`_accumulate`) and the half buffers' split
+(:mod:`mcrecon.core.halves`), whose statistics of a half are then bit for bit those of its samples
+added alone.
 """
 
 from __future__ import annotations
@@ -134,3 +135,64 @@ class MergedOnRead(MutableMapping):
 
     def __len__(self):
         return len(self.layout)
+
+
+@lazy_njit(cache=True, nogil=True)
+def _accumulate(pos, val, s, count, mean, m2, vmin, vmax, ranged, sub_sum, sub_count, oy, ox):
+    """Add every sample into the per-pixel arrays (in place; ``vmin``/``vmax`` only when ``ranged``).
+
+    Renderers usually emit the samples of a pixel one after another, so
+    the loop takes *runs* of consecutive samples in the same pixel: a
+    two-pass mean and sum of squared deviations over the run (exact and
+    stable, in cache), then one Chan et al. merge into the pixel.  A run
+    of one sample is exactly Welford's update.  Values must be finite and
+    positions valid (the caller applies the policies first, see ``_scan``).
+
+    The arrays hold the window of the film whose first pixel is (``oy``,
+    ``ox``) and whose size is ``count``'s: runs are found on every sample
+    (a window's runs are the film's) and those of other pixels skipped.
+    """
+    nch = val.shape[1]
+    n_total = pos.shape[0]
+    hh, ww = count.shape
+    k = 0
+    while k < n_total:
+        ix = int(pos[k, 0])
+        iy = int(pos[k, 1])
+        end = k + 1
+        while end < n_total and int(pos[end, 0]) == ix and int(pos[end, 1]) == iy:
+            end += 1
+        if not (0 <= iy - oy < hh and 0 <= ix - ox < ww):
+            k = end
+            continue
+        m = end - k
+        py = iy - oy
+        px = ix - ox
+        na = count[py, px]
+        n = na + m
+        count[py, px] = n
+        wb = m / n
+        for c in range(nch):
+            acc = 0.0
+            lo = np.inf
+            hi = -np.inf
+            for j in range(k, end):
+                acc, lo, hi = _run_add(acc, lo, hi, float(val[j, c]))
+            mu = acc / m
+            q = 0.0
+            for j in range(k, end):
+                d = float(val[j, c]) - mu
+                q += d * d
+            _merge_run(mean, m2, vmin, vmax, py, px, c, na, wb, mu, q, lo, hi, ranged)
+        if s > 0:
+            last = s - 1
+            for j in range(k, end):
+                sx = int(pos[j, 0] * s)
+                sy = int(pos[j, 1] * s)
+                # x * s can round up past the pixel's last subpixel; keep it inside.
+                sx = min(sx, ix * s + last) - ox * s
+                sy = min(sy, iy * s + last) - oy * s
+                sub_count[sy, sx] += 1
+                for c in range(nch):
+                    sub_sum[sy, sx, c] += float(val[j, c])
+        k = end

@@ -34,76 +34,15 @@ import numpy as np
 from ..errors import InputError
 from .features import (check_features, feature_components, feature_layout, layout_of, source_features, source_layout,
     warn_feature_zeroed)
-from .merge import NO_RANGE, MergedOnRead, _merge_run, _run_add
-from .moments import check_moments
-from .samples import (as_hwc, apply_nonfinite, check_memory, check_policy, check_samples, lazy_njit,
+from .merge import NO_RANGE, MergedOnRead, _accumulate
+from .moments import stats_from_moments
+from .samples import (apply_nonfinite, check_memory, check_policy, check_samples,
     touches_window, warn_nonfinite)
 
 
 from .._lazy import public_dir as _public_dir
 
 __all__ = ['PixelStats']
-
-
-@lazy_njit(cache=True, nogil=True)
-def _accumulate(pos, val, s, count, mean, m2, vmin, vmax, ranged, sub_sum, sub_count, oy, ox):
-    """Add every sample into the per-pixel arrays (in place; ``vmin``/``vmax`` only when ``ranged``).
-
-    Renderers usually emit the samples of a pixel one after another, so
-    the loop takes *runs* of consecutive samples in the same pixel: a
-    two-pass mean and sum of squared deviations over the run (exact and
-    stable, in cache), then one Chan et al. merge into the pixel.  A run
-    of one sample is exactly Welford's update.  Values must be finite and
-    positions valid (the caller applies the policies first, see ``_scan``).
-
-    The arrays hold the window of the film whose first pixel is (``oy``,
-    ``ox``) and whose size is ``count``'s: runs are found on every sample
-    (a window's runs are the film's) and those of other pixels skipped.
-    """
-    nch = val.shape[1]
-    n_total = pos.shape[0]
-    hh, ww = count.shape
-    k = 0
-    while k < n_total:
-        ix = int(pos[k, 0])
-        iy = int(pos[k, 1])
-        end = k + 1
-        while end < n_total and int(pos[end, 0]) == ix and int(pos[end, 1]) == iy:
-            end += 1
-        if not (0 <= iy - oy < hh and 0 <= ix - ox < ww):
-            k = end
-            continue
-        m = end - k
-        py = iy - oy
-        px = ix - ox
-        na = count[py, px]
-        n = na + m
-        count[py, px] = n
-        wb = m / n
-        for c in range(nch):
-            acc = 0.0
-            lo = np.inf
-            hi = -np.inf
-            for j in range(k, end):
-                acc, lo, hi = _run_add(acc, lo, hi, float(val[j, c]))
-            mu = acc / m
-            q = 0.0
-            for j in range(k, end):
-                d = float(val[j, c]) - mu
-                q += d * d
-            _merge_run(mean, m2, vmin, vmax, py, px, c, na, wb, mu, q, lo, hi, ranged)
-        if s > 0:
-            last = s - 1
-            for j in range(k, end):
-                sx = int(pos[j, 0] * s)
-                sy = int(pos[j, 1] * s)
-                # x * s can round up past the pixel's last subpixel; keep it inside.
-                sx = min(sx, ix * s + last) - ox * s
-                sy = min(sy, iy * s + last) - oy * s
-                sub_count[sy, sx] += 1
-                for c in range(nch):
-                    sub_sum[sy, sx, c] += float(val[j, c])
-        k = end
 
 
 def _feature_stats(width: int, height: int, name: str, k: int, where: str = "PixelStats") -> "PixelStats":
@@ -551,39 +490,8 @@ class PixelStats:
         >>> float(st.mean_variance()[0, 0, 0])
         0.0025
         """
-        m, v, n, sampled = check_moments(mean, variance, count, variance_of=variance_of, where=where)
-        h, w, c = m.shape
-        names = tuple(channels) if channels is not None else (
-            ("R", "G", "B") if c == 3 else tuple(f"C{i}" for i in range(c)))
-        if len(names) != c:
-            raise InputError(where, "channels", f"{len(names)} names for {c} channels")
-        st = cls(w, h, names)
-        st.count[...] = n
-        st.mean[...] = np.where(sampled, m, 0.0)
-        st.m2[...] = np.where(sampled, v * np.maximum(n - 1, 0)[..., None], 0.0)
-        st.min[...] = np.where(sampled, np.nan, np.inf)
-        st.max[...] = np.where(sampled, np.nan, -np.inf)
-        st.has_range = False
-        st._note_dtype(np.result_type(np.asarray(mean).dtype, np.float32) if np.asarray(mean).dtype.kind == "f"
-                       else np.float64)
-        if features is not None:
-            if not hasattr(features, "items"):
-                raise InputError(where, "features", f"got {type(features).__name__}, expected a mapping "
-                                 "name -> (mean, variance)")
-            for name, pair in features.items():
-                if not isinstance(pair, (tuple, list)) or len(pair) != 2:
-                    raise InputError(where, f"features/{name}", "expected a pair (mean, variance) of per-pixel "
-                                     "images (variance None when unknown)")
-                f_mean = as_hwc(pair[0], where=where, field=f"features/{name} mean")
-                f_var = np.zeros_like(f_mean) if pair[1] is None else pair[1]
-                if f_mean.ndim != 3 or f_mean.shape[:2] != (h, w):
-                    raise InputError(where, f"features/{name}", f"mean shape {np.shape(pair[0])}, expected "
-                                     f"({h}, {w}) or ({h}, {w}, k) like the colour")
-                fst = cls.from_moments(f_mean, f_var, n, channels=feature_components(str(name), f_mean.shape[2]),
-                                       variance_of=variance_of, where=f"{where}: features/{name}")
-                fst.min = fst.max = None  # a feature's statistics keep no range (_feature_stats)
-                st.features[str(name)] = fst
-        return st
+        return stats_from_moments(cls, mean, variance, count, channels=channels, variance_of=variance_of,
+                                  features=features, where=where)
 
     @classmethod
     def from_samples(cls, positions, values, *, width: int, height: int,
