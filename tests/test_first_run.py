@@ -61,7 +61,7 @@ def test_a_second_demo_compiles_nothing(tmp_path, full_run):
             f"assert main(['demo', '--size', '24x20', '--spp', '2', '--out', {str(tmp_path / 'd')!r}{methods}]) == 0\n")
     first = _run(code, tmp_path / "cache")
     assert any(k.startswith("mcrecon.renderers.scenes") for k in first)
-    assert "mcrecon.core.stats._accumulate" in first  # an empty cache: compiled
+    assert "mcrecon.core.merge._accumulate" in first  # an empty cache: compiled
     assert _run(code, tmp_path / "cache") == []       # the same cache: loaded, nothing compiled
 
 

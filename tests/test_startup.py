@@ -149,10 +149,10 @@ def test_numpy_screen_equals_the_kernel(dtype):
 
 
 def test_lazy_kernel_becomes_the_numba_dispatcher():
-    from mcrecon.core import stats
+    from mcrecon.core import merge, stats
 
     stats.PixelStats.from_samples(np.array([[0.5, 0.5]]), np.ones((1, 1)), width=1, height=1, channels=("Y",))
-    assert type(stats._accumulate).__name__ == "CPUDispatcher"  # replaced in the module at the first call
+    assert type(merge._accumulate).__name__ == "CPUDispatcher"  # replaced in its module at the first call
 
 
 class _Terminal(io.StringIO):
