@@ -160,7 +160,7 @@ def _end_run(open_runs, h, runs, n_runs):
 def _add_run(first, stop, p, m, h, step, lab, val, width, oy, ox, count, mean, m2, vmin, vmax, ranged):
     # the m samples of half h in [first, stop), all in pixel p: a two-pass mean and sum of squared
     # deviations over the run, then one Chan et al. merge (merge._merge_run) -- term for term the
-    # arithmetic of mcrecon.core.stats._accumulate on the half's samples in stream order.  The run as a
+    # arithmetic of mcrecon.core.merge._accumulate on the half's samples in stream order.  The run as a
     # 0-based slice (no negative-index wraparound check in the inner loops) and a stride-2 loop that reads no
     # label: 0.24 s of CPU for the colour of 33 M samples, where one strided loop testing every label
     # takes 0.42 s
