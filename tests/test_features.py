@@ -124,7 +124,7 @@ def test_nonfinite_features_are_zeroed_counted_and_warned_and_dropped_samples_lo
     feats["depth"][:7] = np.inf  # rays that left the scene
     val = val.copy()
     val[10] = np.nan  # the colour's drop policy drops this sample, features included
-    with pytest.warns(McreconWarning, match="7 sample"):
+    with pytest.warns(McreconWarning, match="7 sample"), pytest.warns(McreconWarning, match=r"1 sample\(s\).*dropped"):
         st = PixelStats.from_samples(pos, val, width=W, height=H, features=feats, nonfinite="drop")
     assert st.n_feature_zeroed == 7 and st.n_dropped == 1
     keep = np.isfinite(val).all(axis=1)
