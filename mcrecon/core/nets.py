@@ -57,7 +57,7 @@ import numba
 import numpy as np
 
 __all__ = ["net_counts", "fill_lowest", "rare_net_floor", "state_rare_net_floor", "rare_net_deficit",
-           "shows_structure", "even_round", "even_plan", "noise_only", "counts_with_pending",
+           "shows_structure", "even_round", "even_plan", "noise_only", "counts_with_pending", "round_cap_spp",
            "halves_error", "beats_even"]
 
 #: Standard deviations (under Gaussian noise) a dispersion statistic must exceed its noise-only value by.
@@ -285,6 +285,12 @@ def fill_lowest(current: np.ndarray, n: int, rng: np.random.Generator, *,
         at = np.flatnonzero((c + out == lo) & (out < room))
         out[rng.choice(at, size=left, replace=False)] += 1
     return out.reshape(shape)
+
+
+def round_cap_spp(budget: int, n_pixels: int, parts: int, floor: int) -> int:
+    """Whole samples per pixel of the largest doubling round: 1 / ``parts`` of the budget, never below ``floor``
+    samples (:attr:`~mcrecon.methods.base.Method.max_round_parts`, ``max_round_floor``)."""
+    return max(-(-budget // (parts * n_pixels)), -(-floor // n_pixels))
 
 
 def counts_with_pending(state) -> np.ndarray:

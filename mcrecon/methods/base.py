@@ -37,7 +37,7 @@ from ..core.requests import SampleBatch, SampleRequest
 from ..core.stats import PixelStats
 from ..core.features import usable_layout, usable_names
 from ..core.halves import Halves, as_halves, split_halves
-from ..core.nets import even_plan, net_plan, noise_only
+from ..core.nets import even_plan, net_plan, noise_only, round_cap_spp
 from .supply import Supply, check_supply
 
 __all__ = ['Method', 'AdaptiveState', 'Option', 'Requirements', 'MethodInputs', 'RunState', 'uniform_counts',
@@ -641,7 +641,7 @@ class Method:
     def doubling_round(self, state: AdaptiveState) -> int:
         """Samples of a round that doubles the total, capped at 1 / ``max_round_parts`` of the budget."""
         npix = state.width * state.height
-        cap_spp = max(-(-state.budget // (self.max_round_parts * npix)), -(-self.max_round_floor // npix))
+        cap_spp = round_cap_spp(state.budget, npix, self.max_round_parts, self.max_round_floor)
         return min(state.remaining, state.n_samples, cap_spp * npix)
 
     def place(self, run: RunState, state: AdaptiveState, n: int):

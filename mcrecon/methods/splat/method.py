@@ -8,6 +8,7 @@ import warnings
 import numpy as np
 
 from ...errors import InputError, McreconWarning
+from ...core.nets import round_cap_spp
 from ...core.requests import SampleBatch, SampleRequest
 from ...core.samples import check_policy, source_name
 from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, variant_option
@@ -303,7 +304,7 @@ class SplatMethod(Method):
         whole spp, not below ``max_round_floor`` samples) when ``rem`` holds two of them, so that the
         round splatted after the renderer has finished is not half the budget; one round more only (a
         round costs the gated splat a pass per pixel).  The paper's doubling is not split."""
-        cap = max(-(-budget // (self.max_round_parts * p_film)), -(-self.max_round_floor // p_film))
+        cap = round_cap_spp(budget, p_film, self.max_round_parts, self.max_round_floor)
         return rem - cap if rem >= 2 * cap else rem
 
     def observe(self, run: "SplatRun", batch: SampleBatch, round_index: int) -> None:
