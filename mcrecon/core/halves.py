@@ -430,9 +430,7 @@ class Halves:
         a, b = self.a, self.b
         fw, fh = self._film()
         if values is None and a._window is not None:   # a reader's batch with no sample in the window
-            pos = np.asarray(positions)
-            if pos.shape[0]:   # each pixel's turns (the labels of later batches), as the labels count them
-                self.counter += np.bincount(_pixels(pos, fw, fh), minlength=fw * fh)
+            self._count_turns(np.asarray(positions))
             return
         if _checked:  # a SampleSet's arrays, validated when it was built, all values finite
             pos, val, n_nonfinite = positions, values, 0
@@ -448,8 +446,7 @@ class Halves:
                 if n_nonfinite:
                     apply_nonfinite(pos, val, n_nonfinite, nonfinite, where=source)   # raises under 'raise'
                     warn_nonfinite(source, n_nonfinite, nonfinite, stacklevel=2)
-                if pos.shape[0]:
-                    self.counter += np.bincount(_pixels(pos, fw, fh), minlength=fw * fh)
+                self._count_turns(pos)
                 return
             feats, n_fz = check_features(features, pos.shape[0], where=source, layout=layout_of(a.features)) \
                 if a.features else ({}, 0)
@@ -522,6 +519,13 @@ class Halves:
             if sel.any():
                 st.add(pos[sel], val[sel], features=take_rows(features or {}, sel), nonfinite=nonfinite,
                        source=source)
+
+    def _count_turns(self, pos: np.ndarray) -> None:
+        """Count each pixel's turns in a batch none of whose samples is added (halves of a window): the labels
+        of later batches follow from them, as :func:`split_labels` counts them."""
+        if pos.shape[0]:
+            fw, fh = self._film()
+            self.counter += np.bincount(_pixels(pos, fw, fh), minlength=fw * fh)
 
     def _film(self) -> tuple[int, int]:
         """``(width, height)`` of the film the batches :meth:`add` splits are of (the halves may hold a window)."""

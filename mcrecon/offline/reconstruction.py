@@ -253,8 +253,7 @@ def reconstruct(source, *, method="box", nonfinite: str = "drop", reference=None
             sanity = [inputs.sanity]
             inputs = MethodInputs(None, inputs.source, None, nonfinite)
         elif inputs.stats is None:  # the colour's merge for the caller (counts, range): a third of a featured one
-            a, b = inputs.halves
-            inputs = dataclasses.replace(inputs, stats=a.without_features().merged(b.without_features()))
+            inputs = dataclasses.replace(inputs, stats=inputs.halves.without_features().merged())
     else:
         run = m.start(w, h, inputs.channels, reference=inputs.reference)
         image = np.asarray(m.reconstruct(inputs, run=run), dtype=np.float64)

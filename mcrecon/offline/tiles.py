@@ -118,11 +118,8 @@ class FilmReader:
         from ..core.metrics import add_sanity, output_sanity
 
         (y0, y1), by0, sub = band
-        if sub.halves is not None:   # the colour's range of all the samples: the halves' merged
-            a, b = sub.halves
-            st = a.without_features().merged(b.without_features())
-        else:
-            st = sub.stats
+        # the colour's range of all the samples: the halves' merged
+        st = sub.halves.without_features().merged() if sub.halves is not None else sub.stats
         if st is not None and st.has_range:
             self.sanity = add_sanity(self.sanity, output_sanity(image[y0:y1], st, rows=(y0 - by0, y1 - by0)))
 
