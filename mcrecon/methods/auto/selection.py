@@ -605,8 +605,6 @@ def _guard_rows(mses, den, choice, out, i0, i1):
                 out[i, j] = (x if np.isfinite(x) else np.nan) - (y0 if np.isfinite(y0) else np.nan)
 
 
-
-
 def _no_push_in_heavy_tails(img: np.ndarray, y: np.ndarray, hi: np.ndarray, out: np.ndarray | None = None, *,
                             scale: np.ndarray | None = None) -> np.ndarray:
     """Where the samples around a pixel are heavy-tailed, a candidate may pull it towards its neighbours, not away.
