@@ -43,6 +43,9 @@ RIDGE = 1e-10
 MIN_COVER_WEIGHT = 1.0
 #: Bands per thread whose accumulators :func:`collaborative_regression` holds at once.
 BANDS_PER_THREAD = 4
+#: The window positions of :func:`_normal_equations`' sums are padded to a multiple of this (its vector
+#: width times its unroll: no scalar remainder).
+NE_PAD = 16
 #: Floats added to each offset's row of weights in :func:`_band` (one cache line: see there).
 WEIGHT_PAD = 16
 
@@ -166,12 +169,14 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
     # 2. per pixel: the window's design, weights and colours as contiguous rows (d rounded up to even,
     # the extra row 0), the normal equations as 2 x 2 blocks of dot products over the window
     n = side * side
+    # the normal equations' sums run over the window padded with zero weights and zero rows to a multiple of
+    # NE_PAD positions: their vectorised loops then end without a scalar remainder (361 -> 368: 1.05x)
+    npad = (n + NE_PAD - 1) // NE_PAD * NE_PAD
     de = d + (d & 1)
-    xt = np.zeros((de, n))
-    wx = np.zeros((de, n))
-    yt = np.zeros((nc, n))
+    xt = np.zeros((de, npad))
+    yt = np.zeros((nc, npad))
     yp = np.zeros((nc, n))
-    wv = np.zeros(n)
+    wv = np.zeros(npad)
     a = np.zeros((de, de))
     bm = np.zeros((d, nc))
     tsol = np.zeros(max(d, nc))
@@ -212,7 +217,7 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
                     continue
                 for t in range(n):
                     wv[t] = float(wts[b, t, rr * w + j])
-                _normal_equations(xt, wx, wv, yt, a, bm, d, de, n)
+                _normal_equations(xt, wv, yt, a, bm, d, de, npad)
                 s0 = a[0, 0]
                 for p in range(1, d):
                     a[p, p] += ridge * s0
@@ -262,47 +267,107 @@ def _fits(wts, fit, i, j, col, r, s, h, w, min_weight):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
-def _normal_equations(xt, wx, wv, yt, a, bm, d, de, n):
+def _normal_equations(xt, wv, yt, a, bm, d, de, n):
     """a[:d, :d] (lower triangle and 2 x 2 blocks beside it) = sum_t w_t x_t x_t^T, bm = sum_t w_t x_t y_t^T.
 
     The sums are reassociated (fastmath ``reassoc``: vector lanes and FMA), so their rounding differs
     from a sequential sum's; the order is fixed by the code, so the result does not depend on threads.
-    Two rows by two columns per pass: each loaded element serves two products (4x the throughput of
-    one dot product at a time, measured)."""
-    for p in range(de):
-        xp, wxp = xt[p], wx[p]
-        for t in range(n):
-            wxp[t] = wv[t] * xp[t]
+    Two rows p by four columns q per pass (two by two at the diagonal), and two rows by three colours:
+    each loaded element serves two to four products.  The weighted rows ``w_t x_pt`` are formed in the
+    pass, not stored beforehand: a multiply is cheaper than the store and the reloads (the passes are
+    bound by their loads and stores; 1.5x faster than 2 x 2 blocks over stored weighted rows, measured)."""
     for p in range(0, de, 2):
-        w0, w1 = wx[p], wx[p + 1]
-        for q in range(0, p + 1, 2):
+        xp0, xp1 = xt[p], xt[p + 1]
+        q = 0
+        while q + 3 <= p + 1:  # columns q .. q + 3, all at or left of the diagonal block
+            x0, x1, x2, x3 = xt[q], xt[q + 1], xt[q + 2], xt[q + 3]
+            s00 = 0.0
+            s01 = 0.0
+            s02 = 0.0
+            s03 = 0.0
+            s10 = 0.0
+            s11 = 0.0
+            s12 = 0.0
+            s13 = 0.0
+            for t in range(n):
+                w0 = wv[t] * xp0[t]
+                w1 = wv[t] * xp1[t]
+                s00 += w0 * x0[t]
+                s01 += w0 * x1[t]
+                s02 += w0 * x2[t]
+                s03 += w0 * x3[t]
+                s10 += w1 * x0[t]
+                s11 += w1 * x1[t]
+                s12 += w1 * x2[t]
+                s13 += w1 * x3[t]
+            a[p, q] = s00
+            a[p, q + 1] = s01
+            a[p, q + 2] = s02
+            a[p, q + 3] = s03
+            a[p + 1, q] = s10
+            a[p + 1, q + 1] = s11
+            a[p + 1, q + 2] = s12
+            a[p + 1, q + 3] = s13
+            q += 4
+        if q <= p:  # the diagonal block
             x0, x1 = xt[q], xt[q + 1]
             s00 = 0.0
             s01 = 0.0
             s10 = 0.0
             s11 = 0.0
             for t in range(n):
-                s00 += w0[t] * x0[t]
-                s01 += w0[t] * x1[t]
-                s10 += w1[t] * x0[t]
-                s11 += w1[t] * x1[t]
+                w0 = wv[t] * xp0[t]
+                w1 = wv[t] * xp1[t]
+                s00 += w0 * x0[t]
+                s01 += w0 * x1[t]
+                s10 += w1 * x0[t]
+                s11 += w1 * x1[t]
             a[p, q] = s00
             a[p, q + 1] = s01
             a[p + 1, q] = s10
             a[p + 1, q + 1] = s11
     nc = yt.shape[0]
     for p in range(0, de, 2):
-        w0, w1 = wx[p], wx[p + 1]
-        for c in range(nc):
+        xp0, xp1 = xt[p], xt[p + 1]
+        c = 0
+        while c + 2 < nc:
+            y0, y1, y2 = yt[c], yt[c + 1], yt[c + 2]
+            s00 = 0.0
+            s01 = 0.0
+            s02 = 0.0
+            s10 = 0.0
+            s11 = 0.0
+            s12 = 0.0
+            for t in range(n):
+                w0 = wv[t] * xp0[t]
+                w1 = wv[t] * xp1[t]
+                s00 += w0 * y0[t]
+                s01 += w0 * y1[t]
+                s02 += w0 * y2[t]
+                s10 += w1 * y0[t]
+                s11 += w1 * y1[t]
+                s12 += w1 * y2[t]
+            bm[p, c] = s00
+            bm[p, c + 1] = s01
+            bm[p, c + 2] = s02
+            if p + 1 < d:
+                bm[p + 1, c] = s10
+                bm[p + 1, c + 1] = s11
+                bm[p + 1, c + 2] = s12
+            c += 3
+        while c < nc:
             yc = yt[c]
             s0 = 0.0
             s1 = 0.0
             for t in range(n):
-                s0 += w0[t] * yc[t]
-                s1 += w1[t] * yc[t]
+                w0 = wv[t] * xp0[t]
+                w1 = wv[t] * xp1[t]
+                s0 += w0 * yc[t]
+                s1 += w1 * yc[t]
             bm[p, c] = s0
             if p + 1 < d:
                 bm[p + 1, c] = s1
+            c += 1
 
 
 #: Window positions per block of :func:`_leverages`: its scratch (d x this many float64, 12 KiB at d = 12)
