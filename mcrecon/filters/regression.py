@@ -140,7 +140,6 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
     wts = np.zeros((nk, side * side, n_rows * w + WEIGHT_PAD), np.float32)
     pd = np.zeros((cg, n_rows + 2 * f, w + 2 * f), np.float32)
     vs = np.zeros(w + 2 * f)
-    hs = np.zeros(w + 2 * f)
     ic = np.zeros(w + 2 * f)
     dist = np.zeros((cg, n_rows, w), np.float32)
     dmax = np.zeros(w, np.float32)
@@ -153,7 +152,7 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
                 continue
             floor = min_centre if dy == 0 and dx == 0 else 0.0
             for b in range(nk):
-                offset_distances(guide, var, dy, dx, i0, i1, f, k2s[b], eps, clamp, pd, vs, hs, ic, dist)
+                offset_distances(guide, var, dy, dx, i0, i1, f, k2s[b], eps, clamp, pd, vs, ic, dist)
                 for rr in range(n_rows):
                     qi = i0 + rr + dy
                     if qi < 0 or qi >= h:
