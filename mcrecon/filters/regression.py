@@ -225,16 +225,30 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
                 if leverage:
                     _leverages(a, xt, zt, lev, d, n)
                 # 3. each fit predicts its window: acc(q) += w_pq x_q^T beta_p
+                # (three colours a pass along the window's row: one load of each weight for three products)
                 ab = acc[b]
                 for dy in range(side):
-                    for c in range(nc):
+                    ws = wv[dy * side:(dy + 1) * side]
+                    c = 0
+                    while c + 2 < nc:
+                        d0, d1, d2 = ab[c, rr + dy, j:j + side], ab[c + 1, rr + dy, j:j + side], ab[c + 2, rr + dy,
+                                                                                                  j:j + side]
+                        s0 = yp[c, dy * side:(dy + 1) * side]
+                        s1 = yp[c + 1, dy * side:(dy + 1) * side]
+                        s2 = yp[c + 2, dy * side:(dy + 1) * side]
+                        for u in range(side):
+                            wu = ws[u]
+                            d0[u] += wu * s0[u]
+                            d1[u] += wu * s1[u]
+                            d2[u] += wu * s2[u]
+                        c += 3
+                    while c < nc:
                         dst = ab[c, rr + dy, j:j + side]
                         src = yp[c, dy * side:(dy + 1) * side]
-                        ws = wv[dy * side:(dy + 1) * side]
                         for u in range(side):
                             dst[u] += ws[u] * src[u]
+                        c += 1
                     dst = ab[nc, rr + dy, j:j + side]
-                    ws = wv[dy * side:(dy + 1) * side]
                     for u in range(side):
                         dst[u] += ws[u]
                     if leverage:
