@@ -169,7 +169,7 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
     # the extra row 0), the normal equations as 2 x 2 blocks of dot products over the window
     n = side * side
     # the normal equations' sums run over the window padded with zero weights and zero rows to a multiple of
-    # NE_PAD positions: their vectorised loops then end without a scalar remainder (361 -> 368: 1.05x)
+    # NE_PAD positions: their vectorised loops then end without a scalar remainder (a window of 361 positions: 368)
     npad = (n + NE_PAD - 1) // NE_PAD * NE_PAD
     de = d + (d & 1)
     xt = np.zeros((de, npad))
