@@ -8,7 +8,13 @@ leverages (auto's centre weight); per pixel, the weights of 361 offsets (:func:`
 shapes; each figure is the least of ``--repeat`` runs of ``--calls`` calls (the machine may be shared:
 the least is the one least disturbed).
 
+``--stages LOG``: instead, ``nfor``'s stages on a log with features (one in-process
+``mcrecon.reconstruct(LOG, method="nfor")``, each stage of :func:`pipeline.denoise_planes` wrapped:
+CPU seconds of the process, both threads; ``nlmeans_filter`` is called four times: the two halves'
+feature prefilters, the selection map, the second pass's features).
+
     python benchmarks/bench_kernels.py
+    python benchmarks/bench_kernels.py --stages LOG.h5
 """
 from __future__ import annotations
 
@@ -59,11 +65,54 @@ def _weights(k, g, v, pd, vs, ic, dist, out, f):
                 out[rr * w + t] = nlmeans.exp_neg(max(float(m), 0.0))
 
 
+def nfor_stages(log: str) -> None:
+    """One ``reconstruct(log, method="nfor")`` with the pipeline's stages wrapped: CPU seconds per call."""
+    import functools
+    import os
+
+    import mcrecon
+    from mcrecon.methods.nfor import method, pipeline
+
+    calls: list = []
+
+    def wrap(mod, name):
+        f = getattr(mod, name)
+
+        @functools.wraps(f)
+        def timed(*a, **k):
+            c0 = time.process_time()
+            out = f(*a, **k)
+            calls.append((name, time.process_time() - c0))
+            return out
+        setattr(mod, name, timed)
+
+    for name in ("prefilter_features", "cross_regression", "nlmeans_filter_shared", "nlmeans_filter",
+                 "collaborative_regression"):
+        wrap(pipeline, name)
+    wrap(method, "denoise_planes")
+    rng = np.random.default_rng(0)  # a tiny film first: the kernels loaded (or compiled) outside the timing
+    m = 16 * 16 * 8
+    mcrecon.reconstruct(mcrecon.SampleSet(rng.random((m, 2)) * 16, rng.random((m, 3)), width=16, height=16,
+                                          features={"albedo": rng.random((m, 3)), "normal": rng.random((m, 3))}),
+                        method="nfor")
+    calls.clear()
+    c0 = time.process_time()
+    mcrecon.reconstruct(log, method="nfor")
+    total = time.process_time() - c0
+    print(f"nfor stages on {log}: reconstruct() CPU {total:.2f} s, load {os.getloadavg()[0]:.1f}")
+    for name, t in calls:
+        print(f"  {name:28s} {t:7.2f}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--calls", type=int, default=5000)
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--stages", metavar="LOG", help="nfor's stages on this log with features instead")
     args = ap.parse_args(argv)
+    if args.stages:
+        nfor_stages(args.stages)
+        return 0
     rng = np.random.default_rng(0)
     r, d, nc = 9, 10, 3
     n = (2 * r + 1) ** 2
