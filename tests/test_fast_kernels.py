@@ -19,10 +19,10 @@ def _distances(guide, var, dy, dx, i0, i1, f, k=0.7):
     """The kernel's patch means and the pixel distances ``pd`` they were summed from."""
     c, h, w = guide.shape
     pd = np.zeros((c, i1 - i0 + 2 * f, w + 2 * f), np.float32)
-    vs, hs, ic = (np.zeros(w + 2 * f) for _ in range(3))
+    vs, ic = (np.zeros(w + 2 * f) for _ in range(2))
     out = np.full((c, i1 - i0, w), np.float32(-7.0))
     offset_distances(guide, var, dy, dx, i0, i1, f, np.float32(k * k), np.float32(NLM_EPS),
-                     np.float32(DISTANCE_CLAMP), pd, vs, hs, ic, out)
+                     np.float32(DISTANCE_CLAMP), pd, vs, ic, out)
     return out, pd
 
 

@@ -111,39 +111,40 @@ def _slide(vs, enter, leave, n):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _box_cols(v, n, f, hs):
-    """hs[t] = sum of v[t .. t + 2f] for t < n, left to right (see :func:`_box_rows`)."""
+def _box_cols(v, n, f, inv_r, inv_cols, out):
+    """out[t] = (sum of v[t .. t + 2f], left to right) * inv_r * inv_cols[t] for t < n, in float64, then
+    rounded to out's type: the patch's row sums and its mean in one pass (no stored sums read back).
+    The sum written as one expression per element for the usual patch radii (see :func:`_box_rows`)."""
     if f == 0:
         for t in range(n):
-            hs[t] = v[t]
+            out[t] = v[t] * inv_r * inv_cols[t]
     elif f == 1:
         a, b, c = v[0:n], v[1:n + 1], v[2:n + 2]
         for t in range(n):
-            hs[t] = a[t] + b[t] + c[t]
+            out[t] = (a[t] + b[t] + c[t]) * inv_r * inv_cols[t]
     elif f == 2:
         a, b, c, d, e = v[0:n], v[1:n + 1], v[2:n + 2], v[3:n + 3], v[4:n + 4]
         for t in range(n):
-            hs[t] = a[t] + b[t] + c[t] + d[t] + e[t]
+            out[t] = (a[t] + b[t] + c[t] + d[t] + e[t]) * inv_r * inv_cols[t]
     elif f == 3:
         a, b, c, d, e, g, k = v[0:n], v[1:n + 1], v[2:n + 2], v[3:n + 3], v[4:n + 4], v[5:n + 5], v[6:n + 6]
         for t in range(n):
-            hs[t] = a[t] + b[t] + c[t] + d[t] + e[t] + g[t] + k[t]
+            out[t] = (a[t] + b[t] + c[t] + d[t] + e[t] + g[t] + k[t]) * inv_r * inv_cols[t]
     else:
         for t in range(n):
-            hs[t] = 0.0
-        for b in range(2 * f + 1):
-            src = v[b:b + n]
-            for t in range(n):
-                hs[t] += src[t]
+            s = 0.0
+            for b in range(2 * f + 1):
+                s += v[t + b]
+            out[t] = s * inv_r * inv_cols[t]
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def offset_distances(guide, var, dy, dx, i0, i1, f, k2, eps, clamp, pd, vs, hs, inv_cols, out):
+def offset_distances(guide, var, dy, dx, i0, i1, f, k2, eps, clamp, pd, vs, inv_cols, out):
     """Patch distances D_c(p, o) of offset o = (dy, dx) for the pixels p of rows [i0, i1).
 
     guide, var : (C, H, W) float32.  Scratch: pd (C, i1 - i0 + 2f, W + 2f) float32, the pixel distances
     d_c(s, s + o) of the rows s the patches cover, 0 where s or s + o is outside the image and in the f
-    columns of padding each side; vs, hs, inv_cols (W + 2f) float64.  out : (C, i1 - i0, W) float32, the patch-mean
+    columns of padding each side; vs, inv_cols (W + 2f) float64.  out : (C, i1 - i0, W) float32, the patch-mean
     distance where q = p + o lies in the image (elsewhere left unspecified: the callers skip those pairs).
     Every loop runs along a row without a carried dependency (LLVM vectorises them): the pixel distances
     once per offset, then per patch the (2f + 1) rows and (2f + 1) columns summed directly, in float64
@@ -190,11 +191,7 @@ def offset_distances(guide, var, dy, dx, i0, i1, f, k2, eps, clamp, pd, vs, hs, 
             nr = min(i + f + 1, h, h - dy) - max(i - f, 0, -dy)
             if nr <= 0:
                 continue
-            _box_cols(vs[j0:], n, f, hs)
-            dst2 = out[ch, rr, j0:j1]
-            inv_r = 1.0 / nr
-            for t2 in range(n):
-                dst2[t2] = hs[t2] * inv_r * inv_cols[t2]
+            _box_cols(vs[j0:], n, f, 1.0 / nr, inv_cols, out[ch, rr, j0:j1])
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -207,13 +204,12 @@ def _nlm_band(imgs, guide, var, r, f, k2, eps, clamp, min_centre, i0, i1, num, d
     cg = guide.shape[0]
     pd = np.zeros((cg, i1 - i0 + 2 * f, w + 2 * f), np.float32)
     vs = np.zeros(w + 2 * f)
-    hs = np.zeros(w + 2 * f)
     ic = np.zeros(w + 2 * f)
     dist = np.zeros((cg, i1 - i0, w), np.float32)
     wrow = np.zeros(w)
     for dy in range(-r, r + 1):
         for dx in range(-r, r + 1):
-            offset_distances(guide, var, dy, dx, i0, i1, f, k2, eps, clamp, pd, vs, hs, ic, dist)
+            offset_distances(guide, var, dy, dx, i0, i1, f, k2, eps, clamp, pd, vs, ic, dist)
             j0 = max(0, -dx)
             j1 = min(w, w - dx)
             floor = min_centre if dy == 0 and dx == 0 else 0.0  # max(wt, 0) = wt: the same loop everywhere
