@@ -1,8 +1,8 @@
 """The parts of one regression window and of one offset's weights, in CPU microseconds (docs/methods/nfor.md).
 
 Per window of a collaborative regression (radius 9: 361 positions; 7 feature columns, so 10 with the
-constant and the pixel offsets; 3 colours): the normal equations (:func:`regression._normal_equations`,
-over the window padded to :data:`regression.NE_PAD`), the Cholesky solve, the predictions and the
+constant and the pixel offsets; 3 colours): the normal equations (:func:`window_algebra._normal_equations`,
+over the window padded to :data:`window_algebra.NE_PAD`), the Cholesky solve, the predictions and the
 leverages (auto's centre weight); per pixel, the weights of 361 offsets (:func:`nlmeans.offset_distances`,
 3 channels, patch 3, then the largest channel's ``exp_neg``).  One thread, random data of the right
 shapes; each figure is the least of ``--repeat`` runs of ``--calls`` calls (the machine may be shared:
@@ -24,13 +24,13 @@ import time
 import numba
 import numpy as np
 
-from mcrecon.filters import nlmeans, regression
+from mcrecon.filters import nlmeans, window_algebra
 
 
 @numba.njit(cache=False)
 def _normal(k, xt, wv, yt, a, bm, d, npad):
     for _ in range(k):
-        regression._normal_equations(xt, wv, yt, a, bm, d, d, npad)
+        window_algebra._normal_equations(xt, wv, yt, a, bm, d, d, npad)
 
 
 @numba.njit(cache=False)
@@ -38,19 +38,19 @@ def _solve(k, a0, b0, a, bm, tmp, d):
     for _ in range(k):
         a[:] = a0
         bm[:] = b0
-        regression._solve_spd(a, bm, d, bm.shape[1], tmp)
+        window_algebra._solve_spd(a, bm, d, bm.shape[1], tmp)
 
 
 @numba.njit(cache=False)
 def _predict(k, xt, beta, yp, d, n):
     for _ in range(k):
-        regression._predict(xt, beta, yp, d, n)
+        window_algebra._predict(xt, beta, yp, d, n)
 
 
 @numba.njit(cache=False)
 def _leverages(k, chol, xt, zt, lev, d, n):
     for _ in range(k):
-        regression._leverages(chol, xt, zt, lev, d, n)
+        window_algebra._leverages(chol, xt, zt, lev, d, n)
 
 
 @numba.njit(cache=False)
@@ -116,7 +116,7 @@ def main(argv=None) -> int:
     rng = np.random.default_rng(0)
     r, d, nc = 9, 10, 3
     n = (2 * r + 1) ** 2
-    npad = (n + regression.NE_PAD - 1) // regression.NE_PAD * regression.NE_PAD
+    npad = (n + window_algebra.NE_PAD - 1) // window_algebra.NE_PAD * window_algebra.NE_PAD
     xt = np.zeros((d, npad))
     xt[:, :n] = rng.standard_normal((d, n))
     yt = np.zeros((nc, npad))
@@ -134,7 +134,7 @@ def main(argv=None) -> int:
         "normal equations (a window)": (_normal, (xt, wv, yt, np.zeros((d, d)), np.zeros((d, nc)), d, npad), 1),
         "Cholesky solve (a window)": (_solve, (a0, b0, np.zeros((d, d)), np.zeros((d, nc)), np.zeros(d), d), 1),
         "predictions (a window)": (_predict, (xt, np.linalg.solve(a0, b0), np.zeros((nc, n)), d, n), 1),
-        "leverages (a window, auto)": (_leverages, (chol, xt, np.zeros((d, regression.LEVERAGE_BLOCK)), np.zeros(n),
+        "leverages (a window, auto)": (_leverages, (chol, xt, np.zeros((d, window_algebra.LEVERAGE_BLOCK)), np.zeros(n),
                                                     d, n), 1),
         "weights of 361 offsets (a pixel)": (_weights, (g, v, np.zeros((3, 16 + 2 * f, w + 2 * f), np.float32),
                                                         np.zeros(w + 2 * f), np.zeros(w + 2 * f),

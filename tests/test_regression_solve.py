@@ -13,7 +13,7 @@ not depend on the block it was computed in.
 import numpy as np
 import pytest
 
-from mcrecon.filters.regression import LEVERAGE_BLOCK, _leverages, _solve_spd
+from mcrecon.filters.window_algebra import LEVERAGE_BLOCK, _leverages, _solve_spd
 
 
 def _system(d, n, seed):

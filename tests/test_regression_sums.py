@@ -15,7 +15,7 @@ import numba
 import numpy as np
 import pytest
 
-from mcrecon.filters.regression import NE_PAD, _normal_equations, _predict
+from mcrecon.filters.window_algebra import NE_PAD, _normal_equations, _predict
 
 
 def _design(d, nc, n, npad, seed):
