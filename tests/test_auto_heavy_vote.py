@@ -8,26 +8,18 @@ import numpy as np
 import pytest
 
 from mcrecon.methods.auto import heavyvote
-from mcrecon.methods.auto.features import Candidate
 from mcrecon.methods.auto.firefly import HEAVY_TAIL
 from mcrecon.methods.auto.heavyvote import HEAVY_VOTE, _heavy_vote
 from mcrecon.methods.auto.selection import HEAVY_PRIOR, _global_prior, _summed, summed_estimates
 
+from helpers import prior_inputs
 
-def _inputs(heavy_share, h=48, w=64, seed=7):
-    """A Gaussian (estimate 0.005 everywhere) and a black box whose noisy estimate is a little lower on
-    average (its summed lead below one standard error: the guard keeps the Gaussian).  The left
-    ``heavy_share`` of the columns have rare huge samples around: their 3 x 3 sample maximum 15x the
+
+def _inputs(heavy_share, h=48, w=64):
+    """A Gaussian and a black box whose summed lead lies within its guard (:func:`helpers.prior_inputs`).  The
+    left ``heavy_share`` of the columns have rare huge samples around: their 3 x 3 sample maximum 15x the
     means, above HEAVY_TAIL (10) and under the vote's HEAVY_PRIOR (30), so every pixel still votes."""
-    rng = np.random.default_rng(seed)
-    y = rng.uniform(0.4, 0.6, size=(h, w, 3))
-    v = np.full((h, w, 3), 0.01)
-    count = np.full((h, w), 16)
-    flat = np.full((h, w, 3), 0.5)
-    noise = rng.normal(0.0, 0.004, size=(h, w, 1)) * np.ones(3)
-    cands = [Candidate("box", y.copy(), v.copy()), Candidate("gauss1", flat.copy(), np.full((h, w, 3), 0.005)),
-             Candidate("oidn", flat + 0.001, 0.0049 + noise)]
-    raw = [c.mse.mean(axis=2) / 0.26 for c in cands]
+    cands, raw, y, v, count = prior_inputs(h, w)
     hi = y.copy()
     hi[:, : int(round(heavy_share * w))] *= 15.0
     return cands, raw, y, v, count, (y.copy(), hi)
