@@ -381,7 +381,8 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     g = int(np.argmin(sums))
     zs = guarded if isinstance(guarded, dict) else {k: Z_GLOBAL for k in guarded}
     plain = [k for k in range(len(cands)) if k not in zs]
-    thin = bool(steady) and (vote.sum() < thin_vote * _could_vote(v, count, safeguard) or _heavy_vote(vote, y, bounds[1]))
+    thin = bool(steady) and (vote.sum() < thin_vote * _could_vote(v, count, safeguard)
+                             or _heavy_vote(vote, y, bounds, count))
     if thin:
         # a thin vote: the steady candidate (black box) of least sum, compared with its own kind only
         # (the voters' selection flatters the Stein-scored filters: THIN_VOTE)
