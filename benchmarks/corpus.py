@@ -1,4 +1,4 @@
-"""The scene corpus behind every tuning decision: 31 scenes, a tuning half and a held-out half.
+"""The scene corpus behind every tuning decision: 55 scenes, a tuning half and a held-out half.
 
 * 22 built-in scenes (:mod:`mcrecon.renderers.scenes`): every family at its
   default parameters, and one to three variants each with parameters drawn
@@ -6,14 +6,19 @@
   the hdr emitter's power, the lens, the motion, the caustic's power and
   probability, ``exposure``); every second one of the untextured families
   sends per-sample features.  Exact references; any film size (128 and 512).
+* 24 more built-in scenes in the tuning half only (:data:`EXTRA_PARAM_SEED`):
+  12 hdr and 12 checker_spot variants drawn from the same ranges, the
+  families whose held-out members ``auto`` missed, so that a rule for such a
+  scene is tuned on scenes of its kind, never on the held-out one.
 * 4 Mitsuba 3 scenes and 5 Blender Cycles scenes (:mod:`corpus_external`),
   with per-sample albedo, normal and depth; references are high-spp renders
   with an independent seed (Cycles' own render; Mitsuba through the bridge).
 
-The split into halves is drawn here, once, from :data:`SPLIT_SEED`,
+The split of the first 31 into halves is drawn here, once, from :data:`SPLIT_SEED`,
 stratified by family (built-in) and by renderer (Mitsuba, Cycles), so each
 half holds every built-in family and both external renderers.  It was fixed
-before any method was run on the corpus: do not redraw it.
+before any method was run on the corpus: do not redraw it.  The 24 extra
+scenes are drawn after it and join the tuning half (39 scenes; held-out 16).
 
 The built-in scenes are rendered in memory when asked for (their samples are
 a function of the scene, size, spp and seed; under a second at 128^2).  The
@@ -70,6 +75,12 @@ HALVES = ("tuning", "held-out")
 _BUILTIN_VARIANTS = {"soft_shadow": 2, "depth_of_field": 1, "motion_blur": 1, "caustic": 2, "hdr": 2, "flat": 1,
                      "checker_wall": 1, "checker_spot": 2, "checker_dof": 1}
 _TEXTURED = ("checker_wall", "checker_spot", "checker_dof")
+#: Extra tuning scenes: more draws of the families whose held-out members auto missed, from their own
+#: seed and after the split (every entry above keeps its parameters, samples and half).
+EXTRA_PARAM_SEED = 40_2027
+#: (family, count) in the order drawn (one stream): each round numbered on from the family's last entry.
+_EXTRA_VARIANTS = (("hdr", 6), ("checker_spot", 6), ("hdr", 6), ("checker_spot", 6))
+_EXTRA_SEED0 = 200
 
 
 def _draw_ranges(family):
@@ -154,7 +165,22 @@ def _all_entries() -> list[Entry]:
             seed += 1
     out += [Entry(f"mitsuba-{n}", "mitsuba", n, {}, 1, True) for n in MITSUBA_SCENES]
     out += [Entry(f"cycles-{n}", "cycles", n, {}, 0, True) for n in CYCLES_SCENES]
-    return _split(out)
+    return _split(out) + _extra_entries()
+
+
+def _extra_entries():
+    """The extra tuning draws: ``builtin-<family>-<k>`` numbered on from the family's split entries."""
+    rng = np.random.default_rng(EXTRA_PARAM_SEED)
+    out, seed = [], _EXTRA_SEED0
+    last = dict(_BUILTIN_VARIANTS)
+    for family, n in _EXTRA_VARIANTS:
+        for _ in range(n):
+            k = last[family] = last[family] + 1
+            features = family in _TEXTURED or k % 2 == 1
+            out.append(Entry(f"builtin-{family}-{k}", "builtin", family, _draw_params(family, rng), seed, features,
+                             "tuning"))
+            seed += 1
+    return out
 
 
 def _split(entries):
