@@ -250,21 +250,3 @@ def share_references(root) -> None:
             return out
 
     S._averaged = averaged
-
-
-def prior_inputs(h=48, w=64, seed=7):
-    """The global prior's inputs for a black box within its guard: ``(cands, raw, y, v, count)``, a Gaussian
-    (estimate 0.005 everywhere) and a black box whose noisy estimate is a little lower on average (its
-    summed lead over the voters below one standard error), their raw relative estimates ``raw``."""
-    from mcrecon.methods.auto.features import Candidate
-
-    rng = np.random.default_rng(seed)
-    y = rng.uniform(0.4, 0.6, size=(h, w, 3))
-    v = np.full((h, w, 3), 0.01)
-    count = np.full((h, w), 16)
-    flat = np.full((h, w, 3), 0.5)
-    noise = rng.normal(0.0, 0.004, size=(h, w, 1)) * np.ones(3)
-    cands = [Candidate("box", y.copy(), v.copy()), Candidate("gauss1", flat.copy(), np.full((h, w, 3), 0.005)),
-             Candidate("oidn", flat + 0.001, 0.0049 + noise)]
-    raw = [c.mse.mean(axis=2) / 0.26 for c in cands]
-    return cands, raw, y, v, count

@@ -10,15 +10,20 @@ from mcrecon.methods.auto import selection
 from mcrecon.methods.auto.features import Candidate
 from mcrecon.methods.auto.selection import _global_prior, _summed, summed_estimates
 
-from helpers import prior_inputs
 
-
-def _inputs(thin: bool, h=48, w=64):
+def _inputs(thin: bool, h=48, w=64, seed=7):
     """A Gaussian (estimate 0.005 everywhere) and a black box whose noisy estimate is a little lower on
-    average: its summed lead over the voters is below one standard error (:func:`helpers.prior_inputs`).
-    ``thin``: the left three quarters of the image have rare huge samples around (their 3 x 3 maximum 200x
-    the means)."""
-    cands, raw, y, v, count = prior_inputs(h, w)
+    average: its summed lead over the voters is below one standard error.  ``thin``: the left three
+    quarters of the image have rare huge samples around (their 3 x 3 maximum 200x the means)."""
+    rng = np.random.default_rng(seed)
+    y = rng.uniform(0.4, 0.6, size=(h, w, 3))
+    v = np.full((h, w, 3), 0.01)
+    count = np.full((h, w), 16)
+    flat = np.full((h, w, 3), 0.5)
+    noise = rng.normal(0.0, 0.004, size=(h, w, 1)) * np.ones(3)
+    cands = [Candidate("box", y.copy(), v.copy()), Candidate("gauss1", flat.copy(), np.full((h, w, 3), 0.005)),
+             Candidate("oidn", flat + 0.001, 0.0049 + noise)]
+    raw = [c.mse.mean(axis=2) / 0.26 for c in cands]
     hi = y.copy()
     if thin:
         hi[:, : 3 * w // 4] = 100.0

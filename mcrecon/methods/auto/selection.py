@@ -16,7 +16,6 @@ from ...filters.engine import parallel_rows
 from .blend import blend_default
 from .firefly import FIREFLY, HEAVY_TAIL, Z_FIREFLY, _firefly  # noqa: F401 (Z_FIREFLY: the tests read it here)
 from .thinvote import THIN_VOTE, _could_vote, _thin_default
-from .heavyvote import _heavy_vote
 from .estimates import relative_denominator_loo
 from .passes import _FirstLeast, _arrays, _c64, _channel_mean, _floor_and_choose, _means, _nanmax
 from ...core.metrics import DEFAULT_EPS
@@ -381,8 +380,7 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     g = int(np.argmin(sums))
     zs = guarded if isinstance(guarded, dict) else {k: Z_GLOBAL for k in guarded}
     plain = [k for k in range(len(cands)) if k not in zs]
-    thin = bool(steady) and (vote.sum() < thin_vote * _could_vote(v, count, safeguard)
-                             or _heavy_vote(vote, y, bounds, count))
+    thin = bool(steady) and vote.sum() < thin_vote * _could_vote(v, count, safeguard)
     if thin:
         # a thin vote: the steady candidate (black box) of least sum, compared with its own kind only
         # (the voters' selection flatters the Stein-scored filters: THIN_VOTE)
