@@ -79,12 +79,12 @@ def _box_axis1(src, dst, r, nearest):
 
 
 def box_mean(a: np.ndarray, radius: int, mode: str = "constant") -> np.ndarray:
-    """``scipy.ndimage.uniform_filter(a, size=(2 radius + 1, 2 radius + 1[, 1]), mode=mode)`` as float64, bit for bit.
+    """``scipy.ndimage.uniform_filter(a.astype(float64), size=(2 radius + 1, 2 radius + 1[, 1]), mode=mode)``, bit for bit.
 
     Parameters
     ----------
     a : ndarray (H, W) or (H, W, C)
-        Any real dtype (read as float64, as scipy's line buffers read it).
+        Any real or boolean dtype, read as float64.
     radius : int
         Half-size of the window (>= 0).
     mode : {'constant', 'nearest'}
@@ -113,17 +113,21 @@ def box_mean(a: np.ndarray, radius: int, mode: str = "constant") -> np.ndarray:
 
 @numba.njit(cache=True, nogil=True)
 def _any_rows(b, r, out):
-    # out[i, j, c] = any b over rows [i - r, i + r] (clipped), column j
-    h, w, c = b.shape
+    # out[i, q] = any b[k, q] for k in [i - r, i + r] (clipped): the last row set so far, per column q
+    h, m = b.shape
+    last = np.full(m, -r - 2)
+    for k in range(min(r, h - 1) + 1):
+        for q in range(m):
+            if b[k, q]:
+                last[q] = k
     for i in range(h):
-        for j in range(w):
-            for ch in range(c):
-                v = False
-                for k in range(max(i - r, 0), min(i + r, h - 1) + 1):
-                    if b[k, j, ch]:
-                        v = True
-                        break
-                out[i, j, ch] = v
+        e = i + r
+        if i > 0 and e < h:
+            for q in range(m):
+                if b[e, q]:
+                    last[q] = e
+        for q in range(m):
+            out[i, q] = last[q] >= i - r
 
 
 @numba.njit(cache=True, nogil=True)
@@ -151,6 +155,7 @@ def box_any(b: np.ndarray, radius: int) -> np.ndarray:
     tmp = np.empty(x3.shape, np.bool_)
     out = np.empty(x3.shape, np.bool_)
     if x3.size:
-        _any_rows(x3, r, tmp)
+        h, w, c = x3.shape
+        _any_rows(x3.reshape(h, w * c), r, tmp.reshape(h, w * c))
         _any_cols(tmp, r, out)
     return out if x.ndim == 3 else out[..., 0]

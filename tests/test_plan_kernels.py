@@ -1,8 +1,8 @@
-"""The planners' compiled neighbourhood statistics against the scipy/numpy formulas they replace, bit for bit.
+"""The planners' compiled kernels against the scipy/numpy formulas they replace, bit for bit.
 
 mcrecon.filters.box (scipy's uniform_filter and a maximum filter's threshold), the
 rare-component mask and neighbourhood variance of mcrecon.core.safeguard and the
-stratification gain of mcrecon.core.strata: the adaptive plans read them every
+stratification gain of mcrecon.core.strata, fill_lowest's level search (mcrecon.core.nets): the adaptive plans read them every
 round, so a last-bit difference would move which samples a pinned run draws.
 """
 
@@ -171,3 +171,44 @@ def test_prefix_halves_and_gain_bit_for_bit():
         # float counts (core.halves hands its halves' counts as they are)
         assert _same(halves_gain(mean_a, mean_b, n_a.astype(float), n_b.astype(float), var),
                      _gain_reference(mean_a, mean_b, n_a.astype(float), n_b.astype(float), var))
+
+
+def test_fill_lowest_level_search():
+    from mcrecon.core.nets import _given_sum, fill_lowest
+
+    rng = np.random.default_rng(8)
+    for _ in range(20):
+        c = rng.integers(0, 40, 500)
+        cap = c + rng.integers(0, 9, 500)
+        room = np.maximum(cap - c, 0)
+        for t in (-3, 0, 7, 25, 41, 60):
+            assert _given_sum(c, room, t) == int(np.minimum(np.maximum(t - c, 0), room).sum())
+        n = int(rng.integers(0, room.sum() + 1))
+        for top in (cap, None):
+            got = fill_lowest(c.reshape(20, 25), n, np.random.default_rng(1),
+                              cap=None if top is None else top.reshape(20, 25))
+            ref = _fill_lowest_reference(c, n, np.random.default_rng(1), top)
+            assert np.array_equal(got.ravel(), ref) and got.sum() == n
+
+
+def _fill_lowest_reference(c, n, rng, cap):
+    # the numpy level search fill_lowest had
+    top = np.full(c.size, np.iinfo(np.int64).max // 4) if cap is None else cap
+    room = np.maximum(top - c, 0)
+
+    def given(t):
+        return np.minimum(np.maximum(t - c, 0), room)
+
+    lo, hi = int(c.min()), int(c.max()) + n
+    while lo < hi:
+        t = (lo + hi + 1) // 2
+        if int(given(t).sum()) <= n:
+            lo = t
+        else:
+            hi = t - 1
+    out = given(lo)
+    left = n - int(out.sum())
+    if left > 0:
+        at = np.flatnonzero((c + out == lo) & (out < room))
+        out[rng.choice(at, size=left, replace=False)] += 1
+    return out
