@@ -186,29 +186,13 @@ def test_fill_lowest_level_search():
         n = int(rng.integers(0, room.sum() + 1))
         for top in (cap, None):
             got = fill_lowest(c.reshape(20, 25), n, np.random.default_rng(1),
-                              cap=None if top is None else top.reshape(20, 25))
-            ref = _fill_lowest_reference(c, n, np.random.default_rng(1), top)
-            assert np.array_equal(got.ravel(), ref) and got.sum() == n
-
-
-def _fill_lowest_reference(c, n, rng, cap):
-    # the numpy level search fill_lowest had
-    top = np.full(c.size, np.iinfo(np.int64).max // 4) if cap is None else cap
-    room = np.maximum(top - c, 0)
-
-    def given(t):
-        return np.minimum(np.maximum(t - c, 0), room)
-
-    lo, hi = int(c.min()), int(c.max()) + n
-    while lo < hi:
-        t = (lo + hi + 1) // 2
-        if int(given(t).sum()) <= n:
-            lo = t
-        else:
-            hi = t - 1
-    out = given(lo)
-    left = n - int(out.sum())
-    if left > 0:
-        at = np.flatnonzero((c + out == lo) & (out < room))
-        out[rng.choice(at, size=left, replace=False)] += 1
-    return out
+                              cap=None if top is None else top.reshape(20, 25)).ravel()
+            rm = np.maximum((np.full(c.size, np.iinfo(np.int64).max // 4) if top is None else top) - c, 0)
+            # brute force: the highest level whose fill fits, by a scan; the rest one each at that level
+            level = int(c.min())
+            while int(np.minimum(np.maximum(level + 1 - c, 0), rm).sum()) <= n:
+                level += 1
+            fill = np.minimum(np.maximum(level - c, 0), rm)
+            extra = got - fill
+            assert got.sum() == n and set(np.unique(extra)) <= {0, 1}
+            assert ((c + fill)[extra == 1] == level).all() and (fill[extra == 1] < rm[extra == 1]).all()
