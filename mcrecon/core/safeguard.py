@@ -475,7 +475,7 @@ def _pooled_variance(num, den, d2, div, n, v, out):
                     if div:
                         p = p * d2[i, j, ch]
                     p = p / n[i, j]
-                    out[i, j, ch] = p if (p >= 0.0 or p != p) else 0.0
+                    out[i, j, ch] = p if (p > 0.0 or p != p) else 0.0
                 else:
                     out[i, j, ch] = v[i, j, ch]
 

@@ -266,7 +266,7 @@ def _gain_ratio(num, den, den2, n_box, ucb, floor, out):
             if d > 1e-300:
                 g = num[i, j] / d
                 q = den2[i, j]
-                q = q if (q >= 0.0 or q != q) else 0.0
+                q = q if (q > 0.0 or q != q) else 0.0
                 sd = np.sqrt(2.0 * q / n_box) / d
             x = g * (1.0 + ucb * sd)
             if x == x:
