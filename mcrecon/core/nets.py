@@ -235,6 +235,17 @@ def rare_net_floor(var_mean: np.ndarray, mean: np.ndarray, count: np.ndarray, *,
     return np.where(rare, np.minimum(floor, int(cap)), 0).astype(np.int64)
 
 
+@numba.njit(cache=True, nogil=True)
+def _given_sum(c, room, t):
+    # sum(min(max(t - c, 0), room)): the samples a fill to level t hands out
+    s = 0
+    for i in range(c.size):
+        g = t - c[i]
+        if g > 0:
+            s += min(g, room[i])
+    return s
+
+
 def fill_lowest(current: np.ndarray, n: int, rng: np.random.Generator, *,
                 cap: np.ndarray | None = None) -> np.ndarray:
     """``n`` new samples per pixel (H, W) int64 that raise the pixels of fewest samples to a common level.
@@ -275,7 +286,7 @@ def fill_lowest(current: np.ndarray, n: int, rng: np.random.Generator, *,
     lo, hi = int(c.min()), int(c.max()) + n        # given(lo) sums to 0 <= n; given(hi) to at least n
     while lo < hi:                                  # the highest level whose fill fits
         t = (lo + hi + 1) // 2
-        if int(given(t).sum()) <= n:
+        if _given_sum(c, room, t) <= n:             # given(t).sum(), without its temporaries
             lo = t
         else:
             hi = t - 1

@@ -8,6 +8,7 @@ import contextlib
 import numba
 import numpy as np
 
+from ..filters.box import box_any, box_mean
 from ..filters.engine import parallel_rows
 from ..filters.order import median9
 from .stats import PixelStats
@@ -426,23 +427,57 @@ def neighbourhood_mean_variance(var_mean: np.ndarray, count: np.ndarray, *, radi
     divisor : ndarray (H, W, C), optional
         Positive; the pooling runs in units of it.
     """
-    from scipy.ndimage import uniform_filter
-
-    v = np.asarray(var_mean, dtype=np.float64)
+    v = np.ascontiguousarray(var_mean, dtype=np.float64)
     if v.ndim != 3 or count.shape != v.shape[:2]:
         raise ValueError(f"neighbourhood_mean_variance: var_mean (H, W, C) and count (H, W) expected, got "
                          f"{v.shape} and {count.shape}")
-    d2 = 1.0 if divisor is None else np.asarray(divisor, dtype=np.float64) ** 2
-    n = count.astype(np.float64)[..., None]
-    has = n > 0
-    per_sample = np.where(has & np.isfinite(v), v * n / d2, 0.0)
-    size = (2 * radius + 1, 2 * radius + 1, 1)
-    num = uniform_filter(per_sample, size=size, mode="constant")
-    den = uniform_filter(np.broadcast_to(has & np.isfinite(v), v.shape).astype(np.float64), size=size,
-                         mode="constant")
-    with np.errstate(invalid="ignore", divide="ignore"):
-        pooled = num / den * d2 / n
-    return np.where(has & (den > 0), np.maximum(pooled, 0.0), v)
+    n = np.ascontiguousarray(count, dtype=np.float64)
+    d2 = np.ones((1, 1, 1)) if divisor is None else \
+        np.ascontiguousarray(np.broadcast_to(np.asarray(divisor, dtype=np.float64) ** 2, v.shape))
+    per_sample = np.empty(v.shape)
+    ok = np.empty(v.shape)
+    _per_sample_variance(v, n, d2, divisor is not None, per_sample, ok)
+    # the box means as scipy's uniform_filter(size=(5, 5, 1), mode="constant") computes them, bit for bit
+    num = box_mean(per_sample, radius, "constant")
+    den = box_mean(ok, radius, "constant")
+    out = np.empty(v.shape)
+    _pooled_variance(num, den, d2, divisor is not None, n, v, out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _per_sample_variance(v, n, d2, div, per_sample, ok):
+    # np.where(has & isfinite(v), v * n / d2, 0.0) and (has & isfinite(v)) as float64, has = n > 0
+    h, w, c = v.shape
+    for i in range(h):
+        for j in range(w):
+            for ch in range(c):
+                x = v[i, j, ch]
+                if n[i, j] > 0 and np.isfinite(x):
+                    y = x * n[i, j]
+                    per_sample[i, j, ch] = y / d2[i, j, ch] if div else y
+                    ok[i, j, ch] = 1.0
+                else:
+                    per_sample[i, j, ch] = 0.0
+                    ok[i, j, ch] = 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _pooled_variance(num, den, d2, div, n, v, out):
+    # np.where(has & (den > 0), np.maximum(num / den * d2 / n, 0.0), v): numpy's maximum keeps a NaN
+    h, w, c = v.shape
+    for i in range(h):
+        for j in range(w):
+            for ch in range(c):
+                dn = den[i, j, ch]
+                if n[i, j] > 0 and dn > 0:
+                    p = num[i, j, ch] / dn
+                    if div:
+                        p = p * d2[i, j, ch]
+                    p = p / n[i, j]
+                    out[i, j, ch] = p if (p > 0.0 or p != p) else 0.0
+                else:
+                    out[i, j, ch] = v[i, j, ch]
 
 
 #: Per-sample relative variance ``s^2 / (mean^2 + RARE_EPS)`` above which a pixel's samples show a rare
@@ -464,18 +499,42 @@ def rare_component_mask(var_mean: np.ndarray, mean: np.ndarray, count: np.ndarra
     texture inside the pixel at most about 1.  Arguments as
     :func:`rare_component_variance`.
     """
-    from scipy.ndimage import maximum_filter
-
-    v = np.asarray(var_mean, dtype=np.float64)
-    m = np.asarray(mean, dtype=np.float64)
+    v = np.ascontiguousarray(var_mean, dtype=np.float64)
+    m = np.ascontiguousarray(mean, dtype=np.float64)
     if v.ndim != 3 or m.shape != v.shape or count.shape != v.shape[:2]:
         raise ValueError(f"rare_component_variance: var_mean and mean (H, W, C), count (H, W) expected, got "
                          f"{v.shape}, {m.shape} and {count.shape}")
-    n = count.astype(np.float64)[..., None]
-    with np.errstate(invalid="ignore", over="ignore"):
-        rel = np.where((n > 0) & np.isfinite(v) & np.isfinite(m), v * n / (m * m + RARE_EPS), 0.0)
-    size = (2 * radius + 1, 2 * radius + 1, 1)
-    return maximum_filter(rel, size=size, mode="nearest") > threshold
+    rel = np.empty(v.shape)
+    above = np.empty(v.shape, np.bool_)
+    if _relative_variance(v, m, np.ascontiguousarray(count, dtype=np.float64), float(threshold), rel, above):
+        # a NaN ratio (inf / inf: values near the float64 range): scipy's maximum filter decides as it does
+        from scipy.ndimage import maximum_filter
+
+        size = (2 * radius + 1, 2 * radius + 1, 1)
+        return maximum_filter(rel, size=size, mode="nearest") > threshold
+    # the window's maximum exceeds the threshold wherever one of its entries does
+    return box_any(above, radius)
+
+
+@numba.njit(cache=True, nogil=True)
+def _relative_variance(v, m, n, threshold, rel, above):
+    # rel = np.where((n > 0) & isfinite(v) & isfinite(m), v * n / (m * m + RARE_EPS), 0.0), above = rel >
+    # threshold; returns whether a ratio is NaN
+    h, w, c = v.shape
+    nan = False
+    for i in range(h):
+        for j in range(w):
+            for ch in range(c):
+                x = v[i, j, ch]
+                mu = m[i, j, ch]
+                r = 0.0
+                if n[i, j] > 0 and np.isfinite(x) and np.isfinite(mu):
+                    r = x * n[i, j] / (mu * mu + RARE_EPS)
+                    if r != r:
+                        nan = True
+                rel[i, j, ch] = r
+                above[i, j, ch] = r > threshold
+    return nan
 
 
 def rare_component_variance(var_mean: np.ndarray, mean: np.ndarray, count: np.ndarray, *, radius: int = 2,

@@ -29,7 +29,8 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-from scipy import ndimage
+
+from ..filters.box import box_mean
 
 __all__ = ["PrefixHalves", "stratified_gain", "prefix_halves_of", "halves_gain", "GAIN_RADIUS", "GAIN_FLOOR"]
 
@@ -145,15 +146,10 @@ class PrefixHalves:
         otherwise the prefix is the last completed one.  Halves without a
         finite sample have count 0 (and mean 0).
         """
-        n = self.counter
-        pow2 = (n >= 2) & ((n & (n - 1)) == 0)
-        s, c = self._sums, self._counts
-        sum_a = np.where(pow2[:, None], s[0] + s[1], s[0])
-        sum_b = np.where(pow2[:, None], s[2], s[1])
-        n_a = np.where(pow2, c[0] + c[1], c[0])
-        n_b = np.where(pow2, c[2], c[1])
-        mean_a = sum_a / np.maximum(n_a, 1)[:, None]
-        mean_b = sum_b / np.maximum(n_b, 1)[:, None]
+        npix, nc = self._sums.shape[1:]
+        mean_a, mean_b = np.empty((npix, nc)), np.empty((npix, nc))
+        n_a, n_b = np.empty(npix, np.int64), np.empty(npix, np.int64)
+        _halves_kernel(self.counter, self._sums, self._counts, mean_a, mean_b, n_a, n_b)
         shape = (self.height, self.width)
         return (mean_a.reshape(shape + (-1,)), mean_b.reshape(shape + (-1,)), n_a.reshape(shape),
                 n_b.reshape(shape))
@@ -200,22 +196,83 @@ def halves_gain(mean_a, mean_b, n_a, n_b, sample_variance, *, radius: int = GAIN
     :meth:`PrefixHalves.gain` of any two halves of each pixel's samples (the prefix-block halves of
     :func:`mcrecon.core.halves.split_halves` too); ``sample_variance`` (H, W, C): ``s^2`` of all of them.
     """
-    ok = (n_a > 0) & (n_b > 0)
-    inv = np.where(ok, 1.0 / np.maximum(n_a, 1) + 1.0 / np.maximum(n_b, 1), 0.0)
-    d2 = np.where(ok, np.sum((0.5 * (mean_a - mean_b)) ** 2, axis=2), 0.0)
-    ref = np.sum(np.asarray(sample_variance, dtype=np.float64), axis=2) * inv * 0.25
-    size = 2 * int(radius) + 1
-    num = ndimage.uniform_filter(d2, size=size, mode="constant")
-    den = ndimage.uniform_filter(ref, size=size, mode="constant")
-    den2 = ndimage.uniform_filter(ref * ref, size=size, mode="constant")
-    known = den > 1e-300
-    g = np.divide(num, den, out=np.ones_like(num), where=known)
-    # the ratio's relative standard deviation were the samples independent (a sum of one-degree
-    # terms of expectations ref: sqrt(2 sum ref^2) / sum ref): the gain taken is the ratio's upper
-    # two-sigma bound, so independent samples keep s^2 / n (their ratio's noise is no gain)
-    rel_sd = np.divide(np.sqrt(2.0 * np.maximum(den2, 0.0) / (size * size)), den, out=np.zeros_like(den),
-                       where=known)
-    return np.clip(g * (1.0 + UCB_SIGMAS * rel_sd), floor, 1.0)
+    ma = np.ascontiguousarray(mean_a, dtype=np.float64)
+    h, w, nc = ma.shape
+    d2, ref, ref2 = np.empty((h, w)), np.empty((h, w)), np.empty((h, w))
+    _gain_planes(ma, np.ascontiguousarray(mean_b, dtype=np.float64), np.ascontiguousarray(n_a, dtype=np.float64),
+                 np.ascontiguousarray(n_b, dtype=np.float64), np.ascontiguousarray(sample_variance, dtype=np.float64),
+                 d2, ref, ref2)
+    r = int(radius)
+    # scipy's uniform_filter(size=2 r + 1, mode="constant"), bit for bit (mcrecon.filters.box)
+    num, den, den2 = (box_mean(a, r, "constant") for a in (d2, ref, ref2))
+    out = np.empty((h, w))
+    _gain_ratio(num, den, den2, float((2 * r + 1) ** 2), UCB_SIGMAS, float(floor), out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _halves_kernel(counter, s, c, mean_a, mean_b, n_a, n_b):
+    # a pixel whose count is a power of two (>= 2): the halves are blocks 0 + 1 and block 2, else blocks 0
+    # and 1; each mean sum / max(count, 1)
+    npix, nc = mean_a.shape
+    for p in range(npix):
+        n = counter[p]
+        pow2 = n >= 2 and (n & (n - 1)) == 0
+        na = c[0, p] + c[1, p] if pow2 else c[0, p]
+        nb = c[2, p] if pow2 else c[1, p]
+        n_a[p] = na
+        n_b[p] = nb
+        for ch in range(nc):
+            sa = s[0, p, ch] + s[1, p, ch] if pow2 else s[0, p, ch]
+            sb = s[2, p, ch] if pow2 else s[1, p, ch]
+            mean_a[p, ch] = sa / max(na, 1)
+            mean_b[p, ch] = sb / max(nb, 1)
+
+
+@numba.njit(cache=True, nogil=True)
+def _gain_planes(mean_a, mean_b, n_a, n_b, var, d2, ref, ref2):
+    # where both halves hold samples: d2 = sum_c ((m_a - m_b) / 2)^2 and inv = 1 / n_a + 1 / n_b (else 0);
+    # ref = sum_c s^2 * inv * 0.25 and ref2 = ref^2; the channel sums left to right, as numpy's
+    h, w, nc = mean_a.shape
+    for i in range(h):
+        for j in range(w):
+            ok = n_a[i, j] > 0 and n_b[i, j] > 0
+            inv = 0.0
+            e = 0.0
+            if ok:
+                inv = 1.0 / max(n_a[i, j], 1.0) + 1.0 / max(n_b[i, j], 1.0)
+                for ch in range(nc):
+                    t = 0.5 * (mean_a[i, j, ch] - mean_b[i, j, ch])
+                    e = t * t if ch == 0 else e + t * t
+            sv = var[i, j, 0]
+            for ch in range(1, nc):
+                sv += var[i, j, ch]
+            d2[i, j] = e
+            rf = sv * inv * 0.25
+            ref[i, j] = rf
+            ref2[i, j] = rf * rf
+
+
+@numba.njit(cache=True, nogil=True)
+def _gain_ratio(num, den, den2, n_box, ucb, floor, out):
+    # g = num / den and the ratio's relative sd sqrt(2 max(den2, 0) / n_box) / den where den > 1e-300
+    # (else 1 and 0); out = clip(g (1 + ucb sd), floor, 1) as numpy clips (a NaN stays NaN)
+    h, w = num.shape
+    for i in range(h):
+        for j in range(w):
+            d = den[i, j]
+            g = 1.0
+            sd = 0.0
+            if d > 1e-300:
+                g = num[i, j] / d
+                q = den2[i, j]
+                q = q if (q > 0.0 or q != q) else 0.0
+                sd = np.sqrt(2.0 * q / n_box) / d
+            x = g * (1.0 + ucb * sd)
+            if x == x:
+                x = x if x > floor else floor
+                x = x if x < 1.0 else 1.0
+            out[i, j] = x
 
 
 def prefix_halves_of(source, *, chunk_size: int = 1 << 20) -> PrefixHalves:
