@@ -18,6 +18,7 @@ smoothed estimate.  ``docs/methods/auto.md`` derives every estimator.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import warnings
 
@@ -173,6 +174,11 @@ def _bank(y, v, count, sigmas, *, box: bool) -> list:
     return out
 
 
+def _radius(sigma: float) -> int:
+    """The radius of :class:`~mcrecon.filters.masked.MaskedSmoothing`'s kernel of ``sigma`` (truncated at 3 sigma)."""
+    return int(3.0 * float(sigma) + 0.5)
+
+
 def _oidn_available() -> bool:
     try:
         import pyoidn  # noqa: F401
@@ -194,6 +200,10 @@ class AutoRun(RunState):
     #: the share of its tiles' pixels the regression candidates took, the tiles' two least summed estimates);
     #: None where it did not run.
     regression_verdict: object = None
+    #: The grown tile's ``(y0, y1, x0, x1)`` in the film, set by the tiles' driver
+    #: (:func:`mcrecon.offline.tiles.reconstruct_tiles`): where a tiled run (:meth:`AutoMethod.for_tiles`)
+    #: reads its candidates from the film's pass.  None: an untiled run.
+    window: tuple | None = None
 
     @property
     def regression_share(self) -> float | None:
@@ -315,9 +325,54 @@ class AutoMethod(Method):
                             statistics_options={"candidates": "box,gauss"})
 
     def halo(self, width, height):
-        # the split into halves hashes the absolute pixel index, and awr/oidn
-        # are whole-image: no finite halo is stated
-        return None
+        """The reach of a tile's selection (:meth:`for_tiles`' runner: its candidates come from the film's
+        pass, :mod:`.tiled`), or None (whole-image) with ``awr`` or ``splat`` (a whole-image filter, one of
+        each tile's own samples) or the regression proxy (a verdict on tiles of the film) among the options.
+
+        The selection's reach, composed: the clamp's variance (a 5 x 5 pool of a 3 x 3 one: 3 px), the
+        smoothed estimates and the global prior's local tests (``smooth``'s kernel, radius ``3 smooth``), the
+        region guard's smoothing of the chosen estimates (``3 GUARD smooth``), the sample range and the
+        medians of the 3 x 3 neighbourhoods read after them, and a margin: 37 px by default."""
+        if self._whole_image():
+            return None
+        return _radius(GUARD * self.params["smooth"]) + _radius(self.params["smooth"]) + 3 + 4 + 12
+
+    def candidate_reach(self) -> int:
+        """Pixels of context the candidates at a pixel read, the OIDN candidates and the halves' prefiltered
+        features given (the film's, :mod:`.tiled`): the widest Gaussian of the SURE bank on the variance's 5 x 5
+        pool (2 px more), the regressions (window 9, its fits' windows 9, patch 3: 21), dnlm (window 7,
+        patch 3), NL-means (``nlm_radius + nlm_patch``, weights of the other half), the cross-bilateral
+        filters (window 5, patch 3), and a margin of 4: 55 px by default (the 8-scale bank's 49 + 2)."""
+        from ...filters.gaussian import pixel_kernel
+        p = self.params
+        bank = max([(pixel_kernel(s_).size - 1) // 2 for s_ in final_sigmas(p["scales"])], default=0) \
+            if "gauss" in self._names else 0
+        return int(max(bank + 2, 2 * 9 + 3, 7 + 3, p["nlm_radius"] + p["nlm_patch"], 5 + 3) + 4)
+
+    def tile_grid(self) -> tuple[int, int]:
+        """Tiles start on the NL-means kernels' bands of :data:`~mcrecon.filters.nlmeans.BAND` rows (their
+        running sums restart at each band), as nfor's do: the candidates' NL-means and regressions then sum
+        in the film's order."""
+        from ...filters.nlmeans import BAND
+        return BAND, 1
+
+    def _whole_image(self) -> bool:
+        return bool({"awr", "splat"} & set(self._names)) or self.params["regression_proxy"] is not None
+
+    def for_tiles(self, inputs: MethodInputs, each_tile=None) -> "AutoMethod":
+        """This method for the tiles of the film ``inputs``: a copy holding the film's pass (:func:`.tiled.film_pass`:
+        OIDN and the prefiltered features on the film, every candidate tile by tile into files, the global
+        prior's default on the film's sums), whose :meth:`reconstruct_run` on a tile (its
+        :attr:`AutoRun.window` set) is the selection of that tile's candidates.  ``each_tile(halo)``: the
+        film's tiles grown by ``halo`` with their inputs (:func:`mcrecon.offline.tiles.reconstruct_tiles`
+        gives it)."""
+        from .tiled import film_pass
+        if each_tile is None:
+            raise InputError(self.where, "tile", "auto's tiles need the film's pass over its tiles first; "
+                             "tile it with mcrecon.reconstruct(..., tile=N) (reconstruct --tile N)")
+        tiled = copy.copy(self)
+        object.__setattr__(tiled, "_film", film_pass(self, inputs, each_tile))
+        return tiled
 
     def candidate_names(self) -> list[str]:
         """Names of the colour candidates in ``choice`` order (``gauss`` expands to one per scale, ``oidn``
@@ -337,11 +392,13 @@ class AutoMethod(Method):
         return out
 
     # ------------------------------------------------------------ candidates
-    def _candidates(self, stats: PixelStats, halves: Halves | None, nonfinite: str, *, given=None, run=None):
+    def _candidates(self, stats: PixelStats, halves: Halves | None, nonfinite: str, *, given=None, run=None,
+                    scales=(None, None), units=(None, None)):
         """Every candidate (choice order), the pixel means, their variance and the counts.
 
-        ``given``: the OIDN candidates, already computed (the proxy's mosaic takes crops of the whole
-        image's).  ``run``: where given, the regressions may be left out by the tile proxy
+        ``given``: the OIDN candidates, already computed (the proxy's mosaic and a film's tiles take crops
+        of the whole image's).  ``scales``, ``units``: each half's prefiltered features' scales for the
+        regressions and its dnlm unit (a tile's: the film's, :mod:`.tiled`).  ``run``: where given, the regressions may be left out by the tile proxy
         (``regression_proxy``, :func:`.proxy.regression_share`), whose share is stored on it."""
         p = self.params
         y = stats.mean
@@ -375,8 +432,9 @@ class AutoMethod(Method):
             black_aux = (_store(oidn_candidate("oidn_aux", stats, v, halves, aux=True, variances=(va, vb)))
                          if aux else [])
         else:
-            black = [c for c in given if c.name != "oidn_aux"]
-            black_aux = [c for c in given if c.name == "oidn_aux"]
+            # in the order computed above: colour-only OIDN's, then those with the albedo and normal
+            black = [c for c in given if not c.feature]
+            black_aux = [c for c in given if c.feature]
         fnames = self._feature_names
         with_features = bool(fnames) and halves is not None and bool(halves.a.features)
         if run is not None:
@@ -392,7 +450,8 @@ class AutoMethod(Method):
         released = released or (with_features and _release_features(halves, stats, fnames, oidn_after=False))
         # each stored as built: its float64 image and estimate go before the next one's working arrays
         guided = feature_candidates(fnames, halves.a, halves.b, variances=(va, vb),
-                                    store=lambda c: _store([c])[0]) if with_features else []
+                                    store=lambda c: _store([c])[0], scales=scales, units=units) \
+            if with_features else []
         if with_features:  # dnlm read the halves' albedo last; the selection's divisor reads its merge alone
             halves.release_features(merged=stats, merged_keep=("albedo",))
         v_sure = agreeing_variance(v, count)
@@ -477,6 +536,14 @@ class AutoMethod(Method):
     def _select(self, run: "AutoRun", stats: PixelStats, halves, nonfinite="drop", *, given=None, candidates=None):
         # given: the proxy's mosaic (its OIDN candidates cropped from the whole image's); no proxy inside it.
         # candidates: _candidates' result, computed before (the proxy reads their sums on its tiles too)
+        film = getattr(self, "_film", None)   # a tile of a film (for_tiles): its candidates from the film's pass
+        if film is not None and candidates is None:
+            if run.window is None:
+                raise InputError(self.where, "window", "a tiled auto reconstructs tiles of its film (the run's "
+                                 "window); reconstruct the film with mcrecon.reconstruct(..., tile=N)")
+            get = film.planes.get
+            candidates = (film.candidates(run.window), get("y", run.window), get("v", run.window),
+                          get("count", run.window))
         cands, y, v, count = candidates if candidates is not None else self._candidates(
             stats, halves, nonfinite, given=given, run=run if given is None else None)
         run.candidate_names = [c.name for c in cands]
@@ -524,7 +591,7 @@ class AutoMethod(Method):
                                                choice, y, v, count, bounds, smooth, self.params["global_prior"],
                                                self.params["safeguard"], _guards(cands), divisor,
                                                steady=steady, steady_var=v_wide, rare=_all_samples_box(cands),
-                                               info=prior)
+                                               info=prior, fixed=None if film is None else film.default)
         # ties (e.g. noise-free regions, where every ratio is undefined) go to the first candidate
         if cands[0].name == "box" and smooth > 0:
             # Region guard: where the chosen candidates' unbiased estimates,

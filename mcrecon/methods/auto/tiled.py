@@ -1,0 +1,206 @@
+"""auto in tiles: the film's whole-image decisions made once, each tile's selection local.
+
+auto's result at a pixel reads the whole film through a few decisions:
+OIDN (in HDR mode it scales its input by an exposure over the image it is
+given), the regressions' feature scales (each prefiltered feature plane's
+mean and deviation), dnlm's unit (the irradiance's mean magnitude), the global prior's default (each candidate's estimate
+summed over the film, the thin vote's counts and the black boxes' crossed
+votes, the guards' block sums, the blend's weights).  Everything else is a
+function of a neighbourhood.  :func:`film_pass` makes those decisions on the
+film and stores what the tiles read:
+
+* pass 0, on the film's inputs: the halves' prefiltered features (their
+  scales from them), dnlm's units and OIDN's candidates, each run once on
+  the whole film;
+* pass 1, tile by tile (each grown by the candidates' reach,
+  :meth:`~.method.AutoMethod.candidate_reach`): every candidate's image and
+  estimate, the pixel means, their variance, the counts and the top of the
+  sample range, each tile's inner pixels written to film-sized files on disk
+  (float32 as the selection holds the candidates, float64 for the rest);
+* the global prior's default (:func:`~.selection.prior_default`) on those
+  files, read as memory maps: the untiled sums in the untiled order.
+
+The tiles' selection (pass 2, :meth:`~.method.AutoMethod.reconstruct_run`)
+reads its grown tile's candidates from the files and applies the default.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import shutil
+import tempfile
+import weakref
+
+import numpy as np
+
+from .features import Candidate
+
+__all__ = ["FilmPlanes", "Film", "film_pass"]
+
+
+class FilmPlanes:
+    """Film-sized arrays in files of a temporary directory (removed with this object), written a
+    window at a time and read as memory maps."""
+
+    def __init__(self, height: int, width: int):
+        self.shape = (int(height), int(width))
+        self.dir = tempfile.mkdtemp(prefix="mcrecon-auto-tiles-")
+        self._cleanup = weakref.finalize(self, shutil.rmtree, self.dir, True)
+        self.maps: dict = {}
+
+    def put(self, name: str, window, a: np.ndarray) -> None:
+        """Write ``a`` (the window's pixels, (h, w, ...)) at ``window`` = ``(y0, y1, x0, x1)`` of plane
+        ``name``, created on first use with ``a``'s trailing shape and dtype; a float64 window into a
+        float32 plane turns the plane float64 (its earlier windows as they were stored)."""
+        y0, y1, x0, x1 = window
+        m = self.maps.get(name)
+        if m is None or (m.dtype != a.dtype and a.dtype == np.float64):
+            old = m
+            m = np.lib.format.open_memmap(os.path.join(self.dir, f"{name}.{a.dtype}.npy"), mode="w+",
+                                          dtype=a.dtype, shape=self.shape + a.shape[2:])
+            if old is not None:
+                m[...] = old
+                del old
+            self.maps[name] = m
+        m[y0:y1, x0:x1] = a
+
+    def get(self, name: str, window=None) -> np.ndarray:
+        """Plane ``name``: a contiguous copy of ``window``, or the film's as a memory map (copy on write:
+        the file stays as written)."""
+        m = self.maps[name]
+        if window is None:
+            m.flush()
+            return np.asarray(np.load(m.filename, mmap_mode="c"))
+        y0, y1, x0, x1 = window
+        return np.ascontiguousarray(m[y0:y1, x0:x1])
+
+    def __contains__(self, name) -> bool:
+        return name in self.maps
+
+    def close(self) -> None:
+        self.maps.clear()
+        self._cleanup()
+
+
+@dataclasses.dataclass(eq=False)
+class Film:
+    """What the tiles of one film are given: the planes (:class:`FilmPlanes`), the candidates' names,
+    flags and crossed votes, the global prior's default (None: no prior), the regressions' feature scales
+    of each half, and which planes pass 0 stored (OIDN's candidates, each half's prefiltered features)."""
+
+    planes: FilmPlanes
+    names: list = dataclasses.field(default_factory=list)
+    features: list = dataclasses.field(default_factory=list)
+    crossed: list = dataclasses.field(default_factory=list)
+    default: object = None
+    scales: tuple = (None, None)
+    units: tuple = (None, None)
+    black: list = dataclasses.field(default_factory=list)     # OIDN's candidates: (name, feature, crossed)
+    prefiltered: bool = False
+
+    def candidates(self, window=None) -> list:
+        """The candidates over ``window`` (copies, as the selection holds them), or the film's (memory maps)."""
+        return [Candidate(n, self.planes.get(f"image{k}", window), self.planes.get(f"mse{k}", window), f, c)
+                for k, (n, f, c) in enumerate(zip(self.names, self.features, self.crossed))]
+
+    def black_boxes(self, window) -> list:
+        """OIDN's candidates over ``window``, computed on the film in pass 0."""
+        return [Candidate(n, self.planes.get(f"oidn_image{k}", window), self.planes.get(f"oidn_mse{k}", window),
+                          f, c) for k, (n, f, c) in enumerate(self.black)]
+
+    def seed(self, halves, window) -> None:
+        """Give a tile's halves the film's prefiltered features over ``window``
+        (:func:`~.features.seed_prefiltered`): the regressions and OIDN's albedo read the film's values."""
+        from .features import seed_prefiltered
+
+        if self.prefiltered and halves is not None:
+            for i, hf in enumerate(halves):
+                seed_prefiltered(hf, self.planes.get(f"prefiltered{i}", window))
+
+
+def _pass0(method, inputs, film: Film) -> None:
+    """OIDN's candidates and the halves' prefiltered features on the film's inputs (a
+    :class:`~mcrecon.methods.MethodInputs` of the whole film), as the untiled run computes them."""
+    from ...core.halves import mean_variances
+    from ...filters.regression import feature_scale
+    from .blackbox import oidn_candidate
+    from .features import dnlm_scale, prefiltered_features, release_prefiltered
+    from .method import DUAL_BUFFER, _store
+    from .proxy import REGRESSIONS
+
+    halves = inputs.halves if any(c in DUAL_BUFFER for c in method._names) else None
+    if halves is None:
+        return
+    stats = inputs.stats if inputs.stats is not None else halves.merged()
+    aux = method._aux_replaces_oidn(stats)
+    fnames = method._feature_names
+    with_features = bool(fnames) and bool(halves.a.features)
+    regress = set(REGRESSIONS) & set(fnames)
+    whole = (0, film.planes.shape[0], 0, film.planes.shape[1])
+    if with_features and (aux or regress):
+        pf = [prefiltered_features(hf) for hf in halves]
+        for i, p in enumerate(pf):
+            film.planes.put(f"prefiltered{i}", whole, p)
+        if regress:
+            film.scales = tuple(tuple(feature_scale(p[..., d]) for d in range(p.shape[2])) for p in pf)
+        film.prefiltered = True
+        del pf
+    if with_features and ("dnlm" in fnames or "mix" in fnames):
+        film.units = tuple(dnlm_scale(hf) for hf in halves)
+    v, va, vb = mean_variances(stats, halves)
+    black = []
+    if "oidn" in method._names:
+        black += _store(oidn_candidate("oidn", stats, v, halves, halves_only=aux, variances=(va, vb)))
+    if aux:
+        black += _store(oidn_candidate("oidn_aux", stats, v, halves, aux=True, variances=(va, vb)))
+    for k, c in enumerate(black):
+        film.planes.put(f"oidn_image{k}", whole, c.image)
+        film.planes.put(f"oidn_mse{k}", whole, c.mse)
+        film.black.append((c.name, c.feature, c.crossed))
+    release_prefiltered(*halves)
+
+
+def film_pass(method, inputs, each_tile) -> Film:
+    """The film's decisions and stores for auto's tiles (the module's docstring): passes 0 and 1 and the
+    global prior's default.
+
+    ``inputs``: the film's :class:`~mcrecon.methods.MethodInputs`, or a reader of it a window at a time
+    (:class:`~mcrecon.offline.tiles.FilmReader`: ``read(window)``, ``shape``); ``each_tile(halo)``: the
+    film's tiles grown by ``halo`` as ``(outer, inner, inputs of outer)``, read band by band."""
+    from ...core.safeguard import sample_range_bounds
+    from .method import BLACK_BOXES, _guards
+    from .selection import prior_default
+
+    h, w, _ = inputs.shape
+    film = Film(FilmPlanes(h, w))
+    whole = inputs if not hasattr(inputs, "read") else inputs.read((0, h, 0, w))
+    _pass0(method, whole, film)
+    del whole
+    for outer, inner, sub in each_tile(method.candidate_reach()):
+        oy0, _, ox0, _ = outer
+        y0, y1, x0, x1 = inner
+        cut = (slice(y0 - oy0, y1 - oy0), slice(x0 - ox0, x1 - ox0))
+        stats = sub.stats if sub.stats is not None else sub.halves.merged()
+        film.seed(sub.halves, outer)
+        cands, y, v, count = method._candidates(stats, sub.halves, sub.nonfinite, given=film.black_boxes(outer),
+                                                scales=film.scales, units=film.units)
+        names = [c.name for c in cands]
+        if not film.names:
+            film.names, film.features = names, [c.feature for c in cands]
+            film.crossed = [c.crossed for c in cands]
+        for k, c in enumerate(cands):
+            film.planes.put(f"image{k}", inner, c.image[cut])
+            film.planes.put(f"mse{k}", inner, c.mse[cut])
+        hi = sample_range_bounds(stats)[1]
+        for name, a in (("y", y), ("v", v), ("count", count), ("hi", hi)):
+            film.planes.put(name, inner, np.asarray(a)[cut])
+        del cands, y, v, count, hi, stats, sub
+    p = method.params
+    if p["global_prior"] is not None and len(film.names) > 1 and p["smooth"] > 0:
+        cands = film.candidates()
+        get = film.planes.get
+        film.default = prior_default(cands, get("y"), get("v"), get("count"), get("hi"), p["safeguard"],
+                                     _guards(cands), steady=[k for k, n in enumerate(film.names) if n in BLACK_BOXES])
+        del cands
+    return film
