@@ -75,6 +75,9 @@ def test_auto_tiled_equals_untiled_with_features(wall_features, tile, monkeypatc
     assert "nfor" in film.names and "dnlm" in film.names and "oidn_aux" in film.names
     assert film.default.g is not None and film.default.blend is not None
     assert film.scales[0] is not None and film.units[0] is not None
+    if tile == 57:   # the distributed driver without a client is reconstruct --tile's loop
+        from mcrecon.distributed import reconstruct_tiled
+        assert np.array_equal(reconstruct_tiled(wall_features, method="auto", tile=tile, scales=4), full)
 
 
 def test_auto_tiled_equals_untiled_thin_vote(spot_features, monkeypatch):
