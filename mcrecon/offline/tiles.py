@@ -103,11 +103,12 @@ class FilmReader:
     def shape(self) -> tuple[int, int, int]:
         return self.height, self.width, len(self.channels)
 
-    def read(self, window) -> MethodInputs:
-        """The inputs of the pixels ``window`` = ``(y0, y1, x0, x1)``; half buffers come without their merge."""
+    def read(self, window, method: Method | None = None) -> MethodInputs:
+        """The inputs of the pixels ``window`` = ``(y0, y1, x0, x1)``; half buffers come without their merge.
+        ``method``: what another method (of the same samples' layout: a variant of this one) reads instead."""
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            out = gather_inputs(self.source, self.method, nonfinite=self.nonfinite, reference=self.reference,
+            out = gather_inputs(self.source, method or self.method, nonfinite=self.nonfinite, reference=self.reference,
                                 where=self.where, merged=False, window=tuple(int(v) for v in window))
         for wn in caught:
             self.said.setdefault((wn.category, str(wn.message)), wn)

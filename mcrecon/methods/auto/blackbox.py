@@ -160,7 +160,8 @@ def _colour(st: PixelStats) -> np.ndarray:
 
 
 def oidn_candidate(name: str, stats: PixelStats, v: np.ndarray, halves=None, *, aux: bool = False,
-                   estimate: str | None = None, halves_only: bool = False, variances=None) -> list[Candidate]:
+                   estimate: str | None = None, halves_only: bool = False, variances=None,
+                   aux_planes=None) -> list[Candidate]:
     """OIDN on all the samples' pixel means (``stats``) with its per-pixel MSE estimate, and with the
     ``halves`` estimate also ``NAME_halves``: the average of OIDN on each half, with the halves'
     dual-buffer estimate (:func:`~.features.dual_candidate`).
@@ -169,19 +170,21 @@ def oidn_candidate(name: str, stats: PixelStats, v: np.ndarray, halves=None, *, 
     ``estimate``: one of :data:`ESTIMATES` (default :data:`ESTIMATE`); ``halves`` needs ``halves``
     (without them: ``sure``).  ``halves_only``: with the ``halves`` estimate, ``NAME_halves`` alone (two
     denoiser runs, not three).  ``variances``: the halves' means' variances ``(v_A, v_B)`` their
-    cross-validation reads (None: :func:`~mcrecon.core.halves.mean_variances` of ``halves``).  NaN where a
-    pixel has no sample (or no sample in a half)."""
+    cross-validation reads (None: :func:`~mcrecon.core.halves.mean_variances` of ``halves``).
+    ``aux_planes``: each half's :func:`oidn_aux` planes, computed before (a film's, from its features read
+    band by band: ``halves`` may then hold the colour alone).  NaN where a pixel has no sample (or no
+    sample in a half)."""
     estimate = ESTIMATE if estimate is None else estimate
     if estimate not in ESTIMATES:
         raise ValueError(f"oidn_candidate: estimate {estimate!r}; valid: {', '.join(ESTIMATES)}")
-    if halves is None or (aux and "albedo" not in halves.a.features):
+    if halves is None or (aux and aux_planes is None and "albedo" not in halves.a.features):
         estimate = "sure"
     halves_only = halves_only and estimate == "halves"
     extra = []
     y = _colour(stats)
     a_half = b_half = ()
     if aux and estimate == "halves":
-        a_half, b_half = oidn_aux(halves.a), oidn_aux(halves.b)
+        a_half, b_half = (oidn_aux(halves.a), oidn_aux(halves.b)) if aux_planes is None else aux_planes
     if halves_only:
         img = None
     elif len(a_half) == len(b_half) > 0:

@@ -3,15 +3,17 @@
 auto's result at a pixel reads the whole film through a few decisions:
 OIDN (in HDR mode it scales its input by an exposure over the image it is
 given), the regressions' feature scales (each prefiltered feature plane's
-mean and deviation), dnlm's unit (the irradiance's mean magnitude), the global prior's default (each candidate's estimate
-summed over the film, the thin vote's counts and the black boxes' crossed
-votes, the guards' block sums, the blend's weights).  Everything else is a
+mean and deviation), dnlm's unit (the irradiance's mean magnitude), the
+global prior's default (each candidate's estimate summed over the film,
+the thin vote's counts and the black boxes' crossed votes, the guards'
+block sums, the blend's weights).  Everything else is a
 function of a neighbourhood.  :func:`film_pass` makes those decisions on the
 film and stores what the tiles read:
 
 * pass 0, on the film's inputs: the halves' prefiltered features (their
   scales from them), dnlm's units and OIDN's candidates, each run once on
-  the whole film;
+  the whole film (from a log: the features band by band, OIDN on the
+  film's colour statistics alone, :func:`_pass0_read`);
 * pass 1, tile by tile (each grown by the candidates' reach,
   :meth:`~.method.AutoMethod.candidate_reach`): every candidate's image and
   estimate, the pixel means, their variance, the counts and the top of the
@@ -26,6 +28,7 @@ reads its grown tile's candidates from the files and applies the default.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import os
 import shutil
@@ -120,13 +123,11 @@ class Film:
 
 
 def _pass0(method, inputs, film: Film) -> None:
-    """OIDN's candidates and the halves' prefiltered features on the film's inputs (a
+    """OIDN's candidates, the halves' prefiltered features and dnlm's units on the film's inputs (a
     :class:`~mcrecon.methods.MethodInputs` of the whole film), as the untiled run computes them."""
-    from ...core.halves import mean_variances
     from ...filters.regression import feature_scale
-    from .blackbox import oidn_candidate
     from .features import dnlm_scale, prefiltered_features, release_prefiltered
-    from .method import DUAL_BUFFER, _store
+    from .method import DUAL_BUFFER
     from .proxy import REGRESSIONS
 
     halves = inputs.halves if any(c in DUAL_BUFFER for c in method._names) else None
@@ -148,17 +149,94 @@ def _pass0(method, inputs, film: Film) -> None:
         del pf
     if with_features and ("dnlm" in fnames or "mix" in fnames):
         film.units = tuple(dnlm_scale(hf) for hf in halves)
+    _oidn(method, stats, halves, aux, film)
+    release_prefiltered(*halves)
+
+
+def _oidn(method, stats, halves, aux: bool, film: Film, aux_planes=None) -> None:
+    """OIDN's candidates of the film (``stats``, ``halves``: its statistics, the colour's at least), as
+    :meth:`~.method.AutoMethod._candidates` computes them, stored in ``film``; ``aux``: with the albedo and
+    normal (``aux_planes``: each half's, :func:`~.blackbox.oidn_aux`; None: the halves' own)."""
+    from ...core.halves import mean_variances
+    from .blackbox import oidn_candidate
+    from .method import _store
+
+    whole = (0, film.planes.shape[0], 0, film.planes.shape[1])
     v, va, vb = mean_variances(stats, halves)
     black = []
     if "oidn" in method._names:
         black += _store(oidn_candidate("oidn", stats, v, halves, halves_only=aux, variances=(va, vb)))
     if aux:
-        black += _store(oidn_candidate("oidn_aux", stats, v, halves, aux=True, variances=(va, vb)))
+        black += _store(oidn_candidate("oidn_aux", stats, v, halves, aux=True, variances=(va, vb),
+                                       aux_planes=aux_planes))
     for k, c in enumerate(black):
         film.planes.put(f"oidn_image{k}", whole, c.image)
         film.planes.put(f"oidn_mse{k}", whole, c.mse)
         film.black.append((c.name, c.feature, c.crossed))
-    release_prefiltered(*halves)
+
+
+#: Rows of context the halves' feature prefilter reads (its window 5 and patch 3, NFOR's Sec. 5.1).
+PREFILTER_REACH = 5 + 3
+
+
+def _pass0_read(method, reader, film: Film) -> None:
+    """Pass 0 from a reader of the film a window at a time (:class:`~mcrecon.offline.tiles.FilmReader`):
+    the halves' prefiltered features band by band (each band's rows grown by the prefilter's reach, from a
+    row of the NL-means kernels' bands: the film's planes bit for bit), dnlm's units from the film's colour
+    and albedo planes assembled on disk, then OIDN on the film's colour statistics alone (read without
+    the features: the two halves and their merge with features are 584 bytes a pixel, without them 312)
+    and the prefiltered albedo and normal."""
+    from ...filters.demodulation import demodulation_scale
+    from ...filters.nlmeans import BAND
+    from ...filters.regression import feature_scale
+    from .features import _filled, feature_slices, prefiltered_features, release_prefiltered
+    from .method import DUAL_BUFFER
+    from .proxy import REGRESSIONS
+
+    if not any(c in DUAL_BUFFER for c in method._names):
+        return
+    h, w = film.planes.shape
+    fnames = method._feature_names
+    regress = set(REGRESSIONS) & set(fnames)
+    aux = units = False
+    slices = None
+    for y0, y1 in reader.bands:
+        by0, by1 = max(0, y0 - PREFILTER_REACH) // BAND * BAND, min(h, y1 + PREFILTER_REACH)
+        halves = reader.read((by0, by1, 0, w)).halves
+        if not fnames or not halves.a.features:
+            break
+        aux = "oidn_aux" in fnames and "albedo" in halves.a.features
+        units = ("dnlm" in fnames or "mix" in fnames) and "albedo" in halves.a.features
+        rows = (y0, y1, 0, w)
+        cut = slice(y0 - by0, y1 - by0)
+        for i, hf in enumerate(halves):
+            if aux or regress:
+                film.planes.put(f"prefiltered{i}", rows, prefiltered_features(hf)[cut])
+                slices = feature_slices(hf)
+            if units:
+                alb = hf.features["albedo"]
+                film.planes.put(f"colour{i}", rows, _filled(hf.mean, hf.count)[cut])
+                film.planes.put(f"albedo{i}", rows, _filled(alb.mean, alb.count)[cut])
+        release_prefiltered(*halves)
+        del halves
+    if slices is not None:
+        film.prefiltered = True
+        if regress:
+            film.scales = tuple(tuple(feature_scale(p[..., d]) for d in range(p.shape[2]))
+                                for p in (film.planes.get(f"prefiltered{i}") for i in range(2)))
+    if units:
+        film.units = tuple(demodulation_scale(film.planes.get(f"colour{i}"), film.planes.get(f"albedo{i}"))
+                           for i in range(2))
+    planes = None
+    if aux:   # oidn_aux's planes: the albedo and normal, three components each
+        names = [n for n in ("albedo", "normal") if n in slices and slices[n].stop - slices[n].start == 3]
+        names = names if names and names[0] == "albedo" else []
+        planes = tuple(tuple(np.ascontiguousarray(film.planes.get(f"prefiltered{i}")[..., slices[n]]) for n in names)
+                       for i in range(2))
+    colour = copy.copy(method)   # the same samples' colour alone
+    object.__setattr__(colour, "_feature_names", ())
+    halves = reader.read((0, h, 0, w), method=colour).halves
+    _oidn(method, halves.merged(), halves, aux, film, aux_planes=planes)
 
 
 def film_pass(method, inputs, each_tile) -> Film:
@@ -174,9 +252,10 @@ def film_pass(method, inputs, each_tile) -> Film:
 
     h, w, _ = inputs.shape
     film = Film(FilmPlanes(h, w))
-    whole = inputs if not hasattr(inputs, "read") else inputs.read((0, h, 0, w))
-    _pass0(method, whole, film)
-    del whole
+    if hasattr(inputs, "read"):
+        _pass0_read(method, inputs, film)
+    else:
+        _pass0(method, inputs, film)
     for outer, inner, sub in each_tile(method.candidate_reach()):
         oy0, _, ox0, _ = outer
         y0, y1, x0, x1 = inner
