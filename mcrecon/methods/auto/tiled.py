@@ -43,47 +43,65 @@ __all__ = ["FilmPlanes", "Film", "film_pass"]
 
 
 class FilmPlanes:
-    """Film-sized arrays in files of a temporary directory (removed with this object), written a
-    window at a time and read as memory maps."""
+    """Film-sized arrays in files of a temporary directory (removed with this object), written a window at
+    a time and read back a window at a time (or whole, as memory maps).
+
+    Each write and read maps its file for that call alone: pages a process has mapped count in its resident
+    set while they stay mapped, so files held open would bring the film back into memory."""
 
     def __init__(self, height: int, width: int):
         self.shape = (int(height), int(width))
         self.dir = tempfile.mkdtemp(prefix="mcrecon-auto-tiles-")
         self._cleanup = weakref.finalize(self, shutil.rmtree, self.dir, True)
-        self.maps: dict = {}
+        self.paths: dict = {}
 
     def put(self, name: str, window, a: np.ndarray) -> None:
         """Write ``a`` (the window's pixels, (h, w, ...)) at ``window`` = ``(y0, y1, x0, x1)`` of plane
         ``name``, created on first use with ``a``'s trailing shape and dtype; a float64 window into a
         float32 plane turns the plane float64 (its earlier windows as they were stored)."""
         y0, y1, x0, x1 = window
-        m = self.maps.get(name)
-        if m is None or (m.dtype != a.dtype and a.dtype == np.float64):
-            old = m
-            m = np.lib.format.open_memmap(os.path.join(self.dir, f"{name}.{a.dtype}.npy"), mode="w+",
-                                          dtype=a.dtype, shape=self.shape + a.shape[2:])
+        path = self.paths.get(name)
+        old = None if path is None else np.load(path, mmap_mode="r")
+        if old is None or (old.dtype != a.dtype and a.dtype == np.float64):
+            path = os.path.join(self.dir, f"{name}.{a.dtype}.npy")
+            m = np.lib.format.open_memmap(path, mode="w+", dtype=a.dtype, shape=self.shape + a.shape[2:])
             if old is not None:
                 m[...] = old
-                del old
-            self.maps[name] = m
+            self.paths[name] = path
+        else:
+            m = np.load(path, mmap_mode="r+")
+        del old
         m[y0:y1, x0:x1] = a
+        m.flush()
+        del m
 
     def get(self, name: str, window=None) -> np.ndarray:
         """Plane ``name``: a contiguous copy of ``window``, or the film's as a memory map (copy on write:
-        the file stays as written)."""
-        m = self.maps[name]
+        the file stays as written), mapped while the caller holds it."""
+        m = np.load(self.paths[name], mmap_mode="c")
         if window is None:
-            m.flush()
-            return np.asarray(np.load(m.filename, mmap_mode="c"))
+            return m
         y0, y1, x0, x1 = window
         return np.ascontiguousarray(m[y0:y1, x0:x1])
 
     def __contains__(self, name) -> bool:
-        return name in self.maps
+        return name in self.paths
 
-    def close(self) -> None:
-        self.maps.clear()
-        self._cleanup()
+
+class _Mapped:
+    """A candidate of the film whose image and estimate are mapped from the files each time they are read
+    (:class:`FilmPlanes.get`), so that reading every candidate's estimate in turn holds one at a time."""
+
+    def __init__(self, planes: FilmPlanes, k: int, name: str, feature: bool, crossed):
+        self.planes, self.k, self.name, self.feature, self.crossed = planes, k, name, feature, crossed
+
+    @property
+    def image(self) -> np.ndarray:
+        return self.planes.get(f"image{self.k}")
+
+    @property
+    def mse(self) -> np.ndarray:
+        return self.planes.get(f"mse{self.k}")
 
 
 @dataclasses.dataclass(eq=False)
@@ -103,7 +121,11 @@ class Film:
     prefiltered: bool = False
 
     def candidates(self, window=None) -> list:
-        """The candidates over ``window`` (copies, as the selection holds them), or the film's (memory maps)."""
+        """The candidates over ``window`` (copies, as the selection holds them), or the film's (each image
+        and estimate mapped from its file where it is read)."""
+        if window is None:
+            return [_Mapped(self.planes, k, n, f, c)
+                    for k, (n, f, c) in enumerate(zip(self.names, self.features, self.crossed))]
         return [Candidate(n, self.planes.get(f"image{k}", window), self.planes.get(f"mse{k}", window), f, c)
                 for k, (n, f, c) in enumerate(zip(self.names, self.features, self.crossed))]
 
