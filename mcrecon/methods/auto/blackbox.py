@@ -67,6 +67,30 @@ PROBE_STEP = 0.5
 OIDN_MEMORY_MB = 1000
 
 
+#: Standard errors by which a black box scored by cross-validation (OIDN) must undercut the best plain
+#: candidate's summed estimate to become the global prior's default (:func:`_guards`).
+Z_BLACKBOX = 1.0
+#: The candidates :data:`Z_BLACKBOX` applies to.
+BLACK_BOXES = ("oidn", "oidn_aux", "oidn_halves", "oidn_aux_halves")
+
+def _guards(cands) -> dict:
+    """The global prior's guarded candidates: index -> the standard errors by which each must undercut.
+
+    Feature-guided ones :data:`~.selection.Z_GLOBAL`; the black boxes (:data:`BLACK_BOXES`) the larger
+    :data:`Z_BLACKBOX`: their cross-validated estimates carry noise independent of the Stein estimates
+    of the linear filters (which share the pixel means' noise, so their differences are far less
+    noisy).  Where every candidate's error is far below that noise (a flat field, 8 spp) a plain argmin
+    of the sums makes OIDN the default at random: 20x the widest Gaussian's error there."""
+    from .selection import Z_GLOBAL
+    out = {}
+    for k, c in enumerate(cands):
+        if c.name in BLACK_BOXES:
+            out[k] = max(Z_BLACKBOX, Z_GLOBAL if c.feature else 0.0)
+        elif c.feature:
+            out[k] = Z_GLOBAL
+    return out
+
+
 def oidn_denoise(colour: np.ndarray, aux: tuple = (), *, clean_aux: bool = False) -> np.ndarray:
     """OIDN's ``RT`` filter of an (H, W, C) image, ``hdr=True``, quality high: (H, W, C) float64.
 

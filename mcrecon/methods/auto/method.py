@@ -40,7 +40,7 @@ from ...filters.gaussian import final_sigmas
 from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGHTS, Candidate,
     _feature_bilateral, dual_candidate, feature_candidates, prefiltered_features,
     feature_slices, release_prefiltered, seed_prefiltered)
-from .blackbox import oidn_candidate
+from .blackbox import BLACK_BOXES, Z_BLACKBOX, _guards, oidn_candidate  # noqa: F401
 from .nlmeans import nlmeans_cross
 from .proxy import REGRESSIONS, regression_share
 from ...filters.masked import MaskedSmoothing, smooth_masked
@@ -62,11 +62,6 @@ DEFAULT_CANDIDATES = "box,gauss,nlm,oidn"
 _WHERE = "method auto"
 #: Standard errors of the pixel mean beyond which a candidate's departure from it counts as bias.
 Z_BIAS = 2.0
-#: Standard errors by which a black box scored by cross-validation (OIDN) must undercut the best plain
-#: candidate's summed estimate to become the global prior's default (:func:`_guards`).
-Z_BLACKBOX = 1.0
-#: The candidates :data:`Z_BLACKBOX` applies to.
-BLACK_BOXES = ("oidn", "oidn_aux", "oidn_halves", "oidn_aux_halves")
 #: Where the global default is one of :data:`BLACK_BOXES`, the clamp's standard error at the pixels that
 #: take it is at least this fraction of the one from the mean per-sample variance of the 5 x 5
 #: neighbourhood (:func:`~mcrecon.core.safeguard.neighbourhood_mean_variance`).
@@ -106,24 +101,6 @@ def _all_samples_box(cands):
     defaults already place the light by the albedo (docs/methods/auto.md, step 3a)."""
     names = [c.name for c in cands]
     return names.index("oidn") if "oidn" in names else None
-
-
-def _guards(cands) -> dict:
-    """The global prior's guarded candidates: index -> the standard errors by which each must undercut.
-
-    Feature-guided ones :data:`~.selection.Z_GLOBAL`; the black boxes (:data:`BLACK_BOXES`) the larger
-    :data:`Z_BLACKBOX`: their cross-validated estimates carry noise independent of the Stein estimates
-    of the linear filters (which share the pixel means' noise, so their differences are far less
-    noisy).  Where every candidate's error is far below that noise (a flat field, 8 spp) a plain argmin
-    of the sums makes OIDN the default at random: 20x the widest Gaussian's error there."""
-    from .selection import Z_GLOBAL
-    out = {}
-    for k, c in enumerate(cands):
-        if c.name in BLACK_BOXES:
-            out[k] = max(Z_BLACKBOX, Z_GLOBAL if c.feature else 0.0)
-        elif c.feature:
-            out[k] = Z_GLOBAL
-    return out
 
 
 def _store(cands: list) -> list:
@@ -174,11 +151,6 @@ def _bank(y, v, count, sigmas, *, box: bool) -> list:
     return out
 
 
-def _radius(sigma: float) -> int:
-    """The radius of :class:`~mcrecon.filters.masked.MaskedSmoothing`'s kernel of ``sigma`` (truncated at 3 sigma)."""
-    return int(3.0 * float(sigma) + 0.5)
-
-
 def _oidn_available() -> bool:
     try:
         import pyoidn  # noqa: F401
@@ -200,9 +172,7 @@ class AutoRun(RunState):
     #: the share of its tiles' pixels the regression candidates took, the tiles' two least summed estimates);
     #: None where it did not run.
     regression_verdict: object = None
-    #: The grown tile's ``(y0, y1, x0, x1)`` in the film, set by the tiles' driver
-    #: (:func:`mcrecon.offline.tiles.reconstruct_tiles`): where a tiled run (:meth:`AutoMethod.for_tiles`)
-    #: reads its candidates from the film's pass.  None: an untiled run.
+    #: A tile's ``(y0, y1, x0, x1)`` in its film (set by the tiles' driver; :meth:`AutoMethod.for_tiles`).
     window: tuple | None = None
 
     @property
@@ -325,51 +295,25 @@ class AutoMethod(Method):
                             statistics_options={"candidates": "box,gauss"})
 
     def halo(self, width, height):
-        """The reach of a tile's selection (:meth:`for_tiles`' runner: its candidates come from the film's
-        pass, :mod:`.tiled`), or None (whole-image) with ``awr`` or ``splat`` (a whole-image filter, one of
-        each tile's own samples) or the regression proxy (a verdict on tiles of the film) among the options.
-
-        The selection's reach, composed: the clamp's variance (a 5 x 5 pool of a 3 x 3 one: 3 px), the
-        smoothed estimates and the global prior's local tests (``smooth``'s kernel, radius ``3 smooth``), the
-        region guard's smoothing of the chosen estimates (``3 GUARD smooth``), the sample range and the
-        medians of the 3 x 3 neighbourhoods read after them, and a margin: 37 px by default."""
-        if self._whole_image():
-            return None
-        return _radius(GUARD * self.params["smooth"]) + _radius(self.params["smooth"]) + 3 + 4 + 12
+        """A tile's selection's reach (:func:`.tiled.selection_reach`); None with awr, splat or the proxy."""
+        from .tiled import selection_reach
+        whole = bool({"awr", "splat"} & set(self._names)) or self.params["regression_proxy"] is not None
+        return None if whole else selection_reach(self.params["smooth"], GUARD)
 
     def candidate_reach(self) -> int:
-        """Pixels of context the candidates at a pixel read, the OIDN candidates and the halves' prefiltered
-        features given (the film's, :mod:`.tiled`): the widest Gaussian of the SURE bank on the variance's 5 x 5
-        pool (2 px more), the regressions (window 9, its fits' windows 9, patch 3: 21), dnlm (window 7,
-        patch 3), NL-means (``nlm_radius + nlm_patch``, weights of the other half), the cross-bilateral
-        filters (window 5, patch 3), and a margin of 4: 55 px by default (the 8-scale bank's 49 + 2)."""
-        from ...filters.gaussian import pixel_kernel
-        p = self.params
-        bank = max([(pixel_kernel(s_).size - 1) // 2 for s_ in final_sigmas(p["scales"])], default=0) \
-            if "gauss" in self._names else 0
-        return int(max(bank + 2, 2 * 9 + 3, 7 + 3, p["nlm_radius"] + p["nlm_patch"], 5 + 3) + 4)
+        """Pixels of context the candidates at a pixel read (:func:`.tiled.candidate_reach`)."""
+        from .tiled import candidate_reach
+        return candidate_reach(self.params, "gauss" in self._names)
 
     def tile_grid(self) -> tuple[int, int]:
-        """Tiles start on the NL-means kernels' bands of :data:`~mcrecon.filters.nlmeans.BAND` rows (their
-        running sums restart at each band), as nfor's do: the candidates' NL-means and regressions then sum
-        in the film's order."""
+        """Tiles start on the NL-means kernels' bands of rows, as nfor's do (their running sums restart there)."""
         from ...filters.nlmeans import BAND
         return BAND, 1
 
-    def _whole_image(self) -> bool:
-        return bool({"awr", "splat"} & set(self._names)) or self.params["regression_proxy"] is not None
-
     def for_tiles(self, inputs: MethodInputs, each_tile=None) -> "AutoMethod":
-        """This method for the tiles of the film ``inputs``: a copy holding the film's pass (:func:`.tiled.film_pass`:
-        OIDN and the prefiltered features on the film, every candidate tile by tile into files, the global
-        prior's default on the film's sums), whose :meth:`reconstruct_run` on a tile (its
-        :attr:`AutoRun.window` set) is the selection of that tile's candidates.  ``each_tile(halo)``: the
-        film's tiles grown by ``halo`` with their inputs (:func:`mcrecon.offline.tiles.reconstruct_tiles`
-        gives it)."""
+        """A copy holding the film's pass (:func:`.tiled.film_pass`), whose selection of a tile
+        (:attr:`AutoRun.window`) reads that tile's candidates from it."""
         from .tiled import film_pass
-        if each_tile is None:
-            raise InputError(self.where, "tile", "auto's tiles need the film's pass over its tiles first; "
-                             "tile it with mcrecon.reconstruct(..., tile=N) (reconstruct --tile N)")
         tiled = copy.copy(self)
         object.__setattr__(tiled, "_film", film_pass(self, inputs, each_tile))
         return tiled
@@ -432,8 +376,7 @@ class AutoMethod(Method):
             black_aux = (_store(oidn_candidate("oidn_aux", stats, v, halves, aux=True, variances=(va, vb)))
                          if aux else [])
         else:
-            # in the order computed above: colour-only OIDN's, then those with the albedo and normal
-            black = [c for c in given if not c.feature]
+            black = [c for c in given if not c.feature]   # in the order above: colour-only OIDN's first
             black_aux = [c for c in given if c.feature]
         fnames = self._feature_names
         with_features = bool(fnames) and halves is not None and bool(halves.a.features)
@@ -538,12 +481,7 @@ class AutoMethod(Method):
         # candidates: _candidates' result, computed before (the proxy reads their sums on its tiles too)
         film = getattr(self, "_film", None)   # a tile of a film (for_tiles): its candidates from the film's pass
         if film is not None and candidates is None:
-            if run.window is None:
-                raise InputError(self.where, "window", "a tiled auto reconstructs tiles of its film (the run's "
-                                 "window); reconstruct the film with mcrecon.reconstruct(..., tile=N)")
-            get = film.planes.get
-            candidates = (film.candidates(run.window), get("y", run.window), get("v", run.window),
-                          get("count", run.window))
+            candidates = film.tile_inputs(run.window, self.where)
         cands, y, v, count = candidates if candidates is not None else self._candidates(
             stats, halves, nonfinite, given=given, run=run if given is None else None)
         run.candidate_names = [c.name for c in cands]

@@ -18,50 +18,11 @@ from .blend import blend_default
 from .firefly import FIREFLY, HEAVY_TAIL, Z_FIREFLY, _firefly  # noqa: F401 (Z_FIREFLY: the tests read it here)
 from .thinvote import THIN_VOTE, _could_vote, _thin_default
 from .estimates import relative_denominator_loo
-from .passes import _FirstLeast, _arrays, _c64, _channel_mean, _floor_and_choose, _means, _nanmax
+from .passes import (_FirstLeast, _arrays, _c64, _channel_mean, _compress, _means, _nanmax,  # noqa: F401
+                     _relative_choice)
 from ...core.metrics import DEFAULT_EPS
 from ...filters.masked import MaskedSmoothing, effective_counts
 from ...filters.order import median9, neighbour_median8, neighbour_medians8
-
-
-class _Floored:
-    """Every candidate's smoothed relative estimate floored by its own evidence of bias: ``rel[k]``, an
-    (H, W) map, computed where it is read (one candidate's pass of :func:`_floor_and_choose` at ``z``
-    standard errors ``sd``), not all K kept: the (K, H, W) stack is 0.3 GB at 1920 x 1080 with 19
-    candidates, its recomputation a smoothing a candidate.  The same bits at every read of a candidate:
-    ``cands`` is read as it stands then, so the global prior pins its default's map (``rel[g] = x``
-    holds x) before it replaces the candidate by a blend."""
-
-    def __init__(self, cands, den, y, sd, has, smoothing, z):
-        self.cands, self.den, self.y, self.sd, self.has = cands, den, y, sd, has
-        self.smoothing, self.z = smoothing, z
-        self.held = {}
-
-    def __len__(self):
-        return len(self.cands)
-
-    def __getitem__(self, k):
-        if k in self.held:
-            return self.held[k]
-        c = self.cands[k]
-        r = _means([c.mse], self.den)
-        self.smoothing([r[0]], out=[r[0]])
-        _floor_and_choose(r, [c.image], self.y, self.sd, self.den, self.has, self.z)
-        return r[0]
-
-    def __setitem__(self, k, x):
-        self.held[k] = x
-
-
-def _relative_choice(cands, den, y, sd, count, smoothing, z):
-    """Every candidate's smoothed relative estimate floored by its own evidence of bias
-    (:class:`_Floored`, read where needed) and the per-pixel choice (the first of least estimate; an
-    undefined one, NaN, never chosen over a defined one), the candidates offered one at a time."""
-    rel = _Floored(cands, den, _c64(y), _c64(sd), np.ascontiguousarray(count > 0), smoothing, z)
-    least = _FirstLeast(count.shape)
-    for k in range(len(cands)):
-        least.offer(k, rel[k])
-    return rel, least.index
 
 
 #: Standard errors (the larger of the pixel's and its 3 x 3 neighbourhood's mean) beyond which the
@@ -530,16 +491,6 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
         if info is not None:
             info["rare"] = at
     return out, held
-
-
-@numba.njit(cache=True, nogil=True)
-def _compress(a, keep, out):
-    # out[:n] = a[keep], returns n (each value written, the next one over it unless kept: no branch)
-    n = 0
-    for p in range(a.size):
-        out[n] = a[p]
-        n += keep[p]
-    return n
 
 
 @numba.njit(cache=True, nogil=True)

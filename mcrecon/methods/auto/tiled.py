@@ -42,6 +42,28 @@ from .features import Candidate
 __all__ = ["FilmPlanes", "Film", "film_pass"]
 
 
+def selection_reach(smooth: float, guard: float) -> int:
+    """The reach of auto's selection on its candidates, composed: the clamp's variance (a 5 x 5 pool of a
+    3 x 3 one: 3 px), the smoothed estimates and the global prior's local tests (``smooth``'s kernel,
+    truncated at 3 sigma), the region guard's smoothing of the chosen estimates (``guard * smooth``), the
+    sample range and the medians of the 3 x 3 neighbourhoods read after them (4), and a margin of 12:
+    37 px by default."""
+    def radius(sigma):   # MaskedSmoothing's kernel
+        return int(3.0 * float(sigma) + 0.5)
+    return radius(guard * smooth) + radius(smooth) + 3 + 4 + 12
+
+
+def candidate_reach(params: dict, gauss: bool) -> int:
+    """Pixels of context auto's candidates at a pixel read, OIDN's and the prefiltered features given (the
+    film's): the widest Gaussian of the SURE bank (``gauss``) on the variance's 5 x 5 pool (2 px more), the
+    regressions (window 9, its fits' windows 9, patch 3: 21), dnlm (window 7, patch 3), NL-means
+    (``nlm_radius + nlm_patch``), the cross-bilateral filters (window 5, patch 3), and a margin of 4: 55 px
+    by default (the 8-scale bank's 49 + 2)."""
+    from ...filters.gaussian import final_sigmas, pixel_kernel
+    bank = max([(pixel_kernel(s).size - 1) // 2 for s in final_sigmas(params["scales"])], default=0) if gauss else 0
+    return int(max(bank + 2, 2 * 9 + 3, 7 + 3, params["nlm_radius"] + params["nlm_patch"], 5 + 3) + 4)
+
+
 class FilmPlanes:
     """Film-sized arrays in files of a temporary directory (removed with this object), written a window at
     a time and read back a window at a time (or whole, as memory maps).
@@ -129,6 +151,16 @@ class Film:
         return [Candidate(n, self.planes.get(f"image{k}", window), self.planes.get(f"mse{k}", window), f, c)
                 for k, (n, f, c) in enumerate(zip(self.names, self.features, self.crossed))]
 
+    def tile_inputs(self, window, where: str) -> tuple:
+        """A tile's ``(candidates, pixel means, their variance, counts)`` over ``window`` (its place in the
+        film: :attr:`~.method.AutoRun.window`), as the selection reads them."""
+        if window is None:
+            from ...errors import InputError
+            raise InputError(where, "window", "a tiled auto reconstructs tiles of its film (the run's window); "
+                             "reconstruct the film with mcrecon.reconstruct(..., tile=N)")
+        get = self.planes.get
+        return self.candidates(window), get("y", window), get("v", window), get("count", window)
+
     def black_boxes(self, window) -> list:
         """OIDN's candidates over ``window``, computed on the film in pass 0."""
         return [Candidate(n, self.planes.get(f"oidn_image{k}", window), self.planes.get(f"oidn_mse{k}", window),
@@ -149,10 +181,9 @@ def _pass0(method, inputs, film: Film) -> None:
     :class:`~mcrecon.methods.MethodInputs` of the whole film), as the untiled run computes them."""
     from ...filters.regression import feature_scale
     from .features import dnlm_scale, prefiltered_features, release_prefiltered
-    from .method import DUAL_BUFFER
     from .proxy import REGRESSIONS
 
-    halves = inputs.halves if any(c in DUAL_BUFFER for c in method._names) else None
+    halves = inputs.halves if method.requires.samples else None   # a dual-buffer candidate among them
     if halves is None:
         return
     stats = inputs.stats if inputs.stats is not None else halves.merged()
@@ -181,7 +212,10 @@ def _oidn(method, stats, halves, aux: bool, film: Film, aux_planes=None) -> None
     normal (``aux_planes``: each half's, :func:`~.blackbox.oidn_aux`; None: the halves' own)."""
     from ...core.halves import mean_variances
     from .blackbox import oidn_candidate
-    from .method import _store
+    from .passes import _stored
+
+    def _store(cands):   # as the selection holds them (method._store)
+        return [dataclasses.replace(c, image=_stored(c.image), mse=_stored(c.mse)) for c in cands]
 
     whole = (0, film.planes.shape[0], 0, film.planes.shape[1])
     v, va, vb = mean_variances(stats, halves)
@@ -212,10 +246,9 @@ def _pass0_read(method, reader, film: Film) -> None:
     from ...filters.nlmeans import BAND
     from ...filters.regression import feature_scale
     from .features import _filled, feature_slices, prefiltered_features, release_prefiltered
-    from .method import DUAL_BUFFER
     from .proxy import REGRESSIONS
 
-    if not any(c in DUAL_BUFFER for c in method._names):
+    if not method.requires.samples:   # no dual-buffer candidate: no halves
         return
     h, w = film.planes.shape
     fnames = method._feature_names
@@ -269,9 +302,13 @@ def film_pass(method, inputs, each_tile) -> Film:
     (:class:`~mcrecon.offline.tiles.FilmReader`: ``read(window)``, ``shape``); ``each_tile(halo)``: the
     film's tiles grown by ``halo`` as ``(outer, inner, inputs of outer)``, read band by band."""
     from ...core.safeguard import sample_range_bounds
-    from .method import BLACK_BOXES, _guards
+    from .blackbox import BLACK_BOXES, _guards
     from .selection import prior_default
 
+    if each_tile is None:
+        from ...errors import InputError
+        raise InputError(method.where, "tile", "auto's tiles need the film's pass over its tiles first; tile it "
+                         "with mcrecon.reconstruct(..., tile=N) (reconstruct --tile N)")
     h, w, _ = inputs.shape
     film = Film(FilmPlanes(h, w))
     if hasattr(inputs, "read"):
