@@ -51,7 +51,7 @@ def test_nfor_tiled_equals_untiled_with_maps(wide_log):
         assert np.array_equal(d_tiled[k], d_full[k]), k
     # the film's feature scales are what makes it exact: each tile's own scale its ridge otherwise
     own = mcrecon.get_method("nfor", **SMALL)
-    _with(own, for_tiles=lambda inputs: own)   # each tile standardises by its own means and deviations
+    _with(own, for_tiles=lambda inputs, each_tile=None: own)   # each tile standardises by its own means and deviations
     assert not np.array_equal(mcrecon.reconstruct(wide_log, method=own, tile=46), full.image)
 
 

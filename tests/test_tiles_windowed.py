@@ -221,9 +221,9 @@ def test_streamed_tiles_refuse_thin_bands_and_whole_image_methods(tmp_path, film
     path = write_log(tmp_path / "thin.h5", pos, rng.random((n, 3)), width=40, height=30)
     with pytest.raises(InputError, match="in a band of tiles with fewer than 2 samples"):
         mcrecon.reconstruct(path, method="box", tile=10)
-    for name in ("auto", "awr"):
+    for name, opts in (("auto", {"regression_proxy": 0.1}), ("awr", {})):   # auto tiles without the proxy
         with pytest.raises(InputError, match="whole image"):
-            mcrecon.reconstruct(film_log, method=name, tile=32)
+            mcrecon.reconstruct(film_log, method=name, tile=32, **opts)
 
 
 class Sharpen(Method):

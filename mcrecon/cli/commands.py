@@ -488,8 +488,9 @@ def register(sub, command: str | None = None) -> None:
     denoise.add_argument("--tile", type=int, default=None, metavar="N",
                          help="reconstruct in tiles of at most NxN pixels, each grown by the method's halo: the "
                               "untiled image, the log read one band of tiles at a time (memory: a band's statistics "
-                              "and one tile's work; methods with a finite halo: box, ci, gem, nfor; every pixel "
-                              "needs 2 samples; docs/performance.md)")
+                              "and one tile's work; methods with a finite halo: box, ci, gem, nfor, auto (its "
+                              "candidates in a pass over the tiles first, its whole-image decisions on the film); "
+                              "every pixel needs 2 samples; docs/performance.md)")
     px = add_exr_read_flags(
         denoise, "pixel-statistics EXR input (a LOG ending in .exr)",
         "Layout presets, or an explicit mapping; the count from --spp, --count or the file's samplesPerPixel/spp "

@@ -35,7 +35,7 @@ import numpy as np
 
 from .nlmeans import nlmeans_filter
 
-__all__ = ["ALBEDO_FLOOR", "demodulation_divisor", "demodulated_nlmeans"]
+__all__ = ["ALBEDO_FLOOR", "demodulation_divisor", "demodulation_scale", "demodulated_nlmeans"]
 
 #: Albedo below which a pixel is not demodulated (its divisor is this value).
 ALBEDO_FLOOR = 0.02
@@ -57,8 +57,19 @@ def demodulation_divisor(albedo: np.ndarray, channels: int, *, floor: float = AL
     return np.where(np.isfinite(a) & (a > floor), a, floor)   # a broken albedo is not divided by
 
 
+def demodulation_scale(image, albedo, *, floor: float = ALBEDO_FLOOR) -> float:
+    """The mean magnitude of the irradiance ``image / albedo`` over its finite values (1 where there is none):
+    the unit :func:`demodulated_nlmeans` filters it in.  A whole-image statistic: a tile of an image is
+    filtered in its image's (``scale=``)."""
+    y = np.asarray(image, dtype=np.float64)
+    irr = y / demodulation_divisor(albedo, y.shape[2], floor=floor)
+    finite = np.isfinite(irr)
+    scale = float(np.mean(np.abs(irr[finite]))) if finite.any() else 1.0
+    return scale if np.isfinite(scale) and scale > 0 else 1.0
+
+
 def demodulated_nlmeans(image, variance, albedo, *, radius: int = 7, patch: int = 3, k: float = 0.45,
-                        floor: float = ALBEDO_FLOOR, threads: int | None = None) -> np.ndarray:
+                        floor: float = ALBEDO_FLOOR, threads: int | None = None, scale: float | None = None) -> np.ndarray:
     """NL-means of the irradiance ``image / albedo``, multiplied back by the albedo.
 
     Parameters
@@ -74,6 +85,8 @@ def demodulated_nlmeans(image, variance, albedo, *, radius: int = 7, patch: int 
         weights: the quotient guides itself).
     floor : float
         Albedo below which a pixel's divisor is ``floor``.
+    scale : float, optional
+        The irradiance's unit (:func:`demodulation_scale`; default: this image's).
 
     Returns
     -------
@@ -105,9 +118,7 @@ def demodulated_nlmeans(image, variance, albedo, *, radius: int = 7, patch: int 
     # otherwise outweigh the variance of a dim image's pixels and average across its shadow edges
     # (checker_wall scaled by 1e-3: 0.49 of the pixel mean's error against 0.13 at scale 1)
     irr = y / m
-    finite = np.isfinite(irr)
-    scale = float(np.mean(np.abs(irr[finite]))) if finite.any() else 1.0
-    scale = scale if np.isfinite(scale) and scale > 0 else 1.0
+    scale = demodulation_scale(y, albedo, floor=floor) if scale is None else float(scale)
     irr = irr / scale
     out = nlmeans_filter(irr, irr, var / (m * m * scale * scale), radius=radius, patch=patch, k=k, threads=threads)
     return (m * scale) * out

@@ -504,9 +504,9 @@ class Method:
         from the array's first row sum in the film's order only on the film's bands.  Default (1, 1)."""
         return (1, 1)
 
-    def for_tiles(self, inputs: "MethodInputs") -> "Method":
-        """The method the tiles of the film ``inputs`` run: the whole-image decisions it makes (nfor: its
-        features' scale) made once on the film and fixed in a copy.  Default: itself."""
+    def for_tiles(self, inputs: "MethodInputs", each_tile=None) -> "Method":
+        """The method the tiles of the film ``inputs`` run: its whole-image decisions (nfor: its features' scale)
+        made once on the film (``each_tile(halo)``: its tiles grown by ``halo``), fixed in a copy.  Default: self."""
         return self
 
     # ------------------------------------------------------------- per run

@@ -103,11 +103,12 @@ class FilmReader:
     def shape(self) -> tuple[int, int, int]:
         return self.height, self.width, len(self.channels)
 
-    def read(self, window) -> MethodInputs:
-        """The inputs of the pixels ``window`` = ``(y0, y1, x0, x1)``; half buffers come without their merge."""
+    def read(self, window, method: Method | None = None) -> MethodInputs:
+        """The inputs of the pixels ``window`` = ``(y0, y1, x0, x1)``; half buffers come without their merge.
+        ``method``: what another method (of the same samples' layout: a variant of this one) reads instead."""
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            out = gather_inputs(self.source, self.method, nonfinite=self.nonfinite, reference=self.reference,
+            out = gather_inputs(self.source, method or self.method, nonfinite=self.nonfinite, reference=self.reference,
                                 where=self.where, merged=False, window=tuple(int(v) for v in window))
         for wn in caught:
             self.said.setdefault((wn.category, str(wn.message)), wn)
@@ -237,6 +238,34 @@ def tile_inputs(inputs: MethodInputs, outer) -> MethodInputs:
     return MethodInputs(inputs.stats.crop(y0, y1, x0, x1), None, ref, inputs.nonfinite, strata=strata)
 
 
+def _tiles(inputs, windows, where: str, done=None):
+    """``(outer, inner, inputs of outer)`` for each of ``windows`` (:func:`tile_windows`, in order): crops of
+    the film's inputs, or of a :class:`FilmReader`'s bands (the rows of a band's tiles, grown, read at
+    once; pixels with fewer than two samples in its tiles refused), ``done(band)`` called as each band is
+    let go (:meth:`FilmReader.add_sanity`'s argument)."""
+    if not isinstance(inputs, FilmReader):
+        for outer, inner in windows:
+            yield outer, inner, tile_inputs(inputs, outer)
+        return
+    h, w, _ = inputs.shape
+    bands: dict = {}   # the tiles of each band of rows, in order
+    for outer, inner in windows:
+        bands.setdefault(inner[:2], []).append((outer, inner))
+    for (y0, y1), tiles in bands.items():
+        # the band's statistics: its rows grown by the halo, one row more each side for the sanity line's
+        # 3 x 3 sample range
+        by0 = min([o[0] for o, _ in tiles] + [max(0, y0 - 1)])
+        by1 = max([o[1] for o, _ in tiles] + [min(h, y1 + 1)])
+        band = inputs.read((by0, by1, 0, w))
+        _check_counts(band, where, rows=(y0 - by0, y1 - by0))
+        for outer, inner in tiles:
+            oy0, oy1, ox0, ox1 = outer
+            yield outer, inner, tile_inputs(band, (oy0 - by0, oy1 - by0, ox0, ox1))
+        if done is not None:
+            done(((y0, y1), by0, band))
+        del band
+
+
 def reconstruct_tiles(method: Method, inputs: MethodInputs | FilmReader, *, tile: int, diagnostics: bool = True,
                       where: str = "reconstruct") -> tuple[np.ndarray, RunState]:
     """The untiled image of a local method, reconstructed tile by tile: ``(image (H, W, C) float64, run)``.
@@ -283,36 +312,26 @@ def reconstruct_tiles(method: Method, inputs: MethodInputs | FilmReader, *, tile
     h, w, c = inputs.shape
     halo = tileable_halo(method, w, h, where, inputs=inputs)
     channels = inputs.channels
-    windows = list(tile_windows(w, h, tile, halo, grid=method.tile_grid()))
+    grid = method.tile_grid()
+    windows = list(tile_windows(w, h, tile, halo, grid=grid))
     streamed = isinstance(inputs, FilmReader)
-    bands: dict = {}   # the tiles of each band of rows, in order
-    for outer, inner in windows:
-        bands.setdefault(inner[:2], []).append((outer, inner))
     if streamed:
-        inputs.bands = list(bands)
-    runner = method if len(windows) == 1 else method.for_tiles(inputs)  # one tile: the untiled run
+        inputs.bands = list(dict.fromkeys(inner[:2] for _, inner in windows))
     image = np.empty((h, w, c), np.float64)
+
+    def each_tile(reach):   # the film's tiles grown by another reach (a method's pass before its tiles')
+        return _tiles(inputs, list(tile_windows(w, h, tile, reach, grid=grid)), where)
+
+    # one tile: the untiled run
+    runner = method if len(windows) == 1 else method.for_tiles(inputs, each_tile=each_tile)
     maps: dict[str, np.ndarray] = {}
     said: dict = {}
-    band = None
-    for outer, inner in windows:
+    for outer, inner, sub in _tiles(inputs, windows, where, done=lambda band: inputs.add_sanity(image, band)):
         oy0, oy1, ox0, ox1 = outer
         y0, y1, x0, x1 = inner
-        if not streamed:
-            sub = tile_inputs(inputs, outer)
-        else:
-            if band is None or band[0] != (y0, y1):   # the band's statistics: its rows grown by the halo
-                if band is not None:
-                    inputs.add_sanity(image, band)
-                band = None
-                # one row more each side for the sanity line's 3 x 3 sample range
-                by0 = min([o[0] for o, _ in bands[y0, y1]] + [max(0, y0 - 1)])
-                by1 = max([o[1] for o, _ in bands[y0, y1]] + [min(h, y1 + 1)])
-                band = ((y0, y1), by0, inputs.read((by0, by1, 0, w)))
-                _check_counts(band[2], where, rows=(y0 - by0, y1 - by0))
-            by0 = band[1]
-            sub = tile_inputs(band[2], (oy0 - by0, oy1 - by0, ox0, ox1))
         run = runner.start(ox1 - ox0, oy1 - oy0, channels, reference=sub.reference)
+        if hasattr(run, "window"):   # a run that reads its place in the film (auto's tiles: AutoRun.window)
+            run.window = outer
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             img = runner.reconstruct(sub, run=run)
@@ -329,9 +348,6 @@ def reconstruct_tiles(method: Method, inputs: MethodInputs | FilmReader, *, tile
                 full = maps[name] = np.zeros((h, w) + m.shape[2:], m.dtype)
             full[y0:y1, x0:x1] = m[iy, ix]
         del sub, run, img
-    if band is not None:
-        inputs.add_sanity(image, band)
-    band = None
     if streamed:
         for key, wn in inputs.said.items():
             said.setdefault(key, wn)

@@ -67,6 +67,30 @@ PROBE_STEP = 0.5
 OIDN_MEMORY_MB = 1000
 
 
+#: Standard errors by which a black box scored by cross-validation (OIDN) must undercut the best plain
+#: candidate's summed estimate to become the global prior's default (:func:`_guards`).
+Z_BLACKBOX = 1.0
+#: The candidates :data:`Z_BLACKBOX` applies to.
+BLACK_BOXES = ("oidn", "oidn_aux", "oidn_halves", "oidn_aux_halves")
+
+def _guards(cands) -> dict:
+    """The global prior's guarded candidates: index -> the standard errors by which each must undercut.
+
+    Feature-guided ones :data:`~.selection.Z_GLOBAL`; the black boxes (:data:`BLACK_BOXES`) the larger
+    :data:`Z_BLACKBOX`: their cross-validated estimates carry noise independent of the Stein estimates
+    of the linear filters (which share the pixel means' noise, so their differences are far less
+    noisy).  Where every candidate's error is far below that noise (a flat field, 8 spp) a plain argmin
+    of the sums makes OIDN the default at random: 20x the widest Gaussian's error there."""
+    from .selection import Z_GLOBAL
+    out = {}
+    for k, c in enumerate(cands):
+        if c.name in BLACK_BOXES:
+            out[k] = max(Z_BLACKBOX, Z_GLOBAL if c.feature else 0.0)
+        elif c.feature:
+            out[k] = Z_GLOBAL
+    return out
+
+
 def oidn_denoise(colour: np.ndarray, aux: tuple = (), *, clean_aux: bool = False) -> np.ndarray:
     """OIDN's ``RT`` filter of an (H, W, C) image, ``hdr=True``, quality high: (H, W, C) float64.
 
@@ -160,7 +184,8 @@ def _colour(st: PixelStats) -> np.ndarray:
 
 
 def oidn_candidate(name: str, stats: PixelStats, v: np.ndarray, halves=None, *, aux: bool = False,
-                   estimate: str | None = None, halves_only: bool = False, variances=None) -> list[Candidate]:
+                   estimate: str | None = None, halves_only: bool = False, variances=None,
+                   aux_planes=None) -> list[Candidate]:
     """OIDN on all the samples' pixel means (``stats``) with its per-pixel MSE estimate, and with the
     ``halves`` estimate also ``NAME_halves``: the average of OIDN on each half, with the halves'
     dual-buffer estimate (:func:`~.features.dual_candidate`).
@@ -169,19 +194,21 @@ def oidn_candidate(name: str, stats: PixelStats, v: np.ndarray, halves=None, *, 
     ``estimate``: one of :data:`ESTIMATES` (default :data:`ESTIMATE`); ``halves`` needs ``halves``
     (without them: ``sure``).  ``halves_only``: with the ``halves`` estimate, ``NAME_halves`` alone (two
     denoiser runs, not three).  ``variances``: the halves' means' variances ``(v_A, v_B)`` their
-    cross-validation reads (None: :func:`~mcrecon.core.halves.mean_variances` of ``halves``).  NaN where a
-    pixel has no sample (or no sample in a half)."""
+    cross-validation reads (None: :func:`~mcrecon.core.halves.mean_variances` of ``halves``).
+    ``aux_planes``: each half's :func:`oidn_aux` planes, computed before (a film's, from its features read
+    band by band: ``halves`` may then hold the colour alone).  NaN where a pixel has no sample (or no
+    sample in a half)."""
     estimate = ESTIMATE if estimate is None else estimate
     if estimate not in ESTIMATES:
         raise ValueError(f"oidn_candidate: estimate {estimate!r}; valid: {', '.join(ESTIMATES)}")
-    if halves is None or (aux and "albedo" not in halves.a.features):
+    if halves is None or (aux and aux_planes is None and "albedo" not in halves.a.features):
         estimate = "sure"
     halves_only = halves_only and estimate == "halves"
     extra = []
     y = _colour(stats)
     a_half = b_half = ()
     if aux and estimate == "halves":
-        a_half, b_half = oidn_aux(halves.a), oidn_aux(halves.b)
+        a_half, b_half = (oidn_aux(halves.a), oidn_aux(halves.b)) if aux_planes is None else aux_planes
     if halves_only:
         img = None
     elif len(a_half) == len(b_half) > 0:

@@ -14,6 +14,7 @@ worth averaging; one far better than the other (``|S_a - S_b|`` near ``D``) keep
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import numpy as np
@@ -134,11 +135,12 @@ def mixed(parts, w) -> Candidate:
 
 
 def blend_default(cands, g: int, sums, vote: np.ndarray, den_loo: np.ndarray, guards: dict, se_of, v=None,
-                  cap=None, among=None) -> tuple:
+                  cap=None, among=None, plan: bool = False) -> tuple:
     """The global default ``g`` blended with the other candidates of least summed estimate (up to
     :data:`BLEND_SIZE` in all, the pixel mean left out; with ``among``, those indices only):
     ``(candidate, runner_up, w)`` (``w`` the weight of ``g``), or ``(None, runner_up, 1.0)`` where that
-    weight comes out above ``1 - MIN_WEIGHT``.
+    weight comes out above ``1 - MIN_WEIGHT``; with ``plan`` the :class:`Blend` in place of the candidate
+    (None where there is none): what a tile applies to its own candidates.
 
     The weights are those of least summed estimate of the blend (:func:`simplex_weights`); where the
     optimum mixes ``g`` with one partner only, they are :func:`blend_weight`'s and the image
@@ -186,5 +188,29 @@ def blend_default(cands, g: int, sums, vote: np.ndarray, den_loo: np.ndarray, gu
         wg = blend_weight(sums[g], sums[idx[a]], dm[0, a], dict(zip(others, pen))[idx[a]])
         if wg > 1.0 - MIN_WEIGHT:
             return None, others[0], 1.0
-        return blended(cands[g], cands[idx[a]], wg), others[0], wg
-    return mixed([cands[idx[a]] for a in on], [w[a] for a in on]), others[0], float(w[0])
+        blend = Blend((g, idx[a]), (wg,))
+    else:
+        blend = Blend(tuple(idx[a] for a in on), tuple(float(w[a]) for a in on))
+    return (blend if plan else blend.of(cands)), others[0], blend.weight
+
+
+@dataclasses.dataclass(frozen=True)
+class Blend:
+    """A blend of the global default ``parts[0]`` with ``parts[1:]`` (candidate indices), decided on the
+    image's sums (:func:`blend_default`) and applied to any crop of the candidates (:meth:`of`: a tile's,
+    the same values at its pixels).  ``weights``: the default's weight alone for a pair (:func:`blended`),
+    every part's for more (:func:`mixed`)."""
+
+    parts: tuple
+    weights: tuple
+
+    @property
+    def weight(self) -> float:
+        """The default's weight."""
+        return float(self.weights[0])
+
+    def of(self, cands) -> Candidate:
+        """The blended candidate of ``cands`` (the blend's pixels: those of ``cands``)."""
+        if len(self.parts) == 2 and len(self.weights) == 1:
+            return blended(cands[self.parts[0]], cands[self.parts[1]], self.weights[0])
+        return mixed([cands[k] for k in self.parts], list(self.weights))

@@ -179,7 +179,7 @@ def release_prefiltered(*buffers: PixelStats) -> None:
         _PREFILTERED.pop(st, None)
 
 
-def feature_guided_half(name: str, half: PixelStats | _HalfPlanes) -> np.ndarray | None:
+def feature_guided_half(name: str, half: PixelStats | _HalfPlanes, *, scale: float | None = None) -> np.ndarray | None:
     """A feature-guided filter of one half buffer from that half alone (its colour and its features).
 
     ``xbil``: :func:`~mcrecon.filters.cross_bilateral.cross_bilateral` (RDFC-style: feature distances
@@ -189,7 +189,8 @@ def feature_guided_half(name: str, half: PixelStats | _HalfPlanes) -> np.ndarray
     collaborative first-order regression (:mod:`mcrecon.methods.nfor`; window 19 x 19, patch 3,
     k = 1) with the half's own NL-means weights and features (NFOR's crossed halves are the ``nfor``
     candidate, :func:`_regressions`).  Pixels without a sample take their nearest sampled neighbour's
-    values.
+    values.  ``scale``: dnlm's irradiance unit (:func:`~mcrecon.filters.demodulation.demodulation_scale`;
+    None: the half's own; a tile's: its film's, :func:`dnlm_scale`).
     """
     from ...filters.cross_bilateral import cross_bilateral
     from ...filters.demodulation import demodulated_nlmeans
@@ -200,7 +201,7 @@ def feature_guided_half(name: str, half: PixelStats | _HalfPlanes) -> np.ndarray
         alb = p.half.features.get("albedo")
         if alb is None:
             return None
-        return demodulated_nlmeans(y, v, _filled(alb.mean, alb.count))
+        return demodulated_nlmeans(y, v, _filled(alb.mean, alb.count), scale=scale)
     if name == "xbil":
         # window 11^2, not RDFC's 21^2: the same choice on every scene measured (within 1.5 %) at
         # 0.28x the time (2.4 s a half at 1024^2 against 8.5 s)
@@ -211,13 +212,24 @@ def feature_guided_half(name: str, half: PixelStats | _HalfPlanes) -> np.ndarray
     raise ValueError(f"feature_guided_half: {name!r}; valid: xbil, dnlm, nfor_own")
 
 
-def _regressions(guide: _HalfPlanes, other: _HalfPlanes | None, *, own: bool = True):
+def dnlm_scale(half: PixelStats) -> float | None:
+    """dnlm's irradiance unit of a half (:func:`~mcrecon.filters.demodulation.demodulation_scale` of its
+    colour and albedo, as :func:`feature_guided_half` computes it); None without an albedo."""
+    from ...filters.demodulation import demodulation_scale
+
+    alb = half.features.get("albedo")
+    return None if alb is None else demodulation_scale(_filled(half.mean, half.count), _filled(alb.mean, alb.count))
+
+
+def _regressions(guide: _HalfPlanes, other: _HalfPlanes | None, *, own: bool = True, scales=None):
     """NFOR's collaborative regression (window 19 x 19, patch 3, k = 1) on one half's NL-means weights and
     prefiltered features, of that half's colour (``own``: the ``nfor_own`` image) and of the ``other``
     half's (NFOR's cross-buffer image of the other half, with its centre weight).
 
     The weights and the design, and so the normal equations and their factorisation, serve both colours:
-    one pass instead of two.  The cross-buffer image of half B is a linear function of B's colour whose
+    one pass instead of two.  ``scales``: the guide's prefiltered features' (mean, deviation) pairs
+    (:func:`~mcrecon.filters.regression.feature_scale`; None: the planes' own), a tile's the film's.
+    The cross-buffer image of half B is a linear function of B's colour whose
     weights and features come from half A alone, so Stein's estimate with the exact centre weight
     (:func:`~mcrecon.filters.regression.collaborative_regression`) is unbiased for its MSE; NFOR's own
     dual-buffer estimate of it is not (its filtered halves depend on both halves: 0.77x the true error
@@ -230,7 +242,8 @@ def _regressions(guide: _HalfPlanes, other: _HalfPlanes | None, *, own: bool = T
     c = guide.colour.shape[2]
     # the colours given apart: the regression writes them into its padded planes without their concatenation
     res = collaborative_regression(parts, guide.colour, guide.variance, guide.prefiltered, radius=9, patch=3, k=1.0,
-                                   variance_scale=1.0, return_centre_weight=other is not None)
+                                   variance_scale=1.0, return_centre_weight=other is not None,
+                                   feature_scales=scales)
     if other is None:
         return res, None, None
     out, cw = res
@@ -254,7 +267,8 @@ def _feature_bilateral(stats: PixelStats, y: np.ndarray, v: np.ndarray) -> "Cand
     return Candidate("fbil", img, np.where((stats.count > 0)[..., None], mse, np.nan), feature=True)
 
 
-def feature_candidates(names, ha: PixelStats, hb: PixelStats, *, variances=None, store=None) -> list[Candidate]:
+def feature_candidates(names, ha: PixelStats, hb: PixelStats, *, variances=None, store=None,
+                       scales=(None, None), units=(None, None)) -> list[Candidate]:
     """The feature-guided candidates ``names`` (of :data:`FEATURE_CANDIDATES`) on the two halves.
 
     ``nfor_own``, ``dnlm``, ``xbil`` and the ``mix`` of the first two filter each half with its own
@@ -266,7 +280,9 @@ def feature_candidates(names, ha: PixelStats, hb: PixelStats, *, variances=None,
     (:func:`~mcrecon.core.halves.mean_variances`; None: each half's ``s^2 / n``).  ``store``: applied to
     each candidate as soon as it is built (auto's float32 store), so its float64 image and estimate go
     at once and the candidates built before meet the next one's working arrays in the stored dtype
-    (six candidates at 1920 x 1080: 0.3 GB, not 0.6 GB); None keeps them as built.
+    (six candidates at 1920 x 1080: 0.3 GB, not 0.6 GB); None keeps them as built.  ``scales``: each
+    half's prefiltered features' scales for the regressions (:func:`_regressions`; a tile's: the film's);
+    ``units``: each half's dnlm unit (:func:`dnlm_scale`; a tile's: the film's).
     """
     from .estimates import sure
 
@@ -279,8 +295,8 @@ def feature_candidates(names, ha: PixelStats, hb: PixelStats, *, variances=None,
     want_own = "nfor_own" in names or ("mix" in names and "albedo" in ha.features)
     if "nfor" in names or want_own:
         # one regression per half serves that half's own image and the other half's crossed one
-        own_a, cross_b, cw_b = _regressions(pa, pb if "nfor" in names else None, own=want_own)
-        own_b, cross_a, cw_a = _regressions(pb, pa if "nfor" in names else None, own=want_own)
+        own_a, cross_b, cw_b = _regressions(pa, pb if "nfor" in names else None, own=want_own, scales=scales[0])
+        own_b, cross_a, cw_a = _regressions(pb, pa if "nfor" in names else None, own=want_own, scales=scales[1])
         if want_own:
             # compact copies: the regression's images are views of its whole (planes, H, W) output
             # (both colours and the weights, 8 planes a half with the crossed image), which the mixes
@@ -297,7 +313,7 @@ def feature_candidates(names, ha: PixelStats, hb: PixelStats, *, variances=None,
         pb.__dict__.pop("features", None)
     for name in ("dnlm", "xbil"):
         if name in names or (name == "dnlm" and "mix" in names):
-            a, b = feature_guided_half(name, pa), feature_guided_half(name, pb)
+            a, b = feature_guided_half(name, pa, scale=units[0]), feature_guided_half(name, pb, scale=units[1])
             if a is not None and b is not None:   # None: a feature it needs is not in the samples
                 own[name] = (a, b)
     mixes = "mix" in names and "dnlm" in own and "nfor_own" in own

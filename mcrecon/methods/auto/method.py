@@ -18,6 +18,7 @@ smoothed estimate.  ``docs/methods/auto.md`` derives every estimator.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import warnings
 
@@ -39,7 +40,7 @@ from ...filters.gaussian import final_sigmas
 from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGHTS, Candidate,
     _feature_bilateral, dual_candidate, feature_candidates, prefiltered_features,
     feature_slices, release_prefiltered, seed_prefiltered)
-from .blackbox import oidn_candidate
+from .blackbox import BLACK_BOXES, Z_BLACKBOX, _guards, oidn_candidate  # noqa: F401
 from .nlmeans import nlmeans_cross
 from .proxy import REGRESSIONS, regression_share
 from ...filters.masked import MaskedSmoothing, smooth_masked
@@ -61,11 +62,6 @@ DEFAULT_CANDIDATES = "box,gauss,nlm,oidn"
 _WHERE = "method auto"
 #: Standard errors of the pixel mean beyond which a candidate's departure from it counts as bias.
 Z_BIAS = 2.0
-#: Standard errors by which a black box scored by cross-validation (OIDN) must undercut the best plain
-#: candidate's summed estimate to become the global prior's default (:func:`_guards`).
-Z_BLACKBOX = 1.0
-#: The candidates :data:`Z_BLACKBOX` applies to.
-BLACK_BOXES = ("oidn", "oidn_aux", "oidn_halves", "oidn_aux_halves")
 #: Where the global default is one of :data:`BLACK_BOXES`, the clamp's standard error at the pixels that
 #: take it is at least this fraction of the one from the mean per-sample variance of the 5 x 5
 #: neighbourhood (:func:`~mcrecon.core.safeguard.neighbourhood_mean_variance`).
@@ -105,24 +101,6 @@ def _all_samples_box(cands):
     defaults already place the light by the albedo (docs/methods/auto.md, step 3a)."""
     names = [c.name for c in cands]
     return names.index("oidn") if "oidn" in names else None
-
-
-def _guards(cands) -> dict:
-    """The global prior's guarded candidates: index -> the standard errors by which each must undercut.
-
-    Feature-guided ones :data:`~.selection.Z_GLOBAL`; the black boxes (:data:`BLACK_BOXES`) the larger
-    :data:`Z_BLACKBOX`: their cross-validated estimates carry noise independent of the Stein estimates
-    of the linear filters (which share the pixel means' noise, so their differences are far less
-    noisy).  Where every candidate's error is far below that noise (a flat field, 8 spp) a plain argmin
-    of the sums makes OIDN the default at random: 20x the widest Gaussian's error there."""
-    from .selection import Z_GLOBAL
-    out = {}
-    for k, c in enumerate(cands):
-        if c.name in BLACK_BOXES:
-            out[k] = max(Z_BLACKBOX, Z_GLOBAL if c.feature else 0.0)
-        elif c.feature:
-            out[k] = Z_GLOBAL
-    return out
 
 
 def _store(cands: list) -> list:
@@ -194,6 +172,8 @@ class AutoRun(RunState):
     #: the share of its tiles' pixels the regression candidates took, the tiles' two least summed estimates);
     #: None where it did not run.
     regression_verdict: object = None
+    #: A tile's ``(y0, y1, x0, x1)`` in its film (set by the tiles' driver; :meth:`AutoMethod.for_tiles`).
+    window: tuple | None = None
 
     @property
     def regression_share(self) -> float | None:
@@ -315,9 +295,28 @@ class AutoMethod(Method):
                             statistics_options={"candidates": "box,gauss"})
 
     def halo(self, width, height):
-        # the split into halves hashes the absolute pixel index, and awr/oidn
-        # are whole-image: no finite halo is stated
-        return None
+        """A tile's selection's reach (:func:`.tiled.selection_reach`); None with awr, splat or the proxy."""
+        from .tiled import selection_reach
+        whole = bool({"awr", "splat"} & set(self._names)) or self.params["regression_proxy"] is not None
+        return None if whole else selection_reach(self.params["smooth"], GUARD)
+
+    def candidate_reach(self) -> int:
+        """Pixels of context the candidates at a pixel read (:func:`.tiled.candidate_reach`)."""
+        from .tiled import candidate_reach
+        return candidate_reach(self.params, "gauss" in self._names)
+
+    def tile_grid(self) -> tuple[int, int]:
+        """Tiles start on the NL-means kernels' bands of rows, as nfor's do (their running sums restart there)."""
+        from ...filters.nlmeans import BAND
+        return BAND, 1
+
+    def for_tiles(self, inputs: MethodInputs, each_tile=None) -> "AutoMethod":
+        """A copy holding the film's pass (:func:`.tiled.film_pass`), whose selection of a tile
+        (:attr:`AutoRun.window`) reads that tile's candidates from it."""
+        from .tiled import film_pass
+        tiled = copy.copy(self)
+        object.__setattr__(tiled, "_film", film_pass(self, inputs, each_tile))
+        return tiled
 
     def candidate_names(self) -> list[str]:
         """Names of the colour candidates in ``choice`` order (``gauss`` expands to one per scale, ``oidn``
@@ -337,11 +336,13 @@ class AutoMethod(Method):
         return out
 
     # ------------------------------------------------------------ candidates
-    def _candidates(self, stats: PixelStats, halves: Halves | None, nonfinite: str, *, given=None, run=None):
+    def _candidates(self, stats: PixelStats, halves: Halves | None, nonfinite: str, *, given=None, run=None,
+                    scales=(None, None), units=(None, None)):
         """Every candidate (choice order), the pixel means, their variance and the counts.
 
-        ``given``: the OIDN candidates, already computed (the proxy's mosaic takes crops of the whole
-        image's).  ``run``: where given, the regressions may be left out by the tile proxy
+        ``given``: the OIDN candidates, already computed (the proxy's mosaic and a film's tiles take crops
+        of the whole image's).  ``scales``, ``units``: each half's prefiltered features' scales for the
+        regressions and its dnlm unit (a tile's: the film's, :mod:`.tiled`).  ``run``: where given, the regressions may be left out by the tile proxy
         (``regression_proxy``, :func:`.proxy.regression_share`), whose share is stored on it."""
         p = self.params
         y = stats.mean
@@ -375,8 +376,8 @@ class AutoMethod(Method):
             black_aux = (_store(oidn_candidate("oidn_aux", stats, v, halves, aux=True, variances=(va, vb)))
                          if aux else [])
         else:
-            black = [c for c in given if c.name != "oidn_aux"]
-            black_aux = [c for c in given if c.name == "oidn_aux"]
+            black = [c for c in given if not c.feature]   # in the order above: colour-only OIDN's first
+            black_aux = [c for c in given if c.feature]
         fnames = self._feature_names
         with_features = bool(fnames) and halves is not None and bool(halves.a.features)
         if run is not None:
@@ -392,7 +393,8 @@ class AutoMethod(Method):
         released = released or (with_features and _release_features(halves, stats, fnames, oidn_after=False))
         # each stored as built: its float64 image and estimate go before the next one's working arrays
         guided = feature_candidates(fnames, halves.a, halves.b, variances=(va, vb),
-                                    store=lambda c: _store([c])[0]) if with_features else []
+                                    store=lambda c: _store([c])[0], scales=scales, units=units) \
+            if with_features else []
         if with_features:  # dnlm read the halves' albedo last; the selection's divisor reads its merge alone
             halves.release_features(merged=stats, merged_keep=("albedo",))
         v_sure = agreeing_variance(v, count)
@@ -477,6 +479,9 @@ class AutoMethod(Method):
     def _select(self, run: "AutoRun", stats: PixelStats, halves, nonfinite="drop", *, given=None, candidates=None):
         # given: the proxy's mosaic (its OIDN candidates cropped from the whole image's); no proxy inside it.
         # candidates: _candidates' result, computed before (the proxy reads their sums on its tiles too)
+        film = getattr(self, "_film", None)   # a tile of a film (for_tiles): its candidates from the film's pass
+        if film is not None and candidates is None:
+            candidates = film.tile_inputs(run.window, self.where)
         cands, y, v, count = candidates if candidates is not None else self._candidates(
             stats, halves, nonfinite, given=given, run=run if given is None else None)
         run.candidate_names = [c.name for c in cands]
@@ -524,7 +529,7 @@ class AutoMethod(Method):
                                                choice, y, v, count, bounds, smooth, self.params["global_prior"],
                                                self.params["safeguard"], _guards(cands), divisor,
                                                steady=steady, steady_var=v_wide, rare=_all_samples_box(cands),
-                                               info=prior)
+                                               info=prior, fixed=None if film is None else film.default)
         # ties (e.g. noise-free regions, where every ratio is undefined) go to the first candidate
         if cands[0].name == "box" and smooth > 0:
             # Region guard: where the chosen candidates' unbiased estimates,

@@ -318,3 +318,53 @@ def _pick_rows(images, mses, choice, img, raw_abs, i0, i1):
                     img[i, j, ch] = xk[i, j, ch]
                     a[o + ch] = mk[i, j, ch]
                 raw_abs[i, j] = _channel_mean(a, o, c)
+
+
+class _Floored:
+    """Every candidate's smoothed relative estimate floored by its own evidence of bias: ``rel[k]``, an
+    (H, W) map, computed where it is read (one candidate's pass of :func:`_floor_and_choose` at ``z``
+    standard errors ``sd``), not all K kept: the (K, H, W) stack is 0.3 GB at 1920 x 1080 with 19
+    candidates, its recomputation a smoothing a candidate.  The same bits at every read of a candidate:
+    ``cands`` is read as it stands then, so the global prior pins its default's map (``rel[g] = x``
+    holds x) before it replaces the candidate by a blend."""
+
+    def __init__(self, cands, den, y, sd, has, smoothing, z):
+        self.cands, self.den, self.y, self.sd, self.has = cands, den, y, sd, has
+        self.smoothing, self.z = smoothing, z
+        self.held = {}
+
+    def __len__(self):
+        return len(self.cands)
+
+    def __getitem__(self, k):
+        if k in self.held:
+            return self.held[k]
+        c = self.cands[k]
+        r = _means([c.mse], self.den)
+        self.smoothing([r[0]], out=[r[0]])
+        _floor_and_choose(r, [c.image], self.y, self.sd, self.den, self.has, self.z)
+        return r[0]
+
+    def __setitem__(self, k, x):
+        self.held[k] = x
+
+
+def _relative_choice(cands, den, y, sd, count, smoothing, z):
+    """Every candidate's smoothed relative estimate floored by its own evidence of bias
+    (:class:`_Floored`, read where needed) and the per-pixel choice (the first of least estimate; an
+    undefined one, NaN, never chosen over a defined one), the candidates offered one at a time."""
+    rel = _Floored(cands, den, _c64(y), _c64(sd), np.ascontiguousarray(count > 0), smoothing, z)
+    least = _FirstLeast(count.shape)
+    for k in range(len(cands)):
+        least.offer(k, rel[k])
+    return rel, least.index
+
+
+@numba.njit(cache=True, nogil=True)
+def _compress(a, keep, out):
+    # out[:n] = a[keep], returns n (each value written, the next one over it unless kept: no branch)
+    n = 0
+    for p in range(a.size):
+        out[n] = a[p]
+        n += keep[p]
+    return n

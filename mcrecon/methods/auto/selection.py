@@ -5,6 +5,7 @@ region guard, heavy tails (the passes over all candidates' maps: :mod:`.passes`)
 from __future__ import annotations
 
 
+import dataclasses
 import math
 
 import numba
@@ -17,50 +18,11 @@ from .blend import blend_default
 from .firefly import FIREFLY, HEAVY_TAIL, Z_FIREFLY, _firefly  # noqa: F401 (Z_FIREFLY: the tests read it here)
 from .thinvote import THIN_VOTE, _could_vote, _thin_default
 from .estimates import relative_denominator_loo
-from .passes import _FirstLeast, _arrays, _c64, _channel_mean, _floor_and_choose, _means, _nanmax
+from .passes import (_FirstLeast, _arrays, _c64, _channel_mean, _compress, _means, _nanmax,  # noqa: F401
+                     _relative_choice)
 from ...core.metrics import DEFAULT_EPS
 from ...filters.masked import MaskedSmoothing, effective_counts
 from ...filters.order import median9, neighbour_median8, neighbour_medians8
-
-
-class _Floored:
-    """Every candidate's smoothed relative estimate floored by its own evidence of bias: ``rel[k]``, an
-    (H, W) map, computed where it is read (one candidate's pass of :func:`_floor_and_choose` at ``z``
-    standard errors ``sd``), not all K kept: the (K, H, W) stack is 0.3 GB at 1920 x 1080 with 19
-    candidates, its recomputation a smoothing a candidate.  The same bits at every read of a candidate:
-    ``cands`` is read as it stands then, so the global prior pins its default's map (``rel[g] = x``
-    holds x) before it replaces the candidate by a blend."""
-
-    def __init__(self, cands, den, y, sd, has, smoothing, z):
-        self.cands, self.den, self.y, self.sd, self.has = cands, den, y, sd, has
-        self.smoothing, self.z = smoothing, z
-        self.held = {}
-
-    def __len__(self):
-        return len(self.cands)
-
-    def __getitem__(self, k):
-        if k in self.held:
-            return self.held[k]
-        c = self.cands[k]
-        r = _means([c.mse], self.den)
-        self.smoothing([r[0]], out=[r[0]])
-        _floor_and_choose(r, [c.image], self.y, self.sd, self.den, self.has, self.z)
-        return r[0]
-
-    def __setitem__(self, k, x):
-        self.held[k] = x
-
-
-def _relative_choice(cands, den, y, sd, count, smoothing, z):
-    """Every candidate's smoothed relative estimate floored by its own evidence of bias
-    (:class:`_Floored`, read where needed) and the per-pixel choice (the first of least estimate; an
-    undefined one, NaN, never chosen over a defined one), the candidates offered one at a time."""
-    rel = _Floored(cands, den, _c64(y), _c64(sd), np.ascontiguousarray(count > 0), smoothing, z)
-    least = _FirstLeast(count.shape)
-    for k in range(len(cands)):
-        least.offer(k, rel[k])
-    return rel, least.index
 
 
 #: Standard errors (the larger of the pixel's and its 3 x 3 neighbourhood's mean) beyond which the
@@ -246,6 +208,12 @@ def summed_estimates(cands, y, v, count, hi, safeguard, within=None):
     candidate's estimate is finite; ``sums``: each candidate's ``np.sum(loo(k)[vote])``, None where no pixel
     votes.  ``hi``: the top of the pixels' sample range (:func:`~mcrecon.core.safeguard.sample_range_bounds`).
     """
+    return _summed_with(cands, loo_estimates(cands, y, v, count, hi, safeguard), within)
+
+
+def loo_estimates(cands, y, v, count, hi, safeguard):
+    """``(den_loo, cap, loo, apart)`` of :func:`summed_estimates`: each a function of a pixel's 3 x 3
+    neighbourhood, what a tile of the image computes of its own pixels."""
     den_loo = relative_denominator_loo(y, v, count, eps=DEFAULT_EPS)
     cap = None if safeguard is None else (safeguard + 1.0) ** 2
 
@@ -259,18 +227,7 @@ def summed_estimates(cands, y, v, count, hi, safeguard, within=None):
     # reach ~1e4 where the typical is ~1 (a Cornell box with a small bright light: two such pixels
     # made a 1.41 px Gaussian the whole image's default)
     apart = _apart(y, v, hi, den_loo, safeguard is not None)
-    vote = ~apart  # and every candidate's estimate finite
-    if within is not None:
-        vote &= within
-    for k in range(len(cands)):
-        vote &= np.isfinite(loo(k))
-    if not vote.any():
-        return den_loo, cap, loo, apart, vote, None
-    # np.sum(r[vote]) of each, the voters gathered into one buffer (numpy's pairwise sum of the same
-    # contiguous values: the same bits)
-    buf = np.empty(vote.size)
-    sums = [float(np.sum(buf[:_compress(loo(k).ravel(), vote.ravel(), buf)])) for k in range(len(cands))]
-    return den_loo, cap, loo, apart, vote, sums
+    return den_loo, cap, loo, apart
 
 
 def crossed_sum(cva, cvb, ha, hb, va, vb, den) -> float:
@@ -293,8 +250,75 @@ def crossed_sum(cva, cvb, ha, hb, va, vb, den) -> float:
     return total
 
 
+@dataclasses.dataclass(frozen=True)
+class Default:
+    """The global prior's whole-image decision (:func:`prior_default`): the default ``g`` (None: no pixel
+    votes, the prior does not apply), whether the vote was thin, and the default's :class:`~.blend.Blend`
+    (None: not blended).  What the tiles of an image are given, made once on the image's sums."""
+
+    g: int | None
+    thin: bool = False
+    blend: object = None
+
+
+def prior_default(cands, y, v, count, hi, safeguard, guarded=(), *, steady=(), blend=None, thin_vote=None,
+                  local=None) -> Default:
+    """The global prior's default over the image (:func:`_global_prior`, whose docstring states the
+    rule): the candidate of least summed estimate, a thin vote's steady one, the guards' tests, the blend.
+    ``local``: :func:`loo_estimates` of these arrays, if at hand.  Reads each candidate's estimate and
+    the default's and its partners' images (the film's, for tiles: memory-mapped ones serve)."""
+    blend = BLEND if blend is None else blend
+    thin_vote = THIN_VOTE if thin_vote is None else thin_vote
+    den_loo, cap, loo, apart, vote, sums = summed_estimates(cands, y, v, count, hi, safeguard) if local is None \
+        else _summed_with(cands, local)
+    if sums is None:
+        return Default(None)
+    g = int(np.argmin(sums))
+    zs = guarded if isinstance(guarded, dict) else {k: Z_GLOBAL for k in guarded}
+    plain = [k for k in range(len(cands)) if k not in zs]
+    thin = bool(steady) and vote.sum() < thin_vote * _could_vote(v, count, safeguard)
+    if thin:
+        # a thin vote: the steady candidate (black box) of least sum, compared with its own kind only
+        # (the voters' selection flatters the Stein-scored filters: THIN_VOTE)
+        g = _thin_default(cands, steady, sums)
+    loo_g = loo(g)
+    if g in zs and plain and not thin:
+        # a guarded candidate (feature-guided, or a black box scored by cross-validation) is the default
+        # only where its lower sum is real: lower than the best plain candidate's by its z standard errors
+        # of the summed difference, from sums over BLOCK x BLOCK tiles (neighbouring pixels' estimates
+        # are correlated)
+        c = plain[int(np.argmin([sums[k] for k in plain]))]
+        if not _significantly_lower(np.where(vote, loo_g - loo(c), 0.0), zs[g]):
+            g = c
+            loo_g = loo(g)
+    b = None
+    if blend and not thin and not (g == 0 and cands[0].name == "box"):  # a thin vote's sums are what it
+        # does not trust
+        b = blend_default(cands, g, sums, vote, den_loo, zs,
+                          lambda k: _summed(np.where(vote, loo(k) - loo_g, 0.0))[1], v, cap,
+                          among=steady if g in steady else None, plan=True)[0]
+    return Default(g, thin, b)
+
+
+def _summed_with(cands, local, within=None):
+    """:func:`summed_estimates` from its :func:`loo_estimates` ``local``."""
+    den_loo, cap, loo, apart = local
+    vote = ~apart  # and every candidate's estimate finite
+    if within is not None:
+        vote &= within
+    for k in range(len(cands)):
+        vote &= np.isfinite(loo(k))
+    if not vote.any():
+        return den_loo, cap, loo, apart, vote, None
+    # np.sum(r[vote]) of each, the voters gathered into one buffer (numpy's pairwise sum of the same
+    # contiguous values: the same bits)
+    buf = np.empty(vote.size)
+    sums = [float(np.sum(buf[:_compress(loo(k).ravel(), vote.ravel(), buf)])) for k in range(len(cands))]
+    return den_loo, cap, loo, apart, vote, sums
+
+
 def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, safeguard, guarded=(), scale=None,
-                  steady=(), steady_var=None, blend=None, rare=None, info=None, thin_vote=None):
+                  steady=(), steady_var=None, blend=None, rare=None, info=None, thin_vote=None, fixed=None):
     """The per-pixel choice with the best single candidate over the image as the default.
 
     ``g`` = the candidate of least summed leave-one-out relative estimate
@@ -365,55 +389,42 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     given, receives ``"g"`` (the default's index, -1 where the prior does not apply) and ``"rare"`` (the
     mask of the pixels ``rare`` took).
 
+    ``fixed``: the whole-image decision (:class:`Default`: ``g``, thin, the blend) made before on the
+    image's sums (:func:`prior_default`); given, this is a tile's prior, the rest of the rule local.
+    ``info["decision"]`` receives it.
+
     ``smoothed(k)``: candidate k's smoothed relative estimate (asked for
     ``g``'s only); ``rel``: the floored ones ``choice`` minimised, ``rel[k]`` an (H, W) map
     (:class:`_Floored`, or a (K, H, W) array; NaN: undefined, never the least).  Each other candidate's test runs on
     its own, one after the other (the difference maps of all of them at
     once cost more in fresh memory than their arithmetic).
     """
-    blend = BLEND if blend is None else blend
-    thin_vote = THIN_VOTE if thin_vote is None else thin_vote
-    den_loo, cap, loo, apart, vote, sums = summed_estimates(cands, y, v, count, bounds[1], safeguard)
+    if fixed is None:
+        local = loo_estimates(cands, y, v, count, bounds[1], safeguard)
+        fixed = prior_default(cands, y, v, count, bounds[1], safeguard, guarded, steady=steady, blend=blend,
+                              thin_vote=thin_vote, local=local)
+    else:   # the image's decision, made on its sums before (a tile of it)
+        local = loo_estimates(cands, y, v, count, bounds[1], safeguard)
+    den_loo, cap, loo, apart = local
     none = np.zeros(choice.shape, bool)
-    if sums is None:
+    if info is not None:
+        info["decision"] = fixed
+    if fixed.g is None:
         return choice, none
-    g = int(np.argmin(sums))
-    zs = guarded if isinstance(guarded, dict) else {k: Z_GLOBAL for k in guarded}
-    plain = [k for k in range(len(cands)) if k not in zs]
-    thin = bool(steady) and vote.sum() < thin_vote * _could_vote(v, count, safeguard)
-    if thin:
-        # a thin vote: the steady candidate (black box) of least sum, compared with its own kind only
-        # (the voters' selection flatters the Stein-scored filters: THIN_VOTE)
-        g = _thin_default(cands, steady, sums)
+    g, thin = fixed.g, fixed.thin
     if info is not None:
         info["thin"] = thin
-    loo_g = loo(g)
-    if g in zs and plain and not thin:
-        # a guarded candidate (feature-guided, or a black box scored by cross-validation) is the default
-        # only where its lower sum is real: lower than the best plain candidate's by its z standard errors
-        # of the summed difference, from sums over BLOCK x BLOCK tiles (neighbouring pixels' estimates
-        # are correlated)
-        c = plain[int(np.argmin([sums[k] for k in plain]))]
-        if not _significantly_lower(np.where(vote, loo_g - loo(c), 0.0), zs[g]):
-            g = c
-            loo_g = loo(g)
-    if info is not None:
         info["g"] = g
     if g == 0 and cands[0].name == "box":
         return choice, none
-    mixed = False
-    if blend and not thin:  # a thin vote's sums are what it does not trust
+    mixed = fixed.blend is not None
+    if mixed:
         rel[g] = rel[g]  # the plain default's floored map, read below, before its candidate is replaced
         # the default blended with the runner-up where their summed estimates say a mix is better than
         # either (:mod:`.blend`): cands[g] is replaced, so every later reader (the local tests, the
         # region guard, the picked image) sees the blend
-        b, _, _ = blend_default(cands, g, sums, vote, den_loo, zs,
-                                lambda k: _summed(np.where(vote, loo(k) - loo_g, 0.0))[1], v, cap,
-                                among=steady if g in steady else None)
-        mixed = b is not None
-        if mixed:
-            cands[g] = b
-            loo_g = loo(g)
+        cands[g] = fixed.blend.of(cands)
+    loo_g = loo(g)
     smoothing = MaskedSmoothing(sigma)
     least = _FirstLeast(choice.shape)
     masks, n_eff = [], []
@@ -480,16 +491,6 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
         if info is not None:
             info["rare"] = at
     return out, held
-
-
-@numba.njit(cache=True, nogil=True)
-def _compress(a, keep, out):
-    # out[:n] = a[keep], returns n (each value written, the next one over it unless kept: no branch)
-    n = 0
-    for p in range(a.size):
-        out[n] = a[p]
-        n += keep[p]
-    return n
 
 
 @numba.njit(cache=True, nogil=True)

@@ -223,7 +223,7 @@ class NFORMethod(Method):
         s = self.params["stride"]
         return BAND * s // math.gcd(BAND, s), s
 
-    def for_tiles(self, inputs: MethodInputs) -> "NFORMethod":
+    def for_tiles(self, inputs: MethodInputs, each_tile=None) -> "NFORMethod":
         """This method for the tiles of the film ``inputs`` (its half buffers with features): a copy that
         standardises every tile's features by the film's means and deviations
         (:func:`~mcrecon.methods.nfor.pipeline.film_feature_scales`), the one whole-image decision of the
