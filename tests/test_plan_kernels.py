@@ -196,22 +196,3 @@ def test_fill_lowest_level_search():
             extra = got - fill
             assert got.sum() == n and set(np.unique(extra)) <= {0, 1}
             assert ((c + fill)[extra == 1] == level).all() and (fill[extra == 1] < rm[extra == 1]).all()
-
-
-def test_sample_variance_bit_for_bit():
-    from mcrecon.core.stats import PixelStats
-
-    rng = np.random.default_rng(9)
-    st = PixelStats(23, 17)
-    st.count = rng.integers(0, 6, (17, 23))
-    st.mean = rng.standard_normal((17, 23, 3))
-    st.m2 = rng.gamma(0.5, 1.0, (17, 23, 3)) * st.count[..., None]
-    st.m2[rng.random(st.m2.shape) < 0.05] = -1e-17          # rounding a hair below 0
-    st.m2[rng.random(st.m2.shape) < 0.02] = np.nan
-    st.m2[0, 0, 0] = -0.0
-    for ddof, undefined in ((1, np.nan), (1, 0.0), (0, 0.0), (3, -1.0)):
-        n = st.count[..., None]
-        ref = np.full(st.mean.shape, undefined, dtype=np.float64)
-        np.divide(np.maximum(st.m2, 0.0), np.maximum(n - ddof, 1), out=ref,
-                  where=np.broadcast_to(n > ddof, ref.shape))
-        assert _same(st.sample_variance(ddof=ddof, undefined=undefined), ref)

@@ -29,7 +29,6 @@ import os
 
 from typing import Iterable, Sequence
 
-import numba
 import numpy as np
 
 from ..errors import InputError
@@ -620,9 +619,10 @@ class PixelStats:
         ``undefined`` (NaN by default: the caller picks a policy).
         Rounding can leave ``m2`` a hair below 0; it is clamped at 0.
         """
-        out = np.empty(self.mean.shape, dtype=np.float64)
-        _sample_variance(np.ascontiguousarray(self.count), np.ascontiguousarray(self.m2), int(ddof), float(undefined),
-                         out)
+        n = self.count[..., None]
+        out = np.full(self.mean.shape, undefined, dtype=np.float64)
+        ok = np.broadcast_to(n > ddof, out.shape)
+        np.divide(np.maximum(self.m2, 0.0), np.maximum(n - ddof, 1), out=out, where=ok)
         return out
 
     def mean_variance(self, *, undefined: float = np.nan) -> np.ndarray:
@@ -657,19 +657,3 @@ class PixelStats:
                 f"samples={self.n_samples}, subpixels={self.subpixels})")
 
 __dir__ = _public_dir(__name__)
-
-
-@numba.njit(cache=True, nogil=True)
-def _sample_variance(count, m2, ddof, undefined, out):
-    # PixelStats.sample_variance in one pass: np.maximum(m2, 0.0) / np.maximum(n - ddof, 1) where n > ddof
-    # (NaN kept and -0 made 0, as np.maximum does), else ``undefined``
-    h, w, c = out.shape
-    for i in range(h):
-        for j in range(w):
-            n = count[i, j]
-            for ch in range(c):
-                if n > ddof:
-                    x = np.float64(m2[i, j, ch])
-                    out[i, j, ch] = (x if (x > 0.0 or x != x) else 0.0) / max(n - ddof, 1)
-                else:
-                    out[i, j, ch] = undefined
