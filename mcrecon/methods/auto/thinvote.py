@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["THIN_VOTE"]
+__all__ = ["THIN_VOTE", "thin_vote_shown"]
 
 #: The share of the pixels that could vote (:func:`_could_vote`) below which the global prior's vote is thin:
 #: there the default is a ``steady`` candidate (a black box) whatever the other candidates' sums, without its
@@ -47,3 +47,24 @@ def _could_vote(v, count, safeguard) -> int:
     if safeguard is not None:
         has &= (v > 0).any(axis=2)
     return int(np.count_nonzero(has))
+
+
+def thin_vote_shown(stats, halves, safeguard) -> bool:
+    """Whether the global prior's vote on these statistics would be thin: fewer than :data:`THIN_VOTE` of the
+    pixels that could vote (:func:`_could_vote`) are left in it by the rare-sample and bright-pixel tests
+    (:func:`.selection._apart`, on the variances the selection reads: :func:`~mcrecon.core.halves.mean_variances`
+    of ``halves``).  What an adaptive round reads (``AutoMethod.plan``), without the candidates: a pixel
+    whose estimates are not finite counts as a voter here."""
+    from ...core.halves import mean_variances
+    from ...core.metrics import DEFAULT_EPS
+    from ...core.safeguard import sample_range_bounds
+    from .estimates import relative_denominator_loo
+    from .selection import _apart
+
+    count = stats.count
+    if halves is None or not count.any():
+        return False
+    v = mean_variances(stats, halves)[0]
+    apart = _apart(stats.mean, v, sample_range_bounds(stats)[1],
+                   relative_denominator_loo(stats.mean, v, count, eps=DEFAULT_EPS), safeguard is not None)
+    return int(np.count_nonzero(~apart & (count > 0))) < THIN_VOTE * _could_vote(v, count, safeguard)

@@ -1,0 +1,77 @@
+"""auto's adaptive rounds under a thin vote (:meth:`mcrecon.methods.auto.method.AutoMethod.plan`): where the committed
+samples make the global prior's vote thin (:func:`mcrecon.methods.auto.thinvote.thin_vote_shown`), the final default is
+a black box that neither GEM's estimates nor the net gate score, and the round is the even one
+(:func:`mcrecon.core.nets.even_round`; docs/adaptive.md, the tuning spotlit texture)."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+
+import numpy as np
+import pytest
+
+from mcrecon.core.halves import Halves
+from mcrecon.core.nets import even_round
+from mcrecon.core.stats import PixelStats
+from mcrecon.methods import get_method
+from mcrecon.methods.auto.method import AutoMethod
+from mcrecon.methods.auto.thinvote import thin_vote_shown
+from mcrecon.methods.base import AdaptiveState
+
+H = W = 16
+
+
+def _state(rare: bool):
+    """16 samples at each pixel of a 16 x 16 film, 0.5 +- 0.1; with ``rare`` one sample of 100 at every third pixel of
+    every third row (a rare light most pixels' 3 x 3 neighbourhoods found), else at four pixels only.  The samples
+    are independent: the rounds are the sampler's counts, not whole nets."""
+    rng = np.random.default_rng(3)
+    values = rng.uniform(0.4, 0.6, (H, W, 16, 3))
+    if rare:
+        values[1::3, 1::3, 7] = 100.0
+    else:
+        values[[2, 2, 12, 12], [3, 11, 3, 11], 7] = 100.0
+    pix = np.repeat(np.arange(H * W), 16)
+    pos = np.stack([pix % W + 0.5, pix // W + 0.5], axis=1)
+    values = values.reshape(-1, 3)
+    st = PixelStats(W, H)
+    st.add(pos, values)
+    halves = Halves.empty(W, H, ("R", "G", "B"))
+    halves.add(pos, values)
+    state = AdaptiveState(st, 2, 32 * H * W, 16 * H * W, np.random.default_rng(0), iteration=1,
+                          sampler="independent")
+    return state, halves
+
+
+@pytest.mark.parametrize("rare, thin", [(True, True), (False, False)])
+def test_thin_vote_shown_reads_the_share_of_pixels_left_to_vote(rare, thin):
+    """Rare huge samples in most pixels' 3 x 3 neighbourhoods leave fewer than 60 % of them to vote; four such
+    pixels leave most."""
+    state, halves = _state(rare)
+    assert thin_vote_shown(state.stats, halves, 4.0) is thin
+    assert not thin_vote_shown(state.stats, None, 4.0)  # no halves, no black box scored from them
+
+
+def _plan(state, halves, monkeypatch, on):
+    monkeypatch.setattr(AutoMethod, "thin_even", on)
+    m = get_method("auto")
+    run = m.start(W, H)
+    run.halves = halves
+    return m.plan(run, dataclasses.replace(state, rng=copy.deepcopy(state.rng))).counts
+
+
+def test_a_thin_vote_gives_the_even_round(monkeypatch):
+    """Under the thin vote the round is the even round's counts (the fewest samples first: every pixel +4 here),
+    whereas GEM's half of the round chases the rare samples' pixels."""
+    state, halves = _state(True)
+    n = get_method("auto").round_size(state)
+    even = even_round(dataclasses.replace(state, rng=copy.deepcopy(state.rng)), n)
+    on, off = _plan(state, halves, monkeypatch, True), _plan(state, halves, monkeypatch, False)
+    assert np.array_equal(on, even) and on.sum() == n
+    assert np.ptp(on) <= 1 and np.ptp(off) > 4
+
+
+def test_a_full_vote_keeps_the_allocation(monkeypatch):
+    state, halves = _state(False)
+    assert np.array_equal(_plan(state, halves, monkeypatch, True), _plan(state, halves, monkeypatch, False))
