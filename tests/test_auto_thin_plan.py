@@ -16,7 +16,8 @@ from mcrecon.core.nets import even_round
 from mcrecon.core.stats import PixelStats
 from mcrecon.methods import get_method
 from mcrecon.methods.auto.method import AutoMethod
-from mcrecon.methods.auto.thinvote import thin_vote_shown
+from mcrecon.methods.auto import thinvote
+from mcrecon.methods.auto.thinvote import PLAN_THIN_VOTE, THIN_VOTE, thin_vote_shown
 from mcrecon.methods.base import AdaptiveState
 
 H = W = 16
@@ -51,6 +52,32 @@ def test_thin_vote_shown_reads_the_share_of_pixels_left_to_vote(rare, thin):
     state, halves = _state(rare)
     assert thin_vote_shown(state.stats, halves, 4.0) is thin
     assert not thin_vote_shown(state.stats, None, 4.0)  # no halves, no black box scored from them
+
+
+def test_the_rounds_read_the_vote_thin_by_a_margin(monkeypatch):
+    """An adaptive round reads the vote as thin below PLAN_THIN_VOTE of the pixels, under the final selection's
+    THIN_VOTE (a share near that threshold moves with the seed and the round); the share is the voters' over the
+    pixels that could vote."""
+    assert PLAN_THIN_VOTE < THIN_VOTE
+    state, halves = _state(True)
+    voters = _voters(state, halves)
+    assert thin_vote_shown(state.stats, halves, 4.0, share=voters + 1e-9)
+    assert not thin_vote_shown(state.stats, halves, 4.0, share=voters - 1e-9)
+    monkeypatch.setattr(thinvote, "PLAN_THIN_VOTE", voters - 1e-9)
+    assert not thin_vote_shown(state.stats, halves, 4.0)
+
+
+def _voters(state, halves):
+    from mcrecon.core.halves import mean_variances
+    from mcrecon.core.safeguard import sample_range_bounds
+    from mcrecon.methods.auto.estimates import relative_denominator_loo
+    from mcrecon.methods.auto.selection import _apart
+
+    st = state.stats
+    v = mean_variances(st, halves)[0]
+    apart = _apart(st.mean, v, sample_range_bounds(st)[1], relative_denominator_loo(st.mean, v, st.count, eps=0.01),
+                   True)
+    return (~apart).sum() / thinvote._could_vote(v, st.count, 4.0)
 
 
 def _plan(state, halves, monkeypatch, on):
