@@ -221,8 +221,8 @@ class AutoMethod(Method):
     run_type = AutoRun
     adaptive = True
     initial_spp = 4
-    #: ``sampling="gem"``: a round whose committed samples make a thin vote (:func:`.thinvote.thin_vote_shown`) is
-    #: the even round (:meth:`plan`).
+    #: ``sampling="gem"``: a round in whole nets whose committed samples make a thin vote
+    #: (:func:`.thinvote.thin_vote_shown`) is the even round (:meth:`plan`).
     thin_even = True
     options = (
         Option("candidates", str, DEFAULT_CANDIDATES, "comma-separated candidate reconstructions: "
@@ -609,15 +609,17 @@ class AutoMethod(Method):
     def plan(self, run: "AutoRun", state: AdaptiveState):
         """After the initial pass (uniform ``initial_spp``), rounds as ``sampling`` says.
 
-        ``gem`` (default): :meth:`Method.plan` with :meth:`place`.  Where the
-        committed samples make the global prior's vote thin
-        (:func:`.thinvote.thin_vote_shown`) and an OIDN candidate runs, the
-        round is :func:`~mcrecon.core.nets.even_round`'s: the final default
-        is then a black box, which neither GEM's estimates nor the net
-        gate's colour-only reconstruction of the halves score, and whose
-        error follows the pixel means' (the tuning spotlit texture: the
-        adaptive pixel means err 1.06-1.26x the uniform render's, auto's
-        image 1.05-1.55x; docs/adaptive.md).
+        ``gem`` (default): :meth:`Method.plan` with :meth:`place`.  A round
+        in whole nets (``net_counts``) whose committed samples make the
+        global prior's vote thin (:func:`.thinvote.thin_vote_shown`), an
+        OIDN candidate running, is :func:`~mcrecon.core.nets.even_round`'s:
+        the final default is then a black box, which neither GEM's
+        estimates nor the net gate's colour-only reconstruction of the
+        halves score, and whose error follows the pixel means' (the tuning
+        spotlit texture: the adaptive pixel means err 1.06-1.26x the
+        uniform render's, auto's image 1.05-1.55x; docs/adaptive.md).
+        Rounds of independent samples keep the allocation (the default
+        checker_spot: 1.00 with even rounds against 0.82).
         ``uniform``: doubling uniform rounds.  ``greedy``: ``iterations``
         rounds placing samples greedily.  Each greedy round reconstructs
         with every candidate, takes the chosen result's smoothed relative
@@ -631,9 +633,10 @@ class AutoMethod(Method):
         p = self.params
         if p["sampling"] == "gem":
             black_box = "oidn" in self._names or "oidn_aux" in self._feature_names
-            if self.thin_even and black_box and p["global_prior"] is not None and \
+            nets = p["net_counts"] == 1 or (p["net_counts"] == -1 and state.sampler != "independent")
+            if self.thin_even and nets and black_box and p["global_prior"] is not None and \
                     thin_vote_shown(state.stats, run.halves, p["safeguard"]):
-                # the final default is then a black box (thinvote.py): no allocation is scored for it
+                # the final default is then a black box (thinvote.py) that the net gate cannot score
                 return even_plan(self, state)
             return super().plan(run, state)
         remaining = state.remaining
