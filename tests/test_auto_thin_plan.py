@@ -14,6 +14,7 @@ import pytest
 from mcrecon.core.halves import Halves
 from mcrecon.core.nets import even_round
 from mcrecon.core.stats import PixelStats
+from mcrecon.core.strata import PrefixHalves
 from mcrecon.methods import get_method
 from mcrecon.methods.auto.method import AutoMethod
 from mcrecon.methods.auto import thinvote
@@ -25,8 +26,8 @@ H = W = 16
 
 def _state(rare: bool, sampler: str = "sobol"):
     """16 samples at each pixel of a 16 x 16 film, 0.5 +- 0.1; with ``rare`` one sample of 100 at every third pixel of
-    every third row (a rare light most pixels' 3 x 3 neighbourhoods found), else at four pixels only.  No prefix
-    halves: the rounds in whole nets go without the net gate."""
+    every third row (a rare light most pixels' 3 x 3 neighbourhoods found), else at four pixels only: a rare
+    component shows either way, so the net gate leaves a round in whole nets to the plan."""
     rng = np.random.default_rng(3)
     values = rng.uniform(0.4, 0.6, (H, W, 16, 3))
     if rare:
@@ -40,7 +41,9 @@ def _state(rare: bool, sampler: str = "sobol"):
     st.add(pos, values)
     halves = Halves.empty(W, H, ("R", "G", "B"))
     halves.add(pos, values)
-    state = AdaptiveState(st, 2, 32 * H * W, 16 * H * W, np.random.default_rng(0), iteration=1,
+    strata = PrefixHalves(W, H, 3)
+    strata.add(pos, values)
+    state = AdaptiveState(st, 2, 32 * H * W, 16 * H * W, np.random.default_rng(0), iteration=1, strata=strata,
                           sampler=sampler)
     return state, halves
 
@@ -88,15 +91,72 @@ def _plan(state, halves, monkeypatch, on):
     return m.plan(run, dataclasses.replace(state, rng=copy.deepcopy(state.rng))).counts
 
 
-def test_a_thin_vote_gives_the_even_round(monkeypatch):
-    """Under the thin vote a round in whole nets is the even round's counts (whole nets lowest first), whereas GEM's
-    half of the round chases the rare samples' pixels."""
+def _auto(state, halves, monkeypatch, on):
+    monkeypatch.setattr(AutoMethod, "thin_even", on)
+    m = get_method("auto")
+    run = m.start(W, H)
+    run.halves = halves
+    return m, run
+
+
+@pytest.mark.parametrize("rare, even", [(True, True), (False, False)])
+def test_a_thin_vote_makes_a_round_the_gate_leaves_even(rare, even, monkeypatch):
+    """Where a rare component shows (both states) the net gate leaves the round to the plan; auto's
+    even_under_rare then makes it the even round under a thin vote (rare samples in most neighbourhoods), not
+    under a full one (four rare samples), and not with the rule off."""
+    state, halves = _state(rare)
+    m, run = _auto(state, halves, monkeypatch, True)
+    assert m.even_under_rare(run, state) is even
+    m, run = _auto(state, halves, monkeypatch, False)
+    assert m.even_under_rare(run, state) is False
+    no_oidn = get_method("auto", candidates="box,gauss")
+    run = no_oidn.start(W, H)
+    run.halves = halves
+    assert no_oidn.even_under_rare(run, state) is False  # no black box to be the default
+
+
+def test_auto_plans_the_even_round_under_a_thin_vote(monkeypatch):
+    """auto's round in whole nets under the thin vote is net_plan's even round (every pixel's next net, lowest
+    first): a net up at 85 pixels and 5 samples at one more, where the plan without the rule differs."""
     state, halves = _state(True)
-    n = get_method("auto").round_size(state)
-    even = even_round(dataclasses.replace(state, rng=copy.deepcopy(state.rng)), n)
     on, off = _plan(state, halves, monkeypatch, True), _plan(state, halves, monkeypatch, False)
-    assert np.array_equal(on, even) and on.sum() == n
-    assert not np.array_equal(off, even) and off.sum() == n
+    n = get_method("auto").round_size(state)
+    assert on.sum() == off.sum() == n
+    assert (on == 16).sum() == n // 16 and (on % 16 == 0).sum() == on.size - 1
+    assert not np.array_equal(on, off)
+
+
+def test_the_net_gate_asks_the_method_where_a_rare_component_shows():
+    """net_plan leaves a round where a rare component shows to the plan, unless the method's even_under_rare says
+    otherwise."""
+    from mcrecon.core.nets import net_plan
+
+    state, _ = _state(True)
+
+    class Planner:
+        net_gate = True
+        params = {"uniform_share": 0.0}
+
+        def __init__(self, even):
+            self.even = even
+
+        def round_size(self, state):
+            return 16 * 64
+
+        def place(self, run, state, n):
+            wish = np.zeros((H, W), np.int64)
+            wish[:4] = n // 64
+            return wish
+
+        def even_under_rare(self, run, state):
+            return self.even
+
+    plan = net_plan(Planner(False), None, dataclasses.replace(state, rng=copy.deepcopy(state.rng))).counts
+    even = net_plan(Planner(True), None, dataclasses.replace(state, rng=copy.deepcopy(state.rng))).counts
+    assert (plan[:4] == 16).all() and not plan[4:].any()
+    # the even round: every pixel's next net, lowest first, ties at random (64 pixels step from 16 to 32)
+    assert (even == 16).sum() == 64 and not even[(even != 0) & (even != 16)].any()
+    assert not (even[:4] == 16).all()
 
 
 def test_rounds_of_independent_samples_keep_the_allocation(monkeypatch):

@@ -31,7 +31,6 @@ from .estimates import (cross_validation_mse, relative_denominator,
     sure, sure_filter_bank)
 from ...core.stats import PixelStats
 from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, uniform_counts
-from ...core.nets import even_plan
 from ...core.safeguard import (albedo_divisor, confidence_clamp, empty_pixels_kept, neighbourhood_mean_variance,
     pooled_mean_variance, safeguard_variance, sample_range_bounds,
     widened_range_bounds)
@@ -221,8 +220,8 @@ class AutoMethod(Method):
     run_type = AutoRun
     adaptive = True
     initial_spp = 4
-    #: ``sampling="gem"``: a round in whole nets whose committed samples make a thin vote
-    #: (:func:`.thinvote.thin_vote_shown`) is the even round (:meth:`plan`).
+    #: ``sampling="gem"``: a round in whole nets whose committed samples show a rare component and make a thin
+    #: vote (:func:`.thinvote.thin_vote_shown`) is the even round (:meth:`even_under_rare`).
     thin_even = True
     options = (
         Option("candidates", str, DEFAULT_CANDIDATES, "comma-separated candidate reconstructions: "
@@ -609,17 +608,9 @@ class AutoMethod(Method):
     def plan(self, run: "AutoRun", state: AdaptiveState):
         """After the initial pass (uniform ``initial_spp``), rounds as ``sampling`` says.
 
-        ``gem`` (default): :meth:`Method.plan` with :meth:`place`.  A round
-        in whole nets (``net_counts``) whose committed samples make the
-        global prior's vote thin (:func:`.thinvote.thin_vote_shown`), an
-        OIDN candidate running, is :func:`~mcrecon.core.nets.even_round`'s:
-        the final default is then a black box, which neither GEM's
-        estimates nor the net gate's colour-only reconstruction of the
-        halves score, and whose error follows the pixel means' (the tuning
-        spotlit texture: the adaptive pixel means err 1.06-1.26x the
-        uniform render's, auto's image 1.05-1.55x; docs/adaptive.md).
-        Rounds of independent samples keep the allocation (the default
-        checker_spot: 1.00 with even rounds against 0.82).
+        ``gem`` (default): :meth:`Method.plan` with :meth:`place`; in whole
+        nets the net gate (:func:`~mcrecon.core.nets.net_plan`), and where a
+        rare component keeps the gate off, :meth:`even_under_rare`.
         ``uniform``: doubling uniform rounds.  ``greedy``: ``iterations``
         rounds placing samples greedily.  Each greedy round reconstructs
         with every candidate, takes the chosen result's smoothed relative
@@ -632,12 +623,6 @@ class AutoMethod(Method):
         """
         p = self.params
         if p["sampling"] == "gem":
-            black_box = "oidn" in self._names or "oidn_aux" in self._feature_names
-            nets = p["net_counts"] == 1 or (p["net_counts"] == -1 and state.sampler != "independent")
-            if self.thin_even and nets and black_box and p["global_prior"] is not None and \
-                    thin_vote_shown(state.stats, run.halves, p["safeguard"]):
-                # the final default is then a black box (thinvote.py) that the net gate cannot score
-                return even_plan(self, state)
             return super().plan(run, state)
         remaining = state.remaining
         if remaining <= 0:
@@ -661,6 +646,20 @@ class AutoMethod(Method):
         pri = np.where(n == 0, np.inf, pri)
         counts = _largest_remainder(pri, n_round)
         return state.request(counts=counts)
+
+    def even_under_rare(self, run: "AutoRun", state: AdaptiveState) -> bool:
+        """Whether a round in whole nets that the net gate leaves to the plan (a rare component shows,
+        :func:`~mcrecon.core.nets.net_plan`) is the even round: where the committed samples make the global
+        prior's vote thin (:func:`.thinvote.thin_vote_shown`), an OIDN candidate running.  The final default is
+        then a black box, which neither GEM's estimates nor the gate's colour-only reconstruction of the halves
+        score, and whose error follows the pixel means' (the tuning spotlit texture: the adaptive pixel means
+        err 1.06-1.26x the uniform render's, auto's image 1.05-1.55x; docs/adaptive.md).  Rounds of
+        independent samples keep the allocation (the default checker_spot: 1.00 with even rounds against
+        0.82)."""
+        p = self.params
+        black_box = "oidn" in self._names or "oidn_aux" in self._feature_names
+        return self.thin_even and black_box and p["global_prior"] is not None and \
+            thin_vote_shown(state.stats, run.halves, p["safeguard"])
 
     def place(self, run: "AutoRun", state: AdaptiveState, n: int):
         """GEM's placement (Sec. 5) of ``n`` samples; :meth:`Method.plan` spreads ``uniform_share`` uniformly.
