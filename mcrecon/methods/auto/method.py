@@ -41,6 +41,7 @@ from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGH
     _feature_bilateral, dual_candidate, feature_candidates, prefiltered_features,
     feature_slices, release_prefiltered, seed_prefiltered)
 from .blackbox import BLACK_BOXES, Z_BLACKBOX, _guards, oidn_candidate  # noqa: F401
+from .thinvote import thin_vote_shown
 from .nlmeans import nlmeans_cross
 from .proxy import REGRESSIONS, regression_share
 from ...filters.masked import MaskedSmoothing, smooth_masked
@@ -199,6 +200,9 @@ class AutoMethod(Method):
     run_type = AutoRun
     adaptive = True
     initial_spp = 4
+    #: ``sampling="gem"``: a round in whole nets whose committed samples show a rare component and make a thin
+    #: vote (:func:`.thinvote.thin_vote_shown`) is the even round (:meth:`even_under_rare`).
+    thin_even = True
     options = (
         Option("candidates", str, DEFAULT_CANDIDATES, "comma-separated candidate reconstructions: "
                + ", ".join(CANDIDATES) + " (nlm/awr/splat split every pixel's samples into two halves: "
@@ -609,7 +613,9 @@ class AutoMethod(Method):
     def plan(self, run: "AutoRun", state: AdaptiveState):
         """After the initial pass (uniform ``initial_spp``), rounds as ``sampling`` says.
 
-        ``gem`` (default): :meth:`Method.plan` with :meth:`place`.
+        ``gem`` (default): :meth:`Method.plan` with :meth:`place`; in whole
+        nets the net gate (:func:`~mcrecon.core.nets.net_plan`), and where a
+        rare component keeps the gate off, :meth:`even_under_rare`.
         ``uniform``: doubling uniform rounds.  ``greedy``: ``iterations``
         rounds placing samples greedily.  Each greedy round reconstructs
         with every candidate, takes the chosen result's smoothed relative
@@ -645,6 +651,20 @@ class AutoMethod(Method):
         pri = np.where(n == 0, np.inf, pri)
         counts = _largest_remainder(pri, n_round)
         return state.request(counts=counts)
+
+    def even_under_rare(self, run: "AutoRun", state: AdaptiveState) -> bool:
+        """Whether a round in whole nets that the net gate leaves to the plan (a rare component shows,
+        :func:`~mcrecon.core.nets.net_plan`) is the even round: where the committed samples make the global
+        prior's vote thin (:func:`.thinvote.thin_vote_shown`), an OIDN candidate running.  The final default is
+        then a black box, which neither GEM's estimates nor the gate's colour-only reconstruction of the halves
+        score, and whose error follows the pixel means' (the tuning spotlit texture: the adaptive pixel means
+        err 1.06-1.26x the uniform render's, auto's image 1.05-1.55x; docs/adaptive.md).  Rounds of
+        independent samples keep the allocation (the default checker_spot: 1.00 with even rounds against
+        0.82)."""
+        p = self.params
+        black_box = "oidn" in self._names or "oidn_aux" in self._feature_names
+        return self.thin_even and black_box and p["global_prior"] is not None and \
+            thin_vote_shown(state.stats, run.halves, p["safeguard"])
 
     def place(self, run: "AutoRun", state: AdaptiveState, n: int):
         """GEM's placement (Sec. 5) of ``n`` samples; :meth:`Method.plan` spreads ``uniform_share`` uniformly.
