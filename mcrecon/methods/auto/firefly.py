@@ -57,7 +57,7 @@ def _firefly(y, v, hi, scale=None) -> np.ndarray:
     their variances ``v`` (means and variances divided by ``scale``, the albedo, and its square where given:
     on a texture a neighbour's colour is another square's).  Such a pixel's mean is carried by a rare huge
     sample of its own, and a default whose value there is its mean (NL-means: the pixel's patch is like no
-    other) keeps the firefly; the vote's own test (:data:`.selection.HEAVY_PRIOR`, 30x) misses it where the sample is
+    other) keeps the firefly; the vote's own test (:data:`.apart.HEAVY_PRIOR`, 30x) misses it where the sample is
     10-30x the mean.  False where a value is NaN."""
     out = np.zeros(y.shape[:2], bool)
     yr, vr = (y, v) if scale is None else (y / scale, v / (scale * scale))

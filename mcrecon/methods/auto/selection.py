@@ -16,13 +16,14 @@ from ...filters.engine import parallel_rows
 
 from .blend import blend_default
 from .firefly import FIREFLY, HEAVY_TAIL, Z_FIREFLY, _firefly  # noqa: F401 (Z_FIREFLY: the tests read it here)
+from .apart import HEAVY_PRIOR, _apart  # noqa: F401 (HEAVY_PRIOR: the tests read it here)
 from .thinvote import THIN_VOTE, _could_vote, _thin_default
 from .estimates import relative_denominator_loo
 from .passes import (_FirstLeast, _arrays, _c64, _channel_mean, _compress, _means, _nanmax,  # noqa: F401
                      _relative_choice)
 from ...core.metrics import DEFAULT_EPS
 from ...filters.masked import MaskedSmoothing, effective_counts
-from ...filters.order import median9, neighbour_median8, neighbour_medians8
+from ...filters.order import neighbour_median8, neighbour_medians8
 
 
 #: Standard errors (the larger of the pixel's and its 3 x 3 neighbourhood's mean) beyond which the
@@ -30,55 +31,6 @@ from ...filters.order import median9, neighbour_median8, neighbour_medians8
 #: the safeguard's 4: under pure noise a test at 4 fires on ~3 channels of a 128^2 RGB image, exactly
 #: the pixels of largest error, where the clamped wide candidate beats any per-pixel choice.
 Z_BIAS_PRIOR = 5.0
-#: The global prior leaves out pixels whose 3 x 3 sample maximum exceeds this many times their mean
-#: and their 3 x 3 neighbourhood's mean (rare huge samples around).  Not HEAVY_TAIL's 10: 32 exponential samples per pixel exceed 10x
-#: their mean somewhere in a 3 x 3 neighbourhood at ~4 % of the pixels, 30x practically never.
-HEAVY_PRIOR = 30.0
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _abs0(x):
-    return abs(x) if np.isfinite(x) else 0.0
-
-
-@numba.njit(cache=True, nogil=True)
-def _apart_rows(y, v, hi, den_loo, heavy, bright, need_v, out, i0, i1):
-    # rows [i0, i1) of _apart; |y| read as 0 where y is not finite
-    h, w, c = y.shape
-    for i in range(i0, i1):
-        ia, ib = max(i - 1, 0), min(i + 1, h - 1)
-        for j in range(w):
-            ja, jb = max(j - 1, 0), min(j + 1, w - 1)
-            apart = False
-            any_v = False
-            for ch in range(c):
-                yc = y[i, j, ch]
-                ay = _abs0(yc)
-                if hi[i, j, ch] > heavy * ay:
-                    med = median9(_abs0(y[ia, ja, ch]), _abs0(y[ia, j, ch]), _abs0(y[ia, jb, ch]),
-                                  _abs0(y[i, ja, ch]), ay, _abs0(y[i, jb, ch]),
-                                  _abs0(y[ib, ja, ch]), _abs0(y[ib, j, ch]), _abs0(y[ib, jb, ch]))
-                    if hi[i, j, ch] > heavy * med:
-                        apart = True
-                if _nanmax(yc * yc - v[i, j, ch], 0.0) > bright * den_loo[i, j, ch]:
-                    apart = True
-                if v[i, j, ch] > 0:
-                    any_v = True
-            out[i, j] = apart or (need_v and not any_v)
-
-
-def _apart(y: np.ndarray, v: np.ndarray, hi: np.ndarray, den_loo: np.ndarray, need_v: bool) -> np.ndarray:
-    """The pixels the global prior leaves out, (H, W) bool: in any channel, rare huge samples around (the
-    3 x 3 sample maximum ``hi`` above :data:`HEAVY_PRIOR` times both ``|y|`` and the median of ``|y|``
-    over the 3 x 3 neighbourhood, edges repeated), or far brighter than the neighbourhood
-    (``max(y^2 - v, 0)`` above ``HEAVY_PRIOR^2`` times ``den_loo``); with ``need_v`` also pixels without
-    variance in any channel.  One compiled pass, the median only where the first test fires."""
-    out = np.empty(y.shape[:2], bool)
-    parallel_rows(_apart_rows, (_c64(y), _c64(v), _c64(hi), _c64(den_loo), HEAVY_PRIOR, HEAVY_PRIOR ** 2,
-                                bool(need_v), out), y.shape[0])
-    return out
-
-
 #: Standard errors by which a feature-guided candidate's summed estimate must undercut the best colour
 #: candidate's to become the global default, and the tile (pixels) of the sums the error comes from.
 #: 0.5, not 2: with albedo demodulation among the feature candidates, 2 kept NL-means the default of a

@@ -59,7 +59,7 @@ def _could_vote(v, count, safeguard) -> int:
 def thin_vote_shown(stats, halves, safeguard, *, share: float | None = None) -> bool:
     """Whether the global prior's vote on these statistics is thin by a margin: fewer than ``share`` (default
     :data:`PLAN_THIN_VOTE`) of the pixels that could vote (:func:`_could_vote`) are left in it by the rare-sample
-    and bright-pixel tests (:func:`.selection._apart`, on the variances the selection reads:
+    and bright-pixel tests (:func:`.apart._apart`, on the variances the selection reads:
     :func:`~mcrecon.core.halves.mean_variances` of ``halves``).  What an adaptive round reads
     (``AutoMethod.plan``), without the candidates: a pixel whose estimates are not finite counts as a voter
     here.  False without halves."""
@@ -67,7 +67,7 @@ def thin_vote_shown(stats, halves, safeguard, *, share: float | None = None) -> 
     from ...core.metrics import DEFAULT_EPS
     from ...core.safeguard import sample_range_bounds
     from .estimates import relative_denominator_loo
-    from .selection import _apart
+    from .apart import _apart
 
     count = stats.count
     if halves is None or not count.any():
