@@ -366,6 +366,9 @@ def _cmd_adapt(args):
             raise InputError("adapt", "--spp", "missing: give the sample budget in samples per pixel")
         if args.log is not None:  # an existing log is the driver's to refuse (it names --resume)
             check_log_output(args.log, flag="--log", overwrite=None)
+        method = make_method(args.method, args, args.method_flags)
+        if args.blender is not None:   # before Blender is started to read the scene
+            _refuse_spread_methods(method)
         spec, renderer = _renderer(args)
         if args.reference is not None:
             from ..core.samples import check_reference
@@ -376,9 +379,6 @@ def _cmd_adapt(args):
                                                                 len(renderer.channels)), where=args.reference)
         else:
             ref = reference_from_spec(spec)
-        method = make_method(args.method, args, args.method_flags)
-        if args.blender is not None:
-            _refuse_spread_methods(method)
         # (a scene's flag, the Mitsuba bridge's names; a command renderer says nothing before its reply)
         sends = bool(getattr(renderer, "features", False))
         jit_notice(method_kernels(method, features=sends)
