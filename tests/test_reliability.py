@@ -412,11 +412,10 @@ def tmpfs(tmp_path):
         pass  # the read-only bind mount over it, then the tmpfs
 
 
-def test_read_only_directory_mid_run_one_line_then_resume_matches(tmp_path, tmpfs):
+def test_read_only_directory_mid_run_one_line_then_resume_matches(tmp_path, tmpfs, uninterrupted):
     from mcrecon.io import read_exr
 
-    full = _adapt_cli(tmp_path / "full.h5", tmp_path / "full.exr")
-    assert full.returncode == 0, full.stderr
+    full_log, full_exr = uninterrupted
     log = tmpfs / "run.h5"
     # at round 2 the renderer mounts the log's directory read-only over itself
     out = _adapt_cli(log, tmp_path / "ro.exr", {"FAULT_RENDERER_DISK": f"ro:{tmpfs}", "FAULT_RENDERER_DISK_ROUND": "2"})
@@ -430,8 +429,8 @@ def test_read_only_directory_mid_run_one_line_then_resume_matches(tmp_path, tmpf
     assert subprocess.run(["umount", str(tmpfs)]).returncode == 0  # writable again
     res = run_cli_process(["adapt", "--resume", log, "-o", tmp_path / "resumed.exr", "--quiet"])
     assert res.returncode == 0, res.stderr
-    assert read_log(log).n_samples == read_log(tmp_path / "full.h5").n_samples == 32 * 16 * 32
-    np.testing.assert_array_equal(read_exr(tmp_path / "resumed.exr")[0], read_exr(tmp_path / "full.exr")[0])
+    assert read_log(log).n_samples == read_log(full_log).n_samples == 32 * 16 * 32
+    np.testing.assert_array_equal(read_exr(tmp_path / "resumed.exr")[0], read_exr(full_exr)[0])
     assert not lock_path(log).exists()
 
 
@@ -442,8 +441,17 @@ def _adapt_cli(log, out, extra_env=None, *, prelude=None):
     return run_cli_process(argv, extra_env=extra_env, prelude=prelude)
 
 
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    """The run the faulted runs are resumed into, once per module (a worker's): its log and image."""
+    d = tmp_path_factory.mktemp("uninterrupted")
+    full = _adapt_cli(d / "full.h5", d / "full.exr")
+    assert full.returncode == 0, full.stderr
+    return d / "full.h5", d / "full.exr"
+
+
 @pytest.mark.parametrize("path", ["checked", "inside_hdf5"])
-def test_full_disk_mid_run_one_line_then_resume_matches(tmp_path, tmpfs, path):
+def test_full_disk_mid_run_one_line_then_resume_matches(tmp_path, tmpfs, uninterrupted, path):
     """At round 2 the renderer fills the log's file system (ENOSPC).
 
     ``checked``: the append sees too little free space and refuses before
@@ -456,8 +464,7 @@ def test_full_disk_mid_run_one_line_then_resume_matches(tmp_path, tmpfs, path):
     """
     from mcrecon.io import read_exr
 
-    full = _adapt_cli(tmp_path / "full.h5", tmp_path / "full.exr")
-    assert full.returncode == 0, full.stderr
+    full_log, full_exr = uninterrupted
     log, filler = tmpfs / "run.h5", tmpfs / "filler"
     prelude = ("import mcrecon.io.writer as s; s._check_free_space = lambda *a, **k: None"
                if path == "inside_hdf5" else None)
@@ -471,13 +478,13 @@ def test_full_disk_mid_run_one_line_then_resume_matches(tmp_path, tmpfs, path):
     if path == "checked":
         assert sl.n_rounds == 2 and list(sl.round_ends) == [512, 1024]
     else:  # HDF5 fails when it next needs new space: rounds that fit in the file's free chunks commit
-        assert 2 <= sl.n_rounds < read_log(tmp_path / "full.h5").n_rounds
-        assert list(sl.round_ends) == list(read_log(tmp_path / "full.h5").round_ends[:sl.n_rounds])
+        assert 2 <= sl.n_rounds < read_log(full_log).n_rounds
+        assert list(sl.round_ends) == list(read_log(full_log).round_ends[:sl.n_rounds])
     filler.unlink()
     res = run_cli_process(["adapt", "--resume", log, "-o", tmp_path / "resumed.exr", "--quiet"])
     assert res.returncode == 0, res.stderr
-    assert read_log(log).n_samples == read_log(tmp_path / "full.h5").n_samples == 32 * 16 * 32
-    np.testing.assert_array_equal(read_exr(tmp_path / "resumed.exr")[0], read_exr(tmp_path / "full.exr")[0])
+    assert read_log(log).n_samples == read_log(full_log).n_samples == 32 * 16 * 32
+    np.testing.assert_array_equal(read_exr(tmp_path / "resumed.exr")[0], read_exr(full_exr)[0])
 
 
 def test_free_space_estimate_counts_whole_chunks(tmp_path, monkeypatch):
