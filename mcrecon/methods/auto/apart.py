@@ -8,8 +8,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ...core.metrics import DEFAULT_EPS
 from ...filters.engine import parallel_rows
 from ...filters.order import median9
+from .estimates import relative_denominator_loo
 from .passes import _c64, _nanmax
 
 __all__ = ["HEAVY_PRIOR"]
@@ -61,3 +63,11 @@ def _apart(y: np.ndarray, v: np.ndarray, hi: np.ndarray, den_loo: np.ndarray, ne
     parallel_rows(_apart_rows, (_c64(y), _c64(v), _c64(hi), _c64(den_loo), HEAVY_PRIOR, HEAVY_PRIOR ** 2,
                                 bool(need_v), out), y.shape[0])
     return out
+
+
+def left_out(y: np.ndarray, v: np.ndarray, count: np.ndarray, hi: np.ndarray, need_v: bool):
+    """``(den_loo, apart)`` of a frame's statistics: the leave-one-out relative denominator the vote's
+    estimates are divided by (:func:`.estimates.relative_denominator_loo`) and the pixels the vote leaves out
+    (:func:`_apart` on it).  ``hi``: the top of the pixels' sample range."""
+    den_loo = relative_denominator_loo(y, v, count, eps=DEFAULT_EPS)
+    return den_loo, _apart(y, v, hi, den_loo, need_v)

@@ -16,12 +16,10 @@ from ...filters.engine import parallel_rows
 
 from .blend import blend_default
 from .firefly import FIREFLY, HEAVY_TAIL, Z_FIREFLY, _firefly  # noqa: F401 (Z_FIREFLY: the tests read it here)
-from .apart import HEAVY_PRIOR, _apart  # noqa: F401 (HEAVY_PRIOR: the tests read it here)
+from .apart import HEAVY_PRIOR, _apart, left_out  # noqa: F401 (HEAVY_PRIOR, _apart: the tests read them here)
 from .thinvote import THIN_VOTE, _could_vote, _thin_default
-from .estimates import relative_denominator_loo
 from .passes import (_FirstLeast, _arrays, _c64, _channel_mean, _compress, _means, _nanmax,  # noqa: F401
                      _relative_choice)
-from ...core.metrics import DEFAULT_EPS
 from ...filters.masked import MaskedSmoothing, effective_counts
 from ...filters.order import neighbour_median8, neighbour_medians8
 
@@ -166,19 +164,18 @@ def summed_estimates(cands, y, v, count, hi, safeguard, within=None):
 def loo_estimates(cands, y, v, count, hi, safeguard):
     """``(den_loo, cap, loo, apart)`` of :func:`summed_estimates`: each a function of a pixel's 3 x 3
     neighbourhood, what a tile of the image computes of its own pixels."""
-    den_loo = relative_denominator_loo(y, v, count, eps=DEFAULT_EPS)
-    cap = None if safeguard is None else (safeguard + 1.0) ** 2
-
-    def loo(k):
-        return _means([cands[k].mse], den_loo, v, cap)[0]
-
     # rare huge samples: the 3 x 3 maximum far above the pixel's mean and its neighbourhood's median
     # (so that one pixel whose mean fell near 0 by chance does not count; a median, not a mean,
     # which a bright emitter beside dim pixels would dominate); and pixels far brighter than their
     # neighbourhood (an emitter's edge): their relative estimates, divided by the neighbours' mu^2,
     # reach ~1e4 where the typical is ~1 (a Cornell box with a small bright light: two such pixels
     # made a 1.41 px Gaussian the whole image's default)
-    apart = _apart(y, v, hi, den_loo, safeguard is not None)
+    den_loo, apart = left_out(y, v, count, hi, safeguard is not None)
+    cap = None if safeguard is None else (safeguard + 1.0) ** 2
+
+    def loo(k):
+        return _means([cands[k].mse], den_loo, v, cap)[0]
+
     return den_loo, cap, loo, apart
 
 
@@ -195,8 +192,7 @@ def crossed_sum(cva, cvb, ha, hb, va, vb, den) -> float:
 
     total = 0.0
     for cv, h, vh in ((cva, ha, va), (cvb, hb, vb)):
-        dh = relative_denominator_loo(h.mean, vh, h.count, eps=DEFAULT_EPS)
-        votes = ~_apart(h.mean, vh, sample_range_bounds(h)[1], dh, True)
+        votes = ~left_out(h.mean, vh, h.count, sample_range_bounds(h)[1], True)[1]
         r = np.mean(np.asarray(cv, np.float64) / den, axis=2)
         total += float(np.sum(r[votes & np.isfinite(r)]))
     return total
@@ -274,7 +270,7 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     """The per-pixel choice with the best single candidate over the image as the default.
 
     ``g`` = the candidate of least summed leave-one-out relative estimate
-    (:func:`relative_denominator_loo`) over the pixels that vote, each
+    (:func:`.estimates.relative_denominator_loo`) over the pixels that vote, each
     pixel's estimate capped at ``(safeguard + 1)^2 v``: after the clamp
     into ``y +- safeguard sd`` no candidate's squared error exceeds about
     that, so a candidate that is wild at a few pixels the safeguard repairs

@@ -10,6 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...core.halves import mean_variances
+from ...core.safeguard import sample_range_bounds
+from .apart import left_out
+
 __all__ = ["THIN_VOTE", "PLAN_THIN_VOTE", "thin_vote_shown"]
 
 #: The share of the pixels that could vote (:func:`_could_vote`) below which the global prior's vote is thin:
@@ -59,21 +63,14 @@ def _could_vote(v, count, safeguard) -> int:
 def thin_vote_shown(stats, halves, safeguard, *, share: float | None = None) -> bool:
     """Whether the global prior's vote on these statistics is thin by a margin: fewer than ``share`` (default
     :data:`PLAN_THIN_VOTE`) of the pixels that could vote (:func:`_could_vote`) are left in it by the rare-sample
-    and bright-pixel tests (:func:`.apart._apart`, on the variances the selection reads:
+    and bright-pixel tests (:func:`.apart.left_out`, on the variances the selection reads:
     :func:`~mcrecon.core.halves.mean_variances` of ``halves``).  What an adaptive round reads
     (``AutoMethod.plan``), without the candidates: a pixel whose estimates are not finite counts as a voter
     here.  False without halves."""
-    from ...core.halves import mean_variances
-    from ...core.metrics import DEFAULT_EPS
-    from ...core.safeguard import sample_range_bounds
-    from .estimates import relative_denominator_loo
-    from .apart import _apart
-
     count = stats.count
     if halves is None or not count.any():
         return False
     v = mean_variances(stats, halves)[0]
-    apart = _apart(stats.mean, v, sample_range_bounds(stats)[1],
-                   relative_denominator_loo(stats.mean, v, count, eps=DEFAULT_EPS), safeguard is not None)
+    apart = left_out(stats.mean, v, count, sample_range_bounds(stats)[1], safeguard is not None)[1]
     share = PLAN_THIN_VOTE if share is None else share
     return int(np.count_nonzero(~apart & (count > 0))) < share * _could_vote(v, count, safeguard)
