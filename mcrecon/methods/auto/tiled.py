@@ -109,6 +109,11 @@ class FilmPlanes:
     def __contains__(self, name) -> bool:
         return name in self.paths
 
+    @property
+    def whole(self) -> tuple:
+        """The film's window ``(0, height, 0, width)``."""
+        return (0, self.shape[0], 0, self.shape[1])
+
 
 class _Mapped:
     """A candidate of the film whose image and estimate are mapped from the files each time they are read
@@ -176,10 +181,16 @@ class Film:
                 seed_prefiltered(hf, self.planes.get(f"prefiltered{i}", window))
 
 
+def _plane_scales(planes) -> tuple:
+    """The regressions' ``(mean, deviation)`` of each prefiltered feature plane of a half (H, W, D), the film's
+    (:func:`~mcrecon.filters.regression.feature_scale`)."""
+    from ...filters.regression import feature_scale
+    return tuple(feature_scale(planes[..., d]) for d in range(planes.shape[2]))
+
+
 def _pass0(method, inputs, film: Film) -> None:
     """OIDN's candidates, the halves' prefiltered features and dnlm's units on the film's inputs (a
     :class:`~mcrecon.methods.MethodInputs` of the whole film), as the untiled run computes them."""
-    from ...filters.regression import feature_scale
     from .features import dnlm_scale, prefiltered_features, release_prefiltered
     from .proxy import REGRESSIONS
 
@@ -191,13 +202,12 @@ def _pass0(method, inputs, film: Film) -> None:
     fnames = method._feature_names
     with_features = bool(fnames) and bool(halves.a.features)
     regress = set(REGRESSIONS) & set(fnames)
-    whole = (0, film.planes.shape[0], 0, film.planes.shape[1])
     if with_features and (aux or regress):
         pf = [prefiltered_features(hf) for hf in halves]
         for i, p in enumerate(pf):
-            film.planes.put(f"prefiltered{i}", whole, p)
+            film.planes.put(f"prefiltered{i}", film.planes.whole, p)
         if regress:
-            film.scales = tuple(tuple(feature_scale(p[..., d]) for d in range(p.shape[2])) for p in pf)
+            film.scales = tuple(_plane_scales(p) for p in pf)
         film.prefiltered = True
         del pf
     if with_features and ("dnlm" in fnames or "mix" in fnames):
@@ -217,7 +227,6 @@ def _oidn(method, stats, halves, aux: bool, film: Film, aux_planes=None) -> None
     def _store(cands):   # as the selection holds them (method._store)
         return [dataclasses.replace(c, image=_stored(c.image), mse=_stored(c.mse)) for c in cands]
 
-    whole = (0, film.planes.shape[0], 0, film.planes.shape[1])
     v, va, vb = mean_variances(stats, halves)
     black = []
     if "oidn" in method._names:
@@ -226,8 +235,8 @@ def _oidn(method, stats, halves, aux: bool, film: Film, aux_planes=None) -> None
         black += _store(oidn_candidate("oidn_aux", stats, v, halves, aux=True, variances=(va, vb),
                                        aux_planes=aux_planes))
     for k, c in enumerate(black):
-        film.planes.put(f"oidn_image{k}", whole, c.image)
-        film.planes.put(f"oidn_mse{k}", whole, c.mse)
+        film.planes.put(f"oidn_image{k}", film.planes.whole, c.image)
+        film.planes.put(f"oidn_mse{k}", film.planes.whole, c.mse)
         film.black.append((c.name, c.feature, c.crossed))
 
 
@@ -244,7 +253,6 @@ def _pass0_read(method, reader, film: Film) -> None:
     and the prefiltered albedo and normal."""
     from ...filters.demodulation import demodulation_scale
     from ...filters.nlmeans import BAND
-    from ...filters.regression import feature_scale
     from .features import _filled, feature_slices, prefiltered_features, release_prefiltered
     from .proxy import REGRESSIONS
 
@@ -277,8 +285,7 @@ def _pass0_read(method, reader, film: Film) -> None:
     if slices is not None:
         film.prefiltered = True
         if regress:
-            film.scales = tuple(tuple(feature_scale(p[..., d]) for d in range(p.shape[2]))
-                                for p in (film.planes.get(f"prefiltered{i}") for i in range(2)))
+            film.scales = tuple(_plane_scales(film.planes.get(f"prefiltered{i}")) for i in range(2))
     if units:
         film.units = tuple(demodulation_scale(film.planes.get(f"colour{i}"), film.planes.get(f"albedo{i}"))
                            for i in range(2))
