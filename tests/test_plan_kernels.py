@@ -43,6 +43,17 @@ def test_box_mean_is_scipys_uniform_filter(mode):
         box_mean(flags, 2, "reflect")
 
 
+@pytest.mark.parametrize("box", [box_mean, box_any])
+def test_box_refuses_a_negative_radius_and_a_line(box):
+    """A negative half-size would sum an empty window (box_mean: -0 everywhere, box_any: nothing set) and a
+    line has no film axes: both refused, naming the function."""
+    with pytest.raises(ValueError, match=f"{box.__name__}: radius -1"):
+        box(np.ones((4, 5)) > 0, -1)
+    with pytest.raises(ValueError, match=rf"{box.__name__}: \(H, W\)"):
+        box(np.ones(5) > 0, 1)
+    assert np.array_equal(box(np.eye(4) > 0, 0), np.eye(4))     # radius 0: each pixel alone
+
+
 def test_box_any_is_the_maximum_filter_over_the_threshold():
     rng = np.random.default_rng(4)
     for h, w, c in [(1, 1, 1), (1, 9, 2), (8, 1, 3), (30, 21, 3)]:
