@@ -184,6 +184,20 @@ def test_prefix_halves_and_gain_bit_for_bit():
                      _gain_reference(mean_a, mean_b, n_a.astype(float), n_b.astype(float), var))
 
 
+def test_gain_refuses_planes_of_other_shapes():
+    """The compiled pass reads every plane at the means' indices: a variance of one channel for three-channel
+    means, or counts of another film, would be read past its end (numba checks no bounds)."""
+    from mcrecon.core.strata import halves_gain
+
+    m = np.ones((6, 5, 3))
+    n = np.full((6, 5), 2)
+    none = m[..., :0]
+    for args in ((m, m, n, n, m[..., :1]), (m, m[:, :4], n, n, m), (m, m, n[:5], n, m), (none, none, n, n, none)):
+        with pytest.raises(ValueError, match="halves_gain"):
+            halves_gain(*args)
+    assert _same(halves_gain(m, m, n, n, m), _gain_reference(m, m, n, n, m))
+
+
 def test_fill_lowest_level_search():
     from mcrecon.core.nets import _given_sum, fill_lowest
 
