@@ -73,13 +73,11 @@ def test_the_rounds_read_the_vote_thin_by_a_margin(monkeypatch):
 def _voters(state, halves):
     from mcrecon.core.halves import mean_variances
     from mcrecon.core.safeguard import sample_range_bounds
-    from mcrecon.methods.auto.estimates import relative_denominator_loo
-    from mcrecon.methods.auto.selection import _apart
+    from mcrecon.methods.auto.apart import left_out
 
     st = state.stats
     v = mean_variances(st, halves)[0]
-    apart = _apart(st.mean, v, sample_range_bounds(st)[1], relative_denominator_loo(st.mean, v, st.count, eps=0.01),
-                   True)
+    apart = left_out(st.mean, v, st.count, sample_range_bounds(st)[1], True)[1]
     return (~apart).sum() / thinvote._could_vote(v, st.count, 4.0)
 
 
