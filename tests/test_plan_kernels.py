@@ -198,6 +198,18 @@ def test_gain_refuses_planes_of_other_shapes():
     assert _same(halves_gain(m, m, n, n, m), _gain_reference(m, m, n, n, m))
 
 
+@pytest.mark.parametrize("h, w", [(0, 5), (5, 0)])
+def test_prefix_halves_of_an_empty_film(h, w):
+    """A film without pixels has halves (H, W, C) and (H, W) and a gain (H, W), as the other plan planes
+    (a reshape to an unknown channel count of no elements failed)."""
+    from mcrecon.core.strata import PrefixHalves
+
+    ph = PrefixHalves(w, h, 3)
+    mean_a, mean_b, n_a, n_b = ph.halves()
+    assert mean_a.shape == mean_b.shape == (h, w, 3) and n_a.shape == n_b.shape == (h, w)
+    assert ph.gain(np.zeros((h, w, 3))).shape == (h, w)
+
+
 def test_fill_lowest_level_search():
     from mcrecon.core.nets import _given_sum, fill_lowest
 

@@ -151,7 +151,7 @@ class PrefixHalves:
         n_a, n_b = np.empty(npix, np.int64), np.empty(npix, np.int64)
         _halves_kernel(self.counter, self._sums, self._counts, mean_a, mean_b, n_a, n_b)
         shape = (self.height, self.width)
-        return (mean_a.reshape(shape + (-1,)), mean_b.reshape(shape + (-1,)), n_a.reshape(shape),
+        return (mean_a.reshape(shape + (nc,)), mean_b.reshape(shape + (nc,)), n_a.reshape(shape),
                 n_b.reshape(shape))
 
     def mean_variance(self, count: np.ndarray) -> np.ndarray:
