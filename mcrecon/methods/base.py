@@ -195,17 +195,13 @@ class Requirements:
         Whether the method reads pixel statistics (a method that only
         filters samples sets False, and none are built for it offline).
     half_buffers : bool
-        Whether the method can work from two independent *half buffers*
-        (``inputs.halves``: two :class:`PixelStats` of disjoint halves of
-        every pixel's samples, as renderers write dual buffers) in place
-        of the individual samples.  With ``samples`` also True, offline
-        reconstruction accepts either (:meth:`Method.reconstruct`); the
-        statistics are then the Chan merge of the two halves
-        (:func:`~mcrecon.core.halves.merge_halves`).  A half-buffer pair
-        is refused for a method that does not declare it.  In adaptive
-        runs :meth:`Method.observe` splits every committed round into the
-        run's halves (``RunState.halves``), which :meth:`Method.finish`
-        hands over as ``inputs.halves``.
+        Whether the method can work from two independent *half buffers* (``inputs.halves``: two
+        :class:`PixelStats` of disjoint halves of every pixel's samples, as renderers write dual buffers) in
+        place of the individual samples.  With ``samples`` also True, offline reconstruction accepts either
+        (:meth:`Method.reconstruct`); the statistics are then the Chan merge of the two halves
+        (:func:`~mcrecon.core.halves.merge_halves`).  A half-buffer pair is refused for a method that does
+        not declare it.  In adaptive runs :meth:`Method.observe` splits every committed round into the run's
+        halves (``RunState.halves``), which :meth:`Method.finish` hands over as ``inputs.halves``.
     features : {'none', 'optional', 'required'}
         Whether the method reads per-sample features (albedo, normal,
         depth, ...; :mod:`mcrecon.core.features`).  With 'optional' or
@@ -437,6 +433,10 @@ class Method:
     structure_test: ClassVar[bool] = True
     #: A round in whole nets is :func:`~mcrecon.core.nets.even_round`'s unless predicted to beat it (net_plan).
     net_gate: ClassVar[bool] = True
+    #: A pipelined run may plan before ``observe`` (:func:`mcrecon.adaptive.rounds.plans_before_observe`).
+    plans_before_observe: ClassVar[bool] = False
+    #: The pixels' variance is read (False: the means alone, one render of them serves: offline.pixel_files).
+    reads_variance: ClassVar[bool] = True
 
     def __init__(self, **options):
         where = self.where
