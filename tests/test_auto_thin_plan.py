@@ -19,7 +19,7 @@ from mcrecon.methods import get_method
 from mcrecon.methods.auto.method import AutoMethod
 from mcrecon.methods.auto import thinvote
 from mcrecon.methods.auto.thinvote import PLAN_THIN_VOTE, THIN_VOTE, thin_vote_shown
-from mcrecon.methods.base import AdaptiveState
+from mcrecon.methods.base import AdaptiveState, Method
 
 H = W = 16
 
@@ -73,13 +73,11 @@ def test_the_rounds_read_the_vote_thin_by_a_margin(monkeypatch):
 def _voters(state, halves):
     from mcrecon.core.halves import mean_variances
     from mcrecon.core.safeguard import sample_range_bounds
-    from mcrecon.methods.auto.estimates import relative_denominator_loo
-    from mcrecon.methods.auto.selection import _apart
+    from mcrecon.methods.auto.apart import left_out
 
     st = state.stats
     v = mean_variances(st, halves)[0]
-    apart = _apart(st.mean, v, sample_range_bounds(st)[1], relative_denominator_loo(st.mean, v, st.count, eps=0.01),
-                   True)
+    apart = left_out(st.mean, v, st.count, sample_range_bounds(st)[1], True)[1]
     return (~apart).sum() / thinvote._could_vote(v, st.count, 4.0)
 
 
@@ -126,33 +124,34 @@ def test_auto_plans_the_even_round_under_a_thin_vote(monkeypatch):
     assert not np.array_equal(on, off)
 
 
+class _Planner(Method):
+    """A method in whole nets that wants its samples in the film's first four rows (no rule of its own)."""
+    name = "planner"
+
+    def round_size(self, state):
+        return 16 * 64
+
+    def place(self, run, state, n):
+        wish = np.zeros((H, W), np.int64)
+        wish[:4] = n // 64
+        return wish
+
+
+class _EvenPlanner(_Planner):
+    def even_under_rare(self, run, state):
+        return True
+
+
 def test_the_net_gate_asks_the_method_where_a_rare_component_shows():
     """net_plan leaves a round where a rare component shows to the plan, unless the method's even_under_rare says
-    otherwise."""
+    otherwise; Method.even_under_rare (the contract net_plan calls) says no."""
     from mcrecon.core.nets import net_plan
 
     state, _ = _state(True)
-
-    class Planner:
-        net_gate = True
-        params = {"uniform_share": 0.0}
-
-        def __init__(self, even):
-            self.even = even
-
-        def round_size(self, state):
-            return 16 * 64
-
-        def place(self, run, state, n):
-            wish = np.zeros((H, W), np.int64)
-            wish[:4] = n // 64
-            return wish
-
-        def even_under_rare(self, run, state):
-            return self.even
-
-    plan = net_plan(Planner(False), None, dataclasses.replace(state, rng=copy.deepcopy(state.rng))).counts
-    even = net_plan(Planner(True), None, dataclasses.replace(state, rng=copy.deepcopy(state.rng))).counts
+    assert Method.even_under_rare(_Planner(), None, state) is False
+    assert get_method("gem").even_under_rare(None, state) is False
+    plan = net_plan(_Planner(), None, dataclasses.replace(state, rng=copy.deepcopy(state.rng))).counts
+    even = net_plan(_EvenPlanner(), None, dataclasses.replace(state, rng=copy.deepcopy(state.rng))).counts
     assert (plan[:4] == 16).all() and not plan[4:].any()
     # the even round: every pixel's next net, lowest first, ties at random (64 pixels step from 16 to 32)
     assert (even == 16).sum() == 64 and not even[(even != 0) & (even != 16)].any()

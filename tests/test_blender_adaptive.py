@@ -163,6 +163,22 @@ def test_methods_with_spread_counts_are_refused_before_rendering(blend, tmp_path
         assert not (tmp_path / f"{method}.h5").exists() and not (tmp_path / "o.exr").exists()
 
 
+@pytest.mark.parametrize("name, opts, refused", [("gem", {}, True), ("awr", {}, True), ("auto", {}, True),
+                                                   ("auto", {"sampling": "uniform"}, False), ("box", {}, False)])
+def test_the_spread_refusal_reads_auto_s_sampling(name, opts, refused):
+    """auto --sampling uniform asks for the same samples in every pixel: not refused (the refusal's own advice);
+    its default GEM placement is."""
+    from mcrecon.cli.commands import _refuse_spread_methods
+    from mcrecon.errors import InputError
+    from mcrecon.methods import get_method
+
+    if refused:
+        with pytest.raises(InputError, match="auto --sampling uniform"):
+            _refuse_spread_methods(get_method(name, **opts))
+    else:
+        assert _refuse_spread_methods(get_method(name, **opts)) is None   # no InputError
+
+
 def test_missing_bpy_says_how_to_install(blend, tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(bl, "bpy_available", lambda: False)
     assert main(["adapt", "--blender", str(blend), "--spp", "4", "-o", str(tmp_path / "o.exr")]) == 2

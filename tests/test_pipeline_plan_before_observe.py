@@ -64,6 +64,17 @@ def test_only_methods_that_read_samples_and_declare_it_plan_first():
         assert not plans_before_observe(get_method(name)), name
 
 
+def test_the_capabilities_read_from_a_method_are_declared_on_the_base_class():
+    """What the driver and the readers ask of a method is a class attribute of Method with its default (no
+    getattr with a default of its own at each reader): planning before observe is off, the variance read."""
+    from mcrecon.methods import available_methods, method_class
+    from mcrecon.methods.base import Method
+
+    assert Method.plans_before_observe is False and Method.reads_variance is True
+    assert [n for n in available_methods() if method_class(n).plans_before_observe] == ["splat"]
+    assert [n for n in available_methods() if not method_class(n).reads_variance] == ["box"]
+
+
 @pytest.mark.parametrize("opts, spp, features", [({}, 64, False),           # 8 + 8 (split N_0), 16, 32
                                                   ({}, 64, True),            # the feature gate
                                                   ({"initial_spp": 1}, 40, False),  # 1, 2, 4, 8, 25

@@ -43,6 +43,17 @@ def test_box_mean_is_scipys_uniform_filter(mode):
         box_mean(flags, 2, "reflect")
 
 
+@pytest.mark.parametrize("box", [box_mean, box_any])
+def test_box_refuses_a_negative_radius_and_a_line(box):
+    """A negative half-size would sum an empty window (box_mean: -0 everywhere, box_any: nothing set) and a
+    line has no film axes: both refused, naming the function."""
+    with pytest.raises(ValueError, match=f"{box.__name__}: radius -1"):
+        box(np.ones((4, 5)) > 0, -1)
+    with pytest.raises(ValueError, match=rf"{box.__name__}: \(H, W\)"):
+        box(np.ones(5) > 0, 1)
+    assert np.array_equal(box(np.eye(4) > 0, 0), np.eye(4))     # radius 0: each pixel alone
+
+
 def test_box_any_is_the_maximum_filter_over_the_threshold():
     rng = np.random.default_rng(4)
     for h, w, c in [(1, 1, 1), (1, 9, 2), (8, 1, 3), (30, 21, 3)]:
@@ -171,6 +182,32 @@ def test_prefix_halves_and_gain_bit_for_bit():
         # float counts (core.halves hands its halves' counts as they are)
         assert _same(halves_gain(mean_a, mean_b, n_a.astype(float), n_b.astype(float), var),
                      _gain_reference(mean_a, mean_b, n_a.astype(float), n_b.astype(float), var))
+
+
+def test_gain_refuses_planes_of_other_shapes():
+    """The compiled pass reads every plane at the means' indices: a variance of one channel for three-channel
+    means, or counts of another film, would be read past its end (numba checks no bounds)."""
+    from mcrecon.core.strata import halves_gain
+
+    m = np.ones((6, 5, 3))
+    n = np.full((6, 5), 2)
+    none = m[..., :0]
+    for args in ((m, m, n, n, m[..., :1]), (m, m[:, :4], n, n, m), (m, m, n[:5], n, m), (none, none, n, n, none)):
+        with pytest.raises(ValueError, match="halves_gain"):
+            halves_gain(*args)
+    assert _same(halves_gain(m, m, n, n, m), _gain_reference(m, m, n, n, m))
+
+
+@pytest.mark.parametrize("h, w", [(0, 5), (5, 0)])
+def test_prefix_halves_of_an_empty_film(h, w):
+    """A film without pixels has halves (H, W, C) and (H, W) and a gain (H, W), as the other plan planes
+    (a reshape to an unknown channel count of no elements failed)."""
+    from mcrecon.core.strata import PrefixHalves
+
+    ph = PrefixHalves(w, h, 3)
+    mean_a, mean_b, n_a, n_b = ph.halves()
+    assert mean_a.shape == mean_b.shape == (h, w, 3) and n_a.shape == n_b.shape == (h, w)
+    assert ph.gain(np.zeros((h, w, 3))).shape == (h, w)
 
 
 def test_fill_lowest_level_search():

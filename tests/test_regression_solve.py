@@ -70,3 +70,30 @@ def test_solve_drops_a_column_without_weight():
     keep = [0, 1, 3, 4, 5]
     assert np.all(x[2] == 0.0)
     np.testing.assert_allclose(x[keep], np.linalg.solve(a[np.ix_(keep, keep)], b[keep]), rtol=1e-9, atol=1e-12)
+
+
+def test_solve_drops_a_column_the_earlier_ones_span():
+    """A column that is a combination of earlier ones (grey albedo's three channels; the ridge below the
+    rounding) can leave a non-positive pivot while its row of L holds the earlier columns' weights: the dropped
+    column's coefficients are still 0 and the others those of the system without it, and its leverage adds
+    nothing."""
+    rng = np.random.default_rng(11)
+    n = 40
+    x = np.ones((4, n))
+    x[1] = rng.standard_normal(n)
+    x[2] = rng.standard_normal(n)
+    x[3] = 2.0 * x[1] - x[2]                  # spanned by columns 1 and 2
+    w = rng.uniform(0.2, 1.0, n)
+    a = x @ (x * w).T
+    a[3, 3] -= 1e-9 * a[3, 3]                 # its pivot below 0: the rounding of a ridge-free fit
+    b = rng.standard_normal((4, 3))
+    sol = b.copy()
+    chol = a.copy()
+    _solve_spd(chol, sol, 4, 3, np.zeros(4))
+    keep = [0, 1, 2]
+    assert np.all(sol[3] == 0.0)
+    np.testing.assert_allclose(sol[keep], np.linalg.solve(a[np.ix_(keep, keep)], b[keep]), rtol=1e-9, atol=1e-12)
+    lev = np.zeros(n)
+    _leverages(chol, x, np.zeros((4, LEVERAGE_BLOCK)), lev, 4, n)
+    want = np.einsum("tn,tn->n", x[keep], np.linalg.solve(a[np.ix_(keep, keep)], x[keep]))
+    np.testing.assert_allclose(lev, want, rtol=1e-9, atol=1e-12)

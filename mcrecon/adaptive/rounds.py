@@ -126,7 +126,7 @@ def plans_before_observe(method) -> bool:
     with a round in flight reading only the committed counts and ``state.pending`` (splat's doubling
     rounds).  The plan is then the one made after ``observe`` (the same request), and the renderer
     renders it while the toolkit thread observes."""
-    return bool(getattr(method, "plans_before_observe", False)) and bool(method.requires.samples)
+    return bool(method.plans_before_observe) and bool(method.requires.samples)
 
 
 def _observe(ctx, batch, n_bad, round_index, *, source, timeline):

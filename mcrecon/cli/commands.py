@@ -231,7 +231,7 @@ def _refuse_spread_methods(method) -> None:
     """Refuse, before anything is rendered, a method whose rounds ask Cycles for counts that differ from
     pixel to pixel: Cycles renders one sample index over a rectangle, so such rounds render several times
     the samples they deliver (docs/blender.md, "What it costs")."""
-    if method.name in ("gem", "awr") or (method.name == "auto" and getattr(method, "sampling", None) != "uniform"):
+    if method.name in ("gem", "awr") or (method.name == "auto" and method.params["sampling"] != "uniform"):
         raise InputError("adapt", "--method", f"{method.name}'s rounds ask for a different number of samples in "
                          "each pixel, which Cycles renders one sample index at a time over whole rectangles "
                          "(3.5-14x the time of a uniform log, docs/blender.md): with --blender use box, ci, splat, "

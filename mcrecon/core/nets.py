@@ -339,8 +339,9 @@ def net_plan(method, run, state):
     ``net_gate`` on (:class:`~mcrecon.methods.base.Method`), not a paper variant, a stratified sampler
     declared and no rare bright component shown (:func:`~mcrecon.core.safeguard.rare_component_mask`: the
     halves miss it), the round is :func:`even_round`'s unless :func:`beats_even` predicts the plan to err less.
-    Where one shows, the round is the even one only where the method's ``even_under_rare(run, state)``, if it
-    has one, says so (auto: where its final default would be a black box, a thin vote).
+    Where one shows, the round is the even one only where the method's
+    :meth:`~mcrecon.methods.base.Method.even_under_rare` says so (auto: where its final default would be a black
+    box, a thin vote).
     """
     n = method.round_size(state)
     if n is None:
@@ -358,8 +359,7 @@ def net_plan(method, run, state):
     if method.net_gate and method.params.get("variant") != "paper" and state.strata is not None and \
             state.sampler != "independent":
         rare = _shows_rare_component(state)
-        even_under_rare = getattr(method, "even_under_rare", None)
-        if not rare or (even_under_rare is not None and even_under_rare(run, state)):
+        if not rare or method.even_under_rare(run, state):
             # the even round's ties from a copy of the generator: a plan the gate keeps is the plan without it
             even = even_round(dataclasses.replace(state, rng=copy.deepcopy(state.rng)), n)
             if rare or not beats_even(halves_error(method, run, state), current + counts, current + even):

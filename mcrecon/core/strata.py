@@ -151,7 +151,7 @@ class PrefixHalves:
         n_a, n_b = np.empty(npix, np.int64), np.empty(npix, np.int64)
         _halves_kernel(self.counter, self._sums, self._counts, mean_a, mean_b, n_a, n_b)
         shape = (self.height, self.width)
-        return (mean_a.reshape(shape + (-1,)), mean_b.reshape(shape + (-1,)), n_a.reshape(shape),
+        return (mean_a.reshape(shape + (nc,)), mean_b.reshape(shape + (nc,)), n_a.reshape(shape),
                 n_b.reshape(shape))
 
     def mean_variance(self, count: np.ndarray) -> np.ndarray:
@@ -196,12 +196,16 @@ def halves_gain(mean_a, mean_b, n_a, n_b, sample_variance, *, radius: int = GAIN
     :meth:`PrefixHalves.gain` of any two halves of each pixel's samples (the prefix-block halves of
     :func:`mcrecon.core.halves.split_halves` too); ``sample_variance`` (H, W, C): ``s^2`` of all of them.
     """
-    ma = np.ascontiguousarray(mean_a, dtype=np.float64)
+    ma, mb, var = (np.ascontiguousarray(x, dtype=np.float64) for x in (mean_a, mean_b, sample_variance))
+    na, nb = (np.ascontiguousarray(x, dtype=np.float64) for x in (n_a, n_b))
+    # the compiled pass reads every plane at the means' indices, unchecked: a shape apart would read past it
+    if ma.ndim != 3 or not ma.shape[2] or mb.shape != ma.shape or var.shape != ma.shape or \
+            na.shape != ma.shape[:2] or nb.shape != ma.shape[:2]:
+        raise ValueError(f"halves_gain: means and sample variance (H, W, C >= 1), counts (H, W) expected, got "
+                         f"{ma.shape}, {mb.shape}, {var.shape} and {na.shape}, {nb.shape}")
     h, w, nc = ma.shape
     d2, ref, ref2 = np.empty((h, w)), np.empty((h, w)), np.empty((h, w))
-    _gain_planes(ma, np.ascontiguousarray(mean_b, dtype=np.float64), np.ascontiguousarray(n_a, dtype=np.float64),
-                 np.ascontiguousarray(n_b, dtype=np.float64), np.ascontiguousarray(sample_variance, dtype=np.float64),
-                 d2, ref, ref2)
+    _gain_planes(ma, mb, na, nb, var, d2, ref, ref2)
     r = int(radius)
     # scipy's uniform_filter(size=2 r + 1, mode="constant"), bit for bit (mcrecon.filters.box)
     num, den, den2 = (box_mean(a, r, "constant") for a in (d2, ref, ref2))

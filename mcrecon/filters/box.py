@@ -78,6 +78,16 @@ def _box_axis1(src, dst, r, nearest):
                 dst[i, j, ch] = t / size
 
 
+def _checked(name: str, x: np.ndarray, radius) -> int:
+    # the window's half-size (a negative one would sum an empty window), after the planes' shape
+    if x.ndim not in (2, 3):
+        raise ValueError(f"{name}: (H, W) or (H, W, C) expected, got shape {x.shape}")
+    r = int(radius)
+    if r < 0:
+        raise ValueError(f"{name}: radius {radius!r}; a window half-size >= 0 expected")
+    return r
+
+
 def box_mean(a: np.ndarray, radius: int, mode: str = "constant") -> np.ndarray:
     """``scipy.ndimage.uniform_filter(a.astype(float64), size=(2 radius + 1, 2 radius + 1[, 1]), mode=mode)``, bit for bit.
 
@@ -93,9 +103,7 @@ def box_mean(a: np.ndarray, radius: int, mode: str = "constant") -> np.ndarray:
     if mode not in BOX_MODES:
         raise ValueError(f"box_mean: mode {mode!r}; valid: {', '.join(BOX_MODES)}")
     x = np.asarray(a)
-    if x.ndim not in (2, 3):
-        raise ValueError(f"box_mean: (H, W) or (H, W, C) expected, got shape {x.shape}")
-    r = int(radius)
+    r = _checked("box_mean", x, radius)
     if r == 0:
         return np.array(x, dtype=np.float64)
     x3 = np.ascontiguousarray(x if x.ndim == 3 else x[..., None])
@@ -150,8 +158,8 @@ def box_any(b: np.ndarray, radius: int) -> np.ndarray:
     """Whether any entry of the boolean plane(s) ``b`` (H, W[, C]) is set in each pixel's
     ``(2 radius + 1)^2`` window clipped to the film (per channel)."""
     x = np.asarray(b, dtype=np.bool_)
+    r = _checked("box_any", x, radius)
     x3 = np.ascontiguousarray(x if x.ndim == 3 else x[..., None])
-    r = int(radius)
     tmp = np.empty(x3.shape, np.bool_)
     out = np.empty(x3.shape, np.bool_)
     if x3.size:

@@ -26,8 +26,12 @@ NE_PAD = 16
 def _solve_spd(a, b, d, nc, tmp):
     """Solve a x = b in place (b (d, nc) becomes x) by Cholesky of the SPD a (d, d); a is overwritten.
 
-    A non-positive pivot (a column with no weight left after the ridge: only
-    when every weight is 0) drops that column (its coefficients 0).  Each
+    A pivot at most 1e-300 drops that column: its coefficients 0 and, in
+    :func:`_leverages`, its term 0 (its row and column of L zero, its pivot
+    infinite).  Every weight 0 drops every column; a column the earlier ones
+    span (grey albedo's three channels) leaves a pivot at the ridge's scale,
+    below 0 where the rounding of its elimination exceeds the ridge, and
+    its row of L then holds the earlier columns' terms until zeroed.  Each
     entry is the same sequence of operations as a textbook loop (its k terms
     in order); the loops run over the independent entries innermost (the rows
     of a column of L, the columns of b), so their chains of dependent
@@ -38,9 +42,11 @@ def _solve_spd(a, b, d, nc, tmp):
         for k in range(j):
             s -= a[j, k] * a[j, k]
         if s <= 1e-300:
-            for i in range(j, d):
+            for k in range(j):
+                a[j, k] = 0.0
+            for i in range(j + 1, d):
                 a[i, j] = 0.0
-            a[j, j] = 1.0
+            a[j, j] = math.inf  # z_j = (b_j - 0) / inf = 0 in the substitutions and the leverages
             for c in range(nc):
                 b[j, c] = 0.0
             continue

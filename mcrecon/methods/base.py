@@ -195,17 +195,13 @@ class Requirements:
         Whether the method reads pixel statistics (a method that only
         filters samples sets False, and none are built for it offline).
     half_buffers : bool
-        Whether the method can work from two independent *half buffers*
-        (``inputs.halves``: two :class:`PixelStats` of disjoint halves of
-        every pixel's samples, as renderers write dual buffers) in place
-        of the individual samples.  With ``samples`` also True, offline
-        reconstruction accepts either (:meth:`Method.reconstruct`); the
-        statistics are then the Chan merge of the two halves
-        (:func:`~mcrecon.core.halves.merge_halves`).  A half-buffer pair
-        is refused for a method that does not declare it.  In adaptive
-        runs :meth:`Method.observe` splits every committed round into the
-        run's halves (``RunState.halves``), which :meth:`Method.finish`
-        hands over as ``inputs.halves``.
+        Whether the method can work from two independent *half buffers* (``inputs.halves``: two
+        :class:`PixelStats` of disjoint halves of every pixel's samples, as renderers write dual buffers) in
+        place of the individual samples.  With ``samples`` also True, offline reconstruction accepts either
+        (:meth:`Method.reconstruct`); the statistics are then the Chan merge of the two halves
+        (:func:`~mcrecon.core.halves.merge_halves`).  A half-buffer pair is refused for a method that does
+        not declare it.  In adaptive runs :meth:`Method.observe` splits every committed round into the run's
+        halves (``RunState.halves``), which :meth:`Method.finish` hands over as ``inputs.halves``.
     features : {'none', 'optional', 'required'}
         Whether the method reads per-sample features (albedo, normal,
         depth, ...; :mod:`mcrecon.core.features`).  With 'optional' or
@@ -437,6 +433,10 @@ class Method:
     structure_test: ClassVar[bool] = True
     #: A round in whole nets is :func:`~mcrecon.core.nets.even_round`'s unless predicted to beat it (net_plan).
     net_gate: ClassVar[bool] = True
+    #: A pipelined run may plan before ``observe`` (:func:`mcrecon.adaptive.rounds.plans_before_observe`).
+    plans_before_observe: ClassVar[bool] = False
+    #: The pixels' variance is read (False: the means alone, one render of them serves: offline.pixel_files).
+    reads_variance: ClassVar[bool] = True
 
     def __init__(self, **options):
         where = self.where
@@ -524,21 +524,17 @@ class Method:
         Parameters
         ----------
         inputs : MethodInputs
-            Every input the method declared (:attr:`requires`); wrap pixel
-            statistics as ``MethodInputs(stats)``.  To reconstruct from a
-            file, samples, statistics or a half-buffer pair, use
-            :func:`mcrecon.reconstruct` (``mcrecon.reconstruct(source,
-            method=...)``), which reads what the method declares.
+            Every input the method declared (:attr:`requires`); wrap pixel statistics as ``MethodInputs(stats)``.
+            To reconstruct from a file, samples, statistics or a half-buffer pair, use :func:`mcrecon.reconstruct`
+            (``mcrecon.reconstruct(source, method=...)``), which reads what the method declares.
         run : RunState, optional
             A state from :meth:`start` that receives the diagnostics; a
             fresh one by default.
 
-        A method with ``requires.samples`` and ``requires.half_buffers``
-        takes ``inputs.samples`` or ``inputs.halves`` (both only when the
-        halves were split from those samples, ``halves.source``); with halves
-        and no ``inputs.stats``, the statistics are their merge.  What the
-        inputs cannot supply is refused by
-        :func:`~mcrecon.methods.supply.check_supply`.
+        A method with ``requires.samples`` and ``requires.half_buffers`` takes ``inputs.samples`` or
+        ``inputs.halves`` (both only when the halves were split from those samples, ``halves.source``); with
+        halves and no ``inputs.stats``, the statistics are their merge.  What the inputs cannot supply is
+        refused by :func:`~mcrecon.methods.supply.check_supply`.
         """
         if not isinstance(inputs, MethodInputs):
             raise InputError(self.where, "inputs", f"got {type(inputs).__name__}, expected MethodInputs; wrap pixel "
@@ -589,11 +585,10 @@ class Method:
     def initial_pass(self, budget: int, pixels: int) -> int:
         """Samples per pixel of the uniform initial pass the driver takes before the first plan.
 
-        The ``initial_spp`` option when the method has one, else the class attribute; the driver caps
-        the pass at the run's ``budget``.  A method that cannot run on that budget raises
-        :class:`InputError` here, before anything is rendered.  Pipelined, the driver splits a pass of
-        two or more samples per pixel into two rounds (half, then the rest), so that the first plan
-        sees the first half while the second renders.
+        The ``initial_spp`` option when the method has one, else the class attribute; the driver caps the pass
+        at the run's ``budget``.  A method that cannot run on that budget raises :class:`InputError` here,
+        before anything is rendered.  Pipelined, the driver splits a pass of two or more samples per pixel into
+        two rounds (half, then the rest), so that the first plan sees the first half while the second renders.
         """
         return max(1, int(self.params.get("initial_spp", self.initial_spp)))
 
@@ -651,6 +646,11 @@ class Method:
         ``n`` = 0 too (it must then use no random numbers): a method that stops on a target checks it here.
         """
         return uniform_counts(state.width, state.height, n, state.rng)
+
+    def even_under_rare(self, run: RunState, state: AdaptiveState) -> bool:
+        """Whether a round in whole nets that a rare bright component keeps from the net gate is the even round
+        (:func:`~mcrecon.core.nets.net_plan`; auto: under a thin vote).  Default: no, the plan's round."""
+        return False
 
     def observe(self, run: RunState, batch: SampleBatch, round_index: int) -> None:
         """See a committed round's samples (only called when ``requires.samples``).

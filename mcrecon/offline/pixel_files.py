@@ -206,11 +206,11 @@ def read_pixel_file_source(source, method, *, options: dict | None = None,
 
 def _refuse_means_only(method, file, cli: bool) -> None:
     """One render's means without a variance: refused, naming the fix, for a method that reads the variance."""
-    if not getattr(method, "reads_variance", True):  # a method of the means alone (the pixel mean)
+    if not method.reads_variance:  # a method of the means alone (the pixel mean)
         return
     from ..methods import available_methods, method_class
 
-    means = [n for n in available_methods() if not getattr(method_class(n), "reads_variance", True)]
+    means = [n for n in available_methods() if not method_class(n).reads_variance]
     seeds = "'shot.seed*.exr'" if cli else "mcrecon.reconstruct('shot.seed*.exr', ...)"
     held = "one cycles render holds" if file.layout == "cycles" else \
         f"means alone ({'--mean' if cli else 'mean='} without a variance) hold"
