@@ -263,10 +263,11 @@ class _FilmFill:
             self.values = {key: total.result() for key, total in sums.items()}
         return self.values[role]
 
-    def mark(self, sub: MethodInputs) -> MethodInputs:
-        """``sub`` (a tile's inputs, crops of their own) with each statistics' ``film_fill`` set."""
+    def mark(self, sub: MethodInputs, *, now: bool = False) -> MethodInputs:
+        """``sub`` (a tile's inputs, crops of their own) with each statistics' ``film_fill`` set: a callable,
+        or with ``now`` the values themselves (a tile shipped to another process, without the film)."""
         for key, st in self._roles(sub):
-            st.film_fill = functools.partial(self.get, key)
+            st.film_fill = self.get(key) if now else functools.partial(self.get, key)
         return sub
 
 
