@@ -97,25 +97,33 @@ class FilmRange(NamedTuple):
 
 class FilmRangeSum:
     """:class:`FilmRange` of a film's values added a band of rows at a time (:meth:`add`, in the film's
-    order), bit for bit that of the whole film's: the sum is carried on as numpy sums a column of the
-    film's defined values (one after the other)."""
+    order), bit for bit that of the whole film's.  numpy sums the film's defined values of several
+    channels one after the other, column by column, so that sum is carried on from band to band; those of
+    one channel (a contiguous column) pairwise, so they are kept (8 bytes a defined pixel) and summed at
+    the end as the film's."""
 
     def __init__(self):
-        self.total, self.n, self.lo, self.hi = None, 0, None, None
+        self.total, self.n, self.lo, self.hi, self.kept = None, 0, None, None, []
 
     def add(self, values: np.ndarray, defined: np.ndarray) -> None:
         v = np.asarray(values, dtype=np.float64)[np.asarray(defined, dtype=bool)]
         if not len(v):
             return
-        if self.total is None:
-            self.total, self.lo, self.hi = v.sum(axis=0), v.min(axis=0), v.max(axis=0)
+        if v.shape[1] == 1:
+            self.kept.append(v)
+        elif self.total is None:
+            self.total = v.sum(axis=0)
         else:
             self.total = np.concatenate([self.total[None], v]).sum(axis=0)
-            self.lo, self.hi = np.minimum(self.lo, v.min(axis=0)), np.maximum(self.hi, v.max(axis=0))
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        self.lo, self.hi = (lo, hi) if self.lo is None else (np.minimum(self.lo, lo), np.maximum(self.hi, hi))
         self.n += len(v)
 
     def result(self) -> FilmRange:
-        return FilmRange(None if self.total is None else self.total / self.n, self.lo, self.hi)
+        if not self.n:
+            return FilmRange(None, None, None)
+        mean = np.concatenate(self.kept).mean(axis=0) if self.kept else self.total / self.n
+        return FilmRange(mean, self.lo, self.hi)
 
 
 def variance_defined(stats: PixelStats) -> tuple[np.ndarray, np.ndarray]:
