@@ -232,6 +232,21 @@ def test_tiled_equals_untiled_bit_for_bit(client, big_stats, method, options, ti
         assert np.array_equal(D_tiles.reconstruct_tiled(big_stats, method=m, tile=tile, client=client), full)
 
 
+def test_tiled_one_sample_pixels_on_the_cluster_read_the_films_fill(client):
+    """1 spp but for a 4-spp corner: the tiles shipped to the workers carry the film's fill-in values (the
+    average variance of the corner's pixels), so gem's tiles away from the corner fill as the film does."""
+    rng = np.random.default_rng(1)
+    counts = np.ones((64, 96), np.int64)
+    counts[:6, :6] = 4
+    pix = np.repeat(np.arange(counts.size), counts.ravel())
+    pos = np.stack([pix % 96 + rng.random(pix.size), pix // 96 + rng.random(pix.size)], 1)
+    st = PixelStats(96, 64)
+    st.add(pos, rng.gamma(2.0, 0.5, (pix.size, 3)))
+    m = mcrecon.get_method("gem", final_scales=4, risk_guard=2.0)
+    assert np.array_equal(D_tiles.reconstruct_tiled(st, method=m, tile=24, client=client),
+                          mcrecon.reconstruct(st, method=m))
+
+
 def test_tiled_gem_default_halo(tmp_path):
     m = mcrecon.get_method("gem")
     assert m.halo(1, 1) == 123                      # 49 (sigma 16 pixel kernel) + 49 (outlier vote) + 1 + 24 (risk guard)
@@ -321,8 +336,8 @@ def test_tiled_refusals(big_stats, splat_log, tmp_path):
     with pytest.raises(InputError, match="paper variant"):
         D_tiles.reconstruct_tiled(splat_log, method="splat", variant="paper")
     thin = big_stats.copy()
-    thin.count[5, 7] = 1
-    with pytest.raises(InputError, match="fewer than 2 samples"):
+    thin.count[5, 7] = 0   # a pixel without a sample (one sample tiles: the film's fill-in values, test_tiles_fill.py)
+    with pytest.raises(InputError, match="without a sample"):
         D_tiles.reconstruct_tiled(thin, method="box")
     with pytest.raises(InputError, match="tile"):
         D_tiles.reconstruct_tiled(big_stats, method="box", tile=0)

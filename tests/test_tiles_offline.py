@@ -142,11 +142,11 @@ def test_tile_refusals(scene_log, feature_log, tmp_path):
         mcrecon.reconstruct(scene_log, method="awr", tile=32)
     with pytest.raises(InputError, match="individual samples"):
         mcrecon.reconstruct(scene_log, method="splat", tile=32)
-    # a pixel with one sample: its fill-in may borrow from anywhere, so no halo makes it local
+    # a pixel without a sample takes the nearest sampled pixel's value, however far, so no halo makes it local
     rng = np.random.default_rng(1)
-    pos = rng.random((2 * 12 * 10, 2)) * [12, 10]   # 2 samples a pixel on average: some pixels hold fewer
+    pos = rng.random((2 * 12 * 10, 2)) * [12, 10]   # 2 samples a pixel on average: some pixels hold none
     path = write_log(tmp_path / "thin.h5", pos, rng.random((pos.shape[0], 3)), width=12, height=10)
-    with pytest.raises(InputError, match="fewer than 2 samples"):
+    with pytest.raises(InputError, match="without a sample"):
         mcrecon.reconstruct(path, method="box", tile=4)
 
 

@@ -219,7 +219,7 @@ def test_streamed_tiles_refuse_thin_bands_and_whole_image_methods(tmp_path, film
     pos = rng.random((n, 2)) * [40, 30]
     pos[pos[:, 1] >= 20, 1] = 3.5   # rows 20..29 sampled nowhere: every pixel there is empty
     path = write_log(tmp_path / "thin.h5", pos, rng.random((n, 3)), width=40, height=30)
-    with pytest.raises(InputError, match="in a band of tiles with fewer than 2 samples"):
+    with pytest.raises(InputError, match="in a band of tiles without a sample"):
         mcrecon.reconstruct(path, method="box", tile=10)
     for name, opts in (("auto", {"regression_proxy": 0.1}), ("awr", {})):   # auto tiles without the proxy
         with pytest.raises(InputError, match="whole image"):

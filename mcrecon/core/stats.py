@@ -112,6 +112,11 @@ class PixelStats:
     #: ``(y0, x0, film_width, film_height)`` for the statistics of a window of a film (:meth:`window_of`):
     #: batches are then in film positions, and the samples of other pixels are skipped.  None: the film.
     _window = None
+    #: The film's image-wide values of :func:`~mcrecon.core.fill.mean_variance_policy` (a callable giving a
+    #: :class:`~mcrecon.core.fill.FilmRange`) for the statistics of a tile cut from a film
+    #: (:func:`~mcrecon.offline.tiles.reconstruct_tiles` sets it; crops keep it, a merge drops it).  None: these
+    #: statistics' own.
+    film_fill = None
 
     def __init__(self, width: int, height: int, channels: Sequence[str] = ("R", "G", "B"), *,
                  subpixels: int = 0, features=None, where: str = "PixelStats", keep_range: bool = True):
@@ -344,6 +349,7 @@ class PixelStats:
         """Make these statistics (``a`` itself, or arrays shaped as ``a``'s) the merge of ``a`` and ``b``."""
         from .merge import merge_moments
 
+        self.__dict__.pop("film_fill", None)   # the merge is not the film's statistics the value was of
         if isinstance(self.features, MergedOnRead):  # merged into: each feature held, to be written
             self.features = dict(self.features.items())
         for name, fst in self.features.items():

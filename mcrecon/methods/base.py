@@ -493,9 +493,9 @@ class Method:
 
         A reconstruction of a tile extended by ``halo`` pixels on every side (clipped at the film's edges)
         gives the untiled result inside the tile (:func:`mcrecon.distributed.tiles.reconstruct_tiled`),
-        provided every pixel has at least two samples: the fill-in policies for pixels with fewer
-        (:func:`mcrecon.core.fill.fill_from_neighbours`, :func:`mcrecon.core.fill.fill_empty_pixels`) may
-        borrow from the whole image.  Default None: a method that declares nothing is whole-image.
+        provided every pixel has a sample (the fill of one without, :func:`mcrecon.core.fill.fill_empty_pixels`,
+        reaches the nearest sampled pixel) and the tiles read the film's fill-in values for pixels with one
+        (``PixelStats.film_fill``).  Default None: a method that declares nothing is whole-image.
         """
         return None
 

@@ -26,10 +26,12 @@ fixed in it.
 
 from __future__ import annotations
 
+import functools
 import warnings
 
 import numpy as np
 
+from ..core.fill import FilmRangeSum, variance_defined
 from ..core.halves import Halves
 from ..errors import InputError
 from ..methods.base import Method, MethodInputs, RunState
@@ -94,6 +96,9 @@ class FilmReader:
         self.width, self.height = int(source.width), int(source.height)
         self.channels = tuple(source.channels)
         self.bands = [(0, self.height)]
+        #: The film's fill-in values (:class:`_FilmFill`) that :meth:`read` hands to the statistics it reads
+        #: (set by :func:`reconstruct_tiles`); None: each window's own.
+        self.fill = None
         self.said: dict = {}   # the warnings of the reads, each said once (every read passes the whole source)
         #: The image's sanity line (:func:`~mcrecon.core.metrics.output_sanity`), added band by band as the
         #: tiles finish (:meth:`add_sanity`); None until then, or for statistics without a range.
@@ -112,7 +117,7 @@ class FilmReader:
                                 where=self.where, merged=False, window=tuple(int(v) for v in window))
         for wn in caught:
             self.said.setdefault((wn.category, str(wn.message)), wn)
-        return out
+        return out if self.fill is None else self.fill.mark(out)
 
     def add_sanity(self, image: np.ndarray, band) -> None:
         """Add the sanity line of a finished band ``((y0, y1), first row read, its inputs)`` of ``image``."""
@@ -182,8 +187,8 @@ def tileable_halo(method: Method, width: int, height: int, where: str, *, inputs
     :func:`mcrecon.distributed.reconstruct_tiled`).
 
     Refused: a whole-image method (no finite :meth:`~mcrecon.methods.Method.halo`); with ``inputs`` (tiles
-    of statistics) a method that filters the individual samples, and pixels with fewer than two samples
-    (one in each half for half buffers), whose fill-in may borrow from anywhere in the image.  Without
+    of statistics) a method that filters the individual samples, and pixels without a sample (in one of
+    the halves for half buffers), which take the value of the nearest sampled pixel, however far.  Without
     ``inputs`` the caller gives each tile its own samples (a sample-filtering method's tiles).
     """
     halo = method.halo(int(width), int(height))
@@ -206,20 +211,64 @@ def tileable_halo(method: Method, width: int, height: int, where: str, *, inputs
 
 
 def _check_counts(inputs: MethodInputs, where: str, rows=None) -> None:
-    """Refuse pixels (of ``rows`` ``(y0, y1)`` of ``inputs``, or all) with fewer than two samples, or none in
-    one of the halves: their fill-in may borrow from anywhere in the image."""
+    """Refuse pixels (of ``rows`` ``(y0, y1)`` of ``inputs``, or all) without a sample, or without one in a
+    half: their fill-in takes the nearest sampled pixel's value, however far
+    (:func:`~mcrecon.core.fill.fill_empty_pixels`).  A pixel with one sample (in a half, or in all) borrows a
+    variance from its 3 x 3 neighbours, else the film's average: the tiles are given the film's
+    (:class:`_FilmFill`)."""
     cut = (lambda a: a) if rows is None else (lambda a: a[rows[0]:rows[1]])  # noqa: E731
     if inputs.halves is not None:
         few = int(np.count_nonzero(np.minimum(cut(inputs.halves.a.count), cut(inputs.halves.b.count)) < 1))
         what = "without a sample in one of its halves"
     else:
-        few = int(np.count_nonzero(cut(inputs.stats.count) < 2))
-        what = "with fewer than 2 samples"
+        few = int(np.count_nonzero(cut(inputs.stats.count) < 1))
+        what = "without a sample"
     if few:
         band = "" if rows is None else " in a band of tiles"
-        raise InputError(where, "tile", f"{few} pixel(s){band} {what}: their fill-in may borrow from anywhere in "
-                         "the image, so tiles would not reproduce the untiled result; reconstruct untiled (no tile "
-                         "option), or give every pixel at least 2 samples")
+        raise InputError(where, "tile", f"{few} pixel(s){band} {what}: their fill-in takes the value of the "
+                         "nearest sampled pixel, however far, so tiles would not reproduce the untiled result; "
+                         "reconstruct untiled (no tile option), or give every pixel a sample (one in each half)")
+
+
+class _FilmFill:
+    """The film's image-wide values of the variance fill-in (:func:`~mcrecon.core.fill.mean_variance_policy`:
+    the average and range of the sample variances of pixels with two samples or more) of each of the tiles'
+    statistics (each half, or the pixel statistics, and each of their features), which :meth:`mark` hands to
+    a tile's (``PixelStats.film_fill``), so that a tile fills its pixels with one sample as the film does.
+
+    Computed once, when a tile first fills a pixel: from the film's inputs, or from a :class:`FilmReader`
+    band by band (one more read of each band, in the film's order: bit for bit the film's values)."""
+
+    def __init__(self, inputs):
+        self.inputs, self.values = inputs, None
+
+    @staticmethod
+    def _roles(sub: MethodInputs):
+        tops = {"a": sub.halves.a, "b": sub.halves.b} if sub.halves is not None else {"stats": sub.stats}
+        for key, st in tops.items():
+            yield (key,), st
+            for name, fst in st.features.items():
+                yield (key, name), fst
+
+    def get(self, role):
+        if self.values is None:
+            if isinstance(self.inputs, FilmReader):
+                reads = (self.inputs.read((y0, y1, 0, self.inputs.width)) for y0, y1 in self.inputs.bands)
+            else:
+                reads = [self.inputs]
+            sums: dict = {}
+            for sub in reads:
+                for key, st in self._roles(sub):
+                    sums.setdefault(key, FilmRangeSum()).add(*variance_defined(st))
+            self.values = {key: total.result() for key, total in sums.items()}
+        return self.values[role]
+
+    def mark(self, sub: MethodInputs, *, now: bool = False) -> MethodInputs:
+        """``sub`` (a tile's inputs, crops of their own) with each statistics' ``film_fill`` set: a callable,
+        or with ``now`` the values themselves (a tile shipped to another process, without the film)."""
+        for key, st in self._roles(sub):
+            st.film_fill = self.get(key) if now else functools.partial(self.get, key)
+        return sub
 
 
 def tile_inputs(inputs: MethodInputs, outer) -> MethodInputs:
@@ -238,14 +287,15 @@ def tile_inputs(inputs: MethodInputs, outer) -> MethodInputs:
     return MethodInputs(inputs.stats.crop(y0, y1, x0, x1), None, ref, inputs.nonfinite, strata=strata)
 
 
-def _tiles(inputs, windows, where: str, done=None):
+def _tiles(inputs, windows, where: str, fill: _FilmFill, done=None):
     """``(outer, inner, inputs of outer)`` for each of ``windows`` (:func:`tile_windows`, in order): crops of
     the film's inputs, or of a :class:`FilmReader`'s bands (the rows of a band's tiles, grown, read at
-    once; pixels with fewer than two samples in its tiles refused), ``done(band)`` called as each band is
-    let go (:meth:`FilmReader.add_sanity`'s argument)."""
+    once; pixels of its tiles without a sample, or without one in a half, refused), ``done(band)`` called as each band is
+    let go (:meth:`FilmReader.add_sanity`'s argument); each tile's statistics given the film's fill-in
+    values (``fill``: a reader's reads are given them by the reader)."""
     if not isinstance(inputs, FilmReader):
         for outer, inner in windows:
-            yield outer, inner, tile_inputs(inputs, outer)
+            yield outer, inner, fill.mark(tile_inputs(inputs, outer))
         return
     h, w, _ = inputs.shape
     bands: dict = {}   # the tiles of each band of rows, in order
@@ -303,10 +353,12 @@ def reconstruct_tiles(method: Method, inputs: MethodInputs | FilmReader, *, tile
     ------
     InputError
         A whole-image method, a method that filters samples, or a pixel
-        with fewer than two samples (one in each half for half buffers):
-        the fill-in policies for those may borrow from the whole image.
-        Read band by band, such pixels are refused when their band is read
-        (before its tiles run).
+        without a sample (without one in a half for half buffers): it takes
+        the value of the nearest sampled pixel, however far.  Read band by
+        band, such pixels are refused when their band is read (before its
+        tiles run).  A pixel with one sample (in a half, or in all) borrows
+        a variance from its 3 x 3 neighbours, else the film's average: each
+        tile's statistics are given the film's (``PixelStats.film_fill``).
     """
     tile = check_tile(tile, where)
     h, w, c = inputs.shape
@@ -319,14 +371,18 @@ def reconstruct_tiles(method: Method, inputs: MethodInputs | FilmReader, *, tile
         inputs.bands = list(dict.fromkeys(inner[:2] for _, inner in windows))
     image = np.empty((h, w, c), np.float64)
 
+    fill = _FilmFill(inputs)
+    if streamed:   # every read of the reader (its bands, the tiles cut from them: crops keep it) reads the film's
+        inputs.fill = fill
+
     def each_tile(reach):   # the film's tiles grown by another reach (a method's pass before its tiles')
-        return _tiles(inputs, list(tile_windows(w, h, tile, reach, grid=grid)), where)
+        return _tiles(inputs, list(tile_windows(w, h, tile, reach, grid=grid)), where, fill)
 
     # one tile: the untiled run
     runner = method if len(windows) == 1 else method.for_tiles(inputs, each_tile=each_tile)
     maps: dict[str, np.ndarray] = {}
     said: dict = {}
-    for outer, inner, sub in _tiles(inputs, windows, where, done=lambda band: inputs.add_sanity(image, band)):
+    for outer, inner, sub in _tiles(inputs, windows, where, fill, done=lambda band: inputs.add_sanity(image, band)):
         oy0, oy1, ox0, ox1 = outer
         y0, y1, x0, x1 = inner
         run = runner.start(ox1 - ox0, oy1 - oy0, channels, reference=sub.reference)
