@@ -1,6 +1,6 @@
 """Tiles of films with mixed sample counts reproduce the untiled image: a pixel with one sample (in a half, or in
 all) borrows a variance from its 3 x 3 neighbours, else the film's average (mcrecon.core.fill.mean_variance_policy),
-which each tile is given (PixelStats.film_fill, mcrecon.offline.tiles._FilmFill); a pixel without a sample is
+which each tile is given (PixelStats.film_fill, mcrecon.offline.tiles.FilmFill); a pixel without a sample is
 refused."""
 
 from __future__ import annotations
@@ -111,7 +111,7 @@ def test_gem_tiles_need_the_films_values(monkeypatch):
     m = mcrecon.get_method("gem", **GEM)
     src = _sample_set(96, 64, 1, 4, seed=1)
     full = mcrecon.reconstruct(src, method=m)
-    monkeypatch.setattr(T._FilmFill, "mark", lambda self, sub: sub)
+    monkeypatch.setattr(T.FilmFill, "mark", lambda self, sub: sub)
     assert not np.array_equal(mcrecon.reconstruct(src, method=m, tile=24), full)
 
 

@@ -256,7 +256,7 @@ def reconstruct_tiled(source, *, method="box", tile: int = 1024, client=None, re
     from ..methods.base import Method, MethodInputs
     from ..methods import get_method
     from ..core.stats import PixelStats
-    from ..offline.tiles import _FilmFill, film_inputs, reconstruct_tiles
+    from ..offline.tiles import FilmFill, film_inputs, reconstruct_tiles
 
     m = method if isinstance(method, Method) else get_method(str(method), **options)
     if isinstance(method, Method) and options:
@@ -289,7 +289,7 @@ def reconstruct_tiled(source, *, method="box", tile: int = 1024, client=None, re
     grid = m.tile_grid()
     mf = client.scatter(m.for_tiles(inputs), broadcast=True)   # the film's whole-image decisions made here
     tasks = []
-    fill = _FilmFill(inputs)   # the film's fill-in values for pixels with one sample, shipped with each tile
+    fill = FilmFill(inputs)   # the film's fill-in values for pixels with one sample, shipped with each tile
     for (oy, ox), box, inner in _boxes(w, h, tile, halo, grid=grid):
         # each grown tile goes to one worker, the film stays here
         sub = client.scatter(fill.mark(tile_inputs(inputs, (oy[0], oy[1], ox[0], ox[1])), now=True))

@@ -37,7 +37,7 @@ from ..errors import InputError
 from ..methods.base import Method, MethodInputs, RunState
 from .inputs import gather_inputs
 
-__all__ = ["tile_windows", "check_tile", "tileable_halo", "tile_inputs", "reconstruct_tiles", "FilmReader",
+__all__ = ["tile_windows", "check_tile", "tileable_halo", "tile_inputs", "reconstruct_tiles", "FilmReader", "FilmFill",
            "film_inputs"]
 
 
@@ -96,7 +96,7 @@ class FilmReader:
         self.width, self.height = int(source.width), int(source.height)
         self.channels = tuple(source.channels)
         self.bands = [(0, self.height)]
-        #: The film's fill-in values (:class:`_FilmFill`) that :meth:`read` hands to the statistics it reads
+        #: The film's fill-in values (:class:`FilmFill`) that :meth:`read` hands to the statistics it reads
         #: (set by :func:`reconstruct_tiles`); None: each window's own.
         self.fill = None
         self.said: dict = {}   # the warnings of the reads, each said once (every read passes the whole source)
@@ -215,7 +215,7 @@ def _check_counts(inputs: MethodInputs, where: str, rows=None) -> None:
     half: their fill-in takes the nearest sampled pixel's value, however far
     (:func:`~mcrecon.core.fill.fill_empty_pixels`).  A pixel with one sample (in a half, or in all) borrows a
     variance from its 3 x 3 neighbours, else the film's average: the tiles are given the film's
-    (:class:`_FilmFill`)."""
+    (:class:`FilmFill`)."""
     cut = (lambda a: a) if rows is None else (lambda a: a[rows[0]:rows[1]])  # noqa: E731
     if inputs.halves is not None:
         few = int(np.count_nonzero(np.minimum(cut(inputs.halves.a.count), cut(inputs.halves.b.count)) < 1))
@@ -230,7 +230,7 @@ def _check_counts(inputs: MethodInputs, where: str, rows=None) -> None:
                          "reconstruct untiled (no tile option), or give every pixel a sample (one in each half)")
 
 
-class _FilmFill:
+class FilmFill:
     """The film's image-wide values of the variance fill-in (:func:`~mcrecon.core.fill.mean_variance_policy`:
     the average and range of the sample variances of pixels with two samples or more) of each of the tiles'
     statistics (each half, or the pixel statistics, and each of their features), which :meth:`mark` hands to
@@ -287,7 +287,7 @@ def tile_inputs(inputs: MethodInputs, outer) -> MethodInputs:
     return MethodInputs(inputs.stats.crop(y0, y1, x0, x1), None, ref, inputs.nonfinite, strata=strata)
 
 
-def _tiles(inputs, windows, where: str, fill: _FilmFill, done=None):
+def _tiles(inputs, windows, where: str, fill: FilmFill, done=None):
     """``(outer, inner, inputs of outer)`` for each of ``windows`` (:func:`tile_windows`, in order): crops of
     the film's inputs, or of a :class:`FilmReader`'s bands (the rows of a band's tiles, grown, read at
     once; pixels of its tiles without a sample, or without one in a half, refused), ``done(band)`` called as each band is
@@ -371,7 +371,7 @@ def reconstruct_tiles(method: Method, inputs: MethodInputs | FilmReader, *, tile
         inputs.bands = list(dict.fromkeys(inner[:2] for _, inner in windows))
     image = np.empty((h, w, c), np.float64)
 
-    fill = _FilmFill(inputs)
+    fill = FilmFill(inputs)
     if streamed:   # every read of the reader (its bands, the tiles cut from them: crops keep it) reads the film's
         inputs.fill = fill
 
