@@ -138,8 +138,7 @@ def test_awr_batch_gives_what_is_owed_first():
     assert big.sum() == 1000 and (big >= owed).all()
 
 
-@pytest.mark.parametrize("sampler", ["sobol", "independent"])
-def test_awr_round_raises_the_rare_components_net_first(sampler):
+def test_awr_stratified_round_raises_the_rare_components_net_first():
     # left: a rare light (one sample in 8); right: pixels of larger variance without a rare component
     h, w = 8, 16
     xs, ys = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
@@ -153,7 +152,7 @@ def test_awr_round_raises_the_rare_components_net_first(sampler):
     counts = {}
     for floor in (1, 0):
         m = get_method("awr", rare_light_floor=floor)
-        state = AdaptiveState(st, 1, 32 * w * h, st.n_samples, np.random.default_rng(0), sampler=sampler)
+        state = AdaptiveState(st, 1, 32 * w * h, st.n_samples, np.random.default_rng(0), sampler="sobol")
         counts[floor] = m.plan(m.start(w, h), state).counts
     assert (counts[1][:, :6] >= 8).all()         # the net of 16 that holds the light, first
     assert (counts[0][:, :6] == 0).any()         # without it the larger variance on the right comes first

@@ -191,9 +191,9 @@ class AWRMethod(Method):
             rare_light_floor=bool(p["rare_light_floor"]),
             # the budget's per_coefficient may pop a pixel until it has the paper's 64 of the round
             pixel_pops=1 if p["per_coefficient"] else -(-_PAPER_PER_COEFFICIENT // pc),
-            # a pixel first gets the net that holds a rare component its neighbourhood shows (independent
-            # samples too: about two hits of it)
-            owed=rare_net_deficit(state, threshold=RARE_THRESHOLD) if p["rare_light_floor"] else None)
+            # a stratified pixel first gets the net that holds a rare component its neighbourhood shows
+            owed=rare_net_deficit(state, threshold=RARE_THRESHOLD)
+            if p["rare_light_floor"] and state.sampler != "independent" else None)
         run.last_plan_info = info
         if pos is None or len(pos) == 0:
             return None

@@ -270,7 +270,7 @@ def plan_awr_positions(stats: PixelStats, n_samples: int, rng: np.random.Generat
     ranks high get a fraction of the round each, not all of it.
 
     ``owed`` (H, W), optional, with ``as_counts``: samples per pixel the
-    batch gives first (a pixel's rare-component net,
+    batch gives first (a stratified pixel's rare-component net,
     :func:`~mcrecon.core.nets.rare_net_deficit`); the coefficients share
     the rest.  A batch smaller than what is owed raises the pixels owed
     from the fewest samples up (:func:`~mcrecon.core.nets.fill_lowest`).
