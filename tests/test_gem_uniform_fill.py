@@ -105,21 +105,26 @@ def _rare_state(sampler, iteration):
                          sampler=sampler)
 
 
-def test_stratified_pixels_are_raised_to_the_rare_components_net_first():
+@pytest.mark.parametrize("sampler", ["sobol", "independent"])
+def test_pixels_are_raised_to_the_rare_components_floor_first(sampler):
     m = get_method("gem")
     # the round (192 samples) is smaller than the floors' 8 more per pixel: it goes to them, evenly
-    counts = m.plan(m.start(8, 8), _rare_state("sobol", 0)).counts
+    counts = m.plan(m.start(8, 8), _rare_state(sampler, 0)).counts
     assert counts.sum() == 192 and (counts == 3).all()
-    # independent samples have no floor: the greedy distribution places the round by its filters' error
-    counts = m.plan(m.start(8, 8), _rare_state("independent", 0)).counts
-    assert counts.sum() == 192 and np.ptp(counts) > 3
-    # the last round: every pixel reaches its floor of 16, and the greedy counts past it go in whole nets
-    counts = m.plan(m.start(8, 8), _rare_state("sobol", 7)).counts
+    # the last round: every pixel reaches its floor of 16; past it a stratified pixel's greedy counts go
+    # in whole nets, independent ones as they fall
+    counts = m.plan(m.start(8, 8), _rare_state(sampler, 7)).counts
     total = 8 + counts
     assert counts.sum() == 32 * 64 - 8 * 64 and total.min() >= 16
-    assert np.mean((total & (total - 1)) == 0) > 0.95
+    pow2 = np.mean((total & (total - 1)) == 0)
+    assert pow2 > 0.95 if sampler == "sobol" else pow2 < 0.9
+    # without the floor the greedy distribution places the round by its filters' error
     off = get_method("gem", rare_nets=0)
-    assert np.ptp(off.plan(off.start(8, 8), _rare_state("sobol", 0)).counts) > 3
+    assert np.ptp(off.plan(off.start(8, 8), _rare_state(sampler, 0)).counts) > 3
+    # -1: the floor only where the renderer declares a stratified sampler
+    strat = get_method("gem", rare_nets=-1)
+    counts = strat.plan(strat.start(8, 8), _rare_state(sampler, 0)).counts
+    assert (counts == 3).all() if sampler == "sobol" else np.ptp(counts) > 3
 
 
 def test_awr_batch_gives_what_is_owed_first():
@@ -133,7 +138,8 @@ def test_awr_batch_gives_what_is_owed_first():
     assert big.sum() == 1000 and (big >= owed).all()
 
 
-def test_awr_stratified_round_raises_the_rare_components_net_first():
+@pytest.mark.parametrize("sampler", ["sobol", "independent"])
+def test_awr_round_raises_the_rare_components_net_first(sampler):
     # left: a rare light (one sample in 8); right: pixels of larger variance without a rare component
     h, w = 8, 16
     xs, ys = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
@@ -147,7 +153,27 @@ def test_awr_stratified_round_raises_the_rare_components_net_first():
     counts = {}
     for floor in (1, 0):
         m = get_method("awr", rare_light_floor=floor)
-        state = AdaptiveState(st, 1, 32 * w * h, st.n_samples, np.random.default_rng(0), sampler="sobol")
+        state = AdaptiveState(st, 1, 32 * w * h, st.n_samples, np.random.default_rng(0), sampler=sampler)
         counts[floor] = m.plan(m.start(w, h), state).counts
     assert (counts[1][:, :6] >= 8).all()         # the net of 16 that holds the light, first
     assert (counts[0][:, :6] == 0).any()         # without it the larger variance on the right comes first
+
+
+def test_independent_rounds_pay_the_floor_only_where_the_component_covers_most_of_the_film():
+    from mcrecon.core.nets import RARE_COVER, rare_net_deficit
+    from mcrecon.core.safeguard import RARE_THRESHOLD
+    # a rare light (one sample in 8) over the left `lit` columns of 32
+    h, w = 8, 32
+    xs, ys = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    pos = np.repeat(np.stack([xs.ravel(), ys.ravel()], axis=1), 8, axis=0)
+    for lit, covers in ((2, False), (24, True)):
+        val = np.zeros((pos.shape[0], 3))
+        val[(pos[:, 0] < lit) & (np.arange(pos.shape[0]) % 8 == 0)] = 1.0
+        st = PixelStats(w, h, subpixels=0)
+        st.add(pos, val)
+        state = AdaptiveState(st, 1, 32 * w * h, st.n_samples, np.random.default_rng(0), sampler="independent")
+        owed = rare_net_deficit(state, threshold=RARE_THRESHOLD, min_cover=RARE_COVER)
+        assert (owed is not None) == covers
+        # a stratified sampler's floor applies however little of the film it covers
+        owed = rare_net_deficit(state, threshold=RARE_THRESHOLD)
+        assert (owed[:, :lit] > 0).all() and not owed[:, lit + 2:].any()

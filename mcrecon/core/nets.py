@@ -65,6 +65,10 @@ STRUCTURE_Z = 4.0
 #: A reconstruction's error in whole Sobol nets falls as ``n^-NET_RATE`` (awr on depth_of_field,
 #: depth_of_field-1 and checker_dof: a pixel at 16 samples errs 1.7x, one at 64 0.53-0.67x its error at 32).
 NET_RATE = 0.75
+#: awr's independent rounds pay the rare component's floor only where it covers more than this share of the
+#: pixels (a light over most of the film: checker_spot's 0.8-0.93; a caustic's 0.25 and an emitter's rim,
+#: 0.02-0.05 on hdr, keep the sampler's own ranking: docs/adaptive.md).
+RARE_COVER = 0.5
 
 
 def _pow2_floor(x: np.ndarray) -> np.ndarray:
@@ -324,11 +328,14 @@ def state_rare_net_floor(state, *, threshold: float) -> np.ndarray:
                           threshold=threshold)
 
 
-def rare_net_deficit(state, *, threshold: float) -> np.ndarray:
-    """Samples per pixel (H, W) int64 an adaptive round owes a stratified pixel to reach its
-    :func:`state_rare_net_floor`, the samples in flight counted as taken."""
-    deficit = state_rare_net_floor(state, threshold=threshold) - counts_with_pending(state)
-    return np.maximum(deficit, 0).astype(np.int64)
+def rare_net_deficit(state, *, threshold: float, min_cover: float = 0.0) -> np.ndarray | None:
+    """Samples per pixel (H, W) int64 an adaptive round owes a pixel to reach its
+    :func:`state_rare_net_floor`, the samples in flight counted as taken; None where ``min_cover`` > 0
+    and the floor covers no more than that share of the pixels."""
+    floor = state_rare_net_floor(state, threshold=threshold)
+    if min_cover > 0 and np.mean(floor > 0) <= min_cover:
+        return None
+    return np.maximum(floor - counts_with_pending(state), 0).astype(np.int64)
 
 
 def net_plan(method, run, state):

@@ -9,7 +9,7 @@ import numpy as np
 from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, uniform_counts, variant_option
 from ...core.fill import fill_empty_pixels
 from .reconstruction import DOMAINS, VARIANCE_ESTIMATORS, awr_reconstruct, log_domain_reconstruct, pixel_variance
-from ...core.nets import rare_net_deficit
+from ...core.nets import RARE_COVER, rare_net_deficit
 from ...core.safeguard import RARE_THRESHOLD, confidence_clamp, sample_range_bounds
 from .sampling import plan_awr_positions
 from .wavelets import BOUNDARY_MODES, PROPAGATIONS, RECONSTRUCTION_RENORM, SAMPLING_RENORM, WAVELETS, default_levels
@@ -191,9 +191,11 @@ class AWRMethod(Method):
             rare_light_floor=bool(p["rare_light_floor"]),
             # the budget's per_coefficient may pop a pixel until it has the paper's 64 of the round
             pixel_pops=1 if p["per_coefficient"] else -(-_PAPER_PER_COEFFICIENT // pc),
-            # a stratified pixel first gets the net that holds a rare component its neighbourhood shows
-            owed=rare_net_deficit(state, threshold=RARE_THRESHOLD)
-            if p["rare_light_floor"] and state.sampler != "independent" else None)
+            # a pixel first gets the net that holds a rare component its neighbourhood shows; with independent
+            # samples only where the component covers most of the film (RARE_COVER)
+            owed=rare_net_deficit(state, threshold=RARE_THRESHOLD,
+                                  min_cover=0.0 if state.sampler != "independent" else RARE_COVER)
+            if p["rare_light_floor"] else None)
         run.last_plan_info = info
         if pos is None or len(pos) == 0:
             return None

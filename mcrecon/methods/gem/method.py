@@ -162,12 +162,14 @@ class GEMMethod(Method):
                "spread uniformly (the paper: no share); -1 follows the renderer: 1 where it declares a stratified "
                "sampler (Renderer.sampler 'sobol'), 0 for independent samples (with Sobol samples whole nets cost "
                "gem more than they gain: docs/adaptive.md)", choices=(-1, 0, 1)),
-        Option("rare_nets", int, -1, "adaptive phase, rare_light_floor=1: 1 first raises each pixel whose "
-               "neighbourhood shows a rare bright component to the power of two at or above twice its per-sample "
-               "relative variance (a stratified sampler's net that holds a component found by one sample in "
-               "1/p; at most the budget's net per pixel), out of the round's uniform share, and rounds the greedy "
-               "counts there to whole nets; 0 off; -1 (default) follows the renderer: 1 where it declares a "
-               "stratified sampler", choices=(-1, 0, 1)),
+        Option("rare_nets", int, 1, "adaptive phase, rare_light_floor=1: 1 (default) first raises each pixel "
+               "whose neighbourhood shows a rare bright component to the power of two at or above twice its "
+               "per-sample relative variance (a stratified sampler's net that holds a component found by one "
+               "sample in 1/p, about two hits of independent samples; at most the budget's net per pixel), out of "
+               "the round's uniform share, and where the renderer declares a stratified sampler rounds the greedy "
+               "counts there to whole nets; 0 off; -1 only where the renderer declares a stratified sampler "
+               "(with independent samples the greedy counts under a light that one sample in 30 to 90 finds "
+               "left most pixels below uniform's: docs/adaptive.md)", choices=(-1, 0, 1)),
         Option("subpixel_exact_below", float, 0.0, "filter scales with sigma below this (px) on the 4x4 "
                "subpixel grid itself (slower; 0: pixel-level equivalent kernel)", min=0.0),
     )
@@ -307,7 +309,7 @@ class GEMMethod(Method):
 
     # ------------------------------------------------------------ adaptive
     def plan(self, run: "GEMRun", state: AdaptiveState):
-        """The next round (:meth:`Method.plan`): a stratified pixel's rare-component floor first, then the greedy
+        """The next round (:meth:`Method.plan`): a pixel's rare-component floor first, then the greedy
         distribution and the uniform share, for independent samples filled from the lowest counts up
         (``uniform_fill``).
 
@@ -319,7 +321,10 @@ class GEMMethod(Method):
         (``rare_nets``) a pixel whose neighbourhood shows a rare component is first raised to the net
         that holds it (:func:`~mcrecon.core.nets.rare_net_floor`): below it the pixel mean misses or
         doubles the component whatever its variance reads, and past it the greedy counts go in whole
-        nets (the samples past a net buy little until the next).  The floors' samples count against
+        nets (the samples past a net buy little until the next).  Independent samples get the same floor
+        (about two hits of the component; their greedy counts fall as they are): under a light that one
+        sample in tens finds every pixel's estimates are that light's noise, and the greedy counts left
+        most pixels below a uniform render's.  The floors' samples count against
         the round's uniform share; a round the floors exceed goes to them alone, from the bottom.  While the
         samples show no structure beyond noise (:func:`~mcrecon.core.nets.shows_structure`), no
         ``target_rel_mse`` is set and the variant is not the paper's, the round is uniform (:func:`~mcrecon.core.nets.even_round`).
@@ -352,7 +357,7 @@ class GEMMethod(Method):
         if placed.shape != current.shape:                   # nothing placed (an empty position list)
             placed = np.zeros(current.shape, np.int64)
         held = floor > 0
-        if held.any():
+        if stratified and held.any():
             # past a rare component's net a pixel's samples buy little until the next net: whole nets there
             placed = np.where(held, 0, placed) + net_counts(np.where(held, placed, 0), current + deficit)
         if fill == "lowest":
