@@ -403,7 +403,7 @@ def test_compiled_selection_helpers_are_bit_identical_to_their_numpy_definitions
                                                        axis=2))
         np.testing.assert_array_equal(_mean_c(ms[0]), np.mean(ms[0], axis=2))
     m = ms[0][..., :3]
-    d = d[..., :3]
+    d = np.ascontiguousarray(d[..., :3])   # contiguous, as the selection passes it (one compiled signature)
     # the floor, max(r, mean_c max(|x - y| - z sd, 0)^2 / den) (0 where the pixel is empty, NaN as
     # np.maximum), in place for every candidate, and the choice: np.argmin of the floored stack with NaN
     # as +inf (ties and all-undefined pixels to the first)

@@ -432,8 +432,9 @@ def neighbourhood_mean_variance(var_mean: np.ndarray, count: np.ndarray, *, radi
         raise ValueError(f"neighbourhood_mean_variance: var_mean (H, W, C) and count (H, W) expected, got "
                          f"{v.shape} and {count.shape}")
     n = np.ascontiguousarray(count, dtype=np.float64)
+    # a writable copy (a read-only view would compile the kernels a second time)
     d2 = np.ones((1, 1, 1)) if divisor is None else \
-        np.ascontiguousarray(np.broadcast_to(np.asarray(divisor, dtype=np.float64) ** 2, v.shape))
+        np.array(np.broadcast_to(np.asarray(divisor, dtype=np.float64) ** 2, v.shape), order="C")
     per_sample = np.empty(v.shape)
     ok = np.empty(v.shape)
     _per_sample_variance(v, n, d2, divisor is not None, per_sample, ok)
