@@ -101,7 +101,8 @@ def oidn_denoise(colour: np.ndarray, aux: tuple = (), *, clean_aux: bool = False
     return oidn_image(colour, oidn_filter(colour, aux, clean_aux=clean_aux))
 
 
-def oidn_filter(colour: np.ndarray, aux: tuple = (), *, clean_aux: bool = False, out: np.ndarray | None = None) -> np.ndarray:
+def oidn_filter(colour: np.ndarray, aux: tuple = (), *, clean_aux: bool = False,
+                out: np.ndarray | None = None) -> np.ndarray:
     """OIDN's ``RT`` filter of an (H, W, C) image (float32 or float64: OIDN reads it as float32), ``hdr=True``,
     quality high: its (H, W, 3) float32 output, as OIDN writes it (:func:`oidn_image` makes the image), in
     ``out`` where given (C-contiguous float32, e.g. a file's memory map).  A C-contiguous (H, W, 3) float32

@@ -262,8 +262,9 @@ def _pass0_read(method, reader, film: Film) -> None:
     """Pass 0 from a reader of the film a window at a time (:class:`~mcrecon.offline.tiles.FilmReader`), band
     by band (each band's rows grown by the prefilter's reach, from a row of the NL-means kernels' bands:
     the film's planes bit for bit): the halves' prefiltered features, the magnitudes of dnlm's irradiance
-    (:func:`~mcrecon.filters.demodulation.irradiance_magnitude`) and OIDN's inputs (:func:`_oidn_inputs`) go to the files; then the feature scales and dnlm's units from
-    the files, and OIDN's candidates from them (:func:`_oidn_planes`)."""
+    (:func:`~mcrecon.filters.demodulation.irradiance_magnitude`) and OIDN's inputs (:func:`_oidn_inputs`)
+    go to the files; then the feature scales and dnlm's units from the files, and OIDN's candidates from
+    them (:func:`_oidn_planes`).  No read asks for more than a band."""
     from ...filters.demodulation import irradiance_magnitude, magnitude_scale
     from ...filters.nlmeans import BAND
     from .blackbox import aux_names
