@@ -35,7 +35,8 @@ import numpy as np
 
 from .nlmeans import nlmeans_filter
 
-__all__ = ["ALBEDO_FLOOR", "demodulation_divisor", "demodulation_scale", "demodulated_nlmeans"]
+__all__ = ["ALBEDO_FLOOR", "demodulation_divisor", "demodulation_scale", "irradiance_magnitude", "magnitude_scale",
+           "demodulated_nlmeans"]
 
 #: Albedo below which a pixel is not demodulated (its divisor is this value).
 ALBEDO_FLOOR = 0.02
@@ -61,10 +62,21 @@ def demodulation_scale(image, albedo, *, floor: float = ALBEDO_FLOOR) -> float:
     """The mean magnitude of the irradiance ``image / albedo`` over its finite values (1 where there is none):
     the unit :func:`demodulated_nlmeans` filters it in.  A whole-image statistic: a tile of an image is
     filtered in its image's (``scale=``)."""
+    return magnitude_scale(irradiance_magnitude(image, albedo, floor=floor))
+
+
+def irradiance_magnitude(image, albedo, *, floor: float = ALBEDO_FLOOR) -> np.ndarray:
+    """``|image / albedo|`` (H, W, C) float64, pixel by pixel (:func:`demodulation_divisor`): what
+    :func:`demodulation_scale` averages, so a film's is made a band of rows at a time."""
     y = np.asarray(image, dtype=np.float64)
-    irr = y / demodulation_divisor(albedo, y.shape[2], floor=floor)
-    finite = np.isfinite(irr)
-    scale = float(np.mean(np.abs(irr[finite]))) if finite.any() else 1.0
+    return np.abs(y / demodulation_divisor(albedo, y.shape[2], floor=floor))
+
+
+def magnitude_scale(magnitude) -> float:
+    """:func:`demodulation_scale` of an image's :func:`irradiance_magnitude` (an array or a memory map): its
+    mean over the finite values in the image's order, 1 where there is none."""
+    finite = np.isfinite(magnitude)
+    scale = float(np.mean(magnitude[finite])) if finite.any() else 1.0
     return scale if np.isfinite(scale) and scale > 0 else 1.0
 
 

@@ -47,7 +47,8 @@ from ...core.metrics import DEFAULT_EPS
 from .estimates import cross_validation_mse, relative_denominator_loo
 from .features import Candidate, _filled, dual_candidate, feature_slices, prefiltered_features
 
-__all__ = ["ESTIMATES", "HALF_TO_FULL", "oidn_candidate", "oidn_denoise", "oidn_aux"]
+__all__ = ["ESTIMATES", "HALF_TO_FULL", "oidn_candidate", "oidn_scores", "oidn_denoise", "oidn_filter", "oidn_image",
+           "oidn_aux"]
 
 #: Whether :func:`oidn_candidate` scores its halves' filter by the crossed vote (the global prior's default
 #: where its vote is thin: :func:`.thinvote._thin_default`).
@@ -95,7 +96,17 @@ def oidn_denoise(colour: np.ndarray, aux: tuple = (), *, clean_aux: bool = False
     """OIDN's ``RT`` filter of an (H, W, C) image, ``hdr=True``, quality high: (H, W, C) float64.
 
     One channel is denoised as grey (copied to three); beyond three, the first three are denoised and
-    the rest kept.  ``aux``: ``(albedo,)`` or ``(albedo, normal)``, (H, W, 3) each.
+    the rest kept.  ``aux``: ``(albedo,)`` or ``(albedo, normal)``, (H, W, 3) each.  The filter's
+    output is :func:`oidn_filter`'s, placed by :func:`oidn_image`."""
+    return oidn_image(colour, oidn_filter(colour, aux, clean_aux=clean_aux))
+
+
+def oidn_filter(colour: np.ndarray, aux: tuple = (), *, clean_aux: bool = False,
+                out: np.ndarray | None = None) -> np.ndarray:
+    """OIDN's ``RT`` filter of an (H, W, C) image (float32 or float64: OIDN reads it as float32), ``hdr=True``,
+    quality high: its (H, W, 3) float32 output, as OIDN writes it (:func:`oidn_image` makes the image), in
+    ``out`` where given (C-contiguous float32, e.g. a file's memory map).  A C-contiguous (H, W, 3) float32
+    ``colour`` is read where it lies (no float32 copy).
 
     The same OIDN calls as ``pyoidn.denoise`` (a CPU device, the filter's images shared, committed and
     executed), but on a device and filter of this call alone, released before it returns:
@@ -105,13 +116,16 @@ def oidn_denoise(colour: np.ndarray, aux: tuple = (), *, clean_aux: bool = False
     from pyoidn import Device, Filter, OIDN_FORMAT_FLOAT3, OIDN_QUALITY_HIGH
 
     c = colour.shape[2]
-    rgb = np.zeros(colour.shape[:2] + (3,), np.float32)
-    rgb[..., :min(c, 3)] = colour[..., :3]
-    if c == 1:
-        rgb[..., 1] = rgb[..., 2] = rgb[..., 0]
+    if c == 3 and colour.dtype == np.float32 and colour.flags.c_contiguous:
+        rgb = colour
+    else:
+        rgb = np.zeros(colour.shape[:2] + (3,), np.float32)
+        rgb[..., :min(c, 3)] = colour[..., :3]
+        if c == 1:
+            rgb[..., 1] = rgb[..., 2] = rgb[..., 0]
     images = [("color", rgb)] + [(name, np.ascontiguousarray(a, dtype=np.float32))
                                  for name, a in zip(("albedo", "normal"), aux)]
-    den = np.empty_like(rgb)
+    den = np.empty(rgb.shape, np.float32) if out is None else out
     with Device() as device:
         device.commit()
         with Filter(device, "RT") as flt:
@@ -126,7 +140,14 @@ def oidn_denoise(colour: np.ndarray, aux: tuple = (), *, clean_aux: bool = False
             error = device.get_error()
     if error is not None:
         raise RuntimeError(f"OIDN failed: {error}")
-    del images, rgb
+    return den
+
+
+def oidn_image(colour: np.ndarray, den: np.ndarray) -> np.ndarray:
+    """The (H, W, C) float64 image of OIDN's output ``den`` (:func:`oidn_filter`) on ``colour``: its first
+    three channels OIDN's (one channel: the grey's first), the rest ``colour``'s.  Pixel by pixel, so a
+    window of it is made from the windows of ``colour`` and ``den``."""
+    c = colour.shape[2]
     out = colour.astype(np.float64)  # a copy: the channels beyond three kept, the first three replaced
     out[..., :min(c, 3)] = den[..., :min(c, 3)]
     return out
@@ -147,11 +168,7 @@ def oidn_aux(st: PixelStats) -> tuple:
     # each feature's components, as stored with those planes where they are (auto releases the normal's
     # statistics once prefiltered)
     sl = feature_slices(st)
-    names = []
-    for name in ("albedo", "normal"):
-        if name not in sl or sl[name].stop - sl[name].start != 3:
-            break
-        names.append(name)
+    names = aux_names(sl)
     if not names:
         return ()
     if stored is not None:
@@ -160,6 +177,17 @@ def oidn_aux(st: PixelStats) -> tuple:
     var = np.concatenate([mean_variance_policy(st.features[n]) for n in names], axis=2)
     pf = nlmeans_filter(f, f, var, radius=5, patch=3, k=0.5)
     return tuple(np.ascontiguousarray(pf[..., 3 * k:3 * k + 3]) for k in range(len(names)))
+
+
+def aux_names(slices: dict) -> list:
+    """The features OIDN takes of those at ``slices`` (:func:`~.features.feature_slices`): ``["albedo",
+    "normal"]``, ``["albedo"]`` or ``[]`` (three components each; a normal only beside an albedo)."""
+    names = []
+    for name in ("albedo", "normal"):
+        if name not in slices or slices[name].stop - slices[name].start != 3:
+            break
+        names.append(name)
+    return names
 
 
 def _merged_aux(a_half: tuple, b_half: tuple, ca: np.ndarray, cb: np.ndarray) -> tuple:
@@ -204,7 +232,6 @@ def oidn_candidate(name: str, stats: PixelStats, v: np.ndarray, halves=None, *, 
     if halves is None or (aux and aux_planes is None and "albedo" not in halves.a.features):
         estimate = "sure"
     halves_only = halves_only and estimate == "halves"
-    extra = []
     y = _colour(stats)
     a_half = b_half = ()
     if aux and estimate == "halves":
@@ -217,36 +244,67 @@ def oidn_candidate(name: str, stats: PixelStats, v: np.ndarray, halves=None, *, 
     else:
         a_full = oidn_aux(stats) if aux else ()
         img = oidn_denoise(y, a_full, clean_aux=aux)
-    has = (stats.count > 0)[..., None]
     if estimate == "sure":
         s = np.sqrt(np.where(np.isfinite(v), np.maximum(v, 0.0), 0.0))
         # a fixed probe: the same samples give the same image (pinned outputs, resumed runs)
         b = np.random.default_rng(0x0DE).choice(np.array([-1.0, 1.0]), size=y.shape)
         moved = oidn_denoise(y + PROBE_STEP * s * b, a_full, clean_aux=aux)
         d = img - y
-        mse = d * d - v + 2.0 * s * b * (moved - img) / PROBE_STEP
-    else:
-        ha, hb = halves.a, halves.b
-        fa = oidn_denoise(_colour(ha), a_half, clean_aux=aux)
-        fb = oidn_denoise(_colour(hb), b_half, clean_aux=aux)
-        # a stratified sampler's from its halves' difference
-        va, vb = mean_variances(stats, halves)[1:] if variances is None else variances
-        cva = cross_validation_mse(fa, hb.mean, vb)
-        cvb = cross_validation_mse(fb, ha.mean, va)
-        cv = 0.5 * (cva + cvb)
-        # the average of the two halves' OIDN, scored without bias by the dual identity: computed for the
-        # estimate anyway, and better than OIDN on all the samples on some scenes (soft shadows, depth of
-        # field: docs/methods/auto.md)
-        extra.append(dual_candidate(name + "_halves", fa, fb, cva, cvb, ha.count, hb.count, feature=aux))
-        if CROSSED:
-            from .selection import crossed_sum
-            den = relative_denominator_loo(_colour(stats), v, stats.count, eps=DEFAULT_EPS)
-            extra[-1].crossed = crossed_sum(cva, cvb, ha, hb, va, vb, den)
-        if halves_only:
-            return extra
-        both = ((ha.count > 0) & (hb.count > 0))[..., None]
-        cv = np.where(both, HALF_TO_FULL * cv, np.nan)
-        mse = cv
-    crossed = extra[0].crossed if extra else None
-    return [Candidate(name, np.where(np.isfinite(img), img, 0.0), np.where(has, mse, np.nan), feature=aux,
-                      crossed=crossed)] + extra
+        return [_full_candidate(name, img, d * d - v + 2.0 * s * b * (moved - img) / PROBE_STEP, stats.count, aux)]
+    ha, hb = halves.a, halves.b
+    fa = oidn_denoise(_colour(ha), a_half, clean_aux=aux)
+    fb = oidn_denoise(_colour(hb), b_half, clean_aux=aux)
+    # a stratified sampler's from its halves' difference
+    va, vb = mean_variances(stats, halves)[1:] if variances is None else variances
+    his = (None, None)
+    if CROSSED:
+        from ...core.safeguard import sample_range_bounds
+        his = (sample_range_bounds(ha)[1], sample_range_bounds(hb)[1])
+    cands, terms = oidn_scores(name, img, fa, fb, y, v, stats.count,
+                               ((ha.mean, ha.count, va, his[0]), (hb.mean, hb.count, vb, his[1])), aux=aux)
+    if terms is not None:
+        from .selection import crossed_total
+        crossed = crossed_total(terms)
+        for c in cands:
+            c.crossed = crossed
+    return cands
+
+
+def _full_candidate(name: str, img: np.ndarray, mse: np.ndarray, count: np.ndarray, aux: bool) -> Candidate:
+    """OIDN on all the samples as a candidate: its image (0 where not finite) and estimate (NaN where a pixel
+    has no sample)."""
+    has = (count > 0)[..., None]
+    return Candidate(name, np.where(np.isfinite(img), img, 0.0), np.where(has, mse, np.nan), feature=aux)
+
+
+def oidn_scores(name: str, img, fa: np.ndarray, fb: np.ndarray, y: np.ndarray, v: np.ndarray, count: np.ndarray,
+                halves: tuple, *, aux: bool = False) -> tuple:
+    """The ``halves`` estimate's candidates of OIDN (:func:`oidn_candidate`) from its images and a frame's
+    colour planes, pixel by pixel but for the crossed vote's 3 x 3 neighbourhoods: ``(candidates, terms)``.
+
+    ``img``: OIDN on all the samples (None: ``NAME_halves`` alone), ``fa``, ``fb``: on each half (float64
+    images, :func:`oidn_image`); ``y``, ``v``, ``count``: all the samples' pixel means (empty pixels
+    filled), their variance and counts; ``halves``: each half's ``(means, counts, means' variances, top of
+    the sample range)`` (the top None without the crossed vote).  ``terms``: the crossed vote's per-pixel
+    terms of each half (:func:`~.selection.crossed_terms`; None without :data:`CROSSED`), whose
+    :func:`~.selection.crossed_total` over the film is each candidate's ``crossed``.  On a band of rows
+    grown by one each side, the band's rows are the film's bit for bit (a film's candidates a band at a
+    time: :mod:`.tiled`)."""
+    (ma, ca, va, hia), (mb, cb, vb, hib) = halves
+    cva = cross_validation_mse(fa, mb, vb)
+    cvb = cross_validation_mse(fb, ma, va)
+    cv = 0.5 * (cva + cvb)
+    # the average of the two halves' OIDN, scored without bias by the dual identity: computed for the
+    # estimate anyway, and better than OIDN on all the samples on some scenes (soft shadows, depth of
+    # field: docs/methods/auto.md)
+    extra = [dual_candidate(name + "_halves", fa, fb, cva, cvb, ca, cb, feature=aux)]
+    terms = None
+    if CROSSED:
+        from .selection import crossed_terms
+        den = relative_denominator_loo(y, v, count, eps=DEFAULT_EPS)
+        terms = [crossed_terms(cva, ma, va, ca, hia, den), crossed_terms(cvb, mb, vb, cb, hib, den)]
+    if img is None:
+        return extra, terms
+    both = ((ca > 0) & (cb > 0))[..., None]
+    cv = np.where(both, HALF_TO_FULL * cv, np.nan)
+    return [_full_candidate(name, img, cv, count, aux)] + extra, terms

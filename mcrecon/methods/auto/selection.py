@@ -190,11 +190,25 @@ def crossed_sum(cva, cvb, ha, hb, va, vb, den) -> float:
     "A thin vote").  ``den``: the relative denominator (the same for every candidate of a frame)."""
     from ...core.safeguard import sample_range_bounds
 
+    return crossed_total([crossed_terms(cv, h.mean, vh, h.count, sample_range_bounds(h)[1], den)
+                          for cv, h, vh in ((cva, ha, va), (cvb, hb, vb))])
+
+
+def crossed_terms(cv, mean, v, count, hi, den) -> tuple:
+    """One half's terms of :func:`crossed_sum`: ``(r, votes)``, ``cv / den`` (channel mean, (H, W)) and the
+    pixels whose finite ``r`` vote (the half's ``mean``, ``v``, ``count`` and sample range's top ``hi``).
+    A pixel's terms read its 3 x 3 neighbourhood: a band of rows grown by one gives its rows'."""
+    votes = ~left_out(mean, v, count, hi, True)[1]
+    r = np.mean(np.asarray(cv, np.float64) / den, axis=2)
+    return r, votes & np.isfinite(r)
+
+
+def crossed_total(terms) -> float:
+    """The crossed vote from each half's :func:`crossed_terms` of the film (arrays or memory maps), summed in
+    the film's order."""
     total = 0.0
-    for cv, h, vh in ((cva, ha, va), (cvb, hb, vb)):
-        votes = ~left_out(h.mean, vh, h.count, sample_range_bounds(h)[1], True)[1]
-        r = np.mean(np.asarray(cv, np.float64) / den, axis=2)
-        total += float(np.sum(r[votes & np.isfinite(r)]))
+    for r, votes in terms:
+        total += float(np.sum(r[votes]))
     return total
 
 

@@ -12,8 +12,10 @@ film and stores what the tiles read:
 
 * pass 0, on the film's inputs: the halves' prefiltered features (their
   scales from them), dnlm's units and OIDN's candidates, each run once on
-  the whole film (from a log: the features band by band, OIDN on the
-  film's colour statistics alone, :func:`_pass0_read`);
+  the whole film (from a log, band by band into film-sized files: the
+  prefiltered features, OIDN's float32 inputs and the planes its scores
+  read; OIDN then runs on the film's inputs mapped from the files and its
+  scores are made band by band, :func:`_pass0_read`);
 * pass 1, tile by tile (each grown by the candidates' reach,
   :meth:`~.method.AutoMethod.candidate_reach`): every candidate's image and
   estimate, the pixel means, their variance, the counts and the top of the
@@ -96,6 +98,13 @@ class FilmPlanes:
         m[y0:y1, x0:x1] = a
         m.flush()
         del m
+
+    def create(self, name: str, trailing: tuple, dtype) -> np.memmap:
+        """A new plane ``name`` of ``trailing`` shape beyond the film's and ``dtype``, as a writable memory map
+        of its file (for a writer of the whole film, e.g. OIDN's output; flushed and let go by the caller)."""
+        path = os.path.join(self.dir, f"{name}.{np.dtype(dtype)}.npy")
+        self.paths[name] = path
+        return np.lib.format.open_memmap(path, mode="w+", dtype=dtype, shape=self.shape + tuple(trailing))
 
     def get(self, name: str, window=None) -> np.ndarray:
         """Plane ``name``: a contiguous copy of ``window``, or the film's as a memory map (copy on write:
@@ -244,15 +253,21 @@ def _oidn(method, stats, halves, aux: bool, film: Film, aux_planes=None) -> None
 PREFILTER_REACH = 5 + 3
 
 
+#: Rows of context OIDN's scores read on its images and the colour's planes (the crossed vote's 3 x 3
+#: neighbourhoods: :func:`~.blackbox.oidn_scores`).
+SCORE_REACH = 1
+
+
 def _pass0_read(method, reader, film: Film) -> None:
-    """Pass 0 from a reader of the film a window at a time (:class:`~mcrecon.offline.tiles.FilmReader`):
-    the halves' prefiltered features band by band (each band's rows grown by the prefilter's reach, from a
-    row of the NL-means kernels' bands: the film's planes bit for bit), dnlm's units from the film's colour
-    and albedo planes assembled on disk, then OIDN on the film's colour statistics alone (read without
-    the features: the two halves and their merge with features are 584 bytes a pixel, without them 312)
-    and the prefiltered albedo and normal."""
-    from ...filters.demodulation import demodulation_scale
+    """Pass 0 from a reader of the film a window at a time (:class:`~mcrecon.offline.tiles.FilmReader`), band
+    by band (each band's rows grown by the prefilter's reach, from a row of the NL-means kernels' bands:
+    the film's planes bit for bit): the halves' prefiltered features, the magnitudes of dnlm's irradiance
+    (:func:`~mcrecon.filters.demodulation.irradiance_magnitude`) and OIDN's inputs (:func:`_oidn_inputs`)
+    go to the files; then the feature scales and dnlm's units from the files, and OIDN's candidates from
+    them (:func:`_oidn_planes`).  No read asks for more than a band."""
+    from ...filters.demodulation import irradiance_magnitude, magnitude_scale
     from ...filters.nlmeans import BAND
+    from .blackbox import aux_names
     from .features import _filled, feature_slices, prefiltered_features, release_prefiltered
     from .proxy import REGRESSIONS
 
@@ -261,44 +276,127 @@ def _pass0_read(method, reader, film: Film) -> None:
     h, w = film.planes.shape
     fnames = method._feature_names
     regress = set(REGRESSIONS) & set(fnames)
+    colour = copy.copy(method)   # the same samples' colour alone
+    object.__setattr__(colour, "_feature_names", ())
     aux = units = False
-    slices = None
+    slices, names = None, []
     for y0, y1 in reader.bands:
         by0, by1 = max(0, y0 - PREFILTER_REACH) // BAND * BAND, min(h, y1 + PREFILTER_REACH)
-        halves = reader.read((by0, by1, 0, w)).halves
-        if not fnames or not halves.a.features:
-            break
-        aux = "oidn_aux" in fnames and "albedo" in halves.a.features
-        units = ("dnlm" in fnames or "mix" in fnames) and "albedo" in halves.a.features
+        halves = reader.read((by0, by1, 0, w), method=method if fnames else colour).halves
         rows = (y0, y1, 0, w)
         cut = slice(y0 - by0, y1 - by0)
-        for i, hf in enumerate(halves):
-            if aux or regress:
-                film.planes.put(f"prefiltered{i}", rows, prefiltered_features(hf)[cut])
-                slices = feature_slices(hf)
-            if units:
-                alb = hf.features["albedo"]
-                film.planes.put(f"colour{i}", rows, _filled(hf.mean, hf.count)[cut])
-                film.planes.put(f"albedo{i}", rows, _filled(alb.mean, alb.count)[cut])
+        planes = [(), ()]   # each half's albedo and normal for oidn_aux
+        if fnames and halves.a.features:
+            aux = "oidn_aux" in fnames and "albedo" in halves.a.features
+            units = ("dnlm" in fnames or "mix" in fnames) and "albedo" in halves.a.features
+            for i, hf in enumerate(halves):
+                if aux or regress:
+                    pf = prefiltered_features(hf)[cut]
+                    film.planes.put(f"prefiltered{i}", rows, pf)
+                    slices = feature_slices(hf)
+                    names = aux_names(slices) if aux else []
+                    planes[i] = tuple(pf[..., slices[n]] for n in names)
+                    del pf
+                if units:   # dnlm's unit's magnitudes (demodulation_scale, as dnlm_scale takes it)
+                    alb = hf.features["albedo"]
+                    film.planes.put(f"irradiance{i}", rows, irradiance_magnitude(_filled(hf.mean, hf.count)[cut],
+                                                                                 _filled(alb.mean, alb.count)[cut]))
+        _oidn_inputs(film, halves.without_features(), rows, cut, tuple(planes) if aux else None)
         release_prefiltered(*halves)
-        del halves
+        del halves, planes
     if slices is not None:
         film.prefiltered = True
         if regress:
             film.scales = tuple(_plane_scales(film.planes.get(f"prefiltered{i}")) for i in range(2))
     if units:
-        film.units = tuple(demodulation_scale(film.planes.get(f"colour{i}"), film.planes.get(f"albedo{i}"))
-                           for i in range(2))
-    planes = None
-    if aux:   # oidn_aux's planes: the albedo and normal, three components each
-        names = [n for n in ("albedo", "normal") if n in slices and slices[n].stop - slices[n].start == 3]
-        names = names if names and names[0] == "albedo" else []
-        planes = tuple(tuple(np.ascontiguousarray(film.planes.get(f"prefiltered{i}")[..., slices[n]]) for n in names)
-                       for i in range(2))
-    colour = copy.copy(method)   # the same samples' colour alone
-    object.__setattr__(colour, "_feature_names", ())
-    halves = reader.read((0, h, 0, w), method=colour).halves
-    _oidn(method, halves.merged(), halves, aux, film, aux_planes=planes)
+        film.units = tuple(magnitude_scale(film.planes.get(f"irradiance{i}")) for i in range(2))
+    _oidn_planes(method, reader.bands, aux, len(names), film)
+
+
+def _oidn_inputs(film: Film, halves, rows, cut, aux_planes) -> None:
+    """Write what OIDN's candidates read of a band's colour statistics (``halves``, grown by at least
+    :data:`SCORE_REACH`; ``rows`` of the film, ``cut`` of the band) to the film's files: OIDN's inputs as
+    OIDN reads them (float32: all the samples' and each half's pixel means, empty pixels filled, and with
+    ``aux_planes``, each half's albedo and normal, their merge for all the samples), and the planes its
+    scores read (:func:`~.blackbox.oidn_scores`, float64: the pixel means, their variance and counts, each
+    half's means, counts, their variance and the top of its sample range)."""
+    from ...core.halves import mean_variances
+    from ...core.safeguard import sample_range_bounds
+    from .blackbox import CROSSED, _colour, _merged_aux
+
+    put = film.planes.put
+    stats = halves.merged()
+    v, va, vb = mean_variances(stats, halves)
+    y = _colour(stats)
+    put("oidn_in", rows, y[cut].astype(np.float32))
+    put("col_y", rows, y[cut])
+    put("col_v", rows, v[cut])
+    put("col_n", rows, stats.count[cut])
+    for i, (hf, vh) in enumerate(zip(halves, (va, vb))):
+        put(f"oidn_in{i}", rows, _colour(hf)[cut].astype(np.float32))
+        put(f"col_m{i}", rows, hf.mean[cut])
+        put(f"col_n{i}", rows, hf.count[cut])
+        put(f"col_v{i}", rows, vh[cut])
+        if CROSSED:
+            put(f"col_hi{i}", rows, sample_range_bounds(hf)[1][cut])
+    if aux_planes is not None:
+        a, b = aux_planes
+        for k, p in enumerate(_merged_aux(a, b, halves.a.count[cut], halves.b.count[cut])):
+            put(f"oidn_aux_{k}", rows, p.astype(np.float32))
+        for i, half in enumerate(aux_planes):
+            for k, p in enumerate(half):
+                put(f"oidn_aux{i}_{k}", rows, p.astype(np.float32))
+
+
+def _oidn_planes(method, bands, aux: bool, n_aux: int, film: Film) -> None:
+    """OIDN's candidates of the film from its files (:func:`_oidn_inputs`), as :func:`_oidn` computes them
+    from the film's statistics, bit for bit: each OIDN run on the film's float32 inputs (its output to the
+    files), then its scores (:func:`~.blackbox.oidn_scores`) band by band (``bands``, each grown by
+    :data:`SCORE_REACH`), the candidates' stored images and estimates and the crossed vote's terms to the
+    files, the crossed vote summed over the film's terms in the film's order.  In memory: an OIDN run's
+    inputs and output (float32, 12 bytes a pixel each, the albedo and normal with the aux) and OIDN's
+    scratch (:data:`~.blackbox.OIDN_MEMORY_MB`), then a band's planes."""
+    from .blackbox import CROSSED, oidn_filter, oidn_image, oidn_scores
+    from .passes import _stored
+    from .selection import crossed_total
+
+    h, w = film.planes.shape
+    get, put, whole = film.planes.get, film.planes.put, film.planes.whole
+    runs = ([("oidn", False, aux)] if "oidn" in method._names else []) + ([("oidn_aux", True, False)] if aux else [])
+    for name, ax, only in runs:   # OIDN's images: on all the samples (not with halves_only), on each half
+        for part, suffix in (("", ""), ("0", "0"), ("1", "1")):
+            if only and not part:
+                continue
+            planes = tuple(get(f"oidn_aux{suffix}_{k}") for k in range(n_aux)) if ax else ()
+            out = film.planes.create(f"{name}_den{part}", (3,), np.float32)
+            oidn_filter(get(f"oidn_in{part}"), planes, clean_aux=ax, out=out)
+            out.flush()
+            del planes, out
+    kinds = []
+    for y0, y1 in bands:
+        g0, g1 = max(0, y0 - SCORE_REACH), min(h, y1 + SCORE_REACH)
+        win, rows, cut = (g0, g1, 0, w), (y0, y1, 0, w), slice(y0 - g0, y1 - g0)
+        y, v, count = get("col_y", win), get("col_v", win), get("col_n", win)
+        halves = tuple((get(f"col_m{i}", win), get(f"col_n{i}", win), get(f"col_v{i}", win),
+                        get(f"col_hi{i}", win) if CROSSED else None) for i in range(2))
+        k = 0
+        kinds = []
+        for g, (name, ax, only) in enumerate(runs):
+            img = None if only else oidn_image(y, get(f"{name}_den", win))
+            fa, fb = (oidn_image(halves[i][0], get(f"{name}_den{i}", win)) for i in range(2))
+            cands, terms = oidn_scores(name, img, fa, fb, y, v, count, halves, aux=ax)
+            for c in cands:
+                put(f"oidn_image{k}", rows, _stored(c.image[cut]))
+                put(f"oidn_mse{k}", rows, _stored(c.mse[cut]))
+                kinds.append((c.name, c.feature, g))
+                k += 1
+            for i, (r, votes) in enumerate(terms or ()):
+                put(f"crossed{g}_r{i}", rows, r[cut])
+                put(f"crossed{g}_votes{i}", rows, votes[cut])
+            del img, fa, fb, cands, terms
+    crossed = [crossed_total([(get(f"crossed{g}_r{i}"), get(f"crossed{g}_votes{i}")) for i in range(2)])
+               if CROSSED else None for g in range(len(runs))]
+    film.black.extend((n, f, crossed[g]) for n, f, g in kinds)
 
 
 def film_pass(method, inputs, each_tile) -> Film:
