@@ -36,13 +36,16 @@ HEAVY_VOTE = 0.45
 
 
 def one_sided(stats) -> np.ndarray | None:
-    """The pixels whose own samples have a one-sided tail (:data:`ONE_SIDED`), (H, W) bool; None for statistics
-    without a per-pixel sample range (built from moments)."""
+    """The pixels whose own samples have a one-sided tail (:data:`ONE_SIDED`), in some channel ``max - mean >
+    ONE_SIDED (mean - min)`` and ``mean > min``, (H, W) bool; None for statistics without a per-pixel sample
+    range (built from moments)."""
     if not getattr(stats, "has_range", False):
         return None
     y = stats.mean
     with np.errstate(invalid="ignore"):
-        return ((stats.max - y) > ONE_SIDED * (y - stats.min)).any(axis=2)
+        # mean > min: where every sample is the same the mean can round below them, and its excess, negative,
+        # would make any maximum one-sided (an hdr scene's dim background: half its pixels)
+        return ((stats.max - y > ONE_SIDED * (y - stats.min)) & (y > stats.min)).any(axis=2)
 
 
 def heavy_vote(vote: np.ndarray, heavy: np.ndarray | None, count: np.ndarray) -> bool:
