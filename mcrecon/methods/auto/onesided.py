@@ -19,12 +19,14 @@ grows with ``n`` (3.2 at 32 spp, 5.8 at 512).  So the threshold grows with each 
 probability about ``n exp(-x)``, so a threshold on it that moves by ``ln n ~ H_n`` keeps the share of
 one-sided pixels flat (the regression proxy's textured film, seeds 0-2: 0.016-0.020 at 32 spp, 0.021-0.023 at
 128, 0.027-0.031 at 512, 0.029-0.035 at 2048, 0.022-0.030 at 4096; with the constant 6: 0.10, 0.38, 0.85,
-0.98, and its default a black box from about 600 spp).  Scaling by the ratio of the means instead
+0.98: a black-box default from between 512 and 2048 spp).  Scaling by the ratio of the means instead
 over-corrects (0.001-0.002 at 2048) and drops the Bernoulli case sooner.  At 32 samples and fewer the threshold
 stays ``ONE_SIDED`` (exponential noise counts 0.000 at 8 spp).  The Bernoulli case keeps its ratio, so a light a
 sample in ten finds stops counting where its hits grow many: ``(n - k) / k > ONE_SIDED + H_n - H_32`` holds for
-``k`` about ``n / 10`` hits in about half the pixels at 512 spp (some 50 hits) and a third at 1024.  That is not the failure the rule is for: with tens of hits in a pixel its rare samples are no longer
-rare to its own variance, and the capped leave-one-out estimates keep their tails.
+``k`` about ``n / 10`` hits in 0.75 of the pixels at 32 spp, 0.73 at 256, 0.58 at 512 (some 50 hits), 0.31 at
+1024 and 0.06 at 2048 (Binomial(n, 0.1)).  That is
+not the failure the rule is for: with tens of hits in a pixel its rare samples are no longer rare to its own
+variance, and the capped leave-one-out estimates keep their tails.
 """
 
 from __future__ import annotations
