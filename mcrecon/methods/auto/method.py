@@ -42,6 +42,7 @@ from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGH
     feature_slices, release_prefiltered, seed_prefiltered)
 from .blackbox import BLACK_BOXES, Z_BLACKBOX, _guards, oidn_candidate  # noqa: F401
 from .thinvote import thin_vote_shown
+from .onesided import one_sided
 from .nlmeans import nlmeans_cross
 from .proxy import REGRESSIONS, regression_share
 from ...filters.masked import MaskedSmoothing, smooth_masked
@@ -533,7 +534,8 @@ class AutoMethod(Method):
                                                choice, y, v, count, bounds, smooth, self.params["global_prior"],
                                                self.params["safeguard"], _guards(cands), divisor,
                                                steady=steady, steady_var=v_wide, rare=_all_samples_box(cands),
-                                               info=prior, fixed=None if film is None else film.default)
+                                               info=prior, fixed=None if film is None else film.default,
+                                               heavy=one_sided(stats) if film is None else None)
         # ties (e.g. noise-free regions, where every ratio is undefined) go to the first candidate
         if cands[0].name == "box" and smooth > 0:
             # Region guard: where the chosen candidates' unbiased estimates,

@@ -18,6 +18,7 @@ from .blend import blend_default
 from .firefly import FIREFLY, HEAVY_TAIL, Z_FIREFLY, _firefly  # noqa: F401 (Z_FIREFLY: the tests read it here)
 from .apart import HEAVY_PRIOR, _apart, left_out  # noqa: F401 (HEAVY_PRIOR, _apart: the tests read them here)
 from .thinvote import THIN_VOTE, _could_vote, _thin_default
+from .onesided import heavy_vote
 from .passes import (_FirstLeast, _arrays, _c64, _channel_mean, _compress, _means, _nanmax,  # noqa: F401
                      _relative_choice)
 from ...filters.masked import MaskedSmoothing, effective_counts
@@ -224,10 +225,11 @@ class Default:
 
 
 def prior_default(cands, y, v, count, hi, safeguard, guarded=(), *, steady=(), blend=None, thin_vote=None,
-                  local=None) -> Default:
+                  local=None, heavy=None) -> Default:
     """The global prior's default over the image (:func:`_global_prior`, whose docstring states the
     rule): the candidate of least summed estimate, a thin vote's steady one, the guards' tests, the blend.
-    ``local``: :func:`loo_estimates` of these arrays, if at hand.  Reads each candidate's estimate and
+    ``local``: :func:`loo_estimates` of these arrays, if at hand.  ``heavy``: the pixels whose own samples
+    have a one-sided tail (:func:`.onesided.one_sided`; None: not counted).  Reads each candidate's estimate and
     the default's and its partners' images (the film's, for tiles: memory-mapped ones serve)."""
     blend = BLEND if blend is None else blend
     thin_vote = THIN_VOTE if thin_vote is None else thin_vote
@@ -238,7 +240,10 @@ def prior_default(cands, y, v, count, hi, safeguard, guarded=(), *, steady=(), b
     g = int(np.argmin(sums))
     zs = guarded if isinstance(guarded, dict) else {k: Z_GLOBAL for k in guarded}
     plain = [k for k in range(len(cands)) if k not in zs]
-    thin = bool(steady) and vote.sum() < thin_vote * _could_vote(v, count, safeguard)
+    # thin, or heavy: most pixels vote with rare huge samples of their own, and their capped sums lose their
+    # positive tails (:mod:`.onesided`)
+    thin = bool(steady) and (vote.sum() < thin_vote * _could_vote(v, count, safeguard)
+                             or heavy_vote(vote, heavy, count))
     if thin:
         # a thin vote: the steady candidate (black box) of least sum, compared with its own kind only
         # (the voters' selection flatters the Stein-scored filters: THIN_VOTE)
@@ -280,7 +285,7 @@ def _summed_with(cands, local, within=None):
 
 
 def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, safeguard, guarded=(), scale=None,
-                  steady=(), steady_var=None, blend=None, rare=None, info=None, thin_vote=None, fixed=None):
+                  steady=(), steady_var=None, blend=None, rare=None, info=None, thin_vote=None, fixed=None, heavy=None):
     """The per-pixel choice with the best single candidate over the image as the default.
 
     ``g`` = the candidate of least summed leave-one-out relative estimate
@@ -334,7 +339,9 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     whether that applied): the voters are then the pixels whose neighbourhoods missed a rare light, a
     selection by their own samples that flatters the Stein-scored filters of those samples and charges
     the cross-validated black boxes, and the pixels left out would keep the plain per-pixel choice,
-    which rests on the least reliable estimates of all, where a steady default takes them.
+    which rests on the least reliable estimates of all, where a steady default takes them.  So too where
+    more than :data:`.onesided.HEAVY_VOTE` of the pixels with samples vote with a one-sided tail of their own
+    (``heavy``, :func:`.onesided.one_sided`; None: not counted): their capped sums lose their positive tails.
 
     With ``blend`` (default :data:`BLEND`) ``g`` is first blended with its runner-up
     (:func:`~.blend.blend_default`, partners among ``steady`` where ``g`` is one of them): ``cands[g]``
@@ -364,7 +371,7 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     if fixed is None:
         local = loo_estimates(cands, y, v, count, bounds[1], safeguard)
         fixed = prior_default(cands, y, v, count, bounds[1], safeguard, guarded, steady=steady, blend=blend,
-                              thin_vote=thin_vote, local=local)
+                              thin_vote=thin_vote, local=local, heavy=heavy)
     else:   # the image's decision, made on its sums before (a tile of it)
         local = loo_estimates(cands, y, v, count, bounds[1], safeguard)
     den_loo, cap, loo, apart = local

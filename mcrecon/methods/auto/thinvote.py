@@ -13,6 +13,7 @@ import numpy as np
 from ...core.halves import mean_variances
 from ...core.safeguard import sample_range_bounds
 from .apart import left_out
+from .onesided import heavy_vote, one_sided
 
 __all__ = ["THIN_VOTE", "PLAN_THIN_VOTE", "thin_vote_shown"]
 
@@ -66,11 +67,14 @@ def thin_vote_shown(stats, halves, safeguard, *, share: float | None = None) -> 
     and bright-pixel tests (:func:`.apart.left_out`, on the variances the selection reads:
     :func:`~mcrecon.core.halves.mean_variances` of ``halves``).  What an adaptive round reads
     (``AutoMethod.plan``), without the candidates: a pixel whose estimates are not finite counts as a voter
-    here.  False without halves."""
+    here.  True too where the vote is heavy (:func:`.onesided.heavy_vote`, at the selection's
+    :data:`.onesided.HEAVY_VOTE`).  False without halves."""
     count = stats.count
     if halves is None or not count.any():
         return False
     v = mean_variances(stats, halves)[0]
     apart = left_out(stats.mean, v, count, sample_range_bounds(stats)[1], safeguard is not None)[1]
     share = PLAN_THIN_VOTE if share is None else share
-    return int(np.count_nonzero(~apart & (count > 0))) < share * _could_vote(v, count, safeguard)
+    vote = ~apart & (count > 0)
+    return int(np.count_nonzero(vote)) < share * _could_vote(v, count, safeguard) \
+        or heavy_vote(vote, one_sided(stats), count)

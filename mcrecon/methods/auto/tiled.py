@@ -408,6 +408,7 @@ def film_pass(method, inputs, each_tile) -> Film:
     film's tiles grown by ``halo`` as ``(outer, inner, inputs of outer)``, read band by band."""
     from ...core.safeguard import sample_range_bounds
     from .blackbox import BLACK_BOXES, _guards
+    from .onesided import one_sided
     from .selection import prior_default
 
     if each_tile is None:
@@ -436,7 +437,9 @@ def film_pass(method, inputs, each_tile) -> Film:
             film.planes.put(f"image{k}", inner, c.image[cut])
             film.planes.put(f"mse{k}", inner, c.mse[cut])
         hi = sample_range_bounds(stats)[1]
-        for name, a in (("y", y), ("v", v), ("count", count), ("hi", hi)):
+        heavy = one_sided(stats)
+        heavy = np.zeros(count.shape, bool) if heavy is None else heavy
+        for name, a in (("y", y), ("v", v), ("count", count), ("hi", hi), ("heavy", heavy)):
             film.planes.put(name, inner, np.asarray(a)[cut])
         del cands, y, v, count, hi, stats, sub
     p = method.params
@@ -444,6 +447,7 @@ def film_pass(method, inputs, each_tile) -> Film:
         cands = film.candidates()
         get = film.planes.get
         film.default = prior_default(cands, get("y"), get("v"), get("count"), get("hi"), p["safeguard"],
-                                     _guards(cands), steady=[k for k, n in enumerate(film.names) if n in BLACK_BOXES])
+                                     _guards(cands), steady=[k for k, n in enumerate(film.names) if n in BLACK_BOXES],
+                                     heavy=get("heavy"))
         del cands
     return film
