@@ -107,10 +107,14 @@ def test_a_thin_vote_makes_a_round_the_gate_leaves_even(rare, even, monkeypatch)
     assert m.even_under_rare(run, state) is even
     m, run = _auto(state, halves, monkeypatch, False)
     assert m.even_under_rare(run, state) is False
+    # the rule on: without colour OIDN, and without an albedo for oidn_aux (listed among the feature
+    # candidates, run only where the samples carry one), no black box can be the default
+    monkeypatch.setattr(AutoMethod, "thin_even", True)
     no_oidn = get_method("auto", candidates="box,gauss")
+    assert "oidn_aux" in no_oidn._feature_names and "albedo" not in state.stats.features
     run = no_oidn.start(W, H)
     run.halves = halves
-    assert no_oidn.even_under_rare(run, state) is False  # no black box to be the default
+    assert no_oidn.even_under_rare(run, state) is False
 
 
 def test_auto_plans_the_even_round_under_a_thin_vote(monkeypatch):

@@ -664,7 +664,8 @@ class AutoMethod(Method):
         independent samples keep the allocation (the default checker_spot: 1.00 with even rounds against
         0.82)."""
         p = self.params
-        black_box = "oidn" in self._names or "oidn_aux" in self._feature_names
+        # oidn_aux runs only where the samples carry an albedo (_aux_replaces_oidn)
+        black_box = "oidn" in self._names or self._aux_replaces_oidn(state.stats)
         return self.thin_even and black_box and p["global_prior"] is not None and \
             thin_vote_shown(state.stats, run.halves, p["safeguard"])
 

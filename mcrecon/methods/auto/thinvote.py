@@ -31,12 +31,12 @@ __all__ = ["THIN_VOTE", "PLAN_THIN_VOTE", "thin_vote_shown"]
 #: between the two, and an OIDN default's 5 x 5 sample range lights its pixels whose 3 x 3 neighbourhood
 #: holds only zeros.
 THIN_VOTE = 0.6
-#: The share below which an adaptive round reads the vote as thin (:func:`thin_vote_shown`, ``AutoMethod.plan``): below
-#: :data:`THIN_VOTE` by a margin, as a scene whose share lies near the threshold switches between the two rules with
-#: the render seed and the round (caustic-0 0.59-0.62).  With 0.6 the caustics' last rounds went even where their
-#: allocation pays: Sobol, 128^2, 32 spp, adaptive over uniform caustic-0 0.764 against 0.728 (last round 0.58),
-#: the default caustic 0.826 against 0.727 (4 seeds), held-out caustic-1 0.136 against 0.114; with 0.5 these are
-#: unchanged and the spotlit texture's rounds still go even (0.46, 0.32, 0.19 after the first).
+#: The share below which an adaptive round reads the vote as thin (:func:`thin_vote_shown`,
+#: ``AutoMethod.even_under_rare``): below :data:`THIN_VOTE` by a margin, as a scene whose share lies near the threshold
+#: switches between the two rules with the render seed and the round (caustic-0 0.59-0.62).  With 0.6 the caustics' last
+#: rounds went even where their allocation pays: Sobol, 128^2, 32 spp, adaptive over uniform caustic-0 0.764 against
+#: 0.728 (last round 0.58), the default caustic 0.826 against 0.727 (4 seeds), held-out caustic-1 0.136 against 0.114;
+#: with 0.5 these are unchanged and the spotlit texture's rounds still go even (0.46, 0.32, 0.19 after the first).
 PLAN_THIN_VOTE = 0.5
 
 
@@ -66,7 +66,7 @@ def thin_vote_shown(stats, halves, safeguard, *, share: float | None = None) -> 
     :data:`PLAN_THIN_VOTE`) of the pixels that could vote (:func:`_could_vote`) are left in it by the rare-sample
     and bright-pixel tests (:func:`.apart.left_out`, on the variances the selection reads:
     :func:`~mcrecon.core.halves.mean_variances` of ``halves``).  What an adaptive round reads
-    (``AutoMethod.plan``), without the candidates: a pixel whose estimates are not finite counts as a voter
+    (``AutoMethod.even_under_rare``), without the candidates: a pixel whose estimates are not finite counts as a voter
     here.  True too where the vote is heavy (:func:`.onesided.heavy_vote`, at the selection's
     :data:`.onesided.HEAVY_VOTE`).  False without halves."""
     count = stats.count
