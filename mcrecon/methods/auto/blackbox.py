@@ -48,7 +48,7 @@ from .estimates import cross_validation_mse, relative_denominator_loo
 from .features import Candidate, _filled, dual_candidate, feature_slices, prefiltered_features
 
 __all__ = ["ESTIMATES", "HALF_TO_FULL", "oidn_candidate", "oidn_scores", "oidn_denoise", "oidn_filter", "oidn_image",
-           "oidn_aux"]
+           "oidn_aux", "oidn_runs"]
 
 #: Whether :func:`oidn_candidate` scores its halves' filter by the crossed vote (the global prior's default
 #: where its vote is thin: :func:`.thinvote._thin_default`).
@@ -177,6 +177,13 @@ def oidn_aux(st: PixelStats) -> tuple:
     var = np.concatenate([mean_variance_policy(st.features[n]) for n in names], axis=2)
     pf = nlmeans_filter(f, f, var, radius=5, patch=3, k=0.5)
     return tuple(np.ascontiguousarray(pf[..., 3 * k:3 * k + 3]) for k in range(len(names)))
+
+
+def oidn_runs(names, aux: bool) -> list:
+    """auto's OIDN candidates, in their order, as ``(name, aux, halves_only)`` (:func:`oidn_candidate`'s):
+    colour-only OIDN where ``names`` (the colour candidates) list it, on its halves alone where ``aux`` (OIDN
+    with the albedo and normal, which replaces it on all the samples); then that one."""
+    return ([("oidn", False, aux)] if "oidn" in names else []) + ([("oidn_aux", True, False)] if aux else [])
 
 
 def aux_names(slices: dict) -> list:

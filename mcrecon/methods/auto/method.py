@@ -40,7 +40,7 @@ from ...filters.gaussian import final_sigmas
 from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGHTS, Candidate,
     _feature_bilateral, dual_candidate, feature_candidates, prefiltered_features,
     feature_slices, release_prefiltered, seed_prefiltered)
-from .blackbox import BLACK_BOXES, Z_BLACKBOX, _guards, oidn_candidate  # noqa: F401
+from .blackbox import BLACK_BOXES, Z_BLACKBOX, _guards, oidn_candidate, oidn_runs  # noqa: F401
 from .thinvote import thin_vote_shown
 from .onesided import one_sided
 from .nlmeans import nlmeans_cross
@@ -376,10 +376,9 @@ class AutoMethod(Method):
         if given is None:
             # each candidate held in the selection's dtype from its creation on (_stored: float32; the
             # next one's working memory then meets half the bytes)
-            black = (_store(oidn_candidate("oidn", stats, v, halves, halves_only=aux, variances=(va, vb)))
-                     if "oidn" in self._names else [])
-            black_aux = (_store(oidn_candidate("oidn_aux", stats, v, halves, aux=True, variances=(va, vb)))
-                         if aux else [])
+            made = {name: _store(oidn_candidate(name, stats, v, halves, aux=ax, halves_only=only, variances=(va, vb)))
+                    for name, ax, only in oidn_runs(self._names, aux)}
+            black, black_aux = made.get("oidn", []), made.get("oidn_aux", [])
         else:
             black = [c for c in given if not c.feature]   # in the order above: colour-only OIDN's first
             black_aux = [c for c in given if c.feature]

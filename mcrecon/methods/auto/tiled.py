@@ -230,19 +230,14 @@ def _oidn(method, stats, halves, aux: bool, film: Film, aux_planes=None) -> None
     :meth:`~.method.AutoMethod._candidates` computes them, stored in ``film``; ``aux``: with the albedo and
     normal (``aux_planes``: each half's, :func:`~.blackbox.oidn_aux`; None: the halves' own)."""
     from ...core.halves import mean_variances
-    from .blackbox import oidn_candidate
+    from .blackbox import oidn_candidate, oidn_runs
     from .passes import _stored
 
-    def _store(cands):   # as the selection holds them (method._store)
-        return [dataclasses.replace(c, image=_stored(c.image), mse=_stored(c.mse)) for c in cands]
-
     v, va, vb = mean_variances(stats, halves)
-    black = []
-    if "oidn" in method._names:
-        black += _store(oidn_candidate("oidn", stats, v, halves, halves_only=aux, variances=(va, vb)))
-    if aux:
-        black += _store(oidn_candidate("oidn_aux", stats, v, halves, aux=True, variances=(va, vb),
-                                       aux_planes=aux_planes))
+    black = [dataclasses.replace(c, image=_stored(c.image), mse=_stored(c.mse))   # as the selection holds them
+             for name, ax, only in oidn_runs(method._names, aux)
+             for c in oidn_candidate(name, stats, v, halves, aux=ax, halves_only=only, variances=(va, vb),
+                                     aux_planes=aux_planes if ax else None)]
     for k, c in enumerate(black):
         film.planes.put(f"oidn_image{k}", film.planes.whole, c.image)
         film.planes.put(f"oidn_mse{k}", film.planes.whole, c.mse)
@@ -356,13 +351,13 @@ def _oidn_planes(method, bands, aux: bool, n_aux: int, film: Film) -> None:
     files, the crossed vote summed over the film's terms in the film's order.  In memory: an OIDN run's
     inputs and output (float32, 12 bytes a pixel each, the albedo and normal with the aux) and OIDN's
     scratch (:data:`~.blackbox.OIDN_MEMORY_MB`), then a band's planes."""
-    from .blackbox import CROSSED, oidn_filter, oidn_image, oidn_scores
+    from .blackbox import CROSSED, oidn_filter, oidn_image, oidn_runs, oidn_scores
     from .passes import _stored
     from .selection import crossed_total
 
     h, w = film.planes.shape
     get, put, whole = film.planes.get, film.planes.put, film.planes.whole
-    runs = ([("oidn", False, aux)] if "oidn" in method._names else []) + ([("oidn_aux", True, False)] if aux else [])
+    runs = oidn_runs(method._names, aux)
     for name, ax, only in runs:   # OIDN's images: on all the samples (not with halves_only), on each half
         for part, suffix in (("", ""), ("0", "0"), ("1", "1")):
             if only and not part:
