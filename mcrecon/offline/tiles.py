@@ -290,9 +290,9 @@ def tile_inputs(inputs: MethodInputs, outer) -> MethodInputs:
 def _tiles(inputs, windows, where: str, fill: FilmFill, done=None):
     """``(outer, inner, inputs of outer)`` for each of ``windows`` (:func:`tile_windows`, in order): crops of
     the film's inputs, or of a :class:`FilmReader`'s bands (the rows of a band's tiles, grown, read at
-    once; pixels of its tiles without a sample, or without one in a half, refused), ``done(band)`` called as each band is
-    let go (:meth:`FilmReader.add_sanity`'s argument); each tile's statistics given the film's fill-in
-    values (``fill``: a reader's reads are given them by the reader)."""
+    once; pixels of its tiles without a sample, or without one in a half, refused), ``done(band)`` called as
+    each band is let go (:meth:`FilmReader.add_sanity`'s argument); each tile's statistics given the film's
+    fill-in values (``fill``: a reader's reads are given them by the reader)."""
     if not isinstance(inputs, FilmReader):
         for outer, inner in windows:
             yield outer, inner, fill.mark(tile_inputs(inputs, outer))

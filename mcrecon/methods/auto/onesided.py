@@ -28,8 +28,9 @@ tuning checker_spot-7 at 64^2 (auto with the heavy vote forced / kept out, relMS
 keeps its ratio, so a light a sample in ten finds stops counting where its hits grow many: ``(n - k) / k`` above
 the threshold holds for ``k`` about ``n / 10`` hits in 0.75 of the pixels at 32 spp, 0.60 at 128, 0.34 at 256,
 0.10 at 512 (Binomial(n, 0.1)); checker_spot-7 at 64^2 counts 0.72 of its pixels at 32 spp, 0.63 at 128, 0.49
-at 256 (its vote still heavy: 0.090), 0.37 at 512 (not: 0.109).  A rare light found some 40 times in a pixel at 512 spp is not the failure the rule is
-for: the capped leave-one-out estimates rank well with many hits (the measurements above).
+at 256 (its vote still heavy: 0.090), 0.37 at 512 (not: 0.109).  A rare light found some 40 times in a pixel
+at 512 spp is not the failure the rule is for: the capped leave-one-out estimates rank well with many hits (the
+measurements above).
 """
 
 from __future__ import annotations
