@@ -105,6 +105,14 @@ def _all_samples_box(cands):
     return names.index("oidn") if "oidn" in names else None
 
 
+def _rim_box(cands):
+    """The index of OIDN with the albedo and normal on the halves (``oidn_aux_halves``) where colour-only OIDN on
+    all the samples (:func:`_all_samples_box`) is not a candidate, None otherwise: the global prior's candidate
+    at the one-sample pixels rare huge samples surround that it lowers (``_global_prior(rim=)``)."""
+    names = [c.name for c in cands]
+    return names.index("oidn_aux_halves") if "oidn_aux_halves" in names and "oidn" not in names else None
+
+
 def _store(cands: list) -> list:
     """``cands`` with each image and estimate held as the selection reads them (:func:`.passes._stored`:
     float32, C order), in place."""
@@ -533,6 +541,7 @@ class AutoMethod(Method):
                                                choice, y, v, count, bounds, smooth, self.params["global_prior"],
                                                self.params["safeguard"], _guards(cands), divisor,
                                                steady=steady, steady_var=v_wide, rare=_all_samples_box(cands),
+                                               rim=_rim_box(cands),
                                                info=prior, fixed=None if film is None else film.default,
                                                heavy=one_sided(stats) if film is None else None)
         # ties (e.g. noise-free regions, where every ratio is undefined) go to the first candidate
@@ -574,6 +583,7 @@ class AutoMethod(Method):
                 guided = [k for k, c in enumerate(cands) if c.feature]
                 keep = np.isin(choice, guided) if guided else None
                 # So do the pixels with rare huge samples around that took the black box on all the samples
+                # (or, with features, the rim's OIDN + albedo + normal on the halves, which lowers them)
                 # under another default: on the median's interval, which the clamp already holds them to
                 # (under a black box default the wide interval leaves the rule to bound them)
                 rare = prior.get("rare")

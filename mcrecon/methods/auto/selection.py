@@ -109,6 +109,30 @@ def _lifted(cands, g, choice, y, v, where):
     out = np.zeros(y.shape[:2], bool)
     if not where.any():
         return out
+    ii, jj, xg, xc, yw, one = _one_sample_values(cands, g, choice, y, v, where)
+    with np.errstate(invalid="ignore"):
+        out[ii, jj] = ((xg > np.maximum(yw, xc)) & one).any(axis=-1)
+    return out
+
+
+def _lowered(cands, g, choice, y, v, where):
+    """Per pixel of ``where``: a mean carried by one sample in some channel (:data:`ONE_SAMPLE`) and candidate
+    ``g`` below the pixel mean ``y`` and no higher than the chosen candidate's value in every channel (False
+    elsewhere, and where a value is NaN): :func:`_lifted`'s mirror, the pixels an emitter's rim rule lowers
+    (``_global_prior(rim=)``)."""
+    out = np.zeros(y.shape[:2], bool)
+    if not where.any():
+        return out
+    ii, jj, xg, xc, yw, one = _one_sample_values(cands, g, choice, y, v, where)
+    with np.errstate(invalid="ignore"):
+        out[ii, jj] = one.any(axis=-1) & ((xg < yw) & (xg <= xc)).all(axis=-1)
+    return out
+
+
+def _one_sample_values(cands, g, choice, y, v, where):
+    """At the pixels of ``where`` (``ii``, ``jj``): candidate ``g``'s values, the chosen candidate's, the means
+    and which channels' means one sample carries (standard error at least :data:`ONE_SAMPLE` of a positive
+    mean), each (P, C)."""
     ii, jj = np.nonzero(where)
     xg = cands[g].image[ii, jj]
     xc = np.empty_like(xg)
@@ -119,8 +143,7 @@ def _lifted(cands, g, choice, y, v, where):
     yw = y[ii, jj]
     with np.errstate(invalid="ignore"):
         one = (yw > 0) & (np.sqrt(v[ii, jj]) >= ONE_SAMPLE * yw)
-        out[ii, jj] = ((xg > np.maximum(yw, xc)) & one).any(axis=-1)
-    return out
+    return ii, jj, xg, xc, yw, one
 
 
 @numba.njit(cache=True, nogil=True)
@@ -285,7 +308,8 @@ def _summed_with(cands, local, within=None):
 
 
 def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, safeguard, guarded=(), scale=None,
-                  steady=(), steady_var=None, blend=None, rare=None, info=None, thin_vote=None, fixed=None, heavy=None):
+                  steady=(), steady_var=None, blend=None, rare=None, info=None, thin_vote=None, fixed=None, heavy=None,
+                  rim=None):
     """The per-pixel choice with the best single candidate over the image as the default.
 
     ``g`` = the candidate of least summed leave-one-out relative estimate
@@ -356,7 +380,16 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     belongs (the average of it run on each half sees each rare sample at twice its weight).  Those pixels
     count as the default's (the returned mask): the region guard leaves them.  ``info`` (a dict), where
     given, receives ``"g"`` (the default's index, -1 where the prior does not apply) and ``"rare"`` (the
-    mask of the pixels ``rare`` took).
+    mask of the pixels ``rare`` or ``rim`` took).
+
+    ``rim`` (an index: auto's OIDN with the albedo and normal on the halves, on a frame where no colour-only
+    OIDN on all the samples runs to be ``rare``) takes those of the same pixels whose mean one sample carries
+    where it lowers them below their mean and the plain choice (:func:`_lowered`, :func:`_lifted`'s mirror), and
+    counts them as the default's.  At an emitter's rim a pixel that caught one emitter sample has a mean
+    that lies far above its truth as often as below, and the metric, relative, charges the first far more:
+    a rim pixel with truth 0.56 and one emitter sample of 417 in 32 carries 0.90 of the pixel mean's error
+    over the whole image.  Not every such pixel (``rare``'s rule): beside the emitter OIDN + albedo + normal
+    spreads its light into dark pixels whose samples all agree (docs/methods/auto.md, "Rare huge samples").
 
     ``fixed``: the whole-image decision (:class:`Default`: ``g``, thin, the blend) made before on the
     image's sums (:func:`prior_default`); given, this is a tile's prior, the rest of the rule local.
@@ -459,6 +492,14 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
         held = np.where(at, True, held)
         if info is not None:
             info["rare"] = at
+    if rim is not None and rim != g:
+        # the one-sample pixels of the same set that the rim candidate lowers (docstring: ``rim``)
+        at = apart & np.isfinite(rel[rim]) & np.isfinite(cands[rim].image).all(axis=2)
+        at &= _lowered(cands, rim, choice, y, v, at)
+        out = np.where(at, rim, out)
+        held = np.where(at, True, held)
+        if info is not None:
+            info["rare"] = at | info["rare"] if "rare" in info else at
     return out, held
 
 
