@@ -10,40 +10,25 @@ candidate does not run.
 """
 
 import numpy as np
+import pytest
 
+import test_auto_emitter_rim as emitter_rim
 from mcrecon.methods.auto.features import Candidate
 from mcrecon.methods.auto.method import _all_samples_box, _rim_box
 from mcrecon.methods.auto.selection import ONE_SAMPLE, _global_prior, _lowered
 
 
 def _rim(rim_value, sd, *, others=None):
-    """A flat 0.5 field, an emitter (50) on the four pixels above and left of P = (4, 4), and P's mean 0.65.
-
-    Candidates: 0 the mean, 1 the plain choice (0.6 at P), 2 the global default (NL-means: the least estimate
-    everywhere, P's mean kept), 3 OIDN + albedo + normal on the halves (``rim_value`` at P, ``others`` or the
-    mean elsewhere); P's 3 x 3 sample maximum is 100 (rare huge samples around: the vote leaves it out)."""
-    h, w = 10, 10
-    y = np.full((h, w, 3), 0.5)
-    for p in [(3, 3), (3, 4), (3, 5), (4, 3)]:
-        y[p] = 50.0
-    y[4, 4] = 0.65
-    v = np.full((h, w, 3), 0.01)
-    v[4, 4] = sd ** 2
-    count = np.full((h, w), 32)
-    plain_img = y.copy()
-    plain_img[4, 4] = 0.6
-    rim_img = y.copy() if others is None else np.full((h, w, 3), others)
-    rim_img[4, 4] = rim_value
-    cands = [Candidate("box", y.copy(), v.copy()),
-             Candidate("gauss1", plain_img, np.full((h, w, 3), 0.004)),
-             Candidate("nlm", y.copy(), np.full((h, w, 3), 0.001)),
-             Candidate("oidn_aux_halves", rim_img, np.full((h, w, 3), 0.02))]
-    raw = [c.mse.mean(axis=2) / 0.26 for c in cands]
-    hi = y.copy()
-    hi[4, 4] = 100.0
-    plain = np.zeros((h, w), np.int64)
-    plain[4, 4] = 1
-    return cands, raw, y, v, count, (y.copy(), hi), plain
+    """:func:`test_auto_emitter_rim._rim`'s field (a flat 0.5, an emitter of 50 beside P = (4, 4), P's mean 0.65
+    carried by ``sd``, the plain choice 0.45 at P, P's 3 x 3 sample maximum 100: the vote leaves it out) with the
+    global default keeping P's mean, and candidate 3, OIDN + albedo + normal on the halves: ``rim_value`` at P,
+    ``others`` (or the mean) elsewhere."""
+    cands, raw, y, v, count, bounds, plain = emitter_rim._rim(0.65, sd)
+    img = y.copy() if others is None else np.full(y.shape, others)
+    img[4, 4] = rim_value
+    cands.append(Candidate("oidn_aux_halves", img, np.full(y.shape, 0.02)))
+    raw.append(cands[3].mse.mean(axis=2) / 0.26)
+    return cands, raw, y, v, count, bounds, plain
 
 
 def _prior(rim_value, sd, *, rim=3, others=None):
@@ -65,7 +50,7 @@ def test_a_one_sample_rim_pixel_takes_the_rim_candidate_where_it_lowers_it():
 
 
 def test_the_rim_candidate_does_not_take_a_pixel_it_lifts_or_one_many_samples_carry():
-    assert _prior(0.62, 0.65)[0][4, 4] != 3    # below the mean, above the plain choice (0.6)
+    assert _prior(0.5, 0.65)[0][4, 4] != 3     # below the mean, above the plain choice (0.45)
     assert _prior(0.9, 0.65)[0][4, 4] != 3     # lifted
     assert _prior(0.3, 0.1)[0][4, 4] != 3      # lowered, but many samples carry the mean
 
@@ -83,25 +68,26 @@ def test_the_rim_candidate_leaves_the_pixels_the_vote_keeps_and_agreeing_dark_pi
     assert got[4, 4] != 3
 
 
-def test_lowered_needs_one_sample_and_every_channel_lowered():
+_SD_ONE = 0.65                              # one sample among 32: standard error = the mean
+_SD_NEAR = 0.99 * ONE_SAMPLE * 0.65         # just under ONE_SAMPLE times the mean: not one sample
+
+
+@pytest.mark.parametrize("value, sds, expected", [
+    ([0.3, 0.3, 0.3], [_SD_ONE] * 3, True),
+    ([0.3, 0.3, 0.7], [_SD_ONE] * 3, False),               # one channel above the mean
+    ([0.3, 0.3, 0.5], [_SD_ONE] * 3, False),               # one channel above the plain choice (0.45)
+    ([0.3, 0.3, 0.3], [_SD_NEAR, _SD_NEAR, _SD_ONE], True),  # one channel carried by one sample is enough
+    ([0.3, 0.3, 0.3], [_SD_NEAR] * 3, False),
+    ([0.3, np.nan, 0.3], [_SD_ONE] * 3, False),            # NaN is not lower
+])
+def test_lowered_needs_one_sample_and_every_channel_lowered(value, sds, expected):
     cands, _, y, v, _, _, plain = _rim(0.3, 0.65)
+    cands[3].image[4, 4] = value
+    v[4, 4] = np.square(sds)
     where = np.zeros(y.shape[:2], bool)
-    where[4, 4] = where[0, 0] = True
+    where[4, 4] = where[0, 0] = True     # (0, 0): many samples, the candidate at the mean
     got = _lowered(cands, 3, plain, y, v, where)
-    assert got[4, 4] and not got[0, 0] and got.sum() == 1
-    # every channel lowered: one channel above the mean is not
-    cands[3].image[4, 4] = [0.3, 0.3, 0.7]
-    assert not _lowered(cands, 3, plain, y, v, where)[4, 4]
-    # one channel's mean carried by one sample is enough; a standard error just under ONE_SAMPLE times it is not
-    cands[3].image[4, 4] = 0.3
-    v[4, 4] = [(0.99 * ONE_SAMPLE * 0.65) ** 2] * 2 + [0.65 ** 2]
-    assert _lowered(cands, 3, plain, y, v, where)[4, 4]
-    v[4, 4] = (0.99 * ONE_SAMPLE * 0.65) ** 2
-    assert not _lowered(cands, 3, plain, y, v, where)[4, 4]
-    # a NaN value is not lower
-    v[4, 4] = 0.65 ** 2
-    cands[3].image[4, 4, 1] = np.nan
-    assert not _lowered(cands, 3, plain, y, v, where)[4, 4]
+    assert got[4, 4] == expected and not got[0, 0] and not got[~where].any()
 
 
 def test_the_rim_candidate_is_oidn_aux_on_the_halves_only_without_colour_only_oidn_on_all_the_samples():
