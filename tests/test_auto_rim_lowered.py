@@ -14,7 +14,8 @@ import pytest
 
 import test_auto_emitter_rim as emitter_rim
 from mcrecon.methods.auto.features import Candidate
-from mcrecon.methods.auto.method import _all_samples_box, _rim_box
+from mcrecon.methods.auto.method import _all_samples_box
+from mcrecon.methods.auto.rim import rim_box
 from mcrecon.methods.auto.selection import ONE_SAMPLE, _global_prior, _lowered
 
 
@@ -93,7 +94,7 @@ def test_lowered_needs_one_sample_and_every_channel_lowered(value, sds, expected
 def test_the_rim_candidate_is_oidn_aux_on_the_halves_only_without_colour_only_oidn_on_all_the_samples():
     c = [Candidate(n, np.zeros((1, 1, 3)), np.zeros((1, 1, 3)))
          for n in ("box", "oidn_halves", "oidn_aux", "oidn_aux_halves")]
-    assert _rim_box(c) == 3 and _all_samples_box(c) is None
+    assert rim_box(c) == 3 and _all_samples_box(c) is None
     c.append(Candidate("oidn", np.zeros((1, 1, 3)), np.zeros((1, 1, 3))))
-    assert _rim_box(c) is None and _all_samples_box(c) == 4
-    assert _rim_box(c[:3]) is None
+    assert rim_box(c) is None and _all_samples_box(c) == 4
+    assert rim_box(c[:3]) is None

@@ -19,6 +19,7 @@ from .firefly import FIREFLY, HEAVY_TAIL, Z_FIREFLY, _firefly  # noqa: F401 (Z_F
 from .apart import HEAVY_PRIOR, _apart, left_out  # noqa: F401 (HEAVY_PRIOR, _apart: the tests read them here)
 from .thinvote import THIN_VOTE, _could_vote, _thin_default
 from .onesided import heavy_vote
+from .rim import ONE_SAMPLE, _lifted, _lowered  # noqa: F401 (ONE_SAMPLE: the tests read it here)
 from .passes import (_FirstLeast, _arrays, _c64, _channel_mean, _compress, _means, _nanmax,  # noqa: F401
                      _relative_choice)
 from ...filters.masked import MaskedSmoothing, effective_counts
@@ -88,62 +89,6 @@ def _nearer_the_neighbours(cands, g, choice, y, where, scale=None):
         parallel_rows(_nearer_rows, (_c64(yr), _c64(sc), _arrays([c.image for c in cands]), int(g),
                                      np.ascontiguousarray(choice), np.ascontiguousarray(where), out), y.shape[0])
     return out
-
-
-#: A pixel's mean counts as carried by one sample where its standard error is at least this fraction of it
-#: (one non-zero sample among n: exactly 1; two equal ones: 0.71).
-ONE_SAMPLE = 0.9
-
-
-def _lifted(cands, g, choice, y, v, where):
-    """Per pixel of ``where``: candidate ``g`` above both the pixel mean ``y`` and the chosen candidate's
-    value in some channel (False elsewhere, and where a value is NaN).
-
-    Under rare huge samples a pixel's mean is right-skewed: a pixel that caught one of them (at an
-    emitter's rim, one sample in 32 on the emitter) has a mean above its truth, often far above, and a
-    default that lifts it further adds its neighbours' light to a pixel that already over-counts its
-    own.  The median of its 8 neighbours' means (:func:`_nearer_the_neighbours`) cannot see this when
-    those neighbours lie on the emitter: the lifted value is then "nearer the neighbours".  A pixel
-    whose samples missed a light its neighbours found keeps the plain choice when that lifts it at
-    least as far (``y`` low, the chosen value the larger bound)."""
-    out = np.zeros(y.shape[:2], bool)
-    if not where.any():
-        return out
-    ii, jj, xg, xc, yw, one = _one_sample_values(cands, g, choice, y, v, where)
-    with np.errstate(invalid="ignore"):
-        out[ii, jj] = ((xg > np.maximum(yw, xc)) & one).any(axis=-1)
-    return out
-
-
-def _lowered(cands, g, choice, y, v, where):
-    """Per pixel of ``where``: a mean carried by one sample in some channel (:data:`ONE_SAMPLE`) and candidate
-    ``g`` below the pixel mean ``y`` and no higher than the chosen candidate's value in every channel (False
-    elsewhere, and where a value is NaN): :func:`_lifted`'s mirror, the pixels an emitter's rim rule lowers
-    (``_global_prior(rim=)``)."""
-    out = np.zeros(y.shape[:2], bool)
-    if not where.any():
-        return out
-    ii, jj, xg, xc, yw, one = _one_sample_values(cands, g, choice, y, v, where)
-    with np.errstate(invalid="ignore"):
-        out[ii, jj] = one.any(axis=-1) & ((xg < yw) & (xg <= xc)).all(axis=-1)
-    return out
-
-
-def _one_sample_values(cands, g, choice, y, v, where):
-    """At the pixels of ``where`` (``ii``, ``jj``): candidate ``g``'s values, the chosen candidate's, the means
-    and which channels' means one sample carries (standard error at least :data:`ONE_SAMPLE` of a positive
-    mean), each (P, C)."""
-    ii, jj = np.nonzero(where)
-    xg = cands[g].image[ii, jj]
-    xc = np.empty_like(xg)
-    ks = choice[ii, jj]
-    for k in np.unique(ks):
-        sel = ks == k
-        xc[sel] = cands[k].image[ii[sel], jj[sel]]
-    yw = y[ii, jj]
-    with np.errstate(invalid="ignore"):
-        one = (yw > 0) & (np.sqrt(v[ii, jj]) >= ONE_SAMPLE * yw)
-    return ii, jj, xg, xc, yw, one
 
 
 @numba.njit(cache=True, nogil=True)
