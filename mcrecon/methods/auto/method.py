@@ -43,6 +43,7 @@ from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGH
 from .blackbox import BLACK_BOXES, Z_BLACKBOX, _guards, oidn_candidate, oidn_runs  # noqa: F401
 from .thinvote import thin_vote_shown
 from .onesided import one_sided
+from .rim import rim_box
 from .nlmeans import nlmeans_cross
 from .proxy import REGRESSIONS, regression_share
 from ...filters.masked import MaskedSmoothing, smooth_masked
@@ -532,7 +533,7 @@ class AutoMethod(Method):
             choice, on_default = _global_prior(cands, lambda k: smoothing([_mean_c(cands[k].mse, den)])[0], rel,
                                                choice, y, v, count, bounds, smooth, self.params["global_prior"],
                                                self.params["safeguard"], _guards(cands), divisor,
-                                               steady=steady, steady_var=v_wide, rare=_all_samples_box(cands),
+                                               steady=steady, steady_var=v_wide, rare=_all_samples_box(cands), rim=rim_box(cands),
                                                info=prior, fixed=None if film is None else film.default,
                                                heavy=one_sided(stats) if film is None else None)
         # ties (e.g. noise-free regions, where every ratio is undefined) go to the first candidate
@@ -573,9 +574,9 @@ class AutoMethod(Method):
                 # per scene: docs/methods/auto.md, "Limits").
                 guided = [k for k, c in enumerate(cands) if c.feature]
                 keep = np.isin(choice, guided) if guided else None
-                # So do the pixels with rare huge samples around that took the black box on all the samples
-                # under another default: on the median's interval, which the clamp already holds them to
-                # (under a black box default the wide interval leaves the rule to bound them)
+                # So do the pixels with rare huge samples around that took the black box on all the samples (or, with
+                # features, OIDN + albedo + normal on the halves at the rim) under another default: on the median's
+                # interval, which the clamp holds them to (a black box default's wide interval leaves that to the rule)
                 rare = prior.get("rare")
                 if rare is not None and not black:
                     keep = rare if keep is None else keep | rare

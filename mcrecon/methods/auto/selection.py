@@ -19,6 +19,7 @@ from .firefly import FIREFLY, HEAVY_TAIL, Z_FIREFLY, _firefly  # noqa: F401 (Z_F
 from .apart import HEAVY_PRIOR, _apart, left_out  # noqa: F401 (HEAVY_PRIOR, _apart: the tests read them here)
 from .thinvote import THIN_VOTE, _could_vote, _thin_default
 from .onesided import heavy_vote
+from .rim import ONE_SAMPLE, _lifted, _lowered  # noqa: F401 (ONE_SAMPLE: the tests read it here)
 from .passes import (_FirstLeast, _arrays, _c64, _channel_mean, _compress, _means, _nanmax,  # noqa: F401
                      _relative_choice)
 from ...filters.masked import MaskedSmoothing, effective_counts
@@ -87,39 +88,6 @@ def _nearer_the_neighbours(cands, g, choice, y, where, scale=None):
         sc = np.ones((0, 0, 0)) if scale is None else scale
         parallel_rows(_nearer_rows, (_c64(yr), _c64(sc), _arrays([c.image for c in cands]), int(g),
                                      np.ascontiguousarray(choice), np.ascontiguousarray(where), out), y.shape[0])
-    return out
-
-
-#: A pixel's mean counts as carried by one sample where its standard error is at least this fraction of it
-#: (one non-zero sample among n: exactly 1; two equal ones: 0.71).
-ONE_SAMPLE = 0.9
-
-
-def _lifted(cands, g, choice, y, v, where):
-    """Per pixel of ``where``: candidate ``g`` above both the pixel mean ``y`` and the chosen candidate's
-    value in some channel (False elsewhere, and where a value is NaN).
-
-    Under rare huge samples a pixel's mean is right-skewed: a pixel that caught one of them (at an
-    emitter's rim, one sample in 32 on the emitter) has a mean above its truth, often far above, and a
-    default that lifts it further adds its neighbours' light to a pixel that already over-counts its
-    own.  The median of its 8 neighbours' means (:func:`_nearer_the_neighbours`) cannot see this when
-    those neighbours lie on the emitter: the lifted value is then "nearer the neighbours".  A pixel
-    whose samples missed a light its neighbours found keeps the plain choice when that lifts it at
-    least as far (``y`` low, the chosen value the larger bound)."""
-    out = np.zeros(y.shape[:2], bool)
-    if not where.any():
-        return out
-    ii, jj = np.nonzero(where)
-    xg = cands[g].image[ii, jj]
-    xc = np.empty_like(xg)
-    ks = choice[ii, jj]
-    for k in np.unique(ks):
-        sel = ks == k
-        xc[sel] = cands[k].image[ii[sel], jj[sel]]
-    yw = y[ii, jj]
-    with np.errstate(invalid="ignore"):
-        one = (yw > 0) & (np.sqrt(v[ii, jj]) >= ONE_SAMPLE * yw)
-        out[ii, jj] = ((xg > np.maximum(yw, xc)) & one).any(axis=-1)
     return out
 
 
@@ -285,7 +253,8 @@ def _summed_with(cands, local, within=None):
 
 
 def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, safeguard, guarded=(), scale=None,
-                  steady=(), steady_var=None, blend=None, rare=None, info=None, thin_vote=None, fixed=None, heavy=None):
+                  steady=(), steady_var=None, blend=None, rare=None, info=None, thin_vote=None, fixed=None, heavy=None,
+                  rim=None):
     """The per-pixel choice with the best single candidate over the image as the default.
 
     ``g`` = the candidate of least summed leave-one-out relative estimate
@@ -356,7 +325,16 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
     belongs (the average of it run on each half sees each rare sample at twice its weight).  Those pixels
     count as the default's (the returned mask): the region guard leaves them.  ``info`` (a dict), where
     given, receives ``"g"`` (the default's index, -1 where the prior does not apply) and ``"rare"`` (the
-    mask of the pixels ``rare`` took).
+    mask of the pixels ``rare`` or ``rim`` took).
+
+    ``rim`` (an index: auto's OIDN with the albedo and normal on the halves, on a frame where no colour-only
+    OIDN on all the samples runs to be ``rare``) takes those of the same pixels whose mean one sample carries
+    where it lowers them below their mean and the plain choice (:func:`_lowered`, :func:`_lifted`'s mirror), and
+    counts them as the default's.  At an emitter's rim a pixel that caught one emitter sample has a mean
+    that lies far above its truth as often as below, and the metric, relative, charges the first far more:
+    a rim pixel with truth 0.56 and one emitter sample of 417 in 32 carries 0.90 of the pixel mean's error
+    over the whole image.  Not every such pixel (``rare``'s rule): beside the emitter OIDN + albedo + normal
+    spreads its light into dark pixels whose samples all agree (docs/methods/auto.md, "Rare huge samples").
 
     ``fixed``: the whole-image decision (:class:`Default`: ``g``, thin, the blend) made before on the
     image's sums (:func:`prior_default`); given, this is a tile's prior, the rest of the rule local.
@@ -459,6 +437,14 @@ def _global_prior(cands, smoothed, rel, choice, y, v, count, bounds, sigma, z, s
         held = np.where(at, True, held)
         if info is not None:
             info["rare"] = at
+    if rim is not None and rim != g:
+        # the one-sample pixels of the same set that the rim candidate lowers (docstring: ``rim``)
+        at = apart & np.isfinite(rel[rim]) & np.isfinite(cands[rim].image).all(axis=2)
+        at &= _lowered(cands, rim, choice, y, v, at)
+        out = np.where(at, rim, out)
+        held = np.where(at, True, held)
+        if info is not None:
+            info["rare"] = at | info["rare"] if "rare" in info else at
     return out, held
 
 
