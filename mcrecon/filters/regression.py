@@ -47,10 +47,12 @@ WEIGHT_PAD = 16
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, stride, min_weight, i0, i1,
+def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, stride, min_weight, band, b,
           acc):
-    """Rows [i0, i1) as window centres, for every bandwidth of ``k2s`` (K,) (the k^2 of the weights);
-    bandwidth b's predictions accumulated into acc[b] (C + 1 [+ 1], i1 - i0 + 2r, W + 2r), whose (t, u)
+    """Band ``b``: rows [i0, i1) = [b band, min(H, (b + 1) band)) as window centres, for every bandwidth of
+    ``k2s`` (K,) (the k^2 of the weights); bandwidth b's predictions written into its private accumulators
+    acc[b] (C + 1 [+ 1], i1 - i0 + 2r, W + 2r) (zeroed here: bands run on separate threads, and the band
+    is the kernel the thread pool calls, so that no wrapper recompiles its body), whose (t, u)
     is image pixel (i0 - r + t, u - r) (plane C: the weights; with ``leverage``, plane C + 1:
     sum_p w_pq^2 x_q^T A_p^-1 x_q, the numerator of the filter's centre weight :func:`_leverages`).
     With ``stride`` s > 1, a pixel fits a window for bandwidth b only where its row and column are multiples
@@ -69,6 +71,9 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
     """
     nc = ypad.shape[0]
     h, w = guide.shape[1], guide.shape[2]
+    i0 = b * band
+    i1 = min(h, i0 + band)
+    acc[:] = 0.0
     nf = fpad.shape[0]
     d = 3 + nf
     n_rows = i1 - i0
@@ -222,17 +227,6 @@ def _fits(wts, fit, i, j, col, r, s, h, w, min_weight):
 
 
 @numba.njit(cache=True, nogil=True)
-def _one_band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, stride, min_weight, band, b,
-              acc):
-    """Band ``b`` into its private accumulators ``acc`` (K, ...) (zeroed here): bands run on separate threads."""
-    h = guide.shape[1]
-    i0 = b * band
-    acc[:] = 0.0
-    _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leverage, stride, min_weight, i0,
-          min(h, i0 + band), acc)
-
-
-@numba.njit(cache=True, nogil=True)
 def _gather(accs, kb, r, band, b0, out):
     """Add bandwidth ``kb``'s sums of bands b0, b0 + 1, ... (accs[k, kb]: band b0 + k) to out (C + 1, H, W),
     in band order, serially (bands overlap by 2r rows): each pixel's sum is the same whichever bands are
@@ -250,10 +244,10 @@ def _gather(accs, kb, r, band, b0, out):
 
 
 def _accumulate(args, accs, outs, r, n_bands, threads) -> None:
-    """Every band's windows (:func:`_one_band` with ``args``), BANDS_PER_THREAD bands per thread at a time on the
+    """Every band's windows (:func:`_band` with ``args``), BANDS_PER_THREAD bands per thread at a time on the
     thread pool, added to ``outs`` (one (C + 1 [+ 1], H, W) per bandwidth) in band order."""
     for b0 in range(0, n_bands, accs.shape[0]):
-        parallel_calls(_one_band, [(*args, BAND, b0 + t, accs[t]) for t in range(min(accs.shape[0], n_bands - b0))],
+        parallel_calls(_band, [(*args, BAND, b0 + t, accs[t]) for t in range(min(accs.shape[0], n_bands - b0))],
                        threads)
         for kb in range(len(outs)):
             _gather(accs, kb, r, BAND, b0, outs[kb])
