@@ -58,7 +58,7 @@ import numpy as np
 
 __all__ = ["net_counts", "fill_lowest", "rare_net_floor", "state_rare_net_floor", "covering_rare_net_floor",
            "rare_net_deficit",
-           "shows_structure", "even_round", "even_plan", "floored_plan", "noise_only", "counts_with_pending", "round_cap_spp",
+           "shows_structure", "even_round", "even_plan", "noise_only", "counts_with_pending", "round_cap_spp",
            "halves_error", "beats_even"]
 
 #: Standard deviations (under Gaussian noise) a dispersion statistic must exceed its noise-only value by.
@@ -346,38 +346,6 @@ def rare_net_deficit(state, *, threshold: float, min_cover: float = 0.0) -> np.n
     if floor is None:
         return None
     return np.maximum(floor - counts_with_pending(state), 0).astype(np.int64)
-
-
-def floored_plan(method, run, state, floor: np.ndarray, *, share=None, whole_nets: bool = False):
-    """A round of :meth:`~mcrecon.methods.base.Method.round_size`'s samples that first pays each pixel's
-    ``floor`` (:func:`state_rare_net_floor`; zeros: none), then :meth:`place`'s counts, then the method's
-    ``uniform_share`` less what the floors took, as ``share(counts, n)`` spreads ``n`` over pixels holding
-    ``counts`` (None: :func:`fill_lowest`, from the bottom); None when the budget is spent or ``place``
-    stops the run.  A round smaller than what the floors owe goes to them from the bottom.  ``whole_nets``:
-    past a floor the placed counts go in whole nets (:func:`net_counts`; a stratified sampler).  gem's and
-    auto's rounds with independent samples (docs/adaptive.md)."""
-    n = method.round_size(state)
-    if n is None:
-        return None
-    current = counts_with_pending(state)
-    deficit = np.maximum(floor - current, 0)
-    d = int(deficit.sum())
-    if d >= n:
-        return state.request(counts=fill_lowest(current, n, state.rng, cap=current + deficit))
-    n_share = max(int(round(method.params.get("uniform_share", 0.0) * n)) - d, 0)
-    placed = method.place(run, state, n - d - n_share)
-    if placed is None:
-        return None
-    placed = np.asarray(placed)
-    if placed.shape != current.shape:                   # nothing placed (an empty position list)
-        placed = np.zeros(current.shape, np.int64)
-    held = floor > 0
-    if whole_nets and held.any():
-        # past a rare component's net a pixel's samples buy little until the next net: whole nets there
-        placed = np.where(held, 0, placed) + net_counts(np.where(held, placed, 0), current + deficit)
-    spread = share(current + deficit, n_share) if share is not None else fill_lowest(current + deficit, n_share,
-                                                                                      state.rng)
-    return state.request(counts=deficit + placed + spread)
 
 
 def net_plan(method, run, state):

@@ -42,7 +42,7 @@ from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGH
     feature_slices, release_prefiltered, seed_prefiltered)
 from .blackbox import BLACK_BOXES, Z_BLACKBOX, _guards, oidn_candidate, oidn_runs  # noqa: F401
 from .thinvote import thin_vote_shown
-from ...core.nets import RARE_COVER, covering_rare_net_floor, floored_plan, noise_only
+from ...core.nets import RARE_COVER, covering_rare_net_floor, even_plan
 from .onesided import one_sided
 from .nlmeans import nlmeans_cross
 from .proxy import REGRESSIONS, regression_share
@@ -206,9 +206,9 @@ class AutoMethod(Method):
     #: vote (:func:`.thinvote.thin_vote_shown`) is the even round (:meth:`even_under_rare`).
     thin_even = True
     #: ``sampling="gem"``, independent samples: where the rare component's floor (gem's, at gem's gate) covers
-    #: most of the film (:data:`~mcrecon.core.nets.RARE_COVER`) a round first raises each pixel to it and fills
-    #: its uniform share from the bottom (:func:`~mcrecon.core.nets.floored_plan`; docs/adaptive.md).
-    rare_floor = True
+    #: most of the film (:func:`~mcrecon.core.nets.covering_rare_net_floor`, ``RARE_COVER``) the round is even
+    #: (:func:`~mcrecon.core.nets.even_plan`): every pixel's estimates read that light's noise (docs/adaptive.md).
+    rare_even = True
     options = (
         Option("candidates", str, DEFAULT_CANDIDATES, "comma-separated candidate reconstructions: "
                + ", ".join(CANDIDATES) + " (nlm/awr/splat split every pixel's samples into two halves: "
@@ -634,11 +634,9 @@ class AutoMethod(Method):
         """
         p = self.params
         if p["sampling"] == "gem":
-            if self.rare_floor and state.sampler == "independent" and p["net_counts"] != 1 \
-                    and not noise_only(self, state):
-                floor = covering_rare_net_floor(state, threshold=self._gem.rare_gate(state), min_cover=RARE_COVER)
-                if floor is not None:
-                    return floored_plan(self, run, state, floor)
+            if self.rare_even and state.sampler == "independent" and p["net_counts"] != 1 and \
+                    covering_rare_net_floor(state, threshold=self._gem.rare_gate(state), min_cover=RARE_COVER) is not None:
+                return even_plan(self, state)
             return super().plan(run, state)
         remaining = state.remaining
         if remaining <= 0:

@@ -22,7 +22,8 @@ from .selection import CHANNEL_WEIGHTS, GAMMA_MAX, OUTLIER_RULES, GEMSelection, 
 from ...core.fill import mean_variance_policy
 from ...core.safeguard import RARE_THRESHOLD, rare_component_variance
 from ...core.strata import stratified_gain
-from ...core.nets import even_plan, floored_plan, noise_only, state_rare_net_floor
+from ...core.nets import (counts_with_pending, even_plan, fill_lowest, net_counts, noise_only,
+                          state_rare_net_floor)
 
 __all__ = ["GEMMethod", "GEMRun", "TARGET_EPS"]
 
@@ -337,13 +338,33 @@ class GEMMethod(Method):
         fill = p["uniform_fill"] or ("even" if stratified else "lowest")
         if nets == 1 or (nets == -1 and stratified) or (fill == "even" and not floors):
             return super().plan(run, state)
-        floor = None
+        n = self.round_size(state)
+        if n is None:
+            return None
+        current = counts_with_pending(state)
+        floor = np.zeros(current.shape, np.int64)
         if floors and p["rare_light_floor"]:
             floor = state_rare_net_floor(state, threshold=self.rare_gate(state))
-        def even(counts, n):
-            return uniform_counts(state.width, state.height, n, state.rng)
-        return floored_plan(self, run, state, np.zeros((state.height, state.width), np.int64) if floor is None
-                            else floor, share=None if fill == "lowest" else even, whole_nets=stratified)
+        deficit = np.maximum(floor - current, 0)
+        d = int(deficit.sum())
+        if d >= n:
+            return state.request(counts=fill_lowest(current, n, state.rng, cap=current + deficit))
+        n_share = max(int(round(p["uniform_share"] * n)) - d, 0)
+        placed = self.place(run, state, n - d - n_share)
+        if placed is None:
+            return None
+        placed = np.asarray(placed)
+        if placed.shape != current.shape:                   # nothing placed (an empty position list)
+            placed = np.zeros(current.shape, np.int64)
+        held = floor > 0
+        if stratified and held.any():
+            # past a rare component's net a pixel's samples buy little until the next net: whole nets there
+            placed = np.where(held, 0, placed) + net_counts(np.where(held, placed, 0), current + deficit)
+        if fill == "lowest":
+            share = fill_lowest(current + deficit, n_share, state.rng)
+        else:
+            share = uniform_counts(state.width, state.height, n_share, state.rng)
+        return state.request(counts=deficit + placed + share)
 
     def rare_gate(self, state: AdaptiveState) -> float:
         """The adaptive floor's rare-component gate: the ``rare_threshold`` option, or with None the sampler's.
