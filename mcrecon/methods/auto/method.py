@@ -621,7 +621,8 @@ class AutoMethod(Method):
 
         ``gem`` (default): :meth:`Method.plan` with :meth:`place`; in whole
         nets the net gate (:func:`~mcrecon.core.nets.net_plan`), and where a
-        rare component keeps the gate off, :meth:`even_under_rare`.
+        rare component keeps the gate off, :meth:`even_under_rare`; with independent samples the even round
+        (:func:`~mcrecon.core.nets.even_plan`) where gem's rare floor covers most of the film (``rare_even``).
         ``uniform``: doubling uniform rounds.  ``greedy``: ``iterations``
         rounds placing samples greedily.  Each greedy round reconstructs
         with every candidate, takes the chosen result's smoothed relative
