@@ -1,5 +1,5 @@
 """auto's independent rounds are even where the rare component's floor covers most of the film
-(``AutoMethod.rare_even``, :func:`mcrecon.core.nets.covering_rare_net_floor`)."""
+(:func:`mcrecon.core.nets.covered_even_plan`, :func:`mcrecon.core.nets.covering_rare_net_floor`)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 from mcrecon.core.nets import RARE_COVER, covering_rare_net_floor
 from mcrecon.core.stats import PixelStats
 from mcrecon.methods import get_method
-from mcrecon.methods.auto.method import AutoMethod
+from mcrecon.methods.auto import method as auto_method
 from mcrecon.methods.base import AdaptiveState, Method
 
 H, W = 8, 16
@@ -56,7 +56,7 @@ def test_a_light_over_most_of_the_film_makes_the_round_even(monkeypatch):
     counts = _plan(_state(W, per_pixel=per_pixel))
     assert (per_pixel + counts == 14).all()
     # without the rule GEM's greedy half ranks the pixels by its filters' noisy estimates
-    monkeypatch.setattr(AutoMethod, "rare_even", False)
+    monkeypatch.setattr(auto_method, "covered_even_plan", lambda *a, **k: None)
     assert np.ptp(_plan(_state(W))) > 3
 
 
@@ -67,12 +67,12 @@ def test_a_light_over_few_pixels_leaves_the_plan_alone(monkeypatch):
     assert 0 < cover <= RARE_COVER
     assert covering_rare_net_floor(state, threshold=3.0, min_cover=RARE_COVER) is None
     counts = _plan(_state(2))
-    monkeypatch.setattr(AutoMethod, "rare_even", False)
+    monkeypatch.setattr(auto_method, "covered_even_plan", lambda *a, **k: None)
     assert np.array_equal(counts, _plan(_state(2)))          # the same counts, the same random numbers
 
 
 @pytest.mark.parametrize("opts, sampler", [({}, "sobol"), ({"net_counts": 1}, "independent")])
 def test_whole_nets_keep_their_plan(monkeypatch, opts, sampler):
     counts = _plan(_state(W, sampler=sampler), **opts)
-    monkeypatch.setattr(AutoMethod, "rare_even", False)
+    monkeypatch.setattr(auto_method, "covered_even_plan", lambda *a, **k: None)
     assert np.array_equal(counts, _plan(_state(W, sampler=sampler), **opts))

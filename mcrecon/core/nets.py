@@ -57,7 +57,7 @@ import numba
 import numpy as np
 
 __all__ = ["net_counts", "fill_lowest", "rare_net_floor", "state_rare_net_floor", "covering_rare_net_floor",
-           "rare_net_deficit",
+           "rare_net_deficit", "covered_even_plan",
            "shows_structure", "even_round", "even_plan", "noise_only", "counts_with_pending", "round_cap_spp",
            "halves_error", "beats_even"]
 
@@ -346,6 +346,18 @@ def rare_net_deficit(state, *, threshold: float, min_cover: float = 0.0) -> np.n
     if floor is None:
         return None
     return np.maximum(floor - counts_with_pending(state), 0).astype(np.int64)
+
+
+def covered_even_plan(method, state, *, threshold: float):
+    """An independent run's round where the rare component's floor (:func:`covering_rare_net_floor` at
+    ``threshold``) covers more than :data:`RARE_COVER` of the pixels: :func:`even_plan`'s (auto's rounds, whose
+    final default there is a black box whose error rises with uneven counts; docs/adaptive.md).  None
+    elsewhere, for a stratified sampler or a method's ``net_counts`` of 1: the method's own round."""
+    if state.sampler != "independent" or method.params.get("net_counts") == 1:
+        return None
+    if covering_rare_net_floor(state, threshold=threshold, min_cover=RARE_COVER) is None:
+        return None
+    return even_plan(method, state)
 
 
 def net_plan(method, run, state):

@@ -42,7 +42,7 @@ from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGH
     feature_slices, release_prefiltered, seed_prefiltered)
 from .blackbox import BLACK_BOXES, Z_BLACKBOX, _guards, oidn_candidate, oidn_runs  # noqa: F401
 from .thinvote import thin_vote_shown
-from ...core.nets import RARE_COVER, covering_rare_net_floor, even_plan
+from ...core.nets import covered_even_plan
 from .onesided import one_sided
 from .nlmeans import nlmeans_cross
 from .proxy import REGRESSIONS, regression_share
@@ -205,10 +205,6 @@ class AutoMethod(Method):
     #: ``sampling="gem"``: a round in whole nets whose committed samples show a rare component and make a thin
     #: vote (:func:`.thinvote.thin_vote_shown`) is the even round (:meth:`even_under_rare`).
     thin_even = True
-    #: ``sampling="gem"``, independent samples: where the rare component's floor (gem's, at gem's gate) covers
-    #: most of the film (:func:`~mcrecon.core.nets.covering_rare_net_floor`, ``RARE_COVER``) the round is even
-    #: (:func:`~mcrecon.core.nets.even_plan`): every pixel's estimates read that light's noise (docs/adaptive.md).
-    rare_even = True
     options = (
         Option("candidates", str, DEFAULT_CANDIDATES, "comma-separated candidate reconstructions: "
                + ", ".join(CANDIDATES) + " (nlm/awr/splat split every pixel's samples into two halves: "
@@ -621,8 +617,7 @@ class AutoMethod(Method):
 
         ``gem`` (default): :meth:`Method.plan` with :meth:`place`; in whole
         nets the net gate (:func:`~mcrecon.core.nets.net_plan`), and where a
-        rare component keeps the gate off, :meth:`even_under_rare`; with independent samples the even round
-        (:func:`~mcrecon.core.nets.even_plan`) where gem's rare floor covers most of the film (``rare_even``).
+        rare component keeps the gate off, :meth:`even_under_rare`; independent: ``nets.covered_even_plan``.
         ``uniform``: doubling uniform rounds.  ``greedy``: ``iterations``
         rounds placing samples greedily.  Each greedy round reconstructs
         with every candidate, takes the chosen result's smoothed relative
@@ -635,10 +630,8 @@ class AutoMethod(Method):
         """
         p = self.params
         if p["sampling"] == "gem":
-            if self.rare_even and state.sampler == "independent" and p["net_counts"] != 1 and \
-                    covering_rare_net_floor(state, threshold=self._gem.rare_gate(state), min_cover=RARE_COVER) is not None:
-                return even_plan(self, state)
-            return super().plan(run, state)
+            even = covered_even_plan(self, state, threshold=self._gem.rare_gate(state))
+            return even if even is not None else super().plan(run, state)
         remaining = state.remaining
         if remaining <= 0:
             return None
