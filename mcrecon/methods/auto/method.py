@@ -615,9 +615,8 @@ class AutoMethod(Method):
     def plan(self, run: "AutoRun", state: AdaptiveState):
         """After the initial pass (uniform ``initial_spp``), rounds as ``sampling`` says.
 
-        ``gem`` (default): :meth:`Method.plan` with :meth:`place`; in whole
-        nets the net gate (:func:`~mcrecon.core.nets.net_plan`), and where a
-        rare component keeps the gate off, :meth:`even_under_rare`; independent: ``nets.covered_even_plan``.
+        ``gem`` (default): :meth:`Method.plan` with :meth:`place`; in whole nets the net gate (``nets.net_plan``),
+        where a rare component keeps it off :meth:`even_under_rare`; independent: ``nets.covered_even_plan``.
         ``uniform``: doubling uniform rounds.  ``greedy``: ``iterations``
         rounds placing samples greedily.  Each greedy round reconstructs
         with every candidate, takes the chosen result's smoothed relative
@@ -630,8 +629,7 @@ class AutoMethod(Method):
         """
         p = self.params
         if p["sampling"] == "gem":
-            even = covered_even_plan(self, state, threshold=self._gem.rare_gate(state))
-            return even if even is not None else super().plan(run, state)
+            return covered_even_plan(self, state, threshold=self._gem.rare_gate(state)) or super().plan(run, state)
         remaining = state.remaining
         if remaining <= 0:
             return None
