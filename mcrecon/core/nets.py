@@ -56,7 +56,8 @@ import dataclasses
 import numba
 import numpy as np
 
-__all__ = ["net_counts", "fill_lowest", "rare_net_floor", "state_rare_net_floor", "rare_net_deficit",
+__all__ = ["net_counts", "fill_lowest", "rare_net_floor", "state_rare_net_floor", "covering_rare_net_floor",
+           "rare_net_deficit", "covered_even_plan",
            "shows_structure", "even_round", "even_plan", "noise_only", "counts_with_pending", "round_cap_spp",
            "halves_error", "beats_even"]
 
@@ -65,9 +66,9 @@ STRUCTURE_Z = 4.0
 #: A reconstruction's error in whole Sobol nets falls as ``n^-NET_RATE`` (awr on depth_of_field,
 #: depth_of_field-1 and checker_dof: a pixel at 16 samples errs 1.7x, one at 64 0.53-0.67x its error at 32).
 NET_RATE = 0.75
-#: awr's independent rounds pay the rare component's floor only where it covers more than this share of the
-#: pixels (a light over most of the film: checker_spot's 0.8-0.93; a caustic's 0.25 and an emitter's rim,
-#: 0.02-0.05 on hdr, keep the sampler's own ranking: docs/adaptive.md).
+#: awr's and auto's independent rounds pay the rare component's floor only where it covers more than this share
+#: of the pixels (a light over most of the film: checker_spot's 0.6-0.94; a caustic's 0.21-0.29 and an emitter's
+#: rim, 0.01-0.05 on hdr, keep the sampler's own ranking: docs/adaptive.md).
 RARE_COVER = 0.5
 
 
@@ -328,14 +329,35 @@ def state_rare_net_floor(state, *, threshold: float) -> np.ndarray:
                           threshold=threshold)
 
 
-def rare_net_deficit(state, *, threshold: float, min_cover: float = 0.0) -> np.ndarray | None:
-    """Samples per pixel (H, W) int64 an adaptive round owes a pixel to reach its
-    :func:`state_rare_net_floor`, the samples in flight counted as taken; None where ``min_cover`` > 0
-    and the floor covers no more than that share of the pixels."""
+def covering_rare_net_floor(state, *, threshold: float, min_cover: float) -> np.ndarray | None:
+    """:func:`state_rare_net_floor`, or None where ``min_cover`` > 0 and the floor covers no more than that share
+    of the pixels (:data:`RARE_COVER`: a light over most of the film, whose noise every pixel's estimates read)."""
     floor = state_rare_net_floor(state, threshold=threshold)
     if min_cover > 0 and np.mean(floor > 0) <= min_cover:
         return None
+    return floor
+
+
+def rare_net_deficit(state, *, threshold: float, min_cover: float = 0.0) -> np.ndarray | None:
+    """Samples per pixel (H, W) int64 an adaptive round owes a pixel to reach its
+    :func:`state_rare_net_floor`, the samples in flight counted as taken; None where ``min_cover`` > 0
+    and the floor covers no more than that share of the pixels (:func:`covering_rare_net_floor`)."""
+    floor = covering_rare_net_floor(state, threshold=threshold, min_cover=min_cover)
+    if floor is None:
+        return None
     return np.maximum(floor - counts_with_pending(state), 0).astype(np.int64)
+
+
+def covered_even_plan(method, state, *, threshold: float):
+    """An independent run's round where the rare component's floor (:func:`covering_rare_net_floor` at
+    ``threshold``) covers more than :data:`RARE_COVER` of the pixels: :func:`even_plan`'s (auto's rounds, whose
+    final default there is a black box whose error rises with uneven counts; docs/adaptive.md).  None
+    elsewhere, for a stratified sampler or a method's ``net_counts`` of 1: the method's own round."""
+    if state.sampler != "independent" or method.params.get("net_counts") == 1:
+        return None
+    if covering_rare_net_floor(state, threshold=threshold, min_cover=RARE_COVER) is None:
+        return None
+    return even_plan(method, state)
 
 
 def net_plan(method, run, state):

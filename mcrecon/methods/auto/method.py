@@ -42,6 +42,7 @@ from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGH
     feature_slices, release_prefiltered, seed_prefiltered)
 from .blackbox import BLACK_BOXES, Z_BLACKBOX, _guards, oidn_candidate, oidn_runs  # noqa: F401
 from .thinvote import thin_vote_shown
+from ...core.nets import covered_even_plan
 from .onesided import one_sided
 from .rim import rim_box
 from .nlmeans import nlmeans_cross
@@ -615,9 +616,8 @@ class AutoMethod(Method):
     def plan(self, run: "AutoRun", state: AdaptiveState):
         """After the initial pass (uniform ``initial_spp``), rounds as ``sampling`` says.
 
-        ``gem`` (default): :meth:`Method.plan` with :meth:`place`; in whole
-        nets the net gate (:func:`~mcrecon.core.nets.net_plan`), and where a
-        rare component keeps the gate off, :meth:`even_under_rare`.
+        ``gem`` (default): :meth:`Method.plan` with :meth:`place`; in whole nets the net gate (``nets.net_plan``),
+        where a rare component keeps it off :meth:`even_under_rare`; independent: ``nets.covered_even_plan``.
         ``uniform``: doubling uniform rounds.  ``greedy``: ``iterations``
         rounds placing samples greedily.  Each greedy round reconstructs
         with every candidate, takes the chosen result's smoothed relative
@@ -630,7 +630,7 @@ class AutoMethod(Method):
         """
         p = self.params
         if p["sampling"] == "gem":
-            return super().plan(run, state)
+            return covered_even_plan(self, state, threshold=self._gem.rare_gate(state)) or super().plan(run, state)
         remaining = state.remaining
         if remaining <= 0:
             return None
