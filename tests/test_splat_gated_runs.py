@@ -11,8 +11,8 @@ from mcrecon.methods.splat.gated import GATE_SIDE, _splat_gated_runs, lattice_ta
 from mcrecon.methods.splat.kernels import _splat_gated_loop
 
 
-def _case(w, h, spp, seed, shuffle):
-    """A round of a noisy step with a feature, the gate's statistics, radii up to 5 px (some <= 0)."""
+def _case(w, h, spp, seed, shuffle, rmax=5.0):
+    """A round of a noisy step with a feature, the gate's statistics, radii up to ``rmax`` px (some <= 0)."""
     rng = np.random.default_rng(seed)
     pos = jittered_positions(np.full((h, w), spp), rng)
     lum = np.where(pos[:, 0] < w / 2, 0.5, 0.8) * (0.5 + rng.random(len(pos)))
@@ -33,7 +33,7 @@ def _case(w, h, spp, seed, shuffle):
     fs = np.zeros((h, w, 1, 5))
     fs[..., 0, 0] = fmean
     fs[..., 0, 1] = 1e-6
-    radius = rng.uniform(0.3, 5.0, len(pos))
+    radius = rng.uniform(0.3, rmax, len(pos))
     radius[rng.random(len(pos)) < 0.2] = -1.0
     frac = np.where(rng.random(len(pos)) < 0.1, rng.random(len(pos)), 0.0)
     inv = 1.0 / counts
@@ -44,14 +44,15 @@ def _memo(w, h):
     return np.zeros((w * h, GATE_SIDE * GATE_SIDE), np.int8)
 
 
-@pytest.mark.parametrize("w, h, spp, mode, shuffle", [(12, 10, 8, 0, False), (12, 10, 8, 0, True), (12, 10, 8, 2, False),
-                                                       (3, 9, 8, 0, False), (9, 2, 8, 2, True), (4, 3, 150, 0, False)])
-def test_runs_equal_the_per_sample_loop(w, h, spp, mode, shuffle):
+@pytest.mark.parametrize("w, h, spp, mode, shuffle, rmax", [
+    (12, 10, 8, 0, False, 5.0), (12, 10, 8, 0, True, 5.0), (12, 10, 8, 2, False, 5.0), (3, 9, 8, 0, False, 5.0),
+    (9, 2, 8, 2, True, 5.0), (4, 3, 150, 0, False, 5.0), (16, 14, 8, 0, False, 11.0)])
+def test_runs_equal_the_per_sample_loop(w, h, spp, mode, shuffle, rmax):
     """The same deposits to rounding, in bands of rows too (the samples of every band's reach, the gate's
     answers shared between the bands), films narrower than the footprints (mirrored more than once),
     samples shuffled (runs of one sample), the none boundary (energy lost off the film alike), runs longer
-    than the kernel's first buffers."""
-    args = _case(w, h, spp, 3, shuffle)
+    than the kernel's first buffers, footprints wider than its first table of squared offsets (r^2 > 64)."""
+    args = _case(w, h, spp, 3, shuffle, rmax)
     n = len(args[0])
     ref = np.zeros((h, w, 3))
     _splat_gated_loop(*args, mode, ref, 0, n, 0, h)

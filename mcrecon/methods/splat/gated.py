@@ -9,9 +9,11 @@ the sample's energy over its footprint's weight sum ``s(r_k)``.  For the
 samples of one pixel that is a sum over the samples whose radius exceeds
 ``|o|``, split at ``reach``: with the samples sorted by radius, two suffix
 sums (of ``a_k`` and of ``a_k / r_k^2``) give the pixel's whole deposit at
-an offset in O(log n), so a run of n samples of one pixel costs one pass
-over its widest footprint instead of n footprints, and writes each covered
-pixel once.  ``s(r)`` comes from a table of the lattice points by ``|o|^2``
+an offset from two indices: the first sample whose radius exceeds ``|o|``
+(a table over the integer ``|o|^2`` the run reaches, filled in one pass)
+and the first beyond ``reach`` (a few steps on from it).  So a run of n
+samples of one pixel costs one pass over its widest footprint instead of n
+footprints, and writes each covered pixel once.  ``s(r)`` comes from a table of the lattice points by ``|o|^2``
 (the mirror and none boundaries normalise over the unbounded grid, so it
 depends on r only).  What the gate keeps from the footprints goes home,
 as in the per-sample loop.  A sample whose footprint covers its own centre
@@ -90,6 +92,7 @@ def _splat_gated_runs(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
     sa = np.empty((cap + 1, nc))  # suffix sums of a_k
     sb = np.empty((cap + 1, nc))  # ... and of a_k / r_k^2
     dep = np.empty(nc)
+    first = np.empty(64, np.int64)
     home = np.empty(nc)
     k = k0
     while k < k1:
@@ -149,6 +152,16 @@ def _splat_gated_runs(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
                     sb[i, c] = sb[i + 1, c] + amp[i, c] / r2s[i]
             rp = r_edge[py, px]
             rr = int(math.ceil(math.sqrt(rmax2)))
+            # first[L]: the first sample whose r^2 exceeds L (searchsorted's side right), for every
+            # integer |o|^2 = L the footprints reach: one pass over the run, not a search per offset
+            lim = int(math.ceil(rmax2))
+            if lim >= first.shape[0]:
+                first = np.empty(2 * (lim + 1), np.int64)
+            i = 0
+            for n2 in range(lim + 1):
+                while i < n and r2s[i] <= n2:
+                    i += 1
+                first[n2] = i
             for dy in range(-rr, rr + 1):
                 j = py + dy
                 jj = j if 0 <= j < h else _reflect(j, h)
@@ -159,7 +172,7 @@ def _splat_gated_runs(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
                     n2 = dx * dx + dy * dy
                     if not n2 < rmax2:
                         continue
-                    i_d = np.searchsorted(r2s[:n], n2, side="right")   # the first radius beyond n2 (n: none)
+                    i_d = first[n2]  # the first radius beyond n2 (n: none)
                     i = px + dx
                     ii = i if 0 <= i < w else _reflect(i, w)
                     if jj == j and ii == i and -GATE_HALF <= dx <= GATE_HALF and -GATE_HALF <= dy <= GATE_HALF:
@@ -175,7 +188,9 @@ def _splat_gated_runs(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
                     re = min(rp, r_edge[jj, ii]) if passes else -1.0
                     re2 = re * re
                     if re > 0.0 and n2 < re2:
-                        i_re = np.searchsorted(r2s[:n], re2, side="right")
+                        i_re = i_d  # the first radius beyond re2 > n2: at or after i_d, a few steps on
+                        while i_re < n and r2s[i_re] <= re2:
+                            i_re += 1
                         g = 1.0 - n2 / re2
                         for c in range(nc):
                             dep[c] = (sa[i_d, c] - sa[i_re, c]) - n2 * (sb[i_d, c] - sb[i_re, c]) + sa[i_re, c] * g
