@@ -8,7 +8,7 @@ import pytest
 from mcrecon.core.requests import jittered_positions
 from mcrecon.methods.splat.consistent import edge_radius, gate_k, pixel_moments
 from mcrecon.methods.splat.gated import GATE_SIDE, _splat_gated_runs, lattice_tables
-from mcrecon.methods.splat.kernels import _splat_gated_loop
+from mcrecon.methods.splat.kernels import _add_widths, _splat_gated_loop
 
 
 def _case(w, h, spp, seed, shuffle, rmax=5.0):
@@ -56,14 +56,25 @@ def test_runs_equal_the_per_sample_loop(w, h, spp, mode, shuffle, rmax):
     n = len(args[0])
     ref = np.zeros((h, w, 3))
     _splat_gated_loop(*args, mode, ref, 0, n, 0, h)
+    # the outliers' radii (some samples), the default diameter's half: the widths the pass adds
+    orad = np.where(np.random.default_rng(4).random(n) < 0.1, 2.5, -1.0)
+    ref_ws, ref_wn = np.zeros((h, w)), np.zeros((h, w), np.int64)
+    _add_widths(args[0], orad, args[5], 0.5, ref_ws, ref_wn, 0, n, 0, h)
     got = np.zeros((h, w, 3))
-    assert _splat_gated_runs(*args, mode, got, _memo(w, h), 0, n, 0, h) == 0
+    ws, wn = np.zeros((h, w)), np.zeros((h, w), np.int64)
+    assert _splat_gated_runs(*args, mode, got, _memo(w, h), orad, 0.5, ws, wn, 0, n, 0, h) == 0
     np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(ws, ref_ws)  # the same sums, in the same order: the same bits
+    np.testing.assert_array_equal(wn, ref_wn)
+    assert wn.sum() == n  # every sample has a diameter (the default where it has no radius)
     banded = np.zeros((h, w, 3))
     memo = _memo(w, h)
+    bws, bwn = np.zeros((h, w)), np.zeros((h, w), np.int64)
     for j0, j1 in ((0, 1), (1, h // 2), (h // 2, h)):
-        _splat_gated_runs(*args, mode, banded, memo, 0, n, j0, j1)
+        _splat_gated_runs(*args, mode, banded, memo, orad, 0.5, bws, bwn, 0, n, j0, j1)
     np.testing.assert_array_equal(banded, got)
+    np.testing.assert_array_equal(bws, ws)
+    np.testing.assert_array_equal(bwn, wn)
     total = (args[1] * (args[2] * args[3][np.floor(args[0][:, 1]).astype(int), np.floor(args[0][:, 0]).astype(int)]
                         * (1 - args[4]))[:, None]).sum(axis=0)
     if mode == 0:

@@ -69,15 +69,18 @@ def _footprint_sum(r2, cnt, sq):
 
 
 @numba.njit(cache=True, nogil=True)
-def _splat_gated_runs(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, fs, k2, mode, out, gate, k0, k1,
-                      j0, j1):
-    """:func:`.kernels._splat_gated_loop` (same arguments; ``mode`` 0 mirror or 2 none), one run of
-    consecutive samples of a pixel at a time (the module's docstring).  ``gate`` (H W, :data:`GATE_SIDE` ^ 2)
-    int8, zero before a round's first band: the gate's answers between on-film neighbours at most
+def _splat_gated_runs(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, fs, k2, mode, out, gate,
+                      outlier_radius, default_radius, width_sum, width_n, k0, k1, j0, j1):
+    """:func:`.kernels._splat_gated_loop` (its arguments up to ``out``; ``mode`` 0 mirror or 2 none), one run
+    of consecutive samples of a pixel at a time (the module's docstring).  ``gate`` (H W, :data:`GATE_SIDE`
+    ^ 2) int8, zero before a round's first band: the gate's answers between on-film neighbours at most
     :data:`GATE_HALF` apart along each axis (1 passes, 2 refuses, 0 not asked yet), stored for both pixels
     of a pair when one asks: the test is symmetric in p and q, so the other reads it (bands on separate
-    threads may both ask: they store the same answer).  Returns 0: a footprint on the pixel grid always
-    covers its own centre, so no sample falls back."""
+    threads may both ask: they store the same answer).  In the same pass, the terms of
+    :func:`.kernels._add_widths` (``outlier_radius``, ``radius`` as its spread radius, ``default_radius``)
+    go to ``width_sum`` and ``width_n`` (H, W), each pixel's in sample order: the same sums, without a
+    pass of their own.  Returns 0: a footprint on the pixel grid always covers its own centre, so no
+    sample falls back."""
     h = out.shape[0]
     w = out.shape[1]
     nc = out.shape[2]
@@ -103,6 +106,18 @@ def _splat_gated_runs(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
                 and min(max(int(math.floor(pos[end, 1])), 0), h - 1) == py:
             end += 1
         inside = j0 <= py < j1
+        if inside:  # the run's kernel diameters (:func:`.kernels._add_widths`), in sample order
+            ws = width_sum[py, px]
+            wn = width_n[py, px]
+            for t in range(k, end):
+                r = outlier_radius[t]
+                if not r > 0.0:
+                    r = radius[t] if radius[t] > 0.0 else default_radius
+                if r > 0.0:
+                    ws += 2.0 * r
+                    wn += 1
+            width_sum[py, px] = ws
+            width_n[py, px] = wn
         base = w_round * inv_counts[py, px]
         for c in range(nc):
             home[c] = 0.0
