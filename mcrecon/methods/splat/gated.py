@@ -190,17 +190,22 @@ def _splat_gated_runs(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
                     i_d = first[n2]  # the first radius beyond n2 (n: none)
                     i = px + dx
                     ii = i if 0 <= i < w else _reflect(i, w)
-                    if jj == j and ii == i and -GATE_HALF <= dx <= GATE_HALF and -GATE_HALF <= dy <= GATE_HALF:
-                        t = (dy + GATE_HALF) * GATE_SIDE + dx + GATE_HALF
-                        ans = gate[py * w + px, t]
-                        if ans == 0:
-                            ans = 1 if _same_pixel_stats(gs, fs, py, px, jj, ii, k2) else 2
-                            gate[py * w + px, t] = ans
-                            gate[jj * w + ii, GATE_SIDE * GATE_SIDE - 1 - t] = ans
-                        passes = ans == 1
-                    else:
-                        passes = _same_pixel_stats(gs, fs, py, px, jj, ii, k2)
-                    re = min(rp, r_edge[jj, ii]) if passes else -1.0
+                    # the reach where the gate passes; beyond it (or at a reach of 0) q gets what a refused
+                    # q gets, so the gate is asked only within it
+                    re = min(rp, r_edge[jj, ii])
+                    if re > 0.0 and n2 < re * re:
+                        if jj == j and ii == i and -GATE_HALF <= dx <= GATE_HALF and -GATE_HALF <= dy <= GATE_HALF:
+                            t = (dy + GATE_HALF) * GATE_SIDE + dx + GATE_HALF
+                            ans = gate[py * w + px, t]
+                            if ans == 0:
+                                ans = 1 if _same_pixel_stats(gs, fs, py, px, jj, ii, k2) else 2
+                                gate[py * w + px, t] = ans
+                                gate[jj * w + ii, GATE_SIDE * GATE_SIDE - 1 - t] = ans
+                            passes = ans == 1
+                        else:
+                            passes = _same_pixel_stats(gs, fs, py, px, jj, ii, k2)
+                        if not passes:
+                            re = -1.0
                     re2 = re * re
                     if re > 0.0 and n2 < re2:
                         i_re = i_d  # the first radius beyond re2 > n2: at or after i_d, a few steps on
