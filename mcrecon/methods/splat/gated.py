@@ -9,9 +9,11 @@ the sample's energy over its footprint's weight sum ``s(r_k)``.  For the
 samples of one pixel that is a sum over the samples whose radius exceeds
 ``|o|``, split at ``reach``: with the samples sorted by radius, two suffix
 sums (of ``a_k`` and of ``a_k / r_k^2``) give the pixel's whole deposit at
-an offset in O(log n), so a run of n samples of one pixel costs one pass
-over its widest footprint instead of n footprints, and writes each covered
-pixel once.  ``s(r)`` comes from a table of the lattice points by ``|o|^2``
+an offset from two indices: the first sample whose radius exceeds ``|o|``
+(a table over the integer ``|o|^2`` the run reaches, filled in one pass)
+and the first beyond ``reach`` (a few steps on from it).  So a run of n
+samples of one pixel costs one pass over its widest footprint instead of n
+footprints, and writes each covered pixel once.  ``s(r)`` comes from a table of the lattice points by ``|o|^2``
 (the mirror and none boundaries normalise over the unbounded grid, so it
 depends on r only).  What the gate keeps from the footprints goes home,
 as in the per-sample loop.  A sample whose footprint covers its own centre
@@ -67,15 +69,18 @@ def _footprint_sum(r2, cnt, sq):
 
 
 @numba.njit(cache=True, nogil=True)
-def _splat_gated_runs(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, fs, k2, mode, out, gate, k0, k1,
-                      j0, j1):
-    """:func:`.kernels._splat_gated_loop` (same arguments; ``mode`` 0 mirror or 2 none), one run of
-    consecutive samples of a pixel at a time (the module's docstring).  ``gate`` (H W, :data:`GATE_SIDE` ^ 2)
-    int8, zero before a round's first band: the gate's answers between on-film neighbours at most
+def _splat_gated_runs(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, fs, k2, mode, out, gate,
+                      outlier_radius, default_radius, width_sum, width_n, k0, k1, j0, j1):
+    """:func:`.kernels._splat_gated_loop` (its arguments up to ``out``; ``mode`` 0 mirror or 2 none), one run
+    of consecutive samples of a pixel at a time (the module's docstring).  ``gate`` (H W, :data:`GATE_SIDE`
+    ^ 2) int8, zero before a round's first band: the gate's answers between on-film neighbours at most
     :data:`GATE_HALF` apart along each axis (1 passes, 2 refuses, 0 not asked yet), stored for both pixels
     of a pair when one asks: the test is symmetric in p and q, so the other reads it (bands on separate
-    threads may both ask: they store the same answer).  Returns 0: a footprint on the pixel grid always
-    covers its own centre, so no sample falls back."""
+    threads may both ask: they store the same answer).  In the same pass, the terms of
+    :func:`.kernels._add_widths` (``outlier_radius``, ``radius`` as its spread radius, ``default_radius``)
+    go to ``width_sum`` and ``width_n`` (H, W), each pixel's in sample order: the same sums, without a
+    pass of their own.  Returns 0: a footprint on the pixel grid always covers its own centre, so no
+    sample falls back."""
     h = out.shape[0]
     w = out.shape[1]
     nc = out.shape[2]
@@ -90,6 +95,7 @@ def _splat_gated_runs(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
     sa = np.empty((cap + 1, nc))  # suffix sums of a_k
     sb = np.empty((cap + 1, nc))  # ... and of a_k / r_k^2
     dep = np.empty(nc)
+    first = np.empty(64, np.int64)
     home = np.empty(nc)
     k = k0
     while k < k1:
@@ -100,6 +106,18 @@ def _splat_gated_runs(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
                 and min(max(int(math.floor(pos[end, 1])), 0), h - 1) == py:
             end += 1
         inside = j0 <= py < j1
+        if inside:  # the run's kernel diameters (:func:`.kernels._add_widths`), in sample order
+            ws = width_sum[py, px]
+            wn = width_n[py, px]
+            for t in range(k, end):
+                r = outlier_radius[t]
+                if not r > 0.0:
+                    r = radius[t] if radius[t] > 0.0 else default_radius
+                if r > 0.0:
+                    ws += 2.0 * r
+                    wn += 1
+            width_sum[py, px] = ws
+            width_n[py, px] = wn
         base = w_round * inv_counts[py, px]
         for c in range(nc):
             home[c] = 0.0
@@ -149,6 +167,16 @@ def _splat_gated_runs(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
                     sb[i, c] = sb[i + 1, c] + amp[i, c] / r2s[i]
             rp = r_edge[py, px]
             rr = int(math.ceil(math.sqrt(rmax2)))
+            # first[L]: the first sample whose r^2 exceeds L (searchsorted's side right), for every
+            # integer |o|^2 = L the footprints reach: one pass over the run, not a search per offset
+            lim = int(math.ceil(rmax2))
+            if lim >= first.shape[0]:
+                first = np.empty(2 * (lim + 1), np.int64)
+            i = 0
+            for n2 in range(lim + 1):
+                while i < n and r2s[i] <= n2:
+                    i += 1
+                first[n2] = i
             for dy in range(-rr, rr + 1):
                 j = py + dy
                 jj = j if 0 <= j < h else _reflect(j, h)
@@ -159,23 +187,30 @@ def _splat_gated_runs(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
                     n2 = dx * dx + dy * dy
                     if not n2 < rmax2:
                         continue
-                    i_d = np.searchsorted(r2s[:n], n2, side="right")   # the first radius beyond n2 (n: none)
+                    i_d = first[n2]  # the first radius beyond n2 (n: none)
                     i = px + dx
                     ii = i if 0 <= i < w else _reflect(i, w)
-                    if jj == j and ii == i and -GATE_HALF <= dx <= GATE_HALF and -GATE_HALF <= dy <= GATE_HALF:
-                        t = (dy + GATE_HALF) * GATE_SIDE + dx + GATE_HALF
-                        ans = gate[py * w + px, t]
-                        if ans == 0:
-                            ans = 1 if _same_pixel_stats(gs, fs, py, px, jj, ii, k2) else 2
-                            gate[py * w + px, t] = ans
-                            gate[jj * w + ii, GATE_SIDE * GATE_SIDE - 1 - t] = ans
-                        passes = ans == 1
-                    else:
-                        passes = _same_pixel_stats(gs, fs, py, px, jj, ii, k2)
-                    re = min(rp, r_edge[jj, ii]) if passes else -1.0
+                    # the reach where the gate passes; beyond it (or at a reach of 0) q gets what a refused
+                    # q gets, so the gate is asked only within it
+                    re = min(rp, r_edge[jj, ii])
+                    if re > 0.0 and n2 < re * re:
+                        if jj == j and ii == i and -GATE_HALF <= dx <= GATE_HALF and -GATE_HALF <= dy <= GATE_HALF:
+                            t = (dy + GATE_HALF) * GATE_SIDE + dx + GATE_HALF
+                            ans = gate[py * w + px, t]
+                            if ans == 0:
+                                ans = 1 if _same_pixel_stats(gs, fs, py, px, jj, ii, k2) else 2
+                                gate[py * w + px, t] = ans
+                                gate[jj * w + ii, GATE_SIDE * GATE_SIDE - 1 - t] = ans
+                            passes = ans == 1
+                        else:
+                            passes = _same_pixel_stats(gs, fs, py, px, jj, ii, k2)
+                        if not passes:
+                            re = -1.0
                     re2 = re * re
                     if re > 0.0 and n2 < re2:
-                        i_re = np.searchsorted(r2s[:n], re2, side="right")
+                        i_re = i_d  # the first radius beyond re2 > n2: at or after i_d, a few steps on
+                        while i_re < n and r2s[i_re] <= re2:
+                            i_re += 1
                         g = 1.0 - n2 / re2
                         for c in range(nc):
                             dep[c] = (sa[i_d, c] - sa[i_re, c]) - n2 * (sb[i_d, c] - sb[i_re, c]) + sa[i_re, c] * g

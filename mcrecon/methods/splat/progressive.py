@@ -611,6 +611,10 @@ class ProgressiveSplatter:
             for n_out, n_cap in split:
                 outliers += n_out
                 capped += n_cap
+            # the kernel diameters of the samples: a chunk's sums are added as a whole, as a round's were
+            # (the same sums)
+            cw, cn = (np.zeros_like(w2), np.zeros_like(n2)) if arrays is None else (w2, n2)
+            widths = True  # still to add (the gated runs add them in their pass)
             if consistent:
                 # in bands of rows of about equal samples, one per thread; a sample near a band's edge
                 # costs both threads its footprint (reach: a radius is at most max_width / 2)
@@ -619,7 +623,8 @@ class ProgressiveSplatter:
                 else:  # the gate's answers, kept for the round (its statistics hold for the round)
                     if gate_memo is None:
                         gate_memo = np.zeros((p_film, GATE_SIDE * GATE_SIDE), np.int8)
-                    gated, tail = _splat_gated_runs, (gate_memo,)
+                    gated, tail = _splat_gated_runs, (gate_memo, rad, 0.5 * self.min_width, cw, cn)
+                    widths = False
                 fallback += sum(in_bands(gated, (p, v, w_round, inv_counts, frac, krad, r_edge, gstats,
                                                  fstats, self._gate_k ** 2, mode, img) + tail,
                                          p, self.height, row_work=row_work, sorted_rows=srt,
@@ -633,13 +638,11 @@ class ProgressiveSplatter:
                                                np.ascontiguousarray(v[sel], dtype=np.float64),
                                                w_round * inv_counts[self._pixel_of(ps)] * frac[sel],
                                                np.ascontiguousarray(rad[sel]), guide, mode, img)
-            if arrays is None:  # a chunk's sums are added as a whole, as a round's were (the same sums)
-                cw, cn = np.zeros_like(w2), np.zeros_like(n2)
+            if widths:
                 in_bands(_add_widths, (p, rad, krad, 0.5 * self.min_width, cw, cn), p, self.height, sorted_rows=srt)
+            if arrays is None:
                 w2 += cw
                 n2 += cn
-            else:
-                in_bands(_add_widths, (p, rad, krad, 0.5 * self.min_width, w2, n2), p, self.height, sorted_rows=srt)
         if empty.any() and not first:
             img[empty] += w_round * prev[empty]
         self.image = img
