@@ -15,7 +15,7 @@ from mcrecon import SampleSet
 from mcrecon.core.stats import PixelStats
 from mcrecon.methods.auto import method as auto_method
 from mcrecon.methods.auto.features import Candidate
-from mcrecon.methods.auto.rim import OWN_LIFT, Z_OWN, own_interval
+from mcrecon.methods.auto.rim import OWN_LIFT, TAIL, Z_OWN, own_interval
 
 
 def _emitter(h=32, w=32, n=32, seed=0):
@@ -69,6 +69,8 @@ def _case(lit=True):
     (0.02 * (1 + OWN_LIFT) * 0.99, True, True, True),   # far outside its own interval, not lifted enough: kept
     (5.0, False, True, True),                          # not a pixel of ``where``: kept
     (5.0, True, False, True),                          # the bright neighbour's mean one sample carries: kept
+    (1000.0 * TAIL * 1.01, True, True, True),          # lifted towards the neighbour's level (a light it missed): kept
+    (1000.0 * TAIL * 0.99, True, True, False),         # a blur's tail of the neighbour's light: the mean
 ])
 def test_own_interval_takes_the_mean_only_beyond_every_bound(value, where, lit, kept):
     y, v = _case(lit)
