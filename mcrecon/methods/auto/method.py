@@ -44,7 +44,7 @@ from .blackbox import BLACK_BOXES, Z_BLACKBOX, _guards, oidn_candidate, oidn_run
 from .thinvote import thin_vote_shown
 from ...core.nets import covered_even_plan
 from .onesided import one_sided
-from .rim import rim_box
+from .rim import own_interval, rim_box
 from .nlmeans import nlmeans_cross
 from .proxy import REGRESSIONS, regression_share
 from ...filters.masked import MaskedSmoothing, smooth_masked
@@ -537,7 +537,6 @@ class AutoMethod(Method):
                                                steady=steady, steady_var=v_wide, rare=_all_samples_box(cands), rim=rim_box(cands),
                                                info=prior, fixed=None if film is None else film.default,
                                                heavy=one_sided(stats) if film is None else None)
-        # ties (e.g. noise-free regions, where every ratio is undefined) go to the first candidate
         if cands[0].name == "box" and smooth > 0:
             # Region guard: where the chosen candidates' unbiased estimates,
             # summed over a neighbourhood (relative, as the metric sums them),
@@ -585,7 +584,8 @@ class AutoMethod(Method):
                 _no_push_in_heavy_tails(img, y, hi, out=img, scale=divisor)
                 if kept is not None:
                     img[keep] = kept
-        # the raw estimate is undefined at empty pixels: the smoothed absolute one there
+            if black:  # nor a value far outside its own interval where a pixel's samples agree (rim.own_interval)
+                own_interval(img, y, v, on_default)
         fin = np.isfinite(raw_abs)
         if not fin.all():
             raw_abs = np.where(fin, raw_abs, smooth_masked(raw_abs, max(smooth, 1.0)))
