@@ -32,7 +32,7 @@ import math
 import numba
 import numpy as np
 
-from .kernels import _reflect, _same_pixel_stats
+from .kernels import _kernel_radius, _reflect, _same_pixel_stats
 
 __all__: list[str] = []
 
@@ -110,9 +110,7 @@ def _splat_gated_runs(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
             ws = width_sum[py, px]
             wn = width_n[py, px]
             for t in range(k, end):
-                r = outlier_radius[t]
-                if not r > 0.0:
-                    r = radius[t] if radius[t] > 0.0 else default_radius
+                r = _kernel_radius(outlier_radius[t], radius[t], default_radius)
                 if r > 0.0:
                     ws += 2.0 * r
                     wn += 1

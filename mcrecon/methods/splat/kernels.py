@@ -513,6 +513,15 @@ def _splat_gated_loop(pos, val, w_round, inv_counts, frac, radius, r_edge, gs, f
     return n_fallback
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _kernel_radius(radius, spread_radius, default_radius):
+    """A sample's kernel radius as the width diagnostic counts it: ``radius`` where it is positive (an
+    outlier's excess), else ``spread_radius`` where positive, else ``default_radius``."""
+    if radius > 0.0:
+        return radius
+    return spread_radius if spread_radius > 0.0 else default_radius
+
+
 @numba.njit(cache=True, nogil=True)
 def _add_widths(pos, radius, spread_radius, default_radius, width_sum, width_n, k0, k1, j0, j1):
     """Add the kernel diameter of each sample ``k0 <= k < k1`` of the rows ``j0 <= j < j1`` to its pixel's sum
@@ -523,9 +532,7 @@ def _add_widths(pos, radius, spread_radius, default_radius, width_sum, width_n, 
         py = min(max(int(math.floor(pos[k, 1])), 0), h - 1)
         if not j0 <= py < j1:
             continue
-        r = radius[k]
-        if not r > 0.0:
-            r = spread_radius[k] if spread_radius[k] > 0.0 else default_radius
+        r = _kernel_radius(radius[k], spread_radius[k], default_radius)
         if not r > 0.0:
             continue
         px = min(max(int(math.floor(pos[k, 0])), 0), w - 1)
