@@ -27,7 +27,9 @@ issue's targets).  ``--json`` writes all of it; ``--compare before.json`` adds
 each scene's and method's ratio change against an earlier run.
 
 A scene not built is skipped with the command that builds it.  The
-held-out half at 128^2 and 32 spp takes about 2 CPU minutes once built (5-15 CPU s a scene).
+held-out half at 128^2 and 32 spp takes about 2 CPU minutes once built (5-15 CPU s a scene); at 512^2
+about 15 CPU minutes for its 14 scenes without Cycles (auto and nfor about 6 each), and the
+built-in scenes' exact references 15-40 CPU s each on first use (then cached).
 """
 
 from __future__ import annotations

@@ -32,7 +32,10 @@ external ones are rendered once by ``--build`` and cached under
 ``--build`` at 128^2, 32 spp and 1024-spp references took 33 minutes of
 wall on 2 cores shared with other jobs, about 12 CPU minutes (the Cycles
 references 190-560 s of wall each, most of it; Mitsuba's 18-62 s; the logs
-8-28 s each); 512^2 costs 16 times that.  A
+8-28 s each); 512^2 costs about 16 times that (the held-out Mitsuba scenes'
+512^2 references 271 and 400 CPU s, 10 and 18 minutes of wall on 2 busy
+cores; their logs 24 and 42 s).  The Cycles scenes need ``bpy`` importable
+beside this numpy; their 512^2 references take hours on 2 cores.  A
 1024-spp reference's own noise adds about 32/1024 of the pixel mean's
 relMSE to every measured 32-spp relMSE (``--ref-spp`` for more).
 
@@ -244,7 +247,7 @@ def _paths(entry, size, spp, ref_spp, root):
 
 
 def _builtin_ref(entry, size, root):
-    """The exact reference, cached on disk at 512^2 and above (a few CPU seconds each there)."""
+    """The exact reference, cached on disk at 512^2 and above (16 times the 128^2 cost there: 15-40 CPU s each)."""
     from mcrecon.renderers import scenes as S
 
     sc = S.get_scene(entry.family, entry.params)
