@@ -71,6 +71,19 @@ FEATURE_GATES = ("auto", "none")
 # Eq. 8 (vectorised reference forms; the numba loops below are the fast path)
 # ----------------------------------------------------------------------------
 
+def _kernel_arrays(pos, val, consistent: bool):
+    """Positions and values, C-contiguous, in the one dtype the splat kernels take them in.
+
+    The gated spread's kernels read float32 as it comes (widened exactly where they compute), so a pair
+    that is float32 on both sides stays so (half the memory of a log's round); any other pair is float64
+    on both sides (exact), as the outlier-only rule's fused pass takes it.  One pair of dtypes, not
+    every mix of them, is what numba compiles each kernel for.
+    """
+    if consistent and pos.dtype == np.float32 and val.dtype == np.float32:
+        return np.ascontiguousarray(pos), np.ascontiguousarray(val)
+    return np.ascontiguousarray(pos, dtype=np.float64), np.ascontiguousarray(val, dtype=np.float64)
+
+
 def kernel_width(g, f, n, *, c: float = 4.0, alpha: float = 0.3, min_width: float = 1.0,
                  max_width: float = 32.0) -> np.ndarray:
     """Eq. 8: kernel diameter ``h = C N^-alpha (G / f)^(1/2)``, clamped to [min_width, max_width].
@@ -361,11 +374,7 @@ class ProgressiveSplatter:
         else:
             pos, val, n_bad = self._validated(positions, values, nonfinite, where)
             self.n_nonfinite += n_bad
-        # the gated spread's kernels read float32 as it comes (widened exactly where they compute); the
-        # outlier-only rule's fused pass takes float64
-        dtype = None if self.spread == "consistent" else np.float64
-        pos = np.ascontiguousarray(pos, dtype=dtype)
-        val = np.ascontiguousarray(val, dtype=dtype)
+        pos, val = _kernel_arrays(pos, val, self.spread == "consistent")
         srt = rows_sorted(pos, self.height)
         if self.spread == "consistent":  # the passes of add_round_stream in one, on the arrays as given
             counts, s1, s2, c1, c2 = round_sums(pos, val, self.width, self.height, self._norm_code, self._weights,
@@ -594,8 +603,7 @@ class ProgressiveSplatter:
         n2 = self._width_n.reshape(self.height, self.width)
         gate_memo = None
         for p, v, srt in rounds:  # second pass: split and deposit
-            p = np.ascontiguousarray(p, dtype=None if consistent else np.float64)
-            v = np.ascontiguousarray(v, dtype=None if consistent else np.float64)
+            p, v = _kernel_arrays(p, v, consistent)
             if srt is None:
                 srt = rows_sorted(p, self.height)
             frac = np.empty(p.shape[0])
