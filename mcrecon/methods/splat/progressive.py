@@ -33,7 +33,7 @@ import numpy as np
 
 from ...errors import InputError, McreconWarning
 from ...core.features import check_features, usable_layout
-from ...core.samples import apply_nonfinite, check_policy, check_samples
+from ...core.samples import apply_nonfinite, check_policy, check_samples, one_float_dtype
 from .kernels import BOUNDARY_MODES, _BOUNDARY_CODE, _deposit_own_pixel, _scatter, _splat_guided_loop
 from ...filters.luminance import LUMINANCE_WEIGHTS
 from .consistent import (FeatureSums, _split_and_radii, channel_sums, edge_radius, feature_moments, gate_k,
@@ -76,11 +76,12 @@ def _kernel_arrays(pos, val, consistent: bool):
 
     The gated spread's kernels read float32 as it comes (widened exactly where they compute), so a pair
     that is float32 on both sides stays so (half the memory of a log's round); any other pair is float64
-    on both sides (exact), as the outlier-only rule's fused pass takes it.  One pair of dtypes, not
+    on both sides (exact, :func:`~mcrecon.core.samples.one_float_dtype`), as the outlier-only rule's fused
+    pass takes every pair.  One pair of dtypes, not
     every mix of them, is what numba compiles each kernel for.
     """
-    if consistent and pos.dtype == np.float32 and val.dtype == np.float32:
-        return np.ascontiguousarray(pos), np.ascontiguousarray(val)
+    if consistent:
+        return one_float_dtype(np.ascontiguousarray(pos), np.ascontiguousarray(val))
     return np.ascontiguousarray(pos, dtype=np.float64), np.ascontiguousarray(val, dtype=np.float64)
 
 
@@ -412,7 +413,7 @@ class ProgressiveSplatter:
             for p, v, *_ in chunks():
                 p, v, n_bad = self._validated(p, v, nonfinite, where)
                 self.n_nonfinite += n_bad
-                parts.append((p, np.asarray(v, dtype=np.float64)))
+                parts.append(_kernel_arrays(p, v, False))
             if parts:
                 pos = np.ascontiguousarray(np.concatenate([p for p, _ in parts]))
                 val = np.ascontiguousarray(np.concatenate([v for _, v in parts]))
@@ -438,8 +439,9 @@ class ProgressiveSplatter:
                     self.n_feature_zeroed += n_fz
                     self._fsum.add(p, feats, where, srt)
                 if robust:  # ... and the sums of G, G^2 per pixel
-                    in_bands(_count_and_moments, (p, np.ascontiguousarray(v, dtype=np.float64), self._norm_code,
-                                                  self._weights, counts, s1, s2), p, self.height, sorted_rows=srt)
+                    in_bands(_count_and_moments, _kernel_arrays(p, v, False) + (self._norm_code, self._weights,
+                                                                                counts, s1, s2),
+                             p, self.height, sorted_rows=srt)
                     if self.spread == "consistent":  # ... and of every channel's values and squares
                         c1, c2 = channel_sums(p, v, self.width, self.height, srt)
                         self._cs1 += c1
@@ -484,8 +486,7 @@ class ProgressiveSplatter:
             img = ref_img * (self.spp_total / total)
             w_round = n_j / total
             for p, v, *_ in chunks():  # second pass: the splat
-                p, v, _ = self._validated(p, v, nonfinite, where)
-                v = np.ascontiguousarray(v, dtype=np.float64)
+                p, v = _kernel_arrays(*self._validated(p, v, nonfinite, where)[:2], False)
                 scale = w_round * inv_counts[self._pixel_of(p)]
                 rad, cap = self._radii(p, v, ref, False)
                 capped += cap
