@@ -119,7 +119,7 @@ def test_empty_pixels_keep_their_filled_value_through_the_clamp():
         confidence_clamp(img, mean, var, 4.0, out=img)
     assert img[0, 1, 0] == 5.0 and img[0, 0, 0] == pytest.approx(1.4)
     # the clamp is written once: auto and nfor use the guard, neither restores empty pixels itself
-    for rel in ("methods/auto/method.py", "methods/nfor/method.py"):
+    for rel in ("methods/auto/clamp.py", "methods/nfor/method.py"):
         text = (PACKAGE / rel).read_text()
         assert "empty_pixels_kept(" in text and "img[empty] = filled" not in text, rel
 

@@ -272,6 +272,15 @@ def check_samples(positions, values, *, width: int, height: int, n_channels: int
     return pos, val, int(n_nonfinite)
 
 
+def one_float_dtype(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two float arrays in one dtype: as given where they share it, else both float64 (the float32 one
+    widened, exactly).  The kernels that read positions with values (or features) then compile for two
+    dtypes, not for every mix of them."""
+    if a.dtype == b.dtype:
+        return a, b
+    return a.astype(np.float64, copy=False), b.astype(np.float64, copy=False)
+
+
 def touches_window(positions, window) -> bool:
     """Whether any position's pixel lies in ``window`` = ``(y0, y1, x0, x1)`` (positions on the film)."""
     pos = np.asarray(positions)

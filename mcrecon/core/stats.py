@@ -36,7 +36,7 @@ from .features import (check_features, feature_components, feature_layout, layou
     warn_feature_zeroed)
 from .merge import NO_RANGE, MergedOnRead, _accumulate
 from .moments import stats_from_moments
-from .samples import (apply_nonfinite, check_memory, check_policy, check_samples,
+from .samples import (apply_nonfinite, check_memory, check_policy, check_samples, one_float_dtype,
     touches_window, warn_nonfinite)
 
 
@@ -293,16 +293,16 @@ class PixelStats:
         sub_count = self.sub_count if s else np.zeros((1, 1), np.int64)
         ranged = self.min is not None
         oy, ox = (0, 0) if self._window is None else self._window[:2]
-        _accumulate(pos, val, s, self.count, self.mean, self.m2, self.min if ranged else NO_RANGE,
+        _accumulate(*one_float_dtype(pos, val), s, self.count, self.mean, self.m2, self.min if ranged else NO_RANGE,
                     self.max if ranged else NO_RANGE, ranged, sub_sum, sub_count, oy, ox)
         self._note_dtype(val.dtype)
         if feats:
             no_sub, no_sub_count = np.zeros((1, 1, 1)), np.zeros((1, 1), np.int64)
             for name, fst in self.features.items():
-                f = feats[name]
-                _accumulate(pos, f, 0, fst.count, fst.mean, fst.m2, NO_RANGE, NO_RANGE, False, no_sub, no_sub_count,
+                fp, f = one_float_dtype(pos, feats[name])
+                _accumulate(fp, f, 0, fst.count, fst.mean, fst.m2, NO_RANGE, NO_RANGE, False, no_sub, no_sub_count,
                             oy, ox)
-                fst._note_dtype(f.dtype)
+                fst._note_dtype(feats[name].dtype)  # as given, not as widened for the kernel
         if n_feature_zeroed:
             self.n_feature_zeroed += int(n_feature_zeroed)
             warn_feature_zeroed(source, n_feature_zeroed, stacklevel=3)

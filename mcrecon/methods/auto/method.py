@@ -32,9 +32,8 @@ from .estimates import (cross_validation_mse, relative_denominator,
     sure, sure_filter_bank)
 from ...core.stats import PixelStats
 from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, uniform_counts
-from ...core.safeguard import (albedo_divisor, confidence_clamp, empty_pixels_kept, neighbourhood_mean_variance,
-    pooled_mean_variance, safeguard_variance, sample_range_bounds,
-    widened_range_bounds)
+from ...core.safeguard import (albedo_divisor, neighbourhood_mean_variance, pooled_mean_variance, safeguard_variance,
+    sample_range_bounds)
 from ...core.fill import fill_empty_pixels
 from ...filters.gaussian import final_sigmas
 from .features import (DEFAULT_FEATURE_CANDIDATES, FEATURE_CANDIDATES, MIX_WEIGHTS, Candidate,
@@ -44,12 +43,13 @@ from .blackbox import BLACK_BOXES, Z_BLACKBOX, _guards, oidn_candidate, oidn_run
 from .thinvote import thin_vote_shown
 from ...core.nets import covered_even_plan
 from .onesided import one_sided
-from .rim import own_interval, rim_box
+from .rim import rim_box
+from .clamp import safeguarded
 from .nlmeans import nlmeans_cross
 from .proxy import REGRESSIONS, regression_share
 from ...filters.masked import MaskedSmoothing, smooth_masked
 from .passes import _mean_c, _picked, _stored
-from .selection import _global_prior, _largest_remainder, _no_push_in_heavy_tails, _region_guard, _relative_choice
+from .selection import _global_prior, _largest_remainder, _region_guard, _relative_choice
 
 __all__ = ['AutoMethod', 'AutoRun', 'CANDIDATES', 'DEFAULT_CANDIDATES', 'DEFAULT_FEATURE_CANDIDATES', 'DUAL_BUFFER',
            'FEATURE_CANDIDATES', 'MIX_WEIGHTS']
@@ -534,7 +534,8 @@ class AutoMethod(Method):
             choice, on_default = _global_prior(cands, lambda k: smoothing([_mean_c(cands[k].mse, den)])[0], rel,
                                                choice, y, v, count, bounds, smooth, self.params["global_prior"],
                                                self.params["safeguard"], _guards(cands), divisor,
-                                               steady=steady, steady_var=v_wide, rare=_all_samples_box(cands), rim=rim_box(cands),
+                                               steady=steady, steady_var=v_wide, rare=_all_samples_box(cands),
+                                               rim=rim_box(cands),
                                                info=prior, fixed=None if film is None else film.default,
                                                heavy=one_sided(stats) if film is None else None)
         if cands[0].name == "box" and smooth > 0:
@@ -551,41 +552,8 @@ class AutoMethod(Method):
         img = fill_empty_pixels(img, count, source=_WHERE) if (count == 0).any() else img
         img[~np.isfinite(img)] = 0.0
         if self.params["safeguard"] is not None:
-            # The error estimates are noisy exactly where a rare bright sample sits; a
-            # candidate chosen on them may still carry its light into exact dark pixels
-            # beside it (caustic: 1.6x the pixel mean without the clamp).  Clamping onto
-            # an interval that holds the true value with high probability never moves
-            # an estimate away from it (the same safeguard as awr's robust default).
-            lo, hi = sample_range_bounds(stats) if bounds is None else bounds
-            # a pixel without samples has no interval: it keeps the value filled in from its neighbours
-            v_clamp, lo_c, hi_c = v_safe, lo, hi
-            g = prior.get("g", -1)
-            black = g >= 0 and on_default.any() and cands[g].name in BLACK_BOXES
-            if black:  # the wide interval and range at the black box's pixels
-                v_clamp = np.where(on_default[..., None], v_wide, v_safe)
-                lo_c, hi_c = widened_range_bounds(stats, on_default, lo, hi)
-            with empty_pixels_kept(img, count):
-                confidence_clamp(img, y, v_clamp, self.params["safeguard"], lo_c, hi_c, out=img)
-                # The heavy-tail rule judges a push by the median of the neighbours' means, which under
-                # a rarely found light lies below the truth (the pixel means are right-skewed): a
-                # feature-guided value at the truth of a pixel whose samples missed the light is then
-                # "further from the median" than its dark mean, and the rule would put the hole back.
-                # Pixels that chose a feature-guided candidate keep its clamped value (its cost and gain
-                # per scene: docs/methods/auto.md, "Limits").
-                guided = [k for k, c in enumerate(cands) if c.feature]
-                keep = np.isin(choice, guided) if guided else None
-                # So do the pixels with rare huge samples around that took the black box on all the samples (or, with
-                # features, OIDN + albedo + normal on the halves at the rim) under another default: on the median's
-                # interval, which the clamp holds them to (a black box default's wide interval leaves that to the rule)
-                rare = prior.get("rare")
-                if rare is not None and not black:
-                    keep = rare if keep is None else keep | rare
-                kept = img[keep] if keep is not None and keep.any() else None
-                _no_push_in_heavy_tails(img, y, hi, out=img, scale=divisor)
-                if kept is not None:
-                    img[keep] = kept
-            if black:  # nor a value far outside its own interval where a pixel's samples agree (rim.own_interval)
-                own_interval(img, y, v, on_default)
+            safeguarded(img, cands, choice, stats, y, v, count, level=self.params["safeguard"], v_safe=v_safe,
+                        v_wide=v_wide, bounds=bounds, on_default=on_default, prior=prior, scale=divisor)
         fin = np.isfinite(raw_abs)
         if not fin.all():
             raw_abs = np.where(fin, raw_abs, smooth_masked(raw_abs, max(smooth, 1.0)))

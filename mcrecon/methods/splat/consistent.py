@@ -48,6 +48,7 @@ import numpy as np
 from numba import literal_unroll
 from scipy.special import ndtri
 
+from ...core.samples import one_float_dtype
 from .bands import in_bands
 from .outliers import _norm_of
 
@@ -62,7 +63,7 @@ def channel_sums(pos, val, width, height, sorted_rows=False):
     in bands of rows on the filters' threads, :func:`.bands.in_bands`)."""
     s1 = np.zeros((height, width, val.shape[1]))
     s2 = np.zeros((height, width, val.shape[1]))
-    in_bands(_add_channel_sums, (pos, val, s1, s2), pos, height, sorted_rows=sorted_rows)
+    in_bands(_add_channel_sums, one_float_dtype(pos, val) + (s1, s2), pos, height, sorted_rows=sorted_rows)
     return s1, s2
 
 
@@ -109,8 +110,8 @@ class FeatureSums:
         in_bands(_first_samples, (pos, self.n, first), pos, self.height, sorted_rows=sorted_rows)
         col = 0
         for x in parts:
-            in_bands(_add_feature_sums, (pos, x, col, first, self.shift, self.s1, self.s2), pos, self.height,
-                     sorted_rows=sorted_rows)
+            in_bands(_add_feature_sums, one_float_dtype(pos, x) + (col, first, self.shift, self.s1, self.s2), pos,
+                     self.height, sorted_rows=sorted_rows)
             col += x.shape[1]
 
     def parts(self, pos, feats, where) -> list:

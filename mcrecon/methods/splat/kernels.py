@@ -400,7 +400,7 @@ def splat(positions, values, widths, *, width: int, height: int, scale=1.0, boun
     val = np.ascontiguousarray(val, dtype=np.float64)
     n = pos.shape[0]
     radius = np.ascontiguousarray(np.broadcast_to(np.asarray(widths, dtype=np.float64), (n,))) * 0.5
-    sc = np.ascontiguousarray(np.broadcast_to(np.asarray(scale, dtype=np.float64), (n,)))
+    sc = np.array(np.broadcast_to(np.asarray(scale, dtype=np.float64), (n,)))  # writable: one compiled signature
     if out is None:
         out = np.zeros((height, width, val.shape[1]))
     elif out.shape != (height, width, val.shape[1]) or out.dtype != np.float64:

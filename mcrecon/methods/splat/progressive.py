@@ -33,7 +33,7 @@ import numpy as np
 
 from ...errors import InputError, McreconWarning
 from ...core.features import check_features, usable_layout
-from ...core.samples import apply_nonfinite, check_policy, check_samples
+from ...core.samples import apply_nonfinite, check_policy, check_samples, one_float_dtype
 from .kernels import BOUNDARY_MODES, _BOUNDARY_CODE, _deposit_own_pixel, _scatter, _splat_guided_loop
 from ...filters.luminance import LUMINANCE_WEIGHTS
 from .consistent import (FeatureSums, _split_and_radii, channel_sums, edge_radius, feature_moments, gate_k,
@@ -70,6 +70,20 @@ FEATURE_GATES = ("auto", "none")
 # ----------------------------------------------------------------------------
 # Eq. 8 (vectorised reference forms; the numba loops below are the fast path)
 # ----------------------------------------------------------------------------
+
+def _kernel_arrays(pos, val, consistent: bool):
+    """Positions and values, C-contiguous, in the one dtype the splat kernels take them in.
+
+    The gated spread's kernels read float32 as it comes (widened exactly where they compute), so a pair
+    that is float32 on both sides stays so (half the memory of a log's round); any other pair is float64
+    on both sides (exact, :func:`~mcrecon.core.samples.one_float_dtype`), as the outlier-only rule's fused
+    pass takes every pair.  One pair of dtypes, not
+    every mix of them, is what numba compiles each kernel for.
+    """
+    if consistent:
+        return one_float_dtype(np.ascontiguousarray(pos), np.ascontiguousarray(val))
+    return np.ascontiguousarray(pos, dtype=np.float64), np.ascontiguousarray(val, dtype=np.float64)
+
 
 def kernel_width(g, f, n, *, c: float = 4.0, alpha: float = 0.3, min_width: float = 1.0,
                  max_width: float = 32.0) -> np.ndarray:
@@ -361,11 +375,7 @@ class ProgressiveSplatter:
         else:
             pos, val, n_bad = self._validated(positions, values, nonfinite, where)
             self.n_nonfinite += n_bad
-        # the gated spread's kernels read float32 as it comes (widened exactly where they compute); the
-        # outlier-only rule's fused pass takes float64
-        dtype = None if self.spread == "consistent" else np.float64
-        pos = np.ascontiguousarray(pos, dtype=dtype)
-        val = np.ascontiguousarray(val, dtype=dtype)
+        pos, val = _kernel_arrays(pos, val, self.spread == "consistent")
         srt = rows_sorted(pos, self.height)
         if self.spread == "consistent":  # the passes of add_round_stream in one, on the arrays as given
             counts, s1, s2, c1, c2 = round_sums(pos, val, self.width, self.height, self._norm_code, self._weights,
@@ -403,7 +413,7 @@ class ProgressiveSplatter:
             for p, v, *_ in chunks():
                 p, v, n_bad = self._validated(p, v, nonfinite, where)
                 self.n_nonfinite += n_bad
-                parts.append((p, np.asarray(v, dtype=np.float64)))
+                parts.append(_kernel_arrays(p, v, False))
             if parts:
                 pos = np.ascontiguousarray(np.concatenate([p for p, _ in parts]))
                 val = np.ascontiguousarray(np.concatenate([v for _, v in parts]))
@@ -429,8 +439,9 @@ class ProgressiveSplatter:
                     self.n_feature_zeroed += n_fz
                     self._fsum.add(p, feats, where, srt)
                 if robust:  # ... and the sums of G, G^2 per pixel
-                    in_bands(_count_and_moments, (p, np.ascontiguousarray(v, dtype=np.float64), self._norm_code,
-                                                  self._weights, counts, s1, s2), p, self.height, sorted_rows=srt)
+                    in_bands(_count_and_moments, _kernel_arrays(p, v, False) + (self._norm_code, self._weights,
+                                                                                counts, s1, s2),
+                             p, self.height, sorted_rows=srt)
                     if self.spread == "consistent":  # ... and of every channel's values and squares
                         c1, c2 = channel_sums(p, v, self.width, self.height, srt)
                         self._cs1 += c1
@@ -475,8 +486,7 @@ class ProgressiveSplatter:
             img = ref_img * (self.spp_total / total)
             w_round = n_j / total
             for p, v, *_ in chunks():  # second pass: the splat
-                p, v, _ = self._validated(p, v, nonfinite, where)
-                v = np.ascontiguousarray(v, dtype=np.float64)
+                p, v = _kernel_arrays(*self._validated(p, v, nonfinite, where)[:2], False)
                 scale = w_round * inv_counts[self._pixel_of(p)]
                 rad, cap = self._radii(p, v, ref, False)
                 capped += cap
@@ -594,8 +604,7 @@ class ProgressiveSplatter:
         n2 = self._width_n.reshape(self.height, self.width)
         gate_memo = None
         for p, v, srt in rounds:  # second pass: split and deposit
-            p = np.ascontiguousarray(p, dtype=None if consistent else np.float64)
-            v = np.ascontiguousarray(v, dtype=None if consistent else np.float64)
+            p, v = _kernel_arrays(p, v, consistent)
             if srt is None:
                 srt = rows_sorted(p, self.height)
             frac = np.empty(p.shape[0])
