@@ -77,8 +77,7 @@ def _kernel_arrays(pos, val, consistent: bool):
     The gated spread's kernels read float32 as it comes (widened exactly where they compute), so a pair
     that is float32 on both sides stays so (half the memory of a log's round); any other pair is float64
     on both sides (exact, :func:`~mcrecon.core.samples.one_float_dtype`), as the outlier-only rule's fused
-    pass takes every pair.  One pair of dtypes, not
-    every mix of them, is what numba compiles each kernel for.
+    pass takes every pair.  One pair of dtypes, not every mix of them, is what numba compiles each kernel for.
     """
     if consistent:
         return one_float_dtype(np.ascontiguousarray(pos), np.ascontiguousarray(val))
@@ -439,9 +438,9 @@ class ProgressiveSplatter:
                     self.n_feature_zeroed += n_fz
                     self._fsum.add(p, feats, where, srt)
                 if robust:  # ... and the sums of G, G^2 per pixel
-                    in_bands(_count_and_moments, _kernel_arrays(p, v, False) + (self._norm_code, self._weights,
-                                                                                counts, s1, s2),
-                             p, self.height, sorted_rows=srt)
+                    # G widens each value exactly (outliers._norm_of): a float32 round is read as it comes
+                    args = one_float_dtype(p, v) + (self._norm_code, self._weights, counts, s1, s2)
+                    in_bands(_count_and_moments, args, p, self.height, sorted_rows=srt)
                     if self.spread == "consistent":  # ... and of every channel's values and squares
                         c1, c2 = channel_sums(p, v, self.width, self.height, srt)
                         self._cs1 += c1
