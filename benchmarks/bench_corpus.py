@@ -298,15 +298,9 @@ def print_table(rows, labels, summary, losses, before=None, file=sys.stdout):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--half", default="held-out", choices=("tuning", "held-out", "all"))
-    ap.add_argument("--scenes", default="", help="comma-separated entry names, families or renderers")
-    ap.add_argument("--size", type=int, default=128, choices=(128, 512))
-    ap.add_argument("--spp", type=int, default=32)
-    ap.add_argument("--ref-spp", type=int, default=1024, help="the external scenes' reference spp (as built)")
+    corpus.add_arguments(ap)
     ap.add_argument("--methods", default=DEFAULT_METHODS, help="comma-separated; name:key=value:... passes options")
     ap.add_argument("--no-oidn", action="store_true", help="leave OIDN out")
-    ap.add_argument("--root", default=None, help="the corpus cache (default $MCRECON_CORPUS_DIR or "
-                    "~/.cache/mcrecon-corpus)")
     ap.add_argument("--json", default=None, help="write the results here")
     ap.add_argument("--compare", default=None, help="an earlier --json: print each ratio's change against it")
     a = ap.parse_args(argv)

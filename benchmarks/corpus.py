@@ -210,6 +210,17 @@ def _split(entries):
 _ENTRIES = _all_entries()
 
 
+def add_arguments(ap, *, half: str = "held-out") -> None:
+    """A corpus benchmark's scene options: ``--half``, ``--scenes``, ``--size``, ``--spp``, ``--ref-spp``, ``--root``."""
+    ap.add_argument("--half", default=half, choices=("tuning", "held-out", "all"))
+    ap.add_argument("--scenes", default="", help="comma-separated entry names, families or renderers")
+    ap.add_argument("--size", type=int, default=128, choices=(128, 512))
+    ap.add_argument("--spp", type=int, default=32)
+    ap.add_argument("--ref-spp", type=int, default=1024, help="the external scenes' reference spp (as built)")
+    ap.add_argument("--root", default=None, help="the corpus cache (default $MCRECON_CORPUS_DIR or "
+                    "~/.cache/mcrecon-corpus)")
+
+
 def scenes(half: str = "all", names=None) -> list[Entry]:
     """The corpus's entries of one half (``tuning``, ``held-out``) or ``all``; ``names``: only these
     (entry names, families or renderers)."""
