@@ -140,14 +140,21 @@ def test_awr_batch_gives_what_is_owed_first():
 
 @pytest.mark.parametrize("sampler", ["sobol", "independent"])
 def test_awr_round_raises_the_rare_components_net_first(sampler):
-    # left: a rare light (one sample in 8); right: pixels of larger variance without a rare component
+    # left: a rare light (one sample in 8); right: pixels of larger variance without a rare component.
+    # Independent samples: the light in rows 0, 3 and 6 only, so that the left half's samples find it at
+    # -ln(1 - 24/80) / 8 = 0.045 a sample, below awr's EVEN_HIT_RATE (their floor still covers most of the film)
     h, w = 8, 16
     xs, ys = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
     pos = np.repeat(np.stack([xs.ravel(), ys.ravel()], axis=1), 8, axis=0)
     val = np.zeros((pos.shape[0], 3))
     left = pos[:, 0] < 8
+    if sampler == "independent":
+        left &= np.isin(np.floor(pos[:, 1]), (0, 3, 6))
     val[left & (np.arange(pos.shape[0]) % 8 == 0)] = 1.0
-    val[~left] = np.where(np.arange(pos.shape[0])[~left] % 2 == 0, 0.0, 2.0)[:, None]
+    left = pos[:, 0] < 8
+    # (independent: a per-sample relative variance below 1 on the right, which does not read as the light found)
+    lo, hi = (0.5, 1.5) if sampler == "independent" else (0.0, 2.0)
+    val[~left] = np.where(np.arange(pos.shape[0])[~left] % 2 == 0, lo, hi)[:, None]
     st = PixelStats(w, h, subpixels=0)
     st.add(pos, val)
     counts = {}
@@ -157,6 +164,46 @@ def test_awr_round_raises_the_rare_components_net_first(sampler):
         counts[floor] = m.plan(m.start(w, h), state).counts
     assert (counts[1][:, :6] >= 8).all()         # the net of 16 that holds the light, first
     assert (counts[0][:, :6] == 0).any()         # without it the larger variance on the right comes first
+
+
+def test_awr_rounds_are_even_where_a_covering_light_is_found_often():
+    from mcrecon.methods.awr.method import EVEN_HIT_RATE, hit_rate
+    # a light found by one sample in 8 at every pixel of the left 12 of 16 columns (its floor covers the
+    # film); independent samples find it at 1/8 (every pixel: an infinite estimate), a stratified sampler's
+    # round is the floor's
+    h, w = 8, 16
+    xs, ys = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    pos = np.repeat(np.stack([xs.ravel(), ys.ravel()], axis=1), 8, axis=0)
+    val = np.full((pos.shape[0], 3), 0.1)
+    val[(pos[:, 0] < 12) & (np.arange(pos.shape[0]) % 8 == 0)] = 20.0
+    st = PixelStats(w, h, subpixels=0)
+    st.add(pos, val)
+    for sampler in ("independent", "sobol"):
+        m = get_method("awr")
+        state = AdaptiveState(st, 1, 32 * w * h, st.n_samples, np.random.default_rng(0), sampler=sampler)
+        counts = m.plan(m.start(w, h), state).counts
+        assert (np.ptp(counts) == 0) == (sampler == "independent"), sampler
+    # every lit pixel found it: over the lit columns the estimate is infinite, over the film -ln(1 - 12/16) / 8
+    assert hit_rate(state, xs < 12) == np.inf
+    assert hit_rate(state, np.ones((h, w), bool)) == pytest.approx(np.log(4) / 8) and np.log(4) / 8 > EVEN_HIT_RATE
+
+
+@pytest.mark.parametrize("p", [0.02, 0.075, 0.2])
+def test_awr_hit_rate_reads_the_chance_to_find_the_light(p):
+    from mcrecon.methods.awr.method import hit_rate
+    # 4000 pixels of 16 samples: a pixel shows the light (a relative variance far above 1) where one of its
+    # samples found it, which happens at 1 - (1 - p)^16; the estimate's spread is the binomial share's
+    n, k = 16, 4000
+    rng = np.random.default_rng(1)
+    hits = rng.random((k, n)) < p
+    pos = np.repeat(np.stack([np.arange(k) % 80 + 0.5, np.arange(k) // 80 + 0.5], axis=1), n, axis=0)
+    val = np.where(hits.ravel(), 50.0, 0.2)[:, None] * np.ones(3)
+    st = PixelStats(80, 50, subpixels=0)
+    st.add(pos, val)
+    state = AdaptiveState(st, 1, 32 * k, st.n_samples, rng, sampler="independent")
+    q = 1 - (1 - p) ** n
+    se = np.sqrt(q * (1 - q) / k) / ((1 - q) * n)    # the delta method on -ln(1 - s) / n
+    assert abs(hit_rate(state, np.ones((50, 80), bool)) - p) < 4 * se
 
 
 def test_independent_rounds_pay_the_floor_only_where_the_component_covers_most_of_the_film():
