@@ -23,7 +23,7 @@ _MAX_LEVELS = 12
 #: An independent run's rounds are even under a rare component whose floor covers most of the film
 #: (``RARE_COVER``) only where its samples find it this often or more (per sample, :func:`hit_rate`): there
 #: the wavelet sampler ranks the light's noise, which every pixel's own samples carry (tuning checker_spot
-#: at p 0.091-0.105: adaptive / uniform 1.01-1.03 with the sampler's counts, 0.995-1.008 even); below it its
+#: at p 0.091-0.105: adaptive / uniform 1.01-1.03 with the sampler's counts, 0.993-1.005 even); below it its
 #: extra samples dilute the pixels that caught a rare component (p 0.011-0.055 read 0.98-1.01 either way,
 #: tests/test_awr_robust.py's firefly field at 1e-3 gains 1.8x over even rounds).  docs/adaptive.md.
 EVEN_HIT_RATE = 0.075
