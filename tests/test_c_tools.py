@@ -80,10 +80,14 @@ def _run(*args, **kw):
 W, H = 24, 16
 
 
-def test_c_writer_log_passes_info_and_denoise(c_tools, tmp_path):
+def test_c_writer_log_passes_info_and_denoise(c_tools, tmp_path, cli):
+    """The C writer's log through ``mcrecon info`` and ``denoise`` (in this process: the same readers as a
+    child's; the other tests here run the command line in children)."""
     log = tmp_path / "c.h5"
     _run(c_tools["mcrecon_log_writer"], log, W, H, 4, 7)
-    info = json.loads(run_cli_process(["info", "--json", log], check=True, cwd=REPO).stdout)
+    code, out, err = cli(["info", "--json", log])
+    assert code == 0, err
+    info = json.loads(out)
     assert (info["width"], info["height"], info["channels"]) == (W, H, ["R", "G", "B"])
     assert info["samples"] == info["finite_samples"] == W * H * 4 and info["rounds"] == 1
     assert info["spp_min"] == info["spp_max"] == 4 and info["features"] == ["depth"]
@@ -96,14 +100,15 @@ def test_c_writer_log_passes_info_and_denoise(c_tools, tmp_path):
         assert h5py.check_string_dtype(f.attrs.get_id("channels").dtype).encoding == "utf-8"
     for method in ("box", "gem"):
         out = tmp_path / f"{method}.exr"
-        proc = run_cli_process(["denoise", log, "-o", out, "--method", method], check=True, cwd=REPO)
-        assert f"{W * H * 4} samples" in proc.stdout
+        code, stdout, err = cli(["denoise", log, "-o", out, "--method", method])
+        assert code == 0, err
+        assert f"{W * H * 4} samples" in stdout
         img, channels = read_exr(out)
         assert img.shape == (H, W, 3) and channels == ("R", "G", "B") and np.isfinite(img).all()
         assert 0.1 < float(img[H // 2, W // 2, 0]) < 2.0  # the disc's centre: 1 times noise of mean 1
 
 
-def test_c_writer_appends_rounds_extending_features_and_discarding_uncommitted_rows(c_tools, tmp_path):
+def test_c_writer_appends_rounds_extending_features_and_discarding_uncommitted_rows(c_tools, tmp_path, cli):
     """Points 1 and 3: an append extends /features/* too; H5Dset_extent discards rows past n_committed
     (left here as an interrupted append would: junk samples and a /rounds/end row past the count);
     the next round is numbered by the committed rounds."""
@@ -138,7 +143,8 @@ def test_c_writer_appends_rounds_extending_features_and_discarding_uncommitted_r
     got = read_log(log)
     assert got.n_rounds == 4 and got.n_samples == n + m + 4 + W * H
     assert got.read_all().round[-1] == 3
-    run_cli_process(["denoise", got.path, "-o", tmp_path / "g.exr", "--method", "box"], check=True, cwd=REPO)
+    code, _, err = cli(["denoise", got.path, "-o", tmp_path / "g.exr", "--method", "box"])
+    assert code == 0, err
 
 
 # ------------------------------------------------------------------ the C renderer
@@ -160,20 +166,21 @@ def _check_c_features(log, w, h):
     np.testing.assert_allclose(log.read_feature("depth"), depth, rtol=1e-6, atol=1e-5)
 
 
-def _adapt(c_tools, tmp_path, method, *extra, w=16, h=12, spp=6):
+def _adapt(cli, c_tools, tmp_path, method, *extra, w=16, h=12, spp=6):
+    """``mcrecon adapt`` driving the C renderer (a child process per round; the command itself runs here)."""
     log = tmp_path / f"{method}.h5"
     # The binary's path holds a space: quoted for shlex, never through a shell.
     cmd = f"{shlex.quote(str(c_tools['mcrecon_c_renderer']))} {{request}} {{reply}}"
-    proc = run_cli_process(["adapt", "--renderer-cmd", cmd, "--size", f"{w}x{h}", "--spp", spp, "--method", method,
-                            "--seed", 5, "-o", tmp_path / f"{method}.exr", "--log", log, "--quiet", *extra],
-                           check=True, cwd=REPO)
-    return proc, log
+    code, _, err = cli(["adapt", "--renderer-cmd", cmd, "--size", f"{w}x{h}", "--spp", spp, "--method", method,
+                        "--seed", 5, "-o", tmp_path / f"{method}.exr", "--log", log, "--quiet", *extra])
+    assert code == 0, err
+    return log
 
 
 @pytest.mark.parametrize("method", ["box", "awr", "gem"])
-def test_c_renderer_drives_an_adaptive_run(c_tools, tmp_path, method):
+def test_c_renderer_drives_an_adaptive_run(c_tools, tmp_path, method, cli):
     """box sends counts every round; awr and gem send positions after the first (counted) round."""
-    _, log = _adapt(c_tools, tmp_path, method, *(() if method == "box" else ("--initial-spp", 2)))
+    log = _adapt(cli, c_tools, tmp_path, method, *(() if method == "box" else ("--initial-spp", 2)))
     got = read_log(log)
     assert got.n_samples == 16 * 12 * 6 and got.n_rounds >= 2
     assert got.run_settings["renderer_spec"]["argv"][0] == str(c_tools["mcrecon_c_renderer"])
