@@ -449,10 +449,8 @@ def _adapt_argv(log, out):
 def uninterrupted(tmp_path_factory):
     """The run the faulted runs are resumed into, once per module (a worker's): its log and image.  In this
     process: the same command as the faulted runs' children, whose exits are what those tests check."""
-    from mcrecon.cli import main
-
     d = tmp_path_factory.mktemp("uninterrupted")
-    assert main(_adapt_argv(d / "full.h5", d / "full.exr")) == 0
+    assert run_cli(_adapt_argv(d / "full.h5", d / "full.exr"))[0] == 0
     return d / "full.h5", d / "full.exr"
 
 
