@@ -278,7 +278,7 @@ with h5py.File(sys.argv[2], "r+") as f:
     assert got.read_feature("t").shape == (got.n_samples,)
 
 
-def test_renderer_cmd_is_split_by_shlex_never_by_a_shell(tmp_path):
+def test_renderer_cmd_is_split_by_shlex_never_by_a_shell(tmp_path, cli):
     """--renderer-cmd with quoted words (a script in a directory with a space) and a placeholder inside
     a word; no shell: '$HOME' and ';' reach the command as they are."""
     d = tmp_path / "my renderers"
@@ -292,18 +292,18 @@ assert sys.argv[3:] == ["$HOME", ";", "two words"], sys.argv
 main(sys.argv[1], sys.argv[2].split("=", 1)[1])
 """)
     cmd = f"{sys.executable} '{script}' {{request}} --out={{reply}} '$HOME' ';' \"two words\""
-    out = run_cli_process(["adapt", "--renderer-cmd", cmd, "--size", "8x6", "--spp", "2", "--method", "box",
-                           "--quiet", "--log", str(tmp_path / "run.h5"), "-o", str(tmp_path / "o.exr")])
-    assert out.returncode == 0, out.stderr
+    code, _, err = cli(["adapt", "--renderer-cmd", cmd, "--size", "8x6", "--spp", "2", "--method", "box", "--quiet",
+                        "--log", tmp_path / "run.h5", "-o", tmp_path / "o.exr"])
+    assert code == 0, err
     assert read_log(tmp_path / "run.h5").run_settings["renderer_spec"]["argv"][1:3] == [str(script), "{request}"]
 
 
 @pytest.mark.parametrize("channels", ["R, G, B", "R,,B", "R,R"])
-def test_channels_flag_syntax(tmp_path, channels):
-    out = run_cli_process(["adapt", "--renderer-cmd", f"{sys.executable} {EXAMPLE} {{request}} {{reply}}",
-                           "--channels", channels, "--size", "4x4", "--spp", "1", "-o", str(tmp_path / "o.exr")])
-    assert out.returncode == 2 and "channels" in out.stderr and "--channels R,G,B" in out.stderr
-    assert len(out.stderr.strip().splitlines()) == 1
+def test_channels_flag_syntax(tmp_path, channels, cli):
+    code, _, err = cli(["adapt", "--renderer-cmd", f"{sys.executable} {EXAMPLE} {{request}} {{reply}}",
+                        "--channels", channels, "--size", "4x4", "--spp", "1", "-o", tmp_path / "o.exr"])
+    assert code == 2 and "channels" in err and "--channels R,G,B" in err
+    assert len(err.strip().splitlines()) == 1
 
 
 def test_exchange_files_live_in_a_private_temporary_directory(tmp_path, monkeypatch):
