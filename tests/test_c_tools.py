@@ -27,7 +27,6 @@ from mcrecon.io.logformat import cast_positions
 from mcrecon.renderers.command import read_request, write_request
 from mcrecon.core.requests import SampleRequest, validate_reply
 
-from helpers import run_cli_process
 
 REPO = Path(__file__).parents[1]
 C_DIR = REPO / "data_tools" / "c"
@@ -343,7 +342,7 @@ def test_string_attributes_of_either_type_are_read(tmp_path, strings):
     assert append_log(log.path, np.full((2, 2), 0.5), np.ones((2, 3))) == 8  # and appended to
 
 
-def test_round_and_rounds_end_must_agree(tmp_path):
+def test_round_and_rounds_end_must_agree(tmp_path, cli):
     """Point 2: a /rounds/end that contradicts /round is refused in one line naming file, dataset and fix;
     rows past the committed count are not a contradiction."""
     ok = read_log(_log(tmp_path / "ok.h5", rounds=[0, 0, 1, 1, 4, 4], ends=[2, 4, 6]))
@@ -357,8 +356,8 @@ def test_round_and_rounds_end_must_agree(tmp_path):
         msg = str(exc.value)
         assert msg.startswith(f"{path}: dataset /rounds/end: {where} contradicts /round") and "\n" not in msg
         assert "rewrite /rounds/end" in msg and "or delete it" in msg
-        proc = run_cli_process(["info", path], cwd=REPO)
-        assert proc.returncode == 2 and "contradicts /round" in proc.stderr
+        code, _, err = cli(["info", path])
+        assert code == 2 and "contradicts /round" in err
     # An interrupted append: rows past n_committed in every dataset, /rounds/end rows past it or
     # a fill-value 0 a full disk left.
     path = _log(tmp_path / "tail.h5", rounds=[0, 0, 1, 1, 7, 7], ends=[2, 4, 6, 0])
@@ -386,17 +385,16 @@ def test_append_numbers_rounds_above_the_last_label(tmp_path):
     assert log.round_slices() == [(0, 2), (2, 6), (6, 7)] and log.read_all().round.tolist() == [0, 0, 1, 1, 1, 1, 2]
 
 
-def test_positions_on_pixel_edges(tmp_path):
+def test_positions_on_pixel_edges(tmp_path, cli):
     """Point 11: a position exactly on the far edge of the film is off it (refused in one line); the
     largest float32 below the edge is inside; a counted sample on i + 1 belongs to the next pixel."""
     edge = np.float32(3.0)
     below = np.nextafter(edge, np.float32(0))
-    proc = run_cli_process(["info", _log(tmp_path / "edge.h5", positions=np.array([[0.5, 0.5], [edge, 1.5]],
-                                                                                  np.float32))], cwd=REPO)
-    assert proc.returncode == 2 and "first at row 1: [3.0, 1.5]" in proc.stderr
-    assert len(proc.stderr.strip().splitlines()) == 1
+    code, _, err = cli(["info", _log(tmp_path / "edge.h5", positions=np.array([[0.5, 0.5], [edge, 1.5]], np.float32))])
+    assert code == 2 and "first at row 1: [3.0, 1.5]" in err
+    assert len(err.strip().splitlines()) == 1
     ok = read_log(_log(tmp_path / "in.h5", positions=np.array([[0.5, 0.5], [below, 1.5]], np.float32)))
-    assert ok.n_samples == 2 and run_cli_process(["info", ok.path], cwd=REPO).returncode == 0
+    assert ok.n_samples == 2 and cli(["info", ok.path])[0] == 0
     req = SampleRequest(3, 2, counts=np.array([[1, 0, 0], [0, 0, 0]]))
     with pytest.raises(RendererError, match="per-pixel sample counts differ"):
         validate_reply(req, (np.array([[1.0, 0.5]], np.float32), np.ones((1, 3))), n_channels=3)
