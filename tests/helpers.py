@@ -27,12 +27,14 @@ ROOT = Path(__file__).resolve().parents[1]
 MCRECON = (sys.executable, "-m", "mcrecon")
 
 
-def run_cli(argv, capsys):
+def run_cli(argv, capsys=None):
     """``mcrecon ARGV`` in this process: ``(exit code, stdout, stderr)``.
 
     An argument may be any object with a ``str`` (paths).  The parser's own
     refusals end in ``SystemExit``; its code is returned like any other, so a
-    test reads one exit code whichever layer refused.
+    test reads one exit code whichever layer refused.  Without ``capsys`` (a
+    module-scoped fixture has none) the output is left to pytest's capture
+    and both texts are empty.
     """
     from mcrecon.cli import main
 
@@ -40,6 +42,8 @@ def run_cli(argv, capsys):
         code = main([str(a) for a in argv])
     except SystemExit as exc:
         code = exc.code
+    if capsys is None:
+        return code, "", ""
     out = capsys.readouterr()
     return code, out.out, out.err
 

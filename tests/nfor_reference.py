@@ -100,8 +100,9 @@ def _nlm_band(img, guide, var, r, f, k2, eps, clamp, min_centre, i0, i1, num, de
                         den[ch, i, j] += wt
 
 
-@numba.njit(cache=True, nogil=True)
 def _nlm_kernel(img, guide, var, r, f, k2, eps, clamp, min_centre, band, num, den):
+    """The bands in order, each a call of the compiled :func:`_nlm_band` (a loop here: a compiled loop would
+    re-optimise the band's whole body once more, seconds of a first run)."""
     h = img.shape[1]
     n_bands = (h + band - 1) // band
     for b in range(n_bands):
@@ -250,8 +251,8 @@ def _band(y, guide, var, feats, r, f, k2, ridge, eps, clamp, min_centre, i0, i1,
                 acc[nc, row, col] += wt
 
 
-@numba.njit(cache=True, nogil=True)
 def _regression_kernel(y, guide, var, feats, r, f, k2, ridge, eps, clamp, min_centre, band, accs):
+    """The bands in order, each a call of the compiled :func:`_band` (as :func:`_nlm_kernel`)."""
     h = y.shape[1]
     n_bands = (h + band - 1) // band
     for b in range(n_bands):

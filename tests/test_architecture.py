@@ -10,6 +10,7 @@ names one package imports from another do not grow in number.
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 import pytest
@@ -51,21 +52,44 @@ def _from_target(mod: str, is_pkg: bool, node: ast.ImportFrom) -> str:
     return ".".join(base + ([node.module] if node.module else []))
 
 
+def _import_nodes_of(source: str) -> tuple:
+    """(statement, at module level) for every ``import`` and ``from ... import`` of a module's text."""
+    tree = ast.parse(source)
+    top = {id(n) for n in tree.body}
+    return tuple((n, id(n) in top) for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom)))
+
+
+@functools.lru_cache(maxsize=None)
+def _file_import_nodes(path: Path) -> tuple:
+    """:func:`_import_nodes_of` of a file, parsed once for all the tests here (they only read the nodes)."""
+    return _import_nodes_of(path.read_text())
+
+
+def _import_nodes(path: Path, source: str | None = None, *, top_only: bool = False) -> list:
+    """The ``import`` and ``from ... import`` statements of a file (``source``: the text read in place of
+    its own), those inside functions too unless ``top_only``."""
+    nodes = _file_import_nodes(path) if source is None else _import_nodes_of(source)
+    return [n for n, top in nodes if top or not top_only]
+
+
+@functools.lru_cache(maxsize=None)
+def _is_module(name: str) -> bool:
+    """``mcrecon.a.b`` is a module or a package of the checkout."""
+    sub_path = PACKAGE.parent / name.replace(".", "/")
+    return sub_path.with_suffix(".py").exists() or (sub_path / "__init__.py").exists()
+
+
 def _imports(mod: str, path: Path, is_pkg: bool, *, top_only: bool = False, source: str | None = None):
     """(target module, line) of every mcrecon import in a file (targets resolved to modules where they are);
     ``source``: the text to read in place of the file's."""
-    tree = ast.parse(path.read_text() if source is None else source)
-    nodes = tree.body if top_only else ast.walk(tree)
-    for node in nodes:
+    for node in _import_nodes(path, source, top_only=top_only):
         if isinstance(node, ast.ImportFrom):
             target = _from_target(mod, is_pkg, node)
             if not target.startswith("mcrecon"):
                 continue
             for a in node.names:
                 sub = f"{target}.{a.name}"
-                sub_path = PACKAGE.parent / sub.replace(".", "/")
-                yield (sub if sub_path.with_suffix(".py").exists() or (sub_path / "__init__.py").exists()
-                       else target), node.lineno
+                yield (sub if _is_module(sub) else target), node.lineno
         elif isinstance(node, ast.Import):
             for a in node.names:
                 if a.name.startswith("mcrecon"):
@@ -126,7 +150,7 @@ def test_only_io_opens_hdf5_and_exr_files():
     allowed = ("mcrecon.io", "mcrecon.renderers.command")
     bad = []
     for mod, path, _ in _modules():
-        for node in ast.walk(ast.parse(path.read_text())):
+        for node in _import_nodes(path):
             names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
                 [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else []
             for n in names:
@@ -217,7 +241,7 @@ def _private_imports_across_packages(sources: dict | None = None) -> list[str]:
     out = []
     for mod, path, is_pkg in _modules():
         text = sources.get(mod)
-        for node in ast.walk(ast.parse(path.read_text() if text is None else text)):
+        for node in _import_nodes(path, text):
             if not isinstance(node, ast.ImportFrom):
                 continue
             target = _from_target(mod, is_pkg, node)

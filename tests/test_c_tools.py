@@ -27,7 +27,6 @@ from mcrecon.io.logformat import cast_positions
 from mcrecon.renderers.command import read_request, write_request
 from mcrecon.core.requests import SampleRequest, validate_reply
 
-from helpers import run_cli_process
 
 REPO = Path(__file__).parents[1]
 C_DIR = REPO / "data_tools" / "c"
@@ -80,10 +79,14 @@ def _run(*args, **kw):
 W, H = 24, 16
 
 
-def test_c_writer_log_passes_info_and_denoise(c_tools, tmp_path):
+def test_c_writer_log_passes_info_and_denoise(c_tools, tmp_path, cli):
+    """The C writer's log through ``mcrecon info`` and ``denoise`` (in this process: the same readers as a
+    child's; the other tests here run the command line in children)."""
     log = tmp_path / "c.h5"
     _run(c_tools["mcrecon_log_writer"], log, W, H, 4, 7)
-    info = json.loads(run_cli_process(["info", "--json", log], check=True, cwd=REPO).stdout)
+    code, out, err = cli(["info", "--json", log])
+    assert code == 0, err
+    info = json.loads(out)
     assert (info["width"], info["height"], info["channels"]) == (W, H, ["R", "G", "B"])
     assert info["samples"] == info["finite_samples"] == W * H * 4 and info["rounds"] == 1
     assert info["spp_min"] == info["spp_max"] == 4 and info["features"] == ["depth"]
@@ -96,14 +99,15 @@ def test_c_writer_log_passes_info_and_denoise(c_tools, tmp_path):
         assert h5py.check_string_dtype(f.attrs.get_id("channels").dtype).encoding == "utf-8"
     for method in ("box", "gem"):
         out = tmp_path / f"{method}.exr"
-        proc = run_cli_process(["denoise", log, "-o", out, "--method", method], check=True, cwd=REPO)
-        assert f"{W * H * 4} samples" in proc.stdout
+        code, stdout, err = cli(["denoise", log, "-o", out, "--method", method])
+        assert code == 0, err
+        assert f"{W * H * 4} samples" in stdout
         img, channels = read_exr(out)
         assert img.shape == (H, W, 3) and channels == ("R", "G", "B") and np.isfinite(img).all()
         assert 0.1 < float(img[H // 2, W // 2, 0]) < 2.0  # the disc's centre: 1 times noise of mean 1
 
 
-def test_c_writer_appends_rounds_extending_features_and_discarding_uncommitted_rows(c_tools, tmp_path):
+def test_c_writer_appends_rounds_extending_features_and_discarding_uncommitted_rows(c_tools, tmp_path, cli):
     """Points 1 and 3: an append extends /features/* too; H5Dset_extent discards rows past n_committed
     (left here as an interrupted append would: junk samples and a /rounds/end row past the count);
     the next round is numbered by the committed rounds."""
@@ -138,7 +142,8 @@ def test_c_writer_appends_rounds_extending_features_and_discarding_uncommitted_r
     got = read_log(log)
     assert got.n_rounds == 4 and got.n_samples == n + m + 4 + W * H
     assert got.read_all().round[-1] == 3
-    run_cli_process(["denoise", got.path, "-o", tmp_path / "g.exr", "--method", "box"], check=True, cwd=REPO)
+    code, _, err = cli(["denoise", got.path, "-o", tmp_path / "g.exr", "--method", "box"])
+    assert code == 0, err
 
 
 # ------------------------------------------------------------------ the C renderer
@@ -160,20 +165,21 @@ def _check_c_features(log, w, h):
     np.testing.assert_allclose(log.read_feature("depth"), depth, rtol=1e-6, atol=1e-5)
 
 
-def _adapt(c_tools, tmp_path, method, *extra, w=16, h=12, spp=6):
+def _adapt(cli, c_tools, tmp_path, method, *extra, w=16, h=12, spp=6):
+    """``mcrecon adapt`` driving the C renderer (a child process per round; the command itself runs here)."""
     log = tmp_path / f"{method}.h5"
     # The binary's path holds a space: quoted for shlex, never through a shell.
     cmd = f"{shlex.quote(str(c_tools['mcrecon_c_renderer']))} {{request}} {{reply}}"
-    proc = run_cli_process(["adapt", "--renderer-cmd", cmd, "--size", f"{w}x{h}", "--spp", spp, "--method", method,
-                            "--seed", 5, "-o", tmp_path / f"{method}.exr", "--log", log, "--quiet", *extra],
-                           check=True, cwd=REPO)
-    return proc, log
+    code, _, err = cli(["adapt", "--renderer-cmd", cmd, "--size", f"{w}x{h}", "--spp", spp, "--method", method,
+                        "--seed", 5, "-o", tmp_path / f"{method}.exr", "--log", log, "--quiet", *extra])
+    assert code == 0, err
+    return log
 
 
 @pytest.mark.parametrize("method", ["box", "awr", "gem"])
-def test_c_renderer_drives_an_adaptive_run(c_tools, tmp_path, method):
+def test_c_renderer_drives_an_adaptive_run(c_tools, tmp_path, method, cli):
     """box sends counts every round; awr and gem send positions after the first (counted) round."""
-    _, log = _adapt(c_tools, tmp_path, method, *(() if method == "box" else ("--initial-spp", 2)))
+    log = _adapt(cli, c_tools, tmp_path, method, *(() if method == "box" else ("--initial-spp", 2)))
     got = read_log(log)
     assert got.n_samples == 16 * 12 * 6 and got.n_rounds >= 2
     assert got.run_settings["renderer_spec"]["argv"][0] == str(c_tools["mcrecon_c_renderer"])
@@ -336,7 +342,7 @@ def test_string_attributes_of_either_type_are_read(tmp_path, strings):
     assert append_log(log.path, np.full((2, 2), 0.5), np.ones((2, 3))) == 8  # and appended to
 
 
-def test_round_and_rounds_end_must_agree(tmp_path):
+def test_round_and_rounds_end_must_agree(tmp_path, cli):
     """Point 2: a /rounds/end that contradicts /round is refused in one line naming file, dataset and fix;
     rows past the committed count are not a contradiction."""
     ok = read_log(_log(tmp_path / "ok.h5", rounds=[0, 0, 1, 1, 4, 4], ends=[2, 4, 6]))
@@ -350,8 +356,8 @@ def test_round_and_rounds_end_must_agree(tmp_path):
         msg = str(exc.value)
         assert msg.startswith(f"{path}: dataset /rounds/end: {where} contradicts /round") and "\n" not in msg
         assert "rewrite /rounds/end" in msg and "or delete it" in msg
-        proc = run_cli_process(["info", path], cwd=REPO)
-        assert proc.returncode == 2 and "contradicts /round" in proc.stderr
+        code, _, err = cli(["info", path])
+        assert code == 2 and "contradicts /round" in err
     # An interrupted append: rows past n_committed in every dataset, /rounds/end rows past it or
     # a fill-value 0 a full disk left.
     path = _log(tmp_path / "tail.h5", rounds=[0, 0, 1, 1, 7, 7], ends=[2, 4, 6, 0])
@@ -379,17 +385,16 @@ def test_append_numbers_rounds_above_the_last_label(tmp_path):
     assert log.round_slices() == [(0, 2), (2, 6), (6, 7)] and log.read_all().round.tolist() == [0, 0, 1, 1, 1, 1, 2]
 
 
-def test_positions_on_pixel_edges(tmp_path):
+def test_positions_on_pixel_edges(tmp_path, cli):
     """Point 11: a position exactly on the far edge of the film is off it (refused in one line); the
     largest float32 below the edge is inside; a counted sample on i + 1 belongs to the next pixel."""
     edge = np.float32(3.0)
     below = np.nextafter(edge, np.float32(0))
-    proc = run_cli_process(["info", _log(tmp_path / "edge.h5", positions=np.array([[0.5, 0.5], [edge, 1.5]],
-                                                                                  np.float32))], cwd=REPO)
-    assert proc.returncode == 2 and "first at row 1: [3.0, 1.5]" in proc.stderr
-    assert len(proc.stderr.strip().splitlines()) == 1
+    code, _, err = cli(["info", _log(tmp_path / "edge.h5", positions=np.array([[0.5, 0.5], [edge, 1.5]], np.float32))])
+    assert code == 2 and "first at row 1: [3.0, 1.5]" in err
+    assert len(err.strip().splitlines()) == 1
     ok = read_log(_log(tmp_path / "in.h5", positions=np.array([[0.5, 0.5], [below, 1.5]], np.float32)))
-    assert ok.n_samples == 2 and run_cli_process(["info", ok.path], cwd=REPO).returncode == 0
+    assert ok.n_samples == 2 and cli(["info", ok.path])[0] == 0
     req = SampleRequest(3, 2, counts=np.array([[1, 0, 0], [0, 0, 0]]))
     with pytest.raises(RendererError, match="per-pixel sample counts differ"):
         validate_reply(req, (np.array([[1.0, 0.5]], np.float32), np.ones((1, 3))), n_channels=3)

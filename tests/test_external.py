@@ -182,7 +182,7 @@ def _kill(pid: int) -> None:
         pass
 
 
-def test_sigkill_mid_run_then_resume_matches_uninterrupted(tmp_path):
+def test_sigkill_mid_run_then_resume_matches_uninterrupted(tmp_path, cli):
     # (no "slow" renderer: the hold below is the synchronisation, a sleep per round only cost time)
     cmd = f"{sys.executable} {FAULT} ok -1 {{request}} {{reply}}"
     common = ["adapt", "--renderer-cmd", cmd, "--size", "12x8", "--spp", "32", "--method", "box", "--seed", "9",
@@ -209,8 +209,8 @@ def test_sigkill_mid_run_then_resume_matches_uninterrupted(tmp_path):
     assert 0 < killed.n_samples < 12 * 8 * 32
     out = run_cli_process(["adapt", "--resume", str(log), "-o", str(tmp_path / "resumed.exr"), "--quiet"])
     assert out.returncode == 0, out.stderr
-    ref = run_cli_process([*common, "--log", str(tmp_path / "full.h5"), "-o", str(tmp_path / "full.exr")])
-    assert ref.returncode == 0, ref.stderr
+    code, _, err = cli([*common, "--log", tmp_path / "full.h5", "-o", tmp_path / "full.exr"])  # the reference: here
+    assert code == 0, err
     assert read_log(log).n_samples == read_log(tmp_path / "full.h5").n_samples == 12 * 8 * 32
     a, _ = read_exr(tmp_path / "resumed.exr")
     b, _ = read_exr(tmp_path / "full.exr")
@@ -278,7 +278,7 @@ with h5py.File(sys.argv[2], "r+") as f:
     assert got.read_feature("t").shape == (got.n_samples,)
 
 
-def test_renderer_cmd_is_split_by_shlex_never_by_a_shell(tmp_path):
+def test_renderer_cmd_is_split_by_shlex_never_by_a_shell(tmp_path, cli):
     """--renderer-cmd with quoted words (a script in a directory with a space) and a placeholder inside
     a word; no shell: '$HOME' and ';' reach the command as they are."""
     d = tmp_path / "my renderers"
@@ -292,18 +292,18 @@ assert sys.argv[3:] == ["$HOME", ";", "two words"], sys.argv
 main(sys.argv[1], sys.argv[2].split("=", 1)[1])
 """)
     cmd = f"{sys.executable} '{script}' {{request}} --out={{reply}} '$HOME' ';' \"two words\""
-    out = run_cli_process(["adapt", "--renderer-cmd", cmd, "--size", "8x6", "--spp", "2", "--method", "box",
-                           "--quiet", "--log", str(tmp_path / "run.h5"), "-o", str(tmp_path / "o.exr")])
-    assert out.returncode == 0, out.stderr
+    code, _, err = cli(["adapt", "--renderer-cmd", cmd, "--size", "8x6", "--spp", "2", "--method", "box", "--quiet",
+                        "--log", tmp_path / "run.h5", "-o", tmp_path / "o.exr"])
+    assert code == 0, err
     assert read_log(tmp_path / "run.h5").run_settings["renderer_spec"]["argv"][1:3] == [str(script), "{request}"]
 
 
 @pytest.mark.parametrize("channels", ["R, G, B", "R,,B", "R,R"])
-def test_channels_flag_syntax(tmp_path, channels):
-    out = run_cli_process(["adapt", "--renderer-cmd", f"{sys.executable} {EXAMPLE} {{request}} {{reply}}",
-                           "--channels", channels, "--size", "4x4", "--spp", "1", "-o", str(tmp_path / "o.exr")])
-    assert out.returncode == 2 and "channels" in out.stderr and "--channels R,G,B" in out.stderr
-    assert len(out.stderr.strip().splitlines()) == 1
+def test_channels_flag_syntax(tmp_path, channels, cli):
+    code, _, err = cli(["adapt", "--renderer-cmd", f"{sys.executable} {EXAMPLE} {{request}} {{reply}}",
+                        "--channels", channels, "--size", "4x4", "--spp", "1", "-o", tmp_path / "o.exr"])
+    assert code == 2 and "channels" in err and "--channels R,G,B" in err
+    assert len(err.strip().splitlines()) == 1
 
 
 def test_exchange_files_live_in_a_private_temporary_directory(tmp_path, monkeypatch):

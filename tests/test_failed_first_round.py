@@ -120,15 +120,17 @@ def _one_line(code, err, *matches):
         assert m in err, err
 
 
-def test_cli_nfor_without_features_leaves_nothing_and_the_retry_with_features_runs(tmp_path):
-    """As a user types it, in a separate process: refused, nothing left, the corrected command runs."""
+def test_cli_nfor_without_features_leaves_nothing_and_the_retry_with_features_runs(tmp_path, capsys, monkeypatch):
+    """As a user types it: refused in a separate process (its exit status and its one line), nothing left;
+    the corrected command, run here in the same folder, runs."""
     base = ["adapt", "--scene", "checker_wall", "--size", "16x12", "--spp", "8",
             "--method", "nfor", "--log", "run.h5", "-o", "out.exr", "--quiet"]
     bad = run_cli_process(base + ["--features", "none"], cwd=tmp_path, timeout=300)
     _one_line(bad.returncode, bad.stderr, "nfor needs per-sample features")
     assert sorted(p.name for p in tmp_path.iterdir()) == []
-    good = run_cli_process(base, cwd=tmp_path, timeout=300)
-    assert good.returncode == 0, good.stderr
+    monkeypatch.chdir(tmp_path)
+    code, _, err = run_cli(base, capsys)
+    assert code == 0, err
     assert read_log(tmp_path / "run.h5").n_samples == 16 * 12 * 8 and (tmp_path / "out.exr").exists()
 
 

@@ -412,7 +412,7 @@ def tmpfs(tmp_path):
         pass  # the read-only bind mount over it, then the tmpfs
 
 
-def test_read_only_directory_mid_run_one_line_then_resume_matches(tmp_path, tmpfs, uninterrupted):
+def test_read_only_directory_mid_run_one_line_then_resume_matches(tmp_path, tmpfs, uninterrupted, capsys):
     from mcrecon.io import read_exr
 
     full_log, full_exr = uninterrupted
@@ -427,8 +427,9 @@ def test_read_only_directory_mid_run_one_line_then_resume_matches(tmp_path, tmpf
     assert sl.n_rounds == 2 and list(sl.round_ends) == [512, 1024]
     assert live_writer(log) is None  # the lock left behind (it could not be removed) is stale
     assert subprocess.run(["umount", str(tmpfs)]).returncode == 0  # writable again
-    res = run_cli_process(["adapt", "--resume", log, "-o", tmp_path / "resumed.exr", "--quiet"])
-    assert res.returncode == 0, res.stderr
+    # the resume in this process (test_external.py resumes a killed run in a child of its own)
+    code, _, err = run_cli(["adapt", "--resume", log, "-o", tmp_path / "resumed.exr", "--quiet"], capsys)
+    assert code == 0, err
     assert read_log(log).n_samples == read_log(full_log).n_samples == 32 * 16 * 32
     np.testing.assert_array_equal(read_exr(tmp_path / "resumed.exr")[0], read_exr(full_exr)[0])
     assert not lock_path(log).exists()
@@ -436,22 +437,25 @@ def test_read_only_directory_mid_run_one_line_then_resume_matches(tmp_path, tmpf
 
 # ------------------------------------------------------------------ a full disk mid-run
 def _adapt_cli(log, out, extra_env=None, *, prelude=None):
-    argv = ["adapt", "--renderer-cmd", f"{sys.executable} {FAULT} ok -1 {{request}} {{reply}}", "--size",
-            "32x16", "--spp", "32", "--method", "box", "--seed", "9", "--quiet", "--log", str(log), "-o", str(out)]
-    return run_cli_process(argv, extra_env=extra_env, prelude=prelude)
+    return run_cli_process(_adapt_argv(log, out), extra_env=extra_env, prelude=prelude)
+
+
+def _adapt_argv(log, out):
+    return ["adapt", "--renderer-cmd", f"{sys.executable} {FAULT} ok -1 {{request}} {{reply}}", "--size", "32x16",
+            "--spp", "32", "--method", "box", "--seed", "9", "--quiet", "--log", str(log), "-o", str(out)]
 
 
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory):
-    """The run the faulted runs are resumed into, once per module (a worker's): its log and image."""
+    """The run the faulted runs are resumed into, once per module (a worker's): its log and image.  In this
+    process: the same command as the faulted runs' children, whose exits are what those tests check."""
     d = tmp_path_factory.mktemp("uninterrupted")
-    full = _adapt_cli(d / "full.h5", d / "full.exr")
-    assert full.returncode == 0, full.stderr
+    assert run_cli(_adapt_argv(d / "full.h5", d / "full.exr"))[0] == 0
     return d / "full.h5", d / "full.exr"
 
 
 @pytest.mark.parametrize("path", ["checked", "inside_hdf5"])
-def test_full_disk_mid_run_one_line_then_resume_matches(tmp_path, tmpfs, uninterrupted, path):
+def test_full_disk_mid_run_one_line_then_resume_matches(tmp_path, tmpfs, uninterrupted, path, capsys):
     """At round 2 the renderer fills the log's file system (ENOSPC).
 
     ``checked``: the append sees too little free space and refuses before
@@ -481,8 +485,8 @@ def test_full_disk_mid_run_one_line_then_resume_matches(tmp_path, tmpfs, uninter
         assert 2 <= sl.n_rounds < read_log(full_log).n_rounds
         assert list(sl.round_ends) == list(read_log(full_log).round_ends[:sl.n_rounds])
     filler.unlink()
-    res = run_cli_process(["adapt", "--resume", log, "-o", tmp_path / "resumed.exr", "--quiet"])
-    assert res.returncode == 0, res.stderr
+    code, _, err = run_cli(["adapt", "--resume", log, "-o", tmp_path / "resumed.exr", "--quiet"], capsys)
+    assert code == 0, err
     assert read_log(log).n_samples == read_log(full_log).n_samples == 32 * 16 * 32
     np.testing.assert_array_equal(read_exr(tmp_path / "resumed.exr")[0], read_exr(full_exr)[0])
 

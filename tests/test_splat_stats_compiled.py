@@ -105,7 +105,7 @@ def test_round_sums_equal_the_separate_passes():
         pos = rng.uniform(0, 1, (n, 2)) * [w, h]
         if r:
             pos = pos[np.lexsort((pos[:, 0], np.floor(pos[:, 1])))]  # rows never decrease: bands visit their own
-        val = rng.exponential(1.0, (n, 3)).astype(np.float32)
+        val = rng.exponential(1.0, (n, 3))  # float64, as positions: the library passes the pair in one dtype
         feats = {"albedo": rng.uniform(0, 1, (n, 3)).astype(np.float32), "depth": 1000 + rng.normal(0, 0.01, n)}
         feats["albedo"][5, 1] = np.nan
         from mcrecon.methods.splat.bands import rows_sorted

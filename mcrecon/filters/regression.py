@@ -105,7 +105,9 @@ def _band(ypad, guide, var, fpad, r, f, k2s, ridge, eps, clamp, min_centre, leve
                     if qi < 0 or qi >= h:
                         continue
                     dst = wts[b, o, rr * w + j0:rr * w + j1]
-                    dmax[:j1 - j0] = dist[0, rr, j0:j1]
+                    d0 = dist[0, rr, j0:j1]
+                    for t in range(j1 - j0):  # element loop, not a slice assignment (see engine._corr2_rows)
+                        dmax[t] = d0[t]
                     for ch in range(1, cg):  # the largest channel distance (slices: vectorised, see offset_distances)
                         dc = dist[ch, rr, j0:j1]
                         for t in range(j1 - j0):
