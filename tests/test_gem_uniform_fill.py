@@ -167,7 +167,8 @@ def test_awr_round_raises_the_rare_components_net_first(sampler):
 
 
 def test_awr_rounds_are_even_where_a_covering_light_is_found_often():
-    from mcrecon.methods.awr.method import EVEN_HIT_RATE, hit_rate
+    from mcrecon.core.nets import hit_rate
+    from mcrecon.methods.awr.method import EVEN_HIT_RATE
     # a light found by one sample in 8 at every pixel of the left 12 of 16 columns (its floor covers the
     # film); independent samples find it at 1/8 (every pixel: an infinite estimate), a stratified sampler's
     # round is the floor's
@@ -190,7 +191,7 @@ def test_awr_rounds_are_even_where_a_covering_light_is_found_often():
 
 @pytest.mark.parametrize("p", [0.02, 0.075, 0.2])
 def test_awr_hit_rate_reads_the_chance_to_find_the_light(p):
-    from mcrecon.methods.awr.method import hit_rate
+    from mcrecon.core.nets import hit_rate
     # 4000 pixels of 16 samples: a pixel shows the light (a relative variance far above 1) where one of its
     # samples found it, which happens at 1 - (1 - p)^16; the estimate's spread is the binomial share's
     n, k = 16, 4000

@@ -7,10 +7,10 @@ import dataclasses
 import numpy as np
 
 from ..base import AdaptiveState, Method, MethodInputs, Option, Requirements, RunState, uniform_counts, variant_option
-from ...core.fill import fill_empty_pixels, mean_variance_policy
+from ...core.fill import fill_empty_pixels
 from .reconstruction import DOMAINS, VARIANCE_ESTIMATORS, awr_reconstruct, log_domain_reconstruct, pixel_variance
-from ...core.nets import RARE_COVER, covering_rare_net_floor, even_plan, rare_net_deficit
-from ...core.safeguard import RARE_EPS, RARE_THRESHOLD, confidence_clamp, sample_range_bounds
+from ...core.nets import RARE_COVER, covered_even_plan, rare_net_deficit
+from ...core.safeguard import RARE_THRESHOLD, confidence_clamp, sample_range_bounds
 from .sampling import plan_awr_positions
 from .wavelets import BOUNDARY_MODES, PROPAGATIONS, RECONSTRUCTION_RENORM, SAMPLING_RENORM, WAVELETS, default_levels
 
@@ -21,31 +21,13 @@ _PAPER_PER_COEFFICIENT = 64
 #: Deepest decomposition the ``levels`` option accepts.
 _MAX_LEVELS = 12
 #: An independent run's rounds are even under a rare component whose floor covers most of the film
-#: (``RARE_COVER``) only where its samples find it this often or more (per sample, :func:`hit_rate`): there
+#: (``RARE_COVER``) only where its samples find it this often or more (per sample, ``nets.hit_rate``): there
 #: the wavelet sampler ranks the light's noise, which every pixel's own samples carry (tuning checker_spot
 #: at p 0.091-0.105: adaptive / uniform 1.01-1.03 with the sampler's counts, 0.993-1.005 even); below it its
 #: extra samples dilute the pixels that caught a rare component (p 0.011-0.055 read 0.98-1.01 either way,
 #: tests/test_awr_robust.py's firefly field at 1e-3 gains 1.8x over even rounds).  docs/adaptive.md.
 EVEN_HIT_RATE = 0.075
 
-
-def hit_rate(state: AdaptiveState, covered: np.ndarray) -> float:
-    """Per-sample rate at which the ``covered`` pixels' samples find a rare bright component.
-
-    ``s``, the share of the covered pixels whose own samples show it (a per-sample relative variance of 1
-    or more in some channel: a pixel whose samples all missed it reads its texture's, far below), is the
-    chance that ``n`` samples find it once or more, ``1 - (1 - p)^n``, so ``p = -ln(1 - s) / n`` with ``n``
-    the covered pixels' median count (checker_spot at 16 samples: light probability 0.097 read as 0.098,
-    0.0546 as 0.059, 0.0248 as 0.024).
-    """
-    st = state.stats
-    per_sample = mean_variance_policy(st) * st.count[..., None]
-    found = np.max(per_sample / (st.mean ** 2 + RARE_EPS), axis=2) >= 1.0
-    share = float(np.mean(found[covered]))
-    n = float(np.median(st.count[covered]))
-    if share >= 1.0:
-        return np.inf
-    return -np.log1p(-share) / max(n, 1.0)
 
 
 @dataclasses.dataclass(eq=False)
@@ -199,15 +181,12 @@ class AWRMethod(Method):
         return max(1, int(round(state.budget / (4.0 * state.width * state.height))))
 
     def plan(self, run: "AWRRun", state: AdaptiveState):
-        """:meth:`Method.plan`'s round of :meth:`place`, or an even round (``nets.even_plan``) for independent
-        samples where the rare component's floor covers most of the film and its samples find it at
+        """:meth:`Method.plan`'s round of :meth:`place`, or an even round (``nets.covered_even_plan``) for
+        independent samples where the rare component's floor covers most of the film and its samples find it at
         :data:`EVEN_HIT_RATE` or more (``rare_light_floor`` on; the paper's variant has it off)."""
-        p = self.params
-        if p["rare_light_floor"] and state.sampler == "independent" and p["net_counts"] != 1:
-            floor = covering_rare_net_floor(state, threshold=RARE_THRESHOLD, min_cover=RARE_COVER)
-            if floor is not None and hit_rate(state, floor > 0) >= EVEN_HIT_RATE:
-                return even_plan(self, state)
-        return super().plan(run, state)
+        even = covered_even_plan(self, state, threshold=RARE_THRESHOLD, min_hit_rate=EVEN_HIT_RATE) \
+            if self.params["rare_light_floor"] else None
+        return even or super().plan(run, state)
 
     def place(self, run: "AWRRun", state: AdaptiveState, n: int):
         """Samples per pixel of the wavelet sampler's next batch of ``n`` (§4.1), or None when it has none.
