@@ -127,6 +127,50 @@ def test_pixels_are_raised_to_the_rare_components_floor_first(sampler):
     assert (counts == 3).all() if sampler == "sobol" else np.ptp(counts) > 3
 
 
+def _half_lit_state(sampler):
+    """8 x 40 pixels: the left 16 columns under a rare light (one sample in 8 finds it), the rest dim and
+    even (8 samples each, four pixels behind at 4); budget 32 spp, the first adaptive round."""
+    h, w = 8, 40
+    per_pixel = np.full((h, w), 8)
+    per_pixel[2:6, 30] = 4
+    ys, xs = np.nonzero(per_pixel > 0)
+    reps = per_pixel[ys, xs]
+    pos = np.stack([np.repeat(xs + 0.5, reps), np.repeat(ys + 0.5, reps)], axis=1)
+    val = np.full((pos.shape[0], 3), 0.05)
+    lit = np.flatnonzero(pos[:, 0] < 16)
+    val[lit] = 0.0
+    val[lit[::8]] = 1.0
+    st = PixelStats(w, h, subpixels=0)
+    st.add(pos, val)
+    return AdaptiveState(st, 1, 32 * w * h, st.n_samples, np.random.default_rng(0), iteration=0, sampler=sampler)
+
+
+@pytest.mark.parametrize("sampler", ["sobol", "independent"])
+def test_pixels_no_floor_holds_keep_a_part_of_the_share(sampler):
+    """With a stratified sampler a round the floors' deficit exceeds still gives the pixels no floor holds
+    UNHELD_SHARE of their part of the uniform share, from their lowest counts: without it their statistics
+    never change and the floor cannot reach a pixel whose first samples missed the light.  Independent
+    samples' rounds go to the floors alone (there it is a trade: docs/adaptive.md)."""
+    from mcrecon.core.nets import state_rare_net_floor
+    from mcrecon.methods.gem.method import UNHELD_SHARE
+
+    m = get_method("gem")
+    state = _half_lit_state(sampler)
+    floor = state_rare_net_floor(state, threshold=m.rare_gate(state))
+    held = floor > 0
+    assert held[:, :16].all() and not held[:, 20:].any()
+    current = state.stats.count
+    n = m.round_size(state)
+    assert np.maximum(floor - current, 0).sum() > n            # the floors alone would take the round
+    counts = m.plan(m.start(40, 8), state).counts
+    k = int(round(UNHELD_SHARE * m.params["uniform_share"] * n * np.mean(~held))) if sampler == "sobol" else 0
+    assert counts.sum() == n and counts[~held].sum() == k      # the unheld pixels' part, no more
+    if sampler == "sobol":
+        behind = counts[2:6, 30]                                # the four behind first, toward the common level
+        assert k > 0 and behind.sum() == min(k, 16) and np.ptp(behind) <= 1
+    assert counts[held].sum() == n - k and (current + counts <= np.maximum(floor, current))[held].all()
+
+
 def test_awr_batch_gives_what_is_owed_first():
     from mcrecon.methods.awr.sampling import plan_awr_positions
     st = _rare_state("sobol", 0).stats

@@ -35,6 +35,11 @@ TARGET_EPS = 1e-2
 #: a light one sample in 4 finds reads a per-sample relative variance of 4 in the pixel that found it,
 #: so at the initial pass only a gate below 4 lets its neighbours keep their share.
 RARE_THRESHOLD_INDEPENDENT = 3.0
+#: Share of their part of a round's uniform share that the pixels no rare floor holds keep in a round the
+#: floors' deficit exceeds, with a stratified sampler: without it the floors take such rounds whole, the unheld pixels' statistics do not
+#: change, and the floor cannot spread to a pixel whose first samples missed the light (docs/adaptive.md, "Floors and
+#: the pixels they do not hold").
+UNHELD_SHARE = 0.1
 
 _WHERE = "method gem"
 
@@ -325,7 +330,9 @@ class GEMMethod(Method):
         (about two hits of the component; their greedy counts fall as they are): under a light that one
         sample in tens finds every pixel's estimates are that light's noise, and the greedy counts left
         most pixels below a uniform render's.  The floors' samples count against
-        the round's uniform share; a round the floors exceed goes to them alone, from the bottom.  While the
+        the round's uniform share; a round the floors exceed goes to them, from the bottom, but with a stratified
+        sampler for a part (:data:`UNHELD_SHARE` of their part of the uniform share) that the pixels no floor holds
+        keep, from their lowest counts up.  While the
         samples show no structure beyond noise (:func:`~mcrecon.core.nets.shows_structure`), no
         ``target_rel_mse`` is set and the variant is not the paper's, the round is uniform (:func:`~mcrecon.core.nets.even_round`).
         """
@@ -348,7 +355,13 @@ class GEMMethod(Method):
         deficit = np.maximum(floor - current, 0)
         d = int(deficit.sum())
         if d >= n:
-            return state.request(counts=fill_lowest(current, n, state.rng, cap=current + deficit))
+            free = floor == 0
+            k = int(round(UNHELD_SHARE * p["uniform_share"] * n * np.mean(free))) if stratified else 0
+            unheld = np.zeros(current.shape, np.int64)
+            if k > 0:
+                unheld = fill_lowest(current, k, state.rng, cap=np.where(free, current + k, current))
+            return state.request(counts=unheld + fill_lowest(current + unheld, n - k, state.rng,
+                                                             cap=current + unheld + deficit))
         n_share = max(int(round(p["uniform_share"] * n)) - d, 0)
         placed = self.place(run, state, n - d - n_share)
         if placed is None:
