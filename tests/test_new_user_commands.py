@@ -385,7 +385,9 @@ def test_readme_install_brings_oidn_and_says_how_to_get_the_mitsuba_tests():
 
 
 #: Words that say how to get what a skipped test lacks.
-_HOW = ("install", "pip ", "apt", "root", "MCRECON_")
+#: What a skip reason names to say how to get the missing thing (a package to install, a variable to set,
+#: root; for a CPU the pins cannot be checked on, the machine to run them on).
+_HOW = ("install", "pip ", "apt", "root", "MCRECON_", "on an x86-64 machine")
 #: Variables whose text says it already: mitsuba_available()'s reason (checked below), the C tools' and the
 #: docs test's HDF5 checks (install hints, collected in ``skipped``) and the docs' skip marks (why a block
 #: is not run here, tests/test_docs_commands.py).
