@@ -36,9 +36,9 @@ TARGET_EPS = 1e-2
 #: so at the initial pass only a gate below 4 lets its neighbours keep their share.
 RARE_THRESHOLD_INDEPENDENT = 3.0
 #: Share of their part of a round's uniform share that the pixels no rare floor holds keep in a round the
-#: floors' deficit exceeds, with a stratified sampler: without it the floors take such rounds whole, the unheld pixels' statistics do not
-#: change, and the floor cannot spread to a pixel whose first samples missed the light (docs/adaptive.md, "Floors and
-#: the pixels they do not hold").
+#: floors' deficit exceeds, with a stratified sampler: without it the floors take such rounds whole, the unheld
+#: pixels' statistics do not change, and the floor cannot spread to a pixel whose first samples missed the light
+#: (docs/adaptive.md, "Floors and the pixels they do not hold").
 UNHELD_SHARE = 0.1
 
 _WHERE = "method gem"
