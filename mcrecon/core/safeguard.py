@@ -496,9 +496,12 @@ def rare_component_mask(var_mean: np.ndarray, mean: np.ndarray, count: np.ndarra
     A pixel's per-sample relative variance ``n v / (mean^2 + RARE_EPS)``
     (``v`` the variance of its mean) above ``threshold``, per channel: one
     sample of ``n`` carrying all of a pixel's value gives ``n``, a
-    component found with probability ``p`` about ``1 / p``, an edge or a
-    texture inside the pixel at most about 1.  Arguments as
-    :func:`rare_component_variance`.
+    component found with probability ``p`` about ``1 / p``, a texture inside
+    the pixel about 1 or less; but a sharp edge's bright side over a share
+    ``s`` of an otherwise black pixel reads ``(1 - s) / s`` like a component
+    found with probability ``s``: 3 or more below a quarter, so high-contrast
+    edges pass a gate of 3 (docs/adaptive.md, mitsuba-thin_lens).  Arguments
+    as :func:`rare_component_variance`.
     """
     v = np.ascontiguousarray(var_mean, dtype=np.float64)
     m = np.ascontiguousarray(mean, dtype=np.float64)
