@@ -45,6 +45,8 @@ RTOL = 1e-6
 #: The same for the methods whose images pass through OIDN (its kernels follow the CPU's vector width).
 RTOL_OIDN = 3e-5
 OIDN_METHODS = ("auto",)
+#: The numpy targets the cases run on in their child process (:func:`held_numpy_env`).
+HELD_TARGETS = frozenset({"baseline(X86_V2)", "X86_V3"})
 SCENES = ("soft_shadow", "caustic")
 SIZE = 24
 SPP = 8
@@ -168,7 +170,7 @@ def pins():
 
 def test_outputs_match_pins(pins, tmp_path):
     """Every case's hashes and images against the pins; the failures listed together."""
-    if not numpy_targets() <= {"baseline(X86_V2)", "X86_V3", "X86_V4"}:
+    if not numpy_targets() <= HELD_TARGETS | {"X86_V4"}:
         pytest.skip(f"the pins are numpy's x86-64 AVX2 kernels' and this numpy runs {sorted(numpy_targets())}: "
                     "run this test on an x86-64 machine with AVX2")
     run_cases(tmp_path)
@@ -215,7 +217,7 @@ def test_every_registered_method_is_pinned(pins):
 
 
 if __name__ == "__main__" and sys.argv[1:2] == ["--compute"] and len(sys.argv) == 3:
-    if not numpy_targets() <= {"baseline(X86_V2)", "X86_V3"}:
+    if not numpy_targets() <= HELD_TARGETS:
         sys.exit(f"numpy runs {sorted(numpy_targets())}: run through run_cases (its environment holds it to X86_V3)")
     out = Path(sys.argv[2])
     with tempfile.TemporaryDirectory() as d:
